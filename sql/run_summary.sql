@@ -1,0 +1,5 @@
+-- Run summary: the run record (scenario, versions, input fingerprints, row accounting, timings)
+-- as key/value pairs.
+SELECT key, value
+FROM run
+ORDER BY key;

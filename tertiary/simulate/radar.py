@@ -1,0 +1,172 @@
+"""Radar observation model: scans, beam-passage timing, coverage, detection, noise, clutter.
+
+One call simulates one radar over the whole scenario for all Monte-Carlo runs at once:
+arrays are (aircraft × scans) for geometry and (runs × covered plots) for noise — no Python
+loop over aircraft, scans or runs.
+
+Rotating antenna: the beam points north at the scan start ``phase + k·T`` and turns clockwise,
+so an aircraft at azimuth β is illuminated at ``t = phase + k·T + T·β/360`` (solved by two
+fixed-point iterations, β moves little in one scan). ``timing="synchronous"`` samples every
+aircraft at the scan start (the seed's synchronous τ = 1 s model).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tertiary import geo
+from tertiary.simulate.config import Anomalies, RadarConfig
+from tertiary.simulate.trajectory import Trajectories
+
+FT = 0.3048
+
+
+@dataclass
+class Plots:
+    """Column arrays of one radar's reports over all runs (before its secondary processing)."""
+
+    run: NDArray[np.uint32]
+    t_true: NDArray[np.float64]        # true illumination time (s from epoch)
+    t_report: NDArray[np.float64]      # time stamp by the radar clock
+    aircraft: NDArray[np.int64]        # index into Trajectories, -1 for clutter
+    range_m: NDArray[np.float64]
+    azimuth_deg: NDArray[np.float64]
+    elevation_deg: NDArray[np.float64]
+    altitude_m: NDArray[np.float64]    # Mode C (25 ft quantum), NaN for clutter
+    local_track_id: NDArray[np.uint32]
+
+    def __len__(self) -> int:
+        return len(self.run)
+
+
+def site_frame(radar: RadarConfig, system: geo.LocalFrame) -> geo.LocalFrame:
+    """The radar's local ENU frame (site from lat/lon or from system-frame ENU)."""
+    if radar.lat_deg is not None and radar.lon_deg is not None:
+        return geo.LocalFrame(radar.lat_deg, radar.lon_deg, radar.alt_m)
+    if radar.site_enu_m is None:
+        raise ValueError(f"radar {radar.name!r}: give lat_deg/lon_deg or site_enu_m")
+    lat, lon, alt = system.to_geodetic(*radar.site_enu_m)
+    return geo.LocalFrame(float(lat), float(lon), float(alt))
+
+
+def _illumination(traj: Trajectories, radar: RadarConfig, sys_to_site, scan_start):
+    """Illumination times (A, K) and the truth there."""
+    a_n, k_n = traj.n_aircraft, len(scan_start)
+    ac = np.broadcast_to(np.arange(a_n)[:, None], (a_n, k_n))
+    t = np.broadcast_to(scan_start[None, :], (a_n, k_n)).astype(float)
+    if radar.timing == "rotating":
+        base = t
+        for _ in range(2):
+            pos, _, _ = traj.state_at(ac, t)
+            e, n, _ = sys_to_site(pos)
+            az = np.mod(np.degrees(np.arctan2(e, n)), 360.0)
+            t = base + radar.scan_period_s * az / 360.0
+    pos, vel, ok = traj.state_at(ac, t)
+    return ac, t, pos, ok
+
+
+def _inflation(anom: Anomalies, radar: RadarConfig, t: NDArray[np.float64]) -> NDArray[np.float64]:
+    applies = not anom.radars or radar.name in anom.radars
+    if not applies or anom.noise_factor == 1.0:
+        return np.ones_like(t)
+    if anom.noise_window_s is None:
+        return np.full_like(t, anom.noise_factor)
+    lo, hi = anom.noise_window_s
+    return np.where((t >= lo) & (t <= hi), anom.noise_factor, 1.0)
+
+
+def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs: int,
+            rng: np.random.Generator, anom: Anomalies = Anomalies()) -> Plots:
+    """Simulate every scan of ``radar`` over ``traj`` for ``runs`` Monte-Carlo runs."""
+    site = site_frame(radar, system)
+
+    def sys_to_site(p):
+        q, _, _ = geo.frame_to_frame(p, system, site)
+        return q[..., 0], q[..., 1], q[..., 2]
+
+    period = radar.scan_period_s
+    scan_start = np.arange(radar.scan_phase_s % period, traj.duration - 1e-9, period)
+    ac, t, pos, ok = _illumination(traj, radar, sys_to_site, scan_start)
+    e, n, u = sys_to_site(pos)
+    rng_true, az_true, el_true = geo.enu_to_polar(e, n, u)
+    covered = ok & (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg)
+    ia, ik = np.nonzero(covered)
+    m = len(ia)
+    polar = np.stack([rng_true[ia, ik], az_true[ia, ik], el_true[ia, ik]], axis=1)   # (m, 3)
+    t_c = t[ia, ik]
+    _, _, alt_true = system.to_geodetic(*pos[ia, ik].T)
+
+    # per run: detection, noise, biases, outliers
+    detect = rng.random((runs, m)) < radar.pd
+    sig = np.array([radar.sigma_range_m, radar.sigma_azimuth_deg, radar.sigma_elevation_deg])
+    noise = rng.standard_normal((runs, m, 3)) * sig * _inflation(anom, radar, t_c)[None, :, None]
+    bias = np.array([radar.bias_range_m, radar.bias_azimuth_deg, 0.0])
+    meas = polar[None] + noise + bias
+    applies = not anom.radars or radar.name in anom.radars
+    if applies and anom.bias_step_time_s is not None:
+        step = (t_c >= anom.bias_step_time_s)[None, :]
+        meas[..., 0] += np.where(step, anom.bias_step_range_m, 0.0)
+        meas[..., 1] += np.where(step, anom.bias_step_azimuth_deg, 0.0)
+    if applies and anom.outlier_fraction > 0:
+        out = rng.random((runs, m)) < anom.outlier_fraction
+        gross = rng.standard_normal((runs, m, 3)) * sig * anom.outlier_sigma_factor
+        meas = np.where(out[..., None], meas + gross, meas)
+    keep = detect
+    if anom.dropout_radar == radar.name and anom.dropout_window_s is not None:
+        lo, hi = anom.dropout_window_s
+        keep &= ~((t_c >= lo) & (t_c <= hi))[None, :]
+    r_idx, p_idx = np.nonzero(keep)
+    meas = meas[r_idx, p_idx]
+
+    plots = Plots(
+        run=r_idx.astype(np.uint32), t_true=t_c[p_idx], t_report=t_c[p_idx] + radar.time_offset_s,
+        aircraft=ia[p_idx].astype(np.int64),
+        range_m=np.maximum(meas[:, 0], 0.0), azimuth_deg=np.mod(meas[:, 1], 360.0),
+        elevation_deg=np.clip(meas[:, 2], -90.0, 90.0),
+        altitude_m=np.round(alt_true[p_idx] / (25 * FT)) * (25 * FT),
+        local_track_id=np.zeros(len(r_idx), np.uint32))
+    plots = _merge(plots, _clutter(radar, scan_start, runs, rng))
+    plots.local_track_id = _local_track_ids(plots, radar)
+    return plots
+
+
+def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng: np.random.Generator) -> Plots:
+    """False reports: Poisson count per scan, uniform in azimuth, range and low elevation."""
+    counts = rng.poisson(radar.clutter_rate, (runs, len(scan_start))) if radar.clutter_rate > 0 else \
+        np.zeros((runs, len(scan_start)), np.int64)
+    r_idx, k_idx = np.nonzero(counts)
+    reps = counts[r_idx, k_idx]
+    run = np.repeat(r_idx, reps).astype(np.uint32)
+    k = np.repeat(k_idx, reps)
+    c = len(run)
+    az = rng.uniform(0.0, 360.0, c)
+    t = scan_start[k] + (radar.scan_period_s * az / 360.0 if radar.timing == "rotating" else 0.0)
+    return Plots(run=run, t_true=t, t_report=t + radar.time_offset_s, aircraft=np.full(c, -1, np.int64),
+                 range_m=rng.uniform(2_000.0, radar.max_range_m, c), azimuth_deg=az,
+                 elevation_deg=rng.uniform(0.0, 3.0, c), altitude_m=np.full(c, np.nan),
+                 local_track_id=np.zeros(c, np.uint32))
+
+
+def _merge(a: Plots, b: Plots) -> Plots:
+    return Plots(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in Plots.__dataclass_fields__))
+
+
+def _local_track_ids(p: Plots, radar: RadarConfig) -> NDArray[np.uint32]:
+    """The radar's own track numbers: one per (run, aircraft) stretch of continuous detection;
+    a gap longer than ``track_drop_scans`` scans drops the track and the next detection opens
+    a new number. Each false report is its own one-plot track. Numbers restart per run."""
+    order = np.lexsort((p.t_true, p.aircraft, p.run))
+    run, ac, t = p.run[order], p.aircraft[order], p.t_true[order]
+    new = np.ones(len(order), bool)
+    if len(order):
+        new[1:] = (run[1:] != run[:-1]) | (ac[1:] != ac[:-1]) | (ac[1:] < 0) | \
+            (t[1:] - t[:-1] > radar.track_drop_scans * radar.scan_period_s)
+    tid = np.cumsum(new)
+    run_first = np.searchsorted(run, run, side="left")          # first row of each run
+    tid = tid - tid[run_first] + 1
+    out = np.empty(len(order), np.uint32)
+    out[order] = tid
+    return out
