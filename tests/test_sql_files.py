@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +29,15 @@ def test_every_sql_file_has_a_header_comment():
         assert f.read_text().startswith("-- "), f.name
 
 
-def test_sql_shipped_with_installed_package():
+def test_sql_and_scenarios_shipped_with_installed_package():
     pkg = Path(tertiary.__file__).resolve().parent
     if "site-packages" not in str(pkg):
         pytest.skip("running from a source checkout; the wheel check runs on the installed package")
-    shipped = {p.name for p in resources.files("tertiary.sql").iterdir() if p.name.endswith(".sql")}
+    shipped = {p.name for p in (pkg / "sql").glob("*.sql")}
     assert shipped == {p.name for p in SQL_DIR.glob("*.sql")}
+    from tertiary.simulate.config import builtin_dir, builtin_scenarios
+    assert builtin_dir() == pkg / "datasets"
+    assert {"big-box", "terminal-area", "adsb-paris", "adsb"} <= set(builtin_scenarios())
 
 
 @pytest.fixture(scope="module")

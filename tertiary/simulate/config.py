@@ -6,7 +6,6 @@ import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field, fields, is_dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
@@ -196,15 +195,11 @@ def to_toml(data: dict[str, Any], prefix: str = "") -> str:
 
 
 def builtin_dir() -> Path:
-    """Where the built-in scenario TOML files live: inside the installed wheel
-    (``tertiary/datasets``) or, in a source checkout, the repository's ``datasets/``."""
-    try:
-        installed = Path(str(resources.files("tertiary.datasets")))
-        if any(installed.glob("*.toml")):
-            return installed
-    except (ModuleNotFoundError, TypeError):
-        pass
-    return Path(__file__).resolve().parents[2] / "datasets"
+    """Where the built-in scenario TOML files live: ``tertiary/datasets`` inside an installed
+    wheel, or the repository's ``datasets/`` in a source checkout."""
+    package = Path(__file__).resolve().parents[1]
+    installed = package / "datasets"
+    return installed if any(installed.glob("*.toml")) else package.parent / "datasets"
 
 
 def load_scenario(name_or_path: str | Path) -> ScenarioConfig:
