@@ -28,7 +28,7 @@ def tick(msg):
     now = time.perf_counter()
     if last[1] is not None:
         stages[last[1]] = stages.get(last[1], 0.0) + now - last[0]
-    last[:] = [now, msg.split(" ")[0]]
+    last[:] = [now, " ".join(msg.split(" ")[:2])]
 t0 = time.perf_counter()
 ds = simulate(cfg, progress=tick)
 tick("end")

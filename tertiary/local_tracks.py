@@ -16,6 +16,8 @@ Python loop runs over the report rank within a track (the scan count), never ove
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,6 +142,34 @@ def model_coefficients(model: SingerModel, tau: NDArray[np.float64], sigma_m: ND
     return singer_coefficients(tau[None, :], model.alpha, sigma_m, model.variant)
 
 
+def _to_enu(est: NDArray[np.float64], cov: NDArray[np.float64], chunk: int = 32_768):
+    """Polar track states (n, channel, (pos, rate)) with per-channel (P00, P01, P11) to
+    radar-local ENU position, velocity and flattened 6×6 covariance (n, 36).
+
+    Converted in cache-sized chunks into preallocated outputs: whole-array temporaries of
+    n × 36 doubles made this step slow and its timing erratic.
+    """
+    n = len(est)
+    pos, vel, cov36 = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 36))
+    ch = np.arange(3)
+
+    def convert(lo: int) -> None:
+        sl = slice(lo, min(lo + chunk, n))
+        e, c = est[sl], cov[sl]
+        cov6 = np.zeros((len(e), 6, 6))
+        cov6[:, ch, ch] = c[:, :, 0]
+        cov6[:, ch, ch + 3] = cov6[:, ch + 3, ch] = c[:, :, 1]
+        cov6[:, ch + 3, ch + 3] = c[:, :, 2]
+        p, v, cc = geo.polar_state_to_enu(e[:, 0, 0], np.degrees(e[:, 1, 0]), np.degrees(e[:, 2, 0]),
+                                          e[:, 0, 1], np.degrees(e[:, 1, 1]), np.degrees(e[:, 2, 1]), cov=cov6)
+        pos[sl], vel[sl], cov36[sl] = p, v, cc.reshape(len(e), 36)
+
+    # numpy releases the GIL inside these array operations: chunks convert in parallel
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        list(pool.map(convert, range(0, n, chunk)))
+    return pos, vel, cov36
+
+
 def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
                   cfg: LocalTrackerConfig = LocalTrackerConfig()) -> pl.DataFrame:
     """Add the radar track estimate, covariance and range innovation columns to plot reports.
@@ -162,18 +192,10 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     order = np.argsort(-lengths, kind="stable")
     out_x, out_p, res, res_var = _filter(t, z, r, starts[order], lengths[order], cfg)
 
-    # 6×6 polar covariance (r, az, el, ṙ, az˙, el˙) from the per-channel blocks
-    cov6 = np.zeros((n, 6, 6))
-    ch = np.arange(3)
-    cov6[:, ch, ch] = out_p[:, 0]
-    cov6[:, ch, ch + 3] = cov6[:, ch + 3, ch] = out_p[:, 1]
-    cov6[:, ch + 3, ch + 3] = out_p[:, 2]
     est = out_x.transpose(0, 2, 1)          # (n, channel, (pos, rate))
     cov = out_p.transpose(0, 2, 1)          # (n, channel, (P00, P01, P11))
+    pos, vel, cov_enu = _to_enu(est, cov)
     el_deg = np.degrees(est[:, 2, 0])
-    pos, vel, cov_enu = geo.polar_state_to_enu(
-        est[:, 0, 0], np.degrees(est[:, 1, 0]), el_deg,
-        est[:, 0, 1], np.degrees(est[:, 1, 1]), np.degrees(est[:, 2, 1]), cov=cov6)
     deg2 = np.degrees(1.0) ** 2
     return df.with_columns(
         pl.Series("est_range_m", est[:, 0, 0]),
@@ -185,7 +207,7 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
         pl.Series("est_elevation_var_deg2", cov[:, 2, 0] * deg2),
         pl.Series("x_m", pos[:, 0]), pl.Series("y_m", pos[:, 1]), pl.Series("z_m", pos[:, 2]),
         pl.Series("vx_mps", vel[:, 0]), pl.Series("vy_mps", vel[:, 1]), pl.Series("vz_mps", vel[:, 2]),
-        pl.Series("est_cov", cov_enu.reshape(n, 36), dtype=pl.Array(pl.Float64, 36)),
+        pl.Series("est_cov", cov_enu, dtype=pl.Array(pl.Float64, 36)),
         pl.Series("res_range_m", res),
         pl.Series("res_range_var_m2", res_var),
     )

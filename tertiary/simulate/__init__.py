@@ -94,29 +94,30 @@ def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
     })
 
 
+def _meta(traj: Trajectories, name: str, index: pl.Series) -> pl.Series:
+    """Per-aircraft metadata gathered per report (null for clutter or empty values)."""
+    values = traj.meta.get(name)
+    if values is None:
+        return pl.Series(name, [None] * len(index), dtype=pl.String)
+    table = pl.Series(name, np.asarray(values, dtype=str), dtype=pl.String).replace("", None)
+    return table.gather(index)
+
+
 def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories) -> pl.DataFrame:
     epoch_us = int(traj.epoch.timestamp() * 1_000_000)
-    ac = plots.aircraft
-    real = ac >= 0
-    acs = np.where(real, ac, 0)
-
-    def meta(name: str) -> pl.Series:
-        values = traj.meta.get(name)
-        if values is None:
-            return pl.Series(name, [None] * len(ac), dtype=pl.String)
-        v = np.asarray(values, dtype=object)[acs]
-        v = np.where(real & (v != ""), v, None)
-        return pl.Series(name, v, dtype=pl.String)
-
+    real = plots.aircraft >= 0
+    index = pl.Series(plots.aircraft).replace(-1, None)      # clutter gathers nulls
+    tid = pl.Series(traj.truth_id).gather(index)
     return pl.DataFrame({
         "run": plots.run,
-        "radar_id": pl.Series(np.full(len(ac), radar_id), dtype=pl.UInt32),
+        "radar_id": pl.Series(np.full(len(real), radar_id), dtype=pl.UInt32),
         "time": pl.Series(np.round(plots.t_report * 1e6).astype(np.int64) + epoch_us).cast(pl.Datetime("us", "UTC")),
         "local_track_id": plots.local_track_id,
         "range_m": plots.range_m, "azimuth_deg": plots.azimuth_deg, "elevation_deg": plots.elevation_deg,
         "altitude_m": pl.Series(plots.altitude_m).fill_nan(None),
-        "mode_s": meta("icao24"), "mode_3a": meta("squawk"), "callsign": meta("callsign"),
-        "truth_id": pl.Series(np.where(real, traj.truth_id[acs], np.nan)).fill_nan(None).cast(pl.Int64),
+        "mode_s": _meta(traj, "icao24", index), "mode_3a": _meta(traj, "squawk", index),
+        "callsign": _meta(traj, "callsign", index),
+        "truth_id": tid.cast(pl.Int64),
     })
 
 
@@ -133,7 +134,7 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
     radars = radars_frame(cfg)
     parts = []
     for i, radar in enumerate(cfg.radars):
-        say(f"radar {radar.name}")
+        say(f"radar scans {radar.name}")
         plots = observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies)
         parts.append(_reports_frame(plots, i + 1, traj))
     reports = pl.concat(parts, how="vertical") if parts else pl.DataFrame()

@@ -53,19 +53,21 @@ def site_frame(radar: RadarConfig, system: geo.LocalFrame) -> geo.LocalFrame:
 
 
 def _illumination(traj: Trajectories, radar: RadarConfig, sys_to_site, scan_start):
-    """Illumination times (A, K) and the truth there."""
-    a_n, k_n = traj.n_aircraft, len(scan_start)
-    ac = np.broadcast_to(np.arange(a_n)[:, None], (a_n, k_n))
-    t = np.broadcast_to(scan_start[None, :], (a_n, k_n)).astype(float)
+    """Illumination times and truth for every (aircraft, scan) pair where the aircraft exists
+    during the scan; returns flat arrays (aircraft index, scan index, time, position, valid)."""
+    last = traj.n_times - 1
+    k0 = np.clip(np.floor(scan_start / traj.dt).astype(int), 0, last)
+    k1 = np.clip(np.ceil((scan_start + radar.scan_period_s) / traj.dt).astype(int), 0, last)
+    ia, ik = np.nonzero(traj.active[:, k0] | traj.active[:, k1])
+    t = scan_start[ik]
     if radar.timing == "rotating":
         base = t
         for _ in range(2):
-            pos, _, _ = traj.state_at(ac, t)
+            pos, _, _ = traj.state_at(ia, t)
             e, n, _ = sys_to_site(pos)
-            az = np.mod(np.degrees(np.arctan2(e, n)), 360.0)
-            t = base + radar.scan_period_s * az / 360.0
-    pos, vel, ok = traj.state_at(ac, t)
-    return ac, t, pos, ok
+            t = base + radar.scan_period_s * np.mod(np.degrees(np.arctan2(e, n)), 360.0) / 360.0
+    pos, _, ok = traj.state_at(ia, t)
+    return ia[ok], ik[ok], t[ok], pos[ok]
 
 
 def _inflation(anom: Anomalies, radar: RadarConfig, t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -89,15 +91,14 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
 
     period = radar.scan_period_s
     scan_start = np.arange(radar.scan_phase_s % period, traj.duration - 1e-9, period)
-    ac, t, pos, ok = _illumination(traj, radar, sys_to_site, scan_start)
-    e, n, u = sys_to_site(pos)
-    rng_true, az_true, el_true = geo.enu_to_polar(e, n, u)
-    covered = ok & (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg)
-    ia, ik = np.nonzero(covered)
+    ia, ik, t, pos = _illumination(traj, radar, sys_to_site, scan_start)
+    rng_true, az_true, el_true = geo.enu_to_polar(*sys_to_site(pos))
+    covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg)
+    ia, ik = ia[covered], ik[covered]
     m = len(ia)
-    polar = np.stack([rng_true[ia, ik], az_true[ia, ik], el_true[ia, ik]], axis=1)   # (m, 3)
-    t_c = t[ia, ik]
-    _, _, alt_true = system.to_geodetic(*pos[ia, ik].T)
+    polar = np.stack([rng_true[covered], az_true[covered], el_true[covered]], axis=1)   # (m, 3)
+    t_c = t[covered]
+    _, _, alt_true = system.to_geodetic(*pos[covered].T)
 
     # per run: detection, noise, biases, outliers
     detect = rng.random((runs, m)) < radar.pd

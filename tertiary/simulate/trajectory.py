@@ -94,10 +94,10 @@ class Trajectories:
             "time": pl.Series(t_us + epoch_us, dtype=pl.Int64).cast(pl.Datetime("us", "UTC")),
             "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
             "vx_mps": vel[:, 0], "vy_mps": vel[:, 1], "vz_mps": vel[:, 2],
-            "segment": pl.Series(np.array(SEGMENTS)[self.segment[a_idx, k_idx]], dtype=pl.String),
+            "segment": pl.Series(SEGMENTS, dtype=pl.String).gather(self.segment[a_idx, k_idx]),
         }
         for name, values in self.meta.items():
-            cols[name] = pl.Series(np.asarray(values, dtype=object)[a_idx], dtype=pl.String)
+            cols[name] = pl.Series(name, np.asarray(values, dtype=str), dtype=pl.String).gather(a_idx)
         return pl.DataFrame(cols)
 
 
