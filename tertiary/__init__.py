@@ -7,12 +7,20 @@ Public API (the CLI is a thin layer over these):
 * simulation: :func:`simulate`, :func:`load_scenario`, :func:`write_dataset`, :func:`read_dataset`
 * the radar's own secondary processing: :func:`track_reports`
 * storage: :class:`RunStore`, :func:`export_parquet`
-* the batch job: :func:`run`, :func:`ingest`
+* stages: :func:`tertiary.align.align`, :func:`candidate_pairs`, :func:`tertiary.associate.associate`,
+  :func:`fuse`, :func:`cluster`; evaluation in :mod:`tertiary.evaluate`, the centralised bound in
+  :mod:`tertiary.centralized`
+* the batch job: :func:`run` (writes the run database), :func:`process` (in memory), :func:`ingest`
 """
 
-from tertiary import geo
+from tertiary import align, associate, centralized, evaluate, geo
+from tertiary.align import AlignConfig
+from tertiary.associate import AssociationConfig
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
-from tertiary.pipeline import ingest, run
+from tertiary.clustering import ClusteringConfig, cluster
+from tertiary.fusion import METHODS, FusionConfig, fuse
+from tertiary.gating import GatingConfig, candidate_pairs
+from tertiary.pipeline import PipelineConfig, ingest, process, run
 from tertiary.schema import TABLES, Limits, SchemaError, UnsortedTimeWarning, validate
 from tertiary.simulate import Dataset, load_scenario, read_dataset, simulate, write_dataset
 from tertiary.store import RunStore, export_parquet
@@ -21,4 +29,6 @@ __version__ = "0.1.0"
 
 __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWarning", "simulate",
            "load_scenario", "write_dataset", "read_dataset", "Dataset", "track_reports", "LocalTrackerConfig",
-           "RunStore", "export_parquet", "run", "ingest", "__version__"]
+           "RunStore", "export_parquet", "run", "ingest", "process", "PipelineConfig", "align", "AlignConfig",
+           "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
+           "cluster", "ClusteringConfig", "__version__"]

@@ -14,6 +14,7 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from tertiary import pipeline, schema
+from tertiary.fusion import METHODS
 from tertiary.simulate import (Dataset, builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
 from tertiary.simulate.config import Anomalies, ScenarioConfig, with_radar_count
@@ -143,9 +144,18 @@ def run(
     seed: Annotated[Optional[int], typer.Option()] = None,
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="run directory (default runs/<scenario>)")] = None,
     strict: Annotated[bool, typer.Option(help="stop on the first invalid input row")] = False,
+    methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = ",".join(METHODS),
+    centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level bound")] = True,
 ) -> None:
-    """The main job: (simulate,) validate and store everything in RUN_DIR/results.duckdb."""
+    """The main job: (simulate,) validate, align, associate, fuse, cluster, evaluate and store
+    everything in RUN_DIR/results.duckdb."""
     t = time.perf_counter()
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    bad = [m for m in chosen if m not in METHODS]
+    if bad:
+        raise typer.BadParameter(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}",
+                                 param_hint="--methods")
+    cfg = pipeline.PipelineConfig(methods=chosen, centralized=centralized, strict=strict)
     if dataset is None:
         ds = _simulate_with_progress(build_scenario(scenario, runs=runs, seed=seed))
     else:
@@ -153,8 +163,7 @@ def run(
     run_dir = out or Path("runs") / ds.scenario.name
     with _progress() as prog:
         task = prog.add_task("pipeline", total=None)
-        db = pipeline.run(ds, run_dir, strict=strict,
-                          progress=lambda m: prog.update(task, description=f"pipeline: {m}"))
+        db = pipeline.run(ds, run_dir, cfg, progress=lambda m: prog.update(task, description=f"pipeline: {m}"))
     console.print(f"[green]done[/] in {time.perf_counter() - t:.1f} s: {db}")
 
 

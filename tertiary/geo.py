@@ -160,9 +160,7 @@ def frame_to_frame(pos: ArrayLike, src: LocalFrame, dst: LocalFrame, vel: ArrayL
     c = None
     if cov is not None:
         c = _f(cov)
-        k = c.shape[-1] // 3
-        m = np.kron(np.eye(k), rot)
-        c = m @ c @ m.T
+        c = sandwich(np.kron(np.eye(c.shape[-1] // 3), rot), c)
     return p, v, c
 
 

@@ -50,12 +50,17 @@ class LocalTrackerConfig:
     * ``v0_sigma_mps``: initial rate uncertainty (one-point initiation; the first update acts
       like the two-point initiation of the text).
     * ``altitude_sigma_m``: accuracy of a Mode C altitude used to derive elevation.
+    * ``reinit_gate``: a channel whose normalised squared innovation ν²/S exceeds this (5σ)
+      is re-initiated on the plot, as a radar tracker restarts a track it has lost — needed
+      where polar channels cannot follow (close passages with azimuth swings of tens of
+      degrees per scan).
     """
 
     range_model: SingerModel = field(default_factory=lambda: SingerModel(alpha=1 / 30, sigma_m=2.0))
     cross_sigma_m: float = 2.0
     v0_sigma_mps: float = 300.0
     altitude_sigma_m: float = 30.0
+    reinit_gate: float = 25.0
 
 
 def _seconds(time: pl.Series) -> tuple[NDArray[np.float64], int]:
@@ -117,25 +122,37 @@ def _filter(t: NDArray[np.float64], z: NDArray[np.float64], r: NDArray[np.float6
         xs, ps = x[:, :, :m], p[:, :, :m]
         rng_now = np.maximum(np.where(np.isfinite(zk[0]), zk[0], xs[0, 0]), 100.0)
         sig = np.stack([np.full(m, model.sigma_m), cfg.cross_sigma_m / rng_now, cfg.cross_sigma_m / rng_now])
+        init_x, init_p = _initial(zk, rk, rng_now, sig, cfg.v0_sigma_mps)
         if k == 0:
-            ok = np.isfinite(zk)
-            xs[...] = 0.0
-            xs[0] = np.where(ok, zk, 0.0)
-            ps[...] = 0.0
-            ps[0] = np.where(ok, rk, 1e12)
-            ps[3] = (cfg.v0_sigma_mps / np.stack([np.ones(m), rng_now, rng_now])) ** 2
-            ps[5] = sig ** 2
+            xs[...], ps[...] = init_x, init_p
         else:
             tau = t[idx] - t_last[:m]
             predict_elementwise(xs, ps, tau, model_coefficients(model, tau, sig))
             nu = zk - xs[0]
             nu[1] = np.mod(nu[1] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
-            s = update_elementwise(xs, ps, nu, rk)
+            lost = np.isfinite(nu) & (nu * nu > cfg.reinit_gate * (ps[0] + rk))
+            s = update_elementwise(xs, ps, np.where(lost, np.nan, nu), rk)
+            xs[...] = np.where(lost, init_x, xs)
+            ps[...] = np.where(lost, init_p, ps)
             res[idx], res_var[idx] = nu[0], s[0]
         t_last[:m] = t[idx]
         out_x[idx] = xs[:2].transpose(2, 0, 1)
         out_p[idx] = ps[[0, 1, 3]].transpose(2, 0, 1)
     return out_x, out_p, res, res_var
+
+
+def _initial(z, r, rng_now, sig, v0_sigma):
+    """One-point initiation of every channel: position = plot, rate and acceleration 0 with
+    variances (v0/range)² and σ_m² (angular channels scaled by the range)."""
+    ok = np.isfinite(z)
+    m = z.shape[1]
+    x = np.zeros((3,) + z.shape)
+    x[0] = np.where(ok, z, 0.0)
+    p = np.zeros((6,) + z.shape)
+    p[0] = np.where(ok, r, 1e12)
+    p[3] = (v0_sigma / np.stack([np.ones(m), rng_now, rng_now])) ** 2
+    p[5] = sig ** 2
+    return x, p
 
 
 def model_coefficients(model: SingerModel, tau: NDArray[np.float64], sigma_m: NDArray[np.float64]):

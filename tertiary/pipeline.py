@@ -1,8 +1,8 @@
 """The batch job: dataset in, one DuckDB run database out.
 
-Stages are composed here and nowhere else. At this stage of the project the job ingests and
-validates the input tables (every report ends up in ``reports`` or ``rejects``) and records
-the run; later stages (alignment, association, fusion, trackers, safety) append their tables.
+Stages are composed here and nowhere else: ingest/validate → align → gate + associate → fuse
+(every selected method, plus the centralised measurement-level bound) → cluster → evaluate →
+store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
 """
 
 from __future__ import annotations
@@ -18,7 +18,17 @@ from pathlib import Path
 
 import polars as pl
 
+import dataclasses
+
+import numpy as np
+
 from tertiary import schema
+from tertiary.align import AlignConfig, align
+from tertiary.associate import AssociationConfig, associate
+from tertiary.centralized import CentralizedConfig, centralized_fusion
+from tertiary.clustering import ClusteringConfig, cluster
+from tertiary.evaluate import EvaluateConfig, accuracy_by_epoch, metrics_frame
+from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.store import RunStore, record_run
 
@@ -71,40 +81,166 @@ def fingerprint(frame: pl.DataFrame) -> str:
     return hashlib.sha256(h.to_numpy().tobytes()).hexdigest()[:16]
 
 
-def run(ds: Dataset, out_dir: str | Path, *, strict: bool = False, progress: Progress | None = None) -> Path:
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Configuration of every stage (each stage's own frozen dataclass)."""
+
+    methods: tuple[str, ...] = METHODS
+    centralized: bool = True
+    strict: bool = False
+    align: AlignConfig = field(default_factory=AlignConfig)
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    centralized_cfg: CentralizedConfig = field(default_factory=CentralizedConfig)
+    clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+
+
+@dataclass
+class Results:
+    """Every table of a run (also written to ``results.duckdb``)."""
+
+    ingested: Ingested
+    aligned: pl.DataFrame
+    associations: pl.DataFrame
+    fused: pl.DataFrame
+    clusters: pl.DataFrame
+    rejects: pl.DataFrame
+    metrics: pl.DataFrame
+    accuracy_by_epoch: pl.DataFrame
+    timings: dict[str, float]
+    counts: dict[str, int]
+
+
+class _Clock:
+    def __init__(self, say: Progress):
+        self.say, self.timings, self._t = say, {}, time.perf_counter()
+        self._name: str | None = None
+
+    def stage(self, name: str | None) -> None:
+        now = time.perf_counter()
+        if self._name is not None:
+            self.timings[f"{self._name}_s"] = now - self._t
+        self._name, self._t = name, now
+        if name:
+            self.say(name)
+
+
+def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progress | None = None) -> Results:
+    """Run every stage in memory and return the tables."""
+    unknown = set(cfg.methods) - set(METHODS)
+    if unknown:
+        raise ValueError(f"unknown fusion method(s) {sorted(unknown)}; choose from {', '.join(METHODS)}")
+    clock = _Clock(progress or (lambda _m: None))
+    t_all = time.perf_counter()
+    clock.stage("validate")
+    ing = ingest(ds, strict=cfg.strict)
+    clock.stage("align")
+    aligned, align_rejects = align(ing.reports, ing.radars, ds.origin, cfg.align)
+    rejects = pl.concat([ing.rejects, _stage_rejects(align_rejects, ing.reports, "align")], how="vertical_relaxed")
+    _check_accounting(ds.reports.height, aligned, rejects)
+    clock.stage("associate")
+    associations, stats = associate(aligned, cfg.association)
+    clock.stage("fuse")
+    rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
+    fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion) if cfg.methods else schema.empty_frame("fused", False)
+    if cfg.centralized:
+        clock.stage("centralized")
+        keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
+        central = centralized_fusion(ing.reports, ing.radars, associations, keys, ds.origin, cfg.centralized_cfg)
+        fused = pl.concat([fused, central.select(fused.columns)], how="vertical")
+    clock.stage("cluster")
+    clusters = cluster(fused, cfg.clustering)
+    clock.stage("evaluate")
+    metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
+    clock.stage(None)
+    clock.timings["alignment_to_clustering_s"] = sum(
+        clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
+    clock.timings["total_s"] = time.perf_counter() - t_all
+    counts = {"reports_in": ds.reports.height, "reports_aligned": int(aligned["report_id"].n_unique()),
+              "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
+              "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
+              "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
+              "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height}
+    return Results(ing, aligned, associations, fused, clusters, rejects, metrics, by_epoch, clock.timings, counts)
+
+
+def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, stage: str) -> pl.DataFrame:
+    """A stage's (report_id, reason) rejects in the canonical ``rejects`` schema."""
+    if stage_rejects.height == 0:
+        return schema.empty_frame("rejects", False)
+    rows = reports.with_row_index("row_index").join(stage_rejects, on="report_id", how="inner")
+    packed = schema.rejects_table(rows.with_columns(pl.col("row_index").cast(pl.UInt64)), "reports", stage)
+    return packed
+
+
+def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -> None:
+    n_ok = aligned["report_id"].n_unique()
+    n_rej = rejects.filter(pl.col("input_table") == "reports").height
+    if n_ok + n_rej != n_in:
+        raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
+
+
+def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, stats,
+              cfg: EvaluateConfig) -> tuple[pl.DataFrame, pl.DataFrame]:
+    counts = pl.DataFrame({
+        "stage": "association", "method": "assignment",
+        "metric": ["gated_pairs", "ambiguous_components", "targets", "reassignments"],
+        "segment": "all", "value": [float(stats.pairs), float(stats.ambiguous_components), float(stats.targets),
+                                    float(stats.reassignments)],
+        "n_runs": int(associations["run"].n_unique()) if associations.height else 0,
+    }).with_columns(pl.col("n_runs").cast(pl.UInt32))
+    if ing.truth.height == 0 or "truth_id" not in ing.reports.columns:
+        return counts, pl.DataFrame()
+    report_truth = ing.reports.select("run", "report_id", "truth_id")
+    metrics = metrics_frame(fused, associations, report_truth, ing.truth, cfg)
+    by_epoch = accuracy_by_epoch(fused, associations, report_truth, ing.truth, cfg)
+    return pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch
+
+
+def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig = PipelineConfig(), *,
+        progress: Progress | None = None) -> Path:
     """Run the job on a dataset and write ``out_dir/results.duckdb`` atomically."""
     say = progress or (lambda _m: None)
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    say("validate")
-    ing = ingest(ds, strict=strict)
-    timings["ingest_s"] = time.perf_counter() - t0
-    n_in, n_ok, n_rej = ds.reports.height, ing.reports.height, ing.rejects.filter(pl.col("input_table") == "reports").height
-    if n_ok + n_rej != n_in:
-        raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} valid + {n_rej} rejected")
+    res = process(ds, cfg, say)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     say("store")
+    t = time.perf_counter()
     with RunStore.create(out) as store:
-        store.write("radars", ing.radars)
-        store.write("reports", ing.reports)
-        if ing.truth.height:
-            store.write("truth", ing.truth)
-        store.write("rejects", ing.rejects)
+        for name in ("radars", "reports", "truth"):
+            frame = getattr(res.ingested, name)
+            if frame.height:
+                store.write(name, frame)
+        for name in ("aligned", "associations", "fused", "clusters", "rejects", "metrics", "accuracy_by_epoch"):
+            frame = getattr(res, name)
+            if frame.width:
+                store.write(name, frame)
         if ds.removed.height:
             store.write("truth_removed", ds.removed)
-        timings["total_s"] = time.perf_counter() - t0
+        res.timings["store_s"] = time.perf_counter() - t
         record_run(store, {
             "scenario": ds.scenario.name,
             "scenario_toml": scenario_toml(ds.scenario),
+            "config": _config_dict(cfg),
             "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "versions": _versions(),
             "fingerprints": {k: fingerprint(getattr(ds, k)) for k in ("radars", "reports", "truth")},
-            "rows": {"reports_in": n_in, "reports_valid": n_ok, "reports_rejected": n_rej},
-            "notes": ing.notes,
-            "timings": timings,
+            "rows": res.counts,
+            "notes": res.ingested.notes,
+            "timings": res.timings,
         })
     return out / "results.duckdb"
+
+
+def _config_dict(cfg: PipelineConfig) -> dict:
+    def conv(v):
+        if dataclasses.is_dataclass(v):
+            return {f.name: conv(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        return v
+    return conv(cfg)
 
 
 def _versions() -> dict[str, str]:

@@ -37,9 +37,17 @@ def test_simulate_validate_run(tmp_path):
     res = runner.invoke(app, ["run", str(out), "--out", str(run_dir)])
     assert res.exit_code == 0, res.output
     con = duckdb.connect(str(run_dir / "results.duckdb"), read_only=True)
-    n_ok = con.execute("SELECT count(*) FROM reports").fetchone()[0]
+    n_valid = con.execute("SELECT count(*) FROM reports").fetchone()[0]
+    n_bad = con.execute("SELECT count(*) FROM rejects WHERE stage = 'ingest'").fetchone()[0]
+    assert (n_valid, n_bad) == (rep.height - 3, 3)
+    # row accounting: every input report is aligned or rejected, exactly once
+    n_aligned = con.execute("SELECT count(DISTINCT report_id) FROM aligned").fetchone()[0]
     n_rej = con.execute("SELECT count(*) FROM rejects WHERE input_table = 'reports'").fetchone()[0]
-    assert (n_ok, n_rej) == (rep.height - 3, 3)
+    both = con.execute("SELECT count(*) FROM rejects r JOIN (SELECT DISTINCT report_id FROM aligned) a "
+                       "USING (report_id)").fetchone()[0]
+    assert n_aligned + n_rej == rep.height and both == 0
+    tables = {r[0] for r in con.execute("SHOW TABLES").fetchall()}
+    assert {"aligned", "associations", "fused", "clusters", "rejects", "metrics", "run"} <= tables
     con.close()
 
 

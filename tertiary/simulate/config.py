@@ -32,6 +32,7 @@ class RadarConfig:
     scan_phase_s: float = 0.0
     max_range_m: float = 250_000.0
     min_elevation_deg: float = 0.0
+    max_elevation_deg: float = 40.0      # cone of silence above the antenna
     pd: float = 1.0
     clutter_rate: float = 0.0            # false reports per scan (Poisson mean)
     bias_range_m: float = 0.0

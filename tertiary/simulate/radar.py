@@ -93,7 +93,8 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
     scan_start = np.arange(radar.scan_phase_s % period, traj.duration - 1e-9, period)
     ia, ik, t, pos = _illumination(traj, radar, sys_to_site, scan_start)
     rng_true, az_true, el_true = geo.enu_to_polar(*sys_to_site(pos))
-    covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg)
+    covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg) & \
+        (el_true <= radar.max_elevation_deg)
     ia, ik = ia[covered], ik[covered]
     m = len(ia)
     polar = np.stack([rng_true[covered], az_true[covered], el_true[covered]], axis=1)   # (m, 3)

@@ -1,0 +1,193 @@
+"""Alignment: every report to the system frame and to a common epoch grid (monograph §1.4).
+
+* **Common frame.** Each radar's track estimate (radar-local ENU position, velocity and 6×6
+  covariance) is moved into the system frame (ENU at the processing centre) with the exact
+  rotation + translation of :func:`tertiary.geo.frame_to_frame`. Reports that arrive as plots
+  only get an estimate from the package's own per-radar Singer channels first
+  (:func:`tertiary.local_tracks.track_reports`).
+* **Common time.** Epochs ``t0 + k·Δ`` (Δ defaults to the fastest scan period). At each epoch a
+  local track is represented by its latest report at or before the epoch, extrapolated under
+  uniform straight-line motion x(t_c) = x(t_i) + v(t_i)(t_c − t_i) (§1.4), with the covariance
+  grown for the interval: F P Fᵀ + Q(Δt), Q the white-noise-acceleration matrix of intensity
+  ``q``. A report stays usable for ``max_age_scans`` scan periods of its radar, so slow radars
+  contribute at every epoch of their scan.
+* **Row accounting.** A report that is superseded by a newer report of the same local track
+  before reaching any epoch, or whose estimate is unusable, goes to ``rejects`` with a reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+
+from tertiary import geo
+from tertiary.local_tracks import ESTIMATE_COLUMNS, LocalTrackerConfig, track_reports
+
+STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
+US = 1_000_000
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Epoch grid and extrapolation parameters.
+
+    * ``period_s``: epoch spacing; ``None`` = the fastest radar's scan period.
+    * ``max_age_scans``: a report represents its local track at epochs up to this many of its
+      radar's scan periods after the report (default 1.5: one missed detection is bridged by
+      the next report, a longer silence drops the track from the picture).
+    * ``q_m2s3``: white-noise acceleration intensity used to grow the covariance during
+      extrapolation (4 m²/s³: σ ≈ 48 m after 12 s).
+    * ``max_speed_mps``: a radar track estimate faster than this is physically implausible
+      for the aircraft concerned (a diverged local track) and is rejected with that reason.
+    """
+
+    period_s: float | None = None
+    max_age_scans: float = 1.5
+    q_m2s3: float = 4.0
+    max_speed_mps: float = 600.0
+    local_tracker: LocalTrackerConfig = LocalTrackerConfig()
+
+
+def needs_estimates(reports: pl.DataFrame) -> bool:
+    """True when the reports lack the radar-track estimate or innovation columns."""
+    return any(c not in reports.columns for c in STATE + ["est_cov", "res_range_m", "res_range_var_m2"])
+
+
+def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Radar-local estimates to the system frame: state (n, 6), flattened covariance (n, 36)
+    and the nominal plot variance per system axis (n, 3) from the radar's nominal sigmas."""
+    n = reports.height
+    state = np.empty((n, 6))
+    cov = np.empty((n, 36))
+    nominal = np.empty((n, 3))
+    rid = reports["radar_id"].to_numpy()
+    local_state = reports.select(STATE).to_numpy()
+    local_cov = reports["est_cov"].to_numpy().reshape(n, 6, 6)
+    el = reports["est_elevation_deg"].to_numpy() if "est_elevation_deg" in reports.columns else np.zeros(n)
+    for row in radars.iter_rows(named=True):          # loop over radars (a handful), not reports
+        sel = np.flatnonzero(rid == row["radar_id"])
+        if sel.size == 0:
+            continue
+        site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
+        p, v, c = geo.frame_to_frame(local_state[sel, :3], site, origin, vel=local_state[sel, 3:], cov=local_cov[sel])
+        state[sel, :3], state[sel, 3:], cov[sel] = p, v, c.reshape(-1, 36)
+        rng = reports["range_m"].to_numpy()[sel]
+        az = reports["azimuth_deg"].to_numpy()[sel]
+        nom = geo.polar_sigmas_to_enu_cov(rng, az, np.nan_to_num(el[sel]), row["sigma_range_m"],
+                                          row["sigma_azimuth_deg"], row["sigma_elevation_deg"])
+        rot = site.rotation_to(origin)
+        nominal[sel] = np.einsum("ij,njk,ik->ni", rot, nom, rot)
+    return state, cov, nominal
+
+
+def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDArray[np.float64], q: float
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Uniform straight-line motion over ``dt`` (n,): x ← F x, P ← F P Fᵀ + Q(dt) with
+    F = [[I, dt I], [0, I]] and the white-noise-acceleration Q = q [[dt³/3, dt²/2], [dt²/2, dt]].
+
+    ``cov36`` is the row-major flattened 6×6 covariance (n, 36). The update runs entry by entry
+    on a transposed copy, where each entry is one contiguous vector over all rows.
+    """
+    out = state.copy()
+    out[:, :3] += dt[:, None] * state[:, 3:]
+    p = np.ascontiguousarray(cov36.T)            # (36, n)
+    g = p.copy()
+    d2, qd3, qd2, qd = dt * dt, q * dt ** 3 / 3.0, q * dt * dt / 2.0, q * dt
+    for i in range(3):
+        for j in range(3):
+            pp, pv, vp, vv = 6 * i + j, 6 * i + j + 3, 6 * (i + 3) + j, 6 * (i + 3) + j + 3
+            g[pp] += dt * (p[pv] + p[vp]) + d2 * p[vv]
+            g[pv] += dt * p[vv]
+            g[vp] += dt * p[vv]
+        g[7 * i] += qd3                          # diagonal of the pos-pos block
+        g[6 * i + i + 3] += qd2                  # pos-vel diagonal
+        g[6 * (i + 3) + i] += qd2                # vel-pos diagonal
+        g[7 * (i + 3)] += qd                     # vel-vel diagonal
+    return out, np.ascontiguousarray(g.T)
+
+
+def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) -> tuple[int, float]:
+    """Grid origin (µs since the Unix epoch, whole second) and period (s)."""
+    period = cfg.period_s if cfg.period_s is not None else float(radars["scan_period_s"].min())
+    if not period > 0:
+        raise ValueError(f"epoch period must be positive, got {period}")
+    t_min = int(reports["time"].dt.epoch("us").min())
+    return (t_min // US) * US, period
+
+
+def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+          cfg: AlignConfig = AlignConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Align valid reports; returns (aligned, rejects).
+
+    ``aligned`` has one row per (report, epoch at which it represents its local track), with
+    ``age_s`` = epoch − report time, ``fresh`` = first epoch of the report, the system-frame
+    state/covariance, the radar's range innovation and ``nominal_var`` (a-priori plot variance
+    per system axis). ``rejects`` rows carry report_id and reason.
+    """
+    if needs_estimates(reports):
+        reports = track_reports(reports, radars, cfg.local_tracker)
+    if "run" not in reports.columns:
+        reports = reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    df = reports.sort(["run", "radar_id", "local_track_id", "time"], maintain_order=True)
+    t0_us, period = epoch_grid(df, radars, cfg)
+    t_us = df["time"].dt.epoch("us").to_numpy()
+    rel = (t_us - t0_us) / US
+    k = np.ceil(rel / period - 1e-9).astype(np.int64)              # first epoch at or after the report
+
+    state, cov, nominal = to_system_frame(df, radars, origin)
+    finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
+    plausible = np.linalg.norm(np.nan_to_num(state[:, 3:]), axis=1) <= cfg.max_speed_mps
+    usable = finite & plausible
+
+    keys = df.select("run", "radar_id", "local_track_id").to_numpy()
+    same_next = np.zeros(len(df), bool)
+    same_next[:-1] = np.all(keys[1:] == keys[:-1], axis=1)
+    k_next = np.append(k[1:], np.iinfo(np.int64).max)
+    superseded = same_next & (k_next == k)
+    scan = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id",
+                                      how="left", maintain_order="left")["scan_period_s"].to_numpy()
+    last_k = np.floor((rel + cfg.max_age_scans * scan) / period + 1e-9).astype(np.int64)
+    last_k = np.where(same_next, np.minimum(last_k, k_next - 1), last_k)
+    keep = usable & ~superseded & (last_k >= k)
+
+    reason = np.where(~finite, "no usable track estimate (non-finite state or covariance)",
+                      np.where(~plausible, f"implausible track speed (> {cfg.max_speed_mps:g} m/s)",
+                      np.where(superseded, "superseded by a newer report of the same local track before the next epoch",
+                               "track estimate too old for any epoch")))
+    rejects = df.filter(pl.Series(~keep)).select("report_id").with_columns(
+        pl.Series("reason", reason[~keep], dtype=pl.String))
+
+    idx = np.flatnonzero(keep)
+    counts = (last_k - k + 1)[idx]
+    rows = np.repeat(idx, counts)
+    step = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
+    epoch_k = k[rows] + step
+    # output order (run, epoch, radar, local track) computed on integer keys, not by a frame sort
+    order = np.lexsort((keys[rows, 2], keys[rows, 1], epoch_k, keys[rows, 0]))
+    rows, step, epoch_k = rows[order], step[order], epoch_k[order]
+    age = epoch_k * period - rel[rows]
+    x, p = extrapolate(state[rows], cov[rows], age, cfg.q_m2s3)
+
+    base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
+    opt = [c for c in ("mode_s", "truth_id") if c in df.columns]
+    aligned = df.select(base + opt)[rows].with_columns(
+        pl.Series("epoch", t0_us + np.round(epoch_k * period * US).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
+        *(pl.Series(name, x[:, i]) for i, name in enumerate(STATE)),
+        pl.Series("cov", p, dtype=pl.Array(pl.Float64, 36)),
+        pl.Series("age_s", age),
+        pl.Series("fresh", step == 0),
+        pl.Series("nominal_var", nominal[rows], dtype=pl.Array(pl.Float64, 3)),
+        pl.col("res_range_m").fill_null(np.nan), pl.col("res_range_var_m2").fill_null(np.nan),
+    )
+    if "mode_s" not in aligned.columns:
+        aligned = aligned.with_columns(pl.lit(None, pl.String).alias("mode_s"))
+    if "truth_id" not in aligned.columns:
+        aligned = aligned.with_columns(pl.lit(None, pl.Int64).alias("truth_id"))
+    order_cols = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
+                  "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var"]
+    aligned = aligned.select(order_cols)
+    return aligned, rejects

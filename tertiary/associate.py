@@ -1,0 +1,232 @@
+"""Association: which aligned reports are the same aircraft (monograph §1.4 / digest §1.2).
+
+Within each connected component of the gate graph (hypothesis H1 "same target" holds along
+every gated edge, H2 "different targets" elsewhere):
+
+1. all reports from one radar → one target per report (a radar never reports an aircraft twice);
+2. at most one report per radar → one target;
+3. equal counts m from the radars → m targets, paired by the minimum sum of squared distances;
+4. unequal counts → the radar with most reports sets the number of targets and the other
+   radars' reports are assigned to its reports.
+
+Rules 3–4 are solved with ``scipy.optimize.linear_sum_assignment`` per ambiguous component
+(squared distance, or Mahalanobis d² with ``cost="mahalanobis"``); ungated assignments are
+refused and the leftovers are grouped again by the same rules. Components obeying rules 1–2 —
+nearly all of them — are grouped with array operations, no Python loop.
+
+System target ids are carried across epochs: a group inherits the id its members' local tracks
+had at their previous epoch (majority vote; a contested id goes to the larger group), so a
+target keeps its number while its radars keep theirs (vote ties go to the id carried by the
+group's lowest-numbered radar, which resolves a radar swapping its own track numbers).
+``reassignments`` counts local tracks whose system target changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from tertiary.gating import GatingConfig, Pairs, candidate_pairs, group_index
+
+BIG = 1e18
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    cost: Literal["sqdist", "mahalanobis"] = "sqdist"
+    gating: GatingConfig = field(default_factory=GatingConfig)
+
+
+@dataclass
+class AssociationStats:
+    reports: int = 0
+    pairs: int = 0
+    components: int = 0
+    ambiguous_components: int = 0
+    targets: int = 0
+    reassignments: int = 0
+
+
+def _components(n: int, pairs: Pairs) -> NDArray[np.int64]:
+    graph = coo_matrix((np.ones(len(pairs)), (pairs.a, pairs.b)), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
+
+
+def _solve_component(rows: NDArray[np.int64], radar: NDArray, cost: NDArray[np.float64],
+                     gated: NDArray[np.bool_]) -> list[NDArray[np.int64]]:
+    """Rules 3–4 on one component. ``cost``/``gated`` are dense over the component's rows.
+    Returns groups of positions into ``rows``."""
+    pos = np.arange(len(rows))
+    counts = {r: np.count_nonzero(radar == r) for r in np.unique(radar)}
+    if max(counts.values()) <= 1:
+        return [pos]
+    ref_radar = min(counts, key=lambda r: (-counts[r], r))
+    ref = pos[radar == ref_radar]
+    groups = [[i] for i in ref]
+    leftover: list[int] = []
+    for r in sorted(counts):
+        if r == ref_radar:
+            continue
+        mine = pos[radar == r]
+        c = np.where(gated[np.ix_(mine, ref)], cost[np.ix_(mine, ref)], BIG)
+        ia, ib = linear_sum_assignment(c)
+        ok = c[ia, ib] < BIG
+        for i, j in zip(ia[ok], ib[ok]):
+            groups[j].append(mine[i])
+        leftover.extend(np.setdiff1d(mine, mine[ia[ok]]))
+    out = [np.array(g) for g in groups]
+    if leftover:
+        left = np.array(sorted(leftover))
+        sub = gated[np.ix_(left, left)]
+        n_sub, lab = connected_components(coo_matrix(sub), directed=False)
+        for k in range(n_sub):
+            part = left[lab == k]
+            out.extend(part[g] for g in _solve_component(part, radar[part], cost[np.ix_(part, part)],
+                                                         gated[np.ix_(part, part)]))
+    return out
+
+
+def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
+                  ) -> tuple[NDArray[np.int64], AssociationStats]:
+    """Group label per aligned row (same label = same aircraft at that epoch)."""
+    n = aligned.height
+    stats = AssociationStats(reports=n)
+    if n == 0:
+        return np.zeros(0, np.int64), stats
+    groups = group_index(aligned)
+    pairs = candidate_pairs(aligned, cfg.gating, groups)
+    stats.pairs = len(pairs)
+    comp = _components(n, pairs)
+    stats.components = int(comp.max()) + 1
+    radar = aligned["radar_id"].to_numpy().astype(np.int64)
+    # max reports of one radar inside each component
+    per = np.unique(comp * (radar.max() + 1) + radar, return_counts=True)
+    worst = np.zeros(stats.components, np.int64)
+    np.maximum.at(worst, per[0] // (radar.max() + 1), per[1])
+    ambiguous = np.flatnonzero(worst > 1)
+    stats.ambiguous_components = len(ambiguous)
+    label = comp.copy()
+    if len(ambiguous):
+        label = _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg)
+    return label, stats
+
+
+def _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg) -> NDArray[np.int64]:
+    """Rules 3–4 on each ambiguous component (loop over those components only)."""
+    pos = aligned.select("x_m", "y_m", "z_m").to_numpy()
+    is_amb = np.isin(comp, ambiguous)
+    members = np.flatnonzero(is_amb)
+    order = members[np.argsort(comp[members], kind="stable")]
+    bounds = np.flatnonzero(np.diff(comp[order])) + 1
+    edge_cost = pairs.d2 if cfg.cost == "mahalanobis" else pairs.sqdist
+    amb_edge = np.flatnonzero(is_amb[pairs.a])
+    amb_edge = amb_edge[np.argsort(comp[pairs.a[amb_edge]], kind="stable")]
+    ea, eb, ec = pairs.a[amb_edge], pairs.b[amb_edge], edge_cost[amb_edge]
+    edge_bounds = np.searchsorted(comp[ea], comp[order[np.append(0, bounds)]])
+    edge_bounds = np.append(edge_bounds, len(ea))
+    next_label = int(label.max()) + 1
+    local = np.full(len(label), -1, np.int64)
+    for k, rows in enumerate(np.split(order, bounds)):
+        local[rows] = np.arange(len(rows))
+        sel = slice(edge_bounds[k], edge_bounds[k + 1])
+        m = len(rows)
+        gated = np.zeros((m, m), bool)
+        cost = np.zeros((m, m))
+        ia, ib = local[ea[sel]], local[eb[sel]]
+        gated[ia, ib] = gated[ib, ia] = True
+        cost[ia, ib] = cost[ib, ia] = ec[sel]
+        for grp in _solve_component(rows, radar[rows], cost, gated):
+            label[rows[grp]] = next_label
+            next_label += 1
+    return label
+
+
+def _reference_cost(aligned: pl.DataFrame, label: NDArray[np.int64], cfg: AssociationConfig) -> NDArray[np.float64]:
+    """Cost of each row against its group's reference report (lowest radar id; itself = 0)."""
+    n = aligned.height
+    radar = aligned["radar_id"].to_numpy()
+    order = np.lexsort((radar, label))
+    first = np.ones(n, bool)
+    first[1:] = label[order][1:] != label[order][:-1]
+    ref_of = np.empty(n, np.int64)
+    ref_of[order] = order[np.flatnonzero(first)][np.cumsum(first) - 1]
+    pos = aligned.select("x_m", "y_m", "z_m").to_numpy()
+    d = pos - pos[ref_of]
+    if cfg.cost == "sqdist":
+        return np.sum(d * d, axis=1)
+    cov = aligned["cov"].to_numpy()[:, [0, 1, 2, 6, 7, 8, 12, 13, 14]].reshape(n, 3, 3)
+    s = cov + cov[ref_of]
+    return np.where(ref_of == np.arange(n), 0.0, np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0]))
+
+
+def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64]) -> tuple[NDArray[np.int64], int]:
+    """Stable system target ids across epochs; returns (target id per row, reassignments).
+
+    Sequential over epochs (a loop over the epoch grid, vectorised across runs, groups and
+    reports within each epoch).
+    """
+    n = aligned.height
+    keys = aligned.select(pl.struct("run", "radar_id", "local_track_id").rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
+    epoch = aligned["epoch"].dt.epoch("us").to_numpy()
+    radar = aligned["radar_id"].to_numpy().astype(np.int64)
+    order = np.argsort(epoch, kind="stable")
+    bounds = np.flatnonzero(np.diff(epoch[order])) + 1
+    last = np.full(keys.max() + 1 if n else 0, -1, np.int64)
+    target = np.empty(n, np.int64)
+    next_id = 0
+    reassigned = 0
+    for rows in np.split(order, bounds):
+        g = label[rows]
+        ug, gi = np.unique(g, return_inverse=True)
+        cand = last[keys[rows]]
+        assigned = np.full(len(ug), -1, np.int64)
+        ok = cand >= 0
+        if ok.any():
+            # votes per (group, candidate id), and the lowest radar id voting for it
+            vg, vc, vr = gi[ok], cand[ok], radar[rows][ok]
+            o = np.lexsort((vr, vc, vg))
+            vg, vc, vr = vg[o], vc[o], vr[o]
+            start = np.ones(len(vg), bool)
+            start[1:] = (vg[1:] != vg[:-1]) | (vc[1:] != vc[:-1])
+            first = np.flatnonzero(start)
+            cg, cc, cr = vg[first], vc[first], vr[first]
+            cnt = np.diff(np.append(first, len(vg)))
+            # best candidate per group: most votes, then the one its lowest radar carries
+            o = np.lexsort((cc, cr, -cnt, cg))
+            cg, cc, cr, cnt = cg[o], cc[o], cr[o], cnt[o]
+            best = np.ones(len(cg), bool)
+            best[1:] = cg[1:] != cg[:-1]
+            bg, bc, bn, br = cg[best], cc[best], cnt[best], cr[best]
+            # a contested id goes to the group with most votes (then the lowest radar)
+            o = np.lexsort((bg, br, -bn, bc))
+            win = np.ones(len(o), bool)
+            win[1:] = bc[o][1:] != bc[o][:-1]
+            assigned[bg[o][win]] = bc[o][win]
+        fresh = assigned < 0
+        assigned[fresh] = next_id + np.arange(np.count_nonzero(fresh))
+        next_id += int(np.count_nonzero(fresh))
+        new = assigned[gi]
+        reassigned += int(np.count_nonzero(ok & (cand != new)))
+        last[keys[rows]] = new
+        target[rows] = new
+    return target, reassigned
+
+
+def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
+              ) -> tuple[pl.DataFrame, AssociationStats]:
+    """The ``associations`` table (run, epoch, radar_id, local_track_id, report_id,
+    target_id, cost) for every aligned row, and run statistics."""
+    label, stats = group_reports(aligned, cfg)
+    target, stats.reassignments = carry_target_ids(aligned, label)
+    stats.targets = len(np.unique(target)) if len(target) else 0
+    cost = _reference_cost(aligned, label, cfg) if aligned.height else np.zeros(0)
+    out = aligned.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
+        pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
+    return out, stats

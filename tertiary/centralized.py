@@ -1,0 +1,307 @@
+"""Centralised measurement-level Kalman filter: the optimal linear bound for fusion (DESIGN §6).
+
+All radars' **plots** (the measured range, azimuth and elevation of every report — not the
+radars' own track estimates) that the association assigned to one system target go, in time
+order, into a single Kalman filter per target. Fusion methods that average the radars' track
+estimates (stage 5) are measured against this reference: it uses every measurement exactly
+once with the correct noise model, so no linear track-to-track scheme can beat it.
+
+Model
+-----
+Per Cartesian axis of the system frame (x, y, z) the Singer manoeuvre model of the radars'
+own channels (monograph (2.49)–(2.63), tertiary (4.46)): state [p, v, a] per axis, so the
+9-state vector is (x, vx, ax, y, vy, ay, z, vz, az) and
+
+    Φ(τ) = blockdiag(φ(τ), φ(τ), φ(τ)),   Q(τ) = blockdiag(q(τ), q(τ), q(τ))        (2.51)/(4.46)
+
+with φ, q from :func:`tertiary.filters.singer.singer_phi` / ``singer_q`` (``variant="printed"``
+by default: φ₃₃ = 1 − ατ, D_a = σ_m²(2ατ − α²τ²)).
+
+Measurement: the plot converted to Cartesian coordinates, radar polar → radar-local ENU →
+system ENU (:func:`tertiary.geo.polar_to_enu`, :func:`tertiary.geo.frame_to_frame`), with
+H = [I₃ on the three positions] and the converted covariance
+
+    R = M J R_polar Jᵀ Mᵀ                                       (seed 002 eq. 12)
+
+where R_polar = diag(σ_r², σ_β², σ_ε²) holds the radar's **nominal** sigmas (the elevation
+variance comes from the Mode C altitude accuracy when the elevation is derived from altitude,
+as in :func:`tertiary.local_tracks.measurement_polar`), J the polar Jacobian at the measured
+point and M the site-to-system rotation. Kalman update (2.10)–(2.14) in Joseph form:
+
+    S = H P⁻ Hᵀ + R,  K = P⁻ Hᵀ S⁻¹,  x⁺ = x⁻ + K (z − H x⁻),
+    P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
+
+Initiation from the first plot: position = the plot, P_pos = its R; velocity 0 with variance
+``v0_sigma_mps``²; acceleration 0 with variance σ_m² (the stationary Singer variance). Plots
+of several radars at the same instant are processed one after another (Φ(0) = I, Q(0) = 0),
+which equals a stacked joint update.
+
+Output
+------
+At every requested (run, epoch, target_id) from the target's first plot on: the state
+predicted from the last update at or before the epoch to the epoch, in the ``fused`` schema
+with ``method = "centralized"``, ``weights = []``, ``radar_ids`` = the radars whose plots the
+target has received so far and ``n_sources`` = the number of plots used since the target's
+previous output epoch (for the first output epoch: since the start). Epochs before the
+target's first plot produce no row.
+
+Vectorisation: reports are sorted by (run, target_id, time) and the Python loop runs over the
+report rank within a target, with batched (m, 9, 9) linear algebra over the m targets (of all
+runs) that have at least that many plots — never a loop per report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+
+from tertiary import geo
+from tertiary.filters.singer import Variant, singer_phi, singer_q
+from tertiary.local_tracks import measurement_polar
+from tertiary.schema import TABLES, TIME
+
+__all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "converted_plots", "transition",
+           "METHOD", "POS", "VEL", "STATE6"]
+
+F64 = NDArray[np.float64]
+
+METHOD = "centralized"
+#: indices of the positions / velocities in the 9-state (x, vx, ax, y, vy, ay, z, vz, az)
+POS = np.array([0, 3, 6])
+VEL = np.array([1, 4, 7])
+#: 9-state indices of the fused 6-state (x, y, z, vx, vy, vz)
+STATE6 = np.concatenate([POS, VEL])
+STATE_COLS = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
+US = 1_000_000
+
+
+@dataclass(frozen=True)
+class CentralizedConfig:
+    """Parameters of the centralised filter (the radars' channel defaults).
+
+    * ``alpha``: Singer inverse manoeuvre time constant α (s⁻¹), 1/30.
+    * ``sigma_m``: manoeuvre intensity per Cartesian axis (m/s²), 2.
+    * ``variant``: Singer Φ, ``"printed"`` (seed) or ``"exact"``.
+    * ``v0_sigma_mps``: initial velocity standard deviation per axis (one-point initiation).
+    * ``altitude_sigma_m``: Mode C accuracy used when the elevation is derived from altitude.
+    """
+
+    alpha: float = 1.0 / 30.0
+    sigma_m: float = 2.0
+    variant: Variant = "printed"
+    v0_sigma_mps: float = 300.0
+    altitude_sigma_m: float = 30.0
+
+
+# --------------------------------------------------------------------------- model
+
+
+def _blockdiag3(b: F64) -> F64:
+    """(m, 3, 3) per-axis blocks → (m, 9, 9) block-diagonal matrices."""
+    out = np.zeros(b.shape[:-2] + (9, 9))
+    for a in range(3):
+        out[..., 3 * a:3 * a + 3, 3 * a:3 * a + 3] = b
+    return out
+
+
+def transition(tau: F64, cfg: CentralizedConfig) -> tuple[F64, F64]:
+    """Φ(τ) and Q(τ), each (m, 9, 9), for the 9-state Singer model (2.51)/(4.46)."""
+    tau = np.asarray(tau, dtype=float)
+    return (_blockdiag3(singer_phi(tau, cfg.alpha, cfg.variant)),
+            _blockdiag3(singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)))
+
+
+def initial_state(z: F64, r: F64, cfg: CentralizedConfig) -> tuple[F64, F64]:
+    """One-point initiation from converted plots z (m, 3), R (m, 3, 3): x (m, 9), P (m, 9, 9)."""
+    m = len(z)
+    x = np.zeros((m, 9))
+    x[:, POS] = z
+    p = np.zeros((m, 9, 9))
+    p[:, POS[:, None], POS[None, :]] = r
+    p[:, VEL, VEL] = cfg.v0_sigma_mps ** 2
+    p[:, POS + 2, POS + 2] = cfg.sigma_m ** 2
+    return x, p
+
+
+def _abat(a: F64, b: F64) -> F64:
+    """A B Aᵀ for stacks of small matrices (two batched matmuls: faster than einsum here)."""
+    return a @ b @ a.swapaxes(-1, -2)
+
+
+def _update(x: F64, p: F64, z: F64, r: F64) -> tuple[F64, F64]:
+    """Batched Kalman update (2.10)–(2.14), Joseph form, H = positions of the 9-state."""
+    ph = p[:, :, POS]                                   # P Hᵀ  (m, 9, 3)
+    s = ph[:, POS, :] + r                               # H P Hᵀ + R
+    k = np.linalg.solve(s, ph.transpose(0, 2, 1)).transpose(0, 2, 1)   # P Hᵀ S⁻¹ (S symmetric)
+    nu = z - x[:, POS]
+    x = x + np.einsum("mij,mj->mi", k, nu)
+    ikh = np.broadcast_to(np.eye(9), p.shape).copy()
+    ikh[:, :, POS] -= k
+    p = _abat(ikh, p) + _abat(k, r)
+    return x, p
+
+
+def centralized_filter(t: F64, z: F64, r: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
+                       cfg: CentralizedConfig = CentralizedConfig(), keep: NDArray[np.bool_] | None = None
+                       ) -> tuple[F64, F64]:
+    """Run the filter over every target's plot sequence.
+
+    ``t`` (n,) seconds, ``z`` (n, 3) converted plots and ``r`` (n, 3, 3) their covariances,
+    sorted so that target g owns rows ``starts[g] : starts[g] + lengths[g]`` in time order.
+    Returns the updated state (n_keep, 9) and covariance (n_keep, 9, 9) after each kept row
+    (``keep`` mask; all rows by default), in row order.
+    """
+    n = len(t)
+    keep = np.ones(n, dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    slot = np.full(n, -1)
+    slot[keep] = np.arange(int(keep.sum()))
+    out_x = np.full((int(keep.sum()), 9), np.nan)
+    out_p = np.full((int(keep.sum()), 9, 9), np.nan)
+    order = np.argsort(-np.asarray(lengths), kind="stable")
+    st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
+    n_targets = len(st)
+    x = np.zeros((n_targets, 9))
+    p = np.zeros((n_targets, 9, 9))
+    t_last = np.zeros(n_targets)
+    # lengths sorted descending: the targets with more than k plots are a prefix
+    alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
+    for k, m in enumerate(alive):
+        idx = st[:m] + k
+        if k == 0:
+            xs, ps = initial_state(z[idx], r[idx], cfg)
+        else:
+            phi, q = transition(t[idx] - t_last[:m], cfg)
+            xs = np.einsum("mij,mj->mi", phi, x[:m])
+            ps = _abat(phi, p[:m]) + q
+            xs, ps = _update(xs, ps, z[idx], r[idx])
+        x[:m], p[:m], t_last[:m] = xs, ps, t[idx]
+        sl = slot[idx]
+        hit = sl >= 0
+        out_x[sl[hit]], out_p[sl[hit]] = xs[hit], ps[hit]
+    return out_x, out_p
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+                    altitude_sigma_m: float = 30.0) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """Each report's plot in the system frame: z (n, 3), R (n, 3, 3) = M J R_polar Jᵀ Mᵀ from the
+    radar's nominal sigmas (seed 002 eq. 12), and a validity mask (False where neither an
+    elevation nor a Mode C altitude is available)."""
+    n = reports.height
+    polar, var = measurement_polar(reports, radars, altitude_sigma_m)   # (range, az rad, el rad)
+    ok = np.all(np.isfinite(polar), axis=1)
+    z = np.full((n, 3), np.nan)
+    r = np.full((n, 3, 3), np.nan)
+    rid = reports["radar_id"].to_numpy()
+    for row in radars.iter_rows(named=True):            # a handful of radars, not reports
+        sel = np.flatnonzero((rid == row["radar_id"]) & ok)
+        if sel.size == 0:
+            continue
+        site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
+        rng, az, el = polar[sel, 0], np.degrees(polar[sel, 1]), np.degrees(polar[sel, 2])
+        local = np.stack(geo.polar_to_enu(rng, az, el), axis=-1)
+        cov_polar = np.zeros((sel.size, 3, 3))
+        cov_polar[:, [0, 1, 2], [0, 1, 2]] = var[sel]
+        cov_local = geo.polar_cov_to_enu(rng, az, el, cov_polar)
+        z[sel], _, r[sel] = geo.frame_to_frame(local, site, origin, cov=cov_local)
+    ok &= np.all(np.isfinite(z), axis=1)
+    return z, r, ok
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def _first_association(associations: pl.DataFrame) -> pl.DataFrame:
+    """report → target from each report's first association epoch."""
+    return (associations.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
+                                pl.col("target_id").cast(pl.UInt64), pl.col("epoch").cast(TIME))
+            .sort("epoch").unique(subset=["run", "report_id"], keep="first", maintain_order=True)
+            .drop("epoch"))
+
+
+def _empty_fused() -> pl.DataFrame:
+    return pl.DataFrame(schema=TABLES["fused"].required)
+
+
+def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations: pl.DataFrame,
+                       epochs: pl.DataFrame, origin: geo.LocalFrame,
+                       cfg: CentralizedConfig = CentralizedConfig()) -> pl.DataFrame:
+    """Centralised measurement-level Kalman filter of every associated target (module docstring).
+
+    ``reports``: plots with ``report_id``, ``radar_id``, ``time``, ``range_m``, ``azimuth_deg``
+    and ``elevation_deg`` and/or ``altitude_m`` (``run`` defaults to 0); ``associations``: the
+    association table (report_id → target_id; a report associated at several epochs counts at
+    its first); ``epochs``: any frame with (run, epoch, target_id) — e.g. ``fused`` — at which
+    to output; ``origin``: the system frame. Returns rows in the ``fused`` schema,
+    method ``"centralized"``, sorted by (run, epoch, target_id).
+    """
+    rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
+                           pl.col("time").cast(TIME))
+    rep = rep.join(_first_association(associations), on=["run", "report_id"], how="inner")
+    z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m)
+    rep = rep.with_columns(pl.Series("__ok", ok))
+    rep = rep.with_columns(pl.int_range(pl.len()).alias("__pos")).filter(pl.col("__ok"))
+    rep = rep.sort(["run", "target_id", "time", "radar_id", "report_id"])
+    if rep.is_empty():
+        return _empty_fused()
+    pos = rep["__pos"].to_numpy()
+    z, r = z[pos], r[pos]
+    n = rep.height
+    t_us = rep["time"].dt.epoch("us").to_numpy()
+    t0 = int(t_us.min())
+    t = (t_us - t0) * 1e-6
+
+    keys = rep.select("run", "target_id").to_numpy()
+    new = np.ones(n, dtype=bool)
+    new[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    starts = np.flatnonzero(new)
+    lengths = np.diff(np.append(starts, n))
+    group_start = np.repeat(starts, lengths)
+
+    # the last report at or before each requested epoch (one row per report time)
+    rep = rep.with_columns(pl.int_range(pl.len(), dtype=pl.Int64).alias("__ri"),
+                           pl.Series("__start", group_start, dtype=pl.Int64))
+    last = (rep.group_by(["run", "target_id", "time"]).agg(pl.col("__ri").max(), pl.col("__start").first())
+            .sort("time"))
+    want = (epochs.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                          pl.col("target_id").cast(pl.UInt64)).unique()
+            .sort("epoch"))
+    want = want.join_asof(last, left_on="epoch", right_on="time", by=["run", "target_id"],
+                          strategy="backward", check_sortedness=False)
+    want = want.sort(["run", "target_id", "epoch"]).with_columns(
+        pl.col("__ri").shift(1).over(["run", "target_id"]).alias("__prev"))
+    want = want.filter(pl.col("__ri").is_not_null()).with_columns(
+        (pl.col("__ri") - pl.coalesce(pl.col("__prev"), pl.col("__start") - 1)).alias("n_sources"))
+    if want.is_empty():
+        return _empty_fused()
+
+    ri = want["__ri"].to_numpy()
+    keep = np.zeros(n, dtype=bool)
+    keep[ri] = True
+    x_post, p_post = centralized_filter(t, z, r, starts, lengths, cfg, keep)
+    slot = np.cumsum(keep) - 1
+    tau = (want["epoch"].dt.epoch("us").to_numpy() - t0) * 1e-6 - t[ri]
+    phi, q = transition(tau, cfg)
+    xe = np.einsum("mij,mj->mi", phi, x_post[slot[ri]])
+    pe = _abat(phi, p_post[slot[ri]]) + q
+    state = xe[:, STATE6]
+    cov6 = pe[:, STATE6[:, None], STATE6[None, :]]
+
+    seen = (rep.group_by(["run", "target_id", "radar_id"]).agg(pl.col("time").min().alias("__first")))
+    radar_ids = (want.select("run", "target_id", "epoch").join(seen, on=["run", "target_id"], how="inner")
+                 .filter(pl.col("__first") <= pl.col("epoch"))
+                 .group_by(["run", "target_id", "epoch"]).agg(pl.col("radar_id").sort().alias("radar_ids")))
+    out = want.select("run", "epoch", "target_id", "n_sources").with_columns(
+        pl.lit(METHOD).alias("method"),
+        *[pl.Series(c, state[:, i]) for i, c in enumerate(STATE_COLS)],
+        pl.Series("cov", cov6.reshape(len(ri), 36), dtype=pl.Array(pl.Float64, 36)),
+        pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
+    ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
+    spec = TABLES["fused"].required
+    return out.select([pl.col(c).cast(tp) for c, tp in spec.items()]).sort(["run", "epoch", "target_id"])

@@ -1,0 +1,383 @@
+"""Clustering ("укрупнение") of fused targets into displayed groups (monograph §1.4, stage 6).
+
+When an air picture holds more fused marks than the display can take (the "admissible norm",
+``display_capacity``), compact groups of aircraft flying together are shown as one mark: a group
+anchored on a **lead** target, with the member count. Each (run, epoch, method) is clustered on
+its own; the whole table is clustered in one vectorised pass and only the lead bookkeeping steps
+through the epochs.
+
+Rules (every choice the monograph leaves open is fixed here):
+
+* **Trigger.** A (run, epoch, method) is clustered only when it holds more than
+  ``display_capacity`` fused targets (``always=True`` clusters every group). Other groups give no
+  cluster rows: every target is shown on its own.
+* **Compact groups** in (x, y, H), all epochs at once; a group index times a large separation is
+  an extra coordinate, so points of different (run, epoch, method) are never neighbours.
+
+  - ``"dbscan"``: scikit-learn DBSCAN (``min_samples=2``, i.e. single linkage) with radius
+    ``eps_m`` on (x, y, H·h_scale).
+  - ``"strobe"``: a box gate of half-sizes (dx, dy, dH) centred on the lead.
+
+* **Leads and velocity selection (1.2)** — greedy leader clustering. Two targets are
+  *compatible* when |vx − vx'| ≤ Δv and |vy − vy'| ≤ Δv and they are in the same DBSCAN group
+  (strobe: each is inside the other's gate). Targets are taken in lead-priority order; a target
+  not yet taken becomes a lead and takes every compatible target not yet taken. So a compact
+  group keeps the members that pass (1.2) against its lead, and the members that fail are split
+  off and regrouped the same way around a new lead (5 close aircraft, 2 flying the opposite way
+  → clusters of 3 and 2; a split-off member with no compatible partner stays alone). With the
+  strobe on a fresh picture this is the greedy strobe "leads in order of target_id". Lead
+  priority within a (run, epoch, method):
+
+  1. targets that led a cluster at the previous epoch of the same (run, method) (automatic
+     tracking keeps the lead), oldest cluster (smallest id) first;
+  2. targets that were members of a previous-epoch cluster: **lead re-selection** when that
+     cluster's lead is gone (vanished, left the group or split off): by cluster, the member
+     closest to the centroid of the cluster's present members (old lead excluded) first, in the
+     clustering metric ((x, y, H·h_scale) for DBSCAN, (x/dx, y/dy, H/dH) for the strobe);
+  3. new targets (the group's first appearance) by target_id, so a new group's lead is its
+     member with the smallest target_id.
+
+  The greedy is solved in parallel rounds over every group of an epoch index at once (same
+  result as the sequential greedy); cost grows with the number of compatible pairs.
+* **Groups of one target are not clusters.**
+* **Cluster ids** are stable: a cluster keeps the id of the previous-epoch cluster whose lead
+  leads it; the other clusters take, by mutual best overlap, the id of the previous-epoch cluster
+  they share most members with (ties: the smaller id / the cluster with the smaller lead id);
+  the rest get new ids. "Previous epoch" is the preceding epoch of the (run, method) in
+  ``fused``: a picture that was not clustered breaks continuity. Ids are numbered from 1 per
+  (run, method) in order of creation.
+* Rows with a non-finite position or horizontal velocity are never clustered (shown alone).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from sklearn.cluster import DBSCAN
+
+from tertiary.schema import TABLES
+
+__all__ = ["ClusteringConfig", "cluster", "cluster_summary"]
+
+KEYS = ["run", "epoch", "method"]
+_NEEDED = ["run", "epoch", "method", "target_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps"]
+_OUT = TABLES["clusters"].required
+
+
+@dataclass(frozen=True)
+class ClusteringConfig:
+    """Parameters of clustering.
+
+    * ``algorithm``: ``"dbscan"`` (radius ``eps_m`` on (x, y, H·h_scale)) or ``"strobe"`` (box
+      gate of ``half_sizes_m`` = (dx, dy, dH) around the lead).
+    * ``h_scale``: vertical-to-horizontal scale of the DBSCAN metric (10: 300 m ≈ 3 km).
+    * ``dv_mps``: velocity-selection threshold Δv of (1.2), per horizontal component.
+    * ``display_capacity``: a (run, epoch, method) is clustered only above this many targets;
+      ``always=True`` clusters regardless.
+    """
+
+    algorithm: Literal["dbscan", "strobe"] = "dbscan"
+    eps_m: float = 5000.0
+    h_scale: float = 10.0
+    half_sizes_m: tuple[float, float, float] = (5000.0, 5000.0, 500.0)
+    dv_mps: float = 30.0
+    display_capacity: int = 150
+    always: bool = False
+
+    def __post_init__(self) -> None:
+        if self.algorithm not in ("dbscan", "strobe"):
+            raise ValueError(f"algorithm must be 'dbscan' or 'strobe', got {self.algorithm!r}")
+        if not self.eps_m > 0 or not self.h_scale > 0:
+            raise ValueError("eps_m and h_scale must be positive")
+        if len(self.half_sizes_m) != 3 or not all(h > 0 for h in self.half_sizes_m):
+            raise ValueError("half_sizes_m must be three positive numbers (dx, dy, dH)")
+        if not self.dv_mps >= 0:
+            raise ValueError("dv_mps must be non-negative")
+        if self.display_capacity < 0:
+            raise ValueError("display_capacity must be non-negative")
+
+
+def _empty() -> pl.DataFrame:
+    return pl.DataFrame(schema=_OUT)
+
+
+# ---------------------------------------------------------------------------
+# compatibility graph, all epochs at once
+# ---------------------------------------------------------------------------
+
+
+def _pairs(raw: NDArray[np.float64], scaled: NDArray[np.float64], vel: NDArray[np.float64],
+           group: NDArray[np.int64], cfg: ClusteringConfig) -> NDArray[np.int64]:
+    """Undirected pairs (i, j) that may share a cluster with either as the lead.
+
+    DBSCAN: same DBSCAN cluster and velocity selection (1.2); strobe: each inside the other's
+    gate and (1.2). Candidates come from one Chebyshev KD-tree query over every epoch (the group
+    index is an extra coordinate), then are checked exactly.
+    """
+    vscale = 1.0 / cfg.dv_mps if cfg.dv_mps > 0 else 1e9
+    if cfg.algorithm == "dbscan":
+        feats = np.column_stack([scaled, group * (3.0 * cfg.eps_m)])
+        label = DBSCAN(eps=cfg.eps_m, min_samples=2, algorithm="ball_tree").fit(feats).labels_.astype(np.int64)
+        sel = np.flatnonzero(label >= 0)                # DBSCAN noise: alone
+        space = np.column_stack([label[sel] * 3.0, vel[sel] * vscale])
+    else:
+        sel = np.arange(len(raw))
+        space = np.column_stack([scaled, group * 3.0, vel * vscale])
+    if len(sel) < 2:
+        return np.empty((0, 2), dtype=np.int64)
+    pairs = cKDTree(space).query_pairs(r=1.0 + 1e-9, p=np.inf, output_type="ndarray")
+    pairs = sel[pairs.astype(np.int64)].reshape(-1, 2)
+    i, j = pairs[:, 0], pairs[:, 1]
+    ok = (np.abs(vel[i] - vel[j]) <= cfg.dv_mps).all(axis=1)
+    if cfg.algorithm == "strobe":
+        ok &= (np.abs(raw[i] - raw[j]) <= np.asarray(cfg.half_sizes_m)).all(axis=1)
+    return pairs[ok]
+
+
+# ---------------------------------------------------------------------------
+# leads within one epoch index (all streams and groups together)
+# ---------------------------------------------------------------------------
+
+
+def _priority(tid: NDArray[np.uint64], scaled: NDArray[np.float64], prev_cid: NDArray[np.int64],
+              prev_lead: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """Lead priority rank (0 first): previous leads by cluster id; members of a previous cluster
+    by cluster id, then distance to the centroid of that cluster's other present members (its
+    old lead excluded); new targets by target_id."""
+    n = len(tid)
+    cat = np.where(prev_lead, 0, np.where(prev_cid >= 0, 1, 2))
+    d2 = np.zeros(n)
+    mem = np.flatnonzero(cat == 1)
+    if len(mem):
+        _, inv = np.unique(prev_cid[mem], return_inverse=True)
+        cnt = np.bincount(inv)
+        centroid = np.column_stack([np.bincount(inv, weights=scaled[mem, c]) for c in range(3)])
+        d2[mem] = ((scaled[mem] - centroid[inv] / cnt[inv, None]) ** 2).sum(axis=1)
+    order = np.lexsort((tid, d2, np.where(cat < 2, prev_cid, 0), cat))
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    return rank
+
+
+def _greedy_leads(rank: NDArray[np.int64], pairs: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Greedy leader clustering: in priority order an unassigned target becomes a lead and takes
+    every unassigned target joined to it by ``pairs``. Returns each target's lead.
+
+    Solved in parallel rounds with the same result as the sequential greedy: a target whose
+    earliest not-yet-taken neighbour (itself included) is itself is a lead; one whose earliest
+    such neighbour is a lead is taken by it.
+    """
+    n = len(rank)
+    by_rank = np.argsort(rank)
+    u = np.concatenate([pairs[:, 0], pairs[:, 1]])     # directed: v is a neighbour of u
+    v = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    status = np.zeros(n, dtype=np.int8)                # 0 undecided, 1 lead, 2 taken
+    lead = np.full(n, -1, dtype=np.int64)
+    while True:
+        und = status == 0
+        if not und.any():
+            return lead
+        keep = und[u] & (status[v] != 2)
+        u, v = u[keep], v[keep]
+        m = rank.copy()
+        np.minimum.at(m, u, rank[v])
+        new = und & (m == rank)
+        status[new] = 1
+        lead[new] = np.flatnonzero(new)
+        first = by_rank[m]
+        taken = und & ~new & (status[first] == 1)
+        status[taken] = 2
+        lead[taken] = first[taken]
+
+
+def _match_ids(g_of_member: NDArray[np.int64], cid_of_member: NDArray[np.int64],
+               lead_tid: NDArray[np.uint64]) -> NDArray[np.int64]:
+    """Mutual-best-overlap matching of groups to previous cluster ids (−1: unmatched)."""
+    out = np.full(len(lead_tid), -1, dtype=np.int64)
+    if len(g_of_member) == 0:
+        return out
+    pairs, overlap = np.unique(np.column_stack([g_of_member, cid_of_member]), axis=0,
+                               return_counts=True)
+    g, c = pairs[:, 0], pairs[:, 1]
+    while len(g):
+        # best id per group: most members, then smallest id
+        o = np.lexsort((c, -overlap, g))
+        best_c_of_g = o[np.r_[True, g[o][1:] != g[o][:-1]]]
+        # best group per id: most members, then smallest lead id
+        o = np.lexsort((lead_tid[g], -overlap, c))
+        best_g_of_c = o[np.r_[True, c[o][1:] != c[o][:-1]]]
+        mutual = np.intersect1d(best_c_of_g, best_g_of_c)
+        if len(mutual) == 0:
+            break
+        out[g[mutual]] = c[mutual]
+        keep = ~np.isin(g, g[mutual]) & ~np.isin(c, c[mutual])
+        g, c, overlap = g[keep], c[keep], overlap[keep]
+    return out
+
+
+# ---------------------------------------------------------------------------
+# public API
+# ---------------------------------------------------------------------------
+
+
+def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> pl.DataFrame:
+    """Cluster the fused picture of every (run, epoch, method): the ``clusters`` table.
+
+    One row per cluster of two or more targets: run, epoch, method, cluster_id, lead_target_id,
+    members (target ids, ascending, the lead included) and count. See the module docstring for
+    the rules.
+    """
+    missing = [c for c in _NEEDED if c not in fused.columns]
+    if missing:
+        raise ValueError(f"fused: missing column(s) {', '.join(missing)}")
+    if fused.height == 0:
+        return _empty()
+    if fused.select(pl.struct(KEYS + ["target_id"]).is_duplicated().any()).item():
+        raise ValueError("fused: duplicate target_id within a (run, epoch, method)")
+
+    df = (
+        fused.select(_NEEDED)
+        .sort(["run", "method", "epoch", "target_id"])
+        .with_columns(
+            __n=pl.len().over(KEYS),
+            __group=pl.struct(KEYS).rank("dense").cast(pl.Int64),
+            __k=(pl.col("epoch").rank("dense").over("run", "method").cast(pl.Int64) - 1),
+            __tidx=pl.struct("run", "method", "target_id").rank("dense").cast(pl.Int64) - 1,
+        )
+        .with_row_index("__row")
+    )
+    n_targets = int(df["__tidx"].max()) + 1
+    ok = pl.all_horizontal(pl.col(c).is_finite() for c in _NEEDED[4:])
+    if not cfg.always:
+        ok = ok & (pl.col("__n") > cfg.display_capacity)
+    work = df.filter(ok)
+    if work.height < 2:
+        return _empty()
+
+    raw = work.select("x_m", "y_m", "z_m").to_numpy().astype(np.float64)
+    if cfg.algorithm == "dbscan":
+        scaled = raw * np.array([1.0, 1.0, cfg.h_scale])
+    else:
+        scaled = raw / np.asarray(cfg.half_sizes_m, dtype=np.float64)
+    vel = work.select("vx_mps", "vy_mps").to_numpy().astype(np.float64)
+    pairs = _pairs(raw, scaled, vel, work["__group"].to_numpy(), cfg)
+    if len(pairs) == 0:
+        return _empty()
+
+    # order the targets by epoch index (isolated ones simply lead themselves)
+    k_all = work["__k"].to_numpy()
+    sel = np.argsort(k_all, kind="stable")
+    k_all = k_all[sel]
+    local = np.empty(work.height, dtype=np.int64)
+    local[sel] = np.arange(work.height)
+    pairs = local[pairs]
+    pairs = pairs[np.argsort(pairs.min(axis=1), kind="stable")]
+    scaled = scaled[sel]
+    tid = work["target_id"].to_numpy().astype(np.uint64)[sel]
+    tidx = work["__tidx"].to_numpy()[sel]
+    rows = work["__row"].to_numpy()[sel]
+
+    last_k = np.full(n_targets, -2, dtype=np.int64)     # epoch index of the last clustered epoch
+    last_cid = np.full(n_targets, -1, dtype=np.int64)   # global cluster id there
+    last_lead = np.zeros(n_targets, dtype=bool)         # led it
+    next_id = 0
+    out_rows, out_cid, out_lead = [], [], []
+
+    ks, starts = np.unique(k_all, return_index=True)
+    bounds = np.r_[starts, len(k_all)]
+    pair_bounds = np.searchsorted(pairs.min(axis=1), bounds)
+    for e, k in enumerate(ks):                           # loop over epoch index (bookkeeping)
+        if pair_bounds[e] == pair_bounds[e + 1]:
+            continue                                     # no compatible pair: nothing clusters
+        lo, hi = bounds[e], bounds[e + 1]
+        s = slice(lo, hi)
+        ti, ts = tidx[s], tid[s]
+        cont = last_k[ti] == k - 1
+        prev_cid = np.where(cont, last_cid[ti], -1)
+        prev_lead = cont & last_lead[ti]
+        rank = _priority(ts, scaled[s], prev_cid, prev_lead)
+        lead = _greedy_leads(rank, pairs[pair_bounds[e]:pair_bounds[e + 1]] - lo)
+
+        size = np.bincount(lead, minlength=len(lead))
+        member = np.flatnonzero(size[lead] >= 2)
+        if len(member) == 0:
+            continue
+        leads, g = np.unique(lead[member], return_inverse=True)
+        cid = np.where(prev_lead[leads], prev_cid[leads], -1)
+        claimed = cid[cid >= 0]
+        cand = (cid[g] < 0) & (prev_cid[member] >= 0) & ~np.isin(prev_cid[member], claimed)
+        matched = _match_ids(g[cand], prev_cid[member][cand], ts[leads])
+        cid = np.where(cid >= 0, cid, matched)
+        new = cid < 0
+        cid[new] = next_id + np.arange(int(new.sum()))
+        next_id += int(new.sum())
+
+        mt = ti[member]
+        last_k[mt] = k
+        last_cid[mt] = cid[g]
+        last_lead[mt] = lead[member] == member
+        out_rows.append(rows[s][member])
+        out_cid.append(cid[g])
+        out_lead.append(ts[leads][g])
+
+    if not out_rows:
+        return _empty()
+    members = (
+        df[np.concatenate(out_rows)]
+        .select(KEYS + ["target_id"])
+        .with_columns(
+            __gid=pl.Series(np.concatenate(out_cid)),
+            lead_target_id=pl.Series(np.concatenate(out_lead), dtype=pl.UInt64),
+        )
+    )
+    return (
+        members.sort("target_id")
+        .group_by(KEYS + ["__gid"])
+        .agg(
+            pl.col("lead_target_id").first(),
+            members=pl.col("target_id").cast(pl.UInt64),
+            count=pl.len().cast(pl.UInt32),
+        )
+        .with_columns(cluster_id=pl.col("__gid").rank("dense").over("run", "method").cast(pl.UInt64))
+        .select([pl.col(c).cast(t) for c, t in _OUT.items()])
+        .sort(["run", "epoch", "method", "cluster_id"])
+    )
+
+
+def cluster_summary(clusters: pl.DataFrame, fused: pl.DataFrame | None = None) -> pl.DataFrame:
+    """Per (run, epoch, method): ``n_clusters``, ``mean_size``, ``max_size`` and
+    ``targets_clustered`` (targets represented by cluster marks).
+
+    With ``fused`` every (run, epoch, method) of the picture gets a row (zeros where nothing was
+    clustered) plus ``n_targets`` and ``n_marks`` = marks on the display (clusters + targets shown
+    alone).
+    """
+    summary = clusters.group_by(KEYS).agg(
+        n_clusters=pl.len().cast(pl.UInt32),
+        mean_size=pl.col("count").cast(pl.Float64).mean(),
+        max_size=pl.col("count").max().cast(pl.UInt32),
+        targets_clustered=pl.col("count").sum().cast(pl.UInt32),
+    )
+    if fused is None:
+        return summary.sort(KEYS)
+    counts = fused.group_by(KEYS).agg(n_targets=pl.len().cast(pl.UInt32))
+    summary = summary.with_columns([pl.col(c).cast(counts.schema[c]) for c in KEYS])
+    return (
+        counts.join(summary, on=KEYS, how="left")
+        .with_columns(
+            pl.col("n_clusters", "max_size", "targets_clustered").fill_null(0),
+            pl.col("mean_size").fill_null(0.0),
+        )
+        .with_columns(
+            n_marks=(pl.col("n_targets") - pl.col("targets_clustered") + pl.col("n_clusters"))
+            .cast(pl.UInt32)
+        )
+        .select(KEYS + ["n_clusters", "mean_size", "max_size", "targets_clustered",
+                        "n_targets", "n_marks"])
+        .sort(KEYS)
+    )

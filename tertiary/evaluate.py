@@ -1,0 +1,357 @@
+"""Evaluation against truth: real accuracy of fused states and association correctness (stage 9).
+
+Truth of a system target
+------------------------
+Each (run, epoch, target_id) of the ``associations`` table gets the **majority truth_id** of the
+reports associated with it at that epoch (``report_id`` → ``truth_id`` from the reports). Clutter
+reports (null ``truth_id``) do not vote; a target whose reports are all clutter has a null truth.
+Ties go to the smallest truth_id, so the result is deterministic.
+
+Real accuracy (monograph (2.15), tertiary digest (4.84))
+--------------------------------------------------------
+A fused row is compared with its truth aircraft at ``time == epoch``; truth is sampled on a
+1 s grid and is interpolated linearly when an epoch falls between two samples (epochs outside
+the aircraft's truth span are not scored). With e_j(k) the error of sample j at epoch k,
+
+    σ²(k) = Σ_{j=1..N_k} e_j(k)² / (N_k − 1)                                        (2.15)/(4.84)
+
+the squared real accuracy at epoch k, about the **truth** (not the sample mean). The samples of
+an epoch are all scored fused rows of that method at that epoch — for one aircraft, one per
+Monte-Carlo run (N_k = number of runs, the seed's case); with several aircraft they are pooled.
+``denominator="n"`` divides by N_k instead. For 3-D position and velocity e² = |e|² (sum of the
+three components), for range e = |p_fused| − |p_true| (range from the processing centre = the
+system origin).
+
+The **pooled** figure of a metric is
+
+    RMSE = sqrt( (1/K) Σ_k σ²(k) )
+
+the root of the mean over the K scored epochs of the per-epoch squared real accuracy; epochs
+with N_k < 2 (``"n-1"``) or N_k < 1 (``"n"``) are left out, as (2.15) is undefined there.
+``n_runs`` is the number of distinct Monte-Carlo runs that contributed.
+
+Segments: ``all``; ``straight`` ← truth segments straight|climb|descent; ``turn`` ← turn.
+Holding patterns (``hold``) and unknown segments count only in ``all``. A segment without
+samples is omitted. The split is by the truth segment at the epoch.
+
+The filter transient is discarded: rows less than ``skip_first_s`` (default 20 s, tertiary
+digest) after the first epoch of their (run, method, target_id) are not scored.
+
+Association metrics (stage ``association``, method ``assignment``, segment ``all``)
+-----------------------------------------------------------------------------------
+* ``assoc_correct_frac``: among association rows whose report has a truth_id, the fraction
+  whose target's majority truth_id equals the report's own (counted per association row, i.e.
+  per (run, epoch, report): each epoch's assignment is a separate decision).
+* ``swaps``: for each (run, target_id), walk the epochs at which the target exists in
+  time order; a swap is a pair of consecutive such epochs whose majority truth_ids are both
+  non-null and differ. Summed over targets and runs.
+* ``targets_per_truth``: for each (run, truth_id) with at least one associated report, the
+  number of distinct target ids that had it as majority truth at some epoch; the mean over
+  those (run, truth_id) pairs (1 is ideal; > 1 means track breaks or splits).
+* ``false_targets``: number of (run, target_id) whose associated reports are all clutter,
+  summed over runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import polars as pl
+
+from tertiary.schema import TABLES, TIME
+
+__all__ = [
+    "EvaluateConfig",
+    "SEGMENT_CLASSES",
+    "FUSION_METRICS",
+    "target_truth",
+    "match_truth",
+    "accuracy",
+    "accuracy_by_epoch",
+    "association_metrics",
+    "metrics_frame",
+    "add_nees",
+]
+
+Denominator = Literal["n-1", "n"]
+
+#: truth segment → evaluation segment (anything else counts only in ``all``)
+SEGMENT_CLASSES: dict[str, str] = {"straight": "straight", "climb": "straight", "descent": "straight",
+                                   "turn": "turn"}
+
+#: metric name → squared-error column of :func:`match_truth`
+FUSION_METRICS: dict[str, str] = {
+    "rmse_pos_m": "e2_pos",
+    "rmse_range_m": "e2_range",
+    "rmse_x_m": "e2_x",
+    "rmse_y_m": "e2_y",
+    "rmse_z_m": "e2_z",
+    "rmse_vel_mps": "e2_vel",
+}
+
+STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+_KEY = ["run", "epoch", "target_id"]
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Evaluation options.
+
+    * ``skip_first_s``: discard fused rows this many seconds after the first epoch of their
+      (run, method, target_id) — the filter transient (tertiary digest: the first 20 s).
+    * ``denominator``: ``"n-1"`` (seed (2.15)/(4.84)) or ``"n"``.
+    * ``stage``: the ``stage`` label of the accuracy rows in the metrics table.
+    """
+
+    skip_first_s: float = 20.0
+    denominator: Denominator = "n-1"
+    stage: str = "fusion"
+
+    def __post_init__(self) -> None:
+        if self.denominator not in ("n-1", "n"):
+            raise ValueError(f"denominator must be 'n-1' or 'n', got {self.denominator!r}")
+        if self.skip_first_s < 0:
+            raise ValueError(f"skip_first_s must be >= 0, got {self.skip_first_s}")
+
+
+# --------------------------------------------------------------------------- truth of targets
+
+
+def _report_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    """Association rows with the truth_id of their report (null for clutter/unknown)."""
+    on = ["report_id"]
+    if "run" in report_truth.columns and "run" in associations.columns:
+        on = ["run", "report_id"]
+    rt = report_truth.select(*[pl.col(c).cast(associations.schema[c]) for c in on],
+                             pl.col("truth_id").cast(pl.Int64)).unique(subset=on, keep="first")
+    return associations.join(rt, on=on, how="left", maintain_order="left")
+
+
+def _majority(labelled: pl.DataFrame, key: list[str]) -> pl.DataFrame:
+    """Majority non-null truth_id per ``key`` (ties → smallest truth_id; null if none)."""
+    keys = labelled.select(key).unique()
+    votes = (labelled.filter(pl.col("truth_id").is_not_null())
+             .group_by(key + ["truth_id"]).agg(pl.len().alias("__votes"))
+             .sort(key + ["__votes", "truth_id"], descending=[False] * len(key) + [True, False])
+             .unique(subset=key, keep="first", maintain_order=True)
+             .select(key + ["truth_id"]))
+    return keys.join(votes, on=key, how="left")
+
+
+def target_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, target_id, truth_id): the majority truth of each target at each epoch.
+
+    ``report_truth`` is any frame with ``report_id`` and ``truth_id`` (e.g. the reports table;
+    if both frames have ``run`` the join is on (run, report_id)).
+    """
+    labelled = _report_truth(associations, report_truth)
+    return _majority(labelled, _KEY).sort(_KEY)
+
+
+# --------------------------------------------------------------------------- truth matching
+
+
+def _truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """Truth state of ``samples`` (truth_id, epoch): exact or linearly interpolated between the
+    neighbouring truth samples; null outside the aircraft's truth span."""
+    cols = list(STATE)
+    has_seg = "segment" in truth.columns
+    tr = truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME), *cols,
+                      (pl.col("segment") if has_seg else pl.lit(None, pl.String)).alias("segment")
+                      ).sort("time")
+    left = samples.with_row_index("__i").sort("epoch")
+    lo = tr.rename({"time": "__t0", **{c: f"__lo_{c}" for c in cols}})
+    hi = tr.drop("segment").rename({"time": "__t1", **{c: f"__hi_{c}" for c in cols}})
+    j = (left.join_asof(lo, left_on="epoch", right_on="__t0", by="truth_id", strategy="backward",
+                        check_sortedness=False)
+         .join_asof(hi, left_on="epoch", right_on="__t1", by="truth_id", strategy="forward",
+                    check_sortedness=False))
+    span = (pl.col("__t1") - pl.col("__t0")).dt.total_microseconds()
+    w = pl.when(span > 0).then((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() / span).otherwise(0.0)
+    return (j.with_columns([(pl.col(f"__lo_{c}") + w * (pl.col(f"__hi_{c}") - pl.col(f"__lo_{c}"))).alias(f"true_{c}")
+                            for c in cols])
+            .filter(pl.col("__t0").is_not_null() & pl.col("__t1").is_not_null())
+            .sort("__i")
+            .select(pl.exclude("^__.*$")))
+
+
+def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
+                truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """Scored fused rows: the ``fused`` columns plus ``truth_id``, ``segment`` (truth segment),
+    ``seg_class`` (straight/turn/null), ``true_<state>`` and the squared errors ``e2_x``,
+    ``e2_y``, ``e2_z``, ``e2_pos`` (|Δp|²), ``e2_range`` ((|p| − |p_true|)²), ``e2_vel`` (|Δv|²).
+
+    Rows without a truth (clutter targets, epochs outside the truth span) and rows within
+    ``cfg.skip_first_s`` of their (run, method, target_id)'s first epoch are dropped.
+    """
+    f = fused.with_columns(pl.col("epoch").cast(TIME))
+    if cfg.skip_first_s > 0:
+        first = pl.col("epoch").min().over(["run", "method", "target_id"])
+        f = f.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
+    tt = target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+    f = (f.join(tt.with_columns(pl.col(c).cast(f.schema[c]) for c in _KEY), on=_KEY, how="inner")
+         .filter(pl.col("truth_id").is_not_null()))
+    m = _truth_at(f, truth)
+    d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
+    r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
+    r_t = (pl.col("true_x_m") ** 2 + pl.col("true_y_m") ** 2 + pl.col("true_z_m") ** 2).sqrt()
+    return m.with_columns(
+        pl.col("segment").replace_strict(SEGMENT_CLASSES, default=None, return_dtype=pl.String).alias("seg_class"),
+        (d["x_m"] ** 2).alias("e2_x"),
+        (d["y_m"] ** 2).alias("e2_y"),
+        (d["z_m"] ** 2).alias("e2_z"),
+        (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
+        ((r_f - r_t) ** 2).alias("e2_range"),
+        (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
+    )
+
+
+# --------------------------------------------------------------------------- accuracy
+
+
+def _per_epoch(matched: pl.DataFrame, group: list[str], cfg: EvaluateConfig) -> pl.DataFrame:
+    """Long per-epoch table: ``group`` + epoch, metric, sigma2 (= σ²(k) of (2.15)), n (N_k),
+    n_runs; cells with too few samples for the denominator are dropped."""
+    ddof = 1 if cfg.denominator == "n-1" else 0
+    e2 = list(FUSION_METRICS.values())
+    agg = matched.group_by(group + ["epoch"]).agg(
+        *[pl.col(c).sum() for c in e2], pl.len().alias("n"), pl.col("run").n_unique().alias("n_runs"))
+    agg = agg.filter(pl.col("n") > ddof)
+    long = agg.unpivot(index=group + ["epoch", "n", "n_runs"], on=e2, variable_name="e2", value_name="sum_e2")
+    name = {v: k for k, v in FUSION_METRICS.items()}
+    return long.select(
+        *group, "epoch",
+        pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"),
+        (pl.col("sum_e2") / (pl.col("n") - ddof)).alias("sigma2"),
+        "n", "n_runs")
+
+
+def _with_segments(matched: pl.DataFrame) -> pl.DataFrame:
+    """Rows once with segment ``all`` and once more with their straight/turn class."""
+    allrows = matched.with_columns(pl.lit("all").alias("eval_segment"))
+    split = matched.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))
+    return pl.concat([allrows, split], how="vertical")
+
+
+def _metrics_schema(frame: pl.DataFrame) -> pl.DataFrame:
+    spec = TABLES["metrics"].required
+    return frame.select([pl.col(c).cast(t) for c, t in spec.items()])
+
+
+def _empty_metrics() -> pl.DataFrame:
+    return pl.DataFrame(schema=TABLES["metrics"].required)
+
+
+def accuracy_from_matched(matched: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """Pooled real accuracy (metrics schema) from :func:`match_truth` rows:
+    RMSE = sqrt(mean_k σ²(k)), σ²(k) from (2.15)/(4.84), per method, metric and segment."""
+    if matched.is_empty():
+        return _empty_metrics()
+    rows = _with_segments(matched)
+    per = _per_epoch(rows, ["method", "eval_segment"], cfg)
+    runs = (rows.group_by(["method", "eval_segment"])
+            .agg(pl.col("run").n_unique().alias("n_runs")))
+    pooled = (per.group_by(["method", "eval_segment", "metric"]).agg(pl.col("sigma2").mean().sqrt().alias("value"))
+              .join(runs, on=["method", "eval_segment"], how="left"))
+    seg_order = pl.col("eval_segment").replace_strict({"all": 0, "straight": 1, "turn": 2}, default=3,
+                                                      return_dtype=pl.Int8)
+    met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(FUSION_METRICS)}, return_dtype=pl.Int8)
+    out = (pooled.sort([pl.col("method"), seg_order, met_order])
+           .select(pl.lit(cfg.stage).alias("stage"), "method", "metric",
+                   pl.col("eval_segment").alias("segment"), "value", "n_runs"))
+    return _metrics_schema(out)
+
+
+def accuracy(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
+             truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """Real accuracy of every fusion method (metrics schema, stage ``cfg.stage``):
+    ``rmse_pos_m``, ``rmse_range_m``, ``rmse_x_m``, ``rmse_y_m``, ``rmse_z_m``, ``rmse_vel_mps``
+    per segment all/straight/turn, pooled as sqrt of the mean over epochs of (2.15)/(4.84)."""
+    return accuracy_from_matched(match_truth(fused, associations, report_truth, truth, cfg), cfg)
+
+
+def accuracy_by_epoch(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
+                      truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """Per-epoch real accuracy σ(k) = sqrt(Σ_j e_j(k)² / (N_k − 1)) ((2.15)/(4.84)) for the
+    report's accuracy curves (seed figs. 4.10/4.11): columns (method, epoch, metric, value,
+    n_runs), all segments together, sorted by method, metric, epoch. Pass
+    ``EvaluateConfig(skip_first_s=0)`` to include the transient."""
+    matched = match_truth(fused, associations, report_truth, truth, cfg)
+    schema = {"method": pl.String, "epoch": TIME, "metric": pl.String, "value": pl.Float64, "n_runs": pl.UInt32}
+    if matched.is_empty():
+        return pl.DataFrame(schema=schema)
+    per = _per_epoch(matched, ["method"], cfg)
+    met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(FUSION_METRICS)}, return_dtype=pl.Int8)
+    return (per.sort([pl.col("method"), met_order, pl.col("epoch")])
+            .select("method", "epoch", "metric", pl.col("sigma2").sqrt().alias("value"), "n_runs")
+            .cast(schema))
+
+
+# --------------------------------------------------------------------------- consistency
+
+
+def add_nees(matched: pl.DataFrame) -> pl.DataFrame:
+    """Add the normalised estimation error squared of each :func:`match_truth` row that carries
+    a ``cov`` (flattened 6×6 of x, y, z, vx, vy, vz): ``nees_pos`` = Δpᵀ P_pp⁻¹ Δp (3 degrees of
+    freedom, mean 3 when consistent) and ``nees`` over the full 6-state (mean 6)."""
+    if matched.is_empty():
+        return matched.with_columns(pl.lit(None, pl.Float64).alias("nees_pos"), pl.lit(None, pl.Float64).alias("nees"))
+    err = np.stack([(matched[c] - matched[f"true_{c}"]).to_numpy() for c in STATE], axis=1)
+    cov = matched["cov"].to_numpy().reshape(-1, 6, 6)
+    nees_pos = np.einsum("ni,ni->n", err[:, :3], np.linalg.solve(cov[:, :3, :3], err[:, :3, None])[..., 0])
+    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    return matched.with_columns(pl.Series("nees_pos", nees_pos), pl.Series("nees", nees))
+
+
+# --------------------------------------------------------------------------- association
+
+
+def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    """Association correctness (metrics schema, stage ``association``, method ``assignment``,
+    segment ``all``): ``assoc_correct_frac``, ``swaps``, ``targets_per_truth``,
+    ``false_targets`` as defined in the module docstring."""
+    if associations.is_empty():
+        return _empty_metrics()
+    labelled = _report_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+    maj = _majority(labelled, _KEY).rename({"truth_id": "target_truth"})
+    rows = labelled.join(maj, on=_KEY, how="left")
+    n_runs = associations["run"].n_unique()
+
+    real = rows.filter(pl.col("truth_id").is_not_null())
+    correct = (real.select((pl.col("truth_id") == pl.col("target_truth")).fill_null(False).mean()).item()
+               if real.height else float("nan"))
+
+    seq = maj.sort(["run", "target_id", "epoch"])
+    prev = pl.col("target_truth").shift(1).over(["run", "target_id"])
+    swaps = seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
+                        & pl.col("target_truth").is_not_null()).fill_null(False).sum()).item()
+
+    truths = real.select("run", "truth_id").unique()
+    got = (maj.filter(pl.col("target_truth").is_not_null())
+           .group_by(["run", "target_truth"]).agg(pl.col("target_id").n_unique().alias("n_targets"))
+           .rename({"target_truth": "truth_id"}))
+    per_truth = truths.join(got, on=["run", "truth_id"], how="left").with_columns(pl.col("n_targets").fill_null(0))
+    tpt = float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
+
+    false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
+                     ["clutter"].sum())
+
+    out = pl.DataFrame({
+        "stage": "association", "method": "assignment",
+        "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets"],
+        "segment": "all",
+        "value": [float(correct), float(swaps), tpt, float(false_targets)],
+        "n_runs": n_runs,
+    })
+    return _metrics_schema(out)
+
+
+def metrics_frame(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
+                  truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """All evaluation rows — fusion accuracy then association metrics — in the ``metrics``
+    table's dtypes (stage, method, metric, segment, value, n_runs)."""
+    parts = [accuracy(fused, associations, report_truth, truth, cfg),
+             association_metrics(associations, report_truth)]
+    return pl.concat(parts, how="vertical")

@@ -1,0 +1,594 @@
+"""Stage 5 — fusion (weighted averaging) of the reports associated to one system target.
+
+Input: one row per (run, epoch, report) already associated to a target (the ``aligned`` state
+and covariance joined with ``associations``, plus ``fresh`` and ``nominal_var``; see
+:data:`INPUT_COLUMNS`). Output: the ``fused`` table, one row per (run, epoch, target_id,
+method). Equation numbers are the monograph's (seed 000, chapter 4); §-numbers refer to the
+digest ``docs/seeds/tertiary-and-safety.md``.
+
+Methods and the meaning of the reported ``weights`` (one per contributing radar, same order as
+``radar_ids``, summing to 1):
+
+* ``arithmetic`` (4.1): x = mean of the states, P = (1/N²) Σ C_n (independent errors).
+  Weights 1/N.
+* ``apriori`` (4.3)–(4.4) for N radars, per coordinate c ∈ {x, y, z}:
+  b_{n,c} = σ⁻²_{n,c} / Σ_m σ⁻²_{m,c} with σ²_{n,c} = ``nominal_var[c]``; each velocity
+  coordinate uses the weight of its position axis. P = Σ_n B_n C_n B_n, B_n = diag(b_n).
+  Reported weight: the mean of the x, y, z weights of the radar (sums to 1 because each
+  coordinate's weights do).
+* ``aposteriori_seed`` — (4.72)–(4.77) **as printed**, N radars as digest §6.2:
+  b_n(k) = L_n(k)(1 − b_n(k−1)) / Σ_m L_m(k)(1 − b_m(k−1)),
+  L_n = (2πD_n)^{-1/2} exp(−ΔD_n²/(2D_n)), ΔD_n = ``res_range_m``, D_n fixed per (run, radar,
+  local track) = ``res_range_var_m2 − sigma_range_m²`` at the local track's first row with a
+  finite innovation (the step-1 predicted variance without R, (4.75)–(4.76)), b_n(0) = 1/N
+  (4.77). One weight per radar for all six coordinates; P = Σ b_n² C_n (the seed fuses states
+  only; this is the covariance of a fixed-weight mix of independent estimates). The printed
+  prior (1 − b(k−1)) is Markov mixing with π_nn = 0: constant unequal likelihoods give the
+  period-2 oscillation of digest §2.3 (b), which this method deliberately keeps.
+* ``aposteriori`` — corrected recursion (digest §6.3, "markov"):
+  c_n = Σ_m π_mn b_m(k−1), π_nn = ``p_stay``, π_mn = (1 − p_stay)/(N − 1);
+  b_n ∝ N(ν_n; 0, S_n(k)) c_n with S_n(k) = ``res_range_var_m2``; floor ``b_min``, renormalise.
+  Weight and covariance as for the seed variant.
+* ``information``: P = (Σ C_n⁻¹)⁻¹, x = P Σ C_n⁻¹ x_n over the full 6-D state. Reported
+  weight tr(P C_n⁻¹)/6 (the weights sum to 1 because Σ P C_n⁻¹ = I; renormalised against
+  rounding).
+* ``covariance_intersection``: P⁻¹ = Σ ω_n C_n⁻¹, x = P Σ ω_n C_n⁻¹ x_n, ω on the simplex.
+  Two sources: ω minimises tr P (or det P, ``ci_objective="det"``) by a golden-section search
+  vectorised over targets, on the closed form of P(ω) after simultaneous diagonalisation.
+  N > 2: the fast-CI weights ω_n ∝ 1/tr C_n (Niehsen 2002), whatever ``ci_objective``.
+  Reported weights: ω.
+
+Rules shared by both a-posteriori recursions (digest §2.3, §6.2–6.3):
+
+* the recursion state b(k−1) of a (run, target_id, radar_id) is its weight at the previous
+  epoch at which the target was fused; when the target's radar set differs from that epoch's
+  set (or the target is new) the recursion restarts from b(0) = 1/N for the current set;
+* a row carries a usable innovation when it is ``fresh``, its ΔD is finite and its variance
+  (D_n or S_n(k)) is finite and positive. Rows without one keep b(k−1); the radars with a
+  usable innovation share the remaining mass 1 − Σ_{unusable} b_m(k−1) in proportion to
+  L_n c_n (the usual update restricted to them);
+* the update runs in the log domain (softmax); a target whose every log-term is −∞/NaN (all
+  likelihoods or priors vanish) keeps b(k−1) (digest §2.3 (e)).
+
+Single-source targets: every method returns the report unchanged with weight [1.0].
+
+The numeric kernels (``fuse_<method>``) work on numpy arrays whose rows are sorted by group
+(run, epoch, target_id), described by ``starts`` (first row of each group) and, for the
+recursions, by a :class:`Layout`. They use segment reductions (``np.add.reduceat``); the
+recursions loop over the rank of the epoch along each target's history, vectorised across
+targets and runs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+
+from tertiary.schema import TABLES, empty_frame
+
+__all__ = [
+    "INPUT_COLUMNS",
+    "METHODS",
+    "Fused",
+    "FusionConfig",
+    "Layout",
+    "apriori_weights",
+    "ci_pair_weights",
+    "fuse",
+    "fuse_aposteriori",
+    "fuse_aposteriori_seed",
+    "fuse_apriori",
+    "fuse_arithmetic",
+    "fuse_covariance_intersection",
+    "fuse_information",
+    "layout",
+    "markov_weights",
+    "seed_fixed_variance",
+    "seed_weights",
+]
+
+METHODS = (
+    "arithmetic", "apriori", "aposteriori_seed", "aposteriori", "information",
+    "covariance_intersection",
+)
+STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
+GROUP = ["run", "epoch", "target_id"]
+CHAIN = ["run", "target_id"]
+TRACK = ["run", "radar_id", "local_track_id"]
+INPUT_COLUMNS = [
+    *GROUP, "radar_id", "local_track_id", "report_id", *STATE, "cov",
+    "res_range_m", "res_range_var_m2", "fresh", "nominal_var",
+]
+CI_OBJECTIVES = ("trace", "det")
+_GOLDEN_ITERATIONS = 60  # bracket 0.618^60 ≈ 3e-13 of [0, 1]
+_EIG_FLOOR = 1e-12  # relative eigenvalue floor for non-positive-definite covariances
+
+F = NDArray[np.float64]
+Ix = NDArray[np.intp]
+B = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Parameters of the fusion methods.
+
+    * ``p_stay``: π_nn of the corrected a-posteriori recursion (digest §6.3; 0 reproduces the
+      seed prior, 1 is pure Bayes, which locks in).
+    * ``b_min``: floor of the corrected a-posteriori weights before renormalisation.
+    * ``ci_objective``: ``"trace"`` or ``"det"`` of the covariance-intersection P (two sources).
+    """
+
+    p_stay: float = 0.95
+    b_min: float = 0.01
+    ci_objective: str = "trace"
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.p_stay <= 1.0:
+            raise ValueError(f"p_stay must lie in [0, 1], got {self.p_stay}")
+        if not 0.0 <= self.b_min < 1.0:
+            raise ValueError(f"b_min must lie in [0, 1), got {self.b_min}")
+        if self.ci_objective not in CI_OBJECTIVES:
+            raise ValueError(f"ci_objective must be one of {CI_OBJECTIVES}, got {self.ci_objective!r}")
+
+
+class Fused(NamedTuple):
+    """Kernel result: per-group state (G, 6) and covariance (G, 6, 6); per-row weights (n,)."""
+
+    x: F
+    cov: F
+    weights: F
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Rows sorted by group (run, epoch, target_id), radar_id within a group.
+
+    * ``starts`` (G,): first row of each group; ``counts`` (G,): rows per group (N);
+    * ``group`` (n,): group index of each row;
+    * ``prev_row`` (n,): row holding the same (run, target_id, radar_id) at the target's
+      previous fused epoch when the radar set is unchanged, else −1 (restart at 1/N);
+    * ``level`` (G,): rank of the group's epoch along its target's history (recursion order).
+    """
+
+    starts: Ix
+    counts: Ix
+    group: Ix
+    prev_row: Ix
+    level: Ix
+
+    @classmethod
+    def from_starts(cls, starts: Ix, n: int, prev_row: Ix | None = None, level: Ix | None = None) -> Layout:
+        """Layout of independent groups (no recursion links unless given)."""
+        starts = np.asarray(starts, dtype=np.intp)
+        counts = np.diff(np.append(starts, n))
+        group = np.repeat(np.arange(len(starts)), counts)
+        prev = np.full(n, -1, dtype=np.intp) if prev_row is None else np.asarray(prev_row, dtype=np.intp)
+        lev = np.zeros(len(starts), dtype=np.intp) if level is None else np.asarray(level, dtype=np.intp)
+        return cls(starts, counts, group, prev, lev)
+
+
+# ---------------------------------------------------------------------------
+# segment helpers and linear algebra
+# ---------------------------------------------------------------------------
+
+
+def _segsum(a: F, starts: Ix) -> F:
+    """Σ over each group of rows (rows sorted by group). Matrices are scattered into a
+    zero-padded (G, N_max, ...) block and summed over axis 1, several times faster than
+    ``np.add.reduceat`` along axis 0 of a multi-dimensional array."""
+    if a.ndim == 1:
+        return np.add.reduceat(a, starts)
+    counts = np.diff(np.append(starts, len(a)))
+    group = np.repeat(np.arange(len(starts)), counts)
+    block = np.zeros((len(starts), int(counts.max()), *a.shape[1:]))
+    block[group, np.arange(len(a)) - starts[group]] = a
+    return block.sum(axis=1)
+
+
+def _per_row(a: NDArray, starts: Ix, n: int) -> NDArray:
+    """Broadcast a per-group value back to the group's rows."""
+    return np.repeat(a, np.diff(np.append(starts, n)), axis=0)
+
+
+def _sym(c: F) -> F:
+    return 0.5 * (c + np.swapaxes(c, -1, -2))
+
+
+def _chol(c: F) -> F:
+    """Batched Cholesky factor of symmetric covariances; a matrix that is not positive
+    definite is first projected onto PD (eigenvalues floored at 1e-12 × its largest)."""
+    c = _sym(c)
+    try:
+        return np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        w, v = np.linalg.eigh(c)
+        w = np.maximum(w, _EIG_FLOOR * np.maximum(w.max(axis=-1, keepdims=True), 1e-300))
+        return np.linalg.cholesky(_sym((v * w[..., None, :]) @ np.swapaxes(v, -1, -2)))
+
+
+def _inv_spd(c: F) -> F:
+    """Batched inverse of symmetric positive-definite matrices, computed on the
+    diagonally scaled (correlation-like) matrix via Cholesky and triangular solves."""
+    d = 1.0 / np.sqrt(np.maximum(np.einsum("...ii->...i", c), 1e-300))
+    r = c * d[..., :, None] * d[..., None, :]
+    lower = _chol(r)
+    eye = np.broadcast_to(np.eye(c.shape[-1]), c.shape)
+    linv = np.linalg.solve(lower, eye)
+    inv = np.einsum("...ki,...kj->...ij", linv, linv)
+    return _sym(inv * d[..., :, None] * d[..., None, :])
+
+
+def _mix(x: F, cov: F, w: F, starts: Ix) -> tuple[F, F]:
+    """x = Σ w_n x_n and P = Σ W_n C_n W_n for per-row weights w of shape (n,) or (n, 6)."""
+    w6 = np.broadcast_to(w[:, None], x.shape) if w.ndim == 1 else w
+    xf = _segsum(w6 * x, starts)
+    pf = _segsum(w6[:, :, None] * cov * w6[:, None, :], starts)
+    return xf, pf
+
+
+def _keep_single(res: Fused, x: F, cov: F, starts: Ix) -> Fused:
+    """Single-source groups: the report unchanged, weight 1."""
+    n = len(x)
+    single = np.diff(np.append(starts, n)) == 1
+    rows = starts[single]
+    res.x[single] = x[rows]
+    res.cov[single] = cov[rows]
+    res.weights[rows] = 1.0
+    return res
+
+
+# ---------------------------------------------------------------------------
+# arithmetic, a-priori
+# ---------------------------------------------------------------------------
+
+
+def fuse_arithmetic(x: F, cov: F, starts: Ix) -> Fused:
+    """Arithmetic mean (4.1): x = (1/N) Σ x_n, P = (1/N²) Σ C_n; weights 1/N."""
+    n_row = _per_row(np.diff(np.append(starts, len(x))), starts, len(x)).astype(float)
+    w = 1.0 / n_row
+    xf, pf = _mix(x, cov, w, starts)
+    return _keep_single(Fused(xf, pf, w), x, cov, starts)
+
+
+def apriori_weights(nominal_var: F, starts: Ix) -> F:
+    """Per-coordinate a-priori weights (4.3)–(4.4) for N radars, shape (n, 3):
+    b_{n,c} = σ⁻²_{n,c} / Σ_m σ⁻²_{m,c}."""
+    if not (np.isfinite(nominal_var).all() and (nominal_var > 0).all()):
+        raise ValueError("apriori: nominal_var must be finite and positive in every row")
+    inv = 1.0 / nominal_var
+    return inv / _per_row(_segsum(inv, starts), starts, len(inv))
+
+
+def fuse_apriori(x: F, cov: F, nominal_var: F, starts: Ix) -> Fused:
+    """A-priori weights (4.3)–(4.4) per coordinate; velocity uses its position axis's weight.
+
+    P = Σ B_n C_n B_n (independent radars). Reported weight: mean of the x, y, z weights."""
+    b3 = apriori_weights(nominal_var, starts)
+    xf, pf = _mix(x, cov, np.tile(b3, 2), starts)
+    return _keep_single(Fused(xf, pf, b3.mean(axis=1)), x, cov, starts)
+
+
+# ---------------------------------------------------------------------------
+# a-posteriori recursions
+# ---------------------------------------------------------------------------
+
+LogPrior = Callable[[F, F], F]  # (b(k−1), N) per row -> log c_n(k)
+
+
+def _log_prior_seed(b_prev: F, n: F) -> F:
+    """log(1 − b_n(k−1)): the printed prior of (4.73)/(4.74), digest §6.2."""
+    with np.errstate(divide="ignore"):
+        return np.log1p(-b_prev)
+
+
+def _log_prior_markov(p_stay: float) -> LogPrior:
+    """log c_n = log(p b_n + (1 − p)/(N − 1) (1 − b_n)) (digest §6.3)."""
+
+    def log_prior(b_prev: F, n: F) -> F:
+        q = (1.0 - p_stay) / np.maximum(n - 1.0, 1.0)
+        with np.errstate(divide="ignore"):
+            return np.log(p_stay * b_prev + q * (1.0 - b_prev))
+
+    return log_prior
+
+
+def _log_normal(nu: F, var: F) -> F:
+    """log N(ν; 0, var) = −½ log(2π var) − ν²/(2 var) (the seed's L_n)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -0.5 * np.log(2.0 * np.pi * var) - nu * nu / (2.0 * var)
+
+
+def _usable(fresh: B, nu: F, var: F) -> B:
+    """A new, finite innovation with a finite positive variance."""
+    return fresh & np.isfinite(nu) & np.isfinite(var) & (var > 0)
+
+
+def _bayes_step(prior: F, loglik: F, usable: B, n: F, starts: Ix, log_prior: LogPrior, b_min: float) -> F:
+    """One update of the weights of the rows of a set of groups (rows sorted by group).
+
+    b_n ∝ L_n c_n over the usable rows, which share the mass Σ_usable b(k−1); other rows and
+    groups without a finite log-term keep b(k−1); single-source groups get 1."""
+    t = np.where(usable, loglik + log_prior(prior, n), -np.inf)
+    t = np.where(np.isnan(t), -np.inf, t)
+    peak = _per_row(np.maximum.reduceat(t, starts), starts, len(t))
+    ok = usable & np.isfinite(peak)
+    with np.errstate(invalid="ignore"):
+        e = np.exp(np.where(ok, t - peak, -np.inf))
+    p = e / np.where(ok, _per_row(_segsum(e, starts), starts, len(e)), 1.0)
+    if b_min > 0:
+        p = np.where(ok, np.maximum(p, b_min), 0.0)
+        p = p / np.where(ok, _per_row(_segsum(p, starts), starts, len(p)), 1.0)
+    mass = _per_row(_segsum(np.where(ok, prior, 0.0), starts), starts, len(prior))
+    b = np.where(ok, mass * p, prior)
+    return np.where(n == 1, 1.0, b)
+
+
+def _recursive_weights(loglik: F, usable: B, lay: Layout, log_prior: LogPrior, b_min: float) -> F:
+    """Run the recursion level by level (epoch rank along each target's history)."""
+    n_rows = len(loglik)
+    b = np.empty(n_rows)
+    if n_rows == 0:
+        return b
+    row_level = lay.level[lay.group]
+    order = np.argsort(row_level, kind="stable")
+    bounds = np.cumsum(np.bincount(row_level))[:-1]
+    n = lay.counts[lay.group].astype(float)
+    for rows in np.split(order, bounds):
+        g = lay.group[rows]
+        local = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+        prev = lay.prev_row[rows]
+        prior = np.where(prev >= 0, b[np.maximum(prev, 0)], 1.0 / n[rows])
+        prior = prior / _per_row(_segsum(prior, local), local, len(rows))  # no rounding drift
+        b[rows] = _bayes_step(prior, loglik[rows], usable[rows], n[rows], local, log_prior, b_min)
+    return b
+
+
+def seed_weights(res: F, d_fixed: F, fresh: B, lay: Layout) -> F:
+    """Printed a-posteriori weights (4.73)–(4.74), N radars (digest §6.2), b(0) = 1/N (4.77)."""
+    loglik = _log_normal(res, d_fixed)
+    return _recursive_weights(loglik, _usable(fresh, res, d_fixed), lay, _log_prior_seed, 0.0)
+
+
+def markov_weights(res: F, res_var: F, fresh: B, lay: Layout, p_stay: float, b_min: float) -> F:
+    """Corrected a-posteriori weights (digest §6.3) with per-step S_n(k) = ``res_var``."""
+    loglik = _log_normal(res, res_var)
+    usable = _usable(fresh, res, res_var)
+    return _recursive_weights(loglik, usable, lay, _log_prior_markov(p_stay), b_min)
+
+
+def fuse_aposteriori_seed(x: F, cov: F, res: F, d_fixed: F, fresh: B, lay: Layout) -> Fused:
+    """(4.72) with the weights of :func:`seed_weights` on every coordinate; P = Σ b_n² C_n."""
+    w = seed_weights(res, d_fixed, fresh, lay)
+    xf, pf = _mix(x, cov, w, lay.starts)
+    return _keep_single(Fused(xf, pf, w), x, cov, lay.starts)
+
+
+def fuse_aposteriori(x: F, cov: F, res: F, res_var: F, fresh: B, lay: Layout,
+                     p_stay: float = 0.95, b_min: float = 0.01) -> Fused:
+    """(4.72) with the weights of :func:`markov_weights` on every coordinate; P = Σ b_n² C_n."""
+    w = markov_weights(res, res_var, fresh, lay, p_stay, b_min)
+    xf, pf = _mix(x, cov, w, lay.starts)
+    return _keep_single(Fused(xf, pf, w), x, cov, lay.starts)
+
+
+# ---------------------------------------------------------------------------
+# information fusion and covariance intersection
+# ---------------------------------------------------------------------------
+
+
+def _information_mix(x: F, cov: F, omega: F, starts: Ix) -> Fused:
+    """P⁻¹ = Σ ω_n C_n⁻¹, x = x_ref + P Σ ω_n C_n⁻¹ (x_n − x_ref) (x_ref: the group's first
+    row, which leaves identical reports exactly unchanged); weights tr(P ω_n C_n⁻¹)/6."""
+    n = len(x)
+    info = omega[:, None, None] * _inv_spd(cov)
+    pf = _inv_spd(_sym(_segsum(info, starts)))
+    dx = x - _per_row(x[starts], starts, n)
+    xf = x[starts] + np.einsum("gij,gj->gi", pf, _segsum(np.einsum("nij,nj->ni", info, dx), starts))
+    w = np.einsum("nij,nji->n", _per_row(pf, starts, n), info) / 6.0
+    w = w / _per_row(_segsum(w, starts), starts, n)
+    return Fused(xf, pf, w)
+
+
+def fuse_information(x: F, cov: F, starts: Ix) -> Fused:
+    """Inverse-covariance fusion (digest §6.4): P = (Σ C_n⁻¹)⁻¹, x = P Σ C_n⁻¹ x_n."""
+    res = _information_mix(x, cov, np.ones(len(x)), starts)
+    return _keep_single(res, x, cov, starts)
+
+
+def _ci_profile(c1: F, c2: F) -> tuple[F, F, F]:
+    """Simultaneous diagonalisation of a pair: C2 = L Lᵀ, L⁻¹ C1 L⁻ᵀ = U Γ Uᵀ, W = L U.
+
+    Then P(ω) = W diag(γ/(ω + γ(1−ω))) Wᵀ, so tr P = Σ a_k γ_k/(ω + γ_k(1−ω)) with
+    a_k = ‖W_k‖², and log det P = const − Σ log(ω + γ_k(1−ω)). Returns (γ, a, W)."""
+    lower = _chol(c2)
+    linv = np.linalg.solve(lower, np.broadcast_to(np.eye(6), lower.shape))
+    gam, u = np.linalg.eigh(_sym(linv @ _sym(c1) @ np.swapaxes(linv, -1, -2)))
+    gam = np.maximum(gam, _EIG_FLOOR * np.maximum(gam.max(axis=-1, keepdims=True), 1e-300))
+    w = lower @ u
+    return gam, np.einsum("gik,gik->gk", w, w), w
+
+
+def _ci_objective(omega: F, gam: F, a: F, objective: str) -> F:
+    """tr P(ω) or log det P(ω) up to a constant (both convex in ω ∈ [0, 1])."""
+    den = omega[:, None] + gam * (1.0 - omega[:, None])
+    if objective == "det":
+        return -np.log(den).sum(axis=1)
+    return (a * gam / den).sum(axis=1)
+
+
+def _golden_min(f: Callable[[F], F], size: int, atol: float = 0.0) -> F:
+    """Minimiser on [0, 1] of convex functions, vectorised over groups (golden section;
+    0.5 and the endpoints are candidates too; ties within 1e-12·|f| + ``atol`` prefer them
+    in that order)."""
+    phi = (np.sqrt(5.0) - 1.0) / 2.0
+    lo, hi = np.zeros(size), np.ones(size)
+    c, d = hi - phi * (hi - lo), lo + phi * (hi - lo)
+    fc, fd = f(c), f(d)
+    for _ in range(_GOLDEN_ITERATIONS):
+        left = fc <= fd
+        hi, lo = np.where(left, d, hi), np.where(left, lo, c)
+        new = np.where(left, hi - phi * (hi - lo), lo + phi * (hi - lo))
+        fnew = f(new)
+        c, d = np.where(left, new, d), np.where(left, c, new)
+        fc, fd = np.where(left, fnew, fd), np.where(left, fc, fnew)
+    # candidates in order of preference; a near-tie (flat objective, e.g. identical
+    # covariances) goes to equal weights rather than to wherever rounding led the search
+    cand = np.stack([np.full(size, 0.5), 0.5 * (lo + hi), np.zeros(size), np.ones(size)])
+    vals = np.stack([f(v) for v in cand])
+    best = vals.min(axis=0)
+    pick = np.argmax(vals <= best + 1e-12 * np.abs(best) + atol, axis=0)
+    return cand[pick, np.arange(size)]
+
+
+def ci_pair_weights(c1: F, c2: F, objective: str = "trace") -> F:
+    """ω of the first source of each pair, minimising tr P or det P (two-source CI)."""
+    gam, a, _ = _ci_profile(c1, c2)
+    atol = 1e-12 if objective == "det" else 0.0  # log det is O(1) near a tie, tr P is not
+    return _golden_min(lambda om: _ci_objective(om, gam, a, objective), len(c1), atol)
+
+
+def fuse_covariance_intersection(x: F, cov: F, starts: Ix, objective: str = "trace") -> Fused:
+    """Covariance intersection: P⁻¹ = Σ ω_n C_n⁻¹, x = P Σ ω_n C_n⁻¹ x_n.
+
+    Two sources: ω optimal for ``objective``; more: fast CI ω_n ∝ 1/tr C_n (Niehsen 2002)."""
+    if objective not in CI_OBJECTIVES:
+        raise ValueError(f"objective must be one of {CI_OBJECTIVES}, got {objective!r}")
+    n = len(x)
+    tr = np.einsum("nii->n", cov)
+    omega = (1.0 / tr) / _per_row(_segsum(1.0 / tr, starts), starts, n)
+    counts = np.diff(np.append(starts, n))
+    first = starts[counts == 2]
+    if len(first):
+        om = ci_pair_weights(cov[first], cov[first + 1], objective)
+        omega[first], omega[first + 1] = om, 1.0 - om
+    res = _information_mix(x, cov, omega, starts)
+    res = Fused(res.x, res.cov, omega)
+    return _keep_single(res, x, cov, starts)
+
+
+# ---------------------------------------------------------------------------
+# frame level
+# ---------------------------------------------------------------------------
+
+
+def layout(keys: pl.DataFrame) -> Layout:
+    """Group layout and recursion links of rows sorted by (run, epoch, target_id, radar_id)."""
+    n = keys.height
+    k = keys.select(*GROUP, "radar_id").with_row_index("__i")
+    grp = k.group_by(GROUP, maintain_order=True).agg(
+        pl.col("radar_id").alias("__set"), pl.col("__i").first().alias("__start"), pl.len().alias("__n"))
+    grp = grp.with_columns(
+        pl.int_range(pl.len()).over(CHAIN).alias("__level"),
+        (pl.col("__set") == pl.col("__set").shift(1)).over(CHAIN).fill_null(False).alias("__cont"))
+    starts = grp["__start"].to_numpy().astype(np.intp)
+    counts = grp["__n"].to_numpy().astype(np.intp)
+    if not np.array_equal(np.append(starts, n)[1:] - starts, counts):
+        raise ValueError("rows must be sorted by (run, epoch, target_id, radar_id)")
+    group = np.repeat(np.arange(len(starts)), counts)
+    radar = keys["radar_id"].to_numpy()
+    if n > 1 and np.any((group[1:] == group[:-1]) & (radar[1:] == radar[:-1])):
+        raise ValueError("a radar contributes two reports to one (run, epoch, target_id)")
+    prev = k.select(pl.col("__i").shift(1).over(CHAIN + ["radar_id"]))["__i"]
+    prev = prev.fill_null(-1).to_numpy().astype(np.intp)
+    prev = np.where(grp["__cont"].to_numpy()[group], prev, -1)
+    return Layout(starts, counts, group, prev, grp["__level"].to_numpy().astype(np.intp))
+
+
+def seed_fixed_variance(rows: pl.DataFrame, radars: pl.DataFrame) -> F:
+    """D_n of (4.75)–(4.76) per row: the step-1 predicted range variance without R,
+    ``res_range_var_m2 − sigma_range_m²`` at the first row of the (run, radar, local track)
+    with a finite innovation (NaN when the track has none)."""
+    unknown = set(rows["radar_id"].unique().to_list()) - set(radars["radar_id"].to_list())
+    if unknown:
+        raise ValueError(f"aposteriori_seed: radar_id(s) {sorted(unknown)} missing from radars")
+    finite = pl.col("res_range_m").is_finite() & pl.col("res_range_var_m2").is_finite()
+    out = rows.select(*TRACK, "res_range_m", "res_range_var_m2").join(
+        radars.select(pl.col("radar_id").cast(pl.UInt32), "sigma_range_m"),
+        on="radar_id", how="left", maintain_order="left",
+    ).select(
+        pl.col("res_range_var_m2").filter(finite).first().over(TRACK) - pl.col("sigma_range_m") ** 2)
+    return out.to_series().fill_null(np.nan).to_numpy().astype(float)
+
+
+def _check_columns(rows: pl.DataFrame) -> None:
+    missing = [c for c in INPUT_COLUMNS if c not in rows.columns]
+    if missing:
+        raise ValueError(f"fusion input lacks column(s): {', '.join(missing)}")
+
+
+def _arrays(rows: pl.DataFrame) -> dict[str, NDArray]:
+    n = rows.height
+    col = lambda c: rows[c].cast(pl.Float64).fill_null(np.nan).to_numpy()  # noqa: E731
+    return {
+        "x": rows.select(STATE).to_numpy().astype(float),
+        "cov": _sym(rows["cov"].to_numpy().astype(float).reshape(n, 6, 6)),
+        "res": col("res_range_m"),
+        "res_var": col("res_range_var_m2"),
+        "fresh": rows["fresh"].fill_null(False).to_numpy().astype(bool),
+        "nominal_var": rows["nominal_var"].to_numpy().astype(float).reshape(n, 3),
+    }
+
+
+def _run_method(method: str, a: dict[str, NDArray], lay: Layout, d_fixed: Callable[[], F],
+                cfg: FusionConfig) -> Fused:
+    x, cov, s = a["x"], a["cov"], lay.starts
+    if method == "arithmetic":
+        return fuse_arithmetic(x, cov, s)
+    if method == "apriori":
+        return fuse_apriori(x, cov, a["nominal_var"], s)
+    if method == "aposteriori_seed":
+        return fuse_aposteriori_seed(x, cov, a["res"], d_fixed(), a["fresh"], lay)
+    if method == "aposteriori":
+        return fuse_aposteriori(x, cov, a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min)
+    if method == "information":
+        return fuse_information(x, cov, s)
+    return fuse_covariance_intersection(x, cov, s, cfg.ci_objective)
+
+
+def _check_methods(methods: Sequence[str]) -> list[str]:
+    if isinstance(methods, str):
+        methods = [methods]
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise ValueError(f"unknown fusion method(s) {bad}; choose from {', '.join(METHODS)}")
+    return list(dict.fromkeys(methods))
+
+
+def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
+         cfg: FusionConfig = FusionConfig()) -> pl.DataFrame:
+    """Fuse the associated reports of every (run, epoch, target_id) with each method.
+
+    ``rows`` holds :data:`INPUT_COLUMNS` (sorted here by (run, epoch, target_id, radar_id));
+    null innovations count as NaN and a null ``fresh`` as False. ``radars`` (``radar_id``,
+    ``sigma_range_m``) is read only by ``aposteriori_seed``. Returns the ``fused`` table: the
+    blocks of the methods in the order given, each sorted by (run, epoch, target_id).
+    Raises ValueError for an unknown method, a missing column, or a radar reporting twice
+    for one target at one epoch."""
+    methods = _check_methods(methods)
+    _check_columns(rows)
+    schema = TABLES["fused"].required
+    if rows.height == 0 or not methods:
+        return empty_frame("fused", optional=False)
+    rows = rows.sort([*GROUP, "radar_id"], maintain_order=True)
+    lay, a = layout(rows), _arrays(rows)
+    d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
+    results = {m: _run_method(m, a, lay, d_fixed, cfg) for m in methods}
+    w = rows.select(*GROUP, "radar_id").with_columns(
+        pl.Series(f"__w{i}", results[m].weights) for i, m in enumerate(methods))
+    head = w.group_by(GROUP, maintain_order=True).agg(
+        pl.col("radar_id").alias("radar_ids"), pl.len().alias("n_sources"),
+        *(pl.col(f"__w{i}") for i in range(len(methods))))
+    blocks = []
+    for i, m in enumerate(methods):
+        r = results[m]
+        blocks.append(head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
+                                  pl.col(f"__w{i}").alias("weights")).with_columns(
+            *(pl.Series(c, r.x[:, j]) for j, c in enumerate(STATE)),
+            pl.Series("cov", r.cov.reshape(-1, 36)),
+        ))
+    return pl.concat(blocks).select(list(schema)).cast(schema)

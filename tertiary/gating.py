@@ -1,0 +1,105 @@
+"""Coarse gating ("грубое отождествление", monograph §1.4, §4.1).
+
+Candidate pairs of aligned reports from *different* radars at the same (run, epoch) whose
+coordinates and velocity components agree within wide tolerances. One KD-tree holds every
+(run, epoch) at once: points live in (x, y, z·s, g·L) where s maps the vertical tolerance onto
+the horizontal one, g is the dense (run, epoch) index and L is larger than the gate, so the
+ellipsoidal gate (Δx² + Δy²)/Δr² + Δz²/Δh² ≤ 1 is a single ``query_pairs`` and points of
+different epochs are never paired. No loop over epochs, reports or pairs.
+
+Options: the Mahalanobis gate d² = Δpᵀ(C_a + C_b)⁻¹Δp ≤ χ²₃(P_gate) on top of the box
+(the minimum-error H1/H2 test of digest §1.1 reduces to such a threshold), and Mode S: two
+reports with different Mode S addresses are never the same aircraft.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+from scipy.stats import chi2
+
+
+@dataclass(frozen=True)
+class GatingConfig:
+    """Tolerances of the coarse comparison.
+
+    * ``pos_tol_m`` horizontal and ``alt_tol_m`` vertical (heights from radar elevation are
+      poor: 0.15° at 100 km is 260 m); ``vel_tol_mps`` per horizontal velocity component,
+      widened by three standard deviations of the velocity difference (new local tracks).
+    * ``method="mahalanobis"`` additionally requires d² ≤ χ²₃(``gate_prob``).
+    """
+
+    pos_tol_m: float = 3000.0
+    alt_tol_m: float = 1500.0
+    vel_tol_mps: float = 60.0
+    method: Literal["box", "mahalanobis"] = "box"
+    gate_prob: float = 0.9999
+    use_mode_s: bool = True
+
+
+@dataclass
+class Pairs:
+    """Gated candidate pairs (indices into the aligned frame) with their distances."""
+
+    a: NDArray[np.int64]
+    b: NDArray[np.int64]
+    sqdist: NDArray[np.float64]     # squared 3-D distance (m²)
+    d2: NDArray[np.float64]         # Mahalanobis distance² of the positions
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+
+def group_index(aligned: pl.DataFrame) -> NDArray[np.int64]:
+    """Dense index of (run, epoch) per row."""
+    key = aligned.select(pl.struct("run", "epoch").rank("dense").cast(pl.Int64) - 1).to_series()
+    return key.to_numpy()
+
+
+def position_mahalanobis(pos_a, pos_b, cov_a, cov_b) -> NDArray[np.float64]:
+    """d² = Δpᵀ (C_a + C_b)⁻¹ Δp for stacks of 3-D positions and 3×3 covariances."""
+    d = pos_a - pos_b
+    s = cov_a + cov_b
+    return np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
+
+
+def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
+                    groups: NDArray[np.int64] | None = None) -> Pairs:
+    """All gated report pairs across radars within each (run, epoch)."""
+    n = aligned.height
+    if n < 2:
+        empty = np.zeros(0, np.int64)
+        return Pairs(empty, empty, np.zeros(0), np.zeros(0))
+    g = group_index(aligned) if groups is None else groups
+    pos = aligned.select("x_m", "y_m", "z_m").to_numpy()
+    scale = cfg.pos_tol_m / cfg.alt_tol_m
+    pts = np.column_stack([pos[:, 0], pos[:, 1], pos[:, 2] * scale, g * (4.0 * cfg.pos_tol_m)])
+    pairs = cKDTree(pts).query_pairs(cfg.pos_tol_m, output_type="ndarray")
+    a, b = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
+
+    radar = aligned["radar_id"].to_numpy()
+    vel = aligned.select("vx_mps", "vy_mps").to_numpy()
+    cov36 = aligned["cov"].to_numpy()
+    vel_var = cov36[:, [21, 28]]                          # var(vx), var(vy)
+    # a freshly initiated local track knows its velocity poorly: widen by 3σ of the difference
+    vel_gate = cfg.vel_tol_mps + 3.0 * np.sqrt(vel_var[a] + vel_var[b])
+    keep = (radar[a] != radar[b]) & (g[a] == g[b]) & np.all(np.abs(vel[a] - vel[b]) <= vel_gate, axis=1)
+    if cfg.use_mode_s and "mode_s" in aligned.columns:
+        ms = aligned["mode_s"]
+        known = ms.is_not_null().to_numpy()
+        codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
+        keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
+    a, b = a[keep], b[keep]
+    cov_pos = cov36[:, [0, 1, 2, 6, 7, 8, 12, 13, 14]]   # the 3×3 position block of the 6×6
+    ca, cb = cov_pos[a].reshape(-1, 3, 3), cov_pos[b].reshape(-1, 3, 3)
+    d2 = position_mahalanobis(pos[a], pos[b], ca, cb) if len(a) else np.zeros(0)
+    if cfg.method == "mahalanobis":
+        ok = d2 <= chi2.ppf(cfg.gate_prob, 3)
+        a, b, d2 = a[ok], b[ok], d2[ok]
+    sq = np.sum((pos[a] - pos[b]) ** 2, axis=1)
+    return Pairs(a, b, sq, d2)

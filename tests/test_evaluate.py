@@ -1,0 +1,291 @@
+"""Evaluation: hand-computable real accuracy ((2.15)/(4.84)) and association metrics."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+import pytest
+
+from tertiary.evaluate import (EvaluateConfig, accuracy, accuracy_by_epoch, association_metrics, match_truth,
+                               metrics_frame, target_truth)
+from tertiary.schema import TABLES, validate
+
+T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+NO_SKIP = EvaluateConfig(skip_first_s=0.0)
+
+
+def _t(s: float) -> datetime:
+    return T0 + timedelta(seconds=s)
+
+
+def _truth(n_s: int = 10, segments: dict[int, str] | None = None, truth_id: int = 7) -> pl.DataFrame:
+    """One aircraft flying east at 100 m/s along y = 1000 m, z = 500 m, sampled every 1 s."""
+    t = np.arange(n_s + 1, dtype=float)
+    seg = [(segments or {}).get(int(k), "straight") for k in t]
+    return pl.DataFrame({
+        "truth_id": truth_id, "time": [_t(s) for s in t],
+        "x_m": 100.0 * t, "y_m": 1000.0, "z_m": 500.0,
+        "vx_mps": 100.0, "vy_mps": 0.0, "vz_mps": 0.0, "segment": seg,
+    }).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def _fused(truth: pl.DataFrame, offsets: dict[int, tuple[float, ...]], method: str = "m",
+           target_id: int = 1, epochs=None) -> pl.DataFrame:
+    """Fused rows = truth + a constant per-run offset (dx, dy, dz, dvx, dvy, dvz)."""
+    rows = []
+    for run, off in offsets.items():
+        off = tuple(off) + (0.0,) * (6 - len(off))
+        for r in truth.iter_rows(named=True):
+            if epochs is not None and (r["time"] - T0).total_seconds() not in epochs:
+                continue
+            rows.append({"run": run, "epoch": r["time"], "target_id": target_id, "method": method,
+                         **{c: r[c] + o for c, o in zip(("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"), off)}})
+    return pl.DataFrame(rows).with_columns(pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64),
+                                           pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+
+
+def _assoc(fused: pl.DataFrame, truth_of=lambda run, epoch, target: 7) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """One report per (run, epoch, target) whose truth is ``truth_of(...)``."""
+    keys = fused.select("run", "epoch", "target_id").unique().sort("run", "epoch", "target_id")
+    assoc = keys.with_columns(
+        pl.lit(1, pl.UInt32).alias("radar_id"), pl.lit(1, pl.UInt32).alias("local_track_id"),
+        pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"), pl.lit(0.0).alias("cost"))
+    tid = [truth_of(r, e, t) for r, e, t in keys.iter_rows()]
+    reports = assoc.select("run", "report_id", pl.Series("truth_id", tid, dtype=pl.Int64))
+    return assoc.select(list(TABLES["associations"].required)), reports
+
+
+def _value(metrics: pl.DataFrame, metric: str, segment: str = "all", method: str = "m") -> float:
+    row = metrics.filter((pl.col("metric") == metric) & (pl.col("segment") == segment) & (pl.col("method") == method))
+    assert row.height == 1, (metric, segment, method, row)
+    return row["value"].item()
+
+
+def test_constant_offsets_give_hand_rmse_with_n_minus_1():
+    truth = _truth()
+    fused = _fused(truth, {0: (1.0, 0, 0, 0.5), 1: (2.0, 0, 0, 0.5), 2: (3.0, 0, 0, 0.5)})
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((1 + 4 + 9) / 2))
+    assert _value(m, "rmse_y_m") == pytest.approx(0.0)
+    assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt(7.0))
+    assert _value(m, "rmse_vel_mps") == pytest.approx(math.sqrt(3 * 0.25 / 2))
+    assert m["n_runs"].unique().to_list() == [3]
+    mn = accuracy(fused, assoc, reports, truth, EvaluateConfig(skip_first_s=0.0, denominator="n"))
+    assert _value(mn, "rmse_x_m") == pytest.approx(math.sqrt(14 / 3))
+    assert m.schema == pl.Schema(TABLES["metrics"].required)
+    validate(m, "metrics")
+
+
+def test_pooled_is_root_of_mean_per_epoch_square():
+    """σ²(k) differs per epoch: the pooled value is sqrt(mean_k σ²(k))."""
+    truth = _truth(3)
+    fused = _fused(truth, {0: (0.0,), 1: (2.0,)})
+    fused = fused.with_columns(pl.when(pl.col("epoch") == _t(0)).then(pl.col("x_m") + 4.0 * pl.col("run").cast(pl.Float64))
+                               .otherwise(pl.col("x_m")).alias("x_m"))
+    assoc, reports = _assoc(fused)
+    # epoch 0: errors 0 and 6 → σ² = 36; epochs 1..3: errors 0 and 2 → σ² = 4
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((36 + 3 * 4) / 4))
+    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    assert by["value"].to_list() == pytest.approx([6.0, 2.0, 2.0, 2.0])
+    assert by["n_runs"].to_list() == [2, 2, 2, 2]
+    assert by.columns == ["method", "epoch", "metric", "value", "n_runs"]
+
+
+def test_single_run_epochs_are_undefined_with_n_minus_1():
+    truth = _truth(3)
+    fused = _fused(truth, {0: (1.0,)})
+    assoc, reports = _assoc(fused)
+    assert accuracy(fused, assoc, reports, truth, NO_SKIP).is_empty()
+    mn = accuracy(fused, assoc, reports, truth, EvaluateConfig(skip_first_s=0.0, denominator="n"))
+    assert _value(mn, "rmse_x_m") == pytest.approx(1.0)
+
+
+def test_skip_first_seconds_per_target():
+    truth = _truth(30)
+    fused = _fused(truth, {0: (1.0,), 1: (3.0,)})
+    # a large error during the first 20 s only
+    fused = fused.with_columns(pl.when(pl.col("epoch") < _t(20)).then(pl.col("x_m") + 1000.0)
+                               .otherwise(pl.col("x_m")).alias("x_m"))
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth)            # default skip 20 s
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(10 / 1))
+    by = accuracy_by_epoch(fused, assoc, reports, truth)
+    assert by["epoch"].min() == _t(20)
+
+
+def test_segment_split_and_hold_only_in_all():
+    segs = {k: "turn" for k in (3, 4)} | {k: "hold" for k in (5, 6)} | {7: "climb"}
+    truth = _truth(8, segs)
+    fused = _fused(truth, {0: (1.0,), 1: (3.0,)})
+    # straight epochs: error (1, 3); turn epochs: (1+9, 3+9); hold epochs: (1+20, 3+20)
+    bump = (pl.when(pl.col("epoch").is_in([_t(3), _t(4)])).then(9.0)
+            .when(pl.col("epoch").is_in([_t(5), _t(6)])).then(20.0).otherwise(0.0))
+    fused = fused.with_columns((pl.col("x_m") + bump).alias("x_m"))
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    straight = (1 + 9) / 1
+    turn = (10**2 + 12**2) / 1
+    hold = (21**2 + 23**2) / 1
+    assert _value(m, "rmse_x_m", "straight") == pytest.approx(math.sqrt(straight))
+    assert _value(m, "rmse_x_m", "turn") == pytest.approx(math.sqrt(turn))
+    assert _value(m, "rmse_x_m", "all") == pytest.approx(math.sqrt((5 * straight + 2 * turn + 2 * hold) / 9))
+    assert set(m["segment"]) == {"all", "straight", "turn"}
+    # a dataset without turns has no turn rows
+    m2 = accuracy(fused.filter(~pl.col("epoch").is_in([_t(3), _t(4)])), assoc, reports, truth, NO_SKIP)
+    assert set(m2["segment"]) == {"all", "straight"}
+
+
+def test_range_error_is_from_the_system_origin():
+    """A pure cross-range error leaves the range almost unchanged; a radial error does not."""
+    truth = _truth(2)
+    # radial offset: scale the position by (1 + ε) → range error ε|p|
+    fused = _fused(truth, {0: (0.0,), 1: (0.0,)})
+    eps = {0: 0.001, 1: -0.002}
+    for c in ("x_m", "y_m", "z_m"):
+        fused = fused.with_columns((pl.col(c) * (1 + pl.col("run").replace_strict(eps, return_dtype=pl.Float64))).alias(c))
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    rng = np.hypot(np.hypot(100.0 * np.arange(3), 1000.0), 500.0)
+    expected = np.sqrt(np.mean([(0.001 * r) ** 2 + (0.002 * r) ** 2 for r in rng]))
+    assert _value(m, "rmse_range_m") == pytest.approx(expected, rel=1e-9)
+    assert _value(m, "rmse_pos_m") == pytest.approx(expected, rel=1e-9)
+    # a pure cross-range (x) error of ±10 m at x = 0 changes the range only to second order
+    truth0 = _truth(0)                                  # one epoch, p = (0, 1000, 500)
+    fused_x = _fused(truth0, {0: (10.0,), 1: (-10.0,)})
+    assoc, reports = _assoc(fused_x)
+    m = accuracy(fused_x, assoc, reports, truth0, NO_SKIP)
+    r0 = math.hypot(1000.0, 500.0)
+    dr = math.hypot(10.0, r0) - r0                      # ≈ 0.045 m for both runs
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(200.0))
+    assert _value(m, "rmse_range_m") == pytest.approx(math.sqrt(2 * dr * dr), rel=1e-6)
+
+
+def test_truth_is_interpolated_between_samples():
+    truth = _truth(4)
+    fused = _fused(truth, {0: (1.0,), 1: (-1.0,)}).with_columns(
+        (pl.col("epoch") + pl.duration(milliseconds=500)).alias("epoch"),
+        (pl.col("x_m") + 50.0).alias("x_m"))           # truth moves 50 m in 0.5 s
+    fused = fused.filter(pl.col("epoch") < _t(4))      # the last half-second is outside truth
+    assoc, reports = _assoc(fused)
+    matched = match_truth(fused, assoc, reports, truth, NO_SKIP)
+    assert matched.height == 8
+    np.testing.assert_allclose(matched["true_x_m"].to_numpy(), matched["x_m"].to_numpy() - np.where(
+        matched["run"].to_numpy() == 0, 1.0, -1.0))
+    assert _value(accuracy(fused, assoc, reports, truth, NO_SKIP), "rmse_x_m") == pytest.approx(math.sqrt(2.0))
+
+
+def test_methods_are_scored_separately():
+    truth = _truth(4)
+    fused = pl.concat([_fused(truth, {0: (1.0,), 1: (-1.0,)}, method="a"),
+                       _fused(truth, {0: (5.0,), 1: (-5.0,)}, method="b")])
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    assert _value(m, "rmse_x_m", method="a") == pytest.approx(math.sqrt(2.0))
+    assert _value(m, "rmse_x_m", method="b") == pytest.approx(math.sqrt(50.0))
+
+
+def test_clutter_targets_are_not_scored():
+    truth = _truth(4)
+    fused = _fused(truth, {0: (1.0,), 1: (-1.0,)})
+    fused = pl.concat([fused, _fused(truth, {0: (900.0,), 1: (800.0,)}, target_id=2)])
+    assoc, reports = _assoc(fused, truth_of=lambda r, e, t: 7 if t == 1 else None)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(2.0))
+    a = association_metrics(assoc, reports)
+    assert _value(a, "false_targets", method="assignment") == 2.0       # one per run
+
+
+def test_random_case_matches_numpy_oracle():
+    """Two aircraft, 6 runs, missing samples: pooled = sqrt(mean_k Σ_j e² / (N_k − 1))."""
+    rng = np.random.default_rng(5)
+    truths = pl.concat([_truth(12, truth_id=7), _truth(12, truth_id=8).with_columns(pl.col("y_m") + 5000.0)])
+    rows, errs = [], {}
+    for run in range(6):
+        for tid, target in ((7, 1), (8, 2)):
+            for k in range(13):
+                if rng.random() < 0.2:
+                    continue
+                e = rng.normal(0, 30, 6)
+                tr = truths.filter((pl.col("truth_id") == tid) & (pl.col("time") == _t(k))).row(0, named=True)
+                rows.append({"run": run, "epoch": _t(k), "target_id": target, "method": "m",
+                             **{c: tr[c] + e[i] for i, c in enumerate(("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"))}})
+                errs.setdefault(k, []).append(e)
+    fused = pl.DataFrame(rows).with_columns(pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64),
+                                            pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+    assoc, reports = _assoc(fused, truth_of=lambda r, e, t: 7 if t == 1 else 8)
+    m = accuracy(fused, assoc, reports, truths, NO_SKIP)
+    per_k = [np.stack(v) for v in errs.values() if len(v) > 1]
+    expect_pos = np.sqrt(np.mean([np.sum(e[:, :3] ** 2) / (len(e) - 1) for e in per_k]))
+    expect_vel = np.sqrt(np.mean([np.sum(e[:, 3:] ** 2) / (len(e) - 1) for e in per_k]))
+    expect_y = np.sqrt(np.mean([np.sum(e[:, 1] ** 2) / (len(e) - 1) for e in per_k]))
+    assert _value(m, "rmse_pos_m") == pytest.approx(expect_pos, rel=1e-12)
+    assert _value(m, "rmse_vel_mps") == pytest.approx(expect_vel, rel=1e-12)
+    assert _value(m, "rmse_y_m") == pytest.approx(expect_y, rel=1e-12)
+
+
+# --------------------------------------------------------------------------- association
+
+
+def _assoc_rows(rows):
+    """rows: (run, epoch_s, target_id, report_truth_id or None) → associations, reports."""
+    df = pl.DataFrame(rows, schema=["run", "epoch", "target_id", "truth_id"], orient="row")
+    df = df.with_columns(pl.col("epoch").map_elements(_t, return_dtype=pl.Datetime("us", "UTC")),
+                         pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"),
+                         pl.lit(1, pl.UInt32).alias("radar_id"), pl.lit(1, pl.UInt32).alias("local_track_id"),
+                         pl.lit(0.0).alias("cost"))
+    assoc = df.select(list(TABLES["associations"].required)).cast(TABLES["associations"].required)
+    return assoc, df.select("report_id", pl.col("truth_id").cast(pl.Int64))
+
+
+def test_majority_truth_and_swap_count():
+    rows = [
+        # target 1: truth 10, 10, then 20 (with one dissenting 10 report at epoch 2), then 20
+        (0, 0, 1, 10), (0, 1, 1, 10), (0, 1, 1, 10), (0, 2, 1, 20), (0, 2, 1, 20), (0, 2, 1, 10), (0, 3, 1, 20),
+        # target 2: clean truth 20 then 10 at epoch 3 — but only clutter at epoch 2
+        (0, 0, 2, 20), (0, 1, 2, 20), (0, 2, 2, None), (0, 3, 2, 20),
+    ]
+    assoc, reports = _assoc_rows(rows)
+    tt = target_truth(assoc, reports)
+    t1 = tt.filter(pl.col("target_id") == 1)["truth_id"].to_list()
+    t2 = tt.filter(pl.col("target_id") == 2)["truth_id"].to_list()
+    assert t1 == [10, 10, 20, 20]
+    assert t2 == [20, 20, None, 20]
+    a = association_metrics(assoc, reports)
+    assert _value(a, "swaps", method="assignment") == 1.0
+    # 10 reports with a truth; wrong: the dissenting 10 at epoch 2 of target 1 → 9/10
+    assert _value(a, "assoc_correct_frac", method="assignment") == pytest.approx(9 / 10)
+    # truth 10 got target 1; truth 20 got targets 1 and 2 → mean 1.5
+    assert _value(a, "targets_per_truth", method="assignment") == pytest.approx(1.5)
+    assert _value(a, "false_targets", method="assignment") == 0.0
+    assert a["n_runs"].to_list() == [1] * 4
+    validate(a, "metrics")
+
+
+def test_swaps_sum_over_runs_and_ignore_null_pairs():
+    rows = [(r, k, 5, tid) for r in (0, 1) for k, tid in enumerate([1, 2, 2, 1])]      # 2 swaps per run
+    rows += [(0, k, 6, tid) for k, tid in enumerate([3, None, 4])]                      # no non-null pair
+    assoc, reports = _assoc_rows(rows)
+    a = association_metrics(assoc, reports)
+    assert _value(a, "swaps", method="assignment") == 4.0
+    assert _value(a, "assoc_correct_frac", method="assignment") == 1.0
+
+
+def test_tie_goes_to_smallest_truth_id():
+    assoc, reports = _assoc_rows([(0, 0, 1, 9), (0, 0, 1, 4)])
+    assert target_truth(assoc, reports)["truth_id"].to_list() == [4]
+
+
+def test_metrics_frame_combines_stages():
+    truth = _truth(4)
+    fused = _fused(truth, {0: (1.0,), 1: (-1.0,), 2: (0.0,)})
+    assoc, reports = _assoc(fused)
+    m = metrics_frame(fused, assoc, reports, truth, NO_SKIP)
+    assert m.schema == pl.Schema(TABLES["metrics"].required)
+    assert set(m["stage"]) == {"fusion", "association"}
+    assert m.filter(pl.col("stage") == "fusion")["n_runs"].unique().to_list() == [3]
+    validate(m, "metrics")
