@@ -178,15 +178,17 @@ def _truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
 
 
 def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
-                truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+                truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig(), *, keep_cov: bool = True) -> pl.DataFrame:
     """Scored fused rows: the ``fused`` columns plus ``truth_id``, ``segment`` (truth segment),
     ``seg_class`` (straight/turn/null), ``true_<state>`` and the squared errors ``e2_x``,
     ``e2_y``, ``e2_z``, ``e2_pos`` (|Δp|²), ``e2_range`` ((|p| − |p_true|)²), ``e2_vel`` (|Δv|²).
 
     Rows without a truth (clutter targets, epochs outside the truth span) and rows within
-    ``cfg.skip_first_s`` of their (run, method, target_id)'s first epoch are dropped.
+    ``cfg.skip_first_s`` of their (run, method, target_id)'s first epoch are dropped. Only the
+    key, state (and, with ``keep_cov``, covariance) columns are carried through the joins.
     """
-    f = fused.with_columns(pl.col("epoch").cast(TIME))
+    keep = ["run", "epoch", "target_id", "method", *STATE] + (["cov"] if keep_cov and "cov" in fused.columns else [])
+    f = fused.select(keep).with_columns(pl.col("epoch").cast(TIME))
     if cfg.skip_first_s > 0:
         first = pl.col("epoch").min().over(["run", "method", "target_id"])
         f = f.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
@@ -278,7 +280,11 @@ def accuracy_by_epoch(fused: pl.DataFrame, associations: pl.DataFrame, report_tr
     report's accuracy curves (seed figs. 4.10/4.11): columns (method, epoch, metric, value,
     n_runs), all segments together, sorted by method, metric, epoch. Pass
     ``EvaluateConfig(skip_first_s=0)`` to include the transient."""
-    matched = match_truth(fused, associations, report_truth, truth, cfg)
+    return accuracy_by_epoch_from_matched(match_truth(fused, associations, report_truth, truth, cfg), cfg)
+
+
+def accuracy_by_epoch_from_matched(matched: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
+    """:func:`accuracy_by_epoch` from already matched rows (match once, derive both tables)."""
     schema = {"method": pl.String, "epoch": TIME, "metric": pl.String, "value": pl.Float64, "n_runs": pl.UInt32}
     if matched.is_empty():
         return pl.DataFrame(schema=schema)

@@ -27,7 +27,8 @@ from tertiary.align import AlignConfig, align
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
-from tertiary.evaluate import EvaluateConfig, accuracy_by_epoch, metrics_frame
+from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
+                               association_metrics, match_truth)
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.store import RunStore, record_run
@@ -193,8 +194,10 @@ def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, st
     if ing.truth.height == 0 or "truth_id" not in ing.reports.columns:
         return counts, pl.DataFrame()
     report_truth = ing.reports.select("run", "report_id", "truth_id")
-    metrics = metrics_frame(fused, associations, report_truth, ing.truth, cfg)
-    by_epoch = accuracy_by_epoch(fused, associations, report_truth, ing.truth, cfg)
+    matched = match_truth(fused, associations, report_truth, ing.truth, cfg, keep_cov=False)
+    metrics = pl.concat([accuracy_from_matched(matched, cfg), association_metrics(associations, report_truth)],
+                        how="vertical")
+    by_epoch = accuracy_by_epoch_from_matched(matched, cfg)
     return pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch
 
 

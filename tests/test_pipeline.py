@@ -1,0 +1,97 @@
+"""End to end: dataset → aligned → associations → fused → clusters → metrics → results.duckdb."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import polars as pl
+import pytest
+
+from tertiary import pipeline, schema
+from tertiary.clustering import ClusteringConfig
+from tertiary.fusion import METHODS
+from tertiary.store import RunStore
+
+
+@pytest.fixture(scope="module")
+def results(small_terminal):
+    cfg = pipeline.PipelineConfig(clustering=ClusteringConfig(always=True))
+    return pipeline.process(small_terminal, cfg)
+
+
+def test_row_accounting(small_terminal, results):
+    aligned_ids = set(results.aligned["report_id"].unique().to_list())
+    rejected = results.rejects.filter(pl.col("input_table") == "reports")["report_id"].to_list()
+    assert aligned_ids.isdisjoint(rejected)
+    assert len(aligned_ids) + len(rejected) == small_terminal.reports.height
+    assert set(aligned_ids) | set(rejected) == set(small_terminal.reports["report_id"].to_list())
+
+
+def test_tables_follow_the_contract(results):
+    for name in ("aligned", "associations", "fused", "clusters", "metrics"):
+        schema.validate(getattr(results, name), name, strict=True)
+
+
+def test_every_method_and_the_bound_are_fused(results):
+    methods = set(results.fused["method"].unique().to_list())
+    assert methods == set(METHODS) | {"centralized"}
+    per = results.fused.filter(pl.col("method") != "centralized")
+    sums = per["weights"].list.sum().to_numpy()
+    np.testing.assert_allclose(sums, 1.0, atol=1e-9)
+    assert (per["n_sources"] == per["radar_ids"].list.len()).all()
+
+
+def test_association_quality(results):
+    m = results.metrics.filter(pl.col("stage") == "association")
+    value = dict(zip(m["metric"], m["value"]))
+    assert value["assoc_correct_frac"] >= 0.99
+    assert value["swaps"] >= 0
+
+
+def test_accuracy_metrics_long_form(results):
+    m = results.metrics.filter(pl.col("stage") == "fusion")
+    assert m.columns == ["stage", "method", "metric", "segment", "value", "n_runs"]
+    assert {"rmse_pos_m", "rmse_range_m", "rmse_vel_mps"} <= set(m["metric"].to_list())
+    assert set(m["segment"].unique().to_list()) <= {"all", "straight", "turn"}
+    pos = m.filter((pl.col("metric") == "rmse_pos_m") & (pl.col("segment") == "all"))
+    by = dict(zip(pos["method"], pos["value"]))
+    assert set(by) == set(METHODS) | {"centralized"}
+    assert all(10.0 < v < 1000.0 for v in by.values())
+    # the information filter is near the centralised bound, the plain mean is not better than it
+    assert by["information"] <= by["arithmetic"]
+
+
+def test_clusters_reference_fused_targets(results):
+    c = results.clusters
+    assert c.height > 0
+    fused_ids = results.fused.select("run", "epoch", "method", "target_id")
+    members = c.explode("members").select("run", "epoch", "method", pl.col("members").alias("target_id"))
+    assert members.join(fused_ids, on=["run", "epoch", "method", "target_id"], how="anti").height == 0
+    assert (c["count"] == c["members"].list.len()).all()
+
+
+def test_run_database(small_terminal, tmp_path):
+    cfg = pipeline.PipelineConfig(methods=("arithmetic", "aposteriori"), centralized=False)
+    db = pipeline.run(small_terminal, tmp_path, cfg)
+    with RunStore.open(tmp_path) as store:
+        tables = set(store.tables())
+        assert {"aligned", "associations", "fused", "clusters", "rejects", "metrics", "run", "reports",
+                "radars", "truth", "accuracy_by_epoch"} <= tables
+        methods = store.sql("SELECT DISTINCT method FROM fused ORDER BY method")["method"].to_list()
+        assert methods == ["aposteriori", "arithmetic"]
+    assert db.name == "results.duckdb"
+
+
+def test_unknown_method_is_a_clear_error(small_terminal):
+    with pytest.raises(ValueError, match="unknown fusion method"):
+        pipeline.process(small_terminal, pipeline.PipelineConfig(methods=("median",)))
+
+
+def test_plot_only_input_runs_end_to_end(small_terminal):
+    """ASTERIX-CAT048-like plots without the radars' track estimates still run every method."""
+    plots = small_terminal.reports.select("report_id", "run", "radar_id", "time", "local_track_id", "range_m",
+                                          "azimuth_deg", "elevation_deg", "altitude_m", "mode_s", "truth_id")
+    ds = dataclasses.replace(small_terminal, reports=plots)
+    res = pipeline.process(ds, pipeline.PipelineConfig(centralized=False))
+    assert set(res.fused["method"].unique().to_list()) == set(METHODS)
