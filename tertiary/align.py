@@ -84,30 +84,39 @@ def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
     return state, cov, nominal
 
 
-def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDArray[np.float64], q: float
+def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDArray[np.float64], q: float,
+                rows: NDArray[np.int64] | None = None, chunk: int = 16_384
                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Uniform straight-line motion over ``dt`` (n,): x ← F x, P ← F P Fᵀ + Q(dt) with
+    """Uniform straight-line motion over ``dt`` (m,): x ← F x, P ← F P Fᵀ + Q(dt) with
     F = [[I, dt I], [0, I]] and the white-noise-acceleration Q = q [[dt³/3, dt²/2], [dt²/2, dt]].
 
-    ``cov36`` is the row-major flattened 6×6 covariance (n, 36). The update runs entry by entry
-    on a transposed copy, where each entry is one contiguous vector over all rows.
+    ``cov36`` is the row-major flattened 6×6 covariance. With ``rows`` the inputs are
+    ``state[rows]``/``cov36[rows]``, gathered block by block. Blocks of ``chunk`` rows keep
+    the entry-by-entry arithmetic in cache; whole-array transposes or gathers of n × 36
+    doubles were the slowest part of alignment.
     """
-    out = state.copy()
-    out[:, :3] += dt[:, None] * state[:, 3:]
-    p = np.ascontiguousarray(cov36.T)            # (36, n)
-    g = p.copy()
-    d2, qd3, qd2, qd = dt * dt, q * dt ** 3 / 3.0, q * dt * dt / 2.0, q * dt
-    for i in range(3):
-        for j in range(3):
-            pp, pv, vp, vv = 6 * i + j, 6 * i + j + 3, 6 * (i + 3) + j, 6 * (i + 3) + j + 3
-            g[pp] += dt * (p[pv] + p[vp]) + d2 * p[vv]
-            g[pv] += dt * p[vv]
-            g[vp] += dt * p[vv]
-        g[7 * i] += qd3                          # diagonal of the pos-pos block
-        g[6 * i + i + 3] += qd2                  # pos-vel diagonal
-        g[6 * (i + 3) + i] += qd2                # vel-pos diagonal
-        g[7 * (i + 3)] += qd                     # vel-vel diagonal
-    return out, np.ascontiguousarray(g.T)
+    m = len(dt)
+    out_x, out_p = np.empty((m, 6)), np.empty((m, 36))
+    for lo in range(0, m, chunk):
+        sl = slice(lo, min(lo + chunk, m))
+        src = sl if rows is None else rows[sl]
+        x, p, d = state[src], cov36[src], dt[sl]
+        out_x[sl, :3] = x[:, :3] + d[:, None] * x[:, 3:]
+        out_x[sl, 3:] = x[:, 3:]
+        g = out_p[sl]
+        g[...] = p
+        d2, qd3, qd2, qd = d * d, q * d ** 3 / 3.0, q * d * d / 2.0, q * d
+        for i in range(3):
+            for j in range(3):
+                pp, pv, vp, vv = 6 * i + j, 6 * i + j + 3, 6 * (i + 3) + j, 6 * (i + 3) + j + 3
+                g[:, pp] += d * (p[:, pv] + p[:, vp]) + d2 * p[:, vv]
+                g[:, pv] += d * p[:, vv]
+                g[:, vp] += d * p[:, vv]
+            g[:, 7 * i] += qd3                   # diagonal of the pos-pos block
+            g[:, 6 * i + i + 3] += qd2           # pos-vel diagonal
+            g[:, 6 * (i + 3) + i] += qd2         # vel-pos diagonal
+            g[:, 7 * (i + 3)] += qd              # vel-vel diagonal
+    return out_x, out_p
 
 
 def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) -> tuple[int, float]:
@@ -170,7 +179,7 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     order = np.lexsort((keys[rows, 2], keys[rows, 1], epoch_k, keys[rows, 0]))
     rows, step, epoch_k = rows[order], step[order], epoch_k[order]
     age = epoch_k * period - rel[rows]
-    x, p = extrapolate(state[rows], cov[rows], age, cfg.q_m2s3)
+    x, p = extrapolate(state, cov, age, cfg.q_m2s3, rows=rows)
 
     base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
     opt = [c for c in ("mode_s", "truth_id") if c in df.columns]
