@@ -1,0 +1,556 @@
+"""Short-term conflict prediction with accuracy-aware thresholds (monograph §5.2, (5.1)–(5.17);
+digest ``docs/seeds/tertiary-and-safety.md`` §7, algorithm 7.1, worked example 7.2).
+
+Geometry of one pair (i = ``id_a`` < j = ``id_b``), horizontal plane, digest convention §10.7
+---------------------------------------------------------------------------------------------
+    r = p_j − p_i,   v = v_i − v_j        (so the separation evolves as r(t) = r − v t)
+
+    R_min = |r_x v_y − r_y v_x| / |v|                                                   (5.10)
+    T_min = (r · v) / |v|²                                                              (5.11)
+
+T_min > 0 for approaching aircraft. When |v| < ``eps_mps`` (parallel tracks, not treated in the
+seed) R_min = |r| and T_min = +∞. Vertical: Δh = h_j − h_i (5.12), Δvz = vz_j − vz_i.
+
+Two decision rules (``ConflictConfig.mode``)
+-------------------------------------------
+* ``"seed"`` — faithful to (5.13)/(5.14) as printed (digest algorithm 7.1)::
+
+      vertical ok  ⇔  |Δh| ≤ R_в^пор  (co-level)  or  R_в^min ≤ R_в^пор,
+      R_в^min = |Δh| − V_close·T_min,  V_close = −sign(Δh)·Δvz   (T_в^min := T_min)      (5.13)
+      alert ⇔ R_min ≤ R_г^пор ∧ T_min ≤ T^пор ∧ vertical ok                             (5.14)
+
+  A *negative* T_min passes, so pairs that have already passed each other are flagged (the
+  seed's flaw, kept on purpose). ``dz_min_m`` is R_в^min (signed: negative = the aircraft
+  crossed levels before T_min).
+* ``"corrected"`` (the sounder rule, default)::
+
+      alert ⇔ R_min ≤ R_г^пор ∧ 0 ≤ T_min ≤ T^пор ∧ min_{t∈[0,T^пор]} |Δh + Δvz t| ≤ R_в^пор
+
+  and ``dz_min_m`` is that minimum.
+
+All comparisons use equality (≤), as the digest chose for (5.8)/(5.16)/(5.17).
+
+Thresholds (5.15)–(5.17)
+------------------------
+    T^пор  = Σ t_i + t_ман (+ ``t_margin_s``)                                          (5.17)
+    R_г^пор = Δr_г + |ΔR_го(T^пор)| + |ΔR_гп(T^пор)|                                     (5.15)
+    R_в^пор = Δr_в + |ΔR_во(T^пор)| + |ΔR_вп(T^пор)|                                     (5.16)
+
+* Separation minima Δr: ``airspace="terminal"`` 3 NM / 1000 ft, ``"en-route"`` 5 NM / 1000 ft,
+  or explicit ``dr_h_m`` / ``dr_v_m``.
+* Estimation term, ``threshold_mode="covariance"`` (per pair): each track's covariance is
+  propagated to T = T^пор under constant velocity, P_pos(T) = P_pp + T(P_pv + P_vp) + T² P_vv
+  (cross terms only with a full ``cov``; ``cov_diag`` gives the diagonal version). The relative
+  position covariance of the pair is P_i(T) + P_j(T) (the two tracks' errors are taken as
+  independent). Horizontally
+
+      |ΔR_го| = k_h · sqrt(λ_max(P_rel,xy)),   k_h = sqrt(χ²₂⁻¹(confidence))
+
+  — the circle of that radius contains the 2-D relative error with probability ≥ confidence
+  (equality for an isotropic covariance): k_h = 2.448 at 95 %. Vertically
+
+      |ΔR_во| = k_v · sqrt(P_rel,zz),   k_v = Φ⁻¹((1 + confidence)/2)   (1.960 at 95 %).
+
+  ``threshold_mode="fixed"`` uses the constants ``fixed_est_h_m`` / ``fixed_est_v_m`` instead
+  (the seed's scalar error bounds, digest §7.2) for comparison.
+* Piloting term: ``pilot_h_m + pilot_h_rate_mps·T`` (and likewise vertical); the defaults
+  (500 m, 60 m, no growth) are the digest §7.2 values.
+
+Output set ("candidates within the look-ahead")
+-----------------------------------------------
+Not all pairs: a pair of the same (run, epoch, method) is reported iff, over the screening
+window W, its horizontal separation comes within R_г^пор **and** its vertical separation
+within R_в^пор (each at some t ∈ W, not necessarily the same t). W = [0, T^пор] in corrected
+mode and [−T^пор, T^пор] in seed mode, so every alert of either rule is in the output — except
+that seed-mode pairs whose closest approach was more than T^пор ago are not screened (the
+printed rule would flag them too). ``alert`` is the decision of the chosen rule.
+
+``severity`` = clip(1 − R_min / R_г^пор, 0, 1) for alerts (1 = collision course, 0 = grazing
+the threshold), 0 for non-alert rows. ``closure_mps`` = r̂·v = −d|r|/dt at the epoch (positive
+when closing). ``dz_m`` = Δh at the epoch (signed, h_b − h_a).
+
+Candidate search
+----------------
+One KD-tree over all (run, epoch, method) groups at once (a fourth coordinate = group index ×
+a constant larger than any query radius, as in ``tertiary.gating``), no O(N²) loop and no dense
+N×N matrix. Each track is replaced by its position at the centre t_c of W and gets half-extents
+h = |v_h|·T_w + ρ and h_z = |vz|·T_w + ζ (T_w = half the window length; ρ, ζ its share of the
+thresholds, bounded above per track). If the pair comes within the thresholds at some t ∈ W
+then |Δc_h| ≤ h_i + h_j and |Δc_z| ≤ h_z,i + h_z,j — so the screen is exact-conservative. For
+seed mode (t_c = 0, T_w = T) this is the radius R^пор + 2·v_max·T around the current
+positions; the corrected window halves the closing distance. The bulk of the tracks is found
+with ``query_pairs`` in a Chebyshev box (z scaled by h/h_z) of radius 2·H with H = the
+``bulk_quantile`` of h (or ``v_max_mps``·T_w + ρ when configured); the few tracks beyond it
+(very fast, very uncertain) are queried individually with their own radius, so no pair is ever
+missed, whatever ``v_max_mps``. The exact per-pair tests then run vectorised in chunks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal, NamedTuple
+
+import numpy as np
+import polars as pl
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+from scipy.stats import chi2, norm
+
+from tertiary.schema import TABLES, TIME
+
+__all__ = [
+    "NM_M",
+    "FT_M",
+    "SEPARATION_MINIMA",
+    "ConflictConfig",
+    "PairGeometry",
+    "pair_geometry",
+    "pair_thresholds",
+    "candidate_pairs",
+    "predict_conflicts",
+]
+
+NM_M = 1852.0
+FT_M = 0.3048
+#: (horizontal, vertical) separation minima in metres per airspace class
+SEPARATION_MINIMA: dict[str, tuple[float, float]] = {
+    "terminal": (3.0 * NM_M, 1000.0 * FT_M),
+    "en-route": (5.0 * NM_M, 1000.0 * FT_M),
+}
+
+STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+
+
+@dataclass(frozen=True)
+class ConflictConfig:
+    """Conflict-prediction settings (5.15)–(5.17); see the module docstring.
+
+    * ``airspace`` / ``dr_h_m`` / ``dr_v_m``: separation minima Δr_г, Δr_в (explicit values win).
+    * ``t_delays_s`` (detection, command transmission, execution), ``t_man_s``, ``t_margin_s``:
+      T^пор = Σ t_i + t_ман + margin (5.17); defaults give 105 s (digest §7.2).
+    * ``confidence``: probability content of the covariance-based estimation term.
+    * ``pilot_h_m``, ``pilot_h_rate_mps``, ``pilot_v_m``, ``pilot_v_rate_mps``: piloting error
+      |ΔR_п(T)| = base + rate·T.
+    * ``threshold_mode``: ``"covariance"`` (per pair, from the tracks) or ``"fixed"``
+      (``fixed_est_h_m``, ``fixed_est_v_m``).
+    * ``mode``: ``"seed"`` (faithful (5.14), negative T_min passes) or ``"corrected"``.
+    * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
+      affects speed, never the result.
+    * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
+    """
+
+    airspace: Literal["terminal", "en-route"] = "terminal"
+    dr_h_m: float | None = None
+    dr_v_m: float | None = None
+    t_delays_s: tuple[float, ...] = (10.0, 20.0, 15.0)
+    t_man_s: float = 60.0
+    t_margin_s: float = 0.0
+    confidence: float = 0.95
+    pilot_h_m: float = 500.0
+    pilot_h_rate_mps: float = 0.0
+    pilot_v_m: float = 60.0
+    pilot_v_rate_mps: float = 0.0
+    threshold_mode: Literal["covariance", "fixed"] = "covariance"
+    fixed_est_h_m: float = 300.0
+    fixed_est_v_m: float = 50.0
+    mode: Literal["seed", "corrected"] = "corrected"
+    v_max_mps: float | None = None
+    eps_mps: float = 1e-6
+    bulk_quantile: float = 0.99
+    screen_steps: int = 3
+    chunk_pairs: int = 1 << 20
+
+    def __post_init__(self) -> None:
+        if self.airspace not in SEPARATION_MINIMA:
+            raise ValueError(f"airspace must be one of {list(SEPARATION_MINIMA)}, got {self.airspace!r}")
+        if self.mode not in ("seed", "corrected"):
+            raise ValueError(f"mode must be 'seed' or 'corrected', got {self.mode!r}")
+        if self.threshold_mode not in ("covariance", "fixed"):
+            raise ValueError(f"threshold_mode must be 'covariance' or 'fixed', got {self.threshold_mode!r}")
+        if not 0.0 < self.confidence < 1.0:
+            raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
+        if self.t_thr_s <= 0:
+            raise ValueError(f"the look-ahead T^пор must be positive, got {self.t_thr_s}")
+        for name in ("dr_h_m", "dr_v_m"):
+            val = getattr(self, name)
+            if val is not None and val <= 0:
+                raise ValueError(f"{name} must be positive, got {val}")
+        for name in ("pilot_h_m", "pilot_v_m", "fixed_est_h_m", "fixed_est_v_m", "eps_mps",
+                     "pilot_h_rate_mps", "pilot_v_rate_mps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.v_max_mps is not None and self.v_max_mps <= 0:
+            raise ValueError(f"v_max_mps must be positive, got {self.v_max_mps}")
+        if self.screen_steps < 1:
+            raise ValueError(f"screen_steps must be >= 1, got {self.screen_steps}")
+        if not 0.0 < self.bulk_quantile <= 1.0:
+            raise ValueError(f"bulk_quantile must be in (0, 1], got {self.bulk_quantile}")
+
+    # ---- derived quantities
+    @property
+    def sep_h_m(self) -> float:
+        """Horizontal separation minimum Δr_г (m)."""
+        return float(self.dr_h_m) if self.dr_h_m is not None else SEPARATION_MINIMA[self.airspace][0]
+
+    @property
+    def sep_v_m(self) -> float:
+        """Vertical separation minimum Δr_в (m)."""
+        return float(self.dr_v_m) if self.dr_v_m is not None else SEPARATION_MINIMA[self.airspace][1]
+
+    @property
+    def t_thr_s(self) -> float:
+        """Look-ahead T^пор = Σ t_i + t_ман (+ margin), (5.17)."""
+        return float(sum(self.t_delays_s)) + self.t_man_s + self.t_margin_s
+
+    @property
+    def k_h(self) -> float:
+        """Horizontal confidence factor sqrt(χ²₂⁻¹(confidence))."""
+        return float(math.sqrt(chi2.ppf(self.confidence, 2)))
+
+    @property
+    def k_v(self) -> float:
+        """Vertical confidence factor Φ⁻¹((1 + confidence)/2)."""
+        return float(norm.ppf(0.5 * (1.0 + self.confidence)))
+
+    @property
+    def pilot_h_at_t(self) -> float:
+        """|ΔR_гп(T^пор)| (m)."""
+        return self.pilot_h_m + self.pilot_h_rate_mps * self.t_thr_s
+
+    @property
+    def pilot_v_at_t(self) -> float:
+        """|ΔR_вп(T^пор)| (m)."""
+        return self.pilot_v_m + self.pilot_v_rate_mps * self.t_thr_s
+
+    @property
+    def window_s(self) -> tuple[float, float]:
+        """Screening window W: [0, T] (corrected) or [−T, T] (seed)."""
+        t = self.t_thr_s
+        return (0.0, t) if self.mode == "corrected" else (-t, t)
+
+
+# --------------------------------------------------------------------------- pair geometry
+
+
+class PairGeometry(NamedTuple):
+    """Per-pair geometry (arrays); i is the first, j the second aircraft."""
+
+    r0: NDArray[np.float64]           # |r| now (m)
+    r_min: NDArray[np.float64]        # (5.10) (m)
+    t_min: NDArray[np.float64]        # (5.11) (s), +inf for parallel motion
+    closure: NDArray[np.float64]      # r̂·v = −d|r|/dt (m/s)
+    dz: NDArray[np.float64]           # Δh = h_j − h_i (5.12) (m)
+    dvz: NDArray[np.float64]          # vz_j − vz_i (m/s)
+    dz_min_seed: NDArray[np.float64]  # R_в^min = |Δh| − V_close·T_min (5.13), signed (m)
+    dz_min: NDArray[np.float64]       # min over t ∈ [0, t_thr] of |Δh + Δvz t| (corrected) (m)
+
+
+def _horizontal(rx, ry, vx, vy, eps):
+    """R_min (5.10), T_min (5.11), |r| and closure, vectorised."""
+    r0 = np.hypot(rx, ry)
+    vv = vx * vx + vy * vy
+    speed = np.sqrt(vv)
+    moving = speed >= eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_min = np.where(moving, np.abs(rx * vy - ry * vx) / speed, r0)
+        t_min = np.where(moving, (rx * vx + ry * vy) / vv, np.inf)
+        closure = np.where(r0 > 0, (rx * vx + ry * vy) / r0, speed)
+    return r0, r_min, t_min, closure, moving
+
+
+def _window_min_h(rx, ry, vx, vy, t_min, moving, t0, t1):
+    """min over t ∈ [t0, t1] of |r − v t| (|r| for parallel motion)."""
+    ts = np.where(moving, np.clip(t_min, t0, t1), 0.0)
+    return np.hypot(rx - vx * ts, ry - vy * ts)
+
+
+def _window_min_v(dz, dvz, t0, t1):
+    """min over t ∈ [t0, t1] of |Δh + Δvz t|."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ts = np.where(dvz != 0.0, np.clip(-dz / dvz, t0, t1), np.clip(0.0, t0, t1))
+    return np.abs(dz + dvz * ts)
+
+
+def _seed_vertical(dz, dvz, t_min):
+    """R_в^min = |Δh| − V_close·T_min with V_close = −sign(Δh)·Δvz (5.13), T_в^min := T_min."""
+    v_close = -np.sign(dz) * dvz
+    with np.errstate(invalid="ignore"):
+        prod = np.where(v_close == 0.0, 0.0, v_close * t_min)
+    return np.abs(dz) - prod
+
+
+def pair_geometry(p_i: ArrayLike, v_i: ArrayLike, p_j: ArrayLike, v_j: ArrayLike,
+                  t_thr: float = 105.0, eps: float = 1e-6) -> PairGeometry:
+    """Geometry of aircraft pairs from positions/velocities ``(..., 3)`` (x, y, h) — (5.10)–(5.13).
+
+    r = p_j − p_i and v = v_i − v_j horizontally (digest §10.7), so T_min > 0 when approaching.
+    ``dz_min_seed`` is the seed's R_в^min (5.13) with T_в^min = T_min; ``dz_min`` the corrected
+    min over t ∈ [0, t_thr] of |Δh + Δvz t|. |v| < eps → R_min = |r|, T_min = +∞.
+    """
+    pi, vi, pj, vj = (np.asarray(a, dtype=np.float64) for a in (p_i, v_i, p_j, v_j))
+    rx, ry = pj[..., 0] - pi[..., 0], pj[..., 1] - pi[..., 1]
+    vx, vy = vi[..., 0] - vj[..., 0], vi[..., 1] - vj[..., 1]
+    r0, r_min, t_min, closure, _ = _horizontal(rx, ry, vx, vy, eps)
+    dz = pj[..., 2] - pi[..., 2]
+    dvz = vj[..., 2] - vi[..., 2]
+    return PairGeometry(r0, r_min, t_min, closure, dz, dvz, _seed_vertical(dz, dvz, t_min),
+                        _window_min_v(dz, dvz, 0.0, t_thr))
+
+
+# --------------------------------------------------------------------------- thresholds
+
+
+class _PointTerms(NamedTuple):
+    """Per-track covariance terms propagated to T^пор (m²): P_xx, P_xy, P_yy, P_zz."""
+
+    a: NDArray[np.float64]
+    b: NDArray[np.float64]
+    d: NDArray[np.float64]
+    q: NDArray[np.float64]
+
+
+def _point_terms(tracks: pl.DataFrame, t: float) -> _PointTerms:
+    """P_pos(T) = P_pp + T(P_pv + P_vp) + T²P_vv of every track (x, y, z parts)."""
+    if "cov" in tracks.columns:
+        c = tracks["cov"].to_numpy().reshape(-1, 36)
+        e = lambda r, k: c[:, 6 * r + k]  # noqa: E731 - element (r, k) of the row-major 6×6
+        a = e(0, 0) + t * (e(0, 3) + e(3, 0)) + t * t * e(3, 3)
+        b = e(0, 1) + t * (e(0, 4) + e(3, 1)) + t * t * e(3, 4)
+        d = e(1, 1) + t * (e(1, 4) + e(4, 1)) + t * t * e(4, 4)
+        q = e(2, 2) + t * (e(2, 5) + e(5, 2)) + t * t * e(5, 5)
+    elif "cov_diag" in tracks.columns:
+        c = tracks["cov_diag"].to_numpy().reshape(-1, 6)
+        a = c[:, 0] + t * t * c[:, 3]
+        b = np.zeros(len(c))
+        d = c[:, 1] + t * t * c[:, 4]
+        q = c[:, 2] + t * t * c[:, 5]
+    else:
+        raise ValueError("threshold_mode='covariance' needs a 'cov' (Array(Float64, 36)) or "
+                         "'cov_diag' (Array(Float64, 6)) column; use threshold_mode='fixed' otherwise")
+    terms = _PointTerms(*(np.ascontiguousarray(x, dtype=np.float64) for x in (a, b, d, q)))
+    if not all(np.all(np.isfinite(x)) for x in terms):
+        raise ValueError("covariances must be finite")
+    return terms
+
+
+def _lambda_max(a, b, d):
+    """Largest eigenvalue of the symmetric 2×2 [[a, b], [b, d]]."""
+    return 0.5 * (a + d) + np.hypot(0.5 * (a - d), b)
+
+
+def pair_thresholds(cfg: ConflictConfig, terms: _PointTerms | None, i: NDArray, j: NDArray
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """R_г^пор (5.15) and R_в^пор (5.16) of pairs (i, j); ``terms`` from the tracks' covariances
+    (None for ``threshold_mode="fixed"``)."""
+    if cfg.threshold_mode == "fixed" or terms is None:
+        n = len(i)
+        return (np.full(n, cfg.sep_h_m + cfg.fixed_est_h_m + cfg.pilot_h_at_t),
+                np.full(n, cfg.sep_v_m + cfg.fixed_est_v_m + cfg.pilot_v_at_t))
+    lam = _lambda_max(terms.a[i] + terms.a[j], terms.b[i] + terms.b[j], terms.d[i] + terms.d[j])
+    est_h = cfg.k_h * np.sqrt(np.maximum(lam, 0.0))
+    est_v = cfg.k_v * np.sqrt(np.maximum(terms.q[i] + terms.q[j], 0.0))
+    return cfg.sep_h_m + est_h + cfg.pilot_h_at_t, cfg.sep_v_m + est_v + cfg.pilot_v_at_t
+
+
+class _Bounds(NamedTuple):
+    """Per-track quantities whose pairwise combination bounds the thresholds from above:
+    R_г^пор(i, j) ≤ base_h + k_h·sqrt(lam_i + lam_j), R_в^пор(i, j) ≤ base_v + k_v·sqrt(q_i + q_j)
+    (λ_max(A + B) ≤ λ_max(A) + λ_max(B))."""
+
+    base_h: float
+    base_v: float
+    lam: NDArray[np.float64]
+    q: NDArray[np.float64]
+
+
+def _bounds(cfg: ConflictConfig, terms: _PointTerms | None, n: int) -> _Bounds:
+    if cfg.threshold_mode == "fixed" or terms is None:
+        r_h, r_v = pair_thresholds(cfg, None, np.zeros(1, np.int64), np.zeros(1, np.int64))
+        return _Bounds(float(r_h[0]), float(r_v[0]), np.zeros(n), np.zeros(n))
+    lam = np.maximum(_lambda_max(terms.a, terms.b, terms.d), 0.0)
+    return _Bounds(cfg.sep_h_m + cfg.pilot_h_at_t, cfg.sep_v_m + cfg.pilot_v_at_t, lam, np.maximum(terms.q, 0.0))
+
+
+# --------------------------------------------------------------------------- candidate search
+
+
+def _group_index(tracks: pl.DataFrame, keys: list[str]) -> NDArray[np.int64]:
+    """Dense index of the (run, epoch[, method]) group per row (in sorted key order)."""
+    if not tracks.height:
+        return np.zeros(0, np.int64)
+    expr = pl.struct(keys) if len(keys) > 1 else pl.col(keys[0])
+    return (tracks.select(expr.rank("dense").cast(pl.Int64) - 1).to_series().to_numpy())
+
+
+def _flatten(lists, counts: NDArray[np.int64]) -> NDArray[np.int64]:
+    return np.fromiter((k for x in lists for k in x), np.int64, int(counts.sum()))
+
+
+def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float64], vel: NDArray[np.float64],
+                terms: _PointTerms | None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Screened pairs (i < j, same group) — see "Candidate search" in the module docstring."""
+    n = len(g)
+    empty = np.zeros(0, np.int64)
+    if n < 2:
+        return empty, empty
+    t0, t1 = cfg.window_s
+    m = max(1, round(cfg.screen_steps * (t1 - t0) / cfg.t_thr_s))
+    tw = 0.5 * (t1 - t0) / m                                  # half-length of a sub-window
+    tcs = t0 + tw * (2 * np.arange(m) + 1)                    # sub-window centres
+    b = _bounds(cfg, terms, n)
+    vh = np.hypot(vel[:, 0], vel[:, 1])
+    vz = np.abs(vel[:, 2])
+    qq = cfg.bulk_quantile
+    v_b = cfg.v_max_mps if cfg.v_max_mps is not None else float(np.quantile(vh, qq))
+    vz_b, lam_b, q_b = (float(np.quantile(x, qq)) for x in (vz, b.lam, b.q))
+    bulk = (vh <= v_b) & (vz <= vz_b) & (b.lam <= lam_b) & (b.q <= q_b)
+    r_h = 2.0 * v_b * tw + b.base_h + cfg.k_h * math.sqrt(2.0 * lam_b)
+    r_v = 2.0 * vz_b * tw + b.base_v + cfg.k_v * math.sqrt(2.0 * q_b)
+    s = r_h / r_v                                              # z scale: vertical reach → horizontal
+    wide = np.flatnonzero(~bulk)
+    w_h = (vh[wide] + vh.max()) * tw + b.base_h + cfg.k_h * np.sqrt(b.lam[wide] + b.lam.max())
+    w_v = (vz[wide] + vz.max()) * tw + b.base_v + cfg.k_v * np.sqrt(b.q[wide] + b.q.max())
+    r_w = np.maximum(w_h, w_v * s)
+    scale = float(np.max(np.abs(pos))) + float(vh.max() + vz.max()) * max(abs(t0), abs(t1)) + 1.0
+    pad = 1.0 + 1e-9 * scale                                   # rounding safety (metres)
+    sep = 2.0 * (max(r_h, float(r_w.max()) if len(wide) else 0.0) + pad) + 1.0
+    # m copies of every track, at the centre of each sub-window; the 4th coordinate separates
+    # (group, sub-window) cells by more than any query radius
+    cell = (g[None, :] * m + np.arange(m)[:, None]).astype(np.float64) * sep
+    pts = np.stack([pos[None, :, 0] + vel[None, :, 0] * tcs[:, None],
+                    pos[None, :, 1] + vel[None, :, 1] * tcs[:, None],
+                    (pos[None, :, 2] + vel[None, :, 2] * tcs[:, None]) * s,
+                    cell], axis=-1).reshape(-1, 4)
+    parts = []
+    bidx = np.flatnonzero(np.tile(bulk, m))
+    if len(bidx) >= 2:
+        pr = cKDTree(pts[bidx]).query_pairs(r_h + pad, p=np.inf, output_type="ndarray")
+        parts.append((bidx[pr[:, 0]] % n, bidx[pr[:, 1]] % n))
+    if len(wide):
+        widx = (wide[None, :] + n * np.arange(m)[:, None]).ravel()
+        hits = cKDTree(pts).query_ball_point(pts[widx], np.tile(r_w, m) + pad, p=np.inf, return_sorted=False)
+        counts = np.fromiter((len(x) for x in hits), np.int64, len(widx))
+        jj = _flatten(hits, counts) % n
+        ii = np.repeat(widx % n, counts)
+        parts.append((ii, jj))
+    if not parts:
+        return empty, empty
+    i = np.concatenate([p[0] for p in parts]).astype(np.int64)
+    j = np.concatenate([p[1] for p in parts]).astype(np.int64)
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    key = np.unique(lo[lo != hi] * n + hi[lo != hi])
+    return key // n, key % n
+
+
+def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
+                    method_col: str = "method") -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Screened row-index pairs (i < j, same (run, epoch, method) group) of ``tracks``: a superset
+    of the pairs that come within R_г^пор horizontally and R_в^пор vertically at some t of the
+    screening window (KD-tree, see the module docstring). Exposed for tests and benchmarks."""
+    g = _group_index(tracks, _group_cols(tracks, method_col))
+    pos, vel = _state_arrays(tracks)
+    terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
+    return _candidates(cfg, g, pos, vel, terms)
+
+
+# --------------------------------------------------------------------------- main entry
+
+
+def _group_cols(tracks: pl.DataFrame, method_col: str = "method") -> list[str]:
+    cols = [c for c in ("run", "epoch") if c in tracks.columns]
+    if method_col in tracks.columns:
+        cols.append(method_col)
+    return cols
+
+
+def _state_arrays(tracks: pl.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    missing = [c for c in STATE if c not in tracks.columns]
+    if missing:
+        raise ValueError(f"tracks: missing column(s) {', '.join(missing)}")
+    st = tracks.select(pl.col(list(STATE)).cast(pl.Float64)).to_numpy()
+    if not np.all(np.isfinite(st)):
+        raise ValueError("tracks: states must be finite")
+    return np.ascontiguousarray(st[:, :3]), np.ascontiguousarray(st[:, 3:])
+
+
+def _empty_conflicts() -> pl.DataFrame:
+    return pl.DataFrame(schema=TABLES["conflicts"].required)
+
+
+def _evaluate_pairs(cfg: ConflictConfig, pos, vel, terms, i, j) -> dict[str, NDArray]:
+    """Geometry, thresholds, output-set membership and decision of pairs (i, j)."""
+    t_thr = cfg.t_thr_s
+    w0, w1 = cfg.window_s
+    rx, ry = pos[j, 0] - pos[i, 0], pos[j, 1] - pos[i, 1]
+    vx, vy = vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1]
+    r0, r_min, t_min, closure, moving = _horizontal(rx, ry, vx, vy, cfg.eps_mps)
+    dz = pos[j, 2] - pos[i, 2]
+    dvz = vel[j, 2] - vel[i, 2]
+    r_thr, z_thr = pair_thresholds(cfg, terms, i, j)
+    keep = ((_window_min_h(rx, ry, vx, vy, t_min, moving, w0, w1) <= r_thr)
+            & (_window_min_v(dz, dvz, w0, w1) <= z_thr))
+    sel = np.flatnonzero(keep)
+    r_min, t_min, closure, dz, dvz, r_thr, z_thr = (x[sel] for x in (r_min, t_min, closure, dz, dvz, r_thr, z_thr))
+    if cfg.mode == "corrected":
+        dz_min = _window_min_v(dz, dvz, 0.0, t_thr)
+        alert = (r_min <= r_thr) & (t_min >= 0.0) & (t_min <= t_thr) & (dz_min <= z_thr)
+    else:
+        dz_min = _seed_vertical(dz, dvz, t_min)
+        vertical = (np.abs(dz) <= z_thr) | (dz_min <= z_thr)
+        alert = (r_min <= r_thr) & (t_min <= t_thr) & vertical
+    with np.errstate(divide="ignore", invalid="ignore"):
+        severity = np.where(alert, np.clip(1.0 - r_min / r_thr, 0.0, 1.0), 0.0)
+    return {"i": i[sel], "j": j[sel], "r_min_m": r_min, "t_min_s": t_min, "dz_m": dz, "dz_min_m": dz_min,
+            "closure_mps": closure, "r_thr_m": r_thr, "t_thr_s": np.full(len(sel), t_thr), "z_thr_m": z_thr,
+            "alert": alert, "severity": severity}
+
+
+def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(), id_col: str = "track_id",
+                      method_col: str = "method", default_method: str = "none") -> pl.DataFrame:
+    """Predicted conflicts of an air picture — (5.10)–(5.17), rule ``cfg.mode``.
+
+    ``tracks``: any track table with ``run``, ``epoch``, ``id_col`` (``track_id``; fused
+    tables: ``target_id``), the system-frame state ``x_m … vz_mps`` (z = height) and, for
+    ``threshold_mode="covariance"``, ``cov`` (row-major 6×6) or ``cov_diag``. Pairs are formed
+    within each (run, epoch, ``method_col``) group; without a method column the label is
+    ``default_method``. Returns the ``conflicts`` table (see the module docstring for the output
+    set, ``alert`` and ``severity``), id_a < id_b, sorted by (run, epoch, method, id_a, id_b).
+    """
+    for c in ("epoch", id_col):
+        if c not in tracks.columns:
+            raise ValueError(f"tracks: missing column {c!r}")
+    if "run" not in tracks.columns:
+        tracks = tracks.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    if method_col not in tracks.columns:
+        tracks = tracks.with_columns(pl.lit(default_method, pl.String).alias(method_col))
+    if tracks.height < 2:
+        return _empty_conflicts()
+    groups = ["run", "epoch", method_col]
+    dup = tracks.select(pl.struct([*groups, id_col]).is_duplicated().any()).item()
+    if dup:
+        raise ValueError(f"tracks: duplicate {id_col} within a (run, epoch, {method_col}) group")
+    g = _group_index(tracks, groups)
+    pos, vel = _state_arrays(tracks)
+    terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
+    ci, cj = _candidates(cfg, g, pos, vel, terms)
+    ids = tracks[id_col].cast(pl.Int64).to_numpy()
+    swap = ids[ci] > ids[cj]                     # order each pair so that id_a < id_b
+    ci, cj = np.where(swap, cj, ci), np.where(swap, ci, cj)
+
+    chunks: list[dict[str, NDArray]] = []
+    step = max(int(cfg.chunk_pairs), 1)
+    for s in range(0, len(ci), step):
+        chunks.append(_evaluate_pairs(cfg, pos, vel, terms, ci[s:s + step], cj[s:s + step]))
+    if not chunks or sum(len(c["i"]) for c in chunks) == 0:
+        return _empty_conflicts()
+    cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    # g is the dense rank of (run, epoch, method), so this is the (run, epoch, method, id_a, id_b) order
+    order = np.lexsort((ids[cols["j"]], ids[cols["i"]], g[cols["i"]]))
+    cols = {k: v[order] for k, v in cols.items()}
+    i, j = cols.pop("i"), cols.pop("j")
+    keys = tracks.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                         pl.col(method_col).cast(pl.String).alias("method"))[i]
+    out = keys.with_columns(pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64),
+                            *[pl.Series(k, v) for k, v in cols.items()])
+    return out.select(list(TABLES["conflicts"].required)).cast(TABLES["conflicts"].required)

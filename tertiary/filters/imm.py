@@ -1,0 +1,431 @@
+"""IMM with constant-turn (CT) and constant-velocity (CV) models — seed 002 (Volovyk 2022).
+
+Horizontal plane: state ``[x, vx, y, vy]`` (x = east, y = north of the system ENU frame), with
+one Kalman filter per model; the vertical axis runs a separate CV channel ``[z, vz]``.
+
+Models (digest §2.3, verified):
+
+* CT(ω):  A_ct(ω, Δt) = expm(A_c Δt) of  v̇x = −ω vy,  v̇y = ω vx  (positive ω turns the velocity
+  from +X towards +Y: a **left** turn with X = east, Y = north), and the isotropic closed form
+  Q_ct = q·[[2Q₂/ω³, Q₁/ω², 0, Q₂/ω²], [Q₁/ω², Δt, −Q₂/ω², 0], [0, −Q₂/ω², 2Q₂/ω³, Q₁/ω²],
+  [Q₂/ω², 0, Q₁/ω², Δt]] with Q₁ = 1 − cos ωΔt, Q₂ = ωΔt − sin ωΔt (valid only for q_x = q_y;
+  the anisotropic case is computed numerically by Van Loan, :func:`q_van_loan`).
+* CV = CT(ω = 0): A_cv, Q_cv (continuous white-noise acceleration, PSD q_x, q_y in m²/s³).
+  Every coefficient is written with ``sinc``-type functions that are exact at ω → 0, so
+  ω = 0 *is* the CV model (bit-for-bit A_cv and Q_cv).
+
+IMM cycle (digest §2.5, the "intended" form; every printed error of table 2.6 corrected):
+π row-stochastic (π_ij = P(m_k = j | m_{k−1} = i)), c̄ = πᵀμ, mixing weights
+μ^{i|j} = π_ij μ_i / c̄_j, mixed estimates from the *filtered* estimates with the spread about
+the *mixed* mean, prediction, innovation, update P⁺ = P⁻ − K S Kᵀ (symmetrised), Gaussian
+likelihoods in the log domain, μ_j ∝ c̄_j L_j (the *predicted* probability, printed error 7),
+and the output combination with the spread about the combined estimate (not fed back).
+
+Default parameters are the paper's (§2.7): ω = (0.001, 0.045, 0 = CV) rad/s, TPM
+[[0.99, 0.01, 0], [0.01, 0.98, 0.01], [0, 0.01, 0.99]], μ₀ = [0.53, 0.33, 0.13]/0.99,
+P₀₀ = diag(10³, 0.05, 10³, 0.05) (m², (m/s)²). The filter process noise q is not given by the
+paper (only the truth's q = 0.01 m²/s³); the default q = 1 m²/s³ follows the digest (§2.7).
+
+Measurements: the 2-D converted-measurement form of the paper (§2.4) is
+:func:`convert_polar_2d` — (r, θ) → (r cos θ, r sin θ) with R = J Rᵖ Jᵀ, J at the measured point;
+θ is measured from +X towards +Y (with X = east: θ = π/2 − azimuth). As a
+:class:`~tertiary.filters.base.TrackFilter` the IMM takes fused ENU plots: ``r`` (B, 3) diagonal
+variances or a full (B, 3, 3) covariance, whose horizontal 2×2 block is used in full (the
+horizontal–vertical cross-covariance is ignored: the vertical channel is separate).
+
+Only positive (left) turn rates are in the paper's model set; for traffic turning both ways pass
+e.g. ``omegas=(0.045, -0.045, 0.0)`` with a matching ``tpm`` and ``mu0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import expm
+
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+
+#: paper's model set (rad/s; 0 = CV), TPM and normalised μ₀ (digest §2.7, table 2.6 row 20)
+PAPER_OMEGAS = (0.001, 0.045, 0.0)
+PAPER_TPM = ((0.99, 0.01, 0.0), (0.01, 0.98, 0.01), (0.0, 0.01, 0.99))
+PAPER_MU0 = tuple(np.array([0.53, 0.33, 0.13]) / 0.99)
+PAPER_P00 = (1e3, 0.05, 1e3, 0.05)
+
+_HIDX = np.array([0, 2])  # H = [[1,0,0,0],[0,0,1,0]]
+
+
+# --------------------------------------------------------------------------- model matrices
+
+
+def _g3(x: F64) -> F64:
+    """(x − sin x)/x³, accurate for every x (series below |x| = 0.5, error < 1e-16 relative)."""
+    x = np.asarray(x, dtype=np.float64)
+    x2 = x * x
+    series = (1 / 6 - x2 / 120 * (1 - x2 / 42 * (1 - x2 / 72 * (1 - x2 / 110 * (1 - x2 / 156 * (1 - x2 / 210))))))
+    small = np.abs(x) < 0.5
+    xs = np.where(small, 1.0, x)
+    return np.where(small, series, (xs - np.sin(xs)) / (xs * xs * xs))
+
+
+def _ct_parts(omega: ArrayLike, dt: ArrayLike) -> tuple[F64, ...]:
+    """sin(ωΔt)/ω, (1 − cos ωΔt)/ω, cos ωΔt, sin ωΔt, Q₁/ω², Q₂/ω², Q₂/ω³, all exact at ω → 0."""
+    omega, dt = np.broadcast_arrays(np.asarray(omega, float), np.asarray(dt, float))
+    x = omega * dt
+    sinc = np.sinc(x / np.pi)                  # sin x / x
+    h2 = 0.5 * np.sinc(x / (2.0 * np.pi)) ** 2  # (1 − cos x)/x² = 2 sin²(x/2)/x²
+    g3 = _g3(x)
+    s_w = dt * sinc
+    c_w = dt * x * h2
+    q1_w2 = dt * dt * h2
+    q2_w2 = dt * dt * x * g3
+    q2_w3 = dt ** 3 * g3
+    return s_w, c_w, np.cos(x), np.sin(x), q1_w2, q2_w2, q2_w3
+
+
+def a_ct(omega: ArrayLike, dt: ArrayLike) -> F64:
+    """CT transition matrices (..., 4, 4) for state [x, vx, y, vy]; ω = 0 gives A_cv exactly."""
+    s_w, c_w, c, s, *_ = _ct_parts(omega, dt)
+    a = np.zeros(s_w.shape + (4, 4))
+    a[..., 0, 0] = a[..., 2, 2] = 1.0
+    a[..., 0, 1] = s_w
+    a[..., 0, 3] = -c_w
+    a[..., 1, 1] = c
+    a[..., 1, 3] = -s
+    a[..., 2, 1] = c_w
+    a[..., 2, 3] = s_w
+    a[..., 3, 1] = s
+    a[..., 3, 3] = c
+    return a
+
+
+def a_cv(dt: ArrayLike) -> F64:
+    """CV transition matrices (..., 4, 4) (digest §2.3)."""
+    dt = np.asarray(dt, float)
+    a = np.zeros(dt.shape + (4, 4))
+    a[..., 0, 0] = a[..., 1, 1] = a[..., 2, 2] = a[..., 3, 3] = 1.0
+    a[..., 0, 1] = a[..., 2, 3] = dt
+    return a
+
+
+def q_cv(dt: ArrayLike, qx: ArrayLike, qy: ArrayLike | None = None) -> F64:
+    """CV process noise (..., 4, 4) for white-acceleration PSDs q_x, q_y (m²/s³)."""
+    qy = qx if qy is None else qy
+    dt, qx, qy = np.broadcast_arrays(*(np.asarray(v, float) for v in (dt, qx, qy)))
+    q = np.zeros(dt.shape + (4, 4))
+    for i, qq in ((0, qx), (2, qy)):
+        q[..., i, i] = dt ** 3 / 3 * qq
+        q[..., i, i + 1] = q[..., i + 1, i] = dt ** 2 / 2 * qq
+        q[..., i + 1, i + 1] = dt * qq
+    return q
+
+
+def q_ct(omega: ArrayLike, dt: ArrayLike, q: ArrayLike) -> F64:
+    """The paper's closed-form CT process noise (5) (..., 4, 4), isotropic PSD q (m²/s³).
+    Exact (= Van Loan) only for q_x = q_y = q; ω = 0 gives Q_cv."""
+    _, _, _, _, q1_w2, q2_w2, q2_w3 = _ct_parts(omega, dt)
+    dt_b = np.broadcast_to(np.asarray(dt, float), q1_w2.shape)
+    qq = np.broadcast_to(np.asarray(q, float), q1_w2.shape)
+    m = np.zeros(q1_w2.shape + (4, 4))
+    m[..., 0, 0] = m[..., 2, 2] = 2.0 * q2_w3
+    m[..., 0, 1] = m[..., 1, 0] = m[..., 2, 3] = m[..., 3, 2] = q1_w2
+    m[..., 0, 3] = m[..., 3, 0] = q2_w2
+    m[..., 1, 2] = m[..., 2, 1] = -q2_w2
+    m[..., 1, 1] = m[..., 3, 3] = dt_b
+    return qq[..., None, None] * m
+
+
+def q_van_loan(omega: float, dt: ArrayLike, qx: float, qy: float | None = None) -> F64:
+    """Exact CT process noise ∫₀^Δt e^{A_c s} G diag(q_x, q_y) Gᵀ e^{A_cᵀ s} ds by Van Loan's
+    method (scalar ω, any shape of Δt → (..., 4, 4)); valid for anisotropic noise q_x ≠ q_y,
+    where the printed (5) is not."""
+    qy = qx if qy is None else qy
+    dt = np.asarray(dt, float)
+    ac = np.array([[0, 1, 0, 0], [0, 0, 0, -omega], [0, 0, 0, 1], [0, omega, 0, 0]], float)
+    g = np.array([[0, 0], [1, 0], [0, 0], [0, 1]], float)
+    qc = g @ np.diag([qx, qy]) @ g.T
+    m = np.zeros((8, 8))
+    m[:4, :4] = -ac
+    m[:4, 4:] = qc
+    m[4:, 4:] = ac.T
+    e = expm(m * dt[..., None, None])                    # batched over dt
+    phi = np.swapaxes(e[..., 4:, 4:], -1, -2)
+    q = phi @ e[..., :4, 4:]
+    return 0.5 * (q + np.swapaxes(q, -1, -2))
+
+
+def model_matrices(omega: float, dt: ArrayLike, q: float | tuple[float, float]) -> tuple[F64, F64]:
+    """(A, Q) of one model for every dt: closed forms for isotropic q, Van Loan (batched over
+    the distinct dt) for anisotropic (q_x, q_y)."""
+    dt = np.asarray(dt, float)
+    qx, qy = (q, q) if np.isscalar(q) else q
+    a = a_ct(omega, dt)
+    if qx == qy:
+        return a, q_ct(omega, dt, qx)
+    if omega == 0.0:
+        return a, q_cv(dt, qx, qy)
+    uniq, inv = np.unique(dt, return_inverse=True)
+    return a, q_van_loan(omega, uniq, qx, qy)[inv.reshape(dt.shape)]
+
+
+# --------------------------------------------------------------------------- converted measurements
+
+
+def convert_polar_2d(range_m: ArrayLike, theta_rad: ArrayLike, sigma_r: ArrayLike, sigma_theta_rad: ArrayLike
+                     ) -> tuple[F64, F64]:
+    """Seed 002 (10)–(12): z = (r cos θ, r sin θ) and R = J diag(σ_r², σ_θ²) Jᵀ with J at the
+    measured (r, θ). θ from +X towards +Y. Returns z (..., 2), R (..., 2, 2)."""
+    r, th = np.broadcast_arrays(np.asarray(range_m, float), np.asarray(theta_rad, float))
+    sr2 = np.broadcast_to(np.asarray(sigma_r, float) ** 2, r.shape)
+    st2 = np.broadcast_to(np.asarray(sigma_theta_rad, float) ** 2, r.shape)
+    c, s = np.cos(th), np.sin(th)
+    z = np.stack([r * c, r * s], axis=-1)
+    rr = r * r * st2
+    cov = np.empty(r.shape + (2, 2))
+    cov[..., 0, 0] = sr2 * c * c + rr * s * s
+    cov[..., 1, 1] = sr2 * s * s + rr * c * c
+    cov[..., 0, 1] = cov[..., 1, 0] = (sr2 - rr) * s * c
+    return z, cov
+
+
+def conversion_range_limit(sigma_r: float, sigma_theta_rad: float) -> float:
+    """Seed 002 (14): the converted-measurement linearisation holds for r < 0.4 σ_r/σ_θ²."""
+    return 0.4 * sigma_r / sigma_theta_rad ** 2
+
+
+# --------------------------------------------------------------------------- batched IMM core
+
+
+def _sym(p: F64) -> F64:
+    return 0.5 * (p + np.swapaxes(p, -1, -2))
+
+
+def _inv2(s: F64) -> tuple[F64, F64]:
+    """Inverse and determinant of stacks of 2×2 matrices."""
+    det = s[..., 0, 0] * s[..., 1, 1] - s[..., 0, 1] * s[..., 1, 0]
+    inv = np.empty_like(s)
+    inv[..., 0, 0] = s[..., 1, 1] / det
+    inv[..., 1, 1] = s[..., 0, 0] / det
+    inv[..., 0, 1] = -s[..., 0, 1] / det
+    inv[..., 1, 0] = -s[..., 1, 0] / det
+    return inv, det
+
+
+def imm_mix(x: F64, p: F64, mu: F64, tpm: F64) -> tuple[F64, F64, F64]:
+    """Steps 1–4: predicted mode probabilities c̄ (B, M), mixed states (B, M, n) and covariances
+    (B, M, n, n) from the filtered x (B, M, n), P (B, M, n, n) and μ (B, M)."""
+    cbar = mu @ tpm                                          # c̄_j = Σ_i π_ij μ_i
+    w = tpm[None] * mu[:, :, None] / np.where(cbar > 0, cbar, 1.0)[:, None, :]  # μ^{i|j}, (B, i, j)
+    xm = np.einsum("bij,bin->bjn", w, x)
+    d = x[:, :, None, :] - xm[:, None, :, :]                # (B, i, j, n)
+    pm = np.einsum("bij,bimn->bjmn", w, p) + np.einsum("bij,bijm,bijn->bjmn", w, d, d)
+    return cbar, xm, _sym(pm)
+
+
+def imm_combine(x: F64, p: F64, mu: F64) -> tuple[F64, F64]:
+    """Step 10: moment-matched combination (B, n), (B, n, n)."""
+    xc = np.einsum("bj,bjn->bn", mu, x)
+    d = x - xc[:, None, :]
+    pc = np.einsum("bj,bjmn->bmn", mu, p) + np.einsum("bj,bjm,bjn->bmn", mu, d, d)
+    return xc, _sym(pc)
+
+
+def imm_update(x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.bool_],
+               mu_floor: float = 0.0) -> tuple[F64, F64, F64, F64]:
+    """Steps 6–9 for the horizontal models with H = [[1,0,0,0],[0,0,1,0]]: x⁻ (B, M, 4),
+    P⁻ (B, M, 4, 4), c̄ (B, M), z (B, 2), R (B, 2, 2). Tracks outside ``mask`` keep x⁻, P⁻, c̄.
+    Returns x⁺, P⁺, μ, and the per-model log-likelihoods (B, M)."""
+    nu = z[:, None, :] - x[:, :, _HIDX]                      # (B, M, 2)
+    pht = p[:, :, :, _HIDX]                                  # (B, M, 4, 2)
+    s = pht[:, :, _HIDX, :] + rr[:, None]                    # (B, M, 2, 2)
+    si, det = _inv2(s)
+    k = pht @ si                                             # (B, M, 4, 2)
+    xu = x + np.einsum("bmij,bmj->bmi", k, nu)
+    pu = _sym(p - k @ s @ np.swapaxes(k, -1, -2))
+    d2 = np.einsum("bmi,bmij,bmj->bm", nu, si, nu)
+    loglik = -0.5 * d2 - 0.5 * np.log(det) - np.log(2.0 * np.pi)
+    lw = np.log(np.maximum(mu_pred, 1e-300)) + loglik
+    lw = lw - lw.max(axis=1, keepdims=True)
+    mu = np.exp(lw)
+    mu /= mu.sum(axis=1, keepdims=True)
+    if mu_floor > 0:
+        mu = np.maximum(mu, mu_floor)
+        mu /= mu.sum(axis=1, keepdims=True)
+    m = mask[:, None]
+    return (np.where(m[..., None], xu, x), np.where(m[..., None, None], pu, p),
+            np.where(m, mu, mu_pred), np.where(m, loglik, np.nan))
+
+
+class HorizontalIMM:
+    """The horizontal IMM on plain arrays (state [x, vx, y, vy] per model), batched over B."""
+
+    def __init__(self, omegas: Sequence[float] = PAPER_OMEGAS, tpm: ArrayLike = PAPER_TPM,
+                 mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, mu_floor: float = 1e-12):
+        self.omegas = tuple(float(w) for w in omegas)
+        self.tpm = np.asarray(tpm, float)
+        mu0 = np.asarray(mu0, float)
+        self.mu0 = mu0 / mu0.sum()
+        self.q = q
+        self.mu_floor = float(mu_floor)
+        m = len(self.omegas)
+        if self.tpm.shape != (m, m) or self.mu0.shape != (m,):
+            raise ValueError("tpm must be (M, M) and mu0 (M,) for M = len(omegas)")
+        if not np.allclose(self.tpm.sum(axis=1), 1.0):
+            raise ValueError("tpm rows must sum to 1 (π_ij = P(j | i))")
+
+    @property
+    def n_models(self) -> int:
+        return len(self.omegas)
+
+    def init(self, x0: F64, p0: F64) -> tuple[F64, F64, F64]:
+        """Every model starts from x0 (B, 4), P0 (B, 4, 4); μ = μ₀."""
+        b, m = len(x0), self.n_models
+        return (np.repeat(x0[:, None], m, axis=1), np.repeat(p0[:, None], m, axis=1),
+                np.broadcast_to(self.mu0, (b, m)).copy())
+
+    def predict(self, x: F64, p: F64, mu: F64, dt: F64) -> tuple[F64, F64, F64]:
+        """Mixing and model-conditioned prediction; returns x⁻, P⁻ and c̄ (the predicted μ)."""
+        cbar, xm, pm = imm_mix(x, p, mu, self.tpm)
+        xs, ps = [], []
+        for j, w in enumerate(self.omegas):
+            a, q = model_matrices(w, dt, self.q)
+            xs.append(np.einsum("bij,bj->bi", a, xm[:, j]))
+            ps.append(_sym(a @ pm[:, j] @ np.swapaxes(a, -1, -2) + q))
+        return np.stack(xs, axis=1), np.stack(ps, axis=1), cbar
+
+    def update(self, x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.bool_] | None = None
+               ) -> tuple[F64, F64, F64, F64]:
+        mask = np.ones(len(x), bool) if mask is None else np.asarray(mask, bool)
+        return imm_update(x, p, mu_pred, z, rr, mask, self.mu_floor)
+
+    @staticmethod
+    def combine(x: F64, p: F64, mu: F64) -> tuple[F64, F64]:
+        return imm_combine(x, p, mu)
+
+
+# --------------------------------------------------------------------------- TrackFilter
+
+
+def _cv1_predict(x: F64, p: F64, dt: F64, q: float) -> tuple[F64, F64]:
+    """Scalar-axis CV prediction on (B, 2), (B, 2, 2)."""
+    x = np.stack([x[:, 0] + dt * x[:, 1], x[:, 1]], axis=1)
+    a = np.zeros((len(dt), 2, 2))
+    a[:, 0, 0] = a[:, 1, 1] = 1.0
+    a[:, 0, 1] = dt
+    qm = np.empty_like(a)
+    qm[:, 0, 0] = dt ** 3 / 3 * q
+    qm[:, 0, 1] = qm[:, 1, 0] = dt ** 2 / 2 * q
+    qm[:, 1, 1] = dt * q
+    return x, _sym(a @ p @ np.swapaxes(a, -1, -2) + qm)
+
+
+@register
+class IMMFilter(TrackFilter):
+    """Seed 002 IMM (horizontal CT/CT/CV) + vertical CV channel, batched over tracks.
+
+    Parameters (defaults = the paper's, digest §2.7):
+        omegas:   turn rate per model, rad/s (0 = CV), default (0.001, 0.045, 0)
+        tpm:      row-stochastic mode transition matrix, default the paper's
+        mu0:      initial mode probabilities (normalised), default [0.53, 0.33, 0.13]/0.99
+        q:        horizontal white-acceleration PSD of the filters (m²/s³), scalar or (q_x, q_y);
+                  default 1 (digest §2.7; the paper gives only the truth's 0.01)
+        q_z:      vertical CV channel PSD (m²/s³), default 1
+        p00:      diag of P₀₀ for :meth:`init_state` (paper: (10³, 0.05, 10³, 0.05))
+        sigma_v0: horizontal velocity σ (m/s) when a track starts from a single plot
+                  (:meth:`init`; velocity 0, vertical velocity σ = sigma_v0/10), default 150
+        mu_floor: floor on μ after each update (renormalised), default 1e-12
+    """
+
+    name = "imm"
+
+    def __init__(self, omegas: Sequence[float] = PAPER_OMEGAS, tpm: ArrayLike = PAPER_TPM,
+                 mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, q_z: float = 1.0,
+                 p00: Sequence[float] = PAPER_P00, sigma_v0: float = 150.0, mu_floor: float = 1e-12):
+        self.core = HorizontalIMM(omegas, tpm, mu0, q, mu_floor)
+        self.q_z = float(q_z)
+        self.p00 = np.asarray(p00, float)
+        self.sigma_v0 = float(sigma_v0)
+
+    # ---- construction
+    def init(self, z: F64, r: F64) -> State:
+        z = np.asarray(z, float)
+        rh, rz = self._split_r(np.asarray(r, float))
+        b = len(z)
+        x0 = np.zeros((b, 4))
+        x0[:, 0], x0[:, 2] = z[:, 0], z[:, 1]
+        p0 = np.zeros((b, 4, 4))
+        p0[:, [0, 0, 2, 2], [0, 2, 0, 2]] = rh.reshape(b, 4)
+        p0[:, 1, 1] = p0[:, 3, 3] = self.sigma_v0 ** 2
+        xv = np.stack([z[:, 2], np.zeros(b)], axis=1)
+        pv = np.zeros((b, 2, 2))
+        pv[:, 0, 0], pv[:, 1, 1] = rz, self.sigma_v0 ** 2 / 100.0
+        return self.init_state(x0, p0, xv, pv)
+
+    def init_state(self, x0: F64, p0: F64 | None = None, xv: F64 | None = None, pv: F64 | None = None) -> State:
+        """Start from horizontal states x0 (B, 4) = [x, vx, y, vy] (paper: P₀₀ if ``p0`` is None)
+        and optional vertical states xv (B, 2), pv (B, 2, 2)."""
+        x0 = np.asarray(x0, float)
+        b = len(x0)
+        p0 = np.broadcast_to(np.diag(self.p00), (b, 4, 4)).copy() if p0 is None else np.asarray(p0, float)
+        x, p, mu = self.core.init(x0, p0)
+        xv = np.zeros((b, 2)) if xv is None else np.asarray(xv, float)
+        pv = np.broadcast_to(np.diag([1e4, 1e2]), (b, 2, 2)).copy() if pv is None else np.asarray(pv, float)
+        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}
+
+    # ---- cycle
+    def predict(self, state: State, dt: F64) -> State:
+        dt = np.broadcast_to(np.asarray(dt, float), (len(state["mu"]),))
+        x, p, cbar = self.core.predict(state["x"], state["P"], state["mu"], dt)
+        xv, pv = _cv1_predict(state["xv"], state["Pv"], dt, self.q_z)
+        return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
+
+    @staticmethod
+    def _split_r(r: F64) -> tuple[F64, F64]:
+        if r.ndim == 3:
+            return r[:, :2, :2], r[:, 2, 2]
+        rh = np.zeros((len(r), 2, 2))
+        rh[:, 0, 0], rh[:, 1, 1] = r[:, 0], r[:, 1]
+        return rh, r[:, 2]
+
+    def update(self, state: State, z: F64, r: F64, mask: NDArray[np.bool_]) -> tuple[State, Innovation]:
+        z, mask = np.asarray(z, float), np.asarray(mask, bool)
+        rh, rz = self._split_r(np.asarray(r, float))
+        ok = mask & np.all(np.isfinite(z), axis=1)
+        zz = np.where(ok[:, None], z, 0.0)
+        rh = np.where(ok[:, None, None], rh, np.eye(2))
+        rz = np.where(ok, rz, 1.0)
+        # innovation of the combined prediction (for gating / NIS)
+        xc, pc = imm_combine(state["x"], state["P"], state["mu"])
+        nu_h = zz[:, :2] - xc[:, _HIDX]
+        s_h = pc[:, _HIDX][:, :, _HIDX] + rh
+        si, _ = _inv2(s_h)
+        nu_z = zz[:, 2] - state["xv"][:, 0]
+        s_z = state["Pv"][:, 0, 0] + rz
+        nis = np.einsum("bi,bij,bj->b", nu_h, si, nu_h) + nu_z ** 2 / s_z
+        # horizontal IMM
+        x, p, mu, _ = self.core.update(state["x"], state["P"], state["mu"], zz[:, :2], rh, ok)
+        # vertical CV channel
+        pv = state["Pv"]
+        k = pv[:, :, 0] / s_z[:, None]
+        xv = state["xv"] + k * nu_z[:, None]
+        pvu = _sym(pv - s_z[:, None, None] * k[:, :, None] * k[:, None, :])
+        xv = np.where(ok[:, None], xv, state["xv"])
+        pvu = np.where(ok[:, None, None], pvu, pv)
+        nu = np.concatenate([nu_h, nu_z[:, None]], axis=1)
+        s = np.stack([s_h[:, 0, 0], s_h[:, 1, 1], s_z], axis=1)
+        nan = ~ok
+        innov = Innovation(np.where(nan[:, None], np.nan, nu), np.where(nan[:, None], np.nan, s),
+                           np.where(nan, np.nan, nis))
+        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innov
+
+    def output(self, state: State) -> Output:
+        xc, pc = imm_combine(state["x"], state["P"], state["mu"])
+        xv, pv = state["xv"], state["Pv"]
+        out = np.stack([xc[:, 0], xc[:, 2], xv[:, 0], xc[:, 1], xc[:, 3], xv[:, 1]], axis=1)
+        var = np.stack([pc[:, 0, 0], pc[:, 2, 2], pv[:, 0, 0], pc[:, 1, 1], pc[:, 3, 3], pv[:, 1, 1]], axis=1)
+        return Output(out, var, state["mu"].copy())
+
+    def combined_horizontal(self, state: State) -> tuple[F64, F64]:
+        """Combined horizontal estimate (B, 4) and covariance (B, 4, 4)."""
+        return imm_combine(state["x"], state["P"], state["mu"])

@@ -1,0 +1,671 @@
+"""Secondary tracking of fused plots: track management around a batched :class:`TrackFilter`.
+
+Input is the ``fused`` table of ONE fusion method; each fused row is a *plot* — its position
+(x_m, y_m, z_m) with per-axis variances from the diagonal of the position block of ``cov``. The
+fused target ids are not used for association (the tracker associates by position only); they
+are reported per row as ``plot_target_id`` so the evaluation can find the plot's truth.
+
+Output is the ``tracks`` table plus ``status`` ("confirmed": updated with a plot at this
+epoch — including the confirmation epoch — or "coasting": predicted only, memory mode) and
+``plot_target_id`` (the fused target the track was updated with, null when coasting).
+Tentative tracks are not emitted.
+
+Per epoch (one loop over the epochs; everything inside vectorised over tracks × runs):
+
+1. **Predict** every object (confirmed track or tentative) of the runs that have plots at this
+   epoch by its own dt. Runs without any plot at an epoch are left untouched (a data gap is
+   not a miss).
+2. **Tracking gate** of confirmed tracks, per axis i ∈ {x, y, z}:
+   ``|z_i − x̂_i| ≤ gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m``, with candidates found by a
+   KD-tree over the epoch's plots (the run is a far-apart extra coordinate, so runs never
+   mix). Cost of a gated pair: Σ_i (z_i − x̂_i)²/S_i + ln S_i, S_i = P⁻_ii + r_i (−2 ln of the
+   Gaussian likelihood; the ln S term keeps a plot with a huge variance from looking close).
+3. **Assignment**: ``"hungarian"`` — ``scipy.optimize.linear_sum_assignment`` on the gated cost
+   of each connected component of the gate graph that is ambiguous (components with a single
+   track–plot pair are assigned directly, vectorised), maximising the number of gated
+   assignments first; ``"nearest"`` — every track takes its cheapest gated plot, a plot
+   claimed by several tracks goes to the cheapest claimant, and the losers try again among
+   the remaining plots (vectorised rounds).
+4. **Update** assigned tracks (``mask``), **coast** the others (x⁺ = x⁻, P⁺ = P⁻), and
+   **delete** a track at its ``max_misses``-th consecutive epoch without a plot (so
+   ``max_misses − 1`` coasting rows at most; ``max_misses = 1`` means no coasting).
+5. **Initiation** with the plots no confirmed track took:
+
+   * ``"three_scan"`` (kalman-filters digest §1): scan 1 — every such plot x₁ opens a
+     tentative track. Scan 2 — every plot in the annulus v_min·T ≤ |x₂ − x₁|_h ≤ v_max·T
+     (horizontal distance, T = t₂ − t₁; (1.1)) spawns its own hypothesis (x₁, x₂); the stage-1
+     track is then dropped. Scan 3 — a circle S₂ of radius ``confirm_gate_m`` (horizontal)
+     around x̂₃ = x₂ + (x₂ − x₁)·(t₃ − t₂)/(t₂ − t₁) (= x₂ + (x₂ − x₁) for equal scans);
+     hypotheses compete for the plots (``assignment``), competing confirmations of one x₁ or
+     one x₂ keep the cheapest; a hypothesis with no plot in S₂ is dropped. The annulus and the
+     circle also require a plausible height change:
+     ``|Δz| ≤ gate_sigma·sqrt(r_z + r_z') + gate_min_m``.
+   * ``"m_of_n"``: every such plot opens a tentative track (hits = 1); at each later scan the
+     tentatives compete for the remaining plots — with the annulus gate while they have one
+     plot, with the tracking gate afterwards — and a tentative is confirmed as soon as it has
+     ``m`` plots within its first ``n`` scans, dropped as soon as that is impossible.
+
+   In both modes the plots used only by stage-1 tentatives (a scan-2 hypothesis, or a
+   one-plot M-of-N tentative) still open new tentatives too, so a wrong first pairing never
+   costs the aircraft its plot.
+6. Newly confirmed tracks get the next track ids of their run (1, 2, …, increasing with the
+   confirmation epoch; stable for the track's life).
+
+The filter runs on tentatives too (initialised on x₁, updated with every tentative plot), so
+a track enters tracking with its first scans already filtered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from tertiary.filters.base import State, TrackFilter, concat, make_filter, size, take
+from tertiary.schema import TABLES, TIME
+
+__all__ = ["TrackerConfig", "track", "track_methods", "TRACK_COLUMNS", "STATUS"]
+
+STATUS = ("tentative", "confirmed", "coasting")
+STATE_COLS = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+
+#: the ``tracks`` table columns plus the tracker's extra columns
+TRACK_COLUMNS: dict[str, pl.DataType] = {
+    **TABLES["tracks"].required,
+    "status": pl.String(),
+    "plot_target_id": pl.UInt64(),
+}
+
+_TENT, _HYP, _CONF = 0, 1, 2          # object kinds: tentative (stage 1 / M-of-N), scan-2 hypothesis, confirmed
+_RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
+_DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Track management options (see the module docstring for the rules).
+
+    * ``initiation``: ``"three_scan"`` (annulus S₁ then circle S₂) or ``"m_of_n"``.
+    * ``v_min_mps``, ``v_max_mps``: annulus radii R_min = v_min·T, R_max = v_max·T (1.1).
+    * ``confirm_gate_m``: radius of the scan-3 circle S₂.
+    * ``m``, ``n``: M-of-N confirmation (``m`` plots within the first ``n`` scans).
+    * ``gate_sigma``, ``gate_min_m``: tracking gate half-width per axis
+      gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
+    * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
+    * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
+    """
+
+    initiation: Literal["three_scan", "m_of_n"] = "three_scan"
+    v_min_mps: float = 30.0
+    v_max_mps: float = 350.0
+    confirm_gate_m: float = 1500.0
+    m: int = 3
+    n: int = 4
+    gate_sigma: float = 4.0
+    gate_min_m: float = 500.0
+    assignment: Literal["nearest", "hungarian"] = "hungarian"
+    max_misses: int = 3
+
+    def __post_init__(self) -> None:
+        if self.initiation not in ("three_scan", "m_of_n"):
+            raise ValueError(f"initiation must be 'three_scan' or 'm_of_n', got {self.initiation!r}")
+        if self.assignment not in ("nearest", "hungarian"):
+            raise ValueError(f"assignment must be 'nearest' or 'hungarian', got {self.assignment!r}")
+        if not 0 <= self.v_min_mps < self.v_max_mps:
+            raise ValueError(f"need 0 <= v_min_mps < v_max_mps, got {self.v_min_mps}, {self.v_max_mps}")
+        if not 1 <= self.m <= self.n:
+            raise ValueError(f"need 1 <= m <= n, got m={self.m}, n={self.n}")
+        if self.max_misses < 1:
+            raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
+        if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
+            raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
+
+
+# --------------------------------------------------------------------------- object bookkeeping
+
+# Every object (tentative, hypothesis or confirmed track) is a row of two packed arrays, so the
+# bookkeeping follows the filter state with two fancy-indexing operations per selection.
+# float columns:
+_T, _P1, _T1, _RZ1, _P2, _T2, _RZ2 = 0, slice(1, 4), 4, 5, slice(6, 9), 9, 10
+_NF = 11
+# int columns: run index, kind, track id (0 until confirmed), consecutive misses, M-of-N hits
+# and scans, uid of the scan-1 plot, uid of the scan-2 plot
+_RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2 = range(8)
+_NI = 8
+
+
+@dataclass
+class _Objects:
+    f: NDArray      # (B, _NF) float64
+    i: NDArray      # (B, _NI) int64
+
+    @staticmethod
+    def empty() -> "_Objects":
+        return _Objects(np.zeros((0, _NF)), np.zeros((0, _NI), np.int64))
+
+    def __len__(self) -> int:
+        return len(self.i)
+
+    def take(self, idx: NDArray) -> "_Objects":
+        return _Objects(self.f[idx], self.i[idx])
+
+    @staticmethod
+    def concat(*objs: "_Objects") -> "_Objects":
+        objs = tuple(o for o in objs if len(o))
+        if not objs:
+            return _Objects.empty()
+        if len(objs) == 1:
+            return objs[0]
+        return _Objects(np.concatenate([o.f for o in objs]), np.concatenate([o.i for o in objs]))
+
+    @staticmethod
+    def new(run: NDArray, t: float, z: NDArray, rz: NDArray, uid: NDArray) -> "_Objects":
+        n = len(run)
+        f = np.zeros((n, _NF))
+        f[:, _T] = f[:, _T1] = t
+        f[:, _P1] = z
+        f[:, _RZ1] = rz
+        i = np.zeros((n, _NI), np.int64)
+        i[:, _RUN] = run
+        i[:, _KIND] = _TENT
+        i[:, _HITS] = i[:, _SCANS] = 1
+        i[:, _ROOT] = uid
+        i[:, _UID2] = -1
+        return _Objects(f, i)
+
+
+def _take_state(state: State, idx: NDArray, n: int) -> State:
+    """``take`` that skips the copy when ``idx`` selects every track in order."""
+    if len(idx) == n and (n == 0 or (idx[0] == 0 and (n == 1 or bool((np.diff(idx) == 1).all())))):
+        return state
+    return take(state, idx)
+
+
+def _join_states(*states: State) -> State:
+    out: State = {}
+    for s_ in states:
+        if s_ and size(s_):
+            out = concat(out, s_)
+    return out
+
+
+# --------------------------------------------------------------------------- gating
+
+
+def _window_pairs(keys: NDArray, centers: NDArray, radii: NDArray) -> tuple[NDArray, NDArray]:
+    """(centre, plot) index pairs with the plot's sort key within ``radii`` of the centre key.
+
+    The candidates of every centre are one contiguous slice of the sorted ``keys`` (two
+    ``searchsorted``), so a whole coarse gate is a handful of vectorised calls.
+    """
+    if len(keys) == 0 or len(centers) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    lo = np.searchsorted(keys, centers - radii, side="left")
+    hi = np.searchsorted(keys, centers + radii, side="right")
+    cnt = hi - lo
+    total = int(cnt.sum())
+    if total == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    obj = np.repeat(np.arange(len(centers)), cnt)
+    return obj, np.arange(total) - np.repeat(np.cumsum(cnt) - cnt - lo, cnt)
+
+
+#: plot σ class limits (m): the tracking gate grows with the plot variance, so each σ class of
+#: plots gets its own (exact, superset) window — a plot with a σ of kilometres does not widen
+#: the search around every track
+_SIGMA_CLASSES = np.array([150.0, 1000.0])
+_CLASS_SEP = 1.0e13                   # key offset between σ classes (> any run offset)
+
+
+@dataclass
+class _Plots:
+    """The plots of one epoch (all runs), sorted by the key class·_CLASS_SEP + run·_RUN_SEP + x
+    (class = σ class of the plot)."""
+
+    run: NDArray
+    z: NDArray
+    r: NDArray
+    tid: NDArray
+    uid: NDArray
+    keys: NDArray
+    classes: NDArray          # σ classes present
+    rmax_x: NDArray           # largest x variance of each present class
+
+    def window(self, run: NDArray, x: NDArray, radius: NDArray) -> tuple[NDArray, NDArray]:
+        """(object, plot) pairs with |x_plot − x| ≤ radius in the same run; ``radius`` is (n,)
+        or (n_classes_present, n) for a per-class radius."""
+        n = len(run)
+        if n == 0 or len(self.keys) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        base = run * _RUN_SEP + x
+        centers = (self.classes[:, None] * _CLASS_SEP + base[None, :]).ravel()
+        radii = np.broadcast_to(radius, (len(self.classes), n)).ravel()
+        o, p = _window_pairs(self.keys, centers, radii)
+        return o % n, p
+
+
+class _PlotIndex:
+    """All plots sorted by (epoch, σ class, run, x) with per-epoch slices, built once."""
+
+    def __init__(self, fused: pl.DataFrame) -> None:
+        f = fused.with_columns(pl.col("epoch").cast(TIME))
+        cov = f["cov"].to_numpy()
+        cov = np.asarray(cov, float).reshape(-1, 36) if cov.dtype != object else np.stack(cov).reshape(-1, 36)
+        r = cov[:, [0, 7, 14]].astype(float)
+        z = f.select("x_m", "y_m", "z_m").to_numpy().astype(float)
+        epoch_us = f["epoch"].dt.epoch("us").to_numpy()
+        runs, run = np.unique(f["run"].cast(pl.Int64).to_numpy(), return_inverse=True)
+        cls = np.searchsorted(_SIGMA_CLASSES, np.sqrt(r.max(axis=1)))
+        order = np.lexsort((z[:, 0], run, cls, epoch_us))
+        self.runs = runs
+        self.run = run.astype(np.int64)[order]
+        self.cls = cls[order]
+        self.z = np.ascontiguousarray(z[order])
+        self.r = np.ascontiguousarray(r[order])
+        self.tid = f["target_id"].cast(pl.UInt64).to_numpy()[order]
+        self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
+        self.epochs, starts = np.unique(epoch_us[order], return_index=True)
+        self.bounds = np.r_[starts, len(order)]
+
+    def __len__(self) -> int:
+        return len(self.epochs)
+
+    def epoch(self, k: int) -> _Plots:
+        lo, hi = self.bounds[k], self.bounds[k + 1]
+        cls = self.cls[lo:hi]
+        first = np.flatnonzero(np.r_[True, cls[1:] != cls[:-1]])
+        rmax_x = np.maximum.reduceat(self.r[lo:hi, 0], first)
+        return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.tid[lo:hi],
+                      np.arange(lo, hi, dtype=np.int64), self.keys[lo:hi], cls[first].astype(float), rmax_x)
+
+
+def _likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
+    """−2 ln of the Gaussian likelihood up to a constant: Σ_i d_i²/S_i + ln S_i."""
+    return (d * d / s + np.log(s)).sum(axis=1)
+
+
+def _tracking_pairs(plots: _Plots, free: NDArray, run: NDArray, xp: NDArray, vp: NDArray,
+                    cfg: TrackerConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """Gated (object, plot, cost) triples of the tracking gate around the predictions ``xp``."""
+    if len(run) == 0 or not free.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    radius = cfg.gate_sigma * np.sqrt(vp[None, :, 0] + plots.rmax_x[:, None]) + cfg.gate_min_m
+    o, p = plots.window(run, xp[:, 0], radius)
+    keep = free[p]
+    o, p = o[keep], p[keep]
+    s = vp[o] + plots.r[p]
+    d = plots.z[p] - xp[o]
+    ok = (np.abs(d) <= cfg.gate_sigma * np.sqrt(s) + cfg.gate_min_m).all(axis=1)
+    return o[ok], p[ok], _likelihood_cost(d[ok], s[ok])
+
+
+def _vertical_ok(dz: NDArray, rz_a: NDArray, rz_b: NDArray, cfg: TrackerConfig) -> NDArray:
+    return np.abs(dz) <= cfg.gate_sigma * np.sqrt(rz_a + rz_b) + cfg.gate_min_m
+
+
+def _annulus_pairs(plots: _Plots, free: NDArray, objs: _Objects, t: float,
+                   cfg: TrackerConfig) -> tuple[NDArray, NDArray]:
+    """(object, plot) pairs with the plot in the annulus S₁ around the object's last plot:
+    v_min·T ≤ horizontal distance ≤ v_max·T, T = t − t₁ (1.1), and a plausible height change."""
+    if len(objs) == 0 or not free.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    p1, dt = objs.f[:, _P1], t - objs.f[:, _T1]
+    o, p = plots.window(objs.i[:, _RUN], p1[:, 0], cfg.v_max_mps * dt)
+    keep = free[p]
+    o, p = o[keep], p[keep]
+    dh = np.hypot(plots.z[p, 0] - p1[o, 0], plots.z[p, 1] - p1[o, 1])
+    ok = ((dh >= cfg.v_min_mps * dt[o]) & (dh <= cfg.v_max_mps * dt[o])
+          & _vertical_ok(plots.z[p, 2] - p1[o, 2], objs.f[o, _RZ1], plots.r[p, 2], cfg))
+    return o[ok], p[ok]
+
+
+def _confirm_pairs(plots: _Plots, free: NDArray, hyp: _Objects, t: float,
+                   cfg: TrackerConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """(hypothesis, plot, cost) of plots inside the scan-3 circle S₂ around
+    x̂₃ = x₂ + (x₂ − x₁)·(t − t₂)/(t₂ − t₁); cost = (d_h/R_S₂)² + (Δz/vertical tolerance)²."""
+    if len(hyp) == 0 or not free.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    p1, p2 = hyp.f[:, _P1], hyp.f[:, _P2]
+    ratio = (t - hyp.f[:, _T2]) / np.maximum(hyp.f[:, _T2] - hyp.f[:, _T1], 1e-9)
+    x3 = p2 + (p2 - p1) * ratio[:, None]
+    o, p = plots.window(hyp.i[:, _RUN], x3[:, 0], np.full(len(hyp), cfg.confirm_gate_m))
+    keep = free[p]
+    o, p = o[keep], p[keep]
+    dz = plots.z[p, 2] - x3[o, 2]
+    dh2 = (plots.z[p, 0] - x3[o, 0]) ** 2 + (plots.z[p, 1] - x3[o, 1]) ** 2
+    tol = cfg.gate_sigma * np.sqrt(hyp.f[o, _RZ2] + plots.r[p, 2]) + cfg.gate_min_m
+    ok = (np.abs(dz) <= tol) & (dh2 <= cfg.confirm_gate_m ** 2)
+    return o[ok], p[ok], dh2[ok] / cfg.confirm_gate_m ** 2 + (dz[ok] / tol[ok]) ** 2
+
+
+# --------------------------------------------------------------------------- assignment
+
+
+def _assign(o: NDArray, p: NDArray, cost: NDArray, n_obj: int, n_plot: int, method: str) -> NDArray:
+    """Plot index per object (−1 if none) from gated pairs; one plot per object and vice versa."""
+    out = np.full(n_obj, -1, np.int64)
+    if len(o) == 0:
+        return out
+    if method == "nearest":
+        return _nearest(o, p, cost, out, n_plot)
+    n_o = np.bincount(o, minlength=n_obj)
+    n_p = np.bincount(p, minlength=n_plot)
+    single = (n_o[o] == 1) & (n_p[p] == 1)        # a pair that is its own gate component
+    out[o[single]] = p[single]
+    if single.all():
+        return out
+    amb = np.flatnonzero(~single)
+    ro, ri = np.unique(o[amb], return_inverse=True)
+    co, ci = np.unique(p[amb], return_inverse=True)
+    if len(ro) * len(co) <= _DENSE_MAX:
+        # all ambiguous components in one block-diagonal problem (off-block = not gated)
+        blocks = [(amb, ro, ri, co, ci)]
+    else:
+        graph = coo_matrix((np.ones(len(amb)), (ri, len(ro) + ci)), shape=(len(ro) + len(co),) * 2)
+        _, label = connected_components(graph, directed=False)
+        comp = label[ri]
+        order = np.argsort(comp, kind="stable")
+        cuts = np.flatnonzero(np.diff(comp[order]) != 0) + 1
+        blocks = []
+        for seg in np.split(amb[order], cuts):          # one loop per ambiguous component
+            bro, bri = np.unique(o[seg], return_inverse=True)
+            bco, bci = np.unique(p[seg], return_inverse=True)
+            blocks.append((seg, bro, bri, bco, bci))
+    for seg, bro, bri, bco, bci in blocks:
+        # shifted costs ≥ 0 and a "not gated" cost above any sum of them: the solution has the
+        # most gated assignments possible, then the least cost among those
+        c = cost[seg] - cost[seg].min()
+        big = (c.max() + 1.0) * (min(len(bro), len(bco)) + 1)
+        dense = np.full((len(bro), len(bco)), big)
+        dense[bri, bci] = c
+        a, b = linear_sum_assignment(dense)
+        good = dense[a, b] < big
+        out[bro[a[good]]] = bco[b[good]]
+    return out
+
+
+def _nearest(o: NDArray, p: NDArray, cost: NDArray, out: NDArray, n_plot: int) -> NDArray:
+    """Vectorised nearest neighbour: each object claims its cheapest plot, the cheapest claimant
+    of each plot wins, losers retry among the plots still free."""
+    taken = np.zeros(n_plot, bool)
+    while len(o):
+        order = np.lexsort((cost, o))
+        o, p, cost = o[order], p[order], cost[order]
+        first = np.r_[True, o[1:] != o[:-1]]               # each object's cheapest plot
+        co, cp, cc = o[first], p[first], cost[first]
+        order = np.lexsort((cc, cp))
+        co, cp = co[order], cp[order]
+        win = np.r_[True, cp[1:] != cp[:-1]]               # each plot's cheapest claimant
+        out[co[win]] = cp[win]
+        taken[cp[win]] = True
+        keep = (out[o] < 0) & ~taken[p]
+        o, p, cost = o[keep], p[keep], cost[keep]
+    return out
+
+
+# --------------------------------------------------------------------------- the tracker
+
+
+class _Emitted:
+    """Output rows accumulated epoch by epoch."""
+
+    def __init__(self) -> None:
+        self.parts: dict[str, list[NDArray]] = {k: [] for k in
+                                                ("run", "epoch", "track_id", "x", "var", "nu", "nis", "upd", "tid")}
+        self.probs: list[NDArray | None] = []
+
+    def add(self, **arrays) -> None:
+        probs = arrays.pop("probs")
+        for k, v in arrays.items():
+            self.parts[k].append(v)
+        self.probs.append(probs)
+
+    def frame(self, runs: NDArray, filt_name: str, method: str) -> pl.DataFrame:
+        if not self.parts["run"] or sum(len(a) for a in self.parts["run"]) == 0:
+            return pl.DataFrame(schema=TRACK_COLUMNS)
+        c = {k: np.concatenate(v, axis=0) for k, v in self.parts.items()}
+        n = len(c["run"])
+        upd = c["upd"]
+        nu = pl.Series("innovation", c["nu"]).cast(pl.List(pl.Float64))
+        if any(pr is not None for pr in self.probs):
+            width = max(pr.shape[1] for pr in self.probs if pr is not None)
+            probs = np.full((n, width), np.nan)
+            at = 0
+            for pr, part in zip(self.probs, self.parts["run"]):
+                if pr is not None:
+                    probs[at:at + len(part), :pr.shape[1]] = pr
+                at += len(part)
+            has = ~np.isnan(probs).all(axis=1)
+            model_probs = pl.Series("model_probs", probs).cast(pl.List(pl.Float64))
+        else:
+            has = np.zeros(n, bool)
+            model_probs = pl.Series("model_probs", [None] * n, dtype=pl.List(pl.Float64))
+        frame = pl.DataFrame({
+            "run": runs[c["run"]].astype(np.uint32),
+            "epoch": pl.Series(c["epoch"]).cast(pl.Datetime("us")).dt.replace_time_zone("UTC"),
+            "track_id": c["track_id"].astype(np.uint64),
+            "filter": np.full(n, filt_name, dtype=object),
+            "method": np.full(n, method, dtype=object),
+            **{col: c["x"][:, i] for i, col in enumerate(STATE_COLS)},
+            "cov_diag": c["var"],
+            "innovation": nu,
+            "nis": c["nis"],
+            "model_probs": model_probs,
+            "status": np.where(upd, "confirmed", "coasting"),
+            "plot_target_id": c["tid"],
+            "__upd": upd,
+            "__has_probs": has,
+        })
+        upd_col = pl.col("__upd")
+        frame = frame.with_columns(
+            pl.when(upd_col).then(pl.col("innovation")).alias("innovation"),
+            pl.when(upd_col).then(pl.col("nis")).alias("nis"),
+            pl.when(upd_col).then(pl.col("plot_target_id")).alias("plot_target_id"),
+            pl.when(pl.col("__has_probs")).then(pl.col("model_probs")).alias("model_probs"),
+        )
+        return (frame.select(list(TRACK_COLUMNS)).cast(TRACK_COLUMNS)
+                .sort(["run", "epoch", "track_id"]))
+
+
+def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
+    """Track the fused plots of one fusion method with ``filt``; returns the ``tracks`` table
+    (plus ``status`` and ``plot_target_id``) with a row per confirmed/coasting track per epoch
+    of its run, sorted by (run, epoch, track_id)."""
+    need = {"run", "epoch", "target_id", "x_m", "y_m", "z_m", "cov"}
+    missing = sorted(need - set(fused_one_method.columns))
+    if missing:
+        raise ValueError(f"fused plots lack column(s) {', '.join(missing)}")
+    methods = (fused_one_method["method"].unique().to_list()
+               if "method" in fused_one_method.columns else ["unknown"])
+    if len(methods) > 1:
+        raise ValueError(f"track() takes the fused rows of one method, got {sorted(map(str, methods))}")
+    method = str(methods[0]) if methods else "unknown"
+    if fused_one_method.height == 0:
+        return pl.DataFrame(schema=TRACK_COLUMNS)
+
+    ix = _PlotIndex(fused_one_method)
+    n_runs = len(ix.runs)
+    secs = (ix.epochs - ix.epochs[0]) / 1e6
+    state: State = {}
+    objs = _Objects.empty()
+    next_id = np.ones(n_runs, np.int64)
+    emitted = _Emitted()
+    three = cfg.initiation == "three_scan"
+    empty = np.zeros(0, np.int64)
+
+    for k, t in enumerate(secs):
+        plots = ix.epoch(k)
+        n_plot = len(plots.run)
+
+        # --- predict the objects of the runs that have plots now
+        if n_runs == 1:
+            act, idle = np.arange(len(objs)), empty
+        else:
+            run_on = np.zeros(n_runs, bool)
+            run_on[plots.run] = True
+            on = run_on[objs.i[:, _RUN]]
+            act, idle = np.flatnonzero(on), np.flatnonzero(~on)
+        m = objs.take(act) if len(idle) else objs
+        if len(m):
+            st = filt.predict(_take_state(state, act, len(objs)), t - m.f[:, _T])
+            pred = filt.output(st)
+            xp, vp = pred.x[:, :3], pred.var[:, :3]
+        else:
+            st, xp, vp = {}, np.zeros((0, 3)), np.zeros((0, 3))
+        kind = m.i[:, _KIND]
+        free = np.ones(n_plot, bool)
+
+        # --- confirmed tracks: gate and assign
+        conf = np.flatnonzero(kind == _CONF)
+        o, p, c = _tracking_pairs(plots, free, m.i[conf, _RUN], xp[conf], vp[conf], cfg)
+        plot_of_conf = _assign(o, p, c, len(conf), n_plot, cfg.assignment)
+        free[plot_of_conf[plot_of_conf >= 0]] = False
+        opens = free.copy()                      # plots that open new tentative tracks
+
+        # --- initiation
+        win, plot_of_win = empty, empty          # three-scan: hypotheses confirmed now
+        pair_obj, pair_plot = empty, empty       # three-scan: new hypotheses (stage-1 object, plot)
+        tent, plot_of_tent = empty, empty        # M-of-N: tentatives (their plot or −1)
+        if three:
+            hyp = np.flatnonzero(kind == _HYP)
+            o, p, c = _confirm_pairs(plots, free, m.take(hyp), t, cfg)
+            plot_of_hyp = _assign(o, p, c, len(hyp), n_plot, cfg.assignment)
+            chosen = plot_of_hyp[o] == p
+            cost_of = np.full(len(hyp), np.inf)
+            cost_of[o[chosen]] = c[chosen]
+            got = np.flatnonzero(plot_of_hyp >= 0)
+            got = _resolve_conflicts(got, cost_of[got], m.i[hyp[got], _ROOT], m.i[hyp[got], _UID2])
+            win, plot_of_win = hyp[got], plot_of_hyp[got]
+            free[plot_of_win] = False
+            opens &= free
+            s1 = np.flatnonzero(kind == _TENT)
+            o, p = _annulus_pairs(plots, free, m.take(s1), t, cfg)
+            pair_obj, pair_plot = s1[o], p
+        else:
+            tent = np.flatnonzero(kind == _TENT)
+            one = m.i[tent, _HITS] == 1
+            o1, p1 = _annulus_pairs(plots, free, m.take(tent[one]), t, cfg)
+            o1 = np.flatnonzero(one)[o1]
+            c1 = _likelihood_cost(plots.z[p1] - xp[tent[o1]], vp[tent[o1]] + plots.r[p1])
+            many = np.flatnonzero(~one)
+            o2, p2, c2 = _tracking_pairs(plots, free, m.i[tent[many], _RUN], xp[tent[many]], vp[tent[many]], cfg)
+            plot_of_tent = _assign(np.r_[o1, many[o2]], np.r_[p1, p2], np.r_[c1, c2], len(tent), n_plot,
+                                   cfg.assignment)
+            used = plot_of_tent >= 0
+            free[plot_of_tent[used]] = False
+            opens[plot_of_tent[used & ~one]] = False
+
+        # --- one filter update for everything that continues
+        misses = np.where(plot_of_conf >= 0, 0, m.i[conf, _MISS] + 1)
+        alive = misses < cfg.max_misses
+        idx = np.concatenate([conf[alive], win, pair_obj, tent])
+        pidx = np.concatenate([plot_of_conf[alive], plot_of_win, pair_plot, plot_of_tent])
+        mask = pidx >= 0
+        safe = np.where(mask, pidx, 0)
+        z, r = plots.z[safe], plots.r[safe]
+        mu = m.take(idx)
+        if len(idx):
+            su, inn = filt.update(_take_state(st, idx, len(m)), z, r, mask)
+        else:
+            su, inn = {}, None
+        mu.f[:, _T] = t
+        n_c, n_w, n_p = int(alive.sum()), len(win), len(pair_obj)
+        mu.i[:n_c, _MISS] = misses[alive]
+        newly = np.zeros(len(idx), bool)
+        if three:
+            mu.i[n_c:n_c + n_w, _KIND] = _CONF
+            newly[n_c:n_c + n_w] = True
+            hs = slice(n_c + n_w, n_c + n_w + n_p)
+            mu.i[hs, _KIND] = _HYP
+            mu.f[hs, _P2] = plots.z[pair_plot]
+            mu.f[hs, _RZ2] = plots.r[pair_plot, 2]
+            mu.f[hs, _T2] = t
+            mu.i[hs, _UID2] = plots.uid[pair_plot]
+            keep = np.ones(len(idx), bool)
+        else:
+            ts = slice(n_c, len(idx))
+            hit = mask[ts]
+            mu.i[ts, _HITS] += hit
+            mu.i[ts, _SCANS] += 1
+            mu.f[ts, _P1] = np.where(hit[:, None], z[ts], mu.f[ts, _P1])
+            mu.f[ts, _T1] = np.where(hit, t, mu.f[ts, _T1])
+            mu.f[ts, _RZ1] = np.where(hit, r[ts, 2], mu.f[ts, _RZ1])
+            ok = mu.i[ts, _HITS] >= cfg.m
+            newly[ts] = ok
+            mu.i[ts, _KIND] = np.where(ok, _CONF, _TENT)
+            keep = np.ones(len(idx), bool)
+            keep[ts] = ok | (mu.i[ts, _HITS] + (cfg.n - mu.i[ts, _SCANS]) >= cfg.m)
+
+        # --- track ids of the newly confirmed: the next ids of their run, in plot order
+        nid = np.flatnonzero(newly)
+        if len(nid):
+            rr = mu.i[nid, _RUN]
+            order = np.argsort(rr, kind="stable")
+            srt = rr[order]
+            rank = np.empty(len(nid), np.int64)
+            rank[order] = np.arange(len(nid)) - np.searchsorted(srt, srt)
+            mu.i[nid, _ID] = next_id[rr] + rank
+            next_id += np.bincount(rr, minlength=n_runs)
+
+        # --- emit the confirmed and coasting rows
+        emit = np.flatnonzero(mu.i[:, _KIND] == _CONF)
+        if len(emit):
+            oe = filt.output(su)
+            upd = mask[emit]
+            emitted.add(run=mu.i[emit, _RUN], epoch=np.full(len(emit), ix.epochs[k]), track_id=mu.i[emit, _ID],
+                        x=oe.x[emit], var=oe.var[emit], nu=inn.nu[emit], nis=inn.nis[emit], upd=upd,
+                        tid=plots.tid[safe[emit]], probs=None if oe.probs is None else oe.probs[emit])
+
+        # --- new tentatives from the plots no track or confirmation took
+        newp = np.flatnonzero(opens)
+        sn = filt.init(plots.z[newp], plots.r[newp]) if len(newp) else {}
+        mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp])
+        kept = np.flatnonzero(keep)
+        state = _join_states(_take_state(state, idle, len(objs)) if len(idle) else {},
+                             _take_state(su, kept, len(idx)) if len(idx) else {}, sn)
+        objs = _Objects.concat(objs.take(idle) if len(idle) else _Objects.empty(), mu.take(kept), mn)
+
+    return emitted.frame(ix.runs, filt.name, method)
+
+
+def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray) -> NDArray:
+    """Among confirming hypotheses, keep the cheapest per scan-1 plot, then per scan-2 plot."""
+    if len(got) < 2:
+        return got
+    order = np.argsort(cost, kind="stable")
+    got, root, uid2 = got[order], root[order], uid2[order]
+    _, first = np.unique(root, return_index=True)
+    sel = np.sort(first)
+    got, uid2 = got[sel], uid2[sel]
+    _, first = np.unique(uid2, return_index=True)
+    return np.sort(got[np.sort(first)])
+
+
+def track_methods(fused: pl.DataFrame, filters: dict[str, TrackFilter] | list[str] | tuple[str, ...],
+                  cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
+    """:func:`track` for every fusion method of ``fused`` × every filter (names are built with
+    :func:`make_filter`); the tables concatenated."""
+    if not isinstance(filters, dict):
+        _load_filters()
+        filters = {name: make_filter(name) for name in filters}
+    parts = [track(fused.filter(pl.col("method") == meth), filt, cfg)
+             for meth in sorted(fused["method"].unique().to_list())
+             for filt in filters.values()]
+    return pl.concat(parts, how="vertical") if parts else pl.DataFrame(schema=TRACK_COLUMNS)
+
+
+def _load_filters() -> None:
+    """Import every module of :mod:`tertiary.filters` so their filters are registered."""
+    import importlib
+    import pkgutil
+
+    import tertiary.filters as pkg
+
+    for mod in pkgutil.iter_modules(pkg.__path__):
+        importlib.import_module(f"{pkg.__name__}.{mod.name}")

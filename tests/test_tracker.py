@@ -1,0 +1,480 @@
+"""Secondary tracker: initiation (three-scan / M-of-N), gating, assignment, coasting, deletion,
+run isolation and the ``tracks`` table contract.
+
+The tracker is exercised with a small constant-velocity Kalman filter written here (a real
+6-state CV filter implementing the batched ``TrackFilter`` interface), and also with the
+registered ``cv``/``singer`` filters when they are available.
+"""
+
+from __future__ import annotations
+
+import importlib
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+import pytest
+
+from tertiary.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
+from tertiary.schema import validate
+from tertiary.tracker import TRACK_COLUMNS, TrackerConfig, _assign, track
+
+T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+DT = 4.0        # scan period of the test plots (s)
+
+
+# --------------------------------------------------------------------------- test double
+
+
+class CVDouble(TrackFilter):
+    """Constant-velocity Kalman filter in x, y, z (white-noise acceleration, intensity ``q``),
+    batched over tracks — a faithful implementation of the interface, used as a test double."""
+
+    name = "cv_double"
+
+    def __init__(self, q: float = 10.0, v0_sigma: float = 300.0):
+        self.q, self.v0 = q, v0_sigma
+
+    def init(self, z, r):
+        x = np.zeros((len(z), 6))
+        x[:, :3] = z
+        p = np.zeros((len(z), 6, 6))
+        p[:, [0, 1, 2], [0, 1, 2]] = r
+        p[:, [3, 4, 5], [3, 4, 5]] = self.v0 ** 2
+        return {"x": x, "P": p}
+
+    def predict(self, state, dt):
+        dt = np.asarray(dt, float)
+        f = np.tile(np.eye(6), (len(dt), 1, 1))
+        f[:, [0, 1, 2], [3, 4, 5]] = dt[:, None]
+        q = np.zeros((len(dt), 6, 6))
+        for i in range(3):
+            q[:, i, i] = self.q * dt ** 3 / 3
+            q[:, i, i + 3] = q[:, i + 3, i] = self.q * dt ** 2 / 2
+            q[:, i + 3, i + 3] = self.q * dt
+        return {"x": np.einsum("bij,bj->bi", f, state["x"]),
+                "P": f @ state["P"] @ f.transpose(0, 2, 1) + q}
+
+    def update(self, state, z, r, mask):
+        x, p = state["x"], state["P"]
+        s = p[:, :3, :3] + r[:, :, None] * np.eye(3)
+        nu = z - x[:, :3]
+        k = p[:, :, :3] @ np.linalg.inv(s)
+        m = np.asarray(mask, bool)
+        x_new = np.where(m[:, None], x + np.einsum("bij,bj->bi", k, nu), x)
+        p_new = np.where(m[:, None, None], p - k @ p[:, :3, :], p)
+        nis = np.einsum("bi,bi->b", nu, np.linalg.solve(s, nu[..., None])[..., 0])
+        return ({"x": x_new, "P": p_new},
+                Innovation(np.where(m[:, None], nu, np.nan), np.diagonal(s, axis1=1, axis2=2).copy(),
+                           np.where(m, nis, np.nan)))
+
+    def output(self, state):
+        return Output(state["x"].copy(), np.diagonal(state["P"], axis1=1, axis2=2).copy())
+
+
+def test_cv_double_is_a_kalman_filter():
+    """Sanity of the double: a noise-free straight line is tracked to its velocity."""
+    f = CVDouble(q=0.1)
+    st = f.init(np.array([[0.0, 0.0, 1000.0]]), np.full((1, 3), 100.0))
+    for k in range(1, 8):
+        st = f.predict(st, np.array([DT]))
+        st, inn = f.update(st, np.array([[200.0 * DT * k, 0.0, 1000.0]]), np.full((1, 3), 100.0), np.array([True]))
+    out = f.output(st)
+    assert out.x[0, 3] == pytest.approx(200.0, abs=1.0)
+    assert np.isfinite(inn.nis[0])
+
+
+# --------------------------------------------------------------------------- plot builders
+
+
+def _line(p0, v, ks, tid, run=0, noise=0.0, seed=0):
+    """Plots (run, k, tid, x, y, z) of an aircraft at p0 + v·k·DT at scans ``ks``."""
+    rng = np.random.default_rng(seed)
+    p0, v = np.asarray(p0, float), np.asarray(v, float)
+    return [(run, k, tid, *(p0 + v * k * DT + rng.normal(0.0, noise, 3))) for k in ks]
+
+
+def _fused(rows, sigma=(30.0, 30.0, 60.0), method="aposteriori") -> pl.DataFrame:
+    """A ``fused`` frame (one method) from (run, scan, target_id, x, y, z) rows."""
+    cov = np.zeros(36)
+    cov[[0, 7, 14]] = np.square(sigma)
+    cov[[21, 28, 35]] = 25.0
+    return pl.DataFrame({
+        "run": [r[0] for r in rows],
+        "epoch": [T0 + timedelta(seconds=DT * r[1]) for r in rows],
+        "target_id": [r[2] for r in rows],
+        "method": method,
+        "x_m": [r[3] for r in rows], "y_m": [r[4] for r in rows], "z_m": [r[5] for r in rows],
+        "vx_mps": 0.0, "vy_mps": 0.0, "vz_mps": 0.0,
+        "cov": [cov.tolist()] * len(rows),
+    }, schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "epoch": pl.Datetime("us", "UTC"),
+                         "cov": pl.Array(pl.Float64, 36)})
+
+
+def _scan(epoch) -> int:
+    return int(round((epoch - T0).total_seconds() / DT))
+
+
+def _by_track(tracks: pl.DataFrame) -> dict:
+    """{(run, track_id): list of (scan, status, plot_target_id)} in time order."""
+    out: dict = {}
+    for r in tracks.sort("run", "track_id", "epoch").iter_rows(named=True):
+        out.setdefault((r["run"], r["track_id"]), []).append((_scan(r["epoch"]), r["status"], r["plot_target_id"]))
+    return out
+
+
+A = dict(p0=(0.0, 0.0, 3000.0), v=(200.0, 0.0, 0.0))           # eastbound
+B = dict(p0=(0.0, 20000.0, 5000.0), v=(0.0, -150.0, 0.0))      # southbound, far from A
+
+
+def _two_aircraft(ks=range(20), skip_a=(), noise=20.0, run=0):
+    return (_line(**A, ks=[k for k in ks if k not in skip_a], tid=1, run=run, noise=noise, seed=1)
+            + _line(**B, ks=ks, tid=2, run=run, noise=noise, seed=2))
+
+
+# --------------------------------------------------------------------------- initiation & ids
+
+
+def test_two_straight_aircraft_give_two_stable_tracks():
+    tracks = track(_fused(_two_aircraft()), CVDouble())
+    per = _by_track(tracks)
+    assert sorted(per) == [(0, 1), (0, 2)]
+    for rows in per.values():
+        scans = [s for s, _, _ in rows]
+        assert scans == list(range(2, 20))                # confirmed on scan 3, then every scan
+        assert {st for _, st, _ in rows} == {"confirmed"}
+        assert len({tid for _, _, tid in rows}) == 1      # one aircraft per track, no swap
+    assert {rows[0][2] for rows in per.values()} == {1, 2}
+    assert tracks["filter"].unique().to_list() == ["cv_double"]
+    assert tracks["method"].unique().to_list() == ["aposteriori"]
+
+
+def test_track_ids_increase_with_confirmation_time():
+    rows = _line(**A, ks=range(12), tid=1, seed=1) + _line(**B, ks=range(5, 12), tid=2, seed=2)
+    per = _by_track(track(_fused(rows), CVDouble()))
+    first = {k[1]: v[0][0] for k, v in per.items()}
+    assert first == {1: 2, 2: 7}
+
+
+def test_tracks_table_validates_and_has_extra_columns():
+    tracks = track(_fused(_two_aircraft(skip_a=(8,))), CVDouble())
+    clean = validate(tracks, "tracks")
+    assert clean.height == tracks.height
+    assert dict(tracks.schema) == TRACK_COLUMNS
+    coasting = tracks.filter(pl.col("status") == "coasting")
+    assert coasting.height == 1
+    assert coasting["innovation"].is_null().all() and coasting["nis"].is_null().all()
+    assert coasting["plot_target_id"].is_null().all()
+    confirmed = tracks.filter(pl.col("status") == "confirmed")
+    assert confirmed["innovation"].list.len().eq(3).all() and confirmed["nis"].is_not_null().all()
+    assert tracks["cov_diag"].arr.min().min() > 0
+    assert tracks["model_probs"].is_null().all()                # single-model filter
+
+
+def test_empty_input_gives_empty_tracks():
+    out = track(_fused([]), CVDouble())
+    assert out.height == 0 and dict(out.schema) == TRACK_COLUMNS
+
+
+def test_one_method_only():
+    rows = _fused(_two_aircraft(range(3)))
+    both = pl.concat([rows, rows.with_columns(pl.lit("arithmetic").alias("method"))])
+    with pytest.raises(ValueError, match="one method"):
+        track(both, CVDouble())
+
+
+# --------------------------------------------------------------------------- coasting & deletion
+
+
+def test_missed_plot_coasts_then_continues_with_same_id():
+    per = _by_track(track(_fused(_two_aircraft(skip_a=(8,))), CVDouble()))
+    a = next(rows for rows in per.values() if rows[0][2] == 1)
+    assert len(per) == 2
+    assert [s for s, _, _ in a] == list(range(2, 20))
+    assert a[6] == (8, "coasting", None)
+    assert a[7][:2] == (9, "confirmed") and a[7][2] == 1
+
+
+def test_two_misses_still_continue():
+    per = _by_track(track(_fused(_two_aircraft(skip_a=(8, 9))), CVDouble(), TrackerConfig(max_misses=3)))
+    assert len(per) == 2
+    a = next(rows for rows in per.values() if rows[0][2] == 1)
+    assert [st for s, st, _ in a if s in (8, 9, 10)] == ["coasting", "coasting", "confirmed"]
+
+
+def test_more_than_max_misses_deletes_and_restarts_with_new_id():
+    per = _by_track(track(_fused(_two_aircraft(skip_a=(8, 9, 10))), CVDouble(), TrackerConfig(max_misses=3)))
+    a_tracks = {k: v for k, v in per.items() if any(t == 1 for _, _, t in v)}
+    assert len(a_tracks) == 2
+    (old_id, old), (new_id, new) = sorted(a_tracks.items())
+    assert [(s, st) for s, st, _ in old[-3:]] == [(7, "confirmed"), (8, "coasting"), (9, "coasting")]
+    assert new[0][:2] == (13, "confirmed")           # plots resume at scan 11: 11, 12, 13
+    assert new_id[1] == 3                             # after the ids of A and B
+
+
+def test_max_misses_one_means_no_coasting():
+    tracks = track(_fused(_two_aircraft(skip_a=(8,))), CVDouble(), TrackerConfig(max_misses=1))
+    assert tracks.filter(pl.col("status") == "coasting").height == 0
+    assert tracks["track_id"].n_unique() == 3
+
+
+def test_data_gap_of_a_whole_run_is_not_a_miss():
+    """An epoch without any plot of a run leaves that run's tracks untouched."""
+    rows = _two_aircraft(ks=[k for k in range(20) if k not in (8, 9, 10, 11)])
+    per = _by_track(track(_fused(rows), CVDouble()))
+    assert len(per) == 2
+    for v in per.values():
+        assert [s for s, _, _ in v] == [k for k in range(2, 20) if k not in (8, 9, 10, 11)]
+        assert {st for _, st, _ in v} == {"confirmed"}
+
+
+# --------------------------------------------------------------------------- clutter
+
+
+def test_isolated_clutter_never_confirms():
+    rng = np.random.default_rng(5)
+    clutter = [(0, k, 100 + k, *rng.uniform(-60000, 60000, 2), rng.uniform(500, 9000)) for k in range(20)]
+    tracks = track(_fused(_two_aircraft() + clutter), CVDouble())
+    assert tracks["track_id"].n_unique() == 2
+    assert tracks["plot_target_id"].drop_nulls().is_in([1, 2]).all()
+
+
+def test_clutter_pair_in_the_annulus_without_third_plot_is_dropped():
+    # scan 3 and 4: 600 m apart (inside the 120–1400 m annulus); nothing near x̂ at scan 5
+    clutter = [(0, 3, 50, 30000.0, -30000.0, 4000.0), (0, 4, 51, 30600.0, -30000.0, 4000.0),
+               (0, 5, 52, 40000.0, -30000.0, 4000.0)]
+    tracks = track(_fused(_two_aircraft() + clutter), CVDouble())
+    assert tracks["track_id"].n_unique() == 2
+
+
+def test_annulus_rejects_too_slow_and_too_fast_pairs():
+    slow = _line((10000.0, 10000.0, 2000.0), (5.0, 0.0, 0.0), range(6), tid=7)     # 20 m per scan < R_min
+    fast = _line((-10000.0, 10000.0, 2000.0), (500.0, 0.0, 0.0), range(6), tid=8)  # 2 km per scan > R_max
+    ok = _line((0.0, -10000.0, 2000.0), (100.0, 0.0, 0.0), range(6), tid=9)
+    tracks = track(_fused(slow + fast + ok), CVDouble())
+    assert tracks["plot_target_id"].drop_nulls().unique().to_list() == [9]
+
+
+def test_m_of_n_rejects_clutter_pair():
+    clutter = [(0, 3, 50, 30000.0, -30000.0, 4000.0), (0, 4, 51, 30600.0, -30000.0, 4000.0)]
+    tracks = track(_fused(_two_aircraft() + clutter), CVDouble(), TrackerConfig(initiation="m_of_n"))
+    assert tracks["track_id"].n_unique() == 2
+
+
+# --------------------------------------------------------------------------- M-of-N
+
+
+def _first_scan_of(per: dict, tid: int) -> tuple[int, str]:
+    return next(v[0][:2] for v in per.values() if v[0][2] == tid)
+
+
+def test_m_of_n_confirms_with_a_missed_scan():
+    rows = _two_aircraft(ks=range(10), skip_a=(2,))       # B keeps the run observed on scan 2
+    m_of_n = _by_track(track(_fused(rows), CVDouble(), TrackerConfig(initiation="m_of_n", m=3, n=4)))
+    assert len(m_of_n) == 2
+    assert _first_scan_of(m_of_n, 1) == (3, "confirmed")   # plots on scans 1, 2, 4 of 4
+    three = _by_track(track(_fused(rows), CVDouble(), TrackerConfig(initiation="three_scan")))
+    assert _first_scan_of(three, 1) == (5, "confirmed")    # the miss breaks the chain: restart 3, 4, 5
+
+
+def test_three_scan_extrapolates_over_an_epoch_gap():
+    """Epochs without any plot of the run are no scans: x̂₃ is extrapolated over the real time."""
+    rows = _line(**A, ks=[0, 1, 3, 4], tid=1, seed=3)
+    per = _by_track(track(_fused(rows), CVDouble()))
+    assert per[(0, 1)][0][:2] == (3, "confirmed")
+
+
+def test_m_of_n_requires_m_plots_within_n_scans():
+    rows = _two_aircraft(ks=range(12), skip_a=(1, 3, 5, 7, 9, 11))     # A on every other scan only
+
+    def first_a(m, n):
+        per = _by_track(track(_fused(rows), CVDouble(), TrackerConfig(initiation="m_of_n", m=m, n=n)))
+        return next((v[0][0] for v in per.values() if v[0][2] == 1), None)
+
+    assert first_a(3, 4) is None            # never 3 plots within 4 scans
+    assert first_a(3, 5) == 4               # scans 0, 2, 4
+    assert first_a(2, 3) == 2               # scans 0, 2
+
+
+def test_m_of_n_two_aircraft():
+    per = _by_track(track(_fused(_two_aircraft()), CVDouble(), TrackerConfig(initiation="m_of_n", m=3, n=4)))
+    assert sorted(per) == [(0, 1), (0, 2)]
+    assert all(v[0][0] == 2 for v in per.values())
+
+
+# --------------------------------------------------------------------------- assignment
+
+
+def _crossing_rows():
+    """Two aircraft crossing at right angles; on the scan before the crossing the plots are
+    displaced along the line between the aircraft (A's 0.7·D behind, B's 0.4·D towards A) so
+    that B's plot is the nearest to both predictions."""
+    kc = 8                                                      # crossing scan
+    pa = lambda k: np.array([100.0 * DT * (k - kc), 0.0, 4000.0])   # noqa: E731  eastbound
+    pb = lambda k: np.array([0.0, 100.0 * DT * (k - kc), 4000.0])   # noqa: E731  northbound
+    rows = []
+    for k in range(16):
+        a, b = pa(k), pb(k)
+        if k == kc - 1:
+            u = b - a
+            a, b = a - 0.7 * u, a + 0.4 * u
+        rows += [(0, k, 1, *a), (0, k, 2, *b)]
+    return rows, kc - 1
+
+
+def test_crossing_pair_hungarian_keeps_identities():
+    rows, k_bad = _crossing_rows()
+    per = _by_track(track(_fused(rows, sigma=(20.0, 20.0, 20.0)), CVDouble(q=1.0),
+                          TrackerConfig(assignment="hungarian", gate_min_m=300.0)))
+    assert len(per) == 2
+    for v in per.values():
+        assert len({t for _, _, t in v if t is not None}) == 1             # no swap
+        assert [st for s, st, _ in v if s == k_bad] == ["confirmed"]
+
+
+def test_crossing_pair_nearest_neighbour_swaps():
+    rows, k_bad = _crossing_rows()
+    per = _by_track(track(_fused(rows, sigma=(20.0, 20.0, 20.0)), CVDouble(q=1.0),
+                          TrackerConfig(assignment="nearest", gate_min_m=300.0)))
+    track_a = next(v for v in per.values() if v[0][2] == 1)
+    at_bad = dict((s, t) for s, _, t in track_a)[k_bad]
+    assert at_bad == 2                      # A's track took B's plot: the greedy choice
+
+
+def test_assign_hungarian_matches_brute_force():
+    from scipy.optimize import linear_sum_assignment
+    rng = np.random.default_rng(0)
+    for trial in range(30):
+        n_o, n_p = rng.integers(1, 9, 2)
+        dense = rng.uniform(0, 10, (n_o, n_p))
+        gated = rng.random((n_o, n_p)) < 0.5
+        o, p = np.nonzero(gated)
+        out = _assign(o, p, dense[o, p], n_o, n_p, "hungarian")
+        # reference: most gated assignments, then least cost
+        big = 1e6
+        ref = np.where(gated, dense, big)
+        a, b = linear_sum_assignment(ref)
+        keep = ref[a, b] < big
+        assert (out >= 0).sum() == keep.sum()
+        got = sum(dense[i, j] for i, j in enumerate(out) if j >= 0)
+        assert got == pytest.approx(ref[a[keep], b[keep]].sum())
+        assert all(gated[i, j] for i, j in enumerate(out) if j >= 0)
+        assert len(set(out[out >= 0])) == (out >= 0).sum()
+
+
+def test_assign_nearest_is_greedy_and_one_to_one():
+    # objects 0, 1; plots 0, 1: both prefer plot 0, object 0 is closer to it
+    o, p, c = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.array([1.0, 2.0, 1.5, 5.0])
+    assert _assign(o, p, c, 2, 2, "nearest").tolist() == [0, 1]
+    assert _assign(o, p, c, 2, 2, "hungarian").tolist() == [1, 0]      # 2.0 + 1.5 < 1.0 + 5.0
+
+
+# --------------------------------------------------------------------------- Monte-Carlo runs
+
+
+def test_runs_never_mix():
+    # run 0: aircraft A throughout; run 1: A's first two plots only, then a far aircraft C.
+    # Mixing runs would let run 1's hypothesis (scan 0, scan 1) be confirmed by run 0's scan 2.
+    run0 = _line(**A, ks=range(10), tid=1, run=0, seed=1)
+    run1 = (_line(**A, ks=[0, 1], tid=11, run=1, seed=1)
+            + _line((50000.0, 50000.0, 6000.0), (-150.0, 0.0, 0.0), range(10), tid=12, run=1, seed=4))
+    tracks = track(_fused(run0 + run1), CVDouble())
+    per = _by_track(tracks)
+    assert sorted(per) == [(0, 1), (1, 1)]                 # ids are per run
+    assert {t for _, _, t in per[(0, 1)]} == {1}
+    assert {t for _, _, t in per[(1, 1)]} == {12}
+
+
+def test_identical_runs_give_identical_tracks():
+    rows = _two_aircraft(run=0) + _two_aircraft(run=3)
+    tracks = track(_fused(rows), CVDouble())
+    r0 = tracks.filter(pl.col("run") == 0).drop("run")
+    r3 = tracks.filter(pl.col("run") == 3).drop("run")
+    assert r0.equals(r3)
+
+
+def test_monte_carlo_batch_matches_single_runs():
+    rows = []
+    for run in range(5):
+        rows += _line(**A, ks=range(12), tid=1, run=run, noise=30.0, seed=10 + run)
+        rows += _line(**B, ks=range(12), tid=2, run=run, noise=30.0, seed=20 + run)
+    batch = track(_fused(rows), CVDouble())
+    for run in range(5):
+        single = track(_fused([r for r in rows if r[0] == run]), CVDouble())
+        got = batch.filter(pl.col("run") == run)
+        assert got.select("track_id", "plot_target_id", "status").equals(single.select("track_id", "plot_target_id", "status"))
+        np.testing.assert_allclose(got["x_m"].to_numpy(), single["x_m"].to_numpy(), rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+@pytest.mark.parametrize("kw", [dict(initiation="two_scan"), dict(assignment="gnn"), dict(m=5, n=4),
+                                dict(max_misses=0), dict(v_min_mps=400.0), dict(confirm_gate_m=0.0)])
+def test_bad_config(kw):
+    with pytest.raises(ValueError):
+        TrackerConfig(**kw)
+
+
+# --------------------------------------------------------------------------- registered filters
+
+
+def _registered(name: str) -> TrackFilter:
+    for mod in ("linear", "singer"):
+        try:
+            importlib.import_module(f"tertiary.filters.{mod}")
+        except ImportError:
+            pass
+    if name not in REGISTRY:
+        pytest.skip(f"filter {name!r} not registered yet")
+    return make_filter(name)
+
+
+@pytest.mark.parametrize("name", ["cv", "singer"])
+def test_registered_filters_track_two_aircraft(name):
+    filt = _registered(name)
+    tracks = track(_fused(_two_aircraft(skip_a=(8,))), filt)
+    validate(tracks, "tracks")
+    per = _by_track(tracks)
+    assert len(per) == 2
+    for v in per.values():
+        assert v[0][0] == 2 and len({t for _, _, t in v if t is not None}) == 1
+    assert tracks["filter"].unique().to_list() == [filt.name]
+
+
+@pytest.mark.parametrize("name", ["cv", "singer"])
+def test_registered_filters_crossing_pair(name):
+    filt = _registered(name)
+    rows, _ = _crossing_rows()
+    per = _by_track(track(_fused(rows, sigma=(20.0, 20.0, 20.0)), filt, TrackerConfig(gate_min_m=300.0)))
+    assert all(len({t for _, _, t in v if t is not None}) == 1 for v in per.values())
+
+
+# --------------------------------------------------------------------------- several methods / filters
+
+
+class TwoModelDouble(CVDouble):
+    """The CV double reporting (fixed) model probabilities, as a multiple-model filter does."""
+
+    name = "two_model_double"
+
+    def output(self, state):
+        out = super().output(state)
+        return Output(out.x, out.var, np.tile([0.75, 0.25], (len(out.x), 1)))
+
+
+def test_model_probabilities_are_reported():
+    tracks = track(_fused(_two_aircraft(ks=range(6))), TwoModelDouble())
+    validate(tracks, "tracks")
+    assert tracks["model_probs"].to_list() == [[0.75, 0.25]] * tracks.height
+
+
+def test_track_methods_covers_every_method_and_filter():
+    from tertiary.tracker import track_methods
+    rows = _fused(_two_aircraft(ks=range(8)))
+    fused = pl.concat([rows, rows.with_columns(pl.lit("arithmetic").alias("method"))])
+    out = track_methods(fused, {"a": CVDouble(), "b": TwoModelDouble()})
+    validate(out, "tracks")
+    counts = out.group_by("method", "filter").agg(pl.col("track_id").n_unique().alias("n")).sort("method", "filter")
+    assert counts.rows() == [("aposteriori", "cv_double", 2), ("aposteriori", "two_model_double", 2),
+                             ("arithmetic", "cv_double", 2), ("arithmetic", "two_model_double", 2)]
