@@ -158,7 +158,6 @@ class ConflictConfig:
     v_max_mps: float | None = None
     eps_mps: float = 1e-6
     bulk_quantile: float = 0.99
-    screen_steps: int = 3
     chunk_pairs: int = 1 << 20
 
     def __post_init__(self) -> None:
@@ -182,8 +181,6 @@ class ConflictConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.v_max_mps is not None and self.v_max_mps <= 0:
             raise ValueError(f"v_max_mps must be positive, got {self.v_max_mps}")
-        if self.screen_steps < 1:
-            raise ValueError(f"screen_steps must be >= 1, got {self.screen_steps}")
         if not 0.0 < self.bulk_quantile <= 1.0:
             raise ValueError(f"bulk_quantile must be in (0, 1], got {self.bulk_quantile}")
 
@@ -395,9 +392,7 @@ def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float
     if n < 2:
         return empty, empty
     t0, t1 = cfg.window_s
-    m = max(1, round(cfg.screen_steps * (t1 - t0) / cfg.t_thr_s))
-    tw = 0.5 * (t1 - t0) / m                                  # half-length of a sub-window
-    tcs = t0 + tw * (2 * np.arange(m) + 1)                    # sub-window centres
+    tw, tc = 0.5 * (t1 - t0), 0.5 * (t0 + t1)                # half-length and centre of W
     b = _bounds(cfg, terms, n)
     vh = np.hypot(vel[:, 0], vel[:, 1])
     vz = np.abs(vel[:, 2])
@@ -405,6 +400,7 @@ def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float
     v_b = cfg.v_max_mps if cfg.v_max_mps is not None else float(np.quantile(vh, qq))
     vz_b, lam_b, q_b = (float(np.quantile(x, qq)) for x in (vz, b.lam, b.q))
     bulk = (vh <= v_b) & (vz <= vz_b) & (b.lam <= lam_b) & (b.q <= q_b)
+    # reach of a bulk pair: closing distance over the window + an upper bound of the thresholds
     r_h = 2.0 * v_b * tw + b.base_h + cfg.k_h * math.sqrt(2.0 * lam_b)
     r_v = 2.0 * vz_b * tw + b.base_v + cfg.k_v * math.sqrt(2.0 * q_b)
     s = r_h / r_v                                              # z scale: vertical reach → horizontal
@@ -415,32 +411,27 @@ def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float
     scale = float(np.max(np.abs(pos))) + float(vh.max() + vz.max()) * max(abs(t0), abs(t1)) + 1.0
     pad = 1.0 + 1e-9 * scale                                   # rounding safety (metres)
     sep = 2.0 * (max(r_h, float(r_w.max()) if len(wide) else 0.0) + pad) + 1.0
-    # m copies of every track, at the centre of each sub-window; the 4th coordinate separates
-    # (group, sub-window) cells by more than any query radius
-    cell = (g[None, :] * m + np.arange(m)[:, None]).astype(np.float64) * sep
-    pts = np.stack([pos[None, :, 0] + vel[None, :, 0] * tcs[:, None],
-                    pos[None, :, 1] + vel[None, :, 1] * tcs[:, None],
-                    (pos[None, :, 2] + vel[None, :, 2] * tcs[:, None]) * s,
-                    cell], axis=-1).reshape(-1, 4)
+    # every track at the window centre; the 4th coordinate separates the groups by more than
+    # any query radius, so one tree serves all (run, epoch, method) groups
+    c = pos + vel * tc
+    pts = np.column_stack([c[:, 0], c[:, 1], c[:, 2] * s, g.astype(np.float64) * sep])
     parts = []
-    bidx = np.flatnonzero(np.tile(bulk, m))
+    bidx = np.flatnonzero(bulk)
     if len(bidx) >= 2:
         pr = cKDTree(pts[bidx]).query_pairs(r_h + pad, p=np.inf, output_type="ndarray")
-        parts.append((bidx[pr[:, 0]] % n, bidx[pr[:, 1]] % n))
+        parts.append((bidx[pr[:, 0]], bidx[pr[:, 1]]))
     if len(wide):
-        widx = (wide[None, :] + n * np.arange(m)[:, None]).ravel()
-        hits = cKDTree(pts).query_ball_point(pts[widx], np.tile(r_w, m) + pad, p=np.inf, return_sorted=False)
-        counts = np.fromiter((len(x) for x in hits), np.int64, len(widx))
-        jj = _flatten(hits, counts) % n
-        ii = np.repeat(widx % n, counts)
-        parts.append((ii, jj))
+        hits = cKDTree(pts).query_ball_point(pts[wide], r_w + pad, p=np.inf, return_sorted=False)
+        counts = np.fromiter((len(x) for x in hits), np.int64, len(wide))
+        jj = _flatten(hits, counts)
+        ii = np.repeat(wide, counts)
+        keep = (ii != jj) & (bulk[jj] | (ii < jj))             # wide–wide pairs come twice
+        parts.append((ii[keep], jj[keep]))
     if not parts:
         return empty, empty
     i = np.concatenate([p[0] for p in parts]).astype(np.int64)
     j = np.concatenate([p[1] for p in parts]).astype(np.int64)
-    lo, hi = np.minimum(i, j), np.maximum(i, j)
-    key = np.unique(lo[lo != hi] * n + hi[lo != hi])
-    return key // n, key % n
+    return np.minimum(i, j), np.maximum(i, j)
 
 
 def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
@@ -478,31 +469,56 @@ def _empty_conflicts() -> pl.DataFrame:
     return pl.DataFrame(schema=TABLES["conflicts"].required)
 
 
-def _evaluate_pairs(cfg: ConflictConfig, pos, vel, terms, i, j) -> dict[str, NDArray]:
-    """Geometry, thresholds, output-set membership and decision of pairs (i, j)."""
+def _endpoint_min(a: NDArray, b: NDArray) -> NDArray:
+    """min over a segment of |f| for f linear with end values a, b."""
+    return np.where(a * b <= 0.0, 0.0, np.minimum(np.abs(a), np.abs(b)))
+
+
+def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,
+                    i: NDArray[np.int64], j: NDArray[np.int64]) -> dict[str, NDArray]:
+    """Output-set membership, geometry, thresholds and decision of pairs (i, j); ``st`` holds the
+    state columns x, y, z, vx, vy, vz as rows. Staged: the vertical window test, then the
+    horizontal one, then the full geometry of the survivors only."""
+    x, y, z, vx, vy, vz = st
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
-    rx, ry = pos[j, 0] - pos[i, 0], pos[j, 1] - pos[i, 1]
-    vx, vy = vel[i, 0] - vel[j, 0], vel[i, 1] - vel[j, 1]
-    r0, r_min, t_min, closure, moving = _horizontal(rx, ry, vx, vy, cfg.eps_mps)
-    dz = pos[j, 2] - pos[i, 2]
-    dvz = vel[j, 2] - vel[i, 2]
+    fixed = cfg.threshold_mode == "fixed" or terms is None
+    base_h = cfg.sep_h_m + cfg.pilot_h_at_t + (cfg.fixed_est_h_m if fixed else 0.0)
+    base_v = cfg.sep_v_m + cfg.pilot_v_at_t + (cfg.fixed_est_v_m if fixed else 0.0)
+    # 1. vertical: min over the window of |Δh + Δvz t| ≤ R_в^пор
+    dz = z[j] - z[i]
+    dvz = vz[j] - vz[i]
+    excess = _endpoint_min(dz + dvz * w0, dz + dvz * w1) - base_v
+    if fixed:
+        ok = excess <= 0.0
+    else:
+        ok = (excess <= 0.0) | (excess * excess <= cfg.k_v ** 2 * (terms.q[i] + terms.q[j]))
+    sel = np.flatnonzero(ok)
+    i, j, dz, dvz = i[sel], j[sel], dz[sel], dvz[sel]
+    # 2. horizontal: min over the window of |r − v t| ≤ R_г^пор
+    rx, ry = x[j] - x[i], y[j] - y[i]
+    vx_, vy_ = vx[i] - vx[j], vy[i] - vy[j]
+    vv = vx_ * vx_ + vy_ * vy_
+    moving = vv >= cfg.eps_mps ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ts = np.where(moving, np.clip((rx * vx_ + ry * vy_) / vv, w0, w1), 0.0)
+    ex, ey = rx - vx_ * ts, ry - vy_ * ts
     r_thr, z_thr = pair_thresholds(cfg, terms, i, j)
-    keep = ((_window_min_h(rx, ry, vx, vy, t_min, moving, w0, w1) <= r_thr)
-            & (_window_min_v(dz, dvz, w0, w1) <= z_thr))
-    sel = np.flatnonzero(keep)
-    r_min, t_min, closure, dz, dvz, r_thr, z_thr = (x[sel] for x in (r_min, t_min, closure, dz, dvz, r_thr, z_thr))
+    sel = np.flatnonzero(ex * ex + ey * ey <= r_thr * r_thr)
+    i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr = (
+        a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr))
+    # 3. geometry (5.10)–(5.13) and the decision (5.14) of the output rows
+    _, r_min, t_min, closure, _ = _horizontal(rx, ry, vx_, vy_, cfg.eps_mps)
     if cfg.mode == "corrected":
-        dz_min = _window_min_v(dz, dvz, 0.0, t_thr)
+        dz_min = _endpoint_min(dz, dz + dvz * t_thr)
         alert = (r_min <= r_thr) & (t_min >= 0.0) & (t_min <= t_thr) & (dz_min <= z_thr)
     else:
         dz_min = _seed_vertical(dz, dvz, t_min)
         vertical = (np.abs(dz) <= z_thr) | (dz_min <= z_thr)
         alert = (r_min <= r_thr) & (t_min <= t_thr) & vertical
-    with np.errstate(divide="ignore", invalid="ignore"):
-        severity = np.where(alert, np.clip(1.0 - r_min / r_thr, 0.0, 1.0), 0.0)
-    return {"i": i[sel], "j": j[sel], "r_min_m": r_min, "t_min_s": t_min, "dz_m": dz, "dz_min_m": dz_min,
-            "closure_mps": closure, "r_thr_m": r_thr, "t_thr_s": np.full(len(sel), t_thr), "z_thr_m": z_thr,
+    severity = np.where(alert, np.clip(1.0 - r_min / r_thr, 0.0, 1.0), 0.0)
+    return {"i": i, "j": j, "r_min_m": r_min, "t_min_s": t_min, "dz_m": dz, "dz_min_m": dz_min,
+            "closure_mps": closure, "r_thr_m": r_thr, "t_thr_s": np.full(len(i), t_thr), "z_thr_m": z_thr,
             "alert": alert, "severity": severity}
 
 
@@ -540,8 +556,9 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
 
     chunks: list[dict[str, NDArray]] = []
     step = max(int(cfg.chunk_pairs), 1)
+    st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
     for s in range(0, len(ci), step):
-        chunks.append(_evaluate_pairs(cfg, pos, vel, terms, ci[s:s + step], cj[s:s + step]))
+        chunks.append(_evaluate_pairs(cfg, st, terms, ci[s:s + step], cj[s:s + step]))
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}

@@ -14,6 +14,7 @@ from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from tertiary import pipeline, schema
+from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS
 from tertiary.simulate import (Dataset, builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
@@ -146,16 +147,22 @@ def run(
     strict: Annotated[bool, typer.Option(help="stop on the first invalid input row")] = False,
     methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = ",".join(METHODS),
     centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level bound")] = True,
+    filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none)")] = "singer,imm",
 ) -> None:
-    """The main job: (simulate,) validate, align, associate, fuse, cluster, evaluate and store
-    everything in RUN_DIR/results.duckdb."""
+    """The main job: (simulate,) validate, align, associate, fuse, cluster, track, evaluate and
+    store everything in RUN_DIR/results.duckdb."""
     t = time.perf_counter()
     chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
     bad = [m for m in chosen if m not in METHODS]
     if bad:
         raise typer.BadParameter(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}",
                                  param_hint="--methods")
-    cfg = pipeline.PipelineConfig(methods=chosen, centralized=centralized, strict=strict)
+    chosen_filters = tuple(f.strip() for f in filters.split(",") if f.strip())
+    bad = [f for f in chosen_filters if f not in REGISTRY]
+    if bad:
+        raise typer.BadParameter(f"unknown filter(s) {', '.join(bad)}; choose from {', '.join(sorted(REGISTRY))}",
+                                 param_hint="--filters")
+    cfg = pipeline.PipelineConfig(methods=chosen, filters=chosen_filters, centralized=centralized, strict=strict)
     if dataset is None:
         ds = _simulate_with_progress(build_scenario(scenario, runs=runs, seed=seed))
     else:

@@ -1,8 +1,8 @@
 """The batch job: dataset in, one DuckDB run database out.
 
 Stages are composed here and nowhere else: ingest/validate → align → gate + associate → fuse
-(every selected method, plus the centralised measurement-level bound) → cluster → evaluate →
-store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
+(every selected method, plus the centralised measurement-level bound) → cluster → secondary
+trackers on every fusion method's picture → evaluate → store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
 """
 
 from __future__ import annotations
@@ -29,8 +29,11 @@ from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
                                association_metrics, match_truth)
+from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
+from tertiary.track_metrics import TrackMetricsConfig, tracker_metrics
+from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
 
 Progress = Callable[[str], None]
@@ -87,6 +90,7 @@ class PipelineConfig:
     """Configuration of every stage (each stage's own frozen dataclass)."""
 
     methods: tuple[str, ...] = METHODS
+    filters: tuple[str, ...] = ("singer", "imm")
     centralized: bool = True
     strict: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -94,7 +98,9 @@ class PipelineConfig:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     centralized_cfg: CentralizedConfig = field(default_factory=CentralizedConfig)
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+    track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
 
 
 @dataclass
@@ -106,6 +112,7 @@ class Results:
     associations: pl.DataFrame
     fused: pl.DataFrame
     clusters: pl.DataFrame
+    tracks: pl.DataFrame
     rejects: pl.DataFrame
     metrics: pl.DataFrame
     accuracy_by_epoch: pl.DataFrame
@@ -132,6 +139,9 @@ def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progr
     unknown = set(cfg.methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown fusion method(s) {sorted(unknown)}; choose from {', '.join(METHODS)}")
+    bad = set(cfg.filters) - set(REGISTRY)
+    if bad:
+        raise ValueError(f"unknown filter(s) {sorted(bad)}; choose from {', '.join(sorted(REGISTRY))}")
     clock = _Clock(progress or (lambda _m: None))
     t_all = time.perf_counter()
     clock.stage("validate")
@@ -152,8 +162,16 @@ def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progr
         fused = pl.concat([fused, central.select(fused.columns)], how="vertical")
     clock.stage("cluster")
     clusters = cluster(fused, cfg.clustering)
+    clock.stage("track")
+    pictures = fused.filter(pl.col("method") != "centralized")
+    tracks = (track_methods(pictures, cfg.filters, cfg.tracker) if cfg.filters and pictures.height
+              else schema.empty_frame("tracks", False))
     clock.stage("evaluate")
     metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
+    if cfg.filters and ing.truth.height and tracks.height:
+        report_truth = ing.reports.select("run", "report_id", "truth_id")
+        metrics = pl.concat([metrics, tracker_metrics(tracks, associations, report_truth, ing.truth,
+                                                      cfg.track_metrics)], how="vertical_relaxed")
     clock.stage(None)
     clock.timings["alignment_to_clustering_s"] = sum(
         clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
@@ -162,8 +180,10 @@ def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progr
               "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
-              "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height}
-    return Results(ing, aligned, associations, fused, clusters, rejects, metrics, by_epoch, clock.timings, counts)
+              "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
+              "track_rows": tracks.height}
+    return Results(ing, aligned, associations, fused, clusters, tracks, rejects, metrics, by_epoch, clock.timings,
+                   counts)
 
 
 def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, stage: str) -> pl.DataFrame:
@@ -215,7 +235,8 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig = PipelineConfig()
             frame = getattr(res.ingested, name)
             if frame.height:
                 store.write(name, frame)
-        for name in ("aligned", "associations", "fused", "clusters", "rejects", "metrics", "accuracy_by_epoch"):
+        for name in ("aligned", "associations", "fused", "clusters", "tracks", "rejects", "metrics",
+                     "accuracy_by_epoch"):
             frame = getattr(res, name)
             if frame.width:
                 store.write(name, frame)

@@ -16,16 +16,19 @@ Per epoch (one loop over the epochs; everything inside vectorised over tracks ×
    epoch by its own dt. Runs without any plot at an epoch are left untouched (a data gap is
    not a miss).
 2. **Tracking gate** of confirmed tracks, per axis i ∈ {x, y, z}:
-   ``|z_i − x̂_i| ≤ gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m``, with candidates found by a
-   KD-tree over the epoch's plots (the run is a far-apart extra coordinate, so runs never
-   mix). Cost of a gated pair: Σ_i (z_i − x̂_i)²/S_i + ln S_i, S_i = P⁻_ii + r_i (−2 ln of the
-   Gaussian likelihood; the ln S term keeps a plot with a huge variance from looking close).
-3. **Assignment**: ``"hungarian"`` — ``scipy.optimize.linear_sum_assignment`` on the gated cost
-   of each connected component of the gate graph that is ambiguous (components with a single
-   track–plot pair are assigned directly, vectorised), maximising the number of gated
-   assignments first; ``"nearest"`` — every track takes its cheapest gated plot, a plot
-   claimed by several tracks goes to the cheapest claimant, and the losers try again among
-   the remaining plots (vectorised rounds).
+   ``|z_i − x̂_i| ≤ gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m``. Candidates come from a sorted
+   1-D index of the epoch's plots (key = σ-class·C + run·R + x, two ``searchsorted`` per
+   gate for all tracks at once; the run offset R is far larger than any gate, so runs never
+   mix), then the exact per-axis test. Cost of a gated pair: Σ_i (z_i − x̂_i)²/S_i + ln S_i,
+   S_i = P⁻_ii + r_i (−2 ln of the Gaussian likelihood; the ln S term keeps a plot with a huge
+   variance from looking close).
+3. **Assignment**: ``"hungarian"`` — pairs that are their own component of the gate graph
+   (one track, one plot) are assigned directly; all ambiguous components go to
+   ``scipy.optimize.linear_sum_assignment`` together as one block-diagonal problem (per
+   component if that block would be large), maximising the number of gated assignments
+   first, then minimising the summed cost. ``"nearest"`` — every track takes its cheapest
+   gated plot, a plot claimed by several tracks goes to the cheapest claimant, and the losers
+   try again among the remaining plots (vectorised rounds; the seed's nearest neighbour).
 4. **Update** assigned tracks (``mask``), **coast** the others (x⁺ = x⁻, P⁺ = P⁻), and
    **delete** a track at its ``max_misses``-th consecutive epoch without a plot (so
    ``max_misses − 1`` coasting rows at most; ``max_misses = 1`` means no coasting).
@@ -51,13 +54,16 @@ Per epoch (one loop over the epochs; everything inside vectorised over tracks ×
 6. Newly confirmed tracks get the next track ids of their run (1, 2, …, increasing with the
    confirmation epoch; stable for the track's life).
 
-The filter runs on tentatives too (initialised on x₁, updated with every tentative plot), so
-a track enters tracking with its first scans already filtered.
+A *scan* is an epoch at which the run has at least one plot; T and dt are the real time
+differences, so irregular epochs are handled (x̂₃ above). The filter runs on tentatives too
+(initialised on x₁, updated with every tentative plot), so a track enters tracking with its
+first scans already filtered. Runs (Monte-Carlo) are tracked together in one batch and never
+interact; track ids are per run.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -328,7 +334,7 @@ def _annulus_pairs(plots: _Plots, free: NDArray, objs: _Objects, t: float,
 def _confirm_pairs(plots: _Plots, free: NDArray, hyp: _Objects, t: float,
                    cfg: TrackerConfig) -> tuple[NDArray, NDArray, NDArray]:
     """(hypothesis, plot, cost) of plots inside the scan-3 circle S₂ around
-    x̂₃ = x₂ + (x₂ − x₁)·(t − t₂)/(t₂ − t₁); cost = (d_h/R_S₂)² + (Δz/vertical tolerance)²."""
+    x̂₃ = x₂ + (x₂ − x₁)·(t − t₂)/(t₂ − t₁); cost = (d_h/R_S₂)² + (Δz/tolerance)²."""
     if len(hyp) == 0 or not free.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     p1, p2 = hyp.f[:, _P1], hyp.f[:, _P2]
@@ -535,18 +541,20 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
         if three:
             hyp = np.flatnonzero(kind == _HYP)
             o, p, c = _confirm_pairs(plots, free, m.take(hyp), t, cfg)
-            plot_of_hyp = _assign(o, p, c, len(hyp), n_plot, cfg.assignment)
-            chosen = plot_of_hyp[o] == p
-            cost_of = np.full(len(hyp), np.inf)
-            cost_of[o[chosen]] = c[chosen]
-            got = np.flatnonzero(plot_of_hyp >= 0)
-            got = _resolve_conflicts(got, cost_of[got], m.i[hyp[got], _ROOT], m.i[hyp[got], _UID2])
-            win, plot_of_win = hyp[got], plot_of_hyp[got]
-            free[plot_of_win] = False
-            opens &= free
+            if len(o):
+                plot_of_hyp = _assign(o, p, c, len(hyp), n_plot, cfg.assignment)
+                chosen = plot_of_hyp[o] == p
+                cost_of = np.full(len(hyp), np.inf)
+                cost_of[o[chosen]] = c[chosen]
+                got = np.flatnonzero(plot_of_hyp >= 0)
+                got = _resolve_conflicts(got, cost_of[got], m.i[hyp[got], _ROOT], m.i[hyp[got], _UID2])
+                win, plot_of_win = hyp[got], plot_of_hyp[got]
+                free[plot_of_win] = False
+                opens &= free
             s1 = np.flatnonzero(kind == _TENT)
-            o, p = _annulus_pairs(plots, free, m.take(s1), t, cfg)
-            pair_obj, pair_plot = s1[o], p
+            if len(s1):
+                o, p = _annulus_pairs(plots, free, m.take(s1), t, cfg)
+                pair_obj, pair_plot = s1[o], p
         else:
             tent = np.flatnonzero(kind == _TENT)
             one = m.i[tent, _HITS] == 1
@@ -652,7 +660,6 @@ def track_methods(fused: pl.DataFrame, filters: dict[str, TrackFilter] | list[st
     """:func:`track` for every fusion method of ``fused`` × every filter (names are built with
     :func:`make_filter`); the tables concatenated."""
     if not isinstance(filters, dict):
-        _load_filters()
         filters = {name: make_filter(name) for name in filters}
     parts = [track(fused.filter(pl.col("method") == meth), filt, cfg)
              for meth in sorted(fused["method"].unique().to_list())
@@ -660,12 +667,3 @@ def track_methods(fused: pl.DataFrame, filters: dict[str, TrackFilter] | list[st
     return pl.concat(parts, how="vertical") if parts else pl.DataFrame(schema=TRACK_COLUMNS)
 
 
-def _load_filters() -> None:
-    """Import every module of :mod:`tertiary.filters` so their filters are registered."""
-    import importlib
-    import pkgutil
-
-    import tertiary.filters as pkg
-
-    for mod in pkgutil.iter_modules(pkg.__path__):
-        importlib.import_module(f"{pkg.__name__}.{mod.name}")

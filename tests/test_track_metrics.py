@@ -273,14 +273,11 @@ def test_match_tracks_columns():
 def test_end_to_end_on_a_small_terminal_area(small_terminal):
     """Simulated terminal area (30 aircraft, 10 min) → pipeline → tracker → metrics: the air
     picture is nearly complete, with few extra, spurious or swapped tracks."""
-    from tertiary.filters.base import REGISTRY, make_filter
+    from tertiary.filters import make_filter
     from tertiary.pipeline import PipelineConfig, process
-    from tertiary.tracker import _load_filters, track
+    from tertiary.tracker import track
 
-    _load_filters()
-    if "singer" not in REGISTRY:
-        pytest.skip("singer filter not registered")
-    res = process(small_terminal, PipelineConfig(methods=("aposteriori",), centralized=False))
+    res = process(small_terminal, PipelineConfig(methods=("aposteriori",), filters=(), centralized=False))
     fused = res.fused.filter(pl.col("method") == "aposteriori")
     tracks = track(fused, make_filter("singer"))
     validate(tracks, "tracks")

@@ -402,7 +402,8 @@ def test_monte_carlo_batch_matches_single_runs():
     for run in range(5):
         single = track(_fused([r for r in rows if r[0] == run]), CVDouble())
         got = batch.filter(pl.col("run") == run)
-        assert got.select("track_id", "plot_target_id", "status").equals(single.select("track_id", "plot_target_id", "status"))
+        cols = ["track_id", "plot_target_id", "status"]
+        assert got.select(cols).equals(single.select(cols))
         np.testing.assert_allclose(got["x_m"].to_numpy(), single["x_m"].to_numpy(), rtol=1e-9)
 
 
