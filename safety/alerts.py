@@ -42,7 +42,9 @@ Episodes (per run, method and unordered truth pair; consecutive = adjacent grid 
   negative when the LOS was already under way at t_start. ``mean_warning_s`` averages over
   hits with a LOS (NaN if none).
 * **Flicker** of a hit: the number of on→off transitions of the pair's alert between the
-  first alert and t_end (alert at t_k, none at t_{k+1}, t_{k+1} ≤ t_end).
+  first alert and t_end that are followed by a new alert on the pair no later than t_end
+  (alert at t_k, none at t_{k+1}, again at some t_m ≤ t_end): the alert dropping out and
+  coming back. The final switch-off (conflict resolved or passed) is not a flicker.
 * **False alert**: a maximal run of consecutive grid epochs with an alert on one key none of
   whose epochs lies in [t_start − early, t_end] of a true episode of that pair.
 
@@ -128,7 +130,8 @@ def _truth_frame(truth: pl.DataFrame) -> pl.DataFrame:
     if missing:
         raise ValueError(f"truth: missing column(s) {', '.join(missing)}")
     keys = ["run"] if "run" in truth.columns else []
-    return (truth.select(*[pl.col("run").cast(pl.UInt32)] * bool(keys), pl.col("truth_id").cast(pl.Int64),
+    run = [pl.col("run").cast(pl.UInt32)] if keys else []
+    return (truth.select(*run, pl.col("truth_id").cast(pl.Int64),
                          pl.col("time").cast(TIME), *[pl.col(c).cast(pl.Float64) for c in STATE])
             .sort([*keys, "truth_id", "time"]))
 
@@ -172,12 +175,11 @@ def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig()) ->
               "t_start": TIME, "t_end": TIME}
     if tr.height < 2:
         return pl.DataFrame(schema=schema)
-    t0_us, t1_us = tr["time"].min(), tr["time"].max()
-    step = int(round(cfg.los_step_s * _US))
-    n_steps = int((t1_us - t0_us).total_seconds() * _US // step) + 1
-    grid = pl.DataFrame({"epoch": pl.datetime_range(t0_us, t0_us + pl.duration(microseconds=step * (n_steps - 1)),
-                                                    interval=f"{step}us", eager=True, time_zone="UTC")})
-    grid = grid.with_columns(pl.col("epoch").cast(TIME))
+    tus = tr["time"].dt.epoch("us")
+    base, last = int(tus.min()), int(tus.max())
+    step = max(int(round(cfg.los_step_s * _US)), 1)
+    ticks = base + step * np.arange((last - base) // step + 1, dtype=np.int64)
+    grid = pl.DataFrame({"epoch": pl.Series(ticks).cast(pl.Datetime("us", "UTC"))})
     if keys:
         grid = grid.join(tr.select("run").unique(), how="cross")
     st = truth_at(tr, grid)
@@ -200,13 +202,12 @@ def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig()) ->
         return pl.DataFrame(schema=schema)
     tid = st["truth_id"].to_numpy()
     ta, tb = np.minimum(tid[i], tid[j]), np.maximum(tid[i], tid[j])
-    k = ((st["epoch"].dt.epoch("us").to_numpy() - int(t0_us.timestamp() * _US)) // step).astype(np.int64)
+    k = ((st["epoch"].dt.epoch("us").to_numpy() - base) // step).astype(np.int64)
     rows = pl.DataFrame({**({"run": st["run"].to_numpy()[i]} if keys else {}),
                          "truth_a": ta, "truth_b": tb, "__k": k[i]})
     key = [*keys, "truth_a", "truth_b"]
     rows = rows.sort([*key, "__k"]).with_columns(
         (pl.col("__k").diff().over(key).fill_null(0) != 1).cum_sum().over(key).alias("__iv"))
-    base = int(t0_us.timestamp() * _US)
     out = rows.group_by([*key, "__iv"]).agg(pl.col("__k").min().alias("__k0"), pl.col("__k").max().alias("__k1"))
     return (out.select(*key,
                        (pl.lit(base) + pl.col("__k0") * step).cast(pl.Datetime("us", "UTC")).alias("t_start"),
@@ -337,7 +338,7 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
 
     alerts = _alert_rows(conflicts, id_map, id_col).join(grid, on=["run", "method", "epoch"], how="inner")
     alerts = _runs(alerts, "__run").with_columns(
-        ((pl.col("k").shift(-1).over(_KEY) != pl.col("k") + 1).fill_null(True)).alias("__off_next"),
+        pl.col("k").shift(-1).over(_KEY).alias("__next_k"),
         pl.int_range(pl.len()).alias("__row"))
     pairs = alerts.join(episodes, on=_KEY, how="inner")
     lo = pl.col("t") >= pl.col("t0") - early
@@ -345,7 +346,8 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     in_ep = lo & (pl.col("t") <= pl.col("t1"))
     first = (pairs.filter(in_hit).group_by([*_KEY, "__ep"]).agg(pl.col("t").min().alias("first_alert")))
     flick = (pairs.join(first, on=[*_KEY, "__ep"], how="inner")
-             .filter((pl.col("t") >= pl.col("first_alert")) & (pl.col("k") + 1 <= pl.col("k1")) & pl.col("__off_next"))
+             .filter((pl.col("t") >= pl.col("first_alert")) & (pl.col("__next_k") > pl.col("k") + 1)
+                     & (pl.col("__next_k") <= pl.col("k1")))
              .group_by([*_KEY, "__ep"]).agg(pl.len().cast(pl.Int64).alias("flicker")))
     ep = (episodes.join(first, on=[*_KEY, "__ep"], how="left").join(flick, on=[*_KEY, "__ep"], how="left")
           .with_columns(pl.col("first_alert").is_not_null().alias("hit"),
@@ -354,9 +356,8 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
                         (pl.col("t_los") - pl.col("first_alert")).alias("warning_s"),
                         pl.lit("truth").alias("kind_s")))
     matched = pairs.filter(in_ep).select("__row").unique()
-    false_runs = (alerts.join(matched, on="__row", how="anti")
-                  .join(alerts.join(matched, on="__row", how="semi").select(*_KEY, "__run").unique(),
-                        on=[*_KEY, "__run"], how="anti")
+    hit_runs = alerts.join(matched, on="__row", how="semi").select(*_KEY, "__run").unique()
+    false_runs = (alerts.join(hit_runs, on=[*_KEY, "__run"], how="anti")
                   .group_by([*_KEY, "__run"]).agg(pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"))
                   .with_columns(pl.lit("false_alert").alias("kind_s")))
 

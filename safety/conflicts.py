@@ -72,17 +72,23 @@ when closing). ``dz_m`` = Δh at the epoch (signed, h_b − h_a).
 Candidate search
 ----------------
 One KD-tree over all (run, epoch, method) groups at once (a fourth coordinate = group index ×
-a constant larger than any query radius, as in ``tertiary.gating``), no O(N²) loop and no dense
-N×N matrix. Each track is replaced by its position at the centre t_c of W and gets half-extents
-h = |v_h|·T_w + ρ and h_z = |vz|·T_w + ζ (T_w = half the window length; ρ, ζ its share of the
-thresholds, bounded above per track). If the pair comes within the thresholds at some t ∈ W
-then |Δc_h| ≤ h_i + h_j and |Δc_z| ≤ h_z,i + h_z,j — so the screen is exact-conservative. For
-seed mode (t_c = 0, T_w = T) this is the radius R^пор + 2·v_max·T around the current
-positions; the corrected window halves the closing distance. The bulk of the tracks is found
-with ``query_pairs`` in a Chebyshev box (z scaled by h/h_z) of radius 2·H with H = the
-``bulk_quantile`` of h (or ``v_max_mps``·T_w + ρ when configured); the few tracks beyond it
-(very fast, very uncertain) are queried individually with their own radius, so no pair is ever
-missed, whatever ``v_max_mps``. The exact per-pair tests then run vectorised in chunks.
+a constant larger than any query radius, as in ``tertiary.gating``): no O(N²) loop, no dense
+N×N matrix. Every track is placed at its position at the centre t_c of W (half-length T_w).
+If a pair comes within the thresholds at some t ∈ W then, horizontally,
+
+    |c_j − c_i| ≤ (|v_i| + |v_j|)·T_w + R_г^пор(i, j),
+    R_г^пор(i, j) ≤ Δr_г + |ΔR_гп| + k_h·sqrt(λ_i + λ_j)       (λ_max(A + B) ≤ λ_max A + λ_max B)
+
+(λ_i = λ_max of track i's propagated horizontal covariance) and likewise vertically with the
+z variances — so the screen is conservative. For the bulk of the tracks (speed, vertical
+speed, λ and z variance all within their ``bulk_quantile``, or speed ≤ ``v_max_mps`` when set)
+one ``query_pairs`` in a Chebyshev box (z scaled so that the vertical reach maps onto the
+horizontal one) with radius 2·v_max·T_w + Δr_г + |ΔR_гп| + k_h·sqrt(2λ_max) finds every
+candidate — in seed mode (t_c = 0, T_w = T^пор) the radius R^пор + 2·v_max·T^пор around the
+current positions; the corrected window [0, T^пор] halves the closing distance. The few tracks
+beyond the bulk (very fast, very uncertain) are queried individually with their own radius, so
+no pair is missed whatever ``v_max_mps``. The exact tests then run vectorised in chunks of
+``chunk_pairs`` (vertical first, then horizontal, then the full geometry of the survivors).
 """
 
 from __future__ import annotations
@@ -256,17 +262,9 @@ def _horizontal(rx, ry, vx, vy, eps):
     return r0, r_min, t_min, closure, moving
 
 
-def _window_min_h(rx, ry, vx, vy, t_min, moving, t0, t1):
-    """min over t ∈ [t0, t1] of |r − v t| (|r| for parallel motion)."""
-    ts = np.where(moving, np.clip(t_min, t0, t1), 0.0)
-    return np.hypot(rx - vx * ts, ry - vy * ts)
-
-
-def _window_min_v(dz, dvz, t0, t1):
-    """min over t ∈ [t0, t1] of |Δh + Δvz t|."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ts = np.where(dvz != 0.0, np.clip(-dz / dvz, t0, t1), np.clip(0.0, t0, t1))
-    return np.abs(dz + dvz * ts)
+def _endpoint_min(a: NDArray, b: NDArray) -> NDArray:
+    """min over a segment of |f| for f linear with end values a, b (0 if it changes sign)."""
+    return np.where(a * b <= 0.0, 0.0, np.minimum(np.abs(a), np.abs(b)))
 
 
 def _seed_vertical(dz, dvz, t_min):
@@ -292,7 +290,7 @@ def pair_geometry(p_i: ArrayLike, v_i: ArrayLike, p_j: ArrayLike, v_j: ArrayLike
     dz = pj[..., 2] - pi[..., 2]
     dvz = vj[..., 2] - vi[..., 2]
     return PairGeometry(r0, r_min, t_min, closure, dz, dvz, _seed_vertical(dz, dvz, t_min),
-                        _window_min_v(dz, dvz, 0.0, t_thr))
+                        _endpoint_min(dz, dz + dvz * t_thr))
 
 
 # --------------------------------------------------------------------------- thresholds
@@ -467,11 +465,6 @@ def _state_arrays(tracks: pl.DataFrame) -> tuple[NDArray[np.float64], NDArray[np
 
 def _empty_conflicts() -> pl.DataFrame:
     return pl.DataFrame(schema=TABLES["conflicts"].required)
-
-
-def _endpoint_min(a: NDArray, b: NDArray) -> NDArray:
-    """min over a segment of |f| for f linear with end values a, b."""
-    return np.where(a * b <= 0.0, 0.0, np.minimum(np.abs(a), np.abs(b)))
 
 
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,

@@ -147,7 +147,7 @@ def run(
     strict: Annotated[bool, typer.Option(help="stop on the first invalid input row")] = False,
     methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = ",".join(METHODS),
     centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level bound")] = True,
-    filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none)")] = "singer,imm",
+    filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none)")] = "singer,imm_sym",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, evaluate and
     store everything in RUN_DIR/results.duckdb."""

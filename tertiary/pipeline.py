@@ -90,7 +90,7 @@ class PipelineConfig:
     """Configuration of every stage (each stage's own frozen dataclass)."""
 
     methods: tuple[str, ...] = METHODS
-    filters: tuple[str, ...] = ("singer", "imm")
+    filters: tuple[str, ...] = ("singer", "imm_sym")
     centralized: bool = True
     strict: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)

@@ -189,6 +189,7 @@ def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPy
     con = duckdb.connect(":memory:", config={"temp_directory": str(spill_dir)})
     try:
         con.execute("SET TimeZone = 'UTC'")
+        con.execute("SET enable_progress_bar = false")   # the CLI draws its own progress
         mode = " (READ_ONLY)" if read_only else ""
         con.execute(f"ATTACH ? AS {_ALIAS}{mode}", [str(db_file)])
         con.execute(f"USE {_ALIAS}")

@@ -216,3 +216,33 @@ def test_landing_imm_beats_raw_converted_measurements():
     straight = np.isin(seg, [0, 2, 4, 5]) & (np.arange(len(seg)) >= res.first_scan)
     assert res.mu_mean[turns, 1].mean() > 0.5
     assert (res.mu_mean[straight][:, [0, 2]].sum(axis=1)).mean() > 0.75
+
+
+def test_symmetric_imm_follows_right_turns():
+    """``imm_sym`` mirrors the seed's left-turn model: a right (clockwise) coordinated turn is
+    carried by the CT(−ω) model, which the seed's set (ω > 0 only) cannot represent."""
+    from tertiary.filters import make_filter
+    from tertiary.simulate.trajectory import integrate_commands
+
+    dt, steps = 4.0, 60
+    turn = np.zeros((1, steps))
+    turn[0, 20:] = 2.5                                   # deg/s clockwise (right) from step 20
+    pos, _ = integrate_commands(np.array([[0.0, 0.0, 3000.0]]), np.array([90.0]), np.full((1, steps), 110.0),
+                                turn, np.zeros((1, steps)), dt)
+    rng = np.random.default_rng(3)
+    z = pos[0] + rng.normal(0, 30, pos[0].shape)
+    errors = {}
+    for name in ("imm", "imm_sym"):
+        f = make_filter(name)
+        s = f.init(z[:1], np.full((1, 3), 900.0))
+        err = []
+        for k in range(1, steps + 1):
+            s = f.predict(s, np.array([dt]))
+            s, _ = f.update(s, z[k:k + 1], np.full((1, 3), 900.0), np.array([True]))
+            if k > 35:
+                err.append(np.linalg.norm(f.output(s).x[0, :2] - pos[0, k, :2]))
+        errors[name] = float(np.sqrt(np.mean(np.square(err))))
+        if name == "imm_sym":
+            probs = f.output(s).probs[0]
+            assert probs[1] > 0.8                        # the CT(−ω) model
+    assert errors["imm_sym"] < errors["imm"]

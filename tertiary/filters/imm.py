@@ -429,3 +429,20 @@ class IMMFilter(TrackFilter):
     def combined_horizontal(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 4) and covariance (B, 4, 4)."""
         return imm_combine(state["x"], state["P"], state["mu"])
+
+
+@register
+class SymmetricIMMFilter(IMMFilter):
+    """:class:`IMMFilter` with turn models in both directions: CT(+0.045), CT(−0.045), CV.
+
+    The seed's model set (CT 0.001, CT 0.045, CV) only turns left, which suits its landing
+    pattern but loses right-turning traffic; this variant keeps the seed's TPM structure
+    (CT models communicate through CV) and priors, with the turn model mirrored.
+    """
+
+    name = "imm_sym"
+
+    def __init__(self, omegas: Sequence[float] = (0.045, -0.045, 0.0),
+                 tpm: ArrayLike = ((0.98, 0.0, 0.02), (0.0, 0.98, 0.02), (0.01, 0.01, 0.98)),
+                 mu0: ArrayLike = (0.25, 0.25, 0.5), **kwargs):
+        super().__init__(omegas=omegas, tpm=tpm, mu0=mu0, **kwargs)
