@@ -65,6 +65,9 @@ mode and [−T^пор, T^пор] in seed mode, so every alert of either rule is 
 that seed-mode pairs whose closest approach was more than T^пор ago are not screened (the
 printed rule would flag them too). ``alert`` is the decision of the chosen rule.
 
+Tracks that are not established — velocity sigma above ``max_vel_sigma_mps`` (default 50 m/s;
+a target's first epochs carry the 300 m/s velocity prior) — are left out before pairing.
+
 ``severity`` = clip(1 − R_min / R_г^пор, 0, 1) for alerts (1 = collision course, 0 = grazing
 the threshold), 0 for non-alert rows. ``closure_mps`` = r̂·v = −d|r|/dt at the epoch (positive
 when closing). ``dz_m`` = Δh at the epoch (signed, h_b − h_a).
@@ -80,21 +83,32 @@ If a pair comes within the thresholds at some t ∈ W then, horizontally,
     R_г^пор(i, j) ≤ Δr_г + |ΔR_гп| + k_h·sqrt(λ_i + λ_j)       (λ_max(A + B) ≤ λ_max A + λ_max B)
 
 (λ_i = λ_max of track i's propagated horizontal covariance) and likewise vertically with the
-z variances — so the screen is conservative. For the bulk of the tracks (speed, vertical
-speed, λ and z variance all within their ``bulk_quantile``, or speed ≤ ``v_max_mps`` when set)
-one ``query_pairs`` in a Chebyshev box (z scaled so that the vertical reach maps onto the
-horizontal one) with radius 2·v_max·T_w + Δr_г + |ΔR_гп| + k_h·sqrt(2λ_max) finds every
-candidate — in seed mode (t_c = 0, T_w = T^пор) the radius R^пор + 2·v_max·T^пор around the
-current positions; the corrected window [0, T^пор] halves the closing distance. The few tracks
-beyond the bulk (very fast, very uncertain) are queried individually with their own radius, so
-no pair is missed whatever ``v_max_mps``. The exact tests then run vectorised in chunks of
-``chunk_pairs`` (vertical first, then horizontal, then the full geometry of the survivors).
+z variances — so the screen is conservative. For a set of tracks the maxima of these terms give
+a horizontal and a vertical reach; the query is a Chebyshev box in (x, y, z·s) with z scaled by
+s = reach_h / reach_v. In seed mode (t_c = 0, T_w = T^пор) the horizontal reach is the
+R^пор + 2·v_max·T^пор around the current positions; the corrected window [0, T^пор] halves the
+closing distance. Three tiers keep the boxes tight:
+
+* the **bulk** (speed, vertical speed, λ and z variance within their ``bulk_quantile``; speed
+  ≤ ``v_max_mps`` when set) is split at the median vertical speed into a level and a climbing/
+  descending part: level × level and climbing × climbing pairs come from one ``query_pairs``
+  each (level flight has a small vertical reach), climbing × level pairs from one
+  ``sparse_distance_matrix``;
+* the few tracks beyond the bulk (very fast, very uncertain) are queried individually against
+  all tracks with their own radius (``query_ball_point``).
+
+No pair is missed whatever ``v_max_mps`` or ``bulk_quantile`` (they only affect speed). The
+exact tests then run vectorised in chunks of ``chunk_pairs`` (vertical first, then horizontal,
+then the full geometry of the survivors). To bound memory, whole groups are batched into
+blocks of about ``block_points`` tracks, one set of trees per block (a block holds many epochs
+of ordinary traffic; a 10 000-aircraft epoch is a block of its own).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from collections.abc import Iterator
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -141,6 +155,12 @@ class ConflictConfig:
     * ``threshold_mode``: ``"covariance"`` (per pair, from the tracks) or ``"fixed"``
       (``fixed_est_h_m``, ``fixed_est_v_m``).
     * ``mode``: ``"seed"`` (faithful (5.14), negative T_min passes) or ``"corrected"``.
+    * ``max_vel_sigma_mps``: tracks whose velocity standard deviation (sqrt of the larger of
+      var(vx), var(vy) in ``cov``/``cov_diag``) exceeds this are *not established* (e.g. a
+      target's first epochs, velocity still at its prior) and are left out of the prediction —
+      no controller alert is raised on a tentative track, and a 300 m/s velocity sigma would
+      otherwise give a ~90 km threshold. Applied in both threshold modes whenever a covariance
+      column is present; None keeps every track.
     * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
       affects speed, never the result.
     * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
@@ -161,10 +181,12 @@ class ConflictConfig:
     fixed_est_h_m: float = 300.0
     fixed_est_v_m: float = 50.0
     mode: Literal["seed", "corrected"] = "corrected"
+    max_vel_sigma_mps: float | None = 50.0
     v_max_mps: float | None = None
     eps_mps: float = 1e-6
     bulk_quantile: float = 0.99
-    chunk_pairs: int = 1 << 20
+    chunk_pairs: int = 1 << 18
+    block_points: int = 20_000
 
     def __post_init__(self) -> None:
         if self.airspace not in SEPARATION_MINIMA:
@@ -185,8 +207,12 @@ class ConflictConfig:
                      "pilot_h_rate_mps", "pilot_v_rate_mps"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.max_vel_sigma_mps is not None and self.max_vel_sigma_mps <= 0:
+            raise ValueError(f"max_vel_sigma_mps must be positive, got {self.max_vel_sigma_mps}")
         if self.v_max_mps is not None and self.v_max_mps <= 0:
             raise ValueError(f"v_max_mps must be positive, got {self.v_max_mps}")
+        if self.chunk_pairs < 1 or self.block_points < 2:
+            raise ValueError("chunk_pairs must be >= 1 and block_points >= 2")
         if not 0.0 < self.bulk_quantile <= 1.0:
             raise ValueError(f"bulk_quantile must be in (0, 1], got {self.bulk_quantile}")
 
@@ -378,69 +404,129 @@ def _group_index(tracks: pl.DataFrame, keys: list[str]) -> NDArray[np.int64]:
     return (tracks.select(expr.rank("dense").cast(pl.Int64) - 1).to_series().to_numpy())
 
 
-def _flatten(lists, counts: NDArray[np.int64]) -> NDArray[np.int64]:
-    return np.fromiter((k for x in lists for k in x), np.int64, int(counts.sum()))
+def _flatten(lists) -> NDArray[np.int64]:
+    parts = [np.asarray(x, dtype=np.int64) for x in lists]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float64], vel: NDArray[np.float64],
-                terms: _PointTerms | None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Screened pairs (i < j, same group) — see "Candidate search" in the module docstring."""
+                terms: _PointTerms | None) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64]]]:
+    """Screened pairs (i ≠ j, each unordered pair once, same group) in up to three parts — see
+    "Candidate search" in the module docstring. Parts are yielded one at a time (memory)."""
     n = len(g)
-    empty = np.zeros(0, np.int64)
     if n < 2:
-        return empty, empty
+        return
     t0, t1 = cfg.window_s
     tw, tc = 0.5 * (t1 - t0), 0.5 * (t0 + t1)                # half-length and centre of W
     b = _bounds(cfg, terms, n)
     vh = np.hypot(vel[:, 0], vel[:, 1])
     vz = np.abs(vel[:, 2])
+
+    def reach(m1: NDArray[np.bool_], m2: NDArray[np.bool_]) -> tuple[float, float]:
+        """Upper bounds of the horizontal / vertical reach of any pair (i ∈ m1, j ∈ m2)."""
+        rh = ((vh[m1].max() + vh[m2].max()) * tw + b.base_h
+              + cfg.k_h * math.sqrt(b.lam[m1].max() + b.lam[m2].max()))
+        rv = (vz[m1].max() + vz[m2].max()) * tw + b.base_v + cfg.k_v * math.sqrt(b.q[m1].max() + b.q[m2].max())
+        return float(rh), float(rv)
+
     qq = cfg.bulk_quantile
     v_b = cfg.v_max_mps if cfg.v_max_mps is not None else float(np.quantile(vh, qq))
     vz_b, lam_b, q_b = (float(np.quantile(x, qq)) for x in (vz, b.lam, b.q))
     bulk = (vh <= v_b) & (vz <= vz_b) & (b.lam <= lam_b) & (b.q <= q_b)
-    # reach of a bulk pair: closing distance over the window + an upper bound of the thresholds
-    r_h = 2.0 * v_b * tw + b.base_h + cfg.k_h * math.sqrt(2.0 * lam_b)
-    r_v = 2.0 * vz_b * tw + b.base_v + cfg.k_v * math.sqrt(2.0 * q_b)
-    s = r_h / r_v                                              # z scale: vertical reach → horizontal
-    wide = np.flatnonzero(~bulk)
-    w_h = (vh[wide] + vh.max()) * tw + b.base_h + cfg.k_h * np.sqrt(b.lam[wide] + b.lam.max())
-    w_v = (vz[wide] + vz.max()) * tw + b.base_v + cfg.k_v * np.sqrt(b.q[wide] + b.q.max())
-    r_w = np.maximum(w_h, w_v * s)
+    if bulk.sum() < 2:
+        bulk[:] = True
+    # the bulk in two tiers: the level half (small vertical reach) and the rest
+    level = bulk & (vz <= float(np.median(vz[bulk])))
+    climb = bulk & ~level
+    wide = ~bulk
+    allm = np.ones(n, bool)
+    r_ll = reach(level, level) if level.sum() >= 2 else (0.0, 1.0)
+    r_cc = reach(climb, climb) if climb.sum() >= 2 else (0.0, 1.0)
+    r_cl = reach(climb, level) if climb.any() and level.any() else (0.0, 1.0)
+    w_idx = np.flatnonzero(wide)
+    w_h = (vh[w_idx] + vh.max()) * tw + b.base_h + cfg.k_h * np.sqrt(b.lam[w_idx] + b.lam.max())
+    w_v = (vz[w_idx] + vz.max()) * tw + b.base_v + cfg.k_v * np.sqrt(b.q[w_idx] + b.q.max())
+    r_all = reach(allm, allm)
     scale = float(np.max(np.abs(pos))) + float(vh.max() + vz.max()) * max(abs(t0), abs(t1)) + 1.0
     pad = 1.0 + 1e-9 * scale                                   # rounding safety (metres)
-    sep = 2.0 * (max(r_h, float(r_w.max()) if len(wide) else 0.0) + pad) + 1.0
+    # Chebyshev radius and z scale of each query; the wide radii are ≤ r_all (same scale)
+    s_ll, s_cc, s_cl, s_all = (r[0] / r[1] for r in (r_ll, r_cc, r_cl, r_all))
+    q_ll, q_cc, q_cl = (r[0] + pad * max(1.0, s) for r, s in ((r_ll, s_ll), (r_cc, s_cc), (r_cl, s_cl)))
+    q_w = np.maximum(w_h, w_v * s_all) + pad * max(1.0, s_all)
+    sep = 2.0 * max(q_ll, q_cc, q_cl, r_all[0] + pad * max(1.0, s_all)) + 1.0
     # every track at the window centre; the 4th coordinate separates the groups by more than
-    # any query radius, so one tree serves all (run, epoch, method) groups
+    # any query radius, so one tree serves all (run, epoch, method) groups of the block
     c = pos + vel * tc
-    pts = np.column_stack([c[:, 0], c[:, 1], c[:, 2] * s, g.astype(np.float64) * sep])
-    parts = []
-    bidx = np.flatnonzero(bulk)
-    if len(bidx) >= 2:
-        pr = cKDTree(pts[bidx]).query_pairs(r_h + pad, p=np.inf, output_type="ndarray")
-        parts.append((bidx[pr[:, 0]], bidx[pr[:, 1]]))
-    if len(wide):
-        hits = cKDTree(pts).query_ball_point(pts[wide], r_w + pad, p=np.inf, return_sorted=False)
-        counts = np.fromiter((len(x) for x in hits), np.int64, len(wide))
-        jj = _flatten(hits, counts)
-        ii = np.repeat(wide, counts)
+    gc = g.astype(np.float64) * sep
+
+    def points(idx: NDArray[np.int64], s: float) -> NDArray[np.float64]:
+        return np.column_stack([c[idx, 0], c[idx, 1], c[idx, 2] * s, gc[idx]])
+
+    def pairs_within(idx: NDArray[np.int64], s: float, r: float):
+        pr = cKDTree(points(idx, s)).query_pairs(r, p=np.inf, output_type="ndarray")
+        a = idx[pr[:, 0]]
+        return a, idx[pr[:, 1]]
+
+    li, ci = np.flatnonzero(level), np.flatnonzero(climb)
+    if len(li) >= 2:                                           # level × level
+        yield pairs_within(li, s_ll, q_ll)
+    if len(ci) >= 2:                                           # climbing/descending × climbing/descending
+        yield pairs_within(ci, s_cc, q_cc)
+    if len(ci) and len(li):                                    # climbing/descending × level
+        sm = cKDTree(points(ci, s_cl)).sparse_distance_matrix(cKDTree(points(li, s_cl)), q_cl, p=np.inf,
+                                                             output_type="ndarray")
+        yield ci[sm["i"]], li[sm["j"]]
+        del sm
+    if len(w_idx):                                             # the few wide tracks × all, own radii
+        pts = points(np.arange(n), s_all)
+        hits = cKDTree(pts).query_ball_point(pts[w_idx], q_w, p=np.inf, return_sorted=False)
+        counts = np.fromiter((len(x) for x in hits), np.int64, len(w_idx))
+        jj = _flatten(hits)
+        ii = np.repeat(w_idx, counts)
         keep = (ii != jj) & (bulk[jj] | (ii < jj))             # wide–wide pairs come twice
-        parts.append((ii[keep], jj[keep]))
-    if not parts:
-        return empty, empty
-    i = np.concatenate([p[0] for p in parts]).astype(np.int64)
-    j = np.concatenate([p[1] for p in parts]).astype(np.int64)
-    return np.minimum(i, j), np.maximum(i, j)
+        yield ii[keep], jj[keep]
+
+
+def _blocks(g: NDArray[np.int64], block_points: int):
+    """Row indices of consecutive whole groups, about ``block_points`` rows per block (a larger
+    group is a block of its own): one KD-tree per block bounds the memory of the candidate pairs
+    while keeping the number of trees tiny (a block holds many small epochs)."""
+    order = np.argsort(g, kind="stable")
+    counts = np.bincount(g)
+    ends = np.cumsum(counts)
+    start, acc = 0, 0
+    for k, c in enumerate(counts):
+        if acc and acc + c > block_points:
+            yield order[start:ends[k - 1]]
+            start, acc = int(ends[k - 1]), 0
+        acc += int(c)
+    if acc:
+        yield order[start:]
+
+
+def _block_candidates(cfg: ConflictConfig, g, pos, vel, terms):
+    """(rows, i, j) per block: global row indices of screened pairs."""
+    for idx in _blocks(g, cfg.block_points):
+        sub = None if terms is None else _PointTerms(*(x[idx] for x in terms))
+        for ci, cj in _candidates(cfg, g[idx], pos[idx], vel[idx], sub):
+            yield idx[ci], idx[cj]
 
 
 def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
                     method_col: str = "method") -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Screened row-index pairs (i < j, same (run, epoch, method) group) of ``tracks``: a superset
     of the pairs that come within R_г^пор horizontally and R_в^пор vertically at some t of the
-    screening window (KD-tree, see the module docstring). Exposed for tests and benchmarks."""
+    screening window (KD-tree, see the module docstring). Exposed for tests and benchmarks.
+    Unlike :func:`predict_conflicts` it keeps tentative tracks (no ``max_vel_sigma_mps``)."""
     g = _group_index(tracks, _group_cols(tracks, method_col))
     pos, vel = _state_arrays(tracks)
     terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
-    return _candidates(cfg, g, pos, vel, terms)
+    parts = list(_block_candidates(cfg, g, pos, vel, terms))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i = np.concatenate([p[0] for p in parts])
+    j = np.concatenate([p[1] for p in parts])
+    return np.minimum(i, j), np.maximum(i, j)
 
 
 # --------------------------------------------------------------------------- main entry
@@ -451,6 +537,20 @@ def _group_cols(tracks: pl.DataFrame, method_col: str = "method") -> list[str]:
     if method_col in tracks.columns:
         cols.append(method_col)
     return cols
+
+
+def _established(tracks: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
+    """Drop tracks whose velocity sigma exceeds ``cfg.max_vel_sigma_mps`` (see the config)."""
+    lim = cfg.max_vel_sigma_mps
+    if lim is None:
+        return tracks
+    if "cov" in tracks.columns:
+        var = pl.max_horizontal(pl.col("cov").arr.get(21), pl.col("cov").arr.get(28))
+    elif "cov_diag" in tracks.columns:
+        var = pl.max_horizontal(pl.col("cov_diag").arr.get(3), pl.col("cov_diag").arr.get(4))
+    else:
+        return tracks
+    return tracks.filter(var <= lim * lim)
 
 
 def _state_arrays(tracks: pl.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -533,6 +633,7 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
         tracks = tracks.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     if method_col not in tracks.columns:
         tracks = tracks.with_columns(pl.lit(default_method, pl.String).alias(method_col))
+    tracks = _established(tracks, cfg)
     if tracks.height < 2:
         return _empty_conflicts()
     groups = ["run", "epoch", method_col]
@@ -542,16 +643,16 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     g = _group_index(tracks, groups)
     pos, vel = _state_arrays(tracks)
     terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
-    ci, cj = _candidates(cfg, g, pos, vel, terms)
     ids = tracks[id_col].cast(pl.Int64).to_numpy()
-    swap = ids[ci] > ids[cj]                     # order each pair so that id_a < id_b
-    ci, cj = np.where(swap, cj, ci), np.where(swap, ci, cj)
-
-    chunks: list[dict[str, NDArray]] = []
-    step = max(int(cfg.chunk_pairs), 1)
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
-    for s in range(0, len(ci), step):
-        chunks.append(_evaluate_pairs(cfg, st, terms, ci[s:s + step], cj[s:s + step]))
+    chunks: list[dict[str, NDArray]] = []
+    step = cfg.chunk_pairs
+    for ci, cj in _block_candidates(cfg, g, pos, vel, terms):
+        for s in range(0, len(ci), step):
+            a, b = ci[s:s + step], cj[s:s + step]
+            swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
+            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b)))
+        del ci, cj
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}

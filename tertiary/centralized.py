@@ -228,6 +228,22 @@ def _empty_fused() -> pl.DataFrame:
     return pl.DataFrame(schema=TABLES["fused"].required)
 
 
+def _predict_to_epochs(x_post: F64, p_post: F64, src: NDArray[np.int64], tau: F64, cfg: CentralizedConfig,
+                       block: int = 32_768) -> tuple[F64, F64]:
+    """Each output row's last update predicted by ``tau`` to its epoch, as the 6-state and its
+    flattened 6×6 covariance; in blocks, so the 9×9 temporaries stay small."""
+    m = len(src)
+    state, cov6 = np.empty((m, 6)), np.empty((m, 36))
+    for lo in range(0, m, block):
+        sl = slice(lo, min(lo + block, m))
+        phi, q = transition(tau[sl], cfg)
+        xe = np.einsum("mij,mj->mi", phi, x_post[src[sl]])
+        pe = _abat(phi, p_post[src[sl]]) + q
+        state[sl] = xe[:, STATE6]
+        cov6[sl] = pe[:, STATE6[:, None], STATE6[None, :]].reshape(-1, 36)
+    return state, cov6
+
+
 def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations: pl.DataFrame,
                        epochs: pl.DataFrame, origin: geo.LocalFrame,
                        cfg: CentralizedConfig = CentralizedConfig()) -> pl.DataFrame:
@@ -287,11 +303,7 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     x_post, p_post = centralized_filter(t, z, r, starts, lengths, cfg, keep)
     slot = np.cumsum(keep) - 1
     tau = (want["epoch"].dt.epoch("us").to_numpy() - t0) * 1e-6 - t[ri]
-    phi, q = transition(tau, cfg)
-    xe = np.einsum("mij,mj->mi", phi, x_post[slot[ri]])
-    pe = _abat(phi, p_post[slot[ri]]) + q
-    state = xe[:, STATE6]
-    cov6 = pe[:, STATE6[:, None], STATE6[None, :]]
+    state, cov6 = _predict_to_epochs(x_post, p_post, slot[ri], tau, cfg)
 
     seen = (rep.group_by(["run", "target_id", "radar_id"]).agg(pl.col("time").min().alias("__first")))
     radar_ids = (want.select("run", "target_id", "epoch").join(seen, on=["run", "target_id"], how="inner")
@@ -300,7 +312,7 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     out = want.select("run", "epoch", "target_id", "n_sources").with_columns(
         pl.lit(METHOD).alias("method"),
         *[pl.Series(c, state[:, i]) for i, c in enumerate(STATE_COLS)],
-        pl.Series("cov", cov6.reshape(len(ri), 36), dtype=pl.Array(pl.Float64, 36)),
+        pl.Series("cov", cov6, dtype=pl.Array(pl.Float64, 36)),
         pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
     ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
     spec = TABLES["fused"].required

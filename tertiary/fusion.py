@@ -366,19 +366,21 @@ def markov_weights(res: F, res_var: F, fresh: B, lay: Layout, p_stay: float, b_m
     return _recursive_weights(loglik, usable, lay, _log_prior_markov(p_stay), b_min)
 
 
+def fuse_weighted(x: F, cov: F, w: F, starts: Ix) -> Fused:
+    """(4.72) with given per-row weights on every coordinate: x = Σ b_n x_n, P = Σ b_n² C_n."""
+    xf, pf = _mix(x, cov, w, starts)
+    return _keep_single(Fused(xf, pf, w), x, cov, starts)
+
+
 def fuse_aposteriori_seed(x: F, cov: F, res: F, d_fixed: F, fresh: B, lay: Layout) -> Fused:
     """(4.72) with the weights of :func:`seed_weights` on every coordinate; P = Σ b_n² C_n."""
-    w = seed_weights(res, d_fixed, fresh, lay)
-    xf, pf = _mix(x, cov, w, lay.starts)
-    return _keep_single(Fused(xf, pf, w), x, cov, lay.starts)
+    return fuse_weighted(x, cov, seed_weights(res, d_fixed, fresh, lay), lay.starts)
 
 
 def fuse_aposteriori(x: F, cov: F, res: F, res_var: F, fresh: B, lay: Layout,
                      p_stay: float = 0.95, b_min: float = 0.01) -> Fused:
     """(4.72) with the weights of :func:`markov_weights` on every coordinate; P = Σ b_n² C_n."""
-    w = markov_weights(res, res_var, fresh, lay, p_stay, b_min)
-    xf, pf = _mix(x, cov, w, lay.starts)
-    return _keep_single(Fused(xf, pf, w), x, cov, lay.starts)
+    return fuse_weighted(x, cov, markov_weights(res, res_var, fresh, lay, p_stay, b_min), lay.starts)
 
 
 # ---------------------------------------------------------------------------
@@ -539,20 +541,44 @@ def _arrays(rows: pl.DataFrame) -> dict[str, NDArray]:
     }
 
 
+BLOCK_ROWS = 65_536
+
+
+def _blocks(starts: Ix, n: int, block: int = BLOCK_ROWS):
+    """(row slice, group-local starts) of runs of whole groups holding about ``block`` rows."""
+    firsts = np.unique(np.searchsorted(starts, np.arange(0, n, block), side="right") - 1)
+    bounds = np.append(firsts, len(starts))
+    for g0, g1 in zip(bounds[:-1], bounds[1:]):
+        r0 = int(starts[g0])
+        r1 = int(starts[g1]) if g1 < len(starts) else n
+        yield slice(r0, r1), starts[g0:g1] - r0
+
+
+def _blockwise(fn: Callable[[slice, Ix], Fused], starts: Ix, n: int) -> Fused:
+    """Run a per-group computation block by block: memory is bounded by the block, not by
+    the dataset (stacked 6×6 temporaries over all rows reached gigabytes)."""
+    parts = [fn(rows, local) for rows, local in _blocks(starts, n)]
+    return Fused(*(np.concatenate([getattr(p, f) for p in parts]) for f in Fused._fields))
+
+
 def _run_method(method: str, a: dict[str, NDArray], lay: Layout, d_fixed: Callable[[], F],
                 cfg: FusionConfig) -> Fused:
-    x, cov, s = a["x"], a["cov"], lay.starts
-    if method == "arithmetic":
-        return fuse_arithmetic(x, cov, s)
-    if method == "apriori":
-        return fuse_apriori(x, cov, a["nominal_var"], s)
+    """One method over all groups; the a-posteriori recursions run once over every row (per-row
+    scalars), the mixing and all per-group linear algebra block by block."""
+    x, cov, s, n = a["x"], a["cov"], lay.starts, len(a["x"])
     if method == "aposteriori_seed":
-        return fuse_aposteriori_seed(x, cov, a["res"], d_fixed(), a["fresh"], lay)
+        w = seed_weights(a["res"], d_fixed(), a["fresh"], lay)
+        return _blockwise(lambda r, st: fuse_weighted(x[r], cov[r], w[r], st), s, n)
     if method == "aposteriori":
-        return fuse_aposteriori(x, cov, a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min)
-    if method == "information":
-        return fuse_information(x, cov, s)
-    return fuse_covariance_intersection(x, cov, s, cfg.ci_objective)
+        w = markov_weights(a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min)
+        return _blockwise(lambda r, st: fuse_weighted(x[r], cov[r], w[r], st), s, n)
+    per_group: dict[str, Callable[[slice, Ix], Fused]] = {
+        "arithmetic": lambda r, st: fuse_arithmetic(x[r], cov[r], st),
+        "apriori": lambda r, st: fuse_apriori(x[r], cov[r], a["nominal_var"][r], st),
+        "information": lambda r, st: fuse_information(x[r], cov[r], st),
+        "covariance_intersection": lambda r, st: fuse_covariance_intersection(x[r], cov[r], st, cfg.ci_objective),
+    }
+    return _blockwise(per_group[method], s, n)
 
 
 def _check_methods(methods: Sequence[str]) -> list[str]:

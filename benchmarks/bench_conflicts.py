@@ -1,0 +1,132 @@
+"""Conflict-prediction throughput: 1 000 and 10 000 simultaneous aircraft.
+
+Random terminal-like traffic (speeds 70–250 m/s, random headings, heights 300–12 000 m, 30 %
+climbing or descending at 5–15 m/s, full 6×6 covariances with 50–150 m position and 2–8 m/s
+velocity sigmas) in a 200 km × 200 km box, several epochs (aircraft flown on 5 s between
+epochs). Measured in a fresh process per configuration (``run_isolated``): seconds per epoch of
+``safety.predict_conflicts`` (one call per epoch, best and median over the epochs × repeats;
+and, in another process, one call for all epochs at once), candidate pairs examined by the
+KD-tree screen, output rows and alerts, and peak resident memory; ``*_call_rss_mib`` is the
+peak minus the process's RSS after imports and data generation (the prediction's own
+footprint).
+
+The fixed 200 km box makes the density — and so the number of candidate pairs — grow with N
+(pairs ∝ N²); ``--density`` adds runs whose box grows with √N (constant density, pairs ∝ N),
+where memory is linear in N. Target (issue): 10 000 aircraft < 0.5 s per epoch.
+
+    python benchmarks/bench_conflicts.py [--aircraft 1000 10000] [--epochs 5] [--repeat 3]
+                                         [--modes corrected seed] [--density]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from _util import record, run_isolated
+
+CODE = """
+import json, time, resource, statistics
+from datetime import datetime, timedelta, timezone
+import numpy as np, polars as pl
+from safety.conflicts import ConflictConfig, candidate_pairs, predict_conflicts
+
+def traffic(n, box_m, epochs, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = np.column_stack([rng.uniform(-box_m / 2, box_m / 2, n), rng.uniform(-box_m / 2, box_m / 2, n),
+                           rng.uniform(300.0, 12000.0, n)])
+    spd, hdg = rng.uniform(70.0, 250.0, n), rng.uniform(0.0, 2 * np.pi, n)
+    vz = np.where(rng.random(n) < 0.3, rng.choice([-1.0, 1.0], n) * rng.uniform(5.0, 15.0, n), 0.0)
+    vel = np.column_stack([spd * np.sin(hdg), spd * np.cos(hdg), vz])
+    sp = rng.uniform(50.0, 150.0, n)
+    sv = rng.uniform(2.0, 8.0, n)
+    sig = np.column_stack([sp, sp, 1.5 * sp, sv, sv, 0.5 * sv])
+    corr = np.eye(6)
+    for a in range(3):
+        corr[a, a + 3] = corr[a + 3, a] = 0.5          # position–velocity correlation of a tracker
+    cov = (sig[:, :, None] * corr[None] * sig[:, None, :]).reshape(n, 36)
+    t0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+    frames = []
+    for k in range(epochs):
+        p = pos + vel * 5.0 * k
+        frames.append(pl.DataFrame({{
+            "run": np.zeros(n, np.uint32), "epoch": [t0 + timedelta(seconds=5 * k)] * n,
+            "track_id": np.arange(n, dtype=np.uint64),
+            "x_m": p[:, 0], "y_m": p[:, 1], "z_m": p[:, 2],
+            "vx_mps": vel[:, 0], "vy_mps": vel[:, 1], "vz_mps": vel[:, 2],
+        }}).with_columns(pl.col("epoch").cast(pl.Datetime("us", "UTC")),
+                        pl.Series("cov", cov, dtype=pl.Array(pl.Float64, 36)),
+                        pl.lit("bench").alias("method")))
+    return frames
+
+frames = traffic({n}, {box_m}, {epochs})
+cfg = ConflictConfig(mode="{mode}")
+predict_conflicts(frames[0].head(200), cfg)                    # warm-up
+rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+if "{what}" == "epoch":
+    times, cand, rows, alerts = [], [], [], []
+    for _ in range({repeat}):
+        for f in frames:
+            t = time.perf_counter()
+            out = predict_conflicts(f, cfg)
+            times.append(time.perf_counter() - t)
+            rows.append(out.height)
+            alerts.append(int(out["alert"].sum()))
+    screen = []
+    for f in frames:
+        t = time.perf_counter()
+        i, j = candidate_pairs(f, cfg)
+        screen.append(time.perf_counter() - t)
+        cand.append(len(i))
+    res = {{"s_per_epoch_best": min(times), "s_per_epoch_median": statistics.median(times),
+           "screen_s_median": statistics.median(screen), "candidate_pairs_per_epoch": statistics.mean(cand),
+           "output_rows_per_epoch": statistics.mean(rows), "alerts_per_epoch": statistics.mean(alerts)}}
+else:
+    allf = pl.concat(frames)
+    t = time.perf_counter()
+    out_all = predict_conflicts(allf, cfg)
+    res = {{"s_per_epoch_batch": (time.perf_counter() - t) / len(frames), "batch_rows": out_all.height}}
+res["rss_after_setup_mib"] = rss_before
+print(json.dumps(res))
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--aircraft", type=int, nargs="+", default=[1000, 10000])
+    ap.add_argument("--epochs", type=int, default=5)
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--modes", nargs="+", default=["corrected", "seed"])
+    ap.add_argument("--box-km", type=float, default=200.0)
+    ap.add_argument("--density", action="store_true", help="also run boxes growing with sqrt(N)")
+    args = ap.parse_args()
+    n_ref = min(args.aircraft)
+    cases = [("fixed_box", n, args.box_km * 1e3) for n in args.aircraft]
+    if args.density:
+        cases += [("constant_density", n, args.box_km * 1e3 * (n / n_ref) ** 0.5) for n in args.aircraft if n != n_ref]
+    results = []
+    for mode in args.modes:
+        for kind, n, box in cases:
+            kw = dict(n=n, box_m=box, epochs=args.epochs, repeat=args.repeat, mode=mode)
+            r = run_isolated(CODE.format(what="epoch", **kw))
+            bt = run_isolated(CODE.format(what="batch", **kw))
+            r.update({"mode": mode, "layout": kind, "aircraft": n, "box_km": box / 1e3,
+                      "per_epoch_call_rss_mib": r["peak_rss_mib"] - r["rss_after_setup_mib"],
+                      "s_per_epoch_batch": bt["s_per_epoch_batch"], "batch_rows": bt["batch_rows"],
+                      "batch_call_rss_mib": bt["peak_rss_mib"] - bt["rss_after_setup_mib"],
+                      "peak_rss_mib_batch": bt["peak_rss_mib"]})
+            results.append(r)
+            print(json.dumps(r))
+    payload = {
+        "scenario": {"epochs": args.epochs, "repeat": args.repeat, "traffic": "random terminal-like, heights 300-12000 m",
+                     "config": "ConflictConfig() defaults (terminal 3 NM / 1000 ft, T = 105 s, covariance thresholds)"},
+        "results": results,
+        "targets": {"s_per_epoch_10000": 0.5},
+    }
+    path = record("bench_conflicts", payload)
+    print(json.dumps(payload, indent=2))
+    print(f"recorded in {path}")
+
+
+if __name__ == "__main__":
+    main()
