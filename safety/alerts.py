@@ -61,7 +61,6 @@ from typing import Literal
 
 import numpy as np
 import polars as pl
-from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from safety.conflicts import ConflictConfig, predict_conflicts

@@ -107,8 +107,8 @@ of ordinary traffic; a 10 000-aircraft epoch is a block of its own).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
 import numpy as np

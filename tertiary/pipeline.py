@@ -2,7 +2,9 @@
 
 Stages are composed here and nowhere else: ingest/validate → align → gate + associate → fuse
 (every selected method, plus the centralised measurement-level bound) → cluster → secondary
-trackers on every fusion method's picture → evaluate → store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
+trackers on every fusion method's picture → conflict prediction on every picture → evaluate
+(accuracy, association, trackers, alerts against truth, capacity from the measured accuracy)
+→ store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
 """
 
 from __future__ import annotations
@@ -22,13 +24,15 @@ import dataclasses
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from tertiary import schema
 from tertiary.align import AlignConfig, align
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
-                               association_metrics, match_truth)
+                               association_metrics, match_truth, target_truth)
 from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
@@ -36,7 +40,15 @@ from tertiary.track_metrics import TrackMetricsConfig, tracker_metrics
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
 
+if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
+    from safety.conflicts import ConflictConfig
+
 Progress = Callable[[str], None]
+
+
+def _default_conflict_config() -> "ConflictConfig":
+    from safety.conflicts import ConflictConfig
+    return ConflictConfig()
 
 
 @dataclass
@@ -99,6 +111,8 @@ class PipelineConfig:
     centralized_cfg: CentralizedConfig = field(default_factory=CentralizedConfig)
     clustering: ClusteringConfig = field(default_factory=ClusteringConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    safety: bool = True
+    conflicts: ConflictConfig = field(default_factory=_default_conflict_config)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
 
@@ -113,6 +127,7 @@ class Results:
     fused: pl.DataFrame
     clusters: pl.DataFrame
     tracks: pl.DataFrame
+    conflicts: pl.DataFrame
     rejects: pl.DataFrame
     metrics: pl.DataFrame
     accuracy_by_epoch: pl.DataFrame
@@ -134,8 +149,9 @@ class _Clock:
             self.say(name)
 
 
-def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progress | None = None) -> Results:
-    """Run every stage in memory and return the tables."""
+def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None) -> Results:
+    """Run every stage in memory and return the tables (``cfg`` None = the defaults)."""
+    cfg = cfg or PipelineConfig()
     unknown = set(cfg.methods) - set(METHODS)
     if unknown:
         raise ValueError(f"unknown fusion method(s) {sorted(unknown)}; choose from {', '.join(METHODS)}")
@@ -166,12 +182,28 @@ def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progr
     pictures = fused.filter(pl.col("method") != "centralized")
     tracks = (track_methods(pictures, cfg.filters, cfg.tracker) if cfg.filters and pictures.height
               else schema.empty_frame("tracks", False))
+    # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
+    # circular when a program imports `safety` first
+    from safety import AlertConfig, capacity_from_metrics, predict_conflicts, score_alerts
+
+    conflicts = schema.empty_frame("conflicts", False)
+    if cfg.safety:
+        clock.stage("conflicts")
+        conflicts = predict_conflicts(fused, cfg.conflicts, id_col="target_id")
     clock.stage("evaluate")
     metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
-    if cfg.filters and ing.truth.height and tracks.height:
+    if ing.truth.height and "truth_id" in ing.reports.columns:
         report_truth = ing.reports.select("run", "report_id", "truth_id")
-        metrics = pl.concat([metrics, tracker_metrics(tracks, associations, report_truth, ing.truth,
-                                                      cfg.track_metrics)], how="vertical_relaxed")
+        extra = []
+        if cfg.filters and tracks.height:
+            extra.append(tracker_metrics(tracks, associations, report_truth, ing.truth, cfg.track_metrics))
+        if cfg.safety:
+            id_map = target_truth(associations, report_truth)
+            extra.append(score_alerts(conflicts, id_map, ing.truth, AlertConfig(conflict=cfg.conflicts),
+                                      id_col="target_id", methods=sorted(fused["method"].unique().to_list())))
+        metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
+        if cfg.safety:
+            metrics = pl.concat([metrics, capacity_from_metrics(metrics)], how="vertical_relaxed")
     clock.stage(None)
     clock.timings["alignment_to_clustering_s"] = sum(
         clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
@@ -181,9 +213,10 @@ def process(ds: Dataset, cfg: PipelineConfig = PipelineConfig(), progress: Progr
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
-              "track_rows": tracks.height}
-    return Results(ing, aligned, associations, fused, clusters, tracks, rejects, metrics, by_epoch, clock.timings,
-                   counts)
+              "track_rows": tracks.height, "conflict_rows": conflicts.height,
+              "alerts": int(conflicts["alert"].sum()) if conflicts.height else 0}
+    return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
+                   clock.timings, counts)
 
 
 def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, stage: str) -> pl.DataFrame:
@@ -221,9 +254,10 @@ def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, st
     return pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch
 
 
-def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig = PipelineConfig(), *,
+def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
         progress: Progress | None = None) -> Path:
     """Run the job on a dataset and write ``out_dir/results.duckdb`` atomically."""
+    cfg = cfg or PipelineConfig()
     say = progress or (lambda _m: None)
     res = process(ds, cfg, say)
     out = Path(out_dir)
@@ -235,7 +269,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig = PipelineConfig()
             frame = getattr(res.ingested, name)
             if frame.height:
                 store.write(name, frame)
-        for name in ("aligned", "associations", "fused", "clusters", "tracks", "rejects", "metrics",
+        for name in ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "rejects", "metrics",
                      "accuracy_by_epoch"):
             frame = getattr(res, name)
             if frame.width:
