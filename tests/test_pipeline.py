@@ -29,8 +29,28 @@ def test_row_accounting(small_terminal, results):
 
 
 def test_tables_follow_the_contract(results):
-    for name in ("aligned", "associations", "fused", "clusters", "metrics"):
+    for name in ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "metrics"):
         schema.validate(getattr(results, name), name, strict=True)
+
+
+def test_trackers_run_on_every_fusion_picture(results):
+    methods = set(results.tracks["method"].unique().to_list())
+    assert methods == set(METHODS)                          # not on the centralised bound
+    assert set(results.tracks["filter"].unique().to_list()) == {"singer", "imm_sym"}
+    m = results.metrics.filter((pl.col("stage") == "tracker") & (pl.col("segment") == "all"))
+    names = set(m["method"].unique().to_list())
+    assert {f"{meth}+{f}" for meth in METHODS for f in ("singer", "imm_sym")} == names
+    comp = m.filter(pl.col("metric") == "completeness")["value"]
+    assert comp.min() > 0.9
+
+
+def test_safety_metrics_per_picture(results):
+    assert results.conflicts.height > 0 and results.conflicts["alert"].any()
+    m = results.metrics.filter(pl.col("stage") == "safety")
+    for meth in set(METHODS) | {"centralized"}:
+        got = dict(zip(*m.filter(pl.col("method") == meth).select("metric", "value").to_dict().values()))
+        assert {"hits", "misses", "false_alerts", "mean_warning_s", "capacity_n_1e-6"} <= set(got)
+        assert got["hits"] + got["misses"] == got["episodes"]
 
 
 def test_every_method_and_the_bound_are_fused(results):
