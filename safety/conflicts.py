@@ -576,7 +576,6 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
     fixed = cfg.threshold_mode == "fixed" or terms is None
-    base_h = cfg.sep_h_m + cfg.pilot_h_at_t + (cfg.fixed_est_h_m if fixed else 0.0)
     base_v = cfg.sep_v_m + cfg.pilot_v_at_t + (cfg.fixed_est_v_m if fixed else 0.0)
     # 1. vertical: min over the window of |Δh + Δvz t| ≤ R_в^пор
     dz = z[j] - z[i]

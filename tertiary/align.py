@@ -24,7 +24,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
-from tertiary.local_tracks import ESTIMATE_COLUMNS, LocalTrackerConfig, track_reports
+from tertiary.local_tracks import LocalTrackerConfig, track_reports
 
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
 US = 1_000_000

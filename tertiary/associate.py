@@ -120,7 +120,6 @@ def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationCon
 
 def _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg) -> NDArray[np.int64]:
     """Rules 3–4 on each ambiguous component (loop over those components only)."""
-    pos = aligned.select("x_m", "y_m", "z_m").to_numpy()
     is_amb = np.isin(comp, ambiguous)
     members = np.flatnonzero(is_amb)
     order = members[np.argsort(comp[members], kind="stable")]

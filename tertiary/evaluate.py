@@ -153,7 +153,7 @@ def target_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.D
 # --------------------------------------------------------------------------- truth matching
 
 
-def _truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     """Truth state of ``samples`` (truth_id, epoch): exact or linearly interpolated between the
     neighbouring truth samples; null outside the aircraft's truth span."""
     cols = list(STATE)
@@ -195,11 +195,18 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
     tt = target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
     f = (f.join(tt.with_columns(pl.col(c).cast(f.schema[c]) for c in _KEY), on=_KEY, how="inner")
          .filter(pl.col("truth_id").is_not_null()))
-    m = _truth_at(f, truth)
+    return truth_at(f, truth).with_columns(error_columns())
+
+
+def error_columns() -> list[pl.Expr]:
+    """Expressions on rows holding an estimate (``x_m`` …) and its truth (``true_x_m`` …):
+    ``seg_class`` (straight/turn/null) and the squared errors ``e2_x``, ``e2_y``, ``e2_z``,
+    ``e2_pos`` (|Δp|²), ``e2_range`` ((|p| − |p_true|)², range from the processing centre)
+    and ``e2_vel`` (|Δv|²) — shared by the fusion and tracker evaluations."""
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
     r_t = (pl.col("true_x_m") ** 2 + pl.col("true_y_m") ** 2 + pl.col("true_z_m") ** 2).sqrt()
-    return m.with_columns(
+    return [
         pl.col("segment").replace_strict(SEGMENT_CLASSES, default=None, return_dtype=pl.String).alias("seg_class"),
         (d["x_m"] ** 2).alias("e2_x"),
         (d["y_m"] ** 2).alias("e2_y"),
@@ -207,7 +214,7 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
         (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
         ((r_f - r_t) ** 2).alias("e2_range"),
         (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
-    )
+    ]
 
 
 # --------------------------------------------------------------------------- accuracy

@@ -22,7 +22,6 @@ import polars as pl
 
 import dataclasses
 
-import numpy as np
 
 from typing import TYPE_CHECKING
 

@@ -51,8 +51,7 @@ from typing import Literal
 import polars as pl
 from scipy.stats import chi2
 
-from tertiary.evaluate import (EvaluateConfig, SEGMENT_CLASSES, _truth_at, accuracy_from_matched,
-                               target_truth)
+from tertiary.evaluate import EvaluateConfig, accuracy_from_matched, error_columns, target_truth, truth_at
 from tertiary.schema import TABLES, TIME
 
 __all__ = ["TrackMetricsConfig", "track_truth", "match_tracks", "tracker_metrics", "chi2_band",
@@ -129,19 +128,11 @@ def match_tracks(tracks: pl.DataFrame, associations: pl.DataFrame, report_truth:
         t = t.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
     t = t.filter(pl.col("truth_id").is_not_null())
     keep = ["label", "run", "epoch", "track_id", "status", "truth_id", *STATE, "cov_diag", "nis"]
-    m = _truth_at(t.select(keep), truth)
+    m = truth_at(t.select(keep), truth)
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     var = [pl.col("cov_diag").arr.get(i) for i in range(3)]
-    r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
-    r_t = (pl.col("true_x_m") ** 2 + pl.col("true_y_m") ** 2 + pl.col("true_z_m") ** 2).sqrt()
     return m.with_columns(
-        pl.col("segment").replace_strict(SEGMENT_CLASSES, default=None, return_dtype=pl.String).alias("seg_class"),
-        (d["x_m"] ** 2).alias("e2_x"),
-        (d["y_m"] ** 2).alias("e2_y"),
-        (d["z_m"] ** 2).alias("e2_z"),
-        (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
-        ((r_f - r_t) ** 2).alias("e2_range"),
-        (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
+        *error_columns(),
         (d["x_m"] ** 2 / var[0] + d["y_m"] ** 2 / var[1] + d["z_m"] ** 2 / var[2]).alias("nees_pos"),
         (var[0] + var[1] + var[2]).sqrt().alias("sd_pos"),
     )

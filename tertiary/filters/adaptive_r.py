@@ -33,7 +33,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary.filters.base import F64, REGISTRY, Innovation, Output, State, TrackFilter, make_filter, register
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, make_filter, register
 
 PREFIX = "aekf_"
 
@@ -43,15 +43,6 @@ def _resolve(inner: str | TrackFilter, params: dict) -> TrackFilter:
         if params:
             raise ValueError("inner filter parameters apply only when `inner` is a registry name")
         return inner
-    if inner not in REGISTRY:
-        # filters register on import; load the family's modules that may define it
-        import importlib
-
-        for mod in ("linear", "singer", "imm", "ekf", "quasi_optimal"):
-            try:
-                importlib.import_module(f"tertiary.filters.{mod}")
-            except ImportError:  # pragma: no cover - optional modules
-                pass
     return make_filter(inner, **params)
 
 

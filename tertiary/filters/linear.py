@@ -40,6 +40,8 @@ Common conventions:
 
 from __future__ import annotations
 
+from abc import abstractmethod
+
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar, Literal
@@ -323,11 +325,13 @@ class _FixedGain(TrackFilter):
 
     n: ClassVar[int]
 
+    @abstractmethod
     def _gains(self, tau: F64, r: F64) -> list[F64]:
-        raise NotImplementedError
+        """The filter's gains per state component for steps ``tau`` and variances ``r``."""
 
+    @abstractmethod
     def _q(self, tau: F64) -> tuple[F64, ...]:
-        raise NotImplementedError
+        """The design-model process noise used to propagate the error covariance."""
 
     def init(self, z: F64, r: F64) -> State:
         x, p = _init_state(z, r, self.n, self.v0_sigma**2, 0.0 if self.n == 3 else None)
