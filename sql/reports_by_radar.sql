@@ -2,6 +2,8 @@
 -- simulation only) and the range-innovation consistency of each radar's own tracker
 -- (innovation mean and standard deviation, and the SD of innovations normalised by their
 -- predicted SD: about 1 for a consistent tracker).
+-- Columns: radar_id, name, reports, local_tracks, first_time, last_time, reports_without_truth,
+-- res_range_mean_m, res_range_sd_m, res_range_normalised_sd.
 SELECT r.radar_id,
        d.name,
        count(*)                                                      AS reports,

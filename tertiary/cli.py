@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import sys
 import time
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import polars as pl
 import typer
@@ -148,9 +150,11 @@ def run(
     methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = ",".join(METHODS),
     centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level bound")] = True,
     filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none)")] = "singer,imm_sym",
+    report: Annotated[bool, typer.Option("--report/--no-report",
+                                         help="also write RUN_DIR/report.html (plotly, self-contained)")] = True,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, evaluate and
-    store everything in RUN_DIR/results.duckdb."""
+    store everything in RUN_DIR/results.duckdb, then write the HTML report RUN_DIR/report.html."""
     t = time.perf_counter()
     chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
     bad = [m for m in chosen if m not in METHODS]
@@ -171,7 +175,136 @@ def run(
     with _progress() as prog:
         task = prog.add_task("pipeline", total=None)
         db = pipeline.run(ds, run_dir, cfg, progress=lambda m: prog.update(task, description=f"pipeline: {m}"))
-    console.print(f"[green]done[/] in {time.perf_counter() - t:.1f} s: {db}")
+        prog.update(task, description="pipeline: done")
+    html_path = _report_with_progress(run_dir) if report else None
+    console.print(f"[green]done[/] in {time.perf_counter() - t:.1f} s")
+    console.print(f"  results: {db}")
+    if html_path is not None:
+        console.print(f"  report:  {html_path} ({html_path.stat().st_size / 1e6:.1f} MB)")
+
+
+def _report_with_progress(run_dir: Path, out: Path | None = None) -> Path:
+    from tertiary.report import build_report
+    with _progress() as prog:
+        task = prog.add_task("report", total=None)
+        path = build_report(run_dir, out, progress=lambda m: prog.update(task, description=m))
+        prog.update(task, description="report: written")
+    return path
+
+
+@app.command("report")
+def report_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="HTML file (default RUN_DIR/report.html)")] = None,
+) -> None:
+    """Write the self-contained HTML report of a run (figures from the sql/ reports)."""
+    if not (run_dir / "results.duckdb").is_file() and not run_dir.is_file():
+        console.print(f"[red]error:[/] no run database at {run_dir / 'results.duckdb'}")
+        raise typer.Exit(1)
+    t = time.perf_counter()
+    path = _report_with_progress(run_dir, out)
+    console.print(f"[green]wrote[/] {path} ({path.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t:.1f} s")
+
+
+def _param_value(text: str) -> Any:
+    """A --param value: a JSON literal (number, null, true/false, "text") or else plain text."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _print_frame(frame: pl.DataFrame, title: str, limit: int) -> None:
+    from tertiary.report import _fmt
+    table = Table(title=title, caption=(f"{frame.height:,} rows" + (f" (first {limit:,} shown)" if frame.height > limit
+                                                                   else "")))
+    for col, dtype in frame.schema.items():
+        numeric = dtype.is_numeric()
+        table.add_column(col, justify="right" if numeric else "left", overflow="fold")
+    for row in frame.head(limit).iter_rows():
+        table.add_row(*[_fmt(v) for v in row])
+    console.print(table)
+
+
+@app.command("sql")
+def sql_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
+    name: Annotated[Optional[str], typer.Argument(help="named report (see --list)")] = None,
+    list_: Annotated[bool, typer.Option("--list", help="list the named reports")] = False,
+    query: Annotated[Optional[str], typer.Option("--query", "-q", help="ad-hoc read-only SQL")] = None,
+    param: Annotated[Optional[list[str]], typer.Option("--param", "-p",
+                                                       help="report parameter NAME=VALUE (repeatable)")] = None,
+    fmt: Annotated[str, typer.Option("--format", "-f", help="table (print), csv or parquet")] = "table",
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="export file (written atomically)")] = None,
+    limit: Annotated[int, typer.Option(help="rows printed in table format")] = 100,
+) -> None:
+    """Run a named SQL report (sql/NAME.sql) or an ad-hoc read-only query on a run database.
+
+    tertiary sql RUN_DIR --list; tertiary sql RUN_DIR NAME [-p KEY=VALUE] [--format csv|parquet --out FILE];
+    tertiary sql RUN_DIR --query "SELECT ..."."""
+    import duckdb
+
+    from tertiary import sql_reports
+
+    chosen = sum([bool(list_), name is not None, query is not None])
+    if chosen != 1:
+        console.print("[red]error:[/] give exactly one of NAME, --list or --query")
+        raise typer.Exit(2)
+    if list_:
+        table = Table(title=f"named SQL reports ({sql_reports.sql_dir()})")
+        table.add_column("name", no_wrap=True)
+        table.add_column("answers", overflow="fold", ratio=3)
+        table.add_column("parameters", overflow="fold", ratio=1)
+        for rep in sql_reports.list_reports():
+            params = ", ".join(f"{k}={json.dumps(v)}" for k, v in rep.params.items())
+            table.add_row(rep.name, rep.description.split("Columns:")[0].replace("\n", " ").strip(), params)
+        console.print(table)
+        return
+    if fmt not in ("table", "csv", "parquet"):
+        raise typer.BadParameter("use table, csv or parquet", param_hint="--format")
+    if fmt == "table" and out is not None:
+        fmt = {".csv": "csv", ".parquet": "parquet"}.get(out.suffix.lower(), "")
+        if not fmt:
+            raise typer.BadParameter("give --format csv|parquet (or an .csv/.parquet file name)", param_hint="--out")
+    if fmt == "parquet" and out is None:
+        raise typer.BadParameter("parquet needs --out FILE", param_hint="--out")
+    params: dict[str, Any] = {}
+    for item in param or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise typer.BadParameter(f"expected NAME=VALUE, got {item!r}", param_hint="--param")
+        params[key.strip()] = _param_value(value)
+    if query is not None and params:
+        raise typer.BadParameter("--param applies to named reports only", param_hint="--param")
+    try:
+        with sql_reports.open_read_only(run_dir) as store:
+            if query is not None:
+                frame, title = sql_reports.query(store, query), "query"
+            else:
+                frame, title = sql_reports.run_report(store, name, params), name
+    except FileNotFoundError as exc:
+        console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(1)
+    except sql_reports.ReadOnlyQueryError as exc:
+        console.print(f"[red]read-only:[/] {exc}")
+        raise typer.Exit(1)
+    except KeyError as exc:
+        console.print(f"[red]error:[/] {exc.args[0] if exc.args else exc}")
+        raise typer.Exit(1)
+    except duckdb.Error as exc:
+        msg = str(exc)
+        if "read-only" in msg or "read_only" in msg.lower():
+            console.print(f"[red]read-only:[/] the run database is opened read-only: {msg}")
+        else:
+            console.print(f"[red]SQL error:[/] {msg}")
+        raise typer.Exit(1)
+    if out is not None:
+        path = sql_reports.export_frame(frame, out, fmt)
+        console.print(f"[green]wrote[/] {path} ({frame.height:,} rows, {fmt})")
+    elif fmt == "csv":
+        sys.stdout.write(sql_reports.frame_to_csv(frame))
+    else:
+        _print_frame(frame, title, limit)
 
 
 @app.command()

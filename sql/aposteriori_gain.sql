@@ -1,0 +1,33 @@
+-- A-posteriori gain summary (seed fig. 4.11, reproduction target 4): for each a-posteriori method
+-- and a-priori reference, the gain g(k) = 1 − σ_post(k)/σ_prior(k) — its maximum over all epochs,
+-- its maximum over the manoeuvre epochs (at least half of the aircraft in truth fly a turn), its
+-- time average — and the pooled gain 1 − sqrt(mean σ_post²) / sqrt(mean σ_prior²).
+-- Columns: posterior, prior, epochs, max_gain, max_gain_manoeuvre, manoeuvre_epochs, mean_gain,
+-- pooled_gain.
+-- param: metric = "rmse_range_m"   accuracy metric of accuracy_by_epoch
+WITH turning AS (
+    SELECT time AS epoch, avg(CASE WHEN segment = 'turn' THEN 1.0 ELSE 0.0 END) >= 0.5 AS manoeuvre
+    FROM truth
+    GROUP BY time
+),
+pairs AS (
+    SELECT p.method AS posterior, q.method AS prior, p.epoch, p.value AS sigma_post, q.value AS sigma_prior,
+           1 - p.value / nullif(q.value, 0) AS gain
+    FROM accuracy_by_epoch AS p
+    JOIN accuracy_by_epoch AS q ON q.epoch = p.epoch AND q.metric = p.metric
+    WHERE p.metric = $metric
+      AND p.method IN ('aposteriori', 'aposteriori_seed')
+      AND q.method IN ('apriori', 'arithmetic')
+)
+SELECT posterior,
+       prior,
+       count(*)                                                 AS epochs,
+       max(gain)                                                AS max_gain,
+       max(gain) FILTER (WHERE coalesce(t.manoeuvre, false))    AS max_gain_manoeuvre,
+       count(*) FILTER (WHERE coalesce(t.manoeuvre, false))     AS manoeuvre_epochs,
+       avg(gain)                                                AS mean_gain,
+       1 - sqrt(avg(sigma_post * sigma_post)) / nullif(sqrt(avg(sigma_prior * sigma_prior)), 0) AS pooled_gain
+FROM pairs
+LEFT JOIN turning AS t USING (epoch)
+GROUP BY posterior, prior
+ORDER BY posterior, prior;

@@ -1,0 +1,682 @@
+"""``tertiary report``: one self-contained HTML file per run (``RUN_DIR/report.html``).
+
+Every figure and table is drawn from the named SQL reports in ``sql/`` (run read-only through
+:mod:`tertiary.sql_reports`); only the capacity-model curves of figs. 5.2/5.3 come from
+:mod:`safety.capacity`. The plotly.js bundle is embedded inline once, so the file opens offline.
+
+Figures (seed numbering, digest §9):
+
+* 4.4  scenario map: radar sites and truth trajectories (``trajectories``, ``radar_sites``)
+* 4.5–4.7  range, range rate and line-of-sight acceleration per radar over time, first run, a
+  few aircraft (``radar_kinematics``)
+* 4.9  range residuals per radar over time (``radar_residuals_over_time``)
+* 4.10 real RMS range error over time per radar and for the tertiary estimate
+  (``radar_accuracy_over_time``, ``accuracy_over_time``)
+* 4.11 a-posteriori versus a-priori weights (``aposteriori_vs_apriori``, ``aposteriori_gain``)
+* accuracy by method, filter and segment (``accuracy_by_method``)
+* conflict timeline (``conflict_timeline``, ``conflicts``, ``alert_scores``)
+* 5.2  P_pob against the number of aircraft for several σ (``safety.capacity.ppob_curves``)
+* 5.3  capacity against σ with each method's measured point (``safety.capacity.capacity_curve``,
+  ``capacity_by_method``)
+
+plus tables of association, track and cluster quality, and the run metadata (configuration,
+versions, input fingerprints, timings, row accounting, rejects).
+
+Size is bounded: trajectories are thinned in SQL, time series are capped at
+:data:`MAX_POINTS` points per trace and arrays are stored as base64 float32, so the default
+terminal-area run gives a few MB (of which plotly.js is about 4.6 MB).
+
+Browser checks: a small script in the page head records every JavaScript error (``error`` and
+``unhandledrejection`` events) into ``<pre id="js-errors">`` and ``body[data-js-errors]``;
+each figure increments ``body[data-rendered]`` once plotly has drawn it, and
+``body[data-figures]`` holds the number of figures in the file.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from tertiary.sql_reports import open_read_only, run_report
+from tertiary.store import RunStore, write_text_atomic
+
+__all__ = ["REPORT_FILENAME", "MAX_POINTS", "build_report", "render_report", "figure_count"]
+
+REPORT_FILENAME = "report.html"
+#: most points drawn per time-series trace (longer series are thinned evenly)
+MAX_POINTS = 2000
+#: aircraft shown in the range / range-rate / acceleration figures
+KINEMATICS_AIRCRAFT = 3
+#: conflicts listed in the conflicts table
+CONFLICT_ROWS = 25
+
+Progress = Callable[[str], None]
+
+_COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2",
+           "#7f7f7f", "#bcbd22"]
+_DASHES = ["solid", "dash", "dot", "dashdot", "longdash", "longdashdot"]
+
+
+# --------------------------------------------------------------------------- sections
+
+
+@dataclass
+class _Section:
+    key: str
+    title: str
+    text: str = ""
+    figures: list[tuple[Any, str]] = field(default_factory=list)   # (plotly figure, caption)
+    tables: list[tuple[str, pl.DataFrame]] = field(default_factory=list)
+    html: str = ""
+    note: str = ""
+
+
+class _Ctx:
+    """The run being reported: store, run record and a few derived facts."""
+
+    def __init__(self, store: RunStore, say: Progress):
+        self.store = store
+        self.say = say
+        self.tables = set(store.tables())
+        self.record = {k: v for k, v in store.sql("SELECT key, value FROM run").iter_rows()} if "run" in self.tables else {}
+        self.scenario = _toml(self.record.get("scenario_toml", ""))
+
+    def q(self, name: str, **params: Any) -> pl.DataFrame:
+        return run_report(self.store, name, params)
+
+    def json(self, key: str) -> Any:
+        raw = self.record.get(key)
+        if raw is None:
+            return None
+        try:
+            return json.loads(raw)
+        except json.JSONDecodeError:
+            return raw
+
+
+def _toml(text: str) -> dict:
+    try:
+        return tomllib.loads(text) if text else {}
+    except tomllib.TOMLDecodeError:
+        return {}
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _go():
+    import plotly.graph_objects as go
+    return go
+
+
+def _arr(values: Any) -> np.ndarray:
+    """float32 array (compact base64 in the HTML); nulls become NaN."""
+    if isinstance(values, pl.Series):
+        values = values.cast(pl.Float64).fill_null(float("nan")).to_numpy()
+    return np.asarray(values, dtype=np.float32)
+
+
+def _thin(frame: pl.DataFrame, max_points: int = MAX_POINTS) -> pl.DataFrame:
+    """Every k-th row so that at most ``max_points`` remain (the last row always kept)."""
+    n = frame.height
+    if n <= max_points:
+        return frame
+    step = math.ceil(n / max_points)
+    idx = pl.int_range(pl.len())
+    return frame.filter((idx % step == 0) | (idx == n - 1))
+
+
+def _layout(fig, title: str, xtitle: str, ytitle: str, height: int = 460, **kw: Any) -> None:
+    fig.update_layout(title=dict(text=title, x=0.01), template="plotly_white", height=height,
+                      margin=dict(l=70, r=20, t=60, b=55), legend=dict(orientation="v"),
+                      hovermode="closest", **kw)
+    fig.update_xaxes(title_text=xtitle)
+    fig.update_yaxes(title_text=ytitle)
+
+
+def _radar_names(frame: pl.DataFrame) -> dict[int, str]:
+    return {int(r): str(n) for r, n in frame.select("radar_id", "name").unique().iter_rows()}
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        if math.isnan(v):
+            return "NaN"
+        if math.isinf(v):
+            return "∞" if v > 0 else "−∞"
+        if v == int(v) and abs(v) < 1e15:
+            return f"{int(v):,}"
+        a = abs(v)
+        if a >= 1000:
+            return f"{v:,.1f}"
+        if a >= 1e-3:
+            return f"{v:.4g}"
+        return f"{v:.3g}"
+    if isinstance(v, int):
+        return f"{v:,}"
+    if isinstance(v, datetime):
+        return v.astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M:%S") if v.tzinfo else v.isoformat(sep=" ")
+    if isinstance(v, (list, tuple, dict)):
+        return json.dumps(v, default=str)
+    return str(v)
+
+
+def _table_html(frame: pl.DataFrame, max_rows: int | None = None) -> str:
+    if frame.width == 0:
+        return '<p class="note">(no columns)</p>'
+    rows = frame if max_rows is None else frame.head(max_rows)
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in frame.columns)
+    body = []
+    for row in rows.iter_rows():
+        cells = []
+        for v in row:
+            cls = ' class="num"' if isinstance(v, (int, float)) and not isinstance(v, bool) else ""
+            cells.append(f"<td{cls}>{html.escape(_fmt(v))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    if not body:
+        body.append(f'<tr><td colspan="{frame.width}" class="note">no rows</td></tr>')
+    more = ""
+    if max_rows is not None and frame.height > max_rows:
+        more = f'<p class="note">first {max_rows:,} of {frame.height:,} rows</p>'
+    return f'<div class="tablewrap"><table><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table></div>{more}'
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _sec_map(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("map", "Scenario map (seed fig. 4.4)")
+    n_aircraft = ctx.store.sql("SELECT count(DISTINCT truth_id) AS n FROM truth").item() if "truth" in ctx.tables else 0
+    duration = float(ctx.scenario.get("duration_s") or 0.0)
+    # about 60 000 map points in all: the thinning step grows with traffic and duration
+    step = max(1, math.ceil(n_aircraft * max(duration, 1.0) / 60_000)) if n_aircraft else 10
+    traj = ctx.q("trajectories", step_s=step)
+    sites = ctx.q("radar_sites")
+    fig = go.Figure()
+    if traj.height:
+        # one trace, aircraft separated by NaN gaps
+        gap = traj.select("truth_id").with_columns(pl.col("truth_id").shift(-1).ne(pl.col("truth_id")).fill_null(False)
+                                                   .alias("end"))
+        xs, ys = traj["x_m"].to_numpy() / 1000.0, traj["y_m"].to_numpy() / 1000.0
+        ends = np.flatnonzero(gap["end"].to_numpy()) + 1
+        x = np.insert(xs, ends, np.nan)
+        y = np.insert(ys, ends, np.nan)
+        fig.add_trace(go.Scatter(x=_arr(x), y=_arr(y), mode="lines", line=dict(width=1, color="#7f9fbf"),
+                                 name=f"trajectories ({traj['truth_id'].n_unique()} aircraft)", hoverinfo="skip"))
+        starts = traj.group_by("truth_id", maintain_order=True).first()
+        fig.add_trace(go.Scatter(x=_arr(starts["x_m"] / 1000.0), y=_arr(starts["y_m"] / 1000.0), mode="markers",
+                                 marker=dict(size=4, color="#1f4e79"), name="start of track",
+                                 text=[f"aircraft {i}" for i in starts["truth_id"]], hoverinfo="text"))
+    enu = _site_enu(ctx, sites)
+    if enu is not None:
+        fig.add_trace(go.Scatter(x=_arr(enu[0] / 1000.0), y=_arr(enu[1] / 1000.0), mode="markers+text",
+                                 marker=dict(symbol="triangle-up", size=14, color="#d62728"),
+                                 text=sites["name"].to_list(), textposition="top center", name="radar sites"))
+    else:
+        sec.note = "Radar sites not drawn: the run record has no processing-centre origin."
+    _layout(fig, "Truth trajectories and radar sites (system frame)", "east x (km)", "north y (km)", height=620)
+    fig.update_yaxes(scaleanchor="x", scaleratio=1)
+    sec.figures.append((fig, f"Truth positions thinned to one point per aircraft every {step} s "
+                             "(sql/trajectories.sql); radar sites from sql/radar_sites.sql converted to the "
+                             "system ENU frame."))
+    sec.tables.append(("Radar sites", sites))
+    return sec
+
+
+def _site_enu(ctx: _Ctx, sites: pl.DataFrame) -> tuple[np.ndarray, np.ndarray] | None:
+    origin = ctx.scenario.get("origin")
+    if not origin or len(origin) < 2 or sites.height == 0:
+        return None
+    from tertiary.geo import LocalFrame
+    frame = LocalFrame(float(origin[0]), float(origin[1]), float(origin[2]) if len(origin) > 2 else 0.0)
+    e, n, _u = frame.from_geodetic(sites["lat_deg"].to_numpy(), sites["lon_deg"].to_numpy(), sites["alt_m"].to_numpy())
+    return np.asarray(e), np.asarray(n)
+
+
+def _sec_kinematics(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("kinematics", "Range, range rate and acceleration per radar (seed figs. 4.5–4.7)")
+    kin = ctx.q("radar_kinematics", max_aircraft=KINEMATICS_AIRCRAFT)
+    names = _radar_names(kin) if kin.height else {}
+    radars = sorted(names)
+    aircraft = sorted(kin["truth_id"].unique().to_list()) if kin.height else []
+    specs = [("est_range_m", "Range D(k) per radar (fig. 4.5)", "range D (km)", 1e-3),
+             ("est_range_rate_mps", "Range rate V(k) per radar (fig. 4.6)", "range rate V (m/s)", 1.0),
+             ("accel_mps2", "Line-of-sight acceleration a(k) = ΔV/Δt per radar (fig. 4.7)", "acceleration (m/s²)", 1.0)]
+    for col, title, ytitle, scale in specs:
+        fig = go.Figure()
+        for i, rid in enumerate(radars):
+            for j, ac in enumerate(aircraft):
+                part = kin.filter((pl.col("radar_id") == rid) & (pl.col("truth_id") == ac))
+                if part.height == 0:
+                    continue
+                # NaN gaps between local tracks of the same aircraft
+                part = _thin(part.sort("local_track_id", "time"))
+                brk = np.flatnonzero(np.diff(part["local_track_id"].to_numpy()) != 0) + 1
+                x = np.insert(part["t_s"].to_numpy(), brk, np.nan)
+                y = np.insert(part[col].cast(pl.Float64).fill_null(float("nan")).to_numpy() * scale, brk, np.nan)
+                label = f"{names[rid]} · aircraft {ac}" if len(aircraft) > 1 else names[rid]
+                fig.add_trace(go.Scatter(x=_arr(x), y=_arr(y), mode="lines", name=label,
+                                         line=dict(color=_COLORS[i % len(_COLORS)], dash=_DASHES[j % len(_DASHES)],
+                                                   width=1.3)))
+        _layout(fig, title, "time t (s)", ytitle)
+        if col == "accel_mps2" and kin.height:
+            # the first seconds of a track (filter transient) would swamp the scale
+            lo, hi = kin.select(pl.col(col).quantile(0.005).alias("lo"), pl.col(col).quantile(0.995).alias("hi")).row(0)
+            if lo is not None and hi is not None and hi > lo:
+                pad = 0.25 * (hi - lo)
+                fig.update_yaxes(range=[lo - pad, hi + pad])
+        sec.figures.append((fig, ""))
+    sec.text = (f"Each radar's own track estimates (est_range_m, est_range_rate_mps) for the first Monte-Carlo "
+                f"run and the {len(aircraft)} aircraft seen by the most radars (sql/radar_kinematics.sql, "
+                f"{kin.height:,} reports); the acceleration is the difference of consecutive range-rate estimates "
+                "over their time step.")
+    return sec
+
+
+def _bin_s(ctx: _Ctx) -> float:
+    duration = float(ctx.scenario.get("duration_s") or 0.0)
+    sites = ctx.q("radar_sites")
+    scan = sites["scan_period_s"].max() if sites.height else 1.0
+    return float(max(1.0, round(max(scan or 1.0, duration / 300.0))))
+
+
+def _sec_residuals(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("residuals", "Range residuals per radar (seed fig. 4.9)")
+    bin_s = _bin_s(ctx)
+    res = ctx.q("radar_residuals_over_time", bin_s=bin_s)
+    fig = go.Figure()
+    for i, (rid, name) in enumerate(sorted(_radar_names(res).items()) if res.height else []):
+        part = _thin(res.filter(pl.col("radar_id") == rid))
+        color = _COLORS[i % len(_COLORS)]
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["mean_abs_res_m"]), mode="lines",
+                                 name=f"{name} mean |ΔD|", line=dict(color=color, width=1.5)))
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["pred_sd_m"]), mode="lines",
+                                 name=f"{name} predicted SD", line=dict(color=color, width=1, dash="dot"),
+                                 visible="legendonly"))
+    _layout(fig, f"Mean |range innovation| per radar, {bin_s:g} s bins", "time t (s)", "|ΔD| (m)")
+    sec.figures.append((fig, "Each radar's own range innovation |res_range_m| averaged over aircraft and runs in "
+                             f"{bin_s:g} s bins (sql/radar_residuals_over_time.sql); dotted: mean predicted "
+                             "innovation SD (click the legend)."))
+    sec.tables.append(("Residual statistics per radar (sql/radar_residuals.sql)", ctx.q("radar_residuals")))
+    return sec
+
+
+def _sec_rmse_time(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("rmse_time", "Real RMS range error over time (seed fig. 4.10)")
+    radar = ctx.q("radar_accuracy_over_time")
+    tert = ctx.q("accuracy_over_time", metric="rmse_range_m")
+    fig = go.Figure()
+    for i, (rid, name) in enumerate(sorted(_radar_names(radar).items()) if radar.height else []):
+        part = _thin(radar.filter(pl.col("radar_id") == rid))
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["rmse_range_m"]), mode="lines",
+                                 name=f"radar {name}", line=dict(color=_COLORS[i % len(_COLORS)], width=1.2)))
+    methods = tert["method"].unique(maintain_order=True).to_list() if tert.height else []
+    main = "aposteriori" if "aposteriori" in methods else (methods[0] if methods else None)
+    for k, m in enumerate(methods):
+        part = _thin(tert.filter(pl.col("method") == m))
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["value"]), mode="lines",
+                                 name=f"tertiary: {m}", line=dict(color="black" if m == main else None,
+                                                                  width=2.2 if m == main else 1.2,
+                                                                  dash="solid" if m == main else _DASHES[k % len(_DASHES)]),
+                                 visible=True if m == main else "legendonly"))
+    _layout(fig, "σ(k): each radar's own estimate and the tertiary (fused) estimate", "time t (s)",
+            "RMS range error (m)")
+    sec.figures.append((fig, "Per-radar curves: the radars' own track estimates aligned to the common epochs, "
+                             "scored against truth in SQL (sql/radar_accuracy_over_time.sql: N − 1 denominator over "
+                             "the aircraft and runs at each epoch, range from the processing centre, first 20 s of "
+                             "each local track left out). Tertiary curves: accuracy_by_epoch "
+                             "(sql/accuracy_over_time.sql); other fusion methods are in the legend."))
+    return sec
+
+
+def _sec_post_prior(ctx: _Ctx) -> _Section:
+    go = _go()
+    from plotly.subplots import make_subplots
+    sec = _Section("post_prior", "A-posteriori versus a-priori weights (seed fig. 4.11)")
+    pp = ctx.q("aposteriori_vs_apriori")
+    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.08, row_heights=[0.6, 0.4])
+    colors = {"aposteriori": "#d62728", "aposteriori_seed": "#ff7f0e", "apriori": "#1f77b4", "arithmetic": "#2ca02c"}
+    drawn = set()
+    for (post, prior), part in (pp.group_by("posterior", "prior", maintain_order=True) if pp.height else []):
+        part = _thin(part.sort("epoch"))
+        for m, col in ((post, "sigma_post"), (prior, "sigma_prior")):
+            if m in drawn:
+                continue
+            drawn.add(m)
+            fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part[col]), mode="lines", name=f"σ {m}",
+                                     line=dict(color=colors.get(m), width=1.4)), row=1, col=1)
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["gain"] * 100.0), mode="lines",
+                                 name=f"gain {post} vs {prior}",
+                                 line=dict(color=colors.get(post), dash="solid" if prior == "apriori" else "dot",
+                                           width=1.1)), row=2, col=1)
+    _layout(fig, "Tertiary RMS range error with a-posteriori and a-priori weights, and the gain", "", "", height=620)
+    fig.update_yaxes(title_text="σ range (m)", row=1, col=1)
+    fig.update_yaxes(title_text="1 − σ_post/σ_prior (%)", row=2, col=1)
+    fig.update_xaxes(title_text="time t (s)", row=2, col=1)
+    sec.figures.append((fig, "From accuracy_by_epoch (sql/aposteriori_vs_apriori.sql); gain > 0 where the "
+                             "a-posteriori weights beat the reference (solid: a-priori weights, dotted: "
+                             "arithmetic 0.5/0.5)."))
+    sec.tables.append(("Gain summary (sql/aposteriori_gain.sql)", ctx.q("aposteriori_gain")))
+    return sec
+
+
+def _sec_accuracy(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("accuracy", "Accuracy by method, filter and segment")
+    acc = ctx.q("accuracy_by_method")
+    fig = go.Figure()
+    fus = acc.filter(pl.col("stage") == "fusion") if acc.height else acc
+    for i, seg in enumerate(["all", "straight", "turn"]):
+        part = fus.filter(pl.col("segment") == seg) if fus.height else fus
+        if part.height == 0:
+            continue
+        fig.add_trace(go.Bar(x=part["method"].to_list(), y=_arr(part["rmse_pos_m"]), name=f"segment {seg}",
+                             marker_color=_COLORS[i]))
+    trk = acc.filter((pl.col("stage") == "tracker") & (pl.col("segment") == "all")) if acc.height else acc
+    if trk.height:
+        fig.add_trace(go.Bar(x=trk["method"].to_list(), y=_arr(trk["rmse_pos_m"]),
+                             name="after tracker (all)", marker_color="#7f7f7f",
+                             text=trk["filter"].to_list(), visible="legendonly"))
+    _layout(fig, "Real RMS position error of each fusion method", "fusion method", "RMSE position (m)",
+            barmode="group")
+    sec.figures.append((fig, "From the metrics table (sql/accuracy_by_method.sql); the centralized "
+                             "measurement-level Kalman filter is the bound."))
+    sec.tables.append(("RMSE by method, filter and segment (sql/accuracy_by_method.sql)", acc))
+    return sec
+
+
+def _sec_quality(ctx: _Ctx) -> _Section:
+    sec = _Section("quality", "Association, track and cluster quality")
+    sec.tables.append(("Association quality (sql/association_quality.sql)", ctx.q("association_quality")))
+    sec.tables.append(("Track quality (sql/track_quality.sql)", ctx.q("track_quality")))
+    sec.tables.append(("Cluster statistics (sql/cluster_statistics.sql)", ctx.q("cluster_statistics")))
+    return sec
+
+
+def _sec_conflicts(ctx: _Ctx) -> _Section:
+    go = _go()
+    sec = _Section("conflicts", "Conflicts")
+    tl = ctx.q("conflict_timeline")
+    fig = go.Figure()
+    methods = tl["method"].unique(maintain_order=True).to_list() if tl.height else []
+    for i, m in enumerate(methods):
+        part = _thin(tl.filter(pl.col("method") == m))
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["alerts"]), mode="lines", name=m,
+                                 line=dict(color=_COLORS[i % len(_COLORS)], width=1.2, shape="hv"),
+                                 visible=True if i < 3 or m == "aposteriori" else "legendonly"))
+    _layout(fig, "Pairs in conflict alert per epoch, per picture", "time t (s)", "alerts")
+    sec.figures.append((fig, "Conflict prediction (5.10)–(5.17) on every fused picture (sql/conflict_timeline.sql)."
+                        if methods else "No aircraft pairs were evaluated (single-aircraft scenario?)."))
+    sec.tables.append(("Alert scores against truth (sql/alert_scores.sql)", ctx.q("alert_scores")))
+    conflicts = ctx.q("conflicts")
+    sec.tables.append((f"Most severe conflicts (sql/conflicts.sql; {conflicts.height:,} alerted pairs)",
+                       conflicts.head(CONFLICT_ROWS)))
+    return sec
+
+
+def _sec_ppob(ctx: _Ctx) -> _Section:
+    go = _go()
+    from safety.capacity import V_BC_M3, V_ZO_M3, ppob_curves
+    sec = _Section("ppob", "Conflict probability against traffic (seed fig. 5.2)")
+    sigmas = (50.0, 100.0, 200.0)
+    cur = ppob_curves(n=tuple(range(2, 201)), sigmas=sigmas)
+    fig = go.Figure()
+    dashes = {"seed": "solid", "sound_one": "dash", "sound_any": "dot"}
+    for i, s in enumerate(sigmas):
+        for model in ("seed", "sound_one", "sound_any"):
+            part = cur.filter((pl.col("sigma_m") == s) & (pl.col("model") == model))
+            p = part.select(pl.when(pl.col("valid") & (pl.col("p") > 0)).then(pl.col("p"))).to_series()
+            fig.add_trace(go.Scatter(x=_arr(part["n"]), y=_arr(p), mode="lines", name=f"σ = {s:g} m, {model}",
+                                     line=dict(color=_COLORS[i], dash=dashes[model], width=1.5)))
+    _layout(fig, "P_pob against the number of aircraft n", "number of aircraft n", "probability")
+    fig.update_yaxes(type="log", exponentformat="power")
+    sec.figures.append((fig, f"safety.capacity.ppob_curves with V_zo = {V_ZO_M3:.0e} m³ and V_BC = {V_BC_M3:g} m³: "
+                             "seed = (5.21) as printed, drawn only where valid ((n − 1)V_ob < V_zo/2; it has a "
+                             "pole beyond); sound_one / sound_any = the sounder model (conflict radius 12σ), one "
+                             "given aircraft / any pair."))
+    return sec
+
+
+def _sec_capacity(ctx: _Ctx) -> _Section:
+    go = _go()
+    from safety.capacity import V_ZO_M3, capacity_curve, nmax_seed, nmax_sound
+    sec = _Section("capacity", "Capacity against accuracy (seed fig. 5.3)")
+    cap = ctx.q("capacity_by_method")
+    p_run = float(cap["p_star"].drop_nulls()[0]) if cap.height and cap["p_star"].drop_nulls().len() else 1e-6
+    settings = [(p_run, V_ZO_M3), (1e-3, 1e14)]
+    sigmas = np.arange(10.0, 201.0, 2.0)
+    fig = go.Figure()
+    measured = cap.filter(pl.col("sigma_m").is_not_null() & (pl.col("stage") == "fusion")) if cap.height else cap
+    for i, (p_star, v_zo) in enumerate(settings):
+        curve = capacity_curve(sigmas, p_star=p_star, v_zo=v_zo)
+        for model, dash in (("seed", "solid"), ("sound", "dash")):
+            part = curve.filter(pl.col("model") == model)
+            fig.add_trace(go.Scatter(x=_arr(part["sigma_m"]), y=_arr(part["n_max"]), mode="lines",
+                                     name=f"{model}: P* = {p_star:g}, V_zo = {v_zo:.0e} m³",
+                                     line=dict(color=_COLORS[i], dash=dash, width=1.6)))
+            if measured.height:
+                s = measured["sigma_m"].to_numpy()
+                if i == 0:   # the run's own capacity rows (metrics table)
+                    n = measured["n_max_seed" if model == "seed" else "n_max_sound"].to_numpy()
+                else:
+                    n = nmax_seed(s, p_star, v_zo=v_zo) if model == "seed" else nmax_sound(s, p_star, v_zo=v_zo)
+                fig.add_trace(go.Scatter(x=_arr(s), y=_arr(n), mode="markers",
+                                         name=f"measured ({model}, P* = {p_star:g})",
+                                         marker=dict(color=_COLORS[i], symbol="circle" if model == "seed" else "diamond",
+                                                     size=9, line=dict(color="black", width=0.5)),
+                                         text=measured["method"].to_list(),
+                                         hovertemplate="%{text}: σ = %{x:.1f} m, n_max = %{y}<extra></extra>"))
+    _layout(fig, "Largest number of aircraft n_max against the RMS error σ", "σ (m)", "n_max")
+    fig.update_xaxes(type="log")
+    fig.update_yaxes(type="log")
+    sec.figures.append((fig, f"safety.capacity.capacity_curve for the run's P* = {p_run:g} with V_zo = {V_ZO_M3:.0e} m³ "
+                             "(as in the metrics table; it admits a single aircraft at every realistic σ, as the "
+                             "digest notes) and for P* = 1e-3, V_zo = 1e14 m³, where n_max ∝ σ⁻³ is visible. "
+                             "Markers: each fusion method's measured RMSE σ (rmse_range_m, segment all) and its "
+                             "n_max (sql/capacity_by_method.sql)."))
+    sec.tables.append(("Capacity by method (sql/capacity_by_method.sql)", cap))
+    return sec
+
+
+def _sec_metadata(ctx: _Ctx) -> _Section:
+    sec = _Section("metadata", "Run metadata")
+    parts = []
+    kv = [("scenario", ctx.record.get("scenario", "")), ("created (UTC)", ctx.record.get("created_utc", "")),
+          ("database", str(ctx.store.path))]
+    notes = ctx.json("notes") or []
+    if notes:
+        kv.append(("notes", "; ".join(map(str, notes))))
+    parts.append(_table_html(pl.DataFrame({"item": [k for k, _ in kv], "value": [str(v) for _, v in kv]})))
+    for key, title in (("versions", "Versions"), ("fingerprints", "Input fingerprints")):
+        d = ctx.json(key)
+        if isinstance(d, dict):
+            parts.append(f"<h3>{title}</h3>" + _table_html(
+                pl.DataFrame({"name": list(d), "value": [str(v) for v in d.values()]})))
+    sec.html = "\n".join(parts)
+    sec.tables.append(("Stage timings (sql/stage_timings.sql)", ctx.q("stage_timings")))
+    sec.tables.append(("Row accounting (sql/row_accounting.sql)", ctx.q("row_accounting")))
+    sec.tables.append(("Rejects by reason (sql/rejects_by_reason.sql)", ctx.q("rejects_by_reason")))
+    sec.tables.append(("Reports per radar (sql/reports_by_radar.sql)", ctx.q("reports_by_radar")))
+    config = ctx.json("config")
+    details = []
+    if config is not None:
+        details.append(("Pipeline configuration", json.dumps(config, indent=2)))
+    if ctx.record.get("scenario_toml"):
+        details.append(("Scenario (TOML)", ctx.record["scenario_toml"]))
+    sec.note = "".join(f"<details><summary>{html.escape(t)}</summary><pre>{html.escape(body)}</pre></details>"
+                       for t, body in details)
+    return sec
+
+
+_SECTIONS: list[tuple[str, Callable[[_Ctx], _Section]]] = [
+    ("scenario map", _sec_map),
+    ("range, rate, acceleration", _sec_kinematics),
+    ("residuals", _sec_residuals),
+    ("RMSE over time", _sec_rmse_time),
+    ("a-posteriori vs a-priori", _sec_post_prior),
+    ("accuracy", _sec_accuracy),
+    ("quality", _sec_quality),
+    ("conflicts", _sec_conflicts),
+    ("P_pob", _sec_ppob),
+    ("capacity", _sec_capacity),
+    ("metadata", _sec_metadata),
+]
+
+
+# --------------------------------------------------------------------------- HTML
+
+
+_HEAD_SCRIPT = """
+(function () {
+  var errors = [];
+  function show() {
+    var el = document.getElementById('js-errors');
+    if (!el || !document.body) { return; }
+    el.textContent = errors.join('\\n');
+    el.hidden = errors.length === 0;
+    document.body.dataset.jsErrors = String(errors.length);
+  }
+  function record(msg) { errors.push(String(msg)); show(); }
+  window.addEventListener('error', function (e) {
+    record('error: ' + (e.message || e) + ' (' + (e.filename || '') + ':' + (e.lineno || 0) + ')');
+  });
+  window.addEventListener('unhandledrejection', function (e) {
+    var r = e.reason;
+    record('unhandled rejection: ' + ((r && (r.stack || r.message)) || r));
+  });
+  document.addEventListener('DOMContentLoaded', show);
+  window.__reportRendered = 0;
+  window.__reportDone = function (id) {
+    var el = document.getElementById(id);
+    if (el) { el.dataset.rendered = '1'; }
+    window.__reportRendered += 1;
+    document.body.dataset.rendered = String(window.__reportRendered);
+  };
+})();
+"""
+
+_CSS = """
+body { font-family: system-ui, -apple-system, 'Segoe UI', sans-serif; margin: 0 auto; max-width: 1300px;
+       padding: 0 24px 60px; color: #1b1f24; }
+h1 { margin-top: 28px; } h2 { border-bottom: 1px solid #d0d7de; padding-bottom: 4px; margin-top: 40px; }
+h3 { margin-bottom: 6px; }
+nav ol { columns: 2; }
+.caption, .note { color: #57606a; font-size: 0.9em; }
+.figure { margin: 14px 0 22px; }
+.tablewrap { overflow-x: auto; max-height: 520px; overflow-y: auto; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 6px 0 14px; }
+th, td { border: 1px solid #d0d7de; padding: 3px 8px; }
+th { background: #f6f8fa; position: sticky; top: 0; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+pre { background: #f6f8fa; padding: 10px; overflow-x: auto; font-size: 0.8em; }
+#js-errors { color: #b00020; background: #fff0f0; }
+"""
+
+
+def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = None) -> tuple[str, int]:
+    """The report's HTML text and its number of figures (nothing written)."""
+    import plotly.io as pio
+
+    say = progress or (lambda _m: None)
+    t_all = time.perf_counter()
+    sections: list[_Section] = []
+    with open_read_only(run_dir) as store:
+        ctx = _Ctx(store, say)
+        for label, build in _SECTIONS:
+            say(f"report: {label}")
+            try:
+                sections.append(build(ctx))
+            except Exception as exc:   # one missing table must not lose the whole report
+                sections.append(_Section(build.__name__.removeprefix("_sec_"), label.capitalize(),
+                                         note=f"Not available for this run: {type(exc).__name__}: {exc}"))
+        scenario = ctx.record.get("scenario", "run")
+        created = ctx.record.get("created_utc", "")
+        rows = ctx.json("rows") or {}
+        timings = ctx.json("timings") or {}
+    say("report: html")
+    body: list[str] = []
+    n_fig = 0
+    toc = []
+    for sec in sections:
+        toc.append(f'<li><a href="#{sec.key}">{html.escape(sec.title)}</a></li>')
+        body.append(f'<section id="{sec.key}"><h2>{html.escape(sec.title)}</h2>')
+        if sec.text:
+            body.append(f'<p>{html.escape(sec.text)}</p>')
+        if sec.html:
+            body.append(sec.html)
+        for fig, caption in sec.figures:
+            div = pio.to_html(fig, include_plotlyjs=(n_fig == 0), full_html=False, div_id=f"fig-{sec.key}-{n_fig}",
+                              default_height=f"{fig.layout.height or 460}px",
+                              config={"displaylogo": False, "responsive": True},
+                              post_script="window.__reportDone('{plot_id}');")
+            body.append(f'<div class="figure">{div}')
+            if caption:
+                body.append(f'<p class="caption">{html.escape(caption)}</p>')
+            body.append("</div>")
+            n_fig += 1
+        for title, frame in sec.tables:
+            body.append(f"<h3>{html.escape(title)}</h3>{_table_html(frame, max_rows=200)}")
+        if sec.note:
+            body.append(sec.note if sec.note.startswith("<") else f'<p class="note">{html.escape(sec.note)}</p>')
+        body.append("</section>")
+    summary = (f"{rows.get('reports_in', 0):,} reports in, {rows.get('reports_aligned', 0):,} aligned, "
+               f"{rows.get('reports_rejected', 0):,} rejected; {rows.get('targets', 0):,} system targets; "
+               f"pipeline {float(timings.get('total_s', 0.0)):.1f} s") if rows else ""
+    page = f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<title>tertiary report: {html.escape(scenario)}</title>
+<script>{_HEAD_SCRIPT}</script>
+<style>{_CSS}</style>
+</head>
+<body data-figures="{n_fig}" data-rendered="0" data-js-errors="0">
+<pre id="js-errors" hidden></pre>
+<h1>Tertiary processing report: {html.escape(scenario)}</h1>
+<p>Run created {html.escape(created)} UTC. {html.escape(summary)}. Report built
+{datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M:%S')} UTC in {time.perf_counter() - t_all:.1f} s from the named SQL
+reports in <code>sql/</code> (run them with <code>tertiary sql RUN_DIR NAME</code>).</p>
+<nav><ol>{''.join(toc)}</ol></nav>
+{''.join(body)}
+</body>
+</html>
+"""
+    return page, n_fig
+
+
+def build_report(run_dir: str | os.PathLike[str], out: str | os.PathLike[str] | None = None,
+                 progress: Progress | None = None) -> Path:
+    """Write the run's report (default ``RUN_DIR/report.html``) atomically and return its path."""
+    page, _n = render_report(run_dir, progress)
+    base = Path(run_dir)
+    base = base.parent if base.is_file() else base          # RUN_DIR or RUN_DIR/results.duckdb
+    target = Path(out) if out is not None else base / REPORT_FILENAME
+    return write_text_atomic(target, page)
+
+
+def figure_count(html_text: str) -> int:
+    """Number of figures a report says it holds (``body[data-figures]``)."""
+    import re
+    m = re.search(r'<body[^>]*data-figures="(\d+)"', html_text)
+    return int(m.group(1)) if m else 0
