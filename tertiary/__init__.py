@@ -11,6 +11,8 @@ Public API (the CLI is a thin layer over these):
   :func:`fuse`, :func:`cluster`; evaluation in :mod:`tertiary.evaluate`, the centralised bound in
   :mod:`tertiary.centralized`
 * the batch job: :func:`run` (writes the run database), :func:`process` (in memory), :func:`ingest`
+* results: :func:`run_report` / :func:`list_reports` (the named SQL reports of ``sql/``, read-only,
+  bound parameters), :func:`build_report` (the self-contained HTML report of a run)
 """
 
 from tertiary import align, associate, centralized, evaluate, geo
@@ -23,6 +25,8 @@ from tertiary.gating import GatingConfig, candidate_pairs
 from tertiary.pipeline import PipelineConfig, ingest, process, run
 from tertiary.schema import TABLES, Limits, SchemaError, UnsortedTimeWarning, validate
 from tertiary.simulate import Dataset, load_scenario, read_dataset, simulate, write_dataset
+from tertiary.report import build_report
+from tertiary.sql_reports import list_reports, run_report
 from tertiary.store import RunStore, export_parquet
 
 __version__ = "0.1.0"
@@ -31,4 +35,4 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "load_scenario", "write_dataset", "read_dataset", "Dataset", "track_reports", "LocalTrackerConfig",
            "RunStore", "export_parquet", "run", "ingest", "process", "PipelineConfig", "align", "AlignConfig",
            "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
-           "cluster", "ClusteringConfig", "__version__"]
+           "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__"]
