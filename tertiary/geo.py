@@ -34,6 +34,24 @@ def _f(a: ArrayLike) -> F64:
     return np.asarray(a, dtype=np.float64)
 
 
+#: rows per BLAS call in :func:`_rows_times`
+BLAS_ROWS = 16_384
+
+
+def _rows_times(x: F64, m: F64) -> F64:
+    """``x @ m`` for stacks of short row vectors (..., k), in blocks of :data:`BLAS_ROWS` rows.
+
+    Each block stays below OpenBLAS's threading threshold: for 3×3 products starting threads
+    costs more than the product, and on a busy machine the spinning threads stalled the
+    simulator's frame changes tenfold. Same result as one ``x @ m``.
+    """
+    flat = x.reshape(-1, x.shape[-1])
+    out = np.empty((len(flat), m.shape[-1]))
+    for lo in range(0, len(flat), BLAS_ROWS):
+        np.matmul(flat[lo:lo + BLAS_ROWS], m, out=out[lo:lo + BLAS_ROWS])
+    return out.reshape(x.shape[:-1] + (m.shape[-1],))
+
+
 def sandwich(j: ArrayLike, c: ArrayLike) -> F64:
     """J C Jᵀ for stacks of small matrices: j (..., m, k), c (..., k, k) → (..., m, m).
 
@@ -70,7 +88,8 @@ def ecef_to_geodetic(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> tuple[F64, F64
     for _ in range(1):
         sl = np.sin(lat)
         n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sl * sl)
-        h = np.where(np.abs(np.cos(lat)) > 1e-10, p / np.cos(lat) - n, np.abs(z) - WGS84_B)
+        cl = np.cos(lat)
+        h = np.where(np.abs(cl) > 1e-10, p / cl - n, np.abs(z) - WGS84_B)
         lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
     sl, cl = np.sin(lat), np.cos(lat)
     n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sl * sl)
@@ -107,13 +126,13 @@ class LocalFrame:
     def from_ecef(self, x: ArrayLike, y: ArrayLike, z: ArrayLike) -> tuple[F64, F64, F64]:
         """ECEF to ENU of this frame."""
         d = np.stack([_f(x), _f(y), _f(z)], axis=-1) - self.origin_ecef
-        enu = d @ self.rotation.T
+        enu = _rows_times(d, self.rotation.T)
         return enu[..., 0], enu[..., 1], enu[..., 2]
 
     def to_ecef(self, e: ArrayLike, n: ArrayLike, u: ArrayLike) -> tuple[F64, F64, F64]:
         """ENU of this frame to ECEF."""
         enu = np.stack([_f(e), _f(n), _f(u)], axis=-1)
-        xyz = enu @ self.rotation + self.origin_ecef
+        xyz = _rows_times(enu, self.rotation) + self.origin_ecef
         return xyz[..., 0], xyz[..., 1], xyz[..., 2]
 
     def from_geodetic(self, lat_deg: ArrayLike, lon_deg: ArrayLike, alt_m: ArrayLike) -> tuple[F64, F64, F64]:
@@ -155,8 +174,8 @@ def frame_to_frame(pos: ArrayLike, src: LocalFrame, dst: LocalFrame, vel: ArrayL
     M P Mᵀ with M = blockdiag(R, R).
     """
     rot = src.rotation_to(dst)
-    p = _f(pos) @ rot.T + src.offset_in(dst)
-    v = None if vel is None else _f(vel) @ rot.T
+    p = _rows_times(_f(pos), rot.T) + src.offset_in(dst)
+    v = None if vel is None else _rows_times(_f(vel), rot.T)
     c = None
     if cov is not None:
         c = _f(cov)
@@ -258,6 +277,74 @@ def polar_state_to_enu(range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg
     j[..., 3:6, 4] = r[..., None] * a
     j[..., 3:6, 5] = r[..., None] * b
     return pos, vel, sandwich(j, cov)
+
+
+def polar_channels_to_enu(range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg: ArrayLike,
+                          range_rate: ArrayLike, azimuth_rate_dps: ArrayLike, elevation_rate_dps: ArrayLike,
+                          p_pos: ArrayLike, p_cross: ArrayLike, p_rate: ArrayLike) -> tuple[F64, F64, F64]:
+    """:func:`polar_state_to_enu` for a covariance of decoupled channels.
+
+    ``p_pos``, ``p_cross``, ``p_rate`` are (3, ...): per channel (range, azimuth rad, elevation
+    rad) the variance of the coordinate, its covariance with its rate and the variance of the
+    rate — the only non-zero terms of P. Returns position and velocity (..., 3) (bit-identical to
+    :func:`polar_state_to_enu`) and J P Jᵀ (..., 6, 6), exactly symmetric.
+
+    With J = [[A, 0], [B, A]] by channel columns a_c, b_c and h_c = p00 b_c + p01 a_c,
+    g_c = p01 b_c + p11 a_c: J P Jᵀ = Σ_c [[p00 a aᵀ, a hᵀ], [h aᵀ, b hᵀ + a gᵀ]] — 21 sums of a few
+    products of (N,) vectors instead of N 6×6 matrix products; structural zeros are skipped.
+    """
+    r, az, el, rd, azd, eld = (np.asarray(v, dtype=np.float64) for v in (
+        range_m, np.radians(_f(azimuth_deg)), np.radians(_f(elevation_deg)),
+        range_rate, np.radians(_f(azimuth_rate_dps)), np.radians(_f(elevation_rate_dps))))
+    sa, ca, se, ce = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
+    u = (ce * sa, ce * ca, se)                    # dpos/dr
+    a = (ce * ca, -ce * sa, None)                 # dpos/daz / r (None: structural zero)
+    b = (-se * sa, -se * ca, ce)                  # dpos/del / r
+    pos = np.stack([r * ce * sa, r * ce * ca, r * se], axis=-1)
+    raz, rel = r * azd, r * eld
+    vel = np.stack([rd * u[0] + raz * a[0] + rel * b[0], rd * u[1] + raz * a[1] + rel * b[1],
+                    rd * u[2] + raz * 0.0 + rel * b[2]], axis=-1)
+    a_el = (-se * ca, se * sa, None)              # = d a/d el = d b/d az
+    cols_a = (u, _scaled(r, a), _scaled(r, b))    # position rows (and velocity rows of the rates)
+    cols_b = (_combine((azd, a), (eld, b)),       # velocity rows of the positions
+              _combine((rd, a), (raz, (-u[0], -u[1], None)), (rel, a_el)),
+              _combine((rd, b), (raz, a_el), (rel, (-u[0], -u[1], -u[2]))))
+    p00, p01, p11 = _f(p_pos), _f(p_cross), _f(p_rate)
+    cols_h = [_combine((p00[c], cols_b[c]), (p01[c], cols_a[c])) for c in range(3)]
+    cols_g = [_combine((p01[c], cols_b[c]), (p11[c], cols_a[c])) for c in range(3)]
+    cols_pa = [_scaled(p00[c], cols_a[c]) for c in range(3)]
+    cov = np.empty(r.shape + (6, 6))
+    for i in range(3):
+        for j in range(3):
+            cov[..., i, 3 + j] = cov[..., 3 + j, i] = _dot(((cols_a[c][i], cols_h[c][j]) for c in range(3)), 0.0)
+            if j >= i:
+                cov[..., i, j] = cov[..., j, i] = _dot(((cols_a[c][i], cols_pa[c][j]) for c in range(3)), 0.0)
+                cov[..., 3 + i, 3 + j] = cov[..., 3 + j, 3 + i] = _dot((pair for c in range(3) for pair in (
+                    (cols_b[c][i], cols_h[c][j]), (cols_a[c][i], cols_g[c][j]))), 0.0)
+    return pos, vel, cov
+
+
+Vec3 = tuple[F64 | None, F64 | None, F64 | None]
+
+
+def _scaled(s: F64, v: Vec3) -> Vec3:
+    return tuple(None if x is None else s * x for x in v)
+
+
+def _combine(*terms: tuple[F64, Vec3]) -> Vec3:
+    """Σ s·v over (scalar array, 3-vector) terms, component by component."""
+    return tuple(_dot((s, v[i]) for s, v in terms) for i in range(3))
+
+
+def _dot(pairs, zero: float | None = None) -> F64 | float | None:
+    """Σ x·y over pairs, skipping structural zeros (None); ``zero`` when every term is zero."""
+    terms = [x * y for x, y in pairs if x is not None and y is not None]
+    if not terms:
+        return zero
+    total = terms[0]
+    for term in terms[1:]:
+        total = total + term
+    return total
 
 
 def elevation_from_altitude(range_m: ArrayLike, target_alt_m: ArrayLike, radar_alt_m: ArrayLike,

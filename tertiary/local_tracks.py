@@ -69,6 +69,19 @@ def _seconds(time: pl.Series) -> tuple[NDArray[np.float64], int]:
     return (us - t0) * 1e-6, t0
 
 
+def _in_track_order(df: pl.DataFrame) -> bool:
+    """Whether the rows are already sorted by track key and time (the simulator emits them so;
+    sorting them again is a sizeable part of its secondary processing)."""
+    keys = [df[c].to_physical().to_numpy() for c in TRACK_KEY + ["time"]]
+    if len(df) < 2 or any(k.dtype.kind not in "iu" for k in keys):      # nulls come as floats
+        return len(df) < 2
+    ahead, tied = np.zeros(len(df) - 1, bool), np.ones(len(df) - 1, bool)
+    for k in keys:
+        ahead |= tied & (k[1:] > k[:-1])
+        tied &= k[1:] == k[:-1]
+    return bool(np.all(ahead | tied))
+
+
 def measurement_polar(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: float
                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Measured (range, az_rad, el_rad) and their variances per report; elevation derived from
@@ -87,99 +100,142 @@ def measurement_polar(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigm
     if "altitude_m" in reports.columns:
         alt = reports["altitude_m"].fill_null(np.nan).to_numpy().astype(float)
         use = ~np.isfinite(el) & np.isfinite(alt)
-        derived = np.radians(geo.elevation_from_altitude(rng, alt, site["alt_m"].to_numpy()))
-        el = np.where(use, derived, el)
-        var_el = np.where(use, (altitude_sigma_m / np.maximum(rng, 1.0)) ** 2, var_el)
+        if use.any():           # simulated plots all carry an elevation
+            derived = np.radians(geo.elevation_from_altitude(rng, alt, site["alt_m"].to_numpy()))
+            el = np.where(use, derived, el)
+            var_el = np.where(use, (altitude_sigma_m / np.maximum(rng, 1.0)) ** 2, var_el)
     z = np.stack([rng, az, el], axis=1)
     r = np.stack([site["sigma_range_m"].to_numpy() ** 2,
                   np.radians(site["sigma_azimuth_deg"].to_numpy()) ** 2, var_el], axis=1)
     return z, r
 
 
+def _rank_major(starts: NDArray[np.int64], lengths: NDArray[np.int64]
+                ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Order putting the k-th report of every track together. Tracks are sorted by decreasing
+    length, so the tracks alive at rank k are the first ``alive[k]``; rank k occupies
+    ``offsets[k]:offsets[k + 1]`` and ``perm`` maps that layout to report rows."""
+    alive = np.searchsorted(-lengths, -np.arange(lengths.max(initial=0)), side="left")
+    offsets = np.concatenate([[0], np.cumsum(alive)])
+    track = np.repeat(np.arange(len(starts)), lengths)
+    rank = np.arange(len(track)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    perm = np.empty(len(track), np.int64)
+    perm[offsets[rank] + track] = starts[track] + rank
+    return perm, alive, offsets
+
+
+def _sigma(rng_now: NDArray[np.float64], cfg: LocalTrackerConfig) -> NDArray[np.float64]:
+    """Manoeuvre intensity per report and channel (interleaved): σ_m for the range, the
+    cross-range intensity over the range for the angles."""
+    cross = cfg.cross_sigma_m / rng_now
+    return np.stack([np.full(len(rng_now), cfg.range_model.sigma_m), cross, cross], axis=1).ravel()
+
+
+def _coefficients(tau: NDArray[np.float64], rng_now: NDArray[np.float64], cfg: LocalTrackerConfig):
+    """Singer coefficients (4.46)/(4.53) for the step τ ending at each report, channels
+    interleaved (3·reports,)."""
+    model = cfg.range_model
+    return singer_coefficients(np.repeat(tau, 3), model.alpha, _sigma(rng_now, cfg), model.variant)
+
+
+def _initiation(z: NDArray[np.float64], r: NDArray[np.float64], rng_now: NDArray[np.float64],
+                cfg: LocalTrackerConfig) -> tuple[NDArray[np.float64], ...]:
+    """One-point initiation on the plots (channels interleaved), the non-zero state terms
+    (x, P00, P11, P22): position = plot, rate and acceleration 0 with variances (v0/range)² and
+    σ_m², the angular channels scaled by the range."""
+    ok = np.isfinite(z)
+    scale = np.stack([np.ones(len(rng_now)), rng_now, rng_now], axis=1).ravel()
+    return np.where(ok, z, 0.0), np.where(ok, r, 1e12), (cfg.v0_sigma_mps / scale) ** 2, _sigma(rng_now, cfg) ** 2
+
+
+#: columns of the filter's output table: x, ẋ, P00, P01, P11 per channel, then ν_r, S_r
+OUT_X, OUT_RATE, OUT_P00, OUT_P01, OUT_P11, OUT_RES = 0, 3, 6, 9, 12, 15
+
+
 def _filter(t: NDArray[np.float64], z: NDArray[np.float64], r: NDArray[np.float64],
             starts: NDArray[np.int64], lengths: NDArray[np.int64], cfg: LocalTrackerConfig):
-    """Run the three channels over every track.
+    """Run the three channels over every track; returns, in report order, the estimates
+    (2 (pos, rate), 3 channels, n), covariances (3 (P00, P01, P11), 3 channels, n), the range
+    innovation and its variance.
 
-    Tracks are sorted by decreasing length, so the tracks alive at rank k are a prefix and the
-    state arrays are sliced, not gathered. State layout: x (3 comps, 3 channels, tracks) and
-    the six unique covariance terms p (6, 3 channels, tracks).
+    Reports are laid out rank-major (:func:`_rank_major`) with the channels interleaved, so
+    the (track, channel) pairs alive at rank k are a prefix of the state and a contiguous
+    slice of every per-report array: each step runs on contiguous 1-D arrays, never gathers.
+    The Singer coefficients are computed for all reports before the recursion, and the
+    results go to one table put back in report order by a single row gather. State: x
+    (3 comps, 3·tracks) and the six unique covariance terms p (6, 3·tracks).
     """
     n, m_tracks = len(t), len(starts)
-    model = cfg.range_model
-    x = np.zeros((3, 3, m_tracks))
-    p = np.zeros((6, 3, m_tracks))
-    t_last = np.zeros(m_tracks)
-    out_x = np.full((n, 2, 3), np.nan)      # (pos, rate) per channel
-    out_p = np.full((n, 3, 3), np.nan)      # (P00, P01, P11) per channel
-    res = np.full(n, np.nan)
-    res_var = np.full(n, np.nan)
-    zt, rt = np.ascontiguousarray(z.T), np.ascontiguousarray(r.T)
-    # lengths are sorted descending, so the number of tracks longer than k is a searchsorted
-    alive_count = np.searchsorted(-lengths, -np.arange(lengths.max(initial=0)), side="left")
-    for k, m in enumerate(alive_count):
-        idx = starts[:m] + k
-        zk, rk = zt[:, idx], rt[:, idx]
-        xs, ps = x[:, :, :m], p[:, :, :m]
-        rng_now = np.maximum(np.where(np.isfinite(zk[0]), zk[0], xs[0, 0]), 100.0)
-        sig = np.stack([np.full(m, model.sigma_m), cfg.cross_sigma_m / rng_now, cfg.cross_sigma_m / rng_now])
-        init_x, init_p = _initial(zk, rk, rng_now, sig, cfg.v0_sigma_mps)
+    perm, alive, offsets = _rank_major(starts, lengths)
+    zr, rr = z[perm], r[perm]
+    tau = t[perm] - t[perm - 1]                # previous report of the same track (unused at rank 0)
+    missing = ~np.isfinite(zr[:, 0])           # no range: the channel scale comes from the state
+    rng_now = np.maximum(np.where(missing, 0.0, zr[:, 0]), 100.0)
+    a, b, f, q = _coefficients(tau, rng_now, cfg)
+    z3, r3, tau3 = zr.ravel(), rr.ravel(), np.repeat(tau, 3)
+    has_missing = np.add.reduceat(missing, offsets[:-1]) > 0 if n else np.zeros(0, bool)
+    x = np.zeros((3, 3 * m_tracks))
+    p = np.zeros((6, 3 * m_tracks))
+    out = np.empty((n, OUT_RES + 2))
+    out[:alive[0] if n else 0, OUT_RES:] = np.nan     # first reports have no innovation
+    for k, m in enumerate(alive):
+        sl, rows = slice(3 * offsets[k], 3 * (offsets[k] + m)), slice(offsets[k], offsets[k] + m)
+        xs, ps = x[:, :3 * m], p[:, :3 * m]
+        if has_missing[k]:
+            _patch_missing(q, rng_now, offsets[k], missing[rows], xs, tau, cfg)
+        zk, rk = z3[sl], r3[sl]
         if k == 0:
-            xs[...], ps[...] = init_x, init_p
+            xs[0], ps[0], ps[3], ps[5] = _initiation(zk, rk, rng_now[rows], cfg)
         else:
-            tau = t[idx] - t_last[:m]
-            predict_elementwise(xs, ps, tau, model_coefficients(model, tau, sig))
+            predict_elementwise(xs, ps, tau3[sl], (a[sl], b[sl], f[sl], q[sl]))
             nu = zk - xs[0]
-            nu[1] = np.mod(nu[1] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
+            nu[1::3] = np.mod(nu[1::3] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
             lost = np.isfinite(nu) & (nu * nu > cfg.reinit_gate * (ps[0] + rk))
             s = update_elementwise(xs, ps, np.where(lost, np.nan, nu), rk)
-            xs[...] = np.where(lost, init_x, xs)
-            ps[...] = np.where(lost, init_p, ps)
-            res[idx], res_var[idx] = nu[0], s[0]
-        t_last[:m] = t[idx]
-        out_x[idx] = xs[:2].transpose(2, 0, 1)
-        out_p[idx] = ps[[0, 1, 3]].transpose(2, 0, 1)
-    return out_x, out_p, res, res_var
+            if lost.any():
+                _reinitiate(xs, ps, lost, _initiation(zk, rk, rng_now[rows], cfg))
+            out[rows, OUT_RES], out[rows, OUT_RES + 1] = nu[0::3], s[0::3]
+        block = out[rows]
+        for col, v in ((OUT_X, xs[0]), (OUT_RATE, xs[1]), (OUT_P00, ps[0]), (OUT_P01, ps[1]), (OUT_P11, ps[3])):
+            block[:, col:col + 3] = v.reshape(m, 3)
+    back = np.empty(n, np.int64)
+    back[perm] = np.arange(n)
+    out = out.take(back, axis=0).T             # (column, report)
+    return out[:OUT_P00].reshape(2, 3, n), out[OUT_P00:OUT_RES].reshape(3, 3, n), out[OUT_RES], out[OUT_RES + 1]
 
 
-def _initial(z, r, rng_now, sig, v0_sigma):
-    """One-point initiation of every channel: position = plot, rate and acceleration 0 with
-    variances (v0/range)² and σ_m² (angular channels scaled by the range)."""
-    ok = np.isfinite(z)
-    m = z.shape[1]
-    x = np.zeros((3,) + z.shape)
-    x[0] = np.where(ok, z, 0.0)
-    p = np.zeros((6,) + z.shape)
-    p[0] = np.where(ok, r, 1e12)
-    p[3] = (v0_sigma / np.stack([np.ones(m), rng_now, rng_now])) ** 2
-    p[5] = sig ** 2
-    return x, p
+def _patch_missing(q, rng_now, lo: int, missing, xs, tau, cfg: LocalTrackerConfig) -> None:
+    """Reports without a range scale the angular channels by the current range estimate."""
+    j = np.flatnonzero(missing)
+    rows = lo + j
+    rng_now[rows] = np.maximum(xs[0, 3 * j], 100.0)
+    q.reshape(-1, 3)[rows] = _coefficients(tau[rows], rng_now[rows], cfg)[3].reshape(-1, 3)
 
 
-def model_coefficients(model: SingerModel, tau: NDArray[np.float64], sigma_m: NDArray[np.float64]):
-    return singer_coefficients(tau[None, :], model.alpha, sigma_m, model.variant)
+def _reinitiate(xs, ps, lost, init: tuple[NDArray[np.float64], ...]) -> None:
+    """Channels whose innovation failed the gate restart on the plot (one-point initiation)."""
+    np.copyto(xs, 0.0, where=lost)
+    np.copyto(ps, 0.0, where=lost)
+    for target, v in zip((xs[0], ps[0], ps[3], ps[5]), init):
+        np.copyto(target, v, where=lost)
 
 
-def _to_enu(est: NDArray[np.float64], cov: NDArray[np.float64], chunk: int = 32_768):
-    """Polar track states (n, channel, (pos, rate)) with per-channel (P00, P01, P11) to
-    radar-local ENU position, velocity and flattened 6×6 covariance (n, 36).
+def _to_enu(est: NDArray[np.float64], cov: NDArray[np.float64], chunk: int = 8192):
+    """Polar track states (2 (pos, rate), 3 channels, n) with per-channel (P00, P01, P11) to
+    radar-local ENU position, velocity (n, 3) and flattened 6×6 covariance (n, 36).
 
     Converted in cache-sized chunks into preallocated outputs: whole-array temporaries of
     n × 36 doubles made this step slow and its timing erratic.
     """
-    n = len(est)
+    n = est.shape[-1]
     pos, vel, cov36 = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 36))
-    ch = np.arange(3)
 
     def convert(lo: int) -> None:
         sl = slice(lo, min(lo + chunk, n))
-        e, c = est[sl], cov[sl]
-        cov6 = np.zeros((len(e), 6, 6))
-        cov6[:, ch, ch] = c[:, :, 0]
-        cov6[:, ch, ch + 3] = cov6[:, ch + 3, ch] = c[:, :, 1]
-        cov6[:, ch + 3, ch + 3] = c[:, :, 2]
-        p, v, cc = geo.polar_state_to_enu(e[:, 0, 0], np.degrees(e[:, 1, 0]), np.degrees(e[:, 2, 0]),
-                                          e[:, 0, 1], np.degrees(e[:, 1, 1]), np.degrees(e[:, 2, 1]), cov=cov6)
-        pos[sl], vel[sl], cov36[sl] = p, v, cc.reshape(len(e), 36)
+        e, c = est[:, :, sl], cov[:, :, sl]
+        p, v, cc = geo.polar_channels_to_enu(e[0, 0], np.degrees(e[0, 1]), np.degrees(e[0, 2]),
+                                             e[1, 0], np.degrees(e[1, 1]), np.degrees(e[1, 2]), c[0], c[1], c[2])
+        pos[sl], vel[sl], cov36[sl] = p, v, cc.reshape(-1, 36)
 
     # numpy releases the GIL inside these array operations: chunks convert in parallel
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
@@ -196,7 +252,9 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     existing ones). The first report of a track has no innovation (NaN).
     """
     df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
-    df = df.drop([c for c in ESTIMATE_COLUMNS if c in df.columns]).sort(TRACK_KEY + ["time"], maintain_order=True)
+    df = df.drop([c for c in ESTIMATE_COLUMNS if c in df.columns])
+    if not _in_track_order(df):
+        df = df.sort(TRACK_KEY + ["time"], maintain_order=True)
     n = len(df)
     t, _ = _seconds(df["time"])
     z, r = measurement_polar(df, radars, cfg.altitude_sigma_m)
@@ -207,21 +265,17 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     starts = np.flatnonzero(new)
     lengths = np.diff(np.append(starts, n))
     order = np.argsort(-lengths, kind="stable")
-    out_x, out_p, res, res_var = _filter(t, z, r, starts[order], lengths[order], cfg)
-
-    est = out_x.transpose(0, 2, 1)          # (n, channel, (pos, rate))
-    cov = out_p.transpose(0, 2, 1)          # (n, channel, (P00, P01, P11))
+    est, cov, res, res_var = _filter(t, z, r, starts[order], lengths[order], cfg)
     pos, vel, cov_enu = _to_enu(est, cov)
-    el_deg = np.degrees(est[:, 2, 0])
     deg2 = np.degrees(1.0) ** 2
     return df.with_columns(
-        pl.Series("est_range_m", est[:, 0, 0]),
-        pl.Series("est_range_rate_mps", est[:, 0, 1]),
-        pl.Series("est_azimuth_deg", np.mod(np.degrees(est[:, 1, 0]), 360.0)),
-        pl.Series("est_elevation_deg", el_deg),
-        pl.Series("est_range_var_m2", cov[:, 0, 0]),
-        pl.Series("est_azimuth_var_deg2", cov[:, 1, 0] * deg2),
-        pl.Series("est_elevation_var_deg2", cov[:, 2, 0] * deg2),
+        pl.Series("est_range_m", est[0, 0]),
+        pl.Series("est_range_rate_mps", est[1, 0]),
+        pl.Series("est_azimuth_deg", np.mod(np.degrees(est[0, 1]), 360.0)),
+        pl.Series("est_elevation_deg", np.degrees(est[0, 2])),
+        pl.Series("est_range_var_m2", cov[0, 0]),
+        pl.Series("est_azimuth_var_deg2", cov[0, 1] * deg2),
+        pl.Series("est_elevation_var_deg2", cov[0, 2] * deg2),
         pl.Series("x_m", pos[:, 0]), pl.Series("y_m", pos[:, 1]), pl.Series("z_m", pos[:, 2]),
         pl.Series("vx_mps", vel[:, 0]), pl.Series("vy_mps", vel[:, 1]), pl.Series("vz_mps", vel[:, 2]),
         pl.Series("est_cov", cov_enu, dtype=pl.Array(pl.Float64, 36)),

@@ -22,6 +22,8 @@ from tertiary.simulate.config import Anomalies, RadarConfig
 from tertiary.simulate.trajectory import Trajectories
 
 FT = 0.3048
+#: rows per block of the per-pair geometry (see :func:`_blocks`)
+BLOCK = 16_384
 
 
 @dataclass
@@ -52,22 +54,35 @@ def site_frame(radar: RadarConfig, system: geo.LocalFrame) -> geo.LocalFrame:
     return geo.LocalFrame(float(lat), float(lon), float(alt))
 
 
+def _blocks(fn, n: int, *arrays: NDArray) -> tuple[NDArray, ...]:
+    """``fn`` over row blocks of ``arrays``, its results concatenated. The per-pair geometry
+    makes dozens of temporaries; in cache-sized blocks it runs over twice as fast as on whole
+    arrays (measured), with identical results."""
+    parts = [fn(*(a[lo:lo + BLOCK] for a in arrays)) for lo in range(0, max(n, 1), BLOCK)]
+    return tuple(np.concatenate(p) for p in zip(*parts))
+
+
 def _illumination(traj: Trajectories, radar: RadarConfig, sys_to_site, scan_start):
     """Illumination times and truth for every (aircraft, scan) pair where the aircraft exists
-    during the scan; returns flat arrays (aircraft index, scan index, time, position, valid)."""
+    during the scan; returns flat arrays of the valid pairs: aircraft index, scan index, time,
+    system-frame position and the site polar range, azimuth and elevation."""
     last = traj.n_times - 1
     k0 = np.clip(np.floor(scan_start / traj.dt).astype(int), 0, last)
     k1 = np.clip(np.ceil((scan_start + radar.scan_period_s) / traj.dt).astype(int), 0, last)
     ia, ik = np.nonzero(traj.active[:, k0] | traj.active[:, k1])
-    t = scan_start[ik]
-    if radar.timing == "rotating":
-        base = t
-        for _ in range(2):
-            pos, _, _ = traj.state_at(ia, t)
-            e, n, _ = sys_to_site(pos)
-            t = base + radar.scan_period_s * np.mod(np.degrees(np.arctan2(e, n)), 360.0) / 360.0
-    pos, _, ok = traj.state_at(ia, t)
-    return ia[ok], ik[ok], t[ok], pos[ok]
+
+    def geometry(ia, ik):
+        t = scan_start[ik]
+        if radar.timing == "rotating":
+            base = t
+            for _ in range(2):
+                e, n, _ = sys_to_site(traj.position_at(ia, t)[0])
+                t = base + radar.scan_period_s * np.mod(np.degrees(np.arctan2(e, n)), 360.0) / 360.0
+        pos, ok = traj.position_at(ia, t)
+        return (t, pos, ok, *geo.enu_to_polar(*sys_to_site(pos)))
+
+    t, pos, ok, *polar = _blocks(geometry, len(ia), ia, ik)
+    return ia[ok], ik[ok], t[ok], pos[ok], *(v[ok] for v in polar)
 
 
 def _inflation(anom: Anomalies, radar: RadarConfig, t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -84,22 +99,24 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
             rng: np.random.Generator, anom: Anomalies = Anomalies()) -> Plots:
     """Simulate every scan of ``radar`` over ``traj`` for ``runs`` Monte-Carlo runs."""
     site = site_frame(radar, system)
+    rot_t, offset = system.rotation_to(site).T, system.offset_in(site)
 
     def sys_to_site(p):
-        q, _, _ = geo.frame_to_frame(p, system, site)
+        # geo.frame_to_frame with the transform computed once; blocks of BLOCK rows stay
+        # below OpenBLAS's threading threshold (see geo._rows_times)
+        q = p @ rot_t + offset
         return q[..., 0], q[..., 1], q[..., 2]
 
     period = radar.scan_period_s
     scan_start = np.arange(radar.scan_phase_s % period, traj.duration - 1e-9, period)
-    ia, ik, t, pos = _illumination(traj, radar, sys_to_site, scan_start)
-    rng_true, az_true, el_true = geo.enu_to_polar(*sys_to_site(pos))
+    ia, ik, t, pos, rng_true, az_true, el_true = _illumination(traj, radar, sys_to_site, scan_start)
     covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg) & \
         (el_true <= radar.max_elevation_deg)
     ia, ik = ia[covered], ik[covered]
     m = len(ia)
     polar = np.stack([rng_true[covered], az_true[covered], el_true[covered]], axis=1)   # (m, 3)
     t_c = t[covered]
-    _, _, alt_true = system.to_geodetic(*pos[covered].T)
+    alt_true, = _blocks(lambda p: (system.to_geodetic(*p.T)[2],), m, pos[covered])
 
     # per run: detection, noise, biases, outliers
     detect = rng.random((runs, m)) < radar.pd
@@ -121,7 +138,7 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         lo, hi = anom.dropout_window_s
         keep &= ~((t_c >= lo) & (t_c <= hi))[None, :]
     r_idx, p_idx = np.nonzero(keep)
-    meas = meas[r_idx, p_idx]
+    meas = meas.reshape(-1, 3).take(r_idx * m + p_idx, axis=0)
 
     plots = Plots(
         run=r_idx.astype(np.uint32), t_true=t_c[p_idx], t_report=t_c[p_idx] + radar.time_offset_s,
@@ -130,9 +147,7 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         elevation_deg=np.clip(meas[:, 2], -90.0, 90.0),
         altitude_m=np.round(alt_true[p_idx] / (25 * FT)) * (25 * FT),
         local_track_id=np.zeros(len(r_idx), np.uint32))
-    plots = _merge(plots, _clutter(radar, scan_start, runs, rng))
-    plots.local_track_id = _local_track_ids(plots, radar)
-    return plots
+    return _numbered(plots, _clutter(radar, scan_start, runs, rng), radar)
 
 
 def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng: np.random.Generator) -> Plots:
@@ -156,19 +171,40 @@ def _merge(a: Plots, b: Plots) -> Plots:
     return Plots(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in Plots.__dataclass_fields__))
 
 
-def _local_track_ids(p: Plots, radar: RadarConfig) -> NDArray[np.uint32]:
-    """The radar's own track numbers: one per (run, aircraft) stretch of continuous detection;
-    a gap longer than ``track_drop_scans`` scans drops the track and the next detection opens
-    a new number. Each false report is its own one-plot track. Numbers restart per run."""
-    order = np.lexsort((p.t_true, p.aircraft, p.run))
-    run, ac, t = p.run[order], p.aircraft[order], p.t_true[order]
-    new = np.ones(len(order), bool)
-    if len(order):
+def _take(p: Plots, order: NDArray[np.int64]) -> Plots:
+    return Plots(*(getattr(p, f)[order] for f in Plots.__dataclass_fields__))
+
+
+def _in_order(*keys: NDArray) -> bool:
+    """Whether rows are sorted by ``keys`` (most significant first), ties allowed."""
+    ahead, tied = np.zeros(max(len(keys[0]) - 1, 0), bool), np.ones(max(len(keys[0]) - 1, 0), bool)
+    for k in keys:
+        ahead |= tied & (k[1:] > k[:-1])
+        tied &= k[1:] == k[:-1]
+    return bool(np.all(ahead | tied))
+
+
+def _numbered(det: Plots, clutter: Plots, radar: RadarConfig) -> Plots:
+    """Detections and false reports merged with the radar's own track numbers, sorted by (run,
+    track number, time) — the order of its secondary processing, which then needs no sort.
+
+    One number per (run, aircraft) stretch of continuous detection; a gap longer than
+    ``track_drop_scans`` scans drops the track and the next detection opens a new number. Each
+    false report is its own one-plot track, numbered first. Numbers restart per run. The
+    order is that of a lexsort by (run, aircraft, time); detections arrive in it already
+    (run-major, then aircraft, then scan), so only the false reports are sorted.
+    """
+    if not _in_order(det.run, det.aircraft, det.t_true):
+        det = _take(det, np.lexsort((det.t_true, det.aircraft, det.run)))
+    p = _merge(_take(clutter, np.lexsort((clutter.t_true, clutter.run))), det)
+    if not _in_order(p.run):
+        p = _take(p, np.argsort(p.run, kind="stable"))
+    run, ac, t = p.run, p.aircraft, p.t_true
+    new = np.ones(len(run), bool)
+    if len(run):
         new[1:] = (run[1:] != run[:-1]) | (ac[1:] != ac[:-1]) | (ac[1:] < 0) | \
             (t[1:] - t[:-1] > radar.track_drop_scans * radar.scan_period_s)
     tid = np.cumsum(new)
     run_first = np.searchsorted(run, run, side="left")          # first row of each run
-    tid = tid - tid[run_first] + 1
-    out = np.empty(len(order), np.uint32)
-    out[order] = tid
-    return out
+    p.local_track_id = (tid - tid[run_first] + 1).astype(np.uint32)
+    return p

@@ -201,7 +201,9 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     anchor_t = np.concatenate([t_start[:n_free + n_hold], t_c, t_c])
     anchor_xy = np.concatenate([start_free, start_hold, meet, meet + miss[:, None] * perp])
     k_anchor = np.clip(np.round(anchor_t / dt).astype(int), 0, steps)
-    pos[:, :, :2] += (anchor_xy - pos[np.arange(n), k_anchor, :2])[:, None, :]
+    shift = anchor_xy - pos[np.arange(n), k_anchor, :2]
+    for c in range(2):          # per component: a (n, 1, 2) broadcast runs 2-long inner loops
+        pos[:, :, c] += shift[:, c:c + 1]
 
     t_grid = np.arange(steps + 1) * dt
     t_start = np.concatenate([t_start[:n_free + n_hold], t0_pair, t0_pair])
