@@ -76,6 +76,8 @@ VEL = np.array([1, 4, 7])
 STATE6 = np.concatenate([POS, VEL])
 STATE_COLS = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
 US = 1_000_000
+#: the report columns the stage reads
+PLOT_COLUMNS = ["run", "report_id", "radar_id", "time", "range_m", "azimuth_deg", "elevation_deg", "altitude_m"]
 
 
 @dataclass(frozen=True)
@@ -131,17 +133,33 @@ def _abat(a: F64, b: F64) -> F64:
     return a @ b @ a.swapaxes(-1, -2)
 
 
+# flat indices (row-major 3×3) of the cofactors c00, c01, c02, c11, c12, c22 of a symmetric
+# matrix, c_ij = s[A] s[B] − s[C] s[D], read from its upper triangle
+_COF = np.array([[4, 8, 5, 5], [2, 5, 1, 8], [1, 5, 2, 4], [0, 8, 2, 2], [1, 2, 0, 5], [0, 4, 1, 1]]).T
+_ADJ = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])             # cofactor of each of the 9 entries
+
+
+def _inv3_sym(s: F64) -> F64:
+    """Inverse of symmetric 3×3 matrices (m, 3, 3) by the adjugate (cofactors / determinant),
+    from their upper triangle; a few vector operations over all m matrices at once."""
+    f = s.reshape(-1, 9)
+    cof = f[:, _COF[0]] * f[:, _COF[1]] - f[:, _COF[2]] * f[:, _COF[3]]
+    det = (f[:, :3] * cof[:, :3]).sum(axis=1)
+    return (cof[:, _ADJ] / det[:, None]).reshape(-1, 3, 3)
+
+
 def _update(x: F64, p: F64, z: F64, r: F64) -> tuple[F64, F64]:
-    """Batched Kalman update (2.10)–(2.14), Joseph form, H = positions of the 9-state."""
+    """Batched Kalman update (2.10)–(2.14), Joseph form, H = positions of the 9-state.
+
+    The products with I − K H use the sparsity of H (only the position columns of K H are
+    non-zero): (I − K H) P = P − K (H P), then A (I − K H)ᵀ = A − (A Hᵀ) Kᵀ."""
     ph = p[:, :, POS]                                   # P Hᵀ  (m, 9, 3)
     s = ph[:, POS, :] + r                               # H P Hᵀ + R
-    k = np.linalg.solve(s, ph.transpose(0, 2, 1)).transpose(0, 2, 1)   # P Hᵀ S⁻¹ (S symmetric)
-    nu = z - x[:, POS]
-    x = x + np.einsum("mij,mj->mi", k, nu)
-    ikh = np.broadcast_to(np.eye(9), p.shape).copy()
-    ikh[:, :, POS] -= k
-    p = _abat(ikh, p) + _abat(k, r)
-    return x, p
+    k = ph @ _inv3_sym(s)                               # P Hᵀ S⁻¹
+    x = x + (k @ (z - x[:, POS])[:, :, None])[:, :, 0]
+    a = p - k @ p[:, POS, :]
+    # A (I − K H)ᵀ + K R Kᵀ = A − (A Hᵀ − K R) Kᵀ: one product with Kᵀ instead of two
+    return x, a - (a[:, :, POS] - k @ r) @ k.swapaxes(1, 2)
 
 
 def centralized_filter(t: F64, z: F64, r: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
@@ -165,7 +183,12 @@ def centralized_filter(t: F64, z: F64, r: F64, starts: NDArray[np.int64], length
     n_targets = len(st)
     x = np.zeros((n_targets, 9))
     p = np.zeros((n_targets, 9, 9))
-    t_last = np.zeros(n_targets)
+    # every row's per-axis Φ(τ), Q(τ) from the target's previous plot, in one call (rows
+    # starting a target get τ = 0 and are never read)
+    tau = np.zeros(n)
+    tau[1:] = np.diff(np.asarray(t, dtype=float))
+    phi3 = singer_phi(tau, cfg.alpha, cfg.variant)
+    q3 = singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)
     # lengths sorted descending: the targets with more than k plots are a prefix
     alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
     for k, m in enumerate(alive):
@@ -173,11 +196,14 @@ def centralized_filter(t: F64, z: F64, r: F64, starts: NDArray[np.int64], length
         if k == 0:
             xs, ps = initial_state(z[idx], r[idx], cfg)
         else:
-            phi, q = transition(t[idx] - t_last[:m], cfg)
-            xs = np.einsum("mij,mj->mi", phi, x[:m])
-            ps = _abat(phi, p[:m]) + q
+            phi = _blockdiag3(phi3[idx])
+            xs = (phi @ x[:m, :, None])[:, :, 0]
+            ps = _abat(phi, p[:m])
+            qk = q3[idx]
+            for a in range(3):                          # Q is block-diagonal: add the blocks
+                ps[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] += qk
             xs, ps = _update(xs, ps, z[idx], r[idx])
-        x[:m], p[:m], t_last[:m] = xs, ps, t[idx]
+        x[:m], p[:m] = xs, ps
         sl = slot[idx]
         hit = sl >= 0
         out_x[sl[hit]], out_p[sl[hit]] = xs[hit], ps[hit]
@@ -205,10 +231,12 @@ def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
         site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
         rng, az, el = polar[sel, 0], np.degrees(polar[sel, 1]), np.degrees(polar[sel, 2])
         local = np.stack(geo.polar_to_enu(rng, az, el), axis=-1)
-        cov_polar = np.zeros((sel.size, 3, 3))
-        cov_polar[:, [0, 1, 2], [0, 1, 2]] = var[sel]
-        cov_local = geo.polar_cov_to_enu(rng, az, el, cov_polar)
-        z[sel], _, r[sel] = geo.frame_to_frame(local, site, origin, cov=cov_local)
+        z[sel] = geo.frame_to_frame(local, site, origin)[0]
+        # G = M J as one (n·3, 3) @ (3, 3) product; R = G R_polar Gᵀ with R_polar diagonal
+        # (cheaper than two generic batched sandwiches)
+        jac = geo.polar_jacobian(rng, az, el)
+        g = (jac.swapaxes(1, 2).reshape(-1, 3) @ site.rotation_to(origin).T).reshape(-1, 3, 3).swapaxes(1, 2)
+        r[sel] = (g * var[sel][:, None, :]) @ g.swapaxes(1, 2)
     ok &= np.all(np.isfinite(z), axis=1)
     return z, r, ok
 
@@ -257,13 +285,15 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     method ``"centralized"``, sorted by (run, epoch, target_id).
     """
     rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    rep = rep.select(c for c in PLOT_COLUMNS if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     rep = rep.join(_first_association(associations), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m)
     rep = rep.with_columns(pl.Series("__ok", ok))
-    rep = rep.with_columns(pl.int_range(pl.len()).alias("__pos")).filter(pl.col("__ok"))
-    rep = rep.sort(["run", "target_id", "time", "radar_id", "report_id"])
+    rep = (rep.select("run", "target_id", "time", "radar_id", "report_id", "__ok")
+           .with_columns(pl.int_range(pl.len()).alias("__pos")).filter(pl.col("__ok"))
+           .sort(["run", "target_id", "time", "radar_id", "report_id"]))
     if rep.is_empty():
         return _empty_fused()
     pos = rep["__pos"].to_numpy()
@@ -297,6 +327,7 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     if want.is_empty():
         return _empty_fused()
 
+    want = want.select("run", "epoch", "target_id", "n_sources", "__ri").sort(["run", "epoch", "target_id"])
     ri = want["__ri"].to_numpy()
     keep = np.zeros(n, dtype=bool)
     keep[ri] = True
@@ -316,4 +347,4 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
         pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
     ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
     spec = TABLES["fused"].required
-    return out.select([pl.col(c).cast(tp) for c, tp in spec.items()]).sort(["run", "epoch", "target_id"])
+    return out.select([pl.col(c).cast(tp) for c, tp in spec.items()])  # `want` is in output order

@@ -326,3 +326,33 @@ def test_invariants_on_random_traffic(algorithm):
     assert (out["count"] >= 2).all()
     assert (out["members"].list.len() == out["count"]).all()
     assert out.select(pl.col("members").list.contains(pl.col("lead_target_id")).all()).item()
+
+
+# --------------------------------------------------------------------------- oracle: scikit-learn DBSCAN
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sklearn.cluster import DBSCAN
+
+from tertiary.clustering import _single_linkage
+
+
+def _partition(labels: np.ndarray) -> set[frozenset[int]]:
+    """Clusters as sets of point indices (noise points each alone), independent of label values."""
+    out: dict[int, set[int]] = {}
+    for i, lab in enumerate(labels):
+        out.setdefault(int(lab) if lab >= 0 else -1 - i, set()).add(i)
+    return {frozenset(s) for s in out.values()}
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.integers(1, 120), spread=st.floats(500.0, 40_000.0), seed=st.integers(0, 2**31 - 1))
+def test_single_linkage_equals_sklearn_dbscan(n, spread, seed):
+    """The KD-tree ε-graph components are exactly scikit-learn's DBSCAN with min_samples=2."""
+    rng = np.random.default_rng(seed)
+    feats = rng.uniform(0.0, spread, (n, 3))
+    eps = 5000.0
+    ours = _single_linkage(feats, eps)
+    ref = DBSCAN(eps=eps, min_samples=2).fit(feats).labels_
+    assert _partition(ours) == _partition(ref)
+    assert np.array_equal(ours < 0, ref < 0)
