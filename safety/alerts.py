@@ -56,6 +56,7 @@ hits), plus ``episodes`` and ``flicker_per_hit``; ``n_runs`` = runs on the metho
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -192,7 +193,10 @@ def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig()) ->
     span = float(np.max(np.abs(xyz))) + 1.0
     sep = 4.0 * dr_h + 1.0
     pts = np.column_stack([xyz[:, 0], xyz[:, 1], xyz[:, 2] * (dr_h / dr_v), g * sep])
-    pr = cKDTree(pts).query_pairs(dr_h * (1 + 1e-12) + 1e-9 * span, p=np.inf, output_type="ndarray")
+    # the Euclidean ball of radius √2·Δr_г holds the cylinder |Δxy| < Δr_г, |Δz·s| < Δr_г; scipy's
+    # p=2 search is about twice as fast as its Chebyshev one here, the exact test below decides
+    radius = math.sqrt(2.0) * (dr_h * (1 + 1e-12) + 1e-9 * span)
+    pr = cKDTree(pts).query_pairs(radius, p=2.0, output_type="ndarray")
     i, j = pr[:, 0].astype(np.int64), pr[:, 1].astype(np.int64)
     d = xyz[j] - xyz[i]
     ok = (g[i] == g[j]) & (np.hypot(d[:, 0], d[:, 1]) < dr_h) & (np.abs(d[:, 2]) < dr_v)
@@ -261,34 +265,43 @@ def true_conflicts(truth: pl.DataFrame, epochs: pl.DataFrame, cfg: AlertConfig =
 
 
 _KEY = ["run", "method", "kind", "ka", "kb"]
+# the same key with the method as its integer grid code: cheaper to pack, join and compare
+_IKEY = ["run", "__m", "kind", "ka", "kb"]
+_BITS = 1 << 62
 
 
 def _grid(conflicts: pl.DataFrame, id_map: pl.DataFrame, methods: list[str] | None) -> pl.DataFrame:
-    """(run, method, epoch, k, t): the picture's epoch grid with a dense index per (run, method)."""
+    """(run, method, epoch, k, t, __m): the picture's epoch grid with a dense index k per
+    (run, method) and a dense method code ``__m``."""
     if "method" in id_map.columns:
         g = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
     else:
         ms = methods if methods is not None else sorted(conflicts["method"].unique().to_list())
         g = (id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME))
              .join(pl.DataFrame({"method": ms}, schema={"method": pl.String}), how="cross"))
-    g = pl.concat([g.select("run", "method", "epoch"),
-                   conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String),
-                                    pl.col("epoch").cast(TIME))]).unique()
+    c = conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
+    # conflicts usually come sorted by (run, epoch, method): dropping rows equal to their
+    # predecessor first leaves unique() a few thousand rows (correct in any order)
+    c = c.filter(pl.any_horizontal([pl.col(x) != pl.col(x).shift(1) for x in c.columns]).fill_null(True))
+    g = pl.concat([g.select("run", "method", "epoch"), c]).unique()
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
-        _seconds("epoch").alias("t"))
+        _seconds("epoch").alias("t"), (pl.col("method").rank("dense").cast(pl.Int64) - 1).alias("__m"))
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:
-    """Alert rows keyed by truth pair (kind 0) or, without two distinct truths, by id pair (kind 1)."""
+    """Alert rows keyed by truth pair (kind 0) or, without two distinct truths, by id pair (kind 1);
+    may hold duplicate rows (:func:`_runs` drops them)."""
     on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
     m = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                       *([pl.col("method").cast(pl.String)] if "method" in id_map.columns else []),
                       pl.col(id_col).cast(pl.UInt64).alias("__id"), pl.col("truth_id").cast(pl.Int64)
                       ).unique(subset=[*on, "__id"], keep="first")
-    a = (conflicts.filter(pl.col("alert"))
-         .select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME), pl.col("method").cast(pl.String),
-                 pl.col("id_a").cast(pl.UInt64), pl.col("id_b").cast(pl.UInt64)))
+    # select before filtering: the filter then copies 6 columns, not the whole conflicts table
+    a = (conflicts.select("alert", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                          pl.col("method").cast(pl.String), pl.col("id_a").cast(pl.UInt64),
+                          pl.col("id_b").cast(pl.UInt64))
+         .filter(pl.col("alert")).drop("alert"))
     a = (a.join(m.rename({"__id": "id_a", "truth_id": "__ta"}), on=[*on, "id_a"], how="left")
          .join(m.rename({"__id": "id_b", "truth_id": "__tb"}), on=[*on, "id_b"], how="left"))
     by_truth = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))
@@ -297,13 +310,56 @@ def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> p
         pl.when(by_truth).then(0).otherwise(1).cast(pl.UInt8).alias("kind"),
         pl.when(by_truth).then(pl.min_horizontal("__ta", "__tb")).otherwise(pl.col("id_a").cast(pl.Int64)).alias("ka"),
         pl.when(by_truth).then(pl.max_horizontal("__ta", "__tb")).otherwise(pl.col("id_b").cast(pl.Int64)).alias("kb"),
-    ).unique()
+    )
 
 
-def _runs(frame: pl.DataFrame, name: str) -> pl.DataFrame:
-    """Number maximal runs of consecutive grid indices k per key in column ``name``."""
-    return frame.sort([*_KEY, "k"]).with_columns(
-        (pl.col("k").diff().over(_KEY).fill_null(0) != 1).cum_sum().over(_KEY).alias(name))
+def _packed(cols: list[np.ndarray]) -> np.ndarray:
+    """One int64 code per row ordered like the rows' integer columns ``cols`` (lexicographic):
+    mixed-radix packing, re-densified (np.unique) only when a radix would overflow."""
+    code = np.zeros(len(cols[0]), np.int64)
+    for v in cols:
+        v = np.asarray(v).astype(np.int64, copy=False)
+        lo, span = int(v.min()), int(v.max()) - int(v.min()) + 1
+        if (int(code.max()) + 1) * span >= _BITS:
+            code = np.unique(code, return_inverse=True)[1].astype(np.int64).ravel()
+            if (int(code.max()) + 1) * span >= _BITS:
+                v = np.unique(v, return_inverse=True)[1].astype(np.int64).ravel()
+                lo, span = 0, int(v.max()) + 1
+        code = code * span + (v - lo)
+    return code
+
+
+def _runs(frame: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Maximal runs of consecutive grid indices k per key (``_IKEY``), by one sort and numpy
+    (no ``.over()`` windows). Returns the rows sorted by (key, k) without duplicate (key, k),
+    with ``__run`` (a run id, unique over all keys) and ``__next_k`` (the key's next k, −1 at its
+    last row), and one row per run: the ``_KEY`` columns, ``__m``, ``__run``, k1 (last k), t0, t1."""
+    n = frame.height
+    if n == 0:
+        rows = frame.with_columns(pl.lit(0, pl.Int64).alias("__run"), pl.lit(0, pl.Int64).alias("__next_k"))
+        return rows, rows.select(*_KEY, "__m", "__run", pl.col("k").alias("k1"), pl.col("t").alias("t0"),
+                                 pl.col("t").alias("t1"))
+    key = _packed([frame[c].to_numpy() for c in _IKEY])
+    k = frame["k"].to_numpy()
+    order = np.argsort(_packed([key, k]), kind="stable")
+    key, k = key[order], k[order]
+    new_key = np.ones(n, bool)
+    new_key[1:] = key[1:] != key[:-1]
+    dk = np.diff(k, prepend=k[0])
+    keep = new_key | (dk != 0)                   # the same alert from two id pairs counts once
+    order, key, k, new_key, dk = order[keep], key[keep], k[keep], new_key[keep], dk[keep]
+    start = new_key | (dk != 1)
+    run = np.cumsum(start) - 1
+    last = np.ones(len(k), bool)
+    last[:-1] = new_key[1:]
+    next_k = np.where(last, -1, np.roll(k, -1))  # −1 never passes the "next alert later" tests
+    rows = frame[order].with_columns(pl.Series("__run", run), pl.Series("__next_k", next_k))
+    s = np.flatnonzero(start)
+    e = np.append(s[1:], len(k)) - 1
+    t = rows["t"].to_numpy()
+    runs = rows[s].select(*_KEY, "__m", "__run").with_columns(
+        pl.Series("k1", k[e]), pl.Series("t0", t[s]), pl.Series("t1", t[e]))
+    return rows, runs
 
 
 def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
@@ -314,7 +370,12 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     alerts without two distinct truths), t_start, t_end, t_los, hit, first_alert, warning_s,
     flicker. ``methods`` lists the picture's methods when ``id_map`` has no method column
     (default: those present in ``conflicts``)."""
-    grid = _grid(conflicts, id_map, methods)
+    return _episodes(_grid(conflicts, id_map, methods), conflicts, id_map, truth, cfg, id_col)
+
+
+def _episodes(grid: pl.DataFrame, conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
+              cfg: AlertConfig, id_col: str) -> pl.DataFrame:
+    """:func:`alert_episodes` on a precomputed :func:`_grid`."""
     truth_keys = ["run"] if "run" in truth.columns else []
     early, t_thr = cfg.early, cfg.conflict.t_thr_s
 
@@ -322,42 +383,40 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     epochs = grid.select(*truth_keys, "epoch").unique()
     tc = true_conflicts(truth, epochs, cfg, los=los)
     true_rows = (grid.join(tc, on=[*truth_keys, "epoch"], how="inner")
-                 .select("run", "method", pl.lit(0, pl.UInt8).alias("kind"),
+                 .select("run", "method", "__m", pl.lit(0, pl.UInt8).alias("kind"),
                          pl.col("truth_a").alias("ka"), pl.col("truth_b").alias("kb"), "k", "t"))
-    episodes = (_runs(true_rows, "__ep").group_by([*_KEY, "__ep"])
-                .agg(pl.col("k").max().alias("k1"), pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1")))
+    # __ep / __run are unique over all keys, so they alone identify an episode / alert run
+    episodes = _runs(true_rows)[1].rename({"__run": "__ep"})
     # first loss of separation reaching into [t0, t1 + T]
     lv = los.select(*truth_keys, pl.col("truth_a").alias("ka"), pl.col("truth_b").alias("kb"),
                     _seconds("t_start").alias("__s"), _seconds("t_end").alias("__e"))
     ep_los = (episodes.join(lv, on=[*truth_keys, "ka", "kb"], how="inner")
               .filter((pl.col("__e") >= pl.col("t0")) & (pl.col("__s") <= pl.col("t1") + t_thr))
-              .group_by([*_KEY, "__ep"]).agg(pl.col("__s").min().alias("t_los")))
-    episodes = episodes.join(ep_los, on=[*_KEY, "__ep"], how="left").with_columns(
+              .group_by("__ep").agg(pl.col("__s").min().alias("t_los")))
+    episodes = episodes.join(ep_los, on="__ep", how="left").with_columns(
         pl.coalesce(pl.max_horizontal("t_los", "t0"), "t1").alias("__hit_end"))
 
     alerts = _alert_rows(conflicts, id_map, id_col).join(grid, on=["run", "method", "epoch"], how="inner")
-    alerts = _runs(alerts, "__run").with_columns(
-        pl.col("k").shift(-1).over(_KEY).alias("__next_k"),
-        pl.int_range(pl.len()).alias("__row"))
-    pairs = alerts.join(episodes, on=_KEY, how="inner")
+    alerts, alert_runs = _runs(alerts)
+    pairs = (alerts.filter(pl.col("kind") == 0).select("run", "__m", "ka", "kb", "k", "t", "__run", "__next_k")
+             .join(episodes.select("run", "__m", "ka", "kb", "__ep", "k1", "t0", "t1", "__hit_end"),
+                   on=["run", "__m", "ka", "kb"], how="inner"))
     lo = pl.col("t") >= pl.col("t0") - early
     in_hit = lo & (pl.col("t") <= pl.col("__hit_end"))
     in_ep = lo & (pl.col("t") <= pl.col("t1"))
-    first = (pairs.filter(in_hit).group_by([*_KEY, "__ep"]).agg(pl.col("t").min().alias("first_alert")))
-    flick = (pairs.join(first, on=[*_KEY, "__ep"], how="inner")
+    first = (pairs.filter(in_hit).group_by("__ep").agg(pl.col("t").min().alias("first_alert")))
+    flick = (pairs.join(first, on="__ep", how="inner")
              .filter((pl.col("t") >= pl.col("first_alert")) & (pl.col("__next_k") > pl.col("k") + 1)
                      & (pl.col("__next_k") <= pl.col("k1")))
-             .group_by([*_KEY, "__ep"]).agg(pl.len().cast(pl.Int64).alias("flicker")))
-    ep = (episodes.join(first, on=[*_KEY, "__ep"], how="left").join(flick, on=[*_KEY, "__ep"], how="left")
+             .group_by("__ep").agg(pl.len().cast(pl.Int64).alias("flicker")))
+    ep = (episodes.join(first, on="__ep", how="left").join(flick, on="__ep", how="left")
           .with_columns(pl.col("first_alert").is_not_null().alias("hit"),
                         pl.when(pl.col("first_alert").is_not_null()).then(pl.col("flicker").fill_null(0))
                         .alias("flicker"),
                         (pl.col("t_los") - pl.col("first_alert")).alias("warning_s"),
                         pl.lit("truth").alias("kind_s")))
-    matched = pairs.filter(in_ep).select("__row").unique()
-    hit_runs = alerts.join(matched, on="__row", how="semi").select(*_KEY, "__run").unique()
-    false_runs = (alerts.join(hit_runs, on=[*_KEY, "__run"], how="anti")
-                  .group_by([*_KEY, "__run"]).agg(pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"))
+    hit_runs = pairs.filter(in_ep).select("__run").unique()
+    false_runs = (alert_runs.join(hit_runs, on="__run", how="anti")
                   .with_columns(pl.lit("false_alert").alias("kind_s")))
 
     def to_time(c: str) -> pl.Expr:
@@ -382,7 +441,7 @@ def score_alerts(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFr
     ``"all"``): ``hits``, ``misses``, ``false_alerts``, ``mean_warning_s``, ``flicker``,
     ``episodes``, ``flicker_per_hit`` — see the module docstring for the definitions."""
     grid = _grid(conflicts, id_map, methods)
-    ep = alert_episodes(conflicts, id_map, truth, cfg, id_col, methods)
+    ep = _episodes(grid, conflicts, id_map, truth, cfg, id_col)
     n_runs = grid.group_by("method").agg(pl.col("run").n_unique().alias("n_runs"))
     tru = ep.filter(pl.col("kind") == "truth")
     per = n_runs.join(

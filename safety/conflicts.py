@@ -567,11 +567,21 @@ def _empty_conflicts() -> pl.DataFrame:
     return pl.DataFrame(schema=TABLES["conflicts"].required)
 
 
+def _track_reach(cfg: ConflictConfig, terms: _PointTerms | None) -> NDArray[np.float64] | None:
+    """Per-track k_h·sqrt(λ_max(P_xy(T^пор))): the pairwise sum bounds the estimation term of
+    R_г^пор from above (None without covariance thresholds)."""
+    if terms is None or cfg.threshold_mode != "covariance":
+        return None
+    return cfg.k_h * np.sqrt(np.maximum(_lambda_max(terms.a, terms.b, terms.d), 0.0))
+
+
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,
-                    i: NDArray[np.int64], j: NDArray[np.int64]) -> dict[str, NDArray]:
+                    i: NDArray[np.int64], j: NDArray[np.int64],
+                    reach: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
     """Output-set membership, geometry, thresholds and decision of pairs (i, j); ``st`` holds the
-    state columns x, y, z, vx, vy, vz as rows. Staged: the vertical window test, then the
-    horizontal one, then the full geometry of the survivors only."""
+    state columns x, y, z, vx, vy, vz as rows; ``reach`` the per-track k_h·sqrt(λ_max) (see
+    :func:`_track_reach`). Staged: the vertical window test, then the horizontal one (a cheap
+    upper bound of R_г^пор first), then the full geometry of the survivors only."""
     x, y, z, vx, vy, vz = st
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
@@ -595,8 +605,15 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     with np.errstate(divide="ignore", invalid="ignore"):
         ts = np.where(moving, np.clip((rx * vx_ + ry * vy_) / vv, w0, w1), 0.0)
     ex, ey = rx - vx_ * ts, ry - vy_ * ts
+    d2 = ex * ex + ey * ey
+    if reach is not None:
+        # R_г^пор(i, j) ≤ Δr_г + |ΔR_гп| + reach_i + reach_j (λ_max(A + B) ≤ λ_max A + λ_max B;
+        # 1e-6 guards rounding): rejects most pairs before their exact thresholds are computed
+        ub = (cfg.sep_h_m + cfg.pilot_h_at_t + reach[i] + reach[j]) * (1.0 + 1e-6)
+        sel = np.flatnonzero(d2 <= ub * ub)
+        i, j, dz, dvz, rx, ry, vx_, vy_, d2 = (a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, d2))
     r_thr, z_thr = pair_thresholds(cfg, terms, i, j)
-    sel = np.flatnonzero(ex * ex + ey * ey <= r_thr * r_thr)
+    sel = np.flatnonzero(d2 <= r_thr * r_thr)
     i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr = (
         a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr))
     # 3. geometry (5.10)–(5.13) and the decision (5.14) of the output rows
@@ -644,23 +661,38 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
     ids = tracks[id_col].cast(pl.Int64).to_numpy()
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
+    reach = _track_reach(cfg, terms)
     chunks: list[dict[str, NDArray]] = []
     step = cfg.chunk_pairs
     for ci, cj in _block_candidates(cfg, g, pos, vel, terms):
         for s in range(0, len(ci), step):
             a, b = ci[s:s + step], cj[s:s + step]
             swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
-            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b)))
+            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), reach))
         del ci, cj
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    # g is the dense rank of (run, epoch, method), so this is the (run, epoch, method, id_a, id_b) order
-    order = np.lexsort((ids[cols["j"]], ids[cols["i"]], g[cols["i"]]))
-    cols = {k: v[order] for k, v in cols.items()}
     i, j = cols.pop("i"), cols.pop("j")
+    order = _pair_order(g, ids, i, j)
+    i, j = i[order], j[order]
     keys = tracks.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                          pl.col(method_col).cast(pl.String).alias("method"))[i]
-    out = keys.with_columns(pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64),
-                            *[pl.Series(k, v) for k, v in cols.items()])
+    # one polars gather of all value columns (parallel over columns) instead of one numpy take each
+    vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
+                        ).hstack(pl.DataFrame(cols)[order])
+    out = keys.hstack(vals)
     return out.select(list(TABLES["conflicts"].required)).cast(TABLES["conflicts"].required)
+
+
+def _pair_order(g: NDArray[np.int64], ids: NDArray[np.int64], i: NDArray[np.int64], j: NDArray[np.int64]
+                ) -> NDArray[np.int64]:
+    """Permutation sorting pairs (i, j) by (group, id_i, id_j) — g is the dense rank of (run, epoch,
+    method), so this is the (run, epoch, method, id_a, id_b) order: one stable argsort of a packed
+    int64 key (ids as dense ranks), np.lexsort only when the packed key could overflow."""
+    uniq, rank = np.unique(ids, return_inverse=True)
+    rank = rank.ravel().astype(np.int64)
+    m, n_groups = len(uniq), int(g.max()) + 1
+    if n_groups * m * m < 1 << 62:
+        return np.argsort((g[i] * m + rank[i]) * m + rank[j], kind="stable")
+    return np.lexsort((ids[j], ids[i], g[i]))

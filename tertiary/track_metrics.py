@@ -103,8 +103,16 @@ def _labelled(tracks: pl.DataFrame) -> pl.DataFrame:
 def track_truth(tracks: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
     """``tracks`` with ``label`` ("<method>+<filter>") and ``truth_id``: the truth of the fused
     target a row was updated with, carried over the coasting rows that follow."""
+    return _track_truth(tracks, _target_truth(associations, report_truth))
+
+
+def _target_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    return target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+
+
+def _track_truth(tracks: pl.DataFrame, tt: pl.DataFrame) -> pl.DataFrame:
+    """:func:`track_truth` from the target truth ``tt`` (:func:`_target_truth`)."""
     t = _labelled(tracks).sort(["label", "run", "track_id", "epoch"])
-    tt = target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
     tt = tt.select(pl.col("run").cast(t.schema["run"]), "epoch",
                    pl.col("target_id").cast(pl.UInt64).alias("plot_target_id"),
                    pl.col("truth_id").alias("__plot_truth"))
@@ -122,7 +130,11 @@ def match_tracks(tracks: pl.DataFrame, associations: pl.DataFrame, report_truth:
     transient, plus ``segment``, ``seg_class``, ``true_<state>``, the squared errors of
     :func:`tertiary.evaluate.match_truth` (``e2_x`` … ``e2_vel``), ``nees_pos`` and ``sd_pos``
     (sqrt of the position variance sum)."""
-    t = track_truth(tracks, associations, report_truth)
+    return _match_labelled(track_truth(tracks, associations, report_truth), truth, cfg)
+
+
+def _match_labelled(t: pl.DataFrame, truth: pl.DataFrame, cfg: TrackMetricsConfig) -> pl.DataFrame:
+    """:func:`match_tracks` from the :func:`track_truth` rows ``t``."""
     if cfg.skip_first_s > 0:
         first = pl.col("epoch").min().over(_TRACK)
         t = t.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
@@ -175,11 +187,13 @@ def _consistency(matched: pl.DataFrame, cfg: TrackMetricsConfig, n_runs: dict[st
     return out
 
 
-def _continuity(labelled: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
-                cfg: TrackMetricsConfig, n_runs: dict[str, int]) -> list[dict]:
-    """completeness, breaks, swaps, spurious_tracks, tracks per label (segment ``all``)."""
+def _continuity(labelled: pl.DataFrame, tt: pl.DataFrame, cfg: TrackMetricsConfig,
+                n_runs: dict[str, int]) -> list[dict]:
+    """completeness, breaks, swaps, spurious_tracks, tracks per label (segment ``all``); ``tt``
+    is the target truth (:func:`_target_truth`)."""
     out: list[dict] = []
-    tt = target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+    # only the key columns: the per-label filters below would otherwise copy the wide rows
+    labelled = labelled.select("label", "run", "epoch", "track_id", "truth_id")
     run_t = labelled.schema["run"]
     aircraft = (tt.filter(pl.col("truth_id").is_not_null())
                 .select(pl.col("run").cast(run_t), "epoch", "truth_id").unique())
@@ -217,16 +231,18 @@ def tracker_metrics(tracks: pl.DataFrame, associations: pl.DataFrame, report_tru
     spec = TABLES["metrics"].required
     if tracks.is_empty():
         return pl.DataFrame(schema=spec)
-    labelled = track_truth(tracks, associations, report_truth)
+    # the target truth and the labelled tracks are shared by every metric (computed once)
+    tt = _target_truth(associations, report_truth)
+    labelled = _track_truth(tracks, tt)
     n_runs = dict(labelled.group_by("label").agg(pl.col("run").n_unique()).iter_rows())
-    matched = match_tracks(tracks, associations, report_truth, truth, cfg)
+    matched = _match_labelled(labelled, truth, cfg)
     ecfg = EvaluateConfig(skip_first_s=0.0, denominator=cfg.denominator, stage=cfg.stage)
     acc = accuracy_from_matched(matched.rename({"label": "method"}), ecfg) if matched.height else None
     parts = []
     if acc is not None and acc.height:
         parts.append(acc.filter(pl.col("metric").is_in(list(_ACCURACY)))
                      .with_columns(pl.col("n_runs").cast(pl.Int64)).select(list(spec)))
-    extra = _consistency(matched, cfg, n_runs) + _continuity(labelled, associations, report_truth, cfg, n_runs)
+    extra = _consistency(matched, cfg, n_runs) + _continuity(labelled, tt, cfg, n_runs)
     if extra:
         parts.append(pl.DataFrame(extra, schema={k: (pl.Int64 if k == "n_runs" else v) for k, v in spec.items()}))
     if not parts:

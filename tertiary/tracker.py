@@ -251,7 +251,7 @@ class _Plots:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         base = run * _RUN_SEP + x
         centers = (self.classes[:, None] * _CLASS_SEP + base[None, :]).ravel()
-        radii = np.broadcast_to(radius, (len(self.classes), n)).ravel()
+        radii = (radius if radius.ndim == 2 else np.repeat(radius[None], len(self.classes), axis=0)).ravel()
         o, p = _window_pairs(self.keys, centers, radii)
         return o % n, p
 
@@ -278,17 +278,22 @@ class _PlotIndex:
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
+        # σ-class segments of every epoch and their largest x variance, once for all epochs
+        ep = epoch_us[order]
+        seg = np.flatnonzero(np.r_[True, (ep[1:] != ep[:-1]) | (self.cls[1:] != self.cls[:-1])])
+        self.seg_cls = self.cls[seg].astype(float)
+        self.seg_rmax_x = np.maximum.reduceat(self.r[:, 0], seg) if len(seg) else np.zeros(0)
+        self.seg_bounds = np.searchsorted(seg, self.bounds)
 
     def __len__(self) -> int:
         return len(self.epochs)
 
     def epoch(self, k: int) -> _Plots:
         lo, hi = self.bounds[k], self.bounds[k + 1]
-        cls = self.cls[lo:hi]
-        first = np.flatnonzero(np.r_[True, cls[1:] != cls[:-1]])
-        rmax_x = np.maximum.reduceat(self.r[lo:hi, 0], first)
+        s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.tid[lo:hi],
-                      np.arange(lo, hi, dtype=np.int64), self.keys[lo:hi], cls[first].astype(float), rmax_x)
+                      np.arange(lo, hi, dtype=np.int64), self.keys[lo:hi], self.seg_cls[s0:s1],
+                      self.seg_rmax_x[s0:s1])
 
 
 def _likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
@@ -303,12 +308,16 @@ def _tracking_pairs(plots: _Plots, free: NDArray, run: NDArray, xp: NDArray, vp:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     radius = cfg.gate_sigma * np.sqrt(vp[None, :, 0] + plots.rmax_x[:, None]) + cfg.gate_min_m
     o, p = plots.window(run, xp[:, 0], radius)
-    keep = free[p]
-    o, p = o[keep], p[keep]
-    s = vp[o] + plots.r[p]
-    d = plots.z[p] - xp[o]
-    ok = (np.abs(d) <= cfg.gate_sigma * np.sqrt(s) + cfg.gate_min_m).all(axis=1)
-    return o[ok], p[ok], _likelihood_cost(d[ok], s[ok])
+    if not free.all():
+        keep = free[p]
+        o, p = o[keep], p[keep]
+    # one axis at a time on 1-D gathers, y first: the x window leaves most candidates to fail
+    # on y, so the full 3-axis rows are gathered only for the few that pass
+    for axis in (1, 0, 2):
+        d = plots.z[p, axis] - xp[o, axis]
+        ok = np.abs(d) <= cfg.gate_sigma * np.sqrt(vp[o, axis] + plots.r[p, axis]) + cfg.gate_min_m
+        o, p = o[ok], p[ok]
+    return o, p, _likelihood_cost(plots.z[p] - xp[o], vp[o] + plots.r[p])
 
 
 def _vertical_ok(dz: NDArray, rz_a: NDArray, rz_b: NDArray, cfg: TrackerConfig) -> NDArray:
@@ -353,6 +362,13 @@ def _confirm_pairs(plots: _Plots, free: NDArray, hyp: _Objects, t: float,
 # --------------------------------------------------------------------------- assignment
 
 
+def _compact(v: NDArray, n: int) -> tuple[NDArray, NDArray]:
+    """``np.unique(v, return_inverse=True)`` for indices 0 ≤ v < n, without sorting."""
+    present = np.zeros(n, bool)
+    present[v] = True
+    return np.flatnonzero(present), (np.cumsum(present) - 1)[v]
+
+
 def _assign(o: NDArray, p: NDArray, cost: NDArray, n_obj: int, n_plot: int, method: str) -> NDArray:
     """Plot index per object (−1 if none) from gated pairs; one plot per object and vice versa."""
     out = np.full(n_obj, -1, np.int64)
@@ -367,8 +383,8 @@ def _assign(o: NDArray, p: NDArray, cost: NDArray, n_obj: int, n_plot: int, meth
     if single.all():
         return out
     amb = np.flatnonzero(~single)
-    ro, ri = np.unique(o[amb], return_inverse=True)
-    co, ci = np.unique(p[amb], return_inverse=True)
+    ro, ri = _compact(o[amb], n_obj)
+    co, ci = _compact(p[amb], n_plot)
     if len(ro) * len(co) <= _DENSE_MAX:
         # all ambiguous components in one block-diagonal problem (off-block = not gated)
         blocks = [(amb, ro, ri, co, ci)]
@@ -432,21 +448,33 @@ class _Emitted:
             self.parts[k].append(v)
         self.probs.append(probs)
 
+    def _probs(self, n: int) -> NDArray | None:
+        """Model probabilities of every row (NaN-padded to the widest), None if no filter has any."""
+        if all(pr is None for pr in self.probs):
+            return None
+        width = max(pr.shape[1] for pr in self.probs if pr is not None)
+        probs = np.full((n, width), np.nan)
+        at = 0
+        for pr, part in zip(self.probs, self.parts["run"]):
+            if pr is not None:
+                probs[at:at + len(part), :pr.shape[1]] = pr
+            at += len(part)
+        return probs
+
     def frame(self, runs: NDArray, filt_name: str, method: str) -> pl.DataFrame:
         if not self.parts["run"] or sum(len(a) for a in self.parts["run"]) == 0:
             return pl.DataFrame(schema=TRACK_COLUMNS)
         c = {k: np.concatenate(v, axis=0) for k, v in self.parts.items()}
         n = len(c["run"])
+        probs = self._probs(n)
+        # sort by (run, epoch, track_id) in numpy (unique keys, runs sorted): cheaper than
+        # sorting the wide polars frame
+        order = np.lexsort((c["track_id"], c["epoch"], c["run"]))
+        c = {k: v[order] for k, v in c.items()}
         upd = c["upd"]
         nu = pl.Series("innovation", c["nu"]).cast(pl.List(pl.Float64))
-        if any(pr is not None for pr in self.probs):
-            width = max(pr.shape[1] for pr in self.probs if pr is not None)
-            probs = np.full((n, width), np.nan)
-            at = 0
-            for pr, part in zip(self.probs, self.parts["run"]):
-                if pr is not None:
-                    probs[at:at + len(part), :pr.shape[1]] = pr
-                at += len(part)
+        if probs is not None:
+            probs = probs[order]
             has = ~np.isnan(probs).all(axis=1)
             model_probs = pl.Series("model_probs", probs).cast(pl.List(pl.Float64))
         else:
@@ -456,14 +484,14 @@ class _Emitted:
             "run": runs[c["run"]].astype(np.uint32),
             "epoch": pl.Series(c["epoch"]).cast(pl.Datetime("us")).dt.replace_time_zone("UTC"),
             "track_id": c["track_id"].astype(np.uint64),
-            "filter": np.full(n, filt_name, dtype=object),
-            "method": np.full(n, method, dtype=object),
+            # constant and two-valued strings built by polars: numpy object/str arrays convert slowly
+            "filter": pl.repeat(filt_name, n, dtype=pl.String, eager=True),
+            "method": pl.repeat(method, n, dtype=pl.String, eager=True),
             **{col: c["x"][:, i] for i, col in enumerate(STATE_COLS)},
             "cov_diag": c["var"],
             "innovation": nu,
             "nis": c["nis"],
             "model_probs": model_probs,
-            "status": np.where(upd, "confirmed", "coasting"),
             "plot_target_id": c["tid"],
             "__upd": upd,
             "__has_probs": has,
@@ -474,9 +502,9 @@ class _Emitted:
             pl.when(upd_col).then(pl.col("nis")).alias("nis"),
             pl.when(upd_col).then(pl.col("plot_target_id")).alias("plot_target_id"),
             pl.when(pl.col("__has_probs")).then(pl.col("model_probs")).alias("model_probs"),
+            pl.when(upd_col).then(pl.lit("confirmed")).otherwise(pl.lit("coasting")).alias("status"),
         )
-        return (frame.select(list(TRACK_COLUMNS)).cast(TRACK_COLUMNS)
-                .sort(["run", "epoch", "track_id"]))
+        return frame.select(list(TRACK_COLUMNS)).cast(TRACK_COLUMNS)
 
 
 def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:

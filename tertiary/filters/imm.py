@@ -160,13 +160,30 @@ def model_matrices(omega: float, dt: ArrayLike, q: float | tuple[float, float]) 
     the distinct dt) for anisotropic (q_x, q_y)."""
     dt = np.asarray(dt, float)
     qx, qy = (q, q) if np.isscalar(q) else q
-    a = a_ct(omega, dt)
-    if qx == qy:
-        return a, q_ct(omega, dt, qx)
-    if omega == 0.0:
-        return a, q_cv(dt, qx, qy)
+    # a batch of tracks has few distinct dt (scan periods) and they repeat every epoch: build
+    # the matrices of each distinct set once, then gather (bit-identical to building every row)
     uniq, inv = np.unique(dt, return_inverse=True)
-    return a, q_van_loan(omega, uniq, qx, qy)[inv.reshape(dt.shape)]
+    key = (float(omega), float(qx), float(qy), uniq.tobytes())
+    hit = _MODEL_CACHE.get(key)
+    if hit is None:
+        if len(_MODEL_CACHE) >= _MODEL_CACHE_MAX:
+            _MODEL_CACHE.clear()
+        hit = _MODEL_CACHE[key] = (a_ct(omega, uniq), _model_q(omega, uniq, qx, qy))
+    inv = inv.reshape(dt.shape)
+    return hit[0][inv], hit[1][inv]
+
+
+_MODEL_CACHE: dict[tuple, tuple[F64, F64]] = {}
+_MODEL_CACHE_MAX = 256
+
+
+def _model_q(omega: float, dt: F64, qx: float, qy: float) -> F64:
+    """Q of one model for the 1-D ``dt``."""
+    if qx == qy:
+        return q_ct(omega, dt, qx)
+    if omega == 0.0:
+        return q_cv(dt, qx, qy)
+    return q_van_loan(omega, dt, qx, qy)
 
 
 # --------------------------------------------------------------------------- converted measurements
@@ -212,6 +229,11 @@ def _inv2(s: F64) -> tuple[F64, F64]:
     return inv, det
 
 
+def _mul2(a: F64, b: F64) -> F64:
+    """a @ b for stacks of (n, 2) @ (2, 2) matrices."""
+    return a[..., :, 0, None] * b[..., None, 0, :] + a[..., :, 1, None] * b[..., None, 1, :]
+
+
 def imm_mix(x: F64, p: F64, mu: F64, tpm: F64) -> tuple[F64, F64, F64]:
     """Steps 1–4: predicted mode probabilities c̄ (B, M), mixed states (B, M, n) and covariances
     (B, M, n, n) from the filtered x (B, M, n), P (B, M, n, n) and μ (B, M)."""
@@ -219,7 +241,8 @@ def imm_mix(x: F64, p: F64, mu: F64, tpm: F64) -> tuple[F64, F64, F64]:
     w = tpm[None] * mu[:, :, None] / np.where(cbar > 0, cbar, 1.0)[:, None, :]  # μ^{i|j}, (B, i, j)
     xm = np.einsum("bij,bin->bjn", w, x)
     d = x[:, :, None, :] - xm[:, None, :, :]                # (B, i, j, n)
-    pm = np.einsum("bij,bimn->bjmn", w, p) + np.einsum("bij,bijm,bijn->bjmn", w, d, d)
+    # (w d) dᵀ as a two-operand einsum: same products in the same order, much faster than three
+    pm = np.einsum("bij,bimn->bjmn", w, p) + np.einsum("bijm,bijn->bjmn", w[..., None] * d, d)
     return cbar, xm, _sym(pm)
 
 
@@ -227,8 +250,18 @@ def imm_combine(x: F64, p: F64, mu: F64) -> tuple[F64, F64]:
     """Step 10: moment-matched combination (B, n), (B, n, n)."""
     xc = np.einsum("bj,bjn->bn", mu, x)
     d = x - xc[:, None, :]
-    pc = np.einsum("bj,bjmn->bmn", mu, p) + np.einsum("bj,bjm,bjn->bmn", mu, d, d)
+    pc = np.einsum("bj,bjmn->bmn", mu, p) + np.einsum("bjm,bjn->bmn", mu[..., None] * d, d)
     return xc, _sym(pc)
+
+
+def imm_combine_diag(x: F64, p: F64, mu: F64) -> tuple[F64, F64]:
+    """:func:`imm_combine`'s estimate (B, n) and covariance diagonal (B, n), skipping the
+    off-diagonal terms (same values: the diagonal is untouched by the symmetrisation)."""
+    xc = np.einsum("bj,bjn->bn", mu, x)
+    d = x - xc[:, None, :]
+    var = (np.einsum("bj,bjn->bn", mu, np.diagonal(p, axis1=-2, axis2=-1))
+           + np.einsum("bjn,bjn->bn", mu[..., None] * d, d))
+    return xc, var
 
 
 def imm_update(x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.bool_],
@@ -240,10 +273,13 @@ def imm_update(x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.b
     pht = p[:, :, :, _HIDX]                                  # (B, M, 4, 2)
     s = pht[:, :, _HIDX, :] + rr[:, None]                    # (B, M, 2, 2)
     si, det = _inv2(s)
-    k = pht @ si                                             # (B, M, 4, 2)
-    xu = x + np.einsum("bmij,bmj->bmi", k, nu)
-    pu = _sym(p - k @ s @ np.swapaxes(k, -1, -2))
-    d2 = np.einsum("bmi,bmij,bmj->bm", nu, si, nu)
+    # the 2-wide inner products written out: stacked tiny matmuls/einsums cost far more per call
+    k = _mul2(pht, si)                                       # (B, M, 4, 2)
+    xu = x + k[..., 0] * nu[..., 0, None] + k[..., 1] * nu[..., 1, None]
+    ks = _mul2(k, s)
+    pu = _sym(p - (ks[..., :, 0, None] * k[..., None, :, 0] + ks[..., :, 1, None] * k[..., None, :, 1]))
+    sn = si[..., 0] * nu[..., 0, None] + si[..., 1] * nu[..., 1, None]
+    d2 = nu[..., 0] * sn[..., 0] + nu[..., 1] * sn[..., 1]
     loglik = -0.5 * d2 - 0.5 * np.log(det) - np.log(2.0 * np.pi)
     lw = np.log(np.maximum(mu_pred, 1e-300)) + loglik
     lw = lw - lw.max(axis=1, keepdims=True)
@@ -268,6 +304,7 @@ class HorizontalIMM:
         self.mu0 = mu0 / mu0.sum()
         self.q = q
         self.mu_floor = float(mu_floor)
+        self._cache: dict[bytes, tuple[F64, F64]] = {}
         m = len(self.omegas)
         if self.tpm.shape != (m, m) or self.mu0.shape != (m,):
             raise ValueError("tpm must be (M, M) and mu0 (M,) for M = len(omegas)")
@@ -287,12 +324,24 @@ class HorizontalIMM:
     def predict(self, x: F64, p: F64, mu: F64, dt: F64) -> tuple[F64, F64, F64]:
         """Mixing and model-conditioned prediction; returns x⁻, P⁻ and c̄ (the predicted μ)."""
         cbar, xm, pm = imm_mix(x, p, mu, self.tpm)
-        xs, ps = [], []
-        for j, w in enumerate(self.omegas):
-            a, q = model_matrices(w, dt, self.q)
-            xs.append(np.einsum("bij,bj->bi", a, xm[:, j]))
-            ps.append(_sym(a @ pm[:, j] @ np.swapaxes(a, -1, -2) + q))
-        return np.stack(xs, axis=1), np.stack(ps, axis=1), cbar
+        a, q = self._matrices(dt)
+        # all models in one batched product: per-call overhead dominates at tracker batch sizes
+        xs = np.einsum("bmij,bmj->bmi", a, xm)
+        return xs, _sym(a @ pm @ np.swapaxes(a, -1, -2) + q), cbar
+
+    def _matrices(self, dt: F64) -> tuple[F64, F64]:
+        """(A, Q) of every model for every dt, (B, M, 4, 4) each; cached per distinct-dt set."""
+        uniq, inv = np.unique(dt, return_inverse=True)
+        key = uniq.tobytes()
+        hit = self._cache.get(key)
+        if hit is None:
+            pairs = [model_matrices(w, uniq, self.q) for w in self.omegas]
+            if len(self._cache) >= _MODEL_CACHE_MAX:
+                self._cache.clear()
+            hit = self._cache[key] = (np.stack([a for a, _ in pairs], axis=1),
+                                      np.stack([q for _, q in pairs], axis=1))
+        inv = inv.reshape(np.shape(dt))
+        return hit[0][inv], hit[1][inv]
 
     def update(self, x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.bool_] | None = None
                ) -> tuple[F64, F64, F64, F64]:
@@ -308,16 +357,16 @@ class HorizontalIMM:
 
 
 def _cv1_predict(x: F64, p: F64, dt: F64, q: float) -> tuple[F64, F64]:
-    """Scalar-axis CV prediction on (B, 2), (B, 2, 2)."""
+    """Scalar-axis CV prediction on (B, 2), (B, 2, 2); A P Aᵀ + Q written out (A = [[1, dt], [0, 1]]):
+    stacked 2×2 matmuls cost far more per call."""
     x = np.stack([x[:, 0] + dt * x[:, 1], x[:, 1]], axis=1)
-    a = np.zeros((len(dt), 2, 2))
-    a[:, 0, 0] = a[:, 1, 1] = 1.0
-    a[:, 0, 1] = dt
-    qm = np.empty_like(a)
-    qm[:, 0, 0] = dt ** 3 / 3 * q
-    qm[:, 0, 1] = qm[:, 1, 0] = dt ** 2 / 2 * q
-    qm[:, 1, 1] = dt * q
-    return x, _sym(a @ p @ np.swapaxes(a, -1, -2) + qm)
+    ap0 = p[:, 0] + dt[:, None] * p[:, 1]                    # row 0 of A P (row 1 is P's)
+    out = np.empty_like(p)
+    out[:, 0, 0] = ap0[:, 0] + ap0[:, 1] * dt + dt ** 3 / 3 * q
+    out[:, 0, 1] = ap0[:, 1] + dt ** 2 / 2 * q
+    out[:, 1, 0] = p[:, 1, 0] + p[:, 1, 1] * dt + dt ** 2 / 2 * q
+    out[:, 1, 1] = p[:, 1, 1] + dt * q
+    return x, _sym(out)
 
 
 @register
@@ -420,10 +469,10 @@ class IMMFilter(TrackFilter):
         return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innov
 
     def output(self, state: State) -> Output:
-        xc, pc = imm_combine(state["x"], state["P"], state["mu"])
+        xc, vc = imm_combine_diag(state["x"], state["P"], state["mu"])
         xv, pv = state["xv"], state["Pv"]
         out = np.stack([xc[:, 0], xc[:, 2], xv[:, 0], xc[:, 1], xc[:, 3], xv[:, 1]], axis=1)
-        var = np.stack([pc[:, 0, 0], pc[:, 2, 2], pv[:, 0, 0], pc[:, 1, 1], pc[:, 3, 3], pv[:, 1, 1]], axis=1)
+        var = np.stack([vc[:, 0], vc[:, 2], pv[:, 0, 0], vc[:, 1], vc[:, 3], pv[:, 1, 1]], axis=1)
         return Output(out, var, state["mu"].copy())
 
     def combined_horizontal(self, state: State) -> tuple[F64, F64]:
