@@ -73,9 +73,8 @@ def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
         if sel.size == 0:
             continue
         site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
-        p, v, _ = geo.frame_to_frame(local_state[sel, :3], site, origin, vel=local_state[sel, 3:])
-        state[sel, :3], state[sel, 3:] = p, v
-        cov[sel] = _congruence(local_cov[sel], np.kron(np.eye(2), site.rotation_to(origin))).reshape(-1, 36)
+        p, v, c = geo.frame_to_frame(local_state[sel, :3], site, origin, vel=local_state[sel, 3:], cov=local_cov[sel])
+        state[sel, :3], state[sel, 3:], cov[sel] = p, v, c.reshape(-1, 36)
         rng = reports["range_m"].to_numpy()[sel]
         az = reports["azimuth_deg"].to_numpy()[sel]
         nom = geo.polar_sigmas_to_enu_cov(rng, az, np.nan_to_num(el[sel]), row["sigma_range_m"],
@@ -83,15 +82,6 @@ def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
         rot = site.rotation_to(origin)
         nominal[sel] = np.einsum("ij,njk,ik->ni", rot, nom, rot)
     return state, cov, nominal
-
-
-def _congruence(c: NDArray[np.float64], m: NDArray[np.float64]) -> NDArray[np.float64]:
-    """M C Mᵀ for a stack c (n, k, k) and one matrix m (k, k) — the exact covariance map of
-    :func:`tertiary.geo.frame_to_frame` — as two large matrix products (BLAS) over the whole
-    stack rather than a batched contraction of tiny matrices."""
-    n, k = len(c), m.shape[0]
-    cm = (c.reshape(n * k, k) @ m.T).reshape(n, k, k)             # C Mᵀ
-    return (cm.swapaxes(1, 2).reshape(n * k, k) @ m.T).reshape(n, k, k).swapaxes(1, 2)  # M (C Mᵀ)
 
 
 def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDArray[np.float64], q: float,

@@ -20,7 +20,7 @@ from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS
 from tertiary.simulate import (Dataset, builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
-from tertiary.simulate.config import Anomalies, ScenarioConfig, with_radar_count
+from tertiary.simulate.config import ScenarioConfig, with_radar_count
 
 app = typer.Typer(add_completion=False, no_args_is_help=False,
                   help="Tertiary processing of multi-radar surveillance data and safety evaluation.")

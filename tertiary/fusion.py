@@ -70,7 +70,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.schema import TABLES, empty_frame
+from tertiary.schema import TABLES, empty_frame, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -692,19 +692,6 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
     return xs, covs, ws
 
 
-def _is_sorted(rows: pl.DataFrame, by: list[str]) -> bool:
-    """Whether the rows are in non-descending lexicographic order of the (non-null) keys."""
-    if rows.select(pl.any_horizontal(pl.col(by).is_null().any())).item():
-        return False
-    later = np.zeros(max(rows.height - 1, 0), dtype=bool)   # row i+1 sorts after row i
-    tie = np.ones_like(later)
-    for c in by:
-        k = rows[c].to_physical().to_numpy()
-        later |= tie & (k[1:] > k[:-1])
-        tie &= k[1:] == k[:-1]
-    return bool(np.all(later | tie))
-
-
 def _check_methods(methods: Sequence[str]) -> list[str]:
     if isinstance(methods, str):
         methods = [methods]
@@ -729,7 +716,7 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     schema = TABLES["fused"].required
     if rows.height == 0 or not methods:
         return empty_frame("fused", optional=False)
-    if not _is_sorted(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
+    if not is_sorted_by(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
         rows = rows.sort([*GROUP, "radar_id"], maintain_order=True)
     lay, a = layout(rows), _arrays(rows)
     d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731

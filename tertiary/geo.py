@@ -179,8 +179,20 @@ def frame_to_frame(pos: ArrayLike, src: LocalFrame, dst: LocalFrame, vel: ArrayL
     c = None
     if cov is not None:
         c = _f(cov)
-        c = sandwich(np.kron(np.eye(c.shape[-1] // 3), rot), c)
+        c = congruence(np.kron(np.eye(c.shape[-1] // 3), rot), c)
     return p, v, c
+
+
+def congruence(m: F64, c: ArrayLike) -> F64:
+    """M C Mᵀ for one matrix m (k, k) and a stack c (..., k, k): two large matrix products
+    over the whole stack (BLAS), much faster than a batched contraction of tiny matrices."""
+    c = _f(c)
+    k = m.shape[0]
+    flat = c.reshape(-1, k, k)
+    n = len(flat)
+    cm = (flat.reshape(n * k, k) @ m.T).reshape(n, k, k)                              # C Mᵀ
+    out = (cm.swapaxes(1, 2).reshape(n * k, k) @ m.T).reshape(n, k, k).swapaxes(1, 2)  # M (C Mᵀ)
+    return out.reshape(c.shape)
 
 
 # --------------------------------------------------------------------------- radar polar

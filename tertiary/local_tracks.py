@@ -25,6 +25,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
+from tertiary.schema import is_sorted_by
 from tertiary.filters.singer import SingerModel, predict_elementwise, singer_coefficients, update_elementwise
 
 TRACK_KEY = ["run", "radar_id", "local_track_id"]
@@ -67,19 +68,6 @@ def _seconds(time: pl.Series) -> tuple[NDArray[np.float64], int]:
     us = time.cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy()
     t0 = int(us.min()) if len(us) else 0
     return (us - t0) * 1e-6, t0
-
-
-def _in_track_order(df: pl.DataFrame) -> bool:
-    """Whether the rows are already sorted by track key and time (the simulator emits them so;
-    sorting them again is a sizeable part of its secondary processing)."""
-    keys = [df[c].to_physical().to_numpy() for c in TRACK_KEY + ["time"]]
-    if len(df) < 2 or any(k.dtype.kind not in "iu" for k in keys):      # nulls come as floats
-        return len(df) < 2
-    ahead, tied = np.zeros(len(df) - 1, bool), np.ones(len(df) - 1, bool)
-    for k in keys:
-        ahead |= tied & (k[1:] > k[:-1])
-        tied &= k[1:] == k[:-1]
-    return bool(np.all(ahead | tied))
 
 
 def measurement_polar(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: float
@@ -253,7 +241,7 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     """
     df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     df = df.drop([c for c in ESTIMATE_COLUMNS if c in df.columns])
-    if not _in_track_order(df):
+    if not is_sorted_by(df, TRACK_KEY + ["time"]):   # the simulator emits them so
         df = df.sort(TRACK_KEY + ["time"], maintain_order=True)
     n = len(df)
     t, _ = _seconds(df["time"])

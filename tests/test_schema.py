@@ -584,3 +584,23 @@ def test_row_accounting(case: tuple[pl.DataFrame, set[int], int]) -> None:
         warnings.simplefilter("error")
         again = validate(clean, "reports", radars=radars())
     assert again.equals(clean)
+
+
+# --------------------------------------------------------------------------- is_sorted_by
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tertiary.schema import is_sorted_by
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 3), st.one_of(st.none(), st.integers(0, 3))),
+                max_size=30))
+def test_is_sorted_by_agrees_with_polars_sort(rows):
+    """True exactly when the frame has no nulls in the keys and sorting would not move a row."""
+    frame = pl.DataFrame(rows, schema={"a": pl.Int64, "b": pl.UInt32, "c": pl.Int64}, orient="row")
+    expected = frame.height < 2 or (frame["c"].null_count() == 0 and frame.sort("a", "b", "c").equals(frame))
+    assert is_sorted_by(frame, ["a", "b", "c"]) == expected
+    srt = frame.drop_nulls().sort("a", "b", "c")
+    assert is_sorted_by(srt, ["a", "b", "c"])

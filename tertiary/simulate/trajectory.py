@@ -62,8 +62,8 @@ class Trajectories:
         """
         flat, s, ok = self._bracket(aircraft, t)
         p0, p1, v0, v1 = self._samples(flat)
-        s2, s3 = s * s, s * s * s
-        pos = (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * v0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * v1
+        s2 = s * s
+        pos = _hermite(s, p0, p1, v0, v1)
         vel = ((6 * s2 - 6 * s) * p0 + (3 * s2 - 4 * s + 1) * v0 + (-6 * s2 + 6 * s) * p1 + (3 * s2 - 2 * s) * v1) / self.dt
         return pos, vel, ok
 
@@ -71,9 +71,7 @@ class Trajectories:
                     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Position and validity only (as :meth:`state_at`, without the velocity)."""
         flat, s, ok = self._bracket(aircraft, t)
-        p0, p1, v0, v1 = self._samples(flat)
-        s2, s3 = s * s, s * s * s
-        return (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * v0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * v1, ok
+        return _hermite(s, *self._samples(flat)), ok
 
     def _bracket(self, aircraft: NDArray[np.integer], t: NDArray[np.float64]
                  ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
@@ -127,6 +125,13 @@ class Trajectories:
         return pl.DataFrame(cols)
 
 
+def _hermite(s: NDArray[np.float64], p0: NDArray[np.float64], p1: NDArray[np.float64], v0: NDArray[np.float64],
+             v1: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cubic Hermite position at fraction s of a grid interval (v0, v1: velocity · dt)."""
+    s2, s3 = s * s, s * s * s
+    return (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * v0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * v1
+
+
 def integrate_commands(p0: NDArray[np.float64], heading0_deg: NDArray[np.float64], speed: NDArray[np.float64],
                        turn_rate_dps: NDArray[np.float64], vertical_rate: NDArray[np.float64],
                        dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -147,7 +152,9 @@ def integrate_commands(p0: NDArray[np.float64], heading0_deg: NDArray[np.float64
     return pos, vel
 
 
-def _integrate(p0, heading0_deg, speed, turn_rate_dps, vertical_rate, dt: float, pos, vel) -> None:
+def _integrate(p0: NDArray[np.float64], heading0_deg: NDArray[np.float64], speed: NDArray[np.float64],
+               turn_rate_dps: NDArray[np.float64], vertical_rate: NDArray[np.float64], dt: float,
+               pos: NDArray[np.float64], vel: NDArray[np.float64]) -> None:
     """:func:`integrate_commands` for a block of aircraft, into ``pos`` and ``vel``."""
     a_n = len(turn_rate_dps)
     w = np.radians(turn_rate_dps)
