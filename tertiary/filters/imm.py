@@ -160,20 +160,14 @@ def model_matrices(omega: float, dt: ArrayLike, q: float | tuple[float, float]) 
     the distinct dt) for anisotropic (q_x, q_y)."""
     dt = np.asarray(dt, float)
     qx, qy = (q, q) if np.isscalar(q) else q
-    # a batch of tracks has few distinct dt (scan periods) and they repeat every epoch: build
-    # the matrices of each distinct set once, then gather (bit-identical to building every row)
+    # a batch of tracks has few distinct dt (scan periods): build each distinct one once, then
+    # gather (bit-identical to building every row); HorizontalIMM caches the result per dt set
     uniq, inv = np.unique(dt, return_inverse=True)
-    key = (float(omega), float(qx), float(qy), uniq.tobytes())
-    hit = _MODEL_CACHE.get(key)
-    if hit is None:
-        if len(_MODEL_CACHE) >= _MODEL_CACHE_MAX:
-            _MODEL_CACHE.clear()
-        hit = _MODEL_CACHE[key] = (a_ct(omega, uniq), _model_q(omega, uniq, qx, qy))
     inv = inv.reshape(dt.shape)
-    return hit[0][inv], hit[1][inv]
+    return a_ct(omega, uniq)[inv], _model_q(omega, uniq, qx, qy)[inv]
 
 
-_MODEL_CACHE: dict[tuple, tuple[F64, F64]] = {}
+#: distinct-dt sets a HorizontalIMM keeps (A, Q) for; the cache is cleared when it is full
 _MODEL_CACHE_MAX = 256
 
 
