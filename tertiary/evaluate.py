@@ -22,12 +22,28 @@ Monte-Carlo run (N_k = number of runs, the seed's case); with several aircraft t
 three components), for range e = |p_fused| − |p_true| (range from the processing centre = the
 system origin).
 
+Horizontal and vertical error. Surveillance specifications judge the two separately, so beside
+the 3-D ``rmse_pos_m`` (e² = Δx² + Δy² + Δz²) every picture gets ``rmse_horizontal_m``
+(e² = Δx² + Δy², east and north of the system ENU frame) and ``rmse_height_m`` (e = Δz). The
+frame's z is not the height h: at horizontal distance d from the origin z = h − d²/(2R) + O(d⁴/R³)
+(R the Earth radius), so z_est − z_true = (h_est − h_true) − (d_est² − d_true²)/(2R). At the same
+horizontal point Δz = Δh·cos(d/R) (> 0.9998 Δh within 100 km); a horizontal error Δd adds the
+cross term −(d/R)·Δd (1.6 % of Δd at d = 100 km). So Δz equals the height error to first order
+and ``rmse_height_m`` is computed from Δz.
+
+Pooling when an epoch has too few samples. With ``"n-1"`` an epoch with N_k = 1 (one aircraft
+in one run, or the edge of coverage) has no (2.15). Instead of dropping it, the M samples of all
+such epochs of a (method, segment) are **pooled** into one sample with the N − 1 denominator:
+each of those epochs gets σ²(k) = e_k² · M / (M − 1), so that their mean is Σ e² / (M − 1),
+the (2.15) of the pool. Only a pool with M < 2 is left out. ``accuracy_by_epoch`` marks those
+rows ``pooled`` and gives N_k in ``n``, so a reader (and the report) can tell a well-sampled
+epoch from a thin one.
+
 The **pooled** figure of a metric is
 
     RMSE = sqrt( (1/K) Σ_k σ²(k) )
 
-the root of the mean over the K scored epochs of the per-epoch squared real accuracy; epochs
-with N_k < 2 (``"n-1"``) or N_k < 1 (``"n"``) are left out, as (2.15) is undefined there.
+the root of the mean over the K scored epochs of the per-epoch squared real accuracy.
 ``n_runs`` is the number of distinct Monte-Carlo runs that contributed.
 
 Segments: ``all``; ``straight`` ← truth segments straight|climb|descent; ``turn`` ← turn.
@@ -70,6 +86,7 @@ __all__ = [
     "match_truth",
     "accuracy",
     "accuracy_by_epoch",
+    "BY_EPOCH_SCHEMA",
     "association_metrics",
     "metrics_frame",
     "add_nees",
@@ -84,6 +101,8 @@ SEGMENT_CLASSES: dict[str, str] = {"straight": "straight", "climb": "straight", 
 #: metric name → squared-error column of :func:`match_truth`
 FUSION_METRICS: dict[str, str] = {
     "rmse_pos_m": "e2_pos",
+    "rmse_horizontal_m": "e2_horizontal",
+    "rmse_height_m": "e2_height",
     "rmse_range_m": "e2_range",
     "rmse_x_m": "e2_x",
     "rmse_y_m": "e2_y",
@@ -201,8 +220,9 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
 def error_columns() -> list[pl.Expr]:
     """Expressions on rows holding an estimate (``x_m`` …) and its truth (``true_x_m`` …):
     ``seg_class`` (straight/turn/null) and the squared errors ``e2_x``, ``e2_y``, ``e2_z``,
-    ``e2_pos`` (|Δp|²), ``e2_range`` ((|p| − |p_true|)², range from the processing centre)
-    and ``e2_vel`` (|Δv|²) — shared by the fusion and tracker evaluations."""
+    ``e2_pos`` (|Δp|²), ``e2_horizontal`` (Δx² + Δy²), ``e2_height`` (Δz², the height error to
+    first order, module docstring), ``e2_range`` ((|p| − |p_true|)², range from the processing
+    centre) and ``e2_vel`` (|Δv|²) — shared by the fusion and tracker evaluations."""
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
     r_t = (pl.col("true_x_m") ** 2 + pl.col("true_y_m") ** 2 + pl.col("true_z_m") ** 2).sqrt()
@@ -212,6 +232,8 @@ def error_columns() -> list[pl.Expr]:
         (d["y_m"] ** 2).alias("e2_y"),
         (d["z_m"] ** 2).alias("e2_z"),
         (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
+        (d["x_m"] ** 2 + d["y_m"] ** 2).alias("e2_horizontal"),
+        (d["z_m"] ** 2).alias("e2_height"),
         ((r_f - r_t) ** 2).alias("e2_range"),
         (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
     ]
@@ -222,19 +244,29 @@ def error_columns() -> list[pl.Expr]:
 
 def _per_epoch(matched: pl.DataFrame, group: list[str], cfg: EvaluateConfig) -> pl.DataFrame:
     """Long per-epoch table: ``group`` + epoch, metric, sigma2 (= σ²(k) of (2.15)), n (N_k),
-    n_runs; cells with too few samples for the denominator are dropped."""
+    n_runs, pooled. With ``"n-1"`` the epochs with N_k < 2 of a ``group`` are pooled (module
+    docstring): σ²(k) = Σ e² · M / ((M − 1) N_k) with M their total sample count; a pool with
+    M < 2 is dropped."""
     ddof = 1 if cfg.denominator == "n-1" else 0
     e2 = list(FUSION_METRICS.values())
     agg = matched.group_by(group + ["epoch"]).agg(
         *[pl.col(c).sum() for c in e2], pl.len().alias("n"), pl.col("run").n_unique().alias("n_runs"))
-    agg = agg.filter(pl.col("n") > ddof)
-    long = agg.unpivot(index=group + ["epoch", "n", "n_runs"], on=e2, variable_name="e2", value_name="sum_e2")
+    pooled = pl.col("n") <= ddof
+    # M: samples of the thin epochs of the same group (0 when nothing needs pooling)
+    agg = agg.with_columns(pooled.alias("pooled"),
+                           pl.when(pooled).then(pl.col("n")).otherwise(0).sum().over(group).alias("__m"))
+    agg = agg.filter(~pl.col("pooled") | (pl.col("__m") > ddof))
+    long = agg.unpivot(index=group + ["epoch", "n", "n_runs", "pooled", "__m"], on=e2, variable_name="e2",
+                       value_name="sum_e2")
     name = {v: k for k, v in FUSION_METRICS.items()}
+    m = pl.col("__m").cast(pl.Float64)
+    sigma2 = (pl.when(pl.col("pooled")).then(pl.col("sum_e2") * m / ((m - ddof) * pl.col("n")))
+              .otherwise(pl.col("sum_e2") / (pl.col("n") - ddof)))
     return long.select(
         *group, "epoch",
         pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"),
-        (pl.col("sum_e2") / (pl.col("n") - ddof)).alias("sigma2"),
-        "n", "n_runs")
+        sigma2.alias("sigma2"),
+        "n", "n_runs", "pooled")
 
 
 def _with_segments(matched: pl.DataFrame) -> pl.DataFrame:
@@ -276,30 +308,38 @@ def accuracy_from_matched(matched: pl.DataFrame, cfg: EvaluateConfig = EvaluateC
 def accuracy(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
              truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
     """Real accuracy of every fusion method (metrics schema, stage ``cfg.stage``):
-    ``rmse_pos_m``, ``rmse_range_m``, ``rmse_x_m``, ``rmse_y_m``, ``rmse_z_m``, ``rmse_vel_mps``
-    per segment all/straight/turn, pooled as sqrt of the mean over epochs of (2.15)/(4.84)."""
+    ``rmse_pos_m``, ``rmse_horizontal_m``, ``rmse_height_m``, ``rmse_range_m``, ``rmse_x_m``,
+    ``rmse_y_m``, ``rmse_z_m``, ``rmse_vel_mps`` per segment all/straight/turn, pooled as sqrt of the mean over epochs of (2.15)/(4.84)."""
     return accuracy_from_matched(match_truth(fused, associations, report_truth, truth, cfg), cfg)
+
+
+#: columns of the ``accuracy_by_epoch`` table: ``n`` = N_k (scored samples at the epoch), ``pooled`` =
+#: the epoch had N_k < 2 and its σ(k) comes from the pool of such epochs (module docstring)
+BY_EPOCH_SCHEMA: dict[str, pl.DataType] = {"method": pl.String, "epoch": TIME, "metric": pl.String,
+                                           "value": pl.Float64, "n_runs": pl.UInt32, "n": pl.UInt32,
+                                           "pooled": pl.Boolean}
 
 
 def accuracy_by_epoch(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
                       truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
     """Per-epoch real accuracy σ(k) = sqrt(Σ_j e_j(k)² / (N_k − 1)) ((2.15)/(4.84)) for the
     report's accuracy curves (seed figs. 4.10/4.11): columns (method, epoch, metric, value,
-    n_runs), all segments together, sorted by method, metric, epoch. Pass
-    ``EvaluateConfig(skip_first_s=0)`` to include the transient."""
+    n_runs, n, pooled) — :data:`BY_EPOCH_SCHEMA` — with one row per :data:`FUSION_METRICS`
+    metric (``rmse_horizontal_m`` and ``rmse_height_m`` beside ``rmse_pos_m``), all segments
+    together, sorted by method, metric, epoch; epochs with N_k < 2 are pooled, not dropped.
+    Pass ``EvaluateConfig(skip_first_s=0)`` to include the transient."""
     return accuracy_by_epoch_from_matched(match_truth(fused, associations, report_truth, truth, cfg), cfg)
 
 
 def accuracy_by_epoch_from_matched(matched: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig()) -> pl.DataFrame:
     """:func:`accuracy_by_epoch` from already matched rows (match once, derive both tables)."""
-    schema = {"method": pl.String, "epoch": TIME, "metric": pl.String, "value": pl.Float64, "n_runs": pl.UInt32}
     if matched.is_empty():
-        return pl.DataFrame(schema=schema)
+        return pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     per = _per_epoch(matched, ["method"], cfg)
     met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(FUSION_METRICS)}, return_dtype=pl.Int8)
     return (per.sort([pl.col("method"), met_order, pl.col("epoch")])
-            .select("method", "epoch", "metric", pl.col("sigma2").sqrt().alias("value"), "n_runs")
-            .cast(schema))
+            .select("method", "epoch", "metric", pl.col("sigma2").sqrt().alias("value"), "n_runs", "n", "pooled")
+            .cast(BY_EPOCH_SCHEMA))
 
 
 # --------------------------------------------------------------------------- consistency

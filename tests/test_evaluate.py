@@ -93,16 +93,71 @@ def test_pooled_is_root_of_mean_per_epoch_square():
     by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
     assert by["value"].to_list() == pytest.approx([6.0, 2.0, 2.0, 2.0])
     assert by["n_runs"].to_list() == [2, 2, 2, 2]
-    assert by.columns == ["method", "epoch", "metric", "value", "n_runs"]
+    assert by.columns == ["method", "epoch", "metric", "value", "n_runs", "n", "pooled"]
+    assert by["n"].to_list() == [2, 2, 2, 2] and not by["pooled"].any()
 
 
-def test_single_run_epochs_are_undefined_with_n_minus_1():
+def test_one_aircraft_one_run_pools_epochs_instead_of_dropping_them():
+    """N_k = 1 at every epoch: the epochs are pooled into one (2.15) sample, never an empty table.
+    Hand computation: errors (dx, dy, dz) = (3, 4, 12), (0, 0, 0), (6, 8, 0), (0, 0, 5) at t = 0..3;
+    M = 4 samples, denominator M − 1 = 3."""
     truth = _truth(3)
-    fused = _fused(truth, {0: (1.0,)})
+    errs = [(3.0, 4.0, 12.0), (0.0, 0.0, 0.0), (6.0, 8.0, 0.0), (0.0, 0.0, 5.0)]
+    fused = _fused(truth, {0: (0.0,)})
+    fused = fused.with_columns(*[pl.col(c) + pl.Series([e[i] for e in errs]) for i, c in enumerate(("x_m", "y_m", "z_m"))])
     assoc, reports = _assoc(fused)
-    assert accuracy(fused, assoc, reports, truth, NO_SKIP).is_empty()
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    assert not m.is_empty()
+    assert _value(m, "rmse_horizontal_m") == pytest.approx(math.sqrt((25 + 0 + 100 + 0) / 3))
+    assert _value(m, "rmse_height_m") == pytest.approx(math.sqrt((144 + 0 + 0 + 25) / 3))
+    assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt((169 + 0 + 100 + 25) / 3))
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((9 + 36) / 3))
+    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP)
+    h = by.filter(pl.col("metric") == "rmse_horizontal_m")
+    # each pooled epoch: |e_k| · sqrt(M / (M − 1)); the mean of their squares is the pool's (2.15)
+    assert h["value"].to_list() == pytest.approx([5.0 * math.sqrt(4 / 3), 0.0, 10.0 * math.sqrt(4 / 3), 0.0])
+    assert h["pooled"].all() and h["n"].to_list() == [1, 1, 1, 1]
+    assert by.filter(pl.col("metric") == "rmse_height_m")["value"].to_list() == pytest.approx(
+        [12.0 * math.sqrt(4 / 3), 0.0, 0.0, 5.0 * math.sqrt(4 / 3)])
     mn = accuracy(fused, assoc, reports, truth, EvaluateConfig(skip_first_s=0.0, denominator="n"))
-    assert _value(mn, "rmse_x_m") == pytest.approx(1.0)
+    assert _value(mn, "rmse_horizontal_m") == pytest.approx(math.sqrt(125 / 4))
+    # a single sample in all has no N − 1 estimate at all
+    one = fused.head(1)
+    a1, r1 = _assoc(one)
+    assert accuracy(one, a1, r1, truth, NO_SKIP).is_empty()
+
+
+def test_thin_epochs_pool_beside_well_sampled_ones():
+    """Two runs at t = 0..2, one run only at t = 3: epoch 3 (N_k = 1) is pooled alone — M = 1 —
+    so it is dropped; with two thin epochs (t = 3, 4) it is pooled with M = 2."""
+    truth = _truth(4)
+    both = _fused(truth, {0: (1.0,), 1: (3.0,)}, epochs={0.0, 1.0, 2.0})
+    thin = _fused(truth, {0: (2.0,)}, epochs={3.0})
+    fused = pl.concat([both, thin])
+    assoc, reports = _assoc(fused)
+    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    assert by["value"].to_list() == pytest.approx([math.sqrt(10.0)] * 3)
+    thin2 = pl.concat([thin, _fused(truth, {1: (4.0,)}, epochs={4.0})])
+    fused2 = pl.concat([both, thin2])
+    a2, r2 = _assoc(fused2)
+    by2 = accuracy_by_epoch(fused2, a2, r2, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    assert by2["pooled"].to_list() == [False, False, False, True, True]
+    assert by2["value"].to_list()[3:] == pytest.approx([2.0 * math.sqrt(2.0), 4.0 * math.sqrt(2.0)])
+    m = accuracy(fused2, a2, r2, truth, NO_SKIP)
+    assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((3 * 10.0 + 8.0 + 32.0) / 5))
+
+
+def test_horizontal_and_height_split_the_3d_error():
+    """3 runs with offsets (dx, dy, dz): horizontal² + height² = 3-D², each by hand."""
+    truth = _truth()
+    fused = _fused(truth, {0: (3.0, 4.0, 1.0), 1: (0.0, 0.0, 2.0), 2: (6.0, 8.0, -3.0)})
+    assoc, reports = _assoc(fused)
+    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    h, v, p = (_value(m, k) for k in ("rmse_horizontal_m", "rmse_height_m", "rmse_pos_m"))
+    assert h == pytest.approx(math.sqrt((25 + 0 + 100) / 2))
+    assert v == pytest.approx(math.sqrt((1 + 4 + 9) / 2))
+    assert h * h + v * v == pytest.approx(p * p)
+    assert _value(m, "rmse_height_m") == pytest.approx(_value(m, "rmse_z_m"))
 
 
 def test_skip_first_seconds_per_target():
