@@ -33,16 +33,23 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 
 import numpy as np
 import polars as pl
+from numpy.typing import NDArray
+
+from tertiary.errors import DataError, OptionError
 
 __all__ = [
     "TABLES",
     "Limits",
+    "RULES",
+    "Rule",
+    "contract_rules",
+    "rules_markdown",
     "SchemaError",
     "TableSchema",
     "UnsortedTimeWarning",
@@ -68,7 +75,7 @@ STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 ROW_INDEX = "row_index"
 REASON = "reason"
 _IDX = "__row_index"  # internal input position, exposed as ``row_index`` in rejects
-_INTERNAL = ("__row_index", "__orig__", "__lost__", "__bad", "__reason", "__first_id")
+_INTERNAL = ("__row_index", "__orig__", "__lost__", "__bad", "__reason", "__first_id", "__ctx_")
 
 
 @dataclass(frozen=True)
@@ -309,8 +316,8 @@ TABLES: dict[str, TableSchema] = {
 # ---------------------------------------------------------------------------
 
 
-class SchemaError(ValueError):
-    """A frame breaks its table contract.
+class SchemaError(DataError):
+    """A frame breaks its table contract (a :class:`tertiary.errors.DataError`).
 
     ``rows`` holds the input row indices of every offending row (empty for
     table-level problems such as a missing column).
@@ -341,11 +348,101 @@ Interval = tuple[float, float]
 
 @dataclass(frozen=True)
 class Limits:
-    """Plausible value bands (inclusive) for physically bounded columns."""
+    """Plausible value bands (inclusive unless stated) for physically bounded columns.
+
+    Every band is a rule of the data contract; :data:`RULES` states each with its reason.
+    """
 
     altitude_m: Interval = (-500.0, 20000.0)
-    range_m: Interval = (0.0, math.inf)
+    range_m: Interval = (0.0, math.inf)          # absolute band, beside the per-radar rule
+    range_margin: float = 1.2                    # range_m <= max_range_m x margin of its radar
     site_alt_m: Interval = (-500.0, 9000.0)
+    scan_period_s: Interval = (0.1, 60.0)
+    max_range_m: Interval = (100.0, 2_000_000.0)
+    sigma_range_m: Interval = (0.0, 10_000.0)    # open at 0
+    sigma_angle_deg: Interval = (0.0, 10.0)      # open at 0
+    clutter_rate: Interval = (0.0, 10_000.0)
+    position_m: float = 1e7                      # |x|, |y|, |z| (10 000 km)
+    speed_mps: float = 1e4                       # |vx|, |vy|, |vz|
+    accel_mps2: float = 1e3
+    variance_max: float = 1e14                   # variances in (0, 1e14] (sigma <= 10 000 km)
+    years: tuple[int, int] = (1990, 2100)        # times in [1 Jan lo, 1 Jan hi) UTC
+    max_span_s: float = 7 * 86400.0              # a table's times within +- span/2 of its median
+    truth_pad_s: float = 3600.0                  # truth times within the reports' span +- pad
+    cov_rel_tol: float = 1e-6                    # est_cov symmetry/PSD tolerance, x largest diagonal
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One documented rule of the data contract: what it demands, why, and what breaks."""
+
+    table: str
+    columns: str
+    rule: str
+    reason: str
+    action: str = "row to rejects"
+
+
+def contract_rules(limits: Limits = Limits()) -> tuple[Rule, ...]:
+    """The physical-range and consistency rules :func:`validate` applies, with their reasons."""
+    lo_y, hi_y = limits.years
+    span_h = limits.max_span_s / 3600.0
+    return (
+        Rule("any", "required columns", "present, castable to the schema dtype (Boolean is never a number, "
+             "text never a time or covariance)", "a table without them cannot be processed", "table: DataError"),
+        Rule("any", "required float columns", "not null, not NaN, finite", "arithmetic on them is undefined"),
+        Rule("radars", "lat_deg, lon_deg", "[-90, 90], [-180, 180]", "sites are on the globe"),
+        Rule("radars", "alt_m", f"[{_num(limits.site_alt_m[0])}, {_num(limits.site_alt_m[1])}] m",
+             "a ground site (Dead Sea to the highest radar sites)"),
+        Rule("radars", "scan_period_s", f"[{_num(limits.scan_period_s[0])}, {_num(limits.scan_period_s[1])}] s",
+             "rotating surveillance radars scan in 1-12 s; the epoch grid is sized by the fastest scan"),
+        Rule("radars", "sigma_range_m", f"(0, {_num(limits.sigma_range_m[1])}] m",
+             "a-priori weights divide by sigma^2; a zero or huge sigma is not a sensor"),
+        Rule("radars", "sigma_azimuth_deg, sigma_elevation_deg",
+             f"(0, {_num(limits.sigma_angle_deg[1])}] deg", "as for sigma_range_m"),
+        Rule("radars", "max_range_m", f"[{_num(limits.max_range_m[0])}, {_num(limits.max_range_m[1])}] m",
+             "bounds every report's range (instrumented range of real radars < 500 km)"),
+        Rule("radars", "pd, clutter_rate, scan_phase_s, min_elevation_deg",
+             "[0, 1], [0, 1e4] per scan, [0, max scan period] s, [-90, 90] deg", "their physical domains"),
+        Rule("radars", "radar_id", "unique", "reports refer to radars by id"),
+        Rule("radars", "the table", "at least one valid radar",
+             "every report needs its radar; with none, all reports are rejected", "all reports to rejects"),
+        Rule("reports", "radar_id", "a valid radar of the radars table",
+             "reports of an unknown or rejected radar cannot be placed in space"),
+        Rule("reports", "range_m", f"(0, max_range_m x {limits.range_margin:g}] of its radar",
+             "beyond the radar's instrumented range the report is a decoding error"),
+        Rule("reports", "azimuth_deg, est_azimuth_deg", "[0, 360)", "angle domain (clockwise from north)"),
+        Rule("reports", "elevation_deg, est_elevation_deg", "[-90, 90]", "angle domain"),
+        Rule("reports, truth", "altitude_m / alt_m", f"[{_num(limits.altitude_m[0])}, {_num(limits.altitude_m[1])}] m",
+             "civil air traffic"),
+        Rule("reports, truth", "time", f"[{lo_y}-01-01, {hi_y}-01-01) UTC",
+             "a time outside is a unit or epoch error (0, 1970, 9999)"),
+        Rule("reports, truth", "time", f"within +-{span_h / 2:g} h of the table's median time",
+             "grids in time (epochs, alert ticks) are sized by the span; a stray date would allocate "
+             "terabytes"),
+        Rule("truth", "time", f"within the span of the valid reports +- {_num(limits.truth_pad_s)} s",
+             "truth scores the reports; truth far from them cannot be matched and would size the grids"),
+        Rule("reports", "est_range_var_m2, est_azimuth_var_deg2, est_elevation_var_deg2, res_range_var_m2",
+             f"(0, {limits.variance_max:g}], not infinite (NaN = no value)", "a variance is positive and finite"),
+        Rule("reports", "est_cov", f"finite, symmetric and positive semi-definite (tolerance "
+             f"{limits.cov_rel_tol:g} x largest diagonal), diagonal <= {limits.variance_max:g}",
+             "a covariance that is not one makes fusion weights singular or negative"),
+        Rule("reports, truth", "x_m, y_m, z_m / vx_mps, vy_mps, vz_mps",
+             f"|value| <= {limits.position_m:g} m / {limits.speed_mps:g} m/s",
+             "values like 1e300 overflow distances, KD-trees and conflict geometry"),
+        Rule("reports, truth", "key columns", "unique", "a duplicate would be counted twice"),
+    )
+
+
+#: the rules with the default :class:`Limits` (quoted by the documentation)
+RULES: tuple[Rule, ...] = ()  # filled below, once the helpers exist
+
+
+def rules_markdown(limits: Limits = Limits()) -> str:
+    """:func:`contract_rules` as a Markdown table (table, columns, rule, reason, action)."""
+    lines = ["| table | columns | rule | reason | if broken |", "|---|---|---|---|---|"]
+    lines += [f"| {r.table} | {r.columns} | {r.rule} | {r.reason} | {r.action} |" for r in contract_rules(limits)]
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------
@@ -408,36 +505,47 @@ _AZIMUTH = _Range(0.0, 360.0, closed="left")
 
 
 def _rules(kind: str, limits: Limits) -> dict[str, _Rule]:
-    """Value rules of a table; they skip nulls and NaNs."""
+    """Value rules of a table; they skip nulls and NaNs (see :func:`contract_rules`)."""
+    pos, vel = _Range(-limits.position_m, limits.position_m), _Range(-limits.speed_mps, limits.speed_mps)
+    state = {**dict.fromkeys(STATE[:3], pos), **dict.fromkeys(STATE[3:], vel)}
+    variance = _Range(0.0, limits.variance_max, closed="right")
     if kind == "radars":
         return {
             "lat_deg": _LAT,
             "lon_deg": _LON,
             "alt_m": _Range(*limits.site_alt_m),
-            "scan_period_s": _POSITIVE,
-            "sigma_range_m": _NONNEG,
-            "sigma_azimuth_deg": _NONNEG,
-            "sigma_elevation_deg": _NONNEG,
-            "max_range_m": _POSITIVE,
-            "scan_phase_s": _NONNEG,
+            "scan_period_s": _Range(*limits.scan_period_s),
+            "sigma_range_m": _Range(*limits.sigma_range_m, closed="right"),
+            "sigma_azimuth_deg": _Range(*limits.sigma_angle_deg, closed="right"),
+            "sigma_elevation_deg": _Range(*limits.sigma_angle_deg, closed="right"),
+            "max_range_m": _Range(*limits.max_range_m),
+            "scan_phase_s": _Range(0.0, limits.scan_period_s[1]),
             "min_elevation_deg": _LAT,
             "pd": _Range(0.0, 1.0),
-            "clutter_rate": _NONNEG,
+            "clutter_rate": _Range(*limits.clutter_rate),
             "timing": _OneOf(("rotating", "synchronous")),
         }
     if kind == "reports":
         return {
-            "range_m": _Range(*limits.range_m),
+            "range_m": _Range(*limits.range_m, closed="right" if limits.range_m[0] == 0 else "both"),
             "azimuth_deg": _AZIMUTH,
             "elevation_deg": _LAT,
             "altitude_m": _Range(*limits.altitude_m),
-            "est_range_var_m2": _NONNEG,
-            "est_azimuth_var_deg2": _NONNEG,
-            "est_elevation_var_deg2": _NONNEG,
-            "res_range_var_m2": _NONNEG,
+            "est_range_m": _Range(-limits.position_m, limits.position_m),
+            "est_range_rate_mps": vel,
+            "est_azimuth_deg": _AZIMUTH,
+            "est_elevation_deg": _LAT,
+            "est_range_var_m2": variance,
+            "est_azimuth_var_deg2": variance,
+            "est_elevation_var_deg2": variance,
+            **state,
+            "res_range_m": _Range(-limits.position_m, limits.position_m),
+            "res_range_var_m2": variance,
         }
     if kind == "truth":
-        return {"lat_deg": _LAT, "lon_deg": _LON, "alt_m": _Range(*limits.altitude_m)}
+        acc = _Range(-limits.accel_mps2, limits.accel_mps2)
+        return {**state, "ax_mps2": acc, "ay_mps2": acc, "az_mps2": acc,
+                "lat_deg": _LAT, "lon_deg": _LON, "alt_m": _Range(*limits.altitude_m)}
     return {}
 
 
@@ -506,13 +614,29 @@ def _to_array(s: pl.Series, dtype: pl.Array) -> pl.Series:
     return pl.select(pl.when(wrong).then(None).otherwise(items)).to_series().cast(dtype)
 
 
+def _castable(src: pl.DataType, dtype: pl.DataType) -> bool:
+    """Source dtypes accepted for a target dtype (polars would cast more, silently: a Boolean
+    to 0/1, a Date to days, a Struct to a Struct of numbers)."""
+    if src == pl.Null or src == dtype:
+        return True
+    if dtype.is_numeric():
+        return (src.is_numeric() and src != pl.Boolean) or src == pl.String
+    if dtype == pl.String:
+        return src.is_numeric() or isinstance(src, (pl.Categorical, pl.Enum))
+    if dtype == pl.Boolean:
+        return src == pl.String
+    if isinstance(dtype, (pl.List, pl.Array)):
+        return isinstance(src, (pl.List, pl.Array)) and _castable(src.inner, dtype.inner)
+    return True
+
+
 def _cast_values(s: pl.Series, dtype: pl.DataType, table: str) -> pl.Series:
     if isinstance(dtype, pl.Datetime):
         return _to_time(s, table)
+    if not _castable(s.dtype, dtype):
+        raise pl.exceptions.InvalidOperationError(f"{s.dtype} to {dtype}")
     if isinstance(dtype, pl.Array):
         return _to_array(s, dtype)
-    if (dtype.is_numeric() or dtype == pl.Boolean) and s.dtype.is_temporal():
-        raise pl.exceptions.InvalidOperationError("temporal to numeric")
     if s.dtype == pl.String and dtype != pl.String:
         s = s.str.strip_chars()
     return s.cast(dtype, strict=False)
@@ -603,7 +727,8 @@ def _column_checks(
     return checks
 
 
-def _radar_check(radars: pl.DataFrame, table: str) -> _Check:
+def _radar_check(radars: pl.DataFrame, table: str, rejected: Iterable[int] = ()) -> _Check:
+    """Reports must name a valid radar; a radar rejected itself takes its reports along."""
     if "radar_id" not in radars.columns:
         raise SchemaError(
             f"{table}: the radars frame has no 'radar_id' column",
@@ -612,13 +737,120 @@ def _radar_check(radars: pl.DataFrame, table: str) -> _Check:
             problem="missing column",
         )
     known = radars["radar_id"].cast(pl.UInt32, strict=False).drop_nulls()
+    gone = pl.Series(list(rejected), dtype=pl.Int64).cast(pl.UInt32, strict=False).drop_nulls()
     col = pl.col("radar_id")
     return _Check(
         ("radar_id",),
         "unknown radar",
         ~col.is_in(known.implode()),
-        pl.format("radar_id: unknown radar {}", col),
+        pl.when(col.is_in(gone.implode()))
+        .then(pl.format("radar_id: radar {} was rejected (see the radars rejects)", col))
+        .otherwise(pl.format("radar_id: unknown radar {}", col)),
     )
+
+
+def _range_check(work: pl.DataFrame, radars: pl.DataFrame, limits: Limits) -> tuple[pl.DataFrame, _Check]:
+    """range_m <= max_range_m x margin of the report's radar (joined as ``__ctx_rmax``)."""
+    cap = radars.select(
+        pl.col("radar_id").cast(U32, strict=False),
+        (pl.col("max_range_m").cast(F64, strict=False) * limits.range_margin).alias("__ctx_rmax"),
+    ).drop_nulls("radar_id").unique("radar_id", keep="first")
+    work = work.join(cap, on="radar_id", how="left", maintain_order="left")
+    rng, rmax = pl.col("range_m"), pl.col("__ctx_rmax")
+    return work, _Check(
+        ("range_m",),
+        f"beyond max_range_m x {limits.range_margin:g} of its radar",
+        (rng > rmax) & rng.is_finite(),
+        pl.format(f"range_m: beyond max_range_m x {limits.range_margin:g} = {{}} of radar {{}}, got {{}}",
+                  rmax.cast(pl.String), pl.col("radar_id"), rng.cast(pl.String)),
+    )
+
+
+def _time_checks(
+    work: pl.DataFrame, limits: Limits, window: tuple[datetime, datetime, str] | None
+) -> list[_Check]:
+    """Times in the configured years, near the table's median, and inside ``window``."""
+    lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
+    t = pl.col("time")
+    in_years = t.is_between(lo, hi, closed="left")
+    text = t.dt.strftime("%Y-%m-%dT%H:%M:%S%.fZ")
+    checks = [_Check(("time",), f"outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d})", ~in_years,
+                     pl.format(f"time: outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d}) UTC, got {{}}", text))]
+    med = work.filter(in_years.fill_null(False))["time"].median()
+    if med is not None:
+        half = timedelta(seconds=limits.max_span_s / 2.0)
+        far = in_years & ((t < pl.lit(med - half)) | (t > pl.lit(med + half)))
+        what = f"more than {limits.max_span_s / 7200.0:g} h from the table's median time {med:%Y-%m-%dT%H:%M:%S}Z"
+        checks.append(_Check(("time",), what, far, pl.format(f"time: {what}, got {{}}", text)))
+    if window is not None:
+        a, b, label = window
+        outside = in_years & ~t.is_between(pl.lit(a), pl.lit(b))
+        what = f"outside {label} [{a:%Y-%m-%dT%H:%M:%S}Z, {b:%Y-%m-%dT%H:%M:%S}Z]"
+        checks.append(_Check(("time",), what, outside, pl.format(f"time: {what}, got {{}}", text)))
+    return checks
+
+
+_COV_PROBLEMS = {
+    1: "est_cov: infinite value",
+    2: "est_cov: variance larger than {big:g}",
+    3: "est_cov: not symmetric (|P - P^T| > {tol:g} x largest diagonal)",
+    4: "est_cov: not positive semi-definite (eigenvalue < -{tol:g} x largest diagonal)",
+}
+
+
+def _cov_codes(cov: pl.Series, limits: Limits) -> NDArray[np.int8]:
+    """Per row 0 (a covariance, or NaN/null: left to the align stage) or the _COV_PROBLEMS code."""
+    n = len(cov)
+    code = np.zeros(n, np.int8)
+    if n == 0:
+        return code
+    a = cov.to_numpy().reshape(n, 6, 6)
+    with np.errstate(all="ignore"):
+        nan = np.isnan(a).any(axis=(1, 2))
+        inf = np.isinf(a).any(axis=(1, 2)) & ~nan
+        diag = np.diagonal(a, axis1=1, axis2=2)
+        scale = np.abs(diag).max(axis=1)
+        big = ~nan & ~inf & (scale > limits.variance_max)
+        tol = limits.cov_rel_tol * scale
+        asym = ~nan & ~inf & ~big & (np.abs(a - a.transpose(0, 2, 1)).max(axis=(1, 2)) > tol)
+        test = np.flatnonzero(~nan & ~inf & ~big & ~asym)
+        not_psd = np.zeros(n, bool)
+        for lo in range(0, len(test), 262_144):  # bounded temporaries
+            rows = test[lo:lo + 262_144]
+            sym = 0.5 * (a[rows] + a[rows].transpose(0, 2, 1))
+            not_psd[rows] = np.linalg.eigvalsh(sym)[:, 0] < -tol[rows]
+    code[not_psd], code[asym], code[big], code[inf] = 4, 3, 2, 1
+    return code
+
+
+def _cov_check(work: pl.DataFrame, limits: Limits) -> tuple[pl.DataFrame, _Check]:
+    work = work.with_columns(pl.Series("__ctx_cov", _cov_codes(work["est_cov"], limits)))
+    texts = {k: v.format(big=limits.variance_max, tol=limits.cov_rel_tol) for k, v in _COV_PROBLEMS.items()}
+    code = pl.col("__ctx_cov")
+    return work, _Check(("est_cov",), "not a covariance matrix", code > 0,
+                        code.replace_strict(texts, default=None, return_dtype=pl.String))
+
+
+def _context_checks(
+    work: pl.DataFrame,
+    schema: TableSchema,
+    radars: pl.DataFrame | None,
+    limits: Limits,
+    time_window: tuple[datetime, datetime, str] | None,
+) -> tuple[pl.DataFrame, list[_Check]]:
+    """Checks that need more than one value: times against the table, est_cov as a matrix,
+    range against the radar's maximum range."""
+    checks: list[_Check] = []
+    if "time" in work.columns and schema.name in ("reports", "truth"):
+        checks += _time_checks(work, limits, time_window)
+    if schema.name == "reports" and "est_cov" in work.columns:
+        work, check = _cov_check(work, limits)
+        checks.append(check)
+    if (schema.name == "reports" and radars is not None and "range_m" in work.columns
+            and {"radar_id", "max_range_m"} <= set(radars.columns)):
+        work, check = _range_check(work, radars, limits)
+        checks.append(check)
+    return work, checks
 
 
 def _is_repeat(key: list[str]) -> pl.Expr:
@@ -711,7 +943,7 @@ def _schema(kind: str) -> TableSchema:
         return TABLES[kind]
     except KeyError:
         known = ", ".join(TABLES)
-        raise ValueError(f"unknown table kind {kind!r}; expected one of {known}") from None
+        raise OptionError(f"unknown table kind {kind!r}; expected one of {known}") from None
 
 
 def _require(frame: pl.DataFrame, schema: TableSchema) -> None:
@@ -797,7 +1029,11 @@ def _sort_tracks(clean: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:
 
 
 def _row_checks(
-    prepared: pl.DataFrame, schema: TableSchema, radars: pl.DataFrame | None, limits: Limits
+    prepared: pl.DataFrame,
+    schema: TableSchema,
+    radars: pl.DataFrame | None,
+    limits: Limits,
+    rejected_radars: Iterable[int] = (),
 ) -> list[_Check]:
     rules = _rules(schema.name, limits)
     checks = [
@@ -807,33 +1043,65 @@ def _row_checks(
         for check in _column_checks(name, schema, prepared[name].dtype, rules.get(name))
     ]
     if radars is not None and schema.name != "radars" and "radar_id" in prepared.columns:
-        checks.append(_radar_check(radars, schema.name))
+        checks.append(_radar_check(radars, schema.name, rejected_radars))
     return checks
 
 
+def _as_frame(frame: object, kind: str) -> pl.DataFrame:
+    """A polars DataFrame from the accepted input types (else a clear error naming them)."""
+    if isinstance(frame, pl.DataFrame):
+        return frame
+    try:
+        if isinstance(frame, pl.LazyFrame):
+            return frame.collect()
+        if isinstance(frame, Mapping):
+            return pl.DataFrame(dict(frame))
+        if type(frame).__module__.startswith("pyarrow") and hasattr(frame, "schema"):
+            out = pl.from_arrow(frame)
+            if isinstance(out, pl.DataFrame):
+                return out
+    except Exception as exc:  # user data: any construction failure is a data problem
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{kind}: cannot make a table of the {type(frame).__name__} given: {first}") from exc
+    raise OptionError(
+        f"{kind}: expected a polars DataFrame or LazyFrame, a pyarrow Table or a dict of columns, "
+        f"got {type(frame).__name__}"
+    )
+
+
 def validate(
-    frame: pl.DataFrame,
+    frame: pl.DataFrame | pl.LazyFrame | Mapping[str, object],
     kind: str,
     *,
     strict: bool = True,
     radars: pl.DataFrame | None = None,
     limits: Limits = Limits(),
+    rejected_radars: Iterable[int] = (),
+    time_window: tuple[datetime, datetime, str] | None = None,
 ) -> pl.DataFrame | tuple[pl.DataFrame, pl.DataFrame]:
     """Cast ``frame`` to the ``kind`` schema and check it row by row (vectorised).
 
-    Returns the clean frame (``strict=True``, raising :class:`SchemaError` on
+    ``frame`` is a polars DataFrame or LazyFrame (collected), a pyarrow Table or a dict of
+    columns. Returns the clean frame (``strict=True``, raising :class:`SchemaError` on
     the first failing check) or ``(clean, rejects)`` (``strict=False``).  A
     missing required column or an uncastable column dtype raises in both
     modes.  Reports without ``report_id`` get the row position, without
-    ``run`` get run 0; ``radars`` enables the unknown-radar check.  Frames
-    whose times decrease within a track are sorted with an
-    :class:`UnsortedTimeWarning`.
+    ``run`` get run 0; ``radars`` (the valid radars) enables the unknown-radar and
+    maximum-range checks, ``rejected_radars`` names ids whose reports are rejected with that
+    reason; ``time_window`` = (start, end, label) rejects rows outside it (truth against the
+    reports' span).  Frames whose times decrease within a track are sorted with an
+    :class:`UnsortedTimeWarning`. The rules are :func:`contract_rules`.
     """
     schema = _schema(kind)
+    frame = _as_frame(frame, kind)
+    if radars is not None:
+        radars = _as_frame(radars, "radars")
     _require(frame, schema)
     prepared = _prepare(frame, schema)
-    checks = _row_checks(prepared, schema, radars, limits)
-    ok, bad = _split(_cast_frame(prepared, schema), checks)
+    checks = _row_checks(prepared, schema, radars, limits, rejected_radars)
+    work, more = _context_checks(_cast_frame(prepared, schema), schema, radars, limits, time_window)
+    checks += more
+    ok, bad = _split(work, checks)
     if strict:
         _raise_first(bad, checks, kind)
     own_ids = kind == "reports" and "report_id" in frame.columns
@@ -859,15 +1127,47 @@ def empty_frame(kind: str, optional: bool = True) -> pl.DataFrame:
     return pl.DataFrame(schema=schema.columns if optional else schema.required)
 
 
+def _has(dtype: pl.DataType, kinds: tuple[type, ...]) -> bool:
+    if isinstance(dtype, kinds):
+        return True
+    if isinstance(dtype, (pl.List, pl.Array)):
+        return _has(dtype.inner, kinds)
+    if isinstance(dtype, pl.Struct):
+        return any(_has(f.dtype, kinds) for f in dtype.fields)
+    return False
+
+
+def _json_expr(col: pl.Expr, dtype: pl.DataType, finite: bool) -> pl.Expr:
+    """``col`` in a dtype the JSON writer handles: it panics on Binary and cannot write Object
+    values, and JSON has no NaN (temporal, decimal and the rest it writes natively)."""
+    if dtype.is_float():
+        return col if finite else col.cast(pl.String)
+    if dtype == pl.Binary:
+        return col.bin.encode("hex")
+    if isinstance(dtype, (pl.List, pl.Array)) and dtype.inner.is_float() and not finite:
+        return col.cast(pl.List(dtype.inner)).list.eval(pl.element().cast(pl.String))
+    if _has(dtype, (pl.Binary, pl.Object)):
+        return pl.lit(f"<{dtype}>")
+    return col
+
+
+def _all_finite(series: pl.Series) -> bool:
+    """No NaN/inf anywhere in a float (or list/array of float) column."""
+    dtype = series.dtype
+    if isinstance(dtype, (pl.List, pl.Array)) and dtype.inner.is_float():
+        series = series.cast(pl.List(dtype.inner)).explode()
+    elif not dtype.is_float():
+        return True
+    return bool(series.drop_nulls().is_finite().all())
+
+
 def _json_safe(frame: pl.DataFrame) -> list[pl.Expr]:
-    """Columns for JSON: floats holding NaN/inf become strings (JSON has no NaN)."""
-    exprs = []
-    for name, dtype in frame.schema.items():
-        col = pl.col(name)
-        if dtype.is_float() and not frame[name].drop_nulls().is_finite().all():
-            col = col.cast(pl.String)
-        exprs.append(col)
-    return exprs
+    """Columns for JSON: every dtype made writable (binary as hex, durations as µs, temporal and
+    decimal as text); floats holding NaN/inf become strings (JSON has no NaN)."""
+    return [
+        _json_expr(pl.col(name), dtype, _all_finite(frame[name])).alias(name)
+        for name, dtype in frame.schema.items()
+    ]
 
 
 def rejects_table(rejects: pl.DataFrame, table: str, stage: str) -> pl.DataFrame:
@@ -915,3 +1215,6 @@ def is_sorted_by(frame: pl.DataFrame, by: list[str]) -> bool:
         later |= tie & (k[1:] > k[:-1])
         tie &= k[1:] == k[:-1]
     return bool(np.all(later | tie))
+
+
+RULES = contract_rules()

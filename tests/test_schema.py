@@ -332,18 +332,19 @@ def test_inf_required() -> None:
         validate(frame, "reports")
 
 
-def test_negative_range() -> None:
+def test_non_positive_range() -> None:
+    """A range of zero is a decoding error too: the contract is (0, max_range x margin]."""
     frame = reports(3, range_m=[1.0, -12.0, 0.0])
     clean, rejects = lenient(frame)
-    assert reasons(rejects) == ["range_m: negative value -12.0"]
-    assert clean["range_m"].to_list() == [1.0, 0.0]
-    with pytest.raises(SchemaError, match=r"column 'range_m': negative value in 1 row\(s\); e.g. row 1: range_m=-12.0"):
+    assert reasons(rejects) == ["range_m: non-positive value -12.0", "range_m: non-positive value 0.0"]
+    assert clean["range_m"].to_list() == [1.0]
+    with pytest.raises(SchemaError, match=r"column 'range_m': non-positive value in 2 row\(s\); e.g. row 1: range_m=-12.0"):
         validate(frame, "reports")
 
 
 def test_range_limit_configurable() -> None:
     _, rejects = lenient(reports(2, range_m=[1.0, 600_000.0]), limits=Limits(range_m=(0.0, 500_000.0)))
-    assert reasons(rejects) == ["range_m: outside [0, 500000], got 600000.0"]
+    assert reasons(rejects) == ["range_m: outside (0, 500000], got 600000.0"]
 
 
 @pytest.mark.parametrize("azimuth", [360.0, -1.0, 720.5])
@@ -386,7 +387,7 @@ def test_several_problems_joined() -> None:
     frame = reports(2, range_m=[1.0, -5.0], azimuth_deg=[1.0, 400.0])
     _, rejects = lenient(frame)
     assert reasons(rejects) == [
-        "range_m: negative value -5.0; azimuth_deg: outside [0, 360), got 400.0"
+        "range_m: non-positive value -5.0; azimuth_deg: outside [0, 360), got 400.0"
     ]
 
 
@@ -412,7 +413,7 @@ def test_good_row_not_rejected_as_copy_of_bad_row() -> None:
     bad_first = reports(2, range_m=[-1.0, 5.0], time=[T0, T0], radar_id=[1, 1], local_track_id=[1, 1])
     clean, rejects = lenient(bad_first)
     assert clean["range_m"].to_list() == [5.0]
-    assert reasons(rejects) == ["range_m: negative value -1.0"]
+    assert reasons(rejects) == ["range_m: non-positive value -1.0"]
 
 
 # --------------------------------------------------------------------------- ordering
@@ -461,8 +462,8 @@ def test_radar_checks() -> None:
     )
     _, rejects = lenient(frame, "radars")
     assert reasons(rejects) == [
-        "scan_period_s: non-positive value 0.0",
-        "lon_deg: outside [-180, 180], got 181.0; sigma_range_m: negative value -1.0; "
+        "scan_period_s: outside [0.1, 60], got 0.0",
+        "lon_deg: outside [-180, 180], got 181.0; sigma_range_m: outside (0, 10000], got -1.0; "
         "timing: invalid value 'phased', expected one of rotating, synchronous",
     ]
 
@@ -547,7 +548,7 @@ def frames_with_bad_rows(draw: st.DrawFn) -> tuple[pl.DataFrame, set[int], int]:
             "radar_id": draw(st.sampled_from([1, 2])),
             "time": T0 + timedelta(seconds=i),
             "local_track_id": draw(st.integers(0, 3)),
-            "range_m": str(draw(st.floats(0.0, 2.5e5))),
+            "range_m": str(draw(st.floats(1.0, 2.5e5))),
             "azimuth_deg": draw(st.floats(0.0, 360.0, exclude_max=True)),
             "altitude_m": draw(st.one_of(st.none(), st.floats(-500.0, 20_000.0))),
         }
