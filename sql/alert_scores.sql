@@ -1,7 +1,11 @@
 -- Alert scores per picture: conflict alerts scored against truth (safety stage of the metrics
--- table) — true-conflict episodes, hits, misses, false alerts, mean warning time and alert flicker.
+-- table) — true-conflict episodes, hits, misses, false alerts, mean warning time and alert flicker;
+-- and, where the safety stage scores against real losses of separation, the losses (los_episodes),
+-- those alerted and missed, genuine / nuisance alerts, alerts per hour and the median and
+-- 5th-percentile warning times (null where the metrics table has no such row).
 -- Columns: method, episodes, hits, misses, false_alerts, mean_warning_s, flicker, flicker_per_hit,
--- n_runs.
+-- los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts, alerts_per_hour,
+-- warning_median_s, warning_p05_s, n_runs.
 -- param: method = null   picture (fusion method) (null: all)
 SELECT method,
        max(value) FILTER (WHERE metric = 'episodes')         AS episodes,
@@ -11,10 +15,20 @@ SELECT method,
        max(value) FILTER (WHERE metric = 'mean_warning_s')   AS mean_warning_s,
        max(value) FILTER (WHERE metric = 'flicker')          AS flicker,
        max(value) FILTER (WHERE metric = 'flicker_per_hit')  AS flicker_per_hit,
+       max(value) FILTER (WHERE metric = 'los_episodes')     AS los_episodes,
+       max(value) FILTER (WHERE metric = 'alerted_los')      AS alerted_los,
+       max(value) FILTER (WHERE metric = 'missed_los')       AS missed_los,
+       max(value) FILTER (WHERE metric = 'genuine_alerts')   AS genuine_alerts,
+       max(value) FILTER (WHERE metric = 'nuisance_alerts')  AS nuisance_alerts,
+       max(value) FILTER (WHERE metric = 'alerts_per_hour')  AS alerts_per_hour,
+       max(value) FILTER (WHERE metric = 'warning_median_s') AS warning_median_s,
+       max(value) FILTER (WHERE metric = 'warning_p05_s')    AS warning_p05_s,
        max(n_runs)                                           AS n_runs
 FROM metrics
 WHERE stage = 'safety'
-  AND metric IN ('episodes', 'hits', 'misses', 'false_alerts', 'mean_warning_s', 'flicker', 'flicker_per_hit')
+  AND metric IN ('episodes', 'hits', 'misses', 'false_alerts', 'mean_warning_s', 'flicker', 'flicker_per_hit',
+                 'los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts',
+                 'alerts_per_hour', 'warning_median_s', 'warning_p05_s')
   AND ($method IS NULL OR method = $method)
 GROUP BY method
 ORDER BY method;

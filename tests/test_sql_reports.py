@@ -66,12 +66,16 @@ ALIGNED = [
     (0, 1, 3, None, 3, (0.0, 0.0, 0.0)),
 ]
 
-# accuracy_by_epoch rmse_range_m per method at epochs 1, 2, 3 s (rmse_pos_m = twice these)
+# accuracy_by_epoch rmse_range_m per method at epochs 1, 2, 3 s (rmse_pos_m = twice these); N_k per epoch
+# (epoch 3 is a thin, pooled epoch: one sample)
+BY_EPOCH_N = [4, 4, 1]
 BY_EPOCH = {"apriori": [10.0, 20.0, 40.0], "arithmetic": [20.0, 20.0, 20.0], "aposteriori": [5.0, 25.0, 20.0],
             "aposteriori_seed": [10.0, 10.0, 10.0], "information": [1.0, 1.0, 1.0]}
 
 METRICS = [
     ("fusion", "apriori", "rmse_pos_m", "all", 90.0, 2),
+    ("fusion", "apriori", "rmse_horizontal_m", "all", 54.0, 2),
+    ("fusion", "apriori", "rmse_height_m", "all", 72.0, 2),
     ("fusion", "apriori", "rmse_pos_m", "straight", 80.0, 2),
     ("fusion", "apriori", "rmse_pos_m", "turn", 150.0, 2),
     ("fusion", "apriori", "rmse_range_m", "all", 40.0, 2),
@@ -101,6 +105,14 @@ METRICS = [
     ("safety", "apriori", "mean_warning_s", "all", 60.5, 2),
     ("safety", "apriori", "flicker", "all", 2.0, 2),
     ("safety", "apriori", "flicker_per_hit", "all", 0.5, 2),
+    ("safety", "apriori", "los_episodes", "all", 3.0, 2),
+    ("safety", "apriori", "alerted_los", "all", 2.0, 2),
+    ("safety", "apriori", "missed_los", "all", 1.0, 2),
+    ("safety", "apriori", "genuine_alerts", "all", 2.0, 2),
+    ("safety", "apriori", "nuisance_alerts", "all", 4.0, 2),
+    ("safety", "apriori", "alerts_per_hour", "all", 12.5, 2),
+    ("safety", "apriori", "warning_median_s", "all", 45.0, 2),
+    ("safety", "apriori", "warning_p05_s", "all", 20.0, 2),
     ("safety", "apriori", "capacity_n_1e-6", "all", 3.0, 2),
     ("safety", "apriori", "capacity_n_1e-6_sound", "all", 4.0, 2),
     ("safety", "apriori+singer", "capacity_n_1e-6", "all", 5.0, 2),
@@ -186,11 +198,12 @@ def _aligned() -> pl.DataFrame:
 def _by_epoch() -> pl.DataFrame:
     rows = []
     for m, vals in BY_EPOCH.items():
-        for e, v in zip((1, 2, 3), vals):
-            rows += [(m, ts(e), "rmse_range_m", v, 2), (m, ts(e), "rmse_pos_m", 2 * v, 2)]
+        for e, v, n in zip((1, 2, 3), vals, BY_EPOCH_N):
+            rows += [(m, ts(e), "rmse_range_m", v, 2, n), (m, ts(e), "rmse_pos_m", 2 * v, 2, n)]
     c = list(zip(*rows))
     return pl.DataFrame({"method": c[0], "epoch": pl.Series(c[1], dtype=TIME), "metric": c[2], "value": c[3],
-                         "n_runs": pl.Series(c[4], dtype=pl.UInt32)})
+                         "n_runs": pl.Series(c[4], dtype=pl.UInt32), "n": pl.Series(c[5], dtype=pl.UInt32),
+                         "pooled": [n < 2 for n in c[5]]})
 
 
 def _metrics() -> pl.DataFrame:
@@ -281,7 +294,7 @@ def test_every_report_parses_and_is_tested():
 
 def test_parameters_are_bound_not_formatted(tmp_path):
     rep = sql_reports.load_report("accuracy_over_time")
-    assert rep.params == {"metric": "rmse_range_m", "method": None}
+    assert rep.params == {"metric": "rmse_range_m", "method": None, "min_sample_frac": 0}
     assert "$method" in rep.sql and "{" not in sql_reports._strip_comments(rep.sql)
     with pytest.raises(KeyError, match="no parameter"):
         rep.bind({"nope": 1})
@@ -305,9 +318,11 @@ def test_injection_is_data(q):
 @covers("accuracy_by_method")
 def test_accuracy_by_method(q):
     df = q("accuracy_by_method")
-    assert df.columns == ["stage", "method", "filter", "segment", "rmse_pos_m", "rmse_range_m", "rmse_x_m",
-                          "rmse_y_m", "rmse_z_m", "rmse_vel_mps", "n_runs"]
+    assert df.columns == ["stage", "method", "filter", "segment", "rmse_pos_m", "rmse_horizontal_m", "rmse_height_m",
+                          "rmse_range_m", "rmse_x_m", "rmse_y_m", "rmse_z_m", "rmse_vel_mps", "n_runs"]
     fusion_all = df.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all"))
+    assert rows(fusion_all, "method", "rmse_pos_m", "rmse_horizontal_m", "rmse_height_m")[:2] == [
+        ("apriori", 90.0, 54.0, 72.0), ("aposteriori", 100.0, None, None)]
     assert rows(fusion_all, "method", "filter", "rmse_pos_m", "rmse_range_m", "rmse_vel_mps") == [
         ("apriori", None, 90.0, 40.0, 9.0), ("aposteriori", None, 100.0, None, None),
         ("information", None, None, 31.0, None)]
@@ -323,46 +338,79 @@ def test_accuracy_by_method(q):
 @covers("accuracy_over_time")
 def test_accuracy_over_time(q):
     df = q("accuracy_over_time", method="apriori")
-    assert df.columns == ["method", "metric", "epoch", "t_s", "value", "n_runs"]
+    assert df.columns == ["method", "metric", "epoch", "t_s", "value", "n_runs", "n", "pooled"]
     # t_s from the first report (0.5 s) truncated to the whole second
-    assert rows(df, "t_s", "value") == [(1.0, 10.0), (2.0, 20.0), (3.0, 40.0)]
+    assert rows(df, "t_s", "value", "n", "pooled") == [(1.0, 10.0, 4, False), (2.0, 20.0, 4, False),
+                                                       (3.0, 40.0, 1, True)]
+    # edge rule: N_k = 1 < 0.5 × median 4 is left out; 0.25 × 4 = 1 keeps it (the bound is inclusive)
+    assert q("accuracy_over_time", method="apriori", min_sample_frac=0.5)["t_s"].to_list() == [1.0, 2.0]
+    assert q("accuracy_over_time", method="apriori", min_sample_frac=0.25).height == 3
+    assert q("accuracy_over_time", metric=None, min_sample_frac=0.5).height == 4 * len(BY_EPOCH)
     assert q("accuracy_over_time", metric="rmse_pos_m", method="apriori")["value"].to_list() == [20.0, 40.0, 80.0]
     assert q("accuracy_over_time").height == 3 * len(BY_EPOCH)
     assert q("accuracy_over_time", metric=None).height == 6 * len(BY_EPOCH)
 
 
-def _radar_sigma(radar: int, epoch: int, skip: float) -> tuple[float, float, int]:
-    """Hand computation of one radar's σ(k) (range and position) from the ALIGNED rows."""
-    first = {}
-    for run, rid, lt, _tid, e, _err in ALIGNED:
+def _radar_table(skip: float) -> list[tuple]:
+    """Hand computation of radar_accuracy_over_time from the ALIGNED rows (and the extra epoch-4
+    row of radar 2): per (radar, epoch) the errors against truth; σ²(k) = Σ e² / (N_k − 1), epochs
+    with N_k = 1 pooled per radar (σ²(k) = e² · M / (M − 1), left out when M = 1).
+    Rows: (radar_id, t_s, range, pos, horizontal, height, n, pooled)."""
+    aligned = ALIGNED + [(0, 2, 5, 7, 4, (-400.0, 0.0, -1000.0))]          # the (0, 0, 0) row of _aligned()
+    first: dict = {}
+    for run, rid, lt, _tid, e, _err in aligned:
         first[(run, rid, lt)] = min(first.get((run, rid, lt), e), e)
-    e_r, e_p = [], []
-    for run, rid, lt, tid, e, (dx, dy, dz) in ALIGNED:
-        if rid != radar or e != epoch or tid is None or e - first[(run, rid, lt)] < skip:
+    cells: dict = {}
+    for run, rid, lt, tid, e, (dx, dy, dz) in aligned:
+        if tid is None or e - first[(run, rid, lt)] < skip:
             continue
         x, y, z = truth_pos(tid, e)
-        e_r.append(math.dist((0, 0, 0), (x + dx, y + dy, z + dz)) - math.dist((0, 0, 0), (x, y, z)))
-        e_p.append(dx * dx + dy * dy + dz * dz)
-    n = len(e_r)
-    return math.sqrt(sum(v * v for v in e_r) / (n - 1)), math.sqrt(sum(e_p) / (n - 1)), n
+        er = math.dist((0, 0, 0), (x + dx, y + dy, z + dz)) - math.dist((0, 0, 0), (x, y, z))
+        cells.setdefault((rid, e), []).append((er * er, dx * dx + dy * dy, dz * dz))
+    m = {}
+    for (rid, _e), errs in cells.items():
+        m[rid] = m.get(rid, 0) + (len(errs) if len(errs) == 1 else 0)
+    out = []
+    for (rid, e), errs in sorted(cells.items()):
+        n = len(errs)
+        if n == 1 and m[rid] < 2:
+            continue
+        dof = n - 1 if n > 1 else (m[rid] - 1) / m[rid]
+        sr, sh, sv = (sum(v[i] for v in errs) for i in range(3))
+        out.append((rid, float(e), math.sqrt(sr / dof), math.sqrt((sh + sv) / dof), math.sqrt(sh / dof),
+                    math.sqrt(sv / dof), n, n == 1))
+    return out
 
 
 @covers("radar_accuracy_over_time")
 def test_radar_accuracy_over_time(q):
     assert q("radar_accuracy_over_time").height == 0          # every hand track is younger than 20 s
     df = q("radar_accuracy_over_time", skip_first_s=0)
-    assert df.columns == ["radar_id", "name", "epoch", "t_s", "rmse_range_m", "rmse_pos_m", "n", "n_runs"]
-    # radar 1: epochs 1 and 2 have 3 scored rows; epoch 3 has 1 (clutter unmatched) -> dropped; radar 2: 1 per epoch
-    assert rows(df, "radar_id", "name", "t_s", "n", "n_runs") == [(1, "A", 1.0, 3, 2), (1, "A", 2.0, 3, 2)]
-    for k, e in enumerate((1, 2)):
-        r, p, n = _radar_sigma(1, e, 0.0)
-        assert df["rmse_range_m"][k] == pytest.approx(r, rel=1e-12)
-        assert df["rmse_pos_m"][k] == pytest.approx(p, rel=1e-12)
-    # epoch-1 position: errors 30,40,0 / 0,12,0 / -20,0,0 -> sqrt((2500 + 144 + 400) / 2)
+    assert df.columns == ["radar_id", "name", "epoch", "t_s", "rmse_range_m", "rmse_pos_m", "rmse_horizontal_m",
+                          "rmse_height_m", "n", "n_runs", "pooled"]
+    # radar 1: epochs 1 and 2 have 3 scored rows; epoch 3 has 1 (clutter unmatched), alone in its pool
+    # -> left out; radar 2: one row at each of epochs 1, 3, 4 -> pooled (M = 3)
+    assert rows(df, "radar_id", "name", "t_s", "n", "n_runs", "pooled") == [
+        (1, "A", 1.0, 3, 2, False), (1, "A", 2.0, 3, 2, False),
+        (2, "B", 1.0, 1, 1, True), (2, "B", 3.0, 1, 1, True), (2, "B", 4.0, 1, 1, True)]
+    hand = _radar_table(0.0)
+    got = rows(df, "radar_id", "t_s", "rmse_range_m", "rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "n",
+               "pooled")
+    assert [g[:2] for g in got] == [h[:2] for h in hand]
+    for g, h in zip(got, hand):
+        assert g[2:6] == pytest.approx(h[2:6], rel=1e-12) and g[6:] == h[6:]
+    # epoch-1 position: errors 30,40,0 / 0,12,0 / -20,0,0 -> sqrt((2500 + 144 + 400) / 2); all horizontal
     assert df["rmse_pos_m"][0] == pytest.approx(math.sqrt(3044 / 2))
+    assert df["rmse_horizontal_m"][0] == pytest.approx(math.sqrt(3044 / 2)) and df["rmse_height_m"][0] == 0.0
+    # radar 2 epoch 1: error (100, 0, 0) alone, pooled with M = 3: σ² = 100² · 3 / 2
+    assert df["rmse_horizontal_m"][2] == pytest.approx(100.0 * math.sqrt(1.5))
     late = q("radar_accuracy_over_time", skip_first_s=1)
-    assert rows(late, "t_s", "n") == [(2.0, 3)]
-    assert q("radar_accuracy_over_time", skip_first_s=0, radar_id=2).height == 0
+    assert rows(late, "radar_id", "t_s", "n") == [(r[0], r[1], r[6]) for r in _radar_table(1.0)] == [
+        (1, 2.0, 3), (2, 3.0, 1), (2, 4.0, 1)]
+    assert q("radar_accuracy_over_time", skip_first_s=0, radar_id=2).height == 3
+    # edge rule: radar 1's median n is 3, radar 2's 1 — a fraction 0.5 keeps both radars' epochs
+    assert q("radar_accuracy_over_time", skip_first_s=0, min_sample_frac=0.5).height == 5
+    assert q("radar_accuracy_over_time", skip_first_s=0, min_sample_frac=1.5).height == 0
 
 
 @covers("aposteriori_vs_apriori")
@@ -516,10 +564,12 @@ def test_conflicts(q):
 @covers("conflict_timeline")
 def test_conflict_timeline(q):
     df = q("conflict_timeline")
-    assert df.columns == ["method", "epoch", "t_s", "pairs", "alerts", "max_severity", "mean_severity"]
-    assert rows(df, "method", "t_s", "pairs", "alerts", "max_severity") == [
-        ("apriori", 1.0, 1, 1, 0.5), ("apriori", 2.0, 2, 2, 0.9), ("apriori", 3.0, 1, 0, None),
-        ("arithmetic", 1.0, 1, 0, None)]
+    assert df.columns == ["method", "epoch", "t_s", "pairs", "alerts", "new_alerts", "max_severity",
+                          "mean_severity"]
+    # new alerts: pair (1, 2) starts alerting at 1 s and stays in alert at 2 s; pair (1, 3) starts at 2 s
+    assert rows(df, "method", "t_s", "pairs", "alerts", "new_alerts", "max_severity") == [
+        ("apriori", 1.0, 1, 1, 1, 0.5), ("apriori", 2.0, 2, 2, 1, 0.9), ("apriori", 3.0, 1, 0, 0, None),
+        ("arithmetic", 1.0, 1, 0, 0, None)]
     assert df["mean_severity"][1] == pytest.approx(0.8)
     assert q("conflict_timeline", method="arithmetic").height == 1
 
@@ -528,8 +578,10 @@ def test_conflict_timeline(q):
 def test_alert_scores(q):
     df = q("alert_scores")
     assert df.columns == ["method", "episodes", "hits", "misses", "false_alerts", "mean_warning_s", "flicker",
-                          "flicker_per_hit", "n_runs"]
-    assert rows(df) == [("apriori", 5.0, 4.0, 1.0, 7.0, 60.5, 2.0, 0.5, 2)]      # capacity rows are not scores
+                          "flicker_per_hit", "los_episodes", "alerted_los", "missed_los", "genuine_alerts",
+                          "nuisance_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s", "n_runs"]
+    assert rows(df) == [("apriori", 5.0, 4.0, 1.0, 7.0, 60.5, 2.0, 0.5, 3.0, 2.0, 1.0, 2.0, 4.0, 12.5, 45.0, 20.0, 2)]
+    # capacity rows (apriori+singer, fusion/information) are not scores
 
 
 @covers("capacity_by_method")
