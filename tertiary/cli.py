@@ -1,11 +1,21 @@
-"""Command line: a thin layer over the public API (typer + rich)."""
+"""Command line: a thin layer over the public API (typer + rich).
+
+One error boundary (:class:`_Boundary`) turns every expected failure (:mod:`tertiary.errors`,
+file-system errors) into one line on stderr and an exit code — 2 for a bad option, 3 for bad
+input data, 4 for a refused allocation, 1 for an internal error — with the traceback only under
+``tertiary --debug``. Nothing a user typed or a dataset holds is ever read as rich markup: every
+console here has markup switched off, and help text is printed as plain text.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import os
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -14,30 +24,130 @@ import typer
 from rich.console import Console
 from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from typer.core import TyperGroup
 
-from tertiary import pipeline, schema
+from tertiary import pipeline
+from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS
-from tertiary.simulate import (Dataset, builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
+from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
 from tertiary.simulate.config import ScenarioConfig, with_radar_count
+try:  # TEMP-INTEGRATION
+    from tertiary.simulate.config import check_scenario
+except ImportError:  # TEMP-INTEGRATION
+    def check_scenario(cfg):  # TEMP-INTEGRATION
+        return cfg
 
-app = typer.Typer(add_completion=False, no_args_is_help=False,
-                  help="Tertiary processing of multi-radar surveillance data and safety evaluation.")
-console = Console()
+# markup off everywhere: dataset text, reject reasons and query results may contain "[/...]"
+console = Console(markup=False, highlight=False, soft_wrap=False)
+err_console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
+if not console.is_terminal:   # a batch log or a pipe: tables as wide as COLUMNS says, else 160
+    console.width = int(os.environ["COLUMNS"]) if os.environ.get("COLUMNS", "").isdigit() else 160
 
 DEFAULT_SCENARIO = "terminal-area"
+DEFAULT_METHODS = ",".join(METHODS)
+DEFAULT_FILTERS = "singer,imm_sym"
+RUNS_DIR = Path("runs")
 
 
-def _progress() -> Progress:
-    return Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(), console=console,
-                    transient=False)
+def _failure(exc: BaseException) -> tuple[int, str]:
+    """Exit code and one-line message of an exception that reached the boundary."""
+    if isinstance(exc, TertiaryError):
+        return exc.exit_code, str(exc)
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        return 3, f"{where}{exc.strerror or exc}"
+    if isinstance(exc, MemoryError):
+        return 4, "out of memory (reduce the input or the number of methods/filters)"
+    return 1, (f"internal error ({type(exc).__name__}: {exc}); "
+               "run again with `tertiary --debug ...` for the traceback and report it")
 
 
-def _window(text: str | None) -> tuple[float, float] | None:
+class _Boundary(TyperGroup):
+    """The one error boundary of every command (see the module docstring)."""
+
+    def invoke(self, ctx: typer.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except (typer.TyperException, typer.Exit, typer.Abort):
+            raise
+        except KeyboardInterrupt:
+            err_console.print("interrupted")
+            raise typer.Exit(130) from None
+        except Exception as exc:
+            if (ctx.obj or {}).get("debug"):
+                raise
+            code, message = _failure(exc)
+            err_console.print(f"error: {message}")
+            raise typer.Exit(code) from None
+
+
+app = typer.Typer(cls=_Boundary, add_completion=False, no_args_is_help=False, rich_markup_mode=None,
+                  pretty_exceptions_enable=False, context_settings={"max_content_width": 120},
+                  help="Tertiary processing of multi-radar surveillance data and safety evaluation.")
+
+
+@app.callback()
+def _root(ctx: typer.Context,
+          debug: Annotated[bool, typer.Option("--debug", help="show the full traceback of an error")] = False) -> None:
+    """Tertiary processing of multi-radar surveillance data and safety evaluation.
+
+    Exit codes: 0 success, 1 internal error, 2 bad option, 3 bad input data or file, 4 refused
+    (a limit would be exceeded). Add --debug before the command for a traceback."""
+    ctx.obj = {"debug": debug}
+
+
+# --------------------------------------------------------------------------- progress
+
+
+class _Steps:
+    """Stage progress: a transient status line in a terminal, plain time-stamped lines in a batch
+    log (no spinner glyphs, one line per stage, flushed as it happens)."""
+
+    def __init__(self, title: str) -> None:
+        self.title, self.t0 = title, time.perf_counter()
+        self._prog: Progress | None = None
+        self._task: Any = None
+
+    def __enter__(self) -> _Steps:
+        if console.is_terminal:
+            self._prog = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                                  console=console, transient=True)
+            self._prog.__enter__()
+            self._task = self._prog.add_task(self.title, total=None)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._prog is not None:
+            self._prog.__exit__(*exc)
+
+    def __call__(self, message: str) -> None:
+        if self._prog is not None:
+            self._prog.update(self._task, description=f"{self.title}: {message}")
+        else:
+            console.print(f"[{time.perf_counter() - self.t0:7.1f} s] {self.title}: {message}", soft_wrap=True)
+            sys.stdout.flush()
+
+
+# --------------------------------------------------------------------------- options
+
+
+def _floats(text: str, n: int, option: str, form: str) -> list[float]:
+    parts = text.split(":")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise OptionError(f"expected {form} with finite numbers, got {text!r}", option=option)
+    return values
+
+
+def _window(text: str | None, option: str) -> tuple[float, float] | None:
     if text is None:
         return None
-    lo, hi = (float(v) for v in text.split(":"))
+    lo, hi = _floats(text, 2, option, "T0:T1")
     return lo, hi
 
 
@@ -46,7 +156,7 @@ def build_scenario(scenario: str, *, runs: int | None = None, seed: int | None =
                    noise_factor: float | None = None, noise_window: str | None = None,
                    dropout: str | None = None, outliers: float | None = None,
                    bias_step: str | None = None) -> ScenarioConfig:
-    """A built-in scenario (or TOML file) with command-line overrides applied."""
+    """A built-in scenario (or TOML file) with command-line overrides applied and checked."""
     cfg = load_scenario(scenario)
     cfg = cfg.replace(runs=runs, seed=seed, duration_s=duration)
     if aircraft is not None:
@@ -54,58 +164,134 @@ def build_scenario(scenario: str, *, runs: int | None = None, seed: int | None =
     if truth is not None:
         cfg = dataclasses.replace(cfg, adsb=dataclasses.replace(cfg.adsb, truth_file=truth))
     if radars is not None:
+        if radars < 1:
+            raise OptionError(f"must be at least 1, got {radars}", option="--radars")
         cfg = with_radar_count(cfg, radars)
     anom = cfg.anomalies
+    if noise_window is not None and noise_factor is None:
+        raise OptionError("needs --noise-factor", option="--noise-window")
     if noise_factor is not None:
-        anom = dataclasses.replace(anom, noise_factor=noise_factor, noise_window_s=_window(noise_window))
+        anom = dataclasses.replace(anom, noise_factor=noise_factor,
+                                   noise_window_s=_window(noise_window, "--noise-window"))
     if dropout is not None:  # NAME:T0:T1
-        name, lo, hi = dropout.split(":")
-        anom = dataclasses.replace(anom, dropout_radar=name, dropout_window_s=(float(lo), float(hi)))
+        name, sep, rest = dropout.partition(":")
+        if not sep or not name:
+            raise OptionError(f"expected RADAR:T0:T1, got {dropout!r}", option="--dropout")
+        lo, hi = _floats(rest, 2, "--dropout", "RADAR:T0:T1")
+        anom = dataclasses.replace(anom, dropout_radar=name, dropout_window_s=(lo, hi))
     if outliers is not None:
         anom = dataclasses.replace(anom, outlier_fraction=outliers)
     if bias_step is not None:  # T:DR_M:DAZ_DEG
-        t, dr, daz = (float(v) for v in bias_step.split(":"))
+        t, dr, daz = _floats(bias_step, 3, "--bias-step", "T:DRANGE_M:DAZ_DEG")
         anom = dataclasses.replace(anom, bias_step_time_s=t, bias_step_range_m=dr, bias_step_azimuth_deg=daz)
-    return dataclasses.replace(cfg, anomalies=anom)
+    return check_scenario(dataclasses.replace(cfg, anomalies=anom))
 
 
-def _simulate_with_progress(cfg: ScenarioConfig) -> Dataset:
-    with _progress() as prog:
-        task = prog.add_task(f"simulate {cfg.name}", total=None)
-        ds = _simulate(cfg, progress=lambda m: prog.update(task, description=f"simulate {cfg.name}: {m}"))
-        prog.update(task, description=f"simulate {cfg.name}: {ds.reports.height:,} reports")
-    return ds
+def _names(text: str, known: tuple[str, ...] | list[str], option: str) -> tuple[str, ...]:
+    chosen = tuple(dict.fromkeys(m.strip() for m in text.split(",") if m.strip()))
+    bad = [m for m in chosen if m not in known]
+    if bad:
+        raise OptionError(f"unknown {', '.join(bad)}; choose from {', '.join(known)}", option=option)
+    return chosen
 
 
-ScenarioOpt = Annotated[Optional[int], typer.Option(help="Monte-Carlo runs")]
+def _origin(text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    parts = text.replace(":", ",").split(",")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values) \
+            or not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
+        raise OptionError(f"expected LAT,LON[,ALT_M] in degrees (and metres), got {text!r}", option="--origin")
+    return (values[0], values[1], values[2] if len(values) == 3 else 0.0)
+
+
+def _writable_dir(path: Path, option: str) -> None:
+    """Refuse --out values that cannot become a directory, before any work is done."""
+    if path.exists() and not path.is_dir():
+        raise OptionError(f"{path} is a file, not a directory", option=option)
+    parent = path if path.exists() else next((p for p in path.parents if p.exists()), Path("."))
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise OptionError(f"cannot create or write {path} ({parent} is not writable)", option=option)
+
+
+def holds_run(path: Path) -> bool:
+    """True when ``path`` already holds a run (its database or report)."""
+    return (path / "results.duckdb").exists() or (path / "report.html").exists()
+
+
+def choose_run_dir(out: Path | None, scenario_name: str, force: bool) -> tuple[Path, str | None]:
+    """Where this run goes, and a note when it is not where the user may expect.
+
+    An explicit ``--out`` that already holds a run is refused unless ``force``; without ``--out``
+    the run goes to ``runs/<scenario>``, or to the first free ``runs/<scenario>-N`` when that holds
+    an earlier run, so that no run is ever overwritten silently."""
+    if out is not None:
+        _writable_dir(out, "--out")
+        if holds_run(out) and not force:
+            raise OptionError(f"{out} already holds a run; give --force to replace it, or another --out",
+                              option="--out")
+        return out, None
+    if not scenario_name.replace("-", "_").isidentifier():
+        raise OptionError(f"scenario name {scenario_name!r} cannot name a run directory; give --out", option="--out")
+    base = RUNS_DIR / scenario_name
+    _writable_dir(base, "--out")
+    if force or not holds_run(base):
+        return base, None
+    n = 2
+    while holds_run(RUNS_DIR / f"{scenario_name}-{n}"):
+        n += 1
+    new = RUNS_DIR / f"{scenario_name}-{n}"
+    return new, f"{base} holds an earlier run; this run goes to {new} (--force replaces {base})"
+
+
+def _read(dataset, origin):  # TEMP-INTEGRATION
+    return read_dataset(dataset, origin=origin) if origin else read_dataset(dataset)  # TEMP-INTEGRATION
+
+
+# --------------------------------------------------------------------------- shared option types
+
+RunsOpt = Annotated[Optional[int], typer.Option(help="Monte-Carlo runs [default: the scenario's]")]
+SeedOpt = Annotated[Optional[int], typer.Option(help="random seed; same seed, same data [default: the scenario's]")]
+AircraftOpt = Annotated[Optional[int], typer.Option(help="number of aircraft (terminal-area) [default: the scenario's]")]
+RadarsOpt = Annotated[Optional[int], typer.Option(help="number of radars [default: the scenario's]")]
+DurationOpt = Annotated[Optional[float], typer.Option(help="duration in seconds [default: the scenario's]")]
+TruthOpt = Annotated[Optional[str], typer.Option(help="ADS-B trajectory file (OpenSky/traffic schema) used as truth")]
+NoiseOpt = Annotated[Optional[float], typer.Option(help="measurement noise inflation factor, e.g. 3, 5, 6")]
+NoiseWinOpt = Annotated[Optional[str], typer.Option(help="T0:T1 seconds of the noise inflation [default: whole run]")]
+DropoutOpt = Annotated[Optional[str], typer.Option(help="RADAR:T0:T1 radar dropout window (radar name, seconds)")]
+OutliersOpt = Annotated[Optional[float], typer.Option(help="fraction of gross-error reports, in [0, 1]")]
+BiasStepOpt = Annotated[Optional[str], typer.Option(help="T:DRANGE_M:DAZ_DEG range/azimuth bias step at T seconds")]
 
 
 @app.command()
 def simulate(
-    scenario: Annotated[str, typer.Argument(help="built-in scenario name or a TOML file")],
+    scenario: Annotated[str, typer.Argument(help="built-in scenario name (see `tertiary scenarios`) or a TOML file")],
     out: Annotated[Path, typer.Option("--out", "-o", help="output dataset directory")],
-    runs: ScenarioOpt = None,
-    seed: Annotated[Optional[int], typer.Option(help="random seed (same seed, same files)")] = None,
-    aircraft: Annotated[Optional[int], typer.Option(help="number of aircraft (terminal-area)")] = None,
-    radars: Annotated[Optional[int], typer.Option(help="number of radars")] = None,
-    duration: Annotated[Optional[float], typer.Option(help="duration in seconds")] = None,
-    truth: Annotated[Optional[str], typer.Option(help="ADS-B trajectory file (OpenSky/traffic schema)")] = None,
-    noise_factor: Annotated[Optional[float], typer.Option(help="measurement noise inflation (e.g. 3, 5, 6)")] = None,
-    noise_window: Annotated[Optional[str], typer.Option(help="T0:T1 seconds for the noise inflation")] = None,
-    dropout: Annotated[Optional[str], typer.Option(help="RADAR:T0:T1 radar dropout window")] = None,
-    outliers: Annotated[Optional[float], typer.Option(help="fraction of gross-error reports")] = None,
-    bias_step: Annotated[Optional[str], typer.Option(help="T:DRANGE_M:DAZ_DEG bias step")] = None,
+    runs: RunsOpt = None, seed: SeedOpt = None, aircraft: AircraftOpt = None, radars: RadarsOpt = None,
+    duration: DurationOpt = None, truth: TruthOpt = None, noise_factor: NoiseOpt = None,
+    noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
+    bias_step: BiasStepOpt = None,
+    force: Annotated[bool, typer.Option(help="replace a dataset already in OUT")] = False,
 ) -> None:
     """Simulate SCENARIO and write radars/reports/truth Parquet files and scenario.toml to OUT."""
     if scenario == "adsb" and truth is None:
-        raise typer.BadParameter("the adsb scenario needs --truth FILE", param_hint="--truth")
+        raise OptionError("the adsb scenario needs --truth FILE (an OpenSky/traffic-schema Parquet file)",
+                          option="--truth")
+    _writable_dir(out, "--out")
+    if (out / "reports.parquet").exists() and not force:
+        raise OptionError(f"{out} already holds a dataset; give --force to replace it", option="--out")
     cfg = build_scenario(scenario, runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration,
                          truth=truth, noise_factor=noise_factor, noise_window=noise_window, dropout=dropout,
                          outliers=outliers, bias_step=bias_step)
     t = time.perf_counter()
-    ds = _simulate_with_progress(cfg)
+    with _Steps(f"simulate {cfg.name}") as say:
+        ds = _simulate(cfg, progress=say)
     write_dataset(ds, out)
-    console.print(f"[green]wrote[/] {out}/ ({ds.reports.height:,} reports, {ds.truth.height:,} truth rows, "
+    console.print(f"wrote {out}/ ({ds.reports.height:,} reports, {ds.truth.height:,} truth rows, "
                   f"{len(cfg.radars)} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s")
     if ds.removed.height:
         console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet)")
@@ -113,97 +299,176 @@ def simulate(
 
 @app.command()
 def validate(
-    dataset: Annotated[Path, typer.Argument(help="dataset directory (radars/reports[/truth].parquet)")],
-    strict: Annotated[bool, typer.Option(help="fail on the first problem instead of listing rejects")] = False,
+    dataset: Annotated[Path, typer.Argument(help="dataset directory: radars.parquet, reports.parquet, "
+                                                 "optional truth.parquet and scenario.toml")],
+    strict: Annotated[bool, typer.Option(help="fail (exit 3) on the first problem instead of listing rejects")] = False,
+    origin: Annotated[Optional[str], typer.Option(help="LAT,LON[,ALT_M] processing centre when the dataset has no "
+                                                       "scenario.toml [default: mean of the radar sites]")] = None,
 ) -> None:
-    """Print what would be rejected, and why."""
-    ds = read_dataset(dataset)
-    try:
-        ing = pipeline.ingest(ds, strict=strict)
-    except schema.SchemaError as exc:
-        console.print(f"[red]invalid:[/] {exc}")
-        raise typer.Exit(1)
-    for note in ing.notes:
-        console.print(f"[yellow]note:[/] {note}")
-    if ing.rejects.height == 0:
-        console.print(f"[green]valid:[/] {ds.reports.height:,} reports, {ds.radars.height} radars, "
-                      f"{ds.truth.height:,} truth rows; nothing rejected")
+    """Print, stage by stage, every report `tertiary run` will reject, and why (same rules, same counts)."""
+    ds = _read(dataset, _origin(origin))
+    screened = pipeline.screen(ds, pipeline.PipelineConfig(strict=strict))
+    for note in screened.notes:
+        console.print(f"note: {note}", soft_wrap=True)
+    rejects = screened.rejects
+    n_reports = ds.reports.height
+    n_rej = int(rejects.filter(pl.col("input_table") == "reports").height) if rejects.height else 0
+    if rejects.height == 0:
+        console.print(f"valid: {n_reports:,} reports, {ds.radars.height} radars, {ds.truth.height:,} truth rows; "
+                      "run will reject nothing")
         return
-    summary = ing.rejects.group_by("input_table", "reason").len().sort("len", descending=True)
-    table = Table(title=f"{ing.rejects.height:,} rows would be rejected")
-    for col in ("input table", "reason", "rows"):
-        table.add_column(col)
-    for row in summary.head(50).iter_rows():
-        table.add_row(row[0], row[1], f"{row[2]:,}")
+    summary = (rejects.group_by("stage", "input_table", "reason").len()
+               .sort(["stage", "len"], descending=[False, True]))
+    table = Table(title=f"run will reject {rejects.height:,} rows ({n_rej:,} of {n_reports:,} reports)")
+    for col, justify in (("stage", "left"), ("input table", "left"), ("reason", "left"), ("rows", "right")):
+        table.add_column(col, justify=justify, overflow="fold")
+    for stage, tab, reason, n in summary.iter_rows():
+        table.add_row(str(stage), str(tab), str(reason), f"{n:,}")
     console.print(table)
-    raise typer.Exit(1 if strict else 0)
 
 
 @app.command()
 def run(
-    dataset: Annotated[Optional[Path], typer.Argument(help="dataset directory; omitted = simulate --scenario")] = None,
-    scenario: Annotated[str, typer.Option(help="scenario to simulate when no dataset is given")] = DEFAULT_SCENARIO,
-    runs: ScenarioOpt = None,
-    seed: Annotated[Optional[int], typer.Option()] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="run directory (default runs/<scenario>)")] = None,
-    strict: Annotated[bool, typer.Option(help="stop on the first invalid input row")] = False,
-    methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = ",".join(METHODS),
-    centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level bound")] = True,
-    filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none)")] = "singer,imm_sym",
+    dataset: Annotated[Optional[Path], typer.Argument(help="dataset directory [default: simulate --scenario]")] = None,
+    scenario: Annotated[str, typer.Option(help="scenario simulated when no DATASET is given")] = DEFAULT_SCENARIO,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="run directory [default: runs/<scenario>, or "
+                                                                     "runs/<scenario>-N when that holds a run]")] = None,
+    force: Annotated[bool, typer.Option(help="replace a run already in --out")] = False,
+    methods: Annotated[str, typer.Option(help="comma-separated fusion methods")] = DEFAULT_METHODS,
+    filters: Annotated[str, typer.Option(help="comma-separated secondary tracker filters ('' for none); choose "
+                                              f"from {', '.join(sorted(REGISTRY))}")] = DEFAULT_FILTERS,
+    centralized: Annotated[bool, typer.Option(help="also run the centralised measurement-level reference")] = True,
+    strict: Annotated[bool, typer.Option(help="stop (exit 3) on the first invalid input row")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report",
                                          help="also write RUN_DIR/report.html (plotly, self-contained)")] = True,
+    origin: Annotated[Optional[str], typer.Option(help="LAT,LON[,ALT_M] processing centre for a dataset without "
+                                                       "scenario.toml [default: mean of the radar sites]")] = None,
+    runs: RunsOpt = None, seed: SeedOpt = None, aircraft: AircraftOpt = None, radars: RadarsOpt = None,
+    duration: DurationOpt = None, truth: TruthOpt = None, noise_factor: NoiseOpt = None,
+    noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
+    bias_step: BiasStepOpt = None,
 ) -> None:
-    """The main job: (simulate,) validate, align, associate, fuse, cluster, track, evaluate and
-    store everything in RUN_DIR/results.duckdb, then write the HTML report RUN_DIR/report.html."""
-    t = time.perf_counter()
-    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
-    bad = [m for m in chosen if m not in METHODS]
-    if bad:
-        raise typer.BadParameter(f"unknown method(s) {', '.join(bad)}; choose from {', '.join(METHODS)}",
-                                 param_hint="--methods")
-    chosen_filters = tuple(f.strip() for f in filters.split(",") if f.strip())
-    bad = [f for f in chosen_filters if f not in REGISTRY]
-    if bad:
-        raise typer.BadParameter(f"unknown filter(s) {', '.join(bad)}; choose from {', '.join(sorted(REGISTRY))}",
-                                 param_hint="--filters")
-    cfg = pipeline.PipelineConfig(methods=chosen, filters=chosen_filters, centralized=centralized, strict=strict)
-    if dataset is None:
-        ds = _simulate_with_progress(build_scenario(scenario, runs=runs, seed=seed))
+    """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
+    evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
+
+    Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
+    cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
+                                  filters=_names(filters, sorted(REGISTRY), "--filters"),
+                                  centralized=centralized, strict=strict)
+    sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
+               noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,
+               bias_step=bias_step)
+    given = [k for k, v in sim.items() if v is not None]
+    if dataset is not None:
+        if given:
+            raise OptionError(f"--{given[0].replace('_', '-')} applies only when the job simulates; "
+                              "omit DATASET or the option", option=f"--{given[0].replace('_', '-')}")
+        ds = _read(dataset, _origin(origin))
+        run_dir, note = choose_run_dir(out, ds.scenario.name, force)
     else:
-        ds = read_dataset(dataset)
-    run_dir = out or Path("runs") / ds.scenario.name
-    with _progress() as prog:
-        task = prog.add_task("pipeline", total=None)
-        db = pipeline.run(ds, run_dir, cfg, progress=lambda m: prog.update(task, description=f"pipeline: {m}"))
-        prog.update(task, description="pipeline: done")
-    html_path = _report_with_progress(run_dir) if report else None
-    console.print(f"[green]done[/] in {time.perf_counter() - t:.1f} s")
-    console.print(f"  results: {db}")
+        scen = build_scenario(scenario, **sim)
+        run_dir, note = choose_run_dir(out, scen.name, force)   # refused before simulating, not after
+        with _Steps(f"simulate {scen.name}") as say:
+            ds = _simulate(scen, progress=say)
+    if note:
+        console.print(f"note: {note}", soft_wrap=True)
+    with _Steps("pipeline") as say:
+        db = pipeline.run(ds, run_dir, cfg, progress=say)
+    html_path = None
+    if report:
+        from tertiary.report import build_report
+        with _Steps("report") as say:
+            html_path = build_report(run_dir, progress=say)
+    print_summary(db, html_path)
+
+
+# --------------------------------------------------------------------------- result summary
+
+
+def _metric(metrics: pl.DataFrame, stage: str, metric: str) -> pl.DataFrame:
+    if metrics.height == 0:
+        return metrics
+    return metrics.filter((pl.col("stage") == stage) & (pl.col("metric") == metric) & (pl.col("segment") == "all"))
+
+
+def _value(frame: pl.DataFrame, method: str) -> float | None:
+    row = frame.filter(pl.col("method") == method)
+    return float(row["value"][0]) if row.height else None
+
+
+def _m(v: float | None, unit: str = " m") -> str:
+    return "–" if v is None or not math.isfinite(v) else f"{v:,.1f}{unit}"
+
+
+def _json_or_text(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, TypeError):
+        return text
+
+
+def run_summary(db: Path) -> list[str]:
+    """The end-of-run summary as plain lines: input and rejects, targets against aircraft, the
+    horizontal and vertical accuracy of every picture, alerts and losses of separation."""
+    from tertiary.store import RunStore
+    with RunStore.open(db.parent, read_only=True) as store:
+        tables = set(store.tables())
+        record = {k: _json_or_text(v) for k, v in store.sql("SELECT key, value FROM run").iter_rows()}
+        metrics = store.sql("SELECT * FROM metrics") if "metrics" in tables else pl.DataFrame()
+        aircraft = (int(store.sql("SELECT count(DISTINCT truth_id) AS n FROM truth")["n"][0])
+                    if "truth" in tables else None)
+    rows, timings = record.get("rows", {}), record.get("timings", {})
+    wall = timings.get("wall_s", timings.get("total_s"))
+    lines = [f"run {record.get('scenario', '?')}: {rows.get('reports_in', 0):,} reports in, "
+             f"{rows.get('reports_rejected', 0):,} rejected; wall time {_m(wall, ' s')}"]
+    targets = rows.get("confirmed_targets", rows.get("targets"))
+    label = "confirmed targets" if "confirmed_targets" in rows else "targets"
+    lines.append(f"{label}: {targets if targets is not None else '–'}"
+                 + (f" for {aircraft} aircraft" if aircraft is not None else ""))
+    for stage in ("fusion", "tracker"):
+        horiz, height = _metric(metrics, stage, "rmse_horizontal_m"), _metric(metrics, stage, "rmse_height_m")
+        pos = _metric(metrics, stage, "rmse_pos_m")
+        for method in sorted(pos["method"].unique().to_list() if pos.height else []):
+            lines.append(f"  {stage:8s} {method:28s} RMSE horizontal {_m(_value(horiz, method)):>9s}, "
+                         f"vertical {_m(_value(height, method)):>9s}, 3-D {_m(_value(pos, method)):>9s}")
+    alerts = _metric(metrics, "safety", "alerts_per_hour")
+    los, missed = _metric(metrics, "safety", "los_episodes"), _metric(metrics, "safety", "missed_los")
+    for method in sorted(alerts["method"].unique().to_list() if alerts.height else []):
+        lines.append(f"  safety   {method:28s} {_m(_value(alerts, method), ' alerts/h')}, "
+                     f"losses of separation {_m(_value(los, method), '')}, missed {_m(_value(missed, method), '')}")
+    if alerts.height == 0:
+        lines.append(f"alerts: {rows.get('alerts', 0):,} (alert rows over all pictures)")
+    for note in record.get("notes", [])[:5]:
+        lines.append(f"note: {note}")
+    return lines
+
+
+def print_summary(db: Path, html_path: Path | None) -> None:
+    for line in run_summary(db):
+        console.print(line, soft_wrap=True)
+    console.print(f"results: {db}", soft_wrap=True)
     if html_path is not None:
-        console.print(f"  report:  {html_path} ({html_path.stat().st_size / 1e6:.1f} MB)")
-
-
-def _report_with_progress(run_dir: Path, out: Path | None = None) -> Path:
-    from tertiary.report import build_report
-    with _progress() as prog:
-        task = prog.add_task("report", total=None)
-        path = build_report(run_dir, out, progress=lambda m: prog.update(task, description=m))
-        prog.update(task, description="report: written")
-    return path
+        console.print(f"report:  {html_path} ({html_path.stat().st_size / 1e6:.1f} MB)", soft_wrap=True)
 
 
 @app.command("report")
 def report_cmd(
     run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="HTML file (default RUN_DIR/report.html)")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="HTML file [default: RUN_DIR/report.html]")] = None,
 ) -> None:
     """Write the self-contained HTML report of a run (figures from the sql/ reports)."""
-    if not (run_dir / "results.duckdb").is_file() and not run_dir.is_file():
-        console.print(f"[red]error:[/] no run database at {run_dir / 'results.duckdb'}")
-        raise typer.Exit(1)
+    if not (run_dir / "results.duckdb").is_file():
+        raise DataError("no run database here (expected results.duckdb)", path=str(run_dir))
+    if out is not None and out.is_dir():
+        raise OptionError(f"{out} is a directory; give a file name", option="--out")
+    from tertiary.report import build_report
     t = time.perf_counter()
-    path = _report_with_progress(run_dir, out)
-    console.print(f"[green]wrote[/] {path} ({path.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t:.1f} s")
+    with _Steps("report") as say:
+        path = build_report(run_dir, out, progress=say)
+    console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t:.1f} s")
+
+
+# --------------------------------------------------------------------------- sql
 
 
 def _param_value(text: str) -> Any:
@@ -214,15 +479,35 @@ def _param_value(text: str) -> Any:
         return text
 
 
+_PLAIN_INT = ("id", "run", "epoch", "sic", "sac", "mode_3a", "year")
+
+
+def cell(value: Any, column: str) -> str:
+    """A value as printed in a terminal table: identifiers plain, counts with separators."""
+    if isinstance(value, bool) or value is None:
+        return "" if value is None else ("yes" if value else "no")
+    if isinstance(value, int):
+        plain = column == "id" or column.endswith(("_id", "_ids")) or column in _PLAIN_INT
+        return str(value) if plain else f"{value:,}"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        return f"{value:,.4g}" if abs(value) < 1e6 else f"{value:,.1f}"
+    if isinstance(value, datetime):
+        return value.astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] if value.tzinfo else str(value)
+    if isinstance(value, (list, tuple, dict)):
+        return json.dumps(value, default=str)
+    return str(value)
+
+
 def _print_frame(frame: pl.DataFrame, title: str, limit: int) -> None:
-    from tertiary.report import _fmt
-    table = Table(title=title, caption=(f"{frame.height:,} rows" + (f" (first {limit:,} shown)" if frame.height > limit
-                                                                   else "")))
+    shown = f" (first {limit:,} shown; --limit to change, --format csv for all)" if frame.height > limit else ""
+    table = Table(title=title, caption=f"{frame.height:,} row{'' if frame.height == 1 else 's'}{shown}")
     for col, dtype in frame.schema.items():
-        numeric = dtype.is_numeric()
-        table.add_column(col, justify="right" if numeric else "left", overflow="fold")
+        table.add_column(col, justify="right" if dtype.is_numeric() else "left", overflow="fold")
+    cols = frame.columns
     for row in frame.head(limit).iter_rows():
-        table.add_row(*[_fmt(v) for v in row])
+        table.add_row(*[cell(v, c) for v, c in zip(row, cols)])
     console.print(table)
 
 
@@ -230,81 +515,82 @@ def _print_frame(frame: pl.DataFrame, title: str, limit: int) -> None:
 def sql_cmd(
     run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
     name: Annotated[Optional[str], typer.Argument(help="named report (see --list)")] = None,
-    list_: Annotated[bool, typer.Option("--list", help="list the named reports")] = False,
+    list_: Annotated[bool, typer.Option("--list", help="list the named reports and their parameters")] = False,
     query: Annotated[Optional[str], typer.Option("--query", "-q", help="ad-hoc read-only SQL")] = None,
     param: Annotated[Optional[list[str]], typer.Option("--param", "-p",
                                                        help="report parameter NAME=VALUE (repeatable)")] = None,
     fmt: Annotated[str, typer.Option("--format", "-f", help="table (print), csv or parquet")] = "table",
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="export file (written atomically)")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="export file, written atomically; never a file "
+                                                                     "inside the run directory")] = None,
     limit: Annotated[int, typer.Option(help="rows printed in table format")] = 100,
+    timeout: Annotated[float, typer.Option(help="statement timeout in seconds")] = 60.0,
 ) -> None:
     """Run a named SQL report (sql/NAME.sql) or an ad-hoc read-only query on a run database.
 
     tertiary sql RUN_DIR --list; tertiary sql RUN_DIR NAME [-p KEY=VALUE] [--format csv|parquet --out FILE];
     tertiary sql RUN_DIR --query "SELECT ..."."""
-    import duckdb
-
     from tertiary import sql_reports
 
-    chosen = sum([bool(list_), name is not None, query is not None])
-    if chosen != 1:
-        console.print("[red]error:[/] give exactly one of NAME, --list or --query")
-        raise typer.Exit(2)
+    if sum([bool(list_), name is not None, query is not None]) != 1:
+        raise OptionError("give exactly one of NAME, --list or --query")
     if list_:
-        table = Table(title=f"named SQL reports ({sql_reports.sql_dir()})")
-        table.add_column("name", no_wrap=True)
-        table.add_column("answers", overflow="fold", ratio=3)
-        table.add_column("parameters", overflow="fold", ratio=1)
-        for rep in sql_reports.list_reports():
-            params = ", ".join(f"{k}={json.dumps(v)}" for k, v in rep.params.items())
-            table.add_row(rep.name, rep.description.split("Columns:")[0].replace("\n", " ").strip(), params)
-        console.print(table)
+        _print_report_list(sql_reports.list_reports())
         return
-    if fmt not in ("table", "csv", "parquet"):
-        raise typer.BadParameter("use table, csv or parquet", param_hint="--format")
-    if fmt == "table" and out is not None:
-        fmt = {".csv": "csv", ".parquet": "parquet"}.get(out.suffix.lower(), "")
-        if not fmt:
-            raise typer.BadParameter("give --format csv|parquet (or an .csv/.parquet file name)", param_hint="--out")
-    if fmt == "parquet" and out is None:
-        raise typer.BadParameter("parquet needs --out FILE", param_hint="--out")
+    if limit < 1:
+        raise OptionError(f"must be at least 1, got {limit}", option="--limit")
+    if not (math.isfinite(timeout) and timeout > 0):
+        raise OptionError(f"must be a positive number of seconds, got {timeout}", option="--timeout")
+    fmt = _export_format(fmt, out, run_dir)
     params: dict[str, Any] = {}
     for item in param or []:
         key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise typer.BadParameter(f"expected NAME=VALUE, got {item!r}", param_hint="--param")
+        if not sep or not key.strip():
+            raise OptionError(f"expected NAME=VALUE, got {item!r}", option="--param")
         params[key.strip()] = _param_value(value)
     if query is not None and params:
-        raise typer.BadParameter("--param applies to named reports only", param_hint="--param")
-    try:
-        with sql_reports.open_read_only(run_dir) as store:
-            if query is not None:
-                frame, title = sql_reports.query(store, query), "query"
-            else:
-                frame, title = sql_reports.run_report(store, name, params), name
-    except FileNotFoundError as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(1)
-    except sql_reports.ReadOnlyQueryError as exc:
-        console.print(f"[red]read-only:[/] {exc}")
-        raise typer.Exit(1)
-    except KeyError as exc:
-        console.print(f"[red]error:[/] {exc.args[0] if exc.args else exc}")
-        raise typer.Exit(1)
-    except duckdb.Error as exc:
-        msg = str(exc)
-        if "read-only" in msg or "read_only" in msg.lower():
-            console.print(f"[red]read-only:[/] the run database is opened read-only: {msg}")
+        raise OptionError("applies to named reports only", option="--param")
+    with sql_reports.open_read_only(run_dir) as store:
+        if query is not None:
+            frame, title = sql_reports.query(store, query, timeout_s=timeout), "query"
         else:
-            console.print(f"[red]SQL error:[/] {msg}")
-        raise typer.Exit(1)
+            frame, title = sql_reports.run_report(store, name, params, timeout_s=timeout), name
     if out is not None:
         path = sql_reports.export_frame(frame, out, fmt)
-        console.print(f"[green]wrote[/] {path} ({frame.height:,} rows, {fmt})")
+        console.print(f"wrote {path} ({frame.height:,} rows, {fmt})")
     elif fmt == "csv":
         sys.stdout.write(sql_reports.frame_to_csv(frame))
     else:
         _print_frame(frame, title, limit)
+
+
+def _export_format(fmt: str, out: Path | None, run_dir: Path) -> str:
+    if fmt not in ("table", "csv", "parquet"):
+        raise OptionError(f"use table, csv or parquet, got {fmt!r}", option="--format")
+    if out is None:
+        if fmt == "parquet":
+            raise OptionError("parquet needs --out FILE", option="--out")
+        return fmt
+    if out.is_dir():
+        raise OptionError(f"{out} is a directory; give a file name", option="--out")
+    if out.resolve().parent == run_dir.resolve() or run_dir.resolve() in out.resolve().parents:
+        raise OptionError(f"{out} is inside the run directory {run_dir}; write exports elsewhere", option="--out")
+    if fmt == "table":
+        fmt = {".csv": "csv", ".parquet": "parquet"}.get(out.suffix.lower(), "")
+        if not fmt:
+            raise OptionError("give --format csv|parquet (or a .csv/.parquet file name)", option="--out")
+    return fmt
+
+
+def _print_report_list(reports: list[Any]) -> None:
+    table = Table(title="named SQL reports: tertiary sql RUN_DIR NAME [-p NAME=VALUE]")
+    table.add_column("report", no_wrap=True)
+    table.add_column("what it answers", overflow="fold", ratio=3)
+    table.add_column("parameters (default)", overflow="fold", ratio=2)
+    for rep in reports:
+        params = "; ".join(f"{k} = {json.dumps(v)}" + (f": {rep.param_help[k]}" if rep.param_help.get(k) else "")
+                           for k, v in rep.params.items())
+        table.add_row(rep.name, rep.summary, params or "none")
+    console.print(table)
 
 
 @app.command()
@@ -312,8 +598,7 @@ def scenarios() -> None:
     """List the built-in scenarios."""
     for name in builtin_scenarios():
         cfg = load_scenario(name)
-        console.print(f"[bold]{name}[/] ({cfg.kind}): {len(cfg.radars)} radars, {cfg.duration_s:.0f} s, "
-                      f"{cfg.runs} run(s)")
+        console.print(f"{name} ({cfg.kind}): {len(cfg.radars)} radars, {cfg.duration_s:.0f} s, {cfg.runs} run(s)")
 
 
 def main() -> None:  # pragma: no cover

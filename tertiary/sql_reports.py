@@ -8,9 +8,16 @@ parameter left out by the caller takes its default (``null`` usually means "no f
 ``run_report(store, "accuracy_over_time", method="apriori")`` works.
 
 Every query runs through :func:`query` on a read-only store: only ``SELECT``-type statements
-(``SELECT``, ``WITH … SELECT``, ``FROM …``, ``VALUES``, ``SHOW``, ``DESCRIBE``, ``SUMMARIZE``)
-and ``EXPLAIN`` are accepted, the database is attached ``READ_ONLY`` and file-system access
-from SQL (``COPY … TO``, ``read_csv`` …) is switched off for the connection.
+(``SELECT``, ``WITH … SELECT``, ``FROM …``, ``VALUES``, ``SHOW``, ``DESCRIBE``, ``SUMMARIZE``,
+``PIVOT``/``UNPIVOT``), ``EXPLAIN`` and the informational ``PRAGMA`` statements (``table_info`` …) are
+accepted, the database is attached ``READ_ONLY``, file-system access from SQL (``COPY … TO``,
+``read_csv`` …) is switched off and the configuration locked for the connection, and a statement
+that runs longer than its timeout is interrupted.
+
+Parameter values are checked against their domain before a report runs: a parameter that names
+something in the run (``method``, ``segment``, ``stage``, ``filter``, ``radar_id``, ``run``,
+``metric``) must name something the run holds — otherwise the error lists what it holds, instead
+of an empty answer — and numeric parameters must be finite numbers.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import io
 import json
 import os
 import re
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +35,9 @@ from typing import Any
 import duckdb
 import polars as pl
 
+from tertiary.errors import DataError, OptionError, ResourceError
 from tertiary.store import RunStore, write_parquet_atomic, write_text_atomic
+from tertiary.store import _utc as utc_times  # the store's own UTC relabelling of query results
 
 __all__ = [
     "ReadOnlyQueryError",
@@ -45,10 +55,23 @@ __all__ = [
 _PARAM_LINE = re.compile(r"^--\s*param:\s*([A-Za-z_][A-Za-z0-9_]*)\s*=\s*(.+?)(?:\s{2,}(.*))?$")
 _PARAM_USE = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
 _READ_TYPES = {"SELECT", "EXPLAIN"}
+#: PRAGMAs that only describe the database (the configuration is locked anyway)
+_READ_PRAGMAS = {"table_info", "show_tables", "show_tables_expanded", "database_list", "database_size",
+                 "storage_info", "show", "version", "platform", "functions", "collations", "metadata_info"}
+#: what a report parameter of this name may take: a query over the run giving the allowed values
+_DOMAINS = {
+    "method": "SELECT DISTINCT split_part(method, '+', 1) FROM metrics UNION SELECT DISTINCT method FROM metrics",
+    "segment": "SELECT DISTINCT segment FROM metrics",
+    "stage": "SELECT DISTINCT stage FROM metrics",
+    "filter": "SELECT DISTINCT split_part(method, '+', 2) FROM metrics WHERE stage = 'tracker'",
+    "metric": "SELECT DISTINCT metric FROM accuracy_by_epoch",
+    "radar_id": "SELECT DISTINCT radar_id FROM radars",
+    "run": "SELECT DISTINCT run FROM reports",
+}
 
 
-class ReadOnlyQueryError(ValueError):
-    """A query that would change something was refused."""
+class ReadOnlyQueryError(OptionError):
+    """A query that would change something (or read files) was refused."""
 
 
 @dataclass(frozen=True)
@@ -76,7 +99,14 @@ class SqlReport:
         unknown = sorted(set(given) - set(self.params))
         if unknown:
             known = ", ".join(self.params) or "none"
-            raise KeyError(f"report {self.name!r} has no parameter(s) {', '.join(unknown)}; its parameters: {known}")
+            raise OptionError(f"report {self.name!r} has no parameter(s) {', '.join(unknown)}; its parameters: {known}",
+                              option="--param")
+        for key, value in given.items():
+            default = self.params[key]
+            numeric = isinstance(default, (int, float)) and not isinstance(default, bool)
+            if numeric and value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                                      and abs(value) < float("inf")):
+                raise OptionError(f"{key} must be a finite number, got {value!r}", option="--param")
         return {**self.params, **given}
 
 
@@ -127,18 +157,21 @@ def list_reports() -> list[SqlReport]:
 
 def load_report(name: str) -> SqlReport:
     """The report ``name`` (file ``sql/<name>.sql``); KeyError naming the choices if absent."""
-    if not re.fullmatch(r"[A-Za-z0-9_\-]+", name or ""):
-        raise KeyError(f"invalid report name {name!r}")
+    names = ", ".join(p.stem for p in sorted(sql_dir().glob("*.sql")))
     path = sql_dir() / f"{name}.sql"
-    if not path.is_file():
-        names = ", ".join(p.stem for p in sorted(sql_dir().glob("*.sql")))
-        raise KeyError(f"no SQL report {name!r}; available: {names}")
+    if not re.fullmatch(r"[A-Za-z0-9_\-]+", name or "") or not path.is_file():
+        raise OptionError(f"no SQL report {name!r}; available: {names}")
     return _parse(path)
 
 
 def open_read_only(run_dir: str | os.PathLike[str]) -> RunStore:
     """Open a run database read-only, with file-system access from SQL switched off."""
-    store = RunStore.open(run_dir, read_only=True)
+    try:
+        store = RunStore.open(run_dir, read_only=True)
+    except FileNotFoundError as exc:
+        raise DataError(f"{exc} (give a run directory written by `tertiary run`)") from None
+    except duckdb.Error as exc:
+        raise DataError(f"cannot open the run database: {exc}", path=str(run_dir)) from None
     try:
         store.con.execute("SET enable_external_access = false")
         store.con.execute("SET lock_configuration = true")
@@ -148,33 +181,116 @@ def open_read_only(run_dir: str | os.PathLike[str]) -> RunStore:
     return store
 
 
+def _allowed(st: Any) -> bool:
+    kind = str(st.type).rsplit(".", 1)[-1]
+    text = _strip_comments(st.query).lstrip().upper()
+    if kind in _READ_TYPES:
+        return True
+    if kind == "MULTI":   # DuckDB expands PIVOT/UNPIVOT into several statements
+        return text.startswith(("PIVOT", "UNPIVOT"))
+    if kind == "PRAGMA":
+        m = re.match(r"PRAGMA\s+([A-Z_]+)", text)
+        return bool(m) and m.group(1).lower() in _READ_PRAGMAS
+    return False
+
+
 def _check_read_only(con: duckdb.DuckDBPyConnection, sql: str) -> None:
+    try:
+        sql.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        raise OptionError(f"the query is not valid UTF-8 text ({exc.reason} at position {exc.start})",
+                          option="--query") from None
     try:
         statements = con.extract_statements(sql)
     except duckdb.Error as exc:
-        raise duckdb.ParserException(str(exc)) from exc
+        raise OptionError(f"SQL error: {' '.join(str(exc).split())}", option="--query") from None
     if not statements:
         raise ReadOnlyQueryError("empty query")
     for st in statements:
-        kind = str(st.type).rsplit(".", 1)[-1]
-        if kind not in _READ_TYPES:
+        if not _allowed(st):
+            kind = str(st.type).rsplit(".", 1)[-1]
             raise ReadOnlyQueryError(
                 f"refused a {kind} statement: the run database is opened read-only and only queries "
-                "(SELECT, WITH … SELECT, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE, EXPLAIN) may run")
+                "(SELECT, WITH … SELECT, FROM, VALUES, SHOW, DESCRIBE, SUMMARIZE, PIVOT, EXPLAIN, "
+                "informational PRAGMAs) may run")
 
 
-def query(store: RunStore, sql: str, params: Mapping[str, Any] | None = None) -> pl.DataFrame:
-    """Run read-only ``sql`` with bound ``params`` and return the last statement's result."""
+def _interruptible(con: duckdb.DuckDBPyConnection, timeout_s: float | None):
+    """A timer that interrupts ``con`` after ``timeout_s`` seconds (None: no timeout)."""
+    if timeout_s is None:
+        return None
+    timer = threading.Timer(timeout_s, con.interrupt)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
+def _fetch(rel: duckdb.DuckDBPyRelation) -> pl.DataFrame:
+    """A relation as polars; INTERVAL (and other types polars cannot import) as text."""
+    odd = [c for c, t in zip(rel.columns, rel.types) if str(t).upper().startswith(("INTERVAL", "BIT", "UNION"))]
+    if odd:
+        rel = rel.project(", ".join(f'CAST("{c}" AS VARCHAR) AS "{c}"' if c in odd else f'"{c}"'
+                                    for c in (x.replace('"', '""') for x in rel.columns)))
+    return rel.pl()
+
+
+def query(store: RunStore, sql: str, params: Mapping[str, Any] | None = None, *,
+          timeout_s: float | None = None) -> pl.DataFrame:
+    """Run read-only ``sql`` with bound ``params`` and return the last statement's result.
+
+    ``timeout_s`` interrupts a statement that runs longer (:class:`~tertiary.errors.ResourceError`);
+    a SQL error is an :class:`~tertiary.errors.OptionError` (the query is the user's input)."""
     _check_read_only(store.con, sql)
-    return store.sql(sql, dict(params) if params else None)
+    timer = _interruptible(store.con, timeout_s)
+    try:
+        rel = store.con.sql(sql, params=dict(params) if params else None)
+        frame = pl.DataFrame() if rel is None else _fetch(rel)
+    except duckdb.InterruptException:
+        raise ResourceError(f"the query ran longer than its {timeout_s:g} s timeout (--timeout) and was stopped") \
+            from None
+    except duckdb.Error as exc:
+        if timer is not None and not timer.is_alive() and "interrupt" in str(exc).lower():
+            raise ResourceError(f"the query ran longer than its {timeout_s:g} s timeout (--timeout) and was "
+                                "stopped") from None
+        raise OptionError(f"SQL error: {' '.join(str(exc).split())}", option="--query") from None
+    finally:
+        if timer is not None:
+            timer.cancel()
+    return utc_times(frame)
 
 
-def run_report(store: RunStore, name: str | SqlReport, params: Mapping[str, Any] | None = None,
-               **kwargs: Any) -> pl.DataFrame:
+def allowed_values(store: RunStore, name: str) -> list[Any] | None:
+    """The values report parameter ``name`` may take in this run (None: no named domain)."""
+    sql = _DOMAINS.get(name)
+    if sql is None:
+        return None
+    try:
+        values = store.con.sql(sql).fetchall()
+    except duckdb.Error:   # the table is not in this run: nothing to choose from
+        return []
+    return sorted({v[0] for v in values if v[0] not in (None, "")}, key=str)
+
+
+def check_values(store: RunStore, report: SqlReport, given: Mapping[str, Any]) -> None:
+    """Refuse a parameter value the run does not hold, listing the values it does."""
+    for key, value in given.items():
+        if value is None or key not in report.params:
+            continue
+        allowed = allowed_values(store, key)
+        if allowed is not None and value not in allowed:
+            shown = ", ".join(map(str, allowed[:40])) + (" …" if len(allowed) > 40 else "")
+            raise OptionError(f"report {report.name!r}: {key}={value!r} is not in this run; allowed: "
+                              f"{shown or 'none (the run has no such data)'}, or null for all", option="--param")
+
+
+def run_report(store: RunStore, name: str | SqlReport, params: Mapping[str, Any] | None = None, *,
+               timeout_s: float | None = None, **kwargs: Any) -> pl.DataFrame:
     """Run the named report on ``store`` with its defaults overridden by ``params``/``kwargs``."""
     report = name if isinstance(name, SqlReport) else load_report(name)
-    values = report.bind({**(params or {}), **kwargs})
-    return query(store, report.sql, values or None)
+    given = {**(params or {}), **kwargs}
+    values = report.bind(given)
+    check_values(store, report, given)
+    return query(store, report.sql, values or None, timeout_s=timeout_s)
 
 
 # --------------------------------------------------------------------------- export

@@ -1,58 +1,212 @@
-"""The command line: simulate, validate, run."""
+"""The command line: help for every command, the error boundary, simulate → validate → run with the
+same rejects, runs that never overwrite, and the end-of-run summary."""
 
 from __future__ import annotations
 
+import re
+
 import duckdb
 import polars as pl
+import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli import app
+from tertiary.cli import app, cell, choose_run_dir
 
 runner = CliRunner()
 
 
-def test_simulate_validate_run(tmp_path):
-    out = tmp_path / "ds"
+def _commands() -> list[list[str]]:
+    import typer.main
+    group = typer.main.get_command(app)
+    return [[]] + [[name] for name in group.commands]
+
+
+@pytest.mark.parametrize("cmd", _commands(), ids=lambda c: " ".join(c) or "tertiary")
+def test_help_works_and_shows_every_option_with_its_default(cmd):
+    res = runner.invoke(app, [*cmd, "--help"])
+    assert res.exit_code == 0, res.output
+    assert "Traceback" not in res.output and "Usage:" in res.output
+    assert "…" not in res.output          # nothing cut off
+    import typer.main
+    command = typer.main.get_command(app)
+    if cmd:
+        command = command.commands[cmd[0]]
+    flat = " ".join(res.output.split())
+    for param in command.params:
+        for opt in param.opts:
+            if opt.startswith("-"):
+                assert opt in res.output, f"{opt} missing from `{' '.join(cmd)} --help`"
+        if param.param_type_name == "option" and param.help is not None:
+            assert param.help.split()[0] in flat, f"no help text for {param.opts}"
+
+
+def test_run_help_shows_full_defaults():
+    flat = "".join(runner.invoke(app, ["run", "--help"]).output.split())
+    assert "arithmetic,apriori,aposteriori_seed,aposteriori,information,covariance_intersection" in flat
+    assert "[default:singer,imm_sym]" in flat
+
+
+def test_validate_help_is_not_markup():
+    # the help text that once crashed (`[/truth]` read as rich markup)
+    res = runner.invoke(app, ["validate", "--help"])
+    assert res.exit_code == 0 and "truth.parquet" in res.output
+
+
+def test_readme_options_exist_where_it_says():
+    """Every `tertiary ...` line of the README's command block parses (options exist)."""
+    from pathlib import Path
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = readme.split("## Command line", 1)[1].split("```", 2)[1]
+    lines = [ln.split("#")[0].strip() for ln in block.splitlines() if ln.strip().startswith("tertiary ")]
+    assert len(lines) >= 8
+    import typer.main
+    group = typer.main.get_command(app)
+    for line in lines:
+        words = line.split()[1:]
+        if words[0] == "--debug":
+            words = words[1:]
+        command = group.commands[words[0]]
+        known = {o for p in command.params for o in (*p.opts, *p.secondary_opts)}
+        for w in words[1:]:
+            if w.startswith("--"):
+                assert w.split("=")[0] in known, f"README: {line!r}: {w} is not an option of {words[0]}"
+
+
+def test_bad_option_is_one_line_exit_2(tmp_path):
+    res = runner.invoke(app, ["simulate", "big-box", "--out", str(tmp_path / "x"), "--dropout", "R1:abc"])
+    assert res.exit_code == 2
+    assert "--dropout" in res.output and "Traceback" not in res.output
+    res = runner.invoke(app, ["run", "--methods", "nope", "--out", str(tmp_path / "r")])
+    assert res.exit_code == 2 and "--methods" in res.output and "nope" in res.output
+
+
+def test_run_refuses_simulation_options_with_a_dataset(tmp_path):
+    res = runner.invoke(app, ["run", str(tmp_path), "--noise-factor", "3"])
+    assert res.exit_code == 2 and "--noise-factor" in res.output
+
+
+def test_missing_dataset_is_a_data_error(tmp_path):
+    res = runner.invoke(app, ["validate", str(tmp_path / "nowhere")])
+    assert res.exit_code == 3, res.output
+    assert "nowhere" in res.output and "Traceback" not in res.output
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    res = runner.invoke(app, ["--debug", "validate", str(tmp_path / "nowhere")])
+    assert res.exit_code != 0 and res.exception is not None and not isinstance(res.exception, SystemExit)
+
+
+def test_ids_print_plain_counts_with_separators():
+    assert cell(1025, "target_id") == "1025" and cell(1025, "run") == "1025"
+    assert cell(123456, "n") == "123,456"
+
+
+def test_choose_run_dir_never_overwrites(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    first, note = choose_run_dir(None, "terminal-area", force=False)
+    assert first.as_posix() == "runs/terminal-area" and note is None
+    first.mkdir(parents=True)
+    (first / "results.duckdb").write_bytes(b"")
+    second, note = choose_run_dir(None, "terminal-area", force=False)
+    assert second.as_posix() == "runs/terminal-area-2" and "runs/terminal-area-2" in note
+    from tertiary.errors import OptionError
+    with pytest.raises(OptionError, match="--force"):
+        choose_run_dir(first, "x", force=False)
+    assert choose_run_dir(first, "x", force=True) == (first, None)
+    with pytest.raises(OptionError, match="run directory"):
+        choose_run_dir(None, "../../x", force=False)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "ds"
     res = runner.invoke(app, ["simulate", "terminal-area", "--out", str(out), "--aircraft", "12", "--radars", "3",
                               "--duration", "300", "--seed", "5"])
     assert res.exit_code == 0, res.output
+    return out
+
+
+def test_simulate_writes_a_dataset_and_refuses_to_overwrite_it(dataset):
     for name in ("radars.parquet", "reports.parquet", "truth.parquet", "scenario.toml"):
-        assert (out / name).exists()
-    assert pl.read_parquet(out / "radars.parquet").height == 3
-    assert pl.read_parquet(out / "truth.parquet")["truth_id"].n_unique() == 12
+        assert (dataset / name).exists()
+    assert pl.read_parquet(dataset / "radars.parquet").height == 3
+    assert pl.read_parquet(dataset / "truth.parquet")["truth_id"].n_unique() == 12
+    res = runner.invoke(app, ["simulate", "terminal-area", "--out", str(dataset), "--aircraft", "3"])
+    assert res.exit_code == 2 and "--force" in res.output
 
-    res = runner.invoke(app, ["validate", str(out)])
-    assert res.exit_code == 0 and "nothing rejected" in res.output
 
-    # corrupt some rows: validation names them, the run keeps every row accounted for
-    rep = pl.read_parquet(out / "reports.parquet")
-    bad = rep.with_columns(pl.when(pl.int_range(pl.len()) < 3).then(-5.0).otherwise(pl.col("range_m")).alias("range_m"))
-    bad.write_parquet(out / "reports.parquet")
-    res = runner.invoke(app, ["validate", str(out)])
-    assert res.exit_code == 0 and "range_m: negative value -5.0" in res.output
-    res = runner.invoke(app, ["validate", str(out), "--strict"])
-    assert res.exit_code == 1 and "range_m" in res.output
+def _counts(output: str) -> dict[tuple[str, str], int]:
+    """(stage, reason) → rows from validate's table (the reason column may fold over lines)."""
+    out: dict[tuple[str, str], int] = {}
+    for line in output.splitlines():
+        m = re.match(r"│\s*(ingest|align)\s*│\s*reports\s*│(.*)│\s*([\d,]+)\s*│", line)
+        if m:
+            out[(m.group(1), " ".join(m.group(2).split()))] = int(m.group(3).replace(",", ""))
+    return out
+
+
+def test_validate_predicts_what_run_rejects(dataset, tmp_path):
+    """validate and run apply the same rules: the same stages, reasons and counts."""
+    bad_dir = tmp_path / "bad"
+    bad_dir.mkdir()
+    for f in dataset.iterdir():
+        (bad_dir / f.name).write_bytes(f.read_bytes())
+    rep = pl.read_parquet(dataset / "reports.parquet")
+    row = pl.int_range(pl.len())
+    bad = rep.with_columns(pl.when(row < 3).then(-5.0).otherwise(pl.col("range_m")).alias("range_m"))
+    bad.write_parquet(bad_dir / "reports.parquet")
+    res = runner.invoke(app, ["validate", str(bad_dir)], terminal_width=400)
+    assert res.exit_code == 0, res.output
+    assert "range_m" in res.output
+    res_strict = runner.invoke(app, ["validate", str(bad_dir), "--strict"])
+    assert res_strict.exit_code == 3 and "range_m" in res_strict.output
 
     run_dir = tmp_path / "run"
-    res = runner.invoke(app, ["run", str(out), "--out", str(run_dir)])
-    assert res.exit_code == 0, res.output
+    res_run = runner.invoke(app, ["run", str(bad_dir), "--out", str(run_dir), "--no-report", "--filters", "singer",
+                                  "--methods", "arithmetic"])
+    assert res_run.exit_code == 0, res_run.output
     con = duckdb.connect(str(run_dir / "results.duckdb"), read_only=True)
-    n_valid = con.execute("SELECT count(*) FROM reports").fetchone()[0]
-    n_bad = con.execute("SELECT count(*) FROM rejects WHERE stage = 'ingest'").fetchone()[0]
-    assert (n_valid, n_bad) == (rep.height - 3, 3)
-    # row accounting: every input report is aligned or rejected, exactly once
+    run_rejects = con.execute("SELECT stage, reason, count(*) FROM rejects WHERE input_table = 'reports' "
+                              "GROUP BY ALL").fetchall()
     n_aligned = con.execute("SELECT count(DISTINCT report_id) FROM aligned").fetchone()[0]
-    n_rej = con.execute("SELECT count(*) FROM rejects WHERE input_table = 'reports'").fetchone()[0]
-    both = con.execute("SELECT count(*) FROM rejects r JOIN (SELECT DISTINCT report_id FROM aligned) a "
-                       "USING (report_id)").fetchone()[0]
-    assert n_aligned + n_rej == rep.height and both == 0
-    tables = {r[0] for r in con.execute("SHOW TABLES").fetchall()}
-    assert {"aligned", "associations", "fused", "clusters", "rejects", "metrics", "run"} <= tables
     con.close()
+    assert n_aligned + sum(n for _, _, n in run_rejects) == rep.height     # row accounting
+    predicted = _counts(res.output)
+    assert predicted == {(s, " ".join(r.split())): n for s, r, n in run_rejects}
+    assert any(stage == "ingest" for stage, _ in predicted) and sum(predicted.values()) >= 3
+
+
+def test_run_twice_never_overwrites_and_prints_a_summary(dataset, tmp_path):
+    run_dir = tmp_path / "r"
+    args = ["run", str(dataset), "--out", str(run_dir), "--no-report", "--filters", "singer", "--methods",
+            "arithmetic,information"]
+    first = runner.invoke(app, args)
+    assert first.exit_code == 0, first.output
+    # a batch log: plain lines, no spinner glyphs, and a result at the end
+    assert not re.search("[⠋⠙⠹⠸⠼⠴⠦⠧⠇⠏]", first.output)
+    assert "reports in" in first.output and "rejected" in first.output and "wall time" in first.output
+    assert "horizontal" in first.output and "vertical" in first.output and "for 12 aircraft" in first.output
+    assert f"results: {run_dir}" in first.output
+    stamp = (run_dir / "results.duckdb").stat().st_mtime_ns
+    second = runner.invoke(app, args)
+    assert second.exit_code == 2 and "--force" in second.output
+    assert (run_dir / "results.duckdb").stat().st_mtime_ns == stamp
+    third = runner.invoke(app, [*args, "--force"])
+    assert third.exit_code == 0, third.output
+
+
+def test_one_wall_time_everywhere(dataset, tmp_path):
+    run_dir = tmp_path / "w"
+    res = runner.invoke(app, ["run", str(dataset), "--out", str(run_dir), "--filters", "", "--methods", "arithmetic"])
+    assert res.exit_code == 0, res.output
+    shown = re.search(r"wall time ([\d.,]+) s", res.output).group(1)
+    html = (run_dir / "report.html").read_text(encoding="utf-8")
+    assert f"{shown} s" in html
 
 
 def test_run_simulates_scenario(tmp_path):
-    res = runner.invoke(app, ["run", "--scenario", "big-box", "--runs", "2", "--out", str(tmp_path / "bb")])
+    res = runner.invoke(app, ["run", "--scenario", "big-box", "--runs", "2", "--duration", "120",
+                              "--out", str(tmp_path / "bb"), "--no-report", "--filters", "singer"])
     assert res.exit_code == 0, res.output
     con = duckdb.connect(str(tmp_path / "bb" / "results.duckdb"), read_only=True)
     assert con.execute("SELECT count(DISTINCT run) FROM reports").fetchone()[0] == 2
@@ -63,9 +217,9 @@ def test_run_simulates_scenario(tmp_path):
 
 def test_adsb_requires_truth(tmp_path):
     res = runner.invoke(app, ["simulate", "adsb", "--out", str(tmp_path / "x")])
-    assert res.exit_code != 0 and "--truth" in res.output
+    assert res.exit_code == 2 and "--truth" in res.output
 
 
 def test_unknown_scenario(tmp_path):
     res = runner.invoke(app, ["simulate", "nowhere", "--out", str(tmp_path / "x")])
-    assert res.exit_code != 0
+    assert res.exit_code == 2 and "nowhere" in res.output and "Traceback" not in res.output
