@@ -142,9 +142,17 @@ def conflict_radius(sigma: ArrayLike, r_c: RcOption = "12sigma", dr_m: float = 5
     raise ValueError(f"r_c must be '6sigma', '12sigma', 'separation' or metres, got {r_c!r}")
 
 
+def p_pair(sigma: ArrayLike, r_c: RcOption = "12sigma", v_zo: float = V_ZO_M3, dr_m: float = 5556.0
+           ) -> NDArray[np.float64]:
+    """Pair conflict probability p = (4/3)πR_c³/V_зо of the sounder model (may be ≥ 1: the
+    model's domain ends where the conflict sphere fills the zone)."""
+    with np.errstate(over="ignore"):
+        return 4.0 / 3.0 * np.pi * conflict_radius(sigma, r_c, dr_m) ** 3 / v_zo
+
+
 def _p_pair(sigma, r_c, v_zo, dr_m) -> NDArray[np.float64]:
-    p = 4.0 / 3.0 * np.pi * conflict_radius(sigma, r_c, dr_m) ** 3 / v_zo
-    if np.any(p >= 1.0):
+    p = p_pair(sigma, r_c, v_zo, dr_m)
+    if np.any(~(p < 1.0)):
         raise ValueError("conflict sphere larger than the zone volume (p ≥ 1)")
     return p
 
@@ -236,7 +244,7 @@ def _p_label(p: float) -> str:
 def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = 1e-6, v_bc: float = V_BC_M3,
                           v_zo: float = V_ZO_M3, r_c: RcOption = "12sigma", which: Literal["any", "one"] = "any",
                           sigma_metrics: Sequence[str] = ("rmse_range_m", "rmse_pos_m"),
-                          dr_m: float = 5556.0) -> pl.DataFrame:
+                          dr_m: float = 5556.0, notes: list[str] | None = None) -> pl.DataFrame:
     """Capacity of every measured picture: for each (stage, method) of ``metrics`` with one of
     ``sigma_metrics`` (first found, segment ``all``), σ = that RMSE and the largest n with
     P ≤ ``p_star`` under the seed model (metric ``capacity_n_<P*>``, e.g. ``capacity_n_1e-6``)
@@ -247,6 +255,10 @@ def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = 1e-6, v_bc: flo
     With the printed volumes (V_зо = 10¹² m³ default, up to 10¹⁴) the seed model admits
     n = 1 at P* = 10⁻⁶ for every realistic σ (≥ 10.3 m at 10¹²): the capacity figure only
     separates methods at looser P* or larger V_зо.
+
+    A σ outside the sounder model's domain (conflict sphere ≥ the zone volume, p ≥ 1, e.g. a
+    tracker whose RMSE is kilometres) gives NaN for that picture instead of failing the run;
+    the reason is appended to ``notes`` (the run record's notes).
     """
     spec = TABLES["metrics"].required
     src = metrics.filter(pl.col("metric").is_in(list(sigma_metrics)) & (pl.col("segment") == "all")
@@ -262,7 +274,15 @@ def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = 1e-6, v_bc: flo
     sigma = src["value"].to_numpy().astype(np.float64)
     label = _p_label(p_star)
     seed = nmax_seed(sigma, p_star, v_bc, v_zo).astype(np.float64)
-    sound = nmax_sound(sigma, p_star, r_c, v_zo, which, dr_m).astype(np.float64)
+    p = p_pair(sigma, r_c, v_zo, dr_m)
+    inside = p < 1.0
+    sound = np.full(len(sigma), np.nan)
+    if inside.any():
+        sound[inside] = nmax_sound(sigma[inside], p_star, r_c, v_zo, which, dr_m)
+    if notes is not None:
+        for m, s_m, p_m in zip(np.asarray(src["__m"].to_list(), dtype=object)[~inside], sigma[~inside], p[~inside]):
+            notes.append(f"safety: capacity_n_{label}_sound of {m} is NaN: σ = {s_m:.4g} m puts the conflict "
+                         f"sphere beyond the zone volume (p = {p_m:.3g} ≥ 1, V_zo = {v_zo:g} m³)")
     out = pl.concat([
         src.select(pl.col("__m").alias("method"), "n_runs").with_columns(
             pl.lit(f"capacity_n_{label}").alias("metric"), pl.Series("value", seed)),

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
+from tertiary.errors import DataError, OptionError, ResourceError
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
 
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
@@ -42,12 +44,15 @@ class AlignConfig:
       extrapolation (4 m²/s³: σ ≈ 48 m after 12 s).
     * ``max_speed_mps``: a radar track estimate faster than this is physically implausible
       for the aircraft concerned (a diverged local track) and is rejected with that reason.
+    * ``max_rows``: refuse (:class:`ResourceError`) an alignment estimated beyond this many
+      aligned rows (about ``BYTES_PER_ALIGNED_ROW`` each) instead of allocating it.
     """
 
     period_s: float | None = None
     max_age_scans: float = 1.5
     q_m2s3: float = 4.0
     max_speed_mps: float = 600.0
+    max_rows: int = 60_000_000
     local_tracker: LocalTrackerConfig = LocalTrackerConfig()
 
 
@@ -120,23 +125,60 @@ def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDAr
 
 
 def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) -> tuple[int, float]:
-    """Grid origin (µs since the Unix epoch, whole second) and period (s)."""
-    period = cfg.period_s if cfg.period_s is not None else float(radars["scan_period_s"].min())
-    if not period > 0:
-        raise ValueError(f"epoch period must be positive, got {period}")
-    t_min = int(reports["time"].dt.epoch("us").min())
-    return (t_min // US) * US, period
+    """Grid origin (µs since the Unix epoch, whole second) and period (s).
+
+    Raises :class:`DataError` when there is no report or no scan period to build it from."""
+    period = cfg.period_s if cfg.period_s is not None else radars["scan_period_s"].min()
+    if period is None or not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
+        what = "AlignConfig.period_s" if cfg.period_s is not None else "the radars' smallest scan_period_s"
+        raise OptionError(f"epoch period must be finite and positive, got {period} ({what})")
+    t_min = reports["time"].dt.epoch("us").min() if reports.height else None
+    if t_min is None:
+        raise DataError("align: no report to build the epoch grid from")
+    return (int(t_min) // US) * US, float(period)
 
 
-def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-          cfg: AlignConfig = AlignConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Align valid reports; returns (aligned, rejects).
+@dataclass
+class AlignPlan:
+    """Which reports align to which epochs, before any aligned row is built.
 
-    ``aligned`` has one row per (report, epoch at which it represents its local track), with
-    ``age_s`` = epoch − report time, ``fresh`` = first epoch of the report, the system-frame
-    state/covariance, the radar's range innovation and ``nominal_var`` (a-priori plot variance
-    per system axis). ``rejects`` rows carry report_id and reason.
+    ``df`` is the reports sorted by (run, radar, local track, time) with estimates; per row of
+    ``df``: ``k`` first and ``last_k`` last epoch index, ``keep`` (else ``rejects`` says why),
+    the system-frame ``state``/``cov``/``nominal``; ``rows`` = number of aligned rows.
     """
+
+    df: pl.DataFrame
+    t0_us: int
+    period: float
+    rel: NDArray[np.float64]
+    k: NDArray[np.int64]
+    last_k: NDArray[np.int64]
+    keep: NDArray[np.bool_]
+    state: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    nominal: NDArray[np.float64]
+    rejects: pl.DataFrame
+    rows: int
+
+
+#: bytes held per aligned row (state, 6×6 covariance, nominal variance, keys, extrapolation
+#: temporaries) for the memory estimate of :func:`plan`
+BYTES_PER_ALIGNED_ROW = 8 * (6 + 36 + 3 + 14) * 2
+
+
+def _epoch_index(x: NDArray[np.float64], what: str) -> NDArray[np.int64]:
+    """Float epoch indices to int64, refusing values an int64 cannot hold."""
+    if x.size and not np.all(np.abs(x) < 2.0 ** 62):
+        raise ResourceError(f"align: {what} epoch index beyond 2^62 (epoch period too small for the time span)")
+    return x.astype(np.int64)
+
+
+def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+         cfg: AlignConfig = AlignConfig()) -> AlignPlan:
+    """The alignment's decisions (epochs per report and every rejection with its reason).
+
+    Estimates the aligned rows before anything is allocated and raises
+    :class:`ResourceError` beyond ``cfg.max_rows``."""
     if needs_estimates(reports):
         reports = track_reports(reports, radars, cfg.local_tracker)
     if "run" not in reports.columns:
@@ -145,7 +187,7 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     t0_us, period = epoch_grid(df, radars, cfg)
     t_us = df["time"].dt.epoch("us").to_numpy()
     rel = (t_us - t0_us) / US
-    k = np.ceil(rel / period - 1e-9).astype(np.int64)              # first epoch at or after the report
+    k = _epoch_index(np.ceil(rel / period - 1e-9), "first")        # first epoch at or after the report
 
     state, cov, nominal = to_system_frame(df, radars, origin)
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
@@ -159,9 +201,15 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     superseded = same_next & (k_next == k)
     scan = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id",
                                       how="left", maintain_order="left")["scan_period_s"].to_numpy()
-    last_k = np.floor((rel + cfg.max_age_scans * scan) / period + 1e-9).astype(np.int64)
+    last_k = _epoch_index(np.floor((rel + cfg.max_age_scans * scan) / period + 1e-9), "last")
     last_k = np.where(same_next, np.minimum(last_k, k_next - 1), last_k)
     keep = usable & ~superseded & (last_k >= k)
+    n_rows = int(np.sum((last_k - k + 1)[keep], dtype=np.float64))
+    if n_rows > cfg.max_rows:
+        raise ResourceError(
+            f"align: {n_rows:,} aligned rows (~{n_rows * BYTES_PER_ALIGNED_ROW / 1e9:.1f} GB) exceed the limit of "
+            f"{cfg.max_rows:,} (AlignConfig.max_rows): epochs every {period:g} s with reports kept for "
+            f"{cfg.max_age_scans:g} scans of up to {np.nanmax(scan):g} s; set a larger AlignConfig.period_s")
 
     reason = np.where(~finite, "no usable track estimate (non-finite state or covariance)",
                       np.where(~plausible, f"implausible track speed (> {cfg.max_speed_mps:g} m/s)",
@@ -169,34 +217,68 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
                                "track estimate too old for any epoch")))
     rejects = df.filter(pl.Series(~keep)).select("report_id").with_columns(
         pl.Series("reason", reason[~keep], dtype=pl.String))
+    return AlignPlan(df, t0_us, period, rel, k, last_k, keep, state, cov, nominal, rejects, n_rows)
 
-    idx = np.flatnonzero(keep)
-    counts = (last_k - k + 1)[idx]
+
+_ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
+                    "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var"]
+
+
+def empty_aligned() -> pl.DataFrame:
+    """An aligned frame with no rows (every report rejected)."""
+    t = pl.Datetime("us", "UTC")
+    return pl.DataFrame(schema={
+        "report_id": pl.UInt64, "run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
+        "epoch": t, "time": t, **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
+        "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "mode_s": pl.String, "truth_id": pl.Int64,
+        "age_s": pl.Float64, "fresh": pl.Boolean, "nominal_var": pl.Array(pl.Float64, 3)})
+
+
+def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
+    """The aligned rows of a plan: each kept report at each of its epochs, extrapolated."""
+    idx = np.flatnonzero(p.keep)
+    if idx.size == 0:
+        return empty_aligned()
+    df, k = p.df, p.k
+    keys = df.select("run", "radar_id", "local_track_id").to_numpy()
+    counts = (p.last_k - k + 1)[idx]
     rows = np.repeat(idx, counts)
     step = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
     epoch_k = k[rows] + step
     # output order (run, epoch, radar, local track) computed on integer keys, not by a frame sort
     order = np.lexsort((keys[rows, 2], keys[rows, 1], epoch_k, keys[rows, 0]))
     rows, step, epoch_k = rows[order], step[order], epoch_k[order]
-    age = epoch_k * period - rel[rows]
-    x, p = extrapolate(state, cov, age, cfg.q_m2s3, rows=rows)
+    age = epoch_k * p.period - p.rel[rows]
+    x, cov = extrapolate(p.state, p.cov, age, cfg.q_m2s3, rows=rows)
 
     base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
     opt = [c for c in ("mode_s", "truth_id") if c in df.columns]
     aligned = df.select(base + opt)[rows].with_columns(
-        pl.Series("epoch", t0_us + np.round(epoch_k * period * US).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
+        pl.Series("epoch", p.t0_us + np.round(epoch_k * p.period * US).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
         *(pl.Series(name, x[:, i]) for i, name in enumerate(STATE)),
-        pl.Series("cov", p, dtype=pl.Array(pl.Float64, 36)),
+        pl.Series("cov", cov, dtype=pl.Array(pl.Float64, 36)),
         pl.Series("age_s", age),
         pl.Series("fresh", step == 0),
-        pl.Series("nominal_var", nominal[rows], dtype=pl.Array(pl.Float64, 3)),
+        pl.Series("nominal_var", p.nominal[rows], dtype=pl.Array(pl.Float64, 3)),
         pl.col("res_range_m").fill_null(np.nan), pl.col("res_range_var_m2").fill_null(np.nan),
     )
     if "mode_s" not in aligned.columns:
         aligned = aligned.with_columns(pl.lit(None, pl.String).alias("mode_s"))
     if "truth_id" not in aligned.columns:
         aligned = aligned.with_columns(pl.lit(None, pl.Int64).alias("truth_id"))
-    order_cols = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
-                  "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var"]
-    aligned = aligned.select(order_cols)
-    return aligned, rejects
+    return aligned.select(_ALIGNED_COLUMNS)
+
+
+def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+          cfg: AlignConfig = AlignConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Align valid reports; returns (aligned, rejects).
+
+    ``aligned`` has one row per (report, epoch at which it represents its local track), with
+    ``age_s`` = epoch − report time, ``fresh`` = first epoch of the report, the system-frame
+    state/covariance, the radar's range innovation and ``nominal_var`` (a-priori plot variance
+    per system axis). ``rejects`` rows carry report_id and reason. No report: both empty.
+    """
+    if reports.height == 0:
+        return empty_aligned(), pl.DataFrame(schema={"report_id": pl.UInt64, "reason": pl.String})
+    p = plan(reports, radars, origin, cfg)
+    return expand(p, cfg), p.rejects

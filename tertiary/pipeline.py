@@ -15,18 +15,17 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
+
+import dataclasses
+from typing import TYPE_CHECKING
 
 import polars as pl
 
-import dataclasses
-
-
-from typing import TYPE_CHECKING
-
+from tertiary import align as align_stage
 from tertiary import schema
-from tertiary.align import AlignConfig, align
+from tertiary.align import AlignConfig, AlignPlan
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
@@ -35,6 +34,7 @@ from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, a
 from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
+from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.track_metrics import TrackMetricsConfig, tracker_metrics
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
@@ -52,40 +52,101 @@ def _default_conflict_config() -> "ConflictConfig":
 
 @dataclass
 class Ingested:
-    """Validated input tables and every rejected row with its reason."""
+    """Validated input tables and every rejected row with its reason.
+
+    ``report_rows`` maps each valid report's ``report_id`` to its input row; ``plan`` holds the
+    align stage's decisions once :func:`screen` has run."""
 
     radars: pl.DataFrame
     reports: pl.DataFrame
     truth: pl.DataFrame
     rejects: pl.DataFrame
     notes: list[str] = field(default_factory=list)
+    report_rows: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"report_id": pl.UInt64, "row_index": pl.UInt64}))
+    plan: AlignPlan | None = None
+
+
+_INPUT_ROW = "__input_row"
 
 
 def _validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[str], **kw):
+    """(clean, packed rejects, raw rejects) of one input table."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", schema.UnsortedTimeWarning)
         out = schema.validate(frame, kind, strict=strict, **kw)
     notes.extend(str(w.message) for w in caught if issubclass(w.category, schema.UnsortedTimeWarning))
     if strict:
-        return out, schema.empty_frame("rejects")
+        return out, schema.empty_frame("rejects"), pl.DataFrame()
     clean, rejects = out
-    return clean, schema.rejects_table(rejects, kind, "ingest")
+    rejects = rejects.drop(_INPUT_ROW, strict=False)
+    return clean, schema.rejects_table(rejects, kind, "ingest"), rejects
 
 
-def ingest(ds: Dataset, strict: bool = False) -> Ingested:
-    """Validate radars, reports (against the radars) and truth.
+def _no_rejects() -> pl.DataFrame:
+    return schema.empty_frame("rejects")
+
+
+def ingest(ds: Dataset, strict: bool = False, limits: schema.Limits = schema.Limits()) -> Ingested:
+    """Validate radars, reports (against the valid radars) and truth (against the reports' span).
 
     Strict mode raises :class:`tertiary.schema.SchemaError` on the first problem; lenient mode
-    moves bad rows to ``rejects`` with a reason.
+    moves bad rows to ``rejects`` with a reason (a rejected radar takes its reports along).
     """
     notes: list[str] = []
-    radars, rej_r = _validate_table(ds.radars, "radars", strict, notes)
-    reports, rej_p = _validate_table(ds.reports, "reports", strict, notes, radars=radars)
-    truth, rej_t = (_validate_table(ds.truth, "truth", strict, notes) if ds.truth.height
-                    else (ds.truth, schema.empty_frame("rejects")))
-    rejects = pl.concat([r for r in (rej_r, rej_p, rej_t) if r.height] or [schema.empty_frame("rejects")],
+    radars, rej_r, raw_r = _validate_table(schema.as_frame(ds.radars, "radars"), "radars", strict, notes,
+                                           limits=limits)
+    gone = (raw_r["radar_id"].cast(pl.UInt32, strict=False).drop_nulls().to_list()
+            if "radar_id" in raw_r.columns else [])
+    if radars.height == 0:
+        notes.append("radars: no valid radar; every report is rejected")
+    raw = schema.as_frame(ds.reports, "reports")
+    raw = raw.drop(_INPUT_ROW, strict=False).with_row_index(_INPUT_ROW)
+    reports, rej_p, _ = _validate_table(raw, "reports", strict, notes, radars=radars, limits=limits,
+                                        rejected_radars=gone)
+    rows = reports.select("report_id", pl.col(_INPUT_ROW).cast(pl.UInt64).alias("row_index"))
+    reports = reports.drop(_INPUT_ROW)
+    truth_in = schema.as_frame(ds.truth, "truth")
+    truth, rej_t = truth_in, _no_rejects()
+    if truth_in.height:
+        truth, rej_t, _ = _validate_table(truth_in, "truth", strict, notes, limits=limits,
+                                          time_window=_truth_window(reports, limits))
+    rejects = pl.concat([r for r in (rej_r, rej_p, rej_t) if r.height] or [_no_rejects()],
                         how="vertical_relaxed")
-    return Ingested(radars, reports, truth, rejects, notes)
+    return Ingested(radars, reports, truth, rejects, notes, rows)
+
+
+def _truth_window(reports: pl.DataFrame, limits: schema.Limits):
+    """(start, end, label) the truth must fall in: the valid reports' span ± the pad."""
+    if reports.height == 0:
+        return None
+    pad = timedelta(seconds=limits.truth_pad_s)
+    return (reports["time"].min() - pad, reports["time"].max() + pad,
+            f"the reports' span +- {limits.truth_pad_s:g} s")
+
+
+def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
+    """Every rule of the job that can reject a report, applied without running the job.
+
+    Ingest (the data contract) and the align stage's rejections (its plan: unusable estimate,
+    implausible speed, superseded, too old); ``rejects`` then holds exactly the rows — reasons,
+    stages and input row indices — that :func:`run` rejects. :func:`process` uses it, so
+    ``tertiary validate`` and ``tertiary run`` cannot disagree."""
+    cfg = check_config(cfg)
+    ing = ingest(ds, strict=cfg.strict, limits=cfg.limits)
+    if ing.reports.height == 0:
+        ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
+        return ing
+    ing.plan = align_stage.plan(ing.reports, ing.radars, ds.origin, cfg.align)
+    align_rej = _stage_rejects(ing.plan.rejects, ing.reports, ing.report_rows, "align")
+    ing.rejects = pl.concat([ing.rejects, align_rej], how="vertical_relaxed")
+    if int(ing.plan.keep.sum()) == 0:
+        ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
+    return ing
+
+
+def _height(frame) -> int:
+    return frame.height if isinstance(frame, pl.DataFrame) else len(schema.as_frame(frame, "reports"))
 
 
 def fingerprint(frame: pl.DataFrame) -> str:
@@ -104,6 +165,7 @@ class PipelineConfig:
     filters: tuple[str, ...] = ("singer", "imm_sym")
     centralized: bool = True
     strict: bool = False
+    limits: schema.Limits = field(default_factory=schema.Limits)
     align: AlignConfig = field(default_factory=AlignConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
@@ -134,39 +196,88 @@ class Results:
     counts: dict[str, int]
 
 
+class StageError(TertiaryError):
+    """A stage failed unexpectedly; the completed stages and a run record were stored first."""
+
+    def __init__(self, stage: str, cause: BaseException, db: Path) -> None:
+        text = str(cause).strip().splitlines()[0] if str(cause).strip() else ""
+        super().__init__(f"stage '{stage}' failed ({type(cause).__name__}: {text}); the completed stages "
+                         f"and a run record saying so are in {db}")
+        self.stage, self.db = stage, db
+
+
+def check_config(cfg: PipelineConfig | None) -> PipelineConfig:
+    """``cfg`` (None = the defaults) after checking its names and numbers (:class:`OptionError`)."""
+    cfg = cfg or PipelineConfig()
+    unknown = sorted(set(cfg.methods) - set(METHODS))
+    if unknown:
+        raise OptionError(f"unknown fusion method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}",
+                          option="methods")
+    bad = sorted(set(cfg.filters) - set(REGISTRY))
+    if bad:
+        raise OptionError(f"unknown filter(s) {', '.join(bad)}; choose from {', '.join(sorted(REGISTRY))}",
+                          option="filters")
+    a = cfg.align
+    if a.period_s is not None and not (isinstance(a.period_s, (int, float)) and 0 < a.period_s < float("inf")):
+        raise OptionError(f"must be finite and > 0, got {a.period_s}", option="align.period_s")
+    return cfg
+
+
 class _Clock:
     def __init__(self, say: Progress):
         self.say, self.timings, self._t = say, {}, time.perf_counter()
-        self._name: str | None = None
+        self.name: str | None = None
 
     def stage(self, name: str | None) -> None:
         now = time.perf_counter()
-        if self._name is not None:
-            self.timings[f"{self._name}_s"] = now - self._t
-        self._name, self._t = name, now
+        if self.name is not None:
+            self.timings[f"{self.name}_s"] = now - self._t
+        self.name, self._t = name, now
         if name:
             self.say(name)
 
 
-def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None) -> Results:
-    """Run every stage in memory and return the tables (``cfg`` None = the defaults)."""
-    cfg = cfg or PipelineConfig()
-    unknown = set(cfg.methods) - set(METHODS)
-    if unknown:
-        raise ValueError(f"unknown fusion method(s) {sorted(unknown)}; choose from {', '.join(METHODS)}")
-    bad = set(cfg.filters) - set(REGISTRY)
-    if bad:
-        raise ValueError(f"unknown filter(s) {sorted(bad)}; choose from {', '.join(sorted(REGISTRY))}")
+Sink = Callable[[str, pl.DataFrame], None]
+
+
+def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None,
+            sink: Sink | None = None) -> Results:
+    """Run every stage in memory and return the tables (``cfg`` None = the defaults).
+
+    ``sink(name, frame)`` receives each table as soon as its stage completes (``run`` stores
+    them, so a later failure loses nothing). An exception carries the failing stage's name in
+    ``exc.tertiary_stage``. No valid report left → :class:`DataError` after the rejects are sunk.
+    """
+    cfg = check_config(cfg)
     clock = _Clock(progress or (lambda _m: None))
+    try:
+        return _process(ds, cfg, clock, sink or (lambda _n, _f: None))
+    except Exception as exc:
+        exc.tertiary_stage = clock.name or "validate"  # type: ignore[attr-defined]
+        raise
+
+
+def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink) -> Results:
     t_all = time.perf_counter()
     clock.stage("validate")
-    ing = ingest(ds, strict=cfg.strict)
+    ing = screen(ds, cfg)
+    for name in ("radars", "reports", "truth"):
+        sink(name, getattr(ing, name))
+    sink("rejects", ing.rejects)
+    if ing.plan is None or not ing.plan.keep.any():
+        top = (ing.rejects.group_by("reason").len().sort("len", descending=True).head(3)
+               if ing.rejects.height else pl.DataFrame({"reason": [], "len": []}))
+        why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
+        raise DataError(f"no valid report left: all {_height(ds.reports):,} reports rejected"
+                        + (f" (most common: {why})" if why else ""))
     clock.stage("align")
-    aligned, align_rejects = align(ing.reports, ing.radars, ds.origin, cfg.align)
-    rejects = pl.concat([ing.rejects, _stage_rejects(align_rejects, ing.reports, "align")], how="vertical_relaxed")
-    _check_accounting(ds.reports.height, aligned, rejects)
+    aligned = align_stage.expand(ing.plan, cfg.align)
+    rejects = ing.rejects
+    _check_accounting(_height(ds.reports), aligned, rejects)
+    sink("aligned", aligned)
     clock.stage("associate")
     associations, stats = associate(aligned, cfg.association)
+    sink("associations", associations)
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion) if cfg.methods else schema.empty_frame("fused", False)
@@ -175,12 +286,15 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
         central = centralized_fusion(ing.reports, ing.radars, associations, keys, ds.origin, cfg.centralized_cfg)
         fused = pl.concat([fused, central.select(fused.columns)], how="vertical")
+    sink("fused", fused)
     clock.stage("cluster")
     clusters = cluster(fused, cfg.clustering)
+    sink("clusters", clusters)
     clock.stage("track")
     pictures = fused.filter(pl.col("method") != "centralized")
     tracks = (track_methods(pictures, cfg.filters, cfg.tracker) if cfg.filters and pictures.height
               else schema.empty_frame("tracks", False))
+    sink("tracks", tracks)
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import AlertConfig, capacity_from_metrics, predict_conflicts, score_alerts
@@ -189,6 +303,7 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
     if cfg.safety:
         clock.stage("conflicts")
         conflicts = predict_conflicts(fused, cfg.conflicts, id_col="target_id")
+        sink("conflicts", conflicts)
     clock.stage("evaluate")
     metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
     if ing.truth.height and "truth_id" in ing.reports.columns:
@@ -202,12 +317,14 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
                                       id_col="target_id", methods=sorted(fused["method"].unique().to_list())))
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
         if cfg.safety:
-            metrics = pl.concat([metrics, capacity_from_metrics(metrics)], how="vertical_relaxed")
+            metrics = pl.concat([metrics, capacity_from_metrics(metrics, notes=ing.notes)], how="vertical_relaxed")
+    sink("metrics", metrics)
+    sink("accuracy_by_epoch", by_epoch)
     clock.stage(None)
     clock.timings["alignment_to_clustering_s"] = sum(
         clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
     clock.timings["total_s"] = time.perf_counter() - t_all
-    counts = {"reports_in": ds.reports.height, "reports_aligned": int(aligned["report_id"].n_unique()),
+    counts = {"reports_in": _height(ds.reports), "reports_aligned": int(aligned["report_id"].n_unique()),
               "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
@@ -218,13 +335,15 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
                    clock.timings, counts)
 
 
-def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, stage: str) -> pl.DataFrame:
-    """A stage's (report_id, reason) rejects in the canonical ``rejects`` schema."""
+def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, report_rows: pl.DataFrame,
+                   stage: str) -> pl.DataFrame:
+    """A stage's (report_id, reason) rejects in the canonical ``rejects`` schema; ``row_index``
+    is the report's row in the input table (``report_rows``), the detail its validated row."""
     if stage_rejects.height == 0:
         return schema.empty_frame("rejects", False)
-    rows = reports.with_row_index("row_index").join(stage_rejects, on="report_id", how="inner")
-    packed = schema.rejects_table(rows.with_columns(pl.col("row_index").cast(pl.UInt64)), "reports", stage)
-    return packed
+    rows = (reports.join(report_rows, on="report_id", how="inner")
+            .join(stage_rejects, on="report_id", how="inner").sort("row_index"))
+    return schema.rejects_table(rows, "reports", stage)
 
 
 def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -> None:
@@ -253,41 +372,95 @@ def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, st
     return pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch
 
 
+def _storable(frame: pl.DataFrame, name: str, notes: list[str]) -> pl.DataFrame:
+    """``frame`` with columns DuckDB cannot hold or give back made storable (with a note):
+    Duration as Int64 microseconds, 128-bit integers as text, Object columns dropped."""
+    fix, drop = [], []
+    for col, dtype in frame.schema.items():
+        if isinstance(dtype, pl.Duration):
+            fix.append(pl.col(col).dt.total_microseconds())
+            notes.append(f"{name}.{col}: Duration stored as Int64 microseconds")
+        elif dtype in (pl.Int128, pl.UInt128):
+            fix.append(pl.col(col).cast(pl.String))
+            notes.append(f"{name}.{col}: 128-bit integers stored as text")
+        elif schema._has(dtype, (pl.Object, pl.Duration)) or dtype in (pl.Int128, pl.UInt128):
+            drop.append(col)
+    if drop:
+        notes.append(f"{name}: column(s) {', '.join(drop)} not stored (Object/nested Duration values)")
+    return frame.with_columns(fix).drop(drop)
+
+
+def _scenario_text(ds: Dataset, notes: list[str]) -> str:
+    try:
+        return scenario_toml(ds.scenario)
+    except (ValueError, TypeError) as exc:
+        notes.append(f"scenario.toml not recorded: {exc}")
+        return ""
+
+
 def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
         progress: Progress | None = None) -> Path:
-    """Run the job on a dataset and write ``out_dir/results.duckdb`` atomically."""
-    cfg = cfg or PipelineConfig()
+    """Run the job on a dataset and write ``out_dir/results.duckdb`` atomically.
+
+    Each stage's tables are stored as soon as it completes. If a stage fails (including "no
+    valid report left"), the database still holds every completed stage, the rejects and a
+    run record with ``failed_stage`` and ``error``; then a :class:`TertiaryError` is raised
+    (the original one, or :class:`StageError` wrapping an unexpected exception).
+    """
+    cfg = check_config(cfg)
     say = progress or (lambda _m: None)
-    res = process(ds, cfg, say)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    say("store")
-    t = time.perf_counter()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot create the run directory: {exc.strerror or exc}", path=str(out)) from exc
+    notes: list[str] = []
+    failure: Exception | None = None
+    res: Results | None = None
     with RunStore.create(out) as store:
-        for name in ("radars", "reports", "truth"):
-            frame = getattr(res.ingested, name)
-            if frame.height:
-                store.write(name, frame)
-        for name in ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "rejects", "metrics",
-                     "accuracy_by_epoch"):
-            frame = getattr(res, name)
+        def sink(name: str, frame: pl.DataFrame) -> None:
             if frame.width:
-                store.write(name, frame)
-        if ds.removed.height:
-            store.write("truth_removed", ds.removed)
-        res.timings["store_s"] = time.perf_counter() - t
-        record_run(store, {
+                store.write(name, _storable(frame, name, notes))
+
+        try:
+            res = process(ds, cfg, say, sink=sink)
+        except Exception as exc:  # recorded, then re-raised below
+            failure = exc
+        say("store")
+        t = time.perf_counter()
+        if isinstance(ds.removed, pl.DataFrame) and ds.removed.height:
+            store.write("truth_removed", _storable(ds.removed, "truth_removed", notes))
+        info = {
             "scenario": ds.scenario.name,
-            "scenario_toml": scenario_toml(ds.scenario),
+            "scenario_toml": _scenario_text(ds, notes),
             "config": _config_dict(cfg),
             "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "versions": _versions(),
-            "fingerprints": {k: fingerprint(getattr(ds, k)) for k in ("radars", "reports", "truth")},
-            "rows": res.counts,
-            "notes": res.ingested.notes,
-            "timings": res.timings,
-        })
+            "fingerprints": {k: _fingerprint_any(getattr(ds, k)) for k in ("radars", "reports", "truth")},
+        }
+        if res is not None:
+            res.timings["store_s"] = time.perf_counter() - t
+            info.update(rows=res.counts, notes=res.ingested.notes + notes, timings=res.timings,
+                        status="completed")
+        else:
+            stage = getattr(failure, "tertiary_stage", "validate")
+            info.update(status="failed", failed_stage=stage, error=f"{type(failure).__name__}: {failure}",
+                        notes=notes)
+        record_run(store, info)
+    if failure is not None:
+        db = out / "results.duckdb"
+        if isinstance(failure, TertiaryError):
+            failure.add_note(f"the completed stages, the rejects and a run record are in {db}")
+            raise failure
+        raise StageError(getattr(failure, "tertiary_stage", "validate"), failure, db) from failure
     return out / "results.duckdb"
+
+
+def _fingerprint_any(frame) -> str:
+    try:
+        return fingerprint(schema.as_frame(frame, "table"))
+    except Exception:  # an unhashable column type: the record says so instead of failing
+        return "unavailable"
 
 
 def _config_dict(cfg: PipelineConfig) -> dict:

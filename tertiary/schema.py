@@ -47,6 +47,7 @@ __all__ = [
     "TABLES",
     "Limits",
     "RULES",
+    "as_frame",
     "Rule",
     "contract_rules",
     "rules_markdown",
@@ -1047,7 +1048,7 @@ def _row_checks(
     return checks
 
 
-def _as_frame(frame: object, kind: str) -> pl.DataFrame:
+def as_frame(frame: object, kind: str) -> pl.DataFrame:
     """A polars DataFrame from the accepted input types (else a clear error naming them)."""
     if isinstance(frame, pl.DataFrame):
         return frame
@@ -1093,9 +1094,9 @@ def validate(
     :class:`UnsortedTimeWarning`. The rules are :func:`contract_rules`.
     """
     schema = _schema(kind)
-    frame = _as_frame(frame, kind)
+    frame = as_frame(frame, kind)
     if radars is not None:
-        radars = _as_frame(radars, "radars")
+        radars = as_frame(radars, "radars")
     _require(frame, schema)
     prepared = _prepare(frame, schema)
     checks = _row_checks(prepared, schema, radars, limits, rejected_radars)
