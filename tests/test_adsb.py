@@ -21,10 +21,12 @@ from tertiary.simulate.adsb import (FPM, FT, KT, AdsbCleaning, adsb_to_trajector
                                     read_adsb)
 from tertiary.simulate.trajectory import SEG_CLIMB, SEG_STRAIGHT, SEG_TURN, Trajectories
 
-PARIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "adsb_paris_2021-10-07.parquet"
+# the real sample ships with the project (datasets/, and tertiary/datasets/ in the wheel)
+PARIS = Path(__file__).resolve().parents[1] / "datasets" / "adsb_paris_2021-10-07.parquet"
 T0 = datetime(2021, 10, 7, 12, 0, 0, tzinfo=timezone.utc)
 
-needs_paris = pytest.mark.skipif(not PARIS.exists(), reason="Paris ADS-B sample not available")
+needs_paris = pytest.mark.skipif(not PARIS.exists(), reason=f"Paris ADS-B sample not found at {PARIS} (it ships in "
+                                 "the repository's datasets/ folder; restore it with `git checkout datasets/`)")
 
 
 # ----------------------------------------------------------------------------- helpers

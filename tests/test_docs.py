@@ -1,0 +1,38 @@
+"""The documentation a user has: inside the repository, links that resolve, and the contract's
+rules table identical to the rules the code applies."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from tertiary import schema
+
+ROOT = Path(__file__).resolve().parents[1]
+USER_TEXTS = [ROOT / "README.md", ROOT / "datasets" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def test_nothing_points_outside_the_repository():
+    for path in USER_TEXTS:
+        text = path.read_text(encoding="utf-8")
+        assert "../shared" not in text and "/work/" not in text, f"{path.name} points outside the repository"
+
+
+def test_every_relative_link_resolves():
+    for path in USER_TEXTS:
+        for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", path.read_text(encoding="utf-8")):
+            if "://" in target:
+                continue
+            assert (path.parent / target).exists(), f"{path.name}: broken link {target}"
+
+
+def test_contract_rules_in_the_docs_are_the_code_rules():
+    assert schema.rules_markdown().strip() in (ROOT / "docs" / "data-contract.md").read_text(encoding="utf-8")
+
+
+def test_shipped_scenarios_do_not_need_files_outside_the_install():
+    for toml in (ROOT / "datasets").glob("*.toml"):
+        text = toml.read_text(encoding="utf-8")
+        m = re.search(r'truth_file\s*=\s*"([^"]*)"', text)
+        if m and m.group(1):
+            assert (ROOT / "datasets" / m.group(1)).is_file(), f"{toml.name}: {m.group(1)} is not shipped"
