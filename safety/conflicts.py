@@ -9,61 +9,87 @@ Geometry of one pair (i = ``id_a`` < j = ``id_b``), horizontal plane, digest con
     T_min = (r · v) / |v|²                                                              (5.11)
 
 T_min > 0 for approaching aircraft. When |v| < ``eps_mps`` (parallel tracks, not treated in the
-seed) R_min = |r| and T_min = +∞. Vertical: Δh = h_j − h_i (5.12), Δvz = vz_j − vz_i.
+seed) R_min = |r| and T_min = +∞. Vertical: Δh = h_j − h_i (5.12), Δḣ = ḣ_j − ḣ_i.
+
+Vertical channel: height, never ENU z
+-------------------------------------
+h and ḣ are the ``alt_m`` / ``alt_rate_mps`` columns where a table carries them (a barometric
+channel), else the WGS-84 geodetic height of the system-frame ENU position and its rate along
+the local up *at the target* (:func:`height_and_rate`, ``frame`` = the system origin). ENU z
+is not height: at 100 km from the centre a level aircraft sits ρ²/2R ≈ 785 m lower in z, and
+flying radially shows v·ρ/R ≈ 3 m/s of false z-rate. Horizontal geometry stays on the system
+tangent plane; :func:`tangent_plane_error_bound` bounds that error (≤ 46 m for a pair 10 km
+apart, |Δh| ≤ 1 km, anywhere within 150 km of the centre at ≤ 12 km).
 
 Two decision rules (``ConflictConfig.mode``)
 -------------------------------------------
 * ``"seed"`` — faithful to (5.13)/(5.14) as printed (digest algorithm 7.1)::
 
       vertical ok  ⇔  |Δh| ≤ R_в^пор  (co-level)  or  R_в^min ≤ R_в^пор,
-      R_в^min = |Δh| − V_close·T_min,  V_close = −sign(Δh)·Δvz   (T_в^min := T_min)      (5.13)
+      R_в^min = |Δh| − V_close·T_min,  V_close = −sign(Δh)·Δḣ   (T_в^min := T_min)      (5.13)
       alert ⇔ R_min ≤ R_г^пор ∧ T_min ≤ T^пор ∧ vertical ok                             (5.14)
 
-  A *negative* T_min passes, so pairs that have already passed each other are flagged (the
-  seed's flaw, kept on purpose). ``dz_min_m`` is R_в^min (signed: negative = the aircraft
-  crossed levels before T_min).
-* ``"corrected"`` (the sounder rule, default)::
+  A *negative* T_min passes, so pairs that have already passed each other are flagged, and
+  horizontal and vertical closeness need not happen at the same time (the seed's flaws, kept
+  on purpose). ``dz_min_m`` is R_в^min (signed: negative = the aircraft crossed levels before
+  T_min). Thresholds (5.15)/(5.16) at T^пор, as printed.
+* ``"corrected"`` (default) — the same-time rule::
 
-      alert ⇔ R_min ≤ R_г^пор ∧ 0 ≤ T_min ≤ T^пор ∧ min_{t∈[0,T^пор]} |Δh + Δvz t| ≤ R_в^пор
+      alert ⇔ ∃ t ∈ [0, T^пор]:  |r − v t| ≤ R_г^пор  ∧  |Δh + Δḣ t| ≤ R_в^пор
 
-  and ``dz_min_m`` is that minimum.
+  the intersection of the horizontal interval (roots of a quadratic) with the vertical one
+  (linear) and [0, T^пор], closed form and vectorised (:func:`conflict_interval`); ``t_in_s``
+  is its start (NaN without alert). The climbing pair of issue 11 (CPA 0 m at 100 s, B 300 m
+  above A climbing 10 m/s, 1 300 m apart at the CPA) alerts in seed mode, not here.
+  ``dz_min_m`` = |Δh| at t* = clip(T_min, 0, T^пор) (the vertical separation at the closest
+  horizontal approach within the look-ahead).
 
 All comparisons use equality (≤), as the digest chose for (5.8)/(5.16)/(5.17).
 
 Thresholds (5.15)–(5.17)
 ------------------------
     T^пор  = Σ t_i + t_ман (+ ``t_margin_s``)                                          (5.17)
-    R_г^пор = Δr_г + |ΔR_го(T^пор)| + |ΔR_гп(T^пор)|                                     (5.15)
-    R_в^пор = Δr_в + |ΔR_во(T^пор)| + |ΔR_вп(T^пор)|                                     (5.16)
+    R_г^пор = Δr_г + |ΔR_го(t*)| + |ΔR_гп(t*)|                                           (5.15)
+    R_в^пор = Δr_в + |ΔR_во(t*)| + |ΔR_вп(t*)|                                           (5.16)
+
+with t* = T^пор in seed mode (as printed) and t* = clip(T_min, 0, T^пор) in corrected mode — the
+error that matters is the one at the closest approach, not at the end of the look-ahead
+(:func:`threshold_time`; T^пор for parallel motion).
 
 * Separation minima Δr: ``airspace="terminal"`` 3 NM / 1000 ft, ``"en-route"`` 5 NM / 1000 ft,
   or explicit ``dr_h_m`` / ``dr_v_m``.
 * Estimation term, ``threshold_mode="covariance"`` (per pair): each track's covariance is
-  propagated to T = T^пор under constant velocity, P_pos(T) = P_pp + T(P_pv + P_vp) + T² P_vv
-  (cross terms only with a full ``cov``; ``cov_diag`` gives the diagonal version). The relative
-  position covariance of the pair is P_i(T) + P_j(T) (the two tracks' errors are taken as
-  independent). Horizontally
+  propagated under constant velocity, P_pos(t) = P_pp + t(P_pv + P_vp) + t² P_vv, from the full
+  6×6 ``cov`` (position–velocity cross terms included) or, when a table has only ``cov_diag``
+  (today's ``tracks``), from the diagonal — a documented fallback that drops the cross terms
+  (for a tracker whose position and velocity errors correlate positively it under-states the
+  growth). The relative position covariance of the pair is P_i(t*) + P_j(t*) (independent
+  errors). Horizontally (system x, y block)
 
       |ΔR_го| = k_h · sqrt(λ_max(P_rel,xy)),   k_h = sqrt(χ²₂⁻¹(confidence))
 
   — the circle of that radius contains the 2-D relative error with probability ≥ confidence
-  (equality for an isotropic covariance): k_h = 2.448 at 95 %. Vertically
+  (equality for an isotropic covariance): k_h = 2.448 at 95 %. Vertically, along each track's
+  local up u (height, not z): σ_h²(t) = uᵀP_pos(t)u (or ``alt_var_m2`` + 2t·``alt_cov_m2ps`` +
+  t²·``alt_rate_var_m2ps2`` for rows with an ``alt_m`` channel and those columns),
 
-      |ΔR_во| = k_v · sqrt(P_rel,zz),   k_v = Φ⁻¹((1 + confidence)/2)   (1.960 at 95 %).
+      |ΔR_во| = k_v · sqrt(σ_h,i² + σ_h,j²),   k_v = Φ⁻¹((1 + confidence)/2)   (1.960 at 95 %).
 
   ``threshold_mode="fixed"`` uses the constants ``fixed_est_h_m`` / ``fixed_est_v_m`` instead
   (the seed's scalar error bounds, digest §7.2) for comparison.
-* Piloting term: ``pilot_h_m + pilot_h_rate_mps·T`` (and likewise vertical); the defaults
+* Piloting term: ``pilot_h_m + pilot_h_rate_mps·t*`` (and likewise vertical); the defaults
   (500 m, 60 m, no growth) are the digest §7.2 values.
 
-Output set ("candidates within the look-ahead")
------------------------------------------------
+Output set ("candidates within the look-ahead") and the output diet
+-------------------------------------------------------------------
 Not all pairs: a pair of the same (run, epoch, method) is reported iff, over the screening
-window W, its horizontal separation comes within R_г^пор **and** its vertical separation
-within R_в^пор (each at some t ∈ W, not necessarily the same t). W = [0, T^пор] in corrected
-mode and [−T^пор, T^пор] in seed mode, so every alert of either rule is in the output — except
-that seed-mode pairs whose closest approach was more than T^пор ago are not screened (the
-printed rule would flag them too). ``alert`` is the decision of the chosen rule.
+window W, its horizontal separation comes within R_г^пор + m_h **and** its vertical separation
+within R_в^пор + m_v (each at some t ∈ W, not necessarily the same t; m = the near margins,
+1 NM / 300 ft by default). W = [0, T^пор] in corrected mode and [−T^пор, T^пор] in seed mode, so
+every alert of either rule is in the output — except that seed-mode pairs whose closest
+approach was more than T^пор ago are not screened (the printed rule would flag them too).
+``alert`` is the decision of the chosen rule; ``near`` = alert or the same-time rule holds with
+both thresholds widened by the margins. :func:`slim_conflicts` keeps alert | near rows.
 
 Tracks that are not established — velocity sigma above ``max_vel_sigma_mps`` (default 50 m/s;
 a target's first epochs carry the 300 m/s velocity prior) — are left out before pairing.
@@ -82,8 +108,9 @@ If a pair comes within the thresholds at some t ∈ W then, horizontally,
     |c_j − c_i| ≤ (|v_i| + |v_j|)·T_w + R_г^пор(i, j),
     R_г^пор(i, j) ≤ Δr_г + |ΔR_гп| + k_h·sqrt(λ_i + λ_j)       (λ_max(A + B) ≤ λ_max A + λ_max B)
 
-(λ_i = λ_max of track i's propagated horizontal covariance) and likewise vertically with the
-z variances — so the screen is conservative. For a set of tracks the maxima of these terms give
+(λ_i = the larger of λ_max of track i's propagated horizontal covariance at t = 0 and at
+t = T^пор — λ_max(P(t)) is convex in t, so that bounds it over the look-ahead) and likewise
+vertically with the height variances — so the screen is conservative. For a set of tracks the maxima of these terms give
 a horizontal and a vertical reach; the query is a Chebyshev box in (x, y, z·s) with z scaled by
 s = reach_h / reach_v. In seed mode (t_c = 0, T_w = T^пор) the horizontal reach is the
 R^пор + 2·v_max·T^пор around the current positions; the corrected window [0, T^пор] halves the
@@ -117,6 +144,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.stats import chi2, norm
 
+from tertiary import geo
 from tertiary.schema import TABLES, TIME
 
 __all__ = [
@@ -129,6 +157,14 @@ __all__ = [
     "pair_thresholds",
     "candidate_pairs",
     "predict_conflicts",
+    "conflict_interval",
+    "vertical_state",
+    "height_and_rate",
+    "slim_conflicts",
+    "ALT_COLUMNS",
+    "CONFLICT_EXTRA",
+    "tangent_plane_error_bound",
+    "threshold_time",
 ]
 
 NM_M = 1852.0
@@ -140,6 +176,91 @@ SEPARATION_MINIMA: dict[str, tuple[float, float]] = {
 }
 
 STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+#: optional height channel of a track table (barometric or otherwise): used instead of the
+#: geodetic height of the ENU position wherever ``alt_m`` is not null
+ALT_COLUMNS = ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps")
+
+
+# --------------------------------------------------------------------------- vertical channel
+
+
+def height_and_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Height above the WGS-84 ellipsoid, its rate and the local up unit vector at the target,
+    from system-frame ENU positions/velocities ``(n, 3)``.
+
+    h = geodetic height of the ECEF point frame.to_ecef(pos); ḣ = n̂·v with n̂ the ellipsoid
+    normal *at the target* (∇h = n̂ exactly), expressed in the system ENU axes — not the
+    origin's up (ENU z), which tilts by ρ/R: at ρ = 100 km a level aircraft's z drops
+    ρ²/2R ≈ 785 m and a level radial flight at 200 m/s shows v·ρ/R ≈ 3 m/s of false z-rate.
+
+    ``frame=None`` (no origin known): a sphere of radius :data:`tertiary.geo.EARTH_RADIUS_M`
+    through the origin (h measured from the origin's height; the radius of curvature varies by
+    ±0.5 % with azimuth, so the height of an aircraft at ρ errs by ≤ 0.005·ρ²/2R: ≤ 9 m at
+    150 km, ≤ 4 m at 100 km). Pass the scenario origin whenever it is known.
+    Returns (h (n,), ḣ (n,), up (n, 3)).
+    """
+    p = np.asarray(pos, np.float64).reshape(-1, 3)
+    v = np.asarray(vel, np.float64).reshape(-1, 3)
+    if frame is None:
+        r = geo.EARTH_RADIUS_M
+        c = p + np.array([0.0, 0.0, r])
+        norm_c = np.sqrt(np.einsum("ij,ij->i", c, c))
+        up = c / norm_c[:, None]
+        h = norm_c - r
+    else:
+        lat, lon, h = geo.ecef_to_geodetic(*frame.to_ecef(p[:, 0], p[:, 1], p[:, 2]))
+        la, lo = np.radians(lat), np.radians(lon)
+        n_ecef = np.column_stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)])
+        up = n_ecef @ frame.rotation.T                   # the ECEF normal in the system ENU axes
+        h = np.asarray(h, np.float64)
+    hdot = np.einsum("ij,ij->i", up, v)
+    return h, hdot, up
+
+
+#: smallest radius of curvature of the WGS-84 ellipsoid (meridional, at the equator), m
+R_CURV_MIN_M = geo.WGS84_A * (1.0 - geo.WGS84_E2)
+
+
+def tangent_plane_error_bound(d_m: ArrayLike, rho_m: ArrayLike, h_m: ArrayLike, dh_m: ArrayLike) -> NDArray[np.float64]:
+    """Upper bound (m) of |d_plane − d_geodesic| for the horizontal separation measured on the
+    system ENU tangent plane: two aircraft whose footprints are d apart on the ellipsoid
+    (geodesic), both within ρ of the centre, heights ≤ h, height difference |Δh|:
+
+        |err| ≤ d·(ρ²/2R² + h/R) + |Δh|·ρ/R + 1 m,   R = 6 335 439 m (smallest curvature radius)
+
+    — the projection's scale change (1 − cos(ρ/R)), the growth of horizontal distances with
+    height, and the tilt ρ/R of the local vertical that turns a height difference into a
+    horizontal offset (1 m covers rounding and the ellipsoid's second-order terms). Checked
+    against pymap3d's Vincenty distance in tests/test_conflicts.py. Over the coverage (ρ ≤ 150 km,
+    h ≤ 12 km) a pair 10 km apart errs by ≤ 31 m with |Δh| ≤ 300 m and ≤ 46 m with |Δh| ≤ 1 km —
+    at most 0.8 % of the 3 NM minimum, so the horizontal geometry may stay on the tangent plane;
+    the vertical may not (ρ²/2R = 1.8 km at 150 km), hence :func:`height_and_rate`."""
+    d, rho, h, dh = (np.asarray(a, np.float64) for a in (d_m, rho_m, h_m, dh_m))
+    r = R_CURV_MIN_M
+    return d * (0.5 * (rho / r) ** 2 + h / r) + np.abs(dh) * rho / r + 1.0
+
+
+def vertical_state(tracks: pl.DataFrame, frame: geo.LocalFrame | None
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """(h, ḣ, up, from_alt) of every row: ``alt_m`` / ``alt_rate_mps`` where the table carries
+    them (not null; a missing rate column means ḣ from the geodetic conversion), else the
+    geodetic height and rate of the ENU state (:func:`height_and_rate`) — never ENU z."""
+    pos = tracks.select(pl.col(["x_m", "y_m", "z_m"]).cast(pl.Float64)).to_numpy()
+    vel = tracks.select(pl.col(["vx_mps", "vy_mps", "vz_mps"]).cast(pl.Float64)).to_numpy()
+    h, hdot, up = height_and_rate(pos, vel, frame)
+    from_alt = np.zeros(len(h), bool)
+    if "alt_m" in tracks.columns:
+        alt = tracks["alt_m"].cast(pl.Float64).to_numpy()
+        from_alt = np.isfinite(alt)
+        h = np.where(from_alt, alt, h)
+        if "alt_rate_mps" in tracks.columns:
+            rate = tracks["alt_rate_mps"].cast(pl.Float64).to_numpy()
+            hdot = np.where(from_alt & np.isfinite(rate), rate, hdot)
+    if not (np.all(np.isfinite(h)) and np.all(np.isfinite(hdot))):
+        raise ValueError("tracks: heights and vertical rates must be finite")
+    return h, hdot, up, from_alt
+
 
 
 @dataclass(frozen=True)
@@ -164,6 +285,10 @@ class ConflictConfig:
     * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
       affects speed, never the result.
     * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
+    * ``near_margin_h_m`` / ``near_margin_v_m`` (1 NM / 300 ft): a pair is *near* when the
+      same-time rule holds with both thresholds widened by these margins (column ``near``;
+      :func:`slim_conflicts` keeps alert or near rows); the output set is screened with the
+      widened thresholds.
     """
 
     airspace: Literal["terminal", "en-route"] = "terminal"
@@ -182,6 +307,8 @@ class ConflictConfig:
     fixed_est_v_m: float = 50.0
     mode: Literal["seed", "corrected"] = "corrected"
     max_vel_sigma_mps: float | None = 50.0
+    near_margin_h_m: float = NM_M
+    near_margin_v_m: float = 300.0 * FT_M
     v_max_mps: float | None = None
     eps_mps: float = 1e-6
     bulk_quantile: float = 0.99
@@ -204,7 +331,7 @@ class ConflictConfig:
             if val is not None and val <= 0:
                 raise ValueError(f"{name} must be positive, got {val}")
         for name in ("pilot_h_m", "pilot_v_m", "fixed_est_h_m", "fixed_est_v_m", "eps_mps",
-                     "pilot_h_rate_mps", "pilot_v_rate_mps"):
+                     "pilot_h_rate_mps", "pilot_v_rate_mps", "near_margin_h_m", "near_margin_v_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.max_vel_sigma_mps is not None and self.max_vel_sigma_mps <= 0:
@@ -301,6 +428,44 @@ def _seed_vertical(dz, dvz, t_min):
     return np.abs(dz) - prod
 
 
+def conflict_interval(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, dz: NDArray, dvz: NDArray,
+                      r_thr: NDArray | float, z_thr: NDArray | float, t_thr: float, eps: float = 1e-6
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """[t_in, t_out] ⊂ [0, t_thr] during which the predicted pair is inside *both* thresholds at
+    the same time (corrected rule); empty (t_in > t_out) when there is no such t.
+
+    Separation r(t) = r − v t (horizontal, r = p_j − p_i, v = v_i − v_j) and Δh(t) = dz + dvz·t.
+    Horizontal: |r − v t|² ≤ R²  ⇔  |v|²t² − 2(r·v)t + |r|² − R² ≤ 0, the interval between the
+    roots (r·v ± √D)/|v|² with D = |v|²R² − (r×v)² (the cancellation-free form of
+    (r·v)² − |v|²(|r|² − R²)); |v| < eps: all t if |r| ≤ R, none otherwise. Vertical:
+    |dz + dvz t| ≤ Z, the interval between (±Z − dz)/dvz; |dvz| < eps: all t or none.
+    The result is the intersection with [0, t_thr]: closed form, vectorised over pairs.
+    """
+    rx, ry, vx, vy, dz, dvz = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (rx, ry, vx, vy, dz, dvz)))
+    r_thr = np.broadcast_to(np.asarray(r_thr, np.float64), rx.shape)
+    z_thr = np.broadcast_to(np.asarray(z_thr, np.float64), rx.shape)
+    vv = vx * vx + vy * vy
+    rv = rx * vx + ry * vy
+    cross = rx * vy - ry * vx
+    inside = rx * rx + ry * ry <= r_thr * r_thr
+    disc = vv * r_thr * r_thr - cross * cross
+    moving = vv >= eps * eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        h_lo = np.where(moving, (rv - sq) / vv, np.where(inside, -np.inf, np.inf))
+        h_hi = np.where(moving, (rv + sq) / vv, np.where(inside, np.inf, -np.inf))
+        h_lo = np.where(moving & (disc < 0.0), np.inf, h_lo)
+        climbing = np.abs(dvz) >= eps
+        a = (-z_thr - dz) / dvz
+        b = (z_thr - dz) / dvz
+        level_in = np.abs(dz) <= z_thr
+        v_lo = np.where(climbing, np.minimum(a, b), np.where(level_in, -np.inf, np.inf))
+        v_hi = np.where(climbing, np.maximum(a, b), np.where(level_in, np.inf, -np.inf))
+    t_in = np.maximum(np.maximum(h_lo, v_lo), 0.0)
+    t_out = np.minimum(np.minimum(h_hi, v_hi), t_thr)
+    return t_in, t_out
+
+
 def pair_geometry(p_i: ArrayLike, v_i: ArrayLike, p_j: ArrayLike, v_j: ArrayLike,
                   t_thr: float = 105.0, eps: float = 1e-6) -> PairGeometry:
     """Geometry of aircraft pairs from positions/velocities ``(..., 3)`` (x, y, h) — (5.10)–(5.13).
@@ -323,33 +488,80 @@ def pair_geometry(p_i: ArrayLike, v_i: ArrayLike, p_j: ArrayLike, v_j: ArrayLike
 
 
 class _PointTerms(NamedTuple):
-    """Per-track covariance terms propagated to T^пор (m²): P_xx, P_xy, P_yy, P_zz."""
+    """Per-track propagated position covariance as polynomials in the look-ahead t (m²):
+    P(t) = c0 + c1·t + c2·t² for P_xx (a), P_xy (b), P_yy (d) in the system tangent plane and
+    the height variance q (along the local up at the target, or the ``alt_*`` variances).
+    Each field is a (3, n) array of (c0, c1, c2) rows (contiguous rows gather fast)."""
 
     a: NDArray[np.float64]
     b: NDArray[np.float64]
     d: NDArray[np.float64]
     q: NDArray[np.float64]
 
+    def at(self, t: float | NDArray[np.float64], idx: NDArray[np.int64] | None = None
+           ) -> tuple[NDArray[np.float64], ...]:
+        """(a, b, d, q) at time(s) t for rows ``idx`` (all rows if None)."""
+        out = []
+        for c in self:
+            c0, c1, c2 = (c[0], c[1], c[2]) if idx is None else (c[0][idx], c[1][idx], c[2][idx])
+            c2 = c2 * t
+            c2 += c1
+            c2 *= t
+            c2 += c0
+            out.append(c2)
+        return tuple(out)
 
-def _point_terms(tracks: pl.DataFrame, t: float) -> _PointTerms:
-    """P_pos(T) = P_pp + T(P_pv + P_vp) + T²P_vv of every track (x, y, z parts)."""
+    def take(self, idx: NDArray[np.int64]) -> "_PointTerms":
+        return _PointTerms(*(np.ascontiguousarray(c[:, idx]) for c in self))
+
+    @property
+    def n(self) -> int:
+        return self.a.shape[1]
+
+
+def _poly(p0: NDArray, p1: NDArray, p2: NDArray) -> NDArray[np.float64]:
+    return np.ascontiguousarray(np.vstack([p0, p1, p2]), dtype=np.float64)
+
+
+def _point_terms(tracks: pl.DataFrame, up: NDArray[np.float64] | None = None,
+                 from_alt: NDArray[np.bool_] | None = None) -> _PointTerms:
+    """P_pos(t) = P_pp + t(P_pv + P_vp) + t²P_vv of every track as polynomial coefficients.
+
+    Horizontal: the x, y block. Vertical: uᵀP_pos(t)u with u = ``up`` (the local vertical at the
+    target, :func:`height_and_rate`; None = ENU z) from the full 6×6 ``cov``, or with only
+    ``cov_diag`` (diagonal fallback: no position–velocity or cross-axis terms, documented
+    under-estimate for a tracker whose position and velocity errors correlate). Rows with an
+    ``alt_m`` channel (``from_alt``) and an ``alt_var_m2`` column take q = alt_var +
+    2t·alt_cov + t²·alt_rate_var instead."""
+    n = tracks.height
+    u = np.tile([0.0, 0.0, 1.0], (n, 1)) if up is None else up
     if "cov" in tracks.columns:
-        c = tracks["cov"].to_numpy().reshape(-1, 36)
-        e = lambda r, k: c[:, 6 * r + k]  # noqa: E731 - element (r, k) of the row-major 6×6
-        a = e(0, 0) + t * (e(0, 3) + e(3, 0)) + t * t * e(3, 3)
-        b = e(0, 1) + t * (e(0, 4) + e(3, 1)) + t * t * e(3, 4)
-        d = e(1, 1) + t * (e(1, 4) + e(4, 1)) + t * t * e(4, 4)
-        q = e(2, 2) + t * (e(2, 5) + e(5, 2)) + t * t * e(5, 5)
+        c = tracks["cov"].to_numpy().reshape(-1, 6, 6)
+        p0, pv, p2 = c[:, :3, :3], c[:, :3, 3:], c[:, 3:, 3:]
+        p1 = pv + pv.transpose(0, 2, 1)
+        mats = (p0, p1, p2)
     elif "cov_diag" in tracks.columns:
         c = tracks["cov_diag"].to_numpy().reshape(-1, 6)
-        a = c[:, 0] + t * t * c[:, 3]
-        b = np.zeros(len(c))
-        d = c[:, 1] + t * t * c[:, 4]
-        q = c[:, 2] + t * t * c[:, 5]
+        z = np.zeros((n, 3, 3))
+        p0, p2 = z.copy(), z.copy()
+        idx = np.arange(3)
+        p0[:, idx, idx] = c[:, :3]
+        p2[:, idx, idx] = c[:, 3:]
+        mats = (p0, z, p2)
     else:
         raise ValueError("threshold_mode='covariance' needs a 'cov' (Array(Float64, 36)) or "
                          "'cov_diag' (Array(Float64, 6)) column; use threshold_mode='fixed' otherwise")
-    terms = _PointTerms(*(np.ascontiguousarray(x, dtype=np.float64) for x in (a, b, d, q)))
+    a = _poly(*(m[:, 0, 0] for m in mats))
+    b = _poly(*(m[:, 0, 1] for m in mats))
+    d = _poly(*(m[:, 1, 1] for m in mats))
+    q = _poly(*(np.einsum("ni,nij,nj->n", u, m, u) for m in mats))
+    if from_alt is not None and from_alt.any() and "alt_var_m2" in tracks.columns:
+        col = lambda name: (tracks[name].cast(pl.Float64).to_numpy() if name in tracks.columns  # noqa: E731
+                            else np.zeros(n))
+        qa = _poly(col("alt_var_m2"), 2.0 * col("alt_cov_m2ps"), col("alt_rate_var_m2ps2"))
+        use = from_alt & np.isfinite(qa).all(axis=0)
+        q = np.where(use[None, :], qa, q)
+    terms = _PointTerms(a, b, d, q)
     if not all(np.all(np.isfinite(x)) for x in terms):
         raise ValueError("covariances must be finite")
     return terms
@@ -360,37 +572,66 @@ def _lambda_max(a, b, d):
     return 0.5 * (a + d) + np.hypot(0.5 * (a - d), b)
 
 
-def pair_thresholds(cfg: ConflictConfig, terms: _PointTerms | None, i: NDArray, j: NDArray
+def threshold_time(cfg: "ConflictConfig", t_min: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Time at which the estimation and piloting terms are evaluated: clip(T_min, 0, T^пор) in
+    corrected mode (the error that matters is the one at the closest approach; T^пор for
+    parallel motion), T^пор in seed mode ((5.15)/(5.16) as printed)."""
+    t_thr = cfg.t_thr_s
+    if cfg.mode == "seed":
+        return np.full(np.shape(t_min), t_thr)
+    return np.where(np.isfinite(t_min), np.clip(t_min, 0.0, t_thr), t_thr)
+
+
+def pair_thresholds(cfg: "ConflictConfig", terms: _PointTerms | None, i: NDArray, j: NDArray,
+                    t: float | NDArray[np.float64] | None = None
                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """R_г^пор (5.15) and R_в^пор (5.16) of pairs (i, j); ``terms`` from the tracks' covariances
-    (None for ``threshold_mode="fixed"``)."""
+    """R_г^пор (5.15) and R_в^пор (5.16) of pairs (i, j) with the estimation and piloting terms
+    at look-ahead ``t`` (scalar or per pair; None = T^пор as printed); ``terms`` from the
+    tracks' covariances (None for ``threshold_mode="fixed"``)."""
+    n = len(i)
+    t = cfg.t_thr_s if t is None else t
+    t_arr = np.broadcast_to(np.asarray(t, np.float64), (n,))
+    pil_h = cfg.pilot_h_m + cfg.pilot_h_rate_mps * t_arr
+    pil_v = cfg.pilot_v_m + cfg.pilot_v_rate_mps * t_arr
     if cfg.threshold_mode == "fixed" or terms is None:
-        n = len(i)
-        return (np.full(n, cfg.sep_h_m + cfg.fixed_est_h_m + cfg.pilot_h_at_t),
-                np.full(n, cfg.sep_v_m + cfg.fixed_est_v_m + cfg.pilot_v_at_t))
-    lam = _lambda_max(terms.a[i] + terms.a[j], terms.b[i] + terms.b[j], terms.d[i] + terms.d[j])
+        return cfg.sep_h_m + cfg.fixed_est_h_m + pil_h, cfg.sep_v_m + cfg.fixed_est_v_m + pil_v
+    ai, bi, di, qi = terms.at(t_arr, i)
+    aj, bj, dj, qj = terms.at(t_arr, j)
+    lam = _lambda_max(ai + aj, bi + bj, di + dj)
     est_h = cfg.k_h * np.sqrt(np.maximum(lam, 0.0))
-    est_v = cfg.k_v * np.sqrt(np.maximum(terms.q[i] + terms.q[j], 0.0))
-    return cfg.sep_h_m + est_h + cfg.pilot_h_at_t, cfg.sep_v_m + est_v + cfg.pilot_v_at_t
+    est_v = cfg.k_v * np.sqrt(np.maximum(qi + qj, 0.0))
+    return cfg.sep_h_m + est_h + pil_h, cfg.sep_v_m + est_v + pil_v
 
 
 class _Bounds(NamedTuple):
-    """Per-track quantities whose pairwise combination bounds the thresholds from above:
-    R_г^пор(i, j) ≤ base_h + k_h·sqrt(lam_i + lam_j), R_в^пор(i, j) ≤ base_v + k_v·sqrt(q_i + q_j)
-    (λ_max(A + B) ≤ λ_max(A) + λ_max(B))."""
+    """Per-track quantities whose pairwise combination bounds the thresholds (plus the near
+    margins) from above at every evaluation time t ∈ [0, T^пор]:
+    R_г^пор(i, j) + m_h ≤ base_h + k_h·sqrt(lam_i + lam_j), likewise vertically with q.
+    λ_max(A + B) ≤ λ_max(A) + λ_max(B), and λ_max(P(t)) and q(t) are convex in t (P(t) is a
+    matrix-convex quadratic, P_vv ⪰ 0), so their maximum over [0, T] is at an end point."""
 
     base_h: float
     base_v: float
     lam: NDArray[np.float64]
     q: NDArray[np.float64]
+    reach: NDArray[np.float64]        # k_h·sqrt(lam)
 
 
-def _bounds(cfg: ConflictConfig, terms: _PointTerms | None, n: int) -> _Bounds:
+def _bounds(cfg: "ConflictConfig", terms: _PointTerms | None, n: int) -> _Bounds:
+    t = cfg.t_thr_s
+    mh, mv = cfg.near_margin_h_m, cfg.near_margin_v_m
     if cfg.threshold_mode == "fixed" or terms is None:
         r_h, r_v = pair_thresholds(cfg, None, np.zeros(1, np.int64), np.zeros(1, np.int64))
-        return _Bounds(float(r_h[0]), float(r_v[0]), np.zeros(n), np.zeros(n))
-    lam = np.maximum(_lambda_max(terms.a, terms.b, terms.d), 0.0)
-    return _Bounds(cfg.sep_h_m + cfg.pilot_h_at_t, cfg.sep_v_m + cfg.pilot_v_at_t, lam, np.maximum(terms.q, 0.0))
+        return _Bounds(float(r_h[0]) + mh, float(r_v[0]) + mv, np.zeros(n), np.zeros(n), np.zeros(n))
+    a1, b1, d1, q1 = terms.at(t)
+    lam = _lambda_max(a1, b1, d1)
+    q = q1
+    if cfg.mode != "seed":
+        a0, b0, d0, q0 = terms.at(0.0)
+        lam, q = np.maximum(lam, _lambda_max(a0, b0, d0)), np.maximum(q, q0)
+    lam = np.maximum(lam, 0.0)
+    return _Bounds(cfg.sep_h_m + cfg.pilot_h_at_t + mh, cfg.sep_v_m + cfg.pilot_v_at_t + mv,
+                   lam, np.maximum(q, 0.0), cfg.k_h * np.sqrt(lam))
 
 
 # --------------------------------------------------------------------------- candidate search
@@ -507,20 +748,21 @@ def _blocks(g: NDArray[np.int64], block_points: int):
 def _block_candidates(cfg: ConflictConfig, g, pos, vel, terms):
     """(rows, i, j) per block: global row indices of screened pairs."""
     for idx in _blocks(g, cfg.block_points):
-        sub = None if terms is None else _PointTerms(*(x[idx] for x in terms))
+        sub = None if terms is None else terms.take(idx)
         for ci, cj in _candidates(cfg, g[idx], pos[idx], vel[idx], sub):
             yield idx[ci], idx[cj]
 
 
-def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
-                    method_col: str = "method") -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(), method_col: str = "method",
+                    frame: geo.LocalFrame | None = None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Screened row-index pairs (i < j, same (run, epoch, method) group) of ``tracks``: a superset
-    of the pairs that come within R_г^пор horizontally and R_в^пор vertically at some t of the
-    screening window (KD-tree, see the module docstring). Exposed for tests and benchmarks.
-    Unlike :func:`predict_conflicts` it keeps tentative tracks (no ``max_vel_sigma_mps``)."""
+    of the pairs that come within R_г^пор + m_h horizontally and R_в^пор + m_v vertically (the
+    near margins) at some t of the screening window (KD-tree, see the module docstring), on
+    height (:func:`vertical_state`). Exposed for tests and benchmarks. Unlike
+    :func:`predict_conflicts` it keeps tentative tracks (no ``max_vel_sigma_mps``)."""
     g = _group_index(tracks, _group_cols(tracks, method_col))
-    pos, vel = _state_arrays(tracks)
-    terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
+    pos, vel, up, from_alt = _state_arrays(tracks, frame)
+    terms = _point_terms(tracks, up, from_alt) if cfg.threshold_mode == "covariance" else None
     parts = list(_block_candidates(cfg, g, pos, vel, terms))
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -553,51 +795,53 @@ def _established(tracks: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
     return tracks.filter(var <= lim * lim)
 
 
-def _state_arrays(tracks: pl.DataFrame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _state_arrays(tracks: pl.DataFrame, frame: geo.LocalFrame | None = None
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """(x, y, h), (vx, vy, ḣ), up, from_alt of every row: horizontal on the system tangent plane,
+    vertical on height (:func:`vertical_state`)."""
     missing = [c for c in STATE if c not in tracks.columns]
     if missing:
         raise ValueError(f"tracks: missing column(s) {', '.join(missing)}")
     st = tracks.select(pl.col(list(STATE)).cast(pl.Float64)).to_numpy()
     if not np.all(np.isfinite(st)):
         raise ValueError("tracks: states must be finite")
-    return np.ascontiguousarray(st[:, :3]), np.ascontiguousarray(st[:, 3:])
+    h, hdot, up, from_alt = vertical_state(tracks, frame)
+    pos = np.ascontiguousarray(np.column_stack([st[:, 0], st[:, 1], h]))
+    vel = np.ascontiguousarray(np.column_stack([st[:, 3], st[:, 4], hdot]))
+    return pos, vel, up, from_alt
 
 
 def _empty_conflicts() -> pl.DataFrame:
-    return pl.DataFrame(schema=TABLES["conflicts"].required)
+    return pl.DataFrame(schema={**TABLES["conflicts"].required, **CONFLICT_EXTRA})
 
 
-def _track_reach(cfg: ConflictConfig, terms: _PointTerms | None) -> NDArray[np.float64] | None:
-    """Per-track k_h·sqrt(λ_max(P_xy(T^пор))): the pairwise sum bounds the estimation term of
-    R_г^пор from above (None without covariance thresholds)."""
-    if terms is None or cfg.threshold_mode != "covariance":
-        return None
-    return cfg.k_h * np.sqrt(np.maximum(_lambda_max(terms.a, terms.b, terms.d), 0.0))
+#: columns of ``conflicts`` beyond ``schema.TABLES["conflicts"]`` (to be added there)
+CONFLICT_EXTRA: dict[str, pl.DataType] = {"t_in_s": pl.Float64(), "near": pl.Boolean()}
 
 
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,
-                    i: NDArray[np.int64], j: NDArray[np.int64],
-                    reach: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
+                    i: NDArray[np.int64], j: NDArray[np.int64], bnd: _Bounds) -> dict[str, NDArray]:
     """Output-set membership, geometry, thresholds and decision of pairs (i, j); ``st`` holds the
-    state columns x, y, z, vx, vy, vz as rows; ``reach`` the per-track k_h·sqrt(λ_max) (see
-    :func:`_track_reach`). Staged: the vertical window test, then the horizontal one (a cheap
-    upper bound of R_г^пор first), then the full geometry of the survivors only."""
-    x, y, z, vx, vy, vz = st
+    state columns x, y, h, vx, vy, ḣ as rows; ``bnd`` the per-track threshold bounds
+    (:func:`_bounds`). Staged: the vertical window test, then the horizontal one (cheap upper
+    bounds of the thresholds first), then the full geometry of the survivors only."""
+    x, y, h, vx, vy, vh = st
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
+    mh, mv = cfg.near_margin_h_m, cfg.near_margin_v_m
     fixed = cfg.threshold_mode == "fixed" or terms is None
-    base_v = cfg.sep_v_m + cfg.pilot_v_at_t + (cfg.fixed_est_v_m if fixed else 0.0)
-    # 1. vertical: min over the window of |Δh + Δvz t| ≤ R_в^пор
-    dz = z[j] - z[i]
-    dvz = vz[j] - vz[i]
+    base_v = bnd.base_v
+    # 1. vertical: min over the window of |Δh + Δḣ t| ≤ R_в^пор + m_v (upper bound of R_в^пор)
+    dz = h[j] - h[i]
+    dvz = vh[j] - vh[i]
     excess = _endpoint_min(dz + dvz * w0, dz + dvz * w1) - base_v
     if fixed:
         ok = excess <= 0.0
     else:
-        ok = (excess <= 0.0) | (excess * excess <= cfg.k_v ** 2 * (terms.q[i] + terms.q[j]))
+        ok = (excess <= 0.0) | (excess * excess <= cfg.k_v ** 2 * (bnd.q[i] + bnd.q[j]))
     sel = np.flatnonzero(ok)
     i, j, dz, dvz = i[sel], j[sel], dz[sel], dvz[sel]
-    # 2. horizontal: min over the window of |r − v t| ≤ R_г^пор
+    # 2. horizontal: min over the window of |r − v t| ≤ R_г^пор + m_h
     rx, ry = x[j] - x[i], y[j] - y[i]
     vx_, vy_ = vx[i] - vx[j], vy[i] - vy[j]
     vv = vx_ * vx_ + vy_ * vy_
@@ -606,21 +850,28 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
         ts = np.where(moving, np.clip((rx * vx_ + ry * vy_) / vv, w0, w1), 0.0)
     ex, ey = rx - vx_ * ts, ry - vy_ * ts
     d2 = ex * ex + ey * ey
-    if reach is not None:
-        # R_г^пор(i, j) ≤ Δr_г + |ΔR_гп| + reach_i + reach_j (λ_max(A + B) ≤ λ_max A + λ_max B;
-        # 1e-6 guards rounding): rejects most pairs before their exact thresholds are computed
-        ub = (cfg.sep_h_m + cfg.pilot_h_at_t + reach[i] + reach[j]) * (1.0 + 1e-6)
+    if not fixed:
+        # R_г^пор(i, j, t) + m_h ≤ base_h + reach_i + reach_j, reach = k_h·sqrt(max_t λ_max)
+        # (λ_max(A + B) ≤ λ_max A + λ_max B; 1e-6 guards rounding)
+        reach = bnd.reach
+        ub = (bnd.base_h + reach[i] + reach[j]) * (1.0 + 1e-6)
         sel = np.flatnonzero(d2 <= ub * ub)
         i, j, dz, dvz, rx, ry, vx_, vy_, d2 = (a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, d2))
-    r_thr, z_thr = pair_thresholds(cfg, terms, i, j)
-    sel = np.flatnonzero(d2 <= r_thr * r_thr)
-    i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr = (
-        a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr))
-    # 3. geometry (5.10)–(5.13) and the decision (5.14) of the output rows
+    # 3. geometry (5.10)–(5.13), thresholds at the time that matters, output-set membership
     _, r_min, t_min, closure, _ = _horizontal(rx, ry, vx_, vy_, cfg.eps_mps)
+    t_eval = threshold_time(cfg, t_min)
+    r_thr, z_thr = pair_thresholds(cfg, terms, i, j, t_eval)
+    vmin = _endpoint_min(dz + dvz * w0, dz + dvz * w1)
+    sel = np.flatnonzero((d2 <= (r_thr + mh) ** 2) & (vmin <= z_thr + mv))
+    i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, r_min, t_min, closure, t_eval = (
+        a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, r_min, t_min, closure, t_eval))
+    # 4. decision (5.14) as printed, or the same-time rule (interval intersection)
+    t_in, t_out = conflict_interval(rx, ry, vx_, vy_, dz, dvz, r_thr, z_thr, t_thr, cfg.eps_mps)
+    n_in, n_out = conflict_interval(rx, ry, vx_, vy_, dz, dvz, r_thr + mh, z_thr + mv, t_thr, cfg.eps_mps)
+    joint = t_in <= t_out
     if cfg.mode == "corrected":
-        dz_min = _endpoint_min(dz, dz + dvz * t_thr)
-        alert = (r_min <= r_thr) & (t_min >= 0.0) & (t_min <= t_thr) & (dz_min <= z_thr)
+        dz_min = np.abs(dz + dvz * t_eval)         # vertical separation at the horizontal CPA in [0, T]
+        alert = joint
     else:
         dz_min = _seed_vertical(dz, dvz, t_min)
         vertical = (np.abs(dz) <= z_thr) | (dz_min <= z_thr)
@@ -628,19 +879,25 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     severity = np.where(alert, np.clip(1.0 - r_min / r_thr, 0.0, 1.0), 0.0)
     return {"i": i, "j": j, "r_min_m": r_min, "t_min_s": t_min, "dz_m": dz, "dz_min_m": dz_min,
             "closure_mps": closure, "r_thr_m": r_thr, "t_thr_s": np.full(len(i), t_thr), "z_thr_m": z_thr,
-            "alert": alert, "severity": severity}
+            "alert": alert, "severity": severity, "t_in_s": np.where(joint, t_in, np.nan),
+            "near": alert | (n_in <= n_out)}
 
 
 def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(), id_col: str = "track_id",
-                      method_col: str = "method", default_method: str = "none") -> pl.DataFrame:
+                      method_col: str = "method", default_method: str = "none",
+                      frame: geo.LocalFrame | None = None) -> pl.DataFrame:
     """Predicted conflicts of an air picture — (5.10)–(5.17), rule ``cfg.mode``.
 
     ``tracks``: any track table with ``run``, ``epoch``, ``id_col`` (``track_id``; fused
-    tables: ``target_id``), the system-frame state ``x_m … vz_mps`` (z = height) and, for
-    ``threshold_mode="covariance"``, ``cov`` (row-major 6×6) or ``cov_diag``. Pairs are formed
-    within each (run, epoch, ``method_col``) group; without a method column the label is
-    ``default_method``. Returns the ``conflicts`` table (see the module docstring for the output
-    set, ``alert`` and ``severity``), id_a < id_b, sorted by (run, epoch, method, id_a, id_b).
+    tables: ``target_id``), the system-frame ENU state ``x_m … vz_mps``, optionally the height
+    channel :data:`ALT_COLUMNS` and, for ``threshold_mode="covariance"``, ``cov`` (row-major
+    6×6) or ``cov_diag``. Heights: ``alt_m`` where present, else the geodetic height of the ENU
+    position in ``frame`` (the system origin; None: spherical fallback, see
+    :func:`height_and_rate`) — never ENU z. Pairs are formed within each (run, epoch,
+    ``method_col``) group; without a method column the label is ``default_method``. Returns
+    the ``conflicts`` table plus :data:`CONFLICT_EXTRA` (``t_in_s``: start of the predicted
+    same-time conflict interval, NaN if none; ``near``), id_a < id_b, sorted by (run, epoch,
+    method, id_a, id_b).
     """
     for c in ("epoch", id_col):
         if c not in tracks.columns:
@@ -657,18 +914,18 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     if dup:
         raise ValueError(f"tracks: duplicate {id_col} within a (run, epoch, {method_col}) group")
     g = _group_index(tracks, groups)
-    pos, vel = _state_arrays(tracks)
-    terms = _point_terms(tracks, cfg.t_thr_s) if cfg.threshold_mode == "covariance" else None
+    pos, vel, up, from_alt = _state_arrays(tracks, frame)
+    terms = _point_terms(tracks, up, from_alt) if cfg.threshold_mode == "covariance" else None
+    bnd = _bounds(cfg, terms, len(g))
     ids = tracks[id_col].cast(pl.Int64).to_numpy()
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
-    reach = _track_reach(cfg, terms)
     chunks: list[dict[str, NDArray]] = []
     step = cfg.chunk_pairs
     for ci, cj in _block_candidates(cfg, g, pos, vel, terms):
         for s in range(0, len(ci), step):
             a, b = ci[s:s + step], cj[s:s + step]
             swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
-            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), reach))
+            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), bnd))
         del ci, cj
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
@@ -682,7 +939,24 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
                         ).hstack(pl.DataFrame(cols)[order])
     out = keys.hstack(vals)
-    return out.select(list(TABLES["conflicts"].required)).cast(TABLES["conflicts"].required)
+    spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
+    return out.select(list(spec)).cast(spec)
+
+
+def slim_conflicts(conflicts: pl.DataFrame, margin_h_m: float | None = None, margin_v_m: float | None = None
+                   ) -> pl.DataFrame:
+    """The output diet: rows that alert or are *near* — within the near margins of both
+    thresholds at the same predicted time (column ``near`` of :func:`predict_conflicts`, with
+    the margins of its ``ConflictConfig``). Explicit margins (or a table without ``near``)
+    use the stored geometry instead: keep alert | (r_min ≤ r_thr + m_h ∧ dz_min ≤ z_thr + m_v
+    ∧ T_min ≤ t_thr)."""
+    if margin_h_m is None and margin_v_m is None and "near" in conflicts.columns:
+        return conflicts.filter(pl.col("alert") | pl.col("near"))
+    mh = NM_M if margin_h_m is None else float(margin_h_m)
+    mv = 300.0 * FT_M if margin_v_m is None else float(margin_v_m)
+    near = ((pl.col("r_min_m") <= pl.col("r_thr_m") + mh) & (pl.col("dz_min_m") <= pl.col("z_thr_m") + mv)
+            & (pl.col("t_min_s") <= pl.col("t_thr_s")))
+    return conflicts.filter(pl.col("alert") | near)
 
 
 def _pair_order(g: NDArray[np.int64], ids: NDArray[np.int64], i: NDArray[np.int64], j: NDArray[np.int64]

@@ -3,32 +3,40 @@ digest worked example, thresholds, KD-tree candidates against brute force, outpu
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from datetime import datetime, timedelta, timezone
 from fractions import Fraction
 
 import numpy as np
+import pymap3d
 import polars as pl
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2, norm
 
-from safety.conflicts import ConflictConfig, candidate_pairs, pair_geometry, predict_conflicts
+from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, candidate_pairs, conflict_interval, height_and_rate,
+                              pair_geometry, predict_conflicts, slim_conflicts, tangent_plane_error_bound)
+from tertiary.geo import EARTH_RADIUS_M, LocalFrame
 from tertiary.schema import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 FIXED = ConflictConfig(threshold_mode="fixed", dr_v_m=300.0)      # digest §7.2 thresholds
 
 
-def _frame(pos, vel, ids=None, run=0, epoch=T0, method=None, cov=None, cov_diag=None) -> pl.DataFrame:
+def _frame(pos, vel, ids=None, run=0, epoch=T0, method=None, cov=None, cov_diag=None, alt=True) -> pl.DataFrame:
+    """A picture; ``alt=True`` also gives the height channel alt_m = z, alt_rate_mps = vz (the
+    digest's flat (x, y, h) geometry); ``alt=False`` leaves heights to the geodetic conversion."""
     pos, vel = np.asarray(pos, float).reshape(-1, 3), np.asarray(vel, float).reshape(-1, 3)
     n = len(pos)
     data = {"run": np.full(n, run, np.uint32), "epoch": [epoch] * n,
             "track_id": np.arange(1, n + 1, dtype=np.uint64) if ids is None else np.asarray(ids, np.uint64),
             "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
             "vx_mps": vel[:, 0], "vy_mps": vel[:, 1], "vz_mps": vel[:, 2]}
+    if alt:
+        data.update(alt_m=pos[:, 2], alt_rate_mps=vel[:, 2])
     df = pl.DataFrame(data).with_columns(pl.col("epoch").cast(pl.Datetime("us", "UTC")))
     if method is not None:
         df = df.with_columns(pl.lit(method).alias("method"))
@@ -64,10 +72,11 @@ def test_digest_worked_example_decision(mode):
     assert row["r_thr_m"] == pytest.approx(6356.0) and row["z_thr_m"] == pytest.approx(410.0)
     assert row["t_thr_s"] == 105.0
     assert row["r_min_m"] == pytest.approx(3219.9, abs=0.05) and row["t_min_s"] == pytest.approx(70.8)
-    assert row["dz_min_m"] == pytest.approx(246.0 if mode == "seed" else 75.0)
+    # seed: (5.13) 600 − 5·70.8; corrected: |Δh| at clip(T_min, 0, T) — the same number here
+    assert row["dz_min_m"] == pytest.approx(246.0)
     assert row["severity"] == pytest.approx(1 - row["r_min_m"] / 6356.0)
     # vz_2 = 0: the vertical separation stays 600 m > 410 m → no conflict (no candidate at all)
-    level = predict_conflicts(df.with_columns(pl.lit(0.0).alias("vz_mps")), cfg)
+    level = predict_conflicts(df.with_columns(pl.lit(0.0).alias("vz_mps"), pl.lit(0.0).alias("alt_rate_mps")), cfg)
     assert level.height == 0 or not level["alert"].any()
 
 
@@ -179,8 +188,14 @@ def test_geometry_sampling_cross_check():
 def test_parallel_tracks_defined():
     g = pair_geometry([0, 0, 0], [200, 10, 0], [3000, 4000, 0], [200, 10, 0])
     assert float(g.r_min) == 5000.0 and math.isinf(float(g.t_min))
-    out = predict_conflicts(_frame([[0, 0, 0], [3000, 4000, 0]], [[200, 10, 0], [200, 10, 0]]), FIXED)
-    assert out.height == 1 and not out["alert"][0] and math.isinf(out["t_min_s"][0])
+    inside = _frame([[0, 0, 0], [3000, 4000, 0]], [[200, 10, 0], [200, 10, 0]])
+    # 5 km apart side by side, co-level: inside both thresholds all the time → the same-time rule
+    # alerts (they are losing separation now); (5.14) needs T_min ≤ T and does not
+    out = predict_conflicts(inside, FIXED)
+    assert out.height == 1 and out["alert"][0] and math.isinf(out["t_min_s"][0]) and out["t_in_s"][0] == 0.0
+    assert not predict_conflicts(inside, dataclasses.replace(FIXED, mode="seed"))["alert"][0]
+    far = _frame([[0, 0, 0], [6000, 8000, 0]], [[200, 10, 0], [200, 10, 0]])      # 10 km: outside R + margin
+    assert predict_conflicts(far, FIXED).height == 0
 
 
 def test_sign_convention_approaching_positive():
@@ -200,11 +215,14 @@ def test_seed_flags_passed_pairs_corrected_does_not():
     corr = predict_conflicts(df, ConflictConfig(threshold_mode="fixed", mode="corrected"))
     assert seed["alert"].to_list() == [True]
     assert seed["t_min_s"][0] == pytest.approx(-30.0)
-    assert corr.height == 0                       # never within R_thr during [0, T] → not a candidate
+    assert not corr["alert"].any()
+    # never within R_thr + margin during [0, T] → not even a candidate
+    assert predict_conflicts(df, ConflictConfig(threshold_mode="fixed", near_margin_h_m=0.0)).height == 0
 
 
-def test_corrected_vertical_uses_min_over_lookahead():
-    # head-on, R_min = 0 at T_min = 50 s; aircraft 2 is 1000 m higher and descends at 6 m/s
+def test_corrected_rule_needs_both_at_the_same_time():
+    # head-on, R_min = 0 at T_min = 50 s, horizontally inside R_thr for t ∈ [18.2, 81.8] s;
+    # aircraft 2 is 1000 m higher and descends at 6 m/s: vertically inside only for t ≥ 97.5 s
     df = _frame([[0, 0, 3000], [10000, 0, 4000]], [[100, 0, 0], [-100, 0, -6]])
     seed = predict_conflicts(df, ConflictConfig(threshold_mode="fixed", mode="seed"))
     corr = predict_conflicts(df, ConflictConfig(threshold_mode="fixed", mode="corrected"))
@@ -212,12 +230,34 @@ def test_corrected_vertical_uses_min_over_lookahead():
     # seed (5.13) looks at T_min only: 1000 − 6·50 = 700 > 414.8 → no alert
     assert seed["dz_min_m"][0] == pytest.approx(700.0) and seed["z_thr_m"][0] == pytest.approx(z_thr)
     assert not seed["alert"][0]
-    # corrected: min over [0, 105] of |1000 − 6 t| = 370 ≤ 414.8 → alert
-    assert corr["dz_min_m"][0] == pytest.approx(370.0)
-    assert corr["alert"][0]
+    # corrected: the two intervals do not overlap → no alert; |Δh| at the CPA is 700 m
+    assert corr["dz_min_m"][0] == pytest.approx(700.0) and not corr["alert"][0]
+    # descending at 15 m/s instead: vertically inside from 39.0 s → overlap [39.0, 81.8] → alert
+    fast = df.with_columns(pl.Series("vz_mps", [0.0, -15.0]), pl.Series("alt_rate_mps", [0.0, -15.0]))
+    out = predict_conflicts(fast, ConflictConfig(threshold_mode="fixed", mode="corrected"))
+    assert out["alert"][0] and out["dz_min_m"][0] == pytest.approx(250.0)
+    assert out["t_in_s"][0] == pytest.approx((1000 - z_thr) / 15.0)
     # climbing away instead: neither rule alerts, and the pair is not even a candidate
-    away = df.with_columns(pl.Series("vz_mps", [0.0, 6.0]))
+    away = df.with_columns(pl.Series("vz_mps", [0.0, 6.0]), pl.Series("alt_rate_mps", [0.0, 6.0]))
     assert predict_conflicts(away, ConflictConfig(threshold_mode="fixed", mode="corrected")).height == 0
+
+
+def test_climbing_pair_issue_11():
+    """Horizontal CPA 0 m at t = 100 s, B 300 m above A and climbing 10 m/s (1 300 m apart at the
+    CPA, never losing separation): no alert in corrected mode, an alert in seed mode (co-level
+    now, |Δh| = 300 ≤ R_в^пор)."""
+    df = _frame([[-10000, 0, 3000], [10000, 0, 3300]], [[100, 0, 0], [-100, 0, 10]])
+    corr = predict_conflicts(df, ConflictConfig(threshold_mode="fixed"))
+    seed = predict_conflicts(df, ConflictConfig(threshold_mode="fixed", mode="seed"))
+    assert corr.height == 1 and not corr["alert"][0] and corr["dz_min_m"][0] == pytest.approx(1300.0)
+    assert seed["alert"][0]
+    # the same with heights from geodesy far from the centre (100 km east, equal start heights)
+    frame = LocalFrame(48.7, 2.4, 0.0)
+    x0, y0 = 100_000.0, 0.0
+    e, n, u = frame.from_geodetic(*frame.to_geodetic(np.array([x0 - 10000, x0 + 10000]), np.array([y0, y0]),
+                                                     np.zeros(2))[:2], np.array([3000.0, 3300.0]))
+    geo_df = _frame(np.column_stack([e, n, u]), [[100, 0, 0], [-100, 0, 10]], alt=False)
+    assert not predict_conflicts(geo_df, ConflictConfig(threshold_mode="fixed"), frame=frame)["alert"].any()
 
 
 def test_thresholds_fixed_and_airspace():
@@ -237,9 +277,11 @@ def test_thresholds_fixed_and_airspace():
 
 
 def test_covariance_thresholds_diag_and_full():
-    T = 105.0
+    T = 100.0                                        # evaluated at clip(T_min, 0, 105) = 100 s
     var = [100.0 ** 2, 100.0 ** 2, 30.0 ** 2, 2.0 ** 2, 2.0 ** 2, 1.0 ** 2]
     df = _frame([[0, 0, 3000], [20000, 0, 3100]], [[100, 0, 0], [-100, 0, 0]], cov_diag=[var, var])
+    # the height channel with its own variances (a barometric channel): q = var_h + t²·var_ḣ
+    df = df.with_columns(pl.lit(var[2]).alias("alt_var_m2"), pl.lit(var[5]).alias("alt_rate_var_m2ps2"))
     cfg = ConflictConfig()
     out = predict_conflicts(df, cfg)
     k_h, k_v = math.sqrt(chi2.ppf(0.95, 2)), norm.ppf(0.975)
@@ -253,14 +295,24 @@ def test_covariance_thresholds_diag_and_full():
     for _ in range(2):
         a = rng.normal(size=(6, 6)) * np.array([80, 60, 30, 3, 2, 1])[:, None]
         covs.append(a @ a.T)
-    dfc = df.drop("cov_diag").with_columns(pl.Series("cov", np.stack(covs).reshape(2, 36),
-                                                     dtype=pl.Array(pl.Float64, 36)))
-    outc = predict_conflicts(dfc, cfg)
+    # geodetic heights 100 km from the centre: the height variance is along the local up at
+    # each target (pymap3d's normal, independent of tertiary.geo), not along ENU z
+    frame = LocalFrame(48.7, 2.4, 0.0)
+    pos = np.array([[100_000.0, 0, 3000], [120_000.0, 0, 3100]])
+    dfc = (_frame(pos, [[100, 0, 0], [-100, 0, 0]], alt=False)
+           .with_columns(pl.Series("cov", np.stack(covs).reshape(2, 36), dtype=pl.Array(pl.Float64, 36))))
+    outc = predict_conflicts(dfc, cfg, frame=frame)
     F = np.hstack([np.eye(3), T * np.eye(3)])        # position at T = F·state
     rel = sum(F @ c @ F.T for c in covs)
     lam = np.linalg.eigvalsh(rel[:2, :2]).max()
+    lat, lon, _ = pymap3d.enu2geodetic(pos[:, 0], pos[:, 1], pos[:, 2], 48.7, 2.4, 0.0)
+    ups = [np.array(pymap3d.ecef2enuv(math.cos(math.radians(la)) * math.cos(math.radians(lo)),
+                                      math.cos(math.radians(la)) * math.sin(math.radians(lo)),
+                                      math.sin(math.radians(la)), 48.7, 2.4)) for la, lo in zip(lat, lon)]
+    q = sum(u @ F @ c @ F.T @ u for u, c in zip(ups, covs))
     assert outc["r_thr_m"][0] == pytest.approx(5556 + 500 + k_h * math.sqrt(lam), rel=1e-10)
-    assert outc["z_thr_m"][0] == pytest.approx(304.8 + 60 + k_v * math.sqrt(rel[2, 2]), rel=1e-10)
+    assert outc["z_thr_m"][0] == pytest.approx(304.8 + 60 + k_v * math.sqrt(q), rel=1e-9)
+    assert abs(q - rel[2, 2]) > 1.0                  # the tilt matters: ENU z would be a different number
     fixed = predict_conflicts(dfc, ConflictConfig(threshold_mode="fixed"))
     assert fixed["r_thr_m"][0] == pytest.approx(5556 + 300 + 500)
 
@@ -322,12 +374,19 @@ def _random_picture(rng, n_per_group=40, groups=3, cov_kind="diag", wide=True):
     return pl.concat(frames)
 
 
+def _up(r) -> np.ndarray:
+    """Local vertical of the spherical fallback (no frame): the direction from the Earth's centre."""
+    c = np.array([r["x_m"], r["y_m"], r["z_m"] + EARTH_RADIUS_M])
+    return c / np.linalg.norm(c)
+
+
 def _brute_force(df: pl.DataFrame, cfg: ConflictConfig):
-    """Every same-group pair with its thresholds and window minima (the O(N²) reference)."""
+    """Every same-group pair with its thresholds and window minima (the O(N²) reference);
+    heights from the ``alt_m`` channel (= z), height variances along each track's local up."""
     T = cfg.t_thr_s
     w0, w1 = (0.0, T) if cfg.mode == "corrected" else (-T, T)
-    F = np.hstack([np.eye(3), T * np.eye(3)])
     k_h, k_v = math.sqrt(chi2.ppf(cfg.confidence, 2)), norm.ppf(0.5 + cfg.confidence / 2)
+    mh, mv = cfg.near_margin_h_m, cfg.near_margin_v_m
     rows = df.to_dicts()
     out = {}
     for a, b in itertools.combinations(range(len(rows)), 2):
@@ -338,22 +397,26 @@ def _brute_force(df: pl.DataFrame, cfg: ConflictConfig):
             ra, rb = rb, ra
         s_a = np.array([ra[c] for c in ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")])
         s_b = np.array([rb[c] for c in ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")])
+        d0, w = s_b[:3] - s_a[:3], s_b[3:] - s_a[3:]
+        # |d0 + w t|² = A t² + B t + C on [w0, w1]
+        A, B, C = w[:2] @ w[:2], 2 * d0[:2] @ w[:2], d0[:2] @ d0[:2]
+        t_cpa = -B / (2 * A) if A >= 1e-12 else math.inf
+        t_eval = T if (cfg.mode == "seed" or math.isinf(t_cpa)) else min(max(t_cpa, 0.0), T)
+        F = np.hstack([np.eye(3), t_eval * np.eye(3)])
         if cfg.threshold_mode == "fixed":
             r_thr = cfg.sep_h_m + cfg.fixed_est_h_m + cfg.pilot_h_m
             z_thr = cfg.sep_v_m + cfg.fixed_est_v_m + cfg.pilot_v_m
         else:
             cov = lambda r: (np.diag(r["cov_diag"]) if "cov_diag" in r else np.asarray(r["cov"]).reshape(6, 6))  # noqa: E731
             rel = F @ (cov(ra) + cov(rb)) @ F.T
+            q = sum(_up(r) @ F @ cov(r) @ F.T @ _up(r) for r in (ra, rb))
             r_thr = cfg.sep_h_m + cfg.pilot_h_m + k_h * math.sqrt(np.linalg.eigvalsh(rel[:2, :2]).max())
-            z_thr = cfg.sep_v_m + cfg.pilot_v_m + k_v * math.sqrt(rel[2, 2])
-        d0, w = s_b[:3] - s_a[:3], s_b[3:] - s_a[3:]
-        # |d0 + w t|² = A t² + B t + C on [w0, w1]
-        A, B, C = w[:2] @ w[:2], 2 * d0[:2] @ w[:2], d0[:2] @ d0[:2]
+            z_thr = cfg.sep_v_m + cfg.pilot_v_m + k_v * math.sqrt(q)
         cand = [w0, w1] + ([-B / (2 * A)] if A > 0 and w0 < -B / (2 * A) < w1 else [])
         h_min = math.sqrt(max(min(A * t * t + B * t + C for t in cand), 0.0))
         zc = [w0, w1] + ([-d0[2] / w[2]] if w[2] != 0 and w0 < -d0[2] / w[2] < w1 else [])
         v_min = min(abs(d0[2] + w[2] * t) for t in zc)
-        if h_min <= r_thr and v_min <= z_thr:
+        if h_min <= r_thr + mh and v_min <= z_thr + mv:
             out[(ra["run"], ra["epoch"], ra["track_id"], rb["track_id"])] = (r_thr, z_thr)
     return out
 
@@ -423,6 +486,44 @@ def test_v_max_setting_does_not_change_result():
     assert predict_conflicts(df.reverse(), ConflictConfig()).equals(base)     # row order is irrelevant
 
 
+def _sampled(ra: dict, rb: dict, r_thr: float, z_thr: float, T: float, dt: float = 0.05) -> tuple[bool, bool]:
+    """Brute force on the predicted tracks (heights = alt_m, rates = alt_rate_mps), sampled every
+    ``dt`` over [0, T]: (some sample inside both thresholds shrunk by 1e-6 relative,
+    some sample inside both widened by the motion over dt) — the closed form must alert in the
+    first case and may alert only in the second."""
+    t = np.arange(0.0, T + dt / 2, dt)
+    dx = (rb["x_m"] - ra["x_m"]) + (rb["vx_mps"] - ra["vx_mps"]) * t
+    dy = (rb["y_m"] - ra["y_m"]) + (rb["vy_mps"] - ra["vy_mps"]) * t
+    dz = (rb["alt_m"] - ra["alt_m"]) + (rb["alt_rate_mps"] - ra["alt_rate_mps"]) * t
+    dh = np.hypot(dx, dy)
+    sh = math.hypot(rb["vx_mps"] - ra["vx_mps"], rb["vy_mps"] - ra["vy_mps"]) * dt
+    sv = abs(rb["alt_rate_mps"] - ra["alt_rate_mps"]) * dt
+    inner = (dh <= r_thr * (1 - 1e-6)) & (np.abs(dz) <= z_thr * (1 - 1e-6))
+    outer = (dh <= r_thr + sh + 1e-6) & (np.abs(dz) <= z_thr + sv + 1e-6)
+    return bool(inner.any()), bool(outer.any())
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-3e4, 3e4), st.floats(-3e4, 3e4), st.floats(-400, 400), st.floats(-400, 400),
+       st.floats(-3000, 3000), st.floats(-40, 40), st.floats(100, 9000), st.floats(50, 1500), st.floats(1, 300))
+def test_interval_intersection_matches_sampling(rx, ry, vx, vy, dz, dvz, r_thr, z_thr, t_thr):
+    """The closed-form same-time rule (roots of the horizontal quadratic ∩ the linear vertical
+    interval ∩ [0, T]) against brute-force sampling of the predicted separation."""
+    t_in, t_out = conflict_interval(np.array([rx]), np.array([ry]), np.array([vx]), np.array([vy]),
+                                    np.array([dz]), np.array([dvz]), r_thr, z_thr, t_thr)
+    a = {"x_m": 0.0, "y_m": 0.0, "alt_m": 0.0, "vx_mps": vx, "vy_mps": vy, "alt_rate_mps": 0.0}
+    b = {"x_m": rx, "y_m": ry, "alt_m": dz, "vx_mps": 0.0, "vy_mps": 0.0, "alt_rate_mps": dvz}
+    dt = t_thr / 4000
+    inner, outer = _sampled(a, b, r_thr, z_thr, t_thr, dt)
+    alert = bool(t_in[0] <= t_out[0])
+    assert (not inner or alert) and (outer or not alert)
+    if alert:                                        # the interval's mid point is inside both
+        tm = 0.5 * (t_in[0] + t_out[0])
+        assert math.hypot(rx - vx * tm, ry - vy * tm) <= r_thr * (1 + 1e-9) + 1e-6
+        assert abs(dz + dvz * tm) <= z_thr * (1 + 1e-9) + 1e-6
+        assert 0.0 <= t_in[0] <= t_out[0] <= t_thr
+
+
 def test_decision_matches_rule_on_random_pictures():
     rng = np.random.default_rng(11)
     df = _random_picture(rng, n_per_group=80, groups=2)
@@ -431,8 +532,14 @@ def test_decision_matches_rule_on_random_pictures():
         out = predict_conflicts(df, cfg)
         T = cfg.t_thr_s
         if mode == "corrected":
-            rule = ((pl.col("r_min_m") <= pl.col("r_thr_m")) & (pl.col("t_min_s") >= 0) & (pl.col("t_min_s") <= T)
-                    & (pl.col("dz_min_m") <= pl.col("z_thr_m")))
+            rule = pl.col("t_in_s").is_not_nan()
+            # the same-time rule on the predicted tracks, sampled every 0.05 s (robust margins)
+            st_ = {r["track_id"]: r for r in df.filter(pl.col("run") == 0).to_dicts()}
+            for r in out.filter(pl.col("run") == 0).to_dicts():
+                if r["epoch"] != df["epoch"][0]:
+                    continue
+                hit_in, hit_out = _sampled(st_[r["id_a"]], st_[r["id_b"]], r["r_thr_m"], r["z_thr_m"], T)
+                assert (not hit_in or r["alert"]) and (hit_out or not r["alert"])
         else:
             rule = ((pl.col("r_min_m") <= pl.col("r_thr_m")) & (pl.col("t_min_s") <= T)
                     & ((pl.col("dz_m").abs() <= pl.col("z_thr_m")) | (pl.col("dz_min_m") <= pl.col("z_thr_m"))))
@@ -449,7 +556,7 @@ def test_decision_matches_rule_on_random_pictures():
 def test_output_schema_order_and_ids():
     df = _frame([[15000, 6000, 3600], [0, 0, 3000]], [[-100, -40, -5], [120, 0, 0]], ids=[9, 4], method="invcov")
     out = predict_conflicts(df, FIXED)
-    assert out.schema == pl.Schema(TABLES["conflicts"].required)
+    assert out.schema == pl.Schema({**TABLES["conflicts"].required, **CONFLICT_EXTRA})
     validate(out, "conflicts")
     assert out["id_a"].to_list() == [4] and out["id_b"].to_list() == [9] and out["method"][0] == "invcov"
     # same geometry as with the ids the other way round
@@ -472,7 +579,7 @@ def test_groups_do_not_mix_and_id_col():
 
 def test_empty_and_single_and_duplicates():
     empty = predict_conflicts(_frame(np.zeros((0, 3)), np.zeros((0, 3))), FIXED)
-    assert empty.height == 0 and empty.schema == pl.Schema(TABLES["conflicts"].required)
+    assert empty.height == 0 and empty.schema == pl.Schema({**TABLES["conflicts"].required, **CONFLICT_EXTRA})
     assert predict_conflicts(_frame([[0, 0, 0]], [[1, 0, 0]]), FIXED).height == 0
     with pytest.raises(ValueError, match="duplicate"):
         predict_conflicts(_frame([[0, 0, 0], [10, 0, 0]], [[0, 0, 0], [0, 0, 0]], ids=[3, 3]), FIXED)
@@ -485,3 +592,103 @@ def test_fast_outlier_pair_found():
     out = predict_conflicts(_frame(pos, vel), FIXED)
     row = out.filter((pl.col("id_a") == 1) & (pl.col("id_b") == 2))
     assert row.height == 1 and row["alert"][0] and row["t_min_s"][0] == pytest.approx(100.0)
+
+
+# --------------------------------------------------------------------------- vertical channel on height
+
+
+FRAME = LocalFrame(48.7, 2.4, 0.0)
+
+
+@pytest.mark.parametrize("frame", [FRAME, None])
+def test_equal_height_far_from_centre_has_zero_vertical_separation(frame):
+    """Two level aircraft at 9 000 m, 100 km and 150 km from the centre in different directions:
+    zero vertical separation and zero vertical rate from geodesy (ENU z differs by ~1 km)."""
+    pts = [(100e3, 0.0), (0.0, -150e3), (-70e3, 70e3)]
+    if frame is None:                                # the spherical fallback: a sphere of radius R
+        pos = np.array([_sphere_point(x, y, 9000.0, EARTH_RADIUS_M) for x, y in pts])
+    else:
+        pos = np.array([np.array(frame.from_geodetic(*frame.to_geodetic(x, y, 0.0)[:2], 9000.0)).ravel()
+                        for x, y in pts])
+    h, _, u = height_and_rate(pos, np.zeros_like(pos), frame)
+    # level flight radially outwards at 230 m/s: horizontal at the target (⟂ its local up)
+    radial = np.column_stack([pos[:, :2] / np.linalg.norm(pos[:, :2], axis=1)[:, None], np.zeros(3)])
+    vel = radial - np.einsum("ij,ij->i", radial, u)[:, None] * u
+    vel *= 230.0 / np.linalg.norm(vel, axis=1)[:, None]
+    _, hdot, _ = height_and_rate(pos, vel, frame)
+    assert np.ptp(h) < 0.01 and abs(h[0] - 9000.0) < 0.01
+    assert np.max(np.abs(hdot)) < 1e-9
+    assert np.ptp(pos[:, 2]) > 900.0                 # ENU z would show ~1 km
+    assert abs(vel[0, 2]) > 3.0                      # and ~3.6 m/s of false vertical rate
+    if frame is not None:                            # predict_conflicts sees such a pair co-level
+        lat, lon, _ = frame.to_geodetic(np.array([100e3, 100e3]), np.array([0.0, 3e3]), np.zeros(2))
+        p2 = np.column_stack(frame.from_geodetic(lat, lon, np.full(2, 9000.0)))
+        out = predict_conflicts(_frame(p2, np.zeros((2, 3)), alt=False), FIXED, frame=frame)
+        assert abs(out["dz_m"][0]) < 1e-6 and out["alert"][0]
+
+
+def _sphere_point(x: float, y: float, h: float, R: float) -> np.ndarray:
+    """The ENU point at height h above the sphere of radius R under the ground point (x, y)."""
+    rho = math.hypot(x, y)
+    th = rho / R
+    return np.array([x / rho * (R + h) * math.sin(th), y / rho * (R + h) * math.sin(th), (R + h) * math.cos(th) - R])
+
+
+def test_height_and_rate_against_pymap3d():
+    rng = np.random.default_rng(5)
+    pos = np.column_stack([rng.uniform(-150e3, 150e3, 200), rng.uniform(-150e3, 150e3, 200), rng.uniform(0, 12e3, 200)])
+    vel = rng.normal(0, 150, (200, 3))
+    h, hdot, _ = height_and_rate(pos, vel, FRAME)
+    _, _, h_ref = pymap3d.enu2geodetic(pos[:, 0], pos[:, 1], pos[:, 2], FRAME.lat_deg, FRAME.lon_deg, FRAME.alt_m)
+    assert np.max(np.abs(h - h_ref)) < 1e-3
+    dt = 1e-3                                        # rate = finite difference of the height
+    _, _, h2 = pymap3d.enu2geodetic(*(pos + vel * dt).T, FRAME.lat_deg, FRAME.lon_deg, FRAME.alt_m)
+    _, _, h1 = pymap3d.enu2geodetic(*(pos - vel * dt).T, FRAME.lat_deg, FRAME.lon_deg, FRAME.alt_m)
+    assert np.max(np.abs(hdot - (h2 - h1) / (2 * dt))) < 1e-3
+
+
+def test_alt_channel_wins_where_present():
+    df = _frame([[100e3, 0, 8000], [101e3, 0, 8000]], [[100, 0, 0], [-100, 0, 0]], alt=False)
+    df = df.with_columns(pl.Series("alt_m", [9000.0, None]), pl.Series("alt_rate_mps", [1.0, None]))
+    out = predict_conflicts(df, FIXED, frame=FRAME)
+    h_geo, _, _ = height_and_rate(np.array([[101e3, 0, 8000]]), np.zeros((1, 3)), FRAME)
+    assert out["dz_m"][0] == pytest.approx(h_geo[0] - 9000.0, abs=1e-6)
+
+
+def test_tangent_plane_horizontal_error_bound():
+    """Horizontal geometry stays on the system tangent plane. Against the geodesic distance of
+    the two footprints on the ellipsoid (pymap3d Vincenty), for pairs ≤ 20 km apart anywhere
+    within 150 km of the centre at 0–12 km height, with height differences ≤ 3 km: the error is
+    below :func:`tangent_plane_error_bound` (d·(ρ²/2R² + h/R) + |Δh|·ρ/R + 1 m)."""
+    from pymap3d.vincenty import vdist
+    rng = np.random.default_rng(9)
+    n = 400
+    rho, az = 150e3 * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    d, bz = rng.uniform(0, 20e3, n), rng.uniform(0, 2 * np.pi, n)
+    ha = rng.uniform(0, 12e3, n)
+    hb = np.clip(ha + rng.uniform(-3e3, 3e3, n), 0, 12e3)
+    a_geo = FRAME.to_geodetic(rho * np.sin(az), rho * np.cos(az), np.zeros(n))
+    pa = np.column_stack(FRAME.from_geodetic(a_geo[0], a_geo[1], ha))
+    b_en = np.column_stack([rho * np.sin(az) + d * np.sin(bz), rho * np.cos(az) + d * np.cos(bz)])
+    b_geo = FRAME.to_geodetic(b_en[:, 0], b_en[:, 1], np.zeros(n))
+    pb = np.column_stack(FRAME.from_geodetic(b_geo[0], b_geo[1], hb))
+    plane = np.hypot(*(pb[:, :2] - pa[:, :2]).T)
+    ref = np.asarray(vdist(a_geo[0], a_geo[1], b_geo[0], b_geo[1])[0], float)
+    err = np.abs(plane - ref)
+    r_max = np.maximum(np.hypot(*pa[:, :2].T), np.hypot(*pb[:, :2].T))
+    bound = tangent_plane_error_bound(ref, r_max, np.maximum(ha, hb), np.abs(hb - ha))
+    assert np.all(err <= bound)
+    assert err.max() > 1.0                           # the test can see an error at all
+    assert tangent_plane_error_bound(10e3, 150e3, 12e3, 1000.0) < 47.0
+
+
+def test_slim_conflicts_keeps_alerts_and_near_pairs():
+    rng = np.random.default_rng(2)
+    df = _random_picture(rng, n_per_group=80, groups=2)
+    out = predict_conflicts(df, ConflictConfig())
+    slim = slim_conflicts(out)
+    assert slim["alert"].sum() == out["alert"].sum() and slim.height < out.height
+    assert (slim["alert"] | slim["near"]).all()
+    # near = the same-time rule with widened thresholds: a zero margin keeps the alerts only
+    zero = predict_conflicts(df, ConflictConfig(near_margin_h_m=0.0, near_margin_v_m=0.0))
+    assert slim_conflicts(zero).height == zero["alert"].sum()
