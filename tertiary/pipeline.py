@@ -134,6 +134,7 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
     ``tertiary validate`` and ``tertiary run`` cannot disagree."""
     cfg = check_config(cfg)
     ing = ingest(ds, strict=cfg.strict, limits=cfg.limits)
+    ing.notes[:0] = getattr(ds, "notes", [])
     if ing.reports.height == 0:
         ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
         return ing
@@ -268,7 +269,10 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink) -> Res
         top = (ing.rejects.group_by("reason").len().sort("len", descending=True).head(3)
                if ing.rejects.height else pl.DataFrame({"reason": [], "len": []}))
         why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
-        raise DataError(f"no valid report left: all {_height(ds.reports):,} reports rejected"
+        n_in = _height(ds.reports)
+        if n_in == 0:
+            raise DataError("reports: the table has no rows; nothing to process")
+        raise DataError(f"no valid report left: all {n_in:,} reports rejected"
                         + (f" (most common: {why})" if why else ""))
     clock.stage("align")
     aligned = align_stage.expand(ing.plan, cfg.align)

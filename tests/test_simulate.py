@@ -9,6 +9,7 @@ import polars as pl
 import pytest
 
 from tertiary import geo
+from tertiary.errors import DataError
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
 from tertiary.simulate.config import Anomalies, RadarConfig, scenario_toml, from_dict, ScenarioConfig, with_radar_count
 from tertiary.simulate.traffic import big_box, BIG_BOX_SPEED
@@ -136,7 +137,7 @@ def test_scenario_toml_roundtrip():
 def test_unknown_scenario_key_is_an_error(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text('name = "x"\nkind = "big-box"\nspeed = 3\n')
-    with pytest.raises(ValueError, match="unknown keys"):
+    with pytest.raises(DataError, match=r"bad.toml: ScenarioConfig: unknown key\(s\) speed"):
         load_scenario(p)
 
 

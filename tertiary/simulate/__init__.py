@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 import dataclasses
+import re
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
@@ -13,9 +14,11 @@ import numpy as np
 import polars as pl
 
 from tertiary import geo
+from tertiary.errors import DataError, OptionError
 from tertiary.local_tracks import track_reports
 from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, ScenarioConfig, TrackerParams,
-                                      TrafficConfig, auto_radars, builtin_scenarios, load_scenario,
+                                      TrafficConfig, auto_radars, builtin_scenarios, check_name, check_origin,
+                                      check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
 from tertiary.simulate.radar import Plots, observe, site_frame
 from tertiary.simulate.traffic import big_box, terminal_area
@@ -24,7 +27,8 @@ from tertiary.store import write_parquet_atomic, write_text_atomic
 
 __all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "load_scenario", "builtin_scenarios",
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
-           "Trajectories", "big_box", "terminal_area", "resolve_data_path"]
+           "Trajectories", "big_box", "terminal_area", "resolve_data_path", "check_scenario",
+           "read_scenario_toml"]
 
 Progress = Callable[[str], None]
 
@@ -38,20 +42,25 @@ class Dataset:
     truth: pl.DataFrame
     scenario: ScenarioConfig
     removed: pl.DataFrame = field(default_factory=pl.DataFrame)   # truth rows dropped by ADS-B cleaning
+    notes: list[str] = field(default_factory=list)                # how the dataset was completed on load
 
     @property
     def origin(self) -> geo.LocalFrame:
         return geo.LocalFrame(*self.scenario.origin)
 
 
-def resolve_data_path(path: str) -> Path:
-    """A data file path: absolute, relative to the working directory, or to the repository."""
-    p = Path(path).expanduser()
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p, Path(__file__).resolve().parents[2] / p]
-    for c in candidates:
-        if c.exists():
-            return c
-    raise FileNotFoundError(f"data file {path!r} not found (looked in: {', '.join(map(str, candidates))})")
+def _read_truth_file(path: Path) -> pl.DataFrame:
+    """The ADS-B truth file, or a :class:`DataError` naming it and what is wrong."""
+    from tertiary.simulate import adsb
+    try:
+        frame = adsb.read_adsb(path)
+    except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"not a readable ADS-B trajectory table (OpenSky/traffic schema): {first}",
+                        path=str(path)) from exc
+    if frame.filter(pl.col("timestamp").is_not_null()).height == 0:
+        raise DataError("no ADS-B row with a timestamp", path=str(path))
+    return frame
 
 
 def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfig, Trajectories, pl.DataFrame]:
@@ -61,8 +70,7 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
     if cfg.kind == "terminal-area":
         return cfg, terminal_area(cfg.traffic, cfg.duration_s, cfg.dt, rng), pl.DataFrame()
     if cfg.kind == "adsb":
-        from tertiary.simulate import adsb
-        frame = adsb.read_adsb(resolve_data_path(cfg.adsb.truth_file))
+        frame = _read_truth_file(resolve_data_path(cfg.adsb.truth_file))
         t0 = frame["timestamp"].min().replace(microsecond=0)
         start = t0 + timedelta(seconds=cfg.adsb.start_s)
         frame = frame.filter((pl.col("timestamp") >= start) &
@@ -124,11 +132,12 @@ def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories) -> pl.DataFr
 def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
     """Simulate a scenario: truth, every radar's scans for ``cfg.runs`` runs, and each radar's
     own Singer-channel secondary processing. Same config (incl. seed) → identical tables."""
+    cfg = check_scenario(cfg)
     say = progress or (lambda _msg: None)
     say("truth trajectories")
     cfg, traj, removed = _truth(cfg, np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0]))
     if cfg.origin is None or not cfg.radars:
-        raise ValueError(f"scenario {cfg.name!r} needs an origin and at least one radar")
+        raise OptionError(f"scenario {cfg.name!r} needs an origin and at least one radar", option="origin")
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(cfg.radars) + 1)
     system = geo.LocalFrame(*cfg.origin)
     radars = radars_frame(cfg)
@@ -147,7 +156,12 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
 def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
     """Write radars/reports/truth Parquet files and ``scenario.toml`` atomically."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise DataError("exists and is not a directory; give a dataset directory", path=str(out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot create the dataset directory: {exc.strerror or exc}", path=str(out)) from exc
     for name in ("radars", "reports", "truth"):
         write_parquet_atomic(getattr(ds, name), out / f"{name}.parquet")
     if ds.removed.height:
@@ -156,15 +170,82 @@ def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
     return out
 
 
-def read_dataset(path: str | Path) -> Dataset:
-    """Load a dataset directory written by :func:`write_dataset` (or hand-made with the same files)."""
+def _read_table(path: Path, required: bool) -> pl.DataFrame:
+    """One Parquet table of a dataset; a missing (when required) or unreadable file is a
+    :class:`DataError` naming it."""
+    if not path.exists():
+        if required:
+            raise DataError("missing (a dataset needs radars.parquet and reports.parquet)", path=str(path))
+        return pl.DataFrame()
+    if not path.is_file():
+        raise DataError("not a file", path=str(path))
+    try:
+        return pl.read_parquet(path)
+    except Exception as exc:  # polars, pyarrow and OS errors alike: the file is unusable
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        size = path.stat().st_size
+        what = "empty file" if size == 0 else f"not a readable Parquet file ({type(exc).__name__}: {text[:160]})"
+        raise DataError(what, path=str(path)) from exc
+
+
+def _site_origin(radars: pl.DataFrame) -> tuple[float, float, float] | None:
+    """Mean site of the radars whose lat/lon are valid numbers on the globe (alt 0), or None."""
+    if not {"lat_deg", "lon_deg"} <= set(radars.columns):
+        return None
+    try:
+        sites = radars.select(pl.col("lat_deg").cast(pl.Float64, strict=False),
+                              pl.col("lon_deg").cast(pl.Float64, strict=False))
+    except pl.exceptions.PolarsError:
+        return None
+    ok = sites.filter(pl.col("lat_deg").is_between(-90, 90) & pl.col("lon_deg").is_between(-180, 180))
+    if ok.height == 0:
+        return None
+    return float(ok["lat_deg"].mean()), float(ok["lon_deg"].mean()), 0.0
+
+
+def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> Dataset:
+    """Load a dataset directory written by :func:`write_dataset` (or hand-made with the same files).
+
+    ``origin`` (lat, lon[, alt]) overrides the scenario's system origin. Without
+    ``scenario.toml`` the origin is ``origin`` or else the mean of the radar sites (a note in
+    ``Dataset.notes`` says so) and the scenario name is the directory name made an identifier.
+    Every problem (missing or unreadable file, malformed TOML, bad origin or name) is a
+    :class:`DataError` naming the file.
+    """
     d = Path(path)
-    missing = [f for f in ("radars.parquet", "reports.parquet") if not (d / f).exists()]
-    if missing:
-        raise FileNotFoundError(f"{d}: missing {', '.join(missing)}")
-    truth = pl.read_parquet(d / "truth.parquet") if (d / "truth.parquet").exists() else pl.DataFrame()
-    removed = pl.read_parquet(d / "truth_removed.parquet") if (d / "truth_removed.parquet").exists() else pl.DataFrame()
-    scen = load_scenario(d / "scenario.toml") if (d / "scenario.toml").exists() else \
-        ScenarioConfig(name=d.name, kind="terminal-area")
-    return Dataset(radars=pl.read_parquet(d / "radars.parquet"), reports=pl.read_parquet(d / "reports.parquet"),
-                   truth=truth, scenario=scen, removed=removed)
+    if not d.is_dir():
+        raise DataError("not a dataset directory" if d.exists() else "no such dataset directory", path=str(d))
+    radars = _read_table(d / "radars.parquet", True)
+    reports = _read_table(d / "reports.parquet", True)
+    truth = _read_table(d / "truth.parquet", False)
+    removed = _read_table(d / "truth_removed.parquet", False)
+    notes: list[str] = []
+    if origin is not None:
+        try:
+            origin = check_origin(origin)
+        except OptionError as exc:
+            raise OptionError(str(exc).split(": ", 1)[-1], option="origin (--origin)") from exc
+    toml = d / "scenario.toml"
+    if toml.exists():
+        scen = read_scenario_toml(toml)
+        try:
+            check_name(scen.name)
+            if origin is None:
+                if scen.origin is None:
+                    raise OptionError("missing (give origin = [lat, lon, alt] or --origin LAT,LON)", option="origin")
+                check_origin(scen.origin)
+        except OptionError as exc:
+            raise DataError(str(exc), path=str(toml)) from exc
+    else:
+        name = re.sub(r"[^A-Za-z0-9_-]", "_", d.resolve().name).lstrip("_-")[:64] or "dataset"
+        scen = ScenarioConfig(name=name, kind="terminal-area")
+        notes.append(f"{d}: no scenario.toml; scenario name {name!r}")
+        if origin is None:
+            origin = _site_origin(radars)
+            if origin is None:
+                raise DataError("no scenario.toml and no radar site to place the system origin: give the origin "
+                                "(--origin LAT,LON)", path=str(d))
+            notes.append(f"system origin = mean radar site ({origin[0]:.5f}, {origin[1]:.5f}, 0 m)")
+    if origin is not None:
+        scen = dataclasses.replace(scen, origin=tuple(origin))
+    return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes)

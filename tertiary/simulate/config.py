@@ -7,8 +7,11 @@ import math
 import tomllib
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+import re
+import types
+from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from tertiary.errors import DataError, OptionError, ResourceError
 from tertiary.filters.singer import SingerModel
 from tertiary.local_tracks import LocalTrackerConfig
 
@@ -125,31 +128,71 @@ class ScenarioConfig:
 # --------------------------------------------------------------------------- dict <-> dataclass
 
 
-def _convert(tp: Any, value: Any) -> Any:
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _type_error(where: str, expected: str, value: Any) -> OptionError:
+    return OptionError(f"expected {expected}, got {type(value).__name__} {_show(value)}", option=where)
+
+
+def _convert(tp: Any, value: Any, where: str = "") -> Any:
+    """``value`` as type ``tp`` (TOML types are checked, not trusted: a string is never a number)."""
     origin = get_origin(tp)
-    if is_dataclass(tp) and isinstance(value, dict):
-        return from_dict(tp, value)
-    if origin is tuple and isinstance(value, (list, tuple)):
+    if is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise _type_error(where, "a table", value)
+        return from_dict(tp, value, where)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise OptionError(f"expected one of {', '.join(map(repr, get_args(tp)))}, got {_show(value)}",
+                              option=where)
+        return value
+    if origin in (Union, types.UnionType):  # Optional[...]
+        if value is None and type(None) in get_args(tp):
+            return None
+        inner = [a for a in get_args(tp) if a is not type(None)]
+        return _convert(inner[0], value, where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise _type_error(where, "an array", value)
         args = get_args(tp)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v) for v in value)
-        return tuple(_convert(a, v) for a, v in zip(args, value))
-    if origin is not None and type(None) in get_args(tp):  # Optional[...]
-        inner = [a for a in get_args(tp) if a is not type(None)]
-        return None if value is None else _convert(inner[0], value)
-    if tp is float and isinstance(value, int):
+            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise OptionError(f"expected {len(args)} values, got {len(value)}: {_show(value)}", option=where)
+        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _type_error(where, "a number", value)
         return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _type_error(where, "an integer", value)
+        return value
+    if tp is str and not isinstance(value, str):
+        raise _type_error(where, "a string", value)
+    if tp is bool and not isinstance(value, bool):
+        raise _type_error(where, "true or false", value)
     return value
 
 
-def from_dict(cls: type, data: dict[str, Any]) -> Any:
-    """Build a (nested) frozen dataclass from a TOML-like dict; unknown keys are an error."""
+def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
+    """Build a (nested) frozen dataclass from a TOML-like dict; unknown keys and values of the
+    wrong type are an :class:`OptionError` naming the key (e.g. ``radars[1].scan_period_s``)."""
     hints = get_type_hints(cls)
     names = {f.name for f in fields(cls)}
     unknown = set(data) - names
     if unknown:
-        raise ValueError(f"{cls.__name__}: unknown keys {sorted(unknown)}; allowed: {sorted(names)}")
-    return cls(**{k: _convert(hints[k], v) for k, v in data.items()})
+        raise OptionError(f"unknown key(s) {', '.join(sorted(map(str, unknown)))}; allowed: {', '.join(sorted(names))}",
+                          option=where or cls.__name__)
+    required = [f.name for f in fields(cls)
+                if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING]
+    missing = [n for n in required if n not in data]
+    if missing:
+        raise OptionError(f"missing key(s) {', '.join(missing)}", option=where or cls.__name__)
+    return cls(**{k: _convert(hints[k], v, f"{where}.{k}" if where else k) for k, v in data.items()})
 
 
 def to_dict(obj: Any) -> Any:
@@ -203,14 +246,43 @@ def builtin_dir() -> Path:
     return installed if any(installed.glob("*.toml")) else package.parent / "datasets"
 
 
+def read_scenario_toml(path: str | Path) -> ScenarioConfig:
+    """A scenario from a TOML file; an unreadable, non-UTF-8 or malformed file, an unknown key or
+    a value of the wrong type is a :class:`DataError` naming the file and the key."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise DataError(f"cannot read: {exc.strerror or exc}", path=str(p)) from exc
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        hint = " (UTF-16?)" if raw[:2] in (b"\xff\xfe", b"\xfe\xff") or b"\x00" in raw[:64] else ""
+        raise DataError(f"not UTF-8 text{hint}: byte {exc.start}", path=str(p)) from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise DataError(f"not valid TOML: {exc}", path=str(p)) from exc
+    try:
+        return from_dict(ScenarioConfig, data)
+    except OptionError as exc:
+        raise DataError(str(exc), path=str(p)) from exc
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"invalid scenario: {exc}", path=str(p)) from exc
+
+
 def load_scenario(name_or_path: str | Path) -> ScenarioConfig:
-    """A scenario by built-in name (``big-box``, ``terminal-area``, ``adsb-paris``) or TOML path."""
+    """A scenario by built-in name (``big-box``, ``terminal-area``, ``adsb-paris``) or TOML path.
+
+    An unknown name is an :class:`OptionError` listing the built-ins; a bad file a
+    :class:`DataError` (see :func:`read_scenario_toml`)."""
     path = Path(name_or_path)
-    if not (path.suffix == ".toml" and path.exists()):
+    if not (path.suffix == ".toml" and path.is_file()):
         path = builtin_dir() / f"{name_or_path}.toml"
-        if not path.exists():
-            raise ValueError(f"unknown scenario {str(name_or_path)!r}; built-in: {', '.join(builtin_scenarios())}")
-    return from_dict(ScenarioConfig, tomllib.loads(path.read_text()))
+        if not (_NAME.fullmatch(str(name_or_path)) and path.is_file()):
+            raise OptionError(f"unknown scenario {str(name_or_path)!r} (not a built-in name or an existing .toml "
+                              f"file); built-in: {', '.join(builtin_scenarios())}", option="scenario")
+    return read_scenario_toml(path)
 
 
 def builtin_scenarios() -> list[str]:
@@ -224,10 +296,10 @@ def scenario_toml(cfg: ScenarioConfig) -> str:
 def with_radar_count(cfg: ScenarioConfig, m: int) -> ScenarioConfig:
     """Keep the first ``m`` radars, or add sites on a ring around the origin that cycle through
     the defined radars' parameters with scan periods 4–12 s and distinct phases."""
-    if m < 1:
-        raise ValueError("need at least one radar")
+    if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+        raise OptionError(f"need at least one radar, got {m!r}", option="radars (--radars)")
     if not cfg.radars:
-        raise ValueError(f"scenario {cfg.name!r} defines no radar to scale from")
+        raise OptionError(f"scenario {cfg.name!r} defines no radar to scale from", option="radars (--radars)")
     if m <= len(cfg.radars):
         return dataclasses.replace(cfg, radars=cfg.radars[:m])
     periods = (4.0, 5.0, 6.0, 8.0, 10.0, 12.0)
@@ -253,3 +325,209 @@ AUTO_RADAR = RadarConfig(name="AUTO-1", scan_period_s=4.0, sigma_range_m=40.0, s
 def auto_radars(n: int = 4) -> tuple[RadarConfig, ...]:
     """``n`` radars on rings 30–60 km around the system origin (used when a scenario has none)."""
     return with_radar_count(ScenarioConfig(name="auto", kind="adsb", radars=(AUTO_RADAR,)), n).radars
+
+
+# --------------------------------------------------------------------------- validation
+
+#: a scenario name: run directories are built from it, so never a path
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+
+#: command-line flag of each checked field (named in the error beside the field)
+_FLAGS = {"runs": "--runs", "seed": "--seed", "duration_s": "--duration", "traffic.aircraft": "--aircraft",
+          "adsb.truth_file": "--truth", "anomalies.noise_factor": "--noise-factor",
+          "anomalies.noise_window_s": "--noise-window", "anomalies.dropout_radar": "--dropout",
+          "anomalies.dropout_window_s": "--dropout", "anomalies.outlier_fraction": "--outliers",
+          "anomalies.bias_step_time_s": "--bias-step", "anomalies.bias_step_range_m": "--bias-step",
+          "anomalies.bias_step_azimuth_deg": "--bias-step"}
+
+#: refuse simulations estimated beyond this many truth or report rows (memory grows with them)
+MAX_SIM_ROWS = 400_000_000
+
+
+def _opt(field_name: str) -> str:
+    flag = _FLAGS.get(field_name)
+    return f"{field_name} ({flag})" if flag else field_name
+
+
+def check_name(name: Any, option: str = "name") -> str:
+    """``name`` if it is a scenario identifier (letters, digits, '-', '_'; never a path)."""
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise OptionError(f"must be an identifier (letters, digits, '-' and '_', at most 64, "
+                          f"not a path), got {_show(name)}", option=option)
+    return name
+
+
+def _number(where: str, value: Any, lo: float = -math.inf, hi: float = math.inf, *, integer: bool = False,
+            open_lo: bool = False) -> None:
+    """A finite number (an integer if asked) in [lo, hi] (or (lo, hi] with ``open_lo``)."""
+    kind = (int,) if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kind):
+        raise _type_error(_opt(where), "an integer" if integer else "a number", value)
+    if not math.isfinite(value) or value < lo or value > hi or (open_lo and value == lo):
+        left = "(" if open_lo else "["
+        raise OptionError(f"must be finite and in {left}{lo:g}, {hi:g}], got {value!r}", option=_opt(where))
+
+
+def _window(where: str, value: Any) -> None:
+    if value is None:
+        return
+    if not isinstance(value, tuple) or len(value) != 2:
+        raise _type_error(_opt(where), "two numbers (start, end)", value)
+    for v in value:
+        _number(where, v, 0.0)
+    if not value[0] < value[1]:
+        raise OptionError(f"start must be before end, got {value[0]:g} to {value[1]:g}", option=_opt(where))
+
+
+def check_origin(origin: Any, option: str = "origin") -> tuple[float, float, float]:
+    """``origin`` as (lat, lon, alt) on the globe (alt 0 when two values are given)."""
+    if not isinstance(origin, (tuple, list)) or len(origin) not in (2, 3):
+        raise _type_error(option, "(lat_deg, lon_deg[, alt_m])", origin)
+    values = tuple(origin) + ((0.0,) if len(origin) == 2 else ())
+    for name, v, lo, hi in zip(("lat_deg", "lon_deg", "alt_m"), values, (-90, -180, -500), (90, 180, 9000)):
+        _number(f"{option}.{name}", v, lo, hi)
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
+
+
+def _check_radar(where: str, r: Any) -> None:
+    from tertiary.schema import Limits
+    lim = Limits()
+    if not isinstance(r, RadarConfig):
+        raise _type_error(where, "a radar table", r)
+    if not isinstance(r.name, str) or not r.name.strip():
+        raise OptionError("a radar needs a name", option=f"{where}.name")
+    _number(f"{where}.scan_period_s", r.scan_period_s, *lim.scan_period_s)
+    _number(f"{where}.sigma_range_m", r.sigma_range_m, *lim.sigma_range_m, open_lo=True)
+    for k in ("sigma_azimuth_deg", "sigma_elevation_deg"):
+        _number(f"{where}.{k}", getattr(r, k), *lim.sigma_angle_deg, open_lo=True)
+    _number(f"{where}.max_range_m", r.max_range_m, *lim.max_range_m)
+    if r.site_enu_m is None:
+        if r.lat_deg is None or r.lon_deg is None:
+            raise OptionError("give lat_deg and lon_deg, or site_enu_m", option=where)
+        check_origin((r.lat_deg, r.lon_deg, r.alt_m), f"{where}.site")
+    else:
+        if not isinstance(r.site_enu_m, tuple) or len(r.site_enu_m) != 3:
+            raise _type_error(f"{where}.site_enu_m", "three numbers", r.site_enu_m)
+        for v in r.site_enu_m:
+            _number(f"{where}.site_enu_m", v, -2e6, 2e6)
+    _number(f"{where}.scan_phase_s", r.scan_phase_s, 0.0, lim.scan_period_s[1])
+    _number(f"{where}.min_elevation_deg", r.min_elevation_deg, -90.0, 90.0)
+    _number(f"{where}.max_elevation_deg", r.max_elevation_deg, r.min_elevation_deg, 90.0, open_lo=True)
+    _number(f"{where}.pd", r.pd, 0.0, 1.0)
+    _number(f"{where}.clutter_rate", r.clutter_rate, *lim.clutter_rate)
+    _number(f"{where}.bias_range_m", r.bias_range_m, -1e4, 1e4)
+    _number(f"{where}.bias_azimuth_deg", r.bias_azimuth_deg, -180.0, 180.0)
+    _number(f"{where}.time_offset_s", r.time_offset_s, -3600.0, 3600.0)
+    _number(f"{where}.track_drop_scans", r.track_drop_scans, 0.0, 1e3, open_lo=True)
+    if r.timing not in ("rotating", "synchronous"):
+        raise OptionError(f"expected 'rotating' or 'synchronous', got {_show(r.timing)}", option=f"{where}.timing")
+
+
+def _check_traffic(t: TrafficConfig) -> None:
+    _number("traffic.aircraft", t.aircraft, 1, 1_000_000, integer=True)
+    _number("traffic.area_radius_m", t.area_radius_m, 0.0, 2e6, open_lo=True)
+    for k in ("speed_mps", "altitude_m", "turn_rate_dps", "straight_s", "vertical_rate_mps", "lifetime_s",
+              "conflict_miss_m"):
+        pair = getattr(t, k)
+        if not isinstance(pair, tuple) or len(pair) != 2:
+            raise _type_error(f"traffic.{k}", "two numbers (low, high)", pair)
+        for v in pair:
+            _number(f"traffic.{k}", v, -1e7, 1e7)
+        if pair[0] > pair[1]:
+            raise OptionError(f"low must not exceed high, got {pair}", option=f"traffic.{k}")
+    _number("traffic.holding_fraction", t.holding_fraction, 0.0, 1.0)
+    _number("traffic.conflict_pairs", t.conflict_pairs, 0, 1_000_000, integer=True)
+    _number("traffic.mode_s_fraction", t.mode_s_fraction, 0.0, 1.0)
+
+
+def _check_anomalies(a: Anomalies, radar_names: list[str]) -> None:
+    _number("anomalies.noise_factor", a.noise_factor, 0.0, 1e4, open_lo=True)
+    _window("anomalies.noise_window_s", a.noise_window_s)
+    known = ", ".join(radar_names) or "none"
+    for name in a.radars:
+        if name not in radar_names:
+            raise OptionError(f"unknown radar {name!r}; radars: {known}", option="anomalies.radars")
+    if a.dropout_radar is not None:
+        if a.dropout_radar not in radar_names:
+            raise OptionError(f"unknown radar {a.dropout_radar!r}; radars: {known}",
+                              option=_opt("anomalies.dropout_radar"))
+        if a.dropout_window_s is None:
+            raise OptionError("a dropout needs its window T0:T1", option=_opt("anomalies.dropout_window_s"))
+    _window("anomalies.dropout_window_s", a.dropout_window_s)
+    _number("anomalies.outlier_fraction", a.outlier_fraction, 0.0, 1.0)
+    _number("anomalies.outlier_sigma_factor", a.outlier_sigma_factor, 0.0, 1e4, open_lo=True)
+    if a.bias_step_time_s is not None:
+        _number("anomalies.bias_step_time_s", a.bias_step_time_s, 0.0)
+    _number("anomalies.bias_step_range_m", a.bias_step_range_m, -1e5, 1e5)
+    _number("anomalies.bias_step_azimuth_deg", a.bias_step_azimuth_deg, -180.0, 180.0)
+
+
+def resolve_data_path(path: str) -> Path:
+    """A data file path: absolute, relative to the working directory, or to the repository
+    (a missing file is a :class:`DataError` listing where it was looked for)."""
+    p = Path(path).expanduser()
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p, Path(__file__).resolve().parents[2] / p]
+    for c in candidates:
+        if c.is_file():
+            return c
+    raise DataError(f"file not found (looked in: {', '.join(map(str, candidates))}); give an existing "
+                    f"ADS-B trajectory file with --truth FILE", path=str(path))
+
+
+def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
+    """``cfg`` after checking every option before any work: counts ≥ 1, durations finite and
+    positive, fractions in [0, 1], windows ordered, named radars existing, seed in range, the
+    ADS-B truth file present, the estimated size bounded.
+
+    Raises :class:`OptionError` naming the option (field and command-line flag),
+    :class:`DataError` for a missing truth file, :class:`ResourceError` for a simulation
+    estimated beyond :data:`MAX_SIM_ROWS` rows."""
+    if not isinstance(cfg, ScenarioConfig):
+        raise _type_error("scenario", "a ScenarioConfig", cfg)
+    check_name(cfg.name)
+    if cfg.kind not in get_args(Kind):
+        raise OptionError(f"expected one of {', '.join(get_args(Kind))}, got {_show(cfg.kind)}", option="kind")
+    _number("seed", cfg.seed, 0, 2 ** 63 - 1, integer=True)
+    _number("runs", cfg.runs, 1, 100_000, integer=True)
+    _number("duration_s", cfg.duration_s, 0.0, 366 * 86400.0, open_lo=True)
+    _number("dt", cfg.dt, 0.0, cfg.duration_s, open_lo=True)
+    if cfg.origin is not None or cfg.kind != "adsb":
+        if cfg.origin is None:
+            raise OptionError(f"a {cfg.kind} scenario needs an origin (lat, lon, alt)", option="origin")
+        check_origin(cfg.origin)
+    if not cfg.radars and cfg.kind != "adsb":
+        raise OptionError("needs at least one radar", option="radars (--radars)")
+    for i, r in enumerate(cfg.radars):
+        _check_radar(f"radars[{i}]", r)
+    names = [r.name for r in cfg.radars] or [r.name for r in auto_radars()]
+    if len(set(names)) != len(names):
+        raise OptionError(f"radar names must be unique, got {', '.join(names)}", option="radars")
+    _check_traffic(cfg.traffic)
+    _check_anomalies(cfg.anomalies, names)
+    t = cfg.tracker
+    for k in ("alpha", "sigma_m", "cross_sigma_m", "v0_sigma_mps"):
+        _number(f"tracker.{k}", getattr(t, k), 0.0, 1e6, open_lo=True)
+    if cfg.kind == "adsb":
+        if not isinstance(cfg.adsb.truth_file, str) or not cfg.adsb.truth_file:
+            raise OptionError("the adsb scenarios need an ADS-B trajectory file", option=_opt("adsb.truth_file"))
+        resolve_data_path(cfg.adsb.truth_file)
+        _number("adsb.start_s", cfg.adsb.start_s, 0.0)
+        _number("adsb.max_alt_m", cfg.adsb.max_alt_m, 0.0, 1e5, open_lo=True)
+        _number("adsb.max_gap_s", cfg.adsb.max_gap_s, 0.0, 86400.0, open_lo=True)
+    _check_size(cfg)
+    return cfg
+
+
+def _check_size(cfg: ScenarioConfig) -> None:
+    """Refuse a simulation whose truth or report rows are estimated beyond MAX_SIM_ROWS."""
+    if cfg.kind == "adsb":
+        return                                   # sized by the recording, read in chunks of time
+    aircraft = cfg.traffic.aircraft if cfg.kind == "terminal-area" else 2
+    truth = aircraft * cfg.duration_s / cfg.dt
+    reports = cfg.runs * sum(aircraft * cfg.duration_s / r.scan_period_s * (1.0 + r.clutter_rate / max(aircraft, 1))
+                             for r in cfg.radars)
+    worst = max(truth, reports)
+    if worst > MAX_SIM_ROWS:
+        raise ResourceError(f"simulate: about {worst:,.0f} rows estimated ({aircraft:,} aircraft, {cfg.duration_s:g} s, "
+                            f"{cfg.runs} run(s), {len(cfg.radars)} radar(s)); the limit is {MAX_SIM_ROWS:,}: "
+                            f"reduce --aircraft, --duration or --runs")
