@@ -4,17 +4,32 @@ Every figure and table is drawn from the named SQL reports in ``sql/`` (run read
 :mod:`tertiary.sql_reports`); only the capacity-model curves of figs. 5.2/5.3 come from
 :mod:`safety.capacity`. The plotly.js bundle is embedded inline once, so the file opens offline.
 
+The report opens with a **verdict** block: the accuracy of the best picture against the reference
+(horizontal and vertical RMSE, with the centralised reference and the best radar beside it), the
+safety performance (losses of separation alerted / missed where the safety stage scores them,
+else the alert scores against truth) and the requirements pass/fail table when the run holds a
+``requirements`` table. The *best picture* is the fused or tracker picture (not the centralised
+reference) with the lowest horizontal RMSE (segment ``all``); the *best radar* the radar whose own
+track estimates have the lowest horizontal RMSE. In the accuracy and conflict figures these three
+are drawn by default; every other trace is in the legend (click to show).
+
+Edge-of-coverage rule: accuracy curves over time leave out epochs whose number of scored samples
+N_k is below :data:`MIN_SAMPLE_FRAC` of the median N_k of that curve (at the start and end of
+coverage σ(k) rests on a handful of aircraft and is not a result); the rule is applied in SQL
+(``min_sample_frac``) and stated in each caption.
+
 Figures (seed numbering, digest §9):
 
 * 4.4  scenario map: radar sites and truth trajectories (``trajectories``, ``radar_sites``)
-* 4.5–4.7  range, range rate and line-of-sight acceleration per radar over time, first run, a
-  few aircraft (``radar_kinematics``)
+* 4.5–4.7  range, range rate and line-of-sight acceleration over time, first run, a few
+  aircraft, one small panel per radar (``radar_kinematics``)
 * 4.9  range residuals per radar over time (``radar_residuals_over_time``)
-* 4.10 real RMS range error over time per radar and for the tertiary estimate
-  (``radar_accuracy_over_time``, ``accuracy_over_time``)
+* 4.10 real RMS horizontal and vertical error over time per radar and per picture, in two
+  panels (``radar_accuracy_over_time``, ``accuracy_over_time``)
 * 4.11 a-posteriori versus a-priori weights (``aposteriori_vs_apriori``, ``aposteriori_gain``)
-* accuracy by method, filter and segment (``accuracy_by_method``)
-* conflict timeline (``conflict_timeline``, ``conflicts``, ``alert_scores``)
+* accuracy by method, filter and segment, horizontal and vertical panels (``accuracy_by_method``)
+* conflict timeline: pairs in alert and new alerts per minute (``conflict_timeline``,
+  ``conflicts``, ``alert_scores``)
 * 5.2  P_pob against the number of aircraft for several σ (``safety.capacity.ppob_curves``)
 * 5.3  capacity against σ with each method's measured point (``safety.capacity.capacity_curve``,
   ``capacity_by_method``)
@@ -52,7 +67,8 @@ import polars as pl
 from tertiary.sql_reports import open_read_only, run_report
 from tertiary.store import RunStore, write_text_atomic
 
-__all__ = ["REPORT_FILENAME", "MAX_POINTS", "build_report", "render_report", "figure_count"]
+__all__ = ["REPORT_FILENAME", "MAX_POINTS", "MIN_SAMPLE_FRAC", "build_report", "render_report", "build_sections",
+           "figure_count"]
 
 REPORT_FILENAME = "report.html"
 #: most points drawn per time-series trace (longer series are thinned evenly)
@@ -61,6 +77,10 @@ MAX_POINTS = 2000
 KINEMATICS_AIRCRAFT = 3
 #: conflicts listed in the conflicts table
 CONFLICT_ROWS = 25
+#: accuracy curves over time leave out epochs with fewer samples than this fraction of the curve's median
+MIN_SAMPLE_FRAC = 0.25
+#: the centralised measurement-level reference picture
+CENTRALIZED = "centralized"
 
 Progress = Callable[[str], None]
 
@@ -96,6 +116,13 @@ class _Ctx:
     def q(self, name: str, **params: Any) -> pl.DataFrame:
         return run_report(self.store, name, params)
 
+    @property
+    def best(self) -> "_Best":
+        """The best picture, the centralised reference and the best radar (computed once)."""
+        if not hasattr(self, "_best"):
+            self._best = _best_pictures(self)
+        return self._best
+
     def json(self, key: str) -> Any:
         raw = self.record.get(key)
         if raw is None:
@@ -111,6 +138,71 @@ def _toml(text: str) -> dict:
         return tomllib.loads(text) if text else {}
     except tomllib.TOMLDecodeError:
         return {}
+
+
+# --------------------------------------------------------------------------- best picture, reference, radar
+
+
+@dataclass
+class _Best:
+    """Accuracy of the pictures (segment ``all``): ``pictures`` has one row per picture
+    (picture, stage, horizontal_m, height_m, pos_m); ``picture`` is the best one (lowest
+    horizontal RMSE, the centralised reference excluded), ``fused`` the best picture that has
+    accuracy curves over time (a fusion method), ``radar`` the best radar's name and
+    ``radars`` one row per radar (radar, horizontal_m, height_m, pos_m)."""
+
+    pictures: pl.DataFrame
+    radars: pl.DataFrame
+    picture: str | None = None
+    fused: str | None = None
+    radar: str | None = None
+    ranked_by: str = "rmse_horizontal_m"
+    unranked: list[str] = field(default_factory=list)
+
+
+def _best_pictures(ctx: _Ctx) -> _Best:
+    acc = ctx.q("accuracy_by_method", segment="all") if "metrics" in ctx.tables else pl.DataFrame()
+    cols = {"rmse_horizontal_m": "horizontal_m", "rmse_height_m": "height_m", "rmse_pos_m": "pos_m"}
+    if acc.height:
+        pictures = acc.select(
+            pl.when(pl.col("filter").is_null()).then(pl.col("method"))
+            .otherwise(pl.col("method") + "+" + pl.col("filter")).alias("picture"),
+            "stage", *[pl.col(c).alias(a) for c, a in cols.items()])
+    else:
+        pictures = pl.DataFrame(schema={"picture": pl.String, "stage": pl.String, **{a: pl.Float64 for a in cols.values()}})
+    radars = _radar_pooled(ctx)
+    best = _Best(pictures, radars)
+    cand = pictures.filter(pl.col("picture") != CENTRALIZED)
+    key = "horizontal_m" if cand["horizontal_m"].is_not_null().any() else "pos_m"
+    best.ranked_by = "rmse_horizontal_m" if key == "horizontal_m" else "rmse_pos_m"
+    best.unranked = cand.filter(pl.col(key).is_null())["picture"].to_list()
+    ranked = cand.filter(pl.col(key).is_not_null()).sort(key)
+    if ranked.height:
+        best.picture = ranked["picture"][0]
+        fus = ranked.filter(pl.col("stage") == "fusion")
+        best.fused = fus["picture"][0] if fus.height else None
+    if radars.height:
+        best.radar = radars.sort("horizontal_m", nulls_last=True)["radar"][0]
+    return best
+
+
+def _radar_pooled(ctx: _Ctx) -> pl.DataFrame:
+    """Each radar's pooled RMSE sqrt(mean_k σ²(k)) — the pooling of the metrics table — from
+    sql/radar_accuracy_over_time.sql (every epoch, as the metrics pool every epoch)."""
+    schema = {"radar": pl.String, "horizontal_m": pl.Float64, "height_m": pl.Float64, "pos_m": pl.Float64}
+    if not {"aligned", "truth", "radars"} <= ctx.tables:
+        return pl.DataFrame(schema=schema)
+    ra = ctx.q("radar_accuracy_over_time")
+    if ra.height == 0:
+        return pl.DataFrame(schema=schema)
+    return (ra.group_by("name").agg(*[(pl.col(c) ** 2).mean().sqrt().alias(a) for c, a in
+                                      (("rmse_horizontal_m", "horizontal_m"), ("rmse_height_m", "height_m"),
+                                       ("rmse_pos_m", "pos_m"))])
+            .rename({"name": "radar"}).sort("horizontal_m").cast(schema))
+
+
+def _visible(name: str, shown: set[str]) -> bool | str:
+    return True if name in shown else "legendonly"
 
 
 # --------------------------------------------------------------------------- helpers
@@ -177,17 +269,43 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-def _table_html(frame: pl.DataFrame, max_rows: int | None = None) -> str:
+_BREAK_AFTER = frozenset("_+/,:;=.-")
+
+
+def _breakable(text: str) -> str:
+    """Escaped cell text with line-break opportunities (``<wbr>``) after ``_ + / , : ; = . -``
+    and every 16 characters inside longer unbroken runs (hashes, JSON), so that long names and
+    values wrap inside their cell instead of widening the table past the page."""
+    if len(text) <= 12:
+        return html.escape(text)
+    out, run = [], 0
+    for ch in text:   # table cells only (at most 200 rows per table): not a hot path
+        out.append(html.escape(ch))
+        run = 0 if ch.isspace() else run + 1
+        if run and (ch in _BREAK_AFTER or run >= 16):
+            out.append("<wbr>")
+            run = 0
+    return "".join(out)
+
+
+def _table_html(frame: pl.DataFrame, max_rows: int | None = None,
+                cell_class: dict[str, Callable[[Any], str]] | None = None) -> str:
+    """An HTML table (long cells wrap; see _CSS); ``cell_class`` maps a column to a function
+    giving the CSS class of each of its cells."""
     if frame.width == 0:
         return '<p class="note">(no columns)</p>'
     rows = frame if max_rows is None else frame.head(max_rows)
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in frame.columns)
+    head = "".join(f"<th>{_breakable(c)}</th>" for c in frame.columns)
+    extra = [(cell_class or {}).get(c) for c in frame.columns]
     body = []
     for row in rows.iter_rows():
         cells = []
-        for v in row:
-            cls = ' class="num"' if isinstance(v, (int, float)) and not isinstance(v, bool) else ""
-            cells.append(f"<td{cls}>{html.escape(_fmt(v))}</td>")
+        for v, fn in zip(row, extra):
+            cls = ["num"] if isinstance(v, (int, float)) and not isinstance(v, bool) else []
+            cls += [html.escape(fn(v))] if fn else []
+            attr = f' class="{" ".join(cls)}"' if cls else ""
+            text = html.escape(_fmt(v)) if cls[:1] == ["num"] else _breakable(_fmt(v))
+            cells.append(f"<td{attr}>{text}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     if not body:
         body.append(f'<tr><td colspan="{frame.width}" class="note">no rows</td></tr>')
@@ -195,6 +313,123 @@ def _table_html(frame: pl.DataFrame, max_rows: int | None = None) -> str:
     if max_rows is not None and frame.height > max_rows:
         more = f'<p class="note">first {max_rows:,} of {frame.height:,} rows</p>'
     return f'<div class="tablewrap"><table><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table></div>{more}'
+
+
+# --------------------------------------------------------------------------- verdict
+
+
+def _m(v: Any) -> str:
+    """A distance in metres for prose ("41.2 m"; "n/a" when missing)."""
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:,.1f} m"
+
+
+def _rel(a: float | None, b: float | None) -> str:
+    """'23 % smaller than' / '5 % larger than' / 'equal to' for a against b."""
+    if a is None or b is None or not b:
+        return "not comparable with"
+    r = (a - b) / b * 100.0
+    if abs(r) < 0.5:
+        return "equal to"
+    return f"{abs(r):.0f} % {'smaller' if r < 0 else 'larger'} than"
+
+
+def _sec_verdict(ctx: _Ctx) -> _Section:
+    sec = _Section("verdict", "Verdict")
+    sec.html = "\n".join([_verdict_accuracy(ctx), _verdict_safety(ctx), _verdict_requirements(ctx)])
+    return sec
+
+
+def _verdict_accuracy(ctx: _Ctx) -> str:
+    b = ctx.best
+    if b.picture is None:
+        return ('<h3>Accuracy</h3><p class="note">No accuracy against a reference: the run has no truth '
+                '(or no fused picture could be scored).</p>')
+    pic = b.pictures.filter(pl.col("picture") == b.picture).row(0, named=True)
+    ref = b.pictures.filter(pl.col("picture") == CENTRALIZED)
+    ref = ref.row(0, named=True) if ref.height else None
+    rad = b.radars.filter(pl.col("radar") == b.radar).row(0, named=True) if b.radar else None
+    lines = [f"<b>Best picture: {html.escape(b.picture)}</b> — horizontal RMSE <b>{_m(pic['horizontal_m'])}</b>, "
+             f"vertical (height) RMSE <b>{_m(pic['height_m'])}</b> (3-D {_m(pic['pos_m'])})."]
+    if ref:
+        lines.append(f"Centralised reference ({CENTRALIZED}: one Kalman filter on every radar's measurements, a "
+                     f"reference, not a bound): horizontal {_m(ref['horizontal_m'])}, vertical {_m(ref['height_m'])}. "
+                     f"The best picture's horizontal error is {_rel(pic['horizontal_m'], ref['horizontal_m'])} "
+                     "the reference's.")
+    if rad:
+        lines.append(f"Best radar alone ({html.escape(b.radar)}, its own track estimates): horizontal "
+                     f"{_m(rad['horizontal_m'])}, vertical {_m(rad['height_m'])}. The best picture's horizontal "
+                     f"error is {_rel(pic['horizontal_m'], rad['horizontal_m'])} the best radar's.")
+    rule = (f"Ranked by {b.ranked_by} over all segments, against simulator truth; RMSE pooled as sqrt(mean over "
+            "epochs of σ²(k)), first 20 s of each track left out.")
+    if b.unranked:
+        more = f" and {len(b.unranked) - 6} more" if len(b.unranked) > 6 else ""
+        rule += (f" Not ranked ({len(b.unranked)} pictures without a {b.ranked_by} row in this run): "
+                 f"{', '.join(b.unranked[:6])}{more}.")
+    rows = [(b.picture, "best picture", pic)] + ([(CENTRALIZED, "centralised reference", ref)] if ref else [])
+    rows += [(b.radar, "best radar", rad)] if rad else []
+    table = pl.DataFrame({"picture": [r[0] for r in rows], "role": [r[1] for r in rows],
+                          "horizontal RMSE (m)": [r[2]["horizontal_m"] for r in rows],
+                          "vertical RMSE (m)": [r[2]["height_m"] for r in rows],
+                          "3-D RMSE (m)": [r[2]["pos_m"] for r in rows]},
+                         schema_overrides={c: pl.Float64 for c in ("horizontal RMSE (m)", "vertical RMSE (m)",
+                                                                   "3-D RMSE (m)")})
+    return ("<h3>Accuracy of the air picture</h3>" + "".join(f"<p>{ln}</p>" for ln in lines)
+            + _table_html(table) + f'<p class="note">{html.escape(rule)}</p>')
+
+
+_SAFETY_COLS = {  # alert_scores column → plain heading with unit
+    "method": "picture", "los_episodes": "losses of separation", "alerted_los": "losses alerted",
+    "missed_los": "losses missed", "genuine_alerts": "genuine alerts", "nuisance_alerts": "nuisance alerts",
+    "alerts_per_hour": "alerts per hour (1/h)", "warning_median_s": "median warning (s)",
+    "warning_p05_s": "5th-percentile warning (s)", "episodes": "true conflicts", "hits": "alerted in time",
+    "misses": "missed", "false_alerts": "false alerts", "mean_warning_s": "mean warning (s)",
+}
+
+
+def _verdict_safety(ctx: _Ctx) -> str:
+    head = "<h3>Safety performance (conflict alerts)</h3>"
+    scores = ctx.q("alert_scores") if "metrics" in ctx.tables else pl.DataFrame()
+    if scores.height == 0:
+        return head + '<p class="note">No conflict alerts were scored in this run (no safety stage, or no truth).</p>'
+    los = scores["los_episodes"].is_not_null().any()
+    b = ctx.best
+    prefer = [p for p in (b.picture, (b.picture or "").split("+")[0], b.fused, CENTRALIZED) if p]
+    pick = next((p for p in prefer if p in scores["method"].to_list()), scores["method"][0])
+    r = scores.filter(pl.col("method") == pick).row(0, named=True)
+    f = lambda v, unit="": "n/a" if v is None else f"{v:,.0f}{unit}"   # noqa: E731 — counts
+    if los and r["los_episodes"] is not None:
+        text = (f"On <b>{html.escape(pick)}</b>: {f(r['los_episodes'])} losses of separation in truth, "
+                f"<b>{f(r['alerted_los'])} alerted</b>, <b>{f(r['missed_los'])} missed</b>; "
+                f"{f(r['genuine_alerts'])} genuine, {f(r['nuisance_alerts'])} nuisance and "
+                f"{f(r['false_alerts'])} false alerts ({r['alerts_per_hour'] or 0:.1f} alerts per hour); median "
+                f"warning {f(r['warning_median_s'], ' s')}, 5th percentile {f(r['warning_p05_s'], ' s')}.")
+        cols = ["method", "los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
+                "false_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s"]
+    else:
+        warn = "n/a" if r["mean_warning_s"] is None else f"{r['mean_warning_s']:.0f} s"
+        text = (f"On <b>{html.escape(pick)}</b>: {f(r['episodes'])} true-conflict episodes in truth, "
+                f"<b>{f(r['hits'])} alerted in time</b>, <b>{f(r['misses'])} missed</b>; "
+                f"<b>{f(r['false_alerts'])} false alerts</b>; mean warning time {warn}.")
+        cols = ["method", "episodes", "hits", "misses", "false_alerts", "mean_warning_s"]
+    table = scores.select(cols).rename({c: _SAFETY_COLS[c] for c in cols})
+    note = ("Scored against truth per picture (sql/alert_scores.sql); the full table with flicker is in the "
+            "Conflicts section.")
+    return head + f"<p>{text}</p>" + _table_html(table) + f'<p class="note">{note}</p>'
+
+
+def _verdict_requirements(ctx: _Ctx) -> str:
+    head = "<h3>Requirements</h3>"
+    if "requirements" not in ctx.tables:
+        return head + ('<p class="note">Not evaluated: the run database has no <code>requirements</code> table, so '
+                       "no pass/fail verdict is given.</p>")
+    req = ctx.store.sql("SELECT * FROM requirements")
+    if "verdict" not in req.columns or req.height == 0:
+        return head + '<p class="note">The requirements table is empty or has no verdict column.</p>'
+    counts = dict(req.group_by("verdict").len().iter_rows())
+    parts = [f"{counts.get(v, 0)} {label}" for v, label in (("pass", "pass"), ("fail", "fail"),
+                                                           ("insufficient", "insufficient samples"))]
+    text = f"<b>{', '.join(parts)}</b> (of {req.height} requirements)."
+    return head + f"<p>{text}</p>" + _table_html(req, cell_class={"verdict": lambda v: f"verdict-{v}"})
 
 
 # --------------------------------------------------------------------------- figures
@@ -250,6 +485,16 @@ def _site_enu(ctx: _Ctx, sites: pl.DataFrame) -> tuple[np.ndarray, np.ndarray] |
     return np.asarray(e), np.asarray(n)
 
 
+def _small_multiples(n: int, titles: list[str], cols: int = 2):
+    """A grid of ``n`` panels (``cols`` wide) sharing the x axis, one title per panel."""
+    from plotly.subplots import make_subplots
+    cols = max(1, min(cols, n))
+    rows = max(1, math.ceil(n / cols))
+    fig = make_subplots(rows=rows, cols=cols, shared_xaxes=True, subplot_titles=titles,
+                        vertical_spacing=min(0.12, 0.35 / rows), horizontal_spacing=0.08)
+    return fig, rows, cols
+
+
 def _sec_kinematics(ctx: _Ctx) -> _Section:
     go = _go()
     sec = _Section("kinematics", "Range, range rate and acceleration per radar (seed figs. 4.5–4.7)")
@@ -257,12 +502,14 @@ def _sec_kinematics(ctx: _Ctx) -> _Section:
     names = _radar_names(kin) if kin.height else {}
     radars = sorted(names)
     aircraft = sorted(kin["truth_id"].unique().to_list()) if kin.height else []
-    specs = [("est_range_m", "Range D(k) per radar (fig. 4.5)", "range D (km)", 1e-3),
-             ("est_range_rate_mps", "Range rate V(k) per radar (fig. 4.6)", "range rate V (m/s)", 1.0),
-             ("accel_mps2", "Line-of-sight acceleration a(k) = ΔV/Δt per radar (fig. 4.7)", "acceleration (m/s²)", 1.0)]
+    specs = [("est_range_m", "Range D(k) (fig. 4.5)", "range D (km)", 1e-3),
+             ("est_range_rate_mps", "Range rate V(k) (fig. 4.6)", "range rate V (m/s)", 1.0),
+             ("accel_mps2", "Line-of-sight acceleration a(k) = ΔV/Δt (fig. 4.7)", "acceleration a (m/s²)", 1.0)]
+    titles = [f"radar {names[r]}" for r in radars] or ["no radar reports"]
     for col, title, ytitle, scale in specs:
-        fig = go.Figure()
+        fig, nrows, ncols = _small_multiples(len(titles), titles)
         for i, rid in enumerate(radars):
+            row, cc = i // ncols + 1, i % ncols + 1
             for j, ac in enumerate(aircraft):
                 part = kin.filter((pl.col("radar_id") == rid) & (pl.col("truth_id") == ac))
                 if part.height == 0:
@@ -272,11 +519,12 @@ def _sec_kinematics(ctx: _Ctx) -> _Section:
                 brk = np.flatnonzero(np.diff(part["local_track_id"].to_numpy()) != 0) + 1
                 x = np.insert(part["t_s"].to_numpy(), brk, np.nan)
                 y = np.insert(part[col].cast(pl.Float64).fill_null(float("nan")).to_numpy() * scale, brk, np.nan)
-                label = f"{names[rid]} · aircraft {ac}" if len(aircraft) > 1 else names[rid]
-                fig.add_trace(go.Scatter(x=_arr(x), y=_arr(y), mode="lines", name=label,
-                                         line=dict(color=_COLORS[i % len(_COLORS)], dash=_DASHES[j % len(_DASHES)],
-                                                   width=1.3)))
-        _layout(fig, title, "time t (s)", ytitle)
+                fig.add_trace(go.Scatter(x=_arr(x), y=_arr(y), mode="lines", name=f"aircraft {ac}",
+                                         legendgroup=f"ac{ac}", showlegend=i == 0,
+                                         line=dict(color=_COLORS[j % len(_COLORS)], width=1.3)), row=row, col=cc)
+        _layout(fig, title + ", one panel per radar", "", "", height=max(300, 250 * nrows + 80))
+        fig.update_xaxes(title_text="time t (s)", row=nrows)
+        fig.update_yaxes(title_text=ytitle, col=1)
         if col == "accel_mps2" and kin.height:
             # the first seconds of a track (filter transient) would swamp the scale
             lo, hi = kin.select(pl.col(col).quantile(0.005).alias("lo"), pl.col(col).quantile(0.995).alias("hi")).row(0)
@@ -286,8 +534,9 @@ def _sec_kinematics(ctx: _Ctx) -> _Section:
         sec.figures.append((fig, ""))
     sec.text = (f"Each radar's own track estimates (est_range_m, est_range_rate_mps) for the first Monte-Carlo "
                 f"run and the {len(aircraft)} aircraft seen by the most radars (sql/radar_kinematics.sql, "
-                f"{kin.height:,} reports); the acceleration is the difference of consecutive range-rate estimates "
-                "over their time step.")
+                f"{kin.height:,} reports), one panel per radar with the same aircraft colours; the acceleration is "
+                "the difference of consecutive range-rate estimates over their time step (axis clipped to the "
+                "0.5–99.5 % quantiles, so that track-start transients do not swamp it).")
     return sec
 
 
@@ -312,7 +561,7 @@ def _sec_residuals(ctx: _Ctx) -> _Section:
         fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["pred_sd_m"]), mode="lines",
                                  name=f"{name} predicted SD", line=dict(color=color, width=1, dash="dot"),
                                  visible="legendonly"))
-    _layout(fig, f"Mean |range innovation| per radar, {bin_s:g} s bins", "time t (s)", "|ΔD| (m)")
+    _layout(fig, f"Mean |range innovation| per radar, {bin_s:g} s bins", "time t (s)", "|range innovation ΔD| (m)")
     sec.figures.append((fig, "Each radar's own range innovation |res_range_m| averaged over aircraft and runs in "
                              f"{bin_s:g} s bins (sql/radar_residuals_over_time.sql); dotted: mean predicted "
                              "innovation SD (click the legend)."))
@@ -320,32 +569,62 @@ def _sec_residuals(ctx: _Ctx) -> _Section:
     return sec
 
 
+def _edge_rule(frac: float = MIN_SAMPLE_FRAC) -> str:
+    return (f"Edge-of-coverage rule: an epoch is drawn only if its number of scored samples N_k is at least "
+            f"{frac:.0%} of the median N_k of its curve (min_sample_frac = {frac:g} in the SQL report); thinner "
+            "epochs, at the start and end of coverage, rest on a handful of aircraft and are not drawn")
+
+
 def _sec_rmse_time(ctx: _Ctx) -> _Section:
     go = _go()
-    sec = _Section("rmse_time", "Real RMS range error over time (seed fig. 4.10)")
-    radar = ctx.q("radar_accuracy_over_time")
-    tert = ctx.q("accuracy_over_time", metric="rmse_range_m")
-    fig = go.Figure()
-    for i, (rid, name) in enumerate(sorted(_radar_names(radar).items()) if radar.height else []):
-        part = _thin(radar.filter(pl.col("radar_id") == rid))
-        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["rmse_range_m"]), mode="lines",
-                                 name=f"radar {name}", line=dict(color=_COLORS[i % len(_COLORS)], width=1.2)))
-    methods = tert["method"].unique(maintain_order=True).to_list() if tert.height else []
-    main = "aposteriori" if "aposteriori" in methods else (methods[0] if methods else None)
-    for k, m in enumerate(methods):
-        part = _thin(tert.filter(pl.col("method") == m))
-        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["value"]), mode="lines",
-                                 name=f"tertiary: {m}", line=dict(color="black" if m == main else None,
-                                                                  width=2.2 if m == main else 1.2,
-                                                                  dash="solid" if m == main else _DASHES[k % len(_DASHES)]),
-                                 visible=True if m == main else "legendonly"))
-    _layout(fig, "σ(k): each radar's own estimate and the tertiary (fused) estimate", "time t (s)",
-            "RMS range error (m)")
-    sec.figures.append((fig, "Per-radar curves: the radars' own track estimates aligned to the common epochs, "
-                             "scored against truth in SQL (sql/radar_accuracy_over_time.sql: N − 1 denominator over "
-                             "the aircraft and runs at each epoch, range from the processing centre, first 20 s of "
-                             "each local track left out). Tertiary curves: accuracy_by_epoch "
-                             "(sql/accuracy_over_time.sql); other fusion methods are in the legend."))
+    from plotly.subplots import make_subplots
+    sec = _Section("rmse_time", "Real RMS horizontal and vertical error over time (seed fig. 4.10)")
+    b = ctx.best
+    radar = ctx.q("radar_accuracy_over_time", min_sample_frac=MIN_SAMPLE_FRAC)
+    n_radar_all = ctx.q("radar_accuracy_over_time").height
+    panels = (("rmse_horizontal_m", "horizontal"), ("rmse_height_m", "vertical (height)"))
+    tert = {m: ctx.q("accuracy_over_time", metric=m, min_sample_frac=MIN_SAMPLE_FRAC) for m, _ in panels}
+    n_tert_all = ctx.q("accuracy_over_time", metric=panels[0][0]).height
+    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.1,
+                        subplot_titles=[f"{label.capitalize()} RMS error" for _m, label in panels])
+    shown = {b.radar, b.fused, CENTRALIZED} - {None}
+    for row, (metric, _label) in enumerate(panels, start=1):
+        for i, (rid, name) in enumerate(sorted(_radar_names(radar).items()) if radar.height else []):
+            part = _thin(radar.filter(pl.col("radar_id") == rid))
+            fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part[metric]), mode="lines",
+                                     name=f"radar {name}" + (" (best radar)" if name == b.radar else ""),
+                                     legendgroup=f"radar {name}", showlegend=row == 1,
+                                     visible=_visible(name, shown),
+                                     line=dict(color=_COLORS[i % len(_COLORS)], width=1.2, dash="dot")), row=row, col=1)
+        frame = tert[metric]
+        methods = frame["method"].unique(maintain_order=True).to_list() if frame.height else []
+        for k, m in enumerate(methods):
+            part = _thin(frame.filter(pl.col("method") == m))
+            main = m == b.fused
+            label = m + (" (best picture)" if m == b.picture else " (best fused picture)" if main else
+                         " (centralised reference)" if m == CENTRALIZED else "")
+            fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["value"]), mode="lines", name=label,
+                                     legendgroup=m, showlegend=row == 1, visible=_visible(m, shown),
+                                     line=dict(color="black" if main else "#6a3d9a" if m == CENTRALIZED else None,
+                                               width=2.2 if main else 1.4,
+                                               dash="solid" if main or m == CENTRALIZED else _DASHES[k % len(_DASHES)])),
+                          row=row, col=1)
+    _layout(fig, "σ(k) of each picture and of each radar's own tracks", "", "", height=720)
+    fig.update_yaxes(title_text="horizontal RMSE (m)", row=1, col=1)
+    fig.update_yaxes(title_text="vertical RMSE (m)", row=2, col=1)
+    fig.update_xaxes(title_text="time t (s)", row=2, col=1)
+    left_out = f"{n_tert_all - tert[panels[0][0]].height:,} of {n_tert_all:,} picture epochs and " \
+               f"{n_radar_all - radar.height:,} of {n_radar_all:,} radar epochs left out"
+    best_note = "" if b.picture == b.fused or b.picture is None else (
+        f" The best picture overall, {b.picture}, is a tracker picture without per-epoch accuracy; its fusion "
+        f"input's best, {b.fused}, is drawn instead.")
+    sec.figures.append((fig, "Drawn by default: the best fused picture (black), the centralised reference (purple) "
+                             "and the best radar (dotted); every other picture and radar is in the legend (click to "
+                             "show). Per-radar curves: each radar's own track estimates aligned to the common epochs "
+                             "(sql/radar_accuracy_over_time.sql); picture curves: accuracy_by_epoch "
+                             "(sql/accuracy_over_time.sql); N − 1 denominator over the aircraft and runs at each "
+                             f"epoch, first 20 s of each track left out. {_edge_rule()} ({left_out})."
+                        + best_note))
     return sec
 
 
@@ -353,7 +632,7 @@ def _sec_post_prior(ctx: _Ctx) -> _Section:
     go = _go()
     from plotly.subplots import make_subplots
     sec = _Section("post_prior", "A-posteriori versus a-priori weights (seed fig. 4.11)")
-    pp = ctx.q("aposteriori_vs_apriori")
+    pp = ctx.q("aposteriori_vs_apriori", min_sample_frac=MIN_SAMPLE_FRAC)
     fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.08, row_heights=[0.6, 0.4])
     colors = {"aposteriori": "#d62728", "aposteriori_seed": "#ff7f0e", "apriori": "#1f77b4", "arithmetic": "#2ca02c"}
     drawn = set()
@@ -375,33 +654,50 @@ def _sec_post_prior(ctx: _Ctx) -> _Section:
     fig.update_xaxes(title_text="time t (s)", row=2, col=1)
     sec.figures.append((fig, "From accuracy_by_epoch (sql/aposteriori_vs_apriori.sql); gain > 0 where the "
                              "a-posteriori weights beat the reference (solid: a-priori weights, dotted: "
-                             "arithmetic 0.5/0.5)."))
-    sec.tables.append(("Gain summary (sql/aposteriori_gain.sql)", ctx.q("aposteriori_gain")))
+                             f"arithmetic 0.5/0.5). {_edge_rule()}."))
+    sec.tables.append((f"Gain summary, same edge rule (sql/aposteriori_gain.sql, min_sample_frac = {MIN_SAMPLE_FRAC:g})",
+                       ctx.q("aposteriori_gain", min_sample_frac=MIN_SAMPLE_FRAC)))
     return sec
 
 
 def _sec_accuracy(ctx: _Ctx) -> _Section:
     go = _go()
-    sec = _Section("accuracy", "Accuracy by method, filter and segment")
+    from plotly.subplots import make_subplots
+    sec = _Section("accuracy", "Accuracy by picture, filter and segment")
     acc = ctx.q("accuracy_by_method")
-    fig = go.Figure()
-    fus = acc.filter(pl.col("stage") == "fusion") if acc.height else acc
+    b = ctx.best
+    pic = (pl.when(pl.col("filter").is_null()).then(pl.col("method"))
+           .otherwise(pl.col("method") + "+" + pl.col("filter")).alias("picture"))
+    rows = acc.with_columns(pic) if acc.height else acc
+    # one x position per picture, ordered by horizontal RMSE (segment all): best first
+    # only pictures with a horizontal or vertical figure get a slot (tracker rows may lack them)
+    drawn = b.pictures.filter(pl.col("horizontal_m").is_not_null() | pl.col("height_m").is_not_null())
+    order = drawn.sort(["horizontal_m", "pos_m"], nulls_last=True)["picture"].to_list()
+    missing = b.pictures.filter(~pl.col("picture").is_in(order))["picture"].to_list()
+    if rows.height:
+        rows = rows.filter(pl.col("picture").is_in(order))
+    fig = make_subplots(rows=1, cols=2, shared_yaxes=False, horizontal_spacing=0.08,
+                        subplot_titles=["Horizontal RMS error", "Vertical (height) RMS error"])
     for i, seg in enumerate(["all", "straight", "turn"]):
-        part = fus.filter(pl.col("segment") == seg) if fus.height else fus
+        part = rows.filter(pl.col("segment") == seg) if rows.height else rows
         if part.height == 0:
             continue
-        fig.add_trace(go.Bar(x=part["method"].to_list(), y=_arr(part["rmse_pos_m"]), name=f"segment {seg}",
-                             marker_color=_COLORS[i]))
-    trk = acc.filter((pl.col("stage") == "tracker") & (pl.col("segment") == "all")) if acc.height else acc
-    if trk.height:
-        fig.add_trace(go.Bar(x=trk["method"].to_list(), y=_arr(trk["rmse_pos_m"]),
-                             name="after tracker (all)", marker_color="#7f7f7f",
-                             text=trk["filter"].to_list(), visible="legendonly"))
-    _layout(fig, "Real RMS position error of each fusion method", "fusion method", "RMSE position (m)",
-            barmode="group")
-    sec.figures.append((fig, "From the metrics table (sql/accuracy_by_method.sql); the centralized "
-                             "measurement-level Kalman filter is the bound."))
-    sec.tables.append(("RMSE by method, filter and segment (sql/accuracy_by_method.sql)", acc))
+        for col, (metric, _title) in enumerate((("rmse_horizontal_m", ""), ("rmse_height_m", "")), start=1):
+            fig.add_trace(go.Bar(x=part["picture"].to_list(), y=_arr(part[metric]), name=f"segment {seg}",
+                                 legendgroup=seg, showlegend=col == 1, marker_color=_COLORS[i],
+                                 visible=True if seg == "all" else "legendonly"), row=1, col=col)
+    _layout(fig, "Real RMS error of every picture (fusion methods, and trackers as method+filter)", "", "",
+            height=560, barmode="group")
+    fig.update_xaxes(categoryorder="array", categoryarray=order, tickangle=-40)
+    fig.update_yaxes(title_text="horizontal RMSE (m)", row=1, col=1)
+    fig.update_yaxes(title_text="vertical RMSE (m)", row=1, col=2)
+    best = f"best picture: {b.picture}; " if b.picture else ""
+    sec.figures.append((fig, f"From the metrics table (sql/accuracy_by_method.sql), pictures ordered by horizontal "
+                             f"RMSE, segment all ({best}the centralised measurement-level filter, {CENTRALIZED}, is a "
+                             "reference, not a bound); straight and turn segments are in the legend."
+                             + (f" Not drawn ({len(missing)} pictures without horizontal and vertical rows in this "
+                                f"run): {', '.join(missing)}." if missing else "")))
+    sec.tables.append(("RMSE by picture, filter and segment, in metres (sql/accuracy_by_method.sql)", acc))
     return sec
 
 
@@ -415,18 +711,39 @@ def _sec_quality(ctx: _Ctx) -> _Section:
 
 def _sec_conflicts(ctx: _Ctx) -> _Section:
     go = _go()
+    from plotly.subplots import make_subplots
     sec = _Section("conflicts", "Conflicts")
     tl = ctx.q("conflict_timeline")
-    fig = go.Figure()
+    b = ctx.best
     methods = tl["method"].unique(maintain_order=True).to_list() if tl.height else []
+    prefer = [p for p in (b.picture, (b.picture or "").split("+")[0], b.fused) if p]
+    main = next((p for p in prefer if p in methods), methods[0] if methods else None)
+    shown = {main, CENTRALIZED}
+    fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.1,
+                        subplot_titles=["Aircraft pairs in alert at each epoch", "New alerts per minute"])
     for i, m in enumerate(methods):
-        part = _thin(tl.filter(pl.col("method") == m))
-        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["alerts"]), mode="lines", name=m,
-                                 line=dict(color=_COLORS[i % len(_COLORS)], width=1.2, shape="hv"),
-                                 visible=True if i < 3 or m == "aposteriori" else "legendonly"))
-    _layout(fig, "Pairs in conflict alert per epoch, per picture", "time t (s)", "alerts")
-    sec.figures.append((fig, "Conflict prediction (5.10)–(5.17) on every fused picture (sql/conflict_timeline.sql)."
-                        if methods else "No aircraft pairs were evaluated (single-aircraft scenario?)."))
+        part = tl.filter(pl.col("method") == m)
+        minute = (part.with_columns((pl.col("t_s") // 60.0 * 60.0).alias("t0"))
+                  .group_by("t0").agg(pl.col("new_alerts").sum()).sort("t0"))
+        color = "black" if m == main else _COLORS[i % len(_COLORS)]
+        label = m + (" (best picture)" if m == main else " (centralised reference)" if m == CENTRALIZED else "")
+        part = _thin(part)
+        fig.add_trace(go.Scatter(x=_arr(part["t_s"]), y=_arr(part["alerts"]), mode="lines", name=label,
+                                 legendgroup=m, visible=_visible(m, shown),
+                                 line=dict(color=color, width=1.2, shape="hv")), row=1, col=1)
+        # per whole minute of the run: the rate is the count in that minute (alerts/min)
+        fig.add_trace(go.Scatter(x=_arr(minute["t0"] + 30.0), y=_arr(minute["new_alerts"]), mode="lines+markers",
+                                 name=label, legendgroup=m, showlegend=False, visible=_visible(m, shown),
+                                 marker=dict(size=4), line=dict(color=color, width=1.2)), row=2, col=1)
+    _layout(fig, "Conflict alerts over time, per picture", "", "", height=620)
+    fig.update_yaxes(title_text="pairs in alert (pairs)", row=1, col=1)
+    fig.update_yaxes(title_text="new alerts per minute (1/min)", row=2, col=1)
+    fig.update_xaxes(title_text="time t (s)", row=2, col=1)
+    sec.figures.append((fig, "Conflict prediction (5.10)–(5.17) on every picture (sql/conflict_timeline.sql). Top: "
+                             "pairs in alert at each epoch; bottom: alerts that start (pair not in alert at its "
+                             "previous epoch) counted per minute of the run, drawn at the middle of the minute. Drawn "
+                             "by default: the best picture and the centralised reference; the others are in the "
+                             "legend." if methods else "No aircraft pairs were evaluated (single-aircraft scenario?)."))
     sec.tables.append(("Alert scores against truth (sql/alert_scores.sql)", ctx.q("alert_scores")))
     conflicts = ctx.q("conflicts")
     sec.tables.append((f"Most severe conflicts (sql/conflicts.sql; {conflicts.height:,} alerted pairs)",
@@ -448,7 +765,8 @@ def _sec_ppob(ctx: _Ctx) -> _Section:
             p = part.select(pl.when(pl.col("valid") & (pl.col("p") > 0)).then(pl.col("p"))).to_series()
             fig.add_trace(go.Scatter(x=_arr(part["n"]), y=_arr(p), mode="lines", name=f"σ = {s:g} m, {model}",
                                      line=dict(color=_COLORS[i], dash=dashes[model], width=1.5)))
-    _layout(fig, "P_pob against the number of aircraft n", "number of aircraft n", "probability")
+    _layout(fig, "P_pob against the number of aircraft n", "number of aircraft n (aircraft)",
+            "probability of a conflict P_pob (dimensionless)")
     fig.update_yaxes(type="log", exponentformat="power")
     sec.figures.append((fig, f"safety.capacity.ppob_curves with V_zo = {V_ZO_M3:.0e} m³ and V_BC = {V_BC_M3:g} m³: "
                              "seed = (5.21) as printed, drawn only where valid ((n − 1)V_ob < V_zo/2; it has a "
@@ -486,7 +804,8 @@ def _sec_capacity(ctx: _Ctx) -> _Section:
                                                      size=9, line=dict(color="black", width=0.5)),
                                          text=measured["method"].to_list(),
                                          hovertemplate="%{text}: σ = %{x:.1f} m, n_max = %{y}<extra></extra>"))
-    _layout(fig, "Largest number of aircraft n_max against the RMS error σ", "σ (m)", "n_max")
+    _layout(fig, "Largest number of aircraft n_max against the RMS error σ", "RMS error σ (m)",
+            "largest number of aircraft n_max (aircraft)")
     fig.update_xaxes(type="log")
     fig.update_yaxes(type="log")
     sec.figures.append((fig, f"safety.capacity.capacity_curve for the run's P* = {p_run:g} with V_zo = {V_ZO_M3:.0e} m³ "
@@ -529,6 +848,7 @@ def _sec_metadata(ctx: _Ctx) -> _Section:
 
 
 _SECTIONS: list[tuple[str, Callable[[_Ctx], _Section]]] = [
+    ("verdict", _sec_verdict),
     ("scenario map", _sec_map),
     ("range, rate, acceleration", _sec_kinematics),
     ("residuals", _sec_residuals),
@@ -583,22 +903,49 @@ h3 { margin-bottom: 6px; }
 nav ol { columns: 2; }
 .caption, .note { color: #57606a; font-size: 0.9em; }
 .figure { margin: 14px 0 22px; }
-.tablewrap { overflow-x: auto; max-height: 520px; overflow-y: auto; }
-table { border-collapse: collapse; font-size: 0.85em; margin: 6px 0 14px; }
-th, td { border: 1px solid #d0d7de; padding: 3px 8px; }
-th { background: #f6f8fa; position: sticky; top: 0; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; }
-pre { background: #f6f8fa; padding: 10px; overflow-x: auto; font-size: 0.8em; }
+/* tables never clip: long cells wrap (names, JSON, reasons), wide tables shrink to the page */
+.tablewrap { max-width: 100%; }
+table { border-collapse: collapse; font-size: 0.85em; margin: 6px 0 14px; max-width: 100%; table-layout: auto; }
+th, td { border: 1px solid #d0d7de; padding: 3px 6px; overflow-wrap: break-word; white-space: normal;
+         vertical-align: top; }
+th { background: #f6f8fa; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+td.verdict-pass { background: #dafbe1; } td.verdict-fail { background: #ffebe9; font-weight: bold; }
+td.verdict-insufficient { background: #fff8c5; }
+#verdict { border: 2px solid #1f6feb; border-radius: 6px; padding: 4px 18px 10px; background: #f6faff; }
+#verdict h2 { margin-top: 12px; border-bottom: none; }
+pre { background: #f6f8fa; padding: 10px; white-space: pre-wrap; overflow-wrap: anywhere; font-size: 0.8em; }
 #js-errors { color: #b00020; background: #fff0f0; }
+@media print {
+  body { max-width: none; padding: 0; font-size: 10pt; }
+  nav, .modebar-container { display: none !important; }
+  section { break-before: auto; }
+  h2, h3 { break-after: avoid; }
+  .figure { break-inside: avoid; }
+  table { font-size: 8pt; width: 100%; }
+  thead { display: table-header-group; }   /* repeat the header on every printed page */
+  tr { break-inside: avoid; }
+  details { display: block; } details > pre { display: block; }
+  #verdict { break-after: page; }
+}
 """
 
 
-def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = None) -> tuple[str, int]:
-    """The report's HTML text and its number of figures (nothing written)."""
-    import plotly.io as pio
+@dataclass
+class _Built:
+    """The report's sections and the run facts of its header."""
 
+    sections: list[_Section]
+    scenario: str
+    created: str
+    rows: dict
+    timings: dict
+
+
+def build_sections(run_dir: str | os.PathLike[str], progress: Progress | None = None) -> _Built:
+    """Every section of the report (plotly figures, tables, HTML), verdict first; a section
+    whose data is missing holds a "Not available" note instead of failing the report."""
     say = progress or (lambda _m: None)
-    t_all = time.perf_counter()
     sections: list[_Section] = []
     with open_read_only(run_dir) as store:
         ctx = _Ctx(store, say)
@@ -609,39 +956,55 @@ def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = N
             except Exception as exc:   # one missing table must not lose the whole report
                 sections.append(_Section(build.__name__.removeprefix("_sec_"), label.capitalize(),
                                          note=f"Not available for this run: {type(exc).__name__}: {exc}"))
-        scenario = ctx.record.get("scenario", "run")
-        created = ctx.record.get("created_utc", "")
-        rows = ctx.json("rows") or {}
-        timings = ctx.json("timings") or {}
+        return _Built(sections, ctx.record.get("scenario", "run"), ctx.record.get("created_utc", ""),
+                      ctx.json("rows") or {}, ctx.json("timings") or {})
+
+
+def _section_html(sec: _Section, n_fig: int) -> tuple[str, int]:
+    import plotly.io as pio
+    body = [f'<section id="{sec.key}"><h2>{html.escape(sec.title)}</h2>']
+    if sec.text:
+        body.append(f'<p>{html.escape(sec.text)}</p>')
+    if sec.html:
+        body.append(sec.html)
+    for fig, caption in sec.figures:
+        div = pio.to_html(fig, include_plotlyjs=(n_fig == 0), full_html=False, div_id=f"fig-{sec.key}-{n_fig}",
+                          default_height=f"{fig.layout.height or 460}px",
+                          config={"displaylogo": False, "responsive": True},
+                          post_script="window.__reportDone('{plot_id}');")
+        body.append(f'<div class="figure">{div}')
+        if caption:
+            body.append(f'<p class="caption">{html.escape(caption)}</p>')
+        body.append("</div>")
+        n_fig += 1
+    for title, frame in sec.tables:
+        body.append(f"<h3>{html.escape(title)}</h3>{_table_html(frame, max_rows=200)}")
+    if sec.note:
+        body.append(sec.note if sec.note.startswith("<") else f'<p class="note">{html.escape(sec.note)}</p>')
+    body.append("</section>")
+    return "".join(body), n_fig
+
+
+def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = None) -> tuple[str, int]:
+    """The report's HTML text and its number of figures (nothing written)."""
+    say = progress or (lambda _m: None)
+    t_all = time.perf_counter()
+    built = build_sections(run_dir, say)
     say("report: html")
-    body: list[str] = []
+    top, body, toc = [], [], []
     n_fig = 0
-    toc = []
-    for sec in sections:
+    for sec in built.sections:
+        text, n_fig = _section_html(sec, n_fig)
+        if sec.key == "verdict":     # the verdicts open the report, before the table of contents
+            top.append(text)
+            continue
         toc.append(f'<li><a href="#{sec.key}">{html.escape(sec.title)}</a></li>')
-        body.append(f'<section id="{sec.key}"><h2>{html.escape(sec.title)}</h2>')
-        if sec.text:
-            body.append(f'<p>{html.escape(sec.text)}</p>')
-        if sec.html:
-            body.append(sec.html)
-        for fig, caption in sec.figures:
-            div = pio.to_html(fig, include_plotlyjs=(n_fig == 0), full_html=False, div_id=f"fig-{sec.key}-{n_fig}",
-                              default_height=f"{fig.layout.height or 460}px",
-                              config={"displaylogo": False, "responsive": True},
-                              post_script="window.__reportDone('{plot_id}');")
-            body.append(f'<div class="figure">{div}')
-            if caption:
-                body.append(f'<p class="caption">{html.escape(caption)}</p>')
-            body.append("</div>")
-            n_fig += 1
-        for title, frame in sec.tables:
-            body.append(f"<h3>{html.escape(title)}</h3>{_table_html(frame, max_rows=200)}")
-        if sec.note:
-            body.append(sec.note if sec.note.startswith("<") else f'<p class="note">{html.escape(sec.note)}</p>')
-        body.append("</section>")
+        body.append(text)
+    rows, timings = built.rows, built.timings
     summary = (f"{rows.get('reports_in', 0):,} reports in, {rows.get('reports_aligned', 0):,} aligned, "
                f"{rows.get('reports_rejected', 0):,} rejected; {rows.get('targets', 0):,} system targets; "
                f"pipeline {float(timings.get('total_s', 0.0)):.1f} s") if rows else ""
+    scenario = built.scenario
     page = f"""<!DOCTYPE html>
 <html lang="en">
 <head>
@@ -654,9 +1017,10 @@ def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = N
 <body data-figures="{n_fig}" data-rendered="0" data-js-errors="0">
 <pre id="js-errors" hidden></pre>
 <h1>Tertiary processing report: {html.escape(scenario)}</h1>
-<p>Run created {html.escape(created)} UTC. {html.escape(summary)}. Report built
+<p>Run created {html.escape(built.created)} UTC. {html.escape(summary)}. Report built
 {datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M:%S')} UTC in {time.perf_counter() - t_all:.1f} s from the named SQL
 reports in <code>sql/</code> (run them with <code>tertiary sql RUN_DIR NAME</code>).</p>
+{''.join(top)}
 <nav><ol>{''.join(toc)}</ol></nav>
 {''.join(body)}
 </body>

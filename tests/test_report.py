@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.cli import app
-from tertiary.report import MAX_POINTS, REPORT_FILENAME, _thin, build_report, figure_count
+from tertiary.report import (CENTRALIZED, MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, _breakable, _thin,
+                             build_report, build_sections, figure_count)
 from tertiary.simulate import load_scenario, simulate, write_dataset
 from tertiary.store import RunStore
 
@@ -94,6 +95,168 @@ def test_thin():
     assert _thin(frame.head(5)).height == 5
 
 
+@pytest.fixture(scope="module")
+def built(run_dir):
+    return build_sections(run_dir)
+
+
+def _figures(built, key: str) -> list:
+    sec = next(s for s in built.sections if s.key == key)
+    assert sec.figures, (key, sec.note)
+    return [fig for fig, _caption in sec.figures]
+
+
+def _captions(built, key: str) -> str:
+    return " ".join(c for s in built.sections if s.key == key for _f, c in s.figures)
+
+
+def _shown(fig) -> set[str]:
+    """Legend groups (or names) of the traces drawn by default."""
+    return {t.legendgroup or t.name for t in fig.data if t.visible in (None, True)}
+
+
+def test_verdict_opens_the_report(page, run_dir):
+    first = re.search(r'<section id="([^"]+)"', page)
+    assert first and first.group(1) == "verdict"
+    verdict = page[first.start():page.index("</section>", first.start())].replace("<wbr>", "")
+    assert page.index('<section id="verdict"') < page.index("<nav>")         # before the table of contents
+    # the best picture, the reference and the best radar, with units; safety; requirements
+    with RunStore.open(run_dir) as store:
+        m = store.read("metrics")
+    fus = m.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
+                   & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
+    best = fus["method"][0]
+    assert f"Best picture: {best}</b>" in verdict
+    assert f"horizontal RMSE <b>{fus['value'][0]:,.1f} m</b>" in verdict
+    assert "vertical (height) RMSE <b>" in verdict and "Centralised reference" in verdict
+    assert "Best radar alone" in verdict and "horizontal RMSE (m)" in verdict and "vertical RMSE (m)" in verdict
+    assert "Safety performance" in verdict and "alerted in time" in verdict and "false alerts" in verdict
+    assert "Requirements" in verdict and "no <code>requirements</code> table" in verdict
+
+
+def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path):
+    shutil.copy(run_dir / "results.duckdb", tmp_path / "results.duckdb")
+    req = pl.DataFrame({"requirement": ["horizontal RMS terminal", "probability of update"],
+                        "metric": ["rmse_horizontal_m", "prob_update"], "breakdown": ["all", "all"],
+                        "threshold": [150.0, 0.97], "value": [48.0, 0.9], "n_samples": [1000, 12],
+                        "verdict": ["pass", "insufficient"]})
+    los = pl.DataFrame({"stage": "safety", "method": "information",
+                        "metric": ["los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
+                                   "alerts_per_hour", "warning_median_s", "warning_p05_s"],
+                        "segment": "all", "value": [4.0, 3.0, 1.0, 3.0, 2.0, 6.5, 41.0, 12.0],
+                        "n_runs": 1}).with_columns(pl.col("n_runs").cast(pl.UInt32))
+    with RunStore.update(tmp_path) as store:
+        store.write("requirements", req)
+        store.con.execute("INSERT INTO metrics SELECT * FROM los")
+    page = build_report(tmp_path, tmp_path / "r.html").read_text()
+    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
+    assert "1 pass, 0 fail, 1 insufficient samples</b> (of 2 requirements)" in verdict
+    assert 'class="verdict-pass"' in verdict and 'class="verdict-insufficient"' in verdict
+    assert "5th-percentile warning (s)" in verdict and "median warning (s)" in verdict
+    assert "4 losses of separation in truth, <b>3 alerted</b>, <b>1 missed</b>" in verdict
+    assert "(6.5 alerts per hour); median warning 41 s, 5th percentile 12 s" in verdict
+
+
+def test_default_visible_traces_are_best_picture_reference_and_best_radar(built, run_dir):
+    with RunStore.open(run_dir) as store:
+        m = store.read("metrics")
+    horiz = m.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
+                     & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
+    best = horiz["method"][0]
+    fig = _figures(built, "rmse_time")[0]
+    radar_groups = {t.legendgroup for t in fig.data if t.legendgroup.startswith("radar ")}
+    assert len(radar_groups) >= 2
+    shown = _shown(fig)
+    best_radar = [g for g in shown if g.startswith("radar ")]
+    assert len(best_radar) == 1
+    assert shown == {best, CENTRALIZED, best_radar[0]}
+    assert len(fig.data) > 2 * len(shown)            # every other trace is there, legend-only
+    assert {t.visible for t in fig.data} == {True, "legendonly"}
+    # the best radar is the one with the lowest pooled horizontal RMSE (its own tracks)
+    best_name = best_radar[0].removeprefix("radar ")
+    with RunStore.open(run_dir) as store:
+        from tertiary.sql_reports import run_report
+        ra = run_report(store, "radar_accuracy_over_time", {})
+    pooled = ra.group_by("name").agg((pl.col("rmse_horizontal_m") ** 2).mean().sqrt().alias("h")).sort("h")
+    assert pooled["name"][0] == best_name
+    # conflicts: the best picture (or its fusion input) and the reference by default
+    conf = _figures(built, "conflicts")[0]
+    assert _shown(conf) <= {best, CENTRALIZED} and best in _shown(conf)
+
+
+def test_horizontal_and_vertical_panels(built):
+    fig = _figures(built, "rmse_time")[0]
+    assert fig.layout.yaxis.title.text == "horizontal RMSE (m)"
+    assert fig.layout.yaxis2.title.text == "vertical RMSE (m)"
+    ys = {t.yaxis for t in fig.data}
+    assert ys == {"y", "y2"}
+    # the same trace set in each panel, toggled together by one legend entry
+    by_panel = {y: sorted(t.legendgroup for t in fig.data if t.yaxis == y) for y in ys}
+    assert by_panel["y"] == by_panel["y2"]
+    bars = _figures(built, "accuracy")[0]
+    assert bars.layout.yaxis.title.text == "horizontal RMSE (m)"
+    assert bars.layout.yaxis2.title.text == "vertical RMSE (m)"
+    assert {t.yaxis for t in bars.data} == {"y", "y2"}
+
+
+def test_kinematics_are_small_multiples(built, run_dir):
+    with RunStore.open(run_dir) as store:
+        n_radars = store.read("radars").height
+    figs = _figures(built, "kinematics")
+    assert len(figs) == 3
+    for fig in figs:
+        assert len(fig.layout.annotations) == n_radars                     # one titled panel per radar
+        assert len({t.xaxis for t in fig.data}) == n_radars
+        # each panel holds only the few aircraft, not every radar × aircraft
+        for ax in {t.xaxis for t in fig.data}:
+            assert len({t.name for t in fig.data if t.xaxis == ax}) <= 3
+        assert sum(bool(t.showlegend) for t in fig.data) <= 3              # one legend entry per aircraft
+
+
+UNIT = re.compile(r"\((m|km|s|m/s|m/s²|%|1/min|pairs|aircraft|dimensionless)\)")
+
+
+def test_every_axis_has_its_unit(built):
+    n_axes = 0
+    for sec in built.sections:
+        for fig, _c in sec.figures:
+            layout = fig.to_plotly_json()["layout"]
+            axes = {k: v for k, v in layout.items() if re.fullmatch(r"[xy]axis\d*", k)}
+            titled = {k: v["title"]["text"] for k, v in axes.items() if v.get("title", {}).get("text")}
+            for k, text in titled.items():
+                assert UNIT.search(text), (sec.key, k, text)
+            # every figure names its units on both axes (a categorical x axis of pictures excepted)
+            assert any(k.startswith("y") for k in titled), (sec.key, titled)
+            assert any(k.startswith("x") for k in titled) or sec.key == "accuracy", (sec.key, titled)
+            n_axes += len(titled)
+    assert n_axes >= 20
+    conf = next(s for s in built.sections if s.key == "conflicts").figures[0][0]
+    assert conf.layout.yaxis2.title.text == "new alerts per minute (1/min)"
+
+
+def test_edge_rule_is_applied_and_stated(built, run_dir):
+    caption = _captions(built, "rmse_time")
+    assert f"at least {MIN_SAMPLE_FRAC:.0%} of the median N_k" in caption and "left out" in caption
+    assert "Edge-of-coverage rule" in _captions(built, "post_prior")
+    # the drawn epochs are exactly those passing the rule, computed here in polars
+    with RunStore.open(run_dir) as store:
+        by = store.read("accuracy_by_epoch").filter(pl.col("metric") == "rmse_horizontal_m")
+    keep = by.filter(pl.col("n") >= MIN_SAMPLE_FRAC * pl.col("n").median().over("method"))
+    fig = _figures(built, "rmse_time")[0]
+    drawn = sum(len(t.x) for t in fig.data if t.yaxis == "y" and not t.legendgroup.startswith("radar "))
+    assert drawn == keep.height < by.height or drawn == keep.height == by.height
+
+
+def test_tables_wrap_and_print(page):
+    css = page[page.index("<style>"):page.index("</style>")]
+    assert "max-height" not in css.split("@media print")[0].split(".tablewrap")[1].split("}")[0]
+    assert "overflow-wrap: break-word" in css and "white-space: normal" in css
+    assert "@media print" in css and "table-header-group" in css and "break-inside: avoid" in css
+    assert _breakable("covariance_intersection+imm_sym") == "covariance_<wbr>intersection_<wbr>imm_<wbr>sym".replace(
+        "intersection_<wbr>", "intersection+<wbr>")
+    assert "<wbr>" in _breakable("a" * 40) and _breakable("<b>&") == "&lt;b&gt;&amp;"
+
+
 def test_report_survives_missing_tables(run_dir, tmp_path):
     shutil.copy(run_dir / "results.duckdb", tmp_path / "results.duckdb")
     with RunStore.update(tmp_path) as store:
@@ -108,7 +271,8 @@ def test_report_survives_missing_tables(run_dir, tmp_path):
 
 def test_report_command_errors(tmp_path):
     res = runner.invoke(app, ["report", str(tmp_path)])
-    assert res.exit_code == 1 and "no run database" in res.output
+    # a missing run database is a data error (tertiary.errors.DataError, exit 3) with a one-line message
+    assert res.exit_code == 3 and "no run database" in res.output
 
 
 def test_run_writes_database_and_report(tmp_path):
@@ -124,5 +288,5 @@ def test_run_writes_database_and_report(tmp_path):
     html_path = tmp_path / "b" / REPORT_FILENAME
     assert html_path.is_file()
     flat = " ".join(res.output.split())
-    assert "results.duckdb" in flat and REPORT_FILENAME in flat and "done in" in flat
+    assert "results.duckdb" in flat and REPORT_FILENAME in flat          # where the results and report are
     assert figure_count(html_path.read_text()) == N_FIGURES

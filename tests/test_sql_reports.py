@@ -423,6 +423,9 @@ def test_aposteriori_vs_apriori(q):
     assert part["gain"].to_list() == pytest.approx([0.5, -0.25, 0.5])
     pos = q("aposteriori_vs_apriori", metric="rmse_pos_m")
     assert pos.filter(pl.col("posterior") == "aposteriori")["sigma_post"].to_list()[:3] == [10.0, 50.0, 40.0]
+    # edge rule: epoch 3 has N_k = 1 < 0.5 × median 4 for every method -> left out
+    edge = q("aposteriori_vs_apriori", min_sample_frac=0.5)
+    assert edge.height == 2 * 2 * 2 and sorted(set(edge["t_s"])) == [1.0, 2.0]
 
 
 @covers("aposteriori_gain")
@@ -441,6 +444,9 @@ def test_aposteriori_gain(q):
     b = dict(zip(df.columns, df.row(1)))             # vs arithmetic: 0.75, -0.25, 0
     assert b["max_gain"] == pytest.approx(0.75) and b["max_gain_manoeuvre"] == pytest.approx(0.0)
     assert b["mean_gain"] == pytest.approx(0.5 / 3)
+    edge = dict(zip(df.columns, q("aposteriori_gain", min_sample_frac=0.5).row(0)))    # epoch 3 left out
+    assert edge["epochs"] == 2 and edge["manoeuvre_epochs"] == 0 and edge["mean_gain"] == pytest.approx(0.125)
+    assert edge["pooled_gain"] == pytest.approx(1 - math.sqrt((25 + 625) / (100 + 400)))
 
 
 @covers("radar_residuals")
