@@ -452,7 +452,9 @@ def rules_markdown(limits: Limits = Limits()) -> str:
 
 
 def _num(x: float) -> str:
-    return str(int(x)) if math.isfinite(x) and float(x).is_integer() else str(x)
+    if math.isfinite(x) and float(x).is_integer() and abs(x) < 1e7:
+        return str(int(x))
+    return f"{x:g}"
 
 
 @dataclass(frozen=True)
