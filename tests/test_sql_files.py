@@ -57,7 +57,7 @@ def test_rejects_by_reason(run_db):
     with RunStore.open(out) as store:
         df = store.sql(_query("rejects_by_reason"))
     assert df.columns == ["input_table", "stage", "reason", "rows", "example_row_index"]
-    assert df.row(0)[:4] == ("reports", "ingest", "range_m: negative value -1.0", 4)
+    assert df.row(0)[:4] == ("reports", "ingest", "range_m: non-positive value -1.0", 4)
 
 
 def test_reports_by_radar(run_db):

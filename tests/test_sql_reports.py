@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline, sql_reports
 from tertiary.cli import app
+from tertiary.errors import OptionError
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store import RunStore
 
@@ -82,6 +83,7 @@ METRICS = [
     ("fusion", "apriori", "rmse_vel_mps", "all", 9.0, 2),
     ("fusion", "aposteriori", "rmse_pos_m", "all", 100.0, 2),
     ("fusion", "information", "rmse_range_m", "all", 31.0, 2),
+    ("fusion", "arithmetic", "nees_mean", "all", 6.2, 2),      # no rmse_ row: arithmetic is only a known method
     ("tracker", "information+singer", "rmse_range_m", "all", 33.0, 2),
     ("tracker", "apriori+singer", "rmse_pos_m", "all", 70.0, 2),
     ("tracker", "apriori+singer", "rmse_vel_mps", "all", 12.0, 2),
@@ -296,9 +298,9 @@ def test_parameters_are_bound_not_formatted(tmp_path):
     rep = sql_reports.load_report("accuracy_over_time")
     assert rep.params == {"metric": "rmse_range_m", "method": None, "min_sample_frac": 0}
     assert "$method" in rep.sql and "{" not in sql_reports._strip_comments(rep.sql)
-    with pytest.raises(KeyError, match="no parameter"):
+    with pytest.raises(OptionError, match="no parameter"):
         rep.bind({"nope": 1})
-    with pytest.raises(KeyError, match="no SQL report"):
+    with pytest.raises(OptionError, match="no SQL report"):
         sql_reports.load_report("nope")
     bad = tmp_path / "bad.sql"
     bad.write_text("-- Bad: uses an undeclared parameter.\nSELECT $x\n")
@@ -308,7 +310,9 @@ def test_parameters_are_bound_not_formatted(tmp_path):
 
 def test_injection_is_data(q):
     evil = "apriori' OR '1'='1"
-    assert q("accuracy_over_time", method=evil).height == 0
+    # a value the run does not hold is refused with the allowed values, never formatted into SQL
+    with pytest.raises(OptionError, match="not in this run; allowed: .*apriori"):
+        q("accuracy_over_time", method=evil)
     assert q("accuracy_over_time", method="apriori").height == 3
 
 
@@ -685,9 +689,9 @@ def test_cli_named_report_table_and_params(hand_run):
     lines = res.output.strip().splitlines()
     assert lines[0].startswith("method,run,id_a,id_b") and len(lines) == 2 and ",0.9" in lines[1]
     res = runner.invoke(app, ["sql", str(hand_run), "conflicts", "-p", "nope=1"])
-    assert res.exit_code == 1 and "no parameter" in res.output
+    assert res.exit_code == 2 and "no parameter" in res.output            # an option error
     res = runner.invoke(app, ["sql", str(hand_run), "no_such_report"])
-    assert res.exit_code == 1 and "available" in res.output
+    assert res.exit_code == 2 and "available" in res.output
 
 
 def test_cli_export(hand_run, tmp_path):
@@ -709,9 +713,9 @@ def test_cli_query_read_only(hand_run):
     assert res.exit_code == 0, res.output
     assert "2 rows" in res.output
     res = runner.invoke(app, ["sql", str(hand_run), "--query", "DROP TABLE metrics"])
-    assert res.exit_code == 1 and "read-only" in res.output and "DROP" in res.output
+    assert res.exit_code == 2 and "read-only" in res.output and "DROP" in res.output
     res = runner.invoke(app, ["sql", str(hand_run), "--query", "SELECT nothing FROM nowhere"])
-    assert res.exit_code == 1 and "SQL error" in res.output
+    assert res.exit_code == 2 and "SQL error" in res.output
     with RunStore.open(hand_run) as store:
         assert "metrics" in store.tables()
     res = runner.invoke(app, ["sql", str(hand_run)])
