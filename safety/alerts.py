@@ -1,56 +1,65 @@
-"""Scoring conflict alerts against truth: hits, misses, false alerts, warning time, flicker.
+"""STCA performance against what really happened: losses of separation in the truth, alert
+episodes per pair of aircraft, genuine / nuisance / false alerts, warning time, trade-off curves.
 
 Inputs
 ------
-* ``conflicts`` — the output of :func:`safety.conflicts.predict_conflicts` on a picture
-  (fused targets or tracks); only rows with ``alert`` are used.
-* ``id_map`` — (run, epoch, ``id_col``, truth_id[, method]): which aircraft each picture id
-  is at each epoch (e.g. :func:`tertiary.evaluate.target_truth` renamed). Its epochs define the
-  picture's **epoch grid** per (run, method) (per run, shared by all methods, when it has no
-  ``method`` column).
-* ``truth`` — (truth_id, time, x_m … vz_mps[, run]) in the system frame; without ``run`` the
-  truth is shared by all runs (Monte-Carlo). Truth is interpolated linearly in time to the
-  grid epochs (not extrapolated beyond an aircraft's span).
+* ``conflicts`` — :func:`safety.conflicts.predict_conflicts` on one or more pictures (column
+  ``method`` names the picture); only ``alert`` rows are used.
+* ``id_map`` — (run, epoch, ``id_col``, truth_id[, method]): which aircraft each picture id is
+  at each epoch (e.g. :func:`tertiary.evaluate.target_truth`). Its epochs, with the alert
+  epochs, form the picture's **epoch grid** per (run, method).
+* ``truth`` — (truth_id, time, x_m … vz_mps[, run][, alt_m]) in the system ENU frame; without
+  ``run`` it is shared by all runs (Monte-Carlo). Heights: ``alt_m`` where present, else the
+  geodetic height of the ENU position in ``frame`` (:func:`safety.conflicts.height_and_rate`).
 
-True conflicts (``AlertConfig.truth_rule``), evaluated at every grid epoch t_k
------------------------------------------------------------------------------
-* ``"prediction"`` — the pair is a conflict by the *same* prediction rule (5.10)–(5.17)
-  (same minima, piloting term, T^пор) applied to the **true** states with **zero estimation
-  error** (``threshold_mode="fixed"``, estimation terms 0). The decision rule is
-  ``truth_mode`` (default ``"corrected"``: the seed rule would count already-passed pairs as
-  true conflicts; ``None`` = the picture's own rule).
-* ``"los"`` — an actual loss of separation (horizontal distance < Δr_г **and** |Δh| < Δr_в at
-  the same instant, on the true trajectories sampled every ``los_step_s``) occurs within
-  [t_k, t_k + T^пор].
+Loss of separation (the default truth) — :func:`loss_of_separation`
+---------------------------------------------------------------------
+A pair of aircraft loses separation while horizontal distance < Δr_г **and** |Δh| < Δr_в at
+the same instant. Between consecutive truth sample times (the union over all aircraft of a
+run) every aircraft moves linearly, so within each such segment the pair's horizontal distance
+is a quadratic and its height difference linear in t: the LoS part of the segment is the
+intersection of two intervals, in closed form (:func:`safety.conflicts.conflict_interval`), no
+sampling step. Segments are paired by a KD-tree on their mid points (box half-width = minimum
++ the segments' lengths), touching intervals are merged: one **LoS episode** = (run, truth_a,
+truth_b, t_start, t_end). *Proximity* intervals are the same with both minima × the
+``proximity_factor`` (1.5). The resampled grid is bounded before it is allocated
+(``max_grid_rows``, :class:`tertiary.errors.ResourceError`).
 
-Episodes (per run, method and unordered truth pair; consecutive = adjacent grid epochs)
---------------------------------------------------------------------------------------
-* A **true episode** is a maximal run of consecutive grid epochs at which the pair is a true
-  conflict: [t_start, t_end]. Its LOS time t_LOS is the start of the first loss-of-separation
-  interval that reaches into [t_start, t_end + T^пор] (none if no LOS follows, possible with
-  ``"prediction"``).
-* The picture **alerts on a truth pair** at t_k when some alert row's two ids map (at t_k) to
-  those two distinct aircraft. Alert rows whose ids have no truth, or map to the same aircraft
-  (a duplicated track conflicting with itself), are keyed by their id pair instead and can
-  only be false alerts.
-* **Hit**: an alert on the pair at some t_k ∈ [t_start − early, max(t_LOS, t_start)]
-  (t_end when there is no LOS): before the loss of separation, during the episode, or up to
-  ``early_s`` (default T^пор) before it starts — an alert raised earlier than the zero-error
-  truth rule (wider, covariance-inflated thresholds) is an early warning, not a false alert.
-  Otherwise a **miss** (also when the picture does not hold the aircraft at all).
-* **Warning time** of a hit with a LOS: t_LOS − (first alert in that hit window); may be
-  negative when the LOS was already under way at t_start. ``mean_warning_s`` averages over
-  hits with a LOS (NaN if none).
-* **Flicker** of a hit: the number of on→off transitions of the pair's alert between the
-  first alert and t_end that are followed by a new alert on the pair no later than t_end
-  (alert at t_k, none at t_{k+1}, again at some t_m ≤ t_end): the alert dropping out and
-  coming back. The final switch-off (conflict resolved or passed) is not a flicker.
-* **False alert**: a maximal run of consecutive grid epochs with an alert on one key none of
-  whose epochs lies in [t_start − early, t_end] of a true episode of that pair.
+Alert episodes — :func:`alert_episodes` (the ``alerts`` table)
+-------------------------------------------------------------
+Alert rows are keyed by the pair of **aircraft**: each picture id pair (run, method, id_a,
+id_b) maps to the truth pair that the majority of its alert rows map to (id_map at each row's
+epoch), so fragmented or swapped ids cannot inflate episodes; id pairs without two distinct
+truths keep their ids (``truth_a``/``truth_b`` null) and can only be false alerts. An episode is
+a maximal sequence of alert epochs of one key whose consecutive alert epochs are adjacent on
+the grid or at most ``merge_gap_s`` apart; **flicker** counts the dropouts inside it (alert
+epochs not adjacent on the grid). With link window W = [t_start, t_end + ``link_s``] (default
+T^пор), an episode is
 
-Metrics (``metrics`` schema, stage ``"safety"``, method = the picture's method, segment
-``"all"``): ``hits``, ``misses``, ``false_alerts``, ``mean_warning_s``, ``flicker`` (total over
-hits), plus ``episodes`` and ``flicker_per_hit``; ``n_runs`` = runs on the method's grid.
+* **genuine** — a LoS episode of that pair overlaps W (it follows or is under way);
+* **nuisance** — no LoS, but a proximity interval of the pair overlaps W;
+* **false** — neither (also every alert without two distinct truths).
+
+LoS episodes — :func:`los_episodes`
+----------------------------------
+Every LoS episode overlapping a picture's time span (per run) is **alerted** when an alert
+episode of that pair in that picture overlaps it within the link window (a.t_start ≤ los.t_end
+and a.t_end + link_s ≥ los.t_start), else **missed**; warning time = LoS start − the earliest
+such alert start (negative when the alert came after the LoS began).
+
+Metrics — :func:`score_alerts` (``metrics`` schema, stage ``"safety"``, per picture)
+----------------------------------------------------------------------------------
+``los_episodes``, ``alerted_los``, ``missed_los``, ``genuine_alerts``, ``nuisance_alerts``,
+``false_alerts``, ``alert_episodes``, ``alerts_per_hour`` (alert episodes per hour of picture
+time, summed over runs), ``nuisance_false_per_hour``, ``warning_median_s``, ``warning_p05_s``
+(5th percentile; over alerted LoS), ``alert_duration_median_s``, ``flicker_per_alert``,
+``picture_hours``. NaN where undefined.
+
+Trade-off — :func:`stca_tradeoff`, :func:`compare_at_equal_nuisance`
+-------------------------------------------------------------------
+The fraction of LoS episodes alerted with ≥ X s warning against nuisance + false alerts per
+hour, as the threshold confidence (covariance thresholds) or the fixed estimation term, and the
+look-ahead vary; the two threshold families compared at equal nuisance + false rate.
 """
 
 from __future__ import annotations
@@ -58,409 +67,581 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Sequence
 
 import numpy as np
 import polars as pl
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from safety.conflicts import ConflictConfig, predict_conflicts
+from safety.conflicts import ConflictConfig, conflict_interval, height_and_rate, predict_conflicts
+from tertiary import geo
+from tertiary.errors import ResourceError
 from tertiary.schema import TABLES, TIME
 
 __all__ = [
     "AlertConfig",
-    "truth_at",
-    "loss_of_separation",
-    "true_conflicts",
-    "alert_episodes",
-    "score_alerts",
     "ALERT_METRICS",
+    "ALERTS_SCHEMA",
+    "LOS_SCHEMA",
+    "truth_heights",
+    "separation_intervals",
+    "loss_of_separation",
+    "truth_intervals",
+    "alert_episodes",
+    "los_episodes",
+    "score_alerts",
+    "stca_tradeoff",
+    "compare_at_equal_nuisance",
+    "tradeoff_metrics",
 ]
 
-STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
-ALERT_METRICS = ("hits", "misses", "false_alerts", "mean_warning_s", "flicker", "episodes", "flicker_per_hit")
 _US = 1_000_000
+ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
+                 "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
+                 "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
+#: the ``alerts`` table: one row per alert episode
+ALERTS_SCHEMA: dict[str, pl.DataType] = {
+    "run": pl.UInt32(), "method": pl.String(), "id_a": pl.UInt64(), "id_b": pl.UInt64(),
+    "truth_a": pl.Int64(), "truth_b": pl.Int64(), "t_start": TIME, "t_end": TIME, "duration_s": pl.Float64(),
+    "alert_epochs": pl.UInt32(), "flicker": pl.UInt32(), "r_min_pred_m": pl.Float64(),
+    "dz_min_pred_m": pl.Float64(), "t_min_first_s": pl.Float64(), "los_start": TIME, "warning_s": pl.Float64(),
+    "classification": pl.String(),
+}
+#: one row per loss-of-separation episode and picture
+LOS_SCHEMA: dict[str, pl.DataType] = {
+    "run": pl.UInt32(), "method": pl.String(), "truth_a": pl.Int64(), "truth_b": pl.Int64(), "t_start": TIME,
+    "t_end": TIME, "alerted": pl.Boolean(), "first_alert": TIME, "warning_s": pl.Float64(),
+}
 
 
 @dataclass(frozen=True)
 class AlertConfig:
-    """Alert-scoring options (see the module docstring).
+    """Scoring options (see the module docstring).
 
-    * ``conflict``: the prediction settings of the picture (minima, piloting, T^пор, rule).
-    * ``truth_rule``: ``"prediction"`` (zero-error (5.14) on truth) or ``"los"`` (actual loss
-      of separation within the look-ahead).
-    * ``truth_mode``: the rule for ``"prediction"`` truth; None = ``conflict.mode``.
-    * ``early_s``: how long before a true episode an alert still counts for it (None = T^пор).
-    * ``los_step_s``: sampling step of the true trajectories for loss of separation.
+    * ``conflict``: the prediction settings of the picture (minima Δr_г, Δr_в and T^пор).
+    * ``proximity_factor``: a nuisance alert's pair came within this × both minima (1.5).
+    * ``merge_gap_s``: alert epochs of one pair at most this far apart belong to one episode
+      (the dropout is flicker).
+    * ``link_s``: how long after an alert episode ends a LoS still makes it genuine / alerted
+      (None: T^пор).
+    * ``max_grid_rows``: bound of the resampled truth grid (aircraft × union sample times).
     """
 
     conflict: ConflictConfig = ConflictConfig()
-    truth_rule: Literal["prediction", "los"] = "prediction"
-    truth_mode: Literal["seed", "corrected"] | None = "corrected"
-    early_s: float | None = None
-    los_step_s: float = 1.0
+    proximity_factor: float = 1.5
+    merge_gap_s: float = 15.0
+    link_s: float | None = None
+    max_grid_rows: int = 50_000_000
 
     def __post_init__(self) -> None:
-        if self.truth_rule not in ("prediction", "los"):
-            raise ValueError(f"truth_rule must be 'prediction' or 'los', got {self.truth_rule!r}")
-        if self.truth_mode not in (None, "seed", "corrected"):
-            raise ValueError(f"truth_mode must be None, 'seed' or 'corrected', got {self.truth_mode!r}")
-        if self.early_s is not None and self.early_s < 0:
-            raise ValueError(f"early_s must be >= 0, got {self.early_s}")
-        if self.los_step_s <= 0:
-            raise ValueError(f"los_step_s must be positive, got {self.los_step_s}")
+        if not self.proximity_factor >= 1.0:
+            raise ValueError(f"proximity_factor must be >= 1, got {self.proximity_factor}")
+        if self.merge_gap_s < 0:
+            raise ValueError(f"merge_gap_s must be >= 0, got {self.merge_gap_s}")
+        if self.link_s is not None and self.link_s < 0:
+            raise ValueError(f"link_s must be >= 0, got {self.link_s}")
+        if self.max_grid_rows < 1:
+            raise ValueError(f"max_grid_rows must be >= 1, got {self.max_grid_rows}")
 
     @property
-    def early(self) -> float:
-        return self.conflict.t_thr_s if self.early_s is None else float(self.early_s)
-
-    @property
-    def truth_conflict(self) -> ConflictConfig:
-        """The zero-estimation-error configuration of the truth rule."""
-        mode = self.truth_mode or self.conflict.mode
-        return dataclasses.replace(self.conflict, threshold_mode="fixed", fixed_est_h_m=0.0,
-                                   fixed_est_v_m=0.0, mode=mode)
+    def link(self) -> float:
+        return self.conflict.t_thr_s if self.link_s is None else float(self.link_s)
 
 
-# --------------------------------------------------------------------------- truth sampling
+# --------------------------------------------------------------------------- truth: heights, intervals
 
 
-def _truth_frame(truth: pl.DataFrame) -> pl.DataFrame:
-    missing = [c for c in ("truth_id", "time", *STATE) if c not in truth.columns]
+def _secs(col: str) -> pl.Expr:
+    return pl.col(col).cast(TIME).dt.epoch("us").cast(pl.Int64)
+
+
+def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> pl.DataFrame:
+    """([run,] truth_id, t_us, x_m, y_m, h_m) sorted by ([run,] truth_id, t_us): horizontal on
+    the system tangent plane, h = ``alt_m`` where present (not null), else the geodetic height
+    of the ENU position (:func:`safety.conflicts.height_and_rate`)."""
+    need = ["truth_id", "time", "x_m", "y_m", "z_m"]
+    missing = [c for c in need if c not in truth.columns]
     if missing:
         raise ValueError(f"truth: missing column(s) {', '.join(missing)}")
     keys = ["run"] if "run" in truth.columns else []
-    run = [pl.col("run").cast(pl.UInt32)] if keys else []
-    return (truth.select(*run, pl.col("truth_id").cast(pl.Int64),
-                         pl.col("time").cast(TIME), *[pl.col(c).cast(pl.Float64) for c in STATE])
-            .sort([*keys, "truth_id", "time"]))
+    tr = truth.select(*[pl.col("run").cast(pl.UInt32)] * bool(keys), pl.col("truth_id").cast(pl.Int64),
+                      _secs("time").alias("t_us"), *[pl.col(c).cast(pl.Float64) for c in ("x_m", "y_m", "z_m")],
+                      *([pl.col("alt_m").cast(pl.Float64)] if "alt_m" in truth.columns else []))
+    tr = tr.sort([*keys, "truth_id", "t_us"])
+    pos = tr.select("x_m", "y_m", "z_m").to_numpy()
+    h, _, _ = height_and_rate(pos, np.zeros_like(pos), frame)
+    if "alt_m" in tr.columns:
+        alt = tr["alt_m"].to_numpy()
+        h = np.where(np.isfinite(alt), alt, h)
+    if not np.all(np.isfinite(pos)) or not np.all(np.isfinite(h)):
+        raise ValueError("truth: positions and heights must be finite")
+    return tr.select(*keys, "truth_id", "t_us", "x_m", "y_m").with_columns(pl.Series("h_m", h))
 
 
-def truth_at(truth: pl.DataFrame, epochs: pl.DataFrame) -> pl.DataFrame:
-    """True states at ``epochs`` (column ``epoch`` [, ``run`` when truth has runs]): every aircraft
-    whose truth span covers the epoch, linearly interpolated between its two neighbouring
-    samples. Returns ([run,] epoch, truth_id, x_m … vz_mps)."""
-    tr = _truth_frame(truth)
-    keys = ["run"] if "run" in tr.columns else []
-    ep = epochs.select(*keys, pl.col("epoch").cast(TIME)).unique()
-    span = tr.group_by([*keys, "truth_id"]).agg(pl.col("time").min().alias("__t0"), pl.col("time").max().alias("__t1"))
-    grid = (span.join(ep, on=keys, how="inner") if keys else span.join(ep, how="cross"))
-    grid = grid.filter((pl.col("epoch") >= pl.col("__t0")) & (pl.col("epoch") <= pl.col("__t1"))
-                       ).select(*keys, "truth_id", "epoch").sort("epoch")
-    by = [*keys, "truth_id"]
-    lo = tr.rename({"time": "__ta", **{c: f"__a_{c}" for c in STATE}})
-    hi = tr.rename({"time": "__tb", **{c: f"__b_{c}" for c in STATE}})
-    j = (grid.join_asof(lo, left_on="epoch", right_on="__ta", by=by, strategy="backward", check_sortedness=False)
-         .join_asof(hi, left_on="epoch", right_on="__tb", by=by, strategy="forward", check_sortedness=False))
-    span_us = (pl.col("__tb") - pl.col("__ta")).dt.total_microseconds()
-    w = (pl.when(span_us > 0)
-         .then((pl.col("epoch") - pl.col("__ta")).dt.total_microseconds() / span_us).otherwise(0.0))
-    return (j.select(*keys, "epoch", "truth_id",
-                     *[(pl.col(f"__a_{c}") + w * (pl.col(f"__b_{c}") - pl.col(f"__a_{c}"))).alias(c) for c in STATE])
-            .sort([*keys, "epoch", "truth_id"]))
+def _resample(tr: pl.DataFrame, max_rows: int) -> dict[str, NDArray]:
+    """Every aircraft at every union sample time of its run within its own span (linear
+    interpolation between its samples): rows ordered by (run, aircraft, time). The row count is
+    computed (searchsorted) and checked against ``max_rows`` before anything is allocated."""
+    run = tr["run"].to_numpy().astype(np.int64) if "run" in tr.columns else np.zeros(tr.height, np.int64)
+    tid = tr["truth_id"].to_numpy()
+    t = tr["t_us"].to_numpy()
+    xyz = tr.select("x_m", "y_m", "h_m").to_numpy()
+    new_ac = np.ones(len(t), bool)
+    new_ac[1:] = (run[1:] != run[:-1]) | (tid[1:] != tid[:-1])
+    ac_start = np.flatnonzero(new_ac)
+    ac_end = np.append(ac_start[1:], len(t))
+    ac_run = run[ac_start]
+    runs = np.unique(run)
+    unions = {int(r): np.unique(t[run == r]) for r in runs}        # one np.unique per run
+    lo = np.empty(len(ac_start), np.int64)
+    hi = np.empty(len(ac_start), np.int64)
+    offset = np.zeros(len(ac_start), np.int64)
+    base = 0
+    for r in runs:
+        m = ac_run == r
+        u = unions[int(r)]
+        lo[m] = np.searchsorted(u, t[ac_start[m]], "left")
+        hi[m] = np.searchsorted(u, t[ac_end[m] - 1], "right")
+        offset[m] = base
+        base += len(u)
+    cnt = hi - lo
+    total = int(cnt.sum())
+    if total > max_rows:
+        raise ResourceError(f"truth: resampling {len(ac_start)} aircraft at the union of their sample times needs "
+                            f"{total} rows > max_grid_rows={max_rows} (AlertConfig)")
+    ac = np.repeat(np.arange(len(ac_start)), cnt)
+    k = np.repeat(lo, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    u_all = np.concatenate([unions[int(r)] for r in runs]) if len(runs) else np.zeros(0, np.int64)
+    gk = offset[ac] + k                                            # dense (run, union time) index
+    tt = u_all[gk]
+    # the sample interval of each row: search within the aircraft's own samples (a packed key)
+    span = int(t.max() - t.min()) + 1 if len(t) else 1
+    if len(ac_start) * span >= 1 << 62:
+        raise ResourceError("truth: time span too long for the packed interpolation key")
+    key_s = np.repeat(np.arange(len(ac_start)), ac_end - ac_start) * span + (t - t.min())
+    j = np.searchsorted(key_s, ac * span + (tt - t.min()), "right") - 1
+    j = np.clip(j, ac_start[ac], np.maximum(ac_end[ac] - 2, ac_start[ac]))
+    j1 = np.minimum(j + 1, ac_end[ac] - 1)
+    dt = (t[j1] - t[j]).astype(np.float64)
+    w = np.where(dt > 0, (tt - t[j]) / np.where(dt > 0, dt, 1.0), 0.0)
+    pos = xyz[j] + w[:, None] * (xyz[j1] - xyz[j])
+    return {"ac": ac, "gk": gk, "t": tt, "pos": pos, "tid": tid[ac_start], "run": ac_run}
 
 
-def _seconds(col: str) -> pl.Expr:
-    return pl.col(col).cast(TIME).dt.epoch("us").cast(pl.Float64) / _US
+def _pair_segments(rs: dict[str, NDArray], reach_h: float, reach_v: float
+                   ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Candidate pairs (row indices of segment starts) of segments in the same (run, union
+    interval) that may come within (reach_h, reach_v): KD-tree on segment mid points, Chebyshev
+    box half-width = reach + the two segments' half lengths; the longest 1 % of segments
+    (e.g. gaps in ADS-B truth) are queried one by one with their own radius."""
+    ac, gk, pos = rs["ac"], rs["gk"], rs["pos"]
+    seg = np.flatnonzero(ac[1:] == ac[:-1])                       # row s → s + 1 of one aircraft
+    if len(seg) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    mid = 0.5 * (pos[seg] + pos[seg + 1])
+    half_h = 0.5 * np.hypot(*(pos[seg + 1, :2] - pos[seg, :2]).T)
+    half_v = 0.5 * np.abs(pos[seg + 1, 2] - pos[seg, 2])
+    qh, qv = float(np.quantile(half_h, 0.99)), float(np.quantile(half_v, 0.99))
+    bulk = (half_h <= qh) & (half_v <= qv)
+    rh, rv = reach_h + 2 * qh, reach_v + 2 * qv
+    s = rh / rv
+    g = gk[seg].astype(np.float64)
+    big_h = reach_h + 2 * float(half_h.max())
+    sep = 4.0 * (big_h + (reach_v + 2 * float(half_v.max())) * s) + 1.0
+    pad = 1.0 + 1e-9 * (float(np.abs(mid).max()) + sep * float(g.max() + 1))
+    pts = np.column_stack([mid[:, 0], mid[:, 1], mid[:, 2] * s, g * sep])
+    bi = np.flatnonzero(bulk)
+    pr = cKDTree(pts[bi]).query_pairs(rh + pad, p=np.inf, output_type="ndarray")
+    a, b = [bi[pr[:, 0]]], [bi[pr[:, 1]]]
+    wi = np.flatnonzero(~bulk)
+    if len(wi):
+        rad = np.maximum(reach_h + half_h[wi] + half_h.max(), (reach_v + half_v[wi] + half_v.max()) * s) + pad
+        hits = cKDTree(pts).query_ball_point(pts[wi], rad, p=np.inf, return_sorted=False)
+        cnt = np.fromiter((len(x) for x in hits), np.int64, len(wi))
+        jj = np.concatenate([np.asarray(x, np.int64) for x in hits]) if cnt.sum() else np.zeros(0, np.int64)
+        ii = np.repeat(wi, cnt)
+        keep = (ii != jj) & (bulk[jj] | (ii < jj))                # wide–wide pairs come twice
+        a.append(ii[keep])
+        b.append(jj[keep])
+    i, j = np.concatenate(a), np.concatenate(b)
+    return seg[i], seg[j]
 
 
-def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig()) -> pl.DataFrame:
-    """Loss-of-separation intervals on the true trajectories: ([run,] truth_a, truth_b, t_start,
-    t_end) with truth_a < truth_b, horizontal distance < Δr_г and |Δh| < Δr_в at every sample of
-    [t_start, t_end] (samples every ``los_step_s`` from the first truth time; KD-tree per sample
-    time, all times in one tree)."""
-    tr = _truth_frame(truth)
-    keys = ["run"] if "run" in tr.columns else []
-    schema = {**({"run": pl.UInt32} if keys else {}), "truth_a": pl.Int64, "truth_b": pl.Int64,
-              "t_start": TIME, "t_end": TIME}
+def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, factors: Sequence[float] = (1.0,),
+                         frame: geo.LocalFrame | None = None, max_rows: int = 50_000_000
+                         ) -> list[pl.DataFrame]:
+    """For each factor f: the merged intervals during which pairs of aircraft are within
+    f·Δr_г horizontally **and** f·Δr_в vertically at the same instant, exact under linear
+    motion between the union sample times (see the module docstring). One frame per factor:
+    (run, truth_a, truth_b, t_start_us, t_end_us), truth_a < truth_b (run 0 without a run
+    column)."""
+    tr = truth_heights(truth, frame)
+    out_schema = {"run": pl.UInt32, "truth_a": pl.Int64, "truth_b": pl.Int64, "t_start_us": pl.Int64,
+                  "t_end_us": pl.Int64}
+    empty = [pl.DataFrame(schema=out_schema) for _ in factors]
     if tr.height < 2:
+        return empty
+    rs = _resample(tr, max_rows)
+    fmax = max(factors)
+    a, b = _pair_segments(rs, fmax * dr_h_m, fmax * dr_v_m)
+    same = rs["gk"][a] == rs["gk"][b]
+    a, b = a[same], b[same]
+    if not len(a):
+        return empty
+    pos, t, ac = rs["pos"], rs["t"], rs["ac"]
+    dt = (t[a + 1] - t[a]).astype(np.float64) / _US
+    r0 = pos[b] - pos[a]
+    w = ((pos[b + 1] - pos[a + 1]) - r0) / dt[:, None]
+    ta_, tb_ = rs["tid"][ac[a]], rs["tid"][ac[b]]
+    run = rs["run"][ac[a]]
+    out = []
+    for f in factors:
+        # closed ≤ in the interval, strict < for LoS: they differ on a null set (t_out > t_in)
+        t_in, t_out = _segment_interval(r0, w, f * dr_h_m, f * dr_v_m, dt)
+        ok = t_out > t_in
+        s_us = t[a][ok] + np.round(t_in[ok] * _US).astype(np.int64)
+        e_us = t[a][ok] + np.round(t_out[ok] * _US).astype(np.int64)
+        out.append(_merge(run[ok], np.minimum(ta_, tb_)[ok], np.maximum(ta_, tb_)[ok], s_us, e_us, out_schema))
+    return out
+
+
+def _segment_interval(r0: NDArray, w: NDArray, d_h: float, d_v: float, dt: NDArray
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The part [t_in, t_out] ⊂ [0, dt] (per segment) where |r0_h + w_h s| ≤ d_h and
+    |r0_z + w_z s| ≤ d_v (:func:`safety.conflicts.conflict_interval` with v = −w and a
+    per-segment horizon)."""
+    t_in, t_out = conflict_interval(r0[:, 0], r0[:, 1], -w[:, 0], -w[:, 1], r0[:, 2], w[:, 2], d_h, d_v,
+                                    np.inf, eps=1e-9)
+    return t_in, np.minimum(t_out, dt)
+
+
+def _merge(run, ta, tb, s_us, e_us, schema) -> pl.DataFrame:
+    """Merge touching/overlapping intervals of each pair into episodes."""
+    if not len(s_us):
         return pl.DataFrame(schema=schema)
-    tus = tr["time"].dt.epoch("us")
-    base, last = int(tus.min()), int(tus.max())
-    step = max(int(round(cfg.los_step_s * _US)), 1)
-    ticks = base + step * np.arange((last - base) // step + 1, dtype=np.int64)
-    grid = pl.DataFrame({"epoch": pl.Series(ticks).cast(pl.Datetime("us", "UTC"))})
-    if keys:
-        grid = grid.join(tr.select("run").unique(), how="cross")
-    st = truth_at(tr, grid)
-    if st.height < 2:
-        return pl.DataFrame(schema=schema)
+    df = pl.DataFrame({"run": run.astype(np.uint32), "truth_a": ta, "truth_b": tb, "s": s_us, "e": e_us})
+    df = df.sort("run", "truth_a", "truth_b", "s")
+    key = ["run", "truth_a", "truth_b"]
+    prev_end = pl.col("e").cum_max().shift(1).over(key)
+    df = df.with_columns(((prev_end.is_null()) | (pl.col("s") > prev_end + 1)).cum_sum().over(key).alias("__ep"))
+    out = df.group_by([*key, "__ep"]).agg(pl.col("s").min().alias("t_start_us"), pl.col("e").max().alias("t_end_us"))
+    return out.drop("__ep").sort(key + ["t_start_us"]).cast(schema)
+
+
+def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame: geo.LocalFrame | None = None
+                       ) -> pl.DataFrame:
+    """LoS episodes of the truth: ([run,] truth_a, truth_b, t_start, t_end), truth_a < truth_b —
+    horizontal < Δr_г and |Δh| < Δr_в at the same instant, closed form between samples."""
     cc = cfg.conflict
-    dr_h, dr_v = cc.sep_h_m, cc.sep_v_m
-    gkey = [*keys, "epoch"]
-    g = st.select(pl.struct(gkey).rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
-    xyz = st.select("x_m", "y_m", "z_m").to_numpy()
-    span = float(np.max(np.abs(xyz))) + 1.0
-    sep = 4.0 * dr_h + 1.0
-    pts = np.column_stack([xyz[:, 0], xyz[:, 1], xyz[:, 2] * (dr_h / dr_v), g * sep])
-    # the Euclidean ball of radius √2·Δr_г holds the cylinder |Δxy| < Δr_г, |Δz·s| < Δr_г; scipy's
-    # p=2 search is about twice as fast as its Chebyshev one here, the exact test below decides
-    radius = math.sqrt(2.0) * (dr_h * (1 + 1e-12) + 1e-9 * span)
-    pr = cKDTree(pts).query_pairs(radius, p=2.0, output_type="ndarray")
-    i, j = pr[:, 0].astype(np.int64), pr[:, 1].astype(np.int64)
-    d = xyz[j] - xyz[i]
-    ok = (g[i] == g[j]) & (np.hypot(d[:, 0], d[:, 1]) < dr_h) & (np.abs(d[:, 2]) < dr_v)
-    i, j = i[ok], j[ok]
-    if not len(i):
-        return pl.DataFrame(schema=schema)
-    tid = st["truth_id"].to_numpy()
-    ta, tb = np.minimum(tid[i], tid[j]), np.maximum(tid[i], tid[j])
-    k = ((st["epoch"].dt.epoch("us").to_numpy() - base) // step).astype(np.int64)
-    rows = pl.DataFrame({**({"run": st["run"].to_numpy()[i]} if keys else {}),
-                         "truth_a": ta, "truth_b": tb, "__k": k[i]})
-    key = [*keys, "truth_a", "truth_b"]
-    rows = rows.sort([*key, "__k"]).with_columns(
-        (pl.col("__k").diff().over(key).fill_null(0) != 1).cum_sum().over(key).alias("__iv"))
-    out = rows.group_by([*key, "__iv"]).agg(pl.col("__k").min().alias("__k0"), pl.col("__k").max().alias("__k1"))
-    return (out.select(*key,
-                       (pl.lit(base) + pl.col("__k0") * step).cast(pl.Datetime("us", "UTC")).alias("t_start"),
-                       (pl.lit(base) + pl.col("__k1") * step).cast(pl.Datetime("us", "UTC")).alias("t_end"))
-            .sort([*key, "t_start"]).cast(schema))
-
-
-def true_conflicts(truth: pl.DataFrame, epochs: pl.DataFrame, cfg: AlertConfig = AlertConfig(),
-                   los: pl.DataFrame | None = None) -> pl.DataFrame:
-    """True conflicts at the grid ``epochs``: ([run,] epoch, truth_a, truth_b), truth_a < truth_b,
-    by ``cfg.truth_rule`` (``los`` may pass precomputed :func:`loss_of_separation` intervals)."""
+    los = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0,), frame, cfg.max_grid_rows)[0]
     keys = ["run"] if "run" in truth.columns else []
-    schema = {**({"run": pl.UInt32} if keys else {}), "epoch": TIME, "truth_a": pl.Int64, "truth_b": pl.Int64}
-    ep = epochs.select(*keys, pl.col("epoch").cast(TIME)).unique().sort([*keys, "epoch"])
-    if ep.is_empty():
-        return pl.DataFrame(schema=schema)
-    if cfg.truth_rule == "prediction":
-        st = truth_at(truth, ep)
-        if not keys:
-            st = st.with_columns(pl.lit(0, pl.UInt32).alias("run"))
-        c = predict_conflicts(st, cfg.truth_conflict, id_col="truth_id", default_method="truth")
-        c = c.filter(pl.col("alert"))
-        return c.select(*keys, "epoch", pl.col("id_a").cast(pl.Int64).alias("truth_a"),
-                        pl.col("id_b").cast(pl.Int64).alias("truth_b")).cast(schema)
-    los = loss_of_separation(truth, cfg) if los is None else los
-    t_thr_us = int(round(cfg.conflict.t_thr_s * _US))
-    parts = []
-    groups = ep.partition_by(keys, as_dict=True) if keys else {(): ep}
-    for gk, e in groups.items():
-        iv = los.filter(pl.col("run") == gk[0]) if keys else los
-        if iv.is_empty():
-            continue
-        u = e["epoch"].dt.epoch("us").to_numpy()
-        s = iv["t_start"].dt.epoch("us").to_numpy()
-        f = iv["t_end"].dt.epoch("us").to_numpy()
-        lo = np.searchsorted(u, s - t_thr_us, side="left")      # t_k ≥ s − T
-        hi = np.searchsorted(u, f, side="right")                # t_k ≤ e
-        cnt = np.maximum(hi - lo, 0)
-        which = np.repeat(np.arange(len(iv)), cnt)
-        kk = np.repeat(lo, cnt) + (np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-        part = pl.DataFrame({"epoch": pl.Series(u[kk]).cast(pl.Datetime("us", "UTC")),
-                             "truth_a": iv["truth_a"].to_numpy()[which], "truth_b": iv["truth_b"].to_numpy()[which]})
-        if keys:
-            part = part.with_columns(pl.lit(gk[0], pl.UInt32).alias("run"))
-        parts.append(part.select(list(schema)))
-    if not parts:
-        return pl.DataFrame(schema=schema)
-    return pl.concat(parts).unique().sort(list(schema)).cast(schema)
+    return los.select(*keys, "truth_a", "truth_b", _to_time("t_start_us", "t_start"), _to_time("t_end_us", "t_end"))
 
 
-# --------------------------------------------------------------------------- episodes
+def _to_time(col: str, name: str) -> pl.Expr:
+    return pl.col(col).cast(pl.Datetime("us", "UTC")).alias(name)
 
 
-_KEY = ["run", "method", "kind", "ka", "kb"]
-# the same key with the method as its integer grid code: cheaper to pack, join and compare
-_IKEY = ["run", "__m", "kind", "ka", "kb"]
-_BITS = 1 << 62
+def truth_intervals(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame: geo.LocalFrame | None = None
+                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(LoS intervals, proximity intervals) of the truth in the internal form of
+    :func:`separation_intervals` (compute once, pass to :func:`alert_episodes` & co. as
+    ``intervals`` when scoring many pictures or settings)."""
+    cc = cfg.conflict
+    los, prox = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0, cfg.proximity_factor), frame,
+                                     cfg.max_grid_rows)
+    return los, prox
+
+
+# --------------------------------------------------------------------------- picture grid and alert rows
 
 
 def _grid(conflicts: pl.DataFrame, id_map: pl.DataFrame, methods: list[str] | None) -> pl.DataFrame:
-    """(run, method, epoch, k, t, __m): the picture's epoch grid with a dense index k per
-    (run, method) and a dense method code ``__m``."""
+    """(run, method, epoch, k, t_us): the picture's epoch grid (id_map epochs ∪ alert epochs),
+    dense index k per (run, method)."""
     if "method" in id_map.columns:
         g = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
     else:
         ms = methods if methods is not None else sorted(conflicts["method"].unique().to_list())
-        g = (id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME))
+        g = (id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).unique()
              .join(pl.DataFrame({"method": ms}, schema={"method": pl.String}), how="cross"))
     c = conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
-    # conflicts usually come sorted by (run, epoch, method): dropping rows equal to their
-    # predecessor first leaves unique() a few thousand rows (correct in any order)
-    c = c.filter(pl.any_horizontal([pl.col(x) != pl.col(x).shift(1) for x in c.columns]).fill_null(True))
-    g = pl.concat([g.select("run", "method", "epoch"), c]).unique()
+    g = pl.concat([g.select("run", "method", "epoch"), c.unique()]).unique()
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
-        _seconds("epoch").alias("t"), (pl.col("method").rank("dense").cast(pl.Int64) - 1).alias("__m"))
+        _secs("epoch").alias("t_us"))
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:
-    """Alert rows keyed by truth pair (kind 0) or, without two distinct truths, by id pair (kind 1);
-    may hold duplicate rows (:func:`_runs` drops them)."""
+    """Alert rows with the pair of aircraft of their id pair: truth_a/truth_b = the truth pair
+    that most of the id pair's alert rows map to (null without two distinct truths)."""
     on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
     m = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                       *([pl.col("method").cast(pl.String)] if "method" in id_map.columns else []),
                       pl.col(id_col).cast(pl.UInt64).alias("__id"), pl.col("truth_id").cast(pl.Int64)
                       ).unique(subset=[*on, "__id"], keep="first")
-    # select before filtering: the filter then copies 6 columns, not the whole conflicts table
-    a = (conflicts.select("alert", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
-                          pl.col("method").cast(pl.String), pl.col("id_a").cast(pl.UInt64),
-                          pl.col("id_b").cast(pl.UInt64))
-         .filter(pl.col("alert")).drop("alert"))
+    opt = [pl.col(c).cast(pl.Float64) if c in conflicts.columns else pl.lit(None, pl.Float64).alias(c)
+           for c in ("r_min_m", "dz_min_m", "t_min_s")]
+    a = (conflicts.filter(pl.col("alert"))
+         .select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME), pl.col("method").cast(pl.String),
+                 pl.col("id_a").cast(pl.UInt64), pl.col("id_b").cast(pl.UInt64), *opt))
     a = (a.join(m.rename({"__id": "id_a", "truth_id": "__ta"}), on=[*on, "id_a"], how="left")
          .join(m.rename({"__id": "id_b", "truth_id": "__tb"}), on=[*on, "id_b"], how="left"))
-    by_truth = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))
-    return a.select(
-        "run", "epoch", "method",
-        pl.when(by_truth).then(0).otherwise(1).cast(pl.UInt8).alias("kind"),
-        pl.when(by_truth).then(pl.min_horizontal("__ta", "__tb")).otherwise(pl.col("id_a").cast(pl.Int64)).alias("ka"),
-        pl.when(by_truth).then(pl.max_horizontal("__ta", "__tb")).otherwise(pl.col("id_b").cast(pl.Int64)).alias("kb"),
-    )
+    valid = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))
+    pair = ["run", "method", "id_a", "id_b"]
+    votes = (a.filter(valid)
+             .group_by([*pair, pl.min_horizontal("__ta", "__tb").alias("truth_a"),
+                        pl.max_horizontal("__ta", "__tb").alias("truth_b")]).len()
+             .sort([*pair, "len", "truth_a", "truth_b"], descending=[False] * 4 + [True, False, False])
+             .unique(subset=pair, keep="first", maintain_order=True).drop("len"))
+    a = a.drop("__ta", "__tb").join(votes, on=pair, how="left")
+    known = pl.col("truth_a").is_not_null()
+    return a.with_columns(pl.when(known).then(0).otherwise(1).cast(pl.UInt8).alias("kind"),
+                          pl.when(known).then(pl.col("truth_a")).otherwise(pl.col("id_a").cast(pl.Int64)).alias("ka"),
+                          pl.when(known).then(pl.col("truth_b")).otherwise(pl.col("id_b").cast(pl.Int64)).alias("kb"))
 
 
-def _packed(cols: list[np.ndarray]) -> np.ndarray:
-    """One int64 code per row ordered like the rows' integer columns ``cols`` (lexicographic):
-    mixed-radix packing, re-densified (np.unique) only when a radix would overflow."""
-    code = np.zeros(len(cols[0]), np.int64)
-    for v in cols:
-        v = np.asarray(v).astype(np.int64, copy=False)
-        lo, span = int(v.min()), int(v.max()) - int(v.min()) + 1
-        if (int(code.max()) + 1) * span >= _BITS:
-            code = np.unique(code, return_inverse=True)[1].astype(np.int64).ravel()
-            if (int(code.max()) + 1) * span >= _BITS:
-                v = np.unique(v, return_inverse=True)[1].astype(np.int64).ravel()
-                lo, span = 0, int(v.max()) + 1
-        code = code * span + (v - lo)
-    return code
+def _episodes_of(rows: pl.DataFrame, grid: pl.DataFrame, merge_gap_s: float) -> pl.DataFrame:
+    """Alert episodes per key (run, method, kind, ka, kb): consecutive alert epochs belong to one
+    episode when adjacent on the grid or ≤ ``merge_gap_s`` apart; non-adjacent ones are flicker."""
+    key = ["run", "method", "kind", "ka", "kb"]
+    r = rows.join(grid.select("run", "method", "epoch", "k", "t_us"), on=["run", "method", "epoch"], how="inner")
+    # the same alert epoch from two id pairs of one aircraft pair counts once (closest kept)
+    r = r.sort([*key, "k", "r_min_m"], nulls_last=True).unique(subset=[*key, "k"], keep="first", maintain_order=True)
+    gap_us = int(round(merge_gap_s * _US))
+    dk = pl.col("k") - pl.col("k").shift(1).over(key)
+    dt = pl.col("t_us") - pl.col("t_us").shift(1).over(key)
+    r = r.with_columns(dk.alias("__dk"), dt.alias("__dt"))
+    new = pl.col("__dk").is_null() | ((pl.col("__dk") > 1) & (pl.col("__dt") > gap_us))
+    r = r.with_columns(new.cum_sum().alias("__ep"), (~new & (pl.col("__dk") > 1)).alias("__flick"))
+    return (r.group_by("__ep", maintain_order=True).agg(
+        *[pl.col(c).first() for c in (*key, "id_a", "id_b", "truth_a", "truth_b")],
+        pl.col("t_us").min().alias("t0"), pl.col("t_us").max().alias("t1"), pl.len().alias("alert_epochs"),
+        pl.col("__flick").sum().alias("flicker"), pl.col("r_min_m").min().alias("r_min_pred_m"),
+        pl.col("dz_min_m").min().alias("dz_min_pred_m"), pl.col("t_min_s").first().alias("t_min_first_s")))
 
 
-def _runs(frame: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Maximal runs of consecutive grid indices k per key (``_IKEY``), by one sort and numpy
-    (no ``.over()`` windows). Returns the rows sorted by (key, k) without duplicate (key, k),
-    with ``__run`` (a run id, unique over all keys) and ``__next_k`` (the key's next k, −1 at its
-    last row), and one row per run: the ``_KEY`` columns, ``__m``, ``__run``, k1 (last k), t0, t1."""
-    n = frame.height
-    if n == 0:
-        rows = frame.with_columns(pl.lit(0, pl.Int64).alias("__run"), pl.lit(0, pl.Int64).alias("__next_k"))
-        return rows, rows.select(*_KEY, "__m", "__run", pl.col("k").alias("k1"), pl.col("t").alias("t0"),
-                                 pl.col("t").alias("t1"))
-    key = _packed([frame[c].to_numpy() for c in _IKEY])
-    k = frame["k"].to_numpy()
-    order = np.argsort(_packed([key, k]), kind="stable")
-    key, k = key[order], k[order]
-    new_key = np.ones(n, bool)
-    new_key[1:] = key[1:] != key[:-1]
-    dk = np.diff(k, prepend=k[0])
-    keep = new_key | (dk != 0)                   # the same alert from two id pairs counts once
-    order, key, k, new_key, dk = order[keep], key[keep], k[keep], new_key[keep], dk[keep]
-    start = new_key | (dk != 1)
-    run = np.cumsum(start) - 1
-    last = np.ones(len(k), bool)
-    last[:-1] = new_key[1:]
-    next_k = np.where(last, -1, np.roll(k, -1))  # −1 never passes the "next alert later" tests
-    rows = frame[order].with_columns(pl.Series("__run", run), pl.Series("__next_k", next_k))
-    s = np.flatnonzero(start)
-    e = np.append(s[1:], len(k)) - 1
-    t = rows["t"].to_numpy()
-    runs = rows[s].select(*_KEY, "__m", "__run").with_columns(
-        pl.Series("k1", k[e]), pl.Series("t0", t[s]), pl.Series("t1", t[e]))
-    return rows, runs
+def _linked(left: pl.DataFrame, iv: pl.DataFrame, a0: str, a1: str, link_us: int, shared: bool,
+            on: list[str]) -> pl.DataFrame:
+    """Rows of ``left`` (alert span [a0, a1]) joined with the intervals ``iv`` of their pair that
+    overlap [a0, a1 + link]."""
+    keys = on + ([] if shared else ["run"])
+    ivs = iv.drop("run") if shared else iv
+    return (left.join(ivs, on=keys, how="inner")
+            .filter((pl.col("t_start_us") <= pl.col(a1) + link_us) & (pl.col("t_end_us") >= pl.col(a0))))
+
+
+def _classify(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
+    pairs = ["truth_a", "truth_b"]
+    known = eps.filter(pl.col("kind") == 0).select("__ep", "run", *pairs, "t0", "t1")
+    g = (_linked(known, los, "t0", "t1", link_us, shared, pairs)
+         .group_by("__ep").agg(pl.col("t_start_us").min().alias("los_start_us")))
+    n = _linked(known, prox, "t0", "t1", link_us, shared, pairs).select("__ep").unique().with_columns(
+        pl.lit(True).alias("__near"))
+    e = eps.join(g, on="__ep", how="left").join(n, on="__ep", how="left")
+    cls = (pl.when(pl.col("los_start_us").is_not_null()).then(pl.lit("genuine"))
+           .when(pl.col("__near").fill_null(False)).then(pl.lit("nuisance")).otherwise(pl.lit("false")))
+    return e.with_columns(cls.alias("classification"),
+                          ((pl.col("los_start_us") - pl.col("t0")) / _US).alias("warning_s"))
+
+
+def _los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
+    spans = grid.group_by("run", "method").agg(pl.col("t_us").min().alias("__g0"), pl.col("t_us").max().alias("__g1"))
+    base = spans.join(los.drop("run"), how="cross") if shared else spans.join(los, on="run", how="inner")
+    base = base.filter((pl.col("t_end_us") >= pl.col("__g0")) & (pl.col("t_start_us") <= pl.col("__g1"))
+                       ).with_row_index("__los")
+    al = eps.filter(pl.col("kind") == 0).select("run", "method", "truth_a", "truth_b", "t0", "t1")
+    first = (base.join(al, on=["run", "method", "truth_a", "truth_b"], how="inner")
+             .filter((pl.col("t0") <= pl.col("t_end_us")) & (pl.col("t1") + link_us >= pl.col("t_start_us")))
+             .group_by("__los").agg(pl.col("t0").min().alias("__first")))
+    out = base.join(first, on="__los", how="left")
+    return out.select(
+        pl.col("run").cast(pl.UInt32), "method", "truth_a", "truth_b", _to_time("t_start_us", "t_start"),
+        _to_time("t_end_us", "t_end"), pl.col("__first").is_not_null().alias("alerted"),
+        _to_time("__first", "first_alert"), ((pl.col("t_start_us") - pl.col("__first")) / _US).alias("warning_s"),
+    ).sort("run", "method", "truth_a", "truth_b", "t_start").cast(LOS_SCHEMA)
+
+
+def _score(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig, id_col: str,
+           methods: list[str] | None, frame: geo.LocalFrame | None,
+           intervals: tuple[pl.DataFrame, pl.DataFrame] | None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(alerts table, LoS table, grid) of the pictures in ``conflicts``."""
+    los, prox = truth_intervals(truth, cfg, frame) if intervals is None else intervals
+    shared = "run" not in truth.columns
+    link_us = int(round(cfg.link * _US))
+    grid = _grid(conflicts, id_map, methods)
+    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s)
+    eps = _classify(eps, los, prox, link_us, shared)
+    alerts = eps.select(
+        "run", "method", "id_a", "id_b", "truth_a", "truth_b", _to_time("t0", "t_start"), _to_time("t1", "t_end"),
+        ((pl.col("t1") - pl.col("t0")) / _US).alias("duration_s"), "alert_epochs", "flicker", "r_min_pred_m",
+        "dz_min_pred_m", "t_min_first_s", _to_time("los_start_us", "los_start"), "warning_s", "classification",
+    ).sort("run", "method", "t_start", "id_a", "id_b").cast(ALERTS_SCHEMA)
+    return alerts, _los_table(grid, eps, los, link_us, shared), grid
 
 
 def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
-                   cfg: AlertConfig = AlertConfig(), id_col: str = "id",
-                   methods: list[str] | None = None) -> pl.DataFrame:
-    """One row per true episode and per false-alert run (definitions in the module docstring):
-    run, method, kind (``"truth"`` | ``"false_alert"``), a, b (truth ids, or picture ids for
-    alerts without two distinct truths), t_start, t_end, t_los, hit, first_alert, warning_s,
-    flicker. ``methods`` lists the picture's methods when ``id_map`` has no method column
-    (default: those present in ``conflicts``)."""
-    return _episodes(_grid(conflicts, id_map, methods), conflicts, id_map, truth, cfg, id_col)
+                   cfg: AlertConfig = AlertConfig(), id_col: str = "id", methods: list[str] | None = None,
+                   frame: geo.LocalFrame | None = None,
+                   intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
+    """The ``alerts`` table (:data:`ALERTS_SCHEMA`): one row per alert episode per picture, with
+    its pair of ids and of aircraft, start, end, minimum predicted separation, warning time and
+    ``classification`` (genuine / nuisance / false) — see the module docstring."""
+    return _score(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)[0]
 
 
-def _episodes(grid: pl.DataFrame, conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
-              cfg: AlertConfig, id_col: str) -> pl.DataFrame:
-    """:func:`alert_episodes` on a precomputed :func:`_grid`."""
-    truth_keys = ["run"] if "run" in truth.columns else []
-    early, t_thr = cfg.early, cfg.conflict.t_thr_s
+def los_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
+                 cfg: AlertConfig = AlertConfig(), id_col: str = "id", methods: list[str] | None = None,
+                 frame: geo.LocalFrame | None = None,
+                 intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
+    """One row per LoS episode and picture (:data:`LOS_SCHEMA`): alerted or missed, warning."""
+    return _score(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)[1]
 
-    los = loss_of_separation(truth, cfg)
-    epochs = grid.select(*truth_keys, "epoch").unique()
-    tc = true_conflicts(truth, epochs, cfg, los=los)
-    true_rows = (grid.join(tc, on=[*truth_keys, "epoch"], how="inner")
-                 .select("run", "method", "__m", pl.lit(0, pl.UInt8).alias("kind"),
-                         pl.col("truth_a").alias("ka"), pl.col("truth_b").alias("kb"), "k", "t"))
-    # __ep / __run are unique over all keys, so they alone identify an episode / alert run
-    episodes = _runs(true_rows)[1].rename({"__run": "__ep"})
-    # first loss of separation reaching into [t0, t1 + T]
-    lv = los.select(*truth_keys, pl.col("truth_a").alias("ka"), pl.col("truth_b").alias("kb"),
-                    _seconds("t_start").alias("__s"), _seconds("t_end").alias("__e"))
-    ep_los = (episodes.join(lv, on=[*truth_keys, "ka", "kb"], how="inner")
-              .filter((pl.col("__e") >= pl.col("t0")) & (pl.col("__s") <= pl.col("t1") + t_thr))
-              .group_by("__ep").agg(pl.col("__s").min().alias("t_los")))
-    episodes = episodes.join(ep_los, on="__ep", how="left").with_columns(
-        pl.coalesce(pl.max_horizontal("t_los", "t0"), "t1").alias("__hit_end"))
 
-    alerts = _alert_rows(conflicts, id_map, id_col).join(grid, on=["run", "method", "epoch"], how="inner")
-    alerts, alert_runs = _runs(alerts)
-    pairs = (alerts.filter(pl.col("kind") == 0).select("run", "__m", "ka", "kb", "k", "t", "__run", "__next_k")
-             .join(episodes.select("run", "__m", "ka", "kb", "__ep", "k1", "t0", "t1", "__hit_end"),
-                   on=["run", "__m", "ka", "kb"], how="inner"))
-    lo = pl.col("t") >= pl.col("t0") - early
-    in_hit = lo & (pl.col("t") <= pl.col("__hit_end"))
-    in_ep = lo & (pl.col("t") <= pl.col("t1"))
-    first = (pairs.filter(in_hit).group_by("__ep").agg(pl.col("t").min().alias("first_alert")))
-    flick = (pairs.join(first, on="__ep", how="inner")
-             .filter((pl.col("t") >= pl.col("first_alert")) & (pl.col("__next_k") > pl.col("k") + 1)
-                     & (pl.col("__next_k") <= pl.col("k1")))
-             .group_by("__ep").agg(pl.len().cast(pl.Int64).alias("flicker")))
-    ep = (episodes.join(first, on="__ep", how="left").join(flick, on="__ep", how="left")
-          .with_columns(pl.col("first_alert").is_not_null().alias("hit"),
-                        pl.when(pl.col("first_alert").is_not_null()).then(pl.col("flicker").fill_null(0))
-                        .alias("flicker"),
-                        (pl.col("t_los") - pl.col("first_alert")).alias("warning_s"),
-                        pl.lit("truth").alias("kind_s")))
-    hit_runs = pairs.filter(in_ep).select("__run").unique()
-    false_runs = (alert_runs.join(hit_runs, on="__run", how="anti")
-                  .with_columns(pl.lit("false_alert").alias("kind_s")))
+def _hours(grid: pl.DataFrame) -> pl.DataFrame:
+    return (grid.group_by("run", "method").agg(((pl.col("t_us").max() - pl.col("t_us").min()) / _US).alias("__s"))
+            .group_by("method").agg((pl.col("__s").sum() / 3600.0).alias("picture_hours"),
+                                    pl.col("run").n_unique().alias("n_runs")))
 
-    def to_time(c: str) -> pl.Expr:
-        return (pl.col(c) * _US).round().cast(pl.Int64).cast(pl.Datetime("us", "UTC"))
 
-    cols = [pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("kind_s").alias("kind"),
-            pl.col("ka").alias("a"), pl.col("kb").alias("b"), to_time("t0").alias("t_start"),
-            to_time("t1").alias("t_end")]
-    ep_out = ep.select(*cols, to_time("t_los").alias("t_los"), "hit", to_time("first_alert").alias("first_alert"),
-                       pl.col("warning_s").cast(pl.Float64), pl.col("flicker").cast(pl.Int64))
-    fa_out = false_runs.select(*cols, pl.lit(None, TIME).alias("t_los"), pl.lit(False).alias("hit"),
-                               to_time("t0").alias("first_alert"), pl.lit(None, pl.Float64).alias("warning_s"),
-                               pl.lit(None, pl.Int64).alias("flicker"))
-    out = pl.concat([ep_out, fa_out], how="vertical_relaxed")
-    return out.sort("run", "method", "kind", "a", "b", "t_start")
+def _per_method(alerts: pl.DataFrame, los: pl.DataFrame, grid: pl.DataFrame) -> pl.DataFrame:
+    cls = pl.col("classification")
+    a = alerts.group_by("method").agg(
+        pl.len().cast(pl.Float64).alias("alert_episodes"),
+        (cls == "genuine").sum().cast(pl.Float64).alias("genuine_alerts"),
+        (cls == "nuisance").sum().cast(pl.Float64).alias("nuisance_alerts"),
+        (cls == "false").sum().cast(pl.Float64).alias("false_alerts"),
+        pl.col("duration_s").median().alias("alert_duration_median_s"),
+        pl.col("flicker").cast(pl.Float64).mean().alias("flicker_per_alert"))
+    w = pl.col("warning_s").filter(pl.col("alerted"))
+    lo = los.group_by("method").agg(
+        pl.len().cast(pl.Float64).alias("los_episodes"), pl.col("alerted").sum().cast(pl.Float64).alias("alerted_los"),
+        w.median().alias("warning_median_s"), w.quantile(0.05, "linear").alias("warning_p05_s"))
+    per = _hours(grid).join(a, on="method", how="left").join(lo, on="method", how="left")
+    counts = ["alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes", "alerted_los"]
+    per = per.with_columns(pl.col(counts).fill_null(0.0))
+    hrs = pl.when(pl.col("picture_hours") > 0).then(pl.col("picture_hours"))
+    return per.with_columns(
+        (pl.col("los_episodes") - pl.col("alerted_los")).alias("missed_los"),
+        (pl.col("alert_episodes") / hrs).alias("alerts_per_hour"),
+        ((pl.col("nuisance_alerts") + pl.col("false_alerts")) / hrs).alias("nuisance_false_per_hour"),
+    ).with_columns(pl.col(ALERT_METRICS).cast(pl.Float64).fill_null(float("nan")))
 
 
 def score_alerts(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
-                 cfg: AlertConfig = AlertConfig(), id_col: str = "id",
-                 methods: list[str] | None = None) -> pl.DataFrame:
-    """Alert quality per picture method in the ``metrics`` schema (stage ``"safety"``, segment
-    ``"all"``): ``hits``, ``misses``, ``false_alerts``, ``mean_warning_s``, ``flicker``,
-    ``episodes``, ``flicker_per_hit`` — see the module docstring for the definitions."""
-    grid = _grid(conflicts, id_map, methods)
-    ep = _episodes(grid, conflicts, id_map, truth, cfg, id_col)
-    n_runs = grid.group_by("method").agg(pl.col("run").n_unique().alias("n_runs"))
-    tru = ep.filter(pl.col("kind") == "truth")
-    per = n_runs.join(
-        tru.group_by("method").agg(
-            pl.col("hit").sum().cast(pl.Float64).alias("hits"),
-            (~pl.col("hit")).sum().cast(pl.Float64).alias("misses"),
-            pl.col("warning_s").drop_nulls().mean().alias("mean_warning_s"),
-            pl.col("flicker").drop_nulls().sum().cast(pl.Float64).alias("flicker"),
-            pl.len().cast(pl.Float64).alias("episodes")),
-        on="method", how="left").join(
-        ep.filter(pl.col("kind") == "false_alert").group_by("method")
-        .agg(pl.len().cast(pl.Float64).alias("false_alerts")), on="method", how="left")
-    per = per.with_columns(pl.col("hits", "misses", "flicker", "episodes", "false_alerts").fill_null(0.0),
-                           pl.col("mean_warning_s").fill_null(float("nan")))
-    per = per.with_columns(pl.when(pl.col("hits") > 0).then(pl.col("flicker") / pl.col("hits"))
-                           .otherwise(float("nan")).alias("flicker_per_hit"))
-    long = per.unpivot(index=["method", "n_runs"], on=list(ALERT_METRICS), variable_name="metric", value_name="value")
+                 cfg: AlertConfig = AlertConfig(), id_col: str = "id", methods: list[str] | None = None,
+                 frame: geo.LocalFrame | None = None,
+                 intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
+    """STCA performance per picture in the ``metrics`` schema (stage ``"safety"``, segment
+    ``"all"``): :data:`ALERT_METRICS` — see the module docstring."""
+    alerts, los, grid = _score(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)
+    per = _per_method(alerts, los, grid)
+    long = per.unpivot(index=["method", "n_runs"], on=list(ALERT_METRICS), variable_name="metric",
+                       value_name="value")
     order = pl.col("metric").replace_strict({m: i for i, m in enumerate(ALERT_METRICS)}, return_dtype=pl.Int8)
     out = long.sort([pl.col("method"), order]).select(
         pl.lit("safety").alias("stage"), "method", "metric", pl.lit("all").alias("segment"), "value", "n_runs")
     spec = TABLES["metrics"].required
     return out.select([pl.col(c).cast(t) for c, t in spec.items()])
+
+
+# --------------------------------------------------------------------------- trade-off curves
+
+
+def _settings(base: ConflictConfig, confidences, fixed_est_h_m, lookaheads_s):
+    """(threshold_mode, parameter, ConflictConfig) of every point of the curves."""
+    ratio = base.fixed_est_v_m / base.fixed_est_h_m if base.fixed_est_h_m > 0 else 50.0 / 300.0
+    t0 = base.t_thr_s - base.t_margin_s
+    out = []
+    for t in lookaheads_s:
+        common = dict(t_margin_s=float(t) - t0, near_margin_h_m=0.0, near_margin_v_m=0.0)
+        out += [("covariance", float(c), dataclasses.replace(base, threshold_mode="covariance", confidence=c, **common))
+                for c in confidences]
+        out += [("fixed", float(e), dataclasses.replace(base, threshold_mode="fixed", fixed_est_h_m=e,
+                                                        fixed_est_v_m=e * ratio, **common)) for e in fixed_est_h_m]
+    return out
+
+
+def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(),
+                  id_col: str = "target_id", methods: list[str] | None = None, frame: geo.LocalFrame | None = None,
+                  map_id_col: str | None = None,
+                  confidences: Sequence[float] = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999),
+                  fixed_est_h_m: Sequence[float] = (0.0, 150.0, 300.0, 600.0, 1200.0, 2400.0),
+                  lookaheads_s: Sequence[float] | None = None,
+                  warning_s: Sequence[float] = (0.0, 30.0, 60.0)) -> pl.DataFrame:
+    """Trade-off curves of every picture of ``picture`` (a fused or track table; ``method`` names
+    the picture; ``id_col`` its id column, ``map_id_col`` that of ``id_map``, default the
+    same): for each look-ahead T (default: ``cfg.conflict``'s) and each point — covariance
+    thresholds at each ``confidences``, fixed thresholds at each ``fixed_est_h_m`` (vertical
+    term scaled like the configured fixed pair) — conflicts are predicted, scored, and the row
+    gives the fraction of LoS episodes alerted with ≥ X s warning (X in ``warning_s``) against
+    nuisance + false alerts per hour. Columns: method, threshold_mode, parameter (confidence or
+    fixed_est_h_m), t_thr_s, warning_s, los_episodes, alerted_fraction, genuine_alerts,
+    nuisance_alerts, false_alerts, nuisance_false_per_hour, picture_hours, n_runs."""
+    intervals = truth_intervals(truth, cfg, frame)
+    looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
+    rows = []
+    for mode, par, cc in _settings(cfg.conflict, confidences, fixed_est_h_m, looks):
+        c = predict_conflicts(picture, cc, id_col=id_col, frame=frame)
+        acfg = dataclasses.replace(cfg, conflict=cc)
+        alerts, los, grid = _score(c, id_map, truth, acfg, map_id_col or id_col, methods, frame, intervals)
+        per = _per_method(alerts, los, grid)
+        for x in warning_s:
+            frac = (los.group_by("method").agg(
+                (pl.col("alerted") & (pl.col("warning_s") >= x)).sum().alias("__n"), pl.len().alias("__d")))
+            part = per.join(frac, on="method", how="left").select(
+                "method", pl.lit(mode).alias("threshold_mode"), pl.lit(par).alias("parameter"),
+                pl.lit(cc.t_thr_s).alias("t_thr_s"), pl.lit(float(x)).alias("warning_s"), "los_episodes",
+                pl.when(pl.col("__d") > 0).then(pl.col("__n") / pl.col("__d")).otherwise(float("nan"))
+                .alias("alerted_fraction"),
+                "genuine_alerts", "nuisance_alerts", "false_alerts", "nuisance_false_per_hour", "picture_hours",
+                pl.col("n_runs").cast(pl.UInt32))
+            rows.append(part)
+    return pl.concat(rows, how="vertical_relaxed").sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")
+
+
+def compare_at_equal_nuisance(curve: pl.DataFrame, warning_s: float = 30.0, t_thr_s: float | None = None,
+                              rate: float | None = None, reference_confidence: float = 0.95) -> pl.DataFrame:
+    """Covariance vs fixed thresholds at equal nuisance + false alert rate: per picture, each
+    family's alerted fraction (≥ ``warning_s`` warning) linearly interpolated at ``rate``
+    (default: the covariance family's rate at ``reference_confidence``), at look-ahead
+    ``t_thr_s`` (default: the curve's largest); NaN outside a family's range (no extrapolation). Columns: method, threshold_mode, t_thr_s, warning_s,
+    nuisance_false_per_hour, alerted_fraction."""
+    cur = curve.filter(pl.col("warning_s") == warning_s)
+    if t_thr_s is None and cur.height:
+        t_thr_s = float(cur["t_thr_s"].max())
+    cur = cur.filter(pl.col("t_thr_s") == t_thr_s)
+    out = []
+    for (method,), g in cur.partition_by("method", as_dict=True, maintain_order=True).items():
+        cov = g.filter(pl.col("threshold_mode") == "covariance")
+        r = rate
+        if r is None and cov.height:
+            r = float(cov.sort((pl.col("parameter") - reference_confidence).abs())["nuisance_false_per_hour"][0])
+        for mode in ("covariance", "fixed"):
+            fam = (g.filter((pl.col("threshold_mode") == mode) & pl.col("nuisance_false_per_hour").is_not_nan())
+                   .group_by("nuisance_false_per_hour").agg(pl.col("alerted_fraction").max())
+                   .sort("nuisance_false_per_hour"))
+            x, y = fam["nuisance_false_per_hour"].to_numpy(), fam["alerted_fraction"].to_numpy()
+            ok = r is not None and len(x) and x[0] <= r <= x[-1]
+            val = float(np.interp(r, x, y)) if ok else float("nan")
+            out.append({"method": method, "threshold_mode": mode, "t_thr_s": t_thr_s, "warning_s": float(warning_s),
+                        "nuisance_false_per_hour": float("nan") if r is None else float(r), "alerted_fraction": val})
+    schema = {"method": pl.String, "threshold_mode": pl.String, "t_thr_s": pl.Float64, "warning_s": pl.Float64,
+              "nuisance_false_per_hour": pl.Float64, "alerted_fraction": pl.Float64}
+    return pl.DataFrame(out, schema=schema)
+
+
+def tradeoff_metrics(curve: pl.DataFrame) -> pl.DataFrame:
+    """The curves in the ``metrics`` schema (stage ``"safety_tradeoff"``, per picture): metrics
+    ``alerted_fraction`` and ``nuisance_false_per_hour``, one segment per curve point,
+    ``mode=<covariance|fixed>;p=<parameter>;T=<t_thr_s>;X=<warning_s>`` (read by
+    ``sql/stca_tradeoff.sql``)."""
+    seg = pl.format("mode={};p={};T={};X={}", "threshold_mode", pl.col("parameter").round(6),
+                    pl.col("t_thr_s").round(3), pl.col("warning_s").round(3))
+    long = curve.with_columns(seg.alias("segment")).unpivot(
+        index=["method", "segment", "n_runs"], on=["alerted_fraction", "nuisance_false_per_hour"],
+        variable_name="metric", value_name="value")
+    spec = TABLES["metrics"].required
+    out = long.select(pl.lit("safety_tradeoff").alias("stage"), "method", "metric", "segment", "value", "n_runs")
+    return out.select([pl.col(c).cast(t) for c, t in spec.items()]).sort("method", "segment", "metric")

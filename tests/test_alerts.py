@@ -1,8 +1,10 @@
-"""Alert scoring against truth: hand-built truth/alert sequences with known hits, misses,
-false alerts, warning times and flicker."""
+"""STCA scoring against real losses of separation: closed-form LoS intervals, alert episodes per
+pair of aircraft (genuine / nuisance / false), missed losses, warning time, flicker, metrics,
+trade-off curves — on hand-built truth with known answers."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from datetime import datetime, timedelta, timezone
 
@@ -10,190 +12,301 @@ import numpy as np
 import polars as pl
 import pytest
 
-from safety.alerts import (AlertConfig, alert_episodes, loss_of_separation, score_alerts, true_conflicts,
-                           truth_at)
+from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_episodes, compare_at_equal_nuisance,
+                           los_episodes, loss_of_separation, score_alerts, separation_intervals, stca_tradeoff,
+                           tradeoff_metrics)
 from safety.conflicts import ConflictConfig, predict_conflicts
-from tertiary.schema import TABLES, validate
+from tertiary.errors import ResourceError
+from tertiary.geo import LocalFrame
+from tertiary.schema import validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 GRID = [T0 + timedelta(seconds=s) for s in range(0, 301, 5)]       # picture epochs, every 5 s
-LOS_CFG = AlertConfig(truth_rule="los")
+SEP_H = 3 * 1852.0
+CFG = AlertConfig()
 
 
 def _t(s: float) -> datetime:
     return T0 + timedelta(seconds=s)
 
 
-def _aircraft(tid: int, x0: float, vx: float, y: float, z: float = 3000.0) -> pl.DataFrame:
-    t = np.arange(0.0, 301.0)
+def _aircraft(tid: int, x0: float, vx: float, y: float, z: float = 3000.0, vz: float = 0.0,
+              step: float = 1.0) -> pl.DataFrame:
+    t = np.arange(0.0, 300.0 + step / 2, step)
+    h = z + vz * t
     return pl.DataFrame({"truth_id": tid, "time": [_t(s) for s in t], "x_m": x0 + vx * t, "y_m": float(y),
-                         "z_m": float(z), "vx_mps": float(vx), "vy_mps": 0.0, "vz_mps": 0.0}
+                         "z_m": h, "vx_mps": float(vx), "vy_mps": 0.0, "vz_mps": float(vz), "alt_m": h}
                         ).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def _truth(step: float = 1.0) -> pl.DataFrame:
+    """1–2 head-on, 1 km miss at t = 200 s (LoS for |60000 − 300 t| < √(5556² − 1000²));
+    3–4 pass 7 km apart (no LoS, inside 1.5× the minima: proximity); 5–6 stay 30 km apart;
+    7–8 the climbing pair of issue 11 (CPA 0 m at t = 100 s, 8 is 300 m above 7 and climbs
+    10 m/s: 1 300 m apart at the CPA, never a LoS, never within 1.5× the minima)."""
+    return pl.concat([
+        _aircraft(1, -30000.0, 150.0, 0.0, step=step), _aircraft(2, 30000.0, -150.0, 1000.0, step=step),
+        _aircraft(3, -30000.0, 150.0, 50000.0, step=step), _aircraft(4, 30000.0, -150.0, 57000.0, step=step),
+        _aircraft(5, -30000.0, 150.0, 100000.0, step=step), _aircraft(6, 30000.0, -150.0, 130000.0, step=step),
+        _aircraft(7, -10000.0, 100.0, -60000.0, 3000.0, step=step),
+        _aircraft(8, 10000.0, -100.0, -60000.0, 3300.0, 10.0, step=step),
+    ])
+
+
+LOS_12 = (200.0 - math.sqrt(SEP_H ** 2 - 1000.0 ** 2) / 300.0, 200.0 + math.sqrt(SEP_H ** 2 - 1000.0 ** 2) / 300.0)
 
 
 @pytest.fixture(scope="module")
 def truth() -> pl.DataFrame:
-    """1 and 2 meet head-on with a 1 km miss at t = 200 s (closing 300 m/s); 3 and 4 pass 30 km apart."""
-    return pl.concat([_aircraft(1, -30000.0, 150.0, 0.0), _aircraft(2, 30000.0, -150.0, 1000.0),
-                      _aircraft(3, -30000.0, 150.0, 50000.0), _aircraft(4, 30000.0, -150.0, 80000.0)])
+    return _truth()
 
 
 def _id_map(extra: dict[int, int | None] | None = None, runs=(0,)) -> pl.DataFrame:
-    """Picture ids 11..14 ↔ truth 1..4 at every grid epoch (plus ``extra`` id → truth)."""
-    mapping = {11: 1, 12: 2, 13: 3, 14: 4, **(extra or {})}
+    """Picture ids 11..18 ↔ truth 1..8 at every grid epoch (plus ``extra`` id → truth)."""
+    mapping = {10 + k: k for k in range(1, 9)} | (extra or {})
     rows = [{"run": r, "epoch": e, "id": i, "truth_id": t} for r in runs for e in GRID for i, t in mapping.items()]
     return pl.DataFrame(rows, schema={"run": pl.UInt32, "epoch": pl.Datetime("us", "UTC"), "id": pl.UInt64,
                                       "truth_id": pl.Int64})
 
 
 def _alerts(pairs: dict[tuple[int, int], list[float]], method: str = "m", run: int = 0) -> pl.DataFrame:
-    rows = [{"run": run, "epoch": _t(s), "method": method, "id_a": a, "id_b": b, "alert": True}
-            for (a, b), times in pairs.items() for s in times]
+    rows = [{"run": run, "epoch": _t(s), "method": method, "id_a": a, "id_b": b, "alert": True, "r_min_m": 1000.0,
+             "dz_min_m": 0.0, "t_min_s": 200.0 - s} for (a, b), times in pairs.items() for s in times]
     return pl.DataFrame(rows, schema={"run": pl.UInt32, "epoch": pl.Datetime("us", "UTC"), "method": pl.String,
-                                      "id_a": pl.UInt64, "id_b": pl.UInt64, "alert": pl.Boolean})
+                                      "id_a": pl.UInt64, "id_b": pl.UInt64, "alert": pl.Boolean,
+                                      "r_min_m": pl.Float64, "dz_min_m": pl.Float64, "t_min_s": pl.Float64})
 
 
 def _metrics(m: pl.DataFrame, method: str = "m") -> dict[str, float]:
     return dict(m.filter(pl.col("method") == method).select("metric", "value").iter_rows())
 
 
-def _span(df: pl.DataFrame) -> tuple[float, float]:
-    s = df["epoch"].dt.epoch("us") / 1e6 - T0.timestamp()
-    return float(s.min()), float(s.max())
+def _s(col: pl.Series) -> list[float]:
+    return [(v - T0).total_seconds() if v is not None else None for v in col.to_list()]
 
 
-# --------------------------------------------------------------------------- truth side
+# --------------------------------------------------------------------------- truth: losses of separation
 
 
-def test_truth_at_interpolates(truth):
-    st = truth_at(truth, pl.DataFrame({"epoch": [_t(10.5)]}))
-    one = st.filter(pl.col("truth_id") == 1)
-    assert one["x_m"][0] == pytest.approx(-30000 + 150 * 10.5)
-    assert truth_at(truth, pl.DataFrame({"epoch": [_t(400.0)]})).height == 0     # beyond the span
+@pytest.mark.parametrize("step", [1.0, 10.0, 30.0])
+def test_loss_of_separation_closed_form(step):
+    """Exact LoS interval of 1–2 whatever the truth sampling (linear motion between samples);
+    no LoS for the 7 km pass and for the climbing pair."""
+    los = loss_of_separation(_truth(step))
+    assert los.select("truth_a", "truth_b").rows() == [(1, 2)]
+    s, e = _s(los["t_start"])[0], _s(los["t_end"])[0]
+    assert s == pytest.approx(LOS_12[0], abs=1e-5) and e == pytest.approx(LOS_12[1], abs=1e-5)
 
 
-def test_loss_of_separation_interval(truth):
-    los = loss_of_separation(truth)
+def test_proximity_intervals_use_the_factor(truth):
+    los, prox = separation_intervals(truth, SEP_H, 304.8, (1.0, 1.5))
+    assert set(prox.select("truth_a", "truth_b").rows()) == {(1, 2), (3, 4)}
+    half = math.sqrt((1.5 * SEP_H) ** 2 - 7000.0 ** 2) / 300.0        # 3–4: |60000 − 300 t| < that·300
+    row = prox.filter(pl.col("truth_a") == 3)
+    assert (row["t_start_us"][0] / 1e6 - T0.timestamp()) == pytest.approx(200.0 - half, abs=1e-5)
+
+
+def test_brief_loss_between_samples_is_found():
+    """A 0.4 s graze between two 10 s truth samples: sampling the truth would miss it."""
+    # crossing at right angles: 1 flies east, 2 north; horizontal miss of 5 540 m (< 5 556)
+    t = np.arange(0.0, 301.0, 10.0)
+    a = pl.DataFrame({"truth_id": 1, "time": [_t(s) for s in t], "x_m": -30000 + 200.0 * t, "y_m": 0.0, "z_m": 3000.0,
+                      "vx_mps": 200.0, "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": 3000.0})
+    d = 5540.0 * math.sqrt(2)                                          # perpendicular offset → CPA distance 5 540 m
+    b = pl.DataFrame({"truth_id": 2, "time": [_t(s) for s in t], "x_m": 0.0 + d, "y_m": -30000 + 200.0 * t,
+                      "z_m": 3000.0, "vx_mps": 0.0, "vy_mps": 200.0, "vz_mps": 0.0, "alt_m": 3000.0})
+    tr = pl.concat([a, b]).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+    los = loss_of_separation(tr)
     assert los.height == 1
-    r = los.row(0, named=True)
-    # |Δx| = |60000 − 300 t| < sqrt(5556² − 1000²) = 5465.3 m ⇔ 181.78 < t < 218.22
-    assert (r["truth_a"], r["truth_b"]) == (1, 2)
-    assert r["t_start"] == _t(182) and r["t_end"] == _t(218)
+    dur = (los["t_end"][0] - los["t_start"][0]).total_seconds()
+    # relative motion: separation (d − 200 t', 200 t') from the common reference; exact duration
+    # of |·| < 5556: the chord of a line at distance d/√2·... computed independently below
+    tt = np.linspace(0, 300, 3_000_001)
+    sep = np.hypot((-30000 + 200 * tt) - d, 0 - (-30000 + 200 * tt))
+    inside = tt[sep < SEP_H]
+    assert 0.0 < dur < 10.0 and dur == pytest.approx(inside.max() - inside.min(), abs=2e-4)
 
 
-def test_true_conflicts_prediction_rule(truth):
-    tc = true_conflicts(truth, pl.DataFrame({"epoch": GRID}))
-    assert set(zip(tc["truth_a"], tc["truth_b"])) == {(1, 2)}
-    # zero-error rule: R_min = 1000 ≤ 6056, 0 ≤ T_min = 200 − t ≤ 105 ⇔ 95 ≤ t ≤ 200
-    assert _span(tc) == (95.0, 200.0) and tc.height == 22
+def test_truth_heights_are_geodetic_far_from_centre():
+    """Aircraft over ground points 100 km and 103 km east of the centre: at equal geodetic height
+    a LoS; 310 m apart in height not — although their ENU z differ by only ~262 m (curvature
+    ρ²/2R differs by 48 m), which taken as height would be a false LoS."""
+    frame = LocalFrame(48.7, 2.4, 0.0)
+
+    def truth(h2: float) -> pl.DataFrame:
+        rows = []
+        for tid, (x, h) in enumerate([(100e3, 9000.0), (103e3, h2)], start=1):
+            lat, lon, _ = frame.to_geodetic(x, 0.0, 0.0)
+            e, n, u = frame.from_geodetic(lat, lon, h)
+            rows += [{"truth_id": tid, "time": _t(s), "x_m": float(e), "y_m": float(n), "z_m": float(u),
+                      "vx_mps": 0.0, "vy_mps": 0.0, "vz_mps": 0.0} for s in range(0, 61, 10)]
+        return pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+    assert loss_of_separation(truth(9000.0), frame=frame).height == 1
+    apart = truth(9310.0)
+    assert loss_of_separation(apart, frame=frame).height == 0
+    assert loss_of_separation(apart).height == 0                     # the spherical fallback agrees
+    z = apart.group_by("truth_id").agg(pl.col("z_m").first()).sort("truth_id")["z_m"].to_list()
+    assert 250.0 < z[1] - z[0] < 270.0
+    as_if_z = apart.with_columns(pl.col("z_m").alias("alt_m"))        # z taken for height: a false LoS
+    assert loss_of_separation(as_if_z, frame=frame).height == 1
 
 
-def test_true_conflicts_los_rule(truth):
-    tc = true_conflicts(truth, pl.DataFrame({"epoch": GRID}), LOS_CFG)
-    # a LOS sample in [t, t + 105] ⇔ 77 ≤ t ≤ 218 → grid 80 … 215
-    assert _span(tc) == (80.0, 215.0) and tc.height == 28
+def test_grid_is_bounded_before_allocation(truth):
+    with pytest.raises(ResourceError, match="max_grid_rows"):
+        loss_of_separation(truth, AlertConfig(max_grid_rows=1000))
 
 
-# --------------------------------------------------------------------------- scoring
+# --------------------------------------------------------------------------- alert episodes
 
 
-@pytest.mark.parametrize("cfg", [AlertConfig(), LOS_CFG], ids=["prediction", "los"])
-def test_hit_with_warning_time_flicker_and_false_alert(truth, cfg):
-    on = [s for s in range(120, 201, 5) if s not in (130, 150)]           # drops out twice
-    conflicts = _alerts({(11, 12): on, (13, 14): [50, 55, 60]})
-    m = score_alerts(conflicts, _id_map(), truth, cfg)
-    got = _metrics(m)
-    assert got["hits"] == 1 and got["misses"] == 0 and got["episodes"] == 1
-    assert got["mean_warning_s"] == pytest.approx(182 - 120)           # LOS at 182 s, first alert 120 s
-    assert got["flicker"] == 2 and got["flicker_per_hit"] == 2
-    assert got["false_alerts"] == 1                                     # the 3–4 pair, one run of alerts
+def test_genuine_nuisance_false_and_warning(truth):
+    alerts = _alerts({(11, 12): [100, 105, 110, 115, 120], (13, 14): [150, 155], (15, 16): [150],
+                      (17, 18): [60, 65, 70], (11, 99): [40]})
+    ep = alert_episodes(alerts, _id_map({99: None}), truth, CFG)
+    validate_cols = set(ALERTS_SCHEMA)
+    assert set(ep.columns) == validate_cols and ep.schema == pl.Schema(ALERTS_SCHEMA)
+    got = {(r["id_a"], r["id_b"]): r for r in ep.to_dicts()}
+    assert got[(11, 12)]["classification"] == "genuine"
+    assert got[(11, 12)]["warning_s"] == pytest.approx(LOS_12[0] - 100.0, abs=1e-5)
+    assert got[(11, 12)]["truth_a"] == 1 and got[(11, 12)]["truth_b"] == 2
+    assert got[(11, 12)]["duration_s"] == 20.0 and got[(11, 12)]["alert_epochs"] == 5
+    assert got[(13, 14)]["classification"] == "nuisance"
+    assert got[(15, 16)]["classification"] == "false"
+    assert got[(17, 18)]["classification"] == "false"                  # the climbing pair never lost separation
+    assert got[(11, 99)]["classification"] == "false" and got[(11, 99)]["truth_a"] is None
+    los = los_episodes(alerts, _id_map({99: None}), truth, CFG)
+    assert los.height == 1 and los["alerted"][0]
+    assert los["warning_s"][0] == pytest.approx(LOS_12[0] - 100.0, abs=1e-5)
+
+
+def test_fragmented_ids_make_one_episode(truth):
+    """Track 12 is replaced by 22 (same aircraft 2) mid-alert, and 11's map is wrong at one epoch:
+    one episode on the aircraft pair (1, 2), not two or three."""
+    idm = _id_map({22: 2})
+    wrong = idm.with_columns(pl.when((pl.col("id") == 11) & (pl.col("epoch") == _t(110))).then(5)
+                             .otherwise(pl.col("truth_id")).alias("truth_id"))
+    alerts = _alerts({(11, 12): [100, 105, 110], (11, 22): [115, 120, 125]})
+    ep = alert_episodes(alerts, wrong, truth, CFG)
+    assert ep.height == 1 and ep["classification"][0] == "genuine" and ep["alert_epochs"][0] == 6
+    assert (ep["truth_a"][0], ep["truth_b"][0]) == (1, 2) and ep["flicker"][0] == 0
+    m = _metrics(score_alerts(alerts, wrong, truth, CFG))
+    assert m["alert_episodes"] == 1 and m["alerted_los"] == 1 and m["los_episodes"] == 1
+
+
+def test_flicker_and_merge_gap(truth):
+    alerts = _alerts({(11, 12): [100, 105, 115, 120, 150, 155]})        # dropout at 110 (flicker), gap 30 s
+    ep = alert_episodes(alerts, _id_map(), truth, CFG)
+    assert ep.height == 2 and ep["flicker"].to_list() == [1, 0]
+    assert (ep["classification"] == "genuine").all()
+    assert _s(ep["t_start"]) == [100.0, 150.0]
+    merged = alert_episodes(alerts, _id_map(), truth, dataclasses.replace(CFG, merge_gap_s=30.0))
+    assert merged.height == 1 and merged["flicker"][0] == 2
+    m = _metrics(score_alerts(alerts, _id_map(), truth, CFG))
+    assert m["flicker_per_alert"] == 0.5 and m["warning_median_s"] == pytest.approx(LOS_12[0] - 100, abs=1e-5)
+
+
+def test_missed_and_late_alerts(truth):
+    m = _metrics(score_alerts(_alerts({(13, 14): [150]}), _id_map(), truth, CFG))
+    assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alerted_los"] == 0
+    assert math.isnan(m["warning_median_s"])
+    # an alert after the LoS ended is not a warning of it: missed, and the alert is false
+    late = _alerts({(11, 12): [250, 255]})
+    ep = alert_episodes(late, _id_map(), truth, CFG)
+    assert ep["classification"].to_list() == ["false"]
+    m = _metrics(score_alerts(late, _id_map(), truth, CFG))
+    assert m["missed_los"] == 1
+    # an alert during the LoS counts, with a negative warning
+    during = _alerts({(11, 12): [190, 195]})
+    m = _metrics(score_alerts(during, _id_map(), truth, CFG))
+    assert m["alerted_los"] == 1 and m["warning_median_s"] == pytest.approx(LOS_12[0] - 190.0, abs=1e-5)
+
+
+def test_metrics_names_rates_and_methods(truth):
+    alerts = pl.concat([_alerts({(11, 12): [100, 105], (15, 16): [150], (13, 14): [150]}, method="a"),
+                        _alerts({(15, 16): [150]}, method="b")])
+    m = score_alerts(alerts, _id_map(), truth, CFG)
     validate(m, "metrics")
-    assert m.schema == pl.Schema(TABLES["metrics"].required)
-    assert set(m["stage"]) == {"safety"} and set(m["segment"]) == {"all"}
+    assert set(m["stage"]) == {"safety"}
+    for meth in ("a", "b"):
+        assert set(_metrics(m, meth)) == set(ALERT_METRICS)
+    a, b = _metrics(m, "a"), _metrics(m, "b")
+    hours = 300.0 / 3600.0
+    assert a["alerts_per_hour"] == pytest.approx(3 / hours) and a["nuisance_false_per_hour"] == pytest.approx(2 / hours)
+    assert (a["genuine_alerts"], a["nuisance_alerts"], a["false_alerts"]) == (1, 1, 1)
+    assert (b["genuine_alerts"], b["false_alerts"], b["missed_los"]) == (0, 1, 1)
+    assert a["picture_hours"] == pytest.approx(hours)
+    # p05 of one warning is that warning
+    assert a["warning_p05_s"] == pytest.approx(a["warning_median_s"])
+    # a method without alerts (listed) still reports its missed LoS
+    none = score_alerts(alerts.filter(pl.col("method") == "a"), _id_map(), truth, CFG, methods=["a", "c"])
+    assert _metrics(none, "c")["missed_los"] == 1
 
 
-def test_miss_when_no_alert(truth):
-    got = _metrics(score_alerts(_alerts({(13, 14): [50.0]}), _id_map(), truth))
-    assert got["hits"] == 0 and got["misses"] == 1 and got["false_alerts"] == 1
-    assert math.isnan(got["mean_warning_s"]) and math.isnan(got["flicker_per_hit"])
+def test_runs_shared_truth(truth):
+    alerts = pl.concat([_alerts({(11, 12): [100]}, run=0), _alerts({(15, 16): [100]}, run=1)])
+    m = _metrics(score_alerts(alerts, _id_map(runs=(0, 1)), truth, CFG))
+    assert m["los_episodes"] == 2 and m["alerted_los"] == 1 and m["false_alerts"] == 1
 
 
-def test_alert_after_loss_of_separation_is_a_miss_not_a_false_alert(truth):
-    got = _metrics(score_alerts(_alerts({(11, 12): [185, 190, 195, 200]}), _id_map(), truth))
-    assert got["hits"] == 0 and got["misses"] == 1 and got["false_alerts"] == 0
+# --------------------------------------------------------------------------- end to end with predictions
 
 
-def test_early_alert_counts_and_late_run_is_false(truth):
-    # alerts at 0–20 s: before the true episode (95 s) but within early_s = T = 105 s → hit
-    conflicts = _alerts({(11, 12): [0, 5, 10, 15, 20, 250, 255]})
-    ep = alert_episodes(conflicts, _id_map(), truth)
-    true_ep = ep.filter(pl.col("kind") == "truth").row(0, named=True)
-    assert true_ep["hit"] and true_ep["first_alert"] == _t(0) and true_ep["warning_s"] == pytest.approx(182)
-    assert true_ep["t_start"] == _t(95) and true_ep["t_end"] == _t(200) and true_ep["t_los"] == _t(182)
-    assert true_ep["flicker"] == 0                       # off at 25 s, never back on before t_end
-    fa = ep.filter(pl.col("kind") == "false_alert")
-    assert fa.height == 1 and fa["t_start"][0] == _t(250) and fa["t_end"][0] == _t(255)
-    # with no early allowance the 0–20 s run is a false alert and the episode a miss
-    got = _metrics(score_alerts(conflicts, _id_map(), truth, AlertConfig(early_s=0.0)))
-    assert got["hits"] == 0 and got["misses"] == 1 and got["false_alerts"] == 2
+def _picture(truth: pl.DataFrame, cov: bool = True, noise: float = 0.0) -> pl.DataFrame:
+    """Truth at the grid epochs as a picture (ids 10 + truth), heights in the alt_m channel."""
+    rng = np.random.default_rng(0)
+    p = truth.filter(pl.col("time").is_in(GRID)).rename({"time": "epoch"}).with_columns(
+        (pl.col("truth_id") + 10).cast(pl.UInt64).alias("target_id"), pl.lit(0, pl.UInt32).alias("run"),
+        pl.lit("m").alias("method"), pl.col("vz_mps").alias("alt_rate_mps"))
+    p = p.with_columns(pl.col("x_m") + rng.normal(0, noise, p.height), pl.col("y_m") + rng.normal(0, noise, p.height))
+    if cov:
+        c = np.diag([50.0 ** 2, 50.0 ** 2, 30.0 ** 2, 3.0 ** 2, 3.0 ** 2, 1.0]).ravel()
+        p = p.with_columns(pl.Series("cov", np.tile(c, (p.height, 1)), dtype=pl.Array(pl.Float64, 36)))
+    return p
 
 
-def test_alerts_without_two_distinct_truths_are_false(truth):
-    idm = _id_map({15: None, 16: 1})                     # 15: a false track; 16: a duplicate of 1
-    conflicts = _alerts({(11, 15): [100, 105], (11, 16): [150], (11, 12): [150]})
-    ep = alert_episodes(conflicts, idm, truth)
-    fa = ep.filter(pl.col("kind") == "false_alert").sort("b")
-    assert fa.select("a", "b").rows() == [(11, 15), (11, 16)]
-    got = _metrics(score_alerts(conflicts, idm, truth))
-    assert got["false_alerts"] == 2 and got["hits"] == 1
+def test_end_to_end_seed_vs_corrected(truth):
+    pic = _picture(truth)
+    idm = _id_map()
+    out = {}
+    for mode in ("corrected", "seed"):
+        cc = ConflictConfig(mode=mode)
+        c = predict_conflicts(pic, cc, id_col="target_id")
+        ep = alert_episodes(c, idm, truth, AlertConfig(conflict=cc), id_col="id")
+        out[mode] = {(r["truth_a"], r["truth_b"]): r["classification"] for r in ep.to_dicts()}
+        m = _metrics(score_alerts(c, idm, truth, AlertConfig(conflict=cc), id_col="id"))
+        assert m["alerted_los"] == 1 and m["warning_median_s"] >= 30.0
+    assert out["corrected"].get((1, 2)) == "genuine" and (7, 8) not in out["corrected"]
+    assert out["seed"][(7, 8)] == "false"                               # the seed rule's false alert
 
 
-def test_methods_and_runs(truth):
-    # two Monte-Carlo runs sharing one truth; method "good" alerts in both, "bad" only in run 0
-    conflicts = pl.concat([_alerts({(11, 12): [150, 155]}, method="good", run=0),
-                           _alerts({(11, 12): [160]}, method="good", run=1),
-                           _alerts({(11, 12): [100]}, method="bad", run=0)])
-    idm = _id_map(runs=(0, 1))
-    idm = pl.concat([idm.with_columns(pl.lit(m).alias("method")) for m in ("good", "bad")])
-    m = score_alerts(conflicts, idm, truth)
-    good, bad = _metrics(m, "good"), _metrics(m, "bad")
-    assert (good["hits"], good["misses"]) == (2, 0)
-    assert good["mean_warning_s"] == pytest.approx(((182 - 150) + (182 - 160)) / 2)
-    assert (bad["hits"], bad["misses"]) == (1, 1)
-    assert set(m["n_runs"]) == {2}
-
-
-def test_truth_with_run_column(truth):
-    runs = pl.concat([truth.with_columns(pl.lit(r, pl.UInt32).alias("run")) for r in (0, 1)])
-    # in run 1 aircraft 2 flies 20 km further north: no conflict there
-    runs = runs.with_columns(pl.when((pl.col("run") == 1) & (pl.col("truth_id") == 2))
-                             .then(pl.col("y_m") + 20000).otherwise(pl.col("y_m")).alias("y_m"))
-    conflicts = pl.concat([_alerts({(11, 12): [150]}, run=0), _alerts({(11, 12): [150]}, run=1)])
-    got = _metrics(score_alerts(conflicts, _id_map(runs=(0, 1)), runs))
-    assert (got["hits"], got["misses"], got["false_alerts"]) == (1, 0, 1)
-    assert loss_of_separation(runs).select("run").to_series().to_list() == [0]
-
-
-@pytest.mark.parametrize("cfg", [AlertConfig(), LOS_CFG], ids=["prediction", "los"])
-def test_end_to_end_with_predicted_conflicts(truth, cfg):
-    """A perfect picture (truth states at the grid, fixed 300 m estimation margin): one hit,
-    first alert at T_min = 105 s before the closest approach (t = 95 s), no false alert."""
-    st = truth_at(truth, pl.DataFrame({"epoch": GRID}))
-    picture = st.with_columns(pl.lit(0, pl.UInt32).alias("run"), (pl.col("truth_id") + 10).alias("track_id"))
-    conflicts = predict_conflicts(picture, ConflictConfig(threshold_mode="fixed"))
-    idm = picture.select("run", "epoch", pl.col("track_id").alias("id"), "truth_id")
-    ep = alert_episodes(conflicts, idm, truth, cfg)
-    hit = ep.filter(pl.col("kind") == "truth").row(0, named=True)
-    assert hit["hit"] and hit["first_alert"] == _t(95) and hit["warning_s"] == pytest.approx(87.0)
-    got = _metrics(score_alerts(conflicts, idm, truth, cfg), "none")
-    assert (got["hits"], got["misses"], got["false_alerts"], got["flicker"]) == (1, 0, 0, 0)
+def test_tradeoff_curves_and_equal_nuisance(truth):
+    pic = _picture(truth)
+    curve = stca_tradeoff(pic, _id_map(), truth, CFG, id_col="target_id", map_id_col="id",
+                          confidences=(0.5, 0.95, 0.999), fixed_est_h_m=(0.0, 300.0, 3000.0),
+                          lookaheads_s=(60.0, 105.0), warning_s=(0.0, 30.0))
+    assert curve.height == 2 * 6 * 2
+    assert set(curve["threshold_mode"]) == {"covariance", "fixed"}
+    assert ((curve["alerted_fraction"] >= 0) & (curve["alerted_fraction"] <= 1)).all()
+    fx = curve.filter((pl.col("threshold_mode") == "fixed") & (pl.col("t_thr_s") == 105.0)
+                      & (pl.col("warning_s") == 0.0)).sort("parameter")
+    assert fx["nuisance_false_per_hour"].to_list() == sorted(fx["nuisance_false_per_hour"].to_list())
+    # more look-ahead → more warning: ≥ 30 s warning is reachable at T = 105 s
+    w30 = curve.filter((pl.col("warning_s") == 30.0) & (pl.col("t_thr_s") == 105.0))
+    assert w30["alerted_fraction"].max() == 1.0
+    cmp = compare_at_equal_nuisance(curve, warning_s=30.0)
+    assert cmp.height == 2 and cmp["t_thr_s"].to_list() == [105.0, 105.0]
+    met = tradeoff_metrics(curve)
+    validate(met, "metrics")
+    assert set(met["metric"]) == {"alerted_fraction", "nuisance_false_per_hour"}
+    assert met["segment"][0].startswith("mode=")
 
 
 def test_config_validation():
     with pytest.raises(ValueError):
-        AlertConfig(truth_rule="maybe")
+        AlertConfig(proximity_factor=0.9)
     with pytest.raises(ValueError):
-        AlertConfig(early_s=-1.0)
-    cfg = AlertConfig(conflict=ConflictConfig(mode="seed"))
-    assert cfg.truth_conflict.mode == "corrected" and cfg.truth_conflict.fixed_est_h_m == 0.0
-    assert AlertConfig(conflict=ConflictConfig(mode="seed"), truth_mode=None).truth_conflict.mode == "seed"
+        AlertConfig(merge_gap_s=-1)
+    with pytest.raises(ValueError):
+        AlertConfig(link_s=-1)
+    assert AlertConfig().link == 105.0
