@@ -242,26 +242,30 @@ Sink = Callable[[str, pl.DataFrame], None]
 
 
 def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None,
-            sink: Sink | None = None) -> Results:
+            sink: Sink | None = None, notes: list[str] | None = None) -> Results:
     """Run every stage in memory and return the tables (``cfg`` None = the defaults).
 
     ``sink(name, frame)`` receives each table as soon as its stage completes (``run`` stores
-    them, so a later failure loses nothing). An exception carries the failing stage's name in
+    them, so a later failure loses nothing); ``notes`` (if given) collects the run's notes as
+    they arise, so they survive a failure. An exception carries the failing stage's name in
     ``exc.tertiary_stage``. No valid report left → :class:`DataError` after the rejects are sunk.
     """
     cfg = check_config(cfg)
     clock = _Clock(progress or (lambda _m: None))
     try:
-        return _process(ds, cfg, clock, sink or (lambda _n, _f: None))
+        return _process(ds, cfg, clock, sink or (lambda _n, _f: None), notes)
     except Exception as exc:
         exc.tertiary_stage = clock.name or "validate"  # type: ignore[attr-defined]
         raise
 
 
-def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink) -> Results:
+def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes: list[str] | None) -> Results:
     t_all = time.perf_counter()
     clock.stage("validate")
     ing = screen(ds, cfg)
+    if notes is not None:           # one list: later notes (capacity, storage) land in it too
+        notes.extend(ing.notes)
+        ing.notes = notes
     for name in ("radars", "reports", "truth"):
         sink(name, getattr(ing, name))
     sink("rejects", ing.rejects)
@@ -427,7 +431,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
                 store.write(name, _storable(frame, name, notes))
 
         try:
-            res = process(ds, cfg, say, sink=sink)
+            res = process(ds, cfg, say, sink=sink, notes=notes)
         except Exception as exc:  # recorded, then re-raised below
             failure = exc
         say("store")
@@ -444,7 +448,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
         }
         if res is not None:
             res.timings["store_s"] = time.perf_counter() - t
-            info.update(rows=res.counts, notes=res.ingested.notes + notes, timings=res.timings,
+            info.update(rows=res.counts, notes=notes, timings=res.timings,
                         status="completed")
         else:
             stage = getattr(failure, "tertiary_stage", "validate")

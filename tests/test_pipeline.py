@@ -47,10 +47,13 @@ def test_trackers_run_on_every_fusion_picture(results):
 def test_safety_metrics_per_picture(results):
     assert results.conflicts.height > 0 and results.conflicts["alert"].any()
     m = results.metrics.filter(pl.col("stage") == "safety")
+    from safety.alerts import ALERT_METRICS
+    episodes = 0.0
     for meth in set(METHODS) | {"centralized"}:
         got = dict(zip(*m.filter(pl.col("method") == meth).select("metric", "value").to_dict().values()))
-        assert {"hits", "misses", "false_alerts", "mean_warning_s", "capacity_n_1e-6"} <= set(got)
-        assert got["hits"] + got["misses"] == got["episodes"]
+        assert set(ALERT_METRICS) | {"capacity_n_1e-6", "capacity_n_1e-6_sound"} <= set(got)
+        episodes += got["alert_episodes"]
+    assert episodes >= 1   # alert rows exist, so some picture has an alert episode
 
 
 def test_every_method_and_the_bound_are_fused(results):
