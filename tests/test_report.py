@@ -130,7 +130,9 @@ def test_verdict_opens_the_report(page, run_dir):
     assert f"horizontal RMSE <b>{fus['value'][0]:,.1f} m</b>" in verdict
     assert "vertical (height) RMSE <b>" in verdict and "Centralised reference" in verdict
     assert "Best radar alone" in verdict and "horizontal RMSE (m)" in verdict and "vertical RMSE (m)" in verdict
-    assert "Safety performance" in verdict and "alerted in time" in verdict and "false alerts" in verdict
+    # losses of separation alerted / missed where the safety stage scores them, else the alert scores
+    assert "Safety performance" in verdict and "false alerts" in verdict
+    assert "losses alerted" in verdict or "alerted in time" in verdict
     assert "Requirements" in verdict and "no <code>requirements</code> table" in verdict
 
 
@@ -147,6 +149,7 @@ def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path)
                         "n_runs": 1}).with_columns(pl.col("n_runs").cast(pl.UInt32))
     with RunStore.update(tmp_path) as store:
         store.write("requirements", req)
+        store.con.execute("DELETE FROM metrics WHERE stage = 'safety' AND metric IN (SELECT metric FROM los)")
         store.con.execute("INSERT INTO metrics SELECT * FROM los")
     page = build_report(tmp_path, tmp_path / "r.html").read_text()
     verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
@@ -155,6 +158,16 @@ def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path)
     assert "5th-percentile warning (s)" in verdict and "median warning (s)" in verdict
     assert "4 losses of separation in truth, <b>3 alerted</b>, <b>1 missed</b>" in verdict
     assert "(6.5 alerts per hour); median warning 41 s, 5th percentile 12 s" in verdict
+
+
+def test_verdict_without_loss_of_separation_scores_gives_alert_scores(run_dir, tmp_path):
+    shutil.copy(run_dir / "results.duckdb", tmp_path / "results.duckdb")
+    with RunStore.update(tmp_path) as store:
+        store.con.execute("DELETE FROM metrics WHERE metric IN ('los_episodes', 'alerted_los', 'missed_los')")
+    page = build_report(tmp_path, tmp_path / "r.html").read_text()
+    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
+    assert "true-conflict episodes in truth" in verdict and "alerted in time" in verdict
+    assert "mean warning (s)" in verdict and "losses of separation" not in verdict
 
 
 def test_default_visible_traces_are_best_picture_reference_and_best_radar(built, run_dir):
