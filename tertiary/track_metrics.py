@@ -14,7 +14,8 @@ Scored rows are the track rows with a truth, inside the aircraft's truth span, a
 :mod:`tertiary.evaluate` (truth interpolated to the epoch; segments ``all``,
 ``straight`` ← straight|climb|descent, ``turn``; a segment without samples is omitted):
 
-* ``rmse_pos_m``, ``rmse_range_m``, ``rmse_vel_mps``: real accuracy, RMSE = sqrt(mean_k σ²(k)),
+* ``rmse_pos_m``, ``rmse_horizontal_m``, ``rmse_height_m``, ``rmse_range_m``, ``rmse_vel_mps``:
+  real accuracy (3-D, east-north, vertical — see :mod:`tertiary.evaluate`), RMSE = sqrt(mean_k σ²(k)),
   σ²(k) = Σ_j e_j(k)² / (N_k − 1) over the scored rows of epoch k ((2.15)/(4.84)).
 * ``potential_pos_m``: mean over scored rows of sqrt(P_xx + P_yy + P_zz) (potential accuracy
   √diag P, §2.2.1, as a 3-D position figure).
@@ -61,10 +62,10 @@ STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 _TRACK = ["label", "run", "track_id"]
 
 #: metric names in output order
-TRACKER_METRICS = ("rmse_pos_m", "rmse_range_m", "rmse_vel_mps", "potential_pos_m", "nees_mean",
+TRACKER_METRICS = ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "rmse_range_m", "rmse_vel_mps", "potential_pos_m", "nees_mean",
                    "nees_band_lo", "nees_band_hi", "nis_mean", "nis_band_lo", "nis_band_hi",
                    "completeness", "breaks", "swaps", "spurious_tracks", "tracks")
-_ACCURACY = ("rmse_pos_m", "rmse_range_m", "rmse_vel_mps")
+_ACCURACY = ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "rmse_range_m", "rmse_vel_mps")
 
 
 @dataclass(frozen=True)

@@ -123,11 +123,15 @@ def test_rmse_denominator_n():
     assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt(12.5))
 
 
-def test_single_run_has_no_n_minus_1_rmse_but_other_metrics():
+def test_single_run_pools_its_epochs_for_the_n_minus_1_rmse():
+    """One track, one run, N_k = 1 at each epoch: the two samples are pooled with the N − 1
+    denominator (each σ² = e²·M/(M − 1), M = 2) instead of being dropped."""
     tracks = _tracks([dict(s=s, track_id=1, plot=10, at=7, err=[3, 0, 0, 0, 0, 0]) for s in (0, 4)])
     assoc, rep = _assoc([(0, 0, 10, 7), (0, 4, 10, 7)])
     m = tracker_metrics(tracks, assoc, rep, _truth(), NO_SKIP)
-    assert m.filter(pl.col("metric") == "rmse_pos_m").height == 0
+    assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt(18.0))
+    assert _value(m, "rmse_horizontal_m") == pytest.approx(math.sqrt(18.0))
+    assert _value(m, "rmse_height_m") == pytest.approx(0.0)
     assert _value(m, "nees_mean") == pytest.approx(9.0)
 
 
