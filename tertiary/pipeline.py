@@ -66,6 +66,11 @@ class Ingested:
         schema={"report_id": pl.UInt64, "row_index": pl.UInt64}))
     plan: AlignPlan | None = None
 
+    @property
+    def valid_reports(self) -> int:
+        """Reports the job will align (0: ``run`` stops with "no valid report left")."""
+        return int(self.plan.keep.sum()) if self.plan is not None else 0
+
 
 _INPUT_ROW = "__input_row"
 
@@ -135,6 +140,8 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
     cfg = check_config(cfg)
     ing = ingest(ds, strict=cfg.strict, limits=cfg.limits)
     ing.notes[:0] = getattr(ds, "notes", [])
+    if _height(ds.reports) == 0:
+        raise DataError("reports: the table has no rows; nothing to process")
     if ing.reports.height == 0:
         ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
         return ing
@@ -269,13 +276,11 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     for name in ("radars", "reports", "truth"):
         sink(name, getattr(ing, name))
     sink("rejects", ing.rejects)
-    if ing.plan is None or not ing.plan.keep.any():
+    if ing.valid_reports == 0:
         top = (ing.rejects.group_by("reason").len().sort("len", descending=True).head(3)
                if ing.rejects.height else pl.DataFrame({"reason": [], "len": []}))
         why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
         n_in = _height(ds.reports)
-        if n_in == 0:
-            raise DataError("reports: the table has no rows; nothing to process")
         raise DataError(f"no valid report left: all {n_in:,} reports rejected"
                         + (f" (most common: {why})" if why else ""))
     clock.stage("align")

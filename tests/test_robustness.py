@@ -305,6 +305,12 @@ def test_truth_file_missing_or_malformed_is_a_data_error(tmp_path: Path) -> None
         simulate(dataclasses.replace(cfg, adsb=dataclasses.replace(cfg.adsb, truth_file=str(bad))))
 
 
+def test_truth_file_on_a_scenario_without_adsb_is_an_option_error() -> None:
+    cfg = load_scenario("terminal-area")
+    with pytest.raises(OptionError, match=r"adsb.truth_file \(--truth\): .* adsb scenarios only"):
+        check_scenario(dataclasses.replace(cfg, adsb=dataclasses.replace(cfg.adsb, truth_file="x.parquet")))
+
+
 def test_write_dataset_on_a_file_is_a_data_error(small: Dataset, tmp_path: Path) -> None:
     f = tmp_path / "file"
     f.write_text("x")
@@ -370,8 +376,13 @@ def test_nothing_valid_left_is_a_clear_error_with_a_run_record(small: Dataset, t
         pipeline.run(ds, tmp_path / "run", CFG)
     rec = _record(tmp_path / "run")
     assert rec["status"] == "failed" and rec["failed_stage"] == "validate"
+    if which == "zero_rows":       # validate refuses it the same way
+        with pytest.raises(DataError, match="reports: the table has no rows"):
+            pipeline.screen(ds, CFG)
+        return
     with RunStore.open(tmp_path / "run") as st:
         assert st.read("rejects").height == ds.reports.height + (ds.radars.height if "radar" in which else 0)
+    assert pipeline.screen(ds, CFG).valid_reports == 0
 
 
 def test_one_report_runs(small: Dataset, tmp_path: Path) -> None:

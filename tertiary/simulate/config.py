@@ -507,6 +507,9 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
     t = cfg.tracker
     for k in ("alpha", "sigma_m", "cross_sigma_m", "v0_sigma_mps"):
         _number(f"tracker.{k}", getattr(t, k), 0.0, 1e6, open_lo=True)
+    if cfg.kind != "adsb" and cfg.adsb.truth_file:
+        raise OptionError(f"an ADS-B truth file applies to the adsb scenarios only, not to {cfg.kind!r}",
+                          option=_opt("adsb.truth_file"))
     if cfg.kind == "adsb":
         if not isinstance(cfg.adsb.truth_file, str) or not cfg.adsb.truth_file:
             raise OptionError("the adsb scenarios need an ADS-B trajectory file", option=_opt("adsb.truth_file"))
