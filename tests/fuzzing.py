@@ -280,6 +280,8 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
 
 
 def _corrupt_file(path: Path, how: str, frame) -> None:
+    if not path.exists() and how in ("truncate",):  # already removed by an earlier mutation
+        return
     if how == "missing":
         path.unlink(missing_ok=True)
     elif how == "truncate":
@@ -346,6 +348,8 @@ def materialise(case: dict, bases: Path, out: Path) -> tuple[Expect, int]:
             _corrupt_file(out / op["file"], op["how"], frames[op["file"].split(".")[0]])
             if op["file"] != "truth.parquet" or op["how"] != "missing":
                 exp.must_error = exp.impossible = True
+            else:  # no truth table any more: its rows cannot be among the rejects
+                exp.groups = [g for g in exp.groups if g[0] != "truth"]
         elif op["op"] == "toml":
             _mutate_toml(out / "scenario.toml", op["how"], exp)
     return exp, frames["reports"].height
@@ -367,11 +371,10 @@ def _value_op(table: str, catalogue) -> st.SearchStrategy[dict]:
 def frame_op() -> st.SearchStrategy[dict]:
     """One mutation of a dataset (frame, file or scenario.toml)."""
     tables = st.sampled_from(("reports", "radars", "truth"))
-    return st.one_of(
-        _value_op("reports", REPORT_VALUES),
-        _value_op("reports", REPORT_VALUES),
-        _value_op("radars", RADAR_VALUES),
-        _value_op("truth", TRUTH_VALUES),
+    return st.one_of(  # value mutations weighted up: file/TOML faults end a case before the rows matter
+        *[_value_op("reports", REPORT_VALUES)] * 5,
+        *[_value_op("radars", RADAR_VALUES)] * 2,
+        *[_value_op("truth", TRUTH_VALUES)] * 2,
         tables.flatmap(lambda t: st.sampled_from(REQUIRED[t] + ("est_cov", "elevation_deg", "segment"))
                        .map(lambda c: {"op": "drop_col", "table": t, "col": c})),
         tables.flatmap(lambda t: st.sampled_from(CASTS[t]).map(
@@ -474,6 +477,9 @@ SQL_BAD = [
 ]
 
 
+CROSS_JOIN = "SELECT count(*) FROM range(100000000) a, range(100000000) b WHERE a.range + b.range < 0"
+
+
 @st.composite
 def sql_case(draw) -> dict:
     """``tertiary sql RUN --query`` with a hostile, odd or plain query and odd options."""
@@ -491,12 +497,14 @@ def sql_case(draw) -> dict:
         q, case["expect"] = "SELECT 1 AS x", "error"
         case["args"] = draw(st.sampled_from([["--out", "{tmp}"], ["--out", "{run}/results.duckdb"],
                                              ["--out", "{run}"], ["--format", "xml"], ["--out", "{tmp}/no/such/d.csv"],
-                                             ["--format", "parquet"], ["--param", "a=1"], ["--limit", "-1"]]))
+                                             ["--format", "parquet"], ["--param", "a=1"], ["--limit", "-1"],
+                                             ["--limit", "0"], ["--timeout", "0"], ["--timeout", "nan"],
+                                             ["--timeout", "-1"], ["--timeout", "inf"]]))
         if case["args"] in (["--out", "{tmp}/no/such/d.csv"], ["--limit", "-1"]):
             case["expect"] = "any"
     else:  # the one case that can hang: a cross join that a statement timeout must stop
-        q = "SELECT count(*) FROM range(100000000) a, range(100000000) b WHERE a.range + b.range < 0"
-        case["args"], case["subprocess"] = ["--timeout", "2"], True
+        q = CROSS_JOIN
+        case["args"], case["subprocess"] = ["--timeout", draw(st.sampled_from(("2", "0.5", "1")))], True
     fmt = draw(st.sampled_from(((), (), ("--format", "csv"), ("--limit", "3"))))
     if pool in ("ok", "write", "bad") and fmt:
         case["args"] = case["args"] + list(fmt)
@@ -698,6 +706,8 @@ def _accounting(db: Path, n_in: int, exp: Expect, o: Outcome) -> int:
             o.problems.append("run database has no rejects table")
             return 0
         rej = con.execute("SELECT input_table, row_index FROM rejects").fetchall()
+        if con.execute("SELECT count(*) FROM rejects WHERE coalesce(trim(reason), '') = ''").fetchone()[0]:
+            o.problems.append("a reject without a reason")
         n_aligned = (con.execute("SELECT count(DISTINCT report_id) FROM aligned").fetchone()[0]
                      if "aligned" in tables else 0)
         if "run" not in tables:
@@ -716,6 +726,16 @@ def _accounting(db: Path, n_in: int, exp: Expect, o: Outcome) -> int:
         if got < need:
             o.problems.append(f"silent: {t} row(s) {rows[:5]} accepted ({got} of {need} rejected)")
     return len(rej)
+
+
+def _ingest_rejects(db: Path) -> int:
+    import duckdb
+
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.execute("SELECT count(*) FROM rejects WHERE stage = 'ingest'").fetchone()[0]
+    finally:
+        con.close()
 
 
 def _settle(o: Outcome, exp: Expect, had_rejects: bool) -> Outcome:
@@ -756,6 +776,8 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     args += [] if case.get("centralized", True) else ["--no-centralized"]
     args += ["--strict"] if case.get("strict") else []
     args += ["--out", str(out)] if out else []
+    pre = invoke(["validate", str(ds)])  # validate and run share one code path: "valid" must mean it
+    said_valid = pre.exit_code == 0 and _validate_count(pre.stdout or "") == 0
     old = os.getcwd()
     os.chdir(cwd)
     try:
@@ -768,6 +790,9 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if not classify_cli(o, res, args=args):
         if escaped:
             o.cls, o.ok = "silent", False
+        if said_valid and o.cls == "clear_error" and res.exit_code == 3:
+            o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
+            o.ok = False
         return o
     if exp.must_error:
         o.problems.append("silent: table-level problem accepted by run" if exp.impossible
@@ -779,6 +804,8 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if case.get("strict") and exp.groups:
         o.problems.append("silent: --strict run succeeded with impossible rows")
     n_rej = _accounting(db, n_in, exp, o)
+    if said_valid and _ingest_rejects(db):
+        o.problems.append("validate said the dataset is valid, run rejected rows at ingest")
     return _settle(o, exp, n_rej > 0)
 
 
@@ -891,8 +918,15 @@ def _run_sql(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
         if o.problems and any(p.startswith("silent") for p in o.problems):
             o.cls, o.ok = "silent", False
         return o
-    if "root:" in (res.stdout or "") or "[[radars]]" in (res.stdout or ""):
+    stdout = res.stdout or ""
+    if "root:" in stdout or "[[radars]]" in stdout:
         o.problems.append("silent: a file was read through the query")
+    table_format = not any(a in ("--format", "--out") for a in case["args"])
+    if table_format and len(stdout.splitlines()) > 1000:
+        o.problems.append(f"printed {len(stdout.splitlines())} lines: no row cap in table format")
+    for text in ("[/]", "[/truth]"):
+        if f"'{text}'" in query and text not in stdout:
+            o.problems.append(f"{text!r} in a result was not printed verbatim (read as markup?)")
     if case["expect"] == "error":
         o.problems.append("silent: hostile or invalid query accepted (exit 0)")
     o.cls = "silent" if any(p.startswith("silent") for p in o.problems) else "success"
@@ -1048,7 +1082,7 @@ class Worker:
         if self.proc is None or self.proc.poll() is not None:
             self.stop()
             self._start()
-        timeout = timeout or TIMEOUTS[case["entry"]]
+        timeout = timeout or max(TIMEOUTS[case["entry"]], case.get("timeout", 0.0) + 30.0)
         t = time.perf_counter()
         assert self.proc is not None and self.proc.stdin is not None
         self.proc.stdin.write((json.dumps(case) + "\n").encode())

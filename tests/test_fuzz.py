@@ -177,7 +177,7 @@ def test_sql_out_directory_or_run_file_refused(worker, args):
 def test_sql_cross_join_hits_statement_timeout(worker):
     """A cross join ran until killed: with --timeout it must end in a clear error, not a hang."""
     case = {"entry": "sql", "args": ["--timeout", "2"], "expect": "error", "subprocess": True, "timeout": 40.0,
-            "query": "SELECT count(*) FROM range(100000000) a, range(100000000) b WHERE a.range + b.range < 0"}
+            "query": fuzzing.CROSS_JOIN}
     out = _check(worker, case)
     assert out[0].cls == "clear_error", out[0]
 
@@ -237,3 +237,20 @@ def test_impossible_value_is_rejected_not_silent(worker, table, col, value):
 def test_range_as_boolean_is_not_a_number(worker):
     op = [{"op": "cast", "table": "reports", "col": "range_m", "to": "bool", "impossible": True}]
     _check(worker, dataset("run", op), dataset("validate", op))
+
+
+def test_traceback_only_with_debug(worker, tmp_path):
+    """The same unreadable file: one line without --debug, the exception itself with --debug."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from tertiary.cli import app
+
+    ds = tmp_path / "ds"
+    shutil.copytree(worker.bases / "ta", ds)
+    (ds / "reports.parquet").write_bytes(b"garbage")
+    plain = CliRunner().invoke(app, ["validate", str(ds)])
+    assert plain.exit_code == 3 and "Traceback" not in plain.stderr and len(plain.stderr.strip().splitlines()) == 1
+    debug = CliRunner().invoke(app, ["--debug", "validate", str(ds)])
+    assert debug.exception is not None and not isinstance(debug.exception, SystemExit), debug.stderr
