@@ -30,7 +30,7 @@ CODE = """
 import json, time, resource, statistics
 from datetime import datetime, timedelta, timezone
 import numpy as np, polars as pl
-from safety.conflicts import ConflictConfig, candidate_pairs, predict_conflicts
+from safety.conflicts import ConflictConfig, candidate_pairs, height_and_rate, predict_conflicts
 from tertiary.geo import LocalFrame
 FRAME = LocalFrame(48.7, 2.4, 0.0)                # heights from WGS-84 geodesy (the system origin)
 
@@ -40,7 +40,15 @@ def traffic(n, box_m, epochs, seed=0):
                            rng.uniform(300.0, 12000.0, n)])
     spd, hdg = rng.uniform(70.0, 250.0, n), rng.uniform(0.0, 2 * np.pi, n)
     vz = np.where(rng.random(n) < 0.3, rng.choice([-1.0, 1.0], n) * rng.uniform(5.0, 15.0, n), 0.0)
-    vel = np.column_stack([spd * np.sin(hdg), spd * np.cos(hdg), vz])
+    # heights and vertical rates are geodetic: place each aircraft at its height above the ground
+    # point (x, y) and fly it along its local horizontal (+ vz along its local up), so "level"
+    # means level in height, not in ENU z (which curves away by ρ²/2R)
+    lat, lon, _ = FRAME.to_geodetic(pos[:, 0], pos[:, 1], np.zeros(n))
+    pos = np.column_stack(FRAME.from_geodetic(lat, lon, pos[:, 2]))
+    _, _, up = height_and_rate(pos, np.zeros_like(pos), FRAME)
+    vh = np.column_stack([np.sin(hdg), np.cos(hdg), np.zeros(n)])
+    vh -= np.einsum("ij,ij->i", vh, up)[:, None] * up
+    vel = spd[:, None] * vh / np.linalg.norm(vh, axis=1)[:, None] + vz[:, None] * up
     sp = rng.uniform(50.0, 150.0, n)
     sv = rng.uniform(2.0, 8.0, n)
     sig = np.column_stack([sp, sp, 1.5 * sp, sv, sv, 0.5 * sv])

@@ -152,7 +152,8 @@ class AlertConfig:
 # --------------------------------------------------------------------------- truth: heights, intervals
 
 
-def _secs(col: str) -> pl.Expr:
+def _micros(col: str) -> pl.Expr:
+    """Microseconds since the Unix epoch of a time column (exact integers)."""
     return pl.col(col).cast(TIME).dt.epoch("us").cast(pl.Int64)
 
 
@@ -165,8 +166,9 @@ def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> p
     if missing:
         raise ValueError(f"truth: missing column(s) {', '.join(missing)}")
     keys = ["run"] if "run" in truth.columns else []
-    tr = truth.select(*[pl.col("run").cast(pl.UInt32)] * bool(keys), pl.col("truth_id").cast(pl.Int64),
-                      _secs("time").alias("t_us"), *[pl.col(c).cast(pl.Float64) for c in ("x_m", "y_m", "z_m")],
+    run = [pl.col("run").cast(pl.UInt32)] if keys else []
+    tr = truth.select(*run, pl.col("truth_id").cast(pl.Int64),
+                      _micros("time").alias("t_us"), *[pl.col(c).cast(pl.Float64) for c in ("x_m", "y_m", "z_m")],
                       *([pl.col("alt_m").cast(pl.Float64)] if "alt_m" in truth.columns else []))
     tr = tr.sort([*keys, "truth_id", "t_us"])
     pos = tr.select("x_m", "y_m", "z_m").to_numpy()
@@ -370,7 +372,7 @@ def _grid(conflicts: pl.DataFrame, id_map: pl.DataFrame, methods: list[str] | No
     g = pl.concat([g.select("run", "method", "epoch"), c.unique()]).unique()
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
-        _secs("epoch").alias("t_us"))
+        _micros("epoch").alias("t_us"))
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:
@@ -383,9 +385,11 @@ def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> p
                       ).unique(subset=[*on, "__id"], keep="first")
     opt = [pl.col(c).cast(pl.Float64) if c in conflicts.columns else pl.lit(None, pl.Float64).alias(c)
            for c in ("r_min_m", "dz_min_m", "t_min_s")]
-    a = (conflicts.filter(pl.col("alert"))
-         .select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME), pl.col("method").cast(pl.String),
-                 pl.col("id_a").cast(pl.UInt64), pl.col("id_b").cast(pl.UInt64), *opt))
+    # select before filtering: the filter then copies a few columns, not the whole table
+    a = (conflicts.select("alert", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                          pl.col("method").cast(pl.String), pl.col("id_a").cast(pl.UInt64),
+                          pl.col("id_b").cast(pl.UInt64), *opt)
+         .filter(pl.col("alert")).drop("alert"))
     a = (a.join(m.rename({"__id": "id_a", "truth_id": "__ta"}), on=[*on, "id_a"], how="left")
          .join(m.rename({"__id": "id_b", "truth_id": "__tb"}), on=[*on, "id_b"], how="left"))
     valid = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))

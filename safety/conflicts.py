@@ -450,7 +450,7 @@ def conflict_interval(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, dz: ND
     inside = rx * rx + ry * ry <= r_thr * r_thr
     disc = vv * r_thr * r_thr - cross * cross
     moving = vv >= eps * eps
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         sq = np.sqrt(np.maximum(disc, 0.0))
         h_lo = np.where(moving, (rv - sq) / vv, np.where(inside, -np.inf, np.inf))
         h_hi = np.where(moving, (rv + sq) / vv, np.where(inside, np.inf, -np.inf))

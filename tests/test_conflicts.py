@@ -510,7 +510,7 @@ def test_interval_intersection_matches_sampling(rx, ry, vx, vy, dz, dvz, r_thr, 
     """The closed-form same-time rule (roots of the horizontal quadratic ∩ the linear vertical
     interval ∩ [0, T]) against brute-force sampling of the predicted separation."""
     t_in, t_out = conflict_interval(np.array([rx]), np.array([ry]), np.array([vx]), np.array([vy]),
-                                    np.array([dz]), np.array([dvz]), r_thr, z_thr, t_thr)
+                                    np.array([dz]), np.array([dvz]), r_thr, z_thr, t_thr, eps=1e-12)
     a = {"x_m": 0.0, "y_m": 0.0, "alt_m": 0.0, "vx_mps": vx, "vy_mps": vy, "alt_rate_mps": 0.0}
     b = {"x_m": rx, "y_m": ry, "alt_m": dz, "vx_mps": 0.0, "vy_mps": 0.0, "alt_rate_mps": dvz}
     dt = t_thr / 4000
