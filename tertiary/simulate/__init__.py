@@ -46,7 +46,12 @@ class Dataset:
 
     @property
     def origin(self) -> geo.LocalFrame:
-        return geo.LocalFrame(*self.scenario.origin)
+        """The system frame (ENU at the scenario origin); a missing or invalid origin is a
+        :class:`DataError` (the frame of every report depends on it)."""
+        try:
+            return geo.LocalFrame(*check_origin(self.scenario.origin))
+        except OptionError as exc:
+            raise DataError(f"scenario {self.scenario.name!r}: {exc} (give --origin LAT,LON)") from exc
 
 
 def _read_truth_file(path: Path) -> pl.DataFrame:
