@@ -130,8 +130,9 @@ def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) ->
     Raises :class:`DataError` when there is no report or no scan period to build it from."""
     period = cfg.period_s if cfg.period_s is not None else radars["scan_period_s"].min()
     if period is None or not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
-        what = "AlignConfig.period_s" if cfg.period_s is not None else "the radars' smallest scan_period_s"
-        raise OptionError(f"epoch period must be finite and positive, got {period} ({what})")
+        if cfg.period_s is not None:
+            raise OptionError(f"epoch period must be finite and positive, got {period}", option="align.period_s")
+        raise DataError(f"radars: no valid scan_period_s to build the epoch grid from (got {period})")
     t_min = reports["time"].dt.epoch("us").min() if reports.height else None
     if t_min is None:
         raise DataError("align: no report to build the epoch grid from")
