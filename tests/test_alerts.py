@@ -310,3 +310,46 @@ def test_config_validation():
     with pytest.raises(ValueError):
         AlertConfig(link_s=-1)
     assert AlertConfig().link == 105.0
+
+
+def test_los_intervals_match_dense_sampling_on_irregular_truth():
+    """Random piecewise-linear trajectories sampled at irregular, per-aircraft times (ADS-B-like),
+    two runs: the closed-form LoS episodes equal those found by sampling the interpolated truth
+    every 5 ms (to within the sampling step)."""
+    rng = np.random.default_rng(4)
+    rows = []
+    for run in (0, 1):
+        for tid in range(1, 9):
+            t = np.sort(np.concatenate([[0.0, 120.0], rng.uniform(0, 120, rng.integers(2, 15))]))
+            t = np.unique(np.round(t, 3)) + rng.uniform(0, 3) * (tid % 2)          # different spans
+            x = np.cumsum(rng.normal(0, 1500, len(t)))
+            y = np.cumsum(rng.normal(0, 1500, len(t)))
+            h = 3000 + np.cumsum(rng.normal(0, 150, len(t)))
+            rows += [{"run": run, "truth_id": tid, "time": _t(s), "x_m": a, "y_m": b, "z_m": c, "vx_mps": 0.0,
+                      "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": c} for s, a, b, c in zip(t, x, y, h)]
+    tr = pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")), pl.col("run").cast(pl.UInt32))
+    cfg = AlertConfig(conflict=ConflictConfig(dr_h_m=2500.0, dr_v_m=300.0))
+    got = loss_of_separation(tr, cfg)
+    # reference: dense sampling of each aircraft's own linear interpolation
+    dt = 0.005
+    grid = np.arange(0.0, 124.0, dt)
+    ref = []
+    for run in (0, 1):
+        tracks = {}
+        for tid in range(1, 9):
+            a = tr.filter((pl.col("run") == run) & (pl.col("truth_id") == tid)).sort("time")
+            ts = np.array(_s(a["time"]))
+            inside = (grid >= ts[0]) & (grid <= ts[-1])
+            tracks[tid] = (inside, *(np.interp(grid, ts, a[c].to_numpy()) for c in ("x_m", "y_m", "alt_m")))
+        for i in range(1, 9):
+            for j in range(i + 1, 9):
+                (mi, xi, yi, hi), (mj, xj, yj, hj) = tracks[i], tracks[j]
+                los = mi & mj & (np.hypot(xj - xi, yj - yi) < 2500.0) & (np.abs(hj - hi) < 300.0)
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], los.astype(int), [0]])))
+                ref += [(run, i, j, grid[s], grid[e - 1]) for s, e in zip(edges[::2], edges[1::2])]
+    got_rows = [(r["run"], r["truth_a"], r["truth_b"], (r["t_start"] - T0).total_seconds(),
+                 (r["t_end"] - T0).total_seconds()) for r in got.to_dicts()]
+    assert len(ref) >= 5
+    assert [g[:3] for g in got_rows] == [r[:3] for r in sorted(ref)]
+    for g, r in zip(got_rows, sorted(ref)):
+        assert g[3] == pytest.approx(r[3], abs=2 * dt) and g[4] == pytest.approx(r[4], abs=2 * dt)
