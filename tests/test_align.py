@@ -132,3 +132,22 @@ def test_aligned_errors_consistent_on_terminal_area(small_terminal):
     nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)
     assert 1.5 < nees.mean() < 5.0          # χ²(3) mean is 3
     assert np.median(np.hypot(e[:, 0], e[:, 1])) < 300.0
+
+
+def test_plan_row_estimate_is_exact_and_bounded(small_terminal):
+    """The memory estimate made before allocating is the number of rows expand then builds; a
+    limit below it is refused with ResourceError before any aligned row exists."""
+    from dataclasses import replace
+
+    from tertiary.errors import ResourceError
+    ds = small_terminal
+    p = align.plan(ds.reports, ds.radars, ds.origin)
+    assert p.rows == align.expand(p).height > 0
+    with pytest.raises(ResourceError, match="aligned rows"):
+        align.plan(ds.reports, ds.radars, ds.origin, replace(align.AlignConfig(), max_rows=p.rows - 1))
+
+
+def test_no_report_aligns_to_empty_frames():
+    al, rej = align.align(pl.DataFrame(schema={"radar_id": pl.UInt32, "time": pl.Datetime("us", "UTC")}),
+                          _radars(), geo.LocalFrame(48.8, 2.5, 0.0))
+    assert al.height == 0 and rej.height == 0 and "cov" in al.columns
