@@ -910,6 +910,11 @@ def _split(work: pl.DataFrame, checks: list[_Check]) -> tuple[pl.DataFrame, pl.D
     return good, work.filter(flagged).with_columns(joined.alias("__reason"))
 
 
+def _short(value: object, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _raise_first(bad: pl.DataFrame, checks: list[_Check], table: str) -> None:
     """Raise a SchemaError for the first check that flags any of the ``bad`` rows."""
     if bad.is_empty():
@@ -921,7 +926,7 @@ def _raise_first(bad: pl.DataFrame, checks: list[_Check], table: str) -> None:
         hits = bad.filter(pl.col(f"__bad{i}"))
         cols = [_orig(c) if _orig(c) in bad.columns else c for c in check.columns]
         examples = ", ".join(
-            f"row {r}: " + ", ".join(f"{c}={v!r}" for c, v in zip(check.columns, vals))
+            f"row {r}: " + ", ".join(f"{c}={_short(v)}" for c, v in zip(check.columns, vals))
             for r, *vals in hits.head(5).select(_IDX, *cols).iter_rows()
         )
         column, total, rows = ", ".join(check.columns), bad.height, hits[_IDX].to_list()
