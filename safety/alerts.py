@@ -65,7 +65,6 @@ look-ahead vary; the two threshold families compared at equal nuisance + false r
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -663,7 +662,8 @@ def compare_at_equal_nuisance(curve: pl.DataFrame, warning_s: float = 30.0, t_th
     """Covariance vs fixed thresholds at equal nuisance + false alert rate: per picture, each
     family's alerted fraction (≥ ``warning_s`` warning) linearly interpolated at ``rate``
     (default: the covariance family's rate at ``reference_confidence``), at look-ahead
-    ``t_thr_s`` (default: the curve's largest); NaN outside a family's range (no extrapolation). Columns: method, threshold_mode, t_thr_s, warning_s,
+    ``t_thr_s`` (default: the curve's largest); NaN outside a family's range (no
+    extrapolation). Columns: method, threshold_mode, t_thr_s, warning_s,
     nuisance_false_per_hour, alerted_fraction."""
     cur = curve.filter(pl.col("warning_s") == warning_s)
     if t_thr_s is None and cur.height:

@@ -110,8 +110,9 @@ If a pair comes within the thresholds at some t ∈ W then, horizontally,
 
 (λ_i = the larger of λ_max of track i's propagated horizontal covariance at t = 0 and at
 t = T^пор — λ_max(P(t)) is convex in t, so that bounds it over the look-ahead) and likewise
-vertically with the height variances — so the screen is conservative. For a set of tracks the maxima of these terms give
-a horizontal and a vertical reach; the query is a Chebyshev box in (x, y, z·s) with z scaled by
+vertically with the height variances; the near margins m_h, m_v are added to both reaches — so
+the screen is conservative. For a set of tracks the maxima of these terms give a horizontal and
+a vertical reach; the query is a Chebyshev box in (x, y, h·s) with the height scaled by
 s = reach_h / reach_v. In seed mode (t_c = 0, T_w = T^пор) the horizontal reach is the
 R^пор + 2·v_max·T^пор around the current positions; the corrected window [0, T^пор] halves the
 closing distance. Three tiers keep the boxes tight:
