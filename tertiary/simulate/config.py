@@ -463,10 +463,11 @@ def _check_anomalies(a: Anomalies, radar_names: list[str]) -> None:
 
 
 def resolve_data_path(path: str) -> Path:
-    """A data file path: absolute, relative to the working directory, or to the repository
-    (a missing file is a :class:`DataError` listing where it was looked for)."""
+    """A data file path: absolute, or relative to the working directory, to the built-in
+    scenarios' directory (the shipped samples sit beside their TOML) or to the repository (a
+    missing file is a :class:`DataError` listing where it was looked for)."""
     p = Path(path).expanduser()
-    candidates = [p] if p.is_absolute() else [Path.cwd() / p, Path(__file__).resolve().parents[2] / p]
+    candidates = [p] if p.is_absolute() else [Path.cwd() / p, builtin_dir() / p, Path(__file__).resolve().parents[2] / p]
     for c in candidates:
         if c.is_file():
             return c
