@@ -5,6 +5,12 @@ Stages are composed here and nowhere else: ingest/validate → align → gate + 
 trackers on every fusion method's picture → conflict prediction on every picture → evaluate
 (accuracy, association, trackers, alerts against truth, capacity from the measured accuracy)
 → store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
+
+:func:`screen` applies every rule that can reject a report (the data contract and the align
+stage's plan) and is the first step of :func:`process`, so ``tertiary validate`` reports exactly
+what ``tertiary run`` rejects. :func:`run` stores each stage's tables as soon as the stage
+completes; a failing stage (or "no valid report left") still leaves the completed tables, the
+rejects and a run record with ``status``, ``failed_stage`` and ``error`` before the error is raised.
 """
 
 from __future__ import annotations
