@@ -239,3 +239,18 @@ def test_adsb_generic_places_radars_around_traffic():
     lat0, lon0, _ = ds.scenario.origin
     assert 48.0 < lat0 < 49.8 and 1.5 < lon0 < 3.5
     assert ds.reports.height > 1000
+
+
+def test_every_shipped_scenario_passes_its_own_checks():
+    """check_scenario runs before every simulation: it must accept what the package ships (the
+    generic adsb scenario needs --truth, and says so)."""
+    from tertiary.errors import OptionError
+    from tertiary.simulate import builtin_scenarios
+    from tertiary.simulate.config import check_scenario
+    for name in builtin_scenarios():
+        cfg = load_scenario(name)
+        if name == "adsb":
+            with pytest.raises(OptionError, match=r"adsb.truth_file \(--truth\)"):
+                check_scenario(cfg)
+        else:
+            assert check_scenario(cfg) is cfg
