@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 from _util import record, run_isolated
 
@@ -118,6 +119,7 @@ def main() -> None:
     if args.density:
         cases += [("constant_density", n, args.box_km * 1e3 * (n / n_ref) ** 0.5) for n in args.aircraft if n != n_ref]
     results = []
+    load_before = os.getloadavg()
     for mode in args.modes:
         for kind, n, box in cases:
             kw = dict(n=n, box_m=box, epochs=args.epochs, repeat=args.repeat, mode=mode)
@@ -135,6 +137,8 @@ def main() -> None:
                      "config": "ConflictConfig() defaults (terminal 3 NM / 1000 ft, T = 105 s, covariance thresholds at clip(T_min, 0, T), same-time rule, near margins 1 NM / 300 ft), geodetic heights (frame 48.7N 2.4E)"},
         "results": results,
         "targets": {"s_per_epoch_10000": 0.5},
+        # the machine is shared: 1-min load averages before and after (2 cores → > 2 means contention)
+        "load_average_before_after": [load_before[0], os.getloadavg()[0]],
     }
     path = record("bench_conflicts", payload)
     print(json.dumps(payload, indent=2))
