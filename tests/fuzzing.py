@@ -163,6 +163,7 @@ class Expect:
     # radars table beside it, "dataset" needs every table (times consistent across tables)
     groups: list[tuple[str, list[int], int, str]] = field(default_factory=list)
     name_escape: str | None = None    # scenario name that must not become a path outside runs/
+    rows_only: bool = False           # only row-level faults in reports/truth: want rejects, not a refusal
     notes: list[str] = field(default_factory=list)
 
 
@@ -280,6 +281,8 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
 
 
 def _corrupt_file(path: Path, how: str, frame) -> None:
+    import polars as pl
+
     if not path.exists() and how in ("truncate",):  # already removed by an earlier mutation
         return
     if how == "missing":
@@ -290,8 +293,8 @@ def _corrupt_file(path: Path, how: str, frame) -> None:
     elif how == "garbage":
         path.write_bytes(bytes(range(256)) * 7 + b"\xff\xfe garbage")
     elif how == "csv":
-        frame.select([c for c, d in frame.schema.items() if d.is_numeric() or d == d.__class__()][:4]) \
-            .write_csv(path) if frame.width else path.write_text("a,b\n1,2\n")
+        cols = [c for c, d in frame.schema.items() if d.is_numeric() or d == pl.String][:4]
+        frame.select(cols).write_csv(path) if cols else path.write_text("a,b\n1,2\n")
     elif how == "empty":
         path.write_bytes(b"")
     elif how == "ipc":
@@ -299,7 +302,8 @@ def _corrupt_file(path: Path, how: str, frame) -> None:
 
 
 def _mutate_toml(path: Path, how: str, exp: Expect) -> None:
-    text = path.read_text() if path.exists() else 'name = "x"\nkind = "terminal-area"\n'
+    text = (path.read_bytes().decode("utf-8", errors="replace") if path.exists()
+            else 'name = "x"\nkind = "terminal-area"\n')
     if how == "garbage":
         path.write_bytes(b"\x00\x01 = [[[ not toml \xff")
         exp.must_error = exp.impossible = True
@@ -352,6 +356,8 @@ def materialise(case: dict, bases: Path, out: Path) -> tuple[Expect, int]:
                 exp.groups = [g for g in exp.groups if g[0] != "truth"]
         elif op["op"] == "toml":
             _mutate_toml(out / "scenario.toml", op["how"], exp)
+    exp.rows_only = not case.get("strict") and all(
+        o["op"] in ("set", "text", "dup") and o["table"] in ("reports", "truth") for o in case["ops"])
     return exp, frames["reports"].height
 
 
@@ -477,14 +483,26 @@ SQL_BAD = [
 ]
 
 
+SQL_NAMED = ("accuracy_by_method", "accuracy_over_time", "alert_scores", "rejects_by_reason", "row_accounting",
+             "radar_residuals", "trajectories", "conflicts", "nope", "../x", "[/]")
+SQL_PARAMS = ("method", "metric", "min_sample_frac", "radar_id", "skip_first_s", "segment", "stage", "bogus",
+              "min_severity")
+SQL_PARAM_VALUES = ("null", "1e300", "-1", "nan", "'; DROP TABLE aligned; --", "[/]", "\"x\"", "true", "", "[1,2]",
+                    "999999999999999999999", "rmse_pos_m", "aposteriori", "\udcff")
 CROSS_JOIN = "SELECT count(*) FROM range(100000000) a, range(100000000) b WHERE a.range + b.range < 0"
 
 
 @st.composite
 def sql_case(draw) -> dict:
     """``tertiary sql RUN --query`` with a hostile, odd or plain query and odd options."""
-    pool = draw(st.sampled_from(("write", "ok", "ok", "bad", "text", "opts", "timeout")))
+    pool = draw(st.sampled_from(("write", "ok", "ok", "bad", "text", "opts", "timeout", "named")))
     case: dict[str, Any] = {"entry": "sql", "args": [], "expect": "error"}
+    if pool == "named":  # a named report with odd parameter values: a clear error or a result
+        name = draw(st.sampled_from(SQL_NAMED))
+        params = draw(st.lists(st.tuples(st.sampled_from(SQL_PARAMS), st.sampled_from(SQL_PARAM_VALUES)),
+                               max_size=3))
+        return {"entry": "sql", "name": name, "args": [a for k, v in params for a in ("-p", f"{k}={v}")],
+                "expect": "any", "query": ""}
     if pool == "write":
         q = draw(st.sampled_from(SQL_WRITES))
     elif pool == "ok":
@@ -574,6 +592,10 @@ def dataset(entry: str, ops: list[dict], base: str = "ta", **kw: Any) -> dict:
 # ---------------------------------------------------------------------------
 
 
+class HarnessError(RuntimeError):
+    """The harness itself failed to build a case (reported as such, not as a project finding)."""
+
+
 @dataclass
 class Outcome:
     """The classification of one case."""
@@ -615,7 +637,7 @@ def _project_frame(tb) -> str:
 def _from_exception(o: Outcome, exc: BaseException) -> Outcome:
     o.cls, o.ok = "traceback", False
     o.exc = f"{type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"
-    o.where = _project_frame(exc.__traceback__)
+    o.where = "tests/fuzzing.py (HARNESS BUG)" if isinstance(exc, HarnessError) else _project_frame(exc.__traceback__)
     o.tb_tail = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)[-4:])[-1500:]
     return o
 
@@ -728,6 +750,13 @@ def _accounting(db: Path, n_in: int, exp: Expect, o: Outcome) -> int:
     return len(rej)
 
 
+def _row_level_refused(o: Outcome, exp: Expect) -> None:
+    """A dataset whose faults are all row-level (in reports/truth) must give rejects, not a refusal."""
+    if o.cls == "clear_error" and exp.rows_only:
+        o.problems.append(f"row-level faults refused as a whole (want rejects): {o.exc[:200]}")
+        o.ok = False
+
+
 def _ingest_rejects(db: Path) -> int:
     import duckdb
 
@@ -750,11 +779,15 @@ def _settle(o: Outcome, exp: Expect, had_rejects: bool) -> Outcome:
 
 def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     ds = work / "ds"
-    exp, n_in = materialise(case, bases, ds)
+    try:
+        exp, n_in = materialise(case, bases, ds)
+    except Exception as exc:  # a bug of this harness, never reported as a finding of the project
+        raise HarnessError(f"materialise failed: {type(exc).__name__}: {exc}") from exc
     if case["entry"] == "validate":
         args = ["validate", str(ds)] + (["--strict"] if case.get("strict") else [])
         res = invoke(args)
         if not classify_cli(o, res, args=args):
+            _row_level_refused(o, exp)
             return o
         n_rej = _validate_count(res.stdout or "")
         singles = {(t, rows[0]) for t, rows, _, _ in exp.groups if len(rows) == 1}
@@ -790,6 +823,7 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if not classify_cli(o, res, args=args):
         if escaped:
             o.cls, o.ok = "silent", False
+        _row_level_refused(o, exp)
         if said_valid and o.cls == "clear_error" and res.exit_code == 3:
             o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
             o.ok = False
@@ -891,7 +925,8 @@ def _run_sql(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
         return s
 
     query = fill(case["query"])
-    args = ["sql", str(run), "--query", query] + [fill(a) for a in case["args"]]
+    args = (["sql", str(run), case["name"]] if case.get("name") else ["sql", str(run), "--query", query]) \
+        + [fill(a) for a in case["args"]]
     before = _db_state(run / "results.duckdb")
     if case.get("subprocess"):
         code, out, err, secs = _sql_subprocess(args, case.get("timeout", 30.0))
