@@ -353,3 +353,12 @@ def test_los_intervals_match_dense_sampling_on_irregular_truth():
     assert [g[:3] for g in got_rows] == [r[:3] for r in sorted(ref)]
     for g, r in zip(got_rows, sorted(ref)):
         assert g[3] == pytest.approx(r[3], abs=2 * dt) and g[4] == pytest.approx(r[4], abs=2 * dt)
+
+
+def test_no_alerts_still_scores_missed_losses(truth):
+    from tertiary import schema
+    empty = schema.empty_frame("conflicts", False)
+    m = _metrics(score_alerts(empty, _id_map(), truth, CFG, methods=["m"]))
+    assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alert_episodes"] == 0
+    assert m["alerts_per_hour"] == 0.0 and math.isnan(m["warning_median_s"])
+    assert alert_episodes(empty, _id_map(), truth, CFG, methods=["m"]).schema == pl.Schema(ALERTS_SCHEMA)

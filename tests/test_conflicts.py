@@ -692,3 +692,18 @@ def test_slim_conflicts_keeps_alerts_and_near_pairs():
     # near = the same-time rule with widened thresholds: a zero margin keeps the alerts only
     zero = predict_conflicts(df, ConflictConfig(near_margin_h_m=0.0, near_margin_v_m=0.0))
     assert slim_conflicts(zero).height == zero["alert"].sum()
+
+
+def test_slim_conflicts_from_stored_geometry():
+    """A table without the ``near`` column (or explicit margins) is slimmed on its stored geometry."""
+    df = _frame([[0, 0, 3000], [20000, 7000, 3000], [0, 30000, 3000], [20000, 37000, 3400]],
+                [[100, 0, 0], [-100, 0, 0], [100, 0, 0], [-100, 0, 10]])
+    out = predict_conflicts(df, FIXED)
+    # (1, 2): co-level, R_min 7 000 m > R_thr 6 356 m but within 1 NM → near; (3, 4): the same
+    # horizontally, 400 m above and climbing away at 10 m/s → within the margins only apart in
+    # time (vertically for t < 10.6 s, horizontally for t ∈ [78.6, 121] s) → screened, not near
+    assert set(zip(out["id_a"], out["id_b"])) == {(1, 2), (3, 4)}
+    got = slim_conflicts(out.drop("near"))
+    assert set(zip(got["id_a"], got["id_b"])) == {(1, 2)} and not got["alert"].any()
+    assert slim_conflicts(out.drop("near"), margin_h_m=100.0).height == 0
+    assert set(zip(slim_conflicts(out)["id_a"], slim_conflicts(out)["id_b"])) == {(1, 2)}
