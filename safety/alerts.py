@@ -90,6 +90,7 @@ __all__ = [
     "alert_episodes",
     "los_episodes",
     "score_alerts",
+    "stca_tables",
     "stca_tradeoff",
     "compare_at_equal_nuisance",
     "tradeoff_metrics",
@@ -592,7 +593,10 @@ def score_alerts(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFr
     """STCA performance per picture in the ``metrics`` schema (stage ``"safety"``, segment
     ``"all"``): :data:`ALERT_METRICS` — see the module docstring."""
     alerts, los, grid = _score(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)
-    per = _per_method(alerts, los, grid)
+    return _metrics_long(_per_method(alerts, los, grid))
+
+
+def _metrics_long(per: pl.DataFrame) -> pl.DataFrame:
     long = per.unpivot(index=["method", "n_runs"], on=list(ALERT_METRICS), variable_name="metric",
                        value_name="value")
     order = pl.col("metric").replace_strict({m: i for i, m in enumerate(ALERT_METRICS)}, return_dtype=pl.Int8)
@@ -600,6 +604,17 @@ def score_alerts(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFr
         pl.lit("safety").alias("stage"), "method", "metric", pl.lit("all").alias("segment"), "value", "n_runs")
     spec = TABLES["metrics"].required
     return out.select([pl.col(c).cast(t) for c, t in spec.items()])
+
+
+def stca_tables(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
+                cfg: AlertConfig = AlertConfig(), id_col: str = "id", methods: list[str] | None = None,
+                frame: geo.LocalFrame | None = None,
+                intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None
+                ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(metrics, alerts, LoS episodes) in one pass: :func:`score_alerts`,
+    :func:`alert_episodes` and :func:`los_episodes` without scoring twice (pipeline use)."""
+    alerts, los, grid = _score(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)
+    return _metrics_long(_per_method(alerts, los, grid)), alerts, los
 
 
 # --------------------------------------------------------------------------- trade-off curves

@@ -238,6 +238,11 @@ def test_metrics_names_rates_and_methods(truth):
     assert a["picture_hours"] == pytest.approx(hours)
     # p05 of one warning is that warning
     assert a["warning_p05_s"] == pytest.approx(a["warning_median_s"])
+    # one pass gives the same three tables
+    from safety.alerts import stca_tables
+    m3, al3, los3 = stca_tables(alerts, _id_map(), truth, CFG)
+    assert m3.equals(m) and al3.equals(alert_episodes(alerts, _id_map(), truth, CFG))
+    assert los3.equals(los_episodes(alerts, _id_map(), truth, CFG))
     # a method without alerts (listed) still reports its missed LoS
     none = score_alerts(alerts.filter(pl.col("method") == "a"), _id_map(), truth, CFG, methods=["a", "c"])
     assert _metrics(none, "c")["missed_los"] == 1
