@@ -18,7 +18,7 @@ channel), else the WGS-84 geodetic height of the system-frame ENU position and i
 the local up *at the target* (:func:`height_and_rate`, ``frame`` = the system origin). ENU z
 is not height: at 100 km from the centre a level aircraft sits ρ²/2R ≈ 785 m lower in z, and
 flying radially shows v·ρ/R ≈ 3 m/s of false z-rate. Horizontal geometry stays on the system
-tangent plane; :func:`tangent_plane_error_bound` bounds that error (≤ 46 m for a pair 10 km
+tangent plane; :func:`tangent_plane_error_bound` bounds that error (≤ 47 m for a pair 10 km
 apart, |Δh| ≤ 1 km, anywhere within 150 km of the centre at ≤ 12 km).
 
 Two decision rules (``ConflictConfig.mode``)
@@ -234,8 +234,8 @@ def tangent_plane_error_bound(d_m: ArrayLike, rho_m: ArrayLike, h_m: ArrayLike, 
     height, and the tilt ρ/R of the local vertical that turns a height difference into a
     horizontal offset (1 m covers rounding and the ellipsoid's second-order terms). Checked
     against pymap3d's Vincenty distance in tests/test_conflicts.py. Over the coverage (ρ ≤ 150 km,
-    h ≤ 12 km) a pair 10 km apart errs by ≤ 31 m with |Δh| ≤ 300 m and ≤ 46 m with |Δh| ≤ 1 km —
-    at most 0.8 % of the 3 NM minimum, so the horizontal geometry may stay on the tangent plane;
+    h ≤ 12 km) a pair 10 km apart errs by ≤ 31 m with |Δh| ≤ 300 m and ≤ 47 m with |Δh| ≤ 1 km —
+    under 1 % of the 3 NM minimum, so the horizontal geometry may stay on the tangent plane;
     the vertical may not (ρ²/2R = 1.8 km at 150 km), hence :func:`height_and_rate`."""
     d, rho, h, dh = (np.asarray(a, np.float64) for a in (d_m, rho_m, h_m, dh_m))
     r = R_CURV_MIN_M
