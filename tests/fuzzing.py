@@ -114,6 +114,9 @@ REPORT_VALUES: list[tuple[str, Any, bool]] = [
     *[("time", f"year:{y}", True) for y in (1, 1970, 2100, 9999)],
     ("radar_id", 999, True),
     *[("local_track_id", v, False) for v in (0, 2**32 - 1)],
+    *[(c, None, True) for c in ("radar_id", "time", "local_track_id", "range_m", "azimuth_deg")],
+    *[(c, v, False) for c in ("run",) for v in (2**32 - 1, None, 7)],
+    ("truth_id", 999999, False), ("truth_id", None, False), ("elevation_deg", None, False),
 ]
 RADAR_VALUES: list[tuple[str, Any, bool]] = [
     *[(c, 1e300, True) for c in ("sigma_range_m", "sigma_azimuth_deg", "sigma_elevation_deg")],
@@ -124,17 +127,21 @@ RADAR_VALUES: list[tuple[str, Any, bool]] = [
     ("max_range_m", 1e300, False),
     ("alt_m", 1e300, True),
     ("timing", "[/]", True),
+    *[(c, None, True) for c in ("radar_id", "lat_deg", "scan_period_s", "max_range_m")],
 ]
 TRUTH_VALUES: list[tuple[str, Any, bool]] = [
     *[("time", f"year:{y}", True) for y in (1970, 2100)],
     *[("x_m", v, False) for v in (1e300, -1e300)],
     ("x_m", NAN, True),
+    *[(c, None, True) for c in ("truth_id", "time", "x_m")],
 ]
 REQUIRED = {
     "reports": ("radar_id", "time", "local_track_id", "range_m", "azimuth_deg"),
     "radars": ("radar_id", "name", "lat_deg", "scan_period_s", "sigma_range_m", "max_range_m"),
     "truth": ("truth_id", "time", "x_m"),
 }
+OPTIONAL_DROPS = ("est_cov", "elevation_deg", "segment", "report_id", "run", "x_m", "est_range_var_m2", "res_range_m",
+                  "truth_id", "max_range_m")
 CASTS = {  # (column, target dtype, impossible-if-accepted)
     "reports": [("time", t, False) for t in ("int", "float", "date", "duration")]
     + [("est_cov", "string", False), ("range_m", "bool", True), ("callsign", "binary", False),
@@ -237,7 +244,8 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
     """Apply the frame mutations in phase order; record what they demand in ``exp``."""
     import polars as pl
 
-    order = {"head": 0, "set_all": 0, "set": 1, "text": 1, "dup": 2, "cast": 3, "drop_col": 3, "add_col": 3}
+    order = {"head": 0, "set_all": 0, "shuffle": 0, "set": 1, "text": 1, "dup": 2, "cast": 3, "drop_col": 3,
+             "add_col": 3}
     for op in sorted(ops, key=lambda o: order.get(o["op"], 9)):
         t = op["table"]
         f = frames.get(t)
@@ -271,6 +279,8 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
                 frames[t] = f.drop(op["col"])
                 if op["col"] in REQUIRED[t] and (t != "truth" or f.height):
                     exp.must_error = exp.impossible = True
+            elif kind == "shuffle":  # rows out of time order: sorted with a note, never lost
+                frames[t] = f.sample(fraction=1.0, shuffle=True, seed=op["seed"])
             elif kind == "add_col":
                 v = op["value"]
                 v = bytes.fromhex(v[6:]) if v.startswith("bytes:") else v
@@ -381,12 +391,13 @@ def frame_op() -> st.SearchStrategy[dict]:
         *[_value_op("reports", REPORT_VALUES)] * 5,
         *[_value_op("radars", RADAR_VALUES)] * 2,
         *[_value_op("truth", TRUTH_VALUES)] * 2,
-        tables.flatmap(lambda t: st.sampled_from(REQUIRED[t] + ("est_cov", "elevation_deg", "segment"))
+        tables.flatmap(lambda t: st.sampled_from(REQUIRED[t] + OPTIONAL_DROPS)
                        .map(lambda c: {"op": "drop_col", "table": t, "col": c})),
         tables.flatmap(lambda t: st.sampled_from(CASTS[t]).map(
             lambda c: {"op": "cast", "table": t, "col": c[0], "to": c[1], "impossible": c[2]})),
         st.tuples(tables, st.sampled_from((0, 1))).map(lambda x: {"op": "head", "table": x[0], "n": x[1]}),
         st.tuples(tables, _fracs).map(lambda x: {"op": "dup", "table": x[0], "rows": x[1]}),
+        st.tuples(tables, st.integers(0, 2**16)).map(lambda x: {"op": "shuffle", "table": x[0], "seed": x[1]}),
         st.sampled_from([("reports", "range_m", -1.0), ("reports", "radar_id", 999), ("radars", "scan_period_s", -1.0),
                          ("reports", "azimuth_deg", NAN)]).map(
             lambda x: {"op": "set_all", "table": x[0], "col": x[1], "value": x[2]}),
@@ -401,6 +412,8 @@ def frame_op() -> st.SearchStrategy[dict]:
 
 
 RUN_FILTERS = ("singer", "", "quasi_optimal", "imm_sym", "singer,imm_sym", "cv")
+RUN_BAD_OPTS = (None,) * 12 + (["--methods", "nope"], ["--filters", "nope"], ["--methods", "arithmetic,[/]"],
+                                ["--out", "{file}"], ["--seed", "-1"], ["--runs", "0"])
 RUN_METHODS = ("arithmetic,information", "arithmetic", "information")
 
 
@@ -414,7 +427,8 @@ def dataset_case(draw, entry: str | None = None) -> dict:
     if entry == "run":
         case.update(filters=draw(st.sampled_from(RUN_FILTERS)), methods=draw(st.sampled_from(RUN_METHODS)),
                     report=draw(st.integers(0, 9)) == 0, centralized=draw(st.booleans()),
-                    default_out=any(o["op"] == "toml" and o["how"] == "name_path" for o in ops))
+                    default_out=any(o["op"] == "toml" and o["how"] == "name_path" for o in ops),
+                    bad_opt=draw(st.sampled_from(RUN_BAD_OPTS)))
     return case
 
 
@@ -537,7 +551,7 @@ API_OBJECTS = ("frame", "frame", "frame", "none", "dict", "numpy", "lazy", "arro
 @st.composite
 def api_case(draw) -> dict:
     """``tertiary.validate(obj, kind, strict=...)`` with odd objects or a mutated frame."""
-    kind = draw(st.sampled_from(("reports", "reports", "radars", "truth", "nope", "")))
+    kind = draw(st.sampled_from(("reports", "reports", "radars", "truth", "nope", "", "aligned", "rejects")))
     t = kind if kind in REQUIRED else "reports"
     cat = {"reports": REPORT_VALUES, "radars": RADAR_VALUES, "truth": TRUTH_VALUES}[t]
     ops = draw(st.lists(st.one_of(
@@ -752,7 +766,7 @@ def _accounting(db: Path, n_in: int, exp: Expect, o: Outcome) -> int:
 
 def _row_level_refused(o: Outcome, exp: Expect) -> None:
     """A dataset whose faults are all row-level (in reports/truth) must give rejects, not a refusal."""
-    if o.cls == "clear_error" and exp.rows_only:
+    if o.cls == "clear_error" and exp.rows_only and o.exit_code == 3:
         o.problems.append(f"row-level faults refused as a whole (want rejects): {o.exc[:200]}")
         o.ok = False
 
@@ -809,6 +823,9 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     args += [] if case.get("centralized", True) else ["--no-centralized"]
     args += ["--strict"] if case.get("strict") else []
     args += ["--out", str(out)] if out else []
+    if case.get("bad_opt"):  # one bad option: refused with exit 2 (or 3 for --out on a file) before any work
+        (work / "a_file").write_text("x")
+        args += [a.replace("{file}", str(work / "a_file")) for a in case["bad_opt"]]
     pre = invoke(["validate", str(ds)])  # validate and run share one code path: "valid" must mean it
     said_valid = pre.exit_code == 0 and _validate_count(pre.stdout or "") == 0
     old = os.getcwd()
@@ -828,6 +845,8 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
             o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
             o.ok = False
         return o
+    if case.get("bad_opt") and case["bad_opt"][0] != "--seed" and case["bad_opt"][0] != "--runs":
+        o.problems.append(f"silent: bad run option {case['bad_opt']} accepted")
     if exp.must_error:
         o.problems.append("silent: table-level problem accepted by run" if exp.impossible
                           else "table-level problem not refused")
@@ -1017,14 +1036,20 @@ def _run_api(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
         out = tertiary.validate(obj, case["kind"], strict=case["strict"], **kw)
     except TertiaryError as exc:
         o.cls, o.exc = "clear_error", f"{type(exc).__name__}: {exc}"[:300]
-        o.ok = "\n" not in str(exc).strip() and bool(str(exc).strip())
-        if not o.ok:
+        if "\n" in str(exc).strip() or not str(exc).strip():
             o.problems.append("error message is empty or spans several lines")
+        rows_only = all(op["op"] in ("set", "text", "dup") for op in case["ops"])
+        if (case["obj"] == "frame" and case["kind"] in REQUIRED and not case["strict"] and rows_only
+                and frame.height > 1):
+            o.problems.append(f"row-level faults refused as a whole with strict=False (want rejects): {exc}"[:300])
+        o.ok = not o.problems
         return o
     except BaseException as exc:  # noqa: BLE001 -- classifying every escape is the point
         return _from_exception(o, exc)
-    if case["kind"] not in REQUIRED:
+    if case["kind"] in ("nope", ""):
         o.problems.append(f"unknown kind {case['kind']!r} accepted")
+    if case["kind"] not in REQUIRED:  # an output-table kind: no row expectations from the mutations
+        return _settle(o, Expect(), False) if not o.problems else _fail(o)
     if case["obj"] != "frame":
         return _settle(o, exp, False) if not o.problems else _fail(o)
     if exp.must_error:
