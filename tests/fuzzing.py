@@ -57,6 +57,7 @@ BASES = {
     # name: (scenario, overrides) -- tiny, so that a `run` case costs about a second
     "ta": ("terminal-area", {"aircraft": 4, "radars": 2, "duration": 120.0}),
     "bb": ("big-box", {"duration": 60.0}),
+    "bb3": ("big-box", {"duration": 30.0, "runs": 3}),   # several Monte-Carlo runs in one dataset
 }
 
 
@@ -73,7 +74,7 @@ def build_bases(root: Path) -> Path:
         d = root / name
         if (d / "reports.parquet").exists():
             continue
-        cfg = load_scenario(scen).replace(runs=1, duration_s=over["duration"])
+        cfg = load_scenario(scen).replace(runs=over.get("runs", 1), duration_s=over["duration"])
         if "aircraft" in over:
             cfg = dataclasses.replace(cfg, traffic=dataclasses.replace(cfg.traffic, aircraft=over["aircraft"]))
         if "radars" in over:
@@ -117,6 +118,8 @@ REPORT_VALUES: list[tuple[str, Any, bool]] = [
     *[(c, None, True) for c in ("radar_id", "time", "local_track_id", "range_m", "azimuth_deg")],
     *[(c, v, False) for c in ("run",) for v in (2**32 - 1, None, 7)],
     ("truth_id", 999999, False), ("truth_id", None, False), ("elevation_deg", None, False),
+    *[(c, 0.0, False) for c in ("est_range_var_m2", "est_azimuth_var_deg2", "res_range_var_m2", "range_m")],
+    ("azimuth_deg", 359.9999999, False), ("elevation_deg", 90.0, False), ("elevation_deg", -90.0, False),
 ]
 RADAR_VALUES: list[tuple[str, Any, bool]] = [
     *[(c, 1e300, True) for c in ("sigma_range_m", "sigma_azimuth_deg", "sigma_elevation_deg")],
@@ -128,6 +131,11 @@ RADAR_VALUES: list[tuple[str, Any, bool]] = [
     ("alt_m", 1e300, True),
     ("timing", "[/]", True),
     *[(c, None, True) for c in ("radar_id", "lat_deg", "scan_period_s", "max_range_m")],
+    # extreme but legal: poles, date line, zero sigmas (singular weights), a radar that sees nothing
+    *[(c, v, False) for c, v in (("lat_deg", 89.999), ("lat_deg", -89.999), ("lon_deg", 180.0), ("lon_deg", -180.0),
+                                 ("alt_m", -499.0), ("sigma_range_m", 0.0), ("sigma_azimuth_deg", 0.0),
+                                 ("sigma_elevation_deg", 0.0), ("max_range_m", 1.0), ("scan_period_s", 0.5),
+                                 ("scan_period_s", 600.0))],
 ]
 TRUTH_VALUES: list[tuple[str, Any, bool]] = [
     *[("time", f"year:{y}", True) for y in (1970, 2100)],
@@ -140,6 +148,7 @@ REQUIRED = {
     "radars": ("radar_id", "name", "lat_deg", "scan_period_s", "sigma_range_m", "max_range_m"),
     "truth": ("truth_id", "time", "x_m"),
 }
+SHIFTS = (-30 * 86400.0, 3.5 * 86400.0, 1e-6, 0.5, 50 * 365 * 86400.0, -3600.0)
 OPTIONAL_DROPS = ("est_cov", "elevation_deg", "segment", "report_id", "run", "x_m", "est_range_var_m2", "res_range_m",
                   "truth_id", "max_range_m")
 CASTS = {  # (column, target dtype, impossible-if-accepted)
@@ -152,7 +161,7 @@ CASTS = {  # (column, target dtype, impossible-if-accepted)
 TEXT_COLS = {"reports": ("callsign", "mode_s", "mode_3a"), "radars": ("name",), "truth": ("callsign",)}
 FILES = ("radars.parquet", "reports.parquet", "truth.parquet")
 FILE_OPS = ("truncate", "garbage", "csv", "empty", "ipc", "missing")
-TOML_OPS = ("garbage", "utf16", "unknown_key", "no_origin", "origin_abc", "origin_nan", "origin_range",
+TOML_OPS = ("garbage", "utf16", "unknown_key", "no_origin", "origin_abc", "origin_nan", "origin_range", "origin_pole",
             "name_path", "name_markup", "missing", "bad_type")
 
 
@@ -244,7 +253,7 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
     """Apply the frame mutations in phase order; record what they demand in ``exp``."""
     import polars as pl
 
-    order = {"head": 0, "set_all": 0, "shuffle": 0, "set": 1, "text": 1, "dup": 2, "cast": 3, "drop_col": 3,
+    order = {"head": 0, "set_all": 0, "shuffle": 0, "shift": 0, "set": 1, "text": 1, "dup": 2, "cast": 3, "drop_col": 3,
              "add_col": 3}
     for op in sorted(ops, key=lambda o: order.get(o["op"], 9)):
         t = op["table"]
@@ -279,6 +288,8 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
                 frames[t] = f.drop(op["col"])
                 if op["col"] in REQUIRED[t] and (t != "truth" or f.height):
                     exp.must_error = exp.impossible = True
+            elif kind == "shift":  # a table moved in time against the others
+                frames[t] = f.with_columns(pl.col("time") + pl.duration(microseconds=int(op["seconds"] * 1e6)))
             elif kind == "shuffle":  # rows out of time order: sorted with a note, never lost
                 frames[t] = f.sample(fraction=1.0, shuffle=True, seed=op["seed"])
             elif kind == "add_col":
@@ -333,6 +344,8 @@ def _mutate_toml(path: Path, how: str, exp: Expect) -> None:
     elif how == "origin_range":
         path.write_text(re.sub(r"(?m)^origin = .*$", "origin = [148.85, 2.35, 0.0]", text))
         exp.must_error = exp.impossible = True
+    elif how == "origin_pole":  # legal, far from the radars: a clear error or a run, never a crash
+        path.write_text(re.sub(r"(?m)^origin = .*$", "origin = [89.99, 179.99, 0.0]", text))
     elif how == "name_path":
         path.write_text(re.sub(r'(?m)^name = .*$', 'name = "../../../x"', text))
         exp.name_escape = "../../../x"
@@ -398,8 +411,12 @@ def frame_op() -> st.SearchStrategy[dict]:
         st.tuples(tables, st.sampled_from((0, 1))).map(lambda x: {"op": "head", "table": x[0], "n": x[1]}),
         st.tuples(tables, _fracs).map(lambda x: {"op": "dup", "table": x[0], "rows": x[1]}),
         st.tuples(tables, st.integers(0, 2**16)).map(lambda x: {"op": "shuffle", "table": x[0], "seed": x[1]}),
+        st.tuples(st.sampled_from(("reports", "truth")), st.sampled_from(SHIFTS)).map(
+            lambda x: {"op": "shift", "table": x[0], "seconds": x[1]}),
         st.sampled_from([("reports", "range_m", -1.0), ("reports", "radar_id", 999), ("radars", "scan_period_s", -1.0),
-                         ("reports", "azimuth_deg", NAN)]).map(
+                         ("reports", "azimuth_deg", NAN), ("reports", "time", "year:2021"),
+                         ("radars", "sigma_range_m", 0.0), ("radars", "sigma_azimuth_deg", 0.0),
+                         ("reports", "est_cov", "big"), ("reports", "elevation_deg", None)]).map(
             lambda x: {"op": "set_all", "table": x[0], "col": x[1], "value": x[2]}),
         tables.flatmap(lambda t: st.tuples(st.sampled_from(TEXT_COLS[t]), st.sampled_from(MARKUP), _fracs).map(
             lambda x: {"op": "text", "table": t, "col": x[0], "value": x[1], "rows": x[2]})),
@@ -488,11 +505,11 @@ SQL_OK = [
     "SELECT 'é\u2603' AS u", "EXPLAIN SELECT 1", "WITH a AS (SELECT 1 AS x) SELECT * FROM a",
     "SELECT * FROM range(100000)", "SELECT reason, count(*) FROM rejects GROUP BY ALL",
     "SELECT 1::HUGEINT * 170141183460469231731687303715884105727 AS big", "SELECT 'a\nb' AS newline",
-    "SELECT * FROM (VALUES (1, 'x')) t(a, b)", "SELECT 1 AS a, 2 AS a", "SELECT 1/0 AS z",
+    "SELECT * FROM (VALUES (1, 'x')) t(a, b)", "SELECT 1 AS a, 2 AS a", "SELECT 1/0 AS z", "SELECT '\x00' AS nul",
 ]
 SQL_BAD = [
     "SELEC 1", "SELECT * FROM nope", "", "   ", "-- only a comment", "SELECT '\udcff'", "\udcff\udcfe",
-    "SELECT 'x'::INTEGER", "SELECT * FROM aligned WHERE", ";", "SELECT '\x00'",
+    "SELECT 'x'::INTEGER", "SELECT * FROM aligned WHERE", ";",
     "SELECT " + "1+" * 5000 + "1",
 ]
 
@@ -771,6 +788,15 @@ def _row_level_refused(o: Outcome, exp: Expect) -> None:
         o.ok = False
 
 
+def _degenerate_record(db: Path, n_in: int, o: Outcome) -> None:
+    """Nothing valid left: the run database still holds a run record and every report in rejects."""
+    if not db.exists():
+        o.problems.append("degenerate input: no run database (want a run record)")
+    else:
+        _accounting(db, n_in, Expect(), o)
+    o.ok = not o.problems
+
+
 def _ingest_rejects(db: Path) -> int:
     import duckdb
 
@@ -841,6 +867,8 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
         if escaped:
             o.cls, o.ok = "silent", False
         _row_level_refused(o, exp)
+        if o.cls == "clear_error" and "no valid report left" in o.exc and out is not None:
+            _degenerate_record(out / "results.duckdb", n_in, o)  # item 4: a clear message AND a run record
         if said_valid and o.cls == "clear_error" and res.exit_code == 3:
             o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
             o.ok = False

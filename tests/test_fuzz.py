@@ -17,7 +17,7 @@ import fuzzing
 from fuzzing import NAN, INF, dataset
 
 # CI budget (cases per entry point); the whole file runs in under 3 minutes on 2 cores
-BUDGET = {"validate": 30, "run": 30, "simulate": 15, "sql": 20, "api": 60}
+BUDGET = {"validate": 40, "run": 36, "simulate": 20, "sql": 30, "api": 80}
 
 
 @pytest.fixture(scope="module")
