@@ -370,6 +370,7 @@ def materialise(case: dict, bases: Path, out: Path) -> tuple[Expect, int]:
     for t, f in frames.items():
         f.write_parquet(out / f"{t}.parquet")
     shutil.copy(src / "scenario.toml", out / "scenario.toml")
+    toml_exp = Expect()  # what scenario.toml demands; a later "missing" forgets the earlier edits
     for op in case["ops"]:
         if op["op"] == "file":
             _corrupt_file(out / op["file"], op["how"], frames[op["file"].split(".")[0]])
@@ -378,7 +379,12 @@ def materialise(case: dict, bases: Path, out: Path) -> tuple[Expect, int]:
             else:  # no truth table any more: its rows cannot be among the rejects
                 exp.groups = [g for g in exp.groups if g[0] != "truth"]
         elif op["op"] == "toml":
-            _mutate_toml(out / "scenario.toml", op["how"], exp)
+            if op["how"] == "missing":
+                toml_exp = Expect()
+            _mutate_toml(out / "scenario.toml", op["how"], toml_exp)
+    exp.must_error |= toml_exp.must_error
+    exp.impossible |= toml_exp.impossible
+    exp.name_escape = toml_exp.name_escape
     exp.rows_only = not case.get("strict") and all(
         o["op"] in ("set", "text", "dup") and o["table"] in ("reports", "truth") for o in case["ops"])
     return exp, frames["reports"].height
@@ -688,14 +694,11 @@ def invoke(args: list[str]):
 
 
 def _fresh_out(args: list[str]) -> list[str]:
-    """``args`` with a new ``--out`` directory when the first attempt may have created it."""
-    if "--out" not in args or args[0] not in ("run", "simulate"):
+    """``args`` for the ``--debug`` re-run: a new ``run --out`` (runs never overwrite a run directory)."""
+    if args[0] != "run" or "--out" not in args:
         return args
     i = args.index("--out") + 1
-    out = Path(args[i])
-    if out.exists() and out.name in ("run", "sim") and (out / "radars.parquet").exists() is False:
-        return [*args[:i], str(out) + "-debug", *args[i + 1:]]
-    return [*args[:i], str(out) + "-debug", *args[i + 1:]] if args[0] == "run" else args
+    return [*args[:i], args[i] + "-debug", *args[i + 1:]]
 
 
 def _message_lines(text: str) -> list[str]:
