@@ -821,32 +821,38 @@ def _settle(o: Outcome, exp: Expect, had_rejects: bool) -> Outcome:
 
 
 def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
+    """A mutated dataset through ``tertiary validate`` or ``tertiary run``."""
     ds = work / "ds"
     try:
         exp, n_in = materialise(case, bases, ds)
     except Exception as exc:  # a bug of this harness, never reported as a finding of the project
         raise HarnessError(f"materialise failed: {type(exc).__name__}: {exc}") from exc
     if case["entry"] == "validate":
-        args = ["validate", str(ds)] + (["--strict"] if case.get("strict") else [])
-        res = invoke(args)
-        if not classify_cli(o, res, args=args):
-            _row_level_refused(o, exp)
-            return o
-        n_rej = _validate_count(res.stdout or "")
-        singles = {(t, rows[0]) for t, rows, _, _ in exp.groups if len(rows) == 1}
-        if exp.must_error:
-            o.problems.append("silent: table-level problem reported as valid" if exp.impossible
-                              else "table-level problem not refused")
-        elif exp.groups and n_rej is not None and n_rej < max(1, len(singles)):
-            o.problems.append(f"silent: {len(singles) or 1}+ impossible row(s) but validate lists {n_rej} reject(s)")
-        elif case.get("strict") and exp.groups:
-            o.problems.append("silent: --strict exited 0 with impossible rows")
-        elif n_rej is None:
-            o.problems.append("validate printed no reject count")
-        return _settle(o, exp, bool(n_rej))
-    cwd = work / "cwd" / "a" / "b"
-    cwd.mkdir(parents=True)
-    out = None if case.get("default_out") else work / "run"
+        return _validate_dir(case, ds, exp, o)
+    return _run_dir(case, ds, work, exp, n_in, o)
+
+
+def _validate_dir(case: dict, ds: Path, exp: Expect, o: Outcome) -> Outcome:
+    args = ["validate", str(ds)] + (["--strict"] if case.get("strict") else [])
+    res = invoke(args)
+    if not classify_cli(o, res, args=args):
+        _row_level_refused(o, exp)
+        return o
+    n_rej = _validate_count(res.stdout or "")
+    singles = {(t, rows[0]) for t, rows, _, _ in exp.groups if len(rows) == 1}
+    if exp.must_error:
+        o.problems.append("silent: table-level problem reported as valid" if exp.impossible
+                          else "table-level problem not refused")
+    elif exp.groups and n_rej is not None and n_rej < max(1, len(singles)):
+        o.problems.append(f"silent: {len(singles) or 1}+ impossible row(s) but validate lists {n_rej} reject(s)")
+    elif case.get("strict") and exp.groups:
+        o.problems.append("silent: --strict exited 0 with impossible rows")
+    elif n_rej is None:
+        o.problems.append("validate printed no reject count")
+    return _settle(o, exp, bool(n_rej))
+
+
+def _run_args(case: dict, ds: Path, work: Path, out: Path | None) -> list[str]:
     args = ["run", str(ds), "--filters", case["filters"], "--methods", case["methods"],
             "--report" if case.get("report") else "--no-report"]
     args += [] if case.get("centralized", True) else ["--no-centralized"]
@@ -855,6 +861,14 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if case.get("bad_opt"):  # one bad option: refused with exit 2 (or 3 for --out on a file) before any work
         (work / "a_file").write_text("x")
         args += [a.replace("{file}", str(work / "a_file")) for a in case["bad_opt"]]
+    return args
+
+
+def _run_dir(case: dict, ds: Path, work: Path, exp: Expect, n_in: int, o: Outcome) -> Outcome:
+    cwd = work / "cwd" / "a" / "b"   # deep enough that "../../../x" stays inside this case's directory
+    cwd.mkdir(parents=True)
+    out = None if case.get("default_out") else work / "run"
+    args = _run_args(case, ds, work, out)
     pre = invoke(["validate", str(ds)])  # validate and run share one code path: "valid" must mean it
     said_valid = pre.exit_code == 0 and _validate_count(pre.stdout or "") == 0
     old = os.getcwd()
@@ -863,20 +877,11 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
         res = invoke(args)
     finally:
         os.chdir(old)
-    escaped = exp.name_escape and (cwd / "runs" / exp.name_escape).resolve().exists()
-    if escaped:
+    if exp.name_escape and (cwd / "runs" / exp.name_escape).resolve().exists():
         o.problems.append(f"silent: scenario name {exp.name_escape!r} wrote outside runs/")
     if not classify_cli(o, res, args=args):
-        if escaped:
-            o.cls, o.ok = "silent", False
-        _row_level_refused(o, exp)
-        if o.cls == "clear_error" and "no valid report left" in o.exc and out is not None:
-            _degenerate_record(out / "results.duckdb", n_in, o)  # item 4: a clear message AND a run record
-        if said_valid and o.cls == "clear_error" and res.exit_code == 3:
-            o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
-            o.ok = False
-        return o
-    if case.get("bad_opt") and case["bad_opt"][0] != "--seed" and case["bad_opt"][0] != "--runs":
+        return _run_refused(o, exp, out, n_in, said_valid)
+    if case.get("bad_opt") and case["bad_opt"][0] not in ("--seed", "--runs"):  # these two only shape simulation
         o.problems.append(f"silent: bad run option {case['bad_opt']} accepted")
     if exp.must_error:
         o.problems.append("silent: table-level problem accepted by run" if exp.impossible
@@ -891,6 +896,19 @@ def _run_dataset(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if said_valid and _ingest_rejects(db):
         o.problems.append("validate said the dataset is valid, run rejected rows at ingest")
     return _settle(o, exp, n_rej > 0)
+
+
+def _run_refused(o: Outcome, exp: Expect, out: Path | None, n_in: int, said_valid: bool) -> Outcome:
+    """Checks on a run that ended in an error (``o`` already classified)."""
+    if any(p.startswith("silent") for p in o.problems):
+        o.cls, o.ok = "silent", False
+    _row_level_refused(o, exp)
+    if o.cls == "clear_error" and "no valid report left" in o.exc and out is not None:
+        _degenerate_record(out / "results.duckdb", n_in, o)  # item 4: a clear message AND a run record
+    if said_valid and o.cls == "clear_error" and o.exit_code == 3:
+        o.problems.append("validate said the dataset is valid, run refused it (exit 3)")
+        o.ok = False
+    return o
 
 
 def _validate_count(text: str) -> int | None:
