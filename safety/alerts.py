@@ -101,13 +101,7 @@ ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", 
                  "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
                  "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
 #: the ``alerts`` table: one row per alert episode
-ALERTS_SCHEMA: dict[str, pl.DataType] = {
-    "run": pl.UInt32(), "method": pl.String(), "id_a": pl.UInt64(), "id_b": pl.UInt64(),
-    "truth_a": pl.Int64(), "truth_b": pl.Int64(), "t_start": TIME, "t_end": TIME, "duration_s": pl.Float64(),
-    "alert_epochs": pl.UInt32(), "flicker": pl.UInt32(), "r_min_pred_m": pl.Float64(),
-    "dz_min_pred_m": pl.Float64(), "t_min_first_s": pl.Float64(), "los_start": TIME, "warning_s": pl.Float64(),
-    "classification": pl.String(),
-}
+ALERTS_SCHEMA: dict[str, pl.DataType] = dict(TABLES["alerts"].required)   # columns: tertiary.schema
 #: one row per loss-of-separation episode and picture
 LOS_SCHEMA: dict[str, pl.DataType] = {
     "run": pl.UInt32(), "method": pl.String(), "truth_a": pl.Int64(), "truth_b": pl.Int64(), "t_start": TIME,

@@ -817,7 +817,7 @@ def _empty_conflicts() -> pl.DataFrame:
 
 
 #: columns of ``conflicts`` beyond ``schema.TABLES["conflicts"]`` (to be added there)
-CONFLICT_EXTRA: dict[str, pl.DataType] = {"t_in_s": pl.Float64(), "near": pl.Boolean()}
+CONFLICT_EXTRA: dict[str, pl.DataType] = dict(TABLES["conflicts"].optional)   # t_in_s, near
 
 
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,

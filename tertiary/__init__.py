@@ -22,9 +22,10 @@ from tertiary.local_tracks import LocalTrackerConfig, track_reports
 from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.gating import GatingConfig, candidate_pairs
-from tertiary.pipeline import PipelineConfig, ingest, process, run
-from tertiary.schema import TABLES, Limits, SchemaError, UnsortedTimeWarning, validate
-from tertiary.simulate import Dataset, load_scenario, read_dataset, simulate, write_dataset
+from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
+from tertiary.pipeline import PipelineConfig, StageError, ingest, process, run, screen
+from tertiary.schema import RULES, TABLES, Limits, SchemaError, UnsortedTimeWarning, contract_rules, validate
+from tertiary.simulate import Dataset, check_scenario, load_scenario, read_dataset, simulate, write_dataset
 from tertiary.report import build_report
 from tertiary.sql_reports import list_reports, run_report
 from tertiary.store import RunStore, export_parquet
@@ -35,4 +36,6 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "load_scenario", "write_dataset", "read_dataset", "Dataset", "track_reports", "LocalTrackerConfig",
            "RunStore", "export_parquet", "run", "ingest", "process", "PipelineConfig", "align", "AlignConfig",
            "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
-           "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__"]
+           "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__",
+           "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
+           "DataError", "ResourceError"]

@@ -32,12 +32,7 @@ from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS
 from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
-from tertiary.simulate.config import ScenarioConfig, with_radar_count
-try:  # TEMP-INTEGRATION
-    from tertiary.simulate.config import check_scenario
-except ImportError:  # TEMP-INTEGRATION
-    def check_scenario(cfg):  # TEMP-INTEGRATION
-        return cfg
+from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_count
 
 # markup off everywhere: dataset text, reject reasons and query results may contain "[/...]"
 console = Console(markup=False, highlight=False, soft_wrap=False)
@@ -123,6 +118,7 @@ class _Steps:
             self._prog.__exit__(*exc)
 
     def __call__(self, message: str) -> None:
+        message = message.removeprefix(f"{self.title}: ")
         if self._prog is not None:
             self._prog.update(self._task, description=f"{self.title}: {message}")
         else:
@@ -248,10 +244,6 @@ def choose_run_dir(out: Path | None, scenario_name: str, force: bool) -> tuple[P
     return new, f"{base} holds an earlier run; this run goes to {new} (--force replaces {base})"
 
 
-def _read(dataset, origin):  # TEMP-INTEGRATION
-    return read_dataset(dataset, origin=origin) if origin else read_dataset(dataset)  # TEMP-INTEGRATION
-
-
 # --------------------------------------------------------------------------- shared option types
 
 RunsOpt = Annotated[Optional[int], typer.Option(help="Monte-Carlo runs [default: the scenario's]")]
@@ -306,7 +298,7 @@ def validate(
                                                        "scenario.toml [default: mean of the radar sites]")] = None,
 ) -> None:
     """Print, stage by stage, every report `tertiary run` will reject, and why (same rules, same counts)."""
-    ds = _read(dataset, _origin(origin))
+    ds = read_dataset(dataset, origin=_origin(origin))
     screened = pipeline.screen(ds, pipeline.PipelineConfig(strict=strict))
     for note in screened.notes:
         console.print(f"note: {note}", soft_wrap=True)
@@ -341,6 +333,8 @@ def run(
     strict: Annotated[bool, typer.Option(help="stop (exit 3) on the first invalid input row")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report",
                                          help="also write RUN_DIR/report.html (plotly, self-contained)")] = True,
+    safety_picture: Annotated[str, typer.Option(help="picture conflict prediction runs on: tracks (the tracker's "
+                                                     "confirmed tracks, per method+filter) or fused")] = "tracks",
     origin: Annotated[Optional[str], typer.Option(help="LAT,LON[,ALT_M] processing centre for a dataset without "
                                                        "scenario.toml [default: mean of the radar sites]")] = None,
     runs: RunsOpt = None, seed: SeedOpt = None, aircraft: AircraftOpt = None, radars: RadarsOpt = None,
@@ -354,7 +348,8 @@ def run(
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
-                                  centralized=centralized, strict=strict)
+                                  centralized=centralized, strict=strict, safety_picture=safety_picture)
+    pipeline.check_config(cfg)
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,
                bias_step=bias_step)
@@ -363,7 +358,7 @@ def run(
         if given:
             raise OptionError(f"--{given[0].replace('_', '-')} applies only when the job simulates; "
                               "omit DATASET or the option", option=f"--{given[0].replace('_', '-')}")
-        ds = _read(dataset, _origin(origin))
+        ds = read_dataset(dataset, origin=_origin(origin))
         run_dir, note = choose_run_dir(out, ds.scenario.name, force)
     else:
         scen = build_scenario(scenario, **sim)
@@ -416,28 +411,36 @@ def run_summary(db: Path) -> list[str]:
         record = {k: _json_or_text(v) for k, v in store.sql("SELECT key, value FROM run").iter_rows()}
         metrics = store.sql("SELECT * FROM metrics") if "metrics" in tables else pl.DataFrame()
         aircraft = (int(store.sql("SELECT count(DISTINCT truth_id) AS n FROM truth")["n"][0])
-                    if "truth" in tables else None)
+                    if "truth" in tables else 0)
     rows, timings = record.get("rows", {}), record.get("timings", {})
     wall = timings.get("wall_s", timings.get("total_s"))
     lines = [f"run {record.get('scenario', '?')}: {rows.get('reports_in', 0):,} reports in, "
              f"{rows.get('reports_rejected', 0):,} rejected; wall time {_m(wall, ' s')}"]
-    targets = rows.get("confirmed_targets", rows.get("targets"))
-    label = "confirmed targets" if "confirmed_targets" in rows else "targets"
-    lines.append(f"{label}: {targets if targets is not None else '–'}"
-                 + (f" for {aircraft} aircraft" if aircraft is not None else ""))
+    aircraft = f" for {aircraft} aircraft" if aircraft else ""
+    lines.append(f"system targets (fused, clutter-only ones included): {rows.get('targets', '–')}{aircraft}")
+    tracks = _metric(metrics, "tracker", "tracks")
     for stage in ("fusion", "tracker"):
         horiz, height = _metric(metrics, stage, "rmse_horizontal_m"), _metric(metrics, stage, "rmse_height_m")
         pos = _metric(metrics, stage, "rmse_pos_m")
         for method in sorted(pos["method"].unique().to_list() if pos.height else []):
+            n = _value(tracks, method) if stage == "tracker" else None
             lines.append(f"  {stage:8s} {method:28s} RMSE horizontal {_m(_value(horiz, method)):>9s}, "
-                         f"vertical {_m(_value(height, method)):>9s}, 3-D {_m(_value(pos, method)):>9s}")
-    alerts = _metric(metrics, "safety", "alerts_per_hour")
-    los, missed = _metric(metrics, "safety", "los_episodes"), _metric(metrics, "safety", "missed_los")
-    for method in sorted(alerts["method"].unique().to_list() if alerts.height else []):
-        lines.append(f"  safety   {method:28s} {_m(_value(alerts, method), ' alerts/h')}, "
-                     f"losses of separation {_m(_value(los, method), '')}, missed {_m(_value(missed, method), '')}")
-    if alerts.height == 0:
-        lines.append(f"alerts: {rows.get('alerts', 0):,} (alert rows over all pictures)")
+                         f"vertical {_m(_value(height, method)):>9s}, 3-D {_m(_value(pos, method)):>9s}"
+                         + (f"; {n:,.0f} confirmed tracks" if n is not None else ""))
+    per_hour = _metric(metrics, "safety", "alerts_per_hour")
+    if per_hour.height:
+        lines.append("safety (alert episodes per aircraft pair, scored against real losses of separation):")
+    for method in sorted(per_hour["method"].unique().to_list() if per_hour.height else []):
+        v = {k: _value(_metric(metrics, "safety", k), method) for k in
+             ("genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes", "alerted_los", "missed_los",
+              "warning_median_s")}
+        count = lambda k: "–" if v[k] is None or not math.isfinite(v[k]) else f"{v[k]:,.0f}"  # noqa: E731
+        lines.append(f"  safety   {method:28s} {_m(_value(per_hour, method), ' alerts/h')}: {count('genuine_alerts')} "
+                     f"genuine, {count('nuisance_alerts')} nuisance, {count('false_alerts')} false; losses of "
+                     f"separation {count('los_episodes')}, alerted {count('alerted_los')}, missed "
+                     f"{count('missed_los')}; median warning {_m(v['warning_median_s'], ' s')}")
+    if not per_hour.height and rows.get("alert_rows"):
+        lines.append(f"alerts: {rows['alert_rows']:,} alert rows (no truth to score them against)")
     for note in record.get("notes", [])[:5]:
         lines.append(f"note: {note}")
     return lines

@@ -159,6 +159,13 @@ class _Best:
     ranked_by: str = "rmse_horizontal_m"
     unranked: list[str] = field(default_factory=list)
 
+    def best_of(self, names: list[str]) -> str | None:
+        """The most accurate of ``names`` (the pictures a figure holds), else the first."""
+        key = "horizontal_m" if self.ranked_by == "rmse_horizontal_m" else "pos_m"
+        ranked = (self.pictures.filter(pl.col("picture").is_in(names) & pl.col(key).is_not_null()
+                                       & (pl.col("picture") != CENTRALIZED)).sort(key))
+        return ranked["picture"][0] if ranked.height else (names[0] if names else None)
+
 
 def _best_pictures(ctx: _Ctx) -> _Best:
     acc = ctx.q("accuracy_by_method", segment="all") if "metrics" in ctx.tables else pl.DataFrame()
@@ -716,8 +723,7 @@ def _sec_conflicts(ctx: _Ctx) -> _Section:
     tl = ctx.q("conflict_timeline")
     b = ctx.best
     methods = tl["method"].unique(maintain_order=True).to_list() if tl.height else []
-    prefer = [p for p in (b.picture, (b.picture or "").split("+")[0], b.fused) if p]
-    main = next((p for p in prefer if p in methods), methods[0] if methods else None)
+    main = b.best_of(methods)
     shown = {main, CENTRALIZED}
     fig = make_subplots(rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.1,
                         subplot_titles=["Aircraft pairs in alert at each epoch", "New alerts per minute"])
@@ -1003,7 +1009,7 @@ def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = N
     rows, timings = built.rows, built.timings
     summary = (f"{rows.get('reports_in', 0):,} reports in, {rows.get('reports_aligned', 0):,} aligned, "
                f"{rows.get('reports_rejected', 0):,} rejected; {rows.get('targets', 0):,} system targets; "
-               f"pipeline {float(timings.get('total_s', 0.0)):.1f} s") if rows else ""
+               f"wall time {float(timings.get('wall_s', timings.get('total_s', 0.0))):.1f} s") if rows else ""
     scenario = built.scenario
     page = f"""<!DOCTYPE html>
 <html lang="en">

@@ -272,7 +272,23 @@ _CONFLICTS = TableSchema(
         "alert": BOOL,
         "severity": F64,
     },
+    # t_in_s: start of the predicted conflict interval (NaN without alert); near: within the near
+    # margins of both thresholds at one predicted time (what the slim table keeps besides alerts)
+    optional={"t_in_s": F64, "near": BOOL},
     key=("run", "epoch", "method", "id_a", "id_b"),
+)
+
+_ALERTS = TableSchema(
+    name="alerts",
+    required={
+        "run": U32, "method": STR, "id_a": U64, "id_b": U64, "truth_a": pl.Int64(), "truth_b": pl.Int64(),
+        "t_start": TIME, "t_end": TIME, "duration_s": F64, "alert_epochs": U32, "flicker": U32,
+        "r_min_pred_m": F64, "dz_min_pred_m": F64, "t_min_first_s": F64, "los_start": TIME, "warning_s": F64,
+        "classification": STR,
+    },
+    nullable=frozenset({"truth_a", "truth_b", "r_min_pred_m", "dz_min_pred_m", "t_min_first_s", "los_start",
+                        "warning_s"}),
+    key=("run", "method", "id_a", "id_b", "t_start"),
 )
 
 _REJECTS = TableSchema(
@@ -308,7 +324,7 @@ TABLES: dict[str, TableSchema] = {
     s.name: s
     for s in (
         _RADARS, _REPORTS, _TRUTH, _ALIGNED, _ASSOCIATIONS, _FUSED,
-        _CLUSTERS, _TRACKS, _CONFLICTS, _REJECTS, _METRICS, _RUN,
+        _CLUSTERS, _TRACKS, _CONFLICTS, _ALERTS, _REJECTS, _METRICS, _RUN,
     )
 }
 

@@ -44,16 +44,26 @@ def test_trackers_run_on_every_fusion_picture(results):
     assert comp.min() > 0.9
 
 
-def test_safety_metrics_per_picture(results):
+def test_safety_runs_on_the_confirmed_tracks_of_every_picture(results):
+    """Conflict prediction runs on the tracker's pictures (method+filter), every alert names its
+    picture, and every picture is scored against the same losses of separation in truth."""
     assert results.conflicts.height > 0 and results.conflicts["alert"].any()
+    pictures = {f"{meth}+{f}" for meth in METHODS for f in ("singer", "imm_sym")}
+    assert set(results.conflicts["method"].unique().to_list()) <= pictures
     m = results.metrics.filter(pl.col("stage") == "safety")
     from safety.alerts import ALERT_METRICS
-    episodes = 0.0
-    for meth in set(METHODS) | {"centralized"}:
-        got = dict(zip(*m.filter(pl.col("method") == meth).select("metric", "value").to_dict().values()))
-        assert set(ALERT_METRICS) | {"capacity_n_1e-6", "capacity_n_1e-6_sound"} <= set(got)
-        episodes += got["alert_episodes"]
-    assert episodes >= 1   # alert rows exist, so some picture has an alert episode
+    los = set()
+    for pic in pictures:
+        got = dict(zip(*m.filter(pl.col("method") == pic).select("metric", "value").to_dict().values()))
+        assert set(ALERT_METRICS) <= set(got), pic
+        los.add(got["los_episodes"])
+    assert len(los) == 1 and los.pop() > 0          # one truth: the same losses for every picture
+    alerts = results.alerts
+    assert alerts.height > 0 and set(alerts["method"].unique().to_list()) <= pictures
+    assert set(alerts["classification"].unique().to_list()) <= {"genuine", "nuisance", "false"}
+    genuine = alerts.filter(pl.col("classification") == "genuine")
+    assert genuine.height > 0 and genuine["los_start"].null_count() == 0
+    schema.validate(alerts, "alerts", strict=True)
 
 
 def test_every_method_and_the_bound_are_fused(results):

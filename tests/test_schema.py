@@ -83,7 +83,7 @@ def reasons(rejects: pl.DataFrame) -> list[str]:
 def test_tables_cover_all_kinds() -> None:
     expected = {
         "radars", "reports", "truth", "aligned", "associations", "fused",
-        "clusters", "tracks", "conflicts", "rejects", "metrics", "run",
+        "clusters", "tracks", "conflicts", "alerts", "rejects", "metrics", "run",
     }
     assert set(TABLES) == expected
     for name, schema in TABLES.items():

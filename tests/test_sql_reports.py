@@ -115,6 +115,15 @@ METRICS = [
     ("safety", "apriori", "alerts_per_hour", "all", 12.5, 2),
     ("safety", "apriori", "warning_median_s", "all", 45.0, 2),
     ("safety", "apriori", "warning_p05_s", "all", 20.0, 2),
+    ("safety", "apriori", "alert_episodes", "all", 13.0, 2),
+    ("safety", "apriori", "nuisance_false_per_hour", "all", 11.0, 2),
+    ("safety", "apriori", "alert_duration_median_s", "all", 30.0, 2),
+    ("safety", "apriori", "flicker_per_alert", "all", 0.25, 2),
+    ("safety", "apriori", "picture_hours", "all", 1.04, 2),
+    ("safety_tradeoff", "apriori", "nuisance_false_per_hour", "mode=covariance;p=0.95;T=120;X=30", 6.0, 2),
+    ("safety_tradeoff", "apriori", "alerted_fraction", "mode=covariance;p=0.95;T=120;X=30", 0.75, 2),
+    ("safety_tradeoff", "apriori", "nuisance_false_per_hour", "mode=fixed;p=300;T=120;X=30", 9.0, 2),
+    ("safety_tradeoff", "apriori", "alerted_fraction", "mode=fixed;p=300;T=120;X=30", 0.5, 2),
     ("safety", "apriori", "capacity_n_1e-6", "all", 3.0, 2),
     ("safety", "apriori", "capacity_n_1e-6_sound", "all", 4.0, 2),
     ("safety", "apriori+singer", "capacity_n_1e-6", "all", 5.0, 2),
@@ -221,6 +230,27 @@ def _conflicts() -> pl.DataFrame:
                          "r_min_m": c[5], "t_min_s": c[6], "dz_m": c[7], "alert": c[8], "severity": c[9]})
 
 
+# alerts: run, method, id_a, id_b, truth_a, truth_b, start_s, end_s, r_min, los_start_s, warning_s, class
+ALERTS = [
+    (0, "apriori+singer", 1, 2, 7, 8, 10.0, 40.0, 120.0, 70.0, 60.0, "genuine"),
+    (0, "apriori+singer", 3, 4, None, None, 15.0, 20.0, 800.0, None, None, "false"),
+    (1, "apriori+imm", 1, 2, 7, 8, 12.0, 30.0, 900.0, None, None, "nuisance"),
+]
+
+
+def _alerts() -> pl.DataFrame:
+    c = list(zip(*ALERTS))
+    opt = lambda v: None if v is None else ts(v)  # noqa: E731
+    return pl.DataFrame({
+        "run": pl.Series(c[0], dtype=pl.UInt32), "method": c[1], "id_a": pl.Series(c[2], dtype=pl.UInt64),
+        "id_b": pl.Series(c[3], dtype=pl.UInt64), "truth_a": pl.Series(c[4], dtype=pl.Int64),
+        "truth_b": pl.Series(c[5], dtype=pl.Int64), "t_start": pl.Series([ts(v) for v in c[6]], dtype=TIME),
+        "t_end": pl.Series([ts(v) for v in c[7]], dtype=TIME), "duration_s": [b - a for a, b in zip(c[6], c[7])],
+        "alert_epochs": pl.Series([4, 2, 3], dtype=pl.UInt32), "flicker": pl.Series([0, 0, 1], dtype=pl.UInt32),
+        "r_min_pred_m": c[8], "dz_min_pred_m": [50.0, 10.0, 200.0], "t_min_first_s": [60.0, 5.0, 30.0],
+        "los_start": pl.Series([opt(v) for v in c[9]], dtype=TIME), "warning_s": c[10], "classification": c[11]})
+
+
 def _clusters() -> pl.DataFrame:
     c = list(zip(*CLUSTERS))
     return pl.DataFrame({"run": pl.Series(c[0], dtype=pl.UInt32), "epoch": pl.Series([ts(e) for e in c[1]], dtype=TIME),
@@ -254,6 +284,7 @@ def hand_run(tmp_path_factory):
         store.write("clusters", _clusters())
         store.write("tracks", pl.DataFrame({"run": pl.Series([0, 0], dtype=pl.UInt32)}))
         store.write("conflicts", _conflicts())
+        store.write("alerts", _alerts())
         store.write("rejects", _rejects())
         store.write("metrics", _metrics())
         store.write("accuracy_by_epoch", _by_epoch())
@@ -592,6 +623,39 @@ def test_alert_scores(q):
                           "nuisance_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s", "n_runs"]
     assert rows(df) == [("apriori", 5.0, 4.0, 1.0, 7.0, 60.5, 2.0, 0.5, 3.0, 2.0, 1.0, 2.0, 4.0, 12.5, 45.0, 20.0, 2)]
     # capacity rows (apriori+singer, fusion/information) are not scores
+
+
+@covers("alert_episodes")
+def test_alert_episodes(q):
+    df = q("alert_episodes")
+    assert df.columns[:6] == ["method", "run", "id_a", "id_b", "truth_a", "truth_b"]
+    assert rows(df, "method", "run", "id_a", "classification", "warning_s") == [
+        ("apriori+imm", 1, 1, "nuisance", None), ("apriori+singer", 0, 1, "genuine", 60.0),
+        ("apriori+singer", 0, 3, "false", None)]            # per picture and run, earliest first
+    assert rows(q("alert_episodes", classification="genuine"), "id_a", "id_b") == [(1, 2)]
+    assert q("alert_episodes", method="apriori+imm").height == 1
+
+
+@covers("stca_performance")
+def test_stca_performance(q):
+    df = q("stca_performance")
+    assert df["method"].to_list() == ["apriori"]          # capacity-only pictures have no STCA row
+    r = df.row(0, named=True)
+    assert (r["los_episodes"], r["alerted_los"], r["missed_los"]) == (3.0, 2.0, 1.0)
+    assert r["alerted_fraction"] == pytest.approx(2 / 3)
+    assert (r["genuine_alerts"], r["nuisance_alerts"], r["false_alerts"], r["alert_episodes"]) == (2.0, 4.0, 7.0, 13.0)
+    assert (r["warning_median_s"], r["warning_p05_s"], r["nuisance_false_per_hour"]) == (45.0, 20.0, 11.0)
+    assert (r["alert_duration_median_s"], r["flicker_per_alert"], r["picture_hours"], r["n_runs"]) == (30.0, 0.25,
+                                                                                                     1.04, 2)
+
+
+@covers("stca_tradeoff")
+def test_stca_tradeoff(q):
+    df = q("stca_tradeoff")
+    assert rows(df, "threshold_mode", "parameter", "t_thr_s", "warning_s", "nuisance_false_per_hour",
+                "alerted_fraction") == [("covariance", 0.95, 120.0, 30.0, 6.0, 0.75),
+                                        ("fixed", 300.0, 120.0, 30.0, 9.0, 0.5)]
+    assert q("stca_tradeoff", warning_s=60).height == 0
 
 
 @covers("capacity_by_method")
