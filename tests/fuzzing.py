@@ -513,6 +513,13 @@ SQL_OK = [
     "SELECT 1::HUGEINT * 170141183460469231731687303715884105727 AS big", "SELECT 'a\nb' AS newline",
     "SELECT * FROM (VALUES (1, 'x')) t(a, b)", "SELECT 1 AS a, 2 AS a", "SELECT 1/0 AS z", "SELECT '\x00' AS nul",
 ]
+SQL_ODD_TYPES = [  # result types that CSV and the printed table may not handle: a result or a clear error
+    "SELECT 'x'::BLOB AS b", "SELECT MAP {'k': 1} AS m", "SELECT 'infinity'::TIMESTAMP AS ts",
+    "SELECT '-infinity'::DATE AS d", "SELECT 'infinity'::DATE AS d", "SELECT TIMESTAMP '294247-01-01 00:00:00' AS far",
+    "SELECT 1::UNION(a INT, b VARCHAR) AS un", "SELECT [1, 2]::INT[2] AS arr", "SELECT BIT '1010' AS bits",
+    "SELECT TIME '12:00:00' AS t", "SELECT 1.5::DECIMAL(38, 10) AS d", "SELECT 'nan'::FLOAT AS f",
+    "SELECT TIMESTAMPTZ '2021-01-01 00:00:00+05' AS tz", "SELECT INTERVAL '-1000000 years' AS iv",
+]
 SQL_BAD = [
     "SELEC 1", "SELECT * FROM nope", "", "   ", "-- only a comment", "SELECT '\udcff'", "\udcff\udcfe",
     "SELECT 'x'::INTEGER", "SELECT * FROM aligned WHERE", ";",
@@ -532,7 +539,7 @@ CROSS_JOIN = "SELECT count(*) FROM range(100000000) a, range(100000000) b WHERE 
 @st.composite
 def sql_case(draw) -> dict:
     """``tertiary sql RUN --query`` with a hostile, odd or plain query and odd options."""
-    pool = draw(st.sampled_from(("write", "ok", "ok", "bad", "text", "opts", "timeout", "named")))
+    pool = draw(st.sampled_from(("write", "ok", "ok", "bad", "text", "opts", "timeout", "named", "odd", "odd")))
     case: dict[str, Any] = {"entry": "sql", "args": [], "expect": "error"}
     if pool == "named":  # a named report with odd parameter values: a clear error or a result
         name = draw(st.sampled_from(SQL_NAMED))
@@ -546,6 +553,10 @@ def sql_case(draw) -> dict:
         q, case["expect"] = draw(st.sampled_from(SQL_OK)), "ok"
     elif pool == "bad":
         q = draw(st.sampled_from(SQL_BAD))
+    elif pool == "odd":
+        q, case["expect"] = draw(st.sampled_from(SQL_ODD_TYPES)), "any"
+        case["args"] = draw(st.sampled_from(([], ["--format", "csv"], ["--out", "{tmp}/o.csv"],
+                                             ["--out", "{tmp}/o.parquet"])))
     elif pool == "text":
         q, case["expect"] = draw(st.text(max_size=60)), "any"
     elif pool == "opts":

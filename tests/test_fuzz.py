@@ -168,6 +168,17 @@ def test_sql_query_hostile_and_odd_results(worker, query, expect):
     assert out[0].cls == ("success" if expect == "ok" else "clear_error"), out[0]
 
 
+@pytest.mark.parametrize("fmt", [[], ["--format", "csv"], ["--out", "{tmp}/o.csv"], ["--out", "{tmp}/o.parquet"]],
+                         ids=["table", "csv", "out-csv", "out-parquet"])
+@pytest.mark.parametrize("query", ["SELECT 'x'::BLOB AS b", "SELECT MAP {'k': 1} AS m",
+                                   "SELECT 'infinity'::TIMESTAMP AS ts", "SELECT 'infinity'::DATE AS d"],
+                         ids=["blob", "map", "infinite-timestamp", "infinite-date"])
+def test_sql_odd_result_types_print_and_export(worker, query, fmt):
+    """Found by the campaign: BLOB/MAP results to CSV raised polars ComputeError (sql_reports.frame_to_csv);
+    infinite TIMESTAMP/DATE results raised a Rust PanicException when printed or written as CSV."""
+    _check(worker, {"entry": "sql", "args": fmt, "expect": "any", "query": query})
+
+
 @pytest.mark.parametrize("args", [["--out", "{tmp}"], ["--out", "{run}/results.duckdb"], ["--out", "{run}"]])
 def test_sql_out_directory_or_run_file_refused(worker, args):
     """`--out` naming a directory, or a file inside the run directory, is a clear error."""
