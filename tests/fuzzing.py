@@ -437,6 +437,9 @@ def frame_op() -> st.SearchStrategy[dict]:
 RUN_FILTERS = ("singer", "", "quasi_optimal", "imm_sym", "singer,imm_sym", "cv")
 RUN_BAD_OPTS = (None,) * 12 + (["--methods", "nope"], ["--filters", "nope"], ["--methods", "arithmetic,[/]"],
                                 ["--out", "{file}"], ["--seed", "-1"], ["--runs", "0"])
+RUN_BAD_ORIGINS = (["--origin", "abc"], ["--origin", "95,0"], ["--origin", "nan,1"], ["--origin", "1,2,3,4"],
+                   ["--origin", "48.85,2.35,1e300"], ["--origin", "[/]"], ["--safety-picture", "nope"],
+                   ["--origin", "48,200"])
 RUN_METHODS = ("arithmetic,information", "arithmetic", "information")
 
 
@@ -451,7 +454,9 @@ def dataset_case(draw, entry: str | None = None) -> dict:
         case.update(filters=draw(st.sampled_from(RUN_FILTERS)), methods=draw(st.sampled_from(RUN_METHODS)),
                     report=draw(st.integers(0, 9)) == 0, centralized=draw(st.booleans()),
                     default_out=any(o["op"] == "toml" and o["how"] == "name_path" for o in ops),
-                    bad_opt=draw(st.sampled_from(RUN_BAD_OPTS)))
+                    bad_opt=draw(st.sampled_from(RUN_BAD_OPTS + RUN_BAD_ORIGINS)),
+                    origin=draw(st.sampled_from((None,) * 6 + ("48.85,2.35", "48.85,2.35,100", "-33.9,151.2"))),
+                    safety_picture=draw(st.sampled_from(("tracks", "fused"))))
     return case
 
 
@@ -473,22 +478,28 @@ SIM_BAD: list[tuple[list[str], bool]] = [  # (extra args, impossible-if-accepted
 ]
 
 
+RUN_SIM = ["run", "--no-report", "--filters", "singer", "--methods", "arithmetic", "--scenario"]
+
+
 @st.composite
 def simulate_case(draw) -> dict:
-    """``tertiary simulate`` with one or two bad options (or a bad scenario / --out / --truth)."""
+    """``tertiary simulate`` (or ``tertiary run`` simulating, no DATASET) with one or two bad options, a bad
+    scenario, ``--out`` or ``--truth``."""
+    via_run = draw(st.integers(0, 2)) == 0
+    head = (lambda scen: RUN_SIM + [scen]) if via_run else (lambda scen: ["simulate", scen])
     kind = draw(st.integers(0, 9))
     if kind == 0:
-        return {"entry": "simulate", "args": ["simulate", draw(st.sampled_from(("nope", "../x", "[/]", ""))),
-                                               "--duration", "30"], "impossible": True, "out": "new"}
+        return {"entry": "simulate", "args": head(draw(st.sampled_from(("nope", "../x", "[/]", "")))) +
+                ["--duration", "30"], "impossible": True, "out": "new"}
     if kind == 1:
-        return {"entry": "simulate", "args": ["simulate", "adsb", "--duration", "30"],
+        return {"entry": "simulate", "args": head("adsb") + ["--duration", "30"],
                 "truth": draw(st.sampled_from(("missing", "garbage", "empty", "csv", "none"))), "impossible": True,
                 "out": "new"}
     picks = draw(st.lists(st.sampled_from(SIM_BAD), min_size=1, max_size=2))
-    args = list(SIM_BASE)
+    args = head("terminal-area") + SIM_BASE[2:]
     for extra, _ in picks:
         args += extra
-    out = draw(st.sampled_from(("new", "new", "new", "file", "existing_dataset")))
+    out = draw(st.sampled_from(("new", "new", "new", "file") + (() if via_run else ("existing_dataset",))))
     return {"entry": "simulate", "args": args, "impossible": any(p[1] for p in picks), "out": out}
 
 
@@ -869,6 +880,8 @@ def _run_args(case: dict, ds: Path, work: Path, out: Path | None) -> list[str]:
     args += [] if case.get("centralized", True) else ["--no-centralized"]
     args += ["--strict"] if case.get("strict") else []
     args += ["--out", str(out)] if out else []
+    args += ["--origin", case["origin"]] if case.get("origin") else []
+    args += ["--safety-picture", case["safety_picture"]] if case.get("safety_picture") else []
     if case.get("bad_opt"):  # one bad option: refused with exit 2 (or 3 for --out on a file) before any work
         (work / "a_file").write_text("x")
         args += [a.replace("{file}", str(work / "a_file")) for a in case["bad_opt"]]
