@@ -71,8 +71,12 @@ def main() -> None:
         print(f"- {sig} (x{f['count']})\n    {f['reproducer'][:400]}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
-        "cases": args.cases, "seed": args.seed, "seconds": round(time.perf_counter() - t0, 1),
+        "cases_requested": args.cases, "cases_run": len(outcomes), "seed": args.seed, "seconds": round(time.perf_counter() - t0, 1),
         "machine": f"{platform.machine()} {platform.python_version()}",
+        "classes": "clear_error: exit 2/3/4, one stderr line, no traceback (Python: a TertiaryError); rejects/success: "
+                   "exit 0 with row accounting intact in the run database; traceback: uncaught, the CLI's exit-1 "
+                   "internal error, or its generic out-of-memory message; silent: an impossible value accepted; "
+                   "hang: past the per-case timeout; contract_failures: any case breaking the contract",
         "table": table,
         "failures": sorted(failures.values(), key=lambda f: (f["entry"], -f["count"])),
     }, indent=1, default=str) + "\n")

@@ -113,6 +113,7 @@ REPORT_VALUES: list[tuple[str, Any, bool]] = [
     ("est_cov", "big", False),
     *[(c, v, False) for c in ("x_m", "vx_mps", "est_range_m", "res_range_m") for v in (1e300, -1e300)],
     *[("time", f"year:{y}", True) for y in (1, 1970, 2100, 9999)],
+    *[("time", f"span:{d}", False) for d in (3.4 * 86400, -3.4 * 86400, 86400.0, 3.6 * 86400)],
     ("radar_id", 999, True),
     *[("local_track_id", v, False) for v in (0, 2**32 - 1)],
     *[(c, None, True) for c in ("radar_id", "time", "local_track_id", "range_m", "azimuth_deg")],
@@ -139,6 +140,7 @@ RADAR_VALUES: list[tuple[str, Any, bool]] = [
 ]
 TRUTH_VALUES: list[tuple[str, Any, bool]] = [
     *[("time", f"year:{y}", True) for y in (1970, 2100)],
+    *[("time", f"span:{d}", False) for d in (3.4 * 86400, -3.4 * 86400, 86400.0)],
     *[("x_m", v, False) for v in (1e300, -1e300)],
     ("x_m", NAN, True),
     *[(c, None, True) for c in ("truth_id", "time", "x_m")],
@@ -212,6 +214,12 @@ def _set_values(frame, col: str, value: Any, rows: list[int], radars=None):
         vals = s.to_list()
         for i in rows:
             vals[i] = datetime(year, 1, 1, 12, tzinfo=timezone.utc)
+        return frame.with_columns(pl.Series(col, vals, dtype=s.dtype))
+    if isinstance(value, str) and value.startswith("span:"):  # median time + offset (inside the allowed span)
+        med = s.median()
+        vals = s.to_list()
+        for i in rows:
+            vals[i] = med + timedelta(seconds=float(value.split(":")[1]))
         return frame.with_columns(pl.Series(col, vals, dtype=s.dtype))
     if value == "2max":
         max_range = dict(zip(radars["radar_id"].to_list(), radars["max_range_m"].to_list()))
