@@ -59,6 +59,12 @@ def _failure(exc: BaseException) -> tuple[int, str]:
                "run again with `tertiary --debug ...` for the traceback and report it")
 
 
+try:
+    from polars.exceptions import PanicException as _PANIC
+except ImportError:  # pragma: no cover - older polars
+    _PANIC = Exception
+
+
 class _Boundary(TyperGroup):
     """The one error boundary of every command (see the module docstring)."""
 
@@ -70,7 +76,7 @@ class _Boundary(TyperGroup):
         except KeyboardInterrupt:
             err_console.print("interrupted")
             raise typer.Exit(130) from None
-        except Exception as exc:
+        except (Exception, _PANIC) as exc:   # a Rust panic (polars) is a BaseException
             if (ctx.obj or {}).get("debug"):
                 raise
             code, message = _failure(exc)

@@ -225,12 +225,27 @@ def _interruptible(con: duckdb.DuckDBPyConnection, timeout_s: float | None):
     return timer
 
 
+_AS_TEXT = ("INTERVAL", "BIT", "UNION", "BLOB", "MAP", "VARINT", "BIGNUM")
+_TEMPORAL = ("DATE", "TIMESTAMP")
+
+
+def _column(name: str, dtype: str) -> str:
+    """The projection of one result column into something polars imports, prints and writes to
+    CSV: binary, map, union, bit and interval values as DuckDB's text; dates and times that no
+    calendar type can hold (infinite, or outside the years 1–9999) as null."""
+    q = '"' + name.replace('"', '""') + '"'
+    if dtype.startswith(_AS_TEXT):
+        return f"CAST({q} AS VARCHAR) AS {q}"
+    if dtype.startswith(_TEMPORAL):
+        return f"CASE WHEN isfinite({q}) AND year({q}) BETWEEN 1 AND 9999 THEN {q} END AS {q}"
+    return q
+
+
 def _fetch(rel: duckdb.DuckDBPyRelation) -> pl.DataFrame:
-    """A relation as polars; INTERVAL (and other types polars cannot import) as text."""
-    odd = [c for c, t in zip(rel.columns, rel.types) if str(t).upper().startswith(("INTERVAL", "BIT", "UNION"))]
-    if odd:
-        rel = rel.project(", ".join(f'CAST("{c}" AS VARCHAR) AS "{c}"' if c in odd else f'"{c}"'
-                                    for c in (x.replace('"', '""') for x in rel.columns)))
+    """A relation as polars, with the column types polars cannot hold made printable."""
+    types = [str(t).upper() for t in rel.types]
+    if any(t.startswith(_AS_TEXT + _TEMPORAL) for t in types):
+        rel = rel.project(", ".join(_column(c, t) for c, t in zip(rel.columns, types)))
     return rel.pl()
 
 
