@@ -13,8 +13,8 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
        K = P⁻ Hᵀ / S,  x⁺ = x⁻ + K ν,  P⁺ = (I − K H) P⁻,  H = [1, 0]                      (A4)
 
    A reply with |ν| > g·√S + f (``gate_sigma`` g, ``gate_floor_m`` f) is a **garble** (a
-   wrong code) and is not used; after ``max_rejects`` consecutive rejections the filter
-   restarts on the current reply (a real altitude jump persists, independent garbles do
+   wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
+   restarts the filter on itself (a real altitude jump persists, independent garbles do
    not). Missing altitude (null) only predicts.
 2. **Geodetic height** of an ENU state (elevation-based, the fallback for targets without
    Mode C): h = height above the WGS-84 ellipsoid of the point, ḣ = n̂·v with n̂ the
@@ -57,7 +57,7 @@ class AltitudeConfig:
     * ``q_m2ps3``: white-noise vertical-acceleration intensity q_a (m²/s³).
     * ``v0_sigma_mps``: initial ḣ standard deviation (one-point initiation at ḣ = 0).
     * ``gate_sigma``, ``gate_floor_m``: garble gate |ν| ≤ g·√S + f.
-    * ``max_rejects``: consecutive rejected replies after which the filter restarts.
+    * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
     """
 
     q_m2ps3: float = 0.5
