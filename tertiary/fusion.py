@@ -753,12 +753,13 @@ def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: ge
     n_groups = len(lay.starts)
     per_row, has = _mode_c_per_row(rows, cfg)
     mode_c, got = combine_min_variance(per_row, has, lay.group, n_groups)
-    out = {c: np.empty((len(xs), n_groups)) for c in ALT_COLUMNS}
+    mc = mode_c.columns()
+    out = {c: np.repeat(mc[c][None], len(xs), axis=0) for c in ALT_COLUMNS}
+    rest = np.flatnonzero(~got)                      # the fallback only where no Mode C
     for i in range(len(xs)):
-        fb = geodetic_channel(xs[i], covs[i], origin).columns()
-        mc = mode_c.columns()
+        fb = geodetic_channel(xs[i, rest], covs[i, rest], origin).columns()
         for c in ALT_COLUMNS:
-            out[c][i] = np.where(got, mc[c], fb[c])
+            out[c][i, rest] = fb[c]
     return out
 
 

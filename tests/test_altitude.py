@@ -152,7 +152,8 @@ def test_transponder_altitude_quanta_garbles_and_missing():
     err = np.abs(rep[ok] - alt[ok])
     good = err <= q[ok] / 2 + 1e-9
     assert abs((~good).mean() - 0.005 * 10 / 11) < 0.0015              # bit 0 of a garble stays within ±q
-    assert np.all(rep[ok] >= 0)
+    assert np.all(rep[ok] >= 0) and np.all(err <= 8000.0)
+    assert err[q[ok] == QUANTUM_MODE_S_M].max() > 4000.0               # high bits do flip
 
 
 def test_quantum_from_mode_s_address():

@@ -27,6 +27,8 @@ QUANTUM_MODE_S_M = 25 * FT
 QUANTUM_MODE_C_M = 100 * FT
 #: fraction of replies whose altitude code is garbled (a wrong code, one bit off)
 GARBLE_RATE = 0.005
+#: largest garble error (m) the simulator makes (keeps wrong codes inside the valid range)
+GARBLE_MAX_M = 8000.0
 #: fraction of replies without altitude (code not decoded or not sent)
 MISSING_ALT_RATE = 0.01
 #: rows per block of the per-pair geometry (see :func:`_blocks`)
@@ -173,12 +175,16 @@ def transponder_altitude(alt_m: NDArray[np.float64], quantum: NDArray[np.float64
     """Pressure altitude as a transponder replies it: the true pressure altitude (= geodetic
     height, ISA without QNH/temperature deviation; see :mod:`tertiary.altitude`) rounded to the
     aircraft's quantum; a fraction ``garble_rate`` of replies carry a wrong code — one of the
-    11 bits of the altitude count N (alt = N·q + offset) flipped, an error of ±q·2^b,
-    b uniform in 0…10 — and a fraction ``missing_rate`` carry none (NaN). Derived from truth
+    low bits of the altitude count N (alt = N·q + offset) flipped, an error of ±q·2^b,
+    b uniform in 0…b_max (10 for 25 ft, 8 for 100 ft: |error| ≤ :data:`GARBLE_MAX_M`), never
+    below 0 — and a fraction ``missing_rate`` carry none (NaN). Derived from truth
     only as a real transponder derives it from the air pressure."""
     n = len(alt_m)
     count = np.round(alt_m / quantum)
-    bit = rng.integers(0, 11, n)
+    # bits whose flip moves the altitude by at most ~8 km: a larger wrong code would leave the
+    # validator's altitude range and cost the whole report, not just its altitude
+    top = np.minimum(10, np.floor(np.log2(GARBLE_MAX_M / quantum))).astype(np.int64)
+    bit = np.floor(rng.random(n) * (top + 1)).astype(np.int64)
     flip = np.ldexp(1.0, bit)
     flip = np.where((rng.random(n) < 0.5) & (count >= flip), -flip, flip)   # codes stay ≥ 0
     garbled = rng.random(n) < garble_rate
