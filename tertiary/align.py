@@ -222,7 +222,8 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
 
 
 _ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
-                    "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var"]
+                    "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var",
+                    "altitude_m"]
 
 
 def empty_aligned() -> pl.DataFrame:
@@ -232,7 +233,8 @@ def empty_aligned() -> pl.DataFrame:
         "report_id": pl.UInt64, "run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
         "epoch": t, "time": t, **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
         "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "mode_s": pl.String, "truth_id": pl.Int64,
-        "age_s": pl.Float64, "fresh": pl.Boolean, "nominal_var": pl.Array(pl.Float64, 3)})
+        "age_s": pl.Float64, "fresh": pl.Boolean, "nominal_var": pl.Array(pl.Float64, 3),
+        "altitude_m": pl.Float64})
 
 
 def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
@@ -253,7 +255,7 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
     x, cov = extrapolate(p.state, p.cov, age, cfg.q_m2s3, rows=rows)
 
     base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
-    opt = [c for c in ("mode_s", "truth_id") if c in df.columns]
+    opt = [c for c in ("mode_s", "truth_id", "altitude_m") if c in df.columns]
     aligned = df.select(base + opt)[rows].with_columns(
         pl.Series("epoch", p.t0_us + np.round(epoch_k * p.period * US).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
         *(pl.Series(name, x[:, i]) for i, name in enumerate(STATE)),
@@ -267,6 +269,8 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
         aligned = aligned.with_columns(pl.lit(None, pl.String).alias("mode_s"))
     if "truth_id" not in aligned.columns:
         aligned = aligned.with_columns(pl.lit(None, pl.Int64).alias("truth_id"))
+    if "altitude_m" not in aligned.columns:
+        aligned = aligned.with_columns(pl.lit(None, pl.Float64).alias("altitude_m"))
     return aligned.select(_ALIGNED_COLUMNS)
 
 
@@ -276,8 +280,10 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
 
     ``aligned`` has one row per (report, epoch at which it represents its local track), with
     ``age_s`` = epoch − report time, ``fresh`` = first epoch of the report, the system-frame
-    state/covariance, the radar's range innovation and ``nominal_var`` (a-priori plot variance
-    per system axis). ``rejects`` rows carry report_id and reason. No report: both empty.
+    state/covariance, the radar's range innovation, ``nominal_var`` (a-priori plot variance
+    per system axis) and ``altitude_m``: the report's own barometric (Mode C/S) altitude as
+    replied, null without one — not extrapolated; with ``time`` it feeds the vertical channel
+    (:mod:`tertiary.altitude`). ``rejects`` rows carry report_id and reason. No report: both empty.
     """
     if reports.height == 0:
         return empty_aligned(), pl.DataFrame(schema={"report_id": pl.UInt64, "reason": pl.String})

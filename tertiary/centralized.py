@@ -45,6 +45,12 @@ target has received so far and ``n_sources`` = the number of plots used since th
 previous output epoch (for the first output epoch: since the start). Epochs before the
 target's first plot produce no row.
 
+Vertical channel: the ``fused`` columns ``alt_m`` … ``alt_cov_m2ps`` from one two-state Mode C
+filter per target over all its radars' replies in time order (:mod:`tertiary.altitude`:
+quantum 25 ft with ``mode_s``, 100 ft without, R = q²/12, garble gate), predicted to the epoch
+like the state; a target without Mode C falls back to the geodetic height of the filter's
+state (its variance along the local vertical) — never the ENU z.
+
 Vectorisation: reports are sorted by (run, target_id, time) and the Python loop runs over the
 report rank within a target, with batched (m, 9, 9) linear algebra over the m targets (of all
 runs) that have at least that many plots — never a loop per report.
@@ -59,6 +65,8 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
+from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
+                               filter_tracks, geodetic_channel, predict, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.local_tracks import measurement_polar
 from tertiary.schema import TABLES, TIME
@@ -89,6 +97,7 @@ class CentralizedConfig:
     * ``variant``: Singer Φ, ``"printed"`` (seed) or ``"exact"``.
     * ``v0_sigma_mps``: initial velocity standard deviation per axis (one-point initiation).
     * ``altitude_sigma_m``: Mode C accuracy used when the elevation is derived from altitude.
+    * ``altitude``: the per-target Mode C filter of the vertical channel.
     """
 
     alpha: float = 1.0 / 30.0
@@ -96,6 +105,7 @@ class CentralizedConfig:
     variant: Variant = "printed"
     v0_sigma_mps: float = 300.0
     altitude_sigma_m: float = 30.0
+    altitude: AltitudeConfig = AltitudeConfig()
 
 
 # --------------------------------------------------------------------------- model
@@ -253,7 +263,23 @@ def _first_association(associations: pl.DataFrame) -> pl.DataFrame:
 
 
 def _empty_fused() -> pl.DataFrame:
-    return pl.DataFrame(schema=TABLES["fused"].required)
+    return pl.DataFrame(schema=TABLES["fused"].columns)
+
+
+def _vertical(rep: pl.DataFrame, t: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64], ri: NDArray[np.int64],
+              tau: F64, state: F64, cov6: F64, origin: geo.LocalFrame, cfg: AltitudeConfig) -> dict[str, F64]:
+    """Vertical channel of each output row (module docstring): the target's Mode C filter after
+    row ``ri`` predicted by ``tau``, else the geodetic height of the 6-state."""
+    fb = geodetic_channel(state, cov6.reshape(-1, 6, 6), origin).columns()
+    if "altitude_m" not in rep.columns:
+        return fb
+    z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    mode_s = rep["mode_s"].is_not_null().to_numpy() if "mode_s" in rep.columns else np.ones(len(z), bool)
+    var = quantisation_variance(np.where(mode_s, QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
+    post, has, _ = filter_tracks(t, z, var, starts, lengths, cfg)
+    mc = predict(post.take(ri), tau, cfg.q_m2ps3).columns()
+    use = has[ri]
+    return {c: np.where(use, mc[c], fb[c]) for c in ALT_COLUMNS}
 
 
 def _predict_to_epochs(x_post: F64, p_post: F64, src: NDArray[np.int64], tau: F64, cfg: CentralizedConfig,
@@ -285,13 +311,14 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     method ``"centralized"``, sorted by (run, epoch, target_id).
     """
     rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
-    rep = rep.select(c for c in PLOT_COLUMNS if c in rep.columns)  # not the wide track columns
+    rep = rep.select(c for c in [*PLOT_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     rep = rep.join(_first_association(associations), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m)
     rep = rep.with_columns(pl.Series("__ok", ok))
-    rep = (rep.select("run", "target_id", "time", "radar_id", "report_id", "__ok")
+    alt_cols = [c for c in ("altitude_m", "mode_s") if c in rep.columns]
+    rep = (rep.select("run", "target_id", "time", "radar_id", "report_id", "__ok", *alt_cols)
            .with_columns(pl.int_range(pl.len()).alias("__pos")).filter(pl.col("__ok"))
            .sort(["run", "target_id", "time", "radar_id", "report_id"]))
     if rep.is_empty():
@@ -335,6 +362,7 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     slot = np.cumsum(keep) - 1
     tau = (want["epoch"].dt.epoch("us").to_numpy() - t0) * 1e-6 - t[ri]
     state, cov6 = _predict_to_epochs(x_post, p_post, slot[ri], tau, cfg)
+    alt = _vertical(rep, t, starts, lengths, ri, tau, state, cov6, origin, cfg.altitude)
 
     seen = (rep.group_by(["run", "target_id", "radar_id"]).agg(pl.col("time").min().alias("__first")))
     radar_ids = (want.select("run", "target_id", "epoch").join(seen, on=["run", "target_id"], how="inner")
@@ -345,6 +373,7 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
         *[pl.Series(c, state[:, i]) for i, c in enumerate(STATE_COLS)],
         pl.Series("cov", cov6, dtype=pl.Array(pl.Float64, 36)),
         pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
+        *(pl.Series(c, alt[c]) for c in ALT_COLUMNS),
     ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
-    spec = TABLES["fused"].required
+    spec = TABLES["fused"].columns
     return out.select([pl.col(c).cast(tp) for c, tp in spec.items()])  # `want` is in output order

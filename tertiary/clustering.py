@@ -11,7 +11,9 @@ Rules (every choice the monograph leaves open is fixed here):
 * **Trigger.** A (run, epoch, method) is clustered only when it holds more than
   ``display_capacity`` fused targets (``always=True`` clusters every group). Other groups give no
   cluster rows: every target is shown on its own.
-* **Compact groups** in (x, y, H), all epochs at once; a group index times a large separation is
+* **Compact groups** in (x, y, H), all epochs at once — H is the height of the vertical
+  channel (``alt_m``: Mode C or geodetic, :mod:`tertiary.altitude`), ENU z only for a table
+  without it; a group index times a large separation is
   an extra coordinate, so points of different (run, epoch, method) are never neighbours.
 
   - ``"dbscan"``: DBSCAN (``min_samples=2``, i.e. single linkage) with radius ``eps_m`` on
@@ -289,6 +291,17 @@ class _Index:
 # ---------------------------------------------------------------------------
 
 
+def _height(fused: pl.DataFrame) -> NDArray[np.float64]:
+    """H of every row: the vertical channel ``alt_m`` (barometric or geodetic height) where the
+    table carries it and it is not null, else the ENU ``z_m`` (no origin is known here; z
+    falls below the height by ρ²/2R, ~785 m at 100 km, so give fusion's ``alt_m``)."""
+    z = fused["z_m"].cast(pl.Float64).to_numpy()
+    if "alt_m" not in fused.columns:
+        return z
+    alt = fused["alt_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    return np.where(np.isfinite(alt), alt, z)
+
+
 def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> pl.DataFrame:
     """Cluster the fused picture of every (run, epoch, method): the ``clusters`` table.
 
@@ -308,6 +321,7 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
     cand = np.arange(len(idx.order)) if cfg.always else np.flatnonzero(idx.n > cfg.display_capacity)
     rows_f = idx.order[cand]
     vals = np.column_stack([fused[c].to_numpy().astype(np.float64)[rows_f] for c in _NEEDED[4:]])
+    vals[:, 2] = _height(fused)[rows_f]
     finite = np.isfinite(vals).all(axis=1)
     sel_rows, vals = cand[finite], vals[finite]
     if len(sel_rows) < 2:

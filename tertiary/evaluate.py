@@ -24,12 +24,14 @@ system origin).
 
 Horizontal and vertical error. Surveillance specifications judge the two separately, so beside
 the 3-D ``rmse_pos_m`` (e² = Δx² + Δy² + Δz²) every picture gets ``rmse_horizontal_m``
-(e² = Δx² + Δy², east and north of the system ENU frame) and ``rmse_height_m`` (e = Δz). The
-frame's z is not the height h: at horizontal distance d from the origin z = h − d²/(2R) + O(d⁴/R³)
-(R the Earth radius), so z_est − z_true = (h_est − h_true) − (d_est² − d_true²)/(2R). At the same
-horizontal point Δz = Δh·cos(d/R) (> 0.9998 Δh within 100 km); a horizontal error Δd adds the
-cross term −(d/R)·Δd (1.6 % of Δd at d = 100 km). So Δz equals the height error to first order
-and ``rmse_height_m`` is computed from Δz.
+(e² = Δx² + Δy², east and north of the system ENU frame) and ``rmse_height_m``. The height error
+is e = alt_m − alt_m_true whenever both the picture row and the truth carry the vertical
+channel ``alt_m`` (barometric / geodetic height, :mod:`tertiary.altitude`; the simulator's
+truth does). Otherwise it falls back to e = Δz: the frame's z is not the height h — at
+horizontal distance d from the origin z = h − d²/(2R) + O(d⁴/R³) (R the Earth radius), so
+z_est − z_true = (h_est − h_true) − (d_est² − d_true²)/(2R); at the same horizontal point
+Δz = Δh·cos(d/R) (> 0.9998 Δh within 100 km) and a horizontal error Δd adds the cross term
+−(d/R)·Δd (1.6 % of Δd at d = 100 km) — Δz equals the height error to first order only.
 
 Pooling when an epoch has too few samples. With ``"n-1"`` an epoch with N_k = 1 (one aircraft
 in one run, or the edge of coverage) has no (2.15). Instead of dropping it, the M samples of all
@@ -174,8 +176,9 @@ def target_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.D
 
 def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     """Truth state of ``samples`` (truth_id, epoch): exact or linearly interpolated between the
-    neighbouring truth samples; null outside the aircraft's truth span."""
-    cols = list(STATE)
+    neighbouring truth samples; null outside the aircraft's truth span. ``true_alt_m`` too when
+    both frames carry ``alt_m``."""
+    cols = list(STATE) + (["alt_m"] if "alt_m" in truth.columns and "alt_m" in samples.columns else [])
     has_seg = "segment" in truth.columns
     tr = truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME), *cols,
                       (pl.col("segment") if has_seg else pl.lit(None, pl.String)).alias("segment")
@@ -207,6 +210,7 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
     key, state (and, with ``keep_cov``, covariance) columns are carried through the joins.
     """
     keep = ["run", "epoch", "target_id", "method", *STATE] + (["cov"] if keep_cov and "cov" in fused.columns else [])
+    keep += ["alt_m"] if "alt_m" in fused.columns else []
     f = fused.select(keep).with_columns(pl.col("epoch").cast(TIME))
     if cfg.skip_first_s > 0:
         first = pl.col("epoch").min().over(["run", "method", "target_id"])
@@ -214,14 +218,16 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
     tt = target_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
     f = (f.join(tt.with_columns(pl.col(c).cast(f.schema[c]) for c in _KEY), on=_KEY, how="inner")
          .filter(pl.col("truth_id").is_not_null()))
-    return truth_at(f, truth).with_columns(error_columns())
+    m = truth_at(f, truth)
+    return m.with_columns(error_columns("true_alt_m" in m.columns))
 
 
-def error_columns() -> list[pl.Expr]:
+def error_columns(alt: bool = False) -> list[pl.Expr]:
     """Expressions on rows holding an estimate (``x_m`` …) and its truth (``true_x_m`` …):
     ``seg_class`` (straight/turn/null) and the squared errors ``e2_x``, ``e2_y``, ``e2_z``,
-    ``e2_pos`` (|Δp|²), ``e2_horizontal`` (Δx² + Δy²), ``e2_height`` (Δz², the height error to
-    first order, module docstring), ``e2_range`` ((|p| − |p_true|)², range from the processing
+    ``e2_pos`` (|Δp|²), ``e2_horizontal`` (Δx² + Δy²), ``e2_height`` ((alt_m − true_alt_m)²
+    where ``alt`` and both are not null, else Δz², the height error to first order only; module
+    docstring), ``e2_range`` ((|p| − |p_true|)², range from the processing
     centre) and ``e2_vel`` (|Δv|²) — shared by the fusion and tracker evaluations."""
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
@@ -233,10 +239,18 @@ def error_columns() -> list[pl.Expr]:
         (d["z_m"] ** 2).alias("e2_z"),
         (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
         (d["x_m"] ** 2 + d["y_m"] ** 2).alias("e2_horizontal"),
-        (d["z_m"] ** 2).alias("e2_height"),
+        _e2_height(d["z_m"], alt),
         ((r_f - r_t) ** 2).alias("e2_range"),
         (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
     ]
+
+
+def _e2_height(dz: pl.Expr, alt: bool) -> pl.Expr:
+    """(alt_m − true_alt_m)² where both exist (``alt``), else Δz²."""
+    if not alt:
+        return (dz ** 2).alias("e2_height")
+    dh = pl.col("alt_m").cast(pl.Float64).fill_nan(None) - pl.col("true_alt_m")
+    return pl.coalesce(dh ** 2, dz ** 2).alias("e2_height")
 
 
 # --------------------------------------------------------------------------- accuracy

@@ -52,6 +52,19 @@ Rules shared by both a-posteriori recursions (digest §2.3, §6.2–6.3):
 
 Single-source targets: every method returns the report unchanged with weight [1.0].
 
+Vertical channel (every method, :mod:`tertiary.altitude`): ``alt_m``, ``alt_rate_mps``,
+``alt_var_m2``, ``alt_rate_var_m2ps2``, ``alt_cov_m2ps``. When the rows carry the reports'
+barometric ``altitude_m`` (with ``time``), a two-state (h, ḣ) filter runs per (run, radar,
+local track) over its reports' replies (quantum 25 ft with ``mode_s``, 100 ft without,
+R = q²/12, garble gate), is extrapolated from the report time to the epoch ((A1)–(A2)) and,
+among the target's sources with an estimate, the one with the smallest height variance is kept
+(all radars decode the same reply, so their errors are not independent:
+:func:`tertiary.altitude.combine_min_variance`). This channel does not depend on the method.
+A target without any Mode C source falls back to the geodetic height of the method's fused
+state, its variance from the covariance along the local vertical
+(:func:`tertiary.altitude.geodetic_channel`; ``origin=None``: spherical Earth, ≤ 9 m at
+150 km) — never the ENU z.
+
 The numeric kernels (``fuse_<method>``) work on numpy arrays whose rows are sorted by group
 (run, epoch, target_id), described by ``starts`` (first row of each group) and, for the
 recursions, by a :class:`Layout`. They use segment reductions (``np.add.reduceat``); the
@@ -70,7 +83,11 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.schema import TABLES, empty_frame, is_sorted_by
+from tertiary import geo
+from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
+                               combine_min_variance, filter_tracks, geodetic_channel, predict,
+                               quantisation_variance)
+from tertiary.schema import TABLES, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -122,11 +139,13 @@ class FusionConfig:
       seed prior, 1 is pure Bayes, which locks in).
     * ``b_min``: floor of the corrected a-posteriori weights before renormalisation.
     * ``ci_objective``: ``"trace"`` or ``"det"`` of the covariance-intersection P (two sources).
+    * ``altitude``: the per-local-track Mode C filter of the vertical channel.
     """
 
     p_stay: float = 0.95
     b_min: float = 0.01
     ci_objective: str = "trace"
+    altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.p_stay <= 1.0:
@@ -692,6 +711,58 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
     return xs, covs, ws
 
 
+def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, B]:
+    """Each row's Mode C estimate (h, ḣ, P) at its epoch and whether it has one: the filter of
+    its (run, radar, local track) after the row's report, extrapolated by epoch − time."""
+    n = rows.height
+    none = AltState.full(n), np.zeros(n, bool)
+    if "altitude_m" not in rows.columns or "time" not in rows.columns or rows["altitude_m"].null_count() == n:
+        return none
+    fresh = pl.col("fresh").fill_null(False)
+    rep = (rows.filter(fresh).select(*TRACK, "report_id", "time", "altitude_m",
+                                     (pl.col("mode_s").is_not_null() if "mode_s" in rows.columns
+                                      else pl.lit(True)).alias("__s"))
+           .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
+           .sort([*TRACK, "time"]))
+    if rep.is_empty():
+        return none
+    keys = rep.select(TRACK).to_numpy()
+    new = np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)]
+    starts = np.flatnonzero(new)
+    t_us = rep["time"].dt.epoch("us").to_numpy()
+    t = (t_us - t_us.min()) * 1e-6
+    z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
+    post, has, _ = filter_tracks(t, z, var, starts, np.diff(np.append(starts, len(t))), cfg)
+    cols = post.columns()
+    table = rep.select("run", "report_id").with_columns(
+        *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has))
+    j = rows.select("run", "report_id", "epoch", "time").join(table, on=["run", "report_id"], how="left",
+                                                              maintain_order="left")
+    at = AltState(*(j[c].fill_null(np.nan).to_numpy() for c in
+                    ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")))
+    age = (j["epoch"].dt.epoch("us").to_numpy() - j["time"].dt.epoch("us").to_numpy()) * 1e-6
+    return predict(at, np.maximum(age, 0.0), cfg.q_m2ps3), j["__has"].fill_null(False).to_numpy()
+
+
+def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: geo.LocalFrame | None,
+                     cfg: AltitudeConfig) -> dict[str, F]:
+    """The :data:`~tertiary.altitude.ALT_COLUMNS` of every (method, group), shape (M, G) each,
+    stacked in method order: Mode C where a source has it, else the geodetic height of the
+    method's fused state (module docstring)."""
+    n_groups = len(lay.starts)
+    per_row, has = _mode_c_per_row(rows, cfg)
+    mode_c, got = combine_min_variance(per_row, has, lay.group, n_groups)
+    mc = mode_c.columns()
+    out = {c: np.repeat(mc[c][None], len(xs), axis=0) for c in ALT_COLUMNS}
+    rest = np.flatnonzero(~got)                      # the fallback only where no Mode C
+    for i in range(len(xs)):
+        fb = geodetic_channel(xs[i, rest], covs[i, rest], origin).columns()
+        for c in ALT_COLUMNS:
+            out[c][i, rest] = fb[c]
+    return out
+
+
 def _check_methods(methods: Sequence[str]) -> list[str]:
     if isinstance(methods, str):
         methods = [methods]
@@ -702,7 +773,7 @@ def _check_methods(methods: Sequence[str]) -> list[str]:
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
-         cfg: FusionConfig = FusionConfig()) -> pl.DataFrame:
+         cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None) -> pl.DataFrame:
     """Fuse the associated reports of every (run, epoch, target_id) with each method.
 
     ``rows`` holds :data:`INPUT_COLUMNS` (sorted here by (run, epoch, target_id, radar_id));
@@ -714,13 +785,15 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     methods = _check_methods(methods)
     _check_columns(rows)
     schema = TABLES["fused"].required
+    out_schema = {**schema, **TABLES["fused"].optional}
     if rows.height == 0 or not methods:
-        return empty_frame("fused", optional=False)
+        return pl.DataFrame(schema=out_schema)
     if not is_sorted_by(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
         rows = rows.sort([*GROUP, "radar_id"], maintain_order=True)
     lay, a = layout(rows), _arrays(rows)
     d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
     xs, covs, ws = _run_methods(methods, a, lay, d_fixed, cfg)
+    alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
     head = rows.select(*GROUP, "radar_id").with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))
     ).group_by(GROUP, maintain_order=True).agg(
@@ -733,4 +806,5 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     return keys.with_columns(
         *(pl.Series(c, xs[:, j]) for j, c in enumerate(STATE)),
         pl.Series("cov", covs.reshape(-1, 36)),
-    ).select(list(schema)).cast(schema)
+        *(pl.Series(c, alt[c].reshape(-1)) for c in ALT_COLUMNS),
+    ).select(list(out_schema)).cast(out_schema)

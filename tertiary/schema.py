@@ -107,6 +107,9 @@ def _floats(*names: str) -> dict[str, pl.DataType]:
     return dict.fromkeys(names, F64)
 
 
+#: the vertical channel of ``fused`` and ``tracks`` (same names as tertiary.altitude.ALT_COLUMNS)
+_ALT = _floats("alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps")
+
 _RADARS = TableSchema(
     name="radars",
     required={
@@ -166,7 +169,8 @@ _TRUTH = TableSchema(
     optional={
         **_floats("ax_mps2", "ay_mps2", "az_mps2"),
         "segment": STR,
-        **_floats("lat_deg", "lon_deg", "alt_m"),
+        # alt_m: pressure altitude (= geodetic height, ISA without QNH deviation), alt_rate_mps its rate
+        **_floats("lat_deg", "lon_deg", "alt_m", "alt_rate_mps"),
         "callsign": STR,
         "icao24": STR,
     },
@@ -191,6 +195,8 @@ _ALIGNED = TableSchema(
         "mode_s": STR,
         "truth_id": I64,
     },
+    # the report's barometric altitude as replied (null without Mode C), at ``time``
+    optional={"altitude_m": F64},
     key=("run", "epoch", "report_id"),
     nullable=frozenset({"res_range_m", "res_range_var_m2", "mode_s", "truth_id"}),
 )
@@ -222,6 +228,8 @@ _FUSED = TableSchema(
         "radar_ids": pl.List(pl.UInt32),
         "n_sources": U32,
     },
+    # the vertical channel (tertiary.altitude.ALT_COLUMNS): Mode C height or geodetic fallback
+    optional=_ALT,
     key=("run", "epoch", "method", "target_id"),
 )
 
@@ -253,6 +261,7 @@ _TRACKS = TableSchema(
         "nis": F64,
         "model_probs": pl.List(pl.Float64),
     },
+    optional=_ALT,
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

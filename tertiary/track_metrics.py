@@ -15,7 +15,8 @@ Scored rows are the track rows with a truth, inside the aircraft's truth span, a
 ``straight`` ← straight|climb|descent, ``turn``; a segment without samples is omitted):
 
 * ``rmse_pos_m``, ``rmse_horizontal_m``, ``rmse_height_m``, ``rmse_range_m``, ``rmse_vel_mps``:
-  real accuracy (3-D, east-north, vertical — see :mod:`tertiary.evaluate`), RMSE = sqrt(mean_k σ²(k)),
+  real accuracy (3-D, east-north, vertical — the height error from the tracks' ``alt_m``
+  against truth ``alt_m`` when both carry it, else Δz; see :mod:`tertiary.evaluate`), RMSE = sqrt(mean_k σ²(k)),
   σ²(k) = Σ_j e_j(k)² / (N_k − 1) over the scored rows of epoch k ((2.15)/(4.84)).
 * ``potential_pos_m``: mean over scored rows of sqrt(P_xx + P_yy + P_zz) (potential accuracy
   √diag P, §2.2.1, as a 3-D position figure).
@@ -141,11 +142,12 @@ def _match_labelled(t: pl.DataFrame, truth: pl.DataFrame, cfg: TrackMetricsConfi
         t = t.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
     t = t.filter(pl.col("truth_id").is_not_null())
     keep = ["label", "run", "epoch", "track_id", "status", "truth_id", *STATE, "cov_diag", "nis"]
+    keep += ["alt_m"] if "alt_m" in t.columns else []
     m = truth_at(t.select(keep), truth)
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     var = [pl.col("cov_diag").arr.get(i) for i in range(3)]
     return m.with_columns(
-        *error_columns(),
+        *error_columns("true_alt_m" in m.columns),
         (d["x_m"] ** 2 / var[0] + d["y_m"] ** 2 / var[1] + d["z_m"] ** 2 / var[2]).alias("nees_pos"),
         (var[0] + var[1] + var[2]).sqrt().alias("sd_pos"),
     )

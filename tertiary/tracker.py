@@ -54,6 +54,16 @@ Per epoch (one loop over the epochs; everything inside vectorised over tracks ×
 6. Newly confirmed tracks get the next track ids of their run (1, 2, …, increasing with the
    confirmation epoch; stable for the track's life).
 
+**Vertical channel.** Every object carries a two-state (h, ḣ) altitude filter
+(:mod:`tertiary.altitude`) beside the horizontal filter: predicted with (A1)–(A2) whenever the
+object is, updated with the plot's vertical channel (``alt_m``, ``alt_rate_mps`` and their
+covariance from the fused table, Mode C or geodetic fallback) as a measurement of both h and ḣ
+(:func:`tertiary.altitude.update2`), initialised from the first plot that has one. The plots'
+heights are already filtered estimates, so a track's altitude variance is slightly optimistic
+(successive plot errors are correlated); with the default q_a the gain stays near one and the
+track follows the plot's channel without added lag. Output: the ``alt_*`` columns of
+``tracks`` (null while the track has no altitude estimate).
+
 A *scan* is an epoch at which the run has at least one plot; T and dt are the real time
 differences, so irregular epochs are handled (x̂₃ above). The filter runs on tentatives too
 (initialised on x₁, updated with every tentative plot), so a track enters tracking with its
@@ -73,6 +83,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from tertiary.altitude import ALT_COLUMNS, AltitudeConfig, AltState, predict as alt_predict, update2 as alt_update
 from tertiary.filters.base import State, TrackFilter, concat, make_filter, size, take
 from tertiary.schema import TABLES, TIME
 
@@ -84,6 +95,7 @@ STATE_COLS = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 #: the ``tracks`` table columns plus the tracker's extra columns
 TRACK_COLUMNS: dict[str, pl.DataType] = {
     **TABLES["tracks"].required,
+    **{c: TABLES["tracks"].optional[c] for c in ALT_COLUMNS},
     "status": pl.String(),
     "plot_target_id": pl.UInt64(),
 }
@@ -105,6 +117,7 @@ class TrackerConfig:
       gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
     * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
+    * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
     initiation: Literal["three_scan", "m_of_n"] = "three_scan"
@@ -117,6 +130,7 @@ class TrackerConfig:
     gate_min_m: float = 500.0
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
+    altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
         if self.initiation not in ("three_scan", "m_of_n"):
@@ -139,7 +153,8 @@ class TrackerConfig:
 # bookkeeping follows the filter state with two fancy-indexing operations per selection.
 # float columns:
 _T, _P1, _T1, _RZ1, _P2, _T2, _RZ2 = 0, slice(1, 4), 4, 5, slice(6, 9), 9, 10
-_NF = 11
+_ALT = slice(11, 16)                  # altitude filter h, ḣ, P_hh, P_hḣ, P_ḣḣ (NaN: none yet)
+_NF = 16
 # int columns: run index, kind, track id (0 until confirmed), consecutive misses, M-of-N hits
 # and scans, uid of the scan-1 plot, uid of the scan-2 plot
 _RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2 = range(8)
@@ -171,9 +186,10 @@ class _Objects:
         return _Objects(np.concatenate([o.f for o in objs]), np.concatenate([o.i for o in objs]))
 
     @staticmethod
-    def new(run: NDArray, t: float, z: NDArray, rz: NDArray, uid: NDArray) -> "_Objects":
+    def new(run: NDArray, t: float, z: NDArray, rz: NDArray, uid: NDArray, alt: NDArray) -> "_Objects":
         n = len(run)
         f = np.zeros((n, _NF))
+        f[:, _ALT] = alt
         f[:, _T] = f[:, _T1] = t
         f[:, _P1] = z
         f[:, _RZ1] = rz
@@ -184,6 +200,24 @@ class _Objects:
         i[:, _ROOT] = uid
         i[:, _UID2] = -1
         return _Objects(f, i)
+
+
+def _alt_step(f: NDArray, t: float, plot_alt: NDArray, mask: NDArray, q: float) -> NDArray:
+    """The altitude filter of objects ``f`` (rows of _Objects.f) predicted to ``t`` and updated
+    with their plots' vertical channel where ``mask`` and the plot has one; objects without an
+    estimate start from the plot's. Returns the new (n, 5) block."""
+    cur = AltState(*(f[:, _ALT.start + i] for i in range(5)))
+    pred = alt_predict(cur, t - f[:, _T], q)
+    meas = AltState(*(plot_alt[:, i] for i in range(5)))
+    have_m = mask & np.isfinite(plot_alt).all(axis=1)
+    have_t = np.isfinite(pred.h)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        upd = alt_update(pred, meas)
+    cols = []
+    for name in ("h", "r", "phh", "phr", "prr"):
+        p, u, m = getattr(pred, name), getattr(upd, name), getattr(meas, name)
+        cols.append(np.where(have_m, np.where(have_t, u, m), p))
+    return np.column_stack(cols) if len(f) else np.zeros((0, 5))
 
 
 def _take_state(state: State, idx: NDArray, n: int) -> State:
@@ -237,6 +271,7 @@ class _Plots:
     run: NDArray
     z: NDArray
     r: NDArray
+    alt: NDArray              # (n, 5) h, ḣ, P_hh, P_hḣ, P_ḣḣ of the plot's vertical channel (NaN: none)
     tid: NDArray
     uid: NDArray
     keys: NDArray
@@ -254,6 +289,14 @@ class _Plots:
         radii = (radius if radius.ndim == 2 else np.repeat(radius[None], len(self.classes), axis=0)).ravel()
         o, p = _window_pairs(self.keys, centers, radii)
         return o % n, p
+
+
+def _plot_alt(f: pl.DataFrame) -> NDArray:
+    """(n, 5) vertical channel of the fused plots in AltState order (NaN where absent)."""
+    names = ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")
+    if not all(c in f.columns for c in names):
+        return np.full((f.height, 5), np.nan)
+    return np.column_stack([f[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in names])
 
 
 class _PlotIndex:
@@ -275,6 +318,7 @@ class _PlotIndex:
         self.z = np.ascontiguousarray(z[order])
         self.r = np.ascontiguousarray(r[order])
         self.tid = f["target_id"].cast(pl.UInt64).to_numpy()[order]
+        self.alt = _plot_alt(f)[order]
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -291,7 +335,7 @@ class _PlotIndex:
     def epoch(self, k: int) -> _Plots:
         lo, hi = self.bounds[k], self.bounds[k + 1]
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
-        return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.tid[lo:hi],
+        return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(lo, hi, dtype=np.int64), self.keys[lo:hi], self.seg_cls[s0:s1],
                       self.seg_rmax_x[s0:s1])
 
@@ -439,7 +483,8 @@ class _Emitted:
 
     def __init__(self) -> None:
         self.parts: dict[str, list[NDArray]] = {k: [] for k in
-                                                ("run", "epoch", "track_id", "x", "var", "nu", "nis", "upd", "tid")}
+                                                ("run", "epoch", "track_id", "x", "var", "nu", "nis", "upd", "tid",
+                                                                 "alt")}
         self.probs: list[NDArray | None] = []
 
     def add(self, **arrays) -> None:
@@ -489,6 +534,8 @@ class _Emitted:
             "method": pl.repeat(method, n, dtype=pl.String, eager=True),
             **{col: c["x"][:, i] for i, col in enumerate(STATE_COLS)},
             "cov_diag": c["var"],
+            # AltState order h, ḣ, P_hh, P_hḣ, P_ḣḣ → ALT_COLUMNS
+            **{col: c["alt"][:, j] for col, j in zip(ALT_COLUMNS, (0, 1, 2, 4, 3))},
             "innovation": nu,
             "nis": c["nis"],
             "model_probs": model_probs,
@@ -504,6 +551,7 @@ class _Emitted:
             pl.when(pl.col("__has_probs")).then(pl.col("model_probs")).alias("model_probs"),
             pl.when(upd_col).then(pl.lit("confirmed")).otherwise(pl.lit("coasting")).alias("status"),
         )
+        frame = frame.with_columns(pl.col(list(ALT_COLUMNS)).fill_nan(None))
         return frame.select(list(TRACK_COLUMNS)).cast(TRACK_COLUMNS)
 
 
@@ -610,6 +658,7 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
             su, inn = filt.update(_take_state(st, idx, len(m)), z, r, mask)
         else:
             su, inn = {}, None
+        mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
         mu.f[:, _T] = t
         n_c, n_w, n_p = int(alive.sum()), len(win), len(pair_obj)
         mu.i[:n_c, _MISS] = misses[alive]
@@ -656,12 +705,13 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
             upd = mask[emit]
             emitted.add(run=mu.i[emit, _RUN], epoch=np.full(len(emit), ix.epochs[k]), track_id=mu.i[emit, _ID],
                         x=oe.x[emit], var=oe.var[emit], nu=inn.nu[emit], nis=inn.nis[emit], upd=upd,
+                        alt=mu.f[emit, _ALT],
                         tid=plots.tid[safe[emit]], probs=None if oe.probs is None else oe.probs[emit])
 
         # --- new tentatives from the plots no track or confirmation took
         newp = np.flatnonzero(opens)
         sn = filt.init(plots.z[newp], plots.r[newp]) if len(newp) else {}
-        mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp])
+        mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp])
         kept = np.flatnonzero(keep)
         state = _join_states(_take_state(state, idle, len(objs)) if len(idle) else {},
                              _take_state(su, kept, len(idx)) if len(idx) else {}, sn)

@@ -113,7 +113,7 @@ def big_box_fused(big_box10):
 
 def test_output_is_in_the_fused_schema(big_box_fused):
     ds, assoc, cen = big_box_fused
-    assert cen.schema == pl.Schema(TABLES["fused"].required)
+    assert cen.schema == pl.Schema(TABLES["fused"].columns)
     validate(cen, "fused")
     assert cen.height == 10 * 852
     assert set(cen["method"]) == {"centralized"}
@@ -205,4 +205,4 @@ def test_empty_inputs_give_an_empty_fused_table(big_box10):
     ds = big_box10
     assoc = _truth_associations(ds.reports).head(0)
     out = centralized_fusion(ds.reports, ds.radars, assoc, assoc.select("run", "epoch", "target_id"), ds.origin)
-    assert out.is_empty() and out.schema == pl.Schema(TABLES["fused"].required)
+    assert out.is_empty() and out.schema == pl.Schema(TABLES["fused"].columns)

@@ -83,7 +83,7 @@ def test_output_schema_and_rows():
     rows = [report(k=k, target=t, radar=r, x=np.full(6, r), cov=np.full(6, r))
             for k in range(2) for t in (1, 2) for r in ((1, 2, 3) if t == 1 else (2,))]
     out = fuse(frame(rows), RADARS)
-    assert dict(out.schema) == TABLES["fused"].required
+    assert dict(out.schema) == TABLES["fused"].columns
     assert out.height == 4 * len(METHODS)
     assert out.filter(pl.col("target_id") == 1)["radar_ids"].to_list()[0] == [1, 2, 3]
     assert set(out["n_sources"].to_list()) == {1, 3}
@@ -91,7 +91,7 @@ def test_output_schema_and_rows():
 
 def test_empty_input():
     out = fuse(frame([]), RADARS)
-    assert out.height == 0 and dict(out.schema) == TABLES["fused"].required
+    assert out.height == 0 and dict(out.schema) == TABLES["fused"].columns
 
 
 def test_single_source_unchanged():

@@ -155,7 +155,7 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
     say("radar secondary processing")
     reports = track_reports(reports, radars, cfg.tracker.local_tracker())
     reports = reports.with_columns(pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"))
-    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(), scenario=cfg, removed=removed)
+    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed)
 
 
 def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:

@@ -22,6 +22,15 @@ from tertiary.simulate.config import Anomalies, RadarConfig
 from tertiary.simulate.trajectory import Trajectories
 
 FT = 0.3048
+#: transponder altitude quanta (m): Mode S replies in 25 ft, Mode C-only (Gillham) in 100 ft
+QUANTUM_MODE_S_M = 25 * FT
+QUANTUM_MODE_C_M = 100 * FT
+#: fraction of replies whose altitude code is garbled (a wrong code, one bit off)
+GARBLE_RATE = 0.005
+#: largest garble error (m) the simulator makes (keeps wrong codes inside the valid range)
+GARBLE_MAX_M = 8000.0
+#: fraction of replies without altitude (code not decoded or not sent)
+MISSING_ALT_RATE = 0.01
 #: rows per block of the per-pair geometry (see :func:`_blocks`)
 BLOCK = 16_384
 
@@ -37,7 +46,7 @@ class Plots:
     range_m: NDArray[np.float64]
     azimuth_deg: NDArray[np.float64]
     elevation_deg: NDArray[np.float64]
-    altitude_m: NDArray[np.float64]    # Mode C (25 ft quantum), NaN for clutter
+    altitude_m: NDArray[np.float64]    # pressure altitude as replied (:func:`transponder_altitude`), NaN for clutter/missing
     local_track_id: NDArray[np.uint32]
 
     def __len__(self) -> int:
@@ -145,9 +154,43 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         aircraft=ia[p_idx].astype(np.int64),
         range_m=np.maximum(meas[:, 0], 0.0), azimuth_deg=np.mod(meas[:, 1], 360.0),
         elevation_deg=np.clip(meas[:, 2], -90.0, 90.0),
-        altitude_m=np.round(alt_true[p_idx] / (25 * FT)) * (25 * FT),
+        altitude_m=transponder_altitude(alt_true[p_idx], quantum_m(traj)[ia[p_idx]], rng.spawn(1)[0]),
         local_track_id=np.zeros(len(r_idx), np.uint32))
     return _numbered(plots, _clutter(radar, scan_start, runs, rng), radar)
+
+
+def quantum_m(traj: Trajectories) -> NDArray[np.float64]:
+    """Altitude quantum of each aircraft: 25 ft with a Mode S address (``meta["icao24"]`` not
+    empty; all aircraft when the meta is absent), 100 ft for Mode C-only transponders."""
+    icao = traj.meta.get("icao24")
+    if icao is None:
+        return np.full(traj.n_aircraft, QUANTUM_MODE_S_M)
+    has_s = np.char.str_len(np.asarray(icao, dtype=str)) > 0
+    return np.where(has_s, QUANTUM_MODE_S_M, QUANTUM_MODE_C_M)
+
+
+def transponder_altitude(alt_m: NDArray[np.float64], quantum: NDArray[np.float64], rng: np.random.Generator,
+                         garble_rate: float = GARBLE_RATE, missing_rate: float = MISSING_ALT_RATE
+                         ) -> NDArray[np.float64]:
+    """Pressure altitude as a transponder replies it: the true pressure altitude (= geodetic
+    height, ISA without QNH/temperature deviation; see :mod:`tertiary.altitude`) rounded to the
+    aircraft's quantum; a fraction ``garble_rate`` of replies carry a wrong code — one of the
+    low bits of the altitude count N (alt = N·q + offset) flipped, an error of ±q·2^b,
+    b uniform in 0…b_max (10 for 25 ft, 8 for 100 ft: |error| ≤ :data:`GARBLE_MAX_M`), never
+    below 0 — and a fraction ``missing_rate`` carry none (NaN). Derived from truth
+    only as a real transponder derives it from the air pressure."""
+    n = len(alt_m)
+    count = np.round(alt_m / quantum)
+    # bits whose flip moves the altitude by at most ~8 km: a larger wrong code would leave the
+    # validator's altitude range and cost the whole report, not just its altitude
+    top = np.minimum(10, np.floor(np.log2(GARBLE_MAX_M / quantum))).astype(np.int64)
+    bit = np.floor(rng.random(n) * (top + 1)).astype(np.int64)
+    flip = np.ldexp(1.0, bit)
+    flip = np.where((rng.random(n) < 0.5) & (count >= flip), -flip, flip)   # codes stay ≥ 0
+    garbled = rng.random(n) < garble_rate
+    missing = rng.random(n) < missing_rate
+    out = (count + np.where(garbled, flip, 0.0)) * quantum
+    return np.where(missing, np.nan, out)
 
 
 def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng: np.random.Generator) -> Plots:

@@ -16,6 +16,9 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary import geo
+from tertiary.altitude import geodetic_height_rate
+
 #: manoeuvre segment codes stored per sample
 SEGMENTS = ("straight", "turn", "climb", "descent", "hold")
 SEG_STRAIGHT, SEG_TURN, SEG_CLIMB, SEG_DESCENT, SEG_HOLD = range(5)
@@ -105,8 +108,14 @@ class Trajectories:
         both = self.active[:, 1:] & self.active[:, :-1]
         return np.where(both, step, 0.0).sum(axis=1)
 
-    def to_frame(self, stride: int = 1) -> pl.DataFrame:
-        """The ``truth`` table (long form, active samples only)."""
+    def to_frame(self, stride: int = 1, frame: geo.LocalFrame | None = None) -> pl.DataFrame:
+        """The ``truth`` table (long form, active samples only).
+
+        With the system ``frame`` the table also carries the vertical reference the
+        transponders report: ``alt_m`` = pressure altitude = geodetic height of the position
+        (standard atmosphere, no QNH or temperature deviation; :mod:`tertiary.altitude`) and
+        ``alt_rate_mps`` = its rate n̂·v (n̂ the ellipsoid normal at the aircraft) — never the
+        ENU z, which falls away from the height by ρ²/2R."""
         a_idx, k_idx = np.nonzero(self.active[:, ::stride])
         k_idx = k_idx * stride
         flat = a_idx * self.n_times + k_idx
@@ -120,6 +129,9 @@ class Trajectories:
             "vx_mps": vel[:, 0], "vy_mps": vel[:, 1], "vz_mps": vel[:, 2],
             "segment": pl.Series(SEGMENTS, dtype=pl.String).gather(self.segment.reshape(-1).take(flat)),
         }
+        if frame is not None:
+            h, hdot, _ = geodetic_height_rate(pos, vel, frame)
+            cols["alt_m"], cols["alt_rate_mps"] = h, hdot
         for name, values in self.meta.items():
             cols[name] = pl.Series(name, np.asarray(values, dtype=str), dtype=pl.String).gather(a_idx)
         return pl.DataFrame(cols)

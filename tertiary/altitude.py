@@ -1,0 +1,241 @@
+"""The vertical channel: height and its rate as a state of their own (DESIGN §3, issue 11).
+
+Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + …, 785 m low at
+ρ = 100 km). Two sources, in order of preference:
+
+1. **Mode C / Mode S pressure altitude** reported by the transponder, quantised to q = 25 ft
+   (Mode S, ``mode_s`` present) or q = 100 ft (Mode C only). A per-track two-state Kalman
+   filter (h, ḣ) with white-noise vertical acceleration runs over each track's replies:
+
+       x = [h, ḣ]ᵀ,  F(τ) = [[1, τ], [0, 1]],  Q(τ) = q_a [[τ³/3, τ²/2], [τ²/2, τ]]       (A1)
+       P⁻ = F P Fᵀ + Q                                                                   (A2)
+       ν = z − h⁻,  S = P⁻_hh + R,  R = q²/12 (uniform quantisation error)               (A3)
+       K = P⁻ Hᵀ / S,  x⁺ = x⁻ + K ν,  P⁺ = (I − K H) P⁻,  H = [1, 0]                      (A4)
+
+   A reply with |ν| > g·√S + f (``gate_sigma`` g, ``gate_floor_m`` f) is a **garble** (a
+   wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
+   restarts the filter on itself (a real altitude jump persists, independent garbles do
+   not). Missing altitude (null) only predicts.
+2. **Geodetic height** of an ENU state (elevation-based, the fallback for targets without
+   Mode C): h = height above the WGS-84 ellipsoid of the point, ḣ = n̂·v with n̂ the
+   ellipsoid normal at the target; variances from the position–velocity covariance along
+   n̂: var h = n̂ᵀP_pp n̂, var ḣ = n̂ᵀP_vv n̂, cov = n̂ᵀP_pv n̂ (:func:`geodetic_channel`).
+
+Simulated truth uses the same reference: the pressure altitude of a standard atmosphere with
+no QNH and no temperature deviation equals the geodetic height (the geoid undulation and the
+geopotential/geometric difference, ≤ h²/R ≈ 8 m at 7 km, are neglected), so barometric and
+geodetic heights are directly comparable.
+
+The channel's five columns (:data:`ALT_COLUMNS`) are those the safety stage reads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tertiary import geo
+
+__all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "AltitudeConfig", "AltState",
+           "quantisation_variance", "predict", "update", "update2", "filter_tracks", "geodetic_height_rate",
+           "geodetic_channel", "combine_min_variance"]
+
+F64 = NDArray[np.float64]
+FT_M = 0.3048
+QUANTUM_MODE_S_M = 25.0 * FT_M
+QUANTUM_MODE_C_M = 100.0 * FT_M
+#: the vertical channel of ``fused`` and ``tracks`` (safety.conflicts.ALT_COLUMNS)
+ALT_COLUMNS = ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps")
+
+
+@dataclass(frozen=True)
+class AltitudeConfig:
+    """Altitude filter settings (module docstring, (A1)–(A4)).
+
+    * ``q_m2ps3``: white-noise vertical-acceleration intensity q_a (m²/s³).
+    * ``v0_sigma_mps``: initial ḣ standard deviation (one-point initiation at ḣ = 0).
+    * ``gate_sigma``, ``gate_floor_m``: garble gate |ν| ≤ g·√S + f.
+    * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
+    """
+
+    q_m2ps3: float = 0.5
+    v0_sigma_mps: float = 15.0
+    gate_sigma: float = 5.0
+    gate_floor_m: float = 45.0
+    max_rejects: int = 2
+
+    def __post_init__(self) -> None:
+        if not (self.q_m2ps3 > 0 and self.v0_sigma_mps > 0 and self.gate_sigma > 0 and self.gate_floor_m >= 0):
+            raise ValueError("altitude filter: q_m2ps3, v0_sigma_mps, gate_sigma must be > 0, gate_floor_m >= 0")
+        if self.max_rejects < 1:
+            raise ValueError("altitude filter: max_rejects must be >= 1")
+
+
+@dataclass
+class AltState:
+    """Batch of (h, ḣ) estimates: h, r = ḣ and the covariance entries phh, phr, prr (arrays)."""
+
+    h: F64
+    r: F64
+    phh: F64
+    phr: F64
+    prr: F64
+
+    def take(self, idx: NDArray) -> "AltState":
+        return AltState(self.h[idx], self.r[idx], self.phh[idx], self.phr[idx], self.prr[idx])
+
+    def put(self, idx: NDArray, other: "AltState") -> None:
+        for name in ("h", "r", "phh", "phr", "prr"):
+            getattr(self, name)[idx] = getattr(other, name)
+
+    @staticmethod
+    def full(n: int, value: float = np.nan) -> "AltState":
+        return AltState(*(np.full(n, value) for _ in range(5)))
+
+    def columns(self) -> dict[str, F64]:
+        """The :data:`ALT_COLUMNS` arrays."""
+        return dict(zip(ALT_COLUMNS, (self.h, self.r, self.phh, self.prr, self.phr)))
+
+
+def quantisation_variance(quantum_m: ArrayLike) -> F64:
+    """R = q²/12: variance of a uniform rounding error of step q (A3)."""
+    q = np.asarray(quantum_m, np.float64)
+    return q * q / 12.0
+
+
+def predict(s: AltState, tau: ArrayLike, q: float) -> AltState:
+    """(A1)–(A2) over ``tau`` seconds (per row)."""
+    t = np.asarray(tau, np.float64)
+    t2 = t * t
+    phh = s.phh + 2.0 * t * s.phr + t2 * s.prr + q * t2 * t / 3.0
+    phr = s.phr + t * s.prr + q * t2 / 2.0
+    return AltState(s.h + t * s.r, s.r.copy(), phh, phr, s.prr + q * t)
+
+
+def update(s: AltState, z: F64, var: F64) -> tuple[AltState, F64, F64]:
+    """(A3)–(A4) with a height measurement z of variance ``var``; returns (posterior, ν, S)."""
+    nu = z - s.h
+    sv = s.phh + var
+    kh, kr = s.phh / sv, s.phr / sv
+    out = AltState(s.h + kh * nu, s.r + kr * nu, s.phh - kh * s.phh, s.phr - kh * s.phr, s.prr - kr * s.phr)
+    return out, nu, sv
+
+
+def update2(s: AltState, z: AltState) -> AltState:
+    """Kalman update with a measurement of both h and ḣ (H = I), R = the covariance of ``z``:
+    K = P⁻(P⁻ + R)⁻¹, x⁺ = x⁻ + K(z − x⁻), P⁺ = (I − K)P⁻ (2×2 closed form)."""
+    a, b, d = s.phh + z.phh, s.phr + z.phr, s.prr + z.prr
+    det = a * d - b * b
+    ia, ib, id_ = d / det, -b / det, a / det                         # (P⁻ + R)⁻¹
+    k11 = s.phh * ia + s.phr * ib
+    k12 = s.phh * ib + s.phr * id_
+    k21 = s.phr * ia + s.prr * ib
+    k22 = s.phr * ib + s.prr * id_
+    dh, dr = z.h - s.h, z.r - s.r
+    phh = (1 - k11) * s.phh - k12 * s.phr
+    phr = (1 - k11) * s.phr - k12 * s.prr
+    prr = -k21 * s.phr + (1 - k22) * s.prr
+    return AltState(s.h + k11 * dh + k12 * dr, s.r + k21 * dh + k22 * dr, phh, phr, prr)
+
+
+def _init(z: F64, var: F64, cfg: AltitudeConfig) -> AltState:
+    n = len(z)
+    return AltState(z.copy(), np.zeros(n), var.copy(), np.zeros(n), np.full(n, cfg.v0_sigma_mps ** 2))
+
+
+def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
+                  cfg: AltitudeConfig = AltitudeConfig()) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_]]:
+    """Run (A1)–(A4) with the garble gate over every track's replies.
+
+    ``t`` (n,) seconds, ``z`` (n,) altitudes (NaN = missing), ``var`` (n,) their R, sorted so
+    that track g owns rows ``starts[g] : starts[g] + lengths[g]`` in time order. Returns the
+    estimate at each row's time after its update (NaN before the track's first altitude), a
+    mask of the rows that have an estimate, and a mask of the replies rejected as garbles.
+    The loop runs over the rank within a track, vectorised over tracks (lengths sorted
+    descending, so the tracks with more than k rows are a prefix)."""
+    n = len(t)
+    out, has, rejected = AltState.full(n), np.zeros(n, bool), np.zeros(n, bool)
+    order = np.argsort(-np.asarray(lengths), kind="stable")
+    st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
+    cur = AltState.full(len(st))
+    t_last = np.zeros(len(st))
+    ok = np.zeros(len(st), bool)
+    miss = np.zeros(len(st), np.int64)
+    alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
+    for k, m in enumerate(alive):
+        idx = st[:m] + k
+        zk, vk, tk = z[idx], var[idx], t[idx]
+        valid = np.isfinite(zk)
+        s = predict(cur.take(slice(0, m)), tk - t_last[:m], cfg.q_m2ps3)
+        u, nu, sv = update(s, np.where(valid, zk, s.h), vk)
+        inside = np.abs(nu) <= cfg.gate_sigma * np.sqrt(np.maximum(sv, 0.0)) + cfg.gate_floor_m
+        run = ok[:m]
+        accept = run & valid & inside
+        bad = run & valid & ~inside
+        miss[:m] = np.where(accept, 0, np.where(bad, miss[:m] + 1, miss[:m]))
+        restart = (valid & ~run) | (bad & (miss[:m] >= cfg.max_rejects))
+        new = _init(np.where(valid, zk, 0.0), vk, cfg)
+        nxt = AltState(*(np.where(restart, getattr(new, f), np.where(accept, getattr(u, f), getattr(s, f)))
+                         for f in ("h", "r", "phh", "phr", "prr")))
+        miss[:m] = np.where(restart, 0, miss[:m])
+        ok[:m] |= restart
+        cur.put(slice(0, m), nxt)
+        t_last[:m] = tk
+        out.put(idx, nxt)
+        has[idx] = ok[:m]
+        rejected[idx] = bad & ~restart
+    return out, has, rejected
+
+
+def geodetic_height_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None
+                         ) -> tuple[F64, F64, F64]:
+    """Height above the WGS-84 ellipsoid, its rate and the unit normal n̂ (in the system ENU
+    axes) of system-frame positions/velocities (n, 3): h of frame.to_ecef(p), ḣ = n̂·v.
+
+    ``frame=None``: a sphere of radius :data:`tertiary.geo.EARTH_RADIUS_M` through the origin
+    (h from the origin's height; ≤ 9 m off the ellipsoid at ρ = 150 km, ≤ 4 m at 100 km, from
+    the ±0.5 % variation of the radius of curvature)."""
+    p = np.asarray(pos, np.float64).reshape(-1, 3)
+    v = np.asarray(vel, np.float64).reshape(-1, 3)
+    if frame is None:
+        c = p + np.array([0.0, 0.0, geo.EARTH_RADIUS_M])
+        norm = np.sqrt(np.einsum("ij,ij->i", c, c))
+        up = c / norm[:, None]
+        h = norm - geo.EARTH_RADIUS_M
+    else:
+        lat, lon, h = geo.ecef_to_geodetic(*frame.to_ecef(p[:, 0], p[:, 1], p[:, 2]))
+        la, lo = np.radians(lat), np.radians(lon)
+        n_ecef = np.column_stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)])
+        up = n_ecef @ frame.rotation.T
+        h = np.asarray(h, np.float64)
+    return h, np.einsum("ij,ij->i", up, v), up
+
+
+def geodetic_channel(x6: F64, cov66: F64, frame: geo.LocalFrame | None) -> AltState:
+    """The vertical channel of ENU states x6 (n, 6) with covariances (n, 6, 6): geodetic h, ḣ
+    (:func:`geodetic_height_rate`) and var h = n̂ᵀP_pp n̂, cov = n̂ᵀP_pv n̂, var ḣ = n̂ᵀP_vv n̂."""
+    h, hdot, up = geodetic_height_rate(x6[:, :3], x6[:, 3:], frame)
+    quad = lambda blk: np.einsum("ni,nij,nj->n", up, blk, up)  # noqa: E731
+    return AltState(h, hdot, quad(cov66[:, :3, :3]), quad(cov66[:, :3, 3:]), quad(cov66[:, 3:, 3:]))
+
+
+def combine_min_variance(s: AltState, valid: NDArray[np.bool_], group: NDArray[np.int64], n_groups: int
+                         ) -> tuple[AltState, NDArray[np.bool_]]:
+    """Per group, the valid source with the smallest var h. Every radar decodes the same
+    transponder reply (same code, same quantisation error), so their estimates are strongly
+    correlated: averaging them as independent would understate the variance; the best one is
+    kept instead. Returns the per-group state (NaN where no valid source) and its mask."""
+    out = AltState.full(n_groups)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return out, np.zeros(n_groups, bool)
+    order = rows[np.lexsort((s.phh[rows], group[rows]))]
+    g = group[order]
+    first = np.r_[True, g[1:] != g[:-1]]
+    pick = order[first]
+    out.put(group[pick], s.take(pick))
+    has = np.zeros(n_groups, bool)
+    has[group[pick]] = True
+    return out, has

@@ -1,0 +1,219 @@
+"""The vertical channel (tertiary.altitude) and its use by simulation, fusion and evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import polars as pl
+import pymap3d
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from tertiary import geo
+from tertiary.altitude import (QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks,
+                               geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
+from tertiary.evaluate import error_columns
+from tertiary.simulate.radar import quantum_m, transponder_altitude
+from tertiary.simulate.trajectory import Trajectories
+
+PARIS = geo.LocalFrame(48.85, 2.35, 0.0)
+
+
+def _filterpy_run(t, z, r, cfg):
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x = np.array([[z[0]], [0.0]])
+    kf.P = np.diag([r, cfg.v0_sigma_mps ** 2])
+    kf.H = np.array([[1.0, 0.0]])
+    kf.R = np.array([[r]])
+    out = [kf.x[:, 0].copy()]
+    covs = [kf.P.copy()]
+    for k in range(1, len(t)):
+        tau = t[k] - t[k - 1]
+        kf.F = np.array([[1.0, tau], [0.0, 1.0]])
+        q = cfg.q_m2ps3
+        kf.Q = q * np.array([[tau ** 3 / 3, tau ** 2 / 2], [tau ** 2 / 2, tau]])
+        kf.predict()
+        kf.update(np.array([[z[k]]]))
+        out.append(kf.x[:, 0].copy())
+        covs.append(kf.P.copy())
+    return np.array(out), np.array(covs)
+
+
+def test_filter_matches_filterpy_on_several_tracks():
+    rng = np.random.default_rng(1)
+    cfg = AltitudeConfig(gate_floor_m=1e9)            # no gating: a plain Kalman filter
+    lengths = np.array([30, 7, 55])
+    t = np.concatenate([np.cumsum(rng.uniform(3.0, 6.0, n)) for n in lengths])
+    z = np.concatenate([3000 + 8.0 * np.arange(n) + rng.normal(0, 3, n) for n in lengths])
+    r = 9.0
+    starts = np.r_[0, np.cumsum(lengths)[:-1]]
+    est, has, rej = filter_tracks(t, z, np.full(len(t), r), starts, lengths, cfg)
+    assert has.all() and not rej.any()
+    for s, n in zip(starts, lengths):
+        ref, cov = _filterpy_run(t[s:s + n], z[s:s + n], r, cfg)
+        sl = slice(s, s + n)
+        np.testing.assert_allclose(est.h[sl], ref[:, 0], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(est.r[sl], ref[:, 1], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(est.phh[sl], cov[:, 0, 0], rtol=1e-9)
+        np.testing.assert_allclose(est.phr[sl], cov[:, 0, 1], rtol=1e-9)
+        np.testing.assert_allclose(est.prr[sl], cov[:, 1, 1], rtol=1e-9)
+
+
+def test_garble_is_rejected_and_a_real_jump_restarts_the_filter():
+    cfg = AltitudeConfig()
+    t = np.arange(40) * 4.0
+    z = np.full(40, 3048.0)
+    z[10] += 25 * 2 ** 7 * 0.3048                  # one garbled code (a bit flip, ~975 m)
+    z[25:] += 600.0                               # a genuine level change held afterwards
+    z[5] = np.nan                                 # missing altitude
+    r = np.full(40, quantisation_variance(QUANTUM_MODE_S_M))
+    est, has, rej = filter_tracks(t, z, r, np.array([0]), np.array([40]), cfg)
+    assert rej[10] and abs(est.h[10] - 3048.0) < 1.0
+    assert has[5] and abs(est.h[5] - 3048.0) < 1.0
+    assert rej[25] and not rej[26] and est.h[26] == z[26]   # the 2nd (max_rejects) outlier restarts the filter
+    assert abs(est.h[-1] - 3648.0) < 1.0
+
+
+def test_update2_is_the_kalman_update_with_h_identity():
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(5, 2, 2))
+    p = a @ a.transpose(0, 2, 1) + np.eye(2)
+    b = rng.normal(size=(5, 2, 2))
+    r = b @ b.transpose(0, 2, 1) + 0.5 * np.eye(2)
+    x, z = rng.normal(size=(5, 2)), rng.normal(size=(5, 2))
+    s = AltState(x[:, 0], x[:, 1], p[:, 0, 0], p[:, 0, 1], p[:, 1, 1])
+    m = AltState(z[:, 0], z[:, 1], r[:, 0, 0], r[:, 0, 1], r[:, 1, 1])
+    out = update2(s, m)
+    k = p @ np.linalg.inv(p + r)
+    xe = x + np.einsum("nij,nj->ni", k, z - x)
+    pe = (np.eye(2) - k) @ p
+    np.testing.assert_allclose(np.c_[out.h, out.r], xe, atol=1e-12)
+    np.testing.assert_allclose(np.c_[out.phh, out.phr, out.prr], pe[:, [0, 0, 1], [0, 1, 1]], atol=1e-12)
+
+
+def test_predict_is_constant_rate_with_white_acceleration():
+    s = AltState(np.array([100.0]), np.array([5.0]), np.array([4.0]), np.array([1.0]), np.array([2.0]))
+    out = predict(s, np.array([10.0]), 0.5)
+    f = np.array([[1, 10.0], [0, 1]])
+    q = 0.5 * np.array([[1000 / 3, 50], [50, 10]])
+    p = f @ np.array([[4.0, 1.0], [1.0, 2.0]]) @ f.T + q
+    assert out.h[0] == pytest.approx(150.0) and out.r[0] == 5.0
+    np.testing.assert_allclose([out.phh[0], out.phr[0], out.prr[0]], [p[0, 0], p[0, 1], p[1, 1]])
+
+
+def test_geodetic_height_matches_pymap3d_and_is_not_enu_z():
+    rng = np.random.default_rng(4)
+    pos = np.c_[rng.uniform(-150e3, 150e3, 50), rng.uniform(-150e3, 150e3, 50), rng.uniform(0, 9000, 50)]
+    vel = rng.normal(0, 100, (50, 3))
+    h, hdot, up = geodetic_height_rate(pos, vel, PARIS)
+    _, _, h_ref = pymap3d.enu2geodetic(pos[:, 0], pos[:, 1], pos[:, 2], 48.85, 2.35, 0.0)
+    np.testing.assert_allclose(h, h_ref, atol=1e-3)
+    # rate = numerical derivative of the height along the velocity
+    dt = 1e-3
+    h2, _, _ = geodetic_height_rate(pos + vel * dt, vel, PARIS)
+    np.testing.assert_allclose(hdot, (h2 - h) / dt, atol=1e-2)
+    rho = np.hypot(pos[:, 0], pos[:, 1])
+    far = rho > 60e3
+    assert np.all(h[far] - pos[far, 2] > 0.9 * rho[far] ** 2 / (2 * 6.4e6))   # z falls below h by ρ²/2R
+    # the spherical fallback stays within its documented 9 m at 150 km
+    hs, _, _ = geodetic_height_rate(pos, vel, None)
+    assert np.all(np.abs(hs - h) <= 9.0)
+
+
+def test_level_pair_far_from_centre_has_equal_height():
+    """Two aircraft at the same geodetic height 120 km from the centre, 10 km apart: the same
+    alt_m although their ENU z differ."""
+    e, n, u = PARIS.from_geodetic(np.array([49.9, 49.95]), np.array([2.35, 2.45]), np.array([3000.0, 3000.0]))
+    pos = np.c_[e, n, u]
+    h, _, _ = geodetic_height_rate(pos, np.zeros((2, 3)), PARIS)
+    np.testing.assert_allclose(h, 3000.0, atol=1e-6)
+    assert abs(u[1] - u[0]) > 10.0
+
+
+def test_geodetic_channel_variance_is_along_the_local_up():
+    pos = np.array([[100e3, 0.0, 5000.0, 200.0, 0.0, 0.0]])
+    cov = np.diag([1e4, 1e4, 1e2, 1.0, 1.0, 1.0])[None]
+    s = geodetic_channel(pos, cov, PARIS)
+    _, _, up = geodetic_height_rate(pos[:, :3], pos[:, 3:], PARIS)
+    assert s.phh[0] == pytest.approx(float(up[0] @ cov[0, :3, :3] @ up[0]))
+    assert s.phh[0] > 1e2 + 0.9 * 1e4 * (100e3 / 6.4e6) ** 2          # the tilt mixes in horizontal variance
+    assert abs(s.r[0]) == pytest.approx(200.0 * 100e3 / 6.38e6, rel=0.01)  # ḣ of a "level in z" radial flight
+
+
+def test_transponder_altitude_quanta_garbles_and_missing():
+    rng = np.random.default_rng(5)
+    n = 200_000
+    alt = rng.uniform(500, 9000, n)
+    q = np.where(np.arange(n) % 2 == 0, QUANTUM_MODE_S_M, QUANTUM_MODE_C_M)
+    rep = transponder_altitude(alt, q, rng)
+    ok = np.isfinite(rep)
+    assert abs((~ok).mean() - 0.01) < 0.002
+    steps = rep[ok] / q[ok]
+    np.testing.assert_allclose(steps, np.round(steps), atol=1e-9)      # on the quantum grid
+    err = np.abs(rep[ok] - alt[ok])
+    good = err <= q[ok] / 2 + 1e-9
+    assert abs((~good).mean() - 0.005 * 10 / 11) < 0.0015              # bit 0 of a garble stays within ±q
+    assert np.all(rep[ok] >= 0) and np.all(err <= 8000.0)
+    assert err[q[ok] == QUANTUM_MODE_S_M].max() > 4000.0               # high bits do flip
+
+
+def test_quantum_from_mode_s_address():
+    traj = Trajectories(dt=1.0, pos=np.zeros((3, 2, 3)), vel=np.zeros((3, 2, 3)), active=np.ones((3, 2), bool),
+                        segment=np.zeros((3, 2), np.int8), truth_id=np.arange(3),
+                        meta={"icao24": np.array(["abc123", "", "def456"])})
+    np.testing.assert_allclose(quantum_m(traj), [QUANTUM_MODE_S_M, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M])
+
+
+def test_truth_carries_geodetic_alt():
+    pos = np.array([[[80e3, 50e3, 4000.0], [80.2e3, 50e3, 4000.0]]])
+    vel = np.array([[[200.0, 0.0, 0.0], [200.0, 0.0, 0.0]]])
+    traj = Trajectories(dt=1.0, pos=pos, vel=vel, active=np.ones((1, 2), bool),
+                        segment=np.zeros((1, 2), np.int8), truth_id=np.array([7]))
+    tr = traj.to_frame(frame=PARIS)
+    _, _, h_ref = pymap3d.enu2geodetic(pos[0, :, 0], pos[0, :, 1], pos[0, :, 2], 48.85, 2.35, 0.0)
+    np.testing.assert_allclose(tr["alt_m"].to_numpy(), h_ref, atol=1e-3)
+    assert (tr["alt_rate_mps"] > 2.0).all()         # level in z is climbing in height away from the centre
+    assert "alt_m" not in traj.to_frame().columns
+
+
+def test_height_error_uses_alt_when_both_carry_it():
+    df = pl.DataFrame({"segment": ["straight"] * 2, **{c: [0.0, 0.0] for c in
+                       ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")},
+                       **{f"true_{c}": [0.0, 0.0] for c in ("x_m", "y_m", "vx_mps", "vy_mps", "vz_mps")},
+                       "true_z_m": [500.0, 500.0], "alt_m": [1010.0, None], "true_alt_m": [1000.0, 1000.0]})
+    out = df.with_columns(error_columns(True))
+    assert out["e2_height"].to_list() == [100.0, 250000.0]               # Δalt², else Δz²
+    assert df.with_columns(error_columns(False))["e2_height"].to_list() == [250000.0, 250000.0]
+
+
+def test_pipeline_heights_come_from_mode_c(small_terminal):
+    """Simulated terminal area → fusion, centralised reference and tracker all carry the Mode C
+    channel: height RMSE of a few metres (elevation-based heights are off by ~100 m), and a
+    target whose reports lose their altitude falls back to the geodetic height."""
+    from tertiary.evaluate import EvaluateConfig, match_truth
+    from tertiary.fusion import fuse
+    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.schema import validate
+    from tertiary.track_metrics import tracker_metrics
+
+    res = process(small_terminal, PipelineConfig(methods=("arithmetic",), filters=("singer",)))
+    report_truth = small_terminal.reports.select("run", "report_id", "truth_id")
+    validate(res.fused, "fused")
+    validate(res.tracks.drop("status", "plot_target_id"), "tracks")
+    m = match_truth(res.fused, res.associations, report_truth, small_terminal.truth, EvaluateConfig())
+    err = (m["alt_m"] - m["true_alt_m"]).abs()
+    assert err.median() < 5.0
+    for method in ("arithmetic", "centralized"):
+        sub = m.filter(pl.col("method") == method)
+        assert (sub["alt_m"] - sub["true_alt_m"]).abs().median() < 5.0
+    tm = tracker_metrics(res.tracks, res.associations, report_truth, small_terminal.truth)
+    h = tm.filter((pl.col("metric") == "rmse_height_m") & (pl.col("segment") == "all"))["value"][0]
+    assert h < 30.0
+    # without Mode C: geodetic fallback (elevation-based), far worse but still height, not z
+    rows = res.aligned.with_columns(res.associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
+    f0 = fuse(rows.with_columns(pl.lit(None, pl.Float64).alias("altitude_m")), small_terminal.radars,
+              ["arithmetic"], origin=small_terminal.origin)
+    m0 = match_truth(f0, res.associations, report_truth, small_terminal.truth, EvaluateConfig())
+    e0 = (m0["alt_m"] - m0["true_alt_m"]).abs()
+    ez = (m0["z_m"] - m0["true_alt_m"]).abs()
+    assert 20.0 < e0.median() < 400.0
+    assert e0.median() < ez.median()
