@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import sys
 import tempfile
 import time
@@ -63,6 +64,9 @@ def main() -> None:
             print(f"{entry}: {len(cases)} cases in {time.perf_counter() - t:.0f} s", flush=True)
     finally:
         worker.stop()
+        shutil.rmtree(scratch, ignore_errors=True)
+        if args.bases is None:
+            shutil.rmtree(root, ignore_errors=True)
     table, failures = fuzzing.summarise(outcomes)
     table = {e: r for e, r in table.items() if r["cases"]}
     print(fuzzing.format_table(table))
