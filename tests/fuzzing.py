@@ -1297,5 +1297,8 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(REPO))
+    try:  # the installed package (CI installs the project); the source tree only when it is not installed
+        import tertiary  # noqa: F401
+    except ImportError:
+        sys.path.insert(0, str(REPO))
     main(sys.argv[1:])
