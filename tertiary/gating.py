@@ -32,6 +32,10 @@ class GatingConfig:
       poor: 0.15° at 100 km is 260 m); ``vel_tol_mps`` per horizontal velocity component,
       widened by three standard deviations of the velocity difference (new local tracks).
     * ``method="mahalanobis"`` additionally requires d² ≤ χ²₃(``gate_prob``).
+    * Mode C: two reports that both carry a barometric altitude are one aircraft only if the
+      altitudes agree within ``mode_c_tol_m`` plus ``max_vrate_mps`` times the time between the
+      two replies (each report's altitude is from its own reply time). Aircraft stacked 1 000 ft
+      apart (holding) are then never merged, however close they are horizontally.
     """
 
     pos_tol_m: float = 3000.0
@@ -40,6 +44,9 @@ class GatingConfig:
     method: Literal["box", "mahalanobis"] = "box"
     gate_prob: float = 0.9999
     use_mode_s: bool = True
+    use_mode_c: bool = True
+    mode_c_tol_m: float = 120.0
+    max_vrate_mps: float = 20.0
 
 
 @dataclass
@@ -94,6 +101,11 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
         known = ms.is_not_null().to_numpy()
         codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
         keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
+    if cfg.use_mode_c and "altitude_m" in aligned.columns and "age_s" in aligned.columns:
+        alt = aligned["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+        age = aligned["age_s"].to_numpy()
+        tol = cfg.mode_c_tol_m + cfg.max_vrate_mps * np.abs(age[a] - age[b])
+        keep &= ~(np.abs(alt[a] - alt[b]) > tol)          # NaN (no Mode C) never splits
     a, b = a[keep], b[keep]
     cov_pos = cov36[:, [0, 1, 2, 6, 7, 8, 12, 13, 14]]   # the 3×3 position block of the 6×6
     ca, cb = cov_pos[a].reshape(-1, 3, 3), cov_pos[b].reshape(-1, 3, 3)

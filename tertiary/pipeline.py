@@ -306,7 +306,7 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     sink("associations", associations)
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
-    fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion) if cfg.methods else schema.empty_frame("fused", False)
+    fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin) if cfg.methods else schema.empty_frame("fused", False)
     if cfg.centralized:
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)

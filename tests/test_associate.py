@@ -150,3 +150,18 @@ def test_costs_are_squared_distance_to_reference():
     assert sorted(assoc["cost"].to_list()) == pytest.approx([0.0, 2500.0])
     assoc_m, _ = associate(df, AssociationConfig(cost="mahalanobis"))
     assert sorted(assoc_m["cost"].to_list()) == pytest.approx([0.0, 2500.0 / 1800.0])
+
+
+def test_mode_c_separates_stacked_aircraft():
+    """Two aircraft 1 000 ft apart above one holding fix, seen by two radars whose elevation
+    heights cannot tell them apart (the z of both is the same): Mode C keeps them apart; replies
+    of one aircraft climbing 10 m/s taken 8 s apart still gate; a report without Mode C never splits."""
+    df = _aligned([(0, 1, 1, 0, 0, 3000), (0, 2, 1, 50, 0, 3000)])
+    ages = pl.Series("age_s", [0.0, 8.0])
+    stacked = df.with_columns(pl.Series("altitude_m", [3048.0, 3048.0 + 304.8]), ages)
+    assert len(candidate_pairs(stacked, GatingConfig())) == 0
+    assert len(candidate_pairs(stacked, GatingConfig(use_mode_c=False))) == 1
+    climbing = df.with_columns(pl.Series("altitude_m", [3048.0, 3048.0 - 80.0 - 120.0]), ages)  # 10 m/s × 8 s + 120
+    assert len(candidate_pairs(climbing, GatingConfig())) == 1
+    missing = df.with_columns(pl.Series("altitude_m", [3048.0, None], dtype=pl.Float64), ages)
+    assert len(candidate_pairs(missing, GatingConfig())) == 1
