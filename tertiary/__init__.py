@@ -15,7 +15,7 @@ Public API (the CLI is a thin layer over these):
   bound parameters), :func:`build_report` (the self-contained HTML report of a run)
 """
 
-from tertiary import align, associate, centralized, evaluate, geo
+from tertiary import align, altitude, associate, centralized, evaluate, geo
 from tertiary.align import AlignConfig
 from tertiary.associate import AssociationConfig
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
@@ -38,4 +38,4 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
            "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__",
            "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
-           "DataError", "ResourceError"]
+           "DataError", "ResourceError", "altitude"]
