@@ -426,7 +426,8 @@ def _holding_aircraft(rng, cfg, tpl, kinds, n: int, duration_s: float):
 
 def _overflights(rng, cfg, kinds, dur, n: int, duration_s: float):
     """Dealt to (airway, level) lanes round robin; in a lane entries ≥ overflight_spacing_s
-    apart within [−route time + 60 s, duration − 60 s] so that each flies in the scenario."""
+    apart (tightened to fit, never below 60 s) within [−route time + 60 s, duration − 60 s] so
+    that each flies in the scenario."""
     lanes = [(w, fl) for w, (_, _, _, levels) in enumerate(AIRWAYS) for fl in levels]
     order = rng.permutation(len(lanes))
     route, entry, zoff = [], [], []
@@ -437,7 +438,10 @@ def _overflights(rng, cfg, kinds, dur, n: int, duration_s: float):
             continue
         r = kinds["airway"][w]
         route.append(np.full(m, r))
-        entry.append(_slots(rng, m, -dur[r] + 60.0, duration_s - 60.0, cfg.overflight_spacing_s))
+        lo, hi = -dur[r] + 60.0, duration_s - 60.0
+        # dense traffic tightens the lane down to 60 s (≥ 13 km at airway speeds, > 2× the minimum)
+        gap = min(cfg.overflight_spacing_s, max(60.0, 0.9 * (hi - lo) / max(m - 1, 1)))
+        entry.append(_slots(rng, m, lo, hi, gap))
         zoff.append(np.full(m, flight_level_m(fl, cfg.level_buffer_m)))
     if not route:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
@@ -495,6 +499,7 @@ def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: fl
                           rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
     t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
     kind = np.concatenate([rng.integers(0, 3, n_conf), np.full(n_near, 3)])
+    kind = np.where((kind == 2) & (t_c < 100.0), 0, kind)      # a bust needs its climb inside the run
     zone, lvl, kind = _pair_slots(rng, kind, t_c, duration_s)
     kind = np.asarray(kind)
     delta = np.choose(np.minimum(kind, 2), [rng.uniform(60, 120, n_p), rng.uniform(15, 40, n_p),
