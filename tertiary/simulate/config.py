@@ -67,7 +67,21 @@ class Anomalies:
 
 @dataclass(frozen=True)
 class TrafficConfig:
-    """Terminal-area traffic generator."""
+    """Terminal-area traffic generator (procedures: :func:`tertiary.simulate.traffic.terminal_area`).
+
+    ``aircraft`` is the number that fly during the scenario (they enter and leave over it).
+    After ``conflict_pairs`` designed losses of separation and ``near_miss_pairs`` designed
+    near misses (pairs at 1.15–1.45× the horizontal minimum), the rest is split into holding
+    (``holding_fraction``), arrivals, departures and overflights (the remainder); arrivals and
+    departures are capped by the runway slots (``arrival_spacing_s``). ``sep_h_m`` /
+    ``sep_v_m`` are the minima the procedures keep (those of safety.SEPARATION_MINIMA
+    "terminal"); ``level_buffer_m`` is added per 1 000 ft of flight level (geometric height of
+    a pressure level in an atmosphere ~1 K warmer than ISA) so that adjacent levels are never
+    exactly on the strict loss-of-separation boundary.
+
+    ``area_radius_m`` … ``lifetime_s`` are kept for compatibility (the procedure generator
+    does not use them; routes are fixed by the procedure design).
+    """
 
     aircraft: int = 200
     area_radius_m: float = 60_000.0
@@ -81,6 +95,14 @@ class TrafficConfig:
     conflict_pairs: int = 10
     conflict_miss_m: tuple[float, float] = (0.0, 1500.0)
     mode_s_fraction: float = 0.95
+    near_miss_pairs: int = 5
+    arrival_fraction: float = 0.22
+    departure_fraction: float = 0.2
+    arrival_spacing_s: float = 105.0
+    overflight_spacing_s: float = 300.0
+    sep_h_m: float = 5556.0
+    sep_v_m: float = 304.8
+    level_buffer_m: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -438,6 +460,17 @@ def _check_traffic(t: TrafficConfig) -> None:
     _number("traffic.holding_fraction", t.holding_fraction, 0.0, 1.0)
     _number("traffic.conflict_pairs", t.conflict_pairs, 0, 1_000_000, integer=True)
     _number("traffic.mode_s_fraction", t.mode_s_fraction, 0.0, 1.0)
+    _number("traffic.near_miss_pairs", t.near_miss_pairs, 0, 1_000_000, integer=True)
+    for k in ("arrival_fraction", "departure_fraction"):
+        _number(f"traffic.{k}", getattr(t, k), 0.0, 1.0)
+    if t.holding_fraction + t.arrival_fraction + t.departure_fraction > 1.0:
+        raise OptionError("holding_fraction + arrival_fraction + departure_fraction must not exceed 1",
+                          option="traffic")
+    _number("traffic.arrival_spacing_s", t.arrival_spacing_s, 80.0, 3600.0)
+    _number("traffic.overflight_spacing_s", t.overflight_spacing_s, 60.0, 3600.0)
+    _number("traffic.sep_h_m", t.sep_h_m, 0.0, 1e5, open_lo=True)
+    _number("traffic.sep_v_m", t.sep_v_m, 0.0, 1e4, open_lo=True)
+    _number("traffic.level_buffer_m", t.level_buffer_m, 0.0, 30.0)
 
 
 def _check_anomalies(a: Anomalies, radar_names: list[str]) -> None:

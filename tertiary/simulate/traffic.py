@@ -3,6 +3,37 @@
 All generators build piecewise-constant command arrays (speed, turn rate, vertical rate) of
 shape (aircraft, steps) without per-aircraft Python loops and integrate them exactly with
 :func:`tertiary.simulate.trajectory.integrate_commands`.
+
+Terminal area (DESIGN §5, issue 11 item 6) — traffic that flies procedures
+--------------------------------------------------------------------------
+System frame x east, y north; runway 27 at the origin (threshold (1 500, 0), landing west).
+
+* **Arrivals**: three STAR branches (NE, E, SE entries 58–60 km out) merge at the intercept
+  point I = (40 km, 0) and fly one final approach: 3 000 ft level, then a 3° glide path to
+  the threshold (h = 15 m + s·tan 3°, s the distance to go), speed 130 → 75 m/s between 30
+  and 10 km to go. Speed and height are functions of the distance to go only, so every
+  arrival passes a point of the common path at (landing time − T(s)): arrivals landing
+  ``arrival_spacing_s`` apart are ≥ 75 m/s × spacing apart in trail, and on converging
+  branches the distance is ≥ v·Δt as they meet the merge point (minimum at the merge).
+* **Departures**: lift off 20 s after a landing slot, climb at 7.5 % (130 → 180 m/s) on three
+  SIDs (W, NW, SW) to the SID top FL70; in trail ≥ 80 m/s × slot apart.
+* **Overflights**: four airways across the area, levels by the semicircular rule (tracks
+  000–179° odd thousands of feet, 180–359° even), FL150–FL390, each level used by one airway
+  only (crossing airways are ≥ 1 000 ft apart); in a lane (airway, level) the speed is
+  constant and entries are ≥ ``overflight_spacing_s`` apart.
+* **Holding**: two stacks (north and north-west fixes), FL110–FL140 at 1 000 ft, right-hand
+  race-tracks (60 s legs, 3°/s turns at 110 m/s); each level holds one aircraft at a time
+  (feeder in from the north, 1–3 laps, exit east).
+* **Designed pairs** in three zones in the south at FL110–FL140 (nothing else flies there at
+  those levels): ``conflict_pairs`` crossing / converging (same level, horizontal miss in
+  ``conflict_miss_m``) or level bust (climbs from the level below and levels off 100–250 ft
+  under the occupied level); ``near_miss_pairs`` at the same level with a miss of
+  1.15–1.45 × the horizontal minimum. Each pair has its own (zone, level, time) slot.
+
+Vertical bands: departures ≤ FL70, arrivals ≤ FL100, holding and pairs FL110–FL140 (north /
+south), overflights ≥ FL150 — so the only losses of separation are the designed conflicts.
+Heights are geodetic (= pressure altitude in a standard atmosphere) and converted to the
+tangent-plane z exactly (:func:`heights_to_enu`), level flight is level in height.
 """
 
 from __future__ import annotations
@@ -10,6 +41,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from tertiary import geo
+from tertiary.errors import OptionError
 from tertiary.simulate.config import TrafficConfig
 from tertiary.simulate.trajectory import (SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT, SEG_TURN,
                                           Trajectories, integrate_commands)
@@ -52,6 +85,39 @@ def big_box(dt: float = 1.0) -> Trajectories:
 
 # --------------------------------------------------------------------------- terminal area
 
+FT = 0.3048
+THRESHOLD = (1500.0, 0.0)             # runway 27 threshold (landing west), elevation 0
+TCH_M = 15.0                          # threshold crossing height
+GLIDE_DEG = 3.0
+TURN_RADIUS_M = 3000.0                # fly-by turns on STARs / SIDs
+HOLD_SPEED = 110.0
+HOLD_RATE_DPS = 3.0
+HOLD_LEG_S = 60.0
+PAIR_LEAD_S, PAIR_TRAIL_S = 200.0, 60.0
+ARRIVALS = (((42_000.0, 42_000.0), (48_000.0, 14_000.0), (40_000.0, 0.0), THRESHOLD),
+            ((60_000.0, 3_000.0), (40_000.0, 0.0), THRESHOLD),
+            ((42_000.0, -42_000.0), (48_000.0, -14_000.0), (40_000.0, 0.0), THRESHOLD))
+DEPARTURES = (((-1000.0, 0.0), (-62_000.0, 0.0)),
+              ((-1000.0, 0.0), (-12_000.0, 0.0), (-45_000.0, 42_000.0)),
+              ((-1000.0, 0.0), (-12_000.0, 0.0), (-45_000.0, -42_000.0)))
+DEPARTURE_DELAY_S = 20.0              # lift-off after the landing of the same slot
+SID_TOP_FL = 70
+ARRIVAL_TOP_FL = 100
+#: airways: (track deg, a point on it, speed m/s, flight levels) — odd FL eastbound, even westbound
+AIRWAYS = ((75.0, (0.0, 10_000.0), 230.0, (150, 190, 230, 270, 310, 350, 390)),
+           (120.0, (0.0, -10_000.0), 220.0, (170, 210, 250, 290, 330, 370)),
+           (255.0, (5_000.0, 14_000.0), 235.0, (160, 200, 240, 280, 320, 360)),
+           (300.0, (-5_000.0, -5_000.0), 225.0, (180, 220, 260, 300, 340, 380)))
+OVERFLIGHT_RING_M = 90_000.0
+HOLD_FIXES = ((0.0, 45_000.0), (-45_000.0, 25_000.0))
+HOLD_LEVELS = (110, 120, 130, 140)
+HOLD_FEEDER_M = 40_000.0
+HOLD_EXIT_M = 40_000.0
+HOLD_LAPS = (1, 2, 3)
+PAIR_ZONES = ((-40_000.0, -40_000.0), (40_000.0, -40_000.0), (0.0, -95_000.0))
+PAIR_LEVELS = (110, 120, 130, 140)
+PAIR_SPEED = (100.0, 140.0)
+
 
 def _u(rng: np.random.Generator, lo_hi: tuple[float, float], size) -> NDArray[np.float64]:
     return rng.uniform(lo_hi[0], lo_hi[1], size)
@@ -61,168 +127,450 @@ def _wrap180(a: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.mod(a + 180.0, 360.0) - 180.0
 
 
-def _expand(values: NDArray, durations: NDArray[np.int64], steps: int) -> NDArray:
-    """Piecewise-constant (A, S) segment values with integer durations to (A, steps)."""
-    cum = np.minimum(np.cumsum(durations, axis=1), steps)
-    clipped = np.diff(np.concatenate([np.zeros((len(cum), 1), np.int64), cum], axis=1), axis=1)
-    short = cum[:, -1] < steps          # pad with the last segment's value
-    clipped[:, -1] += np.where(short, steps - cum[:, -1], 0)
-    return np.repeat(values.ravel(), clipped.ravel()).reshape(len(values), steps)
+def flight_level_m(fl: NDArray | float, buffer_m: float) -> NDArray[np.float64]:
+    """Geometric height of flight level ``fl`` (hundreds of feet): FL·100 ft plus ``buffer_m``
+    per 1 000 ft (a pressure level in a slightly warm atmosphere; keeps adjacent levels off the
+    strict < 1 000 ft boundary of the loss-of-separation rule)."""
+    return np.asarray(fl, np.float64) / 10.0 * (1000.0 * FT + buffer_m)
 
 
-def _horizontal_schedule(rng, cfg: TrafficConfig, start_xy, heading0, speed, steps, dt):
-    """Alternating straight legs and coordinated turns steering toward random waypoints near
-    the centre, so aircraft weave inside the terminal area. Segment-level loop (≤ ~2·T/60
-    iterations), vectorised over aircraft."""
-    n = len(speed)
-    n_seg = int(np.ceil(steps * dt / cfg.straight_s[0])) + 2
-    dur = np.zeros((n, 2 * n_seg), np.int64)
-    rate = np.zeros((n, 2 * n_seg))
-    pos = start_xy.copy()
-    hdg = heading0.copy()
-    for s in range(n_seg):
-        d = np.round(_u(rng, cfg.straight_s, n) / dt).astype(np.int64)
-        dur[:, 2 * s] = d
-        rad = np.radians(hdg)
-        pos = pos + (speed * d * dt)[:, None] * np.stack([np.sin(rad), np.cos(rad)], axis=1)
-        wp = rng.normal(0.0, cfg.area_radius_m / 3, (n, 2))
-        want = np.degrees(np.arctan2(wp[:, 0] - pos[:, 0], wp[:, 1] - pos[:, 1]))
-        angle = _wrap180(want - hdg + rng.uniform(-20, 20, n))
-        angle = np.where(np.abs(angle) < 10.0, 0.0, angle)
-        w = _u(rng, cfg.turn_rate_dps, n) * np.sign(angle)
-        td = np.round(np.abs(angle) / np.maximum(np.abs(w), 1e-9) / dt).astype(np.int64)
-        dur[:, 2 * s + 1] = td
-        rate[:, 2 * s + 1] = np.where(td > 0, angle / np.maximum(td * dt, 1e-9), 0.0)
-        # chord of the arc, good enough for steering decisions
-        mid = np.radians(hdg + angle / 2)
-        r_turn = speed / np.radians(np.maximum(np.abs(w), 1e-9))
-        chord = 2 * r_turn * np.abs(np.sin(np.radians(angle) / 2))
-        pos = pos + chord[:, None] * np.stack([np.sin(mid), np.cos(mid)], axis=1)
-        hdg = hdg + angle
-    return _expand(rate, dur, steps)
+def heights_to_enu(pos: NDArray[np.float64], vel: NDArray[np.float64], frame: geo.LocalFrame | None = None,
+                   active: NDArray[np.bool_] | None = None) -> None:
+    """In place: z and vz of (…, 3) positions/velocities given as (x, y, height, vx, vy, ḣ)
+    become tangent-plane z and ż such that the geodetic height of the point is the height
+    (WGS-84 with ``frame``, else the sphere of :data:`tertiary.geo.EARTH_RADIUS_M` that
+    :func:`safety.conflicts.height_and_rate` uses without a frame).
+
+    Sphere: z = √((R+h)² − x² − y²) − R, ż = ((R+h)ḣ − x·vx − y·vy)/(R + z). With a frame,
+    Newton steps z ← z + (h − h(z)) (∂h/∂z = cos of the normal's tilt ≈ 1 − ρ²/2R²) from the
+    sphere, then ż from n̂·v = ḣ (n̂ the ellipsoid normal at the point); only ``active``
+    samples (all if None) get the WGS-84 refinement."""
+    from safety.conflicts import height_and_rate   # safety builds on tertiary: import late
+    shape = pos.shape
+    p, v = pos.reshape(-1, 3), vel.reshape(-1, 3)
+    h, hdot = p[:, 2].copy(), v[:, 2].copy()
+    r = geo.EARTH_RADIUS_M
+    p[:, 2] = np.sqrt((r + h) ** 2 - p[:, 0] ** 2 - p[:, 1] ** 2) - r
+    v[:, 2] = ((r + h) * hdot - p[:, 0] * v[:, 0] - p[:, 1] * v[:, 1]) / (r + p[:, 2])
+    if frame is not None:
+        sel = np.ones(len(p), bool) if active is None else active.reshape(-1)
+        q, w = p[sel], v[sel]
+        for _ in range(2):          # the sphere is within ~10 m: two Newton steps reach < 1 µm
+            hz, _, up = height_and_rate(q, w, frame)
+            q[:, 2] += (h[sel] - hz) / up[:, 2]
+        w[:, 2] = (hdot[sel] - up[:, 0] * w[:, 0] - up[:, 1] * w[:, 1]) / up[:, 2]
+        p[sel], v[sel] = q, w
+    assert pos.shape == shape
 
 
-def _holding_schedule(n: int, steps: int, dt: float, rate_dps: float = 3.0, leg_s: float = 60.0):
-    """Standard right-hand racetrack: 60 s legs, 180° turns at 3°/s."""
-    turn_s = 180.0 / rate_dps
-    cycle = np.array([leg_s, turn_s, leg_s, turn_s])
-    reps = int(np.ceil(steps * dt / cycle.sum())) + 1
-    durations = np.round(np.tile(cycle, reps) / dt).astype(np.int64)
-    rates = np.tile([0.0, rate_dps, 0.0, rate_dps], reps)
-    return _expand(np.broadcast_to(rates, (n, len(rates))).copy(),
-                   np.broadcast_to(durations, (n, len(durations))).copy(), steps)
+# ------------------------------------------------------------------ routes flown as templates
 
 
-def _vertical_schedule(rng, cfg: TrafficConfig, z0, steps, dt):
-    """Level flight alternating with climbs/descents that stay inside the altitude band."""
-    n = len(z0)
-    lo, hi = cfg.altitude_m
-    n_seg = int(np.ceil(steps * dt / 120.0)) + 2
-    dur = np.zeros((n, 2 * n_seg), np.int64)
-    vz = np.zeros((n, 2 * n_seg))
-    z = z0.copy()
-    for s in range(n_seg):
-        dur[:, 2 * s] = np.round(rng.uniform(120, 600, n) / dt).astype(np.int64)
-        rate = _u(rng, cfg.vertical_rate_mps, n)
-        target = rng.uniform(lo, hi, n)
-        signed = np.where(target > z, rate, -rate)
-        d = np.floor(np.abs(target - z) / rate / dt).astype(np.int64)
-        dur[:, 2 * s + 1] = d
-        vz[:, 2 * s + 1] = signed
-        z = z + signed * d * dt
-    return _expand(vz, dur, steps)
+def _flyby(waypoints, radius: float = TURN_RADIUS_M) -> tuple[float, NDArray, NDArray]:
+    """Start heading (deg) and pieces (lengths, curvatures 1/m, + = right) of a polyline flown
+    with fly-by turns of ``radius`` (each corner cut by r·tan(|Δψ|/2) on both legs)."""
+    w = np.asarray(waypoints, np.float64)
+    d = np.diff(w, axis=0)
+    leg = np.hypot(d[:, 0], d[:, 1])
+    hdg = np.degrees(np.arctan2(d[:, 0], d[:, 1]))
+    turn = _wrap180(np.diff(hdg))
+    cut = radius * np.tan(np.radians(np.abs(turn)) / 2)
+    straight = leg - np.append(0.0, cut) - np.append(cut, 0.0)
+    if np.any(straight < 0):
+        raise ValueError(f"route legs too short for {radius} m turns: {waypoints}")
+    lengths = np.empty(2 * len(leg) - 1)
+    curv = np.zeros_like(lengths)
+    lengths[0::2] = straight
+    lengths[1::2] = radius * np.radians(np.abs(turn))
+    curv[1::2] = np.sign(turn) / radius
+    return float(hdg[0]), lengths, curv
 
 
-def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator) -> Trajectories:
-    """Terminal-area traffic: weaving transits with turns and level changes, holding stacks,
-    and designed crossing / converging / head-on pairs that lose separation."""
-    steps = int(round(duration_s / dt))
-    n_pairs = min(cfg.conflict_pairs, cfg.aircraft // 2)
-    n_conf = 2 * n_pairs
-    n_hold = int(round(cfg.holding_fraction * (cfg.aircraft - n_conf)))
-    n_free = cfg.aircraft - n_conf - n_hold
-    n = cfg.aircraft
+def _fly(start, hdg0: float, lengths, curv, speed_of, height_of, seg_of, dt: float) -> dict[str, NDArray]:
+    """A route flown from its start: per step speed, turn rate, vertical rate (piecewise
+    constant, the distance / heading / height change of the step) and per sample heading,
+    segment code and the integrated position (x, y, height). ``speed_of``, ``height_of``,
+    ``seg_of`` are functions of the distance u flown along the route (and its length L)."""
+    bounds = np.concatenate([[0.0], np.cumsum(lengths)])
+    total = bounds[-1]
+    u = np.linspace(0.0, total, int(total / 5.0) + 2)
+    v = speed_of(u, total)
+    t_u = np.concatenate([[0.0], np.cumsum(np.diff(u) * 0.5 * (1 / v[1:] + 1 / v[:-1]))])
+    k = int(np.floor(t_u[-1] / dt))
+    uk = np.interp(np.arange(k + 1) * dt, t_u, u)
+    psi_b = hdg0 + np.degrees(np.concatenate([[0.0], np.cumsum(np.asarray(lengths) * np.asarray(curv))]))
+    psi = np.interp(uk, bounds, psi_b)
+    hk = height_of(uk, total)
+    cmd = {"speed": np.diff(uk) / dt, "turn": np.diff(psi) / dt, "vz": np.diff(hk) / dt}
+    pos, _ = integrate_commands(np.array([[start[0], start[1], hk[0]]]), np.array([hdg0]), cmd["speed"][None],
+                                cmd["turn"][None], cmd["vz"][None], dt)
+    turning = np.append(cmd["turn"], 0.0) != 0
+    return {**cmd, "hdg": psi, "pos": pos[0], "seg": np.where(turning, SEG_TURN, seg_of(uk, total)).astype(np.int8)}
 
-    speed = _u(rng, cfg.speed_mps, n)
-    life = np.minimum(_u(rng, cfg.lifetime_s, n), duration_s)
-    t_start = rng.uniform(0.0, 1.0, n) * (duration_s - life)
 
-    # free aircraft: enter on a ring heading roughly inward
-    bearing = rng.uniform(0, 360, n_free)
-    ring = cfg.area_radius_m * np.sqrt(rng.uniform(0.3, 1.0, n_free))
-    start_free = ring[:, None] * np.stack([np.sin(np.radians(bearing)), np.cos(np.radians(bearing))], axis=1)
-    hdg_free = np.mod(bearing + 180.0 + rng.uniform(-45, 45, n_free), 360.0)
-    turn_free = _horizontal_schedule(rng, cfg, start_free, hdg_free, speed[:n_free], steps, dt)
-    z_free = _u(rng, cfg.altitude_m, n_free)
-    vz_free = _vertical_schedule(rng, cfg, z_free, steps, dt)
+def _level_seg(u, total, vz_sign=None):
+    return np.full(len(u), SEG_STRAIGHT, np.int8)
 
-    # holding aircraft: stacks over a few fixes, 1000 ft (304.8 m) apart
-    n_fix = max(1, int(np.ceil(n_hold / 6)))
-    fixes = rng.uniform(-0.6, 0.6, (n_fix, 2)) * cfg.area_radius_m
-    fix_of = np.arange(n_hold) % n_fix
-    level = np.arange(n_hold) // n_fix
-    start_hold = fixes[fix_of] if n_hold else np.zeros((0, 2))
-    hdg_hold = np.repeat(rng.uniform(0, 360, n_fix), np.bincount(fix_of, minlength=n_fix))[np.argsort(np.argsort(fix_of))] if n_hold else np.zeros(0)
-    turn_hold = _holding_schedule(n_hold, steps, dt)
-    z_hold = 1500.0 + 304.8 * level
-    speed[n_free:n_free + n_hold] = np.minimum(speed[n_free:n_free + n_hold], 110.0)
 
-    # conflict pairs: straight and level, meeting near a point at time t_c with a small miss
-    t_c = rng.uniform(0.25, 0.75, n_pairs) * duration_s
-    meet = rng.uniform(-0.5, 0.5, (n_pairs, 2)) * cfg.area_radius_m
-    kind = rng.integers(0, 3, n_pairs)  # 0 crossing, 1 converging, 2 head-on
-    delta = np.choose(kind, [rng.uniform(60, 120, n_pairs), rng.uniform(15, 40, n_pairs),
-                             rng.uniform(170, 190, n_pairs)]) * rng.choice([-1, 1], n_pairs)
-    h_a = rng.uniform(0, 360, n_pairs)
-    h_b = np.mod(h_a + delta, 360.0)
-    sa, sb = speed[n - n_conf:n - n_pairs], speed[n - n_pairs:]
-    va = sa[:, None] * np.stack([np.sin(np.radians(h_a)), np.cos(np.radians(h_a))], axis=1)
-    vb = sb[:, None] * np.stack([np.sin(np.radians(h_b)), np.cos(np.radians(h_b))], axis=1)
-    rel = va - vb
-    perp = np.stack([-rel[:, 1], rel[:, 0]], axis=1) / np.linalg.norm(rel, axis=1, keepdims=True)
-    miss = _u(rng, cfg.conflict_miss_m, n_pairs)
-    z_conf = rng.uniform(max(cfg.altitude_m[0], 2000.0), cfg.altitude_m[1], n_pairs)
-    dz = rng.uniform(-150.0, 150.0, n_pairs)
-    pair_life = np.minimum(rng.uniform(900, 1800, n_pairs), duration_s)
-    t0_pair = np.clip(t_c - pair_life * rng.uniform(0.6, 0.8, n_pairs), 0.0, None)
-    t1_pair = np.minimum(t0_pair + pair_life, duration_s)
+def _vertical_seg(height_of):
+    def seg(u, total):
+        dh = np.diff(height_of(u, total), append=height_of(u[-1:] + 1.0, total))
+        return np.where(dh > 1e-6, SEG_CLIMB, np.where(dh < -1e-6, SEG_DESCENT, SEG_STRAIGHT)).astype(np.int8)
+    return seg
 
-    # assemble commands (A, steps)
-    turn = np.zeros((n, steps))
-    vz = np.zeros((n, steps))
-    turn[:n_free], vz[:n_free] = turn_free, vz_free
-    turn[n_free:n_free + n_hold] = turn_hold
-    heading0 = np.concatenate([hdg_free, hdg_hold, h_a, h_b])
-    z0 = np.concatenate([z_free, z_hold, z_conf, z_conf + dz])
-    spd = np.broadcast_to(speed[:, None], (n, steps)).copy()
-    pos, vel = integrate_commands(np.column_stack([np.zeros((n, 2)), z0]), heading0, spd, turn, vz, dt)
 
-    # anchor each aircraft: free/holding at their start time, conflict pairs at t_c
-    anchor_t = np.concatenate([t_start[:n_free + n_hold], t_c, t_c])
-    anchor_xy = np.concatenate([start_free, start_hold, meet, meet + miss[:, None] * perp])
-    k_anchor = np.clip(np.round(anchor_t / dt).astype(int), 0, steps)
-    shift = anchor_xy - pos[np.arange(n), k_anchor, :2]
-    for c in range(2):          # per component: a (n, 1, 2) broadcast runs 2-long inner loops
+def _arrival_profiles(buffer_m: float):
+    tan = np.tan(np.radians(GLIDE_DEG))
+    h3000 = 3000.0 * FT
+    s_gs = (h3000 - TCH_M) / tan
+    top = float(flight_level_m(ARRIVAL_TOP_FL, buffer_m))
+
+    def height(u, total):
+        s = total - u
+        return np.where(s <= s_gs, TCH_M + s * tan, np.minimum(h3000 + np.maximum(s - 30_000.0, 0.0) * 0.052, top))
+
+    def speed(u, total):
+        return np.interp(total - u, [10_000.0, 30_000.0], [75.0, 130.0])
+    return speed, height
+
+
+def _departure_profiles(buffer_m: float):
+    top = float(flight_level_m(SID_TOP_FL, buffer_m))
+
+    def height(u, total):
+        return np.minimum(10.0 + 0.075 * u, top)
+
+    def speed(u, total):
+        return np.interp(u, [0.0, 12_000.0, 40_000.0], [80.0, 150.0, 180.0])
+    return speed, height
+
+
+def _const(value: float):
+    return lambda u, total: np.full(len(u), value)
+
+
+def _airway(track: float, point, ring: float = OVERFLIGHT_RING_M) -> tuple[tuple, tuple]:
+    """Entry and exit of a straight airway on the ring."""
+    d = np.array([np.sin(np.radians(track)), np.cos(np.radians(track))])
+    p = np.asarray(point)
+    b = p @ d
+    c = p @ p - ring ** 2
+    t0, t1 = -b - np.sqrt(b * b - c), -b + np.sqrt(b * b - c)
+    return tuple(p + t0 * d), tuple(p + t1 * d)
+
+
+def _holding_route(fix, laps: int) -> tuple[tuple, float, NDArray, NDArray, NDArray]:
+    """Feeder south to the fix, ``laps`` right-hand race-tracks, exit east. Returns start,
+    heading, lengths, curvatures and per-piece hold flags."""
+    r = HOLD_SPEED / np.radians(HOLD_RATE_DPS)
+    leg = HOLD_SPEED * HOLD_LEG_S
+    lengths = [HOLD_FEEDER_M] + [np.pi * r, leg, np.pi * r, leg] * laps + [np.pi / 2 * r, HOLD_EXIT_M]
+    curv = [0.0] + [1 / r, 0.0, 1 / r, 0.0] * laps + [-1 / r, 0.0]
+    hold = [0] + [1, 1, 1, 1] * laps + [0, 0]
+    return (fix[0], fix[1] + HOLD_FEEDER_M), 180.0, np.array(lengths), np.array(curv), np.array(hold)
+
+
+def _templates(cfg: TrafficConfig, dt: float) -> tuple[list[dict], dict[str, list[int]]]:
+    """Every route flown once (a loop over ~30 routes): arrivals, departures, airways, holds."""
+    out: list[dict] = []
+    kinds: dict[str, list[int]] = {"arrival": [], "departure": [], "airway": [], "hold": []}
+    sp, hp = _arrival_profiles(cfg.level_buffer_m)
+    for wp in ARRIVALS:
+        hdg, ln, cv = _flyby(wp)
+        kinds["arrival"].append(len(out))
+        out.append(_fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt))
+    sp, hp = _departure_profiles(cfg.level_buffer_m)
+    for wp in DEPARTURES:
+        hdg, ln, cv = _flyby(wp)
+        kinds["departure"].append(len(out))
+        out.append(_fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt))
+    for track, point, speed, _levels in AIRWAYS:
+        a, b = _airway(track, point)
+        hdg, ln, cv = _flyby((a, b))
+        kinds["airway"].append(len(out))
+        out.append(_fly(a, hdg, ln, cv, _const(speed), _const(0.0), _level_seg, dt))
+    for fix in HOLD_FIXES:
+        for laps in HOLD_LAPS:
+            start, hdg, ln, cv, hold = _holding_route(fix, laps)
+            bounds = np.concatenate([[0.0], np.cumsum(ln)])
+
+            def seg(u, total, bounds=bounds, hold=hold):
+                piece = np.clip(np.searchsorted(bounds, u, "right") - 1, 0, len(hold) - 1)
+                return np.where(hold[piece] == 1, SEG_HOLD, SEG_STRAIGHT).astype(np.int8)
+            t = _fly(start, hdg, ln, cv, _const(HOLD_SPEED), _const(0.0), seg, dt)
+            t["seg"] = np.where(seg(np.interp(np.arange(len(t["hdg"])) * dt * HOLD_SPEED, [0, bounds[-1]],
+                                                [0, bounds[-1]]), 0) == SEG_HOLD, SEG_HOLD, t["seg"]).astype(np.int8)
+            t["t_fix"] = HOLD_FEEDER_M / HOLD_SPEED
+            t["t_leave"] = bounds[-3] / HOLD_SPEED
+            kinds["hold"].append(len(out))
+            out.append(t)
+    return out, kinds
+
+
+def _gather(tpl: list[dict], route: NDArray[np.int64], entry: NDArray[np.int64], z_off: NDArray[np.float64],
+            steps: int, dt: float) -> tuple[NDArray, ...]:
+    """Aircraft flying template ``route[a]`` from global step ``entry[a]`` (may be < 0: airborne
+    at the start), ``z_off[a]`` added to the height: command arrays (A, steps) gathered from the
+    padded templates, integrated at once, anchored to the template. Returns pos, vel, active, seg."""
+    n = len(route)
+    kmax = max(len(t["speed"]) for t in tpl)
+    length = np.array([len(t["speed"]) for t in tpl])
+
+    def pad(key, size):
+        out = np.empty((len(tpl), size) + np.shape(tpl[0][key])[1:])
+        for i, t in enumerate(tpl):
+            out[i, :len(t[key])] = t[key]
+            out[i, len(t[key]):] = t[key][-1]
+        return out
+    spd, trn, vz = pad("speed", kmax), pad("turn", kmax), pad("vz", kmax)
+    hdg, seg, tpos = pad("hdg", kmax + 1), pad("seg", kmax + 1), pad("pos", kmax + 1)
+    k_r = length[route]
+    j = np.arange(steps + 1)[None, :] - entry[:, None]                       # template sample index
+    inside = (j >= 0) & (j <= k_r[:, None])
+    jc = np.clip(j[:, :-1], 0, kmax - 1)
+    flat = route[:, None] * kmax + jc
+    step_ok = (j[:, :-1] >= 0) & (j[:, :-1] < k_r[:, None])
+    speed = spd.reshape(-1).take(flat)
+    turn = np.where(step_ok, trn.reshape(-1).take(flat), 0.0)
+    vzz = np.where(step_ok, vz.reshape(-1).take(flat), 0.0)
+    h0 = hdg[route, np.clip(-entry, 0, k_r)]
+    pos, vel = integrate_commands(np.zeros((n, 3)), h0, speed, turn, vzz, dt)
+    k_star = np.clip(entry, 0, steps)
+    shift = tpos[route, k_star - entry] - pos[np.arange(n), k_star]
+    shift[:, 2] += z_off
+    for c in range(3):
         pos[:, :, c] += shift[:, c:c + 1]
+    sflat = route[:, None] * (kmax + 1) + np.clip(j, 0, kmax)
+    segs = np.where(inside, seg.reshape(-1).take(sflat), SEG_STRAIGHT).astype(np.int8)
+    return pos, vel, inside, segs
 
-    t_grid = np.arange(steps + 1) * dt
-    t_start = np.concatenate([t_start[:n_free + n_hold], t0_pair, t0_pair])
-    t_end = np.concatenate([(t_start + life)[:n_free + n_hold], t1_pair, t1_pair])
-    active = (t_grid[None, :] >= t_start[:, None]) & (t_grid[None, :] <= t_end[:, None])
 
-    last_turn = np.concatenate([turn, turn[:, -1:]], axis=1)
-    last_vz = np.concatenate([vz, vz[:, -1:]], axis=1)
-    seg = np.full((n, steps + 1), SEG_STRAIGHT, np.int8)
-    seg[last_vz > 0] = SEG_CLIMB
-    seg[last_vz < 0] = SEG_DESCENT
-    seg[last_turn != 0] = SEG_TURN
-    seg[n_free:n_free + n_hold] = SEG_HOLD
+# ------------------------------------------------------------------ schedules (who flies when)
 
+
+def _slots(rng, n: int, lo: float, hi: float, gap: float) -> NDArray[np.float64]:
+    """``n`` times in [lo, hi] at least ``gap`` apart (random order-preserving spread)."""
+    if n == 0:
+        return np.zeros(0)
+    free = hi - lo - (n - 1) * gap
+    if free < 0:
+        raise OptionError(f"traffic: {n} aircraft do not fit {gap:g} s apart in {hi - lo:g} s", option="traffic")
+    return lo + np.sort(rng.uniform(0.0, free, n)) + np.arange(n) * gap
+
+
+def _counts(cfg: TrafficConfig, duration_s: float) -> dict[str, int]:
+    n = cfg.aircraft
+    pairs = min(cfg.conflict_pairs, n // 2)
+    near = min(cfg.near_miss_pairs, (n - 2 * pairs) // 2)
+    rest = n - 2 * (pairs + near)
+    arr_cap = int((duration_s + 400.0) // cfg.arrival_spacing_s)
+    hold_cap = len(HOLD_FIXES) * len(HOLD_LEVELS) * max(1, int((duration_s + 600.0) // 900.0))
+    hold = min(int(round(cfg.holding_fraction * rest)), hold_cap)
+    arr = min(int(round(cfg.arrival_fraction * rest)), arr_cap)
+    dep = min(int(round(cfg.departure_fraction * rest)), arr_cap)
+    return {"pairs": pairs, "near": near, "hold": hold, "arrival": arr, "departure": dep,
+            "overflight": rest - hold - arr - dep}
+
+
+def _route_aircraft(rng, cfg: TrafficConfig, tpl: list[dict], kinds: dict, counts: dict, duration_s: float,
+                    dt: float) -> dict[str, NDArray]:
+    """Route, entry time, height offset and role of every procedural aircraft."""
+    dur = np.array([len(t["speed"]) * dt for t in tpl])
+    route, entry, zoff, role = [], [], [], []
+    # arrivals and departures share the runway slot grid
+    n_slot = int((duration_s + 400.0) // cfg.arrival_spacing_s)
+    base = rng.uniform(60.0, 60.0 + cfg.arrival_spacing_s)
+    slots = base + np.arange(n_slot) * cfg.arrival_spacing_s
+    arr_r = np.array(kinds["arrival"])[rng.integers(0, len(kinds["arrival"]), counts["arrival"])]
+    land = np.sort(rng.choice(slots, counts["arrival"], replace=False))
+    route.append(arr_r), entry.append(land - dur[arr_r]), zoff.append(np.zeros(len(arr_r)))
+    role += ["arrival"] * len(arr_r)
+    dep_slots = np.concatenate([slots[0] - cfg.arrival_spacing_s * np.arange(1, 8)[::-1], slots]) + DEPARTURE_DELAY_S
+    dep_min = min(dur[k] for k in kinds["departure"])
+    dep_slots = dep_slots[(dep_slots < duration_s - 30.0) & (dep_slots > 60.0 - dep_min)]
+    lift = np.sort(rng.choice(dep_slots, min(counts["departure"], len(dep_slots)), replace=False))
+    dep_r = np.array(kinds["departure"])[rng.integers(0, len(kinds["departure"]), len(lift))]
+    route.append(dep_r), entry.append(lift), zoff.append(np.zeros(len(dep_r)))
+    role += ["departure"] * len(dep_r)
+    spare = counts["departure"] - len(lift)
+    route_h, entry_h, zoff_h = _holding_aircraft(rng, cfg, tpl, kinds, counts["hold"], duration_s)
+    route.append(route_h), entry.append(entry_h), zoff.append(zoff_h)
+    role += ["holding"] * len(route_h)
+    route_o, entry_o, zoff_o = _overflights(rng, cfg, kinds, dur, counts["overflight"] + spare, duration_s)
+    route.append(route_o), entry.append(entry_o), zoff.append(zoff_o)
+    role += ["overflight"] * len(route_o)
+    return {"route": np.concatenate(route).astype(np.int64), "entry": np.concatenate(entry),
+            "zoff": np.concatenate(zoff), "role": np.array(role)}
+
+
+def _holding_aircraft(rng, cfg, tpl, kinds, n: int, duration_s: float):
+    """Each (fix, level) holds one aircraft at a time: the next reaches the fix ≥ 240 s after
+    the previous left it. Aircraft are dealt to (fix, level) lanes round robin."""
+    lanes = [(f, lv) for lv in HOLD_LEVELS for f in range(len(HOLD_FIXES))]
+    route, entry, zoff = [], [], []
+    for i, (f, lv) in enumerate(lanes):
+        m = len(range(i, n, len(lanes)))
+        if not m:
+            continue
+        laps = rng.integers(0, len(HOLD_LAPS), m)
+        r = np.array(kinds["hold"])[f * len(HOLD_LAPS) + laps]
+        t_fix = np.array([tpl[k]["t_fix"] for k in r])
+        busy = np.array([tpl[k]["t_leave"] - tpl[k]["t_fix"] for k in r]) + 240.0
+        start = rng.uniform(-0.5 * busy[0], max(duration_s - busy.sum(), 0.0) * 0.5)
+        arrive = start + np.concatenate([[0.0], np.cumsum(busy[:-1])]) + rng.uniform(0, 60, m).cumsum()
+        route.append(r), entry.append(arrive - t_fix), zoff.append(np.full(m, flight_level_m(lv, cfg.level_buffer_m)))
+    if not route:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    return np.concatenate(route), np.concatenate(entry), np.concatenate(zoff)
+
+
+def _overflights(rng, cfg, kinds, dur, n: int, duration_s: float):
+    """Dealt to (airway, level) lanes round robin; in a lane entries ≥ overflight_spacing_s
+    apart (tightened to fit, never below 60 s) within [−route time + 60 s, duration − 60 s] so
+    that each flies in the scenario."""
+    lanes = [(w, fl) for w, (_, _, _, levels) in enumerate(AIRWAYS) for fl in levels]
+    order = rng.permutation(len(lanes))
+    route, entry, zoff = [], [], []
+    for i, li in enumerate(order):
+        w, fl = lanes[li]
+        m = len(range(i, n, len(lanes)))
+        if not m:
+            continue
+        r = kinds["airway"][w]
+        route.append(np.full(m, r))
+        lo, hi = -dur[r] + 60.0, duration_s - 60.0
+        # dense traffic tightens the lane down to 60 s (≥ 13 km at airway speeds, > 2× the minimum)
+        gap = min(cfg.overflight_spacing_s, max(60.0, 0.9 * (hi - lo) / max(m - 1, 1)))
+        entry.append(_slots(rng, m, lo, hi, gap))
+        zoff.append(np.full(m, flight_level_m(fl, cfg.level_buffer_m)))
+    if not route:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+    return np.concatenate(route), np.concatenate(entry), np.concatenate(zoff)
+
+
+# ------------------------------------------------------------------ designed pairs
+
+
+def _pair_slots(rng, kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArray, NDArray, NDArray]:
+    """(zone, level index, kind) per pair: a pair needs its level (a level bust also the one
+    below) free in its zone over [t_c − lead, t_c + trail] (+ 60 s); when the pairs do not fit,
+    level busts become crossings (one level each). A loop over pairs (tens), not aircraft."""
+    try:
+        return _place_pairs(kinds, t_c, duration_s)
+    except OptionError:
+        return _place_pairs(np.where(kinds == 2, 0, kinds), t_c, duration_s)
+
+
+def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArray, NDArray, NDArray]:
+    """First-fit placement for :func:`_pair_slots`."""
+    busy: dict[tuple[int, int], list[tuple[float, float]]] = {}
+    zone = np.zeros(len(t_c), np.int64)
+    level = np.zeros(len(t_c), np.int64)
+    kinds = kinds.copy()
+    for p in range(len(t_c)):
+        lo, hi = t_c[p] - PAIR_LEAD_S - 60.0, t_c[p] + PAIR_TRAIL_S + 60.0
+        free = lambda z, lv: all(hi <= a or lo >= b for a, b in busy.get((z, lv), []))
+        options = [(z, lv) for z in range(len(PAIR_ZONES)) for lv in range(len(PAIR_LEVELS))]
+        found = None
+        if kinds[p] == 2:
+            found = next(((z, lv) for z, lv in options if lv > 0 and free(z, lv) and free(z, lv - 1)), None)
+            if found is None:
+                kinds[p] = 0
+        if found is None:
+            found = next(((z, lv) for z, lv in options if free(z, lv)), None)
+        if found is None:
+            raise OptionError(f"traffic: {len(t_c)} designed pairs do not fit in {duration_s:g} s "
+                              f"(reduce conflict_pairs / near_miss_pairs)", option="traffic.conflict_pairs")
+        z, lv = found
+        for used in ([lv, lv - 1] if kinds[p] == 2 else [lv]):
+            busy.setdefault((z, used), []).append((lo, hi))
+        zone[p], level[p] = z, lv
+    return zone, level, kinds
+
+
+def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: float, duration_s: float):
+    """Designed pairs, straight with constant speed (kinds 0 crossing, 1 converging, 2 level
+    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role."""
+    n_p = n_conf + n_near
+    if n_p == 0:
+        z = np.zeros((0, steps + 1))
+        return np.zeros((0, steps + 1, 3)), np.zeros((0, steps + 1, 3)), z.astype(bool), z.astype(np.int8), np.zeros(0, str)
+    t_c = np.concatenate([np.linspace(0.2, 0.8, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
+                          rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
+    t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
+    kind = np.concatenate([rng.integers(0, 3, n_conf), np.full(n_near, 3)])
+    kind = np.where((kind == 2) & (t_c < 100.0), 0, kind)      # a bust needs its climb inside the run
+    zone, lvl, kind = _pair_slots(rng, kind, t_c, duration_s)
+    kind = np.asarray(kind)
+    delta = np.choose(np.minimum(kind, 2), [rng.uniform(60, 120, n_p), rng.uniform(15, 40, n_p),
+                                            rng.uniform(60, 120, n_p)])
+    delta = np.where(kind == 3, np.where(rng.random(n_p) < 0.5, rng.uniform(60, 120, n_p), rng.uniform(20, 40, n_p)),
+                     delta) * rng.choice([-1, 1], n_p)
+    h_a = rng.uniform(0, 360, n_p)
+    h_b = np.mod(h_a + delta, 360.0)
+    sa, sb = rng.uniform(*PAIR_SPEED, n_p), rng.uniform(*PAIR_SPEED, n_p)
+    unit = lambda h: np.stack([np.sin(np.radians(h)), np.cos(np.radians(h))], axis=1)
+    rel = sa[:, None] * unit(h_a) - sb[:, None] * unit(h_b)
+    perp = np.stack([-rel[:, 1], rel[:, 0]], axis=1) / np.linalg.norm(rel, axis=1, keepdims=True)
+    miss = np.where(kind == 3, rng.uniform(1.15, 1.45, n_p) * cfg.sep_h_m, _u(rng, cfg.conflict_miss_m, n_p))
+    meet = np.asarray(PAIR_ZONES)[zone] + rng.uniform(-5000, 5000, (n_p, 2))
+    fl = np.asarray(PAIR_LEVELS)[lvl]
+    z_a = flight_level_m(fl, cfg.level_buffer_m)
+    bust_ft = rng.uniform(100, 250, n_p)
+    z_b = np.where(kind == 2, flight_level_m(fl - 10, cfg.level_buffer_m), z_a)
+    # level bust: climb at 8 m/s from the level below, starting 90 s before t_c, to bust_ft under A
+    climb = np.where(kind == 2, z_a - bust_ft * FT - z_b, 0.0)
+    n_climb = np.maximum(np.ceil(climb / 8.0 / dt), 1)
+    k0 = np.round((t_c - 90.0) / dt)
+    k = np.arange(steps)[None, :]
+    vz_b = np.where((k >= k0[:, None]) & (k < (k0 + n_climb)[:, None]), (climb / (n_climb * dt))[:, None], 0.0)
+    n = 2 * n_p
+    speed = np.repeat(np.concatenate([sa, sb])[:, None], steps, axis=1)
+    vz = np.concatenate([np.zeros((n_p, steps)), vz_b])
+    pos, vel = integrate_commands(np.zeros((n, 3)), np.concatenate([h_a, h_b]), speed, np.zeros((n, steps)), vz, dt)
+    k_c = np.round(t_c / dt).astype(np.int64)
+    anchor = np.concatenate([meet, meet + miss[:, None] * perp])
+    kk = np.concatenate([k_c, k_c])
+    shift = np.column_stack([anchor - pos[np.arange(n), kk, :2], np.concatenate([z_a, z_b])])
+    for c in range(3):
+        pos[:, :, c] += shift[:, c:c + 1]
+    t = np.arange(steps + 1) * dt
+    t0 = np.concatenate([t_c, t_c]) - PAIR_LEAD_S
+    active = (t[None, :] >= t0[:, None]) & (t[None, :] <= t0[:, None] + PAIR_LEAD_S + PAIR_TRAIL_S)
+    vz_s = np.concatenate([vz, vz[:, -1:]], axis=1)
+    seg = np.where(vz_s > 0, SEG_CLIMB, SEG_STRAIGHT).astype(np.int8)
+    names = np.array(["conflict-crossing", "conflict-converging", "conflict-level-bust", "near-miss"])
+    role = np.concatenate([names[kind], names[kind]])
+    return pos, vel, active, seg, role
+
+
+def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
+                  frame: geo.LocalFrame | None = None) -> Trajectories:
+    """Terminal-area traffic flying procedures (module docstring): arrivals, departures,
+    overflights, holding stacks, designed conflict and near-miss pairs. Heights are converted
+    to tangent-plane z for ``frame`` (WGS-84; None: the sphere, ≤ 1 m apart within 100 km).
+
+    ``meta["role"]`` names each aircraft's kind; the designed losses of separation are the
+    pairs whose role starts with ``conflict-`` (pair i = aircraft ``pair_a[i]``, ``pair_b[i]``
+    in ``meta``)."""
+    steps = int(round(duration_s / dt))
+    counts = _counts(cfg, duration_s)
+    tpl, kinds = _templates(cfg, dt)
+    ra = _route_aircraft(rng, cfg, tpl, kinds, counts, duration_s, dt)
+    entry = np.round(ra["entry"] / dt).astype(np.int64)
+    pos_r, vel_r, act_r, seg_r = _gather(tpl, ra["route"], entry, ra["zoff"], steps, dt)
+    pos_p, vel_p, act_p, seg_p, role_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt, duration_s)
+    pos = np.concatenate([pos_r, pos_p])
+    vel = np.concatenate([vel_r, vel_p])
+    active = np.concatenate([act_r, act_p])
+    heights_to_enu(pos, vel, frame, active)
+    n = len(pos)
+    role = np.concatenate([ra["role"], role_p])
     icao = np.array([f"{v:06x}" for v in rng.choice(0xFFFFFF, n, replace=False)])
     has_mode_s = rng.random(n) < cfg.mode_s_fraction
     callsign = np.array([f"{p}{v:04d}" for p, v in zip(rng.choice(["AFR", "EZY", "RYR", "DLH", "BAW", "TVF"], n),
                                                          rng.integers(1, 9999, n))])
-    role = np.array(["transit"] * n_free + ["holding"] * n_hold + ["conflict"] * n_conf)
-    return Trajectories(dt=dt, pos=pos, vel=vel, active=active, segment=seg, truth_id=np.arange(n, dtype=np.int64),
+    return Trajectories(dt=dt, pos=pos, vel=vel, active=active,
+                        segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
                         meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
                               "squawk": np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)])})
