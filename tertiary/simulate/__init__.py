@@ -73,7 +73,8 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
     if cfg.kind == "big-box":
         return cfg, big_box(cfg.dt), pl.DataFrame()
     if cfg.kind == "terminal-area":
-        return cfg, terminal_area(cfg.traffic, cfg.duration_s, cfg.dt, rng), pl.DataFrame()
+        return cfg, terminal_area(cfg.traffic, cfg.duration_s, cfg.dt, rng,
+                                   frame=geo.LocalFrame(*cfg.origin)), pl.DataFrame()
     if cfg.kind == "adsb":
         frame = _read_truth_file(resolve_data_path(cfg.adsb.truth_file))
         t0 = frame["timestamp"].min().replace(microsecond=0)
