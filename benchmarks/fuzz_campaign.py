@@ -15,6 +15,7 @@ import argparse
 import json
 import platform
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +39,9 @@ def main() -> None:
     args = ap.parse_args()
 
     entries = [e for e in args.entries.split(",") if e]
+    head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+    started = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     share = sum(SHARES[e] for e in entries)
     counts = {e: max(1, round(args.cases * SHARES[e] / share)) for e in entries}
     root = Path(tempfile.mkdtemp(prefix="tertiary-fuzz-"))
@@ -75,7 +79,7 @@ def main() -> None:
         print(f"- {sig} (x{f['count']})\n    {f['reproducer'][:400]}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({
-        "cases_requested": args.cases, "cases_run": len(outcomes), "seed": args.seed, "seconds": round(time.perf_counter() - t0, 1),
+        "commit": head, "started_utc": started, "cases_requested": args.cases, "cases_run": len(outcomes), "seed": args.seed, "seconds": round(time.perf_counter() - t0, 1),
         "machine": f"{platform.machine()} {platform.python_version()}",
         "classes": "clear_error: exit 2/3/4, one stderr line, no traceback (Python: a TertiaryError); rejects/success: "
                    "exit 0 with row accounting intact in the run database; traceback: uncaught, the CLI's exit-1 "
