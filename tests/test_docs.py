@@ -36,3 +36,10 @@ def test_shipped_scenarios_do_not_need_files_outside_the_install():
         m = re.search(r'truth_file\s*=\s*"([^"]*)"', text)
         if m and m.group(1):
             assert (ROOT / "datasets" / m.group(1)).is_file(), f"{toml.name}: {m.group(1)} is not shipped"
+
+
+def test_tests_use_no_file_outside_the_repository():
+    """A test reading a file beside the clone skips on a fresh clone (and CI fails on the skip)."""
+    for path in (ROOT / "tests").glob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        assert "parents[2]" not in text and '"shared"' not in text, f"{path.name} reads outside the repository"

@@ -214,10 +214,13 @@ def test_local_track_ids_restart_after_long_gap():
     assert ids == [1, 2]
 
 
-PARIS = Path(__file__).resolve().parents[2] / "shared" / "data" / "adsb_paris_2021-10-07.parquet"
+# the real sample ships with the project (datasets/, and tertiary/datasets/ in the wheel)
+PARIS = Path(__file__).resolve().parents[1] / "datasets" / "adsb_paris_2021-10-07.parquet"
+PARIS_MISSING = (f"Paris ADS-B sample not found at {PARIS} (it ships in the repository's datasets/ folder; "
+                 "restore it with `git checkout datasets/`)")
 
 
-@pytest.mark.skipif(not PARIS.exists(), reason="Paris ADS-B sample not available")
+@pytest.mark.skipif(not PARIS.exists(), reason=PARIS_MISSING)
 def test_adsb_paris_preset_observed_by_radars():
     cfg = load_scenario("adsb-paris")
     cfg = dataclasses.replace(cfg, duration_s=600.0, adsb=dataclasses.replace(cfg.adsb, truth_file=str(PARIS)))
@@ -230,7 +233,7 @@ def test_adsb_paris_preset_observed_by_radars():
     assert ing.reports.filter(pl.col("mode_s").is_not_null()).height > 0.9 * ing.reports["truth_id"].count()
 
 
-@pytest.mark.skipif(not PARIS.exists(), reason="Paris ADS-B sample not available")
+@pytest.mark.skipif(not PARIS.exists(), reason=PARIS_MISSING)
 def test_adsb_generic_places_radars_around_traffic():
     cfg = load_scenario("adsb")
     cfg = dataclasses.replace(cfg, duration_s=300.0, adsb=dataclasses.replace(cfg.adsb, truth_file=str(PARIS)))
