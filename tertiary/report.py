@@ -400,8 +400,7 @@ def _verdict_safety(ctx: _Ctx) -> str:
         return head + '<p class="note">No conflict alerts were scored in this run (no safety stage, or no truth).</p>'
     los = scores["los_episodes"].is_not_null().any()
     b = ctx.best
-    prefer = [p for p in (b.picture, (b.picture or "").split("+")[0], b.fused, CENTRALIZED) if p]
-    pick = next((p for p in prefer if p in scores["method"].to_list()), scores["method"][0])
+    pick = b.best_of(scores["method"].to_list())     # the most accurate of the scored pictures
     r = scores.filter(pl.col("method") == pick).row(0, named=True)
     f = lambda v, unit="": "n/a" if v is None else f"{v:,.0f}{unit}"   # noqa: E731 — counts
     if los and r["los_episodes"] is not None:
