@@ -479,8 +479,9 @@ def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArr
         if found is None:
             found = next(((z, lv) for z, lv in options if free(z, lv)), None)
         if found is None:
-            raise OptionError(f"traffic: {len(t_c)} designed pairs do not fit in {duration_s:g} s "
-                              f"(reduce conflict_pairs / near_miss_pairs)", option="traffic.conflict_pairs")
+            raise OptionError(f"{len(t_c)} designed conflict and near-miss pairs do not fit in {duration_s:g} s of "
+                              "traffic: give a longer --duration or fewer --aircraft (or lower conflict_pairs / "
+                              "near_miss_pairs in the scenario TOML)", option="--duration")
         z, lv = found
         for used in ([lv, lv - 1] if kinds[p] == 2 else [lv]):
             busy.setdefault((z, used), []).append((lo, hi))
