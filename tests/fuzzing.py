@@ -177,9 +177,9 @@ class Expect:
 
     must_error: bool = False          # a table-level problem: success would be wrong
     impossible: bool = False          # ... and success would accept the impossible (silent)
-    # (table, rows, min rejected, context): context "any" holds for a table alone, "radars" needs the
-    # radars table beside it, "dataset" needs every table (times consistent across tables)
-    groups: list[tuple[str, list[int], int, str]] = field(default_factory=list)
+    # (table, rows, min rejected, context, column): context "any" holds for a table alone, "radars" needs
+    # the radars table beside it, "dataset" needs every table (times consistent across tables)
+    groups: list[tuple[str, list[int], int, str, str | None]] = field(default_factory=list)
     name_escape: str | None = None    # scenario name that must not become a path outside runs/
     rows_only: bool = False           # only row-level faults in reports/truth: want rejects, not a refusal
     notes: list[str] = field(default_factory=list)
@@ -277,20 +277,22 @@ def apply_frame_ops(frames: dict, ops: list[dict], exp: Expect) -> dict:
             elif kind in ("set", "text") and op["col"] in f.columns and f.height:
                 rows = sorted({_row(x, f.height) for x in op["rows"]})
                 frames[t] = _set_values(f, op["col"], op["value"], rows, frames.get("radars"))
+                # a later value in the same cell replaces an earlier impossible one
+                exp.groups = [g for g in exp.groups if not (g[0] == t and g[4] == op["col"] and g[1][0] in rows)]
                 if op.get("impossible"):
                     ctx = ("radars" if op["value"] == "2max" or op["col"] == "radar_id" else
                            "dataset" if op["value"] in ("year:1970", "year:2100") else "any")
-                    exp.groups += [(t, [i], 1, ctx) for i in rows]
+                    exp.groups += [(t, [i], 1, ctx, op["col"]) for i in rows]
                     exp.impossible = True
             elif kind == "dup" and f.height:
                 rows = sorted({_row(x, f.height) for x in op["rows"]})
                 frames[t] = pl.concat([f, f[rows]], how="vertical")
-                exp.groups += [(t, [i, f.height + k], 1, "any") for k, i in enumerate(rows)]
+                exp.groups += [(t, [i, f.height + k], 1, "any", None) for k, i in enumerate(rows)]
                 exp.impossible = True
             elif kind == "cast" and op["col"] in f.columns:
                 frames[t] = _cast_column(f, op["col"], op["to"])
                 if op.get("impossible") and f.height:
-                    exp.groups.append((t, list(range(f.height)), f.height, "any"))
+                    exp.groups.append((t, list(range(f.height)), f.height, "any", None))
                     exp.impossible = True
             elif kind == "drop_col" and op["col"] in f.columns:
                 frames[t] = f.drop(op["col"])
@@ -807,7 +809,7 @@ def _accounting(db: Path, n_in: int, exp: Expect, o: Outcome) -> int:
     by_table: dict[str, set[int]] = {}
     for t, r in rej:
         by_table.setdefault(t, set()).add(int(r))
-    for t, rows, need, _ in exp.groups:
+    for t, rows, need, *_ in exp.groups:
         got = len(by_table.get(t, set()) & set(rows))
         if got < need:
             o.problems.append(f"silent: {t} row(s) {rows[:5]} accepted ({got} of {need} rejected)")
@@ -869,7 +871,7 @@ def _validate_dir(case: dict, ds: Path, exp: Expect, o: Outcome) -> Outcome:
         _row_level_refused(o, exp)
         return o
     n_rej = _validate_count(res.stdout or "")
-    singles = {(t, rows[0]) for t, rows, _, _ in exp.groups if len(rows) == 1}
+    singles = {(t, rows[0]) for t, rows, *_ in exp.groups if len(rows) == 1}
     if exp.must_error:
         o.problems.append("silent: table-level problem reported as valid" if exp.impossible
                           else "table-level problem not refused")
@@ -1143,7 +1145,7 @@ def _run_api(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     if clean.height + rejects.height != frame.height:
         o.problems.append(f"row accounting broken: {frame.height} in, {clean.height} clean + {rejects.height} rejected")
     got = set(rejects["row_index"].to_list()) if "row_index" in rejects.columns else set()
-    for _, rows, need, _ in exp.groups:
+    for _, rows, need, *_ in exp.groups:
         if len(got & set(rows)) < need:
             o.problems.append(f"silent: {t} row(s) {rows[:5]} accepted")
     return _settle(o, exp, rejects.height > 0)

@@ -265,3 +265,13 @@ def test_traceback_only_with_debug(worker, tmp_path):
     assert plain.exit_code == 3 and "Traceback" not in plain.stderr and len(plain.stderr.strip().splitlines()) == 1
     debug = CliRunner().invoke(app, ["--debug", "validate", str(ds)])
     assert debug.exception is not None and not isinstance(debug.exception, SystemExit), debug.stderr
+
+
+@pytest.mark.parametrize("value", [1e300, 1e12])
+def test_api_range_beyond_any_radar_rejected_without_radars(worker, value):
+    """Found by the campaign: tertiary.validate(reports) without a radars table accepts range_m = 1e300
+    (the absolute band is (0, inf)); no radar can see beyond max(max_range_m) x margin."""
+    op = [{"op": "set", "table": "reports", "col": "range_m", "value": value, "impossible": True, "rows": [0.3]}]
+    out = _check(worker, {"entry": "api", "obj": "frame", "kind": "reports", "table": "reports", "ops": op,
+                          "strict": False, "with_radars": False, "base": "ta"})
+    assert out[0].cls == "rejects", out[0]
