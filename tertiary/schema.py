@@ -435,7 +435,8 @@ def contract_rules(limits: Limits = Limits()) -> tuple[Rule, ...]:
              "every report needs its radar; with none, all reports are rejected", "all reports to rejects"),
         Rule("reports", "radar_id", "a valid radar of the radars table",
              "reports of an unknown or rejected radar cannot be placed in space"),
-        Rule("reports", "range_m", f"(0, max_range_m x {limits.range_margin:g}] of its radar",
+        Rule("reports", "range_m", f"(0, max_range_m x {limits.range_margin:g}] of its radar (without a radars "
+             f"table: (0, {_num(limits.max_range_m[1] * limits.range_margin)}] m)",
              "beyond the radar's instrumented range the report is a decoding error"),
         Rule("reports", "azimuth_deg, est_azimuth_deg", "[0, 360)", "angle domain (clockwise from north)"),
         Rule("reports", "elevation_deg, est_elevation_deg", "[-90, 90]", "angle domain"),
@@ -878,6 +879,13 @@ def _context_checks(
             and {"radar_id", "max_range_m"} <= set(radars.columns)):
         work, check = _range_check(work, radars, limits)
         checks.append(check)
+    elif schema.name == "reports" and "range_m" in work.columns:
+        # no radars to compare with: no radar sees beyond the largest plausible max_range_m x margin
+        cap = limits.max_range_m[1] * limits.range_margin
+        rng = pl.col("range_m")
+        checks.append(_Check(("range_m",), f"beyond any radar's range ({_num(cap)} m)", (rng > cap) & rng.is_finite(),
+                             pl.format(f"range_m: beyond any radar's range ({_num(cap)} m), got {{}}",
+                                       rng.cast(pl.String))))
     return work, checks
 
 

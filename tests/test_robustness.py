@@ -435,5 +435,5 @@ def test_a_late_stage_failure_keeps_the_completed_stages(small: Dataset, tmp_pat
 
 def test_rules_table_is_documented() -> None:
     text = schema.rules_markdown()
-    assert "| reports | range_m | (0, max_range_m x 1.2] of its radar |" in text
+    assert "| reports | range_m | (0, max_range_m x 1.2] of its radar (without a radars table: (0, 2400000] m) |" in text
     assert len(schema.RULES) >= 20
