@@ -437,3 +437,20 @@ def test_rules_table_is_documented() -> None:
     text = schema.rules_markdown()
     assert "| reports | range_m | (0, max_range_m x 1.2] of its radar (without a radars table: (0, 2400000] m) |" in text
     assert len(schema.RULES) >= 20
+
+
+def test_scenario_toml_origin_off_the_globe_is_refused_even_with_origin_option(tmp_path):
+    """Found by the fuzz campaign: --origin overrode a scenario.toml origin of latitude 148.85 and
+    the bad field was never checked; the file is validated whole."""
+    from tertiary.errors import DataError
+    from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+    ds = simulate(load_scenario("big-box").replace(runs=1, duration_s=60.0))
+    out = write_dataset(ds, tmp_path / "ds")
+    toml = out / "scenario.toml"
+    text = toml.read_text()
+    toml.write_text(text.replace("origin = [50.45,", "origin = [148.85,"))
+    assert "148.85" in toml.read_text()
+    with pytest.raises(DataError, match="origin"):
+        read_dataset(out, origin=(-33.9, 151.2))
+    toml.write_text(text)
+    assert read_dataset(out, origin=(-33.9, 151.2)).scenario.origin[:2] == (-33.9, 151.2)

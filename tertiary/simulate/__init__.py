@@ -236,10 +236,11 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
         scen = read_scenario_toml(toml)
         try:
             check_name(scen.name)
-            if origin is None:
-                if scen.origin is None:
-                    raise OptionError("missing (give origin = [lat, lon, alt] or --origin LAT,LON)", option="origin")
+            # the file is validated whole: a bad origin is an error even when --origin overrides it
+            if scen.origin is not None:
                 check_origin(scen.origin)
+            elif origin is None:
+                raise OptionError("missing (give origin = [lat, lon, alt] or --origin LAT,LON)", option="origin")
         except OptionError as exc:
             raise DataError(str(exc), path=str(toml)) from exc
     else:
