@@ -65,7 +65,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
-from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
+from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig,
                                filter_tracks, geodetic_channel, predict, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.local_tracks import measurement_polar

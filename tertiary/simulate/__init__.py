@@ -76,6 +76,7 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
         return cfg, terminal_area(cfg.traffic, cfg.duration_s, cfg.dt, rng,
                                    frame=geo.LocalFrame(*cfg.origin)), pl.DataFrame()
     if cfg.kind == "adsb":
+        from tertiary.simulate import adsb
         frame = _read_truth_file(resolve_data_path(cfg.adsb.truth_file))
         t0 = frame["timestamp"].min().replace(microsecond=0)
         start = t0 + timedelta(seconds=cfg.adsb.start_s)
