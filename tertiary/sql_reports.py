@@ -36,8 +36,7 @@ import duckdb
 import polars as pl
 
 from tertiary.errors import DataError, OptionError, ResourceError
-from tertiary.store import RunStore, write_parquet_atomic, write_text_atomic
-from tertiary.store import _utc as utc_times  # the store's own UTC relabelling of query results
+from tertiary.store import RunStore, utc_times, write_parquet_atomic, write_text_atomic
 
 __all__ = [
     "ReadOnlyQueryError",

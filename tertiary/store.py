@@ -168,7 +168,7 @@ def _check_frame(frame: pl.DataFrame) -> None:
         raise TypeError(f"Duration columns {bad} cannot be read back from DuckDB; cast to Int64 first")
 
 
-def _utc(frame: pl.DataFrame) -> pl.DataFrame:
+def utc_times(frame: pl.DataFrame) -> pl.DataFrame:
     """Relabel top-level tz-aware columns to 'UTC' (in case the session zone changed)."""
     fix = [
         pl.col(c).dt.convert_time_zone("UTC")
@@ -336,7 +336,7 @@ class RunStore:
         validate_name(name)
         if name not in self.tables():
             raise KeyError(f"no table {name!r} in {self.path}")
-        return _utc(self._con.sql(f'SELECT * FROM "{name}"').pl())
+        return utc_times(self._con.sql(f'SELECT * FROM "{name}"').pl())
 
     def sql(self, query: str, params: Params = None) -> pl.DataFrame:
         """Run ``query`` with bound ``params`` (``?``/``$1`` list or ``$name`` dict).
@@ -345,7 +345,7 @@ class RunStore:
         frame, statements with no result (e.g. ``SET``) an empty frame.
         """
         rel = self._con.sql(query, params=params)
-        return pl.DataFrame() if rel is None else _utc(rel.pl())
+        return pl.DataFrame() if rel is None else utc_times(rel.pl())
 
     # ---- internals
 
