@@ -145,6 +145,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.stats import chi2, norm
 
+from safety.confirmation import confirm_alerts, epoch_index
 from tertiary import geo
 from tertiary.schema import TABLES, TIME
 
@@ -286,6 +287,12 @@ class ConflictConfig:
     * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
       affects speed, never the result.
     * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
+    * ``confirm_m`` / ``confirm_n``: an alert is raised only when the condition held on m of the
+      pair's last n picture epochs (:mod:`safety.confirmation`; 1/1: every raw condition alerts,
+      the seed's behaviour, the default here). The pipeline's default is 3 of 4
+      (:data:`STCA_CONFIRMATION`): on the default scenario it removed more than half of the
+      false alerts of 1/1 for 8 s of median warning (benchmarks/results/stca_confirmation.md).
+      The unconfirmed condition is kept as ``raw_alert``.
     * ``near_margin_h_m`` / ``near_margin_v_m`` (1 NM / 300 ft): a pair is *near* when the
       same-time rule holds with both thresholds widened by these margins (column ``near``;
       :func:`slim_conflicts` keeps alert or near rows); the output set is screened with the
@@ -308,6 +315,8 @@ class ConflictConfig:
     fixed_est_v_m: float = 50.0
     mode: Literal["seed", "corrected"] = "corrected"
     max_vel_sigma_mps: float | None = 50.0
+    confirm_m: int = 1
+    confirm_n: int = 1
     near_margin_h_m: float = NM_M
     near_margin_v_m: float = 300.0 * FT_M
     v_max_mps: float | None = None
@@ -323,6 +332,9 @@ class ConflictConfig:
             raise ValueError(f"mode must be 'seed' or 'corrected', got {self.mode!r}")
         if self.threshold_mode not in ("covariance", "fixed"):
             raise ValueError(f"threshold_mode must be 'covariance' or 'fixed', got {self.threshold_mode!r}")
+        if not 1 <= self.confirm_m <= self.confirm_n <= 63:
+            raise ValueError(f"alert confirmation needs 1 <= confirm_m <= confirm_n <= 63, "
+                             f"got {self.confirm_m} of {self.confirm_n}")
         if not 0.0 < self.confidence < 1.0:
             raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
         if self.t_thr_s <= 0:
@@ -816,6 +828,9 @@ def _empty_conflicts() -> pl.DataFrame:
     return pl.DataFrame(schema={**TABLES["conflicts"].required, **CONFLICT_EXTRA})
 
 
+#: the pipeline's alert confirmation (confirm_m, confirm_n): 3 of the last 4 picture epochs
+STCA_CONFIRMATION = (3, 4)
+
 #: columns of ``conflicts`` beyond ``schema.TABLES["conflicts"]`` (to be added there)
 CONFLICT_EXTRA: dict[str, pl.DataType] = dict(TABLES["conflicts"].optional)   # t_in_s, near
 
@@ -907,6 +922,7 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
         tracks = tracks.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     if method_col not in tracks.columns:
         tracks = tracks.with_columns(pl.lit(default_method, pl.String).alias(method_col))
+    grid = epoch_index(tracks, method_col)
     tracks = _established(tracks, cfg)
     if tracks.height < 2:
         return _empty_conflicts()
@@ -940,6 +956,7 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
                         ).hstack(pl.DataFrame(cols)[order])
     out = keys.hstack(vals)
+    out = confirm_alerts(out, grid, cfg.confirm_m, cfg.confirm_n)
     spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
     return out.select(list(spec)).cast(spec)
 

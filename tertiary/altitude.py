@@ -16,6 +16,20 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
    restarts the filter on itself (a real altitude jump persists, independent garbles do
    not). Missing altitude (null) only predicts.
+
+   With ``model="imm"`` (default) the filter is an interacting multiple model (Blom &
+   Bar-Shalom 1988) of two such filters that differ only in q_a: **level** (q_L, height
+   keeping) and **manoeuvre** (q_M, climbs, descents and their level-offs). A level aircraft's
+   rate is then known to a few cm/s instead of ~1 m/s, which is what lets a conflict probe
+   tell two aircraft 1 000 ft or 2 000 ft apart from a climb into the other's level:
+
+       p_ij(τ) = 1 − exp(−τ/s_i) (i ≠ j),  c_j = Σ_i p_ij μ_i,  μ_i|j = p_ij μ_i / c_j      (A5)
+       x0_j = Σ_i μ_i|j x_i,  P0_j = Σ_i μ_i|j [P_i + (x_i − x0_j)(x_i − x0_j)ᵀ]           (A6)
+       each model: (A1)–(A4) from (x0_j, P0_j) with q_j; Λ_j = N(ν_j; 0, S_j)              (A7)
+       μ_j ∝ Λ_j c_j                                                                      (A8)
+       x = Σ_j μ_j x_j,  P = Σ_j μ_j [P_j + (x_j − x)(x_j − x)ᵀ]  (the reported channel)   (A9)
+
+   The garble gate uses the combined prediction; a rejected or missing reply leaves μ = c.
 2. **Geodetic height** of an ENU state (elevation-based, the fallback for targets without
    Mode C): h = height above the WGS-84 ellipsoid of the point, ḣ = n̂·v with n̂ the
    ellipsoid normal at the target; variances from the position–velocity covariance along
@@ -52,23 +66,37 @@ ALT_COLUMNS = ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2", "alt
 
 @dataclass(frozen=True)
 class AltitudeConfig:
-    """Altitude filter settings (module docstring, (A1)–(A4)).
+    """Altitude filter settings (module docstring, (A1)–(A4), (A5)–(A9)).
 
-    * ``q_m2ps3``: white-noise vertical-acceleration intensity q_a (m²/s³).
+    * ``model``: ``"imm"`` — two models, level flight and vertical manoeuvre (A5)–(A9);
+      ``"cv"`` — the single (A1)–(A4) filter with ``q_m2ps3``.
+    * ``q_m2ps3``: white-noise vertical-acceleration intensity q_a (m²/s³) of the single
+      filter and of the IMM's manoeuvre model.
+    * ``q_level_m2ps3``: q_a of the IMM's level model (height keeping: a few ft over minutes).
+    * ``level_sojourn_s`` / ``manoeuvre_sojourn_s``: mean time in each mode; the switching
+      probability over an interval τ is 1 − exp(−τ / sojourn).
     * ``v0_sigma_mps``: initial ḣ standard deviation (one-point initiation at ḣ = 0).
     * ``gate_sigma``, ``gate_floor_m``: garble gate |ν| ≤ g·√S + f.
     * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
     """
 
+    model: str = "imm"
     q_m2ps3: float = 0.5
+    q_level_m2ps3: float = 1e-4
+    level_sojourn_s: float = 300.0
+    manoeuvre_sojourn_s: float = 60.0
     v0_sigma_mps: float = 15.0
     gate_sigma: float = 5.0
     gate_floor_m: float = 45.0
     max_rejects: int = 2
 
     def __post_init__(self) -> None:
-        if not (self.q_m2ps3 > 0 and self.v0_sigma_mps > 0 and self.gate_sigma > 0 and self.gate_floor_m >= 0):
-            raise ValueError("altitude filter: q_m2ps3, v0_sigma_mps, gate_sigma must be > 0, gate_floor_m >= 0")
+        if self.model not in ("imm", "cv"):
+            raise ValueError(f"altitude filter: model must be 'imm' or 'cv', got {self.model!r}")
+        if not (self.q_m2ps3 > 0 and self.q_level_m2ps3 > 0 and self.v0_sigma_mps > 0 and self.gate_sigma > 0
+                and self.gate_floor_m >= 0 and self.level_sojourn_s > 0 and self.manoeuvre_sojourn_s > 0):
+            raise ValueError("altitude filter: q_m2ps3, q_level_m2ps3, sojourn times, v0_sigma_mps, gate_sigma "
+                             "must be > 0, gate_floor_m >= 0")
         if self.max_rejects < 1:
             raise ValueError("altitude filter: max_rejects must be >= 1")
 
@@ -145,21 +173,70 @@ def _init(z: F64, var: F64, cfg: AltitudeConfig) -> AltState:
     return AltState(z.copy(), np.zeros(n), var.copy(), np.zeros(n), np.full(n, cfg.v0_sigma_mps ** 2))
 
 
+def _mix(states: list[AltState], w: list[F64]) -> AltState:
+    """Moment-matched combination Σ w_i N(x_i, P_i) (A6)/(A9); weights sum to one per row."""
+    h = sum(wi * si.h for wi, si in zip(w, states))
+    r = sum(wi * si.r for wi, si in zip(w, states))
+    phh = sum(wi * (si.phh + (si.h - h) ** 2) for wi, si in zip(w, states))
+    phr = sum(wi * (si.phr + (si.h - h) * (si.r - r)) for wi, si in zip(w, states))
+    prr = sum(wi * (si.prr + (si.r - r) ** 2) for wi, si in zip(w, states))
+    return AltState(h, r, phh, phr, prr)
+
+
+def _select(cond: NDArray[np.bool_], a: AltState, b: AltState) -> AltState:
+    return AltState(*(np.where(cond, getattr(a, f), getattr(b, f)) for f in ("h", "r", "phh", "phr", "prr")))
+
+
+def _models(cfg: AltitudeConfig) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(q of each model, sojourn of each model): one model for "cv", level + manoeuvre for "imm"."""
+    if cfg.model == "cv":
+        return (cfg.q_m2ps3,), (np.inf,)
+    return (cfg.q_level_m2ps3, cfg.q_m2ps3), (cfg.level_sojourn_s, cfg.manoeuvre_sojourn_s)
+
+
+def _mix_predict(models: list[AltState], mu: F64, tau: F64, qs, sojourn) -> tuple[list[AltState], F64]:
+    """(A5)–(A6) and each model's prediction over ``tau``: (predictions, c) with ``mu``/c (k, n)."""
+    if len(models) == 1:
+        return [predict(models[0], tau, qs[0])], np.ones((1, len(tau)))
+    p_sw = [1.0 - np.exp(-tau / s) for s in sojourn]
+    pij = [[1.0 - p_sw[0], p_sw[0]], [p_sw[1], 1.0 - p_sw[1]]]
+    c = np.maximum(np.array([pij[0][j] * mu[0] + pij[1][j] * mu[1] for j in range(2)]), 1e-300)
+    preds = [predict(_mix(models, [pij[i][j] * mu[i] / c[j] for i in range(2)]), tau, qs[j]) for j in range(2)]
+    return preds, c
+
+
+def _update_models(preds: list[AltState], c: F64, z: F64, var: F64) -> tuple[list[AltState], F64, AltState]:
+    """(A7)–(A9): (updated models, μ, combined posterior)."""
+    upd, lik = [], []
+    for pj in preds:
+        u, nu, sv = update(pj, z, var)
+        upd.append(u)
+        lik.append(np.exp(-0.5 * nu * nu / sv) / np.sqrt(2 * np.pi * sv))
+    w = np.array(lik) * c
+    tot = w.sum(axis=0)
+    mu = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), c)
+    return upd, mu, _mix(upd, list(mu))
+
+
 def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                   cfg: AltitudeConfig = AltitudeConfig()) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_]]:
-    """Run (A1)–(A4) with the garble gate over every track's replies.
+    """Run the altitude filter ((A1)–(A4), or the IMM (A5)–(A9)) with the garble gate over
+    every track's replies.
 
     ``t`` (n,) seconds, ``z`` (n,) altitudes (NaN = missing), ``var`` (n,) their R, sorted so
     that track g owns rows ``starts[g] : starts[g] + lengths[g]`` in time order. Returns the
-    estimate at each row's time after its update (NaN before the track's first altitude), a
-    mask of the rows that have an estimate, and a mask of the replies rejected as garbles.
-    The loop runs over the rank within a track, vectorised over tracks (lengths sorted
-    descending, so the tracks with more than k rows are a prefix)."""
+    (combined) estimate at each row's time after its update (NaN before the track's first
+    altitude), a mask of the rows that have an estimate, and a mask of the replies rejected as
+    garbles. The loop runs over the rank within a track, vectorised over tracks (lengths
+    sorted descending, so the tracks with more than k rows are a prefix)."""
+    qs, sojourn = _models(cfg)
+    nm = len(qs)
     n = len(t)
     out, has, rejected = AltState.full(n), np.zeros(n, bool), np.zeros(n, bool)
     order = np.argsort(-np.asarray(lengths), kind="stable")
     st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
-    cur = AltState.full(len(st))
+    cur = [AltState.full(len(st)) for _ in range(nm)]
+    mu = np.full((nm, len(st)), 1.0 / nm)
     t_last = np.zeros(len(st))
     ok = np.zeros(len(st), bool)
     miss = np.zeros(len(st), np.int64)
@@ -168,8 +245,11 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
         idx = st[:m] + k
         zk, vk, tk = z[idx], var[idx], t[idx]
         valid = np.isfinite(zk)
-        s = predict(cur.take(slice(0, m)), tk - t_last[:m], cfg.q_m2ps3)
-        u, nu, sv = update(s, np.where(valid, zk, s.h), vk)
+        models = [c.take(slice(0, m)) for c in cur]
+        preds, c = _mix_predict(models, mu[:, :m], tk - t_last[:m], qs, sojourn)
+        upd, mu_u, u = _update_models(preds, c, np.where(valid, zk, 0.0), vk)
+        s = _mix(preds, list(c))                                  # combined prediction
+        nu, sv = np.where(valid, zk, 0.0) - s.h, s.phh + vk
         inside = np.abs(nu) <= cfg.gate_sigma * np.sqrt(np.maximum(sv, 0.0)) + cfg.gate_floor_m
         run = ok[:m]
         accept = run & valid & inside
@@ -177,11 +257,13 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
         miss[:m] = np.where(accept, 0, np.where(bad, miss[:m] + 1, miss[:m]))
         restart = (valid & ~run) | (bad & (miss[:m] >= cfg.max_rejects))
         new = _init(np.where(valid, zk, 0.0), vk, cfg)
-        nxt = AltState(*(np.where(restart, getattr(new, f), np.where(accept, getattr(u, f), getattr(s, f)))
-                         for f in ("h", "r", "phh", "phr", "prr")))
+        # a reply not used (missing, garble): each model keeps its prediction and μ = c
+        for j in range(nm):
+            cur[j].put(slice(0, m), _select(restart, new, _select(accept, upd[j], preds[j])))
+        mu[:, :m] = np.where(restart, 1.0 / nm, np.where(accept, mu_u, c))
+        nxt = _select(restart, new, _select(accept, u, s))
         miss[:m] = np.where(restart, 0, miss[:m])
         ok[:m] |= restart
-        cur.put(slice(0, m), nxt)
         t_last[:m] = tk
         out.put(idx, nxt)
         has[idx] = ok[:m]

@@ -52,8 +52,10 @@ Progress = Callable[[str], None]
 
 
 def _default_conflict_config() -> "ConflictConfig":
-    from safety.conflicts import ConflictConfig
-    return ConflictConfig()
+    """The seed's rule with a controller's alert confirmation (m of n picture epochs)."""
+    from safety.conflicts import STCA_CONFIRMATION, ConflictConfig
+    m, n = STCA_CONFIRMATION
+    return ConflictConfig(confirm_m=m, confirm_n=n)
 
 
 @dataclass

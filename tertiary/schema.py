@@ -283,7 +283,8 @@ _CONFLICTS = TableSchema(
     },
     # t_in_s: start of the predicted conflict interval (NaN without alert); near: within the near
     # margins of both thresholds at one predicted time (what the slim table keeps besides alerts)
-    optional={"t_in_s": F64, "near": BOOL},
+    # raw_alert: the conflict condition before alert confirmation (alert = confirmed, m of n epochs)
+    optional={"t_in_s": F64, "near": BOOL, "raw_alert": BOOL},
     key=("run", "epoch", "method", "id_a", "id_b"),
 )
 

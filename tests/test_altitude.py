@@ -40,7 +40,7 @@ def _filterpy_run(t, z, r, cfg):
 
 def test_filter_matches_filterpy_on_several_tracks():
     rng = np.random.default_rng(1)
-    cfg = AltitudeConfig(gate_floor_m=1e9)            # no gating: a plain Kalman filter
+    cfg = AltitudeConfig(model="cv", gate_floor_m=1e9)   # no gating, one model: a plain Kalman filter
     lengths = np.array([30, 7, 55])
     t = np.concatenate([np.cumsum(rng.uniform(3.0, 6.0, n)) for n in lengths])
     z = np.concatenate([3000 + 8.0 * np.arange(n) + rng.normal(0, 3, n) for n in lengths])
@@ -56,6 +56,66 @@ def test_filter_matches_filterpy_on_several_tracks():
         np.testing.assert_allclose(est.phh[sl], cov[:, 0, 0], rtol=1e-9)
         np.testing.assert_allclose(est.phr[sl], cov[:, 0, 1], rtol=1e-9)
         np.testing.assert_allclose(est.prr[sl], cov[:, 1, 1], rtol=1e-9)
+
+
+def _filterpy_imm(t, z, r, cfg):
+    from filterpy.kalman import IMMEstimator
+    tau = t[1] - t[0]
+    filters = []
+    for q in (cfg.q_level_m2ps3, cfg.q_m2ps3):
+        kf = KalmanFilter(dim_x=2, dim_z=1)
+        kf.x = np.array([[z[0]], [0.0]])
+        kf.P = np.diag([r, cfg.v0_sigma_mps ** 2])
+        kf.H = np.array([[1.0, 0.0]])
+        kf.R = np.array([[r]])
+        kf.F = np.array([[1.0, tau], [0.0, 1.0]])
+        kf.Q = q * np.array([[tau ** 3 / 3, tau ** 2 / 2], [tau ** 2 / 2, tau]])
+        filters.append(kf)
+    p_l, p_m = 1 - np.exp(-tau / cfg.level_sojourn_s), 1 - np.exp(-tau / cfg.manoeuvre_sojourn_s)
+    imm = IMMEstimator(filters, np.array([0.5, 0.5]), np.array([[1 - p_l, p_l], [p_m, 1 - p_m]]))
+    out, covs, mus = [imm.x[:, 0].copy()], [np.diag([r, cfg.v0_sigma_mps ** 2])], [imm.mu.copy()]
+    for k in range(1, len(t)):
+        imm.predict()
+        imm.update(np.array([[z[k]]]))
+        out.append(imm.x[:, 0].copy())
+        covs.append(imm.P.copy())
+        mus.append(imm.mu.copy())
+    return np.array(out), np.array(covs), np.array(mus)
+
+
+def test_imm_altitude_filter_matches_filterpy_imm():
+    """(A5)–(A9) against filterpy's IMMEstimator: level, climb, level-off, constant interval."""
+    rng = np.random.default_rng(7)
+    cfg = AltitudeConfig(gate_floor_m=1e9)
+    t = np.arange(80) * 4.0
+    h = np.where(t < 100, 3000.0, np.where(t < 200, 3000.0 + 10.0 * (t - 100), 4000.0))
+    z = h + rng.normal(0, 2.2, len(t))
+    r = 2.2 ** 2
+    est, has, rej = filter_tracks(t, z, np.full(len(t), r), np.array([0]), np.array([len(t)]), cfg)
+    ref, cov, _ = _filterpy_imm(t, z, r, cfg)
+    np.testing.assert_allclose(est.h, ref[:, 0], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(est.r, ref[:, 1], rtol=0, atol=1e-8)
+    np.testing.assert_allclose(est.phh, cov[:, 0, 0], rtol=1e-8)
+    np.testing.assert_allclose(est.phr, cov[:, 0, 1], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(est.prr, cov[:, 1, 1], rtol=1e-8)
+
+
+def test_level_aircraft_rate_is_known_and_a_climb_is_followed():
+    """Level at a 25 ft quantum: the IMM's rate σ falls well below the single filter's
+    (~1 m/s), which is what keeps aircraft 1 000 ft apart out of a conflict probe; a 10 m/s
+    climb is still followed within half a minute."""
+    t = np.arange(100) * 4.0
+    h = np.where(t < 200, 3048.0, 3048.0 + 10.0 * (t - 200))
+    q = QUANTUM_MODE_S_M
+    z = np.round(h / q) * q
+    r = np.full(len(t), quantisation_variance(q))
+    imm, _, _ = filter_tracks(t, z, r, np.array([0]), np.array([len(t)]), AltitudeConfig())
+    cv, _, _ = filter_tracks(t, z, r, np.array([0]), np.array([len(t)]), AltitudeConfig(model="cv"))
+    level = t == 196.0
+    assert np.sqrt(imm.prr[level][0]) < 0.2 < 0.6 < np.sqrt(cv.prr[level][0])
+    assert abs(imm.r[level][0]) < 0.1
+    after = t == 232.0                             # 32 s into the climb
+    assert abs(imm.r[after][0] - 10.0) < 1.5
 
 
 def test_garble_is_rejected_and_a_real_jump_restarts_the_filter():
