@@ -1,47 +1,54 @@
-"""Alert quality on terminal-area: thresholds from track covariance vs a fixed threshold.
+"""STCA settings on terminal-area: alert confirmation × threshold family, on the controller's picture.
 
-Runs the pipeline once (default terminal-area: 200 aircraft with designed losses of
-separation), then predicts conflicts on every fusion method's picture with
-``threshold_mode="covariance"`` and ``"fixed"`` (same minima, piloting term and look-ahead)
-and scores both against truth: hits, misses, false alerts, mean warning time, flicker.
+Runs the pipeline once on the default scenario (200 aircraft, procedures, 10 designed losses of
+separation) with one picture (``information`` fusion + ``imm_sym`` tracker, or those given),
+then predicts conflicts on its confirmed tracks for every setting and scores them against the
+losses of separation in the truth: genuine / nuisance / false alerts, losses alerted, warning
+time (safety.alerts). This is the study behind the pipeline's default confirmation
+(safety.conflicts.STCA_CONFIRMATION).
 
-    python benchmarks/safety_thresholds.py
+    python benchmarks/safety_thresholds.py [METHOD FILTER]
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
+import sys
 
 import polars as pl
 
 from _util import record
-from safety import AlertConfig, ConflictConfig, predict_conflicts, score_alerts
+from safety import AlertConfig, ConflictConfig, predict_conflicts, slim_conflicts, stca_tables
 from tertiary import pipeline
-from tertiary.evaluate import target_truth
 from tertiary.simulate import load_scenario, simulate
 
+SETTINGS = [("covariance", c, mn) for c in (0.5, 0.8, 0.95) for mn in ((1, 1), (2, 3), (3, 4), (4, 5))] + \
+           [("fixed", e, mn) for e in (0.0, 300.0) for mn in ((1, 1), (3, 4))]
 
-def main() -> None:
+
+def main(method: str = "information", filt: str = "imm_sym") -> None:
     ds = simulate(load_scenario("terminal-area"))
-    res = pipeline.process(ds, pipeline.PipelineConfig(filters=(), safety=False))
-    id_map = target_truth(res.associations, ds.reports.select("run", "report_id", "truth_id"))
-    methods = sorted(res.fused["method"].unique().to_list())
+    cfg = pipeline.PipelineConfig(methods=(method,), filters=(filt,), safety=False)
+    res = pipeline.process(ds, cfg)
+    picture, id_col = pipeline._safety_picture(cfg, res.fused, res.tracks, [])
+    id_map = pipeline._picture_truth(id_col, res.associations, ds.reports.select("run", "report_id", "truth_id"),
+                                     res.tracks)
     rows = []
-    for mode in ("covariance", "fixed"):
-        cfg = ConflictConfig(threshold_mode=mode)
-        conflicts = predict_conflicts(res.fused, cfg, id_col="target_id")
-        m = score_alerts(conflicts, id_map, ds.truth, AlertConfig(conflict=cfg), id_col="target_id", methods=methods)
-        wide = m.pivot(on="metric", index="method", values="value").with_columns(pl.lit(mode).alias("thresholds"))
-        thr = conflicts.group_by("method").agg(pl.col("r_thr_m").median().alias("median_r_thr_m"),
-                                                pl.col("z_thr_m").median().alias("median_z_thr_m"))
-        rows.append(wide.join(thr, on="method", how="left"))
-    table = pl.concat(rows, how="diagonal_relaxed").sort("method", "thresholds")
-    with pl.Config(tbl_rows=40, tbl_cols=12, tbl_width_chars=200):
-        print(table.select("method", "thresholds", "hits", "misses", "false_alerts", "mean_warning_s",
-                           "flicker_per_hit", "median_r_thr_m", "median_z_thr_m"))
-    print(f"recorded in {record('safety_thresholds', {'table': table.to_dicts()})}")
+    for mode, par, (m, n) in SETTINGS:
+        extra = {"confidence": par} if mode == "covariance" else {"fixed_est_h_m": par}
+        cc = dataclasses.replace(ConflictConfig(), threshold_mode=mode, confirm_m=m, confirm_n=n, **extra)
+        c = slim_conflicts(predict_conflicts(picture, cc, id_col=id_col, frame=ds.origin))
+        metrics, _, _ = stca_tables(c, id_map, ds.truth, AlertConfig(conflict=cc), id_col=id_col, frame=ds.origin)
+        w = dict(zip(metrics["metric"], metrics["value"]))
+        rows.append({"picture": f"{method}+{filt}", "thresholds": mode, "parameter": par, "confirm": f"{m}/{n}",
+                     **{k: w[k] for k in ("genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes",
+                                          "alerted_los", "warning_median_s", "warning_p05_s", "alerts_per_hour")},
+                     "median_z_thr_m": float(c.filter("alert")["z_thr_m"].median() or float("nan"))})
+    table = pl.DataFrame(rows)
+    with pl.Config(tbl_rows=40, tbl_cols=14, tbl_width_chars=220):
+        print(table)
+    print(f"recorded in {record('safety_thresholds', {'table': rows})}")
 
 
 if __name__ == "__main__":
-    main()
+    main(*sys.argv[1:3])

@@ -291,7 +291,7 @@ class ConflictConfig:
       pair's last n picture epochs (:mod:`safety.confirmation`; 1/1: every raw condition alerts,
       the seed's behaviour, the default here). The pipeline's default is 3 of 4
       (:data:`STCA_CONFIRMATION`): on the default scenario it removed more than half of the
-      false alerts of 1/1 for 8 s of median warning (benchmarks/results/stca_confirmation.md).
+      false alerts of 1/1 for 8 s of median warning (``benchmarks/safety_thresholds.py``).
       The unconfirmed condition is kept as ``raw_alert``.
     * ``near_margin_h_m`` / ``near_margin_v_m`` (1 NM / 300 ft): a pair is *near* when the
       same-time rule holds with both thresholds widened by these margins (column ``near``;
