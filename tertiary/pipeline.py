@@ -194,6 +194,14 @@ class PipelineConfig:
     #: sets. Without filters, "tracks" falls back to "fused" (with a note).
     safety_picture: Literal["tracks", "fused"] = "tracks"
     conflicts: ConflictConfig = field(default_factory=_default_conflict_config)
+    #: STCA trade-off curves (metrics stage "safety_tradeoff"): losses alerted with ≥ X s warning
+    #: against nuisance + false alerts per hour as the threshold confidence (covariance
+    #: thresholds), the fixed estimation term (m) and the look-ahead (s) vary; each point is one
+    #: conflict prediction + scoring of every picture (~1 s on the default job), so the default
+    #: is the configured look-ahead only; () skips the curves. Needs truth.
+    stca_lookaheads_s: tuple[float, ...] = (105.0,)
+    stca_confidences: tuple[float, ...] = (0.5, 0.8, 0.95, 0.99)
+    stca_fixed_m: tuple[float, ...] = (0.0, 300.0, 600.0, 1200.0)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
 
@@ -325,7 +333,8 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     sink("tracks", tracks)
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
-    from safety import AlertConfig, capacity_from_metrics, predict_conflicts, slim_conflicts, stca_tables
+    from safety import (AlertConfig, capacity_from_metrics, predict_conflicts, slim_conflicts, stca_tables,
+                        stca_tradeoff, tradeoff_metrics)
 
     conflicts, alerts = schema.empty_frame("conflicts", False), pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
@@ -343,6 +352,13 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
                                                         methods=sorted(picture["method"].unique().to_list()),
                                                         frame=ds.origin)
             sink("alerts", alerts)
+            if cfg.stca_lookaheads_s:
+                clock.stage("stca_curves")
+                curve = stca_tradeoff(picture, id_map, ing.truth, acfg, id_col=id_col, frame=ds.origin,
+                                      methods=sorted(picture["method"].unique().to_list()),
+                                      lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
+                                      fixed_est_h_m=cfg.stca_fixed_m)
+                safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
     if has_truth:

@@ -30,6 +30,9 @@ Figures (seed numbering, digest §9):
 * accuracy by method, filter and segment, horizontal and vertical panels (``accuracy_by_method``)
 * conflict timeline: pairs in alert and new alerts per minute (``conflict_timeline``,
   ``conflicts``, ``alert_scores``)
+* STCA curves: losses alerted with ≥ 30 s warning against nuisance + false alerts per hour,
+  covariance vs fixed thresholds, per look-ahead (``stca_tradeoff``,
+  :func:`safety.alerts.compare_at_equal_nuisance`)
 * 5.2  P_pob against the number of aircraft for several σ (``safety.capacity.ppob_curves``)
 * 5.3  capacity against σ with each method's measured point (``safety.capacity.capacity_curve``,
   ``capacity_by_method``)
@@ -756,6 +759,76 @@ def _sec_conflicts(ctx: _Ctx) -> _Section:
     return sec
 
 
+STCA_WARNING_S = 30.0   # the warning requirement the curves are drawn for (issue 11: ≥ 30 s)
+
+
+def _sec_stca(ctx: _Ctx) -> _Section:
+    """Trade-off curves: losses alerted with ≥ 30 s warning against nuisance + false alerts per
+    hour, covariance thresholds (by confidence) beside fixed thresholds, per look-ahead."""
+    go = _go()
+    from plotly.subplots import make_subplots
+    from safety.alerts import compare_at_equal_nuisance
+    sec = _Section("stca", "STCA performance curves")
+    curve = ctx.q("stca_tradeoff", warning_s=STCA_WARNING_S)
+    if curve.height == 0:
+        sec.note = ("Not computed in this run: the curves need truth and a safety stage with look-aheads "
+                    "(PipelineConfig.stca_lookaheads_s).")
+        return sec
+    looks = sorted(curve["t_thr_s"].unique().to_list())
+    methods = curve["method"].unique(maintain_order=True).to_list()
+    main = ctx.best.best_of(methods) or methods[0]
+    fig = make_subplots(rows=1, cols=len(looks), shared_yaxes=True,
+                        subplot_titles=[f"look-ahead T = {t:g} s" for t in looks])
+    for c, t in enumerate(looks, start=1):
+        for i, m in enumerate(methods):
+            color = "black" if m == main else _COLORS[i % len(_COLORS)]
+            for mode, dash in (("covariance", "solid"), ("fixed", "dash")):
+                part = curve.filter((pl.col("method") == m) & (pl.col("t_thr_s") == t)
+                                    & (pl.col("threshold_mode") == mode)).sort("nuisance_false_per_hour")
+                label = f"{m} — {mode}" + (" (best picture)" if m == main else "")
+                fig.add_trace(go.Scatter(
+                    x=_arr(part["nuisance_false_per_hour"]), y=_arr(part["alerted_fraction"] * 100.0),
+                    mode="lines+markers", name=label, legendgroup=label, showlegend=c == 1,
+                    visible=_visible(m, {main}), line=dict(color=color, dash=dash, width=1.4),
+                    text=[f"{'confidence' if mode == 'covariance' else 'fixed term'} {v:g}" for v in part["parameter"]],
+                    hovertemplate="%{text}: %{x:.0f} /h, %{y:.0f} %<extra></extra>"), row=1, col=c)
+    _layout(fig, f"Losses of separation alerted with ≥ {STCA_WARNING_S:g} s warning against nuisance + false "
+                 "alerts", "", "", height=480)
+    for c in range(1, len(looks) + 1):
+        fig.update_xaxes(title_text="nuisance + false alerts per hour (1/h)", row=1, col=c)
+    fig.update_yaxes(title_text="losses alerted in time (%)", row=1, col=1)
+    par = {m: curve.filter(pl.col("threshold_mode") == m)["parameter"] for m in ("covariance", "fixed")}
+    span = {m: f"{p.min():g} … {p.max():g}" if p.len() else "none" for m, p in par.items()}
+    sec.figures.append((fig, "Each point is one setting of the whole safety stage on the picture (sql/stca_tradeoff.sql,"
+                             f" metrics stage safety_tradeoff): solid — thresholds from the track covariance at "
+                             f"confidence {span['covariance']}; dashed — fixed thresholds with an estimation term of "
+                             f"{span['fixed']} m (vertical scaled alike). Up and to the left is better. Drawn by "
+                             "default: the best picture; the others are in the legend."))
+    t_cmp = 105.0 if 105.0 in looks else looks[-1]
+    cmp = compare_at_equal_nuisance(curve.with_columns(pl.col("warning_s").cast(pl.Float64)),
+                                    warning_s=STCA_WARNING_S, t_thr_s=t_cmp)
+    wide = cmp.pivot(on="threshold_mode", index=["method", "nuisance_false_per_hour"], values="alerted_fraction")
+    # the other reading of the same curves: the lowest alert rate at which a family still alerts
+    # ≥ 95 % of the losses in time (a family that never does is null)
+    need = (curve.filter((pl.col("t_thr_s") == t_cmp) & (pl.col("alerted_fraction") >= 0.95))
+            .group_by("method", "threshold_mode").agg(pl.col("nuisance_false_per_hour").min())
+            .pivot(on="threshold_mode", index="method", values="nuisance_false_per_hour"))
+    wide = wide.with_columns(*(pl.lit(None, pl.Float64).alias(c) for c in ("covariance", "fixed") if c not in wide.columns))
+    need = need.with_columns(*(pl.lit(None, pl.Float64).alias(c) for c in ("covariance", "fixed") if c not in need.columns))
+    table = wide.join(need, on="method", how="left", suffix="_rate").select(
+        pl.col("method").alias("picture"),
+        pl.col("nuisance_false_per_hour").alias("rate compared (1/h): covariance at 0.95"),
+        pl.col("covariance").alias("alerted in time at that rate, covariance (fraction)"),
+        pl.col("fixed").alias("alerted in time at that rate, fixed (fraction)"),
+        pl.col("covariance_rate").alias("lowest rate with ≥ 95 % alerted in time, covariance (1/h)"),
+        pl.col("fixed_rate").alias("lowest rate with ≥ 95 % alerted in time, fixed (1/h)"))
+    sec.tables.append((f"Covariance against fixed thresholds (T = {t_cmp:g} s, warning ≥ {STCA_WARNING_S:g} s): "
+                       "alerted fraction at equal nuisance + false rate (empty where a family does not reach that "
+                       "rate: no extrapolation), and the alert rate each family needs to alert 95 % in time",
+                       table))
+    return sec
+
+
 def _sec_ppob(ctx: _Ctx) -> _Section:
     go = _go()
     from safety.capacity import V_BC_M3, V_ZO_M3, ppob_curves
@@ -862,6 +935,7 @@ _SECTIONS: list[tuple[str, Callable[[_Ctx], _Section]]] = [
     ("accuracy", _sec_accuracy),
     ("quality", _sec_quality),
     ("conflicts", _sec_conflicts),
+    ("STCA curves", _sec_stca),
     ("P_pob", _sec_ppob),
     ("capacity", _sec_capacity),
     ("metadata", _sec_metadata),

@@ -22,7 +22,7 @@ runner = CliRunner()
 
 #: figures of a complete run: map, range, range rate, acceleration, residuals, RMSE over time,
 #: a-posteriori vs a-priori, accuracy bars, conflict timeline, P_pob, capacity
-N_FIGURES = 11
+N_FIGURES = 12
 SEED_FIGURES = ["4.4", "4.5", "4.6", "4.7", "4.9", "4.10", "4.11", "5.2", "5.3"]
 
 
@@ -230,7 +230,7 @@ def test_kinematics_are_small_multiples(built, run_dir):
         assert sum(bool(t.showlegend) for t in fig.data) <= 3              # one legend entry per aircraft
 
 
-UNIT = re.compile(r"\((m|km|s|m/s|m/s²|%|1/min|pairs|aircraft|dimensionless)\)")
+UNIT = re.compile(r"\((m|km|s|m/s|m/s²|%|1/min|1/h|pairs|aircraft|dimensionless)\)")
 
 
 def test_every_axis_has_its_unit(built):
@@ -307,3 +307,14 @@ def test_run_writes_database_and_report(tmp_path):
     flat = " ".join(res.output.split())
     assert "results.duckdb" in flat and REPORT_FILENAME in flat          # where the results and report are
     assert figure_count(html_path.read_text()) == N_FIGURES
+
+
+def test_stca_curves_section_draws_both_threshold_families(built):
+    sec = next(s for s in built.sections if s.key == "stca")
+    assert not sec.note, sec.note
+    names = {t.name for t in sec.figures[0][0].data}
+    assert any(n.endswith("— covariance") for n in names) and any(n.endswith("— fixed") for n in names)
+    table = sec.tables[0][1]
+    assert table.height == len({n.split(" — ")[0] for n in names})          # one row per picture
+    # the covariance family's own point at confidence 0.95 is always on its curve
+    assert table[:, 1].is_not_null().all() and table[:, 2].is_not_null().all()
