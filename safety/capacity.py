@@ -65,12 +65,23 @@ __all__ = [
     "ppob_curves",
     "capacity_curve",
     "capacity_from_metrics",
+    "CAPACITY_P_STAR",
+    "CAPACITY_V_ZO_M3",
+    "CAPACITY_N",
 ]
 
 #: default aircraft volume V_ВС (m³; the seed quotes 4000…8000)
 V_BC_M3 = 6000.0
 #: default near-zone volume V_зо (m³; the seed quotes 10¹⁰…10¹⁴)
 V_ZO_M3 = 1e12
+
+#: the run's capacity figures (issue 11, item 8): parameters at which the models discriminate
+#: between pictures. V_зо = 10¹⁴ m³ is a 100 km × 100 km × 10 km zone — the size of the default
+#: terminal area; at the printed P* = 10⁻⁶ and V_зо = 10¹² every realistic σ gives n_max = 1.
+CAPACITY_P_STAR = 1e-3
+CAPACITY_V_ZO_M3 = 1e14
+#: P(n) is reported for this many aircraft in the zone (metric ``p_conflict_n20``)
+CAPACITY_N = 20
 
 RcOption = Literal["6sigma", "12sigma", "separation"] | float
 
@@ -241,20 +252,28 @@ def _p_label(p: float) -> str:
     return f"{mant}e{int(exp)}"
 
 
-def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = 1e-6, v_bc: float = V_BC_M3,
-                          v_zo: float = V_ZO_M3, r_c: RcOption = "12sigma", which: Literal["any", "one"] = "any",
+def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = CAPACITY_P_STAR, v_bc: float = V_BC_M3,
+                          v_zo: float = CAPACITY_V_ZO_M3, r_c: RcOption = "12sigma", which: Literal["any", "one"] = "any",
                           sigma_metrics: Sequence[str] = ("rmse_range_m", "rmse_pos_m"),
-                          dr_m: float = 5556.0, notes: list[str] | None = None) -> pl.DataFrame:
+                          dr_m: float = 5556.0, notes: list[str] | None = None,
+                          n_fixed: int | None = CAPACITY_N) -> pl.DataFrame:
     """Capacity of every measured picture: for each (stage, method) of ``metrics`` with one of
-    ``sigma_metrics`` (first found, segment ``all``), σ = that RMSE and the largest n with
-    P ≤ ``p_star`` under the seed model (metric ``capacity_n_<P*>``, e.g. ``capacity_n_1e-6``)
-    and the sounder model (``capacity_n_<P*>_sound``). Rows in the ``metrics`` schema, stage
-    ``"safety"``, method = the source method (``"<stage>/<method>"`` when a method name occurs in
-    several stages), segment ``"all"``, n_runs from the source row.
+    ``sigma_metrics`` (first found, segment ``all``), σ = that RMSE and
 
-    With the printed volumes (V_зо = 10¹² m³ default, up to 10¹⁴) the seed model admits
-    n = 1 at P* = 10⁻⁶ for every realistic σ (≥ 10.3 m at 10¹²): the capacity figure only
-    separates methods at looser P* or larger V_зо.
+    * the largest n with P ≤ ``p_star`` under the seed model (metric ``capacity_n_<P*>``, e.g.
+      ``capacity_n_1e-3``; *illustrative*: (5.21) as printed, odds-shaped) and the sounder model
+      (``capacity_n_<P*>_sound``);
+    * P(n) at ``n_fixed`` aircraft (``p_conflict_n<n>``: seed (5.21) as printed, NaN where it is
+      not a probability; ``p_conflict_n<n>_sound``: any pair, sounder model) — a figure that
+      varies continuously with σ (∝ σ³ for small p) where n_max is an integer.
+
+    Rows in the ``metrics`` schema, stage ``"safety"``, method = the source method
+    (``"<stage>/<method>"`` when a method name occurs in several stages), segment ``"all"``,
+    n_runs from the source row.
+
+    Defaults P* = 10⁻³, V_зо = 10¹⁴ m³ (:data:`CAPACITY_V_ZO_M3`): with the printed volumes
+    (V_зо = 10¹² m³) the seed model admits n = 1 at P* = 10⁻⁶ for every realistic σ
+    (≥ 10.3 m), a constant that separates nothing.
 
     A σ outside the sounder model's domain (conflict sphere ≥ the zone volume, p ≥ 1, e.g. a
     tracker whose RMSE is kilometres) gives NaN for that picture instead of failing the run;
@@ -283,12 +302,17 @@ def capacity_from_metrics(metrics: pl.DataFrame, p_star: float = 1e-6, v_bc: flo
         for m, s_m, p_m in zip(np.asarray(src["__m"].to_list(), dtype=object)[~inside], sigma[~inside], p[~inside]):
             notes.append(f"safety: capacity_n_{label}_sound of {m} is NaN: σ = {s_m:.4g} m puts the conflict "
                          f"sphere beyond the zone volume (p = {p_m:.3g} ≥ 1, V_zo = {v_zo:g} m³)")
-    out = pl.concat([
-        src.select(pl.col("__m").alias("method"), "n_runs").with_columns(
-            pl.lit(f"capacity_n_{label}").alias("metric"), pl.Series("value", seed)),
-        src.select(pl.col("__m").alias("method"), "n_runs").with_columns(
-            pl.lit(f"capacity_n_{label}_sound").alias("metric"), pl.Series("value", sound)),
-    ])
+    values = {f"capacity_n_{label}": seed, f"capacity_n_{label}_sound": sound}
+    if n_fixed is not None:
+        risk = ppob_seed(np.full(len(sigma), n_fixed), sigma, v_bc, v_zo)
+        values[f"p_conflict_n{n_fixed}"] = np.where(risk.valid, risk.p, np.nan)
+        p_any = np.full(len(sigma), np.nan)
+        if inside.any():
+            p_any[inside] = ppob_sound(n_fixed, sigma[inside], r_c, v_zo, "any", dr_m)
+        values[f"p_conflict_n{n_fixed}_sound"] = p_any
+    base = src.select(pl.col("__m").alias("method"), "n_runs")
+    out = pl.concat([base.with_columns(pl.lit(name).alias("metric"), pl.Series("value", v))
+                     for name, v in values.items()])
     return (out.select(pl.lit("safety").alias("stage"), "method", "metric", pl.lit("all").alias("segment"),
                        "value", "n_runs")
             .sort("method", "metric").select([pl.col(c).cast(t) for c, t in spec.items()]))

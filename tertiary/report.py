@@ -855,11 +855,11 @@ def _sec_ppob(ctx: _Ctx) -> _Section:
 
 def _sec_capacity(ctx: _Ctx) -> _Section:
     go = _go()
-    from safety.capacity import V_ZO_M3, capacity_curve, nmax_seed, nmax_sound
+    from safety.capacity import CAPACITY_V_ZO_M3, V_ZO_M3, capacity_curve, nmax_seed, nmax_sound
     sec = _Section("capacity", "Capacity against accuracy (seed fig. 5.3)")
     cap = ctx.q("capacity_by_method")
-    p_run = float(cap["p_star"].drop_nulls()[0]) if cap.height and cap["p_star"].drop_nulls().len() else 1e-6
-    settings = [(p_run, V_ZO_M3), (1e-3, 1e14)]
+    p_run = float(cap["p_star"].drop_nulls()[0]) if cap.height and cap["p_star"].drop_nulls().len() else 1e-3
+    settings = [(p_run, CAPACITY_V_ZO_M3), (1e-6, V_ZO_M3)]
     sigmas = np.arange(10.0, 201.0, 2.0)
     fig = go.Figure()
     measured = cap.filter(pl.col("sigma_m").is_not_null() & (pl.col("stage") == "fusion")) if cap.height else cap
@@ -886,11 +886,14 @@ def _sec_capacity(ctx: _Ctx) -> _Section:
             "largest number of aircraft n_max (aircraft)")
     fig.update_xaxes(type="log")
     fig.update_yaxes(type="log")
-    sec.figures.append((fig, f"safety.capacity.capacity_curve for the run's P* = {p_run:g} with V_zo = {V_ZO_M3:.0e} m³ "
-                             "(as in the metrics table; it admits a single aircraft at every realistic σ, as the "
-                             "digest notes) and for P* = 1e-3, V_zo = 1e14 m³, where n_max ∝ σ⁻³ is visible. "
+    sec.figures.append((fig, f"safety.capacity.capacity_curve for the run's P* = {p_run:g} with V_zo = "
+                             f"{CAPACITY_V_ZO_M3:.0e} m³ (a 100 km × 100 km × 10 km zone, as in the metrics table; "
+                             "n_max ∝ σ⁻³) and for the printed P* = 1e-6, V_zo = 1e12 m³, which admits a single "
+                             "aircraft at every realistic σ, as the digest notes. The seed model (5.18)–(5.21) is "
+                             "drawn as printed and is illustrative (odds-shaped); the sounder model beside it. "
                              "Markers: each fusion method's measured RMSE σ (rmse_range_m, segment all) and its "
-                             "n_max (sql/capacity_by_method.sql)."))
+                             "n_max; the table adds P(n) with a fixed number of aircraft, which varies continuously "
+                             "with σ (sql/capacity_by_method.sql)."))
     sec.tables.append(("Capacity by method (sql/capacity_by_method.sql)", cap))
     return sec
 

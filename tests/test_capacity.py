@@ -143,7 +143,7 @@ def test_capacity_from_metrics():
         "value": [80.0, 10.0, 50.0, 3.0, 20.0, 20.0],
         "n_runs": [100, 100, 100, 100, 100, 100],
     }).cast(TABLES["metrics"].required)
-    out = capacity_from_metrics(metrics, p_star=1e-6)
+    out = capacity_from_metrics(metrics, p_star=1e-6, v_zo=1e12, n_fixed=None)
     validate(out, "metrics")
     assert set(out["metric"]) == {"capacity_n_1e-6", "capacity_n_1e-6_sound"}
     # arith is in two stages → labelled by stage; fusion/arith uses rmse_range_m (10 m) first
@@ -152,8 +152,27 @@ def test_capacity_from_metrics():
     assert vals[("tracking/arith", "capacity_n_1e-6")] == 1.0
     assert vals[("markov", "capacity_n_1e-6")] == 1.0            # σ = 50 m: n = 1 at 10⁻⁶
     assert ("seed", "capacity_n_1e-6") not in vals                # only a 'turn' segment
-    loose = capacity_from_metrics(metrics, p_star=1e-3, v_zo=1e14)
+    loose = capacity_from_metrics(metrics, p_star=1e-3, v_zo=1e14, n_fixed=None)
     assert set(loose["metric"]) == {"capacity_n_1e-3", "capacity_n_1e-3_sound"}
     assert dict(loose.filter(pl.col("metric") == "capacity_n_1e-3").select("method", "value").iter_rows())["markov"] \
         == float(nmax_seed(50, 1e-3, v_zo=1e14))
     assert capacity_from_metrics(metrics.filter(pl.col("metric") == "rmse_vel_mps")).height == 0
+
+
+def test_run_capacity_figures_vary_with_the_measured_sigma():
+    """Issue 11 item 8: no per-method capacity figure is constant over realistic σ."""
+    sig = [40.0, 60.0, 90.0, 150.0]
+    metrics = pl.DataFrame({"stage": "fusion", "method": [f"m{i}" for i in range(4)], "metric": "rmse_pos_m",
+                            "segment": "all", "value": sig, "n_runs": 1}).cast(TABLES["metrics"].required)
+    out = capacity_from_metrics(metrics)                 # the run's defaults
+    assert set(out["metric"]) == {"capacity_n_1e-3", "capacity_n_1e-3_sound", "p_conflict_n20",
+                                  "p_conflict_n20_sound"}
+    for name in out["metric"].unique():
+        v = out.filter(pl.col("metric") == name).sort("method")["value"].to_numpy()
+        assert len(np.unique(v)) == len(v), (name, v)    # every σ gives its own value
+        # worse accuracy: fewer aircraft, higher conflict probability
+        assert (np.diff(v) < 0).all() if name.startswith("capacity") else (np.diff(v) > 0).all(), (name, v)
+    p = dict(out.filter(pl.col("metric") == "p_conflict_n20").select("method", "value").iter_rows())
+    v_ob = 4.0 / 3.0 * np.pi * (6 * 60.0) ** 3           # (5.18) at σ = 60 m, by hand
+    p_np_ = (v_ob - 6000.0) / v_ob                       # (5.20)
+    assert p["m1"] == pytest.approx(19 * v_ob / (1e14 - 19 * v_ob) * p_np_, rel=1e-12)   # (5.21), n = 20

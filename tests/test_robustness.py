@@ -414,7 +414,8 @@ def test_capacity_p_at_least_1_is_nan_with_a_note() -> None:
                            schema_overrides={"n_runs": pl.UInt32})
     notes: list[str] = []
     cap = capacity_from_metrics(metrics, notes=notes)
-    sound = dict(cap.filter(pl.col("metric").str.ends_with("_sound")).select("method", "value").iter_rows())
+    sound = dict(cap.filter(pl.col("metric").str.starts_with("capacity_n_") & pl.col("metric").str.ends_with("_sound"))
+                 .select("method", "value").iter_rows())
     assert math.isnan(sound["bad"]) and sound["good"] >= 1
     assert len(notes) == 1 and "bad is NaN" in notes[0] and "p = " in notes[0]
 

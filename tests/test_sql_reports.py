@@ -661,7 +661,8 @@ def test_stca_tradeoff(q):
 @covers("capacity_by_method")
 def test_capacity_by_method(q):
     df = q("capacity_by_method")
-    assert df.columns == ["method", "stage", "p_star", "sigma_metric", "sigma_m", "n_max_seed", "n_max_sound", "n_runs"]
+    assert df.columns == ["method", "stage", "p_star", "sigma_metric", "sigma_m", "n_max_seed", "n_max_sound",
+                          "n_aircraft", "p_conflict_seed", "p_conflict_sound", "n_runs"]
     assert rows(df, "method", "stage", "p_star", "sigma_metric", "sigma_m", "n_max_seed", "n_max_sound") == [
         ("fusion/information", "fusion", 1e-6, "rmse_range_m", 31.0, 7.0, 8.0),
         ("apriori", "fusion", 1e-6, "rmse_range_m", 40.0, 3.0, 4.0),        # rmse_range_m preferred to rmse_pos_m
@@ -832,10 +833,12 @@ def test_simulated_reports_match_tables(sim_run):
         acct = dict(q("row_accounting").iter_rows())
         assert acct["unaccounted"] == 0 and acct["both_aligned_and_rejected"] == 0
         cap = q("capacity_by_method")
-        from safety.capacity import nmax_seed
+        from safety.capacity import CAPACITY_P_STAR, CAPACITY_V_ZO_M3, nmax_seed
         fus = cap.filter(pl.col("stage") == "fusion")
         assert fus.height >= 6
-        assert fus["n_max_seed"].to_list() == nmax_seed(fus["sigma_m"].to_numpy(), 1e-6).astype(float).tolist()
+        assert fus["n_max_seed"].to_list() == nmax_seed(fus["sigma_m"].to_numpy(), CAPACITY_P_STAR,
+                                                        v_zo=CAPACITY_V_ZO_M3).astype(float).tolist()
+        assert fus["n_max_seed"].n_unique() > 1 and fus["p_conflict_sound"].n_unique() == fus.height
         for rep in sql_reports.list_reports():                  # every report runs on a real run
             out = sql_reports.run_report(store, rep)
             cols = rep.description.split("Columns:")[1].split(".")[0]
