@@ -46,6 +46,9 @@ class AlignConfig:
       for the aircraft concerned (a diverged local track) and is rejected with that reason.
     * ``max_rows``: refuse (:class:`ResourceError`) an alignment estimated beyond this many
       aligned rows (about ``BYTES_PER_ALIGNED_ROW`` each) instead of allocating it.
+    * ``restart_gap_scans``: when plots only arrive, a local track silent for longer than this
+      many of its radar's scan periods restarts the package's own filter (radars reuse the
+      numbers of deleted tracks: the number then names another track).
     """
 
     period_s: float | None = None
@@ -54,6 +57,7 @@ class AlignConfig:
     max_speed_mps: float = 600.0
     max_rows: int = 60_000_000
     local_tracker: LocalTrackerConfig = LocalTrackerConfig()
+    restart_gap_scans: float = 4.0
 
 
 def needs_estimates(reports: pl.DataFrame) -> bool:
@@ -139,6 +143,24 @@ def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) ->
     return (int(t_min) // US) * US, float(period)
 
 
+def estimates_by_track_life(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig = AlignConfig()
+                            ) -> pl.DataFrame:
+    """:func:`tertiary.local_tracks.track_reports` with each local track split where it falls
+    silent for more than ``cfg.restart_gap_scans`` scan periods (a reused track number): each
+    life is filtered from its own first plot, the radar's numbers are kept."""
+    df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    key = ["run", "radar_id", "local_track_id"]
+    df = df.sort(key + ["time"], maintain_order=True)
+    period = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id", how="left",
+                                        maintain_order="left")["scan_period_s"].fill_null(np.inf)
+    gap = df.select(pl.col("time").diff().over(key).dt.total_microseconds() * 1e-6).to_series()
+    new = (gap.is_null() | (gap > cfg.restart_gap_scans * period)).to_numpy()
+    life = pl.Series("local_track_id", np.cumsum(new), dtype=pl.UInt32)
+    out = track_reports(df.rename({"local_track_id": "__number"}).with_columns(life), radars, cfg.local_tracker)
+    return out.with_columns(pl.col("__number").alias("local_track_id")).drop("__number").select(
+        [c for c in df.columns] + [c for c in out.columns if c not in df.columns and c != "__number"])
+
+
 @dataclass
 class AlignPlan:
     """Which reports align to which epochs, before any aligned row is built.
@@ -181,7 +203,7 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     Estimates the aligned rows before anything is allocated and raises
     :class:`ResourceError` beyond ``cfg.max_rows``."""
     if needs_estimates(reports):
-        reports = track_reports(reports, radars, cfg.local_tracker)
+        reports = estimates_by_track_life(reports, radars, cfg)
     if "run" not in reports.columns:
         reports = reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     df = reports.sort(["run", "radar_id", "local_track_id", "time"], maintain_order=True)

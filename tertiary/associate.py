@@ -23,6 +23,7 @@ group's lowest-numbered radar, which resolves a radar swapping its own track num
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -40,8 +41,15 @@ BIG = 1e18
 
 @dataclass(frozen=True)
 class AssociationConfig:
+    """* ``cost``: assignment cost of rules 3–4.
+    * ``carry_gap_s``: a local track absent from the aligned picture for longer than this is
+      a new track when its number comes back (radars reuse the numbers of deleted tracks):
+      it does not inherit the system target id it had before. 30 s bridges two missed scans
+      of a 12 s radar (silence 36 s, of which 18 s are covered by the 1.5-scan extrapolation)."""
+
     cost: Literal["sqdist", "mahalanobis"] = "sqdist"
     gating: GatingConfig = field(default_factory=GatingConfig)
+    carry_gap_s: float = 30.0
 
 
 @dataclass
@@ -165,11 +173,13 @@ def _reference_cost(aligned: pl.DataFrame, label: NDArray[np.int64], cfg: Associ
     return np.where(ref_of == np.arange(n), 0.0, np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0]))
 
 
-def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64]) -> tuple[NDArray[np.int64], int]:
+def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64], carry_gap_s: float = math.inf
+                     ) -> tuple[NDArray[np.int64], int]:
     """Stable system target ids across epochs; returns (target id per row, reassignments).
 
-    Sequential over epochs (a loop over the epoch grid, vectorised across runs, groups and
-    reports within each epoch).
+    A local track votes for the id it had at its last epoch unless that was more than
+    ``carry_gap_s`` before (a reused track number). Sequential over epochs (a loop over the
+    epoch grid, vectorised across runs, groups and reports within each epoch).
     """
     n = aligned.height
     keys = aligned.select(pl.struct("run", "radar_id", "local_track_id").rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
@@ -178,13 +188,16 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64]) -> tuple[N
     order = np.argsort(epoch, kind="stable")
     bounds = np.flatnonzero(np.diff(epoch[order])) + 1
     last = np.full(keys.max() + 1 if n else 0, -1, np.int64)
+    seen = np.zeros(len(last), np.int64)                # epoch (µs) of each local track's last row
+    gap_us = carry_gap_s * 1e6
     target = np.empty(n, np.int64)
     next_id = 0
     reassigned = 0
     for rows in np.split(order, bounds):
         g = label[rows]
         ug, gi = np.unique(g, return_inverse=True)
-        cand = last[keys[rows]]
+        kr = keys[rows]
+        cand = np.where(epoch[rows] - seen[kr] <= gap_us, last[kr], -1)
         assigned = np.full(len(ug), -1, np.int64)
         ok = cand >= 0
         if ok.any():
@@ -213,7 +226,8 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64]) -> tuple[N
         next_id += int(np.count_nonzero(fresh))
         new = assigned[gi]
         reassigned += int(np.count_nonzero(ok & (cand != new)))
-        last[keys[rows]] = new
+        last[kr] = new
+        seen[kr] = epoch[rows]
         target[rows] = new
     return target, reassigned
 
@@ -223,7 +237,7 @@ def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig(
     """The ``associations`` table (run, epoch, radar_id, local_track_id, report_id,
     target_id, cost) for every aligned row, and run statistics."""
     label, stats = group_reports(aligned, cfg)
-    target, stats.reassignments = carry_target_ids(aligned, label)
+    target, stats.reassignments = carry_target_ids(aligned, label, cfg.carry_gap_s)
     stats.targets = len(np.unique(target)) if len(target) else 0
     cost = _reference_cost(aligned, label, cfg) if aligned.height else np.zeros(0)
     out = aligned.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(

@@ -377,8 +377,19 @@ def add_nees(matched: pl.DataFrame) -> pl.DataFrame:
 
 def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
     """Association correctness (metrics schema, stage ``association``, method ``assignment``,
-    segment ``all``): ``assoc_correct_frac``, ``swaps``, ``targets_per_truth``,
-    ``false_targets`` as defined in the module docstring."""
+    segment ``all``): ``swaps``, ``targets_per_truth``, ``false_targets`` as defined in the
+    module docstring, and
+
+    * ``assoc_correct_frac``: among association rows whose report has a truth_id, the fraction
+      whose target both has that truth as majority and is the aircraft's principal target at
+      the epoch (the one holding most of its reports; ties: lowest id) — a report put in a
+      second, duplicate target of its aircraft is not correctly associated;
+
+    * ``split_targets``: number of (run, epoch, truth_id) whose reports went to two or more
+      system targets at that epoch (one aircraft shown as several targets);
+    * ``merged_targets``: number of (run, epoch, target_id) whose reports come from two or
+      more aircraft (several aircraft shown as one target).
+    """
     if associations.is_empty():
         return _empty_metrics()
     labelled = _report_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
@@ -387,7 +398,14 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
     n_runs = associations["run"].n_unique()
 
     real = rows.filter(pl.col("truth_id").is_not_null())
-    correct = (real.select((pl.col("truth_id") == pl.col("target_truth")).fill_null(False).mean()).item()
+    # the aircraft's principal target at the epoch: most of its reports (ties: lowest id)
+    principal = (real.group_by(["run", "epoch", "truth_id", "target_id"]).agg(pl.len().alias("__n"))
+                 .sort(["run", "epoch", "truth_id", "__n", "target_id"], descending=[False, False, False, True, False])
+                 .unique(subset=["run", "epoch", "truth_id"], keep="first", maintain_order=True)
+                 .select("run", "epoch", "truth_id", pl.col("target_id").alias("__principal")))
+    real = real.join(principal, on=["run", "epoch", "truth_id"], how="left")
+    correct = (real.select(((pl.col("truth_id") == pl.col("target_truth"))
+                            & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).mean()).item()
                if real.height else float("nan"))
 
     seq = maj.sort(["run", "target_id", "epoch"])
@@ -404,12 +422,16 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
 
     false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
                      ["clutter"].sum())
+    split = (real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n"))
+             .filter(pl.col("n") > 1).height)
+    merged = (real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height)
 
     out = pl.DataFrame({
         "stage": "association", "method": "assignment",
-        "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets"],
+        "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets",
+                   "merged_targets"],
         "segment": "all",
-        "value": [float(correct), float(swaps), tpt, float(false_targets)],
+        "value": [float(correct), float(swaps), tpt, float(false_targets), float(split), float(merged)],
         "n_runs": n_runs,
     })
     return _metrics_schema(out)

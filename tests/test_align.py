@@ -151,3 +151,19 @@ def test_no_report_aligns_to_empty_frames():
     al, rej = align.align(pl.DataFrame(schema={"radar_id": pl.UInt32, "time": pl.Datetime("us", "UTC")}),
                           _radars(), geo.LocalFrame(48.8, 2.5, 0.0))
     assert al.height == 0 and rej.height == 0 and "cov" in al.columns
+
+
+def test_align_rejects_index_the_input_rows(small_terminal):
+    """rejects.row_index is the row of the input table for align-stage rejects too: input
+    shuffled, with invalid rows first (so validated and input rows differ)."""
+    import dataclasses as dc
+    from tertiary import pipeline
+    from tertiary.align import AlignConfig
+    rep = small_terminal.reports.sample(fraction=1.0, shuffle=True, seed=1)
+    bad = rep.head(3).with_columns(pl.lit(-5.0).alias("range_m"), (pl.col("report_id") + 10 ** 9).alias("report_id"))
+    rep = pl.concat([bad, rep])
+    ing = pipeline.screen(dc.replace(small_terminal, reports=rep), pipeline.PipelineConfig(align=AlignConfig(period_s=12.0)))
+    rows = ing.rejects.join(rep.with_row_index("input_row").select("report_id", "input_row"), on="report_id")
+    assert set(rows["stage"].unique().to_list()) == {"ingest", "align"}
+    assert rows.filter(pl.col("stage") == "align").height > 100
+    assert (rows["row_index"] == rows["input_row"].cast(pl.UInt64)).all()

@@ -59,7 +59,7 @@ def test_big_box_dataset(big_box_runs):
     r = ds.reports
     assert r["run"].n_unique() == 5
     assert r.height == 5 * 2 * 852                     # τ = 1 s, Pd = 1: one report per scan
-    times = r.filter((pl.col("run") == 0) & (pl.col("radar_id") == 1))["time"]
+    times = r.filter((pl.col("run") == 0) & (pl.col("radar_id") == 1))["time"].sort()   # rows are in track order
     assert (times.diff().drop_nulls().dt.total_microseconds() == 1_000_000).all()   # synchronous
     # range noise: sigma 50 m
     truth = ds.truth.select("time", "x_m", "y_m", "z_m")
@@ -207,11 +207,44 @@ def test_radar_track_estimates_consistent(big_box_runs):
 
 
 def test_local_track_ids_restart_after_long_gap():
+    from tertiary.simulate import RadarTrackerConfig
     cfg = load_scenario("big-box").replace(runs=1)
     cfg = dataclasses.replace(cfg, anomalies=Anomalies(dropout_radar="RLS1", dropout_window_s=(100.0, 120.0)))
-    ds = simulate(cfg)
-    ids = ds.reports.filter(pl.col("radar_id") == 1)["local_track_id"].unique().sort().to_list()
+    ideal = simulate(dataclasses.replace(cfg, radar_tracker=RadarTrackerConfig(ideal=True)))
+    ids = ideal.reports.filter(pl.col("radar_id") == 1)["local_track_id"].unique().sort().to_list()
     assert ids == [1, 2]
+    # the radar's own tracker deletes the track in the 20 s silence: while its number is held
+    # the aircraft comes back under a new one; once free (10 scans) the number is reused
+    for hold, same in ((100, False), (10, True)):
+        ds = simulate(dataclasses.replace(cfg, radar_tracker=RadarTrackerConfig(reuse_after_scans=hold)))
+        r = ds.reports.filter(pl.col("radar_id") == 1)
+        t = (r["time"].dt.epoch("us") - r["time"].dt.epoch("us").min()).to_numpy() * 1e-6
+        before, after = r.filter(pl.Series(t < 100.0)), r.filter(pl.Series(t > 121.0))
+        assert before["local_track_id"].mode().to_list() == [1]
+        assert (after["local_track_id"].mode().to_list() == [1]) is same
+
+
+def test_transponder_replies_not_copied_from_truth():
+    """Mode S on a configurable fraction of aircraft and missing on some replies; Mode 3/A
+    codes with duplicates and changes; callsigns ride on Mode S replies only."""
+    from tertiary.simulate import TransponderConfig
+    cfg = load_scenario("terminal-area")
+    tx = TransponderConfig(mode_s_fraction=0.5, mode_s_missing_rate=0.05, duplicate_code_fraction=0.3,
+                           code_change_fraction=0.5)
+    cfg = dataclasses.replace(cfg, duration_s=900.0, traffic=dataclasses.replace(cfg.traffic, aircraft=60, conflict_pairs=3),
+                              transponders=tx)
+    r = simulate(cfg).reports.filter(pl.col("truth_id").is_not_null())
+    per = r.group_by("truth_id").agg(pl.col("mode_s").drop_nulls().n_unique().alias("addr"),
+                                     pl.col("mode_s").null_count().alias("none"), pl.len().alias("n"),
+                                     pl.col("mode_3a").drop_nulls().n_unique().alias("codes"),
+                                     pl.col("mode_3a").drop_nulls().first().alias("code"))
+    with_s = per.filter(pl.col("addr") == 1)
+    assert (per["addr"] <= 1).all() and 0.3 < with_s.height / per.height < 0.7
+    missing = with_s["none"].sum() / with_s["n"].sum()
+    assert missing == pytest.approx(0.05, abs=0.015)
+    assert per.filter(pl.col("codes") == 2).height >= 5     # changes (at a time of the scenario, seen if flying)
+    assert per["code"].n_unique() < per.height                                  # duplicate codes
+    assert r.filter(pl.col("mode_s").is_null())["callsign"].null_count() == r.filter(pl.col("mode_s").is_null()).height
 
 
 # the real sample ships with the project (datasets/, and tertiary/datasets/ in the wheel)

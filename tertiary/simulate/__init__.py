@@ -12,21 +12,23 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
+from numpy.typing import NDArray
 
 from tertiary import geo
 from tertiary.errors import DataError, OptionError
 from tertiary.local_tracks import track_reports
-from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, ScenarioConfig, TrackerParams,
-                                      TrafficConfig, auto_radars, builtin_scenarios, check_name, check_origin,
+from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarTrackerConfig, ScenarioConfig,
+                                      TrackerParams, TrafficConfig, TransponderConfig, auto_radars, builtin_scenarios, check_name, check_origin,
                                       check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
-from tertiary.simulate.radar import Plots, observe, site_frame
+from tertiary.simulate.radar import Plots, Transponders, number_plots, observe, site_frame, transponders
 from tertiary.simulate.traffic import big_box, terminal_area
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.store import write_parquet_atomic, write_text_atomic
 
 __all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "load_scenario", "builtin_scenarios",
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
+           "TransponderConfig", "RadarTrackerConfig",
            "Trajectories", "big_box", "terminal_area", "resolve_data_path", "check_scenario",
            "read_scenario_toml"]
 
@@ -109,20 +111,25 @@ def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
     })
 
 
-def _meta(traj: Trajectories, name: str, index: pl.Series) -> pl.Series:
-    """Per-aircraft metadata gathered per report (null for clutter or empty values)."""
-    values = traj.meta.get(name)
-    if values is None:
-        return pl.Series(name, [None] * len(index), dtype=pl.String)
-    table = pl.Series(name, np.asarray(values, dtype=str), dtype=pl.String).replace("", None)
-    return table.gather(index)
+#: Mode 3/A codes 0…4095 as their four octal digits
+_CODES = pl.Series("mode_3a", [f"{v:04o}" for v in range(4096)], dtype=pl.String)
 
 
-def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories) -> pl.DataFrame:
+def _gather(table: pl.Series, index: NDArray[np.int64], name: str) -> pl.Series:
+    """``table[index]`` with null where ``index`` < 0 (no reply, clutter) or the value is empty."""
+    return table.replace("", None).gather(pl.Series(index).replace(-1, None)).alias(name)
+
+
+def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transponders) -> pl.DataFrame:
+    """One radar's reports. Every column comes from what the radar measured or was replied —
+    the plot, the radar clock, its own track number, the transponder's address, code and
+    altitude; the callsign rides on Mode S replies (ELS), so a report without an address has
+    none — except ``truth_id`` (scoring only)."""
     epoch_us = int(traj.epoch.timestamp() * 1_000_000)
     real = plots.aircraft >= 0
     index = pl.Series(plots.aircraft).replace(-1, None)      # clutter gathers nulls
     tid = pl.Series(traj.truth_id).gather(index)
+    by_address = np.where(plots.mode_s >= 0, plots.aircraft, -1)
     return pl.DataFrame({
         "run": plots.run,
         "radar_id": pl.Series(np.full(len(real), radar_id), dtype=pl.UInt32),
@@ -130,9 +137,11 @@ def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories) -> pl.DataFr
         "local_track_id": plots.local_track_id,
         "range_m": plots.range_m, "azimuth_deg": plots.azimuth_deg, "elevation_deg": plots.elevation_deg,
         "altitude_m": pl.Series(plots.altitude_m).fill_nan(None),
-        "mode_s": _meta(traj, "icao24", index), "mode_3a": _meta(traj, "squawk", index),
-        "callsign": _meta(traj, "callsign", index),
+        "mode_s": _gather(pl.Series(tx.addresses, dtype=pl.String), plots.mode_s, "mode_s"),
+        "mode_3a": _gather(_CODES, plots.mode_3a, "mode_3a"),
+        "callsign": _gather(pl.Series(tx.callsign, dtype=pl.String), by_address, "callsign"),
         "truth_id": tid.cast(pl.Int64),
+        "__life": plots.track_life,
     })
 
 
@@ -148,14 +157,23 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(cfg.radars) + 1)
     system = geo.LocalFrame(*cfg.origin)
     radars = radars_frame(cfg)
-    parts = []
+    tx = transponders(traj, cfg.transponders, np.random.default_rng(seeds[0].spawn(1)[0]))
+    plots = []
     for i, radar in enumerate(cfg.radars):
         say(f"radar scans {radar.name}")
-        plots = observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies)
-        parts.append(_reports_frame(plots, i + 1, traj))
+        plots.append(observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies, tx))
+    say("radar plot-to-track association")
+    plots = number_plots(plots, list(cfg.radars), cfg.runs, traj.duration, cfg.radar_tracker)
+    parts = [_reports_frame(p, i + 1, traj, tx) for i, p in enumerate(plots)]
     reports = pl.concat(parts, how="vertical") if parts else pl.DataFrame()
     say("radar secondary processing")
-    reports = track_reports(reports, radars, cfg.tracker.local_tracker())
+    # each track life is filtered on its own (a reused number restarts the radar's filter)
+    reports = track_reports(reports.rename({"local_track_id": "__number"})
+                            .with_columns(pl.col("__life").cast(pl.UInt32).alias("local_track_id")),
+                            radars, cfg.tracker.local_tracker())
+    reports = reports.with_columns(pl.col("__number").alias("local_track_id")).drop("__number", "__life")
+    reports = reports.select([c for c in parts[0].columns if c in reports.columns and c != "__life"]
+                             + [c for c in reports.columns if c not in parts[0].columns])
     reports = reports.with_columns(pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"))
     return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed)
 

@@ -14,6 +14,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 from tertiary.errors import DataError, OptionError, ResourceError
 from tertiary.filters.singer import SingerModel
 from tertiary.local_tracks import LocalTrackerConfig
+from tertiary.simulate.radar_tracker import RadarTrackerConfig
 
 Kind = Literal["big-box", "terminal-area", "adsb"]
 
@@ -121,6 +122,25 @@ class TrackerParams:
 
 
 @dataclass(frozen=True)
+class TransponderConfig:
+    """What the aircraft's transponders reply (:func:`tertiary.simulate.radar.transponders`).
+
+    * ``mode_s_fraction``: fraction of aircraft with a Mode S address; ``None`` = as the
+      traffic says (terminal-area: ``traffic.mode_s_fraction``; big-box and ADS-B: all).
+    * ``mode_s_missing_rate`` / ``mode_3a_missing_rate``: fraction of replies whose address /
+      code is not decoded (the report carries none).
+    * ``duplicate_code_fraction``: fraction of aircraft squawking another aircraft's code.
+    * ``code_change_fraction``: fraction of aircraft changing code once during the scenario.
+    """
+
+    mode_s_fraction: float | None = None
+    mode_s_missing_rate: float = 0.02
+    mode_3a_missing_rate: float = 0.02
+    duplicate_code_fraction: float = 0.03
+    code_change_fraction: float = 0.1
+
+
+@dataclass(frozen=True)
 class AdsbConfig:
     truth_file: str = ""
     start_s: float = 0.0                 # offset into the recording
@@ -142,6 +162,8 @@ class ScenarioConfig:
     anomalies: Anomalies = field(default_factory=Anomalies)
     tracker: TrackerParams = field(default_factory=TrackerParams)
     adsb: AdsbConfig = field(default_factory=AdsbConfig)
+    transponders: TransponderConfig = field(default_factory=TransponderConfig)
+    radar_tracker: RadarTrackerConfig = field(default_factory=RadarTrackerConfig)
 
     def replace(self, **changes: Any) -> "ScenarioConfig":
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
@@ -541,6 +563,8 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
     t = cfg.tracker
     for k in ("alpha", "sigma_m", "cross_sigma_m", "v0_sigma_mps"):
         _number(f"tracker.{k}", getattr(t, k), 0.0, 1e6, open_lo=True)
+    _check_transponders(cfg.transponders)
+    _check_radar_tracker(cfg.radar_tracker)
     if cfg.kind != "adsb" and cfg.adsb.truth_file:
         raise OptionError(f"an ADS-B truth file applies to the adsb scenarios only, not to {cfg.kind!r}",
                           option=_opt("adsb.truth_file"))
@@ -553,6 +577,27 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
         _number("adsb.max_gap_s", cfg.adsb.max_gap_s, 0.0, 86400.0, open_lo=True)
     _check_size(cfg)
     return cfg
+
+
+def _check_transponders(t: TransponderConfig) -> None:
+    if t.mode_s_fraction is not None:
+        _number("transponders.mode_s_fraction", t.mode_s_fraction, 0.0, 1.0)
+    for k in ("mode_s_missing_rate", "mode_3a_missing_rate", "duplicate_code_fraction", "code_change_fraction"):
+        _number(f"transponders.{k}", getattr(t, k), 0.0, 1.0)
+
+
+def _check_radar_tracker(r: RadarTrackerConfig) -> None:
+    if not isinstance(r.ideal, bool):
+        raise _type_error("radar_tracker.ideal", "true or false", r.ideal)
+    if not isinstance(r.mode_s_gate, bool):
+        raise _type_error("radar_tracker.mode_s_gate", "true or false", r.mode_s_gate)
+    _number("radar_tracker.gate_chi2", r.gate_chi2, 0.0, 1e4, open_lo=True)
+    _number("radar_tracker.q_m2s3", r.q_m2s3, 0.0, 1e6)
+    _number("radar_tracker.v0_sigma_mps", r.v0_sigma_mps, 0.0, 1e4, open_lo=True)
+    _number("radar_tracker.confirm_hits", r.confirm_hits, 1, 1000, integer=True)
+    _number("radar_tracker.tentative_misses", r.tentative_misses, 1, 1000, integer=True)
+    _number("radar_tracker.code_mismatch_cost", r.code_mismatch_cost, 0.0, 1e6)
+    _number("radar_tracker.reuse_after_scans", r.reuse_after_scans, 0, 1_000_000, integer=True)
 
 
 def _check_size(cfg: ScenarioConfig) -> None:

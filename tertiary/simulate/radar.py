@@ -8,6 +8,12 @@ Rotating antenna: the beam points north at the scan start ``phase + k·T`` and t
 so an aircraft at azimuth β is illuminated at ``t = phase + k·T + T·β/360`` (solved by two
 fixed-point iterations, β moves little in one scan). ``timing="synchronous"`` samples every
 aircraft at the scan start (the seed's synchronous τ = 1 s model).
+
+Transponders (:func:`transponders`): a Mode S address on a configurable fraction of aircraft,
+missing on a fraction of replies; Mode 3/A codes with duplicates among aircraft and code
+changes in flight, missing on a fraction of replies. Track numbers come from each radar's own
+plot-to-track association (:mod:`tertiary.simulate.radar_tracker`, :func:`number_plots`), never
+from the truth — unless the scenario asks for ideal radar trackers.
 """
 
 from __future__ import annotations
@@ -18,7 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tertiary import geo
-from tertiary.simulate.config import Anomalies, RadarConfig
+from tertiary.simulate import radar_tracker as rt
+from tertiary.simulate.config import Anomalies, RadarConfig, TransponderConfig
 from tertiary.simulate.trajectory import Trajectories
 
 FT = 0.3048
@@ -48,6 +55,10 @@ class Plots:
     elevation_deg: NDArray[np.float64]
     altitude_m: NDArray[np.float64]    # pressure altitude as replied (:func:`transponder_altitude`), NaN for clutter/missing
     local_track_id: NDArray[np.uint32]
+    scan: NDArray[np.int64]            # the radar's scan index
+    mode_s: NDArray[np.int64]          # Mode S address as replied (index into Transponders.addresses), -1 none
+    mode_3a: NDArray[np.int64]         # Mode 3/A code as replied (0…4095), -1 none
+    track_life: NDArray[np.int64]      # the local track's life (a reused number starts a new one)
 
     def __len__(self) -> int:
         return len(self.run)
@@ -61,6 +72,84 @@ def site_frame(radar: RadarConfig, system: geo.LocalFrame) -> geo.LocalFrame:
         raise ValueError(f"radar {radar.name!r}: give lat_deg/lon_deg or site_enu_m")
     lat, lon, alt = system.to_geodetic(*radar.site_enu_m)
     return geo.LocalFrame(float(lat), float(lon), float(alt))
+
+
+@dataclass
+class Transponders:
+    """Per aircraft: Mode S address (index into ``addresses``, -1 without), Mode 3/A code
+    ``code_a`` until ``t_change`` (s, inf: never) then ``code_b``, callsign ("" none), and the
+    per-reply probabilities that the address or the code is not decoded."""
+
+    address: NDArray[np.int64]
+    addresses: NDArray[np.str_]
+    code_a: NDArray[np.int64]
+    code_b: NDArray[np.int64]
+    t_change: NDArray[np.float64]
+    callsign: NDArray[np.str_]
+    mode_s_missing_rate: float = 0.0
+    mode_3a_missing_rate: float = 0.0
+
+    def quantum_m(self) -> NDArray[np.float64]:
+        """Altitude quantum per aircraft: 25 ft with a Mode S transponder, else 100 ft."""
+        return np.where(self.address >= 0, QUANTUM_MODE_S_M, QUANTUM_MODE_C_M)
+
+    def reply(self, aircraft: NDArray[np.int64], t: NDArray[np.float64], rng: np.random.Generator
+              ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(Mode S address, Mode 3/A code) of replies of ``aircraft`` at times ``t`` (-1 when
+        the aircraft has none or the reply was not decoded)."""
+        n = len(aircraft)
+        ms = np.where(rng.random(n) < self.mode_s_missing_rate, -1, self.address[aircraft])
+        code = np.where(t < self.t_change[aircraft], self.code_a[aircraft], self.code_b[aircraft])
+        return ms, np.where(rng.random(n) < self.mode_3a_missing_rate, -1, code)
+
+
+def _strings(traj: Trajectories, name: str) -> NDArray[np.str_]:
+    values = traj.meta.get(name)
+    if values is None:
+        return np.full(traj.n_aircraft, "", dtype=str)
+    return np.array(["" if v is None else str(v) for v in np.asarray(values, dtype=object)], dtype=str)
+
+
+def _octal(codes: NDArray[np.str_]) -> NDArray[np.int64]:
+    """Mode 3/A codes written in octal (4 digits 0–7), -1 where not one."""
+    ok = (np.char.str_len(codes) == 4) & np.char.isdigit(codes)
+    ok &= ~np.char.count(codes, "8").astype(bool) & ~np.char.count(codes, "9").astype(bool)
+    digits = np.where(ok, codes, "0000").astype("U4").view("<U1").reshape(-1, 4).astype(np.int64)
+    return np.where(ok, digits @ np.array([512, 64, 8, 1]), -1)
+
+
+def transponders(traj: Trajectories, cfg: TransponderConfig, rng: np.random.Generator) -> Transponders:
+    """Each aircraft's transponder. Mode S: the traffic's own addresses (``meta["icao24"]``),
+    or with ``cfg.mode_s_fraction`` an address on that fraction of aircraft (the traffic's,
+    else a made-up one). Mode 3/A: the traffic's squawk (a random code where it has none); a
+    fraction ``duplicate_code_fraction`` squawks another aircraft's code, a fraction
+    ``code_change_fraction`` changes code once at a uniform time of the scenario."""
+    n = traj.n_aircraft
+    icao = _strings(traj, "icao24")
+    if "icao24" not in traj.meta:
+        icao = np.array([f"{0x3C0000 + i:06x}" for i in range(n)], dtype=str) if n else icao
+    if cfg.mode_s_fraction is not None:
+        made_up = np.array([f"{0x3D0000 + i:06x}" for i in range(n)], dtype=str) if n else icao
+        icao = np.where(rng.random(n) < cfg.mode_s_fraction, np.where(icao == "", made_up, icao), "")
+    addresses, inverse = np.unique(icao, return_inverse=True)
+    address = np.where(icao == "", -1, inverse.reshape(-1)).astype(np.int64)
+    code = _octal(_strings(traj, "squawk"))
+    code = np.where(code < 0, rng.integers(0o1000, 0o7777, n), code)
+    dup = rng.random(n) < cfg.duplicate_code_fraction
+    if n > 1:
+        other = (np.arange(n) + 1 + rng.integers(0, n - 1, n)) % n
+        code = np.where(dup, code[other], code)
+    change = rng.random(n) < cfg.code_change_fraction
+    t_change = np.where(change, rng.uniform(0.0, traj.duration, n), np.inf)
+    return Transponders(address=address, addresses=addresses, code_a=code, code_b=rng.integers(0o1000, 0o7777, n),
+                        t_change=t_change, callsign=_strings(traj, "callsign"),
+                        mode_s_missing_rate=cfg.mode_s_missing_rate, mode_3a_missing_rate=cfg.mode_3a_missing_rate)
+
+
+def scan_starts(radar: RadarConfig, duration: float) -> NDArray[np.float64]:
+    """Start times of the radar's scans over ``duration`` s."""
+    period = radar.scan_period_s
+    return np.arange(radar.scan_phase_s % period, duration - 1e-9, period)
 
 
 def _blocks(fn, n: int, *arrays: NDArray) -> tuple[NDArray, ...]:
@@ -105,8 +194,13 @@ def _inflation(anom: Anomalies, radar: RadarConfig, t: NDArray[np.float64]) -> N
 
 
 def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs: int,
-            rng: np.random.Generator, anom: Anomalies = Anomalies()) -> Plots:
-    """Simulate every scan of ``radar`` over ``traj`` for ``runs`` Monte-Carlo runs."""
+            rng: np.random.Generator, anom: Anomalies = Anomalies(), tx: Transponders | None = None) -> Plots:
+    """Simulate every scan of ``radar`` over ``traj`` for ``runs`` Monte-Carlo runs: the
+    detections, then the false reports, not yet numbered (:func:`number_plots`)."""
+    if tx is None:
+        tx = transponders(traj, TransponderConfig(mode_s_missing_rate=0.0, mode_3a_missing_rate=0.0,
+                                                  duplicate_code_fraction=0.0, code_change_fraction=0.0),
+                          np.random.default_rng(0))
     site = site_frame(radar, system)
     rot_t, offset = system.rotation_to(site).T, system.offset_in(site)
 
@@ -116,8 +210,7 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         q = p @ rot_t + offset
         return q[..., 0], q[..., 1], q[..., 2]
 
-    period = radar.scan_period_s
-    scan_start = np.arange(radar.scan_phase_s % period, traj.duration - 1e-9, period)
+    scan_start = scan_starts(radar, traj.duration)
     ia, ik, t, pos, rng_true, az_true, el_true = _illumination(traj, radar, sys_to_site, scan_start)
     covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg) & \
         (el_true <= radar.max_elevation_deg)
@@ -149,14 +242,18 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
     r_idx, p_idx = np.nonzero(keep)
     meas = meas.reshape(-1, 3).take(r_idx * m + p_idx, axis=0)
 
+    ac = ia[p_idx].astype(np.int64)
+    tx_rng = rng.spawn(2)
+    mode_s, mode_3a = tx.reply(ac, t_c[p_idx], tx_rng[1])
     plots = Plots(
         run=r_idx.astype(np.uint32), t_true=t_c[p_idx], t_report=t_c[p_idx] + radar.time_offset_s,
-        aircraft=ia[p_idx].astype(np.int64),
+        aircraft=ac,
         range_m=np.maximum(meas[:, 0], 0.0), azimuth_deg=np.mod(meas[:, 1], 360.0),
         elevation_deg=np.clip(meas[:, 2], -90.0, 90.0),
-        altitude_m=transponder_altitude(alt_true[p_idx], quantum_m(traj)[ia[p_idx]], rng.spawn(1)[0]),
-        local_track_id=np.zeros(len(r_idx), np.uint32))
-    return _numbered(plots, _clutter(radar, scan_start, runs, rng), radar)
+        altitude_m=transponder_altitude(alt_true[p_idx], tx.quantum_m()[ac], tx_rng[0]),
+        local_track_id=np.zeros(len(r_idx), np.uint32), scan=ik[p_idx].astype(np.int64),
+        mode_s=mode_s, mode_3a=mode_3a, track_life=np.zeros(len(r_idx), np.int64))
+    return _merge(plots, _clutter(radar, scan_start, runs, rng))
 
 
 def quantum_m(traj: Trajectories) -> NDArray[np.float64]:
@@ -207,7 +304,8 @@ def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng
     return Plots(run=run, t_true=t, t_report=t + radar.time_offset_s, aircraft=np.full(c, -1, np.int64),
                  range_m=rng.uniform(2_000.0, radar.max_range_m, c), azimuth_deg=az,
                  elevation_deg=rng.uniform(0.0, 3.0, c), altitude_m=np.full(c, np.nan),
-                 local_track_id=np.zeros(c, np.uint32))
+                 local_track_id=np.zeros(c, np.uint32), scan=k.astype(np.int64),
+                 mode_s=np.full(c, -1, np.int64), mode_3a=np.full(c, -1, np.int64), track_life=np.zeros(c, np.int64))
 
 
 def _merge(a: Plots, b: Plots) -> Plots:
@@ -227,7 +325,42 @@ def _in_order(*keys: NDArray) -> bool:
     return bool(np.all(ahead | tied))
 
 
-def _numbered(det: Plots, clutter: Plots, radar: RadarConfig) -> Plots:
+def number_plots(plots: list[Plots], radars: list[RadarConfig], runs: int, duration: float,
+                 cfg: rt.RadarTrackerConfig) -> list[Plots]:
+    """Each radar's plots with its own track numbers, sorted by (run, track number, time).
+
+    ``cfg.ideal``: numbers from the truth (:func:`_numbered`). Else every radar runs its own
+    association (:func:`tertiary.simulate.radar_tracker.run_scans`) on what it measured —
+    plot positions in its ground plane with its nominal accuracy, its own clock, the replied
+    codes — all radars and runs in one pass over the scan index."""
+    if cfg.ideal:
+        return [_numbered(p, r) for p, r in zip(plots, radars)]
+    if not plots:
+        return []
+    idx = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(plots)])
+    allp = plots[0] if len(plots) == 1 else _merge_all(plots)
+    sig = np.array([[r.sigma_range_m, r.sigma_azimuth_deg, r.sigma_elevation_deg] for r in radars])[idx]
+    z, cov = rt.ground_plots(allp.range_m, allp.azimuth_deg, allp.elevation_deg, sig[:, 0], sig[:, 1], sig[:, 2])
+    period = np.array([r.scan_period_s for r in radars])
+    drop = np.array([rt.drop_misses(r.track_drop_scans) for r in radars], np.int64)
+    scans = np.array([len(scan_starts(r, duration)) for r in radars], np.int64)
+    part = idx * runs + allp.run.astype(np.int64)
+    scan = rt.ScanPlots(part=part, t=allp.t_report, z=z, r=cov, mode_s=allp.mode_s, mode_3a=allp.mode_3a,
+                        period=period[idx], drop_misses=drop[idx], scanned=np.zeros(0, np.int64))
+    numbers, _ = rt.run_scans(cfg, allp.scan, scan, np.repeat(scans, runs))
+    allp.local_track_id, allp.track_life = numbers[:, 0].astype(np.uint32), numbers[:, 1]
+    out = []
+    for i in range(len(plots)):
+        p = _take(allp, np.flatnonzero(idx == i))
+        out.append(_take(p, np.lexsort((p.t_true, p.local_track_id, p.run))))
+    return out
+
+
+def _merge_all(parts: list[Plots]) -> Plots:
+    return Plots(*(np.concatenate([getattr(p, f) for p in parts]) for f in Plots.__dataclass_fields__))
+
+
+def _numbered(plots: Plots, radar: RadarConfig) -> Plots:
     """Detections and false reports merged with the radar's own track numbers, sorted by (run,
     track number, time) — the order of its secondary processing, which then needs no sort.
 
@@ -237,6 +370,8 @@ def _numbered(det: Plots, clutter: Plots, radar: RadarConfig) -> Plots:
     order is that of a lexsort by (run, aircraft, time); detections arrive in it already
     (run-major, then aircraft, then scan), so only the false reports are sorted.
     """
+    real = plots.aircraft >= 0
+    det, clutter = _take(plots, np.flatnonzero(real)), _take(plots, np.flatnonzero(~real))
     if not _in_order(det.run, det.aircraft, det.t_true):
         det = _take(det, np.lexsort((det.t_true, det.aircraft, det.run)))
     p = _merge(_take(clutter, np.lexsort((clutter.t_true, clutter.run))), det)
@@ -250,4 +385,5 @@ def _numbered(det: Plots, clutter: Plots, radar: RadarConfig) -> Plots:
     tid = np.cumsum(new)
     run_first = np.searchsorted(run, run, side="left")          # first row of each run
     p.local_track_id = (tid - tid[run_first] + 1).astype(np.uint32)
+    p.track_life = p.local_track_id.astype(np.int64)           # numbers are never reused
     return p
