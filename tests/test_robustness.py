@@ -245,7 +245,10 @@ def test_dataset_without_scenario_toml_runs(small_dir: Path, tmp_path: Path) -> 
     sites = pl.read_parquet(d / "radars.parquet")
     assert ds.scenario.origin == pytest.approx((sites["lat_deg"].mean(), sites["lon_deg"].mean(), 0.0))
     assert ds.scenario.name == "my_data" and any("mean radar site" in n for n in ds.notes)
-    assert read_dataset(d, origin=(48.0, 2.0)).scenario.origin == (48.0, 2.0, 0.0)
+    # truth in an unnamed frame is not scored in a guessed one (km "errors"); --origin names it
+    assert ds.truth.height == 0 and any("truth.parquet: not used" in n for n in ds.notes)
+    named = read_dataset(d, origin=(48.0, 2.0))
+    assert named.scenario.origin == (48.0, 2.0, 0.0) and named.truth.height > 0
     with pytest.raises(OptionError, match="origin"):
         read_dataset(d, origin=(95.0, 2.0))
     db = pipeline.run(ds, tmp_path / "run", CFG)

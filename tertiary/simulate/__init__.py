@@ -233,7 +233,8 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
 
     ``origin`` (lat, lon[, alt]) overrides the scenario's system origin. Without
     ``scenario.toml`` the origin is ``origin`` or else the mean of the radar sites (a note in
-    ``Dataset.notes`` says so) and the scenario name is the directory name made an identifier.
+    ``Dataset.notes`` says so; truth, whose ENU positions need the frame's origin, is then not
+    used, with a note) and the scenario name is the directory name made an identifier.
     Every problem (missing or unreadable file, malformed TOML, bad origin or name) is a
     :class:`DataError` naming the file.
     """
@@ -272,6 +273,13 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
                 raise DataError("no scenario.toml and no radar site to place the system origin: give the origin "
                                 "(--origin LAT,LON)", path=str(d))
             notes.append(f"system origin = mean radar site ({origin[0]:.5f}, {origin[1]:.5f}, 0 m)")
+            if truth.height:
+                # truth holds ENU positions of a frame whose origin only scenario.toml (or the user)
+                # knows; scored in a guessed frame it would give kilometre "errors" that are not
+                notes.append(f"{d / 'truth.parquet'}: not used — its ENU positions are in a frame this dataset "
+                             "does not name (no scenario.toml); give --origin LAT,LON of that frame to score "
+                             "against it")
+                truth = truth.clear()
     if origin is not None:
         scen = dataclasses.replace(scen, origin=tuple(origin))
     return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes)
