@@ -15,7 +15,10 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    A reply with |ν| > g·√S + f (``gate_sigma`` g, ``gate_floor_m`` f) is a **garble** (a
    wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
    restarts the filter on itself (a real altitude jump persists, independent garbles do
-   not). Missing altitude (null) only predicts.
+   not). Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter's
+   altitude is output only once a second reply has fallen inside the gate of its first: an
+   unconfirmed filter restarts on any reply outside its gate, so a garbled first reply never
+   reaches the picture.
 
    With ``model="imm"`` (default) the filter is an interacting multiple model (Blom &
    Bar-Shalom 1988) of two such filters that differ only in q_a: **level** (q_L, height
@@ -219,15 +222,19 @@ def _update_models(preds: list[AltState], c: F64, z: F64, var: F64) -> tuple[lis
 
 
 def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
-                  cfg: AltitudeConfig = AltitudeConfig()) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_]]:
+                  cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None
+                  ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_]]:
     """Run the altitude filter ((A1)–(A4), or the IMM (A5)–(A9)) with the garble gate over
     every track's replies.
 
     ``t`` (n,) seconds, ``z`` (n,) altitudes (NaN = missing), ``var`` (n,) their R, sorted so
     that track g owns rows ``starts[g] : starts[g] + lengths[g]`` in time order. Returns the
     (combined) estimate at each row's time after its update (NaN before the track's first
-    altitude), a mask of the rows that have an estimate, and a mask of the replies rejected as
-    garbles. The loop runs over the rank within a track, vectorised over tracks (lengths
+    altitude), a mask of the rows that have a *confirmed* estimate (two consistent replies),
+    and a mask of the replies rejected as garbles. ``ident`` (n,), optional: an identity code
+    per reply (e.g. the Mode S address as an integer, < 0 = none); a reply whose identity
+    differs from the last one the filter saw restarts it at once — a radar track that swapped
+    aircraft must not carry the other aircraft's altitude. The loop runs over the rank within a track, vectorised over tracks (lengths
     sorted descending, so the tracks with more than k rows are a prefix)."""
     qs, sojourn = _models(cfg)
     nm = len(qs)
@@ -240,6 +247,9 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
     t_last = np.zeros(len(st))
     ok = np.zeros(len(st), bool)
     miss = np.zeros(len(st), np.int64)
+    conf = np.zeros(len(st), bool)
+    ids = np.full(n, -1, np.int64) if ident is None else np.asarray(ident, np.int64)
+    last_id = np.full(len(st), -1, np.int64)
     alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
     for k, m in enumerate(alive):
         idx = st[:m] + k
@@ -252,10 +262,15 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
         nu, sv = np.where(valid, zk, 0.0) - s.h, s.phh + vk
         inside = np.abs(nu) <= cfg.gate_sigma * np.sqrt(np.maximum(sv, 0.0)) + cfg.gate_floor_m
         run = ok[:m]
-        accept = run & valid & inside
-        bad = run & valid & ~inside
+        idk = ids[idx]
+        swapped = valid & run & (idk >= 0) & (last_id[:m] >= 0) & (idk != last_id[:m])   # another aircraft
+        last_id[:m] = np.where(valid & (idk >= 0), idk, last_id[:m])
+        accept = run & valid & inside & ~swapped
+        bad = run & valid & ~inside & ~swapped
         miss[:m] = np.where(accept, 0, np.where(bad, miss[:m] + 1, miss[:m]))
-        restart = (valid & ~run) | (bad & (miss[:m] >= cfg.max_rejects))
+        # an unconfirmed filter restarts on any reply outside its gate (a garbled first reply
+        # must not hold the channel for max_rejects replies)
+        restart = (valid & ~run) | (bad & ((miss[:m] >= cfg.max_rejects) | ~conf[:m])) | swapped
         new = _init(np.where(valid, zk, 0.0), vk, cfg)
         # a reply not used (missing, garble): each model keeps its prediction and μ = c
         for j in range(nm):
@@ -263,10 +278,11 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
         mu[:, :m] = np.where(restart, 1.0 / nm, np.where(accept, mu_u, c))
         nxt = _select(restart, new, _select(accept, u, s))
         miss[:m] = np.where(restart, 0, miss[:m])
+        conf[:m] = np.where(restart, False, conf[:m] | accept)
         ok[:m] |= restart
         t_last[:m] = tk
         out.put(idx, nxt)
-        has[idx] = ok[:m]
+        has[idx] = ok[:m] & conf[:m]
         rejected[idx] = bad & ~restart
     return out, has, rejected
 

@@ -47,7 +47,9 @@ def test_filter_matches_filterpy_on_several_tracks():
     r = 9.0
     starts = np.r_[0, np.cumsum(lengths)[:-1]]
     est, has, rej = filter_tracks(t, z, np.full(len(t), r), starts, lengths, cfg)
-    assert has.all() and not rej.any()
+    first = np.zeros(len(t), bool)
+    first[starts] = True
+    assert (has == ~first).all() and not rej.any()      # output from the second (confirming) reply on
     for s, n in zip(starts, lengths):
         ref, cov = _filterpy_run(t[s:s + n], z[s:s + n], r, cfg)
         sl = slice(s, s + n)
@@ -116,6 +118,32 @@ def test_level_aircraft_rate_is_known_and_a_climb_is_followed():
     assert abs(imm.r[level][0]) < 0.1
     after = t == 232.0                             # 32 s into the climb
     assert abs(imm.r[after][0] - 10.0) < 1.5
+
+
+def test_a_garbled_first_reply_never_reaches_the_output():
+    """Found on the default job: a track whose first Mode C reply was garbled (FL381 for an
+    aircraft at 1 400 ft) held that altitude for two scans (11 km vertical error)."""
+    t = np.arange(10) * 4.0
+    z = np.full(10, 426.72)
+    z[0] = 11620.5                                   # garbled first code
+    r = np.full(10, quantisation_variance(QUANTUM_MODE_S_M))
+    est, has, _ = filter_tracks(t, z, r, np.array([0]), np.array([10]), AltitudeConfig())
+    assert not has[0] and not has[1]                 # reply 1 disagrees: restart, still unconfirmed
+    assert has[2:].all() and np.abs(est.h[2:] - 426.72).max() < 1.0
+
+
+def test_a_new_identity_on_the_track_restarts_the_filter_at_once():
+    """A radar track that swaps aircraft (its Mode S address changes) must not carry the first
+    aircraft's altitude for max_rejects replies."""
+    t = np.arange(12) * 4.0
+    z = np.where(np.arange(12) < 6, 11582.4, 426.72)
+    ident = np.where(np.arange(12) < 6, 0xCE6732, 0x829BDC)
+    r = np.full(12, quantisation_variance(QUANTUM_MODE_S_M))
+    est, has, rej = filter_tracks(t, z, r, np.array([0]), np.array([12]), AltitudeConfig(), ident=ident)
+    assert not rej[6] and not has[6] and est.h[6] == z[6]       # restarted on the new aircraft
+    assert has[7:].all() and np.abs(est.h[7:] - 426.72).max() < 1.0
+    without, has2, rej2 = filter_tracks(t, z, r, np.array([0]), np.array([12]), AltitudeConfig())
+    assert rej2[6] and has2[6] and without.h[6] > 11000           # what the identity prevents
 
 
 def test_garble_is_rejected_and_a_real_jump_restarts_the_filter():
