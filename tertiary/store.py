@@ -49,6 +49,7 @@ from pathlib import Path
 from typing import Any
 
 import duckdb
+import numpy as np
 import polars as pl
 
 try:  # POSIX only; on other platforms writers are not serialised across processes.
@@ -222,6 +223,57 @@ def _writer_lock(run_dir: Path) -> Iterator[None]:
 # --------------------------------------------------------------------------- store
 
 
+#: a 6×6 covariance column (row-major Array(Float64, 36)) is stored as its upper triangle
+#: ``<name>_ut`` Array(Float32, 21) — symmetric, so 15 of the 36 doubles are repeats, and float32
+#: keeps 7 significant digits (0.001 m² on a 10⁴ m² variance); :meth:`RunStore.read` gives
+#: the full Float64 matrix back. A column holding a non-symmetric matrix is stored whole.
+COV_SUFFIX = "_ut"
+_IU = np.triu_indices(6)
+_FULL_FROM_UT = np.empty(36, np.int64)
+_FULL_FROM_UT[_IU[0] * 6 + _IU[1]] = np.arange(21)
+_FULL_FROM_UT[_IU[1] * 6 + _IU[0]] = np.arange(21)
+
+
+def _is_cov(dtype: pl.DataType) -> bool:
+    return isinstance(dtype, pl.Array) and dtype.size == 36 and dtype.inner == pl.Float64
+
+
+def compact_covariances(frame: pl.DataFrame) -> pl.DataFrame:
+    """Each Array(Float64, 36) column ``c`` replaced by ``c_ut`` (upper triangle, float32)."""
+    out = frame
+    for name, dtype in frame.schema.items():
+        if _is_cov(dtype):
+            full = frame[name].to_numpy().reshape(-1, 36)
+            m = full.reshape(-1, 6, 6)
+            scale = np.nan_to_num(np.abs(np.diagonal(m, axis1=1, axis2=2)).max(axis=1, initial=0.0))
+            asym = np.nan_to_num(np.abs(m - m.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0))
+            if (asym > 1e-9 * np.maximum(scale, 1e-300)).any():
+                continue                  # not a covariance: kept whole rather than symmetrised
+            ut = full[:, _IU[0] * 6 + _IU[1]].astype(np.float32)
+            series = pl.Series(name + COV_SUFFIX, ut, dtype=pl.Array(pl.Float32, 21))
+            if frame[name].null_count():
+                series = pl.select(pl.when(frame[name].is_null()).then(None).otherwise(series)
+                                   .alias(series.name)).to_series()
+            order = [c if c != name else series.name for c in out.columns]
+            out = out.with_columns(series).select(order)
+    return out
+
+
+def expand_covariances(frame: pl.DataFrame) -> pl.DataFrame:
+    """Inverse of :func:`compact_covariances` (float32 precision)."""
+    out = frame
+    for name, dtype in frame.schema.items():
+        if name.endswith(COV_SUFFIX) and isinstance(dtype, pl.Array) and dtype.size == 21:
+            ut = frame[name].to_numpy().reshape(-1, 21).astype(np.float64)
+            full = pl.Series(name[: -len(COV_SUFFIX)], ut[:, _FULL_FROM_UT], dtype=pl.Array(pl.Float64, 36))
+            if frame[name].null_count():
+                full = pl.select(pl.when(frame[name].is_null()).then(None).otherwise(full)
+                                 .alias(full.name)).to_series()
+            order = [c if c != name else full.name for c in out.columns]
+            out = out.with_columns(full).select(order)
+    return out
+
+
 class RunStore:
     """One run's DuckDB database. Build with ``create``, ``update`` or ``open``."""
 
@@ -317,13 +369,16 @@ class RunStore:
         return [r[0] for r in rows]
 
     def write(self, name: str, frame: pl.DataFrame) -> None:
-        """Create or replace table ``name`` with ``frame`` (one transaction)."""
+        """Create or replace table ``name`` with ``frame`` (one transaction); covariance
+        columns are stored compactly (:func:`compact_covariances`)."""
+        frame = compact_covariances(frame)
         table = self._writable(name, frame)
         with self._registered(frame) as src:
             self._transaction(f"CREATE OR REPLACE TABLE {table} AS SELECT * FROM {src}")
 
     def append(self, name: str, frame: pl.DataFrame) -> None:
         """Append ``frame`` to table ``name`` (matched by column name), creating it if absent."""
+        frame = compact_covariances(frame)
         table = self._writable(name, frame)
         with self._registered(frame) as src:
             self._transaction(
@@ -336,7 +391,7 @@ class RunStore:
         validate_name(name)
         if name not in self.tables():
             raise KeyError(f"no table {name!r} in {self.path}")
-        return utc_times(self._con.sql(f'SELECT * FROM "{name}"').pl())
+        return expand_covariances(utc_times(self._con.sql(f'SELECT * FROM "{name}"').pl()))
 
     def sql(self, query: str, params: Params = None) -> pl.DataFrame:
         """Run ``query`` with bound ``params`` (``?``/``$1`` list or ``$name`` dict).

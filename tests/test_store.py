@@ -328,3 +328,26 @@ def test_record_run(tmp_path: Path) -> None:
         run = store.read("run")
     assert run.schema == pl.Schema({"key": pl.String, "value": pl.String})
     assert dict(run.iter_rows()) == {"seed": "42", "scenario": "paris_tma", "radars": '["R1", "R2"]', "ok": "true"}
+
+
+def test_covariances_are_stored_as_float32_upper_triangles_and_read_back_whole(tmp_path):
+    """A lean run database (issue 16 item 5): 21 float32 instead of 36 float64 per matrix."""
+    import numpy as np
+    from tertiary.store import RunStore
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(50, 6, 6)) * 30.0
+    cov = a @ a.transpose(0, 2, 1) + np.eye(6) * 100.0
+    frame = pl.DataFrame({"k": np.arange(50), "cov": cov.reshape(50, 36), "x": np.ones(50)},
+                         schema_overrides={"cov": pl.Array(pl.Float64, 36)})
+    frame = frame.with_columns(pl.when(pl.col("k") == 3).then(None).otherwise(pl.col("cov")).alias("cov"))
+    with RunStore.create(tmp_path) as store:
+        store.write("t", frame)
+        stored = store.sql('DESCRIBE "t"')
+        back = store.read("t")
+    assert dict(zip(stored["column_name"], stored["column_type"]))["cov_ut"] == "FLOAT[21]"
+    assert back.columns == ["k", "cov", "x"] and back.schema["cov"] == pl.Array(pl.Float64, 36)
+    got = back["cov"].to_numpy().reshape(-1, 6, 6)
+    ok = np.arange(50) != 3
+    assert back["cov"].is_null().to_list() == (~ok).tolist()
+    np.testing.assert_allclose(got[ok], cov[ok], rtol=1e-6)
+    assert (got[ok] == got[ok].transpose(0, 2, 1)).all()
