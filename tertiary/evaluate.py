@@ -55,6 +55,15 @@ samples is omitted. The split is by the truth segment at the epoch.
 The filter transient is discarded: rows less than ``skip_first_s`` (default 20 s, tertiary
 digest) after the first epoch of their (run, method, target_id) are not scored.
 
+Consistency (:func:`consistency_metrics`, :func:`fusion_consistency`)
+--------------------------------------------------------------------
+``nees_*`` (position NEES Δpᵀ P_pp⁻¹ Δp, 3 degrees of freedom) and ``nees6_*`` (6-state, 6)
+of every fused picture: the mean; the Monte-Carlo test ``*_in_band_frac`` — the fraction of
+epochs whose mean over the N_k samples (runs × targets) lies in the two-sided 95 % band
+χ²(dN_k)/N_k; and the band of the overall mean from the effective sample size n/τ
+(``*_band_lo``/``_hi``, ``*_n_eff``; τ from :func:`integrated_autocorrelation`), which makes
+the band right for one run as well as for N runs.
+
 Association metrics (stage ``association``, method ``assignment``, segment ``all``)
 -----------------------------------------------------------------------------------
 * ``assoc_correct_frac``: among association rows whose report has a truth_id, the fraction
@@ -77,6 +86,7 @@ from typing import Literal
 
 import numpy as np
 import polars as pl
+from scipy.stats import chi2
 
 from tertiary.schema import TABLES, TIME
 
@@ -92,6 +102,12 @@ __all__ = [
     "association_metrics",
     "metrics_frame",
     "add_nees",
+    "chi2_band",
+    "integrated_autocorrelation",
+    "consistency_metrics",
+    "fusion_consistency",
+    "scored_samples",
+    "CONSISTENCY",
 ]
 
 Denominator = Literal["n-1", "n"]
@@ -200,7 +216,8 @@ def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
 
 
 def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
-                truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig(), *, keep_cov: bool = True) -> pl.DataFrame:
+                truth: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig(), *, keep_cov: bool = True,
+                nees: bool = False) -> pl.DataFrame:
     """Scored fused rows: the ``fused`` columns plus ``truth_id``, ``segment`` (truth segment),
     ``seg_class`` (straight/turn/null), ``true_<state>`` and the squared errors ``e2_x``,
     ``e2_y``, ``e2_z``, ``e2_pos`` (|Δp|²), ``e2_range`` ((|p| − |p_true|)²), ``e2_vel`` (|Δv|²).
@@ -208,10 +225,15 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
     Rows without a truth (clutter targets, epochs outside the truth span) and rows within
     ``cfg.skip_first_s`` of their (run, method, target_id)'s first epoch are dropped. Only the
     key, state (and, with ``keep_cov``, covariance) columns are carried through the joins.
+    With ``nees`` the rows also get ``nees_pos`` and ``nees`` (:func:`add_nees`), computed from
+    the fused covariances without carrying them through the joins.
     """
     keep = ["run", "epoch", "target_id", "method", *STATE] + (["cov"] if keep_cov and "cov" in fused.columns else [])
     keep += ["alt_m"] if "alt_m" in fused.columns else []
+    nees = nees and "cov" in fused.columns
     f = fused.select(keep).with_columns(pl.col("epoch").cast(TIME))
+    if nees:
+        f = f.with_row_index("_fused_row")
     if cfg.skip_first_s > 0:
         first = pl.col("epoch").min().over(["run", "method", "target_id"])
         f = f.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
@@ -219,7 +241,10 @@ def match_truth(fused: pl.DataFrame, associations: pl.DataFrame, report_truth: p
     f = (f.join(tt.with_columns(pl.col(c).cast(f.schema[c]) for c in _KEY), on=_KEY, how="inner")
          .filter(pl.col("truth_id").is_not_null()))
     m = truth_at(f, truth)
-    return m.with_columns(error_columns("true_alt_m" in m.columns))
+    m = m.with_columns(error_columns("true_alt_m" in m.columns))
+    if nees:
+        m = add_nees(m, fused["cov"].gather(m["_fused_row"])).drop("_fused_row")
+    return m
 
 
 def error_columns(alt: bool = False) -> list[pl.Expr]:
@@ -359,17 +384,154 @@ def accuracy_by_epoch_from_matched(matched: pl.DataFrame, cfg: EvaluateConfig = 
 # --------------------------------------------------------------------------- consistency
 
 
-def add_nees(matched: pl.DataFrame) -> pl.DataFrame:
-    """Add the normalised estimation error squared of each :func:`match_truth` row that carries
-    a ``cov`` (flattened 6×6 of x, y, z, vx, vy, vz): ``nees_pos`` = Δpᵀ P_pp⁻¹ Δp (3 degrees of
-    freedom, mean 3 when consistent) and ``nees`` over the full 6-state (mean 6)."""
+def add_nees(matched: pl.DataFrame, cov: pl.Series | None = None, block: int = 131_072) -> pl.DataFrame:
+    """Add the normalised estimation error squared of each :func:`match_truth` row:
+    ``nees_pos`` = Δpᵀ P_pp⁻¹ Δp (3 degrees of freedom, mean 3 when consistent) and ``nees``
+    over the full 6-state (mean 6). The flattened 6×6 covariance (x, y, z, vx, vy, vz) is the
+    row's ``cov`` column, or ``cov`` given aligned with the rows; computed in blocks of rows
+    so the (n, 6, 6) arrays stay small. A singular covariance gives NaN."""
     if matched.is_empty():
         return matched.with_columns(pl.lit(None, pl.Float64).alias("nees_pos"), pl.lit(None, pl.Float64).alias("nees"))
+    cov = matched["cov"] if cov is None else cov
     err = np.stack([(matched[c] - matched[f"true_{c}"]).to_numpy() for c in STATE], axis=1)
-    cov = matched["cov"].to_numpy().reshape(-1, 6, 6)
-    nees_pos = np.einsum("ni,ni->n", err[:, :3], np.linalg.solve(cov[:, :3, :3], err[:, :3, None])[..., 0])
-    nees = np.einsum("ni,ni->n", err, np.linalg.solve(cov, err[..., None])[..., 0])
+    nees_pos, nees = np.full(len(err), np.nan), np.full(len(err), np.nan)
+    for lo in range(0, len(err), block):
+        sl = slice(lo, lo + block)
+        p = cov.slice(lo, block).to_numpy().reshape(-1, 6, 6)
+        e = err[sl]
+        ok = np.all(np.isfinite(p.reshape(-1, 36)), axis=1) & np.all(np.isfinite(e), axis=1)
+        ok &= np.linalg.det(p[:, :3, :3]) > 0
+        if not ok.any():
+            continue
+        pk, ek = p[ok], e[ok]
+        with np.errstate(all="ignore"):
+            a = np.einsum("ni,ni->n", ek[:, :3], np.linalg.solve(pk[:, :3, :3], ek[:, :3, None])[..., 0])
+            try:
+                b = np.einsum("ni,ni->n", ek, np.linalg.solve(pk, ek[..., None])[..., 0])
+            except np.linalg.LinAlgError:        # a singular full covariance: position NEES only
+                b = np.full(len(ek), np.nan)
+        idx = np.flatnonzero(ok) + lo
+        nees_pos[idx], nees[idx] = a, b
     return matched.with_columns(pl.Series("nees_pos", nees_pos), pl.Series("nees", nees))
+
+
+def chi2_band(n, dof: int, band: float = 0.95):
+    """Two-sided ``band`` interval of the mean of ``n`` independent χ²(``dof``) samples:
+    χ²_{(1∓band)/2}(dof·n)/n. ``n`` may be an array (also non-integer: an effective sample
+    size); n ≤ 0 gives NaN. Scalars in, a (lo, hi) tuple of floats out."""
+    arr = np.asarray(n, dtype=float)
+    with np.errstate(all="ignore"):
+        safe = np.where(arr > 0, arr, np.nan)
+        lo = chi2.ppf((1 - band) / 2, dof * safe) / safe
+        hi = chi2.ppf((1 + band) / 2, dof * safe) / safe
+    if arr.ndim == 0:
+        return float(lo), float(hi)
+    return lo, hi
+
+
+def integrated_autocorrelation(x: np.ndarray, series: np.ndarray, max_lag: int = 1000) -> float:
+    """Integrated autocorrelation time τ of a sequence observed as several series (``series``
+    codes; rows sorted by series then time, consecutive rows of a series one step apart), so
+    that the mean of the n rows has the variance of n/τ independent ones.
+
+    Var(Σ x) = n γ₀ + 2 Σ_{l≥1} Σ_{pairs at lag l inside one series} Cov, hence
+
+        τ = 1 + 2 Σ_{l≥1} (P_l/n) ρ_l,    ρ_l = γ_l/γ₀,
+
+    with P_l the number of pairs at lag l inside a series (P_l/n → 1 for long series: the
+    usual 1 + 2 Σ ρ_l), γ_l the mean of (x_t − x̄)(x_{t+l} − x̄) over those pairs and x̄ the mean
+    of all rows (the series are runs or targets of one picture). The sum is truncated by
+    Geyer's initial positive sequence rule (Geyer 1992, Stat. Sci. 7(4)): the pair sums of
+    consecutive terms (lags 2m, 2m + 1, lag 0 counting 1) are added while positive.
+    τ ≥ 1 (independent samples: τ = 1)."""
+    x = np.asarray(x, float)
+    n = len(x)
+    if n < 3:
+        return 1.0
+    y = x - x.mean()
+    g0 = float(np.mean(y * y))
+    if not g0 > 0:
+        return 1.0
+    terms = [1.0]          # (P_l / n) ρ_l, lag 0 first
+    tau = -1.0
+    for m in range(max_lag // 2):
+        for lag in (2 * m, 2 * m + 1):
+            if lag == 0:
+                continue
+            if lag >= n:
+                terms.append(0.0)
+                continue
+            same = series[lag:] == series[:-lag]
+            terms.append(float(np.sum((y[lag:] * y[:-lag])[same])) / (n * g0))
+        pair = terms[2 * m] + terms[2 * m + 1]
+        if pair <= 0:
+            break
+        tau += 2 * pair
+    return max(tau, 1.0)
+
+
+#: consistency statistic → (column, degrees of freedom)
+CONSISTENCY = {"nees": ("nees_pos", 3), "nees6": ("nees", 6)}
+
+
+def consistency_metrics(rows: pl.DataFrame, column: str, dof: int, prefix: str, stage: str,
+                        obj: str = "target_id", band: float = 0.95) -> pl.DataFrame:
+    """Consistency of a normalised squared error ``column`` (NEES or NIS, χ²(``dof``) when the
+    covariance is right) per ``method`` and segment (all/straight/turn), in the metrics schema:
+
+    * ``<prefix>_mean``: the mean over all samples.
+    * ``<prefix>_in_band_frac``: the Monte-Carlo test — at each epoch k the N_k samples (one
+      per run and object; independent draws) are averaged and compared with the two-sided
+      ``band`` interval χ²(dof·N_k)/N_k of such an average; the fraction of epochs inside.
+      With one run and one object N_k = 1: the χ²(dof) interval of a single sample.
+    * ``<prefix>_band_lo`` / ``_band_hi``: the interval of ``<prefix>_mean`` itself, from the
+      effective sample size n_eff = n/τ (τ: :func:`integrated_autocorrelation` along each
+      (run, ``obj``) series in epoch order) — consecutive errors of a filter are correlated,
+      so the n samples are worth n/τ independent ones.
+    * ``<prefix>_n_eff``: that effective sample size.
+    """
+    spec = TABLES["metrics"].required
+    r = rows.filter(pl.col(column).is_not_null() & pl.col(column).is_finite())
+    if r.is_empty():
+        return pl.DataFrame(schema=spec)
+    r = r.select("method", "run", "epoch", obj, "seg_class", column)
+    r = pl.concat([r.with_columns(pl.lit("all").alias("eval_segment")),
+                   r.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))])
+    per = r.group_by("method", "eval_segment", "epoch").agg(pl.col(column).mean().alias("__m"), pl.len().alias("__n"))
+    lo, hi = chi2_band(per["__n"].to_numpy(), dof, band)
+    per = per.with_columns(pl.Series("__in", (per["__m"].to_numpy() >= lo) & (per["__m"].to_numpy() <= hi)))
+    frac = per.group_by("method", "eval_segment").agg(pl.col("__in").mean().alias("in_band"))
+    out = []
+    for (method, seg), g in r.sort("method", "eval_segment", "run", obj, "epoch").group_by(
+            ["method", "eval_segment"], maintain_order=True):
+        keys = g.select(pl.struct("run", obj).rank("dense").alias("k"))["k"].to_numpy()
+        x = g[column].to_numpy()
+        tau = integrated_autocorrelation(x, keys)
+        n_eff = len(x) / tau
+        b_lo, b_hi = chi2_band(n_eff, dof, band)
+        f = frac.filter((pl.col("method") == method) & (pl.col("eval_segment") == seg))["in_band"].item()
+        nr = g["run"].n_unique()
+        for metric, value in (("mean", float(x.mean())), ("in_band_frac", float(f)), ("band_lo", b_lo),
+                              ("band_hi", b_hi), ("n_eff", n_eff)):
+            out.append({"stage": stage, "method": method, "metric": f"{prefix}_{metric}", "segment": seg,
+                        "value": value, "n_runs": nr})
+    return pl.DataFrame(out, schema=spec)
+
+
+def fusion_consistency(matched: pl.DataFrame, cfg: EvaluateConfig = EvaluateConfig(), band: float = 0.95
+                       ) -> pl.DataFrame:
+    """``nees_*`` (position, 3 degrees of freedom, the full 3×3 covariance) and ``nees6_*`` (the
+    6-state) of every fused picture (:func:`consistency_metrics`) from :func:`match_truth`
+    rows with NEES (``nees=True``)."""
+    parts = [consistency_metrics(matched, col, dof, prefix, cfg.stage, "target_id", band)
+             for prefix, (col, dof) in CONSISTENCY.items() if col in matched.columns]
+    return pl.concat(parts) if parts else _empty_metrics()
+
+
+def scored_samples(matched: pl.DataFrame) -> pl.DataFrame:
+    """(method, run, epoch, truth_id, seg_class) of scored rows: what a bound is pooled over."""
+    return matched.select("method", "run", pl.col("epoch").cast(TIME), pl.col("truth_id").cast(pl.Int64),
+                          "seg_class")
 
 
 # --------------------------------------------------------------------------- association

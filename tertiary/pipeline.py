@@ -1,9 +1,10 @@
 """The batch job: dataset in, one DuckDB run database out.
 
 Stages are composed here and nowhere else: ingest/validate → align → gate + associate → fuse
-(every selected method, plus the centralised measurement-level bound) → cluster → secondary
+(every selected method, plus the centralised measurement-level reference) → cluster → secondary
 trackers on every fusion method's picture → conflict prediction on every picture → evaluate
-(accuracy, association, trackers, alerts against truth, capacity from the measured accuracy)
+(accuracy, consistency, association, trackers, the posterior Cramér–Rao bound beside every
+picture, alerts against truth, capacity from the measured accuracy)
 → store. Every input report ends up in ``aligned`` or ``rejects`` (checked, not assumed).
 
 :func:`screen` applies every rule that can reject a report (the data contract and the align
@@ -35,13 +36,14 @@ from tertiary.align import AlignConfig, AlignPlan
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
+from tertiary.bound import bound_stage
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
-                               association_metrics, match_truth, target_truth)
+                               association_metrics, fusion_consistency, match_truth, scored_samples, target_truth)
 from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS, FusionConfig, fuse
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
-from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_metrics
+from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_evaluation
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
 
@@ -360,11 +362,16 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
                                       fixed_est_h_m=cfg.stca_fixed_m)
                 safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
-    metrics, by_epoch = _evaluate(ing, associations, fused, stats, cfg.evaluate)
+    metrics, by_epoch, scored = _evaluate(ing, associations, fused, stats, cfg.evaluate)
     if has_truth:
         extra = []
         if cfg.filters and tracks.height:
-            extra.append(tracker_metrics(tracks, associations, report_truth, ing.truth, cfg.track_metrics))
+            tm, scored_t = tracker_evaluation(tracks, associations, report_truth, ing.truth, cfg.track_metrics)
+            extra.append(tm)
+            scored = pl.concat([scored, scored_t.cast(scored.schema)])
+        # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.bound)
+        extra.append(bound_stage(ds, ing.truth, ing.radars, ing.reports, scored,
+                                 pl.concat([metrics, *extra], how="vertical_relaxed"), ing.notes))
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
@@ -428,7 +435,9 @@ def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -
 
 
 def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, stats,
-              cfg: EvaluateConfig) -> tuple[pl.DataFrame, pl.DataFrame]:
+              cfg: EvaluateConfig) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """Association counts, fused accuracy and consistency, association metrics; the per-epoch
+    accuracy; the scored fused samples (for the bound)."""
     counts = pl.DataFrame({
         "stage": "association", "method": "assignment",
         "metric": ["gated_pairs", "ambiguous_components", "targets", "reassignments"],
@@ -437,13 +446,14 @@ def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, st
         "n_runs": int(associations["run"].n_unique()) if associations.height else 0,
     }).with_columns(pl.col("n_runs").cast(pl.UInt32))
     if ing.truth.height == 0 or "truth_id" not in ing.reports.columns:
-        return counts, pl.DataFrame()
+        return counts, pl.DataFrame(), pl.DataFrame()
     report_truth = ing.reports.select("run", "report_id", "truth_id")
-    matched = match_truth(fused, associations, report_truth, ing.truth, cfg, keep_cov=False)
-    metrics = pl.concat([accuracy_from_matched(matched, cfg), association_metrics(associations, report_truth)],
-                        how="vertical")
+    matched = match_truth(fused, associations, report_truth, ing.truth, cfg, keep_cov=False, nees=True)
+    metrics = pl.concat([accuracy_from_matched(matched, cfg), fusion_consistency(matched, cfg),
+                         association_metrics(associations, report_truth)], how="vertical_relaxed")
     by_epoch = accuracy_by_epoch_from_matched(matched, cfg)
-    return pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch
+    return (pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch,
+            scored_samples(matched))
 
 
 def _storable(frame: pl.DataFrame, name: str, notes: list[str]) -> pl.DataFrame:

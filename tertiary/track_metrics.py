@@ -20,11 +20,12 @@ Scored rows are the track rows with a truth, inside the aircraft's truth span, a
   σ²(k) = Σ_j e_j(k)² / (N_k − 1) over the scored rows of epoch k ((2.15)/(4.84)).
 * ``potential_pos_m``: mean over scored rows of sqrt(P_xx + P_yy + P_zz) (potential accuracy
   √diag P, §2.2.1, as a 3-D position figure).
-* ``nees_mean``: mean position NEES Σ_i e_i²/P_ii (i = x, y, z; cov_diag, so correlations are
-  ignored), with ``nees_band_lo``/``nees_band_hi`` the two-sided χ² band of the mean of N
-  samples: χ²_{(1∓c)/2}(3N)/N (c = ``band``, 0.95).
-* ``nis_mean``: mean NIS of the scored rows that were updated with a plot (3 degrees of
-  freedom), with ``nis_band_lo``/``nis_band_hi`` likewise.
+* ``nees_*``: position NEES Σ_i e_i²/P_ii (i = x, y, z; ``cov_diag``, so correlations are
+  ignored — Δpᵀ P_pp⁻¹ Δp from a full ``cov`` column when the tracks carry one), 3 degrees of
+  freedom: ``nees_mean``, the Monte-Carlo ``nees_in_band_frac`` (per-epoch mean over the N_k
+  runs × tracks vs χ²(3N_k)/N_k), ``nees_band_lo``/``_hi`` (band of the mean from the
+  effective sample size) and ``nees_n_eff`` — :func:`tertiary.evaluate.consistency_metrics`.
+* ``nis_*``: the same for the NIS of the rows updated with a plot (3 degrees of freedom).
 
 Per (fusion, filter), segment ``all``:
 
@@ -51,21 +52,24 @@ from dataclasses import dataclass
 from typing import Literal
 
 import polars as pl
-from scipy.stats import chi2
 
-from tertiary.evaluate import EvaluateConfig, accuracy_from_matched, error_columns, target_truth, truth_at
+from tertiary.evaluate import (EvaluateConfig, accuracy_from_matched, add_nees, chi2_band, consistency_metrics, error_columns,
+                               scored_samples, target_truth, truth_at)
 from tertiary.schema import TABLES, TIME
 
-__all__ = ["TrackMetricsConfig", "track_truth", "match_tracks", "tracker_metrics", "chi2_band",
-           "TRACKER_METRICS"]
+__all__ = ["TrackMetricsConfig", "track_truth", "match_tracks", "tracker_metrics", "tracker_evaluation",
+           "chi2_band", "TRACKER_METRICS"]
 
 STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 _TRACK = ["label", "run", "track_id"]
 
 #: metric names in output order
-TRACKER_METRICS = ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "rmse_range_m", "rmse_vel_mps", "potential_pos_m", "nees_mean",
-                   "nees_band_lo", "nees_band_hi", "nis_mean", "nis_band_lo", "nis_band_hi",
+TRACKER_METRICS = ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "rmse_range_m", "rmse_vel_mps", "potential_pos_m",
+                   "nees_mean", "nees_in_band_frac", "nees_band_lo", "nees_band_hi", "nees_n_eff",
+                   "nis_mean", "nis_in_band_frac", "nis_band_lo", "nis_band_hi", "nis_n_eff",
                    "completeness", "breaks", "swaps", "spurious_tracks", "tracks")
+#: degrees of freedom of the tracker's NIS: its measurement is the fused 3-D position
+NIS_DOF = 3
 _ACCURACY = ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m", "rmse_range_m", "rmse_vel_mps")
 
 
@@ -86,14 +90,6 @@ class TrackMetricsConfig:
             raise ValueError(f"skip_first_s must be >= 0, got {self.skip_first_s}")
         if not 0 < self.band < 1:
             raise ValueError(f"band must be in (0, 1), got {self.band}")
-
-
-def chi2_band(n: int, dof: int, band: float = 0.95) -> tuple[float, float]:
-    """Two-sided ``band`` interval of the mean of ``n`` independent χ²(dof) samples."""
-    if n <= 0:
-        return float("nan"), float("nan")
-    lo, hi = chi2.ppf([(1 - band) / 2, (1 + band) / 2], dof * n) / n
-    return float(lo), float(hi)
 
 
 def _labelled(tracks: pl.DataFrame) -> pl.DataFrame:
@@ -142,15 +138,19 @@ def _match_labelled(t: pl.DataFrame, truth: pl.DataFrame, cfg: TrackMetricsConfi
         t = t.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
     t = t.filter(pl.col("truth_id").is_not_null())
     keep = ["label", "run", "epoch", "track_id", "status", "truth_id", *STATE, "cov_diag", "nis"]
+    keep += ["cov"] if "cov" in t.columns else []
     keep += ["alt_m"] if "alt_m" in t.columns else []
     m = truth_at(t.select(keep), truth)
     d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
     var = [pl.col("cov_diag").arr.get(i) for i in range(3)]
-    return m.with_columns(
+    m = m.with_columns(
         *error_columns("true_alt_m" in m.columns),
         (d["x_m"] ** 2 / var[0] + d["y_m"] ** 2 / var[1] + d["z_m"] ** 2 / var[2]).alias("nees_pos"),
         (var[0] + var[1] + var[2]).sqrt().alias("sd_pos"),
     )
+    if "cov" in m.columns:          # a full covariance: the proper NEES Δpᵀ P_pp⁻¹ Δp
+        m = add_nees(m).drop("nees", "cov")
+    return m
 
 
 def _rows(stage: str, label: str, metric: str, segment: str, value: float, n_runs: int) -> dict:
@@ -159,34 +159,23 @@ def _rows(stage: str, label: str, metric: str, segment: str, value: float, n_run
 
 
 def _consistency(matched: pl.DataFrame, cfg: TrackMetricsConfig, n_runs: dict[str, int]) -> list[dict]:
-    """potential_pos_m, nees_mean/band, nis_mean/band per label and segment."""
+    """``potential_pos_m`` per label and segment, then the NEES / NIS rows of
+    :func:`tertiary.evaluate.consistency_metrics` (Monte-Carlo in-band fraction, mean and its
+    effective-sample-size band)."""
     out: list[dict] = []
     if matched.is_empty():
         return out
-    allrows = matched.with_columns(pl.lit("all").alias("eval_segment"))
-    split = matched.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))
-    rows = pl.concat([allrows, split], how="vertical")
-    nis_ok = pl.col("nis").is_not_null() & pl.col("nis").is_not_nan()
-    agg = rows.group_by(["label", "eval_segment"]).agg(
-        pl.col("sd_pos").mean().alias("potential_pos_m"),
-        pl.col("nees_pos").mean().alias("nees_mean"),
-        pl.len().alias("n_nees"),
-        pl.col("nis").filter(nis_ok).mean().alias("nis_mean"),
-        nis_ok.sum().alias("n_nis"),
-    )
+    rows = pl.concat([matched.with_columns(pl.lit("all").alias("eval_segment")),
+                      matched.filter(pl.col("seg_class").is_not_null())
+                      .with_columns(pl.col("seg_class").alias("eval_segment"))])
+    agg = rows.group_by(["label", "eval_segment"]).agg(pl.col("sd_pos").mean().alias("potential_pos_m"))
     for r in agg.iter_rows(named=True):
-        lab, seg = r["label"], r["eval_segment"]
-        nr = n_runs.get(lab, 0)
-        out.append(_rows(cfg.stage, lab, "potential_pos_m", seg, r["potential_pos_m"], nr))
-        lo, hi = chi2_band(r["n_nees"], 3, cfg.band)
-        out += [_rows(cfg.stage, lab, "nees_mean", seg, r["nees_mean"], nr),
-                _rows(cfg.stage, lab, "nees_band_lo", seg, lo, nr),
-                _rows(cfg.stage, lab, "nees_band_hi", seg, hi, nr)]
-        if r["n_nis"]:
-            lo, hi = chi2_band(r["n_nis"], 3, cfg.band)
-            out += [_rows(cfg.stage, lab, "nis_mean", seg, r["nis_mean"], nr),
-                    _rows(cfg.stage, lab, "nis_band_lo", seg, lo, nr),
-                    _rows(cfg.stage, lab, "nis_band_hi", seg, hi, nr)]
+        out.append(_rows(cfg.stage, r["label"], "potential_pos_m", r["eval_segment"], r["potential_pos_m"],
+                         n_runs.get(r["label"], 0)))
+    m = matched.rename({"label": "method"})
+    for frame in (consistency_metrics(m, "nees_pos", 3, "nees", cfg.stage, "track_id", cfg.band),
+                  consistency_metrics(m, "nis", NIS_DOF, "nis", cfg.stage, "track_id", cfg.band)):
+        out += [dict(r, n_runs=int(r["n_runs"])) for r in frame.iter_rows(named=True)]
     return out
 
 
@@ -231,9 +220,19 @@ def tracker_metrics(tracks: pl.DataFrame, associations: pl.DataFrame, report_tru
                     truth: pl.DataFrame, cfg: TrackMetricsConfig = TrackMetricsConfig()) -> pl.DataFrame:
     """All tracker metrics (see the module docstring) in the ``metrics`` table's dtypes, one
     block per "<fusion>+<filter>" of ``tracks``, sorted by method, segment and metric order."""
+    return tracker_evaluation(tracks, associations, report_truth, truth, cfg)[0]
+
+
+def tracker_evaluation(tracks: pl.DataFrame, associations: pl.DataFrame, report_truth: pl.DataFrame,
+                       truth: pl.DataFrame, cfg: TrackMetricsConfig = TrackMetricsConfig()
+                       ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`tracker_metrics` and the scored samples (method = "<fusion>+<filter>", run, epoch,
+    truth_id, seg_class; :func:`tertiary.evaluate.scored_samples`) that a bound is pooled over."""
     spec = TABLES["metrics"].required
+    empty = pl.DataFrame(schema={"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64,
+                                 "seg_class": pl.String})
     if tracks.is_empty():
-        return pl.DataFrame(schema=spec)
+        return pl.DataFrame(schema=spec), empty
     # the target truth and the labelled tracks are shared by every metric (computed once)
     tt = _target_truth(associations, report_truth)
     labelled = _track_truth(tracks, tt)
@@ -248,10 +247,12 @@ def tracker_metrics(tracks: pl.DataFrame, associations: pl.DataFrame, report_tru
     extra = _consistency(matched, cfg, n_runs) + _continuity(labelled, tt, cfg, n_runs)
     if extra:
         parts.append(pl.DataFrame(extra, schema={k: (pl.Int64 if k == "n_runs" else v) for k, v in spec.items()}))
+    scored = scored_samples(matched.rename({"label": "method"})) if matched.height else empty
     if not parts:
-        return pl.DataFrame(schema=spec)
+        return pl.DataFrame(schema=spec), scored
     out = pl.concat([p.cast({"n_runs": pl.Int64}) for p in parts], how="vertical")
     seg_order = pl.col("segment").replace_strict({"all": 0, "straight": 1, "turn": 2}, default=3, return_dtype=pl.Int8)
     met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(TRACKER_METRICS)}, default=99,
                                                 return_dtype=pl.Int8)
-    return out.sort([pl.col("method"), seg_order, met_order]).select([pl.col(c).cast(t) for c, t in spec.items()])
+    return (out.sort([pl.col("method"), seg_order, met_order]).select([pl.col(c).cast(t) for c, t in spec.items()]),
+            scored)

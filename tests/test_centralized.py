@@ -13,7 +13,7 @@ from filterpy.kalman import KalmanFilter
 from tertiary import geo
 from tertiary.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots,
                                   initial_state, transition)
-from tertiary.evaluate import EvaluateConfig, accuracy, add_nees, match_truth
+from tertiary.evaluate import EvaluateConfig, accuracy, consistency_metrics, match_truth
 from tertiary.schema import TABLES, validate
 from tertiary.simulate import load_scenario, simulate
 
@@ -132,27 +132,43 @@ def test_centralized_beats_every_single_radar(big_box_fused):
     assert m["n_runs"].unique().to_list() == [10]
     for rid in ds.radars["radar_id"]:
         assert pos["centralized"] < pos[f"radar{rid}"], pos
-    # the optimal linear bound is clearly better than one radar (≈ 22 m vs ≈ 35 m here)
+    # the centralised reference is clearly better than one radar (≈ 22 m vs ≈ 35 m here)
     assert pos["centralized"] < 0.8 * min(pos["radar1"], pos["radar2"])
 
 
 def test_centralized_is_consistent(big_box_fused):
-    """Monte-Carlo consistency done properly: the position NEES averaged over the N runs at each
-    epoch lies in the two-sided 95 % band χ²(3N)/N on most epochs (a filter off by a factor of
-    two in its covariance puts most epochs outside)."""
-    from scipy.stats import chi2
+    """Monte-Carlo consistency done properly (tertiary.evaluate.consistency_metrics): the
+    position NEES averaged over the N = 10 runs at each epoch lies in the two-sided 95 % band
+    χ²(3N)/N on most epochs; the same test rejects a covariance twice too large or too small."""
     ds, assoc, cen = big_box_fused
-    matched = add_nees(match_truth(cen, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0)))
-    per_epoch = matched.group_by("epoch").agg(pl.col("nees_pos").mean(), pl.col("run").n_unique().alias("n"))
-    n = int(per_epoch["n"].max())
-    assert n == 10 and per_epoch["n"].min() == n
-    lo, hi = chi2.ppf(0.025, 3 * n) / n, chi2.ppf(0.975, 3 * n) / n
-    inside = per_epoch["nees_pos"].is_between(lo, hi).mean()
-    print(f"centralized NEES in band on {inside:.3f} of epochs, band [{lo:.2f}, {hi:.2f}]")
-    assert inside >= 0.80, (inside, lo, hi, per_epoch["nees_pos"].mean())
-    # the same test rejects a covariance that is twice too large or too small
-    assert (per_epoch["nees_pos"] * 2).is_between(lo, hi).mean() < 0.5
-    assert (per_epoch["nees_pos"] / 2).is_between(lo, hi).mean() < 0.5
+    matched = match_truth(cen, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0), nees=True)
+    m = consistency_metrics(matched, "nees_pos", 3, "nees", "fusion")
+    frac = m.filter((pl.col("metric") == "nees_in_band_frac") & (pl.col("segment") == "all"))["value"].item()
+    print(f"centralized NEES in band on {frac:.3f} of epochs")
+    assert frac >= 0.85
+    for scale in (2.0, 0.5):
+        off = matched.with_columns(pl.col("nees_pos") * scale)
+        bad = consistency_metrics(off, "nees_pos", 3, "nees", "fusion")
+        assert bad.filter((pl.col("metric") == "nees_in_band_frac") & (pl.col("segment") == "all"))["value"].item() < 0.5
+
+
+def test_centralized_is_near_the_posterior_cramer_rao_bound(big_box_fused):
+    """The PCRB of the simulated truth with the scenario's Singer model and the radars' polar
+    noise (tertiary.bound) is a lower bound the centralised filter — the same model, every
+    plot — nearly attains: RMSE within [0.9, 1.15] PCRB. Not [1, …]: the bound averages over
+    Singer trajectories, the simulated truth flies straight legs without acceleration, where
+    a filter of that model does better than the average (≈ 4 % below on big-box straights,
+    10 % above in turns); the 3-D figure lands within a few per cent of the bound."""
+    from tertiary.bound import BoundConfig, illuminations, pcrb_at
+    ds, assoc, cen = big_box_fused
+    matched = match_truth(cen, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0))
+    cfg = BoundConfig.from_scenario(ds.scenario)
+    ev = illuminations(ds.truth, ds.radars, ds.reports, ds.origin, cfg)
+    b = pcrb_at(matched.select("truth_id", "epoch"), ev, cfg)
+    pcrb = float(np.sqrt(b["b2_pos"].mean()))
+    rmse = float(np.sqrt(matched["e2_pos"].mean()))
+    print(f"centralized RMSE {rmse:.2f} m, PCRB {pcrb:.2f} m")
+    assert 0.9 * pcrb <= rmse <= 1.15 * pcrb
 
 
 def test_epochs_between_plots_are_predictions(big_box10):

@@ -8,6 +8,7 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import polars as pl
 import pytest
+from scipy.stats import chi2
 
 from tertiary.evaluate import (EvaluateConfig, accuracy, accuracy_by_epoch, association_metrics, match_truth,
                                metrics_frame, target_truth)
@@ -344,3 +345,94 @@ def test_metrics_frame_combines_stages():
     assert set(m["stage"]) == {"fusion", "association"}
     assert m.filter(pl.col("stage") == "fusion")["n_runs"].unique().to_list() == [3]
     validate(m, "metrics")
+
+
+# --------------------------------------------------------------------------- consistency
+
+from tertiary.evaluate import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
+
+
+def _kf_nees(runs: int, epochs: int, r_scale: float = 1.0, seed: int = 5) -> pl.DataFrame:
+    """A linear simulation (1 target per run, 3 independent CV axes, white-noise acceleration)
+    and a Kalman filter that believes the measurement variance is ``r_scale`` × the true one:
+    rows (method, run, epoch, target_id, seg_class, nees_pos) of its position NEES (3 dof)."""
+    rng = np.random.default_rng(seed)
+    q, r = 1.0, 400.0
+    phi = np.array([[1.0, 1.0], [0.0, 1.0]])
+    qq = q * np.array([[1 / 3, 1 / 2], [1 / 2, 1.0]])
+    x = np.zeros((runs, 3, 2))
+    xe = x + rng.normal(0, 1, x.shape) * np.sqrt([r, 100.0])       # the prior draw
+    pe = np.diag([r, 100.0]) * np.ones((3, 1, 1))
+    nees = np.empty((epochs, runs))
+    for k in range(epochs):
+        if k:
+            x = x @ phi.T + rng.multivariate_normal([0, 0], qq, (runs, 3))
+            xe, pe = xe @ phi.T, phi @ pe @ phi.T + qq
+        z = x[..., 0] + rng.normal(0, np.sqrt(r), (runs, 3))
+        s = pe[:, 0, 0] + r * r_scale
+        gain = pe[:, :, 0] / s[:, None]                            # (3, 2)
+        xe = xe + gain[None] * (z - xe[..., 0])[..., None]
+        pe = pe - gain[:, :, None] * pe[:, None, 0, :]
+        e = xe[..., 0] - x[..., 0]
+        nees[k] = (e ** 2 / pe[None, :, 0, 0]).sum(axis=1)
+    epoch = pl.Series(np.repeat(np.arange(epochs), runs) * 1_000_000 + 1_600_000_000_000_000).cast(
+        pl.Datetime("us", "UTC"))
+    return pl.DataFrame({"method": "kf", "run": np.tile(np.arange(runs), epochs), "epoch": epoch,
+                         "target_id": 1, "seg_class": None, "nees_pos": nees.reshape(-1)},
+                        schema_overrides={"seg_class": pl.String})
+
+
+def _cvalue(m: pl.DataFrame, metric: str) -> float:
+    return m.filter((pl.col("metric") == metric) & (pl.col("segment") == "all"))["value"].item()
+
+
+def test_consistent_kalman_filter_is_inside_the_monte_carlo_band():
+    """NEES averaged over N = 50 runs at each epoch vs χ²(3N)/N: a consistent filter is inside
+    on ~95 % of epochs; one whose covariance is 2x too small or too large is not."""
+    m = consistency_metrics(_kf_nees(50, 120), "nees_pos", 3, "nees", "fusion")
+    assert _cvalue(m, "nees_in_band_frac") >= 0.9
+    assert _cvalue(m, "nees_band_lo") < _cvalue(m, "nees_mean") < _cvalue(m, "nees_band_hi")
+    over = consistency_metrics(_kf_nees(50, 120, r_scale=0.3), "nees_pos", 3, "nees", "fusion")
+    assert _cvalue(over, "nees_in_band_frac") < 0.5 and _cvalue(over, "nees_mean") > 4.0
+    under = consistency_metrics(_kf_nees(50, 120, r_scale=4.0), "nees_pos", 3, "nees", "fusion")
+    assert _cvalue(under, "nees_in_band_frac") < 0.5
+
+
+def test_single_run_band_uses_the_effective_sample_size():
+    """One run: the band of the mean comes from n/τ, wider than the naive χ²(3n)/n that treats
+    the autocorrelated NEES as independent; a consistent filter's mean is inside it."""
+    rows = _kf_nees(1, 3000, seed=11).filter(pl.col("epoch") >= pl.col("epoch").min() + pl.duration(seconds=30))
+    m = consistency_metrics(rows, "nees_pos", 3, "nees", "fusion")
+    n = rows.height
+    naive = chi2_band(n, 3)
+    lo, hi = _cvalue(m, "nees_band_lo"), _cvalue(m, "nees_band_hi")
+    assert _cvalue(m, "nees_n_eff") < 0.8 * n
+    assert lo < naive[0] and hi > naive[1]
+    assert lo < _cvalue(m, "nees_mean") < hi
+    # N_k = 1 at every epoch: the χ²(3) 95 % interval of one sample holds ~95 % of epochs
+    assert 0.9 <= _cvalue(m, "nees_in_band_frac") <= 0.99
+
+
+def test_integrated_autocorrelation_of_an_ar1_sequence():
+    """AR(1) with coefficient φ: τ = (1 + φ)/(1 − φ) (3 for φ = 0.5); independent: 1; series
+    boundaries are respected (two halves of one independent draw are not correlated)."""
+    rng = np.random.default_rng(2)
+    n, phi = 200_000, 0.5
+    e = rng.standard_normal(n)
+    x = np.empty(n)
+    x[0] = e[0]
+    for i in range(1, n):
+        x[i] = phi * x[i - 1] + e[i]
+    assert integrated_autocorrelation(x, np.zeros(n, int)) == pytest.approx(3.0, rel=0.05)
+    assert integrated_autocorrelation(e, np.zeros(n, int)) == pytest.approx(1.0, abs=0.03)
+    # each value repeated in its own series of two: correlated only within a series
+    pairs = np.repeat(e[:50_000], 2)
+    assert integrated_autocorrelation(pairs, np.repeat(np.arange(50_000), 2)) == pytest.approx(2.0, rel=0.05)
+
+
+def test_chi2_band_vectorised_and_for_a_fractional_sample_size():
+    lo, hi = chi2_band(np.array([1, 10, 0]), 3)
+    assert lo[0] == pytest.approx(chi2.ppf(0.025, 3)) and hi[1] == pytest.approx(chi2.ppf(0.975, 30) / 10)
+    assert np.isnan(lo[2]) and np.isnan(hi[2])
+    a, b = chi2_band(12.5, 3)
+    assert a < 3 < b

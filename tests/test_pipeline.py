@@ -35,7 +35,7 @@ def test_tables_follow_the_contract(results):
 
 def test_trackers_run_on_every_fusion_picture(results):
     methods = set(results.tracks["method"].unique().to_list())
-    assert methods == set(METHODS)                          # not on the centralised bound
+    assert methods == set(METHODS)                          # not on the centralised reference
     assert set(results.tracks["filter"].unique().to_list()) == {"singer", "imm_sym"}
     m = results.metrics.filter((pl.col("stage") == "tracker") & (pl.col("segment") == "all"))
     names = set(m["method"].unique().to_list())
@@ -66,7 +66,7 @@ def test_safety_runs_on_the_confirmed_tracks_of_every_picture(results):
     schema.validate(alerts, "alerts", strict=True)
 
 
-def test_every_method_and_the_bound_are_fused(results):
+def test_every_method_and_the_centralised_reference_are_fused(results):
     methods = set(results.fused["method"].unique().to_list())
     assert methods == set(METHODS) | {"centralized"}
     per = results.fused.filter(pl.col("method") != "centralized")
@@ -79,7 +79,6 @@ def test_association_quality(results):
     m = results.metrics.filter(pl.col("stage") == "association")
     value = dict(zip(m["metric"], m["value"]))
     assert value["assoc_correct_frac"] >= 0.99
-    assert value["swaps"] >= 0
 
 
 def test_accuracy_metrics_long_form(results):
@@ -90,9 +89,58 @@ def test_accuracy_metrics_long_form(results):
     pos = m.filter((pl.col("metric") == "rmse_pos_m") & (pl.col("segment") == "all"))
     by = dict(zip(pos["method"], pos["value"]))
     assert set(by) == set(METHODS) | {"centralized"}
-    assert all(10.0 < v < 1000.0 for v in by.values())
-    # the information filter is near the centralised bound, the plain mean is not better than it
+    # the information filter is near the centralised reference, the plain mean is not better than it
     assert by["information"] <= by["arithmetic"]
+
+
+def _all(m: pl.DataFrame, stage: str, metric: str) -> dict[str, float]:
+    rows = m.filter((pl.col("stage") == stage) & (pl.col("metric") == metric) & (pl.col("segment") == "all"))
+    return dict(zip(rows["method"], rows["value"]))
+
+
+def test_every_picture_has_its_bound_and_a_signed_gap(results):
+    """Every fused and tracker picture gets pcrb_pos_m (stage bound) and gap = RMSE − PCRB.
+    The bound is the Singer-model PCRB; trackers whose model fits the straight legs better
+    (IMM) can sit up to ~35 % below it here (docs/metrics.md), none by half; the centralised
+    filter of the bound's own model lands within 10 % of it (a unit, frame or timing error in
+    the bound moves it by far more)."""
+    m = results.metrics
+    rmse = {**_all(m, "fusion", "rmse_pos_m"), **_all(m, "tracker", "rmse_pos_m")}
+    pcrb, gap = _all(m, "bound", "pcrb_pos_m"), _all(m, "bound", "gap_pos_m")
+    assert set(pcrb) == set(rmse) == set(gap)
+    for pic, b in pcrb.items():
+        assert gap[pic] == pytest.approx(rmse[pic] - b)
+        assert 0.5 * b <= rmse[pic] <= 10 * b, (pic, rmse[pic], b)
+    assert 0.9 * pcrb["centralized"] <= rmse["centralized"] <= 1.1 * pcrb["centralized"]
+
+
+def test_consistency_rows_for_every_picture(results):
+    m = results.metrics
+    pictures = set(_all(m, "fusion", "rmse_pos_m")) | set(_all(m, "tracker", "rmse_pos_m"))
+    nees = {**_all(m, "fusion", "nees_mean"), **_all(m, "tracker", "nees_mean")}
+    frac = {**_all(m, "fusion", "nees_in_band_frac"), **_all(m, "tracker", "nees_in_band_frac")}
+    assert set(nees) == set(frac) == pictures
+    assert all(0.0 <= f <= 1.0 for f in frac.values())
+    nis = _all(m, "tracker", "nis_in_band_frac")
+    assert set(nis) == {p for p in pictures if "+" in p}
+
+
+def test_one_aircraft_one_run_has_accuracy_for_every_picture(small_terminal):
+    """One aircraft in one run: N_k = 1 at every epoch, so (2.15) pools the epochs; every
+    fused and tracker picture still has rmse_pos_m, rmse_horizontal_m and rmse_height_m."""
+    ds = small_terminal
+    one = int(ds.reports.filter(pl.col("truth_id").is_not_null()).group_by("truth_id").len()
+              .sort("len", descending=True)["truth_id"][0])
+    rep = ds.reports.filter(pl.col("truth_id") == one)
+    ds1 = dataclasses.replace(ds, reports=rep, truth=ds.truth.filter(pl.col("truth_id") == one))
+    res = pipeline.process(ds1, pipeline.PipelineConfig(filters=("singer",), safety=False))
+    m = res.metrics
+    pictures = set(METHODS) | {"centralized"} | {f"{meth}+singer" for meth in METHODS}
+    for metric in ("rmse_pos_m", "rmse_horizontal_m", "rmse_height_m"):
+        got = {**_all(m, "fusion", metric), **_all(m, "tracker", metric)}
+        assert set(got) == pictures, metric
+        assert all(np.isfinite(v) and v > 0 for v in got.values())
+    assert set(_all(m, "bound", "pcrb_pos_m")) == pictures
 
 
 def test_clusters_reference_fused_targets(results):

@@ -164,10 +164,13 @@ def test_potential_accuracy_and_nees():
     assert _value(m, "potential_pos_m") == pytest.approx(3.0)
     # run 0: 1/1 + 4/4 = 2; run 1: 16/4 = 4
     assert _value(m, "nees_mean") == pytest.approx(3.0)
+    # each run's NEES is constant over its 3 epochs: the 6 samples are worth 2 independent ones
+    # (τ = 1 + 2 (4/6 + 2/6) = 3), so the band of the mean is χ²(3·2)/2, not χ²(3·6)/6
+    assert _value(m, "nees_n_eff") == pytest.approx(2.0)
     lo, hi = _value(m, "nees_band_lo"), _value(m, "nees_band_hi")
-    n = 6
-    assert lo == pytest.approx(chi2.ppf(0.025, 3 * n) / n) and hi == pytest.approx(chi2.ppf(0.975, 3 * n) / n)
-    assert lo < 3.0 < hi
+    assert lo == pytest.approx(chi2.ppf(0.025, 6) / 2) and hi == pytest.approx(chi2.ppf(0.975, 6) / 2)
+    # per epoch: the mean of N_k = 2 runs, (2 + 4)/2 = 3, is inside χ²(6)/2 at every epoch
+    assert _value(m, "nees_in_band_frac") == pytest.approx(1.0)
 
 
 def test_nis_mean_ignores_coasting_rows():
@@ -175,7 +178,9 @@ def test_nis_mean_ignores_coasting_rows():
     coast = _tracks([dict(run=0, s=12, track_id=1, plot=None, at=7)])
     m = tracker_metrics(pl.concat([tracks, coast]), assoc, rep, _truth(), NO_SKIP)
     assert _value(m, "nis_mean") == pytest.approx(3.5)
-    assert (_value(m, "nis_band_lo"), _value(m, "nis_band_hi")) == pytest.approx(chi2_band(6, 3))
+    # constant per run over 3 updated epochs: 2 effective samples (coasting rows have no NIS)
+    assert (_value(m, "nis_band_lo"), _value(m, "nis_band_hi")) == pytest.approx(chi2_band(2, 3))
+    assert _value(m, "nis_n_eff") == pytest.approx(2.0)
 
 
 def test_chi2_band_narrows_with_samples():
