@@ -2,7 +2,7 @@
 
 In a fresh process per repetition: simulate (not timed), then time each stage of
 ``tertiary.pipeline.process`` without trackers (validation, alignment, association, fusion
-with every method, the centralised bound, clustering, evaluation) and record reports/s through
+with every method, the centralised reference, clustering, evaluation) and record reports/s through
 alignment → clustering and the peak resident memory reached by the end of clustering (it
 includes the simulated dataset held in memory). Target (issue 3): ≥ 500 000 reports/s, < 2 GB.
 

@@ -1,9 +1,9 @@
 -- Track quality of the secondary trackers (the §1.7 indicators), one row per fusion method and
 -- filter, from the metrics table (segment 'all'): confirmed tracks, completeness, breaks, swaps,
 -- spurious tracks, real RMS position / velocity error, potential accuracy sqrt(tr P_pos), mean NEES
--- and NIS; most accurate first.
+-- and NIS with the fraction of epochs inside their Monte-Carlo bands; most accurate first.
 -- Columns: method, filter, tracks, completeness, breaks, swaps, spurious_tracks, rmse_pos_m,
--- rmse_vel_mps, potential_pos_m, nees_mean, nis_mean, n_runs.
+-- rmse_vel_mps, potential_pos_m, nees_mean, nis_mean, nees_in_band_frac, nis_in_band_frac, n_runs.
 -- param: filter = null   tracker filter, e.g. 'singer' (null: all)
 -- param: method = null   fusion method whose picture was tracked (null: all)
 SELECT split_part(method, '+', 1)                              AS method,
@@ -18,6 +18,8 @@ SELECT split_part(method, '+', 1)                              AS method,
        max(value) FILTER (WHERE metric = 'potential_pos_m')    AS potential_pos_m,
        max(value) FILTER (WHERE metric = 'nees_mean')          AS nees_mean,
        max(value) FILTER (WHERE metric = 'nis_mean')           AS nis_mean,
+       max(value) FILTER (WHERE metric = 'nees_in_band_frac')  AS nees_in_band_frac,
+       max(value) FILTER (WHERE metric = 'nis_in_band_frac')   AS nis_in_band_frac,
        max(n_runs)                                             AS n_runs
 FROM metrics
 WHERE stage = 'tracker'

@@ -8,14 +8,16 @@ Public API (the CLI is a thin layer over these):
 * the radar's own secondary processing: :func:`track_reports`
 * storage: :class:`RunStore`, :func:`export_parquet`
 * stages: :func:`tertiary.align.align`, :func:`candidate_pairs`, :func:`tertiary.associate.associate`,
-  :func:`fuse`, :func:`cluster`; evaluation in :mod:`tertiary.evaluate`, the centralised bound in
-  :mod:`tertiary.centralized`
+  :func:`fuse`, :func:`cluster`; evaluation in :mod:`tertiary.evaluate`, the centralised reference in
+  :mod:`tertiary.centralized`, the posterior Cramér–Rao bound in :mod:`tertiary.bound`
+* radars that err: :class:`RadarTrackerConfig`, :class:`TransponderConfig` (the simulated radars'
+  own association, :mod:`tertiary.simulate.radar_tracker`)
 * the batch job: :func:`run` (writes the run database), :func:`process` (in memory), :func:`ingest`
 * results: :func:`run_report` / :func:`list_reports` (the named SQL reports of ``sql/``, read-only,
   bound parameters), :func:`build_report` (the self-contained HTML report of a run)
 """
 
-from tertiary import align, altitude, associate, centralized, evaluate, geo
+from tertiary import align, altitude, associate, bound, centralized, evaluate, geo
 from tertiary.align import AlignConfig
 from tertiary.associate import AssociationConfig
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
@@ -26,6 +28,8 @@ from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
 from tertiary.pipeline import PipelineConfig, StageError, ingest, process, run, screen
 from tertiary.schema import RULES, TABLES, Limits, SchemaError, UnsortedTimeWarning, contract_rules, validate
 from tertiary.simulate import Dataset, check_scenario, load_scenario, read_dataset, simulate, write_dataset
+from tertiary.simulate.radar_tracker import RadarTrackerConfig
+from tertiary.simulate.config import TransponderConfig
 from tertiary.report import build_report
 from tertiary.sql_reports import list_reports, run_report
 from tertiary.store import RunStore, export_parquet
@@ -38,4 +42,4 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
            "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__",
            "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
-           "DataError", "ResourceError", "altitude"]
+           "DataError", "ResourceError", "altitude", "bound", "RadarTrackerConfig", "TransponderConfig"]

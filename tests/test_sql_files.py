@@ -70,7 +70,8 @@ def test_reports_by_radar(run_db):
         mine = valid.filter(pl.col("radar_id") == rid)
         row = df.filter(pl.col("radar_id") == rid)
         assert row["reports"].item() == mine.height
-        assert row["local_tracks"].item() == 2            # one local track per run
+        # the radars run their own trackers (tracks may break): count from the reports themselves
+        assert row["local_tracks"].item() == mine.select("run", "local_track_id").n_unique() >= 2
         res = mine["res_range_m"].to_numpy()
         res = res[~np.isnan(res)]
         assert row["res_range_sd_m"].item() == pytest.approx(np.std(res, ddof=1), rel=1e-9)

@@ -354,7 +354,8 @@ def test_injection_is_data(q):
 def test_accuracy_by_method(q):
     df = q("accuracy_by_method")
     assert df.columns == ["stage", "method", "filter", "segment", "rmse_pos_m", "rmse_horizontal_m", "rmse_height_m",
-                          "rmse_range_m", "rmse_x_m", "rmse_y_m", "rmse_z_m", "rmse_vel_mps", "n_runs"]
+                          "rmse_range_m", "rmse_x_m", "rmse_y_m", "rmse_z_m", "rmse_vel_mps", "pcrb_pos_m",
+                          "gap_pos_m", "nees_mean", "nees_in_band_frac", "n_runs"]
     fusion_all = df.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all"))
     assert rows(fusion_all, "method", "rmse_pos_m", "rmse_horizontal_m", "rmse_height_m")[:2] == [
         ("apriori", 90.0, 54.0, 72.0), ("aposteriori", 100.0, None, None)]
@@ -567,7 +568,8 @@ def test_association_quality(q):
 def test_track_quality(q):
     df = q("track_quality")
     assert df.columns == ["method", "filter", "tracks", "completeness", "breaks", "swaps", "spurious_tracks",
-                          "rmse_pos_m", "rmse_vel_mps", "potential_pos_m", "nees_mean", "nis_mean", "n_runs"]
+                          "rmse_pos_m", "rmse_vel_mps", "potential_pos_m", "nees_mean", "nis_mean",
+                          "nees_in_band_frac", "nis_in_band_frac", "n_runs"]
     assert rows(df, "method", "filter", "tracks", "rmse_pos_m") == [
         ("apriori", "imm", 11.0, 60.0), ("apriori", "singer", 10.0, 70.0), ("information", "singer", None, None)]
     singer = dict(zip(df.columns, df.row(1)))
