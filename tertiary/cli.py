@@ -97,14 +97,32 @@ def _root(ctx: typer.Context,
     Exit codes: 0 success, 1 internal error, 2 bad option, 3 bad input data or file, 4 refused
     (a limit would be exceeded). Add --debug before the command for a traceback."""
     ctx.obj = {"debug": debug}
+    _LOG["mode"] = "text"             # per invocation (run/simulate may change it)
 
 
 # --------------------------------------------------------------------------- progress
 
 
+#: progress output of this command: "text" (a status line in a terminal, time-stamped lines
+#: otherwise), "json" (one JSON object per line, for schedulers) or "quiet" (none)
+_LOG = {"mode": "text"}
+
+
+def _set_log(quiet: bool, log_format: str) -> None:
+    if log_format not in ("text", "json"):
+        raise OptionError(f"choose text or json, got {log_format!r}", option="--log-format")
+    _LOG["mode"] = "quiet" if quiet else log_format
+
+
+def _peak_rss_mib() -> float:
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 class _Steps:
     """Stage progress: a transient status line in a terminal, plain time-stamped lines in a batch
-    log (no spinner glyphs, one line per stage, flushed as it happens)."""
+    log (no spinner glyphs, one line per stage, flushed as it happens, with the peak memory so
+    far), JSON lines with ``--log-format json``, nothing with ``--quiet``."""
 
     def __init__(self, title: str) -> None:
         self.title, self.t0 = title, time.perf_counter()
@@ -112,7 +130,7 @@ class _Steps:
         self._task: Any = None
 
     def __enter__(self) -> _Steps:
-        if console.is_terminal:
+        if console.is_terminal and _LOG["mode"] == "text":
             self._prog = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                                   console=console, transient=True)
             self._prog.__enter__()
@@ -125,10 +143,18 @@ class _Steps:
 
     def __call__(self, message: str) -> None:
         message = message.removeprefix(f"{self.title}: ")
-        if self._prog is not None:
+        elapsed = time.perf_counter() - self.t0
+        if _LOG["mode"] == "quiet":
+            return
+        if _LOG["mode"] == "json":
+            sys.stdout.write(json.dumps({"t_s": round(elapsed, 3), "task": self.title, "step": message,
+                                         "peak_rss_mib": round(_peak_rss_mib(), 1)}) + "\n")
+            sys.stdout.flush()
+        elif self._prog is not None:
             self._prog.update(self._task, description=f"{self.title}: {message}")
         else:
-            console.print(f"[{time.perf_counter() - self.t0:7.1f} s] {self.title}: {message}", soft_wrap=True)
+            console.print(f"[{elapsed:7.1f} s] {self.title}: {message} (peak {_peak_rss_mib():,.0f} MiB)",
+                          soft_wrap=True)
             sys.stdout.flush()
 
 
@@ -263,6 +289,9 @@ NoiseWinOpt = Annotated[Optional[str], typer.Option(help="T0:T1 seconds of the n
 DropoutOpt = Annotated[Optional[str], typer.Option(help="RADAR:T0:T1 radar dropout window (radar name, seconds)")]
 OutliersOpt = Annotated[Optional[float], typer.Option(help="fraction of gross-error reports, in [0, 1]")]
 BiasStepOpt = Annotated[Optional[str], typer.Option(help="T:DRANGE_M:DAZ_DEG range/azimuth bias step at T seconds")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", help="print no progress (the final summary only)")]
+LogFormatOpt = Annotated[str, typer.Option(help="progress lines: text, or json (one object per line: t_s, "
+                                                "task, step, peak_rss_mib) for schedulers")]
 
 
 @app.command()
@@ -274,8 +303,10 @@ def simulate(
     noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
     bias_step: BiasStepOpt = None,
     force: Annotated[bool, typer.Option(help="replace a dataset already in OUT")] = False,
+    quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
 ) -> None:
     """Simulate SCENARIO and write radars/reports/truth Parquet files and scenario.toml to OUT."""
+    _set_log(quiet, log_format)
     if scenario == "adsb" and truth is None:
         raise OptionError("the adsb scenario needs --truth FILE (an OpenSky/traffic-schema Parquet file)",
                           option="--truth")
@@ -347,11 +378,13 @@ def run(
     duration: DurationOpt = None, truth: TruthOpt = None, noise_factor: NoiseOpt = None,
     noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
     bias_step: BiasStepOpt = None,
+    quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
 
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
+    _set_log(quiet, log_format)
     cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture)

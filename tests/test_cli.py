@@ -195,6 +195,24 @@ def test_run_twice_never_overwrites_and_prints_a_summary(dataset, tmp_path):
     assert third.exit_code == 0, third.output
 
 
+def test_batch_progress_as_json_lines_or_nothing(dataset, tmp_path):
+    import json
+    args = ["run", str(dataset), "--no-report", "--filters", "", "--methods", "arithmetic", "--no-centralized"]
+    res = runner.invoke(app, [*args, "--out", str(tmp_path / "j"), "--log-format", "json"])
+    assert res.exit_code == 0, res.output
+    lines = [json.loads(line) for line in res.output.splitlines() if line.startswith("{")]
+    steps = [d["step"] for d in lines if d["task"] == "pipeline"]
+    assert steps[:3] == ["validate", "align", "associate"] and "store" in steps
+    assert all(d["peak_rss_mib"] > 0 and d["t_s"] >= 0 for d in lines)
+    assert "wall time" in res.output                         # the summary is still printed
+    quiet = runner.invoke(app, [*args, "--out", str(tmp_path / "q"), "--quiet"])
+    assert quiet.exit_code == 0 and "pipeline:" not in quiet.output and "wall time" in quiet.output
+    text = runner.invoke(app, [*args, "--out", str(tmp_path / "t")])
+    assert re.search(r"\] pipeline: align \(peak [\d,]+ MiB\)", text.output)
+    bad = runner.invoke(app, [*args, "--out", str(tmp_path / "b"), "--log-format", "xml"])
+    assert bad.exit_code == 2 and "--log-format" in bad.output
+
+
 def test_one_wall_time_everywhere(dataset, tmp_path):
     run_dir = tmp_path / "w"
     res = runner.invoke(app, ["run", str(dataset), "--out", str(run_dir), "--filters", "", "--methods", "arithmetic"])
