@@ -1,0 +1,172 @@
+"""Match any air picture to a reference, once: which reference aircraft each track row is.
+
+The evaluation of a picture that ``tertiary`` did not produce (an existing tracker's output,
+CAT062, a Parquet file in the ``tracks`` schema) cannot use report labels: it has only track
+states and a reference (simulator truth or an ADS-B reference). This module matches by
+geometry, the way a surveillance engineer's evaluation tool does.
+
+Assignment rule (documented, deterministic)
+-------------------------------------------
+1. **Reference at the track's time.** Every reference aircraft alive at a track row's epoch is
+   interpolated linearly between its neighbouring samples (:func:`tertiary.evaluate.truth_at`;
+   never extrapolated: outside an aircraft's span it is absent).
+2. **Gate.** A (track row, aircraft) pair is a candidate when the horizontal distance is at most
+   ``gate_h_m`` and, where both carry a height (``alt_m``, else the ENU z), the vertical distance
+   at most ``gate_v_m``. Candidates are found with one KD-tree over all epochs (the epoch group
+   offsets the coordinates), never by a loop over pairs.
+3. **One-to-one per epoch.** Within each (run, picture, epoch), each track row is matched to at
+   most one aircraft and each aircraft to at most one track row, minimising the sum of squared
+   normalised distances (d_h/gate_h)² + (d_v/gate_v)² — the Hungarian algorithm on each
+   connected component of the candidate graph; a component of one track and one aircraft (the
+   usual case) is matched without it. A second track on an aircraft that already has one is
+   therefore *unmatched* at that epoch (a duplicate/split), not a second match.
+4. **Swaps and gaps.** The rule is per epoch: when two tracks exchange aircraft the matching
+   follows the geometry, so the track id that represents an aircraft changes (counted by the
+   continuity metrics); an aircraft with no track row in the gate is a missed update; a track
+   row with no aircraft is unmatched (false or duplicate).
+
+Output: the track rows with ``truth_id`` (null when unmatched), the reference state
+``true_x_m … true_vz_mps`` (and ``true_alt_m``) of the matched aircraft, and ``match_cost``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from tertiary.evaluate import truth_at
+from tertiary.schema import TIME
+
+__all__ = ["MatchConfig", "reference_at_epochs", "match_to_reference"]
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """Gates of the geometric matching (module docstring, rule 2)."""
+
+    gate_h_m: float = 1852.0
+    gate_v_m: float = 300.0
+
+    def __post_init__(self) -> None:
+        if not (self.gate_h_m > 0 and self.gate_v_m > 0):
+            raise ValueError("matching gates must be > 0")
+
+
+def _height(frame: pl.DataFrame, prefix: str = "") -> pl.Expr:
+    alt = f"{prefix}alt_m"
+    if alt in frame.columns:
+        return pl.col(alt).fill_null(pl.col(f"{prefix}z_m")).fill_nan(pl.col(f"{prefix}z_m"))
+    return pl.col(f"{prefix}z_m")
+
+
+def reference_at_epochs(epochs: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """Every reference aircraft alive at each (run, epoch) of ``epochs``, interpolated (rule 1):
+    columns run, epoch, truth_id, true_<state> (and true_alt_m). A ``truth`` without ``run``
+    is shared by every run (Monte-Carlo); with ``run``, each run has its own."""
+    tt = truth.with_columns(pl.col("time").cast(TIME), pl.col("truth_id").cast(pl.Int64))
+    ep = epochs.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).unique()
+    if "run" in tt.columns:
+        tt = tt.with_columns(pl.col("run").cast(pl.UInt32))
+        parts = [_alive(ep.filter(pl.col("run") == r), tt.filter(pl.col("run") == r).drop("run"))
+                 for r in ep["run"].unique().sort().to_list()]
+        return pl.concat(parts, how="vertical_relaxed") if parts else _alive(ep, tt.drop("run"))
+    return _alive(ep, tt)
+
+
+def _alive(ep: pl.DataFrame, tt: pl.DataFrame) -> pl.DataFrame:
+    spans = tt.group_by("truth_id").agg(pl.col("time").min().alias("__t0"), pl.col("time").max().alias("__t1"))
+    alive = ep.join_where(spans, pl.col("epoch") >= pl.col("__t0"), pl.col("epoch") <= pl.col("__t1"))
+    samples = alive.select("run", "epoch", "truth_id")
+    if "alt_m" in tt.columns:               # truth_at interpolates alt_m when both frames have it
+        samples = samples.with_columns(pl.lit(0.0).alias("alt_m"))
+    return truth_at(samples, tt).drop("alt_m", "segment", strict=False)
+
+
+def _candidates(tr: pl.DataFrame, ref: pl.DataFrame, cfg: MatchConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """(track row, reference row, cost) of every gated pair (rule 2)."""
+    keys = ["run", "method", "epoch"]
+    groups = pl.concat([tr.select(keys), ref.select(keys)]).unique().with_row_index("__g")
+    gt = tr.select(keys).join(groups, on=keys, how="left", maintain_order="left")["__g"].to_numpy()
+    gr = ref.select(keys).join(groups, on=keys, how="left", maintain_order="left")["__g"].to_numpy()
+    # the group index offsets x so that one tree serves every epoch (groups 1e4 gates apart)
+    off = 1e4 * cfg.gate_h_m
+    pt = np.column_stack([tr["x_m"].to_numpy() + gt * off, tr["y_m"].to_numpy()])
+    pr = np.column_stack([ref["true_x_m"].to_numpy() + gr * off, ref["true_y_m"].to_numpy()])
+    if len(pt) == 0 or len(pr) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    pairs = cKDTree(pr).query_ball_point(pt, r=cfg.gate_h_m)
+    lens = np.fromiter((len(p) for p in pairs), np.int64, len(pairs))
+    i = np.repeat(np.arange(len(pt)), lens)
+    j = np.fromiter((k for p in pairs for k in p), np.int64, int(lens.sum()))
+    ht = tr.select(_height(tr)).to_series().to_numpy()
+    hr = ref.select(_height(ref, "true_")).to_series().to_numpy()
+    dh2 = ((pt[i] - pr[j]) ** 2).sum(axis=1) / cfg.gate_h_m ** 2
+    dv = np.abs(ht[i] - hr[j])
+    keep = (gt[i] == gr[j]) & (dv <= cfg.gate_v_m)
+    return i[keep], j[keep], dh2[keep] + (dv[keep] / cfg.gate_v_m) ** 2
+
+
+def _assign(i: NDArray, j: NDArray, cost: NDArray, n_t: int, n_r: int) -> NDArray[np.int64]:
+    """Reference row matched to each track row (−1: none), one-to-one (rule 3)."""
+    out = np.full(n_t, -1, np.int64)
+    if len(i) == 0:
+        return out
+    graph = coo_matrix((np.ones(len(i)), (i, n_t + j)), shape=(n_t + n_r, n_t + n_r))
+    _, label = connected_components(graph, directed=False)
+    comp = label[i]
+    size = np.bincount(comp, minlength=label.max() + 1)
+    simple = size[comp] == 1                         # one candidate pair in the component
+    out[i[simple]] = j[simple]
+    rest = np.flatnonzero(~simple)
+    if len(rest):
+        order = rest[np.argsort(comp[rest], kind="stable")]
+        bounds = np.flatnonzero(np.diff(comp[order])) + 1
+        for block in np.split(order, bounds):        # ambiguous components only (a few)
+            ti, ri = np.unique(i[block], return_inverse=True)
+            tj, rj = np.unique(j[block], return_inverse=True)
+            big = 1e6
+            m = np.full((len(ti), len(tj)), big)
+            m[ri, rj] = cost[block]
+            rows, cols = linear_sum_assignment(m)
+            ok = m[rows, cols] < big
+            out[ti[rows[ok]]] = tj[cols[ok]]
+    return out
+
+
+def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
+                       id_col: str = "track_id") -> pl.DataFrame:
+    """The rows of ``tracks`` (run, epoch, ``id_col``, method, x_m … vz_mps[, alt_m]) with the
+    matched reference aircraft (module docstring): ``truth_id`` (null if unmatched),
+    ``true_x_m … true_vz_mps`` (``true_alt_m`` when the reference has heights) and
+    ``match_cost``."""
+    tr = tracks
+    if "run" not in tr.columns:
+        tr = tr.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    if "method" not in tr.columns:
+        tr = tr.with_columns(pl.lit("picture").alias("method"))
+    tr = tr.with_columns(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).with_row_index("__row")
+    ref = reference_at_epochs(tr.select("run", "epoch"), truth)
+    methods = tr.select("method").unique()
+    ref = ref.join(methods, how="cross").join(tr.select("run", "method", "epoch").unique(),
+                                              on=["run", "method", "epoch"], how="semi")
+    i, j, cost = _candidates(tr, ref, cfg)
+    best = _assign(i, j, cost, tr.height, ref.height)
+    cost_of = np.full(tr.height, np.nan)
+    if len(i):
+        hit = best[i] == j
+        cost_of[i[hit]] = cost[hit]
+    true_cols = [c for c in ref.columns if c.startswith("true_")]
+    matched = best >= 0
+    ref_rows = ref.select("truth_id", *true_cols)[np.where(matched, best, 0)]
+    ref_rows = ref_rows.select(*(pl.when(pl.Series(matched)).then(pl.col(c)).otherwise(None).alias(c)
+                                 for c in ref_rows.columns))
+    return (tr.drop("__row").drop([c for c in ("truth_id", *true_cols) if c in tr.columns])
+            .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of)))
+

@@ -1,0 +1,78 @@
+"""Geometric matching of any picture to a reference (tertiary.matching)."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+
+from tertiary.matching import MatchConfig, match_to_reference
+
+T0 = datetime(2021, 10, 7, 12, 0, 0, tzinfo=timezone.utc)
+
+
+def _truth(n_t=31):
+    """Aircraft 1 flies east along y = 0, aircraft 2 west along y = 600 m; they cross x at t = 60 s."""
+    rows = []
+    for k in range(n_t):
+        t = 4.0 * k
+        rows.append((1, T0 + timedelta(seconds=t), -12000 + 200 * t, 0.0, 3000.0, 200.0, 0.0, 0.0))
+        rows.append((2, T0 + timedelta(seconds=t), 12000 - 200 * t, 600.0, 3000.0, -200.0, 0.0, 0.0))
+    return pl.DataFrame(rows, schema=["truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"],
+                        orient="row")
+
+
+def _tracks(truth, swap_at=None, offset=(0.0, 0.0), every=2.0, extra=False):
+    """Track 10 on aircraft 1, 20 on 2 (ids exchanged from ``swap_at`` s); sampled every 2 s
+    (between truth samples: interpolation needed)."""
+    rows = []
+    for k in range(60):
+        t = every * k
+        for tid, (x, y) in ((1, (-12000 + 200 * t, 0.0)), (2, (12000 - 200 * t, 600.0))):
+            track = 10 if tid == 1 else 20
+            if swap_at is not None and t >= swap_at:
+                track = 30 - track
+            rows.append((0, T0 + timedelta(seconds=t), track, x + offset[0], y + offset[1], 3000.0,
+                         200.0 if tid == 1 else -200.0, 0.0, 0.0))
+        if extra:   # a duplicate of aircraft 1, 50 m off, and a false track far away
+            rows.append((0, T0 + timedelta(seconds=t), 11, -12000 + 200 * t + 50, 0.0, 3000.0, 200.0, 0.0, 0.0))
+            rows.append((0, T0 + timedelta(seconds=t), 99, 50000.0, 50000.0, 3000.0, 0.0, 0.0, 0.0))
+    return pl.DataFrame(rows, schema=["run", "epoch", "track_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"],
+                        orient="row")
+
+
+def test_each_track_row_is_its_aircraft_with_the_interpolated_reference():
+    truth = _truth()
+    m = match_to_reference(_tracks(truth, offset=(30.0, -40.0)), truth)
+    assert m["truth_id"].null_count() == 0
+    assert (m.filter(pl.col("track_id") == 10)["truth_id"] == 1).all()
+    err = np.hypot((m["x_m"] - m["true_x_m"]).to_numpy(), (m["y_m"] - m["true_y_m"]).to_numpy())
+    np.testing.assert_allclose(err, 50.0, atol=1e-6)            # the 30/40 m offset, at odd seconds too
+
+
+def test_a_swap_follows_the_geometry():
+    truth = _truth()
+    m = match_to_reference(_tracks(truth, swap_at=80.0), truth)
+    t10 = m.filter(pl.col("track_id") == 10).sort("epoch")
+    assert t10.filter(pl.col("epoch") < T0 + timedelta(seconds=80))["truth_id"].unique().to_list() == [1]
+    assert t10.filter(pl.col("epoch") >= T0 + timedelta(seconds=80))["truth_id"].unique().to_list() == [2]
+
+
+def test_one_to_one_duplicates_and_false_tracks_stay_unmatched():
+    truth = _truth()
+    m = match_to_reference(_tracks(truth, extra=True), truth)
+    per_epoch = m.filter(pl.col("truth_id").is_not_null()).group_by("epoch", "truth_id").len()
+    assert per_epoch["len"].max() == 1                          # never two tracks on one aircraft
+    assert m.filter(pl.col("track_id") == 99)["truth_id"].null_count() == 60
+    dup = m.filter(pl.col("track_id") == 11)
+    assert dup["truth_id"].null_count() == dup.height           # the closer track 10 keeps aircraft 1
+
+
+def test_outside_the_gate_or_the_reference_span_is_unmatched():
+    truth = _truth(n_t=10)                                      # reference ends at 36 s
+    m = match_to_reference(_tracks(truth, offset=(0.0, 2500.0)), truth, MatchConfig(gate_h_m=3000.0))
+    late = m.filter(pl.col("epoch") > T0 + timedelta(seconds=36))
+    assert late["truth_id"].null_count() == late.height         # never extrapolated
+    far = match_to_reference(_tracks(truth, offset=(0.0, 2500.0)), truth)   # 2.5 km > 1 NM gate
+    assert far["truth_id"].null_count() == far.height
