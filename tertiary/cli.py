@@ -493,6 +493,75 @@ def print_summary(db: Path, html_path: Path | None) -> None:
         console.print(f"report:  {html_path} ({html_path.stat().st_size / 1e6:.1f} MB)", soft_wrap=True)
 
 
+@app.command("evaluate")
+def evaluate_cmd(
+    tracks: Annotated[list[Path], typer.Argument(help="picture file(s): Parquet in the tracks schema (epoch, "
+                                                       "track_id, x_m ... vz_mps in the reference's ENU frame); "
+                                                       "several files give a comparison")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="run directory for results.duckdb and report.html")],
+    truth: Annotated[Optional[Path], typer.Option(help="reference: Parquet in the truth schema (truth_id, time, "
+                                                       "x_m ... vz_mps[, alt_m]) in the same frame")] = None,
+    dataset: Annotated[Optional[Path], typer.Option(help="dataset directory whose truth.parquet is the reference "
+                                                         "(its radars give the range rings)")] = None,
+    requirements: Annotated[Optional[Path], typer.Option(help="requirements TOML with pass/fail thresholds "
+                                                              "[default: none; see datasets/requirements]")] = None,
+    force: Annotated[bool, typer.Option(help="replace a run already in --out")] = False,
+    report: Annotated[bool, typer.Option("--report/--no-report", help="also write RUN_DIR/report.html")] = True,
+) -> None:
+    """Score pictures that tertiary did not produce (or did) against a reference: one geometric
+    matching, the surveillance metrics (accuracy, along/across track, latency, update
+    probability, continuity, false/split/merged tracks, identity) by altitude band, range ring
+    and flight phase, and requirements with pass/fail."""
+    from tertiary.evaluation import evaluate_pictures, read_pictures
+    from tertiary.requirements import load_requirements
+    if (truth is None) == (dataset is None):
+        raise OptionError("give the reference with exactly one of --truth FILE or --dataset DIR", option="--truth")
+    radars, frame = None, None
+    if dataset is not None:
+        ds = read_dataset(dataset)
+        ref, radars, frame = ds.truth, ds.radars, ds.origin
+        if ref.height == 0:
+            raise DataError("the dataset has no usable truth.parquet to evaluate against", path=str(dataset))
+    else:
+        try:
+            ref = pl.read_parquet(truth)
+        except (OSError, pl.exceptions.PolarsError) as exc:
+            raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(truth)) from exc
+    reqs = load_requirements(requirements) if requirements is not None else None
+    if out.exists() and (out / "results.duckdb").exists() and not force:
+        raise OptionError(f"{out} already holds a run; choose another --out or add --force", option="--out")
+    pictures = read_pictures(tracks)
+    t = time.perf_counter()
+    with _Steps("evaluate") as say:
+        say("match and score")
+        ev = evaluate_pictures(pictures, ref, radars=radars, frame=frame, requirements=reqs)
+        say("store")
+        with RunStore.create(out) as store:
+            store.write("tracks", pictures)
+            store.write("truth", ref)
+            store.write("metrics", ev.metrics)
+            store.write("evaluation_matched", ev.matched.select(
+                "run", "epoch", "method", "track_id", "truth_id", "match_cost"))
+            if reqs is not None:
+                store.write("requirements", ev.requirements)
+            record_run(store, {"kind": "evaluation", "pictures": sorted(pictures["method"].unique().to_list()),
+                               "tracks_files": [str(p) for p in tracks],
+                               "reference": str(truth or dataset), "requirements": str(requirements or ""),
+                               "status": "complete", "timings": {"wall_s": time.perf_counter() - t}})
+    console.print(f"evaluated {pictures['method'].n_unique()} picture(s), {pictures.height:,} track rows, "
+                  f"against {ref['truth_id'].n_unique():,} reference aircraft in {time.perf_counter() - t:.1f} s")
+    _print_frame(ev.comparison, "Pictures compared (segment all)", 50)
+    if reqs is not None:
+        _print_frame(ev.requirements.select("requirement", "method", "metric", "breakdown", "threshold", "value",
+                                            "n_samples", "verdict"), "Requirements", 200)
+    console.print(f"results: {out / 'results.duckdb'}")
+    if report:
+        from tertiary.report import build_report
+        with _Steps("report") as say:
+            html = build_report(out, progress=say)
+        console.print(f"report:  {html}")
+
+
 @app.command("report")
 def report_cmd(
     run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
