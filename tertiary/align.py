@@ -311,3 +311,70 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
         return empty_aligned(), pl.DataFrame(schema={"report_id": pl.UInt64, "reason": pl.String})
     p = plan(reports, radars, origin, cfg)
     return expand(p, cfg), p.rejects
+
+
+# --------------------------------------------------------------------------- registration
+
+
+#: registration columns applied by :func:`apply_registration` (see :mod:`tertiary.registration`)
+REGISTRATION_COLUMNS = ["radar_id", "range_bias_m", "azimuth_bias_deg", "time_offset_s"]
+
+
+def apply_registration(reports: pl.DataFrame, table: pl.DataFrame) -> pl.DataFrame:
+    """Reports with each radar's systematic errors removed (the inverse of the registration
+    model (R1)–(R2) of :mod:`tertiary.registration`; radars absent from ``table`` unchanged):
+
+    * time stamp t ← t̃ − δ_r; plots ρ ← (ρ̃ − b_r)/(1 + g_r), β ← β̃ − a_r (also ``est_range_m``,
+      ``est_azimuth_deg``);
+    * the radar-local track state: position and velocity turned by −a_r about the site's
+      vertical, the position scaled along the line of sight to the corrected range (elevation
+      kept), the velocity by 1/(1 + g_r); the 6×6 covariance turned with them (the range
+      scaling, |b/ρ| < 10⁻³, is left out of the covariance).
+
+    ``table`` needs ``radar_id``, ``range_bias_m``, ``azimuth_bias_deg``, ``time_offset_s``
+    (optional ``range_gain``, NaN/absent = 0); a missing column is a :class:`DataError`."""
+    missing = [c for c in REGISTRATION_COLUMNS if c not in table.columns]
+    if missing:
+        raise DataError(f"registration table: column(s) {', '.join(missing)} missing")
+    if reports.height == 0 or table.height == 0:
+        return reports
+    gain = pl.col("range_gain").fill_nan(0.0).fill_null(0.0) if "range_gain" in table.columns else pl.lit(0.0)
+    values = [c.cast(pl.Float64).fill_nan(0.0).fill_null(0.0).alias(name) for c, name in (
+        (pl.col("range_bias_m"), "__b"), (pl.col("azimuth_bias_deg"), "__a"), (pl.col("time_offset_s"), "__d"),
+        (gain, "__g"))]
+    corr = table.select(pl.col("radar_id").cast(reports.schema["radar_id"]), *values)
+    df = reports.join(corr, on="radar_id", how="left", maintain_order="left").with_columns(
+        pl.col("__b", "__a", "__d", "__g").fill_null(0.0))
+    b, a, g = (df[c].to_numpy() for c in ("__b", "__a", "__g"))
+    fixes = [(pl.col("time") - pl.duration(microseconds=(pl.col("__d") * US).round(0).cast(pl.Int64))).alias("time"),
+             ((pl.col("range_m") - pl.col("__b")) / (1.0 + pl.col("__g"))).alias("range_m"),
+             ((pl.col("azimuth_deg") - pl.col("__a")) % 360.0).alias("azimuth_deg")]
+    if "est_range_m" in df.columns:
+        fixes.append(((pl.col("est_range_m") - pl.col("__b")) / (1.0 + pl.col("__g"))).alias("est_range_m"))
+    if "est_azimuth_deg" in df.columns:
+        fixes.append(((pl.col("est_azimuth_deg") - pl.col("__a")) % 360.0).alias("est_azimuth_deg"))
+    if all(c in df.columns for c in STATE):
+        fixes.extend(_registered_state(df, b, a, g))
+    return df.with_columns(fixes).drop("__b", "__a", "__d", "__g").select(reports.columns)
+
+
+def _registered_state(df: pl.DataFrame, b: NDArray[np.float64], a_deg: NDArray[np.float64],
+                      g: NDArray[np.float64]) -> list[pl.Series]:
+    """Corrected local state columns (and ``est_cov``) of :func:`apply_registration`."""
+    x = df.select(STATE).to_numpy().astype(float)
+    ca, sa = np.cos(np.radians(a_deg)), np.sin(np.radians(a_deg))
+    rot = np.zeros((len(x), 3, 3))                 # azimuth (clockwise from north) decreased by a
+    rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = ca, -sa, sa, ca, 1.0
+    p = np.einsum("nij,nj->ni", rot, x[:, :3])
+    v = np.einsum("nij,nj->ni", rot, x[:, 3:]) / (1.0 + g)[:, None]
+    rho = np.linalg.norm(p, axis=1)
+    scale = np.where(rho > 0, (rho - b) / (1.0 + g) / np.where(rho > 0, rho, 1.0), 1.0)
+    p *= scale[:, None]
+    out = [pl.Series(name, col) for name, col in zip(STATE, np.hstack([p, v]).T)]
+    if "est_cov" in df.columns:
+        cov = df["est_cov"].to_numpy().reshape(-1, 6, 6)
+        m = np.zeros((len(x), 6, 6))
+        m[:, :3, :3], m[:, 3:, 3:] = rot, rot
+        out.append(pl.Series("est_cov", np.einsum("nij,njk,nlk->nil", m, cov, m).reshape(-1, 36),
+                             dtype=df.schema["est_cov"]))
+    return out

@@ -379,6 +379,10 @@ def run(
     noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
     bias_step: BiasStepOpt = None,
     quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
+    register: Annotated[bool, typer.Option("--register/--no-register",
+                                           help="correct each radar's range/azimuth bias and clock offset before "
+                                                "alignment: DATASET/registration.parquet (from `tertiary register`) "
+                                                "when present, else estimated radar to radar")] = False,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -406,6 +410,8 @@ def run(
             ds = _simulate(scen, progress=say)
     if note:
         console.print(f"note: {note}", soft_wrap=True)
+    if register:
+        cfg = dataclasses.replace(cfg, register=True, registration=_stored_registration(dataset))
     with _Steps("pipeline") as say:
         db = pipeline.run(ds, run_dir, cfg, progress=say)
     html_path = None
@@ -414,6 +420,67 @@ def run(
         with _Steps("report") as say:
             html_path = build_report(run_dir, progress=say)
     print_summary(db, html_path)
+
+
+def _stored_registration(dataset: Path | None) -> tuple[tuple[float, ...], ...]:
+    """Rows of DATASET/registration.parquet for PipelineConfig.registration (() = estimate)."""
+    from tertiary.registration import read_table
+    path = None if dataset is None else dataset / "registration.parquet"
+    if path is None or not path.exists():
+        return ()
+    table = read_table(path)
+    gain = table["range_gain"].fill_nan(0.0).fill_null(0.0) if "range_gain" in table.columns else \
+        pl.Series([0.0] * table.height)
+    return tuple(zip(table["radar_id"].cast(pl.Float64).to_list(), table["range_bias_m"].to_list(),
+                     table["azimuth_bias_deg"].to_list(), table["time_offset_s"].to_list(), gain.to_list()))
+
+
+@app.command("register")
+def register_cmd(
+    dataset: Annotated[Path, typer.Argument(help="dataset directory (radars.parquet, reports.parquet, optional "
+                                                 "truth.parquet); registration.parquet is written there")],
+    method: Annotated[str, typer.Option(help="auto (reference when truth is present, else multi), reference "
+                                             "(against truth/ADS-B positions) or multi (radar to radar by Mode S)")] = "auto",
+    gain: Annotated[bool, typer.Option(help="also estimate a range gain per radar")] = False,
+    steps: Annotated[bool, typer.Option("--steps/--no-steps", help="also test each radar for a bias step "
+                                                                   "(windowed innovation-mean test)")] = True,
+    window: Annotated[int, typer.Option(help="reports per window of the step test")] = 60,
+    origin: Annotated[Optional[str], typer.Option(help="LAT,LON[,ALT_M] processing centre for a dataset without "
+                                                       "scenario.toml [default: mean of the radar sites]")] = None,
+) -> None:
+    """Estimate each radar's range bias, azimuth bias and clock offset (with 1-sigma) and write
+    DATASET/registration.parquet; signs as the simulator's bias_range_m, bias_azimuth_deg, time_offset_s."""
+    from tertiary import registration
+    from tertiary.store import write_parquet_atomic
+    if method not in ("auto", "reference", "multi"):
+        raise OptionError(f"choose auto, reference or multi, got {method!r}", option="--method")
+    if window < 5:
+        raise OptionError(f"must be at least 5, got {window}", option="--window")
+    ds = read_dataset(dataset, origin=_origin(origin))
+    ing = pipeline.ingest(ds)
+    res = registration.estimate(ing.reports, ing.radars, ds.origin, ing.truth,
+                                registration.RegistrationConfig(method=method, gain=gain))
+    for note in ds.notes + res.notes:
+        console.print(f"note: {note}", soft_wrap=True)
+    table = Table(title=f"registration ({res.table['method'][0] if res.table.height else method})")
+    for col in ("radar", "name", "range bias m", "azimuth bias deg", "clock offset s", "range gain", "reports"):
+        table.add_column(col, justify="left" if col == "name" else "right")
+    for r in res.table.iter_rows(named=True):
+        g = "–" if not math.isfinite(r["range_gain"]) else f"{r['range_gain']:+.2e} ± {r['range_gain_sigma']:.1e}"
+        table.add_row(str(r["radar_id"]), str(r["name"]), f"{r['range_bias_m']:+.2f} ± {r['range_bias_sigma_m']:.2f}",
+                      f"{r['azimuth_bias_deg']:+.4f} ± {r['azimuth_bias_sigma_deg']:.4f}",
+                      f"{r['time_offset_s']:+.4f} ± {r['time_offset_sigma_s']:.4f}", g, f"{r['n_reports']:,}")
+    console.print(table)
+    if steps:
+        found = registration.detect_steps(res.residuals, window=window)
+        for r in found.iter_rows(named=True):
+            console.print(f"bias step: radar {r['radar_id']} {r['channel']} {r['step']:+.3f} at "
+                          f"t = {r['alarm_t_s']:.1f} s (alarm, z = {r['z']:+.1f})")
+        if found.height == 0:
+            console.print("no bias step detected")
+    path = dataset / "registration.parquet"
+    write_parquet_atomic(res.table, path)
+    console.print(f"wrote {path}", soft_wrap=True)
 
 
 # --------------------------------------------------------------------------- result summary

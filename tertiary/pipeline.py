@@ -155,12 +155,33 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
     if ing.reports.height == 0:
         ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
         return ing
+    if cfg.register:
+        ing.reports = _registered(ing, ds, cfg)
     ing.plan = align_stage.plan(ing.reports, ing.radars, ds.origin, cfg.align)
     align_rej = _stage_rejects(ing.plan.rejects, ing.reports, ing.report_rows, "align")
     ing.rejects = pl.concat([ing.rejects, align_rej], how="vertical_relaxed")
     if int(ing.plan.keep.sum()) == 0:
         ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
     return ing
+
+
+def _registered(ing: Ingested, ds: Dataset, cfg: "PipelineConfig") -> pl.DataFrame:
+    """The valid reports with each radar's registration applied (``cfg.registration`` rows,
+    else estimated radar to radar from these reports — never from the truth that scores the run)."""
+    from tertiary import registration
+    if cfg.registration:
+        table = pl.DataFrame([list(map(float, row)) for row in cfg.registration], orient="row",
+                             schema=["radar_id", "range_bias_m", "azimuth_bias_deg", "time_offset_s", "range_gain"])
+        table = table.with_columns(pl.col("radar_id").cast(pl.UInt32))
+        source = "given"
+    else:
+        table = registration.estimate(ing.reports, ing.radars, ds.origin, None,
+                                      registration.RegistrationConfig(method="multi")).table
+        source = "estimated radar to radar"
+    for row in table.iter_rows(named=True):       # one note per radar (a handful)
+        ing.notes.append(f"registration ({source}) radar {row['radar_id']}: range {row['range_bias_m']:+.2f} m, "
+                         f"azimuth {row['azimuth_bias_deg']:+.4f} deg, clock {row['time_offset_s']:+.4f} s")
+    return align_stage.apply_registration(ing.reports, table)
 
 
 def _height(frame) -> int:
@@ -206,6 +227,12 @@ class PipelineConfig:
     stca_fixed_m: tuple[float, ...] = (0.0, 300.0, 600.0, 1200.0)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
+    #: radar registration before alignment (:func:`tertiary.align.apply_registration`): with
+    #: ``register``, rows (radar_id, range_bias_m, azimuth_bias_deg, time_offset_s, range_gain) of
+    #: ``registration``, or when empty estimated from the reports radar to radar
+    #: (:func:`tertiary.registration.estimate`, method "multi"; the truth is never used)
+    register: bool = False
+    registration: tuple[tuple[float, float, float, float, float], ...] = ()
 
 
 @dataclass
