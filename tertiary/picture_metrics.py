@@ -66,7 +66,7 @@ from numpy.typing import NDArray
 
 from tertiary.errors import DataError, OptionError
 
-__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "reference_labels", "picture_metrics"]
+__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics"]
 
 BREAKDOWNS = ("alt", "range", "phase")
 STAGE = "evaluation"
@@ -110,7 +110,7 @@ def _height(frame: pl.DataFrame, prefix: str = "") -> tuple[pl.Expr, pl.Expr]:
     return h, hd
 
 
-def _band_labels(values: pl.Expr, edges: Sequence[float], prefix: str, scale: float, unit: str) -> pl.Expr:
+def band_labels(values: pl.Expr, edges: Sequence[float], prefix: str, scale: float, unit: str) -> pl.Expr:
     """``prefix:lo-hi<unit>`` for values in [lo, hi), null outside every band."""
     out = pl.lit(None, dtype=pl.String)
     for lo, hi in zip(edges[-2::-1], edges[:0:-1]):           # reversed so the first band wins
@@ -166,13 +166,13 @@ def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = N
     phase = (pl.when(rate > cfg.turn_rate_dps).then(pl.lit("phase:turn"))
              .when(thd.abs() > cfg.vertical_rate_mps).then(pl.lit("phase:climb-descent"))
              .otherwise(pl.lit("phase:level")))
-    out = ref.select(*by, "epoch", _band_labels(th, cfg.alt_bands_m, "alt", 1.0, "m").alias("alt"),
+    out = ref.select(*by, "epoch", band_labels(th, cfg.alt_bands_m, "alt", 1.0, "m").alias("alt"),
                      phase.alias("phase"))
     if radar_xy is not None and len(radar_xy):
         xy = ref.select("true_x_m", "true_y_m").to_numpy()
         d = np.min(np.hypot(xy[:, None, 0] - radar_xy[None, :, 0], xy[:, None, 1] - radar_xy[None, :, 1]), axis=1)
         rng = pl.Series("__rng", d)
-        out = out.with_columns(_band_labels(pl.lit(rng), cfg.range_rings_m, "range", 1000.0, "km").alias("range"))
+        out = out.with_columns(band_labels(pl.lit(rng), cfg.range_rings_m, "range", 1000.0, "km").alias("range"))
     else:
         out = out.with_columns(pl.lit(None, dtype=pl.String).alias("range"))
     return out
