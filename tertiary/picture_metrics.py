@@ -1,0 +1,407 @@
+"""Air-picture metrics of issue 13 item 3, computed from a *matched* frame (pure functions).
+
+Input contract
+--------------
+``matched``: one row per (picture, track row), i.e. per track state a picture reports at an
+epoch, after the matcher has paired it with a reference aircraft (or with none).
+
+===========================  =====================================================================
+``method`` (str)             the picture's name (becomes ``metrics.method``)
+``run`` (u32), ``epoch``     Monte-Carlo run and the state's time (Datetime(us, UTC))
+``track_id`` (u64)           the picture's track number
+``truth_id`` (i64, null)     the reference aircraft the track row represents; null = unmatched
+``x_m … vz_mps``             the track state in the system ENU frame
+``alt_m, alt_rate_mps``      optional: the track's height channel (else ``z_m``/``vz_mps``)
+``true_x_m … true_vz_mps``   the reference state at ``epoch`` (null when unmatched)
+``true_alt_m``,              optional: reference pressure altitude and its rate (else
+``true_alt_rate_mps``        ``true_z_m``/``true_vz_mps``)
+``mode_s``, ``icao24``       optional: the track's Mode S address and the reference's
+===========================  =====================================================================
+
+``expected`` (optional): the reference sampled at the evaluation epochs, one row per
+(run, truth_id, epoch) where the aircraft exists and has a usable reference (``"evaluated"``),
+with the same ``true_*`` columns. It is what continuity needs: exposure (aircraft-hours),
+update intervals with no update, and merged tracks (an aircraft with no track of its own).
+Without it, exposure is the span from an aircraft's first to last matched epoch and merged
+tracks are not computed.
+
+Definitions (errors are track − reference)
+------------------------------------------
+* horizontal error e = (x−x*, y−y*); along = e·u, across = u_x e_y − u_y e_x (positive to the
+  left of travel), u = v*/|v*| the *reference* horizontal velocity direction (rows with
+  |v*| < ``min_speed_mps`` are left out of along/across/latency/track angle).      (1)
+* latency τ = −mean(along / |v*|): a track that reports the position of time t − τ lags by
+  along = −|v*| τ, so a positive latency is a lagging track.                          (2)
+* height error: ``alt_m − true_alt_m`` when both exist, else ``z_m − true_z_m``.
+* ``prob_update``: the time of each (run, aircraft) from its first expected epoch is cut into
+  intervals of ``expected_interval_s``; the fraction of intervals holding ≥ 1 track update.
+* representative track of an aircraft at an epoch: among the tracks matched to it then, the one
+  matched to it most often over the run (ties: lowest id) — stable under short splits.
+  ``id_changes_per_hour``: changes of the representative id per aircraft-hour; a swap of two
+  aircraft's tracks is one change for each.
+* a *break*: consecutive represented epochs of an aircraft more than ``break_gap_s`` apart;
+  ``mean_reacquire_s`` is the mean length of those gaps.
+* ``false_tracks_per_hour``: tracks never matched to any aircraft, per hour of picture (sum over
+  runs of each run's epoch span). ``split_tracks``: distinct tracks that were, at some epoch,
+  a non-representative second track of an aircraft. ``merged_tracks``: distinct tracks whose
+  position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
+  track of its own while representing another aircraft.
+* flight phase from the reference: ``phase:turn`` if |turn rate| > ``turn_rate_dps``, else
+  ``phase:climb-descent`` if |vertical rate| > ``vertical_rate_mps``, else ``phase:level``.
+
+Output: the ``metrics`` table (stage ``evaluation``, method = picture, segment = ``all``,
+``alt:0-3000m``, ``range:0-50km``, ``phase:turn`` …). Sample sizes ride along as metrics
+``n_points`` (accuracy rows), ``n_update_intervals``, ``aircraft_hours``, ``picture_hours`` and
+``n_tracks`` so that :mod:`tertiary.requirements` can state the confidence of a verdict.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+
+from tertiary.errors import DataError, OptionError
+
+__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics"]
+
+BREAKDOWNS = ("alt", "range", "phase")
+STAGE = "evaluation"
+_KEY = ["method", "run", "truth_id"]
+_US_PER_H = 3.6e9
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """Settings of the picture metrics (every threshold documented in the module docstring)."""
+
+    expected_interval_s: float = 5.0
+    break_gap_s: float | None = None          # None: 3 × expected_interval_s
+    min_speed_mps: float = 10.0
+    alt_bands_m: tuple[float, ...] = (0.0, 3000.0, 6000.0, 9000.0, 15000.0)
+    range_rings_m: tuple[float, ...] = (0.0, 50_000.0, 100_000.0, 150_000.0, 250_000.0)
+    turn_rate_dps: float = 0.5
+    vertical_rate_mps: float = 2.5
+    merge_gate_m: float = 1000.0
+    merge_gate_v_m: float = 300.0
+
+    @property
+    def gap_s(self) -> float:
+        return 3.0 * self.expected_interval_s if self.break_gap_s is None else self.break_gap_s
+
+
+# --------------------------------------------------------------------------- checks and helpers
+
+
+def _require(frame: pl.DataFrame, cols: Sequence[str], what: str) -> None:
+    missing = [c for c in cols if c not in frame.columns]
+    if missing:
+        raise DataError(f"{what} is missing column(s) {', '.join(missing)}")
+
+
+def _height(frame: pl.DataFrame, prefix: str = "") -> tuple[pl.Expr, pl.Expr]:
+    """(height, height rate) expressions: the altitude channel when present, else ENU z/vz."""
+    alt, rate = f"{prefix}alt_m", f"{prefix}alt_rate_mps"
+    h = pl.col(alt) if alt in frame.columns else pl.col(f"{prefix}z_m")
+    hd = pl.col(rate) if rate in frame.columns else pl.col(f"{prefix}vz_mps")
+    return h, hd
+
+
+def band_labels(values: pl.Expr, edges: Sequence[float], prefix: str, scale: float, unit: str) -> pl.Expr:
+    """``prefix:lo-hi<unit>`` for values in [lo, hi), null outside every band."""
+    out = pl.lit(None, dtype=pl.String)
+    for lo, hi in zip(edges[-2::-1], edges[:0:-1]):           # reversed so the first band wins
+        label = f"{prefix}:{lo / scale:g}-{hi / scale:g}{unit}"
+        out = pl.when((values >= lo) & (values < hi)).then(pl.lit(label)).otherwise(out)
+    return out
+
+
+# --------------------------------------------------------------------------- per-row quantities
+
+
+def accuracy_errors(matched: pl.DataFrame, cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """``matched`` rows with a reference, with the error columns of (1)–(2): ``err_h_m``,
+    ``along_m``, ``across_m``, ``err_height_m``, ``err_gs_mps``, ``err_track_deg``,
+    ``err_vrate_mps``, ``latency_sample_s`` (null where the reference is too slow)."""
+    m = matched.filter(pl.col("truth_id").is_not_null() & pl.col("true_x_m").is_not_null())
+    h, hd = _height(m)
+    th, thd = _height(m, "true_")
+    ex, ey = pl.col("x_m") - pl.col("true_x_m"), pl.col("y_m") - pl.col("true_y_m")
+    gs_t = (pl.col("true_vx_mps") ** 2 + pl.col("true_vy_mps") ** 2).sqrt()
+    gs = (pl.col("vx_mps") ** 2 + pl.col("vy_mps") ** 2).sqrt()
+    fast = gs_t >= cfg.min_speed_mps
+    ux, uy = pl.col("true_vx_mps") / gs_t, pl.col("true_vy_mps") / gs_t
+    along = ex * ux + ey * uy
+    dang = pl.arctan2(pl.col("vx_mps"), pl.col("vy_mps")) - pl.arctan2(pl.col("true_vx_mps"), pl.col("true_vy_mps"))
+    dang = (dang + np.pi) % (2 * np.pi) - np.pi            # wrap to [-π, π)
+    return m.with_columns(
+        (ex * ex + ey * ey).sqrt().alias("err_h_m"),
+        pl.when(fast).then(along).alias("along_m"),
+        pl.when(fast).then(ux * ey - uy * ex).alias("across_m"),
+        (h - th).alias("err_height_m"),
+        (gs - gs_t).alias("err_gs_mps"),
+        pl.when(fast).then(dang.degrees()).alias("err_track_deg"),
+        (hd - thd).alias("err_vrate_mps"),
+        pl.when(fast).then(-along / gs_t).alias("latency_sample_s"),
+    )
+
+
+def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = None,
+                     cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """Breakdown labels of unique reference states (run, truth_id, epoch, ``true_*``): columns
+    ``alt`` (altitude band), ``range`` (ring from the nearest radar in ``radar_xy`` (R, 2), the
+    system-frame sites; null without radars) and ``phase`` (from the reference turn and
+    vertical rates; turn rate by differencing the reference heading between epochs)."""
+    ref = ref.unique(["run", "truth_id", "epoch"]).sort(["run", "truth_id", "epoch"])
+    th, thd = _height(ref, "true_")
+    heading = pl.arctan2(pl.col("true_vx_mps"), pl.col("true_vy_mps"))
+    by = ["run", "truth_id"]
+    dt = (pl.col("epoch").diff().over(by).dt.total_microseconds() / 1e6)
+    dpsi = ((heading.diff().over(by) + np.pi) % (2 * np.pi) - np.pi)
+    rate = (dpsi / dt).degrees().abs()
+    rate = pl.coalesce(rate, rate.shift(-1).over(by))          # first epoch: the next step's rate
+    phase = (pl.when(rate > cfg.turn_rate_dps).then(pl.lit("phase:turn"))
+             .when(thd.abs() > cfg.vertical_rate_mps).then(pl.lit("phase:climb-descent"))
+             .otherwise(pl.lit("phase:level")))
+    out = ref.select(*by, "epoch", band_labels(th, cfg.alt_bands_m, "alt", 1.0, "m").alias("alt"),
+                     phase.alias("phase"))
+    if radar_xy is not None and len(radar_xy):
+        xy = ref.select("true_x_m", "true_y_m").to_numpy()
+        d = np.min(np.hypot(xy[:, None, 0] - radar_xy[None, :, 0], xy[:, None, 1] - radar_xy[None, :, 1]), axis=1)
+        rng = pl.Series("__rng", d)
+        out = out.with_columns(band_labels(pl.lit(rng), cfg.range_rings_m, "range", 1000.0, "km").alias("range"))
+    else:
+        out = out.with_columns(pl.lit(None, dtype=pl.String).alias("range"))
+    return out
+
+
+def _segmented(frame: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    """Long form: every row once with segment ``all`` and once per breakdown label it has."""
+    parts = [frame.with_columns(pl.lit("all").alias("segment"))]
+    for b in breakdown:
+        parts.append(frame.filter(pl.col(b).is_not_null()).with_columns(pl.col(b).alias("segment")))
+    return pl.concat(parts, how="vertical")
+
+
+def _long(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
+    """(method, segment, n_runs, metric columns) → metrics rows (NaN/null values dropped)."""
+    return (wide.unpivot(index=["method", "segment", "n_runs"], on=list(names), variable_name="metric")
+            .filter(pl.col("value").is_not_null() & pl.col("value").is_finite()))
+
+
+# --------------------------------------------------------------------------- metric groups
+
+
+def _accuracy(err: pl.DataFrame) -> pl.DataFrame:
+    def rms(c: str) -> pl.Expr:
+        return (pl.col(c) ** 2).mean().sqrt()
+
+    wide = err.group_by("method", "segment").agg(
+        pl.col("run").n_unique().alias("n_runs"),
+        rms("err_h_m").alias("rmse_horizontal_m"),
+        rms("err_height_m").alias("rmse_height_m"),
+        pl.col("err_h_m").quantile(0.95, "linear").alias("p95_horizontal_m"),
+        pl.col("err_h_m").quantile(0.99, "linear").alias("p99_horizontal_m"),
+        pl.col("err_h_m").max().alias("max_horizontal_m"),
+        pl.col("err_height_m").abs().quantile(0.95, "linear").alias("p95_height_m"),
+        pl.col("err_height_m").abs().max().alias("max_height_m"),
+        rms("along_m").alias("along_track_rms_m"),
+        pl.col("along_m").mean().alias("along_track_bias_m"),
+        rms("across_m").alias("across_track_rms_m"),
+        pl.col("across_m").mean().alias("across_track_bias_m"),
+        pl.col("latency_sample_s").mean().alias("latency_s"),
+        rms("err_gs_mps").alias("ground_speed_rms_mps"),
+        pl.col("err_gs_mps").mean().alias("ground_speed_bias_mps"),
+        rms("err_track_deg").alias("track_angle_rms_deg"),
+        rms("err_vrate_mps").alias("vertical_rate_rms_mps"),
+        pl.len().cast(pl.Float64).alias("n_points"),
+    )
+    names = [c for c in wide.columns if c not in ("method", "segment", "n_runs")]
+    return _long(wide, names)
+
+
+def _representatives(m: pl.DataFrame) -> pl.DataFrame:
+    """One row per (method, run, truth_id, epoch): the representative track (see docstring)."""
+    counts = m.group_by(_KEY + ["track_id"]).agg(pl.len().alias("__n"))
+    return (m.join(counts, on=_KEY + ["track_id"])
+            .sort(_KEY + ["epoch", "__n", "track_id"], descending=[False] * 4 + [True, False])
+            .unique(_KEY + ["epoch"], keep="first", maintain_order=True))
+
+
+def _exposure(rep: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
+              labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+    """Rows carrying the observed time of each aircraft: ``expected`` (crossed with the
+    pictures; a row counts until the next one, at most ``gap_s`` — a longer step is a reference
+    gap, not evaluated) or, without it, the representative rows (a row counts until the next
+    represented epoch: gaps are inside the aircraft's span)."""
+    if expected is None:
+        rows, cap = rep.select(_KEY + ["epoch"]), None
+    else:
+        rows, cap = expected.select("run", "truth_id", "epoch").unique().join(methods, how="cross"), cfg.gap_s
+    rows = rows.sort(_KEY + ["epoch"])
+    dt = (pl.col("epoch").shift(-1).over(_KEY) - pl.col("epoch")).dt.total_microseconds().fill_null(0) / 1e6
+    if cap is not None:
+        dt = pl.when(dt > cap).then(0.0).otherwise(dt)
+    return rows.with_columns((dt / 3600.0).alias("__hours")).join(labels, on=["run", "truth_id", "epoch"], how="left")
+
+
+def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig, span: bool) -> pl.DataFrame:
+    """(method, run, truth_id, bin, labels…, updated) per expected update interval: the
+    intervals holding an ``expo`` row, or (``span``) every interval from the first to the last
+    ``expo`` row, labelled by the last row at or before its start."""
+    t_us = int(round(cfg.expected_interval_s * 1e6))
+    t0 = expo.group_by(_KEY).agg(pl.col("epoch").min().alias("__t0"))
+
+    def binned(f: pl.DataFrame) -> pl.DataFrame:
+        return f.join(t0, on=_KEY).with_columns(
+            ((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() // t_us).alias("__bin"))
+
+    bins = binned(expo).sort(_KEY + ["epoch"]).unique(_KEY + ["__bin"], keep="first", maintain_order=True)
+    if span:
+        every = (bins.group_by(_KEY).agg(pl.int_ranges(0, pl.col("__bin").max() + 1).first().alias("__bin"),
+                                         pl.col("__t0").first())
+                 .explode("__bin").with_columns(
+                     (pl.col("__t0") + pl.duration(microseconds=pl.col("__bin") * t_us)).alias("epoch"))
+                 .drop("__t0").sort("epoch"))
+        labels = [c for c in bins.columns if c not in _KEY + ["__bin", "__t0", "epoch", "__hours"]]
+        bins = every.join_asof(bins.select(_KEY + ["epoch"] + labels).sort("epoch"), on="epoch",
+                               by=_KEY, strategy="backward", check_sortedness=False)  # sorted by epoch
+    upd = binned(rep).select(_KEY + ["__bin"]).unique().with_columns(pl.lit(True).alias("updated"))
+    return bins.join(upd, on=_KEY + ["__bin"], how="left").with_columns(pl.col("updated").fill_null(False))
+
+
+def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
+                breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+    rep = _representatives(m).sort(_KEY + ["epoch"])
+    methods = m.select("method").unique()
+    gap = (pl.col("epoch") - pl.col("epoch").shift(1).over(_KEY)).dt.total_microseconds() / 1e6
+    rep = rep.with_columns(
+        (pl.col("track_id") != pl.col("track_id").shift(1).over(_KEY)).fill_null(False).alias("__change"),
+        gap.alias("__gap_s")).join(labels, on=["run", "truth_id", "epoch"], how="left")
+    rep = rep.with_columns((pl.col("__gap_s") > cfg.gap_s).fill_null(False).alias("__break"))
+    expo = _exposure(rep, expected, methods, labels, cfg)
+    hours = _segmented(expo, breakdown).group_by("method", "segment").agg(
+        pl.col("__hours").sum().alias("aircraft_hours"), pl.col("run").n_unique().alias("n_runs"))
+    events = _segmented(rep, breakdown).group_by("method", "segment").agg(
+        pl.col("__change").sum().alias("__changes"), pl.col("__break").sum().alias("track_breaks"),
+        pl.col("__gap_s").filter(pl.col("__break")).mean().alias("mean_reacquire_s"))
+    ints = _segmented(_update_intervals(rep, expo, cfg, expected is None), breakdown).group_by("method", "segment").agg(
+        pl.col("updated").mean().alias("prob_update"), pl.len().cast(pl.Float64).alias("n_update_intervals"))
+    wide = (hours.join(events, on=["method", "segment"], how="left").join(ints, on=["method", "segment"], how="left")
+            .with_columns((pl.col("__changes") / pl.col("aircraft_hours")).alias("id_changes_per_hour"),
+                          (pl.col("track_breaks") / pl.col("aircraft_hours")).alias("track_breaks_per_hour"),
+                          pl.col("track_breaks").cast(pl.Float64)))
+    names = ["aircraft_hours", "id_changes_per_hour", "track_breaks", "track_breaks_per_hour",
+             "mean_reacquire_s", "prob_update", "n_update_intervals"]
+    out = [_long(wide, names), _split(rep, m, labels, breakdown)]
+    if expected is not None and {"true_x_m", "true_y_m"} <= set(expected.columns):
+        out.append(_merged(m, rep.select(m.columns), expected, labels, methods, breakdown, cfg))
+    return pl.concat(out, how="vertical")
+
+
+def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    second = (m.join(rep.select(_KEY + ["epoch", pl.col("track_id").alias("__rep")]), on=_KEY + ["epoch"])
+              .filter(pl.col("track_id") != pl.col("__rep")).join(labels, on=["run", "truth_id", "epoch"], how="left"))
+    base = rep.select("method", "run").unique()
+    return _count_tracks(second, base, breakdown, "split_tracks")
+
+
+def _count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
+    """Distinct (run, track_id) per (method, segment); zero in ``all`` for pictures without any."""
+    got = _segmented(events, breakdown).group_by("method", "segment").agg(
+        pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name), pl.col("run").n_unique().alias("n_runs"))
+    zero = base.group_by("method").agg(pl.col("run").n_unique().alias("n_runs")).with_columns(
+        pl.lit("all").alias("segment"), pl.lit(0.0).alias(name))
+    got = pl.concat([got, zero.join(got, on=["method", "segment"], how="anti").select(got.columns)])
+    return _long(got, [name])
+
+
+def _merged(m: pl.DataFrame, rep: pl.DataFrame, expected: pl.DataFrame, labels: pl.DataFrame,
+            methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+    """Representative tracks lying on an expected aircraft that has no track of its own
+    (grid-cell join: each bare aircraft looks in its 3 × 3 cells of side ``merge_gate_m``)."""
+    g = cfg.merge_gate_m
+    exp = expected.join(methods, how="cross")
+    covered = m.filter(pl.col("truth_id").is_not_null()).select("method", "run", "truth_id", "epoch").unique()
+    bare = exp.join(covered, on=["method", "run", "truth_id", "epoch"], how="anti")
+    th, _ = _height(bare, "true_")
+    bare = bare.select("method", "run", "epoch", "truth_id", "true_x_m", "true_y_m", th.alias("__h"),
+                       (pl.col("true_x_m") / g).floor().cast(pl.Int64).alias("cx"),
+                       (pl.col("true_y_m") / g).floor().cast(pl.Int64).alias("cy"))
+    nb = pl.DataFrame({"__dx": np.repeat([-1, 0, 1], 3), "__dy": np.tile([-1, 0, 1], 3)})
+    bare = bare.join(nb, how="cross").with_columns(pl.col("cx") + pl.col("__dx"), pl.col("cy") + pl.col("__dy"))
+    h, _ = _height(rep)
+    trk = rep.select(
+        "method", "run", "epoch", "track_id", pl.col("truth_id").alias("__other"), "x_m", "y_m", h.alias("__th"),
+        (pl.col("x_m") / g).floor().cast(pl.Int64).alias("cx"), (pl.col("y_m") / g).floor().cast(pl.Int64).alias("cy"))
+    hits = (bare.join(trk, on=["method", "run", "epoch", "cx", "cy"])
+            .filter((pl.col("__other") != pl.col("truth_id"))
+                    & (((pl.col("x_m") - pl.col("true_x_m")) ** 2 + (pl.col("y_m") - pl.col("true_y_m")) ** 2) <= g * g)
+                    & ((pl.col("__th") - pl.col("__h")).abs() <= cfg.merge_gate_v_m))
+            .join(labels, on=["run", "truth_id", "epoch"], how="left"))
+    return _count_tracks(hits, m.select("method", "run").unique(), breakdown, "merged_tracks")
+
+
+def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    span = m.group_by("method", "run").agg(
+        ((pl.col("epoch").max() - pl.col("epoch").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
+    hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
+                                        pl.col("run").n_unique().alias("n_runs"))
+    tracks = m.group_by("method", "run", "track_id").agg(pl.col("truth_id").is_not_null().any().alias("__real"))
+    false = tracks.group_by("method").agg((~pl.col("__real")).sum().alias("__false"),
+                                          pl.len().cast(pl.Float64).alias("n_tracks"))
+    wide = hours.join(false, on="method").with_columns(
+        pl.lit("all").alias("segment"),
+        (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
+        pl.col("__false").cast(pl.Float64).alias("false_tracks"))
+    out = [_long(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])]
+    if {"mode_s", "icao24"} <= set(err.columns):
+        ok = err.filter(pl.col("mode_s").is_not_null() & pl.col("icao24").is_not_null())
+        ident = ok.with_columns((pl.col("mode_s").str.to_lowercase() == pl.col("icao24").str.to_lowercase())
+                                .alias("__ok"))
+        w = _segmented(ident, breakdown).group_by("method", "segment").agg(
+            pl.col("run").n_unique().alias("n_runs"), pl.col("__ok").mean().alias("mode_s_correct_frac"),
+            pl.len().cast(pl.Float64).alias("n_mode_s"))
+        out.append(_long(w, ["mode_s_correct_frac", "n_mode_s"]))
+    return pl.concat(out, how="vertical")
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = None,
+                    radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
+                    cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """Every item-3 metric of every picture in ``matched``, in the ``metrics`` table schema.
+
+    ``breakdown``: any of ``alt``, ``range`` (needs ``radar_xy``, the radar sites (R, 2) in the
+    system frame), ``phase``; segment ``all`` is always there.
+    """
+    bad = [b for b in breakdown if b not in BREAKDOWNS]
+    if bad:
+        raise OptionError(f"unknown breakdown {', '.join(bad)}; expected any of {', '.join(BREAKDOWNS)}",
+                          option="breakdown")
+    if cfg.expected_interval_s <= 0:
+        raise OptionError("must be > 0", option="expected_interval_s")
+    cols = ["method", "run", "epoch", "track_id", "truth_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps",
+            "true_x_m", "true_y_m", "true_z_m", "true_vx_mps", "true_vy_mps", "true_vz_mps"]
+    _require(matched, cols, "matched table")
+    if expected is not None:
+        _require(expected, ["run", "truth_id", "epoch"], "expected reference table")
+    breakdown = [b for b in breakdown if b != "range" or radar_xy is not None]
+    ref_cols = [c for c in matched.columns if c.startswith("true_")]
+    ref = (expected if expected is not None and set(ref_cols) <= set(expected.columns)
+           else matched.filter(pl.col("truth_id").is_not_null()).select(["run", "truth_id", "epoch"] + ref_cols))
+    labels = reference_labels(ref, radar_xy, cfg)
+    err = accuracy_errors(matched, cfg).join(labels, on=["run", "truth_id", "epoch"], how="left")
+    m = matched.filter(pl.col("truth_id").is_not_null())
+    parts = [_accuracy(_segmented(err, breakdown)), _identity_and_false(matched, err, breakdown)]
+    if m.height:
+        parts.append(_continuity(m, expected, labels, breakdown, cfg))
+    out = pl.concat(parts, how="vertical")
+    return out.select(pl.lit(STAGE).alias("stage"), "method", "metric", "segment",
+                      pl.col("value").cast(pl.Float64), pl.col("n_runs").cast(pl.UInt32)
+                      ).sort("method", "metric", "segment")
