@@ -1,0 +1,256 @@
+"""ASTERIX import/export: the real recording, round trips, time handling, sites registry, CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+from typer.testing import CliRunner
+
+from tertiary import geo
+from tertiary.asterix import capture, codec, dataset, encode, fast048, importer
+from tertiary.asterix.sites import read_sites, sites_toml
+from tertiary.cli import app
+
+DATA = Path(__file__).parent / "data"
+PCAP = DATA / "cat_034_048.pcap"
+CODES = [(25, 11), (25, 12), (25, 13), (25, 14), (25, 201), (25, 204), (25, 205)]
+NM = 1852.0
+
+
+def _sites(path: Path, codes=CODES, scan: float | None = 4.0) -> Path:
+    """A registry for the real recording (positions are placeholders: the file does not give them)."""
+    rows = [{"sac": a, "sic": b, "radar_id": a * 256 + b, "name": f"{a}-{b}", "lat_deg": 45.0 + i * 0.1,
+             "lon_deg": 16.0, "alt_m": 100.0, "sigma_range_m": 70.0, "sigma_azimuth_deg": 0.08, "max_range_m": 463000.0,
+             "sigma_elevation_deg": 1.0, "scan_period_s": math.nan if scan is None else scan}
+            for i, (a, b) in enumerate(codes)]
+    path.write_text(sites_toml(pl.DataFrame(rows)))
+    return path
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory: pytest.TempPathFactory) -> dataset.ImportResult:
+    sites = _sites(tmp_path_factory.mktemp("sites") / "sites.toml", scan=None)
+    # 25/201 and 25/204 send one distinct CAT034 message each: no period to measure, give it
+    text = sites.read_text().replace("scan_period_s = nan", "scan_period_s = 4.0")
+    sites.write_text(text)
+    return dataset.import_recordings([PCAP], sites=sites)
+
+
+# --------------------------------------------------------------------------- the real recording
+
+
+def test_real_recording_counts(real: dataset.ImportResult) -> None:
+    c = real.counts
+    assert c["radars"] == 7 and real.radars.height == 7
+    assert c["cat048_records"] == 128 and c["duplicates"] == 64 and c["distinct"] == 64
+    assert c["cat034_messages"] == 34 and c["cat034_distinct"] == 17
+    # the one distinct record without I048/040 (a track-end report, also the stale one) is a reject
+    assert real.reports.height == 63 and real.rejects.height == 1
+    assert real.rejects["reason"][0].startswith("no I048/040 (measured position); stale")
+
+
+def test_real_first_record_equals_libasterix(real: dataset.ImportResult) -> None:
+    grams = capture.read_recording(PCAP)
+    blocks = capture.split_blocks(grams)
+    first = codec.parse_block(blocks.data[0])[0]
+    rep = real.reports.row(0, named=True)
+    assert (rep["sac"], rep["sic"]) == (codec.sub_uint(first, "010", "SAC"), codec.sub_uint(first, "010", "SIC"))
+    assert rep["range_m"] == pytest.approx(codec.sub_qty(first, "040", "RHO", "NM") * NM, abs=1e-9)
+    assert rep["azimuth_deg"] == pytest.approx(codec.sub_qty(first, "040", "THETA", "°"), abs=1e-12)
+    assert rep["flight_level"] == codec.sub_qty(first, "090", "FL", "FL")
+    assert rep["altitude_m"] == pytest.approx(rep["flight_level"] * 100 * 0.3048)
+    assert rep["mode_3a"] == first.get_item("070").variation.get_item("MODE3A").variation.content.as_string()
+    assert rep["mode_s"] == f"{codec.uint(first, '220'):06x}"
+    assert rep["callsign"] == codec.text(first, "240").rstrip()
+    assert rep["local_track_id"] == codec.sub_uint(first, "161", "TRN")
+    assert rep["ground_speed_mps"] == pytest.approx(codec.sub_qty(first, "200", "GSP", "NM/s") * NM)
+    tod = codec.qty(first, "140", "s")
+    cap = grams.capture_s[0]
+    day = math.floor(cap / 86400) * 86400
+    assert rep["time"] == datetime.fromtimestamp(day + tod, timezone.utc)
+    assert rep["latency_s"] == pytest.approx(cap - (day + tod), abs=1e-6)
+    # the decoded values themselves (DLH65A at FL330, I048/040 = c5af f1e0)
+    assert (rep["callsign"], rep["mode_s"], rep["mode_3a"]) == ("DLH65A", "3c660c", "1000")
+    assert rep["range_m"] == 0xC5AF / 256 * NM and rep["azimuth_deg"] == 0xF1E0 * 360 / 65536
+
+
+def test_real_latency_and_timing(real: dataset.ImportResult) -> None:
+    lat = real.latency.sort("sac", "sic")
+    assert lat.select("sac", "sic").rows() == CODES
+    # two transport paths: the SIC 1x radars ~0.5-0.7 s, the SIC 20x radars ~1.9 s
+    med = dict(zip(lat["sic"], lat["latency_median_s"]))
+    assert all(0.4 < med[s] < 0.8 for s in (11, 12, 13, 14)) and all(1.8 < med[s] < 2.0 for s in (201, 204, 205))
+    assert lat.filter(pl.col("sic") == 13)["stale"][0] == 1 and lat["stale"].sum() == 1
+    timing = dict(zip(real.antenna["sic"], real.antenna["scan_period_s"]))
+    assert timing[12] == pytest.approx(4.9453125)        # I034/041 sent by 25/12
+    assert 4.5 < timing[13] < 5.5                         # from sector crossings
+    assert real.reports["time"].is_between(datetime(2016, 5, 5, 7, 35, tzinfo=timezone.utc),
+                                           datetime(2016, 5, 5, 7, 37, tzinfo=timezone.utc)).all()
+
+
+def test_redundant_line_copies_are_the_same_bytes() -> None:
+    """The de-duplication key is the record bytes: both lines carry each record once."""
+    grams = capture.read_recording(PCAP)
+    assert len({line.split(">")[1].split(".")[1] for line in grams.line}) == 2   # 232.1.x / 232.2.x
+    blocks = capture.split_blocks(grams)
+    recs = [r.unparse().to_bytes() for d, c in zip(blocks.data, blocks.cat) if c == 48 for r in codec.parse_block(d)]
+    assert len(recs) == 128 and len(set(recs)) == 64
+
+
+# --------------------------------------------------------------------------- time
+
+
+def test_absolute_time_midnight_rollover() -> None:
+    day = datetime(2024, 3, 1, tzinfo=timezone.utc).timestamp()
+    tod = np.array([86399.5, 86399.9, 0.2, 86399.95, 1.0])      # crosses midnight, one late report
+    t = importer.absolute_time(tod, np.full(5, np.nan), day)
+    assert np.allclose(t - day, [86399.5, 86399.9, 86400.2, 86399.95, 86401.0])
+    cap = day + np.array([86399.6, 86400.1, 86400.3, 86400.4, 86401.2])   # capture stamps decide the day
+    t2 = importer.absolute_time(tod, cap, None)
+    assert np.allclose(t2 - day, [86399.5, 86399.9, 86400.2, 86399.95, 86401.0])
+
+
+def test_raw_file_without_date_is_refused(tmp_path: Path) -> None:
+    raw = tmp_path / "x.ast"
+    raw.write_bytes(b"".join(codec.parse_block(d) and d for d in capture.split_blocks(
+        capture.read_recording(PCAP)).data[:4]))
+    with pytest.raises(Exception, match="--date"):
+        dataset.import_recordings([raw], sites=_sites(tmp_path / "s.toml"))
+
+
+# --------------------------------------------------------------------------- sites registry
+
+
+def test_missing_sites_listed_and_template(tmp_path: Path) -> None:
+    sites = _sites(tmp_path / "s.toml", codes=CODES[:5])
+    tmpl = tmp_path / "tmpl.toml"
+    with pytest.raises(Exception, match="25/204, 25/205"):
+        dataset.import_recordings([PCAP], sites=sites)
+    with pytest.raises(Exception, match="wrote a template"):
+        dataset.import_recordings([PCAP], sites=sites, template=tmpl)
+    text = tmpl.read_text()
+    assert text.count("[[radar]]") == 2 and "sic = 204" in text and "lat_deg = nan" in text
+    with pytest.raises(Exception, match="not filled in"):
+        read_sites(tmpl)
+
+
+def test_sites_errors(tmp_path: Path) -> None:
+    bad = tmp_path / "b.toml"
+    bad.write_text("[[radar]]\nsac = 1\nsic = 300\n")
+    with pytest.raises(Exception, match="sac and sic"):
+        read_sites(bad)
+    bad.write_text("[[radar]]\nsac = 1\nsic = 2\nlat = 3\n")
+    with pytest.raises(Exception, match="unknown key"):
+        read_sites(bad)
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory):
+    from tertiary.cli import build_scenario
+    from tertiary.simulate import simulate, write_dataset
+    out = tmp_path_factory.mktemp("sim")
+    ds = simulate(build_scenario("terminal-area", aircraft=6, duration=150, runs=1, seed=3))
+    write_dataset(ds, out)
+    rec, sites, day = encode.write_recording(ds, out)
+    res = dataset.import_recordings([rec], sites=sites, date=day, origin=ds.scenario.origin)
+    return ds, res, rec
+
+
+def test_simulated_round_trip_reports(simulated) -> None:
+    ds, res, _ = simulated
+    a = ds.reports.sort("time")
+    b = res.reports.sort("time").with_columns(pl.col("time").alias("time_b"))
+    assert res.rejects.height == 0 and b.height == a.height
+    m = a.join_asof(b, on="time", by=["radar_id", "local_track_id"], strategy="nearest", suffix="_b",
+                    check_sortedness=False)
+    dt = (m["time"] - m["time_b"]).dt.total_microseconds().abs().max() / 1e6
+    assert dt <= 1 / 256 + 1e-6                                                   # 1/128 s
+    assert (m["range_m_b"] - m["range_m"]).abs().max() <= NM / 512 + 1e-9        # 1/256 NM
+    daz = (((m["azimuth_deg_b"] - m["azimuth_deg"] + 180) % 360) - 180).abs().max()
+    assert daz <= 360 / 2**17 + 1e-12                                             # 360/2^16 deg
+    alt = (m["altitude_m_b"] - m["altitude_m"]).abs().max()
+    assert alt <= 25 * 0.3048 / 2 + 1e-9                                           # 1/4 FL
+    for c in ("mode_s", "mode_3a", "callsign"):
+        assert (m[c].fill_null("") == m[f"{c}_b"].fill_null("")).all(), c
+    assert res.radars.sort("radar_id")["scan_period_s"].to_list() == ds.radars.sort("radar_id")["scan_period_s"].to_list()
+
+
+def test_simulated_round_trip_truth(simulated) -> None:
+    ds, res, _ = simulated
+    t = ds.truth.with_columns(pl.when(pl.col("icao24").fill_null("") != "")
+                              .then(pl.col("icao24").str.to_integer(base=16, strict=False))
+                              .otherwise(pl.col("truth_id")).alias("addr"))
+    m = t.join(res.truth, left_on=["addr", "time"], right_on=["truth_id", "time"], suffix="_b")
+    assert m.height == ds.truth.height
+    horiz = np.hypot(m["x_m"] - m["x_m_b"], m["y_m"] - m["y_m_b"]).max()
+    assert horiz < 0.05                                          # I021/131: 180/2^30 deg
+    assert (m["z_m"] - m["z_m_b"]).abs().max() <= 6.25 * 0.3048 / 2 + 1e-3   # I021/140: 6.25 ft
+    assert np.hypot(m["vx_mps"] - m["vx_mps_b"], m["vy_mps"] - m["vy_mps_b"]).max() < 0.2
+
+
+def test_picture_round_trip_cat062(tmp_path: Path) -> None:
+    frame = geo.LocalFrame(48.85, 2.35, 0.0)
+    n, rng = 40, np.random.default_rng(7)
+    tracks = pl.DataFrame({
+        "run": pl.Series(np.zeros(n, np.uint32)),
+        "epoch": pl.Series(((1633608000 + np.arange(n) * 4.0) * 1e6).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
+        "track_id": pl.Series(np.arange(n) % 5 + 70000, dtype=pl.UInt64), "filter": ["singer"] * n,
+        "method": ["information"] * n,
+        "x_m": rng.uniform(-2e5, 2e5, n), "y_m": rng.uniform(-2e5, 2e5, n), "z_m": rng.uniform(0, 1e4, n),
+        "vx_mps": rng.uniform(-250, 250, n), "vy_mps": rng.uniform(-250, 250, n), "vz_mps": rng.uniform(-10, 10, n),
+        "cov_diag": pl.Series(np.tile([400.0, 300.0, 900.0, 4.0, 9.0, 1.0], (n, 1)), dtype=pl.Array(pl.Float64, 6)),
+        "alt_m": rng.uniform(0, 1e4, n), "mode_s": ["4ca1b2"] * n, "callsign": ["EIN123"] * n,
+    })
+    out = tmp_path / "pic.ast"
+    encode.export_picture(tracks, frame, out)
+    res = dataset.import_recordings([out], date="2021-10-07", origin=(48.85, 2.35, 0.0))
+    e = res.external_tracks.with_columns(pl.col("track_id") + 65536)    # I062/040 is 16 bits
+    m = tracks.join(e, on=["epoch", "track_id"], suffix="_b")
+    assert m.height == n and res.rejects.height == 0
+    assert np.hypot(m["x_m"] - m["x_m_b"], m["y_m"] - m["y_m_b"]).max() < 0.6         # 180/2^25 deg
+    assert (m["z_m"] - m["z_m_b"]).abs().max() < 1.0                                   # 6.25 ft
+    assert np.hypot(m["vx_mps"] - m["vx_mps_b"], m["vy_mps"] - m["vy_mps_b"]).max() <= 0.125 * 2**0.5 + 1e-9
+    assert (m["alt_m"] - m["alt_m_b"]).abs().max() <= 25 * 0.3048 / 2 + 1e-9
+    cov = np.stack(m["cov_diag_b"].to_numpy())
+    assert np.allclose(np.sqrt(cov[:, [0, 1, 3, 4]]), [20.0, np.sqrt(300.0), 2.0, 3.0], atol=0.5)
+    assert (m["mode_s_b"] == "4ca1b2").all() and (m["callsign_b"] == "EIN123").all()
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_cli_import_real(tmp_path: Path) -> None:
+    sites = _sites(tmp_path / "s.toml")
+    out = tmp_path / "ds"
+    r = CliRunner().invoke(app, ["import", "asterix", str(PCAP), "--sites", str(sites), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "63 reports from 7 radar(s)" in r.output and "34 CAT034 messages" in r.output
+    assert "25/201" in r.output                                        # the latency table
+    for name in ("reports", "radars", "rejects", "latency", "antenna"):
+        assert (out / f"{name}.parquet").is_file()
+    from tertiary.simulate import read_dataset
+    ds = read_dataset(out)
+    assert ds.reports.height == 63 and ds.radars.height == 7
+
+
+def test_cli_import_needs_sites(tmp_path: Path) -> None:
+    r = CliRunner().invoke(app, ["import", "asterix", str(PCAP), "--out", str(tmp_path / "ds")])
+    assert r.exit_code == 2 and "--sites" in r.output and "25/11" in r.output
+    tmpl = tmp_path / "t.toml"
+    r = CliRunner().invoke(app, ["import", "asterix", str(PCAP), "--out", str(tmp_path / "ds"),
+                                 "--write-sites-template", str(tmpl)])
+    assert r.exit_code == 3 and tmpl.read_text().count("[[radar]]") == 7
+
+
+def test_rejects_detail_names_the_place(real: dataset.ImportResult) -> None:
+    detail = json.loads(real.rejects["detail"][0])
+    assert detail["file"].endswith("cat_034_048.pcap") and detail["sac"] == 25 and detail["sic"] == 13
