@@ -254,3 +254,65 @@ def test_cli_import_needs_sites(tmp_path: Path) -> None:
 def test_rejects_detail_names_the_place(real: dataset.ImportResult) -> None:
     detail = json.loads(real.rejects["detail"][0])
     assert detail["file"].endswith("cat_034_048.pcap") and detail["sac"] == 25 and detail["sic"] == 13
+
+
+def _rmse(run_dir: Path) -> dict[str, float]:
+    from tertiary.store import RunStore
+    with RunStore.open(run_dir, read_only=True) as store:
+        m = store.sql("SELECT method, value FROM metrics WHERE stage = 'fusion' AND metric = 'rmse_horizontal_m' "
+                      "AND segment = 'all'")
+    return dict(m.iter_rows())
+
+
+def test_cli_simulate_import_run_export(tmp_path: Path) -> None:
+    """The README flow: simulate --format asterix → import → run → export; the pipeline's horizontal
+    accuracy from the recording within 20 % of the Parquet path's."""
+    runner = CliRunner()
+    sim, imp = tmp_path / "ta", tmp_path / "ta-ast"
+    r = runner.invoke(app, ["simulate", "terminal-area", "--out", str(sim), "--aircraft", "8", "--duration", "200",
+                            "--runs", "1", "--format", "asterix"])
+    assert r.exit_code == 0, r.output
+    assert (sim / "recording.ast").is_file() and (sim / "sites.toml").is_file() and "--date 2021-10-07" in r.output
+    r = runner.invoke(app, ["import", "asterix", str(sim / "recording.ast"), "--sites", str(sim / "sites.toml"),
+                            "--date", "2021-10-07", "--out", str(imp)])
+    assert r.exit_code == 0, r.output
+    for src, run in ((sim, tmp_path / "run-pq"), (imp, tmp_path / "run-ast")):
+        r = runner.invoke(app, ["run", str(src), "--out", str(run), "--filters", "singer",
+                                "--methods", "arithmetic,information", "--no-report"])
+        assert r.exit_code == 0, r.output
+    pq, ast = _rmse(tmp_path / "run-pq"), _rmse(tmp_path / "run-ast")
+    for method in ("arithmetic", "information"):
+        assert abs(ast[method] - pq[method]) <= 0.2 * pq[method], (method, pq, ast)
+    out = tmp_path / "pic.ast"
+    r = runner.invoke(app, ["export", "asterix", str(tmp_path / "run-ast"), "--picture", "singer/information",
+                            "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    back = dataset.import_recordings([out], date="2021-10-07")
+    assert back.external_tracks.height > 0 and back.rejects.height == 0
+    r = runner.invoke(app, ["export", "asterix", str(tmp_path / "run-ast"), "--picture", "nope/x", "--out", str(out)])
+    assert r.exit_code == 2 and "--picture" in r.output
+
+
+def test_readme_asterix_lines_name_real_options() -> None:
+    import typer.main
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = readme.split("## ASTERIX recordings", 1)[1].split("```", 2)[1]
+    group = typer.main.get_command(app)
+    lines = [ln.split("#")[0].split() for ln in block.splitlines() if ln.startswith("tertiary ")]
+    assert {ln[1] for ln in lines} >= {"simulate", "import", "run", "report", "export"}
+    for words in lines:
+        cmd = group.commands[words[1]]
+        if words[1] in ("import", "export"):
+            cmd = cmd.commands[words[2]]
+        known = {o for p in cmd.params for o in (*p.opts, *p.secondary_opts)}
+        assert all(w in known for w in words if w.startswith("--")), words
+
+
+def test_import_is_lazy() -> None:
+    """`import tertiary` (and the CLI module) must not pay libasterix's import cost."""
+    import subprocess
+    import sys
+    code = "import sys, tertiary, tertiary.cli; print('asterix' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.stdout.split() == ["False"]

@@ -80,6 +80,8 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     if dec.cat021.height and system is not None:
         truth, rej = importer.truth_table(dec.cat021, system, day0)
         rejects += rej
+    if truth.height and reports.height:
+        reports = label_reports(reports, truth)
     if dec.cat062.height and system is not None:
         tracks, rej = importer.external_tracks(dec.cat062, system, day0)
         rejects += rej
@@ -89,6 +91,15 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,
                         latency.join(radars.select("sac", "sic", "radar_id"), on=["sac", "sic"], how="left")
                         if radars.height else latency, counts, notes, origin)
+
+
+def label_reports(reports: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """``truth_id`` of each report = its Mode S address when the ADS-B truth has that address
+    (CAT021 truth_id is the 24-bit address); null otherwise, so evaluation can score the picture."""
+    address = pl.col("mode_s").str.to_integer(base=16, strict=False)
+    known = truth["truth_id"].unique().implode()
+    return reports.with_columns(pl.when(address.is_in(known)).then(address).otherwise(None)
+                                .cast(pl.Int64).alias("truth_id"))
 
 
 def _check_sites(codes: pl.DataFrame, table: pl.DataFrame | None, sites: str | Path | None,

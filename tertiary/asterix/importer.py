@@ -128,14 +128,13 @@ def _decode_048(items: list[tuple[bytes, dict[str, object], float, str]], reject
     for k, off, reason in bad:
         _reject(rejects, reason, **items[k][1], block_offset=off, hex=items[k][0][:32].hex())
     cols = {name: raw[:, i] for i, name in enumerate(fast048.FIELDS)}
-    frame = pl.DataFrame(cols)
-    return frame.with_columns(
-        pl.Series("block", block),
-        pl.Series("capture_s", np.array([items[k][2] for k in block], float) if len(block) else np.empty(0)),
-        pl.Series("line", [items[k][3] for k in block], pl.String),
-        pl.Series("file", [items[k][1]["file"] for k in block], pl.String),
-        pl.Series("datagram", [items[k][1]["datagram"] for k in block], pl.Int64),
-    )
+    # per-block attributes gathered to records by block index (a loop over blocks, not records)
+    idx = pl.Series(block)
+    per_block = pl.DataFrame({
+        "capture_s": np.array([it[2] for it in items], float), "line": [it[3] for it in items],
+        "file": [str(it[1]["file"]) for it in items], "datagram": [int(it[1]["datagram"]) for it in items],
+    }, schema={"capture_s": pl.Float64, "line": pl.String, "file": pl.String, "datagram": pl.Int64})
+    return pl.DataFrame(cols).with_columns(pl.Series("block", block), *(per_block[c].gather(idx) for c in per_block.columns))
 
 
 def _decode_034(items: list[tuple[bytes, dict[str, object], float, str]], rejects: list[dict[str, object]]
@@ -441,7 +440,7 @@ def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None
         "x_m": x, "y_m": y, "z_m": z, "vx_mps": vx, "vy_mps": vy, "vz_mps": vz,
         "lat_deg": lat, "lon_deg": lon,
         "alt_m": (ok["fl"] * 100.0 * codec.FT),
-        "icao24": ok["address"].map_elements(lambda a: f"{a:06x}", return_dtype=pl.String),
+        "icao24": pl.Series(_hex6(ok["address"].to_numpy()), dtype=pl.String),
         "callsign": ok["callsign"].str.strip_chars_end(" ").replace("", None),
     }).with_columns(pl.col(c).fill_nan(None) for c in ("vx_mps", "vy_mps", "vz_mps"))
     truth = truth.filter(pl.all_horizontal(pl.col("vx_mps", "vy_mps").is_not_null())) \
