@@ -316,3 +316,69 @@ def test_import_is_lazy() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.stdout.split() == ["False"]
+
+
+def _pcapng(pcap: bytes) -> bytes:
+    """The same frames as a pcapng file (section header, one Ethernet interface, enhanced packets)."""
+    import struct
+
+    def block(btype: int, body: bytes) -> bytes:
+        body += b"\0" * (-len(body) % 4)
+        n = 12 + len(body)
+        return struct.pack("<II", btype, n) + body + struct.pack("<I", n)
+
+    out = [block(0x0A0D0D0A, struct.pack("<IHHq", 0x1A2B3C4D, 1, 0, -1)), block(1, struct.pack("<HHI", 1, 0, 65535))]
+    off = 24
+    while off < len(pcap):
+        sec, usec, incl, orig = struct.unpack("<IIII", pcap[off:off + 16])
+        ts = sec * 1_000_000 + usec
+        out.append(block(6, struct.pack("<IIIII", 0, ts >> 32, ts & 0xFFFFFFFF, incl, orig)
+                         + pcap[off + 16:off + 16 + incl]))
+        off += 16 + incl
+    return b"".join(out)
+
+
+def test_pcapng_equals_pcap(tmp_path: Path, real: dataset.ImportResult) -> None:
+    ng = tmp_path / "rec.pcapng"
+    ng.write_bytes(_pcapng(PCAP.read_bytes()))
+    sites = _sites(tmp_path / "s.toml")
+    res = dataset.import_recordings([ng], sites=sites)
+    assert res.counts["distinct"] == 64 and res.counts["cat034_messages"] == 34
+    assert res.reports.select("time", "range_m", "mode_s").equals(real.reports.select("time", "range_m", "mode_s"))
+    assert np.allclose(res.reports["latency_s"].to_numpy(), real.reports["latency_s"].to_numpy(), atol=1e-6)
+
+
+def test_midnight_in_a_raw_recording(tmp_path: Path) -> None:
+    t = pl.datetime_range(pl.datetime(2024, 1, 1, 23, 59, 40, time_zone="UTC"),
+                          pl.datetime(2024, 1, 2, 0, 0, 20, time_zone="UTC"), "2s", eager=True)
+    n = len(t)
+    reports = pl.DataFrame({"radar_id": pl.Series([1] * n, dtype=pl.UInt32), "time": t,
+                            "local_track_id": pl.Series([7] * n, dtype=pl.UInt32),
+                            "range_m": np.linspace(10e3, 20e3, n), "azimuth_deg": np.linspace(10, 20, n)})
+    raw = tmp_path / "mid.ast"
+    raw.write_bytes(b"".join(codec.datablock(48, [r]) for r in encode.cat048(reports)))
+    res = dataset.import_recordings([raw], sites=_sites(tmp_path / "s.toml", codes=[(0, 1)]), date="2024-01-01")
+    assert res.reports["time"].to_list() == t.to_list()
+    assert not res.reports["out_of_order"].any()
+
+
+def test_impossible_values_and_unknown_category_are_rejects(tmp_path: Path) -> None:
+    s48, s21 = codec.spec(48).cv_record, codec.spec(21).cv_record
+    late = s48.create({"010": (("SAC", 0), ("SIC", 1)), "140": 86400 * 128 + 5,        # time of day >= 86 400 s
+                       "040": (("RHO", 10.0), ("THETA", 5.0)), "161": (0, ("TRN", 3))})
+    good = s48.create({"010": (("SAC", 0), ("SIC", 1)), "140": 100.0,
+                       "040": (("RHO", 10.0), ("THETA", 5.0)), "161": (0, ("TRN", 3))})
+    adsb = s21.create({"010": (("SAC", 0), ("SIC", 250)), "040": (0,), "071": 100.0, "080": 0xABCDEF,
+                       "131": (("LAT", 95.0), ("LON", 2.0)), "140": 1000.0})
+    data = codec.datablock(48, [late, good]) + codec.datablock(21, [adsb]) + bytes([99, 0, 4, 0]) \
+        + bytes([48, 0, 200])
+    raw = tmp_path / "bad.ast"
+    raw.write_bytes(data)
+    res = dataset.import_recordings([raw], sites=_sites(tmp_path / "s.toml", codes=[(0, 1)]), date="2024-01-01")
+    reasons = res.rejects["reason"].to_list()
+    assert res.reports.height == 1
+    assert any("time of day" in r and "86400" in r for r in reasons)
+    assert any(r == "CAT021 position or time out of range" for r in reasons)
+    assert any("category 99 not supported" in r for r in reasons)
+    assert any("data block length 200" in r for r in reasons)
+    assert res.truth.height == 0
