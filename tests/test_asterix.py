@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tertiary import geo
-from tertiary.asterix import capture, codec, dataset, encode, fast048, importer
+from tertiary.asterix import capture, codec, dataset, encode, importer
 from tertiary.asterix.sites import read_sites, sites_toml
 from tertiary.cli import app
 
@@ -382,3 +382,20 @@ def test_impossible_values_and_unknown_category_are_rejects(tmp_path: Path) -> N
     assert any("category 99 not supported" in r for r in reasons)
     assert any("data block length 200" in r for r in reasons)
     assert res.truth.height == 0
+
+
+def test_enu_velocity_against_finite_differences() -> None:
+    """A velocity in the aircraft's own ENU frame (how CAT021 gives it) turned into the system
+    frame equals the displacement of the position over 1 s, computed through geodetic
+    coordinates with the package's geo frames (an independent path)."""
+    system = geo.LocalFrame(48.85, 2.35, 0.0)
+    lat, lon, h = np.array([50.2, 47.1, 48.85]), np.array([5.9, -1.3, 2.35]), np.array([10000.0, 3000.0, 500.0])
+    ve, vn, vu = np.array([150.0, -80.0, 0.0]), np.array([60.0, 200.0, -240.0]), np.array([5.0, -10.0, 0.0])
+    vx, vy, vz = importer.enu_velocity(lat, lon, ve, vn, vu, system)
+    dt = 1.0
+    for i in range(3):
+        local = geo.LocalFrame(lat[i], lon[i], h[i])
+        lat2, lon2, h2 = local.to_geodetic(ve[i] * dt, vn[i] * dt, vu[i] * dt)
+        p1 = np.array(system.from_geodetic(lat[i], lon[i], h[i])).ravel()
+        p2 = np.array(system.from_geodetic(lat2, lon2, h2)).ravel()
+        assert np.allclose((p2 - p1) / dt, [vx[i], vy[i], vz[i]], atol=1e-3)

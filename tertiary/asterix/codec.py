@@ -9,7 +9,6 @@ which become reject reasons.
 from __future__ import annotations
 
 import functools
-import math
 from types import ModuleType
 from typing import Any
 
@@ -48,10 +47,6 @@ def parse_block(block: bytes) -> list[Any] | str:
 
 
 # --------------------------------------------------------------------------- field access
-
-
-def _item(rec: Any, name: str) -> Any:
-    return rec.get_item(name)
 
 
 def sub_uint(rec: Any, name: str, sub: str) -> int | None:
@@ -105,23 +100,3 @@ def ref048(rec: Any) -> dict[str, int]:
 def datablock(cat: int, records: list[Any]) -> bytes:
     """One data block holding ``records`` (libasterix records of ``cat``)."""
     return spec(cat).create(records).unparse().to_bytes()
-
-
-def blocks(cat: int, records: list[Any], max_bytes: int = 1400) -> bytes:
-    """Records packed into data blocks of at most ``max_bytes`` (one UDP datagram each)."""
-    out, batch, size = [], [], 3
-    for rec in records:
-        n = len(rec.unparse().to_bytes())
-        if batch and size + n > max_bytes:
-            out.append(datablock(cat, batch))
-            batch, size = [], 3
-        batch.append(rec)
-        size += n
-    if batch:
-        out.append(datablock(cat, batch))
-    return b"".join(out)
-
-
-def tod(seconds: float) -> float:
-    """Time of day in [0, 86400) for a time in seconds since 1970 (UTC)."""
-    return math.fmod(seconds, 86400.0)

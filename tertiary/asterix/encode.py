@@ -16,7 +16,6 @@ import polars as pl
 
 from tertiary import geo
 from tertiary.asterix import codec
-from tertiary.asterix.importer import enu_velocity
 from tertiary.errors import DataError
 
 ADSB_SAC_SIC = (0, 250)
@@ -53,12 +52,13 @@ def cat048(reports: pl.DataFrame) -> list[object]:
     fl = alt / codec.FT / 100.0
     _check(~np.isfinite(fl) | ((fl >= -12) & (fl < 1500)), "altitude outside FL -12..1500 (I048/090)", "reports")
     get = lambda c: rep[c].to_list() if c in rep.columns else [None] * rep.height  # noqa: E731
+    az = np.mod(rep["azimuth_deg"].to_numpy(), 360.0)
     out = []
     for i, (m3a, ms, cs) in enumerate(zip(get("mode_3a"), get("mode_s"), get("callsign"))):
         items: dict[str, object] = {
             "010": (("SAC", int(sac[i])), ("SIC", int(sic[i]))), "140": float(tod[i]),
             "020": ((5 if ms else 2) << 4,),   # first octet TYP|SIM|RDP|SPI|RAB: Mode S roll-call / SSR
-            "040": (("RHO", float(rng_nm[i])), ("THETA", float(rep["azimuth_deg"][i] % 360.0))),
+            "040": (("RHO", float(rng_nm[i])), ("THETA", float(az[i]))),
             "161": (0, ("TRN", int(trk[i]))), "170": (2 << 4,),     # CNF=0 confirmed, RAD=2 SSR/Mode S track
         }
         if m3a:

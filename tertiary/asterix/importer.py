@@ -31,13 +31,13 @@ from numpy.typing import NDArray
 
 from tertiary import geo
 from tertiary.asterix import capture, codec, fast048
-from tertiary.asterix.sites import radar_id as default_radar_id
 from tertiary.errors import DataError, OptionError
 from tertiary.schema import TABLES
 
 DAY = 86400.0
 TIME = pl.Datetime("us", "UTC")
-ICAO_CHARS = np.frombuffer(b"?ABCDEFGHIJKLMNOPQRSTUVWXYZ????? ???????????????0123456789??????", np.uint8)
+#: ICAO 6-bit alphabet; "~" marks codes outside it, dropped as libasterix drops them
+ICAO_CHARS = np.frombuffer(b"~ABCDEFGHIJKLMNOPQRSTUVWXYZ~~~~~ ~~~~~~~~~~~~~~~0123456789~~~~~~", np.uint8)
 HEX = np.frombuffer(b"0123456789abcdef", np.uint8)
 
 
@@ -214,17 +214,19 @@ def _decode_062(items: list[tuple[bytes, dict[str, object], float, str]], reject
 
 
 def _hex6(v: NDArray[np.int64]) -> NDArray[np.str_]:
+    """24-bit addresses as 6 lower-case hex digits (vectorised)."""
     nib = (v[:, None] >> np.arange(20, -1, -4)) & 15
     return np.ascontiguousarray(HEX[nib]).view("S6").ravel().astype("U6")
 
 
-def _callsign(v: NDArray[np.int64]) -> list[str | None]:
+def _callsign(v: NDArray[np.int64]) -> NDArray[np.str_]:
+    """I048/240: eight 6-bit ICAO characters (A-Z = 1-26, space = 32, digits = 48-57)."""
     idx = (v[:, None] >> np.arange(42, -1, -6)) & 63
-    chars = np.ascontiguousarray(ICAO_CHARS[idx]).view("S8").ravel().astype("U8")
-    return chars
+    return np.ascontiguousarray(ICAO_CHARS[idx]).view("S8").ravel().astype("U8")
 
 
 def _octal4(v: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The 12-bit Mode 3/A code as the decimal number its 4 octal digits spell."""
     code = v & 0x0FFF
     return ((code >> 9) & 7) * 1000 + ((code >> 6) & 7) * 100 + ((code >> 3) & 7) * 10 + (code & 7)
 
@@ -236,10 +238,13 @@ def cat048_values(raw: pl.DataFrame) -> pl.DataFrame:
     fl = np.where(fl14 >= 0x2000, fl14 - 0x4000, fl14) / 4.0            # two's complement, 1/4 FL
     alt_ok = (g["i090"] >= 0) & ((g["i090"] & 0xC000) == 0)            # present, validated, not garbled
     m3a_ok = (g["i070"] >= 0) & ((g["i070"] & 0xC000) == 0)
-    calls = pl.Series("callsign", _callsign(np.maximum(g["i240"], 0))).str.strip_chars_end(" ")
+    calls = pl.Series("callsign", _callsign(np.maximum(g["i240"], 0))).str.replace_all("~", "", literal=True) \
+        .str.strip_chars_end(" ")
     return pl.DataFrame({
-        "range_m": raw["rho"].to_numpy() / 256.0 * codec.NM,
-        "azimuth_deg": raw["theta"].to_numpy() * (360.0 / 65536.0),
+        "range_m": pl.Series(np.where(raw["rho"].to_numpy() >= 0, raw["rho"].to_numpy() / 256.0 * codec.NM, np.nan))
+        .fill_nan(None),                                                 # I048/040 RHO: 1/256 NM
+        "azimuth_deg": pl.Series(np.where(raw["theta"].to_numpy() >= 0, raw["theta"].to_numpy() * (360.0 / 65536.0),
+                                          np.nan)).fill_nan(None),       # THETA: 360/2^16 deg
         "altitude_m": pl.Series(np.where(alt_ok, fl * 100.0 * codec.FT, np.nan)).fill_nan(None),
         "flight_level": pl.Series(np.where(g["i090"] >= 0, fl, np.nan)).fill_nan(None),
         "mode_3a": pl.Series(_octal4(g["i070"])).cast(pl.String).str.zfill(4).set(pl.Series(~m3a_ok), None),
