@@ -69,6 +69,10 @@ def import_asterix(
         console.print(f"note: {note}", soft_wrap=True)
     if res.latency.height:
         _latency_table(res.latency)
+    for method, metric, value in res.external_metrics.filter(
+            (pl.col("segment") == "all") & pl.col("metric").is_in(["rmse_horizontal_m", "rmse_height_m"])
+    ).select("method", "metric", "value").iter_rows() if res.external_metrics.height else []:
+        console.print(f"external picture {method} against the ADS-B truth: {metric} {value:,.1f} m")
 
 
 def _latency_table(latency: pl.DataFrame) -> None:

@@ -399,3 +399,31 @@ def test_enu_velocity_against_finite_differences() -> None:
         p1 = np.array(system.from_geodetic(lat[i], lon[i], h[i])).ravel()
         p2 = np.array(system.from_geodetic(lat2, lon2, h2)).ravel()
         assert np.allclose((p2 - p1) / dt, [vx[i], vy[i], vz[i]], atol=1e-3)
+
+
+def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None:
+    """A CAT062 picture = the truth shifted 30 m east, with the truth as CAT021 in the same file:
+    every matched row is 30 m off (within resolution), and the pooled RMSE of tertiary.evaluate
+    ((2.15): σ²(k) = Σ e² / (N_k − 1) over the few aircraft of an epoch) lies in [30, 30·√2]."""
+    ds, _, _ = simulated
+    truth = ds.truth.filter(pl.col("icao24").fill_null("") != "")
+    tracks = truth.select(
+        pl.lit(0, pl.UInt32).alias("run"), pl.col("time").alias("epoch"), pl.col("truth_id").cast(pl.UInt64).alias("track_id"),
+        pl.lit("cat062").alias("filter"), pl.lit("x").alias("method"), pl.col("x_m") + 30.0, "y_m", "z_m",
+        "vx_mps", "vy_mps", "vz_mps", pl.lit([100.0] * 6).cast(pl.Array(pl.Float64, 6)).alias("cov_diag"),
+        "alt_m", pl.col("icao24").alias("mode_s"))
+    system = ds.origin
+    recs = [(t, 62, r) for t, r in encode.cat062(tracks, system)] + [(t, 21, r) for t, r in encode.cat021(truth, system)]
+    f = tmp_path / "both.ast"
+    f.write_bytes(encode.interleave(recs))
+    res = dataset.import_recordings([f], date="2021-10-07", origin=ds.scenario.origin)
+    from tertiary.asterix.external import match_external
+    rows = match_external(res.external_tracks, res.truth)
+    assert rows.height == tracks.height
+    assert (rows["x_m"] - rows["true_x_m"] - 30.0).abs().max() < 0.35
+    assert (rows["y_m"] - rows["true_y_m"]).abs().max() < 0.35
+    m = res.external_metrics.filter(pl.col("segment") == "all")
+    value = dict(zip(m["metric"], m["value"]))
+    assert 29.8 <= value["rmse_horizontal_m"] <= 30.2 * 2**0.5
+    assert value["rmse_height_m"] < 5.0
+    assert (m["stage"] == "external").all() and m["method"].unique().to_list() == ["sdps-0-1"]

@@ -11,6 +11,7 @@ import polars as pl
 
 from tertiary import geo
 from tertiary.asterix import importer
+from tertiary.asterix.external import external_metrics
 from tertiary.asterix.sites import read_sites, write_template
 from tertiary.errors import DataError, OptionError
 from tertiary.simulate.config import ScenarioConfig, scenario_toml
@@ -29,6 +30,7 @@ class ImportResult:
     antenna: pl.DataFrame
     antenna_messages: pl.DataFrame
     latency: pl.DataFrame
+    external_metrics: pl.DataFrame = field(default_factory=pl.DataFrame)
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     origin: tuple[float, float, float] | None = None
@@ -85,12 +87,13 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     if dec.cat062.height and system is not None:
         tracks, rej = importer.external_tracks(dec.cat062, system, day0)
         rejects += rej
+    scored = external_metrics(tracks, truth) if tracks.height and truth.height else pl.DataFrame()
     counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat034_distinct": messages.height,
                             "cat021_records": dec.cat021.height, "cat062_records": dec.cat062.height,
                             "radars": codes.height, "reports": reports.height, "rejects": len(rejects)}
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,
                         latency.join(radars.select("sac", "sic", "radar_id"), on=["sac", "sic"], how="left")
-                        if radars.height else latency, counts, notes, origin)
+                        if radars.height else latency, scored, counts, notes, origin)
 
 
 def label_reports(reports: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
@@ -147,6 +150,8 @@ def write_import(result: ImportResult, out: str | Path, name: str) -> Path:
         tables["truth"] = result.truth
     if result.external_tracks.height:
         tables["external_tracks"] = result.external_tracks
+    if result.external_metrics.height:
+        tables["external_metrics"] = result.external_metrics
     for key, frame in tables.items():
         write_parquet_atomic(frame, d / f"{key}.parquet")
     if result.origin is not None:
