@@ -427,3 +427,26 @@ def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None
     assert 29.8 <= value["rmse_horizontal_m"] <= 30.2 * 2**0.5
     assert value["rmse_height_m"] < 5.0
     assert (m["stage"] == "external").all() and m["method"].unique().to_list() == ["sdps-0-1"]
+
+
+def test_nothing_decodable_is_a_clear_error(tmp_path: Path) -> None:
+    f = tmp_path / "junk.bin"
+    f.write_bytes(b"\x30\x00\x02hello")
+    with pytest.raises(Exception, match="no CAT048, CAT021 or CAT062 record decoded.*length 2 below 3"):
+        dataset.import_recordings([f], date="2024-01-01")
+    r = CliRunner().invoke(app, ["import", "asterix", str(f), "--date", "2024-01-01", "--out", str(tmp_path / "o")])
+    assert r.exit_code == 3 and "Traceback" not in r.output
+
+
+def test_raw_stream_resynchronises_after_a_bad_length(tmp_path: Path) -> None:
+    """A wrong length field in a raw recording costs that block, not the rest of the file."""
+    blocks = [d for d, c in zip(*(lambda b: (b.data, b.cat))(capture.split_blocks(capture.read_recording(PCAP))))
+              if c == 48][:6]
+    broken = bytearray(blocks[2])
+    broken[1:3] = (5000).to_bytes(2, "big")
+    raw = tmp_path / "r.ast"
+    raw.write_bytes(b"".join(blocks[:2]) + bytes(broken) + b"".join(blocks[3:]))
+    got = capture.split_blocks(capture.read_recording(raw))
+    assert got.data == blocks[:2] + blocks[3:]
+    assert [p[2] for p in got.problems][0].startswith("CAT048 data block length 5000 beyond")
+    assert "skipped to the next data block" in got.problems[1][2]

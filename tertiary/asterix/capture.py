@@ -176,11 +176,35 @@ class Blocks:
     problems: list[tuple[int, int, str]]
 
 
+KNOWN = frozenset((21, 34, 48, 62))
+
+
+def _plausible(payload: bytes, p: int, depth: int = 2) -> bool:
+    """A block header of a known category at ``p`` whose length fits, followed by the end of the
+    payload or (``depth`` headers deep) another such header."""
+    if len(payload) - p < 3 or payload[p] not in KNOWN:
+        return False
+    n = (payload[p + 1] << 8) | payload[p + 2]
+    if n < 4 or p + n > len(payload):
+        return False
+    return p + n == len(payload) or depth <= 1 or _plausible(payload, p + n, depth - 1)
+
+
+def _resync(payload: bytes, start: int) -> int:
+    """Offset of the next plausible data block after a broken one (len(payload) if none)."""
+    p = start
+    while p < len(payload) and not _plausible(payload, p):
+        p += 1
+    return p
+
+
 def split_blocks(grams: Datagrams) -> Blocks:
     """Cut every payload into ``CAT | LEN | records`` data blocks (EUROCONTROL Part 1 §4).
 
-    A length field below 3 or beyond the payload makes the rest of that payload unusable: it
-    becomes one problem and the next payload is read (data blocks have no resync marker).
+    A length field below 3 or beyond the payload breaks the chain of blocks: that block is a
+    problem and reading resumes at the next plausible header (a known category whose length fits
+    and is followed by the end of the payload or another such header); the bytes skipped are a
+    problem of their own. A raw recording thus loses one block, not its remainder.
     """
     cats, data, gram, offs, problems = [], [], [], [], list(grams.problems)
     for g, payload in enumerate(grams.payloads):
@@ -193,7 +217,11 @@ def split_blocks(grams: Datagrams) -> Blocks:
             if n < 3 or off + n > len(payload):
                 problems.append((g, off, f"CAT{payload[off]:03d} data block length {n} "
                                          f"{'below 3' if n < 3 else f'beyond the {len(payload) - off} bytes left'}"))
-                break
+                nxt = _resync(payload, off + 1)
+                if nxt < len(payload) and nxt > off + 1:
+                    problems.append((g, off + 1, f"{nxt - off - 1} byte(s) skipped to the next data block"))
+                off = nxt
+                continue
             cats.append(payload[off])
             data.append(payload[off:off + n])
             gram.append(g)

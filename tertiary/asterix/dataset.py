@@ -55,6 +55,10 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     day0 = importer.parse_date(date)
     dec = importer.decode_files(paths)
     rejects = list(dec.rejects)
+    if not (dec.cat048.height or dec.cat021.height or dec.cat062.height):
+        first = "; ".join(dict.fromkeys(str(r["reason"]) for r in rejects[:50]))[:300] or "no data block"
+        raise DataError(f"no CAT048, CAT021 or CAT062 record decoded from {', '.join(map(str, paths))} "
+                        f"({len(rejects)} problem(s): {first})")
     undated = [c for c in (dec.cat048, dec.cat034, dec.cat021, dec.cat062)
                if c.height and c["capture_s"].is_nan().any()]
     if day0 is None and undated:
@@ -154,6 +158,8 @@ def write_import(result: ImportResult, out: str | Path, name: str) -> Path:
         tables["external_metrics"] = result.external_metrics
     for key, frame in tables.items():
         write_parquet_atomic(frame, d / f"{key}.parquet")
+    for key in {"truth", "external_tracks", "external_metrics"} - set(tables):   # of an earlier import
+        (d / f"{key}.parquet").unlink(missing_ok=True)
     if result.origin is not None:
         write_text_atomic(d / "scenario.toml", scenario_toml(ScenarioConfig(name=name, kind="terminal-area",
                                                                             origin=result.origin)))
