@@ -298,5 +298,17 @@ def test_vectorised_values_equal_libasterix_quantities() -> None:
         assert v["mode_s"] == (None if addr is None else f"{addr:06x}")
         cs = codec.text(rec, "240")
         assert v["callsign"] == (None if cs is None or not cs.strip() else cs.rstrip())
+        i170 = rec.get_item("170")
+        if i170 is None:
+            assert v["tentative"] is None and v["track_end"] is None
+        else:
+            st = i170.variation
+            assert v["tentative"] == bool(st.get_item("CNF").as_uint())
+            assert v["doubtful"] == bool(st.get_item("DOU").as_uint())
+            assert v["manoeuvre"] == bool(st.get_item("MAH").as_uint())
+            assert v["climb_mode"] == st.get_item("CDM").as_uint()
+            tre = st.get_item("TRE")
+            assert v["track_end"] == (None if tre is None else bool(tre.as_uint()))
+            assert v["ghost"] == (None if tre is None else bool(st.get_item("GHO").as_uint()))
         gs = codec.sub_qty(rec, "200", "GSP", "NM/s")
         assert v["ground_speed_mps"] == (None if gs is None else pytest.approx(gs * 1852.0))

@@ -233,7 +233,8 @@ def _octal4(v: NDArray[np.int64]) -> NDArray[np.int64]:
 
 def cat048_values(raw: pl.DataFrame) -> pl.DataFrame:
     """Physical values of the raw CAT048 fields (units exactly as the contract wants them)."""
-    g = {c: raw[c].to_numpy() for c in ("i090", "i070", "i220", "i240", "i161", "gs", "hdg", "i020")}
+    g = {c: raw[c].to_numpy() for c in ("i090", "i070", "i220", "i240", "i161", "gs", "hdg", "i020", "i170a",
+                                        "i170b")}
     fl14 = g["i090"] & 0x3FFF
     fl = np.where(fl14 >= 0x2000, fl14 - 0x4000, fl14) / 4.0            # two's complement, 1/4 FL
     alt_ok = (g["i090"] >= 0) & ((g["i090"] & 0xC000) == 0)            # present, validated, not garbled
@@ -253,7 +254,18 @@ def cat048_values(raw: pl.DataFrame) -> pl.DataFrame:
         "ground_speed_mps": pl.Series(np.where(g["gs"] >= 0, g["gs"] * 2.0**-14 * codec.NM, np.nan)).fill_nan(None),
         "heading_deg": pl.Series(np.where(g["hdg"] >= 0, g["hdg"] * (360.0 / 65536.0), np.nan)).fill_nan(None),
         "detection_type": pl.Series(np.where(g["i020"] >= 0, g["i020"] >> 5, -1)).cast(pl.Int8).replace(-1, None),
+        **_track_status(g["i170a"], g["i170b"]),
     })
+
+
+def _track_status(a: NDArray[np.int64], b: NDArray[np.int64]) -> dict[str, pl.Series]:
+    """I048/170 octet 1 CNF|RAD(2)|DOU|MAH|CDM(2)|FX, octet 2 TRE|GHO|SUP|TCC|spare|FX; null
+    where the item (or its second octet) is absent."""
+    def bit(v: NDArray[np.int64], shift: int, width: int = 1) -> pl.Series:
+        return pl.Series(np.where(v >= 0, (v >> shift) & ((1 << width) - 1), -1)).replace(-1, None)
+    return {"tentative": bit(a, 7).cast(pl.Boolean), "doubtful": bit(a, 4).cast(pl.Boolean),
+            "manoeuvre": bit(a, 3).cast(pl.Boolean), "climb_mode": bit(a, 1, 2).cast(pl.Int8),
+            "track_end": bit(b, 7).cast(pl.Boolean), "ghost": bit(b, 6).cast(pl.Boolean)}
 
 
 def _raw_rejects(frame: pl.DataFrame, stage: str) -> list[dict[str, object]]:
@@ -316,6 +328,7 @@ def build_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | N
         "range_m", "azimuth_deg", "altitude_m", "mode_s", "mode_3a", "callsign",
         pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"), pl.lit(0, pl.UInt32).alias("run"),
         "flight_level", "ground_speed_mps", "heading_deg", "detection_type",
+        "tentative", "doubtful", "manoeuvre", "climb_mode", "track_end", "ghost",
         pl.col("sac").cast(pl.UInt8), pl.col("sic").cast(pl.UInt8),
         "out_of_order", "stale", "latency_s",
     )
