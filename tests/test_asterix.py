@@ -450,3 +450,25 @@ def test_raw_stream_resynchronises_after_a_bad_length(tmp_path: Path) -> None:
     assert got.data == blocks[:2] + blocks[3:]
     assert [p[2] for p in got.problems][0].startswith("CAT048 data block length 5000 beyond")
     assert "skipped to the next data block" in got.problems[1][2]
+
+
+def test_flags_out_of_order_and_stale(tmp_path: Path) -> None:
+    """Arrival order: a report older than its track's previous one is out of order; older than
+    its radar's latest by more than --stale-s, stale; a garbage time of day is a reject that
+    disturbs neither flag nor the other reports' times."""
+    s48 = codec.spec(48).cv_record
+
+    def rec(tod: float | int, trn: int) -> object:
+        return s48.create({"010": (("SAC", 0), ("SIC", 1)), "140": tod, "040": (("RHO", 10.0), ("THETA", 5.0)),
+                           "161": (0, ("TRN", trn))})
+    recs = [rec(100.0, 1), rec(101.0, 2), rec(100.5, 1), rec(86400 * 128 + 9, 3), rec(102.0, 1), rec(80.0, 2)]
+    raw = tmp_path / "o.ast"
+    raw.write_bytes(b"".join(codec.datablock(48, [r]) for r in recs))
+    res = dataset.import_recordings([raw], sites=_sites(tmp_path / "s.toml", codes=[(0, 1)]), date="2024-01-01",
+                                    stale_s=10.0)
+    r = res.reports
+    assert r["local_track_id"].to_list() == [1, 2, 1, 1, 2] and res.rejects.height == 1
+    assert r["out_of_order"].to_list() == [False, False, False, False, True]
+    assert r["stale"].to_list() == [False, False, False, False, True]
+    secs = (r["time"].dt.epoch("us").to_numpy() / 1e6) % 86400
+    assert np.allclose(secs, [100.0, 101.0, 100.5, 102.0, 80.0])

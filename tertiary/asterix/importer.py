@@ -280,9 +280,13 @@ def build_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | N
                   ) -> tuple[pl.DataFrame, list[dict[str, object]], pl.DataFrame, dict[str, int]]:
     """CAT048 raw fields → (reports, rejects, per-radar latency, counts) in arrival order."""
     counts = {"cat048_records": raw.height}
-    raw = raw.with_row_index("record").with_columns(offset=pl.col("offset"))
+    raw = raw.with_row_index("record")
+    # only valid times of day take part in the unwrapping and the stale / out-of-order flags
+    tod = raw["tod"].to_numpy()
+    ok = (tod >= 0) & (tod < 86400 * 128)
+    t = np.full(raw.height, np.nan)
+    t[ok] = absolute_time(tod[ok] / 128.0, raw["capture_s"].to_numpy()[ok], day0)
     # redundant lines: the same record bytes from the same radar on the same day, first kept
-    t = absolute_time(raw["tod"].to_numpy() / 128.0, raw["capture_s"].to_numpy(), day0)
     raw = raw.with_columns(pl.Series("t", t), (pl.Series(t) // DAY).alias("day"))
     first = raw.select(pl.struct("sac", "sic", "hash", "length", "day").is_first_distinct()).to_series()
     counts["duplicates"] = int((~first).sum())
@@ -306,9 +310,11 @@ def build_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | N
     # arrival order: out of order = older than an earlier report of the same local track (a radar
     # sends a sector's reports in track order, not time order); stale = older than the radar's
     # latest earlier report by more than stale_s
-    prev = pl.col("t").cum_max().shift(1)
-    work = work.with_columns(behind=(prev.over(["sac", "sic"]) - pl.col("t")).fill_null(0.0).clip(lower_bound=0.0),
-                             track_behind=(prev.over(["sac", "sic", "i161"]) - pl.col("t")).fill_null(0.0))
+    t_ok = pl.col("t").fill_nan(None)
+    prev = t_ok.cum_max().forward_fill().shift(1)
+    work = work.with_columns((pl.col("i161") & 0x0FFF).alias("trn")).with_columns(
+        behind=(prev.over(["sac", "sic"]) - t_ok).fill_null(0.0).clip(lower_bound=0.0),
+        track_behind=(prev.over(["sac", "sic", "trn"]) - t_ok).fill_null(0.0))
     work = work.with_columns(out_of_order=pl.col("track_behind") > 0, stale=pl.col("behind") > stale_s,
                              latency_s=(pl.col("capture_s") - pl.col("t")).fill_nan(None))
     reason = pl.concat_str([pl.when(c).then(pl.lit(r) if isinstance(r, str) else r) for c, r in reasons],
