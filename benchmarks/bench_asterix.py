@@ -83,6 +83,40 @@ def check_sample(blks: list[bytes], k: int = 5) -> None:
     assert [{c: int(row[fast048.FIELDS.index(c)]) for c in cols} for row in raw] == ref
 
 
+def _cat021_rate(n: int) -> dict[str, float]:
+    """CAT021 decode (compiled walker + numpy field reads) against libasterix, on n records made
+    by repeating 600 encoded ADS-B reports."""
+    import polars as pl
+    from tertiary import geo
+    from tertiary.asterix import encode, importer
+    m = 600
+    rng = np.random.default_rng(2)
+    truth = pl.DataFrame({
+        "truth_id": pl.Series(np.arange(m) % 50, dtype=pl.Int64),
+        "time": pl.Series((1_700_000_000 + np.arange(m) * 0.5) * 1e6).cast(pl.Int64).cast(pl.Datetime("us", "UTC")),
+        "x_m": rng.uniform(-2e5, 2e5, m), "y_m": rng.uniform(-2e5, 2e5, m), "z_m": rng.uniform(0, 1.2e4, m),
+        "vx_mps": rng.uniform(-250, 250, m), "vy_mps": rng.uniform(-250, 250, m), "vz_mps": rng.uniform(-15, 15, m),
+        "alt_m": rng.uniform(0, 1.2e4, m), "icao24": [f"{a:06x}" for a in rng.integers(0, 2**24, m)],
+        "callsign": ["AFR1234"] * m})
+    recs = [r for _, r in encode.cat021(truth, geo.LocalFrame(48.85, 2.35, 0.0))]
+    blks = [codec.datablock(21, recs[i:i + 20]) for i in range(0, m, 20)]
+    reps = max(1, n // m)
+    items = [(b, {"file": "bench", "datagram": 0}, float("nan"), "raw") for b in blks * reps]
+    importer._decode_021(items[:2], [])                      # compile / load the cache
+    t = time.perf_counter()
+    frame = importer._decode_021(items, [])
+    fast_s = time.perf_counter() - t
+    t = time.perf_counter()
+    k = 0
+    for b in blks[:10]:
+        for r in codec.parse_block(b):                      # type: ignore[union-attr]
+            codec.uint(r, "080"), codec.sub_qty(r, "131", "LAT", "°"), codec.qty(r, "140", "ft")
+            k += 1
+    lib_s = time.perf_counter() - t
+    return {"cat021_records": frame.height, "cat021_fast_records_per_s": round(frame.height / fast_s),
+            "cat021_libasterix_records_per_s": round(k / lib_s)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--records", type=int, default=1_000_000)
@@ -122,6 +156,7 @@ def main() -> None:
         t = time.perf_counter()
         res = dataset.import_recordings([rec_file], sites=sites, date="2024-01-01")
         imp_s = time.perf_counter() - t
+    cat021 = _cat021_rate(args.records // 5)
     result = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
         "records": args.records, "record_bytes": int(recs.shape[1]),
@@ -132,6 +167,7 @@ def main() -> None:
         "import_records_in": 2 * args.records, "import_reports_out": res.reports.height,
         "import_duplicates": res.counts["duplicates"], "import_s": round(imp_s, 2),
         "import_records_per_s": round(2 * args.records / imp_s),
+        **cat021,
     }
     print(json.dumps(result, indent=2))
     out = Path(__file__).parent / "results" / "asterix.json"

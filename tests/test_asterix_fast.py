@@ -190,8 +190,9 @@ def _cat021_blocks() -> list[bytes]:
         "time": pl.datetime_range(pl.datetime(2024, 1, 1, 12, time_zone="UTC"),
                                   pl.datetime(2024, 1, 1, 12, 0, 5, time_zone="UTC"), "1s", eager=True),
         "x_m": np.linspace(-5e4, 5e4, n), "y_m": np.linspace(1e4, 2e4, n), "z_m": np.full(n, 9000.0),
-        "vx_mps": np.full(n, 200.0), "vy_mps": np.full(n, -20.0), "vz_mps": np.zeros(n),
-        "alt_m": np.full(n, 9100.0), "icao24": ["abc123", ""] * 3, "callsign": ["KLM1", None] * 3,
+        "vx_mps": np.full(n, 200.0), "vy_mps": np.full(n, -20.0), "vz_mps": np.linspace(-15.0, 12.0, n),
+        "alt_m": [9100.0, None, -200.0, 9000.0, None, 100.0], "icao24": ["abc123", ""] * 3,
+        "callsign": ["KLM1", None] * 3,
     })
     recs = encode.cat021(truth, geo.LocalFrame(52.3, 4.76, 0.0))
     return [codec.datablock(21, [r for _, r in recs[i:i + 3]]) for i in range(0, n, 3)]
@@ -312,3 +313,85 @@ def test_vectorised_values_equal_libasterix_quantities() -> None:
             assert v["ghost"] == (None if tre is None else bool(st.get_item("GHO").as_uint()))
         gs = codec.sub_qty(rec, "200", "GSP", "NM/s")
         assert v["ground_speed_mps"] == (None if gs is None else pytest.approx(gs * 1852.0))
+
+
+# --------------------------------------------------------------------------- CAT021 (spec-driven walker)
+
+
+def _same_walk(blocks: list[bytes], cat: int) -> None:
+    """The spec-driven walker accepts/refuses each block as libasterix does and cuts the same records."""
+    from tertiary.asterix import fastwalk
+    prog = fastwalk.program(codec.spec(cat).cv_record)
+    buf, offs, block, rs, re, bad = fastwalk.walk(blocks, prog)
+    refused = {k for k, _, _ in bad}
+    for k, data in enumerate(blocks):
+        recs = codec.parse_block(data)
+        if isinstance(recs, str):
+            assert k in refused, (k, data.hex(), recs)
+            continue
+        assert k not in refused, (k, data.hex(), [b for b in bad if b[0] == k])
+        mine = [bytes(buf[a:b]) for a, b, bb in zip(rs, re, block) if bb == k]
+        assert mine == [r.unparse().to_bytes() for r in recs]
+        rows = offs[block == k]
+        for row, rec in zip(rows, recs):        # present items = the items libasterix found
+            assert {prog.names[s] for s in np.flatnonzero(row >= 0)} == set(rec.items_regular)
+
+
+def test_walker_cat021_and_cat048_equal_libasterix() -> None:
+    _same_walk(_SIM21, 21)
+    _same_walk([b for b in _real_blocks() if b[0] == 48] + _SIM + EDGE, 48)
+
+
+EDGE21 = [bytes([21]) + struct.pack(">H", 3 + len(b)) + b for b in (
+    bytes.fromhex("00"), bytes.fromhex("01010101010101" "00"),            # FSPEC of 8 octets
+    bytes.fromhex("40" "81818180"), bytes.fromhex("40" "8181818181"),     # I021/040 with 4 / 5 octets
+    bytes.fromhex("40" "818181818181"),                                    # 6 octets: beyond its 5 groups
+    bytes.fromhex("0101010101010102"), bytes.fromhex("01010101010110" "00"),   # spare UAP bits
+    bytes.fromhex("010101010180" "8000" "0000"), bytes.fromhex("010101010180" "0101"),   # I021/295 compound
+)]
+
+
+def test_walker_cat021_edge_cases() -> None:
+    _same_walk(EDGE21, 21)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.tuples(st.sampled_from(_SIM21), st.sampled_from(["flip", "truncate", "random", "byte"]),
+                          st.integers(0, 10**6), st.integers(0, 255), st.binary(min_size=1, max_size=60)),
+                min_size=1, max_size=4))
+def test_walker_cat021_fuzzed(cases: list) -> None:
+    blocks = []
+    for seed, op, where, value, junk in cases:
+        data = bytearray(seed)
+        i = 3 + where % (len(data) - 3)
+        if op == "flip":
+            data[i] ^= 1 << (value % 8)
+        elif op == "byte":
+            data[i] = value
+        elif op == "truncate":
+            data = data[:i]
+        else:
+            data = bytearray(b"\x15\0\0" + junk)
+        data[1:3] = struct.pack(">H", len(data))
+        blocks.append(bytes(data))
+    _same_walk(blocks, 21)
+
+
+def test_cat021_values_equal_libasterix_quantities() -> None:
+    from tertiary.asterix import importer
+    items = [(b, {"file": "x", "datagram": 0}, float("nan"), "raw") for b in _SIM21]
+    frame = importer._decode_021(items, [])
+    recs = [r for b in _SIM21 for r in codec.parse_block(b)]
+    assert frame.height == len(recs)
+    for rec, v in zip(recs, frame.iter_rows(named=True)):
+        assert v["address"] == codec.uint(rec, "080")
+        assert v["tod_s"] == codec.qty(rec, "071", "s")
+        assert v["lat_deg"] == pytest.approx(codec.sub_qty(rec, "131", "LAT", "°"), abs=1e-12)
+        assert v["lon_deg"] == pytest.approx(codec.sub_qty(rec, "131", "LON", "°"), abs=1e-12)
+        assert v["height_ft"] == codec.qty(rec, "140", "ft")
+        assert v["fl"] == codec.qty(rec, "145", "FL")
+        assert v["gs_nmps"] == pytest.approx(codec.sub_qty(rec, "160", "GS", "NM/s"))
+        assert v["ta_deg"] == pytest.approx(codec.sub_qty(rec, "160", "TA", "°"))
+        assert v["gvr_ftpm"] == codec.sub_qty(rec, "157", "GVR", "ft/min")
+        cs = codec.text(rec, "170")
+        assert v["callsign"] == cs

@@ -20,6 +20,7 @@ come from this file::
 
 from __future__ import annotations
 
+import json
 import math
 import tomllib
 from pathlib import Path
@@ -93,7 +94,8 @@ def sites_toml(sites: pl.DataFrame) -> str:
     """A sites file for ``sites`` (columns as :func:`read_sites` returns); NaN → ``nan``."""
     lines = ["# SAC/SIC -> radar registry for `tertiary import asterix` (see docs/asterix.md)"]
     for row in sites.iter_rows(named=True):
-        lines += ["", "[[radar]]", f"sac = {row['sac']}", f"sic = {row['sic']}", f"name = \"{row['name']}\"",
+        name = json.dumps(str(row["name"]), ensure_ascii=False)      # a TOML basic string, escaped
+        lines += ["", "[[radar]]", f"sac = {row['sac']}", f"sic = {row['sic']}", f"name = {name}",
                   f"radar_id = {row['radar_id']}"]
         for k in (*REQUIRED, *OPTIONAL):
             v = row.get(k, math.nan)
