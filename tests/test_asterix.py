@@ -472,3 +472,20 @@ def test_flags_out_of_order_and_stale(tmp_path: Path) -> None:
     assert r["stale"].to_list() == [False, False, False, False, True]
     secs = (r["time"].dt.epoch("us").to_numpy() / 1e6) % 86400
     assert np.allclose(secs, [100.0, 101.0, 100.5, 102.0, 80.0])
+
+
+def test_pcap_resynchronises_after_a_bad_record_header(tmp_path: Path, real: dataset.ImportResult) -> None:
+    """A corrupted captured-length field costs that frame, not the rest of the capture."""
+    import struct
+    data = bytearray(PCAP.read_bytes())
+    off = 24
+    for _ in range(10):                                   # the 11th record header
+        off += 16 + struct.unpack("<I", data[off + 8:off + 12])[0]
+    data[off + 8:off + 12] = struct.pack("<I", 10**6)
+    f = tmp_path / "bad.pcap"
+    f.write_bytes(bytes(data))
+    grams = capture.read_recording(f)
+    assert len(grams.payloads) == 99 and "runs past the end" in grams.problems[0][2]
+    assert "skipped to the next pcap record" in grams.problems[1][2]
+    res = dataset.import_recordings([f], sites=_sites(tmp_path / "s.toml"))
+    assert res.counts["distinct"] == 64          # the lost frame's twin on the other line carries its records

@@ -81,25 +81,54 @@ def _add_frame(out: Datagrams, frame: bytes, t: float, link: int, index: int) ->
         out.add(got[0], t, got[1])
 
 
+def _pcap_header_ok(data: bytes, off: int, order: str, unit: float, snap: int, sec0: int | None, depth: int = 2) -> bool:
+    """A plausible pcap record header at ``off``: fraction below one second, captured length not
+    above the original nor the snap length and inside the file, time within a day of ``sec0``,
+    followed by the end of the file or (``depth`` deep) another plausible header."""
+    if off + 16 > len(data):
+        return False
+    sec, frac, incl, orig = struct.unpack(order + "IIII", data[off:off + 16])
+    if frac * unit >= 1.0 or incl > orig or incl > snap or off + 16 + incl > len(data):
+        return False
+    if sec0 is not None and abs(sec - sec0) > 86400:
+        return False
+    nxt = off + 16 + incl
+    return nxt == len(data) or depth <= 1 or _pcap_header_ok(data, nxt, order, unit, snap, sec, depth - 1)
+
+
 def read_pcap(data: bytes) -> Datagrams:
-    """UDP payloads of a classic libpcap capture (either byte order, µs or ns stamps)."""
+    """UDP payloads of a classic libpcap capture (either byte order, µs or ns stamps).
+
+    A record header that cannot be right (length past the end or above the snap length) is a
+    problem; reading resumes at the next plausible record header (see :func:`_pcap_header_ok`).
+    """
     order, unit = PCAP_MAGIC[data[:4]]
     out = Datagrams()
     if len(data) < 24:
         out.problems.append((0, 0, "truncated pcap global header"))
         return out
-    link = struct.unpack(order + "I", data[20:24])[0] & 0x0FFFFFFF
-    off, index = 24, 0
+    snap, link = struct.unpack(order + "II", data[16:24])
+    link &= 0x0FFFFFFF
+    snap = snap if 0 < snap <= 1 << 18 else 1 << 18
+    off, index, sec0 = 24, 0, None
     while off < len(data):
         if off + 16 > len(data):
             out.problems.append((index, off, "truncated pcap record header"))
             break
         sec, frac, incl, _orig = struct.unpack(order + "IIII", data[off:off + 16])
-        if off + 16 + incl > len(data):
-            out.problems.append((index, off, f"pcap record of {incl} bytes runs past the end of the file"))
-            break
+        if off + 16 + incl > len(data) or incl > snap:
+            out.problems.append((index, off, f"pcap record of {incl} bytes runs past the end of the file"
+                                 if off + 16 + incl > len(data) else f"pcap record of {incl} bytes above the snap "
+                                 f"length {snap}"))
+            nxt = off + 1
+            while nxt < len(data) and not _pcap_header_ok(data, nxt, order, unit, snap, sec0):
+                nxt += 1
+            if nxt < len(data):
+                out.problems.append((index, off, f"{nxt - off} byte(s) skipped to the next pcap record"))
+            off, index = nxt, index + 1
+            continue
         _add_frame(out, data[off + 16:off + 16 + incl], sec + frac * unit, link, index)
-        off, index = off + 16 + incl, index + 1
+        off, index, sec0 = off + 16 + incl, index + 1, sec
     return out
 
 
