@@ -27,8 +27,9 @@ def _origin_option(text: str | None) -> tuple[float, float, float] | None:
 
 @import_app.command("asterix")
 def import_asterix(
-    files: Annotated[list[Path], typer.Argument(metavar="FILE", help="pcap/pcapng captures (UDP payloads) or raw ASTERIX data-block "
-                                                     "files; CAT048, CAT034, CAT021, CAT062 may be mixed")],
+    files: Annotated[list[Path], typer.Argument(
+        metavar="FILE", help="pcap/pcapng captures (UDP payloads) or raw ASTERIX data-block files; CAT048, CAT034, "
+                             "CAT021, CAT062 may be mixed")],
     out: Annotated[Path, typer.Option("--out", "-o", help="dataset directory to write")],
     sites: Annotated[Optional[Path], typer.Option(help="SAC/SIC -> radar registry TOML (required with CAT048; "
                                                        "see docs/asterix.md)")] = None,
