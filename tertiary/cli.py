@@ -304,9 +304,13 @@ def simulate(
     bias_step: BiasStepOpt = None,
     force: Annotated[bool, typer.Option(help="replace a dataset already in OUT")] = False,
     quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
+    fmt: Annotated[str, typer.Option("--format", help="parquet, or asterix: also recording.ast (CAT048, CAT034, "
+                                                      "CAT021) and sites.toml")] = "parquet",
 ) -> None:
     """Simulate SCENARIO and write radars/reports/truth Parquet files and scenario.toml to OUT."""
     _set_log(quiet, log_format)
+    if fmt not in ("parquet", "asterix"):
+        raise OptionError(f"use parquet or asterix, got {fmt!r}", option="--format")
     if scenario == "adsb" and truth is None:
         raise OptionError("the adsb scenario needs --truth FILE (an OpenSky/traffic-schema Parquet file)",
                           option="--truth")
@@ -324,6 +328,12 @@ def simulate(
                   f"{len(cfg.radars)} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s")
     if ds.removed.height:
         console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet)")
+    if fmt == "asterix":
+        from tertiary.asterix.encode import write_recording
+        rec, sites, day = write_recording(ds, out)
+        runs_note = f" (run 0 of {cfg.runs})" if cfg.runs > 1 else ""
+        console.print(f"wrote {rec}{runs_note} and {sites}; import with: tertiary import asterix {rec} "
+                      f"--sites {sites} --date {day} --out DATASET_DIR", soft_wrap=True)
 
 
 @app.command()
@@ -777,6 +787,12 @@ def scenarios() -> None:
     for name in builtin_scenarios():
         cfg = load_scenario(name)
         console.print(f"{name} ({cfg.kind}): {len(cfg.radars)} radars, {cfg.duration_s:.0f} s, {cfg.runs} run(s)")
+
+
+from tertiary.cli_asterix import export_app, import_app  # noqa: E402  (sub-apps use this module's helpers)
+
+app.add_typer(import_app, name="import")
+app.add_typer(export_app, name="export")
 
 
 def main() -> None:  # pragma: no cover
