@@ -34,7 +34,7 @@ def test_unknown_parameter_value_lists_the_allowed_ones(run_dir):
     assert "segment='bogus'" in res.output and "allowed: all" in res.output
     res = sql(run_dir, "accuracy_by_method", "-p", "method=nope")
     assert res.exit_code == 2 and "arithmetic" in res.output and "information" in res.output
-    res = sql(run_dir, "accuracy_by_method", "-p", "method=information")
+    res = sql(run_dir, "accuracy_by_method", "-p", "method=information", "--format", "csv")
     assert res.exit_code == 0 and "information" in res.output
 
 
