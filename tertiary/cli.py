@@ -591,6 +591,7 @@ def evaluate_cmd(
     and flight phase, and requirements with pass/fail."""
     from tertiary.evaluation import evaluate_pictures, read_pictures
     from tertiary.requirements import load_requirements
+    from tertiary.store import RunStore, record_run
     if (truth is None) == (dataset is None):
         raise OptionError("give the reference with exactly one of --truth FILE or --dataset DIR", option="--truth")
     radars, frame = None, None
@@ -621,7 +622,9 @@ def evaluate_cmd(
                 "run", "epoch", "method", "track_id", "truth_id", "match_cost"))
             if reqs is not None:
                 store.write("requirements", ev.requirements)
-            record_run(store, {"kind": "evaluation", "pictures": sorted(pictures["method"].unique().to_list()),
+            record_run(store, {"kind": "evaluation", "scenario": "evaluation",
+                               "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                               "pictures": sorted(pictures["method"].unique().to_list()),
                                "tracks_files": [str(p) for p in tracks],
                                "reference": str(truth or dataset), "requirements": str(requirements or ""),
                                "status": "complete", "timings": {"wall_s": time.perf_counter() - t}})

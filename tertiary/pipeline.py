@@ -225,6 +225,11 @@ class PipelineConfig:
     stca_lookaheads_s: tuple[float, ...] = (105.0,)
     stca_confidences: tuple[float, ...] = (0.5, 0.8, 0.95, 0.99)
     stca_fixed_m: tuple[float, ...] = (0.0, 300.0, 600.0, 1200.0)
+    #: the one evaluation stage (tertiary.evaluation) on the tracker pictures when there is a
+    #: reference: metrics stage "evaluation" and the ``requirements`` table judged against
+    #: ``requirements_file`` (None: the shipped example, datasets/requirements/example.toml)
+    evaluation: bool = True
+    requirements_file: str | None = None
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
     #: radar registration before alignment (:func:`tertiary.align.apply_registration`): with
@@ -404,6 +409,11 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
         if cfg.safety:
             metrics = pl.concat([metrics, capacity_from_metrics(metrics, notes=ing.notes)], how="vertical_relaxed")
+    if has_truth and cfg.evaluation and tracks.height:
+        clock.stage("evaluation")
+        evaluation, requirements = _evaluation_stage(cfg, tracks, ing, ds)
+        metrics = pl.concat([metrics, evaluation], how="vertical_relaxed")
+        sink("requirements", requirements)
     sink("metrics", metrics)
     sink("accuracy_by_epoch", by_epoch)
     clock.stage(None)
@@ -420,6 +430,17 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0}
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts)
+
+
+def _evaluation_stage(cfg: PipelineConfig, tracks: pl.DataFrame, ing: Ingested, ds: Dataset
+                      ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Every tracker picture (method "<fusion>+<filter>") scored by the one evaluation stage."""
+    from tertiary.evaluation import evaluate_pictures
+    from tertiary.requirements import example_path, load_requirements
+    reqs = load_requirements(cfg.requirements_file or example_path())
+    pictures = tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
+    ev = evaluate_pictures(pictures, ing.truth, radars=ing.radars, frame=ds.origin, requirements=reqs)
+    return ev.metrics, ev.requirements
 
 
 def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFrame,

@@ -345,8 +345,21 @@ def _rel(a: float | None, b: float | None) -> str:
 
 def _sec_verdict(ctx: _Ctx) -> _Section:
     sec = _Section("verdict", "Verdict")
-    sec.html = "\n".join([_verdict_accuracy(ctx), _verdict_safety(ctx), _verdict_requirements(ctx)])
+    if ctx.record.get("kind") == "evaluation":      # requirements first, then the pictures' accuracy
+        sec.html = "\n".join([_verdict_requirements(ctx), _verdict_evaluation(ctx)])
+    else:
+        sec.html = "\n".join([_verdict_accuracy(ctx), _verdict_safety(ctx), _verdict_requirements(ctx)])
     return sec
+
+
+def _verdict_evaluation(ctx: _Ctx) -> str:
+    cmp = ctx.q("picture_comparison")
+    if cmp.height == 0:
+        return '<h3>Accuracy</h3><p class="note">No picture could be matched to the reference.</p>'
+    best = cmp.row(0, named=True)           # ordered by horizontal RMS
+    return (f"<h3>Accuracy</h3><p><b>Most accurate picture: {html.escape(best['method'])}</b> — horizontal RMS "
+            f"<b>{_m(best['rmse_horizontal_m'])}</b> (95 % {_m(best['p95_horizontal_m'])}), height RMS "
+            f"<b>{_m(best['rmse_height_m'])}</b>, {cmp.height} picture(s) compared below.</p>")
 
 
 def _verdict_accuracy(ctx: _Ctx) -> str:
@@ -759,6 +772,39 @@ def _sec_conflicts(ctx: _Ctx) -> _Section:
     return sec
 
 
+EVAL_BAR_METRICS = (("rmse_horizontal_m", "horizontal RMS"), ("p95_horizontal_m", "horizontal p95"),
+                    ("along_track_rms_m", "along-track RMS"), ("across_track_rms_m", "across-track RMS"),
+                    ("rmse_height_m", "height RMS"))
+
+
+def _sec_evaluation(ctx: _Ctx) -> _Section:
+    """The evaluation stage (tertiary.evaluation): pictures side by side, and the horizontal RMS
+    by altitude band, range ring and flight phase."""
+    go = _go()
+    sec = _Section("evaluation", "Pictures against the reference (evaluation stage)")
+    cmp = ctx.q("picture_comparison")
+    if cmp.height == 0:
+        sec.note = "Not computed in this run: no picture was scored by the evaluation stage."
+        return sec
+    fig = go.Figure()
+    for i, (metric, label) in enumerate(EVAL_BAR_METRICS):
+        if metric in cmp.columns:
+            fig.add_trace(go.Bar(x=cmp["method"].to_list(), y=_arr(cmp[metric]), name=label,
+                                 marker_color=_COLORS[i % len(_COLORS)]))
+    _layout(fig, "Position errors per picture", "", "error (m)", barmode="group")
+    sec.figures.append((fig, "tertiary.evaluation: every picture matched once to the reference (tertiary.matching:"
+                             " interpolated reference, 1 NM horizontal / 300 m vertical gate, one-to-one per epoch), errors split into "
+                             "horizontal, along-track, across-track and height (sql/picture_comparison.sql)."))
+    sec.tables.append(("Pictures compared (sql/picture_comparison.sql)", cmp))
+    by = ctx.store.sql("SELECT method, segment, value FROM metrics WHERE stage = 'evaluation' "
+                       "AND metric = 'rmse_horizontal_m' ORDER BY segment")
+    if by.height:
+        wide = by.pivot(on="method", index="segment", values="value", aggregate_function="first")
+        sec.tables.append(("Horizontal RMS (m) by altitude band, range ring from the nearest radar and flight "
+                           "phase", wide))
+    return sec
+
+
 STCA_WARNING_S = 30.0   # the warning requirement the curves are drawn for (issue 11: ≥ 30 s)
 
 
@@ -913,10 +959,15 @@ def _sec_metadata(ctx: _Ctx) -> _Section:
             parts.append(f"<h3>{title}</h3>" + _table_html(
                 pl.DataFrame({"name": list(d), "value": [str(v) for v in d.values()]})))
     sec.html = "\n".join(parts)
-    sec.tables.append(("Stage timings (sql/stage_timings.sql)", ctx.q("stage_timings")))
-    sec.tables.append(("Row accounting (sql/row_accounting.sql)", ctx.q("row_accounting")))
-    sec.tables.append(("Rejects by reason (sql/rejects_by_reason.sql)", ctx.q("rejects_by_reason")))
-    sec.tables.append(("Reports per radar (sql/reports_by_radar.sql)", ctx.q("reports_by_radar")))
+    if ctx.record.get("kind") == "evaluation":     # pictures and a reference: no pipeline tables
+        kv2 = [(k, ctx.record.get(k, "")) for k in ("pictures", "tracks_files", "reference", "requirements")]
+        sec.tables.append(("What was evaluated", pl.DataFrame({"item": [k for k, _ in kv2],
+                                                               "value": [str(v) for _, v in kv2]})))
+    else:
+        sec.tables.append(("Stage timings (sql/stage_timings.sql)", ctx.q("stage_timings")))
+        sec.tables.append(("Row accounting (sql/row_accounting.sql)", ctx.q("row_accounting")))
+        sec.tables.append(("Rejects by reason (sql/rejects_by_reason.sql)", ctx.q("rejects_by_reason")))
+        sec.tables.append(("Reports per radar (sql/reports_by_radar.sql)", ctx.q("reports_by_radar")))
     config = ctx.json("config")
     details = []
     if config is not None:
@@ -936,6 +987,7 @@ _SECTIONS: list[tuple[str, Callable[[_Ctx], _Section]]] = [
     ("RMSE over time", _sec_rmse_time),
     ("a-posteriori vs a-priori", _sec_post_prior),
     ("accuracy", _sec_accuracy),
+    ("evaluation", _sec_evaluation),
     ("quality", _sec_quality),
     ("conflicts", _sec_conflicts),
     ("STCA curves", _sec_stca),
@@ -943,6 +995,9 @@ _SECTIONS: list[tuple[str, Callable[[_Ctx], _Section]]] = [
     ("capacity", _sec_capacity),
     ("metadata", _sec_metadata),
 ]
+
+
+_EVAL_SECTIONS = [("verdict", _sec_verdict), ("evaluation", _sec_evaluation), ("metadata", _sec_metadata)]
 
 
 # --------------------------------------------------------------------------- HTML
@@ -1031,7 +1086,9 @@ def build_sections(run_dir: str | os.PathLike[str], progress: Progress | None = 
     sections: list[_Section] = []
     with open_read_only(run_dir) as store:
         ctx = _Ctx(store, say)
-        for label, build in _SECTIONS:
+        # a run of `tertiary evaluate` holds pictures and a reference, no pipeline stages
+        sections_of_run = _EVAL_SECTIONS if ctx.record.get("kind") == "evaluation" else _SECTIONS
+        for label, build in sections_of_run:
             say(f"report: {label}")
             try:
                 sections.append(build(ctx))

@@ -66,6 +66,7 @@ _DOMAINS = {
     "metric": "SELECT DISTINCT metric FROM accuracy_by_epoch",
     "radar_id": "SELECT DISTINCT radar_id FROM radars",
     "run": "SELECT DISTINCT run FROM reports",
+    "verdict": "SELECT DISTINCT verdict FROM requirements",
 }
 
 

@@ -130,7 +130,20 @@ METRICS = [
     ("safety", "apriori+singer", "capacity_n_1e-6_sound", "all", 6.0, 2),
     ("safety", "fusion/information", "capacity_n_1e-6", "all", 7.0, 2),
     ("safety", "fusion/information", "capacity_n_1e-6_sound", "all", 8.0, 2),
+    ("evaluation", "ours", "rmse_horizontal_m", "all", 44.0, 1),
+    ("evaluation", "ours", "p95_horizontal_m", "all", 80.0, 1),
+    ("evaluation", "ours", "prob_update", "all", 0.98, 1),
+    ("evaluation", "ours", "rmse_horizontal_m", "phase:turn", 70.0, 1),
+    ("evaluation", "theirs", "rmse_horizontal_m", "all", 99.0, 1),
+    ("evaluation", "theirs", "id_changes_per_hour", "all", 1.5, 1),
 ]
+
+REQUIREMENTS = pl.DataFrame({
+    "requirement": ["H-RMS", "H-RMS", "PUPD"], "method": ["ours", "theirs", "ours"],
+    "metric": ["rmse_horizontal_m", "rmse_horizontal_m", "prob_update"], "breakdown": ["all", "all", "all"],
+    "op": ["<=", "<=", ">="], "threshold": [60.0, 60.0, 0.97], "value": [44.0, 99.0, 0.98],
+    "bound": [49.0, 105.0, 0.96], "n_samples": [1000.0, 1000.0, 500.0], "verdict": ["pass", "fail", "insufficient"],
+})
 
 # conflicts: run, epoch_s, method, id_a, id_b, r_min_m, t_min_s, dz_m, alert, severity
 CONFLICTS = [
@@ -288,6 +301,7 @@ def hand_run(tmp_path_factory):
         store.write("rejects", _rejects())
         store.write("metrics", _metrics())
         store.write("accuracy_by_epoch", _by_epoch())
+        store.write("requirements", REQUIREMENTS)
         store.write("run", pl.DataFrame({"key": list(RUN_RECORD), "value": [v if isinstance(v, str) else json.dumps(v)
                                                                            for v in RUN_RECORD.values()]}))
     return out
@@ -658,6 +672,24 @@ def test_stca_tradeoff(q):
                 "alerted_fraction") == [("covariance", 0.95, 120.0, 30.0, 6.0, 0.75),
                                         ("fixed", 300.0, 120.0, 30.0, 9.0, 0.5)]
     assert q("stca_tradeoff", warning_s=60).height == 0
+
+
+@covers("picture_comparison")
+def test_picture_comparison(q):
+    df = q("picture_comparison")
+    assert rows(df, "method", "segment", "rmse_horizontal_m", "p95_horizontal_m", "prob_update",
+                "id_changes_per_hour") == [("ours", "all", 44.0, 80.0, 0.98, None),
+                                           ("theirs", "all", 99.0, None, None, 1.5)]   # most accurate first
+    assert rows(q("picture_comparison", segment="phase:turn"), "method", "rmse_horizontal_m") == [("ours", 70.0)]
+
+
+@covers("requirements_verdicts")
+def test_requirements_verdicts(q):
+    df = q("requirements_verdicts")
+    assert rows(df, "requirement", "method", "verdict") == [("H-RMS", "theirs", "fail"),   # failures first
+                                                            ("PUPD", "ours", "insufficient"),
+                                                            ("H-RMS", "ours", "pass")]
+    assert q("requirements_verdicts", verdict="pass").height == 1
 
 
 @covers("capacity_by_method")

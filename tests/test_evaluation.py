@@ -1,0 +1,94 @@
+"""The one evaluation stage (tertiary.evaluation) and `tertiary evaluate` on a picture file the
+pipeline did not write."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import duckdb
+import polars as pl
+import pytest
+from typer.testing import CliRunner
+
+from tertiary import pipeline
+from tertiary.cli import app
+from tertiary.evaluation import comparison, evaluate_pictures, read_picture
+from tertiary.requirements import example_path, load_requirements
+from tertiary.simulate import load_scenario, simulate, write_dataset
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """A terminal-area dataset and the tracks of two pictures written as stand-alone files with
+    no tertiary column names beyond the tracks schema (as another system would export them)."""
+    root = tmp_path_factory.mktemp("eval")
+    cfg = load_scenario("terminal-area")
+    import dataclasses
+    cfg = dataclasses.replace(cfg, duration_s=420.0, seed=11)
+    ds = simulate(dataclasses.replace(cfg, traffic=dataclasses.replace(cfg.traffic, aircraft=24)))
+    write_dataset(ds, root / "ds")
+    res = pipeline.process(ds, pipeline.PipelineConfig(methods=("information", "arithmetic"), filters=("singer",),
+                                                       centralized=False, safety=False))
+    files = []
+    for m in ("information", "arithmetic"):
+        part = res.tracks.filter(pl.col("method") == m).drop("method", "filter")
+        path = root / f"system_{m[:4]}.parquet"             # renamed: the file is "another system's"
+        part.write_parquet(path)
+        files.append(path)
+    return root, ds, files
+
+
+def test_the_stage_scores_every_picture_and_judges_requirements(small):
+    root, ds, files = small
+    tracks = pl.concat([read_picture(f) for f in files], how="diagonal_relaxed")
+    ev = evaluate_pictures(tracks, ds.truth, radars=ds.radars, frame=ds.origin,
+                           requirements=load_requirements(example_path()))
+    assert sorted(ev.metrics["method"].unique()) == ["system_arit", "system_info"]
+    cmp = comparison(ev.metrics)
+    info = cmp.filter(pl.col("method") == "system_info").row(0, named=True)
+    arit = cmp.filter(pl.col("method") == "system_arit").row(0, named=True)
+    assert 5.0 < info["rmse_horizontal_m"] < arit["rmse_horizontal_m"] < 500.0   # information beats arithmetic
+    assert 0.8 < info["prob_update"] <= 1.0
+    segs = set(ev.metrics.filter(pl.col("metric") == "rmse_horizontal_m")["segment"])
+    assert "all" in segs and any(s.startswith("range:") for s in segs) and any(s.startswith("alt:") for s in segs)
+    assert set(ev.requirements["verdict"]) <= {"pass", "fail", "insufficient"} and ev.requirements.height >= 10
+    # the matcher agrees with the labels the pipeline knows (its own tracks): nearly every match right
+    m = ev.matched.filter(pl.col("truth_id").is_not_null())
+    assert m.height > 0.8 * ev.matched.height
+
+
+def test_evaluate_command_on_renamed_files_writes_a_run(small, tmp_path):
+    root, _ds, files = small
+    out = tmp_path / "ev"
+    res = runner.invoke(app, ["evaluate", *map(str, files), "--dataset", str(root / "ds"), "--out", str(out),
+                              "--requirements", str(example_path())], terminal_width=250)
+    assert res.exit_code == 0, res.output
+    assert "Pictures compared" in res.output and "Requirements" in res.output and "system_info" in res.output
+    con = duckdb.connect(str(out / "results.duckdb"), read_only=True)
+    tables = {r[0] for r in con.sql("SHOW TABLES").fetchall()}
+    assert {"tracks", "truth", "metrics", "requirements", "run", "evaluation_matched"} <= tables
+    verdicts = {r[0] for r in con.sql("SELECT DISTINCT verdict FROM requirements").fetchall()}
+    assert verdicts <= {"pass", "fail", "insufficient"}
+    page = (out / "report.html").read_text()
+    assert "Requirements" in page and "Pictures against the reference" in page and "Not available" not in page
+    again = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(out)])
+    assert again.exit_code == 2 and "--force" in again.output
+
+
+def test_evaluate_refuses_bad_input_with_one_line(small, tmp_path):
+    root, _ds, files = small
+    bad = tmp_path / "bad.parquet"
+    pl.DataFrame({"epoch": [1], "x_m": [0.0]}).write_parquet(bad)
+    res = runner.invoke(app, ["evaluate", str(bad), "--dataset", str(root / "ds"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 3 and "missing column" in res.output
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and "--truth" in res.output
+    dup = tmp_path / "copy"
+    dup.mkdir()
+    shutil.copy(files[0], dup / files[0].name)
+    res = runner.invoke(app, ["evaluate", str(files[0]), str(dup / files[0].name), "--dataset", str(root / "ds"),
+                              "--out", str(tmp_path / "o")])
+    assert res.exit_code == 3 and "same picture" in res.output
