@@ -144,8 +144,8 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
                        id_col: str = "track_id") -> pl.DataFrame:
     """The rows of ``tracks`` (run, epoch, ``id_col``, method, x_m … vz_mps[, alt_m]) with the
     matched reference aircraft (module docstring): ``truth_id`` (null if unmatched),
-    ``true_x_m … true_vz_mps`` (``true_alt_m`` when the reference has heights) and
-    ``match_cost``."""
+    ``true_x_m … true_vz_mps`` (``true_alt_m`` when the reference has heights),
+    ``match_cost`` and, when the reference has it, the aircraft's ``icao24``."""
     tr = tracks
     if "run" not in tr.columns:
         tr = tr.with_columns(pl.lit(0, pl.UInt32).alias("run"))
@@ -167,6 +167,11 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     ref_rows = ref.select("truth_id", *true_cols)[np.where(matched, best, 0)]
     ref_rows = ref_rows.select(*(pl.when(pl.Series(matched)).then(pl.col(c)).otherwise(None).alias(c)
                                  for c in ref_rows.columns))
-    return (tr.drop("__row").drop([c for c in ("truth_id", *true_cols) if c in tr.columns])
-            .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of)))
+    out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24") if c in tr.columns])
+           .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of)))
+    if "icao24" in truth.columns:        # the reference's Mode S address, for identity correctness
+        ident = (truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("icao24").cast(pl.String))
+                 .drop_nulls().unique("truth_id", keep="first"))
+        out = out.join(ident, on="truth_id", how="left", maintain_order="left")
+    return out
 

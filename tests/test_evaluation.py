@@ -92,3 +92,27 @@ def test_evaluate_refuses_bad_input_with_one_line(small, tmp_path):
     res = runner.invoke(app, ["evaluate", str(files[0]), str(dup / files[0].name), "--dataset", str(root / "ds"),
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 3 and "same picture" in res.output
+
+
+def test_an_imported_cat062_picture_is_evaluated_like_our_own(tmp_path):
+    """Issue 17: CAT062 → external picture → scored by the same stage as the pipeline's pictures."""
+    def cli(*args):
+        res = runner.invoke(app, [*map(str, args)], terminal_width=250)
+        assert res.exit_code == 0, res.output
+        return res.output
+    ta, run_dir, pic = tmp_path / "ta", tmp_path / "run", tmp_path / "picture.ast"
+    cli("simulate", "terminal-area", "--out", ta, "--aircraft", 12, "--duration", 240, "--runs", 1,
+        "--format", "asterix")
+    cli("run", ta, "--out", run_dir, "--filters", "singer", "--methods", "information", "--no-report")
+    cli("export", "asterix", run_dir, "--picture", "singer/information", "--out", pic)
+    cli("import", "asterix", pic, ta / "recording.ast", "--sites", ta / "sites.toml", "--date", "2021-10-07",
+        "--out", tmp_path / "ds")
+    out = cli("evaluate", tmp_path / "ds" / "external_tracks.parquet", "--dataset", tmp_path / "ds",
+              "--out", tmp_path / "ev", "--no-report")
+    con = duckdb.connect(str(tmp_path / "ev" / "results.duckdb"), read_only=True)
+    got = dict(con.sql("SELECT metric, value FROM metrics WHERE stage = 'evaluation' AND segment = 'all'").fetchall())
+    ours = dict(duckdb.connect(str(run_dir / "results.duckdb"), read_only=True).sql(
+        "SELECT metric, value FROM metrics WHERE stage = 'evaluation' AND segment = 'all'").fetchall())
+    # the picture that went through CAT062 scores as it did in the run (ASTERIX resolution aside)
+    assert got["rmse_horizontal_m"] == pytest.approx(ours["rmse_horizontal_m"], rel=0.15), out
+    assert got["prob_update"] == pytest.approx(ours["prob_update"], abs=0.02)
