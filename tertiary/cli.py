@@ -582,6 +582,9 @@ def evaluate_cmd(
                                                          "(its radars give the range rings)")] = None,
     requirements: Annotated[Optional[Path], typer.Option(help="requirements TOML with pass/fail thresholds "
                                                               "[default: none; see datasets/requirements]")] = None,
+    reference: Annotated[str, typer.Option(help="with --dataset: truth (the dataset's truth.parquet) or "
+                                                "reconstruct (smoothed offline from every radar plot; scored "
+                                                "against the truth too when there is one)")] = "truth",
     force: Annotated[bool, typer.Option(help="replace a run already in --out")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report", help="also write RUN_DIR/report.html")] = True,
 ) -> None:
@@ -594,10 +597,20 @@ def evaluate_cmd(
     from tertiary.store import RunStore, record_run
     if (truth is None) == (dataset is None):
         raise OptionError("give the reference with exactly one of --truth FILE or --dataset DIR", option="--truth")
-    radars, frame = None, None
+    if reference not in ("truth", "reconstruct"):
+        raise OptionError(f"choose truth or reconstruct, got {reference!r}", option="--reference")
+    if reference == "reconstruct" and dataset is None:
+        raise OptionError("--reference reconstruct needs --dataset DIR (the radar plots to smooth)",
+                          option="--reference")
+    radars, frame, reports, truth_ref = None, None, None, None
     if dataset is not None:
         ds = read_dataset(dataset)
-        ref, radars, frame = ds.truth, ds.radars, ds.origin
+        ref, radars, frame, reports = ds.truth, ds.radars, ds.origin, ds.reports
+        if reference == "reconstruct":
+            from tertiary.evaluation import reconstructed_reference
+            key = "truth_id" if "truth_id" in reports.columns and reports["truth_id"].null_count() < reports.height \
+                else "mode_s"
+            truth_ref, ref = ref, reconstructed_reference(reports, radars, frame, key=key)
         if ref.height == 0:
             raise DataError("the dataset has no usable truth.parquet to evaluate against", path=str(dataset))
     else:
@@ -613,6 +626,20 @@ def evaluate_cmd(
     with _Steps("evaluate") as say:
         say("match and score")
         ev = evaluate_pictures(pictures, ref, radars=radars, frame=frame, requirements=reqs)
+        extra = []
+        if truth_ref is not None and truth_ref.height and "truth_id" in ref.columns:
+            from tertiary.evaluation import RECONSTRUCTED
+            say("reconstructed reference against the truth")
+            as_picture = ref.with_columns(pl.lit(0, pl.UInt32).alias("run"), pl.col("time").alias("epoch"),
+                                          pl.col("truth_id").cast(pl.UInt64).alias("track_id"),
+                                          pl.lit(RECONSTRUCTED).alias("method"))
+            extra.append(evaluate_pictures(as_picture, truth_ref, radars=radars, frame=frame).metrics)
+        if reports is not None and "truth_id" in reports.columns and reports["truth_id"].null_count() < reports.height:
+            from tertiary.radar_eval import radar_metrics
+            say("per-radar evaluation")
+            extra.append(radar_metrics(reports, radars, truth_ref if truth_ref is not None else ref, frame))
+        if extra:
+            ev.metrics = pl.concat([ev.metrics, *extra], how="vertical_relaxed")
         say("store")
         with RunStore.create(out) as store:
             store.write("tracks", pictures)
@@ -626,7 +653,8 @@ def evaluate_cmd(
                                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                                "pictures": sorted(pictures["method"].unique().to_list()),
                                "tracks_files": [str(p) for p in tracks],
-                               "reference": str(truth or dataset), "requirements": str(requirements or ""),
+                               "reference": f"{truth or dataset} ({reference})",
+                               "requirements": str(requirements or ""),
                                "status": "complete", "timings": {"wall_s": time.perf_counter() - t}})
     console.print(f"evaluated {pictures['method'].n_unique()} picture(s), {pictures.height:,} track rows, "
                   f"against {ref['truth_id'].n_unique():,} reference aircraft in {time.perf_counter() - t:.1f} s")

@@ -28,7 +28,11 @@ from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TIME
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "comparison", "read_picture",
-           "COMPARISON_METRICS"]
+           "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED"]
+
+#: the picture name under which a reconstructed reference is itself scored against truth
+RECONSTRUCTED = "reference(reconstructed)"
+_R_EARTH_M = 6_371_000.0
 
 #: the comparison table's columns (segment ``all``), in this order
 COMPARISON_METRICS = ("rmse_horizontal_m", "p95_horizontal_m", "rmse_height_m", "along_track_rms_m",
@@ -95,6 +99,23 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
                               breakdown=breakdown, cfg=cfg.metrics)
     reqs = check_requirements(metrics, requirements) if requirements is not None else pl.DataFrame()
     return Evaluation(matched, metrics, reqs, comparison(metrics))
+
+
+def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: geo.LocalFrame,
+                            key: str = "truth_id") -> pl.DataFrame:
+    """Issue 13 item 6: a reference per aircraft reconstructed offline from every radar plot by a
+    fixed-interval smoother (:func:`tertiary.reference.reconstruct_reference`: forward Kalman pass
+    + Rauch–Tung–Striebel backward pass), in the truth schema (truth_id, time, x_m … vz_mps,
+    alt_m, sigma_h_m). The smoother's state is (x, y, height); the ENU z of the truth schema is
+    derived from the height (z ≈ h − ρ²/2R, ≤ 1 m error below 150 km) only so that the frame is
+    complete; heights are compared through ``alt_m``. ``key``: the aircraft identity of the
+    plots (``truth_id`` in simulation, ``mode_s`` on a recording)."""
+    from tertiary.reference import plot_measurements, reconstruct_reference
+    rec = reconstruct_reference(plot_measurements(reports, radars, frame, key=key), key=key)
+    rho2 = pl.col("x_m") ** 2 + pl.col("y_m") ** 2
+    return rec.select(pl.col("truth_id").cast(pl.Int64) if key == "truth_id" else "truth_id", "time", "x_m", "y_m",
+                      (pl.col("alt_m") - rho2 / (2 * _R_EARTH_M)).alias("z_m"), "vx_mps", "vy_mps",
+                      pl.col("alt_rate_mps").alias("vz_mps"), "alt_m", "sigma_h_m")
 
 
 def read_picture(path: str | Path) -> pl.DataFrame:

@@ -116,3 +116,22 @@ def test_an_imported_cat062_picture_is_evaluated_like_our_own(tmp_path):
     # the picture that went through CAT062 scores as it did in the run (ASTERIX resolution aside)
     assert got["rmse_horizontal_m"] == pytest.approx(ours["rmse_horizontal_m"], rel=0.15), out
     assert got["prob_update"] == pytest.approx(ours["prob_update"], abs=0.02)
+
+
+def test_reconstructed_reference_is_scored_against_truth_and_radars_are_evaluated(small, tmp_path):
+    root, _ds, files = small
+    out = tmp_path / "rec"
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(out),
+                              "--reference", "reconstruct", "--no-report"], terminal_width=250)
+    assert res.exit_code == 0, res.output
+    con = duckdb.connect(str(out / "results.duckdb"), read_only=True)
+    m = {(s, me, k): v for s, me, k, v in con.sql(
+        "SELECT stage, method, metric, value FROM metrics WHERE segment = 'all'").fetchall()}
+    rec = m[("evaluation", "reference(reconstructed)", "rmse_horizontal_m")]
+    online = m[("evaluation", "system_info", "rmse_horizontal_m")]
+    assert rec < 0.75 * online                 # it sees the future: clearly better than the online picture
+    radars = {me for s, me, _k in m if s == "radar"}
+    assert len(radars) >= 2 and all(("radar", r, "range_bias_m") in m and ("radar", r, "pd") in m for r in radars)
+    bad = runner.invoke(app, ["evaluate", str(files[0]), "--truth", str(root / "ds" / "truth.parquet"), "--out",
+                              str(tmp_path / "x"), "--reference", "reconstruct"])
+    assert bad.exit_code == 2 and "--dataset" in bad.output
