@@ -381,6 +381,9 @@ class IMMFilter(TrackFilter):
     """
 
     name = "imm"
+    #: the horizontal 2×2 block of R (E–N correlation of a converted plot) is used in full; the
+    #: vertical channel is a separate CV filter, so the horizontal–vertical terms are dropped
+    full_r = True
 
     def __init__(self, omegas: Sequence[float] = PAPER_OMEGAS, tpm: ArrayLike = PAPER_TPM,
                  mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, q_z: float = 1.0,
@@ -463,11 +466,15 @@ class IMMFilter(TrackFilter):
         return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innov
 
     def output(self, state: State) -> Output:
-        xc, vc = imm_combine_diag(state["x"], state["P"], state["mu"])
+        xc, pc = imm_combine(state["x"], state["P"], state["mu"])
         xv, pv = state["xv"], state["Pv"]
         out = np.stack([xc[:, 0], xc[:, 2], xv[:, 0], xc[:, 1], xc[:, 3], xv[:, 1]], axis=1)
-        var = np.stack([vc[:, 0], vc[:, 2], pv[:, 0, 0], vc[:, 1], vc[:, 3], pv[:, 1, 1]], axis=1)
-        return Output(out, var, state["mu"].copy())
+        cov = np.zeros((len(xc), 6, 6))
+        h = np.array([0, 3, 1, 4])                      # (x, vx, y, vy) → their places in (x y z vx vy vz)
+        cov[:, h[:, None], h[None, :]] = _sym(pc)
+        v = np.array([2, 5])
+        cov[:, v[:, None], v[None, :]] = pv
+        return Output(out, np.einsum("bii->bi", cov), state["mu"].copy(), cov)
 
     def combined_horizontal(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 4) and covariance (B, 4, 4)."""
