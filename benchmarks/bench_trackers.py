@@ -124,23 +124,26 @@ def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
     res = pipeline.process(ds, cfg)
     wall = time.perf_counter() - t
     m = res.metrics.filter(pl.col("segment") == "all")
-    rmse = m.filter(pl.col("metric") == "rmse_pos_m")
-    nees = m.filter((pl.col("metric") == "nees_mean") & (pl.col("stage") == "tracker"))
-    table = {}
+
+    def value(stage: str, method: str, metric: str) -> float | None:
+        v = m.filter((pl.col("stage") == stage) & (pl.col("method") == method) & (pl.col("metric") == metric))
+        return float(v["value"][0]) if v.height else None
+
+    table, split = {}, {}
     for meth in cfg.methods:
-        fused = rmse.filter((pl.col("stage") == "fusion") & (pl.col("method") == meth))["value"]
-        row = {"fused": float(fused[0]) if len(fused) else None}
+        row = {"fused": value("fusion", meth, "rmse_pos_m")}
+        sp = {"fused": [value("fusion", meth, f"rmse_{k}_m") for k in ("horizontal", "height")]}
         for f in filters:
-            v = rmse.filter((pl.col("stage") == "tracker") & (pl.col("method") == f"{meth}+{f}"))["value"]
-            e = nees.filter(pl.col("method") == f"{meth}+{f}")["value"]
-            row[f] = float(v[0]) if len(v) else None
-            row[f"{f}_nees"] = float(e[0]) if len(e) else None
+            row[f] = value("tracker", f"{meth}+{f}", "rmse_pos_m")
+            row[f"{f}_nees"] = value("tracker", f"{meth}+{f}", "nees_mean")
+            sp[f] = [value("tracker", f"{meth}+{f}", f"rmse_{k}_m") for k in ("horizontal", "height")]
         got = [row[f] for f in filters if row[f] is not None]
         row["best_tracker_below_fused"] = bool(got and row["fused"] is not None and min(got) < row["fused"])
-        table[meth] = row
+        table[meth], split[meth] = row, sp
     c = res.counts
     return {"dataset": dataset, "runs": int(res.ingested.reports["run"].n_unique()), "reports": c["reports_in"],
             "filters": list(filters), "wall_s": wall, "rmse_pos_m": table,
+            "rmse_horizontal_height_m": split,
             "targets": {"aircraft": c["aircraft"], "confirmed": c.get("confirmed_targets"),
                         "tentative": c.get("tentative_targets")}}
 
