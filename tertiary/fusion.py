@@ -58,8 +58,8 @@ Single-source targets: every method returns the report unchanged with weight [1.
 
 Freshness, the tracker's measurement and tentative targets (columns of
 :data:`tertiary.schema.FUSED_EXTRA`): ``n_fresh`` counts the group's fresh rows (a new report at
-this epoch) and ``age_s`` is the age of the newest of them. When the rows carry the reports'
-measured plots (:func:`attach_plots`), each method also gives the plot-level fusion of the fresh
+this epoch) and ``age_s`` is the age of the newest of them. Given the reports' measured plots
+(``fuse(..., plots=measured_plots(...))``, joined to the fresh rows only), each method also gives the plot-level fusion of the fresh
 plots (:func:`plot_measurement`: the method's weights, or inverse covariance for
 ``information``, ``covariance_intersection`` and ``bar_shalom_campo``) with its full 3×3
 covariance — the independent measurement the secondary tracker filters. ``tentative``: the
@@ -853,22 +853,21 @@ PLOT_COLUMNS = ["plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"]
 _INFO_PLOTS = ("information", "covariance_intersection", "bar_shalom_campo")
 
 
-def attach_plots(rows: pl.DataFrame, reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-                 altitude_sigma_m: float = 30.0) -> pl.DataFrame:
-    """``rows`` with each report's *measured* plot in the system frame (:data:`PLOT_COLUMNS`:
-    position and row-major 3×3 covariance R = M J R_polar Jᵀ Mᵀ from the radar's nominal
-    sigmas, seed 002 eq. 12; :func:`tertiary.centralized.converted_plots`), joined on
-    (run, report_id); null where the plot cannot be converted. Unlike the radars' track
-    estimates, these errors are white: independent from scan to scan and between radars."""
+def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+                   altitude_sigma_m: float = 30.0) -> pl.DataFrame:
+    """Each report's *measured* plot in the system frame, one row per report: run, report_id
+    and :data:`PLOT_COLUMNS` (position and row-major 3×3 covariance R = M J R_polar Jᵀ Mᵀ from
+    the radar's nominal sigmas, seed 002 eq. 12; :func:`tertiary.centralized.converted_plots`),
+    NaN where the plot cannot be converted. Unlike the radars' track estimates, these errors
+    are white: independent from scan to scan and between radars. Pass it to :func:`fuse`
+    (``plots=``): it is joined to the fresh rows only, so the aligned rows are not widened."""
     from tertiary.centralized import converted_plots   # centralized imports nothing from here
 
     rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     z, r, ok = converted_plots(rep, radars, origin, altitude_sigma_m)
-    table = rep.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64)).with_columns(
+    return rep.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64)).with_columns(
         *(pl.Series(c, np.where(ok, z[:, i], np.nan)) for i, c in enumerate(PLOT_COLUMNS[:3])),
         pl.Series("plot_cov", np.where(ok[:, None], r.reshape(-1, 9), np.nan), dtype=pl.Array(pl.Float64, 9)))
-    base = rows.drop([c for c in PLOT_COLUMNS if c in rows.columns])
-    return base.join(table, on=["run", "report_id"], how="left", maintain_order="left")
 
 
 @dataclass(frozen=True)
@@ -964,10 +963,25 @@ def plot_measurement(zp: F, rp: F, use: B, age: F, vel: F, pvv: F, w: F | None, 
     return z, r, np.where(none, np.nan, a0)
 
 
-def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], lay: Layout, ws: F
-                  ) -> dict[str, F]:
+def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tuple[F, F] | None:
+    """Plot position (k, 3) and covariance (k, 3, 3) of the rows ``idx``: from ``plots`` (joined
+    on run, report_id) or from the rows' own :data:`PLOT_COLUMNS`; None without either."""
+    if plots is not None:
+        sub = rows.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64))[idx].join(
+            plots, on=["run", "report_id"], how="left", maintain_order="left")
+    elif all(c in rows.columns for c in PLOT_COLUMNS):
+        sub = rows.select(PLOT_COLUMNS)[idx]
+    else:
+        return None
+    zp = sub.select(PLOT_COLUMNS[:3]).cast(pl.Float64).fill_null(np.nan).to_numpy()
+    return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3)
+
+
+def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], lay: Layout, ws: F,
+                  plots: pl.DataFrame | None = None) -> dict[str, F]:
     """:data:`~tertiary.schema.FUSED_EXTRA` measurement columns (minus ``tentative``) of every
-    (method, group), shape (M, G[, …]), stacked in method order."""
+    (method, group), shape (M, G[, …]), stacked in method order. Only the fresh rows are
+    read (their groups are a sorted subset of all groups)."""
     n, g, m = rows.height, len(lay.starts), len(methods)
     fresh = a["fresh"]
     n_fresh = np.add.reduceat(fresh.astype(np.int64), lay.starts) if n else np.zeros(0, np.int64)
@@ -977,17 +991,21 @@ def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray],
         newest = np.fmin.reduceat(age, lay.starts) if n else np.zeros(0)
     out = {"n_fresh": np.repeat(n_fresh[None], m, axis=0), "age_s": np.repeat(newest[None], m, axis=0),
            "meas": np.full((m, g, 3), np.nan), "meas_cov": np.full((m, g, 9), np.nan)}
-    if not all(c in rows.columns for c in PLOT_COLUMNS) or "age_s" not in rows.columns:
+    idx = np.flatnonzero(fresh)
+    got = _fresh_plots(rows, idx, plots) if len(idx) and "age_s" in rows.columns else None
+    if got is None:
         return out
-    zp = rows.select(PLOT_COLUMNS[:3]).to_numpy().astype(float)
-    rp = rows["plot_cov"].to_numpy().astype(float).reshape(n, 3, 3)
-    vel, pvv = a["x"][:, 3:], a["cov"][:, 3:, 3:]
+    zp, rp = got
+    gid = lay.group[idx]
+    sub_starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
+    gsub = gid[sub_starts]
+    vel, pvv = a["x"][idx, 3:], a["cov"][idx, 3:, 3:]
     for i, meth in enumerate(methods):
         w = (None if meth in _INFO_PLOTS else
-             apriori_weights(a["nominal_var"], lay.starts) if meth == "apriori" else ws[i])
-        z, r, a0 = plot_measurement(zp, rp, fresh, age, vel, pvv, w, lay.starts)
-        out["meas"][i], out["meas_cov"][i] = z, r.reshape(-1, 9)
-        out["age_s"][i] = np.where(np.isfinite(a0), a0, newest)
+             apriori_weights(a["nominal_var"], lay.starts)[idx] if meth == "apriori" else ws[i][idx])
+        z, r, a0 = plot_measurement(zp, rp, np.ones(len(idx), bool), age[idx], vel, pvv, w, sub_starts)
+        out["meas"][i, gsub], out["meas_cov"][i, gsub] = z, r.reshape(-1, 9)
+        out["age_s"][i, gsub] = np.where(np.isfinite(a0), a0, newest[gsub])
     return out
 
 
@@ -1001,12 +1019,15 @@ def _check_methods(methods: Sequence[str]) -> list[str]:
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
-         cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None) -> pl.DataFrame:
+         cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None,
+         plots: pl.DataFrame | None = None) -> pl.DataFrame:
     """Fuse the associated reports of every (run, epoch, target_id) with each method.
 
     ``rows`` holds :data:`INPUT_COLUMNS` (sorted here by (run, epoch, target_id, radar_id));
     null innovations count as NaN and a null ``fresh`` as False. ``radars`` (``radar_id``,
-    ``sigma_range_m``) is read only by ``aposteriori_seed``. Returns the ``fused`` table: the
+    ``sigma_range_m``) is read only by ``aposteriori_seed``. ``plots`` (:func:`measured_plots`)
+    or the rows' own :data:`PLOT_COLUMNS` (with ``age_s``) give the tracker's measurement
+    columns; without them those are null. Returns the ``fused`` table: the
     blocks of the methods in the order given, each sorted by (run, epoch, target_id).
     Raises ValueError for an unknown method, a missing column, or a radar reporting twice
     for one target at one epoch."""
@@ -1022,7 +1043,7 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
     xs, covs, ws = _run_methods(methods, a, lay, d_fixed, cfg)
     alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
-    meas = _measurements(rows, methods, a, lay, ws)
+    meas = _measurements(rows, methods, a, lay, ws, plots)
     tentative, _ = confirm_step(ConfirmState.empty(), rows, cfg.min_plots)
     head = rows.select(*GROUP, "radar_id").with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))

@@ -38,7 +38,7 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
                                association_metrics, match_truth, target_truth)
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS, FusionConfig, attach_plots, fuse
+from tertiary.fusion import METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_metrics
@@ -307,8 +307,9 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     # the measured plots beside the radars' estimates: the tracker's independent measurements
-    rows = attach_plots(rows, ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
-    fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin) if cfg.methods else schema.empty_frame("fused", False)
+    plots = measured_plots(ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
+    fused = (fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin, plots=plots) if cfg.methods
+             else schema.empty_frame("fused", False))
     if cfg.centralized:
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)

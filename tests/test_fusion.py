@@ -621,3 +621,22 @@ def test_confirmation_state_carries_across_windows():
     assert pl.concat([a, b]).sort("target_id", "epoch").equals(whole.sort("target_id", "epoch"))
     assert whole.filter(pl.col("target_id") == 1)["tentative"].to_list() == [True, False, False]
     assert whole.filter(pl.col("target_id") == 2)["tentative"].to_list() == [True, True, True]
+
+
+def test_plots_table_gives_the_same_measurement_as_plot_columns():
+    """``fuse(..., plots=)`` joins the per-report plot table on (run, report_id) for the fresh
+    rows: the same measurement as rows that carry the plot columns themselves."""
+    rows = [report(radar=r, x=(0, 0, 0, 30.0 * r, 0, 0)) for r in (1, 2, 3)] + [report(k=1, radar=1, fresh=False)]
+    plots = {1: ((0, 0, 0), np.diag([100, 400, 900])), 2: ((10, 20, 30), np.diag([400, 100, 900])),
+             3: ((5, 5, 5), 200 * np.eye(3))}
+    own = _with_plots(rows, plots, {1: 0.5, 2: 1.0, 3: 0.2})
+    table = own.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
+                       "plot_x_m", "plot_y_m", "plot_z_m", "plot_cov")
+    a = fuse(own, RADARS, methods=["information", "aposteriori"])
+    b = fuse(own.drop("plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"), RADARS,
+             methods=["information", "aposteriori"], plots=table)
+    cols = ["meas_x_m", "meas_y_m", "meas_z_m", "meas_cov", "age_s", "n_fresh"]
+    assert a.select(cols).equals(b.select(cols))
+    assert a["meas_x_m"].null_count() == 2                        # the k = 1 group has no fresh plot
+    none = fuse(own.drop("plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"), RADARS, methods=["information"])
+    assert none["meas_x_m"].null_count() == none.height and none["n_fresh"].to_list() == [3, 0]
