@@ -175,9 +175,12 @@ class TrackerConfig:
 # Every object (tentative, hypothesis or confirmed track) is a row of two packed arrays, so the
 # bookkeeping follows the filter state with two fancy-indexing operations per selection.
 # float columns:
+# _T: time of the filter state (the last measurement's time, epoch − age); _TA: time of the
+# altitude filter (updated with the plot's vertical channel, which is at the epoch)
 _T, _P1, _T1, _RZ1, _P2, _T2, _RZ2 = 0, slice(1, 4), 4, 5, slice(6, 9), 9, 10
 _ALT = slice(11, 16)                  # altitude filter h, ḣ, P_hh, P_hḣ, P_ḣḣ (NaN: none yet)
-_NF = 16
+_TA = 16
+_NF = 17
 # int columns: run index, kind, track id (0 until confirmed), consecutive misses, M-of-N hits
 # and scans, uid of the scan-1 plot, uid of the scan-2 plot
 _RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2 = range(8)
@@ -213,7 +216,7 @@ class _Objects:
         n = len(run)
         f = np.zeros((n, _NF))
         f[:, _ALT] = alt
-        f[:, _T] = f[:, _T1] = t
+        f[:, _T] = f[:, _T1] = f[:, _TA] = t
         f[:, _P1] = z
         f[:, _RZ1] = rz
         i = np.zeros((n, _NI), np.int64)
@@ -230,7 +233,7 @@ def _alt_step(f: NDArray, t: float, plot_alt: NDArray, mask: NDArray, q: float) 
     with their plots' vertical channel where ``mask`` and the plot has one; objects without an
     estimate start from the plot's. Returns the new (n, 5) block."""
     cur = AltState(*(f[:, _ALT.start + i] for i in range(5)))
-    pred = alt_predict(cur, t - f[:, _T], q)
+    pred = alt_predict(cur, t - f[:, _TA], q)
     meas = AltState(*(plot_alt[:, i] for i in range(5)))
     have_m = mask & np.isfinite(plot_alt).all(axis=1)
     have_t = np.isfinite(pred.h)
@@ -723,6 +726,7 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
         mu.f[:, _T] = t - age
+        mu.f[:, _TA] = t
         n_c, n_w, n_p = int(alive.sum()), len(win), len(pair_obj)
         mu.i[:n_c, _MISS] = misses[alive]
         newly = np.zeros(len(idx), bool)
