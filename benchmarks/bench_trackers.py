@@ -9,6 +9,14 @@ tracks and steps (it is linear in both) and scaled to updates/s.
 Targets (issue 4): ≥ 1 000 000 Singer updates/s and ≥ 100× the filterpy loop.
 
     python benchmarks/bench_trackers.py [--tracks 10000] [--steps 50] [--ref-tracks 200]
+
+Accuracy mode (issue 12): the fused picture's and every tracker's position RMSE per fusion
+method, from the ``metrics`` the pipeline computes (stage fusion / tracker, ``rmse_pos_m``,
+segment ``all``), with the trackers' NEES, and the confirmed / tentative target counts against
+the aircraft; recorded in ``results/trackers_accuracy_<label>.json``:
+
+    python benchmarks/bench_trackers.py --accuracy DATASET_DIR --label big-box-n100 \
+        [--filters singer,imm_sym,cv_full,singer_full]
 """
 
 from __future__ import annotations
@@ -103,13 +111,59 @@ def time_filterpy_imm(z, steps: int) -> float:
     return n * steps / (time.perf_counter() - t)
 
 
+def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
+    """Fused vs tracker RMSE per fusion method (and NEES, target counts) on one dataset."""
+    import polars as pl
+
+    from tertiary import pipeline
+    from tertiary.simulate import read_dataset
+
+    ds = read_dataset(dataset)
+    cfg = pipeline.PipelineConfig(filters=filters, safety=False, centralized=False)
+    t = time.perf_counter()
+    res = pipeline.process(ds, cfg)
+    wall = time.perf_counter() - t
+    m = res.metrics.filter(pl.col("segment") == "all")
+
+    def value(stage: str, method: str, metric: str) -> float | None:
+        v = m.filter((pl.col("stage") == stage) & (pl.col("method") == method) & (pl.col("metric") == metric))
+        return float(v["value"][0]) if v.height else None
+
+    table, split = {}, {}
+    for meth in cfg.methods:
+        row = {"fused": value("fusion", meth, "rmse_pos_m")}
+        sp = {"fused": [value("fusion", meth, f"rmse_{k}_m") for k in ("horizontal", "height")]}
+        for f in filters:
+            row[f] = value("tracker", f"{meth}+{f}", "rmse_pos_m")
+            row[f"{f}_nees"] = value("tracker", f"{meth}+{f}", "nees_mean")
+            sp[f] = [value("tracker", f"{meth}+{f}", f"rmse_{k}_m") for k in ("horizontal", "height")]
+        got = [row[f] for f in filters if row[f] is not None]
+        row["best_tracker_below_fused"] = bool(got and row["fused"] is not None and min(got) < row["fused"])
+        table[meth], split[meth] = row, sp
+    c = res.counts
+    return {"dataset": dataset, "runs": int(res.ingested.reports["run"].n_unique()), "reports": c["reports_in"],
+            "filters": list(filters), "wall_s": wall, "rmse_pos_m": table,
+            "rmse_horizontal_height_m": split,
+            "targets": {"aircraft": c["aircraft"], "confirmed": c.get("confirmed_targets"),
+                        "tentative": c.get("tentative_targets")}}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--accuracy", metavar="DATASET_DIR", help="run the accuracy mode on this dataset")
+    ap.add_argument("--label", default="run", help="accuracy mode: results/trackers_accuracy_<label>.json")
+    ap.add_argument("--filters", default="singer,imm_sym,cv_full,singer_full")
     ap.add_argument("--tracks", type=int, default=10_000)
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--ref-tracks", type=int, default=200)
     ap.add_argument("--ref-steps", type=int, default=10)
     args = ap.parse_args()
+    if args.accuracy:
+        out = accuracy(args.accuracy, tuple(f for f in args.filters.split(",") if f))
+        path = record(f"trackers_accuracy_{args.label}", out)
+        print(json.dumps(out, indent=2))
+        print(f"recorded in {path}")
+        return
     z, r = inputs(args.tracks, args.steps)
     zr = z[: args.ref_steps + 1, : args.ref_tracks]
     result = {"tracks": args.tracks, "steps": args.steps, "scan_s": TAU,

@@ -307,11 +307,14 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
 
     One row per cluster of two or more targets: run, epoch, method, cluster_id, lead_target_id,
     members (target ids, ascending, the lead included) and count. See the module docstring for
-    the rules.
+    the rules. Tentative targets (``tentative`` True: clutter-only) are not targets on the
+    display and are left out.
     """
     missing = [c for c in _NEEDED if c not in fused.columns]
     if missing:
         raise ValueError(f"fused: missing column(s) {', '.join(missing)}")
+    if "tentative" in fused.columns:
+        fused = fused.filter(~pl.col("tentative").fill_null(False))
     if fused.height == 0:
         return _empty()
     idx = _Index.of(fused)

@@ -32,6 +32,10 @@ Methods and the meaning of the reported ``weights`` (one per contributing radar,
 * ``information``: P = (Σ C_n⁻¹)⁻¹, x = P Σ C_n⁻¹ x_n over the full 6-D state. Reported
   weight tr(P C_n⁻¹)/6 (the weights sum to 1 because Σ P C_n⁻¹ = I; renormalised against
   rounding).
+* ``bar_shalom_campo``: track-to-track fusion with the common-process-noise cross-covariance
+  P_ij = ρ C_i^{1/2} C_j^{1/2} between the radars' tracks: Bar-Shalom–Campo for two sources,
+  the BLUE of N correlated estimates for more (:func:`fuse_bar_shalom_campo`). Reported weight
+  tr W_n / 6.
 * ``covariance_intersection``: P⁻¹ = Σ ω_n C_n⁻¹, x = P Σ ω_n C_n⁻¹ x_n, ω on the simplex.
   Two sources: ω minimises tr P (or det P, ``ci_objective="det"``) by a golden-section search
   vectorised over targets, on the closed form of P(ω) after simultaneous diagonalisation.
@@ -51,6 +55,16 @@ Rules shared by both a-posteriori recursions (digest §2.3, §6.2–6.3):
   likelihoods or priors vanish) keeps b(k−1) (digest §2.3 (e)).
 
 Single-source targets: every method returns the report unchanged with weight [1.0].
+
+Freshness, the tracker's measurement and tentative targets (columns of
+:data:`tertiary.schema.FUSED_EXTRA`): ``n_fresh`` counts the group's fresh rows (a new report at
+this epoch) and ``age_s`` is the age of the newest of them. Given the reports' measured plots
+(``fuse(..., plots=measured_plots(...))``, joined to the fresh rows only), each method also gives the plot-level fusion of the fresh
+plots (:func:`plot_measurement`: the method's weights, or inverse covariance for
+``information``, ``covariance_intersection`` and ``bar_shalom_campo``) with its full 3×3
+covariance — the independent measurement the secondary tracker filters. ``tentative``: the
+target has only ever been made of one radar's local tracks with fewer than ``min_plots``
+plots (:func:`confirm_step`, a step function with explicit carried state).
 
 Vertical channel (every method, :mod:`tertiary.altitude`): ``alt_m``, ``alt_rate_mps``,
 ``alt_var_m2``, ``alt_rate_var_m2ps2``, ``alt_cov_m2ps``. When the rows carry the reports'
@@ -87,7 +101,7 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                combine_min_variance, filter_tracks, geodetic_channel, predict,
                                quantisation_variance)
-from tertiary.schema import TABLES, is_sorted_by
+from tertiary.schema import FUSED_EXTRA, TABLES, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -102,6 +116,7 @@ __all__ = [
     "fuse_aposteriori_seed",
     "fuse_apriori",
     "fuse_arithmetic",
+    "fuse_bar_shalom_campo",
     "fuse_covariance_intersection",
     "fuse_information",
     "layout",
@@ -112,7 +127,7 @@ __all__ = [
 
 METHODS = (
     "arithmetic", "apriori", "aposteriori_seed", "aposteriori", "information",
-    "covariance_intersection",
+    "covariance_intersection", "bar_shalom_campo",
 )
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
 GROUP = ["run", "epoch", "target_id"]
@@ -139,12 +154,18 @@ class FusionConfig:
       seed prior, 1 is pure Bayes, which locks in).
     * ``b_min``: floor of the corrected a-posteriori weights before renormalisation.
     * ``ci_objective``: ``"trace"`` or ``"det"`` of the covariance-intersection P (two sources).
+    * ``bc_rho``: correlation coefficient ρ of the common-process-noise cross-covariance of
+      ``bar_shalom_campo``, P_ij = ρ C_i^{1/2} C_j^{1/2} (Bar-Shalom & Li 1995; 0 gives
+      information fusion).
+    * ``min_plots``: a local track supports a target once it has this many plots (``tentative``).
     * ``altitude``: the per-local-track Mode C filter of the vertical channel.
     """
 
     p_stay: float = 0.95
     b_min: float = 0.01
     ci_objective: str = "trace"
+    bc_rho: float = 0.4
+    min_plots: int = 2
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
@@ -152,6 +173,10 @@ class FusionConfig:
             raise ValueError(f"p_stay must lie in [0, 1], got {self.p_stay}")
         if not 0.0 <= self.b_min < 1.0:
             raise ValueError(f"b_min must lie in [0, 1), got {self.b_min}")
+        if not 0.0 <= self.bc_rho < 1.0:
+            raise ValueError(f"bc_rho must lie in [0, 1), got {self.bc_rho}")
+        if self.min_plots < 1:
+            raise ValueError(f"min_plots must be >= 1, got {self.min_plots}")
         if self.ci_objective not in CI_OBJECTIVES:
             raise ValueError(f"ci_objective must be one of {CI_OBJECTIVES}, got {self.ci_objective!r}")
 
@@ -596,6 +621,60 @@ def fuse_covariance_intersection(x: F, cov: F, starts: Ix, objective: str = "tra
     return _keep_single(res, x, cov, starts)
 
 
+def _spd_roots(c: F) -> tuple[F, F]:
+    """C⁻¹ and the symmetric C^{-1/2} of symmetric covariances (eigenvalues floored at
+    1e-12 × the largest, as :func:`_chol`)."""
+    w, v = np.linalg.eigh(_sym(c))
+    w = np.maximum(w, _EIG_FLOOR * np.maximum(w.max(axis=-1, keepdims=True), 1e-300))
+    vt = np.swapaxes(v, -1, -2)
+    return (v / w[..., None, :]) @ vt, (v / np.sqrt(w)[..., None, :]) @ vt
+
+
+def fuse_bar_shalom_campo(x: F, cov: F, starts: Ix, rho: float = 0.4) -> Fused:
+    """Track-to-track fusion with the common-process-noise cross-covariance.
+
+    The radars' track errors of one target are correlated because every local filter follows
+    the same manoeuvre (common process noise). Two sources: Bar-Shalom & Campo (1986)
+
+        x = x₁ + (P₁ − P₁₂)(P₁ + P₂ − P₁₂ − P₂₁)⁻¹ (x₂ − x₁),
+        P = P₁ − (P₁ − P₁₂)(P₁ + P₂ − P₁₂ − P₂₁)⁻¹ (P₁ − P₂₁).                       (BC)
+
+    The fusion centre does not see the local gains needed for the exact cross-covariance
+    recursion, so P_ij uses the constant-correlation approximation (Bar-Shalom & Li 1995,
+    *Multitarget-multisensor tracking*, §8.3): P_ij = ρ S_i S_j, S_i = C_i^{1/2} (symmetric
+    root). N sources — the generalisation: the BLUE of N correlated estimates of one state
+    (Chang, Saha & Bar-Shalom 1997), x = (Hᵀ Σ⁻¹ H)⁻¹ Hᵀ Σ⁻¹ x̄ with the 6N×6N joint covariance
+    Σ_ij = P_ij, H = stacked identities; it reduces to (BC) for N = 2. With this P_ij,
+    Σ = S̃ (M ⊗ I₆) S̃, S̃ = blockdiag(S_i), M = ρ 11ᵀ + (1 − ρ) I, whose inverse is known:
+    M⁻¹ = (I − c 11ᵀ)/(1 − ρ), c = ρ / (1 + (N − 1)ρ). Hence, summing the blocks of Σ⁻¹,
+
+        P⁻¹ = [Σ_i C_i⁻¹ − c (Σ_i S_i⁻¹)(Σ_j S_j⁻¹)] / (1 − ρ),
+        x   = P [Σ_i C_i⁻¹ x_i − c (Σ_i S_i⁻¹)(Σ_j S_j⁻¹ x_j)] / (1 − ρ),
+
+    segment sums over each group (no per-group loop). Weight of source j:
+    W_j = P [C_j⁻¹ − c (Σ_i S_i⁻¹) S_j⁻¹]/(1 − ρ) (Σ_j W_j = I); reported tr W_j / 6. ρ = 0 is
+    information fusion."""
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"rho must lie in [0, 1), got {rho}")
+    n = len(x)
+    n_row = _per_row(np.diff(np.append(starts, n)), starts, n).astype(float)
+    c = rho / (1.0 + (n_row - 1.0) * rho)
+    cinv, sinv = _spd_roots(cov)
+    dx = x - _per_row(x[starts], starts, n)          # relative to the group's first source
+    s_sum = _segsum(sinv, starts)
+    s_sum_row = _per_row(s_sum, starts, n)
+    c_g = c[starts]
+    info = (_segsum(cinv, starts) - c_g[:, None, None] * s_sum @ s_sum) / (1.0 - rho)
+    pf = _inv_spd(info)
+    vec = (_segsum(np.einsum("nij,nj->ni", cinv, dx), starts)
+           - c_g[:, None] * np.einsum("gij,gj->gi", s_sum, _segsum(np.einsum("nij,nj->ni", sinv, dx), starts)))
+    xf = x[starts] + np.einsum("gij,gj->gi", pf, vec / (1.0 - rho))
+    wmat = (cinv - c[:, None, None] * s_sum_row @ sinv) / (1.0 - rho)
+    w = np.einsum("nij,nji->n", _per_row(pf, starts, n), wmat) / 6.0
+    w = w / _per_row(_segsum(w, starts), starts, n)
+    return _keep_single(Fused(xf, pf, w), x, cov, starts)
+
+
 # ---------------------------------------------------------------------------
 # frame level
 # ---------------------------------------------------------------------------
@@ -705,6 +784,8 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
                 out = fuse_apriori(xb, cb, nominal[r], st)
             elif m == "information":
                 out = fuse_information(xb, cb, st, cinv)
+            elif m == "bar_shalom_campo":
+                out = fuse_bar_shalom_campo(xb, cb, st, cfg.bc_rho)
             else:
                 out = fuse_covariance_intersection(xb, cb, st, cfg.ci_objective, cinv)
             xs[i, g], covs[i, g], ws[i, r] = out
@@ -763,6 +844,171 @@ def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: ge
     return out
 
 
+# ---------------------------------------------------------------------------
+# measurements for the secondary tracker: freshness and plot-level fusion
+# ---------------------------------------------------------------------------
+
+PLOT_COLUMNS = ["plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"]
+#: methods whose plot-level measurement is the inverse-covariance combination of the plots
+_INFO_PLOTS = ("information", "covariance_intersection", "bar_shalom_campo")
+
+
+def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+                   altitude_sigma_m: float = 30.0) -> pl.DataFrame:
+    """Each report's *measured* plot in the system frame, one row per report: run, report_id
+    and :data:`PLOT_COLUMNS` (position and row-major 3×3 covariance R = M J R_polar Jᵀ Mᵀ from
+    the radar's nominal sigmas, seed 002 eq. 12; :func:`tertiary.centralized.converted_plots`),
+    NaN where the plot cannot be converted. Unlike the radars' track estimates, these errors
+    are white: independent from scan to scan and between radars. Pass it to :func:`fuse`
+    (``plots=``): it is joined to the fresh rows only, so the aligned rows are not widened."""
+    from tertiary.centralized import converted_plots   # centralized imports nothing from here
+
+    rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    z, r, ok = converted_plots(rep, radars, origin, altitude_sigma_m)
+    return rep.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64)).with_columns(
+        *(pl.Series(c, np.where(ok, z[:, i], np.nan)) for i, c in enumerate(PLOT_COLUMNS[:3])),
+        pl.Series("plot_cov", np.where(ok[:, None], r.reshape(-1, 9), np.nan), dtype=pl.Array(pl.Float64, 9)))
+
+
+@dataclass(frozen=True)
+class ConfirmState:
+    """Carried state of target confirmation (natural keys, no ranks): plots seen so far per
+    local track (``tracks``: run, radar_id, local_track_id, n_plots) and the targets already
+    confirmed (``targets``: run, target_id)."""
+
+    tracks: pl.DataFrame
+    targets: pl.DataFrame
+
+    @staticmethod
+    def empty() -> ConfirmState:
+        return ConfirmState(
+            pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
+                                 "n_plots": pl.Int64}),
+            pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64}))
+
+
+def confirm_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2
+                 ) -> tuple[pl.DataFrame, ConfirmState]:
+    """Which (run, epoch, target_id) groups of ``rows`` are tentative, and the new state.
+
+    A local track supports its target from the epoch at which it has ``min_plots`` plots
+    (its fresh rows counted, carried across windows by ``state``); a group is supported when
+    one of its local tracks is, or when two radars see the target. A target is confirmed from
+    its first supported group on and stays so; before that it is *tentative*: made only of
+    one radar's unconfirmed one-plot tracks — the clutter signature (a lone false plot never
+    gets a second plot of its local track). Returns the groups (GROUP + ``tentative``) in
+    ``rows``' group order."""
+    cols = [pl.col(c).cast(t) for c, t in state.tracks.schema.items() if c != "n_plots"]
+    r = rows.select(*GROUP, *cols[1:], pl.col("fresh").fill_null(False)).with_row_index("__i")
+    r = r.join(state.tracks, on=TRACK, how="left", maintain_order="left")
+    r = r.sort("epoch", "__i").with_columns(
+        (pl.col("n_plots").fill_null(0) + pl.col("fresh").cast(pl.Int64).cum_sum().over(TRACK)).alias("__n"))
+    grp = (r.group_by(GROUP, maintain_order=True)
+           .agg(((pl.col("__n").max() >= min_plots) | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
+           .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left",
+                 maintain_order="left")
+           .with_columns((pl.col("__sup") | pl.col("__was").fill_null(False)).cum_max().over(CHAIN)
+                         .alias("__conf")))
+    order = rows.select(GROUP).unique(maintain_order=True)
+    out = order.join(grp.select(*GROUP, (~pl.col("__conf")).alias("tentative")), on=GROUP, how="left",
+                     maintain_order="left")
+    tracks = pl.concat([state.tracks, r.group_by(TRACK).agg(pl.col("__n").max().alias("n_plots"))]
+                       ).group_by(TRACK).agg(pl.col("n_plots").max())
+    targets = pl.concat([state.targets, grp.filter("__conf").select(CHAIN).cast(state.targets.schema)]).unique()
+    return out, ConfirmState(tracks, targets)
+
+
+def _solve3(r: F) -> F:
+    """Inverse of 3×3 covariances (rows that are not invertible get NaN)."""
+    out = np.full_like(r, np.nan)
+    ok = np.isfinite(r).all(axis=(1, 2)) & (np.abs(np.linalg.det(np.where(np.isfinite(r), r, 0.0))) > 0)
+    if ok.any():
+        out[ok] = np.linalg.inv(_sym(r[ok]))
+    return out
+
+
+def plot_measurement(zp: F, rp: F, use: B, age: F, vel: F, pvv: F, w: F | None, starts: Ix
+                     ) -> tuple[F, F, F]:
+    """Plot-level fusion of each group's fresh measured plots (rows ``use``), at the time of
+    its newest one: returns z (G, 3), R (G, 3, 3) and that age (G,) (NaN: no fresh plot).
+
+    A plot of age a_n is moved to the reference age a₀ = min a_n of its group with its radar's
+    velocity estimate over d = a_n − a₀ (< one epoch period), z'_n = z_n + v_n d, and its
+    covariance grown by d² P_vv,n (that small velocity term is the only correlated part; it is
+    included in R, not removed). Then, with the method's weights ``w`` (n,) or per axis (n, 3)
+    renormalised over the fresh plots, z = Σ W_n z'_n and R = Σ W_n R'_n W_n (the plots'
+    errors are independent); with ``w`` None the inverse-covariance combination
+    R = (Σ R'_n⁻¹)⁻¹, z = R Σ R'_n⁻¹ z'_n."""
+    n = len(zp)
+    use = use & np.isfinite(zp).all(axis=1) & np.isfinite(rp).all(axis=(1, 2)) & np.isfinite(age)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+    a0 = np.minimum.reduceat(np.where(use, age, np.inf), starts)
+    d = np.where(use, age - _per_row(a0, starts, n), 0.0)
+    zs = np.where(use[:, None], zp + np.nan_to_num(vel) * d[:, None], 0.0)
+    rs = np.where(use[:, None, None], rp + d[:, None, None] ** 2 * np.nan_to_num(pvv), 0.0)
+    if w is None:
+        info = np.where(use[:, None, None], np.nan_to_num(_solve3(np.where(use[:, None, None], rs, np.eye(3)))), 0.0)
+        r = _solve3(_segsum(info, starts))
+        z = np.einsum("gij,gj->gi", r, _segsum(np.einsum("nij,nj->ni", info, zs), starts))
+    else:
+        w3 = np.where(use[:, None], np.broadcast_to(w.reshape(n, -1), (n, 3)), 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w3 = w3 / _per_row(_segsum(w3, starts), starts, n)
+        w3 = np.where(use[:, None], np.nan_to_num(w3), 0.0)
+        z = _segsum(w3 * zs, starts)
+        r = _segsum(w3[:, :, None] * rs * w3[:, None, :], starts)
+    none = ~np.isfinite(a0)
+    z[none], r[none] = np.nan, np.nan
+    return z, r, np.where(none, np.nan, a0)
+
+
+def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tuple[F, F] | None:
+    """Plot position (k, 3) and covariance (k, 3, 3) of the rows ``idx``: from ``plots`` (joined
+    on run, report_id) or from the rows' own :data:`PLOT_COLUMNS`; None without either."""
+    if plots is not None:
+        sub = rows.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64))[idx].join(
+            plots, on=["run", "report_id"], how="left", maintain_order="left")
+    elif all(c in rows.columns for c in PLOT_COLUMNS):
+        sub = rows.select(PLOT_COLUMNS)[idx]
+    else:
+        return None
+    zp = sub.select(PLOT_COLUMNS[:3]).cast(pl.Float64).fill_null(np.nan).to_numpy()
+    return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3)
+
+
+def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], lay: Layout, ws: F,
+                  plots: pl.DataFrame | None = None) -> dict[str, F]:
+    """:data:`~tertiary.schema.FUSED_EXTRA` measurement columns (minus ``tentative``) of every
+    (method, group), shape (M, G[, …]), stacked in method order. Only the fresh rows are
+    read (their groups are a sorted subset of all groups)."""
+    n, g, m = rows.height, len(lay.starts), len(methods)
+    fresh = a["fresh"]
+    n_fresh = np.add.reduceat(fresh.astype(np.int64), lay.starts) if n else np.zeros(0, np.int64)
+    age = (rows["age_s"].cast(pl.Float64).fill_null(np.nan).to_numpy() if "age_s" in rows.columns
+           else np.full(n, np.nan))
+    with np.errstate(invalid="ignore"):
+        newest = np.fmin.reduceat(age, lay.starts) if n else np.zeros(0)
+    out = {"n_fresh": np.repeat(n_fresh[None], m, axis=0), "age_s": np.repeat(newest[None], m, axis=0),
+           "meas": np.full((m, g, 3), np.nan), "meas_cov": np.full((m, g, 9), np.nan)}
+    idx = np.flatnonzero(fresh)
+    got = _fresh_plots(rows, idx, plots) if len(idx) and "age_s" in rows.columns else None
+    if got is None:
+        return out
+    zp, rp = got
+    gid = lay.group[idx]
+    sub_starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
+    gsub = gid[sub_starts]
+    vel, pvv = a["x"][idx, 3:], a["cov"][idx, 3:, 3:]
+    for i, meth in enumerate(methods):
+        w = (None if meth in _INFO_PLOTS else
+             apriori_weights(a["nominal_var"], lay.starts)[idx] if meth == "apriori" else ws[i][idx])
+        z, r, a0 = plot_measurement(zp, rp, np.ones(len(idx), bool), age[idx], vel, pvv, w, sub_starts)
+        out["meas"][i, gsub], out["meas_cov"][i, gsub] = z, r.reshape(-1, 9)
+        out["age_s"][i, gsub] = np.where(np.isfinite(a0), a0, newest[gsub])
+    return out
+
+
 def _check_methods(methods: Sequence[str]) -> list[str]:
     if isinstance(methods, str):
         methods = [methods]
@@ -773,19 +1019,22 @@ def _check_methods(methods: Sequence[str]) -> list[str]:
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
-         cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None) -> pl.DataFrame:
+         cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None,
+         plots: pl.DataFrame | None = None) -> pl.DataFrame:
     """Fuse the associated reports of every (run, epoch, target_id) with each method.
 
     ``rows`` holds :data:`INPUT_COLUMNS` (sorted here by (run, epoch, target_id, radar_id));
     null innovations count as NaN and a null ``fresh`` as False. ``radars`` (``radar_id``,
-    ``sigma_range_m``) is read only by ``aposteriori_seed``. Returns the ``fused`` table: the
+    ``sigma_range_m``) is read only by ``aposteriori_seed``. ``plots`` (:func:`measured_plots`)
+    or the rows' own :data:`PLOT_COLUMNS` (with ``age_s``) give the tracker's measurement
+    columns; without them those are null. Returns the ``fused`` table: the
     blocks of the methods in the order given, each sorted by (run, epoch, target_id).
     Raises ValueError for an unknown method, a missing column, or a radar reporting twice
     for one target at one epoch."""
     methods = _check_methods(methods)
     _check_columns(rows)
     schema = TABLES["fused"].required
-    out_schema = {**schema, **TABLES["fused"].optional}
+    out_schema = {**schema, **TABLES["fused"].optional, **FUSED_EXTRA}
     if rows.height == 0 or not methods:
         return pl.DataFrame(schema=out_schema)
     if not is_sorted_by(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
@@ -794,17 +1043,26 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
     xs, covs, ws = _run_methods(methods, a, lay, d_fixed, cfg)
     alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
+    meas = _measurements(rows, methods, a, lay, ws, plots)
+    tentative, _ = confirm_step(ConfirmState.empty(), rows, cfg.min_plots)
     head = rows.select(*GROUP, "radar_id").with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))
     ).group_by(GROUP, maintain_order=True).agg(
         pl.col("radar_id").alias("radar_ids"), pl.len().alias("n_sources"),
         *(pl.col(f"__w{i}") for i in range(len(methods))))
+    head = head.with_columns(tentative["tentative"])
     keys = pl.concat([head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
-                                  pl.col(f"__w{i}").alias("weights")) for i, m in enumerate(methods)])
+                                  pl.col(f"__w{i}").alias("weights"), "tentative") for i, m in enumerate(methods)])
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)
+    mz = meas["meas"].reshape(-1, 3)
     return keys.with_columns(
         *(pl.Series(c, xs[:, j]) for j, c in enumerate(STATE)),
         pl.Series("cov", covs.reshape(-1, 36)),
         *(pl.Series(c, alt[c].reshape(-1)) for c in ALT_COLUMNS),
-    ).select(list(out_schema)).cast(out_schema)
+        pl.Series("n_fresh", meas["n_fresh"].reshape(-1)),
+        pl.Series("age_s", meas["age_s"].reshape(-1)).fill_nan(None),
+        *(pl.Series(c, mz[:, j]).fill_nan(None) for j, c in enumerate(("meas_x_m", "meas_y_m", "meas_z_m"))),
+        pl.Series("meas_cov", meas["meas_cov"].reshape(-1, 9), dtype=pl.Array(pl.Float64, 9)),
+    ).with_columns(pl.when(pl.col("meas_x_m").is_not_null()).then(pl.col("meas_cov")).alias("meas_cov")
+                   ).select(list(out_schema)).cast(out_schema)

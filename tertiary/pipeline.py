@@ -40,7 +40,7 @@ from tertiary.bound import bound_stage
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
                                association_metrics, fusion_consistency, match_truth, scored_samples, target_truth)
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS, FusionConfig, fuse
+from tertiary.fusion import METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_evaluation
@@ -350,12 +350,15 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     sink("associations", associations)
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
-    fused = fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin) if cfg.methods else schema.empty_frame("fused", False)
+    # the measured plots beside the radars' estimates: the tracker's independent measurements
+    plots = measured_plots(ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
+    fused = (fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin, plots=plots) if cfg.methods
+             else schema.empty_frame("fused", False))
     if cfg.centralized:
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
         central = centralized_fusion(ing.reports, ing.radars, associations, keys, ds.origin, cfg.centralized_cfg)
-        fused = pl.concat([fused, central.select(fused.columns)], how="vertical")
+        fused = pl.concat([fused, central], how="diagonal_relaxed")   # no freshness columns: null
     sink("fused", fused)
     clock.stage("cluster")
     clusters = cluster(fused, cfg.clustering)
@@ -427,7 +430,8 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0}
+              "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
+              **_target_counts(fused)}
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts)
 
@@ -452,7 +456,19 @@ def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFra
             # tentative tracks are never emitted by the tracker: every row is a confirmed track
             return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
         notes.append("conflict prediction ran on the fused pictures: no tracker filter was configured")
+    if "tentative" in fused.columns:   # clutter-only targets never reach safety
+        fused = fused.filter(~pl.col("tentative").fill_null(False))
     return fused, "target_id"
+
+
+def _target_counts(fused: pl.DataFrame) -> dict[str, int]:
+    """System targets (run, target_id) that were ever confirmed, and those only ever tentative."""
+    if "tentative" not in fused.columns or fused.height == 0:
+        return {"confirmed_targets": 0, "tentative_targets": 0}
+    ever = (fused.filter(pl.col("tentative").is_not_null()).group_by("run", "target_id")
+            .agg(pl.col("tentative").all().alias("t")))
+    n_tent = int(ever["t"].sum())
+    return {"confirmed_targets": ever.height - n_tent, "tentative_targets": n_tent}
 
 
 def _picture_truth(id_col: str, associations: pl.DataFrame, report_truth: pl.DataFrame,

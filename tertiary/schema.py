@@ -45,6 +45,7 @@ from tertiary.errors import DataError, OptionError
 
 __all__ = [
     "TABLES",
+    "FUSED_EXTRA",
     "Limits",
     "RULES",
     "as_frame",
@@ -233,6 +234,19 @@ _FUSED = TableSchema(
     key=("run", "epoch", "method", "target_id"),
 )
 
+#: columns the fusion stage (tertiary.fusion.fuse) adds to ``fused`` for the secondary tracker and
+#: the target count: ``n_fresh`` fresh measurements in the fused plot, ``age_s`` age of the newest
+#: of them (s, epoch − report time; the measurement time; without a fresh plot the newest
+#: report of any source), ``tentative`` (a target only ever made of one radar's unconfirmed
+#: one-plot local tracks), and the plot-level fusion of the fresh measured plots at time
+#: epoch − ``age_s``: ``meas_x_m``…``meas_z_m`` with its full 3×3 covariance ``meas_cov``
+#: (row-major, null without a fresh plot). Not in ``_FUSED.optional`` while the centralised
+#: stage (which emits every ``fused`` column) does not produce them.
+FUSED_EXTRA: dict[str, pl.DataType] = {
+    "n_fresh": U32, "age_s": F64, "tentative": BOOL,
+    **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
+}
+
 _CLUSTERS = TableSchema(
     name="clusters",
     required={
@@ -261,7 +275,8 @@ _TRACKS = TableSchema(
         "nis": F64,
         "model_probs": pl.List(pl.Float64),
     },
-    optional=_ALT,
+    # cov: the full 6×6 position–velocity covariance, row-major (x y z vx vy vz)
+    optional={**_ALT, "cov": COV},
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

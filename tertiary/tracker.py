@@ -1,9 +1,31 @@
 """Secondary tracking of fused plots: track management around a batched :class:`TrackFilter`.
 
-Input is the ``fused`` table of ONE fusion method; each fused row is a *plot* — its position
-(x_m, y_m, z_m) with per-axis variances from the diagonal of the position block of ``cov``. The
-fused target ids are not used for association (the tracker associates by position only); they
-are reported per row as ``plot_target_id`` so the evaluation can find the plot's truth.
+Input is the ``fused`` table of ONE fusion method. Each fused row is a *plot* in two roles:
+
+* **for gating, association and initiation**: its fused position (x_m, y_m, z_m) with the
+  per-axis variances of the diagonal of ``cov``'s position block (as before);
+* **as the filter's measurement**: only what is independent of the track's past — the fusion
+  stage's plot-level fusion of the target's *fresh measured plots* (``meas_x_m``…``meas_z_m``,
+  full 3×3 ``meas_cov``), taken at its own time epoch − ``age_s``. The fused states themselves
+  are the radars' filtered estimates: correlated from epoch to epoch, and mere
+  re-extrapolations where no radar has a new plot; a Kalman filter fed with them counts the
+  same information again and again (it ends up worse than its input and over-confident). The
+  alternative — decorrelating track estimates into equivalent measurements / tracklets
+  (information decorrelation, Drummond 1997; Bar-Shalom, Willett & Tian 2011 §8.6) — needs
+  the local filters' predicted covariances in the radars' own models (polar Singer channels
+  here), which the fusion centre would have to re-create approximately; the measured plots
+  are in every report (``range_m``, ``azimuth_deg``, elevation or Mode C), so the tracker uses
+  them (the approach of measurement-level / plot fusion). A row without a fresh plot
+  (``n_fresh`` = 0, null measurement) holds its track (it is not a miss) without updating it.
+  A ``fused`` table without these columns is used as before, its fused position with the full
+  3×3 position block of ``cov`` as the measurement at the epoch.
+
+Filters that declare ``full_r`` (:mod:`tertiary.filters.coupled`) get the full 3×3
+covariance, the per-axis filters its diagonal. Rows flagged ``tentative`` (clutter-only
+targets) are dropped on input. The fused target ids are not used for association (the tracker
+associates by position only); they are reported per row as ``plot_target_id`` so the
+evaluation can find the plot's truth. Track output is reported at the epoch (predicted from
+the measurement time) with ``cov_diag`` and the full 6×6 ``cov``.
 
 Output is the ``tracks`` table plus ``status`` ("confirmed": updated with a plot at this
 epoch — including the confirmation epoch — or "coasting": predicted only, memory mode) and
@@ -84,7 +106,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tertiary.altitude import ALT_COLUMNS, AltitudeConfig, AltState, predict as alt_predict, update2 as alt_update
-from tertiary.filters.base import State, TrackFilter, concat, make_filter, size, take
+from tertiary.filters.base import State, TrackFilter, concat, full_cov, make_filter, size, take
 from tertiary.schema import TABLES, TIME
 
 __all__ = ["TrackerConfig", "track", "track_methods", "TRACK_COLUMNS", "STATUS"]
@@ -96,6 +118,7 @@ STATE_COLS = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 TRACK_COLUMNS: dict[str, pl.DataType] = {
     **TABLES["tracks"].required,
     **{c: TABLES["tracks"].optional[c] for c in ALT_COLUMNS},
+    "cov": TABLES["tracks"].optional["cov"],
     "status": pl.String(),
     "plot_target_id": pl.UInt64(),
 }
@@ -152,9 +175,12 @@ class TrackerConfig:
 # Every object (tentative, hypothesis or confirmed track) is a row of two packed arrays, so the
 # bookkeeping follows the filter state with two fancy-indexing operations per selection.
 # float columns:
+# _T: time of the filter state (the last measurement's time, epoch − age); _TA: time of the
+# altitude filter (updated with the plot's vertical channel, which is at the epoch)
 _T, _P1, _T1, _RZ1, _P2, _T2, _RZ2 = 0, slice(1, 4), 4, 5, slice(6, 9), 9, 10
 _ALT = slice(11, 16)                  # altitude filter h, ḣ, P_hh, P_hḣ, P_ḣḣ (NaN: none yet)
-_NF = 16
+_TA = 16
+_NF = 17
 # int columns: run index, kind, track id (0 until confirmed), consecutive misses, M-of-N hits
 # and scans, uid of the scan-1 plot, uid of the scan-2 plot
 _RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2 = range(8)
@@ -190,7 +216,7 @@ class _Objects:
         n = len(run)
         f = np.zeros((n, _NF))
         f[:, _ALT] = alt
-        f[:, _T] = f[:, _T1] = t
+        f[:, _T] = f[:, _T1] = f[:, _TA] = t
         f[:, _P1] = z
         f[:, _RZ1] = rz
         i = np.zeros((n, _NI), np.int64)
@@ -207,7 +233,7 @@ def _alt_step(f: NDArray, t: float, plot_alt: NDArray, mask: NDArray, q: float) 
     with their plots' vertical channel where ``mask`` and the plot has one; objects without an
     estimate start from the plot's. Returns the new (n, 5) block."""
     cur = AltState(*(f[:, _ALT.start + i] for i in range(5)))
-    pred = alt_predict(cur, t - f[:, _T], q)
+    pred = alt_predict(cur, t - f[:, _TA], q)
     meas = AltState(*(plot_alt[:, i] for i in range(5)))
     have_m = mask & np.isfinite(plot_alt).all(axis=1)
     have_t = np.isfinite(pred.h)
@@ -274,6 +300,10 @@ class _Plots:
     alt: NDArray              # (n, 5) h, ḣ, P_hh, P_hḣ, P_ḣḣ of the plot's vertical channel (NaN: none)
     tid: NDArray
     uid: NDArray
+    zm: NDArray               # (n, 3) the measurement: plot-level fusion of the fresh plots
+    rm: NDArray               # (n, 3, 3) its full covariance
+    age: NDArray              # (n,) measurement time = epoch − age
+    fresh: NDArray            # (n,) the fused plot holds a new measurement
     keys: NDArray
     classes: NDArray          # σ classes present
     rmax_x: NDArray           # largest x variance of each present class
@@ -319,6 +349,9 @@ class _PlotIndex:
         self.r = np.ascontiguousarray(r[order])
         self.tid = f["target_id"].cast(pl.UInt64).to_numpy()[order]
         self.alt = _plot_alt(f)[order]
+        zm, rm, age, fresh = _measurements(f, z, cov)
+        self.zm, self.rm = np.ascontiguousarray(zm[order]), np.ascontiguousarray(rm[order])
+        self.age, self.fresh = age[order], fresh[order]
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -336,8 +369,28 @@ class _PlotIndex:
         lo, hi = self.bounds[k], self.bounds[k + 1]
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
-                      np.arange(lo, hi, dtype=np.int64), self.keys[lo:hi], self.seg_cls[s0:s1],
-                      self.seg_rmax_x[s0:s1])
+                      np.arange(lo, hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
+                      self.fresh[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1], self.seg_rmax_x[s0:s1])
+
+
+def _measurements(f: pl.DataFrame, z: NDArray, cov36: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """The measurement of every fused row: (z (n, 3), R (n, 3, 3), age (n,), fresh (n,)).
+
+    With the fusion stage's plot-level columns (``meas_x_m``… ``meas_cov``, ``age_s``,
+    ``n_fresh``): the fused fresh plots at epoch − ``age_s``; a row without a fresh plot is not
+    a measurement (``fresh`` False). Without them (a ``fused`` table from elsewhere): the fused
+    position with the full 3×3 position block of ``cov``, at the epoch."""
+    n = f.height
+    pos = cov36.reshape(n, 6, 6)[:, :3, :3].copy()
+    names = ("meas_x_m", "meas_y_m", "meas_z_m", "meas_cov", "age_s")
+    if not all(c in f.columns for c in names):
+        fresh = (f["n_fresh"].fill_null(1).to_numpy() > 0) if "n_fresh" in f.columns else np.ones(n, bool)
+        return z, pos, np.zeros(n), fresh
+    zm = f.select(names[:3]).to_numpy().astype(float)
+    rm = np.asarray(f["meas_cov"].to_numpy(), float).reshape(n, 3, 3)
+    age = f["age_s"].cast(pl.Float64).fill_null(0.0).to_numpy()
+    fresh = np.isfinite(zm).all(axis=1) & np.isfinite(rm).all(axis=(1, 2))
+    return np.where(fresh[:, None], zm, z), np.where(fresh[:, None, None], rm, pos), np.where(fresh, age, 0.0), fresh
 
 
 def _likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
@@ -483,8 +536,8 @@ class _Emitted:
 
     def __init__(self) -> None:
         self.parts: dict[str, list[NDArray]] = {k: [] for k in
-                                                ("run", "epoch", "track_id", "x", "var", "nu", "nis", "upd", "tid",
-                                                                 "alt")}
+                                                ("run", "epoch", "track_id", "x", "var", "cov", "nu", "nis", "upd",
+                                                 "tid", "alt")}
         self.probs: list[NDArray | None] = []
 
     def add(self, **arrays) -> None:
@@ -534,6 +587,7 @@ class _Emitted:
             "method": pl.repeat(method, n, dtype=pl.String, eager=True),
             **{col: c["x"][:, i] for i, col in enumerate(STATE_COLS)},
             "cov_diag": c["var"],
+            "cov": c["cov"],
             # AltState order h, ḣ, P_hh, P_hḣ, P_ḣḣ → ALT_COLUMNS
             **{col: c["alt"][:, j] for col, j in zip(ALT_COLUMNS, (0, 1, 2, 4, 3))},
             "innovation": nu,
@@ -571,6 +625,10 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
     if fused_one_method.height == 0:
         return pl.DataFrame(schema=TRACK_COLUMNS)
 
+    if "tentative" in fused_one_method.columns:     # clutter-only targets never reach a track
+        fused_one_method = fused_one_method.filter(~pl.col("tentative").fill_null(False))
+        if fused_one_method.height == 0:
+            return pl.DataFrame(schema=TRACK_COLUMNS)
     ix = _PlotIndex(fused_one_method)
     n_runs = len(ix.runs)
     secs = (ix.epochs - ix.epochs[0]) / 1e6
@@ -594,8 +652,9 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
             on = run_on[objs.i[:, _RUN]]
             act, idle = np.flatnonzero(on), np.flatnonzero(~on)
         m = objs.take(act) if len(idle) else objs
+        prev = _take_state(state, act, len(objs))
         if len(m):
-            st = filt.predict(_take_state(state, act, len(objs)), t - m.f[:, _T])
+            st = filt.predict(prev, t - m.f[:, _T])
             pred = filt.output(st)
             xp, vp = pred.x[:, :3], pred.var[:, :3]
         else:
@@ -654,12 +713,20 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
         safe = np.where(mask, pidx, 0)
         z, r = plots.z[safe], plots.r[safe]
         mu = m.take(idx)
+        # the filter takes only new measurements, at their own time epoch − age
+        fresh = mask & plots.fresh[safe]
+        age = np.where(fresh, plots.age[safe], 0.0)
         if len(idx):
-            su, inn = filt.update(_take_state(st, idx, len(m)), z, r, mask)
+            base = _take_state(st, idx, len(m))
+            if (age > 0).any():
+                base = filt.predict(_take_state(prev, idx, len(m)), np.maximum(t - age - mu.f[:, _T], 0.0))
+            rm = plots.rm[safe]
+            su, inn = filt.update(base, plots.zm[safe], rm if filt.full_r else np.einsum("bii->bi", rm), fresh)
         else:
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
-        mu.f[:, _T] = t
+        mu.f[:, _T] = t - age
+        mu.f[:, _TA] = t
         n_c, n_w, n_p = int(alive.sum()), len(win), len(pair_obj)
         mu.i[:n_c, _MISS] = misses[alive]
         newly = np.zeros(len(idx), bool)
@@ -701,17 +768,22 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
         # --- emit the confirmed and coasting rows
         emit = np.flatnonzero(mu.i[:, _KIND] == _CONF)
         if len(emit):
-            oe = filt.output(su)
+            se = _take_state(su, emit, len(idx))
+            if (age[emit] > 0).any():               # reported at the epoch
+                se = filt.predict(se, t - mu.f[emit, _T])
+            oe = filt.output(se)
             upd = mask[emit]
             emitted.add(run=mu.i[emit, _RUN], epoch=np.full(len(emit), ix.epochs[k]), track_id=mu.i[emit, _ID],
-                        x=oe.x[emit], var=oe.var[emit], nu=inn.nu[emit], nis=inn.nis[emit], upd=upd,
-                        alt=mu.f[emit, _ALT],
-                        tid=plots.tid[safe[emit]], probs=None if oe.probs is None else oe.probs[emit])
+                        x=oe.x, var=oe.var, cov=full_cov(oe).reshape(-1, 36), nu=inn.nu[emit], nis=inn.nis[emit],
+                        upd=upd, alt=mu.f[emit, _ALT],
+                        tid=plots.tid[safe[emit]], probs=oe.probs)
 
         # --- new tentatives from the plots no track or confirmation took
         newp = np.flatnonzero(opens)
-        sn = filt.init(plots.z[newp], plots.r[newp]) if len(newp) else {}
+        rn = plots.rm[newp]
+        sn = filt.init(plots.zm[newp], rn if filt.full_r else np.einsum("bii->bi", rn)) if len(newp) else {}
         mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp])
+        mn.f[:, _T] = t - plots.age[newp]
         kept = np.flatnonzero(keep)
         state = _join_states(_take_state(state, idle, len(objs)) if len(idle) else {},
                              _take_state(su, kept, len(idx)) if len(idx) else {}, sn)

@@ -246,3 +246,31 @@ def test_symmetric_imm_follows_right_turns():
             probs = f.output(s).probs[0]
             assert probs[1] > 0.8                        # the CT(−ω) model
     assert errors["imm_sym"] < errors["imm"]
+
+
+def test_single_cv_model_imm_with_correlated_r_equals_coupled_cv():
+    """An IMM reduced to one CV model is the CV Kalman filter: with a plot covariance whose
+    E–N terms are correlated (|ρ| = 0.8) its horizontal estimate, covariance and 6×6 output
+    covariance equal ``cv_full``'s — so the full horizontal R is used, not its diagonal."""
+    from tertiary.filters import make_filter
+    from tertiary.filters.imm import IMMFilter
+
+    rng = np.random.default_rng(4)
+    b, steps = 6, 12
+    imm = IMMFilter(omegas=(0.0,), tpm=((1.0,),), mu0=(1.0,), q=2.0, q_z=2.0, sigma_v0=150.0)
+    cv = make_filter("cv_full", q=2.0, v0_sigma=150.0)
+    assert imm.full_r and cv.full_r
+    r = np.tile(np.array([[900.0, 720.0, 0.0], [720.0, 900.0, 0.0], [0.0, 0.0, 400.0]]), (b, 1, 1))
+    z0 = rng.normal(0, 1e4, (b, 3))
+    si, sc = imm.init(z0, r), cv.init(z0, r)
+    # the IMM starts the vertical rate with σ_v0/10: give cv_full the same prior on it
+    sc["P"][:, 5, 5] = 150.0 ** 2 / 100.0
+    for k in range(1, steps):
+        z = z0 + k * 4.0 * np.array([150.0, -80.0, 2.0]) + rng.normal(0, 30.0, (b, 3))
+        dt = np.full(b, 4.0)
+        si, _ = imm.update(imm.predict(si, dt), z, r, np.ones(b, bool))
+        sc, _ = cv.update(cv.predict(sc, dt), z, r, np.ones(b, bool))
+    oi, oc = imm.output(si), cv.output(sc)
+    np.testing.assert_allclose(oi.x, oc.x, rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(oi.cov, oc.cov, rtol=1e-7, atol=1e-6)
+    assert np.abs(oi.cov[:, 0, 1]).min() > 1.0                # the E–N correlation is carried

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from tertiary import fusion
 from tertiary.fusion import METHODS, FusionConfig, Layout, fuse
-from tertiary.schema import TABLES
+from tertiary.schema import FUSED_EXTRA, TABLES
 
 T0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 SIGMA_R = 50.0
@@ -83,7 +83,7 @@ def test_output_schema_and_rows():
     rows = [report(k=k, target=t, radar=r, x=np.full(6, r), cov=np.full(6, r))
             for k in range(2) for t in (1, 2) for r in ((1, 2, 3) if t == 1 else (2,))]
     out = fuse(frame(rows), RADARS)
-    assert dict(out.schema) == TABLES["fused"].columns
+    assert dict(out.schema) == {**TABLES["fused"].columns, **FUSED_EXTRA}
     assert out.height == 4 * len(METHODS)
     assert out.filter(pl.col("target_id") == 1)["radar_ids"].to_list()[0] == [1, 2, 3]
     assert set(out["n_sources"].to_list()) == {1, 3}
@@ -91,7 +91,7 @@ def test_output_schema_and_rows():
 
 def test_empty_input():
     out = fuse(frame([]), RADARS)
-    assert out.height == 0 and dict(out.schema) == TABLES["fused"].columns
+    assert out.height == 0 and dict(out.schema) == {**TABLES["fused"].columns, **FUSED_EXTRA}
 
 
 def test_single_source_unchanged():
@@ -455,3 +455,188 @@ def test_weights_sum_to_one(seed, n_targets, n_epochs):
     np.testing.assert_allclose(sums, 1.0, atol=1e-12, rtol=0)
     assert (out["weights"].list.len() == out["n_sources"]).all()
     assert np.isfinite(out.select(fusion.STATE).to_numpy()).all()
+
+
+# ---------------------------------------------------------------------------
+# Bar-Shalom–Campo (common process noise) fusion
+# ---------------------------------------------------------------------------
+
+
+def test_bar_shalom_campo_two_sources_by_hand():
+    """Diagonal C₁ = 4 I, C₂ = 9 I, ρ = 0.5: P₁₂ = ρ·2·3 = 3 I. (BC):
+    x = x₁ + (4 − 3)/(4 + 9 − 6)(x₂ − x₁) = x₁ + (x₂ − x₁)/7, P = 4 − 1·1/7 = 27/7 per axis;
+    weights 6/7 and 1/7."""
+    x = np.array([np.zeros(6), np.full(6, 7.0)])
+    cov = np.array([4.0 * np.eye(6), 9.0 * np.eye(6)])
+    out = fusion.fuse_bar_shalom_campo(x, cov, np.array([0]), rho=0.5)
+    np.testing.assert_allclose(out.x[0], np.full(6, 1.0), atol=1e-12)
+    np.testing.assert_allclose(out.cov[0], 27.0 / 7.0 * np.eye(6), atol=1e-12)
+    np.testing.assert_allclose(out.weights, [6 / 7, 1 / 7], atol=1e-12)
+    # the same pair with ρ = 0 is information fusion: P = 36/13, x = 4·7/13
+    info = fusion.fuse_bar_shalom_campo(x, cov, np.array([0]), rho=0.0)
+    np.testing.assert_allclose(info.cov[0], 36.0 / 13.0 * np.eye(6), atol=1e-12)
+    np.testing.assert_allclose(info.x[0], np.full(6, 28.0 / 13.0), atol=1e-12)
+
+
+def _spd(rng, k=6):
+    a = rng.normal(size=(k, k))
+    return a @ a.T + np.eye(k)
+
+
+def _sqrtm(c):
+    w, v = np.linalg.eigh(c)
+    return (v * np.sqrt(w)) @ v.T
+
+
+def test_bar_shalom_campo_two_sources_full_matrices_match_formula():
+    """Full covariances: the kernel equals the textbook (BC) expressions with P₁₂ = ρ C₁^½ C₂^½."""
+    rng = np.random.default_rng(3)
+    c1, c2, x1, x2, rho = _spd(rng), _spd(rng), rng.normal(size=6), rng.normal(size=6), 0.4
+    p12 = rho * _sqrtm(c1) @ _sqrtm(c2)
+    u = np.linalg.inv(c1 + c2 - p12 - p12.T)
+    out = fusion.fuse_bar_shalom_campo(np.stack([x1, x2]), np.stack([c1, c2]), np.array([0]), rho)
+    np.testing.assert_allclose(out.x[0], x1 + (c1 - p12) @ u @ (x2 - x1), atol=1e-9)
+    np.testing.assert_allclose(out.cov[0], c1 - (c1 - p12) @ u @ (c1 - p12.T), atol=1e-9)
+
+
+def test_bar_shalom_campo_n_sources_is_the_joint_blue():
+    """Three sources: the closed form equals the BLUE (Hᵀ Σ⁻¹ H)⁻¹ Hᵀ Σ⁻¹ x̄ on the explicit
+    18×18 joint covariance; a second group in the same call is fused independently."""
+    rng = np.random.default_rng(5)
+    cs = [_spd(rng) for _ in range(3)]
+    xs = [rng.normal(size=6) * 10 for _ in range(3)]
+    rho = 0.3
+    s = [_sqrtm(c) for c in cs]
+    sig = np.block([[cs[i] if i == j else rho * s[i] @ s[j] for j in range(3)] for i in range(3)])
+    h = np.vstack([np.eye(6)] * 3)
+    si = np.linalg.inv(sig)
+    p = np.linalg.inv(h.T @ si @ h)
+    x = p @ h.T @ si @ np.concatenate(xs)
+    other = [_spd(rng) for _ in range(2)]
+    out = fusion.fuse_bar_shalom_campo(np.stack(xs + [np.zeros(6), np.ones(6)]), np.stack(cs + other),
+                                       np.array([0, 3]), rho)
+    np.testing.assert_allclose(out.x[0], x, atol=1e-8)
+    np.testing.assert_allclose(out.cov[0], p, atol=1e-8)
+    np.testing.assert_allclose(out.weights[:3].sum(), 1.0)
+    pair = fusion.fuse_bar_shalom_campo(np.stack([np.zeros(6), np.ones(6)]), np.stack(other), np.array([0]), rho)
+    np.testing.assert_allclose(out.x[1], pair.x[0], atol=1e-12)
+
+
+def test_bar_shalom_campo_through_fuse_and_bad_rho():
+    rows = [report(target=1, radar=r, x=np.full(6, 7.0 * (r - 1)), cov=np.full(6, 4.0 if r == 1 else 9.0))
+            for r in (1, 2)]
+    out = fuse(frame(rows), RADARS, methods=["bar_shalom_campo"], cfg=FusionConfig(bc_rho=0.5))
+    x, c = state_of(out, "bar_shalom_campo")
+    np.testing.assert_allclose(x, np.full(6, 1.0), atol=1e-9)
+    np.testing.assert_allclose(np.diag(c), np.full(6, 27.0 / 7.0), atol=1e-9)
+    with pytest.raises(ValueError, match="bc_rho"):
+        FusionConfig(bc_rho=1.0)
+
+
+# ---------------------------------------------------------------------------
+# freshness, plot-level measurement, tentative targets
+# ---------------------------------------------------------------------------
+
+
+def _with_plots(rows: list[dict], plots: dict[int, tuple], ages: dict[int, float]) -> pl.DataFrame:
+    """``frame(rows)`` plus plot columns: ``plots[radar] = (z3, R 3×3)``, ``ages[radar]``."""
+    f = frame(rows)
+    rid = f["radar_id"].to_list()
+    z = np.array([plots[r][0] for r in rid], float)
+    rr = np.array([np.asarray(plots[r][1], float).reshape(9) for r in rid])
+    return f.with_columns(
+        *(pl.Series(c, z[:, i]) for i, c in enumerate(("plot_x_m", "plot_y_m", "plot_z_m"))),
+        pl.Series("plot_cov", rr, dtype=pl.Array(pl.Float64, 9)),
+        pl.Series("age_s", [float(ages[r]) for r in rid]))
+
+
+def test_information_measurement_of_two_fresh_plots_by_hand():
+    """R₁ = diag(100, 400, 900), R₂ = diag(400, 100, 900): R = diag(80, 80, 450),
+    z = R (R₁⁻¹ z₁ + R₂⁻¹ z₂); both at age 0. The radars' velocities do not matter at d = 0."""
+    rows = [report(radar=r, x=(0, 0, 0, 50.0 * r, 0, 0)) for r in (1, 2)]
+    f = _with_plots(rows, {1: ((0, 0, 0), np.diag([100, 400, 900])), 2: ((10, 20, 30), np.diag([400, 100, 900]))},
+                    {1: 0.0, 2: 0.0})
+    out = fuse(f, RADARS, methods=["information", "arithmetic"])
+    info = out.filter(pl.col("method") == "information")
+    np.testing.assert_allclose(np.asarray(info["meas_cov"][0]).reshape(3, 3), np.diag([80.0, 80.0, 450.0]))
+    np.testing.assert_allclose(info.select("meas_x_m", "meas_y_m", "meas_z_m").row(0), [2.0, 16.0, 15.0])
+    ari = out.filter(pl.col("method") == "arithmetic")
+    np.testing.assert_allclose(ari.select("meas_x_m", "meas_y_m", "meas_z_m").row(0), [5.0, 10.0, 15.0])
+    np.testing.assert_allclose(np.asarray(ari["meas_cov"][0]).reshape(3, 3), np.diag([125.0, 125.0, 450.0]))
+    assert info["n_fresh"][0] == 2 and info["age_s"][0] == 0.0
+
+
+def test_measurement_uses_only_fresh_plots_moved_to_the_newest():
+    """Radar 2's plot is older by 2 s (age 3 vs 1): moved by its velocity (10, 0, 0) m/s × 2 s
+    and its variance grown by 2² P_vv; radar 3's row is a re-extrapolation (not fresh): unused.
+    A group with no fresh row has no measurement."""
+    pvv = np.diag([1.0, 1, 1, 4.0, 4.0, 4.0])
+    rows = [report(radar=1, x=(0, 0, 0, 0, 0, 0)), report(radar=2, x=(0, 0, 0, 10.0, 0, 0), cov=pvv),
+            report(radar=3, fresh=False), report(k=1, radar=1, fresh=False)]
+    plots = {1: ((0, 0, 0), 100 * np.eye(3)), 2: ((0, 0, 0), 100 * np.eye(3)), 3: ((1e4, 0, 0), np.eye(3))}
+    f = _with_plots(rows, plots, {1: 1.0, 2: 3.0, 3: 0.5})
+    out = fuse(f, RADARS, methods=["information"]).sort("epoch")
+    first = out.row(0, named=True)
+    assert first["n_fresh"] == 2 and first["age_s"] == pytest.approx(1.0)   # the newest fresh plot
+    r2 = 100 + 4 * 4.0                                     # 116 on each axis for radar 2
+    r = 1 / (1 / 100 + 1 / r2)
+    np.testing.assert_allclose(np.asarray(first["meas_cov"]).reshape(3, 3), r * np.eye(3))
+    assert first["meas_x_m"] == pytest.approx(r * 20.0 / r2)
+    second = out.row(1, named=True)
+    assert second["n_fresh"] == 0 and second["meas_x_m"] is None and second["meas_cov"] is None
+
+
+def test_measurement_age_is_the_fresh_plots_reference():
+    """With only fresh rows, ``age_s`` is the newest plot's age (the measurement time)."""
+    rows = [report(radar=1), report(radar=2)]
+    f = _with_plots(rows, {1: ((0, 0, 0), np.eye(3)), 2: ((0, 0, 0), np.eye(3))}, {1: 2.0, 2: 0.7})
+    out = fuse(f, RADARS, methods=["arithmetic"])
+    assert out["age_s"][0] == pytest.approx(0.7)
+
+
+def test_tentative_until_a_local_track_has_two_plots_then_confirmed_for_good():
+    """Target 1: one radar, local track 5, plots at k = 0 (fresh), k = 1 (re-extrapolation),
+    k = 2 (second plot) then k = 3 (re-extrapolation): tentative at 0 and 1, confirmed from 2
+    on. Target 2: a single clutter plot — tentative. Target 3: two radars at once — confirmed."""
+    rows = [report(k=0, target=1, radar=1, track=5), report(k=1, target=1, radar=1, track=5, fresh=False),
+            report(k=2, target=1, radar=1, track=5), report(k=3, target=1, radar=1, track=5, fresh=False),
+            report(k=0, target=2, radar=2, track=9),
+            report(k=0, target=3, radar=1, track=6), report(k=0, target=3, radar=2, track=7)]
+    out = fuse(frame(rows), RADARS, methods=["arithmetic"])
+    flags = {(t, k.second): v for t, k, v in out.select("target_id", "epoch", "tentative").iter_rows()}
+    assert [flags[(1, k)] for k in range(4)] == [True, True, False, False]
+    assert flags[(2, 0)] is True and flags[(3, 0)] is False
+
+
+def test_confirmation_state_carries_across_windows():
+    """The step function run on two windows with its carried state gives the flags of one run
+    on the whole input (plot counts and confirmed targets cross the window edge)."""
+    rows = [report(k=k, target=1, radar=1, track=5) for k in range(3)] + \
+           [report(k=k, target=2, radar=2, track=8, fresh=(k == 0)) for k in range(3)]
+    f = frame(rows)
+    whole, _ = fusion.confirm_step(fusion.ConfirmState.empty(), f)
+    cut = T0 + timedelta(seconds=1)
+    a, st = fusion.confirm_step(fusion.ConfirmState.empty(), f.filter(pl.col("epoch") < cut))
+    b, _ = fusion.confirm_step(st, f.filter(pl.col("epoch") >= cut))
+    assert pl.concat([a, b]).sort("target_id", "epoch").equals(whole.sort("target_id", "epoch"))
+    assert whole.filter(pl.col("target_id") == 1)["tentative"].to_list() == [True, False, False]
+    assert whole.filter(pl.col("target_id") == 2)["tentative"].to_list() == [True, True, True]
+
+
+def test_plots_table_gives_the_same_measurement_as_plot_columns():
+    """``fuse(..., plots=)`` joins the per-report plot table on (run, report_id) for the fresh
+    rows: the same measurement as rows that carry the plot columns themselves."""
+    rows = [report(radar=r, x=(0, 0, 0, 30.0 * r, 0, 0)) for r in (1, 2, 3)] + [report(k=1, radar=1, fresh=False)]
+    plots = {1: ((0, 0, 0), np.diag([100, 400, 900])), 2: ((10, 20, 30), np.diag([400, 100, 900])),
+             3: ((5, 5, 5), 200 * np.eye(3))}
+    own = _with_plots(rows, plots, {1: 0.5, 2: 1.0, 3: 0.2})
+    table = own.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
+                       "plot_x_m", "plot_y_m", "plot_z_m", "plot_cov")
+    a = fuse(own, RADARS, methods=["information", "aposteriori"])
+    b = fuse(own.drop("plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"), RADARS,
+             methods=["information", "aposteriori"], plots=table)
+    cols = ["meas_x_m", "meas_y_m", "meas_z_m", "meas_cov", "age_s", "n_fresh"]
+    assert a.select(cols).equals(b.select(cols))
+    assert a["meas_x_m"].null_count() == 2                        # the k = 1 group has no fresh plot
+    none = fuse(own.drop("plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"), RADARS, methods=["information"])
+    assert none["meas_x_m"].null_count() == none.height and none["n_fresh"].to_list() == [3, 0]

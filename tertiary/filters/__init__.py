@@ -4,7 +4,7 @@ Every tracker filter implements :class:`tertiary.filters.base.TrackFilter` and r
 name; :func:`make_filter` builds one by name. Importing this package registers them all.
 """
 
-from tertiary.filters import adaptive_r, ekf, imm, linear, quasi_optimal  # noqa: F401  (registration)
+from tertiary.filters import adaptive_r, coupled, ekf, imm, linear, quasi_optimal  # noqa: F401  (registration)
 from tertiary.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
 from tertiary.filters.singer import SingerModel, singer_phi, singer_q
 

@@ -4,9 +4,9 @@ A filter works on a batch of B independent tracks at once (tracks × Monte-Carlo
 flattened): every array in a filter :data:`State` has the track axis first, so the tracker can
 select, drop and append tracks without knowing the filter (:func:`take`, :func:`concat`).
 
-Measurements are fused plots in the system ENU frame: positions ``z`` (B, 3) with per-axis
-variances ``r`` (B, 3) (the diagonal of the fused covariance) — or the full 3×3 ``r_full``
-(B, 3, 3) for filters that use it. ``dt`` (B,) is each track's time since its last step and
+Measurements are plots in the system ENU frame: positions ``z`` (B, 3) with per-axis
+variances ``r`` (B, 3) (the diagonal of the measurement covariance) — or the full 3×3
+covariance (B, 3, 3) for filters that declare ``full_r = True``. ``dt`` (B,) is each track's time since its last step and
 ``mask`` (B,) says which tracks have a plot this step (the others coast: x⁺ = x⁻, P⁺ = P⁻,
 the monograph's "memory mode", §2.1).
 
@@ -49,11 +49,22 @@ def size(state: State) -> int:
 @dataclass
 class Output:
     """Common estimate of B tracks: state (B, 6) = (x, y, z, vx, vy, vz), its covariance
-    diagonal (B, 6), and model probabilities (B, M) for multiple-model filters (else None)."""
+    diagonal (B, 6), model probabilities (B, M) for multiple-model filters (else None) and,
+    where the filter has it, the full 6×6 covariance (B, 6, 6) (else None: see
+    :func:`full_cov`)."""
 
     x: F64
     var: F64
     probs: F64 | None = None
+    cov: F64 | None = None
+
+
+def full_cov(out: Output) -> F64:
+    """The 6×6 covariance of an :class:`Output`: its ``cov``, or diag(var) when the filter
+    gives only the diagonal (cross terms then unknown, reported as 0)."""
+    if out.cov is not None:
+        return out.cov
+    return out.var[:, :, None] * np.eye(6)
 
 
 @dataclass
@@ -71,6 +82,9 @@ class TrackFilter(ABC):
     constructor (frozen parameters) and keep no per-track state outside the ``State`` dict."""
 
     name: ClassVar[str]
+    #: True when ``update`` takes the full measurement covariance ``r`` (B, 3, 3); else the
+    #: tracker hands it the diagonal (B, 3)
+    full_r: ClassVar[bool] = False
 
     @abstractmethod
     def init(self, z: F64, r: F64) -> State:

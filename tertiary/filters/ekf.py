@@ -209,7 +209,7 @@ class SphericalEKF(TrackFilter):
 
     def output(self, state: State) -> Output:
         pos, vel, cov = state_to_enu(state["x"], state["P"])
-        return Output(np.concatenate([pos, vel], axis=1), np.einsum("bii->bi", cov))
+        return Output(np.concatenate([pos, vel], axis=1), np.einsum("bii->bi", cov), None, cov)
 
 
 # --------------------------------------------------------------------------- seed 004 test case

@@ -143,8 +143,13 @@ def _init_state(z: F64, r: F64, n: int, v0_var: float, a_var: F64 | None = None)
 def _output(x: NDArray, p: NDArray) -> Output:
     """6-state (x, y, z, vx, vy, vz) from per-axis [p, v, …] state and packed covariance."""
     vv = 2 if p.shape[-1] == 3 else 3            # index of P11 in the packed layout
-    return Output(x=np.concatenate([x[..., 0], x[..., 1]], axis=1),
-                  var=np.concatenate([p[..., 0], p[..., vv]], axis=1))
+    var = np.concatenate([p[..., 0], p[..., vv]], axis=1)
+    cov = np.zeros((len(p), 6, 6))
+    ax = np.arange(3)
+    cov[:, ax, ax] = p[..., 0]
+    cov[:, ax + 3, ax + 3] = p[..., vv]
+    cov[:, ax, ax + 3] = cov[:, ax + 3, ax] = p[..., 1]   # per-axis position–velocity terms
+    return Output(x=np.concatenate([x[..., 0], x[..., 1]], axis=1), var=var, cov=cov)
 
 
 # ----------------------------------------------------------------------------- elementwise kernels

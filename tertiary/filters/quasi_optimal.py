@@ -149,6 +149,7 @@ class QuasiOptimal(TrackFilter):
     """
 
     name = "quasi_optimal"
+    full_r = True          # the primary-parameter conversion takes the full 3×3 plot covariance
 
     def __init__(self, b: Sequence[float] = (5.0, 5.0, 1.0), t_ref: float = 1.0, variant: Variant = "newton",
                  radar: Sequence[float] = (0.0, 0.0, 0.0)):
