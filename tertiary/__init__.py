@@ -22,7 +22,7 @@ from tertiary.align import AlignConfig
 from tertiary.associate import AssociationConfig
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
 from tertiary.clustering import ClusteringConfig, cluster
-from tertiary.fusion import METHODS, FusionConfig, fuse
+from tertiary.fusion import METHODS, ConfirmState, FusionConfig, confirm_step, fuse, fuse_bar_shalom_campo, measured_plots
 from tertiary.gating import GatingConfig, candidate_pairs
 from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
 from tertiary.pipeline import PipelineConfig, StageError, ingest, process, run, screen
@@ -42,4 +42,9 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
            "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__",
            "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
-           "DataError", "ResourceError", "altitude", "bound", "RadarTrackerConfig", "TransponderConfig"]
+           "DataError", "ResourceError", "altitude", "bound", "RadarTrackerConfig", "TransponderConfig",
+           "measured_plots", "fuse_bar_shalom_campo", "confirm_step", "ConfirmState", "evaluate_pictures",
+           "match_to_reference", "MatchConfig", "load_requirements", "check_requirements"]
+from tertiary.evaluation import evaluate_pictures  # noqa: E402  (after the stages it builds on)
+from tertiary.matching import MatchConfig, match_to_reference  # noqa: E402
+from tertiary.requirements import check_requirements, load_requirements  # noqa: E402

@@ -533,7 +533,11 @@ def run_summary(db: Path) -> list[str]:
     lines = [f"run {record.get('scenario', '?')}: {rows.get('reports_in', 0):,} reports in, "
              f"{rows.get('reports_rejected', 0):,} rejected; wall time {_m(wall, ' s')}"]
     aircraft = f" for {aircraft} aircraft" if aircraft else ""
-    lines.append(f"system targets (fused, clutter-only ones included): {rows.get('targets', '–')}{aircraft}")
+    if "confirmed_targets" in rows:
+        lines.append(f"system targets: {rows['confirmed_targets']} confirmed{aircraft} "
+                     f"({rows.get('tentative_targets', 0)} tentative, clutter-only, kept in fused with their flag)")
+    else:
+        lines.append(f"system targets (fused, clutter-only ones included): {rows.get('targets', '–')}{aircraft}")
     tracks = _metric(metrics, "tracker", "tracks")
     for stage in ("fusion", "tracker"):
         horiz, height = _metric(metrics, stage, "rmse_horizontal_m"), _metric(metrics, stage, "rmse_height_m")

@@ -101,7 +101,7 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                combine_min_variance, filter_tracks, geodetic_channel, predict,
                                quantisation_variance)
-from tertiary.schema import FUSED_EXTRA, TABLES, is_sorted_by
+from tertiary.schema import FUSED_EXTRA, TABLES, TIME, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -800,9 +800,14 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, 
     if "altitude_m" not in rows.columns or "time" not in rows.columns or rows["altitude_m"].null_count() == n:
         return none
     fresh = pl.col("fresh").fill_null(False)
+    has_s = "mode_s" in rows.columns
+    # the Mode S address as an integer identity: a radar track whose address changes has swapped
+    # aircraft, and its altitude filter restarts (tertiary.altitude.filter_tracks, ident)
+    ident = (pl.col("mode_s").cast(pl.String).str.to_integer(base=16, strict=False).fill_null(-1)
+             if has_s else pl.lit(-1, pl.Int64))
     rep = (rows.filter(fresh).select(*TRACK, "report_id", "time", "altitude_m",
-                                     (pl.col("mode_s").is_not_null() if "mode_s" in rows.columns
-                                      else pl.lit(True)).alias("__s"))
+                                     (pl.col("mode_s").is_not_null() if has_s else pl.lit(True)).alias("__s"),
+                                     ident.cast(pl.Int64).alias("__ident"))
            .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
            .sort([*TRACK, "time"]))
     if rep.is_empty():
@@ -814,7 +819,8 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, 
     t = (t_us - t_us.min()) * 1e-6
     z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
     var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
-    post, has, _ = filter_tracks(t, z, var, starts, np.diff(np.append(starts, len(t))), cfg)
+    post, has, _ = filter_tracks(t, z, var, starts, np.diff(np.append(starts, len(t))), cfg,
+                                 ident=rep["__ident"].to_numpy())
     cols = post.columns()
     table = rep.select("run", "report_id").with_columns(
         *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has))
@@ -872,9 +878,10 @@ def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loca
 
 @dataclass(frozen=True)
 class ConfirmState:
-    """Carried state of target confirmation (natural keys, no ranks): plots seen so far per
-    local track (``tracks``: run, radar_id, local_track_id, n_plots) and the targets already
-    confirmed (``targets``: run, target_id)."""
+    """Carried state of target confirmation (natural keys, no ranks): per local track the plots
+    of its current life and the time of its last plot (``tracks``: run, radar_id,
+    local_track_id, n_plots, last_time) and the targets already confirmed (``targets``: run,
+    target_id)."""
 
     tracks: pl.DataFrame
     targets: pl.DataFrame
@@ -883,26 +890,40 @@ class ConfirmState:
     def empty() -> ConfirmState:
         return ConfirmState(
             pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
-                                 "n_plots": pl.Int64}),
+                                 "n_plots": pl.Int64, "last_time": TIME}),
             pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64}))
+
+
+#: a local track silent for longer than this has ended; a plot under the same number after it
+#: starts a new life (radars reuse track numbers) whose plots are counted afresh
+LIFE_GAP_S = 30.0
 
 
 def confirm_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2
                  ) -> tuple[pl.DataFrame, ConfirmState]:
     """Which (run, epoch, target_id) groups of ``rows`` are tentative, and the new state.
 
-    A local track supports its target from the epoch at which it has ``min_plots`` plots
-    (its fresh rows counted, carried across windows by ``state``); a group is supported when
-    one of its local tracks is, or when two radars see the target. A target is confirmed from
-    its first supported group on and stays so; before that it is *tentative*: made only of
-    one radar's unconfirmed one-plot tracks — the clutter signature (a lone false plot never
-    gets a second plot of its local track). Returns the groups (GROUP + ``tentative``) in
-    ``rows``' group order."""
-    cols = [pl.col(c).cast(t) for c, t in state.tracks.schema.items() if c != "n_plots"]
-    r = rows.select(*GROUP, *cols[1:], pl.col("fresh").fill_null(False)).with_row_index("__i")
-    r = r.join(state.tracks, on=TRACK, how="left", maintain_order="left")
-    r = r.sort("epoch", "__i").with_columns(
-        (pl.col("n_plots").fill_null(0) + pl.col("fresh").cast(pl.Int64).cum_sum().over(TRACK)).alias("__n"))
+    A local track supports its target from the epoch at which it has ``min_plots`` plots in
+    its current life (its fresh rows counted, carried across windows by ``state``; a silence
+    longer than :data:`LIFE_GAP_S` starts a new life, since radars reuse the numbers of ended
+    tracks, often for a false plot); a group is supported when one of its local tracks is, or
+    when two radars see the target. A target is confirmed from its first supported group on and
+    stays so; before that it is *tentative*: made only of one radar's unconfirmed one-plot
+    tracks — the clutter signature (a lone false plot never gets a second plot of its local
+    track). Returns the groups (GROUP + ``tentative``) in ``rows``' group order."""
+    key_types = {c: t for c, t in state.tracks.schema.items() if c in TRACK}
+    has_time = "time" in rows.columns
+    when = pl.col("time").cast(TIME) if has_time else pl.col("epoch").cast(TIME)
+    r = rows.select(*GROUP, *[pl.col(c).cast(t) for c, t in key_types.items() if c != "run"],
+                    pl.col("fresh").fill_null(False), when.alias("__t")).with_row_index("__i")
+    r = r.join(state.tracks, on=TRACK, how="left", maintain_order="left").sort("epoch", "__i")
+    fresh_t = pl.when(pl.col("fresh")).then(pl.col("__t"))
+    prev = pl.coalesce(fresh_t.forward_fill().shift(1).over(TRACK), pl.col("last_time"))
+    gap_us = round(LIFE_GAP_S * 1e6)
+    brk = pl.col("fresh") & ((pl.col("__t") - prev).dt.total_microseconds() > gap_us).fill_null(False)
+    r = r.with_columns(brk.cast(pl.Int64).cum_sum().over(TRACK).alias("__life"))
+    base = pl.when(pl.col("__life") == 0).then(pl.col("n_plots").fill_null(0)).otherwise(0)
+    r = r.with_columns((base + pl.col("fresh").cast(pl.Int64).cum_sum().over([*TRACK, "__life"])).alias("__n"))
     grp = (r.group_by(GROUP, maintain_order=True)
            .agg(((pl.col("__n").max() >= min_plots) | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
            .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left",
@@ -912,8 +933,12 @@ def confirm_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2
     order = rows.select(GROUP).unique(maintain_order=True)
     out = order.join(grp.select(*GROUP, (~pl.col("__conf")).alias("tentative")), on=GROUP, how="left",
                      maintain_order="left")
-    tracks = pl.concat([state.tracks, r.group_by(TRACK).agg(pl.col("__n").max().alias("n_plots"))]
-                       ).group_by(TRACK).agg(pl.col("n_plots").max())
+    last = r.group_by(TRACK).agg(pl.col("__n").last().alias("n_plots"),
+                                 pl.col("__t").filter(pl.col("fresh")).max().alias("__lt"))
+    tracks = (state.tracks.join(last, on=TRACK, how="full", coalesce=True)
+              .select(*TRACK, pl.coalesce("n_plots_right", "n_plots").alias("n_plots"),
+                      pl.coalesce("__lt", "last_time").alias("last_time"))
+              .cast(state.tracks.schema))
     targets = pl.concat([state.targets, grp.filter("__conf").select(CHAIN).cast(state.targets.schema)]).unique()
     return out, ConfirmState(tracks, targets)
 

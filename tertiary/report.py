@@ -1141,8 +1141,11 @@ def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = N
         body.append(text)
     rows, timings = built.rows, built.timings
     summary = (f"{rows.get('reports_in', 0):,} reports in, {rows.get('reports_aligned', 0):,} aligned, "
-               f"{rows.get('reports_rejected', 0):,} rejected; {rows.get('targets', 0):,} system targets; "
-               f"wall time {float(timings.get('wall_s', timings.get('total_s', 0.0))):.1f} s") if rows else ""
+               f"{rows.get('reports_rejected', 0):,} rejected; "
+               + (f"{rows['confirmed_targets']:,} system targets ({rows.get('tentative_targets', 0):,} tentative, "
+                  "clutter-only, not counted); " if "confirmed_targets" in rows
+                  else f"{rows.get('targets', 0):,} system targets; ")
+               + f"wall time {float(timings.get('wall_s', timings.get('total_s', 0.0))):.1f} s") if rows else ""
     scenario = built.scenario
     page = f"""<!DOCTYPE html>
 <html lang="en">

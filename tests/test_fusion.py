@@ -640,3 +640,24 @@ def test_plots_table_gives_the_same_measurement_as_plot_columns():
     assert a["meas_x_m"].null_count() == 2                        # the k = 1 group has no fresh plot
     none = fuse(own.drop("plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"), RADARS, methods=["information"])
     assert none["meas_x_m"].null_count() == none.height and none["n_fresh"].to_list() == [3, 0]
+
+
+def test_a_reused_track_number_starts_a_new_life_for_confirmation():
+    """Radars reuse the numbers of ended tracks: a false plot under an old number after a
+    silence must not inherit the old track's plots (it made ~3 000 clutter targets 'confirmed')."""
+    from datetime import datetime, timedelta, timezone
+    t0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
+    def row(k, target, gap=0.0):
+        t = t0 + timedelta(seconds=4.0 * k + gap)
+        return {"run": 0, "epoch": t, "target_id": target, "radar_id": 1, "local_track_id": 7, "fresh": True, "time": t}
+    rows = pl.DataFrame([row(0, 1), row(1, 1), row(2, 1),            # an aircraft's track, 3 plots
+                         row(3, 2, gap=120.0)],                       # 2 min later: a clutter plot, same number
+                        schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
+                                          "local_track_id": pl.UInt32})
+    out, state = fusion.confirm_step(fusion.ConfirmState.empty(), rows)
+    assert out["tentative"].to_list() == [True, False, False, True]
+    # carried across windows: the same answer, and the state holds the new life's single plot
+    a, st = fusion.confirm_step(fusion.ConfirmState.empty(), rows.head(3))
+    b, st2 = fusion.confirm_step(st, rows.tail(1))
+    assert a["tentative"].to_list() + b["tentative"].to_list() == out["tentative"].to_list()
+    assert st2.tracks["n_plots"].to_list() == [1]
