@@ -164,7 +164,10 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
         cost_of[i[hit]] = cost[hit]
     true_cols = [c for c in ref.columns if c.startswith("true_")]
     matched = best >= 0
-    ref_rows = ref.select("truth_id", *true_cols)[np.where(matched, best, 0)]
+    if ref.height == 0:                       # no reference aircraft alive at any track epoch
+        ref_rows = pl.DataFrame(schema=ref.select("truth_id", *true_cols).schema).clear(n=tr.height)
+    else:
+        ref_rows = ref.select("truth_id", *true_cols)[np.where(matched, best, 0)]
     ref_rows = ref_rows.select(*(pl.when(pl.Series(matched)).then(pl.col(c)).otherwise(None).alias(c)
                                  for c in ref_rows.columns))
     out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24") if c in tr.columns])

@@ -76,3 +76,13 @@ def test_outside_the_gate_or_the_reference_span_is_unmatched():
     assert late["truth_id"].null_count() == late.height         # never extrapolated
     far = match_to_reference(_tracks(truth, offset=(0.0, 2500.0)), truth)   # 2.5 km > 1 NM gate
     assert far["truth_id"].null_count() == far.height
+
+
+def test_a_reference_with_nothing_alive_leaves_every_row_unmatched():
+    """Found by the fuzz campaign: a one-sample truth gave an out-of-bounds gather."""
+    truth = _truth().head(1)
+    m = match_to_reference(_tracks(_truth()), truth)
+    assert m.height == 120 and "true_x_m" in m.columns
+    assert m["truth_id"].null_count() == 119             # aircraft 1 exists at its single sample only
+    empty = match_to_reference(_tracks(_truth()), truth.filter(pl.col("truth_id") < 0))
+    assert empty["truth_id"].null_count() == 120
