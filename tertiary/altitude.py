@@ -15,10 +15,12 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    A reply with |ν| > g·√S + f (``gate_sigma`` g, ``gate_floor_m`` f) is a **garble** (a
    wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
    restarts the filter on itself (a real altitude jump persists, independent garbles do
-   not). Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter's
-   altitude is output only once a second reply has fallen inside the gate of its first: an
-   unconfirmed filter restarts on any reply outside its gate, so a garbled first reply never
-   reaches the picture.
+   not). Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
+   *confirmed* once a second reply falls inside the gate of its first; an unconfirmed filter
+   restarts on any reply outside its gate, and is output only with an inflated σ
+   (``unconfirmed_sigma_m``), so a garbled first reply never outweighs a confirmed source. A
+   reply whose Mode S address differs from the filter's (a radar track that swapped aircraft)
+   restarts it at once.
 
    With ``model="imm"`` (default) the filter is an interacting multiple model (Blom &
    Bar-Shalom 1988) of two such filters that differ only in q_a: **level** (q_L, height
@@ -81,9 +83,15 @@ class AltitudeConfig:
     * ``v0_sigma_mps``: initial ḣ standard deviation (one-point initiation at ḣ = 0).
     * ``gate_sigma``, ``gate_floor_m``: garble gate |ν| ≤ g·√S + f.
     * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
+    * ``unconfirmed_sigma_m``: a filter not yet confirmed by a second consistent reply is output
+      with at least this height σ (and its initial rate σ), so that any confirmed channel of
+      another source wins (minimum variance) but a lone reply still beats the elevation-based
+      fallback — which, on a radar track that has just swapped aircraft, is far worse; None:
+      unconfirmed filters are not output.
     """
 
     model: str = "imm"
+    unconfirmed_sigma_m: float | None = 60.0
     q_m2ps3: float = 0.5
     q_level_m2ps3: float = 1e-4
     level_sojourn_s: float = 300.0
@@ -230,7 +238,8 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
     ``t`` (n,) seconds, ``z`` (n,) altitudes (NaN = missing), ``var`` (n,) their R, sorted so
     that track g owns rows ``starts[g] : starts[g] + lengths[g]`` in time order. Returns the
     (combined) estimate at each row's time after its update (NaN before the track's first
-    altitude), a mask of the rows that have a *confirmed* estimate (two consistent replies),
+    altitude), a mask of the rows that have an estimate (confirmed by two consistent replies,
+    or unconfirmed with the inflated σ of ``cfg.unconfirmed_sigma_m``),
     and a mask of the replies rejected as garbles. ``ident`` (n,), optional: an identity code
     per reply (e.g. the Mode S address as an integer, < 0 = none); a reply whose identity
     differs from the last one the filter saw restarts it at once — a radar track that swapped
@@ -281,8 +290,13 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
         conf[:m] = np.where(restart, False, conf[:m] | accept)
         ok[:m] |= restart
         t_last[:m] = tk
+        if cfg.unconfirmed_sigma_m is not None:
+            weak = ok[:m] & ~conf[:m]
+            nxt.phh = np.where(weak, np.maximum(nxt.phh, cfg.unconfirmed_sigma_m ** 2), nxt.phh)
+            has[idx] = ok[:m]
+        else:
+            has[idx] = ok[:m] & conf[:m]
         out.put(idx, nxt)
-        has[idx] = ok[:m] & conf[:m]
         rejected[idx] = bad & ~restart
     return out, has, rejected
 

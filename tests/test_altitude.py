@@ -40,7 +40,8 @@ def _filterpy_run(t, z, r, cfg):
 
 def test_filter_matches_filterpy_on_several_tracks():
     rng = np.random.default_rng(1)
-    cfg = AltitudeConfig(model="cv", gate_floor_m=1e9)   # no gating, one model: a plain Kalman filter
+    # no gating, one model, no inflated output before confirmation: a plain Kalman filter
+    cfg = AltitudeConfig(model="cv", gate_floor_m=1e9, unconfirmed_sigma_m=None)
     lengths = np.array([30, 7, 55])
     t = np.concatenate([np.cumsum(rng.uniform(3.0, 6.0, n)) for n in lengths])
     z = np.concatenate([3000 + 8.0 * np.arange(n) + rng.normal(0, 3, n) for n in lengths])
@@ -88,7 +89,7 @@ def _filterpy_imm(t, z, r, cfg):
 def test_imm_altitude_filter_matches_filterpy_imm():
     """(A5)–(A9) against filterpy's IMMEstimator: level, climb, level-off, constant interval."""
     rng = np.random.default_rng(7)
-    cfg = AltitudeConfig(gate_floor_m=1e9)
+    cfg = AltitudeConfig(gate_floor_m=1e9, unconfirmed_sigma_m=None)
     t = np.arange(80) * 4.0
     h = np.where(t < 100, 3000.0, np.where(t < 200, 3000.0 + 10.0 * (t - 100), 4000.0))
     z = h + rng.normal(0, 2.2, len(t))
@@ -120,16 +121,22 @@ def test_level_aircraft_rate_is_known_and_a_climb_is_followed():
     assert abs(imm.r[after][0] - 10.0) < 1.5
 
 
-def test_a_garbled_first_reply_never_reaches_the_output():
+def test_a_garbled_first_reply_is_never_confirmed():
     """Found on the default job: a track whose first Mode C reply was garbled (FL381 for an
-    aircraft at 1 400 ft) held that altitude for two scans (11 km vertical error)."""
+    aircraft at 1 400 ft) held that altitude for two scans (11 km vertical error). Now an
+    unconfirmed filter restarts on the next reply outside its gate and is output only with an
+    inflated σ (or not at all), so a confirmed source always wins."""
     t = np.arange(10) * 4.0
     z = np.full(10, 426.72)
     z[0] = 11620.5                                   # garbled first code
     r = np.full(10, quantisation_variance(QUANTUM_MODE_S_M))
-    est, has, _ = filter_tracks(t, z, r, np.array([0]), np.array([10]), AltitudeConfig())
+    strict = AltitudeConfig(unconfirmed_sigma_m=None)
+    est, has, _ = filter_tracks(t, z, r, np.array([0]), np.array([10]), strict)
     assert not has[0] and not has[1]                 # reply 1 disagrees: restart, still unconfirmed
     assert has[2:].all() and np.abs(est.h[2:] - 426.72).max() < 1.0
+    est, has, _ = filter_tracks(t, z, r, np.array([0]), np.array([10]), AltitudeConfig())
+    assert has.all() and np.sqrt(est.phh[:2]).min() >= 60.0 and np.sqrt(est.phh[2:]).max() < 10.0
+    assert est.h[1] == 426.72                        # restarted on the true altitude at once
 
 
 def test_a_new_identity_on_the_track_restarts_the_filter_at_once():
@@ -140,7 +147,7 @@ def test_a_new_identity_on_the_track_restarts_the_filter_at_once():
     ident = np.where(np.arange(12) < 6, 0xCE6732, 0x829BDC)
     r = np.full(12, quantisation_variance(QUANTUM_MODE_S_M))
     est, has, rej = filter_tracks(t, z, r, np.array([0]), np.array([12]), AltitudeConfig(), ident=ident)
-    assert not rej[6] and not has[6] and est.h[6] == z[6]       # restarted on the new aircraft
+    assert not rej[6] and est.h[6] == z[6] and np.sqrt(est.phh[6]) >= 60.0   # restarted, unconfirmed
     assert has[7:].all() and np.abs(est.h[7:] - 426.72).max() < 1.0
     without, has2, rej2 = filter_tracks(t, z, r, np.array([0]), np.array([12]), AltitudeConfig())
     assert rej2[6] and has2[6] and without.h[6] > 11000           # what the identity prevents
