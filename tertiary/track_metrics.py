@@ -149,7 +149,9 @@ def _match_labelled(t: pl.DataFrame, truth: pl.DataFrame, cfg: TrackMetricsConfi
         (var[0] + var[1] + var[2]).sqrt().alias("sd_pos"),
     )
     if "cov" in m.columns:          # a full covariance: the proper NEES Δpᵀ P_pp⁻¹ Δp
+        diag = m["nees_pos"]        # rows without one (a filter that gives only the diagonal) keep it
         m = add_nees(m).drop("nees", "cov")
+        m = m.with_columns(pl.col("nees_pos").fill_nan(None).fill_null(diag))
     return m
 
 
