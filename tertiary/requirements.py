@@ -82,8 +82,10 @@ class Requirements:
 
 
 def example_path() -> Path:
-    """The shipped example file (repository checkout)."""
-    return Path(__file__).resolve().parents[1] / "datasets" / "requirements" / "example.toml"
+    """The shipped example file: ``tertiary/datasets/requirements/example.toml`` in an installed
+    wheel, ``datasets/requirements/example.toml`` in a source checkout."""
+    from tertiary.simulate.config import builtin_dir
+    return builtin_dir() / "requirements" / "example.toml"
 
 
 def metric_kind(metric: str) -> str:

@@ -38,6 +38,9 @@ def test_sql_and_scenarios_shipped_with_installed_package():
     from tertiary.simulate.config import builtin_dir, builtin_scenarios
     assert builtin_dir() == pkg / "datasets"
     assert {"big-box", "terminal-area", "adsb-paris", "adsb"} <= set(builtin_scenarios())
+    from tertiary.requirements import example_path, load_requirements
+    assert example_path().is_file() and pkg in example_path().parents   # the example requirements ship
+    assert load_requirements(example_path()).items
 
 
 @pytest.fixture(scope="module")
