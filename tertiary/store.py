@@ -243,17 +243,17 @@ def compact_covariances(frame: pl.DataFrame) -> pl.DataFrame:
     out = frame
     for name, dtype in frame.schema.items():
         if _is_cov(dtype):
-            full = frame[name].to_numpy().reshape(-1, 36)
-            m = full.reshape(-1, 6, 6)
-            scale = np.nan_to_num(np.abs(np.diagonal(m, axis1=1, axis2=2)).max(axis=1, initial=0.0))
-            asym = np.nan_to_num(np.abs(m - m.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0))
-            if (asym > 1e-9 * np.maximum(scale, 1e-300)).any():
+            c = pl.col(name)
+            lower = [(i, j) for i in range(6) for j in range(i)]
+            asym = pl.max_horizontal(*[(c.arr.get(i * 6 + j) - c.arr.get(j * 6 + i)).abs() for i, j in lower])
+            scale = pl.max_horizontal(*[c.arr.get(k * 7).abs() for k in range(6)])
+            bad = frame.select((asym > 1e-9 * scale.clip(lower_bound=1e-300)).fill_null(False).any()).item()
+            if bad:
                 continue                  # not a covariance: kept whole rather than symmetrised
-            ut = full[:, _IU[0] * 6 + _IU[1]].astype(np.float32)
-            series = pl.Series(name + COV_SUFFIX, ut, dtype=pl.Array(pl.Float32, 21))
-            if frame[name].null_count():
-                series = pl.select(pl.when(frame[name].is_null()).then(None).otherwise(series)
-                                   .alias(series.name)).to_series()
+            # polars expressions, column by column: no (n, 36) float64 copies of a large table
+            ut = pl.concat_arr([c.arr.get(int(k)).cast(pl.Float32) for k in _IU[0] * 6 + _IU[1]])
+            series = frame.select(pl.when(c.is_null()).then(None).otherwise(ut)
+                                  .alias(name + COV_SUFFIX)).to_series()
             order = [c if c != name else series.name for c in out.columns]
             out = out.with_columns(series).select(order)
     return out
