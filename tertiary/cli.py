@@ -528,13 +528,17 @@ def run_summary(db: Path) -> list[str]:
         metrics = store.sql("SELECT * FROM metrics") if "metrics" in tables else pl.DataFrame()
         aircraft = (int(store.sql("SELECT count(DISTINCT truth_id) AS n FROM truth")["n"][0])
                     if "truth" in tables else 0)
+        n_runs = (int(store.sql("SELECT count(DISTINCT run) AS n FROM reports")["n"][0])
+                  if "reports" in tables else 1)
     rows, timings = record.get("rows", {}), record.get("timings", {})
     wall = timings.get("wall_s", timings.get("total_s"))
     lines = [f"run {record.get('scenario', '?')}: {rows.get('reports_in', 0):,} reports in, "
              f"{rows.get('reports_rejected', 0):,} rejected; wall time {_m(wall, ' s')}"]
-    aircraft = f" for {aircraft} aircraft" if aircraft else ""
+    runs_text = f" in each of {n_runs} Monte-Carlo runs" if n_runs > 1 else ""
+    aircraft = f" for {aircraft} aircraft{runs_text}" if aircraft else ""
     if "confirmed_targets" in rows:
-        lines.append(f"system targets: {rows['confirmed_targets']} confirmed{aircraft} "
+        over = " (summed over runs)" if n_runs > 1 else ""
+        lines.append(f"system targets: {rows['confirmed_targets']} confirmed{over}{aircraft} "
                      f"({rows.get('tentative_targets', 0)} tentative, clutter-only, kept in fused with their flag)")
     else:
         lines.append(f"system targets (fused, clutter-only ones included): {rows.get('targets', '–')}{aircraft}")
