@@ -590,9 +590,12 @@ def evaluate_cmd(
                                                          "(its radars give the range rings)")] = None,
     requirements: Annotated[Optional[Path], typer.Option(help="requirements TOML with pass/fail thresholds "
                                                               "[default: none; see datasets/requirements]")] = None,
-    reference: Annotated[str, typer.Option(help="with --dataset: truth (the dataset's truth.parquet) or "
+    reference: Annotated[str, typer.Option(help="with --dataset: truth (the dataset's truth.parquet), "
                                                 "reconstruct (smoothed offline from every radar plot; scored "
-                                                "against the truth too when there is one)")] = "truth",
+                                                "against the truth too when there is one) or adsb (the --adsb "
+                                                "recording, quality-filtered)")] = "truth",
+    adsb: Annotated[Optional[Path], typer.Option(help="ADS-B recording (OpenSky/traffic-schema Parquet) for "
+                                                      "--reference adsb")] = None,
     force: Annotated[bool, typer.Option(help="replace a run already in --out")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report", help="also write RUN_DIR/report.html")] = True,
 ) -> None:
@@ -605,11 +608,15 @@ def evaluate_cmd(
     from tertiary.store import RunStore, record_run
     if (truth is None) == (dataset is None):
         raise OptionError("give the reference with exactly one of --truth FILE or --dataset DIR", option="--truth")
-    if reference not in ("truth", "reconstruct"):
-        raise OptionError(f"choose truth or reconstruct, got {reference!r}", option="--reference")
-    if reference == "reconstruct" and dataset is None:
-        raise OptionError("--reference reconstruct needs --dataset DIR (the radar plots to smooth)",
-                          option="--reference")
+    if reference not in ("truth", "reconstruct", "adsb"):
+        raise OptionError(f"choose truth, reconstruct or adsb, got {reference!r}", option="--reference")
+    if reference in ("reconstruct", "adsb") and dataset is None:
+        raise OptionError(f"--reference {reference} needs --dataset DIR (its frame and radars)", option="--reference")
+    if (reference == "adsb") != (adsb is not None):
+        raise OptionError("--adsb FILE goes with --reference adsb", option="--adsb")
+    from tertiary.evaluation import EvaluationConfig, reference_error_metrics
+    from tertiary.matching import MatchConfig
+    ecfg = EvaluationConfig()
     radars, frame, reports, truth_ref = None, None, None, None
     if dataset is not None:
         ds = read_dataset(dataset)
@@ -619,6 +626,14 @@ def evaluate_cmd(
             key = "truth_id" if "truth_id" in reports.columns and reports["truth_id"].null_count() < reports.height \
                 else "mode_s"
             truth_ref, ref = ref, reconstructed_reference(reports, radars, frame, key=key)
+        elif reference == "adsb":
+            from tertiary.evaluation import adsb_reference_table
+            try:
+                raw = pl.read_parquet(adsb)
+            except (OSError, pl.exceptions.PolarsError) as exc:
+                raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(adsb)) from exc
+            truth_ref, (ref, _removed) = ref, adsb_reference_table(raw, frame)
+            ecfg = EvaluationConfig(match=MatchConfig(max_gap_s=10.0))   # short gaps only
         if ref.height == 0:
             raise DataError("the dataset has no usable truth.parquet to evaluate against", path=str(dataset))
     else:
@@ -633,9 +648,9 @@ def evaluate_cmd(
     t = time.perf_counter()
     with _Steps("evaluate") as say:
         say("match and score")
-        ev = evaluate_pictures(pictures, ref, radars=radars, frame=frame, requirements=reqs)
-        extra = []
-        if truth_ref is not None and truth_ref.height and "truth_id" in ref.columns:
+        ev = evaluate_pictures(pictures, ref, radars=radars, frame=frame, requirements=reqs, cfg=ecfg)
+        extra = [reference_error_metrics(ev.metrics, ref)]
+        if reference == "reconstruct" and truth_ref is not None and truth_ref.height:
             from tertiary.evaluation import RECONSTRUCTED
             say("reconstructed reference against the truth")
             as_picture = ref.with_columns(pl.lit(0, pl.UInt32).alias("run"), pl.col("time").alias("epoch"),

@@ -28,7 +28,8 @@ from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TIME
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "comparison", "read_picture",
-           "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED"]
+           "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
+           "reference_error_metrics"]
 
 #: the picture name under which a reconstructed reference is itself scored against truth
 RECONSTRUCTED = "reference(reconstructed)"
@@ -93,7 +94,7 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
     if id_col != "track_id":
         matched = matched.rename({id_col: "track_id"})
     epochs = matched.select("run", "epoch").unique()
-    expected = reference_at_epochs(epochs, truth)
+    expected = reference_at_epochs(epochs, truth, cfg.match.max_gap_s)
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     metrics = picture_metrics(matched, expected=expected, radar_xy=_radar_xy(radars, frame),
                               breakdown=breakdown, cfg=cfg.metrics)
@@ -116,6 +117,31 @@ def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: 
     return rec.select(pl.col("truth_id").cast(pl.Int64) if key == "truth_id" else "truth_id", "time", "x_m", "y_m",
                       (pl.col("alt_m") - rho2 / (2 * _R_EARTH_M)).alias("z_m"), "vx_mps", "vy_mps",
                       pl.col("alt_rate_mps").alias("vz_mps"), "alt_m", "sigma_h_m")
+
+
+def adsb_reference_table(raw: pl.DataFrame, frame: geo.LocalFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Issue 13 item 5: an ADS-B recording (OpenSky / ``traffic`` schema) as the reference, in the
+    truth schema: points filtered by their declared quality (NACp/NIC/NUCp where present), jumps
+    and stale positions (:func:`tertiary.reference.adsb_reference`), with the reference's own
+    horizontal σ per point (``sigma_h_m``). Returns (reference, removed rows with reasons). Use it
+    with ``MatchConfig(max_gap_s=...)`` so that only short gaps are interpolated."""
+    from tertiary.reference import adsb_reference
+    points, removed = adsb_reference(raw, frame)
+    ref = points.with_columns(pl.col("alt_rate_mps").fill_nan(None).fill_null(0.0).alias("vz_mps"),
+                              pl.col("vx_mps").fill_nan(None), pl.col("vy_mps").fill_nan(None))
+    return ref, removed
+
+
+def reference_error_metrics(metrics: pl.DataFrame, reference: pl.DataFrame) -> pl.DataFrame:
+    """The reference's own horizontal error beside every picture's accuracy: metric
+    ``reference_sigma_h_m`` (RMS of the reference points' per-axis σ × √2), stage evaluation."""
+    if "sigma_h_m" not in reference.columns or metrics.height == 0:
+        return metrics.clear()
+    sig = float(reference.select((2.0 * pl.col("sigma_h_m").pow(2)).mean().sqrt()).item())
+    pics = metrics.filter(pl.col("stage") == "evaluation").select("method", "n_runs").unique("method")
+    return pics.select(pl.lit("evaluation").alias("stage"), "method", pl.lit("reference_sigma_h_m").alias("metric"),
+                       pl.lit("all").alias("segment"), pl.lit(sig).alias("value"), "n_runs"
+                       ).cast(metrics.schema)
 
 
 def read_picture(path: str | Path) -> pl.DataFrame:

@@ -53,10 +53,15 @@ class MatchConfig:
 
     gate_h_m: float = 1852.0
     gate_v_m: float = 300.0
+    #: a reference gap longer than this is not interpolated across: the aircraft is absent from
+    #: the reference there ("not evaluated"); None: interpolate any gap (simulator truth)
+    max_gap_s: float | None = None
 
     def __post_init__(self) -> None:
         if not (self.gate_h_m > 0 and self.gate_v_m > 0):
             raise ValueError("matching gates must be > 0")
+        if self.max_gap_s is not None and not self.max_gap_s > 0:
+            raise ValueError("max_gap_s must be > 0 or None")
 
 
 def _height(frame: pl.DataFrame, prefix: str = "") -> pl.Expr:
@@ -66,11 +71,29 @@ def _height(frame: pl.DataFrame, prefix: str = "") -> pl.Expr:
     return pl.col(f"{prefix}z_m")
 
 
-def reference_at_epochs(epochs: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+def _split_at_gaps(tt: pl.DataFrame, max_gap_s: float) -> pl.DataFrame:
+    """Each aircraft's samples cut into pieces at gaps > ``max_gap_s``: ``truth_id`` becomes a
+    piece id (``__aircraft`` keeps the aircraft), so that spans and interpolation stop at gaps."""
+    keys = ["truth_id"] + (["run"] if "run" in tt.columns else [])
+    tt = tt.sort(*keys, "time")
+    brk = (pl.col("time").diff().over(keys).dt.total_microseconds() > round(max_gap_s * 1e6)).fill_null(False)
+    piece = brk.cast(pl.Int64).cum_sum().over(keys)
+    return tt.with_columns(pl.col("truth_id").alias("__aircraft"),
+                           (pl.col("truth_id") * 1_000_000 + piece).alias("truth_id"))
+
+
+def reference_at_epochs(epochs: pl.DataFrame, truth: pl.DataFrame, max_gap_s: float | None = None) -> pl.DataFrame:
     """Every reference aircraft alive at each (run, epoch) of ``epochs``, interpolated (rule 1):
     columns run, epoch, truth_id, true_<state> (and true_alt_m). A ``truth`` without ``run``
-    is shared by every run (Monte-Carlo); with ``run``, each run has its own."""
+    is shared by every run (Monte-Carlo); with ``run``, each run has its own. With
+    ``max_gap_s``, an aircraft is absent across gaps in its reference longer than that."""
     tt = truth.with_columns(pl.col("time").cast(TIME), pl.col("truth_id").cast(pl.Int64))
+    if max_gap_s is not None:
+        pieces = _split_at_gaps(tt, max_gap_s)
+        ids = pieces.select("truth_id", "__aircraft").unique()
+        ref = reference_at_epochs(epochs, pieces.drop("__aircraft"))
+        return (ref.join(ids, on="truth_id", how="left").drop("truth_id")
+                .rename({"__aircraft": "truth_id"}).select(ref.columns))
     ep = epochs.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).unique()
     if "run" in tt.columns:
         tt = tt.with_columns(pl.col("run").cast(pl.UInt32))
@@ -152,7 +175,7 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     if "method" not in tr.columns:
         tr = tr.with_columns(pl.lit("picture").alias("method"))
     tr = tr.with_columns(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).with_row_index("__row")
-    ref = reference_at_epochs(tr.select("run", "epoch"), truth)
+    ref = reference_at_epochs(tr.select("run", "epoch"), truth, cfg.max_gap_s)
     methods = tr.select("method").unique()
     ref = ref.join(methods, how="cross").join(tr.select("run", "method", "epoch").unique(),
                                               on=["run", "method", "epoch"], how="semi")

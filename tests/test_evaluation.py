@@ -135,3 +135,37 @@ def test_reconstructed_reference_is_scored_against_truth_and_radars_are_evaluate
     bad = runner.invoke(app, ["evaluate", str(files[0]), "--truth", str(root / "ds" / "truth.parquet"), "--out",
                               str(tmp_path / "x"), "--reference", "reconstruct"])
     assert bad.exit_code == 2 and "--dataset" in bad.output
+
+
+def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
+    """Issue 13 item 5: ADS-B points filtered by quality, only short gaps interpolated, and the
+    reference's σ beside the accuracy; a picture 30 m east of the ADS-B flights scores 30 m."""
+    from tertiary import geo
+    from tertiary.evaluation import adsb_reference_table, reference_error_metrics
+    from tertiary.matching import MatchConfig
+    from tertiary.simulate.config import builtin_dir
+    raw = pl.read_parquet(builtin_dir() / "adsb_paris_2021-10-07.parquet")
+    raw = raw.filter(pl.col("icao24").is_in(raw["icao24"].unique().sort().head(6).to_list()))
+    frame = geo.LocalFrame(48.85, 2.35, 0.0)
+    ref, removed = adsb_reference_table(raw, frame)
+    assert ref.height > 100 and removed.height > 0 and "reason" in removed.columns
+    pic = ref.filter(pl.col("alt_m") > 1000).select(
+        pl.lit(0, pl.UInt32).alias("run"), pl.col("time").alias("epoch"), pl.col("truth_id").cast(pl.UInt64)
+        .alias("track_id"), (pl.col("x_m") + 30.0).alias("x_m"), "y_m", "z_m", pl.col("vx_mps").fill_null(0.0),
+        pl.col("vy_mps").fill_null(0.0), "vz_mps", "alt_m", pl.lit("shifted").alias("method"))
+    from tertiary.evaluation import EvaluationConfig
+    ev = evaluate_pictures(pic, ref, cfg=EvaluationConfig(match=MatchConfig(max_gap_s=10.0)))
+    got = dict(ev.metrics.filter(pl.col("segment") == "all").select("metric", "value").iter_rows())
+    assert got["rmse_horizontal_m"] == pytest.approx(30.0, abs=0.5)
+    sig = reference_error_metrics(ev.metrics, ref)
+    assert sig["metric"].to_list() == ["reference_sigma_h_m"] and 5.0 < sig["value"][0] < 100.0
+
+
+def test_reference_options_are_checked(small, tmp_path):
+    root, _ds, files = small
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(tmp_path / "a"),
+                              "--reference", "adsb"])
+    assert res.exit_code == 2 and "--adsb" in res.output
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(tmp_path / "b"),
+                              "--reference", "nope"])
+    assert res.exit_code == 2 and "truth, reconstruct or adsb" in res.output

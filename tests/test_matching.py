@@ -86,3 +86,16 @@ def test_a_reference_with_nothing_alive_leaves_every_row_unmatched():
     assert m["truth_id"].null_count() == 119             # aircraft 1 exists at its single sample only
     empty = match_to_reference(_tracks(_truth()), truth.filter(pl.col("truth_id") < 0))
     assert empty["truth_id"].null_count() == 120
+
+
+def test_a_reference_gap_longer_than_allowed_is_not_interpolated():
+    """An ADS-B reference is interpolated only across short gaps (issue 13 item 5)."""
+    truth = _truth().filter(~((pl.col("truth_id") == 1) & pl.col("time").is_between(
+        T0 + timedelta(seconds=30), T0 + timedelta(seconds=70))))          # a 48 s hole for aircraft 1
+    loose = match_to_reference(_tracks(truth), truth)
+    strict = match_to_reference(_tracks(truth), truth, MatchConfig(max_gap_s=10.0))
+    hole = (pl.col("track_id") == 10) & pl.col("epoch").is_between(T0 + timedelta(seconds=28),
+                                                                     T0 + timedelta(seconds=72), closed="none")
+    assert loose.filter(hole)["truth_id"].null_count() == 0
+    assert strict.filter(hole)["truth_id"].null_count() == strict.filter(hole).height > 0
+    assert strict.filter(~hole)["truth_id"].null_count() == loose.filter(~hole)["truth_id"].null_count()
