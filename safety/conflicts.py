@@ -293,6 +293,9 @@ class ConflictConfig:
       (:data:`STCA_CONFIRMATION`): on the default scenario it removed more than half of the
       false alerts of 1/1 for 8 s of median warning (``benchmarks/safety_thresholds.py``).
       The unconfirmed condition is kept as ``raw_alert``.
+    * ``same_identity_is_duplicate``: two tracks with the same Mode S address (column
+      ``mode_s``) are one aircraft tracked twice, not a pair in conflict: they never alert
+      (their rows are kept, with ``alert`` false).
     * ``near_margin_h_m`` / ``near_margin_v_m`` (1 NM / 300 ft): a pair is *near* when the
       same-time rule holds with both thresholds widened by these margins (column ``near``;
       :func:`slim_conflicts` keeps alert or near rows); the output set is screened with the
@@ -317,6 +320,7 @@ class ConflictConfig:
     max_vel_sigma_mps: float | None = 50.0
     confirm_m: int = 1
     confirm_n: int = 1
+    same_identity_is_duplicate: bool = True
     near_margin_h_m: float = NM_M
     near_margin_v_m: float = 300.0 * FT_M
     v_max_mps: float | None = None
@@ -956,6 +960,11 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
                         ).hstack(pl.DataFrame(cols)[order])
     out = keys.hstack(vals)
+    if cfg.same_identity_is_duplicate and "mode_s" in tracks.columns:
+        ms = tracks["mode_s"].cast(pl.String)
+        a, b = ms.gather(i), ms.gather(j)
+        dup = (a.is_not_null() & (a == b)).fill_null(False)
+        out = out.with_columns(pl.col("alert") & ~pl.Series(dup))
     out = confirm_alerts(out, grid, cfg.confirm_m, cfg.confirm_n)
     spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
     return out.select(list(spec)).cast(spec)

@@ -1070,14 +1070,18 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
     meas = _measurements(rows, methods, a, lay, ws, plots)
     tentative, _ = confirm_step(ConfirmState.empty(), rows, cfg.min_plots)
-    head = rows.select(*GROUP, "radar_id").with_columns(
+    mode_s = pl.col("mode_s").cast(pl.String) if "mode_s" in rows.columns else pl.lit(None, pl.String)
+    head = rows.select(*GROUP, "radar_id", mode_s.alias("__s")).with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))
     ).group_by(GROUP, maintain_order=True).agg(
         pl.col("radar_id").alias("radar_ids"), pl.len().alias("n_sources"),
+        # the target's identity: the address most of its reports carry (ties: the smallest)
+        pl.col("__s").drop_nulls().mode().sort().first().alias("mode_s"),
         *(pl.col(f"__w{i}") for i in range(len(methods))))
     head = head.with_columns(tentative["tentative"])
     keys = pl.concat([head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
-                                  pl.col(f"__w{i}").alias("weights"), "tentative") for i, m in enumerate(methods)])
+                                  pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s")
+                      for i, m in enumerate(methods)])
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)
     mz = meas["meas"].reshape(-1, 3)

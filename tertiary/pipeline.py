@@ -367,6 +367,7 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     pictures = fused.filter(pl.col("method") != "centralized")
     tracks = (track_methods(pictures, cfg.filters, cfg.tracker) if cfg.filters and pictures.height
               else schema.empty_frame("tracks", False))
+    tracks = track_identity(tracks, pictures)
     sink("tracks", tracks)
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
@@ -434,6 +435,20 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
               **_target_counts(fused)}
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts)
+
+
+def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
+    """``tracks`` with ``mode_s``: the Mode S address of the fused target each track was last
+    updated with (carried while it coasts), so that a controller's picture has an identity —
+    what identity correctness is scored on and what tells a duplicate track of one aircraft
+    from a second aircraft."""
+    if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
+        return tracks
+    ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), "mode_s")
+    keys = ["run", "filter", "method", "track_id"]
+    return (tracks.drop("mode_s", strict=False)
+            .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
+            .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
 
 
 def _evaluation_stage(cfg: PipelineConfig, tracks: pl.DataFrame, ing: Ingested, ds: Dataset

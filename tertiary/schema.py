@@ -235,7 +235,8 @@ _FUSED = TableSchema(
 )
 
 #: columns the fusion stage (tertiary.fusion.fuse) adds to ``fused`` for the secondary tracker and
-#: the target count: ``n_fresh`` fresh measurements in the fused plot, ``age_s`` age of the newest
+#: the target count: ``mode_s`` the Mode S address most of the target's reports carry (null
+#: without one), ``n_fresh`` fresh measurements in the fused plot, ``age_s`` age of the newest
 #: of them (s, epoch − report time; the measurement time; without a fresh plot the newest
 #: report of any source), ``tentative`` (a target only ever made of one radar's unconfirmed
 #: one-plot local tracks), and the plot-level fusion of the fresh measured plots at time
@@ -243,7 +244,7 @@ _FUSED = TableSchema(
 #: (row-major, null without a fresh plot). Not in ``_FUSED.optional`` while the centralised
 #: stage (which emits every ``fused`` column) does not produce them.
 FUSED_EXTRA: dict[str, pl.DataType] = {
-    "n_fresh": U32, "age_s": F64, "tentative": BOOL,
+    "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR,
     **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
 }
 
@@ -276,7 +277,8 @@ _TRACKS = TableSchema(
         "model_probs": pl.List(pl.Float64),
     },
     # cov: the full 6×6 position–velocity covariance, row-major (x y z vx vy vz)
-    optional={**_ALT, "cov": COV},
+    # mode_s: the Mode S address of the target the track was last updated with (identity)
+    optional={**_ALT, "cov": COV, "mode_s": STR},
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

@@ -707,3 +707,19 @@ def test_slim_conflicts_from_stored_geometry():
     assert set(zip(got["id_a"], got["id_b"])) == {(1, 2)} and not got["alert"].any()
     assert slim_conflicts(out.drop("near"), margin_h_m=100.0).height == 0
     assert set(zip(slim_conflicts(out)["id_a"], slim_conflicts(out)["id_b"])) == {(1, 2)}
+
+
+def test_two_tracks_of_one_aircraft_are_a_duplicate_not_a_conflict():
+    """Tracks with the same Mode S address are one aircraft tracked twice (a duplicate track):
+    they must not alert; a different or missing address still does."""
+    cfg = ConflictConfig(threshold_mode="fixed")
+    pos, vel = [[0, 0, 3000], [400, 0, 3000], [0, 4000, 3000]], [[100, 0, 0], [100, 0, 0], [0, -100, 0]]
+    for ident, alerting in ((["abc123", "abc123", "def456"], {(1, 3), (2, 3)}),
+                            (["abc123", "abc124", None], {(1, 2), (1, 3), (2, 3)}),
+                            ([None, None, None], {(1, 2), (1, 3), (2, 3)})):
+        df = _frame(pos, vel).with_columns(pl.Series("mode_s", ident, dtype=pl.String))
+        out = predict_conflicts(df, cfg)
+        assert {(r["id_a"], r["id_b"]) for r in out.filter("alert").iter_rows(named=True)} == alerting, ident
+    off = predict_conflicts(_frame(pos, vel).with_columns(pl.Series("mode_s", ["a", "a", "b"])),
+                            ConflictConfig(threshold_mode="fixed", same_identity_is_duplicate=False))
+    assert (1, 2) in {(r["id_a"], r["id_b"]) for r in off.filter("alert").iter_rows(named=True)}

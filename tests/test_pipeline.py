@@ -176,3 +176,18 @@ def test_plot_only_input_runs_end_to_end(small_terminal):
     ds = dataclasses.replace(small_terminal, reports=plots)
     res = pipeline.process(ds, pipeline.PipelineConfig(centralized=False))
     assert set(res.fused["method"].unique().to_list()) == set(METHODS)
+
+
+def test_tracks_carry_the_identity_of_their_targets():
+    """tracks.mode_s: the address of the fused target each track was last updated with, carried
+    while it coasts; scored as identity correctness by the evaluation stage."""
+    import dataclasses
+    from tertiary.simulate import load_scenario, simulate
+    cfg = load_scenario("terminal-area")
+    ds = simulate(dataclasses.replace(cfg, duration_s=300.0, traffic=dataclasses.replace(cfg.traffic, aircraft=16)))
+    res = pipeline.process(ds, pipeline.PipelineConfig(methods=("information",), filters=("singer",),
+                                                       centralized=False, safety=False))
+    assert "mode_s" in res.tracks.columns and res.tracks["mode_s"].null_count() < 0.2 * res.tracks.height
+    frac = res.metrics.filter((pl.col("stage") == "evaluation") & (pl.col("metric") == "mode_s_correct_frac")
+                              & (pl.col("segment") == "all"))["value"]
+    assert frac.len() == 1 and frac[0] > 0.95
