@@ -22,15 +22,21 @@ a radar azimuth is clockwise from north, so bearing = π/2 − azimuth. Its elev
 asin(z/ρ), the same as the radar's. Its ``rotation_offset`` angles (a, b, c) give the matrix
 Rx(−a) Ry(b) Rz(−c) that takes system-frame vectors to the site's axes (:func:`rotation_angles`).
 
-Scoring rule (both trackers, :func:`score`): every output track state at time t is matched to
-the truth aircraft nearest to it horizontally at t (truth linearly interpolated on its 1 s
-grid), if within ``--gate`` m; unmatched states count as false. Horizontal error
+Scoring rule (both trackers, :func:`score`): every output track state at time t is labelled
+with the truth aircraft nearest to it in (x, y, reported height) at t among those within
+``--gate`` m horizontally (truth linearly interpolated on its 1 s grid; the terminal area has
+aircraft stacked on one ground track, which only height tells apart); each track belongs to the aircraft most of its states are
+labelled with, and every state is scored against its track's aircraft at t (so two aircraft
+crossing or stacked do not swap the truth under a track); a state farther than the gate from
+its aircraft, or of a track owning none, is unmatched (``states_matched_fraction``) and not in
+the RMSE. For Stone Soup the owner is checked against the majority ``truth_id`` of the
+detections that updated the track (``owner_agrees_with_detections``). Horizontal error
 Δx² + Δy²; vertical error = the tracker's reported height − true geodetic height, where the
 reported height is the tracker's own height channel when it has one (tertiary ``alt_m``), else
 the geodetic height of its 3-D position (Stone Soup); the system-frame Δz is reported too.
 RMSE over all states and over measurement-updated states only (Stone Soup ``Update``,
-tertiary ``status = confirmed``). A track belongs to the aircraft most of its matched states
-match; tracks per aircraft = tracks belonging to an aircraft / aircraft with ≥ 1 track.
+tertiary ``status = confirmed``). Tracks per aircraft = tracks owning an aircraft / aircraft
+owning ≥ 1 track.
 
     python benchmarks/bench_stonesoup.py [--duration 900] [--aircraft 200] [--workdir DIR]
 """
@@ -156,23 +162,31 @@ def truth_grid(truth: pl.DataFrame, t0) -> TruthGrid:
     return TruthGrid(ids, ts, p)
 
 
-def truth_at(grid: TruthGrid, t: np.ndarray) -> np.ndarray:
-    """Every aircraft's truth (A, n, 4) at times ``t`` (n,), linear between grid samples; at the
-    ends of a life (one neighbour inactive) the active neighbour; NaN where neither is."""
+def _interp(grid: TruthGrid, a: np.ndarray | slice, t: np.ndarray) -> np.ndarray:
+    """Truth of aircraft ``a`` at times ``t``: linear between grid samples; at the ends of a life
+    (one neighbour inactive) the active neighbour; NaN where neither is. ``a`` a slice gives
+    (A, n, 4) for every aircraft, an index array (n,) gives (n, 4) for one aircraft per time."""
     k = np.clip(np.searchsorted(grid.t, t, side="right") - 1, 0, len(grid.t) - 1)
     k1 = np.minimum(k + 1, len(grid.t) - 1)
     span = grid.t[k1] - grid.t[k]
-    w = np.where(span > 0, (t - grid.t[k]) / np.where(span > 0, span, 1.0), 0.0)[None, :, None]
-    a, b = grid.p[:, k], grid.p[:, k1]
-    mix = (1 - w) * a + w * b
-    mix = np.where(np.isnan(a), b, mix)
-    return np.where(np.isnan(b), a, mix)
+    w = np.where(span > 0, (t - grid.t[k]) / np.where(span > 0, span, 1.0), 0.0)[..., None]
+    lo, hi = grid.p[a, k], grid.p[a, k1]
+    mix = (1 - w) * lo + w * hi
+    mix = np.where(np.isnan(lo), hi, mix)
+    return np.where(np.isnan(hi), lo, mix)
 
 
-def match_nearest(grid: TruthGrid, t: np.ndarray, xy: np.ndarray, gate_m: float,
+def truth_at(grid: TruthGrid, t: np.ndarray) -> np.ndarray:
+    """Every aircraft's truth (A, n, 4) at times ``t`` (n,) (see :func:`_interp`)."""
+    return _interp(grid, slice(None), t)
+
+
+def match_nearest(grid: TruthGrid, t: np.ndarray, xy: np.ndarray, gate_m: float, h: np.ndarray | None = None,
                   chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
-    """For each state (t, x, y): the index into ``grid.ids`` of the horizontally nearest truth
-    aircraft within ``gate_m`` (−1: none) and that aircraft's truth (n, 4) (NaN: none)."""
+    """For each state (t, x, y[, reported height h]): the index into ``grid.ids`` of the nearest
+    truth aircraft among those within ``gate_m`` horizontally (−1: none) and that aircraft's
+    truth (n, 4) (NaN: none). Nearest in (x, y, h) when ``h`` is given, so that aircraft stacked
+    on the same ground track are told apart by height, else horizontally."""
     n = len(t)
     idx = np.full(n, -1, np.int64)
     tru = np.full((n, 4), np.nan)
@@ -181,12 +195,25 @@ def match_nearest(grid: TruthGrid, t: np.ndarray, xy: np.ndarray, gate_m: float,
         at = truth_at(grid, t[lo:hi])
         d2 = (at[..., 0] - xy[None, lo:hi, 0]) ** 2 + (at[..., 1] - xy[None, lo:hi, 1]) ** 2
         d2 = np.where(np.isnan(d2), np.inf, d2)
-        best = np.argmin(d2, axis=0)
+        rank = d2 if h is None else d2 + np.nan_to_num((at[..., 3] - h[None, lo:hi]) ** 2, nan=0.0)
+        rank = np.where(d2 <= gate_m ** 2, rank, np.inf)
+        best = np.argmin(rank, axis=0)
         cols = np.arange(hi - lo)
-        ok = d2[best, cols] <= gate_m ** 2
+        ok = np.isfinite(rank[best, cols])
         idx[lo:hi] = np.where(ok, best, -1)
         tru[lo:hi] = np.where(ok[:, None], at[best, cols], np.nan)
     return idx, tru
+
+
+def owners(track_id: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, pl.DataFrame]:
+    """Each track's aircraft: the truth most of its states matched (ties: the lower index; −1 =
+    none, a false track when most of its states matched nothing). Returns the owner of each
+    state's track (n,) and the (track, truth) table."""
+    f = pl.DataFrame({"track": track_id, "truth": idx})
+    own = (f.group_by("track", "truth").len().sort("len", "truth", descending=[True, False])
+           .group_by("track", maintain_order=True).first().select("track", "truth"))
+    per_state = f.select("track").join(own, on="track", how="left", maintain_order="left")["truth"].to_numpy()
+    return per_state, own
 
 
 def _rmse(e2: np.ndarray) -> float | None:
@@ -196,38 +223,61 @@ def _rmse(e2: np.ndarray) -> float | None:
 
 def score(states: pl.DataFrame, grid: TruthGrid, gate_m: float = 1000.0) -> dict:
     """Score track states (track_id, t [s on the grid's clock], x_m, y_m, z_m, h_m reported
-    height, updated bool) against truth with the module's one rule (see the module docstring)."""
+    height, updated bool) against truth with the module's one rule: label each state with the
+    aircraft nearest in (x, y, reported height) among those within the gate horizontally, give each track the aircraft most of its
+    states were labelled with (:func:`owners`), then score every state of a track against its
+    owner's truth at the state's time; a state more than the gate from its owner (or whose
+    track owns none) is unmatched and not in the RMSE."""
     t = states["t"].to_numpy()
     xyz = states.select("x_m", "y_m", "z_m").to_numpy()
-    idx, tru = match_nearest(grid, t, xyz[:, :2], gate_m)
+    idx, _ = match_nearest(grid, t, xyz[:, :2], gate_m, states["h_m"].to_numpy())
+    own, table = owners(states["track_id"].to_numpy(), idx)
+    tru = np.full((len(t), 4), np.nan)
+    has = own >= 0
+    tru[has] = _interp(grid, own[has], t[has])
     e2_h = ((xyz[:, :2] - tru[:, :2]) ** 2).sum(axis=1)
-    e2_v = (states["h_m"].to_numpy() - tru[:, 3]) ** 2
-    e2_z = (xyz[:, 2] - tru[:, 2]) ** 2
-    upd = states["updated"].to_numpy() & (idx >= 0)
-    out = {"states": int(len(t)), "states_matched_fraction": float((idx >= 0).mean()) if len(t) else 0.0,
+    ok = e2_h <= gate_m ** 2            # NaN (no owner / owner not alive) compares False
+    e2_h = np.where(ok, e2_h, np.nan)
+    e2_v = np.where(ok, (states["h_m"].to_numpy() - tru[:, 3]) ** 2, np.nan)
+    e2_z = np.where(ok, (xyz[:, 2] - tru[:, 2]) ** 2, np.nan)
+    upd = states["updated"].to_numpy() & ok
+    out = {"states": int(len(t)), "states_matched_fraction": float(ok.mean()) if len(t) else 0.0,
            "rmse_horizontal_m": _rmse(e2_h), "rmse_vertical_m": _rmse(e2_v), "rmse_z_enu_m": _rmse(e2_z),
            "rmse_horizontal_updated_m": _rmse(e2_h[upd]), "rmse_vertical_updated_m": _rmse(e2_v[upd]),
            "rmse_z_enu_updated_m": _rmse(e2_z[upd])}
-    return out | track_counts(states["track_id"].to_numpy(), idx)
+    out |= track_counts(table)
+    if "truth_id" in states.columns:   # Stone Soup: the truth ids its updates' detections carried
+        out["owner_agrees_with_detections"] = detection_agreement(states, table, grid)
+    return out
 
 
-def track_counts(track_id: np.ndarray, idx: np.ndarray) -> dict:
-    """Tracks per true aircraft: each track belongs to the aircraft most of its states matched
-    (−1 = no aircraft, a false track when most of its states matched none)."""
-    f = pl.DataFrame({"track": track_id, "truth": idx})
-    owner = (f.group_by("track", "truth").len().sort("len", "truth", descending=[True, False])
-             .group_by("track", maintain_order=True).first())
-    real = owner.filter(pl.col("truth") >= 0)
+def detection_agreement(states: pl.DataFrame, table: pl.DataFrame, grid: TruthGrid) -> float | None:
+    """Fraction of tracks whose owner (nearest-truth labels) is also the majority ``truth_id``
+    of the detections that updated it (a check of the scoring rule on Stone Soup's tracks)."""
+    det = (states.filter(pl.col("truth_id").is_not_null() & (pl.col("truth_id") >= 0))
+           .group_by("track_id", "truth_id").len().sort("len", "truth_id", descending=[True, False])
+           .group_by("track_id", maintain_order=True).first())
+    ids = pl.DataFrame({"truth": np.arange(len(grid.ids)), "owner_id": grid.ids})
+    both = table.join(ids, on="truth", how="left").join(det, left_on="track", right_on="track_id", how="inner")
+    return float((both["owner_id"] == both["truth_id"]).mean()) if both.height else None
+
+
+def track_counts(table: pl.DataFrame) -> dict:
+    """Tracks, false tracks (owning no aircraft), aircraft owning ≥ 1 track, and tracks per such
+    aircraft, from the (track, truth) owner table of :func:`owners`."""
+    real = table.filter(pl.col("truth") >= 0)
     aircraft = real["truth"].n_unique()
-    return {"tracks": owner.height, "false_tracks": owner.height - real.height, "aircraft_tracked": aircraft,
+    return {"tracks": table.height, "false_tracks": table.height - real.height, "aircraft_tracked": aircraft,
             "tracks_per_aircraft": real.height / aircraft if aircraft else None}
 
 
 # --------------------------------------------------------------------------- the two jobs (child processes)
 
 
-def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_s: float, min_points: int) -> dict:
-    """Stone Soup's standard multi-target tracker on the plots of ``dataset`` (run 0); writes
+def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_s: float, min_points: int,
+                  limit_s: float | None = None) -> dict:
+    """Stone Soup's standard multi-target tracker on the plots of ``dataset`` (run 0; only the
+    first ``limit_s`` seconds of reports when given); writes
     the track states to ``out`` (Parquet) and returns timings. The conversion is checked first
     against tertiary's geo on a sample of plots (not timed)."""
     import datetime
@@ -268,6 +318,8 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
     ds = read_dataset(dataset)
     models = models_for(ds.radars, ds.origin)
     rep = ds.reports.filter(pl.col("run") == pl.col("run").min()).sort("time")
+    if limit_s is not None:
+        rep = rep.filter(pl.col("time") < pl.col("time").min() + datetime.timedelta(seconds=limit_s))
     meas = plots_to_measurements(rep["range_m"].to_numpy(), rep["azimuth_deg"].to_numpy(),
                                  rep["elevation_deg"].to_numpy())
     dets = [Detection(StateVector([Elevation(m[0]), Bearing(m[1]), m[2]]), timestamp=ts,
@@ -297,9 +349,12 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
     for _, current in tracker:
         tracks |= current
     rows = [(k, s.timestamp, float(s.state_vector[0, 0]), float(s.state_vector[2, 0]),
-             float(s.state_vector[4, 0]), isinstance(s, Update))
+             float(s.state_vector[4, 0]), isinstance(s, Update),
+             s.hypothesis.measurement.metadata.get("truth_id") if isinstance(s, Update) else None)
             for k, tr in enumerate(tracks) for s in tr.states]
-    frame = pl.DataFrame(rows, schema=["track_id", "time", "x_m", "y_m", "z_m", "updated"], orient="row")
+    frame = pl.DataFrame(rows, schema={"track_id": pl.Int64, "time": pl.Datetime("us", "UTC"), "x_m": pl.Float64,
+                                       "y_m": pl.Float64, "z_m": pl.Float64, "updated": pl.Boolean,
+                                       "truth_id": pl.Int64}, orient="row")
     frame.write_parquet(out)
     wall = time.perf_counter() - t_start
     return {"reports": rep.height, "wall_s": wall, "tracks": len(tracks)}
@@ -329,7 +384,7 @@ STONESOUP_CODE = """
 import sys, json
 sys.path.insert(0, {bench!r})
 import bench_stonesoup as b
-print(json.dumps(b.stonesoup_job({dataset!r}, {out!r}, {q!r}, {sync!r}, {delete_after!r}, {min_points!r})))
+print(json.dumps(b.stonesoup_job({dataset!r}, {out!r}, {q!r}, {sync!r}, {delete_after!r}, {min_points!r}, {limit!r})))
 """
 
 TERTIARY_CODE = """
@@ -398,6 +453,9 @@ def main() -> None:
     ap.add_argument("--min-points", type=int, default=2, help="Stone Soup initiator confirmation points")
     ap.add_argument("--gate", type=float, default=1000.0, help="scoring gate, m (horizontal)")
     ap.add_argument("--centralized", action="store_true", help="tertiary also runs the centralised reference")
+    ap.add_argument("--stonesoup-seconds", type=float, default=None,
+                    help="Stone Soup processes only the first S seconds of reports (its cost grows with tracks x "
+                         "detections); both trackers are then scored on that window only")
     ap.add_argument("--rescore", action="store_true", help="re-score the jobs already run in --workdir")
     ap.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/bench_stonesoup.json")
     args = ap.parse_args()
@@ -411,7 +469,7 @@ def main() -> None:
     else:
         ss = run_isolated(STONESOUP_CODE.format(bench=str(BENCH_DIR), dataset=str(data), out=str(ss_out), q=args.q,
                                                 sync=args.sync, delete_after=args.delete_after,
-                                                min_points=args.min_points))
+                                                min_points=args.min_points, limit=args.stonesoup_seconds))
         te = run_isolated(TERTIARY_CODE.format(dataset=str(data), out=str(work / "tertiary_run"),
                                                centralized=args.centralized))
         jobs.write_text(json.dumps([ss, te]))
@@ -420,15 +478,19 @@ def main() -> None:
     ds = read_dataset(data)
     t0 = ds.truth["time"].min()
     grid = truth_grid(ds.truth, t0)
-    ss_score = score(stonesoup_states(ss_out, t0, ds.origin), grid, args.gate)
-    te_score = score(tertiary_states(te["db"], t0, ds.origin), grid, args.gate)
+    ss_states, te_states = stonesoup_states(ss_out, t0, ds.origin), tertiary_states(te["db"], t0, ds.origin)
+    if args.stonesoup_seconds is not None:   # the same window for both
+        t_end = ds.reports.select(seconds("time", t0).min()).item() + args.stonesoup_seconds
+        te_states = te_states.filter(pl.col("t") < t_end)
+    ss_score, te_score = score(ss_states, grid, args.gate), score(te_states, grid, args.gate)
     detected = ds.reports["truth_id"].drop_nulls().filter(ds.reports["truth_id"].drop_nulls() >= 0).n_unique()
     for s in (ss_score, te_score):
         s["aircraft_detected"] = detected
     ss_rate, te_rate = ss["reports"] / ss["wall_s"], te["reports"] / te["wall_s"]
     result = {
         "scenario": {"name": "terminal-area", "aircraft": args.aircraft, "duration_s": args.duration,
-                     "radars": ds.radars.height, "reports": ds.reports.height},
+                     "radars": ds.radars.height, "reports": ds.reports.height,
+                     "stonesoup_window_s": args.stonesoup_seconds, "stonesoup_reports": ss["reports"]},
         "stonesoup": {"version": _version("stonesoup"), "wall_s": ss["wall_s"], "reports_per_s": ss_rate,
                       "peak_rss_mib": ss["peak_rss_mib"],
                       "config": {"q_m2ps3": args.q, "sync_s": args.sync, "delete_after_s": args.delete_after,

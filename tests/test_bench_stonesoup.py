@@ -118,3 +118,43 @@ def test_nearest_truth_respects_the_gate():
     grid = bench.truth_grid(_truth(), T0)
     idx, tru = bench.match_nearest(grid, np.array([3.0, 3.0]), np.array([[300.0, 900.0], [300.0, 1100.0]]), 1000.0)
     assert idx.tolist() == [0, -1] and np.isnan(tru[1]).all()
+
+
+def test_a_state_nearer_another_aircraft_is_scored_against_its_tracks_aircraft():
+    """Stacked traffic: C sits 100 m east of A's track point at t = 3 s, 3 km higher. The track
+    follows A (its owner by majority), so its t = 3 s state is scored against A, not C."""
+    truth = pl.concat([_truth(), pl.DataFrame(
+        [(3, T0 + timedelta(seconds=3), 380.0, 0.0, 6000.0, 6000.0)],
+        schema=["truth_id", "time", "x_m", "y_m", "z_m", "alt_m"], orient="row")])
+    grid = bench.truth_grid(truth, T0)
+    states = pl.DataFrame({"track_id": [1] * 4, "t": [1.0, 2.0, 3.0, 4.0], "x_m": [100.0, 200.0, 360.0, 400.0],
+                           "y_m": [0.0] * 4, "z_m": [3000.0] * 4, "h_m": [3000.0] * 4, "updated": [True] * 4})
+    idx, _ = bench.match_nearest(grid, states["t"].to_numpy(), states.select("x_m", "y_m").to_numpy(), 1000.0)
+    assert grid.ids[idx[2]] == 3                      # the per-state nearest is C ...
+    s = bench.score(states, grid, 1000.0)
+    assert s["rmse_vertical_m"] == pytest.approx(0.0)  # ... but the track is scored against A
+    assert s["rmse_horizontal_m"] == pytest.approx(np.sqrt(60.0 ** 2 / 4))
+    assert s["tracks_per_aircraft"] == 1.0 and s["aircraft_tracked"] == 1
+
+
+def test_stonesoup_owner_is_checked_against_its_detections_truth():
+    grid = bench.truth_grid(_truth(), T0)
+    states = pl.DataFrame({"track_id": [1, 1, 2, 2], "t": [2.0, 3.0, 2.0, 3.0],
+                           "x_m": [200.0, 300.0, 5000.0, 5000.0], "y_m": [0.0, 0.0, 100.0, 150.0],
+                           "z_m": [3000.0, 3000.0, 6000.0, 6000.0], "h_m": [3000.0, 3000.0, 6000.0, 6000.0],
+                           "updated": [True] * 4, "truth_id": [1, 1, 1, 1]})   # track 2's detections say A
+    assert bench.score(states, grid, 1000.0)["owner_agrees_with_detections"] == pytest.approx(0.5)
+
+
+def test_stacked_aircraft_are_told_apart_by_reported_height():
+    """D flies exactly above A (same ground track, 6 km higher): a track reporting D's height
+    belongs to D, a track reporting A's height to A; horizontally both are 0 m from each."""
+    rows = [(4, T0 + timedelta(seconds=k), 100.0 * k, 0.0, 9000.0, 9000.0) for k in range(11)]
+    grid = bench.truth_grid(pl.concat([_truth(), pl.DataFrame(rows, schema=_truth().schema, orient="row")]), T0)
+    t, xy = np.array([3.0, 3.0]), np.array([[300.0, 0.0], [300.0, 0.0]])
+    idx, tru = bench.match_nearest(grid, t, xy, 1000.0, h=np.array([9010.0, 3010.0]))
+    assert grid.ids[idx].tolist() == [4, 1]
+    np.testing.assert_allclose(tru[:, 3], [9000.0, 3000.0])
+    states = pl.DataFrame({"track_id": [7, 7], "t": [3.0, 4.0], "x_m": [300.0, 400.0], "y_m": [0.0, 0.0],
+                           "z_m": [9000.0, 9000.0], "h_m": [9010.0, 9010.0], "updated": [True, True]})
+    assert bench.score(states, grid, 1000.0)["rmse_vertical_m"] == pytest.approx(10.0)
