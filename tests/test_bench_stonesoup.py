@@ -1,0 +1,160 @@
+"""benchmarks/bench_stonesoup.py: the plot conversion to Stone Soup's measurement model and the
+one scoring rule, with numpy only (Stone Soup itself is not needed; the benchmark checks its real
+model against the same conversion before it runs)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+import pytest
+
+from tertiary import geo
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_stonesoup.py"
+sys.path.insert(0, str(_PATH.parent))
+_spec = importlib.util.spec_from_file_location("bench_stonesoup", _PATH)
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
+
+SYSTEM = geo.LocalFrame(48.85, 2.35, 0.0)
+RADARS = pl.DataFrame({"radar_id": [1, 2], "lat_deg": [49.30, 48.60], "lon_deg": [3.10, 1.70],
+                       "alt_m": [210.0, 95.0], "sigma_range_m": [30.0, 50.0],
+                       "sigma_azimuth_deg": [0.05, 0.08], "sigma_elevation_deg": [0.1, 0.2]})
+
+
+def test_bearing_is_counter_clockwise_from_east():
+    # north (az 0) is +y: bearing +90°; east (az 90) is +x: bearing 0; west (az 270): ±180°
+    got = np.degrees(bench.azimuth_to_bearing(np.array([0.0, 90.0, 180.0, 45.0, 359.0])))
+    np.testing.assert_allclose(got, [90.0, 0.0, -90.0, 45.0, 91.0], atol=1e-12)
+    assert abs(abs(np.degrees(bench.azimuth_to_bearing(np.array([270.0]))[0])) - 180.0) < 1e-12
+
+
+def test_rotation_angles_rebuild_the_site_rotation():
+    for r in RADARS.iter_rows(named=True):
+        m = SYSTEM.rotation_to(geo.LocalFrame(r["lat_deg"], r["lon_deg"], r["alt_m"]))
+        assert np.abs(m - np.eye(3)).max() > 1e-3          # sites far enough for the rotation to matter
+        np.testing.assert_allclose(bench.ss_rotation_matrix(bench.rotation_angles(m)), m, atol=1e-14)
+
+
+def test_stonesoup_inverse_of_converted_plots_lands_on_tertiary_conversion():
+    rng = np.random.default_rng(3)
+    geom = bench.site_geometry(RADARS, SYSTEM)
+    for r in RADARS.iter_rows(named=True):
+        n = 500
+        rng_m, az, el = rng.uniform(1e3, 2.5e5, n), rng.uniform(0, 360, n), rng.uniform(-1, 30, n)
+        meas = bench.plots_to_measurements(rng_m, az, el)
+        ss = bench.ss_inverse(meas, geom[r["radar_id"]])
+        ours = bench.tertiary_plot_to_system(rng_m, az, el, r, SYSTEM)
+        assert np.abs(ss - ours).max() < 1e-6
+        # and a swapped convention (bearing = azimuth) would be km off
+        wrong = meas.copy()
+        wrong[:, 1] = np.radians(az)
+        assert np.abs(bench.ss_inverse(wrong, geom[r["radar_id"]]) - ours).max() > 1e3
+    # σ ordering follows the measurement vector (elevation, bearing, range)
+    np.testing.assert_allclose(geom[1].sigma, [np.radians(0.1), np.radians(0.05), 30.0])
+
+
+def test_site_translation_is_the_site_in_the_system_frame():
+    g = bench.site_geometry(RADARS, SYSTEM)[2]
+    e, n, u = SYSTEM.from_geodetic(48.60, 1.70, 95.0)
+    np.testing.assert_allclose(g.translation, [e, n, u], atol=1e-6)
+
+
+T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
+
+
+def _truth() -> pl.DataFrame:
+    """Two aircraft on a 1 s grid: A east at 100 m/s from (0, 0, 3000); B north at 50 m/s from
+    (5000, 0, 6000), present from t = 2 s."""
+    rows = []
+    for k in range(11):
+        rows.append((1, T0 + timedelta(seconds=k), 100.0 * k, 0.0, 3000.0, 3000.0))
+        if k >= 2:
+            rows.append((2, T0 + timedelta(seconds=k), 5000.0, 50.0 * k, 6000.0, 6000.0))
+    return pl.DataFrame(rows, schema=["truth_id", "time", "x_m", "y_m", "z_m", "alt_m"], orient="row")
+
+
+def test_truth_is_interpolated_between_grid_samples_and_absent_outside_life():
+    grid = bench.truth_grid(_truth(), T0)
+    at = bench.truth_at(grid, np.array([0.5, 3.25, 10.0]))
+    np.testing.assert_allclose(at[0, :, 0], [50.0, 325.0, 1000.0])
+    assert np.isnan(at[1, 0]).all()
+    np.testing.assert_allclose(at[1, 1, 1], 162.5)
+
+
+def test_score_one_rule_horizontal_vertical_and_tracks_per_aircraft():
+    grid = bench.truth_grid(_truth(), T0)
+    t = np.array([0.5, 1.5, 2.5, 3.5, 2.5, 3.5, 4.0, 5.0])
+    states = pl.DataFrame({
+        "track_id": [1, 1, 1, 1, 2, 2, 3, 3],
+        "t": t,
+        # track 1 follows A with 30 m east / 40 m north error; track 2 follows B with 10 m; track 3 is
+        # far from everything (false)
+        "x_m": [80.0, 180.0, 280.0, 380.0, 5010.0, 5010.0, -9e4, -9e4],
+        "y_m": [40.0, 40.0, 40.0, 40.0, 125.0, 175.0, 9e4, 9e4],
+        "z_m": [3000.0] * 4 + [6000.0] * 2 + [0.0, 0.0],
+        "h_m": [3020.0] * 4 + [5990.0] * 2 + [0.0, 0.0],
+        "updated": [True, False, True, False, True, True, True, True],
+    })
+    s = bench.score(states, grid, gate_m=1000.0)
+    assert s["states"] == 8 and s["states_matched_fraction"] == pytest.approx(6 / 8)
+    # horizontal e² = 50² for track 1 (4 states), 10² for track 2 (2 states)
+    assert s["rmse_horizontal_m"] == pytest.approx(np.sqrt((4 * 2500 + 2 * 100) / 6))
+    assert s["rmse_vertical_m"] == pytest.approx(np.sqrt((4 * 400 + 2 * 100) / 6))
+    assert s["rmse_horizontal_updated_m"] == pytest.approx(np.sqrt((2 * 2500 + 2 * 100) / 4))
+    assert s["tracks"] == 3 and s["false_tracks"] == 1 and s["aircraft_tracked"] == 2
+    assert s["tracks_per_aircraft"] == pytest.approx(1.0)
+    # a second track on A makes 1.5 tracks per aircraft
+    extra = states.head(2).with_columns(pl.lit(4, pl.Int64).alias("track_id"))
+    assert bench.score(pl.concat([states, extra]), grid, 1000.0)["tracks_per_aircraft"] == pytest.approx(1.5)
+
+
+def test_nearest_truth_respects_the_gate():
+    grid = bench.truth_grid(_truth(), T0)
+    idx, tru = bench.match_nearest(grid, np.array([3.0, 3.0]), np.array([[300.0, 900.0], [300.0, 1100.0]]), 1000.0)
+    assert idx.tolist() == [0, -1] and np.isnan(tru[1]).all()
+
+
+def test_a_state_nearer_another_aircraft_is_scored_against_its_tracks_aircraft():
+    """Stacked traffic: C sits 100 m east of A's track point at t = 3 s, 3 km higher. The track
+    follows A (its owner by majority), so its t = 3 s state is scored against A, not C."""
+    truth = pl.concat([_truth(), pl.DataFrame(
+        [(3, T0 + timedelta(seconds=3), 380.0, 0.0, 6000.0, 6000.0)],
+        schema=["truth_id", "time", "x_m", "y_m", "z_m", "alt_m"], orient="row")])
+    grid = bench.truth_grid(truth, T0)
+    states = pl.DataFrame({"track_id": [1] * 4, "t": [1.0, 2.0, 3.0, 4.0], "x_m": [100.0, 200.0, 360.0, 400.0],
+                           "y_m": [0.0] * 4, "z_m": [3000.0] * 4, "h_m": [3000.0] * 4, "updated": [True] * 4})
+    idx, _ = bench.match_nearest(grid, states["t"].to_numpy(), states.select("x_m", "y_m").to_numpy(), 1000.0)
+    assert grid.ids[idx[2]] == 3                      # the per-state nearest is C ...
+    s = bench.score(states, grid, 1000.0)
+    assert s["rmse_vertical_m"] == pytest.approx(0.0)  # ... but the track is scored against A
+    assert s["rmse_horizontal_m"] == pytest.approx(np.sqrt(60.0 ** 2 / 4))
+    assert s["tracks_per_aircraft"] == 1.0 and s["aircraft_tracked"] == 1
+
+
+def test_stonesoup_owner_is_checked_against_its_detections_truth():
+    grid = bench.truth_grid(_truth(), T0)
+    states = pl.DataFrame({"track_id": [1, 1, 2, 2], "t": [2.0, 3.0, 2.0, 3.0],
+                           "x_m": [200.0, 300.0, 5000.0, 5000.0], "y_m": [0.0, 0.0, 100.0, 150.0],
+                           "z_m": [3000.0, 3000.0, 6000.0, 6000.0], "h_m": [3000.0, 3000.0, 6000.0, 6000.0],
+                           "updated": [True] * 4, "truth_id": [1, 1, 1, 1]})   # track 2's detections say A
+    assert bench.score(states, grid, 1000.0)["owner_agrees_with_detections"] == pytest.approx(0.5)
+
+
+def test_stacked_aircraft_are_told_apart_by_reported_height():
+    """D flies exactly above A (same ground track, 6 km higher): a track reporting D's height
+    belongs to D, a track reporting A's height to A; horizontally both are 0 m from each."""
+    rows = [(4, T0 + timedelta(seconds=k), 100.0 * k, 0.0, 9000.0, 9000.0) for k in range(11)]
+    grid = bench.truth_grid(pl.concat([_truth(), pl.DataFrame(rows, schema=_truth().schema, orient="row")]), T0)
+    t, xy = np.array([3.0, 3.0]), np.array([[300.0, 0.0], [300.0, 0.0]])
+    idx, tru = bench.match_nearest(grid, t, xy, 1000.0, h=np.array([9010.0, 3010.0]))
+    assert grid.ids[idx].tolist() == [4, 1]
+    np.testing.assert_allclose(tru[:, 3], [9000.0, 3000.0])
+    states = pl.DataFrame({"track_id": [7, 7], "t": [3.0, 4.0], "x_m": [300.0, 400.0], "y_m": [0.0, 0.0],
+                           "z_m": [9000.0, 9000.0], "h_m": [9010.0, 9010.0], "updated": [True, True]})
+    assert bench.score(states, grid, 1000.0)["rmse_vertical_m"] == pytest.approx(10.0)
