@@ -90,14 +90,22 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
     missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
     if missing:
         raise DataError(f"tracks: missing column(s) {', '.join(missing)} (the tracks schema)")
-    matched = match_to_reference(tracks, truth, cfg.match, id_col=id_col)
-    if id_col != "track_id":
-        matched = matched.rename({id_col: "track_id"})
-    epochs = matched.select("run", "epoch").unique()
-    expected = reference_at_epochs(epochs, truth, cfg.match.max_gap_s)
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
-    metrics = picture_metrics(matched, expected=expected, radar_xy=_radar_xy(radars, frame),
-                              breakdown=breakdown, cfg=cfg.metrics)
+    radar_xy = _radar_xy(radars, frame)
+    if "method" not in tracks.columns:
+        tracks = tracks.with_columns(pl.lit("picture").alias("method"))
+    matched_parts, metric_parts = [], []
+    # one picture at a time: the memory of the stage is that of one picture, not of all of them
+    for picture in tracks.partition_by("method", maintain_order=True):
+        matched = match_to_reference(picture, truth, cfg.match, id_col=id_col)
+        if id_col != "track_id":
+            matched = matched.rename({id_col: "track_id"})
+        expected = reference_at_epochs(matched.select("run", "epoch").unique(), truth, cfg.match.max_gap_s)
+        metric_parts.append(picture_metrics(matched, expected=expected, radar_xy=radar_xy,
+                                            breakdown=breakdown, cfg=cfg.metrics))
+        matched_parts.append(matched)
+    matched = pl.concat(matched_parts, how="diagonal_relaxed") if matched_parts else tracks.clear()
+    metrics = pl.concat(metric_parts, how="vertical_relaxed") if metric_parts else pl.DataFrame()
     reqs = check_requirements(metrics, requirements) if requirements is not None else pl.DataFrame()
     return Evaluation(matched, metrics, reqs, comparison(metrics))
 
