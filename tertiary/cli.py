@@ -603,7 +603,7 @@ def evaluate_cmd(
     matching, the surveillance metrics (accuracy, along/across track, latency, update
     probability, continuity, false/split/merged tracks, identity) by altitude band, range ring
     and flight phase, and requirements with pass/fail."""
-    from tertiary.evaluation import evaluate_pictures, read_pictures
+    from tertiary.evaluation import evaluate_pictures, read_parquet_file, read_pictures
     from tertiary.requirements import load_requirements
     from tertiary.store import RunStore, record_run
     if (truth is None) == (dataset is None):
@@ -628,19 +628,13 @@ def evaluate_cmd(
             truth_ref, ref = ref, reconstructed_reference(reports, radars, frame, key=key)
         elif reference == "adsb":
             from tertiary.evaluation import adsb_reference_table
-            try:
-                raw = pl.read_parquet(adsb)
-            except (OSError, pl.exceptions.PolarsError) as exc:
-                raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(adsb)) from exc
+            raw = read_parquet_file(adsb)
             truth_ref, (ref, _removed) = ref, adsb_reference_table(raw, frame)
             ecfg = EvaluationConfig(match=MatchConfig(max_gap_s=10.0))   # short gaps only
         if ref.height == 0:
             raise DataError("the dataset has no usable truth.parquet to evaluate against", path=str(dataset))
     else:
-        try:
-            ref = pl.read_parquet(truth)
-        except (OSError, pl.exceptions.PolarsError) as exc:
-            raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(truth)) from exc
+        ref = read_parquet_file(truth)
     reqs = load_requirements(requirements) if requirements is not None else None
     if out.exists() and (out / "results.duckdb").exists() and not force:
         raise OptionError(f"{out} already holds a run; choose another --out or add --force", option="--out")

@@ -29,7 +29,7 @@ from tertiary.schema import TIME
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
-           "reference_error_metrics"]
+           "reference_error_metrics", "read_parquet_file"]
 
 #: the picture name under which a reconstructed reference is itself scored against truth
 RECONSTRUCTED = "reference(reconstructed)"
@@ -90,6 +90,12 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
     missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
     if missing:
         raise DataError(f"tracks: missing column(s) {', '.join(missing)} (the tracks schema)")
+    missing = [c for c in ("truth_id", "time", *_STATE) if c not in truth.columns]
+    if missing:
+        raise DataError(f"reference: missing column(s) {', '.join(missing)} (the truth schema: truth_id, time, "
+                        "x_m ... vz_mps[, alt_m])")
+    if not (truth.schema["time"].is_temporal() and tracks.schema["epoch"].is_temporal()):
+        raise DataError("reference time and track epoch must be date-times (the truth and tracks schemas)")
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     if "method" not in tracks.columns:
@@ -152,17 +158,26 @@ def reference_error_metrics(metrics: pl.DataFrame, reference: pl.DataFrame) -> p
                        ).cast(metrics.schema)
 
 
+def read_parquet_file(path: str | Path) -> pl.DataFrame:
+    """A Parquet file given on the command line; missing, not a file or unreadable is a
+    :class:`DataError` naming it (one line, never a traceback)."""
+    p = Path(path)
+    if not p.exists():
+        raise DataError("file not found", path=str(p))
+    if not p.is_file():
+        raise DataError("not a file", path=str(p))
+    try:
+        return pl.read_parquet(p)
+    except (OSError, pl.exceptions.PolarsError) as exc:
+        raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(p)) from exc
+
+
 def read_picture(path: str | Path) -> pl.DataFrame:
     """A picture file: Parquet in the ``tracks`` schema (at least epoch, track_id, x_m … vz_mps;
     ``run`` defaults to 0). Its name (``method``) is ``method[+filter]`` when the file carries
     them (a ``tertiary`` export), else the file's stem."""
     p = Path(path)
-    try:
-        frame = pl.read_parquet(p)
-    except FileNotFoundError as exc:
-        raise DataError("file not found", path=str(p)) from exc
-    except (OSError, pl.exceptions.PolarsError) as exc:
-        raise DataError(f"not a readable Parquet file ({type(exc).__name__})", path=str(p)) from exc
+    frame = read_parquet_file(p)
     missing = [c for c in ("epoch", "track_id", *_STATE) if c not in frame.columns]
     if missing:
         raise DataError(f"missing column(s) {', '.join(missing)}: a picture needs epoch, track_id and the "

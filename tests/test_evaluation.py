@@ -169,3 +169,12 @@ def test_reference_options_are_checked(small, tmp_path):
     res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(tmp_path / "b"),
                               "--reference", "nope"])
     assert res.exit_code == 2 and "truth, reconstruct or adsb" in res.output
+
+
+def test_a_reference_that_is_not_a_truth_table_is_one_line(small, tmp_path):
+    _root, _ds, files = small
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--truth", str(files[0]), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 3 and "reference: missing column(s) truth_id, time" in res.output
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--truth", str(tmp_path / "none.parquet"),
+                              "--out", str(tmp_path / "o")])
+    assert res.exit_code == 3 and "file not found" in res.output
