@@ -6,8 +6,8 @@ Inputs
 * ``conflicts`` — :func:`safety.conflicts.predict_conflicts` on one or more pictures (column
   ``method`` names the picture); only ``alert`` rows are used.
 * ``id_map`` — (run, epoch, ``id_col``, truth_id[, method]): which aircraft each picture id is
-  at each epoch (e.g. :func:`tertiary.evaluate.target_truth`). Its epochs, with the alert
-  epochs, form the picture's **epoch grid** per (run, method).
+  at each epoch (the matcher's ``gated_truth_id``, :func:`tertiary.matching.match_to_reference`).
+  Its epochs, with the alert epochs, form the picture's **epoch grid** per (run, method).
 * ``truth`` — (truth_id, time, x_m … vz_mps[, run][, alt_m]) in the system ENU frame; without
   ``run`` it is shared by all runs (Monte-Carlo). Heights: ``alt_m`` where present, else the
   geodetic height of the ENU position in ``frame`` (:func:`safety.conflicts.height_and_rate`).

@@ -8,7 +8,8 @@ Public API (the CLI is a thin layer over these):
 * the radar's own secondary processing: :func:`track_reports`
 * storage: :class:`RunStore`, :func:`export_parquet`
 * stages: :func:`tertiary.align.align`, :func:`candidate_pairs`, :func:`tertiary.associate.associate`,
-  :func:`fuse`, :func:`cluster`; evaluation in :mod:`tertiary.evaluate`, the centralised reference in
+  :func:`fuse`, :func:`cluster`; the one evaluation stage :func:`evaluate_pictures` (matching by
+  :func:`match_to_reference`, seed metrics in :mod:`tertiary.accuracy`), the centralised reference in
   :mod:`tertiary.centralized`, the posterior Cramér–Rao bound in :mod:`tertiary.bound`
 * radars that err: :class:`RadarTrackerConfig`, :class:`TransponderConfig` (the simulated radars'
   own association, :mod:`tertiary.simulate.radar_tracker`)
@@ -17,7 +18,7 @@ Public API (the CLI is a thin layer over these):
   bound parameters), :func:`build_report` (the self-contained HTML report of a run)
 """
 
-from tertiary import align, altitude, associate, bound, centralized, evaluate, geo
+from tertiary import accuracy, align, altitude, associate, bound, centralized, geo
 from tertiary.align import AlignConfig
 from tertiary.associate import AssociationConfig
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
@@ -39,7 +40,7 @@ __version__ = "0.1.0"
 __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWarning", "simulate",
            "load_scenario", "write_dataset", "read_dataset", "Dataset", "track_reports", "LocalTrackerConfig",
            "RunStore", "export_parquet", "run", "ingest", "process", "PipelineConfig", "align", "AlignConfig",
-           "associate", "AssociationConfig", "evaluate", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
+           "associate", "AssociationConfig", "accuracy", "centralized", "candidate_pairs", "GatingConfig", "fuse", "FusionConfig", "METHODS",
            "cluster", "ClusteringConfig", "build_report", "list_reports", "run_report", "__version__",
            "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
            "DataError", "ResourceError", "altitude", "bound", "RadarTrackerConfig", "TransponderConfig",

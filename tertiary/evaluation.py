@@ -4,11 +4,20 @@ surveillance engineers use, judge against requirements.
     tracks (any picture, ``tracks`` schema) + reference (truth / ADS-B / reconstructed)
         → :func:`tertiary.matching.match_to_reference`   (one geometric matcher, documented rule)
         → :func:`tertiary.picture_metrics.picture_metrics` (stage ``evaluation``, per picture)
+        → :func:`tertiary.accuracy.picture_accuracy`     (the seed metrics: (2.15) accuracy,
+                                                         NEES/NIS, continuity; stage ``fusion``,
+                                                         ``tracker`` … as the caller names it)
         → :func:`tertiary.requirements.check_requirements` (the ``requirements`` table)
 
-It scores pictures ``tertiary`` did not produce as well as its own: ``tertiary evaluate``
-(:func:`evaluate_files`) on Parquet files, the pipeline on its tracker pictures. Several
-pictures in one call give one comparison table (:func:`comparison`).
+It scores pictures ``tertiary`` did not produce exactly as its own: ``tertiary evaluate`` on
+Parquet or CAT062 files, the pipeline on every fused picture, the centralised reference and
+every tracker picture. The matcher's ``gated_truth_id`` is also the identity map alert scoring
+uses (:attr:`Evaluation.id_map`). Several pictures in one call give one comparison table
+(:func:`comparison`).
+
+The association stage is the one thing judged by report labels, not by this matcher: whether
+each *report* was put with its aircraft (:func:`association_metrics`) is a property of reports,
+not of a picture's states.
 """
 
 from __future__ import annotations
@@ -21,15 +30,16 @@ import numpy as np
 import polars as pl
 
 from tertiary import geo
+from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, picture_accuracy
 from tertiary.errors import DataError
 from tertiary.matching import MatchConfig, match_to_reference, reference_at_epochs
 from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
-from tertiary.schema import TIME
+from tertiary.schema import TABLES, TIME
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
-           "reference_error_metrics", "read_parquet_file"]
+           "reference_error_metrics", "read_parquet_file", "association_metrics"]
 
 #: the picture name under which a reconstructed reference is itself scored against truth
 RECONSTRUCTED = "reference(reconstructed)"
@@ -50,17 +60,25 @@ class EvaluationConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
     breakdown: tuple[str, ...] = BREAKDOWNS
+    #: the seed metrics (:mod:`tertiary.accuracy`): the transient, the (2.15) denominator, bands
+    accuracy: AccuracyConfig = field(default_factory=AccuracyConfig)
 
 
 @dataclass
 class Evaluation:
-    """The stage's outputs: ``matched`` rows, ``metrics`` (stage evaluation), ``requirements``
-    (empty without a requirements file) and the ``comparison`` of the pictures."""
+    """The stage's outputs: ``matched`` rows (empty unless kept), ``metrics`` (stage evaluation
+    and the seed stage), ``requirements`` (empty without a requirements file), the
+    ``comparison`` of the pictures, the seed ``by_epoch`` accuracy, the scored ``samples`` (what
+    a bound is pooled over) and ``id_map`` (run, method, epoch, id, truth_id: the aircraft each
+    picture row represents, for alert scoring)."""
 
     matched: pl.DataFrame
     metrics: pl.DataFrame
     requirements: pl.DataFrame
     comparison: pl.DataFrame
+    by_epoch: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=BY_EPOCH_SCHEMA))
+    samples: pl.DataFrame = field(default_factory=pl.DataFrame)
+    id_map: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
 def _radar_xy(radars: pl.DataFrame | None, frame: geo.LocalFrame | None) -> np.ndarray | None:
@@ -83,10 +101,15 @@ def comparison(metrics: pl.DataFrame) -> pl.DataFrame:
 
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
                       frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
-                      cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id") -> Evaluation:
+                      cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
+                      seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
+                      keep_matched: bool = True, surveillance: bool = True) -> Evaluation:
     """Score every picture of ``tracks`` (column ``method`` names it) against ``truth`` (the
-    reference in the same system frame): the module's three steps. ``radars`` + ``frame`` give
-    the range-ring breakdown."""
+    reference in the same system frame): the module's steps, one picture at a time. ``radars``
+    + ``frame`` give the range-ring breakdown; ``seed_stage`` labels the seed metrics;
+    ``observed`` (run, epoch, truth_id) is what continuity expects covered (default: the
+    reference aircraft alive at the picture's epochs); ``surveillance=False`` leaves out the
+    stage-``evaluation`` metrics (and so the requirements)."""
     missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
     if missing:
         raise DataError(f"tracks: missing column(s) {', '.join(missing)} (the tracks schema)")
@@ -100,20 +123,36 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
     radar_xy = _radar_xy(radars, frame)
     if "method" not in tracks.columns:
         tracks = tracks.with_columns(pl.lit("picture").alias("method"))
-    matched_parts, metric_parts = [], []
+    parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
     for picture in tracks.partition_by("method", maintain_order=True):
         matched = match_to_reference(picture, truth, cfg.match, id_col=id_col)
         if id_col != "track_id":
             matched = matched.rename({id_col: "track_id"})
         expected = reference_at_epochs(matched.select("run", "epoch").unique(), truth, cfg.match.max_gap_s)
-        metric_parts.append(picture_metrics(matched, expected=expected, radar_xy=radar_xy,
-                                            breakdown=breakdown, cfg=cfg.metrics))
-        matched_parts.append(matched)
-    matched = pl.concat(matched_parts, how="diagonal_relaxed") if matched_parts else tracks.clear()
-    metrics = pl.concat(metric_parts, how="vertical_relaxed") if metric_parts else pl.DataFrame()
+        seed, by_epoch, samples = picture_accuracy(
+            matched, seed_stage, cfg.accuracy,
+            observed if observed is not None else expected.select("run", "epoch", "truth_id"))
+        if surveillance:
+            parts["metrics"].append(picture_metrics(matched.drop("cov", "cov_diag", strict=False), expected=expected,
+                                                    radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
+        parts["metrics"].append(seed)
+        parts["by_epoch"].append(by_epoch)
+        parts["samples"].append(samples)
+        parts["id_map"].append(matched.select(
+            "run", "method", "epoch", pl.col("track_id").alias(id_col),
+            pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
+        if keep_matched:
+            parts["matched"].append(matched.drop("cov", strict=False))
+
+    def cat(k: str, empty: pl.DataFrame) -> pl.DataFrame:
+        return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else empty
+
+    metrics = cat("metrics", pl.DataFrame())
     reqs = check_requirements(metrics, requirements) if requirements is not None else pl.DataFrame()
-    return Evaluation(matched, metrics, reqs, comparison(metrics))
+    return Evaluation(cat("matched", tracks.clear()), metrics, reqs, comparison(metrics),
+                      cat("by_epoch", pl.DataFrame(schema=BY_EPOCH_SCHEMA)), cat("samples", pl.DataFrame()),
+                      cat("id_map", pl.DataFrame()))
 
 
 def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: geo.LocalFrame,
@@ -204,6 +243,102 @@ def read_pictures(paths: Sequence[str | Path]) -> pl.DataFrame:
         raise DataError(f"two TRACKS files hold the same picture {dup[0]!r}: rename one file")
     keep = sorted(set().union(*(set(f.columns) for f in frames)))
     return pl.concat([f.select([c for c in keep if c in f.columns]) for f in frames], how="diagonal_relaxed")
+
+
+# --------------------------------------------------------------------------- the association stage
+# Association is judged on reports (was each report put with its own aircraft?), so by the
+# reports' evaluation-only truth labels; pictures are judged by the matcher above.
+
+_KEY = ["run", "epoch", "target_id"]
+
+
+def _report_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    """Association rows with the truth_id of their report (null for clutter/unknown)."""
+    on = ["report_id"]
+    if "run" in report_truth.columns and "run" in associations.columns:
+        on = ["run", "report_id"]
+    rt = report_truth.select(*[pl.col(c).cast(associations.schema[c]) for c in on],
+                             pl.col("truth_id").cast(pl.Int64)).unique(subset=on, keep="first")
+    return associations.join(rt, on=on, how="left", maintain_order="left")
+
+
+def _majority(labelled: pl.DataFrame, key: list[str]) -> pl.DataFrame:
+    """Majority non-null truth_id per ``key`` (ties → smallest truth_id; null if none)."""
+    keys = labelled.select(key).unique()
+    votes = (labelled.filter(pl.col("truth_id").is_not_null())
+             .group_by(key + ["truth_id"]).agg(pl.len().alias("__votes"))
+             .sort(key + ["__votes", "truth_id"], descending=[False] * len(key) + [True, False])
+             .unique(subset=key, keep="first", maintain_order=True)
+             .select(key + ["truth_id"]))
+    return keys.join(votes, on=key, how="left")
+
+
+def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+    """Association correctness (metrics schema, stage ``association``, method ``assignment``,
+    segment ``all``):
+
+    * ``swaps``: for each (run, target_id), over the epochs at which the target exists in time
+      order, consecutive epochs whose majority truth_ids (of the reports associated with it;
+      clutter does not vote; ties → smallest id) are both non-null and differ; summed;
+    * ``targets_per_truth``: for each (run, truth_id) with at least one associated report, the
+      number of distinct target ids that had it as majority truth at some epoch; the mean;
+    * ``false_targets``: (run, target_id) whose associated reports are all clutter;
+
+    * ``assoc_correct_frac``: among association rows whose report has a truth_id, the fraction
+      whose target both has that truth as majority and is the aircraft's principal target at
+      the epoch (the one holding most of its reports; ties: lowest id) — a report put in a
+      second, duplicate target of its aircraft is not correctly associated;
+
+    * ``split_targets``: number of (run, epoch, truth_id) whose reports went to two or more
+      system targets at that epoch (one aircraft shown as several targets);
+    * ``merged_targets``: number of (run, epoch, target_id) whose reports come from two or
+      more aircraft (several aircraft shown as one target).
+    """
+    if associations.is_empty():
+        return pl.DataFrame(schema=TABLES["metrics"].required)
+    labelled = _report_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+    maj = _majority(labelled, _KEY).rename({"truth_id": "target_truth"})
+    rows = labelled.join(maj, on=_KEY, how="left")
+    n_runs = associations["run"].n_unique()
+
+    real = rows.filter(pl.col("truth_id").is_not_null())
+    # the aircraft's principal target at the epoch: most of its reports (ties: lowest id)
+    principal = (real.group_by(["run", "epoch", "truth_id", "target_id"]).agg(pl.len().alias("__n"))
+                 .sort(["run", "epoch", "truth_id", "__n", "target_id"], descending=[False, False, False, True, False])
+                 .unique(subset=["run", "epoch", "truth_id"], keep="first", maintain_order=True)
+                 .select("run", "epoch", "truth_id", pl.col("target_id").alias("__principal")))
+    real = real.join(principal, on=["run", "epoch", "truth_id"], how="left")
+    correct = (real.select(((pl.col("truth_id") == pl.col("target_truth"))
+                            & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).mean()).item()
+               if real.height else float("nan"))
+
+    seq = maj.sort(["run", "target_id", "epoch"])
+    prev = pl.col("target_truth").shift(1).over(["run", "target_id"])
+    swaps = seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
+                        & pl.col("target_truth").is_not_null()).fill_null(False).sum()).item()
+
+    truths = real.select("run", "truth_id").unique()
+    got = (maj.filter(pl.col("target_truth").is_not_null())
+           .group_by(["run", "target_truth"]).agg(pl.col("target_id").n_unique().alias("n_targets"))
+           .rename({"target_truth": "truth_id"}))
+    per_truth = truths.join(got, on=["run", "truth_id"], how="left").with_columns(pl.col("n_targets").fill_null(0))
+    tpt = float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
+
+    false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
+                     ["clutter"].sum())
+    split = (real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n"))
+             .filter(pl.col("n") > 1).height)
+    merged = (real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height)
+
+    out = pl.DataFrame({
+        "stage": "association", "method": "assignment",
+        "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets",
+                   "merged_targets"],
+        "segment": "all",
+        "value": [float(correct), float(swaps), tpt, float(false_targets), float(split), float(merged)],
+        "n_runs": n_runs,
+    })
+    return out.select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
 
 
 __all__ += ["read_pictures"]

@@ -8,7 +8,7 @@ geometry, the way a surveillance engineer's evaluation tool does.
 Assignment rule (documented, deterministic)
 -------------------------------------------
 1. **Reference at the track's time.** Every reference aircraft alive at a track row's epoch is
-   interpolated linearly between its neighbouring samples (:func:`tertiary.evaluate.truth_at`;
+   interpolated linearly between its neighbouring samples (:func:`truth_at`;
    never extrapolated: outside an aircraft's span it is absent).
 2. **Gate.** A (track row, aircraft) pair is a candidate when the horizontal distance is at most
    ``gate_h_m`` and, where both carry a height (``alt_m``, else the ENU z), the vertical distance
@@ -26,7 +26,15 @@ Assignment rule (documented, deterministic)
    row with no aircraft is unmatched (false or duplicate).
 
 Output: the track rows with ``truth_id`` (null when unmatched), the reference state
-``true_x_m … true_vz_mps`` (and ``true_alt_m``) of the matched aircraft, and ``match_cost``.
+``true_x_m … true_vz_mps`` (and ``true_alt_m``) and flight ``segment`` of the matched aircraft,
+``match_cost``, and ``gated_truth_id``: the aircraft a row *represents* — its match, or for an
+unmatched row inside some aircraft's gate the nearest such aircraft (a second track of an
+aircraft, which a controller still sees as that aircraft; null only for a row in no gate). The
+safety stage scores alerts with it: an alert between an aircraft and its own duplicate track is
+a duplicate, not a false alert between two aircraft.
+
+This is the only matcher of the project: the seed metrics (:mod:`tertiary.accuracy`), the
+surveillance metrics (:mod:`tertiary.picture_metrics`) and alert scoring all read its output.
 """
 
 from __future__ import annotations
@@ -41,10 +49,37 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tertiary.evaluate import truth_at
 from tertiary.schema import TIME
 
-__all__ = ["MatchConfig", "reference_at_epochs", "match_to_reference"]
+__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference"]
+
+STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+
+
+def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """Reference state of ``samples`` (truth_id, epoch): exact or linearly interpolated between the
+    neighbouring reference samples (never extrapolated: rows outside the aircraft's span are
+    dropped), as ``true_<state>`` and the reference ``segment`` at the earlier sample;
+    ``true_alt_m`` too when both frames carry ``alt_m``."""
+    cols = list(STATE) + (["alt_m"] if "alt_m" in truth.columns and "alt_m" in samples.columns else [])
+    has_seg = "segment" in truth.columns
+    tr = truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME), *cols,
+                      (pl.col("segment") if has_seg else pl.lit(None, pl.String)).alias("segment")
+                      ).sort("time")
+    left = samples.drop("segment", strict=False).with_row_index("__i").sort("epoch")
+    lo = tr.rename({"time": "__t0", **{c: f"__lo_{c}" for c in cols}})
+    hi = tr.drop("segment").rename({"time": "__t1", **{c: f"__hi_{c}" for c in cols}})
+    j = (left.join_asof(lo, left_on="epoch", right_on="__t0", by="truth_id", strategy="backward",
+                        check_sortedness=False)
+         .join_asof(hi, left_on="epoch", right_on="__t1", by="truth_id", strategy="forward",
+                    check_sortedness=False))
+    span = (pl.col("__t1") - pl.col("__t0")).dt.total_microseconds()
+    w = pl.when(span > 0).then((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() / span).otherwise(0.0)
+    return (j.with_columns([(pl.col(f"__lo_{c}") + w * (pl.col(f"__hi_{c}") - pl.col(f"__lo_{c}"))).alias(f"true_{c}")
+                            for c in cols])
+            .filter(pl.col("__t0").is_not_null() & pl.col("__t1").is_not_null())
+            .sort("__i")
+            .select(pl.exclude("^__.*$")))
 
 
 @dataclass(frozen=True)
@@ -109,7 +144,7 @@ def _alive(ep: pl.DataFrame, tt: pl.DataFrame) -> pl.DataFrame:
     samples = alive.select("run", "epoch", "truth_id")
     if "alt_m" in tt.columns:               # truth_at interpolates alt_m when both frames have it
         samples = samples.with_columns(pl.lit(0.0).alias("alt_m"))
-    return truth_at(samples, tt).drop("alt_m", "segment", strict=False)
+    return truth_at(samples, tt).drop("alt_m", strict=False)
 
 
 def _candidates(tr: pl.DataFrame, ref: pl.DataFrame, cfg: MatchConfig) -> tuple[NDArray, NDArray, NDArray]:
@@ -182,10 +217,15 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     i, j, cost = _candidates(tr, ref, cfg)
     best = _assign(i, j, cost, tr.height, ref.height)
     cost_of = np.full(tr.height, np.nan)
+    gated = np.where(best >= 0, best, -1)
     if len(i):
         hit = best[i] == j
         cost_of[i[hit]] = cost[hit]
-    true_cols = [c for c in ref.columns if c.startswith("true_")]
+        order = np.lexsort((cost, i))                # per track row, its cheapest candidate first
+        first = order[np.r_[True, np.diff(i[order]) != 0]]
+        free = best[i[first]] < 0
+        gated[i[first][free]] = j[first][free]
+    true_cols = [c for c in ref.columns if c.startswith("true_")] + (["segment"] if "segment" in ref.columns else [])
     matched = best >= 0
     if ref.height == 0:                       # no reference aircraft alive at any track epoch
         ref_rows = pl.DataFrame(schema=ref.select("truth_id", *true_cols).schema).clear(n=tr.height)
@@ -193,8 +233,12 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
         ref_rows = ref.select("truth_id", *true_cols)[np.where(matched, best, 0)]
     ref_rows = ref_rows.select(*(pl.when(pl.Series(matched)).then(pl.col(c)).otherwise(None).alias(c)
                                  for c in ref_rows.columns))
-    out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24") if c in tr.columns])
-           .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of)))
+    ids = ref["truth_id"].to_numpy() if ref.height else np.zeros(1, np.int64)
+    gated_id = (pl.when(pl.Series(gated >= 0)).then(pl.Series(ids[np.maximum(gated, 0)] if ref.height
+                                                              else np.zeros(tr.height, np.int64)))
+                .otherwise(None).cast(pl.Int64).alias("gated_truth_id"))
+    out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24", "gated_truth_id") if c in tr.columns])
+           .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of), gated_id))
     if "icao24" in truth.columns:        # the reference's Mode S address, for identity correctness
         ident = (truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("icao24").cast(pl.String))
                  .drop_nulls().unique("truth_id", keep="first"))

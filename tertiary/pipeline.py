@@ -37,13 +37,12 @@ from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.bound import bound_stage
-from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
-                               association_metrics, fusion_consistency, match_truth, scored_samples, target_truth)
+from tertiary.accuracy import BY_EPOCH_SCHEMA
+from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_pictures
 from tertiary.filters import REGISTRY
 from tertiary.fusion import METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
-from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_evaluation
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
 
@@ -225,13 +224,14 @@ class PipelineConfig:
     stca_lookaheads_s: tuple[float, ...] = (105.0,)
     stca_confidences: tuple[float, ...] = (0.5, 0.8, 0.95, 0.99)
     stca_fixed_m: tuple[float, ...] = (0.0, 300.0, 600.0, 1200.0)
-    #: the one evaluation stage (tertiary.evaluation) on the tracker pictures when there is a
-    #: reference: metrics stage "evaluation" and the ``requirements`` table judged against
+    #: the one evaluation stage (tertiary.evaluation) scores every picture — each fusion method's
+    #: confirmed targets and the centralised reference (seed stage "fusion"), each tracker picture
+    #: (seed stage "tracker") — when there is a reference. ``evaluation`` adds the surveillance
+    #: metrics (stage "evaluation") and the ``requirements`` table judged against
     #: ``requirements_file`` (None: the shipped example, datasets/requirements/example.toml)
     evaluation: bool = True
     requirements_file: str | None = None
-    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
-    track_metrics: TrackMetricsConfig = field(default_factory=TrackMetricsConfig)
+    scoring: EvaluationConfig = field(default_factory=EvaluationConfig)
     #: radar registration before alignment (:func:`tertiary.align.apply_registration`): with
     #: ``register``, rows (radar_id, range_bias_m, azimuth_bias_deg, time_offset_s, range_gain) of
     #: ``registration``, or when empty estimated from the reports radar to radar
@@ -377,6 +377,11 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     conflicts, alerts = schema.empty_frame("conflicts", False), pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
     report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
+    empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
+    ev_fused, ev_tracks = empty, empty
+    if has_truth:
+        clock.stage("evaluation")
+        ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, aligned, ing, ds)
     if cfg.safety:
         clock.stage("conflicts")
         picture, id_col = _safety_picture(cfg, fused, tracks, ing.notes)
@@ -384,7 +389,11 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
         sink("conflicts", conflicts)
         if has_truth:
             clock.stage("score_alerts")
-            id_map = _picture_truth(id_col, associations, report_truth, tracks)
+            # which aircraft each picture row represents: the one matcher's answer
+            id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
+            if id_map.width == 0:           # nothing scored (e.g. every target tentative)
+                id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
+                                              id_col: pl.UInt64, "truth_id": pl.Int64})
             acfg = AlertConfig(conflict=cfg.conflicts)
             safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
                                                         methods=sorted(picture["method"].unique().to_list()),
@@ -398,26 +407,25 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
                                       fixed_est_h_m=cfg.stca_fixed_m)
                 safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
-    metrics, by_epoch, scored = _evaluate(ing, associations, fused, stats, cfg.evaluate)
+    metrics = _association_metrics(associations, stats, report_truth)
+    by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
-        extra = []
-        if cfg.filters and tracks.height:
-            tm, scored_t = tracker_evaluation(tracks, associations, report_truth, ing.truth, cfg.track_metrics)
-            extra.append(tm)
-            scored = pl.concat([scored, scored_t.cast(scored.schema)])
+        metrics = pl.concat([metrics, *[e.metrics for e in (ev_fused, ev_tracks) if e.metrics.height]],
+                            how="vertical_relaxed")
+        by_epoch = ev_fused.by_epoch
+        samples = [e.samples for e in (ev_fused, ev_tracks) if e.samples.height]
+        scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
         # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.bound)
-        extra.append(bound_stage(ds, ing.truth, ing.radars, ing.reports, scored,
-                                 pl.concat([metrics, *extra], how="vertical_relaxed"), ing.notes))
+        extra = [bound_stage(ds, ing.truth, ing.radars, ing.reports, scored, metrics, ing.notes)]
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
         if cfg.safety:
             metrics = pl.concat([metrics, capacity_from_metrics(metrics, notes=ing.notes)], how="vertical_relaxed")
-    if has_truth and cfg.evaluation and tracks.height:
-        clock.stage("evaluation")
-        evaluation, requirements = _evaluation_stage(cfg, tracks, ing, ds)
-        metrics = pl.concat([metrics, evaluation], how="vertical_relaxed")
-        sink("requirements", requirements)
+        if cfg.evaluation:
+            reqs = [e.requirements for e in (ev_fused, ev_tracks) if e.requirements.height]
+            if reqs:
+                sink("requirements", pl.concat(reqs, how="vertical_relaxed"))
     sink("metrics", metrics)
     sink("accuracy_by_epoch", by_epoch)
     clock.stage(None)
@@ -451,15 +459,26 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
             .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
 
 
-def _evaluation_stage(cfg: PipelineConfig, tracks: pl.DataFrame, ing: Ingested, ds: Dataset
-                      ) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Every tracker picture (method "<fusion>+<filter>") scored by the one evaluation stage."""
-    from tertiary.evaluation import evaluate_pictures
+def _score_pictures(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFrame, aligned: pl.DataFrame,
+                    ing: Ingested, ds: Dataset) -> tuple[Evaluation, Evaluation]:
+    """Every picture scored by the one evaluation stage against the truth: each fusion method's
+    confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
+    each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
+    aircraft covered at the epochs it had a report."""
     from tertiary.requirements import example_path, load_requirements
-    reqs = load_requirements(cfg.requirements_file or example_path())
+    reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
+    observed = (aligned.select("run", "epoch", "report_id")
+                .join(ing.reports.select("run", "report_id", "truth_id"), on=["run", "report_id"], how="left")
+                .select("run", "epoch", "truth_id").drop_nulls().unique())
+    kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
+              keep_matched=False, surveillance=cfg.evaluation)
+    shown = fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
+    ev_fused = (evaluate_pictures(shown, ing.truth, id_col="target_id", seed_stage="fusion", **kw)
+                if shown.height else Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame()))
+    if not tracks.height:
+        return ev_fused, Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     pictures = tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
-    ev = evaluate_pictures(pictures, ing.truth, radars=ing.radars, frame=ds.origin, requirements=reqs)
-    return ev.metrics, ev.requirements
+    return ev_fused, evaluate_pictures(pictures, ing.truth, seed_stage="tracker", **kw)
 
 
 def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFrame,
@@ -486,15 +505,6 @@ def _target_counts(fused: pl.DataFrame) -> dict[str, int]:
     return {"confirmed_targets": ever.height - n_tent, "tentative_targets": n_tent}
 
 
-def _picture_truth(id_col: str, associations: pl.DataFrame, report_truth: pl.DataFrame,
-                   tracks: pl.DataFrame) -> pl.DataFrame:
-    """(run, epoch, id, truth_id[, method]): which aircraft each picture id is, epoch by epoch."""
-    if id_col == "target_id":
-        return target_truth(associations, report_truth)
-    labelled = track_truth(tracks, associations, report_truth)
-    return labelled.select("run", "epoch", "track_id", "truth_id", pl.col("label").alias("method"))
-
-
 def _stage_rejects(stage_rejects: pl.DataFrame, reports: pl.DataFrame, report_rows: pl.DataFrame,
                    stage: str) -> pl.DataFrame:
     """A stage's (report_id, reason) rejects in the canonical ``rejects`` schema; ``row_index``
@@ -513,10 +523,9 @@ def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -
         raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
 
 
-def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, stats,
-              cfg: EvaluateConfig) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """Association counts, fused accuracy and consistency, association metrics; the per-epoch
-    accuracy; the scored fused samples (for the bound)."""
+def _association_metrics(associations: pl.DataFrame, stats, report_truth: pl.DataFrame | None) -> pl.DataFrame:
+    """The association stage's counts and, with truth labels, its correctness
+    (:func:`tertiary.evaluation.association_metrics`)."""
     counts = pl.DataFrame({
         "stage": "association", "method": "assignment",
         "metric": ["gated_pairs", "ambiguous_components", "targets", "reassignments"],
@@ -524,15 +533,9 @@ def _evaluate(ing: Ingested, associations: pl.DataFrame, fused: pl.DataFrame, st
                                     float(stats.reassignments)],
         "n_runs": int(associations["run"].n_unique()) if associations.height else 0,
     }).with_columns(pl.col("n_runs").cast(pl.UInt32))
-    if ing.truth.height == 0 or "truth_id" not in ing.reports.columns:
-        return counts, pl.DataFrame(), pl.DataFrame()
-    report_truth = ing.reports.select("run", "report_id", "truth_id")
-    matched = match_truth(fused, associations, report_truth, ing.truth, cfg, keep_cov=False, nees=True)
-    metrics = pl.concat([accuracy_from_matched(matched, cfg), fusion_consistency(matched, cfg),
-                         association_metrics(associations, report_truth)], how="vertical_relaxed")
-    by_epoch = accuracy_by_epoch_from_matched(matched, cfg)
-    return (pl.concat([metrics, counts.select(metrics.columns)], how="vertical_relaxed"), by_epoch,
-            scored_samples(matched))
+    if report_truth is None:
+        return counts
+    return pl.concat([association_metrics(associations, report_truth), counts], how="vertical_relaxed")
 
 
 def _storable(frame: pl.DataFrame, name: str, notes: list[str]) -> pl.DataFrame:

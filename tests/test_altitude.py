@@ -11,7 +11,7 @@ from filterpy.kalman import KalmanFilter
 from tertiary import geo
 from tertiary.altitude import (QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks,
                                geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
-from tertiary.evaluate import error_columns
+from tertiary.accuracy import error_columns
 from tertiary.simulate.radar import quantum_m, transponder_altitude
 from tertiary.simulate.trajectory import Trajectories
 
@@ -284,30 +284,38 @@ def test_pipeline_heights_come_from_mode_c(small_terminal):
     """Simulated terminal area → fusion, centralised reference and tracker all carry the Mode C
     channel: height RMSE of a few metres (elevation-based heights are off by ~100 m), and a
     target whose reports lose their altitude falls back to the geodetic height."""
-    from tertiary.evaluate import EvaluateConfig, match_truth
+    from tertiary.accuracy import AccuracyConfig, scored_rows
+    from tertiary.evaluation import evaluate_pictures
     from tertiary.fusion import fuse
+    from tertiary.matching import MatchConfig, match_to_reference
     from tertiary.pipeline import PipelineConfig, process
     from tertiary.schema import validate
-    from tertiary.track_metrics import tracker_metrics
 
     res = process(small_terminal, PipelineConfig(methods=("arithmetic",), filters=("singer",)))
-    report_truth = small_terminal.reports.select("run", "report_id", "truth_id")
     validate(res.fused, "fused")
     validate(res.tracks.drop("status", "plot_target_id"), "tracks")
-    m = match_truth(res.fused, res.associations, report_truth, small_terminal.truth, EvaluateConfig())
+    # a wide vertical gate: the fallback below has heights hundreds of metres off
+    wide = MatchConfig(gate_v_m=3000.0)
+
+    def match(fused: pl.DataFrame) -> pl.DataFrame:
+        matched = match_to_reference(fused, small_terminal.truth, wide, id_col="target_id")
+        return scored_rows(matched.rename({"target_id": "track_id"}), AccuracyConfig())
+
+    m = match(res.fused)
     err = (m["alt_m"] - m["true_alt_m"]).abs()
     assert err.median() < 5.0
     for method in ("arithmetic", "centralized"):
         sub = m.filter(pl.col("method") == method)
         assert (sub["alt_m"] - sub["true_alt_m"]).abs().median() < 5.0
-    tm = tracker_metrics(res.tracks, res.associations, report_truth, small_terminal.truth)
+    pictures = res.tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
+    tm = evaluate_pictures(pictures, small_terminal.truth).metrics.filter(pl.col("stage") == "tracker")
     h = tm.filter((pl.col("metric") == "rmse_height_m") & (pl.col("segment") == "all"))["value"][0]
     assert h < 30.0
     # without Mode C: geodetic fallback (elevation-based), far worse but still height, not z
     rows = res.aligned.with_columns(res.associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     f0 = fuse(rows.with_columns(pl.lit(None, pl.Float64).alias("altitude_m")), small_terminal.radars,
               ["arithmetic"], origin=small_terminal.origin)
-    m0 = match_truth(f0, res.associations, report_truth, small_terminal.truth, EvaluateConfig())
+    m0 = match(f0)
     e0 = (m0["alt_m"] - m0["true_alt_m"]).abs()
     ez = (m0["z_m"] - m0["true_alt_m"]).abs()
     assert 20.0 < e0.median() < 400.0

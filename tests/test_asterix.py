@@ -403,7 +403,7 @@ def test_enu_velocity_against_finite_differences() -> None:
 
 def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None:
     """A CAT062 picture = the truth shifted 30 m east, with the truth as CAT021 in the same file:
-    every matched row is 30 m off (within resolution), and the pooled RMSE of tertiary.evaluate
+    every matched row is 30 m off (within resolution), and the pooled RMSE of tertiary.accuracy
     ((2.15): σ²(k) = Σ e² / (N_k − 1) over the few aircraft of an epoch) lies in [30, 30·√2]."""
     ds, _, _ = simulated
     truth = ds.truth.filter(pl.col("icao24").fill_null("") != "")

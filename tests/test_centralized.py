@@ -13,7 +13,14 @@ from filterpy.kalman import KalmanFilter
 from tertiary import geo
 from tertiary.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots,
                                   initial_state, transition)
-from tertiary.evaluate import EvaluateConfig, accuracy, consistency_metrics, match_truth
+from tertiary.accuracy import AccuracyConfig, accuracy_from_matched, consistency_metrics, scored_rows
+from tertiary.matching import match_to_reference
+
+
+def _scored(fused: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """The pictures matched by the one matcher, scored after the 20 s transient."""
+    matched = match_to_reference(fused, truth, id_col="target_id").rename({"target_id": "track_id"})
+    return scored_rows(matched, AccuracyConfig(skip_first_s=20.0))
 from tertiary.schema import TABLES, validate
 from tertiary.simulate import load_scenario, simulate
 
@@ -126,7 +133,7 @@ def test_centralized_beats_every_single_radar(big_box_fused):
     ds, assoc, cen = big_box_fused
     radars = [_radar_tracks(ds, rid) for rid in ds.radars["radar_id"]]
     fused = pl.concat([cen.select(radars[0].columns), *radars])
-    m = accuracy(fused, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0))
+    m = accuracy_from_matched(_scored(fused, ds.truth))
     pos = dict(m.filter((pl.col("metric") == "rmse_pos_m") & (pl.col("segment") == "all"))
                .select("method", "value").iter_rows())
     assert m["n_runs"].unique().to_list() == [10]
@@ -137,11 +144,11 @@ def test_centralized_beats_every_single_radar(big_box_fused):
 
 
 def test_centralized_is_consistent(big_box_fused):
-    """Monte-Carlo consistency done properly (tertiary.evaluate.consistency_metrics): the
+    """Monte-Carlo consistency done properly (tertiary.accuracy.consistency_metrics): the
     position NEES averaged over the N = 10 runs at each epoch lies in the two-sided 95 % band
     χ²(3N)/N on most epochs; the same test rejects a covariance twice too large or too small."""
     ds, assoc, cen = big_box_fused
-    matched = match_truth(cen, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0), nees=True)
+    matched = _scored(cen, ds.truth)
     m = consistency_metrics(matched, "nees_pos", 3, "nees", "fusion")
     frac = m.filter((pl.col("metric") == "nees_in_band_frac") & (pl.col("segment") == "all"))["value"].item()
     print(f"centralized NEES in band on {frac:.3f} of epochs")
@@ -161,7 +168,7 @@ def test_centralized_is_near_the_posterior_cramer_rao_bound(big_box_fused):
     10 % above in turns); the 3-D figure lands within a few per cent of the bound."""
     from tertiary.bound import BoundConfig, illuminations, pcrb_at
     ds, assoc, cen = big_box_fused
-    matched = match_truth(cen, assoc, ds.reports, ds.truth, EvaluateConfig(skip_first_s=20.0))
+    matched = _scored(cen, ds.truth)
     cfg = BoundConfig.from_scenario(ds.scenario)
     ev = illuminations(ds.truth, ds.radars, ds.reports, ds.origin, cfg)
     b = pcrb_at(matched.select("truth_id", "epoch"), ev, cfg)

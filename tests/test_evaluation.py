@@ -155,7 +155,7 @@ def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
         pl.col("vy_mps").fill_null(0.0), "vz_mps", "alt_m", pl.lit("shifted").alias("method"))
     from tertiary.evaluation import EvaluationConfig
     ev = evaluate_pictures(pic, ref, cfg=EvaluationConfig(match=MatchConfig(max_gap_s=10.0)))
-    got = dict(ev.metrics.filter(pl.col("segment") == "all").select("metric", "value").iter_rows())
+    got = dict(ev.metrics.filter((pl.col("segment") == "all") & (pl.col("stage") == "evaluation")).select("metric", "value").iter_rows())
     assert got["rmse_horizontal_m"] == pytest.approx(30.0, abs=0.5)
     sig = reference_error_metrics(ev.metrics, ref)
     assert sig["metric"].to_list() == ["reference_sigma_h_m"] and 5.0 < sig["value"][0] < 100.0

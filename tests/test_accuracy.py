@@ -1,4 +1,5 @@
-"""Evaluation: hand-computable real accuracy ((2.15)/(4.84)) and association metrics."""
+"""Seed metrics of a matched picture: hand-computable real accuracy ((2.15)/(4.84)),
+consistency, continuity; and the association stage's report-label metrics."""
 
 from __future__ import annotations
 
@@ -10,12 +11,27 @@ import polars as pl
 import pytest
 from scipy.stats import chi2
 
-from tertiary.evaluate import (EvaluateConfig, accuracy, accuracy_by_epoch, association_metrics, match_truth,
-                               metrics_frame, target_truth)
+from tertiary.accuracy import (AccuracyConfig, accuracy_by_epoch_from_matched, accuracy_from_matched, picture_accuracy,
+                               scored_rows)
+from tertiary.evaluation import association_metrics
+from tertiary.matching import match_to_reference
 from tertiary.schema import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
-NO_SKIP = EvaluateConfig(skip_first_s=0.0)
+NO_SKIP = AccuracyConfig(skip_first_s=0.0)
+
+
+def _matched(fused: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """The one matcher on a fused-style picture (id column target_id)."""
+    return match_to_reference(fused, truth, id_col="target_id").rename({"target_id": "track_id"})
+
+
+def accuracy(fused: pl.DataFrame, truth: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+    return accuracy_from_matched(scored_rows(_matched(fused, truth), cfg), cfg)
+
+
+def accuracy_by_epoch(fused: pl.DataFrame, truth: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+    return accuracy_by_epoch_from_matched(scored_rows(_matched(fused, truth), cfg), cfg)
 
 
 def _t(s: float) -> datetime:
@@ -68,14 +84,13 @@ def _value(metrics: pl.DataFrame, metric: str, segment: str = "all", method: str
 def test_constant_offsets_give_hand_rmse_with_n_minus_1():
     truth = _truth()
     fused = _fused(truth, {0: (1.0, 0, 0, 0.5), 1: (2.0, 0, 0, 0.5), 2: (3.0, 0, 0, 0.5)})
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((1 + 4 + 9) / 2))
     assert _value(m, "rmse_y_m") == pytest.approx(0.0)
     assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt(7.0))
     assert _value(m, "rmse_vel_mps") == pytest.approx(math.sqrt(3 * 0.25 / 2))
     assert m["n_runs"].unique().to_list() == [3]
-    mn = accuracy(fused, assoc, reports, truth, EvaluateConfig(skip_first_s=0.0, denominator="n"))
+    mn = accuracy(fused, truth, AccuracyConfig(skip_first_s=0.0, denominator="n"))
     assert _value(mn, "rmse_x_m") == pytest.approx(math.sqrt(14 / 3))
     assert m.schema == pl.Schema(TABLES["metrics"].required)
     validate(m, "metrics")
@@ -87,11 +102,10 @@ def test_pooled_is_root_of_mean_per_epoch_square():
     fused = _fused(truth, {0: (0.0,), 1: (2.0,)})
     fused = fused.with_columns(pl.when(pl.col("epoch") == _t(0)).then(pl.col("x_m") + 4.0 * pl.col("run").cast(pl.Float64))
                                .otherwise(pl.col("x_m")).alias("x_m"))
-    assoc, reports = _assoc(fused)
     # epoch 0: errors 0 and 6 → σ² = 36; epochs 1..3: errors 0 and 2 → σ² = 4
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((36 + 3 * 4) / 4))
-    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    by = accuracy_by_epoch(fused, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
     assert by["value"].to_list() == pytest.approx([6.0, 2.0, 2.0, 2.0])
     assert by["n_runs"].to_list() == [2, 2, 2, 2]
     assert by.columns == ["method", "epoch", "metric", "value", "n_runs", "n", "pooled"]
@@ -106,26 +120,24 @@ def test_one_aircraft_one_run_pools_epochs_instead_of_dropping_them():
     errs = [(3.0, 4.0, 12.0), (0.0, 0.0, 0.0), (6.0, 8.0, 0.0), (0.0, 0.0, 5.0)]
     fused = _fused(truth, {0: (0.0,)})
     fused = fused.with_columns(*[pl.col(c) + pl.Series([e[i] for e in errs]) for i, c in enumerate(("x_m", "y_m", "z_m"))])
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     assert not m.is_empty()
     assert _value(m, "rmse_horizontal_m") == pytest.approx(math.sqrt((25 + 0 + 100 + 0) / 3))
     assert _value(m, "rmse_height_m") == pytest.approx(math.sqrt((144 + 0 + 0 + 25) / 3))
     assert _value(m, "rmse_pos_m") == pytest.approx(math.sqrt((169 + 0 + 100 + 25) / 3))
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((9 + 36) / 3))
-    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP)
+    by = accuracy_by_epoch(fused, truth, NO_SKIP)
     h = by.filter(pl.col("metric") == "rmse_horizontal_m")
     # each pooled epoch: |e_k| · sqrt(M / (M − 1)); the mean of their squares is the pool's (2.15)
     assert h["value"].to_list() == pytest.approx([5.0 * math.sqrt(4 / 3), 0.0, 10.0 * math.sqrt(4 / 3), 0.0])
     assert h["pooled"].all() and h["n"].to_list() == [1, 1, 1, 1]
     assert by.filter(pl.col("metric") == "rmse_height_m")["value"].to_list() == pytest.approx(
         [12.0 * math.sqrt(4 / 3), 0.0, 0.0, 5.0 * math.sqrt(4 / 3)])
-    mn = accuracy(fused, assoc, reports, truth, EvaluateConfig(skip_first_s=0.0, denominator="n"))
+    mn = accuracy(fused, truth, AccuracyConfig(skip_first_s=0.0, denominator="n"))
     assert _value(mn, "rmse_horizontal_m") == pytest.approx(math.sqrt(125 / 4))
     # a single sample in all has no N − 1 estimate at all
     one = fused.head(1)
-    a1, r1 = _assoc(one)
-    assert accuracy(one, a1, r1, truth, NO_SKIP).is_empty()
+    assert accuracy(one, truth, NO_SKIP).is_empty()
 
 
 def test_thin_epochs_pool_beside_well_sampled_ones():
@@ -135,16 +147,14 @@ def test_thin_epochs_pool_beside_well_sampled_ones():
     both = _fused(truth, {0: (1.0,), 1: (3.0,)}, epochs={0.0, 1.0, 2.0})
     thin = _fused(truth, {0: (2.0,)}, epochs={3.0})
     fused = pl.concat([both, thin])
-    assoc, reports = _assoc(fused)
-    by = accuracy_by_epoch(fused, assoc, reports, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    by = accuracy_by_epoch(fused, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
     assert by["value"].to_list() == pytest.approx([math.sqrt(10.0)] * 3)
     thin2 = pl.concat([thin, _fused(truth, {1: (4.0,)}, epochs={4.0})])
     fused2 = pl.concat([both, thin2])
-    a2, r2 = _assoc(fused2)
-    by2 = accuracy_by_epoch(fused2, a2, r2, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
+    by2 = accuracy_by_epoch(fused2, truth, NO_SKIP).filter(pl.col("metric") == "rmse_x_m")
     assert by2["pooled"].to_list() == [False, False, False, True, True]
     assert by2["value"].to_list()[3:] == pytest.approx([2.0 * math.sqrt(2.0), 4.0 * math.sqrt(2.0)])
-    m = accuracy(fused2, a2, r2, truth, NO_SKIP)
+    m = accuracy(fused2, truth, NO_SKIP)
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt((3 * 10.0 + 8.0 + 32.0) / 5))
 
 
@@ -152,8 +162,7 @@ def test_horizontal_and_height_split_the_3d_error():
     """3 runs with offsets (dx, dy, dz): horizontal² + height² = 3-D², each by hand."""
     truth = _truth()
     fused = _fused(truth, {0: (3.0, 4.0, 1.0), 1: (0.0, 0.0, 2.0), 2: (6.0, 8.0, -3.0)})
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     h, v, p = (_value(m, k) for k in ("rmse_horizontal_m", "rmse_height_m", "rmse_pos_m"))
     assert h == pytest.approx(math.sqrt((25 + 0 + 100) / 2))
     assert v == pytest.approx(math.sqrt((1 + 4 + 9) / 2))
@@ -167,10 +176,9 @@ def test_skip_first_seconds_per_target():
     # a large error during the first 20 s only
     fused = fused.with_columns(pl.when(pl.col("epoch") < _t(20)).then(pl.col("x_m") + 1000.0)
                                .otherwise(pl.col("x_m")).alias("x_m"))
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth)            # default skip 20 s
+    m = accuracy(fused, truth)            # default skip 20 s
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(10 / 1))
-    by = accuracy_by_epoch(fused, assoc, reports, truth)
+    by = accuracy_by_epoch(fused, truth)
     assert by["epoch"].min() == _t(20)
 
 
@@ -182,8 +190,7 @@ def test_segment_split_and_hold_only_in_all():
     bump = (pl.when(pl.col("epoch").is_in([_t(3), _t(4)])).then(9.0)
             .when(pl.col("epoch").is_in([_t(5), _t(6)])).then(20.0).otherwise(0.0))
     fused = fused.with_columns((pl.col("x_m") + bump).alias("x_m"))
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     straight = (1 + 9) / 1
     turn = (10**2 + 12**2) / 1
     hold = (21**2 + 23**2) / 1
@@ -192,7 +199,7 @@ def test_segment_split_and_hold_only_in_all():
     assert _value(m, "rmse_x_m", "all") == pytest.approx(math.sqrt((5 * straight + 2 * turn + 2 * hold) / 9))
     assert set(m["segment"]) == {"all", "straight", "turn"}
     # a dataset without turns has no turn rows
-    m2 = accuracy(fused.filter(~pl.col("epoch").is_in([_t(3), _t(4)])), assoc, reports, truth, NO_SKIP)
+    m2 = accuracy(fused.filter(~pl.col("epoch").is_in([_t(3), _t(4)])), truth, NO_SKIP)
     assert set(m2["segment"]) == {"all", "straight"}
 
 
@@ -204,8 +211,7 @@ def test_range_error_is_from_the_system_origin():
     eps = {0: 0.001, 1: -0.002}
     for c in ("x_m", "y_m", "z_m"):
         fused = fused.with_columns((pl.col(c) * (1 + pl.col("run").replace_strict(eps, return_dtype=pl.Float64))).alias(c))
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     rng = np.hypot(np.hypot(100.0 * np.arange(3), 1000.0), 500.0)
     expected = np.sqrt(np.mean([(0.001 * r) ** 2 + (0.002 * r) ** 2 for r in rng]))
     assert _value(m, "rmse_range_m") == pytest.approx(expected, rel=1e-9)
@@ -213,8 +219,7 @@ def test_range_error_is_from_the_system_origin():
     # a pure cross-range (x) error of ±10 m at x = 0 changes the range only to second order
     truth0 = _truth(0)                                  # one epoch, p = (0, 1000, 500)
     fused_x = _fused(truth0, {0: (10.0,), 1: (-10.0,)})
-    assoc, reports = _assoc(fused_x)
-    m = accuracy(fused_x, assoc, reports, truth0, NO_SKIP)
+    m = accuracy(fused_x, truth0, NO_SKIP)
     r0 = math.hypot(1000.0, 500.0)
     dr = math.hypot(10.0, r0) - r0                      # ≈ 0.045 m for both runs
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(200.0))
@@ -227,30 +232,30 @@ def test_truth_is_interpolated_between_samples():
         (pl.col("epoch") + pl.duration(milliseconds=500)).alias("epoch"),
         (pl.col("x_m") + 50.0).alias("x_m"))           # truth moves 50 m in 0.5 s
     fused = fused.filter(pl.col("epoch") < _t(4))      # the last half-second is outside truth
-    assoc, reports = _assoc(fused)
-    matched = match_truth(fused, assoc, reports, truth, NO_SKIP)
+    matched = scored_rows(_matched(fused, truth), NO_SKIP)
     assert matched.height == 8
     np.testing.assert_allclose(matched["true_x_m"].to_numpy(), matched["x_m"].to_numpy() - np.where(
         matched["run"].to_numpy() == 0, 1.0, -1.0))
-    assert _value(accuracy(fused, assoc, reports, truth, NO_SKIP), "rmse_x_m") == pytest.approx(math.sqrt(2.0))
+    assert _value(accuracy(fused, truth, NO_SKIP), "rmse_x_m") == pytest.approx(math.sqrt(2.0))
 
 
 def test_methods_are_scored_separately():
     truth = _truth(4)
     fused = pl.concat([_fused(truth, {0: (1.0,), 1: (-1.0,)}, method="a"),
                        _fused(truth, {0: (5.0,), 1: (-5.0,)}, method="b")])
-    assoc, reports = _assoc(fused)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     assert _value(m, "rmse_x_m", method="a") == pytest.approx(math.sqrt(2.0))
     assert _value(m, "rmse_x_m", method="b") == pytest.approx(math.sqrt(50.0))
 
 
 def test_clutter_targets_are_not_scored():
+    """A second target 800–900 m off the aircraft: the one-to-one matcher gives the aircraft to
+    the close target; the other is unmatched and is not an accuracy sample."""
     truth = _truth(4)
     fused = _fused(truth, {0: (1.0,), 1: (-1.0,)})
     fused = pl.concat([fused, _fused(truth, {0: (900.0,), 1: (800.0,)}, target_id=2)])
     assoc, reports = _assoc(fused, truth_of=lambda r, e, t: 7 if t == 1 else None)
-    m = accuracy(fused, assoc, reports, truth, NO_SKIP)
+    m = accuracy(fused, truth, NO_SKIP)
     assert _value(m, "rmse_x_m") == pytest.approx(math.sqrt(2.0))
     a = association_metrics(assoc, reports)
     assert _value(a, "false_targets", method="assignment") == 2.0       # one per run
@@ -274,7 +279,7 @@ def test_random_case_matches_numpy_oracle():
     fused = pl.DataFrame(rows).with_columns(pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64),
                                             pl.col("epoch").cast(pl.Datetime("us", "UTC")))
     assoc, reports = _assoc(fused, truth_of=lambda r, e, t: 7 if t == 1 else 8)
-    m = accuracy(fused, assoc, reports, truths, NO_SKIP)
+    m = accuracy(fused, truths, NO_SKIP)
     per_k = [np.stack(v) for v in errs.values() if len(v) > 1]
     expect_pos = np.sqrt(np.mean([np.sum(e[:, :3] ** 2) / (len(e) - 1) for e in per_k]))
     expect_vel = np.sqrt(np.mean([np.sum(e[:, 3:] ** 2) / (len(e) - 1) for e in per_k]))
@@ -306,11 +311,6 @@ def test_majority_truth_and_swap_count():
         (0, 0, 2, 20), (0, 1, 2, 20), (0, 2, 2, None), (0, 3, 2, 20),
     ]
     assoc, reports = _assoc_rows(rows)
-    tt = target_truth(assoc, reports)
-    t1 = tt.filter(pl.col("target_id") == 1)["truth_id"].to_list()
-    t2 = tt.filter(pl.col("target_id") == 2)["truth_id"].to_list()
-    assert t1 == [10, 10, 20, 20]
-    assert t2 == [20, 20, None, 20]
     a = association_metrics(assoc, reports)
     assert _value(a, "swaps", method="assignment") == 1.0
     # 10 reports with a truth; wrong: the dissenting 10 at epoch 2 of target 1, and at epoch 3
@@ -334,24 +334,28 @@ def test_swaps_sum_over_runs_and_ignore_null_pairs():
 
 
 def test_tie_goes_to_smallest_truth_id():
-    assoc, reports = _assoc_rows([(0, 0, 1, 9), (0, 0, 1, 4)])
-    assert target_truth(assoc, reports)["truth_id"].to_list() == [4]
+    """Epoch 0 ties 9 and 4 → 4; epoch 1 is 4: no swap (a tie going to 9 would make one)."""
+    assoc, reports = _assoc_rows([(0, 0, 1, 9), (0, 0, 1, 4), (0, 1, 1, 4)])
+    assert _value(association_metrics(assoc, reports), "swaps", method="assignment") == 0.0
+    assoc, reports = _assoc_rows([(0, 0, 1, 9), (0, 0, 1, 4), (0, 1, 1, 9)])
+    assert _value(association_metrics(assoc, reports), "swaps", method="assignment") == 1.0
 
 
-def test_metrics_frame_combines_stages():
+def test_picture_accuracy_is_one_stage_in_the_metrics_schema():
     truth = _truth(4)
     fused = _fused(truth, {0: (1.0,), 1: (-1.0,), 2: (0.0,)})
-    assoc, reports = _assoc(fused)
-    m = metrics_frame(fused, assoc, reports, truth, NO_SKIP)
+    m, by, samples = picture_accuracy(_matched(fused, truth), "fusion", NO_SKIP)
     assert m.schema == pl.Schema(TABLES["metrics"].required)
-    assert set(m["stage"]) == {"fusion", "association"}
-    assert m.filter(pl.col("stage") == "fusion")["n_runs"].unique().to_list() == [3]
+    assert set(m["stage"]) == {"fusion"}
+    assert m["n_runs"].unique().to_list() == [3]
+    assert _value(m, "rmse_x_m") == pytest.approx(1.0)             # (1 + 1 + 0)/(3 − 1)
+    assert by.height and samples.height == 15
     validate(m, "metrics")
 
 
 # --------------------------------------------------------------------------- consistency
 
-from tertiary.evaluate import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
+from tertiary.accuracy import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
 
 
 def _kf_nees(runs: int, epochs: int, r_scale: float = 1.0, seed: int = 5) -> pl.DataFrame:
@@ -380,7 +384,7 @@ def _kf_nees(runs: int, epochs: int, r_scale: float = 1.0, seed: int = 5) -> pl.
     epoch = pl.Series(np.repeat(np.arange(epochs), runs) * 1_000_000 + 1_600_000_000_000_000).cast(
         pl.Datetime("us", "UTC"))
     return pl.DataFrame({"method": "kf", "run": np.tile(np.arange(runs), epochs), "epoch": epoch,
-                         "target_id": 1, "seg_class": None, "nees_pos": nees.reshape(-1)},
+                         "track_id": 1, "seg_class": None, "nees_pos": nees.reshape(-1)},
                         schema_overrides={"seg_class": pl.String})
 
 
@@ -438,3 +442,170 @@ def test_chi2_band_vectorised_and_for_a_fractional_sample_size():
     assert np.isnan(lo[2]) and np.isnan(hi[2])
     a, b = chi2_band(12.5, 3)
     assert a < 3 < b
+
+
+# --------------------------------------------------------------------------- tracker pictures
+# Track rows sit on an aircraft's lane (or on lane 9, where no aircraft flies: a false track);
+# which aircraft a row is comes from the matcher's geometry only.
+
+from tertiary.tracker import TRACK_COLUMNS  # noqa: E402
+
+LANES = {7: 1000.0, 8: -1000.0, 9: 30_000.0}      # truth_id → y of an eastbound lane (100 m/s)
+
+
+def _lanes_truth(n_s: int = 40) -> pl.DataFrame:
+    rows = [{"truth_id": tid, "time": _t(s), "x_m": 100.0 * s, "y_m": y, "z_m": 500.0, "vx_mps": 100.0,
+             "vy_mps": 0.0, "vz_mps": 0.0, "segment": "straight"}
+            for tid, y in LANES.items() if tid != 9 for s in range(n_s + 1)]
+    return pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def _track_rows(rows: list[dict], method: str = "aposteriori+singer") -> pl.DataFrame:
+    """rows: run, s, track_id, at (lane), err (6), var (6 diagonal), nis (None: coasting)."""
+    out = []
+    for r in rows:
+        state = np.array([100.0 * r["s"], LANES[r["at"]], 500.0, 100.0, 0.0, 0.0]) + np.asarray(r.get("err", [0.0] * 6))
+        out.append({"run": r.get("run", 0), "epoch": _t(r["s"]), "track_id": r["track_id"], "filter": "f",
+                    "method": "m", **dict(zip(("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"), state.tolist())),
+                    "cov_diag": list(r.get("var", [1.0] * 6)), "innovation": None, "nis": r.get("nis", 3.0),
+                    "model_probs": None, "status": "confirmed", "plot_target_id": None})
+    return pl.DataFrame(out, schema=TRACK_COLUMNS).drop("filter").with_columns(pl.lit(method).alias("method"))
+
+
+def _observed(keys: list[tuple]) -> pl.DataFrame:
+    """(run, s, truth_id) aircraft-epochs the picture should cover."""
+    return pl.DataFrame({"run": [k[0] for k in keys], "epoch": [_t(k[1]) for k in keys],
+                         "truth_id": [k[2] for k in keys]}).with_columns(
+        pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(pl.Datetime("us", "UTC")), pl.col("truth_id").cast(pl.Int64))
+
+
+def _tracker(rows: list[dict] | pl.DataFrame, observed=None, cfg=NO_SKIP) -> pl.DataFrame:
+    tracks = rows if isinstance(rows, pl.DataFrame) else _track_rows(rows)
+    return picture_accuracy(match_to_reference(tracks, _lanes_truth()), "tracker", cfg, observed)[0]
+
+
+def _tv(m: pl.DataFrame, metric: str, segment: str = "all") -> float:
+    row = m.filter((pl.col("metric") == metric) & (pl.col("segment") == segment))
+    assert row.height == 1, (metric, segment, row)
+    return row["value"][0]
+
+
+def _two_runs(err0, err1, var=(1.0,) * 6, seconds=(0, 4, 8), nis=(3.0, 3.0)) -> list[dict]:
+    return [dict(run=run, s=s, track_id=1, at=7, err=err, var=var, nis=n)
+            for run, err, n in ((0, err0, nis[0]), (1, err1, nis[1])) for s in seconds]
+
+
+def test_tracker_rmse_uses_n_minus_1_over_runs_per_epoch():
+    m = _tracker(_two_runs([3, 0, 0, 1, 0, 0], [4, 0, 0, 0, 2, 0]))
+    assert _tv(m, "rmse_pos_m") == pytest.approx(5.0)                  # (9 + 16)/(2 − 1)
+    assert _tv(m, "rmse_vel_mps") == pytest.approx(math.sqrt(5.0))     # (1 + 4)/1
+    assert set(m["stage"]) == {"tracker"}
+
+
+def test_potential_accuracy_and_diagonal_nees():
+    var = (1.0, 4.0, 4.0, 1.0, 1.0, 1.0)                   # sqrt(1 + 4 + 4) = 3
+    m = _tracker(_two_runs([1, 2, 0, 0, 0, 0], [0, 0, 4, 0, 0, 0], var=var))
+    assert _tv(m, "potential_pos_m") == pytest.approx(3.0)
+    assert _tv(m, "nees_mean") == pytest.approx(3.0)       # run 0: 1/1 + 4/4 = 2; run 1: 16/4 = 4
+    # each run's NEES is constant over its 3 epochs: 6 samples worth 2 independent ones
+    assert _tv(m, "nees_n_eff") == pytest.approx(2.0)
+    lo, hi = _tv(m, "nees_band_lo"), _tv(m, "nees_band_hi")
+    assert lo == pytest.approx(chi2.ppf(0.025, 6) / 2) and hi == pytest.approx(chi2.ppf(0.975, 6) / 2)
+    assert _tv(m, "nees_in_band_frac") == pytest.approx(1.0)
+
+
+def test_nis_mean_ignores_coasting_rows():
+    rows = _two_runs([0] * 6, [0] * 6, nis=(2.0, 5.0)) + [dict(run=0, s=12, track_id=1, at=7, nis=None)]
+    m = _tracker(rows)
+    assert _tv(m, "nis_mean") == pytest.approx(3.5)
+    assert _tv(m, "nis_n_eff") == pytest.approx(2.0)
+
+
+def test_completeness_breaks_swaps_spurious():
+    observed = _observed([(0, s, 7) for s in range(0, 40, 4)] + [(0, s, 8) for s in range(0, 16, 4)])
+    rows = (
+        # track 1 covers aircraft 7 at 8, 12, 16, stops
+        [dict(s=s, track_id=1, at=7) for s in (8, 12, 16)]
+        # gap at 20 (taken by track 3) → track 2 covers 7 from 24 on
+        + [dict(s=s, track_id=2, at=7) for s in (24, 28, 32, 36)]
+        # track 3 follows aircraft 8 at 4, 8, then sits on aircraft 7 at 20: a swap
+        + [dict(s=4, track_id=3, at=8), dict(s=8, track_id=3, at=8), dict(s=20, track_id=3, at=7)]
+        # track 4 lies where no aircraft flies: spurious
+        + [dict(s=s, track_id=4, at=9) for s in (20, 24, 28)]
+    )
+    m = _tracker(rows, observed)
+    # aircraft-epochs 10 + 4 = 14; covered: 7 at 8..36 (8 epochs), 8 at 4, 8
+    assert _tv(m, "completeness") == pytest.approx(10 / 14)
+    assert _tv(m, "breaks") == 2                  # 7: id 1 → 3 at 20 → 2 at 24
+    assert _tv(m, "swaps") == 1
+    assert _tv(m, "spurious_tracks") == 1
+    assert _tv(m, "tracks") == 4
+
+
+def test_break_on_coverage_gap_with_the_same_id():
+    observed = _observed([(0, s, 7) for s in range(0, 24, 4)])
+    rows = ([dict(s=s, track_id=1, at=7) for s in (0, 4)] + [dict(s=s, track_id=1, at=9) for s in (8, 12)]
+            + [dict(s=s, track_id=1, at=7) for s in (16, 20)])
+    m = _tracker(rows, observed)
+    assert _tv(m, "breaks") == 1
+    assert _tv(m, "swaps") == 0                   # unmatched rows have no aircraft: not a swap
+    assert _tv(m, "completeness") == pytest.approx(4 / 6)
+    assert _tv(m, "spurious_tracks") == 0
+
+
+def test_a_duplicate_track_is_unmatched_but_represents_its_aircraft():
+    """Two tracks on one aircraft: the closer one is matched; the other is not a second match
+    (continuity is untouched) but the matcher still says which aircraft it shows, so alert
+    scoring sees a duplicate, not a second aircraft."""
+    observed = _observed([(0, s, 7) for s in range(0, 16, 4)])
+    rows = ([dict(s=s, track_id=1, at=7) for s in range(0, 16, 4)]
+            + [dict(s=s, track_id=2, at=7, err=[40.0, 0, 0, 0, 0, 0]) for s in (4, 8)])
+    tracks = _track_rows(rows)
+    m = _tracker(tracks, observed)
+    assert _tv(m, "breaks") == 0 and _tv(m, "completeness") == 1.0
+    matched = match_to_reference(tracks, _lanes_truth())
+    dup = matched.filter(pl.col("track_id") == 2)
+    assert dup["truth_id"].null_count() == 2 and dup["gated_truth_id"].to_list() == [7, 7]
+    assert matched.filter(pl.col("track_id") == 1)["truth_id"].to_list() == [7] * 4
+
+
+def test_runs_and_pictures_are_separate():
+    observed = _observed([(run, s, 7) for run in (0, 1) for s in range(0, 16, 4)])
+    rows0 = [dict(run=0, s=s, track_id=1, at=7) for s in range(0, 16, 4)]
+    rows1 = [dict(run=1, s=s, track_id=1, at=7) for s in (0, 4)]
+    both = pl.concat([_track_rows(rows0 + rows1), _track_rows(rows0, method="arithmetic+cv")])
+    m = _tracker(both, observed)
+    ma, mb = (m.filter(pl.col("method") == k) for k in ("aposteriori+singer", "arithmetic+cv"))
+    assert _tv(ma, "completeness") == pytest.approx(6 / 8)
+    assert _tv(mb, "completeness") == pytest.approx(4 / 8)      # run 1 has no track at all
+    assert _tv(ma, "tracks") == 2 and _tv(ma, "breaks") == 0
+
+
+def test_empty_picture_gives_empty_metrics():
+    m, by, samples = picture_accuracy(match_to_reference(_track_rows([]), _lanes_truth()), "tracker")
+    assert m.height == 0 and m.schema == pl.Schema(TABLES["metrics"].required)
+    assert by.height == 0 and samples.height == 0
+
+
+def test_end_to_end_on_a_small_terminal_area(small_terminal):
+    """Simulated terminal area → pipeline → tracker picture scored by the one evaluation stage:
+    the picture is nearly complete, with few extra, spurious or swapped tracks."""
+    from tertiary.evaluation import evaluate_pictures
+    from tertiary.filters import make_filter
+    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.tracker import track
+
+    res = process(small_terminal, PipelineConfig(methods=("aposteriori",), filters=(), centralized=False))
+    fused = res.fused.filter(pl.col("method") == "aposteriori")
+    tracks = track(fused, make_filter("singer"))
+    validate(tracks, "tracks")
+    pictures = tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
+    m = evaluate_pictures(pictures, small_terminal.truth).metrics.filter(pl.col("stage") == "tracker")
+    validate(m, "metrics")
+    assert set(m["method"]) == {"aposteriori+singer"}
+    n_aircraft = small_terminal.truth["truth_id"].n_unique()
+    assert _tv(m, "completeness") > 0.9
+    assert _tv(m, "tracks") <= 1.5 * n_aircraft
+    assert _tv(m, "swaps") <= 0.2 * n_aircraft
+    assert _tv(m, "spurious_tracks") <= 0.2 * n_aircraft
+    assert _tv(m, "rmse_pos_m") < 500.0

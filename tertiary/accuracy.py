@@ -1,0 +1,535 @@
+"""Real accuracy, consistency and track continuity of a *matched* picture (the seed metrics).
+
+Every picture — a fusion method's plots, the centralised reference, a tracker's output or a
+picture ``tertiary`` did not produce — is first matched to the reference aircraft by the one
+matcher, :func:`tertiary.matching.match_to_reference` (geometric, one-to-one per epoch). This
+module only computes statistics of the matched rows; it never decides which aircraft a row is.
+
+Scored rows (:func:`scored_rows`)
+---------------------------------
+The matched rows with a reference aircraft, at least ``skip_first_s`` (default 20 s, tertiary
+digest: the filter transient) after the first epoch of their (run, picture, track). Rows the
+matcher left unmatched (false tracks, second tracks on an aircraft, gross errors beyond the
+gate) are not accuracy samples: they are counted by the continuity and picture metrics.
+
+Real accuracy (monograph (2.15), tertiary digest (4.84))
+--------------------------------------------------------
+A scored row is compared with its aircraft's reference state at the row's epoch (interpolated
+by the matcher). With e_j(k) the error of sample j at epoch k,
+
+    σ²(k) = Σ_{j=1..N_k} e_j(k)² / (N_k − 1)                                        (2.15)/(4.84)
+
+the squared real accuracy at epoch k, about the **truth** (not the sample mean). The samples of
+an epoch are all scored rows of that picture at that epoch — for one aircraft, one per
+Monte-Carlo run (N_k = number of runs, the seed's case); with several aircraft they are pooled.
+``denominator="n"`` divides by N_k instead. For 3-D position and velocity e² = |e|² (sum of the
+three components), for range e = |p| − |p_true| (range from the processing centre = the
+system origin).
+
+Horizontal and vertical error. Surveillance specifications judge the two separately, so beside
+the 3-D ``rmse_pos_m`` (e² = Δx² + Δy² + Δz²) every picture gets ``rmse_horizontal_m``
+(e² = Δx² + Δy², east and north of the system ENU frame) and ``rmse_height_m``. The height error
+is e = alt_m − alt_m_true whenever both the picture row and the reference carry the vertical
+channel ``alt_m`` (barometric / geodetic height, :mod:`tertiary.altitude`). Otherwise it falls
+back to e = Δz: the frame's z is not the height h — at horizontal distance d from the origin
+z = h − d²/(2R) + O(d⁴/R³), so Δz equals the height error to first order only.
+
+Pooling when an epoch has too few samples. With ``"n-1"`` an epoch with N_k = 1 has no (2.15).
+Instead of dropping it, the M samples of all such epochs of a (picture, segment) are **pooled**
+into one sample with the N − 1 denominator: each of those epochs gets σ²(k) = e_k² · M / (M − 1),
+so that their mean is Σ e² / (M − 1), the (2.15) of the pool. Only a pool with M < 2 is left out.
+``accuracy_by_epoch`` marks those rows ``pooled`` and gives N_k in ``n``.
+
+The pooled figure of a metric is RMSE = sqrt( (1/K) Σ_k σ²(k) ) over the K scored epochs.
+``n_runs`` is the number of distinct Monte-Carlo runs that contributed.
+
+Segments: ``all``; ``straight`` ← reference segments straight|climb|descent; ``turn`` ← turn.
+Holding patterns (``hold``) and unknown segments count only in ``all``.
+
+Consistency (:func:`consistency_metrics`)
+-----------------------------------------
+``nees_*`` (position NEES Δpᵀ P_pp⁻¹ Δp, 3 degrees of freedom; from the diagonal ``cov_diag``
+when a picture has no full ``cov``), ``nees6_*`` (6-state, 6) and, for pictures that carry a
+``nis`` column (the trackers), ``nis_*`` (3): the mean; the Monte-Carlo test ``*_in_band_frac``
+— the fraction of epochs whose mean over the N_k samples lies in the two-sided 95 % band
+χ²(dN_k)/N_k; and the band of the overall mean from the effective sample size n/τ
+(``*_band_lo``/``_hi``, ``*_n_eff``; τ from :func:`integrated_autocorrelation`).
+``potential_pos_m``: the mean of sqrt(P_xx + P_yy + P_zz) (potential accuracy, §2.2.1).
+
+Continuity (:func:`continuity_metrics`, segment ``all``)
+--------------------------------------------------------
+On the matched rows (every epoch, not only the scored ones) and the aircraft-epochs a picture
+should cover (``observed``: in the pipeline the (run, epoch, aircraft) that had at least one
+report at that epoch; for an external picture the reference aircraft alive at its epochs):
+
+* ``completeness``: the fraction of those aircraft-epochs covered by a track matched to it.
+* ``breaks``: walking each (run, aircraft)'s aircraft-epochs in time order with its covering
+  track, a covered epoch whose previous covered epoch had another track id, or that follows
+  uncovered epochs. Uncovered epochs before the first coverage (initiation) are not breaks.
+* ``swaps``: over each track's matched rows in time order, the number of times its aircraft
+  changes; summed over tracks.
+* ``spurious_tracks``: tracks (run, track_id) never matched to any aircraft; ``tracks``: all.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import polars as pl
+from scipy.stats import chi2
+
+from tertiary.schema import TABLES, TIME
+
+__all__ = [
+    "AccuracyConfig",
+    "SEGMENT_CLASSES",
+    "FUSION_METRICS",
+    "error_columns",
+    "scored_rows",
+    "accuracy_from_matched",
+    "accuracy_by_epoch_from_matched",
+    "BY_EPOCH_SCHEMA",
+    "continuity_metrics",
+    "picture_accuracy",
+    "add_nees",
+    "chi2_band",
+    "integrated_autocorrelation",
+    "consistency_metrics",
+    "scored_samples",
+    "CONSISTENCY",
+]
+
+Denominator = Literal["n-1", "n"]
+
+#: truth segment → evaluation segment (anything else counts only in ``all``)
+SEGMENT_CLASSES: dict[str, str] = {"straight": "straight", "climb": "straight", "descent": "straight",
+                                   "turn": "turn"}
+
+#: metric name → squared-error column of :func:`scored_rows`
+FUSION_METRICS: dict[str, str] = {
+    "rmse_pos_m": "e2_pos",
+    "rmse_horizontal_m": "e2_horizontal",
+    "rmse_height_m": "e2_height",
+    "rmse_range_m": "e2_range",
+    "rmse_x_m": "e2_x",
+    "rmse_y_m": "e2_y",
+    "rmse_z_m": "e2_z",
+    "rmse_vel_mps": "e2_vel",
+}
+
+STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+_TRACK = ["run", "method", "track_id"]
+
+
+@dataclass(frozen=True)
+class AccuracyConfig:
+    """Options of the seed metrics.
+
+    * ``skip_first_s``: discard rows this many seconds after the first epoch of their
+      (run, picture, track) — the filter transient (tertiary digest: the first 20 s).
+    * ``denominator``: ``"n-1"`` (seed (2.15)/(4.84)) or ``"n"``.
+    * ``band``: probability of the two-sided χ² consistency bands.
+    """
+
+    skip_first_s: float = 20.0
+    denominator: Denominator = "n-1"
+    band: float = 0.95
+
+    def __post_init__(self) -> None:
+        if self.denominator not in ("n-1", "n"):
+            raise ValueError(f"denominator must be 'n-1' or 'n', got {self.denominator!r}")
+        if self.skip_first_s < 0:
+            raise ValueError(f"skip_first_s must be >= 0, got {self.skip_first_s}")
+        if not 0 < self.band < 1:
+            raise ValueError(f"band must be in (0, 1), got {self.band}")
+
+
+def error_columns(alt: bool = False) -> list[pl.Expr]:
+    """Expressions on rows holding an estimate (``x_m`` …) and its truth (``true_x_m`` …):
+    ``seg_class`` (straight/turn/null) and the squared errors ``e2_x``, ``e2_y``, ``e2_z``,
+    ``e2_pos`` (|Δp|²), ``e2_horizontal`` (Δx² + Δy²), ``e2_height`` ((alt_m − true_alt_m)²
+    where ``alt`` and both are not null, else Δz², the height error to first order only; module
+    docstring), ``e2_range`` ((|p| − |p_true|)², range from the processing
+    centre) and ``e2_vel`` (|Δv|²) — shared by the fusion and tracker evaluations."""
+    d = {c: pl.col(c) - pl.col(f"true_{c}") for c in STATE}
+    r_f = (pl.col("x_m") ** 2 + pl.col("y_m") ** 2 + pl.col("z_m") ** 2).sqrt()
+    r_t = (pl.col("true_x_m") ** 2 + pl.col("true_y_m") ** 2 + pl.col("true_z_m") ** 2).sqrt()
+    return [
+        pl.col("segment").replace_strict(SEGMENT_CLASSES, default=None, return_dtype=pl.String).alias("seg_class"),
+        (d["x_m"] ** 2).alias("e2_x"),
+        (d["y_m"] ** 2).alias("e2_y"),
+        (d["z_m"] ** 2).alias("e2_z"),
+        (d["x_m"] ** 2 + d["y_m"] ** 2 + d["z_m"] ** 2).alias("e2_pos"),
+        (d["x_m"] ** 2 + d["y_m"] ** 2).alias("e2_horizontal"),
+        _e2_height(d["z_m"], alt),
+        ((r_f - r_t) ** 2).alias("e2_range"),
+        (d["vx_mps"] ** 2 + d["vy_mps"] ** 2 + d["vz_mps"] ** 2).alias("e2_vel"),
+    ]
+
+
+def _e2_height(dz: pl.Expr, alt: bool) -> pl.Expr:
+    """(alt_m − true_alt_m)² where both exist (``alt``), else Δz²."""
+    if not alt:
+        return (dz ** 2).alias("e2_height")
+    dh = pl.col("alt_m").cast(pl.Float64).fill_nan(None) - pl.col("true_alt_m")
+    return pl.coalesce(dh ** 2, dz ** 2).alias("e2_height")
+
+
+# --------------------------------------------------------------------------- accuracy
+
+
+def _per_epoch(matched: pl.DataFrame, group: list[str], cfg: AccuracyConfig) -> pl.DataFrame:
+    """Long per-epoch table: ``group`` + epoch, metric, sigma2 (= σ²(k) of (2.15)), n (N_k),
+    n_runs, pooled. With ``"n-1"`` the epochs with N_k < 2 of a ``group`` are pooled (module
+    docstring): σ²(k) = Σ e² · M / ((M − 1) N_k) with M their total sample count; a pool with
+    M < 2 is dropped."""
+    ddof = 1 if cfg.denominator == "n-1" else 0
+    e2 = list(FUSION_METRICS.values())
+    agg = matched.group_by(group + ["epoch"]).agg(
+        *[pl.col(c).sum() for c in e2], pl.len().alias("n"), pl.col("run").n_unique().alias("n_runs"))
+    pooled = pl.col("n") <= ddof
+    # M: samples of the thin epochs of the same group (0 when nothing needs pooling)
+    agg = agg.with_columns(pooled.alias("pooled"),
+                           pl.when(pooled).then(pl.col("n")).otherwise(0).sum().over(group).alias("__m"))
+    agg = agg.filter(~pl.col("pooled") | (pl.col("__m") > ddof))
+    long = agg.unpivot(index=group + ["epoch", "n", "n_runs", "pooled", "__m"], on=e2, variable_name="e2",
+                       value_name="sum_e2")
+    name = {v: k for k, v in FUSION_METRICS.items()}
+    m = pl.col("__m").cast(pl.Float64)
+    sigma2 = (pl.when(pl.col("pooled")).then(pl.col("sum_e2") * m / ((m - ddof) * pl.col("n")))
+              .otherwise(pl.col("sum_e2") / (pl.col("n") - ddof)))
+    return long.select(
+        *group, "epoch",
+        pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"),
+        sigma2.alias("sigma2"),
+        "n", "n_runs", "pooled")
+
+
+def _with_segments(matched: pl.DataFrame) -> pl.DataFrame:
+    """Rows once with segment ``all`` and once more with their straight/turn class."""
+    allrows = matched.with_columns(pl.lit("all").alias("eval_segment"))
+    split = matched.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))
+    return pl.concat([allrows, split], how="vertical")
+
+
+def _metrics_schema(frame: pl.DataFrame) -> pl.DataFrame:
+    spec = TABLES["metrics"].required
+    return frame.select([pl.col(c).cast(t) for c, t in spec.items()])
+
+
+def _empty_metrics() -> pl.DataFrame:
+    return pl.DataFrame(schema=TABLES["metrics"].required)
+
+
+def accuracy_from_matched(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig(),
+                          stage: str = "fusion") -> pl.DataFrame:
+    """Pooled real accuracy (metrics schema, ``stage``) from :func:`scored_rows`:
+    RMSE = sqrt(mean_k σ²(k)), σ²(k) from (2.15)/(4.84), per method, metric and segment."""
+    if matched.is_empty():
+        return _empty_metrics()
+    rows = _with_segments(matched)
+    per = _per_epoch(rows, ["method", "eval_segment"], cfg)
+    runs = (rows.group_by(["method", "eval_segment"])
+            .agg(pl.col("run").n_unique().alias("n_runs")))
+    pooled = (per.group_by(["method", "eval_segment", "metric"]).agg(pl.col("sigma2").mean().sqrt().alias("value"))
+              .join(runs, on=["method", "eval_segment"], how="left"))
+    seg_order = pl.col("eval_segment").replace_strict({"all": 0, "straight": 1, "turn": 2}, default=3,
+                                                      return_dtype=pl.Int8)
+    met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(FUSION_METRICS)}, return_dtype=pl.Int8)
+    out = (pooled.sort([pl.col("method"), seg_order, met_order])
+           .select(pl.lit(stage).alias("stage"), "method", "metric",
+                   pl.col("eval_segment").alias("segment"), "value", "n_runs"))
+    return _metrics_schema(out)
+
+
+#: columns of the ``accuracy_by_epoch`` table: ``n`` = N_k (scored samples at the epoch), ``pooled`` =
+#: the epoch had N_k < 2 and its σ(k) comes from the pool of such epochs (module docstring)
+BY_EPOCH_SCHEMA: dict[str, pl.DataType] = {"method": pl.String, "epoch": TIME, "metric": pl.String,
+                                           "value": pl.Float64, "n_runs": pl.UInt32, "n": pl.UInt32,
+                                           "pooled": pl.Boolean}
+
+
+def accuracy_by_epoch_from_matched(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+    """:func:`accuracy_by_epoch` from already matched rows (match once, derive both tables)."""
+    if matched.is_empty():
+        return pl.DataFrame(schema=BY_EPOCH_SCHEMA)
+    per = _per_epoch(matched, ["method"], cfg)
+    met_order = pl.col("metric").replace_strict({m: i for i, m in enumerate(FUSION_METRICS)}, return_dtype=pl.Int8)
+    return (per.sort([pl.col("method"), met_order, pl.col("epoch")])
+            .select("method", "epoch", "metric", pl.col("sigma2").sqrt().alias("value"), "n_runs", "n", "pooled")
+            .cast(BY_EPOCH_SCHEMA))
+
+
+# --------------------------------------------------------------------------- consistency
+
+
+def add_nees(matched: pl.DataFrame, cov: pl.Series | None = None, block: int = 131_072) -> pl.DataFrame:
+    """Add the normalised estimation error squared of each scored row:
+    ``nees_pos`` = Δpᵀ P_pp⁻¹ Δp (3 degrees of freedom, mean 3 when consistent) and ``nees``
+    over the full 6-state (mean 6). The flattened 6×6 covariance (x, y, z, vx, vy, vz) is the
+    row's ``cov`` column, or ``cov`` given aligned with the rows; computed in blocks of rows
+    so the (n, 6, 6) arrays stay small. A singular covariance gives NaN."""
+    if matched.is_empty():
+        return matched.with_columns(pl.lit(None, pl.Float64).alias("nees_pos"), pl.lit(None, pl.Float64).alias("nees"))
+    cov = matched["cov"] if cov is None else cov
+    err = np.stack([(matched[c] - matched[f"true_{c}"]).to_numpy() for c in STATE], axis=1)
+    nees_pos, nees = np.full(len(err), np.nan), np.full(len(err), np.nan)
+    for lo in range(0, len(err), block):
+        sl = slice(lo, lo + block)
+        p = cov.slice(lo, block).to_numpy().reshape(-1, 6, 6)
+        e = err[sl]
+        ok = np.all(np.isfinite(p.reshape(-1, 36)), axis=1) & np.all(np.isfinite(e), axis=1)
+        ok &= np.linalg.det(p[:, :3, :3]) > 0
+        if not ok.any():
+            continue
+        pk, ek = p[ok], e[ok]
+        with np.errstate(all="ignore"):
+            a = np.einsum("ni,ni->n", ek[:, :3], np.linalg.solve(pk[:, :3, :3], ek[:, :3, None])[..., 0])
+            try:
+                b = np.einsum("ni,ni->n", ek, np.linalg.solve(pk, ek[..., None])[..., 0])
+            except np.linalg.LinAlgError:        # a singular full covariance: position NEES only
+                b = np.full(len(ek), np.nan)
+        idx = np.flatnonzero(ok) + lo
+        nees_pos[idx], nees[idx] = a, b
+    return matched.with_columns(pl.Series("nees_pos", nees_pos), pl.Series("nees", nees))
+
+
+def chi2_band(n, dof: int, band: float = 0.95):
+    """Two-sided ``band`` interval of the mean of ``n`` independent χ²(``dof``) samples:
+    χ²_{(1∓band)/2}(dof·n)/n. ``n`` may be an array (also non-integer: an effective sample
+    size); n ≤ 0 gives NaN. Scalars in, a (lo, hi) tuple of floats out."""
+    arr = np.asarray(n, dtype=float)
+    with np.errstate(all="ignore"):
+        safe = np.where(arr > 0, arr, np.nan)
+        lo = chi2.ppf((1 - band) / 2, dof * safe) / safe
+        hi = chi2.ppf((1 + band) / 2, dof * safe) / safe
+    if arr.ndim == 0:
+        return float(lo), float(hi)
+    return lo, hi
+
+
+def integrated_autocorrelation(x: np.ndarray, series: np.ndarray, max_lag: int = 1000) -> float:
+    """Integrated autocorrelation time τ of a sequence observed as several series (``series``
+    codes; rows sorted by series then time, consecutive rows of a series one step apart), so
+    that the mean of the n rows has the variance of n/τ independent ones.
+
+    Var(Σ x) = n γ₀ + 2 Σ_{l≥1} Σ_{pairs at lag l inside one series} Cov, hence
+
+        τ = 1 + 2 Σ_{l≥1} (P_l/n) ρ_l,    ρ_l = γ_l/γ₀,
+
+    with P_l the number of pairs at lag l inside a series (P_l/n → 1 for long series: the
+    usual 1 + 2 Σ ρ_l), γ_l the mean of (x_t − x̄)(x_{t+l} − x̄) over those pairs and x̄ the mean
+    of all rows (the series are runs or targets of one picture). The sum is truncated by
+    Geyer's initial positive sequence rule (Geyer 1992, Stat. Sci. 7(4)): the pair sums of
+    consecutive terms (lags 2m, 2m + 1, lag 0 counting 1) are added while positive.
+    τ ≥ 1 (independent samples: τ = 1)."""
+    x = np.asarray(x, float)
+    n = len(x)
+    if n < 3:
+        return 1.0
+    y = x - x.mean()
+    g0 = float(np.mean(y * y))
+    if not g0 > 0:
+        return 1.0
+    terms = [1.0]          # (P_l / n) ρ_l, lag 0 first
+    tau = -1.0
+    for m in range(max_lag // 2):
+        for lag in (2 * m, 2 * m + 1):
+            if lag == 0:
+                continue
+            if lag >= n:
+                terms.append(0.0)
+                continue
+            same = series[lag:] == series[:-lag]
+            terms.append(float(np.sum((y[lag:] * y[:-lag])[same])) / (n * g0))
+        pair = terms[2 * m] + terms[2 * m + 1]
+        if pair <= 0:
+            break
+        tau += 2 * pair
+    return max(tau, 1.0)
+
+
+#: consistency statistic → (column, degrees of freedom)
+CONSISTENCY = {"nees": ("nees_pos", 3), "nees6": ("nees", 6)}
+
+
+def consistency_metrics(rows: pl.DataFrame, column: str, dof: int, prefix: str, stage: str,
+                        obj: str = "track_id", band: float = 0.95) -> pl.DataFrame:
+    """Consistency of a normalised squared error ``column`` (NEES or NIS, χ²(``dof``) when the
+    covariance is right) per ``method`` and segment (all/straight/turn), in the metrics schema:
+
+    * ``<prefix>_mean``: the mean over all samples.
+    * ``<prefix>_in_band_frac``: the Monte-Carlo test — at each epoch k the N_k samples (one
+      per run and object; independent draws) are averaged and compared with the two-sided
+      ``band`` interval χ²(dof·N_k)/N_k of such an average; the fraction of epochs inside.
+      With one run and one object N_k = 1: the χ²(dof) interval of a single sample.
+    * ``<prefix>_band_lo`` / ``_band_hi``: the interval of ``<prefix>_mean`` itself, from the
+      effective sample size n_eff = n/τ (τ: :func:`integrated_autocorrelation` along each
+      (run, ``obj``) series in epoch order) — consecutive errors of a filter are correlated,
+      so the n samples are worth n/τ independent ones.
+    * ``<prefix>_n_eff``: that effective sample size.
+    """
+    spec = TABLES["metrics"].required
+    r = rows.filter(pl.col(column).is_not_null() & pl.col(column).is_finite())
+    if r.is_empty():
+        return pl.DataFrame(schema=spec)
+    r = r.select("method", "run", "epoch", obj, "seg_class", column)
+    r = pl.concat([r.with_columns(pl.lit("all").alias("eval_segment")),
+                   r.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))])
+    per = r.group_by("method", "eval_segment", "epoch").agg(pl.col(column).mean().alias("__m"), pl.len().alias("__n"))
+    lo, hi = chi2_band(per["__n"].to_numpy(), dof, band)
+    per = per.with_columns(pl.Series("__in", (per["__m"].to_numpy() >= lo) & (per["__m"].to_numpy() <= hi)))
+    frac = per.group_by("method", "eval_segment").agg(pl.col("__in").mean().alias("in_band"))
+    out = []
+    for (method, seg), g in r.sort("method", "eval_segment", "run", obj, "epoch").group_by(
+            ["method", "eval_segment"], maintain_order=True):
+        keys = g.select(pl.struct("run", obj).rank("dense").alias("k"))["k"].to_numpy()
+        x = g[column].to_numpy()
+        tau = integrated_autocorrelation(x, keys)
+        n_eff = len(x) / tau
+        b_lo, b_hi = chi2_band(n_eff, dof, band)
+        f = frac.filter((pl.col("method") == method) & (pl.col("eval_segment") == seg))["in_band"].item()
+        nr = g["run"].n_unique()
+        for metric, value in (("mean", float(x.mean())), ("in_band_frac", float(f)), ("band_lo", b_lo),
+                              ("band_hi", b_hi), ("n_eff", n_eff)):
+            out.append({"stage": stage, "method": method, "metric": f"{prefix}_{metric}", "segment": seg,
+                        "value": value, "n_runs": nr})
+    return pl.DataFrame(out, schema=spec)
+
+
+#: consistency statistics of a picture that carries a ``nis`` column (its innovations): the
+#: tracker's measurement is the fused 3-D position
+NIS_DOF = 3
+
+
+def _diag_of(m: pl.DataFrame, col: str, idx: tuple[int, ...]) -> list[pl.Expr] | None:
+    if col not in m.columns:
+        return None
+    get = (lambda k: pl.col(col).list.get(k)) if isinstance(m.schema[col], pl.List) else (lambda k: pl.col(col).arr.get(k))
+    return [get(k) for k in idx]
+
+
+def _sd_and_nees_diag(m: pl.DataFrame) -> list[pl.Expr]:
+    """``sd_pos`` = sqrt(P_xx + P_yy + P_zz) and the diagonal-only NEES ``__nees_diag``, per row
+    from the full ``cov`` (36 values, row-major) where it is set, else from ``cov_diag``; null
+    when a row has neither."""
+    full, diag = _diag_of(m, "cov", (0, 7, 14)), _diag_of(m, "cov_diag", (0, 1, 2))
+    if full is None and diag is None:
+        return [pl.lit(None, pl.Float64).alias("sd_pos"), pl.lit(None, pl.Float64).alias("__nees_diag")]
+    var = [pl.coalesce(*[v[k] for v in (full, diag) if v is not None]) for k in range(3)]
+    d = [pl.col(c) - pl.col(f"true_{c}") for c in ("x_m", "y_m", "z_m")]
+    return [(var[0] + var[1] + var[2]).sqrt().alias("sd_pos"),
+            (d[0] ** 2 / var[0] + d[1] ** 2 / var[1] + d[2] ** 2 / var[2]).alias("__nees_diag")]
+
+
+def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+    """The accuracy samples of a matched picture (module docstring): rows with a ``truth_id``,
+    after the transient, with ``seg_class``, the squared errors ``e2_*`` (:func:`error_columns`),
+    ``sd_pos`` and the NEES columns ``nees_pos`` (3 dof) and ``nees`` (6 dof; null without a full
+    covariance). The ``cov`` column is consumed (not returned)."""
+    m = matched
+    if "segment" not in m.columns:
+        m = m.with_columns(pl.lit(None, pl.String).alias("segment"))
+    if cfg.skip_first_s > 0 and m.height:
+        first = pl.col("epoch").min().over(_TRACK)
+        m = m.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
+    m = m.filter(pl.col("truth_id").is_not_null())
+    m = m.with_columns(*error_columns("true_alt_m" in m.columns and "alt_m" in m.columns), *_sd_and_nees_diag(m))
+    if "cov" in m.columns and m["cov"].null_count() == m.height:
+        m = m.drop("cov")
+    if "cov" in m.columns:               # the proper NEES Δpᵀ P_pp⁻¹ Δp and the 6-state one
+        m = add_nees(m.drop("cov"), m["cov"])
+        m = m.with_columns(pl.col("nees_pos").fill_nan(None).fill_null(pl.col("__nees_diag")),
+                           pl.col("nees").fill_nan(None))
+    else:
+        m = m.with_columns(pl.col("__nees_diag").alias("nees_pos"), pl.lit(None, pl.Float64).alias("nees"))
+    return m.drop("__nees_diag")
+
+
+def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataFrame]:
+    """``potential_pos_m`` and the NEES (3 and 6 dof) and NIS rows of every picture."""
+    out = []
+    pot = scored.filter(pl.col("sd_pos").is_not_null())
+    if pot.height:
+        rows = _with_segments(pot).group_by("method", "eval_segment").agg(
+            pl.col("sd_pos").mean().alias("value"), pl.col("run").n_unique().alias("n_runs"))
+        out.append(_metrics_schema(rows.select(pl.lit(stage).alias("stage"), "method",
+                                               pl.lit("potential_pos_m").alias("metric"),
+                                               pl.col("eval_segment").alias("segment"), "value", "n_runs")))
+    stats = dict(CONSISTENCY)
+    if "nis" in scored.columns:
+        stats["nis"] = ("nis", NIS_DOF)
+    for prefix, (col, dof) in stats.items():
+        if col in scored.columns:
+            out.append(consistency_metrics(scored, col, dof, prefix, stage, "track_id", band))
+    return out
+
+
+def continuity_metrics(matched: pl.DataFrame, observed: pl.DataFrame | None, stage: str) -> pl.DataFrame:
+    """``completeness``, ``breaks``, ``swaps``, ``spurious_tracks`` and ``tracks`` per picture
+    (segment ``all``; module docstring). ``observed``: (run, epoch, truth_id) the pictures should
+    cover; without it only ``swaps``, ``spurious_tracks`` and ``tracks``."""
+    m = matched.select("method", pl.col("run").cast(pl.UInt32), "epoch", "track_id", "truth_id")
+    per_track = m.group_by("method", "run", "track_id").agg(pl.col("truth_id").is_null().all().alias("__spurious"))
+    counts = per_track.group_by("method").agg(pl.col("__spurious").sum().cast(pl.Float64).alias("spurious_tracks"),
+                                              pl.len().cast(pl.Float64).alias("tracks"),
+                                              pl.col("run").n_unique().alias("n_runs"))
+    seq = m.filter(pl.col("truth_id").is_not_null()).sort("method", "run", "track_id", "epoch")
+    prev_t = pl.col("truth_id").shift(1).over(["method", "run", "track_id"])
+    swaps = seq.group_by("method").agg(((pl.col("truth_id") != prev_t) & prev_t.is_not_null()).sum()
+                                       .cast(pl.Float64).alias("swaps"))
+    wide = counts.join(swaps, on="method", how="left").with_columns(pl.col("swaps").fill_null(0.0))
+    names = ["swaps", "spurious_tracks", "tracks"]
+    if observed is not None:
+        wide = wide.join(_coverage(m, observed), on="method", how="left")
+        names = ["completeness", "breaks"] + names
+    long = wide.unpivot(index=["method", "n_runs"], on=names, variable_name="metric", value_name="value")
+    return _metrics_schema(long.select(pl.lit(stage).alias("stage"), "method", "metric", pl.lit("all").alias("segment"),
+                                       "value", "n_runs"))
+
+
+def _coverage(m: pl.DataFrame, observed: pl.DataFrame) -> pl.DataFrame:
+    """(method, completeness, breaks) from the walk over each aircraft's observed epochs."""
+    aircraft = observed.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(m.schema["epoch"]),
+                               pl.col("truth_id").cast(pl.Int64)).drop_nulls().unique()
+    cover = (m.filter(pl.col("truth_id").is_not_null())
+             .group_by("method", "run", "epoch", "truth_id").agg(pl.col("track_id").min().alias("cover_id")))
+    walk = (aircraft.join(m.select("method").unique(), how="cross")
+            .join(cover, on=["method", "run", "epoch", "truth_id"], how="left")
+            .sort("method", "run", "truth_id", "epoch")
+            .with_columns(pl.int_range(pl.len()).over(["method", "run", "truth_id"]).alias("__k")))
+    key = ["method", "run", "truth_id"]
+    cov = walk.filter(pl.col("cover_id").is_not_null())
+    prev_k = pl.col("__k").shift(1).over(key)
+    prev_id = pl.col("cover_id").shift(1).over(key)
+    brk = cov.group_by("method").agg((prev_k.is_not_null() & ((pl.col("__k") - prev_k > 1)
+                                                             | (pl.col("cover_id") != prev_id))).sum()
+                                     .cast(pl.Float64).alias("breaks"))
+    comp = walk.group_by("method").agg(pl.col("cover_id").is_not_null().mean().alias("completeness"))
+    return comp.join(brk, on="method", how="left").with_columns(pl.col("breaks").fill_null(0.0))
+
+
+def picture_accuracy(matched: pl.DataFrame, stage: str, cfg: AccuracyConfig = AccuracyConfig(),
+                     observed: pl.DataFrame | None = None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """Every seed metric of the matched pictures (column ``method`` names each): real accuracy,
+    potential accuracy, NEES/NIS consistency and continuity (metrics schema, ``stage``); the
+    per-epoch accuracy (:data:`BY_EPOCH_SCHEMA`); the scored samples (:func:`scored_samples`)."""
+    if matched.height == 0:
+        return _empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA), scored_samples(pl.DataFrame(
+            schema={"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64, "seg_class": pl.String}))
+    scored = scored_rows(matched, cfg)
+    parts = [accuracy_from_matched(scored, cfg, stage), *_consistency(scored, stage, cfg.band),
+             continuity_metrics(matched, observed, stage)]
+    metrics = pl.concat([p for p in parts if p.height], how="vertical_relaxed") if any(p.height for p in parts) \
+        else _empty_metrics()
+    return _metrics_schema(metrics), accuracy_by_epoch_from_matched(scored, cfg), scored_samples(scored)
+
+
+def scored_samples(matched: pl.DataFrame) -> pl.DataFrame:
+    """(method, run, epoch, truth_id, seg_class) of scored rows: what a bound is pooled over."""
+    return matched.select("method", "run", pl.col("epoch").cast(TIME), pl.col("truth_id").cast(pl.Int64),
+                          "seg_class")
+
+
