@@ -104,6 +104,10 @@ def test_los_acceleration_3_11_equals_numeric_second_derivative_of_range():
     # (3.11) proper (V̇ = 0) misses exactly the along-track term V̇ c_x
     cx = los.los_cosines(th, ph, eb, eg)[0]
     assert np.allclose(got - los.los_acceleration(speed, th, w_t, ph, w_p, eb, w_b, eg, w_g), v_dot * cx)
+    # printed (3.11): the third term loses its factor V, nothing else changes
+    third = np.cos(th) * np.cos(eb) * np.sin(ph - eg) * (w_g - w_p)
+    printed = los.los_acceleration(speed, th, w_t, ph, w_p, eb, w_b, eg, w_g, variant="printed")
+    assert np.allclose(printed - los.los_acceleration(speed, th, w_t, ph, w_p, eb, w_b, eg, w_g), (1 - speed) * third)
 
 
 def test_los_load_factor_is_projection_and_corrected_3_62_is_range_acceleration():

@@ -236,15 +236,22 @@ class _Channel:
 @dataclass(frozen=True)
 class KinematicRangeChannel(_Channel):
     """§3.4 kinematic-parameter range channel (3.12)–(3.58); u = a_L of (3.11)/(3.32) from the
-    corrected auxiliary estimates (V_ц⁺, θ⁺, ω_θ⁺, φ⁺, ω_φ⁺, ε_B⁺, ω_B⁺, ε_Г⁺, ω_Г⁺)(k)."""
+    corrected auxiliary estimates (V_ц⁺, θ⁺, ω_θ⁺, φ⁺, ω_φ⁺, ε_B⁺, ω_B⁺, ε_Г⁺, ω_Г⁺)(k).
+    ``variant="printed"`` uses (3.11) with the V bracket closed early as printed (see
+    :func:`~tertiary.filters.kinematic_los.los_acceleration`); ``"corrected"`` as (3.12)/(3.15)."""
 
     name: ClassVar[str] = "kinematic"
+    variant: Variant = "corrected"
     aux: tuple[AuxFilter, ...] = field(default_factory=kinematic_aux)
+
+    def __post_init__(self) -> None:
+        if self.variant not in ("printed", "corrected"):
+            raise ValueError(f"unknown (3.11) variant {self.variant!r}; use 'printed' or 'corrected'")
 
     def acceleration(self, state: State) -> F64:
         e = lambda k, r=False: self.aux_estimate(state, k, r)  # noqa: E731
         return los.los_acceleration(e("speed"), e("theta"), e("theta", True), e("phi"), e("phi", True),
-                                    e("eps_b"), e("eps_b", True), e("eps_g"), e("eps_g", True))
+                                    e("eps_b"), e("eps_b", True), e("eps_g"), e("eps_g", True), variant=self.variant)
 
 
 @dataclass(frozen=True)

@@ -142,19 +142,26 @@ def los_velocity(speed: ArrayLike, theta: ArrayLike, phi: ArrayLike, eps_b: Arra
 
 def los_acceleration(speed: ArrayLike, theta: ArrayLike, w_theta: ArrayLike, phi: ArrayLike, w_phi: ArrayLike,
                      eps_b: ArrayLike, w_b: ArrayLike, eps_g: ArrayLike, w_g: ArrayLike,
-                     v_dot: ArrayLike = 0.0) -> F64:
+                     v_dot: ArrayLike = 0.0, variant: BeamVariant = "corrected") -> F64:
     """(3.11)/(3.32): a_L = dV_L/dt for a fixed radar (= D̈ with the true LOS rates),
 
         a_L = V̇ c_x + V [cos θ sin ε_B (ω_θ − ω_B cos Δ) + sin θ cos ε_B (ω_B − ω_θ cos Δ)
                          + cos θ cos ε_B sin Δ (ω_Г − ω_φ)],   Δ = φ − ε_Г,
 
     V multiplying all three terms (the printed (3.11) closes the bracket early). (3.11) is the
-    V̇ = 0 case; ``v_dot`` adds the along-track term V̇ c_x (c_x of :func:`los_cosines`)."""
+    V̇ = 0 case; ``v_dot`` adds the along-track term V̇ c_x (c_x of :func:`los_cosines`).
+    ``variant="printed"`` closes the V bracket before the third term as printed (that term then
+    lacks the factor V: not an acceleration; kept to measure the erratum's effect)."""
     th, eb, dl = _f(theta), _f(eps_b), _f(phi) - _f(eps_g)
     ct, st, ce, se, cd, sd = np.cos(th), np.sin(th), np.cos(eb), np.sin(eb), np.cos(dl), np.sin(dl)
     wt, wb = _f(w_theta), _f(w_b)
-    bracket = ct * se * (wt - wb * cd) + st * ce * (wb - wt * cd) + ct * ce * sd * (_f(w_g) - _f(w_phi))
-    return _f(v_dot) * (se * st + ce * ct * cd) + _f(speed) * bracket
+    third = ct * ce * sd * (_f(w_g) - _f(w_phi))
+    first_two = ct * se * (wt - wb * cd) + st * ce * (wb - wt * cd)
+    if variant == "printed":
+        return _f(v_dot) * (se * st + ce * ct * cd) + _f(speed) * first_two + third
+    if variant != "corrected":
+        raise ValueError(f"unknown (3.11) variant {variant!r}; use 'corrected' or 'printed'")
+    return _f(v_dot) * (se * st + ce * ct * cd) + _f(speed) * (first_two + third)
 
 
 def los_cosines(theta: ArrayLike, phi: ArrayLike, eps_b: ArrayLike, eps_g: ArrayLike) -> tuple[F64, F64, F64]:
