@@ -61,7 +61,6 @@ def truth(traj: Trajectories, w: np.ndarray) -> dict[str, np.ndarray]:
     p, v = traj.pos[0], traj.vel[0]
     acc = np.stack([w * v[:, 1], -w * v[:, 0], np.zeros_like(w)], axis=1)
     r, vn, an = los.enu_to_normal(p), los.enu_to_normal(v), los.enu_to_normal(acc)
-    d, vl, _ = los.los_rates(r, vn)[0], None, None
     d = np.linalg.norm(r, axis=1)
     return {"D": d, "V": los.los_rates(r, vn)[0], "a": los.range_acceleration_truth(r, vn, an),
             "turn": traj.segment[0] == SEG_TURN, "t": traj.times}
