@@ -9,3 +9,4 @@ from tertiary.filters.base import REGISTRY, Innovation, Output, TrackFilter, mak
 from tertiary.filters.singer import SingerModel, singer_phi, singer_q
 
 __all__ = ["singer_phi", "singer_q", "SingerModel", "TrackFilter", "Output", "Innovation", "make_filter", "REGISTRY"]
+from tertiary.filters.kinematic import KinematicDynamicRangeChannel, KinematicRangeChannel, make_range_channel  # noqa: E402,F401  (chapter 3 range channels)

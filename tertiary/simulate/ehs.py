@@ -1,0 +1,142 @@
+"""Mode S enhanced-surveillance (EHS) parameters a radar extracts from a transponder (issue 19 item 2).
+
+The monograph's chapter 3 range channels take onboard parameters "sent over the discrete-address
+datalink". A real Mode S radar gets them by Comm-B extraction of the EHS registers; this module
+simulates those replies from the aircraft's own state (truth is used only to generate what the
+aircraft's navigation system would put in its registers, as a real transponder does):
+
+BDS 5,0 (track and turn report) and BDS 6,0 (heading and speed report), ICAO Doc 9871 / Annex 10:
+
+==================  ===========  ===================  ===============  =======================
+parameter           register     LSB (resolution)     range            sensor noise σ (chosen)
+==================  ===========  ===================  ===============  =======================
+roll angle          BDS 5,0      45/256° ≈ 0.176°     ±90°             0.3°  (AHRS/IRS attitude)
+true track angle    BDS 5,0      90/512° ≈ 0.176°     ±180°            0.2°  (GNSS/IRS track at
+                                                                              100–300 m/s)
+ground speed        BDS 5,0      2 kt ≈ 1.03 m/s      0–2046 kt        0.5 m/s (GNSS velocity)
+track angle rate    BDS 5,0      8/256 °/s            ±16 °/s          0.05 °/s
+inertial vert. rate BDS 6,0      32 ft/min ≈ 0.16 m/s ±16 352 ft/min   0.3 m/s (hybrid IRS/baro)
+==================  ===========  ===================  ===============  =======================
+
+Values are rounded to the nearest LSB and clipped to the field's range, after adding the
+sensor noise (white, per reply: a simplification — real navigation errors are correlated over
+seconds; the quantisation dominates at these resolutions anyway). Optional register staleness:
+``refresh_s`` > 0 holds each register at the value of the last onboard refresh (a per-aircraft
+random phase), as a register updated every ~1 s read by a faster interrogator.
+
+Roll angle is that of a coordinated turn (tan γ = V_h χ̇ / g: the simulator flies coordinated
+turns); the track-angle rate χ̇ and the accelerations come from the trajectory's velocity by a
+central difference over ±dt/2 (exact for the generators' constant-rate arcs away from their ends).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import ArrayLike, NDArray
+
+from tertiary.errors import DataError
+from tertiary.simulate.trajectory import Trajectories
+
+F64 = NDArray[np.float64]
+KT = 1852.0 / 3600.0
+FPM = 0.3048 / 60.0
+G0 = 9.80665
+
+#: (LSB, lower, upper) of each EHS field, in the table's units
+RESOLUTION = {
+    "ground_speed_mps": (2.0 * KT, 0.0, 2046.0 * KT),
+    "true_track_deg": (90.0 / 512.0, -180.0, 180.0),
+    "track_rate_dps": (8.0 / 256.0, -16.0, 16.0),
+    "roll_deg": (45.0 / 256.0, -90.0, 90.0),
+    "vertical_rate_mps": (32.0 * FPM, -16352.0 * FPM, 16352.0 * FPM),
+}
+EHS_COLUMNS = tuple(RESOLUTION)
+
+__all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "ehs_truth", "quantise", "ehs_parameters", "ehs_table"]
+
+
+@dataclass(frozen=True)
+class EhsConfig:
+    """Sensor noise σ per field (table units) and register staleness (module docstring)."""
+
+    ground_speed_mps: float = 0.5
+    true_track_deg: float = 0.2
+    track_rate_dps: float = 0.05
+    roll_deg: float = 0.3
+    vertical_rate_mps: float = 0.3
+    refresh_s: float = 0.0
+
+
+def quantise(values: ArrayLike, column: str) -> F64:
+    """Round to the field's LSB and clip to its range (track angle wrapped to [−180, 180))."""
+    lsb, lo, hi = RESOLUTION[column]
+    v = np.asarray(values, float)
+    if column == "true_track_deg":
+        q = np.round(np.mod(v + 180.0, 360.0) / lsb) * lsb
+        return np.mod(q, 360.0) - 180.0
+    return np.clip(np.round(v / lsb) * lsb, lo, hi)
+
+
+def ehs_truth(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike) -> tuple[dict[str, F64], NDArray[np.bool_]]:
+    """What the aircraft's own navigation system knows at time ``t`` (s after the epoch): the EHS
+    fields before noise and quantisation, and validity (on the trajectory's active grid)."""
+    aircraft = np.asarray(aircraft, np.int64)
+    t = np.asarray(t, float)
+    h = 0.5 * traj.dt
+    lo, hi = np.clip(t - h, 0.0, traj.duration), np.clip(t + h, 0.0, traj.duration)
+    _, vel, ok = traj.state_at(aircraft, t)
+    _, v_lo, ok_lo = traj.state_at(aircraft, lo)
+    _, v_hi, ok_hi = traj.state_at(aircraft, hi)
+    acc = (v_hi - v_lo) / np.maximum(hi - lo, 1e-9)[..., None]
+    ve, vn = vel[..., 0], vel[..., 1]
+    gs2 = np.maximum(ve * ve + vn * vn, 1e-12)
+    chi_dot = (vn * acc[..., 0] - ve * acc[..., 1]) / gs2           # clockwise track rate (rad/s)
+    gs = np.sqrt(gs2)
+    values = {
+        "ground_speed_mps": gs,
+        "true_track_deg": np.degrees(np.arctan2(ve, vn)),
+        "track_rate_dps": np.degrees(chi_dot),
+        "roll_deg": np.degrees(np.arctan2(gs * chi_dot, G0)),
+        "vertical_rate_mps": vel[..., 2],
+    }
+    return values, ok & ok_lo & ok_hi
+
+
+def ehs_parameters(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, rng: np.random.Generator,
+                   cfg: EhsConfig = EhsConfig()) -> tuple[dict[str, F64], NDArray[np.bool_]]:
+    """EHS fields as extracted at times ``t`` for ``aircraft`` (indices into ``traj``): truth at
+    the register's sampling time + sensor noise, quantised to the BDS 5,0/6,0 resolutions."""
+    aircraft = np.asarray(aircraft, np.int64)
+    t = np.asarray(t, float)
+    if cfg.refresh_s > 0:
+        phase = np.random.default_rng(12345).uniform(0.0, cfg.refresh_s, traj.n_aircraft)[aircraft]
+        t = np.maximum(np.floor((t - phase) / cfg.refresh_s) * cfg.refresh_s + phase, 0.0)
+    truth, ok = ehs_truth(traj, aircraft, t)
+    out = {c: quantise(truth[c] + getattr(cfg, c) * rng.standard_normal(t.shape), c) for c in EHS_COLUMNS}
+    return out, ok
+
+
+def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generator,
+              cfg: EhsConfig = EhsConfig()) -> pl.DataFrame:
+    """EHS parameters extracted with each Mode S report (reports without an address get none).
+
+    Keyed like the reports (``run``, ``radar_id``, ``local_track_id``, ``time``) plus ``mode_s``
+    and the :data:`EHS_COLUMNS`; no truth column. ``reports`` needs ``truth_id`` to know which
+    aircraft replied (the simulator's reports carry it)."""
+    need = {"radar_id", "time", "local_track_id", "mode_s", "truth_id"}
+    if missing := need - set(reports.columns):
+        raise DataError(f"table reports lacks column(s) {', '.join(sorted(missing))} needed for EHS extraction")
+    ms = reports.filter(pl.col("mode_s").is_not_null() & pl.col("truth_id").is_not_null())
+    index = {int(tid): i for i, tid in enumerate(traj.truth_id)}
+    lookup = pl.DataFrame({"truth_id": pl.Series(list(index), dtype=pl.Int64),
+                           "__ac": pl.Series(list(index.values()), dtype=pl.Int64)})
+    ms = ms.join(lookup, on="truth_id", how="inner", maintain_order="left")
+    epoch_us = int(traj.epoch.timestamp() * 1_000_000)
+    t = (ms["time"].cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy() - epoch_us) * 1e-6
+    values, ok = ehs_parameters(traj, ms["__ac"].to_numpy(), t, rng, cfg)
+    keys = [c for c in ("run", "radar_id", "local_track_id", "time", "mode_s") if c in ms.columns]
+    table = ms.select(keys).with_columns(**{c: pl.Series(c, v) for c, v in values.items()})
+    return table.filter(pl.Series(ok))
