@@ -11,6 +11,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
 
 import reproduce_seed002_landing as s002  # noqa: E402
+import reproduce_seed003_sources as s003  # noqa: E402
 import reproduce_seed004 as s004  # noqa: E402
 
 from tertiary.filters.ekf import initial_state_seed004, run_seed004  # noqa: E402
@@ -61,3 +62,15 @@ def test_midpoint_run_starts_far_and_is_pulled_in_by_the_first_plot():
     assert err_mid[1, 0] < 200.0                                       # the first update takes D to the plot
     err_meas, _ = run_seed004(20, 50)
     assert err_meas[0, 0] < 200.0
+
+
+def test_geometry_factor_by_hand():
+    sig = np.array([1.0, 2.0, 3.0, 4.0])
+    assert s003.geometry_factor(np.eye(4), sig) == pytest.approx(np.sqrt(30.0))     # √Σσ²
+    assert s003.geometry_factor(np.eye(4)[:3], sig[:3]) == float("inf")            # 3 rows, 4 unknowns
+    # two equal range-like rows along x: the information doubles, the variance halves
+    h = np.array([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    assert s003.geometry_factor(h, np.ones(3)) == pytest.approx(np.sqrt(0.5 + 1.0))
+    pos, sg = s003.sources(3, 1)
+    assert pos.shape == (4, 3) and np.allclose(np.linalg.norm(pos[:3], axis=1), 20_200e3)
+    assert sg.tolist() == pytest.approx([np.sqrt(30.0)] * 3 + [np.sqrt(10.0)])
