@@ -41,10 +41,21 @@ residual variance factor ŝ² = rᵀ W r / (m − n) (W from the radars' nominal
 ``gate`` ŝσ (garbled Mode C codes, clutter paired by a wrong address) are left out and the
 solution recomputed.
 
-Bias steps (:func:`detect_steps`): per radar and channel, the time-ordered residuals of the
-fit; the mean of the last ``window`` residuals against the mean of the ``window`` before them,
-z = Δmean / (σ̂ √(2/window)); an alarm when |z| > ``z_alarm``. The test is blind to a constant
-bias (it compares means), so it needs no bias estimate; vectorised with cumulative sums.
+Bias steps (:func:`detect_steps`): per radar and channel, the time-ordered innovations; the
+mean of the last ``window`` against the mean of the ``window`` before them,
+z = Δmean / (σ̂ √(2/window)) (σ̂ robust, from first differences); an alarm when |z| > ``z_alarm``.
+The test is blind to a constant bias (it compares means), so it needs no bias estimate;
+vectorised with cumulative sums. Against a reference the innovations are the residuals. Radar
+to radar the joint fit's own residuals are no good: a step in radar A is shared out between
+A's bias, the trajectories and the other radars (on terminal-area a 60 m step moves A's fit
+residuals by ~25 m and every other radar's by −20…−40 m). So each radar's plots are compared
+with the trajectory re-solved from the OTHER radars alone (biases held at the joint estimate,
+one linear step: :func:`_leave_one_out`), only where their plots bracket it within
+``bracket_s``: a step in A then shows whole in A's innovations; B, whose comparison
+trajectory contains A, sees a diluted copy, and :func:`detect_steps` keeps the strongest alarm
+of one event (``isolate``). Measured (terminal-area, 40 aircraft, 20 min, 60 m range step,
+window 60, 5 seeds × TMA-N/TMA-S): 10/10 detected on the right radar, delay 9.9–20.2 s
+after the step (against the reference: 3.5–6.7 s), no alarm in the 10 runs without a step.
 """
 
 from __future__ import annotations
@@ -83,6 +94,8 @@ class RegistrationConfig:
     * ``altitude_sigma_m``: accuracy of a Mode C/S altitude (25/100 ft quantisation).
     * ``gate``: residuals beyond this many scaled sigmas are left out.
     * ``iterations``: Gauss–Newton iterations.
+    * ``bracket_s``: (multi) a plot gets an innovation against the other radars' trajectory
+      only where those radars have plots of the target at most this long before and after it.
     """
 
     method: Literal["auto", "reference", "multi"] = "auto"
@@ -93,13 +106,17 @@ class RegistrationConfig:
     gate: float = 5.0
     iterations: int = 6
     max_ref_gap_s: float = 2.5
+    bracket_s: float = 15.0
 
 
 @dataclass
 class Registration:
     """Result of :func:`estimate`: the table (one row per radar) and the per-report residuals
-    (``radar_id``, ``t_s`` seconds since ``t0_us``, ``res_range_m``, ``res_azimuth_deg``,
-    ``sigma_range_m``, ``sigma_azimuth_deg``, ``used``) for step detection."""
+    (``radar_id``, ``t_s`` seconds since ``t0_us``, ``res_range_m``, ``res_azimuth_deg`` of the
+    fit, ``innov_range_m``, ``innov_azimuth_deg`` against a trajectory that owes nothing to the
+    report's radar — the reference, or radar to radar the other radars' joint trajectory, NaN
+    where they do not bracket the plot — ``sigma_range_m``, ``sigma_azimuth_deg``, ``used``)
+    for step detection."""
 
     table: pl.DataFrame
     residuals: pl.DataFrame
@@ -344,7 +361,7 @@ def _spline_rows(first: NDArray[np.int64], basis: F64, col0: int) -> tuple[NDArr
 
 
 def _multi(obs: _Obs, sites: _Sites, origin: geo.LocalFrame, cfg: RegistrationConfig
-           ) -> tuple[F64, F64, F64, NDArray[np.bool_], F64, F64, int]:
+           ) -> tuple[F64, F64, F64, NDArray[np.bool_], F64, F64, NDArray[np.int64], F64, F64]:
     """Joint LS of all radars' biases and per-target B-spline trajectories (see module doc)."""
     nr, k = len(sites.ids), (4 if cfg.gain else 3)
     # targets = (run, key) seen by at least two radars
@@ -423,8 +440,71 @@ def _multi(obs: _Obs, sites: _Sites, origin: geo.LocalFrame, cfg: RegistrationCo
     s2 = float(rhs @ rhs - rhs @ (a @ dtheta)) / max(n_obs - n_unk + prior.shape[0], 1)
     cov = lu.solve(np.vstack([np.eye(nb), np.zeros((nc, nb))]))[:nb] * s2
     scale = _scale_per_radar(obs.ri, e_r * w_r, e_b * w_b, used, nr, k)
+    # residuals at the final estimate (linear in the last, ~0, update), then the innovations
+    e_fin = [e - jm @ dtheta for e, jm in ((e_r, j_r), (e_b, j_b), (e_h, j_h))]
+    n = len(obs.t)
+    lin = _Linearised(spl=spl, jac=[jm[:, nb:].tocsr() for jm in (j_r, j_b, j_h)], res=e_fin,
+                      w=[w_r, w_b, np.full(n, w_h)], rows=[used, used, has_alt & used], prior=prior[:, nb:].tocsr(),
+                      prior_res=prior_rhs - prior @ np.concatenate([x, coef]))
+    i_r, i_b = _leave_one_out(obs.ri, obs.t, lin, nr, cfg.bracket_s)
     keep_idx = np.flatnonzero(keep)
-    return x, cov, scale, used, e_r, e_b, keep_idx
+    return x, cov, scale, used, e_fin[0], e_fin[1], keep_idx, i_r, i_b
+
+
+@dataclass
+class _Linearised:
+    """The joint problem linearised at the final estimate, trajectory columns only: per
+    channel (range, azimuth, altitude) the Jacobian in the spline coefficients, the residual,
+    the weight and the rows in use; the acceleration prior's rows and residual."""
+
+    spl: _Splines
+    jac: list[sp.csr_matrix]
+    res: list[F64]
+    w: list[F64]
+    rows: list[NDArray[np.bool_]]
+    prior: sp.csr_matrix
+    prior_res: F64
+
+
+def _bracketed(tgt: NDArray[np.int64], t: F64, other: NDArray[np.bool_], gap_s: float) -> NDArray[np.bool_]:
+    """True where a plot (``tgt``, ``t``) has a plot of ``other`` (same target) at most
+    ``gap_s`` before it and one at most ``gap_s`` after it: the other radars' trajectory is
+    interpolated there, not extrapolated by the prior."""
+    if not other.any():
+        return np.zeros(len(t), bool)
+    span = float(np.ptp(t)) + 4 * gap_s + 1.0
+    key = tgt * span + (t - t.min())
+    ref = np.sort(key[other])
+    j = np.searchsorted(ref, key, side="right")
+    prev = ref[np.maximum(j - 1, 0)]
+    nxt = ref[np.minimum(j, len(ref) - 1)]
+    return (j > 0) & (key - prev <= gap_s) & (j < len(ref)) & (nxt - key <= gap_s) & (key - prev >= 0)
+
+
+def _leave_one_out(ri: NDArray[np.int64], t: F64, lin: _Linearised, nr: int, gap_s: float) -> tuple[F64, F64]:
+    """Innovations of each radar's plots against the trajectories of the OTHER radars alone.
+
+    For radar r the spline coefficients are re-solved (one linear step, biases held at the
+    joint estimate) from the other radars' rows and the prior: Δc_r = argmin Σ_{i∉r} w_i²(e_i −
+    J_i Δc)² + ‖p − P Δc‖²; the innovation of a plot of r is e_i − J_i Δc_r. A step in radar
+    r's bias is then seen whole in its innovations (the joint fit would absorb part of it into
+    the trajectories and spread the rest over the other radars). NaN where r's plot is not
+    bracketed by other radars' plots within ``gap_s`` (module doc, Bias steps)."""
+    out = [np.full(len(t), np.nan), np.full(len(t), np.nan)]
+    n_c = lin.prior.shape[1]
+    ridge = sp.identity(n_c, format="csr") * 1e-9
+    for r in range(nr):                       # one sparse solve per radar
+        mine = ri == r
+        other_rows = [rows & ~mine for rows in lin.rows]
+        ok = mine & lin.rows[0] & _bracketed(lin.spl.tgt, t, other_rows[0], gap_s)
+        if not ok.any():
+            continue
+        a = sp.vstack([sp.diags(w * m) @ j for j, w, m in zip(lin.jac, lin.w, other_rows)] + [lin.prior]).tocsr()
+        rhs = np.concatenate([r_ * w * m for r_, w, m in zip(lin.res, lin.w, other_rows)] + [lin.prior_res])
+        dc = spla.splu((a.T @ a + ridge).tocsc()).solve(a.T @ rhs)
+        for ch in (0, 1):
+            out[ch][ok] = (lin.res[ch] - lin.jac[ch] @ dc)[ok]
+    return out[0], out[1]
 
 
 def _traj_block(a_bias: sp.csr_matrix, cols: NDArray[np.int64], vals: F64, grad: F64, n_unk: int) -> sp.csr_matrix:
@@ -506,11 +586,12 @@ def estimate(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame
         obs, t0 = _observations(reports, sites, ref[0])
         x, cov, scale, used, e_r, e_b = _reference(obs, sites, truth, ref[1], t0, cfg)
         method, sel = "reference", np.arange(len(obs.t))
+        i_r, i_b = e_r, e_b                 # the reference is independent of every radar
     else:
         if "mode_s" not in reports.columns:
             raise DataError("registration: reports have no mode_s column (needed to pair radars) and no reference")
         obs, t0 = _observations(reports, sites, "mode_s")
-        x, cov, scale, used, e_r, e_b, sel = _multi(obs, sites, origin, cfg)
+        x, cov, scale, used, e_r, e_b, sel, i_r, i_b = _multi(obs, sites, origin, cfg)
         method = "multi"
         notes.append("radar-to-radar registration: clock offsets are relative (their sum is fixed at 0)")
     ri = obs.ri[sel]
@@ -518,7 +599,8 @@ def estimate(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame
     table = _table(sites, x, cov, cfg.gain, method, n, scale)
     residuals = pl.DataFrame({
         "radar_id": pl.Series(sites.ids[ri], dtype=pl.UInt32), "t_s": obs.t[sel], "res_range_m": e_r,
-        "res_azimuth_deg": np.degrees(e_b), "sigma_range_m": sites.sig_r[ri],
+        "res_azimuth_deg": np.degrees(e_b), "innov_range_m": i_r, "innov_azimuth_deg": np.degrees(i_b),
+        "sigma_range_m": sites.sig_r[ri],
         "sigma_azimuth_deg": np.degrees(sites.sig_a[ri]), "used": used})
     return Registration(table, residuals.sort("radar_id", "t_s"), t0, notes)
 
@@ -535,33 +617,67 @@ def read_table(path) -> pl.DataFrame:
     return table
 
 
-def detect_steps(residuals: pl.DataFrame, window: int = 60, z_alarm: float = 6.0) -> pl.DataFrame:
+def detect_steps(residuals: pl.DataFrame, window: int = 60, z_alarm: float = 6.0, isolate: bool = True
+                 ) -> pl.DataFrame:
     """Bias steps per radar and channel (windowed innovation-mean test, module doc).
 
-    Returns one row per (radar, channel) that alarms: ``radar_id``, ``channel`` (range /
-    azimuth), ``alarm_t_s`` (time of the first alarm, s since the registration t0), ``step``
-    (mean after − mean before, m or deg) and ``z`` at the alarm."""
+    Tests the innovations (``innov_*``: against the reference, or radar to radar against the
+    other radars' trajectory) when present, else the fit residuals (``res_*``). Returns one row
+    per (radar, channel) that alarms: ``radar_id``, ``channel`` (range / azimuth),
+    ``alarm_t_s`` (time of the first alarm, s since the registration t0), ``change_t_s`` (the
+    window boundary where |z| peaks within ``window`` reports of the alarm: the step's
+    estimated time), ``step`` (mean after − mean before there, m or deg) and ``z`` (the peak).
+
+    Radar to radar a step in radar A also moves the trajectories B is compared with, so B may
+    alarm too, more weakly. With ``isolate`` only the strongest alarm (largest |z| peak) of a
+    channel is kept among alarms whose times lie within one test span (2 windows) of it."""
+    schema = {"radar_id": pl.UInt32, "channel": pl.String, "alarm_t_s": pl.Float64, "change_t_s": pl.Float64,
+              "step": pl.Float64, "z": pl.Float64, "span_s": pl.Float64}
+    innov = "innov_range_m" in residuals.columns
+    channels = (("range", "innov_range_m" if innov else "res_range_m"),
+                ("azimuth", "innov_azimuth_deg" if innov else "res_azimuth_deg"))
     out = []
     df = residuals.filter(pl.col("used")).sort("radar_id", "t_s")
     for rid in df["radar_id"].unique(maintain_order=True).to_list():     # loop over radars only
         d = df.filter(pl.col("radar_id") == rid)
-        t = d["t_s"].to_numpy()
-        for channel, col, sig in (("range", "res_range_m", "sigma_range_m"),
-                                  ("azimuth", "res_azimuth_deg", "sigma_azimuth_deg")):
+        for channel, col in channels:
             e = d[col].to_numpy()
-            if len(e) < 2 * window:
-                continue
-            c = np.concatenate([[0.0], np.cumsum(e)])
-            after = (c[2 * window:] - c[window:-window]) / window              # mean of e[k−w+1..k]
-            before = (c[window:-window] - c[:-2 * window]) / window          # mean of the w before
-            # robust σ from first differences: blind to the step itself and to a constant bias
-            diff = np.diff(e)
-            spread = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
-            z = (after - before) / (spread * np.sqrt(2.0 / window))
-            hit = np.flatnonzero(np.abs(z) > z_alarm)
-            if hit.size:
-                i = hit[0]
-                out.append({"radar_id": rid, "channel": channel, "alarm_t_s": float(t[i + 2 * window - 1]),
-                            "step": float(after[i] - before[i]), "z": float(z[i])})
-    schema = {"radar_id": pl.UInt32, "channel": pl.String, "alarm_t_s": pl.Float64, "step": pl.Float64, "z": pl.Float64}
-    return pl.DataFrame(out, schema=schema)
+            ok = np.isfinite(e)
+            hit = _mean_shift(e[ok], d["t_s"].to_numpy()[ok], window, z_alarm)
+            if hit is not None:
+                out.append({"radar_id": rid, "channel": channel, **hit})
+    found = pl.DataFrame(out, schema=schema)
+    if isolate and found.height > 1:
+        found = _isolate(found)
+    return found.drop("span_s")
+
+
+def _mean_shift(e: F64, t: F64, window: int, z_alarm: float) -> dict[str, float] | None:
+    """First alarm of the two-window mean test on one time-ordered series (cumulative sums)."""
+    if len(e) < 2 * window:
+        return None
+    c = np.concatenate([[0.0], np.cumsum(e)])
+    after = (c[2 * window:] - c[window:-window]) / window              # mean of e[k−w+1..k]
+    before = (c[window:-window] - c[:-2 * window]) / window          # mean of the w before
+    # robust σ from first differences: blind to the step itself and to a constant bias
+    diff = np.diff(e)
+    spread = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
+    z = (after - before) / (max(spread, 1e-300) * np.sqrt(2.0 / window))
+    hit = np.flatnonzero(np.abs(z) > z_alarm)
+    if not hit.size:
+        return None
+    i = int(hit[0])
+    j = i + int(np.argmax(np.abs(z[i:i + window + 1])))
+    return {"alarm_t_s": float(t[i + 2 * window - 1]), "change_t_s": float(t[j + window]),
+            "step": float(after[j] - before[j]), "z": float(z[j]), "span_s": float(t[i + 2 * window - 1] - t[i])}
+
+
+def _isolate(found: pl.DataFrame) -> pl.DataFrame:
+    """Keep, per channel, the alarms not within one test span of a stronger one."""
+    rows = sorted(found.iter_rows(named=True), key=lambda r: -abs(r["z"]))      # a handful of alarms
+    kept: list[dict] = []
+    for r in rows:
+        if not any(k["channel"] == r["channel"]
+                   and abs(k["alarm_t_s"] - r["alarm_t_s"]) <= max(k["span_s"], r["span_s"]) for k in kept):
+            kept.append(r)
+    return pl.DataFrame(kept, schema=found.schema).sort("radar_id", "channel")
