@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import polars as pl
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from tertiary import geo
 from tertiary.errors import DataError, OptionError, ResourceError
@@ -49,6 +50,13 @@ class AlignConfig:
     * ``restart_gap_scans``: when plots only arrive, a local track silent for longer than this
       many of its radar's scan periods restarts the package's own filter (radars reuse the
       numbers of deleted tracks: the number then names another track).
+    * ``conversion_gate``: the converted-measurement validity gate (seed 002 (13)–(14),
+      :func:`conversion_valid`) on each report's measured range and its radar's nominal angle
+      sigmas: ``"count"`` only counts the failures (``AlignPlan.conv_valid``), ``"flag"`` also
+      adds the boolean column ``conv_valid`` to ``aligned``, ``"reject"`` sends the failing
+      reports to ``rejects`` (their J R Jᵀ covariance is not trustworthy).
+    * ``identity``: carry the reports' ``mode_3a`` and ``callsign`` into ``aligned`` (as
+      strings, null where absent) for fine identification in association.
     """
 
     period_s: float | None = None
@@ -58,6 +66,55 @@ class AlignConfig:
     max_rows: int = 60_000_000
     local_tracker: LocalTrackerConfig = LocalTrackerConfig()
     restart_gap_scans: float = 4.0
+    conversion_gate: Literal["count", "flag", "reject"] = "count"
+    identity: bool = False
+
+
+#: report attributes carried into ``aligned`` with ``AlignConfig.identity``
+IDENTITY_COLUMNS = ("mode_3a", "callsign")
+
+#: the linearisation-validity bound of seed 002 (13): r σ_θ²/σ_r < 0.4 and σ_θ < 0.4 rad
+VALIDITY_LIMIT = 0.4
+
+
+def validity_range_limit(sigma_range_m: ArrayLike, sigma_angle_rad: ArrayLike) -> NDArray[np.float64]:
+    """Range beyond which the polar → Cartesian linearisation fails, r = 0.4 σ_r/σ_θ² (seed 002
+    (14)): 39.39 km for σ_r = 30 m, σ_θ = 1°."""
+    return VALIDITY_LIMIT * np.asarray(sigma_range_m, float) / np.asarray(sigma_angle_rad, float) ** 2
+
+
+def conversion_valid(range_m: ArrayLike, sigma_range_m: ArrayLike, *sigma_angles_rad: ArrayLike
+                     ) -> NDArray[np.bool_]:
+    """Seed 002 (13) per report: r σ_θ²/σ_r < 0.4 and σ_θ < 0.4 rad for every angle given
+    (azimuth and, in 3-D, elevation: the same Taylor argument holds per angle, Lerro &
+    Bar-Shalom). A NaN angle sigma (no such measurement) does not fail the gate; a NaN range
+    or range sigma does."""
+    r = np.asarray(range_m, float)
+    sr = np.asarray(sigma_range_m, float)
+    ok = np.isfinite(r) & np.isfinite(sr) & (sr > 0)
+    for s in sigma_angles_rad:
+        s = np.broadcast_to(np.asarray(s, float), r.shape)
+        test = (r * s * s / np.where(sr > 0, sr, np.nan) < VALIDITY_LIMIT) & (s < VALIDITY_LIMIT)
+        ok &= np.where(np.isfinite(s), test, True)
+    return ok
+
+
+def report_conversion_valid(reports: pl.DataFrame, radars: pl.DataFrame) -> NDArray[np.bool_]:
+    """:func:`conversion_valid` of each report (measured ``range_m``; its radar's nominal
+    ``sigma_range_m``, ``sigma_azimuth_deg`` and, where the report has an ``elevation_deg``,
+    ``sigma_elevation_deg``)."""
+    site = reports.select("radar_id").join(
+        radars.select("radar_id", "sigma_range_m", "sigma_azimuth_deg", "sigma_elevation_deg"),
+        on="radar_id", how="left", maintain_order="left")
+    s_el = np.radians(site["sigma_elevation_deg"].cast(pl.Float64).fill_null(np.nan).to_numpy())
+    if "elevation_deg" in reports.columns:
+        s_el = np.where(reports["elevation_deg"].is_not_null().to_numpy(), s_el, np.nan)
+    else:
+        s_el = np.full(reports.height, np.nan)
+    return conversion_valid(reports["range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
+                            site["sigma_range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
+                            np.radians(site["sigma_azimuth_deg"].cast(pl.Float64).fill_null(np.nan).to_numpy()),
+                            s_el)
 
 
 def needs_estimates(reports: pl.DataFrame) -> bool:
@@ -182,6 +239,13 @@ class AlignPlan:
     nominal: NDArray[np.float64]
     rejects: pl.DataFrame
     rows: int
+    #: seed 002 (13) validity of each ``df`` row's polar → Cartesian conversion (AlignConfig.conversion_gate)
+    conv_valid: NDArray[np.bool_] | None = None
+
+    @property
+    def conversion_invalid(self) -> int:
+        """Reports failing the converted-measurement validity gate."""
+        return 0 if self.conv_valid is None else int(np.count_nonzero(~self.conv_valid))
 
 
 #: bytes held per aligned row (state, 6×6 covariance, nominal variance, keys, extrapolation
@@ -215,7 +279,8 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     state, cov, nominal = to_system_frame(df, radars, origin)
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
     plausible = np.linalg.norm(np.nan_to_num(state[:, 3:]), axis=1) <= cfg.max_speed_mps
-    usable = finite & plausible
+    conv_ok = report_conversion_valid(df, radars)
+    usable = finite & plausible & (conv_ok | (cfg.conversion_gate != "reject"))
 
     keys = df.select("run", "radar_id", "local_track_id").to_numpy()
     same_next = np.zeros(len(df), bool)
@@ -236,11 +301,13 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
 
     reason = np.where(~finite, "no usable track estimate (non-finite state or covariance)",
                       np.where(~plausible, f"implausible track speed (> {cfg.max_speed_mps:g} m/s)",
+                      np.where(~usable, "polar conversion invalid (seed 002 (13): r sigma_az^2/sigma_r >= 0.4 "
+                                        "or sigma >= 0.4 rad)",
                       np.where(superseded, "superseded by a newer report of the same local track before the next epoch",
-                               "track estimate too old for any epoch")))
+                               "track estimate too old for any epoch"))))
     rejects = df.filter(pl.Series(~keep)).select("report_id").with_columns(
         pl.Series("reason", reason[~keep], dtype=pl.String))
-    return AlignPlan(df, t0_us, period, rel, k, last_k, keep, state, cov, nominal, rejects, n_rows)
+    return AlignPlan(df, t0_us, period, rel, k, last_k, keep, state, cov, nominal, rejects, n_rows, conv_ok)
 
 
 _ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
@@ -293,7 +360,13 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
         aligned = aligned.with_columns(pl.lit(None, pl.Int64).alias("truth_id"))
     if "altitude_m" not in aligned.columns:
         aligned = aligned.with_columns(pl.lit(None, pl.Float64).alias("altitude_m"))
-    return aligned.select(_ALIGNED_COLUMNS)
+    extra = []
+    if cfg.conversion_gate == "flag" and p.conv_valid is not None:
+        extra.append(pl.Series("conv_valid", p.conv_valid[rows]))
+    if cfg.identity:             # fine identification (tertiary.associate): the report's code and callsign
+        extra.extend(df[c].cast(pl.String)[rows] if c in df.columns else pl.Series(c, [None] * len(rows), pl.String)
+                     for c in IDENTITY_COLUMNS)
+    return aligned.select(_ALIGNED_COLUMNS).with_columns(extra) if extra else aligned.select(_ALIGNED_COLUMNS)
 
 
 def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,

@@ -14,6 +14,23 @@ Rules 3–4 are solved with ``scipy.optimize.linear_sum_assignment`` per ambiguo
 refused and the leftovers are grouped again by the same rules. Components obeying rules 1–2 —
 nearly all of them — are grouped with array operations, no Python loop.
 
+With ``assignment="joint"`` a component holding reports of three or more radars is solved as
+one multi-dimensional (S-D) assignment instead of radar by radar against the reference: the
+partition of its reports into groups (at most one report per radar, every pair in a group
+gated) that minimises, lexicographically, the number of groups (rule 4: as many targets as
+the fullest source, fewer merges only where the gate forbids them) and then the sum of the
+pairwise costs inside the groups ("the minimum sum of squared distances over all
+combinations", §1.4 rule 3). It is an exact set-partitioning integer programme over the
+component's feasible tuples (HiGHS through ``scipy.optimize.milp``); pairwise-to-reference
+ignores the costs between non-reference reports and can miss this minimum.
+
+Fine identification (§1.4 "точное отождествление"): beside Mode S (a different address
+forbids a pair, :mod:`tertiary.gating`), the Mode 3/A code and the callsign, when both
+reports carry one and they differ, either forbid the pair (``"forbid"``) or add
+``identity_penalty`` gate-sizes of cost to it (``"penalise"``: codes change and garble, so a
+conflict is evidence, not proof). They need the aligned columns ``mode_3a``/``callsign``
+(``AlignConfig.identity``).
+
 System target ids are carried across epochs: a group inherits the id its members' local tracks
 had at their previous epoch (majority vote; a contested id goes to the larger group), so a
 target keeps its number while its radars keep theirs (vote ties go to the id carried by the
@@ -30,10 +47,14 @@ from typing import Literal
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
+from scipy.optimize import Bounds, LinearConstraint, linear_sum_assignment, milp
+from scipy.sparse import csr_matrix
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from scipy.stats import chi2
+
+from tertiary.errors import OptionError
 from tertiary.gating import GatingConfig, Pairs, candidate_pairs, group_index
 
 BIG = 1e18
@@ -45,11 +66,23 @@ class AssociationConfig:
     * ``carry_gap_s``: a local track absent from the aligned picture for longer than this is
       a new track when its number comes back (radars reuse the numbers of deleted tracks):
       it does not inherit the system target id it had before. 30 s bridges two missed scans
-      of a 12 s radar (silence 36 s, of which 18 s are covered by the 1.5-scan extrapolation)."""
+      of a 12 s radar (silence 36 s, of which 18 s are covered by the 1.5-scan extrapolation).
+    * ``assignment``: ``"pairwise"`` (each radar to the reference radar) or ``"joint"`` (the
+      exact multi-dimensional minimum for components with ≥ 3 radars; module docstring). A
+      component with more than ``max_tuples`` feasible tuples falls back to pairwise.
+    * ``mode_3a``, ``callsign``: fine identification, ``"off"``, ``"forbid"`` or
+      ``"penalise"`` (module docstring); the penalty is ``identity_penalty`` × the squared
+      horizontal gate (cost ``sqdist``) or × χ²₃(gate_prob) (cost ``mahalanobis``) per
+      conflicting attribute."""
 
     cost: Literal["sqdist", "mahalanobis"] = "sqdist"
     gating: GatingConfig = field(default_factory=GatingConfig)
     carry_gap_s: float = 30.0
+    assignment: Literal["pairwise", "joint"] = "pairwise"
+    max_tuples: int = 20_000
+    mode_3a: Literal["off", "forbid", "penalise"] = "off"
+    callsign: Literal["off", "forbid", "penalise"] = "off"
+    identity_penalty: float = 1.0
 
 
 @dataclass
@@ -60,6 +93,9 @@ class AssociationStats:
     ambiguous_components: int = 0
     targets: int = 0
     reassignments: int = 0
+    joint_components: int = 0       # components solved by the joint (S-D) assignment
+    joint_fallbacks: int = 0        # of those, too many tuples: solved pairwise instead
+    identity_conflicts: int = 0     # gated pairs whose Mode 3/A or callsign differ
 
 
 def _components(n: int, pairs: Pairs) -> NDArray[np.int64]:
@@ -67,14 +103,71 @@ def _components(n: int, pairs: Pairs) -> NDArray[np.int64]:
     return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
+def feasible_tuples(radar: NDArray, gated: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """Every non-empty group of a component's reports with at most one report per radar and
+    every pair gated: (T, n_radars) positions, −1 where a radar is absent. Built radar by
+    radar, each step vectorised over the tuples so far."""
+    tup = np.full((1, 0), -1, np.int64)
+    for r in np.unique(radar):
+        mine = np.flatnonzero(radar == r)
+        # compat[t, j]: report mine[j] is gated with every member of tuple t
+        member = tup >= 0
+        g = gated[mine[:, None, None], np.where(member, tup, 0)[None, :, :]]      # (m, T, k)
+        compat = np.all(g | ~member[None, :, :], axis=2).T                       # (T, m)
+        ti, jj = np.nonzero(compat)
+        grown = np.column_stack([tup[ti], mine[jj]])
+        tup = np.vstack([np.column_stack([tup, np.full(len(tup), -1)]), grown])
+    return tup[np.any(tup >= 0, axis=1)]
+
+
+def tuple_costs(tup: NDArray[np.int64], cost: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Σ of the pairwise costs inside each tuple (loop over radar pairs, vectorised over tuples)."""
+    out = np.zeros(len(tup))
+    for i in range(tup.shape[1]):
+        for j in range(i + 1, tup.shape[1]):
+            both = (tup[:, i] >= 0) & (tup[:, j] >= 0)
+            out[both] += cost[tup[both, i], tup[both, j]]
+    return out
+
+
+def solve_joint(radar: NDArray, cost: NDArray[np.float64], gated: NDArray[np.bool_],
+                max_tuples: int = 20_000) -> list[NDArray[np.int64]] | None:
+    """The exact joint assignment of one component (module docstring): minimise
+    Σ_groups (M + Σ pair costs) with M = 1 + Σ of all gated costs, so fewer groups always win,
+    as a set-partitioning integer programme. Returns groups of positions, or None beyond
+    ``max_tuples`` feasible tuples."""
+    tup = feasible_tuples(radar, gated)
+    if len(tup) > max_tuples:
+        return None
+    n = len(radar)
+    scale = max(float(np.sum(np.where(gated, cost, 0.0))) / 2.0, 1e-300)
+    c = 2.0 + tuple_costs(tup, cost) / scale          # costs normalised to ≤ 1 in total: M = 2 > any sum
+    ti, slot = np.nonzero(tup >= 0)
+    a = csr_matrix((np.ones(len(ti)), (tup[ti, slot], ti)), shape=(n, len(tup)))
+    res = milp(c, constraints=LinearConstraint(a, 1.0, 1.0), integrality=np.ones(len(tup)),
+               bounds=Bounds(0.0, 1.0), options={"mip_rel_gap": 0.0})
+    if res.x is None:                                  # singletons are always feasible
+        raise RuntimeError(f"joint assignment: solver failed ({res.message})")
+    chosen = tup[res.x > 0.5]
+    return [np.sort(t[t >= 0]) for t in chosen]
+
+
 def _solve_component(rows: NDArray[np.int64], radar: NDArray, cost: NDArray[np.float64],
-                     gated: NDArray[np.bool_]) -> list[NDArray[np.int64]]:
+                     gated: NDArray[np.bool_], joint: tuple[int, AssociationStats] | None = None
+                     ) -> list[NDArray[np.int64]]:
     """Rules 3–4 on one component. ``cost``/``gated`` are dense over the component's rows.
+    ``joint`` = (max_tuples, stats): solve components of ≥ 3 radars jointly.
     Returns groups of positions into ``rows``."""
     pos = np.arange(len(rows))
     counts = {r: np.count_nonzero(radar == r) for r in np.unique(radar)}
     if max(counts.values()) <= 1:
         return [pos]
+    if joint is not None and len(counts) >= 3:
+        joint[1].joint_components += 1
+        groups = solve_joint(radar, cost, gated, joint[0])
+        if groups is not None:
+            return groups
+        joint[1].joint_fallbacks += 1
     ref_radar = min(counts, key=lambda r: (-counts[r], r))
     ref = pos[radar == ref_radar]
     groups = [[i] for i in ref]
@@ -97,7 +190,7 @@ def _solve_component(rows: NDArray[np.int64], radar: NDArray, cost: NDArray[np.f
         for k in range(n_sub):
             part = left[lab == k]
             out.extend(part[g] for g in _solve_component(part, radar[part], cost[np.ix_(part, part)],
-                                                         gated[np.ix_(part, part)]))
+                                                         gated[np.ix_(part, part)], joint))
     return out
 
 
@@ -110,6 +203,7 @@ def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationCon
         return np.zeros(0, np.int64), stats
     groups = group_index(aligned)
     pairs = candidate_pairs(aligned, cfg.gating, groups)
+    pairs = fine_identification(aligned, pairs, cfg, stats)
     stats.pairs = len(pairs)
     comp = _components(n, pairs)
     stats.components = int(comp.max()) + 1
@@ -122,11 +216,53 @@ def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationCon
     stats.ambiguous_components = len(ambiguous)
     label = comp.copy()
     if len(ambiguous):
-        label = _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg)
+        label = _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg, stats)
     return label, stats
 
 
-def _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg) -> NDArray[np.int64]:
+def _identity_codes(col: pl.Series, callsign: bool) -> tuple[NDArray[np.bool_], NDArray[np.int64]]:
+    """(known, integer code) per row of a Mode 3/A or callsign column (callsigns compared
+    upper-case without blanks; empty = unknown)."""
+    s = col.cast(pl.String)
+    s = s.str.strip_chars().str.to_uppercase().str.replace_all(" ", "") if callsign else s.str.strip_chars()
+    s = s.replace("", None)
+    return s.is_not_null().to_numpy(), s.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
+
+
+def fine_identification(aligned: pl.DataFrame, pairs: Pairs, cfg: AssociationConfig,
+                        stats: AssociationStats | None = None) -> Pairs:
+    """Pairs after the Mode 3/A and callsign checks (module docstring): forbidden pairs are
+    dropped, penalised ones cost more (both ``sqdist`` and ``d2``)."""
+    todo = [(name, how) for name, how in (("mode_3a", cfg.mode_3a), ("callsign", cfg.callsign)) if how != "off"]
+    if not todo or len(pairs) == 0:
+        return pairs
+    missing = [name for name, _ in todo if name not in aligned.columns]
+    if missing:
+        raise OptionError(f"fine identification needs aligned column(s) {', '.join(missing)} "
+                          "(set AlignConfig.identity)", option="association." + missing[0])
+    drop = np.zeros(len(pairs), bool)
+    n_pen = np.zeros(len(pairs))
+    conflict_any = np.zeros(len(pairs), bool)
+    for name, how in todo:
+        known, code = _identity_codes(aligned[name], callsign=name == "callsign")
+        conflict = known[pairs.a] & known[pairs.b] & (code[pairs.a] != code[pairs.b])
+        conflict_any |= conflict
+        if how == "forbid":
+            drop |= conflict
+        elif how == "penalise":
+            n_pen += conflict
+        else:
+            raise OptionError(f"choose off, forbid or penalise, got {how!r}", option=f"association.{name}")
+    if stats is not None:
+        stats.identity_conflicts = int(np.count_nonzero(conflict_any))
+    pen_sq = cfg.identity_penalty * cfg.gating.pos_tol_m ** 2
+    pen_d2 = cfg.identity_penalty * chi2.ppf(cfg.gating.gate_prob, 3)
+    keep = ~drop
+    return Pairs(pairs.a[keep], pairs.b[keep], (pairs.sqdist + n_pen * pen_sq)[keep],
+                 (pairs.d2 + n_pen * pen_d2)[keep])
+
+
+def _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg, stats=None) -> NDArray[np.int64]:
     """Rules 3–4 on each ambiguous component (loop over those components only)."""
     is_amb = np.isin(comp, ambiguous)
     members = np.flatnonzero(is_amb)
@@ -149,7 +285,8 @@ def _split_ambiguous(aligned, pairs, comp, ambiguous, radar, label, cfg) -> NDAr
         ia, ib = local[ea[sel]], local[eb[sel]]
         gated[ia, ib] = gated[ib, ia] = True
         cost[ia, ib] = cost[ib, ia] = ec[sel]
-        for grp in _solve_component(rows, radar[rows], cost, gated):
+        joint = (cfg.max_tuples, stats or AssociationStats()) if cfg.assignment == "joint" else None
+        for grp in _solve_component(rows, radar[rows], cost, gated, joint):
             label[rows[grp]] = next_label
             next_label += 1
     return label

@@ -64,19 +64,22 @@ runs) that have at least that many plots — never a loop per report.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
+from tertiary.align import conversion_valid
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig,
                                filter_tracks, geodetic_channel, predict, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.local_tracks import measurement_polar
 from tertiary.schema import TABLES, TIME
 
-__all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "converted_plots", "transition",
+__all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "converted_plots", "debias_enu",
+           "plot_validity", "transition",
            "METHOD", "POS", "VEL", "STATE6"]
 
 F64 = NDArray[np.float64]
@@ -103,6 +106,10 @@ class CentralizedConfig:
     * ``v0_sigma_mps``: initial velocity standard deviation per axis (one-point initiation).
     * ``altitude_sigma_m``: Mode C accuracy used when the elevation is derived from altitude.
     * ``altitude``: the per-target Mode C filter of the vertical channel.
+    * ``conversion``: ``"linear"`` (the plot converted as measured) or ``"debiased"``
+      (:func:`debias_enu`, the multiplicative unbiased conversion).
+    * ``conversion_gate``: ``"reject"`` leaves plots failing the seed 002 (13) validity gate
+      (:func:`tertiary.align.conversion_valid`) out of the filter; ``"off"`` uses every plot.
     """
 
     alpha: float = 1.0 / 30.0
@@ -111,6 +118,8 @@ class CentralizedConfig:
     v0_sigma_mps: float = 300.0
     altitude_sigma_m: float = 30.0
     altitude: AltitudeConfig = AltitudeConfig()
+    conversion: Literal["linear", "debiased"] = "linear"
+    conversion_gate: Literal["off", "reject"] = "off"
 
 
 # --------------------------------------------------------------------------- model
@@ -228,14 +237,37 @@ def centralized_filter(t: F64, z: F64, r: F64, starts: NDArray[np.int64], length
 # --------------------------------------------------------------------------- plots
 
 
+def debias_enu(local: F64, var_az: F64, var_el: F64) -> F64:
+    """Multiplicative unbiased conversion of radar-local ENU plots (Mo Longbin et al. 1998;
+    seed 002 §2.4 "debiased conversion"): with Gaussian angle errors E[cos(β + w)] = λ cos β,
+    λ = exp(−σ²/2), so the measured (e, n) are shrunk by λ_β λ_ε and u by λ_ε on average;
+    dividing by those factors removes the bias. The covariance stays the linearised J R Jᵀ."""
+    lam_az, lam_el = np.exp(-0.5 * var_az), np.exp(-0.5 * var_el)
+    out = local.copy()
+    out[:, :2] /= (lam_az * lam_el)[:, None]
+    out[:, 2] /= lam_el
+    return out
+
+
+def plot_validity(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: float = 30.0) -> NDArray[np.bool_]:
+    """Seed 002 (13) validity gate of each plot's conversion (:func:`tertiary.align.conversion_valid`)
+    with the variances the centralised filter uses (elevation from Mode C where the plot has none)."""
+    polar, var = measurement_polar(reports, radars, altitude_sigma_m)
+    return conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
+
+
 def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-                    altitude_sigma_m: float = 30.0) -> tuple[F64, F64, NDArray[np.bool_]]:
+                    altitude_sigma_m: float = 30.0, *, conversion: Literal["linear", "debiased"] = "linear",
+                    gate: bool = False) -> tuple[F64, F64, NDArray[np.bool_]]:
     """Each report's plot in the system frame: z (n, 3), R (n, 3, 3) = M J R_polar Jᵀ Mᵀ from the
     radar's nominal sigmas (seed 002 eq. 12), and a validity mask (False where neither an
-    elevation nor a Mode C altitude is available)."""
+    elevation nor a Mode C altitude is available, and with ``gate`` where the seed 002 (13)
+    linearisation condition fails). ``conversion="debiased"``: :func:`debias_enu`."""
     n = reports.height
     polar, var = measurement_polar(reports, radars, altitude_sigma_m)   # (range, az rad, el rad)
     ok = np.all(np.isfinite(polar), axis=1)
+    if gate:
+        ok &= conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
     z = np.full((n, 3), np.nan)
     r = np.full((n, 3, 3), np.nan)
     rid = reports["radar_id"].to_numpy()
@@ -246,6 +278,8 @@ def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
         site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
         rng, az, el = polar[sel, 0], np.degrees(polar[sel, 1]), np.degrees(polar[sel, 2])
         local = np.stack(geo.polar_to_enu(rng, az, el), axis=-1)
+        if conversion == "debiased":
+            local = debias_enu(local, var[sel, 1], var[sel, 2])
         z[sel] = geo.frame_to_frame(local, site, origin)[0]
         # G = M J as one (n·3, 3) @ (3, 3) product; R = G R_polar Gᵀ with R_polar diagonal
         # (cheaper than two generic batched sandwiches)
@@ -321,7 +355,8 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     rep = rep.join(_first_association(associations), on=["run", "report_id"], how="inner")
-    z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m)
+    z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m, conversion=cfg.conversion,
+                               gate=cfg.conversion_gate == "reject")
     rep = rep.with_columns(pl.Series("__ok", ok))
     alt_cols = [c for c in ("altitude_m", "mode_s") if c in rep.columns]
     rep = (rep.select("run", "target_id", "time", "radar_id", "report_id", "__ok", *alt_cols)

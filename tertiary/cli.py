@@ -393,6 +393,12 @@ def run(
                                            help="correct each radar's range/azimuth bias and clock offset before "
                                                 "alignment: DATASET/registration.parquet (from `tertiary register`) "
                                                 "when present, else estimated radar to radar")] = False,
+    indicators: Annotated[bool, typer.Option(help="also write the §1.7/§5.1 indicators of every tracker picture "
+                                                  "(metrics stage 'indicators'; needs truth)")] = False,
+    assignment: Annotated[str, typer.Option(help="association with >= 3 radars: pairwise (to the reference "
+                                                 "radar) or joint (multi-dimensional minimum)")] = "pairwise",
+    gate: Annotated[str, typer.Option(help="association gate: box, mahalanobis or bayes (minimum-error "
+                                           "H1/H2 threshold)")] = "box",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -401,7 +407,8 @@ def run(
     _set_log(quiet, log_format)
     cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
-                                  centralized=centralized, strict=strict, safety_picture=safety_picture)
+                                  centralized=centralized, strict=strict, safety_picture=safety_picture,
+                                  indicators=indicators, association=_association(assignment, gate))
     pipeline.check_config(cfg)
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,
@@ -430,6 +437,17 @@ def run(
         with _Steps("report") as say:
             html_path = build_report(run_dir, progress=say)
     print_summary(db, html_path)
+
+
+def _association(assignment: str, gate: str) -> "AssociationConfig":
+    """The association options of ``tertiary run`` (--assignment, --gate)."""
+    from tertiary.associate import AssociationConfig
+    from tertiary.gating import GatingConfig
+    if assignment not in ("pairwise", "joint"):
+        raise OptionError(f"choose pairwise or joint, got {assignment!r}", option="--assignment")
+    if gate not in ("box", "mahalanobis", "bayes"):
+        raise OptionError(f"choose box, mahalanobis or bayes, got {gate!r}", option="--gate")
+    return AssociationConfig(assignment=assignment, gating=GatingConfig(method=gate))  # type: ignore[arg-type]
 
 
 def _stored_registration(dataset: Path | None) -> tuple[tuple[float, ...], ...]:

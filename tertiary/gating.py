@@ -7,9 +7,15 @@ the horizontal one, g is the dense (run, epoch) index and L is larger than the g
 ellipsoidal gate (Δx² + Δy²)/Δr² + Δz²/Δh² ≤ 1 is a single ``query_pairs`` and points of
 different epochs are never paired. No loop over epochs, reports or pairs.
 
-Options: the Mahalanobis gate d² = Δpᵀ(C_a + C_b)⁻¹Δp ≤ χ²₃(P_gate) on top of the box
-(the minimum-error H1/H2 test of digest §1.1 reduces to such a threshold), and Mode S: two
-reports with different Mode S addresses are never the same aircraft.
+Options: the Mahalanobis gate d² = Δpᵀ(C_a + C_b)⁻¹Δp ≤ χ²₃(P_gate) on top of the box;
+the Bayes minimum-error H1/H2 decision (monograph §1.4, digest §1.1): with Δ ~ N(0, S) under
+H1 (same target) and Δ uniform over the gate volume V_G under H2 (different targets), the
+rule "decide H1 iff P(H1) N(Δ; 0, S) ≥ P(H2)/V_G" is d² ≤ γ with
+
+    γ = 2 ln[P(H1) V_G / (P(H2) (2π)^{m/2} |S|^{1/2})],   m = 3                  (digest §1.1)
+
+a threshold per pair (|S| differs); and Mode S: two reports with different Mode S addresses
+are never the same aircraft.
 """
 
 from __future__ import annotations
@@ -32,6 +38,9 @@ class GatingConfig:
       poor: 0.15° at 100 km is 260 m); ``vel_tol_mps`` per horizontal velocity component,
       widened by three standard deviations of the velocity difference (new local tracks).
     * ``method="mahalanobis"`` additionally requires d² ≤ χ²₃(``gate_prob``).
+    * ``method="bayes"`` additionally requires d² ≤ γ of :func:`bayes_threshold` with the
+      prior ``prior_h1`` = P(H1) and the gate volume ``gate_volume_m3`` (None: the volume of
+      the coarse ellipsoidal gate, (4/3)π ``pos_tol_m``² ``alt_tol_m``).
     * Mode C: two reports that both carry a barometric altitude are one aircraft only if the
       altitudes agree within ``mode_c_tol_m`` plus ``max_vrate_mps`` times the time between the
       two replies (each report's altitude is from its own reply time). Aircraft stacked 1 000 ft
@@ -41,8 +50,10 @@ class GatingConfig:
     pos_tol_m: float = 3000.0
     alt_tol_m: float = 1500.0
     vel_tol_mps: float = 60.0
-    method: Literal["box", "mahalanobis"] = "box"
+    method: Literal["box", "mahalanobis", "bayes"] = "box"
     gate_prob: float = 0.9999
+    prior_h1: float = 0.5
+    gate_volume_m3: float | None = None
     use_mode_s: bool = True
     use_mode_c: bool = True
     mode_c_tol_m: float = 120.0
@@ -66,6 +77,21 @@ def group_index(aligned: pl.DataFrame) -> NDArray[np.int64]:
     """Dense index of (run, epoch) per row."""
     key = aligned.select(pl.struct("run", "epoch").rank("dense").cast(pl.Int64) - 1).to_series()
     return key.to_numpy()
+
+
+def gate_volume(cfg: GatingConfig) -> float:
+    """V_G of the H2 hypothesis: ``cfg.gate_volume_m3``, else the coarse gate's ellipsoid."""
+    return cfg.gate_volume_m3 if cfg.gate_volume_m3 is not None else 4.0 / 3.0 * np.pi * cfg.pos_tol_m ** 2 * cfg.alt_tol_m
+
+
+def bayes_threshold(det_s: NDArray[np.float64] | float, prior_h1: float, volume: float, m: int = 3
+                    ) -> NDArray[np.float64]:
+    """Minimum-error H1/H2 threshold on d² (digest §1.1):
+    γ = 2 ln[P(H1) V_G / (P(H2) (2π)^{m/2} |S|^{1/2})]; H1 iff d² ≤ γ (γ < 0: never)."""
+    if not (0.0 < prior_h1 < 1.0) or not volume > 0:
+        raise ValueError(f"bayes gate needs 0 < prior_h1 < 1 and a volume > 0, got {prior_h1}, {volume}")
+    det_s = np.asarray(det_s, dtype=float)
+    return 2.0 * (np.log(prior_h1 * volume / (1.0 - prior_h1)) - 0.5 * m * np.log(2 * np.pi) - 0.5 * np.log(det_s))
 
 
 def position_mahalanobis(pos_a, pos_b, cov_a, cov_b) -> NDArray[np.float64]:
@@ -112,6 +138,9 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     d2 = position_mahalanobis(pos[a], pos[b], ca, cb) if len(a) else np.zeros(0)
     if cfg.method == "mahalanobis":
         ok = d2 <= chi2.ppf(cfg.gate_prob, 3)
+        a, b, d2 = a[ok], b[ok], d2[ok]
+    elif cfg.method == "bayes":
+        ok = d2 <= bayes_threshold(np.linalg.det(ca + cb), cfg.prior_h1, gate_volume(cfg)) if len(a) else d2 > 0
         a, b, d2 = a[ok], b[ok], d2[ok]
     sq = np.sum((pos[a] - pos[b]) ** 2, axis=1)
     return Pairs(a, b, sq, d2)

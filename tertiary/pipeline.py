@@ -35,6 +35,7 @@ from tertiary import schema
 from tertiary.align import AlignConfig, AlignPlan
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
+from tertiary.indicators import indicators
 from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
@@ -238,6 +239,9 @@ class PipelineConfig:
     #: (:func:`tertiary.registration.estimate`, method "multi"; the truth is never used)
     register: bool = False
     registration: tuple[tuple[float, float, float, float, float], ...] = ()
+    #: §1.7/§5.1/§2.2–2.3 indicators of every tracker picture (tertiary.indicators; metrics stage
+    #: "indicators"); needs truth. Off by default (one more matching per picture).
+    indicators: bool = False
 
 
 @dataclass
@@ -285,6 +289,8 @@ def check_config(cfg: PipelineConfig | None) -> PipelineConfig:
         raise OptionError(f"must be finite and > 0, got {a.period_s}", option="align.period_s")
     if cfg.safety_picture not in ("tracks", "fused"):
         raise OptionError(f"choose tracks or fused, got {cfg.safety_picture!r}", option="safety_picture")
+    if (cfg.association.mode_3a != "off" or cfg.association.callsign != "off") and not cfg.align.identity:
+        cfg = dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, identity=True))  # fine identification
     return cfg
 
 
@@ -426,6 +432,9 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
             reqs = [e.requirements for e in (ev_fused, ev_tracks) if e.requirements.height]
             if reqs:
                 sink("requirements", pl.concat(reqs, how="vertical_relaxed"))
+    if has_truth and cfg.indicators and tracks.height:
+        clock.stage("indicators")
+        metrics = pl.concat([metrics, indicators(tracks, ing.truth)], how="vertical_relaxed")
     sink("metrics", metrics)
     sink("accuracy_by_epoch", by_epoch)
     clock.stage(None)
@@ -437,6 +446,7 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
+              "conversion_invalid": ing.plan.conversion_invalid if ing.plan is not None else 0,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
