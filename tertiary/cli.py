@@ -393,6 +393,12 @@ def run(
                                            help="correct each radar's range/azimuth bias and clock offset before "
                                                 "alignment: DATASET/registration.parquet (from `tertiary register`) "
                                                 "when present, else estimated radar to radar")] = False,
+    collection: Annotated[Optional[str], typer.Option(help="report collection queue ahead of alignment (§1.4): "
+                                                           "refusals, waiting or limited; lost reports go to "
+                                                           "rejects [default: none]")] = None,
+    service_time: Annotated[float, typer.Option(help="mean processing time of one report (s), with --collection")] = 0.01,
+    service_model: Annotated[str, typer.Option(help="processing time: exponential or deterministic")] = "exponential",
+    max_wait: Annotated[float, typer.Option(help="T_wait of --collection limited (s)")] = 0.1,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -402,6 +408,9 @@ def run(
     cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture)
+    if collection is not None:   # checked here, before any simulation
+        from tertiary.collection import CollectionConfig
+        cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))
     pipeline.check_config(cfg)
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,

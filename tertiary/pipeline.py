@@ -36,6 +36,7 @@ from tertiary.align import AlignConfig, AlignPlan
 from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.clustering import ClusteringConfig, cluster
+from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
                                association_metrics, fusion_consistency, match_truth, scored_samples, target_truth)
@@ -157,6 +158,11 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
         return ing
     if cfg.register:
         ing.reports = _registered(ing, ds, cfg)
+    if cfg.collection is not None:   # report collection queue (§1.4): lost reports -> rejects
+        from tertiary.collection import collection_stage
+        ing.reports, lost, collected = collection_stage(ing.reports, ing.report_rows, cfg.collection)
+        ing.rejects = pl.concat([ing.rejects, lost], how="vertical_relaxed")
+        ing.notes.extend(collected)
     ing.plan = align_stage.plan(ing.reports, ing.radars, ds.origin, cfg.align)
     align_rej = _stage_rejects(ing.plan.rejects, ing.reports, ing.report_rows, "align")
     ing.rejects = pl.concat([ing.rejects, align_rej], how="vertical_relaxed")
@@ -238,6 +244,9 @@ class PipelineConfig:
     #: (:func:`tertiary.registration.estimate`, method "multi"; the truth is never used)
     register: bool = False
     registration: tuple[tuple[float, float, float, float, float], ...] = ()
+    #: report collection ahead of alignment (:mod:`tertiary.collection`, §1.4): the queue
+    #: discipline and processing-time model; lost reports go to ``rejects`` (stage "collection")
+    collection: CollectionConfig | None = None
 
 
 @dataclass
