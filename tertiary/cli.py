@@ -29,7 +29,7 @@ from typer.core import TyperGroup
 from tertiary import pipeline
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS
+from tertiary.fusion import ALL_METHODS, METHODS
 from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
 from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_count
@@ -405,7 +405,7 @@ def run(
 
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     _set_log(quiet, log_format)
-    cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
+    cfg = pipeline.PipelineConfig(methods=_names(methods, ALL_METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture)
     if collection is not None:   # checked here, before any simulation

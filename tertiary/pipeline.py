@@ -41,7 +41,7 @@ from tertiary.bound import bound_stage
 from tertiary.evaluate import (EvaluateConfig, accuracy_by_epoch_from_matched, accuracy_from_matched,
                                association_metrics, fusion_consistency, match_truth, scored_samples, target_truth)
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS, FusionConfig, fuse, measured_plots
+from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.track_metrics import TrackMetricsConfig, track_truth, tracker_evaluation
@@ -281,9 +281,9 @@ class StageError(TertiaryError):
 def check_config(cfg: PipelineConfig | None) -> PipelineConfig:
     """``cfg`` (None = the defaults) after checking its names and numbers (:class:`OptionError`)."""
     cfg = cfg or PipelineConfig()
-    unknown = sorted(set(cfg.methods) - set(METHODS))
+    unknown = sorted(set(cfg.methods) - set(ALL_METHODS))   # the optional methods too (not in the default)
     if unknown:
-        raise OptionError(f"unknown fusion method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}",
+        raise OptionError(f"unknown fusion method(s) {', '.join(unknown)}; choose from {', '.join(ALL_METHODS)}",
                           option="methods")
     bad = sorted(set(cfg.filters) - set(REGISTRY))
     if bad:
