@@ -258,3 +258,65 @@ def test_trace_test_by_hand():
                RADARS,
                ["arithmetic"], FusionConfig(nis_gate="reject", gate_test="trace", trace_gamma=3.0))
     assert at(out, "arithmetic")["radar_ids"] == [1]
+
+
+# ---------------------------------------------------------------------------- radar health
+
+from tertiary import schema  # noqa: E402
+from tertiary.radar_health import HealthConfig, adaptive_r, nis_samples, radar_health, windowed_nis  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
+
+
+def health_rows(nu, s, radar=1, track=1, dt=1.0, run=0) -> pl.DataFrame:
+    n = len(nu)
+    return pl.DataFrame({
+        "run": pl.Series([run] * n, dtype=pl.UInt32), "radar_id": pl.Series([radar] * n, dtype=pl.UInt32),
+        "local_track_id": pl.Series([track] * n, dtype=pl.UInt32),
+        "time": [T0 + timedelta(seconds=dt * i) for i in range(n)],
+        "res_range_m": np.asarray(nu, float), "res_range_var_m2": np.broadcast_to(np.asarray(s, float), n),
+        "fresh": [True] * n})
+
+
+def test_windowed_nis_by_hand():
+    w = windowed_nis(nis_samples(health_rows([1.0, 1.0, 2.2, 2.2], 1.0)), HealthConfig(window_s=2.0, hold_s=0.0))
+    np.testing.assert_allclose(w["nis_window"].to_numpy(), [1.0, 1.0, 2.92, 4.84])   # window (t − 2, t]
+    np.testing.assert_allclose(w["k"].to_numpy(), [1, 2, 2, 2])
+    np.testing.assert_allclose(w["bound"].to_numpy(), chi2.ppf(0.99, [1, 2, 2, 2]) / [1, 2, 2, 2])
+    assert w["above"].to_list() == [False, False, False, True]                      # bound(k=2) = 9.21/2 = 4.61
+
+
+def test_alarm_needs_the_exceedance_held():
+    nu = [1.0] * 5 + [10.0] * 8                                # NIS 100 from t = 5 s on
+    w = windowed_nis(nis_samples(health_rows(nu, 1.0)), HealthConfig(window_s=3.0, hold_s=4.0))
+    assert w["above"].to_list() == [False] * 5 + [True] * 8
+    assert w["alarm"].to_list() == [False] * 9 + [True] * 4    # alarm at t = 9 s = first exceedance + 4 s
+
+
+def test_divergence_alarm_detects_a_noise_step_per_radar():
+    rng = np.random.default_rng(5)
+    nu1 = rng.normal(0, 1, 900)
+    nu1[450:] *= 6.0                                         # radar 1: 6× noise (std) from t = 450 s
+    rows = pl.concat([health_rows(nu1, 1.0, radar=1), health_rows(rng.normal(0, 1, 900), 1.0, radar=2)])
+    radars = pl.DataFrame({"radar_id": pl.Series([1, 2], dtype=pl.UInt32), "sigma_range_m": [1.0, 1.0]})
+    m = radar_health(rows, radars, HealthConfig(window_s=60.0, hold_s=20.0))
+    schema.validate(m, "metrics", strict=True)
+    v = {(r, k): x for r, k, x in m.select("method", "metric", "value").iter_rows()}
+    assert 450 < v["1", "first_alarm_s"] <= 450 + 20 + 30      # held 20 s after the window mean crosses
+    assert v["1", "alarm_episodes"] >= 1 and np.isnan(v["2", "first_alarm_s"]) and v["2", "alarm_episodes"] == 0
+    assert v["1", "nis_mean"] == pytest.approx((1 + 36) / 2, rel=0.15) and v["2", "nis_mean"] == pytest.approx(1, rel=0.15)
+    assert v["1", "gate_flag_share"] > 0.2 and v["2", "gate_flag_share"] < 0.01
+    assert set(m["method"]) == {"1", "2"} and set(m["stage"]) == {"radar_health"}
+
+
+@pytest.mark.parametrize("bias", [0.0, 30.0])
+def test_adaptive_r_variant_a_ignores_a_bias_b_does_not(bias):
+    # nominal σ_r = 5 m (25 m²), true R = 36 × 25 = 900 m², H P⁻ Hᵀ = 100 m² (S as reported = 125)
+    rng = np.random.default_rng(7)
+    nu = bias + rng.normal(0, np.sqrt(100.0 + 900.0), 3000)
+    s = nis_samples(health_rows(nu, 125.0))
+    r = adaptive_r(s, pl.DataFrame({"radar_id": pl.Series([1], dtype=pl.UInt32), "sigma_r2": [25.0]}),
+                   HealthConfig(r_window=50, r_min_samples=10))
+    assert r["r_a"][:9].null_count() == 9 and r["r_a"][9] is not None
+    ra, rb = r["r_a"].drop_nulls().median(), r["r_b"].drop_nulls().median()
+    assert ra == pytest.approx(900.0, rel=0.15)                           # A: mean removed
+    assert rb == pytest.approx(900.0 + bias**2, rel=0.15)                 # B: bias becomes variance
