@@ -219,3 +219,24 @@ def test_pipeline_screen_accounts_for_lost_reports(small_terminal):
     base = pipeline.screen(small_terminal, pipeline.PipelineConfig())
     assert ing.reports.height + lost.height == base.reports.height
     assert any(n.startswith("collection (refusals") for n in ing.notes)
+
+
+def test_cli_run_with_collection(tmp_path):
+    import duckdb
+    from typer.testing import CliRunner
+
+    from tertiary.cli import app
+    runner = CliRunner()
+    bad = runner.invoke(app, ["run", "--out", str(tmp_path / "x"), "--collection", "queue"])
+    assert bad.exit_code == 2 and "--collection" in bad.output           # refused before simulating
+    ds = tmp_path / "ds"
+    assert runner.invoke(app, ["simulate", "terminal-area", "--out", str(ds), "--aircraft", "8",
+                               "--duration", "120", "--runs", "1"]).exit_code == 0
+    res = runner.invoke(app, ["run", str(ds), "--out", str(tmp_path / "run"), "--filters", "",
+                              "--methods", "information,best_source", "--no-report", "--collection", "refusals",
+                              "--service-time", "0.05", "--service-model", "deterministic"])
+    assert res.exit_code == 0, res.output
+    with duckdb.connect(str(tmp_path / "run" / "results.duckdb"), read_only=True) as con:
+        n = con.sql("select count(*) from rejects where stage = 'collection'").fetchall()[0][0]
+        methods = {r[0] for r in con.sql("select distinct method from fused").fetchall()}
+    assert n > 0 and {"information", "best_source"} <= methods
