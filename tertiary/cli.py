@@ -29,7 +29,7 @@ from typer.core import TyperGroup
 from tertiary import pipeline
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS
+from tertiary.fusion import ALL_METHODS, METHODS
 from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
 from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_count
@@ -399,16 +399,25 @@ def run(
                                                  "radar) or joint (multi-dimensional minimum)")] = "pairwise",
     gate: Annotated[str, typer.Option(help="association gate: box, mahalanobis or bayes (minimum-error "
                                            "H1/H2 threshold)")] = "box",
+    collection: Annotated[Optional[str], typer.Option(help="report collection queue ahead of alignment (§1.4): "
+                                                           "refusals, waiting or limited; lost reports go to "
+                                                           "rejects [default: none]")] = None,
+    service_time: Annotated[float, typer.Option(help="mean processing time of one report (s), with --collection")] = 0.01,
+    service_model: Annotated[str, typer.Option(help="processing time: exponential or deterministic")] = "exponential",
+    max_wait: Annotated[float, typer.Option(help="T_wait of --collection limited (s)")] = 0.1,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
 
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     _set_log(quiet, log_format)
-    cfg = pipeline.PipelineConfig(methods=_names(methods, METHODS, "--methods"),
+    cfg = pipeline.PipelineConfig(methods=_names(methods, ALL_METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture,
                                   indicators=indicators, association=_association(assignment, gate))
+    if collection is not None:   # checked here, before any simulation
+        from tertiary.collection import CollectionConfig
+        cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))
     pipeline.check_config(cfg)
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,

@@ -42,6 +42,34 @@ Methods and the meaning of the reported ``weights`` (one per contributing radar,
   N > 2: the fast-CI weights ω_n ∝ 1/tr C_n (Niehsen 2002), whatever ``ci_objective``.
   Reported weights: ω.
 
+Optional methods (:data:`EXTRA_METHODS`, selectable by name, not in the default :data:`METHODS`):
+
+* ``best_source`` — the single most accurate source (§1.3 (c)): the report with the smallest
+  position-error trace tr C_n[0:3, 0:3] (m²; the velocity block is in other units), unchanged.
+  Weights one-hot.
+* ``invcov_nis`` (digest §6.4): information fusion of λ_n C_n, λ_n = max(1, mean of the last
+  ``nis_window`` normalised innovations ν²/S of the (run, radar, local track)), which
+  down-weights a radar whose filter lags (a manoeuvre) or is inconsistent.
+* ``aposteriori_seed_S`` (digest §6.5 ``seed_S``): the printed prior (1 − b(k−1)) of
+  (4.73)–(4.74) with the per-step S_n(k) = ``res_range_var_m2`` instead of the fixed D_n.
+* ``aposteriori_coord`` — per-coordinate a-posteriori weights (digest §6.1): b_{n,c},
+  c ∈ {x, y, z}, by the corrected recursion on N(ν_{n,c}; 0, S_{n,c}) (:func:`los_innovation`).
+* ``aposteriori_mv`` — one weight per radar from the multivariate N(ν_n; 0, S_n) (digest §6.1)
+  of the same 3-D innovation, corrected recursion.
+
+The rows carry only the range innovation ΔD_n and its variance S_n (DESIGN §3), so the 3-D
+innovation of §6.1 is built from it (:func:`los_innovation`): ν_n = u_n ΔD_n along the line of
+sight u_n (radar site → reported position, system frame), covariance
+S_n = a_n u_n u_nᵀ + diag(nominal_var_n), a_n = max(S_n − σ²_range,n, 0) the predicted range
+variance without R, diag(nominal_var) the plot noise per system axis (range and cross-range).
+
+NIS gate (``FusionConfig.nis_gate``, every method; seed 003 §2.2 and digest 003 §6): a row whose
+range NIS ν²/S exceeds χ²₁(``nis_gate_prob``) (9.0 at 0.9973 = 3σ), or with ``gate_test="trace"``
+fails the innovation trace test νᵀν ≤ γ tr S (:func:`trace_test`), is ``"reject"``-ed (left out of
+its group unless every source fails), ``"downweight"``-ed (C_n × NIS/threshold: changes the
+weights of the covariance-based methods, the reported P of all) or only ``"flag"``-ged (fusion
+unchanged; :mod:`tertiary.radar_health` counts the flags per radar).
+
 Rules shared by both a-posteriori recursions (digest §2.3, §6.2–6.3):
 
 * the recursion state b(k−1) of a (run, target_id, radar_id) is its weight at the previous
@@ -123,12 +151,30 @@ __all__ = [
     "markov_weights",
     "seed_fixed_variance",
     "seed_weights",
+    "EXTRA_METHODS",
+    "ALL_METHODS",
+    "GATE_ACTIONS",
+    "fuse_best_source",
+    "fuse_invcov_nis",
+    "nis_inflation",
+    "los_innovation",
+    "coord_loglik",
+    "mv_loglik",
+    "nis",
+    "chi2_threshold",
+    "trace_test",
+    "gate_pass",
 ]
 
 METHODS = (
     "arithmetic", "apriori", "aposteriori_seed", "aposteriori", "information",
     "covariance_intersection", "bar_shalom_campo",
 )
+#: selectable by name, never in the default list (the main job's cost does not grow)
+EXTRA_METHODS = ("best_source", "invcov_nis", "aposteriori_seed_S", "aposteriori_coord", "aposteriori_mv")
+ALL_METHODS = METHODS + EXTRA_METHODS
+GATE_ACTIONS = ("reject", "downweight", "flag")
+GATE_TESTS = ("chi2", "trace")
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
 GROUP = ["run", "epoch", "target_id"]
 CHAIN = ["run", "target_id"]
@@ -159,6 +205,10 @@ class FusionConfig:
       information fusion).
     * ``min_plots``: a local track supports a target once it has this many plots (``tentative``).
     * ``altitude``: the per-local-track Mode C filter of the vertical channel.
+    * ``nis_window``: innovations in the moving average of ``invcov_nis``'s λ_n.
+    * ``nis_gate``: None (off) or an action of :data:`GATE_ACTIONS`; ``nis_gate_prob``: the χ²
+      gate probability; ``gate_test``: ``"chi2"`` (NIS) or ``"trace"`` (νᵀν ≤ ``trace_gamma`` tr S;
+      the printed γ = 3 is not a 3σ test).
     """
 
     p_stay: float = 0.95
@@ -167,8 +217,23 @@ class FusionConfig:
     bc_rho: float = 0.4
     min_plots: int = 2
     altitude: AltitudeConfig = AltitudeConfig()
+    nis_window: int = 5
+    nis_gate: str | None = None
+    nis_gate_prob: float = 0.9973002039367398   # 2Φ(3) − 1: χ²₁ threshold 9.0
+    gate_test: str = "chi2"
+    trace_gamma: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.nis_window < 1:
+            raise ValueError(f"nis_window must be >= 1, got {self.nis_window}")
+        if self.nis_gate is not None and self.nis_gate not in GATE_ACTIONS:
+            raise ValueError(f"nis_gate must be None or one of {GATE_ACTIONS}, got {self.nis_gate!r}")
+        if not 0.0 < self.nis_gate_prob < 1.0:
+            raise ValueError(f"nis_gate_prob must lie in (0, 1), got {self.nis_gate_prob}")
+        if self.gate_test not in GATE_TESTS:
+            raise ValueError(f"gate_test must be one of {GATE_TESTS}, got {self.gate_test!r}")
+        if not self.trace_gamma > 0:
+            raise ValueError(f"trace_gamma must be > 0, got {self.trace_gamma}")
         if not 0.0 <= self.p_stay <= 1.0:
             raise ValueError(f"p_stay must lie in [0, 1], got {self.p_stay}")
         if not 0.0 <= self.b_min < 1.0:
@@ -676,6 +741,135 @@ def fuse_bar_shalom_campo(x: F, cov: F, starts: Ix, rho: float = 0.4) -> Fused:
 
 
 # ---------------------------------------------------------------------------
+# optional methods: best source, NIS-inflated information, a-posteriori variants, NIS gate
+# ---------------------------------------------------------------------------
+
+
+def _onehot_min(v: F, starts: Ix) -> F:
+    """1.0 at the first row of each group holding the group's minimum of ``v`` (NaN never wins
+    unless the whole group is NaN: then the first row), 0 elsewhere."""
+    n = len(v)
+    key = np.where(np.isnan(v), np.inf, v)
+    gid = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
+    low = np.minimum.reduceat(key, starts)[gid]
+    hit = key == low
+    first = np.minimum.reduceat(np.where(hit, np.arange(n), n), starts)
+    w = np.zeros(n)
+    w[first] = 1.0
+    return w
+
+
+def fuse_best_source(x: F, cov: F, starts: Ix) -> Fused:
+    """The single most accurate source (§1.3 (c)): each group's report with the smallest
+    position-error trace tr C_n[0:3, 0:3], state and covariance unchanged; weights one-hot."""
+    w = _onehot_min(np.einsum("nii->n", cov[:, :3, :3]), starts)
+    pick = np.flatnonzero(w)
+    return Fused(x[pick].copy(), cov[pick].copy(), w)
+
+
+def nis(res: F, res_var: F) -> F:
+    """Normalised innovation squared of the range channel, ν²/S (m = 1; NaN when unusable)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(np.isfinite(res) & (res_var > 0), res * res / res_var, np.nan)
+
+
+def nis_inflation(rows: pl.DataFrame, window: int) -> F:
+    """λ_n of ``invcov_nis`` per row (digest §6.4): max(1, mean of the last ``window`` values of
+    ν²/S of the row's (run, radar, local track), counting its fresh rows up to this epoch);
+    1 before the track's first usable innovation."""
+    v = nis(rows["res_range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
+            rows["res_range_var_m2"].cast(pl.Float64).fill_null(np.nan).to_numpy())
+    use = rows["fresh"].fill_null(False).to_numpy() & np.isfinite(v)
+    k = rows.select(*TRACK, "epoch").with_columns(pl.Series("__v", np.where(use, v, np.nan)).fill_nan(None),
+                                                  pl.Series("__u", use)).with_row_index("__i")
+    fresh = (k.filter("__u").sort([*TRACK, "epoch"])
+             .with_columns(pl.col("__v").rolling_mean(window, min_samples=1).over(TRACK).alias("__m")))
+    allr = (k.join(fresh.select("__i", "__m"), on="__i", how="left").sort([*TRACK, "epoch", "__i"])
+            .with_columns(pl.col("__m").forward_fill().over(TRACK)).sort("__i"))
+    return np.maximum(allr["__m"].fill_null(1.0).to_numpy(), 1.0)
+
+
+def fuse_invcov_nis(x: F, cov: F, lam: F, starts: Ix) -> Fused:
+    """``invcov_nis`` (digest §6.4): P = (Σ (λ_n C_n)⁻¹)⁻¹, x = P Σ (λ_n C_n)⁻¹ x_n."""
+    return fuse_information(x, cov * lam[:, None, None], starts)
+
+
+def los_innovation(x: F, site: F, res_var: F, sigma_r2: F, nominal_var: F) -> tuple[F, F, F]:
+    """The 3-D innovation model of digest §6.1 from the range innovation: unit line of sight
+    u_n (n, 3) from the radar site to the reported position, a_n = max(S_n − σ²_r, 0) (the
+    predicted range variance without R, (4.75)) and the plot-noise diagonal D_n = nominal_var:
+    ν_n = u_n ΔD_n, S_n = a_n u_n u_nᵀ + diag(D_n). Returns (u, a, D)."""
+    d = x[:, :3] - site
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return u, np.maximum(res_var - sigma_r2, 0.0), nominal_var
+
+
+def coord_loglik(res: F, u: F, a: F, dvar: F) -> tuple[F, F]:
+    """Per-coordinate log-likelihoods (n, 3) of ν_{n,c} = u_c ΔD_n with variance
+    S_{n,c} = a_n u_c² + D_c (the diagonal of the §6.1 S_n), and S_{n,c}."""
+    s = a[:, None] * u * u + dvar
+    return _log_normal(u * res[:, None], s), s
+
+
+def mv_loglik(res: F, u: F, a: F, dvar: F) -> F:
+    """log N(ν_n; 0, S_n) with ν = u ΔD, S = a u uᵀ + diag(D) (rank-one update, closed form):
+    q = Σ u_c²/D_c, det S = Π D_c (1 + a q), νᵀS⁻¹ν = ΔD² q/(1 + a q)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.sum(u * u / dvar, axis=1)
+        logdet = np.sum(np.log(dvar), axis=1) + np.log1p(a * q)
+        return -1.5 * np.log(2.0 * np.pi) - 0.5 * logdet - 0.5 * res * res * q / (1.0 + a * q)
+
+
+def seed_s_weights(res: F, res_var: F, fresh: B, lay: Layout) -> F:
+    """``aposteriori_seed_S``: the printed prior (1 − b(k−1)) of (4.73)–(4.74) with the per-step
+    S_n(k) in L_n (digest §6.5 ``seed_S``), b(0) = 1/N (4.77)."""
+    return _recursive_weights(_log_normal(res, res_var), _usable(fresh, res, res_var), lay, _log_prior_seed, 0.0)
+
+
+def coord_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float) -> F:
+    """Per-coordinate corrected a-posteriori weights b_{n,c} (n, 3) (digest §6.1, §6.3): one
+    recursion per system axis on :func:`coord_loglik`."""
+    ll, s = coord_loglik(res, u, a, dvar)
+    prior = _log_prior_markov(p_stay)
+    return np.stack([_recursive_weights(ll[:, c], _usable(fresh, res, s[:, c]) & np.isfinite(ll[:, c]),
+                                        lay, prior, b_min) for c in range(3)], axis=1)
+
+
+def mv_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float) -> F:
+    """One corrected a-posteriori weight per radar from the multivariate N(ν_n; 0, S_n) (§6.1)."""
+    ll = mv_loglik(res, u, a, dvar)
+    return _recursive_weights(ll, fresh & np.isfinite(ll), lay, _log_prior_markov(p_stay), b_min)
+
+
+def chi2_threshold(prob: float, dof: int = 1) -> float:
+    """χ²_m quantile of the gate: 9.0 for m = 1 at 2Φ(3) − 1 = 0.9973, 11.83 for m = 2."""
+    from scipy.stats import chi2
+    return float(chi2.ppf(prob, dof))
+
+
+def trace_test(nu: F, s: F, gamma: float = 3.0) -> B:
+    """Innovation trace test (seed 003 §3.1.2): accept when νᵀν ≤ γ tr S, for innovations
+    ``nu`` (n, m) or (n,) and covariances ``s`` (n, m, m), (n, m) diagonals or (n,) scalars.
+    With S = s I, νᵀν/s ~ χ²_m: γ = 3 passes 91.7 % for m = 1 (not 3σ; that needs γ = 9)."""
+    nu = np.asarray(nu, float)
+    s = np.asarray(s, float)
+    r2 = nu * nu if nu.ndim == 1 else np.sum(nu * nu, axis=1)
+    tr = s if s.ndim == 1 else (np.einsum("nii->n", s) if s.ndim == 3 else s.sum(axis=1))
+    return r2 <= gamma * tr
+
+
+def gate_pass(res: F, res_var: F, cfg: FusionConfig) -> tuple[B, F, float]:
+    """Per row: whether its range innovation passes the gate of ``cfg`` (True when it has no
+    usable innovation), its NIS, and the gate's NIS threshold (χ²₁ quantile, or γ for the trace
+    test, which for m = 1 is NIS ≤ γ)."""
+    v = nis(res, res_var)
+    thr = chi2_threshold(cfg.nis_gate_prob) if cfg.gate_test == "chi2" else cfg.trace_gamma
+    ok = trace_test(res, res_var, thr) if cfg.gate_test == "trace" else v <= thr
+    return ~np.isfinite(v) | ok, v, thr
+
+
+# ---------------------------------------------------------------------------
 # frame level
 # ---------------------------------------------------------------------------
 
@@ -752,9 +946,10 @@ def _blocks(starts: Ix, n: int, block: int = BLOCK_ROWS):
 
 
 def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed: Callable[[], F],
-                 cfg: FusionConfig) -> tuple[F, F, F]:
+                 cfg: FusionConfig) -> tuple[F, F, F, dict[str, F]]:
     """Every method over all groups: states (M, G, 6), covariances (M, G, 6, 6) and weights
-    (M, n), M methods in the order given. The a-posteriori recursions run once over every row
+    (M, n), M methods in the order given, and the per-axis weights (n, 3) of the methods that
+    have them. The a-posteriori recursions run once over every row
     (per-row scalars); the mixing and all per-group linear algebra run block by block, all
     methods in one pass so that information fusion and CI share the block's C_n⁻¹, written
     straight into the outputs. Memory is bounded by the block, not by the dataset (stacked 6×6
@@ -769,6 +964,12 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
         w["aposteriori_seed"] = seed_weights(a["res"], d_fixed(), a["fresh"], lay)
     if "aposteriori" in methods:
         w["aposteriori"] = markov_weights(a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min)
+    if "aposteriori_seed_S" in methods:
+        w["aposteriori_seed_S"] = seed_s_weights(a["res"], a["res_var"], a["fresh"], lay)
+    los = (a["res"], a["fresh"], a["u"], a["a_pred"], a["dvar"], lay, cfg.p_stay, cfg.b_min) if "u" in a else None
+    if "aposteriori_mv" in methods:
+        w["aposteriori_mv"] = mv_weights(*los)
+    w3 = {"aposteriori_coord": coord_weights(*los)} if "aposteriori_coord" in methods else {}
     shared_inv = bool({"information", "covariance_intersection"} & set(methods))
     for r, st in _blocks(lay.starts, len(x)):
         g0 = int(np.searchsorted(lay.starts, r.start))
@@ -786,10 +987,20 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
                 out = fuse_information(xb, cb, st, cinv)
             elif m == "bar_shalom_campo":
                 out = fuse_bar_shalom_campo(xb, cb, st, cfg.bc_rho)
-            else:
+            elif m == "covariance_intersection":
                 out = fuse_covariance_intersection(xb, cb, st, cfg.ci_objective, cinv)
+            elif m in w3:                          # per coordinate; velocity takes its axis's weight
+                b3 = w3[m][r]
+                xf, pf = _mix(xb, cb, np.tile(b3, 2), st)
+                out = _keep_single(Fused(xf, pf, b3.mean(axis=1)), xb, cb, st)
+            elif m == "best_source":
+                out = fuse_best_source(xb, cb, st)
+            elif m == "invcov_nis":
+                out = fuse_invcov_nis(xb, cb, a["lam"][r], st)
+            else:
+                raise ValueError(f"unknown fusion method {m!r}")
             xs[i, g], covs[i, g], ws[i, r] = out
-    return xs, covs, ws
+    return xs, covs, ws, w3
 
 
 def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, B]:
@@ -856,7 +1067,7 @@ def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: ge
 
 PLOT_COLUMNS = ["plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"]
 #: methods whose plot-level measurement is the inverse-covariance combination of the plots
-_INFO_PLOTS = ("information", "covariance_intersection", "bar_shalom_campo")
+_INFO_PLOTS = ("information", "covariance_intersection", "bar_shalom_campo", "invcov_nis")
 
 
 def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
@@ -1003,7 +1214,7 @@ def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tup
 
 
 def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], lay: Layout, ws: F,
-                  plots: pl.DataFrame | None = None) -> dict[str, F]:
+                  plots: pl.DataFrame | None = None, axis_w: dict[str, F] | None = None) -> dict[str, F]:
     """:data:`~tertiary.schema.FUSED_EXTRA` measurement columns (minus ``tentative``) of every
     (method, group), shape (M, G[, …]), stacked in method order. Only the fresh rows are
     read (their groups are a sorted subset of all groups)."""
@@ -1027,7 +1238,9 @@ def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray],
     vel, pvv = a["x"][idx, 3:], a["cov"][idx, 3:, 3:]
     for i, meth in enumerate(methods):
         w = (None if meth in _INFO_PLOTS else
-             apriori_weights(a["nominal_var"], lay.starts)[idx] if meth == "apriori" else ws[i][idx])
+             apriori_weights(a["nominal_var"], lay.starts)[idx] if meth == "apriori" else
+             axis_w[meth][idx] if axis_w and meth in axis_w else
+             _onehot_min(np.einsum("nii->n", rp), sub_starts) if meth == "best_source" else ws[i][idx])
         z, r, a0 = plot_measurement(zp, rp, np.ones(len(idx), bool), age[idx], vel, pvv, w, sub_starts)
         out["meas"][i, gsub], out["meas_cov"][i, gsub] = z, r.reshape(-1, 9)
         out["age_s"][i, gsub] = np.where(np.isfinite(a0), a0, newest[gsub])
@@ -1037,10 +1250,53 @@ def _measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray],
 def _check_methods(methods: Sequence[str]) -> list[str]:
     if isinstance(methods, str):
         methods = [methods]
-    bad = [m for m in methods if m not in METHODS]
+    bad = [m for m in methods if m not in ALL_METHODS]
     if bad:
-        raise ValueError(f"unknown fusion method(s) {bad}; choose from {', '.join(METHODS)}")
+        raise ValueError(f"unknown fusion method(s) {bad}; choose from {', '.join(ALL_METHODS)}")
     return list(dict.fromkeys(methods))
+
+
+def _apply_gate(rows: pl.DataFrame, cfg: FusionConfig) -> tuple[pl.DataFrame, F | None]:
+    """The NIS gate of ``cfg`` on sorted rows: ``"reject"`` drops the failing rows of each group
+    (all kept when every row fails: the target is still fused); ``"downweight"`` returns the
+    covariance factor max(1, NIS/threshold) per row; ``"flag"``/None change nothing."""
+    if cfg.nis_gate in (None, "flag") or rows.height == 0:
+        return rows, None
+    col = lambda c: rows[c].cast(pl.Float64).fill_null(np.nan).to_numpy()  # noqa: E731
+    ok, v, thr = gate_pass(col("res_range_m"), col("res_range_var_m2"), cfg)
+    if cfg.nis_gate == "downweight":
+        return rows, np.where(ok, 1.0, np.maximum(v / thr, 1.0))
+    keep = pl.Series("__ok", ok)
+    return (rows.with_columns(keep).filter(pl.col("__ok") | ~pl.col("__ok").any().over(GROUP))
+            .drop("__ok")), None
+
+
+def _radar_sites(rows: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame) -> tuple[F, F]:
+    """Each row's radar site in the system frame (n, 3) and σ²_range (n,)."""
+    unknown = set(rows["radar_id"].unique().to_list()) - set(radars["radar_id"].to_list())
+    if unknown:
+        raise ValueError(f"radar_id(s) {sorted(unknown)} missing from radars")
+    e, n_, u = origin.from_geodetic(radars["lat_deg"].to_numpy(), radars["lon_deg"].to_numpy(),
+                                    radars["alt_m"].to_numpy())
+    table = radars.select(pl.col("radar_id").cast(pl.UInt32), pl.col("sigma_range_m").cast(pl.Float64)
+                          ).with_columns(pl.Series("__e", e), pl.Series("__n", n_), pl.Series("__u", u))
+    j = rows.select(pl.col("radar_id").cast(pl.UInt32)).join(table, on="radar_id", how="left", maintain_order="left")
+    return j.select("__e", "__n", "__u").to_numpy(), j["sigma_range_m"].to_numpy() ** 2
+
+
+def _method_inputs(methods: list[str], rows: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame | None,
+                   cfg: FusionConfig, a: dict[str, NDArray]) -> None:
+    """Per-row inputs of the optional methods, added to ``a``: λ of ``invcov_nis``; the line of
+    sight and §6.1 innovation terms of ``aposteriori_coord`` / ``aposteriori_mv``."""
+    if "invcov_nis" in methods:
+        a["lam"] = nis_inflation(rows, cfg.nis_window)
+    los = [m for m in methods if m in ("aposteriori_coord", "aposteriori_mv")]
+    if los:
+        if origin is None:
+            raise ValueError(f"{', '.join(los)}: needs the system frame origin (fuse(..., origin=...)) "
+                             "for each radar's line of sight")
+        site, sig2 = _radar_sites(rows, radars, origin)
+        a["u"], a["a_pred"], a["dvar"] = los_innovation(a["x"], site, a["res_var"], sig2, a["nominal_var"])
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
@@ -1050,7 +1306,8 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
 
     ``rows`` holds :data:`INPUT_COLUMNS` (sorted here by (run, epoch, target_id, radar_id));
     null innovations count as NaN and a null ``fresh`` as False. ``radars`` (``radar_id``,
-    ``sigma_range_m``) is read only by ``aposteriori_seed``. ``plots`` (:func:`measured_plots`)
+    ``sigma_range_m``) is read only by ``aposteriori_seed``, and with the sites (``lat_deg``,
+    ``lon_deg``, ``alt_m``) and ``origin`` by ``aposteriori_coord`` / ``aposteriori_mv``. ``plots`` (:func:`measured_plots`)
     or the rows' own :data:`PLOT_COLUMNS` (with ``age_s``) give the tracker's measurement
     columns; without them those are null. Returns the ``fused`` table: the
     blocks of the methods in the order given, each sorted by (run, epoch, target_id).
@@ -1064,11 +1321,15 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
         return pl.DataFrame(schema=out_schema)
     if not is_sorted_by(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
         rows = rows.sort([*GROUP, "radar_id"], maintain_order=True)
+    rows, inflate = _apply_gate(rows, cfg)
     lay, a = layout(rows), _arrays(rows)
+    if inflate is not None:
+        a["cov"] = a["cov"] * inflate[:, None, None]
+    _method_inputs(methods, rows, radars, origin, cfg, a)
     d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
-    xs, covs, ws = _run_methods(methods, a, lay, d_fixed, cfg)
+    xs, covs, ws, axis_w = _run_methods(methods, a, lay, d_fixed, cfg)
     alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
-    meas = _measurements(rows, methods, a, lay, ws, plots)
+    meas = _measurements(rows, methods, a, lay, ws, plots, axis_w)
     tentative, _ = confirm_step(ConfirmState.empty(), rows, cfg.min_plots)
     mode_s = pl.col("mode_s").cast(pl.String) if "mode_s" in rows.columns else pl.lit(None, pl.String)
     head = rows.select(*GROUP, "radar_id", mode_s.alias("__s")).with_columns(

@@ -37,11 +37,12 @@ from tertiary.associate import AssociationConfig, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.indicators import indicators
 from tertiary.clustering import ClusteringConfig, cluster
+from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_pictures
 from tertiary.filters import REGISTRY
-from tertiary.fusion import METHODS, FusionConfig, fuse, measured_plots
+from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
@@ -157,6 +158,11 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
         return ing
     if cfg.register:
         ing.reports = _registered(ing, ds, cfg)
+    if cfg.collection is not None:   # report collection queue (§1.4): lost reports -> rejects
+        from tertiary.collection import collection_stage
+        ing.reports, lost, collected = collection_stage(ing.reports, ing.report_rows, cfg.collection)
+        ing.rejects = pl.concat([ing.rejects, lost], how="vertical_relaxed")
+        ing.notes.extend(collected)
     ing.plan = align_stage.plan(ing.reports, ing.radars, ds.origin, cfg.align)
     align_rej = _stage_rejects(ing.plan.rejects, ing.reports, ing.report_rows, "align")
     ing.rejects = pl.concat([ing.rejects, align_rej], how="vertical_relaxed")
@@ -242,6 +248,9 @@ class PipelineConfig:
     #: §1.7/§5.1/§2.2–2.3 indicators of every tracker picture (tertiary.indicators; metrics stage
     #: "indicators"); needs truth. Off by default (one more matching per picture).
     indicators: bool = False
+    #: report collection ahead of alignment (:mod:`tertiary.collection`, §1.4): the queue
+    #: discipline and processing-time model; lost reports go to ``rejects`` (stage "collection")
+    collection: CollectionConfig | None = None
 
 
 @dataclass
@@ -276,9 +285,9 @@ class StageError(TertiaryError):
 def check_config(cfg: PipelineConfig | None) -> PipelineConfig:
     """``cfg`` (None = the defaults) after checking its names and numbers (:class:`OptionError`)."""
     cfg = cfg or PipelineConfig()
-    unknown = sorted(set(cfg.methods) - set(METHODS))
+    unknown = sorted(set(cfg.methods) - set(ALL_METHODS))   # the optional methods too (not in the default)
     if unknown:
-        raise OptionError(f"unknown fusion method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}",
+        raise OptionError(f"unknown fusion method(s) {', '.join(unknown)}; choose from {', '.join(ALL_METHODS)}",
                           option="methods")
     bad = sorted(set(cfg.filters) - set(REGISTRY))
     if bad:
