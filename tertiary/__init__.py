@@ -45,7 +45,15 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "screen", "StageError", "check_scenario", "RULES", "contract_rules", "TertiaryError", "OptionError",
            "DataError", "ResourceError", "altitude", "bound", "RadarTrackerConfig", "TransponderConfig",
            "measured_plots", "fuse_bar_shalom_campo", "confirm_step", "ConfirmState", "evaluate_pictures",
-           "match_to_reference", "MatchConfig", "load_requirements", "check_requirements"]
+           "match_to_reference", "MatchConfig", "load_requirements", "check_requirements", "ALL_METHODS",
+           "CollectionConfig", "collect", "IndicatorConfig", "bayes_threshold",
+           "conversion_valid", "make_range_channel"]
 from tertiary.evaluation import evaluate_pictures  # noqa: E402  (after the stages it builds on)
 from tertiary.matching import MatchConfig, match_to_reference  # noqa: E402
 from tertiary.requirements import check_requirements, load_requirements  # noqa: E402
+from tertiary.fusion import ALL_METHODS  # noqa: E402
+from tertiary.collection import CollectionConfig, collect  # noqa: E402
+from tertiary.indicators import IndicatorConfig  # noqa: E402  (indicators(): tertiary.indicators)
+from tertiary.gating import bayes_threshold  # noqa: E402
+from tertiary.align import conversion_valid  # noqa: E402
+from tertiary.filters import make_range_channel  # noqa: E402

@@ -399,6 +399,8 @@ def run(
                                                  "radar) or joint (multi-dimensional minimum)")] = "pairwise",
     gate: Annotated[str, typer.Option(help="association gate: box, mahalanobis or bayes (minimum-error "
                                            "H1/H2 threshold)")] = "box",
+    radar_health: Annotated[bool, typer.Option(help="also write each radar's health (windowed-NIS divergence "
+                                                    "alarm, adaptive R; metrics stage 'radar_health')")] = False,
     collection: Annotated[Optional[str], typer.Option(help="report collection queue ahead of alignment (§1.4): "
                                                            "refusals, waiting or limited; lost reports go to "
                                                            "rejects [default: none]")] = None,
@@ -414,7 +416,8 @@ def run(
     cfg = pipeline.PipelineConfig(methods=_names(methods, ALL_METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture,
-                                  indicators=indicators, association=_association(assignment, gate))
+                                  indicators=indicators, association=_association(assignment, gate),
+                                  radar_health=radar_health)
     if collection is not None:   # checked here, before any simulation
         from tertiary.collection import CollectionConfig
         cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))

@@ -248,6 +248,9 @@ class PipelineConfig:
     #: §1.7/§5.1/§2.2–2.3 indicators of every tracker picture (tertiary.indicators; metrics stage
     #: "indicators"); needs truth. Off by default (one more matching per picture).
     indicators: bool = False
+    #: per-radar health from the range innovations (tertiary.radar_health; metrics stage
+    #: "radar_health"): windowed-NIS divergence alarm, adaptive-R estimates. Off by default.
+    radar_health: bool = False
     #: report collection ahead of alignment (:mod:`tertiary.collection`, §1.4): the queue
     #: discipline and processing-time model; lost reports go to ``rejects`` (stage "collection")
     collection: CollectionConfig | None = None
@@ -441,6 +444,9 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
             reqs = [e.requirements for e in (ev_fused, ev_tracks) if e.requirements.height]
             if reqs:
                 sink("requirements", pl.concat(reqs, how="vertical_relaxed"))
+    if cfg.radar_health and aligned.height:
+        from tertiary.radar_health import radar_health
+        metrics = pl.concat([metrics, radar_health(aligned, ing.radars)], how="vertical_relaxed")
     if has_truth and cfg.indicators and tracks.height:
         clock.stage("indicators")
         metrics = pl.concat([metrics, indicators(tracks, ing.truth)], how="vertical_relaxed")
