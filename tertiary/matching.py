@@ -203,7 +203,8 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     """The rows of ``tracks`` (run, epoch, ``id_col``, method, x_m … vz_mps[, alt_m]) with the
     matched reference aircraft (module docstring): ``truth_id`` (null if unmatched),
     ``true_x_m … true_vz_mps`` (``true_alt_m`` when the reference has heights),
-    ``match_cost`` and, when the reference has it, the aircraft's ``icao24``."""
+    ``match_cost``, ``gated_truth_id`` and, when the reference has them, the aircraft's
+    ``icao24``, ``true_callsign`` and ``true_mode_3a``."""
     tr = tracks
     if "run" not in tr.columns:
         tr = tr.with_columns(pl.lit(0, pl.UInt32).alias("run"))
@@ -239,9 +240,14 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
                 .otherwise(None).cast(pl.Int64).alias("gated_truth_id"))
     out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24", "gated_truth_id") if c in tr.columns])
            .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of), gated_id))
-    if "icao24" in truth.columns:        # the reference's Mode S address, for identity correctness
-        ident = (truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("icao24").cast(pl.String))
-                 .drop_nulls().unique("truth_id", keep="first"))
-        out = out.join(ident, on="truth_id", how="left", maintain_order="left")
+    # the reference's identity items, for identity correctness: Mode S address, callsign, Mode 3/A
+    items = {c: n for c, n in (("icao24", "icao24"), ("callsign", "true_callsign"), ("mode_3a", "true_mode_3a"))
+             if c in truth.columns}
+    if items:
+        ident = (truth.select(pl.col("truth_id").cast(pl.Int64), *[pl.col(c).cast(pl.String).alias(n)
+                                                                   for c, n in items.items()])
+                 .unique("truth_id", keep="first"))
+        out = out.drop([n for n in items.values() if n in out.columns]).join(
+            ident, on="truth_id", how="left", maintain_order="left")
     return out
 

@@ -46,6 +46,11 @@ Definitions (errors are track − reference)
   a non-representative second track of an aircraft. ``merged_tracks``: distinct tracks whose
   position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
   track of its own while representing another aircraft.
+* identity correctness, on matched rows where both sides carry the item: ``mode_s_correct_frac``
+  (track Mode S address = reference ``icao24``), ``mode_3a_correct_frac`` (track ``mode_3a`` =
+  reference ``mode_3a``), ``callsign_correct_frac`` (blank-stripped, case-insensitive), and
+  ``flight_level_correct_frac`` (|track alt_m − reference alt_m| ≤ ``flight_level_tolerance_m``,
+  200 ft), each with its sample count ``n_mode_s``, ``n_mode_3a``, ``n_callsign``, ``n_flight_level``.
 * flight phase from the reference: ``phase:turn`` if |turn rate| > ``turn_rate_dps``, else
   ``phase:climb-descent`` if |vertical rate| > ``vertical_rate_mps``, else ``phase:level``.
 
@@ -87,6 +92,9 @@ class MetricsConfig:
     vertical_rate_mps: float = 2.5
     merge_gate_m: float = 1000.0
     merge_gate_v_m: float = 300.0
+    #: a track's flight level is correct within ± this of the reference pressure altitude
+    #: (200 ft: a Mode C code is validated within ±200 ft in ICAO Annex 10 / Doc 8071 practice)
+    flight_level_tolerance_m: float = 60.96
 
     @property
     def gap_s(self) -> float:
@@ -345,7 +353,34 @@ def _merged(m: pl.DataFrame, rep: pl.DataFrame, expected: pl.DataFrame, labels: 
     return _count_tracks(hits, m.select("method", "run").unique(), breakdown, "merged_tracks")
 
 
-def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, pl.Expr]]:
+    """(item, "is correct" expression, null where a side lacks the item) for every identity item
+    both the picture and the reference carry."""
+    cols = set(err.columns)
+    checks = []
+    if {"mode_s", "icao24"} <= cols:
+        checks.append(("mode_s", pl.col("mode_s").str.to_lowercase() == pl.col("icao24").str.to_lowercase()))
+    if {"mode_3a", "true_mode_3a"} <= cols:
+        checks.append(("mode_3a", pl.col("mode_3a").cast(pl.String) == pl.col("true_mode_3a").cast(pl.String)))
+    if {"callsign", "true_callsign"} <= cols:
+        norm = lambda c: pl.col(c).str.replace_all(" ", "").str.to_uppercase()  # noqa: E731
+        checks.append(("callsign", norm("callsign") == norm("true_callsign")))
+    if {"alt_m", "true_alt_m"} <= cols:
+        dh = pl.col("alt_m").cast(pl.Float64).fill_nan(None) - pl.col("true_alt_m")
+        checks.append(("flight_level", dh.abs() <= cfg.flight_level_tolerance_m))
+    return checks
+
+
+def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Expr) -> pl.DataFrame:
+    rows = err.with_columns(ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
+    w = _segmented(rows, breakdown).group_by("method", "segment").agg(
+        pl.col("run").n_unique().alias("n_runs"), pl.col("__ok").mean().alias(f"{name}_correct_frac"),
+        pl.len().cast(pl.Float64).alias(f"n_{name}"))
+    return _long(w, [f"{name}_correct_frac", f"n_{name}"])
+
+
+def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str],
+                        cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
     span = m.group_by("method", "run").agg(
         ((pl.col("epoch").max() - pl.col("epoch").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
     hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
@@ -358,14 +393,7 @@ def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[
         (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
         pl.col("__false").cast(pl.Float64).alias("false_tracks"))
     out = [_long(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])]
-    if {"mode_s", "icao24"} <= set(err.columns):
-        ok = err.filter(pl.col("mode_s").is_not_null() & pl.col("icao24").is_not_null())
-        ident = ok.with_columns((pl.col("mode_s").str.to_lowercase() == pl.col("icao24").str.to_lowercase())
-                                .alias("__ok"))
-        w = _segmented(ident, breakdown).group_by("method", "segment").agg(
-            pl.col("run").n_unique().alias("n_runs"), pl.col("__ok").mean().alias("mode_s_correct_frac"),
-            pl.len().cast(pl.Float64).alias("n_mode_s"))
-        out.append(_long(w, ["mode_s_correct_frac", "n_mode_s"]))
+    out += [_identity(err, breakdown, name, ok) for name, ok in _identity_checks(err, cfg)]
     return pl.concat(out, how="vertical")
 
 
@@ -398,7 +426,7 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     labels = reference_labels(ref, radar_xy, cfg)
     err = accuracy_errors(matched, cfg).join(labels, on=["run", "truth_id", "epoch"], how="left")
     m = matched.filter(pl.col("truth_id").is_not_null())
-    parts = [_accuracy(_segmented(err, breakdown)), _identity_and_false(matched, err, breakdown)]
+    parts = [_accuracy(_segmented(err, breakdown)), _identity_and_false(matched, err, breakdown, cfg)]
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
     out = pl.concat(parts, how="vertical")

@@ -53,6 +53,7 @@ SAMPLES: dict[str, str] = {
     "id_changes_per_hour": "aircraft_hours", "track_breaks_per_hour": "aircraft_hours",
     "false_tracks_per_hour": "picture_hours", "pd": "n_expected",
     "mode_3a_correct_frac": "n_mode_3a", "mode_c_correct_frac": "n_mode_c",
+    "callsign_correct_frac": "n_callsign", "flight_level_correct_frac": "n_flight_level",
 }
 _DEFAULT_SAMPLES = {"evaluation": "n_points", "radar": "n_reports"}
 _OPS = ("<=", ">=")

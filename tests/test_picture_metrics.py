@@ -149,3 +149,23 @@ def test_breakdown_segments_and_metrics_schema():
     assert set(met["stage"]) == {"evaluation"}
     with pytest.raises(OptionError, match="breakdown"):
         picture_metrics(m, breakdown=("weather",))
+
+
+def test_flight_level_callsign_and_mode_3a_correctness():
+    """Heights 50 m off for 30 rows and 70 m off for 10 (±200 ft = 60.96 m tolerance: 30/40
+    correct); callsigns compared without blanks and case; Mode 3/A compared as codes."""
+    t = np.arange(40.0)
+    rows = _rows("p", 1, 1, t, _straight(1, t)).with_columns(
+        pl.col("true_z_m").alias("true_alt_m"),
+        (pl.col("true_z_m") + pl.Series(np.where(t < 30, 50.0, -70.0))).alias("alt_m"),
+        pl.Series("callsign", np.where(t < 10, "afr 12", "AFR13")), pl.lit("AFR12").alias("true_callsign"),
+        pl.lit("1000").alias("mode_3a"), pl.Series("true_mode_3a", np.where(t < 20, "1000", "7000")))
+    met = picture_metrics(rows, breakdown=())
+    assert _value(met, "flight_level_correct_frac") == pytest.approx(30 / 40)
+    assert _value(met, "n_flight_level") == 40
+    assert _value(met, "callsign_correct_frac") == pytest.approx(10 / 40)
+    assert _value(met, "mode_3a_correct_frac") == pytest.approx(20 / 40)
+    # without the items on both sides there is no such metric (never a silent 0 or 1)
+    bare = picture_metrics(rows.drop("true_callsign", "true_mode_3a", "alt_m"), breakdown=())
+    assert not bare["metric"].is_in(["callsign_correct_frac", "mode_3a_correct_frac",
+                                     "flight_level_correct_frac"]).any()
