@@ -92,7 +92,20 @@ approach was more than T^пор ago are not screened (the printed rule would fla
 both thresholds widened by the margins. :func:`slim_conflicts` keeps alert | near rows.
 
 Tracks that are not established — velocity sigma above ``max_vel_sigma_mps`` (default 50 m/s;
-a target's first epochs carry the 300 m/s velocity prior) — are left out before pairing.
+a target's first epochs carry the 300 m/s velocity prior) — are left out before pairing, and so
+are tracks that have coasted (no plot) for more than ``max_coast_s`` (default 10 s, 2–3 scans
+of the terminal radars): a track that lost its aircraft (landed below coverage, left the area)
+is extrapolated on its last velocity and would alert against whatever lies ahead of it. The
+coast age is measured from the track's own rows (``plot_target_id`` null = a coasting row).
+
+Level pairs (corrected mode). Two aircraft in level flight at flight levels the vertical minimum
+apart (1 000 ft, e.g. adjacent levels of a holding stack) are separated by definition; adding
+the estimation and piloting terms to Δr_в would make every such pair alert for as long as it
+overlaps horizontally. When both tracks are level (|ḣ| ≤ ``level_rate_mps``, 1 m/s ≈ 200 ft/min)
+the vertical threshold is min(R_в^пор, Δr_в − ``level_pair_tolerance_m``) (100 ft: above the
+25 ft / 100 ft Mode S / Mode C quantisation error of a level difference, below the 900 ft
+difference of a level bust). A pair where either aircraft climbs or descends — a level bust, a
+climb into an occupied level — keeps the full (5.16) threshold. Seed mode is unchanged.
 
 ``severity`` = clip(1 − R_min / R_г^пор, 0, 1) for alerts (1 = collision course, 0 = grazing
 the threshold), 0 for non-alert rows. ``closure_mps`` = r̂·v = −d|r|/dt at the epoch (positive
@@ -284,6 +297,10 @@ class ConflictConfig:
       no controller alert is raised on a tentative track, and a 300 m/s velocity sigma would
       otherwise give a ~90 km threshold. Applied in both threshold modes whenever a covariance
       column is present; None keeps every track.
+    * ``max_coast_s``: tracks coasting (no plot) for longer than this are left out (module
+      docstring); needs a ``plot_target_id`` column, None keeps every track.
+    * ``level_pair_tolerance_m`` / ``level_rate_mps``: the level-pair vertical threshold of the
+      corrected rule (module docstring); None disables it.
     * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
       affects speed, never the result.
     * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
@@ -318,6 +335,9 @@ class ConflictConfig:
     fixed_est_v_m: float = 50.0
     mode: Literal["seed", "corrected"] = "corrected"
     max_vel_sigma_mps: float | None = 50.0
+    max_coast_s: float | None = 10.0
+    level_pair_tolerance_m: float | None = 100.0 * FT_M
+    level_rate_mps: float = 1.0
     confirm_m: int = 1
     confirm_n: int = 1
     same_identity_is_duplicate: bool = True
@@ -353,6 +373,12 @@ class ConflictConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.max_vel_sigma_mps is not None and self.max_vel_sigma_mps <= 0:
             raise ValueError(f"max_vel_sigma_mps must be positive, got {self.max_vel_sigma_mps}")
+        if self.max_coast_s is not None and self.max_coast_s < 0:
+            raise ValueError(f"max_coast_s must be >= 0, got {self.max_coast_s}")
+        if self.level_pair_tolerance_m is not None and self.level_pair_tolerance_m < 0:
+            raise ValueError(f"level_pair_tolerance_m must be >= 0, got {self.level_pair_tolerance_m}")
+        if not self.level_rate_mps >= 0:
+            raise ValueError(f"level_rate_mps must be >= 0, got {self.level_rate_mps}")
         if self.v_max_mps is not None and self.v_max_mps <= 0:
             raise ValueError(f"v_max_mps must be positive, got {self.v_max_mps}")
         if self.chunk_pairs < 1 or self.block_points < 2:
@@ -798,6 +824,21 @@ def _group_cols(tracks: pl.DataFrame, method_col: str = "method") -> list[str]:
     return cols
 
 
+def _coast_age_s(tracks: pl.DataFrame, keys: list[str]) -> pl.Expr:
+    """Seconds since the track's last row updated with a plot (inf before its first one)."""
+    upd = pl.when(pl.col("plot_target_id").is_not_null()).then(pl.col("epoch"))
+    last = upd.forward_fill().over(keys, order_by="epoch")
+    return ((pl.col("epoch") - last).dt.total_microseconds() * 1e-6).fill_null(float("inf"))
+
+
+def _not_coasting(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str) -> pl.DataFrame:
+    """Drop rows of tracks coasting for more than ``cfg.max_coast_s`` (see the config)."""
+    if cfg.max_coast_s is None or "plot_target_id" not in tracks.columns or not tracks.height:
+        return tracks
+    keys = [c for c in ("run", method_col, id_col) if c in tracks.columns]
+    return tracks.filter(_coast_age_s(tracks, keys) <= cfg.max_coast_s)
+
+
 def _established(tracks: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
     """Drop tracks whose velocity sigma exceeds ``cfg.max_vel_sigma_mps`` (see the config)."""
     lim = cfg.max_vel_sigma_mps
@@ -881,6 +922,9 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     _, r_min, t_min, closure, _ = _horizontal(rx, ry, vx_, vy_, cfg.eps_mps)
     t_eval = threshold_time(cfg, t_min)
     r_thr, z_thr = pair_thresholds(cfg, terms, i, j, t_eval)
+    if cfg.mode == "corrected" and cfg.level_pair_tolerance_m is not None:
+        level = (np.abs(vh[i]) <= cfg.level_rate_mps) & (np.abs(vh[j]) <= cfg.level_rate_mps)
+        z_thr = np.where(level, np.minimum(z_thr, cfg.sep_v_m - cfg.level_pair_tolerance_m), z_thr)
     vmin = _endpoint_min(dz + dvz * w0, dz + dvz * w1)
     sel = np.flatnonzero((d2 <= (r_thr + mh) ** 2) & (vmin <= z_thr + mv))
     i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, r_min, t_min, closure, t_eval = (
@@ -927,7 +971,7 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     if method_col not in tracks.columns:
         tracks = tracks.with_columns(pl.lit(default_method, pl.String).alias(method_col))
     grid = epoch_index(tracks, method_col)
-    tracks = _established(tracks, cfg)
+    tracks = _not_coasting(_established(tracks, cfg), cfg, id_col, method_col)
     if tracks.height < 2:
         return _empty_conflicts()
     groups = ["run", "epoch", method_col]

@@ -367,6 +367,8 @@ def bound_metrics(scored: pl.DataFrame, accuracy: pl.DataFrame, bound: pl.DataFr
     long = pooled.unpivot(index=["method", "segment", "n_runs"], on=cols, variable_name="col", value_name="value")
     name = {c: m for m, (c, _) in BOUND_METRICS.items()}
     long = long.with_columns(pl.col("col").replace_strict(name, return_dtype=pl.String).alias("metric"))
+    if "stage" in accuracy.columns:      # the seed accuracy rows (not the surveillance stage's)
+        accuracy = accuracy.filter(pl.col("stage").is_in(["fusion", "tracker"]))
     acc = accuracy.filter(pl.col("metric").is_in([a for _, a in BOUND_METRICS.values()])).select(
         "method", "segment", pl.col("metric").alias("__acc"), pl.col("value").alias("__rmse"))
     acc_of = {m: a for m, (_, a) in BOUND_METRICS.items()}

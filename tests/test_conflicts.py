@@ -268,7 +268,10 @@ def test_thresholds_fixed_and_airspace():
     df = _frame([[0, 0, 3000], [20000, 0, 3000]], [[100, 0, 0], [-100, 0, 0]])
     out = predict_conflicts(df, en)
     assert out["r_thr_m"][0] == pytest.approx(9260 + 300 + 500)
-    assert out["z_thr_m"][0] == pytest.approx(304.8 + 50 + 60)
+    # both level: the level-pair threshold Δr_в − 100 ft (corrected rule); climbing: (5.16)
+    assert out["z_thr_m"][0] == pytest.approx(304.8 - 30.48)
+    climb = predict_conflicts(_frame([[0, 0, 3000], [20000, 0, 3000]], [[100, 0, 5], [-100, 0, 0]]), en)
+    assert climb["z_thr_m"][0] == pytest.approx(304.8 + 50 + 60)
     explicit = ConflictConfig(threshold_mode="fixed", dr_h_m=1000.0, t_delays_s=(5.0,), t_man_s=10.0,
                               pilot_h_m=100.0, pilot_h_rate_mps=2.0)
     assert explicit.t_thr_s == 15.0
@@ -282,7 +285,7 @@ def test_covariance_thresholds_diag_and_full():
     df = _frame([[0, 0, 3000], [20000, 0, 3100]], [[100, 0, 0], [-100, 0, 0]], cov_diag=[var, var])
     # the height channel with its own variances (a barometric channel): q = var_h + t²·var_ḣ
     df = df.with_columns(pl.lit(var[2]).alias("alt_var_m2"), pl.lit(var[5]).alias("alt_rate_var_m2ps2"))
-    cfg = ConflictConfig()
+    cfg = ConflictConfig(level_pair_tolerance_m=None)      # (5.16) itself, not the level-pair rule
     out = predict_conflicts(df, cfg)
     k_h, k_v = math.sqrt(chi2.ppf(0.95, 2)), norm.ppf(0.975)
     rel_h = 2 * (1e4 + T * T * 4.0)
@@ -331,6 +334,41 @@ def test_tentative_tracks_are_left_out():
     full = df.drop("cov_diag").with_columns(pl.Series("cov", [np.diag(v).ravel() for v in (good, good, prior)],
                                                       dtype=pl.Array(pl.Float64, 36)))
     assert predict_conflicts(full, ConflictConfig(dr_v_m=300.0)).select("id_a", "id_b").rows() == [(1, 2)]
+
+
+def test_level_pairs_at_adjacent_levels_do_not_alert_but_level_busts_do():
+    """Head-on, horizontal CPA 0 m at 100 s. Both level 1 000 ft apart (a holding stack): no
+    alert in corrected mode (separated by their levels), an alert in seed mode; at the same
+    level or 500 ft apart: an alert; one of them climbing 5 m/s from 1 000 ft below into the
+    other's level (a level bust): an alert with the full (5.16) threshold."""
+    pos = lambda dz: [[0, 0, 3000], [20000, 0, 3000 + dz]]          # noqa: E731
+    head_on = [[100, 0, 0], [-100, 0, 0]]
+    corr = ConflictConfig(threshold_mode="fixed")
+    assert not predict_conflicts(_frame(pos(304.8), head_on), corr)["alert"].any()
+    assert predict_conflicts(_frame(pos(304.8), head_on), ConflictConfig(threshold_mode="fixed", mode="seed"))["alert"].all()
+    assert predict_conflicts(_frame(pos(0.0), head_on), corr)["alert"].all()
+    assert predict_conflicts(_frame(pos(152.4), head_on), corr)["alert"].all()
+    bust = predict_conflicts(_frame(pos(304.8), [[100, 0, 0], [-100, 0, -4.0]]), corr)
+    assert bust["alert"].all() and bust["z_thr_m"][0] == pytest.approx(304.8 + 50 + 60)
+    # disabled: the printed threshold applies to level pairs too
+    off = ConflictConfig(threshold_mode="fixed", level_pair_tolerance_m=None)
+    assert predict_conflicts(_frame(pos(304.8), head_on), off)["alert"].all()
+
+
+def test_tracks_coasting_too_long_leave_the_prediction():
+    """A track that lost its plots (plot_target_id null) keeps alerting for max_coast_s, then
+    leaves; without the column every track stays."""
+    rows = []
+    for k in range(8):                                # epochs 0, 4, …, 28 s
+        t = T0 + timedelta(seconds=4 * k)
+        f = _frame([[0 + 400 * k, 0, 3000], [20000 - 400 * k, 0, 3000]], [[100, 0, 0], [-100, 0, 0]], epoch=t)
+        rows.append(f.with_columns(pl.Series("plot_target_id", [1, 2 if k < 2 else None], dtype=pl.UInt64)))
+    df = pl.concat(rows)
+    out = predict_conflicts(df, ConflictConfig(threshold_mode="fixed"))
+    # track 2 updated at 0, 4 s; coasting since 4 s: in at 8, 12 (≤ 10 s old), out from 16 s
+    assert out["epoch"].to_list() == [T0 + timedelta(seconds=s) for s in (0, 4, 8, 12)]
+    assert predict_conflicts(df.drop("plot_target_id"), ConflictConfig(threshold_mode="fixed")).height == 8
+    assert predict_conflicts(df, ConflictConfig(threshold_mode="fixed", max_coast_s=None)).height == 8
 
 
 def test_covariance_mode_needs_covariance():
@@ -412,6 +450,9 @@ def _brute_force(df: pl.DataFrame, cfg: ConflictConfig):
             q = sum(_up(r) @ F @ cov(r) @ F.T @ _up(r) for r in (ra, rb))
             r_thr = cfg.sep_h_m + cfg.pilot_h_m + k_h * math.sqrt(np.linalg.eigvalsh(rel[:2, :2]).max())
             z_thr = cfg.sep_v_m + cfg.pilot_v_m + k_v * math.sqrt(q)
+        if cfg.mode == "corrected" and cfg.level_pair_tolerance_m is not None \
+                and max(abs(s_a[5]), abs(s_b[5])) <= cfg.level_rate_mps:       # a level pair
+            z_thr = min(z_thr, cfg.sep_v_m - cfg.level_pair_tolerance_m)
         cand = [w0, w1] + ([-B / (2 * A)] if A > 0 and w0 < -B / (2 * A) < w1 else [])
         h_min = math.sqrt(max(min(A * t * t + B * t + C for t in cand), 0.0))
         zc = [w0, w1] + ([-d0[2] / w[2]] if w[2] != 0 and w0 < -d0[2] / w[2] < w1 else [])
