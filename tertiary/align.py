@@ -274,7 +274,11 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     t0_us, period = epoch_grid(df, radars, cfg)
     t_us = df["time"].dt.epoch("us").to_numpy()
     rel = (t_us - t0_us) / US
-    k = _epoch_index(np.ceil(rel / period - 1e-9), "first")        # first epoch at or after the report
+    # a report is usable from the time it has been collected and processed (§1.4 queue,
+    # :mod:`tertiary.collection`): its first epoch is at or after time + delay; its state is
+    # still extrapolated from its own time
+    avail = rel + (df["collection_delay_s"].fill_null(0.0).to_numpy() if "collection_delay_s" in df.columns else 0.0)
+    k = _epoch_index(np.ceil(avail / period - 1e-9), "first")      # first epoch at or after availability
 
     state, cov, nominal = to_system_frame(df, radars, origin)
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)

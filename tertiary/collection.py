@@ -278,11 +278,13 @@ def collect(reports: pl.DataFrame, cfg: CollectionConfig = CollectionConfig()) -
 
 def collection_stage(reports: pl.DataFrame, report_rows: pl.DataFrame, cfg: CollectionConfig
                      ) -> tuple[pl.DataFrame, pl.DataFrame, list[str]]:
-    """The pipeline step: (accepted reports with the input columns only, in input order; the lost
+    """The pipeline step: (accepted reports with the input columns and ``collection_delay_s``
+    (waiting + processing: alignment uses a report from time + delay on), in input order; the lost
     ones as ``rejects`` rows, stage ``"collection"``, ``row_index`` from ``report_rows``; notes
     with the counts). ``report_rows``: report_id → row_index of the input table."""
     got = collect(reports, cfg)
-    keep = reports.join(got.accepted.select("report_id"), on="report_id", how="semi", maintain_order="left")
+    keep = reports.drop("collection_delay_s", strict=False).join(
+        got.accepted.select("report_id", "collection_delay_s"), on="report_id", how="inner", maintain_order="left")
     lost = (reports.join(report_rows, on="report_id", how="inner")
             .join(got.lost.select("report_id", "reason"), on="report_id", how="inner").sort(schema.ROW_INDEX))
     rejects = (schema.rejects_table(lost, "reports", "collection") if lost.height

@@ -240,3 +240,18 @@ def test_cli_run_with_collection(tmp_path):
         n = con.sql("select count(*) from rejects where stage = 'collection'").fetchall()[0][0]
         methods = {r[0] for r in con.sql("select distinct method from fused").fetchall()}
     assert n > 0 and {"information", "best_source"} <= methods
+
+
+def test_alignment_uses_a_report_from_its_collection_time_on(small_terminal):
+    """A report delayed by the queue (collection_delay_s) reaches its first epoch one epoch later
+    when the delay is one epoch period; its time (and so its extrapolation) is unchanged."""
+    import numpy as np
+    from tertiary import align
+    ds = small_terminal
+    p0 = align.plan(ds.reports, ds.radars, ds.origin, align.AlignConfig())
+    p1 = align.plan(ds.reports.with_columns(pl.lit(p0.period).alias("collection_delay_s")), ds.radars, ds.origin,
+                    align.AlignConfig())
+    inner = p0.k < p0.k.max()
+    assert inner.mean() > 0.9
+    assert np.array_equal(p1.k[inner], p0.k[inner] + 1)
+    assert np.array_equal(p1.rel, p0.rel)
