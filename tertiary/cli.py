@@ -30,6 +30,7 @@ from tertiary import pipeline
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS
+from tertiary.local_tracks import ESTIMATE_COLUMNS
 from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
                                write_dataset)
 from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_count
@@ -407,6 +408,13 @@ def run(
     service_time: Annotated[float, typer.Option(help="mean processing time of one report (s), with --collection")] = 0.01,
     service_model: Annotated[str, typer.Option(help="processing time: exponential or deterministic")] = "exponential",
     max_wait: Annotated[float, typer.Option(help="T_wait of --collection limited (s)")] = 0.1,
+    range_channel: Annotated[Optional[str], typer.Option(help="recompute the radars' local tracks with this range "
+                                                              "channel: singer, kinematic or kinematic_dynamic "
+                                                              "(chapter 3, needs Mode S EHS report columns; Singer "
+                                                              "for tracks without) [default: the dataset's "
+                                                              "estimates]")] = None,
+    range_variant: Annotated[str, typer.Option(help="(3.11)/(3.62) of --range-channel: corrected or printed")]
+        = "corrected",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -421,6 +429,8 @@ def run(
     if collection is not None:   # checked here, before any simulation
         from tertiary.collection import CollectionConfig
         cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))
+    if range_channel is not None:
+        cfg = _local_range_channel(cfg, range_channel, range_variant)
     pipeline.check_config(cfg)
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,
@@ -441,6 +451,8 @@ def run(
         console.print(f"note: {note}", soft_wrap=True)
     if register:
         cfg = dataclasses.replace(cfg, register=True, registration=_stored_registration(dataset))
+    if range_channel is not None:   # alignment recomputes every local track with the chosen channel
+        ds = dataclasses.replace(ds, reports=ds.reports.drop([c for c in ESTIMATE_COLUMNS if c in ds.reports.columns]))
     with _Steps("pipeline") as say:
         db = pipeline.run(ds, run_dir, cfg, progress=say)
     html_path = None
@@ -449,6 +461,17 @@ def run(
         with _Steps("report") as say:
             html_path = build_report(run_dir, progress=say)
     print_summary(db, html_path)
+
+
+def _local_range_channel(cfg: pipeline.PipelineConfig, channel: str, variant: str) -> pipeline.PipelineConfig:
+    """``--range-channel``/``--range-variant`` into ``cfg.align.local_tracker`` (the reports' own
+    estimates are then dropped, so alignment recomputes every local track with it)."""
+    try:
+        tracker = dataclasses.replace(cfg.align.local_tracker, range_channel=channel, range_variant=variant)
+    except OptionError as exc:
+        option = "--range-channel" if "channel" in str(exc) else "--range-variant"
+        raise OptionError(str(exc).split(": ", 1)[-1], option=option) from exc
+    return dataclasses.replace(cfg, align=dataclasses.replace(cfg.align, local_tracker=tracker))
 
 
 def _association(assignment: str, gate: str) -> "AssociationConfig":

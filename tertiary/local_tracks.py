@@ -6,7 +6,10 @@ and for plot-only inputs (e.g. ASTERIX CAT048 plots) before tertiary processing.
 
 Each local track is filtered in three decoupled polar channels (range, azimuth, elevation),
 each a Singer Kalman filter (monograph eqs. (4.46), (4.53)–(4.71); range channel exactly as the
-seed's per-radar range channel). Angular channels use the cross-range manoeuvre intensity
+seed's per-radar range channel). As an option (``LocalTrackerConfig.range_channel``) the range
+coordinate of tracks whose reports carry Mode S enhanced-surveillance parameters runs one of the
+monograph's chapter 3 channels instead (:mod:`tertiary.filters.kinematic`: kinematic-parameter
+(3.12)–(3.58) or kinematic + dynamic (3.59)–(3.127)); other tracks keep the Singer channel. Angular channels use the cross-range manoeuvre intensity
 divided by the range, so one σ_m in m/s² describes the aircraft. The polar estimate with its
 rates is converted to radar-local ENU position/velocity with the full 6×6 covariance J P Jᵀ.
 
@@ -16,16 +19,22 @@ Python loop runs over the report rank within a track (the scan count), never ove
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
 from tertiary import geo
-from tertiary.schema import is_sorted_by
+from tertiary.errors import OptionError
+from tertiary.schema import EHS_REPORT_COLUMNS, is_sorted_by
+from tertiary.filters import kinematic_los as los
+from tertiary.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs,
+                                        dynamic_aux, kinematic_aux)
 from tertiary.filters.singer import SingerModel, predict_elementwise, singer_coefficients, update_elementwise
 
 TRACK_KEY = ["run", "radar_id", "local_track_id"]
@@ -55,6 +64,21 @@ class LocalTrackerConfig:
       is re-initiated on the plot, as a radar tracker restarts a track it has lost — needed
       where polar channels cannot follow (close passages with azimuth swings of tens of
       degrees per scan).
+    * ``range_channel``: the range channel — ``"singer"`` (above), or the chapter 3
+      ``"kinematic"`` (§3.4) / ``"kinematic_dynamic"`` (§3.5) channel driven by the Mode S EHS
+      report columns (:data:`tertiary.schema.EHS_REPORT_COLUMNS`) for local tracks whose first
+      report and at least ``ehs_min_fraction`` of all reports carry them (between EHS replies
+      the auxiliary filters coast); other tracks keep the Singer channel.
+    * ``range_variant``: (3.11) resp. (3.62) ``"corrected"`` or ``"printed"``.
+    * ``range_speed_rate``: add the along-track acceleration V̇ (the rate of the V_ц auxiliary
+      filter) to u — the term V̇ c_x of :func:`~tertiary.filters.kinematic_los.los_acceleration`
+      (kinematic) resp. V̇/g in n_x (kinematic + dynamic). The monograph's (3.11) is the V̇ = 0
+      case; terminal-area traffic accelerates and decelerates (departures 0.3 m/s² for minutes),
+      which V̇ = 0 turns into a range-acceleration bias. False: as printed.
+    * ``range_sigma_u``: √D_a, σ of the chapter 3 channels' input-acceleration error (m/s²).
+      u is held over a scan (4–12 s): 0.5 m/s² covers the EHS noise carried into u in steady
+      flight and part of the hold error at turn entry/exit (measured on terminal-area: 0.2 is
+      best in steady flight, larger in turns; 0.5 the compromise).
     """
 
     range_model: SingerModel = field(default_factory=lambda: SingerModel(alpha=1 / 30, sigma_m=2.0))
@@ -62,6 +86,28 @@ class LocalTrackerConfig:
     v0_sigma_mps: float = 300.0
     altitude_sigma_m: float = 30.0
     reinit_gate: float = 25.0
+    range_channel: Literal["singer", "kinematic", "kinematic_dynamic"] = "singer"
+    range_variant: Literal["corrected", "printed"] = "corrected"
+    range_sigma_u: float = 0.5
+    range_speed_rate: bool = True
+    ehs_min_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.range_channel not in RANGE_CHANNELS:
+            raise OptionError(f"unknown range channel {self.range_channel!r}; use {', '.join(RANGE_CHANNELS)}",
+                              option="local_tracker.range_channel")
+        if self.range_variant not in ("corrected", "printed"):
+            raise OptionError(f"unknown range variant {self.range_variant!r}; use corrected or printed",
+                              option="local_tracker.range_variant")
+        if not (self.range_sigma_u > 0 and 0.0 <= self.ehs_min_fraction <= 1.0):
+            raise OptionError("range_sigma_u must be > 0 and ehs_min_fraction in [0, 1]",
+                              option="local_tracker.range_sigma_u")
+
+
+#: the range channels of :class:`LocalTrackerConfig`
+RANGE_CHANNELS = ("singer", "kinematic", "kinematic_dynamic")
+#: the EHS columns the chapter 3 channels need (the track-angle rate is not an input)
+_EHS_NEEDED = ("ehs_gs_mps", "ehs_track_deg", "ehs_roll_deg", "ehs_vrate_mps")
 
 
 def _seconds(time: pl.Series) -> tuple[NDArray[np.float64], int]:
@@ -231,6 +277,122 @@ def _to_enu(est: NDArray[np.float64], cov: NDArray[np.float64], chunk: int = 819
     return pos, vel, cov36
 
 
+def ehs_tracks(df: pl.DataFrame, starts: NDArray[np.int64], lengths: NDArray[np.int64],
+               min_fraction: float) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per report, whether it carries the EHS parameters the chapter 3 channels need; per track,
+    whether it can run them (its first report and ≥ ``min_fraction`` of all carry them)."""
+    if not set(_EHS_NEEDED) <= set(df.columns) or not len(starts):
+        return np.zeros(df.height, bool), np.zeros(len(starts), bool)
+    vals = df.select(pl.col(c).cast(pl.Float64).fill_null(np.nan) for c in _EHS_NEEDED).to_numpy()
+    has = np.isfinite(vals).all(axis=1)
+    frac = np.add.reduceat(has.astype(float), starts) / lengths
+    return has, has[starts] & (frac >= min_fraction)
+
+
+def _chapter3_inputs(df: pl.DataFrame, z: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    """Channel inputs (:func:`~tertiary.filters.kinematic.channel_inputs`) of every report: the
+    plot's range, azimuth, elevation and the EHS ground speed, track, vertical rate and roll."""
+    e = {c: df[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in _EHS_NEEDED}
+    return channel_inputs(z[:, 0], np.degrees(z[:, 1]), np.degrees(z[:, 2]), e["ehs_gs_mps"], e["ehs_track_deg"],
+                          e["ehs_vrate_mps"], e["ehs_roll_deg"])
+
+
+@dataclass(frozen=True)
+class KinematicSpeedRateChannel(KinematicRangeChannel):
+    """§3.4 channel with u = a_L including the along-track term V̇ c_x, V̇ the V_ц filter's rate."""
+
+    def acceleration(self, state) -> NDArray[np.float64]:
+        e = lambda k, r=False: self.aux_estimate(state, k, r)  # noqa: E731
+        return los.los_acceleration(e("speed"), e("theta"), e("theta", True), e("phi"), e("phi", True),
+                                    e("eps_b"), e("eps_b", True), e("eps_g"), e("eps_g", True),
+                                    v_dot=e("speed", True), variant=self.variant)
+
+
+@dataclass(frozen=True)
+class KinematicDynamicSpeedRateChannel(KinematicDynamicRangeChannel):
+    """§3.5 channel with n_x = (coordinated-flight n_x) + V̇/g, V̇ the V_ц filter's rate (EHS
+    carries no longitudinal acceleration; the n_x filter alone sees only sin θ)."""
+
+    def acceleration(self, state) -> NDArray[np.float64]:
+        e = lambda k, r=False: self.aux_estimate(state, k, r)  # noqa: E731
+        n_x = e("n_x") + e("speed", True) / los.G0
+        n_xl = los.los_load_factor(n_x, e("n_y"), e("n_z"), e("gamma"), e("theta"), e("phi"), e("eps_b"), e("eps_g"))
+        return los.range_acceleration(n_xl, e("eps_b"), e("speed"), state["x"][:, 1], state["x"][:, 0], self.variant)
+
+
+_CHANNEL_CLASSES = {(False, "kinematic"): KinematicRangeChannel, (True, "kinematic"): KinematicSpeedRateChannel,
+                    (False, "kinematic_dynamic"): KinematicDynamicRangeChannel,
+                    (True, "kinematic_dynamic"): KinematicDynamicSpeedRateChannel}
+
+
+def _make_channel(cfg: LocalTrackerConfig, sigma_range_m: float, sigma_az_deg: float, sigma_el_deg: float,
+                  speed_mps: float):
+    """The configured chapter 3 channel for one radar: its σ_r, its azimuth and elevation σ in
+    the LOS auxiliary filters (ε_Г, ε_B), θ's σ from the typical speed of its EHS tracks."""
+    aux = (kinematic_aux if cfg.range_channel == "kinematic" else dynamic_aux)(np.radians(sigma_az_deg), speed_mps)
+    sigma = {"eps_g": np.radians(sigma_az_deg), "eps_b": np.radians(sigma_el_deg)}
+    aux = tuple(dataclasses.replace(a, sigma_meas=float(sigma[a.key])) if a.key in sigma else a for a in aux)
+    cls = _CHANNEL_CLASSES[(cfg.range_speed_rate, cfg.range_channel)]
+    return cls(variant=cfg.range_variant, sigma_range_m=sigma_range_m, sigma_u=cfg.range_sigma_u,
+               v0_sigma_mps=cfg.v0_sigma_mps, aux=aux)
+
+
+def _run_channel(channel, inputs: dict[str, NDArray[np.float64]], t: NDArray[np.float64],
+                 starts: NDArray[np.int64], lengths: NDArray[np.int64], gate: float
+                 ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Run a chapter 3 channel over the given tracks, vectorised across them (loop over the
+    report rank, tracks sorted by decreasing length so the alive ones are a prefix). A track
+    whose normalised squared innovation exceeds ``gate`` restarts on the plot, as the Singer
+    channels do. Returns the report rows and, per row, (D, V, P00, P01, P11, ν, S)."""
+    order = np.argsort(-lengths, kind="stable")
+    starts, lengths = starts[order], lengths[order]
+    alive = np.searchsorted(-lengths, -np.arange(lengths.max(initial=0)), side="left")
+    rows = np.concatenate([starts[:m] + k for k, m in enumerate(alive)]) if len(alive) else np.zeros(0, np.int64)
+    out = np.full((len(rows), 7), np.nan)
+    state = channel.init({key: v[starts] for key, v in inputs.items()})
+    lo = 0
+    for k, m in enumerate(alive):
+        idx = starts[:m] + k
+        if k:
+            state = {key: v[:m] for key, v in state.items()}
+            zk = {key: v[idx] for key, v in inputs.items()}
+            state, nu, s, _ = channel.step(state, zk, t[idx] - t[idx - 1])
+            lost = np.flatnonzero(np.isfinite(nu) & (nu * nu > gate * s))
+            if lost.size:
+                fresh = channel.init({key: v[lost] for key, v in zk.items()})
+                for key in state:
+                    state[key][lost] = fresh[key]
+            out[lo:lo + m, 5], out[lo:lo + m, 6] = nu, s
+        x, p = state["x"], state["P"]
+        out[lo:lo + m, :5] = np.stack([x[:, 0], x[:, 1], p[:, 0], p[:, 1], p[:, 3]], axis=1)
+        lo += m
+    return rows, out
+
+
+def _chapter3_range(df: pl.DataFrame, radars: pl.DataFrame, t, z, starts, lengths, cfg: LocalTrackerConfig,
+                    est, cov, res, res_var) -> None:
+    """Replace, in place, the Singer range channel's outputs (``est[:, 0]``, ``cov[:, 0]``, the
+    range innovation) by the configured chapter 3 channel's, for the tracks with EHS; run per
+    radar (each has its own σ_r and angle σ)."""
+    has, ok = ehs_tracks(df, starts, lengths, cfg.ehs_min_fraction)
+    if not ok.any():
+        return
+    inputs = _chapter3_inputs(df, z)
+    track_radar = df["radar_id"].to_numpy()[starts]
+    sig = radars.select("radar_id", "sigma_range_m", "sigma_azimuth_deg", "sigma_elevation_deg")
+    for rid, s_r, s_a, s_e in sig.iter_rows():
+        sel = ok & (track_radar == rid)
+        if not sel.any():
+            continue
+        mine = np.repeat(sel, lengths) & has
+        speed = float(np.median(inputs["speed"][mine])) if mine.any() else 100.0
+        rows, out = _run_channel(_make_channel(cfg, float(s_r), float(s_a), float(s_e), speed), inputs, t,
+                                 starts[sel], lengths[sel], cfg.reinit_gate)
+        est[0, 0, rows], est[1, 0, rows] = out[:, 0], out[:, 1]
+        cov[0, 0, rows], cov[1, 0, rows], cov[2, 0, rows] = out[:, 2], out[:, 3], out[:, 4]
+        res[rows], res_var[rows] = out[:, 5], out[:, 6]
+
+
 def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
                   cfg: LocalTrackerConfig = LocalTrackerConfig()) -> pl.DataFrame:
     """Add the radar track estimate, covariance and range innovation columns to plot reports.
@@ -254,6 +416,8 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     lengths = np.diff(np.append(starts, n))
     order = np.argsort(-lengths, kind="stable")
     est, cov, res, res_var = _filter(t, z, r, starts[order], lengths[order], cfg)
+    if cfg.range_channel != "singer":
+        _chapter3_range(df, radars, t, z, starts, lengths, cfg, est, cov, res, res_var)
     pos, vel, cov_enu = _to_enu(est, cov)
     deg2 = np.degrees(1.0) ** 2
     return df.with_columns(

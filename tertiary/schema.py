@@ -132,6 +132,12 @@ _RADARS = TableSchema(
     finite=True,
 )
 
+#: Mode S enhanced-surveillance parameters extracted with a report (BDS 5,0 ground speed, true
+#: track angle (° clockwise from north), track-angle rate (°/s), roll angle (°, right wing down
+#: positive); BDS 6,0 inertial vertical rate (m/s)); null without a Mode S reply or not extracted.
+#: Inputs of the chapter 3 range channels (:mod:`tertiary.filters.kinematic`).
+EHS_REPORT_COLUMNS = ("ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_roll_deg", "ehs_vrate_mps")
+
 _REPORTS = TableSchema(
     name="reports",
     required={
@@ -158,6 +164,7 @@ _REPORTS = TableSchema(
         "res_range_m": F64,
         "res_range_var_m2": F64,
         "truth_id": I64,
+        **_floats(*EHS_REPORT_COLUMNS),
     },
     key=("run", "radar_id", "local_track_id", "time"),
     finite=True,

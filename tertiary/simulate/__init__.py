@@ -21,6 +21,7 @@ from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarT
                                       TrackerParams, TrafficConfig, TransponderConfig, auto_radars, builtin_scenarios, check_name, check_origin,
                                       check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
+from tertiary.simulate.ehs import EhsConfig, ehs_report_columns, ehs_rng
 from tertiary.simulate.radar import Plots, Transponders, number_plots, observe, site_frame, transponders
 from tertiary.simulate.traffic import big_box, terminal_area
 from tertiary.simulate.trajectory import Trajectories
@@ -120,11 +121,13 @@ def _gather(table: pl.Series, index: NDArray[np.int64], name: str) -> pl.Series:
     return table.replace("", None).gather(pl.Series(index).replace(-1, None)).alias(name)
 
 
-def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transponders) -> pl.DataFrame:
+def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transponders,
+                   ehs: dict[str, NDArray[np.float64]] | None = None) -> pl.DataFrame:
     """One radar's reports. Every column comes from what the radar measured or was replied —
     the plot, the radar clock, its own track number, the transponder's address, code and
     altitude; the callsign rides on Mode S replies (ELS), so a report without an address has
-    none — except ``truth_id`` (scoring only)."""
+    none; ``ehs`` the Comm-B enhanced-surveillance parameters (null without) — except
+    ``truth_id`` (scoring only)."""
     epoch_us = int(traj.epoch.timestamp() * 1_000_000)
     real = plots.aircraft >= 0
     index = pl.Series(plots.aircraft).replace(-1, None)      # clutter gathers nulls
@@ -141,13 +144,29 @@ def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transpon
         "mode_3a": _gather(_CODES, plots.mode_3a, "mode_3a"),
         "callsign": _gather(pl.Series(tx.callsign, dtype=pl.String), by_address, "callsign"),
         "truth_id": tid.cast(pl.Int64),
+        **{name: pl.Series(name, v).fill_nan(None) for name, v in (ehs or {}).items()},
         "__life": plots.track_life,
     })
 
 
-def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
+def _ehs_columns(plots: Plots, index: int, traj: Trajectories, seed: int, cfg: EhsConfig | None
+                 ) -> dict[str, NDArray[np.float64]] | None:
+    """The EHS report columns of radar ``index``'s plots (replies with a decoded Mode S
+    address), from the radar's own EHS noise stream; None when EHS is off."""
+    if cfg is None:
+        return None
+    return ehs_report_columns(traj, plots.aircraft, plots.t_true, plots.mode_s >= 0, ehs_rng(seed, index), cfg)
+
+
+def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
+             ) -> Dataset:
     """Simulate a scenario: truth, every radar's scans for ``cfg.runs`` runs, and each radar's
-    own Singer-channel secondary processing. Same config (incl. seed) → identical tables."""
+    own Singer-channel secondary processing. Same config (incl. seed) → identical tables.
+
+    ``ehs``: Mode S reports carry the enhanced-surveillance parameters
+    (:data:`tertiary.schema.EHS_REPORT_COLUMNS`, :mod:`tertiary.simulate.ehs`); None leaves the
+    columns out. Their noise comes from a stream of its own (:func:`~tertiary.simulate.ehs.ehs_rng`):
+    every other column is bit-identical with EHS on or off."""
     cfg = check_scenario(cfg)
     say = progress or (lambda _msg: None)
     say("truth trajectories")
@@ -164,7 +183,7 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None) -> Dataset:
         plots.append(observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies, tx))
     say("radar plot-to-track association")
     plots = number_plots(plots, list(cfg.radars), cfg.runs, traj.duration, cfg.radar_tracker)
-    parts = [_reports_frame(p, i + 1, traj, tx) for i, p in enumerate(plots)]
+    parts = [_reports_frame(p, i + 1, traj, tx, _ehs_columns(p, i, traj, cfg.seed, ehs)) for i, p in enumerate(plots)]
     reports = pl.concat(parts, how="vertical") if parts else pl.DataFrame()
     say("radar secondary processing")
     # each track life is filtered on its own (a reused number restarts the radar's filter)

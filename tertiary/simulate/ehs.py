@@ -38,6 +38,7 @@ import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.errors import DataError
+from tertiary.schema import EHS_REPORT_COLUMNS
 from tertiary.simulate.trajectory import Trajectories
 
 F64 = NDArray[np.float64]
@@ -55,7 +56,15 @@ RESOLUTION = {
 }
 EHS_COLUMNS = tuple(RESOLUTION)
 
-__all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "ehs_truth", "quantise", "ehs_parameters", "ehs_table"]
+#: EHS field → the ``reports`` column carrying it (:data:`tertiary.schema.EHS_REPORT_COLUMNS`)
+REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
+#: spawn key of the EHS noise stream: a child of the scenario seed no other simulator stream uses
+#: (radars use children 0 … n_radars), so switching EHS on or off leaves every other column
+#: bit-identical
+EHS_SPAWN_KEY = 0x454853
+
+__all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "REPORT_COLUMN", "EHS_SPAWN_KEY", "ehs_truth", "quantise",
+           "ehs_parameters", "ehs_table", "ehs_rng", "ehs_report_columns"]
 
 
 @dataclass(frozen=True)
@@ -140,3 +149,25 @@ def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generato
     keys = [c for c in ("run", "radar_id", "local_track_id", "time", "mode_s") if c in ms.columns]
     table = ms.select(keys).with_columns(**{c: pl.Series(c, v) for c, v in values.items()})
     return table.filter(pl.Series(ok))
+
+
+def ehs_rng(seed: int, radar_index: int) -> np.random.Generator:
+    """The EHS noise stream of one radar: child (:data:`EHS_SPAWN_KEY`, radar_index) of the
+    scenario seed, independent of (and not consuming from) every other simulator stream."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(EHS_SPAWN_KEY, radar_index)))
+
+
+def ehs_report_columns(traj: Trajectories, aircraft: ArrayLike, t_true: ArrayLike, replied: ArrayLike,
+                       rng: np.random.Generator, cfg: EhsConfig = EhsConfig()) -> dict[str, F64]:
+    """The ``reports`` EHS columns (:data:`REPORT_COLUMN` names) of one radar's plots: the
+    parameters extracted (Comm-B) with each reply whose Mode S address was decoded
+    (``replied``), sampled at the true illumination time ``t_true`` (s after the epoch); NaN for
+    clutter, non-Mode-S replies and times off the trajectory."""
+    aircraft = np.asarray(aircraft, np.int64)
+    sel = np.flatnonzero(np.asarray(replied, bool) & (aircraft >= 0))
+    out = {REPORT_COLUMN[c]: np.full(len(aircraft), np.nan) for c in EHS_COLUMNS}
+    if sel.size:
+        values, ok = ehs_parameters(traj, aircraft[sel], np.asarray(t_true, float)[sel], rng, cfg)
+        for c in EHS_COLUMNS:
+            out[REPORT_COLUMN[c]][sel] = np.where(ok, values[c], np.nan)
+    return out
