@@ -302,7 +302,9 @@ _ROWS_FLAG = "__shared"
 _F32_RTOL = 2e-7      # float32 keeps 24 bits: relative round-off ≤ 2⁻²⁴ ≈ 6e-8 (with margin)
 
 _NARROW: dict[str, tuple[str, ...]] = {
-    "aligned": ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "nominal_var"),
+    # aligned's state stays float64: the radar accuracy figures of the HTML report are computed
+    # from it and must not move (they embed the values at full precision)
+    "aligned": ("nominal_var",),
     "fused": ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "weights", "age_s", "meas_x_m", "meas_y_m",
               "meas_z_m", "meas_cov", "alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2",
               "alt_cov_m2ps"),
