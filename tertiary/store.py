@@ -274,12 +274,244 @@ def expand_covariances(frame: pl.DataFrame) -> pl.DataFrame:
     return out
 
 
+# --------------------------------------------------------------------------- lean layout
+#
+# The run's large tables are stored in a lean physical layout ``_lean_<name>`` (+ ``_lean_<name>__shared``)
+# behind a view ``<name>`` with the original column names, order and types, so every SQL report
+# and reader sees the table it always saw. What the layout drops is exactly recoverable (to float32
+# round-off where a column is narrowed); each rule is checked on the data before it is applied and
+# a column that fails its check is stored as it came:
+#
+# ``conflicts`` (already slim: alerts and near pairs only) stays a plain table: tools drop it with
+# DROP TABLE to test a run without safety, and float32 would save only 2.6 MB on the default job.
+#
+# * NARROW: float64 columns holding metres / m/s / s-scale quantities, variances, weights and
+#   probabilities stored as float32 (7 significant digits: 0.008 m at 100 km, 0.06 m at 1 000 km,
+#   3e-5 m/s at 300 m/s, 1e-7 relative on a variance) — far below any radar's metres-scale error;
+#   the view casts them back to DOUBLE. Inputs (``reports``, ``truth``) are never narrowed.
+# * fixed-size float arrays (``cov_ut`` FLOAT[21], ``meas_cov``, ``nominal_var``) stored as one
+#   column per element: each element column is homogeneous in scale, so DuckDB's ALP/ALPRD
+#   compress it (a FLOAT[21] column interleaves variances and cross terms and barely compresses).
+# * DERIVED: ``tracks.cov_diag`` is the diagonal of ``cov``; ``aligned.age_s`` is epoch − time.
+# * FROM_REPORTS: ``aligned`` repeats each report's columns (run, radar_id, local_track_id, time,
+#   residuals, mode_s, truth_id, altitude_m) on every epoch it is aligned to; the view joins them
+#   from ``reports`` by ``report_id`` (checked equal before they are dropped).
+# * SHARED: in ``fused`` the columns that do not depend on the fusion method (the vertical
+#   channel, freshness, identity, sources) are stored once per (run, epoch, target_id) in
+#   ``_lean_fused__shared`` for the rows of every method but ``centralized`` (checked constant).
+
+LEAN_PREFIX = "_lean_"
+_ROWS_FLAG = "__shared"
+_F32_RTOL = 2e-7      # float32 keeps 24 bits: relative round-off ≤ 2⁻²⁴ ≈ 6e-8 (with margin)
+
+_NARROW: dict[str, tuple[str, ...]] = {
+    # aligned's state stays float64: the radar accuracy figures of the HTML report are computed
+    # from it and must not move (they embed the values at full precision)
+    "aligned": ("nominal_var",),
+    "fused": ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "weights", "age_s", "meas_x_m", "meas_y_m",
+              "meas_z_m", "meas_cov", "alt_m", "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2",
+              "alt_cov_m2ps"),
+    "tracks": ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "innovation", "nis", "model_probs", "alt_m",
+               "alt_rate_mps", "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps"),
+}
+#: tables whose fixed-size float arrays are stored one column per element
+_SPLIT = ("reports", "aligned", "fused", "tracks")
+_FROM_REPORTS = {"aligned": ("run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2",
+                             "mode_s", "truth_id", "altitude_m")}
+_SHARED = {"fused": (("run", "epoch", "target_id"), "method", "centralized",
+                     ("n_sources", "radar_ids", "mode_s", "n_fresh", "age_s", "tentative", "alt_m", "alt_rate_mps",
+                      "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps"))}
+_DIAG_UT = [0, 6, 11, 15, 18, 20]       # positions of the diagonal in a row-major 6×6 upper triangle
+
+
+def _q(name: str) -> str:
+    return '"' + name.replace('"', '""') + '"'
+
+
+def _narrowed(dtype: pl.DataType) -> pl.DataType | None:
+    """The float32 twin of a float64 (list/array) dtype, else None."""
+    if dtype == pl.Float64:
+        return pl.Float32()
+    if isinstance(dtype, pl.List) and dtype.inner == pl.Float64:
+        return pl.List(pl.Float32)
+    if isinstance(dtype, pl.Array) and dtype.inner == pl.Float64:
+        return pl.Array(pl.Float32, dtype.size)
+    return None
+
+
+def _splittable(frame: pl.DataFrame, name: str) -> bool:
+    """A float array column whose null rows are whole (no null element inside a non-null array)."""
+    dtype = frame.schema[name]
+    if not (isinstance(dtype, pl.Array) and dtype.inner in (pl.Float32, pl.Float64)):
+        return False
+    col = frame[name]
+    inner_nulls = col.arr.explode().null_count() if frame.height else 0
+    return inner_nulls == col.null_count() * dtype.size
+
+
+class _Layout:
+    """The physical frame(s) of one lean table and the view's select list over them."""
+
+    def __init__(self, name: str, frame: pl.DataFrame) -> None:
+        self.name, self.orig = name, frame
+        self.phys = frame
+        self.exprs: dict[str, str] = {c: f"p.{_q(c)}" for c in frame.columns}
+        self.shared: pl.DataFrame | None = None
+        self.shared_keys: tuple[str, ...] = ()
+        self.joins_reports: str | None = None
+
+    @property
+    def changed(self) -> bool:
+        return self.phys.schema != self.orig.schema or self.shared is not None or self.joins_reports
+
+
+def _lean_layout(name: str, frame: pl.DataFrame, con: duckdb.DuckDBPyConnection,
+                 reports_table: str | None) -> _Layout:
+    lay = _Layout(name, frame)
+    if name in _FROM_REPORTS and reports_table is not None:
+        _drop_report_columns(lay, con, reports_table)
+    if name in _SHARED:
+        _factor_shared(lay, *_SHARED[name])
+    if name == "tracks":
+        _drop_cov_diag(lay)
+    narrow = [c for c in _NARROW.get(name, ()) if c in lay.phys.columns and _narrowed(lay.phys.schema[c])]
+    lay.phys = lay.phys.with_columns(pl.col(c).cast(_narrowed(lay.phys.schema[c])) for c in narrow)
+    if lay.shared is not None:
+        sn = [c for c in narrow if c in lay.shared.columns]
+        lay.shared = lay.shared.with_columns(pl.col(c).cast(_narrowed(lay.shared.schema[c])) for c in sn)
+    if name in _SPLIT:
+        _split_arrays(lay)
+    return lay
+
+
+def _split_arrays(lay: _Layout) -> None:
+    """Fixed-size float arrays -> one column per element (nulls kept as a null first element)."""
+    for c, dtype in list(lay.phys.schema.items()):
+        if c not in lay.orig.columns or not _splittable(lay.phys, c):
+            continue
+        parts = [f"{c}__{k}" for k in range(dtype.size)]
+        cols = [pl.col(c).arr.get(k).alias(p) for k, p in enumerate(parts)]
+        order = [x for col in lay.phys.columns for x in (parts if col == c else [col])]
+        lay.phys = lay.phys.with_columns(cols).select(order)
+        arr = "[" + ", ".join(f"p.{_q(x)}" for x in parts) + "]"
+        lay.exprs[c] = f"CASE WHEN p.{_q(parts[0])} IS NULL THEN NULL ELSE {arr} END"
+        if lay.exprs.get("cov_diag", "").startswith("DIAG:") and c == "cov_ut":
+            diag = "[" + ", ".join(f"p.{_q(parts[k])}" for k in _DIAG_UT) + "]"
+            lay.exprs["cov_diag"] = f"CASE WHEN p.{_q(parts[0])} IS NULL THEN NULL ELSE {diag} END"
+    if lay.exprs.get("cov_diag", "").startswith("DIAG:"):          # cov_ut kept whole
+        lay.exprs["cov_diag"] = "list_select(p.cov_ut, [1, 7, 12, 16, 19, 21])"
+
+
+def _drop_cov_diag(lay: _Layout) -> None:
+    """``cov_diag`` dropped when it is the diagonal of the (float32) ``cov_ut``, to round-off."""
+    f = lay.phys
+    if not {"cov_diag", "cov_ut"} <= set(f.columns) or f.schema["cov_ut"] != pl.Array(pl.Float32, 21) \
+            or not isinstance(f.schema["cov_diag"], pl.Array) or f.schema["cov_diag"].size != 6:
+        return
+    d = f["cov_diag"].to_numpy().reshape(-1, 6) if f.height else np.empty((0, 6))
+    ut = f["cov_ut"].to_numpy().reshape(-1, 21) if f.height else np.empty((0, 21))
+    if f.height and (f["cov_diag"].null_count() or f["cov_ut"].null_count()):
+        return
+    diag = ut[:, _DIAG_UT].astype(np.float64)
+    if not np.allclose(d, diag, rtol=_F32_RTOL, atol=0.0, equal_nan=True):
+        return
+    lay.phys = f.drop("cov_diag")
+    lay.exprs["cov_diag"] = "DIAG:"
+
+
+def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_table: str) -> None:
+    """Columns equal to the report's own (joined by report_id) dropped; ``age_s`` = epoch − time."""
+    f = lay.phys
+    have = {r[0] for r in con.execute(
+        "SELECT column_name FROM duckdb_columns() WHERE database_name = current_database() "
+        "AND schema_name = 'main' AND table_name = ?", [reports_table]).fetchall()}
+    cols = [c for c in _FROM_REPORTS[lay.name] if c in f.columns and c in have]
+    if "report_id" not in f.columns or "report_id" not in have or not cols:
+        return
+    rt = _q(reports_table)
+    n, n_unique = con.execute(f"SELECT count(*), count(DISTINCT report_id) FROM {rt}").fetchall()[0]
+    if n != n_unique:
+        return
+    view = f"_tertiary_chk_{secrets.token_hex(6)}"
+    con.register(view, f.select("report_id", *cols, *(["epoch"] if "epoch" in f.columns else []),
+                                *(["age_s"] if "age_s" in f.columns else [])).to_arrow())
+    try:
+        same = [c for c in cols if con.execute(
+            f"SELECT count(*) FROM {view} a LEFT JOIN {rt} r USING (report_id) "
+            f"WHERE r.report_id IS NULL OR a.{_q(c)} IS DISTINCT FROM r.{_q(c)}").fetchall()[0][0] == 0]
+        age_ok = "time" in same and {"age_s", "epoch"} <= set(f.columns) and f.schema["age_s"] == pl.Float64 \
+            and con.execute(
+                f"SELECT count(*) FROM {view} a JOIN {rt} r USING (report_id) WHERE NOT "
+                f"(abs(a.age_s - date_diff('microsecond', r.time, a.epoch) / 1e6) <= 1e-9 "
+                f"OR (a.age_s IS NULL AND r.time IS NULL))").fetchall()[0][0] == 0
+    finally:
+        con.unregister(view)
+    if not same:
+        return
+    for c in same:
+        lay.exprs[c] = f"r.{_q(c)}"
+    if age_ok:
+        lay.exprs["age_s"] = "date_diff('microsecond', r.time, p.epoch) / 1e6"
+        same.append("age_s")
+    lay.phys = f.drop(same)
+    lay.joins_reports = reports_table
+
+
+def _factor_shared(lay: _Layout, keys: tuple[str, ...], by: str, own: str, candidates: tuple[str, ...]) -> None:
+    """Columns constant within each key among the rows whose ``by`` is not ``own`` stored once per key."""
+    f = lay.phys
+    if not set(keys) | {by} <= set(f.columns) or f.height == 0:
+        return
+    mask = f[by] != own
+    sub = f.filter(mask.fill_null(True))
+    cols = [c for c in candidates if c in f.columns]
+    if not cols or sub.height == 0:
+        return
+    # a column is shared when every key holds one value (nulls included) among those rows
+    per_key = sub.select(*keys, *[pl.col(c).hash().alias(c) for c in cols]).group_by(keys).agg(
+        [pl.col(c).n_unique().alias(c) for c in cols])
+    cols = [c for c in cols if per_key.height == 0 or per_key[c].max() == 1]
+    if not cols:
+        return
+    shared_rows = mask.fill_null(True)
+    lay.shared = sub.select(*keys, *cols).unique(subset=list(keys), keep="first", maintain_order=True)
+    lay.shared_keys = keys
+    lay.phys = f.with_columns(
+        *[pl.when(shared_rows).then(None).otherwise(pl.col(c)).alias(c) for c in cols],
+        shared_rows.alias(_ROWS_FLAG))
+    for c in cols:
+        lay.exprs[c] = f"CASE WHEN p.{_q(_ROWS_FLAG)} THEN s.{_q(c)} ELSE p.{_q(c)} END"
+
+
+def _column_types(con: duckdb.DuckDBPyConnection, frame: pl.DataFrame) -> dict[str, str]:
+    """DuckDB's type name for each column of ``frame`` (as a plain table would store it)."""
+    view = f"_tertiary_typ_{secrets.token_hex(6)}"
+    con.register(view, frame.head(0).to_arrow())
+    try:
+        return {r[0]: r[1] for r in con.execute(f"DESCRIBE SELECT * FROM {view}").fetchall()}
+    finally:
+        con.unregister(view)
+
+
+def _view_sql(lay: _Layout, types: dict[str, str], phys: str, shared: str | None) -> str:
+    cols = ",\n       ".join(f"CAST({lay.exprs[c]} AS {types[c]}) AS {_q(c)}" for c in lay.orig.columns)
+    sql = f"SELECT {cols}\nFROM {_q(phys)} AS p"
+    if lay.joins_reports:
+        sql += f"\nLEFT JOIN {_q(lay.joins_reports)} AS r ON r.report_id = p.report_id"
+    if shared is not None:
+        on = " AND ".join(f"s.{_q(k)} = p.{_q(k)}" for k in lay.shared_keys)
+        sql += f"\nLEFT JOIN {_q(shared)} AS s ON p.{_q(_ROWS_FLAG)} AND {on}"
+    return sql + "\nORDER BY p.rowid"
+
+
 class RunStore:
     """One run's DuckDB database. Build with ``create``, ``update`` or ``open``."""
 
-    def __init__(self, db_file: Path, *, read_only: bool) -> None:
+    def __init__(self, db_file: Path, *, read_only: bool, lean: bool = True) -> None:
         self.path = Path(db_file)
         self.read_only = read_only
+        #: write the run's large tables in the lean layout (False: every table stored as given)
+        self.lean = lean
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
 
@@ -298,23 +530,25 @@ class RunStore:
 
     @classmethod
     @contextmanager
-    def create(cls, run_dir: str | os.PathLike[str]) -> Iterator[RunStore]:
-        """Build a new ``run_dir/results.duckdb``; it replaces any old one only on success."""
-        with cls._staged(Path(run_dir), seed=False) as store:
+    def create(cls, run_dir: str | os.PathLike[str], *, lean: bool = True) -> Iterator[RunStore]:
+        """Build a new ``run_dir/results.duckdb``; it replaces any old one only on success.
+
+        ``lean=False`` stores every table as given (no lean layout: the reference it is checked against)."""
+        with cls._staged(Path(run_dir), seed=False, lean=lean) as store:
             yield store
 
     @classmethod
     @contextmanager
-    def update(cls, run_dir: str | os.PathLike[str]) -> Iterator[RunStore]:
+    def update(cls, run_dir: str | os.PathLike[str], *, lean: bool = True) -> Iterator[RunStore]:
         """Copy the existing database, yield it for changes, atomically replace on success."""
         if not (Path(run_dir) / DB_FILENAME).is_file():
             raise FileNotFoundError(f"no run database at {Path(run_dir) / DB_FILENAME}")
-        with cls._staged(Path(run_dir), seed=True) as store:
+        with cls._staged(Path(run_dir), seed=True, lean=lean) as store:
             yield store
 
     @classmethod
     @contextmanager
-    def _staged(cls, run_dir: Path, *, seed: bool) -> Iterator[RunStore]:
+    def _staged(cls, run_dir: Path, *, seed: bool, lean: bool = True) -> Iterator[RunStore]:
         """Writer on a temp copy (empty or seeded) that is checkpointed and renamed on success."""
         run_dir.mkdir(parents=True, exist_ok=True)
         final = run_dir / DB_FILENAME
@@ -323,7 +557,7 @@ class RunStore:
             try:
                 if seed:
                     _copy_database(final, tmp)
-                store = cls(tmp, read_only=False)
+                store = cls(tmp, read_only=False, lean=lean)
                 try:
                     yield store
                     store.con.execute(f"CHECKPOINT {_ALIAS}")
@@ -360,24 +594,49 @@ class RunStore:
     # ---- tables
 
     def tables(self) -> list[str]:
-        """Names of the run's tables, sorted."""
+        """Names of the run's tables, sorted (a lean table's view, never its physical parts)."""
         rows = self._con.sql(
             "SELECT table_name FROM duckdb_tables() "
             "WHERE database_name = current_database() AND schema_name = 'main' AND NOT temporary "
-            "ORDER BY table_name"
+            f"AND NOT starts_with(table_name, '{LEAN_PREFIX}') "
+            "UNION SELECT view_name FROM duckdb_views() "
+            "WHERE database_name = current_database() AND schema_name = 'main' AND NOT temporary AND NOT internal "
+            "ORDER BY 1"
         ).fetchall()
         return [r[0] for r in rows]
 
     def write(self, name: str, frame: pl.DataFrame) -> None:
         """Create or replace table ``name`` with ``frame`` (one transaction); covariance
-        columns are stored compactly (:func:`compact_covariances`)."""
+        columns are stored compactly (:func:`compact_covariances`) and the run's large tables
+        in their lean layout behind a view of the same name (see "lean layout" above)."""
         frame = compact_covariances(frame)
         table = self._writable(name, frame)
-        with self._registered(frame) as src:
-            self._transaction(f"CREATE OR REPLACE TABLE {table} AS SELECT * FROM {src}")
+        lay = _lean_layout(name, frame, self._con, self._reports_for(name)) if self.lean else None
+        drops = self._drop_statements(name)
+        if lay is None or not lay.changed:
+            with self._registered(frame) as src:
+                self._transaction(*drops, f"CREATE TABLE {table} AS SELECT * FROM {src}")
+            return
+        phys = LEAN_PREFIX + name
+        shared = f"{phys}{_ROWS_FLAG}" if lay.shared is not None else None
+        view = _view_sql(lay, _column_types(self._con, frame), phys, shared)
+        with self._registered(lay.phys) as src, self._registered(
+                lay.shared if lay.shared is not None else pl.DataFrame({"x": [0]})) as src_s:
+            stmts = [*drops, f"CREATE TABLE {_q(phys)} AS SELECT * FROM {src}"]
+            if shared is not None:
+                stmts.append(f"CREATE TABLE {_q(shared)} AS SELECT * FROM {src_s}")
+            self._transaction(*stmts, f"CREATE VIEW {table} AS {view}")
 
     def append(self, name: str, frame: pl.DataFrame) -> None:
-        """Append ``frame`` to table ``name`` (matched by column name), creating it if absent."""
+        """Append ``frame`` to table ``name`` (matched by column name), creating it if absent.
+
+        A table in the lean layout is read back, extended and rewritten (its layout is decided
+        on the whole table)."""
+        if self._kind(name) == "VIEW":
+            old = self.read(name)
+            self.write(name, pl.concat([old, frame.select(old.columns) if set(frame.columns) == set(old.columns)
+                                        else frame], how="diagonal_relaxed"))
+            return
         frame = compact_covariances(frame)
         table = self._writable(name, frame)
         with self._registered(frame) as src:
@@ -403,6 +662,24 @@ class RunStore:
         return pl.DataFrame() if rel is None else utc_times(rel.pl())
 
     # ---- internals
+
+    def _kind(self, name: str) -> str | None:
+        """'BASE TABLE', 'VIEW' or None for ``name`` in the run database."""
+        row = self._con.execute(
+            "SELECT table_type FROM information_schema.tables WHERE table_catalog = current_database() "
+            "AND table_schema = 'main' AND table_name = ?", [name]).fetchall()
+        return row[0][0] if row else None
+
+    def _drop_statements(self, name: str) -> list[str]:
+        """Statements removing ``name`` (table or lean view with its physical parts)."""
+        kind = self._kind(name)
+        out = [f"DROP VIEW {_q(name)}"] if kind == "VIEW" else [f"DROP TABLE {_q(name)}"] if kind else []
+        phys = LEAN_PREFIX + name
+        return out + [f"DROP TABLE IF EXISTS {_q(phys)}", f"DROP TABLE IF EXISTS {_q(phys + _ROWS_FLAG)}"]
+
+    def _reports_for(self, name: str) -> str | None:
+        """The ``reports`` table a lean ``name`` may join its report columns from (None: none)."""
+        return "reports" if name in _FROM_REPORTS and self._kind("reports") else None
 
     def _writable(self, name: str, frame: pl.DataFrame) -> str:
         if self.read_only:
