@@ -32,7 +32,7 @@ from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS
 from tertiary.local_tracks import ESTIMATE_COLUMNS
 from tertiary.simulate import (builtin_scenarios, load_scenario, read_dataset, simulate as _simulate,
-                               write_dataset)
+                               write_dataset, write_stream)
 from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_count
 
 # markup off everywhere: dataset text, reject reasons and query results may contain "[/...]"
@@ -188,7 +188,10 @@ def build_scenario(scenario: str, *, runs: int | None = None, seed: int | None =
     """A built-in scenario (or TOML file) with command-line overrides applied and checked."""
     cfg = load_scenario(scenario)
     cfg = cfg.replace(runs=runs, seed=seed, duration_s=duration)
-    if aircraft is not None:
+    if aircraft is not None and cfg.kind == "national" and cfg.national is not None:
+        # national traffic is a daily curve: --aircraft sets its peak airborne count
+        cfg = dataclasses.replace(cfg, national=dataclasses.replace(cfg.national, peak_airborne=aircraft))
+    elif aircraft is not None:
         cfg = dataclasses.replace(cfg, traffic=dataclasses.replace(cfg.traffic, aircraft=aircraft))
     if truth is not None:
         cfg = dataclasses.replace(cfg, adsb=dataclasses.replace(cfg.adsb, truth_file=truth))
@@ -307,6 +310,9 @@ def simulate(
     quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
     fmt: Annotated[str, typer.Option("--format", help="parquet, or asterix: also recording.ast (CAT048, CAT034, "
                                                       "CAT021) and sites.toml")] = "parquet",
+    window: Annotated[Optional[float], typer.Option(help="write window by window (SECONDS each) into "
+                                                         "reports/part-NNNN.parquet and truth/part-NNNN.parquet "
+                                                         "[default: national: its block; others: single files]")] = None,
 ) -> None:
     """Simulate SCENARIO and write radars/reports/truth Parquet files and scenario.toml to OUT."""
     _set_log(quiet, log_format)
@@ -316,12 +322,22 @@ def simulate(
         raise OptionError("the adsb scenario needs --truth FILE (an OpenSky/traffic-schema Parquet file)",
                           option="--truth")
     _writable_dir(out, "--out")
-    if (out / "reports.parquet").exists() and not force:
+    if ((out / "reports.parquet").exists() or (out / "parts.json").exists()) and not force:
         raise OptionError(f"{out} already holds a dataset; give --force to replace it", option="--out")
     cfg = build_scenario(scenario, runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration,
                          truth=truth, noise_factor=noise_factor, noise_window=noise_window, dropout=dropout,
                          outliers=outliers, bias_step=bias_step)
     t = time.perf_counter()
+    if window is not None or cfg.kind == "national":
+        if fmt != "parquet":
+            raise OptionError("a windowed simulation writes Parquet parts only", option="--format")
+        with _Steps(f"simulate {cfg.name}") as say:
+            done = write_stream(cfg, out, window if window is not None else
+                                (cfg.national.block_s if cfg.national else None), progress=say)
+        console.print(f"wrote {out}/ ({done['reports']:,} reports, {done['truth_rows']:,} truth rows in "
+                      f"{len(done['parts'])} parts, {len(cfg.radars)} radars, {cfg.runs} run(s)) in "
+                      f"{time.perf_counter() - t:.1f} s")
+        return
     with _Steps(f"simulate {cfg.name}") as say:
         ds = _simulate(cfg, progress=say)
     write_dataset(ds, out)

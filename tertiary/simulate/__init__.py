@@ -3,11 +3,13 @@ secondary processing, producing the ``radars``, ``reports`` and ``truth`` tables
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 import dataclasses
+import json
+import math
 import re
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +29,7 @@ from tertiary.simulate.traffic import big_box, terminal_area
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.store import write_parquet_atomic, write_text_atomic
 
-__all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "load_scenario", "builtin_scenarios",
+__all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "simulate_windows", "write_stream", "Window", "load_scenario", "builtin_scenarios",
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
            "TransponderConfig", "RadarTrackerConfig",
            "Trajectories", "big_box", "terminal_area", "resolve_data_path", "check_scenario",
@@ -158,10 +160,10 @@ def _ehs_columns(plots: Plots, index: int, traj: Trajectories, seed: int, cfg: E
     return ehs_report_columns(traj, plots.aircraft, plots.t_true, plots.mode_s >= 0, ehs_rng(seed, index), cfg)
 
 
-def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
-             ) -> Dataset:
-    """Simulate a scenario: truth, every radar's scans for ``cfg.runs`` runs, and each radar's
-    own Singer-channel secondary processing. Same config (incl. seed) → identical tables.
+def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
+                    ) -> Dataset:
+    """Simulate a scenario in one piece: truth, every radar's scans for ``cfg.runs`` runs, and each
+    radar's own Singer-channel secondary processing. Same config (incl. seed) → identical tables.
 
     ``ehs``: Mode S reports carry the enhanced-surveillance parameters
     (:data:`tertiary.schema.EHS_REPORT_COLUMNS`, :mod:`tertiary.simulate.ehs`); None leaves the
@@ -197,8 +199,8 @@ def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConf
     return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed)
 
 
-def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
-    """Write radars/reports/truth Parquet files and ``scenario.toml`` atomically."""
+def _dataset_dir(out_dir: str | Path) -> Path:
+    """``out_dir`` created if needed, or a :class:`DataError` naming it."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise DataError("exists and is not a directory; give a dataset directory", path=str(out))
@@ -206,6 +208,14 @@ def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DataError(f"cannot create the dataset directory: {exc.strerror or exc}", path=str(out)) from exc
+    return out
+
+
+def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
+    """Write radars/reports/truth Parquet files and ``scenario.toml`` atomically (single files;
+    window by window into parts: :func:`write_stream`)."""
+    out = _dataset_dir(out_dir)
+    (out / PARTS_MANIFEST).unlink(missing_ok=True)      # a single-file dataset now, not a partitioned one
     for name in ("radars", "reports", "truth"):
         write_parquet_atomic(getattr(ds, name), out / f"{name}.parquet")
     if ds.removed.height:
@@ -230,6 +240,33 @@ def _read_table(path: Path, required: bool) -> pl.DataFrame:
         size = path.stat().st_size
         what = "empty file" if size == 0 else f"not a readable Parquet file ({type(exc).__name__}: {text[:160]})"
         raise DataError(what, path=str(path)) from exc
+
+
+def _read_parts(d: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Reports and truth of a partitioned dataset (:func:`write_stream`): the parts listed in
+    ``parts.json``, in window order, each checked against its row count. A dataset without the
+    manifest (a simulation still running or killed) or with a missing or short part is a
+    :class:`DataError` naming the file."""
+    manifest = d / PARTS_MANIFEST
+    if not manifest.is_file():
+        raise DataError("partitioned dataset without parts.json: incomplete (still being written, or its "
+                        "simulation was interrupted)", path=str(d / "reports"))
+    try:
+        parts = json.loads(manifest.read_text())["parts"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"unreadable parts manifest: {exc}", path=str(manifest)) from exc
+    tables = []
+    for name in PARTITIONED:
+        frames = []
+        for p in parts:
+            path = d / name / f"part-{int(p['window']):04d}.parquet"
+            frame = _read_table(path, True)
+            if frame.height != p.get(f"{name}_rows", frame.height):
+                raise DataError(f"{frame.height} rows, parts.json says {p[f'{name}_rows']}", path=str(path))
+            frames.append(frame)
+        nonempty = [f for f in frames if f.width]
+        tables.append(pl.concat(nonempty, how="vertical") if nonempty else pl.DataFrame())
+    return tables[0], tables[1]
 
 
 def _site_origin(radars: pl.DataFrame) -> tuple[float, float, float] | None:
@@ -261,8 +298,11 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
     if not d.is_dir():
         raise DataError("not a dataset directory" if d.exists() else "no such dataset directory", path=str(d))
     radars = _read_table(d / "radars.parquet", True)
-    reports = _read_table(d / "reports.parquet", True)
-    truth = _read_table(d / "truth.parquet", False)
+    if (d / PARTS_MANIFEST).exists() or ((d / "reports").is_dir() and not (d / "reports.parquet").exists()):
+        reports, truth = _read_parts(d)
+    else:
+        reports = _read_table(d / "reports.parquet", True)
+        truth = _read_table(d / "truth.parquet", False)
     removed = _read_table(d / "truth_removed.parquet", False)
     notes: list[str] = []
     if origin is not None:
@@ -302,3 +342,255 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
     if origin is not None:
         scen = dataclasses.replace(scen, origin=tuple(origin))
     return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes)
+
+
+# --------------------------------------------------------------------------- streamed simulation
+#
+# The national day is simulated window by window (issue 16 item 4, issue 18 item 1): truth is
+# looked up from the day's schedule for the window only, each radar observes it block by block
+# (random draws keyed by the block, so the data do not depend on the window), the radars'
+# plot-to-track association carries its state (tracks, numbers, held numbers) across windows,
+# and the rows of local tracks still alive at a window's end wait for the next window before
+# their secondary processing (it filters a track from its first plot: deferred, not restarted,
+# so the result equals a single-window run's exactly). Memory is bounded by the window and by
+# the live tracks, not by the day.
+
+NATIONAL_EPOCH = datetime(2021, 10, 7, 0, 0, 0, tzinfo=timezone.utc)
+#: layout of a partitioned dataset: <table>/part-NNNN.parquet, listed in parts.json (written last)
+PARTS_MANIFEST = "parts.json"
+PARTITIONED = ("reports", "truth")
+
+
+@dataclass
+class Window:
+    """One window of a streamed simulation: reports of the local tracks that ended in it (all
+    remaining ones in the last window) and truth samples with t0 ≤ t < t1 (≤ t1 in the last)."""
+
+    index: int
+    t0_s: float
+    t1_s: float
+    reports: pl.DataFrame
+    truth: pl.DataFrame
+
+
+def _shift_anomalies(anom: Anomalies, t0: float) -> Anomalies:
+    """Anomaly windows (seconds from the run start) in a block's time (seconds from ``t0``)."""
+    move = lambda w: None if w is None else (w[0] - t0, w[1] - t0)
+    return dataclasses.replace(anom, noise_window_s=move(anom.noise_window_s),
+                               dropout_window_s=move(anom.dropout_window_s),
+                               bias_step_time_s=None if anom.bias_step_time_s is None else anom.bias_step_time_s - t0)
+
+
+def _national_setup(cfg: ScenarioConfig):
+    """The day's schedule and every flight's transponder (global flight index)."""
+    from tertiary.simulate.traffic import national_flights
+    system = geo.LocalFrame(*cfg.origin)
+    traffic = national_flights(cfg.national, cfg.duration_s, cfg.dt,
+                               np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0]), system,
+                               NATIONAL_EPOCH)
+    steps = int(round(cfg.duration_s / cfg.dt))
+    epoch = NATIONAL_EPOCH + timedelta(seconds=cfg.national.start_s)
+    # transponders() reads the aircraft count, meta and duration only: a zero-stride position grid
+    ghost = Trajectories(dt=cfg.dt, pos=np.broadcast_to(np.zeros(3), (traffic.n_flights, steps + 1, 3)),
+                         vel=np.broadcast_to(np.zeros(3), (traffic.n_flights, steps + 1, 3)),
+                         active=np.broadcast_to(np.zeros(1, bool), (traffic.n_flights, steps + 1)),
+                         segment=np.zeros((traffic.n_flights, 1), np.int8),
+                         truth_id=np.arange(traffic.n_flights, dtype=np.int64), epoch=epoch, meta=traffic.meta)
+    seeds = np.random.SeedSequence(cfg.seed).spawn(2)
+    tx = transponders(ghost, cfg.transponders, np.random.default_rng(seeds[1].spawn(1)[0]))
+    return system, traffic, tx, ghost
+
+
+def _tx_subset(tx: Transponders, ids: NDArray[np.int64], t0: float) -> Transponders:
+    """The transponders of flights ``ids`` in a block starting at ``t0`` s (addresses stay
+    indices into the day's address table)."""
+    return dataclasses.replace(tx, address=tx.address[ids], code_a=tx.code_a[ids], code_b=tx.code_b[ids],
+                               t_change=tx.t_change[ids] - t0, callsign=tx.callsign[ids])
+
+
+def _observe_block(cfg: ScenarioConfig, system: geo.LocalFrame, traffic, tx: Transponders, b: int,
+                   t_win0: float) -> list[Plots]:
+    """Every radar's plots of block ``b`` (random draws keyed by (seed, block, radar)), in the
+    day's time, global flight indices and scan numbers counted from the window start."""
+    from tertiary.simulate.radar import _take, scan_starts
+    blk = cfg.national.block_s
+    tb0 = b * blk
+    nb = min(blk, cfg.duration_s - tb0)
+    margin = max(r.scan_period_s for r in cfg.radars) + 2 * cfg.dt
+    k0 = int(round((cfg.national.start_s + tb0) / cfg.dt))
+    traj = traffic.window(k0, int(round((nb + margin) / cfg.dt)) + 1)
+    sub = _tx_subset(tx, traj.truth_id, tb0)
+    anom = _shift_anomalies(cfg.anomalies, tb0)
+    out = []
+    for i, radar in enumerate(cfg.radars):
+        day_block = b + int(round(cfg.national.start_s / blk))
+        rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7, day_block, i)))
+        p = observe(traj, radar, system, cfg.runs, rng, anom, sub)
+        p = _take(p, np.flatnonzero(p.scan < len(scan_starts(radar, nb))))
+        p.aircraft = np.where(p.aircraft >= 0, traj.truth_id[np.maximum(p.aircraft, 0)], -1)
+        p.t_true, p.t_report = p.t_true + tb0, p.t_report + tb0
+        p.scan = p.scan + int(round((tb0 - t_win0) / radar.scan_period_s))
+        out.append(p)
+    return out
+
+
+def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], state):
+    """:func:`tertiary.simulate.radar.number_plots` for one window, carrying the association
+    state (``state`` None: the first window). Sets each plot's track number and life in place."""
+    from tertiary.simulate import radar_tracker as rt
+    from tertiary.simulate.radar import _merge_all
+    idx = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(plots)])
+    allp = plots[0] if len(plots) == 1 else _merge_all(plots)
+    radars = cfg.radars
+    sig = np.array([[r.sigma_range_m, r.sigma_azimuth_deg, r.sigma_elevation_deg] for r in radars])[idx]
+    z, cov = rt.ground_plots(allp.range_m, allp.azimuth_deg, allp.elevation_deg, sig[:, 0], sig[:, 1], sig[:, 2])
+    period = np.array([r.scan_period_s for r in radars])
+    drop = np.array([rt.drop_misses(r.track_drop_scans) for r in radars], np.int64)
+    scan = rt.ScanPlots(part=idx * cfg.runs + allp.run.astype(np.int64), t=allp.t_report, z=z, r=cov,
+                        mode_s=allp.mode_s, mode_3a=allp.mode_3a, period=period[idx], drop_misses=drop[idx],
+                        scanned=np.zeros(0, np.int64))
+    numbers, state = rt.run_scans(cfg.radar_tracker, allp.scan, scan, np.repeat(np.array(n_scans, np.int64), cfg.runs),
+                                  state)
+    allp.local_track_id, allp.track_life = numbers[:, 0].astype(np.uint32), numbers[:, 1]
+    return allp, idx, state
+
+
+def _secondary(frame: pl.DataFrame, radars: pl.DataFrame, cfg: ScenarioConfig, first_id: int) -> pl.DataFrame:
+    """Each radar's Singer secondary processing of whole local-track lives (as :func:`simulate`)."""
+    columns = [c for c in frame.columns if c != "__life"]
+    out = track_reports(frame.rename({"local_track_id": "__number"})
+                        .with_columns(pl.col("__life").cast(pl.UInt32).alias("local_track_id")),
+                        radars, cfg.tracker.local_tracker())
+    out = out.with_columns(pl.col("__number").alias("local_track_id")).drop("__number", "__life")
+    out = out.select([c for c in columns if c in out.columns] + [c for c in out.columns if c not in columns])
+    return out.with_columns((pl.int_range(pl.len(), dtype=pl.UInt64) + first_id).alias("report_id"))
+
+
+def _window_bounds(cfg: ScenarioConfig, window_s: float | None) -> list[tuple[float, float]]:
+    """Windows [t0, t1) covering the scenario; a window is a whole number of blocks."""
+    blk = cfg.national.block_s if cfg.kind == "national" else cfg.dt
+    w = cfg.duration_s if window_s is None else float(window_s)
+    if window_s is not None:
+        if not (math.isfinite(w) and w > 0):
+            raise OptionError(f"must be a positive number of seconds, got {window_s!r}", option="--window")
+        k = w / blk
+        if abs(k - round(k)) > 1e-9:
+            raise OptionError(f"must be a multiple of the scenario's block of {blk:g} s, got {w:g}", option="--window")
+    w = max(blk, math.ceil(w / blk - 1e-9) * blk)
+    edges = list(np.arange(0.0, cfg.duration_s, w)) + [cfg.duration_s]
+    return [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progress: Progress | None = None
+                     ) -> tuple[ScenarioConfig, pl.DataFrame, Iterator[Window]]:
+    """A scenario simulated window by window: (checked config, radars table, windows).
+
+    ``national``: streamed in bounded memory (module comment above); the tables do not depend
+    on ``window_s`` (a multiple of ``national.block_s``; None: one window). Other kinds are
+    simulated whole (:func:`simulate`) and cut into windows by time."""
+    cfg = check_scenario(cfg)
+    if cfg.kind != "national":
+        ds = simulate(cfg, progress)
+        return ds.scenario, ds.radars, _cut(ds, _window_bounds(ds.scenario, window_s))
+    if cfg.radar_tracker.ideal:
+        raise OptionError("ideal radar trackers number plots from a whole run's truth; the national scenario "
+                          "streams: use the radars' own association", option="radar_tracker.ideal")
+    return cfg, radars_frame(cfg), _national_windows(cfg, _window_bounds(cfg, window_s), progress)
+
+
+def _national_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], progress: Progress | None
+                      ) -> Iterator[Window]:
+    from tertiary.simulate.radar import scan_starts
+    say = progress or (lambda _msg: None)
+    say("truth schedule")
+    system, traffic, tx, ghost = _national_setup(cfg)
+    radars = radars_frame(cfg)
+    blk = cfg.national.block_s
+    state, carry, next_id = None, None, 0
+    for w, (t0, t1) in enumerate(bounds):
+        say(f"radar scans window {w + 1}/{len(bounds)}")
+        blocks = [_observe_block(cfg, system, traffic, tx, b, t0)
+                  for b in range(int(round(t0 / blk)), int(math.ceil(t1 / blk - 1e-9)))]
+        plots = [_merge_plots([bl[i] for bl in blocks]) for i in range(len(cfg.radars))]
+        n_scans = [len(scan_starts(r, t1 - t0)) for r in cfg.radars]
+        say(f"radar plot-to-track window {w + 1}/{len(bounds)}")
+        allp, idx, state = _number_window(cfg, plots, n_scans, state)
+        from tertiary.simulate.radar import _take
+        parts = [_reports_frame(_take(allp, np.flatnonzero(idx == i)), i + 1, ghost, tx)
+                 for i in range(len(cfg.radars))]
+        frame = pl.concat(([carry] if carry is not None else []) + parts, how="vertical")
+        last = w == len(bounds) - 1
+        live = state.life if not last else np.zeros(0, np.int64)
+        alive = pl.Series(np.isin(frame["__life"].to_numpy(), live))
+        carry = frame.filter(alive)
+        say(f"radar secondary window {w + 1}/{len(bounds)}")
+        reports = _secondary(frame.filter(~alive), radars, cfg, next_id)
+        next_id += reports.height
+        k0, k1 = int(round(t0 / cfg.dt)), int(round(t1 / cfg.dt)) + (1 if last else 0)
+        k_day = int(round(cfg.national.start_s / cfg.dt))
+        truth = traffic.window(k_day + k0, k1 - k0).to_frame(frame=system)
+        yield Window(index=w, t0_s=t0, t1_s=t1, reports=reports, truth=truth)
+
+
+def _merge_plots(parts: list[Plots]) -> Plots:
+    from tertiary.simulate.radar import _merge_all
+    return parts[0] if len(parts) == 1 else _merge_all(parts)
+
+
+def _cut(ds: Dataset, bounds: list[tuple[float, float]]) -> Iterator[Window]:
+    """A whole dataset's reports and truth cut into time windows (report time, truth time)."""
+    epoch = ds.truth["time"].min() if ds.truth.height else ds.reports["time"].min()
+    for w, (t0, t1) in enumerate(bounds):
+        last = w == len(bounds) - 1
+        lo, hi = epoch + timedelta(seconds=t0), epoch + timedelta(seconds=t1)
+
+        def part(df: pl.DataFrame) -> pl.DataFrame:
+            if df.height == 0:
+                return df
+            keep = (pl.col("time") >= lo) if w else pl.lit(True)
+            return df.filter(keep & ((pl.col("time") < hi) if not last else pl.lit(True)))
+        yield Window(index=w, t0_s=t0, t1_s=t1, reports=part(ds.reports), truth=part(ds.truth))
+
+
+def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
+             ) -> Dataset:
+    """Simulate a scenario (see :func:`_simulate_whole`; the national scenario is streamed in
+    one window and gathered, without EHS columns)."""
+    if isinstance(cfg, ScenarioConfig) and cfg.kind == "national":
+        scen, radars, windows = simulate_windows(cfg, None, progress)
+        got = list(windows)
+        return Dataset(radars=radars, reports=pl.concat([w.reports for w in got]),
+                       truth=pl.concat([w.truth for w in got]), scenario=scen)
+    return _simulate_whole(cfg, progress, ehs)
+
+
+def write_stream(cfg: ScenarioConfig, out_dir: str | Path, window_s: float | None = None,
+                 progress: Progress | None = None) -> dict:
+    """Simulate ``cfg`` window by window into a partitioned dataset: ``radars.parquet``,
+    ``reports/part-NNNN.parquet``, ``truth/part-NNNN.parquet`` (one per window, each written
+    atomically), ``scenario.toml`` and last ``parts.json`` (the parts and their row counts: a
+    dataset without it is incomplete and :func:`read_dataset` refuses it). Returns the
+    summary written to ``parts.json``."""
+    out = _dataset_dir(out_dir)
+    (out / PARTS_MANIFEST).unlink(missing_ok=True)
+    scen, radars, windows = simulate_windows(cfg, window_s, progress)
+    for name in PARTITIONED:
+        (out / name).mkdir(exist_ok=True)
+        for old in (out / name).glob("part-*.parquet"):
+            old.unlink()
+    for name in ("reports.parquet", "truth.parquet"):
+        (out / name).unlink(missing_ok=True)
+    write_parquet_atomic(radars, out / "radars.parquet")
+    parts: list[dict] = []
+    for win in windows:
+        entry = {"window": win.index, "t0_s": win.t0_s, "t1_s": win.t1_s}
+        for name in PARTITIONED:
+            table = getattr(win, name)
+            write_parquet_atomic(table, out / name / f"part-{win.index:04d}.parquet")
+            entry[f"{name}_rows"] = table.height
+        parts.append(entry)
+    write_text_atomic(out / "scenario.toml", scenario_toml(scen))
+    summary = {"window_s": None if window_s is None else float(window_s), "parts": parts,
+               "reports": sum(p["reports_rows"] for p in parts), "truth_rows": sum(p["truth_rows"] for p in parts)}
+    write_text_atomic(out / PARTS_MANIFEST, json.dumps(summary, indent=1) + "\n")
+    return summary

@@ -16,7 +16,7 @@ from tertiary.filters.singer import SingerModel
 from tertiary.local_tracks import LocalTrackerConfig
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 
-Kind = Literal["big-box", "terminal-area", "adsb"]
+Kind = Literal["big-box", "terminal-area", "adsb", "national"]
 
 
 @dataclass(frozen=True)
@@ -149,6 +149,44 @@ class AdsbConfig:
 
 
 @dataclass(frozen=True)
+class Airport:
+    """An airport of the national scenario: threshold position and runway direction (deg true,
+    either end: each flight takes the end closer to its course)."""
+
+    name: str
+    lat_deg: float
+    lon_deg: float
+    runway_deg: float
+    weight: float = 1.0                  # share of the domestic flights starting or ending here
+
+
+@dataclass(frozen=True)
+class NationalConfig:
+    """National traffic (:func:`tertiary.simulate.traffic.national_flights`): domestic flights
+    between ``airports`` (SID climb, cruise at a semicircular flight level, descent and a
+    straight-in final) and overflights on ``airways`` across the area, entering over a day
+    whose airborne count follows ``hourly_curve`` (relative weights per UTC hour, scaled so
+    that the peak is ``peak_airborne``). ``landing_spacing_s`` separates landings at an
+    airport, ``lane_spacing_s`` entries on one (route, level) lane. Random draws of the radar
+    scans are made per ``block_s`` of time, so the data do not depend on the window the
+    simulation is written in (a window must be a multiple of ``block_s``). The run covers
+    [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole day's, the
+    draws are keyed by the block of the day: an hour is the same whatever the run's start)."""
+
+    airports: tuple[Airport, ...] = ()
+    peak_airborne: int = 1500
+    hourly_curve: tuple[float, ...] = (0.08, 0.05, 0.04, 0.04, 0.08, 0.3, 0.7, 0.95, 1.0, 0.95, 0.9, 0.88,
+                                       0.9, 0.92, 0.9, 0.88, 0.92, 0.98, 1.0, 0.9, 0.7, 0.5, 0.3, 0.15)
+    overflight_fraction: float = 0.35
+    min_route_km: float = 150.0
+    landing_spacing_s: float = 90.0
+    lane_spacing_s: float = 120.0
+    area_half_width_km: float = 500.0
+    block_s: float = 600.0
+    start_s: float = 0.0                 # the run starts this long after 00:00 UTC (a multiple of block_s)
+
+
+@dataclass(frozen=True)
 class ScenarioConfig:
     name: str
     kind: Kind
@@ -164,6 +202,7 @@ class ScenarioConfig:
     adsb: AdsbConfig = field(default_factory=AdsbConfig)
     transponders: TransponderConfig = field(default_factory=TransponderConfig)
     radar_tracker: RadarTrackerConfig = field(default_factory=RadarTrackerConfig)
+    national: NationalConfig | None = None                 # kind "national" only (omitted elsewhere)
 
     def replace(self, **changes: Any) -> "ScenarioConfig":
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
@@ -575,8 +614,48 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
         _number("adsb.start_s", cfg.adsb.start_s, 0.0)
         _number("adsb.max_alt_m", cfg.adsb.max_alt_m, 0.0, 1e5, open_lo=True)
         _number("adsb.max_gap_s", cfg.adsb.max_gap_s, 0.0, 86400.0, open_lo=True)
+    if cfg.kind == "national":
+        _check_national(cfg.national, cfg)
+    elif cfg.national is not None:
+        raise OptionError(f"a [national] table applies to the national scenario only, not to {cfg.kind!r}",
+                          option="national")
     _check_size(cfg)
     return cfg
+
+
+def _check_national(n: NationalConfig | None, cfg: ScenarioConfig) -> None:
+    """The national traffic options: airports on the globe, a 24-value curve, spacings, the
+    RNG block a divisor of nothing in particular but a multiple of every scan period."""
+    if n is None:
+        raise OptionError("the national scenario needs a [national] table with its airports", option="national")
+    if len(n.airports) < 2:
+        raise OptionError(f"needs at least two airports, got {len(n.airports)}", option="national.airports")
+    for i, a in enumerate(n.airports):
+        check_origin((a.lat_deg, a.lon_deg, 0.0), f"national.airports[{i}]")
+        _number(f"national.airports[{i}].runway_deg", a.runway_deg, 0.0, 360.0)
+        _number(f"national.airports[{i}].weight", a.weight, 0.0, 1e6, open_lo=True)
+    _number("national.peak_airborne", n.peak_airborne, 1, 100_000, integer=True)
+    if len(n.hourly_curve) != 24:
+        raise OptionError(f"needs 24 hourly weights, got {len(n.hourly_curve)}", option="national.hourly_curve")
+    for v in n.hourly_curve:
+        _number("national.hourly_curve", v, 0.0, 1e6)
+    if max(n.hourly_curve) <= 0:
+        raise OptionError("needs a positive weight", option="national.hourly_curve")
+    _number("national.overflight_fraction", n.overflight_fraction, 0.0, 1.0)
+    _number("national.min_route_km", n.min_route_km, 50.0, 5000.0)
+    _number("national.landing_spacing_s", n.landing_spacing_s, 30.0, 3600.0)
+    _number("national.lane_spacing_s", n.lane_spacing_s, 30.0, 3600.0)
+    _number("national.area_half_width_km", n.area_half_width_km, 50.0, 3000.0)
+    _number("national.block_s", n.block_s, cfg.dt, 86400.0)
+    _number("national.start_s", n.start_s, 0.0, 86400.0)
+    if abs(n.start_s / n.block_s - round(n.start_s / n.block_s)) > 1e-9:
+        raise OptionError(f"must be a multiple of block_s ({n.block_s:g} s), got {n.start_s:g}",
+                          option="national.start_s")
+    for r in cfg.radars:
+        k = n.block_s / r.scan_period_s
+        if abs(k - round(k)) > 1e-9:
+            raise OptionError(f"must be a multiple of every scan period (radar {r.name}: {r.scan_period_s:g} s), "
+                              f"got {n.block_s:g}", option="national.block_s")
 
 
 def _check_transponders(t: TransponderConfig) -> None:
@@ -602,8 +681,8 @@ def _check_radar_tracker(r: RadarTrackerConfig) -> None:
 
 def _check_size(cfg: ScenarioConfig) -> None:
     """Refuse a simulation whose truth or report rows are estimated beyond MAX_SIM_ROWS."""
-    if cfg.kind == "adsb":
-        return                                   # sized by the recording, read in chunks of time
+    if cfg.kind in ("adsb", "national"):
+        return      # adsb: sized by the recording; national: simulated block by block in bounded memory
     aircraft = cfg.traffic.aircraft if cfg.kind == "terminal-area" else 2
     truth = aircraft * cfg.duration_s / cfg.dt
     reports = cfg.runs * sum(aircraft * cfg.duration_s / r.scan_period_s * (1.0 + r.clutter_rate / max(aircraft, 1))

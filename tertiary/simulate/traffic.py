@@ -38,6 +38,9 @@ tangent-plane z exactly (:func:`heights_to_enu`), level flight is level in heigh
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from datetime import datetime
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -575,3 +578,255 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
                         segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
                         meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
                               "squawk": np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)])})
+
+
+# --------------------------------------------------------------------------- national day
+#
+# Domestic flights between the scenario's airports and overflights across the area, over a
+# day (:func:`national_flights`), flown from templates looked up window by window
+# (:func:`NationalTraffic.window`): the schedule of the whole day is a few arrays per flight,
+# the (aircraft × samples) truth exists only for the window being simulated.
+
+NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
+DEP_LEG_M = 10_000.0                  # runway heading after take-off before turning on course
+FINAL_M = 30_000.0                    # straight-in final from the initial approach fix
+CLIMB_GRADIENT = 0.075                # 7.5 % climb to the cruise level
+DESCENT_GRADIENT = 0.052              # ~3° descent from cruise, then the 3° glide path
+CRUISE_SPEED = (210.0, 240.0)         # m/s true airspeed ≈ ground speed (no wind)
+OVERFLIGHT_LEVELS = 3                 # levels per airway and direction
+#: overflight airways: entry bearing from the origin (deg) and lateral offset (km) of a straight
+#: track across the area to the opposite side
+NATIONAL_AIRWAYS = ((0.0, -120.0), (20.0, 60.0), (45.0, -40.0), (70.0, 150.0), (95.0, -200.0),
+                    (120.0, 30.0), (150.0, -80.0), (165.0, 200.0))
+
+
+def _semicircular_levels(track_deg: float, lo_fl: int, hi_fl: int) -> NDArray[np.int64]:
+    """Flight levels of the semicircular rule between ``lo_fl`` and ``hi_fl``: odd thousands
+    of feet for tracks 000–179°, even thousands for 180–359°."""
+    odd = (track_deg % 360.0) < 180.0
+    fls = np.arange(lo_fl - lo_fl % 10, hi_fl + 1, 10)
+    return fls[(fls // 10) % 2 == (1 if odd else 0)]
+
+
+def _domestic_profiles(cruise_m: float):
+    """Speed and height along a domestic route of length L: 7.5 % climb from the runway,
+    cruise, a 5.2 % descent joining the 3° glide path at 3 000 ft (as the terminal-area
+    arrivals); speed 80 → 150 → cruise m/s climbing, cruise → 130 → 75 m/s descending."""
+    tan = np.tan(np.radians(GLIDE_DEG))
+    h3000 = 3000.0 * FT
+    s_gs = (h3000 - TCH_M) / tan
+    cruise_speed = 150.0 + 0.0085 * cruise_m          # ~220 m/s at FL270, ~245 at FL370
+
+    def height(u, total):
+        s = total - u
+        down = np.where(s <= s_gs, TCH_M + s * tan, h3000 + (s - s_gs) * DESCENT_GRADIENT)
+        return np.minimum(np.minimum(10.0 + CLIMB_GRADIENT * u, cruise_m), down)
+
+    def speed(u, total):
+        up = np.interp(u, [0.0, 12_000.0, 60_000.0], [80.0, 150.0, cruise_speed])
+        down = np.interp(total - u, [10_000.0, 30_000.0, 120_000.0], [75.0, 130.0, cruise_speed])
+        return np.minimum(up, down)
+    return speed, height
+
+
+def _runway_end(runway_deg: float, course_deg: float) -> float:
+    """The runway direction (of its two ends) closer to ``course_deg``."""
+    return runway_deg if abs(_wrap180(np.asarray(course_deg - runway_deg))) <= 90.0 else (runway_deg + 180.0) % 360.0
+
+
+def _domestic_route(a, b, rwy_a: float, rwy_b: float) -> tuple:
+    """Waypoints A → runway heading 10 km → initial approach fix 30 km before B on its final → B."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    course = float(np.degrees(np.arctan2(*(b - a))))
+    da, db = _runway_end(rwy_a, course), _runway_end(rwy_b, course)
+    ua = np.array([np.sin(np.radians(da)), np.cos(np.radians(da))])
+    ub = np.array([np.sin(np.radians(db)), np.cos(np.radians(db))])
+    return tuple(map(tuple, (a, a + DEP_LEG_M * ua, b - FINAL_M * ub, b))), course
+
+
+@dataclass
+class NationalTraffic:
+    """The day's schedule and the route templates it flies (see :func:`national_flights`).
+
+    Per flight: template ``route``, ``entry`` sample (k = entry is the template's first
+    sample), identity and ``role``; per template: padded (x, y, z) positions (tangent-plane z,
+    heights converted once), velocities and segment codes, and its ``length`` in steps."""
+
+    dt: float
+    route: NDArray[np.int64]
+    entry: NDArray[np.int64]
+    role: NDArray[np.str_]
+    meta: dict[str, NDArray]
+    tpos: NDArray[np.float64]          # (R, K+1, 3)
+    tvel: NDArray[np.float64]          # (R, K+1, 3)
+    tseg: NDArray[np.int8]             # (R, K+1)
+    length: NDArray[np.int64]          # (R,)
+    epoch: datetime
+
+    @property
+    def n_flights(self) -> int:
+        return len(self.route)
+
+    def airborne(self, k: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Number of flights airborne at samples ``k``."""
+        start, end = np.sort(self.entry), np.sort(self.entry + self.length[self.route])
+        return np.searchsorted(start, k, "right") - np.searchsorted(end, k, "left")
+
+    def window(self, k0: int, n: int) -> Trajectories:
+        """Truth of the flights airborne during samples k0 … k0+n-1, on that grid (epoch
+        shifted by k0·dt); ``truth_id`` is the flight number of the day. Looked up from the
+        templates (no integration): identical whatever the window."""
+        end = self.entry + self.length[self.route]
+        ids = np.flatnonzero((self.entry <= k0 + n - 1) & (end >= k0))
+        r = self.route[ids]
+        j = np.arange(k0, k0 + n)[None, :] - self.entry[ids, None]
+        inside = (j >= 0) & (j <= self.length[r][:, None])
+        kk = self.tpos.shape[1]
+        flat = r[:, None] * kk + np.clip(j, 0, kk - 1)
+        pos = self.tpos.reshape(-1, 3).take(flat.reshape(-1), axis=0).reshape(len(ids), n, 3)
+        vel = self.tvel.reshape(-1, 3).take(flat.reshape(-1), axis=0).reshape(len(ids), n, 3)
+        seg = self.tseg.reshape(-1).take(flat)
+        from datetime import timedelta
+        return Trajectories(dt=self.dt, pos=pos, vel=vel, active=inside, segment=seg.astype(np.int8),
+                            truth_id=ids.astype(np.int64), epoch=self.epoch + timedelta(seconds=k0 * self.dt),
+                            meta={k: v[ids] for k, v in self.meta.items()})
+
+
+def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.LocalFrame | None):
+    """Every route flown once: two cruise levels per domestic airport pair (semicircular rule,
+    FL190–FL270 under 400 km, FL290–FL390 beyond), and each airway at three levels per
+    direction. Returns the templates and, per template, (kind, origin airport, destination)."""
+    tpl, info = [], []
+    levels_short, levels_long = (190, 270), (290, 390)
+    for i in range(len(sites)):
+        for j in range(len(sites)):
+            dist = float(np.hypot(*(sites[j] - sites[i])))
+            if i == j or dist < cfg.min_route_km * 1000.0:
+                continue
+            wp, course = _domestic_route(sites[i], sites[j], cfg.airports[i].runway_deg, cfg.airports[j].runway_deg)
+            lo, hi = levels_short if dist < 400_000.0 else levels_long
+            fls = _semicircular_levels(course, lo, hi)
+            for fl in fls[[len(fls) // 3, (2 * len(fls)) // 3]]:
+                sp, hp = _domestic_profiles(float(flight_level_m(fl, 1.0)))
+                hdg, ln, cv = _flyby(wp)
+                tpl.append(_fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt))
+                info.append(("domestic", i, j))
+    half = cfg.area_half_width_km * 1000.0
+    for bearing, offset_km in NATIONAL_AIRWAYS:
+        for sign in (1.0, -1.0):
+            b = np.radians(bearing + (0.0 if sign > 0 else 180.0))
+            d = np.array([np.sin(b), np.cos(b)])
+            p = -half * d + offset_km * 1000.0 * sign * np.array([d[1], -d[0]])
+            wp = (tuple(p), tuple(p + 2 * half * d))
+            track = float(np.degrees(b)) % 360.0
+            for fl in _semicircular_levels(track, 310, 390)[-OVERFLIGHT_LEVELS:]:
+                h = float(flight_level_m(fl, 1.0))
+                hdg, ln, cv = _flyby(wp)
+                spd = 225.0 + 2.0 * (fl - 310) / 10.0
+                tpl.append(_fly(wp[0], hdg, ln, cv, _const(spd), _const(h), _level_seg, dt))
+                info.append(("overflight", -1, -1))
+    return tpl, info
+
+
+def _template_arrays(tpl: list[dict], frame: geo.LocalFrame | None):
+    """Templates padded to one length (last sample repeated), velocities from the commands
+    (the step that starts at a sample; the last repeats), heights → tangent-plane z once."""
+    length = np.array([len(t["speed"]) for t in tpl], np.int64)
+    kk = int(length.max()) + 1
+    pos = np.empty((len(tpl), kk, 3))
+    vel = np.empty((len(tpl), kk, 3))
+    seg = np.empty((len(tpl), kk), np.int8)
+    for i, t in enumerate(tpl):          # a loop over routes (hundreds), not aircraft
+        k = len(t["speed"])
+        spd = np.append(t["speed"], t["speed"][-1])
+        vz = np.append(t["vz"], t["vz"][-1])
+        psi = np.radians(t["hdg"])
+        pos[i, :k + 1], seg[i, :k + 1] = t["pos"], t["seg"]
+        vel[i, :k + 1] = np.column_stack([spd * np.sin(psi), spd * np.cos(psi), vz])
+        pos[i, k + 1:], vel[i, k + 1:], seg[i, k + 1:] = pos[i, k], vel[i, k], seg[i, k]
+    heights_to_enu(pos, vel, frame)
+    return pos, vel, seg, length
+
+
+def _spaced(t: NDArray[np.float64], lane: NDArray[np.int64], gap: float) -> NDArray[np.float64]:
+    """Times pushed later so that within a lane consecutive times are ≥ ``gap`` apart, each
+    moved as little as possible: t'_i = i·gap + max_{j≤i}(t_j − j·gap) (vectorised recurrence
+    t'_i = max(t_i, t'_{i−1} + gap))."""
+    order = np.lexsort((t, lane))
+    ts, ls = t[order], lane[order]
+    first = np.searchsorted(ls, ls, "left")
+    rank = np.arange(len(ts)) - first
+    shifted = ts - rank * gap
+    # running max restarted per lane: offset each lane above all earlier ones
+    span = (np.abs(shifted).max() + 1.0) * 4.0 if len(ts) else 1.0
+    lane_rank = np.cumsum(np.r_[0, ls[1:] != ls[:-1]]) if len(ts) else ls
+    run = np.maximum.accumulate(shifted + lane_rank * span) - lane_rank * span
+    out = np.empty_like(t)
+    out[order] = run + rank * gap
+    return out
+
+
+def _entry_times(rng, weights: NDArray[np.float64], n: int, duration_s: float) -> NDArray[np.float64]:
+    """``n`` times over the day with a density following the hourly weights (piecewise linear
+    between hour centres, periodic), by inverse transform sampling; an hour before the start
+    too, so that the day opens with traffic airborne."""
+    hours = np.arange(-2, 27) + 0.5
+    w = np.asarray(weights)[np.mod(np.floor(hours), 24).astype(int)]
+    grid = np.linspace(-3600.0, duration_s, 4000)
+    dens = np.interp(grid / 3600.0, hours, w)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (dens[1:] + dens[:-1]) * np.diff(grid))])
+    return np.interp(rng.uniform(0.0, cdf[-1], n), cdf, grid)
+
+
+def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator, frame: geo.LocalFrame,
+                     epoch) -> NationalTraffic:
+    """The day's traffic (:class:`tertiary.simulate.config.NationalConfig`): domestic flights
+    between airports chosen by weight (pairs closer than ``min_route_km`` excluded), landings
+    at an airport ≥ ``landing_spacing_s`` apart; overflights on the airways, entries on a
+    (route, level) lane ≥ ``lane_spacing_s`` apart. Entry times follow the hourly curve; the
+    number of flights is scaled so that the airborne count peaks at ``peak_airborne``
+    (computed on the schedule, one rescaling pass)."""
+    sites = np.column_stack(frame.from_geodetic([a.lat_deg for a in cfg.airports],
+                                                [a.lon_deg for a in cfg.airports], 0.0)[:2])
+    tpl, info = _national_templates(cfg, sites, dt, frame)
+    tpos, tvel, tseg, length = _template_arrays(tpl, frame)
+    kind = np.array([k for k, _, _ in info])
+    orig, dest = np.array([i for _, i, _ in info]), np.array([j for _, _, j in info])
+    dom, ovf = np.flatnonzero(kind == "domestic"), np.flatnonzero(kind == "overflight")
+    w = np.array([a.weight for a in cfg.airports])
+    p_dom = w[orig[dom]] * w[dest[dom]]
+    p_dom = p_dom / p_dom.sum()
+    seeds = rng.spawn(2)
+    day = max(duration_s, 86400.0)      # the whole day is scheduled: a shorter run is its first hours
+
+    def schedule(n: int, r: np.random.Generator):
+        n_ovf = int(round(cfg.overflight_fraction * n))
+        route = np.concatenate([r.choice(dom, n - n_ovf, p=p_dom), r.choice(ovf, n_ovf)])
+        t = _entry_times(r, cfg.hourly_curve, n, day)
+        is_dom = kind[route] == "domestic"
+        land = t + length[route] * dt
+        land = np.where(is_dom, _spaced(land, np.where(is_dom, dest[route], -1), cfg.landing_spacing_s), land)
+        t = np.where(is_dom, land - length[route] * dt, _spaced(t, route, cfg.lane_spacing_s))
+        return route, np.round(t / dt).astype(np.int64)
+
+    n = 20_000
+    probe_rng = np.random.default_rng(seeds[0].integers(2 ** 63))
+    for _ in range(2):        # spacing delays flights at busy hours: scale twice to reach the peak
+        route, entry = schedule(n, probe_rng)
+        probe = NationalTraffic(dt, route, entry, np.zeros(0, str), {}, tpos, tvel, tseg, length, epoch)
+        peak = probe.airborne(np.arange(0, int(day / dt) + 1, max(1, int(60 / dt)))).max()
+        n = max(2, int(round(n * cfg.peak_airborne / max(peak, 1))))
+    route, entry = schedule(n, seeds[1])
+    order = np.argsort(entry, kind="stable")          # flight numbers in order of entry
+    route, entry = route[order], entry[order]
+    role = np.where(kind[route] == "domestic", "domestic", "overflight")
+    names = np.array([a.name for a in cfg.airports])
+    icao = np.array([f"{v:06x}" for v in rng.choice(np.arange(0x380000, 0x3C0000), n, replace=False)])
+    has_s = rng.random(n) < 0.97
+    airline = rng.choice(["AFR", "EZY", "RYR", "DLH", "BAW", "TVF", "VLG", "KLM", "SWR", "HOP"], n)
+    meta = {"icao24": np.where(has_s, icao, ""),
+            "callsign": np.char.add(airline, np.char.zfill(rng.integers(1, 9999, n).astype(str), 4)),
+            "role": role, "squawk": np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)]),
+            "origin": np.where(orig[route] >= 0, names[np.maximum(orig[route], 0)], ""),
+            "destination": np.where(dest[route] >= 0, names[np.maximum(dest[route], 0)], "")}
+    return NationalTraffic(dt, route, entry, role, meta, tpos, tvel, tseg, length, epoch)

@@ -1,0 +1,96 @@
+"""The national scenario (issue 18 item 1): listed, valid, and its traffic looks like a day's."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tertiary import geo
+from tertiary.simulate import builtin_scenarios, load_scenario
+from tertiary.simulate.config import check_scenario
+from tertiary.simulate.traffic import FT, national_flights
+from tertiary.simulate import NATIONAL_EPOCH
+
+
+@pytest.fixture(scope="module")
+def day():
+    cfg = check_scenario(load_scenario("national"))
+    frame = geo.LocalFrame(*cfg.origin)
+    return cfg, frame, national_flights(cfg.national, cfg.duration_s, cfg.dt,
+                                        np.random.default_rng(1), frame, NATIONAL_EPOCH)
+
+
+def test_listed_and_sized():
+    assert "national" in builtin_scenarios()
+    cfg = check_scenario(load_scenario("national"))
+    assert 12 <= len(cfg.radars) <= 20
+    periods = {r.scan_period_s for r in cfg.radars}
+    assert min(periods) <= 5 and max(periods) >= 10            # terminal and en-route radars
+    frame = geo.LocalFrame(*cfg.origin)
+    e, n, _ = frame.from_geodetic([a.lat_deg for a in cfg.national.airports],
+                                  [a.lon_deg for a in cfg.national.airports], 0.0)
+    assert 700e3 <= np.ptp(e) <= 1200e3 and 600e3 <= np.ptp(n) <= 1200e3
+    assert cfg.duration_s == 86400.0
+
+
+def test_daily_curve_peaks_near_1500(day):
+    cfg, _, tr = day
+    k = np.arange(0, 86400, 300)
+    airborne = tr.airborne(k)
+    assert 1350 <= airborne.max() <= 1650
+    hour = lambda h: airborne[(k >= h * 3600) & (k < (h + 1) * 3600)].mean()
+    assert hour(3) < 0.15 * airborne.max()                  # night trough
+    assert hour(9) > 0.8 * airborne.max() and hour(18) > 0.8 * airborne.max()
+
+
+def test_domestic_flights_take_off_and_land_at_airports(day):
+    """A domestic flight starts and ends within a few hundred metres of an airport threshold
+    (horizontally), low; cruises level at a semicircular flight level."""
+    cfg, frame, tr = day
+    sites = np.column_stack(frame.from_geodetic([a.lat_deg for a in cfg.national.airports],
+                                                [a.lon_deg for a in cfg.national.airports], 0.0)[:2])
+    dom = np.flatnonzero(tr.role == "domestic")[:300]
+    r = tr.route[dom]
+    ends = [tr.tpos[r, 0], tr.tpos[r, tr.length[r]]]
+    for p in ends:
+        d = np.linalg.norm(p[:, None, :2] - sites[None], axis=2).min(axis=1)
+        assert d.max() < 100.0
+        h = frame.to_geodetic(*p.T)[2]
+        assert np.all(h < 20.0)
+    from tertiary.simulate.trajectory import SEG_STRAIGHT
+    level = tr.tseg[r, tr.length[r] // 2] == SEG_STRAIGHT        # cruising at mid-flight (long routes)
+    assert level.mean() > 0.7
+    mid = tr.tpos[r[level], tr.length[r[level]] // 2]
+    h = frame.to_geodetic(*mid.T)[2]
+    fl = h / (1000 * FT + 1.0) * 10
+    assert np.all(np.abs(fl - np.round(fl / 10) * 10) < 0.05)     # on a flight level (FL to 0.05)
+    assert np.all((fl > 185) & (fl < 395))
+
+
+def test_window_lookup_matches_the_template(day):
+    """The truth of a window is the template looked up at (k − entry): a flight's position is
+    the same in two overlapping windows."""
+    _, _, tr = day
+    a, b = tr.window(30000, 600), tr.window(30300, 600)
+    common = np.intersect1d(a.truth_id, b.truth_id)
+    ia, ib = np.searchsorted(a.truth_id, common), np.searchsorted(b.truth_id, common)
+    assert len(common) > 500
+    assert np.array_equal(a.pos[ia, 300:], b.pos[ib, :300])
+    assert np.array_equal(a.active[ia, 300:], b.active[ib, :300])
+    # speeds of airliners, and positions change by the velocity
+    v = np.linalg.norm(a.vel[a.active], axis=1)
+    assert 60 < v.min() and v.max() < 260
+    both = a.active[:, 1:] & a.active[:, :-1]
+    step = np.linalg.norm(np.diff(a.pos, axis=1), axis=2)[both]
+    assert np.percentile(np.abs(step - np.linalg.norm(a.vel[:, :-1], axis=2)[both]), 99) < 1.0
+
+
+def test_national_needs_its_table():
+    cfg = load_scenario("national")
+    from tertiary.errors import OptionError
+    with pytest.raises(OptionError, match="national"):
+        check_scenario(dataclasses.replace(cfg, national=None))
+    with pytest.raises(OptionError, match="national.block_s"):
+        check_scenario(dataclasses.replace(cfg, national=dataclasses.replace(cfg.national, block_s=601.0)))

@@ -1,0 +1,131 @@
+"""Streamed simulation (issue 16 item 4): window by window into time parts, read back alike."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from datetime import timedelta
+
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from tertiary.errors import DataError, OptionError
+from tertiary.simulate import Dataset, load_scenario, read_dataset, simulate, simulate_windows, write_dataset, write_stream
+
+
+def _small_national(duration: float = 1200.0, peak: int = 150):
+    cfg = load_scenario("national")
+    return dataclasses.replace(cfg, duration_s=duration,
+                               national=dataclasses.replace(cfg.national, peak_airborne=peak, start_s=28800.0))
+
+
+@pytest.fixture(scope="module")
+def whole():
+    """The small national scenario simulated in one window (in memory)."""
+    return simulate(_small_national())
+
+
+def test_single_file_and_partitioned_read_back_identical(tmp_path):
+    """The same scenario written into single files and window by window into parts reads back
+    identical tables, row for row and bit for bit."""
+    scen, radars, wins = simulate_windows(_small_national(), 600.0)
+    got = list(wins)
+    single = Dataset(radars=radars, reports=pl.concat([w.reports for w in got]),
+                     truth=pl.concat([w.truth for w in got]), scenario=scen)
+    write_dataset(single, tmp_path / "single")
+    summary = write_stream(_small_national(), tmp_path / "parts", window_s=600.0)
+    assert len(summary["parts"]) == 2
+    assert sorted(p.name for p in (tmp_path / "parts" / "reports").iterdir()) == ["part-0000.parquet",
+                                                                                 "part-0001.parquet"]
+    one, parts = read_dataset(tmp_path / "single"), read_dataset(tmp_path / "parts")
+    for name in ("reports", "truth", "radars"):
+        a, b = getattr(one, name), getattr(parts, name)
+        assert a.height > 0 and a.columns == b.columns and a.equals(b), name
+    assert parts.scenario == one.scenario
+
+
+def test_windows_equal_one_window_run(whole):
+    """Window by window (600 s; the radars' association state and the rows of unfinished local
+    tracks carried across the boundary) equals the one-window run: same rows, same track
+    numbers and truth ids exactly, estimates to round-off (the batched filters group tracks
+    differently)."""
+    _, _, wins = simulate_windows(_small_national(), 600.0)
+    got = list(wins)
+    joined = pl.concat([w.reports for w in got])
+    key = ["radar_id", "time", "range_m"]
+    a, b = whole.reports.sort(key).drop("report_id"), joined.sort(key).drop("report_id")
+    exact = [c for c in a.columns if a[c].dtype not in (pl.Float64,) and not isinstance(a[c].dtype, pl.Array)]
+    assert a.height == b.height > 0
+    assert a.select(exact).equals(b.select(exact))
+    assert_frame_equal(a, b, check_exact=False, rel_tol=1e-9, abs_tol=1e-6)
+    tk = ["truth_id", "time"]
+    assert pl.concat([w.truth for w in got]).sort(tk).equals(whole.truth.sort(tk))
+
+
+def test_windows_carry_track_numbers_across_the_boundary(whole):
+    """A radar track crossing the window boundary keeps its number and filter: its rows come out
+    once, in the window where the track ended."""
+    scen, _, wins = simulate_windows(_small_national(), 600.0)
+    got = list(wins)
+    joined = pl.concat([w.reports for w in got])
+    assert joined["report_id"].to_list() == list(range(joined.height))
+    boundary = whole.truth["time"].min() + timedelta(seconds=600)
+    first, second = got[0].reports, got[1].reports
+    # the first part holds only tracks that ended before the boundary (+ one scan and clock offsets) ...
+    assert first.height > 0 and first["time"].max() < boundary + timedelta(seconds=12.5)
+    # ... the tracks alive at the boundary come out whole in the second, rows before it included
+    carried = second.filter(pl.col("time") < boundary)
+    assert carried.height > 1000
+    assert carried.select("radar_id", "local_track_id").unique().height > 10
+
+
+def test_data_do_not_depend_on_the_window(tmp_path):
+    cfg = _small_national(1800.0, 80)
+    a = write_stream(cfg, tmp_path / "a", window_s=600.0)
+    b = write_stream(cfg, tmp_path / "b", window_s=1200.0)
+    assert a["reports"] == b["reports"] and a["truth_rows"] == b["truth_rows"]
+    ra = read_dataset(tmp_path / "a").reports.drop("report_id").sort("radar_id", "time", "range_m")
+    rb = read_dataset(tmp_path / "b").reports.drop("report_id").sort("radar_id", "time", "range_m")
+    assert_frame_equal(ra, rb, check_exact=False, rel_tol=1e-9, abs_tol=1e-6)
+    assert ra.select("radar_id", "time", "local_track_id", "truth_id").equals(
+        rb.select("radar_id", "time", "local_track_id", "truth_id"))
+
+
+def test_window_must_be_whole_blocks():
+    with pytest.raises(OptionError, match="--window.*multiple of the scenario's block of 600 s"):
+        simulate_windows(_small_national(), 450.0)
+
+
+def test_incomplete_partitioned_dataset_is_refused(tmp_path):
+    write_stream(_small_national(600.0, 40), tmp_path / "d", window_s=600.0)
+    (tmp_path / "d" / "parts.json").unlink()
+    with pytest.raises(DataError, match="parts.json: incomplete"):
+        read_dataset(tmp_path / "d")
+
+
+def test_short_part_is_refused(tmp_path):
+    write_stream(_small_national(600.0, 40), tmp_path / "d", window_s=600.0)
+    part = tmp_path / "d" / "reports" / "part-0000.parquet"
+    pl.read_parquet(part).head(5).write_parquet(part)
+    with pytest.raises(DataError, match="part-0000.parquet: 5 rows, parts.json says"):
+        read_dataset(tmp_path / "d")
+
+
+def test_other_scenarios_are_cut_into_time_parts(tmp_path):
+    """A terminal-area scenario written with a window: the same rows as the single file, cut by
+    time; the whole-run simulation itself is unchanged."""
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=600.0, traffic=dataclasses.replace(cfg.traffic, aircraft=20,
+                                                                                 conflict_pairs=1, near_miss_pairs=0))
+    ds = simulate(cfg)
+    write_stream(cfg, tmp_path / "p", window_s=200.0)
+    back = read_dataset(tmp_path / "p")
+    assert json.loads((tmp_path / "p" / "parts.json").read_text())["window_s"] == 200.0
+    assert back.reports.sort("report_id").equals(ds.reports.sort("report_id"))
+    assert back.truth.height == ds.truth.height
+    for i in range(3):
+        part = pl.read_parquet(tmp_path / "p" / "reports" / f"part-{i:04d}.parquet")
+        t0 = ds.truth["time"].min()
+        secs = (part["time"] - t0).dt.total_microseconds() / 1e6
+        assert part.height and secs.min() >= (200.0 * i if i else -1.0) and secs.max() < 200.0 * (i + 1) + (1e9 if i == 2 else 0)
