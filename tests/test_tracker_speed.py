@@ -4,7 +4,7 @@
   method's picture). Oracle: the unfolded path — :func:`track` per method, one filter object
   each, concatenated method-major — which is the tracker loop as it was. Expected: identical
   rows, bit for bit where the filter is the same code (``singer``).
-* ``imm`` / ``imm_sym`` predict with a compiled per-track kernel. Oracle: the numpy path
+* ``imm`` / ``imm_sym`` predict and update with compiled per-track kernels. Oracle: the numpy path
   (``compiled=False``). Expected: equal to round-off, ≤ 1e-9 relative to each column's scale.
 """
 
@@ -124,6 +124,35 @@ def test_compiled_imm_prediction_matches_numpy(name):
             assert np.all(np.abs(a[key] - b[key]) <= REL * scale), (key, k)
 
 
+@pytest.mark.parametrize("name", ["imm", "imm_sym"])
+def test_compiled_imm_update_matches_numpy(name):
+    """Full R with an E–N correlation, plots missing (mask) and invalid (NaN)."""
+    rng = np.random.default_rng(3)
+    fast, slow = make_filter(name), make_filter(name, compiled=False)
+    n = 300
+    z = rng.normal(0, 3e4, (n, 3))
+    var = rng.uniform(30, 300, (n, 3)) ** 2
+    r = np.zeros((n, 3, 3))
+    r[:, [0, 1, 2], [0, 1, 2]] = var
+    r[:, 0, 1] = r[:, 1, 0] = 0.4 * np.sqrt(var[:, 0] * var[:, 1])
+    state = slow.init(z, r)
+    for k in range(6):
+        pred = slow.predict(state, rng.uniform(0.5, 12.0, n))
+        zk = z + rng.normal(0, 100, (n, 3)) + 300.0 * k
+        zk[:5] = np.nan
+        mask = rng.random(n) < 0.8
+        (a, ia), (b, ib) = fast.update(pred, zk, r, mask), slow.update(pred, zk, r, mask)
+        for key in b:
+            scale = np.abs(b[key]).max(axis=tuple(range(1, b[key].ndim)), keepdims=True) + 1e-300
+            assert np.all(np.abs(a[key] - b[key]) <= REL * scale), (key, k)
+        for f in ("nu", "s", "nis"):
+            x, y = getattr(ia, f), getattr(ib, f)
+            assert np.array_equal(np.isnan(x), np.isnan(y)), f
+            ok = ~np.isnan(y)
+            assert np.all(np.abs(x[ok] - y[ok]) <= REL * (np.abs(y[ok]) + np.abs(y[ok]).max())), f
+        state = b
+
+
 def test_anisotropic_q_keeps_the_numpy_path():
     """The compiled kernel has the isotropic closed form only; (q_x ≠ q_y) must not use it."""
     filt = make_filter("imm", q=(1.0, 4.0))
@@ -133,3 +162,6 @@ def test_anisotropic_q_keeps_the_numpy_path():
     a, b = filt.predict(s, np.array([5.0])), ref.predict(s, np.array([5.0]))
     for key in b:
         assert np.array_equal(a[key], b[key])
+    (ua, ia), (ub, ib) = (f.update(b, np.array([[1.1e4, 2e4, 3e3]]), r, np.ones(1, bool)) for f in (filt, ref))
+    for key in ub:
+        assert np.array_equal(ua[key], ub[key])
