@@ -17,6 +17,16 @@ the aircraft; recorded in ``results/trackers_accuracy_<label>.json``:
 
     python benchmarks/bench_trackers.py --accuracy DATASET_DIR --label big-box-n100 \
         [--filters singer,imm_sym,cv_full,singer_full]
+
+Tracker-stage mode (issue 18): the secondary tracker stage on one dataset's fusion pictures,
+before (the per-(method, filter) loop with the numpy filters: :func:`track` per method) and
+after (:func:`track_methods`: (method, run) folded into the batch axis, compiled IMM), for the
+full configuration (every method × ``--filters``) and the production one (``information`` ×
+``imm_sym``); checks that both give the same rows; and the first-run cost of the compiled
+kernels (fresh numba cache vs cached vs numpy, CPU seconds of a fresh process). Recorded in
+``results/bench_trackers.json`` (key ``tracker_stage``):
+
+    python benchmarks/bench_trackers.py --stage DATASET_DIR [--filters singer,imm_sym]
 """
 
 from __future__ import annotations
@@ -28,7 +38,7 @@ import time
 import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
-from _util import record
+from _util import RESULTS, record
 from tertiary.filters import make_filter
 from tertiary.filters.imm import PAPER_MU0, PAPER_OMEGAS, PAPER_TPM, model_matrices
 from tertiary.filters.singer import singer_phi, singer_q
@@ -46,8 +56,9 @@ def inputs(n: int, steps: int, seed: int = 0):
     return z, np.full((n, 3), R)
 
 
-def time_batched(name: str, z, r, steps: int) -> float:
-    filt = make_filter(name)
+def time_batched(name: str, z, r, steps: int, **params) -> float:
+    filt = make_filter(name, **params)
+    filt.update(filt.predict(filt.init(z[0, :2], r[:2]), np.full(2, TAU)), z[1, :2], r[:2], np.ones(2, bool))
     n = z.shape[1]
     state = filt.init(z[0], r)
     dt = np.full(n, TAU)
@@ -148,18 +159,146 @@ def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
                         "tentative": c.get("tentative_targets")}}
 
 
+def _same_rows(a, b) -> bool:
+    """Equal tables up to round-off (≤ 1e-9 of each float column's scale)."""
+    import polars as pl
+
+    if a.columns != b.columns or a.height != b.height:
+        return False
+    for c in a.columns:
+        x, y = a[c], b[c]
+        inner = y.dtype.inner if isinstance(y.dtype, (pl.List, pl.Array)) else y.dtype
+        if not inner.is_float():
+            if not x.equals(y):
+                return False
+            continue
+        if isinstance(y.dtype, pl.List):
+            x, y = x.explode(), y.explode()
+        elif isinstance(y.dtype, pl.Array):
+            x, y = x.arr.explode(), y.arr.explode()
+        u, v = x.cast(pl.Float64).to_numpy(), y.cast(pl.Float64).to_numpy()
+        ok = ~np.isnan(v)
+        if not np.array_equal(np.isnan(u), np.isnan(v)):
+            return False
+        if ok.any() and (np.abs(u[ok] - v[ok]) > 1e-9 * (np.abs(v[ok]) + np.sqrt(np.mean(v[ok] ** 2)))).any():
+            return False
+    return True
+
+
+_FIRST_RUN = """
+import resource, sys, time, numpy as np
+from tertiary.filters import make_filter
+f = make_filter("imm_sym", compiled=sys.argv[1] == "1")
+s = f.init(np.full((5, 3), 1e4), np.full((5, 3), 1e4))
+t = time.perf_counter()
+s, _ = f.update(f.predict(s, np.ones(5)), np.full((5, 3), 1e4), np.full((5, 3), 1e4), np.ones(5, bool))
+u = resource.getrusage(resource.RUSAGE_SELF)
+print(time.perf_counter() - t, u.ru_utime + u.ru_stime)
+"""
+
+
+def first_run_cost() -> dict:
+    """CPU seconds of a fresh process doing one imm_sym predict + update: compiled with an empty
+    numba cache (a fresh install), compiled with the cache filled by that run, numpy only."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        for label, flag in (("fresh_cache", "1"), ("cached", "1"), ("numpy", "0")):
+            res = subprocess.run([sys.executable, "-c", _FIRST_RUN, flag], env=env, check=True,
+                                 capture_output=True, text=True)
+            first_call, cpu = map(float, res.stdout.split())
+            out[label] = {"first_call_s": first_call, "process_cpu_s": cpu}
+    out["compile_extra_cpu_s"] = out["fresh_cache"]["process_cpu_s"] - out["numpy"]["process_cpu_s"]
+    out["cached_extra_cpu_s"] = out["cached"]["process_cpu_s"] - out["numpy"]["process_cpu_s"]
+    return out
+
+
+def tracker_stage(dataset: str, filters: tuple[str, ...], reps: int = 2) -> dict:
+    """Tracker stage seconds before (per-(method, filter) loop, numpy filters) and after
+    (folded batch, compiled IMM) on a dataset's fusion pictures; full and production sets."""
+    import inspect
+
+    import polars as pl
+
+    from tertiary import pipeline
+    from tertiary.filters.base import REGISTRY
+    from tertiary.simulate import read_dataset
+    from tertiary.tracker import track, track_methods
+
+    ds = read_dataset(dataset)
+    res = pipeline.process(ds, pipeline.PipelineConfig(filters=(), safety=False, centralized=False))
+    pictures = res.fused.filter(pl.col("method") != "centralized")
+
+    def numpy_filter(name: str):
+        ok = "compiled" in inspect.signature(REGISTRY[name]).parameters
+        return make_filter(name, compiled=False) if ok else make_filter(name)
+
+    def before(pics: pl.DataFrame, names: tuple[str, ...]) -> pl.DataFrame:
+        parts = [track(pics.filter(pl.col("method") == m), numpy_filter(n), pipeline.TrackerConfig())
+                 for m in sorted(pics["method"].unique().to_list()) for n in names]
+        return pl.concat(parts, how="vertical")
+
+    def after(pics: pl.DataFrame, names: tuple[str, ...]) -> pl.DataFrame:
+        return track_methods(pics, list(names))
+
+    def best(fn, *args) -> tuple[float, pl.DataFrame]:
+        times, out = [], None
+        for _ in range(reps):
+            t = time.perf_counter()
+            out = fn(*args)
+            times.append(time.perf_counter() - t)
+        return min(times), out
+
+    after(pictures.head(2000), ("imm_sym",))                    # compile / load the kernels first
+    result = {"dataset": dataset, "reports": int(ds.reports.height), "pictures_rows": pictures.height,
+              "methods": sorted(pictures["method"].unique().to_list()), "epochs": int(pictures["epoch"].n_unique())}
+    configs = {"full": (pictures, filters),
+               "production": (pictures.filter(pl.col("method") == "information"), ("imm_sym",))}
+    for label, (pics, names) in configs.items():
+        tb, ob = best(before, pics, names)
+        ta, oa = best(after, pics, names)
+        result[label] = {"filters": list(names), "methods": int(pics["method"].n_unique()),
+                         "before_s": tb, "after_s": ta, "speedup": tb / ta, "rows": oa.height,
+                         "same_rows": _same_rows(oa, ob)}
+    result["first_run"] = first_run_cost()
+    return result
+
+
+def _merge(key: str, payload: dict):
+    """Update one section of results/bench_trackers.json, keeping the others."""
+    path = RESULTS / "bench_trackers.json"
+    old = json.loads(path.read_text()) if path.exists() else {}
+    old.pop("machine", None)
+    old[key] = payload
+    return record("bench_trackers", old)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--accuracy", metavar="DATASET_DIR", help="run the accuracy mode on this dataset")
     ap.add_argument("--label", default="run", help="accuracy mode: results/trackers_accuracy_<label>.json")
-    ap.add_argument("--filters", default="singer,imm_sym,cv_full,singer_full")
+    ap.add_argument("--stage", metavar="DATASET_DIR", help="run the tracker-stage mode on this dataset")
+    ap.add_argument("--filters", default=None, help="accuracy: singer,imm_sym,cv_full,singer_full; "
+                                                    "stage: singer,imm_sym")
     ap.add_argument("--tracks", type=int, default=10_000)
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--ref-tracks", type=int, default=200)
     ap.add_argument("--ref-steps", type=int, default=10)
     args = ap.parse_args()
+    if args.stage:
+        out = tracker_stage(args.stage, tuple(f for f in (args.filters or "singer,imm_sym").split(",") if f))
+        path = _merge("tracker_stage", out)
+        print(json.dumps(out, indent=2))
+        print(f"recorded in {path}")
+        return
     if args.accuracy:
-        out = accuracy(args.accuracy, tuple(f for f in args.filters.split(",") if f))
+        filters = args.filters or "singer,imm_sym,cv_full,singer_full"
+        out = accuracy(args.accuracy, tuple(f for f in filters.split(",") if f))
         path = record(f"trackers_accuracy_{args.label}", out)
         print(json.dumps(out, indent=2))
         print(f"recorded in {path}")
@@ -172,7 +311,13 @@ def main() -> None:
         ours = max(time_batched(name, z, r, args.steps) for _ in range(3))
         theirs = ref(zr, args.ref_steps)
         result[name] = {"updates_per_s": ours, "filterpy_loop_updates_per_s": theirs, "speedup": ours / theirs}
+        if name == "imm":       # the numpy path beside the compiled kernels (issue 18)
+            result[name]["numpy_updates_per_s"] = max(time_batched(name, z, r, args.steps, compiled=False)
+                                                      for _ in range(3))
     result["targets"] = {"singer_updates_per_s": 1_000_000, "speedup": 100}
+    path = RESULTS / "bench_trackers.json"
+    if path.exists() and "tracker_stage" in (old := json.loads(path.read_text())):
+        result["tracker_stage"] = old["tracker_stage"]
     path = record("bench_trackers", result)
     print(json.dumps(result, indent=2))
     print(f"recorded in {path}")

@@ -90,7 +90,9 @@ A *scan* is an epoch at which the run has at least one plot; T and dt are the re
 differences, so irregular epochs are handled (x̂₃ above). The filter runs on tentatives too
 (initialised on x₁, updated with every tentative plot), so a track enters tracking with its
 first scans already filtered. Runs (Monte-Carlo) are tracked together in one batch and never
-interact; track ids are per run.
+interact; track ids are per run. :func:`track_methods` folds the fusion methods into the same
+batch axis (one epoch loop per filter for every (method, run)), so the per-epoch interpreter
+cost is paid once per filter, not once per (method, filter).
 """
 
 from __future__ import annotations
@@ -126,6 +128,7 @@ TRACK_COLUMNS: dict[str, pl.DataType] = {
 _TENT, _HYP, _CONF = 0, 1, 2          # object kinds: tentative (stage 1 / M-of-N), scan-2 hypothesis, confirmed
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
+_METHOD_KEY = 1 << 32                 # batch run key = method index·_METHOD_KEY + run (track_methods)
 
 
 @dataclass(frozen=True)
@@ -559,7 +562,9 @@ class _Emitted:
             at += len(part)
         return probs
 
-    def frame(self, runs: NDArray, filt_name: str, method: str) -> pl.DataFrame:
+    def frame(self, runs: NDArray, filt_name: str, methods: list[str], run_method: NDArray) -> pl.DataFrame:
+        """The rows as a ``tracks`` table; batch run index j is run ``runs[j]`` of fusion method
+        ``methods[run_method[j]]``. Sorted by (batch run, epoch, track_id)."""
         if not self.parts["run"] or sum(len(a) for a in self.parts["run"]) == 0:
             return pl.DataFrame(schema=TRACK_COLUMNS)
         c = {k: np.concatenate(v, axis=0) for k, v in self.parts.items()}
@@ -584,7 +589,8 @@ class _Emitted:
             "track_id": c["track_id"].astype(np.uint64),
             # constant and two-valued strings built by polars: numpy object/str arrays convert slowly
             "filter": pl.repeat(filt_name, n, dtype=pl.String, eager=True),
-            "method": pl.repeat(method, n, dtype=pl.String, eager=True),
+            "method": (pl.repeat(methods[0], n, dtype=pl.String, eager=True) if len(methods) == 1 else
+                       pl.Series(methods, dtype=pl.String).gather(run_method[c["run"]])),
             **{col: c["x"][:, i] for i, col in enumerate(STATE_COLS)},
             "cov_diag": c["var"],
             "cov": c["cov"],
@@ -609,27 +615,42 @@ class _Emitted:
         return frame.select(list(TRACK_COLUMNS)).cast(TRACK_COLUMNS)
 
 
+def _check_fused(fused: pl.DataFrame) -> None:
+    need = {"run", "epoch", "target_id", "x_m", "y_m", "z_m", "cov"}
+    missing = sorted(need - set(fused.columns))
+    if missing:
+        raise ValueError(f"fused plots lack column(s) {', '.join(missing)}")
+
+
+def _drop_tentative(fused: pl.DataFrame) -> pl.DataFrame:
+    """Clutter-only targets never reach a track."""
+    if "tentative" in fused.columns:
+        return fused.filter(~pl.col("tentative").fill_null(False))
+    return fused
+
+
 def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
     """Track the fused plots of one fusion method with ``filt``; returns the ``tracks`` table
     (plus ``status`` and ``plot_target_id``) with a row per confirmed/coasting track per epoch
     of its run, sorted by (run, epoch, track_id)."""
-    need = {"run", "epoch", "target_id", "x_m", "y_m", "z_m", "cov"}
-    missing = sorted(need - set(fused_one_method.columns))
-    if missing:
-        raise ValueError(f"fused plots lack column(s) {', '.join(missing)}")
+    _check_fused(fused_one_method)
     methods = (fused_one_method["method"].unique().to_list()
                if "method" in fused_one_method.columns else ["unknown"])
     if len(methods) > 1:
         raise ValueError(f"track() takes the fused rows of one method, got {sorted(map(str, methods))}")
     method = str(methods[0]) if methods else "unknown"
+    fused_one_method = _drop_tentative(fused_one_method)
     if fused_one_method.height == 0:
         return pl.DataFrame(schema=TRACK_COLUMNS)
+    emitted, ix = _track_batch(fused_one_method, filt, cfg)
+    return emitted.frame(ix.runs, filt.name, [method], np.zeros(len(ix.runs), np.int64))
 
-    if "tentative" in fused_one_method.columns:     # clutter-only targets never reach a track
-        fused_one_method = fused_one_method.filter(~pl.col("tentative").fill_null(False))
-        if fused_one_method.height == 0:
-            return pl.DataFrame(schema=TRACK_COLUMNS)
-    ix = _PlotIndex(fused_one_method)
+
+def _track_batch(fused: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig) -> tuple["_Emitted", "_PlotIndex"]:
+    """The tracker's epoch loop over every batch run of ``fused`` (its ``run`` column: any
+    integer key; batch runs never interact). Returns the emitted rows and the plot index
+    (``ix.runs``: the key of each batch run index)."""
+    ix = _PlotIndex(fused)
     n_runs = len(ix.runs)
     secs = (ix.epochs - ix.epochs[0]) / 1e6
     state: State = {}
@@ -789,7 +810,7 @@ def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig 
                              _take_state(su, kept, len(idx)) if len(idx) else {}, sn)
         objs = _Objects.concat(objs.take(idle) if len(idle) else _Objects.empty(), mu.take(kept), mn)
 
-    return emitted.frame(ix.runs, filt.name, method)
+    return emitted, ix
 
 
 def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray) -> NDArray:
@@ -808,12 +829,34 @@ def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray
 def track_methods(fused: pl.DataFrame, filters: dict[str, TrackFilter] | list[str] | tuple[str, ...],
                   cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
     """:func:`track` for every fusion method of ``fused`` × every filter (names are built with
-    :func:`make_filter`); the tables concatenated."""
+    :func:`make_filter`); the tables concatenated (method-major, then filter, each sorted by
+    (run, epoch, track_id)).
+
+    (method, run) is folded into the batch axis: each filter runs ONE epoch loop over every
+    method's picture at once (batch key method index·2³² + run), so the per-epoch interpreter
+    overhead is paid once per filter instead of once per (method, filter). Batch runs never
+    interact (see the module docstring), so each (method, run) gets exactly the tracks of its
+    own :func:`track` call, with its own track ids.
+    """
     if not isinstance(filters, dict):
         filters = {name: make_filter(name) for name in filters}
-    parts = [track(fused.filter(pl.col("method") == meth), filt, cfg)
-             for meth in sorted(fused["method"].unique().to_list())
-             for filt in filters.values()]
+    _check_fused(fused)
+    methods = sorted(fused["method"].unique().to_list())
+    if not methods or not filters:
+        return pl.DataFrame(schema=TRACK_COLUMNS)
+    code = pl.Series(methods, dtype=pl.String)
+    batch = _drop_tentative(fused).with_columns(
+        (pl.col("method").replace_strict(code, pl.Series(np.arange(len(methods), dtype=np.int64)),
+                                         return_dtype=pl.Int64) * _METHOD_KEY
+         + pl.col("run").cast(pl.Int64)).alias("run"))
+    per_filter = {}
+    for name, filt in filters.items():
+        if batch.height == 0:
+            per_filter[name] = pl.DataFrame(schema=TRACK_COLUMNS)
+            continue
+        emitted, ix = _track_batch(batch, filt, cfg)
+        per_filter[name] = emitted.frame(ix.runs % _METHOD_KEY, filt.name, methods, ix.runs // _METHOD_KEY)
+    # the per-(method, filter) order of the unfolded loop: method-major, then filter
+    parts = [part for meth in methods for frame in per_filter.values()
+             for part in [frame.filter(pl.col("method") == meth)] if part.height]
     return pl.concat(parts, how="vertical") if parts else pl.DataFrame(schema=TRACK_COLUMNS)
-
-

@@ -40,6 +40,7 @@ e.g. ``omegas=(0.045, -0.045, 0.0)`` with a matching ``tpm`` and ``mu0``.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -347,6 +348,255 @@ class HorizontalIMM:
         return imm_combine(x, p, mu)
 
 
+# --------------------------------------------------------------------------- compiled prediction
+
+
+def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, ANN202 - numba kernel
+    """One IMM + vertical CV prediction per track, written out for numba (same equations as
+    :func:`imm_mix`, :func:`a_ct`, :func:`q_ct` (isotropic q) and :func:`_cv1_predict`):
+    c̄ = πᵀμ, μ^{i|j} = π_ij μ_i / c̄_j, mixed x̄_j, P̄_j (spread about the mixed mean), then
+    x⁻_j = A_j x̄_j, P⁻_j = sym(A_j P̄_j A_jᵀ + Q_j). Per-track work, so the interpreter cost
+    per epoch no longer grows with the number of numpy calls of the model set."""
+    b_n, m_n = mu.shape
+    xo = np.empty_like(x)
+    po = np.empty_like(p)
+    co = np.empty_like(mu)
+    xvo = np.empty_like(xv)
+    pvo = np.empty_like(pv)
+    w = np.empty((m_n, m_n))
+    xm = np.empty(4)
+    pm = np.empty((4, 4))
+    a = np.zeros((4, 4))
+    qm = np.zeros((4, 4))
+    ap = np.empty((4, 4))
+    pi = np.pi
+    for b in range(b_n):
+        t = dt[b]
+        for j in range(m_n):
+            c = 0.0
+            for i in range(m_n):
+                c += mu[b, i] * tpm[i, j]
+            co[b, j] = c
+            den = c if c > 0 else 1.0
+            for i in range(m_n):
+                w[i, j] = tpm[i, j] * mu[b, i] / den
+        for j in range(m_n):
+            for n in range(4):
+                acc = 0.0
+                for i in range(m_n):
+                    acc += w[i, j] * x[b, i, n]
+                xm[n] = acc
+            for r in range(4):
+                for n in range(4):
+                    acc = 0.0
+                    for i in range(m_n):
+                        acc += w[i, j] * p[b, i, r, n]
+                    for i in range(m_n):
+                        acc += w[i, j] * (x[b, i, r] - xm[r]) * (x[b, i, n] - xm[n])
+                    pm[r, n] = acc
+            for r in range(4):
+                for n in range(r + 1, 4):
+                    v = 0.5 * (pm[r, n] + pm[n, r])
+                    pm[r, n] = v
+                    pm[n, r] = v
+            # model matrices (a_ct, q_ct): every coefficient exact at ω → 0
+            om = omegas[j]
+            xx = om * t
+            y = xx / pi
+            sinc = 1.0 if y == 0.0 else np.sin(pi * y) / (pi * y)
+            y2 = xx / (2.0 * pi)
+            sh = 1.0 if y2 == 0.0 else np.sin(pi * y2) / (pi * y2)
+            h2 = 0.5 * sh * sh
+            x2 = xx * xx
+            if abs(xx) < 0.5:
+                g3 = (1 / 6 - x2 / 120 * (1 - x2 / 42 * (1 - x2 / 72 * (1 - x2 / 110 * (1 - x2 / 156
+                                                                                        * (1 - x2 / 210))))))
+            else:
+                g3 = (xx - np.sin(xx)) / (xx * xx * xx)
+            s_w = t * sinc
+            c_w = t * xx * h2
+            q1_w2 = t * t * h2
+            q2_w2 = t * t * xx * g3
+            q2_w3 = t ** 3 * g3
+            cs, sn = np.cos(xx), np.sin(xx)
+            a[0, 0] = a[2, 2] = 1.0
+            a[0, 1] = s_w
+            a[0, 3] = -c_w
+            a[1, 1] = cs
+            a[1, 3] = -sn
+            a[2, 1] = c_w
+            a[2, 3] = s_w
+            a[3, 1] = sn
+            a[3, 3] = cs
+            qm[0, 0] = qm[2, 2] = q * (2.0 * q2_w3)
+            qm[0, 1] = qm[1, 0] = qm[2, 3] = qm[3, 2] = q * q1_w2
+            qm[0, 3] = qm[3, 0] = q * q2_w2
+            qm[1, 2] = qm[2, 1] = q * -q2_w2
+            qm[1, 1] = qm[3, 3] = q * t
+            for r in range(4):
+                acc = 0.0
+                for n in range(4):
+                    acc += a[r, n] * xm[n]
+                xo[b, j, r] = acc
+                for n in range(4):
+                    acc = 0.0
+                    for k in range(4):
+                        acc += a[r, k] * pm[k, n]
+                    ap[r, n] = acc
+            for r in range(4):
+                for n in range(4):
+                    acc = 0.0
+                    for k in range(4):
+                        acc += ap[r, k] * a[n, k]
+                    po[b, j, r, n] = acc + qm[r, n]
+            for r in range(4):
+                for n in range(r + 1, 4):
+                    v = 0.5 * (po[b, j, r, n] + po[b, j, n, r])
+                    po[b, j, r, n] = v
+                    po[b, j, n, r] = v
+        # vertical CV channel (_cv1_predict)
+        xvo[b, 0] = xv[b, 0] + t * xv[b, 1]
+        xvo[b, 1] = xv[b, 1]
+        ap0 = pv[b, 0, 0] + t * pv[b, 1, 0]
+        ap1 = pv[b, 0, 1] + t * pv[b, 1, 1]
+        p00 = ap0 + ap1 * t + t ** 3 / 3 * qz
+        p01 = ap1 + t ** 2 / 2 * qz
+        p10 = pv[b, 1, 0] + pv[b, 1, 1] * t + t ** 2 / 2 * qz
+        p11 = pv[b, 1, 1] + t * qz
+        pvo[b, 0, 0] = p00
+        pvo[b, 1, 1] = p11
+        pvo[b, 0, 1] = pvo[b, 1, 0] = 0.5 * (p01 + p10)
+    return xo, po, co, xvo, pvo
+
+
+def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, ANN202 - numba kernel
+    """:meth:`IMMFilter.update` per track, written out for numba (same equations as
+    :func:`imm_combine` (innovation and NIS of the combined prediction), :func:`imm_update`
+    (model-conditioned updates, log-domain likelihoods, μ floor) and the vertical CV update).
+    Tracks without ``ok`` keep x⁻, P⁻, c̄ and get NaN innovations."""
+    b_n, m_n = mu.shape
+    xo = x.copy()
+    po = p.copy()
+    muo = mu.copy()
+    xvo = xv.copy()
+    pvo = pv.copy()
+    nu_o = np.full((b_n, 3), np.nan)
+    s_o = np.full((b_n, 3), np.nan)
+    nis_o = np.full(b_n, np.nan)
+    xc = np.empty(4)
+    k = np.empty((4, 2))
+    ks = np.empty((4, 2))
+    lw = np.empty(m_n)
+    log2pi = np.log(2.0 * np.pi)
+    for b in range(b_n):
+        if not ok[b]:
+            continue
+        # combined prediction: innovation and NIS (gating statistics)
+        for n in range(4):
+            acc = 0.0
+            for j in range(m_n):
+                acc += mu[b, j] * x[b, j, n]
+            xc[n] = acc
+        c00 = 0.0
+        c02 = 0.0
+        c20 = 0.0
+        c22 = 0.0
+        for j in range(m_n):
+            d0 = x[b, j, 0] - xc[0]
+            d2 = x[b, j, 2] - xc[2]
+            c00 += mu[b, j] * p[b, j, 0, 0]
+            c02 += mu[b, j] * p[b, j, 0, 2]
+            c20 += mu[b, j] * p[b, j, 2, 0]
+            c22 += mu[b, j] * p[b, j, 2, 2]
+        for j in range(m_n):
+            d0 = x[b, j, 0] - xc[0]
+            d2 = x[b, j, 2] - xc[2]
+            c00 += mu[b, j] * d0 * d0
+            c02 += mu[b, j] * d0 * d2
+            c20 += mu[b, j] * d2 * d0
+            c22 += mu[b, j] * d2 * d2
+        off = 0.5 * (c02 + c20)
+        s00 = c00 + rh[b, 0, 0]
+        s01 = off + rh[b, 0, 1]
+        s10 = off + rh[b, 1, 0]
+        s11 = c22 + rh[b, 1, 1]
+        det = s00 * s11 - s01 * s10
+        n0 = z[b, 0] - xc[0]
+        n1 = z[b, 1] - xc[2]
+        nz = z[b, 2] - xv[b, 0]
+        sz = pv[b, 0, 0] + rz[b]
+        nis_o[b] = (n0 * (s11 / det) * n0 + n0 * (-s01 / det) * n1 + n1 * (-s10 / det) * n0
+                    + n1 * (s00 / det) * n1) + nz * nz / sz
+        nu_o[b, 0], nu_o[b, 1], nu_o[b, 2] = n0, n1, nz
+        s_o[b, 0], s_o[b, 1], s_o[b, 2] = s00, s11, sz
+        # model-conditioned updates with H = [[1,0,0,0],[0,0,1,0]]
+        for j in range(m_n):
+            m00 = p[b, j, 0, 0] + rh[b, 0, 0]
+            m01 = p[b, j, 0, 2] + rh[b, 0, 1]
+            m10 = p[b, j, 2, 0] + rh[b, 1, 0]
+            m11 = p[b, j, 2, 2] + rh[b, 1, 1]
+            dm = m00 * m11 - m01 * m10
+            i00, i01, i10, i11 = m11 / dm, -m01 / dm, -m10 / dm, m00 / dm
+            v0 = z[b, 0] - x[b, j, 0]
+            v1 = z[b, 1] - x[b, j, 2]
+            for n in range(4):
+                h0, h1 = p[b, j, n, 0], p[b, j, n, 2]
+                k[n, 0] = h0 * i00 + h1 * i10
+                k[n, 1] = h0 * i01 + h1 * i11
+                ks[n, 0] = k[n, 0] * m00 + k[n, 1] * m10
+                ks[n, 1] = k[n, 0] * m01 + k[n, 1] * m11
+                xo[b, j, n] = x[b, j, n] + k[n, 0] * v0 + k[n, 1] * v1
+            for r in range(4):
+                for n in range(4):
+                    po[b, j, r, n] = p[b, j, r, n] - (ks[r, 0] * k[n, 0] + ks[r, 1] * k[n, 1])
+            for r in range(4):
+                for n in range(r + 1, 4):
+                    v = 0.5 * (po[b, j, r, n] + po[b, j, n, r])
+                    po[b, j, r, n] = v
+                    po[b, j, n, r] = v
+            sn0 = i00 * v0 + i01 * v1
+            sn1 = i10 * v0 + i11 * v1
+            loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
+            lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
+        top = lw.max()
+        tot = 0.0
+        for j in range(m_n):
+            lw[j] = np.exp(lw[j] - top)
+            tot += lw[j]
+        for j in range(m_n):
+            lw[j] = lw[j] / tot
+        if mu_floor > 0:
+            tot = 0.0
+            for j in range(m_n):
+                lw[j] = max(lw[j], mu_floor)
+                tot += lw[j]
+            for j in range(m_n):
+                lw[j] = lw[j] / tot
+        for j in range(m_n):
+            muo[b, j] = lw[j]
+        # vertical CV channel, H = [1, 0]
+        k0 = pv[b, 0, 0] / sz
+        k1 = pv[b, 1, 0] / sz
+        xvo[b, 0] = xv[b, 0] + k0 * nz
+        xvo[b, 1] = xv[b, 1] + k1 * nz
+        pvo[b, 0, 0] = pv[b, 0, 0] - sz * k0 * k0
+        pvo[b, 1, 1] = pv[b, 1, 1] - sz * k1 * k1
+        pvo[b, 0, 1] = pvo[b, 1, 0] = 0.5 * ((pv[b, 0, 1] - sz * k0 * k1) + (pv[b, 1, 0] - sz * k1 * k0))
+    return xo, po, muo, xvo, pvo, nu_o, s_o, nis_o
+
+
+@cache
+def _imm_update_nb():  # noqa: ANN202 - the compiled kernel (numba's on-disk cache)
+    import numba
+    return numba.njit(cache=True, nogil=True)(_imm_update_py)
+
+
+@cache
+def _imm_predict_nb():  # noqa: ANN202 - the compiled kernel, built (or loaded from numba's cache) on first use
+    import numba
+    return numba.njit(cache=True, nogil=True)(_imm_predict_py)
+
+
 # --------------------------------------------------------------------------- TrackFilter
 
 
@@ -378,6 +628,8 @@ class IMMFilter(TrackFilter):
         sigma_v0: horizontal velocity σ (m/s) when a track starts from a single plot
                   (:meth:`init`; velocity 0, vertical velocity σ = sigma_v0/10), default 150
         mu_floor: floor on μ after each update (renormalised), default 1e-12
+        compiled: predict and update with compiled per-track kernels (numba, cached on disk;
+                  same equations, round-off differences only) when q is isotropic; False: numpy
     """
 
     name = "imm"
@@ -387,8 +639,13 @@ class IMMFilter(TrackFilter):
 
     def __init__(self, omegas: Sequence[float] = PAPER_OMEGAS, tpm: ArrayLike = PAPER_TPM,
                  mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, q_z: float = 1.0,
-                 p00: Sequence[float] = PAPER_P00, sigma_v0: float = 150.0, mu_floor: float = 1e-12):
+                 p00: Sequence[float] = PAPER_P00, sigma_v0: float = 150.0, mu_floor: float = 1e-12,
+                 compiled: bool = True):
         self.core = HorizontalIMM(omegas, tpm, mu0, q, mu_floor)
+        qx, qy = (q, q) if np.isscalar(q) else q
+        # the compiled prediction has the isotropic closed form only (anisotropic q: Van Loan)
+        self._q_iso = float(qx) if compiled and float(qx) == float(qy) else None
+        self._omegas = np.asarray(self.core.omegas, float)
         self.q_z = float(q_z)
         self.p00 = np.asarray(p00, float)
         self.sigma_v0 = float(sigma_v0)
@@ -422,6 +679,12 @@ class IMMFilter(TrackFilter):
     # ---- cycle
     def predict(self, state: State, dt: F64) -> State:
         dt = np.broadcast_to(np.asarray(dt, float), (len(state["mu"]),))
+        if self._q_iso is not None and len(dt):
+            c = np.ascontiguousarray
+            x, p, cbar, xv, pv = _imm_predict_nb()(
+                c(state["x"], float), c(state["P"], float), c(state["mu"], float), c(dt), self._omegas,
+                c(self.core.tpm), self._q_iso, c(state["xv"], float), c(state["Pv"], float), self.q_z)
+            return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
         x, p, cbar = self.core.predict(state["x"], state["P"], state["mu"], dt)
         xv, pv = _cv1_predict(state["xv"], state["Pv"], dt, self.q_z)
         return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
@@ -438,6 +701,12 @@ class IMMFilter(TrackFilter):
         z, mask = np.asarray(z, float), np.asarray(mask, bool)
         rh, rz = self._split_r(np.asarray(r, float))
         ok = mask & np.all(np.isfinite(z), axis=1)
+        if self._q_iso is not None and len(ok):
+            c = np.ascontiguousarray
+            x, p, mu, xv, pv, nu, s, nis = _imm_update_nb()(
+                c(state["x"], float), c(state["P"], float), c(state["mu"], float), c(state["xv"], float),
+                c(state["Pv"], float), c(z), c(rh, float), c(rz, float), c(ok), self.core.mu_floor)
+            return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}, Innovation(nu, s, nis)
         zz = np.where(ok[:, None], z, 0.0)
         rh = np.where(ok[:, None, None], rh, np.eye(2))
         rz = np.where(ok, rz, 1.0)
