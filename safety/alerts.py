@@ -40,6 +40,9 @@ T^пор), an episode is
 * **nuisance** — no LoS, but a proximity interval of the pair overlaps W;
 * **false** — neither (also every alert without two distinct truths).
 
+Alert epochs outside the truth's time span (e.g. tracks coasting after the recording's
+reference ends) are not scored: there is nothing to judge them by.
+
 LoS episodes — :func:`los_episodes`
 ----------------------------------
 Every LoS episode overlapping a picture's time span (per run) is **alerted** when an alert
@@ -517,7 +520,12 @@ def _los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us
 def _score(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig, id_col: str,
            methods: list[str] | None, frame: geo.LocalFrame | None,
            intervals: tuple[pl.DataFrame, pl.DataFrame] | None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """(alerts table, LoS table, grid) of the pictures in ``conflicts``."""
+    """(alerts table, LoS table, grid) of the pictures in ``conflicts``; only epochs inside the
+    truth's time span are scored (after the reference ends nothing can judge an alert)."""
+    if truth.height and "time" in truth.columns:
+        t0, t1 = truth["time"].min(), truth["time"].max()
+        inside = pl.col("epoch").cast(TIME).is_between(pl.lit(t0).cast(TIME), pl.lit(t1).cast(TIME))
+        conflicts, id_map = conflicts.filter(inside), id_map.filter(inside)
     los, prox = truth_intervals(truth, cfg, frame) if intervals is None else intervals
     shared = "run" not in truth.columns
     link_us = int(round(cfg.link * _US))

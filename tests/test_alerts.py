@@ -180,6 +180,15 @@ def test_genuine_nuisance_false_and_warning(truth):
     assert los["warning_s"][0] == pytest.approx(LOS_12[0] - 100.0, abs=1e-5)
 
 
+def test_alerts_after_the_reference_ends_are_not_scored(truth):
+    """Truth ends at 300 s: an alert at 305–310 s (tracks coasting past the recording's end)
+    cannot be judged and is left out; the same pair alerting at 150 s is a false alert."""
+    late = alert_episodes(_alerts({(15, 16): [305, 310]}), _id_map(), truth, CFG)
+    assert late.height == 0
+    early = alert_episodes(_alerts({(15, 16): [150]}), _id_map(), truth, CFG)
+    assert early["classification"].to_list() == ["false"]
+
+
 def test_fragmented_ids_make_one_episode(truth):
     """Track 12 is replaced by 22 (same aircraft 2) mid-alert, and 11's map is wrong at one epoch:
     one episode on the aircraft pair (1, 2), not two or three."""
