@@ -1,0 +1,117 @@
+"""Memory against the length of the recording (issue 16 item 6).
+
+Runs ``tertiary run`` on terminal-area at the default scenario's traffic rate (200 aircraft per
+hour, so a longer recording is a longer recording of the same traffic, not the same 200 aircraft
+spread thinner) for several durations, in two
+configurations, each in a fresh process, and records wall time, reports/s and the peak resident
+memory of the process (``ru_maxrss`` of the child):
+
+* ``production``: one fusion method, one tracker, conflicts, evaluation, store
+  (``--methods information --filters imm_sym``);
+* ``full``: every default fusion method, the centralised reference and both default trackers.
+
+Targets (issue 16): the peaks of 1 h, 4 h and 12 h within 15 % of each other; < 1.5 GB for
+production and < 3 GB for full. The pipeline still holds every table of the run in memory (no
+windowed engine yet), so the peak grows with the duration; the benchmark measures by how much.
+
+    python benchmarks/bench_memory.py [--durations 3600,14400,43200] [--configs production,full]
+                                      [--aircraft-per-hour 200] [--full-max-s 14400]
+
+Results: ``benchmarks/results/bench_memory.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _util import record  # noqa: E402
+
+CONFIGS = {
+    "production": ["--methods", "information", "--filters", "imm_sym"],
+    "full": [],
+}
+TARGET_MIB = {"production": 1.5 * 1024, "full": 3.0 * 1024}
+
+
+#: the child runs the CLI and, whatever its exit, prints its own peak RSS (KiB) as the last line
+_CHILD = ("import resource, runpy, sys\n"
+          "sys.argv = ['tertiary'] + sys.argv[1:]\n"
+          "try:\n    runpy.run_module('tertiary.cli', run_name='__main__')\n"
+          "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
+          "print('PEAK_KIB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)\n"
+          "sys.exit(code or 0)\n")
+
+
+def _one(duration_s: float, config: str, work: Path, per_hour: float) -> dict:
+    """One `tertiary run` in a child process: wall time, its own peak RSS and the reports it read."""
+    out = work / f"{config}-{int(duration_s)}"
+    aircraft = max(1, round(per_hour * duration_s / 3600.0))
+    cmd = [sys.executable, "-c", _CHILD, "run", "--duration", str(duration_s), "--aircraft", str(aircraft),
+           "--out", str(out),
+           "--force", "--no-report", "--quiet", *CONFIGS[config]]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONHASHSEED": "0"})
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd[3:])} failed ({proc.returncode}): {proc.stderr.strip()[-400:]}")
+    reports = _reports_in(proc.stdout)
+    peak = [int(l.split()[1]) for l in proc.stdout.splitlines() if l.startswith("PEAK_KIB")]
+    peak_mib = peak[-1] / 1024 if peak else float("nan")
+    db = out / "results.duckdb"
+    return {"config": config, "duration_s": duration_s, "aircraft": aircraft, "wall_s": round(wall, 2),
+            "reports": reports,
+            "reports_per_s": round(reports / wall, 1) if reports else None,
+            "peak_rss_mib": round(peak_mib, 1), "db_mb": round(db.stat().st_size / 1e6, 1) if db.exists() else None}
+
+
+def _reports_in(stdout: str) -> int:
+    for line in stdout.splitlines():
+        if "reports in" in line:
+            return int(line.split(":", 1)[1].split("reports in")[0].strip().replace(",", ""))
+    return 0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--durations", default="3600,14400,43200")
+    ap.add_argument("--configs", default="production,full")
+    ap.add_argument("--aircraft-per-hour", type=float, default=200.0)
+    ap.add_argument("--full-max-s", type=float, default=14400.0,
+                    help="skip longer full-configuration runs (they hold every table of 14 pictures in memory)")
+    args = ap.parse_args()
+    durations = [float(d) for d in args.durations.split(",")]
+    configs = args.configs.split(",")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for config in sorted(configs, key=lambda c: list(CONFIGS).index(c)):
+            for d in sorted(durations):
+                if config == "full" and d > args.full_max_s:
+                    rows.append({"config": config, "duration_s": d, "skipped": f"longer than --full-max-s {args.full_max_s:g}"})
+                    continue
+                row = _one(d, config, Path(tmp), args.aircraft_per_hour)
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    verdict = {}
+    for config in configs:
+        peaks = [r["peak_rss_mib"] for r in rows
+                 if r["config"] == config and r.get("peak_rss_mib") == r.get("peak_rss_mib") and "peak_rss_mib" in r]
+        if peaks:
+            verdict[config] = {"peak_max_mib": max(peaks), "spread": round(max(peaks) / min(peaks) - 1, 3),
+                               "within_15_percent": max(peaks) <= 1.15 * min(peaks),
+                               "below_target": max(peaks) < TARGET_MIB[config], "target_mib": TARGET_MIB[config]}
+    path = record("bench_memory", {"runs": rows, "verdict": verdict,
+                                   "note": "whole-run pipeline (no windowed engine): memory grows with the duration"})
+    print(json.dumps(verdict, indent=2))
+    print(f"recorded in {path}")
+
+
+if __name__ == "__main__":
+    main()
