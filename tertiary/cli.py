@@ -27,6 +27,7 @@ from rich.table import Table
 from typer.core import TyperGroup
 
 from tertiary import pipeline
+from tertiary.engine import DEFAULT_WINDOW_S, check_window
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS
@@ -251,8 +252,16 @@ def _writable_dir(path: Path, option: str) -> None:
 
 
 def holds_run(path: Path) -> bool:
-    """True when ``path`` already holds a run (its database or report)."""
-    return (path / "results.duckdb").exists() or (path / "report.html").exists()
+    """True when ``path`` already holds a run (its database, report or a windowed run's manifest)."""
+    return any((path / f).exists() for f in ("results.duckdb", "report.html", "manifest.json"))
+
+
+def _refuse_incomplete(run_dir: Path) -> None:
+    """A :class:`DataError` when ``run_dir`` holds a windowed run that is not complete."""
+    from tertiary.engine import incomplete_message
+    text = incomplete_message(run_dir)
+    if text:
+        raise DataError(text, path=str(run_dir))
 
 
 def choose_run_dir(out: Path | None, scenario_name: str, force: bool) -> tuple[Path, str | None]:
@@ -431,12 +440,27 @@ def run(
                                                               "estimates]")] = None,
     range_variant: Annotated[str, typer.Option(help="(3.11)/(3.62) of --range-channel: corrected or printed")]
         = "corrected",
+    window: Annotated[float, typer.Option("--window", help="process the recording in time windows of this many "
+                                                           "seconds (>= 1; 0: one window), carrying every stage's "
+                                                           "state; each window is stored as it completes")]
+        = DEFAULT_WINDOW_S,
+    resume: Annotated[Optional[Path], typer.Option("--resume", help="continue the killed run in RUN_DIR from its "
+                                                                    "last complete window (same options and "
+                                                                    "dataset)")] = None,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
 
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     _set_log(quiet, log_format)
+    window_s = None if window == 0 else check_window(window)
+    if resume is not None:
+        if out is not None and out.resolve() != resume.resolve():
+            raise OptionError("--resume names the run directory; omit --out or give the same directory",
+                              option="--resume")
+        if not (resume / "manifest.json").is_file():
+            raise OptionError(f"{resume} holds no windowed run to resume (no manifest.json)", option="--resume")
+        out, force = resume, True
     cfg = pipeline.PipelineConfig(methods=_names(methods, ALL_METHODS, "--methods"),
                                   filters=_names(filters, sorted(REGISTRY), "--filters"),
                                   centralized=centralized, strict=strict, safety_picture=safety_picture,
@@ -456,7 +480,7 @@ def run(
         if given:
             raise OptionError(f"--{given[0].replace('_', '-')} applies only when the job simulates; "
                               "omit DATASET or the option", option=f"--{given[0].replace('_', '-')}")
-        ds = read_dataset(dataset, origin=_origin(origin))
+        ds = read_dataset(dataset, origin=_origin(origin), lazy=True)   # read window by window
         run_dir, note = choose_run_dir(out, ds.scenario.name, force)
     else:
         scen = build_scenario(scenario, **sim)
@@ -470,7 +494,8 @@ def run(
     if range_channel is not None:   # alignment recomputes every local track with the chosen channel
         ds = dataclasses.replace(ds, reports=ds.reports.drop([c for c in ESTIMATE_COLUMNS if c in ds.reports.columns]))
     with _Steps("pipeline") as say:
-        db = pipeline.run(ds, run_dir, cfg, progress=say)
+        db = pipeline.run(ds, run_dir, cfg, progress=say, window_s=window_s, resume=resume is not None,
+                          dataset_label=str(dataset) if dataset is not None else "")
     html_path = None
     if report:
         from tertiary.report import build_report
@@ -762,6 +787,7 @@ def report_cmd(
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="HTML file [default: RUN_DIR/report.html]")] = None,
 ) -> None:
     """Write the self-contained HTML report of a run (figures from the sql/ reports)."""
+    _refuse_incomplete(run_dir)
     if not (run_dir / "results.duckdb").is_file():
         raise DataError("no run database here (expected results.duckdb)", path=str(run_dir))
     if out is not None and out.is_dir():
@@ -854,6 +880,7 @@ def sql_cmd(
         params[key.strip()] = _param_value(value)
     if query is not None and params:
         raise OptionError("applies to named reports only", option="--param")
+    _refuse_incomplete(run_dir)
     with sql_reports.open_read_only(run_dir) as store:
         if query is not None:
             frame, title = sql_reports.query(store, query, timeout_s=timeout), "query"

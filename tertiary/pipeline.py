@@ -17,6 +17,7 @@ rejects and a run record with ``status``, ``failed_stage`` and ``error`` before 
 from __future__ import annotations
 
 import hashlib
+import math
 import platform
 import time
 import warnings
@@ -26,14 +27,14 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import dataclasses
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import polars as pl
 
 from tertiary import align as align_stage
-from tertiary import schema
+from tertiary import geo, schema
 from tertiary.align import AlignConfig, AlignPlan
-from tertiary.associate import AssociationConfig, associate
+from tertiary.associate import AssociationConfig, AssociationStats, associate
 from tertiary.centralized import CentralizedConfig, centralized_fusion
 from tertiary.indicators import indicators
 from tertiary.clustering import ClusteringConfig, cluster
@@ -44,6 +45,8 @@ from tertiary.evaluation import Evaluation, EvaluationConfig, association_metric
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
+from tertiary.engine import (DEFAULT_WINDOW_S, END_US, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
+                             Window, check_window, config_hash, windows)
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
@@ -324,75 +327,337 @@ Sink = Callable[[str, pl.DataFrame], None]
 
 
 def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None,
-            sink: Sink | None = None, notes: list[str] | None = None) -> Results:
-    """Run every stage in memory and return the tables (``cfg`` None = the defaults).
+            sink: Sink | None = None, notes: list[str] | None = None, window_s: float | None = None,
+            parts=None, resume_state: "StreamState | None" = None, start: int = 0) -> Results:
+    """Run every stage and return the tables (``cfg`` None = the defaults).
 
-    ``sink(name, frame)`` receives each table as soon as its stage completes (``run`` stores
-    them, so a later failure loses nothing); ``notes`` (if given) collects the run's notes as
-    they arise, so they survive a failure. An exception carries the failing stage's name in
-    ``exc.tertiary_stage``. No valid report left → :class:`DataError` after the rejects are sunk.
+    The streamed stages see the run in windows of ``window_s`` seconds (None: one window) and
+    carry their state across them (:mod:`tertiary.engine`); ``parts`` receives each window's rows
+    (default: kept in memory), then the whole-run stages (evaluation, alert scoring) run on them.
+    ``sink(name, frame)`` receives each table once it is final; ``notes`` (if given) collects the
+    run's notes as they arise, so they survive a failure. An exception carries the failing
+    stage's name in ``exc.tertiary_stage``. No valid report left → :class:`DataError` after the
+    rejects are sunk.
     """
     cfg = check_config(cfg)
+    window_s = check_window(window_s)
     clock = _Clock(progress or (lambda _m: None))
+    sink = sink or (lambda _n, _f: None)
+    parts = parts if parts is not None else MemoryParts()
     try:
-        return _process(ds, cfg, clock, sink or (lambda _n, _f: None), notes)
+        return _process(ds, cfg, clock, sink, notes, window_s, parts, resume_state, start)
     except Exception as exc:
         exc.tertiary_stage = clock.name or "validate"  # type: ignore[attr-defined]
+        if not getattr(exc, "_sunk", False):
+            _sink_partial(parts, sink)
         raise
 
 
-def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes: list[str] | None) -> Results:
-    t_all = time.perf_counter()
+def _sink_partial(parts, sink: Sink) -> None:
+    """After a failure: every streamed table of the windows that completed."""
+    for name in STREAMED:
+        try:
+            frame = parts.table(name)
+        except Exception:  # a part that cannot be read back: the record says the run failed anyway
+            continue
+        if frame is not None:
+            sink(name, frame)
+
+
+@dataclass
+class RunContext:
+    """What every window of a run shares: the validated radars (and the ids of rejected ones), the
+    system frame, the epoch grid origin and how long validated reports stay at hand."""
+
+    radars: pl.DataFrame
+    gone: list[int]
+    origin: geo.LocalFrame
+    grid_origin_us: int | None
+    keep_us: int
+
+
+@dataclass(frozen=True)
+class StreamState:
+    """Every streamed stage's carried state after a window (pickled by the engine's checkpoint)."""
+
+    align: Any
+    associate: Any
+    fuse: Any
+    centralized: Any
+    cluster: Any
+    track: Any
+    conflicts: Any
+    identity: pl.DataFrame          # last Mode S address per (run, filter, method, track_id)
+    recent: pl.DataFrame            # validated reports still needed by a later window (plots)
+    counts: dict = field(default_factory=dict)
+
+
+def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
+    """The run's shared context and the radar rejects."""
+    radars, rej_r, raw_r = _validate_table(schema.as_frame(ds.radars, "radars"), "radars", cfg.strict, notes,
+                                           limits=cfg.limits)
+    gone = (raw_r["radar_id"].cast(pl.UInt32, strict=False).drop_nulls().to_list()
+            if "radar_id" in raw_r.columns else [])
+    if radars.height == 0:
+        notes.append("radars: no valid radar; every report is rejected")
+    period = radars["scan_period_s"].max() if radars.height else None
+    slowest = float(period) if period is not None and math.isfinite(period) else 12.0
+    hold_s = cfg.align.max_age_scans * slowest + 4 * slowest + _max_delay_s(cfg)
+    origin_us = (source.first_us // US) * US if source.windowable else None
+    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US)), rej_r
+
+
+def _max_delay_s(cfg: PipelineConfig) -> float:
+    return 60.0 if cfg.collection is not None else 0.0
+
+
+def _ingest_window(raw: pl.DataFrame, ctx: RunContext, cfg: PipelineConfig, notes: list[str]
+                   ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(valid reports, their input rows, ingest rejects) of one window's input rows (``raw``
+    carries each row's input position in ``__input_row``)."""
+    if raw.height == 0:
+        return raw.drop(_INPUT_ROW), pl.DataFrame(schema={"report_id": pl.UInt64, "row_index": pl.UInt64}), \
+            _no_rejects()
+    reports, rej_p, _ = _validate_table(raw, "reports", cfg.strict, notes, radars=ctx.radars, limits=cfg.limits,
+                                        rejected_radars=ctx.gone)
+    rows = reports.select("report_id", pl.col(_INPUT_ROW).cast(pl.UInt64).alias("row_index"))
+    return reports.drop(_INPUT_ROW), rows, rej_p
+
+
+def init_stream_state(cfg: PipelineConfig) -> StreamState:
+    from safety.conflicts import init_conflict_state
+    from tertiary.associate import init_associate_state
+    from tertiary.centralized import init_centralized_state
+    from tertiary.clustering import init_cluster_state
+    from tertiary.fusion import init_fuse_state
+    from tertiary.tracker import init_track_state
+    return StreamState(align=align_stage.init_align_state(), associate=init_associate_state(),
+                       fuse=init_fuse_state(), centralized=init_centralized_state(), cluster=init_cluster_state(),
+                       track=init_track_state(), conflicts=init_conflict_state(),
+                       identity=pl.DataFrame(schema={"run": pl.UInt32, "filter": pl.String, "method": pl.String,
+                                                     "track_id": pl.UInt64, "mode_s": pl.String}),
+                       recent=pl.DataFrame())
+
+
+def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.DataFrame, w: Window,
+                  clock: "_Clock", notes: list[str]) -> tuple[dict[str, pl.DataFrame], StreamState]:
+    """One window through every streamed stage: ingest → align → associate → fuse (+ the
+    centralised reference) → cluster → track → conflicts. Outputs hold the window's epochs only
+    (``reports``/``rejects``: the window's input rows)."""
+    from safety.conflicts import conflicts_step
+    from tertiary.associate import associate_step
+    from tertiary.centralized import centralized_step
+    from tertiary.clustering import cluster_step
+    from tertiary.fusion import fuse_step
+    from tertiary.tracker import track_step
+
     clock.stage("validate")
-    ing = screen(ds, cfg)
-    if notes is not None:           # one list: later notes (capacity, storage) land in it too
-        notes.extend(ing.notes)
-        ing.notes = notes
-    for name in ("radars", "reports", "truth"):
-        sink(name, getattr(ing, name))
-    sink("rejects", ing.rejects)
-    if ing.valid_reports == 0:
-        top = (ing.rejects.group_by("reason").len().sort("len", descending=True).head(3)
-               if ing.rejects.height else pl.DataFrame({"reason": [], "len": []}))
-        why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
-        n_in = _height(ds.reports)
-        raise DataError(f"no valid report left: all {n_in:,} reports rejected"
-                        + (f" (most common: {why})" if why else ""))
+    reports, report_rows, rejects = _ingest_window(raw, ctx, cfg, notes)
+    recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
     clock.stage("align")
-    aligned = align_stage.expand(ing.plan, cfg.align)
-    rejects = ing.rejects
-    _check_accounting(_height(ds.reports), aligned, rejects)
-    sink("aligned", aligned)
+    (aligned, align_rej), s_align = align_stage.align_step(st.align, reports, ctx.radars, ctx.origin, w.t0_us,
+                                                           w.t1_us, ctx.grid_origin_us, cfg.align)
+    rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
+    rejects = pl.concat([rejects, _stage_rejects(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
     clock.stage("associate")
-    associations, stats = associate(aligned, cfg.association)
-    sink("associations", associations)
+    (associations, stats), s_assoc = associate_step(st.associate, aligned, w.t0_us, w.t1_us, cfg.association)
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
-    # the measured plots beside the radars' estimates: the tracker's independent measurements
-    plots = measured_plots(ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
-    fused = (fuse(rows, ing.radars, cfg.methods, cfg.fusion, origin=ds.origin, plots=plots) if cfg.methods
-             else schema.empty_frame("fused", False))
+    fresh = recent.join(aligned.filter(pl.col("fresh")).select("run", "report_id"), on=["run", "report_id"],
+                        how="semi") if aligned.height else recent.clear()
+    plots = measured_plots(fresh, ctx.radars, ctx.origin, cfg.align.local_tracker.altitude_sigma_m)
+    fused, s_fuse = fuse_step(st.fuse, rows, ctx.radars, cfg.methods, cfg.fusion, ctx.origin, plots,
+                              w.t0_us, w.t1_us)
+    s_central = st.centralized
     if cfg.centralized:
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
-        central = centralized_fusion(ing.reports, ing.radars, associations, keys, ds.origin, cfg.centralized_cfg)
-        fused = pl.concat([fused, central], how="diagonal_relaxed")   # no freshness columns: null
-    sink("fused", fused)
+        central, s_central = centralized_step(st.centralized, recent, ctx.radars, associations, keys, ctx.origin,
+                                              cfg.centralized_cfg, w.t0_us, w.t1_us)
+        fused = pl.concat([fused, central], how="diagonal_relaxed")
     clock.stage("cluster")
-    clusters = cluster(fused, cfg.clustering)
-    sink("clusters", clusters)
+    clusters, s_cluster = cluster_step(st.cluster, fused, w.t0_us, w.t1_us, cfg.clustering)
     clock.stage("track")
     pictures = fused.filter(pl.col("method") != "centralized")
-    tracks = (track_methods(pictures, cfg.filters, cfg.tracker) if cfg.filters and pictures.height
-              else schema.empty_frame("tracks", False))
-    tracks = track_identity(tracks, pictures)
-    sink("tracks", tracks)
+    tracks, s_track = track_step(st.track, pictures, cfg.filters, cfg.tracker, w.t0_us, w.t1_us)
+    tracks, identity = _identity_step(st.identity, tracks, pictures)
+    conflicts, s_conf = schema.empty_frame("conflicts", False), st.conflicts
+    if cfg.safety:
+        clock.stage("conflicts")
+        picture, id_col = _safety_picture(cfg, fused, tracks, notes)
+        conflicts, s_conf = conflicts_step(st.conflicts, picture, cfg.conflicts, id_col, ctx.origin, w.t0_us, w.t1_us)
+    keep_from = (w.t1_us if w.t1_us < END_US else END_US) - ctx.keep_us
+    recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
+    counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
+                         if recent.height else rows_in.clear())
+    out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
+           "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
+    return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts)
+
+
+def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
+    """Association statistics summed over windows; ``_rows`` the input rows of the reports kept."""
+    out = dict(counts)
+    for k in ("pairs", "components", "ambiguous_components", "reassignments"):
+        out[k] = out.get(k, 0) + int(getattr(stats, k, 0) or 0)
+    out["_rows"] = rows
+    return out
+
+
+def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
+                   ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`track_identity` carried across windows: each track's Mode S address continues from
+    its last one of the previous windows while it coasts."""
+    if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
+        return tracks, last
+    keys = ["run", "filter", "method", "track_id"]
+    ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), "mode_s")
+    t = (tracks.drop("mode_s", strict=False)
+         .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
+         .with_row_index("__i"))
+    first = t.group_by(keys).agg(pl.col("__i").min())
+    seed = first.join(last.rename({"mode_s": "__last"}), on=keys, how="inner").select("__i", "__last")
+    t = (t.join(seed, on="__i", how="left", maintain_order="left")
+         .with_columns(pl.when(pl.col("mode_s").is_null()).then(pl.col("__last")).otherwise(pl.col("mode_s"))
+                       .alias("mode_s"))
+         .drop("__last")
+         .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
+    now = (t.sort("epoch").group_by(keys).agg(pl.col("mode_s").last()).filter(pl.col("mode_s").is_not_null()))
+    carried = pl.concat([last.join(now.select(keys), on=keys, how="anti"), now.select(last.columns).cast(last.schema)])
+    return t.drop("__i"), carried
+
+
+def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes: list[str] | None,
+             window_s: float | None = None, parts=None, resume_state: StreamState | None = None,
+             start: int = 0) -> Results:
+    """Stream every window through :func:`pipeline_step`, then finalize on the whole run."""
+    t_all = time.perf_counter()
+    notes = [] if notes is None else notes
+    parts = parts if parts is not None else MemoryParts()
+    ctx, st, source = _stream(ds, cfg, clock, notes, window_s, parts, resume_state, start)
+    return _finalize(ds, cfg, ctx, st, parts, clock, sink, notes, source.n_rows, t_all)
+
+
+def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEFAULT_WINDOW_S,
+           progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None
+           ) -> tuple["RunContext", "StreamState"]:
+    """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
+    slice of a distributed run does (:mod:`tertiary.distributed`); ``grid_origin_us`` puts the
+    epochs on a grid given from outside (the whole recording's), not this input's first second."""
+    cfg = check_config(cfg)
+    ctx, st, _ = _stream(ds, cfg, _Clock(progress or (lambda _m: None)), [] if notes is None else notes,
+                         check_window(window_s), parts, None, 0, grid_origin_us)
+    return ctx, st
+
+
+def finalize(ds: Dataset, cfg: PipelineConfig, ctx: "RunContext", st: "StreamState", parts, n_reports: int,
+             progress: Progress | None = None, sink: Sink | None = None, notes: list[str] | None = None) -> Results:
+    """The whole-run stages on streamed tables held by ``parts`` (see :func:`stream`)."""
+    return _finalize(ds, check_config(cfg), ctx, st, parts, _Clock(progress or (lambda _m: None)),
+                     sink or (lambda _n, _f: None), [] if notes is None else notes, n_reports, time.perf_counter())
+
+
+def _stream(ds: Dataset, cfg: PipelineConfig, clock: _Clock, notes: list[str], window_s: float | None, parts,
+            resume_state: "StreamState | None", start: int, grid_origin_us: int | None = None):
+    notes.extend(getattr(ds, "notes", []))
+    clock.stage("validate")
+    source = ReportSource(ds.reports)
+    if source.n_rows == 0:
+        raise DataError("reports: the table has no rows; nothing to process")
+    window_s = _windowable(cfg, source, window_s, notes)
+    ctx, rej_radars = _context(ds, cfg, notes, source)
+    if grid_origin_us is not None:
+        ctx.grid_origin_us = grid_origin_us
+    st = resume_state or init_stream_state(cfg)
+    if start == 0 and rej_radars.height:
+        parts.write(Window(-1, 0, 0), {"rejects": rej_radars})
+    ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start, source.first_us))
+    meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
+    for w in ws:
+        raw = source.rows(w)
+        out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
+        parts.write(w, out)
+        parts.checkpoint(w, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
+        if window_s is not None:
+            meter.window(w, max(w.t0_us, source.first_us), min(w.t1_us, source.last_us + 1), raw.height)
+    return ctx, st, source
+
+
+def _span_text(w: Window, source: ReportSource) -> str:
+    from tertiary.engine import _utc
+    return _utc(min(w.t1_us, (source.last_us or 0) + 1)) if source.windowable else "end"
+
+
+def _windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | None, notes: list[str]) -> float | None:
+    """``window_s``, or None (one window) with a note when the run cannot be cut in time."""
+    if window_s is None:
+        return None
+    why = ("the reports' time column is not a timestamp" if not source.windowable else
+           "radar registration is estimated from the whole recording" if cfg.register else
+           "the report collection queue is simulated over the whole recording" if cfg.collection is not None else
+           "strict mode stops at the first invalid row of the whole input" if cfg.strict else None)
+    if why:
+        notes.append(f"processed as one window: {why}")
+        return None
+    return window_s
+
+
+def _table(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
+    t = parts.table(name)
+    return empty if t is None else t
+
+
+def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts, clock: _Clock,
+              sink: Sink, notes: list[str], n_in: int, t_all: float) -> Results:
+    """The whole-run stages on the streamed tables: truth validation, the one evaluation stage,
+    alert scoring and STCA curves, the bound, capacity, requirements — and every table sunk."""
+    reports = _table(parts, "reports", schema.empty_frame("reports", False))
+    rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
+                                                           maintain_order=True)
+    truth_in = schema.as_frame(ds.truth, "truth")
+    truth = truth_in
+    if truth_in.height:
+        truth, rej_t, _ = _validate_table(truth_in, "truth", cfg.strict, notes, limits=cfg.limits,
+                                          time_window=_truth_window(reports, cfg.limits))
+        if rej_t.height:
+            rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
+    ing = Ingested(ctx.radars, reports, truth, rejects, notes)
+    for name in ("radars", "reports", "truth"):
+        sink(name, getattr(ing, name))
+    sink("rejects", rejects)
+    aligned = _table(parts, "aligned", align_stage.empty_aligned())
+    if aligned.height == 0:
+        top = (rejects.group_by("reason").len().sort("len", descending=True).head(3)
+               if rejects.height else pl.DataFrame({"reason": [], "len": []}))
+        why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
+        raise DataError(f"no valid report left: all {n_in:,} reports rejected"
+                        + (f" (most common: {why})" if why else ""))
+    _check_accounting(n_in, aligned, rejects)
+    tables = {name: _table(parts, name, pl.DataFrame()) for name in ("associations", "fused", "clusters", "tracks",
+                                                                     "conflicts")}
+    associations, fused, clusters, tracks = (tables[k] for k in ("associations", "fused", "clusters", "tracks"))
+    conflicts = tables["conflicts"] if tables["conflicts"].width else schema.empty_frame("conflicts", False)
+    if tracks.width == 0:
+        tracks = schema.empty_frame("tracks", False)
+    for name, frame in (("aligned", aligned), ("associations", associations), ("fused", fused),
+                        ("clusters", clusters), ("tracks", tracks), ("conflicts", conflicts)):
+        sink(name, frame)
+    stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
+                             ambiguous_components=st.counts.get("ambiguous_components", 0),
+                             targets=int(associations["target_id"].n_unique()) if associations.height else 0,
+                             reassignments=st.counts.get("reassignments", 0))
+    return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
+                         sink, n_in, t_all)
+
+
+def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame, associations: pl.DataFrame,
+                  stats: AssociationStats, fused: pl.DataFrame, clusters: pl.DataFrame, tracks: pl.DataFrame,
+                  conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float) -> Results:
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
-    from safety import (AlertConfig, capacity_from_metrics, predict_conflicts, slim_conflicts, stca_tables,
-                        stca_tradeoff, tradeoff_metrics)
+    from safety import (AlertConfig, capacity_from_metrics, stca_tables, stca_tradeoff, tradeoff_metrics)
 
-    conflicts, alerts = schema.empty_frame("conflicts", False), pl.DataFrame()
+    alerts = pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
     report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
     empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
@@ -400,30 +665,25 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     if has_truth:
         clock.stage("evaluation")
         ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, aligned, ing, ds)
-    if cfg.safety:
-        clock.stage("conflicts")
-        picture, id_col = _safety_picture(cfg, fused, tracks, ing.notes)
-        conflicts = slim_conflicts(predict_conflicts(picture, cfg.conflicts, id_col=id_col, frame=ds.origin))
-        sink("conflicts", conflicts)
-        if has_truth:
-            clock.stage("score_alerts")
-            # which aircraft each picture row represents: the one matcher's answer
-            id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
-            if id_map.width == 0:           # nothing scored (e.g. every target tentative)
-                id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
-                                              id_col: pl.UInt64, "truth_id": pl.Int64})
-            acfg = AlertConfig(conflict=cfg.conflicts)
-            safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
-                                                        methods=sorted(picture["method"].unique().to_list()),
-                                                        frame=ds.origin)
-            sink("alerts", alerts)
-            if cfg.stca_lookaheads_s:
-                clock.stage("stca_curves")
-                curve = stca_tradeoff(picture, id_map, ing.truth, acfg, id_col=id_col, frame=ds.origin,
-                                      methods=sorted(picture["method"].unique().to_list()),
-                                      lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
-                                      fixed_est_h_m=cfg.stca_fixed_m)
-                safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
+    if cfg.safety and has_truth:
+        clock.stage("score_alerts")
+        picture, id_col = _safety_picture(cfg, fused, tracks, [])
+        # which aircraft each picture row represents: the one matcher's answer
+        id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
+        if id_map.width == 0:           # nothing scored (e.g. every target tentative)
+            id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
+                                          id_col: pl.UInt64, "truth_id": pl.Int64})
+        acfg = AlertConfig(conflict=cfg.conflicts)
+        methods = sorted(picture["method"].unique().to_list())
+        safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
+                                                    methods=methods, frame=ds.origin)
+        sink("alerts", alerts)
+        if cfg.stca_lookaheads_s:
+            clock.stage("stca_curves")
+            curve = stca_tradeoff(picture, id_map, ing.truth, acfg, id_col=id_col, frame=ds.origin, methods=methods,
+                                  lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
+                                  fixed_est_h_m=cfg.stca_fixed_m)
+            safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     metrics = _association_metrics(associations, stats, report_truth)
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
@@ -456,12 +716,14 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: _Clock, sink: Sink, notes:
     clock.timings["alignment_to_clustering_s"] = sum(
         clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
     clock.timings["total_s"] = time.perf_counter() - t_all
-    counts = {"reports_in": _height(ds.reports), "reports_aligned": int(aligned["report_id"].n_unique()),
+    rejects = ing.rejects
+    counts = {"reports_in": n_in, "reports_aligned": int(aligned["report_id"].n_unique()),
               "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
-              "conversion_invalid": ing.plan.conversion_invalid if ing.plan is not None else 0,
+              "conversion_invalid": int(rejects.filter(pl.col("reason").str.starts_with("polar conversion invalid")).height)
+              if rejects.height else 0,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
@@ -590,16 +852,23 @@ def _scenario_text(ds: Dataset, notes: list[str]) -> str:
 
 
 def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
-        progress: Progress | None = None) -> Path:
-    """Run the job on a dataset and write ``out_dir/results.duckdb`` atomically.
+        progress: Progress | None = None, window_s: float | None = DEFAULT_WINDOW_S, resume: bool = False,
+        dataset_label: str = "") -> Path:
+    """Run the job on a dataset in windows of ``window_s`` seconds and write
+    ``out_dir/results.duckdb`` atomically.
 
-    Each stage's tables are stored as soon as it completes. If a stage fails (including "no
-    valid report left"), the database still holds every completed stage, the rejects and a
-    run record with ``failed_stage`` and ``error``; then a :class:`TertiaryError` is raised
-    (the original one, or :class:`StageError` wrapping an unexpected exception).
+    Each window's streamed tables are written to ``out_dir/parts`` as it completes, with the
+    carried state and a manifest (:mod:`tertiary.engine`); ``resume`` continues a killed run from
+    its last complete window (same configuration, window and dataset, else :class:`OptionError`).
+    The database is built at the end and the manifest marked complete. If a stage fails
+    (including "no valid report left"), the database still holds every completed window's
+    tables, the rejects and a run record with ``failed_stage`` and ``error``; then a
+    :class:`TertiaryError` is raised (the original one, or :class:`StageError` wrapping an
+    unexpected exception).
     """
     t_wall = time.perf_counter()
     cfg = check_config(cfg)
+    window_s = check_window(window_s)
     say = progress or (lambda _m: None)
     out = Path(out_dir)
     try:
@@ -609,13 +878,23 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     notes: list[str] = []
     failure: Exception | None = None
     res: Results | None = None
+    header = {"dataset": dataset_label or ds.scenario.name, "window_s": window_s,
+              "config_hash": config_hash(cfg, window_s, _input_identity(ds, dataset_label))}
+    state, start = None, 0
+    if resume:
+        parts, state = PartStore.resume(out, header)
+        start = int(parts.manifest["windows_done"])
+        say(f"resuming after window {start} ({parts.manifest.get('time_done', '?')})")
+    else:
+        parts = PartStore.start(out, header)
     with RunStore.create(out) as store:
         def sink(name: str, frame: pl.DataFrame) -> None:
             if frame.width:
                 store.write(name, _storable(frame, name, notes))
 
         try:
-            res = process(ds, cfg, say, sink=sink, notes=notes)
+            res = process(ds, cfg, say, sink=sink, notes=notes, window_s=window_s, parts=parts,
+                          resume_state=state, start=start)
         except Exception as exc:  # recorded, then re-raised below
             failure = exc
         say("store")
@@ -629,6 +908,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
             "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "versions": _versions(),
             "fingerprints": {k: _fingerprint_any(getattr(ds, k)) for k in ("radars", "reports", "truth")},
+            "window_s": window_s,
         }
         if res is not None:
             res.timings["store_s"] = time.perf_counter() - t
@@ -642,6 +922,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
             info.update(status="failed", failed_stage=stage, error=f"{type(failure).__name__}: {failure}",
                         notes=notes)
         record_run(store, info)
+    parts.finish("complete" if failure is None else "failed")
     if failure is not None:
         db = out / "results.duckdb"
         if isinstance(failure, TertiaryError):
@@ -651,8 +932,22 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     return out / "results.duckdb"
 
 
+def _input_identity(ds: Dataset, label: str) -> str:
+    """What a resumed run must be given again: the dataset's name and its reports' size and span."""
+    try:
+        lf = ds.reports.lazy() if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else None
+        span = (lf.select(pl.len(), pl.col("time").cast(pl.String).min(), pl.col("time").cast(pl.String).max())
+                .collect().row(0) if lf is not None else ())
+    except Exception:  # an unreadable time column: the size alone
+        span = ()
+    return f"{label or ds.scenario.name}|{span}"
+
+
 def _fingerprint_any(frame) -> str:
     try:
+        if isinstance(frame, pl.LazyFrame):   # hashed without holding the table
+            h = frame.select(pl.struct(pl.all()).hash(seed=0)).collect().to_series()
+            return hashlib.sha256(h.to_numpy().tobytes()).hexdigest()[:16]
         return fingerprint(schema.as_frame(frame, "table"))
     except Exception:  # an unhashable column type: the record says so instead of failing
         return "unavailable"

@@ -242,7 +242,19 @@ def _read_table(path: Path, required: bool) -> pl.DataFrame:
         raise DataError(what, path=str(path)) from exc
 
 
-def _read_parts(d: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
+def _scan_table(path: Path, required: bool) -> pl.LazyFrame | pl.DataFrame:
+    """One Parquet table as a lazy scan (its schema read now, so an unreadable file is a
+    :class:`DataError` here, not in the middle of a run); a missing optional table is empty."""
+    if not path.exists():
+        return _read_table(path, required)
+    try:
+        pl.read_parquet_schema(path)
+    except Exception:  # the eager reader says precisely why
+        return _read_table(path, required)
+    return pl.scan_parquet(path)
+
+
+def _read_parts(d: Path, lazy: bool = False) -> tuple[pl.DataFrame, pl.DataFrame]:
     """Reports and truth of a partitioned dataset (:func:`write_stream`): the parts listed in
     ``parts.json``, in window order, each checked against its row count. A dataset without the
     manifest (a simulation still running or killed) or with a missing or short part is a
@@ -257,16 +269,30 @@ def _read_parts(d: Path) -> tuple[pl.DataFrame, pl.DataFrame]:
         raise DataError(f"unreadable parts manifest: {exc}", path=str(manifest)) from exc
     tables = []
     for name in PARTITIONED:
-        frames = []
+        frames, files = [], []
         for p in parts:
             path = d / name / f"part-{int(p['window']):04d}.parquet"
-            frame = _read_table(path, True)
-            if frame.height != p.get(f"{name}_rows", frame.height):
-                raise DataError(f"{frame.height} rows, parts.json says {p[f'{name}_rows']}", path=str(path))
-            frames.append(frame)
+            if lazy:
+                frame = _scan_table(path, True)
+                height = frame.select(pl.len()).collect().item() if isinstance(frame, pl.LazyFrame) else frame.height
+            else:
+                frame = _read_table(path, True)
+                height = frame.height
+            if height != p.get(f"{name}_rows", height):
+                raise DataError(f"{height} rows, parts.json says {p[f'{name}_rows']}", path=str(path))
+            if height or not lazy:
+                frames.append(frame)
+                files.append(path)
+        if lazy:
+            tables.append(pl.scan_parquet(files) if files else pl.DataFrame())
+            continue
         nonempty = [f for f in frames if f.width]
         tables.append(pl.concat(nonempty, how="vertical") if nonempty else pl.DataFrame())
     return tables[0], tables[1]
+
+
+def _height(frame: pl.DataFrame | pl.LazyFrame) -> int:
+    return frame.select(pl.len()).collect().item() if isinstance(frame, pl.LazyFrame) else frame.height
 
 
 def _site_origin(radars: pl.DataFrame) -> tuple[float, float, float] | None:
@@ -284,7 +310,7 @@ def _site_origin(radars: pl.DataFrame) -> tuple[float, float, float] | None:
     return float(ok["lat_deg"].mean()), float(ok["lon_deg"].mean()), 0.0
 
 
-def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> Dataset:
+def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy: bool = False) -> Dataset:
     """Load a dataset directory written by :func:`write_dataset` (or hand-made with the same files).
 
     ``origin`` (lat, lon[, alt]) overrides the scenario's system origin. Without
@@ -292,17 +318,19 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
     ``Dataset.notes`` says so; truth, whose ENU positions need the frame's origin, is then not
     used, with a note) and the scenario name is the directory name made an identifier.
     Every problem (missing or unreadable file, malformed TOML, bad origin or name) is a
-    :class:`DataError` naming the file.
+    :class:`DataError` naming the file. ``lazy``: reports and truth are Parquet scans
+    (:class:`polars.LazyFrame`), read window by window by the run (:mod:`tertiary.engine`).
     """
     d = Path(path)
     if not d.is_dir():
         raise DataError("not a dataset directory" if d.exists() else "no such dataset directory", path=str(d))
     radars = _read_table(d / "radars.parquet", True)
     if (d / PARTS_MANIFEST).exists() or ((d / "reports").is_dir() and not (d / "reports.parquet").exists()):
-        reports, truth = _read_parts(d)
+        reports, truth = _read_parts(d, lazy)
     else:
-        reports = _read_table(d / "reports.parquet", True)
-        truth = _read_table(d / "truth.parquet", False)
+        read = _scan_table if lazy else _read_table
+        reports = read(d / "reports.parquet", True)
+        truth = read(d / "truth.parquet", False)
     removed = _read_table(d / "truth_removed.parquet", False)
     notes: list[str] = []
     if origin is not None:
@@ -332,7 +360,7 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None) -> D
                 raise DataError("no scenario.toml and no radar site to place the system origin: give the origin "
                                 "(--origin LAT,LON)", path=str(d))
             notes.append(f"system origin = mean radar site ({origin[0]:.5f}, {origin[1]:.5f}, 0 m)")
-            if truth.height:
+            if _height(truth):
                 # truth holds ENU positions of a frame whose origin only scenario.toml (or the user)
                 # knows; scored in a guessed frame it would give kilometre "errors" that are not
                 notes.append(f"{d / 'truth.parquet'}: not used — its ENU positions are in a frame this dataset "

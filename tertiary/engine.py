@@ -1,0 +1,311 @@
+"""The windowed engine: a run cut into time windows on the absolute epoch grid, each stage a step
+function of (state, window) → (outputs, state), outputs appended per window, resumable.
+
+Layout of a run directory while it runs (``RUN_DIR``)::
+
+    parts/<table>/w=<k>.parquet   each window's rows of the streamed tables (atomic files)
+    state.pkl                      every stage's state after the last complete window (atomic)
+    manifest.json                  the commit point: windows done, config hash, status (atomic)
+
+A window is complete when its manifest line is written (parts first, then the state, then the
+manifest), so a reader or ``--resume`` never sees a half-written window: parts of a later
+window are deleted on resume and rewritten. When every window is done, the finalize stage (the
+whole-run evaluation: matching, accuracy, continuity, alert scoring, STCA curves, bounds,
+requirements) reads the parts back, ``results.duckdb`` is built from them (lean layout, written
+atomically), the manifest says ``complete`` and the parts and the state are removed.
+
+Why Parquet parts and not appends to DuckDB: a DuckDB append of a lean-layout table rewrites it
+(its layout is decided on the whole table), a Parquet part is written once and never touched
+again, so a kill costs at most one window, and a Dask worker (issue 18) can write its own part
+without a shared database writer.
+
+What streams and what does not (measured in ``benchmarks/bench_memory.py``): ingest, align,
+associate, fuse, the centralised reference, clustering, the trackers and conflict prediction
+carry explicit state (``tertiary.<stage>.<Stage>State``) and see one window at a time; the
+finalize stage holds the streamed tables of the whole run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import pickle
+import resource
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from tertiary import schema
+from tertiary.errors import DataError, OptionError
+
+US = 1_000_000
+#: the end of time on the grid (µs): the last window is open-ended so that every carried row
+#: (alignment hold-back, coasting tracks) is flushed
+END_US = 1 << 62
+#: default window length of ``tertiary run`` (s)
+DEFAULT_WINDOW_S = 300.0
+#: the streamed tables, in the order they are written to the run database
+STREAMED = ("reports", "rejects", "aligned", "associations", "fused", "clusters", "tracks", "conflicts")
+MANIFEST = "manifest.json"
+STATE_FILE = "state.pkl"
+PARTS = "parts"
+ENGINE_VERSION = 1
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Window:
+    """Epochs (and report times) in [t0_us, t1_us) of the absolute grid; the last is open-ended."""
+
+    index: int
+    t0_us: int
+    t1_us: int
+
+    @property
+    def last(self) -> bool:
+        return self.t1_us >= END_US
+
+
+def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int = 0,
+            t_first_us: int | None = None) -> Iterator[Window]:
+    """Windows of ``window_s`` seconds on the grid from ``origin_us``: from the one holding
+    ``t_first_us`` (default: the origin), which is open to the past, to the one holding
+    ``t_last_us``, which is open to the future; indices count from the origin, so a slice of a
+    longer recording numbers its windows like the whole run (None: one window over everything)."""
+    if window_s is None:
+        if start == 0:
+            yield Window(0, -END_US, END_US)
+        return
+    w = int(round(window_s * US))
+    first = max(0, ((t_first_us if t_first_us is not None else origin_us) - origin_us) // w)
+    n = max(first + 1, (t_last_us - origin_us) // w + 1)
+    for k in range(max(start, first), n):
+        yield Window(k, -END_US if k == first else origin_us + k * w,
+                     END_US if k == n - 1 else origin_us + (k + 1) * w)
+
+
+def check_window(window_s: float | None) -> float | None:
+    if window_s is None:
+        return None
+    if not (isinstance(window_s, (int, float)) and math.isfinite(window_s) and window_s >= 1.0):
+        raise OptionError(f"must be a number of seconds >= 1, got {window_s}", option="--window")
+    return float(window_s)
+
+
+# --------------------------------------------------------------------------- input
+
+
+INPUT_ROW = "__input_row"
+
+
+class ReportSource:
+    """The input reports read window by window: a window's rows are those whose ``time`` falls in
+    it (a scan of the Parquet files with the time predicate pushed down when the dataset came from
+    files). Rows whose time is missing or not a timestamp go to the first window, where ingest
+    rejects them with a reason; a ``time`` column that is not a timestamp at all makes the run one
+    window (nothing can be cut)."""
+
+    def __init__(self, reports: pl.DataFrame | pl.LazyFrame) -> None:
+        lf = reports.lazy() if isinstance(reports, pl.DataFrame) else reports
+        lf = lf.drop(INPUT_ROW, strict=False).with_row_index(INPUT_ROW)
+        names = lf.collect_schema()
+        self.timed = isinstance(names.get("time"), pl.Datetime)
+        self.lf = lf
+        if self.timed:
+            tcol = pl.col("time").dt.epoch("us")
+            span = self.lf.select(tcol.min().alias("a"), tcol.max().alias("b"), pl.len().alias("n")).collect()
+            self.first_us, self.last_us, self.n_rows = span["a"][0], span["b"][0], int(span["n"][0])
+        else:
+            self.first_us = self.last_us = None
+            self.n_rows = int(self.lf.select(pl.len()).collect().item())
+
+    @property
+    def windowable(self) -> bool:
+        return self.timed and self.first_us is not None
+
+    def rows(self, w: Window) -> pl.DataFrame:
+        if not self.windowable or (w.t0_us <= -END_US and w.t1_us >= END_US):
+            return self.lf.collect()
+        t = pl.col("time").dt.epoch("us")
+        cond = (t >= w.t0_us) & (t < w.t1_us)
+        if w.t0_us <= -END_US:                   # the first window also takes the rows without a time
+            cond = cond | pl.col("time").is_null()
+        return self.lf.filter(cond).collect()
+
+
+# --------------------------------------------------------------------------- parts, state, manifest
+
+
+def config_hash(cfg: Any, window_s: float | None, dataset: str) -> str:
+    from tertiary.pipeline import _config_dict
+    text = json.dumps({"config": _config_dict(cfg), "window_s": window_s, "dataset": dataset,
+                       "engine": ENGINE_VERSION}, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def read_manifest(run_dir: str | Path) -> dict | None:
+    """The run's manifest, or None (a run written before the windowed engine, or no run)."""
+    path = Path(run_dir) / MANIFEST
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataError(f"unreadable run manifest: {exc}", path=str(path)) from exc
+
+
+def incomplete_message(run_dir: str | Path) -> str | None:
+    """A one-line statement that the run in ``run_dir`` is incomplete, or None when it is complete
+    (or was written before manifests existed)."""
+    m = read_manifest(run_dir)
+    if m is None or m.get("status") == "complete":
+        return None
+    done = int(m.get("windows_done", 0))
+    state = "failed" if m.get("status") == "failed" else "incomplete (running, or killed)"
+    return (f"run {state}: {done} window(s) of {m.get('window_s')} s done, up to "
+            f"{m.get('time_done', '?')}; continue it with `tertiary run {m.get('dataset', 'DATASET')} "
+            f"--resume {run_dir}`")
+
+
+class PartStore:
+    """Per-window Parquet parts, the carried state and the manifest of one run directory."""
+
+    def __init__(self, run_dir: Path, manifest: dict) -> None:
+        self.dir, self.manifest = run_dir, manifest
+
+    @classmethod
+    def start(cls, run_dir: Path, header: dict) -> PartStore:
+        for old in (run_dir / PARTS, run_dir / STATE_FILE):
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
+        store = cls(run_dir, {**header, "status": "running", "windows_done": 0, "tables": {}})
+        store._commit()
+        return store
+
+    @classmethod
+    def resume(cls, run_dir: Path, header: dict) -> tuple[PartStore, Any]:
+        """The store and the state after the last complete window; parts of later windows are dropped."""
+        m = read_manifest(run_dir)
+        if m is None:
+            raise DataError("nothing to resume: no manifest.json (not a windowed run directory)", path=str(run_dir))
+        if m.get("status") == "complete":
+            raise DataError("the run is already complete", path=str(run_dir))
+        if m.get("config_hash") != header["config_hash"]:
+            raise OptionError(f"the run in {run_dir} was started with another configuration, window or dataset "
+                              f"(hash {m.get('config_hash')} != {header['config_hash']}); give the same options",
+                              option="--resume")
+        done = int(m.get("windows_done", 0))
+        state = None
+        if done:
+            try:
+                with open(run_dir / STATE_FILE, "rb") as fh:
+                    saved = pickle.load(fh)
+            except (OSError, pickle.UnpicklingError, EOFError) as exc:
+                raise DataError(f"unreadable carried state: {exc}", path=str(run_dir / STATE_FILE)) from exc
+            if saved.get("windows_done") != done:
+                raise DataError(f"state is of window {saved.get('windows_done')}, manifest says {done}",
+                                path=str(run_dir / STATE_FILE))
+            state = saved["state"]
+        store = cls(run_dir, m)
+        for part in (run_dir / PARTS).glob("*/w=*.parquet"):
+            if int(part.stem.split("=")[1]) >= done:       # a killed window's leftovers
+                part.unlink()
+        store.manifest["status"] = "running"
+        return store, state
+
+    def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
+        from tertiary.store import write_parquet_atomic
+        for name, frame in outputs.items():
+            if frame.width == 0:
+                continue
+            d = self.dir / PARTS / name
+            d.mkdir(parents=True, exist_ok=True)
+            write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="zstd")
+            self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
+
+    def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
+        """Carried state, then the manifest: the window is complete."""
+        from tertiary.store import atomic_path
+        done = w.index + 1
+        with atomic_path(self.dir / STATE_FILE) as tmp:
+            with open(tmp, "wb") as fh:
+                pickle.dump({"windows_done": done, "state": state}, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        self.manifest.update(windows_done=done, **info)
+        self._commit()
+
+    def finish(self, status: str, **info: Any) -> None:
+        self.manifest.update(status=status, **info)
+        self._commit()
+        if status == "complete":
+            shutil.rmtree(self.dir / PARTS, ignore_errors=True)
+            (self.dir / STATE_FILE).unlink(missing_ok=True)
+
+    def table(self, name: str) -> pl.DataFrame | None:
+        """Every complete window's rows of ``name`` in window order (None: no part)."""
+        files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
+        files = [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]
+        return pl.read_parquet(files) if files else None
+
+    def _commit(self) -> None:
+        from tertiary.store import write_text_atomic
+        write_text_atomic(self.dir / MANIFEST, json.dumps(self.manifest, indent=1, default=str))
+
+
+class MemoryParts:
+    """The in-memory sink of :func:`tertiary.pipeline.process`: every window's rows kept."""
+
+    def __init__(self) -> None:
+        self.frames: dict[str, list[pl.DataFrame]] = {}
+
+    def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
+        for name, frame in outputs.items():
+            if frame.width:
+                self.frames.setdefault(name, []).append(frame)
+
+    def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
+        pass
+
+    def table(self, name: str) -> pl.DataFrame | None:
+        parts = self.frames.get(name)
+        if not parts:
+            return None
+        return parts[0] if len(parts) == 1 else pl.concat(parts, how="vertical_relaxed")
+
+
+def rss_mib() -> float:
+    """Current resident set size (MiB; peak where the current one is not readable)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * resource.getpagesize() / 2**20
+    except (OSError, ValueError, IndexError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@dataclass
+class Meter:
+    """Per-window progress: one line per window (time span, reports so far, reports/s, RSS)."""
+
+    say: Progress
+    n_windows: int
+    t_start: float = field(default_factory=time.perf_counter)
+    reports: int = 0
+
+    def window(self, w: Window, t0_us: int, t1_us: int, n: int) -> None:
+        self.reports += n
+        dt = max(time.perf_counter() - self.t_start, 1e-9)
+        fmt = lambda us: _utc(us)
+        self.say(f"window {w.index + 1}/{self.n_windows} {fmt(t0_us)} – {fmt(t1_us)}: {self.reports:,} reports so "
+                 f"far, {self.reports / dt:,.0f} reports/s, RSS {rss_mib():,.0f} MiB")
+
+
+def _utc(us: int) -> str:
+    from datetime import datetime, timezone
+    return datetime.fromtimestamp(us / US, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S")

@@ -1,0 +1,204 @@
+"""The windowed engine (issue 16 items 1–3, 7): a windowed run's tables equal a one-window run's,
+table by table; a killed run resumed from its last complete window ends identical to an
+uninterrupted one; incomplete runs say so; batch progress gives one line per window."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from tertiary import pipeline
+from tertiary.engine import END_US, US, Window, incomplete_message, windows
+from tertiary.simulate import load_scenario, simulate, write_dataset
+from tertiary.store import RunStore
+
+#: each table's row key (rows are compared after sorting by it; floats to round-off)
+KEYS = {
+    "reports": ["run", "report_id"],
+    "rejects": ["input_table", "row_index", "stage", "reason"],
+    "aligned": ["run", "epoch", "radar_id", "local_track_id", "report_id"],
+    "associations": ["run", "epoch", "radar_id", "local_track_id", "report_id"],
+    "fused": ["run", "method", "epoch", "target_id"],
+    "clusters": ["run", "method", "epoch", "cluster_id"],
+    "tracks": ["run", "method", "filter", "epoch", "track_id"],
+    "conflicts": ["run", "method", "epoch", "id_a", "id_b"],
+    "alerts": None,
+    "metrics": ["stage", "method", "metric", "segment"],
+}
+
+#: the stages' exactness is checked on these (no reference: the whole-run stages are the same code)
+FAST = pipeline.PipelineConfig(stca_lookaheads_s=(), evaluation=False)
+
+
+def _same(a: pl.DataFrame, b: pl.DataFrame, name: str) -> None:
+    assert a.shape == b.shape, f"{name}: {a.shape} rows/columns windowed vs {b.shape} in one window"
+    if a.height == 0:
+        return
+    keys = KEYS.get(name) or [c for c, t in a.schema.items() if t.is_integer() or t == pl.String or t == pl.Boolean
+                              or isinstance(t, pl.Datetime)]
+    keys = [k for k in keys if k in a.columns]
+    a, b = a.sort(keys, nulls_last=True), b.select(a.columns).sort(keys, nulls_last=True)
+    assert_frame_equal(a, b, check_dtypes=False, rel_tol=1e-9, abs_tol=1e-6)
+
+
+def _tables(res: pipeline.Results) -> dict[str, pl.DataFrame]:
+    return {"reports": res.ingested.reports, "rejects": res.rejects, "aligned": res.aligned,
+            "associations": res.associations, "fused": res.fused, "clusters": res.clusters, "tracks": res.tracks,
+            "conflicts": res.conflicts, "alerts": res.alerts, "metrics": res.metrics}
+
+
+@pytest.fixture(scope="module")
+def terminal():
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=420.0,
+                              traffic=dataclasses.replace(cfg.traffic, aircraft=30, conflict_pairs=3))
+    return simulate(cfg)
+
+
+@pytest.fixture(scope="module")
+def bigbox():
+    cfg = load_scenario("big-box")
+    return simulate(dataclasses.replace(cfg, runs=3, duration_s=240.0))
+
+
+@pytest.fixture(scope="module")
+def terminal_whole(terminal):
+    return _tables(pipeline.process(terminal, FAST, window_s=None))
+
+
+@pytest.mark.parametrize("window_s", [5.0, 47.0, 150.0])
+def test_windowed_tables_equal_one_window_terminal_area(terminal, terminal_whole, window_s):
+    """5 s is shorter than the slowest scan period (12 s): most windows hold part of a scan."""
+    got = _tables(pipeline.process(terminal, FAST, window_s=window_s))
+    for name, frame in terminal_whole.items():
+        _same(got[name], frame, name)
+
+
+@pytest.mark.parametrize("window_s", [7.0, 100.0])
+def test_windowed_tables_equal_one_window_big_box(bigbox, window_s):
+    whole = _tables(pipeline.process(bigbox, FAST, window_s=None))
+    got = _tables(pipeline.process(bigbox, FAST, window_s=window_s))
+    assert whole["tracks"].height and whole["fused"].height
+    for name, frame in whole.items():
+        _same(got[name], frame, name)
+
+
+def test_windowed_evaluation_equals_one_window(terminal):
+    """The whole-run stages (matching, accuracy, alert scoring, STCA curves) on windowed tables."""
+    cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
+    whole = pipeline.process(terminal, cfg, window_s=None)
+    got = pipeline.process(terminal, cfg, window_s=60.0)
+    _same(got.metrics, whole.metrics, "metrics")
+    _same(got.alerts, whole.alerts, "alerts")
+    assert got.counts == whole.counts
+
+
+def test_empty_window_in_the_middle(terminal, terminal_whole):
+    """A silence longer than a window (no report for 90 s): empty windows carry the state unchanged."""
+    from datetime import timedelta
+    reports = terminal.reports
+    start = reports["time"].min() + timedelta(seconds=180)
+    cut = reports.filter((pl.col("time") < start) | (pl.col("time") >= start + timedelta(seconds=90)))
+    ds = dataclasses.replace(terminal, reports=cut)
+    whole = _tables(pipeline.process(ds, FAST, window_s=None))
+    got = _tables(pipeline.process(ds, FAST, window_s=20.0))
+    for name, frame in whole.items():
+        _same(got[name], frame, name)
+
+
+def test_windows_cover_the_grid_and_the_last_is_open():
+    ws = list(windows(10 * US, 10 * US + 95 * US, 30.0))
+    assert [w.index for w in ws] == [0, 1, 2, 3]
+    assert ws[0].t0_us == -END_US and ws[-1].t1_us == END_US and ws[-1].last
+    assert all(a.t1_us == b.t0_us for a, b in zip(ws, ws[1:]))
+    assert ws[1].t0_us == 40 * US
+    assert list(windows(0, 5 * US, None)) == [Window(0, -END_US, END_US)]
+
+
+# --------------------------------------------------------------------------- run store, resume
+
+
+def _db_tables(run_dir: Path) -> dict[str, pl.DataFrame]:
+    with RunStore.open(run_dir) as store:
+        return {n: store.read(n) for n in store.tables() if n != "run"}
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory, terminal):
+    return write_dataset(terminal, tmp_path_factory.mktemp("ds") / "ta")
+
+
+def _cli(*args: str, env=None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "tertiary.cli", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "200", **(env or {})})
+
+
+RUN_ARGS = ("--filters", "singer", "--methods", "information,arithmetic", "--no-report", "--window", "20")
+
+
+def test_killed_run_resumes_to_identical_tables(dataset_dir, tmp_path):
+    ref = tmp_path / "ref"
+    p = _cli("run", str(dataset_dir), "--out", str(ref), *RUN_ARGS)
+    out, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    killed = tmp_path / "killed"
+    p = _cli("run", str(dataset_dir), "--out", str(killed), *RUN_ARGS)
+    deadline = time.time() + 300
+    while time.time() < deadline:       # kill once a few windows are complete, mid-run
+        m = killed / "manifest.json"
+        if m.is_file() and json.loads(m.read_text()).get("windows_done", 0) >= 3:
+            break
+        time.sleep(0.05)
+    p.send_signal(signal.SIGKILL)
+    p.wait(timeout=60)
+    manifest = json.loads((killed / "manifest.json").read_text())
+    assert manifest["status"] == "running" and 3 <= manifest["windows_done"] < 22
+    assert "incomplete" in incomplete_message(killed)
+    q = _cli("sql", str(killed), "--query", "SELECT 1")
+    _, err = q.communicate(timeout=120)
+    assert q.returncode != 0 and "incomplete" in err
+    r = _cli("run", str(dataset_dir), *RUN_ARGS, "--resume", str(killed))
+    out, err = r.communicate(timeout=600)
+    assert r.returncode == 0, err
+    assert "resuming after window" in out
+    assert json.loads((killed / "manifest.json").read_text())["status"] == "complete"
+    assert not (killed / "parts").exists()
+    a, b = _db_tables(killed), _db_tables(ref)
+    assert set(a) == set(b)
+    for name in a:
+        _same(a[name], b[name], name if name in KEYS else "")
+
+
+def test_resume_refuses_other_options(dataset_dir, tmp_path):
+    run_dir = tmp_path / "r"
+    (run_dir).mkdir()
+    (run_dir / "manifest.json").write_text(json.dumps({"status": "running", "windows_done": 0,
+                                                       "config_hash": "x", "tables": {}}))
+    p = _cli("run", str(dataset_dir), *RUN_ARGS, "--resume", str(run_dir))
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 2 and "another configuration" in err
+
+
+def test_batch_progress_one_line_per_window(dataset_dir, tmp_path):
+    p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "r"), *RUN_ARGS)
+    out, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    lines = [ln for ln in out.splitlines() if "window " in ln and "reports/s" in ln]
+    n = json.loads((tmp_path / "r" / "manifest.json").read_text())["windows_done"]
+    assert len(lines) == n >= 20
+    assert "RSS" in lines[-1] and "reports so far" in lines[-1]
+    p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "j"), *RUN_ARGS, "--log-format", "json")
+    out, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    steps = [json.loads(ln)["step"] for ln in out.splitlines() if ln.startswith("{")]
+    assert sum(s.startswith("window ") for s in steps) == n
