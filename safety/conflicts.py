@@ -143,13 +143,23 @@ exact tests then run vectorised in chunks of ``chunk_pairs`` (vertical first, th
 then the full geometry of the survivors). To bound memory, whole groups are batched into
 blocks of about ``block_points`` tracks, one set of trees per block (a block holds many epochs
 of ordinary traffic; a 10 000-aircraft epoch is a block of its own).
+
+Windowed processing (issue 16)
+------------------------------
+:func:`conflicts_step` (state, the picture's rows with epoch in [t0, t1), …) → (conflicts of
+those epochs, state) is the stage's step function; :func:`predict_conflicts` is
+:func:`init_conflict_state` + one step over (−∞, +∞). Pairs never span (run, epoch, method)
+groups, so screening and geometry are window-local; what spans epochs is carried in
+:class:`ConflictState`: the m-of-n confirmation (the last n − 1 epochs of each picture's epoch
+grid and the raw alerts at them) and each established track's last plot epoch (the coast age of
+``max_coast_s``). No margin of rows before or after a window is needed.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -158,7 +168,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.stats import chi2, norm
 
-from safety.confirmation import confirm_alerts, epoch_index
+from safety.confirmation import confirm_alerts
 from tertiary import geo
 from tertiary.schema import TABLES, TIME
 
@@ -180,6 +190,11 @@ __all__ = [
     "CONFLICT_EXTRA",
     "tangent_plane_error_bound",
     "threshold_time",
+    "ConflictState",
+    "init_conflict_state",
+    "conflicts_step",
+    "T_MIN_US",
+    "T_MAX_US",
 ]
 
 NM_M = 1852.0
@@ -824,19 +839,31 @@ def _group_cols(tracks: pl.DataFrame, method_col: str = "method") -> list[str]:
     return cols
 
 
-def _coast_age_s(tracks: pl.DataFrame, keys: list[str]) -> pl.Expr:
-    """Seconds since the track's last row updated with a plot (inf before its first one)."""
-    upd = pl.when(pl.col("plot_target_id").is_not_null()).then(pl.col("epoch"))
-    last = upd.forward_fill().over(keys, order_by="epoch")
-    return ((pl.col("epoch") - last).dt.total_microseconds() * 1e-6).fill_null(float("inf"))
+def _not_coasting(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str,
+                  last: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Drop rows of tracks coasting for more than ``cfg.max_coast_s`` (see the config).
 
-
-def _not_coasting(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str) -> pl.DataFrame:
-    """Drop rows of tracks coasting for more than ``cfg.max_coast_s`` (see the config)."""
+    The coast age of a row is (epoch − the track's last epoch updated with a plot) in seconds,
+    inf before its first plot. ``last`` (:data:`_LAST`: run, method, id, last_update_us) carries
+    each track's last plot epoch from earlier windows; returns (kept rows, updated ``last``), the
+    entries of ``last`` that can no longer keep a row (older than ``max_coast_s`` before this
+    window's latest epoch — later windows only hold later epochs) dropped."""
     if cfg.max_coast_s is None or "plot_target_id" not in tracks.columns or not tracks.height:
-        return tracks
-    keys = [c for c in ("run", method_col, id_col) if c in tracks.columns]
-    return tracks.filter(_coast_age_s(tracks, keys) <= cfg.max_coast_s)
+        return tracks, last
+    keys = list(_LAST)[:3]
+    e = _epoch_us_expr()
+    k = (tracks.select(*_key_exprs(method_col, id_col), e.alias("__e"),
+                       pl.when(pl.col("plot_target_id").is_not_null()).then(e).alias("__u"))
+         .with_columns(pl.col("__u").forward_fill().over(keys, order_by="__e"))
+         .join(last, on=keys, how="left", maintain_order="left"))
+    last_u = pl.coalesce("__u", "last_update_us")
+    keep = k.select(((pl.col("__e") - last_u) * 1e-6).fill_null(float("inf")) <= cfg.max_coast_s).to_series()
+    upd = k.group_by(keys).agg(pl.col("__u").max().alias("last_update_us")).drop_nulls()
+    e_max = int(k["__e"].max())
+    merged = (pl.concat([last, upd.cast(_LAST)]).group_by(keys).agg(pl.col("last_update_us").max())
+              .filter((pl.lit(e_max, pl.Int64) - pl.col("last_update_us")) * 1e-6 <= cfg.max_coast_s)
+              .sort(keys))
+    return tracks.filter(keep), merged
 
 
 def _established(tracks: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
@@ -947,6 +974,147 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
             "near": alert | (n_in <= n_out)}
 
 
+# --------------------------------------------------------------------------- windowed engine
+
+#: unbounded window ends (int64 µs): the whole-run call is one step over (−∞, +∞)
+T_MIN_US = -(1 << 63)
+T_MAX_US = (1 << 63) - 1
+#: schemas of the carried state (natural keys, absolute int64 µs times)
+_GRID = {"run": pl.UInt32, "method": pl.String, "epoch_us": pl.Int64}
+_RAW = {"run": pl.UInt32, "method": pl.String, "epoch_us": pl.Int64, "id_a": pl.UInt64, "id_b": pl.UInt64}
+_LAST = {"run": pl.UInt32, "method": pl.String, "id": pl.Int64, "last_update_us": pl.Int64}
+
+
+def _epoch_us_expr() -> pl.Expr:
+    """Row epoch as int64 µs since the Unix epoch (absolute, whatever the Datetime unit/zone)."""
+    return pl.col("epoch").dt.epoch("us")
+
+
+def _key_exprs(method_col: str, id_col: str) -> list[pl.Expr]:
+    return [pl.col("run").cast(pl.UInt32).alias("run"), pl.col(method_col).cast(pl.String).alias("method"),
+            pl.col(id_col).cast(pl.Int64).alias("id")]
+
+
+@dataclass(frozen=True)
+class ConflictState:
+    """What conflict prediction carries from one time window to the next (issue 16); every
+    time is int64 µs since the Unix epoch, every key natural. Picklable, never mutated.
+
+    * ``grid`` (run, method, epoch_us): the last ``confirm_n − 1`` epochs of each picture's
+      epoch grid (the epochs at which the picture has any row, established or not) — the m-of-n
+      alert confirmation counts picture epochs, not seconds, so a window boundary must not
+      restart the count;
+    * ``raw`` (run, method, epoch_us, id_a, id_b): the pairs whose raw alert condition
+      (``raw_alert``) held at those epochs;
+    * ``last_update`` (run, method, id, last_update_us): the last epoch at which each
+      established track (``max_vel_sigma_mps``) was updated with a plot — the coast age of
+      ``max_coast_s``; an entry is dropped once it is more than ``max_coast_s`` older than the
+      latest epoch seen (it could no longer keep a row);
+    * ``t_us``: the end of the last window processed (None before the first).
+
+    Nothing else spans epochs: ``max_vel_sigma_mps`` is a per-row test, and pairs never span
+    (run, epoch, method) groups, so the screening and the pair geometry are window-local."""
+
+    grid: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_GRID))
+    raw: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_RAW))
+    last_update: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LAST))
+    t_us: int | None = None
+
+
+def init_conflict_state() -> ConflictState:
+    """The empty state (before the first window)."""
+    return ConflictState()
+
+
+def _normalise(picture: pl.DataFrame, id_col: str, method_col: str, default_method: str) -> pl.DataFrame:
+    """Check the key columns; add ``run`` (0) and ``method_col`` (``default_method``) if absent."""
+    for c in ("epoch", id_col):
+        if c not in picture.columns:
+            raise ValueError(f"tracks: missing column {c!r}")
+    if not isinstance(picture.schema["epoch"], pl.Datetime):
+        raise ValueError(f"tracks: column 'epoch' must be a Datetime, got {picture.schema['epoch']}")
+    if "run" not in picture.columns:
+        picture = picture.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    if method_col not in picture.columns:
+        picture = picture.with_columns(pl.lit(default_method, pl.String).alias(method_col))
+    return picture
+
+
+def _check_window(state: ConflictState, picture: pl.DataFrame, t0_us: int, t1_us: int) -> None:
+    """Windows come in time order and every row lies in [t0_us, t1_us)."""
+    if not t0_us < t1_us:
+        raise ValueError(f"conflicts_step: empty or reversed window [{t0_us}, {t1_us}) µs")
+    if state.t_us is not None and t0_us < state.t_us:
+        raise ValueError(f"conflicts_step: window [{t0_us}, {t1_us}) µs starts before the end of the "
+                         f"previous one ({state.t_us} µs)")
+    if picture.height:
+        lo, hi = picture.select(_epoch_us_expr().min().alias("lo"), _epoch_us_expr().max().alias("hi")).row(0)
+        if lo < t0_us or hi >= t1_us:
+            raise ValueError(f"tracks: epochs [{lo}, {hi}] µs outside the window [{t0_us}, {t1_us}) µs")
+
+
+def _epoch_grid(carried: pl.DataFrame, picture: pl.DataFrame, method_col: str) -> pl.DataFrame:
+    """(run, method, epoch_us, epoch_k) of the carried grid tail and this window's epochs: the
+    rank of each epoch in its picture's grid (an offset of :func:`epoch_index`'s; only
+    differences matter to the confirmation)."""
+    win = picture.select(pl.col("run").cast(pl.UInt32), pl.col(method_col).cast(pl.String).alias("method"),
+                         _epoch_us_expr().alias("epoch_us"))
+    return (pl.concat([carried, win]).unique().sort("run", "method", "epoch_us")
+            .with_columns(pl.int_range(pl.len()).over("run", "method").cast(pl.Int64).alias("epoch_k")))
+
+
+def _confirm(out: pl.DataFrame, grid: pl.DataFrame, carried: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
+    """:func:`confirm_alerts` of this window's rows, with the raw alerts of the carried epochs
+    prepended so that the m-of-n count runs across the window boundary."""
+    if cfg.confirm_m == 1 or not out.height:
+        return confirm_alerts(out, grid, cfg.confirm_m, cfg.confirm_n)
+    rows = out.select("run", "method", _epoch_us_expr().alias("epoch_us"), "id_a", "id_b", "alert")
+    mini = pl.concat([carried.with_columns(pl.lit(True).alias("alert")), rows]).rename({"epoch_us": "epoch"})
+    conf = confirm_alerts(mini, grid.rename({"epoch_us": "epoch"}), cfg.confirm_m, cfg.confirm_n)["alert"]
+    return out.with_columns(pl.col("alert").alias("raw_alert"), conf.tail(out.height).alias("alert"))
+
+
+def _carry_confirmation(grid: pl.DataFrame, carried: pl.DataFrame, out: pl.DataFrame, n: int
+                        ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The new (grid, raw) of :class:`ConflictState`: the last n − 1 epochs of each picture and
+    the raw alerts at them."""
+    tail = (grid.filter(pl.col("epoch_k") > pl.col("epoch_k").max().over("run", "method") - n + 1)
+            .select(list(_GRID)))
+    raw_now = (out.filter(pl.col("raw_alert")).select("run", "method", _epoch_us_expr().alias("epoch_us"),
+                                                      "id_a", "id_b")
+               if out.height else pl.DataFrame(schema=_RAW))
+    raw = (pl.concat([carried, raw_now.cast(_RAW)]).join(tail, on=list(_GRID), how="semi")
+           .sort(list(_RAW)))
+    return tail, raw
+
+
+def conflicts_step(state: ConflictState, picture: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
+                   id_col: str = "track_id", frame: geo.LocalFrame | None = None,
+                   t0_us: int = T_MIN_US, t1_us: int = T_MAX_US, *, method_col: str = "method",
+                   default_method: str = "none", slim: bool = True) -> tuple[pl.DataFrame, ConflictState]:
+    """One time window [t0_us, t1_us) of conflict prediction (issue 16 step contract).
+
+    ``picture``: the picture's rows with epoch in [t0_us, t1_us) (every row of those epochs,
+    tentative/coasting ones included — they count in the confirmation's epoch grid), same
+    columns as :func:`predict_conflicts`; no margin before or after the window is needed, the
+    history lives in ``state`` (:class:`ConflictState`). Returns (the window's ``conflicts`` —
+    :func:`slim_conflicts` of :func:`predict_conflicts`'s rows when ``slim``, every screened
+    row otherwise —, the new state). Over consecutive windows the concatenated outputs equal
+    ``predict_conflicts`` (then ``slim_conflicts``) of the whole picture. Pure: ``state`` is
+    not modified. Raises ValueError for rows outside the window or a window that starts before
+    the previous one ended."""
+    tracks = _normalise(picture, id_col, method_col, default_method)
+    _check_window(state, tracks, t0_us, t1_us)
+    grid = _epoch_grid(state.grid, tracks, method_col)
+    kept, last = _not_coasting(_established(tracks, cfg), cfg, id_col, method_col, state.last_update)
+    out = _confirm(_pair_rows(kept, cfg, id_col, method_col, frame), grid, state.raw, cfg)
+    spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
+    out = out.select(list(spec)).cast(spec)
+    g_tail, raw = _carry_confirmation(grid, state.raw, out, cfg.confirm_n)
+    new = ConflictState(g_tail, raw, last, t1_us if state.t_us is None else max(state.t_us, t1_us))
+    return (slim_conflicts(out) if slim else out), new
+
+
 def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(), id_col: str = "track_id",
                       method_col: str = "method", default_method: str = "none",
                       frame: geo.LocalFrame | None = None) -> pl.DataFrame:
@@ -960,18 +1128,19 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
     :func:`height_and_rate`) — never ENU z. Pairs are formed within each (run, epoch,
     ``method_col``) group; without a method column the label is ``default_method``. Returns
     the ``conflicts`` table plus :data:`CONFLICT_EXTRA` (``t_in_s``: start of the predicted
-    same-time conflict interval, NaN if none; ``near``), id_a < id_b, sorted by (run, epoch,
-    method, id_a, id_b).
+    same-time conflict interval, NaN if none; ``near``; ``raw_alert``), id_a < id_b, sorted by
+    (run, epoch, method, id_a, id_b). The whole run is one :func:`conflicts_step` over
+    (−∞, +∞) from :func:`init_conflict_state`.
     """
-    for c in ("epoch", id_col):
-        if c not in tracks.columns:
-            raise ValueError(f"tracks: missing column {c!r}")
-    if "run" not in tracks.columns:
-        tracks = tracks.with_columns(pl.lit(0, pl.UInt32).alias("run"))
-    if method_col not in tracks.columns:
-        tracks = tracks.with_columns(pl.lit(default_method, pl.String).alias(method_col))
-    grid = epoch_index(tracks, method_col)
-    tracks = _not_coasting(_established(tracks, cfg), cfg, id_col, method_col)
+    out, _ = conflicts_step(init_conflict_state(), tracks, cfg, id_col, frame, method_col=method_col,
+                            default_method=default_method, slim=False)
+    return out
+
+
+def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str,
+               frame: geo.LocalFrame | None) -> pl.DataFrame:
+    """Screened pairs of the (established, not coasting) rows with their geometry, thresholds
+    and raw decision (``alert`` before confirmation), sorted by (run, epoch, method, id_a, id_b)."""
     if tracks.height < 2:
         return _empty_conflicts()
     groups = ["run", "epoch", method_col]
@@ -1009,9 +1178,7 @@ def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig
         a, b = ms.gather(i), ms.gather(j)
         dup = (a.is_not_null() & (a == b)).fill_null(False)
         out = out.with_columns(pl.col("alert") & ~pl.Series(dup))
-    out = confirm_alerts(out, grid, cfg.confirm_m, cfg.confirm_n)
-    spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
-    return out.select(list(spec)).cast(spec)
+    return out
 
 
 def slim_conflicts(conflicts: pl.DataFrame, margin_h_m: float | None = None, margin_v_m: float | None = None
