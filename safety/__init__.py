@@ -23,13 +23,15 @@ from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacit
                              ppob_sound, rate_per_hour, v_ob)
 from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, ConflictConfig, PairGeometry,
                               candidate_pairs, conflict_interval, height_and_rate, pair_geometry, pair_thresholds,
-                              predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state)
+                              predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state,
+                              ConflictState, conflicts_step, init_conflict_state)
 
 __all__ = [
     # conflicts
     "ConflictConfig", "PairGeometry", "predict_conflicts", "pair_geometry", "pair_thresholds",
     "candidate_pairs", "conflict_interval", "height_and_rate", "vertical_state", "slim_conflicts",
     "tangent_plane_error_bound", "SEPARATION_MINIMA", "NM_M", "FT_M", "ALT_COLUMNS", "CONFLICT_EXTRA",
+    "ConflictState", "conflicts_step", "init_conflict_state",
     # alerts
     "AlertConfig", "score_alerts", "alert_episodes", "los_episodes", "loss_of_separation", "separation_intervals",
     "truth_heights", "truth_intervals", "stca_tables", "stca_tradeoff", "compare_at_equal_nuisance", "tradeoff_metrics",

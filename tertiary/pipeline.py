@@ -773,10 +773,14 @@ def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFra
     """The picture conflict prediction runs on, with its id column; every picture is named in
     ``method`` ("<fusion method>+<filter>" for tracks), so every alert names where it came from."""
     if cfg.safety_picture == "tracks":
-        if tracks.height:
+        # decided by the configuration, never by the rows: a window without tracks must not
+        # switch a run's picture (windowed engine)
+        if cfg.filters and cfg.methods:
             # tentative tracks are never emitted by the tracker: every row is a confirmed track
             return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
-        notes.append("conflict prediction ran on the fused pictures: no tracker filter was configured")
+        text = "conflict prediction ran on the fused pictures: no tracker filter was configured"
+        if text not in notes:
+            notes.append(text)
     if "tentative" in fused.columns:   # clutter-only targets never reach safety
         fused = fused.filter(~pl.col("tentative").fill_null(False))
     return fused, "target_id"
