@@ -36,6 +36,13 @@ had at their previous epoch (majority vote; a contested id goes to the larger gr
 target keeps its number while its radars keep theirs (vote ties go to the id carried by the
 group's lowest-numbered radar, which resolves a radar swapping its own track numbers).
 ``reassignments`` counts local tracks whose system target changed.
+
+Windowed runs (issue 16): :func:`associate_step` processes the aligned rows of one window of
+epochs, carrying an :class:`AssociateState` (each local track's last system target id and
+epoch by (run, radar_id, local_track_id), absolute µs; the next fresh id). Gating and
+assignment never span epochs, so that is all a window needs from earlier ones; consecutive
+windows give the whole-run table and :class:`AssociationStats` add up to the whole run's.
+:func:`associate` is one step over the whole run.
 """
 
 from __future__ import annotations

@@ -47,9 +47,15 @@ Rules (every choice the monograph leaves open is fixed here):
   leads it; the other clusters take, by mutual best overlap, the id of the previous-epoch cluster
   they share most members with (ties: the smaller id / the cluster with the smaller lead id);
   the rest get new ids. "Previous epoch" is the preceding epoch of the (run, method) in
-  ``fused``: a picture that was not clustered breaks continuity. Ids are numbered from 1 per
+  ``fused`` (not the previous epoch of the grid: a stream with no fused row at an epoch
+  bridges it); a picture that was not clustered breaks continuity. Ids are numbered from 1 per
   (run, method) in order of creation.
 * Rows with a non-finite position or horizontal velocity are never clustered (shown alone).
+
+Windowed runs (issue 16): :func:`cluster_step` clusters the fused rows of one window of epochs,
+carrying a :class:`ClusterState` per (run, method): its last epoch in ``fused`` (absolute µs),
+the number of ids it has created, and the targets clustered at that epoch with their cluster
+id and lead flag. Consecutive windows give the whole-run table; :func:`cluster` is one step.
 """
 
 from __future__ import annotations
