@@ -36,13 +36,20 @@ had at their previous epoch (majority vote; a contested id goes to the larger gr
 target keeps its number while its radars keep theirs (vote ties go to the id carried by the
 group's lowest-numbered radar, which resolves a radar swapping its own track numbers).
 ``reassignments`` counts local tracks whose system target changed.
+
+Windowed runs (issue 16): :func:`associate_step` processes the aligned rows of one window of
+epochs, carrying an :class:`AssociateState` (each local track's last system target id and
+epoch by (run, radar_id, local_track_id), absolute µs; the next fresh id). Gating and
+assignment never span epochs, so that is all a window needs from earlier ones; consecutive
+windows give the whole-run table and :class:`AssociationStats` add up to the whole run's.
+:func:`associate` is one step over the whole run.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import dataclass, field, fields
+from typing import Iterable, Literal
 
 import numpy as np
 import polars as pl
@@ -54,7 +61,7 @@ from scipy.sparse.csgraph import connected_components
 
 from scipy.stats import chi2
 
-from tertiary.errors import OptionError
+from tertiary.errors import DataError, OptionError
 from tertiary.gating import GatingConfig, Pairs, candidate_pairs, group_index
 
 BIG = 1e18
@@ -87,15 +94,62 @@ class AssociationConfig:
 
 @dataclass
 class AssociationStats:
+    """Counts of one call. Additive: every count is a sum over epochs (gating, components and
+    assignments never span epochs; ``targets`` counts the system target ids created), so the
+    stats of consecutive windows add up (``+`` or :meth:`merge`) to those of the whole run."""
+
     reports: int = 0
     pairs: int = 0
     components: int = 0
     ambiguous_components: int = 0
-    targets: int = 0
+    targets: int = 0                # system target ids created (whole run: distinct target ids)
     reassignments: int = 0
     joint_components: int = 0       # components solved by the joint (S-D) assignment
     joint_fallbacks: int = 0        # of those, too many tuples: solved pairwise instead
     identity_conflicts: int = 0     # gated pairs whose Mode 3/A or callsign differ
+
+    def __add__(self, other: "AssociationStats") -> "AssociationStats":
+        if not isinstance(other, AssociationStats):
+            return NotImplemented
+        return AssociationStats(**{f.name: getattr(self, f.name) + getattr(other, f.name) for f in fields(self)})
+
+    @classmethod
+    def merge(cls, parts: Iterable["AssociationStats"]) -> "AssociationStats":
+        """The sum of the stats of consecutive windows."""
+        out = cls()
+        for p in parts:
+            out = out + p
+        return out
+
+
+#: the bounds of a whole-run "window" (int64 µs): the whole-run functions are one step over it
+T_MIN = int(np.iinfo(np.int64).min)
+T_MAX = int(np.iinfo(np.int64).max)
+_TRACK_KEY = ("run", "radar_id", "local_track_id")
+_TRACKS_SCHEMA = {"run": pl.Int64, "radar_id": pl.Int64, "local_track_id": pl.Int64,
+                  "target_id": pl.Int64, "seen_us": pl.Int64}
+
+
+@dataclass(frozen=True)
+class AssociateState:
+    """What target-id continuity needs from earlier windows.
+
+    * ``tracks``: one row per local track (run, radar_id, local_track_id) that can still hand
+      its system target id on: ``target_id`` at its last epoch and ``seen_us`` = that epoch
+      (absolute µs). Tracks silent for more than ``carry_gap_s`` before the latest epoch seen
+      are dropped (they could never vote again), so the state stays bounded.
+    * ``next_id``: the next fresh system target id.
+    * ``t_us``: end of the last window processed (``T_MIN`` before the first).
+    """
+
+    tracks: pl.DataFrame
+    next_id: int = 0
+    t_us: int = T_MIN
+
+
+def init_associate_state() -> AssociateState:
+    """The state before the first window: no local track seen, target ids from 0."""
+    return AssociateState(pl.DataFrame(schema=_TRACKS_SCHEMA))
 
 
 def _components(n: int, pairs: Pairs) -> NDArray[np.int64]:
@@ -315,20 +369,48 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64], carry_gap_
     """Stable system target ids across epochs; returns (target id per row, reassignments).
 
     A local track votes for the id it had at its last epoch unless that was more than
-    ``carry_gap_s`` before (a reused track number). Sequential over epochs (a loop over the
-    epoch grid, vectorised across runs, groups and reports within each epoch).
+    ``carry_gap_s`` before (a reused track number). Whole-run form of :func:`carry_step`.
+    """
+    target, reassigned, _ = carry_step(init_associate_state(), aligned, label, carry_gap_s)
+    return target, reassigned
+
+
+def _track_codes(state: AssociateState, aligned: pl.DataFrame
+                 ) -> tuple[NDArray[np.int64], NDArray[np.int64], pl.DataFrame]:
+    """Dense codes of the natural key (run, radar_id, local_track_id) over the state's tracks
+    and the rows (codes are local to this call): (code per state track, code per row, key
+    frame with one row per code)."""
+    keys = pl.concat([state.tracks.select(_TRACK_KEY),
+                      aligned.select([pl.col(c).cast(pl.Int64) for c in _TRACK_KEY])])
+    code = keys.select(pl.struct(_TRACK_KEY).rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
+    _, first = np.unique(code, return_index=True)
+    ns = state.tracks.height
+    return code[:ns], code[ns:], keys[first]
+
+
+def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.int64],
+               carry_gap_s: float = math.inf) -> tuple[NDArray[np.int64], int, AssociateState]:
+    """Target ids of one window's rows, continuing ``state``: (target id per row, reassignments,
+    new state; its ``t_us`` is left to the caller).
+
+    Sequential over epochs (a loop over the window's epochs, vectorised across runs, groups
+    and reports within each epoch). Fresh ids within an epoch follow the order of ``label``.
     """
     n = aligned.height
-    keys = aligned.select(pl.struct("run", "radar_id", "local_track_id").rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
+    if n == 0:
+        return np.zeros(0, np.int64), 0, state
+    code_state, keys, key_frame = _track_codes(state, aligned)
     epoch = aligned["epoch"].dt.epoch("us").to_numpy()
     radar = aligned["radar_id"].to_numpy().astype(np.int64)
     order = np.argsort(epoch, kind="stable")
     bounds = np.flatnonzero(np.diff(epoch[order])) + 1
-    last = np.full(keys.max() + 1 if n else 0, -1, np.int64)
-    seen = np.zeros(len(last), np.int64)                # epoch (µs) of each local track's last row
+    last = np.full(key_frame.height, -1, np.int64)    # system target id at each local track's last row
+    seen = np.zeros(len(last), np.int64)                # epoch (µs) of that row
+    last[code_state] = state.tracks["target_id"].to_numpy()
+    seen[code_state] = state.tracks["seen_us"].to_numpy()
     gap_us = carry_gap_s * 1e6
     target = np.empty(n, np.int64)
-    next_id = 0
+    next_id = state.next_id
     reassigned = 0
     for rows in np.split(order, bounds):
         g = label[rows]
@@ -338,26 +420,7 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64], carry_gap_
         assigned = np.full(len(ug), -1, np.int64)
         ok = cand >= 0
         if ok.any():
-            # votes per (group, candidate id), and the lowest radar id voting for it
-            vg, vc, vr = gi[ok], cand[ok], radar[rows][ok]
-            o = np.lexsort((vr, vc, vg))
-            vg, vc, vr = vg[o], vc[o], vr[o]
-            start = np.ones(len(vg), bool)
-            start[1:] = (vg[1:] != vg[:-1]) | (vc[1:] != vc[:-1])
-            first = np.flatnonzero(start)
-            cg, cc, cr = vg[first], vc[first], vr[first]
-            cnt = np.diff(np.append(first, len(vg)))
-            # best candidate per group: most votes, then the one its lowest radar carries
-            o = np.lexsort((cc, cr, -cnt, cg))
-            cg, cc, cr, cnt = cg[o], cc[o], cr[o], cnt[o]
-            best = np.ones(len(cg), bool)
-            best[1:] = cg[1:] != cg[:-1]
-            bg, bc, bn, br = cg[best], cc[best], cnt[best], cr[best]
-            # a contested id goes to the group with most votes (then the lowest radar)
-            o = np.lexsort((bg, br, -bn, bc))
-            win = np.ones(len(o), bool)
-            win[1:] = bc[o][1:] != bc[o][:-1]
-            assigned[bg[o][win]] = bc[o][win]
+            assigned = _vote(gi[ok], cand[ok], radar[rows][ok], assigned)
         fresh = assigned < 0
         assigned[fresh] = next_id + np.arange(np.count_nonzero(fresh))
         next_id += int(np.count_nonzero(fresh))
@@ -366,17 +429,74 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64], carry_gap_
         last[kr] = new
         seen[kr] = epoch[rows]
         target[rows] = new
-    return target, reassigned
+    # a track silent for more than the gap before the latest epoch can never vote again
+    live = (last >= 0) & (seen >= float(epoch.max()) - gap_us)
+    tracks = key_frame.with_columns(pl.Series("target_id", last), pl.Series("seen_us", seen)).filter(pl.Series(live))
+    return target, reassigned, AssociateState(tracks, next_id, state.t_us)
+
+
+def _vote(vg: NDArray[np.int64], vc: NDArray[np.int64], vr: NDArray[np.int64],
+          assigned: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Carried id per group from the votes (group, candidate id, radar): most votes, then the id
+    its lowest radar carries; a contested id goes to the group with most votes (then the
+    lowest radar). Groups without a winning id keep −1."""
+    o = np.lexsort((vr, vc, vg))
+    vg, vc, vr = vg[o], vc[o], vr[o]
+    start = np.ones(len(vg), bool)
+    start[1:] = (vg[1:] != vg[:-1]) | (vc[1:] != vc[:-1])
+    first = np.flatnonzero(start)
+    cg, cc, cr = vg[first], vc[first], vr[first]
+    cnt = np.diff(np.append(first, len(vg)))
+    o = np.lexsort((cc, cr, -cnt, cg))
+    cg, cc, cr, cnt = cg[o], cc[o], cr[o], cnt[o]
+    best = np.ones(len(cg), bool)
+    best[1:] = cg[1:] != cg[:-1]
+    bg, bc, bn, br = cg[best], cc[best], cnt[best], cr[best]
+    o = np.lexsort((bg, br, -bn, bc))
+    win = np.ones(len(o), bool)
+    win[1:] = bc[o][1:] != bc[o][:-1]
+    out = assigned.copy()
+    out[bg[o][win]] = bc[o][win]
+    return out
+
+
+def _check_window(table: str, frame: pl.DataFrame, t0_us: int, t1_us: int, t_us: int) -> None:
+    """The window follows the state's and its rows have epoch in [t0_us, t1_us)."""
+    if t0_us > t1_us or t0_us < t_us:
+        raise OptionError(f"window [{t0_us}, {t1_us}) does not follow the state's end {t_us}", option="t0_us")
+    if frame.height:
+        ep = frame["epoch"].dt.epoch("us")
+        lo, hi = int(ep.min()), int(ep.max())      # type: ignore[arg-type]
+        if lo < t0_us or hi >= t1_us:
+            raise DataError(f"epoch outside the window [{t0_us}, {t1_us}) µs: rows span [{lo}, {hi}]", path=table)
+
+
+def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: int, t1_us: int,
+                   cfg: AssociationConfig = AssociationConfig()
+                   ) -> tuple[tuple[pl.DataFrame, AssociationStats], AssociateState]:
+    """One window of :func:`associate`: ((associations, stats), new state).
+
+    ``aligned_window``: the aligned rows with epoch in [t0_us, t1_us) (int64 µs since the Unix
+    epoch), in the order :func:`tertiary.align.expand` gives them ((run, epoch, radar_id,
+    local_track_id)); no margin is needed: gating and assignment never span epochs, and the
+    only memory of earlier epochs (target-id continuity) is in ``state``. ``stats`` are this
+    window's counts (:class:`AssociationStats` add up over windows). Pure: ``state`` is not
+    modified.
+    """
+    _check_window("aligned", aligned_window, t0_us, t1_us, state.t_us)
+    label, stats = group_reports(aligned_window, cfg)
+    target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s)
+    stats.targets = new.next_id - state.next_id
+    cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
+    out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
+        pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
+    return (out, stats), AssociateState(new.tracks, new.next_id, t1_us)
 
 
 def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
               ) -> tuple[pl.DataFrame, AssociationStats]:
     """The ``associations`` table (run, epoch, radar_id, local_track_id, report_id,
-    target_id, cost) for every aligned row, and run statistics."""
-    label, stats = group_reports(aligned, cfg)
-    target, stats.reassignments = carry_target_ids(aligned, label, cfg.carry_gap_s)
-    stats.targets = len(np.unique(target)) if len(target) else 0
-    cost = _reference_cost(aligned, label, cfg) if aligned.height else np.zeros(0)
-    out = aligned.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
-        pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
+    target_id, cost) for every aligned row, and run statistics: one
+    :func:`associate_step` over the whole run."""
+    (out, stats), _ = associate_step(init_associate_state(), aligned, T_MIN, T_MAX, cfg)
     return out, stats

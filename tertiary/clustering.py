@@ -47,9 +47,15 @@ Rules (every choice the monograph leaves open is fixed here):
   leads it; the other clusters take, by mutual best overlap, the id of the previous-epoch cluster
   they share most members with (ties: the smaller id / the cluster with the smaller lead id);
   the rest get new ids. "Previous epoch" is the preceding epoch of the (run, method) in
-  ``fused``: a picture that was not clustered breaks continuity. Ids are numbered from 1 per
+  ``fused`` (not the previous epoch of the grid: a stream with no fused row at an epoch
+  bridges it); a picture that was not clustered breaks continuity. Ids are numbered from 1 per
   (run, method) in order of creation.
 * Rows with a non-finite position or horizontal velocity are never clustered (shown alone).
+
+Windowed runs (issue 16): :func:`cluster_step` clusters the fused rows of one window of epochs,
+carrying a :class:`ClusterState` per (run, method): its last epoch in ``fused`` (absolute µs),
+the number of ids it has created, and the targets clustered at that epoch with their cluster
+id and lead flag. Consecutive windows give the whole-run table; :func:`cluster` is one step.
 """
 
 from __future__ import annotations
@@ -64,9 +70,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from tertiary.errors import DataError, OptionError
 from tertiary.schema import TABLES
 
-__all__ = ["ClusteringConfig", "cluster", "cluster_summary"]
+__all__ = ["ClusteringConfig", "ClusterState", "cluster", "cluster_step", "cluster_summary", "init_cluster_state"]
 
 KEYS = ["run", "epoch", "method"]
 _NEEDED = ["run", "epoch", "method", "target_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps"]
@@ -258,6 +265,7 @@ class _Index:
     tidx: NDArray[np.int64]
     tid: NDArray[np.uint64]
     duplicated: bool
+    rm: NDArray[np.int64]
 
     @classmethod
     def of(cls, fused: pl.DataFrame) -> "_Index":
@@ -277,13 +285,14 @@ class _Index:
         same_g = same_rm & (e[1:] == e[:-1])
         duplicated = bool(np.any(same_g & (t[1:] == t[:-1])))
         group = np.concatenate([[0], np.cumsum(~same_g)])
+        rm = np.concatenate([[0], np.cumsum(~same_rm)])
         n = np.bincount(group)[group]
         # dense epoch rank within (run, method): group index minus that of the block's first row
         rm_first = np.flatnonzero(np.concatenate([[True], ~same_rm]))
         k = group - np.repeat(group[rm_first], np.diff(np.append(rm_first, len(group))))
         tidx = np.unique((r * sizes[1] + m) * sizes[3] + t, return_inverse=True)[1].reshape(-1)
         tid = fused["target_id"].to_numpy().astype(np.uint64)[order]
-        return cls(order, n, group, k, tidx, tid, duplicated)
+        return cls(order, n, group, k, tidx, tid, duplicated, rm)
 
 
 # ---------------------------------------------------------------------------
@@ -302,24 +311,154 @@ def _height(fused: pl.DataFrame) -> NDArray[np.float64]:
     return np.where(np.isfinite(alt), alt, z)
 
 
+#: bounds of a whole-run "window" (int64 µs): :func:`cluster` is one :func:`cluster_step` over it
+T_MIN = int(np.iinfo(np.int64).min)
+T_MAX = int(np.iinfo(np.int64).max)
+_NEVER = T_MIN               # a target's last clustered epoch: none carried
+_NO_PREV = T_MIN + 1         # a stream's previous epoch: none (differs from _NEVER: no match)
+_SH = np.int64(1 << 32)      # stride of a stream in the in-step cluster keys (stream · _SH + id)
+_STREAM = ["run", "method"]
+_STREAMS = {"run": pl.Int64, "method": pl.String, "last_us": pl.Int64, "next_id": pl.Int64}
+_TARGETS = {"run": pl.Int64, "method": pl.String, "target_id": pl.UInt64, "cluster_id": pl.Int64,
+            "lead": pl.Boolean}
+
+
+@dataclass(frozen=True)
+class ClusterState:
+    """What cluster continuity needs from earlier windows, per (run, method) stream.
+
+    * ``streams``: run, method; ``last_us`` the stream's last epoch in ``fused`` (absolute µs:
+      the "previous epoch" of its next one) and ``next_id`` the clusters it has created so far
+      (cluster ids are 1 + the creation index).
+    * ``targets``: run, method, target_id of the targets clustered at their stream's last
+      epoch, with that ``cluster_id`` (0-based) and ``lead``; no other target can continue a
+      cluster, so nothing else is kept.
+    * ``t_us``: end of the last window processed (``T_MIN`` before the first).
+    """
+
+    streams: pl.DataFrame
+    targets: pl.DataFrame
+    t_us: int = T_MIN
+
+
+def init_cluster_state() -> ClusterState:
+    """The state before the first window: no stream seen, no cluster."""
+    return ClusterState(pl.DataFrame(schema=_STREAMS), pl.DataFrame(schema=_TARGETS))
+
+
+@dataclass
+class _Carry:
+    """One step's view of the state, on the step's integer codes (mutated by the epoch loop).
+
+    Per sorted position: ``epoch_us`` and ``prev_us`` (previous epoch of its stream); per stream
+    code: ``keys`` (run, method), ``next_id``; per target code: ``keys`` (run, method,
+    target_id), ``rm``, ``last_us`` (last clustered epoch), ``gcid`` (stream · _SH + cluster id,
+    −1: none) and ``lead``."""
+
+    epoch_us: NDArray[np.int64]
+    prev_us: NDArray[np.int64]
+    streams: pl.DataFrame
+    next_id: NDArray[np.int64]
+    targets: pl.DataFrame
+    rm: NDArray[np.int64]
+    last_us: NDArray[np.int64]
+    gcid: NDArray[np.int64]
+    lead: NDArray[np.bool_]
+
+    @classmethod
+    def of(cls, fused: pl.DataFrame, idx: _Index, state: ClusterState) -> "_Carry":
+        ep = fused["epoch"].dt.epoch("us").to_numpy()[idx.order]
+        rm_first = np.flatnonzero(np.r_[True, idx.rm[1:] != idx.rm[:-1]])
+        first = idx.order[rm_first]
+        streams = pl.DataFrame([fused["run"].gather(first).cast(pl.Int64),
+                                fused["method"].gather(first).cast(pl.String)])
+        known = streams.join(state.streams, on=_STREAM, how="left", maintain_order="left")
+        s_prev = known["last_us"].fill_null(_NO_PREV).to_numpy()
+        g_first = np.flatnonzero(np.r_[True, idx.group[1:] != idx.group[:-1]])
+        prev_g = np.r_[_NO_PREV, ep[g_first][:-1]]          # epoch of the preceding group
+        prev = np.where(idx.k == 0, s_prev[idx.rm], prev_g[idx.group])
+        _, t_first = np.unique(idx.tidx, return_index=True)
+        rm = idx.rm[t_first]
+        targets = streams[rm].with_columns(pl.Series("target_id", idx.tid[t_first], pl.UInt64))
+        tk = targets.join(state.targets, on=_STREAM + ["target_id"], how="left", maintain_order="left")
+        found = tk["cluster_id"].is_not_null().to_numpy()
+        # state targets were clustered at their stream's last epoch (ClusterState invariant)
+        last_us = np.where(found, s_prev[rm], _NEVER)
+        gcid = np.where(found, rm * _SH + tk["cluster_id"].fill_null(0).to_numpy(), -1)
+        lead = found & tk["lead"].fill_null(False).to_numpy()
+        return cls(ep, prev, streams, known["next_id"].fill_null(0).to_numpy().copy(), targets, rm,
+                   last_us, gcid, lead)
+
+    def state(self, state: ClusterState, idx: _Index, t1_us: int) -> ClusterState:
+        """The state after this window: its streams' last epochs and ids, and the targets
+        clustered at those epochs; streams absent from the window keep theirs."""
+        rm_last = np.r_[np.flatnonzero(idx.rm[1:] != idx.rm[:-1]), len(idx.rm) - 1]
+        s_last = self.epoch_us[rm_last]
+        streams = self.streams.with_columns(pl.Series("last_us", s_last), pl.Series("next_id", self.next_id))
+        live = self.last_us == s_last[self.rm]
+        targets = self.targets.filter(pl.Series(live)).with_columns(
+            pl.Series("cluster_id", (self.gcid - self.rm * _SH)[live]), pl.Series("lead", self.lead[live]))
+        return ClusterState(
+            pl.concat([state.streams.join(self.streams, on=_STREAM, how="anti"), streams]),
+            pl.concat([state.targets.join(self.streams, on=_STREAM, how="anti"), targets]), t1_us)
+
+
+def _screen(fused: pl.DataFrame) -> pl.DataFrame:
+    """The displayed targets of ``fused``: required columns checked, tentative rows left out."""
+    missing = [c for c in _NEEDED if c not in fused.columns]
+    if missing:
+        raise ValueError(f"fused: missing column(s) {', '.join(missing)}")
+    if "tentative" in fused.columns:
+        fused = fused.filter(~pl.col("tentative").fill_null(False))
+    return fused
+
+
+def _check_window(fused: pl.DataFrame, t0_us: int, t1_us: int, t_us: int) -> None:
+    """The window follows the state's and its rows have epoch in [t0_us, t1_us)."""
+    if t0_us > t1_us or t0_us < t_us:
+        raise OptionError(f"window [{t0_us}, {t1_us}) does not follow the state's end {t_us}", option="t0_us")
+    if fused.height:
+        ep = fused["epoch"].dt.epoch("us")
+        lo, hi = int(ep.min()), int(ep.max())      # type: ignore[arg-type]
+        if lo < t0_us or hi >= t1_us:
+            raise DataError(f"epoch outside the window [{t0_us}, {t1_us}) µs: rows span [{lo}, {hi}]", path="fused")
+
+
+def cluster_step(state: ClusterState, fused_window: pl.DataFrame, t0_us: int, t1_us: int,
+                 cfg: ClusteringConfig = ClusteringConfig()) -> tuple[pl.DataFrame, ClusterState]:
+    """One window of :func:`cluster`: (the window's ``clusters`` rows, new state).
+
+    ``fused_window``: the fused rows with epoch in [t0_us, t1_us) (int64 µs since the Unix
+    epoch), every method; no margin: a picture is clustered on its own and the only memory of
+    earlier epochs (leads, cluster ids, the previous epoch of each (run, method)) is in
+    ``state``. Pure: ``state`` is not modified.
+    """
+    _check_window(fused_window, t0_us, t1_us, state.t_us)
+    fused = _screen(fused_window)
+    if fused.height == 0:
+        return _empty(), ClusterState(state.streams, state.targets, t1_us)
+    idx = _Index.of(fused)
+    if idx.duplicated:
+        raise ValueError("fused: duplicate target_id within a (run, epoch, method)")
+    carry = _Carry.of(fused, idx, state)
+    clusters = _cluster_pictures(fused, idx, carry, cfg)
+    return clusters, carry.state(state, idx, t1_us)
+
+
 def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> pl.DataFrame:
     """Cluster the fused picture of every (run, epoch, method): the ``clusters`` table.
 
     One row per cluster of two or more targets: run, epoch, method, cluster_id, lead_target_id,
     members (target ids, ascending, the lead included) and count. See the module docstring for
     the rules. Tentative targets (``tentative`` True: clutter-only) are not targets on the
-    display and are left out.
+    display and are left out. One :func:`cluster_step` over the whole run.
     """
-    missing = [c for c in _NEEDED if c not in fused.columns]
-    if missing:
-        raise ValueError(f"fused: missing column(s) {', '.join(missing)}")
-    if "tentative" in fused.columns:
-        fused = fused.filter(~pl.col("tentative").fill_null(False))
-    if fused.height == 0:
-        return _empty()
-    idx = _Index.of(fused)
-    if idx.duplicated:
-        raise ValueError("fused: duplicate target_id within a (run, epoch, method)")
+    return cluster_step(init_cluster_state(), fused, T_MIN, T_MAX, cfg)[0]
+
+
+def _cluster_pictures(fused: pl.DataFrame, idx: _Index, carry: _Carry, cfg: ClusteringConfig) -> pl.DataFrame:
+    """The clusters of the pictures of ``fused`` (indexed by ``idx``), continuing ``carry``
+    (updated in place)."""
     # only the pictures above the display capacity are read (positions in the sorted order)
     cand = np.arange(len(idx.order)) if cfg.always else np.flatnonzero(idx.n > cfg.display_capacity)
     rows_f = idx.order[cand]
@@ -329,7 +468,6 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
     sel_rows, vals = cand[finite], vals[finite]
     if len(sel_rows) < 2:
         return _empty()
-    n_targets = int(idx.tidx.max()) + 1
 
     raw = np.ascontiguousarray(vals[:, :3])
     if cfg.algorithm == "dbscan":
@@ -350,29 +488,56 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
     local[sel] = np.arange(len(sel_rows))
     pairs = local[pairs]
     pairs = pairs[np.argsort(pairs.min(axis=1), kind="stable")]
+    pos = sel_rows[sel]                                  # sorted positions
     scaled = scaled[sel]
-    tid = idx.tid[sel_rows][sel]
-    tidx = idx.tidx[sel_rows][sel]
-    rows = idx.order[sel_rows][sel]                  # rows of ``fused``
+    out_rows, out_cid, out_lead = _lead_epochs(k_all, pairs, scaled, idx.tid[pos], idx.tidx[pos],
+                                               carry.epoch_us[pos], carry.prev_us[pos], carry)
+    if not out_rows:
+        return _empty()
+    out_idx = idx.order[pos[np.concatenate(out_rows)]]
+    gcid = np.concatenate(out_cid)
+    # series by series: a gather on the multi-chunk frame rechunked it (+270 MB peak RSS)
+    members = (
+        pl.DataFrame([fused[c].gather(out_idx) for c in KEYS + ["target_id"]])
+        .with_columns(
+            cluster_id=pl.Series(gcid % _SH + 1, dtype=pl.UInt64),
+            lead_target_id=pl.Series(np.concatenate(out_lead), dtype=pl.UInt64),
+        )
+    )
+    return (
+        members.sort("target_id")
+        .group_by(KEYS + ["cluster_id"])
+        .agg(
+            pl.col("lead_target_id").first(),
+            members=pl.col("target_id").cast(pl.UInt64),
+            count=pl.len().cast(pl.UInt32),
+        )
+        .select([pl.col(c).cast(t) for c, t in _OUT.items()])
+        .sort(["run", "epoch", "method", "cluster_id"])
+    )
 
-    last_k = np.full(n_targets, -2, dtype=np.int64)     # epoch index of the last clustered epoch
-    last_cid = np.full(n_targets, -1, dtype=np.int64)   # global cluster id there
-    last_lead = np.zeros(n_targets, dtype=bool)         # led it
-    next_id = 0
+
+def _lead_epochs(k_all: NDArray[np.int64], pairs: NDArray[np.int64], scaled: NDArray[np.float64],
+                 tid: NDArray[np.uint64], tidx: NDArray[np.int64], epoch_us: NDArray[np.int64],
+                 prev_us: NDArray[np.int64], carry: _Carry
+                 ) -> tuple[list[NDArray[np.int64]], list[NDArray[np.int64]], list[NDArray[np.uint64]]]:
+    """Leads and cluster ids, epoch index by epoch index (the bookkeeping loop). Inputs are per
+    candidate target, sorted by epoch index ``k_all`` (then (run, method, target_id)); returns
+    per clustered epoch the member positions, their in-step cluster keys and their leads."""
     out_rows, out_cid, out_lead = [], [], []
-
     ks, starts = np.unique(k_all, return_index=True)
     bounds = np.r_[starts, len(k_all)]
     pair_bounds = np.searchsorted(pairs.min(axis=1), bounds)
-    for e, k in enumerate(ks):                           # loop over epoch index (bookkeeping)
+    for e in range(len(ks)):                             # loop over epoch index (bookkeeping)
         if pair_bounds[e] == pair_bounds[e + 1]:
             continue                                     # no compatible pair: nothing clusters
         lo, hi = bounds[e], bounds[e + 1]
         s = slice(lo, hi)
         ti, ts = tidx[s], tid[s]
-        cont = last_k[ti] == k - 1
-        prev_cid = np.where(cont, last_cid[ti], -1)
-        prev_lead = cont & last_lead[ti]
+        # continuity: clustered at the previous epoch of the same (run, method) in fused
+        cont = carry.last_us[ti] == prev_us[s]
+        prev_cid = np.where(cont, carry.gcid[ti], -1)
+        prev_lead = cont & carry.lead[ti]
         rank = _priority(ts, scaled[s], prev_cid, prev_lead)
         lead = _greedy_leads(rank, pairs[pair_bounds[e]:pair_bounds[e + 1]] - lo)
 
@@ -386,42 +551,31 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
         cand = (cid[g] < 0) & (prev_cid[member] >= 0) & ~np.isin(prev_cid[member], claimed)
         matched = _match_ids(g[cand], prev_cid[member][cand], ts[leads])
         cid = np.where(cid >= 0, cid, matched)
-        new = cid < 0
-        cid[new] = next_id + np.arange(int(new.sum()))
-        next_id += int(new.sum())
+        cid = _new_ids(cid, carry.rm[ti[leads]], carry.next_id)
 
         mt = ti[member]
-        last_k[mt] = k
-        last_cid[mt] = cid[g]
-        last_lead[mt] = lead[member] == member
-        out_rows.append(rows[s][member])
+        carry.last_us[mt] = epoch_us[s][member]
+        carry.gcid[mt] = cid[g]
+        carry.lead[mt] = lead[member] == member
+        out_rows.append(np.arange(lo, hi)[member])
         out_cid.append(cid[g])
         out_lead.append(ts[leads][g])
+    return out_rows, out_cid, out_lead
 
-    if not out_rows:
-        return _empty()
-    out_idx = np.concatenate(out_rows)
-    # series by series: a gather on the multi-chunk frame rechunked it (+270 MB peak RSS)
-    members = (
-        pl.DataFrame([fused[c].gather(out_idx) for c in KEYS + ["target_id"]])
-        .with_columns(
-            __gid=pl.Series(np.concatenate(out_cid)),
-            lead_target_id=pl.Series(np.concatenate(out_lead), dtype=pl.UInt64),
-        )
-    )
-    return (
-        members.sort("target_id")
-        .group_by(KEYS + ["__gid"])
-        .agg(
-            pl.col("lead_target_id").first(),
-            members=pl.col("target_id").cast(pl.UInt64),
-            count=pl.len().cast(pl.UInt32),
-        )
-        .with_columns(cluster_id=pl.col("__gid").rank("dense").over("run", "method").cast(pl.UInt64))
-        .select([pl.col(c).cast(t) for c, t in _OUT.items()])
-        .sort(["run", "epoch", "method", "cluster_id"])
-    )
 
+def _new_ids(cid: NDArray[np.int64], rm: NDArray[np.int64], next_id: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Fresh cluster keys (stream · _SH + id) for the unmatched clusters (``cid`` < 0), numbered
+    per stream in order of creation; ``rm`` (each cluster's stream) is non-decreasing.
+    Advances ``next_id`` in place."""
+    new = np.flatnonzero(cid < 0)
+    if len(new) == 0:
+        return cid
+    r = rm[new]
+    nth = np.arange(len(r)) - np.searchsorted(r, r)      # creation index within the stream
+    out = cid.copy()
+    out[new] = r * _SH + next_id[r] + nth
+    np.add.at(next_id, r, 1)
+    return out
 
 def cluster_summary(clusters: pl.DataFrame, fused: pl.DataFrame | None = None) -> pl.DataFrame:
     """Per (run, epoch, method): ``n_clusters``, ``mean_size``, ``max_size`` and

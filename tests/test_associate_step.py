@@ -1,0 +1,156 @@
+"""Association as a step function (issue 16): any cut of a run into epoch windows gives the
+whole-run ``associations`` and ``AssociationStats``."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from tertiary import align as A
+from tertiary.associate import (AssociateState, AssociationConfig, AssociationStats, T_MAX, T_MIN, associate,
+                                associate_step, init_associate_state)
+from tertiary.errors import DataError, OptionError
+from tertiary.pipeline import PipelineConfig, screen
+from tertiary.simulate import load_scenario, simulate
+
+SLOWEST_SCAN_S = 12.0                       # ENR-E of the terminal-area scenario
+CONFIGS = {
+    "default": AssociationConfig(),
+    # fine identification on, a short carry gap (state pruning matters), Mahalanobis joint assignment
+    "fine_joint": AssociationConfig(mode_3a="penalise", callsign="forbid", carry_gap_s=10.0,
+                                    assignment="joint", cost="mahalanobis"),
+}
+
+
+@pytest.fixture(scope="module")
+def aligned() -> pl.DataFrame:
+    """Terminal-area, 20 aircraft, 300 s, two Monte-Carlo runs, identity columns aligned."""
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=300.0, runs=2,
+                              traffic=dataclasses.replace(cfg.traffic, aircraft=20))
+    assert max(r.scan_period_s for r in cfg.radars) == SLOWEST_SCAN_S
+    ds = simulate(cfg)
+    pc = PipelineConfig(align=dataclasses.replace(PipelineConfig().align, identity=True))
+    return A.expand(screen(ds, pc).plan, pc.align)
+
+
+def _epoch_us(frame: pl.DataFrame) -> np.ndarray:
+    return frame["epoch"].dt.epoch("us").to_numpy()
+
+
+def cuts(aligned: pl.DataFrame, kind: str) -> list[int]:
+    """Window edges (µs) covering every epoch; the grid origin is not the first epoch."""
+    ep = _epoch_us(aligned)
+    lo, hi = int(ep.min()), int(ep.max()) + 1
+    if kind == "short":               # 3 s < the 4 s epoch period: many windows hold no row
+        return list(range(lo - 1_700_000, hi + 3_000_000, 3_000_000))
+    if kind == "sub_scan":            # 10 s < the slowest scan period (12 s)
+        return list(range(lo - 14_300_000, hi + 10_000_000, 10_000_000))   # first: empty
+    if kind == "irregular":           # uneven windows plus one strictly between two epochs (empty)
+        e = np.unique(ep)
+        return [lo, int(e[3]), int(e[3]) + 1, int(e[4]), int(e[4]) + 1_000_000, int(e[40]), int(e[41]) + 7,
+                hi, hi + 5_000_000]
+    raise ValueError(kind)
+
+
+def run_windows(aligned: pl.DataFrame, edges: list[int], cfg: AssociationConfig
+                ) -> tuple[pl.DataFrame, list[AssociationStats], AssociateState]:
+    """Step through consecutive windows [edges[i], edges[i+1]), carrying the state (checked once:
+    handing every window the initial state instead fails every equality case)."""
+    ep = pl.col("epoch").dt.epoch("us")
+    state = init_associate_state()
+    outs, stats = [], []
+    for t0, t1 in zip(edges[:-1], edges[1:]):
+        win = aligned.filter((ep >= t0) & (ep < t1))
+        (out, st), new = associate_step(state, win, t0, t1, cfg)
+        state = new
+        outs.append(out)
+        stats.append(st)
+    return pl.concat(outs), stats, state
+
+
+def _sorted(frame: pl.DataFrame) -> pl.DataFrame:
+    return frame.sort("run", "epoch", "radar_id", "local_track_id", "report_id")
+
+
+@pytest.mark.parametrize("config", list(CONFIGS))
+@pytest.mark.parametrize("kind", ["short", "sub_scan", "irregular"])
+def test_windowed_equals_whole_run(aligned, kind, config):
+    cfg = CONFIGS[config]
+    whole, whole_stats = associate(aligned, cfg)
+    edges = cuts(aligned, kind)
+    windowed, stats, _ = run_windows(aligned, edges, cfg)
+    assert any(s.reports == 0 for s in stats), "the cut must include an empty window"
+    assert whole_stats.reassignments > 0 and whole_stats.ambiguous_components > 0   # carry and rules 3-4 exercised
+    assert_frame_equal(_sorted(windowed), _sorted(whole), rel_tol=1e-9, abs_tol=1e-9)
+    assert AssociationStats.merge(stats) == whole_stats
+    assert sum(stats, AssociationStats()) == whole_stats
+    if config == "fine_joint":
+        assert whole_stats.identity_conflicts > 0 and whole_stats.joint_components > 0
+
+
+def test_whole_run_targets_count_distinct_ids(aligned):
+    out, stats = associate(aligned, AssociationConfig())
+    assert stats.targets == out["target_id"].n_unique()
+    assert stats.reports == aligned.height
+
+
+def test_empty_window_leaves_state_unchanged(aligned):
+    edges = cuts(aligned, "sub_scan")
+    _, _, state = run_windows(aligned, edges[:6], AssociationConfig())
+    assert state.tracks.height > 0
+    t = edges[5]
+    (out, stats), after = associate_step(state, aligned.clear(), t, t + 2_000_000, AssociationConfig())
+    assert out.height == 0 and stats == AssociationStats()
+    assert_frame_equal(after.tracks, state.tracks)
+    assert after.next_id == state.next_id and after.t_us == t + 2_000_000
+
+
+def test_step_does_not_mutate_state_and_state_pickles(aligned):
+    edges = cuts(aligned, "sub_scan")
+    _, _, state = run_windows(aligned, edges[:6], AssociationConfig())
+    before = pickle.dumps(state)
+    ep = pl.col("epoch").dt.epoch("us")
+    win = aligned.filter((ep >= edges[5]) & (ep < edges[6]))
+    (_, _), new = associate_step(state, win, edges[5], edges[6], AssociationConfig())
+    assert pickle.dumps(state) == before
+    assert new.next_id > state.next_id
+    restored = pickle.loads(pickle.dumps(new))
+    assert_frame_equal(restored.tracks, new.tracks)
+
+
+def test_state_keys_are_natural_and_bounded_by_the_carry_gap(aligned):
+    cfg = AssociationConfig(carry_gap_s=10.0)
+    edges = cuts(aligned, "sub_scan")
+    whole, _ = associate(aligned, cfg)
+    _, _, state = run_windows(aligned, edges[:10], cfg)
+    ep = _epoch_us(aligned)
+    latest = int(ep[ep < edges[9]].max())
+    tr = state.tracks
+    assert tr.columns == ["run", "radar_id", "local_track_id", "target_id", "seen_us"]
+    assert (tr["seen_us"] >= latest - 10_000_000).all() and tr["seen_us"].max() == latest
+    # each carried id is the one that local track had at its last epoch so far
+    last = (whole.filter(pl.col("epoch").dt.epoch("us") < edges[9])
+            .sort("epoch").group_by("run", "radar_id", "local_track_id").last()
+            .select(pl.col("run", "radar_id", "local_track_id").cast(pl.Int64),
+                    pl.col("target_id").cast(pl.Int64), seen_us=pl.col("epoch").dt.epoch("us")))
+    assert_frame_equal(tr.sort("run", "radar_id", "local_track_id"),
+                       last.join(tr.select("run", "radar_id", "local_track_id"),
+                                 on=["run", "radar_id", "local_track_id"]).sort("run", "radar_id", "local_track_id"))
+
+
+def test_window_contract_is_checked(aligned):
+    ep = _epoch_us(aligned)
+    lo = int(ep.min())
+    with pytest.raises(DataError, match="epoch outside the window"):
+        associate_step(init_associate_state(), aligned, lo, lo + 1, AssociationConfig())
+    _, state = associate_step(init_associate_state(), aligned.clear(), T_MIN, lo, AssociationConfig())
+    with pytest.raises(OptionError, match="does not follow"):
+        associate_step(state, aligned.clear(), lo - 10, lo, AssociationConfig())
+    _, state = associate_step(init_associate_state(), aligned, T_MIN, T_MAX, AssociationConfig())
+    assert state.t_us == T_MAX
