@@ -93,6 +93,15 @@ first scans already filtered. Runs (Monte-Carlo) are tracked together in one bat
 interact; track ids are per run. :func:`track_methods` folds the fusion methods into the same
 batch axis (one epoch loop per filter for every (method, run)), so the per-epoch interpreter
 cost is paid once per filter, not once per (method, filter).
+
+**Windowed (streaming) use.** :func:`track_step` runs the same loop over the plots of one time
+window [t0_us, t1_us), continuing from a :class:`TrackState` (per filter: the objects with their
+counters, ids and scan-1/scan-2 plot uids, the filter bank state and the next id of every
+(method, run); the batch runs as natural (method, run) keys; the fixed origin of the object
+times). Object times are seconds since that origin (the first epoch with plots), so every dt is
+right across windows; the tracker acts only at epochs with plots, so a window without plots
+changes nothing. Consecutive steps give :func:`track_methods`'s rows bit for bit, and
+:func:`track_methods` is :func:`init_track_state` + one step over the whole input.
 """
 
 from __future__ import annotations
@@ -129,7 +138,7 @@ TRACK_COLUMNS: dict[str, pl.DataType] = {
 _TENT, _HYP, _CONF = 0, 1, 2          # object kinds: tentative (stage 1 / M-of-N), scan-2 hypothesis, confirmed
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
-_METHOD_KEY = 1 << 32                 # batch run key = method index·_METHOD_KEY + run (track_methods)
+_METHOD_KEY = 1 << 32                 # (method code, run) packed as code·_METHOD_KEY + run (_batch_runs)
 
 
 @dataclass(frozen=True)
