@@ -93,11 +93,20 @@ first scans already filtered. Runs (Monte-Carlo) are tracked together in one bat
 interact; track ids are per run. :func:`track_methods` folds the fusion methods into the same
 batch axis (one epoch loop per filter for every (method, run)), so the per-epoch interpreter
 cost is paid once per filter, not once per (method, filter).
+
+**Windowed (streaming) use.** :func:`track_step` runs the same loop over the plots of one time
+window [t0_us, t1_us), continuing from a :class:`TrackState` (per filter: the objects with their
+counters, ids and scan-1/scan-2 plot uids, the filter bank state and the next id of every
+(method, run); the batch runs as natural (method, run) keys; the fixed origin of the object
+times). Object times are seconds since that origin (the first epoch with plots), so every dt is
+right across windows; the tracker acts only at epochs with plots, so a window without plots
+changes nothing. Consecutive steps give :func:`track_methods`'s rows bit for bit, and
+:func:`track_methods` is :func:`init_track_state` + one step over the whole input.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -111,7 +120,8 @@ from tertiary.altitude import ALT_COLUMNS, AltitudeConfig, AltState, predict as 
 from tertiary.filters.base import State, TrackFilter, concat, full_cov, make_filter, size, take
 from tertiary.schema import TABLES, TIME
 
-__all__ = ["TrackerConfig", "track", "track_methods", "TRACK_COLUMNS", "STATUS"]
+__all__ = ["TrackerConfig", "TrackState", "init_track_state", "track", "track_methods", "track_step",
+           "TRACK_COLUMNS", "STATUS"]
 
 STATUS = ("tentative", "confirmed", "coasting")
 STATE_COLS = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
@@ -128,7 +138,7 @@ TRACK_COLUMNS: dict[str, pl.DataType] = {
 _TENT, _HYP, _CONF = 0, 1, 2          # object kinds: tentative (stage 1 / M-of-N), scan-2 hypothesis, confirmed
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
-_METHOD_KEY = 1 << 32                 # batch run key = method index·_METHOD_KEY + run (track_methods)
+_METHOD_KEY = 1 << 32                 # (method code, run) packed as code·_METHOD_KEY + run (_batch_runs)
 
 
 @dataclass(frozen=True)
@@ -333,19 +343,23 @@ def _plot_alt(f: pl.DataFrame) -> NDArray:
 
 
 class _PlotIndex:
-    """All plots sorted by (epoch, σ class, run, x) with per-epoch slices, built once."""
+    """All plots of one window sorted by (epoch, σ class, run, x) with per-epoch slices, built
+    once per window. ``fused["run"]`` is already the batch run index (:class:`TrackState`
+    ``keys``); plot uids are ``uid0`` + the row's position in this order, so they continue
+    across windows (they equal the whole-run positions when the windows are cut by epoch)."""
 
-    def __init__(self, fused: pl.DataFrame) -> None:
+    def __init__(self, fused: pl.DataFrame, uid0: int = 0) -> None:
         f = fused.with_columns(pl.col("epoch").cast(TIME))
         cov = f["cov"].to_numpy()
         cov = np.asarray(cov, float).reshape(-1, 36) if cov.dtype != object else np.stack(cov).reshape(-1, 36)
         r = cov[:, [0, 7, 14]].astype(float)
         z = f.select("x_m", "y_m", "z_m").to_numpy().astype(float)
         epoch_us = f["epoch"].dt.epoch("us").to_numpy()
-        runs, run = np.unique(f["run"].cast(pl.Int64).to_numpy(), return_inverse=True)
+        run = f["run"].cast(pl.Int64).to_numpy()
         cls = np.searchsorted(_SIGMA_CLASSES, np.sqrt(r.max(axis=1)))
         order = np.lexsort((z[:, 0], run, cls, epoch_us))
-        self.runs = runs
+        self.uid0 = int(uid0)
+        self.n = len(order)
         self.run = run.astype(np.int64)[order]
         self.cls = cls[order]
         self.z = np.ascontiguousarray(z[order])
@@ -372,7 +386,7 @@ class _PlotIndex:
         lo, hi = self.bounds[k], self.bounds[k + 1]
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return _Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
-                      np.arange(lo, hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
+                      np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
                       self.fresh[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1], self.seg_rmax_x[s0:s1])
 
 
@@ -629,33 +643,16 @@ def _drop_tentative(fused: pl.DataFrame) -> pl.DataFrame:
     return fused
 
 
-def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
-    """Track the fused plots of one fusion method with ``filt``; returns the ``tracks`` table
-    (plus ``status`` and ``plot_target_id``) with a row per confirmed/coasting track per epoch
-    of its run, sorted by (run, epoch, track_id)."""
-    _check_fused(fused_one_method)
-    methods = (fused_one_method["method"].unique().to_list()
-               if "method" in fused_one_method.columns else ["unknown"])
-    if len(methods) > 1:
-        raise ValueError(f"track() takes the fused rows of one method, got {sorted(map(str, methods))}")
-    method = str(methods[0]) if methods else "unknown"
-    fused_one_method = _drop_tentative(fused_one_method)
-    if fused_one_method.height == 0:
-        return pl.DataFrame(schema=TRACK_COLUMNS)
-    emitted, ix = _track_batch(fused_one_method, filt, cfg)
-    return emitted.frame(ix.runs, filt.name, [method], np.zeros(len(ix.runs), np.int64))
-
-
-def _track_batch(fused: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig) -> tuple["_Emitted", "_PlotIndex"]:
-    """The tracker's epoch loop over every batch run of ``fused`` (its ``run`` column: any
-    integer key; batch runs never interact). Returns the emitted rows and the plot index
-    (``ix.runs``: the key of each batch run index)."""
-    ix = _PlotIndex(fused)
-    n_runs = len(ix.runs)
-    secs = (ix.epochs - ix.epochs[0]) / 1e6
-    state: State = {}
-    objs = _Objects.empty()
-    next_id = np.ones(n_runs, np.int64)
+def _track_batch(ix: "_PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "_Bank", n_runs: int,
+                 origin_us: int) -> tuple["_Emitted", "_Bank"]:
+    """The tracker's epoch loop over the plots of one window (``ix``, batch run indices
+    0 ≤ j < ``n_runs``; batch runs never interact), starting from ``bank`` (never modified).
+    Object times are float seconds since ``origin_us``. Returns the emitted rows and the bank
+    at the end of the window."""
+    secs = (ix.epochs - origin_us) / 1e6
+    state: State = bank.filt_state
+    objs = _Objects(bank.f, bank.i)
+    next_id = np.r_[bank.next_id, np.ones(n_runs - len(bank.next_id), np.int64)]
     emitted = _Emitted()
     three = cfg.initiation == "three_scan"
     empty = np.zeros(0, np.int64)
@@ -810,7 +807,7 @@ def _track_batch(fused: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig) -> 
                              _take_state(su, kept, len(idx)) if len(idx) else {}, sn)
         objs = _Objects.concat(objs.take(idle) if len(idle) else _Objects.empty(), mu.take(kept), mn)
 
-    return emitted, ix
+    return emitted, _Bank(f=objs.f, i=objs.i, next_id=next_id, filt_state=state)
 
 
 def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray) -> NDArray:
@@ -826,37 +823,173 @@ def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray
     return np.sort(got[np.sort(first)])
 
 
-def track_methods(fused: pl.DataFrame, filters: dict[str, TrackFilter] | list[str] | tuple[str, ...],
-                  cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
+# --------------------------------------------------------------------------- state and step (windowed engine)
+
+
+@dataclass(frozen=True)
+class _Bank:
+    """One filter's tracker over every batch run of a :class:`TrackState`.
+
+    ``f``/``i``: the objects (stage-1 tentatives, scan-2 hypotheses, confirmed tracks) as the
+    packed rows of ``_Objects`` — times in float seconds since ``TrackState.origin_us``,
+    ``_RUN`` = batch run index, track ids, miss/hit/scan counters, the uids of their scan-1 and
+    scan-2 plots; ``filt_state``: the filter bank :data:`State` of the same objects (object axis
+    first, same order); ``next_id``: the next track id of every batch run."""
+
+    f: NDArray
+    i: NDArray
+    next_id: NDArray
+    filt_state: State
+
+    @staticmethod
+    def empty() -> "_Bank":
+        return _Bank(np.zeros((0, _NF)), np.zeros((0, _NI), np.int64), np.zeros(0, np.int64), {})
+
+
+@dataclass(frozen=True)
+class TrackState:
+    """What the secondary tracker carries from one window to the next (picklable).
+
+    * ``keys``: the batch runs as natural keys ``(fusion method, run)``, in order of first
+      appearance (sorted within a window); position j is batch run index j of every bank.
+    * ``banks``: per filter name, its :class:`_Bank` (objects, filter state, next ids).
+    * ``origin_us``: int µs since the Unix epoch, the fixed origin of the banks' float object
+      times (set by the first window holding plots to its first epoch unless given to
+      :func:`init_track_state`). Object times stay float seconds since this fixed origin
+      because a measurement time (epoch − ``age_s``) is not a whole µs, and float seconds since
+      1970 resolve only ~0.2 µs (dt off by ~1e-7 relative).
+    * ``next_uid``: the uid of the next plot (hypotheses are told apart by their plots' uids).
+    * ``reached_us``: end (t1_us) of the last window stepped, None before the first.
+    """
+
+    keys: tuple[tuple[str, int], ...]
+    banks: dict[str, _Bank]
+    origin_us: int | None = None
+    next_uid: int = 0
+    reached_us: int | None = None
+
+
+Filters = dict[str, TrackFilter] | list[str] | tuple[str, ...]
+
+
+def _filter_dict(filters: Filters) -> dict[str, TrackFilter]:
+    return dict(filters) if isinstance(filters, dict) else {name: make_filter(name) for name in filters}
+
+
+def init_track_state(filters: Filters, origin_us: int | None = None) -> TrackState:
+    """The empty tracker state (before the first window) for ``filters`` (names or name →
+    filter, as :func:`track_step` will get them). ``origin_us``: the origin of the object
+    times; None (recommended) takes the first epoch with plots, as :func:`track_methods` does,
+    so a windowed run equals the whole-run call bit for bit."""
+    return TrackState(keys=(), banks={name: _Bank.empty() for name in _filter_dict(filters)},
+                      origin_us=None if origin_us is None else int(origin_us))
+
+
+def _window_rows(fused: pl.DataFrame, t0_us: int, t1_us: int) -> pl.DataFrame:
+    """The non-tentative plots of the window, checked to lie in [t0_us, t1_us)."""
+    if fused.height == 0:
+        return fused
+    _check_fused(fused)
+    if "method" not in fused.columns:
+        raise ValueError("fused plots lack column method")
+    rows = _drop_tentative(fused)
+    if rows.height:
+        us = rows["epoch"].cast(TIME).dt.epoch("us")
+        lo, hi = int(us.min()), int(us.max())
+        if lo < t0_us or hi >= t1_us:
+            raise ValueError(f"fused epoch {lo if lo < t0_us else hi} µs outside the window [{t0_us}, {t1_us}) µs")
+    return rows
+
+
+def _batch_runs(rows: pl.DataFrame, keys: tuple[tuple[str, int], ...]) -> tuple[NDArray, tuple[tuple[str, int], ...]]:
+    """The batch run index of every row and the keys extended with the window's new
+    (method, run) pairs (sorted among themselves)."""
+    meth = rows["method"].cast(pl.String)
+    names = sorted(meth.unique().to_list())
+    code = meth.replace_strict(pl.Series(names, dtype=pl.String),
+                               pl.Series(np.arange(len(names), dtype=np.int64)), return_dtype=pl.Int64).to_numpy()
+    ukey, inv = np.unique(code * _METHOD_KEY + rows["run"].cast(pl.Int64).to_numpy(), return_inverse=True)
+    index = {k: j for j, k in enumerate(keys)}
+    out = list(keys)
+    pos = np.empty(len(ukey), np.int64)
+    for n, k in enumerate(ukey.tolist()):                  # one per (method, run) of the window
+        pair = (names[k // _METHOD_KEY], int(k % _METHOD_KEY))
+        if pair not in index:
+            index[pair] = len(out)
+            out.append(pair)
+        pos[n] = index[pair]
+    return pos[inv.ravel()], tuple(out)
+
+
+def track_step(state: TrackState, fused: pl.DataFrame, filters: Filters, cfg: TrackerConfig,
+               t0_us: int, t1_us: int) -> tuple[pl.DataFrame, TrackState]:
+    """One window of :func:`track_methods`: the tracks of the fused plots with epoch in
+    [t0_us, t1_us) (every fusion method of ``fused`` × every filter, the layout of
+    :func:`track_methods`), continuing from ``state`` (never modified); returns them and the
+    state at the end of the window. No margin is needed: the tracker only looks at the
+    current epoch's plots and its own objects.
+
+    ``filters`` must name the filters of :func:`init_track_state` (pass the same dict every
+    window: building filters per window repeats their set-up). Windows must come in time order
+    (t0_us ≥ the previous t1_us). An empty window changes nothing but ``reached_us``: the
+    tracker only acts at epochs with plots, a data gap is not a miss (module docstring)."""
+    filters = _filter_dict(filters)
+    if set(filters) != set(state.banks):
+        raise ValueError(f"track_step got filters {sorted(filters)}, the state holds {sorted(state.banks)}")
+    if t1_us < t0_us or (state.reached_us is not None and t0_us < state.reached_us):
+        raise ValueError(f"window [{t0_us}, {t1_us}) µs is not after the state's end {state.reached_us} µs")
+    rows = _window_rows(fused, t0_us, t1_us)
+    if rows.height == 0:
+        return pl.DataFrame(schema=TRACK_COLUMNS), replace(state, reached_us=int(t1_us))
+    run, keys = _batch_runs(rows, state.keys)
+    ix = _PlotIndex(rows.with_columns(pl.Series("run", run)), state.next_uid)
+    origin = int(ix.epochs[0]) if state.origin_us is None else state.origin_us
+    names = sorted({m for m, _ in keys})
+    runs = np.array([r for _, r in keys], np.int64)
+    run_method = np.array([names.index(m) for m, _ in keys], np.int64)
+    banks, per_filter = {}, {}
+    for name, filt in filters.items():
+        emitted, banks[name] = _track_batch(ix, filt, cfg, state.banks[name], len(keys), origin)
+        per_filter[name] = emitted.frame(runs, filt.name, names, run_method)
+    # the per-(method, filter) order of the unfolded loop: method-major, then filter
+    parts = [part for meth in names for frame in per_filter.values()
+             for part in [frame.filter(pl.col("method") == meth)] if part.height]
+    tracks = pl.concat(parts, how="vertical") if parts else pl.DataFrame(schema=TRACK_COLUMNS)
+    return tracks, TrackState(keys=keys, banks=banks, origin_us=origin, next_uid=state.next_uid + ix.n,
+                              reached_us=int(t1_us))
+
+
+def track(fused_one_method: pl.DataFrame, filt: TrackFilter, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
+    """Track the fused plots of one fusion method with ``filt``; returns the ``tracks`` table
+    (plus ``status`` and ``plot_target_id``) with a row per confirmed/coasting track per epoch
+    of its run, sorted by (run, epoch, track_id)."""
+    _check_fused(fused_one_method)
+    methods = (fused_one_method["method"].unique().to_list()
+               if "method" in fused_one_method.columns else ["unknown"])
+    if len(methods) > 1:
+        raise ValueError(f"track() takes the fused rows of one method, got {sorted(map(str, methods))}")
+    method = str(methods[0]) if methods else "unknown"
+    return track_methods(fused_one_method.with_columns(pl.lit(method, pl.String).alias("method")),
+                         {filt.name: filt}, cfg)
+
+
+def track_methods(fused: pl.DataFrame, filters: Filters, cfg: TrackerConfig = TrackerConfig()) -> pl.DataFrame:
     """:func:`track` for every fusion method of ``fused`` × every filter (names are built with
     :func:`make_filter`); the tables concatenated (method-major, then filter, each sorted by
-    (run, epoch, track_id)).
+    (run, epoch, track_id)). It is :func:`init_track_state` + one :func:`track_step` over the
+    whole input.
 
     (method, run) is folded into the batch axis: each filter runs ONE epoch loop over every
-    method's picture at once (batch key method index·2³² + run), so the per-epoch interpreter
-    overhead is paid once per filter instead of once per (method, filter). Batch runs never
-    interact (see the module docstring), so each (method, run) gets exactly the tracks of its
-    own :func:`track` call, with its own track ids.
+    method's picture at once, so the per-epoch interpreter overhead is paid once per filter
+    instead of once per (method, filter). Batch runs never interact (see the module
+    docstring), so each (method, run) gets exactly the tracks of its own :func:`track` call,
+    with its own track ids.
     """
-    if not isinstance(filters, dict):
-        filters = {name: make_filter(name) for name in filters}
+    filters = _filter_dict(filters)
     _check_fused(fused)
-    methods = sorted(fused["method"].unique().to_list())
-    if not methods or not filters:
+    rows = _drop_tentative(fused)
+    if rows.height == 0 or not filters:
         return pl.DataFrame(schema=TRACK_COLUMNS)
-    code = pl.Series(methods, dtype=pl.String)
-    batch = _drop_tentative(fused).with_columns(
-        (pl.col("method").replace_strict(code, pl.Series(np.arange(len(methods), dtype=np.int64)),
-                                         return_dtype=pl.Int64) * _METHOD_KEY
-         + pl.col("run").cast(pl.Int64)).alias("run"))
-    per_filter = {}
-    for name, filt in filters.items():
-        if batch.height == 0:
-            per_filter[name] = pl.DataFrame(schema=TRACK_COLUMNS)
-            continue
-        emitted, ix = _track_batch(batch, filt, cfg)
-        per_filter[name] = emitted.frame(ix.runs % _METHOD_KEY, filt.name, methods, ix.runs // _METHOD_KEY)
-    # the per-(method, filter) order of the unfolded loop: method-major, then filter
-    parts = [part for meth in methods for frame in per_filter.values()
-             for part in [frame.filter(pl.col("method") == meth)] if part.height]
-    return pl.concat(parts, how="vertical") if parts else pl.DataFrame(schema=TRACK_COLUMNS)
+    us = rows["epoch"].cast(TIME).dt.epoch("us")
+    tracks, _ = track_step(init_track_state(filters), rows, filters, cfg, int(us.min()), int(us.max()) + 1)
+    return tracks
