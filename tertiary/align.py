@@ -13,6 +13,10 @@
   contribute at every epoch of their scan.
 * **Row accounting.** A report that is superseded by a newer report of the same local track
   before reaching any epoch, or whose estimate is unusable, goes to ``rejects`` with a reason.
+* **Windows.** :func:`align_step` aligns a run window by window (each report handed to the
+  window holding its time, no margins): the reports that still give rows at later epochs, or
+  whose fate waits for the next report of their local track, and the local tracker's filters
+  are carried in :class:`AlignState`; the concatenated outputs equal :func:`align`'s.
 """
 
 from __future__ import annotations
@@ -273,8 +277,8 @@ def _continue_lives(lives: pl.DataFrame, carry: pl.DataFrame, t_us: NDArray[np.i
                       how="inner").filter((pl.col("__t") - pl.col("t_us")) * 1e-6 <= pl.col("__thr"))
     prior = cont.select(local_tracks.CARRY_SCHEMA.keys()).cast(local_tracks.CARRY_SCHEMA)
     out, lc = local_tracks.track_reports_step(prior, lives, radars, cfg.local_tracker)
-    numbers = lives.select("run", "radar_id", "local_track_id", "__number").unique(["run", "radar_id", "local_track_id"])
-    latest = (lc.join(numbers, on=["run", "radar_id", "local_track_id"], how="inner")
+    numbers = lives.select(*key, "__number").unique(key)
+    latest = (lc.join(numbers, on=key, how="inner")
               .sort("local_track_id").group_by(["run", "radar_id", "__number"], maintain_order=True).last()
               .drop("local_track_id").rename({"__number": "local_track_id"}).select(local_tracks.CARRY_SCHEMA.keys())
               .cast(local_tracks.CARRY_SCHEMA))

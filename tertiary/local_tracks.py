@@ -527,7 +527,7 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
     return _track(reports, radars, cfg, None)[0]
 
 
-def track_reports_step(carry: pl.DataFrame, reports: pl.DataFrame, radars: pl.DataFrame,
+def track_reports_step(carry: pl.DataFrame | None, reports: pl.DataFrame, radars: pl.DataFrame,
                        cfg: LocalTrackerConfig = LocalTrackerConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`track_reports` of the next reports of a stream: a track with a row in ``carry``
     (:data:`CARRY_SCHEMA`, :func:`empty_carry` at first) continues from its carried state
@@ -544,5 +544,6 @@ def track_reports_step(carry: pl.DataFrame, reports: pl.DataFrame, radars: pl.Da
         raise OptionError(f"range channel {cfg.range_channel!r} cannot run window by window (it is sized on the "
                           "whole run's EHS speeds); use range_channel='singer' or a single window",
                           option="local_tracker.range_channel")
-    out, new_carry = _track(reports, radars, cfg, carry)
+    out, new_carry = _track(reports, radars, cfg, empty_carry() if carry is None else carry)
+    assert new_carry is not None
     return out, new_carry

@@ -271,3 +271,26 @@ def test_held_report_keeps_its_next_report_epoch(rows):
     got, got_rej, state = _windowed(case, [int(case.times.min()) + 9_500_000 + 500_000])
     assert_frame_equal(got.sort(ALIGNED_KEY), whole.sort(ALIGNED_KEY), rel_tol=1e-9, abs_tol=1e-9)
     assert_frame_equal(got_rej.sort("report_id"), whole_rej.sort("report_id"))
+
+
+def test_local_tracker_step_equals_one_call(small_terminal):
+    """tertiary.local_tracks.track_reports_step over time pieces = track_reports on the whole
+    stream (no restart gaps here: every track continues its carried Singer channels, the
+    innovation of a piece's first report included)."""
+    from tertiary import local_tracks
+    plots = small_terminal.reports.select(PLOT_COLUMNS)
+    whole = local_tracks.track_reports(plots, small_terminal.radars).sort("report_id")
+    t = plots["time"].dt.epoch("us").to_numpy()
+    cuts = np.linspace(t.min(), t.max() + 1, 8).astype(np.int64)
+    carry, parts = None, []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        out, carry = local_tracks.track_reports_step(carry, plots.filter(pl.Series((t >= a) & (t < b))),
+                                                     small_terminal.radars)
+        parts.append(out)
+    got = pl.concat(parts).sort("report_id")
+    assert_frame_equal(got.select(local_tracks.ESTIMATE_COLUMNS), whole.select(local_tracks.ESTIMATE_COLUMNS),
+                       rel_tol=1e-9, abs_tol=1e-9)
+    assert carry.height == plots.select("run", "radar_id", "local_track_id").n_unique()
+    with pytest.raises(OptionError, match="range_channel"):
+        local_tracks.track_reports_step(None, plots, small_terminal.radars,
+                                        LocalTrackerConfig(range_channel="kinematic_dynamic"))
