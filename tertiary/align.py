@@ -13,6 +13,10 @@
   contribute at every epoch of their scan.
 * **Row accounting.** A report that is superseded by a newer report of the same local track
   before reaching any epoch, or whose estimate is unusable, goes to ``rejects`` with a reason.
+* **Windows.** :func:`align_step` aligns a run window by window (each report handed to the
+  window holding its time, no margins): the reports that still give rows at later epochs, or
+  whose fate waits for the next report of their local track, and the local tracker's filters
+  are carried in :class:`AlignState`; the concatenated outputs equal :func:`align`'s.
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary import geo
+from tertiary import geo, local_tracks
 from tertiary.errors import DataError, OptionError, ResourceError
 from tertiary.local_tracks import LocalTrackerConfig, track_reports
 
@@ -185,19 +189,37 @@ def extrapolate(state: NDArray[np.float64], cov36: NDArray[np.float64], dt: NDAr
     return out_x, out_p
 
 
-def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) -> tuple[int, float]:
-    """Grid origin (µs since the Unix epoch, whole second) and period (s).
+def epoch_period(radars: pl.DataFrame, cfg: AlignConfig) -> float:
+    """Epoch spacing (s): ``cfg.period_s``, else the fastest radar's scan period.
 
-    Raises :class:`DataError` when there is no report or no scan period to build it from."""
+    Raises :class:`OptionError`/:class:`DataError` when it is not finite and positive."""
     period = cfg.period_s if cfg.period_s is not None else radars["scan_period_s"].min()
     if period is None or not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
         if cfg.period_s is not None:
             raise OptionError(f"epoch period must be finite and positive, got {period}", option="align.period_s")
         raise DataError(f"radars: no valid scan_period_s to build the epoch grid from (got {period})")
+    return float(period)
+
+
+def grid_origin_us(t_min_us: int) -> int:
+    """The default grid origin: the earliest report time floored to the whole second (µs)."""
+    return (int(t_min_us) // US) * US
+
+
+def epoch_grid(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig,
+               origin_us: int | None = None) -> tuple[int, float]:
+    """Grid origin (µs since the Unix epoch) and period (s). The origin is ``origin_us`` when
+    given (a windowed run passes the whole dataset's), else :func:`grid_origin_us` of the
+    earliest report.
+
+    Raises :class:`DataError` when there is no report or no scan period to build it from."""
+    period = epoch_period(radars, cfg)
+    if origin_us is not None:
+        return int(origin_us), period
     t_min = reports["time"].dt.epoch("us").min() if reports.height else None
     if t_min is None:
         raise DataError("align: no report to build the epoch grid from")
-    return (int(t_min) // US) * US, float(period)
+    return grid_origin_us(int(t_min)), period
 
 
 def estimates_by_track_life(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig = AlignConfig()
@@ -205,17 +227,63 @@ def estimates_by_track_life(reports: pl.DataFrame, radars: pl.DataFrame, cfg: Al
     """:func:`tertiary.local_tracks.track_reports` with each local track split where it falls
     silent for more than ``cfg.restart_gap_scans`` scan periods (a reused track number): each
     life is filtered from its own first plot, the radar's numbers are kept."""
+    return _estimates(reports, radars, cfg, None)[0]
+
+
+def _restart_gap_s(df: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig) -> NDArray[np.float64]:
+    """Per row of ``df``: the silence (s) after which its local track restarts (inf: radar unknown)."""
+    scan = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id", how="left",
+                                      maintain_order="left")["scan_period_s"].fill_null(np.inf).to_numpy()
+    return cfg.restart_gap_scans * scan
+
+
+def _estimates(reports: pl.DataFrame, radars: pl.DataFrame, cfg: AlignConfig, carry: pl.DataFrame | None
+               ) -> tuple[pl.DataFrame, pl.DataFrame | None]:
+    """:func:`estimates_by_track_life`; with ``carry`` (a windowed run: the local-tracker carry
+    keyed by the radar's numbers) a track's first report here continues its carried life unless
+    it comes more than the restart gap after the carried report. Returns the carry after these
+    reports (None without one)."""
     df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     key = ["run", "radar_id", "local_track_id"]
     df = df.sort(key + ["time"], maintain_order=True)
-    period = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id", how="left",
-                                        maintain_order="left")["scan_period_s"].fill_null(np.inf)
-    gap = df.select(pl.col("time").diff().over(key).dt.total_microseconds() * 1e-6).to_series()
-    new = (gap.is_null() | (gap > cfg.restart_gap_scans * period)).to_numpy()
+    n = df.height
+    t_us = df["time"].dt.epoch("us").to_numpy()
+    keys = df.select(pl.col(key).cast(pl.Int64)).to_numpy()
+    thr = _restart_gap_s(df, radars, cfg)
+    first = np.ones(n, bool)
+    first[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    gap_s = np.diff(t_us, prepend=t_us[:1]) * 1e-6
+    new = first | (gap_s > thr)
     life = pl.Series("local_track_id", np.cumsum(new), dtype=pl.UInt32)
-    out = track_reports(df.rename({"local_track_id": "__number"}).with_columns(life), radars, cfg.local_tracker)
-    return out.with_columns(pl.col("__number").alias("local_track_id")).drop("__number").select(
+    lives = df.rename({"local_track_id": "__number"}).with_columns(life)
+    if carry is None:
+        out, lc = track_reports(lives, radars, cfg.local_tracker), None
+    else:
+        out, lc = _continue_lives(lives, carry, t_us, first, thr, radars, cfg)
+    out = out.with_columns(pl.col("__number").alias("local_track_id")).drop("__number").select(
         [c for c in df.columns] + [c for c in out.columns if c not in df.columns and c != "__number"])
+    return out, lc
+
+
+def _continue_lives(lives: pl.DataFrame, carry: pl.DataFrame, t_us: NDArray[np.int64], first: NDArray[np.bool_],
+                    thr: NDArray[np.float64], radars: pl.DataFrame, cfg: AlignConfig
+                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Run the local tracker on ``lives`` (local_track_id = life number, ``__number`` = the
+    radar's) continuing the carried lives, and return the carry keyed by the radar's numbers."""
+    key = ["run", "radar_id", "local_track_id"]
+    heads = lives.filter(pl.Series(first)).select("run", "radar_id", "__number", "local_track_id").with_columns(
+        pl.Series("__t", t_us[first]), pl.Series("__thr", thr[first]))
+    cont = heads.join(carry.rename({"local_track_id": "__number"}), on=["run", "radar_id", "__number"],
+                      how="inner").filter((pl.col("__t") - pl.col("t_us")) * 1e-6 <= pl.col("__thr"))
+    prior = cont.select(local_tracks.CARRY_SCHEMA.keys()).cast(local_tracks.CARRY_SCHEMA)
+    out, lc = local_tracks.track_reports_step(prior, lives, radars, cfg.local_tracker)
+    numbers = lives.select(*key, "__number").unique(key)
+    latest = (lc.join(numbers, on=key, how="inner")
+              .sort("local_track_id").group_by(["run", "radar_id", "__number"], maintain_order=True).last()
+              .drop("local_track_id").rename({"__number": "local_track_id"}).select(local_tracks.CARRY_SCHEMA.keys())
+              .cast(local_tracks.CARRY_SCHEMA))
+    kept = carry.cast(local_tracks.CARRY_SCHEMA).join(latest.select(key), on=key, how="anti")
+    return out, pl.concat([kept, latest]).sort(key)
 
 
 @dataclass
@@ -225,6 +293,8 @@ class AlignPlan:
     ``df`` is the reports sorted by (run, radar, local track, time) with estimates; per row of
     ``df``: ``k`` first and ``last_k`` last epoch index, ``keep`` (else ``rejects`` says why),
     the system-frame ``state``/``cov``/``nominal``; ``rows`` = number of aligned rows.
+    In a windowed step also ``has_next``/``k_next`` (the next report of the same local track
+    is known, its first epoch) and ``pending`` (decision waits for the next report).
     """
 
     df: pl.DataFrame
@@ -241,6 +311,9 @@ class AlignPlan:
     rows: int
     #: seed 002 (13) validity of each ``df`` row's polar → Cartesian conversion (AlignConfig.conversion_gate)
     conv_valid: NDArray[np.bool_] | None = None
+    has_next: NDArray[np.bool_] | None = None
+    k_next: NDArray[np.int64] | None = None
+    pending: NDArray[np.bool_] | None = None
 
     @property
     def conversion_invalid(self) -> int:
@@ -251,6 +324,8 @@ class AlignPlan:
 #: bytes held per aligned row (state, 6×6 covariance, nominal variance, keys, extrapolation
 #: temporaries) for the memory estimate of :func:`plan`
 BYTES_PER_ALIGNED_ROW = 8 * (6 + 36 + 3 + 14) * 2
+#: "no next report known" in epoch-index arrays
+_NO_K = np.iinfo(np.int64).max
 
 
 def _epoch_index(x: NDArray[np.float64], what: str) -> NDArray[np.int64]:
@@ -260,9 +335,18 @@ def _epoch_index(x: NDArray[np.float64], what: str) -> NDArray[np.int64]:
     return x.astype(np.int64)
 
 
+def _first_epoch(t_us: NDArray[np.int64] | int, delay_s: NDArray[np.float64] | float, t0_us: int, period: float
+                 ) -> NDArray[np.int64]:
+    """First epoch index at or after a report's availability (time + collection delay)."""
+    rel = (np.asarray(t_us, np.int64) - t0_us) / US
+    return _epoch_index(np.atleast_1d(np.ceil((rel + delay_s) / period - 1e-9)), "first")
+
+
 def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-         cfg: AlignConfig = AlignConfig()) -> AlignPlan:
+         cfg: AlignConfig = AlignConfig(), grid_origin_us: int | None = None) -> AlignPlan:
     """The alignment's decisions (epochs per report and every rejection with its reason).
+    The epoch grid starts at ``grid_origin_us`` (default: the earliest report, floored to the
+    second; :func:`epoch_grid`).
 
     Estimates the aligned rows before anything is allocated and raises
     :class:`ResourceError` beyond ``cfg.max_rows``."""
@@ -271,14 +355,39 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     if "run" not in reports.columns:
         reports = reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     df = reports.sort(["run", "radar_id", "local_track_id", "time"], maintain_order=True)
-    t0_us, period = epoch_grid(df, radars, cfg)
+    t0_us, period = epoch_grid(df, radars, cfg, grid_origin_us)
+    p = _plan_frame(df, radars, origin, cfg, t0_us, period)
+    _check_rows(p.rows, period, radars, cfg)
+    return p
+
+
+def _check_rows(n_rows: int, period: float, radars: pl.DataFrame, cfg: AlignConfig) -> None:
+    """:class:`ResourceError` when ``n_rows`` aligned rows exceed ``cfg.max_rows``."""
+    if n_rows > cfg.max_rows:
+        scan = radars["scan_period_s"].to_numpy().astype(float)
+        raise ResourceError(
+            f"align: {n_rows:,} aligned rows (~{n_rows * BYTES_PER_ALIGNED_ROW / 1e9:.1f} GB) exceed the limit of "
+            f"{cfg.max_rows:,} (AlignConfig.max_rows): epochs every {period:g} s with reports kept for "
+            f"{cfg.max_age_scans:g} scans of up to {np.nanmax(scan):g} s; set a larger AlignConfig.period_s")
+
+
+def _plan_frame(df: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame, cfg: AlignConfig, t0_us: int,
+                period: float, known_next: NDArray[np.int64] | None = None, k_future: int | None = None
+                ) -> AlignPlan:
+    """The plan of ``df`` (sorted by run, radar, local track, time; with estimates).
+
+    Whole run: a report's next report is the next row of its local track. Windowed step:
+    ``known_next`` (``_NO_K`` = unknown) gives the next report's first epoch already seen for
+    held reports, and ``k_future`` is the smallest first epoch any report not yet seen can have:
+    a report with no next report yet whose first epoch is ≥ ``k_future`` could still be
+    superseded, so it is ``pending`` (neither kept nor rejected)."""
     t_us = df["time"].dt.epoch("us").to_numpy()
     rel = (t_us - t0_us) / US
     # a report is usable from the time it has been collected and processed (§1.4 queue,
     # :mod:`tertiary.collection`): its first epoch is at or after time + delay; its state is
     # still extrapolated from its own time
-    avail = rel + (df["collection_delay_s"].fill_null(0.0).to_numpy() if "collection_delay_s" in df.columns else 0.0)
-    k = _epoch_index(np.ceil(avail / period - 1e-9), "first")      # first epoch at or after availability
+    delay = df["collection_delay_s"].fill_null(0.0).to_numpy() if "collection_delay_s" in df.columns else 0.0
+    k = _first_epoch(t_us, delay, t0_us, period) if df.height else np.zeros(0, np.int64)
 
     state, cov, nominal = to_system_frame(df, radars, origin)
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
@@ -287,21 +396,20 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     usable = finite & plausible & (conv_ok | (cfg.conversion_gate != "reject"))
 
     keys = df.select("run", "radar_id", "local_track_id").to_numpy()
-    same_next = np.zeros(len(df), bool)
-    same_next[:-1] = np.all(keys[1:] == keys[:-1], axis=1)
-    k_next = np.append(k[1:], np.iinfo(np.int64).max)
-    superseded = same_next & (k_next == k)
+    has_next = np.zeros(len(df), bool)
+    has_next[:-1] = np.all(keys[1:] == keys[:-1], axis=1)
+    k_next = np.where(has_next, np.append(k[1:], _NO_K), _NO_K)
+    if known_next is not None:                     # the held report's next was seen in an earlier window
+        known = known_next != _NO_K
+        k_next, has_next = np.where(known, known_next, k_next), has_next | known
+    superseded = has_next & (k_next == k)
     scan = df.select("radar_id").join(radars.select("radar_id", "scan_period_s"), on="radar_id",
                                       how="left", maintain_order="left")["scan_period_s"].to_numpy()
     last_k = _epoch_index(np.floor((rel + cfg.max_age_scans * scan) / period + 1e-9), "last")
-    last_k = np.where(same_next, np.minimum(last_k, k_next - 1), last_k)
-    keep = usable & ~superseded & (last_k >= k)
+    last_k = np.where(has_next, np.minimum(last_k, k_next - 1), last_k)
+    pending = (~has_next & usable & (k >= k_future)) if k_future is not None else np.zeros(len(df), bool)
+    keep = usable & ~superseded & (last_k >= k) & ~pending
     n_rows = int(np.sum((last_k - k + 1)[keep], dtype=np.float64))
-    if n_rows > cfg.max_rows:
-        raise ResourceError(
-            f"align: {n_rows:,} aligned rows (~{n_rows * BYTES_PER_ALIGNED_ROW / 1e9:.1f} GB) exceed the limit of "
-            f"{cfg.max_rows:,} (AlignConfig.max_rows): epochs every {period:g} s with reports kept for "
-            f"{cfg.max_age_scans:g} scans of up to {np.nanmax(scan):g} s; set a larger AlignConfig.period_s")
 
     reason = np.where(~finite, "no usable track estimate (non-finite state or covariance)",
                       np.where(~plausible, f"implausible track speed (> {cfg.max_speed_mps:g} m/s)",
@@ -309,9 +417,11 @@ def plan(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
                                         "or sigma >= 0.4 rad)",
                       np.where(superseded, "superseded by a newer report of the same local track before the next epoch",
                                "track estimate too old for any epoch"))))
-    rejects = df.filter(pl.Series(~keep)).select("report_id").with_columns(
-        pl.Series("reason", reason[~keep], dtype=pl.String))
-    return AlignPlan(df, t0_us, period, rel, k, last_k, keep, state, cov, nominal, rejects, n_rows, conv_ok)
+    rej = ~keep & ~pending
+    rejects = df.filter(pl.Series(rej)).select("report_id").with_columns(
+        pl.Series("reason", reason[rej], dtype=pl.String))
+    return AlignPlan(df, t0_us, period, rel, k, last_k, keep, state, cov, nominal, rejects, n_rows, conv_ok,
+                     has_next, k_next, pending)
 
 
 _ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
@@ -319,42 +429,58 @@ _ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "
                     "altitude_m"]
 
 
-def empty_aligned() -> pl.DataFrame:
-    """An aligned frame with no rows (every report rejected)."""
+def empty_aligned(cfg: AlignConfig | None = None) -> pl.DataFrame:
+    """An aligned frame with no rows (every report rejected); with ``cfg``, the optional
+    columns it adds too (``conv_valid``, identity)."""
     t = pl.Datetime("us", "UTC")
+    extra: dict[str, pl.DataType] = {}
+    if cfg is not None and cfg.conversion_gate == "flag":
+        extra["conv_valid"] = pl.Boolean
+    if cfg is not None and cfg.identity:
+        extra.update(dict.fromkeys(IDENTITY_COLUMNS, pl.String))
     return pl.DataFrame(schema={
         "report_id": pl.UInt64, "run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
         "epoch": t, "time": t, **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
         "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "mode_s": pl.String, "truth_id": pl.Int64,
         "age_s": pl.Float64, "fresh": pl.Boolean, "nominal_var": pl.Array(pl.Float64, 3),
-        "altitude_m": pl.Float64})
+        "altitude_m": pl.Float64, **extra})
 
 
-def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
-    """The aligned rows of a plan: each kept report at each of its epochs, extrapolated."""
-    idx = np.flatnonzero(p.keep)
+def _epoch_span(p: AlignPlan, k_lo: int | None, k_hi: int | None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per plan row, the first and last epoch index it gives rows at, clipped to [k_lo, k_hi]."""
+    start = p.k if k_lo is None else np.maximum(p.k, k_lo)
+    end = p.last_k if k_hi is None else np.minimum(p.last_k, k_hi)
+    return start, end
+
+
+def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig(), k_lo: int | None = None,
+           k_hi: int | None = None) -> pl.DataFrame:
+    """The aligned rows of a plan: each kept report at each of its epochs, extrapolated; only
+    epoch indices in [k_lo, k_hi] when given (a window of :func:`align_step`)."""
+    start, end = _epoch_span(p, k_lo, k_hi)
+    idx = np.flatnonzero(p.keep & (end >= start))
     if idx.size == 0:
-        return empty_aligned()
+        return empty_aligned(cfg) if (k_lo is not None or k_hi is not None) else empty_aligned()
     df, k = p.df, p.k
     keys = df.select("run", "radar_id", "local_track_id").to_numpy()
-    counts = (p.last_k - k + 1)[idx]
+    counts = (end - start + 1)[idx]
     rows = np.repeat(idx, counts)
     step = np.arange(len(rows)) - np.repeat(np.cumsum(counts) - counts, counts)
-    epoch_k = k[rows] + step
+    epoch_k = start[rows] + step
     # output order (run, epoch, radar, local track) computed on integer keys, not by a frame sort
     order = np.lexsort((keys[rows, 2], keys[rows, 1], epoch_k, keys[rows, 0]))
-    rows, step, epoch_k = rows[order], step[order], epoch_k[order]
+    rows, epoch_k = rows[order], epoch_k[order]
     age = epoch_k * p.period - p.rel[rows]
     x, cov = extrapolate(p.state, p.cov, age, cfg.q_m2s3, rows=rows)
 
     base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
     opt = [c for c in ("mode_s", "truth_id", "altitude_m") if c in df.columns]
     aligned = df.select(base + opt)[rows].with_columns(
-        pl.Series("epoch", p.t0_us + np.round(epoch_k * p.period * US).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
+        pl.Series("epoch", p.t0_us + _epoch_offset_us(epoch_k, p.period)).cast(pl.Datetime("us", "UTC")),
         *(pl.Series(name, x[:, i]) for i, name in enumerate(STATE)),
         pl.Series("cov", cov, dtype=pl.Array(pl.Float64, 36)),
         pl.Series("age_s", age),
-        pl.Series("fresh", step == 0),
+        pl.Series("fresh", epoch_k == k[rows]),
         pl.Series("nominal_var", p.nominal[rows], dtype=pl.Array(pl.Float64, 3)),
         pl.col("res_range_m").fill_null(np.nan), pl.col("res_range_var_m2").fill_null(np.nan),
     )
@@ -373,8 +499,13 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig()) -> pl.DataFrame:
     return aligned.select(_ALIGNED_COLUMNS).with_columns(extra) if extra else aligned.select(_ALIGNED_COLUMNS)
 
 
+def _epoch_offset_us(epoch_k: NDArray[np.int64] | int, period: float) -> NDArray[np.int64]:
+    """Epoch index → µs after the grid origin (the one rounding every epoch time goes through)."""
+    return np.round(np.asarray(epoch_k) * period * US).astype(np.int64)
+
+
 def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-          cfg: AlignConfig = AlignConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
+          cfg: AlignConfig = AlignConfig(), grid_origin_us: int | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
     """Align valid reports; returns (aligned, rejects).
 
     ``aligned`` has one row per (report, epoch at which it represents its local track), with
@@ -383,11 +514,153 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     per system axis) and ``altitude_m``: the report's own barometric (Mode C/S) altitude as
     replied, null without one — not extrapolated; with ``time`` it feeds the vertical channel
     (:mod:`tertiary.altitude`). ``rejects`` rows carry report_id and reason. No report: both empty.
+    The epoch grid starts at ``grid_origin_us`` (default: :func:`epoch_grid`).
     """
     if reports.height == 0:
         return empty_aligned(), pl.DataFrame(schema={"report_id": pl.UInt64, "reason": pl.String})
-    p = plan(reports, radars, origin, cfg)
+    p = plan(reports, radars, origin, cfg, grid_origin_us)
     return expand(p, cfg), p.rejects
+
+
+# --------------------------------------------------------------------------- windowed step
+
+
+@dataclass(frozen=True)
+class AlignState:
+    """What :func:`align_step` carries from one window to the next (picklable, never mutated).
+
+    * ``held``: the reports (with their estimates) that still give rows at later epochs or
+      whose keep/reject decision waits for the next report of their local track, sorted by
+      (run, radar_id, local_track_id, time), with ``__k_next`` = the first epoch index of that
+      next report once seen (null before). About one report per live local track.
+    * ``tracks``: the local-tracker carry (plot-only inputs, :func:`needs_estimates`) keyed by
+      (run, radar_id, local_track_id) = the radar's numbers: last report time and Singer
+      channel states (:data:`tertiary.local_tracks.CARRY_SCHEMA`); a track silent for more
+      than ``restart_gap_scans`` scans before the window end is dropped (its next report
+      would restart it anyway).
+    * ``conversion_invalid``: reports so far failing the seed 002 (13) gate (``AlignPlan.conversion_invalid``).
+    """
+
+    held: pl.DataFrame | None = None
+    tracks: pl.DataFrame | None = None
+    conversion_invalid: int = 0
+
+
+def init_align_state() -> AlignState:
+    """The state before the first window."""
+    return AlignState()
+
+
+def _window_k(t0_grid: int, period: float, t0_us: int | None, t1_us: int | None) -> tuple[int | None, int | None]:
+    """The epoch indices whose epoch time (µs, as :func:`expand` rounds it) is in [t0_us, t1_us)."""
+    def first_at_or_after(t: int) -> int:
+        k = math.ceil((t - t0_grid) / US / period)
+        while t0_grid + int(_epoch_offset_us(k - 1, period)) >= t:
+            k -= 1
+        while t0_grid + int(_epoch_offset_us(k, period)) < t:
+            k += 1
+        return k
+    return (None if t0_us is None else first_at_or_after(t0_us),
+            None if t1_us is None else first_at_or_after(t1_us) - 1)
+
+
+def _window_reports(reports: pl.DataFrame | None, t0_us: int | None, t1_us: int | None) -> pl.DataFrame | None:
+    """The window's reports with a ``run`` column; :class:`DataError` for a report outside it
+    (each report must go to exactly one window, by time) or with a negative collection delay."""
+    if reports is None or reports.height == 0:
+        return None
+    if "run" not in reports.columns:
+        reports = reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    t = reports["time"].dt.epoch("us")
+    lo, hi = t.min(), t.max()
+    if (t0_us is not None and lo < t0_us) or (t1_us is not None and hi >= t1_us):
+        raise DataError(f"reports.time: align_step got reports from {lo} to {hi} µs, outside the window "
+                        f"[{t0_us}, {t1_us})")
+    if "collection_delay_s" in reports.columns and (reports["collection_delay_s"].fill_null(0.0) < 0).any():
+        raise DataError("reports.collection_delay_s: negative delay (align_step needs delays >= 0)")
+    return reports
+
+
+def _prune_tracks(tracks: pl.DataFrame | None, radars: pl.DataFrame, cfg: AlignConfig,
+                  t1_us: int | None) -> pl.DataFrame | None:
+    """Drop carried local tracks silent for more than the restart gap at the window end: any
+    later report of theirs (time ≥ t1) starts a new life, whatever the carried state."""
+    if tracks is None or t1_us is None or tracks.height == 0:
+        return tracks
+    thr = _restart_gap_s(tracks, radars, cfg)
+    return tracks.filter(pl.Series((t1_us - tracks["t_us"].to_numpy()) * 1e-6 <= thr))
+
+
+def align_step(state: AlignState, reports: pl.DataFrame | None, radars: pl.DataFrame, origin: geo.LocalFrame,
+               t0_us: int | None, t1_us: int | None, grid_origin_us: int, cfg: AlignConfig = AlignConfig()
+               ) -> tuple[tuple[pl.DataFrame, pl.DataFrame], AlignState]:
+    """One window [t0_us, t1_us) of :func:`align` (None = unbounded); returns ((aligned, rejects), state).
+
+    * ``reports``: the reports with ``time`` in [t0_us, t1_us) — each report to exactly one
+      window, by its time; no margin (hold-back and look-ahead are carried in ``state``).
+      Same columns in every window (with or without estimates: plot-only reports get the
+      local tracker's estimates, its filters carried across windows).
+    * ``grid_origin_us``: the epoch grid origin of the whole run, :func:`grid_origin_us` of the
+      dataset's earliest report time for the same grid as :func:`align`.
+    * ``aligned``: exactly the rows of ``align(all reports)`` with ``epoch`` in [t0_us, t1_us),
+      same order rule (run, epoch, radar_id, local_track_id). Complete: no later window adds
+      rows at these epochs (a report not yet seen has time ≥ t1_us, so its first epoch is
+      ≥ t1_us and it cannot cut short a held report's rows before t1_us).
+    * ``rejects``: (report_id, reason) of the reports whose decision became final here; every
+      report is rejected at most once over the windows. A report is decided in its own window,
+      except the latest report of a local track whose first epoch (time + collection delay) is
+      at or after t1_us: whether the next report supersedes it is unknown, it is decided in
+      the window where that next report arrives or where its first epoch falls.
+    * The last window must end at ``t1_us=None``: it emits the rows of the held reports at
+      later epochs (up to ``max_age_scans`` scans after the last reports) and the last decisions.
+
+    Exact for epoch periods below 500 s (a future report's first epoch is then after every
+    epoch before t1_us; larger periods are refused with :class:`OptionError`). Plot-only
+    reports: the Singer local tracker only (the chapter 3 range channels are sized on the whole
+    run: :class:`OptionError` unless the window is unbounded on both sides). A window beyond
+    ``cfg.max_rows`` aligned rows raises :class:`ResourceError`.
+    """
+    period = epoch_period(radars, cfg)
+    new = _window_reports(reports, t0_us, t1_us)
+    tracks, conv_bad = state.tracks, state.conversion_invalid
+    if new is not None:
+        if needs_estimates(new):
+            if t0_us is None and t1_us is None and tracks is None:
+                new = estimates_by_track_life(new, radars, cfg)
+            else:
+                new, tracks = _estimates(new, radars, cfg, local_tracks.empty_carry() if tracks is None else tracks)
+        conv_bad += int(np.count_nonzero(~report_conversion_valid(new, radars)))
+        new = new.with_columns(pl.lit(None, pl.Int64).alias("__k_next"))
+    tracks = _prune_tracks(tracks, radars, cfg, t1_us)
+    frames = [f for f in (state.held, new) if f is not None]
+    if not frames:
+        return (empty_aligned(cfg), _empty_rejects()), AlignState(None, tracks, conv_bad)
+    df = (pl.concat(frames, how="diagonal_relaxed") if len(frames) > 1 else frames[0]).sort(
+        ["run", "radar_id", "local_track_id", "time"], maintain_order=True)
+
+    k_lo, k_hi = _window_k(grid_origin_us, period, t0_us, t1_us)
+    k_future = None if t1_us is None else int(_first_epoch(t1_us, 0.0, grid_origin_us, period)[0])
+    if k_future is not None and k_hi >= k_future:
+        raise OptionError(f"align_step: epoch period {period:g} s too long for windowed alignment (< 500 s)",
+                          option="align.period_s")
+    known = df["__k_next"].fill_null(_NO_K).to_numpy()
+    p = _plan_frame(df.drop("__k_next"), radars, origin, cfg, grid_origin_us, period, known, k_future)
+    start, end = _epoch_span(p, k_lo, k_hi)
+    _check_rows(int(np.sum((end - start + 1)[p.keep & (end >= start)], dtype=np.float64)), period, radars, cfg)
+    aligned = expand(p, cfg, k_lo, k_hi)
+
+    held = None
+    if t1_us is not None:
+        hold = p.pending | (p.keep & (p.last_k > k_hi))
+        if hold.any():
+            k_next = pl.Series("__k_next", p.k_next[hold], pl.Int64)
+            held = df.filter(pl.Series(hold)).with_columns(
+                pl.when(pl.Series(p.has_next[hold])).then(k_next).otherwise(None).alias("__k_next"))
+    return (aligned, p.rejects), AlignState(held, tracks, conv_bad)
+
+
+def _empty_rejects() -> pl.DataFrame:
+    return pl.DataFrame(schema={"report_id": pl.UInt64, "reason": pl.String})
 
 
 # --------------------------------------------------------------------------- registration

@@ -186,11 +186,13 @@ def _initiation(z: NDArray[np.float64], r: NDArray[np.float64], rng_now: NDArray
 OUT_X, OUT_RATE, OUT_P00, OUT_P01, OUT_P11, OUT_RES = 0, 3, 6, 9, 12, 15
 
 
-def _filter(t: NDArray[np.float64], z: NDArray[np.float64], r: NDArray[np.float64],
-            starts: NDArray[np.int64], lengths: NDArray[np.int64], cfg: LocalTrackerConfig):
+def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64],
+            starts: NDArray[np.int64], lengths: NDArray[np.int64], cfg: LocalTrackerConfig,
+            prior: "_Prior | None" = None):
     """Run the three channels over every track; returns, in report order, the estimates
     (2 (pos, rate), 3 channels, n), covariances (3 (P00, P01, P11), 3 channels, n), the range
-    innovation and its variance.
+    innovation and its variance, and the channel states after each track's last report:
+    x (3, 3·tracks) and p (6, 3·tracks), tracks in the order of ``starts``.
 
     Reports are laid out rank-major (:func:`_rank_major`) with the channels interleaved, so
     the (track, channel) pairs alive at rank k are a prefix of the state and a contiguous
@@ -198,36 +200,48 @@ def _filter(t: NDArray[np.float64], z: NDArray[np.float64], r: NDArray[np.float6
     The Singer coefficients are computed for all reports before the recursion, and the
     results go to one table put back in report order by a single row gather. State: x
     (3 comps, 3·tracks) and the six unique covariance terms p (6, 3·tracks).
+
+    ``us`` are the report times in integer µs: every step τ is a difference of two of them,
+    so the result does not depend on which reports share the call. With ``prior`` the tracks
+    it marks continue from its states (a windowed run): their first report here is a
+    prediction + update from the prior state over τ = t − t_prior, not an initiation.
     """
-    n, m_tracks = len(t), len(starts)
+    n, m_tracks = len(us), len(starts)
     perm, alive, offsets = _rank_major(starts, lengths)
     zr, rr = z[perm], r[perm]
-    tau = t[perm] - t[perm - 1]                # previous report of the same track (unused at rank 0)
+    tau = (us[perm] - us[perm - 1]) * 1e-6     # previous report of the same track (unused at rank 0)
+    cont = np.zeros(m_tracks, bool) if prior is None else prior.cont
+    if cont.any():                             # rank 0 is the first m_tracks rows, tracks in order
+        tau[:m_tracks][cont] = (us[perm[:m_tracks]][cont] - prior.t_us[cont]) * 1e-6
     missing = ~np.isfinite(zr[:, 0])           # no range: the channel scale comes from the state
     rng_now = np.maximum(np.where(missing, 0.0, zr[:, 0]), 100.0)
-    a, b, f, q = _coefficients(tau, rng_now, cfg)
+    coeffs = _coefficients(tau, rng_now, cfg)
     z3, r3, tau3 = zr.ravel(), rr.ravel(), np.repeat(tau, 3)
     has_missing = np.add.reduceat(missing, offsets[:-1]) > 0 if n else np.zeros(0, bool)
-    x = np.zeros((3, 3 * m_tracks))
-    p = np.zeros((6, 3 * m_tracks))
+    x = np.zeros((3, 3 * m_tracks)) if prior is None else prior.x.copy()
+    p = np.zeros((6, 3 * m_tracks)) if prior is None else prior.p.copy()
     out = np.empty((n, OUT_RES + 2))
     out[:alive[0] if n else 0, OUT_RES:] = np.nan     # first reports have no innovation
     for k, m in enumerate(alive):
         sl, rows = slice(3 * offsets[k], 3 * (offsets[k] + m)), slice(offsets[k], offsets[k] + m)
         xs, ps = x[:, :3 * m], p[:, :3 * m]
         if has_missing[k]:
-            _patch_missing(q, rng_now, offsets[k], missing[rows], xs, tau, cfg)
+            _patch_missing(coeffs[3], rng_now, offsets[k], missing[rows], xs, tau, cfg)
         zk, rk = z3[sl], r3[sl]
         if k == 0:
-            xs[0], ps[0], ps[3], ps[5] = _initiation(zk, rk, rng_now[rows], cfg)
+            init = _initiation(zk, rk, rng_now[rows], cfg)
+            if cont.any():                     # continuing tracks: a normal step from the prior state
+                c3 = (3 * np.flatnonzero(cont)[:, None] + np.arange(3)).ravel()
+                xc, pc = xs[:, c3], ps[:, c3]
+                nu, s = _step(xc, pc, zk[c3], rk[c3], tau3[sl][c3], tuple(c[sl][c3] for c in coeffs),
+                              tuple(v[c3] for v in init), cfg)
+                xs[:, c3], ps[:, c3] = xc, pc
+                out[np.flatnonzero(cont), OUT_RES], out[np.flatnonzero(cont), OUT_RES + 1] = nu[0::3], s[0::3]
+            fresh = ~np.repeat(cont, 3)
+            xs[0], ps[0], ps[3], ps[5] = (np.where(fresh, v, old) for v, old in zip(init, (xs[0], ps[0], ps[3], ps[5])))
         else:
-            predict_elementwise(xs, ps, tau3[sl], (a[sl], b[sl], f[sl], q[sl]))
-            nu = zk - xs[0]
-            nu[1::3] = np.mod(nu[1::3] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
-            lost = np.isfinite(nu) & (nu * nu > cfg.reinit_gate * (ps[0] + rk))
-            s = update_elementwise(xs, ps, np.where(lost, np.nan, nu), rk)
-            if lost.any():
-                _reinitiate(xs, ps, lost, _initiation(zk, rk, rng_now[rows], cfg))
+            nu, s = _step(xs, ps, zk, rk, tau3[sl], tuple(c[sl] for c in coeffs),
+                          None, cfg, rng_rows=rng_now[rows])
             out[rows, OUT_RES], out[rows, OUT_RES + 1] = nu[0::3], s[0::3]
         block = out[rows]
         for col, v in ((OUT_X, xs[0]), (OUT_RATE, xs[1]), (OUT_P00, ps[0]), (OUT_P01, ps[1]), (OUT_P11, ps[3])):
@@ -235,7 +249,23 @@ def _filter(t: NDArray[np.float64], z: NDArray[np.float64], r: NDArray[np.float6
     back = np.empty(n, np.int64)
     back[perm] = np.arange(n)
     out = out.take(back, axis=0).T             # (column, report)
-    return out[:OUT_P00].reshape(2, 3, n), out[OUT_P00:OUT_RES].reshape(3, 3, n), out[OUT_RES], out[OUT_RES + 1]
+    return (out[:OUT_P00].reshape(2, 3, n), out[OUT_P00:OUT_RES].reshape(3, 3, n), out[OUT_RES], out[OUT_RES + 1],
+            x, p)
+
+
+def _step(xs, ps, zk, rk, tau3, coeffs, init, cfg: LocalTrackerConfig, rng_rows=None):
+    """One Singer step of (track, channel) pairs in place: predict over τ, update on the plot,
+    re-initiate the channels whose innovation fails ``cfg.reinit_gate``. ``init`` is the
+    one-point initiation of these pairs (computed from ``rng_rows`` when None, only if a
+    channel is lost). Returns the innovation and its variance."""
+    predict_elementwise(xs, ps, tau3, coeffs)
+    nu = zk - xs[0]
+    nu[1::3] = np.mod(nu[1::3] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
+    lost = np.isfinite(nu) & (nu * nu > cfg.reinit_gate * (ps[0] + rk))
+    s = update_elementwise(xs, ps, np.where(lost, np.nan, nu), rk)
+    if lost.any():
+        _reinitiate(xs, ps, lost, init if init is not None else _initiation(zk, rk, rng_rows, cfg))
+    return nu, s
 
 
 def _patch_missing(q, rng_now, lo: int, missing, xs, tau, cfg: LocalTrackerConfig) -> None:
@@ -393,34 +423,73 @@ def _chapter3_range(df: pl.DataFrame, radars: pl.DataFrame, t, z, starts, length
         res[rows], res_var[rows] = out[:, 5], out[:, 6]
 
 
-def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
-                  cfg: LocalTrackerConfig = LocalTrackerConfig()) -> pl.DataFrame:
-    """Add the radar track estimate, covariance and range innovation columns to plot reports.
+#: schema of the local-tracker carry (:func:`track_reports_step`): one row per local track, the
+#: time of its last report (µs since the Unix epoch) and its channels' Singer states after it —
+#: x = (pos, rate, acc) × (range, azimuth, elevation) and the six covariance terms
+#: (P00, P01, P02, P11, P12, P22) × the three channels, component-major
+CARRY_SCHEMA = {"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32, "t_us": pl.Int64,
+                "x": pl.Array(pl.Float64, 9), "p": pl.Array(pl.Float64, 18)}
 
-    ``reports`` must be valid (see :func:`tertiary.schema.validate`); it is returned sorted by
-    (run, radar_id, local_track_id, time) with :data:`ESTIMATE_COLUMNS` added (replacing any
-    existing ones). The first report of a track has no innovation (NaN).
-    """
+
+def empty_carry() -> pl.DataFrame:
+    """A local-tracker carry with no track (the first window)."""
+    return pl.DataFrame(schema=CARRY_SCHEMA)
+
+
+@dataclass(frozen=True)
+class _Prior:
+    """Carried states lined up with the tracks of one :func:`_filter` call."""
+
+    cont: NDArray[np.bool_]            # (m,) the track continues a carried state
+    t_us: NDArray[np.int64]            # (m,) time of its last carried report
+    x: NDArray[np.float64]             # (3, 3m) channel states, channels interleaved per track
+    p: NDArray[np.float64]             # (6, 3m)
+
+
+def _key_frame(keys: NDArray[np.int64]) -> pl.DataFrame:
+    return pl.DataFrame({c: keys[:, i] for i, c in enumerate(TRACK_KEY)}, schema=dict.fromkeys(TRACK_KEY, pl.Int64))
+
+
+def _prior_for(carry: pl.DataFrame, keys: NDArray[np.int64]) -> _Prior:
+    """The carried state of each track of ``keys`` (m, 3), zeros where it has none."""
+    m = len(keys)
+    got = _key_frame(keys).join(carry.with_columns(pl.col(TRACK_KEY).cast(pl.Int64)), on=TRACK_KEY, how="left",
+                                maintain_order="left")
+    cont = got["t_us"].is_not_null().to_numpy()
+    x, p = np.zeros((m, 3, 3)), np.zeros((m, 6, 3))
+    if cont.any():
+        x[cont] = np.stack(got["x"].filter(pl.Series(cont)).to_numpy()).reshape(-1, 3, 3)
+        p[cont] = np.stack(got["p"].filter(pl.Series(cont)).to_numpy()).reshape(-1, 6, 3)
+    # (track, component, channel) → (component, 3·track + channel), the layout of _filter
+    return _Prior(cont, got["t_us"].fill_null(0).to_numpy(), x.transpose(1, 0, 2).reshape(3, 3 * m),
+                  p.transpose(1, 0, 2).reshape(6, 3 * m))
+
+
+def _track(reports: pl.DataFrame, radars: pl.DataFrame, cfg: LocalTrackerConfig,
+           carry: pl.DataFrame | None) -> tuple[pl.DataFrame, pl.DataFrame | None]:
+    """:func:`track_reports`; with ``carry`` also continue its tracks and return the new carry."""
     df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     df = df.drop([c for c in ESTIMATE_COLUMNS if c in df.columns])
     if not is_sorted_by(df, TRACK_KEY + ["time"]):   # the simulator emits them so
         df = df.sort(TRACK_KEY + ["time"], maintain_order=True)
     n = len(df)
-    t, _ = _seconds(df["time"])
+    us = df["time"].cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy()
     z, r = measurement_polar(df, radars, cfg.altitude_sigma_m)
-    keys = df.select(TRACK_KEY).to_numpy()
+    keys = df.select(pl.col(TRACK_KEY).cast(pl.Int64)).to_numpy()
     new = np.ones(n, dtype=bool)
     if n:
         new[1:] = np.any(keys[1:] != keys[:-1], axis=1)
     starts = np.flatnonzero(new)
     lengths = np.diff(np.append(starts, n))
     order = np.argsort(-lengths, kind="stable")
-    est, cov, res, res_var = _filter(t, z, r, starts[order], lengths[order], cfg)
+    prior = None if carry is None or carry.height == 0 else _prior_for(carry, keys[starts[order]])
+    est, cov, res, res_var, x_end, p_end = _filter(us, z, r, starts[order], lengths[order], cfg, prior)
     if cfg.range_channel != "singer":
+        t, _ = _seconds(df["time"])
         _chapter3_range(df, radars, t, z, starts, lengths, cfg, est, cov, res, res_var)
     pos, vel, cov_enu = _to_enu(est, cov)
     deg2 = np.degrees(1.0) ** 2
-    return df.with_columns(
+    out = df.with_columns(
         pl.Series("est_range_m", est[0, 0]),
         pl.Series("est_range_rate_mps", est[1, 0]),
         pl.Series("est_azimuth_deg", np.mod(np.degrees(est[0, 1]), 360.0)),
@@ -434,3 +503,47 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
         pl.Series("res_range_m", res),
         pl.Series("res_range_var_m2", res_var),
     )
+    if carry is None:
+        return out, None
+    m = len(starts)
+    last = (starts + lengths - 1)[order]
+    mine = _key_frame(keys[starts[order]]).with_columns(
+        pl.Series("t_us", us[last], pl.Int64),
+        pl.Series("x", x_end.reshape(3, m, 3).transpose(1, 0, 2).reshape(m, 9), pl.Array(pl.Float64, 9)),
+        pl.Series("p", p_end.reshape(6, m, 3).transpose(1, 0, 2).reshape(m, 18), pl.Array(pl.Float64, 18)),
+    ).cast(CARRY_SCHEMA)
+    kept = carry.cast(CARRY_SCHEMA).join(mine.select(TRACK_KEY), on=TRACK_KEY, how="anti")
+    return out, pl.concat([kept, mine]).sort(TRACK_KEY)
+
+
+def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
+                  cfg: LocalTrackerConfig = LocalTrackerConfig()) -> pl.DataFrame:
+    """Add the radar track estimate, covariance and range innovation columns to plot reports.
+
+    ``reports`` must be valid (see :func:`tertiary.schema.validate`); it is returned sorted by
+    (run, radar_id, local_track_id, time) with :data:`ESTIMATE_COLUMNS` added (replacing any
+    existing ones). The first report of a track has no innovation (NaN).
+    """
+    return _track(reports, radars, cfg, None)[0]
+
+
+def track_reports_step(carry: pl.DataFrame | None, reports: pl.DataFrame, radars: pl.DataFrame,
+                       cfg: LocalTrackerConfig = LocalTrackerConfig()) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`track_reports` of the next reports of a stream: a track with a row in ``carry``
+    (:data:`CARRY_SCHEMA`, :func:`empty_carry` at first) continues from its carried state
+    (predict over the time since its last carried report, then update), a track without one
+    starts. Returns the reports with estimates and the carry after them (the input carry's
+    rows for tracks absent here, this call's tracks after their last report). Feeding a stream
+    in consecutive pieces gives :func:`track_reports` of the whole stream to round-off, when
+    every report of a piece is later than the carried report of its track.
+
+    Only the Singer range channel: the chapter 3 channels size their LOS filters from the
+    median EHS speed of all a radar's tracks in one call (:class:`OptionError` here).
+    """
+    if cfg.range_channel != "singer":
+        raise OptionError(f"range channel {cfg.range_channel!r} cannot run window by window (it is sized on the "
+                          "whole run's EHS speeds); use range_channel='singer' or a single window",
+                          option="local_tracker.range_channel")
+    out, new_carry = _track(reports, radars, cfg, empty_carry() if carry is None else carry)
+    assert new_carry is not None
+    return out, new_carry
