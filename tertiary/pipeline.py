@@ -160,7 +160,7 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
         ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
         return ing
     if cfg.register:
-        ing.reports = _registered(ing, ds, cfg)
+        ing.reports = _registered(ing, ds.origin, cfg)
     if cfg.collection is not None:   # report collection queue (§1.4): lost reports -> rejects
         from tertiary.collection import collection_stage
         ing.reports, lost, collected = collection_stage(ing.reports, ing.report_rows, cfg.collection)
@@ -174,7 +174,7 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
     return ing
 
 
-def _registered(ing: Ingested, ds: Dataset, cfg: "PipelineConfig") -> pl.DataFrame:
+def _registered(ing: Ingested, origin: geo.LocalFrame, cfg: "PipelineConfig") -> pl.DataFrame:
     """The valid reports with each radar's registration applied (``cfg.registration`` rows,
     else estimated radar to radar from these reports — never from the truth that scores the run)."""
     from tertiary import registration
@@ -184,7 +184,7 @@ def _registered(ing: Ingested, ds: Dataset, cfg: "PipelineConfig") -> pl.DataFra
         table = table.with_columns(pl.col("radar_id").cast(pl.UInt32))
         source = "given"
     else:
-        table = registration.estimate(ing.reports, ing.radars, ds.origin, None,
+        table = registration.estimate(ing.reports, ing.radars, origin, None,
                                       registration.RegistrationConfig(method="multi")).table
         source = "estimated radar to radar"
     for row in table.iter_rows(named=True):       # one note per radar (a handful)
@@ -374,6 +374,7 @@ class RunContext:
     origin: geo.LocalFrame
     grid_origin_us: int | None
     keep_us: int
+    filters: dict = field(default_factory=dict)   # the tracker's filters, built once per run
 
 
 @dataclass(frozen=True)
@@ -404,7 +405,8 @@ def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportS
     slowest = float(period) if period is not None and math.isfinite(period) else 12.0
     hold_s = cfg.align.max_age_scans * slowest + 4 * slowest + _max_delay_s(cfg)
     origin_us = (source.first_us // US) * US if source.windowable else None
-    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US)), rej_r
+    from tertiary.tracker import _filter_dict
+    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US), _filter_dict(cfg.filters)), rej_r
 
 
 def _max_delay_s(cfg: PipelineConfig) -> float:
@@ -433,7 +435,7 @@ def init_stream_state(cfg: PipelineConfig) -> StreamState:
     from tertiary.tracker import init_track_state
     return StreamState(align=align_stage.init_align_state(), associate=init_associate_state(),
                        fuse=init_fuse_state(), centralized=init_centralized_state(), cluster=init_cluster_state(),
-                       track=init_track_state(), conflicts=init_conflict_state(),
+                       track=init_track_state(cfg.filters), conflicts=init_conflict_state(),
                        identity=pl.DataFrame(schema={"run": pl.UInt32, "filter": pl.String, "method": pl.String,
                                                      "track_id": pl.UInt64, "mode_s": pl.String}),
                        recent=pl.DataFrame())
@@ -453,10 +455,21 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
 
     clock.stage("validate")
     reports, report_rows, rejects = _ingest_window(raw, ctx, cfg, notes)
+    if cfg.register and reports.height:      # whole-run options: their runs are one window (_windowable)
+        reports = _registered(Ingested(ctx.radars, reports, pl.DataFrame(), rejects, notes), ctx.origin, cfg)
+    if cfg.collection is not None and reports.height:   # report collection queue (§1.4): lost reports -> rejects
+        from tertiary.collection import collection_stage
+        reports, lost, collected = collection_stage(reports, report_rows, cfg.collection)
+        rejects = pl.concat([rejects, lost], how="vertical_relaxed")
+        notes.extend(collected)
     recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
     clock.stage("align")
-    (aligned, align_rej), s_align = align_stage.align_step(st.align, reports, ctx.radars, ctx.origin, w.t0_us,
-                                                           w.t1_us, ctx.grid_origin_us, cfg.align)
+    t0 = None if w.t0_us <= -END_US else w.t0_us     # None: unbounded (the last window flushes held rows)
+    t1 = None if w.last else w.t1_us
+    g0 = ctx.grid_origin_us if ctx.grid_origin_us is not None else align_stage.epoch_grid(reports, ctx.radars, cfg.align)[0] \
+        if reports.height else 0
+    (aligned, align_rej), s_align = align_stage.align_step(st.align, reports, ctx.radars, ctx.origin, t0, t1, g0,
+                                                           cfg.align)
     rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
     rejects = pl.concat([rejects, _stage_rejects(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
     clock.stage("associate")
@@ -479,7 +492,9 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     clusters, s_cluster = cluster_step(st.cluster, fused, w.t0_us, w.t1_us, cfg.clustering)
     clock.stage("track")
     pictures = fused.filter(pl.col("method") != "centralized")
-    tracks, s_track = track_step(st.track, pictures, cfg.filters, cfg.tracker, w.t0_us, w.t1_us)
+    tracks, s_track = schema.empty_frame("tracks", False), st.track
+    if cfg.filters:
+        tracks, s_track = track_step(st.track, pictures, ctx.filters, cfg.tracker, w.t0_us, w.t1_us)
     tracks, identity = _identity_step(st.identity, tracks, pictures)
     conflicts, s_conf = schema.empty_frame("conflicts", False), st.conflicts
     if cfg.safety:
@@ -566,12 +581,15 @@ def _stream(ds: Dataset, cfg: PipelineConfig, clock: _Clock, notes: list[str], w
         raise DataError("reports: the table has no rows; nothing to process")
     window_s = _windowable(cfg, source, window_s, notes)
     ctx, rej_radars = _context(ds, cfg, notes, source)
+    if window_s is None:      # one window: the grid starts at the first *valid* report, as it always did
+        ctx.grid_origin_us = None
     if grid_origin_us is not None:
         ctx.grid_origin_us = grid_origin_us
     st = resume_state or init_stream_state(cfg)
     if start == 0 and rej_radars.height:
         parts.write(Window(-1, 0, 0), {"rejects": rej_radars})
-    ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start, source.first_us))
+    ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start,
+                      source.first_us if source.windowable else None))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     for w in ws:
         raw = source.rows(w)
@@ -647,12 +665,13 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                              targets=int(associations["target_id"].n_unique()) if associations.height else 0,
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
-                         sink, n_in, t_all)
+                         sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)))
 
 
 def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame, associations: pl.DataFrame,
                   stats: AssociationStats, fused: pl.DataFrame, clusters: pl.DataFrame, tracks: pl.DataFrame,
-                  conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float) -> Results:
+                  conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float,
+                  conversion_invalid: int = 0) -> Results:
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import (AlertConfig, capacity_from_metrics, stca_tables, stca_tradeoff, tradeoff_metrics)
@@ -722,8 +741,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
               "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
-              "conversion_invalid": int(rejects.filter(pl.col("reason").str.starts_with("polar conversion invalid")).height)
-              if rejects.height else 0,
+              "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
