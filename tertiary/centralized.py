@@ -417,11 +417,11 @@ def _new_associations(state: CentralizedState, associations: pl.DataFrame
     return new, last_ids, int(a["epoch"].dt.epoch("us").max())
 
 
-def _carry_frame(state: CentralizedState, keys: pl.DataFrame, cfg: AltitudeConfig) -> tuple[pl.DataFrame, bool]:
+def _carry_frame(state: CentralizedState, keys: pl.DataFrame) -> pl.DataFrame:
     """``keys`` (run, target_id) joined to the carried targets (null columns where not carried)."""
     if state.targets is None:
-        return keys, False
-    return keys.join(state.targets, on=["run", "target_id"], how="left", maintain_order="left"), True
+        return keys
+    return keys.join(state.targets, on=["run", "target_id"], how="left", maintain_order="left")
 
 
 def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, radars: pl.DataFrame,
@@ -479,7 +479,7 @@ def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rada
     lengths = np.diff(np.append(starts, n))
     group_start = np.repeat(starts, lengths)
     tgt = rep[starts].select("run", "target_id")
-    carry, _ = _carry_frame(state, tgt, cfg.altitude)
+    carry = _carry_frame(state, tgt)
     n_prev = carry["n_plots"].fill_null(0).to_numpy() if "n_plots" in carry.columns else np.zeros(len(tgt), np.int64)
 
     # the last report at or before each requested epoch (one row per report time)
