@@ -1521,8 +1521,9 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
     whose first epoch lies in the window, i.e. reports with time in
     [t0_us − epoch period − max collection delay, t1_us); extra reports are ignored. No other
     history is needed. Stepping the windows of a run in order and concatenating the outputs
-    gives :func:`fuse` of the whole run (same rows; values to round-off). The state passed in
-    is not modified. Raises ValueError for rows outside the window (and as :func:`fuse`)."""
+    gives :func:`fuse` of the whole run (same rows; values to round-off), provided ``methods``
+    and ``cfg`` are the same in every window. The state passed in is not modified. Raises
+    ValueError for rows outside the window (and as :func:`fuse`)."""
     methods = _check_methods(methods)
     _check_columns(rows_window)
     rows = rows_window
