@@ -58,7 +58,8 @@ from numpy.typing import ArrayLike, NDArray
 from tertiary import geo
 
 __all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "AltitudeConfig", "AltState",
-           "quantisation_variance", "predict", "update", "update2", "filter_tracks", "geodetic_height_rate",
+           "quantisation_variance", "predict", "update", "update2", "filter_tracks", "filter_tracks_carry",
+           "FilterCarry", "geodetic_height_rate",
            "geodetic_channel", "combine_min_variance"]
 
 F64 = NDArray[np.float64]
@@ -229,6 +230,73 @@ def _update_models(preds: list[AltState], c: F64, z: F64, var: F64) -> tuple[lis
     return upd, mu, _mix(upd, list(mu))
 
 
+@dataclass(frozen=True)
+class FilterCarry:
+    """Recursion state of :func:`filter_tracks` after each of k tracks' last reply, so that a
+    track's later replies continue the same filter (windowed processing): per model j the
+    state ``models[j]`` (5, k) = (h, ḣ, P_hh, P_hḣ, P_ḣḣ), the model probabilities ``mu``
+    (n_models, k), the last reply time ``t_last`` (k,) (seconds on the caller's time base),
+    ``ok`` (running), ``conf`` (confirmed), ``miss`` (consecutive garbles), ``last_id`` (the
+    last identity seen, −1 none), and the output after the last reply: ``post`` (5, k) and
+    ``has`` (k,)."""
+
+    models: F64
+    mu: F64
+    t_last: F64
+    ok: NDArray[np.bool_]
+    conf: NDArray[np.bool_]
+    miss: NDArray[np.int64]
+    last_id: NDArray[np.int64]
+    post: F64
+    has: NDArray[np.bool_]
+
+    @staticmethod
+    def fresh(k: int, cfg: AltitudeConfig = AltitudeConfig()) -> "FilterCarry":
+        """The state of k tracks that have seen no reply (what :func:`filter_tracks` starts from)."""
+        nm = len(_models(cfg)[0])
+        return FilterCarry(np.full((nm, 5, k), np.nan), np.full((nm, k), 1.0 / nm), np.zeros(k),
+                           np.zeros(k, bool), np.zeros(k, bool), np.zeros(k, np.int64), np.full(k, -1, np.int64),
+                           np.full((5, k), np.nan), np.zeros(k, bool))
+
+    def columns(self) -> dict[str, NDArray]:
+        """Flat named columns (k values each), e.g. for a polars frame keyed by track."""
+        out: dict[str, NDArray] = {}
+        for j in range(len(self.models)):
+            out.update({f"af_m{j}_{f}": self.models[j, i] for i, f in enumerate(_FIELDS)})
+            out[f"af_mu{j}"] = self.mu[j]
+        out.update(af_t_last=self.t_last, af_ok=self.ok, af_conf=self.conf, af_miss=self.miss,
+                   af_last_id=self.last_id, af_has=self.has)
+        out.update({f"af_post_{f}": self.post[i] for i, f in enumerate(_FIELDS)})
+        return out
+
+    @staticmethod
+    def from_columns(cols: dict[str, NDArray], cfg: AltitudeConfig = AltitudeConfig()) -> "FilterCarry":
+        """Inverse of :meth:`columns`."""
+        nm = len(_models(cfg)[0])
+        f64 = lambda c: np.asarray(cols[c], np.float64)  # noqa: E731
+        return FilterCarry(
+            np.stack([np.stack([f64(f"af_m{j}_{f}") for f in _FIELDS]) for j in range(nm)]),
+            np.stack([f64(f"af_mu{j}") for j in range(nm)]), f64("af_t_last"),
+            np.asarray(cols["af_ok"], bool), np.asarray(cols["af_conf"], bool),
+            np.asarray(cols["af_miss"], np.int64), np.asarray(cols["af_last_id"], np.int64),
+            np.stack([f64(f"af_post_{f}") for f in _FIELDS]), np.asarray(cols["af_has"], bool))
+
+    def take(self, idx: NDArray) -> "FilterCarry":
+        return FilterCarry(self.models[:, :, idx], self.mu[:, idx], self.t_last[idx], self.ok[idx], self.conf[idx],
+                           self.miss[idx], self.last_id[idx], self.post[:, idx], self.has[idx])
+
+
+_FIELDS = ("h", "r", "phh", "phr", "prr")
+
+
+def _as_state(a: F64) -> AltState:
+    return AltState(*(np.array(a[i], np.float64) for i in range(5)))
+
+
+def _as_array(s: AltState) -> F64:
+    return np.stack([getattr(s, f) for f in _FIELDS])
+
+
 def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                   cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None
                   ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_]]:
@@ -245,20 +313,33 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
     differs from the last one the filter saw restarts it at once — a radar track that swapped
     aircraft must not carry the other aircraft's altitude. The loop runs over the rank within a track, vectorised over tracks (lengths
     sorted descending, so the tracks with more than k rows are a prefix)."""
+    out, has, rejected, _ = filter_tracks_carry(t, z, var, starts, lengths, cfg, ident)
+    return out, has, rejected
+
+
+def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
+                        cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None,
+                        init: FilterCarry | None = None
+                        ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
+    """:func:`filter_tracks` continued from ``init`` (one entry per track, in ``starts`` order;
+    :meth:`FilterCarry.fresh` entries for tracks never seen; ``t`` on the same time base as
+    ``init.t_last``), also returning each track's state after its last row. Running a track's
+    replies in two calls, the second from the first's carry, gives the one-call results."""
     qs, sojourn = _models(cfg)
     nm = len(qs)
     n = len(t)
     out, has, rejected = AltState.full(n), np.zeros(n, bool), np.zeros(n, bool)
     order = np.argsort(-np.asarray(lengths), kind="stable")
     st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
-    cur = [AltState.full(len(st)) for _ in range(nm)]
-    mu = np.full((nm, len(st)), 1.0 / nm)
-    t_last = np.zeros(len(st))
-    ok = np.zeros(len(st), bool)
-    miss = np.zeros(len(st), np.int64)
-    conf = np.zeros(len(st), bool)
+    c0 = FilterCarry.fresh(len(st), cfg) if init is None else init.take(order)
+    cur = [_as_state(c0.models[j]) for j in range(nm)]
+    mu = c0.mu.copy()
+    t_last = c0.t_last.copy()
+    ok = c0.ok.copy()
+    miss = c0.miss.copy()
+    conf = c0.conf.copy()
     ids = np.full(n, -1, np.int64) if ident is None else np.asarray(ident, np.int64)
-    last_id = np.full(len(st), -1, np.int64)
+    last_id = c0.last_id.copy()
     alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
     for k, m in enumerate(alive):
         idx = st[:m] + k
@@ -298,7 +379,12 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
             has[idx] = ok[:m] & conf[:m]
         out.put(idx, nxt)
         rejected[idx] = bad & ~restart
-    return out, has, rejected
+    last = st + ln - 1
+    final = FilterCarry(np.stack([_as_array(cj) for cj in cur]), mu, t_last, ok, conf, miss, last_id,
+                        _as_array(out.take(last)), has[last])
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    return out, has, rejected, final.take(inv)
 
 
 def geodetic_height_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None

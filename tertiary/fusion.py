@@ -117,7 +117,7 @@ targets and runs.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import NamedTuple
 
@@ -127,7 +127,7 @@ from numpy.typing import NDArray
 
 from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
-                               combine_min_variance, filter_tracks, geodetic_channel, predict,
+                               FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel, predict,
                                quantisation_variance)
 from tertiary.schema import FUSED_EXTRA, TABLES, TIME, is_sorted_by
 
@@ -140,6 +140,11 @@ __all__ = [
     "apriori_weights",
     "ci_pair_weights",
     "fuse",
+    "fuse_step",
+    "FuseState",
+    "init_fuse_state",
+    "nis_inflation_step",
+    "first_innovation_var",
     "fuse_aposteriori",
     "fuse_aposteriori_seed",
     "fuse_apriori",
@@ -539,37 +544,43 @@ def _bayes_step(prior: F, loglik: F, usable: B, n: F, starts: Ix, log_prior: Log
     return np.where(n == 1, 1.0, b)
 
 
-def _recursive_weights(loglik: F, usable: B, lay: Layout, log_prior: LogPrior, b_min: float) -> F:
+def _recursive_weights(loglik: F, usable: B, lay: Layout, log_prior: LogPrior, b_min: float,
+                       b0: F | None = None) -> F:
     """Run the recursion level by level (epoch rank along each target's history), on the rows
-    permuted into level order so that every level is a contiguous slice."""
+    permuted into level order so that every level is a contiguous slice. ``b0`` (n,), optional:
+    the weight b(k−1) carried from the previous window for rows without an in-call
+    predecessor (NaN: restart at 1/N)."""
     b = np.empty(len(loglik))
     if len(loglik) == 0:
         return b
     lv = lay.levels
     lik, use = loglik[lv.order], usable[lv.order]
+    start = np.full(len(b), np.nan) if b0 is None else np.asarray(b0, float)[lv.order]
     bp = np.empty(len(b))                               # weights in level order
     for lo, hi in zip(lv.bounds[:-1], lv.bounds[1:]):
         gid = lv.gid[lo:hi] - lv.gid[lo]
         local = np.flatnonzero(lv.first[lo:hi])
         prev, n = lv.prev[lo:hi], lv.n[lo:hi]
-        prior = np.where(prev >= 0, bp[np.maximum(prev, 0)], 1.0 / n)
+        carried = start[lo:hi]
+        prior = np.where(prev >= 0, bp[np.maximum(prev, 0)], np.where(np.isfinite(carried), carried, 1.0 / n))
         prior = prior / np.add.reduceat(prior, local)[gid]  # no rounding drift
         bp[lo:hi] = _bayes_step(prior, lik[lo:hi], use[lo:hi], n, local, log_prior, b_min, gid)
     b[lv.order] = bp
     return b
 
 
-def seed_weights(res: F, d_fixed: F, fresh: B, lay: Layout) -> F:
+def seed_weights(res: F, d_fixed: F, fresh: B, lay: Layout, b0: F | None = None) -> F:
     """Printed a-posteriori weights (4.73)–(4.74), N radars (digest §6.2), b(0) = 1/N (4.77)."""
     loglik = _log_normal(res, d_fixed)
-    return _recursive_weights(loglik, _usable(fresh, res, d_fixed), lay, _log_prior_seed, 0.0)
+    return _recursive_weights(loglik, _usable(fresh, res, d_fixed), lay, _log_prior_seed, 0.0, b0)
 
 
-def markov_weights(res: F, res_var: F, fresh: B, lay: Layout, p_stay: float, b_min: float) -> F:
+def markov_weights(res: F, res_var: F, fresh: B, lay: Layout, p_stay: float, b_min: float,
+                   b0: F | None = None) -> F:
     """Corrected a-posteriori weights (digest §6.3) with per-step S_n(k) = ``res_var``."""
     loglik = _log_normal(res, res_var)
     usable = _usable(fresh, res, res_var)
-    return _recursive_weights(loglik, usable, lay, _log_prior_markov(p_stay), b_min)
+    return _recursive_weights(loglik, usable, lay, _log_prior_markov(p_stay), b_min, b0)
 
 
 def fuse_weighted(x: F, cov: F, w: F, starts: Ix) -> Fused:
@@ -777,16 +788,43 @@ def nis_inflation(rows: pl.DataFrame, window: int) -> F:
     """λ_n of ``invcov_nis`` per row (digest §6.4): max(1, mean of the last ``window`` values of
     ν²/S of the row's (run, radar, local track), counting its fresh rows up to this epoch);
     1 before the track's first usable innovation."""
+    return nis_inflation_step(rows, window, None)[0]
+
+
+def nis_inflation_step(rows: pl.DataFrame, window: int, carry: pl.DataFrame | None
+                       ) -> tuple[F, pl.DataFrame]:
+    """:func:`nis_inflation` continued across windows: ``carry`` holds per (run, radar, local
+    track) its last ``window`` usable NIS values (``hist``, oldest first) and the last moving
+    mean (``last_mean``); returns λ per row and the new carry."""
     v = nis(rows["res_range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
             rows["res_range_var_m2"].cast(pl.Float64).fill_null(np.nan).to_numpy())
     use = rows["fresh"].fill_null(False).to_numpy() & np.isfinite(v)
-    k = rows.select(*TRACK, "epoch").with_columns(pl.Series("__v", np.where(use, v, np.nan)).fill_nan(None),
-                                                  pl.Series("__u", use)).with_row_index("__i")
-    fresh = (k.filter("__u").sort([*TRACK, "epoch"])
-             .with_columns(pl.col("__v").rolling_mean(window, min_samples=1).over(TRACK).alias("__m")))
-    allr = (k.join(fresh.select("__i", "__m"), on="__i", how="left").sort([*TRACK, "epoch", "__i"])
-            .with_columns(pl.col("__m").forward_fill().over(TRACK)).sort("__i"))
-    return np.maximum(allr["__m"].fill_null(1.0).to_numpy(), 1.0)
+    carry = _empty_nis_carry() if carry is None else carry
+    k = _track_keys(rows.select(*TRACK, "epoch")).with_columns(
+        pl.Series("__v", np.where(use, v, np.nan)).fill_nan(None), pl.Series("__u", use)).with_row_index("__i")
+    fresh = k.filter("__u").select(*TRACK, "epoch", "__i", "__v", pl.lit(1, pl.Int8).alias("__o"))
+    # the carried history goes first in each track's sequence (order 0), oldest value first
+    hist = (carry.join(fresh.select(TRACK).unique(), on=TRACK, how="semi").select(*TRACK, "hist")
+            .explode("hist").drop_nulls("hist")
+            .select(*TRACK, pl.lit(None, k.schema["epoch"]).alias("epoch"), pl.lit(None, pl.UInt32).alias("__i"),
+                    pl.col("hist").alias("__v"), pl.lit(0, pl.Int8).alias("__o")))
+    seq = (pl.concat([hist, fresh.cast(hist.schema)]).sort([*TRACK, "__o", "epoch"], maintain_order=True)
+           .with_columns(pl.col("__v").rolling_mean(window, min_samples=1).over(TRACK).alias("__m")))
+    allr = (k.join(seq.filter(pl.col("__o") == 1).select("__i", "__m"), on="__i", how="left")
+            .sort([*TRACK, "epoch", "__i"])
+            .with_columns(pl.col("__m").forward_fill().over(TRACK))
+            .join(carry.select(*TRACK, "last_mean"), on=TRACK, how="left", maintain_order="left")
+            .sort("__i"))
+    lam = np.maximum(allr["__m"].fill_null(allr["last_mean"]).fill_null(1.0).to_numpy(), 1.0)
+    new = seq.group_by(TRACK, maintain_order=True).agg(pl.col("__v").tail(window).alias("hist"),
+                                                       pl.col("__m").last().alias("last_mean"))
+    new = pl.concat([carry.join(new, on=TRACK, how="anti"), new.cast(carry.schema)])
+    return lam, new
+
+
+def _empty_nis_carry() -> pl.DataFrame:
+    return pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
+                                "hist": pl.List(pl.Float64), "last_mean": pl.Float64})
 
 
 def fuse_invcov_nis(x: F, cov: F, lam: F, starts: Ix) -> Fused:
@@ -821,25 +859,29 @@ def mv_loglik(res: F, u: F, a: F, dvar: F) -> F:
         return -1.5 * np.log(2.0 * np.pi) - 0.5 * logdet - 0.5 * res * res * q / (1.0 + a * q)
 
 
-def seed_s_weights(res: F, res_var: F, fresh: B, lay: Layout) -> F:
+def seed_s_weights(res: F, res_var: F, fresh: B, lay: Layout, b0: F | None = None) -> F:
     """``aposteriori_seed_S``: the printed prior (1 − b(k−1)) of (4.73)–(4.74) with the per-step
     S_n(k) in L_n (digest §6.5 ``seed_S``), b(0) = 1/N (4.77)."""
-    return _recursive_weights(_log_normal(res, res_var), _usable(fresh, res, res_var), lay, _log_prior_seed, 0.0)
+    return _recursive_weights(_log_normal(res, res_var), _usable(fresh, res, res_var), lay, _log_prior_seed, 0.0,
+                              b0)
 
 
-def coord_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float) -> F:
+def coord_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float,
+                  b0: F | None = None) -> F:
     """Per-coordinate corrected a-posteriori weights b_{n,c} (n, 3) (digest §6.1, §6.3): one
-    recursion per system axis on :func:`coord_loglik`."""
+    recursion per system axis on :func:`coord_loglik`; ``b0`` (n, 3) carried weights."""
     ll, s = coord_loglik(res, u, a, dvar)
     prior = _log_prior_markov(p_stay)
     return np.stack([_recursive_weights(ll[:, c], _usable(fresh, res, s[:, c]) & np.isfinite(ll[:, c]),
-                                        lay, prior, b_min) for c in range(3)], axis=1)
+                                        lay, prior, b_min, None if b0 is None else b0[:, c])
+                     for c in range(3)], axis=1)
 
 
-def mv_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float) -> F:
+def mv_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float, b_min: float,
+               b0: F | None = None) -> F:
     """One corrected a-posteriori weight per radar from the multivariate N(ν_n; 0, S_n) (§6.1)."""
     ll = mv_loglik(res, u, a, dvar)
-    return _recursive_weights(ll, fresh & np.isfinite(ll), lay, _log_prior_markov(p_stay), b_min)
+    return _recursive_weights(ll, fresh & np.isfinite(ll), lay, _log_prior_markov(p_stay), b_min, b0)
 
 
 def chi2_threshold(prob: float, dof: int = 1) -> float:
@@ -897,20 +939,39 @@ def layout(keys: pl.DataFrame) -> Layout:
     return Layout(starts, counts, group, prev, grp["__level"].to_numpy().astype(np.intp))
 
 
-def seed_fixed_variance(rows: pl.DataFrame, radars: pl.DataFrame) -> F:
+def seed_fixed_variance(rows: pl.DataFrame, radars: pl.DataFrame, first: pl.DataFrame | None = None) -> F:
     """D_n of (4.75)–(4.76) per row: the step-1 predicted range variance without R,
     ``res_range_var_m2 − sigma_range_m²`` at the first row of the (run, radar, local track)
-    with a finite innovation (NaN when the track has none)."""
+    with a finite innovation (NaN when the track has none). ``first`` (:func:`first_innovation_var`
+    of the earlier windows): the tracks' first finite ``res_range_var_m2`` seen before ``rows``."""
     unknown = set(rows["radar_id"].unique().to_list()) - set(radars["radar_id"].to_list())
     if unknown:
         raise ValueError(f"aposteriori_seed: radar_id(s) {sorted(unknown)} missing from radars")
-    finite = pl.col("res_range_m").is_finite() & pl.col("res_range_var_m2").is_finite()
-    out = rows.select(*TRACK, "res_range_m", "res_range_var_m2").join(
+    first_var = first_innovation_var(rows, first)
+    out = rows.select(*TRACK).join(first_var, on=TRACK, how="left", maintain_order="left").join(
         radars.select(pl.col("radar_id").cast(pl.UInt32), "sigma_range_m"),
         on="radar_id", how="left", maintain_order="left",
-    ).select(
-        pl.col("res_range_var_m2").filter(finite).first().over(TRACK) - pl.col("sigma_range_m") ** 2)
+    ).select(pl.col("first_var") - pl.col("sigma_range_m") ** 2)
     return out.to_series().fill_null(np.nan).to_numpy().astype(float)
+
+
+def _track_keys(df: pl.DataFrame) -> pl.DataFrame:
+    """``df`` with its (run, radar_id, local_track_id) keys cast to the state's types."""
+    return df.with_columns(pl.col("run").cast(pl.UInt32), pl.col("radar_id").cast(pl.UInt32),
+                           pl.col("local_track_id").cast(pl.UInt32))
+
+
+def first_innovation_var(rows: pl.DataFrame, first: pl.DataFrame | None = None) -> pl.DataFrame:
+    """Per (run, radar, local track): the ``res_range_var_m2`` of its first row (in ``rows``'
+    order, epoch order) with a finite innovation — from ``first`` (the earlier windows) when it
+    has the track. Columns TRACK + ``first_var``; tracks without one are absent."""
+    finite = pl.col("res_range_m").is_finite() & pl.col("res_range_var_m2").is_finite()
+    now = (_track_keys(rows.select(*TRACK, "res_range_m", "res_range_var_m2")).filter(finite)
+           .group_by(TRACK, maintain_order=True).agg(pl.col("res_range_var_m2").first().cast(pl.Float64)
+                                                     .alias("first_var")))
+    if first is None or first.is_empty():
+        return now
+    return pl.concat([first, now.join(first, on=TRACK, how="anti")])
 
 
 def _check_columns(rows: pl.DataFrame) -> None:
@@ -946,30 +1007,34 @@ def _blocks(starts: Ix, n: int, block: int = BLOCK_ROWS):
 
 
 def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed: Callable[[], F],
-                 cfg: FusionConfig) -> tuple[F, F, F, dict[str, F]]:
+                 cfg: FusionConfig, b0: dict[str, F] | None = None) -> tuple[F, F, F, dict[str, F]]:
     """Every method over all groups: states (M, G, 6), covariances (M, G, 6, 6) and weights
     (M, n), M methods in the order given, and the per-axis weights (n, 3) of the methods that
     have them. The a-posteriori recursions run once over every row
     (per-row scalars); the mixing and all per-group linear algebra run block by block, all
     methods in one pass so that information fusion and CI share the block's C_n⁻¹, written
     straight into the outputs. Memory is bounded by the block, not by the dataset (stacked 6×6
-    temporaries over all rows reached gigabytes)."""
+    temporaries over all rows reached gigabytes). ``b0``: per recursive method, the weights
+    carried from the previous window (NaN: none)."""
     x, cov, nominal = a["x"], a["cov"], a["nominal_var"]
+    b0 = b0 or {}
     n_groups = len(lay.starts)
     xs = np.empty((len(methods), n_groups, 6))
     covs = np.empty((len(methods), n_groups, 6, 6))
     ws = np.empty((len(methods), len(x)))
     w = {}
     if "aposteriori_seed" in methods:
-        w["aposteriori_seed"] = seed_weights(a["res"], d_fixed(), a["fresh"], lay)
+        w["aposteriori_seed"] = seed_weights(a["res"], d_fixed(), a["fresh"], lay, b0.get("aposteriori_seed"))
     if "aposteriori" in methods:
-        w["aposteriori"] = markov_weights(a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min)
+        w["aposteriori"] = markov_weights(a["res"], a["res_var"], a["fresh"], lay, cfg.p_stay, cfg.b_min,
+                                          b0.get("aposteriori"))
     if "aposteriori_seed_S" in methods:
-        w["aposteriori_seed_S"] = seed_s_weights(a["res"], a["res_var"], a["fresh"], lay)
+        w["aposteriori_seed_S"] = seed_s_weights(a["res"], a["res_var"], a["fresh"], lay, b0.get("aposteriori_seed_S"))
     los = (a["res"], a["fresh"], a["u"], a["a_pred"], a["dvar"], lay, cfg.p_stay, cfg.b_min) if "u" in a else None
     if "aposteriori_mv" in methods:
-        w["aposteriori_mv"] = mv_weights(*los)
-    w3 = {"aposteriori_coord": coord_weights(*los)} if "aposteriori_coord" in methods else {}
+        w["aposteriori_mv"] = mv_weights(*los, b0.get("aposteriori_mv"))
+    w3 = ({"aposteriori_coord": coord_weights(*los, b0.get("aposteriori_coord"))}
+          if "aposteriori_coord" in methods else {})
     shared_inv = bool({"information", "covariance_intersection"} & set(methods))
     for r, st in _blocks(lay.starts, len(x)):
         g0 = int(np.searchsorted(lay.starts, r.start))
@@ -1003,12 +1068,35 @@ def _run_methods(methods: list[str], a: dict[str, NDArray], lay: Layout, d_fixed
     return xs, covs, ws, w3
 
 
-def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, B]:
+@dataclass(frozen=True)
+class AltCarry:
+    """Carried Mode C filters of the vertical channel: per (run, radar, local track) the
+    :class:`~tertiary.altitude.FilterCarry` columns after its last report (``report_id``), whose
+    output serves the track's rows that still hold that report in a later window; ``ref_us``:
+    the time base (µs) of the filters' ``t_last`` — the first report time ever filtered, so the
+    seconds are the same floats as in one whole-run call."""
+
+    tracks: pl.DataFrame | None = None
+    ref_us: int | None = None
+
+
+def _alt_lookup(carry: pl.DataFrame) -> pl.DataFrame:
+    """(run, report_id) → the :data:`ALT_COLUMNS` and ``__has`` of each carried track's last report."""
+    names = dict(zip(("h", "r", "phh", "phr", "prr"),
+                     ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")))
+    return carry.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
+                        *(pl.col(f"af_post_{f}").alias(c) for f, c in names.items()),
+                        pl.col("af_has").alias("__has"))
+
+
+def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = AltCarry()
+                    ) -> tuple[AltState, B, AltCarry]:
     """Each row's Mode C estimate (h, ḣ, P) at its epoch and whether it has one: the filter of
-    its (run, radar, local track) after the row's report, extrapolated by epoch − time."""
+    its (run, radar, local track) after the row's report, extrapolated by epoch − time. The
+    filters continue from ``carry`` (earlier windows) and the new carry is returned."""
     n = rows.height
-    none = AltState.full(n), np.zeros(n, bool)
-    if "altitude_m" not in rows.columns or "time" not in rows.columns or rows["altitude_m"].null_count() == n:
+    none = AltState.full(n), np.zeros(n, bool), carry
+    if "altitude_m" not in rows.columns or "time" not in rows.columns:
         return none
     fresh = pl.col("fresh").fill_null(False)
     has_s = "mode_s" in rows.columns
@@ -1016,40 +1104,64 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig) -> tuple[AltState, 
     # aircraft, and its altitude filter restarts (tertiary.altitude.filter_tracks, ident)
     ident = (pl.col("mode_s").cast(pl.String).str.to_integer(base=16, strict=False).fill_null(-1)
              if has_s else pl.lit(-1, pl.Int64))
-    rep = (rows.filter(fresh).select(*TRACK, "report_id", "time", "altitude_m",
-                                     (pl.col("mode_s").is_not_null() if has_s else pl.lit(True)).alias("__s"),
-                                     ident.cast(pl.Int64).alias("__ident"))
-           .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
-           .sort([*TRACK, "time"]))
-    if rep.is_empty():
-        return none
-    keys = rep.select(TRACK).to_numpy()
-    new = np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)]
-    starts = np.flatnonzero(new)
-    t_us = rep["time"].dt.epoch("us").to_numpy()
-    t = (t_us - t_us.min()) * 1e-6
-    z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
-    var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
-    post, has, _ = filter_tracks(t, z, var, starts, np.diff(np.append(starts, len(t))), cfg,
-                                 ident=rep["__ident"].to_numpy())
-    cols = post.columns()
-    table = rep.select("run", "report_id").with_columns(
-        *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has))
-    j = rows.select("run", "report_id", "epoch", "time").join(table, on=["run", "report_id"], how="left",
-                                                              maintain_order="left")
+    rep = _track_keys(rows.filter(fresh).select(*TRACK, pl.col("report_id").cast(pl.UInt64), "time", "altitude_m",
+                                                (pl.col("mode_s").is_not_null() if has_s else pl.lit(True)).alias("__s"),
+                                                ident.cast(pl.Int64).alias("__ident"))
+                      .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
+                      .sort([*TRACK, "time"]))
+    old = carry.tracks
+    lookups = [] if old is None else [_alt_lookup(old)]
+    ref_us, tracks = carry.ref_us, old
+    if rep.height:
+        keys = rep.select(TRACK).to_numpy()
+        new = np.r_[True, np.any(keys[1:] != keys[:-1], axis=1)]
+        starts = np.flatnonzero(new)
+        lengths = np.diff(np.append(starts, len(keys)))
+        t_us = rep["time"].dt.epoch("us").to_numpy()
+        ref_us = int(t_us.min()) if ref_us is None else ref_us
+        t = (t_us - ref_us) * 1e-6
+        z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+        var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
+        init = _alt_init(rep[starts].select(TRACK), old, cfg)
+        post, has, _, final = filter_tracks_carry(t, z, var, starts, lengths, cfg,
+                                                  ident=rep["__ident"].to_numpy(), init=init)
+        cols = post.columns()
+        lookups.insert(0, rep.select("run", "report_id").with_columns(
+            *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has)))
+        now = rep[starts + lengths - 1].select(*TRACK, "report_id").with_columns(
+            pl.Series(c, v) for c, v in final.columns().items())
+        tracks = now if old is None else pl.concat([old.join(now, on=TRACK, how="anti"), now])
+    if not lookups:
+        return AltState.full(n), np.zeros(n, bool), carry
+    table = pl.concat(lookups, how="diagonal_relaxed").unique(subset=["run", "report_id"], keep="first",
+                                                              maintain_order=True)
+    j = rows.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64), "epoch", "time").join(
+        table, on=["run", "report_id"], how="left", maintain_order="left")
     at = AltState(*(j[c].fill_null(np.nan).to_numpy() for c in
                     ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")))
     age = (j["epoch"].dt.epoch("us").to_numpy() - j["time"].dt.epoch("us").to_numpy()) * 1e-6
-    return predict(at, np.maximum(age, 0.0), cfg.q_m2ps3), j["__has"].fill_null(False).to_numpy()
+    return (predict(at, np.maximum(age, 0.0), cfg.q_m2ps3), j["__has"].fill_null(False).to_numpy(),
+            AltCarry(tracks, ref_us))
+
+
+def _alt_init(keys: pl.DataFrame, old: pl.DataFrame | None, cfg: AltitudeConfig) -> FilterCarry:
+    """The filters' starting state for the tracks ``keys`` (in order): carried where ``old`` has
+    the track, else a filter that has seen nothing."""
+    k = keys.height
+    if old is None or old.is_empty():
+        return FilterCarry.fresh(k, cfg)
+    j = keys.join(old, on=TRACK, how="left", maintain_order="left")
+    default = FilterCarry.fresh(1, cfg).columns()
+    return FilterCarry.from_columns({c: j[c].fill_null(v[0]).to_numpy() for c, v in default.items()}, cfg)
 
 
 def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: geo.LocalFrame | None,
-                     cfg: AltitudeConfig) -> dict[str, F]:
+                     cfg: AltitudeConfig, carry: AltCarry = AltCarry()) -> tuple[dict[str, F], AltCarry]:
     """The :data:`~tertiary.altitude.ALT_COLUMNS` of every (method, group), shape (M, G) each,
     stacked in method order: Mode C where a source has it, else the geodetic height of the
-    method's fused state (module docstring)."""
+    method's fused state (module docstring); and the Mode C filters' new carry."""
     n_groups = len(lay.starts)
-    per_row, has = _mode_c_per_row(rows, cfg)
+    per_row, has, carry = _mode_c_per_row(rows, cfg, carry)
     mode_c, got = combine_min_variance(per_row, has, lay.group, n_groups)
     mc = mode_c.columns()
     out = {c: np.repeat(mc[c][None], len(xs), axis=0) for c in ALT_COLUMNS}
@@ -1058,7 +1170,7 @@ def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: ge
         fb = geodetic_channel(xs[i, rest], covs[i, rest], origin).columns()
         for c in ALT_COLUMNS:
             out[c][i, rest] = fb[c]
-    return out
+    return out, carry
 
 
 # ---------------------------------------------------------------------------
@@ -1299,6 +1411,86 @@ def _method_inputs(methods: list[str], rows: pl.DataFrame, radars: pl.DataFrame,
         a["u"], a["a_pred"], a["dvar"] = los_innovation(a["x"], site, a["res_var"], sig2, a["nominal_var"])
 
 
+#: the recursive (a-posteriori) methods whose weights are carried across windows
+RECURSIVE = ("aposteriori_seed", "aposteriori", "aposteriori_seed_S", "aposteriori_mv", "aposteriori_coord")
+
+
+@dataclass(frozen=True)
+class FuseState:
+    """Everything :func:`fuse_step` carries from one window to the next (natural keys only):
+
+    * ``chains``: per (run, target_id, radar_id) of each target's last fused group, the weights
+      b(k−1) of the a-posteriori recursions (``w_<method>``; ``w_aposteriori_coord_{0,1,2}``
+      per axis) — the radar set of that group is its rows;
+    * ``seed_first``: per (run, radar_id, local_track_id) the first finite ``res_range_var_m2``
+      (D_n of ``aposteriori_seed``, (4.75)–(4.76));
+    * ``nis``: per local track the last ``nis_window`` NIS values and moving mean (``invcov_nis``);
+    * ``alt``: the Mode C filters of the vertical channel (:class:`AltCarry`);
+    * ``confirm``: target confirmation (:class:`ConfirmState`);
+    * ``reached_us``: the end of the last window stepped (µs since the Unix epoch), None before.
+
+    The frames keep one row per target / local track ever seen (a few numbers each), since a
+    target or track may resume after any silence."""
+
+    chains: pl.DataFrame
+    seed_first: pl.DataFrame
+    nis: pl.DataFrame
+    alt: AltCarry
+    confirm: ConfirmState
+    reached_us: int | None = None
+
+
+def init_fuse_state() -> FuseState:
+    """The state before the first window."""
+    return FuseState(pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32}),
+                     pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
+                                          "first_var": pl.Float64}),
+                     _empty_nis_carry(), AltCarry(), ConfirmState.empty(), None)
+
+
+def _weight_columns(method: str) -> list[str]:
+    return [f"w_{method}_{c}" for c in range(3)] if method == "aposteriori_coord" else [f"w_{method}"]
+
+
+def _carried_weights(rows: pl.DataFrame, chains: pl.DataFrame, methods: list[str]) -> dict[str, F]:
+    """Per recursive method, b(k−1) of each row from ``chains``: for the rows of each target's
+    first group in ``rows`` when its radar set equals the carried one (else the recursion
+    restarts at 1/N, as within a call); NaN elsewhere."""
+    rec = [m for m in methods if m in RECURSIVE]
+    if not rec or chains.is_empty():
+        return {}
+    keys = rows.select(pl.col("run").cast(pl.UInt32), "epoch", pl.col("target_id").cast(pl.UInt64),
+                       pl.col("radar_id").cast(pl.UInt32))
+    first = (keys.group_by(GROUP, maintain_order=True).agg(pl.col("radar_id").alias("__set"))
+             .group_by(CHAIN, maintain_order=True).first())
+    sets = chains.group_by(CHAIN).agg(pl.col("radar_id").sort().alias("__old"))
+    cont = first.join(sets, on=CHAIN, how="inner").filter(pl.col("__set") == pl.col("__old")).select(GROUP)
+    cols = [c for m in rec for c in _weight_columns(m) if c in chains.columns]
+    j = (keys.join(cont.with_columns(pl.lit(True).alias("__c")), on=GROUP, how="left", maintain_order="left")
+         .join(chains.select(*CHAIN, "radar_id", *cols), on=[*CHAIN, "radar_id"], how="left", maintain_order="left"))
+    ok = j["__c"].fill_null(False).to_numpy()
+    col = lambda c: np.where(ok, j[c].cast(pl.Float64).fill_null(np.nan).to_numpy(), np.nan) if c in j.columns \
+        else np.full(len(ok), np.nan)  # noqa: E731
+    return {m: (np.stack([col(c) for c in _weight_columns(m)], axis=1) if m == "aposteriori_coord"
+                else col(_weight_columns(m)[0])) for m in rec}
+
+
+def _new_chains(rows: pl.DataFrame, chains: pl.DataFrame, methods: list[str], ws: F, w3: dict[str, F]
+                ) -> pl.DataFrame:
+    """``chains`` with every target of ``rows`` replaced by its last group and that group's weights."""
+    rec = [m for m in methods if m in RECURSIVE]
+    cols = []
+    for i, m in enumerate(methods):
+        if m == "aposteriori_coord":
+            cols += [pl.Series(c, w3[m][:, a]) for a, c in enumerate(_weight_columns(m))]
+        elif m in rec:
+            cols.append(pl.Series(_weight_columns(m)[0], ws[i]))
+    k = rows.select(pl.col("run").cast(pl.UInt32), "epoch", pl.col("target_id").cast(pl.UInt64),
+                    pl.col("radar_id").cast(pl.UInt32)).with_columns(cols)
+    last = k.filter(pl.col("epoch") == pl.col("epoch").max().over(CHAIN)).drop("epoch")
+    return pl.concat([chains.join(last, on=CHAIN, how="anti"), last], how="diagonal_relaxed")
+
+
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
          cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None,
          plots: pl.DataFrame | None = None) -> pl.DataFrame:
@@ -1312,25 +1504,57 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
     columns; without them those are null. Returns the ``fused`` table: the
     blocks of the methods in the order given, each sorted by (run, epoch, target_id).
     Raises ValueError for an unknown method, a missing column, or a radar reporting twice
-    for one target at one epoch."""
+    for one target at one epoch. The whole run as one window of :func:`fuse_step`."""
+    return fuse_step(init_fuse_state(), rows, radars, methods, cfg, origin, plots)[0]
+
+
+def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
+              cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None,
+              plots_window: pl.DataFrame | None = None, t0_us: int | None = None, t1_us: int | None = None
+              ) -> tuple[pl.DataFrame, FuseState]:
+    """:func:`fuse` of one time window, carrying every recursion in ``state`` (:class:`FuseState`).
+
+    ``rows_window``: the fusion rows (aligned + target_id, :data:`INPUT_COLUMNS`, with ``time``,
+    ``altitude_m``, ``mode_s``, ``age_s`` as the pipeline has them) with epoch in
+    [``t0_us``, ``t1_us``) (µs since the Unix epoch; None = unbounded). ``plots_window``:
+    :func:`measured_plots` of (at least) the reports of the window's fresh rows — every report
+    whose first epoch lies in the window, i.e. reports with time in
+    [t0_us − epoch period − max collection delay, t1_us); extra reports are ignored. No other
+    history is needed. Stepping the windows of a run in order and concatenating the outputs
+    gives :func:`fuse` of the whole run (same rows; values to round-off), provided ``methods``
+    and ``cfg`` are the same in every window. The state passed in is not modified. Raises
+    ValueError for rows outside the window (and as :func:`fuse`)."""
     methods = _check_methods(methods)
-    _check_columns(rows)
+    _check_columns(rows_window)
+    rows = rows_window
+    reached = t1_us if t1_us is not None else state.reached_us
+    if rows.height and (t0_us is not None or t1_us is not None):
+        e = rows["epoch"].dt.epoch("us")
+        if (t0_us is not None and e.min() < t0_us) or (t1_us is not None and e.max() >= t1_us):
+            raise ValueError(f"fuse_step: rows_window has epochs outside [{t0_us}, {t1_us}) µs")
     schema = TABLES["fused"].required
     out_schema = {**schema, **TABLES["fused"].optional, **FUSED_EXTRA}
     if rows.height == 0 or not methods:
-        return pl.DataFrame(schema=out_schema)
+        return pl.DataFrame(schema=out_schema), replace(state, reached_us=reached)
     if not is_sorted_by(rows, [*GROUP, "radar_id"]):  # the pipeline passes sorted rows: skip the sort
         rows = rows.sort([*GROUP, "radar_id"], maintain_order=True)
     rows, inflate = _apply_gate(rows, cfg)
     lay, a = layout(rows), _arrays(rows)
     if inflate is not None:
         a["cov"] = a["cov"] * inflate[:, None, None]
-    _method_inputs(methods, rows, radars, origin, cfg, a)
-    d_fixed = lambda: seed_fixed_variance(rows, radars)  # noqa: E731
-    xs, covs, ws, axis_w = _run_methods(methods, a, lay, d_fixed, cfg)
-    alt = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude)
-    meas = _measurements(rows, methods, a, lay, ws, plots, axis_w)
-    tentative, _ = confirm_step(ConfirmState.empty(), rows, cfg.min_plots)
+    nis_carry = state.nis
+    if "invcov_nis" in methods:
+        a["lam"], nis_carry = nis_inflation_step(rows, cfg.nis_window, state.nis)
+    _method_inputs([m for m in methods if m != "invcov_nis"], rows, radars, origin, cfg, a)
+    seed_first = first_innovation_var(rows, state.seed_first)
+    d_fixed = lambda: seed_fixed_variance(rows, radars, state.seed_first)  # noqa: E731
+    b0 = _carried_weights(rows, state.chains, methods)
+    xs, covs, ws, axis_w = _run_methods(methods, a, lay, d_fixed, cfg, b0)
+    alt, alt_carry = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude, state.alt)
+    meas = _measurements(rows, methods, a, lay, ws, plots_window, axis_w)
+    tentative, confirm = confirm_step(state.confirm, rows, cfg.min_plots)
+    new_state = FuseState(_new_chains(rows, state.chains, methods, ws, axis_w), seed_first, nis_carry, alt_carry,
+                          confirm, reached)
     mode_s = pl.col("mode_s").cast(pl.String) if "mode_s" in rows.columns else pl.lit(None, pl.String)
     head = rows.select(*GROUP, "radar_id", mode_s.alias("__s")).with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))
@@ -1355,4 +1579,4 @@ def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METH
         *(pl.Series(c, mz[:, j]).fill_nan(None) for j, c in enumerate(("meas_x_m", "meas_y_m", "meas_z_m"))),
         pl.Series("meas_cov", meas["meas_cov"].reshape(-1, 9), dtype=pl.Array(pl.Float64, 9)),
     ).with_columns(pl.when(pl.col("meas_x_m").is_not_null()).then(pl.col("meas_cov")).alias("meas_cov")
-                   ).select(list(out_schema)).cast(out_schema)
+                   ).select(list(out_schema)).cast(out_schema), new_state

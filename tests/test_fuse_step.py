@@ -1,0 +1,163 @@
+"""fuse_step: windowed fusion equals the whole-run fuse (issue 16, docs stream contract)."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+import tertiary.align
+import tertiary.associate
+from tertiary.altitude import AltitudeConfig, filter_tracks, filter_tracks_carry
+from tertiary.fusion import (ALL_METHODS, FuseState, FusionConfig, fuse, fuse_step, init_fuse_state,
+                             measured_plots)
+from tertiary.pipeline import PipelineConfig, screen
+from tertiary.simulate import load_scenario, simulate
+
+KEYS = ["method", "run", "epoch", "target_id"]
+SLOWEST_SCAN_US = 12_000_000          # terminal-area's slowest radar (ENR-E)
+
+
+@pytest.fixture(scope="module")
+def case():
+    """Terminal-area, 20 aircraft, 300 s: fusion rows, radars, origin and measured plots."""
+    sc = load_scenario("terminal-area")
+    sc = dataclasses.replace(sc, duration_s=300.0, traffic=dataclasses.replace(sc.traffic, aircraft=20))
+    ds = simulate(sc)
+    cfg = PipelineConfig()
+    ing = screen(ds, cfg)
+    aligned = tertiary.align.expand(ing.plan, cfg.align)
+    assoc, _ = tertiary.associate.associate(aligned, cfg.association)
+    rows = aligned.with_columns(assoc["target_id"]).sort("run", "epoch", "target_id", "radar_id")
+    plots = measured_plots(ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
+    assert ing.radars["scan_period_s"].max() * 1e6 == SLOWEST_SCAN_US
+    return rows, ing.radars, ds.origin, plots
+
+
+def _span(rows: pl.DataFrame) -> tuple[int, int]:
+    e = rows["epoch"].dt.epoch("us")
+    return int(e.min()), int(e.max()) + 1
+
+
+def _windowed(case, cuts: list[int], cfg: FusionConfig = FusionConfig()) -> pl.DataFrame:
+    rows, radars, origin, plots = case
+    lo, hi = _span(rows)
+    e = rows["epoch"].dt.epoch("us")
+    bounds = [lo, *[lo + c for c in cuts], hi]
+    state, outs = init_fuse_state(), []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        out, state = fuse_step(state, rows.filter((e >= a) & (e < b)), radars, ALL_METHODS, cfg, origin, plots, a, b)
+        outs.append(out)
+    return pl.concat(outs)
+
+
+def _assert_same(got: pl.DataFrame, want: pl.DataFrame) -> None:
+    assert got.height == want.height
+    assert_frame_equal(got.sort(KEYS), want.sort(KEYS), rel_tol=1e-9, abs_tol=1e-9)
+
+
+CUTS = {
+    "one cut": [100_000_000],
+    # 3 s windows: shorter than every scan period (4–12 s) and than the 4 s epoch spacing, so
+    # many windows hold no epoch at all
+    "3 s windows": list(range(3_000_000, 310_000_000, 3_000_000)),
+    # a 1 µs window (empty) between two others, then uneven windows
+    "empty window": [50_000_000, 50_000_001, 150_000_000, 151_000_000, 200_000_000],
+}
+
+
+@pytest.mark.parametrize("cuts", list(CUTS.values()), ids=list(CUTS))
+def test_windowed_fusion_equals_whole_run_for_every_method(case, cuts):
+    rows, radars, origin, plots = case
+    whole = fuse(rows, radars, ALL_METHODS, FusionConfig(), origin, plots)
+    assert set(whole["method"].unique()) == set(ALL_METHODS)
+    # the recursions have something to carry: multi-radar targets spanning the cuts
+    assert (whole["n_sources"] > 1).sum() > 100
+    _assert_same(_windowed(case, cuts), whole)
+
+
+@pytest.mark.parametrize("cfg", [FusionConfig(nis_gate="reject"),
+                                 FusionConfig(nis_gate="downweight", gate_test="trace", nis_window=2, min_plots=3),
+                                 FusionConfig(altitude=AltitudeConfig(model="cv"))],
+                         ids=["gate reject", "gate downweight", "altitude cv"])
+def test_windowed_fusion_equals_whole_run_with_options(case, cfg):
+    rows, radars, origin, plots = case
+    whole = fuse(rows, radars, ALL_METHODS, cfg, origin, plots)
+    _assert_same(_windowed(case, CUTS["3 s windows"], cfg), whole)
+
+
+def _first_window_state(case) -> FuseState:
+    rows, radars, origin, plots = case
+    lo, _ = _span(rows)
+    e = rows["epoch"].dt.epoch("us")
+    _, state = fuse_step(init_fuse_state(), rows.filter(e < lo + 120_000_000), radars, ALL_METHODS, FusionConfig(),
+                         origin, plots, lo, lo + 120_000_000)
+    return state
+
+
+def _state_frames(state: FuseState) -> dict[str, pl.DataFrame]:
+    return {"chains": state.chains, "seed_first": state.seed_first, "nis": state.nis, "alt": state.alt.tracks,
+            "confirm_tracks": state.confirm.tracks, "confirm_targets": state.confirm.targets}
+
+
+def test_empty_window_leaves_the_state_unchanged(case):
+    rows, radars, origin, plots = case
+    lo, _ = _span(rows)
+    state = _first_window_state(case)
+    out, after = fuse_step(state, rows.head(0), radars, ALL_METHODS, FusionConfig(), origin, plots,
+                           lo + 120_000_000, lo + 121_000_000)
+    assert out.is_empty()
+    assert after.reached_us == lo + 121_000_000
+    assert after.alt.ref_us == state.alt.ref_us
+    for name, frame in _state_frames(state).items():
+        assert _state_frames(after)[name].equals(frame), name
+
+
+def test_step_does_not_mutate_its_input_state_and_state_pickles(case):
+    rows, radars, origin, plots = case
+    lo, hi = _span(rows)
+    e = rows["epoch"].dt.epoch("us")
+    state = _first_window_state(case)
+    before = pickle.dumps(state)
+    rest = rows.filter(e >= lo + 120_000_000)
+    out1, _ = fuse_step(state, rest, radars, ALL_METHODS, FusionConfig(), origin, plots, lo + 120_000_000, hi)
+    assert pickle.dumps(state) == before
+    # a checkpointed (pickled) state continues the run exactly
+    out2, _ = fuse_step(pickle.loads(before), rest, radars, ALL_METHODS, FusionConfig(), origin, plots,
+                        lo + 120_000_000, hi)
+    _assert_same(out2, out1)
+
+
+def test_rows_outside_the_window_are_refused(case):
+    rows, radars, origin, plots = case
+    lo, hi = _span(rows)
+    with pytest.raises(ValueError, match="outside"):
+        fuse_step(init_fuse_state(), rows, radars, ["arithmetic"], FusionConfig(), origin, plots, lo, lo + 10_000_000)
+
+
+def test_altitude_filter_continued_from_its_carry_equals_one_call():
+    rng = np.random.default_rng(3)
+    n = 40
+    t = np.cumsum(rng.uniform(3.0, 6.0, n))
+    z = 3000.0 + 5.0 * t + rng.normal(0.0, 10.0, n)
+    z[[5, 17]] = np.nan                              # missing replies
+    z[25] += 900.0                                   # a garble
+    var = np.full(n, 7.62 ** 2 / 12)
+    ident = np.where(np.arange(n) < 30, 0xABC, 0xDEF)  # a swap of aircraft at reply 30
+    starts, lengths = np.array([0, 20]), np.array([20, 20])
+    whole, has, rej = filter_tracks(t, z, var, starts, lengths, ident=ident)
+    for cut in (7, 13):                              # split track 0 (and track 1) at `cut`
+        a = np.r_[0:cut, 20:20 + cut]
+        b = np.r_[cut:20, 20 + cut:40]
+        s, ln = np.array([0, cut]), np.array([cut, cut])
+        out1, has1, _, carry = filter_tracks_carry(t[a], z[a], var[a], s, ln, ident=ident[a])
+        s2, ln2 = np.array([0, 20 - cut]), np.array([20 - cut, 20 - cut])
+        out2, has2, rej2, _ = filter_tracks_carry(t[b], z[b], var[b], s2, ln2, ident=ident[b], init=carry)
+        np.testing.assert_array_equal(np.r_[has1, has2], has[np.r_[a, b]])
+        np.testing.assert_allclose(np.r_[out1.h, out2.h], whole.h[np.r_[a, b]], rtol=1e-12)
+        np.testing.assert_allclose(np.r_[out1.prr, out2.prr], whole.prr[np.r_[a, b]], rtol=1e-12)
+        np.testing.assert_array_equal(rej2, rej[b])
