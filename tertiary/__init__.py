@@ -13,7 +13,10 @@ Public API (the CLI is a thin layer over these):
   :mod:`tertiary.centralized`, the posterior Cramér–Rao bound in :mod:`tertiary.bound`
 * radars that err: :class:`RadarTrackerConfig`, :class:`TransponderConfig` (the simulated radars'
   own association, :mod:`tertiary.simulate.radar_tracker`)
-* the batch job: :func:`run` (writes the run database), :func:`process` (in memory), :func:`ingest`
+* the batch job: :func:`run` (writes the run database window by window, resumable), :func:`process`
+  (in memory), :func:`ingest`; the windowed engine (:mod:`tertiary.engine`): :func:`stream` (the
+  streamed stages, each a step function ``<stage>_step(state, window) -> (outputs, state)``) and
+  :func:`finalize` (the whole-run stages)
 * results: :func:`run_report` / :func:`list_reports` (the named SQL reports of ``sql/``, read-only,
   bound parameters), :func:`build_report` (the self-contained HTML report of a run)
 """
@@ -26,7 +29,14 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.fusion import METHODS, ConfirmState, FusionConfig, confirm_step, fuse, fuse_bar_shalom_campo, measured_plots
 from tertiary.gating import GatingConfig, candidate_pairs
 from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
-from tertiary.pipeline import PipelineConfig, StageError, ingest, process, run, screen
+from tertiary.align import AlignState, align_step, init_align_state
+from tertiary.associate import AssociateState, AssociationStats, associate_step, init_associate_state
+from tertiary.clustering import ClusterState, cluster_step, init_cluster_state
+from tertiary.fusion import FuseState, fuse_step, init_fuse_state
+from tertiary.centralized import CentralizedState, centralized_step, init_centralized_state
+from tertiary.tracker import TrackState, init_track_state, track_step
+from tertiary.engine import PartStore, ReportSource, Window, windows
+from tertiary.pipeline import PipelineConfig, StageError, finalize, ingest, process, run, screen, stream
 from tertiary.schema import RULES, TABLES, Limits, SchemaError, UnsortedTimeWarning, contract_rules, validate
 from tertiary.simulate import Dataset, check_scenario, load_scenario, read_dataset, simulate, write_dataset
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
@@ -47,7 +57,12 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "measured_plots", "fuse_bar_shalom_campo", "confirm_step", "ConfirmState", "evaluate_pictures",
            "match_to_reference", "MatchConfig", "load_requirements", "check_requirements", "ALL_METHODS",
            "CollectionConfig", "collect", "IndicatorConfig", "bayes_threshold",
-           "conversion_valid", "make_range_channel"]
+           "conversion_valid", "make_range_channel",
+           # the windowed engine: every streamed stage is a step (state, window) -> (outputs, state)
+           "AlignState", "align_step", "init_align_state", "AssociateState", "AssociationStats", "associate_step",
+           "init_associate_state", "ClusterState", "cluster_step", "init_cluster_state", "FuseState", "fuse_step",
+           "init_fuse_state", "CentralizedState", "centralized_step", "init_centralized_state", "TrackState",
+           "init_track_state", "track_step", "PartStore", "ReportSource", "Window", "windows", "stream", "finalize"]
 from tertiary.evaluation import evaluate_pictures  # noqa: E402  (after the stages it builds on)
 from tertiary.matching import MatchConfig, match_to_reference  # noqa: E402
 from tertiary.requirements import check_requirements, load_requirements  # noqa: E402

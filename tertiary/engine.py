@@ -224,7 +224,8 @@ class PartStore:
     def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
         from tertiary.store import write_parquet_atomic
         for name, frame in outputs.items():
-            if frame.width == 0:
+            # an empty window's frame is kept only while the table has no part at all (its schema)
+            if frame.width == 0 or (frame.height == 0 and self.manifest["tables"].get(name) is not None):
                 continue
             d = self.dir / PARTS / name
             d.mkdir(parents=True, exist_ok=True)
@@ -252,7 +253,7 @@ class PartStore:
         """Every complete window's rows of ``name`` in window order (None: no part)."""
         files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
         files = [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]
-        return pl.read_parquet(files) if files else None
+        return _concat([pl.read_parquet(f) for f in files]) if files else None
 
     def _commit(self) -> None:
         from tertiary.store import write_text_atomic
@@ -267,7 +268,7 @@ class MemoryParts:
 
     def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
         for name, frame in outputs.items():
-            if frame.width:
+            if frame.width and (frame.height or name not in self.frames):
                 self.frames.setdefault(name, []).append(frame)
 
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
@@ -275,9 +276,18 @@ class MemoryParts:
 
     def table(self, name: str) -> pl.DataFrame | None:
         parts = self.frames.get(name)
-        if not parts:
-            return None
-        return parts[0] if len(parts) == 1 else pl.concat(parts, how="vertical_relaxed")
+        return _concat(parts) if parts else None
+
+
+def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
+    """Windows' rows of one table: empty windows' frames dropped (they may lack optional columns)."""
+    full = [f for f in frames if f.height] or frames[:1]
+    if len(full) == 1:
+        return full[0]
+    try:
+        return pl.concat(full, how="vertical")
+    except (pl.exceptions.ShapeError, pl.exceptions.SchemaError, pl.exceptions.ComputeError):
+        return pl.concat(full, how="diagonal_relaxed")
 
 
 def rss_mib() -> float:
