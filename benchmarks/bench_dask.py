@@ -1,0 +1,155 @@
+"""Scaling of the Dask engine on this machine (1 and 2 workers, LocalCluster) on a moderate
+terminal-area recording cut into time slices: wall time, per-slice task times, scheduler overhead,
+stitching effects against the local engine; an estimate for 8/32/128 workers from the measured
+per-slice times and overhead. Results: benchmarks/results/bench_dask.json.
+
+    PYTHONPATH=. python benchmarks/bench_dask.py [--aircraft 60] [--duration 1200] [--slice 300] [--overlap 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from tertiary import associate, distributed as D, pipeline
+from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+from tertiary.store import RunStore
+
+# Transitional (as in tests/test_distributed.py): the lead's whole-run shim until the stage step
+# functions are merged; with it each partition is one window.
+SHIM = not hasattr(associate, "associate_step")
+if SHIM:
+    sys.path.insert(0, "/tmp/lead")
+    import shim  # noqa: F401
+
+OUT = Path(__file__).parent / "results" / "bench_dask.json"
+CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), methods=("information",), filters=("singer",))
+
+
+def _load_shim() -> None:
+    if SHIM:
+        sys.path.insert(0, "/tmp/lead")
+        import shim  # noqa: F401
+
+
+def _noop(i: int) -> int:
+    return i
+
+
+def _overhead(client, n: int = 200) -> float:
+    """Scheduler round trip per task (s): n no-op tasks submitted and gathered."""
+    client.gather(client.map(_noop, range(20), pure=False))
+    t = time.perf_counter()
+    client.gather(client.map(_noop, range(n), pure=False))
+    return (time.perf_counter() - t) / n
+
+
+def _tables(db: Path) -> dict:
+    with RunStore.open(db.parent) as s:
+        return {n: s.read(n) for n in ("associations", "fused", "tracks", "partitions") if n in s.tables()}
+
+
+def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, overlap_s: float) -> dict:
+    from distributed import Client, LocalCluster
+    t = time.perf_counter()
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = Client(cluster)
+    client.run(_load_shim)
+    startup = time.perf_counter() - t
+    try:
+        per_task = _overhead(client)
+        t = time.perf_counter()
+        res = D.run_dask_detailed(ds_dir, out, CFG, client=client, window_s=window_s, slice_s=slice_s,
+                                  overlap_s=overlap_s)
+        wall = time.perf_counter() - t
+    finally:
+        client.close()
+        cluster.close()
+    tasks = res.partitions["task_s"].to_list()
+    tm = res.timings
+    return {"workers": workers, "cluster_startup_s": startup, "wall_s": wall, "scheduler_roundtrip_s": per_task,
+            "partition_task_s": tasks, "partition_input_rows": res.partitions["input_rows"].to_list(),
+            "partitions_phase_s": tm["partitions_s"],
+            # what the partition phase cost beyond the tasks' own work spread over the workers
+            "partitions_phase_overhead_s": tm["partitions_s"] - sum(tasks) / workers,
+            "stitch_s": tm["stitch_s"], "relabel_s": tm["relabel_s"], "finalize_s": tm["finalize_s"],
+            "plan_s": tm["plan_s"], "stitching": res.stitching.to_dicts(), "db": str(res.db)}
+
+
+def _estimate(run: dict, n_slices_day: int, workers: int, task_s: float, stitch_per_boundary_s: float,
+              finalize_s: float) -> dict:
+    """Wall time of ``n_slices_day`` slices on ``workers`` workers: waves of tasks, the scheduler's
+    round trip per task, the client's sequential stitching and the finalize stage."""
+    waves = math.ceil(n_slices_day / workers)
+    part = waves * task_s + n_slices_day * run["scheduler_roundtrip_s"]
+    relabel = waves * run["relabel_s"] / max(1, math.ceil(len(run["partition_task_s"]) / run["workers"]))
+    total = part + relabel + stitch_per_boundary_s * (n_slices_day - 1) + finalize_s
+    return {"workers": workers, "partitions_phase_s": part, "stitch_s": stitch_per_boundary_s * (n_slices_day - 1),
+            "relabel_s": relabel, "finalize_s": finalize_s, "total_s": total}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--aircraft", type=int, default=60)
+    ap.add_argument("--duration", type=float, default=1200.0)
+    ap.add_argument("--slice", type=float, default=300.0)
+    ap.add_argument("--overlap", type=float, default=60.0)
+    a = ap.parse_args()
+    window_s = None if SHIM else 60.0
+    tmp = Path(tempfile.mkdtemp(prefix="bench_dask_"))
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=a.duration - 10.0, runs=1,
+                              traffic=dataclasses.replace(cfg.traffic, aircraft=a.aircraft))
+    ds = simulate(cfg)
+    write_dataset(ds, tmp / "ds")
+    n_reports = ds.reports.height
+    t = time.perf_counter()
+    local_db = pipeline.run(read_dataset(tmp / "ds", lazy=True), tmp / "local", CFG, window_s=window_s)
+    local_s = time.perf_counter() - t
+    runs = [_dask_run(tmp / "ds", tmp / f"dask{w}", w, window_s, a.slice, a.overlap) for w in (1, 2)]
+    dk, lc = _tables(Path(runs[-1]["db"])), _tables(local_db)
+    bounds = sorted(D._parse_utc(x) for x in dk["partitions"]["kept_from_utc"].to_list()[1:])
+    effects = D.stitching_effects(dk, lc, bounds)
+    # per-slice model from the 2-worker run: a slice's task time per input report, the client's
+    # stitching per boundary, the finalize stage per report
+    r2 = runs[-1]
+    rows = sum(r2["partition_input_rows"])
+    s_per_row = sum(r2["partition_task_s"]) / rows
+    boundaries = max(1, len(r2["partition_task_s"]) - 1)
+    day_s = 86400.0
+    n_day = math.ceil(day_s / a.slice)
+    rate = n_reports / a.duration                       # this recording's report rate (reports/s of data)
+    task_day = s_per_row * rate * (a.slice + a.overlap)
+    fin_day = r2["finalize_s"] / n_reports * rate * day_s
+    est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day) for w in (8, 32, 128)]
+    result = {
+        "shim": SHIM, "window_s": window_s, "config": {"methods": list(CFG.methods), "filters": list(CFG.filters)},
+        "scenario": {"kind": "terminal-area", "aircraft": a.aircraft, "duration_s": a.duration, "reports": n_reports},
+        "slice_s": a.slice, "overlap_s": a.overlap, "machine_cores": 2,
+        "local": {"wall_s": local_s, "reports_per_s": n_reports / local_s},
+        "dask": [{k: v for k, v in r.items() if k != "db"} | {"reports_per_s": n_reports / r["wall_s"]}
+                 for r in runs],
+        "speedup_2_vs_1": runs[0]["wall_s"] / runs[1]["wall_s"],
+        "stitching_effects": effects,
+        "estimate_day": {"model": "24 h at this recording's report rate, slices of slice_s with overlap_s warm-up; "
+                                  "task time = measured s per input report x slice input; waves of tasks over the "
+                                  "workers + scheduler round trip per task + client stitching per boundary "
+                                  "(sequential) + finalize on the client (measured s per report)",
+                         "slices": n_day, "task_s_per_slice": task_day, "estimates": est},
+    }
+    OUT.write_text(json.dumps(result, indent=1, default=str))
+    print(json.dumps({k: result[k] for k in ("local", "speedup_2_vs_1")}, indent=1))
+    for r in result["dask"]:
+        print(r["workers"], "workers:", f"{r['wall_s']:.1f} s", f"tasks {r['partition_task_s']}",
+              f"overhead/task {r['scheduler_roundtrip_s'] * 1e3:.1f} ms")
+    print(json.dumps(est, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""The Dask engine (issue 18 item 3) on a LocalCluster of 2 workers: Monte-Carlo runs as partitions
+give the local engine's tables; a run cut into time slices gives them outside the warm-up
+overlaps, with the stitching effects measured (id changes per boundary, accuracy after it)."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from tertiary import associate, distributed as D, pipeline
+from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+from tertiary.store import RunStore
+
+# Transitional: until the stage step functions are merged, the lead's whole-run shim stands in
+# for them (correct with one window per partition only). Remove with the shim.
+SHIM = not hasattr(associate, "associate_step")
+if SHIM:
+    sys.path.insert(0, "/tmp/lead")
+    import shim  # noqa: F401
+
+
+def _load_shim() -> None:
+    if SHIM:
+        sys.path.insert(0, "/tmp/lead")
+        import shim  # noqa: F401
+
+
+WINDOW = None if SHIM else 60.0
+CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), evaluation=False, methods=("arithmetic", "information"),
+                              filters=("singer",))
+KEYS = {
+    "reports": ["run", "report_id"],
+    "rejects": ["input_table", "row_index", "stage", "reason"],
+    "aligned": ["run", "epoch", "radar_id", "local_track_id", "report_id"],
+    "associations": ["run", "epoch", "radar_id", "local_track_id", "report_id"],
+    "fused": ["run", "method", "epoch", "target_id"],
+    "clusters": ["run", "method", "epoch", "cluster_id"],
+    "tracks": ["run", "method", "filter", "epoch", "track_id"],
+    "conflicts": ["run", "method", "epoch", "id_a", "id_b"],
+    "metrics": ["stage", "method", "metric", "segment"],
+}
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    c = Client(cluster)
+    c.run(_load_shim)
+    yield c
+    c.close()
+    cluster.close()
+
+
+def _scenario(runs: int, duration_s: float, aircraft: int):
+    cfg = load_scenario("terminal-area")
+    return simulate(dataclasses.replace(cfg, duration_s=duration_s, runs=runs,
+                                        traffic=dataclasses.replace(cfg.traffic, aircraft=aircraft, conflict_pairs=3)))
+
+
+@pytest.fixture(scope="module")
+def runs_dataset(tmp_path_factory):
+    """Two Monte-Carlo runs, with invalid ranges in run 1 and a report without a run (run 0 by default)."""
+    ds = _scenario(2, 240.0, 20)
+    r = ds.reports.with_row_index("__i")
+    bad = r.filter(pl.col("run") == 1)["__i"].head(3).to_list()
+    r = r.with_columns(pl.when(pl.col("__i").is_in(bad)).then(-5.0).otherwise(pl.col("range_m")).alias("range_m"),
+                       pl.when(pl.col("__i") == 7).then(None).otherwise(pl.col("run")).alias("run")).drop("__i")
+    path = tmp_path_factory.mktemp("mc") / "ds"
+    write_dataset(dataclasses.replace(ds, reports=r), path)
+    return path
+
+
+def _tables(db) -> dict[str, pl.DataFrame]:
+    """Every table of a run database (the local engine's and the Dask engine's alike)."""
+    with RunStore.open(db.parent) as s:
+        return {n: s.read(n) for n in [*KEYS, "partitions", "run"] if n in s.tables()}
+
+
+def _target_bijection(dask: pl.DataFrame, local: pl.DataFrame) -> pl.DataFrame:
+    """(run, target_id → local target_id) through the reports both assign: must be one-to-one."""
+    key = KEYS["associations"]
+    pairs = (dask.select(*key, "target_id").join(local.select(*key, pl.col("target_id").alias("local")), on=key)
+             .select("run", "target_id", "local").unique())
+    assert pairs.height == dask.select("run", "target_id").unique().height == \
+        local.select("run", "target_id").unique().height, "target ids are not one-to-one with the local engine's"
+    return pairs
+
+
+def _to_local_targets(frame: pl.DataFrame, name: str, m: pl.DataFrame) -> pl.DataFrame:
+    old, new = m["target_id"], m["local"]   # ids are unique over runs in both engines
+    rep = lambda c: pl.col(c).replace_strict(old, new, return_dtype=pl.UInt64)
+    if name in ("associations", "fused"):
+        return frame.with_columns(rep("target_id"))
+    if name == "tracks":
+        return frame.with_columns(rep("plot_target_id"))
+    if name == "clusters":
+        return frame.with_columns(rep("lead_target_id"), pl.col("members").list.eval(
+            pl.element().replace_strict(old, new, return_dtype=pl.UInt64)).list.sort())
+    if name == "conflicts":
+        fused_pic = ~pl.col("method").str.contains("+", literal=True)
+        return frame.with_columns(*[pl.when(fused_pic).then(rep(c)).otherwise(pl.col(c)).alias(c)
+                                    for c in ("id_a", "id_b")])
+    return frame
+
+
+def _same(a: pl.DataFrame, b: pl.DataFrame, name: str) -> None:
+    assert a.shape == b.shape, f"{name}: {a.shape} with Dask vs {b.shape} locally"
+    if a.height == 0:
+        return
+    keys = [k for k in KEYS[name] if k in a.columns]
+    if name == "clusters":
+        b = b.with_columns(pl.col("members").list.sort())
+    a, b = a.sort(keys, nulls_last=True), b.select(a.columns).sort(keys, nulls_last=True)
+    assert_frame_equal(a, b, check_dtypes=False, rel_tol=1e-9, abs_tol=1e-6)
+
+
+def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_dataset, tmp_path):
+    db = D.run_dask(runs_dataset, tmp_path / "run", CFG, client=client, window_s=WINDOW)
+    got = _tables(db)
+    want = _tables(pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
+    # the 3 bad ranges rejected at their rows of the whole input (a null run is run 0: kept)
+    assert got["rejects"].filter(pl.col("input_table") == "reports").height >= 3
+    # target ids are numbered over every run by the local engine (one counter), per partition
+    # here, then renumbered in creation order: compared through the reports they group
+    m = _target_bijection(got["associations"], want["associations"])
+    for name in KEYS:
+        _same(_to_local_targets(got[name], name, m), want[name], name)
+    parts = got["partitions"]
+    assert parts.height == 2 and sorted(parts["run"].to_list()) == [0, 1]
+    assert dict(got["run"].iter_rows())["engine"] == "dask"
+
+
+@pytest.fixture(scope="module")
+def long_run(tmp_path_factory):
+    path = tmp_path_factory.mktemp("long") / "ds"
+    write_dataset(_scenario(1, 530.0, 30), path)
+    return path
+
+
+def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_run, tmp_path):
+    res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
+                              overlap_s=60.0)
+    got = _tables(res.db)
+    want = _tables(pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
+    assert got["partitions"].height == 3 and res.stitching.height == 2
+    # every report is in exactly one slice, at its row of the whole input
+    for name in ("reports", "rejects", "aligned"):
+        _same(got[name], want[name], name)
+    # the same reports grouped into the same targets, with one target id each across boundaries
+    _target_bijection(got["associations"], want["associations"])
+    bounds = sorted(D._parse_utc(x) for x in got["partitions"]["kept_from_utc"].to_list()[1:])
+    eff = D.stitching_effects(got, want, bounds)
+    assert all(b["id_changed"] == 0 for b in eff["target_id_changes"])
+    assert all(b["id_changed"] <= 0.1 * b["alive"] for b in eff["track_id_changes"]), eff["track_id_changes"]
+    for table in ("fused", "tracks"):
+        for row in eff[table]:
+            lo = float(row["bin"].strip("[(").split(",")[0])
+            if lo < 0 or lo >= 120:          # before the first boundary, or 2 overlaps after one
+                assert row["matched"] >= 0.95 * row["local_rows"], (table, row)
+                assert row["max_m"] < 0.05, (table, row)
