@@ -17,25 +17,13 @@ import tempfile
 import time
 from pathlib import Path
 
-from tertiary import associate, distributed as D, pipeline
+from tertiary import distributed as D, pipeline
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
 from tertiary.store import RunStore
-
-# Transitional (as in tests/test_distributed.py): the lead's whole-run shim until the stage step
-# functions are merged; with it each partition is one window.
-SHIM = not hasattr(associate, "associate_step")
-if SHIM:
-    sys.path.insert(0, "/tmp/lead")
-    import shim  # noqa: F401
 
 OUT = Path(__file__).parent / "results" / "bench_dask.json"
 CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), methods=("information",), filters=("singer",))
 
-
-def _load_shim() -> None:
-    if SHIM:
-        sys.path.insert(0, "/tmp/lead")
-        import shim  # noqa: F401
 
 
 def _noop(i: int) -> int:
@@ -60,7 +48,6 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
     t = time.perf_counter()
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
     client = Client(cluster)
-    client.run(_load_shim)
     startup = time.perf_counter() - t
     try:
         per_task = _overhead(client)
@@ -101,7 +88,7 @@ def main() -> None:
     ap.add_argument("--slice", type=float, default=300.0)
     ap.add_argument("--overlap", type=float, default=60.0)
     a = ap.parse_args()
-    window_s = None if SHIM else 60.0
+    window_s = 60.0
     tmp = Path(tempfile.mkdtemp(prefix="bench_dask_"))
     cfg = load_scenario("terminal-area")
     cfg = dataclasses.replace(cfg, duration_s=a.duration - 10.0, runs=1,
@@ -129,7 +116,7 @@ def main() -> None:
     fin_day = r2["finalize_s"] / n_reports * rate * day_s
     est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day) for w in (8, 32, 128)]
     result = {
-        "shim": SHIM, "window_s": window_s, "config": {"methods": list(CFG.methods), "filters": list(CFG.filters)},
+        "window_s": window_s, "config": {"methods": list(CFG.methods), "filters": list(CFG.filters)},
         "scenario": {"kind": "terminal-area", "aircraft": a.aircraft, "duration_s": a.duration, "reports": n_reports},
         "slice_s": a.slice, "overlap_s": a.overlap, "machine_cores": 2,
         "local": {"wall_s": local_s, "reports_per_s": n_reports / local_s},

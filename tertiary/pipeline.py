@@ -98,6 +98,8 @@ def _validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[st
     if strict:
         return out, schema.empty_frame("rejects"), pl.DataFrame()
     clean, rejects = out
+    if _INPUT_ROW in rejects.columns:      # a window's rows: their position in the whole input
+        rejects = rejects.with_columns(pl.col(_INPUT_ROW).cast(pl.UInt64).alias(schema.ROW_INDEX))
     rejects = rejects.drop(_INPUT_ROW, strict=False)
     return clean, schema.rejects_table(rejects, kind, "ingest"), rejects
 

@@ -11,25 +11,13 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import associate, distributed as D, pipeline
+from tertiary import distributed as D, pipeline
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
 from tertiary.store import RunStore
 
-# Transitional: until the stage step functions are merged, the lead's whole-run shim stands in
-# for them (correct with one window per partition only). Remove with the shim.
-SHIM = not hasattr(associate, "associate_step")
-if SHIM:
-    sys.path.insert(0, "/tmp/lead")
-    import shim  # noqa: F401
 
 
-def _load_shim() -> None:
-    if SHIM:
-        sys.path.insert(0, "/tmp/lead")
-        import shim  # noqa: F401
-
-
-WINDOW = None if SHIM else 60.0
+WINDOW = 60.0
 CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), evaluation=False, methods=("arithmetic", "information"),
                               filters=("singer",))
 KEYS = {
@@ -50,7 +38,6 @@ def client():
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
     c = Client(cluster)
-    c.run(_load_shim)
     yield c
     c.close()
     cluster.close()
