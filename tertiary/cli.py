@@ -447,6 +447,16 @@ def run(
     resume: Annotated[Optional[Path], typer.Option("--resume", help="continue the killed run in RUN_DIR from its "
                                                                     "last complete window (same options and "
                                                                     "dataset)")] = None,
+    engine: Annotated[str, typer.Option(help="local (this process) or dask (dask.distributed: Monte-Carlo runs "
+                                             "and, with --slice, time slices in parallel)")] = "local",
+    workers: Annotated[Optional[int], typer.Option(help="--engine dask: workers of the LocalCluster "
+                                                        "[default: one per core]")] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help="--engine dask: address of a running scheduler "
+                                                          "(tcp://host:8786) instead of a LocalCluster")] = None,
+    slice_s: Annotated[Optional[float], typer.Option("--slice", help="--engine dask: cut each run into time slices "
+                                                                     "of this many seconds")] = None,
+    overlap_s: Annotated[float, typer.Option("--overlap", help="--engine dask: warm-up before each slice (s; its "
+                                                               "outputs are discarded, ids stitched in it)")] = 120.0,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -454,6 +464,17 @@ def run(
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     _set_log(quiet, log_format)
     window_s = None if window == 0 else check_window(window)
+    if engine not in ("local", "dask"):
+        raise OptionError(f"choose local or dask, got {engine!r}", option="--engine")
+    if engine == "local":
+        for name, value in (("--workers", workers), ("--scheduler", scheduler), ("--slice", slice_s)):
+            if value is not None:
+                raise OptionError("applies with --engine dask only", option=name)
+    elif resume is not None:
+        raise OptionError("a Dask run is not resumable; rerun it", option="--resume")
+    elif range_channel is not None:
+        raise OptionError("the Dask workers read the dataset's own estimates; use --engine local",
+                          option="--range-channel")
     if resume is not None:
         if out is not None and out.resolve() != resume.resolve():
             raise OptionError("--resume names the run directory; omit --out or give the same directory",
@@ -493,9 +514,18 @@ def run(
         cfg = dataclasses.replace(cfg, register=True, registration=_stored_registration(dataset))
     if range_channel is not None:   # alignment recomputes every local track with the chosen channel
         ds = dataclasses.replace(ds, reports=ds.reports.drop([c for c in ESTIMATE_COLUMNS if c in ds.reports.columns]))
-    with _Steps("pipeline") as say:
-        db = pipeline.run(ds, run_dir, cfg, progress=say, window_s=window_s, resume=resume is not None,
-                          dataset_label=str(dataset) if dataset is not None else "")
+    if engine == "dask":
+        from tertiary.distributed import run_dask
+        source = dataset
+        if source is None:     # the workers read the dataset from disk
+            source = write_dataset(ds, run_dir / "input")
+        with _Steps("pipeline (dask)") as say:
+            db = run_dask(source, run_dir, cfg, workers=workers, scheduler=scheduler, window_s=window_s,
+                          slice_s=slice_s, overlap_s=overlap_s, progress=say)
+    else:
+        with _Steps("pipeline") as say:
+            db = pipeline.run(ds, run_dir, cfg, progress=say, window_s=window_s, resume=resume is not None,
+                              dataset_label=str(dataset) if dataset is not None else "")
     html_path = None
     if report:
         from tertiary.report import build_report
