@@ -317,11 +317,15 @@ class _Clock:
         self.name: str | None = None
 
     def stage(self, name: str | None) -> None:
+        """Start stage ``name`` (None: stop). A stage's time adds up over windows; its name is
+        said the first time only (a window says one line of its own, :class:`tertiary.engine.Meter`)."""
         now = time.perf_counter()
         if self.name is not None:
-            self.timings[f"{self.name}_s"] = now - self._t
+            key = f"{self.name}_s"
+            self.timings[key] = self.timings.get(key, 0.0) + now - self._t
         self.name, self._t = name, now
-        if name:
+        if name and f"{name}_s" not in self.timings and name != getattr(self, "_said", None):
+            self._said = name
             self.say(name)
 
 
