@@ -76,11 +76,15 @@ class Window:
 
 
 def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int = 0,
-            t_first_us: int | None = None) -> Iterator[Window]:
+            t_first_us: int | None = None, occupied: set[int] | None = None, carry_us: int = 0
+            ) -> Iterator[Window]:
     """Windows of ``window_s`` seconds on the grid from ``origin_us``: from the one holding
     ``t_first_us`` (default: the origin), which is open to the past, to the one holding
     ``t_last_us``, which is open to the future; indices count from the origin, so a slice of a
-    longer recording numbers its windows like the whole run (None: one window over everything)."""
+    longer recording numbers its windows like the whole run (None: one window over everything).
+    With ``occupied`` (indices of windows holding data), a window is skipped when neither it nor
+    any of the windows within ``carry_us`` before it holds data: nothing can come out of it and
+    no stage's state changes in it (a silence of hours costs nothing)."""
     if window_s is None:
         if start == 0:
             yield Window(0, -END_US, END_US)
@@ -88,7 +92,13 @@ def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int =
     w = int(round(window_s * US))
     first = max(0, ((t_first_us if t_first_us is not None else origin_us) - origin_us) // w)
     n = max(first + 1, (t_last_us - origin_us) // w + 1)
+    reach = -(-carry_us // w) + 1
+    live = None
+    if occupied is not None:
+        live = {k + j for k in occupied for j in range(reach + 1)}
     for k in range(max(start, first), n):
+        if live is not None and k not in live and k not in (first, n - 1):
+            continue
         yield Window(k, -END_US if k == first else origin_us + k * w,
                      END_US if k == n - 1 else origin_us + (k + 1) * w)
 
@@ -110,35 +120,56 @@ INPUT_ROW = "__input_row"
 class ReportSource:
     """The input reports read window by window: a window's rows are those whose ``time`` falls in
     it (a scan of the Parquet files with the time predicate pushed down when the dataset came from
-    files). Rows whose time is missing or not a timestamp go to the first window, where ingest
-    rejects them with a reason; a ``time`` column that is not a timestamp at all makes the run one
-    window (nothing can be cut)."""
+    files). The windows span the *plausible* times only — in the contract's years and within half
+    the maximum span of the whole table's median (``schema.Limits``), the median every window is
+    validated against — so one report dated year 1 or 9999 neither stretches the grid nor moves
+    its origin: such rows, and rows without a time, go to the first window, where ingest rejects
+    them with the whole-run reason. A ``time`` column that is not a timestamp at all makes the run
+    one window (nothing can be cut)."""
 
-    def __init__(self, reports: pl.DataFrame | pl.LazyFrame) -> None:
+    def __init__(self, reports: pl.DataFrame | pl.LazyFrame, limits: schema.Limits = schema.Limits()) -> None:
+        from datetime import datetime, timedelta, timezone
         lf = reports.lazy() if isinstance(reports, pl.DataFrame) else reports
         lf = lf.drop(INPUT_ROW, strict=False).with_row_index(INPUT_ROW)
         names = lf.collect_schema()
         self.timed = isinstance(names.get("time"), pl.Datetime)
         self.lf = lf
-        if self.timed:
-            tcol = pl.col("time").dt.epoch("us")
-            span = self.lf.select(tcol.min().alias("a"), tcol.max().alias("b"), pl.len().alias("n")).collect()
-            self.first_us, self.last_us, self.n_rows = span["a"][0], span["b"][0], int(span["n"][0])
-        else:
-            self.first_us = self.last_us = None
-            self.n_rows = int(self.lf.select(pl.len()).collect().item())
+        self.median = None
+        self.first_us = self.last_us = None
+        self.n_rows = int(self.lf.select(pl.len()).collect().item())
+        if not self.timed:
+            return
+        lo, hi = (int(datetime(y, 1, 1, tzinfo=timezone.utc).timestamp()) * US for y in limits.years)
+        t = pl.col("time").dt.epoch("us")
+        med = self.lf.filter((t >= lo) & (t < hi)).select(t.median()).collect().item()
+        if med is None:
+            return
+        half = int(limits.max_span_s / 2.0 * US)
+        med = int(round(med))
+        self.median = datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=med)
+        self.lo_us, self.hi_us = max(lo, med - half), min(hi - 1, med + half)
+        span = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(t.min().alias("a"), t.max().alias("b")
+                                                                           ).collect()
+        self.first_us, self.last_us = span["a"][0], span["b"][0]
 
     @property
     def windowable(self) -> bool:
         return self.timed and self.first_us is not None
 
+    def occupied(self, origin_us: int, window_s: float) -> set[int]:
+        """Indices of the windows holding at least one plausible report."""
+        w = int(round(window_s * US))
+        t = pl.col("time").dt.epoch("us")
+        k = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(((t - origin_us) // w).unique()).collect()
+        return set(k.to_series().to_list())
+
     def rows(self, w: Window) -> pl.DataFrame:
         if not self.windowable or (w.t0_us <= -END_US and w.t1_us >= END_US):
             return self.lf.collect()
         t = pl.col("time").dt.epoch("us")
-        cond = (t >= w.t0_us) & (t < w.t1_us)
-        if w.t0_us <= -END_US:                   # the first window also takes the rows without a time
-            cond = cond | pl.col("time").is_null()
+        cond = (t >= w.t0_us) & (t < w.t1_us) & (t >= self.lo_us) & (t <= self.hi_us)
+        if w.t0_us <= -END_US:   # the first window also takes the rows without a plausible time
+            cond = cond | pl.col("time").is_null() | (t < self.lo_us) | (t > self.hi_us)
         return self.lf.filter(cond).collect()
 
 

@@ -361,7 +361,7 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
 
 def _sink_partial(parts, sink: Sink) -> None:
     """After a failure: every streamed table of the windows that completed."""
-    for name in STREAMED:
+    for name in ("radars", *STREAMED):
         try:
             frame = parts.table(name)
         except Exception:  # a part that cannot be read back: the record says the run failed anyway
@@ -381,6 +381,7 @@ class RunContext:
     grid_origin_us: int | None
     keep_us: int
     filters: dict = field(default_factory=dict)   # the tracker's filters, built once per run
+    median: Any = None          # the whole input's median report time (windows are validated against it)
 
 
 @dataclass(frozen=True)
@@ -426,8 +427,9 @@ def _ingest_window(raw: pl.DataFrame, ctx: RunContext, cfg: PipelineConfig, note
     if raw.height == 0:
         return raw.drop(_INPUT_ROW), pl.DataFrame(schema={"report_id": pl.UInt64, "row_index": pl.UInt64}), \
             _no_rejects()
+    kw = {"median_time": ctx.median} if ctx.median is not None else {}
     reports, rej_p, _ = _validate_table(raw, "reports", cfg.strict, notes, radars=ctx.radars, limits=cfg.limits,
-                                        rejected_radars=ctx.gone)
+                                        rejected_radars=ctx.gone, **kw)
     rows = reports.select("report_id", pl.col(_INPUT_ROW).cast(pl.UInt64).alias("row_index"))
     return reports.drop(_INPUT_ROW), rows, rej_p
 
@@ -468,6 +470,8 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         reports, lost, collected = collection_stage(reports, report_rows, cfg.collection)
         rejects = pl.concat([rejects, lost], how="vertical_relaxed")
         notes.extend(collected)
+    if ctx.radars.height == 0:     # no valid radar: every report was rejected, nothing can be aligned
+        return {"reports": reports, "rejects": rejects}, st
     recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
     clock.stage("align")
     t0 = None if w.t0_us <= -END_US else w.t0_us     # None: unbounded (the last window flushes held rows)
@@ -582,20 +586,23 @@ def _stream(ds: Dataset, cfg: PipelineConfig, clock: _Clock, notes: list[str], w
             resume_state: "StreamState | None", start: int, grid_origin_us: int | None = None):
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
-    source = ReportSource(ds.reports)
+    source = ReportSource(ds.reports, cfg.limits)
     if source.n_rows == 0:
         raise DataError("reports: the table has no rows; nothing to process")
     window_s = _windowable(cfg, source, window_s, notes)
     ctx, rej_radars = _context(ds, cfg, notes, source)
     if window_s is None:      # one window: the grid starts at the first *valid* report, as it always did
         ctx.grid_origin_us = None
+    else:
+        ctx.median = source.median
     if grid_origin_us is not None:
         ctx.grid_origin_us = grid_origin_us
     st = resume_state or init_stream_state(cfg)
-    if start == 0 and rej_radars.height:
-        parts.write(Window(-1, 0, 0), {"rejects": rej_radars})
+    if start == 0:
+        parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
+    occupied = source.occupied(ctx.grid_origin_us, window_s) if window_s is not None else None
     ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start,
-                      source.first_us if source.windowable else None))
+                      source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     for w in ws:
         raw = source.rows(w)
@@ -635,6 +642,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
               sink: Sink, notes: list[str], n_in: int, t_all: float) -> Results:
     """The whole-run stages on the streamed tables: truth validation, the one evaluation stage,
     alert scoring and STCA curves, the bound, capacity, requirements — and every table sunk."""
+    clock.stage("validate")      # the truth, and the whole run's accounting
     reports = _table(parts, "reports", schema.empty_frame("reports", False))
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                            maintain_order=True)

@@ -821,16 +821,18 @@ def _range_check(work: pl.DataFrame, radars: pl.DataFrame, limits: Limits) -> tu
 
 
 def _time_checks(
-    work: pl.DataFrame, limits: Limits, window: tuple[datetime, datetime, str] | None
+    work: pl.DataFrame, limits: Limits, window: tuple[datetime, datetime, str] | None,
+    median: datetime | None = None,
 ) -> list[_Check]:
-    """Times in the configured years, near the table's median, and inside ``window``."""
+    """Times in the configured years, near the table's median (``median``: the whole table's,
+    when ``work`` is one window of it), and inside ``window``."""
     lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
     t = pl.col("time")
     in_years = t.is_between(lo, hi, closed="left")
     text = t.dt.strftime("%Y-%m-%dT%H:%M:%S%.fZ")
     checks = [_Check(("time",), f"outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d})", ~in_years,
                      pl.format(f"time: outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d}) UTC, got {{}}", text))]
-    med = work.filter(in_years.fill_null(False))["time"].median()
+    med = median if median is not None else work.filter(in_years.fill_null(False))["time"].median()
     if med is not None:
         half = timedelta(seconds=limits.max_span_s / 2.0)
         far = in_years & ((t < pl.lit(med - half)) | (t > pl.lit(med + half)))
@@ -891,12 +893,13 @@ def _context_checks(
     radars: pl.DataFrame | None,
     limits: Limits,
     time_window: tuple[datetime, datetime, str] | None,
+    median: datetime | None = None,
 ) -> tuple[pl.DataFrame, list[_Check]]:
     """Checks that need more than one value: times against the table, est_cov as a matrix,
     range against the radar's maximum range."""
     checks: list[_Check] = []
     if "time" in work.columns and schema.name in ("reports", "truth"):
-        checks += _time_checks(work, limits, time_window)
+        checks += _time_checks(work, limits, time_window, median)
     if schema.name == "reports" and "est_cov" in work.columns:
         work, check = _cov_check(work, limits)
         checks.append(check)
@@ -1144,6 +1147,7 @@ def validate(
     limits: Limits = Limits(),
     rejected_radars: Iterable[int] = (),
     time_window: tuple[datetime, datetime, str] | None = None,
+    median_time: datetime | None = None,
 ) -> pl.DataFrame | tuple[pl.DataFrame, pl.DataFrame]:
     """Cast ``frame`` to the ``kind`` schema and check it row by row (vectorised).
 
@@ -1165,7 +1169,7 @@ def validate(
     _require(frame, schema)
     prepared = _prepare(frame, schema)
     checks = _row_checks(prepared, schema, radars, limits, rejected_radars)
-    work, more = _context_checks(_cast_frame(prepared, schema), schema, radars, limits, time_window)
+    work, more = _context_checks(_cast_frame(prepared, schema), schema, radars, limits, time_window, median_time)
     checks += more
     ok, bad = _split(work, checks)
     if strict:

@@ -49,7 +49,8 @@ def page(run_dir) -> str:
 
 
 def test_one_self_contained_file(run_dir, page):
-    assert sorted(p.name for p in run_dir.iterdir()) == [REPORT_FILENAME, "results.duckdb"]   # no temp files
+    # no temp files; the manifest marks the run complete (tertiary.engine)
+    assert sorted(p.name for p in run_dir.iterdir()) == ["manifest.json", REPORT_FILENAME, "results.duckdb"]
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     # plotly.js inline exactly once, nothing loaded from a CDN or any other URL
     assert len(re.findall(r"plotly\.js v\d+\.\d+\.\d+", page)) == 1

@@ -424,17 +424,27 @@ def test_capacity_p_at_least_1_is_nan_with_a_note() -> None:
 
 
 def test_a_late_stage_failure_keeps_the_completed_stages(small: Dataset, tmp_path: Path, monkeypatch) -> None:
-    def boom(*_a, **_k):
-        raise RuntimeError("cluster exploded")
-    monkeypatch.setattr(pipeline, "cluster", boom)
+    """Clustering fails in the third window (of 30 s): the two completed windows' tables are stored (and
+    nothing of the failing window), with a run record naming the stage."""
+    from tertiary import clustering
+    real, calls = clustering.cluster_step, []
+
+    def boom(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("cluster exploded")
+        return real(*a, **k)
+    monkeypatch.setattr(clustering, "cluster_step", boom)
     with pytest.raises(pipeline.StageError, match="stage 'cluster' failed .*cluster exploded") as err:
-        pipeline.run(small, tmp_path / "run", CFG)
+        pipeline.run(small, tmp_path / "run", CFG, window_s=30.0)
     assert isinstance(err.value, TertiaryError)
     rec = _record(tmp_path / "run")
     assert rec["failed_stage"] == "cluster" and "cluster exploded" in rec["error"]
     with RunStore.open(tmp_path / "run") as st:
         assert {"radars", "reports", "rejects", "aligned", "associations", "fused"} <= set(st.tables())
-        assert "clusters" not in st.tables()
+        last = st.sql("SELECT max(epoch) AS t FROM fused")["t"][0]
+        first = st.sql("SELECT min(time) AS t FROM reports")["t"][0]
+    assert (last - first).total_seconds() < 60.0         # two windows of 30 s, not the failing third
 
 
 def test_rules_table_is_documented() -> None:
