@@ -665,15 +665,26 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
         raise DataError(f"no valid report left: all {n_in:,} reports rejected"
                         + (f" (most common: {why})" if why else ""))
     _check_accounting(n_in, aligned, rejects)
-    tables = {name: _table(parts, name, pl.DataFrame()) for name in ("associations", "fused", "clusters", "tracks",
-                                                                     "conflicts")}
-    associations, fused, clusters, tracks = (tables[k] for k in ("associations", "fused", "clusters", "tracks"))
-    conflicts = tables["conflicts"] if tables["conflicts"].width else schema.empty_frame("conflicts", False)
-    if tracks.width == 0:
-        tracks = schema.empty_frame("tracks", False)
-    for name, frame in (("aligned", aligned), ("associations", associations), ("fused", fused),
-                        ("clusters", clusters), ("tracks", tracks), ("conflicts", conflicts)):
+    sink("aligned", aligned)
+    # an on-disk run keeps in memory only what the whole-run stages read (the tables are in the
+    # database): the largest streamed tables are not held twice (issue 16, memory)
+    lean = isinstance(parts, PartStore)
+    if lean:
+        aligned = aligned.select(c for c in ("run", "epoch", "report_id", "radar_id", "local_track_id")
+                                 if c in aligned.columns) if not cfg.radar_health else aligned
+        ing.reports = reports = reports.select(c for c in ("run", "report_id", "radar_id", "time", "azimuth_deg",
+                                                           "truth_id", "mode_s") if c in reports.columns)
+    tables = {}
+    for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
+        frame = _table(parts, name, pl.DataFrame())
+        if name == "tracks" and frame.width == 0:
+            frame = schema.empty_frame("tracks", False)
+        if name == "conflicts" and frame.width == 0:
+            frame = schema.empty_frame("conflicts", False)
         sink(name, frame)
+        tables[name] = frame.select(frame.columns[:2]) if lean and name == "clusters" else frame
+    associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
+                                                                            "tracks", "conflicts"))
     stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
                              ambiguous_components=st.counts.get("ambiguous_components", 0),
                              targets=int(associations["target_id"].n_unique()) if associations.height else 0,
