@@ -455,8 +455,10 @@ def run(
                                                           "(tcp://host:8786) instead of a LocalCluster")] = None,
     slice_s: Annotated[Optional[float], typer.Option("--slice", help="--engine dask: cut each run into time slices "
                                                                      "of this many seconds")] = None,
-    overlap_s: Annotated[float, typer.Option("--overlap", help="--engine dask: warm-up before each slice (s; its "
-                                                               "outputs are discarded, ids stitched in it)")] = 120.0,
+    overlap_s: Annotated[Optional[float], typer.Option("--overlap", help="--engine dask: warm-up before each slice "
+                                                                         "(s, a multiple of --window; its outputs "
+                                                                         "are discarded, ids stitched in it) "
+                                                                         "[default: one window]")] = None,
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -467,7 +469,8 @@ def run(
     if engine not in ("local", "dask"):
         raise OptionError(f"choose local or dask, got {engine!r}", option="--engine")
     if engine == "local":
-        for name, value in (("--workers", workers), ("--scheduler", scheduler), ("--slice", slice_s)):
+        for name, value in (("--workers", workers), ("--scheduler", scheduler), ("--slice", slice_s),
+                            ("--overlap", overlap_s)):
             if value is not None:
                 raise OptionError("applies with --engine dask only", option=name)
     elif resume is not None:
@@ -520,8 +523,9 @@ def run(
         if source is None:     # the workers read the dataset from disk
             source = write_dataset(ds, run_dir / "input")
         with _Steps("pipeline (dask)") as say:
+            overlap = overlap_s if overlap_s is not None else (window_s or 120.0)
             db = run_dask(source, run_dir, cfg, workers=workers, scheduler=scheduler, window_s=window_s,
-                          slice_s=slice_s, overlap_s=overlap_s, progress=say)
+                          slice_s=slice_s, overlap_s=overlap, progress=say)
     else:
         with _Steps("pipeline") as say:
             db = pipeline.run(ds, run_dir, cfg, progress=say, window_s=window_s, resume=resume is not None,

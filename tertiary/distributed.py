@@ -321,14 +321,22 @@ def _pairs(prev: pl.DataFrame, cur: pl.DataFrame, on: list[str], group: list[str
            gate_m: float | None) -> pl.DataFrame:
     """Coinciding (prev id a, cur id b) per group: rows joined on ``on`` (and within ``gate_m``)."""
     cols = ["x_m", "y_m", "z_m"] if gate_m is not None else []
-    j = prev.select(*on, pl.col(id_col).alias("a"), *cols).join(
-        cur.select(*on, pl.col(id_col).alias("b"), *cols), on=on, suffix="_b")
-    if gate_m is not None:
+    if gate_m is None:
+        j = prev.select(*on, pl.col(id_col).alias("a")).join(cur.select(*on, pl.col(id_col).alias("b")), on=on)
+        j = j.with_columns(pl.lit(0.0).alias("d"))
+    else:
+        # candidates from the 3 x 3 grid cells of side gate_m around each row, not every row of an
+        # epoch against every other (quadratic: ~20 GB on a national-peak slice)
+        cell = [(pl.col("x_m") // gate_m).cast(pl.Int64).alias("__cx"),
+                (pl.col("y_m") // gate_m).cast(pl.Int64).alias("__cy")]
+        a = prev.select(*on, pl.col(id_col).alias("a"), *cols).with_columns(cell)
+        b = cur.select(*on, pl.col(id_col).alias("b"), *cols).with_columns(cell)
+        key = [*on, "__cx", "__cy"]
+        j = pl.concat([a.join(b.with_columns(pl.col("__cx") + dx, pl.col("__cy") + dy), on=key, suffix="_b")
+                       for dx in (-1, 0, 1) for dy in (-1, 0, 1)]).drop("__cx", "__cy")
         d = ((pl.col("x_m") - pl.col("x_m_b")) ** 2 + (pl.col("y_m") - pl.col("y_m_b")) ** 2
              + (pl.col("z_m") - pl.col("z_m_b")) ** 2).sqrt()
         j = j.with_columns(d.alias("d")).filter(pl.col("d") <= gate_m)
-    else:
-        j = j.with_columns(pl.lit(0.0).alias("d"))
     return j.group_by(*group, "a", "b").agg(pl.len().alias("n"), pl.col("d").mean())
 
 

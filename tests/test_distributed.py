@@ -150,3 +150,22 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
             if lo < 0 or lo >= 120:          # before the first boundary, or 2 overlaps after one
                 assert row["matched"] >= 0.95 * row["local_rows"], (table, row)
                 assert row["max_m"] < 0.05, (table, row)
+
+
+def test_gated_pairs_equal_brute_force():
+    """The grid-cell candidate search of the stitching finds exactly the pairs within the gate."""
+    import numpy as np
+    rng = np.random.default_rng(3)
+
+    def frame(n, ids):
+        return pl.DataFrame({"run": np.zeros(n, np.uint32), "epoch": rng.integers(0, 3, n), "track_id": ids,
+                             "x_m": rng.uniform(-5e3, 5e3, n), "y_m": rng.uniform(-5e3, 5e3, n),
+                             "z_m": rng.uniform(0, 300, n)})
+    a, b = frame(400, np.arange(400)), frame(400, np.arange(1000, 1400))
+    got = D._pairs(a, b, ["run", "epoch"], ["run"], "track_id", 500.0).sort("a", "b")
+    j = a.join(b, on=["run", "epoch"], suffix="_b").filter(
+        ((pl.col("x_m") - pl.col("x_m_b")) ** 2 + (pl.col("y_m") - pl.col("y_m_b")) ** 2
+         + (pl.col("z_m") - pl.col("z_m_b")) ** 2).sqrt() <= 500.0)
+    want = j.group_by("run", pl.col("track_id").alias("a"), pl.col("track_id_b").alias("b")).len().sort("a", "b")
+    assert got.height == want.height > 10
+    assert got["n"].to_list() == want["len"].to_list() and got["a"].to_list() == want["a"].to_list()

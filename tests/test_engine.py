@@ -224,3 +224,11 @@ def test_rejects_name_the_input_row_in_every_window(terminal):
     a, b = (r.sort("row_index")["detail"].str.json_decode() for r in (got.rejects, whole.rejects))
     assert a.struct.field("report_id").to_list() == b.struct.field("report_id").to_list()
     _same(got.aligned, whole.aligned, "aligned")
+
+
+def test_engine_options_are_checked(dataset_dir, tmp_path):
+    for extra, option in ((["--workers", "2"], "--workers"), (["--overlap", "300"], "--overlap"),
+                          (["--engine", "spark"], "--engine"), (["--window", "0.5"], "--window")):
+        p = _cli("run", str(dataset_dir), "--out", str(tmp_path / option.strip("-")), *extra)
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 2 and option in err, err
