@@ -138,13 +138,17 @@ class AssociateState:
       its system target id on: ``target_id`` at its last epoch and ``seen_us`` = that epoch
       (absolute µs). Tracks silent for more than ``carry_gap_s`` before the latest epoch seen
       are dropped (they could never vote again), so the state stays bounded.
-    * ``next_id``: the next fresh system target id.
+    * ``next_id``: how many system target ids were created so far (all runs).
     * ``t_us``: end of the last window processed (``T_MIN`` before the first).
+    * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
+      Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
+      gets the ids it gets in the whole job.
     """
 
     tracks: pl.DataFrame
     next_id: int = 0
     t_us: int = T_MIN
+    run_next: tuple[tuple[int, int], ...] = ()
 
 
 def init_associate_state() -> AssociateState:
@@ -402,6 +406,8 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     code_state, keys, key_frame = _track_codes(state, aligned)
     epoch = aligned["epoch"].dt.epoch("us").to_numpy()
     radar = aligned["radar_id"].to_numpy().astype(np.int64)
+    runs = aligned["run"].to_numpy().astype(np.int64)
+    nxt = dict(state.run_next)
     order = np.argsort(epoch, kind="stable")
     bounds = np.flatnonzero(np.diff(epoch[order])) + 1
     last = np.full(key_frame.height, -1, np.int64)    # system target id at each local track's last row
@@ -414,16 +420,21 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     reassigned = 0
     for rows in np.split(order, bounds):
         g = label[rows]
-        ug, gi = np.unique(g, return_inverse=True)
+        ug, first, gi = np.unique(g, return_index=True, return_inverse=True)
         kr = keys[rows]
         cand = np.where(epoch[rows] - seen[kr] <= gap_us, last[kr], -1)
         assigned = np.full(len(ug), -1, np.int64)
         ok = cand >= 0
         if ok.any():
-            assigned = _vote(gi[ok], cand[ok], radar[rows][ok], assigned)
+            # ids are numbered per run: two runs' groups may hold the same id without a conflict,
+            # so votes are on (run, id)
+            q = runs[rows][ok] * _RUN_Q + cand[ok]
+            assigned = _vote(gi[ok], q, radar[rows][ok], assigned)
+            assigned = np.where(assigned >= 0, assigned % _RUN_Q, -1)
         fresh = assigned < 0
-        assigned[fresh] = next_id + np.arange(np.count_nonzero(fresh))
-        next_id += int(np.count_nonzero(fresh))
+        if fresh.any():
+            assigned[fresh] = _fresh_ids(runs[rows][first][fresh], nxt)
+            next_id += int(np.count_nonzero(fresh))
         new = assigned[gi]
         reassigned += int(np.count_nonzero(ok & (cand != new)))
         last[kr] = new
@@ -432,7 +443,24 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     # a track silent for more than the gap before the latest epoch can never vote again
     live = (last >= 0) & (seen >= float(epoch.max()) - gap_us)
     tracks = key_frame.with_columns(pl.Series("target_id", last), pl.Series("seen_us", seen)).filter(pl.Series(live))
-    return target, reassigned, AssociateState(tracks, next_id, state.t_us)
+    return target, reassigned, AssociateState(tracks, next_id, state.t_us, tuple(sorted(nxt.items())))
+
+
+#: (run, target id) packed into one int64 for the vote (ids of a run stay below 2^40)
+_RUN_Q = np.int64(1) << 40
+
+
+def _fresh_ids(group_run: NDArray[np.int64], nxt: dict[int, int]) -> NDArray[np.int64]:
+    """Fresh target ids of new groups (in group order), numbered per run from ``nxt`` (updated)."""
+    ur, inv, cnt = np.unique(group_run, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    rank = np.empty(len(inv), np.int64)
+    rank[order] = np.arange(len(inv)) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    base = np.array([nxt.get(int(r), 0) for r in ur], np.int64)
+    for r, c in zip(ur.tolist(), cnt.tolist()):
+        nxt[r] = nxt.get(r, 0) + c
+    return base[inv] + rank
 
 
 def _vote(vg: NDArray[np.int64], vc: NDArray[np.int64], vr: NDArray[np.int64],
@@ -490,7 +518,7 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
     out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
         pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
-    return (out, stats), AssociateState(new.tracks, new.next_id, t1_us)
+    return (out, stats), AssociateState(new.tracks, new.next_id, t1_us, new.run_next)
 
 
 def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()

@@ -14,14 +14,14 @@ Every task reads the dataset itself (paths are shipped, never frames), runs
 :func:`tertiary.pipeline.stream` with the whole recording's epoch grid origin and writes Parquet
 parts under ``OUT/slices/<i>/{kept,overlap}/<table>/w=<k>.parquet``.
 
-Ids. ``target_id`` is numbered by one counter over every run in the local engine
-(:func:`tertiary.associate.carry_target_ids`), ``track_id`` per (run, method, filter) from 1 and
-``cluster_id`` per (run, method): a partition's target ids are local to it. The client therefore
+Ids. ``target_id`` is numbered per run in the local engine (:func:`tertiary.associate.carry_step`),
+``track_id`` per (run, method, filter) from 1 and ``cluster_id`` per (run, method): a run
+partition gets exactly the local engine's ids, and a time slice's ids are local to it. The client therefore
 (1) stitches each slice's ids to the previous slice's by matching in the overlap — targets by the
 reports they share (same report row → same target), tracks by position (same epoch, distance
 ≤ ``gate_m``), clusters by lead target — one-to-one (Hungarian, most coinciding epochs first),
-unmatched ids getting fresh ids above every id used so far; (2) renumbers target ids by (first
-epoch, run, id), the order in which the local engine creates them; then every partition's parts
+unmatched ids getting fresh ids above every id used so far; (2) renumbers target ids by (run,
+first epoch, id), the order in which the local engine creates them; then every partition's parts
 are relabelled in place by a task (atomic rewrites). The finalize stage (evaluation, alert
 scoring, …) runs on the client over the union of the partitions and ``results.duckdb`` is built
 as :func:`tertiary.pipeline.run` builds it, with a ``partitions`` table registering every output
@@ -376,6 +376,11 @@ def _ids(out: Path, i: int, name: str, cols: list[str], id_col: str) -> pl.DataF
     return f.select(*cols, pl.col(id_col).alias("b")).unique()
 
 
+def _run_key(p: "Partition") -> int:
+    """The run a partition's ids are numbered in (0 for a dataset without runs)."""
+    return 0 if p.run is None else int(p.run)
+
+
 def _target_ids(out: Path, i: int) -> pl.DataFrame:
     parts = [_ids(out, i, "associations", [], "target_id"), _ids(out, i, "fused", [], "target_id"),
              _ids(out, i, "tracks", [], "plot_target_id"), _ids(out, i, "clusters", [], "lead_target_id")]
@@ -475,7 +480,7 @@ def _matches(out: Path, p: Partition, prev: Partition, prev_maps: dict, gate_m: 
     a0, a1 = before("associations"), read_part(out, p.index, "associations", sub="overlap")
     if a0 is not None and a1 is not None and a0.height and a1.height:
         key = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
-        got["target"] = _assign(_pairs(a0, a1, key, [], "target_id", None), []).with_columns(__all=pl.lit(0))
+        got["target"] = _assign(_pairs(a0, a1, key, [], "target_id", None), []).with_columns(__all=pl.lit(_run_key(p)))
     t0, t1 = before("tracks"), read_part(out, p.index, "tracks", sub="overlap")
     if t0 is not None and t1 is not None and t0.height and t1.height:
         got["track"] = _assign(_pairs(t0, t1, [*TRACK_GROUP, "epoch"], TRACK_GROUP, "track_id", gate_m),
@@ -492,7 +497,9 @@ def _matches(out: Path, p: Partition, prev: Partition, prev_maps: dict, gate_m: 
 
 def _stitch_one(out: Path, p: Partition, prev: Partition | None, prev_maps: dict | None,
                 spaces: dict[str, _IdSpace], gate_m: float) -> tuple[dict, dict]:
-    ids = {"target": _target_ids(out, p.index).with_columns(__all=pl.lit(0)),
+    # target ids are numbered per run (tertiary.associate), like track and cluster ids; a
+    # partition holds one run, so its target space is that run's
+    ids = {"target": _target_ids(out, p.index).with_columns(__all=pl.lit(_run_key(p))),
            "track": _ids(out, p.index, "tracks", TRACK_GROUP, "track_id"),
            "cluster": _ids(out, p.index, "clusters", CLUSTER_GROUP, "cluster_id")}
     got = _matches(out, p, prev, prev_maps, gate_m) if prev is not None else {}
@@ -502,7 +509,7 @@ def _stitch_one(out: Path, p: Partition, prev: Partition | None, prev_maps: dict
             maps[kind] = None
             continue
         # a run's first slice keeps its track and cluster ids (numbered per run, like the local engine)
-        keep = prev is None and kind != "target"
+        keep = prev is None
         maps[kind] = space.fresh(ids[kind], got.get(kind), keep=keep)
     maps["target"] = maps["target"].drop("__all") if maps["target"] is not None else \
         pl.DataFrame(schema={"old": pl.UInt64, "new": pl.UInt64})
@@ -527,17 +534,17 @@ def _canonical_targets(out: Path, parts: list[Partition], maps: dict[int, dict])
         both = [x for x in (a, f) if x is not None and x.height]
         if not both:
             continue
-        rows = pl.concat(both, how="vertical_relaxed").group_by("target_id").agg(pl.col("epoch").min(),
-                                                                                pl.col("run").min())
+        rows = pl.concat(both, how="vertical_relaxed").group_by("target_id").agg(pl.col("epoch").min())
         m = maps[p.index]["target"]
-        firsts.append(rows.join(m, left_on="target_id", right_on="old").select("new", "epoch", "run"))
+        firsts.append(rows.join(m, left_on="target_id", right_on="old").select("new", "epoch")
+                      .with_columns(run=pl.lit(_run_key(p), pl.Int64)))
     if not firsts:
         return
-    order = (pl.concat(firsts).group_by("new").agg(pl.col("epoch").min(), pl.col("run").min())
-             .sort("epoch", "run", "new").with_row_index("canon"))
+    order = (pl.concat(firsts).group_by("run", "new").agg(pl.col("epoch").min())
+             .sort("run", "epoch", "new").with_columns(canon=pl.int_range(pl.len()).over("run")))
     for p in parts:
-        m = maps[p.index]["target"]
-        maps[p.index]["target"] = (m.join(order.select("new", "canon"), on="new", how="left")
+        m = maps[p.index]["target"].with_columns(run=pl.lit(_run_key(p), pl.Int64))
+        maps[p.index]["target"] = (m.join(order.select("run", "new", "canon"), on=["run", "new"], how="left")
                                    .select("old", pl.coalesce("canon", "new").cast(pl.UInt64).alias("new")))
 
 

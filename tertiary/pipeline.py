@@ -687,7 +687,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                                                                             "tracks", "conflicts"))
     stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
                              ambiguous_components=st.counts.get("ambiguous_components", 0),
-                             targets=int(associations["target_id"].n_unique()) if associations.height else 0,
+                             targets=associations.select("run", "target_id").n_unique() if associations.height else 0,
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
                          sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)))

@@ -96,7 +96,7 @@ def test_windowed_equals_whole_run(aligned, kind, config):
 
 def test_whole_run_targets_count_distinct_ids(aligned):
     out, stats = associate(aligned, AssociationConfig())
-    assert stats.targets == out["target_id"].n_unique()
+    assert stats.targets == out.select("run", "target_id").n_unique()
     assert stats.reports == aligned.height
 
 
