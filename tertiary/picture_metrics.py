@@ -372,7 +372,7 @@ def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, p
 
 
 def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Expr) -> pl.DataFrame:
-    rows = err.with_columns(ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
+    rows = err.select("method", "run", *breakdown, ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
     w = _segmented(rows, breakdown).group_by("method", "segment").agg(
         pl.col("run").n_unique().alias("n_runs"), pl.col("__ok").mean().alias(f"{name}_correct_frac"),
         pl.len().cast(pl.Float64).alias(f"n_{name}"))
@@ -426,7 +426,11 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     labels = reference_labels(ref, radar_xy, cfg)
     err = accuracy_errors(matched, cfg).join(labels, on=["run", "truth_id", "epoch"], how="left")
     m = matched.filter(pl.col("truth_id").is_not_null())
-    parts = [_accuracy(_segmented(err, breakdown)), _identity_and_false(matched, err, breakdown, cfg)]
+    # only the columns a group reads are copied once per breakdown label (memory of the stage)
+    errs = ["err_h_m", "err_height_m", "along_m", "across_m", "latency_sample_s", "err_gs_mps", "err_track_deg",
+            "err_vrate_mps"]
+    parts = [_accuracy(_segmented(err.select("method", "run", *breakdown, *errs), breakdown)),
+             _identity_and_false(matched, err, breakdown, cfg)]
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
     out = pl.concat(parts, how="vertical")
