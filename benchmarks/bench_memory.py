@@ -5,7 +5,8 @@ longer recording is a longer recording of the same traffic, not the same 200 air
 thinner) for several durations with ``tertiary simulate --window`` (partitioned Parquet, bounded
 memory), then runs ``tertiary run DATASET`` (the windowed engine, default window) on it in two
 configurations, each in a fresh process, and records wall time, reports/s and the peak resident
-memory of the run process (``ru_maxrss`` of the child; the simulation is not counted):
+memory of the run process (``ru_maxrss`` of the child; the simulation is not counted), and the
+run record's peak by the end of each stage (``memory_mib``: where the memory goes):
 
 * ``production``: one fusion method, one tracker, conflicts, evaluation, store
   (``--methods information --filters imm_sym``);
@@ -83,7 +84,21 @@ def _one(duration_s: float, config: str, work: Path, per_hour: float) -> dict:
     return {"config": config, "duration_s": duration_s, "aircraft": aircraft, "wall_s": round(wall, 2),
             "reports": reports,
             "reports_per_s": round(reports / wall, 1) if reports else None,
-            "peak_rss_mib": round(peak_mib, 1), "db_mb": round(db.stat().st_size / 1e6, 1) if db.exists() else None}
+            "peak_rss_mib": round(peak_mib, 1), "db_mb": round(db.stat().st_size / 1e6, 1) if db.exists() else None,
+            "peak_by_stage_mib": _memory_by_stage(db)}
+
+
+def _memory_by_stage(db: Path) -> dict[str, float]:
+    """The run record's peak memory by the end of each stage (where the memory goes)."""
+    import duckdb
+    if not db.exists():
+        return {}
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        got = con.execute("SELECT value FROM run WHERE key = 'memory_mib'").fetchall()
+    finally:
+        con.close()
+    return json.loads(got[0][0]) if got else {}
 
 
 def _reports_in(stdout: str) -> int:

@@ -45,7 +45,7 @@ import numpy as np
 import polars as pl
 
 from tertiary import pipeline
-from tertiary.engine import DEFAULT_WINDOW_S, END_US, US, ReportSource, Window, check_window
+from tertiary.engine import DEFAULT_WINDOW_S, END_US, US, ReportSource, Window, check_window, peak_rss_mib
 from tertiary.errors import DataError, OptionError
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
@@ -260,7 +260,8 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
         sub = dataclasses.replace(ds, reports=lf.filter(cond), truth=pl.DataFrame())
         ctx, _st = pipeline.stream(sub, cfg, writer, window_s, notes=info["notes"], grid_origin_us=grid_origin_us)
         info["radars"] = ctx.radars
-    info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start)
+    info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
+                peak_rss_mib=round(peak_rss_mib(), 1))
     return info
 
 
@@ -675,7 +676,8 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
                 "engine": "dask", "slice_s": slice_s, "overlap_s": overlap_s, "partitions": len(parts),
                 "notes": notes, "timings": {**(res.timings if res else {}), **timings}}
         if res is not None:
-            info.update(rows=res.counts, status="completed")
+            # the client's memory by stage; each worker's is in the partitions table
+            info.update(rows=res.counts, memory_mib=res.memory_mib, status="completed")
         else:
             info.update(status="failed", failed_stage=getattr(failure, "tertiary_stage", "finalize"),
                         error=f"{type(failure).__name__}: {failure}")
@@ -724,6 +726,8 @@ def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.Da
         "rows": [json.dumps(i["rows"]) for i in infos],
         "task_s": [i["seconds"] for i in infos],
         "worker_pid": [i["worker"] for i in infos],
+        # the worker process's peak resident memory by the end of this task (a worker runs several)
+        "worker_peak_rss_mib": [i.get("peak_rss_mib") for i in infos],
         "path": [str((out / SLICES / str(p.index)).resolve()) for p in parts],
     }, schema_overrides={"run": pl.Int64})
 

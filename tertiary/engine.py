@@ -321,6 +321,11 @@ def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
         return pl.concat(full, how="diagonal_relaxed")
 
 
+def peak_rss_mib() -> float:
+    """The process's peak resident set size so far (MiB; ``ru_maxrss``, KiB on Linux)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def rss_mib() -> float:
     """Current resident set size (MiB; peak where the current one is not readable)."""
     try:

@@ -46,7 +46,7 @@ from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (DEFAULT_WINDOW_S, END_US, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
-                             Window, check_window, config_hash, windows)
+                             Window, check_window, config_hash, peak_rss_mib, windows)
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
@@ -278,6 +278,9 @@ class Results:
     timings: dict[str, float]
     counts: dict[str, int]
     alerts: pl.DataFrame = field(default_factory=pl.DataFrame)
+    #: the process's peak resident memory (MiB) by the end of each stage (streamed stages over
+    #: every window; ``finalize:<stage>`` for the whole-run stages): where a run's memory goes
+    memory_mib: dict[str, float] = field(default_factory=dict)
 
 
 class StageError(TertiaryError):
@@ -315,14 +318,19 @@ class _Clock:
     def __init__(self, say: Progress):
         self.say, self.timings, self._t = say, {}, time.perf_counter()
         self.name: str | None = None
+        self.memory: dict[str, float] = {}
+        #: "finalize:" once the whole-run stages start (their memory is told apart from the windows')
+        self.prefix = ""
 
     def stage(self, name: str | None) -> None:
         """Start stage ``name`` (None: stop). A stage's time adds up over windows; its name is
-        said the first time only (a window says one line of its own, :class:`tertiary.engine.Meter`)."""
+        said the first time only (a window says one line of its own, :class:`tertiary.engine.Meter`).
+        The peak resident memory reached by the end of a stage is kept in ``memory``."""
         now = time.perf_counter()
         if self.name is not None:
             key = f"{self.name}_s"
             self.timings[key] = self.timings.get(key, 0.0) + now - self._t
+            self.memory[self.prefix + self.name] = round(peak_rss_mib(), 1)
         self.name, self._t = name, now
         if name and f"{name}_s" not in self.timings and name != getattr(self, "_said", None):
             self._said = name
@@ -642,6 +650,8 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
               sink: Sink, notes: list[str], n_in: int, t_all: float) -> Results:
     """The whole-run stages on the streamed tables: truth validation, the one evaluation stage,
     alert scoring and STCA curves, the bound, capacity, requirements — and every table sunk."""
+    clock.stage(None)
+    clock.prefix = "finalize:"
     clock.stage("validate")      # the truth, and the whole run's accounting
     reports = _table(parts, "reports", schema.empty_frame("reports", False))
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
@@ -772,7 +782,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
               **_target_counts(fused)}
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
-                   clock.timings, counts, alerts)
+                   clock.timings, counts, alerts, dict(clock.memory))
 
 
 def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
@@ -962,7 +972,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
             # the run's one wall time: validate → store, measured once; the CLI summary and the
             # report header both show this figure
             res.timings["wall_s"] = time.perf_counter() - t_wall
-            info.update(rows=res.counts, notes=notes, timings=res.timings,
+            info.update(rows=res.counts, notes=notes, timings=res.timings, memory_mib=res.memory_mib,
                         status="completed")
         else:
             stage = getattr(failure, "tertiary_stage", "validate")

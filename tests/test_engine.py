@@ -197,6 +197,14 @@ def test_batch_progress_one_line_per_window(dataset_dir, tmp_path):
     n = json.loads((tmp_path / "r" / "manifest.json").read_text())["windows_done"]
     assert len(lines) == n >= 20
     assert "RSS" in lines[-1] and "reports so far" in lines[-1]
+    # where the memory goes: the peak by the end of each stage, the whole-run stages apart
+    with RunStore.open(tmp_path / "r") as store:
+        rec = dict(store.con.sql("SELECT key, value FROM run").fetchall())
+    mem = json.loads(rec["memory_mib"])
+    streamed = [v for k, v in mem.items() if not k.startswith("finalize:")]
+    final = [v for k, v in mem.items() if k.startswith("finalize:")]
+    assert {"align", "track", "finalize:validate", "finalize:evaluate"} <= set(mem)
+    assert min(streamed) > 50 and final == sorted(final) and final[0] >= max(streamed)
     p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "j"), *RUN_ARGS, "--log-format", "json")
     out, err = p.communicate(timeout=600)
     assert p.returncode == 0, err
