@@ -138,7 +138,6 @@ class AssociateState:
       its system target id on: ``target_id`` at its last epoch and ``seen_us`` = that epoch
       (absolute µs). Tracks silent for more than ``carry_gap_s`` before the latest epoch seen
       are dropped (they could never vote again), so the state stays bounded.
-    * ``next_id``: how many system target ids were created so far (all runs).
     * ``t_us``: end of the last window processed (``T_MIN`` before the first).
     * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
       Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
@@ -146,9 +145,13 @@ class AssociateState:
     """
 
     tracks: pl.DataFrame
-    next_id: int = 0
     t_us: int = T_MIN
     run_next: tuple[tuple[int, int], ...] = ()
+
+    @property
+    def next_id(self) -> int:
+        """How many system target ids were created so far (all runs)."""
+        return sum(n for _, n in self.run_next)
 
 
 def init_associate_state() -> AssociateState:
@@ -416,7 +419,6 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     seen[code_state] = state.tracks["seen_us"].to_numpy()
     gap_us = carry_gap_s * 1e6
     target = np.empty(n, np.int64)
-    next_id = state.next_id
     reassigned = 0
     for rows in np.split(order, bounds):
         g = label[rows]
@@ -434,7 +436,6 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
         fresh = assigned < 0
         if fresh.any():
             assigned[fresh] = _fresh_ids(runs[rows][first][fresh], nxt)
-            next_id += int(np.count_nonzero(fresh))
         new = assigned[gi]
         reassigned += int(np.count_nonzero(ok & (cand != new)))
         last[kr] = new
@@ -443,7 +444,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     # a track silent for more than the gap before the latest epoch can never vote again
     live = (last >= 0) & (seen >= float(epoch.max()) - gap_us)
     tracks = key_frame.with_columns(pl.Series("target_id", last), pl.Series("seen_us", seen)).filter(pl.Series(live))
-    return target, reassigned, AssociateState(tracks, next_id, state.t_us, tuple(sorted(nxt.items())))
+    return target, reassigned, AssociateState(tracks, state.t_us, tuple(sorted(nxt.items())))
 
 
 #: (run, target id) packed into one int64 for the vote (ids of a run stay below 2^40)
@@ -518,7 +519,7 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
     out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
         pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
-    return (out, stats), AssociateState(new.tracks, new.next_id, t1_us, new.run_next)
+    return (out, stats), AssociateState(new.tracks, t1_us, new.run_next)
 
 
 def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
