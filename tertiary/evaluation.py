@@ -22,7 +22,7 @@ not of a picture's states.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +37,7 @@ from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
 
-__all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "comparison", "read_picture",
+__all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
            "reference_error_metrics", "read_parquet_file", "association_metrics"]
 
@@ -99,6 +99,18 @@ def comparison(metrics: pl.DataFrame) -> pl.DataFrame:
     return wide.select("method", *[c for c in COMPARISON_METRICS if c in wide.columns]).sort("method")
 
 
+def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> None:
+    missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
+    if missing:
+        raise DataError(f"tracks: missing column(s) {', '.join(missing)} (the tracks schema)")
+    missing = [c for c in ("truth_id", "time", *_STATE) if c not in truth.columns]
+    if missing:
+        raise DataError(f"reference: missing column(s) {', '.join(missing)} (the truth schema: truth_id, time, "
+                        "x_m ... vz_mps[, alt_m])")
+    if not (truth.schema["time"].is_temporal() and tracks.schema["epoch"].is_temporal()):
+        raise DataError("reference time and track epoch must be date-times (the truth and tracks schemas)")
+
+
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
                       frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                       cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
@@ -110,23 +122,36 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
     ``observed`` (run, epoch, truth_id) is what continuity expects covered (default: the
     reference aircraft alive at the picture's epochs); ``surveillance=False`` leaves out the
     stage-``evaluation`` metrics (and so the requirements)."""
-    missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
-    if missing:
-        raise DataError(f"tracks: missing column(s) {', '.join(missing)} (the tracks schema)")
-    missing = [c for c in ("truth_id", "time", *_STATE) if c not in truth.columns]
-    if missing:
-        raise DataError(f"reference: missing column(s) {', '.join(missing)} (the truth schema: truth_id, time, "
-                        "x_m ... vz_mps[, alt_m])")
-    if not (truth.schema["time"].is_temporal() and tracks.schema["epoch"].is_temporal()):
-        raise DataError("reference time and track epoch must be date-times (the truth and tracks schemas)")
-    breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
-    radar_xy = _radar_xy(radars, frame)
+    _check_inputs(tracks, truth, id_col)
     if "method" not in tracks.columns:
         tracks = tracks.with_columns(pl.lit("picture").alias("method"))
+    return evaluate_each(tracks.partition_by("method", maintain_order=True), truth, radars=radars, frame=frame,
+                         requirements=requirements, cfg=cfg, id_col=id_col, seed_stage=seed_stage,
+                         observed=observed, keep_matched=keep_matched, surveillance=surveillance,
+                         empty=tracks.clear())
+
+
+def evaluate_each(pictures: Iterable[pl.DataFrame], truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
+                  frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
+                  cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
+                  seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
+                  keep_matched: bool = True, surveillance: bool = True,
+                  empty: pl.DataFrame | None = None) -> Evaluation:
+    """:func:`evaluate_pictures` on pictures given one at a time (each frame one ``method``):
+    a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
+    holds one picture, never all of them. The same metrics as one call on their union."""
+    breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
+    radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
-    for picture in tracks.partition_by("method", maintain_order=True):
+    for picture in pictures:
+        if picture.height == 0:
+            continue
+        _check_inputs(picture, truth, id_col)
+        if "method" not in picture.columns:
+            picture = picture.with_columns(pl.lit("picture").alias("method"))
         matched = match_to_reference(picture, truth, cfg.match, id_col=id_col)
+        del picture
         if id_col != "track_id":
             matched = matched.rename({id_col: "track_id"})
         expected = reference_at_epochs(matched.select("run", "epoch").unique(), truth, cfg.match.max_gap_s)
@@ -145,14 +170,14 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
         if keep_matched:
             parts["matched"].append(matched.drop("cov", strict=False))
 
-    def cat(k: str, empty: pl.DataFrame) -> pl.DataFrame:
-        return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else empty
+    def cat(k: str, none: pl.DataFrame) -> pl.DataFrame:
+        return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else none
 
     metrics = cat("metrics", pl.DataFrame())
     reqs = check_requirements(metrics, requirements) if requirements is not None else pl.DataFrame()
-    return Evaluation(cat("matched", tracks.clear()), metrics, reqs, comparison(metrics),
-                      cat("by_epoch", pl.DataFrame(schema=BY_EPOCH_SCHEMA)), cat("samples", pl.DataFrame()),
-                      cat("id_map", pl.DataFrame()))
+    return Evaluation(cat("matched", empty if empty is not None else pl.DataFrame()), metrics, reqs,
+                      comparison(metrics), cat("by_epoch", pl.DataFrame(schema=BY_EPOCH_SCHEMA)),
+                      cat("samples", pl.DataFrame()), cat("id_map", pl.DataFrame()))
 
 
 def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: geo.LocalFrame,

@@ -21,7 +21,7 @@ import math
 import platform
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -41,7 +41,7 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
-from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_pictures
+from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_each
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
@@ -641,6 +641,35 @@ def _windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | Non
     return window_s
 
 
+class _OnDisk:
+    """A streamed table finalize leaves on disk once stored (issue 16, memory): evaluation reads
+    it back one picture at a time, so the whole-run stages never hold every picture at once.
+    What finalize needs of the whole table (height, pictures, target counts) is taken while it
+    passes through memory on its way to the database."""
+
+    def __init__(self, parts, name: str, frame: pl.DataFrame) -> None:
+        self.parts, self.name, self.height = parts, name, frame.height
+        self.empty = frame.clear()
+        self.keys = ["method", "filter"] if name == "tracks" else ["method"]
+        self.pictures = frame.select(self.keys).unique(maintain_order=True).rows() if frame.height else []
+        shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
+        self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
+        self.target_counts = _target_counts(frame) if name == "fused" else {}
+
+    def picture(self, key: tuple) -> pl.DataFrame:
+        where = pl.all_horizontal(*[pl.col(k) == v for k, v in zip(self.keys, key)])
+        got = self.parts.table_where(self.name, where)
+        return self.empty if got is None else got
+
+    def collect(self) -> pl.DataFrame:
+        got = self.parts.table(self.name)
+        return self.empty if got is None else got
+
+
+def _whole(table: "pl.DataFrame | _OnDisk") -> pl.DataFrame:
+    return table.collect() if isinstance(table, _OnDisk) else table
+
+
 def _table(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
     t = parts.table(name)
     return empty if t is None else t
@@ -678,7 +707,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     sink("aligned", aligned)
     # an on-disk run keeps in memory only what the whole-run stages read (the tables are in the
     # database): the largest streamed tables are not held twice (issue 16, memory)
-    lean = isinstance(parts, PartStore)
+    lean = hasattr(parts, "table_where")        # on disk: a table can be read back a picture at a time
     if lean:
         aligned = aligned.select(c for c in ("run", "epoch", "report_id", "radar_id", "local_track_id")
                                  if c in aligned.columns) if not cfg.radar_health else aligned
@@ -692,6 +721,9 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
         if name == "conflicts" and frame.width == 0:
             frame = schema.empty_frame("conflicts", False)
         sink(name, frame)
+        if lean and name in ("fused", "tracks"):
+            # left on disk: evaluation reads one picture at a time, the safety stage its picture
+            frame = _OnDisk(parts, name, frame)
         tables[name] = frame.select(frame.columns[:2]) if lean and name == "clusters" else frame
     associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
                                                                             "tracks", "conflicts"))
@@ -721,19 +753,19 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
         ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, aligned, ing, ds)
     if cfg.safety and has_truth:
         clock.stage("score_alerts")
-        picture, id_col = _safety_picture(cfg, fused, tracks, [])
+        methods, id_col = _safety_names(cfg, fused, tracks)
         # which aircraft each picture row represents: the one matcher's answer
         id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
         if id_map.width == 0:           # nothing scored (e.g. every target tentative)
             id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
                                           id_col: pl.UInt64, "truth_id": pl.Int64})
         acfg = AlertConfig(conflict=cfg.conflicts)
-        methods = sorted(picture["method"].unique().to_list())
         safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
                                                     methods=methods, frame=ds.origin)
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
+            picture, _ = _safety_picture(cfg, fused, tracks, [])
             curve = stca_tradeoff(picture, id_map, ing.truth, acfg, id_col=id_col, frame=ds.origin, methods=methods,
                                   lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
                                   fixed_est_h_m=cfg.stca_fixed_m)
@@ -763,7 +795,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
         metrics = pl.concat([metrics, radar_health(aligned, ing.radars)], how="vertical_relaxed")
     if has_truth and cfg.indicators and tracks.height:
         clock.stage("indicators")
-        metrics = pl.concat([metrics, indicators(tracks, ing.truth)], how="vertical_relaxed")
+        metrics = pl.concat([metrics, indicators(_whole(tracks), ing.truth)], how="vertical_relaxed")
     sink("metrics", metrics)
     sink("accuracy_by_epoch", by_epoch)
     clock.stage(None)
@@ -781,6 +813,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
               **_target_counts(fused)}
+    # an on-disk run's fused and tracks are in its database only (empty frames here)
+    fused, tracks = (t.empty if isinstance(t, _OnDisk) else t for t in (fused, tracks))
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
 
@@ -799,12 +833,12 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
             .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
 
 
-def _score_pictures(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFrame, aligned: pl.DataFrame,
-                    ing: Ingested, ds: Dataset) -> tuple[Evaluation, Evaluation]:
+def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
+                    aligned: pl.DataFrame, ing: Ingested, ds: Dataset) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
-    aircraft covered at the epochs it had a report."""
+    aircraft covered at the epochs it had a report. Pictures are read one at a time."""
     from tertiary.requirements import example_path, load_requirements
     reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
     observed = (aligned.select("run", "epoch", "report_id")
@@ -812,16 +846,49 @@ def _score_pictures(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFra
                 .select("run", "epoch", "truth_id").drop_nulls().unique())
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation)
-    shown = fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
-    ev_fused = (evaluate_pictures(shown, ing.truth, id_col="target_id", seed_stage="fusion", **kw)
-                if shown.height else Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame()))
-    if not tracks.height:
-        return ev_fused, Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
-    pictures = tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
-    return ev_fused, evaluate_pictures(pictures, ing.truth, seed_stage="tracker", **kw)
+    none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
+    fused_pictures = list(_fused_pictures(fused))
+    ev_fused = (evaluate_each((get() for get in fused_pictures), ing.truth, id_col="target_id", seed_stage="fusion",
+                              **kw) if fused_pictures else none)
+    track_pictures = list(_track_pictures(tracks))
+    if not track_pictures:
+        return ev_fused, none
+    return ev_fused, evaluate_each((get() for get in track_pictures), ing.truth, seed_stage="tracker", **kw)
 
 
-def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFrame,
+def _shown(fused: pl.DataFrame) -> pl.DataFrame:
+    """Confirmed targets only: clutter-only (tentative) targets are never scored or screened."""
+    return fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
+
+
+def _fused_pictures(fused: "pl.DataFrame | _OnDisk") -> Iterator[Callable[[], pl.DataFrame]]:
+    """A reader per fused picture (its confirmed targets), in order of appearance."""
+    if isinstance(fused, _OnDisk):
+        for key in fused.shown:
+            yield lambda key=key: _shown(fused.picture(key))
+        return
+    shown = _shown(fused)
+    for part in (shown.partition_by("method", maintain_order=True) if shown.height else []):
+        yield lambda part=part: part
+
+
+def _as_picture(tracks: pl.DataFrame) -> pl.DataFrame:
+    """A tracker picture named "<fusion method>+<filter>" in ``method``."""
+    return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
+
+
+def _track_pictures(tracks: "pl.DataFrame | _OnDisk") -> Iterator[Callable[[], pl.DataFrame]]:
+    """A reader per tracker picture, in order of appearance."""
+    if isinstance(tracks, _OnDisk):
+        for key in tracks.pictures:
+            yield lambda key=key: _as_picture(tracks.picture(key))
+        return
+    if tracks.height:
+        for part in _as_picture(tracks).partition_by("method", maintain_order=True):
+            yield lambda part=part: part
+
+
+def _safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
                     notes: list[str]) -> tuple[pl.DataFrame, str]:
     """The picture conflict prediction runs on, with its id column; every picture is named in
     ``method`` ("<fusion method>+<filter>" for tracks), so every alert names where it came from."""
@@ -830,17 +897,30 @@ def _safety_picture(cfg: PipelineConfig, fused: pl.DataFrame, tracks: pl.DataFra
         # switch a run's picture (windowed engine)
         if cfg.filters and cfg.methods:
             # tentative tracks are never emitted by the tracker: every row is a confirmed track
-            return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
+            return _whole(tracks).with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
         text = "conflict prediction ran on the fused pictures: no tracker filter was configured"
         if text not in notes:
             notes.append(text)
-    if "tentative" in fused.columns:   # clutter-only targets never reach safety
-        fused = fused.filter(~pl.col("tentative").fill_null(False))
-    return fused, "target_id"
+    return _shown(_whole(fused)), "target_id"      # clutter-only targets never reach safety
 
 
-def _target_counts(fused: pl.DataFrame) -> dict[str, int]:
+def _safety_names(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk"
+                  ) -> tuple[list[str], str]:
+    """The sorted picture names of :func:`_safety_picture`'s picture and its id column, without
+    reading the picture."""
+    if cfg.safety_picture == "tracks" and cfg.filters and cfg.methods:
+        if isinstance(tracks, _OnDisk):
+            return sorted({f"{m}+{f}" for m, f in tracks.pictures}), "track_id"
+        return sorted(_as_picture(tracks)["method"].unique().to_list()), "track_id"
+    if isinstance(fused, _OnDisk):
+        return sorted({m for (m,) in fused.shown}), "target_id"
+    return sorted(_shown(fused)["method"].unique().to_list()), "target_id"
+
+
+def _target_counts(fused: "pl.DataFrame | _OnDisk") -> dict[str, int]:
     """System targets (run, target_id) that were ever confirmed, and those only ever tentative."""
+    if isinstance(fused, _OnDisk):
+        return fused.target_counts
     if "tentative" not in fused.columns or fused.height == 0:
         return {"confirmed_targets": 0, "tentative_targets": 0}
     ever = (fused.filter(pl.col("tentative").is_not_null()).group_by("run", "target_id")
