@@ -44,6 +44,25 @@ Two decision rules (``ConflictConfig.mode``)
   ``dz_min_m`` = |Δh| at t* = clip(T_min, 0, T^пор) (the vertical separation at the closest
   horizontal approach within the look-ahead).
 
+Selected level (corrected mode, ``ConflictConfig.use_selected_level``). A real STCA does not
+extrapolate a climb through the level the aircraft is about to level off at: where a row carries
+the Mode S selected altitude (``selected_alt_m``, BDS 4,0) and a barometric ``alt_m`` channel,
+and the selected level is consistent with the vertical motion — climbing with it above, or
+descending with it below, allowing ``selected_level_tolerance_m`` on the wrong side (the
+capture/overshoot of a level-off) — the predicted height is
+
+    h(t) = h0 + ḣ·min(t, τ),   τ = (L − h0)/ḣ ≥ 0,   L = max(s, h0) climbing, min(s, h0) descending
+
+(:func:`level_off_times`). An aircraft moving away from its selected level beyond the tolerance
+(a bust in progress, or a stale selection) and rows without one keep the linear prediction.
+Δh(t) of a pair is then piecewise linear with at most three pieces (breaks at τ_i, τ_j);
+:func:`conflict_interval_levelled` intersects, piece by piece, the set |Δh(t)| ≤ R_в^пор with
+the horizontal interval (closed form, vectorised); the alert needs a non-empty piece, ``t_in_s``
+is the earliest. On a piece where both aircraft are predicted level (both at their selected
+levels, or one there and the other level now) the level-pair threshold below applies, as it
+does to pairs level now. The estimation terms are evaluated as without the clamp (the height
+variance still grows with t after the level-off: conservative).
+
 All comparisons use equality (≤), as the digest chose for (5.8)/(5.16)/(5.17).
 
 Thresholds (5.15)–(5.17)
@@ -170,7 +189,7 @@ from scipy.stats import chi2, norm
 
 from safety.confirmation import confirm_alerts
 from tertiary import geo
-from tertiary.schema import TABLES, TIME
+from tertiary.schema import SELECTED_ALT_COLUMN, TABLES, TIME
 
 __all__ = [
     "NM_M",
@@ -183,6 +202,9 @@ __all__ = [
     "candidate_pairs",
     "predict_conflicts",
     "conflict_interval",
+    "conflict_interval_levelled",
+    "level_off_times",
+    "SELECTED_ALT_COLUMN",
     "vertical_state",
     "height_and_rate",
     "slim_conflicts",
@@ -316,6 +338,10 @@ class ConflictConfig:
       docstring); needs a ``plot_target_id`` column, None keeps every track.
     * ``level_pair_tolerance_m`` / ``level_rate_mps``: the level-pair vertical threshold of the
       corrected rule (module docstring); None disables it.
+    * ``use_selected_level`` / ``selected_level_tolerance_m``: corrected mode stops a climb or
+      descent at the row's Mode S selected altitude when consistent with the motion (module
+      docstring "Selected level"; the tolerance, 100 ft, is how far on the wrong side the
+      selected level may be — a level-off capture or overshoot — before it is ignored).
     * ``v_max_mps``: speed bound of the KD-tree bulk radius (None: from the data); it only
       affects speed, never the result.
     * ``eps_mps``: |v| below this counts as parallel motion (R_min = |r|, T_min = ∞).
@@ -353,6 +379,8 @@ class ConflictConfig:
     max_coast_s: float | None = 10.0
     level_pair_tolerance_m: float | None = 100.0 * FT_M
     level_rate_mps: float = 1.0
+    use_selected_level: bool = True
+    selected_level_tolerance_m: float = 100.0 * FT_M
     confirm_m: int = 1
     confirm_n: int = 1
     same_identity_is_duplicate: bool = True
@@ -392,6 +420,8 @@ class ConflictConfig:
             raise ValueError(f"max_coast_s must be >= 0, got {self.max_coast_s}")
         if self.level_pair_tolerance_m is not None and self.level_pair_tolerance_m < 0:
             raise ValueError(f"level_pair_tolerance_m must be >= 0, got {self.level_pair_tolerance_m}")
+        if not self.selected_level_tolerance_m >= 0:
+            raise ValueError(f"selected_level_tolerance_m must be >= 0, got {self.selected_level_tolerance_m}")
         if not self.level_rate_mps >= 0:
             raise ValueError(f"level_rate_mps must be >= 0, got {self.level_rate_mps}")
         if self.v_max_mps is not None and self.v_max_mps <= 0:
@@ -486,6 +516,37 @@ def _seed_vertical(dz, dvz, t_min):
     return np.abs(dz) - prod
 
 
+def _horizontal_interval(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, r_thr: NDArray, eps: float
+                         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Roots of |r − v t|² = R² (the times the pair is within R horizontally), see
+    :func:`conflict_interval`; (−inf, inf) or (inf, −inf) for |v| < eps."""
+    vv = vx * vx + vy * vy
+    rv = rx * vx + ry * vy
+    cross = rx * vy - ry * vx
+    inside = rx * rx + ry * ry <= r_thr * r_thr
+    disc = vv * r_thr * r_thr - cross * cross
+    moving = vv >= eps * eps
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        h_lo = np.where(moving, (rv - sq) / vv, np.where(inside, -np.inf, np.inf))
+        h_hi = np.where(moving, (rv + sq) / vv, np.where(inside, np.inf, -np.inf))
+        h_lo = np.where(moving & (disc < 0.0), np.inf, h_lo)
+    return h_lo, h_hi
+
+
+def _vertical_interval(dz: NDArray, dvz: NDArray, z_thr: NDArray, eps: float
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Times with |dz + dvz t| ≤ Z: between (±Z − dz)/dvz; |dvz| < eps: all t or none."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        climbing = np.abs(dvz) >= eps
+        a = (-z_thr - dz) / dvz
+        b = (z_thr - dz) / dvz
+        level_in = np.abs(dz) <= z_thr
+        v_lo = np.where(climbing, np.minimum(a, b), np.where(level_in, -np.inf, np.inf))
+        v_hi = np.where(climbing, np.maximum(a, b), np.where(level_in, np.inf, -np.inf))
+    return v_lo, v_hi
+
+
 def conflict_interval(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, dz: NDArray, dvz: NDArray,
                       r_thr: NDArray | float, z_thr: NDArray | float, t_thr: float, eps: float = 1e-6
                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -502,26 +563,87 @@ def conflict_interval(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, dz: ND
     rx, ry, vx, vy, dz, dvz = np.broadcast_arrays(*(np.asarray(a, np.float64) for a in (rx, ry, vx, vy, dz, dvz)))
     r_thr = np.broadcast_to(np.asarray(r_thr, np.float64), rx.shape)
     z_thr = np.broadcast_to(np.asarray(z_thr, np.float64), rx.shape)
-    vv = vx * vx + vy * vy
-    rv = rx * vx + ry * vy
-    cross = rx * vy - ry * vx
-    inside = rx * rx + ry * ry <= r_thr * r_thr
-    disc = vv * r_thr * r_thr - cross * cross
-    moving = vv >= eps * eps
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        h_lo = np.where(moving, (rv - sq) / vv, np.where(inside, -np.inf, np.inf))
-        h_hi = np.where(moving, (rv + sq) / vv, np.where(inside, np.inf, -np.inf))
-        h_lo = np.where(moving & (disc < 0.0), np.inf, h_lo)
-        climbing = np.abs(dvz) >= eps
-        a = (-z_thr - dz) / dvz
-        b = (z_thr - dz) / dvz
-        level_in = np.abs(dz) <= z_thr
-        v_lo = np.where(climbing, np.minimum(a, b), np.where(level_in, -np.inf, np.inf))
-        v_hi = np.where(climbing, np.maximum(a, b), np.where(level_in, np.inf, -np.inf))
+    h_lo, h_hi = _horizontal_interval(rx, ry, vx, vy, r_thr, eps)
+    v_lo, v_hi = _vertical_interval(dz, dvz, z_thr, eps)
     t_in = np.maximum(np.maximum(h_lo, v_lo), 0.0)
     t_out = np.minimum(np.minimum(h_hi, v_hi), t_thr)
     return t_in, t_out
+
+
+def _clamped_dz(dz: NDArray, vz_i: NDArray, vz_j: NDArray, tau_i: NDArray, tau_j: NDArray, t: NDArray | float
+                ) -> NDArray[np.float64]:
+    """Δh(t) = dz + ḣ_j·min(t, τ_j) − ḣ_i·min(t, τ_i) (heights stopped at the selected levels)."""
+    return dz + vz_j * np.minimum(t, tau_j) - vz_i * np.minimum(t, tau_i)
+
+
+def _pieces(dz, vz_i, vz_j, tau_i, tau_j, w0: float, w1: float):
+    """The ≤ 3 linear pieces of the clamped Δh(t) over [w0, w1]: knots k0 = w0 ≤ k1 ≤ k2 ≤ k3 = w1
+    (the level-off times clipped to the window), Δh at the knots and each piece's slope
+    (both moving; only the later one moving; neither)."""
+    k1 = np.clip(np.minimum(tau_i, tau_j), w0, w1)
+    k2 = np.clip(np.maximum(tau_i, tau_j), w0, w1)
+    knots = (np.full_like(k1, w0), k1, k2, np.full_like(k1, w1))
+    values = tuple(_clamped_dz(dz, vz_i, vz_j, tau_i, tau_j, k) for k in knots)
+    slope2 = np.where(tau_j > tau_i, vz_j, 0.0) - np.where(tau_i > tau_j, vz_i, 0.0)
+    slopes = (vz_j - vz_i, slope2, np.zeros_like(k1))
+    return knots, values, slopes
+
+
+def _clamped_vmin(dz, vz_i, vz_j, tau_i, tau_j, w0: float, w1: float) -> NDArray[np.float64]:
+    """min over [w0, w1] of |Δh(t)| for the clamped prediction (0 where it changes sign)."""
+    _, f, _ = _pieces(dz, vz_i, vz_j, tau_i, tau_j, w0, w1)
+    return np.minimum(np.minimum(_endpoint_min(f[0], f[1]), _endpoint_min(f[1], f[2])), _endpoint_min(f[2], f[3]))
+
+
+def conflict_interval_levelled(rx: NDArray, ry: NDArray, vx: NDArray, vy: NDArray, dz: NDArray, vz_i: NDArray,
+                               vz_j: NDArray, tau_i: NDArray, tau_j: NDArray, r_thr: NDArray | float,
+                               z_thr: NDArray | float | tuple, t_thr: float, eps: float = 1e-6
+                               ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`conflict_interval` with each aircraft's height stopped at its selected level:
+    h(t) = h0 + ḣ·min(t, τ) (τ = +inf: linear; :func:`level_off_times`), so that
+    Δh(t) = dz + ḣ_j·min(t, τ_j) − ḣ_i·min(t, τ_i) is linear on ≤ 3 pieces of [0, t_thr]
+    (breaks at τ_i, τ_j). On each piece [p, q] with Δh = f_p + m·(t − p) the vertical set
+    |Δh| ≤ Z is the interval between p + (±Z − f_p)/m (all or none for |m| < eps); it is
+    intersected with the horizontal interval and [p, q]. ``z_thr``: one threshold or one per
+    piece (a 3-tuple). Returns the first stretch of the (possibly disconnected) set: t_in its
+    start, t_out its end (adjacent pieces joined); empty (t_in > t_out) when there is none.
+    With τ_i = τ_j = +inf it equals :func:`conflict_interval`."""
+    rx, ry, vx, vy, dz, vz_i, vz_j, tau_i, tau_j = np.broadcast_arrays(
+        *(np.asarray(a, np.float64) for a in (rx, ry, vx, vy, dz, vz_i, vz_j, tau_i, tau_j)))
+    z = z_thr if isinstance(z_thr, tuple) else (z_thr,) * 3
+    z = tuple(np.broadcast_to(np.asarray(zk, np.float64), rx.shape) for zk in z)
+    r_thr = np.broadcast_to(np.asarray(r_thr, np.float64), rx.shape)
+    h_lo, h_hi = _horizontal_interval(rx, ry, vx, vy, r_thr, eps)
+    knots, f, m = _pieces(dz, vz_i, vz_j, tau_i, tau_j, 0.0, t_thr)
+    t_in = np.full(rx.shape, np.inf)
+    t_out = np.full(rx.shape, -np.inf)
+    for k in range(3):                      # three pieces, each vectorised over all pairs
+        v_lo, v_hi = _vertical_interval(f[k], m[k], z[k], eps)
+        lo = np.maximum(np.maximum(h_lo, v_lo + knots[k]), knots[k])
+        hi = np.minimum(np.minimum(h_hi, v_hi + knots[k]), knots[k + 1])
+        got = lo <= hi
+        first = got & ~(t_in <= t_out)                      # the first non-empty piece
+        join = got & (t_in <= t_out) & (lo <= t_out) & (t_out >= knots[k])   # continues the stretch
+        t_in = np.where(first, lo, t_in)
+        t_out = np.where(first | join, np.where(join, np.maximum(t_out, hi), hi), t_out)
+    return t_in, t_out
+
+
+def level_off_times(h: NDArray, hdot: NDArray, selected: NDArray, usable: NDArray[np.bool_],
+                    tolerance_m: float) -> NDArray[np.float64]:
+    """τ of each row (module docstring "Selected level"): the time its predicted height reaches
+    the level L it stops at — L = max(s, h0) climbing with s ≥ h0 − tol, min(s, h0) descending
+    with s ≤ h0 + tol (a selected level within the tolerance on the wrong side: level now, τ = 0)
+    —, +inf where the selected level ``s`` is missing (NaN), not ``usable`` (no barometric
+    channel), inconsistent with the motion, or the row is level (ḣ = 0)."""
+    h, hdot, s = (np.asarray(a, np.float64) for a in (h, hdot, selected))
+    ok = np.asarray(usable, bool) & np.isfinite(s) & (hdot != 0.0)
+    climb = hdot > 0.0
+    ok &= np.where(climb, s >= h - tolerance_m, s <= h + tolerance_m)
+    level = np.where(climb, np.maximum(s, h), np.minimum(s, h))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tau = (level - h) / hdot
+    return np.where(ok, np.maximum(tau, 0.0), np.inf)
 
 
 def pair_geometry(p_i: ArrayLike, v_i: ArrayLike, p_j: ArrayLike, v_j: ArrayLike,
@@ -907,22 +1029,43 @@ STCA_CONFIRMATION = (3, 4)
 CONFLICT_EXTRA: dict[str, pl.DataType] = dict(TABLES["conflicts"].optional)   # t_in_s, near
 
 
+def _levelled_rows(tau: NDArray[np.float64] | None, i: NDArray[np.int64], j: NDArray[np.int64], w1: float
+                   ) -> NDArray[np.int64]:
+    """Pairs (positions in i, j) where either aircraft levels off at its selected level before
+    the end of the window (``tau`` None: none)."""
+    if tau is None:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.minimum(tau[i], tau[j]) < w1)
+
+
+def _window_vmin(dz, dvz, vh, tau, i, j, w0: float, w1: float) -> NDArray[np.float64]:
+    """min over the window of |Δh(t)|: linear, or clamped at the selected levels where one applies."""
+    vmin = _endpoint_min(dz + dvz * w0, dz + dvz * w1)
+    k = _levelled_rows(tau, i, j, w1)
+    if k.size:
+        vmin[k] = _clamped_vmin(dz[k], vh[i[k]], vh[j[k]], tau[i[k]], tau[j[k]], w0, w1)
+    return vmin
+
+
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,
-                    i: NDArray[np.int64], j: NDArray[np.int64], bnd: _Bounds) -> dict[str, NDArray]:
+                    i: NDArray[np.int64], j: NDArray[np.int64], bnd: _Bounds,
+                    tau: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
     """Output-set membership, geometry, thresholds and decision of pairs (i, j); ``st`` holds the
     state columns x, y, h, vx, vy, ḣ as rows; ``bnd`` the per-track threshold bounds
-    (:func:`_bounds`). Staged: the vertical window test, then the horizontal one (cheap upper
-    bounds of the thresholds first), then the full geometry of the survivors only."""
+    (:func:`_bounds`); ``tau`` each track's level-off time at its selected level
+    (:func:`level_off_times`, corrected mode; None: linear vertical prediction). Staged: the
+    vertical window test, then the horizontal one (cheap upper bounds of the thresholds first),
+    then the full geometry of the survivors only."""
     x, y, h, vx, vy, vh = st
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
     mh, mv = cfg.near_margin_h_m, cfg.near_margin_v_m
     fixed = cfg.threshold_mode == "fixed" or terms is None
     base_v = bnd.base_v
-    # 1. vertical: min over the window of |Δh + Δḣ t| ≤ R_в^пор + m_v (upper bound of R_в^пор)
+    # 1. vertical: min over the window of |Δh(t)| ≤ R_в^пор + m_v (upper bound of R_в^пор)
     dz = h[j] - h[i]
     dvz = vh[j] - vh[i]
-    excess = _endpoint_min(dz + dvz * w0, dz + dvz * w1) - base_v
+    excess = _window_vmin(dz, dvz, vh, tau, i, j, w0, w1) - base_v
     if fixed:
         ok = excess <= 0.0
     else:
@@ -948,20 +1091,33 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     # 3. geometry (5.10)–(5.13), thresholds at the time that matters, output-set membership
     _, r_min, t_min, closure, _ = _horizontal(rx, ry, vx_, vy_, cfg.eps_mps)
     t_eval = threshold_time(cfg, t_min)
-    r_thr, z_thr = pair_thresholds(cfg, terms, i, j, t_eval)
+    r_thr, z_full = pair_thresholds(cfg, terms, i, j, t_eval)
+    z_thr, z_level = z_full, z_full
     if cfg.mode == "corrected" and cfg.level_pair_tolerance_m is not None:
+        z_level = np.minimum(z_full, cfg.sep_v_m - cfg.level_pair_tolerance_m)
         level = (np.abs(vh[i]) <= cfg.level_rate_mps) & (np.abs(vh[j]) <= cfg.level_rate_mps)
-        z_thr = np.where(level, np.minimum(z_thr, cfg.sep_v_m - cfg.level_pair_tolerance_m), z_thr)
-    vmin = _endpoint_min(dz + dvz * w0, dz + dvz * w1)
-    sel = np.flatnonzero((d2 <= (r_thr + mh) ** 2) & (vmin <= z_thr + mv))
-    i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, r_min, t_min, closure, t_eval = (
-        a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, r_min, t_min, closure, t_eval))
+        z_thr = np.where(level, z_level, z_full)
+    vmin = _window_vmin(dz, dvz, vh, tau, i, j, w0, w1)
+    # a levelled pair's threshold varies by piece: screen it with the largest (z_full)
+    z_screen = z_thr.copy()
+    lv = _levelled_rows(tau, i, j, w1)
+    z_screen[lv] = z_full[lv]
+    sel = np.flatnonzero((d2 <= (r_thr + mh) ** 2) & (vmin <= z_screen + mv))
+    i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, z_full, z_level, r_min, t_min, closure, t_eval = (
+        a[sel] for a in (i, j, dz, dvz, rx, ry, vx_, vy_, r_thr, z_thr, z_full, z_level, r_min, t_min, closure,
+                         t_eval))
     # 4. decision (5.14) as printed, or the same-time rule (interval intersection)
     t_in, t_out = conflict_interval(rx, ry, vx_, vy_, dz, dvz, r_thr, z_thr, t_thr, cfg.eps_mps)
     n_in, n_out = conflict_interval(rx, ry, vx_, vy_, dz, dvz, r_thr + mh, z_thr + mv, t_thr, cfg.eps_mps)
+    dz_eval = dz + dvz * t_eval
+    lv = _levelled_rows(tau, i, j, w1)
+    if lv.size:
+        t_in[lv], t_out[lv], n_in[lv], n_out[lv], dz_eval[lv] = _levelled_decision(
+            cfg, rx[lv], ry[lv], vx_[lv], vy_[lv], dz[lv], vh[i[lv]], vh[j[lv]], tau[i[lv]], tau[j[lv]], r_thr[lv],
+            z_thr[lv], z_full[lv], z_level[lv], t_eval[lv])
     joint = t_in <= t_out
     if cfg.mode == "corrected":
-        dz_min = np.abs(dz + dvz * t_eval)         # vertical separation at the horizontal CPA in [0, T]
+        dz_min = np.abs(dz_eval)                   # vertical separation at the horizontal CPA in [0, T]
         alert = joint
     else:
         dz_min = _seed_vertical(dz, dvz, t_min)
@@ -972,6 +1128,24 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
             "closure_mps": closure, "r_thr_m": r_thr, "t_thr_s": np.full(len(i), t_thr), "z_thr_m": z_thr,
             "alert": alert, "severity": severity, "t_in_s": np.where(joint, t_in, np.nan),
             "near": alert | (n_in <= n_out)}
+
+
+def _levelled_decision(cfg: ConflictConfig, rx, ry, vx, vy, dz, vz_i, vz_j, tau_i, tau_j, r_thr, z_now, z_full,
+                       z_level, t_eval) -> tuple[NDArray[np.float64], ...]:
+    """(t_in, t_out, near t_in, near t_out, Δh(t_eval)) of pairs whose vertical prediction stops
+    at a selected level (:func:`conflict_interval_levelled`). Vertical threshold per piece: now
+    (``z_now``: the level-pair threshold if both are level now) on the first; on the second the
+    level-pair one if the aircraft still moving is level now, else the full (5.16); on the third
+    (both at their selected levels, or level) the level-pair one."""
+    t_thr, mh, mv = cfg.t_thr_s, cfg.near_margin_h_m, cfg.near_margin_v_m
+    moving = np.where(tau_i < tau_j, np.abs(vz_j), np.abs(vz_i))       # the later one to level off
+    z2 = np.where(moving <= cfg.level_rate_mps, z_level, z_full)
+    zs = (z_now, z2, z_level)
+    t_in, t_out = conflict_interval_levelled(rx, ry, vx, vy, dz, vz_i, vz_j, tau_i, tau_j, r_thr, zs, t_thr,
+                                             cfg.eps_mps)
+    n_in, n_out = conflict_interval_levelled(rx, ry, vx, vy, dz, vz_i, vz_j, tau_i, tau_j, r_thr + mh,
+                                             tuple(z + mv for z in zs), t_thr, cfg.eps_mps)
+    return t_in, t_out, n_in, n_out, _clamped_dz(dz, vz_i, vz_j, tau_i, tau_j, t_eval)
 
 
 # --------------------------------------------------------------------------- windowed engine
@@ -1151,6 +1325,7 @@ def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_co
     pos, vel, up, from_alt = _state_arrays(tracks, frame)
     terms = _point_terms(tracks, up, from_alt) if cfg.threshold_mode == "covariance" else None
     bnd = _bounds(cfg, terms, len(g))
+    tau = _track_level_off(tracks, cfg, pos[:, 2], vel[:, 2], from_alt)
     ids = tracks[id_col].cast(pl.Int64).to_numpy()
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
     chunks: list[dict[str, NDArray]] = []
@@ -1159,7 +1334,7 @@ def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_co
         for s in range(0, len(ci), step):
             a, b = ci[s:s + step], cj[s:s + step]
             swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
-            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), bnd))
+            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), bnd, tau))
         del ci, cj
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
@@ -1179,6 +1354,18 @@ def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_co
         dup = (a.is_not_null() & (a == b)).fill_null(False)
         out = out.with_columns(pl.col("alert") & ~pl.Series(dup))
     return out
+
+
+def _track_level_off(tracks: pl.DataFrame, cfg: ConflictConfig, h: NDArray[np.float64], hdot: NDArray[np.float64],
+                     from_alt: NDArray[np.bool_]) -> NDArray[np.float64] | None:
+    """Per row, τ of :func:`level_off_times` from its ``selected_alt_m`` — corrected mode with
+    ``use_selected_level`` only, and only on the barometric channel (``from_alt``: the selected
+    altitude is a pressure altitude); None when no row levels off within the look-ahead."""
+    if cfg.mode != "corrected" or not cfg.use_selected_level or SELECTED_ALT_COLUMN not in tracks.columns:
+        return None
+    sel = tracks[SELECTED_ALT_COLUMN].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    tau = level_off_times(h, hdot, sel, from_alt, cfg.selected_level_tolerance_m)
+    return tau if np.any(tau < cfg.window_s[1]) else None
 
 
 def slim_conflicts(conflicts: pl.DataFrame, margin_h_m: float | None = None, margin_v_m: float | None = None

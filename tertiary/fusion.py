@@ -129,7 +129,7 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel, predict,
                                quantisation_variance)
-from tertiary.schema import FUSED_EXTRA, TABLES, TIME, is_sorted_by
+from tertiary.schema import FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -1491,6 +1491,16 @@ def _new_chains(rows: pl.DataFrame, chains: pl.DataFrame, methods: list[str], ws
     return pl.concat([chains.join(last, on=CHAIN, how="anti"), last], how="diagonal_relaxed")
 
 
+def _selected_alt_inputs(rows: pl.DataFrame) -> list[pl.Expr]:
+    """``__sel`` (the row's selected altitude, null without) and ``__t`` (its report's age order:
+    the report time, else −age_s, else none) for :func:`fuse_step`'s per-target latest."""
+    sel = (pl.col(SELECTED_ALT_COLUMN).cast(pl.Float64).fill_nan(None) if SELECTED_ALT_COLUMN in rows.columns
+           else pl.lit(None, pl.Float64))
+    t = (pl.col("time").dt.epoch("us").cast(pl.Float64) if "time" in rows.columns
+         else -pl.col("age_s").cast(pl.Float64) if "age_s" in rows.columns else pl.lit(0.0))
+    return [sel.alias("__sel"), t.alias("__t")]
+
+
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
          cfg: FusionConfig = FusionConfig(), origin: geo.LocalFrame | None = None,
          plots: pl.DataFrame | None = None) -> pl.DataFrame:
@@ -1556,16 +1566,18 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
     new_state = FuseState(_new_chains(rows, state.chains, methods, ws, axis_w), seed_first, nis_carry, alt_carry,
                           confirm, reached)
     mode_s = pl.col("mode_s").cast(pl.String) if "mode_s" in rows.columns else pl.lit(None, pl.String)
-    head = rows.select(*GROUP, "radar_id", mode_s.alias("__s")).with_columns(
+    head = rows.select(*GROUP, "radar_id", mode_s.alias("__s"), *_selected_alt_inputs(rows)).with_columns(
         pl.Series(f"__w{i}", ws[i]) for i in range(len(methods))
     ).group_by(GROUP, maintain_order=True).agg(
         pl.col("radar_id").alias("radar_ids"), pl.len().alias("n_sources"),
         # the target's identity: the address most of its reports carry (ties: the smallest)
         pl.col("__s").drop_nulls().mode().sort().first().alias("mode_s"),
+        # its selected altitude (BDS 4,0): that of its newest report carrying one
+        pl.col("__sel").sort_by("__t", "radar_id").drop_nulls().last().alias(SELECTED_ALT_COLUMN),
         *(pl.col(f"__w{i}") for i in range(len(methods))))
     head = head.with_columns(tentative["tentative"])
     keys = pl.concat([head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
-                                  pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s")
+                                  pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s", SELECTED_ALT_COLUMN)
                       for i, m in enumerate(methods)])
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)

@@ -539,23 +539,30 @@ def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
 
 def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """:func:`track_identity` carried across windows: each track's Mode S address continues from
-    its last one of the previous windows while it coasts."""
+    """:func:`track_identity` carried across windows: each track's Mode S address and selected
+    altitude continue from their last values of the previous windows while it coasts (``last``
+    gains ``selected_alt_m`` if it lacks it)."""
     if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
         return tracks, last
     keys = ["run", "filter", "method", "track_id"]
-    ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), "mode_s")
-    t = (tracks.drop("mode_s", strict=False)
+    sel = schema.SELECTED_ALT_COLUMN
+    carried_cols = ["mode_s", *([sel] if sel in pictures.columns else [])]
+    if sel not in last.columns:
+        last = last.with_columns(pl.lit(None, pl.Float64).alias(sel))
+    ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *carried_cols)
+    t = (tracks.drop(*carried_cols, strict=False)
          .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
          .with_row_index("__i"))
     first = t.group_by(keys).agg(pl.col("__i").min())
-    seed = first.join(last.rename({"mode_s": "__last"}), on=keys, how="inner").select("__i", "__last")
+    seed = first.join(last.select(*keys, *(pl.col(c).alias(f"__last_{c}") for c in carried_cols)),
+                      on=keys, how="inner").select("__i", *(f"__last_{c}" for c in carried_cols))
     t = (t.join(seed, on="__i", how="left", maintain_order="left")
-         .with_columns(pl.when(pl.col("mode_s").is_null()).then(pl.col("__last")).otherwise(pl.col("mode_s"))
-                       .alias("mode_s"))
-         .drop("__last")
-         .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
-    now = (t.sort("epoch").group_by(keys).agg(pl.col("mode_s").last()).filter(pl.col("mode_s").is_not_null()))
+         .with_columns(pl.coalesce(c, f"__last_{c}").alias(c) for c in carried_cols)
+         .drop(*(f"__last_{c}" for c in carried_cols))
+         .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in carried_cols))
+    now = (t.sort("epoch").group_by(keys).agg(pl.col(c).last() for c in carried_cols)
+           .filter(pl.any_horizontal(pl.col(c).is_not_null() for c in carried_cols)))
+    now = now.with_columns(pl.lit(None, last.schema[c]).alias(c) for c in last.columns if c not in now.columns)
     carried = pl.concat([last.join(now.select(keys), on=keys, how="anti"), now.select(last.columns).cast(last.schema)])
     return t.drop("__i"), carried
 
@@ -823,14 +830,16 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
     """``tracks`` with ``mode_s``: the Mode S address of the fused target each track was last
     updated with (carried while it coasts), so that a controller's picture has an identity —
     what identity correctness is scored on and what tells a duplicate track of one aircraft
-    from a second aircraft."""
+    from a second aircraft — and likewise ``selected_alt_m`` (the target's Mode S selected
+    altitude, latest known) when ``fused`` carries it."""
     if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
         return tracks
-    ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), "mode_s")
+    cols = ["mode_s", *([schema.SELECTED_ALT_COLUMN] if schema.SELECTED_ALT_COLUMN in fused.columns else [])]
+    ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *cols)
     keys = ["run", "filter", "method", "track_id"]
-    return (tracks.drop("mode_s", strict=False)
+    return (tracks.drop(*cols, strict=False)
             .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
-            .with_columns(pl.col("mode_s").forward_fill().over(keys, order_by="epoch")))
+            .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in cols))
 
 
 def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",

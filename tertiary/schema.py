@@ -137,6 +137,11 @@ _RADARS = TableSchema(
 #: positive); BDS 6,0 inertial vertical rate (m/s)); null without a Mode S reply or not extracted.
 #: Inputs of the chapter 3 range channels (:mod:`tertiary.filters.kinematic`).
 EHS_REPORT_COLUMNS = ("ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_roll_deg", "ehs_vrate_mps")
+#: Mode S EHS BDS 4,0 MCP/FCU selected altitude (m, 16 ft quantum, the pressure-altitude reference
+#: of ``altitude_m``): the level the crew selected, null without one. Carried reports → aligned →
+#: fused (the target's latest) → tracks, where conflict prediction stops a climb or descent at it
+#: (:mod:`safety.conflicts`).
+SELECTED_ALT_COLUMN = "selected_alt_m"
 
 _REPORTS = TableSchema(
     name="reports",
@@ -165,6 +170,7 @@ _REPORTS = TableSchema(
         "res_range_var_m2": F64,
         "truth_id": I64,
         **_floats(*EHS_REPORT_COLUMNS),
+        SELECTED_ALT_COLUMN: F64,
     },
     key=("run", "radar_id", "local_track_id", "time"),
     finite=True,
@@ -203,8 +209,9 @@ _ALIGNED = TableSchema(
         "mode_s": STR,
         "truth_id": I64,
     },
-    # the report's barometric altitude as replied (null without Mode C), at ``time``
-    optional={"altitude_m": F64},
+    # the report's barometric altitude as replied (null without Mode C), at ``time``; its
+    # selected altitude (BDS 4,0, null without)
+    optional={"altitude_m": F64, SELECTED_ALT_COLUMN: F64},
     key=("run", "epoch", "report_id"),
     nullable=frozenset({"res_range_m", "res_range_var_m2", "mode_s", "truth_id"}),
 )
@@ -248,10 +255,11 @@ _FUSED = TableSchema(
 #: report of any source), ``tentative`` (a target only ever made of one radar's unconfirmed
 #: one-plot local tracks), and the plot-level fusion of the fresh measured plots at time
 #: epoch − ``age_s``: ``meas_x_m``…``meas_z_m`` with its full 3×3 covariance ``meas_cov``
-#: (row-major, null without a fresh plot). Not in ``_FUSED.optional`` while the centralised
-#: stage (which emits every ``fused`` column) does not produce them.
+#: (row-major, null without a fresh plot); ``selected_alt_m`` the selected altitude of the
+#: target's newest report carrying one (:data:`SELECTED_ALT_COLUMN`). Not in ``_FUSED.optional``
+#: while the centralised stage (which emits every ``fused`` column) does not produce them.
 FUSED_EXTRA: dict[str, pl.DataType] = {
-    "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR,
+    "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR, SELECTED_ALT_COLUMN: F64,
     **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
 }
 
@@ -284,8 +292,9 @@ _TRACKS = TableSchema(
         "model_probs": pl.List(pl.Float64),
     },
     # cov: the full 6×6 position–velocity covariance, row-major (x y z vx vy vz)
-    # mode_s: the Mode S address of the target the track was last updated with (identity)
-    optional={**_ALT, "cov": COV, "mode_s": STR},
+    # mode_s: the Mode S address of the target the track was last updated with (identity);
+    # selected_alt_m: that target's selected altitude (latest known, carried while coasting)
+    optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64},
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

@@ -17,8 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2, norm
 
-from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, candidate_pairs, conflict_interval, height_and_rate,
-                              pair_geometry, predict_conflicts, slim_conflicts, tangent_plane_error_bound)
+from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, candidate_pairs, conflict_interval,
+                              conflict_interval_levelled, height_and_rate, pair_geometry, predict_conflicts, slim_conflicts, tangent_plane_error_bound)
 from tertiary.geo import EARTH_RADIUS_M, LocalFrame
 from tertiary.schema import TABLES, validate
 
@@ -528,17 +528,26 @@ def test_v_max_setting_does_not_change_result():
 
 
 def _sampled(ra: dict, rb: dict, r_thr: float, z_thr: float, T: float, dt: float = 0.05) -> tuple[bool, bool]:
-    """Brute force on the predicted tracks (heights = alt_m, rates = alt_rate_mps), sampled every
-    ``dt`` over [0, T]: (some sample inside both thresholds shrunk by 1e-6 relative,
-    some sample inside both widened by the motion over dt) — the closed form must alert in the
-    first case and may alert only in the second."""
+    """Brute force on the predicted tracks (heights = alt_m, rates = alt_rate_mps; with a
+    ``level`` key, the height is held at that level once reached — the selected-level clamp),
+    sampled every ``dt`` over [0, T]: (some sample inside both thresholds shrunk by 1e-6
+    relative, some sample inside both widened by the motion over dt) — the closed form must
+    alert in the first case and may alert only in the second."""
     t = np.arange(0.0, T + dt / 2, dt)
+
+    def height(r):
+        lin = r["alt_m"] + r["alt_rate_mps"] * t
+        lv = r.get("level")
+        if lv is None:
+            return lin
+        return np.minimum(lin, lv) if r["alt_rate_mps"] > 0 else np.maximum(lin, lv)
     dx = (rb["x_m"] - ra["x_m"]) + (rb["vx_mps"] - ra["vx_mps"]) * t
     dy = (rb["y_m"] - ra["y_m"]) + (rb["vy_mps"] - ra["vy_mps"]) * t
-    dz = (rb["alt_m"] - ra["alt_m"]) + (rb["alt_rate_mps"] - ra["alt_rate_mps"]) * t
+    dz = height(rb) - height(ra)
     dh = np.hypot(dx, dy)
     sh = math.hypot(rb["vx_mps"] - ra["vx_mps"], rb["vy_mps"] - ra["vy_mps"]) * dt
-    sv = abs(rb["alt_rate_mps"] - ra["alt_rate_mps"]) * dt
+    sv = (abs(rb["alt_rate_mps"] - ra["alt_rate_mps"]) if "level" not in ra and "level" not in rb
+          else abs(rb["alt_rate_mps"]) + abs(ra["alt_rate_mps"])) * dt
     inner = (dh <= r_thr * (1 - 1e-6)) & (np.abs(dz) <= z_thr * (1 - 1e-6))
     outer = (dh <= r_thr + sh + 1e-6) & (np.abs(dz) <= z_thr + sv + 1e-6)
     return bool(inner.any()), bool(outer.any())
@@ -563,6 +572,36 @@ def test_interval_intersection_matches_sampling(rx, ry, vx, vy, dz, dvz, r_thr, 
         assert math.hypot(rx - vx * tm, ry - vy * tm) <= r_thr * (1 + 1e-9) + 1e-6
         assert abs(dz + dvz * tm) <= z_thr * (1 + 1e-9) + 1e-6
         assert 0.0 <= t_in[0] <= t_out[0] <= t_thr
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.floats(-3e4, 3e4), st.floats(-3e4, 3e4), st.floats(-400, 400), st.floats(-400, 400),
+       st.floats(-3000, 3000), st.floats(-30, 30), st.floats(-30, 30), st.floats(0, 400) | st.just(math.inf),
+       st.floats(0, 400) | st.just(math.inf), st.floats(100, 9000), st.floats(50, 1500), st.floats(1, 300))
+def test_levelled_interval_matches_sampling(rx, ry, vx, vy, dz, vz_a, vz_b, tau_a, tau_b, r_thr, z_thr, t_thr):
+    """The same-time rule with each aircraft's height stopped at its selected level after τ
+    (three linear pieces of Δh) against brute-force sampling of the clamped predicted tracks;
+    with τ = ∞ it is :func:`conflict_interval` exactly."""
+    args = [np.array([v]) for v in (rx, ry, vx, vy, dz, vz_a, vz_b, tau_a, tau_b)]
+    t_in, t_out = conflict_interval_levelled(*args, r_thr, z_thr, t_thr, eps=1e-12)
+    a = {"x_m": 0.0, "y_m": 0.0, "alt_m": 0.0, "vx_mps": vx, "vy_mps": vy, "alt_rate_mps": vz_a,
+         "level": None if math.isinf(tau_a) else vz_a * tau_a}
+    b = {"x_m": rx, "y_m": ry, "alt_m": dz, "vx_mps": 0.0, "vy_mps": 0.0, "alt_rate_mps": vz_b,
+         "level": None if math.isinf(tau_b) else dz + vz_b * tau_b}
+    inner, outer = _sampled(a, b, r_thr, z_thr, t_thr, t_thr / 4000)
+    alert = bool(t_in[0] <= t_out[0])
+    assert (not inner or alert) and (outer or not alert)
+    if alert:                                        # the stretch's mid point is inside both
+        tm = 0.5 * (t_in[0] + t_out[0])
+        h = lambda h0, v, tau: h0 + v * min(tm, tau)    # noqa: E731
+        assert math.hypot(rx - vx * tm, ry - vy * tm) <= r_thr * (1 + 1e-9) + 1e-6
+        assert abs(h(dz, vz_b, tau_b) - h(0.0, vz_a, tau_a)) <= z_thr * (1 + 1e-9) + 1e-6
+        assert 0.0 <= t_in[0] <= t_out[0] <= t_thr
+    if math.isinf(tau_a) and math.isinf(tau_b):
+        lin = conflict_interval(*args[:5], np.array([vz_b - vz_a]), r_thr, z_thr, t_thr, eps=1e-12)
+        assert (t_in[0] <= t_out[0]) == (lin[0][0] <= lin[1][0])
+        if t_in[0] <= t_out[0]:
+            assert t_in[0] == pytest.approx(lin[0][0], abs=1e-9) and t_out[0] == pytest.approx(lin[1][0], abs=1e-9)
 
 
 def test_decision_matches_rule_on_random_pictures():

@@ -82,6 +82,11 @@ class TrafficConfig:
 
     ``area_radius_m`` … ``lifetime_s`` are kept for compatibility (the procedure generator
     does not use them; routes are fixed by the procedure design).
+
+    Selected altitude (Mode S EHS BDS 4,0, :class:`tertiary.simulate.traffic.TrafficTrajectories`):
+    ``selected_alt_fraction`` of the aircraft downlink the level their crew selected;
+    ``bust_selected`` is what a level-bust aircraft selected: ``"flown"`` (the wrong level it
+    then climbs to — the common real cause) or ``"cleared"`` (its cleared level, below).
     """
 
     aircraft: int = 200
@@ -104,6 +109,8 @@ class TrafficConfig:
     sep_h_m: float = 5556.0
     sep_v_m: float = 304.8
     level_buffer_m: float = 1.0
+    selected_alt_fraction: float = 0.95
+    bust_selected: str = "flown"
 
 
 @dataclass(frozen=True)
@@ -532,6 +539,9 @@ def _check_traffic(t: TrafficConfig) -> None:
     _number("traffic.sep_h_m", t.sep_h_m, 0.0, 1e5, open_lo=True)
     _number("traffic.sep_v_m", t.sep_v_m, 0.0, 1e4, open_lo=True)
     _number("traffic.level_buffer_m", t.level_buffer_m, 0.0, 30.0)
+    _number("traffic.selected_alt_fraction", t.selected_alt_fraction, 0.0, 1.0)
+    if t.bust_selected not in ("flown", "cleared"):
+        raise OptionError(f"expected 'flown' or 'cleared', got {_show(t.bust_selected)}", option="traffic.bust_selected")
 
 
 def _check_anomalies(a: Anomalies, radar_names: list[str]) -> None:

@@ -18,6 +18,16 @@ track angle rate    BDS 5,0      8/256 °/s            ±16 °/s          0.05 �
 inertial vert. rate BDS 6,0      32 ft/min ≈ 0.16 m/s ±16 352 ft/min   0.3 m/s (hybrid IRS/baro)
 ==================  ===========  ===================  ===============  =======================
 
+BDS 4,0 (selected vertical intention): the MCP/FCU selected altitude, 16 ft LSB, 0–65 520 ft
+(12 bits), reported as ``selected_alt_m`` (:data:`SELECTED_ALT_COLUMN`) in the pressure-altitude
+reference of ``altitude_m``. It is the level the crew selected — the aircraft's clearance as the
+traffic generator flies it (:class:`tertiary.simulate.traffic.TrafficTrajectories`;
+level busts: the wrong level selected, see there), never a value read off the future
+trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
+Mode S reply, for aircraft that do not downlink it (non-EHS, or a trajectory source without
+intent: big box, ADS-B, national) and for a fraction ``selected_alt_missing`` of replies (the
+register not extracted that scan).
+
 Values are rounded to the nearest LSB and clipped to the field's range, after adding the
 sensor noise (white, per reply: a simplification — real navigation errors are correlated over
 seconds; the quantisation dominates at these resolutions anyway). Optional register staleness:
@@ -55,6 +65,11 @@ RESOLUTION = {
     "vertical_rate_mps": (32.0 * FPM, -16352.0 * FPM, 16352.0 * FPM),
 }
 EHS_COLUMNS = tuple(RESOLUTION)
+FT = 0.3048
+#: BDS 4,0 MCP/FCU selected altitude: (LSB, lower, upper) in metres
+SELECTED_ALT_RESOLUTION = (16.0 * FT, 0.0, 65520.0 * FT)
+#: the ``reports`` column of the BDS 4,0 selected altitude (:data:`tertiary.schema.SELECTED_ALT_COLUMN`)
+SELECTED_ALT_COLUMN = "selected_alt_m"
 
 #: EHS field → the ``reports`` column carrying it (:data:`tertiary.schema.EHS_REPORT_COLUMNS`)
 REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
@@ -63,7 +78,8 @@ REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
 #: bit-identical
 EHS_SPAWN_KEY = 0x454853
 
-__all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "REPORT_COLUMN", "EHS_SPAWN_KEY", "ehs_truth", "quantise",
+__all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "SELECTED_ALT_RESOLUTION", "SELECTED_ALT_COLUMN",
+           "selected_altitude", "REPORT_COLUMN", "EHS_SPAWN_KEY", "ehs_truth", "quantise",
            "ehs_parameters", "ehs_table", "ehs_rng", "ehs_report_columns"]
 
 
@@ -77,6 +93,8 @@ class EhsConfig:
     roll_deg: float = 0.3
     vertical_rate_mps: float = 0.3
     refresh_s: float = 0.0
+    #: fraction of Mode S replies whose BDS 4,0 selected altitude was not extracted
+    selected_alt_missing: float = 0.03
 
 
 def quantise(values: ArrayLike, column: str) -> F64:
@@ -151,6 +169,22 @@ def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generato
     return table.filter(pl.Series(ok))
 
 
+def selected_altitude(traj: Trajectories, aircraft: ArrayLike, rng: np.random.Generator,
+                      missing: float = EhsConfig.selected_alt_missing) -> F64:
+    """BDS 4,0 selected altitude (m) of ``aircraft`` (indices into ``traj``) as extracted with
+    each reply: the crew's selection (``traj.selected_alt_m``, NaN where none) rounded to 16 ft
+    and clipped to the field; NaN for a fraction ``missing`` of replies (one draw per reply from
+    ``rng``) and for trajectories without selected altitudes."""
+    aircraft = np.asarray(aircraft, np.int64)
+    lost = rng.random(aircraft.shape) < missing
+    sel = getattr(traj, "selected_alt_m", None)
+    if sel is None:
+        return np.full(aircraft.shape, np.nan)
+    lsb, lo, hi = SELECTED_ALT_RESOLUTION
+    value = np.clip(np.round(np.asarray(sel, float)[aircraft] / lsb) * lsb, lo, hi)
+    return np.where(lost, np.nan, value)
+
+
 def ehs_rng(seed: int, radar_index: int) -> np.random.Generator:
     """The EHS noise stream of one radar: child (:data:`EHS_SPAWN_KEY`, radar_index) of the
     scenario seed, independent of (and not consuming from) every other simulator stream."""
@@ -162,12 +196,17 @@ def ehs_report_columns(traj: Trajectories, aircraft: ArrayLike, t_true: ArrayLik
     """The ``reports`` EHS columns (:data:`REPORT_COLUMN` names) of one radar's plots: the
     parameters extracted (Comm-B) with each reply whose Mode S address was decoded
     (``replied``), sampled at the true illumination time ``t_true`` (s after the epoch); NaN for
-    clutter, non-Mode-S replies and times off the trajectory."""
+    clutter, non-Mode-S replies and times off the trajectory. With them ``selected_alt_m``
+    (BDS 4,0, :func:`selected_altitude`; its draws follow the BDS 5,0/6,0 noise in ``rng``, so
+    those columns do not depend on it)."""
     aircraft = np.asarray(aircraft, np.int64)
     sel = np.flatnonzero(np.asarray(replied, bool) & (aircraft >= 0))
     out = {REPORT_COLUMN[c]: np.full(len(aircraft), np.nan) for c in EHS_COLUMNS}
+    out[SELECTED_ALT_COLUMN] = np.full(len(aircraft), np.nan)
     if sel.size:
         values, ok = ehs_parameters(traj, aircraft[sel], np.asarray(t_true, float)[sel], rng, cfg)
         for c in EHS_COLUMNS:
             out[REPORT_COLUMN[c]][sel] = np.where(ok, values[c], np.nan)
+        selected = selected_altitude(traj, aircraft[sel], rng, cfg.selected_alt_missing)
+        out[SELECTED_ALT_COLUMN][sel] = np.where(ok, selected, np.nan)
     return out

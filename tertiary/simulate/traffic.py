@@ -32,6 +32,17 @@ System frame x east, y north; runway 27 at the origin (threshold (1 500, 0), lan
 
 Vertical bands: departures ≤ FL70, arrivals ≤ FL100, holding and pairs FL110–FL140 (north /
 south), overflights ≥ FL150 — so the only losses of separation are the designed conflicts.
+
+Selected altitude (what the crew set on the MCP/FCU, downlinked in Mode S EHS BDS 4,0:
+:class:`TrafficTrajectories`). It is the clearance the generator flies each aircraft to —
+never read off the future trajectory: departures the SID top (FL70), arrivals 3 000 ft (the
+level they descend to, also the missed-approach altitude once on the glide path), overflights,
+holding aircraft and designed pairs their level. A level bust is modelled with its most common
+real cause, a wrong level selected: by default (``TrafficConfig.bust_selected = "flown"``) the
+busting aircraft's selected altitude is the level it climbs to (100–250 ft under the occupied
+level); ``"cleared"`` keeps the level it was cleared to (the one below: an autopilot/handling
+bust with a correct selection). A fraction ``1 − selected_alt_fraction`` of the aircraft do not
+downlink it (NaN).
 Heights are geodetic (= pressure altitude in a standard atmosphere) and converted to the
 tangent-plane z exactly (:func:`heights_to_enu`), level flight is level in height.
 """
@@ -49,6 +60,18 @@ from tertiary.errors import OptionError
 from tertiary.simulate.config import TrafficConfig
 from tertiary.simulate.trajectory import (SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT, SEG_TURN,
                                           Trajectories, integrate_commands)
+
+
+
+@dataclass
+class TrafficTrajectories(Trajectories):
+    """Truth plus each aircraft's selected altitude ``selected_alt_m`` (A,): the MCP/FCU level
+    its crew set (pressure-altitude reference of the truth's ``alt_m``, m; NaN: none downlinked).
+    The aircraft's intent, not its future: the level the generator clears it to (module
+    docstring). Read by the EHS simulator (:mod:`tertiary.simulate.ehs`, BDS 4,0) only."""
+
+    selected_alt_m: NDArray[np.float64] | None = None
+
 
 # --------------------------------------------------------------------------- big box
 
@@ -106,6 +129,9 @@ DEPARTURES = (((-1000.0, 0.0), (-62_000.0, 0.0)),
 DEPARTURE_DELAY_S = 20.0              # lift-off after the landing of the same slot
 SID_TOP_FL = 70
 ARRIVAL_TOP_FL = 100
+#: arrivals are cleared to 3 000 ft (the level segment before the glide path; also the
+#: missed-approach altitude they keep selected on the glide path)
+ARRIVAL_CLEARED_M = 3000.0 * 0.3048
 #: airways: (track deg, a point on it, speed m/s, flight levels) — odd FL eastbound, even westbound
 AIRWAYS = ((75.0, (0.0, 10_000.0), 230.0, (150, 190, 230, 270, 310, 350, 390)),
            (120.0, (0.0, -10_000.0), 220.0, (170, 210, 250, 290, 330, 370)),
@@ -494,11 +520,13 @@ def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArr
 
 def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: float, duration_s: float):
     """Designed pairs, straight with constant speed (kinds 0 crossing, 1 converging, 2 level
-    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role."""
+    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role and
+    the selected altitude (height, m) of each aircraft."""
     n_p = n_conf + n_near
     if n_p == 0:
         z = np.zeros((0, steps + 1))
-        return np.zeros((0, steps + 1, 3)), np.zeros((0, steps + 1, 3)), z.astype(bool), z.astype(np.int8), np.zeros(0, str)
+        return (np.zeros((0, steps + 1, 3)), np.zeros((0, steps + 1, 3)), z.astype(bool), z.astype(np.int8),
+                np.zeros(0, str), np.zeros(0))
     t_c = np.concatenate([np.linspace(0.2, 0.8, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
                           rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
     t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
@@ -545,7 +573,11 @@ def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: fl
     seg = np.where(vz_s > 0, SEG_CLIMB, SEG_STRAIGHT).astype(np.int8)
     names = np.array(["conflict-crossing", "conflict-converging", "conflict-level-bust", "near-miss"])
     role = np.concatenate([names[kind], names[kind]])
-    return pos, vel, active, seg, role
+    # selected altitude: each aircraft's level; a bust selected wrong (the level it climbs to) or
+    # right (its cleared level below), TrafficConfig.bust_selected
+    bust_sel = z_b + climb if cfg.bust_selected == "flown" else z_b
+    selected = np.concatenate([z_a, np.where(kind == 2, bust_sel, z_b)])
+    return pos, vel, active, seg, role, selected
 
 
 def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
@@ -563,7 +595,8 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     ra = _route_aircraft(rng, cfg, tpl, kinds, counts, duration_s, dt)
     entry = np.round(ra["entry"] / dt).astype(np.int64)
     pos_r, vel_r, act_r, seg_r = _gather(tpl, ra["route"], entry, ra["zoff"], steps, dt)
-    pos_p, vel_p, act_p, seg_p, role_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt, duration_s)
+    pos_p, vel_p, act_p, seg_p, role_p, sel_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt,
+                                                       duration_s)
     pos = np.concatenate([pos_r, pos_p])
     vel = np.concatenate([vel_r, vel_p])
     active = np.concatenate([act_r, act_p])
@@ -574,10 +607,24 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     has_mode_s = rng.random(n) < cfg.mode_s_fraction
     callsign = np.array([f"{p}{v:04d}" for p, v in zip(rng.choice(["AFR", "EZY", "RYR", "DLH", "BAW", "TVF"], n),
                                                          rng.integers(1, 9999, n))])
-    return Trajectories(dt=dt, pos=pos, vel=vel, active=active,
-                        segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
-                        meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
-                              "squawk": np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)])})
+    squawk = np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)])
+    # drawn last: every earlier draw (and so every other column) is the same as without it
+    downlinks = rng.random(n) < cfg.selected_alt_fraction
+    selected = np.where(downlinks, np.concatenate([_routed_selected(cfg, ra), sel_p]), np.nan)
+    return TrafficTrajectories(dt=dt, pos=pos, vel=vel, active=active,
+                               segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
+                               meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
+                                     "squawk": squawk},
+                               selected_alt_m=selected)
+
+
+def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.float64]:
+    """Selected altitude (height, m) of the procedural aircraft: the level each is cleared to —
+    departures the SID top, arrivals 3 000 ft (:func:`_arrival_profiles`), holding aircraft and
+    overflights the level they fly (their height offset ``zoff``)."""
+    role = ra["role"]
+    return np.where(role == "departure", float(flight_level_m(SID_TOP_FL, cfg.level_buffer_m)),
+                    np.where(role == "arrival", ARRIVAL_CLEARED_M, ra["zoff"]))
 
 
 # --------------------------------------------------------------------------- national day
