@@ -22,21 +22,37 @@ a radar azimuth is clockwise from north, so bearing = π/2 − azimuth. Its elev
 asin(z/ρ), the same as the radar's. Its ``rotation_offset`` angles (a, b, c) give the matrix
 Rx(−a) Ry(b) Rz(−c) that takes system-frame vectors to the site's axes (:func:`rotation_angles`).
 
-Scoring rule (both trackers, :func:`score`): every output track state at time t is labelled
-with the truth aircraft nearest to it in (x, y, reported height) at t among those within
-``--gate`` m horizontally (truth linearly interpolated on its 1 s grid; the terminal area has
-aircraft stacked on one ground track, which only height tells apart); each track belongs to
-the aircraft most of its states are labelled with, and every state is scored against its track's aircraft at t (so two aircraft
-crossing or stacked do not swap the truth under a track); a state farther than the gate from
-its aircraft, or of a track owning none, is unmatched (``states_matched_fraction``) and not in
-the RMSE. For Stone Soup the owner is checked against the majority ``truth_id`` of the
-detections that updated the track (``owner_agrees_with_detections``). Horizontal error
-Δx² + Δy²; vertical error = the tracker's reported height − true geodetic height, where the
-reported height is the tracker's own height channel when it has one (tertiary ``alt_m``), else
-the geodetic height of its 3-D position (Stone Soup); the system-frame Δz is reported too.
-RMSE over all states and over measurement-updated states only (Stone Soup ``Update``,
-tertiary ``status = confirmed``). Tracks per aircraft = tracks owning an aircraft / aircraft
-owning ≥ 1 track.
+Scoring rule (both trackers, :func:`score`): every track state at time t is labelled with the
+truth aircraft nearest to it in (x, y, reported height) at t among those within ``--gate`` m
+horizontally (truth linearly interpolated on its 1 s grid, never extrapolated: none before an
+aircraft's first sample, after its last, or after the recording's end; the terminal area has
+aircraft stacked on one ground track, which only height tells apart); each track belongs to the
+aircraft most of its states are labelled with, and every state is scored against its track's
+aircraft at t (so two aircraft crossing or stacked do not swap the truth under a track); a state
+farther than the gate from its aircraft, or of a track owning none, or at a time its aircraft
+has no truth, is unmatched (``states_matched_fraction``) and not in the RMSE. For Stone Soup
+the owner is checked against the majority ``truth_id`` of the detections that updated the
+track (``owner_agrees_with_detections``). Horizontal error Δx² + Δy²; vertical error = the
+tracker's reported height − true geodetic height, where the reported height is the tracker's
+own height channel when it has one (tertiary ``alt_m``), else the geodetic height of its 3-D
+position (Stone Soup); the system-frame Δz is reported too. Tracks per aircraft = tracks owning
+an aircraft / aircraft owning ≥ 1 track.
+
+Which states (:func:`score_all`). Headline: both pictures at the SAME instants — tertiary's
+epoch grid (:func:`picture_at`): each track alive at instant tᵢ with its latest state at or
+before tᵢ (Stone Soup: a feeder step ≤ 2·``--sync`` s old, moved to tᵢ by its own CV
+prediction; tertiary: its state at the epoch, itself predicted from its last measurement's time
+epoch − age). "Updated" = the track's last measurement update is within the preceding epoch
+period (Stone Soup: an ``Update``; tertiary: status ``confirmed`` with a fused plot holding a
+fresh measurement, ``fused.n_fresh`` > 0). Also reported: ``own_times`` — each tracker at its own
+state times (Stone Soup every feeder step, its updates at the plot's own time with no
+prediction; tertiary at its epochs) — and ``legacy``, the superseded rule behind the results
+before 2026-11-25, which (i) held the truth at an aircraft's last sample past the end of the
+recording, so tertiary's states at the epochs after the last report (radar tracks extrapolated
+up to 1.5 scans) were scored against where the aircraft had been up to 13 s earlier, within the
+1 km gate, and (ii) counted a tertiary track holding a plot without a fresh measurement as
+updated. On the 180 s / 50-aircraft run these two alone made tertiary's horizontal RMSE 85.5 m
+instead of 41 m.
 
     python benchmarks/bench_stonesoup.py [--duration 900] [--aircraft 200] [--workdir DIR]
 """
@@ -60,10 +76,15 @@ from _util import record, run_isolated  # noqa: E402
 from tertiary import geo  # noqa: E402
 
 BENCH_DIR = Path(__file__).resolve().parent
-SCORING_RULE = ("each state labelled with the truth aircraft nearest in (x, y, reported height) among those within "
-                "the gate horizontally; each track owned by its majority label; every state scored against its "
-                "track's owner at its time (unmatched beyond the gate); vertical = reported height (tertiary alt_m, "
-                "Stone Soup geodetic height of its 3-D state) - true geodetic height")
+#: the scoring rule's version recorded with every run (earlier runs: the superseded rule, see score_all)
+RULE_VERSION = "2026-11-25 common instants, truth never extrapolated, updated = fresh measurement"
+SCORING_RULE = ("both pictures at the same instants (tertiary's epoch grid; Stone Soup's latest state moved to the "
+                "instant by its own CV prediction); each state labelled with the truth aircraft nearest in (x, y, "
+                "reported height) among those within the gate horizontally; each track owned by its majority label; "
+                "every state scored against its track's owner at its time (unmatched beyond the gate or where the "
+                "owner has no truth: truth is interpolated, never extrapolated); updated = last measurement update "
+                "within the preceding epoch period; vertical = reported height (tertiary alt_m, Stone Soup geodetic "
+                "height of its 3-D state) - true geodetic height")
 
 
 # --------------------------------------------------------------------------- conversions (numpy only)
@@ -166,27 +187,36 @@ def truth_grid(truth: pl.DataFrame, t0) -> TruthGrid:
     return TruthGrid(ids, ts, p)
 
 
-def _interp(grid: TruthGrid, a: np.ndarray | slice, t: np.ndarray) -> np.ndarray:
-    """Truth of aircraft ``a`` at times ``t``: linear between grid samples; at the ends of a life
-    (one neighbour inactive) the active neighbour; NaN where neither is. ``a`` a slice gives
-    (A, n, 4) for every aircraft, an index array (n,) gives (n, 4) for one aircraft per time."""
+def _interp(grid: TruthGrid, a: np.ndarray | slice, t: np.ndarray, strict: bool = True) -> np.ndarray:
+    """Truth of aircraft ``a`` at times ``t``: linear between two active grid samples, the
+    sample itself at a sample time; NaN elsewhere — before the first or after the last sample
+    of the aircraft's life, and after the end of the truth grid (``strict``, the scoring rule:
+    truth is never extrapolated). ``strict=False`` is the superseded rule (results before
+    2026-11-25): at the ends of a life the active neighbour, and beyond the end of the grid its
+    last sample, so a track state after the recording's end was compared with the aircraft
+    where it was seconds earlier. ``a`` a slice gives (A, n, 4) for every aircraft, an index
+    array (n,) gives (n, 4) for one aircraft per time."""
     k = np.clip(np.searchsorted(grid.t, t, side="right") - 1, 0, len(grid.t) - 1)
     k1 = np.minimum(k + 1, len(grid.t) - 1)
     span = grid.t[k1] - grid.t[k]
     w = np.where(span > 0, (t - grid.t[k]) / np.where(span > 0, span, 1.0), 0.0)[..., None]
     lo, hi = grid.p[a, k], grid.p[a, k1]
     mix = (1 - w) * lo + w * hi
+    if strict:
+        on_sample = (t == grid.t[k])[..., None]
+        inside = ((t >= grid.t[k]) & (t <= grid.t[k1]) & (span > 0))[..., None]
+        return np.where(on_sample, lo, np.where(inside, mix, np.nan))   # NaN lo/hi propagate
     mix = np.where(np.isnan(lo), hi, mix)
     return np.where(np.isnan(hi), lo, mix)
 
 
-def truth_at(grid: TruthGrid, t: np.ndarray) -> np.ndarray:
+def truth_at(grid: TruthGrid, t: np.ndarray, strict: bool = True) -> np.ndarray:
     """Every aircraft's truth (A, n, 4) at times ``t`` (n,) (see :func:`_interp`)."""
-    return _interp(grid, slice(None), t)
+    return _interp(grid, slice(None), t, strict)
 
 
 def match_nearest(grid: TruthGrid, t: np.ndarray, xy: np.ndarray, gate_m: float, h: np.ndarray | None = None,
-                  chunk: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
+                  chunk: int = 20_000, strict: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """For each state (t, x, y[, reported height h]): the index into ``grid.ids`` of the nearest
     truth aircraft among those within ``gate_m`` horizontally (−1: none) and that aircraft's
     truth (n, 4) (NaN: none). Nearest in (x, y, h) when ``h`` is given, so that aircraft stacked
@@ -196,7 +226,7 @@ def match_nearest(grid: TruthGrid, t: np.ndarray, xy: np.ndarray, gate_m: float,
     tru = np.full((n, 4), np.nan)
     for lo in range(0, n, chunk):   # chunks bound the (A, chunk, 4) interpolation
         hi = min(lo + chunk, n)
-        at = truth_at(grid, t[lo:hi])
+        at = truth_at(grid, t[lo:hi], strict)
         d2 = (at[..., 0] - xy[None, lo:hi, 0]) ** 2 + (at[..., 1] - xy[None, lo:hi, 1]) ** 2
         d2 = np.where(np.isnan(d2), np.inf, d2)
         rank = d2 if h is None else d2 + np.nan_to_num((at[..., 3] - h[None, lo:hi]) ** 2, nan=0.0)
@@ -225,20 +255,21 @@ def _rmse(e2: np.ndarray) -> float | None:
     return float(np.sqrt(e2.mean())) if len(e2) else None
 
 
-def score(states: pl.DataFrame, grid: TruthGrid, gate_m: float = 1000.0) -> dict:
+def score(states: pl.DataFrame, grid: TruthGrid, gate_m: float = 1000.0, strict: bool = True) -> dict:
     """Score track states (track_id, t [s on the grid's clock], x_m, y_m, z_m, h_m reported
     height, updated bool) against truth with the module's one rule: label each state with the
     aircraft nearest in (x, y, reported height) among those within the gate horizontally, give
     each track the aircraft most of its states were labelled with (:func:`owners`), then score
     every state of a track against its owner's truth at the state's time; a state more than the
-    gate from its owner (or whose track owns none) is unmatched and not in the RMSE."""
+    gate from its owner (or whose track owns none, or whose owner has no truth at that time) is
+    unmatched and not in the RMSE. ``strict=False``: the superseded truth rule (:func:`_interp`)."""
     t = states["t"].to_numpy()
     xyz = states.select("x_m", "y_m", "z_m").to_numpy()
-    idx, _ = match_nearest(grid, t, xyz[:, :2], gate_m, states["h_m"].to_numpy())
+    idx, _ = match_nearest(grid, t, xyz[:, :2], gate_m, states["h_m"].to_numpy(), strict=strict)
     own, table = owners(states["track_id"].to_numpy(), idx)
     tru = np.full((len(t), 4), np.nan)
     has = own >= 0
-    tru[has] = _interp(grid, own[has], t[has])
+    tru[has] = _interp(grid, own[has], t[has], strict)
     e2_h = ((xyz[:, :2] - tru[:, :2]) ** 2).sum(axis=1)
     ok = e2_h <= gate_m ** 2            # NaN (no owner / owner not alive) compares False
     e2_h = np.where(ok, e2_h, np.nan)
@@ -253,6 +284,43 @@ def score(states: pl.DataFrame, grid: TruthGrid, gate_m: float = 1000.0) -> dict
     if "truth_id" in states.columns:   # Stone Soup: the truth ids its updates' detections carried
         out["owner_agrees_with_detections"] = detection_agreement(states, table, grid)
     return out
+
+
+def picture_at(states: pl.DataFrame, instants: np.ndarray, max_age_s: float, period_s: float) -> pl.DataFrame:
+    """Each tracker's picture at common instants (the scoring rule's times): for every track
+    alive at instant tᵢ, its latest state at t ≤ tᵢ no older than ``max_age_s``, moved to tᵢ
+    with its own velocity (its constant-velocity prediction over tᵢ − t); ``updated`` when the
+    track's last measurement update is within (tᵢ − ``period_s``, tᵢ]. ``states``: track_id,
+    t, x_m, y_m, z_m, h_m, updated and vx_mps, vy_mps, vz_mps. Without velocity columns (Stone
+    Soup outputs written before 2026-11-25) each state's velocity is recovered from its
+    constant-velocity predictions: (x_{k+1} − x_k)/Δt when state k+1 is a prediction of state
+    k (exact), else (x_k − x_{k−1})/Δt when state k is itself a prediction, else the latter
+    difference as an approximation."""
+    f = states.sort("track_id", "t")
+    if not {"vx_mps", "vy_mps", "vz_mps"} <= set(f.columns):
+        nxt_pred = ~pl.col("updated").shift(-1).over("track_id").fill_null(True)
+        fwd_dt, back_dt = pl.col("t").diff(-1).over("track_id") * -1.0, pl.col("t").diff().over("track_id")
+        f = f.with_columns(*(
+            pl.when(nxt_pred & (fwd_dt > 0)).then(pl.col(c).diff(-1).over("track_id") * -1.0 / fwd_dt)
+            .when(back_dt > 0).then(pl.col(c).diff().over("track_id") / back_dt)
+            .otherwise(0.0).fill_nan(0.0).fill_null(0.0).alias(v)
+            for c, v in (("x_m", "vx_mps"), ("y_m", "vy_mps"), ("z_m", "vz_mps"))))
+    f = f.with_columns(pl.when(pl.col("updated")).then(pl.col("t")).forward_fill().over("track_id").alias("t_upd"))
+    life = f.group_by("track_id").agg(pl.col("t").min().alias("t_first"), pl.col("t").max().alias("t_last"))
+    at = (life.join(pl.DataFrame({"t_i": np.asarray(instants, float)}), how="cross")
+          .filter((pl.col("t_i") >= pl.col("t_first")) & (pl.col("t_i") <= pl.col("t_last") + max_age_s))
+          .select("track_id", "t_i").sort("t_i"))
+    # both sides sorted by their time globally, hence within every track (polars cannot check
+    # sortedness per ``by`` group itself)
+    j = at.join_asof(f.select("track_id", "t", "x_m", "y_m", "z_m", "h_m", "vx_mps", "vy_mps", "vz_mps", "t_upd")
+                     .sort("t"), left_on="t_i", right_on="t", by="track_id", strategy="backward",
+                     check_sortedness=False)
+    j = j.filter(pl.col("t").is_not_null() & (pl.col("t_i") - pl.col("t") <= max_age_s + 1e-9))
+    d = pl.col("t_i") - pl.col("t")
+    return j.select("track_id", pl.col("t_i").alias("t"), pl.col("x_m") + pl.col("vx_mps") * d,
+                    pl.col("y_m") + pl.col("vy_mps") * d, pl.col("z_m") + pl.col("vz_mps") * d,
+                    pl.col("h_m") + pl.col("vz_mps") * d,
+                    (pl.col("t_upd").is_not_null() & (pl.col("t_i") - pl.col("t_upd") < period_s)).alias("updated"))
 
 
 def detection_agreement(states: pl.DataFrame, table: pl.DataFrame, grid: TruthGrid) -> float | None:
@@ -352,12 +420,12 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
     tracks: set = set()
     for _, current in tracker:
         tracks |= current
-    rows = [(k, s.timestamp, float(s.state_vector[0, 0]), float(s.state_vector[2, 0]),
-             float(s.state_vector[4, 0]), isinstance(s, Update),
+    rows = [(k, s.timestamp, *(float(s.state_vector[i, 0]) for i in range(6)), isinstance(s, Update),
              s.hypothesis.measurement.metadata.get("truth_id") if isinstance(s, Update) else None)
             for k, tr in enumerate(tracks) for s in tr.states]
     frame = pl.DataFrame(rows, schema={"track_id": pl.Int64, "time": pl.Datetime("us", "UTC"), "x_m": pl.Float64,
-                                       "y_m": pl.Float64, "z_m": pl.Float64, "updated": pl.Boolean,
+                                       "vx_mps": pl.Float64, "y_m": pl.Float64, "vy_mps": pl.Float64,
+                                       "z_m": pl.Float64, "vz_mps": pl.Float64, "updated": pl.Boolean,
                                        "truth_id": pl.Int64}, orient="row")
     frame.write_parquet(out)
     wall = time.perf_counter() - t_start
@@ -434,15 +502,35 @@ def stonesoup_states(path: Path, t0, system: geo.LocalFrame) -> pl.DataFrame:
 
 def tertiary_states(db: str, t0, system: geo.LocalFrame) -> pl.DataFrame:
     """tertiary's information+imm_sym track rows with the scoring columns; reported height =
-    the tracks' height channel ``alt_m`` (the geodetic height of z where it is null)."""
+    the tracks' height channel ``alt_m`` (the geodetic height of z where it is null).
+    ``updated``: the track took a plot at this epoch (status ``confirmed``) AND that fused plot
+    held a fresh measurement (``fused.n_fresh`` > 0): a plot that only re-extrapolates the
+    radars' tracks holds a track without updating it (tertiary.tracker). ``confirmed``: the
+    superseded definition (status only)."""
     import duckdb
     with duckdb.connect(db, read_only=True) as con:
-        f = con.sql("select track_id, epoch as time, x_m, y_m, z_m, alt_m, status from tracks "
-                    "where method = 'information' and filter = 'imm_sym'").pl()
+        f = con.sql("select track_id, epoch as time, x_m, y_m, z_m, vx_mps, vy_mps, vz_mps, alt_m, status, "
+                    "plot_target_id from tracks where method = 'information' and filter = 'imm_sym'").pl()
+        cols = {r[0] for r in con.sql("describe fused").fetchall()}
+        fresh = (con.sql("select epoch as time, target_id as plot_target_id, n_fresh > 0 as fresh from fused "
+                         "where method = 'information'").pl() if "n_fresh" in cols else None)
+    if fresh is not None:
+        f = f.join(fresh, on=["time", "plot_target_id"], how="left", maintain_order="left")
+    else:
+        f = f.with_columns(pl.lit(True).alias("fresh"))
     h_geo = system.to_geodetic(*f.select("x_m", "y_m", "z_m").to_numpy().T)[2]
+    confirmed = pl.col("status") == "confirmed"
     return f.with_columns(seconds("time", t0).alias("t"),
                           pl.col("alt_m").fill_null(pl.Series(h_geo)).alias("h_m"),
-                          (pl.col("status") == "confirmed").alias("updated"))
+                          confirmed.alias("confirmed"), (confirmed & pl.col("fresh").fill_null(False)).alias("updated"))
+
+
+def picture_instants(db: str, t0) -> np.ndarray:
+    """The common scoring instants: tertiary's epoch grid (every epoch of its fused output), s."""
+    import duckdb
+    with duckdb.connect(db, read_only=True) as con:
+        ep = con.sql("select distinct epoch as time from fused order by 1").pl()
+    return ep.select(seconds("time", t0)).to_series().to_numpy()
 
 
 def main() -> None:
@@ -461,6 +549,8 @@ def main() -> None:
                     help="Stone Soup processes only the first S seconds of reports (its cost grows with tracks x "
                          "detections); both trackers are then scored on that window only")
     ap.add_argument("--rescore", action="store_true", help="re-score the jobs already run in --workdir")
+    ap.add_argument("--rerun-tertiary", action="store_true",
+                    help="re-run only the tertiary job, re-score with the Stone Soup job already run in --workdir")
     ap.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/bench_stonesoup.json")
     args = ap.parse_args()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_stonesoup_"))
@@ -468,8 +558,12 @@ def main() -> None:
     data = make_dataset(work / f"ta_{int(args.duration)}s_{args.aircraft}ac", args.duration, args.aircraft, args.seed)
 
     ss_out, jobs = work / "stonesoup_states.parquet", work / "jobs.json"
-    if args.rescore:   # score the outputs of an earlier invocation again (development)
+    if args.rescore or args.rerun_tertiary:   # score the outputs of an earlier invocation again (development)
         ss, te = json.loads(jobs.read_text())
+        if args.rerun_tertiary:
+            te = run_isolated(TERTIARY_CODE.format(dataset=str(data), out=str(work / "tertiary_run"),
+                                                   centralized=args.centralized))
+            jobs.write_text(json.dumps([ss, te]))
     else:
         ss = run_isolated(STONESOUP_CODE.format(bench=str(BENCH_DIR), dataset=str(data), out=str(ss_out), q=args.q,
                                                 sync=args.sync, delete_after=args.delete_after,
@@ -483,10 +577,12 @@ def main() -> None:
     t0 = ds.truth["time"].min()
     grid = truth_grid(ds.truth, t0)
     ss_states, te_states = stonesoup_states(ss_out, t0, ds.origin), tertiary_states(te["db"], t0, ds.origin)
+    instants = picture_instants(te["db"], t0)
     if args.stonesoup_seconds is not None:   # the same window for both
         t_end = ds.reports.select(seconds("time", t0).min()).item() + args.stonesoup_seconds
         te_states = te_states.filter(pl.col("t") < t_end)
-    ss_score, te_score = score(ss_states, grid, args.gate), score(te_states, grid, args.gate)
+        instants = instants[instants < t_end]
+    ss_score, te_score = score_all(ss_states, te_states, instants, grid, args.gate, args.sync)
     detected = ds.reports["truth_id"].drop_nulls().filter(ds.reports["truth_id"].drop_nulls() >= 0).n_unique()
     for s in (ss_score, te_score):
         s["aircraft_detected"] = detected
@@ -502,7 +598,7 @@ def main() -> None:
         "tertiary": {"wall_s": te["wall_s"], "reports_per_s": te_rate, "peak_rss_mib": te["peak_rss_mib"],
                      "config": {"methods": ["information"], "filters": ["imm_sym"],
                                 "centralized": args.centralized, "conflicts": True, "store": True}, **te_score},
-        "ratio": te_rate / ss_rate, "scoring_gate_m": args.gate,
+        "ratio": te_rate / ss_rate, "scoring_gate_m": args.gate, "scoring_rule_version": RULE_VERSION,
     }
     tag = f"{int(args.duration)}s_{args.aircraft}ac" + (f"_window{int(args.stonesoup_seconds)}s"
                                                         if args.stonesoup_seconds is not None else "")
@@ -511,17 +607,47 @@ def main() -> None:
     print(json.dumps(result, indent=2))
 
 
+def score_all(ss_states: pl.DataFrame, te_states: pl.DataFrame, instants: np.ndarray, grid: TruthGrid,
+              gate_m: float, sync_s: float) -> tuple[dict, dict]:
+    """Both trackers scored with the same rules: the headline at common instants
+    (:func:`picture_at` on tertiary's epoch grid: Stone Soup's latest state ≤ 2 feeder windows
+    old, moved to the instant by its own CV prediction; tertiary's state at the epoch),
+    ``own_times`` at each tracker's own state times, and ``legacy`` — the superseded rule
+    (truth held at the ends of lives and past the end of the recording; tertiary "updated" =
+    status confirmed) that produced the results before 2026-11-25."""
+    period = float(np.median(np.diff(instants))) if len(instants) > 1 else 1.0
+    out = []
+    for states, max_age in ((ss_states, 2.0 * sync_s), (te_states, 0.0)):
+        s = score(picture_at(states, instants, max_age, period), grid, gate_m)
+        own = score(states, grid, gate_m)
+        legacy_states = states.with_columns(pl.col("confirmed").alias("updated")) if "confirmed" in states.columns \
+            else states
+        legacy = score(legacy_states, grid, gate_m, strict=False)
+        if "owner_agrees_with_detections" in own:
+            s["owner_agrees_with_detections"] = own.pop("owner_agrees_with_detections")
+            legacy.pop("owner_agrees_with_detections", None)
+        out.append({**s, "picture_period_s": period, "own_times": own, "legacy": legacy})
+    return out[0], out[1]
+
+
 def summary(tag: str, result: dict) -> dict:
     """The results file: every measured size under ``runs`` (earlier ones kept), the headline
     names from the largest complete run (Stone Soup over the whole recording), else this one."""
     path = BENCH_DIR / "results" / "bench_stonesoup.json"
     runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
+    for r in runs.values():   # earlier runs keep their figures, marked with the rule that made them
+        r.setdefault("scoring_rule_version", "legacy (superseded: truth held past the recording's end, "
+                                             "tertiary updated = status confirmed)")
     runs[tag] = result
-    complete = [r for r in runs.values() if r["scenario"]["stonesoup_window_s"] is None]
+    complete = [r for r in runs.values() if r["scenario"]["stonesoup_window_s"] is None
+                and r["scoring_rule_version"] == RULE_VERSION]
     head = max(complete, key=lambda r: r["scenario"]["reports"]) if complete else result
-    rmse = lambda r: {"horizontal": r["rmse_horizontal_m"], "vertical": r["rmse_vertical_m"],  # noqa: E731
-                      "horizontal_updated": r["rmse_horizontal_updated_m"],
-                      "vertical_updated": r["rmse_vertical_updated_m"]}
+    def rmse(r: dict) -> dict:
+        one = lambda d: {"horizontal": d["rmse_horizontal_m"], "vertical": d["rmse_vertical_m"],  # noqa: E731
+                         "horizontal_updated": d["rmse_horizontal_updated_m"],
+                         "vertical_updated": d["rmse_vertical_updated_m"]}
+        return {**one(r), **({"own_times": one(r["own_times"]), "legacy": one(r["legacy"])} if "legacy" in r else {})}
+
     return {"headline_run": next(k for k, v in runs.items() if v is head),
             "tertiary_reports_per_s": head["tertiary"]["reports_per_s"],
             "stonesoup_reports_per_s": head["stonesoup"]["reports_per_s"], "ratio": head["ratio"],

@@ -27,9 +27,13 @@ associates by position only); they are reported per row as ``plot_target_id`` so
 evaluation can find the plot's truth. Track output is reported at the epoch (predicted from
 the measurement time) with ``cov_diag`` and the full 6×6 ``cov``.
 
-Output is the ``tracks`` table plus ``status`` ("confirmed": updated with a plot at this
-epoch — including the confirmation epoch — or "coasting": predicted only, memory mode) and
-``plot_target_id`` (the fused target the track was updated with, null when coasting).
+Output is the ``tracks`` table plus ``status`` ("confirmed": the track took a plot at this
+epoch — including the confirmation epoch —, or "coasting": no plot, predicted only, memory
+mode) and ``plot_target_id`` (the fused target the track took, null when coasting). A
+confirmed row is a *measurement update* only when its plot holds a fresh measurement (fused
+``n_fresh`` > 0; its ``nis`` is then finite); a plot without one holds the track, un-updated
+(NaN ``innovation``/``nis``), so "confirmed" alone does not mean "updated" (a scorer of
+updated states must check the plot's freshness, as benchmarks/bench_stonesoup.py does).
 Tentative tracks are not emitted.
 
 Per epoch (one loop over the epochs; everything inside vectorised over tracks × runs):

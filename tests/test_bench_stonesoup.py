@@ -158,3 +158,103 @@ def test_stacked_aircraft_are_told_apart_by_reported_height():
     states = pl.DataFrame({"track_id": [7, 7], "t": [3.0, 4.0], "x_m": [300.0, 400.0], "y_m": [0.0, 0.0],
                            "z_m": [9000.0, 9000.0], "h_m": [9010.0, 9010.0], "updated": [True, True]})
     assert bench.score(states, grid, 1000.0)["rmse_vertical_m"] == pytest.approx(10.0)
+
+
+# --------------------------------------------------------------------------- corrected rules (2026-11-25)
+
+
+def test_truth_is_never_extrapolated_past_a_life_or_the_recording():
+    """A's truth ends at t = 10 s (the recording's end), B's starts at t = 2 s. A state at
+    10.5 s has no truth (the superseded rule compared it with A at 10 s, 50 m behind); nor has
+    B at 1.5 s (the superseded rule used B at 2 s)."""
+    grid = bench.truth_grid(_truth(), T0)
+    at = bench.truth_at(grid, np.array([1.5, 10.0, 10.5, 12.0]))
+    assert np.isnan(at[0, 2:]).all() and at[0, 1, 0] == pytest.approx(1000.0)
+    assert np.isnan(at[1, 0]).all() and at[1, 1, 1] == pytest.approx(500.0)
+    legacy = bench.truth_at(grid, np.array([1.5, 10.5]), strict=False)
+    assert legacy[0, 1, 0] == pytest.approx(1000.0) and legacy[1, 0, 1] == pytest.approx(100.0)
+
+
+def test_states_after_the_recording_are_unmatched_not_scored_against_stale_truth():
+    """A track on A with a 10 m error, held 5 s past the end of the truth at 100 m/s: those
+    states are unmatched (they used to count with errors of 100–500 m, inside the gate)."""
+    grid = bench.truth_grid(_truth(), T0)
+    t = np.arange(4.0, 16.0)
+    states = pl.DataFrame({"track_id": [1] * len(t), "t": t, "x_m": 100.0 * t, "y_m": np.full(len(t), 10.0),
+                           "z_m": np.full(len(t), 3000.0), "h_m": np.full(len(t), 3000.0),
+                           "updated": np.ones(len(t), bool)})
+    s = bench.score(states, grid, 1000.0)
+    assert s["rmse_horizontal_m"] == pytest.approx(10.0)
+    assert s["states_matched_fraction"] == pytest.approx(7 / 12)
+    old = bench.score(states, grid, 1000.0, strict=False)
+    assert old["rmse_horizontal_m"] > 150.0
+
+
+def _ss_track(t: np.ndarray, vx: float, updated: np.ndarray, track_id: int = 1, x0: float = 0.0) -> pl.DataFrame:
+    return pl.DataFrame({"track_id": np.full(len(t), track_id), "t": t, "x_m": x0 + vx * t, "y_m": np.zeros(len(t)),
+                         "z_m": np.full(len(t), 3000.0), "h_m": np.full(len(t), 3000.0), "vx_mps": np.full(len(t), vx),
+                         "vy_mps": np.zeros(len(t)), "vz_mps": np.zeros(len(t)), "updated": updated})
+
+
+def test_picture_moves_the_latest_state_to_the_instant_and_dates_the_last_update():
+    """States every 0.25 s from 1.0 to 6.0 s, updates at 1.0 and 2.1 s only: at the instants
+    0, 4, 8 the track is absent before its first state and after max_age; at 4.0 its latest
+    state (4.0) is taken; at 6.3 (0.3 s after its last state) it is moved 0.3 s along; updated
+    only while the last update is within the period."""
+    t = np.r_[np.arange(1.0, 6.01, 0.25), 2.1]
+    upd = np.isin(t, [1.0, 2.1])
+    pic = bench.picture_at(_ss_track(t, 100.0, upd), np.array([0.0, 4.0, 5.0, 6.3, 8.0]), max_age_s=0.5,
+                           period_s=4.0).sort("t")
+    assert pic["t"].to_list() == [4.0, 5.0, 6.3]
+    np.testing.assert_allclose(pic["x_m"].to_numpy(), [400.0, 500.0, 630.0])
+    assert pic["updated"].to_list() == [True, True, False]          # 6.3 − 2.1 ≥ 4 s
+
+
+def test_picture_recovers_velocity_from_predictions_when_not_stored():
+    """An output without velocity columns: each state's velocity comes from the CV prediction
+    that follows it (exact), not from a difference across an update's jump."""
+    t = np.arange(0.0, 3.01, 0.25)
+    f = _ss_track(t, 80.0, np.zeros(len(t), bool))
+    x = f["x_m"].to_numpy().copy()
+    x[8:] += 40.0                                        # an update at t = 2.0 moved the track 40 m
+    upd = np.zeros(len(t), bool)
+    upd[8] = True
+    g = f.with_columns(pl.Series("x_m", x), pl.Series("updated", upd)).drop("vx_mps", "vy_mps", "vz_mps")
+    pic = bench.picture_at(g, np.array([2.2]), max_age_s=0.5, period_s=4.0)
+    assert pic["x_m"].item() == pytest.approx(80.0 * 2.2 + 40.0)    # backward difference: +32 m
+
+
+def test_picture_scores_both_trackers_at_the_same_instants():
+    """One rule for both: a tertiary-like track at 4 s epochs and a Stone Soup-like track at
+    0.25 s steps on the same aircraft, both 20 m off, give the same picture RMSE."""
+    grid = bench.truth_grid(_truth(), T0)
+    inst = np.array([2.0, 6.0, 10.0])
+    fine = np.arange(0.0, 10.01, 0.25)
+    ss = _ss_track(fine, 100.0, np.ones(len(fine), bool), x0=20.0)
+    te = _ss_track(inst, 100.0, np.ones(len(inst), bool), x0=20.0)
+    a = bench.score(bench.picture_at(ss, inst, 0.5, 4.0), grid, 1000.0)
+    b = bench.score(bench.picture_at(te, inst, 0.0, 4.0), grid, 1000.0)
+    assert a["states"] == b["states"] == 3
+    assert a["rmse_horizontal_m"] == pytest.approx(20.0) and b["rmse_horizontal_m"] == pytest.approx(20.0)
+
+
+def test_tertiary_updated_needs_a_fresh_measurement(tmp_path):
+    """A track row holding a plot with no fresh measurement (n_fresh = 0) is confirmed but not
+    measurement-updated; the superseded definition kept it as updated."""
+    import duckdb
+    ep = [T0 + timedelta(seconds=4 * k) for k in range(3)]
+    tracks = pl.DataFrame({"track_id": [1, 1, 1], "epoch": ep, "x_m": [0.0, 400.0, 800.0], "y_m": [0.0] * 3,
+                           "z_m": [3000.0] * 3, "vx_mps": [100.0] * 3, "vy_mps": [0.0] * 3, "vz_mps": [0.0] * 3,
+                           "alt_m": [3000.0] * 3, "status": ["confirmed", "confirmed", "coasting"],
+                           "plot_target_id": [5, 5, None], "method": ["information"] * 3, "filter": ["imm_sym"] * 3})
+    fused = pl.DataFrame({"epoch": ep[:2], "target_id": [5, 5], "n_fresh": [2, 0], "method": ["information"] * 2})
+    db = str(tmp_path / "r.duckdb")
+    with duckdb.connect(db) as con:
+        con.register("t", tracks.to_arrow())
+        con.register("f", fused.to_arrow())
+        con.execute("create table tracks as select * from t")
+        con.execute("create table fused as select * from f")
+    st = bench.tertiary_states(db, T0, SYSTEM).sort("t")
+    assert st["updated"].to_list() == [True, False, False]
+    assert st["confirmed"].to_list() == [True, True, False]
+    np.testing.assert_allclose(bench.picture_instants(db, T0), [0.0, 4.0])
