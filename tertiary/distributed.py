@@ -36,6 +36,7 @@ import math
 import os
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -288,8 +289,20 @@ class UnionParts:
     def __init__(self, out: Path, n: int) -> None:
         self.out, self.n = out, n
 
-    def table(self, name: str) -> pl.DataFrame | None:
-        return self.table_where(name, None)
+    def table(self, name: str, columns: list[str] | None = None) -> pl.DataFrame | None:
+        if columns is None:
+            return self.table_where(name, None)
+        frames = [f for i in range(self.n) if (f := read_part(self.out, i, name)) is not None]
+        frames = [f.select([c for c in columns if c in f.columns]) for f in frames]
+        if not frames:
+            return None
+        return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
+
+    def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
+        """Each partition's rows of ``name``, read as they are needed."""
+        for i in range(self.n):
+            for f in _files(self.out, i, "kept", name):
+                yield pl.read_parquet(f)
 
     def table_where(self, name: str, where: pl.Expr | None) -> pl.DataFrame | None:
         """The rows of ``name`` satisfying ``where`` (every row: None), each part filtered as read."""
@@ -659,9 +672,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts)
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
-        def sink(name: str, frame: pl.DataFrame) -> None:
-            if frame.width:
-                store.write(name, pipeline._storable(frame, name, notes))
+        sink = pipeline.store_sink(store, notes)
 
         t = time.perf_counter()
         failure: Exception | None = None

@@ -280,10 +280,19 @@ class PartStore:
             shutil.rmtree(self.dir / PARTS, ignore_errors=True)
             (self.dir / STATE_FILE).unlink(missing_ok=True)
 
-    def table(self, name: str) -> pl.DataFrame | None:
-        """Every complete window's rows of ``name`` in window order (None: no part)."""
+    def table(self, name: str, columns: list[str] | None = None) -> pl.DataFrame | None:
+        """Every complete window's rows of ``name`` in window order (None: no part); ``columns``:
+        only those that the table has."""
         files = self._files(name)
-        return _concat([pl.read_parquet(f) for f in files]) if files else None
+        if not files:
+            return None
+        return _concat([pl.scan_parquet(f).select(_present(f, columns)).collect() if columns else pl.read_parquet(f)
+                        for f in files])
+
+    def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
+        """Each complete window's part of ``name`` in window order, read as it is needed."""
+        for f in self._files(name):
+            yield pl.read_parquet(f)
 
     def table_where(self, name: str, where: pl.Expr) -> pl.DataFrame | None:
         """The rows of ``name`` that satisfy ``where``, each part filtered as it is read: the
@@ -317,6 +326,11 @@ class MemoryParts:
     def table(self, name: str) -> pl.DataFrame | None:
         parts = self.frames.get(name)
         return _concat(parts) if parts else None
+
+
+def _present(path: Path, columns: list[str]) -> list[str]:
+    have = pl.read_parquet_schema(path)
+    return [c for c in columns if c in have]
 
 
 def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:

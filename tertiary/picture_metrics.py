@@ -183,12 +183,18 @@ def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = N
         out = out.with_columns(band_labels(pl.lit(rng), cfg.range_rings_m, "range", 1000.0, "km").alias("range"))
     else:
         out = out.with_columns(pl.lit(None, dtype=pl.String).alias("range"))
-    return out
+    # categorical inside the stage: a label is repeated on every (aircraft, epoch) of a run and
+    # on every copy of a breakdown (4 bytes a row, not a string); the output segments are text
+    return out.with_columns(pl.col(c).cast(pl.Categorical) for c in ("alt", "phase", "range"))
+
+
+#: segment "all", of the labels' type (categorical: see :func:`reference_labels`)
+_ALL = pl.lit("all").cast(pl.Categorical)
 
 
 def _segmented(frame: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
     """Long form: every row once with segment ``all`` and once per breakdown label it has."""
-    parts = [frame.with_columns(pl.lit("all").alias("segment"))]
+    parts = [frame.with_columns(_ALL.alias("segment"))]
     for b in breakdown:
         parts.append(frame.filter(pl.col(b).is_not_null()).with_columns(pl.col(b).alias("segment")))
     return pl.concat(parts, how="vertical")
@@ -322,7 +328,7 @@ def _count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[
     got = _segmented(events, breakdown).group_by("method", "segment").agg(
         pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name), pl.col("run").n_unique().alias("n_runs"))
     zero = base.group_by("method").agg(pl.col("run").n_unique().alias("n_runs")).with_columns(
-        pl.lit("all").alias("segment"), pl.lit(0.0).alias(name))
+        _ALL.alias("segment"), pl.lit(0.0).alias(name))
     got = pl.concat([got, zero.join(got, on=["method", "segment"], how="anti").select(got.columns)])
     return _long(got, [name])
 
@@ -389,7 +395,7 @@ def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[
     false = tracks.group_by("method").agg((~pl.col("__real")).sum().alias("__false"),
                                           pl.len().cast(pl.Float64).alias("n_tracks"))
     wide = hours.join(false, on="method").with_columns(
-        pl.lit("all").alias("segment"),
+        _ALL.alias("segment"),
         (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
         pl.col("__false").cast(pl.Float64).alias("false_tracks"))
     out = [_long(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])]
@@ -434,6 +440,6 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
     out = pl.concat(parts, how="vertical")
-    return out.select(pl.lit(STAGE).alias("stage"), "method", "metric", "segment",
+    return out.select(pl.lit(STAGE).alias("stage"), "method", "metric", pl.col("segment").cast(pl.String),
                       pl.col("value").cast(pl.Float64), pl.col("n_runs").cast(pl.UInt32)
                       ).sort("method", "metric", "segment")

@@ -654,9 +654,9 @@ class _OnDisk:
     What finalize needs of the whole table (height, pictures, target counts) is taken while it
     passes through memory on its way to the database."""
 
-    def __init__(self, parts, name: str, frame: pl.DataFrame) -> None:
+    def __init__(self, parts, name: str, frame: pl.DataFrame, empty: pl.DataFrame) -> None:
         self.parts, self.name, self.height = parts, name, frame.height
-        self.empty = frame.clear()
+        self.empty = empty
         self.keys = ["method", "filter"] if name == "tracks" else ["method"]
         self.pictures = frame.select(self.keys).unique(maintain_order=True).rows() if frame.height else []
         shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
@@ -682,6 +682,56 @@ def _table(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
     return empty if t is None else t
 
 
+#: what the whole-run stages read of ``reports`` and ``aligned`` (an on-disk run holds no more)
+_REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
+_ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
+
+
+def _table_columns(parts, name: str, columns: list[str] | None, empty: pl.DataFrame) -> pl.DataFrame:
+    t = parts.table(name, columns=columns) if columns is not None else parts.table(name)
+    if t is None:
+        return empty.select([c for c in columns if c in empty.columns]) if columns is not None else empty
+    return t
+
+
+def _schema_of(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
+    """An empty frame with the schema of the table's first part (``empty`` without one)."""
+    first = next(iter(parts.iter_parts(name)), None)
+    return empty if first is None else first.clear()
+
+
+@dataclass(frozen=True)
+class StreamedTable:
+    """A streamed table handed to a sink window by window: ``parts()`` yields each window's
+    frame, in order (an on-disk run never holds the whole table)."""
+
+    parts: Callable[[], Iterator[pl.DataFrame]]
+
+
+def _streamed(parts, name: str, empty: pl.DataFrame) -> "StreamedTable | pl.DataFrame":
+    """``name`` for a sink: its parts one at a time, or ``empty`` when no window wrote any."""
+    if next(iter(parts.iter_parts(name)), None) is None:
+        return empty
+    return StreamedTable(lambda: parts.iter_parts(name))
+
+
+def store_sink(store: RunStore, notes: list[str]) -> Sink:
+    """The sink that writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable`
+    part by part (:meth:`RunStore.write_parts`)."""
+    def storable(frame: pl.DataFrame, name: str) -> pl.DataFrame:
+        said: list[str] = []
+        out = _storable(frame, name, said)
+        notes.extend(n for n in said if n not in notes)      # once per table, not once per window
+        return out
+
+    def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        if isinstance(frame, StreamedTable):
+            store.write_parts(name, lambda: (storable(f, name) for f in frame.parts()))
+        elif frame.width:
+            store.write(name, storable(frame, name))
+    return sink
+
+
 def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts, clock: _Clock,
               sink: Sink, notes: list[str], n_in: int, t_all: float) -> Results:
     """The whole-run stages on the streamed tables: truth validation, the one evaluation stage,
@@ -689,7 +739,12 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     clock.stage(None)
     clock.prefix = "finalize:"
     clock.stage("validate")      # the truth, and the whole run's accounting
-    reports = _table(parts, "reports", schema.empty_frame("reports", False))
+    # an on-disk run keeps in memory only what the whole-run stages read, and its streamed tables
+    # go to the database one window's part at a time (issue 16, memory)
+    lean = hasattr(parts, "iter_parts")
+    empty_reports = schema.empty_frame("reports", False)
+    reports = (_table_columns(parts, "reports", _REPORT_COLUMNS, empty_reports) if lean
+               else _table(parts, "reports", empty_reports))
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                            maintain_order=True)
     truth_in = schema.as_frame(ds.truth, "truth")
@@ -699,11 +754,15 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                                           time_window=_truth_window(reports, cfg.limits))
         if rej_t.height:
             rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
+    del truth_in
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
-    for name in ("radars", "reports", "truth"):
-        sink(name, getattr(ing, name))
+    sink("radars", ing.radars)
+    sink("reports", _streamed(parts, "reports", empty_reports) if lean else reports)
+    sink("truth", truth)
     sink("rejects", rejects)
-    aligned = _table(parts, "aligned", align_stage.empty_aligned())
+    empty_aligned = align_stage.empty_aligned()
+    aligned = (_table_columns(parts, "aligned", None if cfg.radar_health else _ALIGNED_COLUMNS, empty_aligned)
+               if lean else _table(parts, "aligned", empty_aligned))
     if aligned.height == 0:
         top = (rejects.group_by("reason").len().sort("len", descending=True).head(3)
                if rejects.height else pl.DataFrame({"reason": [], "len": []}))
@@ -711,27 +770,22 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
         raise DataError(f"no valid report left: all {n_in:,} reports rejected"
                         + (f" (most common: {why})" if why else ""))
     _check_accounting(n_in, aligned, rejects)
-    sink("aligned", aligned)
-    # an on-disk run keeps in memory only what the whole-run stages read (the tables are in the
-    # database): the largest streamed tables are not held twice (issue 16, memory)
-    lean = hasattr(parts, "table_where")        # on disk: a table can be read back a picture at a time
-    if lean:
-        aligned = aligned.select(c for c in ("run", "epoch", "report_id", "radar_id", "local_track_id")
-                                 if c in aligned.columns) if not cfg.radar_health else aligned
-        ing.reports = reports = reports.select(c for c in ("run", "report_id", "radar_id", "time", "azimuth_deg",
-                                                           "truth_id", "mode_s") if c in reports.columns)
+    sink("aligned", _streamed(parts, "aligned", empty_aligned) if lean else aligned)
     tables = {}
     for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
-        frame = _table(parts, name, pl.DataFrame())
-        if name == "tracks" and frame.width == 0:
-            frame = schema.empty_frame("tracks", False)
-        if name == "conflicts" and frame.width == 0:
-            frame = schema.empty_frame("conflicts", False)
-        sink(name, frame)
-        if lean and name in ("fused", "tracks"):
-            # left on disk: evaluation reads one picture at a time, the safety stage its picture
-            frame = _OnDisk(parts, name, frame)
-        tables[name] = frame.select(frame.columns[:2]) if lean and name == "clusters" else frame
+        empty = (schema.empty_frame(name, False) if name in ("tracks", "conflicts") else pl.DataFrame())
+        if not lean or name in ("associations", "conflicts"):
+            frame = _table(parts, name, empty)
+            sink(name, _streamed(parts, name, empty) if lean else frame)
+        else:
+            sink(name, _streamed(parts, name, empty))
+            if name == "clusters":
+                frame = _table_columns(parts, name, ["run", "method"], empty)
+            else:
+                # left on disk: evaluation reads one picture at a time, the safety stage its picture
+                slim = _table_columns(parts, name, ["run", "method", "filter", "target_id", "tentative"], empty)
+                frame = _OnDisk(parts, name, slim, _schema_of(parts, name, empty))
+        tables[name] = frame
     associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
                                                                             "tracks", "conflicts"))
     stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
@@ -1034,10 +1088,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     else:
         parts = PartStore.start(out, header)
     with RunStore.create(out) as store:
-        def sink(name: str, frame: pl.DataFrame) -> None:
-            if frame.width:
-                store.write(name, _storable(frame, name, notes))
-
+        sink = store_sink(store, notes)
         try:
             res = process(ds, cfg, say, sink=sink, notes=notes, window_s=window_s, parts=parts,
                           resume_state=state, start=start)

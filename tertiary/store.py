@@ -43,7 +43,7 @@ import secrets
 import shutil
 import tempfile
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -502,6 +502,13 @@ def _column_types(con: duckdb.DuckDBPyConnection, frame: pl.DataFrame) -> dict[s
         con.unregister(view)
 
 
+def _signature(lay: _Layout) -> tuple:
+    """What decides a lean table's physical form and view: two parts with equal signatures can
+    share one physical table."""
+    return (lay.phys.schema, None if lay.shared is None else lay.shared.schema, tuple(lay.exprs.items()),
+            lay.joins_reports, lay.shared_keys)
+
+
 def _view_sql(lay: _Layout, types: dict[str, str], phys: str, shared: str | None) -> str:
     cols = ",\n       ".join(f"CAST({lay.exprs[c]} AS {types[c]}) AS {_q(c)}" for c in lay.orig.columns)
     sql = f"SELECT {cols}\nFROM {_q(phys)} AS p"
@@ -635,6 +642,66 @@ class RunStore:
             if shared is not None:
                 stmts.append(f"CREATE TABLE {_q(shared)} AS SELECT * FROM {src_s}")
             self._transaction(*stmts, f"CREATE VIEW {table} AS {view}")
+
+    def write_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> None:
+        """:meth:`write` of the concatenation of the frames ``parts()`` yields, holding one part
+        in memory at a time (a streamed table, window by window: issue 16, memory).
+
+        Each part gets its own lean layout; when every part's layout is the first one's (the
+        layout rules are row-wise checks, so this is exactly when the whole table's layout is
+        that one) the parts are appended to it in order, in one transaction: the same table as
+        :meth:`write` of the whole. Otherwise the parts are concatenated and written whole."""
+        done = self._try_parts(name, parts)
+        if not done:
+            frames = [f for f in parts() if f.width]
+            if frames:
+                self.write(name, pl.concat(frames, how="diagonal_relaxed") if len(frames) > 1 else frames[0])
+
+    def _try_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> bool:
+        it = iter(parts())
+        first = next((f for f in it if f.height), None)
+        if first is None:            # no rows: written whole (a schema-only frame, or nothing)
+            return False
+        frame = compact_covariances(first)
+        table = self._writable(name, frame)
+        lay = _lean_layout(name, frame, self._con, self._reports_for(name)) if self.lean else None
+        lean = lay is not None and lay.changed
+        phys = LEAN_PREFIX + name if lean else validate_name(name)
+        shared = f"{phys}{_ROWS_FLAG}" if lean and lay.shared is not None else None
+        sign = _signature(lay) if lean else frame.schema
+        self._con.begin()
+        try:
+            for stmt in self._drop_statements(name):
+                self._con.execute(stmt)
+            self._insert(phys, lay.phys if lean else frame, create=True)
+            if shared is not None:
+                self._insert(shared, lay.shared, create=True)
+            if lean:
+                self._con.execute(f"CREATE VIEW {table} AS "
+                                  + _view_sql(lay, _column_types(self._con, frame), phys, shared))
+            del first, frame
+            for part in it:
+                if part.width == 0 or part.height == 0:
+                    continue
+                _check_frame(part)
+                part = compact_covariances(part)
+                lp = _lean_layout(name, part, self._con, self._reports_for(name)) if lean else None
+                if (_signature(lp) if lean else part.schema) != sign:
+                    self._con.rollback()
+                    return False
+                self._insert(phys, lp.phys if lean else part, create=False)
+                if shared is not None:
+                    self._insert(shared, lp.shared, create=False)
+        except BaseException:
+            self._con.rollback()
+            raise
+        self._con.commit()
+        return True
+
+    def _insert(self, table: str, frame: pl.DataFrame, create: bool) -> None:
+        with self._registered(frame) as src:
+            self._con.execute(f"CREATE TABLE {_q(table)} AS SELECT * FROM {src}" if create
+                              else f"INSERT INTO {_q(table)} SELECT * FROM {src}")
 
     def append(self, name: str, frame: pl.DataFrame) -> None:
         """Append ``frame`` to table ``name`` (matched by column name), creating it if absent.
