@@ -322,9 +322,10 @@ class _Clock:
         #: "finalize:" once the whole-run stages start (their memory is told apart from the windows')
         self.prefix = ""
 
-    def stage(self, name: str | None) -> None:
+    def stage(self, name: str | None, say: bool = True) -> None:
         """Start stage ``name`` (None: stop). A stage's time adds up over windows; its name is
-        said the first time only (a window says one line of its own, :class:`tertiary.engine.Meter`).
+        said the first time only (a window says one line of its own, :class:`tertiary.engine.Meter`),
+        never with ``say=False`` (the engine's own reading and writing of each window).
         The peak resident memory reached by the end of a stage is kept in ``memory``."""
         now = time.perf_counter()
         if self.name is not None:
@@ -332,7 +333,7 @@ class _Clock:
             self.timings[key] = self.timings.get(key, 0.0) + now - self._t
             self.memory[self.prefix + self.name] = round(peak_rss_mib(), 1)
         self.name, self._t = name, now
-        if name and f"{name}_s" not in self.timings and name != getattr(self, "_said", None):
+        if say and name and f"{name}_s" not in self.timings and name != getattr(self, "_said", None):
             self._said = name
             self.say(name)
 
@@ -620,8 +621,10 @@ def _stream(ds: Dataset, cfg: PipelineConfig, clock: _Clock, notes: list[str], w
                       source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     for w in ws:
+        clock.stage("read_window", say=False)     # timed apart: not the last stage's time
         raw = source.rows(w)
         out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
+        clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
         parts.write(w, out)
         parts.checkpoint(w, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
         if window_s is not None:
