@@ -514,7 +514,8 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     per system axis) and ``altitude_m``: the report's own barometric (Mode C/S) altitude as
     replied, null without one — not extrapolated; with ``time`` it feeds the vertical channel
     (:mod:`tertiary.altitude`); ``selected_alt_m`` its Mode S selected altitude (BDS 4,0) and
-    ``ehs_track_rate_dps`` its track-angle rate (BDS 5,0), null without. ``rejects`` rows carry report_id and reason. No report: both empty.
+    ``ehs_track_rate_dps`` its track-angle rate (BDS 5,0), null without. ``rejects`` rows carry
+    report_id and reason. No report: both empty.
     The epoch grid starts at ``grid_origin_us`` (default: :func:`epoch_grid`).
     """
     if reports.height == 0:

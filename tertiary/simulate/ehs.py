@@ -23,8 +23,8 @@ BDS 4,0 (selected vertical intention): the MCP/FCU selected altitude, 16 ft LSB,
 reference of ``altitude_m``. It is the level the crew selected at the reply time — the
 aircraft's clearance as the traffic generator flies it, changed where the crew's procedure
 changes it (an arrival's missed-approach altitude once on the glide path;
-:class:`tertiary.simulate.traffic.TrafficTrajectories`; level busts: the wrong level selected, see there), never a value read off the future
-trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
+:class:`tertiary.simulate.traffic.TrafficTrajectories`; level busts: the wrong level selected,
+see there), never a value read off the future trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
 Mode S reply, for aircraft that do not downlink it (non-EHS, or a trajectory source without
 intent: big box, ADS-B, national) and for a fraction ``selected_alt_missing`` of replies (the
 register not extracted that scan).
