@@ -129,7 +129,7 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel, predict,
                                quantisation_variance)
-from tertiary.schema import FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, is_sorted_by
+from tertiary.schema import FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN, is_sorted_by
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -1494,11 +1494,12 @@ def _new_chains(rows: pl.DataFrame, chains: pl.DataFrame, methods: list[str], ws
 def _selected_alt_inputs(rows: pl.DataFrame) -> list[pl.Expr]:
     """``__sel`` (the row's selected altitude, null without) and ``__t`` (its report's age order:
     the report time, else −age_s, else none) for :func:`fuse_step`'s per-target latest."""
-    sel = (pl.col(SELECTED_ALT_COLUMN).cast(pl.Float64).fill_nan(None) if SELECTED_ALT_COLUMN in rows.columns
-           else pl.lit(None, pl.Float64))
+    def opt(c: str) -> pl.Expr:
+        return pl.col(c).cast(pl.Float64).fill_nan(None) if c in rows.columns else pl.lit(None, pl.Float64)
     t = (pl.col("time").dt.epoch("us").cast(pl.Float64) if "time" in rows.columns
          else -pl.col("age_s").cast(pl.Float64) if "age_s" in rows.columns else pl.lit(0.0))
-    return [sel.alias("__sel"), t.alias("__t")]
+    # with the selected altitude, the BDS 5,0 track-angle rate (``__turn``) the same way
+    return [opt(SELECTED_ALT_COLUMN).alias("__sel"), t.alias("__t"), opt(TURN_RATE_COLUMN).alias("__turn")]
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
@@ -1574,10 +1575,13 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
         pl.col("__s").drop_nulls().mode().sort().first().alias("mode_s"),
         # its selected altitude (BDS 4,0): that of its newest report carrying one
         pl.col("__sel").sort_by("__t", "radar_id").drop_nulls().last().alias(SELECTED_ALT_COLUMN),
+        # its track-angle rate (BDS 5,0): likewise the newest report's
+        pl.col("__turn").sort_by("__t", "radar_id").drop_nulls().last().alias(TURN_RATE_COLUMN),
         *(pl.col(f"__w{i}") for i in range(len(methods))))
     head = head.with_columns(tentative["tentative"])
     keys = pl.concat([head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
-                                  pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s", SELECTED_ALT_COLUMN)
+                                  pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s", SELECTED_ALT_COLUMN,
+                                  TURN_RATE_COLUMN)
                       for i, m in enumerate(methods)])
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)

@@ -541,15 +541,16 @@ def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
 def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`track_identity` carried across windows: each track's Mode S address and selected
-    altitude continue from their last values of the previous windows while it coasts (``last``
-    gains ``selected_alt_m`` if it lacks it)."""
+    altitude (and track-angle rate) continue from their last values of the previous windows while
+    it coasts (``last`` gains ``selected_alt_m`` / ``ehs_track_rate_dps`` if it lacks them)."""
     if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
         return tracks, last
     keys = ["run", "filter", "method", "track_id"]
-    sel = schema.SELECTED_ALT_COLUMN
-    carried_cols = ["mode_s", *([sel] if sel in pictures.columns else [])]
-    if sel not in last.columns:
-        last = last.with_columns(pl.lit(None, pl.Float64).alias(sel))
+    opt = [c for c in (schema.SELECTED_ALT_COLUMN, schema.TURN_RATE_COLUMN) if c in pictures.columns]
+    carried_cols = ["mode_s", *opt]
+    for c in opt:
+        if c not in last.columns:
+            last = last.with_columns(pl.lit(None, pl.Float64).alias(c))
     ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *carried_cols)
     t = (tracks.drop(*carried_cols, strict=False)
          .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
@@ -888,10 +889,11 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
     updated with (carried while it coasts), so that a controller's picture has an identity —
     what identity correctness is scored on and what tells a duplicate track of one aircraft
     from a second aircraft — and likewise ``selected_alt_m`` (the target's Mode S selected
-    altitude, latest known) when ``fused`` carries it."""
+    altitude, latest known) and ``ehs_track_rate_dps`` (its BDS 5,0 track-angle rate, latest
+    known: conflict prediction follows a turn with it) when ``fused`` carries them."""
     if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
         return tracks
-    cols = ["mode_s", *([schema.SELECTED_ALT_COLUMN] if schema.SELECTED_ALT_COLUMN in fused.columns else [])]
+    cols = ["mode_s", *(c for c in (schema.SELECTED_ALT_COLUMN, schema.TURN_RATE_COLUMN) if c in fused.columns)]
     ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *cols)
     keys = ["run", "filter", "method", "track_id"]
     return (tracks.drop(*cols, strict=False)

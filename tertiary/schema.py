@@ -46,6 +46,7 @@ from tertiary.errors import DataError, OptionError
 __all__ = [
     "TABLES",
     "FUSED_EXTRA",
+    "TURN_RATE_COLUMN",
     "Limits",
     "RULES",
     "as_frame",
@@ -142,6 +143,10 @@ EHS_REPORT_COLUMNS = ("ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_
 #: fused (the target's latest) → tracks, where conflict prediction stops a climb or descent at it
 #: (:mod:`safety.conflicts`).
 SELECTED_ALT_COLUMN = "selected_alt_m"
+#: Mode S EHS BDS 5,0 track-angle rate (°/s, clockwise positive), carried like
+#: :data:`SELECTED_ALT_COLUMN` reports → aligned → fused (the target's newest) → tracks, where
+#: conflict prediction follows a turn along an arc (:mod:`safety.conflicts`, "Turning aircraft")
+TURN_RATE_COLUMN = "ehs_track_rate_dps"
 
 _REPORTS = TableSchema(
     name="reports",
@@ -211,7 +216,7 @@ _ALIGNED = TableSchema(
     },
     # the report's barometric altitude as replied (null without Mode C), at ``time``; its
     # selected altitude (BDS 4,0, null without)
-    optional={"altitude_m": F64, SELECTED_ALT_COLUMN: F64},
+    optional={"altitude_m": F64, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64},
     key=("run", "epoch", "report_id"),
     nullable=frozenset({"res_range_m", "res_range_var_m2", "mode_s", "truth_id"}),
 )
@@ -260,6 +265,7 @@ _FUSED = TableSchema(
 #: while the centralised stage (which emits every ``fused`` column) does not produce them.
 FUSED_EXTRA: dict[str, pl.DataType] = {
     "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR, SELECTED_ALT_COLUMN: F64,
+    TURN_RATE_COLUMN: F64,
     **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
 }
 
@@ -294,7 +300,8 @@ _TRACKS = TableSchema(
     # cov: the full 6×6 position–velocity covariance, row-major (x y z vx vy vz)
     # mode_s: the Mode S address of the target the track was last updated with (identity);
     # selected_alt_m: that target's selected altitude (latest known, carried while coasting)
-    optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64},
+    # ehs_track_rate_dps: that target's downlinked track-angle rate (latest known, likewise)
+    optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64},
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

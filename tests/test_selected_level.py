@@ -192,6 +192,43 @@ def test_selected_altitude_is_the_clearance(traffic):
     assert np.allclose(sel[climbers], top[climbers], atol=1.5)
 
 
+def test_arrivals_select_the_missed_approach_altitude_once_on_the_glide_path(traffic):
+    """An arrival's selection changes during its flight: 3 000 ft until a crew delay
+    (``missed_approach_delay_s``) after its glide-path descent begins, the missed-approach
+    altitude after — the procedure's event, never before the descent has begun. Nobody else's
+    selection changes; BDS 4,0 extraction follows the selection at the reply time."""
+    cfg, traj = traffic
+    role = traj.meta["role"]
+    r = 6_371_000.0
+    h = np.sqrt(traj.pos[..., 0] ** 2 + traj.pos[..., 1] ** 2 + (r + traj.pos[..., 2]) ** 2) - r
+    t = np.arange(traj.pos.shape[1]) * traj.dt
+    arr = np.flatnonzero((role == "arrival") & np.isfinite(traj.selected_alt_m))
+    lo, hi = cfg.missed_approach_delay_s
+    checked = 0
+    for a in arr:                       # a loop over a dozen aircraft in a test
+        act = np.flatnonzero(traj.active[a])
+        at_3000 = act[h[a, act] >= ARRIVAL_CLEARED_M - 0.5]
+        below = act[h[a, act] < ARRIVAL_CLEARED_M - 0.5]
+        if not len(at_3000) or not len(below) or at_3000[-1] == act[-1]:
+            continue
+        t_gs = t[at_3000[-1]]           # the last sample at the approach altitude
+        assert t_gs + lo - 1e-6 <= traj.selected_change_s[a] <= t_gs + hi + 1e-6
+        checked += 1
+        before = traj.selected_at(np.array([a, a]), np.array([t_gs - 30.0, t_gs]))
+        after = traj.selected_at(np.array([a]), np.array([t_gs + hi + 1.0]))
+        assert np.allclose(before, ARRIVAL_CLEARED_M) and np.allclose(after, cfg.missed_approach_ft * FT)
+    assert checked >= 3
+    others = np.isfinite(traj.selected_alt_m) & (role != "arrival")
+    assert np.all(np.isinf(traj.selected_change_s[others]))
+    # extraction at the reply time: before / after the change
+    a = arr[np.isfinite(traj.selected_change_s[arr])][0]
+    tc = traj.selected_change_s[a]
+    got = selected_altitude(traj, np.array([a, a]), np.random.default_rng(0), missing=0.0,
+                            t=np.array([tc - 1.0, tc + 1.0]))
+    lsb = SELECTED_ALT_RESOLUTION[0]
+    assert np.allclose(got, np.round(np.array([ARRIVAL_CLEARED_M, cfg.missed_approach_ft * FT]) / lsb) * lsb)
+
+
 def test_bust_selected_cleared_keeps_the_level_below():
     cfg = TrafficConfig(aircraft=60, conflict_pairs=4, near_miss_pairs=1, bust_selected="cleared")
     traj = terminal_area(cfg, 1800.0, 1.0, np.random.default_rng(3))
@@ -250,3 +287,8 @@ def test_selected_altitude_reaches_the_tracks(tmp_path):
     for name in ("aligned", "fused", "tracks"):
         frame = getattr(res, name)
         assert frame["selected_alt_m"].is_not_null().mean() > 0.3, name
+        # the BDS 5,0 track-angle rate rides along (conflict prediction follows turns with it)
+        assert frame["ehs_track_rate_dps"].is_not_null().mean() > 0.3, name
+    # a turning aircraft's track carries a turn rate of its turn (STAR / holding turns ≈ 2.5–3 °/s)
+    turning = res.tracks.filter(pl.col("ehs_track_rate_dps").abs() >= 1.0)
+    assert turning.height and turning["ehs_track_rate_dps"].abs().median() == pytest.approx(2.7, abs=0.6)

@@ -87,6 +87,10 @@ class TrafficConfig:
     ``selected_alt_fraction`` of the aircraft downlink the level their crew selected;
     ``bust_selected`` is what a level-bust aircraft selected: ``"flown"`` (the wrong level it
     then climbs to — the common real cause) or ``"cleared"`` (its cleared level, below).
+    The selection changes during a flight where the crew's procedure changes it: an arrival
+    selects the approach altitude (3 000 ft) and, once established on the glide path (a delay
+    drawn in ``missed_approach_delay_s`` after the glide-path descent begins), the
+    missed-approach altitude ``missed_approach_ft``.
     """
 
     aircraft: int = 200
@@ -111,6 +115,8 @@ class TrafficConfig:
     level_buffer_m: float = 1.0
     selected_alt_fraction: float = 0.95
     bust_selected: str = "flown"
+    missed_approach_ft: float = 4000.0
+    missed_approach_delay_s: tuple[float, float] = (5.0, 15.0)
 
 
 @dataclass(frozen=True)
@@ -540,6 +546,10 @@ def _check_traffic(t: TrafficConfig) -> None:
     _number("traffic.sep_v_m", t.sep_v_m, 0.0, 1e4, open_lo=True)
     _number("traffic.level_buffer_m", t.level_buffer_m, 0.0, 30.0)
     _number("traffic.selected_alt_fraction", t.selected_alt_fraction, 0.0, 1.0)
+    _number("traffic.missed_approach_ft", t.missed_approach_ft, 0.0, 65520.0)
+    lo_d, hi_d = t.missed_approach_delay_s
+    _number("traffic.missed_approach_delay_s[0]", lo_d, 0.0, 600.0)
+    _number("traffic.missed_approach_delay_s[1]", hi_d, lo_d, 600.0)
     if t.bust_selected not in ("flown", "cleared"):
         raise OptionError(f"expected 'flown' or 'cleared', got {_show(t.bust_selected)}", option="traffic.bust_selected")
 

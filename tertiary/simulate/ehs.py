@@ -20,10 +20,11 @@ inertial vert. rate BDS 6,0      32 ft/min ≈ 0.16 m/s ±16 352 ft/min   0.3 m/
 
 BDS 4,0 (selected vertical intention): the MCP/FCU selected altitude, 16 ft LSB, 0–65 520 ft
 (12 bits), reported as ``selected_alt_m`` (:data:`SELECTED_ALT_COLUMN`) in the pressure-altitude
-reference of ``altitude_m``. It is the level the crew selected — the aircraft's clearance as the
-traffic generator flies it (:class:`tertiary.simulate.traffic.TrafficTrajectories`;
-level busts: the wrong level selected, see there), never a value read off the future
-trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
+reference of ``altitude_m``. It is the level the crew selected at the reply time — the
+aircraft's clearance as the traffic generator flies it, changed where the crew's procedure
+changes it (an arrival's missed-approach altitude once on the glide path;
+:class:`tertiary.simulate.traffic.TrafficTrajectories`; level busts: the wrong level selected,
+see there), never a value read off the future trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
 Mode S reply, for aircraft that do not downlink it (non-EHS, or a trajectory source without
 intent: big box, ADS-B, national) and for a fraction ``selected_alt_missing`` of replies (the
 register not extracted that scan).
@@ -170,18 +171,22 @@ def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generato
 
 
 def selected_altitude(traj: Trajectories, aircraft: ArrayLike, rng: np.random.Generator,
-                      missing: float = EhsConfig.selected_alt_missing) -> F64:
+                      missing: float = EhsConfig.selected_alt_missing, t: ArrayLike | None = None) -> F64:
     """BDS 4,0 selected altitude (m) of ``aircraft`` (indices into ``traj``) as extracted with
-    each reply: the crew's selection (``traj.selected_alt_m``, NaN where none) rounded to 16 ft
-    and clipped to the field; NaN for a fraction ``missing`` of replies (one draw per reply from
-    ``rng``) and for trajectories without selected altitudes."""
+    each reply: the crew's selection at the reply time ``t`` (s after the epoch;
+    ``traj.selected_at``, which changes where the crew's procedure changes it — None: the
+    initial ``traj.selected_alt_m``; NaN where none) rounded to 16 ft and clipped to the field;
+    NaN for a fraction ``missing`` of replies (one draw per reply from ``rng``) and for
+    trajectories without selected altitudes."""
     aircraft = np.asarray(aircraft, np.int64)
     lost = rng.random(aircraft.shape) < missing
     sel = getattr(traj, "selected_alt_m", None)
     if sel is None:
         return np.full(aircraft.shape, np.nan)
     lsb, lo, hi = SELECTED_ALT_RESOLUTION
-    value = np.clip(np.round(np.asarray(sel, float)[aircraft] / lsb) * lsb, lo, hi)
+    now = (traj.selected_at(aircraft, np.asarray(t, float)) if t is not None and hasattr(traj, "selected_at")
+           else np.asarray(sel, float)[aircraft])
+    value = np.clip(np.round(now / lsb) * lsb, lo, hi)
     return np.where(lost, np.nan, value)
 
 
@@ -207,6 +212,7 @@ def ehs_report_columns(traj: Trajectories, aircraft: ArrayLike, t_true: ArrayLik
         values, ok = ehs_parameters(traj, aircraft[sel], np.asarray(t_true, float)[sel], rng, cfg)
         for c in EHS_COLUMNS:
             out[REPORT_COLUMN[c]][sel] = np.where(ok, values[c], np.nan)
-        selected = selected_altitude(traj, aircraft[sel], rng, cfg.selected_alt_missing)
+        selected = selected_altitude(traj, aircraft[sel], rng, cfg.selected_alt_missing,
+                                     np.asarray(t_true, float)[sel])
         out[SELECTED_ALT_COLUMN][sel] = np.where(ok, selected, np.nan)
     return out

@@ -36,8 +36,11 @@ south), overflights ≥ FL150 — so the only losses of separation are the desig
 Selected altitude (what the crew set on the MCP/FCU, downlinked in Mode S EHS BDS 4,0:
 :class:`TrafficTrajectories`). It is the clearance the generator flies each aircraft to —
 never read off the future trajectory: departures the SID top (FL70), arrivals 3 000 ft (the
-level they descend to, also the missed-approach altitude once on the glide path), overflights,
-holding aircraft and designed pairs their level. A level bust is modelled with its most common
+level they descend to) and, once established on the glide path (a crew delay of
+``missed_approach_delay_s`` after the descent begins), the missed-approach altitude
+``missed_approach_ft`` (4 000 ft) — what crews set after glide-slope capture, so that a go-around
+climbs to it (:meth:`TrafficTrajectories.selected_at`); overflights, holding aircraft and
+designed pairs their level. A level bust is modelled with its most common
 real cause, a wrong level selected: by default (``TrafficConfig.bust_selected = "flown"``) the
 busting aircraft's selected altitude is the level it climbs to (100–250 ft under the occupied
 level); ``"cleared"`` keeps the level it was cleared to (the one below: an autopilot/handling
@@ -68,9 +71,26 @@ class TrafficTrajectories(Trajectories):
     """Truth plus each aircraft's selected altitude ``selected_alt_m`` (A,): the MCP/FCU level
     its crew set (pressure-altitude reference of the truth's ``alt_m``, m; NaN: none downlinked).
     The aircraft's intent, not its future: the level the generator clears it to (module
-    docstring). Read by the EHS simulator (:mod:`tertiary.simulate.ehs`, BDS 4,0) only."""
+    docstring), changed during the flight only where the crew's procedure changes it
+    (:meth:`selected_at`). Read by the EHS simulator (:mod:`tertiary.simulate.ehs`, BDS 4,0) only."""
 
     selected_alt_m: NDArray[np.float64] | None = None
+    #: per aircraft, when (s after the epoch; +inf: never) the crew changes the selection, and the
+    #: level it selects then (NaN: none) — e.g. an arrival's missed-approach altitude once
+    #: established on the glide path
+    selected_change_s: NDArray[np.float64] | None = None
+    selected_next_m: NDArray[np.float64] | None = None
+
+    def selected_at(self, aircraft: NDArray[np.int64], t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The selected altitude of ``aircraft`` (indices) at times ``t`` (s after the epoch):
+        the initial selection, or the next one from its change time on (NaN: none)."""
+        a = np.asarray(aircraft, np.int64)
+        first = (np.full(len(a), np.nan) if self.selected_alt_m is None
+                 else np.asarray(self.selected_alt_m, float)[a])
+        if self.selected_change_s is None or self.selected_next_m is None:
+            return first
+        changed = np.asarray(t, float) >= self.selected_change_s[a]
+        return np.where(changed, self.selected_next_m[a], first)
 
 
 # --------------------------------------------------------------------------- big box
@@ -129,8 +149,8 @@ DEPARTURES = (((-1000.0, 0.0), (-62_000.0, 0.0)),
 DEPARTURE_DELAY_S = 20.0              # lift-off after the landing of the same slot
 SID_TOP_FL = 70
 ARRIVAL_TOP_FL = 100
-#: arrivals are cleared to 3 000 ft (the level segment before the glide path; also the
-#: missed-approach altitude they keep selected on the glide path)
+#: arrivals are cleared to 3 000 ft (the level segment before the glide path; once established on
+#: the glide path the crew selects the missed-approach altitude, ``TrafficConfig.missed_approach_ft``)
 ARRIVAL_CLEARED_M = 3000.0 * 0.3048
 #: airways: (track deg, a point on it, speed m/s, flight levels) — odd FL eastbound, even westbound
 AIRWAYS = ((75.0, (0.0, 10_000.0), 230.0, (150, 190, 230, 270, 310, 350, 390)),
@@ -307,7 +327,10 @@ def _templates(cfg: TrafficConfig, dt: float) -> tuple[list[dict], dict[str, lis
     for wp in ARRIVALS:
         hdg, ln, cv = _flyby(wp)
         kinds["arrival"].append(len(out))
-        out.append(_fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt))
+        t = _fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt)
+        # the glide-path descent begins after the last sample at the 3 000 ft approach altitude
+        t["k_gs"] = int(np.flatnonzero(t["pos"][:, 2] >= ARRIVAL_CLEARED_M - 0.01)[-1])
+        out.append(t)
     sp, hp = _departure_profiles(cfg.level_buffer_m)
     for wp in DEPARTURES:
         hdg, ln, cv = _flyby(wp)
@@ -611,11 +634,31 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     # drawn last: every earlier draw (and so every other column) is the same as without it
     downlinks = rng.random(n) < cfg.selected_alt_fraction
     selected = np.where(downlinks, np.concatenate([_routed_selected(cfg, ra), sel_p]), np.nan)
+    change, nxt = _selected_changes(rng, cfg, tpl, ra, entry, n, dt)
     return TrafficTrajectories(dt=dt, pos=pos, vel=vel, active=active,
                                segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
                                meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
                                      "squawk": squawk},
-                               selected_alt_m=selected)
+                               selected_alt_m=selected, selected_change_s=np.where(downlinks, change, np.inf),
+                               selected_next_m=np.where(downlinks, nxt, np.nan))
+
+
+def _selected_changes(rng, cfg: TrafficConfig, tpl: list[dict], ra: dict[str, NDArray], entry: NDArray[np.int64],
+                      n: int, dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """When each aircraft's crew changes its selected altitude and to what (+inf / NaN: never):
+    an arrival selects the missed-approach altitude once established on the glide path — a crew
+    delay (``missed_approach_delay_s``) after its glide-path descent begins (the procedure's
+    event, not read off the aircraft's future). The designed pairs and every other role keep
+    their selection (level-bust semantics unchanged). One draw per aircraft, after every other."""
+    delay = rng.uniform(*cfg.missed_approach_delay_s, n)
+    change = np.full(n, np.inf)
+    nxt = np.full(n, np.nan)
+    m = len(ra["route"])
+    arr = np.flatnonzero(ra["role"] == "arrival")
+    k_gs = np.array([tpl[r].get("k_gs", 0) for r in ra["route"][arr]], np.int64)
+    change[arr] = (entry[arr] + k_gs) * dt + delay[:m][arr]
+    nxt[arr] = cfg.missed_approach_ft * FT
+    return change, nxt
 
 
 def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.float64]:
