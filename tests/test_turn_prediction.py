@@ -17,7 +17,7 @@ from tertiary.schema import TURN_RATE_COLUMN
 
 T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
 CFG = ConflictConfig(threshold_mode="fixed", fixed_est_h_m=0.0, fixed_est_v_m=0.0, pilot_h_m=0.0, pilot_v_m=0.0,
-                     level_pair_tolerance_m=None, use_selected_level=False)
+                     level_pair_tolerance_m=None, use_selected_level=False, use_turn_rate=True)
 
 
 def _integrate(p, v, w, t_end, max_turn, dt=1e-3):
