@@ -642,7 +642,8 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
                   confidences: Sequence[float] = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999),
                   fixed_est_h_m: Sequence[float] = (0.0, 150.0, 300.0, 600.0, 1200.0, 2400.0),
                   lookaheads_s: Sequence[float] | None = None,
-                  warning_s: Sequence[float] = (0.0, 30.0, 60.0)) -> pl.DataFrame:
+                  warning_s: Sequence[float] = (0.0, 30.0, 60.0),
+                  intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
     """Trade-off curves of every picture of ``picture`` (a fused or track table; ``method`` names
     the picture; ``id_col`` its id column, ``map_id_col`` that of ``id_map``, default the
     same): for each look-ahead T (default: ``cfg.conflict``'s) and each point — covariance
@@ -651,8 +652,11 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     gives the fraction of LoS episodes alerted with ≥ X s warning (X in ``warning_s``) against
     nuisance + false alerts per hour. Columns: method, threshold_mode, parameter (confidence or
     fixed_est_h_m), t_thr_s, warning_s, los_episodes, alerted_fraction, genuine_alerts,
-    nuisance_alerts, false_alerts, nuisance_false_per_hour, picture_hours, n_runs."""
-    intervals = truth_intervals(truth, cfg, frame)
+    nuisance_alerts, false_alerts, nuisance_false_per_hour, picture_hours, n_runs. ``intervals``:
+    :func:`truth_intervals` of ``truth`` when already computed (curves drawn a picture at a time).
+    Each picture's rows depend on that picture alone."""
+    if intervals is None:
+        intervals = truth_intervals(truth, cfg, frame)
     looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
     rows = []
     for mode, par, cc in _settings(cfg.conflict, confidences, fixed_est_h_m, looks):

@@ -806,7 +806,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
                   conversion_invalid: int = 0) -> Results:
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
-    from safety import (AlertConfig, capacity_from_metrics, stca_tables, stca_tradeoff, tradeoff_metrics)
+    from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
 
     alerts = pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
@@ -830,10 +830,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
-            picture, _ = _safety_picture(cfg, fused, tracks, [])
-            curve = stca_tradeoff(picture, id_map, ing.truth, acfg, id_col=id_col, frame=ds.origin, methods=methods,
-                                  lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
-                                  fixed_est_h_m=cfg.stca_fixed_m)
+            curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods)
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     metrics = _association_metrics(associations, stats, report_truth)
@@ -970,6 +967,32 @@ def _safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
         if text not in notes:
             notes.append(text)
     return _shown(_whole(fused)), "target_id"      # clutter-only targets never reach safety
+
+
+def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
+                 id_map: pl.DataFrame, truth: pl.DataFrame, acfg, id_col: str, frame: geo.LocalFrame,
+                 methods: list[str]) -> pl.DataFrame:
+    """The STCA trade-off curves of the safety picture: in one call when it is in memory, a
+    picture at a time (read from disk, the truth's separation intervals computed once) when
+    the run is on disk — each picture's curve depends on that picture alone."""
+    from safety import stca_tradeoff
+    from safety.alerts import truth_intervals
+    kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
+              fixed_est_h_m=cfg.stca_fixed_m)
+    on_disk = tracks if id_col == "track_id" else fused
+    if not isinstance(on_disk, _OnDisk) or not (on_disk.pictures if id_col == "track_id" else on_disk.shown):
+        picture, _ = _safety_picture(cfg, fused, tracks, [])
+        return stca_tradeoff(picture, id_map, truth, acfg, methods=methods, **kw)
+    intervals = truth_intervals(truth, acfg, frame)
+    curves = []
+    for get in (_track_pictures(tracks) if id_col == "track_id" else _fused_pictures(fused)):
+        picture = get()
+        name = picture["method"][0]
+        curves.append(stca_tradeoff(picture, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],
+                                    intervals=intervals, **kw))
+        del picture
+    curve = pl.concat(curves, how="vertical_relaxed")
+    return curve.sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")
 
 
 def _safety_names(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk"
