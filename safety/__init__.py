@@ -5,7 +5,9 @@ thresholds, STCA performance against real losses of separation and accuracy-vers
 * :mod:`safety.conflicts` — (5.1)–(5.17) on height (never ENU z): :func:`predict_conflicts`
   (KD-tree candidates, ``mode="seed"`` (5.14) as printed / ``"corrected"`` same-time rule,
   thresholds from the tracks' covariances at clip(T_min, 0, T) or fixed),
-  :func:`conflict_interval`, :func:`height_and_rate`, :func:`slim_conflicts`,
+  :func:`conflict_interval`, with heights stopped at the Mode S selected level
+  :func:`conflict_interval_levelled` / :func:`level_off_times`, along turns (optional)
+  :func:`arc_offsets` / :func:`conflict_interval_arc`, :func:`height_and_rate`, :func:`slim_conflicts`,
   :func:`tangent_plane_error_bound`, :func:`pair_geometry`.
 * :mod:`safety.alerts` — losses of separation in the truth (closed form between samples),
   alert episodes per pair of aircraft classified genuine / nuisance / false
@@ -24,14 +26,16 @@ from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacit
 from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, ConflictConfig, PairGeometry,
                               candidate_pairs, conflict_interval, height_and_rate, pair_geometry, pair_thresholds,
                               predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state,
-                              ConflictState, conflicts_step, init_conflict_state)
+                              ConflictState, conflicts_step, init_conflict_state, conflict_interval_levelled,
+                              level_off_times, arc_offsets, conflict_interval_arc)
 
 __all__ = [
     # conflicts
     "ConflictConfig", "PairGeometry", "predict_conflicts", "pair_geometry", "pair_thresholds",
     "candidate_pairs", "conflict_interval", "height_and_rate", "vertical_state", "slim_conflicts",
     "tangent_plane_error_bound", "SEPARATION_MINIMA", "NM_M", "FT_M", "ALT_COLUMNS", "CONFLICT_EXTRA",
-    "ConflictState", "conflicts_step", "init_conflict_state",
+    "ConflictState", "conflicts_step", "init_conflict_state", "conflict_interval_levelled", "level_off_times",
+    "arc_offsets", "conflict_interval_arc",
     # alerts
     "AlertConfig", "score_alerts", "alert_episodes", "los_episodes", "loss_of_separation", "separation_intervals",
     "truth_heights", "truth_intervals", "stca_tables", "stca_tradeoff", "compare_at_equal_nuisance", "tradeoff_metrics",
