@@ -103,10 +103,14 @@ def test_windowed_evaluation_equals_one_window(terminal):
     assert got.counts == whole.counts
 
 
-def test_on_disk_finalize_equals_in_memory(terminal, tmp_path):
+def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time
     (issue 16, memory): the same metrics, alerts, requirements and counts as the in-memory run,
     which holds every picture. Fails if a picture is skipped, read twice or read incompletely."""
+    monkeypatch.setattr(pipeline, "HOLD_PICTURES_MB", 0)     # this small run would be held whole
+    read = []
+    monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, f=pipeline._OnDisk.picture:
+                        read.append((self.name, key)) or f(self, key))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
@@ -117,6 +121,8 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path):
     _same(alerts, mem.alerts, "alerts")
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
+    # every tracker picture read back from disk for the evaluation and again for the curves
+    assert sum(n == "tracks" for n, _ in read) == 2 * 2 * len(cfg.methods)
 
 
 def test_empty_window_in_the_middle(terminal, terminal_whole):
