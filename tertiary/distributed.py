@@ -273,13 +273,12 @@ def _files(out: Path, part: int, sub: str, name: str) -> list[Path]:
     return sorted((out / SLICES / str(part) / sub / name).glob("w=*.parquet"))
 
 
-def read_part(out: Path, part: int, name: str, sub: str = "kept", columns: list[str] | None = None,
-              where: pl.Expr | None = None) -> pl.DataFrame | None:
+def read_part(out: Path, part: int, name: str, sub: str = "kept", columns: list[str] | None = None
+              ) -> pl.DataFrame | None:
     files = _files(out, part, sub, name)
     if not files:
         return None
-    frames = [pl.read_parquet(f, columns=columns) if where is None
-              else pl.scan_parquet(f).filter(where).select(columns or pl.all()).collect() for f in files]
+    frames = [pl.read_parquet(f, columns=columns) for f in files]
     return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
 
@@ -290,10 +289,10 @@ class UnionParts:
         self.out, self.n = out, n
 
     def table(self, name: str, columns: list[str] | None = None) -> pl.DataFrame | None:
-        if columns is None:
-            return self.table_where(name, None)
+        """Every partition's rows of ``name`` (``columns``: only those, where a partition has them)."""
         frames = [f for i in range(self.n) if (f := read_part(self.out, i, name)) is not None]
-        frames = [f.select([c for c in columns if c in f.columns]) for f in frames]
+        if columns is not None:
+            frames = [f.select([c for c in columns if c in f.columns]) for f in frames]
         if not frames:
             return None
         return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
@@ -303,13 +302,6 @@ class UnionParts:
         for i in range(self.n):
             for f in _files(self.out, i, "kept", name):
                 yield pl.read_parquet(f)
-
-    def table_where(self, name: str, where: pl.Expr | None) -> pl.DataFrame | None:
-        """The rows of ``name`` satisfying ``where`` (every row: None), each part filtered as read."""
-        frames = [f for i in range(self.n) if (f := read_part(self.out, i, name, where=where)) is not None]
-        if not frames:
-            return None
-        return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
 
 # --------------------------------------------------------------------------- stitching

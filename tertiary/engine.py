@@ -294,12 +294,6 @@ class PartStore:
         for f in self._files(name):
             yield pl.read_parquet(f)
 
-    def table_where(self, name: str, where: pl.Expr) -> pl.DataFrame | None:
-        """The rows of ``name`` that satisfy ``where``, each part filtered as it is read: the
-        memory is that of the rows kept (finalize reads one picture at a time)."""
-        files = self._files(name)
-        return _concat([pl.scan_parquet(f).filter(where).collect() for f in files]) if files else None
-
     def _files(self, name: str) -> list[Path]:
         files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
         return [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]

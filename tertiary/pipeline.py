@@ -19,8 +19,11 @@ from __future__ import annotations
 import hashlib
 import math
 import platform
+import shutil
+import tempfile
 import time
 import warnings
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
@@ -45,8 +48,9 @@ from tertiary.evaluation import Evaluation, EvaluationConfig, association_metric
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
-from tertiary.engine import (DEFAULT_WINDOW_S, END_US, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
+from tertiary.engine import (DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
                              Window, check_window, config_hash, peak_rss_mib, windows)
+from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.store import RunStore, record_run
@@ -652,18 +656,12 @@ def _windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | Non
     return window_s
 
 
-#: finalize holds a streamed picture table (``fused``, ``tracks``) whole when it is estimated to
-#: take at most this much memory (MiB); a larger one stays on disk and is read back a picture at
-#: a time — bounded memory, but every window's part is read once per picture (slower: on the
-#: 1 h main job, 14 tracker pictures, the evaluation and STCA curves took 42 s instead of 21 s)
-HOLD_PICTURES_MB = 256
-
-
 class _OnDisk:
     """A streamed table finalize leaves on disk once stored (issue 16, memory): evaluation reads
     it back one picture at a time, so the whole-run stages never hold every picture at once.
     What finalize needs of the whole table (height, pictures, target counts) is taken while it
-    passes through memory on its way to the database."""
+    passes through memory on its way to the database. The windows' parts are regrouped once by
+    picture (one part in memory at a time), so reading a picture reads that picture only."""
 
     def __init__(self, parts, name: str, frame: pl.DataFrame, empty: pl.DataFrame) -> None:
         self.parts, self.name, self.height = parts, name, frame.height
@@ -673,11 +671,24 @@ class _OnDisk:
         shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
         self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
         self.target_counts = _target_counts(frame) if name == "fused" else {}
+        # beside the parts (removed with them when the run completes), else in the temp directory
+        base = parts.dir / PARTS if isinstance(parts, PartStore) else None
+        self.dir = Path(tempfile.mkdtemp(prefix=f"_by_picture_{name}_", dir=base))
+        weakref.finalize(self, shutil.rmtree, self.dir, True)
+        self.index: dict[tuple, int] = {}
+        for w, part in enumerate(parts.iter_parts(name)):
+            if part.height == 0:
+                continue
+            for key, rows in part.partition_by(self.keys, as_dict=True, maintain_order=True).items():
+                d = self.dir / str(self.index.setdefault(key, len(self.index)))
+                d.mkdir(exist_ok=True)
+                # a scratch copy read back once or twice: fast compression, not small files
+                rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
 
     def picture(self, key: tuple) -> pl.DataFrame:
-        where = pl.all_horizontal(*[pl.col(k) == v for k, v in zip(self.keys, key)])
-        got = self.parts.table_where(self.name, where)
-        return self.empty if got is None else got
+        k = self.index.get(tuple(key))
+        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
+        return _concat_parts([pl.read_parquet(f) for f in files]) if files else self.empty
 
     def collect(self) -> pl.DataFrame:
         got = self.parts.table(self.name)
@@ -793,15 +804,10 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
             if name == "clusters":
                 frame = _table_columns(parts, name, ["run", "method"], empty)
             else:
+                # left on disk: evaluation and the STCA curves read one picture at a time
                 slim = _table_columns(parts, name, ["run", "method", "filter", "target_id", "tentative"], empty)
-                first = next((f for f in parts.iter_parts(name) if f.height), None)
-                held = 0 if first is None else first.estimated_size() / first.height * slim.height
-                if held <= HOLD_PICTURES_MB * 2**20:          # small: held whole, scored as before
-                    frame = _table(parts, name, empty)
-                else:
-                    # left on disk: evaluation and the STCA curves read one picture at a time
-                    frame = _OnDisk(parts, name, slim, _schema_of(parts, name, empty))
-                del slim, first
+                frame = _OnDisk(parts, name, slim, _schema_of(parts, name, empty))
+                del slim
         tables[name] = frame
     associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
                                                                             "tracks", "conflicts"))

@@ -107,7 +107,6 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time
     (issue 16, memory): the same metrics, alerts, requirements and counts as the in-memory run,
     which holds every picture. Fails if a picture is skipped, read twice or read incompletely."""
-    monkeypatch.setattr(pipeline, "HOLD_PICTURES_MB", 0)     # this small run would be held whole
     read = []
     monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, f=pipeline._OnDisk.picture:
                         read.append((self.name, key)) or f(self, key))
