@@ -342,7 +342,8 @@ class _Clock:
             self.say(name)
 
 
-Sink = Callable[[str, pl.DataFrame], None]
+#: where a run's tables go: a frame whole, or a streamed table part by part (:class:`StreamedTable`)
+Sink = Callable[[str, "pl.DataFrame | StreamedTable"], None]
 
 
 def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress | None = None,
