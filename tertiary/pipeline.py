@@ -660,24 +660,23 @@ def _windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | Non
 class _OnDisk:
     """A streamed table finalize leaves on disk once stored (issue 16, memory): evaluation reads
     it back one picture at a time, so the whole-run stages never hold every picture at once.
-    What finalize needs of the whole table (height, pictures, target counts) is taken while it
-    passes through memory on its way to the database. The windows' parts are regrouped once by
-    picture (one part in memory at a time), so reading a picture reads that picture only."""
+    The windows' parts are regrouped once by picture (one part in memory at a time), so reading
+    a picture reads that picture only; the same pass takes what finalize needs of the whole
+    table (height, pictures in order of appearance, confirmed pictures, target counts)."""
 
-    def __init__(self, parts, name: str, frame: pl.DataFrame, empty: pl.DataFrame) -> None:
-        self.parts, self.name, self.height = parts, name, frame.height
-        self.empty = empty
+    def __init__(self, parts, name: str, empty: pl.DataFrame) -> None:
+        self.parts, self.name = parts, name
         self.keys = ["method", "filter"] if name == "tracks" else ["method"]
-        self.pictures = frame.select(self.keys).unique(maintain_order=True).rows() if frame.height else []
-        shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
-        self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
-        self.target_counts = _target_counts(frame) if name == "fused" else {}
         # beside the parts (removed with them when the run completes), else in the temp directory
         base = parts.dir / PARTS if isinstance(parts, PartStore) else None
         self.dir = Path(tempfile.mkdtemp(prefix=f"_by_picture_{name}_", dir=base))
         weakref.finalize(self, shutil.rmtree, self.dir, True)
         self.index: dict[tuple, int] = {}
-        for w, part in enumerate(parts.iter_parts(name)):
+        first, slim = None, []
+        for w, part in enumerate(parts.iter_parts(name)):        # one pass over the parts
+            first = part.clear() if first is None else first
+            slim.append(part.select(c for c in ("run", "method", "filter", "target_id", "tentative")
+                                    if c in part.columns))
             if part.height == 0:
                 continue
             for key, rows in part.partition_by(self.keys, as_dict=True, maintain_order=True).items():
@@ -685,6 +684,13 @@ class _OnDisk:
                 d.mkdir(exist_ok=True)
                 # a scratch copy read back once or twice: fast compression, not small files
                 rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
+        self.empty = empty if first is None else first
+        frame = _concat_parts(slim) if slim else pl.DataFrame()
+        self.height = frame.height
+        self.pictures = list(self.index)                            # in order of appearance
+        shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
+        self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
+        self.target_counts = _target_counts(frame) if name == "fused" else {}
 
     def picture(self, key: tuple) -> pl.DataFrame:
         k = self.index.get(tuple(key))
@@ -715,12 +721,6 @@ def _table_columns(parts, name: str, columns: list[str] | None, empty: pl.DataFr
     if t is None:
         return empty.select([c for c in columns if c in empty.columns]) if columns is not None else empty
     return t
-
-
-def _schema_of(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
-    """An empty frame with the schema of the table's first part (``empty`` without one)."""
-    first = next(iter(parts.iter_parts(name)), None)
-    return empty if first is None else first.clear()
 
 
 @dataclass(frozen=True)
@@ -806,9 +806,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                 frame = _table_columns(parts, name, ["run", "method"], empty)
             else:
                 # left on disk: evaluation and the STCA curves read one picture at a time
-                slim = _table_columns(parts, name, ["run", "method", "filter", "target_id", "tentative"], empty)
-                frame = _OnDisk(parts, name, slim, _schema_of(parts, name, empty))
-                del slim
+                frame = _OnDisk(parts, name, empty)
         tables[name] = frame
     associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
                                                                             "tracks", "conflicts"))
