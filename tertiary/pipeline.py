@@ -232,6 +232,10 @@ class PipelineConfig:
     #: sets. Without filters, "tracks" falls back to "fused" (with a note).
     safety_picture: Literal["tracks", "fused"] = "tracks"
     conflicts: ConflictConfig = field(default_factory=_default_conflict_config)
+    #: STCA final-approach volumes (safety.conflicts.ApproachVolume) from the scenario's runways
+    #: (terminal-area, national) when ``conflicts`` configures none: the pairs established on
+    #: one final are decided with the reduced in-trail minimum and a shorter look-ahead
+    stca_approach_volumes: bool = True
     #: STCA trade-off curves (metrics stage "safety_tradeoff"): losses alerted with ≥ X s warning
     #: against nuisance + false alerts per hour as the threshold confidence (covariance
     #: thresholds), the fixed estimation term (m) and the look-ahead (s) vary; each point is one
@@ -297,6 +301,24 @@ class StageError(TertiaryError):
         self.stage, self.db = stage, db
 
 
+def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
+    """``cfg`` with the STCA's final-approach volumes of the dataset's scenario
+    (:func:`tertiary.simulate.traffic.final_approaches`), unless ``stca_approach_volumes`` is off
+    or ``cfg.conflicts`` already has volumes — the airspace adaptation an STCA is installed with."""
+    if not cfg.stca_approach_volumes or cfg.conflicts.approach_volumes or ds.scenario is None:
+        return cfg
+    from safety.conflicts import ApproachVolume
+    from tertiary.simulate.traffic import final_approaches
+    try:
+        frame = ds.origin
+    except DataError:
+        frame = None
+    vols = tuple(ApproachVolume(x, y, course, length_m=length, name=f"final {course:05.1f}")
+                 for x, y, course, length in final_approaches(ds.scenario, frame))
+    return (dataclasses.replace(cfg, conflicts=dataclasses.replace(cfg.conflicts, approach_volumes=vols)) if vols
+            else cfg)
+
+
 def check_config(cfg: PipelineConfig | None) -> PipelineConfig:
     """``cfg`` (None = the defaults) after checking its names and numbers (:class:`OptionError`)."""
     cfg = cfg or PipelineConfig()
@@ -359,7 +381,7 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
     stage's name in ``exc.tertiary_stage``. No valid report left → :class:`DataError` after the
     rejects are sunk.
     """
-    cfg = check_config(cfg)
+    cfg = adapt_to_scenario(check_config(cfg), ds)
     window_s = check_window(window_s)
     clock = _Clock(progress or (lambda _m: None))
     sink = sink or (lambda _n, _f: None)
@@ -591,7 +613,7 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
     """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
     slice of a distributed run does (:mod:`tertiary.distributed`); ``grid_origin_us`` puts the
     epochs on a grid given from outside (the whole recording's), not this input's first second."""
-    cfg = check_config(cfg)
+    cfg = adapt_to_scenario(check_config(cfg), ds)
     ctx, st, _ = _stream(ds, cfg, _Clock(progress or (lambda _m: None)), [] if notes is None else notes,
                          check_window(window_s), parts, None, 0, grid_origin_us)
     return ctx, st
@@ -600,7 +622,7 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: "RunContext", st: "StreamState", parts, n_reports: int,
              progress: Progress | None = None, sink: Sink | None = None, notes: list[str] | None = None) -> Results:
     """The whole-run stages on streamed tables held by ``parts`` (see :func:`stream`)."""
-    return _finalize(ds, check_config(cfg), ctx, st, parts, _Clock(progress or (lambda _m: None)),
+    return _finalize(ds, adapt_to_scenario(check_config(cfg), ds), ctx, st, parts, _Clock(progress or (lambda _m: None)),
                      sink or (lambda _n, _f: None), [] if notes is None else notes, n_reports, time.perf_counter())
 
 
@@ -1113,7 +1135,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     unexpected exception).
     """
     t_wall = time.perf_counter()
-    cfg = check_config(cfg)
+    cfg = adapt_to_scenario(check_config(cfg), ds)
     window_s = check_window(window_s)
     say = progress or (lambda _m: None)
     out = Path(out_dir)

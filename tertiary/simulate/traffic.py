@@ -920,3 +920,18 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
             "origin": np.where(orig[route] >= 0, names[np.maximum(orig[route], 0)], ""),
             "destination": np.where(dest[route] >= 0, names[np.maximum(dest[route], 0)], "")}
     return NationalTraffic(dt, route, entry, role, meta, tpos, tvel, tseg, length, epoch)
+
+
+def final_approaches(scenario, frame: "geo.LocalFrame | None" = None) -> list[tuple[float, float, float, float]]:
+    """The scenario's final approaches as (threshold x, threshold y, final course deg true, length m)
+    in the system frame — what an STCA is adapted with (``safety.conflicts.ApproachVolume``):
+    terminal-area, runway 27 from the intercept point I; national, both ends of every airport's
+    runway out to the initial approach fix (``frame``: the system frame). Other kinds: none."""
+    if scenario.kind == "terminal-area":
+        return [(THRESHOLD[0], THRESHOLD[1], 270.0, ARRIVALS[0][-2][0] - THRESHOLD[0])]
+    if scenario.kind == "national" and scenario.national is not None and frame is not None:
+        aps = scenario.national.airports
+        xy = np.column_stack(frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)[:2])
+        return [(float(x), float(y), (a.runway_deg + end) % 360.0, FINAL_M)
+                for (x, y), a in zip(xy, aps) for end in (0.0, 180.0)]
+    return []
