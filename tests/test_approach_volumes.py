@@ -121,3 +121,18 @@ def test_pipeline_takes_the_volumes_from_the_scenario(small_terminal):
     mine = ApproachVolume(0.0, 0.0, 90.0)
     own = PipelineConfig(conflicts=dataclasses.replace(PipelineConfig().conflicts, approach_volumes=(mine,)))
     assert adapt_to_scenario(own, ds).conflicts.approach_volumes == (mine,)
+
+
+def test_national_scenario_has_both_runway_ends_of_every_airport():
+    from tertiary.geo import LocalFrame
+    from tertiary.simulate import load_scenario
+    from tertiary.simulate.traffic import final_approaches
+    sc = load_scenario("national")
+    frame = LocalFrame(*sc.origin)
+    fa = final_approaches(sc, frame)
+    assert len(fa) == 2 * len(sc.national.airports)
+    for (x0, y0, c0, _), (x1, y1, c1, _), ap in zip(fa[::2], fa[1::2], sc.national.airports):
+        assert (x0, y0) == (x1, y1) and (c1 - c0) % 360.0 == pytest.approx(180.0)
+        lat, lon, _ = frame.to_geodetic(np.array([x0]), np.array([y0]), np.zeros(1))
+        assert (float(lat[0]), float(lon[0])) == pytest.approx((ap.lat_deg, ap.lon_deg), abs=1e-6)
+    assert final_approaches(load_scenario("big-box")) == [] and final_approaches(load_scenario("adsb-paris")) == []
