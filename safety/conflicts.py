@@ -55,6 +55,10 @@ capture/overshoot of a level-off) — the predicted height is
 
 (:func:`level_off_times`). An aircraft moving away from its selected level beyond the tolerance
 (a bust in progress, or a stale selection) and rows without one keep the linear prediction.
+Where no selected level is downlinked (a Mode C-only aircraft, 5 % of Mode S ones) the row's
+cleared level from flight data (``cleared_alt_m``, :mod:`tertiary.flight_data`) takes its place
+under the same consistency test, as real STCAs use the controller's CFL: the crew's selection
+wins where both are known (it is what the aircraft will do; a wrong selection is a bust).
 Δh(t) of a pair is then piecewise linear with at most three pieces (breaks at τ_i, τ_j);
 :func:`conflict_interval_levelled` intersects, piece by piece, the set |Δh(t)| ≤ R_в^пор with
 the horizontal interval (closed form, vectorised); the alert needs a non-empty piece, ``t_in_s``
@@ -237,7 +241,7 @@ from scipy.stats import chi2, norm
 
 from safety.confirmation import confirm_alerts
 from tertiary import geo
-from tertiary.schema import SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN
+from tertiary.schema import CLEARED_ALT_COLUMN, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN
 
 __all__ = [
     "NM_M",
@@ -1826,12 +1830,16 @@ def _screen_states(cfg: ConflictConfig, pos: NDArray[np.float64], vel: NDArray[n
 
 def _track_level_off(tracks: pl.DataFrame, cfg: ConflictConfig, h: NDArray[np.float64], hdot: NDArray[np.float64],
                      from_alt: NDArray[np.bool_]) -> NDArray[np.float64] | None:
-    """Per row, τ of :func:`level_off_times` from its ``selected_alt_m`` — corrected mode with
-    ``use_selected_level`` only, and only on the barometric channel (``from_alt``: the selected
-    altitude is a pressure altitude); None when no row levels off within the look-ahead."""
-    if cfg.mode != "corrected" or not cfg.use_selected_level or SELECTED_ALT_COLUMN not in tracks.columns:
+    """Per row, τ of :func:`level_off_times` from its ``selected_alt_m``, or where it has none its
+    ``cleared_alt_m`` (flight data) — corrected mode with ``use_selected_level`` only, and only
+    on the barometric channel (``from_alt``: both are pressure altitudes); None when no row
+    levels off within the look-ahead."""
+    cols = [c for c in (SELECTED_ALT_COLUMN, CLEARED_ALT_COLUMN) if c in tracks.columns]
+    if cfg.mode != "corrected" or not cfg.use_selected_level or not cols:
         return None
-    sel = tracks[SELECTED_ALT_COLUMN].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    # the crew's selection where downlinked, else the controller's clearance (tertiary.flight_data)
+    sel = tracks.select(pl.coalesce([pl.col(c).cast(pl.Float64).fill_nan(None) for c in cols])).to_series()
+    sel = sel.fill_null(np.nan).to_numpy()
     tau = level_off_times(h, hdot, sel, from_alt, cfg.selected_level_tolerance_m)
     return tau if np.any(tau < cfg.window_s[1]) else None
 

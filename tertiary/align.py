@@ -426,7 +426,7 @@ def _plan_frame(df: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame, 
 
 _ALIGNED_COLUMNS = ["report_id", "run", "radar_id", "local_track_id", "epoch", "time", *STATE, "cov",
                     "res_range_m", "res_range_var_m2", "mode_s", "truth_id", "age_s", "fresh", "nominal_var",
-                    "altitude_m", "selected_alt_m", "ehs_track_rate_dps"]
+                    "altitude_m", "selected_alt_m", "ehs_track_rate_dps", "cleared_alt_m"]
 
 
 def empty_aligned(cfg: AlignConfig | None = None) -> pl.DataFrame:
@@ -443,7 +443,8 @@ def empty_aligned(cfg: AlignConfig | None = None) -> pl.DataFrame:
         "epoch": t, "time": t, **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
         "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "mode_s": pl.String, "truth_id": pl.Int64,
         "age_s": pl.Float64, "fresh": pl.Boolean, "nominal_var": pl.Array(pl.Float64, 3),
-        "altitude_m": pl.Float64, "selected_alt_m": pl.Float64, "ehs_track_rate_dps": pl.Float64, **extra})
+        "altitude_m": pl.Float64, "selected_alt_m": pl.Float64, "ehs_track_rate_dps": pl.Float64,
+        "cleared_alt_m": pl.Float64, **extra})
 
 
 def _epoch_span(p: AlignPlan, k_lo: int | None, k_hi: int | None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -474,7 +475,8 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig(), k_lo: int | None = No
     x, cov = extrapolate(p.state, p.cov, age, cfg.q_m2s3, rows=rows)
 
     base = ["report_id", "run", "radar_id", "local_track_id", "time", "res_range_m", "res_range_var_m2"]
-    opt = [c for c in ("mode_s", "truth_id", "altitude_m", "selected_alt_m", "ehs_track_rate_dps") if c in df.columns]
+    opt = [c for c in ("mode_s", "truth_id", "altitude_m", "selected_alt_m", "ehs_track_rate_dps", "cleared_alt_m")
+           if c in df.columns]
     aligned = df.select(base + opt)[rows].with_columns(
         pl.Series("epoch", p.t0_us + _epoch_offset_us(epoch_k, p.period)).cast(pl.Datetime("us", "UTC")),
         *(pl.Series(name, x[:, i]) for i, name in enumerate(STATE)),
@@ -488,7 +490,7 @@ def expand(p: AlignPlan, cfg: AlignConfig = AlignConfig(), k_lo: int | None = No
         aligned = aligned.with_columns(pl.lit(None, pl.String).alias("mode_s"))
     if "truth_id" not in aligned.columns:
         aligned = aligned.with_columns(pl.lit(None, pl.Int64).alias("truth_id"))
-    for c in ("altitude_m", "selected_alt_m", "ehs_track_rate_dps"):
+    for c in ("altitude_m", "selected_alt_m", "ehs_track_rate_dps", "cleared_alt_m"):
         aligned = aligned.with_columns((pl.col(c) if c in aligned.columns else pl.lit(None)).cast(pl.Float64).alias(c))
     extra = []
     if cfg.conversion_gate == "flag" and p.conv_valid is not None:
@@ -514,7 +516,8 @@ def align(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
     per system axis) and ``altitude_m``: the report's own barometric (Mode C/S) altitude as
     replied, null without one — not extrapolated; with ``time`` it feeds the vertical channel
     (:mod:`tertiary.altitude`); ``selected_alt_m`` its Mode S selected altitude (BDS 4,0) and
-    ``ehs_track_rate_dps`` its track-angle rate (BDS 5,0), null without. ``rejects`` rows carry
+    ``ehs_track_rate_dps`` its track-angle rate (BDS 5,0), ``cleared_alt_m`` its cleared level from
+    flight data (:mod:`tertiary.flight_data`), null without. ``rejects`` rows carry
     report_id and reason. No report: both empty.
     The epoch grid starts at ``grid_origin_us`` (default: :func:`epoch_grid`).
     """

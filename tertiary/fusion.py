@@ -129,7 +129,8 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel, predict,
                                quantisation_variance)
-from tertiary.schema import FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN, is_sorted_by
+from tertiary.schema import (CLEARED_ALT_COLUMN, FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN,
+                             is_sorted_by)
 
 __all__ = [
     "INPUT_COLUMNS",
@@ -1498,8 +1499,10 @@ def _selected_alt_inputs(rows: pl.DataFrame) -> list[pl.Expr]:
         return pl.col(c).cast(pl.Float64).fill_nan(None) if c in rows.columns else pl.lit(None, pl.Float64)
     t = (pl.col("time").dt.epoch("us").cast(pl.Float64) if "time" in rows.columns
          else -pl.col("age_s").cast(pl.Float64) if "age_s" in rows.columns else pl.lit(0.0))
-    # with the selected altitude, the BDS 5,0 track-angle rate (``__turn``) the same way
-    return [opt(SELECTED_ALT_COLUMN).alias("__sel"), t.alias("__t"), opt(TURN_RATE_COLUMN).alias("__turn")]
+    # with the selected altitude, the BDS 5,0 track-angle rate (``__turn``) and the cleared level
+    # from flight data (``__clr``) the same way
+    return [opt(SELECTED_ALT_COLUMN).alias("__sel"), t.alias("__t"), opt(TURN_RATE_COLUMN).alias("__turn"),
+            opt(CLEARED_ALT_COLUMN).alias("__clr")]
 
 
 def fuse(rows: pl.DataFrame, radars: pl.DataFrame, methods: Sequence[str] = METHODS,
@@ -1577,11 +1580,13 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
         pl.col("__sel").sort_by("__t", "radar_id").drop_nulls().last().alias(SELECTED_ALT_COLUMN),
         # its track-angle rate (BDS 5,0): likewise the newest report's
         pl.col("__turn").sort_by("__t", "radar_id").drop_nulls().last().alias(TURN_RATE_COLUMN),
+        # its cleared level from flight data (tertiary.flight_data): likewise
+        pl.col("__clr").sort_by("__t", "radar_id").drop_nulls().last().alias(CLEARED_ALT_COLUMN),
         *(pl.col(f"__w{i}") for i in range(len(methods))))
     head = head.with_columns(tentative["tentative"])
     keys = pl.concat([head.select(*GROUP, pl.lit(m).alias("method"), "radar_ids", "n_sources",
                                   pl.col(f"__w{i}").alias("weights"), "tentative", "mode_s", SELECTED_ALT_COLUMN,
-                                  TURN_RATE_COLUMN)
+                                  TURN_RATE_COLUMN, CLEARED_ALT_COLUMN)
                       for i, m in enumerate(methods)])
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)

@@ -160,6 +160,9 @@ def screen(ds: Dataset, cfg: "PipelineConfig | None" = None) -> Ingested:
     cfg = check_config(cfg)
     ing = ingest(ds, strict=cfg.strict, limits=cfg.limits)
     ing.notes[:0] = getattr(ds, "notes", [])
+    _, rej_f = _flight_plans(ds, cfg, ing.notes)        # the same rows `run` rejects
+    if rej_f.height:
+        ing.rejects = pl.concat([ing.rejects, rej_f], how="vertical_relaxed")
     if _height(ds.reports) == 0:
         raise DataError("reports: the table has no rows; nothing to process")
     if ing.reports.height == 0:
@@ -418,6 +421,7 @@ class RunContext:
     keep_us: int
     filters: dict = field(default_factory=dict)   # the tracker's filters, built once per run
     median: Any = None          # the whole input's median report time (windows are validated against it)
+    flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # valid rows (tertiary.flight_data)
 
 
 @dataclass(frozen=True)
@@ -449,7 +453,25 @@ def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportS
     hold_s = cfg.align.max_age_scans * slowest + 4 * slowest + _max_delay_s(cfg)
     origin_us = (source.first_us // US) * US if source.windowable else None
     from tertiary.tracker import _filter_dict
-    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US), _filter_dict(cfg.filters)), rej_r
+    plans, rej_f = _flight_plans(ds, cfg, notes)
+    rejects = pl.concat([r for r in (rej_r, rej_f) if r.height] or [rej_r], how="vertical_relaxed")
+    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US), _filter_dict(cfg.filters),
+                      flight_plans=plans), rejects
+
+
+def _flight_plans(ds: Dataset, cfg: PipelineConfig, notes: list[str]) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The dataset's valid flight plans and the rejects of the others (strict: the first bad row
+    is a :class:`DataError`)."""
+    from tertiary.flight_data import check_flight_plans, empty_flight_plans
+    if ds.flight_plans is None or ds.flight_plans.height == 0:
+        return empty_flight_plans(), _no_rejects()
+    plans, rej = check_flight_plans(ds.flight_plans, cfg.limits)
+    if rej.height:
+        text = f"flight_plans: {rej.height} row(s) rejected (first: row {rej['row_index'][0]}, {rej['reason'][0]})"
+        if cfg.strict:
+            raise DataError(text)
+        notes.append(text)
+    return plans, rej
 
 
 def _max_delay_s(cfg: PipelineConfig) -> float:
@@ -509,12 +531,16 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     if ctx.radars.height == 0:     # no valid radar: every report was rejected, nothing can be aligned
         return {"reports": reports, "rejects": rejects}, st
     recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
+    to_align = reports
+    if ctx.flight_plans.height:     # each report's cleared level, by its Mode 3/A code (tertiary.flight_data)
+        from tertiary.flight_data import correlate
+        to_align = correlate(reports, ctx.flight_plans)
     clock.stage("align")
     t0 = None if w.t0_us <= -END_US else w.t0_us     # None: unbounded (the last window flushes held rows)
     t1 = None if w.last else w.t1_us
     g0 = ctx.grid_origin_us if ctx.grid_origin_us is not None else align_stage.epoch_grid(reports, ctx.radars, cfg.align)[0] \
         if reports.height else 0
-    (aligned, align_rej), s_align = align_stage.align_step(st.align, reports, ctx.radars, ctx.origin, t0, t1, g0,
+    (aligned, align_rej), s_align = align_stage.align_step(st.align, to_align, ctx.radars, ctx.origin, t0, t1, g0,
                                                            cfg.align)
     rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
     rejects = pl.concat([rejects, _stage_rejects(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
@@ -565,15 +591,19 @@ def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
     return out
 
 
+#: what a track carries from the target it was last updated with, besides its Mode S address
+_CARRIED = (schema.SELECTED_ALT_COLUMN, schema.TURN_RATE_COLUMN, schema.CLEARED_ALT_COLUMN)
+
+
 def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`track_identity` carried across windows: each track's Mode S address and selected
     altitude (and track-angle rate) continue from their last values of the previous windows while
-    it coasts (``last`` gains ``selected_alt_m`` / ``ehs_track_rate_dps`` if it lacks them)."""
+    it coasts (``last`` gains the :data:`_CARRIED` columns it lacks)."""
     if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
         return tracks, last
     keys = ["run", "filter", "method", "track_id"]
-    opt = [c for c in (schema.SELECTED_ALT_COLUMN, schema.TURN_RATE_COLUMN) if c in pictures.columns]
+    opt = [c for c in _CARRIED if c in pictures.columns]
     carried_cols = ["mode_s", *opt]
     for c in opt:
         if c not in last.columns:
@@ -926,11 +956,12 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
     updated with (carried while it coasts), so that a controller's picture has an identity —
     what identity correctness is scored on and what tells a duplicate track of one aircraft
     from a second aircraft — and likewise ``selected_alt_m`` (the target's Mode S selected
-    altitude, latest known) and ``ehs_track_rate_dps`` (its BDS 5,0 track-angle rate, latest
-    known: conflict prediction follows a turn with it) when ``fused`` carries them."""
+    altitude, latest known), ``ehs_track_rate_dps`` (its BDS 5,0 track-angle rate, latest
+    known: conflict prediction follows a turn with it) and ``cleared_alt_m`` (its cleared level
+    from flight data, latest known) when ``fused`` carries them."""
     if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
         return tracks
-    cols = ["mode_s", *(c for c in (schema.SELECTED_ALT_COLUMN, schema.TURN_RATE_COLUMN) if c in fused.columns)]
+    cols = ["mode_s", *(c for c in _CARRIED if c in fused.columns)]
     ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *cols)
     keys = ["run", "filter", "method", "track_id"]
     return (tracks.drop(*cols, strict=False)

@@ -47,6 +47,7 @@ __all__ = [
     "TABLES",
     "FUSED_EXTRA",
     "TURN_RATE_COLUMN",
+    "CLEARED_ALT_COLUMN",
     "Limits",
     "RULES",
     "as_frame",
@@ -147,6 +148,11 @@ SELECTED_ALT_COLUMN = "selected_alt_m"
 #: :data:`SELECTED_ALT_COLUMN` reports → aligned → fused (the target's newest) → tracks, where
 #: conflict prediction follows a turn along an arc (:mod:`safety.conflicts`, "Turning aircraft")
 TURN_RATE_COLUMN = "ehs_track_rate_dps"
+#: the controller's cleared level (m, pressure-altitude reference of ``altitude_m``) from flight
+#: data, correlated with each report by its Mode 3/A code (:mod:`tertiary.flight_data`), null
+#: without a unique flight plan. Carried like :data:`SELECTED_ALT_COLUMN`; conflict prediction
+#: uses it where no selected level is downlinked (a Mode C-only aircraft, say)
+CLEARED_ALT_COLUMN = "cleared_alt_m"
 
 _REPORTS = TableSchema(
     name="reports",
@@ -216,7 +222,7 @@ _ALIGNED = TableSchema(
     },
     # the report's barometric altitude as replied (null without Mode C), at ``time``; its
     # selected altitude (BDS 4,0, null without)
-    optional={"altitude_m": F64, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64},
+    optional={"altitude_m": F64, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64, CLEARED_ALT_COLUMN: F64},
     key=("run", "epoch", "report_id"),
     nullable=frozenset({"res_range_m", "res_range_var_m2", "mode_s", "truth_id"}),
 )
@@ -265,7 +271,7 @@ _FUSED = TableSchema(
 #: while the centralised stage (which emits every ``fused`` column) does not produce them.
 FUSED_EXTRA: dict[str, pl.DataType] = {
     "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR, SELECTED_ALT_COLUMN: F64,
-    TURN_RATE_COLUMN: F64,
+    TURN_RATE_COLUMN: F64, CLEARED_ALT_COLUMN: F64,
     **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
 }
 
@@ -301,7 +307,9 @@ _TRACKS = TableSchema(
     # mode_s: the Mode S address of the target the track was last updated with (identity);
     # selected_alt_m: that target's selected altitude (latest known, carried while coasting)
     # ehs_track_rate_dps: that target's downlinked track-angle rate (latest known, likewise)
-    optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64},
+    # cleared_alt_m: that target's cleared level from flight data (latest known, likewise)
+    optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64,
+              CLEARED_ALT_COLUMN: F64},
     key=("run", "epoch", "filter", "method", "track_id"),
     nullable=frozenset({"innovation", "nis", "model_probs"}),
 )

@@ -24,7 +24,7 @@ from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarT
                                       check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
 from tertiary.simulate.ehs import EhsConfig, ehs_report_columns, ehs_rng
-from tertiary.simulate.radar import Plots, Transponders, number_plots, observe, site_frame, transponders
+from tertiary.simulate.radar import Plots, Transponders, _octal, number_plots, observe, site_frame, transponders
 from tertiary.simulate.traffic import big_box, terminal_area
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.store import write_parquet_atomic, write_text_atomic
@@ -47,6 +47,8 @@ class Dataset:
     truth: pl.DataFrame
     scenario: ScenarioConfig
     removed: pl.DataFrame = field(default_factory=pl.DataFrame)   # truth rows dropped by ADS-B cleaning
+    #: the controllers' cleared levels by Mode 3/A code (tertiary.flight_data; empty: none)
+    flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)
     notes: list[str] = field(default_factory=list)                # how the dataset was completed on load
 
     @property
@@ -196,7 +198,38 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
     reports = reports.select([c for c in parts[0].columns if c in reports.columns and c != "__life"]
                              + [c for c in reports.columns if c not in parts[0].columns])
     reports = reports.with_columns(pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"))
-    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed)
+    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed,
+                   flight_plans=flight_plans(traj, tx))
+
+
+def flight_plans(traj: Trajectories, tx: Transponders) -> pl.DataFrame:
+    """The ``flight_plans`` table (:mod:`tertiary.flight_data`) of simulated traffic that carries
+    cleared levels (:attr:`TrafficTrajectories.cleared_alt_m`): per aircraft, the code ATC
+    assigned it and its cleared level, valid over its time in the scenario — two rows when ATC
+    changed its code (the transponder's ``t_change``: the flight data follow the instruction).
+    The assigned code is the traffic's squawk, not what the transponder replies: a crew squawking
+    another aircraft's code (``duplicate_code_fraction``) is not correlated, as in reality. Empty
+    for traffic without clearances. Never the truth id."""
+    cleared = getattr(traj, "cleared_alt_m", None)
+    if cleared is None or len(cleared) == 0:
+        return pl.DataFrame()
+    squawk = _octal(np.array([str(v) for v in traj.meta.get("squawk", np.full(traj.n_aircraft, ""))], dtype=str))
+    assigned = np.where(squawk >= 0, squawk, tx.code_a)
+    act = np.asarray(traj.active)
+    k = np.arange(act.shape[1])
+    first = np.where(act, k[None, :], act.shape[1]).min(axis=1) * traj.dt
+    last = np.where(act, k[None, :], -1).max(axis=1) * traj.dt
+    ok = act.any(axis=1) & np.isfinite(cleared)
+    change = ok & (tx.t_change > first) & (tx.t_change < last)
+    a = np.concatenate([np.flatnonzero(ok), np.flatnonzero(change)])
+    code = np.concatenate([assigned[ok], tx.code_b[change]])
+    t_from = np.concatenate([first[ok], tx.t_change[change]])
+    t_to = np.concatenate([np.where(change[ok], tx.t_change[ok], last[ok]), last[change]])
+    epoch_us = int(traj.epoch.timestamp() * 1_000_000)
+    when = lambda t: pl.Series(np.round(t * 1e6).astype(np.int64) + epoch_us).cast(pl.Datetime("us", "UTC"))  # noqa: E731
+    return pl.DataFrame({"mode_3a": [f"{v:04o}" for v in code], "callsign": np.asarray(traj.meta["callsign"])[a],
+                         "valid_from": when(t_from), "valid_to": when(t_to),
+                         "cleared_alt_m": np.asarray(cleared, float)[a]}).sort("valid_from", "mode_3a")
 
 
 def _dataset_dir(out_dir: str | Path) -> Path:
@@ -220,6 +253,10 @@ def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
         write_parquet_atomic(getattr(ds, name), out / f"{name}.parquet")
     if ds.removed.height:
         write_parquet_atomic(ds.removed, out / "truth_removed.parquet")
+    if ds.flight_plans.height:
+        write_parquet_atomic(ds.flight_plans, out / "flight_plans.parquet")
+    else:
+        (out / "flight_plans.parquet").unlink(missing_ok=True)
     write_text_atomic(out / "scenario.toml", scenario_toml(ds.scenario))
     return out
 
@@ -332,6 +369,7 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
         reports = read(d / "reports.parquet", True)
         truth = read(d / "truth.parquet", False)
     removed = _read_table(d / "truth_removed.parquet", False)
+    plans = _read_table(d / "flight_plans.parquet", False)
     notes: list[str] = []
     if origin is not None:
         try:
@@ -369,7 +407,8 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
                 truth = truth.clear()
     if origin is not None:
         scen = dataclasses.replace(scen, origin=tuple(origin))
-    return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes)
+    return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes,
+                   flight_plans=plans)
 
 
 # --------------------------------------------------------------------------- streamed simulation
@@ -399,6 +438,8 @@ class Window:
     t1_s: float
     reports: pl.DataFrame
     truth: pl.DataFrame
+    #: flight plans first known in this window (a whole-simulated scenario: all in window 0)
+    flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
 def _shift_anomalies(anom: Anomalies, t0: float) -> Anomalies:
@@ -577,7 +618,8 @@ def _cut(ds: Dataset, bounds: list[tuple[float, float]]) -> Iterator[Window]:
                 return df
             keep = (pl.col("time") >= lo) if w else pl.lit(True)
             return df.filter(keep & ((pl.col("time") < hi) if not last else pl.lit(True)))
-        yield Window(index=w, t0_s=t0, t1_s=t1, reports=part(ds.reports), truth=part(ds.truth))
+        yield Window(index=w, t0_s=t0, t1_s=t1, reports=part(ds.reports), truth=part(ds.truth),
+                     flight_plans=ds.flight_plans if w == 0 else ds.flight_plans.clear())
 
 
 def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
@@ -606,17 +648,22 @@ def write_stream(cfg: ScenarioConfig, out_dir: str | Path, window_s: float | Non
         (out / name).mkdir(exist_ok=True)
         for old in (out / name).glob("part-*.parquet"):
             old.unlink()
-    for name in ("reports.parquet", "truth.parquet"):
+    for name in ("reports.parquet", "truth.parquet", "flight_plans.parquet"):
         (out / name).unlink(missing_ok=True)
     write_parquet_atomic(radars, out / "radars.parquet")
     parts: list[dict] = []
+    plans: list[pl.DataFrame] = []
     for win in windows:
+        if win.flight_plans.height:
+            plans.append(win.flight_plans)
         entry = {"window": win.index, "t0_s": win.t0_s, "t1_s": win.t1_s}
         for name in PARTITIONED:
             table = getattr(win, name)
             write_parquet_atomic(table, out / name / f"part-{win.index:04d}.parquet")
             entry[f"{name}_rows"] = table.height
         parts.append(entry)
+    if plans:
+        write_parquet_atomic(pl.concat(plans), out / "flight_plans.parquet")
     write_text_atomic(out / "scenario.toml", scenario_toml(scen))
     summary = {"window_s": None if window_s is None else float(window_s), "parts": parts,
                "reports": sum(p["reports_rows"] for p in parts), "truth_rows": sum(p["truth_rows"] for p in parts)}

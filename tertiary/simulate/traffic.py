@@ -68,7 +68,8 @@ from tertiary.simulate.trajectory import (SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_
 
 @dataclass
 class TrafficTrajectories(Trajectories):
-    """Truth plus each aircraft's selected altitude ``selected_alt_m`` (A,): the MCP/FCU level
+    """Truth plus each aircraft's selected altitude ``selected_alt_m`` (A,) and cleared level
+    ``cleared_alt_m`` (A,). The selected altitude is the MCP/FCU level
     its crew set (pressure-altitude reference of the truth's ``alt_m``, m; NaN: none downlinked).
     The aircraft's intent, not its future: the level the generator clears it to (module
     docstring), changed during the flight only where the crew's procedure changes it
@@ -80,6 +81,10 @@ class TrafficTrajectories(Trajectories):
     #: established on the glide path
     selected_change_s: NDArray[np.float64] | None = None
     selected_next_m: NDArray[np.float64] | None = None
+    #: per aircraft, the level the controller cleared it to (m, same reference; NaN: none): what
+    #: flight data hold (:func:`tertiary.simulate.flight_plans`). A level bust's is the level it
+    #: was cleared to keep, whatever its crew selected.
+    cleared_alt_m: NDArray[np.float64] | None = None
 
     def selected_at(self, aircraft: NDArray[np.int64], t: NDArray[np.float64]) -> NDArray[np.float64]:
         """The selected altitude of ``aircraft`` (indices) at times ``t`` (s after the epoch):
@@ -543,13 +548,13 @@ def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArr
 
 def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: float, duration_s: float):
     """Designed pairs, straight with constant speed (kinds 0 crossing, 1 converging, 2 level
-    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role and
-    the selected altitude (height, m) of each aircraft."""
+    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role, the
+    selected altitude and the cleared level (height, m) of each aircraft."""
     n_p = n_conf + n_near
     if n_p == 0:
         z = np.zeros((0, steps + 1))
         return (np.zeros((0, steps + 1, 3)), np.zeros((0, steps + 1, 3)), z.astype(bool), z.astype(np.int8),
-                np.zeros(0, str), np.zeros(0))
+                np.zeros(0, str), np.zeros(0), np.zeros(0))
     t_c = np.concatenate([np.linspace(0.2, 0.8, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
                           rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
     t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
@@ -600,7 +605,8 @@ def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: fl
     # right (its cleared level below), TrafficConfig.bust_selected
     bust_sel = z_b + climb if cfg.bust_selected == "flown" else z_b
     selected = np.concatenate([z_a, np.where(kind == 2, bust_sel, z_b)])
-    return pos, vel, active, seg, role, selected
+    # cleared levels: each its own level; a bust was cleared to keep the level below
+    return pos, vel, active, seg, role, selected, np.concatenate([z_a, z_b])
 
 
 def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
@@ -618,7 +624,7 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     ra = _route_aircraft(rng, cfg, tpl, kinds, counts, duration_s, dt)
     entry = np.round(ra["entry"] / dt).astype(np.int64)
     pos_r, vel_r, act_r, seg_r = _gather(tpl, ra["route"], entry, ra["zoff"], steps, dt)
-    pos_p, vel_p, act_p, seg_p, role_p, sel_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt,
+    pos_p, vel_p, act_p, seg_p, role_p, sel_p, clr_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt,
                                                        duration_s)
     pos = np.concatenate([pos_r, pos_p])
     vel = np.concatenate([vel_r, vel_p])
@@ -640,7 +646,8 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
                                meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
                                      "squawk": squawk},
                                selected_alt_m=selected, selected_change_s=np.where(downlinks, change, np.inf),
-                               selected_next_m=np.where(downlinks, nxt, np.nan))
+                               selected_next_m=np.where(downlinks, nxt, np.nan),
+                               cleared_alt_m=np.concatenate([_routed_selected(cfg, ra), clr_p]))
 
 
 def _selected_changes(rng, cfg: TrafficConfig, tpl: list[dict], ra: dict[str, NDArray], entry: NDArray[np.int64],

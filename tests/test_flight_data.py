@@ -1,0 +1,143 @@
+"""Cleared levels from flight data (tertiary.flight_data): validated with reasons, correlated with
+reports by Mode 3/A code (unique plan only), simulated from the clearances (never from the truth
+or from what transponders reply), carried to the tracks, and used by conflict prediction where no
+selected level is downlinked."""
+
+from __future__ import annotations
+
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+import pytest
+
+from safety.conflicts import ConflictConfig, predict_conflicts
+from tertiary.errors import DataError
+from tertiary.flight_data import FLIGHT_PLANS_SCHEMA, check_flight_plans, correlate
+from tertiary.simulate.traffic import ARRIVAL_CLEARED_M, SID_TOP_FL, flight_level_m
+
+T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+MIN = timedelta(minutes=1)
+
+
+def _plans(rows) -> pl.DataFrame:
+    return pl.DataFrame(rows, schema={"mode_3a": pl.String, "valid_from": pl.Datetime("us", "UTC"),
+                                      "valid_to": pl.Datetime("us", "UTC"), "cleared_alt_m": pl.Float64}, orient="row")
+
+
+def test_bad_flight_plans_are_rejected_with_their_reason():
+    plans = _plans([("1234", T0, T0 + MIN, 2000.0), ("8123", T0, T0 + MIN, 2000.0), ("12", T0, T0 + MIN, 2000.0),
+                    (None, T0, T0 + MIN, 2000.0), ("1235", T0 + MIN, T0, 2000.0), ("1236", T0, T0 + MIN, float("nan")),
+                    ("1237", T0, T0 + MIN, 30_000.0), ("1240", None, T0 + MIN, 2000.0)])
+    good, rej = check_flight_plans(plans)
+    assert good["mode_3a"].to_list() == ["1234"] and good.schema == pl.Schema(FLIGHT_PLANS_SCHEMA)
+    assert rej["input_table"].unique().to_list() == ["flight_plans"]
+    assert rej["row_index"].to_list() == [1, 2, 3, 4, 5, 6, 7]
+    reasons = rej["reason"].to_list()
+    assert reasons[:3] == ["mode_3a: not four octal digits"] * 2 + ["mode_3a: missing"]
+    assert reasons[3] == "valid_to: before valid_from" and "not finite" in reasons[4] and "outside" in reasons[5]
+    assert reasons[6] == "valid_from/valid_to: missing"
+    with pytest.raises(DataError, match="cleared_alt_m"):
+        check_flight_plans(plans.drop("cleared_alt_m"))
+
+
+def test_correlation_needs_one_plan_holding_the_code_at_the_report_time():
+    plans, _ = check_flight_plans(_plans([
+        ("1234", T0, T0 + 10 * MIN, 2000.0),
+        ("4321", T0, T0 + 10 * MIN, 3000.0), ("4321", T0 + 5 * MIN, T0 + 10 * MIN, 3300.0),   # code given twice
+        ("5555", T0 + 20 * MIN, T0 + 30 * MIN, 1000.0)]))
+    reports = pl.DataFrame({"run": [0, 0, 0, 0, 0, 1], "mode_3a": ["1234", "1234", "4321", "4321", None, "5555"],
+                            "time": [T0 + MIN, T0 + 11 * MIN, T0 + MIN, T0 + 6 * MIN, T0 + MIN, T0 + 25 * MIN],
+                            "x": [1, 2, 3, 4, 5, 6]}).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+    out = correlate(reports, plans)
+    assert out["x"].to_list() == [1, 2, 3, 4, 5, 6]                       # rows and order kept
+    assert out["cleared_alt_m"].to_list() == [2000.0, None, 3000.0, None, None, 1000.0]
+    # a plan naming a run applies to that run only
+    own = plans.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    assert correlate(reports, own)["cleared_alt_m"].to_list()[-1] is None
+
+
+def test_simulated_plans_come_from_the_clearances(small_terminal):
+    ds = small_terminal
+    fp = ds.flight_plans
+    assert "truth_id" not in fp.columns and fp.height >= ds.truth["truth_id"].n_unique()
+    first = fp.sort("valid_from").group_by("callsign", maintain_order=True).first()
+    truth = ds.truth.group_by("truth_id").agg(pl.col("callsign").first(), pl.col("squawk").first(),
+                                              pl.col("role").first())
+    j = truth.join(first, on="callsign", how="inner")
+    assert j.height == truth.height
+    assert (j["squawk"] == j["mode_3a"]).all()              # the assigned code, whatever is replied
+    dep = j.filter(pl.col("role") == "departure")["cleared_alt_m"]
+    arr = j.filter(pl.col("role") == "arrival")["cleared_alt_m"]
+    assert dep.len() and (dep == flight_level_m(SID_TOP_FL, 1.0)).all()
+    assert arr.len() and (arr == ARRIVAL_CLEARED_M).all()
+
+
+def test_tracks_carry_the_cleared_level(small_terminal):
+    from tertiary.pipeline import PipelineConfig, process
+    res = process(small_terminal, PipelineConfig(methods=("information",), filters=("imm_sym",), evaluation=False,
+                                                 safety=False, centralized=False))
+    assert "cleared_alt_m" in res.tracks.columns and res.tracks["cleared_alt_m"].is_not_null().mean() > 0.8
+    levels = set(small_terminal.flight_plans["cleared_alt_m"].to_list())
+    assert set(res.tracks["cleared_alt_m"].drop_nulls().unique().to_list()) <= levels
+
+
+# head-on, CPA 0 m at t = 100 s; A level at 3 600 m, B (Mode C only) climbing 12 m/s from 2 400 m
+POS = np.array([[0.0, 0.0, 3600.0], [20000.0, 0.0, 2400.0]])
+VEL = np.array([[100.0, 0.0, 0.0], [-100.0, 0.0, 12.0]])
+
+
+def _picture(selected=None, cleared=None) -> pl.DataFrame:
+    df = pl.DataFrame({"run": np.zeros(2, np.uint32), "epoch": [T0] * 2, "track_id": np.array([1, 2], np.uint64),
+                       "x_m": POS[:, 0], "y_m": POS[:, 1], "z_m": POS[:, 2], "vx_mps": VEL[:, 0],
+                       "vy_mps": VEL[:, 1], "vz_mps": VEL[:, 2], "alt_m": POS[:, 2], "alt_rate_mps": VEL[:, 2]}
+                      ).with_columns(pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+    if selected is not None:
+        df = df.with_columns(pl.Series("selected_alt_m", selected, dtype=pl.Float64))
+    if cleared is not None:
+        df = df.with_columns(pl.Series("cleared_alt_m", cleared, dtype=pl.Float64))
+    return df
+
+
+def _alert(df: pl.DataFrame) -> bool:
+    return bool(predict_conflicts(df, ConflictConfig(threshold_mode="fixed"))["alert"].any())
+
+
+def test_cleared_level_stops_a_climb_when_no_selected_level_is_known():
+    """B cleared to 2 750 m (the level below A): no alert; without a cleared level it alerts;
+    a downlinked selected level wins over the clearance (a bust selected at A's level alerts)."""
+    assert _alert(_picture())
+    assert not _alert(_picture(cleared=[3600.0, 2750.0]))
+    assert _alert(_picture(selected=[3600.0, 3550.0], cleared=[3600.0, 2750.0]))
+    assert not _alert(_picture(selected=[3600.0, None], cleared=[3600.0, 2750.0]))
+
+
+def test_dataset_round_trip_keeps_the_flight_plans(small_terminal, tmp_path):
+    from tertiary.simulate import read_dataset, write_dataset
+    write_dataset(small_terminal, tmp_path / "ds")
+    back = read_dataset(tmp_path / "ds")
+    assert back.flight_plans.equals(small_terminal.flight_plans)
+    # a dataset without the file has none
+    (tmp_path / "ds" / "flight_plans.parquet").unlink()
+    assert read_dataset(tmp_path / "ds").flight_plans.height == 0
+
+
+def test_validate_and_run_reject_the_same_flight_plan_rows(small_terminal, tmp_path):
+    import dataclasses
+    from tertiary.pipeline import PipelineConfig, process, screen
+    bad = small_terminal.flight_plans.with_columns(
+        pl.when(pl.int_range(pl.len()) == 2).then(pl.lit("9999")).otherwise(pl.col("mode_3a")).alias("mode_3a"))
+    ds = dataclasses.replace(small_terminal, flight_plans=bad)
+    cfg = PipelineConfig(methods=("information",), filters=(), evaluation=False, safety=False, centralized=False)
+    screened = screen(ds, cfg).rejects.filter(pl.col("input_table") == "flight_plans")
+    ran = process(ds, cfg).rejects.filter(pl.col("input_table") == "flight_plans")
+    assert screened.select("row_index", "reason").rows() == ran.select("row_index", "reason").rows() \
+        == [(2, "mode_3a: not four octal digits")]
+    with pytest.raises(DataError, match="flight_plans"):
+        process(ds, dataclasses.replace(cfg, strict=True))
+
+
+def test_partitioned_dataset_keeps_the_flight_plans(small_terminal, tmp_path):
+    from tertiary.simulate import read_dataset, write_stream
+    write_stream(small_terminal.scenario, tmp_path / "parts", 300.0)
+    assert read_dataset(tmp_path / "parts").flight_plans.equals(small_terminal.flight_plans)
