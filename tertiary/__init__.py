@@ -57,7 +57,8 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "measured_plots", "fuse_bar_shalom_campo", "confirm_step", "ConfirmState", "evaluate_pictures",
            "match_to_reference", "MatchConfig", "load_requirements", "check_requirements", "ALL_METHODS",
            "CollectionConfig", "collect", "IndicatorConfig", "bayes_threshold",
-           "conversion_valid", "make_range_channel",
+           "conversion_valid", "make_range_channel", "check_flight_plans", "correlate_flight_plans",
+           "adapt_to_scenario",
            # the windowed engine: every streamed stage is a step (state, window) -> (outputs, state)
            "AlignState", "align_step", "init_align_state", "AssociateState", "AssociationStats", "associate_step",
            "init_associate_state", "ClusterState", "cluster_step", "init_cluster_state", "FuseState", "fuse_step",
@@ -72,3 +73,6 @@ from tertiary.indicators import IndicatorConfig  # noqa: E402  (indicators(): te
 from tertiary.gating import bayes_threshold  # noqa: E402
 from tertiary.align import conversion_valid  # noqa: E402
 from tertiary.filters import make_range_channel  # noqa: E402
+from tertiary.flight_data import check_flight_plans  # noqa: E402
+from tertiary.flight_data import correlate as correlate_flight_plans  # noqa: E402
+from tertiary.pipeline import adapt_to_scenario  # noqa: E402
