@@ -383,7 +383,12 @@ class ApproachVolume:
     below ``ceiling_m`` (height, the channel conflict prediction uses); a track is established
     on it when its ground track is within ``track_tolerance_deg`` of the course. Parameters of
     pairs established on it: ``dr_h_m`` (horizontal minimum; 2.5 NM, the reduced in-trail
-    minimum on final of ICAO Doc 4444 §8.7.3.2) and ``t_thr_s`` (look-ahead)."""
+    minimum on final of ICAO Doc 4444 §8.7.3.2) and ``t_thr_s`` (look-ahead).
+
+    The defaults were measured on the default scenario (``aposteriori+imm_sym``, velocity-σ
+    limit 50 m/s; nuisance / false alerts, 10 of 10 losses alerted in every case): no volume 92 / 8;
+    (3 NM, 105 s) in the volume 92 / 8; (2.5 NM, 105 s) 48 / 4; (3 NM, 60 s) 13 / 2;
+    (2.5 NM, 60 s) 7 / 2; (2.5 NM, 45 s) 7 / 2."""
 
     threshold_x_m: float
     threshold_y_m: float
