@@ -5,7 +5,8 @@ separation) with one picture (``information`` fusion + ``imm_sym`` tracker, or t
 then predicts conflicts on its confirmed tracks for every setting and scores them against the
 losses of separation in the truth: genuine / nuisance / false alerts, losses alerted, warning
 time (safety.alerts). This is the study behind the pipeline's default confirmation
-(safety.conflicts.STCA_CONFIRMATION).
+(safety.conflicts.STCA_CONFIRMATION). Every other setting is the pipeline's, as a run applies it
+(the scenario's final-approach volumes, ``pipeline.adapt_to_scenario``).
 
     python benchmarks/safety_thresholds.py [METHOD FILTER]
 """
@@ -18,7 +19,7 @@ import sys
 import polars as pl
 
 from _util import record
-from safety import AlertConfig, ConflictConfig, predict_conflicts, slim_conflicts, stca_tables
+from safety import AlertConfig, predict_conflicts, slim_conflicts, stca_tables
 from tertiary import pipeline
 from tertiary.simulate import load_scenario, simulate
 
@@ -29,6 +30,8 @@ SETTINGS = [("covariance", c, mn) for c in (0.5, 0.8, 0.95) for mn in ((1, 1), (
 def main(method: str = "information", filt: str = "imm_sym") -> None:
     ds = simulate(load_scenario("terminal-area"))
     cfg = pipeline.PipelineConfig(methods=(method,), filters=(filt,), safety=False)
+    # the pipeline's rule as a run applies it: the scenario's final-approach volumes included
+    base = pipeline.adapt_to_scenario(cfg, ds).conflicts
     res = pipeline.process(ds, cfg)
     picture, id_col = pipeline._safety_picture(cfg, res.fused, res.tracks, [])
     id_map = pipeline._picture_truth(id_col, res.associations, ds.reports.select("run", "report_id", "truth_id"),
@@ -36,7 +39,7 @@ def main(method: str = "information", filt: str = "imm_sym") -> None:
     rows = []
     for mode, par, (m, n) in SETTINGS:
         extra = {"confidence": par} if mode == "covariance" else {"fixed_est_h_m": par}
-        cc = dataclasses.replace(ConflictConfig(), threshold_mode=mode, confirm_m=m, confirm_n=n, **extra)
+        cc = dataclasses.replace(base, threshold_mode=mode, confirm_m=m, confirm_n=n, **extra)
         c = slim_conflicts(predict_conflicts(picture, cc, id_col=id_col, frame=ds.origin))
         metrics, _, _ = stca_tables(c, id_map, ds.truth, AlertConfig(conflict=cc), id_col=id_col, frame=ds.origin)
         w = dict(zip(metrics["metric"], metrics["value"]))
