@@ -58,8 +58,8 @@ capture/overshoot of a level-off) — the predicted height is
 Where no selected level is downlinked (a Mode C-only aircraft, or a Mode S one that does not
 downlink BDS 4,0) the row's cleared level from flight data (``cleared_alt_m``,
 :mod:`tertiary.flight_data`) takes its place under the same consistency test, as real STCAs use
-the controller's CFL: the crew's selection
-wins where both are known (it is what the aircraft will do; a wrong selection is a bust).
+the controller's CFL: the crew's selection wins where both are known (it is what the aircraft
+will do; a wrong selection is a bust).
 Δh(t) of a pair is then piecewise linear with at most three pieces (breaks at τ_i, τ_j);
 :func:`conflict_interval_levelled` intersects, piece by piece, the set |Δh(t)| ≤ R_в^пор with
 the horizontal interval (closed form, vectorised); the alert needs a non-empty piece, ``t_in_s``
