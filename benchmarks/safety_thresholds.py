@@ -21,6 +21,7 @@ import polars as pl
 from _util import record
 from safety import AlertConfig, predict_conflicts, slim_conflicts, stca_tables
 from tertiary import pipeline
+from tertiary.evaluation import evaluate_pictures
 from tertiary.simulate import load_scenario, simulate
 
 SETTINGS = [("covariance", c, mn) for c in (0.5, 0.8, 0.95) for mn in ((1, 1), (2, 3), (3, 4), (4, 5))] + \
@@ -34,8 +35,9 @@ def main(method: str = "information", filt: str = "imm_sym") -> None:
     base = pipeline.adapt_to_scenario(cfg, ds).conflicts
     res = pipeline.process(ds, cfg)
     picture, id_col = pipeline._safety_picture(cfg, res.fused, res.tracks, [])
-    id_map = pipeline._picture_truth(id_col, res.associations, ds.reports.select("run", "report_id", "truth_id"),
-                                     res.tracks)
+    # which aircraft each track is at each epoch: the evaluation's matcher, as the pipeline scores alerts
+    id_map = evaluate_pictures(picture, ds.truth, radars=ds.radars, frame=ds.origin, id_col=id_col,
+                               keep_matched=False, surveillance=False).id_map
     rows = []
     for mode, par, (m, n) in SETTINGS:
         extra = {"confidence": par} if mode == "covariance" else {"fixed_est_h_m": par}
