@@ -69,11 +69,22 @@ def check_flight_plans(plans: pl.DataFrame, limits: Limits = Limits()) -> tuple[
     if missing:
         raise DataError(f"flight_plans: required column {missing[0]!r} is missing "
                         f"(have: {', '.join(plans.columns) or 'none'})")
-    cast = {c: t for c, t in FLIGHT_PLANS_SCHEMA.items() if c in plans.columns}
-    try:
-        frame = plans.select(list(cast)).cast(cast)
-    except (pl.exceptions.InvalidOperationError, pl.exceptions.ComputeError) as exc:
-        raise DataError(f"flight_plans: a column has the wrong type ({str(exc).splitlines()[0]})") from exc
+    cols = []
+    for c, t in FLIGHT_PLANS_SCHEMA.items():
+        if c not in plans.columns:
+            continue
+        src = plans.schema[c]
+        # text is never a time or a number here, nor a boolean a code: a wrong type is the table's error
+        ok = (src == t or src == pl.Null or (t == pl.String() and src.is_integer())
+              or (isinstance(t, pl.Datetime) and isinstance(src, pl.Datetime))
+              or (t.is_numeric() and src.is_numeric()))
+        if not ok:
+            raise DataError(f"flight_plans: column {c!r} is {src}, expected {t}")
+        try:
+            cols.append(plans[c].cast(t))
+        except (pl.exceptions.InvalidOperationError, pl.exceptions.ComputeError) as exc:
+            raise DataError(f"flight_plans: column {c!r} does not fit {t} ({str(exc).splitlines()[0]})") from exc
+    frame = pl.DataFrame(cols)
     frame = frame.with_row_index("row_index").with_columns(_reason(limits).alias("reason"))
     bad = frame.filter(pl.col("reason").is_not_null())
     good = frame.filter(pl.col("reason").is_null()).drop("row_index", "reason")

@@ -10,6 +10,8 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import polars as pl
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from safety.conflicts import ConflictConfig, predict_conflicts
 from tertiary.errors import DataError
@@ -141,3 +143,31 @@ def test_partitioned_dataset_keeps_the_flight_plans(small_terminal, tmp_path):
     from tertiary.simulate import read_dataset, write_stream
     write_stream(small_terminal.scenario, tmp_path / "parts", 300.0)
     assert read_dataset(tmp_path / "parts").flight_plans.equals(small_terminal.flight_plans)
+
+
+_VALUES = {
+    "mode_3a": st.one_of(st.none(), st.sampled_from(["1234", "7777", "0000", "8000", "12", "abcd", "", "12345"])),
+    "valid_from": st.one_of(st.none(), st.datetimes(min_value=datetime(2000, 1, 1), max_value=datetime(2040, 1, 1))),
+    "valid_to": st.one_of(st.none(), st.datetimes(min_value=datetime(2000, 1, 1), max_value=datetime(2040, 1, 1))),
+    "cleared_alt_m": st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)),
+}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.fixed_dictionaries(_VALUES), max_size=12))
+def test_hostile_flight_plans_give_rejects_with_reasons_and_lose_nothing(rows):
+    plans = pl.DataFrame(rows, schema={"mode_3a": pl.String, "valid_from": pl.Datetime("us"),
+                                       "valid_to": pl.Datetime("us"), "cleared_alt_m": pl.Float64})
+    good, rej = check_flight_plans(plans)
+    assert good.height + rej.height == plans.height
+    assert rej["reason"].is_not_null().all()
+    assert good["mode_3a"].str.contains(r"^[0-7]{4}$").all() and good["cleared_alt_m"].is_finite().all()
+    assert (good["valid_to"] >= good["valid_from"]).all()
+
+
+@pytest.mark.parametrize("column, values", [("valid_from", ["noon", "one"]), ("cleared_alt_m", ["high", "low"]),
+                                            ("mode_3a", [True, False])])
+def test_a_wrongly_typed_flight_plan_column_is_named(column, values):
+    plans = _plans([("1234", T0, T0 + MIN, 2000.0), ("1235", T0, T0 + MIN, 2000.0)])
+    with pytest.raises(DataError, match=column):
+        check_flight_plans(plans.with_columns(pl.Series(column, values)))
