@@ -24,7 +24,8 @@ from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarT
                                       check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
 from tertiary.simulate.ehs import EhsConfig, ehs_report_columns, ehs_rng
-from tertiary.simulate.radar import Plots, Transponders, _octal, number_plots, observe, site_frame, transponders
+from tertiary.simulate.radar import (Plots, Transponders, _octal, _strings, number_plots, observe, site_frame,
+                                    transponders)
 from tertiary.simulate.traffic import big_box, terminal_area
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.store import write_parquet_atomic, write_text_atomic
@@ -213,7 +214,7 @@ def flight_plans(traj: Trajectories, tx: Transponders) -> pl.DataFrame:
     cleared = getattr(traj, "cleared_alt_m", None)
     if cleared is None or len(cleared) == 0:
         return pl.DataFrame()
-    squawk = _octal(np.array([str(v) for v in traj.meta.get("squawk", np.full(traj.n_aircraft, ""))], dtype=str))
+    squawk = _octal(_strings(traj, "squawk"))
     assigned = np.where(squawk >= 0, squawk, tx.code_a)
     act = np.asarray(traj.active)
     k = np.arange(act.shape[1])
