@@ -130,8 +130,14 @@ class ReportSource:
     def __init__(self, reports: pl.DataFrame | pl.LazyFrame, limits: schema.Limits = schema.Limits()) -> None:
         from datetime import datetime, timedelta, timezone
         lf = reports.lazy() if isinstance(reports, pl.DataFrame) else reports
-        lf = lf.drop(INPUT_ROW, strict=False).with_row_index(INPUT_ROW)
-        names = lf.collect_schema()
+        # the row index straight on the scan (nothing resolved before it, not even the schema):
+        # a time filter is then pushed into the scan, which skips the files outside a window
+        try:
+            names = lf.with_row_index(INPUT_ROW).collect_schema()
+            lf = lf.with_row_index(INPUT_ROW)
+        except pl.exceptions.DuplicateError:    # an input that has the column: ours replaces it
+            lf = lf.drop(INPUT_ROW).with_row_index(INPUT_ROW)
+            names = lf.collect_schema()
         self.timed = isinstance(names.get("time"), pl.Datetime)
         self.lf = lf
         self.median = None
@@ -169,8 +175,18 @@ class ReportSource:
         t = pl.col("time").dt.epoch("us")
         cond = (t >= w.t0_us) & (t < w.t1_us) & (t >= self.lo_us) & (t <= self.hi_us)
         if w.t0_us <= -END_US:   # the first window also takes the rows without a plausible time
-            cond = cond | pl.col("time").is_null() | (t < self.lo_us) | (t > self.hi_us)
-        return self.lf.filter(cond).collect()
+            return self.lf.filter(cond | pl.col("time").is_null() | (t < self.lo_us) | (t > self.hi_us)).collect()
+        # the same rows, with a coarse test on the column itself first: a scan skips the files
+        # and row groups whose time statistics lie outside it (a test on an expression of the
+        # column cannot), so a window reads its own part of the input, not all of it
+        # (collected before the exact test: a predicate the scan cannot take keeps it from taking any)
+        return self.lf.filter(self._near(max(w.t0_us, self.lo_us), min(w.t1_us, self.hi_us + 1))).collect().filter(cond)
+
+    def _near(self, t0_us: int, t1_us: int) -> pl.Expr:
+        """``time`` within [t0 − 1 ms, t1 + 1 ms), compared in the column's own type (any unit)."""
+        dtype = self.lf.collect_schema()["time"]
+        lit = lambda us: pl.lit(us, pl.Int64).cast(pl.Datetime("us")).cast(dtype)  # noqa: E731
+        return (pl.col("time") >= lit(t0_us - 1000)) & (pl.col("time") < lit(t1_us + 1000))
 
 
 # --------------------------------------------------------------------------- parts, state, manifest

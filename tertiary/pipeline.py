@@ -24,7 +24,7 @@ import tempfile
 import time
 import warnings
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -744,10 +744,13 @@ class _OnDisk:
         self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
         self.target_counts = _target_counts(frame) if name == "fused" else {}
 
-    def picture(self, key: tuple) -> pl.DataFrame:
+    def picture(self, key: tuple, skip: Collection[str] = ()) -> pl.DataFrame:
+        """One picture's rows, without the columns in ``skip``."""
         k = self.index.get(tuple(key))
         files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
-        return _concat_parts([pl.read_parquet(f) for f in files]) if files else self.empty
+        cols = [c for c in self.empty.columns if c not in skip]
+        return (_concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
+                else self.empty.select(cols))
 
     def collect(self) -> pl.DataFrame:
         got = self.parts.table(self.name)
@@ -983,10 +986,10 @@ def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
-    fused_pictures = list(_fused_pictures(fused))
+    fused_pictures = list(_fused_pictures(fused, _NOT_SCORED))
     ev_fused = (evaluate_each((get() for get in fused_pictures), ing.truth, id_col="target_id", seed_stage="fusion",
                               **kw) if fused_pictures else none)
-    track_pictures = list(_track_pictures(tracks))
+    track_pictures = list(_track_pictures(tracks, _NOT_SCORED))
     if not track_pictures:
         return ev_fused, none
     return ev_fused, evaluate_each((get() for get in track_pictures), ing.truth, seed_stage="tracker", **kw)
@@ -997,11 +1000,19 @@ def _shown(fused: pl.DataFrame) -> pl.DataFrame:
     return fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
 
 
-def _fused_pictures(fused: "pl.DataFrame | _OnDisk") -> Iterator[Callable[[], pl.DataFrame]]:
-    """A reader per fused picture (its confirmed targets), in order of appearance."""
+#: what no evaluation metric reads of a picture (the fusion's inputs and the tracker's
+#: diagnostics): an on-disk picture is scored without them (issue 16, memory)
+_NOT_SCORED = ("meas_cov", "weights", "radar_ids", "innovation", "model_probs", "meas_x_m", "meas_y_m",
+               "meas_z_m", "n_fresh", "age_s")
+
+
+def _fused_pictures(fused: "pl.DataFrame | _OnDisk", skip: Collection[str] = ()
+                    ) -> Iterator[Callable[[], pl.DataFrame]]:
+    """A reader per fused picture (its confirmed targets), in order of appearance; an on-disk
+    picture is read without the columns in ``skip``."""
     if isinstance(fused, _OnDisk):
         for key in fused.shown:
-            yield lambda key=key: _shown(fused.picture(key))
+            yield lambda key=key: _shown(fused.picture(key, skip))
         return
     shown = _shown(fused)
     for part in (shown.partition_by("method", maintain_order=True) if shown.height else []):
@@ -1013,11 +1024,12 @@ def _as_picture(tracks: pl.DataFrame) -> pl.DataFrame:
     return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
 
 
-def _track_pictures(tracks: "pl.DataFrame | _OnDisk") -> Iterator[Callable[[], pl.DataFrame]]:
-    """A reader per tracker picture, in order of appearance."""
+def _track_pictures(tracks: "pl.DataFrame | _OnDisk", skip: Collection[str] = ()
+                    ) -> Iterator[Callable[[], pl.DataFrame]]:
+    """A reader per tracker picture, in order of appearance (``skip``: as for fused)."""
     if isinstance(tracks, _OnDisk):
         for key in tracks.pictures:
-            yield lambda key=key: _as_picture(tracks.picture(key))
+            yield lambda key=key: _as_picture(tracks.picture(key, skip))
         return
     if tracks.height:
         for part in _as_picture(tracks).partition_by("method", maintain_order=True):

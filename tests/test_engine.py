@@ -108,8 +108,8 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     (issue 16, memory): the same metrics, alerts, requirements and counts as the in-memory run,
     which holds every picture. Fails if a picture is skipped, read twice or read incompletely."""
     read = []
-    monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, f=pipeline._OnDisk.picture:
-                        read.append((self.name, key)) or f(self, key))
+    monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, *a, f=pipeline._OnDisk.picture:
+                        read.append((self.name, key)) or f(self, key, *a))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
