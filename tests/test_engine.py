@@ -261,3 +261,25 @@ def test_engine_options_are_checked(dataset_dir, tmp_path):
         p = _cli("run", str(dataset_dir), "--out", str(tmp_path / option.strip("-")), *extra)
         _, err = p.communicate(timeout=120)
         assert p.returncode == 2 and option in err, err
+
+
+def test_window_read_is_pushed_into_the_parquet_scan(tmp_path):
+    """A window of a partitioned input reads its own files, not all of them (issue 18: the
+    reading was quadratic in the number of windows): the coarse time test sits in the scan
+    itself, under the input row index, and the window's rows are exactly the exact test's."""
+    from tertiary.engine import INPUT_ROW, ReportSource
+    t0 = 1_700_000_000_000_000
+    files = []
+    for k in range(3):
+        f = tmp_path / f"part-{k}.parquet"
+        us = t0 + k * 600 * US + pl.int_range(0, 600, eager=True) * US
+        pl.DataFrame({"time": us.cast(pl.Datetime("us")).dt.replace_time_zone("UTC"),
+                      "v": pl.int_range(0, 600, eager=True) + 1000 * k}).write_parquet(f)
+        files.append(f)
+    src = ReportSource(pl.scan_parquet(files))
+    w = Window(1, t0 + 600 * US, t0 + 1200 * US)
+    plan = src.lf.filter(src._near(w.t0_us, w.t1_us)).explain()
+    assert plan.startswith("Parquet SCAN") and "SELECTION" in plan, plan
+    got = src.rows(w)
+    assert got["v"].to_list() == list(range(1000, 1600))
+    assert got[INPUT_ROW].to_list() == list(range(600, 1200))      # global row numbers
