@@ -520,6 +520,9 @@ def picture_accuracy(matched: pl.DataFrame, stage: str, cfg: AccuracyConfig = Ac
         return _empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA), scored_samples(pl.DataFrame(
             schema={"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64, "seg_class": pl.String}))
     scored = scored_rows(matched, cfg)
+    # what the metrics below read: the picture's other columns are not copied through them
+    keep = {*_TRACK, "epoch", "truth_id", "seg_class", *FUSION_METRICS.values(), "sd_pos", "nees_pos", "nees", "nis"}
+    scored = scored.select(c for c in scored.columns if c in keep)
     parts = [accuracy_from_matched(scored, cfg, stage), *_consistency(scored, stage, cfg.band),
              continuity_metrics(matched, observed, stage)]
     metrics = pl.concat([p for p in parts if p.height], how="vertical_relaxed") if any(p.height for p in parts) \

@@ -99,6 +99,17 @@ def comparison(metrics: pl.DataFrame) -> pl.DataFrame:
     return wide.select("method", *[c for c in COMPARISON_METRICS if c in wide.columns]).sort("method")
 
 
+#: what :func:`picture_metrics` reads of a matched picture, beside the reference's ``true_*``
+_METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", *_STATE, "alt_m", "alt_rate_mps", "mode_s",
+                   "mode_3a", "callsign", "icao24")
+
+
+def _metric_columns(matched: pl.DataFrame) -> list[str]:
+    """The columns of ``matched`` the surveillance metrics read: a picture's covariances and
+    diagnostics are not copied through their joins (memory of the stage, issue 16)."""
+    return [c for c in matched.columns if c in _METRIC_COLUMNS or c.startswith("true_")]
+
+
 def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> None:
     missing = [c for c in ("epoch", id_col, *_STATE) if c not in tracks.columns]
     if missing:
@@ -159,7 +170,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame], truth: pl.DataFrame, *, rada
             matched, seed_stage, cfg.accuracy,
             observed if observed is not None else expected.select("run", "epoch", "truth_id"))
         if surveillance:
-            parts["metrics"].append(picture_metrics(matched.drop("cov", "cov_diag", strict=False), expected=expected,
+            parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
                                                     radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
         parts["metrics"].append(seed)
         parts["by_epoch"].append(by_epoch)
