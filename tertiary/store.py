@@ -438,15 +438,18 @@ def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_t
     if "report_id" not in f.columns or "report_id" not in have or not cols:
         return
     rt = _q(reports_table)
-    n, n_unique = con.execute(f"SELECT count(*), count(DISTINCT report_id) FROM {rt}").fetchall()[0]
+    # every query reads the reports in the frame's report_id range only: a window's part meets
+    # its own reports, not the whole table (the zone maps skip the rest), and the view's join
+    # of these rows is one to one when the ids in that range are unique
+    lo, hi = f.select(pl.col("report_id").min().alias("lo"), pl.col("report_id").max().alias("hi")).row(0)
+    n, n_unique = con.execute(f"SELECT count(*), count(DISTINCT report_id) FROM {rt} WHERE report_id BETWEEN ? AND ?",
+                              [lo, hi]).fetchall()[0]
     if n != n_unique:
         return
     view = f"_tertiary_chk_{secrets.token_hex(6)}"
     con.register(view, f.select("report_id", *cols, *(["epoch"] if "epoch" in f.columns else []),
                                 *(["age_s"] if "age_s" in f.columns else [])).to_arrow())
-    # one pass for every column, over the reports in the frame's report_id range only (a
-    # window's part meets its own reports, not the whole table: the zone maps skip the rest)
-    lo, hi = f.select(pl.col("report_id").min().alias("lo"), pl.col("report_id").max().alias("hi")).row(0)
+    # one pass for every column
     tests = [f"count(*) FILTER (WHERE r.report_id IS NULL OR a.{_q(c)} IS DISTINCT FROM r.{_q(c)})" for c in cols]
     age_test = {"age_s", "epoch"} <= set(f.columns) and f.schema["age_s"] == pl.Float64
     if age_test:

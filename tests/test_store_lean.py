@@ -132,6 +132,26 @@ def test_aligned_keeps_a_column_that_differs_from_its_report(tmp_path):
     assert back.columns == aligned.columns
 
 
+def test_aligned_keeps_its_columns_when_its_reports_ids_repeat(tmp_path):
+    """The report columns are joined back by report_id only where that join is one to one: a
+    reports table whose ids repeat inside the aligned rows' id range keeps aligned whole (the
+    check reads that range only, not the whole reports table)."""
+    reports, aligned = _aligned_case()
+    dup = pl.concat([reports, reports.filter(pl.col("report_id") == 3).with_columns(pl.lit("q").alias("mode_s"))])
+    far = reports.filter(pl.col("report_id") == 0).with_columns(pl.lit(99, pl.UInt64).alias("report_id"))
+    for name, rep, dropped in (("dup", dup, False), ("far", pl.concat([reports, far, far]), True)):
+        with RunStore.create(tmp_path / name) as st:
+            st.write("reports", rep)
+            st.write("aligned", aligned)
+        with RunStore.open(tmp_path / name) as st:
+            back = st.read("aligned")
+            names = st.sql("SELECT table_name FROM information_schema.tables")["table_name"].to_list()
+            phys = st.sql(f"SELECT * FROM {LEAN_PREFIX + 'aligned' if LEAN_PREFIX + 'aligned' in names else 'aligned'}"
+                          " LIMIT 0").columns
+        assert ("mode_s" not in phys) == dropped, name
+        assert back.select(pl.exclude("x_m")).equals(aligned.select(pl.exclude("x_m")), null_equal=True)
+
+
 def test_aligned_without_reports_is_stored_whole(tmp_path):
     _, aligned = _aligned_case()
     with RunStore.create(tmp_path) as st:
