@@ -108,6 +108,48 @@ def _validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[st
     return clean, schema.rejects_table(rejects, kind, "ingest"), rejects
 
 
+#: truth rows validated at a time (whole aircraft) in finalize: the checks copy every column
+#: several times, so a long recording's truth is validated in parts (issue 16, memory)
+TRUTH_PART_ROWS = 250_000
+
+
+def _validate_truth(ds: Dataset, cfg: "PipelineConfig", notes: list[str], window) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(clean truth, packed rejects): :func:`_validate_table` of the whole truth, computed a few
+    aircraft at a time. Every truth check is row-wise or within one aircraft (its key and its
+    order are (truth_id, time)), the table's median time is taken once from the whole and each
+    part carries its rows' input positions, so the clean table (in input order), its rejects
+    and the notes are those of one call on the whole."""
+    truth = schema.as_frame(ds.truth, "truth")
+    kw = dict(limits=cfg.limits, time_window=window)
+    if truth.height == 0:
+        return truth, _no_rejects()
+    if (cfg.strict or truth.height <= TRUTH_PART_ROWS or truth.schema.get("truth_id") is None
+            or truth.schema.get("time") != schema.TIME or _INPUT_ROW in truth.columns):
+        clean, rej, _ = _validate_table(truth, "truth", cfg.strict, notes, **kw)
+        return clean, rej
+    med = schema.table_median_time(truth, cfg.limits)
+    sizes = truth.group_by("truth_id").len().sort("truth_id", nulls_last=True)
+    part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
+    where = truth.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
+                                          maintain_order="left")["__part"]
+    cleans, rejs = [], []
+    for k in range(int(part_of["__part"].max()) + 1):
+        rows = (where == k).arg_true()
+        part = truth[rows].with_columns(rows.cast(pl.UInt64).alias(_INPUT_ROW))
+        # the parts' unsorted-time notes are left out: the whole table's is taken below
+        clean, rej, _ = _validate_table(part, "truth", False, [], median_time=med, **kw)
+        cleans.append(clean)
+        rejs.append(rej)
+    del truth, where
+    clean = pl.concat(cleans, how="vertical").sort(_INPUT_ROW).drop(_INPUT_ROW)
+    del cleans
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", schema.UnsortedTimeWarning)
+        clean = schema.sort_tracks(clean, "truth")
+    notes.extend(str(w.message) for w in caught if issubclass(w.category, schema.UnsortedTimeWarning))
+    return clean, pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+
+
 def _no_rejects() -> pl.DataFrame:
     return schema.empty_frame("rejects")
 
@@ -825,14 +867,9 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                else _table(parts, "reports", empty_reports))
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                            maintain_order=True)
-    truth_in = schema.as_frame(ds.truth, "truth")
-    truth = truth_in
-    if truth_in.height:
-        truth, rej_t, _ = _validate_table(truth_in, "truth", cfg.strict, notes, limits=cfg.limits,
-                                          time_window=_truth_window(reports, cfg.limits))
-        if rej_t.height:
-            rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
-    del truth_in
+    truth, rej_t = _validate_truth(ds, cfg, notes, _truth_window(reports, cfg.limits))
+    if rej_t.height:
+        rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
     sink("radars", ing.radars)
     sink("reports", _streamed(parts, "reports", empty_reports) if lean else reports)

@@ -60,6 +60,9 @@ __all__ = [
     "empty_frame",
     "rejects_table",
     "validate",
+    "sort_tracks",
+    "table_median_time",
+    "INPUT_ROW",
 ]
 
 # ---------------------------------------------------------------------------
@@ -79,6 +82,8 @@ STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 ROW_INDEX = "row_index"
 REASON = "reason"
 _IDX = "__row_index"  # internal input position, exposed as ``row_index`` in rejects
+#: the rows' positions in the whole input, on a part of it (a window, a group of aircraft)
+INPUT_ROW = "__input_row"
 _INTERNAL = ("__row_index", "__orig__", "__lost__", "__bad", "__reason", "__first_id", "__ctx_")
 
 
@@ -844,6 +849,13 @@ def _range_check(work: pl.DataFrame, radars: pl.DataFrame, limits: Limits) -> tu
     )
 
 
+def table_median_time(frame: pl.DataFrame, limits: Limits = Limits()) -> datetime | None:
+    """The median of ``frame``'s times in the configured years: what a time is judged near (a
+    table validated in parts is given its whole median)."""
+    lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
+    return frame.filter(pl.col("time").is_between(lo, hi, closed="left").fill_null(False))["time"].median()
+
+
 def _time_checks(
     work: pl.DataFrame, limits: Limits, window: tuple[datetime, datetime, str] | None,
     median: datetime | None = None,
@@ -856,7 +868,7 @@ def _time_checks(
     text = t.dt.strftime("%Y-%m-%dT%H:%M:%S%.fZ")
     checks = [_Check(("time",), f"outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d})", ~in_years,
                      pl.format(f"time: outside [{lo:%Y-%m-%d}, {hi:%Y-%m-%d}) UTC, got {{}}", text))]
-    med = median if median is not None else work.filter(in_years.fill_null(False))["time"].median()
+    med = median if median is not None else table_median_time(work, limits)
     if med is not None:
         half = timedelta(seconds=limits.max_span_s / 2.0)
         far = in_years & ((t < pl.lit(med - half)) | (t > pl.lit(med + half)))
@@ -960,7 +972,9 @@ def _duplicate_checks(schema: TableSchema, columns: list[str], own_ids: bool) ->
         )
     if schema.key and all(c in columns for c in schema.key):
         key = list(schema.key)
-        ident, ident_col = ("report_id",) * 2 if "report_id" in columns else (ROW_INDEX, _IDX)
+        # a part of a table names the first row by its position in the whole input
+        ident, ident_col = (("report_id",) * 2 if "report_id" in columns
+                            else (ROW_INDEX, INPUT_ROW if INPUT_ROW in columns else _IDX))
         checks.append(
             _Check(
                 schema.key,
@@ -1099,6 +1113,12 @@ def _rejects(bad: pl.DataFrame, prepared: pl.DataFrame) -> pl.DataFrame:
         if c not in skip
     ]
     return bad.select(*lead, *body)
+
+
+def sort_tracks(clean: pl.DataFrame, kind: str) -> pl.DataFrame:
+    """``clean`` sorted by the ``kind`` schema's order if times decrease within any group (with
+    an :class:`UnsortedTimeWarning`), as :func:`validate` leaves it: for a table validated in parts."""
+    return _sort_tracks(clean, _schema(kind))
 
 
 def _sort_tracks(clean: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:

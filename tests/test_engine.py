@@ -283,3 +283,44 @@ def test_window_read_is_pushed_into_the_parquet_scan(tmp_path):
     got = src.rows(w)
     assert got["v"].to_list() == list(range(1000, 1600))
     assert got[INPUT_ROW].to_list() == list(range(600, 1200))      # global row numbers
+
+
+def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
+    """Finalize validates a long truth a few aircraft at a time (issue 16, memory): the clean
+    table (in input order), the rejects (their row_index and detail, the duplicate's first row
+    named by its input position) and the unsorted-time note are those of one call. The truth is
+    spoilt the ways validation sees: repeated (truth_id, time), a group out of time order, a NaN
+    state, a missing id and a time outside the reports' span."""
+    from types import SimpleNamespace
+    truth = terminal.truth
+    t_end = truth["time"].max()
+    bad = pl.concat([
+        truth,
+        truth[[5, 400]],                                                  # duplicates of earlier rows
+        truth[[7]].with_columns(pl.lit(float("nan")).alias("x_m")),
+        truth[[9]].with_columns(pl.lit(None, truth.schema["truth_id"]).alias("truth_id")),
+        truth[[11]].with_columns((pl.lit(t_end) + pl.duration(hours=5)).alias("time")),
+        truth[[13]].with_columns((pl.lit(t_end) + pl.duration(days=5)).alias("time")),   # far from the median
+    ])
+    ids = bad["truth_id"].drop_nulls().unique().sort()
+    first = bad.filter(pl.col("truth_id") == ids[3])
+    bad = pl.concat([bad.filter(pl.col("truth_id").ne_missing(ids[3])), first.reverse()])  # one aircraft unsorted
+    window = (truth["time"].min(), t_end, "the reports' span")
+    cfg = pipeline.PipelineConfig()
+    results = []
+    for rows in (10**9, 700):
+        monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", rows)
+        notes: list[str] = []
+        clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
+        results.append((clean, rej, notes))
+    (c1, r1, n1), (c2, r2, n2) = results
+    assert r1.height == 6 and any("out of order" in n for n in n1)     # not vacuous
+    assert r1.filter(pl.col("reason").str.contains("median")).height == 1
+    assert c1.height > 0 and bad.height // 700 >= 3                     # several parts
+    assert_frame_equal(c2, c1)
+    assert_frame_equal(r2.drop("detail"), r1.drop("detail"))
+    # detail: the same values; a float column is spelt as text in a batch holding a NaN
+    num = lambda v: float(v) if isinstance(v, str) and v.replace(".", "").replace("-", "").isdigit() else v  # noqa: E731
+    for a, b in zip(r1["detail"], r2["detail"]):
+        assert {k: num(v) for k, v in json.loads(a).items()} == {k: num(v) for k, v in json.loads(b).items()}
+    assert n2 == n1
