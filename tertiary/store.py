@@ -186,7 +186,7 @@ def _db_file(path: str | os.PathLike[str]) -> Path:
 
 
 #: the buffer pool of a connection that writes a run database
-WRITER_MEMORY_LIMIT = "256MB"
+WRITER_MEMORY_LIMIT = "64MB"
 
 
 def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPyConnection:
@@ -198,7 +198,10 @@ def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPy
         if not read_only:
             # a writer keeps every block it wrote in its buffer pool (default: 80 % of RAM), so
             # without a cap the process grows by the database's size (~275 MB for a 4 h
-            # production run); written blocks are on disk, and larger work spills to temp_directory
+            # production run); written blocks are on disk, and larger work spills to temp_directory.
+            # The pool stays full while the run's evaluation runs beside the open store, so its
+            # size adds to the run's peak: 64 MB (was 256: 4 h production peak 1 312 -> 1 141 MiB,
+            # same wall time)
             con.execute(f"SET memory_limit = '{WRITER_MEMORY_LIMIT}'")
         mode = " (READ_ONLY)" if read_only else ""
         con.execute(f"ATTACH ? AS {_ALIAS}{mode}", [str(db_file)])
