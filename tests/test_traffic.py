@@ -120,3 +120,19 @@ def test_holding_levels_are_1000_ft_apart(heights):
     # every holding aircraft holds at one level
     per = hold.with_columns(pl.Series("lvl", idx)).group_by("truth_id").agg(pl.col("lvl").n_unique())
     assert (per["lvl"] == 1).all()
+
+
+def test_heights_to_enu_quiet_on_samples_beyond_the_horizon():
+    """A long recording extrapolates idle aircraft thousands of km out: those samples get NaN z
+    without a NumPy warning reaching the user, and a real sample's z is the sphere's formula."""
+    import warnings
+
+    from tertiary.simulate.traffic import heights_to_enu
+    pos = np.array([[[1.0e4, 2.0e4, 3000.0], [-4.5e6, -5.0e6, 2140.0]]])
+    vel = np.zeros_like(pos)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        heights_to_enu(pos, vel)
+    r = geo.EARTH_RADIUS_M
+    assert pos[0, 0, 2] == pytest.approx(np.sqrt((r + 3000.0) ** 2 - 1.0e4 ** 2 - 2.0e4 ** 2) - r, abs=1e-6)
+    assert np.isnan(pos[0, 1, 2])

@@ -204,7 +204,10 @@ def heights_to_enu(pos: NDArray[np.float64], vel: NDArray[np.float64], frame: ge
     p, v = pos.reshape(-1, 3), vel.reshape(-1, 3)
     h, hdot = p[:, 2].copy(), v[:, 2].copy()
     r = geo.EARTH_RADIUS_M
-    p[:, 2] = np.sqrt((r + h) ** 2 - p[:, 0] ** 2 - p[:, 1] ** 2) - r
+    # a sample outside its aircraft's flight is extrapolated along the route and, on a long
+    # recording, can lie beyond the sphere (thousands of km out): its z is NaN and never read
+    with np.errstate(invalid="ignore"):
+        p[:, 2] = np.sqrt((r + h) ** 2 - p[:, 0] ** 2 - p[:, 1] ** 2) - r
     v[:, 2] = ((r + h) * hdot - p[:, 0] * v[:, 0] - p[:, 1] * v[:, 1]) / (r + p[:, 2])
     if frame is not None:
         sel = np.ones(len(p), bool) if active is None else active.reshape(-1)
