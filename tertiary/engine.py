@@ -114,7 +114,7 @@ def check_window(window_s: float | None) -> float | None:
 # --------------------------------------------------------------------------- input
 
 
-INPUT_ROW = "__input_row"
+INPUT_ROW = schema.INPUT_ROW
 
 
 class ReportSource:

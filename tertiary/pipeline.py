@@ -90,7 +90,7 @@ class Ingested:
         return int(self.plan.keep.sum()) if self.plan is not None else 0
 
 
-_INPUT_ROW = "__input_row"
+_INPUT_ROW = schema.INPUT_ROW
 
 
 def _validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[str], **kw):

@@ -465,7 +465,7 @@ def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_t
                           [lo, hi]).fetchall()[0] if f.height else [0] * len(tests)
     finally:
         con.unregister(view)
-    same = [c for c, n in zip(cols, bad) if n == 0]
+    same = [c for c, k in zip(cols, bad) if k == 0]
     age_ok = "time" in same and age_test and bad[-1] == 0
     if not same:
         return
