@@ -192,11 +192,14 @@ def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = N
 _ALL = pl.lit("all").cast(pl.Categorical)
 
 
-def _segmented(frame: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
-    """Long form: every row once with segment ``all`` and once per breakdown label it has."""
-    parts = [frame.with_columns(_ALL.alias("segment"))]
+def _by_segment(frame: pl.DataFrame, breakdown: Sequence[str], *aggs: pl.Expr) -> pl.DataFrame:
+    """``aggs`` per (method, segment): segment ``all`` (every row) and each label of each
+    breakdown column (the rows that have it). Grouped in place, once per breakdown: the frame
+    is never copied per label (the memory of the stage on a long run)."""
+    parts = [frame.group_by("method", _ALL.alias("segment")).agg(*aggs)]
     for b in breakdown:
-        parts.append(frame.filter(pl.col(b).is_not_null()).with_columns(pl.col(b).alias("segment")))
+        parts.append(frame.group_by("method", pl.col(b).alias("segment")).agg(*aggs)
+                     .filter(pl.col("segment").is_not_null()))
     return pl.concat(parts, how="vertical")
 
 
@@ -209,11 +212,12 @@ def _long(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
 # --------------------------------------------------------------------------- metric groups
 
 
-def _accuracy(err: pl.DataFrame) -> pl.DataFrame:
+def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
     def rms(c: str) -> pl.Expr:
         return (pl.col(c) ** 2).mean().sqrt()
 
-    wide = err.group_by("method", "segment").agg(
+    wide = _by_segment(
+        err, breakdown,
         pl.col("run").n_unique().alias("n_runs"),
         rms("err_h_m").alias("rmse_horizontal_m"),
         rms("err_height_m").alias("rmse_height_m"),
@@ -297,13 +301,14 @@ def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataF
         gap.alias("__gap_s")).join(labels, on=["run", "truth_id", "epoch"], how="left")
     rep = rep.with_columns((pl.col("__gap_s") > cfg.gap_s).fill_null(False).alias("__break"))
     expo = _exposure(rep, expected, methods, labels, cfg)
-    hours = _segmented(expo, breakdown).group_by("method", "segment").agg(
-        pl.col("__hours").sum().alias("aircraft_hours"), pl.col("run").n_unique().alias("n_runs"))
-    events = _segmented(rep, breakdown).group_by("method", "segment").agg(
-        pl.col("__change").sum().alias("__changes"), pl.col("__break").sum().alias("track_breaks"),
-        pl.col("__gap_s").filter(pl.col("__break")).mean().alias("mean_reacquire_s"))
-    ints = _segmented(_update_intervals(rep, expo, cfg, expected is None), breakdown).group_by("method", "segment").agg(
-        pl.col("updated").mean().alias("prob_update"), pl.len().cast(pl.Float64).alias("n_update_intervals"))
+    hours = _by_segment(expo, breakdown,
+                        pl.col("__hours").sum().alias("aircraft_hours"), pl.col("run").n_unique().alias("n_runs"))
+    events = _by_segment(rep, breakdown,
+                         pl.col("__change").sum().alias("__changes"), pl.col("__break").sum().alias("track_breaks"),
+                         pl.col("__gap_s").filter(pl.col("__break")).mean().alias("mean_reacquire_s"))
+    ints = _by_segment(_update_intervals(rep, expo, cfg, expected is None), breakdown,
+                       pl.col("updated").mean().alias("prob_update"),
+                       pl.len().cast(pl.Float64).alias("n_update_intervals"))
     wide = (hours.join(events, on=["method", "segment"], how="left").join(ints, on=["method", "segment"], how="left")
             .with_columns((pl.col("__changes") / pl.col("aircraft_hours")).alias("id_changes_per_hour"),
                           (pl.col("track_breaks") / pl.col("aircraft_hours")).alias("track_breaks_per_hour"),
@@ -325,8 +330,8 @@ def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: 
 
 def _count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
     """Distinct (run, track_id) per (method, segment); zero in ``all`` for pictures without any."""
-    got = _segmented(events, breakdown).group_by("method", "segment").agg(
-        pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name), pl.col("run").n_unique().alias("n_runs"))
+    got = _by_segment(events, breakdown, pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name),
+                      pl.col("run").n_unique().alias("n_runs"))
     zero = base.group_by("method").agg(pl.col("run").n_unique().alias("n_runs")).with_columns(
         _ALL.alias("segment"), pl.lit(0.0).alias(name))
     got = pl.concat([got, zero.join(got, on=["method", "segment"], how="anti").select(got.columns)])
@@ -379,9 +384,8 @@ def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, p
 
 def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Expr) -> pl.DataFrame:
     rows = err.select("method", "run", *breakdown, ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
-    w = _segmented(rows, breakdown).group_by("method", "segment").agg(
-        pl.col("run").n_unique().alias("n_runs"), pl.col("__ok").mean().alias(f"{name}_correct_frac"),
-        pl.len().cast(pl.Float64).alias(f"n_{name}"))
+    w = _by_segment(rows, breakdown, pl.col("run").n_unique().alias("n_runs"),
+                    pl.col("__ok").mean().alias(f"{name}_correct_frac"), pl.len().cast(pl.Float64).alias(f"n_{name}"))
     return _long(w, [f"{name}_correct_frac", f"n_{name}"])
 
 
@@ -432,10 +436,7 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     labels = reference_labels(ref, radar_xy, cfg)
     err = accuracy_errors(matched, cfg).join(labels, on=["run", "truth_id", "epoch"], how="left")
     m = matched.filter(pl.col("truth_id").is_not_null())
-    # only the columns a group reads are copied once per breakdown label (memory of the stage)
-    errs = ["err_h_m", "err_height_m", "along_m", "across_m", "latency_sample_s", "err_gs_mps", "err_track_deg",
-            "err_vrate_mps"]
-    parts = [_accuracy(_segmented(err.select("method", "run", *breakdown, *errs), breakdown)),
+    parts = [_accuracy(err, breakdown),
              _identity_and_false(matched, err, breakdown, cfg)]
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
