@@ -138,7 +138,8 @@ class ReportSource:
         except pl.exceptions.DuplicateError:    # an input that has the column: ours replaces it
             lf = lf.drop(INPUT_ROW).with_row_index(INPUT_ROW)
             names = lf.collect_schema()
-        self.timed = isinstance(names.get("time"), pl.Datetime)
+        self.time_dtype = names.get("time")
+        self.timed = isinstance(self.time_dtype, pl.Datetime)
         self.lf = lf
         self.median = None
         self.first_us = self.last_us = None
@@ -184,7 +185,7 @@ class ReportSource:
 
     def _near(self, t0_us: int, t1_us: int) -> pl.Expr:
         """``time`` within [t0 − 1 ms, t1 + 1 ms), compared in the column's own type (any unit)."""
-        dtype = self.lf.collect_schema()["time"]
+        dtype = self.time_dtype
         lit = lambda us: pl.lit(us, pl.Int64).cast(pl.Datetime("us")).cast(dtype)  # noqa: E731
         return (pl.col("time") >= lit(t0_us - 1000)) & (pl.col("time") < lit(t1_us + 1000))
 
