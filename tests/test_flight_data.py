@@ -141,7 +141,7 @@ def test_validate_and_run_reject_the_same_flight_plan_rows(small_terminal, tmp_p
 
 def test_partitioned_dataset_keeps_the_flight_plans(small_terminal, tmp_path):
     from tertiary.simulate import read_dataset, write_stream
-    write_stream(small_terminal.scenario, tmp_path / "parts", 300.0)
+    write_stream(small_terminal.scenario, tmp_path / "parts", 600.0)          # one block
     assert read_dataset(tmp_path / "parts").flight_plans.equals(small_terminal.flight_plans)
 
 

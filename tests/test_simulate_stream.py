@@ -113,19 +113,75 @@ def test_short_part_is_refused(tmp_path):
 
 
 def test_other_scenarios_are_cut_into_time_parts(tmp_path):
-    """A terminal-area scenario written with a window: the same rows as the single file, cut by
-    time; the whole-run simulation itself is unchanged."""
-    cfg = load_scenario("terminal-area")
-    cfg = dataclasses.replace(cfg, duration_s=600.0, traffic=dataclasses.replace(cfg.traffic, aircraft=20,
-                                                                                 conflict_pairs=1, near_miss_pairs=0))
+    """A big-box scenario (simulated whole) written with a window: the same rows as the single
+    file, cut by time."""
+    cfg = dataclasses.replace(load_scenario("big-box"), duration_s=300.0)
     ds = simulate(cfg)
-    write_stream(cfg, tmp_path / "p", window_s=200.0)
+    write_stream(cfg, tmp_path / "p", window_s=100.0)
     back = read_dataset(tmp_path / "p")
-    assert json.loads((tmp_path / "p" / "parts.json").read_text())["window_s"] == 200.0
+    assert json.loads((tmp_path / "p" / "parts.json").read_text())["window_s"] == 100.0
     assert back.reports.sort("report_id").equals(ds.reports.sort("report_id"))
     assert back.truth.height == ds.truth.height
     for i in range(3):
         part = pl.read_parquet(tmp_path / "p" / "reports" / f"part-{i:04d}.parquet")
         t0 = ds.truth["time"].min()
         secs = (part["time"] - t0).dt.total_microseconds() / 1e6
-        assert part.height and secs.min() >= (200.0 * i if i else -1.0) and secs.max() < 200.0 * (i + 1) + (1e9 if i == 2 else 0)
+        assert part.height and secs.min() >= (100.0 * i if i else -1.0) and secs.max() < 100.0 * (i + 1) + (1e9 if i == 2 else 0)
+
+
+def _small_terminal(duration: float = 1800.0, aircraft: int = 40):
+    cfg = load_scenario("terminal-area")
+    return dataclasses.replace(cfg, duration_s=duration, traffic=dataclasses.replace(
+        cfg.traffic, aircraft=aircraft, conflict_pairs=2, near_miss_pairs=1))
+
+
+def test_terminal_area_streams_in_blocks(tmp_path, monkeypatch):
+    """Terminal-area traffic is looked up window by window (issue 16 item 4): no truth array
+    spans more than a block (+ the scan margin) or a window, whatever the scenario's length.
+    Fails if the traffic is built over the whole duration."""
+    from tertiary.simulate import block_s
+    from tertiary.simulate.traffic import TerminalTraffic
+    cfg = _small_terminal()
+    assert block_s(cfg) == 600.0                  # scan periods 4, 5, 8, 12 s: 120 s → 600 s
+    lengths = []
+    real = TerminalTraffic.window
+
+    def spy(self, k0, n, every=False):
+        lengths.append(n)
+        return real(self, k0, n, every)
+    monkeypatch.setattr(TerminalTraffic, "window", spy)
+    write_stream(cfg, tmp_path / "d", window_s=600.0)
+    assert lengths and max(lengths) <= 600 + 12 + 2 + 1
+
+
+def test_terminal_area_data_do_not_depend_on_the_window(tmp_path):
+    """Window by window (600 s, 1 200 s) equals the one-window simulation: same rows, track
+    numbers, truth ids, EHS columns and flight plans; estimates to round-off."""
+    cfg = _small_terminal()
+    whole = simulate(cfg)
+    assert whole.flight_plans.height and whole.reports["ehs_gs_mps"].is_not_null().any()
+    key = ["radar_id", "time", "range_m"]
+    for w in (600.0, 1200.0):
+        write_stream(cfg, tmp_path / f"w{w:g}", window_s=w)
+        got = read_dataset(tmp_path / f"w{w:g}")
+        a, b = whole.reports.sort(key).drop("report_id"), got.reports.sort(key).drop("report_id")
+        exact = [c for c in a.columns if a[c].dtype != pl.Float64 and not isinstance(a[c].dtype, pl.Array)]
+        assert a.height == b.height > 0 and a.columns == b.columns
+        assert a.select(exact).equals(b.select(exact))
+        assert_frame_equal(a, b, check_exact=False, rel_tol=1e-9, abs_tol=1e-6)
+        tk = ["truth_id", "time"]
+        assert got.truth.sort(tk).equals(whole.truth.sort(tk))
+        assert got.flight_plans.equals(whole.flight_plans)
+
+
+def test_terminal_area_window_must_be_whole_blocks():
+    with pytest.raises(OptionError, match="--window.*multiple of the scenario's block of 600 s"):
+        simulate_windows(_small_terminal(), 200.0)
+
+
+def test_terminal_block_is_a_common_multiple_of_the_scan_periods():
+    from tertiary.simulate import block_s
+    cfg = _small_terminal()
+    odd = dataclasses.replace(cfg, radars=tuple(dataclasses.replace(r, scan_period_s=p, scan_phase_s=0.0)
+                                                for r, p in zip(cfg.radars, (4.0, 5.0, 7.0, 4.5))))
+    assert block_s(odd) == 1260.0                  # lcm(4, 5, 7, 4.5) = 1 260 s

@@ -30,7 +30,9 @@ _spec.loader.exec_module(bench)
 def runs(tmp_path_factory):
     """One small job (2 fusion methods + centralised, one tracker, conflicts, truth) stored twice."""
     cfg = load_scenario("terminal-area")
-    cfg = dataclasses.replace(cfg, duration_s=300.0, traffic=dataclasses.replace(cfg.traffic, aircraft=20,
+    # 10 min: large enough that the tables span several of DuckDB's 256 kB blocks (the size test
+    # compares files, whose growth is counted in blocks)
+    cfg = dataclasses.replace(cfg, duration_s=600.0, traffic=dataclasses.replace(cfg.traffic, aircraft=30,
                                                                                  conflict_pairs=3))
     root = tmp_path_factory.mktemp("lean")
     write_dataset(simulate(cfg), root / "ds")

@@ -125,13 +125,17 @@ def test_a_given_time_origin_changes_only_round_off(pictures, filters, whole):
 
 
 def _mid_state(pictures, filters) -> tuple[TrackState, list[int]]:
-    """The state after the first half of the run (confirmed and tentative objects in every bank)."""
-    cuts = _cuts(pictures, "halves")
+    """The state of the run cut between two epochs, as near the middle as possible where every
+    bank holds confirmed and tentative objects (new targets are confirmed in a few epochs)."""
+    ep = _epochs_us(pictures)
     us = pictures["epoch"].cast(TIME).dt.epoch("us")
-    _, state = track_step(init_track_state(filters), pictures.filter(us < cuts[1]), filters, TrackerConfig(),
-                          cuts[0], cuts[1])
-    assert all(len(b.i) and (b.i[:, 1] == 2).any() and (b.i[:, 1] == 0).any() for b in state.banks.values())
-    return state, cuts
+    for k in sorted(range(1, len(ep) - 1), key=lambda k: abs(k - len(ep) // 2)):
+        cuts = [int(ep[0]), int(ep[k]) - S // 2, int(ep[-1]) + 1]
+        _, state = track_step(init_track_state(filters), pictures.filter(us < cuts[1]), filters, TrackerConfig(),
+                              cuts[0], cuts[1])
+        if all(len(b.i) and (b.i[:, 1] == 2).any() and (b.i[:, 1] == 0).any() for b in state.banks.values()):
+            return state, cuts
+    raise AssertionError("no cut with confirmed and tentative objects in every bank")
 
 
 def _same_state(a: TrackState, b: TrackState, exact: bool = True) -> None:

@@ -9,6 +9,7 @@ import json
 import math
 import re
 from dataclasses import dataclass, field
+from fractions import Fraction
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -23,10 +24,10 @@ from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarT
                                       TrackerParams, TrafficConfig, TransponderConfig, auto_radars, builtin_scenarios, check_name, check_origin,
                                       check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
                                       scenario_toml)
-from tertiary.simulate.ehs import EhsConfig, ehs_report_columns, ehs_rng
-from tertiary.simulate.radar import (Plots, Transponders, _octal, _strings, number_plots, observe, site_frame,
+from tertiary.simulate.ehs import SIMULATED_COLUMNS, EhsConfig, ehs_report_columns, ehs_rng
+from tertiary.simulate.radar import (Plots, Transponders, _octal, number_plots, observe, site_frame,
                                     transponders)
-from tertiary.simulate.traffic import big_box, terminal_area
+from tertiary.simulate.traffic import TerminalTraffic, big_box, terminal_area, terminal_traffic
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.store import write_parquet_atomic, write_text_atomic
 
@@ -34,7 +35,7 @@ __all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "simulate_win
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
            "TransponderConfig", "RadarTrackerConfig",
            "Trajectories", "big_box", "terminal_area", "resolve_data_path", "check_scenario",
-           "read_scenario_toml"]
+           "read_scenario_toml", "block_s", "terminal_traffic", "TerminalTraffic"]
 
 Progress = Callable[[str], None]
 
@@ -80,9 +81,6 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
     """Truth trajectories; for ADS-B also resolves an automatic origin and radar layout."""
     if cfg.kind == "big-box":
         return cfg, big_box(cfg.dt), pl.DataFrame()
-    if cfg.kind == "terminal-area":
-        return cfg, terminal_area(cfg.traffic, cfg.duration_s, cfg.dt, rng,
-                                   frame=geo.LocalFrame(*cfg.origin)), pl.DataFrame()
     if cfg.kind == "adsb":
         from tertiary.simulate import adsb
         frame = _read_truth_file(resolve_data_path(cfg.adsb.truth_file))
@@ -134,6 +132,8 @@ def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transpon
     none; ``ehs`` the Comm-B enhanced-surveillance parameters (null without) — except
     ``truth_id`` (scoring only)."""
     epoch_us = int(traj.epoch.timestamp() * 1_000_000)
+    if ehs is None and plots.ehs.shape[1]:
+        ehs = dict(zip(SIMULATED_COLUMNS, plots.ehs.T))
     real = plots.aircraft >= 0
     index = pl.Series(plots.aircraft).replace(-1, None)      # clutter gathers nulls
     tid = pl.Series(traj.truth_id).gather(index)
@@ -199,36 +199,31 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
     reports = reports.select([c for c in parts[0].columns if c in reports.columns and c != "__life"]
                              + [c for c in reports.columns if c not in parts[0].columns])
     reports = reports.with_columns(pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"))
-    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed,
-                   flight_plans=flight_plans(traj, tx))
+    return Dataset(radars=radars, reports=reports, truth=traj.to_frame(frame=system), scenario=cfg, removed=removed)
 
 
-def flight_plans(traj: Trajectories, tx: Transponders) -> pl.DataFrame:
-    """The ``flight_plans`` table (:mod:`tertiary.flight_data`) of simulated traffic that carries
-    cleared levels (:attr:`TrafficTrajectories.cleared_alt_m`): per aircraft, the code ATC
+def flight_plans(traffic: TerminalTraffic, tx: Transponders) -> pl.DataFrame:
+    """The ``flight_plans`` table (:mod:`tertiary.flight_data`) of terminal-area traffic, which
+    carries cleared levels (:attr:`TerminalTraffic.cleared_alt_m`): per aircraft, the code ATC
     assigned it and its cleared level, valid over its time in the scenario — two rows when ATC
     changed its code (the transponder's ``t_change``: the flight data follow the instruction).
     The assigned code is the traffic's squawk, not what the transponder replies: a crew squawking
-    another aircraft's code (``duplicate_code_fraction``) is not correlated, as in reality. Empty
-    for traffic without clearances. Never the truth id."""
-    cleared = getattr(traj, "cleared_alt_m", None)
-    if cleared is None or len(cleared) == 0:
-        return pl.DataFrame()
-    squawk = _octal(_strings(traj, "squawk"))
+    another aircraft's code (``duplicate_code_fraction``) is not correlated, as in reality. Known
+    from the schedule before the aircraft fly (filed plans). Never the truth id."""
+    cleared = traffic.cleared_alt_m
+    squawk = _octal(np.asarray(traffic.meta["squawk"], dtype=str))
     assigned = np.where(squawk >= 0, squawk, tx.code_a)
-    act = np.asarray(traj.active)
-    k = np.arange(act.shape[1])
-    first = np.where(act, k[None, :], act.shape[1]).min(axis=1) * traj.dt
-    last = np.where(act, k[None, :], -1).max(axis=1) * traj.dt
-    ok = act.any(axis=1) & np.isfinite(cleared)
+    k_first, k_last = traffic.span()
+    first, last = k_first * traffic.dt, k_last * traffic.dt
+    ok = (k_first <= k_last) & np.isfinite(cleared)
     change = ok & (tx.t_change > first) & (tx.t_change < last)
     a = np.concatenate([np.flatnonzero(ok), np.flatnonzero(change)])
     code = np.concatenate([assigned[ok], tx.code_b[change]])
     t_from = np.concatenate([first[ok], tx.t_change[change]])
     t_to = np.concatenate([np.where(change[ok], tx.t_change[ok], last[ok]), last[change]])
-    epoch_us = int(traj.epoch.timestamp() * 1_000_000)
+    epoch_us = int(traffic.epoch.timestamp() * 1_000_000)
     when = lambda t: pl.Series(np.round(t * 1e6).astype(np.int64) + epoch_us).cast(pl.Datetime("us", "UTC"))  # noqa: E731
-    return pl.DataFrame({"mode_3a": [f"{v:04o}" for v in code], "callsign": np.asarray(traj.meta["callsign"])[a],
+    return pl.DataFrame({"mode_3a": [f"{v:04o}" for v in code], "callsign": np.asarray(traffic.meta["callsign"])[a],
                          "valid_from": when(t_from), "valid_to": when(t_to),
                          "cleared_alt_m": np.asarray(cleared, float)[a]}).sort("valid_from", "mode_3a")
 
@@ -414,19 +409,24 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
 
 # --------------------------------------------------------------------------- streamed simulation
 #
-# The national day is simulated window by window (issue 16 item 4, issue 18 item 1): truth is
-# looked up from the day's schedule for the window only, each radar observes it block by block
-# (random draws keyed by the block, so the data do not depend on the window), the radars'
-# plot-to-track association carries its state (tracks, numbers, held numbers) across windows,
-# and the rows of local tracks still alive at a window's end wait for the next window before
-# their secondary processing (it filters a track from its first plot: deferred, not restarted,
-# so the result equals a single-window run's exactly). Memory is bounded by the window and by
-# the live tracks, not by the day.
+# Terminal-area traffic and the national day are simulated window by window (issue 16 item 4,
+# issue 18 item 1): truth is looked up from the scenario's schedule for the window only, each
+# radar observes it block by block (random draws keyed by the block, so the data do not depend
+# on the window), the radars' plot-to-track association carries its state (tracks, numbers,
+# held numbers) across windows, and the rows of local tracks still alive at a window's end wait
+# for the next window before their secondary processing (it filters a track from its first
+# plot: deferred, not restarted, so the result equals a single-window run's exactly). Memory is
+# bounded by the window and by the live tracks, not by the length of the scenario.
 
 NATIONAL_EPOCH = datetime(2021, 10, 7, 0, 0, 0, tzinfo=timezone.utc)
 #: layout of a partitioned dataset: <table>/part-NNNN.parquet, listed in parts.json (written last)
 PARTS_MANIFEST = "parts.json"
 PARTITIONED = ("reports", "truth")
+#: scenario kinds simulated from a schedule, block by block
+STREAMED = ("terminal-area", "national")
+#: a terminal-area block is the first common multiple of the time step and every scan period
+#: from this length on (long enough that the margin looked up past a block's end is small)
+TERMINAL_BLOCK_S = 600.0
 
 
 @dataclass
@@ -443,6 +443,24 @@ class Window:
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
+def block_s(cfg: ScenarioConfig) -> float:
+    """The length of the blocks a scenario's radar draws are keyed by (a window is a whole
+    number of them): ``national.block_s``; for terminal-area the first common multiple of
+    ``dt`` and every scan period ≥ :data:`TERMINAL_BLOCK_S` (the whole duration when the
+    periods have none within a day); other kinds ``dt`` (simulated whole, cut by time)."""
+    if cfg.kind == "national":
+        return cfg.national.block_s
+    if cfg.kind != "terminal-area":
+        return cfg.dt
+    steps = [Fraction(v).limit_denominator(1000) for v in (cfg.dt, *(r.scan_period_s for r in cfg.radars))]
+    if any(abs(float(f) - v) > 1e-9 for f, v in zip(steps, (cfg.dt, *(r.scan_period_s for r in cfg.radars)))):
+        return cfg.duration_s
+    den = math.lcm(*(f.denominator for f in steps))
+    common = Fraction(math.lcm(*(int(f * den) for f in steps)), den)
+    block = float(common * math.ceil(TERMINAL_BLOCK_S / common))
+    return block if block <= 86400.0 else cfg.duration_s
+
+
 def _shift_anomalies(anom: Anomalies, t0: float) -> Anomalies:
     """Anomaly windows (seconds from the run start) in a block's time (seconds from ``t0``)."""
     move = lambda w: None if w is None else (w[0] - t0, w[1] - t0)
@@ -451,24 +469,42 @@ def _shift_anomalies(anom: Anomalies, t0: float) -> Anomalies:
                                bias_step_time_s=None if anom.bias_step_time_s is None else anom.bias_step_time_s - t0)
 
 
-def _national_setup(cfg: ScenarioConfig):
-    """The day's schedule and every flight's transponder (global flight index)."""
+@dataclass
+class _Schedule:
+    """What a streamed simulation looks its windows up from: the system frame, the traffic
+    schedule (``window(k0, n)``), every aircraft's transponder, a zero-stride stand-in of the
+    whole scenario's truth grid (epoch, identities) and the scenario's first sample of the day."""
+
+    system: geo.LocalFrame
+    traffic: object
+    tx: Transponders
+    ghost: Trajectories
+    k_start: int
+
+
+def _schedule(cfg: ScenarioConfig) -> _Schedule:
+    """The scenario's schedule and every aircraft's transponder (global aircraft index)."""
     from tertiary.simulate.traffic import national_flights
     system = geo.LocalFrame(*cfg.origin)
-    traffic = national_flights(cfg.national, cfg.duration_s, cfg.dt,
-                               np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0]), system,
-                               NATIONAL_EPOCH)
+    traffic_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0])
     steps = int(round(cfg.duration_s / cfg.dt))
-    epoch = NATIONAL_EPOCH + timedelta(seconds=cfg.national.start_s)
+    if cfg.kind == "national":
+        traffic = national_flights(cfg.national, cfg.duration_s, cfg.dt, traffic_rng, system, NATIONAL_EPOCH)
+        epoch, k_start = NATIONAL_EPOCH + timedelta(seconds=cfg.national.start_s), int(round(cfg.national.start_s / cfg.dt))
+        tx_seed = np.random.SeedSequence(cfg.seed).spawn(2)[1]
+    else:
+        traffic = terminal_traffic(cfg.traffic, cfg.duration_s, cfg.dt, traffic_rng, system)
+        epoch, k_start = traffic.epoch, 0
+        tx_seed = np.random.SeedSequence(cfg.seed).spawn(1)[0]
     # transponders() reads the aircraft count, meta and duration only: a zero-stride position grid
-    ghost = Trajectories(dt=cfg.dt, pos=np.broadcast_to(np.zeros(3), (traffic.n_flights, steps + 1, 3)),
-                         vel=np.broadcast_to(np.zeros(3), (traffic.n_flights, steps + 1, 3)),
-                         active=np.broadcast_to(np.zeros(1, bool), (traffic.n_flights, steps + 1)),
-                         segment=np.zeros((traffic.n_flights, 1), np.int8),
-                         truth_id=np.arange(traffic.n_flights, dtype=np.int64), epoch=epoch, meta=traffic.meta)
-    seeds = np.random.SeedSequence(cfg.seed).spawn(2)
-    tx = transponders(ghost, cfg.transponders, np.random.default_rng(seeds[1].spawn(1)[0]))
-    return system, traffic, tx, ghost
+    n = traffic.n_flights
+    ghost = Trajectories(dt=cfg.dt, pos=np.broadcast_to(np.zeros(3), (n, steps + 1, 3)),
+                         vel=np.broadcast_to(np.zeros(3), (n, steps + 1, 3)),
+                         active=np.broadcast_to(np.zeros(1, bool), (n, steps + 1)),
+                         segment=np.zeros((n, 1), np.int8), truth_id=np.arange(n, dtype=np.int64), epoch=epoch,
+                         meta=traffic.meta)
+    tx = transponders(ghost, cfg.transponders, np.random.default_rng(tx_seed.spawn(1)[0]))
+    return _Schedule(system=system, traffic=traffic, tx=tx, ghost=ghost, k_start=k_start)
 
 
 def _tx_subset(tx: Transponders, ids: NDArray[np.int64], t0: float) -> Transponders:
@@ -478,25 +514,30 @@ def _tx_subset(tx: Transponders, ids: NDArray[np.int64], t0: float) -> Transpond
                                t_change=tx.t_change[ids] - t0, callsign=tx.callsign[ids])
 
 
-def _observe_block(cfg: ScenarioConfig, system: geo.LocalFrame, traffic, tx: Transponders, b: int,
-                   t_win0: float) -> list[Plots]:
-    """Every radar's plots of block ``b`` (random draws keyed by (seed, block, radar)), in the
-    day's time, global flight indices and scan numbers counted from the window start."""
+def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float, ehs: EhsConfig | None
+                   ) -> list[Plots]:
+    """Every radar's plots of block ``b`` (random draws keyed by (seed, block of the day,
+    radar)), in the scenario's time, global aircraft indices and scan numbers counted from the
+    window start; with ``ehs`` the EHS columns of each reply (noise keyed the same way)."""
     from tertiary.simulate.radar import _take, scan_starts
-    blk = cfg.national.block_s
+    blk = block_s(cfg)
     tb0 = b * blk
     nb = min(blk, cfg.duration_s - tb0)
     margin = max(r.scan_period_s for r in cfg.radars) + 2 * cfg.dt
-    k0 = int(round((cfg.national.start_s + tb0) / cfg.dt))
-    traj = traffic.window(k0, int(round((nb + margin) / cfg.dt)) + 1)
-    sub = _tx_subset(tx, traj.truth_id, tb0)
+    k0 = sched.k_start + int(round(tb0 / cfg.dt))
+    traj = sched.traffic.window(k0, int(round((nb + margin) / cfg.dt)) + 1)
+    sub = _tx_subset(sched.tx, traj.truth_id, tb0)
     anom = _shift_anomalies(cfg.anomalies, tb0)
+    day_block = b + int(round(sched.k_start * cfg.dt / blk))
     out = []
     for i, radar in enumerate(cfg.radars):
-        day_block = b + int(round(cfg.national.start_s / blk))
         rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(7, day_block, i)))
-        p = observe(traj, radar, system, cfg.runs, rng, anom, sub)
+        p = observe(traj, radar, sched.system, cfg.runs, rng, anom, sub)
         p = _take(p, np.flatnonzero(p.scan < len(scan_starts(radar, nb))))
+        if ehs is not None:
+            # a register sampled in the first half step of a block differences the velocity one-sided
+            cols = ehs_report_columns(traj, p.aircraft, p.t_true, p.mode_s >= 0, ehs_rng(cfg.seed, i, day_block), ehs)
+            p.ehs = np.column_stack([cols[c] for c in SIMULATED_COLUMNS])
         p.aircraft = np.where(p.aircraft >= 0, traj.truth_id[np.maximum(p.aircraft, 0)], -1)
         p.t_true, p.t_report = p.t_true + tb0, p.t_report + tb0
         p.scan = p.scan + int(round((tb0 - t_win0) / radar.scan_period_s))
@@ -506,11 +547,16 @@ def _observe_block(cfg: ScenarioConfig, system: geo.LocalFrame, traffic, tx: Tra
 
 def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], state):
     """:func:`tertiary.simulate.radar.number_plots` for one window, carrying the association
-    state (``state`` None: the first window). Sets each plot's track number and life in place."""
+    state (``state`` None: the first window). Sets each plot's track number and life in place.
+    Ideal radar trackers (``radar_tracker.ideal``, one window only) number from the truth."""
     from tertiary.simulate import radar_tracker as rt
-    from tertiary.simulate.radar import _merge_all
+    from tertiary.simulate.radar import _merge_all, _numbered
+    if cfg.radar_tracker.ideal:
+        plots = [_numbered(p, r) for p, r in zip(plots, cfg.radars)]
     idx = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(plots)])
     allp = plots[0] if len(plots) == 1 else _merge_all(plots)
+    if cfg.radar_tracker.ideal:
+        return allp, idx, None
     radars = cfg.radars
     sig = np.array([[r.sigma_range_m, r.sigma_azimuth_deg, r.sigma_elevation_deg] for r in radars])[idx]
     z, cov = rt.ground_plots(allp.range_m, allp.azimuth_deg, allp.elevation_deg, sig[:, 0], sig[:, 1], sig[:, 2])
@@ -538,7 +584,7 @@ def _secondary(frame: pl.DataFrame, radars: pl.DataFrame, cfg: ScenarioConfig, f
 
 def _window_bounds(cfg: ScenarioConfig, window_s: float | None) -> list[tuple[float, float]]:
     """Windows [t0, t1) covering the scenario; a window is a whole number of blocks."""
-    blk = cfg.national.block_s if cfg.kind == "national" else cfg.dt
+    blk = block_s(cfg)
     w = cfg.duration_s if window_s is None else float(window_s)
     if window_s is not None:
         if not (math.isfinite(w) and w > 0):
@@ -551,55 +597,57 @@ def _window_bounds(cfg: ScenarioConfig, window_s: float | None) -> list[tuple[fl
     return [(float(a), float(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progress: Progress | None = None
-                     ) -> tuple[ScenarioConfig, pl.DataFrame, Iterator[Window]]:
+def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progress: Progress | None = None,
+                     ehs: EhsConfig | None = EhsConfig()) -> tuple[ScenarioConfig, pl.DataFrame, Iterator[Window]]:
     """A scenario simulated window by window: (checked config, radars table, windows).
 
-    ``national``: streamed in bounded memory (module comment above); the tables do not depend
-    on ``window_s`` (a multiple of ``national.block_s``; None: one window). Other kinds are
-    simulated whole (:func:`simulate`) and cut into windows by time."""
+    ``terminal-area`` and ``national``: streamed in bounded memory (module comment above); the
+    tables do not depend on ``window_s`` (a multiple of :func:`block_s`; None: one window).
+    Terminal-area reports carry the EHS columns (``ehs``; None: without); the national traffic
+    has none. Other kinds are simulated whole (:func:`simulate`) and cut into windows by time."""
     cfg = check_scenario(cfg)
-    if cfg.kind != "national":
-        ds = simulate(cfg, progress)
+    if cfg.kind not in STREAMED:
+        ds = simulate(cfg, progress, ehs)
         return ds.scenario, ds.radars, _cut(ds, _window_bounds(ds.scenario, window_s))
-    if cfg.radar_tracker.ideal:
-        raise OptionError("ideal radar trackers number plots from a whole run's truth; the national scenario "
-                          "streams: use the radars' own association", option="radar_tracker.ideal")
-    return cfg, radars_frame(cfg), _national_windows(cfg, _window_bounds(cfg, window_s), progress)
+    bounds = _window_bounds(cfg, window_s)
+    if cfg.radar_tracker.ideal and len(bounds) > 1:
+        raise OptionError("ideal radar trackers number plots from a whole run's truth; a windowed simulation "
+                          "streams: use the radars' own association or one window", option="radar_tracker.ideal")
+    return cfg, radars_frame(cfg), _streamed_windows(cfg, bounds, progress, ehs if cfg.kind == "terminal-area" else None)
 
 
-def _national_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], progress: Progress | None
-                      ) -> Iterator[Window]:
-    from tertiary.simulate.radar import scan_starts
+def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], progress: Progress | None,
+                      ehs: EhsConfig | None) -> Iterator[Window]:
+    from tertiary.simulate.radar import _take, scan_starts
     say = progress or (lambda _msg: None)
     say("truth schedule")
-    system, traffic, tx, ghost = _national_setup(cfg)
+    sched = _schedule(cfg)
     radars = radars_frame(cfg)
-    blk = cfg.national.block_s
+    plans = flight_plans(sched.traffic, sched.tx) if isinstance(sched.traffic, TerminalTraffic) else pl.DataFrame()
+    blk = block_s(cfg)
     state, carry, next_id = None, None, 0
     for w, (t0, t1) in enumerate(bounds):
         say(f"radar scans window {w + 1}/{len(bounds)}")
-        blocks = [_observe_block(cfg, system, traffic, tx, b, t0)
+        blocks = [_observe_block(cfg, sched, b, t0, ehs)
                   for b in range(int(round(t0 / blk)), int(math.ceil(t1 / blk - 1e-9)))]
         plots = [_merge_plots([bl[i] for bl in blocks]) for i in range(len(cfg.radars))]
         n_scans = [len(scan_starts(r, t1 - t0)) for r in cfg.radars]
         say(f"radar plot-to-track window {w + 1}/{len(bounds)}")
         allp, idx, state = _number_window(cfg, plots, n_scans, state)
-        from tertiary.simulate.radar import _take
-        parts = [_reports_frame(_take(allp, np.flatnonzero(idx == i)), i + 1, ghost, tx)
+        parts = [_reports_frame(_take(allp, np.flatnonzero(idx == i)), i + 1, sched.ghost, sched.tx)
                  for i in range(len(cfg.radars))]
         frame = pl.concat(([carry] if carry is not None else []) + parts, how="vertical")
         last = w == len(bounds) - 1
-        live = state.life if not last else np.zeros(0, np.int64)
+        live = state.life if state is not None and not last else np.zeros(0, np.int64)
         alive = pl.Series(np.isin(frame["__life"].to_numpy(), live))
         carry = frame.filter(alive)
         say(f"radar secondary window {w + 1}/{len(bounds)}")
         reports = _secondary(frame.filter(~alive), radars, cfg, next_id)
         next_id += reports.height
         k0, k1 = int(round(t0 / cfg.dt)), int(round(t1 / cfg.dt)) + (1 if last else 0)
-        k_day = int(round(cfg.national.start_s / cfg.dt))
-        truth = traffic.window(k_day + k0, k1 - k0).to_frame(frame=system)
-        yield Window(index=w, t0_s=t0, t1_s=t1, reports=reports, truth=truth)
+        truth = sched.traffic.window(sched.k_start + k0, k1 - k0).to_frame(frame=sched.system)
+        yield Window(index=w, t0_s=t0, t1_s=t1, reports=reports, truth=truth,
+                     flight_plans=plans if w == 0 else plans.clear())
 
 
 def _merge_plots(parts: list[Plots]) -> Plots:
@@ -625,13 +673,16 @@ def _cut(ds: Dataset, bounds: list[tuple[float, float]]) -> Iterator[Window]:
 
 def simulate(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
              ) -> Dataset:
-    """Simulate a scenario (see :func:`_simulate_whole`; the national scenario is streamed in
-    one window and gathered, without EHS columns)."""
-    if isinstance(cfg, ScenarioConfig) and cfg.kind == "national":
-        scen, radars, windows = simulate_windows(cfg, None, progress)
+    """Simulate a scenario: terminal-area and national streamed in one window and gathered
+    (:func:`simulate_windows`; the national traffic without EHS columns), the others whole
+    (:func:`_simulate_whole`). Same config (incl. seed) → identical tables."""
+    if isinstance(cfg, ScenarioConfig) and cfg.kind in STREAMED:
+        scen, radars, windows = simulate_windows(cfg, None, progress, ehs)
         got = list(windows)
+        plans = [w.flight_plans for w in got if w.flight_plans.height]
         return Dataset(radars=radars, reports=pl.concat([w.reports for w in got]),
-                       truth=pl.concat([w.truth for w in got]), scenario=scen)
+                       truth=pl.concat([w.truth for w in got]), scenario=scen,
+                       flight_plans=pl.concat(plans) if plans else pl.DataFrame())
     return _simulate_whole(cfg, progress, ehs)
 
 

@@ -78,10 +78,14 @@ REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
 #: (radars use children 0 … n_radars), so switching EHS on or off leaves every other column
 #: bit-identical
 EHS_SPAWN_KEY = 0x454853
+#: the columns :func:`ehs_report_columns` returns, in its order
+SIMULATED_COLUMNS = (*(REPORT_COLUMN[c] for c in EHS_COLUMNS), SELECTED_ALT_COLUMN)
+#: 1/φ: consecutive aircraft numbers get well-spread refresh phases
+GOLDEN = 0.6180339887498949
 
 __all__ = ["EhsConfig", "RESOLUTION", "EHS_COLUMNS", "SELECTED_ALT_RESOLUTION", "SELECTED_ALT_COLUMN",
            "selected_altitude", "REPORT_COLUMN", "EHS_SPAWN_KEY", "ehs_truth", "quantise",
-           "ehs_parameters", "ehs_table", "ehs_rng", "ehs_report_columns"]
+           "ehs_parameters", "ehs_table", "ehs_rng", "ehs_report_columns", "SIMULATED_COLUMNS"]
 
 
 @dataclass(frozen=True)
@@ -140,7 +144,9 @@ def ehs_parameters(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, rng: n
     aircraft = np.asarray(aircraft, np.int64)
     t = np.asarray(t, float)
     if cfg.refresh_s > 0:
-        phase = np.random.default_rng(12345).uniform(0.0, cfg.refresh_s, traj.n_aircraft)[aircraft]
+        # each aircraft's own refresh phase, keyed by its identity (not its row in ``traj``, which
+        # depends on the window a streamed simulation looks up): golden-ratio fractions
+        phase = cfg.refresh_s * np.mod((np.asarray(traj.truth_id, np.float64)[aircraft] + 1.0) * GOLDEN, 1.0)
         t = np.maximum(np.floor((t - phase) / cfg.refresh_s) * cfg.refresh_s + phase, 0.0)
     truth, ok = ehs_truth(traj, aircraft, t)
     out = {c: quantise(truth[c] + getattr(cfg, c) * rng.standard_normal(t.shape), c) for c in EHS_COLUMNS}
@@ -190,10 +196,12 @@ def selected_altitude(traj: Trajectories, aircraft: ArrayLike, rng: np.random.Ge
     return np.where(lost, np.nan, value)
 
 
-def ehs_rng(seed: int, radar_index: int) -> np.random.Generator:
+def ehs_rng(seed: int, radar_index: int, block: int | None = None) -> np.random.Generator:
     """The EHS noise stream of one radar: child (:data:`EHS_SPAWN_KEY`, radar_index) of the
-    scenario seed, independent of (and not consuming from) every other simulator stream."""
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(EHS_SPAWN_KEY, radar_index)))
+    scenario seed — (…, ``block``) for one block of a streamed simulation — independent of (and
+    not consuming from) every other simulator stream."""
+    key = (EHS_SPAWN_KEY, radar_index) if block is None else (EHS_SPAWN_KEY, radar_index, block)
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=key))
 
 
 def ehs_report_columns(traj: Trajectories, aircraft: ArrayLike, t_true: ArrayLike, replied: ArrayLike,

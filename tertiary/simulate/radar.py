@@ -59,6 +59,8 @@ class Plots:
     mode_s: NDArray[np.int64]          # Mode S address as replied (index into Transponders.addresses), -1 none
     mode_3a: NDArray[np.int64]         # Mode 3/A code as replied (0…4095), -1 none
     track_life: NDArray[np.int64]      # the local track's life (a reused number starts a new one)
+    #: (n, E) the EHS report columns extracted with each reply (E = 0: not simulated here)
+    ehs: NDArray[np.float64]
 
     def __len__(self) -> int:
         return len(self.run)
@@ -252,7 +254,7 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         elevation_deg=np.clip(meas[:, 2], -90.0, 90.0),
         altitude_m=transponder_altitude(alt_true[p_idx], tx.quantum_m()[ac], tx_rng[0]),
         local_track_id=np.zeros(len(r_idx), np.uint32), scan=ik[p_idx].astype(np.int64),
-        mode_s=mode_s, mode_3a=mode_3a, track_life=np.zeros(len(r_idx), np.int64))
+        mode_s=mode_s, mode_3a=mode_3a, track_life=np.zeros(len(r_idx), np.int64), ehs=np.zeros((len(r_idx), 0)))
     return _merge(plots, _clutter(radar, scan_start, runs, rng))
 
 
@@ -305,7 +307,8 @@ def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng
                  range_m=rng.uniform(2_000.0, radar.max_range_m, c), azimuth_deg=az,
                  elevation_deg=rng.uniform(0.0, 3.0, c), altitude_m=np.full(c, np.nan),
                  local_track_id=np.zeros(c, np.uint32), scan=k.astype(np.int64),
-                 mode_s=np.full(c, -1, np.int64), mode_3a=np.full(c, -1, np.int64), track_life=np.zeros(c, np.int64))
+                 mode_s=np.full(c, -1, np.int64), mode_3a=np.full(c, -1, np.int64), track_life=np.zeros(c, np.int64),
+                 ehs=np.zeros((c, 0)))
 
 
 def _merge(a: Plots, b: Plots) -> Plots:

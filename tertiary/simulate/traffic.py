@@ -61,8 +61,8 @@ from numpy.typing import NDArray
 from tertiary import geo
 from tertiary.errors import OptionError
 from tertiary.simulate.config import TrafficConfig
-from tertiary.simulate.trajectory import (SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT, SEG_TURN,
-                                          Trajectories, integrate_commands)
+from tertiary.simulate.trajectory import (DEFAULT_EPOCH, SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT,
+                                          SEG_TURN, Trajectories, integrate_commands)
 
 
 
@@ -367,44 +367,6 @@ def _templates(cfg: TrafficConfig, dt: float) -> tuple[list[dict], dict[str, lis
     return out, kinds
 
 
-def _gather(tpl: list[dict], route: NDArray[np.int64], entry: NDArray[np.int64], z_off: NDArray[np.float64],
-            steps: int, dt: float) -> tuple[NDArray, ...]:
-    """Aircraft flying template ``route[a]`` from global step ``entry[a]`` (may be < 0: airborne
-    at the start), ``z_off[a]`` added to the height: command arrays (A, steps) gathered from the
-    padded templates, integrated at once, anchored to the template. Returns pos, vel, active, seg."""
-    n = len(route)
-    kmax = max(len(t["speed"]) for t in tpl)
-    length = np.array([len(t["speed"]) for t in tpl])
-
-    def pad(key, size):
-        out = np.empty((len(tpl), size) + np.shape(tpl[0][key])[1:])
-        for i, t in enumerate(tpl):
-            out[i, :len(t[key])] = t[key]
-            out[i, len(t[key]):] = t[key][-1]
-        return out
-    spd, trn, vz = pad("speed", kmax), pad("turn", kmax), pad("vz", kmax)
-    hdg, seg, tpos = pad("hdg", kmax + 1), pad("seg", kmax + 1), pad("pos", kmax + 1)
-    k_r = length[route]
-    j = np.arange(steps + 1)[None, :] - entry[:, None]                       # template sample index
-    inside = (j >= 0) & (j <= k_r[:, None])
-    jc = np.clip(j[:, :-1], 0, kmax - 1)
-    flat = route[:, None] * kmax + jc
-    step_ok = (j[:, :-1] >= 0) & (j[:, :-1] < k_r[:, None])
-    speed = spd.reshape(-1).take(flat)
-    turn = np.where(step_ok, trn.reshape(-1).take(flat), 0.0)
-    vzz = np.where(step_ok, vz.reshape(-1).take(flat), 0.0)
-    h0 = hdg[route, np.clip(-entry, 0, k_r)]
-    pos, vel = integrate_commands(np.zeros((n, 3)), h0, speed, turn, vzz, dt)
-    k_star = np.clip(entry, 0, steps)
-    shift = tpos[route, k_star - entry] - pos[np.arange(n), k_star]
-    shift[:, 2] += z_off
-    for c in range(3):
-        pos[:, :, c] += shift[:, c:c + 1]
-    sflat = route[:, None] * (kmax + 1) + np.clip(j, 0, kmax)
-    segs = np.where(inside, seg.reshape(-1).take(sflat), SEG_STRAIGHT).astype(np.int8)
-    return pos, vel, inside, segs
-
-
 # ------------------------------------------------------------------ schedules (who flies when)
 
 
@@ -549,15 +511,18 @@ def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArr
     return zone, level, kinds
 
 
-def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: float, duration_s: float):
+def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, dt: float, duration_s: float) -> dict[str, NDArray]:
     """Designed pairs, straight with constant speed (kinds 0 crossing, 1 converging, 2 level
-    bust, 3 near miss): command arrays built directly. Returns pos, vel, active, seg, role, the
-    selected altitude and the cleared level (height, m) of each aircraft."""
+    bust, 3 near miss): per aircraft (pair i = aircraft i and n_pairs + i) the plan flown in
+    closed form by :func:`_pair_states` — heading, speed, the point ``anchor`` passed at sample
+    ``k_c``, level ``z`` (height, m), the bust's climb (``rate`` m/s from sample ``k_climb``
+    for ``n_climb`` steps), the active span [``t0``, ``t1``] (s), role, selected altitude and
+    cleared level (height, m)."""
     n_p = n_conf + n_near
     if n_p == 0:
-        z = np.zeros((0, steps + 1))
-        return (np.zeros((0, steps + 1, 3)), np.zeros((0, steps + 1, 3)), z.astype(bool), z.astype(np.int8),
-                np.zeros(0, str), np.zeros(0), np.zeros(0))
+        f, i = np.zeros(0), np.zeros(0, np.int64)
+        return {"heading": f, "speed": f, "anchor": np.zeros((0, 2)), "k_c": i, "z": f, "rate": f, "k_climb": i,
+                "n_climb": i, "t0": f, "t1": f, "role": np.zeros(0, str), "selected": f, "cleared": f}
     t_c = np.concatenate([np.linspace(0.2, 0.8, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
                           rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
     t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
@@ -583,58 +548,140 @@ def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, steps: int, dt: fl
     z_b = np.where(kind == 2, flight_level_m(fl - 10, cfg.level_buffer_m), z_a)
     # level bust: climb at 8 m/s from the level below, starting 90 s before t_c, to bust_ft under A
     climb = np.where(kind == 2, z_a - bust_ft * FT - z_b, 0.0)
-    n_climb = np.maximum(np.ceil(climb / 8.0 / dt), 1)
-    k0 = np.round((t_c - 90.0) / dt)
-    k = np.arange(steps)[None, :]
-    vz_b = np.where((k >= k0[:, None]) & (k < (k0 + n_climb)[:, None]), (climb / (n_climb * dt))[:, None], 0.0)
-    n = 2 * n_p
-    speed = np.repeat(np.concatenate([sa, sb])[:, None], steps, axis=1)
-    vz = np.concatenate([np.zeros((n_p, steps)), vz_b])
-    pos, vel = integrate_commands(np.zeros((n, 3)), np.concatenate([h_a, h_b]), speed, np.zeros((n, steps)), vz, dt)
+    n_climb = np.maximum(np.ceil(climb / 8.0 / dt), 1).astype(np.int64)
+    k_climb = np.round((t_c - 90.0) / dt).astype(np.int64)
     k_c = np.round(t_c / dt).astype(np.int64)
-    anchor = np.concatenate([meet, meet + miss[:, None] * perp])
-    kk = np.concatenate([k_c, k_c])
-    shift = np.column_stack([anchor - pos[np.arange(n), kk, :2], np.concatenate([z_a, z_b])])
-    for c in range(3):
-        pos[:, :, c] += shift[:, c:c + 1]
-    t = np.arange(steps + 1) * dt
-    t0 = np.concatenate([t_c, t_c]) - PAIR_LEAD_S
-    active = (t[None, :] >= t0[:, None]) & (t[None, :] <= t0[:, None] + PAIR_LEAD_S + PAIR_TRAIL_S)
-    vz_s = np.concatenate([vz, vz[:, -1:]], axis=1)
-    seg = np.where(vz_s > 0, SEG_CLIMB, SEG_STRAIGHT).astype(np.int8)
     names = np.array(["conflict-crossing", "conflict-converging", "conflict-level-bust", "near-miss"])
-    role = np.concatenate([names[kind], names[kind]])
     # selected altitude: each aircraft's level; a bust selected wrong (the level it climbs to) or
     # right (its cleared level below), TrafficConfig.bust_selected
     bust_sel = z_b + climb if cfg.bust_selected == "flown" else z_b
-    selected = np.concatenate([z_a, np.where(kind == 2, bust_sel, z_b)])
-    # cleared levels: each its own level; a bust was cleared to keep the level below
-    return pos, vel, active, seg, role, selected, np.concatenate([z_a, z_b])
+    zero = np.zeros(n_p, np.int64)
+    return {"heading": np.concatenate([h_a, h_b]), "speed": np.concatenate([sa, sb]),
+            "anchor": np.concatenate([meet, meet + miss[:, None] * perp]), "k_c": np.concatenate([k_c, k_c]),
+            "z": np.concatenate([z_a, z_b]), "rate": np.concatenate([np.zeros(n_p), climb / (n_climb * dt)]),
+            "k_climb": np.concatenate([zero, k_climb]), "n_climb": np.concatenate([zero, n_climb]),
+            "t0": np.concatenate([t_c, t_c]) - PAIR_LEAD_S, "t1": np.concatenate([t_c, t_c]) + PAIR_TRAIL_S,
+            "role": np.concatenate([names[kind], names[kind]]),
+            "selected": np.concatenate([z_a, np.where(kind == 2, bust_sel, z_b)]),
+            # cleared levels: each its own level; a bust was cleared to keep the level below
+            "cleared": np.concatenate([z_a, z_b])}
 
 
-def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
-                  frame: geo.LocalFrame | None = None) -> Trajectories:
-    """Terminal-area traffic flying procedures (module docstring): arrivals, departures,
-    overflights, holding stacks, designed conflict and near-miss pairs. Heights are converted
-    to tangent-plane z for ``frame`` (WGS-84; None: the sphere, ≤ 1 m apart within 100 km).
+def _pair_states(plan: dict[str, NDArray], ids: NDArray[np.int64], k: NDArray[np.int64], dt: float
+                 ) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """Positions (x, y, height), velocities, activity and segment codes of pair aircraft ``ids``
+    at samples ``k``: straight at constant speed through ``anchor`` at ``k_c``; the bust climbs
+    at ``rate`` over steps ``k_climb`` … ``k_climb + n_climb − 1`` (the exact integral of the
+    piecewise-constant commands)."""
+    g = {key: v[ids] for key, v in plan.items()}
+    psi = np.radians(g["heading"])
+    ground = np.stack([np.sin(psi), np.cos(psi)], axis=1) * g["speed"][:, None]          # (P, 2)
+    since = (k[None, :] - g["k_c"][:, None]) * dt                                          # (P, n)
+    climbed = np.clip(k[None, :] - g["k_climb"][:, None], 0, g["n_climb"][:, None])
+    climbing = (k[None, :] >= g["k_climb"][:, None]) & (k[None, :] < (g["k_climb"] + g["n_climb"])[:, None])
+    pos = np.empty((len(ids), len(k), 3))
+    pos[..., :2] = g["anchor"][:, None, :] + since[..., None] * ground[:, None, :]
+    pos[..., 2] = g["z"][:, None] + g["rate"][:, None] * dt * climbed
+    vel = np.empty_like(pos)
+    vel[..., :2] = ground[:, None, :]
+    vel[..., 2] = np.where(climbing, g["rate"][:, None], 0.0)
+    t = k[None, :] * dt
+    active = (t >= g["t0"][:, None]) & (t <= g["t1"][:, None])
+    seg = np.where(vel[..., 2] > 0, SEG_CLIMB, SEG_STRAIGHT).astype(np.int8)
+    return pos, vel, active, seg
 
-    ``meta["role"]`` names each aircraft's kind; the designed losses of separation are the
-    pairs whose role starts with ``conflict-`` (pair i = aircraft ``pair_a[i]``, ``pair_b[i]``
-    in ``meta``)."""
+
+@dataclass
+class TerminalTraffic:
+    """Terminal-area traffic as a schedule (:func:`terminal_traffic`): who flies which route
+    template from which sample, the designed pairs' plans, identities and clearances — a few
+    arrays per aircraft. The (aircraft × samples) truth of a stretch of time is looked up from
+    the templates by :meth:`window` (no integration): identical whatever the window, so a long
+    scenario is simulated window by window in memory bounded by the window."""
+
+    dt: float
+    steps: int                         # the scenario's last sample (duration / dt)
+    frame: geo.LocalFrame | None
+    tpos: NDArray[np.float64]          # (R, K+1, 3) template positions (x, y, height)
+    tvel: NDArray[np.float64]          # (R, K+1, 3) template velocities (vx, vy, ḣ)
+    tseg: NDArray[np.int8]             # (R, K+1)
+    length: NDArray[np.int64]          # (R,) template steps
+    route: NDArray[np.int64]           # (M,) procedural aircraft: template,
+    entry: NDArray[np.int64]           # first template sample's global sample (may be < 0),
+    zoff: NDArray[np.float64]          # height added (holding and airway levels)
+    pairs: dict[str, NDArray]          # designed pairs' plans (aircraft M …, :func:`_pairs`)
+    meta: dict[str, NDArray]
+    selected_alt_m: NDArray[np.float64]
+    selected_change_s: NDArray[np.float64]
+    selected_next_m: NDArray[np.float64]
+    cleared_alt_m: NDArray[np.float64]
+    epoch: datetime = DEFAULT_EPOCH
+
+    @property
+    def n_flights(self) -> int:
+        return len(self.route) + len(self.pairs["t0"])
+
+    def span(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Each aircraft's first and last active sample within the scenario (0 … steps); an
+        aircraft not flying in it has first > last."""
+        first_r = np.maximum(self.entry, 0)
+        last_r = np.minimum(self.entry + self.length[self.route], self.steps)
+        t0, t1 = self.pairs["t0"], self.pairs["t1"]
+        first_p = np.maximum(np.ceil(t0 / self.dt - 1e-9), 0).astype(np.int64)
+        last_p = np.minimum(np.floor(t1 / self.dt + 1e-9), self.steps).astype(np.int64)
+        return np.concatenate([first_r, first_p]), np.concatenate([last_r, last_p])
+
+    def window(self, k0: int, n: int, every: bool = False) -> TrafficTrajectories:
+        """Truth of the aircraft flying during samples k0 … k0+n-1 (``every``: all aircraft), on
+        that grid (epoch and selection change times shifted by k0·dt); ``truth_id`` is the
+        aircraft number of the scenario."""
+        first, last = self.span()
+        ids = np.arange(self.n_flights) if every else np.flatnonzero((first <= k0 + n - 1) & (last >= k0) &
+                                                                      (first <= last))
+        m = len(self.route)
+        k = np.arange(k0, k0 + n)
+        pos_r, vel_r, act_r, seg_r = self._routed(ids[ids < m], k)
+        pos_p, vel_p, act_p, seg_p = _pair_states(self.pairs, ids[ids >= m] - m, k, self.dt)
+        pos, vel = np.concatenate([pos_r, pos_p]), np.concatenate([vel_r, vel_p])
+        active = np.concatenate([act_r, act_p]) & (k >= 0)[None, :] & (k <= self.steps)[None, :]
+        heights_to_enu(pos, vel, self.frame, active)
+        from datetime import timedelta
+        return TrafficTrajectories(
+            dt=self.dt, pos=pos, vel=vel, active=active, segment=np.concatenate([seg_r, seg_p]),
+            truth_id=ids.astype(np.int64), epoch=self.epoch + timedelta(seconds=k0 * self.dt),
+            meta={key: v[ids] for key, v in self.meta.items()}, selected_alt_m=self.selected_alt_m[ids],
+            selected_change_s=self.selected_change_s[ids] - k0 * self.dt, selected_next_m=self.selected_next_m[ids],
+            cleared_alt_m=self.cleared_alt_m[ids])
+
+    def _routed(self, ids: NDArray[np.int64], k: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Procedural aircraft ``ids`` at samples ``k``: their template looked up at k − entry
+        (heights + ``zoff``); outside the template the nearest end (inactive)."""
+        r = self.route[ids]
+        j = k[None, :] - self.entry[ids, None]
+        inside = (j >= 0) & (j <= self.length[r][:, None])
+        kk = self.tpos.shape[1]
+        flat = (r[:, None] * kk + np.clip(j, 0, kk - 1)).reshape(-1)
+        pos = self.tpos.reshape(-1, 3).take(flat, axis=0).reshape(len(ids), len(k), 3)
+        vel = self.tvel.reshape(-1, 3).take(flat, axis=0).reshape(len(ids), len(k), 3)
+        pos[..., 2] += self.zoff[ids, None]
+        seg = np.where(inside, self.tseg.reshape(-1).take(flat).reshape(len(ids), len(k)), SEG_STRAIGHT)
+        return pos, vel, inside, seg.astype(np.int8)
+
+
+def terminal_traffic(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
+                     frame: geo.LocalFrame | None = None) -> TerminalTraffic:
+    """The terminal-area schedule (module docstring): arrivals, departures, overflights,
+    holding stacks, designed conflict and near-miss pairs, drawn from ``rng`` (per aircraft,
+    never per sample); heights become tangent-plane z for ``frame`` (WGS-84; None: the sphere)
+    when a window is looked up."""
     steps = int(round(duration_s / dt))
     counts = _counts(cfg, duration_s)
     tpl, kinds = _templates(cfg, dt)
     ra = _route_aircraft(rng, cfg, tpl, kinds, counts, duration_s, dt)
     entry = np.round(ra["entry"] / dt).astype(np.int64)
-    pos_r, vel_r, act_r, seg_r = _gather(tpl, ra["route"], entry, ra["zoff"], steps, dt)
-    pos_p, vel_p, act_p, seg_p, role_p, sel_p, clr_p = _pairs(rng, cfg, counts["pairs"], counts["near"], steps, dt,
-                                                       duration_s)
-    pos = np.concatenate([pos_r, pos_p])
-    vel = np.concatenate([vel_r, vel_p])
-    active = np.concatenate([act_r, act_p])
-    heights_to_enu(pos, vel, frame, active)
-    n = len(pos)
-    role = np.concatenate([ra["role"], role_p])
+    pairs = _pairs(rng, cfg, counts["pairs"], counts["near"], dt, duration_s)
+    n = len(entry) + len(pairs["t0"])
+    role = np.concatenate([ra["role"], pairs["role"]])
     icao = np.array([f"{v:06x}" for v in rng.choice(0xFFFFFF, n, replace=False)])
     has_mode_s = rng.random(n) < cfg.mode_s_fraction
     callsign = np.array([f"{p}{v:04d}" for p, v in zip(rng.choice(["AFR", "EZY", "RYR", "DLH", "BAW", "TVF"], n),
@@ -642,15 +689,27 @@ def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.rand
     squawk = np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)])
     # drawn last: every earlier draw (and so every other column) is the same as without it
     downlinks = rng.random(n) < cfg.selected_alt_fraction
-    selected = np.where(downlinks, np.concatenate([_routed_selected(cfg, ra), sel_p]), np.nan)
+    selected = np.where(downlinks, np.concatenate([_routed_selected(cfg, ra), pairs["selected"]]), np.nan)
     change, nxt = _selected_changes(rng, cfg, tpl, ra, entry, n, dt)
-    return TrafficTrajectories(dt=dt, pos=pos, vel=vel, active=active,
-                               segment=np.concatenate([seg_r, seg_p]), truth_id=np.arange(n, dtype=np.int64),
-                               meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
-                                     "squawk": squawk},
-                               selected_alt_m=selected, selected_change_s=np.where(downlinks, change, np.inf),
-                               selected_next_m=np.where(downlinks, nxt, np.nan),
-                               cleared_alt_m=np.concatenate([_routed_selected(cfg, ra), clr_p]))
+    tpos, tvel, tseg, length = _template_grid(tpl)
+    return TerminalTraffic(dt=dt, steps=steps, frame=frame, tpos=tpos, tvel=tvel, tseg=tseg, length=length,
+                           route=ra["route"], entry=entry, zoff=ra["zoff"], pairs=pairs,
+                           meta={"icao24": np.where(has_mode_s, icao, ""), "callsign": callsign, "role": role,
+                                 "squawk": squawk},
+                           selected_alt_m=selected, selected_change_s=np.where(downlinks, change, np.inf),
+                           selected_next_m=np.where(downlinks, nxt, np.nan),
+                           cleared_alt_m=np.concatenate([_routed_selected(cfg, ra), pairs["cleared"]]))
+
+
+def terminal_area(cfg: TrafficConfig, duration_s: float, dt: float, rng: np.random.Generator,
+                  frame: geo.LocalFrame | None = None) -> TrafficTrajectories:
+    """Terminal-area traffic (:func:`terminal_traffic`) over the whole scenario, every aircraft
+    (``truth_id`` = its index). Heights are converted to tangent-plane z for ``frame``.
+
+    ``meta["role"]`` names each aircraft's kind; the designed losses of separation are the
+    pairs whose role starts with ``conflict-``."""
+    traffic = terminal_traffic(cfg, duration_s, dt, rng, frame)
+    return traffic.window(0, traffic.steps + 1, every=True)
 
 
 def _selected_changes(rng, cfg: TrafficConfig, tpl: list[dict], ra: dict[str, NDArray], entry: NDArray[np.int64],
@@ -829,14 +888,22 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
 
 
 def _template_arrays(tpl: list[dict], frame: geo.LocalFrame | None):
+    """:func:`_template_grid` with heights → tangent-plane z once (templates flown at their own
+    heights)."""
+    pos, vel, seg, length = _template_grid(tpl)
+    heights_to_enu(pos, vel, frame)
+    return pos, vel, seg, length
+
+
+def _template_grid(tpl: list[dict]):
     """Templates padded to one length (last sample repeated), velocities from the commands
-    (the step that starts at a sample; the last repeats), heights → tangent-plane z once."""
+    (the step that starts at a sample; the last repeats); positions (x, y, height)."""
     length = np.array([len(t["speed"]) for t in tpl], np.int64)
     kk = int(length.max()) + 1
     pos = np.empty((len(tpl), kk, 3))
     vel = np.empty((len(tpl), kk, 3))
     seg = np.empty((len(tpl), kk), np.int8)
-    for i, t in enumerate(tpl):          # a loop over routes (hundreds), not aircraft
+    for i, t in enumerate(tpl):          # a loop over routes (tens to hundreds), not aircraft
         k = len(t["speed"])
         spd = np.append(t["speed"], t["speed"][-1])
         vz = np.append(t["vz"], t["vz"][-1])
@@ -844,7 +911,6 @@ def _template_arrays(tpl: list[dict], frame: geo.LocalFrame | None):
         pos[i, :k + 1], seg[i, :k + 1] = t["pos"], t["seg"]
         vel[i, :k + 1] = np.column_stack([spd * np.sin(psi), spd * np.cos(psi), vz])
         pos[i, k + 1:], vel[i, k + 1:], seg[i, k + 1:] = pos[i, k], vel[i, k], seg[i, k]
-    heights_to_enu(pos, vel, frame)
     return pos, vel, seg, length
 
 
