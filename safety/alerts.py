@@ -33,12 +33,20 @@ epoch), so fragmented or swapped ids cannot inflate episodes; id pairs without t
 truths keep their ids (``truth_a``/``truth_b`` null) and can only be false alerts. An episode is
 a maximal sequence of alert epochs of one key whose consecutive alert epochs are adjacent on
 the grid or at most ``merge_gap_s`` apart; **flicker** counts the dropouts inside it (alert
-epochs not adjacent on the grid). With link window W = [t_start, t_end + ``link_s``] (default
-T^пор), an episode is
+epochs not adjacent on the grid). With link window W = [t_start, max(t_end + ``link_s``,
+t_cpa)] (``link_s`` default T^пор; t_cpa the latest closest approach its alert epochs
+predicted, each at most ``max_link_s`` (default 2 T^пор) after its epoch), an episode is
 
 * **genuine** — a LoS episode of that pair overlaps W (it follows or is under way);
 * **nuisance** — no LoS, but a proximity interval of the pair overlaps W;
 * **false** — neither (also every alert without two distinct truths).
+
+Why W reaches the predicted closest approach: an alert is raised when the pair is predicted to
+enter the threshold, widened by the estimation term, within T^пор; on a converging pair with a
+still-uncertain track (minutes after it appears) that entry comes well before the pair is
+closest. A pair that then passes at 1.3× the minimum 2 min later, or loses separation 2.5 min
+later, was the encounter the alert named: a fixed window of T^пор after the alert called such
+alerts false ("nothing close"), which they are not (``link_to_cpa=False`` restores it).
 
 Alert epochs outside the truth's time span (e.g. tracks coasting after the recording's
 reference ends) are not scored: there is nothing to judge them by.
@@ -47,7 +55,7 @@ LoS episodes — :func:`los_episodes`
 ----------------------------------
 Every LoS episode overlapping a picture's time span (per run) is **alerted** when an alert
 episode of that pair in that picture overlaps it within the link window (a.t_start ≤ los.t_end
-and a.t_end + link_s ≥ los.t_start), else **missed**; warning time = LoS start − the earliest
+and the end of the alert's W ≥ los.t_start), else **missed**; warning time = LoS start − the earliest
 such alert start (negative when the alert came after the LoS began).
 
 Metrics — :func:`score_alerts` (``metrics`` schema, stage ``"safety"``, per picture)
@@ -122,6 +130,11 @@ class AlertConfig:
       (the dropout is flicker).
     * ``link_s``: how long after an alert episode ends a LoS still makes it genuine / alerted
       (None: T^пор).
+    * ``link_to_cpa``: the link window also reaches the closest approach each alert epoch
+      predicted (its ``t_min_s``), at most ``max_link_s`` (None: 2 T^пор) after that epoch: an
+      alert raised when the pair enters the (uncertainty-widened) threshold within T^пор is about
+      the encounter it predicted, which can come after T^пор (module docstring). False: the
+      fixed window only.
     * ``max_grid_rows``: bound of the resampled truth grid (aircraft × union sample times).
     """
 
@@ -129,6 +142,8 @@ class AlertConfig:
     proximity_factor: float = 1.5
     merge_gap_s: float = 15.0
     link_s: float | None = None
+    link_to_cpa: bool = True
+    max_link_s: float | None = None
     max_grid_rows: int = 50_000_000
 
     def __post_init__(self) -> None:
@@ -138,12 +153,22 @@ class AlertConfig:
             raise ValueError(f"merge_gap_s must be >= 0, got {self.merge_gap_s}")
         if self.link_s is not None and self.link_s < 0:
             raise ValueError(f"link_s must be >= 0, got {self.link_s}")
+        if self.max_link_s is not None and self.max_link_s < 0:
+            raise ValueError(f"max_link_s must be >= 0, got {self.max_link_s}")
         if self.max_grid_rows < 1:
             raise ValueError(f"max_grid_rows must be >= 1, got {self.max_grid_rows}")
 
     @property
     def link(self) -> float:
         return self.conflict.t_thr_s if self.link_s is None else float(self.link_s)
+
+    @property
+    def cpa_reach(self) -> float:
+        """How far after an alert epoch its predicted closest approach can extend the link
+        window (0 without ``link_to_cpa``)."""
+        if not self.link_to_cpa:
+            return 0.0
+        return 2.0 * self.conflict.t_thr_s if self.max_link_s is None else float(self.max_link_s)
 
 
 # --------------------------------------------------------------------------- truth: heights, intervals
@@ -424,10 +449,13 @@ def _packed(cols: list[NDArray]) -> NDArray[np.int64]:
     return code
 
 
-def _episodes_of(rows: pl.DataFrame, grid: pl.DataFrame, merge_gap_s: float) -> pl.DataFrame:
+def _episodes_of(rows: pl.DataFrame, grid: pl.DataFrame, merge_gap_s: float, cpa_reach_s: float = 0.0
+                 ) -> pl.DataFrame:
     """Alert episodes per key (run, method, kind, ka, kb): consecutive alert epochs belong to one
     episode when adjacent on the grid or ≤ ``merge_gap_s`` apart; non-adjacent ones are flicker.
-    One sort, then numpy over the sorted rows (no per-group windows)."""
+    ``t_cpa``: the latest closest approach its alert epochs predicted (epoch + T_min clipped
+    to [0, ``cpa_reach_s``]; a parallel pair's T_min = ∞ counts as now). One sort, then numpy
+    over the sorted rows (no per-group windows)."""
     key = ["run", "method", "kind", "ka", "kb"]
     r = rows.join(grid.select("run", "method", "epoch", "k", "t_us"), on=["run", "method", "epoch"], how="inner")
     n = r.height
@@ -461,37 +489,46 @@ def _episodes_of(rows: pl.DataFrame, grid: pl.DataFrame, merge_gap_s: float) -> 
     if not len(starts):
         return pl.DataFrame(schema={"__ep": pl.Int64, **{c: r.schema[c] for c in (*key, "id_a", "id_b", "truth_a",
                                                                                       "truth_b")},
-                                    "t0": pl.Int64, "t1": pl.Int64, "alert_epochs": pl.UInt32, "flicker": pl.Int64,
+                                    "t0": pl.Int64, "t1": pl.Int64, "t_cpa": pl.Int64, "alert_epochs": pl.UInt32,
+                                    "flicker": pl.Int64,
                                     "r_min_pred_m": pl.Float64, "dz_min_pred_m": pl.Float64,
                                     "t_min_first_s": pl.Float64})
     ends = np.append(starts[1:], len(k)) - 1
     with np.errstate(invalid="ignore"):
         r_min = np.fmin.reduceat(r["r_min_m"].fill_null(np.nan).to_numpy(), starts)
         dz_min = np.fmin.reduceat(r["dz_min_m"].fill_null(np.nan).to_numpy(), starts)
+        t_min = r["t_min_s"].cast(pl.Float64).fill_null(0.0).to_numpy()
+        ahead = np.where(np.isfinite(t_min), np.clip(t_min, 0.0, cpa_reach_s), 0.0)
+    t_cpa = np.maximum.reduceat(t + np.round(ahead * _US).astype(np.int64), starts)
     first = r[starts].select(*key, "id_a", "id_b", "truth_a", "truth_b", "t_min_s")
     return first.with_columns(
         pl.Series("__ep", np.arange(len(starts), dtype=np.int64)), pl.Series("t0", t[starts]),
-        pl.Series("t1", t[ends]), pl.Series("alert_epochs", (ends - starts + 1).astype(np.uint32)),
+        pl.Series("t1", t[ends]), pl.Series("t_cpa", t_cpa), pl.Series("alert_epochs", (ends - starts + 1).astype(np.uint32)),
         pl.Series("flicker", np.add.reduceat(flick, starts)), pl.Series("r_min_pred_m", r_min),
         pl.Series("dz_min_pred_m", dz_min), pl.col("t_min_s").alias("t_min_first_s")).drop("t_min_s")
 
 
-def _linked(left: pl.DataFrame, iv: pl.DataFrame, a0: str, a1: str, link_us: int, shared: bool,
-            on: list[str]) -> pl.DataFrame:
-    """Rows of ``left`` (alert span [a0, a1]) joined with the intervals ``iv`` of their pair that
-    overlap [a0, a1 + link]."""
+def _reach(link_us: int) -> pl.Expr:
+    """The end of an episode's link window: ``link`` after its end, or its latest predicted
+    closest approach (``t_cpa``) when later."""
+    return pl.max_horizontal(pl.col("t1") + link_us, pl.col("t_cpa"))
+
+
+def _linked(left: pl.DataFrame, iv: pl.DataFrame, link_us: int, shared: bool, on: list[str]) -> pl.DataFrame:
+    """Rows of ``left`` (alert episodes [t0, t1]) joined with the intervals ``iv`` of their pair
+    that overlap their link window [t0, :func:`_reach`]."""
     keys = on + ([] if shared else ["run"])
     ivs = iv.drop("run") if shared else iv
     return (left.join(ivs, on=keys, how="inner")
-            .filter((pl.col("t_start_us") <= pl.col(a1) + link_us) & (pl.col("t_end_us") >= pl.col(a0))))
+            .filter((pl.col("t_start_us") <= _reach(link_us)) & (pl.col("t_end_us") >= pl.col("t0"))))
 
 
 def _classify(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
     pairs = ["truth_a", "truth_b"]
-    known = eps.filter(pl.col("kind") == 0).select("__ep", "run", *pairs, "t0", "t1")
-    g = (_linked(known, los, "t0", "t1", link_us, shared, pairs)
+    known = eps.filter(pl.col("kind") == 0).select("__ep", "run", *pairs, "t0", "t1", "t_cpa")
+    g = (_linked(known, los, link_us, shared, pairs)
          .group_by("__ep").agg(pl.col("t_start_us").min().alias("los_start_us")))
-    n = _linked(known, prox, "t0", "t1", link_us, shared, pairs).select("__ep").unique().with_columns(
+    n = _linked(known, prox, link_us, shared, pairs).select("__ep").unique().with_columns(
         pl.lit(True).alias("__near"))
     e = eps.join(g, on="__ep", how="left").join(n, on="__ep", how="left")
     cls = (pl.when(pl.col("los_start_us").is_not_null()).then(pl.lit("genuine"))
@@ -505,9 +542,9 @@ def _los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us
     base = spans.join(los.drop("run"), how="cross") if shared else spans.join(los, on="run", how="inner")
     base = base.filter((pl.col("t_end_us") >= pl.col("__g0")) & (pl.col("t_start_us") <= pl.col("__g1"))
                        ).with_row_index("__los")
-    al = eps.filter(pl.col("kind") == 0).select("run", "method", "truth_a", "truth_b", "t0", "t1")
+    al = eps.filter(pl.col("kind") == 0).select("run", "method", "truth_a", "truth_b", "t0", "t1", "t_cpa")
     first = (base.join(al, on=["run", "method", "truth_a", "truth_b"], how="inner")
-             .filter((pl.col("t0") <= pl.col("t_end_us")) & (pl.col("t1") + link_us >= pl.col("t_start_us")))
+             .filter((pl.col("t0") <= pl.col("t_end_us")) & (_reach(link_us) >= pl.col("t_start_us")))
              .group_by("__los").agg(pl.col("t0").min().alias("__first")))
     out = base.join(first, on="__los", how="left")
     return out.select(
@@ -530,7 +567,7 @@ def _score(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, c
     shared = "run" not in truth.columns
     link_us = int(round(cfg.link * _US))
     grid = _grid(conflicts, id_map, methods)
-    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s)
+    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s, cfg.cpa_reach)
     eps = _classify(eps, los, prox, link_us, shared)
     alerts = eps.select(
         "run", "method", "id_a", "id_b", "truth_a", "truth_b", _to_time("t0", "t_start"), _to_time("t1", "t_end"),

@@ -180,6 +180,28 @@ def test_genuine_nuisance_false_and_warning(truth):
     assert los["warning_s"][0] == pytest.approx(LOS_12[0] - 100.0, abs=1e-5)
 
 
+def test_an_early_alert_links_to_the_encounter_it_predicted(truth):
+    """An alert at 20 s on the head-on pair that predicts its closest approach at 200 s (an entry
+    into a widened threshold within T^пор = 105 s) names the LoS starting at ~182 s: genuine,
+    warning ~162 s. The fixed window (20 + 105 s) called it false and the LoS missed; so does a
+    reach capped before the LoS, or an alert whose own predicted approach is long past."""
+    early = _alerts({(11, 12): [20]})                                    # t_min_s = 180
+    ep = alert_episodes(early, _id_map(), truth, CFG)
+    assert ep["classification"].to_list() == ["genuine"]
+    assert ep["warning_s"][0] == pytest.approx(LOS_12[0] - 20.0, abs=1e-5)
+    assert los_episodes(early, _id_map(), truth, CFG)["alerted"].to_list() == [True]
+    fixed = dataclasses.replace(CFG, link_to_cpa=False)
+    assert alert_episodes(early, _id_map(), truth, fixed)["classification"].to_list() == ["false"]
+    assert los_episodes(early, _id_map(), truth, fixed)["alerted"].to_list() == [False]
+    capped = dataclasses.replace(CFG, max_link_s=120.0)
+    assert alert_episodes(early, _id_map(), truth, capped)["classification"].to_list() == ["false"]
+    soon = early.with_columns(pl.lit(30.0).alias("t_min_s"))            # predicted closest at 50 s
+    assert alert_episodes(soon, _id_map(), truth, CFG)["classification"].to_list() == ["false"]
+    # the pair passing 7 km apart at 200 s (within 1.5× the minima from ~185 s): a nuisance
+    near = alert_episodes(_alerts({(13, 14): [20]}), _id_map(), truth, CFG)
+    assert near["classification"].to_list() == ["nuisance"]
+
+
 def test_alerts_after_the_reference_ends_are_not_scored(truth):
     """Truth ends at 300 s: an alert at 305–310 s (tracks coasting past the recording's end)
     cannot be judged and is left out; the same pair alerting at 150 s is a false alert."""
@@ -323,6 +345,8 @@ def test_config_validation():
         AlertConfig(merge_gap_s=-1)
     with pytest.raises(ValueError):
         AlertConfig(link_s=-1)
+    with pytest.raises(ValueError, match="max_link_s"):
+        AlertConfig(max_link_s=-1)
     assert AlertConfig().link == 105.0
 
 
