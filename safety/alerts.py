@@ -84,7 +84,8 @@ import polars as pl
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from safety.conflicts import ConflictConfig, conflict_interval, height_and_rate, predict_conflicts
+from safety.conflicts import (ConflictConfig, conflict_interval, conflicts_step, height_and_rate,
+                              init_conflict_state, predict_conflicts)
 from tertiary import geo
 from tertiary.errors import ResourceError
 from tertiary.schema import TABLES, TIME
@@ -697,7 +698,7 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
     rows = []
     for mode, par, cc in _settings(cfg.conflict, confidences, fixed_est_h_m, looks):
-        c = predict_conflicts(picture, cc, id_col=id_col, frame=frame)
+        c = _scored_rows(picture, cc, id_col, frame)
         acfg = dataclasses.replace(cfg, conflict=cc)
         alerts, los, grid = _score(c, id_map, truth, acfg, map_id_col or id_col, methods, frame, intervals)
         per = _per_method(alerts, los, grid)
@@ -713,6 +714,33 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
                 pl.col("n_runs").cast(pl.UInt32))
             rows.append(part)
     return pl.concat(rows, how="vertical_relaxed").sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")
+
+
+#: the time windows the trade-off curves predict conflicts in (memory bounded by the window)
+CURVE_WINDOW_S = 3600.0
+
+
+def _scored_rows(picture: pl.DataFrame, cfg: ConflictConfig, id_col: str, frame: geo.LocalFrame | None,
+                 window_s: float | None = None) -> pl.DataFrame:
+    """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture``: its
+    alert rows and one row per (run, method, epoch) (the epoch grid of :func:`_grid`),
+    predicted window by window (:func:`~safety.conflicts.conflicts_step`, confirmation state
+    carried), so that a long picture's every screened pair is never held at once. The scores
+    equal those of the whole table."""
+    if picture.height == 0:
+        return predict_conflicts(picture, cfg, id_col=id_col, frame=frame)
+    us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
+    order = np.argsort(us, kind="stable")
+    us = us[order]
+    step = int(round((CURVE_WINDOW_S if window_s is None else window_s) * _US))
+    edges = list(range(int(us[0]), int(us[-1]) + 1, step)) + [int(us[-1]) + 1]
+    state, parts = init_conflict_state(), []
+    for t0, t1 in zip(edges[:-1], edges[1:]):
+        lo, hi = np.searchsorted(us, [t0, t1])
+        out, state = conflicts_step(state, picture[order[lo:hi]], cfg, id_col, frame, t0, t1, slim=False)
+        grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
+        parts.append(pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))]))
+    return pl.concat(parts)
 
 
 def compare_at_equal_nuisance(curve: pl.DataFrame, warning_s: float = 30.0, t_thr_s: float | None = None,

@@ -338,6 +338,36 @@ def test_tradeoff_curves_and_equal_nuisance(truth):
     assert met["segment"][0].startswith("mode=")
 
 
+def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeypatch):
+    """The trade-off curves predict conflicts window by window (bounded memory) and keep only
+    the alert rows and the epoch grid: the scores equal those of the whole screened table,
+    with windows shorter than the confirmation's 4 epochs (20 s) and longer than the picture.
+    Fails if the confirmation state is not carried across windows or the grid loses epochs."""
+    import safety.alerts as alerts_mod
+    pic = _picture(truth, noise=400.0)
+    for cc in (ConflictConfig(confirm_m=3, confirm_n=4),
+               ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3)):
+        whole = predict_conflicts(pic, cc, id_col="target_id")
+        assert whole.filter(~pl.col("alert")).height > 0 and whole["alert"].sum() > 0
+        assert (whole["raw_alert"] & ~whole["alert"]).any()          # confirmation at work
+        # an id map with holes (nothing matched) at epochs with screened rows but no alert: the
+        # grid must still hold them
+        quiet = whole.group_by("epoch").agg(pl.col("alert").any()).filter(~pl.col("alert"))["epoch"]
+        assert quiet.len() > 0
+        idm = _id_map().filter(~pl.col("epoch").is_in(quiet.implode()))
+        want = alert_episodes(whole, idm, truth, AlertConfig(conflict=cc), id_col="id")
+        for w in (12.0, 20.0, 1e6):
+            rows = alerts_mod._scored_rows(pic, cc, "target_id", None, window_s=w)
+            assert rows.height < whole.height
+            assert alerts_mod._grid(rows, idm, None).equals(alerts_mod._grid(whole, idm, None))
+            got = alert_episodes(rows, idm, truth, AlertConfig(conflict=cc), id_col="id")
+            assert got.equals(want), (cc.threshold_mode, w)
+    kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(300.0,))
+    one = stca_tradeoff(pic, _id_map(), truth, CFG, **kw)
+    monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 15.0)
+    assert stca_tradeoff(pic, _id_map(), truth, CFG, **kw).equals(one)
+
+
 def test_config_validation():
     with pytest.raises(ValueError):
         AlertConfig(proximity_factor=0.9)
