@@ -185,3 +185,28 @@ def test_terminal_block_is_a_common_multiple_of_the_scan_periods():
     odd = dataclasses.replace(cfg, radars=tuple(dataclasses.replace(r, scan_period_s=p, scan_phase_s=0.0)
                                                 for r, p in zip(cfg.radars, (4.0, 5.0, 7.0, 4.5))))
     assert block_s(odd) == 1260.0                  # lcm(4, 5, 7, 4.5) = 1 260 s
+
+
+def test_ehs_refresh_phase_does_not_depend_on_the_window():
+    """Register staleness (``refresh_s``) samples each aircraft on its own phase of the absolute
+    clock: a window looked up from a later sample, holding other aircraft in other rows, gives
+    the values of the whole scenario's truth. Fails with a phase keyed by row or by the epoch."""
+    import numpy as np
+    from tertiary import geo
+    from tertiary.simulate.ehs import EHS_COLUMNS, EhsConfig, ehs_parameters
+    from tertiary.simulate.traffic import terminal_traffic
+    cfg = _small_terminal()
+    traffic = terminal_traffic(cfg.traffic, cfg.duration_s, cfg.dt, np.random.default_rng(3),
+                               geo.LocalFrame(*cfg.origin))
+    whole = traffic.window(0, traffic.steps + 1, every=True)
+    k0 = 437                                      # not a multiple of the refresh period
+    part = traffic.window(k0, 600)
+    ehs = EhsConfig(**{c: 0.0 for c in EHS_COLUMNS}, refresh_s=4.0)
+    rows = np.arange(len(part.truth_id))
+    t = np.full(len(rows), 250.3)
+    got, ok_p = ehs_parameters(part, rows, t, np.random.default_rng(0), ehs)
+    want, ok_w = ehs_parameters(whole, part.truth_id, t + k0 * cfg.dt, np.random.default_rng(0), ehs)
+    assert len(rows) > 5 and len(rows) < whole.n_aircraft and ok_p.sum() > 5
+    assert np.array_equal(ok_p, ok_w)
+    for c in EHS_COLUMNS:
+        assert np.allclose(got[c][ok_p], want[c][ok_p], atol=1e-6), c

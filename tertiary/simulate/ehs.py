@@ -33,7 +33,8 @@ Values are rounded to the nearest LSB and clipped to the field's range, after ad
 sensor noise (white, per reply: a simplification — real navigation errors are correlated over
 seconds; the quantisation dominates at these resolutions anyway). Optional register staleness:
 ``refresh_s`` > 0 holds each register at the value of the last onboard refresh (a per-aircraft
-random phase), as a register updated every ~1 s read by a faster interrogator.
+phase, a golden-ratio fraction of its identity), as a register updated every ~1 s read by a faster
+interrogator.
 
 Roll angle is that of a coordinated turn (tan γ = V_h χ̇ / g: the simulator flies coordinated
 turns); the track-angle rate χ̇ and the accelerations come from the trajectory's velocity by a
@@ -144,10 +145,12 @@ def ehs_parameters(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, rng: n
     aircraft = np.asarray(aircraft, np.int64)
     t = np.asarray(t, float)
     if cfg.refresh_s > 0:
-        # each aircraft's own refresh phase, keyed by its identity (not its row in ``traj``, which
-        # depends on the window a streamed simulation looks up): golden-ratio fractions
+        # each aircraft's own refresh phase on the absolute clock, keyed by its identity (not its
+        # row in ``traj`` nor ``traj``'s epoch, which depend on the window a streamed simulation
+        # looks up): golden-ratio fractions
         phase = cfg.refresh_s * np.mod((np.asarray(traj.truth_id, np.float64)[aircraft] + 1.0) * GOLDEN, 1.0)
-        t = np.maximum(np.floor((t - phase) / cfg.refresh_s) * cfg.refresh_s + phase, 0.0)
+        base = np.mod(traj.epoch.timestamp(), cfg.refresh_s)
+        t = np.maximum(np.floor((t + base - phase) / cfg.refresh_s) * cfg.refresh_s + phase - base, 0.0)
     truth, ok = ehs_truth(traj, aircraft, t)
     out = {c: quantise(truth[c] + getattr(cfg, c) * rng.standard_normal(t.shape), c) for c in EHS_COLUMNS}
     return out, ok

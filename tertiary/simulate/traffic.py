@@ -1,8 +1,10 @@
 """Truth trajectory generators: the seed's big box (§4.2.1) and terminal-area traffic.
 
-All generators build piecewise-constant command arrays (speed, turn rate, vertical rate) of
-shape (aircraft, steps) without per-aircraft Python loops and integrate them exactly with
-:func:`tertiary.simulate.trajectory.integrate_commands`.
+Routes are flown as piecewise-constant command arrays (speed, turn rate, vertical rate)
+integrated exactly with :func:`tertiary.simulate.trajectory.integrate_commands`. Terminal-area
+and national traffic fly each route once as a template; an aircraft's truth is that template
+looked up from its entry time (:meth:`TerminalTraffic.window`, :meth:`NationalTraffic.window`),
+so a stretch of time is built without integrating or holding the whole scenario.
 
 Terminal area (DESIGN §5, issue 11 item 6) — traffic that flies procedures
 --------------------------------------------------------------------------
