@@ -46,6 +46,7 @@ from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_each
 from tertiary.filters import REGISTRY
+from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
@@ -277,6 +278,9 @@ class PipelineConfig:
     #: sets. Without filters, "tracks" falls back to "fused" (with a note).
     safety_picture: Literal["tracks", "fused"] = "tracks"
     conflicts: ConflictConfig = field(default_factory=_default_conflict_config)
+    #: departure correlation by aerodrome and time (tertiary.flight_data, "Departure correlation"):
+    #: a departing track whose code correlates with no plan gets its plan's cleared level
+    departures: DepartureConfig = field(default_factory=DepartureConfig)
     #: STCA final-approach volumes (safety.conflicts.ApproachVolume) from the scenario's runways
     #: (terminal-area, national) when ``conflicts`` configures none: the pairs established on
     #: one final are decided with the reduced in-trail minimum and a shorter look-ahead
@@ -464,6 +468,7 @@ class RunContext:
     filters: dict = field(default_factory=dict)   # the tracker's filters, built once per run
     median: Any = None          # the whole input's median report time (windows are validated against it)
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # valid rows (tertiary.flight_data)
+    departure_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # flight_data.departure_plans
 
 
 @dataclass(frozen=True)
@@ -480,6 +485,7 @@ class StreamState:
     identity: pl.DataFrame          # last Mode S address per (run, filter, method, track_id)
     recent: pl.DataFrame            # validated reports still needed by a later window (plots)
     counts: dict = field(default_factory=dict)
+    departures: Any = None          # tertiary.flight_data.DepartureState (None: initial)
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -498,7 +504,7 @@ def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportS
     plans, rej_f = _flight_plans(ds, cfg, notes)
     rejects = pl.concat([r for r in (rej_r, rej_f) if r.height] or [rej_r], how="vertical_relaxed")
     return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US), _filter_dict(cfg.filters),
-                      flight_plans=plans), rejects
+                      flight_plans=plans, departure_plans=departure_plans(plans, ds.origin)), rejects
 
 
 def _flight_plans(ds: Dataset, cfg: PipelineConfig, notes: list[str]) -> tuple[pl.DataFrame, pl.DataFrame]:
@@ -584,6 +590,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         if reports.height else 0
     (aligned, align_rej), s_align = align_stage.align_step(st.align, to_align, ctx.radars, ctx.origin, t0, t1, g0,
                                                            cfg.align)
+    s_dep = st.departures
+    if ctx.departure_plans.height:     # tracks uncorrelated by code, paired by aerodrome and time
+        codes = recent.select("run", "report_id", "mode_3a") if "mode_3a" in recent.columns else recent.clear()
+        aligned, s_dep = departure_step(s_dep or init_departure_state(), aligned, reports, codes,
+                                        ctx.departure_plans, cfg.departures)
     rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
     rejects = pl.concat([rejects, _stage_rejects(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
     clock.stage("associate")
@@ -621,7 +632,8 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
                          if recent.height else rows_in.clear())
     out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
-    return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts)
+    return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
+                            s_dep)
 
 
 def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:

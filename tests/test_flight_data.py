@@ -171,3 +171,154 @@ def test_a_wrongly_typed_flight_plan_column_is_named(column, values):
     plans = _plans([("1234", T0, T0 + MIN, 2000.0), ("1235", T0, T0 + MIN, 2000.0)])
     with pytest.raises(DataError, match=column):
         check_flight_plans(plans.with_columns(pl.Series(column, values)))
+
+
+# ----------------------------------------------------------------- departure correlation
+from tertiary import geo  # noqa: E402
+from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state  # noqa: E402
+
+FRAME = geo.LocalFrame(48.85, 2.35)
+S = timedelta(seconds=1)
+
+
+def _dep_plans(rows) -> pl.DataFrame:
+    """(code, ATD or None, valid_from, valid_to, level) → valid plans; a departure names the
+    aerodrome at the frame's origin."""
+    plans = pl.DataFrame(
+        [(c, f, t, lvl, 48.85 if atd else None, 2.35 if atd else None, atd) for c, atd, f, t, lvl in rows],
+        schema={"mode_3a": pl.String, "valid_from": pl.Datetime("us", "UTC"), "valid_to": pl.Datetime("us", "UTC"),
+                "cleared_alt_m": pl.Float64, "departure_lat_deg": pl.Float64, "departure_lon_deg": pl.Float64,
+                "departure_time": pl.Datetime("us", "UTC")}, orient="row")
+    good, rej = check_flight_plans(plans)
+    assert rej.height == 0
+    return good
+
+
+def _track(radar: int, lt: int, code, t0: timedelta, n: int, x0: float, h0: float, dt: float = 5.0,
+           climb: float = 10.0) -> list[tuple]:
+    """A radar local track: n plots every dt s from t0, flying west from x0 and climbing."""
+    return [(radar, lt, code, T0 + t0 + i * dt * S, x0 - 90.0 * dt * i, 0.0, h0 + climb * dt * i) for i in range(n)]
+
+
+def _aligned(plots: list[tuple], plans: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(aligned rows with their code correlation, the reports they come from)."""
+    rep = pl.DataFrame(plots, schema={"radar_id": pl.UInt32, "local_track_id": pl.UInt32, "mode_3a": pl.String,
+                                      "time": pl.Datetime("us", "UTC"), "x_m": pl.Float64, "y_m": pl.Float64,
+                                      "altitude_m": pl.Float64}, orient="row").sort("time")
+    rep = rep.with_columns(pl.lit(0, pl.UInt32).alias("run"),
+                           pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id"))
+    rep = correlate(rep, plans)
+    return rep.with_columns(pl.col("time").alias("epoch")), rep
+
+
+def _run(plots, plans, cuts=(), cfg=DepartureConfig()) -> pl.DataFrame:
+    """cleared_alt_m of every aligned row after departure correlation, in windows cut at ``cuts``."""
+    aligned, reports = _aligned(plots, plans)
+    dep = departure_plans(plans, FRAME)
+    edges = [T0 - MIN, *(T0 + c for c in cuts), T0 + 10_000 * MIN]
+    state, out = init_departure_state(), []
+    for a, b in zip(edges[:-1], edges[1:]):
+        win = aligned.filter((pl.col("time") >= a) & (pl.col("time") < b))
+        rep = reports.filter((pl.col("time") >= a) & (pl.col("time") < b))
+        got, state = departure_step(state, win, rep, reports.select("run", "report_id", "mode_3a"), dep, cfg)
+        assert got.drop("cleared_alt_m").equals(win.drop("cleared_alt_m"))       # rows and order kept
+        out.append(got)
+    return pl.concat(out).sort("report_id")
+
+
+def test_a_departure_squawking_a_wrong_code_gets_its_plan_by_aerodrome_and_time():
+    plans = _dep_plans([("1111", T0, T0, T0 + 30 * MIN, 2140.0),              # A's plan, never replied
+                        ("2222", T0 + 5 * MIN, T0 + 5 * MIN, T0 + 30 * MIN, 2440.0),   # B's, replied by B
+                        ("3333", None, T0, T0 + 30 * MIN, 9000.0)])            # an overflight's
+    plots = (_track(1, 10, "5555", 40 * S, 30, 3000.0, 200.0)                 # A: wrong code, near, low, soon
+             + _track(2, 7, "5555", 45 * S, 30, 2500.0, 250.0)                # A seen by a second radar
+             + _track(1, 11, "2222", 330 * S, 10, 3000.0, 200.0)              # B: its own code
+             + _track(2, 8, "6666", 350 * S, 10, 3000.0, 200.0)               # C: wrong code, only B's plan near
+             + _track(3, 1, "5555", 30 * S, 5, 40_000.0, 200.0)               # D: far from the aerodrome
+             + _track(4, 1, "4444", 30 * S, 5, 3000.0, 3000.0)                # E: near but high
+             + _track(1, 10, "5555", 20 * MIN, 5, 3000.0, 200.0)              # A's number reused much later
+             + _track(3, 2, "3333", 40 * S, 5, 3000.0, 9000.0))               # the overflight, by code
+    out = _run(plots, plans)
+    lvl = {k: out.filter((pl.col("radar_id") == k[0]) & (pl.col("local_track_id") == k[1])
+                         & (pl.col("time") < T0 + 15 * MIN if k == (1, 10) else True))["cleared_alt_m"].to_list()
+           for k in [(1, 10), (2, 7), (1, 11), (2, 8), (3, 1), (4, 1), (3, 2)]}
+    assert lvl[(1, 10)] == [2140.0] * 30 and lvl[(2, 7)] == [2140.0] * 30       # paired, on every radar
+    assert lvl[(1, 11)] == [2440.0] * 10 and lvl[(3, 2)] == [9000.0] * 5        # by code, untouched
+    assert lvl[(2, 8)] == [None] * 10          # B's plan was replied before C appeared; A's ATD is too old
+    assert lvl[(3, 1)] == [None] * 5 and lvl[(4, 1)] == [None] * 5
+    reused = out.filter((pl.col("local_track_id") == 10) & (pl.col("time") >= T0 + 15 * MIN))["cleared_alt_m"]
+    assert reused.is_null().all()              # a new track under a reused number inherits nothing
+    # the same answer whatever the windows, even cutting through the tracks' first plots
+    for cuts in [(41 * S,), (2 * MIN, 5 * MIN + 40 * S), tuple(k * 20 * S for k in range(1, 70))]:
+        assert _run(plots, plans, cuts)["cleared_alt_m"].to_list() == out["cleared_alt_m"].to_list()
+    assert _run(plots, plans, cfg=DepartureConfig(enabled=False))["cleared_alt_m"].to_list() == \
+        correlate(_aligned(plots, plans)[1], plans).sort("report_id")["cleared_alt_m"].to_list()
+
+
+def test_an_ambiguous_departure_is_not_correlated():
+    """Two unreplied departure plans whose ATDs fit the track: no correlation; a plan a radar's
+    earlier track took is not given to its second track, but another radar may take it."""
+    two = _dep_plans([("1111", T0, T0, T0 + 30 * MIN, 2140.0), ("1112", T0 + MIN, T0 + MIN, T0 + 30 * MIN, 2440.0)])
+    plots = _track(1, 10, "5555", 90 * S, 5, 3000.0, 200.0)
+    assert _run(plots, two)["cleared_alt_m"].is_null().all()
+    one = _dep_plans([("1111", T0, T0, T0 + 30 * MIN, 2140.0)])
+    plots = (_track(1, 10, "5555", 40 * S, 5, 3000.0, 200.0) + _track(1, 12, "5556", 60 * S, 5, 3000.0, 200.0)
+             + _track(2, 3, "5556", 65 * S, 5, 3000.0, 200.0))
+    out = _run(plots, one)
+    by = out.group_by("radar_id", "local_track_id").agg(pl.col("cleared_alt_m").first()).sort("radar_id",
+                                                                                              "local_track_id")
+    assert by["cleared_alt_m"].to_list() == [2140.0, None, 2140.0]
+
+
+def test_departure_columns_are_validated():
+    plans = pl.DataFrame({"mode_3a": ["1234"] * 4, "valid_from": [T0] * 4, "valid_to": [T0 + MIN] * 4,
+                          "cleared_alt_m": [2000.0] * 4, "departure_lat_deg": [48.8, None, 95.0, 48.8],
+                          "departure_lon_deg": [2.3, 2.3, 2.3, 2.3],
+                          "departure_time": [T0, T0, T0, T0 + 2 * MIN]}).with_columns(
+        pl.col("valid_from", "valid_to", "departure_time").cast(pl.Datetime("us", "UTC")))
+    good, rej = check_flight_plans(plans)
+    assert good.height == 1 and rej["row_index"].to_list() == [1, 2, 3]
+    assert "all three or none" in rej["reason"][0] and "globe" in rej["reason"][1]
+    assert rej["reason"][2] == "departure_time: after valid_to"
+    assert '"departure_lat_deg"' in rej["detail"][0]                # the row as given, nothing lost
+
+
+def test_simulated_departure_plans_name_the_aerodrome_and_the_atd_to_the_minute(small_terminal):
+    ds = small_terminal
+    truth = (ds.truth.sort("time").group_by("truth_id").agg(pl.col("callsign").first(), pl.col("role").first(),
+                                                            pl.col("time").first().alias("first"))
+             .join(ds.flight_plans.sort("valid_from").group_by("callsign", maintain_order=True).first(),
+                   on="callsign"))
+    dep = truth.filter(pl.col("role") == "departure")
+    assert dep.height and truth.filter(pl.col("role") != "departure")["departure_time"].is_null().all()
+    assert (dep["departure_lat_deg"] == ds.origin.lat_deg).all() and (dep["departure_lon_deg"] == ds.origin.lon_deg).all()
+    # lift-off inside the scenario: the ATD is its minute; airborne at the start: an earlier minute
+    lifted = dep.filter(pl.col("first") > ds.truth["time"].min())
+    assert lifted.height
+    assert (lifted["departure_time"] == lifted["first"].dt.truncate("1m")).all()
+    assert (dep["departure_time"].dt.second() == 0).all() and (dep["departure_time"] <= dep["first"]).all()
+
+
+def test_run_pairs_a_wrongly_squawking_departure_with_its_plan(small_terminal):
+    """A departure whose crew squawks a code no plan holds: by code it has no cleared level; the
+    run pairs it with its plan by aerodrome and time, so its tracks carry the SID top."""
+    import dataclasses
+    from tertiary.pipeline import PipelineConfig, process
+    ds = small_terminal
+    first = ds.truth.sort("time").group_by("truth_id").agg(pl.col("role").first(), pl.col("time").first())
+    lifted = first.filter((pl.col("role") == "departure") & (pl.col("time") > ds.truth["time"].min()))
+    victim = int(lifted.sort("time")["truth_id"][0])
+    used = set(ds.flight_plans["mode_3a"].to_list())
+    wrong = next(f"{v:04o}" for v in range(0o1000, 0o7777) if f"{v:04o}" not in used)
+    reports = ds.reports.with_columns(pl.when(pl.col("truth_id") == victim).then(pl.lit(wrong))
+                                      .otherwise(pl.col("mode_3a")).alias("mode_3a"))
+    bad = dataclasses.replace(ds, reports=reports)
+    cfg = PipelineConfig(methods=("information",), filters=(), evaluation=False, safety=False, centralized=False)
+    sid_top = flight_level_m(SID_TOP_FL, 1.0)
+
+    def levels(c):
+        aligned = process(bad, c).aligned.filter(pl.col("truth_id") == victim)
+        return aligned["cleared_alt_m"]
+    paired = levels(cfg)
+    assert paired.is_not_null().mean() > 0.9 and (paired.drop_nulls() == sid_top).all()
+    assert levels(dataclasses.replace(cfg, departures=DepartureConfig(enabled=False))).is_null().all()

@@ -208,8 +208,11 @@ def flight_plans(traffic: TerminalTraffic, tx: Transponders) -> pl.DataFrame:
     assigned it and its cleared level, valid over its time in the scenario — two rows when ATC
     changed its code (the transponder's ``t_change``: the flight data follow the instruction).
     The assigned code is the traffic's squawk, not what the transponder replies: a crew squawking
-    another aircraft's code (``duplicate_code_fraction``) is not correlated, as in reality. Known
-    from the schedule before the aircraft fly (filed plans). Never the truth id."""
+    another aircraft's code (``duplicate_code_fraction``) is not correlated by code, as in reality.
+    A departure's plan also names its aerodrome and its ATD to the minute (the tower's departure
+    message), with which :func:`tertiary.flight_data.departure_step` pairs a departure that
+    squawks the wrong code. Known from the schedule before the aircraft fly (filed plans) and
+    the tower's message. Never the truth id."""
     cleared = traffic.cleared_alt_m
     squawk = _octal(np.asarray(traffic.meta["squawk"], dtype=str))
     assigned = np.where(squawk >= 0, squawk, tx.code_a)
@@ -223,9 +226,23 @@ def flight_plans(traffic: TerminalTraffic, tx: Transponders) -> pl.DataFrame:
     t_to = np.concatenate([np.where(change[ok], tx.t_change[ok], last[ok]), last[change]])
     epoch_us = int(traffic.epoch.timestamp() * 1_000_000)
     when = lambda t: pl.Series(np.round(t * 1e6).astype(np.int64) + epoch_us).cast(pl.Datetime("us", "UTC"))  # noqa: E731
+    # a departure's plan names its aerodrome (the runway's midpoint, the system origin) and its
+    # ATD as the tower's departure message gives it: lift-off floored to the minute (HHMM).
+    # Only the plan row holding the code it took off with carries them.
+    departs = (np.asarray(traffic.meta["role"]) == "departure")[a] & (np.arange(len(a)) < int(ok.sum()))
+    frame = traffic.frame or geo.LocalFrame(0.0, 0.0)
+    m = len(traffic.route)         # procedural aircraft first; a departure airborne at the start lifted off before it
+    lift_s = np.where(a < m, traffic.entry[np.minimum(a, max(m - 1, 0))] * traffic.dt if m else 0.0, t_from)
+    atd_us = (np.round(lift_s * 1e6).astype(np.int64) + epoch_us) // 60_000_000 * 60_000_000
+    atd = pl.Series(np.where(departs, atd_us, 0)).cast(pl.Datetime("us", "UTC"))
     return pl.DataFrame({"mode_3a": [f"{v:04o}" for v in code], "callsign": np.asarray(traffic.meta["callsign"])[a],
                          "valid_from": when(t_from), "valid_to": when(t_to),
-                         "cleared_alt_m": np.asarray(cleared, float)[a]}).sort("valid_from", "mode_3a")
+                         "cleared_alt_m": np.asarray(cleared, float)[a],
+                         "departure_lat_deg": np.where(departs, frame.lat_deg, np.nan),
+                         "departure_lon_deg": np.where(departs, frame.lon_deg, np.nan),
+                         "departure_time": atd}).with_columns(
+        pl.col("departure_lat_deg", "departure_lon_deg").fill_nan(None),
+        pl.when(pl.Series(departs)).then(pl.col("departure_time"))).sort("valid_from", "mode_3a")
 
 
 def _dataset_dir(out_dir: str | Path) -> Path:
