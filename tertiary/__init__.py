@@ -58,6 +58,7 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "match_to_reference", "MatchConfig", "load_requirements", "check_requirements", "ALL_METHODS",
            "CollectionConfig", "collect", "IndicatorConfig", "bayes_threshold",
            "conversion_valid", "make_range_channel", "check_flight_plans", "correlate_flight_plans",
+           "DepartureConfig", "correlate_departures",
            "adapt_to_scenario",
            # the windowed engine: every streamed stage is a step (state, window) -> (outputs, state)
            "AlignState", "align_step", "init_align_state", "AssociateState", "AssociationStats", "associate_step",
@@ -75,4 +76,6 @@ from tertiary.align import conversion_valid  # noqa: E402
 from tertiary.filters import make_range_channel  # noqa: E402
 from tertiary.flight_data import check_flight_plans  # noqa: E402
 from tertiary.flight_data import correlate as correlate_flight_plans  # noqa: E402
+from tertiary.flight_data import DepartureConfig  # noqa: E402
+from tertiary.flight_data import departure_step as correlate_departures  # noqa: E402
 from tertiary.pipeline import adapt_to_scenario  # noqa: E402
