@@ -591,8 +591,8 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     (aligned, align_rej), s_align = align_stage.align_step(st.align, to_align, ctx.radars, ctx.origin, t0, t1, g0,
                                                            cfg.align)
     s_dep = st.departures
-    if ctx.departure_plans.height:     # tracks uncorrelated by code, paired by aerodrome and time
-        codes = recent.select("run", "report_id", "mode_3a") if "mode_3a" in recent.columns else recent.clear()
+    if ctx.departure_plans.height and "mode_3a" in recent.columns:   # uncorrelated by code: by aerodrome and time
+        codes = recent.select("run", "report_id", "mode_3a")
         aligned, s_dep = departure_step(s_dep or init_departure_state(), aligned, reports, codes,
                                         ctx.departure_plans, cfg.departures)
     rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])

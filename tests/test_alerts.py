@@ -396,7 +396,7 @@ def test_los_intervals_match_dense_sampling_on_irregular_truth():
             rows += [{"run": run, "truth_id": tid, "time": _t(s), "x_m": a, "y_m": b, "z_m": c, "vx_mps": 0.0,
                       "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": c} for s, a, b, c in zip(t, x, y, h)]
     tr = pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")), pl.col("run").cast(pl.UInt32))
-    cfg = AlertConfig(conflict=ConflictConfig(dr_h_m=2500.0, dr_v_m=300.0))
+    cfg = AlertConfig(conflict=ConflictConfig(dr_h_m=2500.0, dr_v_m=300.0), level_pairs=False, merge_gap_s=0.0)
     got = loss_of_separation(tr, cfg)
     # reference: dense sampling of each aircraft's own linear interpolation
     dt = 0.005
@@ -430,3 +430,54 @@ def test_no_alerts_still_scores_missed_losses(truth):
     assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alert_episodes"] == 0
     assert m["alerts_per_hour"] == 0.0 and math.isnan(m["warning_median_s"])
     assert alert_episodes(empty, _id_map(), truth, CFG, methods=["m"]).schema == pl.Schema(ALERTS_SCHEMA)
+
+
+def _two(h_a, h_b, rate_a=None, rate_b=None, x_b=None, step=1.0) -> pl.DataFrame:
+    """Two aircraft sampled every ``step`` s: A at x = 0, B at ``x_b`` (default 1 km away), with
+    the given height series and (optional) reported vertical rates."""
+    n = len(h_a)
+    x_b = np.full(n, 1000.0) if x_b is None else np.asarray(x_b, float)
+    rows = []
+    for tid, x, h, r in ((1, np.zeros(n), h_a, rate_a), (2, x_b, h_b, rate_b)):
+        for k in range(n):
+            row = {"truth_id": tid, "time": _t(k * step), "x_m": float(x[k]), "y_m": 0.0, "z_m": float(h[k]),
+                   "vx_mps": 0.0, "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": float(h[k])}
+            if r is not None:
+                row["alt_rate_mps"] = float(r[k])
+            rows.append(row)
+    return pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def test_level_pairs_the_vertical_minimum_apart_are_separated_in_the_truth():
+    """Adjacent levels 1 000 ft apart reported with a 25 ft quantum (975 ft now and then) are no
+    loss when both aircraft are level; a bust levelling 150 ft under the other is; a climb through
+    the other's level is, with the full minimum; without the aircraft's own rates the slope of
+    the quantised altitude decides (the flips then count); the option off restores the plain rule."""
+    ft = 0.3048
+    n = 120
+    flips = np.where(np.arange(n) % 10 == 5, 1000.0 - 25.0, 1000.0) * ft     # B flips 25 ft down every 10 s
+    level = _two(np.full(n, 3000.0 * ft), 3000.0 * ft + flips, np.zeros(n), np.zeros(n))
+    assert loss_of_separation(level).height == 0
+    # the plain rule: exactly 1 000 ft is on the closed bound, 975 ft inside: a "loss" all along
+    plain = loss_of_separation(level, AlertConfig(level_pairs=False))
+    assert plain.height == 1 and (plain["t_end"][0] - plain["t_start"][0]).total_seconds() == pytest.approx(n - 1)
+    no_rate = _two(np.full(n, 3000.0 * ft), 3000.0 * ft + flips)
+    assert loss_of_separation(no_rate).height >= 1
+    bust = _two(np.full(n, 3000.0 * ft), np.full(n, 3150.0 * ft), np.zeros(n), np.zeros(n))
+    assert loss_of_separation(bust).height == 1
+    climb_h = 2000.0 * ft + 5.0 * np.arange(n)                                # 5 m/s through B's level
+    climb = _two(climb_h, np.full(n, 2500.0 * ft), np.full(n, 5.0), np.zeros(n))
+    got = loss_of_separation(climb)
+    # the full minimum: |Δh| < 1 000 ft until h_a = 3 500 ft, t = (3 500 − 2 000) ft / 5 m/s = 91.44 s
+    assert got.height == 1 and (got["t_end"][0] - T0).total_seconds() == pytest.approx(1500.0 * ft / 5.0, abs=1e-3)
+
+
+def test_loss_intervals_a_few_seconds_apart_are_one_episode():
+    """A pair that regains separation for 5 s in one encounter loses it once; 40 s apart, twice."""
+    n = 200
+    x = np.full(n, 1000.0)
+    x[50:55] = 9000.0                    # 5 s apart horizontally beyond the minimum
+    x[100:140] = 9000.0                  # 40 s
+    tr = _two(np.full(n, 1000.0), np.full(n, 1000.0), np.zeros(n), np.zeros(n), x_b=x)
+    assert loss_of_separation(tr).height == 2
+    assert loss_of_separation(tr, AlertConfig(merge_gap_s=0.0)).height == 3
