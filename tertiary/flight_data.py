@@ -174,6 +174,12 @@ class DepartureConfig:
     max_gap_s: float = 60.0
     enabled: bool = True
 
+    def __post_init__(self) -> None:
+        for name in ("radius_m", "max_alt_m", "window_s", "max_gap_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and np.isfinite(v) and v > 0):
+                raise ValueError(f"DepartureConfig.{name} must be a finite number > 0, got {v!r}")
+
 
 _KEY = ["run", "radar_id", "local_track_id"]
 _NEVER = np.iinfo(np.int64).max

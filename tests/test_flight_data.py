@@ -270,6 +270,14 @@ def test_an_ambiguous_departure_is_not_correlated():
     assert by["cleared_alt_m"].to_list() == [2140.0, None, 2140.0]
 
 
+@pytest.mark.parametrize("field", ["radius_m", "max_alt_m", "window_s", "max_gap_s"])
+def test_departure_config_is_checked(field):
+    with pytest.raises(ValueError, match=field):
+        DepartureConfig(**{field: float("nan")})
+    with pytest.raises(ValueError, match=field):
+        DepartureConfig(**{field: -1.0})
+
+
 def test_departure_columns_are_validated():
     plans = pl.DataFrame({"mode_3a": ["1234"] * 4, "valid_from": [T0] * 4, "valid_to": [T0 + MIN] * 4,
                           "cleared_alt_m": [2000.0] * 4, "departure_lat_deg": [48.8, None, 95.0, 48.8],
