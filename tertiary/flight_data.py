@@ -252,12 +252,13 @@ def departure_step(state: DepartureState, aligned: pl.DataFrame, reports: pl.Dat
     if not cfg.enabled or dep.height == 0 or aligned.height == 0 or "local_track_id" not in aligned.columns:
         return aligned, state
     replied = _replied(reports, dep, state.replied_us)
-    rows = (aligned.select(*_KEY, "report_id", pl.col("time").dt.epoch("us").alias("__t"), "epoch", "x_m", "y_m",
+    rows = (aligned.select(*(pl.col(k).cast(_TRACKS[k]) for k in _KEY), "report_id",
+                           pl.col("time").dt.epoch("us").alias("__t"), "epoch", "x_m", "y_m",
                            pl.col("altitude_m") if "altitude_m" in aligned.columns else pl.lit(None, pl.Float64)
                            .alias("altitude_m"), CLEARED_ALT_COLUMN)
             .with_row_index("__i")
-            .join(codes.select("run", "report_id", pl.col("mode_3a").cast(pl.String)), on=["run", "report_id"],
-                  how="left")
+            .join(codes.select(pl.col("run").cast(_TRACKS["run"]), "report_id", pl.col("mode_3a").cast(pl.String)),
+                  on=["run", "report_id"], how="left")
             .join(state.tracks, on=_KEY, how="left")
             .sort(*_KEY, "__t", "epoch", "__i"))
     prev_t = pl.col("__t").shift(1).over(_KEY)
@@ -270,7 +271,8 @@ def departure_step(state: DepartureState, aligned: pl.DataFrame, reports: pl.Dat
     rows = rows.with_columns(pl.when(carried).then(pl.col("__decided")).otherwise(False).alias("__decided"),
                              pl.when(carried).then(pl.col("__plan")).otherwise(None).alias("__plan"))
     seg = [*_KEY, "__seg"]
-    coded = pl.col("mode_3a").is_not_null() & pl.col("altitude_m").is_not_null()
+    # a plot without a local track number belongs to no track: it never decides
+    coded = pl.col("mode_3a").is_not_null() & pl.col("altitude_m").is_not_null() & pl.col("local_track_id").is_not_null()
     first = (rows.filter(~pl.col("__decided") & coded).group_by(seg).agg(pl.all().sort_by("__t", "epoch", "__i")
                                                                             .first()))
     cand = first.filter(pl.col(CLEARED_ALT_COLUMN).is_null())
@@ -285,7 +287,7 @@ def departure_step(state: DepartureState, aligned: pl.DataFrame, reports: pl.Dat
             .with_columns(pl.when(pl.col("__t") <= pl.col("__to")).then(pl.col("__level")).alias("__level")))
     fill = rows.select("__i", "__level").sort("__i")["__level"]
     out = aligned.with_columns(pl.col(CLEARED_ALT_COLUMN).fill_null(fill))
-    last = rows.group_by(_KEY).agg(pl.col("__t").max().alias("__last"),
+    last = rows.drop_nulls(_KEY).group_by(_KEY).agg(pl.col("__t").max().alias("__last"),
                                    pl.col("__decided").sort_by("__t", "epoch", "__i").last(),
                                    pl.col("__plan").sort_by("__t", "epoch", "__i").last())
     t_max = int(rows["__t"].max())

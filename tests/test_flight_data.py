@@ -237,7 +237,8 @@ def test_a_departure_squawking_a_wrong_code_gets_its_plan_by_aerodrome_and_time(
              + _track(3, 1, "5555", 30 * S, 5, 40_000.0, 200.0)               # D: far from the aerodrome
              + _track(4, 1, "4444", 30 * S, 5, 3000.0, 3000.0)                # E: near but high
              + _track(1, 10, "5555", 20 * MIN, 5, 3000.0, 200.0)              # A's number reused much later
-             + _track(3, 2, "3333", 40 * S, 5, 3000.0, 9000.0))               # the overflight, by code
+             + _track(3, 2, "3333", 40 * S, 5, 3000.0, 9000.0)                # the overflight, by code
+             + _track(4, None, "5555", 40 * S, 5, 3000.0, 200.0))             # plots without a track number
     out = _run(plots, plans)
     lvl = {k: out.filter((pl.col("radar_id") == k[0]) & (pl.col("local_track_id") == k[1])
                          & (pl.col("time") < T0 + 15 * MIN if k == (1, 10) else True))["cleared_alt_m"].to_list()
@@ -246,6 +247,7 @@ def test_a_departure_squawking_a_wrong_code_gets_its_plan_by_aerodrome_and_time(
     assert lvl[(1, 11)] == [2440.0] * 10 and lvl[(3, 2)] == [9000.0] * 5        # by code, untouched
     assert lvl[(2, 8)] == [None] * 10          # B's plan was replied before C appeared; A's ATD is too old
     assert lvl[(3, 1)] == [None] * 5 and lvl[(4, 1)] == [None] * 5
+    assert out.filter(pl.col("local_track_id").is_null())["cleared_alt_m"].is_null().all()
     reused = out.filter((pl.col("local_track_id") == 10) & (pl.col("time") >= T0 + 15 * MIN))["cleared_alt_m"]
     assert reused.is_null().all()              # a new track under a reused number inherits nothing
     # the same answer whatever the windows, even cutting through the tracks' first plots
