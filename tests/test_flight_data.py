@@ -238,7 +238,7 @@ def test_a_departure_squawking_a_wrong_code_gets_its_plan_by_aerodrome_and_time(
              + _track(4, 1, "4444", 30 * S, 5, 3000.0, 3000.0)                # E: near but high
              + _track(1, 10, "5555", 20 * MIN, 5, 3000.0, 200.0)              # A's number reused much later
              + _track(3, 2, "3333", 40 * S, 5, 3000.0, 9000.0)                # the overflight, by code
-             + _track(4, None, "5555", 40 * S, 5, 3000.0, 200.0))             # plots without a track number
+             + _track(2, None, "5555", 35 * S, 5, 3000.0, 200.0))             # plots without a track number, first
     out = _run(plots, plans)
     lvl = {k: out.filter((pl.col("radar_id") == k[0]) & (pl.col("local_track_id") == k[1])
                          & (pl.col("time") < T0 + 15 * MIN if k == (1, 10) else True))["cleared_alt_m"].to_list()
