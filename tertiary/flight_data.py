@@ -19,8 +19,8 @@ flight and cleared level:
   it to the minute: ICAO DEP field 13, HHMM).
 
 A row with a missing or malformed code, a level outside the altitude band, a missing or
-reversed validity interval, a departure given in part, off the globe or after ``valid_to`` goes to ``rejects`` (input table ``flight_plans``) with its reason
-(:func:`check_flight_plans`).
+reversed validity interval, a departure given in part, off the globe or after ``valid_to`` goes
+to ``rejects`` (input table ``flight_plans``) with its reason (:func:`check_flight_plans`).
 
 Correlation (:func:`correlate`): a report gets the cleared level of the one flight plan that
 holds the code it replied with at its time. None, or more than one (a code assigned to two
@@ -40,7 +40,8 @@ per radar local track (``run``, ``radar_id``, ``local_track_id``; a gap longer t
 :attr:`DepartureConfig.max_gap_s` starts a new track, so a reused track number is never
 inherited):
 
-* the track's *first report with a code* decides, once: it must have no code correlation, lie
+* the track's *first report with a code and a Mode C altitude* decides, once (plots without a
+  local track number never do): it must have no code correlation, lie
   within ``radius_m`` of the plan's aerodrome and below ``max_alt_m``, at a time in
   [ATD, ATD + ``window_s``] (the ATD is floored to the minute and the first plots come a scan
   or two after lift-off);
@@ -51,7 +52,9 @@ inherited):
   (``cleared_alt_m`` is filled, never overwritten), until the track ends or the plan expires.
 
 The decision reads only reports up to the track's first coded report, so it is the same
-whatever the processing window (the step carries :class:`DepartureState` across windows).
+whatever the processing window (the step carries :class:`DepartureState` across windows). The
+Dask engine's time slices rebuild state in their warm-up only: a departure whose first plots lie
+before a slice's warm-up is not paired in that slice.
 """
 
 from __future__ import annotations
