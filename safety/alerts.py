@@ -22,8 +22,10 @@ intersection of two intervals, in closed form (:func:`safety.conflicts.conflict_
 sampling step. Segments are paired by a KD-tree on their mid points (box half-width = minimum
 + the segments' lengths), intervals of a pair that touch or are at most ``merge_gap_s`` apart
 (the alerts' gap, 15 s) are merged — separation regained for a second in the middle of one
-encounter is not a second loss: one **LoS episode** = (run, truth_a, truth_b, t_start, t_end). *Proximity* intervals are the same with both minima × the
-``proximity_factor`` (1.5).
+encounter is not a second loss: one **LoS episode** = (run, truth_a, truth_b, t_start,
+t_end). *Proximity* intervals are the same with both minima × the ``proximity_factor`` (1.5).
+The resampled grid is bounded before it is allocated (``max_grid_rows``,
+:class:`tertiary.errors.ResourceError`).
 
 Level pairs (``AlertConfig.level_pairs``, default on). Two aircraft in level flight at levels
 the vertical minimum apart are separated by their levels — the principle the prediction's
@@ -37,8 +39,7 @@ else the segment's slope) the vertical minimum is reduced by ``level_pair_tolera
 (100–250 ft under the occupied level) stays a loss; a pair where either aircraft climbs or
 descends keeps the full minimum. Measured on real traffic (``adsb-paris``, 2021-10-07): without
 it, pairs at adjacent levels on CDG's approaches made 36 of the 45 "loss" episodes, each a
-second or two long whenever one aircraft's altitude flipped by 25 ft. The resampled grid is bounded before it is allocated
-(``max_grid_rows``, :class:`tertiary.errors.ResourceError`).
+second or two long whenever one aircraft's altitude flipped by 25 ft.
 
 Alert episodes — :func:`alert_episodes` (the ``alerts`` table)
 -------------------------------------------------------------
@@ -380,10 +381,8 @@ def _both_level(rs: dict[str, NDArray], a: NDArray, b: NDArray, dt: NDArray, lev
         slope = np.abs(pos[s + 1, 2] - pos[s, 2]) / dt
         if hdot is None:
             return slope <= level_rate
-        r0, r1 = hdot[s], hdot[s + 1]
-        known = np.isfinite(r0) & np.isfinite(r1)
-        return np.where(known, np.maximum(np.abs(np.where(known, r0, 0.0)), np.abs(np.where(known, r1, 0.0)))
-                        <= level_rate, slope <= level_rate)
+        rate = np.maximum(np.abs(hdot[s]), np.abs(hdot[s + 1]))        # NaN where either end is unknown
+        return np.where(np.isfinite(rate), rate <= level_rate, slope <= level_rate)
     return level(a) & level(b)
 
 
@@ -405,7 +404,8 @@ def _merge(run, ta, tb, s_us, e_us, schema, gap_us: int = 0) -> pl.DataFrame:
     df = df.sort("run", "truth_a", "truth_b", "s")
     key = ["run", "truth_a", "truth_b"]
     prev_end = pl.col("e").cum_max().shift(1).over(key)
-    df = df.with_columns(((prev_end.is_null()) | (pl.col("s") > prev_end + max(gap_us, 1))).cum_sum().over(key).alias("__ep"))
+    new_ep = prev_end.is_null() | (pl.col("s") > prev_end + max(gap_us, 1))
+    df = df.with_columns(new_ep.cum_sum().over(key).alias("__ep"))
     out = df.group_by([*key, "__ep"]).agg(pl.col("s").min().alias("t_start_us"), pl.col("e").max().alias("t_end_us"))
     return out.drop("__ep").sort(key + ["t_start_us"]).cast(schema)
 

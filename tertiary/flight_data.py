@@ -134,7 +134,7 @@ def check_flight_plans(plans: pl.DataFrame, limits: Limits = Limits()) -> tuple[
     frame = frame.with_row_index("row_index").with_columns(_reason(limits).alias("reason"))
     bad = frame.filter(pl.col("reason").is_not_null())
     good = frame.filter(pl.col("reason").is_null()).drop("row_index", "reason")
-    given = [c for c in plans.columns if c in FLIGHT_PLANS_SCHEMA]
+    given = [c for c in FLIGHT_PLANS_SCHEMA if c in plans.columns]
     return good.select(list(FLIGHT_PLANS_SCHEMA)), rejects_table(bad.select("row_index", *given, "reason"),
                                                                  "flight_plans", "validate")
 

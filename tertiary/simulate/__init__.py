@@ -231,8 +231,10 @@ def flight_plans(traffic: TerminalTraffic, tx: Transponders) -> pl.DataFrame:
     # Only the plan row holding the code it took off with carries them.
     departs = (np.asarray(traffic.meta["role"]) == "departure")[a] & (np.arange(len(a)) < int(ok.sum()))
     frame = traffic.frame or geo.LocalFrame(0.0, 0.0)
-    m = len(traffic.route)         # procedural aircraft first; a departure airborne at the start lifted off before it
-    lift_s = np.where(a < m, traffic.entry[np.minimum(a, max(m - 1, 0))] * traffic.dt if m else 0.0, t_from)
+    # departures are procedural aircraft (numbered first): one airborne at the start lifted off before it
+    routed = a < len(traffic.route)
+    lift_s = t_from.copy()
+    lift_s[routed] = traffic.entry[a[routed]] * traffic.dt
     atd_us = (np.round(lift_s * 1e6).astype(np.int64) + epoch_us) // 60_000_000 * 60_000_000
     atd = pl.Series(np.where(departs, atd_us, 0)).cast(pl.Datetime("us", "UTC"))
     return pl.DataFrame({"mode_3a": [f"{v:04o}" for v in code], "callsign": np.asarray(traffic.meta["callsign"])[a],
