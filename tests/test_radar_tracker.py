@@ -9,7 +9,7 @@ import polars as pl
 import pytest
 
 from tertiary import pipeline
-from tertiary.simulate import RadarTrackerConfig, TransponderConfig, load_scenario, simulate
+from tertiary.simulate import RadarTrackerConfig, TransponderConfig, load_scenario, simulate, simulate_windows
 from tertiary.simulate import radar_tracker as rt
 
 
@@ -178,3 +178,95 @@ def test_association_quality_below_one_with_erring_radars_and_high_with_ideal_on
     assert erring["assoc_correct_frac"] < ideal["assoc_correct_frac"]
     assert erring["split_targets"] > ideal["split_targets"]
     assert {"swaps", "split_targets", "merged_targets"} <= set(erring)
+
+
+# --------------------------------------------------------------------------- compiled loop
+
+
+def _captured_scans(monkeypatch, cfg) -> list[tuple]:
+    """The arguments of every :func:`rt.run_scans` call of a simulation of ``cfg`` (run by the
+    Python reference, so each call's carried state is the reference's)."""
+    calls = []
+    reference = rt.run_scans
+
+    def spy(rcfg, scan_index, plots, scans_of_part, state=None, compiled=True):
+        calls.append((rcfg, scan_index, plots, scans_of_part, state))
+        return reference(rcfg, scan_index, plots, scans_of_part, state, compiled=False)
+    monkeypatch.setattr(rt, "run_scans", spy)
+    for _ in simulate_windows(cfg, 600.0)[2]:       # windows of 600 s: the state carried between them
+        pass
+    monkeypatch.setattr(rt, "run_scans", reference)
+    return calls
+
+
+def _assert_same_state(a: rt.RadarTrackState, b: rt.RadarTrackState) -> None:
+    for f in (*rt.TRACK_FIELDS, "held_part", "held_number", "held_scans"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.shape == y.shape, f
+        if x.dtype.kind == "f":
+            np.testing.assert_allclose(y, x, rtol=1e-9, atol=1e-9, err_msg=f)
+        else:
+            assert np.array_equal(x, y), f
+    assert a.next_life == b.next_life
+
+
+def test_compiled_scans_equal_the_python_reference(monkeypatch):
+    """The compiled scan loop (radar_scan_kernel) numbers every plot as the Python step does
+    and ends in the same state: terminal area in three 600 s blocks (state carried between
+    them), 2 runs × 4 radars = 8 partitions, a third of the transponders without Mode S (so
+    tracks swap, break and reuse numbers), numbers held 3 scans."""
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=1800.0, runs=2,
+                              traffic=dataclasses.replace(cfg.traffic, aircraft=50, conflict_pairs=3),
+                              transponders=TransponderConfig(mode_s_fraction=0.66, mode_3a_missing_rate=0.2),
+                              radar_tracker=RadarTrackerConfig(reuse_after_scans=3))
+    calls = _captured_scans(monkeypatch, cfg)
+    assert len(calls) == 3 and calls[1][4] is not None and sum(len(c[1]) for c in calls) > 5_000  # not vacuous
+    reused = 0
+    for rcfg, scan_index, plots, scans_of_part, state in calls:
+        want, want_state = rt.run_scans(rcfg, scan_index, plots, scans_of_part, state, compiled=False)
+        got, got_state = rt.run_scans(rcfg, scan_index, plots, scans_of_part, state, compiled=True)
+        assert np.array_equal(got, want)
+        _assert_same_state(want_state, got_state)
+        reused += len(want_state.held_part)
+    assert reused > 0
+
+
+def test_compiled_scans_resume_from_a_carried_state():
+    """Half the scans by the Python reference, the rest compiled from its state: the numbers
+    and the end state of one reference pass (the kernel takes a state it did not make)."""
+    k, t, z, _ = _crossing(np.random.default_rng(4), n_scans=60, angle_deg=8.0)
+    scans = _scans(z, t)
+    cfg = RadarTrackerConfig(reuse_after_scans=2)
+    whole, end = rt.run_scans(cfg, k, scans, np.array([60]), compiled=False)
+    first = k < 25
+
+    def sub(rows):
+        return rt.ScanPlots(**{f: getattr(scans, f)[rows] if f != "scanned" else scans.scanned
+                               for f in scans.__dataclass_fields__})
+    n1, mid = rt.run_scans(cfg, k[first], sub(first), np.array([25]), compiled=False)
+    n2, got = rt.run_scans(cfg, k[~first] - 25, sub(~first), np.array([35]), mid, compiled=True)
+    assert np.concatenate([n1, n2]).tolist() == whole.tolist()
+    _assert_same_state(end, got)
+
+
+def test_compiled_scans_with_empty_scans_and_partitions_that_stop():
+    """Scans without a plot still count misses; a partition with fewer scans stops missing
+    (``scans_of_part``); both paths agree, track for track."""
+    rng = np.random.default_rng(9)
+    k = np.repeat(np.arange(20), 2)
+    part = np.tile([0, 1], 20)
+    keep = ~np.isin(k, [5, 6, 7, 8]) & ~((part == 1) & (k >= 12))
+    z = np.column_stack([600.0 * k, 5_000.0 * part]) + rng.normal(0, 30.0, (len(k), 2))
+    n = int(keep.sum())
+    scans = rt.ScanPlots(part=part[keep].astype(np.int64), t=4.0 * k[keep], z=z[keep],
+                         r=np.broadcast_to(np.eye(2) * 900.0, (n, 2, 2)).copy(), mode_s=np.full(n, -1, np.int64),
+                         mode_3a=np.full(n, -1, np.int64), period=np.full(n, 4.0),
+                         drop_misses=np.full(n, 3, np.int64), scanned=np.zeros(0, np.int64))
+    for held in (0, 1, 5):
+        cfg = RadarTrackerConfig(reuse_after_scans=held)
+        want, ws = rt.run_scans(cfg, k[keep], scans, np.array([20, 12]), compiled=False)
+        got, gs = rt.run_scans(cfg, k[keep], scans, np.array([20, 12]), compiled=True)
+        assert np.array_equal(got, want)
+        _assert_same_state(ws, gs)
+    assert len(set(want[:, 1].tolist())) > 2                   # the gap broke the tracks: new lives

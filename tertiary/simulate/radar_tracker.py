@@ -30,7 +30,9 @@ scans later: numbers are reused).
 
 State is explicit (:class:`RadarTrackState`, arrays over the live tracks of every partition)
 and :func:`step` maps (state, one scan's plots) to (state, track number per plot); the loop
-over scans is outside (:func:`run_scans`), vectorised across tracks, radars and runs.
+over scans is outside (:func:`run_scans`), vectorised across tracks, radars and runs. The same
+loop compiled (:mod:`tertiary.simulate.radar_scan_kernel`, numba) is what :func:`run_scans`
+runs by default; :func:`step` stays the reference it is tested against.
 """
 
 from __future__ import annotations
@@ -354,12 +356,17 @@ def drop_misses(track_drop_scans: float) -> int:
 
 
 def run_scans(cfg: RadarTrackerConfig, scan_index: NDArray[np.int64], plots: ScanPlots,
-              scans_of_part: NDArray[np.int64], state: RadarTrackState | None = None
+              scans_of_part: NDArray[np.int64], state: RadarTrackState | None = None, compiled: bool = True
               ) -> tuple[NDArray[np.int64], RadarTrackState]:
     """:func:`step` over scans 0, 1, …: ``plots`` holds every scan's plots (``scan_index`` per
     plot, ``plots.scanned`` unused) and ``scans_of_part[p]`` is the number of scans of
     partition p (partitions with fewer scans drop out). Returns (track number, track life) per
-    plot, (n, 2), and the final state."""
+    plot, (n, 2), and the final state. ``compiled``: the loop compiled
+    (:mod:`tertiary.simulate.radar_scan_kernel`, the same model); False: :func:`step` in
+    Python, the reference."""
+    if compiled:
+        from tertiary.simulate.radar_scan_kernel import run_scans_compiled
+        return run_scans_compiled(cfg, scan_index, plots, scans_of_part, state)
     st = state if state is not None else init_state()
     order = np.argsort(scan_index, kind="stable")
     n_steps = int(scans_of_part.max(initial=0))
