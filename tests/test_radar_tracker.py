@@ -189,7 +189,7 @@ def _captured_scans(monkeypatch, cfg) -> list[tuple]:
     calls = []
     reference = rt.run_scans
 
-    def spy(rcfg, scan_index, plots, scans_of_part, state=None, compiled=True):
+    def spy(rcfg, scan_index, plots, scans_of_part, state=None, compiled=None, job_plots=None):
         calls.append((rcfg, scan_index, plots, scans_of_part, state))
         return reference(rcfg, scan_index, plots, scans_of_part, state, compiled=False)
     monkeypatch.setattr(rt, "run_scans", spy)
@@ -270,3 +270,20 @@ def test_compiled_scans_with_empty_scans_and_partitions_that_stop():
         assert np.array_equal(got, want)
         _assert_same_state(ws, gs)
     assert len(set(want[:, 1].tolist())) > 2                   # the gap broke the tracks: new lives
+
+
+def test_a_small_job_does_not_wait_for_the_compiler(monkeypatch):
+    """With the loop neither compiled nor cached, a job below ``COMPILE_PAYS_PLOTS`` runs the
+    Python reference (a fresh install's first simulation is not slowed by ~12 s of
+    compilation); a large job, or a ready loop, runs compiled."""
+    from tertiary.simulate import radar_scan_kernel as kern
+    k, t, z, _ = _crossing(np.random.default_rng(2))
+    scans = _scans(z, t)
+    used = []
+    real = kern.run_scans_compiled
+    monkeypatch.setattr(kern, "run_scans_compiled", lambda *a: used.append(True) or real(*a))
+    for ready, job, want in ((False, 1_000, False), (False, rt.COMPILE_PAYS_PLOTS, True), (True, 1_000, True)):
+        monkeypatch.setattr(kern, "is_ready", lambda ready=ready: ready)
+        used.clear()
+        rt.run_scans(RadarTrackerConfig(), k, scans, np.array([40]), job_plots=job)
+        assert bool(used) is want, (ready, job)

@@ -564,10 +564,11 @@ def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float,
     return out
 
 
-def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], state):
+def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], state, job_plots: int | None = None):
     """:func:`tertiary.simulate.radar.number_plots` for one window, carrying the association
     state (``state`` None: the first window). Sets each plot's track number and life in place.
-    Ideal radar trackers (``radar_tracker.ideal``, one window only) number from the truth."""
+    Ideal radar trackers (``radar_tracker.ideal``, one window only) number from the truth.
+    ``job_plots``: the whole simulation's plots (estimated), for the compiled loop's decision."""
     from tertiary.simulate import radar_tracker as rt
     from tertiary.simulate.radar import _merge_all, _numbered
     if cfg.radar_tracker.ideal:
@@ -585,7 +586,7 @@ def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], 
                         mode_s=allp.mode_s, mode_3a=allp.mode_3a, period=period[idx], drop_misses=drop[idx],
                         scanned=np.zeros(0, np.int64))
     numbers, state = rt.run_scans(cfg.radar_tracker, allp.scan, scan, np.repeat(np.array(n_scans, np.int64), cfg.runs),
-                                  state)
+                                  state, job_plots=job_plots)
     allp.local_track_id, allp.track_life = numbers[:, 0].astype(np.uint32), numbers[:, 1]
     return allp, idx, state
 
@@ -652,7 +653,9 @@ def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], pr
         plots = [_merge_plots([bl[i] for bl in blocks]) for i in range(len(cfg.radars))]
         n_scans = [len(scan_starts(r, t1 - t0)) for r in cfg.radars]
         say(f"radar plot-to-track window {w + 1}/{len(bounds)}")
-        allp, idx, state = _number_window(cfg, plots, n_scans, state)
+        # the job's plots, estimated from this window's, decide whether compiling the loop pays
+        job = sum(len(p) for p in plots) * (len(bounds) - w)
+        allp, idx, state = _number_window(cfg, plots, n_scans, state, job)
         parts = [_reports_frame(_take(allp, np.flatnonzero(idx == i)), i + 1, sched.ghost, sched.tx)
                  for i in range(len(cfg.radars))]
         frame = pl.concat(([carry] if carry is not None else []) + parts, how="vertical")
