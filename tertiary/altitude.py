@@ -319,12 +319,16 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
 
 def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                         cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None,
-                        init: FilterCarry | None = None
+                        init: FilterCarry | None = None, compiled: bool = True
                         ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
     """:func:`filter_tracks` continued from ``init`` (one entry per track, in ``starts`` order;
     :meth:`FilterCarry.fresh` entries for tracks never seen; ``t`` on the same time base as
     ``init.t_last``), also returning each track's state after its last row. Running a track's
-    replies in two calls, the second from the first's carry, gives the one-call results."""
+    replies in two calls, the second from the first's carry, gives the one-call results.
+    ``compiled``: the recursion compiled per track (:mod:`tertiary.altitude_kernel`, the same
+    equations); False: the loop below, vectorised over tracks per reply rank (the reference)."""
+    if compiled and len(starts) and np.min(lengths) >= 1:
+        return _filter_compiled(t, z, var, starts, lengths, cfg, ident, init)
     qs, sojourn = _models(cfg)
     nm = len(qs)
     n = len(t)
@@ -385,6 +389,30 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
     inv = np.empty_like(order)
     inv[order] = np.arange(len(order))
     return out, has, rejected, final.take(inv)
+
+
+def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
+                     cfg: AltitudeConfig, ident: NDArray[np.int64] | None, init: FilterCarry | None
+                     ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
+    """:func:`filter_tracks_carry` by :func:`tertiary.altitude_kernel._filter`."""
+    from tertiary.altitude_kernel import _filter
+    qs, sojourn = _models(cfg)
+    n, k = len(t), len(starts)
+    c0 = FilterCarry.fresh(k, cfg) if init is None else init
+    carry = FilterCarry(np.array(c0.models, np.float64), np.array(c0.mu, np.float64), np.array(c0.t_last, np.float64),
+                        np.array(c0.ok, bool), np.array(c0.conf, bool), np.array(c0.miss, np.int64),
+                        np.array(c0.last_id, np.int64), np.array(c0.post, np.float64), np.array(c0.has, bool))
+    out = np.full((5, n), np.nan)
+    has, rejected = np.zeros(n, bool), np.zeros(n, bool)
+    ids = np.full(n, -1, np.int64) if ident is None else np.ascontiguousarray(ident, np.int64)
+    f64 = lambda a: np.ascontiguousarray(a, np.float64)     # noqa: E731
+    weak = -1.0 if cfg.unconfirmed_sigma_m is None else float(cfg.unconfirmed_sigma_m) ** 2
+    _filter(f64(t), f64(z), f64(var), ids, np.ascontiguousarray(starts, np.int64),
+            np.ascontiguousarray(lengths, np.int64), np.array(qs, np.float64), np.array(sojourn, np.float64),
+            float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
+            carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id, carry.post,
+            carry.has, out, has, rejected)
+    return _as_state(out), has, rejected, carry
 
 
 def geodetic_height_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None
