@@ -32,7 +32,8 @@ State is explicit (:class:`RadarTrackState`, arrays over the live tracks of ever
 and :func:`step` maps (state, one scan's plots) to (state, track number per plot); the loop
 over scans is outside (:func:`run_scans`), vectorised across tracks, radars and runs. The same
 loop compiled (:mod:`tertiary.simulate.radar_scan_kernel`, numba) is what :func:`run_scans`
-runs by default; :func:`step` stays the reference it is tested against.
+runs once it is cached or when a job is large enough to repay compiling it
+(:func:`compiled_pays`); :func:`step` stays the reference it is tested against.
 """
 
 from __future__ import annotations
@@ -356,8 +357,8 @@ def drop_misses(track_drop_scans: float) -> int:
 
 
 #: plots of a job from which compiling the scan loop pays on a fresh install: the Python loop
-#: costs ~30 µs a plot on the 2-core machine, the first compilation ~12 s, the compiled loop
-#: ~1.5 µs a plot (measured on the default scenario)
+#: costs ~20–30 µs a plot on the 2-core machine, the first compilation 12–20 s, the compiled
+#: loop ~1.5 µs a plot (measured on the default scenario)
 COMPILE_PAYS_PLOTS = 400_000
 
 
