@@ -78,6 +78,7 @@ from typing import Literal
 
 import numpy as np
 import polars as pl
+from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from tertiary.schema import TABLES, TIME
@@ -88,6 +89,8 @@ __all__ = [
     "FUSION_METRICS",
     "error_columns",
     "scored_rows",
+    "row_scores",
+    "ROW_SCORES",
     "accuracy_from_matched",
     "accuracy_by_epoch_from_matched",
     "BY_EPOCH_SCHEMA",
@@ -265,6 +268,20 @@ def accuracy_by_epoch_from_matched(matched: pl.DataFrame, cfg: AccuracyConfig = 
 # --------------------------------------------------------------------------- consistency
 
 
+def _nees_full(p: NDArray[np.float64], e: NDArray[np.float64]) -> NDArray[np.float64]:
+    """eᵀ P⁻¹ e per row; NaN on a row whose full covariance is singular (position NEES only), so
+    that one singular row never blanks the rows solved with it."""
+    try:
+        return np.einsum("ni,ni->n", e, np.linalg.solve(p, e[..., None])[..., 0])
+    except np.linalg.LinAlgError:
+        out = np.full(len(e), np.nan)
+        ok = np.abs(np.linalg.det(p)) > 0
+        ok[ok] = np.linalg.cond(p[ok]) < 1.0 / np.finfo(float).eps
+        if ok.any():
+            out[ok] = np.einsum("ni,ni->n", e[ok], np.linalg.solve(p[ok], e[ok][..., None])[..., 0])
+        return out
+
+
 def add_nees(matched: pl.DataFrame, cov: pl.Series | None = None, block: int = 131_072) -> pl.DataFrame:
     """Add the normalised estimation error squared of each scored row:
     ``nees_pos`` = Δpᵀ P_pp⁻¹ Δp (3 degrees of freedom, mean 3 when consistent) and ``nees``
@@ -287,10 +304,7 @@ def add_nees(matched: pl.DataFrame, cov: pl.Series | None = None, block: int = 1
         pk, ek = p[ok], e[ok]
         with np.errstate(all="ignore"):
             a = np.einsum("ni,ni->n", ek[:, :3], np.linalg.solve(pk[:, :3, :3], ek[:, :3, None])[..., 0])
-            try:
-                b = np.einsum("ni,ni->n", ek, np.linalg.solve(pk, ek[..., None])[..., 0])
-            except np.linalg.LinAlgError:        # a singular full covariance: position NEES only
-                b = np.full(len(ek), np.nan)
+            b = _nees_full(pk, ek)
         idx = np.flatnonzero(ok) + lo
         nees_pos[idx], nees[idx] = a, b
     return matched.with_columns(pl.Series("nees_pos", nees_pos), pl.Series("nees", nees))
@@ -424,18 +438,18 @@ def _sd_and_nees_diag(m: pl.DataFrame) -> list[pl.Expr]:
             (d[0] ** 2 / var[0] + d[1] ** 2 / var[1] + d[2] ** 2 / var[2]).alias("__nees_diag")]
 
 
-def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
-    """The accuracy samples of a matched picture (module docstring): rows with a ``truth_id``,
-    after the transient, with ``seg_class``, the squared errors ``e2_*`` (:func:`error_columns`),
-    ``sd_pos`` and the NEES columns ``nees_pos`` (3 dof) and ``nees`` (6 dof; null without a full
-    covariance). The ``cov`` column is consumed (not returned)."""
+#: the per-row columns :func:`row_scores` adds (what :func:`scored_rows` reads of a row)
+ROW_SCORES = ("seg_class", "e2_x", "e2_y", "e2_z", "e2_pos", "e2_horizontal", "e2_height", "e2_range", "e2_vel",
+              "sd_pos", "nees_pos", "nees")
+
+
+def row_scores(matched: pl.DataFrame) -> pl.DataFrame:
+    """``matched`` with every :data:`ROW_SCORES` column (:func:`scored_rows`; null on rows
+    without a ``truth_id``), its ``cov`` consumed. Each is a function of its row alone, so a
+    picture can be scored a block of rows at a time and its covariances never held whole."""
     m = matched
     if "segment" not in m.columns:
         m = m.with_columns(pl.lit(None, pl.String).alias("segment"))
-    if cfg.skip_first_s > 0 and m.height:
-        first = pl.col("epoch").min().over(_TRACK)
-        m = m.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
-    m = m.filter(pl.col("truth_id").is_not_null())
     m = m.with_columns(*error_columns("true_alt_m" in m.columns and "alt_m" in m.columns), *_sd_and_nees_diag(m))
     if "cov" in m.columns and m["cov"].null_count() == m.height:
         m = m.drop("cov")
@@ -446,6 +460,22 @@ def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -
     else:
         m = m.with_columns(pl.col("__nees_diag").alias("nees_pos"), pl.lit(None, pl.Float64).alias("nees"))
     return m.drop("__nees_diag")
+
+
+def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+    """The accuracy samples of a matched picture (module docstring): rows with a ``truth_id``,
+    after the transient, with ``seg_class``, the squared errors ``e2_*`` (:func:`error_columns`),
+    ``sd_pos`` and the NEES columns ``nees_pos`` (3 dof) and ``nees`` (6 dof; null without a full
+    covariance). The ``cov`` column is consumed (not returned). ``matched`` may carry the
+    :func:`row_scores` already (a picture scored in blocks)."""
+    m = matched
+    if "segment" not in m.columns:
+        m = m.with_columns(pl.lit(None, pl.String).alias("segment"))
+    if cfg.skip_first_s > 0 and m.height:
+        first = pl.col("epoch").min().over(_TRACK)
+        m = m.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
+    m = m.filter(pl.col("truth_id").is_not_null())
+    return m if set(ROW_SCORES) <= set(m.columns) else row_scores(m)
 
 
 def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataFrame]:

@@ -22,6 +22,7 @@ not of a picture's states.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,9 +31,10 @@ import numpy as np
 import polars as pl
 
 from tertiary import geo
-from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, picture_accuracy
+from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.errors import DataError
-from tertiary.matching import MatchConfig, match_to_reference, reference_at_epochs
+from tertiary.matching import (MatchConfig, match_to_reference, match_with_reference, reference_at_epochs,
+                               reference_between, reference_identity, with_neighbours)
 from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
@@ -122,6 +124,52 @@ def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> Non
         raise DataError("reference time and track epoch must be date-times (the truth and tracks schemas)")
 
 
+class _Reference:
+    """The reference of one evaluation: whole, its aircraft's identity items, and (made when a
+    picture first comes in blocks) its samples' neighbours for cutting time slices."""
+
+    def __init__(self, truth: pl.DataFrame) -> None:
+        self.truth, self.identity, self._neighboured = truth, reference_identity(truth), None
+
+    def between(self, t0, t1) -> pl.DataFrame:
+        if self._neighboured is None:
+            self._neighboured = with_neighbours(self.truth)
+        return reference_between(self._neighboured, t0, t1)
+
+
+def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: EvaluationConfig,
+                  id_col: str) -> tuple[pl.DataFrame, pl.DataFrame] | None:
+    """(matched rows with their :func:`row_scores`, reference at the picture's epochs) of one
+    picture given in blocks, or None when it has no row. A block is matched against the
+    reference samples its epochs read (:func:`reference_between`): the matcher is per epoch
+    and the row scores per row, so the result is that of the whole picture at once."""
+    it = (b for b in blocks if b.height)
+    first = next(it, None)
+    if first is None:
+        return None
+    second = next(it, None)
+    whole = second is None                  # one block: matched against the whole reference
+    matched, expected, last = [], [], None
+    for block in itertools.chain([first], [] if whole else [second], it):
+        _check_inputs(block, reference.truth, id_col)
+        if "method" not in block.columns:
+            block = block.with_columns(pl.lit("picture").alias("method"))
+        t0, t1 = block["epoch"].min(), block["epoch"].max()
+        if last is not None and t0 <= last:
+            raise DataError("a picture's blocks must be in time order, no epoch in two blocks")
+        last = t1
+        truth = reference.truth if whole else reference.between(t0, t1)
+        m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
+        del block, truth
+        matched.append(row_scores(m))
+        expected.append(ref)
+    return _concat(matched), _concat(expected)
+
+
+def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
+    return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
+
+
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
                       frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                       cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
@@ -142,7 +190,8 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
                          empty=tracks.clear())
 
 
-def evaluate_each(pictures: Iterable[pl.DataFrame], truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
+def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], truth: pl.DataFrame, *,
+                  radars: pl.DataFrame | None = None,
                   frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
                   seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
@@ -150,22 +199,23 @@ def evaluate_each(pictures: Iterable[pl.DataFrame], truth: pl.DataFrame, *, rada
                   empty: pl.DataFrame | None = None) -> Evaluation:
     """:func:`evaluate_pictures` on pictures given one at a time (each frame one ``method``):
     a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
-    holds one picture, never all of them. The same metrics as one call on their union."""
+    holds one picture, never all of them. A picture may come as blocks of rows in time order
+    (an iterable of frames, epochs not shared between blocks): each block is matched against
+    its time slice of the reference and row-scored alone (:func:`_match_blocks`), so the
+    picture's covariances and the matcher's scratch are never held whole. The same metrics as
+    one call on their union."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
+    reference = _Reference(truth)
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
     for picture in pictures:
-        if picture.height == 0:
+        got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col)
+        if got is None:
             continue
-        _check_inputs(picture, truth, id_col)
-        if "method" not in picture.columns:
-            picture = picture.with_columns(pl.lit("picture").alias("method"))
-        matched = match_to_reference(picture, truth, cfg.match, id_col=id_col)
-        del picture
+        matched, expected = got
         if id_col != "track_id":
             matched = matched.rename({id_col: "track_id"})
-        expected = reference_at_epochs(matched.select("run", "epoch").unique(), truth, cfg.match.max_gap_s)
         seed, by_epoch, samples = picture_accuracy(
             matched, seed_stage, cfg.accuracy,
             observed if observed is not None else expected.select("run", "epoch", "truth_id"))
@@ -179,7 +229,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame], truth: pl.DataFrame, *, rada
             "run", "method", "epoch", pl.col("track_id").alias(id_col),
             pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
         if keep_matched:
-            parts["matched"].append(matched.drop("cov", strict=False))
+            parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
 
     def cat(k: str, none: pl.DataFrame) -> pl.DataFrame:
         return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else none

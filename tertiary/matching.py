@@ -51,7 +51,8 @@ from scipy.spatial import cKDTree
 
 from tertiary.schema import TIME
 
-__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference"]
+__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference", "match_with_reference",
+           "reference_identity", "with_neighbours", "reference_between"]
 
 STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -205,16 +206,58 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     ``true_x_m … true_vz_mps`` (``true_alt_m`` when the reference has heights),
     ``match_cost``, ``gated_truth_id`` and, when the reference has them, the aircraft's
     ``icao24``, ``true_callsign`` and ``true_mode_3a``."""
+    return match_with_reference(tracks, truth, cfg, id_col)[0]
+
+
+def reference_identity(truth: pl.DataFrame) -> pl.DataFrame | None:
+    """(truth_id, icao24, true_callsign, true_mode_3a) of each reference aircraft, from its first
+    sample (the items the reference has; None when it has none): what identity correctness
+    compares a picture's items with."""
+    items = {c: n for c, n in (("icao24", "icao24"), ("callsign", "true_callsign"), ("mode_3a", "true_mode_3a"))
+             if c in truth.columns}
+    if not items:
+        return None
+    return (truth.select(pl.col("truth_id").cast(pl.Int64), *[pl.col(c).cast(pl.String).alias(n)
+                                                             for c, n in items.items()])
+            .unique("truth_id", keep="first", maintain_order=True))
+
+
+def with_neighbours(truth: pl.DataFrame) -> pl.DataFrame:
+    """``truth`` with each sample's neighbouring sample times of the same aircraft (``__prev``,
+    ``__next``): what :func:`reference_between` cuts a time slice with."""
+    keys = ["truth_id"] + (["run"] if "run" in truth.columns else [])
+    t = pl.col("time").cast(TIME)
+    return truth.with_columns(t.shift(1).over(keys, order_by=t).alias("__prev"),
+                              t.shift(-1).over(keys, order_by=t).alias("__next"))
+
+
+def reference_between(neighboured: pl.DataFrame, t0, t1) -> pl.DataFrame:
+    """The reference samples that the reference at any time in [t0, t1] reads (rule 1): those
+    inside, and each aircraft's last sample before and first after — so spans, gaps and
+    interpolation on the slice are those of the whole reference. ``neighboured``:
+    :func:`with_neighbours` of the reference."""
+    t = pl.col("time")
+    keep = t.is_between(t0, t1) | ((t < t0) & (pl.col("__next") >= t0)) | ((t > t1) & (pl.col("__prev") <= t1))
+    return neighboured.filter(keep).drop("__prev", "__next")
+
+
+def match_with_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
+                         id_col: str = "track_id", identity: pl.DataFrame | None = None
+                         ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`match_to_reference`, and the reference at the picture's epochs
+    (:func:`reference_at_epochs` of its (run, epoch)), computed once for both: what the
+    evaluation expects covered. ``identity``: :func:`reference_identity` of the whole reference
+    when ``truth`` is a time slice of it (:func:`reference_between`)."""
     tr = tracks
     if "run" not in tr.columns:
         tr = tr.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     if "method" not in tr.columns:
         tr = tr.with_columns(pl.lit("picture").alias("method"))
     tr = tr.with_columns(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).with_row_index("__row")
-    ref = reference_at_epochs(tr.select("run", "epoch"), truth, cfg.max_gap_s)
+    expected = reference_at_epochs(tr.select("run", "epoch"), truth, cfg.max_gap_s)
     methods = tr.select("method").unique()
-    ref = ref.join(methods, how="cross").join(tr.select("run", "method", "epoch").unique(),
-                                              on=["run", "method", "epoch"], how="semi")
+    ref = expected.join(methods, how="cross").join(tr.select("run", "method", "epoch").unique(),
+                                                   on=["run", "method", "epoch"], how="semi")
     i, j, cost = _candidates(tr, ref, cfg)
     best = _assign(i, j, cost, tr.height, ref.height)
     cost_of = np.full(tr.height, np.nan)
@@ -241,13 +284,8 @@ def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConf
     out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24", "gated_truth_id") if c in tr.columns])
            .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of), gated_id))
     # the reference's identity items, for identity correctness: Mode S address, callsign, Mode 3/A
-    items = {c: n for c, n in (("icao24", "icao24"), ("callsign", "true_callsign"), ("mode_3a", "true_mode_3a"))
-             if c in truth.columns}
-    if items:
-        ident = (truth.select(pl.col("truth_id").cast(pl.Int64), *[pl.col(c).cast(pl.String).alias(n)
-                                                                   for c, n in items.items()])
-                 .unique("truth_id", keep="first"))
-        out = out.drop([n for n in items.values() if n in out.columns]).join(
+    ident = reference_identity(truth) if identity is None else identity
+    if ident is not None:
+        out = out.drop([n for n in ident.columns if n != "truth_id" and n in out.columns]).join(
             ident, on="truth_id", how="left", maintain_order="left")
-    return out
-
+    return out, expected

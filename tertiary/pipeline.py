@@ -806,6 +806,23 @@ class _OnDisk:
         return (_concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
                 else self.empty.select(cols))
 
+    def blocks(self, key: tuple, skip: Collection[str] = (), rows: int | None = None) -> Iterator[pl.DataFrame]:
+        """One picture's rows (as :meth:`picture`) in blocks of whole windows, in time order, each
+        of at least ``rows`` rows (default :data:`EVAL_BLOCK_ROWS`) but the last."""
+        rows = EVAL_BLOCK_ROWS if rows is None else rows
+        k = self.index.get(tuple(key))
+        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
+        cols = [c for c in self.empty.columns if c not in skip]
+        held, n = [], 0
+        for f in files:
+            held.append(pl.read_parquet(f, columns=cols))
+            n += held[-1].height
+            if n >= rows:
+                yield _concat_parts(held)
+                held, n = [], 0
+        if held:
+            yield _concat_parts(held)
+
     def collect(self) -> pl.DataFrame:
         got = self.parts.table(self.name)
         return self.empty if got is None else got
@@ -1035,10 +1052,10 @@ def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
-    fused_pictures = list(_fused_pictures(fused, _NOT_SCORED))
+    fused_pictures = list(_fused_pictures(fused, _NOT_SCORED, blocks=True))
     ev_fused = (evaluate_each((get() for get in fused_pictures), ing.truth, id_col="target_id", seed_stage="fusion",
                               **kw) if fused_pictures else none)
-    track_pictures = list(_track_pictures(tracks, _NOT_SCORED))
+    track_pictures = list(_track_pictures(tracks, _NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
     return ev_fused, evaluate_each((get() for get in track_pictures), ing.truth, seed_stage="tracker", **kw)
@@ -1049,19 +1066,27 @@ def _shown(fused: pl.DataFrame) -> pl.DataFrame:
     return fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
 
 
+#: rows of an on-disk picture matched and row-scored at a time (whole windows): the evaluation's
+#: scratch and a picture's covariances are held a block at a time (issue 16, memory)
+EVAL_BLOCK_ROWS = 200_000
+
 #: what no evaluation metric reads of a picture (the fusion's inputs and the tracker's
 #: diagnostics): an on-disk picture is scored without them (issue 16, memory)
 _NOT_SCORED = ("meas_cov", "weights", "radar_ids", "innovation", "model_probs", "meas_x_m", "meas_y_m",
                "meas_z_m", "n_fresh", "age_s")
 
 
-def _fused_pictures(fused: "pl.DataFrame | _OnDisk", skip: Collection[str] = ()
-                    ) -> Iterator[Callable[[], pl.DataFrame]]:
+def _fused_pictures(fused: "pl.DataFrame | _OnDisk", skip: Collection[str] = (), blocks: bool = False
+                    ) -> Iterator[Callable[[], "pl.DataFrame | Iterator[pl.DataFrame]"]]:
     """A reader per fused picture (its confirmed targets), in order of appearance; an on-disk
-    picture is read without the columns in ``skip``."""
+    picture is read without the columns in ``skip``, and with ``blocks`` as time blocks
+    (:meth:`_OnDisk.blocks`)."""
     if isinstance(fused, _OnDisk):
         for key in fused.shown:
-            yield lambda key=key: _shown(fused.picture(key, skip))
+            if blocks:
+                yield lambda key=key: (_shown(b) for b in fused.blocks(key, skip))
+            else:
+                yield lambda key=key: _shown(fused.picture(key, skip))
         return
     shown = _shown(fused)
     for part in (shown.partition_by("method", maintain_order=True) if shown.height else []):
@@ -1073,12 +1098,15 @@ def _as_picture(tracks: pl.DataFrame) -> pl.DataFrame:
     return tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method")).drop("filter")
 
 
-def _track_pictures(tracks: "pl.DataFrame | _OnDisk", skip: Collection[str] = ()
-                    ) -> Iterator[Callable[[], pl.DataFrame]]:
-    """A reader per tracker picture, in order of appearance (``skip``: as for fused)."""
+def _track_pictures(tracks: "pl.DataFrame | _OnDisk", skip: Collection[str] = (), blocks: bool = False
+                    ) -> Iterator[Callable[[], "pl.DataFrame | Iterator[pl.DataFrame]"]]:
+    """A reader per tracker picture, in order of appearance (``skip``, ``blocks``: as for fused)."""
     if isinstance(tracks, _OnDisk):
         for key in tracks.pictures:
-            yield lambda key=key: _as_picture(tracks.picture(key, skip))
+            if blocks:
+                yield lambda key=key: (_as_picture(b) for b in tracks.blocks(key, skip))
+            else:
+                yield lambda key=key: _as_picture(tracks.picture(key, skip))
         return
     if tracks.height:
         for part in _as_picture(tracks).partition_by("method", maintain_order=True):
