@@ -104,12 +104,23 @@ def test_windowed_evaluation_equals_one_window(terminal):
 
 
 def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
-    """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time
-    (issue 16, memory): the same metrics, alerts, requirements and counts as the in-memory run,
-    which holds every picture. Fails if a picture is skipped, read twice or read incompletely."""
-    read = []
+    """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time,
+    each in time blocks of whole windows (issue 16, memory): the same metrics, alerts,
+    requirements and counts as the in-memory run, which holds every picture and scores it whole.
+    Fails if a picture is skipped, read twice or read incompletely, or if a block is matched or
+    scored differently from the whole picture."""
+    read, blocks = [], []
+
+    def counted(self, key, *a, f=pipeline._OnDisk.blocks):
+        read.append((self.name, key, "blocks"))
+        for b in f(self, key, *a):
+            blocks.append((self.name, key))
+            yield b
+
     monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, *a, f=pipeline._OnDisk.picture:
-                        read.append((self.name, key)) or f(self, key, *a))
+                        read.append((self.name, key, "whole")) or f(self, key, *a))
+    monkeypatch.setattr(pipeline._OnDisk, "blocks", counted)
+    monkeypatch.setattr(pipeline, "EVAL_BLOCK_ROWS", 500)        # several blocks per picture
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
@@ -120,8 +131,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     _same(alerts, mem.alerts, "alerts")
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
-    # every tracker picture read back from disk for the evaluation and again for the curves
-    assert sum(n == "tracks" for n, _ in read) == 2 * 2 * len(cfg.methods)
+    # every tracker picture read back from disk in blocks for the evaluation, whole for the curves
+    assert sum(n == "tracks" and how == "blocks" for n, _, how in read) == 2 * len(cfg.methods)
+    assert sum(n == "tracks" and how == "whole" for n, _, how in read) == 2 * len(cfg.methods)
+    per_picture = pl.DataFrame({"picture": [str(k) for _, k in blocks]}).group_by("picture").len()
+    assert per_picture["len"].min() >= 3
 
 
 def test_empty_window_in_the_middle(terminal, terminal_whole):

@@ -13,7 +13,11 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.cli import app
-from tertiary.evaluation import comparison, evaluate_pictures, read_picture
+from polars.testing import assert_frame_equal
+
+from tertiary.errors import DataError
+from tertiary.evaluation import EvaluationConfig, comparison, evaluate_each, evaluate_pictures, read_picture
+from tertiary.matching import MatchConfig
 from tertiary.requirements import example_path, load_requirements
 from tertiary.simulate import load_scenario, simulate, write_dataset
 
@@ -178,3 +182,44 @@ def test_a_reference_that_is_not_a_truth_table_is_one_line(small, tmp_path):
     res = runner.invoke(app, ["evaluate", str(files[0]), "--truth", str(tmp_path / "none.parquet"),
                               "--out", str(tmp_path / "o")])
     assert res.exit_code == 3 and "file not found" in res.output
+
+
+def _sorted(frame: pl.DataFrame) -> pl.DataFrame:
+    keys = [c for c, t in frame.schema.items() if t == pl.String or t.is_integer() or isinstance(t, pl.Datetime)]
+    return frame.sort(keys, nulls_last=True)
+
+
+def test_a_picture_scored_in_time_blocks_equals_the_whole_picture(small):
+    """The pipeline scores an on-disk picture a block of windows at a time, each block against its
+    time slice of the reference (issue 16, memory). On a sparse reference (a sample every 23 s,
+    so most epochs interpolate across a block edge) with a gap longer than ``max_gap_s``,
+    aircraft appearing and leaving inside blocks and blocks cut between reference samples, every
+    output equals one call on the whole picture. Fails if a slice loses the samples just outside
+    its block, if the identity items come from the slice instead of the whole reference, or if the
+    scoring transient is cut per block."""
+    root, ds, files = small
+    picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
+    truth = ds.truth.with_columns(pl.col("time").rank("ordinal").over("truth_id").alias("__k"))
+    first = truth["truth_id"].min()
+    gap = pl.col("time").is_between(truth["time"].min() + pl.duration(seconds=150),
+                                     truth["time"].min() + pl.duration(seconds=260))
+    truth = truth.filter((pl.col("__k") % 23 == 1) & ~(gap & (pl.col("truth_id") == first))).drop("__k")
+    # the reference's Mode S addresses change part-way: identity items are each aircraft's first
+    late = pl.col("time") > truth["time"].min() + pl.duration(seconds=200)
+    truth = truth.with_columns(pl.when(late).then(pl.lit("ffffff")).otherwise(pl.col("icao24")).alias("icao24"))
+    cfg = EvaluationConfig(match=MatchConfig(max_gap_s=60.0))
+    kw = dict(radars=ds.radars, frame=ds.origin, cfg=cfg, requirements=load_requirements(example_path()))
+    whole = evaluate_each([picture], truth, **kw)
+    edges = picture["epoch"].unique().sort().gather_every(13)
+    cut = picture.join(pl.DataFrame({"epoch": edges, "__b": range(len(edges))}), on="epoch", how="left").sort("epoch")
+    cut = cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
+    parts = [p.drop("__b") for p in cut.partition_by("__b", maintain_order=True)]
+    assert len(parts) >= 5
+    got = evaluate_each([iter(parts)], truth, **kw)
+    assert whole.metrics.height > 100 and whole.matched.height == picture.height
+    for name in ("metrics", "requirements", "by_epoch", "samples", "id_map", "matched"):
+        a, b = getattr(got, name), getattr(whole, name)
+        assert a.columns == b.columns, name
+        assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
+    with pytest.raises(DataError, match="time order"):
+        evaluate_each([iter([parts[1], parts[0]])], truth, **kw)
