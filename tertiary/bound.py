@@ -63,6 +63,7 @@ and the expected information do not depend on the noise draw), so it is computed
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,7 +126,7 @@ def _blockdiag3(b: F64) -> F64:
 
 
 def pcrb_linear(t: F64, r_eq: F64, starts: I64, lengths: I64, phi_q, p0: F64, obs: I64,
-                record: NDArray[np.bool_]) -> F64:
+                record: NDArray[np.bool_], summary: Callable[[F64], F64] | None = None) -> F64:
     """The recursion (T34) over many independent event sequences at once.
 
     Sequence g owns rows ``starts[g] : starts[g] + lengths[g]`` (time order ``t``); row i
@@ -133,12 +134,15 @@ def pcrb_linear(t: F64, r_eq: F64, starts: I64, lengths: I64, phi_q, p0: F64, ob
     ``r_eq[i]`` (m, m), or NaN for an event without a measurement (an output epoch).
     ``phi_q(tau)`` returns Φ(τ), Q(τ) stacked (n, d, d); ``p0`` (d, d) is the prior at a
     sequence's first event. Returns the bound P (n_record, d, d) at the ``record`` rows,
-    in row order. The loop runs over the event rank, batched over the sequences.
+    in row order — or, with ``summary`` (stacked P (m, d, d) → (m, s)), only what it keeps of
+    each (n_record, s): the recorded bounds of a long recording are never held whole. The
+    loop runs over the event rank, batched over the sequences.
     """
     n, d = len(t), p0.shape[0]
     slot = np.full(n, -1)
     slot[record] = np.arange(int(record.sum()))
-    out = np.full((int(record.sum()), d, d), np.nan)
+    keep = summary or (lambda pk: pk)
+    out = np.full((int(record.sum()), *keep(p0[None]).shape[1:]), np.nan)
     order = np.argsort(-np.asarray(lengths), kind="stable")
     st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
     p = np.broadcast_to(p0, (len(st), d, d)).copy()
@@ -158,7 +162,8 @@ def pcrb_linear(t: F64, r_eq: F64, starts: I64, lengths: I64, phi_q, p0: F64, ob
         p[:m] = pk
         sl = slot[idx]
         hit = sl >= 0
-        out[sl[hit]] = pk[hit]
+        if hit.any():
+            out[sl[hit]] = keep(pk[hit])
     return out
 
 
@@ -325,9 +330,10 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
                   "b2_vel": pl.Float64}
     if want.is_empty():
         return pl.DataFrame(schema=out_schema)
-    ev = events.select("truth_id", pl.col("time").cast(TIME).alias("epoch"), "r_eq", pl.lit(0, pl.Int8).alias("__k"))
-    nan9 = pl.lit([np.nan] * 9, dtype=pl.Array(pl.Float64, 9))
-    rows = (pl.concat([ev, want.with_columns(nan9.alias("r_eq"), pl.lit(1, pl.Int8).alias("__k"))])
+    # the keys are sorted, each event's r_eq gathered by its row: the requested epochs carry none
+    ev = events.select("truth_id", pl.col("time").cast(TIME).alias("epoch"), pl.lit(0, pl.Int8).alias("__k"),
+                       pl.int_range(pl.len(), dtype=pl.Int64).alias("__ev"))
+    rows = (pl.concat([ev, want.with_columns(pl.lit(1, pl.Int8).alias("__k"), pl.lit(-1, pl.Int64).alias("__ev"))])
             .sort("truth_id", "epoch", "__k"))
     tid = rows["truth_id"].to_numpy()
     us = rows["epoch"].dt.epoch("us").to_numpy()
@@ -337,13 +343,20 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
     starts = np.flatnonzero(new)
     lengths = np.diff(np.append(starts, len(tid)))
     record = rows["__k"].to_numpy() == 1
-    r_eq = rows["r_eq"].to_numpy().reshape(-1, 3, 3)
-    p = pcrb_linear(t, r_eq, starts, lengths, _singer9(cfg), _prior9(cfg), POS, record)
-    pos = p[:, POS[:, None], POS[None, :]]
+    src = rows["__ev"].to_numpy()
+    r_eq = np.full((len(src), 3, 3), np.nan)
+    r_eq[src >= 0] = events["r_eq"].to_numpy().reshape(-1, 3, 3)[src[src >= 0]]
+    b = pcrb_linear(t, r_eq, starts, lengths, _singer9(cfg), _prior9(cfg), POS, record, _bound_summary)
     return rows.filter(record).select("truth_id", "epoch").with_columns(
-        pl.Series("b2_pos", np.trace(pos, axis1=1, axis2=2)),
-        pl.Series("b2_horizontal", pos[:, 0, 0] + pos[:, 1, 1]),
-        pl.Series("b2_vel", p[:, VEL, VEL].sum(axis=1))).cast(out_schema)
+        pl.Series("b2_pos", b[:, 0]), pl.Series("b2_horizontal", b[:, 1]), pl.Series("b2_vel", b[:, 2])
+    ).cast(out_schema)
+
+
+def _bound_summary(p: F64) -> F64:
+    """(tr P_pos, P_xx + P_yy, tr P_vel) of stacked 9-state bounds (m, 9, 9)."""
+    pos = p[:, POS[:, None], POS[None, :]]
+    return np.column_stack([np.trace(pos, axis1=1, axis2=2), pos[:, 0, 0] + pos[:, 1, 1],
+                            p[:, VEL, VEL].sum(axis=1)])
 
 
 def bound_metrics(scored: pl.DataFrame, accuracy: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:

@@ -133,3 +133,20 @@ def test_bound_rows_pool_like_rmse_and_gap_is_signed():
     assert got["pcrb_pos_m"] == pytest.approx(np.sqrt(v.mean()))
     assert got["gap_pos_m"] == pytest.approx(100.0 - got["pcrb_pos_m"])
     assert "gap_horizontal_m" not in got          # no accuracy row to compare with
+
+
+def test_a_summary_keeps_what_it_takes_of_each_recorded_bound():
+    """``pcrb_at`` records only (tr P_pos, P_xx + P_yy, tr P_vel) of each bound (issue 16,
+    memory): a summary gives, at the recorded rows only and in row order, exactly what it
+    takes of the full bounds. Fails if a summary row lands on another row or is skipped."""
+    rng = np.random.default_rng(3)
+    n, seqs = 40, 3
+    t = np.tile(np.cumsum(rng.uniform(0.5, 4.0, n)), seqs)
+    r_eq = np.full((n * seqs, 1, 1), 25.0)
+    r_eq[rng.random(n * seqs) < 0.3] = np.nan                 # epochs without a measurement
+    record = rng.random(n * seqs) < 0.5
+    args = (t, r_eq, np.arange(seqs) * n, np.full(seqs, n), _cv(0.3), np.diag([1e4, 1e2]), np.array([0]), record)
+    full = pcrb_linear(*args)
+    got = pcrb_linear(*args, summary=lambda p: np.column_stack([p[:, 0, 0], p[:, 0, 0] + p[:, 1, 1]]))
+    assert got.shape == (record.sum(), 2)
+    np.testing.assert_allclose(got, np.column_stack([full[:, 0, 0], full[:, 0, 0] + full[:, 1, 1]]), rtol=0, atol=0)
