@@ -129,7 +129,8 @@ def _validate_truth(ds: Dataset, cfg: "PipelineConfig", notes: list[str], window
         clean, rej, _ = _validate_table(truth, "truth", cfg.strict, notes, **kw)
         return clean, rej
     med = schema.table_median_time(truth, cfg.limits)
-    sizes = truth.group_by("truth_id").len().sort("truth_id", nulls_last=True)
+    # a group-by on the frame would first copy every column into one chunk: on the key alone
+    sizes = truth.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True)
     part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
     where = truth.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
                                           maintain_order="left")["__part"]
@@ -142,8 +143,18 @@ def _validate_truth(ds: Dataset, cfg: "PipelineConfig", notes: list[str], window
         cleans.append(clean)
         rejs.append(rej)
     del truth, where
-    clean = pl.concat(cleans, how="vertical").sort(_INPUT_ROW).drop(_INPUT_ROW)
+    clean = pl.concat(cleans, how="vertical")
     del cleans
+    order = clean[_INPUT_ROW].arg_sort()
+    clean = clean.drop(_INPUT_ROW)
+    # back in input order a column at a time, each source column released once gathered: the
+    # table is never held twice (a whole-frame sort would)
+    gathered = {}
+    for name in clean.columns:
+        gathered[name] = clean[name].gather(order)
+        clean = clean.drop(name)
+    clean = pl.DataFrame(gathered)
+    del gathered
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", schema.UnsortedTimeWarning)
         clean = schema.sort_tracks(clean, "truth")
