@@ -232,10 +232,14 @@ def accuracy_from_matched(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyC
     RMSE = sqrt(mean_k σ²(k)), σ²(k) from (2.15)/(4.84), per method, metric and segment."""
     if matched.is_empty():
         return _empty_metrics()
-    rows = _with_segments(matched)
-    per = _per_epoch(rows, ["method", "eval_segment"], cfg)
-    runs = (rows.group_by(["method", "eval_segment"])
-            .agg(pl.col("run").n_unique().alias("n_runs")))
+    group = ["method", "eval_segment"]
+    # segment "all" and each row's straight/turn class grouped in place, never a copy of the rows
+    rows = [matched.with_columns(pl.lit("all").alias("eval_segment")),
+            matched.with_columns(pl.col("seg_class").alias("eval_segment"))]
+    per = pl.concat([_per_epoch(r, group, cfg).filter(pl.col("eval_segment").is_not_null()) for r in rows])
+    runs = pl.concat([r.group_by(group).agg(pl.col("run").n_unique().alias("n_runs"))
+                      .filter(pl.col("eval_segment").is_not_null()) for r in rows])
+    del rows
     pooled = (per.group_by(["method", "eval_segment", "metric"]).agg(pl.col("sigma2").mean().sqrt().alias("value"))
               .join(runs, on=["method", "eval_segment"], how="left"))
     seg_order = pl.col("eval_segment").replace_strict({"all": 0, "straight": 1, "turn": 2}, default=3,
@@ -386,10 +390,11 @@ def consistency_metrics(rows: pl.DataFrame, column: str, dof: int, prefix: str, 
     * ``<prefix>_n_eff``: that effective sample size.
     """
     spec = TABLES["metrics"].required
-    r = rows.filter(pl.col(column).is_not_null() & pl.col(column).is_finite())
+    # the columns read, then the rows: the scored picture is never copied whole
+    r = rows.select("method", "run", "epoch", obj, "seg_class", column).filter(
+        pl.col(column).is_not_null() & pl.col(column).is_finite())
     if r.is_empty():
         return pl.DataFrame(schema=spec)
-    r = r.select("method", "run", "epoch", obj, "seg_class", column)
     r = pl.concat([r.with_columns(pl.lit("all").alias("eval_segment")),
                    r.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))])
     per = r.group_by("method", "eval_segment", "epoch").agg(pl.col(column).mean().alias("__m"), pl.len().alias("__n"))
@@ -471,17 +476,18 @@ def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -
     m = matched
     if "segment" not in m.columns:
         m = m.with_columns(pl.lit(None, pl.String).alias("segment"))
+    keep = pl.col("truth_id").is_not_null()
     if cfg.skip_first_s > 0 and m.height:
         first = pl.col("epoch").min().over(_TRACK)
-        m = m.filter((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
-    m = m.filter(pl.col("truth_id").is_not_null())
+        keep = keep & ((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
+    m = m.filter(keep)                   # one filter: the picture copied once
     return m if set(ROW_SCORES) <= set(m.columns) else row_scores(m)
 
 
 def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataFrame]:
     """``potential_pos_m`` and the NEES (3 and 6 dof) and NIS rows of every picture."""
     out = []
-    pot = scored.filter(pl.col("sd_pos").is_not_null())
+    pot = scored.select("method", "run", "seg_class", "sd_pos").filter(pl.col("sd_pos").is_not_null())
     if pot.height:
         rows = _with_segments(pot).group_by("method", "eval_segment").agg(
             pl.col("sd_pos").mean().alias("value"), pl.col("run").n_unique().alias("n_runs"))
@@ -549,9 +555,10 @@ def picture_accuracy(matched: pl.DataFrame, stage: str, cfg: AccuracyConfig = Ac
     if matched.height == 0:
         return _empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA), scored_samples(pl.DataFrame(
             schema={"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64, "seg_class": pl.String}))
-    scored = scored_rows(matched, cfg)
     # what the metrics below read: the picture's other columns are not copied through them
     keep = {*_TRACK, "epoch", "truth_id", "seg_class", *FUSION_METRICS.values(), "sd_pos", "nees_pos", "nees", "nis"}
+    scored = scored_rows(matched.select(c for c in matched.columns if c in keep or c in ROW_SCORES)
+                         if set(ROW_SCORES) <= set(matched.columns) else matched, cfg)
     scored = scored.select(c for c in scored.columns if c in keep)
     parts = [accuracy_from_matched(scored, cfg, stage), *_consistency(scored, stage, cfg.band),
              continuity_metrics(matched, observed, stage)]

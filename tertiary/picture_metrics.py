@@ -293,6 +293,8 @@ def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig,
 
 def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
                 breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+    # what the continuity metrics read: a long picture's other columns are not copied through them
+    m = m.select(c for c in m.columns if c in (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m"))
     rep = _representatives(m).sort(_KEY + ["epoch"])
     methods = m.select("method").unique()
     gap = (pl.col("epoch") - pl.col("epoch").shift(1).over(_KEY)).dt.total_microseconds() / 1e6
