@@ -811,9 +811,7 @@ class _OnDisk:
 
     def picture(self, key: tuple, skip: Collection[str] = ()) -> pl.DataFrame:
         """One picture's rows, without the columns in ``skip``."""
-        k = self.index.get(tuple(key))
-        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
-        cols = [c for c in self.empty.columns if c not in skip]
+        files, cols = self._files(key, skip)
         return (_concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
                 else self.empty.select(cols))
 
@@ -821,9 +819,7 @@ class _OnDisk:
         """One picture's rows (as :meth:`picture`) in blocks of whole windows, in time order, each
         of at least ``rows`` rows (default :data:`EVAL_BLOCK_ROWS`) but the last."""
         rows = EVAL_BLOCK_ROWS if rows is None else rows
-        k = self.index.get(tuple(key))
-        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
-        cols = [c for c in self.empty.columns if c not in skip]
+        files, cols = self._files(key, skip)
         held, n = [], 0
         for f in files:
             held.append(pl.read_parquet(f, columns=cols))
@@ -833,6 +829,12 @@ class _OnDisk:
                 held, n = [], 0
         if held:
             yield _concat_parts(held)
+
+    def _files(self, key: tuple, skip: Collection[str]) -> tuple[list[Path], list[str]]:
+        """A picture's window files in window order, and the columns read (all but ``skip``)."""
+        k = self.index.get(tuple(key))
+        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
+        return files, [c for c in self.empty.columns if c not in skip]
 
     def collect(self) -> pl.DataFrame:
         got = self.parts.table(self.name)
