@@ -279,8 +279,7 @@ def _nees_full(p: NDArray[np.float64], e: NDArray[np.float64]) -> NDArray[np.flo
         return np.einsum("ni,ni->n", e, np.linalg.solve(p, e[..., None])[..., 0])
     except np.linalg.LinAlgError:
         out = np.full(len(e), np.nan)
-        ok = np.abs(np.linalg.det(p)) > 0
-        ok[ok] = np.linalg.cond(p[ok]) < 1.0 / np.finfo(float).eps
+        ok = np.linalg.cond(p) < 1.0 / np.finfo(float).eps       # inf for an exactly singular P
         if ok.any():
             out[ok] = np.einsum("ni,ni->n", e[ok], np.linalg.solve(p[ok], e[ok][..., None])[..., 0])
         return out
@@ -474,8 +473,6 @@ def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -
     covariance). The ``cov`` column is consumed (not returned). ``matched`` may carry the
     :func:`row_scores` already (a picture scored in blocks)."""
     m = matched
-    if "segment" not in m.columns:
-        m = m.with_columns(pl.lit(None, pl.String).alias("segment"))
     keep = pl.col("truth_id").is_not_null()
     if cfg.skip_first_s > 0 and m.height:
         first = pl.col("epoch").min().over(_TRACK)

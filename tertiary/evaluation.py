@@ -33,8 +33,8 @@ import polars as pl
 from tertiary import geo
 from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.errors import DataError
-from tertiary.matching import (MatchConfig, match_to_reference, match_with_reference, reference_at_epochs,
-                               reference_between, reference_identity, with_neighbours)
+from tertiary.matching import (MatchConfig, match_with_reference, reference_between, reference_identity,
+                               with_neighbours)
 from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME

@@ -609,3 +609,25 @@ def test_end_to_end_on_a_small_terminal_area(small_terminal):
     assert _tv(m, "swaps") <= 0.2 * n_aircraft
     assert _tv(m, "spurious_tracks") <= 0.2 * n_aircraft
     assert _tv(m, "rmse_pos_m") < 500.0
+
+
+def test_a_singular_full_covariance_blanks_only_its_own_nees():
+    """The 6-state NEES of a row whose full covariance is singular is NaN (its position NEES
+    stays); every other row of the same block keeps eᵀ P⁻¹ e. Before, one singular row made
+    the whole 131 072-row block NaN, so the result depended on how rows were blocked."""
+    from tertiary.accuracy import add_nees
+    rng = np.random.default_rng(5)
+    n = 6
+    a = rng.normal(size=(n, 6, 6))
+    p = a @ a.swapaxes(1, 2) + np.eye(6)
+    p[3] = 0.0
+    p[3, :3, :3] = 4.0 * np.eye(3)                     # velocity block zero: singular 6×6
+    est = rng.normal(size=(n, 6))
+    cols = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+    frame = pl.DataFrame({**{c: est[:, k] for k, c in enumerate(cols)},
+                          **{f"true_{c}": np.zeros(n) for c in cols}})
+    got = add_nees(frame, pl.Series("cov", p.reshape(n, 36), dtype=pl.Array(pl.Float64, 36)))
+    nees, nees_pos = got["nees"].to_numpy(), got["nees_pos"].to_numpy()
+    full = [est[i] @ np.linalg.solve(p[i], est[i]) for i in range(n) if i != 3]
+    assert np.isnan(nees[3]) and nees_pos[3] == pytest.approx(est[3, :3] @ est[3, :3] / 4.0)
+    np.testing.assert_allclose(np.delete(nees, 3), full, rtol=1e-10)
