@@ -27,7 +27,7 @@ from rich.table import Table
 from typer.core import TyperGroup
 
 from tertiary import pipeline
-from tertiary.engine import DEFAULT_WINDOW_S, check_window
+from tertiary.engine import AUTO_WINDOW, DEFAULT_WINDOW_S, check_window
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS
@@ -179,6 +179,16 @@ def _window(text: str | None, option: str) -> tuple[float, float] | None:
         return None
     lo, hi = _floats(text, 2, option, "T0:T1")
     return lo, hi
+
+
+def _window_option(text: str, engine: str) -> float | str | None:
+    """``--window``: seconds (0: one window) or ``auto``, which the local engine sizes from the
+    dataset (:func:`tertiary.engine.auto_window_s`) and the Dask engine reads as
+    :data:`~tertiary.engine.DEFAULT_WINDOW_S` (its slices and overlaps are multiples of it)."""
+    if text.strip().lower() == AUTO_WINDOW:
+        return DEFAULT_WINDOW_S if engine == "dask" else AUTO_WINDOW
+    (value,) = _floats(text, 1, "--window", "SECONDS or auto")
+    return None if value == 0 else check_window(value)
 
 
 def build_scenario(scenario: str, *, runs: int | None = None, seed: int | None = None, aircraft: int | None = None,
@@ -440,10 +450,12 @@ def run(
                                                               "estimates]")] = None,
     range_variant: Annotated[str, typer.Option(help="(3.11)/(3.62) of --range-channel: corrected or printed")]
         = "corrected",
-    window: Annotated[float, typer.Option("--window", help="process the recording in time windows of this many "
-                                                           "seconds (>= 1; 0: one window), carrying every stage's "
-                                                           "state; each window is stored as it completes")]
-        = DEFAULT_WINDOW_S,
+    window: Annotated[str, typer.Option("--window", metavar="SECONDS|auto",
+                                        help="process the recording in time windows of this many seconds (>= 1; "
+                                             "0: one window; auto: about 50 000 reports a window, 60 s to 1 h, "
+                                             "300 s with --engine dask), carrying every stage's state; each "
+                                             "window is stored as it completes")]
+        = AUTO_WINDOW,
     resume: Annotated[Optional[Path], typer.Option("--resume", help="continue the killed run in RUN_DIR from its "
                                                                     "last complete window (same options and "
                                                                     "dataset)")] = None,
@@ -465,7 +477,7 @@ def run(
 
     Scenario options (--runs ... --bias-step) apply when the job simulates (no DATASET)."""
     _set_log(quiet, log_format)
-    window_s = None if window == 0 else check_window(window)
+    window_s = _window_option(window, engine)
     if engine not in ("local", "dask"):
         raise OptionError(f"choose local or dask, got {engine!r}", option="--engine")
     if engine == "local":

@@ -50,8 +50,17 @@ US = 1_000_000
 #: the end of time on the grid (µs): the last window is open-ended so that every carried row
 #: (alignment hold-back, coasting tracks) is flushed
 END_US = 1 << 62
-#: default window length of ``tertiary run`` (s)
+#: window length (s) of the API's windowed functions, and of ``--window auto`` when the input
+#: has no usable time span (or with ``--engine dask``, whose slices are multiples of it)
 DEFAULT_WINDOW_S = 300.0
+#: ``tertiary run``'s default: windows sized by the recording's report rate
+AUTO_WINDOW = "auto"
+#: reports a window holds on average under ``--window auto``: a window's memory grows with its
+#: reports, and every window costs a fixed overhead (about a second of small table operations on
+#: the 2-core machine), so a busy recording gets short windows and a sparse one long ones
+WINDOW_REPORTS = 50_000
+#: the bounds (s) of an automatic window
+AUTO_WINDOW_BOUNDS_S = (60.0, 3600.0)
 #: the streamed tables, in the order they are written to the run database
 STREAMED = ("reports", "rejects", "aligned", "associations", "fused", "clusters", "tracks", "conflicts")
 MANIFEST = "manifest.json"
@@ -101,6 +110,27 @@ def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int =
             continue
         yield Window(k, -END_US if k == first else origin_us + k * w,
                      END_US if k == n - 1 else origin_us + (k + 1) * w)
+
+
+def auto_window_s(source: "ReportSource", reports_per_window: int = WINDOW_REPORTS) -> float:
+    """The ``--window auto`` length: about ``reports_per_window`` reports a window at the
+    recording's mean report rate over its plausible time span, in whole minutes within
+    :data:`AUTO_WINDOW_BOUNDS_S`; :data:`DEFAULT_WINDOW_S` when the input has no such span."""
+    if not source.windowable or source.n_rows == 0:
+        return DEFAULT_WINDOW_S
+    span_s = max((source.last_us - source.first_us) / US, 1.0)
+    raw = reports_per_window * span_s / source.n_rows
+    lo, hi = AUTO_WINDOW_BOUNDS_S
+    return float(min(max(60.0 * round(raw / 60.0), lo), hi))
+
+
+def resolve_window(window_s: "float | str | None", reports: "pl.DataFrame | pl.LazyFrame",
+                   limits: schema.Limits = schema.Limits()) -> float | None:
+    """``window_s`` checked (:func:`check_window`), ``"auto"`` replaced by :func:`auto_window_s`
+    of ``reports`` (one scan of its time column)."""
+    if isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW:
+        return auto_window_s(ReportSource(reports, limits))
+    return check_window(window_s)
 
 
 def check_window(window_s: float | None) -> float | None:
@@ -277,7 +307,9 @@ class PartStore:
                 continue
             d = self.dir / PARTS / name
             d.mkdir(parents=True, exist_ok=True)
-            write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="zstd")
+            # lz4: the parts are scratch (read back once, removed when the run completes); on
+            # the run's tables it writes ~2x faster than zstd for ~20 % more bytes
+            write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="lz4")
             self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
 
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:

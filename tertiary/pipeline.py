@@ -49,8 +49,8 @@ from tertiary.filters import REGISTRY
 from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
-from tertiary.engine import (DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
-                             Window, check_window, config_hash, peak_rss_mib, windows)
+from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
+                             Window, check_window, config_hash, peak_rss_mib, resolve_window, windows)
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
@@ -417,6 +417,9 @@ class _Clock:
         if self.name is not None:
             key = f"{self.name}_s"
             self.timings[key] = self.timings.get(key, 0.0) + now - self._t
+            # re-inserted: the record lists the stages in the order they last ended, so its
+            # peaks-so-far read in increasing order even for a stage met again (write_tables)
+            self.memory.pop(self.prefix + self.name, None)
             self.memory[self.prefix + self.name] = round(peak_rss_mib(), 1)
         self.name, self._t = name, now
         if say and name and f"{name}_s" not in self.timings and name != getattr(self, "_said", None):
@@ -901,6 +904,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     clock.stage(None)
     clock.prefix = "finalize:"
     clock.stage("validate")      # the truth, and the whole run's accounting
+    sink = _timed_sink(sink, clock)
     # an on-disk run keeps in memory only what the whole-run stages read, and its streamed tables
     # go to the database one window's part at a time (issue 16, memory)
     lean = hasattr(parts, "iter_parts")
@@ -950,6 +954,18 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
                          sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)))
+
+
+def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
+    """``sink`` with its time counted as ``write_tables``, not as the stage that hands it a table
+    (the streamed tables are copied into the run database in finalize: without this their
+    minutes showed as truth validation)."""
+    def timed(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        back = clock.name
+        clock.stage("write_tables", say=False)
+        sink(name, frame)          # a failure leaves the stage at write_tables: where it failed
+        clock.stage(back, say=False)
+    return timed
 
 
 def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame, associations: pl.DataFrame,
@@ -1252,10 +1268,23 @@ def _scenario_text(ds: Dataset, notes: list[str]) -> str:
         return ""
 
 
+def _run_window(window_s: float | str | None, ds: Dataset, cfg: PipelineConfig) -> float | None:
+    """:func:`tertiary.engine.resolve_window`; an input whose reports cannot even be scanned gets
+    the default window, and the run itself then reports what is wrong with them (in the run
+    record and the rejects, not as an error before the run directory exists)."""
+    if not (isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW):
+        return check_window(window_s)
+    try:
+        return resolve_window(window_s, ds.reports, cfg.limits)
+    except (pl.exceptions.PolarsError, OSError, ValueError, TypeError):  # fails again in validate, recorded there
+        return DEFAULT_WINDOW_S
+
+
 def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
-        progress: Progress | None = None, window_s: float | None = DEFAULT_WINDOW_S, resume: bool = False,
+        progress: Progress | None = None, window_s: float | str | None = AUTO_WINDOW, resume: bool = False,
         dataset_label: str = "") -> Path:
-    """Run the job on a dataset in windows of ``window_s`` seconds and write
+    """Run the job on a dataset in windows of ``window_s`` seconds (``"auto"``: sized by the
+    recording's report rate, :func:`tertiary.engine.auto_window_s`; None: one window) and write
     ``out_dir/results.duckdb`` atomically.
 
     Each window's streamed tables are written to ``out_dir/parts`` as it completes, with the
@@ -1269,7 +1298,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     """
     t_wall = time.perf_counter()
     cfg = adapt_to_scenario(check_config(cfg), ds)
-    window_s = check_window(window_s)
+    window_s = _run_window(window_s, ds, cfg)
     say = progress or (lambda _m: None)
     out = Path(out_dir)
     try:

@@ -271,7 +271,8 @@ def test_rejects_name_the_input_row_in_every_window(terminal):
 
 def test_engine_options_are_checked(dataset_dir, tmp_path):
     for extra, option in ((["--workers", "2"], "--workers"), (["--overlap", "300"], "--overlap"),
-                          (["--engine", "spark"], "--engine"), (["--window", "0.5"], "--window")):
+                          (["--engine", "spark"], "--engine"), (["--window", "0.5"], "--window"),
+                          (["--window", "soon"], "--window")):
         p = _cli("run", str(dataset_dir), "--out", str(tmp_path / option.strip("-")), *extra)
         _, err = p.communicate(timeout=120)
         assert p.returncode == 2 and option in err, err
@@ -338,3 +339,43 @@ def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
     for a, b in zip(r1["detail"], r2["detail"]):
         assert {k: num(v) for k, v in json.loads(a).items()} == {k: num(v) for k, v in json.loads(b).items()}
     assert n2 == n1
+
+
+def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) -> pl.DataFrame:
+    us = t0_us + (pl.int_range(0, n, eager=True).cast(pl.Float64) * (span_s * US / max(n - 1, 1))).cast(pl.Int64)
+    return pl.DataFrame({"time": us.cast(pl.Datetime("us")).dt.replace_time_zone("UTC")})
+
+
+def test_auto_window_holds_about_the_report_budget():
+    """``--window auto``: windows of about the report budget at the mean rate, in whole minutes,
+    within 60 s – 1 h; one report dated year 9999 does not stretch the span (it would make the
+    window a thousand times longer), an untimed input gets the fixed default."""
+    from tertiary.engine import AUTO_WINDOW_BOUNDS_S, DEFAULT_WINDOW_S, ReportSource, auto_window_s, resolve_window
+    src = ReportSource(_timed_reports(36_000, 3600.0))                  # 10 reports/s
+    assert auto_window_s(src, 6_000) == 600.0
+    assert auto_window_s(src, 6_200) == 600.0                           # 620 s: whole minutes
+    assert auto_window_s(src, 10) == AUTO_WINDOW_BOUNDS_S[0]           # a busy recording: short windows
+    assert auto_window_s(src, 10_000_000) == AUTO_WINDOW_BOUNDS_S[1]   # a sparse one: long ones
+    from datetime import datetime, timezone
+    year_9999 = pl.DataFrame({"time": [datetime(9999, 1, 1, tzinfo=timezone.utc)]},
+                             schema={"time": pl.Datetime("us", "UTC")})
+    late = pl.concat([_timed_reports(36_000, 3600.0), year_9999])
+    assert auto_window_s(ReportSource(late), 6_000) == 600.0
+    assert auto_window_s(ReportSource(pl.DataFrame({"time": ["noon"] * 10})), 6_000) == DEFAULT_WINDOW_S
+    assert resolve_window("auto", _timed_reports(36_000, 3600.0).lazy()) == auto_window_s(src)
+    assert resolve_window(90, None) == 90.0 and resolve_window(None, None) is None
+
+
+def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
+    """The CLI's default ``--window`` is ``auto``, resolved once from the dataset and recorded in
+    the run record (which a resume compares)."""
+    from tertiary.engine import ReportSource, auto_window_s
+    from tertiary.simulate import read_dataset
+    p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "a"), "--filters", "", "--methods", "arithmetic",
+             "--no-centralized", "--no-report", "--quiet")
+    _, err = p.communicate(timeout=600)
+    assert p.returncode == 0, err
+    with RunStore.open(tmp_path / "a") as store:
+        rec = dict(store.con.sql("SELECT key, value FROM run").fetchall())
+    want = auto_window_s(ReportSource(read_dataset(dataset_dir, lazy=True).reports))
+    assert float(rec["window_s"]) == want
