@@ -5,7 +5,7 @@ longer recording is a longer recording of the same traffic, not the same 200 air
 thinner) for several durations with ``tertiary simulate --window 1800`` (partitioned Parquet,
 simulated from the traffic schedule window by window: issue 16 item 4; its wall time and peak
 memory are recorded per duration as ``simulations``), then runs ``tertiary run DATASET`` (the
-windowed engine, default window) on it in two
+windowed engine, default ``--window auto``) on it in two
 configurations, each in a fresh process, and records wall time, reports/s and the peak resident
 memory of the run process (``ru_maxrss`` of the child), and the
 run record's peak by the end of each stage (``memory_mib``: where the memory goes):
@@ -99,20 +99,22 @@ def _one(duration_s: float, config: str, work: Path, per_hour: float) -> dict:
             "reports": reports,
             "reports_per_s": round(reports / wall, 1) if reports else None,
             "peak_rss_mib": round(peak_mib, 1), "db_mb": round(db.stat().st_size / 1e6, 1) if db.exists() else None,
-            "peak_by_stage_mib": _memory_by_stage(db)}
+            "window_s": _recorded(db, "window_s"), "peak_by_stage_mib": _recorded(db, "memory_mib") or {},
+            "timings_s": {k: round(v, 1) for k, v in (_recorded(db, "timings") or {}).items()}}
 
 
-def _memory_by_stage(db: Path) -> dict[str, float]:
-    """The run record's peak memory by the end of each stage (where the memory goes)."""
+def _recorded(db: Path, key: str):
+    """A value of the run record: the window length (``--window auto`` sizes it from the
+    recording), the peak memory by the end of each stage (where the memory goes), the timings."""
     import duckdb
     if not db.exists():
-        return {}
+        return None
     con = duckdb.connect(str(db), read_only=True)
     try:
-        got = con.execute("SELECT value FROM run WHERE key = 'memory_mib'").fetchall()
+        got = con.execute("SELECT value FROM run WHERE key = ?", [key]).fetchall()
     finally:
         con.close()
-    return json.loads(got[0][0]) if got else {}
+    return json.loads(got[0][0]) if got else None
 
 
 def _reports_in(stdout: str) -> int:
@@ -155,7 +157,7 @@ def main() -> None:
         peaks = [r["peak_rss_mib"] for r in sims if r["peak_rss_mib"]]
         verdict["simulation"] = {"peak_max_mib": max(peaks), "spread": round(max(peaks) / min(peaks) - 1, 3)}
     path = record("bench_memory", {"runs": rows, "simulations": sims, "verdict": verdict,
-                                   "note": "windowed engine (default window); the finalize stage reads the whole "
+                                   "note": "windowed engine (default window: auto); the finalize stage reads the whole "
                                            "run's streamed tables"})
     print(json.dumps(verdict, indent=2))
     print(f"recorded in {path}")

@@ -1275,7 +1275,7 @@ def _run_window(window_s: float | str | None, ds: Dataset, cfg: PipelineConfig) 
     if not (isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW):
         return check_window(window_s)
     try:
-        return resolve_window(window_s, ds.reports, cfg.limits)
+        return resolve_window(window_s, ds.reports, cfg.limits, len(cfg.methods))
     except (pl.exceptions.PolarsError, OSError, ValueError, TypeError):  # fails again in validate, recorded there
         return DEFAULT_WINDOW_S
 
