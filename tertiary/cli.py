@@ -27,7 +27,7 @@ from rich.table import Table
 from typer.core import TyperGroup
 
 from tertiary import pipeline
-from tertiary.engine import AUTO_WINDOW, DEFAULT_WINDOW_S, check_window
+from tertiary.engine import AUTO_WINDOW, DEFAULT_WINDOW_S, check_window, is_auto
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.filters import REGISTRY
 from tertiary.fusion import ALL_METHODS, METHODS
@@ -185,7 +185,7 @@ def _window_option(text: str, engine: str) -> float | str | None:
     """``--window``: seconds (0: one window) or ``auto``, which the local engine sizes from the
     dataset (:func:`tertiary.engine.auto_window_s`) and the Dask engine reads as
     :data:`~tertiary.engine.DEFAULT_WINDOW_S` (its slices and overlaps are multiples of it)."""
-    if text.strip().lower() == AUTO_WINDOW:
+    if is_auto(text):
         return DEFAULT_WINDOW_S if engine == "dask" else AUTO_WINDOW
     (value,) = _floats(text, 1, "--window", "SECONDS or auto")
     return None if value == 0 else check_window(value)

@@ -128,11 +128,16 @@ def auto_window_s(source: "ReportSource", reports_per_window: int = WINDOW_REPOR
     return float(min(max(60.0 * round(raw / 60.0), lo), hi))
 
 
+def is_auto(window_s: object) -> bool:
+    """True for ``"auto"`` (any case, surrounding blanks ignored): :func:`auto_window_s` decides."""
+    return isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW
+
+
 def resolve_window(window_s: "float | str | None", reports: "pl.DataFrame | pl.LazyFrame",
                    limits: schema.Limits = schema.Limits(), methods: int = 1) -> float | None:
     """``window_s`` checked (:func:`check_window`), ``"auto"`` replaced by :func:`auto_window_s`
     of ``reports`` (one scan of its time column) for a run of ``methods`` fusion methods."""
-    if isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW:
+    if is_auto(window_s):
         return auto_window_s(ReportSource(reports, limits), max(1, WINDOW_REPORTS // max(1, int(methods))))
     return check_window(window_s)
 
@@ -313,7 +318,8 @@ class PartStore:
             d = self.dir / PARTS / name
             d.mkdir(parents=True, exist_ok=True)
             # lz4: the parts are scratch (read back once, removed when the run completes); on
-            # the run's tables it writes ~2x faster than zstd for ~20 % more bytes
+            # 60 000-row slices of the run's tables it wrote 1.6-3.3x faster than zstd for
+            # 12-33 % more bytes
             write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="lz4")
             self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
 

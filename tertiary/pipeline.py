@@ -50,7 +50,7 @@ from tertiary.flight_data import DepartureConfig, departure_plans, departure_ste
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
-                             Window, check_window, config_hash, peak_rss_mib, resolve_window, windows)
+                             Window, check_window, config_hash, is_auto, peak_rss_mib, resolve_window, windows)
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
@@ -1272,7 +1272,7 @@ def _run_window(window_s: float | str | None, ds: Dataset, cfg: PipelineConfig) 
     """:func:`tertiary.engine.resolve_window`; an input whose reports cannot even be scanned gets
     the default window, and the run itself then reports what is wrong with them (in the run
     record and the rejects, not as an error before the run directory exists)."""
-    if not (isinstance(window_s, str) and window_s.strip().lower() == AUTO_WINDOW):
+    if not is_auto(window_s):
         return check_window(window_s)
     try:
         return resolve_window(window_s, ds.reports, cfg.limits, len(cfg.methods))
