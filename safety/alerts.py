@@ -754,8 +754,9 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
         intervals = truth_intervals(truth, cfg, frame)
     looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
     rows = []
-    for mode, par, cc in _settings(cfg.conflict, confidences, fixed_est_h_m, looks):
-        c = _scored_rows(picture, cc, id_col, frame)
+    settings = _settings(cfg.conflict, confidences, fixed_est_h_m, looks)
+    scored = _scored_rows(picture, [cc for _, _, cc in settings], id_col, frame)
+    for (mode, par, cc), c in zip(settings, scored):
         acfg = dataclasses.replace(cfg, conflict=cc)
         alerts, los, grid = _score(c, id_map, truth, acfg, map_id_col or id_col, methods, frame, intervals)
         per = _per_method(alerts, los, grid)
@@ -777,27 +778,32 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
 CURVE_WINDOW_S = 3600.0
 
 
-def _scored_rows(picture: pl.DataFrame, cfg: ConflictConfig, id_col: str, frame: geo.LocalFrame | None,
-                 window_s: float | None = None) -> pl.DataFrame:
-    """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture``: its
-    alert rows and one row per (run, method, epoch) (the epoch grid of :func:`_grid`),
-    predicted window by window (:func:`~safety.conflicts.conflicts_step`, confirmation state
-    carried), so that a long picture's every screened pair is never held at once. The scores
-    equal those of the whole table."""
+def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: str, frame: geo.LocalFrame | None,
+                 window_s: float | None = None) -> list[pl.DataFrame]:
+    """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture`` under
+    each configuration of ``cfgs``: its alert rows and one row per (run, method, epoch) (the
+    epoch grid of :func:`_grid`), predicted window by window
+    (:func:`~safety.conflicts.conflicts_step`, each configuration's confirmation state
+    carried), so that a long picture's every screened pair is never held at once. Each window
+    of the picture is cut once for every configuration. The scores equal those of the whole
+    table."""
     if picture.height == 0:
-        return predict_conflicts(picture, cfg, id_col=id_col, frame=frame)
+        return [predict_conflicts(picture, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
     order = np.argsort(us, kind="stable")
     us = us[order]
     step = int(round((CURVE_WINDOW_S if window_s is None else window_s) * _US))
     edges = list(range(int(us[0]), int(us[-1]) + 1, step)) + [int(us[-1]) + 1]
-    state, parts = init_conflict_state(), []
+    states = [init_conflict_state() for _ in cfgs]
+    parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
     for t0, t1 in zip(edges[:-1], edges[1:]):
         lo, hi = np.searchsorted(us, [t0, t1])
-        out, state = conflicts_step(state, picture[order[lo:hi]], cfg, id_col, frame, t0, t1, slim=False)
-        grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
-        parts.append(pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))]))
-    return pl.concat(parts)
+        window = picture[order[lo:hi]]
+        for k, cfg in enumerate(cfgs):
+            out, states[k] = conflicts_step(states[k], window, cfg, id_col, frame, t0, t1, slim=False)
+            grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
+            parts[k].append(pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))]))
+    return [pl.concat(p) for p in parts]
 
 
 def compare_at_equal_nuisance(curve: pl.DataFrame, warning_s: float = 30.0, t_thr_s: float | None = None,

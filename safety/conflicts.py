@@ -238,10 +238,10 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
-from scipy.stats import chi2, norm
 
 from safety.confirmation import confirm_alerts
 from tertiary import geo
+from tertiary.distributions import chi2_ppf, norm_ppf
 from tertiary.schema import CLEARED_ALT_COLUMN, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN
 
 __all__ = [
@@ -597,12 +597,12 @@ class ConflictConfig:
     @property
     def k_h(self) -> float:
         """Horizontal confidence factor sqrt(χ²₂⁻¹(confidence))."""
-        return float(math.sqrt(chi2.ppf(self.confidence, 2)))
+        return float(math.sqrt(chi2_ppf(self.confidence, 2)))
 
     @property
     def k_v(self) -> float:
         """Vertical confidence factor Φ⁻¹((1 + confidence)/2)."""
-        return float(norm.ppf(0.5 * (1.0 + self.confidence)))
+        return float(norm_ppf(0.5 * (1.0 + self.confidence)))
 
     @property
     def pilot_h_at_t(self) -> float:

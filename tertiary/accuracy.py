@@ -79,8 +79,8 @@ from typing import Literal
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from tertiary.distributions import chi2_ppf
 from tertiary.schema import TABLES, TIME
 
 __all__ = [
@@ -320,8 +320,8 @@ def chi2_band(n, dof: int, band: float = 0.95):
     arr = np.asarray(n, dtype=float)
     with np.errstate(all="ignore"):
         safe = np.where(arr > 0, arr, np.nan)
-        lo = chi2.ppf((1 - band) / 2, dof * safe) / safe
-        hi = chi2.ppf((1 + band) / 2, dof * safe) / safe
+        lo = chi2_ppf((1 - band) / 2, dof * safe) / safe
+        hi = chi2_ppf((1 + band) / 2, dof * safe) / safe
     if arr.ndim == 0:
         return float(lo), float(hi)
     return lo, hi

@@ -59,7 +59,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from scipy.stats import chi2
+from tertiary.distributions import chi2_ppf
 
 from tertiary.errors import DataError, OptionError
 from tertiary.gating import GatingConfig, Pairs, candidate_pairs, group_index
@@ -317,7 +317,7 @@ def fine_identification(aligned: pl.DataFrame, pairs: Pairs, cfg: AssociationCon
     if stats is not None:
         stats.identity_conflicts = int(np.count_nonzero(conflict_any))
     pen_sq = cfg.identity_penalty * cfg.gating.pos_tol_m ** 2
-    pen_d2 = cfg.identity_penalty * chi2.ppf(cfg.gating.gate_prob, 3)
+    pen_d2 = cfg.identity_penalty * chi2_ppf(cfg.gating.gate_prob, 3)
     keep = ~drop
     return Pairs(pairs.a[keep], pairs.b[keep], (pairs.sqdist + n_pen * pen_sq)[keep],
                  (pairs.d2 + n_pen * pen_d2)[keep])

@@ -129,6 +129,7 @@ from tertiary import geo
 from tertiary.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel, predict,
                                quantisation_variance)
+from tertiary.distributions import chi2_ppf
 from tertiary.schema import (CLEARED_ALT_COLUMN, FUSED_EXTRA, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN,
                              is_sorted_by)
 
@@ -887,8 +888,7 @@ def mv_weights(res: F, fresh: B, u: F, a: F, dvar: F, lay: Layout, p_stay: float
 
 def chi2_threshold(prob: float, dof: int = 1) -> float:
     """χ²_m quantile of the gate: 9.0 for m = 1 at 2Φ(3) − 1 = 0.9973, 11.83 for m = 2."""
-    from scipy.stats import chi2
-    return float(chi2.ppf(prob, dof))
+    return float(chi2_ppf(prob, dof))
 
 
 def trace_test(nu: F, s: F, gamma: float = 3.0) -> B:

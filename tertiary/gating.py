@@ -27,7 +27,8 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
+
+from tertiary.distributions import chi2_ppf
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,7 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     ca, cb = cov_pos[a].reshape(-1, 3, 3), cov_pos[b].reshape(-1, 3, 3)
     d2 = position_mahalanobis(pos[a], pos[b], ca, cb) if len(a) else np.zeros(0)
     if cfg.method == "mahalanobis":
-        ok = d2 <= chi2.ppf(cfg.gate_prob, 3)
+        ok = d2 <= chi2_ppf(cfg.gate_prob, 3)
         a, b, d2 = a[ok], b[ok], d2[ok]
     elif cfg.method == "bayes":
         ok = d2 <= bayes_threshold(np.linalg.det(ca + cb), cfg.prior_h1, gate_volume(cfg)) if len(a) else d2 > 0

@@ -975,6 +975,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
+    from safety.alerts import truth_intervals
 
     alerts = pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
@@ -993,12 +994,15 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
             id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
                                           id_col: pl.UInt64, "truth_id": pl.Int64})
         acfg = AlertConfig(conflict=cfg.conflicts)
+        # the truth's LoS and proximity intervals, computed once for the alerts and every curve
+        # setting (they depend on the separation minima, which the curves do not vary)
+        intervals = truth_intervals(ing.truth, acfg, ds.origin)
         safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
-                                                    methods=methods, frame=ds.origin)
+                                                    methods=methods, frame=ds.origin, intervals=intervals)
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
-            curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods)
+            curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods, intervals)
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     metrics = _association_metrics(associations, stats, report_truth)
@@ -1160,25 +1164,23 @@ def _safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
 
 def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
                  id_map: pl.DataFrame, truth: pl.DataFrame, acfg, id_col: str, frame: geo.LocalFrame,
-                 methods: list[str]) -> pl.DataFrame:
+                 methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame]) -> pl.DataFrame:
     """The STCA trade-off curves of the safety picture: in one call when it is in memory, a
-    picture at a time (read from disk, the truth's separation intervals computed once) when
-    the run is on disk — each picture's curve depends on that picture alone."""
+    picture at a time (read from disk) when the run is on disk — each picture's curve depends
+    on that picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``."""
     from safety import stca_tradeoff
-    from safety.alerts import truth_intervals
     kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
-              fixed_est_h_m=cfg.stca_fixed_m)
+              fixed_est_h_m=cfg.stca_fixed_m, intervals=intervals)
     on_disk = tracks if id_col == "track_id" else fused
     if not isinstance(on_disk, _OnDisk) or not (on_disk.pictures if id_col == "track_id" else on_disk.shown):
         picture, _ = _safety_picture(cfg, fused, tracks, [])
         return stca_tradeoff(picture, id_map, truth, acfg, methods=methods, **kw)
-    intervals = truth_intervals(truth, acfg, frame)
     curves = []
     for get in (_track_pictures(tracks) if id_col == "track_id" else _fused_pictures(fused)):
         picture = get()
         name = picture["method"][0]
         curves.append(stca_tradeoff(picture, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],
-                                    intervals=intervals, **kw))
+                                    **kw))
         del picture
     curve = pl.concat(curves, how="vertical_relaxed")
     return curve.sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")

@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
-from scipy.stats import chi2
+
+from tertiary.distributions import chi2_ppf
 
 __all__ = ["HealthConfig", "nis_samples", "windowed_nis", "adaptive_r", "radar_health", "METRICS"]
 
@@ -86,7 +87,7 @@ def windowed_nis(samples: pl.DataFrame, cfg: HealthConfig = HealthConfig()) -> p
         pl.col("nis").rolling_mean_by("time", win).over(key).alias("nis_window"),
         pl.col("nis").is_finite().cast(pl.Float64).rolling_sum_by("time", win).over(key).alias("k"))
     k = out["k"].to_numpy()
-    out = out.with_columns(pl.Series("bound", chi2.ppf(cfg.alarm_prob, k) / k))
+    out = out.with_columns(pl.Series("bound", chi2_ppf(cfg.alarm_prob, k) / k))
     out = out.with_columns((pl.col("nis_window") > pl.col("bound")).alias("above"))
     episode = (pl.col("above") != pl.col("above").shift(1)).fill_null(True).cum_sum().over(key)
     held = (pl.col("time") - pl.col("time").first().over([*key, "__ep"])).dt.total_microseconds() * 1e-6
@@ -119,7 +120,7 @@ def radar_health(rows: pl.DataFrame, radars: pl.DataFrame, cfg: HealthConfig = H
     sig = radars.select(pl.col("radar_id").cast(pl.UInt32), (pl.col("sigma_range_m") ** 2).alias("sigma_r2"))
     s = windowed_nis(nis_samples(rows), cfg)
     s = adaptive_r(s, sig, cfg)
-    gate = chi2.ppf(cfg.gate_prob, 1)
+    gate = chi2_ppf(cfg.gate_prob, 1)
     key = ["run", "radar_id"]
     t_rel = (pl.col("time") - pl.col("time").min().over(key)).dt.total_microseconds() * 1e-6
     new_alarm = pl.col("alarm") & ~pl.col("alarm").shift(1).over(key).fill_null(False)

@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 import polars as pl
-from scipy import stats
 
+from tertiary.distributions import chi2_ppf, norm_ppf
 from tertiary.errors import DataError
 
 __all__ = ["Requirement", "Requirements", "SAMPLES", "load_requirements", "check_requirements",
@@ -183,15 +183,15 @@ def _bounds(kind: np.ndarray, upper: np.ndarray, value: np.ndarray, n: np.ndarra
     out = value.copy()
     with np.errstate(divide="ignore", invalid="ignore"):
         nn = np.maximum(n_ind, 1e-9)
-        rms = np.where(upper, np.sqrt(nn / stats.chi2.ppf(alpha, nn)), np.sqrt(nn / stats.chi2.ppf(1 - alpha, nn)))
+        rms = np.where(upper, np.sqrt(nn / chi2_ppf(alpha, nn)), np.sqrt(nn / chi2_ppf(1 - alpha, nn)))
         out = np.where(kind == "rms", value * rms, out)
-        z = stats.norm.ppf(1 - alpha)
+        z = norm_ppf(1 - alpha)
         p, m = np.clip(value, 0.0, 1.0), np.maximum(n, 1e-9)
         centre, half = (p + z * z / (2 * m)) / (1 + z * z / m), z * np.sqrt(p * (1 - p) / m + z * z / (4 * m * m)) / (1 + z * z / m)
         out = np.where(kind == "proportion", np.where(upper, centre + half, centre - half), out)
         k = np.maximum(value * n, 0.0)
-        lam_hi = stats.chi2.ppf(1 - alpha, 2 * k + 2) / (2 * m)
-        lam_lo = np.where(k > 0, stats.chi2.ppf(alpha, np.maximum(2 * k, 1e-9)) / (2 * m), 0.0)
+        lam_hi = chi2_ppf(1 - alpha, 2 * k + 2) / (2 * m)
+        lam_lo = np.where(k > 0, chi2_ppf(alpha, np.maximum(2 * k, 1e-9)) / (2 * m), 0.0)
         out = np.where(kind == "rate", np.where(upper, lam_hi, lam_lo), out)
     return out
 

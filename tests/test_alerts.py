@@ -345,8 +345,11 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
     Fails if the confirmation state is not carried across windows or the grid loses epochs."""
     import safety.alerts as alerts_mod
     pic = _picture(truth, noise=400.0)
-    for cc in (ConflictConfig(confirm_m=3, confirm_n=4),
-               ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3)):
+    ccs = (ConflictConfig(confirm_m=3, confirm_n=4),
+           ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3))
+    # every configuration predicted in one pass over the windows, each with its own state
+    together = {w: alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=w) for w in (12.0, 20.0, 1e6)}
+    for k, cc in enumerate(ccs):
         whole = predict_conflicts(pic, cc, id_col="target_id")
         assert whole.filter(~pl.col("alert")).height > 0 and whole["alert"].sum() > 0
         assert (whole["raw_alert"] & ~whole["alert"]).any()          # confirmation at work
@@ -357,7 +360,8 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
         idm = _id_map().filter(~pl.col("epoch").is_in(quiet.implode()))
         want = alert_episodes(whole, idm, truth, AlertConfig(conflict=cc), id_col="id")
         for w in (12.0, 20.0, 1e6):
-            rows = alerts_mod._scored_rows(pic, cc, "target_id", None, window_s=w)
+            rows = alerts_mod._scored_rows(pic, [cc], "target_id", None, window_s=w)[0]
+            assert together[w][k].equals(rows)
             assert rows.height < whole.height
             assert alerts_mod._grid(rows, idm, None).equals(alerts_mod._grid(whole, idm, None))
             got = alert_episodes(rows, idm, truth, AlertConfig(conflict=cc), id_col="id")
