@@ -39,8 +39,16 @@ from tertiary.simulate.config import ScenarioConfig, check_scenario, with_radar_
 # markup off everywhere: dataset text, reject reasons and query results may contain "[/...]"
 console = Console(markup=False, highlight=False, soft_wrap=False)
 err_console = Console(stderr=True, markup=False, highlight=False, soft_wrap=True)
-if not console.is_terminal:   # a batch log or a pipe: tables as wide as COLUMNS says, else 160
-    console.width = int(os.environ["COLUMNS"]) if os.environ.get("COLUMNS", "").isdigit() else 160
+
+
+def _batch_width() -> None:
+    """A batch log or a pipe: tables as wide as COLUMNS says, else 160 — read at each command,
+    not once at import, so a program that invokes several commands gets each one's width."""
+    if not console.is_terminal:
+        console.width = int(os.environ["COLUMNS"]) if os.environ.get("COLUMNS", "").isdigit() else 160
+
+
+_batch_width()
 
 DEFAULT_SCENARIO = "terminal-area"
 DEFAULT_METHODS = ",".join(METHODS)
@@ -100,6 +108,7 @@ def _root(ctx: typer.Context,
     (a limit would be exceeded). Add --debug before the command for a traceback."""
     ctx.obj = {"debug": debug}
     _LOG["mode"] = "text"             # per invocation (run/simulate may change it)
+    _batch_width()
 
 
 # --------------------------------------------------------------------------- progress

@@ -9,6 +9,15 @@ import pytest
 from tertiary.simulate import load_scenario, simulate
 
 
+@pytest.fixture(autouse=True)
+def _no_inherited_columns(monkeypatch):
+    """Every test starts without COLUMNS: the CLI's batch tables are as wide as COLUMNS says
+    (160 without it), and the pytest-xdist workers the suite runs in have COLUMNS=80 where a
+    plain ``pytest`` has none, so the tables would wrap otherwise. A test that wants a width
+    sets it."""
+    monkeypatch.delenv("COLUMNS", raising=False)
+
+
 @pytest.fixture(scope="session")
 def small_terminal():
     """Terminal-area with 30 aircraft, 4 radars, 10 minutes (a few seconds to build)."""

@@ -779,6 +779,17 @@ def test_cli_list(hand_run):
     assert "Accuracy by method and segment" in res.output
 
 
+def test_cli_tables_take_the_width_of_each_command(hand_run):
+    """In batch (not a terminal) a table is as wide as COLUMNS says when the command runs, not
+    when the CLI module was imported: fails with the width read once at import."""
+    widths = {}
+    for cols in (70, 200):
+        res = runner.invoke(app, ["sql", str(hand_run), "--list"], env={"COLUMNS": str(cols)})
+        assert res.exit_code == 0, res.output
+        widths[cols] = max(len(line) for line in res.output.splitlines())
+    assert widths[70] <= 70 < widths[200] <= 200
+
+
 def test_cli_named_report_table_and_params(hand_run):
     res = runner.invoke(app, ["sql", str(hand_run), "track_quality"], env={"COLUMNS": "250"})
     assert res.exit_code == 0, res.output
