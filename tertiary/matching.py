@@ -160,10 +160,11 @@ def _candidates(tr: pl.DataFrame, ref: pl.DataFrame, cfg: MatchConfig) -> tuple[
     pr = np.column_stack([ref["true_x_m"].to_numpy() + gr * off, ref["true_y_m"].to_numpy()])
     if len(pt) == 0 or len(pr) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    pairs = cKDTree(pr).query_ball_point(pt, r=cfg.gate_h_m)
-    lens = np.fromiter((len(p) for p in pairs), np.int64, len(pairs))
-    i = np.repeat(np.arange(len(pt)), lens)
-    j = np.fromiter((k for p in pairs for k in p), np.int64, int(lens.sum()))
+    # every (track row, reference row) within the gate in one call, no Python loop over rows;
+    # sorted by (i, j), the order a per-row ball query gave
+    near = cKDTree(pt).sparse_distance_matrix(cKDTree(pr), cfg.gate_h_m, output_type="ndarray")
+    order = np.lexsort((near["j"], near["i"]))
+    i, j = near["i"][order].astype(np.int64), near["j"][order].astype(np.int64)
     ht = tr.select(_height(tr)).to_series().to_numpy()
     hr = ref.select(_height(ref, "true_")).to_series().to_numpy()
     dh2 = ((pt[i] - pr[j]) ** 2).sum(axis=1) / cfg.gate_h_m ** 2

@@ -99,3 +99,33 @@ def test_a_reference_gap_longer_than_allowed_is_not_interpolated():
     assert loose.filter(hole)["truth_id"].null_count() == 0
     assert strict.filter(hole)["truth_id"].null_count() == strict.filter(hole).height > 0
     assert strict.filter(~hole)["truth_id"].null_count() == loose.filter(~hole)["truth_id"].null_count()
+
+
+def test_candidate_pairs_are_every_gated_pair_of_an_epoch_in_row_order():
+    """The gate search against brute force over every (track row, reference row) pair: same
+    (run, method, epoch), horizontal distance ≤ the gate, height difference ≤ the vertical gate
+    — each once, sorted by (track row, reference row), with its cost. Many rows near one
+    another at each epoch, so that a row has several candidates."""
+    from tertiary.matching import _candidates
+    rng = np.random.default_rng(5)
+    cfg = MatchConfig(gate_h_m=1000.0, gate_v_m=200.0)
+    n_t, n_r = 900, 700
+    ep = [T0 + timedelta(seconds=4 * k) for k in range(6)]
+    tr = pl.DataFrame({"run": rng.integers(0, 2, n_t).astype(np.uint32), "method": rng.choice(["a", "b"], n_t),
+                       "epoch": [ep[k] for k in rng.integers(0, len(ep), n_t)], "x_m": rng.uniform(0, 4000, n_t), "y_m": rng.uniform(0, 4000, n_t),
+                       "z_m": rng.uniform(2800, 3200, n_t)})
+    ref = pl.DataFrame({"run": rng.integers(0, 2, n_r).astype(np.uint32), "method": rng.choice(["a", "b"], n_r),
+                        "epoch": [ep[k] for k in rng.integers(0, len(ep), n_r)], "true_x_m": rng.uniform(0, 4000, n_r),
+                        "true_y_m": rng.uniform(0, 4000, n_r), "true_z_m": rng.uniform(2800, 3200, n_r)})
+    i, j, cost = _candidates(tr, ref, cfg)
+    a = tr.with_row_index("i").join(ref.with_row_index("j"), on=["run", "method", "epoch"])
+    dh2 = ((a["x_m"] - a["true_x_m"]) ** 2 + (a["y_m"] - a["true_y_m"]) ** 2).to_numpy()
+    dv = (a["z_m"] - a["true_z_m"]).abs().to_numpy()
+    keep = (dh2 <= cfg.gate_h_m ** 2) & (dv <= cfg.gate_v_m)
+    want = np.lexsort((a["j"].to_numpy()[keep], a["i"].to_numpy()[keep]))
+    wi, wj = a["i"].to_numpy()[keep][want], a["j"].to_numpy()[keep][want]
+    assert len(wi) > n_t                      # several candidates per row: the test has teeth
+    np.testing.assert_array_equal(i, wi)
+    np.testing.assert_array_equal(j, wj)
+    np.testing.assert_allclose(cost, dh2[keep][want] / cfg.gate_h_m ** 2 + (dv[keep][want] / cfg.gate_v_m) ** 2,
+                               rtol=1e-9)
