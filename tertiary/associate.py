@@ -60,7 +60,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tertiary.distributions import chi2_ppf
-
 from tertiary.errors import DataError, OptionError
 from tertiary.gating import GatingConfig, Pairs, candidate_pairs, group_index
 
