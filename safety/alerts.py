@@ -92,6 +92,8 @@ look-ahead vary; the two threshold families compared at equal nuisance + false r
 from __future__ import annotations
 
 import dataclasses
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -777,6 +779,10 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
 #: the time windows the trade-off curves predict conflicts in (memory bounded by the window)
 CURVE_WINDOW_S = 3600.0
 
+#: settings of the curves predicted at once, in threads: each setting's prediction is
+#: independent and most of its time is spent in numpy, polars and the KD-tree, outside the GIL
+CURVE_THREADS = min(2, os.cpu_count() or 1)
+
 
 def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: str, frame: geo.LocalFrame | None,
                  window_s: float | None = None) -> list[pl.DataFrame]:
@@ -785,8 +791,8 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     epoch grid of :func:`_grid`), predicted window by window
     (:func:`~safety.conflicts.conflicts_step`, each configuration's confirmation state
     carried), so that a long picture's every screened pair is never held at once. Each window
-    of the picture is cut once for every configuration. The scores equal those of the whole
-    table."""
+    of the picture is cut once for every configuration, and the configurations are predicted
+    :data:`CURVE_THREADS` at a time. The scores equal those of the whole table."""
     if picture.height == 0:
         return [predict_conflicts(picture, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
@@ -796,13 +802,19 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     edges = list(range(int(us[0]), int(us[-1]) + 1, step)) + [int(us[-1]) + 1]
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
-    for t0, t1 in zip(edges[:-1], edges[1:]):
-        lo, hi = np.searchsorted(us, [t0, t1])
-        window = picture[order[lo:hi]]
-        for k, cfg in enumerate(cfgs):
-            out, states[k] = conflicts_step(states[k], window, cfg, id_col, frame, t0, t1, slim=False)
-            grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
-            parts[k].append(pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))]))
+    with ThreadPoolExecutor(CURVE_THREADS) as pool:
+        for t0, t1 in zip(edges[:-1], edges[1:]):
+            lo, hi = np.searchsorted(us, [t0, t1])
+            window = picture[order[lo:hi]]
+
+            def one(k: int, window=window, t0=t0, t1=t1):
+                out, state = conflicts_step(states[k], window, cfgs[k], id_col, frame, t0, t1, slim=False)
+                grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
+                return state, pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
+
+            for k, (state, rows) in enumerate(pool.map(one, range(len(cfgs)))):
+                states[k] = state
+                parts[k].append(rows)
     return [pl.concat(p) for p in parts]
 
 
