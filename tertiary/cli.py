@@ -364,13 +364,13 @@ def simulate(
                                 (cfg.national.block_s if cfg.national else None), progress=say)
         console.print(f"wrote {out}/ ({done['reports']:,} reports, {done['truth_rows']:,} truth rows in "
                       f"{len(done['parts'])} parts, {len(cfg.radars)} radars, {cfg.runs} run(s)) in "
-                      f"{time.perf_counter() - t:.1f} s")
+                      f"{time.perf_counter() - t:.1f} s", soft_wrap=True)
         return
     with _Steps(f"simulate {cfg.name}") as say:
         ds = _simulate(cfg, progress=say)
     write_dataset(ds, out)
     console.print(f"wrote {out}/ ({ds.reports.height:,} reports, {ds.truth.height:,} truth rows, "
-                  f"{len(cfg.radars)} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s")
+                  f"{len(cfg.radars)} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s", soft_wrap=True)
     if ds.removed.height:
         console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet)")
     if fmt == "asterix":
@@ -828,12 +828,12 @@ def evaluate_cmd(
     if reqs is not None:
         _print_frame(ev.requirements.select("requirement", "method", "metric", "breakdown", "threshold", "value",
                                             "n_samples", "verdict"), "Requirements", 200)
-    console.print(f"results: {out / 'results.duckdb'}")
+    console.print(f"results: {out / 'results.duckdb'}", soft_wrap=True)
     if report:
         from tertiary.report import build_report
         with _Steps("report") as say:
             html = build_report(out, progress=say)
-        console.print(f"report:  {html}")
+        console.print(f"report:  {html}", soft_wrap=True)
 
 
 @app.command("report")
@@ -851,7 +851,8 @@ def report_cmd(
     t = time.perf_counter()
     with _Steps("report") as say:
         path = build_report(run_dir, out, progress=say)
-    console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t:.1f} s")
+    console.print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - t:.1f} s",
+                  soft_wrap=True)
 
 
 # --------------------------------------------------------------------------- sql

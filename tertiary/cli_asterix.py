@@ -142,4 +142,4 @@ def export_asterix(
     n = export_picture(frame, geo.LocalFrame(*origin), out)
     console.print(f"wrote {out} ({n:,} CAT062 records, {out.stat().st_size / 1e6:.2f} MB) in "
                   f"{time.perf_counter() - t:.1f} s; system origin {origin[0]:.5f}, {origin[1]:.5f}"
-                  + ("" if math.isfinite(origin[2]) else ""))
+                  + ("" if math.isfinite(origin[2]) else ""), soft_wrap=True)

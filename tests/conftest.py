@@ -3,19 +3,18 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 
 import pytest
 
 from tertiary.simulate import load_scenario, simulate
 
 
-@pytest.fixture(autouse=True)
-def _no_inherited_columns(monkeypatch):
-    """Every test starts without COLUMNS: the CLI's batch tables are as wide as COLUMNS says
-    (160 without it), and the pytest-xdist workers the suite runs in have COLUMNS=80 where a
-    plain ``pytest`` has none, so the tables would wrap otherwise. A test that wants a width
-    sets it."""
-    monkeypatch.delenv("COLUMNS", raising=False)
+# The suite runs without COLUMNS: the CLI's batch tables are as wide as COLUMNS says (160
+# without it), and the pytest-xdist workers start with COLUMNS=80 where a plain ``pytest`` has
+# none (nor should a developer's shell change what the tests see). A test that wants a width
+# sets it for its command.
+os.environ.pop("COLUMNS", None)
 
 
 @pytest.fixture(scope="session")

@@ -43,6 +43,14 @@ def run_dir(tmp_path_factory):
     return out
 
 
+def test_a_narrow_batch_log_never_breaks_the_report_path(run_dir):
+    """In a batch log narrower than the line, the path of the written report stays whole (a
+    path broken across lines cannot be copied): fails when the line is wrapped at COLUMNS."""
+    res = runner.invoke(app, ["report", str(run_dir)], env={"COLUMNS": "40"})
+    assert res.exit_code == 0, res.output
+    assert str(run_dir / REPORT_FILENAME) in res.output.splitlines()[-1]
+
+
 @pytest.fixture(scope="module")
 def page(run_dir) -> str:
     return (run_dir / REPORT_FILENAME).read_text(encoding="utf-8")
