@@ -9,6 +9,7 @@ console here has markup switched off, and help text is printed as plain text.
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import json
 import math
@@ -99,6 +100,22 @@ app = typer.Typer(cls=_Boundary, add_completion=False, no_args_is_help=False, ri
                   help="Tertiary processing of multi-radar surveillance data and safety evaluation.")
 
 
+def one_malloc_arena() -> bool:
+    """One glibc malloc arena for the process (True when set; False off glibc). Worker threads
+    (the STCA curves predict two settings at a time) would each get an arena whose freed memory
+    glibc keeps: on the default job the peak was 1 222 MiB with them, 1 040 MiB with one arena
+    set here (977 MiB before the threads), at the same speed. Polars and DuckDB allocate with
+    their own allocators, untouched."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(_M_ARENA_MAX, 1))
+    except (OSError, AttributeError):      # not glibc (macOS, musl): nothing to set
+        return False
+
+
+_M_ARENA_MAX = -8          # glibc's malloc.h
+
+
 @app.callback()
 def _root(ctx: typer.Context,
           debug: Annotated[bool, typer.Option("--debug", help="show the full traceback of an error")] = False) -> None:
@@ -109,6 +126,7 @@ def _root(ctx: typer.Context,
     ctx.obj = {"debug": debug}
     _LOG["mode"] = "text"             # per invocation (run/simulate may change it)
     _batch_width()
+    one_malloc_arena()                # the process is the command's: before any worker thread
 
 
 # --------------------------------------------------------------------------- progress
@@ -993,6 +1011,7 @@ from tertiary.cli_asterix import export_app, import_app  # noqa: E402  (sub-apps
 
 app.add_typer(import_app, name="import")
 app.add_typer(export_app, name="export")
+
 
 
 def main() -> None:  # pragma: no cover

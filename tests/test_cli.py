@@ -242,3 +242,11 @@ def test_adsb_requires_truth(tmp_path):
 def test_unknown_scenario(tmp_path):
     res = runner.invoke(app, ["simulate", "nowhere", "--out", str(tmp_path / "x")])
     assert res.exit_code == 2 and "nowhere" in res.output and "Traceback" not in res.output
+
+
+def test_one_malloc_arena_is_set_on_glibc():
+    """The CLI limits glibc to one malloc arena (threads would each keep one): set on glibc,
+    a no-op elsewhere."""
+    import platform
+    from tertiary.cli import one_malloc_arena
+    assert one_malloc_arena() is (platform.libc_ver()[0] == "glibc")
