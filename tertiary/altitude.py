@@ -396,6 +396,7 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
                      ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
     """:func:`filter_tracks_carry` by :func:`tertiary.altitude_kernel._filter`."""
     from tertiary.altitude_kernel import _filter
+    from tertiary.kernels import arg, ready_for
     qs, sojourn = _models(cfg)
     n, k = len(t), len(starts)
     c0 = FilterCarry.fresh(k, cfg) if init is None else init
@@ -404,11 +405,13 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
                         np.array(c0.last_id, np.int64), np.array(c0.post, np.float64), np.array(c0.has, bool))
     out = np.full((5, n), np.nan)
     has, rejected = np.zeros(n, bool), np.zeros(n, bool)
-    ids = np.full(n, -1, np.int64) if ident is None else np.ascontiguousarray(ident, np.int64)
-    f64 = lambda a: np.ascontiguousarray(a, np.float64)     # noqa: E731
+    ids = np.full(n, -1, np.int64) if ident is None else arg(ident, np.int64)
     weak = -1.0 if cfg.unconfirmed_sigma_m is None else float(cfg.unconfirmed_sigma_m) ** 2
-    _filter(f64(t), f64(z), f64(var), ids, np.ascontiguousarray(starts, np.int64),
-            np.ascontiguousarray(lengths, np.int64), np.array(qs, np.float64), np.array(sojourn, np.float64),
+    ready_for("altitude")
+    # every array writable and contiguous (kernels.arg): one compiled signature, not one per
+    # read-only column the caller happens to pass
+    _filter(arg(t), arg(z), arg(var), ids, arg(starts, np.int64), arg(lengths, np.int64),
+            arg(qs), arg(sojourn),
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
             carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id, carry.post,
             carry.has, out, has, rejected)

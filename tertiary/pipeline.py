@@ -54,6 +54,8 @@ from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREA
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
+from tertiary.kernels import kernels_for
+from tertiary.kernels import warm as warm_kernels
 from tertiary.store import RunStore, record_run
 
 if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
@@ -446,6 +448,8 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
     """
     cfg = adapt_to_scenario(check_config(cfg), ds)
     window_s = check_window(window_s)
+    # a fresh install compiles the kernels on the other core while the first stages run
+    warm_kernels(kernels_for(cfg.filters))
     clock = _Clock(progress or (lambda _m: None))
     sink = sink or (lambda _n, _f: None)
     parts = parts if parts is not None else MemoryParts()
@@ -1300,6 +1304,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     """
     t_wall = time.perf_counter()
     cfg = adapt_to_scenario(check_config(cfg), ds)
+    warm_kernels(kernels_for(cfg.filters))      # before anything reads the input (process: again, a no-op)
     window_s = _run_window(window_s, ds, cfg)
     say = progress or (lambda _m: None)
     out = Path(out_dir)

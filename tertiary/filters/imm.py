@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
 from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.kernels import arg, ready_for
 
 #: paper's model set (rad/s; 0 = CV), TPM and normalised μ₀ (digest §2.7, table 2.6 row 20)
 PAPER_OMEGAS = (0.001, 0.045, 0.0)
@@ -480,9 +481,16 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
     muo = mu.copy()
     xvo = xv.copy()
     pvo = pv.copy()
-    nu_o = np.full((b_n, 3), np.nan)
-    s_o = np.full((b_n, 3), np.nan)
-    nis_o = np.full(b_n, np.nan)
+    # np.full and ndarray.max written as loops: their library implementations cost ~1.4 s of
+    # compilation on a fresh install (issue 18: the first run), the loops nothing
+    nu_o = np.empty((b_n, 3))
+    s_o = np.empty((b_n, 3))
+    nis_o = np.empty(b_n)
+    for b in range(b_n):
+        nis_o[b] = np.nan
+        for n in range(3):
+            nu_o[b, n] = np.nan
+            s_o[b, n] = np.nan
     xc = np.empty(4)
     k = np.empty((4, 2))
     ks = np.empty((4, 2))
@@ -558,7 +566,10 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
             sn1 = i10 * v0 + i11 * v1
             loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
             lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
-        top = lw.max()
+        top = lw[0]
+        for j in range(1, m_n):            # NaN wins, as in ndarray.max
+            if lw[j] > top or lw[j] != lw[j]:
+                top = lw[j]
         tot = 0.0
         for j in range(m_n):
             lw[j] = np.exp(lw[j] - top)
@@ -680,10 +691,10 @@ class IMMFilter(TrackFilter):
     def predict(self, state: State, dt: F64) -> State:
         dt = np.broadcast_to(np.asarray(dt, float), (len(state["mu"]),))
         if self._q_iso is not None and len(dt):
-            c = np.ascontiguousarray
+            ready_for("imm_predict")
             x, p, cbar, xv, pv = _imm_predict_nb()(
-                c(state["x"], float), c(state["P"], float), c(state["mu"], float), c(dt), self._omegas,
-                c(self.core.tpm), self._q_iso, c(state["xv"], float), c(state["Pv"], float), self.q_z)
+                arg(state["x"]), arg(state["P"]), arg(state["mu"]), arg(dt), arg(self._omegas),
+                arg(self.core.tpm), self._q_iso, arg(state["xv"]), arg(state["Pv"]), self.q_z)
             return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
         x, p, cbar = self.core.predict(state["x"], state["P"], state["mu"], dt)
         xv, pv = _cv1_predict(state["xv"], state["Pv"], dt, self.q_z)
@@ -702,10 +713,10 @@ class IMMFilter(TrackFilter):
         rh, rz = self._split_r(np.asarray(r, float))
         ok = mask & np.all(np.isfinite(z), axis=1)
         if self._q_iso is not None and len(ok):
-            c = np.ascontiguousarray
+            ready_for("imm_update")
             x, p, mu, xv, pv, nu, s, nis = _imm_update_nb()(
-                c(state["x"], float), c(state["P"], float), c(state["mu"], float), c(state["xv"], float),
-                c(state["Pv"], float), c(z), c(rh, float), c(rz, float), c(ok), self.core.mu_floor)
+                arg(state["x"]), arg(state["P"]), arg(state["mu"]), arg(state["xv"]), arg(state["Pv"]), arg(z),
+                arg(rh), arg(rz), arg(ok, np.bool_), float(self.core.mu_floor))
             return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}, Innovation(nu, s, nis)
         zz = np.where(ok[:, None], z, 0.0)
         rh = np.where(ok[:, None, None], rh, np.eye(2))

@@ -1,0 +1,82 @@
+"""The compiled kernels: one signature each, warmed in the background on a fresh install
+(issue 18: compilation must not make a fresh install's first run much slower).
+
+* Whatever arrays a caller passes (read-only columns, strided views, other dtypes), each kernel
+  is compiled for the one signature :data:`tertiary.kernels.KERNELS` declares. Oracle: numba's
+  own list of the dispatcher's compiled signatures.
+* :func:`tertiary.kernels.warm` compiles a kernel into numba's cache in another process, and the
+  run's first call then loads it instead of compiling. Oracle: numba's cache statistics, in a
+  fresh process with an empty cache directory.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+from tertiary import kernels
+from tertiary.altitude import AltitudeConfig, filter_tracks_carry
+from tertiary.filters import make_filter
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a = np.array(a)
+    a.flags.writeable = False        # what a polars column gives through to_numpy()
+    return a
+
+
+def test_each_kernel_is_compiled_for_its_one_declared_signature():
+    rng = np.random.default_rng(3)
+    n = 40
+    t = np.sort(rng.uniform(0.0, 200.0, n))
+    z = 3000.0 + rng.normal(0.0, 20.0, n)
+    var = np.full(n, 400.0)
+    starts, lengths = np.array([0, 20]), np.array([20, 20])
+    # read-only, strided and int32/float32 inputs: each used to be (or would be) a signature of its own
+    filter_tracks_carry(_read_only(t), _read_only(z)[::1], var.astype(np.float32), starts.astype(np.int32),
+                        _read_only(lengths), AltitudeConfig(), ident=_read_only(np.arange(n) // 20))
+    filter_tracks_carry(t, z, var, starts, lengths, AltitudeConfig())
+    flt = make_filter("imm_sym")
+    b = 3
+    st = flt.init(rng.normal(0.0, 1e3, (b, 3)), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)))
+    st = {k: _read_only(v) for k, v in st.items()}
+    pred = flt.predict(st, _read_only(np.full(b, 4.0)))
+    flt.update(pred, _read_only(rng.normal(0.0, 1e3, (b, 3))), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)),
+               _read_only(np.ones(b, bool)))
+    for name, get in kernels.KERNELS.items():
+        disp, sig = get()
+        assert [tuple(s) for s in disp.signatures] == [tuple(sig)], name
+
+
+def test_warm_compiles_into_the_cache_and_the_first_call_loads_it(tmp_path):
+    script = textwrap.dedent("""
+        import numpy as np
+        from tertiary import kernels
+        from tertiary.altitude import AltitudeConfig, filter_tracks_carry
+        from tertiary.altitude_kernel import _filter
+        assert not kernels.is_cached("altitude")
+        assert kernels.warm(["altitude"]) == ["altitude"]
+        assert kernels.warm(["altitude"]) == []          # one compilation, not two
+        kernels.ready_for("altitude")
+        assert kernels.is_cached("altitude")
+        t = np.arange(10.0)
+        filter_tracks_carry(t, 1000.0 + t, np.full(10, 100.0), np.array([0]), np.array([10]), AltitudeConfig())
+        stats = _filter.stats
+        assert sum(stats.cache_hits.values()) == 1 and not stats.cache_misses, stats
+        print("ok")
+    """)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+    assert any((tmp_path / "numba").rglob("*_filter*.nbc"))
+
+
+def test_a_run_warms_only_the_kernels_its_filters_call():
+    assert kernels.kernels_for(()) == ["altitude"]
+    assert kernels.kernels_for(("singer",)) == ["altitude"]
+    assert kernels.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
+    assert kernels.kernels_for(("no-such-filter",)) == ["altitude"]
