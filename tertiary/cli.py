@@ -535,6 +535,10 @@ def run(
     if range_channel is not None:
         cfg = _local_range_channel(cfg, range_channel, range_variant)
     pipeline.check_config(cfg)
+    # a fresh install compiles the kernels in the background from here, while the job simulates
+    # or reads its input (the pipeline would start it only once the input is read)
+    from tertiary.kernels import kernels_for, warm
+    warm(kernels_for(cfg.filters))
     sim = dict(runs=runs, seed=seed, aircraft=aircraft, radars=radars, duration=duration, truth=truth,
                noise_factor=noise_factor, noise_window=noise_window, dropout=dropout, outliers=outliers,
                bias_step=bias_step)

@@ -107,6 +107,24 @@ def kernels_for(filters: Iterable[str]) -> list[str]:
 GROUPS: tuple[tuple[str, ...], ...] = (("altitude",), ("imm_predict", "imm_update"))
 
 
+#: this package's directory: the background process compiles these very sources
+_PKG = os.path.dirname(os.path.abspath(__file__))
+
+#: the background process: this package and its ``filters`` subpackage as bare namespaces, so
+#: that it imports the kernels' modules only (numpy, numba, scipy.linalg), not the whole
+#: package (polars, duckdb, plotly …: ~1.3 s that the run's first fusion would wait for)
+_BOOT = """
+import os, sys, types
+pkg = sys.argv[1]
+for name, path in (("tertiary", pkg), ("tertiary.filters", os.path.join(pkg, "filters"))):
+    mod = types.ModuleType(name)
+    mod.__path__ = [path]
+    sys.modules[name] = mod
+from tertiary.kernels import main
+main(sys.argv[2:])
+"""
+
+
 def warm(names: Iterable[str]) -> list[str]:
     """Start compiling into numba's cache, in the background (one process per :data:`GROUPS`
     entry), the kernels of ``names`` it does not hold; returns those started. A failure there
@@ -118,10 +136,9 @@ def warm(names: Iterable[str]) -> list[str]:
             todo = [n for n in group if n in wanted and n not in _jobs and not is_cached(n)]
             if not todo:
                 continue
-            env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
             try:
-                job = subprocess.Popen([sys.executable, "-m", "tertiary.kernels", *(["--nice"] if rank else []),
-                                        *todo], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                job = subprocess.Popen([sys.executable, "-c", _BOOT, _PKG, *(["--nice"] if rank else []), *todo],
+                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                        stderr=subprocess.DEVNULL)
             except (OSError, ValueError):   # no interpreter to start: the run compiles as before
                 continue
@@ -151,8 +168,9 @@ def _compile(name: str) -> float:
 
 
 def main(argv: list[str]) -> None:
-    """``python -m tertiary.kernels [--nice] NAME...``: compile the kernels into numba's cache
-    (``--nice``: at a lower priority than the run that started it)."""
+    """``[--nice] NAME...``: compile the kernels into numba's cache (``--nice``: at a lower
+    priority than the run that started it). :data:`_BOOT` calls it; so does
+    ``python -m tertiary.kernels``."""
     if argv[:1] == ["--nice"]:
         argv = argv[1:]
         try:
