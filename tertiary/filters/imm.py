@@ -599,13 +599,15 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
 @cache
 def _imm_update_nb():  # noqa: ANN202 - the compiled kernel (numba's on-disk cache)
     import numba
-    return numba.njit(cache=True, nogil=True)(_imm_update_py)
+    # error_model="numpy": x / 0 is inf or nan, as on the numpy path (not an exception), and
+    # ~0.6 s less compilation without the zero checks
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(_imm_update_py)
 
 
 @cache
 def _imm_predict_nb():  # noqa: ANN202 - the compiled kernel, built (or loaded from numba's cache) on first use
     import numba
-    return numba.njit(cache=True, nogil=True)(_imm_predict_py)
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(_imm_predict_py)
 
 
 # --------------------------------------------------------------------------- TrackFilter
