@@ -22,7 +22,8 @@ run, so the peak grows with the duration; the benchmark measures by how much.
     python benchmarks/bench_memory.py [--durations 3600,14400,43200] [--configs production,full]
                                       [--aircraft-per-hour 200] [--full-max-s 14400]
 
-Results: ``benchmarks/results/bench_memory.json``.
+Results: ``benchmarks/results/bench_memory.json`` (a configuration not run keeps its recorded
+rows, marked with the date they were measured).
 """
 
 from __future__ import annotations
@@ -124,6 +125,19 @@ def _reports_in(stdout: str) -> int:
     return 0
 
 
+def _kept_rows(configs: list[str]) -> list[dict]:
+    """The recorded rows of the configurations not run this time, each with the date it was
+    measured (``measured_utc``), so that a partial rerun does not erase them."""
+    from _util import RESULTS
+    path = RESULTS / "bench_memory.json"
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    when = old.get("machine", {}).get("date_utc")
+    return [{**r, "measured_utc": r.get("measured_utc", when)} for r in old.get("runs", [])
+            if r.get("config") not in configs]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--durations", default="3600,14400,43200")
@@ -156,6 +170,7 @@ def main() -> None:
     if sims:
         peaks = [r["peak_rss_mib"] for r in sims if r["peak_rss_mib"]]
         verdict["simulation"] = {"peak_max_mib": max(peaks), "spread": round(max(peaks) / min(peaks) - 1, 3)}
+    rows += _kept_rows(configs)
     path = record("bench_memory", {"runs": rows, "simulations": sims, "verdict": verdict,
                                    "note": "windowed engine (default window: auto); the finalize stage reads the whole "
                                            "run's streamed tables"})
