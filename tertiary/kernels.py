@@ -76,7 +76,7 @@ _lock = threading.Lock()
 def is_cached(name: str) -> bool:
     """Whether kernel ``name`` is compiled in this process or numba's cache holds its signature."""
     disp, sig = KERNELS[name]()
-    if disp.signatures:
+    if not hasattr(disp, "signatures") or disp.signatures:   # NUMBA_DISABLE_JIT: nothing to compile
         return True
     try:                # numba's cache index for this source, read without loading the code
         cache = disp._cache

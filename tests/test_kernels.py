@@ -80,3 +80,14 @@ def test_a_run_warms_only_the_kernels_its_filters_call():
     assert kernels.kernels_for(("singer",)) == ["altitude"]
     assert kernels.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
     assert kernels.kernels_for(("no-such-filter",)) == ["altitude"]
+
+
+def test_nothing_is_warmed_when_numba_compiles_nothing():
+    """NUMBA_DISABLE_JIT (a debugging switch) leaves plain functions: no background process, no error."""
+    script = ("from tertiary import kernels\n"
+              "assert all(kernels.is_cached(n) for n in kernels.KERNELS)\n"
+              "assert kernels.warm(list(kernels.KERNELS)) == []\n"
+              "print('ok')\n")
+    out = subprocess.run([sys.executable, "-c", script], env=dict(os.environ, NUMBA_DISABLE_JIT="1"),
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
