@@ -35,16 +35,19 @@ import pickle
 import resource
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import polars as pl
 
 from tertiary import schema
 from tertiary.errors import DataError, OptionError
+
+T = TypeVar("T")
 
 US = 1_000_000
 #: the end of time on the grid (µs): the last window is open-ended so that every carried row
@@ -380,6 +383,26 @@ class MemoryParts:
     def table(self, name: str) -> pl.DataFrame | None:
         parts = self.frames.get(name)
         return _concat(parts) if parts else None
+
+
+_END = object()
+
+
+def prefetched(items: Iterable[T]) -> Iterator[T]:
+    """``items`` in order, the next one produced in a background thread while the caller handles
+    the current one: reading and preparing a window's part (polars, which releases the GIL)
+    overlaps with storing the previous one (DuckDB, likewise) on the second core. One item
+    ahead: two windows' parts in memory at most. An exception while producing an item is
+    raised where that item is taken."""
+    it = iter(items)
+    with ThreadPoolExecutor(1, thread_name_prefix="prefetch") as pool:
+        ahead = pool.submit(next, it, _END)
+        while True:
+            item = ahead.result()
+            if item is _END:
+                return
+            ahead = pool.submit(next, it, _END)
+            yield item
 
 
 def _present(path: Path, columns: list[str]) -> list[str]:

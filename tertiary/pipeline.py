@@ -50,13 +50,14 @@ from tertiary.flight_data import DepartureConfig, departure_plans, departure_ste
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
-                             Window, check_window, config_hash, is_auto, peak_rss_mib, resolve_window, windows)
+                             Window, check_window, config_hash, is_auto, peak_rss_mib, prefetched, resolve_window,
+                             windows)
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.kernels import kernels_for
 from tertiary.kernels import warm as warm_kernels
-from tertiary.store import RunStore, record_run
+from tertiary.store import RunStore, compact_covariances, record_run
 
 if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
     from safety.conflicts import ConflictConfig
@@ -797,7 +798,7 @@ class _OnDisk:
         weakref.finalize(self, shutil.rmtree, self.dir, True)
         self.index: dict[tuple, int] = {}
         first, slim = None, []
-        for w, part in enumerate(parts.iter_parts(name)):        # one pass over the parts
+        for w, part in enumerate(prefetched(parts.iter_parts(name))):   # one pass; the next part read meanwhile
             first = part.clear() if first is None else first
             slim.append(part.select(c for c in ("run", "method", "filter", "target_id", "tentative")
                                     if c in part.columns))
@@ -895,7 +896,9 @@ def store_sink(store: RunStore, notes: list[str]) -> Sink:
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
         if isinstance(frame, StreamedTable):
-            store.write_parts(name, lambda: (storable(f, name) for f in frame.parts()))
+            # the next window's part is read and compacted while this one is inserted
+            store.write_parts(name, lambda: prefetched(compact_covariances(storable(f, name))
+                                                       for f in frame.parts()))
         elif frame.width:
             store.write(name, storable(frame, name))
     return sink

@@ -384,3 +384,33 @@ def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
         rec = dict(store.con.sql("SELECT key, value FROM run").fetchall())
     want = auto_window_s(ReportSource(read_dataset(dataset_dir, lazy=True).reports))
     assert float(rec["window_s"]) == want
+
+
+def test_prefetched_keeps_order_reads_one_ahead_and_raises_where_the_item_is_taken():
+    from tertiary.engine import prefetched
+    made: list[int] = []
+
+    def items(fail_at: int | None = None):
+        for k in range(6):
+            if k == fail_at:
+                raise ValueError(f"item {k}")
+            made.append(k)
+            yield k
+
+    got = []
+    for k in prefetched(items()):
+        time.sleep(0.01)                      # the producer has time to run ahead, if it would
+        assert len(made) <= k + 2             # never more than one item ahead of the caller
+        got.append(k)
+    assert got == list(range(6))
+    made.clear()
+    seen = []
+    with pytest.raises(ValueError, match="item 3"):
+        for k in prefetched(items(fail_at=3)):
+            seen.append(k)
+    assert seen == [0, 1, 2]                  # the items before the failure were all handed over
+    made.clear()
+    for k in prefetched(items()):             # a caller that stops early: no hang, no further reads
+        if k == 1:
+            break
+    assert made == [0, 1, 2]
