@@ -57,7 +57,7 @@ from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.kernels import kernels_for
 from tertiary.kernels import warm as warm_kernels
-from tertiary.store import RunStore, compact_covariances, record_run
+from tertiary.store import RunStore, record_run
 
 if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
     from safety.conflicts import ConflictConfig
@@ -896,9 +896,8 @@ def store_sink(store: RunStore, notes: list[str]) -> Sink:
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
         if isinstance(frame, StreamedTable):
-            # the next window's part is read and compacted while this one is inserted
-            store.write_parts(name, lambda: prefetched(compact_covariances(storable(f, name))
-                                                       for f in frame.parts()))
+            # the next window's part is read while this one is inserted
+            store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
         elif frame.width:
             store.write(name, storable(frame, name))
     return sink
