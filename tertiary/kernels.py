@@ -22,12 +22,11 @@ import os
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterable
 
 import numpy as np
 
-__all__ = ["KERNELS", "arg", "is_cached", "warm", "ready_for", "kernels_for"]
+__all__ = ["KERNELS", "arg", "in_cache", "is_cached", "warm", "ready_for", "kernels_for"]
 
 #: how long a run waits for a background compilation before compiling itself (s)
 WAIT_S = 120.0
@@ -73,16 +72,23 @@ _jobs: dict[str, subprocess.Popen] = {}
 _lock = threading.Lock()
 
 
+def in_cache(disp, sig: tuple | None = None) -> bool:  # noqa: ANN001 - a numba dispatcher
+    """Whether numba's on-disk cache holds ``disp`` compiled for ``sig`` (None: for any
+    signature), read from the cache index without loading the code; False when that is not known
+    (no cache location, or an internal of numba changed)."""
+    try:
+        index = disp._cache._cache_file._load_index()      # empty when stale or absent
+        return bool(index) if sig is None else disp._cache._index_key(sig, disp.targetctx.codegen()) in index
+    except Exception:
+        return False
+
+
 def is_cached(name: str) -> bool:
     """Whether kernel ``name`` is compiled in this process or numba's cache holds its signature."""
     disp, sig = KERNELS[name]()
     if not hasattr(disp, "signatures") or disp.signatures:   # NUMBA_DISABLE_JIT: nothing to compile
         return True
-    try:                # numba's cache index for this source, read without loading the code
-        cache = disp._cache
-        return cache._index_key(sig, disp.targetctx.codegen()) in cache._cache_file._load_index()
-    except Exception:   # no cache location, or an internal of numba changed: not known to be cached
-        return False
+    return in_cache(disp, sig)
 
 
 def kernels_for(filters: Iterable[str]) -> list[str]:
@@ -160,11 +166,9 @@ def ready_for(name: str, timeout_s: float = WAIT_S) -> None:
         pass
 
 
-def _compile(name: str) -> float:
-    t0 = time.perf_counter()
+def _compile(name: str) -> None:
     disp, sig = KERNELS[name]()
     disp.compile(sig)
-    return time.perf_counter() - t0
 
 
 def main(argv: list[str]) -> None:

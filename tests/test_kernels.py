@@ -37,7 +37,7 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     var = np.full(n, 400.0)
     starts, lengths = np.array([0, 20]), np.array([20, 20])
     # read-only, strided and int32/float32 inputs: each used to be (or would be) a signature of its own
-    filter_tracks_carry(_read_only(t), _read_only(z)[::1], var.astype(np.float32), starts.astype(np.int32),
+    filter_tracks_carry(_read_only(t), np.repeat(z, 2)[::2], var.astype(np.float32), starts.astype(np.int32),
                         _read_only(lengths), AltitudeConfig(), ident=_read_only(np.arange(n) // 20))
     filter_tracks_carry(t, z, var, starts, lengths, AltitudeConfig())
     flt = make_filter("imm_sym")

@@ -392,12 +392,8 @@ def _update(i, r, s_t, s_x, s_p, s_hits, s_misses, s_conf, s_ms, s_a, p_t, p_z, 
 def is_ready() -> bool:
     """The loop is compiled in this process, or numba's cache holds it for this source (then
     it loads in about a second instead of compiling for 12–20 s on the 2-core machine)."""
-    if _scan_loop.signatures:
-        return True
-    try:                    # numba's cache index of this source: empty when stale or absent
-        return bool(_scan_loop._cache._cache_file._load_index())
-    except Exception:       # an internal of numba changed: say not ready (the caller may still compile)
-        return False
+    from tertiary.kernels import in_cache
+    return bool(_scan_loop.signatures) or in_cache(_scan_loop)
 
 
 def run_scans_compiled(cfg, scan_index, plots, scans_of_part, state):
