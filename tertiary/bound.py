@@ -370,11 +370,13 @@ def bound_metrics(scored: pl.DataFrame, accuracy: pl.DataFrame, bound: pl.DataFr
         return pl.DataFrame(schema=spec)
     s = scored.select("method", "run", pl.col("epoch").cast(TIME), pl.col("truth_id").cast(pl.Int64), "seg_class")
     s = s.join(bound, on=["truth_id", "epoch"], how="inner")
-    rows = pl.concat([s.with_columns(pl.lit("all").alias("segment")),
-                      s.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("segment"))])
     cols = [c for c, _ in BOUND_METRICS.values()]
-    per = rows.group_by("method", "segment", "epoch").agg(*[pl.col(c).mean() for c in cols],
-                                                          pl.col("run").n_unique().alias("__runs"))
+    aggs = [*[pl.col(c).mean() for c in cols], pl.col("run").n_unique().alias("__runs")]
+    # segment "all" and each sample's straight/turn class grouped in place: the samples of every
+    # picture are not copied once per segment (the stage's peak on a long run, issue 16)
+    per = pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch").agg(*aggs),
+                     s.group_by("method", pl.col("seg_class").alias("segment"), "epoch").agg(*aggs)
+                     .filter(pl.col("segment").is_not_null())])
     pooled = per.group_by("method", "segment").agg(*[pl.col(c).mean().sqrt() for c in cols],
                                                    pl.col("__runs").max().alias("n_runs"))
     long = pooled.unpivot(index=["method", "segment", "n_runs"], on=cols, variable_name="col", value_name="value")

@@ -124,6 +124,10 @@ def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> Non
         raise DataError("reference time and track epoch must be date-times (the truth and tracks schemas)")
 
 
+#: the reference columns :func:`match_with_reference` reads of a time slice
+_MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "segment")
+
+
 class _Reference:
     """The reference of one evaluation: whole, its aircraft's identity items, and (made when a
     picture first comes in blocks) its samples' neighbours for cutting time slices."""
@@ -133,16 +137,32 @@ class _Reference:
 
     def between(self, t0, t1) -> pl.DataFrame:
         if self._neighboured is None:
-            self._neighboured = with_neighbours(self.truth)
+            # what the matcher reads of the reference (its identity items are taken whole, once):
+            # a slice does not copy the reference's other columns (memory of the stage, issue 16)
+            self._neighboured = with_neighbours(self.truth.select(c for c in self.truth.columns if c in _MATCHED_REF))
         return reference_between(self._neighboured, t0, t1)
 
 
+#: what the evaluation reads of a matched, row-scored picture beside the reference's ``true_*``
+#: (:func:`picture_accuracy`, :func:`picture_metrics`, the id map) and its id column
+_SCORED_COLUMNS = (*_METRIC_COLUMNS, *ROW_SCORES, "gated_truth_id", "nis")
+
+
+def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
+    """The columns of a matched, row-scored block that the metrics and the id map read: a long
+    picture's other columns (the fusion's and tracker's diagnostics, the reference's segment
+    once classified) are not held whole until its metrics run (memory of the stage, issue 16)."""
+    return matched.select(c for c in matched.columns
+                          if c in _SCORED_COLUMNS or c == id_col or c.startswith("true_"))
+
+
 def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: EvaluationConfig,
-                  id_col: str) -> tuple[pl.DataFrame, pl.DataFrame] | None:
+                  id_col: str, slim: bool = False) -> tuple[pl.DataFrame, pl.DataFrame] | None:
     """(matched rows with their :func:`row_scores`, reference at the picture's epochs) of one
     picture given in blocks, or None when it has no row. A block is matched against the
     reference samples its epochs read (:func:`reference_between`): the matcher is per epoch
-    and the row scores per row, so the result is that of the whole picture at once."""
+    and the row scores per row, so the result is that of the whole picture at once. ``slim``:
+    only the columns the metrics read are kept (:func:`_scored_only`)."""
     it = (b for b in blocks if b.height)
     first = next(it, None)
     if first is None:
@@ -161,7 +181,9 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
         truth = reference.truth if whole else reference.between(t0, t1)
         m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
         del block, truth
-        matched.append(row_scores(m))
+        scored = row_scores(m)
+        matched.append(_scored_only(scored, id_col) if slim else scored)
+        del m, scored
         expected.append(ref)
     return _concat(matched), _concat(expected)
 
@@ -210,7 +232,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     reference = _Reference(truth)
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
     for picture in pictures:
-        got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col)
+        got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
+                            slim=not keep_matched)
         if got is None:
             continue
         matched, expected = got

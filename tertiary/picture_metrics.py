@@ -291,10 +291,22 @@ def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig,
     return bins.join(upd, on=_KEY + ["__bin"], how="left").with_columns(pl.col("updated").fill_null(False))
 
 
+#: what :func:`accuracy_errors` and the identity checks read of a matched picture (beside ``true_*``)
+_ERROR_INPUTS = (*_KEY, "epoch", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m", "alt_rate_mps",
+                 "mode_s", "icao24", "mode_3a", "callsign")
+#: the error columns of :func:`accuracy_errors`
+_ERRORS = ("err_h_m", "along_m", "across_m", "err_height_m", "err_gs_mps", "err_track_deg", "err_vrate_mps",
+           "latency_sample_s")
+#: the items :func:`_identity_checks` compares
+_IDENTITY = ("mode_s", "icao24", "mode_3a", "true_mode_3a", "callsign", "true_callsign", "alt_m", "true_alt_m")
+#: what the continuity metrics read of a matched picture
+_CONTINUITY_INPUTS = (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m")
+
+
 def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
                 breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
     # what the continuity metrics read: a long picture's other columns are not copied through them
-    m = m.select(c for c in m.columns if c in (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m"))
+    m = m.select(c for c in m.columns if c in _CONTINUITY_INPUTS)
     rep = _representatives(m).sort(_KEY + ["epoch"])
     methods = m.select("method").unique()
     gap = (pl.col("epoch") - pl.col("epoch").shift(1).over(_KEY)).dt.total_microseconds() / 1e6
@@ -436,8 +448,13 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     ref = (expected if expected is not None and set(ref_cols) <= set(expected.columns)
            else matched.filter(pl.col("truth_id").is_not_null()).select(["run", "truth_id", "epoch"] + ref_cols))
     labels = reference_labels(ref, radar_xy, cfg)
-    err = accuracy_errors(matched, cfg).join(labels, on=["run", "truth_id", "epoch"], how="left")
-    m = matched.filter(pl.col("truth_id").is_not_null())
+    # the columns each group reads, then the rows: a long picture is never copied whole through
+    # the errors' and the continuity's joins (memory of the stage, issue 16)
+    err = (accuracy_errors(matched.select(c for c in matched.columns if c in _ERROR_INPUTS or c.startswith("true_")),
+                           cfg)
+           .select(c for c in (*_KEY, "epoch", *_ERRORS, *_IDENTITY) if c in matched.columns or c in _ERRORS)
+           .join(labels, on=["run", "truth_id", "epoch"], how="left"))
+    m = matched.select(c for c in matched.columns if c in _CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
     parts = [_accuracy(err, breakdown),
              _identity_and_false(matched, err, breakdown, cfg)]
     if m.height:
