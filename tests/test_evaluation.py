@@ -223,3 +223,28 @@ def test_a_picture_scored_in_time_blocks_equals_the_whole_picture(small):
         assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
     with pytest.raises(DataError, match="time order"):
         evaluate_each([iter([parts[1], parts[0]])], truth, **kw)
+
+
+def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
+    """The pipeline asks for no matched rows back (``keep_matched=False``), and the evaluation
+    then keeps of each matched block only the columns its metrics read (issue 16, memory). On a
+    tracker picture carrying its diagnostics (``nis``, covariances, Mode S, altitude channel) every
+    output equals the full path's. Fails if the slim path drops a column a metric reads: the
+    consistency rows of ``nis``, an identity item, or the id map's ``gated_truth_id``."""
+    root, ds, files = small
+    picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
+    assert {"nis", "mode_s", "alt_m"} <= set(picture.columns)
+    kw = dict(radars=ds.radars, frame=ds.origin, requirements=load_requirements(example_path()))
+    edges = picture["epoch"].unique().sort().gather_every(17)
+    cut = picture.join(pl.DataFrame({"epoch": edges, "__b": range(len(edges))}), on="epoch", how="left").sort("epoch")
+    parts = [p.drop("__b") for p in cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
+             .partition_by("__b", maintain_order=True)]
+    full = evaluate_each([iter(parts)], ds.truth, **kw)
+    slim = evaluate_each([iter(parts)], ds.truth, keep_matched=False, **kw)
+    assert slim.matched.height == 0 and full.matched.height == picture.height
+    assert full.metrics.filter(pl.col("metric").str.starts_with("nis_")).height
+    assert full.metrics.filter(pl.col("metric") == "mode_s_correct_frac").height
+    for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
+        a, b = getattr(slim, name), getattr(full, name)
+        assert a.columns == b.columns, name
+        assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-12, abs_tol=1e-12)
