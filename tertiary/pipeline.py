@@ -849,6 +849,14 @@ class _OnDisk:
         return self.empty if got is None else got
 
 
+class _Deferred:
+    """The ``associations`` of an on-disk run, read back (``read``) only where they are used; its
+    height and number of targets (distinct (run, target_id)) are taken now (issue 16, memory)."""
+
+    def __init__(self, read: Callable[[], pl.DataFrame], height: int, targets: int) -> None:
+        self.read, self.height, self.targets = read, height, targets
+
+
 def _whole(table: "pl.DataFrame | _OnDisk") -> pl.DataFrame:
     return table.collect() if isinstance(table, _OnDisk) else table
 
@@ -941,7 +949,15 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     tables = {}
     for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
         empty = (schema.empty_frame(name, False) if name in ("tracks", "conflicts") else pl.DataFrame())
-        if not lean or name in ("associations", "conflicts"):
+        if lean and name == "associations":
+            # read back after the evaluation and the alert scoring, which do not read it: its
+            # rows are not held through their peak (issue 16, memory)
+            sink(name, _streamed(parts, name, empty))
+            keys = _table_columns(parts, name, ["run", "target_id"], empty)
+            frame = _Deferred(lambda: _table(parts, "associations", pl.DataFrame()), keys.height,
+                              keys.n_unique() if keys.height else 0)
+            del keys
+        elif not lean or name == "conflicts":
             frame = _table(parts, name, empty)
             sink(name, _streamed(parts, name, empty) if lean else frame)
         else:
@@ -956,7 +972,9 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                                                                             "tracks", "conflicts"))
     stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
                              ambiguous_components=st.counts.get("ambiguous_components", 0),
-                             targets=associations.select("run", "target_id").n_unique() if associations.height else 0,
+                             targets=(associations.targets if isinstance(associations, _Deferred) else
+                                      associations.select("run", "target_id").n_unique() if associations.height
+                                      else 0),
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
                          sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)))
@@ -1011,6 +1029,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
             curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods, intervals)
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
+    if isinstance(associations, _Deferred):
+        associations = associations.read()
     metrics = _association_metrics(associations, stats, report_truth)
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
