@@ -208,6 +208,10 @@ def _micros(col: str) -> pl.Expr:
     return pl.col(col).cast(TIME).dt.epoch("us").cast(pl.Int64)
 
 
+#: truth samples converted to geodetic height at a time (:func:`truth_heights`)
+_HEIGHT_BLOCK = 262_144
+
+
 def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> pl.DataFrame:
     """([run,] truth_id, t_us, x_m, y_m, h_m, hdot_mps) sorted by ([run,] truth_id, t_us):
     horizontal on the system tangent plane, h = ``alt_m`` where present (not null), else the
@@ -225,7 +229,11 @@ def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> p
                       *([pl.col("alt_rate_mps").cast(pl.Float64)] if "alt_rate_mps" in truth.columns else []))
     tr = tr.sort([*keys, "truth_id", "t_us"])
     pos = tr.select("x_m", "y_m", "z_m").to_numpy()
-    h, _, _ = height_and_rate(pos, np.zeros_like(pos), frame)
+    # in blocks: the geodetic conversion's scratch is that of a block, not of the whole truth
+    h = np.empty(len(pos))
+    for lo in range(0, len(pos), _HEIGHT_BLOCK):
+        block = pos[lo:lo + _HEIGHT_BLOCK]
+        h[lo:lo + len(block)] = height_and_rate(block, np.zeros_like(block), frame)[0]
     if "alt_m" in tr.columns:
         alt = tr["alt_m"].to_numpy()
         h = np.where(np.isfinite(alt), alt, h)

@@ -405,7 +405,9 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
     """
     if associations.is_empty():
         return pl.DataFrame(schema=TABLES["metrics"].required)
-    labelled = _report_truth(associations.with_columns(pl.col("epoch").cast(TIME)), report_truth)
+    # the columns read, then the join: a long run's associations are not copied whole through it
+    keep = [c for c in ("run", "epoch", "target_id", "report_id") if c in associations.columns]
+    labelled = _report_truth(associations.select(keep).with_columns(pl.col("epoch").cast(TIME)), report_truth)
     maj = _majority(labelled, _KEY).rename({"truth_id": "target_truth"})
     rows = labelled.join(maj, on=_KEY, how="left")
     n_runs = associations["run"].n_unique()

@@ -152,6 +152,27 @@ def test_truth_heights_are_geodetic_far_from_centre():
     assert loss_of_separation(as_if_z, frame=frame).height == 1
 
 
+def test_truth_heights_in_blocks_are_the_heights_of_every_sample(monkeypatch):
+    """The truth is converted to geodetic height a block of samples at a time (issue 16, memory):
+    with blocks of 7 samples (a ragged last block) every height equals the conversion of the
+    whole at once, in the output's (truth_id, time) order. Fails if a block is skipped, written
+    at the wrong rows or converted twice."""
+    import safety.alerts as alerts
+    from safety.conflicts import height_and_rate
+    frame = LocalFrame(48.7, 2.4, 0.0)
+    rng = np.random.default_rng(3)
+    n = 40
+    truth = pl.DataFrame({"truth_id": rng.integers(1, 4, n), "time": [_t(float(s)) for s in rng.permutation(n)],
+                          "x_m": rng.uniform(-2e5, 2e5, n), "y_m": rng.uniform(-2e5, 2e5, n),
+                          "z_m": rng.uniform(0, 1e4, n)}).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+    monkeypatch.setattr(alerts, "_HEIGHT_BLOCK", 7)
+    got = alerts.truth_heights(truth, frame)
+    rows = truth.sort("truth_id", "time")
+    pos = rows.select("x_m", "y_m", "z_m").to_numpy()
+    want, _, _ = height_and_rate(pos, np.zeros_like(pos), frame)
+    assert got.height == n and np.array_equal(got["h_m"].to_numpy(), want)
+
+
 def test_grid_is_bounded_before_allocation(truth):
     with pytest.raises(ResourceError, match="max_grid_rows"):
         loss_of_separation(truth, AlertConfig(max_grid_rows=1000))
