@@ -992,7 +992,8 @@ def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
     return timed
 
 
-def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame, associations: pl.DataFrame,
+def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame,
+                  associations: "pl.DataFrame | _Deferred",
                   stats: AssociationStats, fused: pl.DataFrame, clusters: pl.DataFrame, tracks: pl.DataFrame,
                   conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float,
                   conversion_invalid: int = 0) -> Results:
