@@ -102,7 +102,7 @@ import polars as pl
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from safety.conflicts import (ConflictConfig, conflict_interval, conflicts_step, height_and_rate,
+from safety.conflicts import (ConflictConfig, conflict_interval, conflicts_steps, height_and_rate,
                               init_conflict_state, predict_conflicts)
 from tertiary import geo
 from tertiary.errors import ResourceError
@@ -797,10 +797,11 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture`` under
     each configuration of ``cfgs``: its alert rows and one row per (run, method, epoch) (the
     epoch grid of :func:`_grid`), predicted window by window
-    (:func:`~safety.conflicts.conflicts_step`, each configuration's confirmation state
+    (:func:`~safety.conflicts.conflicts_steps`, each configuration's confirmation state
     carried), so that a long picture's every screened pair is never held at once. Each window
-    of the picture is cut once for every configuration, and the configurations are predicted
-    :data:`CURVE_THREADS` at a time. The scores equal those of the whole table."""
+    of the picture is cut, prepared and screened once for every configuration; the
+    per-configuration work runs :data:`CURVE_THREADS` at a time. The scores equal those of the
+    whole table."""
     if picture.height == 0:
         return [predict_conflicts(picture, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
@@ -810,18 +811,17 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     edges = list(range(int(us[0]), int(us[-1]) + 1, step)) + [int(us[-1]) + 1]
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
+
+    def scored(out: pl.DataFrame) -> pl.DataFrame:
+        grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
+        return pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
     with ThreadPoolExecutor(CURVE_THREADS) as pool:
         for t0, t1 in zip(edges[:-1], edges[1:]):
             lo, hi = np.searchsorted(us, [t0, t1])
-            window = picture[order[lo:hi]]
-
-            def one(k: int, window=window, t0=t0, t1=t1):
-                out, state = conflicts_step(states[k], window, cfgs[k], id_col, frame, t0, t1, slim=False)
-                grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
-                return state, pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
-
-            for k, (state, rows) in enumerate(pool.map(one, range(len(cfgs)))):
-                states[k] = state
+            steps = conflicts_steps(states, picture[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
+                                    map_=pool.map)
+            states = [state for _, state in steps]
+            for k, rows in enumerate(pool.map(scored, [out for out, _ in steps])):
                 parts[k].append(rows)
     return [pl.concat(p) for p in parts]
 

@@ -230,7 +230,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -274,6 +274,7 @@ __all__ = [
     "ConflictState",
     "init_conflict_state",
     "conflicts_step",
+    "conflicts_steps",
     "T_MIN_US",
     "T_MAX_US",
 ]
@@ -1137,30 +1138,66 @@ def _flatten(lists) -> NDArray[np.int64]:
     return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
-def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float64], vel: NDArray[np.float64],
-                terms: _PointTerms | None) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64]]]:
+class _Screen(NamedTuple):
+    """What the KD-tree screen of a set of settings reads: the window W = [t0, t1], the
+    horizontal / vertical threshold bases (plus the near margins) and, per track, the squared
+    covariance reaches lam2 = k_h²·λ and q2 = k_v²·q of :class:`_Bounds` — a pair (i, j) can be
+    kept by a setting only if it comes within base_h + sqrt(lam2_i + lam2_j) horizontally and
+    base_v + sqrt(q2_i + q2_j) vertically at some t ∈ W."""
+
+    t0: float
+    t1: float
+    base_h: float
+    base_v: float
+    lam2: NDArray[np.float64]
+    q2: NDArray[np.float64]
+    bulk_quantile: float
+    v_max_mps: float | None
+
+    def take(self, idx: NDArray[np.int64]) -> "_Screen":
+        return self._replace(lam2=self.lam2[idx], q2=self.q2[idx])
+
+
+def _screen_of(cfg: ConflictConfig, b: _Bounds) -> _Screen:
+    """The screen of one setting with bounds ``b``."""
+    t0, t1 = cfg.window_s
+    return _Screen(t0, t1, b.base_h, b.base_v, cfg.k_h ** 2 * b.lam, cfg.k_v ** 2 * b.q, cfg.bulk_quantile,
+                   cfg.v_max_mps)
+
+
+def _union_screen(screens: Sequence[_Screen]) -> _Screen:
+    """A screen that keeps every pair any of ``screens`` keeps: the widest window, the largest
+    bases and per-track reaches (sqrt(max_c a_c + max_c b_c) ≥ sqrt(a_c + b_c) for every c)."""
+    first = screens[0]
+    return first._replace(t0=min(s.t0 for s in screens), t1=max(s.t1 for s in screens),
+                          base_h=max(s.base_h for s in screens), base_v=max(s.base_v for s in screens),
+                          lam2=np.maximum.reduce([s.lam2 for s in screens]),
+                          q2=np.maximum.reduce([s.q2 for s in screens]))
+
+
+def _candidates(sc: _Screen, g: NDArray[np.int64], pos: NDArray[np.float64], vel: NDArray[np.float64]
+                ) -> Iterator[tuple[NDArray[np.int64], NDArray[np.int64]]]:
     """Screened pairs (i ≠ j, each unordered pair once, same group) in up to three parts — see
     "Candidate search" in the module docstring. Parts are yielded one at a time (memory)."""
     n = len(g)
     if n < 2:
         return
-    t0, t1 = cfg.window_s
+    t0, t1 = sc.t0, sc.t1
     tw, tc = 0.5 * (t1 - t0), 0.5 * (t0 + t1)                # half-length and centre of W
-    b = _bounds(cfg, terms, n)
+    lam, qv = sc.lam2, sc.q2
     vh = np.hypot(vel[:, 0], vel[:, 1])
     vz = np.abs(vel[:, 2])
 
     def reach(m1: NDArray[np.bool_], m2: NDArray[np.bool_]) -> tuple[float, float]:
         """Upper bounds of the horizontal / vertical reach of any pair (i ∈ m1, j ∈ m2)."""
-        rh = ((vh[m1].max() + vh[m2].max()) * tw + b.base_h
-              + cfg.k_h * math.sqrt(b.lam[m1].max() + b.lam[m2].max()))
-        rv = (vz[m1].max() + vz[m2].max()) * tw + b.base_v + cfg.k_v * math.sqrt(b.q[m1].max() + b.q[m2].max())
+        rh = (vh[m1].max() + vh[m2].max()) * tw + sc.base_h + math.sqrt(lam[m1].max() + lam[m2].max())
+        rv = (vz[m1].max() + vz[m2].max()) * tw + sc.base_v + math.sqrt(qv[m1].max() + qv[m2].max())
         return float(rh), float(rv)
 
-    qq = cfg.bulk_quantile
-    v_b = cfg.v_max_mps if cfg.v_max_mps is not None else float(np.quantile(vh, qq))
-    vz_b, lam_b, q_b = (float(np.quantile(x, qq)) for x in (vz, b.lam, b.q))
-    bulk = (vh <= v_b) & (vz <= vz_b) & (b.lam <= lam_b) & (b.q <= q_b)
+    qq = sc.bulk_quantile
+    v_b = sc.v_max_mps if sc.v_max_mps is not None else float(np.quantile(vh, qq))
+    vz_b, lam_b, q_b = (float(np.quantile(x, qq)) for x in (vz, lam, qv))
+    bulk = (vh <= v_b) & (vz <= vz_b) & (lam <= lam_b) & (qv <= q_b)
     if bulk.sum() < 2:
         bulk[:] = True
     # the bulk in two tiers: the level half (small vertical reach) and the rest
@@ -1172,8 +1209,8 @@ def _candidates(cfg: ConflictConfig, g: NDArray[np.int64], pos: NDArray[np.float
     r_cc = reach(climb, climb) if climb.sum() >= 2 else (0.0, 1.0)
     r_cl = reach(climb, level) if climb.any() and level.any() else (0.0, 1.0)
     w_idx = np.flatnonzero(wide)
-    w_h = (vh[w_idx] + vh.max()) * tw + b.base_h + cfg.k_h * np.sqrt(b.lam[w_idx] + b.lam.max())
-    w_v = (vz[w_idx] + vz.max()) * tw + b.base_v + cfg.k_v * np.sqrt(b.q[w_idx] + b.q.max())
+    w_h = (vh[w_idx] + vh.max()) * tw + sc.base_h + np.sqrt(lam[w_idx] + lam.max())
+    w_v = (vz[w_idx] + vz.max()) * tw + sc.base_v + np.sqrt(qv[w_idx] + qv.max())
     r_all = reach(allm, allm)
     scale = float(np.max(np.abs(pos))) + float(vh.max() + vz.max()) * max(abs(t0), abs(t1)) + 1.0
     pad = 1.0 + 1e-9 * scale                                   # rounding safety (metres)
@@ -1232,11 +1269,10 @@ def _blocks(g: NDArray[np.int64], block_points: int):
         yield order[start:]
 
 
-def _block_candidates(cfg: ConflictConfig, g, pos, vel, terms):
-    """(rows, i, j) per block: global row indices of screened pairs."""
-    for idx in _blocks(g, cfg.block_points):
-        sub = None if terms is None else terms.take(idx)
-        for ci, cj in _candidates(cfg, g[idx], pos[idx], vel[idx], sub):
+def _block_candidates(sc: _Screen, block_points: int, g, pos, vel):
+    """(i, j) per part of each block: global row indices of screened pairs."""
+    for idx in _blocks(g, block_points):
+        for ci, cj in _candidates(sc.take(idx), g[idx], pos[idx], vel[idx]):
             yield idx[ci], idx[cj]
 
 
@@ -1250,7 +1286,8 @@ def candidate_pairs(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig()
     g = _group_index(tracks, _group_cols(tracks, method_col))
     pos, vel, up, from_alt = _state_arrays(tracks, frame)
     terms = _point_terms(tracks, up, from_alt) if cfg.threshold_mode == "covariance" else None
-    parts = list(_block_candidates(cfg, g, pos, vel, terms))
+    sc = _screen_of(cfg, _bounds(cfg, terms, len(g)))
+    parts = list(_block_candidates(sc, cfg.block_points, g, pos, vel))
     if not parts:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     i = np.concatenate([p[0] for p in parts])
@@ -1357,7 +1394,7 @@ def _window_vmin(dz, dvz, vh, tau, i, j, w0: float, w1: float) -> NDArray[np.flo
 def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointTerms | None,
                     i: NDArray[np.int64], j: NDArray[np.int64], bnd: _Bounds,
                     tau: NDArray[np.float64] | None = None,
-                    arcs: "_ArcTable | None" = None) -> dict[str, NDArray]:
+                    arcs: "_ArcTable | None" = None, vmin: NDArray[np.float64] | None = None) -> dict[str, NDArray]:
     """Output-set membership, geometry, thresholds and decision of pairs (i, j); ``st`` holds the
     state columns x, y, h, vx, vy, ḣ as rows; ``bnd`` the per-track threshold bounds
     (:func:`_bounds`); ``tau`` each track's level-off time at its selected level
@@ -1365,7 +1402,8 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     track's turn rate as :class:`_ArcTable` (:func:`turn_rates`; None: no row turns). Staged: the vertical window
     test, then the horizontal one (cheap upper bounds of the thresholds first), then the full
     geometry of the survivors only. Pairs with a turning member take their horizontal minimum,
-    its time and the decision from the arc grid (:func:`conflict_interval_arc`)."""
+    its time and the decision from the arc grid (:func:`conflict_interval_arc`). ``vmin``: the
+    pairs' :func:`_window_vmin` when already computed (settings sharing the window and ``tau``)."""
     x, y, h, vx, vy, vh = st
     t_thr = cfg.t_thr_s
     w0, w1 = cfg.window_s
@@ -1375,7 +1413,7 @@ def _evaluate_pairs(cfg: ConflictConfig, st: NDArray[np.float64], terms: _PointT
     # 1. vertical: min over the window of |Δh(t)| ≤ R_в^пор + m_v (upper bound of R_в^пор)
     dz = h[j] - h[i]
     dvz = vh[j] - vh[i]
-    excess = _window_vmin(dz, dvz, vh, tau, i, j, w0, w1) - base_v
+    excess = (_window_vmin(dz, dvz, vh, tau, i, j, w0, w1) if vmin is None else vmin) - base_v
     if fixed:
         ok = excess <= 0.0
     else:
@@ -1696,16 +1734,69 @@ def conflicts_step(state: ConflictState, picture: pl.DataFrame, cfg: ConflictCon
     ``predict_conflicts`` (then ``slim_conflicts``) of the whole picture. Pure: ``state`` is
     not modified. Raises ValueError for rows outside the window or a window that starts before
     the previous one ended."""
+    return conflicts_steps([state], picture, [cfg], id_col, frame, t0_us, t1_us, method_col=method_col,
+                           default_method=default_method, slim=slim)[0]
+
+
+def conflicts_steps(states: Sequence[ConflictState], picture: pl.DataFrame, cfgs: Sequence[ConflictConfig],
+                    id_col: str = "track_id", frame: geo.LocalFrame | None = None,
+                    t0_us: int = T_MIN_US, t1_us: int = T_MAX_US, *, method_col: str = "method",
+                    default_method: str = "none", slim: bool = True,
+                    map_: Callable[..., Iterable] = map) -> list[tuple[pl.DataFrame, ConflictState]]:
+    """:func:`conflicts_step` of one window under several settings at once, ``states[k]`` the
+    state of ``cfgs[k]``: element k equals ``conflicts_step(states[k], picture, cfgs[k], …)``.
+    What does not depend on the thresholds is done once — the rows kept, their state on height,
+    covariance terms, and the KD-tree screen (one union screen, :func:`_union_screen`, for the
+    settings that share the screen's other inputs: the output set is decided per setting by the
+    exact tests, so a wider screen changes no row). ``map_`` (e.g. a thread pool's ``map``)
+    runs the per-setting work."""
+    if len(states) != len(cfgs):
+        raise ValueError("conflicts_steps: one state per configuration")
     tracks = _normalise(picture, id_col, method_col, default_method)
-    _check_window(state, tracks, t0_us, t1_us)
-    grid = _epoch_grid(state.grid, tracks, method_col)
-    kept, last = _not_coasting(_established(tracks, cfg), cfg, id_col, method_col, state.last_update)
-    out = _confirm(_volume_rows(kept, cfg, id_col, method_col, frame), grid, state.raw, cfg)
+    for state in states:
+        _check_window(state, tracks, t0_us, t1_us)
+    grids = _shared([s.grid for s in states], lambda carried: _epoch_grid(carried, tracks, method_col))
+    kept: list[tuple[pl.DataFrame, pl.DataFrame]] = []
+    memo: list[tuple[tuple, pl.DataFrame, tuple[pl.DataFrame, pl.DataFrame]]] = []
+    for state, cfg in zip(states, cfgs):
+        key = (cfg.max_vel_sigma_mps, cfg.max_coast_s)
+        hit = next((v for k, last, v in memo if k == key and _same(last, state.last_update)), None)
+        if hit is None:
+            hit = _not_coasting(_established(tracks, cfg), cfg, id_col, method_col, state.last_update)
+            memo.append((key, state.last_update, hit))
+        kept.append(hit)
+    pair_rows: list[pl.DataFrame | None] = [None] * len(cfgs)
+    for table in {id(k[0]): k[0] for k in kept}.values():
+        ks = [k for k in range(len(cfgs)) if kept[k][0] is table]
+        rows = _Rows(table, frame, id_col, method_col)
+        for k, out in zip(ks, _volume_rows(rows, [cfgs[k] for k in ks], map_)):
+            pair_rows[k] = out
     spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
-    out = out.select(list(spec)).cast(spec)
-    g_tail, raw = _carry_confirmation(grid, state.raw, out, cfg.confirm_n)
-    new = ConflictState(g_tail, raw, last, t1_us if state.t_us is None else max(state.t_us, t1_us))
-    return (slim_conflicts(out) if slim else out), new
+
+    def finish(k: int) -> tuple[pl.DataFrame, ConflictState]:
+        state, cfg = states[k], cfgs[k]
+        out = _confirm(pair_rows[k], grids[k], state.raw, cfg).select(list(spec)).cast(spec)
+        g_tail, raw = _carry_confirmation(grids[k], state.raw, out, cfg.confirm_n)
+        new = ConflictState(g_tail, raw, kept[k][1], t1_us if state.t_us is None else max(state.t_us, t1_us))
+        return (slim_conflicts(out) if slim else out), new
+    return list(map_(finish, range(len(cfgs))))
+
+
+def _same(a: pl.DataFrame, b: pl.DataFrame) -> bool:
+    return a is b or (a.schema == b.schema and a.equals(b))
+
+
+def _shared(frames: Sequence[pl.DataFrame], fn: Callable[[pl.DataFrame], pl.DataFrame]) -> list[pl.DataFrame]:
+    """``[fn(f) for f in frames]``, computed once per distinct (equal) frame."""
+    done: list[tuple[pl.DataFrame, pl.DataFrame]] = []
+    out = []
+    for f in frames:
+        hit = next((v for k, v in done if _same(k, f)), None)
+        if hit is None:
+            hit = fn(f)
+            done.append((f, hit))
+        out.append(hit)
+    return out
 
 
 def predict_conflicts(tracks: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(), id_col: str = "track_id",
@@ -1735,79 +1826,180 @@ def approach_membership(tracks: pl.DataFrame, cfg: ConflictConfig, frame: geo.Lo
     """Per row, the index in ``cfg.approach_volumes`` of the final it is established on (the first
     that contains it), −1 for none — always −1 in seed mode (module docstring "Final-approach
     volumes")."""
-    member = np.full(tracks.height, -1, np.int64)
-    if cfg.mode != "corrected" or not cfg.approach_volumes or not tracks.height:
+    return _membership(_Rows(tracks, frame), cfg)
+
+
+def _membership(rows: "_Rows", cfg: ConflictConfig) -> NDArray[np.int64]:
+    member = np.full(rows.tracks.height, -1, np.int64)
+    if cfg.mode != "corrected" or not cfg.approach_volumes or not rows.tracks.height:
         return member
-    pos, vel, _, _ = _state_arrays(tracks, frame)
+    pos, vel, _, _ = rows.state()
     for k in range(len(cfg.approach_volumes) - 1, -1, -1):
         member[cfg.approach_volumes[k].contains(pos, vel)] = k
     return member
 
 
-def _volume_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str,
-                 frame: geo.LocalFrame | None) -> pl.DataFrame:
-    """:func:`_pair_rows`, with the pairs whose two tracks are established on the same final
-    decided by that volume's parameters instead (:class:`ApproachVolume`)."""
-    rows = _pair_rows(tracks, cfg, id_col, method_col, frame)
-    member = approach_membership(tracks, cfg, frame)
-    if not np.any(member >= 0):
-        return rows
-    key = ["run", "epoch", "method"]
-    vol = tracks.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
-                        pl.col(method_col).cast(pl.String).alias("method"), pl.col(id_col).cast(pl.UInt64).alias("__id"),
-                        pl.Series("__v", member))
-    va = pl.col("__va").fill_null(-1)
-    rows = (rows.join(vol.rename({"__id": "id_a", "__v": "__va"}), on=[*key, "id_a"], how="left")
-            .join(vol.rename({"__id": "id_b", "__v": "__vb"}), on=[*key, "id_b"], how="left")
-            .filter(~((va >= 0) & (va == pl.col("__vb").fill_null(-2)))).drop("__va", "__vb"))
-    parts = [rows]
-    for k, v in enumerate(cfg.approach_volumes):
-        inside = tracks.filter(pl.Series(member == k))
-        if inside.height >= 2:
-            parts.append(_pair_rows(inside, v.parameters(cfg), id_col, method_col, frame))
-    parts = [p for p in parts if p.height]        # an empty part has the empty table's extra columns
-    if not parts:
-        return _empty_conflicts()
-    return pl.concat(parts, how="vertical_relaxed").sort([*key, "id_a", "id_b"])
+class _Rows:
+    """The rows one window screens, with what every setting reads of them computed once, on
+    first use: the group index (after the duplicate check), the ids, the state on height
+    (:func:`_state_arrays`), the covariance terms, the key columns. The STCA curves predict the
+    same rows under many settings. Not thread-safe until :meth:`prepare`d."""
+
+    def __init__(self, tracks: pl.DataFrame, frame: geo.LocalFrame | None, id_col: str = "track_id",
+                 method_col: str = "method") -> None:
+        self.tracks, self.frame, self.id_col, self.method_col = tracks, frame, id_col, method_col
+        self._memo: dict[str, object] = {}
+
+    def _get(self, name: str, fn: Callable[[], object]):
+        if name not in self._memo:
+            self._memo[name] = fn()
+        return self._memo[name]
+
+    def group(self) -> NDArray[np.int64]:
+        def make():
+            groups = ["run", "epoch", self.method_col]
+            dup = self.tracks.select(pl.struct([*groups, self.id_col]).is_duplicated().any()).item()
+            if dup:
+                raise ValueError(f"tracks: duplicate {self.id_col} within a (run, epoch, {self.method_col}) group")
+            return _group_index(self.tracks, groups)
+        return self._get("g", make)
+
+    def state(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+        return self._get("state", lambda: _state_arrays(self.tracks, self.frame))
+
+    def terms(self) -> _PointTerms:
+        _, _, up, from_alt = self.state()
+        return self._get("terms", lambda: _point_terms(self.tracks, up, from_alt))
+
+    def ids(self) -> NDArray[np.int64]:
+        return self._get("ids", lambda: self.tracks[self.id_col].cast(pl.Int64).to_numpy())
+
+    def keys(self) -> pl.DataFrame:
+        return self._get("keys", lambda: self.tracks.select(
+            pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+            pl.col(self.method_col).cast(pl.String).alias("method")))
+
+    def prepare(self, covariance: bool) -> None:
+        """Compute what the settings read (before they run in threads)."""
+        self.group(), self.state(), self.ids(), self.keys()
+        if covariance:
+            self.terms()
+
+    def subset(self, mask: NDArray[np.bool_]) -> "_Rows":
+        """The rows of ``mask``, with the arrays computed so far sliced, not recomputed."""
+        sub = _Rows(self.tracks.filter(pl.Series(mask)), self.frame, self.id_col, self.method_col)
+        idx = np.flatnonzero(mask)
+        for name, v in self._memo.items():
+            if name == "state":
+                sub._memo[name] = tuple(a if a is None else a[idx] for a in v)
+            elif name == "terms":
+                sub._memo[name] = v.take(idx)
+            elif name == "keys":
+                sub._memo[name] = v[idx]
+            else:
+                sub._memo[name] = v[idx]
+        return sub
 
 
-def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_col: str,
-               frame: geo.LocalFrame | None) -> pl.DataFrame:
-    """Screened pairs of the (established, not coasting) rows with their geometry, thresholds
-    and raw decision (``alert`` before confirmation), sorted by (run, epoch, method, id_a, id_b)."""
+def _volume_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
+                 ) -> list[pl.DataFrame]:
+    """:func:`_pair_rows` of each setting, with the pairs whose two tracks are established on the
+    same final decided by that volume's parameters instead (:class:`ApproachVolume`)."""
+    outs = _pair_rows(rows, cfgs, map_)
+    by_vols: dict[tuple, list[int]] = {}
+    for k, c in enumerate(cfgs):
+        by_vols.setdefault((c.mode, c.approach_volumes), []).append(k)
+    for ks in by_vols.values():
+        vols = cfgs[ks[0]].approach_volumes
+        member = _membership(rows, cfgs[ks[0]])
+        if not np.any(member >= 0):
+            continue
+        key = ["run", "epoch", "method"]
+        vol = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__v", member))
+        va = pl.col("__va").fill_null(-1)
+        inside: dict[int, list[pl.DataFrame]] = {k: [] for k in ks}
+        for kv, v in enumerate(vols):
+            mask = member == kv
+            if mask.sum() >= 2:
+                for k, part in zip(ks, _pair_rows(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks], map_)):
+                    inside[k].append(part)
+        for k in ks:
+            base = (outs[k].join(vol.rename({"__id": "id_a", "__v": "__va"}), on=[*key, "id_a"], how="left")
+                    .join(vol.rename({"__id": "id_b", "__v": "__vb"}), on=[*key, "id_b"], how="left")
+                    .filter(~((va >= 0) & (va == pl.col("__vb").fill_null(-2)))).drop("__va", "__vb"))
+            parts = [p for p in (base, *inside[k]) if p.height]   # an empty part has the empty table's extra columns
+            outs[k] = (pl.concat(parts, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if parts
+                       else _empty_conflicts())
+    return outs
+
+
+def _screen_key(cfg: ConflictConfig) -> tuple:
+    """Settings with equal keys share one KD-tree screen (same turning rows, same tiers)."""
+    return (cfg.mode, cfg.use_turn_rate, cfg.turn_rate_min_dps, cfg.block_points, cfg.bulk_quantile, cfg.v_max_mps)
+
+
+def _pair_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
+               ) -> list[pl.DataFrame]:
+    """Per setting, the screened pairs of the (established, not coasting) rows with their
+    geometry, thresholds and raw decision (``alert`` before confirmation), sorted by (run,
+    epoch, method, id_a, id_b). The settings of a :func:`_screen_key` share one screen."""
+    tracks = rows.tracks
     if tracks.height < 2:
-        return _empty_conflicts()
-    groups = ["run", "epoch", method_col]
-    dup = tracks.select(pl.struct([*groups, id_col]).is_duplicated().any()).item()
-    if dup:
-        raise ValueError(f"tracks: duplicate {id_col} within a (run, epoch, {method_col}) group")
-    g = _group_index(tracks, groups)
-    pos, vel, up, from_alt = _state_arrays(tracks, frame)
-    terms = _point_terms(tracks, up, from_alt) if cfg.threshold_mode == "covariance" else None
-    bnd = _bounds(cfg, terms, len(g))
-    tau = _track_level_off(tracks, cfg, pos[:, 2], vel[:, 2], from_alt)
-    omega = turn_rates(tracks, cfg)
-    ids = tracks[id_col].cast(pl.Int64).to_numpy()
+        return [_empty_conflicts() for _ in cfgs]
+    rows.prepare(any(c.threshold_mode == "covariance" for c in cfgs))
+    g, ids = rows.group(), rows.ids()
+    pos, vel, _, from_alt = rows.state()
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
-    chunks: list[dict[str, NDArray]] = []
-    step = cfg.chunk_pairs
-    pos_s, vel_s = _screen_states(cfg, pos, vel, omega)
-    arcs = None if omega is None else _ArcTable(cfg, st, omega)
-    for ci, cj in _block_candidates(cfg, g, pos_s, vel_s, terms):
-        for s in range(0, len(ci), step):
-            a, b = ci[s:s + step], cj[s:s + step]
-            swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
-            chunks.append(_evaluate_pairs(cfg, st, terms, np.where(swap, b, a), np.where(swap, a, b), bnd, tau,
-                                          arcs))
-        del ci, cj
+    setup, taus = [], {}
+    for c in cfgs:
+        terms = rows.terms() if c.threshold_mode == "covariance" else None
+        omega = turn_rates(tracks, c)
+        key = (c.mode, c.use_selected_level, c.selected_level_tolerance_m, c.window_s[1])
+        if key not in taus:        # one object per distinct level-off input: the vertical test is shared by it
+            taus[key] = _track_level_off(tracks, c, pos[:, 2], vel[:, 2], from_alt)
+        setup.append((terms, _bounds(c, terms, len(g)), taus[key], omega,
+                      None if omega is None else _ArcTable(c, st, omega)))
+    chunks: list[list[dict[str, NDArray]]] = [[] for _ in cfgs]
+    by_screen: dict[tuple, list[int]] = {}
+    for k, c in enumerate(cfgs):
+        by_screen.setdefault(_screen_key(c), []).append(k)
+    for ks in by_screen.values():
+        sc = _union_screen([_screen_of(cfgs[k], setup[k][1]) for k in ks])
+        pos_s, vel_s = _screen_states(0.5 * (sc.t0 + sc.t1), pos, vel, setup[ks[0]][3])
+        step = min(cfgs[k].chunk_pairs for k in ks)
+
+        def evaluate(k: int, a: NDArray[np.int64], b: NDArray[np.int64], vmin: NDArray[np.float64]
+                     ) -> dict[str, NDArray]:
+            terms, bnd, tau, _, arcs = setup[k]
+            return _evaluate_pairs(cfgs[k], st, terms, a, b, bnd, tau, arcs, vmin)
+        for ci, cj in _block_candidates(sc, cfgs[ks[0]].block_points, g, pos_s, vel_s):
+            for s in range(0, len(ci), step):
+                a, b = ci[s:s + step], cj[s:s + step]
+                swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
+                a, b = np.where(swap, b, a), np.where(swap, a, b)
+                vmins: dict[tuple, NDArray[np.float64]] = {}
+                for k in ks:
+                    key = (cfgs[k].window_s, id(setup[k][2]))
+                    if key not in vmins:
+                        vmins[key] = _window_vmin(pos[b, 2] - pos[a, 2], vel[b, 2] - vel[a, 2], vel[:, 2], setup[k][2],
+                                                  a, b, *cfgs[k].window_s)
+                mins = [vmins[(cfgs[k].window_s, id(setup[k][2]))] for k in ks]
+                for k, res in zip(ks, map_(lambda k, v: evaluate(k, a, b, v), ks, mins)):
+                    chunks[k].append(res)
+            del ci, cj
+    return list(map_(lambda k: _assemble(rows, cfgs[k], chunks[k]), range(len(cfgs))))
+
+
+def _assemble(rows: _Rows, cfg: ConflictConfig, chunks: list[dict[str, NDArray]]) -> pl.DataFrame:
+    """The conflicts rows of one setting's evaluated pairs, in (group, id_a, id_b) order."""
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return _empty_conflicts()
+    g, ids, tracks = rows.group(), rows.ids(), rows.tracks
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     i, j = cols.pop("i"), cols.pop("j")
     order = _pair_order(g, ids, i, j)
     i, j = i[order], j[order]
-    keys = tracks.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
-                         pl.col(method_col).cast(pl.String).alias("method"))[i]
+    keys = rows.keys()[i]
     # one polars gather of all value columns (parallel over columns) instead of one numpy take each
     vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
                         ).hstack(pl.DataFrame(cols)[order])
@@ -1820,16 +2012,16 @@ def _pair_rows(tracks: pl.DataFrame, cfg: ConflictConfig, id_col: str, method_co
     return out
 
 
-def _screen_states(cfg: ConflictConfig, pos: NDArray[np.float64], vel: NDArray[np.float64],
+def _screen_states(tc: float, pos: NDArray[np.float64], vel: NDArray[np.float64],
                    omega: NDArray[np.float64] | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """States the KD-tree screen places the tracks with: as they are, except turning rows (ω ≠ 0),
     which the screen must find wherever their arc takes them: an arc of length |v|·t stays
     within |v|·t of its start, so such a row is centred at its current position with twice its
-    horizontal speed (reach 2|v|·T/2 = |v|·T over the corrected window [0, T]) — conservative."""
+    horizontal speed (reach 2|v|·T/2 = |v|·T over the corrected window [0, T], centre ``tc``) —
+    conservative."""
     if omega is None:
         return pos, vel
     turn = omega != 0.0
-    tc = 0.5 * sum(cfg.window_s)
     vel_s = vel.copy()
     vel_s[turn, :2] *= 2.0
     pos_s = pos.copy()

@@ -8,13 +8,15 @@ from __future__ import annotations
 import copy
 import dataclasses
 import pickle
+from datetime import datetime, timezone
 
 import numpy as np
 import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from safety.conflicts import (STCA_CONFIRMATION, ApproachVolume, ConflictConfig, ConflictState, conflicts_step, init_conflict_state,
+from safety.conflicts import (STCA_CONFIRMATION, ApproachVolume, ConflictConfig, ConflictState, conflicts_step,
+                              conflicts_steps, init_conflict_state,
                               predict_conflicts, slim_conflicts)
 from tertiary.pipeline import PipelineConfig, process
 
@@ -195,6 +197,57 @@ def test_input_state_not_mutated_and_picklable(scenario):
     out2, s2 = conflicts_step(pickle.loads(pickle.dumps(state)), rest, PIPELINE_CFG, "track_id", frame, t1, t_end)
     assert_frame_equal(out1, out2)
     _assert_state_equal(s1, s2)
+
+
+def _many_settings() -> list[ConflictConfig]:
+    """Settings whose screens differ: no threshold margin to 2 400 m, covariance and fixed, two
+    look-aheads, the final-approach volume; the last one screens and keeps rows on its own
+    (bulk quantile, velocity-sigma limit)."""
+    base = CONFIGS["final_volume"]
+    out = []
+    for margin in (base.t_margin_s, base.t_margin_s + 45.0):
+        out += [dataclasses.replace(base, threshold_mode="covariance", confidence=c, t_margin_s=margin)
+                for c in (0.5, 0.99)]
+        out += [dataclasses.replace(base, threshold_mode="fixed", fixed_est_h_m=e, fixed_est_v_m=e / 6.0,
+                                    t_margin_s=margin) for e in (0.0, 2400.0)]
+    return out + [dataclasses.replace(base, bulk_quantile=0.5, max_vel_sigma_mps=50.0)]
+
+
+def test_many_settings_in_one_step_equal_each_setting_alone(scenario):
+    """``conflicts_steps`` shares the rows, their state and one union KD-tree screen between
+    settings: window by window, each setting's rows and state equal its own ``conflicts_step``'s
+    (a screen narrower than the widest setting's would lose that setting's distant pairs)."""
+    pic, frame, cfgs = scenario["tracks"], scenario["origin"], _many_settings()
+    shared = [init_conflict_state() for _ in cfgs]
+    alone = [init_conflict_state() for _ in cfgs]
+    rows = [0] * len(cfgs)
+    for w, t0, t1 in _windows(pic, _cuts(pic, scenario["slowest_scan_s"])["60s"]):
+        steps = conflicts_steps(shared, w, cfgs, "track_id", frame, t0, t1, slim=False)
+        for k, cfg in enumerate(cfgs):
+            out, alone[k] = conflicts_step(alone[k], w, cfg, "track_id", frame, t0, t1, slim=False)
+            assert_frame_equal(steps[k][0], out)
+            _assert_state_equal(steps[k][1], alone[k])
+            rows[k] += out.height
+        shared = [state for _, state in steps]
+    assert rows[3] > 1.5 * rows[2] > 0          # 2 400 m keeps far more pairs than 0 m: the union matters
+
+
+def test_a_shared_screen_keeps_the_widest_settings_pairs():
+    """Two hovering aircraft 9.1 km apart at one height: beyond the 0 m setting's reach (R_h +
+    m_h = 7.9 km), within the 2 400 m one's (10.3 km). Screened together, the wide setting
+    still keeps the pair — the shared screen is as wide as its widest setting, not its first."""
+    narrow = ConflictConfig(threshold_mode="fixed", fixed_est_h_m=0.0, fixed_est_v_m=0.0)
+    wide = dataclasses.replace(narrow, fixed_est_h_m=2400.0, fixed_est_v_m=400.0)
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    pic = pl.DataFrame({"track_id": [1, 2] * 3, "x_m": [0.0, 9100.0] * 3, "y_m": 0.0, "z_m": 3000.0, "vx_mps": 0.0,
+                        "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": 3000.0, "alt_rate_mps": 0.0,
+                        "s": [0, 0, 4, 4, 8, 8]}).select(
+        (pl.lit(t0) + pl.duration(seconds=pl.col("s"))).alias("epoch"), pl.exclude("s"))
+    alone = [predict_conflicts(pic, c, id_col="track_id") for c in (narrow, wide)]
+    assert (alone[0].height, alone[1].height) == (0, 3)
+    for order in ((narrow, wide), (wide, narrow)):
+        steps = conflicts_steps([init_conflict_state()] * 2, pic, list(order), "track_id", slim=False)
+        assert [out.height for out, _ in steps] == [0 if c is narrow else 3 for c in order]
 
 
 def test_state_stays_small(scenario):
