@@ -784,8 +784,10 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     return pl.concat(rows, how="vertical_relaxed").sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")
 
 
-#: the time windows the trade-off curves predict conflicts in (memory bounded by the window)
+#: the time windows the trade-off curves predict conflicts in (memory bounded by the window) ...
 CURVE_WINDOW_S = 3600.0
+#: ... and the most picture rows a window starts with (more only when one epoch holds more)
+CURVE_WINDOW_ROWS = 100_000
 
 #: settings of the curves predicted at once, in threads: each setting's prediction is
 #: independent and most of its time is spent in numpy, polars and the KD-tree, outside the GIL
@@ -808,7 +810,9 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     order = np.argsort(us, kind="stable")
     us = us[order]
     step = int(round((CURVE_WINDOW_S if window_s is None else window_s) * _US))
-    edges = list(range(int(us[0]), int(us[-1]) + 1, step)) + [int(us[-1]) + 1]
+    # a dense picture is cut finer: every setting's screened pairs of a window are held together
+    edges = np.unique(np.concatenate([np.arange(int(us[0]), int(us[-1]) + 1, step), us[::CURVE_WINDOW_ROWS],
+                                      [int(us[-1]) + 1]])).tolist()
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
 

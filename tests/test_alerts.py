@@ -391,6 +391,10 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
     one = stca_tradeoff(pic, _id_map(), truth, CFG, **kw)
     monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 15.0)
     assert stca_tradeoff(pic, _id_map(), truth, CFG, **kw).equals(one)
+    # a dense picture is cut by rows too: windows of a few rows, edges at a row's epoch
+    monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 1e6)
+    monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_ROWS", 7)
+    assert stca_tradeoff(pic, _id_map(), truth, CFG, **kw).equals(one)
 
 
 def test_config_validation():

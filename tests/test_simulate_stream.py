@@ -7,6 +7,7 @@ import json
 from datetime import timedelta
 
 import polars as pl
+import pyarrow.parquet as pq
 import pytest
 from polars.testing import assert_frame_equal
 
@@ -43,6 +44,18 @@ def test_single_file_and_partitioned_read_back_identical(tmp_path):
         a, b = getattr(one, name), getattr(parts, name)
         assert a.height > 0 and a.columns == b.columns and a.equals(b), name
     assert parts.scenario == one.scenario
+    # each part in row groups of ≤ 16 384 reports in time order: a reader of one time window
+    # skips the others by their statistics (a part reaches back to its tracks' first reports)
+    n_groups = []
+    for part in sorted((tmp_path / "parts" / "reports").iterdir()):
+        meta = pq.ParquetFile(part).metadata
+        col = [meta.schema.column(i).name for i in range(meta.num_columns)].index("time")
+        groups = [meta.row_group(g) for g in range(meta.num_row_groups)]
+        assert all(g.num_rows <= 16_384 for g in groups)
+        stats = [g.column(col).statistics for g in groups]
+        assert all(a.max <= b.min for a, b in zip(stats[:-1], stats[1:]))
+        n_groups.append(len(groups))
+    assert max(n_groups) >= 2
 
 
 def test_windows_equal_one_window_run(whole):
