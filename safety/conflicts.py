@@ -1894,9 +1894,7 @@ class _Rows:
                 sub._memo[name] = tuple(a if a is None else a[idx] for a in v)
             elif name == "terms":
                 sub._memo[name] = v.take(idx)
-            elif name == "keys":
-                sub._memo[name] = v[idx]
-            else:
+            else:                               # g, ids (arrays), keys (a frame)
                 sub._memo[name] = v[idx]
         return sub
 
