@@ -69,6 +69,27 @@ def test_domestic_flights_take_off_and_land_at_airports(day):
     assert np.all((fl > 185) & (fl < 395))
 
 
+def test_take_offs_and_landings_fly_the_runway_in_use(day):
+    """Each airport has one runway direction in use: every take-off climbs out along it and
+    every landing comes in along it, whatever the flight's course (a flight taking the runway
+    end closer to its course met landings head-on on the same runway)."""
+    cfg, _, tr = day
+    runway = {a.name: a.runway_deg for a in cfg.national.airports}
+    dom = np.flatnonzero(tr.role == "domestic")
+    r, end = tr.route[dom], tr.length[tr.route[dom]]
+    out = tr.tpos[r, 60, :2] - tr.tpos[r, 0, :2]                 # the first minute after take-off
+    last = tr.tpos[r, end, :2] - tr.tpos[r, end - 60, :2]         # the last minute before touch-down
+    for d, names in ((out, tr.meta["origin"][dom]), (last, tr.meta["destination"][dom])):
+        heading = np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0
+        want = np.array([runway[n] for n in names])
+        assert np.abs((heading - want + 180.0) % 360.0 - 180.0).max() < 1.0
+    # and both directions of travel are flown from every runway: flights turn back through a
+    # crosswind or downwind point, not by taking the other runway end
+    course = np.degrees(np.arctan2(*(tr.tpos[r, end, :2] - tr.tpos[r, 0, :2]).T)) % 360.0
+    rwy = np.array([runway[n] for n in tr.meta["origin"][dom]])
+    assert (np.abs((course - rwy + 180.0) % 360.0 - 180.0) > 90.0).mean() > 0.2
+
+
 def test_window_lookup_matches_the_template(day):
     """The truth of a window is the template looked up at (k − entry): a flight's position is
     the same in two overlapping windows."""

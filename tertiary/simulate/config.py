@@ -163,8 +163,8 @@ class AdsbConfig:
 
 @dataclass(frozen=True)
 class Airport:
-    """An airport of the national scenario: threshold position and runway direction (deg true,
-    either end: each flight takes the end closer to its course)."""
+    """An airport of the national scenario: threshold position and the direction of the runway
+    in use (deg true: every take-off and landing of the day flies it)."""
 
     name: str
     lat_deg: float

@@ -751,6 +751,7 @@ def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.f
 NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
 DEP_LEG_M = 10_000.0                  # runway heading after take-off before turning on course
 FINAL_M = 30_000.0                    # straight-in final from the initial approach fix
+TURN_LEG_M = 15_000.0                 # crosswind / downwind offset of a flight turning back
 CLIMB_GRADIENT = 0.075                # 7.5 % climb to the cruise level
 DESCENT_GRADIENT = 0.052              # ~3° descent from cruise, then the 3° glide path
 CRUISE_SPEED = (210.0, 240.0)         # m/s true airspeed ≈ ground speed (no wind)
@@ -790,19 +791,28 @@ def _domestic_profiles(cruise_m: float):
     return speed, height
 
 
-def _runway_end(runway_deg: float, course_deg: float) -> float:
-    """The runway direction (of its two ends) closer to ``course_deg``."""
-    return runway_deg if abs(_wrap180(np.asarray(course_deg - runway_deg))) <= 90.0 else (runway_deg + 180.0) % 360.0
-
-
 def _domestic_route(a, b, rwy_a: float, rwy_b: float) -> tuple:
-    """Waypoints A → runway heading 10 km → initial approach fix 30 km before B on its final → B."""
+    """Waypoints A → runway heading 10 km → initial approach fix 30 km before B on its final → B.
+    Each airport has one runway direction in use (``runway_deg``), for its take-offs and its
+    landings alike: with each flight taking the end closer to its course, take-offs and
+    landings met head-on on one runway."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     course = float(np.degrees(np.arctan2(*(b - a))))
-    da, db = _runway_end(rwy_a, course), _runway_end(rwy_b, course)
-    ua = np.array([np.sin(np.radians(da)), np.cos(np.radians(da))])
-    ub = np.array([np.sin(np.radians(db)), np.cos(np.radians(db))])
-    return tuple(map(tuple, (a, a + DEP_LEG_M * ua, b - FINAL_M * ub, b))), course
+    ua = np.array([np.sin(np.radians(rwy_a)), np.cos(np.radians(rwy_a))])
+    ub = np.array([np.sin(np.radians(rwy_b)), np.cos(np.radians(rwy_b))])
+    out, iaf = a + DEP_LEG_M * ua, b - FINAL_M * ub
+    # a flight leaving or joining against the runway direction turns through a point abeam
+    # (a departure's crosswind turn, an arrival's downwind and base): no turn over 90°
+    base = [iaf + TURN_LEG_M * _side(ub, out - iaf)] if np.dot(iaf - out, ub) < 0 else []
+    first = base[0] if base else iaf
+    cross = [out + TURN_LEG_M * _side(ua, first - out)] if np.dot(first - out, ua) < 0 else []
+    return tuple(map(tuple, (a, out, *cross, *base, iaf, b))), course
+
+
+def _side(u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The unit normal of direction ``u`` on the side of vector ``v``."""
+    n = np.array([u[1], -u[0]])
+    return n if np.dot(n, v) >= 0 else -n
 
 
 @dataclass
