@@ -661,3 +661,33 @@ def test_a_reused_track_number_starts_a_new_life_for_confirmation():
     b, st2 = fusion.confirm_step(st, rows.tail(1))
     assert a["tentative"].to_list() + b["tentative"].to_list() == out["tentative"].to_list()
     assert st2.tracks["n_plots"].to_list() == [1]
+
+
+def test_a_one_scan_split_off_stays_tentative():
+    """Radars 1 and 2 see an aircraft as target 1 for three scans; at scan 3 radar 2's plot
+    misses the gate and is grouped alone as target 2, and at scan 4 it is back in target 1.
+    Target 2 holds one plot of an established local track: counted over the track's life it
+    was confirmed at once (a one-scan duplicate of the aircraft in the picture); counted in the
+    target it is tentative. A split that lasts (target 3 from scan 6 on, two plots) is
+    confirmed at its second plot, and the window edge changes nothing."""
+    from datetime import datetime, timedelta, timezone
+    t0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
+
+    def row(k, target, radar, track):
+        t = t0 + timedelta(seconds=4.0 * k)
+        return {"run": 0, "epoch": t, "target_id": target, "radar_id": radar, "local_track_id": track,
+                "fresh": True, "time": t}
+    seen = {0: 1, 1: 1, 2: 1, 3: 2, 4: 1, 5: 1, 6: 3, 7: 3}      # radar 2's target at each scan
+    rows = pl.DataFrame([row(k, 1, 1, 7) for k in range(8)] + [row(k, seen[k], 2, 4) for k in range(8)],
+                        schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
+                                          "local_track_id": pl.UInt32}).sort("epoch", "radar_id")
+    out, _ = fusion.confirm_step(fusion.ConfirmState.empty(), rows)
+    flags = dict(zip(zip(out["target_id"], out["epoch"]), out["tentative"]))
+    assert flags[(2, t0 + timedelta(seconds=12))] is True
+    assert [flags[(3, t0 + timedelta(seconds=4.0 * k))] for k in (6, 7)] == [True, False]
+    assert not any(v for (tg, _), v in flags.items() if tg == 1 and _ > t0)
+    for cut in (3, 4, 6, 7):          # the target change seen across the window edge
+        edge = t0 + timedelta(seconds=4.0 * cut)
+        a, st = fusion.confirm_step(fusion.ConfirmState.empty(), rows.filter(pl.col("epoch") < edge))
+        b, _ = fusion.confirm_step(st, rows.filter(pl.col("epoch") >= edge))
+        assert pl.concat([a, b]).sort("target_id", "epoch").equals(out.sort("target_id", "epoch"))
