@@ -165,3 +165,24 @@ def test_mode_c_separates_stacked_aircraft():
     assert len(candidate_pairs(climbing, GatingConfig())) == 1
     missing = df.with_columns(pl.Series("altitude_m", [3048.0, None], dtype=pl.Float64), ages)
     assert len(candidate_pairs(missing, GatingConfig())) == 1
+
+
+def test_mode_c_is_the_vertical_gate_where_both_reports_carry_it():
+    """One aircraft at FL350 seen by two en-route radars 200 km away: their elevation heights
+    differ by 1.8 km (0.5° of elevation error), beyond ``alt_tol_m``, while the Mode C altitudes
+    agree. The pair gates — with the z box it was split into two targets — and its cost's
+    vertical term is the altitude difference (20 m), not the elevation heights' 1.8 km. A pair
+    with one report lacking Mode C is still held to the elevation heights' tolerance."""
+    df = _aligned([(0, 1, 1, 0, 0, 10668.0), (0, 2, 1, 300, 0, 10668.0 + 1800.0)])
+    ages = pl.Series("age_s", [0.0, 0.0])
+    both = df.with_columns(pl.Series("altitude_m", [10668.0, 10688.0]), ages)
+    p = candidate_pairs(both, GatingConfig())
+    assert len(p) == 1 and p.sqdist[0] == pytest.approx(300.0 ** 2 + 20.0 ** 2)
+    assert len(candidate_pairs(both, GatingConfig(use_mode_c=False))) == 0
+    assert _groups(both) == [{0, 1}]
+    one = df.with_columns(pl.Series("altitude_m", [10668.0, None], dtype=pl.Float64), ages)
+    assert len(candidate_pairs(one, GatingConfig())) == 0
+    # Mode C still separates what it separates, even with equal elevation heights (stacked)
+    stacked = _aligned([(0, 1, 1, 0, 0, 3000), (0, 2, 1, 50, 0, 3000)]).with_columns(
+        pl.Series("altitude_m", [3048.0, 3048.0 + 304.8]), ages)
+    assert len(candidate_pairs(stacked, GatingConfig())) == 0
