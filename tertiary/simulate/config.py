@@ -180,7 +180,9 @@ class NationalConfig:
     straight-in final) and overflights on ``airways`` across the area, entering over a day
     whose airborne count follows ``hourly_curve`` (relative weights per UTC hour, scaled so
     that the peak is ``peak_airborne``). ``landing_spacing_s`` separates landings at an
-    airport, ``lane_spacing_s`` entries on one (route, level) lane. Random draws of the radar
+    airport, ``departure_spacing_s`` its take-offs, ``lane_spacing_s`` entries on one (route,
+    level) lane; each flight's level and delay are planned so that flights keep 5 NM or 1 000 ft
+    apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`). Random draws of the radar
     scans are made per ``block_s`` of time, so the data do not depend on the window the
     simulation is written in (a window must be a multiple of ``block_s``). The run covers
     [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole day's, the
@@ -193,6 +195,7 @@ class NationalConfig:
     overflight_fraction: float = 0.35
     min_route_km: float = 150.0
     landing_spacing_s: float = 90.0
+    departure_spacing_s: float = 90.0
     lane_spacing_s: float = 120.0
     area_half_width_km: float = 500.0
     block_s: float = 600.0
@@ -664,6 +667,7 @@ def _check_national(n: NationalConfig | None, cfg: ScenarioConfig) -> None:
     _number("national.overflight_fraction", n.overflight_fraction, 0.0, 1.0)
     _number("national.min_route_km", n.min_route_km, 50.0, 5000.0)
     _number("national.landing_spacing_s", n.landing_spacing_s, 30.0, 3600.0)
+    _number("national.departure_spacing_s", n.departure_spacing_s, 30.0, 3600.0)
     _number("national.lane_spacing_s", n.lane_spacing_s, 30.0, 3600.0)
     _number("national.area_half_width_km", n.area_half_width_km, 50.0, 3000.0)
     _number("national.block_s", n.block_s, cfg.dt, 86400.0)

@@ -54,6 +54,7 @@ tangent-plane z exactly (:func:`heights_to_enu`), level flight is level in heigh
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -747,6 +748,17 @@ def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.f
 # day (:func:`national_flights`), flown from templates looked up window by window
 # (:func:`NationalTraffic.window`): the schedule of the whole day is a few arrays per flight,
 # the (aircraft × samples) truth exists only for the window being simulated.
+#
+# The schedule is deconflicted as a controller's strategic plan would be: the flights are
+# planned in order of entry, each at the first flight level of its route and the shortest delay
+# (a departure held on the ground, an overflight held before it enters) at which it stays 5 NM or
+# 1 000 ft from every flight already planned above FL150 (:func:`conflict_offsets`,
+# :func:`_allocate_levels`). Without it (two fixed levels per route, no plan) the peak hour
+# held ~3 000 pairs of aircraft within 3 NM and 1 000 ft, most of them crossing at one level:
+# the alert list of such a day is not that of any airspace. Below FL150 the runways' spacing
+# orders the traffic (take-offs, landings); departures and arrivals of one runway are not
+# sequenced against each other (mixed mode), which leaves pairs near the runways (see
+# ``datasets/national.toml``).
 
 NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
 DEP_LEG_M = 10_000.0                  # runway heading after take-off before turning on course
@@ -755,7 +767,11 @@ TURN_LEG_M = 15_000.0                 # crosswind / downwind offset of a flight 
 CLIMB_GRADIENT = 0.075                # 7.5 % climb to the cruise level
 DESCENT_GRADIENT = 0.052              # ~3° descent from cruise, then the 3° glide path
 CRUISE_SPEED = (210.0, 240.0)         # m/s true airspeed ≈ ground speed (no wind)
-OVERFLIGHT_LEVELS = 3                 # levels per airway and direction
+#: flight levels (hundreds of feet) a route's flights are planned at, by the semicircular rule:
+#: domestic routes under 400 km, longer ones, the airways across the area
+DOMESTIC_LEVELS_SHORT = (150, 270)
+DOMESTIC_LEVELS_LONG = (250, 410)
+AIRWAY_LEVELS = (250, 410)
 #: overflight airways: entry bearing from the origin (deg) and lateral offset (km) of a straight
 #: track across the area to the opposite side
 NATIONAL_AIRWAYS = ((0.0, -120.0), (20.0, 60.0), (45.0, -40.0), (70.0, 150.0), (95.0, -200.0),
@@ -864,11 +880,13 @@ class NationalTraffic:
 
 
 def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.LocalFrame | None):
-    """Every route flown once: two cruise levels per domestic airport pair (semicircular rule,
-    FL190–FL270 under 400 km, FL290–FL390 beyond), and each airway at three levels per
-    direction. Returns the templates and, per template, (kind, origin airport, destination)."""
+    """Every route flown at each of its flight levels: a domestic airport pair at the semicircular
+    levels of FL190–FL270 under 400 km, FL290–FL390 beyond; each airway direction at the
+    semicircular levels of FL310–FL390. Returns the templates and, per template, (kind, origin
+    airport, destination, route, flight level): the templates of one route differ by their level
+    only, which :func:`_allocate_levels` chooses per flight."""
     tpl, info = [], []
-    levels_short, levels_long = (190, 270), (290, 390)
+    levels_short, levels_long = DOMESTIC_LEVELS_SHORT, DOMESTIC_LEVELS_LONG
     for i in range(len(sites)):
         for j in range(len(sites)):
             dist = float(np.hypot(*(sites[j] - sites[i])))
@@ -876,12 +894,12 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
                 continue
             wp, course = _domestic_route(sites[i], sites[j], cfg.airports[i].runway_deg, cfg.airports[j].runway_deg)
             lo, hi = levels_short if dist < 400_000.0 else levels_long
-            fls = _semicircular_levels(course, lo, hi)
-            for fl in fls[[len(fls) // 3, (2 * len(fls)) // 3]]:
+            group = len({r for *_, r, _ in info})
+            for fl in _semicircular_levels(course, lo, hi):
                 sp, hp = _domestic_profiles(float(flight_level_m(fl, 1.0)))
                 hdg, ln, cv = _flyby(wp)
                 tpl.append(_fly(wp[0], hdg, ln, cv, sp, hp, _vertical_seg(hp), dt))
-                info.append(("domestic", i, j))
+                info.append(("domestic", i, j, group, int(fl)))
     half = cfg.area_half_width_km * 1000.0
     for bearing, offset_km in NATIONAL_AIRWAYS:
         for sign in (1.0, -1.0):
@@ -890,13 +908,134 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
             p = -half * d + offset_km * 1000.0 * sign * np.array([d[1], -d[0]])
             wp = (tuple(p), tuple(p + 2 * half * d))
             track = float(np.degrees(b)) % 360.0
-            for fl in _semicircular_levels(track, 310, 390)[-OVERFLIGHT_LEVELS:]:
+            group = len({r for *_, r, _ in info})
+            for fl in _semicircular_levels(track, *AIRWAY_LEVELS):
                 h = float(flight_level_m(fl, 1.0))
                 hdg, ln, cv = _flyby(wp)
                 spd = 225.0 + 2.0 * (fl - 310) / 10.0
                 tpl.append(_fly(wp[0], hdg, ln, cv, _const(spd), _const(h), _level_seg, dt))
-                info.append(("overflight", -1, -1))
+                info.append(("overflight", -1, -1, group, int(fl)))
     return tpl, info
+
+
+#: strategic deconfliction of the schedule (:func:`_allocate_levels`) above FL150 (below, the
+#: runways' spacing orders the traffic): flights planned 5 NM or 1 000 ft apart, positions
+#: compared every ``DECONFLICT_STRIDE_S`` (two aircraft close by at most 2 × 250 m/s × 4 s = 2 km
+#: between samples: no pair planned apart comes within 3 NM, the minimum alerts are scored on)
+DECONFLICT_R_M = 5 * 1852.0
+DECONFLICT_DZ_M = 1000 * 0.3048
+DECONFLICT_H_MIN_M = 150 * 100 * 0.3048
+DECONFLICT_STRIDE_S = 8.0
+#: offsets (in strides) a conflict key holds: ± 2^14 strides, more than any flight's length
+_OFFSET_BITS = 15
+
+
+def conflict_offsets(pos_h: NDArray[np.float64], length: NDArray[np.int64], stride: int,
+                     r_m: float = DECONFLICT_R_M, dz_m: float = DECONFLICT_DZ_M,
+                     h_min_m: float = DECONFLICT_H_MIN_M) -> NDArray[np.int64]:
+    """The sorted keys of every (template a, template b, entry offset) at which two flights
+    would conflict: a flight on ``a`` entering at e and one on ``b`` entering at e' meet within
+    ``r_m`` horizontally and ``dz_m`` vertically (above ``h_min_m``) when e − e' ≈ m·stride,
+    key (a·T + b)·2^15 + m + 2^14 (:func:`_conflict_key`). ``pos_h``: templates' (x, y, height)
+    samples (T, K+1, 3), read every ``stride`` samples. A flight at sample k_a of ``a`` meets one at
+    k_b of ``b`` when e + k_a = e' + k_b, so the offsets are k_b − k_a over close sample pairs.
+    The pairs are found per 1 000 ft band (a loop over bands, tens), against the band and the
+    next one up."""
+    T = len(length)
+    kk = [np.arange(0, int(n) + 1, stride) for n in length]       # a loop over templates (hundreds)
+    tid = np.repeat(np.arange(T), [len(k) for k in kk])
+    ks = np.concatenate(kk)
+    p = pos_h[tid, ks]
+    up = p[:, 2] > h_min_m
+    tid, ks, p = tid[up], ks[up], p[up]
+    band = np.floor(p[:, 2] / dz_m).astype(np.int64)
+    keys = []
+    by_band = {int(b): np.flatnonzero(band == b) for b in np.unique(band)}
+    from scipy.spatial import cKDTree
+    for b, ia in by_band.items():
+        ib = np.concatenate([ia, by_band.get(b + 1, np.zeros(0, np.int64))])
+        got = cKDTree(p[ia, :2]).sparse_distance_matrix(cKDTree(p[ib, :2]), r_m, output_type="ndarray")
+        i, j = ia[got["i"]], ib[got["j"]]
+        ok = np.abs(p[i, 2] - p[j, 2]) < dz_m
+        i, j = i[ok], j[ok]
+        other = got["j"][ok] >= len(ia)              # pairs with the band above: add their mirror
+        keys.append(_conflict_key(tid[i], tid[j], (ks[j] - ks[i]) // stride, T))
+        keys.append(_conflict_key(tid[j[other]], tid[i[other]], (ks[i[other]] - ks[j[other]]) // stride, T))
+    return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+
+def _conflict_key(a: NDArray[np.int64], b: NDArray[np.int64], m: NDArray[np.int64], T: int) -> NDArray[np.int64]:
+    return (a * T + b) * (1 << _OFFSET_BITS) + np.clip(m, -(1 << (_OFFSET_BITS - 1)) + 1,
+                                                         (1 << (_OFFSET_BITS - 1)) - 1) + (1 << (_OFFSET_BITS - 1))
+
+
+#: the delays a flight may take (s) when every level of its route conflicts: a departure held on
+#: the ground, an overflight held before it enters (the area's neighbours regulating the flow)
+DECONFLICT_DELAYS_S = (0.0, 60.0, 120.0, 180.0, 300.0, 420.0, 600.0, 900.0, 1200.0)
+
+
+def _allocate_levels(route: NDArray[np.int64], entry: NDArray[np.int64], land: NDArray[np.int64],
+                     levels: list[NDArray[np.int64]], group: NDArray[np.int64], length: NDArray[np.int64],
+                     keys: NDArray[np.int64], stride: int, origin: NDArray[np.int64], dest: NDArray[np.int64],
+                     take_off_gap: int, landing_gap: int, delays: NDArray[np.int64]
+                     ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    """Each flight's level and delay, as a controller's strategic plan would give them: flights
+    in order of entry, each takes the first (delay, level) of its route (``levels[group]``, its
+    drawn level first, the shortest delay first) at which it conflicts with no flight already
+    planned (``keys``: :func:`conflict_offsets`) and keeps its runways' spacing (``origin`` /
+    ``dest``: airport per template, −1 for an overflight; take-offs ``take_off_gap``, landings
+    ``landing_gap`` samples apart), else the one with the fewest conflicts. A domestic flight keeps
+    its landing time (``land``; −1 for an overflight) plus its delay and takes off earlier or later
+    by its level's flight time. Returns (template, entry, flights left in conflict). Sequential by
+    nature (each choice depends on the earlier ones): a loop over flights, each tested at once
+    against the flights airborne with it."""
+    T = len(length)
+    order = np.argsort(entry, kind="stable")
+    out_r, out_e = route.copy(), entry.copy()
+    big = np.iinfo(np.int64).max // 4
+    ends = np.full(len(route), -big)            # planned flights' last sample (unplanned: never)
+    lands = np.full(len(route), -big)           # planned flights' landing sample (overflight: never)
+    done_e = np.zeros(len(route), np.int64)
+    reach = int(length.max()) + int(delays.max()) + 3600
+    sorted_entries = entry[order]
+    pair_any = np.zeros(T * T, bool)
+    pair_any[np.unique(keys >> _OFFSET_BITS)] = True
+    left = 0
+    for rank, f in enumerate(order):
+        lv = levels[group[route[f]]]
+        lv = np.concatenate([[route[f]], lv[lv != route[f]]])
+        cand = np.tile(lv, len(delays))                     # (delay, level), shortest delay first
+        d = np.repeat(delays, len(lv))
+        domestic = land[f] >= 0
+        e = (land[f] + d - length[cand]) if domestic else entry[f] + d
+        lo = np.searchsorted(sorted_entries, e.min() - reach, "left")
+        near = order[lo:rank]
+        near = near[ends[near] >= e.min()]
+        ok = np.ones(len(cand), bool)
+        if domestic and len(near):                  # the runways' spacing at both ends
+            o, g = origin[cand[0]], dest[cand[0]]
+            ro, rd = origin[out_r[near]], dest[out_r[near]]
+            ok &= np.all(np.abs(e[:, None] - done_e[near[ro == o]][None, :]) >= take_off_gap, axis=1)
+            ok &= np.all(np.abs((land[f] + d)[:, None] - lands[near[rd == g]][None, :]) >= landing_gap, axis=1)
+        hits = np.zeros(len(cand), np.int64)
+        for c in range(len(cand)):                  # a route's (delay, level) choices (tens)
+            rel = near[pair_any[cand[c] * T + out_r[near]]]
+            if len(rel):
+                q = _conflict_key(np.full(len(rel), cand[c]), out_r[rel],
+                                  np.rint((e[c] - done_e[rel]) / stride).astype(np.int64), T)
+                at = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+                hits[c] = int((keys[at] == q).sum())
+            if hits[c] == 0 and ok[c]:
+                break
+        # the first free choice; else the fewest conflicts, keeping the runways' spacing if any can
+        score = hits + np.where(ok, 0, 1 << 20)
+        score[c + 1:] = big                          # untried choices
+        best = int(np.argmin(score))
+        left += int(hits[best] > 0)
+        out_r[f], out_e[f] = cand[best], e[best]
+        done_e[f], ends[f] = e[best], e[best] + length[cand[best]]
+        lands[f] = land[f] + d[best] if domestic else -big
+    return out_r, out_e, left
 
 
 def _template_arrays(tpl: list[dict], frame: geo.LocalFrame | None):
@@ -956,6 +1095,27 @@ def _entry_times(rng, weights: NDArray[np.float64], n: int, duration_s: float) -
     return np.interp(rng.uniform(0.0, cdf[-1], n), cdf, grid)
 
 
+@functools.lru_cache(maxsize=2)
+def _national_routes(airports: tuple, min_route_km: float, half_width_km: float, dt: float,
+                     frame: geo.LocalFrame, stride: int) -> tuple:
+    """The national templates in the system frame (:func:`_template_grid`, tangent-plane z), their
+    (kind, origin, destination, route, level) and :func:`conflict_offsets`: what the schedule
+    flies and is planned on. They depend on the airports and the area only (not on the traffic's
+    amount or draws), so a process simulating the scenario again reuses them (read-only)."""
+    from types import SimpleNamespace
+    cfg = SimpleNamespace(airports=airports, min_route_km=min_route_km, area_half_width_km=half_width_km)
+    sites = np.column_stack(frame.from_geodetic([a.lat_deg for a in airports],
+                                                [a.lon_deg for a in airports], 0.0)[:2])
+    tpl, info = _national_templates(cfg, sites, dt, frame)
+    tpos, tvel, tseg, length = _template_grid(tpl)
+    keys = conflict_offsets(tpos, length, stride)          # positions are (x, y, height) here
+    # a template's padding (its last sample repeated) is never flown: the sphere's z is enough there
+    heights_to_enu(tpos, tvel, frame, active=np.arange(tpos.shape[1])[None, :] <= length[:, None])
+    for a in (tpos, tvel, tseg, length, keys):
+        a.flags.writeable = False
+    return tpos, tvel, tseg, length, info, keys
+
+
 def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator, frame: geo.LocalFrame,
                      epoch) -> NationalTraffic:
     """The day's traffic (:class:`tertiary.simulate.config.NationalConfig`): domestic flights
@@ -963,16 +1123,21 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
     at an airport ≥ ``landing_spacing_s`` apart; overflights on the airways, entries on a
     (route, level) lane ≥ ``lane_spacing_s`` apart. Entry times follow the hourly curve; the
     number of flights is scaled so that the airborne count peaks at ``peak_airborne``
-    (computed on the schedule, one rescaling pass)."""
-    sites = np.column_stack(frame.from_geodetic([a.lat_deg for a in cfg.airports],
-                                                [a.lon_deg for a in cfg.airports], 0.0)[:2])
-    tpl, info = _national_templates(cfg, sites, dt, frame)
-    tpos, tvel, tseg, length = _template_arrays(tpl, frame)
-    kind = np.array([k for k, _, _ in info])
-    orig, dest = np.array([i for _, i, _ in info]), np.array([j for _, _, j in info])
+    (computed on the schedule, one rescaling pass). Then each flight's level and delay are
+    planned (:func:`_allocate_levels`): apart from the flights planned before it above FL150,
+    take-offs ≥ ``departure_spacing_s`` and landings ≥ ``landing_spacing_s`` apart where the
+    runways allow."""
+    stride = max(1, int(round(DECONFLICT_STRIDE_S / dt)))
+    tpos, tvel, tseg, length, info, keys = _national_routes(cfg.airports, cfg.min_route_km, cfg.area_half_width_km,
+                                                            dt, frame, stride)
+    kind = np.array([k for k, *_ in info])
+    orig, dest = np.array([i[1] for i in info]), np.array([i[2] for i in info])
+    group = np.array([i[3] for i in info])
+    levels = [np.flatnonzero(group == g) for g in range(int(group.max()) + 1)]
     dom, ovf = np.flatnonzero(kind == "domestic"), np.flatnonzero(kind == "overflight")
     w = np.array([a.weight for a in cfg.airports])
-    p_dom = w[orig[dom]] * w[dest[dom]]
+    # an airport pair's share by its airports' weights, spread over its levels
+    p_dom = w[orig[dom]] * w[dest[dom]] / np.array([len(levels[g]) for g in group[dom]])
     p_dom = p_dom / p_dom.sum()
     seeds = rng.spawn(2)
     day = max(duration_s, 86400.0)      # the whole day is scheduled: a shorter run is its first hours
@@ -995,6 +1160,11 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
         peak = probe.airborne(np.arange(0, int(day / dt) + 1, max(1, int(60 / dt)))).max()
         n = max(2, int(round(n * cfg.peak_airborne / max(peak, 1))))
     route, entry = schedule(n, seeds[1])
+    land = np.where(kind[route] == "domestic", entry + length[route], -1)
+    route, entry, _ = _allocate_levels(route, entry, land, levels, group, length, keys, stride, orig, dest,
+                                       int(round(cfg.departure_spacing_s / dt)),
+                                       int(round(cfg.landing_spacing_s / dt)),
+                                       np.rint(np.asarray(DECONFLICT_DELAYS_S) / dt).astype(np.int64))
     order = np.argsort(entry, kind="stable")          # flight numbers in order of entry
     route, entry = route[order], entry[order]
     role = np.where(kind[route] == "domestic", "domestic", "overflight")
