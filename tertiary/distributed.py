@@ -617,7 +617,7 @@ def _client(workers: int | None, scheduler: str | None, client: Any):
     if workers is not None and (not isinstance(workers, int) or workers < 1):
         raise OptionError(f"must be an integer >= 1, got {workers}", option="--workers")
     cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                           dashboard_address=None)
+                           dashboard_address=":0")     # any free port: two clusters at once do not collide
     c = Client(cluster)
     return c, lambda: (c.close(), cluster.close())
 
@@ -812,12 +812,19 @@ def _rowwise(d: pl.DataFrame, loc: pl.DataFrame, key: list[str], bounds: list[in
     j = loc.select(*key, *pos, "since_s").join(d.filter(pl.col(key[-1]).is_not_null()).select(*key, *pos)
                                                .unique(subset=key, keep="first"), on=key, how="left", suffix="_d")
     err = sum((pl.col(c) - pl.col(f"{c}_d")) ** 2 for c in pos).sqrt().alias("err")
-    j = j.with_columns(err, pl.col("since_s").fill_null(-1.0).cut(list(bins), left_closed=True).alias("bin"))
+    j = j.with_columns(err, pl.col("since_s").fill_null(-1.0)
+                       .bin_intervals([float(b) for b in bins], labels=_interval_labels(bins)).alias("bin"))
     g = (j.group_by("bin").agg(pl.len().alias("local_rows"), pl.col("err").is_not_null().sum().alias("matched"),
                                (pl.col("err") <= 1e-6).sum().alias("identical"),
                                (pl.col("err") ** 2).mean().sqrt().alias("rms_m"), pl.col("err").max().alias("max_m"))
          .sort("bin"))
     return g.with_columns(pl.col("bin").cast(pl.String)).to_dicts()
+
+
+def _interval_labels(bins: tuple[float, ...]) -> list[str]:
+    """"[a, b)" for each left-closed bin the breakpoints ``bins`` make, −inf and inf at the ends."""
+    edges = ["-inf", *(str(int(b)) if float(b).is_integer() else str(float(b)) for b in bins), "inf"]
+    return [f"[{a}, {b})" for a, b in zip(edges[:-1], edges[1:])]
 
 
 def _id_changes(pair: pl.DataFrame, group: list[str], local_col: str, bounds: list[int], around_s: float
