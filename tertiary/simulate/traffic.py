@@ -881,10 +881,10 @@ class NationalTraffic:
 
 def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.LocalFrame | None):
     """Every route flown at each of its flight levels: a domestic airport pair at the semicircular
-    levels of FL190–FL270 under 400 km, FL290–FL390 beyond; each airway direction at the
-    semicircular levels of FL310–FL390. Returns the templates and, per template, (kind, origin
-    airport, destination, route, flight level): the templates of one route differ by their level
-    only, which :func:`_allocate_levels` chooses per flight."""
+    levels of :data:`DOMESTIC_LEVELS_SHORT` under 400 km, :data:`DOMESTIC_LEVELS_LONG` beyond;
+    each airway direction at those of :data:`AIRWAY_LEVELS`. Returns the templates and, per
+    template, (kind, origin airport, destination, route, flight level): the templates of one
+    route differ by their level only, which :func:`_allocate_levels` chooses per flight."""
     tpl, info = [], []
     levels_short, levels_long = DOMESTIC_LEVELS_SHORT, DOMESTIC_LEVELS_LONG
     for i in range(len(sites)):
@@ -894,7 +894,7 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
                 continue
             wp, course = _domestic_route(sites[i], sites[j], cfg.airports[i].runway_deg, cfg.airports[j].runway_deg)
             lo, hi = levels_short if dist < 400_000.0 else levels_long
-            group = len({r for *_, r, _ in info})
+            group = info[-1][3] + 1 if info else 0
             for fl in _semicircular_levels(course, lo, hi):
                 sp, hp = _domestic_profiles(float(flight_level_m(fl, 1.0)))
                 hdg, ln, cv = _flyby(wp)
@@ -908,7 +908,7 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
             p = -half * d + offset_km * 1000.0 * sign * np.array([d[1], -d[0]])
             wp = (tuple(p), tuple(p + 2 * half * d))
             track = float(np.degrees(b)) % 360.0
-            group = len({r for *_, r, _ in info})
+            group = info[-1][3] + 1 if info else 0
             for fl in _semicircular_levels(track, *AIRWAY_LEVELS):
                 h = float(flight_level_m(fl, 1.0))
                 hdg, ln, cv = _flyby(wp)
@@ -1036,14 +1036,6 @@ def _allocate_levels(route: NDArray[np.int64], entry: NDArray[np.int64], land: N
         done_e[f], ends[f] = e[best], e[best] + length[cand[best]]
         lands[f] = land[f] + d[best] if domestic else -big
     return out_r, out_e, left
-
-
-def _template_arrays(tpl: list[dict], frame: geo.LocalFrame | None):
-    """:func:`_template_grid` with heights → tangent-plane z once (templates flown at their own
-    heights)."""
-    pos, vel, seg, length = _template_grid(tpl)
-    heights_to_enu(pos, vel, frame)
-    return pos, vel, seg, length
 
 
 def _template_grid(tpl: list[dict]):
