@@ -922,9 +922,9 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
 #: runways' spacing orders the traffic): flights planned 5 NM or 1 000 ft apart, positions
 #: compared every ``DECONFLICT_STRIDE_S`` (two aircraft close by at most 2 × 250 m/s × 4 s = 2 km
 #: between samples: no pair planned apart comes within 3 NM, the minimum alerts are scored on)
-DECONFLICT_R_M = 5 * 1852.0
-DECONFLICT_DZ_M = 1000 * 0.3048
-DECONFLICT_H_MIN_M = 150 * 100 * 0.3048
+DECONFLICT_R_M = 5 * 1852.0                # 5 NM
+DECONFLICT_DZ_M = 1000 * FT
+DECONFLICT_H_MIN_M = 150 * 100 * FT
 DECONFLICT_STRIDE_S = 8.0
 #: offsets (in strides) a conflict key holds: ± 2^14 strides, more than any flight's length
 _OFFSET_BITS = 15
