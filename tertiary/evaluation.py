@@ -33,8 +33,7 @@ import polars as pl
 from tertiary import geo
 from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.errors import DataError
-from tertiary.matching import (MatchConfig, match_with_reference, reference_between, reference_identity,
-                               with_neighbours)
+from tertiary.matching import MatchConfig, between_mask, match_with_reference, neighbour_times, reference_identity
 from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
@@ -130,17 +129,18 @@ _MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "segment")
 
 class _Reference:
     """The reference of one evaluation: whole, its aircraft's identity items, and (made when a
-    picture first comes in blocks) its samples' neighbours for cutting time slices."""
+    picture first comes in blocks) its samples' neighbour times for cutting time slices."""
 
     def __init__(self, truth: pl.DataFrame) -> None:
-        self.truth, self.identity, self._neighboured = truth, reference_identity(truth), None
+        self.truth, self.identity, self._times = truth, reference_identity(truth), None
 
     def between(self, t0, t1) -> pl.DataFrame:
-        if self._neighboured is None:
-            # what the matcher reads of the reference (its identity items are taken whole, once):
-            # a slice does not copy the reference's other columns (memory of the stage, issue 16)
-            self._neighboured = with_neighbours(self.truth.select(c for c in self.truth.columns if c in _MATCHED_REF))
-        return reference_between(self._neighboured, t0, t1)
+        if self._times is None:
+            # three time columns beside the reference, not a neighboured copy of it: a slice
+            # copies only its own rows of the columns the matcher reads (memory, issue 16)
+            self._times = neighbour_times(self.truth)
+        cols = [c for c in self.truth.columns if c in _MATCHED_REF]
+        return self.truth.select(cols).filter(between_mask(self._times, t0, t1))
 
 
 #: what the evaluation reads of a matched, row-scored picture beside the reference's ``true_*``

@@ -52,7 +52,8 @@ from scipy.spatial import cKDTree
 from tertiary.schema import TIME
 
 __all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference", "match_with_reference",
-           "reference_identity", "with_neighbours", "reference_between"]
+           "reference_identity", "with_neighbours", "reference_between",
+           "neighbour_times", "between_mask"]
 
 STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -226,20 +227,33 @@ def reference_identity(truth: pl.DataFrame) -> pl.DataFrame | None:
 def with_neighbours(truth: pl.DataFrame) -> pl.DataFrame:
     """``truth`` with each sample's neighbouring sample times of the same aircraft (``__prev``,
     ``__next``): what :func:`reference_between` cuts a time slice with."""
+    return truth.hstack(neighbour_times(truth).drop("time").get_columns())
+
+
+def neighbour_times(truth: pl.DataFrame) -> pl.DataFrame:
+    """(time, ``__prev``, ``__next``) of each sample of ``truth``, in its row order: the sample's
+    time and its aircraft's previous and next sample times — :func:`between_mask` cuts a time
+    slice with these three columns alone, never a copy of the reference (memory of the
+    evaluation, issue 16)."""
     keys = ["truth_id"] + (["run"] if "run" in truth.columns else [])
     t = pl.col("time").cast(TIME)
-    return truth.with_columns(t.shift(1).over(keys, order_by=t).alias("__prev"),
-                              t.shift(-1).over(keys, order_by=t).alias("__next"))
+    return truth.select(pl.col("time"), t.shift(1).over(keys, order_by=t).alias("__prev"),
+                        t.shift(-1).over(keys, order_by=t).alias("__next"))
+
+
+def between_mask(times: pl.DataFrame, t0, t1) -> pl.Series:
+    """Which samples the reference at any time in [t0, t1] reads (rule 1): those inside, and
+    each aircraft's last sample before and first after — so spans, gaps and interpolation on
+    the slice are those of the whole reference. ``times``: :func:`neighbour_times`."""
+    t = pl.col("time")
+    keep = t.is_between(t0, t1) | ((t < t0) & (pl.col("__next") >= t0)) | ((t > t1) & (pl.col("__prev") <= t1))
+    return times.select(keep.fill_null(False).alias("keep"))["keep"]
 
 
 def reference_between(neighboured: pl.DataFrame, t0, t1) -> pl.DataFrame:
-    """The reference samples that the reference at any time in [t0, t1] reads (rule 1): those
-    inside, and each aircraft's last sample before and first after — so spans, gaps and
-    interpolation on the slice are those of the whole reference. ``neighboured``:
-    :func:`with_neighbours` of the reference."""
-    t = pl.col("time")
-    keep = t.is_between(t0, t1) | ((t < t0) & (pl.col("__next") >= t0)) | ((t > t1) & (pl.col("__prev") <= t1))
-    return neighboured.filter(keep).drop("__prev", "__next")
+    """The reference samples that the reference at any time in [t0, t1] reads
+    (:func:`between_mask`). ``neighboured``: :func:`with_neighbours` of the reference."""
+    return neighboured.filter(between_mask(neighboured, t0, t1)).drop("__prev", "__next")
 
 
 def match_with_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
