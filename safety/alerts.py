@@ -340,14 +340,16 @@ def _pair_segments(rs: dict[str, NDArray], reach_h: float, reach_v: float
 
 def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, factors: Sequence[float] = (1.0,),
                          frame: geo.LocalFrame | None = None, max_rows: int = 50_000_000,
-                         level_pairs: tuple[float, float] | None = None, merge_gap_s: float = 0.0
-                         ) -> list[pl.DataFrame]:
+                         level_pairs: tuple[float, float] | None = None, merge_gap_s: float = 0.0,
+                         enroute: tuple[float, float, float] | None = None) -> list[pl.DataFrame]:
     """For each factor f: the merged intervals during which pairs of aircraft are within
     f·Δr_г horizontally **and** f·Δr_в vertically at the same instant, exact under linear
     motion between the union sample times (see the module docstring). ``level_pairs`` =
     (tolerance m, level rate m/s): on segments where both aircraft are level the vertical bound
-    is f·Δr_в − tolerance (module docstring "Level pairs"). Intervals of a pair at most
-    ``merge_gap_s`` apart are one episode. One frame per factor: (run, truth_a, truth_b,
+    is f·Δr_в − tolerance (module docstring "Level pairs"). ``enroute`` = (floor m, Δr_г m,
+    Δr_в m): a segment pair whose four end heights are all at or above the floor is judged by
+    these minima instead (:mod:`safety.conflicts`, "En-route airspace"). Intervals of a pair at
+    most ``merge_gap_s`` apart are one episode. One frame per factor: (run, truth_a, truth_b,
     t_start_us, t_end_us), truth_a < truth_b (run 0 without a run column)."""
     tr = truth_heights(truth, frame)
     out_schema = {"run": pl.UInt32, "truth_a": pl.Int64, "truth_b": pl.Int64, "t_start_us": pl.Int64,
@@ -357,12 +359,16 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
         return empty
     rs = _resample(tr, max_rows)
     fmax = max(factors)
-    a, b = _pair_segments(rs, fmax * dr_h_m, fmax * dr_v_m)
+    reach_h, reach_v = (dr_h_m, dr_v_m) if enroute is None else (max(dr_h_m, enroute[1]), max(dr_v_m, enroute[2]))
+    a, b = _pair_segments(rs, fmax * reach_h, fmax * reach_v)
     same = rs["gk"][a] == rs["gk"][b]
     a, b = a[same], b[same]
     if not len(a):
         return empty
     pos, t, ac = rs["pos"], rs["t"], rs["ac"]
+    if enroute is not None:
+        high = np.minimum(np.minimum(pos[a, 2], pos[a + 1, 2]), np.minimum(pos[b, 2], pos[b + 1, 2])) >= enroute[0]
+        dr_h_m, dr_v_m = np.where(high, enroute[1], dr_h_m), np.where(high, enroute[2], dr_v_m)
     dt = (t[a + 1] - t[a]).astype(np.float64) / _US
     r0 = pos[b] - pos[a]
     w = ((pos[b + 1] - pos[a + 1]) - r0) / dt[:, None]
@@ -396,7 +402,7 @@ def _both_level(rs: dict[str, NDArray], a: NDArray, b: NDArray, dt: NDArray, lev
     return level(a) & level(b)
 
 
-def _segment_interval(r0: NDArray, w: NDArray, d_h: float, d_v: float | NDArray, dt: NDArray
+def _segment_interval(r0: NDArray, w: NDArray, d_h: float | NDArray, d_v: float | NDArray, dt: NDArray
                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The part [t_in, t_out] ⊂ [0, dt] (per segment) where |r0_h + w_h s| ≤ d_h and
     |r0_z + w_z s| ≤ d_v (:func:`safety.conflicts.conflict_interval` with v = −w and a
@@ -426,7 +432,7 @@ def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), fr
     horizontal < Δr_г and |Δh| < Δr_в at the same instant, closed form between samples."""
     cc = cfg.conflict
     los = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0,), frame, cfg.max_grid_rows,
-                               cfg.truth_level_pairs, cfg.merge_gap_s)[0]
+                               cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc))[0]
     keys = ["run"] if "run" in truth.columns else []
     return los.select(*keys, "truth_a", "truth_b", _to_time("t_start_us", "t_start"), _to_time("t_end_us", "t_end"))
 
@@ -442,8 +448,13 @@ def truth_intervals(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame
     ``intervals`` when scoring many pictures or settings)."""
     cc = cfg.conflict
     los, prox = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0, cfg.proximity_factor), frame,
-                                     cfg.max_grid_rows, cfg.truth_level_pairs, cfg.merge_gap_s)
+                                     cfg.max_grid_rows, cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc))
     return los, prox
+
+
+def _enroute(cc: ConflictConfig) -> tuple[float, float, float] | None:
+    """(floor, Δr_г, Δr_в) of the en-route airspace of ``cc`` (None: one set of minima)."""
+    return None if cc.enroute_above_m is None else (cc.enroute_above_m, cc.enroute_h_m, cc.enroute_v_m)
 
 
 # --------------------------------------------------------------------------- picture grid and alert rows

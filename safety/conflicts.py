@@ -182,6 +182,19 @@ same rule (:func:`approach_membership`). Every other pair, including a pair with
 the final and one crossing it, keeps the configured ones. The scoring (losses of separation,
 genuine / nuisance / false) does not change: it keeps the configured minima.
 
+En-route airspace (``ConflictConfig.enroute_above_m``). Radar separation is 5 NM in en-route
+airspace and 3 NM in a terminal area (ICAO Doc 4444 §8.7.3.1–8.7.3.2); the minima Δr of
+(5.15)–(5.16) are those of the airspace the pair is in. A pair whose two tracks are both at or
+above the en-route floor (height, the channel the prediction uses) is decided with the
+en-route minima by the same rule (:meth:`ConflictConfig.enroute`, on the rows above the floor
+alone, so its screen reaches 5 NM); every other pair keeps the configured ones. Unlike the
+final-approach volumes this is a separation standard, not an alerting parameter, so the scoring
+follows it: :func:`safety.alerts.separation_intervals` judges each truth segment pair whose four
+end heights are at or above the floor by the en-route minima (a 4 NM pass at FL300 is a loss of
+separation). Where the traffic is planned 5 NM apart (the national scenario, above FL150), one
+terminal parameter set scored such passes as false alerts: not losses of 3 NM, yet predicted
+within the 3 NM thresholds plus margins.
+
 Candidate search
 ----------------
 One KD-tree over all (run, epoch, method) groups at once (a fourth coordinate = group index ×
@@ -495,6 +508,12 @@ class ConflictConfig:
     * ``approach_volumes``: final approaches whose established pairs are decided with their own
       minimum and look-ahead (:class:`ApproachVolume`, corrected mode; module docstring
       "Final-approach volumes"). The pipeline fills them from the scenario's runways.
+    * ``enroute_above_m`` / ``enroute_h_m`` / ``enroute_v_m``: en-route airspace above a floor
+      (height, the channel conflict prediction uses): a pair whose two tracks are both at or
+      above ``enroute_above_m`` is decided with the en-route minima (5 NM / 1 000 ft) instead of
+      the configured ones, every other pair keeps them (module docstring "En-route airspace");
+      the loss-of-separation scoring of :mod:`safety.alerts` applies the same minima to the
+      truth. None (the default): one set of minima everywhere.
     """
 
     airspace: Literal["terminal", "en-route"] = "terminal"
@@ -533,8 +552,16 @@ class ConflictConfig:
     chunk_pairs: int = 1 << 18
     block_points: int = 20_000
     approach_volumes: tuple[ApproachVolume, ...] = ()
+    enroute_above_m: float | None = None
+    enroute_h_m: float = SEPARATION_MINIMA["en-route"][0]
+    enroute_v_m: float = SEPARATION_MINIMA["en-route"][1]
 
     def __post_init__(self) -> None:
+        if self.enroute_above_m is not None and not math.isfinite(self.enroute_above_m):
+            raise ValueError(f"enroute_above_m must be finite or None, got {self.enroute_above_m}")
+        if not (self.enroute_h_m > 0 and self.enroute_v_m > 0):
+            raise ValueError(f"enroute_h_m and enroute_v_m must be positive, got {self.enroute_h_m}, "
+                             f"{self.enroute_v_m}")
         if not all(isinstance(v, ApproachVolume) for v in self.approach_volumes):
             raise ValueError("approach_volumes must be ApproachVolume instances")
         if self.airspace not in SEPARATION_MINIMA:
@@ -589,6 +616,11 @@ class ConflictConfig:
     def sep_v_m(self) -> float:
         """Vertical separation minimum Δr_в (m)."""
         return float(self.dr_v_m) if self.dr_v_m is not None else SEPARATION_MINIMA[self.airspace][1]
+
+    def enroute(self) -> "ConflictConfig":
+        """This configuration with the en-route minima and no en-route floor of its own: what
+        decides a pair of tracks both above ``enroute_above_m``."""
+        return dataclasses.replace(self, dr_h_m=self.enroute_h_m, dr_v_m=self.enroute_v_m, enroute_above_m=None)
 
     @property
     def t_thr_s(self) -> float:
@@ -1901,6 +1933,38 @@ class _Rows:
 
 def _volume_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
                  ) -> list[pl.DataFrame]:
+    """:func:`_approach_rows` of each setting, with the pairs whose two tracks are both above the
+    setting's en-route floor decided by its en-route minima instead (module docstring "En-route
+    airspace")."""
+    outs = _approach_rows(rows, cfgs, map_)
+    floors: dict[float, list[int]] = {}
+    for k, c in enumerate(cfgs):
+        if c.enroute_above_m is not None:
+            floors.setdefault(c.enroute_above_m, []).append(k)
+    for floor, ks in floors.items():
+        up = rows.state()[0][:, 2] >= floor
+        if up.sum() < 2:
+            continue
+        above = _approach_rows(rows.subset(up), [cfgs[k].enroute() for k in ks], map_)
+        for k, part in zip(ks, above):
+            outs[k] = _replaced(outs[k], part, rows, up)
+    return outs
+
+
+def _replaced(base: pl.DataFrame, part: pl.DataFrame, rows: _Rows, member: NDArray[np.bool_]) -> pl.DataFrame:
+    """``base`` without its pairs of two ``member`` rows, with ``part`` (the pairs of the member
+    rows, decided otherwise) in their place, in the pair order."""
+    key = ["run", "epoch", "method"]
+    flag = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__m", member))
+    kept = (base.join(flag.rename({"__id": "id_a", "__m": "__ma"}), on=[*key, "id_a"], how="left")
+            .join(flag.rename({"__id": "id_b", "__m": "__mb"}), on=[*key, "id_b"], how="left")
+            .filter(~(pl.col("__ma").fill_null(False) & pl.col("__mb").fill_null(False))).drop("__ma", "__mb"))
+    parts = [p for p in (kept, part) if p.height]   # an empty part has the empty table's extra columns
+    return pl.concat(parts, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if parts else _empty_conflicts()
+
+
+def _approach_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
+                   ) -> list[pl.DataFrame]:
     """:func:`_pair_rows` of each setting, with the pairs whose two tracks are established on the
     same final decided by that volume's parameters instead (:class:`ApproachVolume`)."""
     outs = _pair_rows(rows, cfgs, map_)

@@ -299,6 +299,9 @@ class PipelineConfig:
     #: (terminal-area, national) when ``conflicts`` configures none: the pairs established on
     #: one final are decided with the reduced in-trail minimum and a shorter look-ahead
     stca_approach_volumes: bool = True
+    #: STCA and loss-of-separation scoring with the en-route minima above the scenario's en-route
+    #: floor (safety.conflicts "En-route airspace"; national: FL150)
+    stca_enroute_floor: bool = True
     #: STCA trade-off curves (metrics stage "safety_tradeoff"): losses alerted with ≥ X s warning
     #: against nuisance + false alerts per hour as the threshold confidence (covariance
     #: thresholds), the fixed estimation term (m) and the look-ahead (s) vary; each point is one
@@ -365,21 +368,32 @@ class StageError(TertiaryError):
 
 
 def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
-    """``cfg`` with the STCA's final-approach volumes of the dataset's scenario
-    (:func:`tertiary.simulate.traffic.final_approaches`), unless ``stca_approach_volumes`` is off
-    or ``cfg.conflicts`` already has volumes — the airspace adaptation an STCA is installed with."""
-    if not cfg.stca_approach_volumes or cfg.conflicts.approach_volumes or ds.scenario is None:
+    """``cfg`` with the airspace adaptation an STCA is installed with, taken from the dataset's
+    scenario unless ``cfg.conflicts`` already has it: the final-approach volumes of its runways
+    (:func:`tertiary.simulate.traffic.final_approaches`; off with ``stca_approach_volumes``) and
+    the floor of its en-route airspace (``national.enroute_floor_fl``; off with
+    ``stca_enroute_floor``)."""
+    scen = getattr(ds, "scenario", None)
+    if scen is None:
         return cfg
-    from safety.conflicts import ApproachVolume
-    from tertiary.simulate.traffic import final_approaches
-    try:
-        frame = ds.origin
-    except DataError:
-        frame = None
-    vols = tuple(ApproachVolume(x, y, course, length_m=length, name=f"final {course:05.1f}")
-                 for x, y, course, length in final_approaches(ds.scenario, frame))
-    return (dataclasses.replace(cfg, conflicts=dataclasses.replace(cfg.conflicts, approach_volumes=vols)) if vols
-            else cfg)
+    conflicts = cfg.conflicts
+    if cfg.stca_approach_volumes and not conflicts.approach_volumes:
+        from safety.conflicts import ApproachVolume
+        from tertiary.simulate.traffic import final_approaches
+        try:
+            frame = ds.origin
+        except DataError:
+            frame = None
+        vols = tuple(ApproachVolume(x, y, course, length_m=length, name=f"final {course:05.1f}")
+                     for x, y, course, length in final_approaches(scen, frame))
+        if vols:
+            conflicts = dataclasses.replace(conflicts, approach_volumes=vols)
+    floor_fl = getattr(getattr(scen, "national", None), "enroute_floor_fl", 0.0)
+    if cfg.stca_enroute_floor and conflicts.enroute_above_m is None and floor_fl > 0:
+        from safety.conflicts import FT_M
+        # half a level below it: an aircraft level at the floor is in it, whatever its altitude noise
+        conflicts = dataclasses.replace(conflicts, enroute_above_m=(float(floor_fl) * 100.0 - 500.0) * FT_M)
+    return cfg if conflicts is cfg.conflicts else dataclasses.replace(cfg, conflicts=conflicts)
 
 
 def check_config(cfg: PipelineConfig | None) -> PipelineConfig:

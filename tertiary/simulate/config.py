@@ -186,7 +186,10 @@ class NationalConfig:
     scans are made per ``block_s`` of time, so the data do not depend on the window the
     simulation is written in (a window must be a multiple of ``block_s``). The run covers
     [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole day's, the
-    draws are keyed by the block of the day: an hour is the same whatever the run's start)."""
+    draws are keyed by the block of the day: an hour is the same whatever the run's start).
+    ``enroute_floor_fl``: the airspace's en-route floor, the level from which aircraft are
+    separated by 5 NM (its traffic is planned so above FL150), 0 for none; the pipeline's STCA
+    and its loss-of-separation scoring take it (:func:`tertiary.pipeline.adapt_to_scenario`)."""
 
     airports: tuple[Airport, ...] = ()
     peak_airborne: int = 1500
@@ -200,6 +203,7 @@ class NationalConfig:
     area_half_width_km: float = 500.0
     block_s: float = 600.0
     start_s: float = 0.0                 # the run starts this long after 00:00 UTC (a multiple of block_s)
+    enroute_floor_fl: float = 150.0      # en-route airspace (5 NM) from this level up; 0: none
 
 
 @dataclass(frozen=True)
@@ -672,6 +676,7 @@ def _check_national(n: NationalConfig | None, cfg: ScenarioConfig) -> None:
     _number("national.area_half_width_km", n.area_half_width_km, 50.0, 3000.0)
     _number("national.block_s", n.block_s, cfg.dt, 86400.0)
     _number("national.start_s", n.start_s, 0.0, 86400.0)
+    _number("national.enroute_floor_fl", n.enroute_floor_fl, 0.0, 600.0)
     if abs(n.start_s / n.block_s - round(n.start_s / n.block_s)) > 1e-9:
         raise OptionError(f"must be a multiple of block_s ({n.block_s:g} s), got {n.start_s:g}",
                           option="national.start_s")

@@ -1,0 +1,143 @@
+"""En-route airspace: above its floor a pair of aircraft is separated by 5 NM, not the terminal
+3 NM — in conflict prediction (both tracks above the floor) and in the loss-of-separation
+scoring of the truth (both aircraft above it); the national scenario's airspace has its floor
+at FL150, the level above which its traffic is planned 5 NM apart."""
+
+from __future__ import annotations
+
+import dataclasses
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+import pytest
+
+from safety.alerts import AlertConfig, loss_of_separation, separation_intervals
+from safety.conflicts import FT_M, NM_M, ConflictConfig, predict_conflicts
+from tertiary.pipeline import PipelineConfig, adapt_to_scenario
+
+T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+FIXED = ConflictConfig(threshold_mode="fixed")          # terminal: R_thr = 5 556 + 500 + 300 = 6 356 m
+FL150 = 15_000 * FT_M
+EN_ROUTE = dataclasses.replace(FIXED, enroute_above_m=FL150)   # en-route: 9 260 + 800 = 10 060 m
+FL300, FT3000 = 30_000 * FT_M, 3_000 * FT_M
+
+
+def _picture(pos, vel) -> pl.DataFrame:
+    pos, vel = np.asarray(pos, float), np.asarray(vel, float)
+    n = len(pos)
+    return pl.DataFrame({
+        "run": np.zeros(n, np.uint32), "epoch": [T0] * n, "track_id": np.arange(1, n + 1, dtype=np.uint64),
+        "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2], "vx_mps": vel[:, 0], "vy_mps": vel[:, 1],
+        "vz_mps": vel[:, 2], "alt_m": pos[:, 2], "alt_rate_mps": vel[:, 2],
+    }).with_columns(pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+
+
+def _crossing(h_a: float, h_b: float, miss_m: float = 4.5 * NM_M) -> pl.DataFrame:
+    """Two aircraft at 230 m/s on tracks crossing at right angles, closest approach ``miss_m``
+    60 s ahead: a east through the origin, b north along x = miss/√2 (at 60 s the pair is
+    miss·(1, 1)/√2 apart, perpendicular to their relative velocity (−230, 230))."""
+    off = miss_m / np.sqrt(2.0)
+    return _picture([[-230.0 * 60, 0.0, h_a], [off, off - 230.0 * 60, h_b]],
+                    [[230.0, 0.0, 0.0], [0.0, 230.0, 0.0]])
+
+
+def _alert(df: pl.DataFrame, cfg: ConflictConfig) -> bool:
+    out = predict_conflicts(df, cfg)
+    return bool(out["alert"].any()) if out.height else False
+
+
+def test_pair_above_the_floor_is_decided_by_the_en_route_minimum():
+    """A 4.5 NM (8.3 km) pass at FL300: inside the en-route threshold (10.1 km), outside the
+    terminal one (6.4 km); the threshold columns are the en-route ones."""
+    df = _crossing(FL300, FL300)
+    assert not _alert(df, FIXED)
+    out = predict_conflicts(df, EN_ROUTE)
+    assert out["alert"].to_list() == [True]
+    assert out["r_thr_m"][0] == pytest.approx(5 * NM_M + FIXED.pilot_h_m + FIXED.fixed_est_h_m)
+
+
+def test_pair_below_or_across_the_floor_keeps_the_configured_minimum():
+    """The same pass at 3 000 ft, or with one aircraft below the floor: terminal minimum, no alert;
+    a real 2 NM pass at 3 000 ft alerts with or without the en-route floor."""
+    assert not _alert(_crossing(FT3000, FT3000), EN_ROUTE)
+    assert not _alert(_crossing(FL300, FL150 - 100.0), EN_ROUTE)
+    low = _crossing(FT3000, FT3000, 2 * NM_M)
+    assert _alert(low, EN_ROUTE) and predict_conflicts(low, EN_ROUTE).equals(predict_conflicts(low, FIXED))
+
+
+def test_floor_above_every_track_changes_nothing():
+    """Several pairs at mixed heights: a floor above all of them gives the table of no floor."""
+    rng = np.random.default_rng(4)
+    pos = np.column_stack([rng.uniform(-20e3, 20e3, 12), rng.uniform(-20e3, 20e3, 12),
+                           rng.choice([FT3000, FL300, FL300 + 300.0], 12)])
+    vel = np.column_stack([rng.uniform(-230, 230, 12), rng.uniform(-230, 230, 12), np.zeros(12)])
+    df = _picture(pos, vel)
+    high = dataclasses.replace(FIXED, enroute_above_m=20_000.0)
+    assert predict_conflicts(df, high).equals(predict_conflicts(df, FIXED))
+    # and with a real floor, the pairs with a member below it are those of no floor
+    both = predict_conflicts(df, EN_ROUTE).join(pl.DataFrame({"id_a": np.arange(1, 13, dtype=np.uint64),
+                                                              "h": pos[:, 2]}), on="id_a")
+    low = both.filter(pl.col("h") < FL150).drop("h")
+    assert low.equals(predict_conflicts(df, FIXED).filter(pl.col("id_a").is_in(low["id_a"].implode())))
+
+
+def _truth(h_a: float, h_b: float, miss_m: float) -> pl.DataFrame:
+    """The two aircraft of :func:`_crossing` flown for 120 s, sampled every second."""
+    t = np.arange(121.0)
+    times = [T0 + timedelta(seconds=float(s)) for s in t]
+    off = miss_m / np.sqrt(2.0)
+    a = dict(truth_id=1, x_m=-230.0 * 60 + 230.0 * t, y_m=np.zeros_like(t), vx_mps=230.0, vy_mps=0.0, alt_m=h_a)
+    b = dict(truth_id=2, x_m=np.full_like(t, off), y_m=off - 230.0 * 60 + 230.0 * t, vx_mps=0.0, vy_mps=230.0,
+             alt_m=h_b)
+    frames = [pl.DataFrame({"truth_id": np.full(len(t), d["truth_id"], np.int64), "time": times,
+                            "x_m": d["x_m"], "y_m": d["y_m"], "z_m": np.full(len(t), d["alt_m"]),
+                            "vx_mps": np.full(len(t), d["vx_mps"]), "vy_mps": np.full(len(t), d["vy_mps"]),
+                            "vz_mps": np.zeros(len(t)), "alt_m": np.full(len(t), d["alt_m"])})
+              for d in (a, b)]
+    return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def test_loss_of_separation_of_the_truth_follows_the_airspace():
+    """A 4.5 NM pass at FL300 is a loss of separation en-route (closed form: |r| < 5 NM for
+    2·sqrt((5 NM)² − (4.5 NM)²)/(230·√2) s around the closest approach), none at 3 000 ft or
+    without the floor; with proximity factor 1.5 the en-route pass is near, the terminal not."""
+    en = AlertConfig(conflict=EN_ROUTE)
+    los = loss_of_separation(_truth(FL300, FL300, 4.5 * NM_M), en)
+    assert los.height == 1
+    half = np.sqrt((5 * NM_M) ** 2 - (4.5 * NM_M) ** 2) / (230.0 * np.sqrt(2.0))
+    dur = (los["t_end"][0] - los["t_start"][0]).total_seconds()
+    assert dur == pytest.approx(2 * half, abs=1e-3)
+    assert loss_of_separation(_truth(FL300, FL300, 4.5 * NM_M), AlertConfig(conflict=FIXED)).height == 0
+    assert loss_of_separation(_truth(FT3000, FT3000, 4.5 * NM_M), en).height == 0
+    assert loss_of_separation(_truth(FL300, FL150 - 100.0, 4.5 * NM_M), en).height == 0
+    assert loss_of_separation(_truth(FT3000, FT3000, 2 * NM_M), en).height == 1
+    tr = _truth(FL300, FL300, 6.5 * NM_M)
+    near = separation_intervals(tr, 3 * NM_M, 1000 * FT_M, (1.0, 1.5), enroute=(FL150, 5 * NM_M, 1000 * FT_M))
+    assert (near[0].height, near[1].height) == (0, 1)
+    assert separation_intervals(tr, 3 * NM_M, 1000 * FT_M, (1.0, 1.5))[1].height == 0
+
+
+def test_validation():
+    with pytest.raises(ValueError, match="enroute_above_m"):
+        ConflictConfig(enroute_above_m=float("nan"))
+    with pytest.raises(ValueError, match="enroute_h_m"):
+        ConflictConfig(enroute_h_m=0.0)
+    assert EN_ROUTE.enroute().sep_h_m == pytest.approx(5 * NM_M) and EN_ROUTE.enroute().enroute_above_m is None
+
+
+def test_pipeline_takes_the_floor_from_the_national_scenario(small_terminal):
+    """national: FL150 (its traffic is planned 5 NM apart above it); terminal-area: none; off, or
+    configured, it is left alone."""
+    from tertiary.simulate import load_scenario
+
+    class _Ds:
+        scenario = load_scenario("national")
+        origin = None
+    cfg = adapt_to_scenario(PipelineConfig(stca_approach_volumes=False), _Ds())
+    assert cfg.conflicts.enroute_above_m == pytest.approx(FL150 - 500 * FT_M)     # FL150 level is in it
+    assert adapt_to_scenario(PipelineConfig(), small_terminal).conflicts.enroute_above_m is None
+    off = PipelineConfig(stca_approach_volumes=False, stca_enroute_floor=False)
+    assert adapt_to_scenario(off, _Ds()).conflicts.enroute_above_m is None
+    mine = PipelineConfig(stca_approach_volumes=False, conflicts=dataclasses.replace(FIXED, enroute_above_m=9000.0))
+    assert adapt_to_scenario(mine, _Ds()).conflicts.enroute_above_m == 9000.0
