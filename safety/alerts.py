@@ -347,7 +347,7 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
     motion between the union sample times (see the module docstring). ``level_pairs`` =
     (tolerance m, level rate m/s): on segments where both aircraft are level the vertical bound
     is f·Δr_в − tolerance (module docstring "Level pairs"). ``enroute`` = (floor m, Δr_г m,
-    Δr_в m): a segment pair whose four end heights are all at or above the floor is judged by
+    Δr_в m): a segment pair with any of its four end heights at or above the floor is judged by
     these minima instead (:mod:`safety.conflicts`, "En-route airspace"). Intervals of a pair at
     most ``merge_gap_s`` apart are one episode. One frame per factor: (run, truth_a, truth_b,
     t_start_us, t_end_us), truth_a < truth_b (run 0 without a run column)."""
@@ -367,8 +367,8 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
         return empty
     pos, t, ac = rs["pos"], rs["t"], rs["ac"]
     if enroute is not None:
-        high = np.minimum(np.minimum(pos[a, 2], pos[a + 1, 2]), np.minimum(pos[b, 2], pos[b + 1, 2])) >= enroute[0]
-        dr_h_m, dr_v_m = np.where(high, enroute[1], dr_h_m), np.where(high, enroute[2], dr_v_m)
+        low = np.maximum(np.maximum(pos[a, 2], pos[a + 1, 2]), np.maximum(pos[b, 2], pos[b + 1, 2])) < enroute[0]
+        dr_h_m, dr_v_m = np.where(low, dr_h_m, enroute[1]), np.where(low, dr_v_m, enroute[2])
     dt = (t[a + 1] - t[a]).astype(np.float64) / _US
     r0 = pos[b] - pos[a]
     w = ((pos[b + 1] - pos[a + 1]) - r0) / dt[:, None]

@@ -182,18 +182,18 @@ same rule (:func:`approach_membership`). Every other pair, including a pair with
 the final and one crossing it, keeps the configured ones. The scoring (losses of separation,
 genuine / nuisance / false) does not change: it keeps the configured minima.
 
-En-route airspace (``ConflictConfig.enroute_above_m``). Radar separation is 5 NM in en-route
-airspace and 3 NM in a terminal area (ICAO Doc 4444 §8.7.3.1–8.7.3.2); the minima Δr of
-(5.15)–(5.16) are those of the airspace the pair is in. A pair whose two tracks are both at or
-above the en-route floor (height, the channel the prediction uses) is decided with the
-en-route minima by the same rule (:meth:`ConflictConfig.enroute`, on the rows above the floor
-alone, so its screen reaches 5 NM); every other pair keeps the configured ones. Unlike the
-final-approach volumes this is a separation standard, not an alerting parameter, so the scoring
-follows it: :func:`safety.alerts.separation_intervals` judges each truth segment pair whose four
-end heights are at or above the floor by the en-route minima (a 4 NM pass at FL300 is a loss of
-separation). Where the traffic is planned 5 NM apart (the national scenario, above FL150), one
-terminal parameter set scored such passes as false alerts: not losses of 3 NM, yet predicted
-within the 3 NM thresholds plus margins.
+En-route airspace (``ConflictConfig.enroute_above_m``). Radar separation is 5 NM; the reduced
+3 NM minimum applies where the authority specifies it, a terminal area (ICAO Doc 4444
+§8.7.3.1–8.7.3.2), so to a pair only when both aircraft are in it. The minima Δr of
+(5.15)–(5.16) are the configured (terminal) ones for a pair whose two tracks are both below the
+en-route floor (height, the channel the prediction uses), and the en-route ones for every other
+pair, decided by the same rule (:meth:`ConflictConfig.enroute`; its screen reaches 5 NM). Unlike
+the final-approach volumes this is a separation standard, not an alerting parameter, so the
+scoring follows it: :func:`safety.alerts.separation_intervals` judges a truth segment pair by the
+terminal minima when its four end heights are below the floor, by the en-route ones otherwise
+(a 4 NM pass at FL300 is a loss of separation). Where the traffic is planned 5 NM apart (the
+national scenario, above FL150), one terminal parameter set scored such passes as false alerts:
+not losses of 3 NM, yet predicted within the 3 NM thresholds plus margins.
 
 Candidate search
 ----------------
@@ -508,12 +508,12 @@ class ConflictConfig:
     * ``approach_volumes``: final approaches whose established pairs are decided with their own
       minimum and look-ahead (:class:`ApproachVolume`, corrected mode; module docstring
       "Final-approach volumes"). The pipeline fills them from the scenario's runways.
-    * ``enroute_above_m`` / ``enroute_h_m`` / ``enroute_v_m``: en-route airspace above a floor
-      (height, the channel conflict prediction uses): a pair whose two tracks are both at or
-      above ``enroute_above_m`` is decided with the en-route minima (5 NM / 1 000 ft) instead of
-      the configured ones, every other pair keeps them (module docstring "En-route airspace");
-      the loss-of-separation scoring of :mod:`safety.alerts` applies the same minima to the
-      truth. None (the default): one set of minima everywhere.
+    * ``enroute_above_m`` / ``enroute_h_m`` / ``enroute_v_m``: en-route airspace from a floor up
+      (height, the channel conflict prediction uses): the configured (terminal) minima decide
+      the pairs whose two tracks are both below ``enroute_above_m``, the en-route minima (5 NM /
+      1 000 ft) every other pair (module docstring "En-route airspace"); the loss-of-separation
+      scoring of :mod:`safety.alerts` applies the same minima to the truth. None (the default):
+      one set of minima everywhere.
     """
 
     airspace: Literal["terminal", "en-route"] = "terminal"
@@ -1933,21 +1933,29 @@ class _Rows:
 
 def _volume_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
                  ) -> list[pl.DataFrame]:
-    """:func:`_approach_rows` of each setting, with the pairs whose two tracks are both above the
-    setting's en-route floor decided by its en-route minima instead (module docstring "En-route
-    airspace")."""
-    outs = _approach_rows(rows, cfgs, map_)
+    """:func:`_approach_rows` of each setting; a setting with an en-route floor decides the pairs
+    whose two tracks are both below it with its minima and every other pair with its en-route
+    minima (module docstring "En-route airspace")."""
+    outs: list[pl.DataFrame | None] = [None] * len(cfgs)
+    plain = [k for k, c in enumerate(cfgs) if c.enroute_above_m is None]
+    if plain:
+        for k, out in zip(plain, _approach_rows(rows, [cfgs[k] for k in plain], map_)):
+            outs[k] = out
     floors: dict[float, list[int]] = {}
     for k, c in enumerate(cfgs):
         if c.enroute_above_m is not None:
             floors.setdefault(c.enroute_above_m, []).append(k)
     for floor, ks in floors.items():
-        up = rows.state()[0][:, 2] >= floor
-        if up.sum() < 2:
+        low = rows.state()[0][:, 2] < floor if rows.tracks.height else np.zeros(0, bool)
+        if low.all():                            # a terminal area only: the configured minima
+            for k, out in zip(ks, _approach_rows(rows, [cfgs[k] for k in ks], map_)):
+                outs[k] = out
             continue
-        above = _approach_rows(rows.subset(up), [cfgs[k].enroute() for k in ks], map_)
-        for k, part in zip(ks, above):
-            outs[k] = _replaced(outs[k], part, rows, up)
+        above = _approach_rows(rows, [cfgs[k].enroute() for k in ks], map_)
+        below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], map_) if low.sum() >= 2
+                 else [_empty_conflicts() for _ in ks])
+        for k, a, b in zip(ks, above, below):
+            outs[k] = _replaced(a, b, rows, low)
     return outs
 
 

@@ -1033,6 +1033,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
             id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": schema.TIME,
                                           id_col: pl.UInt64, "truth_id": pl.Int64})
         acfg = AlertConfig(conflict=cfg.conflicts)
+        _note_minima(cfg.conflicts, ing.notes)
         # the truth's LoS and proximity intervals, computed once for the alerts and every curve
         # setting (they depend on the separation minima, which the curves do not vary)
         intervals = truth_intervals(ing.truth, acfg, ds.origin)
@@ -1092,6 +1093,20 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
     fused, tracks = (t.empty if isinstance(t, _OnDisk) else t for t in (fused, tracks))
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
+
+
+def _note_minima(cc: "ConflictConfig", notes: list[str]) -> None:
+    """A note of the separation minima of the alerts and their scoring when they are not one
+    set everywhere (an en-route floor): the reader of an alert list must know its rule."""
+    if cc.enroute_above_m is None:
+        return
+    from safety.conflicts import FT_M, NM_M
+    text = (f"separation minima: {cc.sep_h_m / NM_M:g} NM / {cc.sep_v_m / FT_M:,.0f} ft for pairs both below "
+            f"{cc.enroute_above_m / FT_M:,.0f} ft (terminal), {cc.enroute_h_m / NM_M:g} NM / "
+            f"{cc.enroute_v_m / FT_M:,.0f} ft otherwise (en-route) — in the alerts and in the losses of "
+            "separation they are scored on")
+    if text not in notes:
+        notes.append(text)
 
 
 def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:

@@ -1,7 +1,7 @@
-"""En-route airspace: above its floor a pair of aircraft is separated by 5 NM, not the terminal
-3 NM — in conflict prediction (both tracks above the floor) and in the loss-of-separation
-scoring of the truth (both aircraft above it); the national scenario's airspace has its floor
-at FL150, the level above which its traffic is planned 5 NM apart."""
+"""En-route airspace: a pair of aircraft is separated by 5 NM unless both are below the floor of
+the en-route airspace (in the terminal area, 3 NM) — in conflict prediction and in the
+loss-of-separation scoring of the truth; the national scenario's airspace has its floor at
+FL150, the level above which its traffic is planned 5 NM apart."""
 
 from __future__ import annotations
 
@@ -57,29 +57,36 @@ def test_pair_above_the_floor_is_decided_by_the_en_route_minimum():
     assert out["r_thr_m"][0] == pytest.approx(5 * NM_M + FIXED.pilot_h_m + FIXED.fixed_est_h_m)
 
 
-def test_pair_below_or_across_the_floor_keeps_the_configured_minimum():
-    """The same pass at 3 000 ft, or with one aircraft below the floor: terminal minimum, no alert;
-    a real 2 NM pass at 3 000 ft alerts with or without the en-route floor."""
+def test_pair_below_the_floor_keeps_the_configured_minimum_and_across_it_takes_the_en_route_one():
+    """The same pass at 3 000 ft: terminal minimum, no alert; a real 2 NM pass at 3 000 ft alerts
+    with or without the en-route floor, with the same row. Across the floor (one 200 ft above
+    FL150, one 300 ft below): only one of them is in the terminal area, 5 NM, an alert."""
     assert not _alert(_crossing(FT3000, FT3000), EN_ROUTE)
-    assert not _alert(_crossing(FL300, FL150 - 100.0), EN_ROUTE)
     low = _crossing(FT3000, FT3000, 2 * NM_M)
     assert _alert(low, EN_ROUTE) and predict_conflicts(low, EN_ROUTE).equals(predict_conflicts(low, FIXED))
+    across = _crossing(FL150 + 200 * FT_M, FL150 - 300 * FT_M)
+    assert not _alert(across, FIXED) and _alert(across, EN_ROUTE)
 
 
 def test_floor_above_every_track_changes_nothing():
     """Several pairs at mixed heights: a floor above all of them gives the table of no floor."""
     rng = np.random.default_rng(4)
-    pos = np.column_stack([rng.uniform(-20e3, 20e3, 12), rng.uniform(-20e3, 20e3, 12),
-                           rng.choice([FT3000, FL300, FL300 + 300.0], 12)])
-    vel = np.column_stack([rng.uniform(-230, 230, 12), rng.uniform(-230, 230, 12), np.zeros(12)])
+    n = 30
+    pos = np.column_stack([rng.uniform(-12e3, 12e3, n), rng.uniform(-12e3, 12e3, n),
+                           rng.choice([FT3000, FL300, FL300 + 300.0], n)])
+    vel = np.column_stack([rng.uniform(-230, 230, n), rng.uniform(-230, 230, n), np.zeros(n)])
     df = _picture(pos, vel)
     high = dataclasses.replace(FIXED, enroute_above_m=20_000.0)
     assert predict_conflicts(df, high).equals(predict_conflicts(df, FIXED))
-    # and with a real floor, the pairs with a member below it are those of no floor
-    both = predict_conflicts(df, EN_ROUTE).join(pl.DataFrame({"id_a": np.arange(1, 13, dtype=np.uint64),
-                                                              "h": pos[:, 2]}), on="id_a")
-    low = both.filter(pl.col("h") < FL150).drop("h")
-    assert low.equals(predict_conflicts(df, FIXED).filter(pl.col("id_a").is_in(low["id_a"].implode())))
+    # and with a real floor, the pairs of two tracks below it are those of no floor
+    h = pl.DataFrame({"id": np.arange(1, n + 1, dtype=np.uint64), "h": pos[:, 2]})
+
+    def both_low(out: pl.DataFrame) -> pl.DataFrame:
+        return (out.join(h.rename({"id": "id_a", "h": "ha"}), on="id_a").join(h.rename({"id": "id_b", "h": "hb"}),
+                                                                            on="id_b")
+                .filter((pl.col("ha") < FL150) & (pl.col("hb") < FL150)).drop("ha", "hb"))
+    assert both_low(predict_conflicts(df, FIXED)).height
+    assert both_low(predict_conflicts(df, EN_ROUTE)).equals(both_low(predict_conflicts(df, FIXED)))
 
 
 def _truth(h_a: float, h_b: float, miss_m: float) -> pl.DataFrame:
@@ -101,7 +108,8 @@ def _truth(h_a: float, h_b: float, miss_m: float) -> pl.DataFrame:
 def test_loss_of_separation_of_the_truth_follows_the_airspace():
     """A 4.5 NM pass at FL300 is a loss of separation en-route (closed form: |r| < 5 NM for
     2·sqrt((5 NM)² − (4.5 NM)²)/(230·√2) s around the closest approach), none at 3 000 ft or
-    without the floor; with proximity factor 1.5 the en-route pass is near, the terminal not."""
+    without the floor; across the floor it is one (one aircraft is not in the terminal area);
+    with proximity factor 1.5 a 6.5 NM pass at FL300 is near, judged by 3 NM it is not."""
     en = AlertConfig(conflict=EN_ROUTE)
     los = loss_of_separation(_truth(FL300, FL300, 4.5 * NM_M), en)
     assert los.height == 1
@@ -110,7 +118,7 @@ def test_loss_of_separation_of_the_truth_follows_the_airspace():
     assert dur == pytest.approx(2 * half, abs=1e-3)
     assert loss_of_separation(_truth(FL300, FL300, 4.5 * NM_M), AlertConfig(conflict=FIXED)).height == 0
     assert loss_of_separation(_truth(FT3000, FT3000, 4.5 * NM_M), en).height == 0
-    assert loss_of_separation(_truth(FL300, FL150 - 100.0, 4.5 * NM_M), en).height == 0
+    assert loss_of_separation(_truth(FL150 + 200 * FT_M, FL150 - 300 * FT_M, 4.5 * NM_M), en).height == 1
     assert loss_of_separation(_truth(FT3000, FT3000, 2 * NM_M), en).height == 1
     tr = _truth(FL300, FL300, 6.5 * NM_M)
     near = separation_intervals(tr, 3 * NM_M, 1000 * FT_M, (1.0, 1.5), enroute=(FL150, 5 * NM_M, 1000 * FT_M))
@@ -141,3 +149,14 @@ def test_pipeline_takes_the_floor_from_the_national_scenario(small_terminal):
     assert adapt_to_scenario(off, _Ds()).conflicts.enroute_above_m is None
     mine = PipelineConfig(stca_approach_volumes=False, conflicts=dataclasses.replace(FIXED, enroute_above_m=9000.0))
     assert adapt_to_scenario(mine, _Ds()).conflicts.enroute_above_m == 9000.0
+
+
+def test_the_run_notes_say_which_minima_the_alerts_are_scored_on():
+    from tertiary.pipeline import _note_minima
+    notes: list[str] = []
+    _note_minima(FIXED, notes)
+    assert notes == []
+    _note_minima(EN_ROUTE, notes)
+    _note_minima(EN_ROUTE, notes)
+    assert len(notes) == 1
+    assert "3 NM / 1,000 ft for pairs both below 15,000 ft (terminal), 5 NM / 1,000 ft otherwise" in notes[0]

@@ -181,8 +181,8 @@ class NationalConfig:
     whose airborne count follows ``hourly_curve`` (relative weights per UTC hour, scaled so
     that the peak is ``peak_airborne``). ``landing_spacing_s`` separates landings at an
     airport, ``departure_spacing_s`` its take-offs, ``lane_spacing_s`` entries on one (route,
-    level) lane; each flight's level and delay are planned so that flights keep 5 NM or 1 000 ft
-    apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`). Random draws of the radar
+    level) lane; each flight's level and delay are planned so that flights keep 5 NM and a buffer,
+    or 1 000 ft, apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`). Random draws of the radar
     scans are made per ``block_s`` of time, so the data do not depend on the window the
     simulation is written in (a window must be a multiple of ``block_s``). The run covers
     [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole day's, the

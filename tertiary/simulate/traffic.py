@@ -751,8 +751,8 @@ def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.f
 #
 # The schedule is deconflicted as a controller's strategic plan would be: the flights are
 # planned in order of entry, each at the first flight level of its route and the shortest delay
-# (a departure held on the ground, an overflight held before it enters) at which it stays 5 NM or
-# 1 000 ft from every flight already planned above FL150 (:func:`conflict_offsets`,
+# (a departure held on the ground, an overflight held before it enters) at which it stays 5 NM and
+# a buffer, or 1 000 ft, from every flight already planned above FL150 (:func:`conflict_offsets`,
 # :func:`_allocate_levels`). Without it (two fixed levels per route, no plan) the peak hour
 # held ~3 000 pairs of aircraft within 3 NM and 1 000 ft, most of them crossing at one level:
 # the alert list of such a day is not that of any airspace. Below FL150 the runways' spacing
@@ -919,13 +919,16 @@ def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.L
 
 
 #: strategic deconfliction of the schedule (:func:`_allocate_levels`) above FL150 (below, the
-#: runways' spacing orders the traffic): flights planned 5 NM or 1 000 ft apart — the en-route
-#: minimum the national airspace is scored with above FL150 (``NationalConfig.enroute_floor_fl``)
-#: — positions compared every ``DECONFLICT_STRIDE_S`` (two aircraft close by at most
-#: 2 × 250 m/s × 4 s = 2 km between samples). Planning 5 NM + 2 km apart, to hold 5 NM between
-#: samples too, left more flights unplaced: pairs both above FL145 within 3 NM in 08:00–09:00
-#: rose from 16 to 27, within 5 NM fell only from 64 to 52 (test seed)
-DECONFLICT_R_M = 5 * 1852.0                # 5 NM
+#: runways' spacing orders the traffic): flights planned 5 NM + 4 km or 1 000 ft apart, positions
+#: compared every ``DECONFLICT_STRIDE_S``. Two aircraft close by at most 2 × 250 m/s × 4 s = 2 km
+#: between samples, so planned pairs keep 5 NM — the en-route minimum the national airspace is
+#: scored with above FL150 (``NationalConfig.enroute_floor_fl``) — and a controller's buffer above
+#: it. Test seed, 08:00–09:00, pairs of aircraft both above FL145 within 5 NM / 3 NM: planned
+#: 5 NM apart with delays up to 1 200 s, 64 / 16; 5 NM + 2 km, same delays, 52 / 27 (more flights
+#: left unplaced); 5 NM + 2 km with delays up to 2 400 s, 5 / 1; 5 NM + 4 km, 7 / 4. The buffer
+#: is what an STCA with the en-route minimum sees: at 5 NM + 2 km the pairs pass at its threshold
+#: (5 NM plus margins) and the hour had 3 872 nuisance alerts, at 5 NM + 4 km 1 329.
+DECONFLICT_R_M = 5 * 1852.0 + 4000.0
 DECONFLICT_DZ_M = 1000 * FT
 DECONFLICT_H_MIN_M = 150 * 100 * FT
 DECONFLICT_STRIDE_S = 8.0
@@ -974,7 +977,7 @@ def _conflict_key(a: NDArray[np.int64], b: NDArray[np.int64], m: NDArray[np.int6
 
 #: the delays a flight may take (s) when every level of its route conflicts: a departure held on
 #: the ground, an overflight held before it enters (the area's neighbours regulating the flow)
-DECONFLICT_DELAYS_S = (0.0, 60.0, 120.0, 180.0, 300.0, 420.0, 600.0, 900.0, 1200.0)
+DECONFLICT_DELAYS_S = (0.0, 60.0, 120.0, 180.0, 300.0, 420.0, 600.0, 900.0, 1200.0, 1500.0, 1800.0, 2400.0)
 
 
 def _allocate_levels(route: NDArray[np.int64], entry: NDArray[np.int64], land: NDArray[np.int64],
