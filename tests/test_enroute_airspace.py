@@ -6,7 +6,7 @@ FL150, the level above which its traffic is planned 5 NM apart."""
 from __future__ import annotations
 
 import dataclasses
-from datetime import datetime, timedelta, timezone
+from datetime import timedelta
 
 import numpy as np
 import polars as pl
@@ -16,21 +16,12 @@ from safety.alerts import AlertConfig, loss_of_separation, separation_intervals
 from safety.conflicts import FT_M, NM_M, ConflictConfig, predict_conflicts
 from tertiary.pipeline import PipelineConfig, adapt_to_scenario
 
-T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
+from test_approach_volumes import T0, _picture     # one track table for the STCA's airspace tests
+
 FIXED = ConflictConfig(threshold_mode="fixed")          # terminal: R_thr = 5 556 + 500 + 300 = 6 356 m
 FL150 = 15_000 * FT_M
 EN_ROUTE = dataclasses.replace(FIXED, enroute_above_m=FL150)   # en-route: 9 260 + 800 = 10 060 m
 FL300, FT3000 = 30_000 * FT_M, 3_000 * FT_M
-
-
-def _picture(pos, vel) -> pl.DataFrame:
-    pos, vel = np.asarray(pos, float), np.asarray(vel, float)
-    n = len(pos)
-    return pl.DataFrame({
-        "run": np.zeros(n, np.uint32), "epoch": [T0] * n, "track_id": np.arange(1, n + 1, dtype=np.uint64),
-        "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2], "vx_mps": vel[:, 0], "vy_mps": vel[:, 1],
-        "vz_mps": vel[:, 2], "alt_m": pos[:, 2], "alt_rate_mps": vel[:, 2],
-    }).with_columns(pl.col("epoch").cast(pl.Datetime("us", "UTC")))
 
 
 def _crossing(h_a: float, h_b: float, miss_m: float = 4.5 * NM_M) -> pl.DataFrame:
