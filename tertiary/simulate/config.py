@@ -181,15 +181,17 @@ class NationalConfig:
     whose airborne count follows ``hourly_curve`` (relative weights per UTC hour, scaled so
     that the peak is ``peak_airborne``). ``landing_spacing_s`` separates landings at an
     airport, ``departure_spacing_s`` its take-offs, ``lane_spacing_s`` entries on one (route,
-    level) lane; each flight's level and delay are planned so that flights keep 5 NM and a buffer,
-    or 1 000 ft, apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`). Random draws of the radar
-    scans are made per ``block_s`` of time, so the data do not depend on the window the
-    simulation is written in (a window must be a multiple of ``block_s``). The run covers
-    [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole day's, the
-    draws are keyed by the block of the day: an hour is the same whatever the run's start).
-    ``enroute_floor_fl``: the airspace's en-route floor, the level from which aircraft are
-    separated by 5 NM (its traffic is planned so above FL150), 0 for none; the pipeline's STCA
-    and its loss-of-separation scoring take it (:func:`tertiary.pipeline.adapt_to_scenario`)."""
+    level) lane; each flight's level and delay are planned so that flights keep 5 NM and a
+    buffer, or 1 000 ft, apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`).
+    Random draws of the radar scans are made per ``block_s`` of time, so the data do not depend
+    on the window the simulation is written in (a window must be a multiple of ``block_s``).
+    The run covers [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole
+    day's, the draws are keyed by the block of the day: an hour is the same whatever the run's
+    start).
+    ``enroute_floor_fl``: the floor of the area's en-route airspace (0: none): two aircraft
+    both below it may be 3 NM apart (the terminal area), any other pair needs 5 NM (its traffic
+    is planned so above FL150); the pipeline's STCA and its loss-of-separation scoring take it
+    (:func:`tertiary.pipeline.adapt_to_scenario`)."""
 
     airports: tuple[Airport, ...] = ()
     peak_airborne: int = 1500
