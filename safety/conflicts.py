@@ -619,7 +619,7 @@ class ConflictConfig:
 
     def enroute(self) -> "ConflictConfig":
         """This configuration with the en-route minima and no en-route floor of its own: what
-        decides a pair of tracks both above ``enroute_above_m``."""
+        decides every pair of tracks but those both below ``enroute_above_m``."""
         return dataclasses.replace(self, dr_h_m=self.enroute_h_m, dr_v_m=self.enroute_v_m, enroute_above_m=None)
 
     @property
@@ -1955,20 +1955,22 @@ def _volume_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[...
         below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], map_) if low.sum() >= 2
                  else [_empty_conflicts() for _ in ks])
         for k, a, b in zip(ks, above, below):
-            outs[k] = _replaced(a, b, rows, low)
+            outs[k] = _replaced(a, [b], rows, np.where(low, 0, -1))
     return outs
 
 
-def _replaced(base: pl.DataFrame, part: pl.DataFrame, rows: _Rows, member: NDArray[np.bool_]) -> pl.DataFrame:
-    """``base`` without its pairs of two ``member`` rows, with ``part`` (the pairs of the member
-    rows, decided otherwise) in their place, in the pair order."""
+def _replaced(base: pl.DataFrame, parts: Sequence[pl.DataFrame], rows: _Rows, group: NDArray[np.int64]
+              ) -> pl.DataFrame:
+    """``base`` without its pairs of two rows in one group (``group`` ≥ 0 per row; −1: none), with
+    ``parts`` (those pairs, decided otherwise) in their place, in the pair order."""
     key = ["run", "epoch", "method"]
-    flag = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__m", member))
-    kept = (base.join(flag.rename({"__id": "id_a", "__m": "__ma"}), on=[*key, "id_a"], how="left")
-            .join(flag.rename({"__id": "id_b", "__m": "__mb"}), on=[*key, "id_b"], how="left")
-            .filter(~(pl.col("__ma").fill_null(False) & pl.col("__mb").fill_null(False))).drop("__ma", "__mb"))
-    parts = [p for p in (kept, part) if p.height]   # an empty part has the empty table's extra columns
-    return pl.concat(parts, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if parts else _empty_conflicts()
+    flag = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__g", group))
+    ga = pl.col("__ga").fill_null(-1)
+    kept = (base.join(flag.rename({"__id": "id_a", "__g": "__ga"}), on=[*key, "id_a"], how="left")
+            .join(flag.rename({"__id": "id_b", "__g": "__gb"}), on=[*key, "id_b"], how="left")
+            .filter(~((ga >= 0) & (ga == pl.col("__gb").fill_null(-2)))).drop("__ga", "__gb"))
+    out = [p for p in (kept, *parts) if p.height]   # an empty part has the empty table's extra columns
+    return pl.concat(out, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if out else _empty_conflicts()
 
 
 def _approach_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
@@ -1984,9 +1986,6 @@ def _approach_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[.
         member = _membership(rows, cfgs[ks[0]])
         if not np.any(member >= 0):
             continue
-        key = ["run", "epoch", "method"]
-        vol = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__v", member))
-        va = pl.col("__va").fill_null(-1)
         inside: dict[int, list[pl.DataFrame]] = {k: [] for k in ks}
         for kv, v in enumerate(vols):
             mask = member == kv
@@ -1994,12 +1993,7 @@ def _approach_rows(rows: _Rows, cfgs: Sequence[ConflictConfig], map_: Callable[.
                 for k, part in zip(ks, _pair_rows(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks], map_)):
                     inside[k].append(part)
         for k in ks:
-            base = (outs[k].join(vol.rename({"__id": "id_a", "__v": "__va"}), on=[*key, "id_a"], how="left")
-                    .join(vol.rename({"__id": "id_b", "__v": "__vb"}), on=[*key, "id_b"], how="left")
-                    .filter(~((va >= 0) & (va == pl.col("__vb").fill_null(-2)))).drop("__va", "__vb"))
-            parts = [p for p in (base, *inside[k]) if p.height]   # an empty part has the empty table's extra columns
-            outs[k] = (pl.concat(parts, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if parts
-                       else _empty_conflicts())
+            outs[k] = _replaced(outs[k], inside[k], rows, member)
     return outs
 
 
