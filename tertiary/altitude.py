@@ -400,9 +400,12 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
     qs, sojourn = _models(cfg)
     n, k = len(t), len(starts)
     c0 = FilterCarry.fresh(k, cfg) if init is None else init
-    carry = FilterCarry(np.array(c0.models, np.float64), np.array(c0.mu, np.float64), np.array(c0.t_last, np.float64),
-                        np.array(c0.ok, bool), np.array(c0.conf, bool), np.array(c0.miss, np.int64),
-                        np.array(c0.last_id, np.int64), np.array(c0.post, np.float64), np.array(c0.has, bool))
+    # C-ordered copies: a carry taken from another window's state can be F-ordered or strided,
+    # and each layout would be a compiled signature of its own
+    carry = FilterCarry(*(np.array(a, d, order="C") for a, d in (
+        (c0.models, np.float64), (c0.mu, np.float64), (c0.t_last, np.float64), (c0.ok, bool),
+        (c0.conf, bool), (c0.miss, np.int64), (c0.last_id, np.int64), (c0.post, np.float64),
+        (c0.has, bool))))
     out = np.full((5, n), np.nan)
     has, rejected = np.zeros(n, bool), np.zeros(n, bool)
     ids = np.full(n, -1, np.int64) if ident is None else arg(ident, np.int64)

@@ -19,7 +19,7 @@ import textwrap
 import numpy as np
 
 from tertiary import kernels
-from tertiary.altitude import AltitudeConfig, filter_tracks_carry
+from tertiary.altitude import AltitudeConfig, FilterCarry, filter_tracks_carry
 from tertiary.filters import make_filter
 
 
@@ -39,7 +39,13 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     # read-only, strided and int32/float32 inputs: each used to be (or would be) a signature of its own
     filter_tracks_carry(_read_only(t), np.repeat(z, 2)[::2], var.astype(np.float32), starts.astype(np.int32),
                         _read_only(lengths), AltitudeConfig(), ident=_read_only(np.arange(n) // 20))
-    filter_tracks_carry(t, z, var, starts, lengths, AltitudeConfig())
+    _, _, _, carry = filter_tracks_carry(t, z, var, starts, lengths, AltitudeConfig())
+    # a carried state in another memory layout (F-ordered, strided), as a later window's state
+    # read back from a frame can be: CI once compiled two more signatures from it
+    carry = FilterCarry(*(np.asfortranarray(a) if a.ndim > 1 else a[::-1][::-1] for a in (
+        carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id,
+        carry.post, carry.has)))
+    filter_tracks_carry(t + 300.0, z, var, starts, lengths, AltitudeConfig(), init=carry)
     flt = make_filter("imm_sym")
     b = 3
     st = flt.init(rng.normal(0.0, 1e3, (b, 3)), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)))
