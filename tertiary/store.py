@@ -441,30 +441,30 @@ def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_t
     if "report_id" not in f.columns or "report_id" not in have or not cols:
         return
     rt = _q(reports_table)
-    # every query reads the reports in the frame's report_id range only: a window's part meets
-    # its own reports, not the whole table (the zone maps skip the rest), and the view's join
-    # of these rows is one to one when the ids in that range are unique
-    lo, hi = f.select(pl.col("report_id").min().alias("lo"), pl.col("report_id").max().alias("hi")).row(0)
-    n, n_unique = con.execute(f"SELECT count(*), count(DISTINCT report_id) FROM {rt} WHERE report_id BETWEEN ? AND ?",
-                              [lo, hi]).fetchall()[0]
-    if n != n_unique:
-        return
     view = f"_tertiary_chk_{secrets.token_hex(6)}"
     con.register(view, f.select("report_id", *cols, *(["epoch"] if "epoch" in f.columns else []),
                                 *(["age_s"] if "age_s" in f.columns else [])).to_arrow())
-    # one pass for every column
+    # one pass for every column, over the reports this part names (a semi-join, not a report_id
+    # range: a window's ids need not be contiguous — the national scenario's span nearly the
+    # whole table, and a range made each part re-read it: 32 s of its hour, issue 18)
     tests = [f"count(*) FILTER (WHERE r.report_id IS NULL OR a.{_q(c)} IS DISTINCT FROM r.{_q(c)})" for c in cols]
     age_test = {"age_s", "epoch"} <= set(f.columns) and f.schema["age_s"] == pl.Float64
     if age_test:
         tests.append("count(*) FILTER (WHERE r.report_id IS NOT NULL AND NOT "
                      "(abs(a.age_s - date_diff('microsecond', r.time, a.epoch) / 1e6) <= 1e-9 "
                      "OR (a.age_s IS NULL AND r.time IS NULL)))")
+    read = ", ".join(_q(c) for c in dict.fromkeys(["report_id", *cols, *(["time"] if age_test else [])]))
     try:
-        bad = con.execute(f"SELECT {', '.join(tests)} FROM {view} a LEFT JOIN "
-                          f"(SELECT * FROM {rt} WHERE report_id BETWEEN ? AND ?) r USING (report_id)",
-                          [lo, hi]).fetchall()[0] if f.height else [0] * len(tests)
+        got = con.execute(f"SELECT count(*), {', '.join(tests)} FROM {view} a LEFT JOIN "
+                          f"(SELECT {read} FROM {rt} WHERE report_id IN (SELECT report_id FROM {view})) r "
+                          "USING (report_id)").fetchall()[0] if f.height else [0] * (len(tests) + 1)
     finally:
         con.unregister(view)
+    # the view's join is one to one for these rows when the left join kept their number: no
+    # report_id of the part names two reports
+    if got[0] != f.height:
+        return
+    bad = got[1:]
     same = [c for c, k in zip(cols, bad) if k == 0]
     age_ok = "time" in same and age_test and bad[-1] == 0
     if not same:

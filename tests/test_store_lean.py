@@ -136,8 +136,9 @@ def test_aligned_keeps_a_column_that_differs_from_its_report(tmp_path):
 
 def test_aligned_keeps_its_columns_when_its_reports_ids_repeat(tmp_path):
     """The report columns are joined back by report_id only where that join is one to one: a
-    reports table whose ids repeat inside the aligned rows' id range keeps aligned whole (the
-    check reads that range only, not the whole reports table)."""
+    reports table in which an id of the aligned rows names two reports keeps aligned whole; ids
+    that repeat among reports no aligned row names do not matter (the check reads the reports
+    the part names only)."""
     reports, aligned = _aligned_case()
     dup = pl.concat([reports, reports.filter(pl.col("report_id") == 3).with_columns(pl.lit("q").alias("mode_s"))])
     far = reports.filter(pl.col("report_id") == 0).with_columns(pl.lit(99, pl.UInt64).alias("report_id"))
@@ -152,6 +153,27 @@ def test_aligned_keeps_its_columns_when_its_reports_ids_repeat(tmp_path):
                           " LIMIT 0").columns
         assert ("mode_s" not in phys) == dropped, name
         assert back.select(pl.exclude("x_m")).equals(aligned.select(pl.exclude("x_m")), null_equal=True)
+
+
+def test_aligned_parts_whose_report_ids_interleave_are_checked_against_their_own_reports(tmp_path):
+    """A window's reports need not have contiguous ids (the national scenario's span nearly the
+    whole table): each part is checked against the reports it names, so two parts with
+    interleaved ids both drop the report columns, and a mismatch in one row of the second part
+    keeps that column for the whole table (its parts then no longer share one layout)."""
+    reports, aligned = _aligned_case()
+    evens, odds = (aligned.filter(pl.col("report_id") % 2 == k) for k in (0, 1))
+    bad_odds = odds.with_columns(pl.when(pl.col("report_id") == 3).then(pl.lit("zz")).otherwise("mode_s")
+                                 .alias("mode_s"))
+    for name, second, dropped in (("same", odds, True), ("differs", bad_odds, False)):
+        with RunStore.create(tmp_path / name) as st:
+            st.write("reports", reports)
+            st.write_parts("aligned", lambda second=second: iter([evens, second]))
+        with RunStore.open(tmp_path / name) as st:
+            back = st.read("aligned").sort("report_id")
+            phys = st.sql(f"SELECT * FROM {LEAN_PREFIX}aligned LIMIT 0").columns
+        assert ("mode_s" not in phys) == dropped and "radar_id" not in phys, name
+        want = pl.concat([evens, second]).sort("report_id")
+        assert back.select(pl.exclude("x_m")).equals(want.select(pl.exclude("x_m")), null_equal=True), name
 
 
 def test_aligned_without_reports_is_stored_whole(tmp_path):
