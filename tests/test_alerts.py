@@ -510,3 +510,45 @@ def test_loss_intervals_a_few_seconds_apart_are_one_episode():
     tr = _two(np.full(n, 1000.0), np.full(n, 1000.0), np.zeros(n), np.zeros(n), x_b=x)
     assert loss_of_separation(tr).height == 2
     assert loss_of_separation(tr, AlertConfig(merge_gap_s=0.0)).height == 3
+
+
+@pytest.mark.parametrize("block", [1, 5, 32, 1000])
+def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, monkeypatch):
+    """The loss-of-separation screen (aircraft × block boxes, then segment boxes) against no
+    screen at all (every pair of segments in the same union interval): the same LoS and
+    proximity intervals, en-route minima included. 30 aircraft in a 30 km box, two runs, each
+    aircraft with a few long gaps in its samples (the widest boxes, queried one by one) and
+    its own sample times, and block sizes from one interval to more than the recording."""
+    import safety.alerts as al
+    rng = np.random.default_rng(11)
+    rows = []
+    for run in (0, 1):
+        for tid in range(30):
+            t = np.sort(rng.uniform(0.0, 400.0, 80))
+            t = np.unique(np.round(np.concatenate([t[:30], t[45:]]), 2))        # a gap of ~75 s
+            x = rng.uniform(-15e3, 15e3) + np.cumsum(rng.normal(0, 250, len(t)))
+            y = rng.uniform(-15e3, 15e3) + np.cumsum(rng.normal(0, 250, len(t)))
+            h = rng.choice([3000.0, 3300.0, 4600.0, 4700.0]) + np.cumsum(rng.normal(0, 20, len(t)))
+            rows += [{"run": run, "truth_id": tid, "time": _t(s), "x_m": a, "y_m": b, "z_m": c, "vx_mps": 0.0,
+                      "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": c} for s, a, b, c in zip(t, x, y, h)]
+    tr = pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")), pl.col("run").cast(pl.UInt32))
+
+    def every_pair(rs, reach_h, reach_v):
+        seg = np.flatnonzero(rs["ac"][1:] == rs["ac"][:-1])
+        seg = seg[np.argsort(rs["gk"][seg], kind="stable")]
+        g = rs["gk"][seg]
+        end = np.searchsorted(g, g, "right")                 # each segment with every later one of its group
+        n = end - np.arange(len(seg)) - 1
+        i = np.repeat(np.arange(len(seg)), n)
+        j = i + 1 + np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        return seg[i], seg[j]
+
+    args = dict(dr_h_m=2000.0, dr_v_m=300.0, factors=(1.0, 1.5), enroute=(4500.0, 3000.0, 300.0))
+    boxed = al._pair_segments
+    monkeypatch.setattr(al, "_pair_segments", lambda rs, rh, rv: boxed(rs, rh, rv, block))
+    got = al.separation_intervals(tr, **args)
+    monkeypatch.setattr(al, "_pair_segments", every_pair)
+    want = al.separation_intervals(tr, **args)
+    assert want[0].height >= 10 and want[1].height > want[0].height
+    for g, w in zip(got, want):
+        assert g.equals(w)
