@@ -9,7 +9,8 @@ thresholds, STCA performance against real losses of separation and accuracy-vers
   :func:`conflict_interval_levelled` / :func:`level_off_times`, along turns (optional)
   :func:`arc_offsets` / :func:`conflict_interval_arc`, :func:`height_and_rate`, :func:`slim_conflicts`,
   :func:`tangent_plane_error_bound`, :func:`pair_geometry`; final-approach volumes with their own
-  minimum and look-ahead :class:`ApproachVolume` / :func:`approach_membership`.
+  minimum and look-ahead :class:`ApproachVolume` / :func:`approach_membership`; aerodrome
+  traffic zones where STCA is inhibited :class:`AerodromeZone` / :func:`zone_index`.
 * :mod:`safety.alerts` — losses of separation in the truth (closed form between samples),
   alert episodes per pair of aircraft classified genuine / nuisance / false
   (:func:`alert_episodes`, the ``alerts`` table), :func:`score_alerts` (STCA metrics per
@@ -24,7 +25,8 @@ from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, AlertConfig
 from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacity_from_metrics,
                              conflict_radius, nmax_seed, nmax_sound, p_np, p_pij, ppob_curves, ppob_seed,
                              ppob_sound, rate_per_hour, v_ob)
-from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, ApproachVolume, ConflictConfig,
+from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, AerodromeZone, ApproachVolume,
+                              ConflictConfig, zone_index,
                               PairGeometry, approach_membership,
                               candidate_pairs, conflict_interval, height_and_rate, pair_geometry, pair_thresholds,
                               predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state,
@@ -38,6 +40,7 @@ __all__ = [
     "tangent_plane_error_bound", "SEPARATION_MINIMA", "NM_M", "FT_M", "ALT_COLUMNS", "CONFLICT_EXTRA",
     "ConflictState", "conflicts_step", "init_conflict_state", "conflict_interval_levelled", "level_off_times",
     "arc_offsets", "conflict_interval_arc", "ApproachVolume", "approach_membership",
+    "AerodromeZone", "zone_index",
     # alerts
     "AlertConfig", "score_alerts", "alert_episodes", "los_episodes", "loss_of_separation", "separation_intervals",
     "truth_heights", "truth_intervals", "stca_tables", "stca_tradeoff", "compare_at_equal_nuisance", "tradeoff_metrics",

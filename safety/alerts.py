@@ -102,8 +102,8 @@ import polars as pl
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from safety.conflicts import (ConflictConfig, conflict_interval, conflicts_steps, height_and_rate,
-                              init_conflict_state, predict_conflicts)
+from safety.conflicts import (AerodromeZone, ConflictConfig, conflict_interval, conflicts_steps, height_and_rate,
+                              init_conflict_state, predict_conflicts, zone_index)
 from tertiary import geo
 from tertiary.errors import ResourceError
 from tertiary.schema import TABLES, TIME
@@ -390,14 +390,17 @@ def _near_boxes(c: NDArray, e: NDArray, blk: NDArray, reach_h: float, reach_v: f
 def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, factors: Sequence[float] = (1.0,),
                          frame: geo.LocalFrame | None = None, max_rows: int = 50_000_000,
                          level_pairs: tuple[float, float] | None = None, merge_gap_s: float = 0.0,
-                         enroute: tuple[float, float, float] | None = None) -> list[pl.DataFrame]:
+                         enroute: tuple[float, float, float] | None = None,
+                         zones: Sequence[AerodromeZone] = ()) -> list[pl.DataFrame]:
     """For each factor f: the merged intervals during which pairs of aircraft are within
     f·Δr_г horizontally **and** f·Δr_в vertically at the same instant, exact under linear
     motion between the union sample times (see the module docstring). ``level_pairs`` =
     (tolerance m, level rate m/s): on segments where both aircraft are level the vertical bound
     is f·Δr_в − tolerance (module docstring "Level pairs"). ``enroute`` = (floor m, Δr_г m,
     Δr_в m): a segment pair with any of its four end heights at or above the floor is judged by
-    these minima instead (:mod:`safety.conflicts`, "En-route airspace"). Intervals of a pair at
+    these minima instead (:mod:`safety.conflicts`, "En-route airspace"). ``zones``: aerodrome
+    zones; a segment pair whose four ends are in one zone is not a loss (:mod:`safety.conflicts`,
+    "Aerodrome zones"). Intervals of a pair at
     most ``merge_gap_s`` apart are one episode. One frame per factor: (run, truth_a, truth_b,
     t_start_us, t_end_us), truth_a < truth_b (run 0 without a run column)."""
     tr = truth_heights(truth, frame)
@@ -412,6 +415,12 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
     a, b = _pair_segments(rs, fmax * reach_h, fmax * reach_v)
     same = rs["gk"][a] == rs["gk"][b]
     a, b = a[same], b[same]
+    if len(zones) and len(a):
+        # two aircraft both in one aerodrome zone over the whole segment: aerodrome control
+        z = zone_index(rs["pos"], zones)
+        za = z[a]
+        inside = (za >= 0) & (z[a + 1] == za) & (z[b] == za) & (z[b + 1] == za)
+        a, b = a[~inside], b[~inside]
     if not len(a):
         return empty
     pos, t, ac = rs["pos"], rs["t"], rs["ac"]
@@ -481,7 +490,7 @@ def loss_of_separation(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), fr
     horizontal < Δr_г and |Δh| < Δr_в at the same instant, closed form between samples."""
     cc = cfg.conflict
     los = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0,), frame, cfg.max_grid_rows,
-                               cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc))[0]
+                               cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc), cc.aerodrome_zones)[0]
     keys = ["run"] if "run" in truth.columns else []
     return los.select(*keys, "truth_a", "truth_b", _to_time("t_start_us", "t_start"), _to_time("t_end_us", "t_end"))
 
@@ -497,7 +506,8 @@ def truth_intervals(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame
     ``intervals`` when scoring many pictures or settings)."""
     cc = cfg.conflict
     los, prox = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0, cfg.proximity_factor), frame,
-                                     cfg.max_grid_rows, cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc))
+                                     cfg.max_grid_rows, cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc),
+                                     cc.aerodrome_zones)
     return los, prox
 
 

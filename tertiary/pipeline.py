@@ -302,6 +302,9 @@ class PipelineConfig:
     #: STCA and loss-of-separation scoring with the en-route minima above the scenario's en-route
     #: floor (safety.conflicts "En-route airspace"; national: FL150)
     stca_enroute_floor: bool = True
+    #: STCA inhibited, and no loss of separation scored, between two aircraft both in one of the
+    #: scenario's aerodrome zones (safety.conflicts "Aerodrome zones"; national: its airports)
+    stca_aerodrome_zones: bool = True
     #: STCA trade-off curves (metrics stage "safety_tradeoff"): losses alerted with ≥ X s warning
     #: against nuisance + false alerts per hour as the threshold confidence (covariance
     #: thresholds), the fixed estimation term (m) and the look-ahead (s) vary; each point is one
@@ -372,7 +375,8 @@ def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
     scenario unless ``cfg.conflicts`` already has it: the final-approach volumes of its runways
     (:func:`tertiary.simulate.traffic.final_approaches`; off with ``stca_approach_volumes``) and
     the floor of its en-route airspace (``national.enroute_floor_fl``; off with
-    ``stca_enroute_floor``)."""
+    ``stca_enroute_floor``) and its aerodrome zones (:func:`tertiary.simulate.traffic.aerodromes`;
+    off with ``stca_aerodrome_zones``)."""
     scen = getattr(ds, "scenario", None)
     if scen is None:
         return cfg
@@ -393,6 +397,16 @@ def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
         from safety.conflicts import FT_M
         # half a level below it: an aircraft level at the floor is in it, whatever its altitude noise
         conflicts = dataclasses.replace(conflicts, enroute_above_m=(float(floor_fl) * 100.0 - 500.0) * FT_M)
+    if cfg.stca_aerodrome_zones and not conflicts.aerodrome_zones:
+        from safety.conflicts import AerodromeZone
+        from tertiary.simulate.traffic import aerodromes
+        try:
+            frame = ds.origin
+        except DataError:
+            frame = None
+        zones = tuple(AerodromeZone(x, y, name=name) for name, x, y in aerodromes(scen, frame))
+        if zones:
+            conflicts = dataclasses.replace(conflicts, aerodrome_zones=zones)
     return cfg if conflicts is cfg.conflicts else dataclasses.replace(cfg, conflicts=conflicts)
 
 
@@ -1097,7 +1111,18 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
 
 def _note_minima(cc: "ConflictConfig", notes: list[str]) -> None:
     """A note of the separation minima of the alerts and their scoring when they are not one
-    set everywhere (an en-route floor): the reader of an alert list must know its rule."""
+    set everywhere (an en-route floor, aerodrome zones): the reader of an alert list must know
+    its rule."""
+    if cc.aerodrome_zones:
+        from safety.conflicts import FT_M, NM_M
+        radii = sorted({z.radius_m for z in cc.aerodrome_zones})
+        ceilings = sorted({z.ceiling_m for z in cc.aerodrome_zones})
+        text = (f"aerodrome zones: no STCA alert and no loss of separation scored between two aircraft both "
+                f"within {'/'.join(f'{r / NM_M:g}' for r in radii)} NM and below "
+                f"{'/'.join(f'{c / FT_M:,.0f}' for c in ceilings)} ft of one of {len(cc.aerodrome_zones)} "
+                "aerodromes (aerodrome control, not radar separation)")
+        if text not in notes:
+            notes.append(text)
     if cc.enroute_above_m is None:
         return
     from safety.conflicts import FT_M, NM_M

@@ -758,7 +758,8 @@ def _routed_selected(cfg: TrafficConfig, ra: dict[str, NDArray]) -> NDArray[np.f
 # the alert list of such a day is not that of any airspace. Below FL150 the runways' spacing
 # orders the traffic (take-offs, landings); departures and arrivals of one runway are not
 # sequenced against each other (mixed mode), which leaves pairs near the runways (see
-# ``datasets/national.toml``).
+# ``datasets/national.toml``): the tower's to separate, so the pipeline's aerodrome zones
+# (:func:`aerodromes`) inhibit the STCA there and count no loss of separation.
 
 NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
 DEP_LEG_M = 10_000.0                  # runway heading after take-off before turning on course
@@ -1190,4 +1191,16 @@ def final_approaches(scenario, frame: "geo.LocalFrame | None" = None) -> list[tu
         xy = np.column_stack(frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)[:2])
         return [(float(x), float(y), (a.runway_deg + end) % 360.0, FINAL_M)
                 for (x, y), a in zip(xy, aps) for end in (0.0, 180.0)]
+    return []
+
+
+def aerodromes(scenario, frame: "geo.LocalFrame | None" = None) -> list[tuple[str, float, float]]:
+    """The scenario's aerodromes as (name, x, y) in the system frame (``frame``), where the
+    aerodrome controller separates its departures and arrivals (``safety.conflicts.AerodromeZone``):
+    national, every airport (its flights take off from and land at its reference point). Other
+    kinds: none (terminal-area's planted encounters are radar-controlled ones)."""
+    if scenario.kind == "national" and scenario.national is not None and frame is not None:
+        aps = scenario.national.airports
+        x, y, _ = frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)
+        return [(a.name, float(xi), float(yi)) for a, xi, yi in zip(aps, np.atleast_1d(x), np.atleast_1d(y))]
     return []
