@@ -127,7 +127,7 @@ def test_pipeline_takes_the_zones_from_the_national_airports(small_terminal):
 
     class _Ds:
         scenario = scen
-        origin = LocalFrame(*scen.origin) if hasattr(scen, "origin") else LocalFrame(46.8, 2.5, 0.0)
+        origin = LocalFrame(*scen.origin)
     cfg = adapt_to_scenario(PipelineConfig(stca_approach_volumes=False), _Ds())
     zones = cfg.conflicts.aerodrome_zones
     assert [z.name for z in zones] == [a.name for a in scen.national.airports]
