@@ -196,9 +196,9 @@ national scenario, above FL150), one terminal parameter set scored such passes a
 not losses of 3 NM, yet predicted within the 3 NM thresholds plus margins.
 
 Aerodrome zones (``ConflictConfig.aerodrome_zones``). Around a runway the aerodrome controller
-separates departures from arrivals (runway separation, ICAO Doc 4444 §7.10–7.11), not radar
-separation: a departure is cleared for take-off with the next arrival 2–4 NM out on final, 3 NM
-and less than 1 000 ft from it. STCA systems inhibit alerts in such volumes. A pair whose two
+separates departures from arrivals (runway separation; ICAO Doc 4444 chapter 7, aerodrome
+control service), not radar separation: a departure is cleared for take-off with the next
+arrival 2–4 NM out on final, 3 NM and less than 1 000 ft from it. STCA systems inhibit alerts in such volumes. A pair whose two
 tracks are both inside one :class:`AerodromeZone` (within its radius of the aerodrome and below
 its ceiling) is not predicted; a pair with one member inside and one outside is. The scoring
 follows it (:func:`safety.alerts.separation_intervals`): a truth segment pair whose four ends
@@ -469,8 +469,8 @@ class AerodromeZone:
     works arrivals from about 4 NM on final, where it releases departures ahead of them. Measured
     on the national scenario's 08:00 hour (losses of separation in the truth, zones at its 13
     airports, 2 000 ft): none 180, 2.5 NM 69, 4 NM 43, 5 NM 42 — the 26 between 2.5 and 4 NM are
-    a departure at lift-off with an arrival 4.6–5.5 km out, or a departure 4.5 km out with an
-    arrival about to land."""
+    pairs within 5.5 km of the airport: a departure at lift-off with an arrival 4.6–5.5 km out, or
+    a departure 4.5 km out on its climb with an arrival about to land or a departure behind it."""
 
     x_m: float
     y_m: float
