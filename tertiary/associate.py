@@ -147,6 +147,11 @@ class AssociateState:
     t_us: int = T_MIN
     run_next: tuple[tuple[int, int], ...] = ()
 
+    def live_targets(self) -> pl.DataFrame:
+        """(run, target_id) that may still be associated: a target id is only ever continued from
+        a local track of ``tracks`` (:func:`carry_step`), so no other id ever returns."""
+        return self.tracks.select("run", "target_id").unique()
+
     @property
     def next_id(self) -> int:
         """How many system target ids were created so far (all runs)."""

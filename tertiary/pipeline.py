@@ -658,7 +658,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
         central, s_central = centralized_step(st.centralized, recent, ctx.radars, associations, keys, ctx.origin,
-                                              cfg.centralized_cfg, w.t0_us, w.t1_us)
+                                              cfg.centralized_cfg, w.t0_us, w.t1_us, live=s_assoc.live_targets())
         fused = pl.concat([fused, central], how="diagonal_relaxed")
     clock.stage("cluster")
     clusters, s_cluster = cluster_step(st.cluster, fused, w.t0_us, w.t1_us, cfg.clustering)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+from datetime import datetime, timedelta, timezone
 
 import numpy as np
 import polars as pl
@@ -154,3 +155,34 @@ def test_window_contract_is_checked(aligned):
         associate_step(state, aligned.clear(), lo - 10, lo, AssociationConfig())
     _, state = associate_step(init_associate_state(), aligned, T_MIN, T_MAX, AssociationConfig())
     assert state.t_us == T_MAX
+
+
+def test_live_targets_hold_every_id_that_can_return():
+    """A target id is only continued from a carried local track, so ``live_targets`` after a
+    window holds every id a later window can give again: here a local track silent for 15 s
+    (within the 30 s carry gap) across a window boundary at 40 s, while another track runs on,
+    comes back with its target id — which was live at the boundary although its track was not
+    seen at the window's last epoch. A track silent for 39 s (longer than the gap) at the
+    boundary is not live, and its id is not given again."""
+    from tertiary.associate import carry_step, init_associate_state
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+
+    def rows(spec):   # (radar_id, local_track_id, seconds)
+        return pl.DataFrame({"run": [0] * len(spec), "radar_id": [r for r, _, _ in spec],
+                             "local_track_id": [k for _, k, _ in spec],
+                             "epoch": [t0 + timedelta(seconds=s) for _, _, s in spec]}).with_columns(
+            pl.col("run").cast(pl.UInt32), pl.col("radar_id").cast(pl.UInt32), pl.col("local_track_id").cast(pl.UInt32))
+    w1 = [(1, 7, s) for s in range(0, 31)] + [(2, 3, s) for s in range(0, 40)] + [(3, 5, 0)]
+    w2 = [(1, 7, s) for s in range(45, 60)] + [(2, 3, s) for s in range(40, 60)] + [(3, 5, 50)]
+    w1, w2 = rows(w1), rows(w2)
+    label1 = (w1["radar_id"].cast(pl.Int64) * 100 + w1["local_track_id"].cast(pl.Int64)).to_numpy()
+    ids1, _, st = carry_step(init_associate_state(), w1, label1, 30.0)
+    live = set(st.live_targets()["target_id"].to_list())
+    first = dict(zip(zip(w1["radar_id"], w1["local_track_id"]), ids1))
+    assert first[(1, 7)] in live and first[(2, 3)] in live and first[(3, 5)] not in live
+    label2 = (w2["radar_id"].cast(pl.Int64) * 100 + w2["local_track_id"].cast(pl.Int64)).to_numpy()
+    ids2, _, _ = carry_step(st, w2, label2, 30.0)
+    second = dict(zip(zip(w2["radar_id"], w2["local_track_id"]), ids2))
+    assert second[(1, 7)] == first[(1, 7)] and second[(2, 3)] == first[(2, 3)]
+    assert second[(3, 5)] not in set(ids1.tolist())
+    assert set(ids2.tolist()) & set(ids1.tolist()) <= live

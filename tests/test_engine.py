@@ -93,6 +93,26 @@ def test_windowed_tables_equal_one_window_big_box(bigbox, window_s):
         _same(got[name], frame, name)
 
 
+def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monkeypatch):
+    """Memory bounded by the window: after the last window the centralised reference carries only
+    the targets the association can still continue (those a carried local track points at), not
+    every target ever seen — the windowed tables above equal one window's with it."""
+    seen = {}
+    real = pipeline._finalize
+
+    def spy(ds, cfg, ctx, st, *args, **kw):
+        seen["st"] = st
+        return real(ds, cfg, ctx, st, *args, **kw)
+    monkeypatch.setattr(pipeline, "_finalize", spy)
+    res = pipeline.process(terminal, FAST, window_s=20.0)
+    st = seen["st"]
+    kept = st.centralized.targets.select("run", "target_id")
+    ever = res.fused.filter(pl.col("method") == "centralized").select("run", "target_id").unique()
+    assert kept.join(st.associate.live_targets(), on=["run", "target_id"], how="anti").height == 0
+    assert 0 < kept.height < ever.height / 2
+    assert st.centralized.radars.join(kept, on=["run", "target_id"], how="anti").height == 0
+
+
 def test_windowed_evaluation_equals_one_window(terminal):
     """The whole-run stages (matching, accuracy, alert scoring, STCA curves) on windowed tables."""
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
