@@ -381,13 +381,13 @@ def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
     if scen is None:
         return cfg
     conflicts = cfg.conflicts
+    try:
+        frame = ds.origin
+    except DataError:
+        frame = None
     if cfg.stca_approach_volumes and not conflicts.approach_volumes:
         from safety.conflicts import ApproachVolume
         from tertiary.simulate.traffic import final_approaches
-        try:
-            frame = ds.origin
-        except DataError:
-            frame = None
         vols = tuple(ApproachVolume(x, y, course, length_m=length, name=f"final {course:05.1f}")
                      for x, y, course, length in final_approaches(scen, frame))
         if vols:
@@ -400,10 +400,6 @@ def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
     if cfg.stca_aerodrome_zones and not conflicts.aerodrome_zones:
         from safety.conflicts import AerodromeZone
         from tertiary.simulate.traffic import aerodromes
-        try:
-            frame = ds.origin
-        except DataError:
-            frame = None
         zones = tuple(AerodromeZone(x, y, name=name) for name, x, y in aerodromes(scen, frame))
         if zones:
             conflicts = dataclasses.replace(conflicts, aerodrome_zones=zones)

@@ -1186,12 +1186,17 @@ def final_approaches(scenario, frame: "geo.LocalFrame | None" = None) -> list[tu
     runway out to the initial approach fix (``frame``: the system frame). Other kinds: none."""
     if scenario.kind == "terminal-area":
         return [(THRESHOLD[0], THRESHOLD[1], 270.0, ARRIVALS[0][-2][0] - THRESHOLD[0])]
-    if scenario.kind == "national" and scenario.national is not None and frame is not None:
-        aps = scenario.national.airports
-        xy = np.column_stack(frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)[:2])
-        return [(float(x), float(y), (a.runway_deg + end) % 360.0, FINAL_M)
-                for (x, y), a in zip(xy, aps) for end in (0.0, 180.0)]
-    return []
+    return [(x, y, (a.runway_deg + end) % 360.0, FINAL_M)
+            for a, x, y in _airports_xy(scenario, frame) for end in (0.0, 180.0)]
+
+
+def _airports_xy(scenario, frame: "geo.LocalFrame | None") -> list[tuple]:
+    """(airport, x, y) of a national scenario's airports in the system frame; none otherwise."""
+    if scenario.kind != "national" or scenario.national is None or frame is None:
+        return []
+    aps = scenario.national.airports
+    x, y, _ = frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)
+    return [(a, float(xi), float(yi)) for a, xi, yi in zip(aps, np.atleast_1d(x), np.atleast_1d(y))]
 
 
 def aerodromes(scenario, frame: "geo.LocalFrame | None" = None) -> list[tuple[str, float, float]]:
@@ -1199,8 +1204,4 @@ def aerodromes(scenario, frame: "geo.LocalFrame | None" = None) -> list[tuple[st
     aerodrome controller separates its departures and arrivals (``safety.conflicts.AerodromeZone``):
     national, every airport (its flights take off from and land at its reference point). Other
     kinds: none (terminal-area's planted encounters are radar-controlled ones)."""
-    if scenario.kind == "national" and scenario.national is not None and frame is not None:
-        aps = scenario.national.airports
-        x, y, _ = frame.from_geodetic([a.lat_deg for a in aps], [a.lon_deg for a in aps], 0.0)
-        return [(a.name, float(xi), float(yi)) for a, xi, yi in zip(aps, np.atleast_1d(x), np.atleast_1d(y))]
-    return []
+    return [(a.name, x, y) for a, x, y in _airports_xy(scenario, frame)]
