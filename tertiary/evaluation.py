@@ -33,12 +33,14 @@ import polars as pl
 from tertiary import geo
 from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.errors import DataError
-from tertiary.matching import MatchConfig, between_mask, match_with_reference, neighbour_times, reference_identity
+from tertiary.matching import (MatchConfig, between_expr, between_mask, match_with_reference, neighbour_times,
+                               reference_identity)
 from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
 
-__all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "comparison", "read_picture",
+__all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
+           "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
            "reference_error_metrics", "read_parquet_file", "association_metrics"]
 
@@ -127,20 +129,65 @@ def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> Non
 _MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "segment")
 
 
-class _Reference:
-    """The reference of one evaluation: whole, its aircraft's identity items, and (made when a
-    picture first comes in blocks) its samples' neighbour times for cutting time slices."""
+#: the internal columns of a reference file (:func:`write_reference`): each sample's aircraft's
+#: neighbouring sample times
+_FILE_COLUMNS = ("__prev", "__next")
 
-    def __init__(self, truth: pl.DataFrame) -> None:
-        self.truth, self.identity, self._times = truth, reference_identity(truth), None
+#: rows per row group of a reference file: a time slice skips the groups whose times (and
+#: neighbour times) miss it
+REFERENCE_GROUP_ROWS = 65_536
+
+
+def write_reference(truth: pl.DataFrame, path: str | Path) -> Path:
+    """``truth`` as a reference file the evaluation reads a time slice at a time (give its path
+    as ``truth`` to :func:`evaluate_each`): its rows in their order, with each sample's aircraft's
+    neighbouring sample times, so a slice is read without the rest of the reference. A long
+    run's reference is then not held through the evaluation (issue 16, memory);
+    :func:`read_reference` gives ``truth`` back."""
+    from tertiary.store import write_parquet_atomic
+    times = neighbour_times(truth)          # beside the frame's own columns: no copy of them
+    frame = truth.with_columns(times["__prev"], times["__next"])
+    return write_parquet_atomic(frame, path, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS,
+                                statistics=True)
+
+
+def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl.DataFrame:
+    """The truth a reference file holds (:func:`write_reference`); ``columns``: only those."""
+    names = [c for c in pl.read_parquet_schema(path) if c not in _FILE_COLUMNS]
+    return pl.read_parquet(path, columns=names if columns is None else [c for c in names if c in columns])
+
+
+class _Reference:
+    """The reference of one evaluation: whole, its aircraft's identity items, and its time
+    slices (:meth:`between`). Held in memory (a frame; the neighbour times are made when a
+    picture first comes in blocks) or read from a reference file (:func:`write_reference`)."""
+
+    def __init__(self, truth: pl.DataFrame | str | Path) -> None:
+        self._times = None
+        if isinstance(truth, pl.DataFrame):
+            self._truth, self.path = truth, None
+            self.empty = truth.clear()
+            self.identity = reference_identity(truth)
+            return
+        self._truth, self.path = None, Path(truth)
+        schema = {k: v for k, v in pl.read_parquet_schema(self.path).items() if k not in _FILE_COLUMNS}
+        self.empty = pl.DataFrame(schema=schema)
+        ident = [c for c in ("truth_id", "icao24", "callsign", "mode_3a") if c in schema]
+        self.identity = reference_identity(read_reference(self.path, ident))
+
+    def whole(self) -> pl.DataFrame:
+        return self._truth if self.path is None else read_reference(self.path)
 
     def between(self, t0, t1) -> pl.DataFrame:
+        cols = [c for c in self.empty.columns if c in _MATCHED_REF]
+        if self.path is not None:
+            # the filter runs in the reader, which keeps the rows' order: the frame's slice
+            return pl.scan_parquet(self.path).filter(between_expr(t0, t1)).select(cols).collect()
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice
             # copies only its own rows of the columns the matcher reads (memory, issue 16)
-            self._times = neighbour_times(self.truth)
-        cols = [c for c in self.truth.columns if c in _MATCHED_REF]
-        return self.truth.select(cols).filter(between_mask(self._times, t0, t1))
+            self._times = neighbour_times(self._truth)
+        return self._truth.select(cols).filter(between_mask(self._times, t0, t1))
 
 
 #: what the evaluation reads of a matched, row-scored picture beside the reference's ``true_*``
@@ -171,14 +218,14 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
     whole = second is None                  # one block: matched against the whole reference
     matched, expected, last = [], [], None
     for block in itertools.chain([first], [] if whole else [second], it):
-        _check_inputs(block, reference.truth, id_col)
+        _check_inputs(block, reference.empty, id_col)
         if "method" not in block.columns:
             block = block.with_columns(pl.lit("picture").alias("method"))
         t0, t1 = block["epoch"].min(), block["epoch"].max()
         if last is not None and t0 <= last:
             raise DataError("a picture's blocks must be in time order, no epoch in two blocks")
         last = t1
-        truth = reference.truth if whole else reference.between(t0, t1)
+        truth = reference.whole() if whole else reference.between(t0, t1)
         m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
         del block, truth
         scored = row_scores(m)
@@ -212,7 +259,7 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
                          empty=tracks.clear())
 
 
-def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], truth: pl.DataFrame, *,
+def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], truth: pl.DataFrame | str | Path, *,
                   radars: pl.DataFrame | None = None,
                   frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
@@ -225,7 +272,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     (an iterable of frames, epochs not shared between blocks): each block is matched against
     its time slice of the reference and row-scored alone (:func:`_match_blocks`), so the
     picture's covariances and the matcher's scratch are never held whole. The same metrics as
-    one call on their union."""
+    one call on their union. ``truth`` may be a reference file (:func:`write_reference`): then
+    only the slices a picture's blocks read are held."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}

@@ -53,7 +53,7 @@ from tertiary.schema import TIME
 
 __all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference", "match_with_reference",
            "reference_identity", "with_neighbours", "reference_between",
-           "neighbour_times", "between_mask"]
+           "neighbour_times", "between_mask", "between_expr"]
 
 STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -245,9 +245,15 @@ def between_mask(times: pl.DataFrame, t0, t1) -> pl.Series:
     """Which samples the reference at any time in [t0, t1] reads (rule 1): those inside, and
     each aircraft's last sample before and first after — so spans, gaps and interpolation on
     the slice are those of the whole reference. ``times``: :func:`neighbour_times`."""
+    return times.select(between_expr(t0, t1).alias("keep"))["keep"]
+
+
+def between_expr(t0, t1) -> pl.Expr:
+    """:func:`between_mask` as an expression on ``time``, ``__prev`` and ``__next`` (a lazy scan
+    of a reference file filters with it)."""
     t = pl.col("time")
     keep = t.is_between(t0, t1) | ((t < t0) & (pl.col("__next") >= t0)) | ((t > t1) & (pl.col("__prev") <= t1))
-    return times.select(keep.fill_null(False).alias("keep"))["keep"]
+    return keep.fill_null(False)
 
 
 def reference_between(neighboured: pl.DataFrame, t0, t1) -> pl.DataFrame:

@@ -44,13 +44,15 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
-from tertiary.evaluation import Evaluation, EvaluationConfig, association_metrics, evaluate_each
+from tertiary.evaluation import (Evaluation, EvaluationConfig, association_metrics, evaluate_each, read_reference,
+                                 write_reference)
 from tertiary.filters import REGISTRY
 from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
-                             Window, check_window, config_hash, is_auto, peak_rss_mib, prefetched, resolve_window,
+                             Window, check_window, config_hash, is_auto, peak_rss_mib, prefetched, release_memory,
+                             resolve_window,
                              windows)
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
@@ -874,11 +876,12 @@ class _OnDisk:
 
 
 class _Deferred:
-    """The ``associations`` of an on-disk run, read back (``read``) only where they are used; its
-    height and number of targets (distinct (run, target_id)) are taken now (issue 16, memory)."""
+    """A whole-run table of an on-disk run read back (``read``) only where it is used, not held
+    through the evaluation's peak: ``associations`` (``facts``: its number of targets, distinct
+    (run, target_id)) and ``reports`` (issue 16, memory). Its height is taken now."""
 
-    def __init__(self, read: Callable[[], pl.DataFrame], height: int, targets: int) -> None:
-        self.read, self.height, self.targets = read, height, targets
+    def __init__(self, read: Callable[[], pl.DataFrame], height: int, **facts: int) -> None:
+        self.read, self.height, self.facts = read, height, facts
 
 
 def _whole(table: "pl.DataFrame | _OnDisk") -> pl.DataFrame:
@@ -942,6 +945,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     clock.stage(None)
     clock.prefix = "finalize:"
     clock.stage("validate")      # the truth, and the whole run's accounting
+    release_memory()             # what the windows freed, before the whole-run stages
     sink = _timed_sink(sink, clock)
     # an on-disk run keeps in memory only what the whole-run stages read, and its streamed tables
     # go to the database one window's part at a time (issue 16, memory)
@@ -958,6 +962,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     sink("radars", ing.radars)
     sink("reports", _streamed(parts, "reports", empty_reports) if lean else reports)
     sink("truth", truth)
+    del truth                   # held by ``ing`` alone: the evaluation may release it
     sink("rejects", rejects)
     empty_aligned = align_stage.empty_aligned()
     aligned = (_table_columns(parts, "aligned", None if cfg.radar_health else _ALIGNED_COLUMNS, empty_aligned)
@@ -970,6 +975,17 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                         + (f" (most common: {why})" if why else ""))
     _check_accounting(n_in, aligned, rejects)
     sink("aligned", _streamed(parts, "aligned", empty_aligned) if lean else aligned)
+    observed, later = None, None
+    if lean:
+        # the evaluation and the alert scoring read neither the reports nor the aligned rows, only
+        # which aircraft had a report at which epoch: both are read back after them (memory)
+        observed = _observed(aligned, reports)
+        cols = None if cfg.radar_health else _ALIGNED_COLUMNS
+        aligned = _Deferred(lambda: _table_columns(parts, "aligned", cols, empty_aligned), aligned.height,
+                            reports=aligned["report_id"].n_unique())
+        later = _Deferred(lambda: _table_columns(parts, "reports", _REPORT_COLUMNS, empty_reports), reports.height)
+        ing.reports = reports.clear()         # its schema until then: what the stages test for
+        del reports
     tables = {}
     for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
         empty = (schema.empty_frame(name, False) if name in ("tracks", "conflicts") else pl.DataFrame())
@@ -979,7 +995,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
             sink(name, _streamed(parts, name, empty))
             keys = _table_columns(parts, name, ["run", "target_id"], empty)
             frame = _Deferred(lambda: _table(parts, "associations", pl.DataFrame()), keys.height,
-                              keys.n_unique() if keys.height else 0)
+                              targets=keys.n_unique() if keys.height else 0)
             del keys
         elif not lean or name == "conflicts":
             frame = _table(parts, name, empty)
@@ -996,12 +1012,13 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                                                                             "tracks", "conflicts"))
     stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
                              ambiguous_components=st.counts.get("ambiguous_components", 0),
-                             targets=(associations.targets if isinstance(associations, _Deferred) else
+                             targets=(associations.facts["targets"] if isinstance(associations, _Deferred) else
                                       associations.select("run", "target_id").n_unique() if associations.height
                                       else 0),
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
-                         sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)))
+                         sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)), observed, later,
+                         parts.scratch() if lean else None)
 
 
 def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
@@ -1016,11 +1033,17 @@ def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
     return timed
 
 
-def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.DataFrame,
+def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.DataFrame | _Deferred",
                   associations: "pl.DataFrame | _Deferred",
                   stats: AssociationStats, fused: pl.DataFrame, clusters: pl.DataFrame, tracks: pl.DataFrame,
                   conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float,
-                  conversion_invalid: int = 0) -> Results:
+                  conversion_invalid: int = 0, observed: pl.DataFrame | None = None,
+                  reports: "_Deferred | None" = None, scratch: Path | None = None) -> Results:
+    """The whole-run stages after the tables are sunk. An on-disk run hands ``aligned`` and the
+    ``reports`` (then ``ing.reports`` has no row) as :class:`_Deferred` and ``observed``
+    (:func:`_observed`) computed before: both are read back after the evaluation's peak. With a
+    ``scratch`` directory the evaluation reads the truth from a reference file there, and the
+    truth is not held through it."""
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
@@ -1028,12 +1051,21 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
 
     alerts = pl.DataFrame()
     has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
-    report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
     empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     ev_fused, ev_tracks = empty, empty
     if has_truth:
         clock.stage("evaluation")
-        ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, aligned, ing, ds)
+        if observed is None:
+            observed = _observed(aligned, ing.reports)
+        reference: "pl.DataFrame | Path" = ing.truth
+        if scratch is not None:
+            reference = write_reference(ing.truth, scratch / "reference.parquet")
+            ing.truth = ing.truth.clear()
+        ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, observed, reference, ing, ds)
+        del observed
+        if scratch is not None:
+            release_memory()
+            ing.truth = read_reference(reference)
     if cfg.safety and has_truth:
         clock.stage("score_alerts")
         methods, id_col = _safety_names(cfg, fused, tracks)
@@ -1055,8 +1087,12 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
             curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods, intervals)
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
+    release_memory()
     if isinstance(associations, _Deferred):
         associations = associations.read()
+    if reports is not None:
+        ing.reports = reports.read()
+    report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
     metrics = _association_metrics(associations, stats, report_truth)
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
@@ -1076,8 +1112,12 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
             reqs = [e.requirements for e in (ev_fused, ev_tracks) if e.requirements.height]
             if reqs:
                 sink("requirements", pl.concat(reqs, how="vertical_relaxed"))
+    aligned_rows, aligned_reports = ((aligned.height, aligned.facts["reports"]) if isinstance(aligned, _Deferred)
+                                     else (aligned.height, aligned["report_id"].n_unique()))
     if cfg.radar_health and aligned.height:
         from tertiary.radar_health import radar_health
+        if isinstance(aligned, _Deferred):
+            aligned = aligned.read()
         metrics = pl.concat([metrics, radar_health(aligned, ing.radars)], how="vertical_relaxed")
     if has_truth and cfg.indicators and tracks.height:
         clock.stage("indicators")
@@ -1089,9 +1129,9 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
         clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
     clock.timings["total_s"] = time.perf_counter() - t_all
     rejects = ing.rejects
-    counts = {"reports_in": n_in, "reports_aligned": int(aligned["report_id"].n_unique()),
+    counts = {"reports_in": n_in, "reports_aligned": int(aligned_reports),
               "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
-              "aligned_rows": aligned.height, "gated_pairs": stats.pairs, "components": stats.components,
+              "aligned_rows": aligned_rows, "gated_pairs": stats.pairs, "components": stats.components,
               "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
               "conversion_invalid": conversion_invalid,
@@ -1099,8 +1139,11 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: pl.D
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
               "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
               **_target_counts(fused)}
-    # an on-disk run's fused and tracks are in its database only (empty frames here)
+    # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
+    # its aligned rows when they were not read back
     fused, tracks = (t.empty if isinstance(t, _OnDisk) else t for t in (fused, tracks))
+    if isinstance(aligned, _Deferred):
+        aligned = align_stage.empty_aligned()
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
 
@@ -1148,27 +1191,51 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
             .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in cols))
 
 
+#: aligned rows joined to their reports' aircraft at a time (:func:`_observed`)
+OBSERVED_BLOCK_ROWS = 262_144
+
+
+def _observed(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, truth_id) of every aircraft with a report aligned at the epoch: what
+    continuity expects covered. Joined a block of aligned rows at a time: a long run's join is
+    not held whole (memory, issue 16)."""
+    truth_of = reports.select("run", "report_id", "truth_id")
+    keys = aligned.select("run", "epoch", "report_id")
+    blocks = [keys.slice(k, OBSERVED_BLOCK_ROWS).join(truth_of, on=["run", "report_id"], how="left")
+              .select("run", "epoch", "truth_id").drop_nulls().unique()
+              for k in range(0, keys.height, OBSERVED_BLOCK_ROWS)]
+    if not blocks:
+        return keys.select("run", "epoch").with_columns(pl.lit(None, truth_of.schema["truth_id"]).alias("truth_id")).clear()
+    return pl.concat(blocks).unique()
+
+
 def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
-                    aligned: pl.DataFrame, ing: Ingested, ds: Dataset) -> tuple[Evaluation, Evaluation]:
+                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset
+                    ) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
-    aircraft covered at the epochs it had a report. Pictures are read one at a time."""
+    aircraft covered at the epochs it had a report (``observed``). Pictures are read one at a
+    time; ``reference``: the truth, or its reference file (:func:`write_reference`)."""
     from tertiary.requirements import example_path, load_requirements
     reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
-    observed = (aligned.select("run", "epoch", "report_id")
-                .join(ing.reports.select("run", "report_id", "truth_id"), on=["run", "report_id"], how="left")
-                .select("run", "epoch", "truth_id").drop_nulls().unique())
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     fused_pictures = list(_fused_pictures(fused, _NOT_SCORED, blocks=True))
-    ev_fused = (evaluate_each((get() for get in fused_pictures), ing.truth, id_col="target_id", seed_stage="fusion",
+    # the heap the last picture freed is handed back before the next is read (memory)
+    ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id", seed_stage="fusion",
                               **kw) if fused_pictures else none)
     track_pictures = list(_track_pictures(tracks, _NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
-    return ev_fused, evaluate_each((get() for get in track_pictures), ing.truth, seed_stage="tracker", **kw)
+    return ev_fused, evaluate_each((_released(get) for get in track_pictures), reference, seed_stage="tracker",
+                                   **kw)
+
+
+def _released(get: Callable[[], Any]) -> Any:
+    release_memory()
+    return get()
 
 
 def _shown(fused: pl.DataFrame) -> pl.DataFrame:
@@ -1259,6 +1326,7 @@ def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "
         curves.append(stca_tradeoff(picture, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],
                                     **kw))
         del picture
+        release_memory()
     curve = pl.concat(curves, how="vertical_relaxed")
     return curve.sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")
 

@@ -225,6 +225,44 @@ def test_a_picture_scored_in_time_blocks_equals_the_whole_picture(small):
         evaluate_each([iter([parts[1], parts[0]])], truth, **kw)
 
 
+def test_a_reference_file_scores_as_the_reference_in_memory(small, tmp_path, monkeypatch):
+    """An on-disk run hands the evaluation its truth as a reference file and releases the frame
+    (issue 16, memory): each block's time slice is read from the file. With row groups of 16
+    samples (a slice spans and skips many), a sparse reference whose samples straddle the
+    blocks' edges and identity items that change part-way, every output of the file equals the
+    frame's, for the picture in blocks and whole; the file reads back as the truth. Fails if
+    the file's slice is not the frame's (another row group's samples, another order) or the
+    identity items come from another sample than each aircraft's first."""
+    from tertiary import evaluation
+    from tertiary.evaluation import read_reference, write_reference
+    root, ds, files = small
+    monkeypatch.setattr(evaluation, "REFERENCE_GROUP_ROWS", 16)
+    picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
+    truth = ds.truth.with_columns(pl.col("time").rank("ordinal").over("truth_id").alias("__k"))
+    truth = truth.filter(pl.col("__k") % 17 == 1).drop("__k")
+    late = pl.col("time") > truth["time"].min() + pl.duration(seconds=200)
+    truth = truth.with_columns(pl.when(late).then(pl.lit("ffffff")).otherwise(pl.col("icao24")).alias("icao24"))
+    path = write_reference(truth, tmp_path / "reference.parquet")
+    assert_frame_equal(read_reference(path), truth)
+    kw = dict(radars=ds.radars, frame=ds.origin, cfg=EvaluationConfig(match=MatchConfig(max_gap_s=60.0)),
+              requirements=load_requirements(example_path()))
+    edges = picture["epoch"].unique().sort().gather_every(11)
+    cut = picture.join(pl.DataFrame({"epoch": edges, "__b": range(len(edges))}), on="epoch", how="left").sort("epoch")
+    parts = [p.drop("__b") for p in cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
+             .partition_by("__b", maintain_order=True)]
+    assert len(parts) >= 5 and truth.height > 10 * 16
+    for pictures in (lambda: [iter(parts)], lambda: [picture]):
+        mem, disk = evaluate_each(pictures(), truth, **kw), evaluate_each(pictures(), path, **kw)
+        assert mem.metrics.height > 100
+        for name in ("metrics", "requirements", "by_epoch", "samples", "id_map", "matched"):
+            a, b = getattr(disk, name), getattr(mem, name)
+            assert a.columns == b.columns, name
+            if name != "matched":           # the matched rows in the same order, the rest as sets
+                a, b = _sorted(a), _sorted(b)
+            # round-off: a small match cost differs by 2.6e-9 of itself
+            assert_frame_equal(a, b, check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
+
+
 def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
     """The pipeline asks for no matched rows back (``keep_matched=False``), and the evaluation
     then keeps of each matched block only the columns its metrics read (issue 16, memory). On a

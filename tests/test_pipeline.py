@@ -192,3 +192,27 @@ def test_tracks_carry_the_identity_of_their_targets():
                               & (pl.col("segment") == "all"))
     # every picture is scored: the fused picture and the tracker picture built on it
     assert sorted(frac["method"]) == ["information", "information+singer"] and (frac["value"] > 0.95).all()
+
+
+def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch):
+    """An on-disk run finds which aircraft had a report aligned at each epoch a block of aligned
+    rows at a time (issue 16, memory). With blocks of 3 rows over aligned rows that repeat a
+    report (one per radar), cross block edges and include a report without an aircraft and one
+    of another run, the set equals the whole join's. Fails if a block's rows are dropped or an
+    (aircraft, epoch) seen in two blocks counts twice."""
+    monkeypatch.setattr(pipeline, "OBSERVED_BLOCK_ROWS", 3)
+    from datetime import datetime, timedelta, timezone
+    t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
+    aligned = pl.DataFrame({"run": [0, 0, 0, 0, 0, 0, 1, 0], "report_id": [1, 2, 3, 3, 4, 5, 5, 6],
+                            "epoch": [t0 + timedelta(seconds=s) for s in (0, 0, 4, 4, 4, 8, 8, 12)]},
+                           schema={"run": pl.UInt32, "report_id": pl.UInt64, "epoch": schema.TIME})
+    reports = pl.DataFrame({"run": [0] * 6 + [1], "report_id": [1, 2, 3, 4, 5, 6, 5],
+                            "truth_id": [10, 11, 10, 11, None, 12, 10]},
+                           schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
+    want = (aligned.join(reports, on=["run", "report_id"], how="left").select("run", "epoch", "truth_id")
+            .drop_nulls().unique())
+    got = pipeline._observed(aligned, reports)
+    key = ["run", "epoch", "truth_id"]
+    assert got.height == want.height == 6
+    assert got.sort(key).equals(want.sort(key))
+    assert pipeline._observed(aligned.clear(), reports).columns == key
