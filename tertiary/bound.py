@@ -344,12 +344,35 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
     lengths = np.diff(np.append(starts, len(tid)))
     record = rows["__k"].to_numpy() == 1
     src = rows["__ev"].to_numpy()
-    r_eq = np.full((len(src), 3, 3), np.nan)
-    r_eq[src >= 0] = events["r_eq"].to_numpy().reshape(-1, 3, 3)[src[src >= 0]]
-    b = pcrb_linear(t, r_eq, starts, lengths, _singer9(cfg), _prior9(cfg), POS, record, _bound_summary)
+    out = []
+    # aircraft a block at a time (each sequence is independent): the events' 3x3 matrices are
+    # gathered for a block, never for the whole recording (the stage's peak, issue 16)
+    for lo, hi, g0, g1 in _aircraft_blocks(starts, len(tid), BOUND_BLOCK_ROWS):
+        s = src[lo:hi]
+        r_eq = np.full((hi - lo, 3, 3), np.nan)
+        if (s >= 0).any():
+            r_eq[s >= 0] = events["r_eq"].gather(s[s >= 0]).to_numpy().reshape(-1, 3, 3)
+        out.append(pcrb_linear(t[lo:hi], r_eq, starts[g0:g1] - lo, lengths[g0:g1], _singer9(cfg), _prior9(cfg),
+                               POS, record[lo:hi], _bound_summary))
+        del r_eq
+    b = np.concatenate(out)
     return rows.filter(record).select("truth_id", "epoch").with_columns(
         pl.Series("b2_pos", b[:, 0]), pl.Series("b2_horizontal", b[:, 1]), pl.Series("b2_vel", b[:, 2])
     ).cast(out_schema)
+
+
+#: rows (events and requested epochs) of the aircraft whose bounds are computed at a time
+BOUND_BLOCK_ROWS = 262_144
+
+
+def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int, int]]:
+    """(first row, end row, first sequence, end sequence) of blocks of whole sequences: those
+    starting in each ``size`` rows (a block may end up to one sequence past it)."""
+    bucket = np.asarray(starts) // size
+    first = np.flatnonzero(np.r_[True, bucket[1:] != bucket[:-1]])
+    seq = np.append(first, len(starts))
+    rows = np.append(np.asarray(starts)[first], n)
+    return [(int(rows[i]), int(rows[i + 1]), int(seq[i]), int(seq[i + 1])) for i in range(len(first))]
 
 
 def _bound_summary(p: F64) -> F64:

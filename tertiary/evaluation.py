@@ -416,7 +416,14 @@ def _report_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.
         on = ["run", "report_id"]
     rt = report_truth.select(*[pl.col(c).cast(associations.schema[c]) for c in on],
                              pl.col("truth_id").cast(pl.Int64)).unique(subset=on, keep="first")
-    return associations.join(rt, on=on, how="left", maintain_order="left")
+    # a block of rows joined at a time: a long run's join scratch is a block's (memory, issue 16)
+    size = max(1, LABEL_BLOCK_ROWS)
+    return pl.concat([associations.slice(k, size).join(rt, on=on, how="left", maintain_order="left")
+                      for k in range(0, max(associations.height, 1), size)])
+
+
+#: association rows labelled with their reports' aircraft at a time (:func:`_report_truth`)
+LABEL_BLOCK_ROWS = 262_144
 
 
 def _majority(labelled: pl.DataFrame, key: list[str]) -> pl.DataFrame:
@@ -457,10 +464,13 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
     keep = [c for c in ("run", "epoch", "target_id", "report_id") if c in associations.columns]
     labelled = _report_truth(associations.select(keep).with_columns(pl.col("epoch").cast(TIME)), report_truth)
     maj = _majority(labelled, _KEY).rename({"truth_id": "target_truth"})
-    rows = labelled.join(maj, on=_KEY, how="left")
     n_runs = associations["run"].n_unique()
-
-    real = rows.filter(pl.col("truth_id").is_not_null())
+    false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
+                     ["clutter"].sum())
+    # the labelled rows are released once their real ones are joined: a long run's association
+    # rows are not held three times over (memory, issue 16)
+    real = labelled.filter(pl.col("truth_id").is_not_null()).join(maj, on=_KEY, how="left")
+    del labelled
     # the aircraft's principal target at the epoch: most of its reports (ties: lowest id)
     principal = (real.group_by(["run", "epoch", "truth_id", "target_id"]).agg(pl.len().alias("__n"))
                  .sort(["run", "epoch", "truth_id", "__n", "target_id"], descending=[False, False, False, True, False])
@@ -483,8 +493,6 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
     per_truth = truths.join(got, on=["run", "truth_id"], how="left").with_columns(pl.col("n_targets").fill_null(0))
     tpt = float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
 
-    false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
-                     ["clutter"].sum())
     split = (real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n"))
              .filter(pl.col("n") > 1).height)
     merged = (real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height)

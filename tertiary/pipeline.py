@@ -896,6 +896,10 @@ def _table(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
 #: what the whole-run stages read of ``reports`` and ``aligned`` (an on-disk run holds no more)
 _REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
 _ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
+_ASSOCIATION_COLUMNS = ["run", "epoch", "target_id", "report_id"]
+#: what the stages after the evaluation read of the truth: its trajectories (an on-disk run)
+_TRUTH_TRAJECTORY = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m",
+                     "alt_rate_mps"]
 
 
 def _table_columns(parts, name: str, columns: list[str] | None, empty: pl.DataFrame) -> pl.DataFrame:
@@ -956,6 +960,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                            maintain_order=True)
     truth, rej_t = _validate_truth(ds, cfg, notes, _truth_window(reports, cfg.limits))
+    release_memory()             # the validation's scratch
     if rej_t.height:
         rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
@@ -975,6 +980,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                         + (f" (most common: {why})" if why else ""))
     _check_accounting(n_in, aligned, rejects)
     sink("aligned", _streamed(parts, "aligned", empty_aligned) if lean else aligned)
+    release_memory()             # the scratch of the reports' and aligned rows' copies to the database
     observed, later = None, None
     if lean:
         # the evaluation and the alert scoring read neither the reports nor the aligned rows, only
@@ -994,7 +1000,9 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
             # rows are not held through their peak (issue 16, memory)
             sink(name, _streamed(parts, name, empty))
             keys = _table_columns(parts, name, ["run", "target_id"], empty)
-            frame = _Deferred(lambda: _table(parts, "associations", pl.DataFrame()), keys.height,
+            # what the association metrics read (the rows are in the database)
+            frame = _Deferred(lambda: _table_columns(parts, "associations", _ASSOCIATION_COLUMNS, pl.DataFrame()),
+                              keys.height,
                               targets=keys.n_unique() if keys.height else 0)
             del keys
         elif not lean or name == "conflicts":
@@ -1065,7 +1073,9 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         del observed
         if scratch is not None:
             release_memory()
-            ing.truth = read_reference(reference)
+            # the alert scoring and the bound read the trajectories, not the identity items (the
+            # indicators match the picture again, so they get the whole truth)
+            ing.truth = read_reference(reference, None if cfg.indicators else _TRUTH_TRAJECTORY)
     if cfg.safety and has_truth:
         clock.stage("score_alerts")
         methods, id_col = _safety_names(cfg, fused, tracks)
@@ -1079,6 +1089,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         # the truth's LoS and proximity intervals, computed once for the alerts and every curve
         # setting (they depend on the separation minima, which the curves do not vary)
         intervals = truth_intervals(ing.truth, acfg, ds.origin)
+        release_memory()
         safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
                                                     methods=methods, frame=ds.origin, intervals=intervals)
         sink("alerts", alerts)
@@ -1094,6 +1105,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         ing.reports = reports.read()
     report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
     metrics = _association_metrics(associations, stats, report_truth)
+    release_memory()
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
         metrics = pl.concat([metrics, *[e.metrics for e in (ev_fused, ev_tracks) if e.metrics.height]],
@@ -1247,8 +1259,8 @@ def _shown(fused: pl.DataFrame) -> pl.DataFrame:
 #: scratch and a picture's covariances are held a block at a time (issue 16, memory)
 EVAL_BLOCK_ROWS = 200_000
 
-#: what no evaluation metric reads of a picture (the fusion's inputs and the tracker's
-#: diagnostics): an on-disk picture is scored without them (issue 16, memory)
+#: what no evaluation metric (nor conflict prediction) reads of a picture (the fusion's inputs
+#: and the tracker's diagnostics): an on-disk picture is scored without them (issue 16, memory)
 _NOT_SCORED = ("meas_cov", "weights", "radar_ids", "innovation", "model_probs", "meas_x_m", "meas_y_m",
                "meas_z_m", "n_fresh", "age_s")
 
@@ -1320,7 +1332,10 @@ def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "
         picture, _ = _safety_picture(cfg, fused, tracks, [])
         return stca_tradeoff(picture, id_map, truth, acfg, methods=methods, **kw)
     curves = []
-    for get in (_track_pictures(tracks) if id_col == "track_id" else _fused_pictures(fused)):
+    # read without the columns conflict prediction does not read either (memory)
+    pictures = (_track_pictures(tracks, _NOT_SCORED) if id_col == "track_id"
+                else _fused_pictures(fused, _NOT_SCORED))
+    for get in pictures:
         picture = get()
         name = picture["method"][0]
         curves.append(stca_tradeoff(picture, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],

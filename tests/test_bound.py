@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import polars as pl
 import pytest
+from polars.testing import assert_frame_equal
 from scipy.linalg import solve_discrete_are
 
 from tertiary import geo
@@ -150,3 +151,25 @@ def test_a_summary_keeps_what_it_takes_of_each_recorded_bound():
     got = pcrb_linear(*args, summary=lambda p: np.column_stack([p[:, 0, 0], p[:, 0, 0] + p[:, 1, 1]]))
     assert got.shape == (record.sum(), 2)
     np.testing.assert_allclose(got, np.column_stack([full[:, 0, 0], full[:, 0, 0] + full[:, 1, 1]]), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("size", [50, 300, 700])
+def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monkeypatch, size):
+    """``pcrb_at`` runs the recursion a block of whole aircraft at a time (issue 16, memory).
+    Three aircraft seen by one radar, each sequence longer than a block of 50 rows, two to a
+    block of 300, all in one of 700: the bounds equal one block's, row for row. Fails if a
+    block cuts an aircraft's sequence, gathers another block's measurements, or puts its rows
+    out of order."""
+    from tertiary import bound
+    origin, truth, radars, reports = _one_radar_truth()
+    many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
+                                         pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
+    ev = illuminations(many, radars, reports, origin)
+    samples = many.select("truth_id", pl.col("time").alias("epoch")).gather_every(2)
+    whole = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
+    monkeypatch.setattr(bound, "BOUND_BLOCK_ROWS", size)
+    blocks = bound._aircraft_blocks(np.array([0, 200, 350]), 500, size)
+    assert len(blocks) == {50: 3, 300: 2, 700: 1}[size]
+    got = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
+    assert whole.height == samples.height and whole["truth_id"].n_unique() == 3
+    assert_frame_equal(got, whole, check_exact=False, rel_tol=1e-12, abs_tol=0.0)

@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 
 import duckdb
+import numpy as np
 import polars as pl
 import pytest
 from typer.testing import CliRunner
@@ -286,3 +287,31 @@ def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
         a, b = getattr(slim, name), getattr(full, name)
         assert a.columns == b.columns, name
         assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-12, abs_tol=1e-12)
+
+
+def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
+    """The association rows are labelled with their reports' aircraft a block of rows at a time
+    (issue 16, memory). With blocks of 4 rows over 37 rows (reports seen by two radars, clutter,
+    a report of another run with the same id), the labelled rows (in order) and every
+    association metric equal one join's. Fails if a block's rows are lost, repeated or
+    reordered."""
+    from datetime import datetime, timedelta, timezone
+    from tertiary import evaluation
+    from tertiary.evaluation import _report_truth, association_metrics
+    rng = np.random.default_rng(5)
+    n = 37
+    t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
+    assoc = pl.DataFrame({"run": rng.integers(0, 2, n), "epoch": [t0 + timedelta(seconds=4 * int(k))
+                                                                  for k in rng.integers(0, 6, n)],
+                          "target_id": rng.integers(1, 6, n), "report_id": rng.integers(0, 20, n)},
+                         schema={"run": pl.UInt32, "epoch": pl.Datetime("us", "UTC"), "target_id": pl.UInt64,
+                                 "report_id": pl.UInt64})
+    truth_of = pl.DataFrame({"run": [0] * 20 + [1] * 20, "report_id": list(range(20)) * 2,
+                             "truth_id": [None if k % 7 == 0 else k % 4 for k in range(40)]},
+                            schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
+    whole = _report_truth(assoc, truth_of)
+    want = association_metrics(assoc, truth_of)
+    monkeypatch.setattr(evaluation, "LABEL_BLOCK_ROWS", 4)
+    assert_frame_equal(_report_truth(assoc, truth_of), whole)
+    assert_frame_equal(association_metrics(assoc, truth_of), want)
+    assert whole.height == n and whole["truth_id"].null_count() < n
