@@ -52,8 +52,7 @@ from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_p
 from tertiary.simulate import Dataset, scenario_toml
 from tertiary.engine import (AUTO_WINDOW, DEFAULT_WINDOW_S, END_US, PARTS, STREAMED, US, MemoryParts, Meter, PartStore, ReportSource,
                              Window, check_window, config_hash, is_auto, peak_rss_mib, prefetched, release_memory,
-                             resolve_window,
-                             windows)
+                             resolve_window, windows)
 from tertiary.engine import _concat as _concat_parts
 from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
@@ -1217,7 +1216,8 @@ def _observed(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFrame:
               .select("run", "epoch", "truth_id").drop_nulls().unique()
               for k in range(0, keys.height, OBSERVED_BLOCK_ROWS)]
     if not blocks:
-        return keys.select("run", "epoch").with_columns(pl.lit(None, truth_of.schema["truth_id"]).alias("truth_id")).clear()
+        none = pl.lit(None, truth_of.schema["truth_id"]).alias("truth_id")
+        return keys.select("run", "epoch").with_columns(none).clear()
     return pl.concat(blocks).unique()
 
 
@@ -1236,8 +1236,8 @@ def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     fused_pictures = list(_fused_pictures(fused, _NOT_SCORED, blocks=True))
     # the heap the last picture freed is handed back before the next is read (memory)
-    ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id", seed_stage="fusion",
-                              **kw) if fused_pictures else none)
+    ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id",
+                              seed_stage="fusion", **kw) if fused_pictures else none)
     track_pictures = list(_track_pictures(tracks, _NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
@@ -1246,6 +1246,7 @@ def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
 
 
 def _released(get: Callable[[], Any]) -> Any:
+    """``get()`` after the heap's freed pages are handed back."""
     release_memory()
     return get()
 
