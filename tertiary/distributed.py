@@ -59,6 +59,8 @@ EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "confl
 #: gate of the positional match of tracks in the overlap (m)
 DEFAULT_GATE_M = 500.0
 SLICES = "slices"
+#: the finalize stage's scratch files, beside the partitions
+SCRATCH = "_scratch"
 
 
 @dataclass(frozen=True)
@@ -302,6 +304,12 @@ class UnionParts:
         for i in range(self.n):
             for f in _files(self.out, i, "kept", name):
                 yield pl.read_parquet(f)
+
+    def scratch(self) -> Path:
+        """A directory for the finalize stage's scratch files (removed when it ends)."""
+        d = self.out / SLICES / SCRATCH
+        d.mkdir(parents=True, exist_ok=True)
+        return d
 
 
 # --------------------------------------------------------------------------- stitching
@@ -674,6 +682,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         except Exception as exc:  # recorded, then re-raised
             failure = exc
         timings["finalize_s"] = time.perf_counter() - t
+        shutil.rmtree(out / SLICES / SCRATCH, ignore_errors=True)
         store.write("partitions", table)
         if stitching.height:
             store.write("stitching", stitching)

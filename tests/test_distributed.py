@@ -120,6 +120,8 @@ def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_data
     parts = got["partitions"]
     assert parts.height == 2 and sorted(parts["run"].to_list()) == [0, 1]
     assert dict(got["run"].iter_rows())["engine"] == "dask"
+    # the finalize stage's scratch (the truth as a reference file) does not outlive it
+    assert (tmp_path / "run" / D.SLICES).is_dir() and not (tmp_path / "run" / D.SLICES / D.SCRATCH).exists()
 
 
 @pytest.fixture(scope="module")
