@@ -362,7 +362,7 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
 
 
 #: rows (events and requested epochs) of the aircraft whose bounds are computed at a time
-BOUND_BLOCK_ROWS = 1_048_576
+BOUND_BLOCK_ROWS = 262_144
 
 
 def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int, int]]:
