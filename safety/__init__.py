@@ -26,9 +26,8 @@ from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacit
                              conflict_radius, nmax_seed, nmax_sound, p_np, p_pij, ppob_curves, ppob_seed,
                              ppob_sound, rate_per_hour, v_ob)
 from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, AerodromeZone, ApproachVolume,
-                              ConflictConfig, zone_index,
-                              PairGeometry, approach_membership,
-                              candidate_pairs, conflict_interval, height_and_rate, pair_geometry, pair_thresholds,
+                              ConflictConfig, PairGeometry, approach_membership, candidate_pairs, conflict_interval,
+                              height_and_rate, pair_geometry, pair_thresholds, zone_index,
                               predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state,
                               ConflictState, conflicts_step, init_conflict_state, conflict_interval_levelled,
                               level_off_times, arc_offsets, conflict_interval_arc)

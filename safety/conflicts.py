@@ -198,8 +198,8 @@ not losses of 3 NM, yet predicted within the 3 NM thresholds plus margins.
 Aerodrome zones (``ConflictConfig.aerodrome_zones``). Around a runway the aerodrome controller
 separates departures from arrivals (runway separation; ICAO Doc 4444 chapter 7, aerodrome
 control service), not radar separation: a departure is cleared for take-off with the next
-arrival 2–4 NM out on final, 3 NM and less than 1 000 ft from it. STCA systems inhibit alerts in such volumes. A pair whose two
-tracks are both inside one :class:`AerodromeZone` (within its radius of the aerodrome and below
+arrival 2–4 NM out on final, 3 NM and less than 1 000 ft from it. STCA systems inhibit alerts in
+such volumes. A pair whose two tracks are both inside one :class:`AerodromeZone` (within its radius of the aerodrome and below
 its ceiling) is not predicted; a pair with one member inside and one outside is. The scoring
 follows it (:func:`safety.alerts.separation_intervals`): a truth segment pair whose four ends
 are inside one zone is not a loss of separation. On the national scenario's 08:00 hour 137 of

@@ -27,12 +27,12 @@ finalize stage holds the streamed tables of the whole run.
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
-import json
 import ctypes
 import ctypes.util
+import dataclasses
 import functools
+import hashlib
+import json
 import math
 import pickle
 import resource

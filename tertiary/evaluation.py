@@ -147,8 +147,7 @@ def write_reference(truth: pl.DataFrame, path: str | Path) -> Path:
     from tertiary.store import write_parquet_atomic
     times = neighbour_times(truth)          # beside the frame's own columns: no copy of them
     frame = truth.with_columns(times["__prev"], times["__next"])
-    return write_parquet_atomic(frame, path, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS,
-                                statistics=True)
+    return write_parquet_atomic(frame, path, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
 
 
 def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl.DataFrame:
