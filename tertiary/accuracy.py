@@ -486,7 +486,8 @@ def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataF
     out = []
     pot = scored.select("method", "run", "seg_class", "sd_pos").filter(pl.col("sd_pos").is_not_null())
     if pot.height:
-        rows = _with_segments(pot).group_by("method", "eval_segment").agg(
+        # in order of appearance: the metrics table's rows are the same on every run
+        rows = _with_segments(pot).group_by("method", "eval_segment", maintain_order=True).agg(
             pl.col("sd_pos").mean().alias("value"), pl.col("run").n_unique().alias("n_runs"))
         out.append(_metrics_schema(rows.select(pl.lit(stage).alias("stage"), "method",
                                                pl.lit("potential_pos_m").alias("metric"),

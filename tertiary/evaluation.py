@@ -23,6 +23,7 @@ not of a picture's states.
 from __future__ import annotations
 
 import itertools
+import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
+           "write_reference_pieces", "reference_files",
            "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
            "reference_error_metrics", "read_parquet_file", "association_metrics"]
@@ -150,10 +152,35 @@ def write_reference(truth: pl.DataFrame, path: str | Path) -> Path:
     return write_parquet_atomic(frame, path, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
 
 
+def write_reference_pieces(pieces: Iterable[pl.DataFrame], path: str | Path) -> Path:
+    """A reference written a piece at a time, in order, as a directory of reference files (one
+    per piece, read back in name order): each piece already carries its samples' ``__prev``/
+    ``__next`` (:func:`neighbour_times` of whole aircraft), so a truth that is never held whole
+    is written without a second copy (issue 18, memory). :func:`read_reference`, :func:`evaluate_each`
+    and the run database read the directory as one reference. The directory appears whole
+    (renamed from a temporary one when the last piece is written)."""
+    final = Path(path)
+    tmp = final.with_name(final.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for i, piece in enumerate(pieces):
+        piece.write_parquet(tmp / f"{i:06d}.parquet", compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
+    shutil.rmtree(final, ignore_errors=True)
+    tmp.rename(final)
+    return final
+
+
+def reference_files(path: str | Path) -> list[Path]:
+    """The files of a reference (:func:`write_reference`, :func:`write_reference_pieces`), in order."""
+    path = Path(path)
+    return sorted(path.glob("*.parquet")) if path.is_dir() else [path]
+
+
 def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl.DataFrame:
     """The truth a reference file holds (:func:`write_reference`); ``columns``: only those."""
-    names = [c for c in pl.read_parquet_schema(path) if c not in _FILE_COLUMNS]
-    return pl.read_parquet(path, columns=names if columns is None else [c for c in names if c in columns])
+    files = reference_files(path)
+    names = [c for c in pl.read_parquet_schema(files[0]) if c not in _FILE_COLUMNS]
+    return pl.read_parquet(files, columns=names if columns is None else [c for c in names if c in columns])
 
 
 class _Reference:
@@ -169,7 +196,8 @@ class _Reference:
             self.identity = reference_identity(truth)
             return
         self._truth, self.path = None, Path(truth)
-        schema = {k: v for k, v in pl.read_parquet_schema(self.path).items() if k not in _FILE_COLUMNS}
+        self.files = reference_files(self.path)
+        schema = {k: v for k, v in pl.read_parquet_schema(self.files[0]).items() if k not in _FILE_COLUMNS}
         self.empty = pl.DataFrame(schema=schema)
         ident = [c for c in ("truth_id", "icao24", "callsign", "mode_3a") if c in schema]
         self.identity = reference_identity(read_reference(self.path, ident))
@@ -181,7 +209,7 @@ class _Reference:
         cols = [c for c in self.empty.columns if c in _MATCHED_REF]
         if self.path is not None:
             # the filter runs in the reader, which keeps the rows' order: the frame's slice
-            return pl.scan_parquet(self.path).filter(between_expr(t0, t1)).select(cols).collect()
+            return pl.scan_parquet(self.files).filter(between_expr(t0, t1)).select(cols).collect()
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice
             # copies only its own rows of the columns the matcher reads (memory, issue 16)

@@ -45,7 +45,7 @@ from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation import (Evaluation, EvaluationConfig, association_metrics, evaluate_each, read_reference,
-                                 write_reference)
+                                 reference_files, write_reference, write_reference_pieces)
 from tertiary.filters import REGISTRY
 from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
@@ -58,6 +58,7 @@ from tertiary.errors import DataError, OptionError, TertiaryError
 from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.kernels import kernels_for
 from tertiary.kernels import warm as warm_kernels
+from tertiary.matching import neighbour_times
 from tertiary.store import RunStore, record_run
 
 if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
@@ -164,6 +165,116 @@ def _validate_truth(ds: Dataset, cfg: "PipelineConfig", notes: list[str], window
         clean = schema.sort_tracks(clean, "truth")
     notes.extend(str(w.message) for w in caught if issubclass(w.category, schema.UnsortedTimeWarning))
     return clean, pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+
+
+#: input truth rows read at a time by :func:`_stream_truth` (then split into aircraft parts)
+TRUTH_BATCH_ROWS = 262_144
+
+
+@dataclass
+class StreamedTruth:
+    """The validated truth of an on-disk run, on disk (:func:`_stream_truth`): its reference
+    directory (None when no row is clean), its number of clean rows and its schema (``empty``)."""
+
+    reference: Path | None
+    rows: int
+    empty: pl.DataFrame
+
+    def pieces(self) -> Iterator[pl.DataFrame]:
+        """The clean truth, in order, a reference file at a time (for the run database)."""
+        for f in reference_files(self.reference):
+            yield pl.read_parquet(f, columns=list(self.empty.columns))
+
+
+def _truth_lazy(ds: Dataset) -> pl.LazyFrame | None:
+    truth = ds.truth
+    return truth if isinstance(truth, pl.LazyFrame) else truth.lazy() if isinstance(truth, pl.DataFrame) else None
+
+
+def _stream_truth(ds: Dataset, cfg: "PipelineConfig", notes: list[str], window,
+                  scratch: Path) -> tuple[StreamedTruth, pl.DataFrame] | None:
+    """(the clean truth on disk, packed rejects): :func:`_validate_truth` from disk to disk, so
+    neither the input truth nor the clean one is ever held whole (a national hour's truth is
+    5 M rows, 549 MiB: issue 18, memory). None where :func:`_validate_truth` validates the
+    table in one call (strict mode, a small or malformed table): the caller does that.
+
+    One pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows by
+    aircraft part (:func:`_validate_truth`'s parts); each part is validated, put back in input
+    order and given its samples' neighbour times; the clean rows are then written as a reference
+    (:func:`write_reference_pieces`) in :func:`_validate_truth`'s order — input order, or
+    (truth_id, time) when some aircraft's times decrease — a file per input batch or per part.
+    Every check is row-wise or within one aircraft, the median time is the whole table's and
+    the unsorted-time note adds the parts' counts, so the rows, rejects and notes are
+    :func:`_validate_truth`'s."""
+    lf = _truth_lazy(ds)
+    if lf is None or cfg.strict:
+        return None
+    sch = lf.collect_schema()
+    if sch.get("truth_id") is None or sch.get("time") != schema.TIME or _INPUT_ROW in sch:
+        return None
+    n = lf.select(pl.len()).collect().item()
+    if n <= TRUTH_PART_ROWS:
+        return None
+    kw = dict(limits=cfg.limits, time_window=window)
+    med = schema.table_median_time(lf.select("time").collect(), cfg.limits)
+    sizes = lf.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True).collect()
+    part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
+    n_parts = int(part_of["__part"].max()) + 1
+    work = scratch / "truth"
+    shutil.rmtree(work, ignore_errors=True)        # a resumed finalize's leftovers
+    n_batches = -(-n // TRUTH_BATCH_ROWS)
+    for b in range(n_batches):
+        off = b * TRUTH_BATCH_ROWS
+        batch = lf.slice(off, TRUTH_BATCH_ROWS).collect()
+        batch = batch.with_columns(pl.int_range(off, off + batch.height, dtype=pl.UInt64).alias(_INPUT_ROW),
+                                   batch.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
+                                                                 maintain_order="left")["__part"])
+        for (k,), rows in batch.partition_by("__part", as_dict=True, maintain_order=True).items():
+            (work / f"in-{k:06d}").mkdir(parents=True, exist_ok=True)
+            rows.drop("__part").write_parquet(work / f"in-{k:06d}" / f"{b:06d}.parquet", compression="lz4")
+        del batch
+    rejs, n_bad, n_groups, clean_rows, empty = [], 0, 0, 0, None
+    for k in range(n_parts):
+        src = work / f"in-{k:06d}"
+        part = pl.read_parquet(sorted(src.glob("*.parquet")))
+        shutil.rmtree(src)
+        # the parts' unsorted-time notes are left out: the whole table's is made below
+        clean, rej, _ = _validate_table(part, "truth", False, [], median_time=med, **kw)
+        del part
+        rejs.append(rej)
+        clean = clean.sort(_INPUT_ROW)                 # input order (validation may have sorted)
+        empty = clean.drop(_INPUT_ROW).clear()
+        bad, groups = schema.unsorted_groups(clean, "truth")
+        n_bad, n_groups, clean_rows = n_bad + bad, n_groups + groups, clean_rows + clean.height
+        times = neighbour_times(clean)
+        clean = clean.with_columns(times["__prev"], times["__next"],
+                                   (pl.col(_INPUT_ROW) // TRUTH_BATCH_ROWS).alias("__batch"))
+        for (b,), rows in clean.partition_by("__batch", as_dict=True, maintain_order=True).items():
+            rows.drop("__batch").write_parquet(work / f"out-{b:06d}-{k:06d}.parquet", compression="lz4")
+    rejects = pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+    if n_bad:
+        notes.append(schema.unsorted_message("truth", n_bad, n_groups))
+    if clean_rows == 0:
+        shutil.rmtree(work, ignore_errors=True)
+        return StreamedTruth(None, 0, empty), rejects
+
+    def ordered() -> Iterator[pl.DataFrame]:
+        # an input batch's rows are in these files only, a part's in these
+        groups = ([sorted(work.glob(f"out-{b:06d}-*.parquet")) for b in range(n_batches)] if not n_bad else
+                  [sorted(work.glob(f"out-*-{k:06d}.parquet")) for k in range(n_parts)])
+        for files in groups:
+            if not files:
+                continue
+            piece = pl.read_parquet(files).sort(_INPUT_ROW)
+            if n_bad:       # the parts hold whole aircraft, in truth_id order
+                piece = piece.sort(list(schema.table_order("truth")), maintain_order=True)
+            yield piece.drop(_INPUT_ROW)
+            for f in files:
+                f.unlink()
+
+    path = write_reference_pieces(ordered(), scratch / "reference")
+    shutil.rmtree(work, ignore_errors=True)
+    return StreamedTruth(path, clean_rows, empty), rejects
 
 
 def _no_rejects() -> pl.DataFrame:
@@ -958,14 +1069,23 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                else _table(parts, "reports", empty_reports))
     rejects = _table(parts, "rejects", _no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                            maintain_order=True)
-    truth, rej_t = _validate_truth(ds, cfg, notes, _truth_window(reports, cfg.limits))
+    scratch = parts.scratch() if lean else None
+    window = _truth_window(reports, cfg.limits)
+    # an on-disk run validates the truth from disk to disk: it is read back after the evaluation
+    streamed = _stream_truth(ds, cfg, notes, window, scratch) if lean else None
+    on_disk = None
+    if streamed is None:
+        truth, rej_t = _validate_truth(ds, cfg, notes, window)
+    else:
+        on_disk, rej_t = streamed
+        truth = on_disk.empty
     release_memory()             # the validation's scratch
     if rej_t.height:
         rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
     sink("radars", ing.radars)
     sink("reports", _streamed(parts, "reports", empty_reports) if lean else reports)
-    sink("truth", truth)
+    sink("truth", StreamedTable(on_disk.pieces) if on_disk is not None and on_disk.rows else truth)
     del truth                   # held by ``ing`` alone: the evaluation may release it
     sink("rejects", rejects)
     empty_aligned = align_stage.empty_aligned()
@@ -1025,7 +1145,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
                          sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)), observed, later,
-                         parts.scratch() if lean else None)
+                         scratch, on_disk)
 
 
 def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
@@ -1045,19 +1165,22 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
                   stats: AssociationStats, fused: pl.DataFrame, clusters: pl.DataFrame, tracks: pl.DataFrame,
                   conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float,
                   conversion_invalid: int = 0, observed: pl.DataFrame | None = None,
-                  reports: "_Deferred | None" = None, scratch: Path | None = None) -> Results:
+                  reports: "_Deferred | None" = None, scratch: Path | None = None,
+                  on_disk: StreamedTruth | None = None) -> Results:
     """The whole-run stages after the tables are sunk. An on-disk run hands ``aligned`` and the
     ``reports`` (then ``ing.reports`` has no row) as :class:`_Deferred` and ``observed``
     (:func:`_observed`) computed before: both are read back after the evaluation's peak. With a
     ``scratch`` directory the evaluation reads the truth from a reference file there, and the
-    truth is not held through it."""
+    truth is not held through it; ``on_disk`` (:func:`_stream_truth`): the truth is already
+    there, and ``ing.truth`` has no row until it is read back."""
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
     from safety.alerts import truth_intervals
 
     alerts = pl.DataFrame()
-    has_truth = bool(ing.truth.height) and "truth_id" in ing.reports.columns
+    truth_rows = on_disk.rows if on_disk is not None else ing.truth.height
+    has_truth = bool(truth_rows) and "truth_id" in ing.reports.columns
     empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     ev_fused, ev_tracks = empty, empty
     if has_truth:
@@ -1065,7 +1188,9 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         if observed is None:
             observed = _observed(aligned, ing.reports)
         reference: "pl.DataFrame | Path" = ing.truth
-        if scratch is not None:
+        if on_disk is not None:
+            reference = on_disk.reference
+        elif scratch is not None:
             reference = write_reference(ing.truth, scratch / "reference.parquet")
             ing.truth = ing.truth.clear()
         ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, observed, reference, ing, ds)
@@ -1075,6 +1200,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
             # the alert scoring and the bound read the trajectories, not the identity items (the
             # indicators match the picture again, so they get the whole truth)
             ing.truth = read_reference(reference, None if cfg.indicators else _TRUTH_TRAJECTORY)
+    elif on_disk is not None and on_disk.rows:
+        ing.truth = read_reference(on_disk.reference)      # nothing scored against it: as it came
     if cfg.safety and has_truth:
         clock.stage("score_alerts")
         methods, id_col = _safety_names(cfg, fused, tracks)

@@ -1121,23 +1121,44 @@ def sort_tracks(clean: pl.DataFrame, kind: str) -> pl.DataFrame:
     return _sort_tracks(clean, _schema(kind))
 
 
+def table_order(kind: str) -> tuple[str, ...]:
+    """The ``kind`` schema's row order (group columns, then time) that :func:`sort_tracks` sorts by."""
+    return tuple(_schema(kind).order)
+
+
+def unsorted_groups(clean: pl.DataFrame, kind: str) -> tuple[int, int]:
+    """(groups whose times decrease in row order, groups) of ``clean`` by the ``kind`` schema's
+    order: what :func:`sort_tracks` counts (a table validated in parts adds its parts' counts)."""
+    return _unsorted(clean, _schema(kind))
+
+
+def unsorted_message(kind: str, n_bad: int, n_groups: int) -> str:
+    """The :class:`UnsortedTimeWarning` text of :func:`sort_tracks` for these counts."""
+    return _unsorted_message(_schema(kind), n_bad, n_groups)
+
+
+def _unsorted(clean: pl.DataFrame, schema: TableSchema) -> tuple[int, int]:
+    *group, time = schema.order
+    decreasing = pl.col(time).diff() < pl.lit(timedelta(0))
+    per_group = clean.group_by(group).agg(decreasing.any().alias("__unsorted"))
+    return int(per_group["__unsorted"].sum()), per_group.height
+
+
+def _unsorted_message(schema: TableSchema, n_bad: int, n_groups: int) -> str:
+    *group, time = schema.order
+    what = "tracks" if schema.name == "reports" else f"({', '.join(group)}) groups"
+    return (f"{schema.name}: {time} out of order in {n_bad} of {n_groups} {what}; "
+            f"sorted by ({', '.join(schema.order)})")
+
+
 def _sort_tracks(clean: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:
     """Sort by ``schema.order`` if times decrease within any group, with a warning."""
     if not schema.order or not all(c in clean.columns for c in schema.order):
         return clean
-    *group, time = schema.order
-    decreasing = pl.col(time).diff() < pl.lit(timedelta(0))
-    per_group = clean.group_by(group).agg(decreasing.any().alias("__unsorted"))
-    n_bad = int(per_group["__unsorted"].sum())
+    n_bad, n_groups = _unsorted(clean, schema)
     if n_bad == 0:
         return clean
-    what = "tracks" if schema.name == "reports" else f"({', '.join(group)}) groups"
-    warnings.warn(
-        f"{schema.name}: {time} out of order in {n_bad} of {per_group.height} {what}; "
-        f"sorted by ({', '.join(schema.order)})",
-        UnsortedTimeWarning,
-        stacklevel=3,
-    )
+    warnings.warn(_unsorted_message(schema, n_bad, n_groups), UnsortedTimeWarning, stacklevel=3)
     return clean.sort(list(schema.order), maintain_order=True)
 
 

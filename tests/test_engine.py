@@ -128,8 +128,9 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     each in time blocks of whole windows (issue 16, memory): the same metrics, alerts,
     requirements and counts as the in-memory run, which holds every picture and scores it whole.
     Fails if a picture is skipped, read twice or read incompletely, or if a block is matched or
-    scored differently from the whole picture."""
-    read, blocks = [], []
+    scored differently from the whole picture. The truth goes from disk to disk too (validated in
+    parts, scored from its reference files): the run database's truth is the in-memory run's."""
+    read, blocks, streamed = [], [], []
 
     def counted(self, key, *a, f=pipeline._OnDisk.blocks):
         read.append((self.name, key, "blocks"))
@@ -141,11 +142,17 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
                         read.append((self.name, key, "whole")) or f(self, key, *a))
     monkeypatch.setattr(pipeline._OnDisk, "blocks", counted)
     monkeypatch.setattr(pipeline, "EVAL_BLOCK_ROWS", 500)        # several blocks per picture
+    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 1_000)      # the truth in parts and batches
+    monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 1_500)
+    monkeypatch.setattr(pipeline, "_stream_truth", lambda *a, f=pipeline._stream_truth: streamed.append(f(*a))
+                        or streamed[-1])
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
+    assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
     with RunStore.open(tmp_path / "run") as st:
         metrics, alerts, record = st.read("metrics"), st.read("alerts"), st.read("run")
+        assert_frame_equal(st.read("truth"), mem.ingested.truth)
     assert metrics.filter(pl.col("stage") == "tracker")["method"].n_unique() == 2 * len(cfg.methods)
     _same(metrics, mem.metrics, "metrics")
     _same(alerts, mem.alerts, "alerts")
@@ -362,6 +369,70 @@ def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
     for a, b in zip(r1["detail"], r2["detail"]):
         assert {k: num(v) for k, v in json.loads(a).items()} == {k: num(v) for k, v in json.loads(b).items()}
     assert n2 == n1
+
+
+def _spoilt_truth(truth: pl.DataFrame, unsorted: bool) -> pl.DataFrame:
+    """``truth`` with the faults validation sees: repeated (truth_id, time), a NaN state, a
+    missing id, times outside the reports' span and far from the median; with ``unsorted`` one
+    aircraft's times decrease."""
+    t_end = truth["time"].max()
+    bad = pl.concat([
+        truth,
+        truth[[5, 400]],                                                  # duplicates of earlier rows
+        truth[[7]].with_columns(pl.lit(float("nan")).alias("x_m")),
+        truth[[9]].with_columns(pl.lit(None, truth.schema["truth_id"]).alias("truth_id")),
+        truth[[11]].with_columns((pl.lit(t_end) + pl.duration(hours=5)).alias("time")),
+        truth[[13]].with_columns((pl.lit(t_end) + pl.duration(days=5)).alias("time")),   # far from the median
+    ])
+    if not unsorted:
+        return bad
+    ids = bad["truth_id"].drop_nulls().unique().sort()
+    first = bad.filter(pl.col("truth_id") == ids[3])
+    return pl.concat([bad.filter(pl.col("truth_id").ne_missing(ids[3])), first.reverse()])  # one aircraft unsorted
+
+
+@pytest.mark.parametrize("unsorted", [False, True])
+def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path, unsorted):
+    """An on-disk run validates its truth from disk to disk (issue 18, memory): batches of input
+    rows filed by aircraft part, each part validated, the clean rows written as a reference in
+    input batches (or, when an aircraft's times decrease, by part in (truth_id, time) order).
+    With batches and parts that cut across each other, a time-major input (aircraft
+    interleaved) read from a Parquet scan, and the faults validation sees, the reference holds
+    exactly the clean table of one call (rows and order), each sample's neighbour times, and the
+    rejects and notes are that call's. Fails if the batches are not merged back into input order
+    (the time-major rows would come out by aircraft), a part's neighbour times cross aircraft, a
+    row is lost between batch and part, or the unsorted note counts one part only."""
+    from types import SimpleNamespace
+    from tertiary.evaluation import read_reference, reference_files
+    from tertiary.matching import neighbour_times
+    bad = _spoilt_truth(terminal.truth, unsorted).sort("time", maintain_order=True, nulls_last=True)
+    if unsorted:                                   # the reversed aircraft stays reversed
+        bad = _spoilt_truth(terminal.truth, unsorted)
+    bad.write_parquet(tmp_path / "truth.parquet")
+    window = (terminal.truth["time"].min(), terminal.truth["time"].max(), "the reports' span")
+    cfg = pipeline.PipelineConfig()
+    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 10**9)
+    notes1: list[str] = []
+    clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes1, window)
+    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 700)
+    monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 900)
+    notes2: list[str] = []
+    got = pipeline._stream_truth(SimpleNamespace(truth=pl.scan_parquet(tmp_path / "truth.parquet")), cfg, notes2,
+                                 window, tmp_path / "scratch")
+    assert got is not None
+    on_disk, rej2 = got
+    assert rej.height == 6 and clean.height > 3 * 900 and len(reference_files(on_disk.reference)) >= 3
+    assert (any("out of order" in n for n in notes1)) == unsorted          # not vacuous
+    if not unsorted:                                                        # the input order is kept
+        assert not clean["truth_id"].is_sorted()
+    assert on_disk.rows == clean.height
+    assert_frame_equal(read_reference(on_disk.reference), clean)
+    assert_frame_equal(pl.concat(list(on_disk.pieces())), clean)
+    files = pl.read_parquet(reference_files(on_disk.reference))
+    assert_frame_equal(files.select("time", "__prev", "__next"), neighbour_times(clean))
+    assert_frame_equal(rej2.drop("detail"), rej.drop("detail"))
+    assert notes2 == notes1
+    assert not (tmp_path / "scratch" / "truth").exists()                   # the parts' files are gone
 
 
 def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) -> pl.DataFrame:
