@@ -1007,9 +1007,10 @@ def _table(parts, name: str, empty: pl.DataFrame) -> pl.DataFrame:
 _REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
 _ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
 _ASSOCIATION_COLUMNS = ["run", "epoch", "target_id", "report_id"]
-#: what the stages after the evaluation read of the truth: its trajectories (an on-disk run)
-_TRUTH_TRAJECTORY = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m",
-                     "alt_rate_mps"]
+#: what the stages after the evaluation read of the truth (an on-disk run reads them from its
+#: reference): the separation intervals (``truth_heights``) and the bound
+_ALERT_TRUTH = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "alt_m", "alt_rate_mps"]
+_BOUND_TRUTH = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
 
 
 def _table_columns(parts, name: str, columns: list[str] | None, empty: pl.DataFrame) -> pl.DataFrame:
@@ -1172,7 +1173,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
     (:func:`_observed`) computed before: both are read back after the evaluation's peak. With a
     ``scratch`` directory the evaluation reads the truth from a reference file there, and the
     truth is not held through it; ``on_disk`` (:func:`_stream_truth`): the truth is already
-    there, and ``ing.truth`` has no row until it is read back."""
+    there. The stages after the evaluation then read the truth's columns they use from the
+    reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run)."""
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
     from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
@@ -1183,6 +1185,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
     has_truth = bool(truth_rows) and "truth_id" in ing.reports.columns
     empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     ev_fused, ev_tracks = empty, empty
+    truth_file: Path | None = None
     if has_truth:
         clock.stage("evaluation")
         if observed is None:
@@ -1197,11 +1200,17 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         del observed
         if scratch is not None:
             release_memory()
-            # the alert scoring and the bound read the trajectories, not the identity items (the
-            # indicators match the picture again, so they get the whole truth)
-            ing.truth = read_reference(reference, None if cfg.indicators else _TRUTH_TRAJECTORY)
+            if cfg.indicators:          # they match the picture again: the whole truth
+                ing.truth = read_reference(reference)
+            else:
+                # the later stages each read the columns they use from the reference, and the
+                # truth is not held between them (issue 18, memory)
+                truth_file = reference
     elif on_disk is not None and on_disk.rows:
         ing.truth = read_reference(on_disk.reference)      # nothing scored against it: as it came
+
+    def truth_columns(columns: list[str]) -> pl.DataFrame:
+        return ing.truth if truth_file is None else read_reference(truth_file, columns)
     if cfg.safety and has_truth:
         clock.stage("score_alerts")
         methods, id_col = _safety_names(cfg, fused, tracks)
@@ -1214,14 +1223,18 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         _note_minima(cfg.conflicts, ing.notes)
         # the truth's LoS and proximity intervals, computed once for the alerts and every curve
         # setting (they depend on the separation minima, which the curves do not vary)
-        intervals = truth_intervals(ing.truth, acfg, ds.origin)
+        truth = truth_columns(_ALERT_TRUTH)
+        intervals = truth_intervals(truth, acfg, ds.origin)
+        # what the scoring reads of the truth once its intervals are made: its time span and runs
+        span = truth.select(c for c in ("run", "time") if c in truth.columns)
+        del truth
         release_memory()
-        safety_metrics, alerts, _los = stca_tables(conflicts, id_map, ing.truth, acfg, id_col=id_col,
+        safety_metrics, alerts, _los = stca_tables(conflicts, id_map, span, acfg, id_col=id_col,
                                                     methods=methods, frame=ds.origin, intervals=intervals)
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
-            curve = _stca_curves(cfg, fused, tracks, id_map, ing.truth, acfg, id_col, ds.origin, methods, intervals)
+            curve = _stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals)
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     release_memory()
@@ -1240,7 +1253,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         samples = [e.samples for e in (ev_fused, ev_tracks) if e.samples.height]
         scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
         # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.bound)
-        extra = [bound_stage(ds, ing.truth, ing.radars, ing.reports, scored, metrics, ing.notes)]
+        extra = [bound_stage(ds, truth_columns(_BOUND_TRUTH), ing.radars, ing.reports, scored, metrics, ing.notes)]
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
@@ -1275,7 +1288,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": alerts.height, "aircraft": int(ing.truth["truth_id"].n_unique()) if has_truth else 0,
+              "alert_episodes": alerts.height,
+              "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **_target_counts(fused)}
     # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
     # its aligned rows when they were not read back
