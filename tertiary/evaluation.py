@@ -299,8 +299,9 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     (an iterable of frames, epochs not shared between blocks): each block is matched against
     its time slice of the reference and row-scored alone (:func:`_match_blocks`), so the
     picture's covariances and the matcher's scratch are never held whole. The same metrics as
-    one call on their union. ``truth`` may be a reference file (:func:`write_reference`): then
-    only the slices a picture's blocks read are held."""
+    one call on their union. ``truth`` may be a reference file or directory
+    (:func:`write_reference`, :func:`write_reference_pieces`): then only the slices a picture's
+    blocks read are held."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}

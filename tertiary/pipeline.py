@@ -1072,7 +1072,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                                                            maintain_order=True)
     scratch = parts.scratch() if lean else None
     window = _truth_window(reports, cfg.limits)
-    # an on-disk run validates the truth from disk to disk: it is read back after the evaluation
+    # an on-disk run validates the truth from disk to disk: the whole-run stages read it there
     streamed = _stream_truth(ds, cfg, notes, window, scratch) if lean else None
     on_disk = None
     if streamed is None:
@@ -1171,7 +1171,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
     """The whole-run stages after the tables are sunk. An on-disk run hands ``aligned`` and the
     ``reports`` (then ``ing.reports`` has no row) as :class:`_Deferred` and ``observed``
     (:func:`_observed`) computed before: both are read back after the evaluation's peak. With a
-    ``scratch`` directory the evaluation reads the truth from a reference file there, and the
+    ``scratch`` directory the evaluation reads the truth from reference files there, and the
     truth is not held through it; ``on_disk`` (:func:`_stream_truth`): the truth is already
     there. The stages after the evaluation then read the truth's columns they use from the
     reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run)."""
