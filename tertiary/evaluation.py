@@ -329,6 +329,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
             pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
+        # released before the next picture is matched: two pictures' rows are never held at once
+        del got, matched, expected, seed, by_epoch, samples
 
     def cat(k: str, none: pl.DataFrame) -> pl.DataFrame:
         return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else none

@@ -448,15 +448,18 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     ref = (expected if expected is not None and set(ref_cols) <= set(expected.columns)
            else matched.filter(pl.col("truth_id").is_not_null()).select(["run", "truth_id", "epoch"] + ref_cols))
     labels = reference_labels(ref, radar_xy, cfg)
+    del ref
     # the columns each group reads, then the rows: a long picture is never copied whole through
-    # the errors' and the continuity's joins (memory of the stage, issue 16)
+    # the errors' and the continuity's joins, and each group's rows are released before the next
+    # group's are made (memory of the stage, issue 16)
     err = (accuracy_errors(matched.select(c for c in matched.columns if c in _ERROR_INPUTS or c.startswith("true_")),
                            cfg)
            .select(c for c in (*_KEY, "epoch", *_ERRORS, *_IDENTITY) if c in matched.columns or c in _ERRORS)
            .join(labels, on=["run", "truth_id", "epoch"], how="left"))
-    m = matched.select(c for c in matched.columns if c in _CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
     parts = [_accuracy(err, breakdown),
              _identity_and_false(matched, err, breakdown, cfg)]
+    del err
+    m = matched.select(c for c in matched.columns if c in _CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
     out = pl.concat(parts, how="vertical")
