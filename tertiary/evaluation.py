@@ -133,7 +133,7 @@ _MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "segment")
 
 #: the internal columns of a reference file (:func:`write_reference`): each sample's aircraft's
 #: neighbouring sample times
-_FILE_COLUMNS = ("__prev", "__next")
+NEIGHBOUR_COLUMNS = ("__prev", "__next")
 
 #: rows per row group of a reference file: a time slice skips the groups whose times (and
 #: neighbour times) miss it
@@ -156,22 +156,27 @@ def write_reference_pieces(pieces: Iterable[pl.DataFrame], path: str | Path) -> 
     """A reference written a piece at a time, in order, as a directory of reference files (one
     per piece, read back in name order): each piece already carries its samples' ``__prev``/
     ``__next`` (:func:`neighbour_times` of whole aircraft), so a truth that is never held whole
-    is written without a second copy (issue 18, memory). :func:`read_reference`, :func:`evaluate_each`
-    and the run database read the directory as one reference. The directory appears whole
-    (renamed from a temporary one when the last piece is written)."""
+    is written without a second copy (issue 18, memory). :func:`read_reference`,
+    :func:`evaluate_each` and the run database read the directory as one reference. The
+    directory appears whole (renamed from a temporary one when the last piece is written)."""
     final = Path(path)
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    for i, piece in enumerate(pieces):
-        piece.write_parquet(tmp / f"{i:06d}.parquet", compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
+    n = 0
+    for n, piece in enumerate(pieces, 1):
+        piece.write_parquet(tmp / f"{n - 1:06d}.parquet", compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
+    if n == 0:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ValueError("write_reference_pieces: no piece to write")
     shutil.rmtree(final, ignore_errors=True)
     tmp.rename(final)
     return final
 
 
 def reference_files(path: str | Path) -> list[Path]:
-    """The files of a reference (:func:`write_reference`, :func:`write_reference_pieces`), in order."""
+    """The files of a reference (:func:`write_reference`, :func:`write_reference_pieces`), in
+    order."""
     path = Path(path)
     return sorted(path.glob("*.parquet")) if path.is_dir() else [path]
 
@@ -179,7 +184,7 @@ def reference_files(path: str | Path) -> list[Path]:
 def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl.DataFrame:
     """The truth a reference file holds (:func:`write_reference`); ``columns``: only those."""
     files = reference_files(path)
-    names = [c for c in pl.read_parquet_schema(files[0]) if c not in _FILE_COLUMNS]
+    names = [c for c in pl.read_parquet_schema(files[0]) if c not in NEIGHBOUR_COLUMNS]
     return pl.read_parquet(files, columns=names if columns is None else [c for c in names if c in columns])
 
 
@@ -197,7 +202,7 @@ class _Reference:
             return
         self._truth, self.path = None, Path(truth)
         self.files = reference_files(self.path)
-        schema = {k: v for k, v in pl.read_parquet_schema(self.files[0]).items() if k not in _FILE_COLUMNS}
+        schema = {k: v for k, v in pl.read_parquet_schema(self.files[0]).items() if k not in NEIGHBOUR_COLUMNS}
         self.empty = pl.DataFrame(schema=schema)
         ident = [c for c in ("truth_id", "icao24", "callsign", "mode_3a") if c in schema]
         self.identity = reference_identity(read_reference(self.path, ident))

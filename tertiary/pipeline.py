@@ -44,8 +44,8 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
-from tertiary.evaluation import (Evaluation, EvaluationConfig, association_metrics, evaluate_each, read_reference,
-                                 reference_files, write_reference, write_reference_pieces)
+from tertiary.evaluation import (NEIGHBOUR_COLUMNS, Evaluation, EvaluationConfig, association_metrics, evaluate_each,
+                                 read_reference, reference_files, write_reference, write_reference_pieces)
 from tertiary.filters import REGISTRY
 from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
 from tertiary.fusion import ALL_METHODS, METHODS, FusionConfig, fuse, measured_plots
@@ -1023,9 +1023,13 @@ def _table_columns(parts, name: str, columns: list[str] | None, empty: pl.DataFr
 @dataclass(frozen=True)
 class StreamedTable:
     """A streamed table handed to a sink window by window: ``parts()`` yields each window's
-    frame, in order (an on-disk run never holds the whole table)."""
+    frame, in order (an on-disk run never holds the whole table). ``files``: when given, the
+    table is also exactly these Parquet files' rows in order without the ``drop`` columns, which
+    a sink may read itself (:meth:`RunStore.write_files`)."""
 
     parts: Callable[[], Iterator[pl.DataFrame]]
+    files: tuple[Path, ...] = ()
+    drop: tuple[str, ...] = ()
 
 
 def _streamed(parts, name: str, empty: pl.DataFrame) -> "StreamedTable | pl.DataFrame":
@@ -1046,6 +1050,8 @@ def store_sink(store: RunStore, notes: list[str]) -> Sink:
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
         if isinstance(frame, StreamedTable):
+            if frame.files and store.write_files(name, frame.files, frame.drop):
+                return
             # the next window's part is read while this one is inserted
             store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
         elif frame.width:
@@ -1086,7 +1092,8 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
     sink("radars", ing.radars)
     sink("reports", _streamed(parts, "reports", empty_reports) if lean else reports)
-    sink("truth", StreamedTable(on_disk.pieces) if on_disk is not None and on_disk.rows else truth)
+    sink("truth", StreamedTable(on_disk.pieces, tuple(reference_files(on_disk.reference)), NEIGHBOUR_COLUMNS)
+         if on_disk is not None and on_disk.rows else truth)
     del truth                   # held by ``ing`` alone: the evaluation may release it
     sink("rejects", rejects)
     empty_aligned = align_stage.empty_aligned()

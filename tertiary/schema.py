@@ -1122,7 +1122,8 @@ def sort_tracks(clean: pl.DataFrame, kind: str) -> pl.DataFrame:
 
 
 def table_order(kind: str) -> tuple[str, ...]:
-    """The ``kind`` schema's row order (group columns, then time) that :func:`sort_tracks` sorts by."""
+    """The ``kind`` schema's row order (group columns, then time): what :func:`sort_tracks`
+    sorts by."""
     return tuple(_schema(kind).order)
 
 

@@ -330,47 +330,6 @@ def test_window_read_is_pushed_into_the_parquet_scan(tmp_path):
     assert got[INPUT_ROW].to_list() == list(range(600, 1200))      # global row numbers
 
 
-def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
-    """Finalize validates a long truth a few aircraft at a time (issue 16, memory): the clean
-    table (in input order), the rejects (their row_index and detail, the duplicate's first row
-    named by its input position) and the unsorted-time note are those of one call. The truth is
-    spoilt the ways validation sees: repeated (truth_id, time), a group out of time order, a NaN
-    state, a missing id and a time outside the reports' span."""
-    from types import SimpleNamespace
-    truth = terminal.truth
-    t_end = truth["time"].max()
-    bad = pl.concat([
-        truth,
-        truth[[5, 400]],                                                  # duplicates of earlier rows
-        truth[[7]].with_columns(pl.lit(float("nan")).alias("x_m")),
-        truth[[9]].with_columns(pl.lit(None, truth.schema["truth_id"]).alias("truth_id")),
-        truth[[11]].with_columns((pl.lit(t_end) + pl.duration(hours=5)).alias("time")),
-        truth[[13]].with_columns((pl.lit(t_end) + pl.duration(days=5)).alias("time")),   # far from the median
-    ])
-    ids = bad["truth_id"].drop_nulls().unique().sort()
-    first = bad.filter(pl.col("truth_id") == ids[3])
-    bad = pl.concat([bad.filter(pl.col("truth_id").ne_missing(ids[3])), first.reverse()])  # one aircraft unsorted
-    window = (truth["time"].min(), t_end, "the reports' span")
-    cfg = pipeline.PipelineConfig()
-    results = []
-    for rows in (10**9, 700):
-        monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", rows)
-        notes: list[str] = []
-        clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
-        results.append((clean, rej, notes))
-    (c1, r1, n1), (c2, r2, n2) = results
-    assert r1.height == 6 and any("out of order" in n for n in n1)     # not vacuous
-    assert r1.filter(pl.col("reason").str.contains("median")).height == 1
-    assert c1.height > 0 and bad.height // 700 >= 3                     # several parts
-    assert_frame_equal(c2, c1)
-    assert_frame_equal(r2.drop("detail"), r1.drop("detail"))
-    # detail: the same values; a float column is spelt as text in a batch holding a NaN
-    num = lambda v: float(v) if isinstance(v, str) and v.replace(".", "").replace("-", "").isdigit() else v  # noqa: E731
-    for a, b in zip(r1["detail"], r2["detail"]):
-        assert {k: num(v) for k, v in json.loads(a).items()} == {k: num(v) for k, v in json.loads(b).items()}
-    assert n2 == n1
-
-
 def _spoilt_truth(truth: pl.DataFrame, unsorted: bool) -> pl.DataFrame:
     """``truth`` with the faults validation sees: repeated (truth_id, time), a NaN state, a
     missing id, times outside the reports' span and far from the median; with ``unsorted`` one
@@ -391,6 +350,36 @@ def _spoilt_truth(truth: pl.DataFrame, unsorted: bool) -> pl.DataFrame:
     return pl.concat([bad.filter(pl.col("truth_id").ne_missing(ids[3])), first.reverse()])  # one aircraft unsorted
 
 
+def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
+    """Finalize validates a long truth a few aircraft at a time (issue 16, memory): the clean
+    table (in input order), the rejects (their row_index and detail, the duplicate's first row
+    named by its input position) and the unsorted-time note are those of one call. The truth is
+    spoilt the ways validation sees: repeated (truth_id, time), a group out of time order, a NaN
+    state, a missing id and a time outside the reports' span."""
+    from types import SimpleNamespace
+    truth = terminal.truth
+    bad = _spoilt_truth(truth, unsorted=True)
+    window = (truth["time"].min(), truth["time"].max(), "the reports' span")
+    cfg = pipeline.PipelineConfig()
+    results = []
+    for rows in (10**9, 700):
+        monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", rows)
+        notes: list[str] = []
+        clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
+        results.append((clean, rej, notes))
+    (c1, r1, n1), (c2, r2, n2) = results
+    assert r1.height == 6 and any("out of order" in n for n in n1)     # not vacuous
+    assert r1.filter(pl.col("reason").str.contains("median")).height == 1
+    assert c1.height > 0 and bad.height // 700 >= 3                     # several parts
+    assert_frame_equal(c2, c1)
+    assert_frame_equal(r2.drop("detail"), r1.drop("detail"))
+    # detail: the same values; a float column is spelt as text in a batch holding a NaN
+    num = lambda v: float(v) if isinstance(v, str) and v.replace(".", "").replace("-", "").isdigit() else v  # noqa: E731
+    for a, b in zip(r1["detail"], r2["detail"]):
+        assert {k: num(v) for k, v in json.loads(a).items()} == {k: num(v) for k, v in json.loads(b).items()}
+    assert n2 == n1
+
+
 @pytest.mark.parametrize("unsorted", [False, True])
 def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path, unsorted):
     """An on-disk run validates its truth from disk to disk (issue 18, memory): batches of input
@@ -405,9 +394,9 @@ def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path,
     from types import SimpleNamespace
     from tertiary.evaluation import read_reference, reference_files
     from tertiary.matching import neighbour_times
-    bad = _spoilt_truth(terminal.truth, unsorted).sort("time", maintain_order=True, nulls_last=True)
-    if unsorted:                                   # the reversed aircraft stays reversed
-        bad = _spoilt_truth(terminal.truth, unsorted)
+    bad = _spoilt_truth(terminal.truth, unsorted)
+    if not unsorted:                               # time-major: the aircraft interleaved
+        bad = bad.sort("time", maintain_order=True, nulls_last=True)
     bad.write_parquet(tmp_path / "truth.parquet")
     window = (terminal.truth["time"].min(), terminal.truth["time"].max(), "the reports' span")
     cfg = pipeline.PipelineConfig()

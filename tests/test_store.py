@@ -129,6 +129,28 @@ def test_write_replaces_and_append_appends(tmp_path: Path) -> None:
         assert store.tables() == ["a", "b"]
 
 
+def test_write_files_is_write_of_their_rows_in_order(tmp_path: Path) -> None:
+    """A table written from Parquet files by DuckDB itself (a long truth, issue 18) reads back
+    as :meth:`RunStore.write` of the files' rows in file order without the dropped columns, and
+    replaces the table; a table with a lean layout rule is refused (written part by part
+    instead). Fails if the files are read out of order, a dropped column is kept, or a type
+    (UTC time, unsigned and signed integers, nulls) differs from the frame path's."""
+    frame = sample_frame().drop("cov", "weights", "members").with_columns(pl.Series("__prev", [1, 2, 3]))
+    files = []
+    for k, part in enumerate([frame.slice(2, 1), frame.slice(0, 2)]):      # names order the rows
+        files.append(tmp_path / f"{k:02d}.parquet")
+        part.write_parquet(files[-1])
+    with RunStore.create(tmp_path / "run") as store:
+        store.write("truth", frame.head(1))
+        assert store.write_files("truth", files, ("__prev",))
+        assert not store.write_files("fused", files)                       # lean rules: not here
+        want = pl.concat([frame.slice(2, 1), frame.slice(0, 2)]).drop("__prev")
+        store.write("frame_path", want)
+        assert_frame_equal(store.read("truth"), want)
+        assert_frame_equal(store.read("truth"), store.read("frame_path"))
+        assert "fused" not in store.tables()
+
+
 def test_tables_hides_registered_views(run_dir: Path) -> None:
     with RunStore.open(run_dir) as store:
         store.con.register("scratch", pl.DataFrame({"x": [1]}).to_arrow())
