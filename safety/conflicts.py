@@ -199,13 +199,13 @@ Aerodrome zones (``ConflictConfig.aerodrome_zones``). Around a runway the aerodr
 separates departures from arrivals (runway separation; ICAO Doc 4444 chapter 7, aerodrome
 control service), not radar separation: a departure is cleared for take-off with the next
 arrival 2–4 NM out on final, 3 NM and less than 1 000 ft from it. STCA systems inhibit alerts in
-such volumes. A pair whose two tracks are both inside one :class:`AerodromeZone` (within its radius of the aerodrome and below
-its ceiling) is not predicted; a pair with one member inside and one outside is. The scoring
-follows it (:func:`safety.alerts.separation_intervals`): a truth segment pair whose four ends
-are inside one zone is not a loss of separation. On the national scenario's 08:00 hour 137 of
-the 180 losses of separation of the truth were such pairs (zones of 4 NM, 2 000 ft) — mostly a
-departure at lift-off and an arrival 1–6 km out below 300 m: losses only of a radar minimum
-nobody applies there.
+such volumes. A pair whose two tracks are both inside one :class:`AerodromeZone` (within its
+radius of the aerodrome and below its ceiling) is not predicted; a pair with one member inside
+and one outside is. The scoring follows it (:func:`safety.alerts.separation_intervals`): a
+truth segment pair whose four ends are inside one zone is not a loss of separation. On the
+national scenario's 08:00 hour 137 of the 180 losses of separation of the truth were such
+pairs (zones of 4 NM, 2 000 ft) — mostly a departure at lift-off and an arrival 1–6 km out below
+300 m: losses only of a radar minimum nobody applies there.
 
 Candidate search
 ----------------

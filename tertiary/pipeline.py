@@ -1050,7 +1050,8 @@ def store_sink(store: RunStore, notes: list[str]) -> Sink:
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
         if isinstance(frame, StreamedTable):
-            if frame.files and store.write_files(name, frame.files, frame.drop):
+            # the files as they are, when no column of theirs needs making storable
+            if frame.files and _storable_as_is(frame, name) and store.write_files(name, frame.files, frame.drop):
                 return
             # the next window's part is read while this one is inserted
             store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
@@ -1551,6 +1552,12 @@ def _association_metrics(associations: pl.DataFrame, stats, report_truth: pl.Dat
     if report_truth is None:
         return counts
     return pl.concat([association_metrics(associations, report_truth), counts], how="vertical_relaxed")
+
+
+def _storable_as_is(table: StreamedTable, name: str) -> bool:
+    """Whether :func:`_storable` leaves ``table``'s files' columns as they are."""
+    probe = pl.DataFrame(schema=pl.read_parquet_schema(table.files[0])).drop(table.drop, strict=False)
+    return _storable(probe, name, []).schema == probe.schema
 
 
 def _storable(frame: pl.DataFrame, name: str, notes: list[str]) -> pl.DataFrame:

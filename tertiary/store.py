@@ -668,15 +668,8 @@ class RunStore:
         table = f'"{validate_name(name)}"'
         paths = [str(Path(f)) for f in files]
         exclude = f" EXCLUDE ({', '.join(_q(c) for c in drop)})" if drop else ""
-        self._con.begin()
-        try:
-            for stmt in self._drop_statements(name):
-                self._con.execute(stmt)
-            self._con.execute(f"CREATE TABLE {table} AS SELECT *{exclude} FROM read_parquet(?)", [paths])
-        except BaseException:
-            self._con.rollback()
-            raise
-        self._con.commit()
+        self._transaction(*self._drop_statements(name),
+                          (f"CREATE TABLE {table} AS SELECT *{exclude} FROM read_parquet(?)", [paths]))
         return True
 
     def write_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> None:
@@ -809,11 +802,12 @@ class RunStore:
         finally:
             self._con.unregister(view)
 
-    def _transaction(self, *statements: str) -> None:
+    def _transaction(self, *statements: str | tuple[str, Params]) -> None:
+        """Run ``statements`` (SQL, or (SQL, parameters)) in one transaction."""
         self._con.begin()
         try:
             for stmt in statements:
-                self._con.execute(stmt)
+                self._con.execute(*((stmt,) if isinstance(stmt, str) else stmt))
         except BaseException:
             self._con.rollback()
             raise

@@ -424,6 +424,29 @@ def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path,
     assert not (tmp_path / "scratch" / "truth").exists()                   # the parts' files are gone
 
 
+def test_truth_files_go_to_the_database_as_the_frame_path_would(tmp_path):
+    """The store sink writes a streamed truth straight from its reference files, unless a column
+    needs making storable (a user's extra Duration column): then it goes part by part through
+    the same conversion as a frame, with its note. Fails if the files path skipped the
+    conversion (the column would be stored as an INTERVAL, not Int64 microseconds)."""
+    from tertiary.store import RunStore
+    rows = pl.DataFrame({"truth_id": [1, 2], "__prev": [None, None],
+                         "wait": pl.Series([1_500_000, 3], dtype=pl.Duration("us"))})
+    plain = rows.drop("wait")
+    for name, frame in (("with_duration", rows), ("plain", plain)):
+        frame.write_parquet(tmp_path / f"{name}.parquet")
+    notes: list[str] = []
+    with RunStore.create(tmp_path / "run") as store:
+        sink = pipeline.store_sink(store, notes)
+        for name, frame in (("with_duration", rows), ("plain", plain)):
+            sink(name, pipeline.StreamedTable(lambda f=frame: iter([f.drop("__prev")]),
+                                              (tmp_path / f"{name}.parquet",), ("__prev",)))
+        got = store.read("with_duration")
+        assert got.schema["wait"] == pl.Int64 and got["wait"].to_list() == [1_500_000, 3]
+        assert_frame_equal(store.read("plain"), plain.drop("__prev"))
+    assert any("Duration stored as Int64" in n for n in notes)
+
+
 def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) -> pl.DataFrame:
     us = t0_us + (pl.int_range(0, n, eager=True).cast(pl.Float64) * (span_s * US / max(n - 1, 1))).cast(pl.Int64)
     return pl.DataFrame({"time": us.cast(pl.Datetime("us")).dt.replace_time_zone("UTC")})
