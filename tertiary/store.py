@@ -36,6 +36,7 @@ any earlier connection to that path is still open.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -46,7 +47,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import duckdb
 import numpy as np
@@ -75,6 +76,7 @@ _HELD_LOCKS: set[str] = set()
 _HELD_GUARD = threading.Lock()
 
 Params = Sequence[Any] | Mapping[str, Any] | None
+_T = TypeVar("_T")
 
 
 # --------------------------------------------------------------------------- files
@@ -185,8 +187,11 @@ def _db_file(path: str | os.PathLike[str]) -> Path:
     return p if p.is_file() else p / DB_FILENAME
 
 
-#: the buffer pool of a connection that writes a run database
-WRITER_MEMORY_LIMIT = "64MB"
+#: the buffer pool of a connection that writes a run database (MiB) ...
+WRITER_MEMORY_MB = 64
+WRITER_MEMORY_LIMIT = f"{WRITER_MEMORY_MB}MB"
+#: ... and the most it is raised to for a table too wide for it (:meth:`RunStore._sized`)
+WRITER_MEMORY_MAX_MB = 4096
 
 
 def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPyConnection:
@@ -542,6 +547,8 @@ class RunStore:
         self.lean = lean
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
+        #: views an aborted transaction would not let go of: unregistered after its rollback
+        self._stale: list[str] = []
 
     # ---- constructors
 
@@ -637,6 +644,9 @@ class RunStore:
         """Create or replace table ``name`` with ``frame`` (one transaction); covariance
         columns are stored compactly (:func:`compact_covariances`) and the run's large tables
         in their lean layout behind a view of the same name (see "lean layout" above)."""
+        self._sized(lambda: self._write(name, frame))
+
+    def _write(self, name: str, frame: pl.DataFrame) -> None:
         frame = compact_covariances(frame)
         table = self._writable(name, frame)
         lay = _lean_layout(name, frame, self._con, self._reports_for(name)) if self.lean else None
@@ -660,7 +670,8 @@ class RunStore:
         without the ``drop`` columns, in one statement read by DuckDB itself: a long table
         written from disk is never held in memory and is written in one pass (a table appended a
         part at a time left 155 MB of freed blocks in a national hour's database). False, and
-        nothing written, for a table with a lean layout rule (:meth:`write_parts` then)."""
+        nothing written, for a table with a lean layout rule or one too wide for the writer's
+        buffer pool (:meth:`write_parts` then)."""
         if self.lean and any(name in rules for rules in (_NARROW, _SPLIT, _FROM_REPORTS, _SHARED)):
             return False
         if self.read_only:
@@ -668,8 +679,14 @@ class RunStore:
         table = f'"{validate_name(name)}"'
         paths = [str(Path(f)) for f in files]
         exclude = f" EXCLUDE ({', '.join(_q(c) for c in drop)})" if drop else ""
-        self._transaction(*self._drop_statements(name),
-                          (f"CREATE TABLE {table} AS SELECT *{exclude} FROM read_parquet(?)", [paths]))
+        try:
+            self._transaction(*self._drop_statements(name),
+                              (f"CREATE TABLE {table} AS SELECT *{exclude} FROM read_parquet(?)", [paths]))
+        except duckdb.OutOfMemoryException:
+            # DuckDB's scan builds a table's row groups in its buffer pool, a few MiB a column:
+            # the writer's WRITER_MEMORY_LIMIT holds about 20 columns, and a truth with 30 extra
+            # columns stopped the run here. Rolled back; the parts go through Arrow instead
+            return False
         return True
 
     def write_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> None:
@@ -680,7 +697,7 @@ class RunStore:
         layout rules are row-wise checks, so this is exactly when the whole table's layout is
         that one) the parts are appended to it in order, in one transaction: the same table as
         :meth:`write` of the whole. Otherwise the parts are concatenated and written whole."""
-        done = self._try_parts(name, parts)
+        done = self._sized(lambda: self._try_parts(name, parts))
         if not done:
             frames = [f for f in parts() if f.width]
             if frames:
@@ -716,13 +733,13 @@ class RunStore:
                 part = compact_covariances(part)
                 lp = _lean_layout(name, part, self._con, self._reports_for(name)) if lean else None
                 if (_signature(lp) if lean else part.schema) != sign:
-                    self._con.rollback()
+                    self._rollback()
                     return False
                 self._insert(phys, lp.phys if lean else part, create=False)
                 if shared is not None:
                     self._insert(shared, lp.shared, create=False)
         except BaseException:
-            self._con.rollback()
+            self._rollback()
             raise
         self._con.commit()
         return True
@@ -744,11 +761,35 @@ class RunStore:
             return
         frame = compact_covariances(frame)
         table = self._writable(name, frame)
-        with self._registered(frame) as src:
-            self._transaction(
-                f"CREATE TABLE IF NOT EXISTS {table} AS SELECT * FROM {src} WITH NO DATA",
-                f"INSERT INTO {table} BY NAME SELECT * FROM {src}",
-            )
+
+        def append() -> None:
+            with self._registered(frame) as src:
+                self._transaction(
+                    f"CREATE TABLE IF NOT EXISTS {table} AS SELECT * FROM {src} WITH NO DATA",
+                    f"INSERT INTO {table} BY NAME SELECT * FROM {src}",
+                )
+        self._sized(append)
+
+    def _sized(self, write: Callable[[], _T]) -> _T:
+        """``write()`` (one transaction), again with a buffer pool four times larger each time
+        DuckDB runs out of it, up to :data:`WRITER_MEMORY_MAX_MB`; the pool is then set back.
+        DuckDB builds a row group of 122 880 rows in the pool before writing it, about 1 MB a
+        float64 column: 64 MB holds about 60 columns (a user's truth or reports with many
+        extra columns stopped the run with OutOfMemoryException), and a larger pool for every
+        table would hold the blocks written in it (the run's peak)."""
+        mb = WRITER_MEMORY_MB
+        try:
+            while True:
+                try:
+                    return write()
+                except duckdb.OutOfMemoryException:
+                    if mb >= WRITER_MEMORY_MAX_MB:
+                        raise
+                    mb = min(4 * mb, WRITER_MEMORY_MAX_MB)
+                    self._con.execute(f"SET memory_limit = '{mb}MB'")
+        finally:
+            if mb != WRITER_MEMORY_MB:
+                self._con.execute(f"SET memory_limit = '{WRITER_MEMORY_LIMIT}'")
 
     def read(self, name: str) -> pl.DataFrame:
         """Table ``name`` as a polars DataFrame; KeyError if absent."""
@@ -799,8 +840,14 @@ class RunStore:
         self._con.register(view, frame.to_arrow())
         try:
             yield view
-        finally:
-            self._con.unregister(view)
+        except BaseException:
+            try:
+                self._con.unregister(view)
+            except duckdb.Error:
+                # an aborted transaction refuses it (and its error would hide the failure's own)
+                self._stale.append(view)
+            raise
+        self._con.unregister(view)
 
     def _transaction(self, *statements: str | tuple[str, Params]) -> None:
         """Run ``statements`` (SQL, or (SQL, parameters)) in one transaction."""
@@ -809,9 +856,16 @@ class RunStore:
             for stmt in statements:
                 self._con.execute(*((stmt,) if isinstance(stmt, str) else stmt))
         except BaseException:
-            self._con.rollback()
+            self._rollback()
             raise
         self._con.commit()
+
+    def _rollback(self) -> None:
+        """Roll the transaction back, then let go of the views it held."""
+        self._con.rollback()
+        while self._stale:
+            with contextlib.suppress(duckdb.Error):
+                self._con.unregister(self._stale.pop())
 
 
 def _copy_database(src: Path, dst: Path) -> None:

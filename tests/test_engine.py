@@ -447,6 +447,29 @@ def test_truth_files_go_to_the_database_as_the_frame_path_would(tmp_path):
     assert any("Duration stored as Int64" in n for n in notes)
 
 
+def test_a_wide_truth_too_large_for_the_writers_pool_goes_part_by_part(tmp_path):
+    """A streamed truth with many columns (a user's extra ones): DuckDB's scan of its files needs
+    more buffer pool than the run database's writer has (a 4-hour run with 30 extra truth
+    columns failed with OutOfMemoryException). The sink then writes it part by part, and the
+    table is whole and the database usable. Fails if the scan's error escapes."""
+    import numpy as np
+    from tertiary.store import RunStore
+    n, k = 100_000, 80
+    wide = pl.DataFrame({"truth_id": np.arange(n) // 1_000, "__prev": [None] * n,
+                         **{f"extra_{i}": np.arange(n, dtype=float) * (i + 1) for i in range(k)}})
+    halves = [wide.slice(0, n // 2), wide.slice(n // 2)]
+    files = []
+    for j, half in enumerate(halves):
+        files.append(tmp_path / f"{j}.parquet")
+        half.write_parquet(files[-1])
+    with RunStore.create(tmp_path / "run") as store:
+        sink = pipeline.store_sink(store, [])
+        sink("truth", pipeline.StreamedTable(lambda: (h.drop("__prev") for h in halves), tuple(files), ("__prev",)))
+        assert_frame_equal(store.read("truth"), wide.drop("__prev"))
+        sink("after", pl.DataFrame({"x": [1]}))                    # the connection still writes
+        assert store.read("after")["x"].to_list() == [1]
+
+
 def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) -> pl.DataFrame:
     us = t0_us + (pl.int_range(0, n, eager=True).cast(pl.Float64) * (span_s * US / max(n - 1, 1))).cast(pl.Int64)
     return pl.DataFrame({"time": us.cast(pl.Datetime("us")).dt.replace_time_zone("UTC")})
