@@ -446,9 +446,8 @@ def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_t
     if "report_id" not in f.columns or "report_id" not in have or not cols:
         return
     rt = _q(reports_table)
-    view = f"_tertiary_chk_{secrets.token_hex(6)}"
-    con.register(view, f.select("report_id", *cols, *(["epoch"] if "epoch" in f.columns else []),
-                                *(["age_s"] if "age_s" in f.columns else [])).to_arrow())
+    probe = f.select("report_id", *cols, *(["epoch"] if "epoch" in f.columns else []),
+                     *(["age_s"] if "age_s" in f.columns else []))
     # one pass for every column, over the reports this part names (a semi-join, not a report_id
     # range: a window's ids need not be contiguous — the national scenario's span nearly the
     # whole table, and a range made each part re-read it: 32 s of its hour, issue 18)
@@ -459,12 +458,10 @@ def _drop_report_columns(lay: _Layout, con: duckdb.DuckDBPyConnection, reports_t
                      "(abs(a.age_s - date_diff('microsecond', r.time, a.epoch) / 1e6) <= 1e-9 "
                      "OR (a.age_s IS NULL AND r.time IS NULL)))")
     read = ", ".join(_q(c) for c in dict.fromkeys(["report_id", *cols, *(["time"] if age_test else [])]))
-    try:
+    with _arrow_view(con, probe, "chk") as view:
         got = con.execute(f"SELECT count(*), {', '.join(tests)} FROM {view} a LEFT JOIN "
                           f"(SELECT {read} FROM {rt} WHERE report_id IN (SELECT report_id FROM {view})) r "
                           "USING (report_id)").fetchall()[0] if f.height else [0] * (len(tests) + 1)
-    finally:
-        con.unregister(view)
     # the view's join is one to one for these rows when the left join kept their number: no
     # report_id of the part names two reports
     if got[0] != f.height:
@@ -511,12 +508,25 @@ def _factor_shared(lay: _Layout, keys: tuple[str, ...], by: str, own: str, candi
 
 def _column_types(con: duckdb.DuckDBPyConnection, frame: pl.DataFrame) -> dict[str, str]:
     """DuckDB's type name for each column of ``frame`` (as a plain table would store it)."""
-    view = f"_tertiary_typ_{secrets.token_hex(6)}"
-    con.register(view, frame.head(0).to_arrow())
-    try:
+    with _arrow_view(con, frame.head(0), "typ") as view:
         return {r[0]: r[1] for r in con.execute(f"DESCRIBE SELECT * FROM {view}").fetchall()}
-    finally:
-        con.unregister(view)
+
+
+@contextmanager
+def _arrow_view(con: duckdb.DuckDBPyConnection, frame: pl.DataFrame, kind: str) -> Iterator[str]:
+    """``frame`` registered (as Arrow) under a unique view name for the block. When the block
+    fails inside a transaction DuckDB refuses the unregistration, and its error ("Current
+    transaction is aborted") hid the failure's own: it is not raised, and the rollback undoes
+    the registration made inside the transaction."""
+    view = f"_tertiary_{kind}_{secrets.token_hex(6)}"
+    con.register(view, frame.to_arrow())
+    try:
+        yield view
+    except BaseException:
+        with contextlib.suppress(duckdb.Error):
+            con.unregister(view)
+        raise
+    con.unregister(view)
 
 
 def _signature(lay: _Layout) -> tuple:
@@ -547,8 +557,6 @@ class RunStore:
         self.lean = lean
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
-        #: views an aborted transaction would not let go of: unregistered after its rollback
-        self._stale: list[str] = []
 
     # ---- constructors
 
@@ -733,13 +741,13 @@ class RunStore:
                 part = compact_covariances(part)
                 lp = _lean_layout(name, part, self._con, self._reports_for(name)) if lean else None
                 if (_signature(lp) if lean else part.schema) != sign:
-                    self._rollback()
+                    self._con.rollback()
                     return False
                 self._insert(phys, lp.phys if lean else part, create=False)
                 if shared is not None:
                     self._insert(shared, lp.shared, create=False)
         except BaseException:
-            self._rollback()
+            self._con.rollback()
             raise
         self._con.commit()
         return True
@@ -833,21 +841,9 @@ class RunStore:
         _check_frame(frame)
         return f'"{validate_name(name)}"'
 
-    @contextmanager
-    def _registered(self, frame: pl.DataFrame) -> Iterator[str]:
-        """Register ``frame`` (as Arrow) under a unique temp view name."""
-        view = f"_tertiary_src_{secrets.token_hex(6)}"
-        self._con.register(view, frame.to_arrow())
-        try:
-            yield view
-        except BaseException:
-            try:
-                self._con.unregister(view)
-            except duckdb.Error:
-                # an aborted transaction refuses it (and its error would hide the failure's own)
-                self._stale.append(view)
-            raise
-        self._con.unregister(view)
+    def _registered(self, frame: pl.DataFrame) -> contextlib.AbstractContextManager[str]:
+        """Register ``frame`` (as Arrow) under a unique temp view name (:func:`_arrow_view`)."""
+        return _arrow_view(self._con, frame, "src")
 
     def _transaction(self, *statements: str | tuple[str, Params]) -> None:
         """Run ``statements`` (SQL, or (SQL, parameters)) in one transaction."""
@@ -856,16 +852,10 @@ class RunStore:
             for stmt in statements:
                 self._con.execute(*((stmt,) if isinstance(stmt, str) else stmt))
         except BaseException:
-            self._rollback()
+            self._con.rollback()
             raise
         self._con.commit()
 
-    def _rollback(self) -> None:
-        """Roll the transaction back, then let go of the views it held."""
-        self._con.rollback()
-        while self._stale:
-            with contextlib.suppress(duckdb.Error):
-                self._con.unregister(self._stale.pop())
 
 
 def _copy_database(src: Path, dst: Path) -> None:

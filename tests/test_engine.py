@@ -450,8 +450,10 @@ def test_truth_files_go_to_the_database_as_the_frame_path_would(tmp_path):
 def test_a_wide_truth_too_large_for_the_writers_pool_goes_part_by_part(tmp_path):
     """A streamed truth with many columns (a user's extra ones): DuckDB's scan of its files needs
     more buffer pool than the run database's writer has (a 4-hour run with 30 extra truth
-    columns failed with OutOfMemoryException). The sink then writes it part by part, and the
-    table is whole and the database usable. Fails if the scan's error escapes."""
+    columns failed with OutOfMemoryException). The sink then writes it part by part (whose
+    Arrow inserts run out of the pool too, and are retried with a larger one), and the table is
+    whole, the database usable and no scratch view left. Fails if the scan's error escapes, or
+    the inserts' (hidden before behind "Current transaction is aborted")."""
     import numpy as np
     from tertiary.store import RunStore
     n, k = 100_000, 80
@@ -468,6 +470,8 @@ def test_a_wide_truth_too_large_for_the_writers_pool_goes_part_by_part(tmp_path)
         assert_frame_equal(store.read("truth"), wide.drop("__prev"))
         sink("after", pl.DataFrame({"x": [1]}))                    # the connection still writes
         assert store.read("after")["x"].to_list() == [1]
+        left = store.con.sql("SELECT count(*) FROM duckdb_views() WHERE starts_with(view_name, '_tertiary_')")
+        assert left.fetchall()[0][0] == 0                         # no scratch view held after the retry
 
 
 def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) -> pl.DataFrame:

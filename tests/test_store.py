@@ -168,7 +168,7 @@ def test_a_table_too_wide_for_the_writers_pool_is_written_whole(tmp_path: Path) 
     with RunStore.create(tmp_path / "run") as store:
         before = pool(store)
         store.write("whole", wide)
-        store.write_parts("parts", lambda: iter([wide.slice(0, 70_000), wide.slice(70_000)]))
+        store.write_parts("parts", lambda: iter([wide.slice(0, n // 2), wide.slice(n // 2)]))
         store.append("appended", wide)
         for name in ("whole", "parts", "appended"):
             assert_frame_equal(store.read(name), wide)
