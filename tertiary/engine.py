@@ -331,12 +331,20 @@ class PartStore:
 
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
         """Carried state, then the manifest: the window is complete."""
+        self.commit(w, self.state_bytes(w, state), **info)
+
+    @staticmethod
+    def state_bytes(w: Window, state: Any) -> bytes:
+        """The carried state after window ``w`` as :meth:`checkpoint` stores it."""
+        return pickle.dumps({"windows_done": w.index + 1, "state": state}, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def commit(self, w: Window, state: bytes, **info: Any) -> None:
+        """:meth:`checkpoint` of a state already pickled (:meth:`state_bytes`)."""
         from tertiary.store import atomic_path
-        done = w.index + 1
         with atomic_path(self.dir / STATE_FILE) as tmp:
             with open(tmp, "wb") as fh:
-                pickle.dump({"windows_done": done, "state": state}, fh, protocol=pickle.HIGHEST_PROTOCOL)
-        self.manifest.update(windows_done=done, **info)
+                fh.write(state)
+        self.manifest.update(windows_done=w.index + 1, **info)
         self._commit()
 
     def finish(self, status: str, **info: Any) -> None:

@@ -25,6 +25,7 @@ import time
 import warnings
 import weakref
 from collections.abc import Callable, Collection, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -887,16 +888,59 @@ def _stream(ds: Dataset, cfg: PipelineConfig, clock: _Clock, notes: list[str], w
     ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start,
                       source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
-    for w in ws:
-        clock.stage("read_window", say=False)     # timed apart: not the last stage's time
-        raw = source.rows(w)
-        out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
-        clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
-        parts.write(w, out)
-        parts.checkpoint(w, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
-        if window_s is not None:
-            meter.window(w, max(w.t0_us, source.first_us), min(w.t1_us, source.last_us + 1), raw.height)
+    store = _WindowStore(parts)
+    try:
+        for w in ws:
+            clock.stage("read_window", say=False)     # timed apart: not the last stage's time
+            raw = source.rows(w)
+            out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
+            clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
+            store.put(w, out, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
+            if window_s is not None:
+                meter.window(w, max(w.t0_us, source.first_us), min(w.t1_us, source.last_us + 1), raw.height)
+        store.join()
+    finally:
+        store.close()
     return ctx, st, source
+
+
+class _WindowStore:
+    """A window's parts, carried state and manifest written to a run directory on a thread of
+    their own while the next window computes (issue 18, speed: the windows kept 1.2 of the 2
+    cores busy). One window in flight: :meth:`put` waits for the previous one first, so the
+    manifest names a window complete only once its parts and state are on disk, in window
+    order, as before. The state is pickled by the caller before the next window runs (a stage
+    may reuse its state's arrays). Other part stores (in memory, the Dask engine's) are written
+    at once."""
+
+    def __init__(self, parts) -> None:
+        self.parts = parts
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-store") if isinstance(parts, PartStore) else None
+        self._pending: Future | None = None
+
+    def put(self, w: Window, out: dict[str, pl.DataFrame], st: StreamState, **info: Any) -> None:
+        if self._pool is None:
+            self.parts.write(w, out)
+            self.parts.checkpoint(w, st, **info)
+            return
+        state = PartStore.state_bytes(w, st)
+        self.join()
+        self._pending = self._pool.submit(self._store, w, out, state, info)
+
+    def _store(self, w: Window, out: dict[str, pl.DataFrame], state: bytes, info: dict) -> None:
+        self.parts.write(w, out)
+        self.parts.commit(w, state, **info)
+
+    def join(self) -> None:
+        """Wait for the window in flight; its failure raised here."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def close(self) -> None:
+        """Wait for the writes in flight (a failing run's stored windows are read back next)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
 
 
 def _span_text(w: Window, source: ReportSource) -> str:

@@ -241,6 +241,48 @@ def test_killed_run_resumes_to_identical_tables(dataset_dir, tmp_path):
         _same(a[name], b[name], name if name in KEYS else "")
 
 
+def test_windows_are_stored_behind_the_run_in_order_with_the_state_they_were_given(tmp_path):
+    """The window store writes a window's parts and state while the next window computes: the
+    manifest names a window complete only after its parts, windows in order, the state stored
+    is the one handed over (the next window may change the arrays it holds), and a failed
+    write stops the run. Fails if the state were pickled on the writer's thread (window 0's
+    array would be stored as the caller changed it), or a write's error were lost."""
+    import pickle
+
+    import numpy as np
+
+    from tertiary.engine import STATE_FILE, PartStore
+    events: list[tuple[str, int]] = []
+
+    class Recorded(PartStore):
+        def write(self, w, outputs):
+            time.sleep(0.05)                       # the caller goes on meanwhile
+            if w.index == 2:
+                raise OSError("disk full")
+            events.append(("parts", w.index))
+            super().write(w, outputs)
+
+        def commit(self, w, state, **info):
+            events.append(("manifest", w.index))
+            super().commit(w, state, **info)
+    parts = Recorded.start(tmp_path, {"dataset": "x"})
+    store = pipeline._WindowStore(parts)
+    held = {"x": np.zeros(3)}
+    store.put(Window(0, 0, 10), {"t": pl.DataFrame({"a": [1]})}, held)
+    held["x"][:] = 7.0                             # the next window changes the state's arrays
+    store.join()
+    with open(tmp_path / STATE_FILE, "rb") as fh:
+        saved = pickle.load(fh)
+    assert saved["windows_done"] == 1 and saved["state"]["x"].tolist() == [0.0, 0.0, 0.0]
+    store.put(Window(1, 10, 20), {"t": pl.DataFrame({"a": [2]})}, held)
+    store.put(Window(2, 20, 30), {"t": pl.DataFrame({"a": [3]})}, held)
+    with pytest.raises(OSError, match="disk full"):
+        store.join()
+    store.close()
+    assert events == [("parts", 0), ("manifest", 0), ("parts", 1), ("manifest", 1)]
+    assert json.loads((tmp_path / "manifest.json").read_text())["windows_done"] == 2
+
+
 def test_resume_refuses_other_options(dataset_dir, tmp_path):
     run_dir = tmp_path / "r"
     (run_dir).mkdir()
