@@ -781,10 +781,10 @@ class RunStore:
     def _sized(self, write: Callable[[], _T]) -> _T:
         """``write()`` (one transaction), again with a buffer pool four times larger each time
         DuckDB runs out of it, up to :data:`WRITER_MEMORY_MAX_MB`; the pool is then set back.
-        DuckDB builds a row group of 122 880 rows in the pool before writing it, about 1 MB a
-        float64 column: 64 MB holds about 60 columns (a user's truth or reports with many
-        extra columns stopped the run with OutOfMemoryException), and a larger pool for every
-        table would hold the blocks written in it (the run's peak)."""
+        DuckDB builds a row group of 122 880 rows in the pool before writing it: 64 MB held 80
+        float64 columns but not 100 (reports with 70 extra columns stopped a run with
+        OutOfMemoryException), and a larger pool for every table would hold the blocks written
+        in it (the run's peak)."""
         mb = WRITER_MEMORY_MB
         try:
             while True:
