@@ -857,7 +857,6 @@ class RunStore:
         self._con.commit()
 
 
-
 def _copy_database(src: Path, dst: Path) -> None:
     """Copy a closed database file, plus any write-ahead log left beside it."""
     shutil.copyfile(src, dst)
