@@ -389,32 +389,44 @@ def consistency_metrics(rows: pl.DataFrame, column: str, dof: int, prefix: str, 
     * ``<prefix>_n_eff``: that effective sample size.
     """
     spec = TABLES["metrics"].required
-    # the columns read, then the rows: the scored picture is never copied whole
+    # the columns read, then the rows, sorted once along each (run, obj) series: the scored
+    # picture is never copied whole, and a segment's rows are a filter of these (memory of the
+    # stage on a long run, issue 16)
     r = rows.select("method", "run", "epoch", obj, "seg_class", column).filter(
-        pl.col(column).is_not_null() & pl.col(column).is_finite())
+        pl.col(column).is_not_null() & pl.col(column).is_finite()).sort("method", "run", obj, "epoch")
     if r.is_empty():
         return pl.DataFrame(schema=spec)
-    r = pl.concat([r.with_columns(pl.lit("all").alias("eval_segment")),
-                   r.filter(pl.col("seg_class").is_not_null()).with_columns(pl.col("seg_class").alias("eval_segment"))])
-    per = r.group_by("method", "eval_segment", "epoch").agg(pl.col(column).mean().alias("__m"), pl.len().alias("__n"))
-    lo, hi = chi2_band(per["__n"].to_numpy(), dof, band)
-    per = per.with_columns(pl.Series("__in", (per["__m"].to_numpy() >= lo) & (per["__m"].to_numpy() <= hi)))
-    frac = per.group_by("method", "eval_segment").agg(pl.col("__in").mean().alias("in_band"))
     out = []
-    for (method, seg), g in r.sort("method", "eval_segment", "run", obj, "epoch").group_by(
-            ["method", "eval_segment"], maintain_order=True):
-        keys = g.select(pl.struct("run", obj).rank("dense").alias("k"))["k"].to_numpy()
-        x = g[column].to_numpy()
-        tau = integrated_autocorrelation(x, keys)
-        n_eff = len(x) / tau
-        b_lo, b_hi = chi2_band(n_eff, dof, band)
-        f = frac.filter((pl.col("method") == method) & (pl.col("eval_segment") == seg))["in_band"].item()
-        nr = g["run"].n_unique()
-        for metric, value in (("mean", float(x.mean())), ("in_band_frac", float(f)), ("band_lo", b_lo),
-                              ("band_hi", b_hi), ("n_eff", n_eff)):
-            out.append({"stage": stage, "method": method, "metric": f"{prefix}_{metric}", "segment": seg,
-                        "value": value, "n_runs": nr})
+    for method in sorted(r["method"].unique().to_list()):
+        m = r.filter(pl.col("method") == method) if r["method"].n_unique() > 1 else r
+        segments = sorted(["all", *m["seg_class"].drop_nulls().unique().to_list()])
+        for seg in segments:
+            g = m if seg == "all" else m.filter(pl.col("seg_class") == seg)
+            out += _consistency_rows(g, column, dof, prefix, stage, obj, band, method, seg)
+            del g
     return pl.DataFrame(out, schema=spec)
+
+
+def _consistency_rows(g: pl.DataFrame, column: str, dof: int, prefix: str, stage: str, obj: str, band: float,
+                      method: str, seg: str) -> list[dict]:
+    """The five :func:`consistency_metrics` rows of one picture's segment ``g`` (sorted by run,
+    ``obj``, epoch)."""
+    per = g.group_by("epoch").agg(pl.col(column).mean().alias("__m"), pl.len().alias("__n"))
+    lo, hi = chi2_band(per["__n"].to_numpy(), dof, band)
+    mean_k = per["__m"].to_numpy()
+    in_band = float(np.mean((mean_k >= lo) & (mean_k <= hi)))
+    # one code per (run, obj) series: the rows are sorted along the series
+    run, who = g["run"].to_numpy(), g[obj].to_numpy()
+    keys = np.cumsum(np.r_[True, (run[1:] != run[:-1]) | (who[1:] != who[:-1])])
+    x = g[column].to_numpy()
+    tau = integrated_autocorrelation(x, keys)
+    n_eff = len(x) / tau
+    b_lo, b_hi = chi2_band(n_eff, dof, band)
+    nr = g["run"].n_unique()
+    return [{"stage": stage, "method": method, "metric": f"{prefix}_{metric}", "segment": seg, "value": value,
+             "n_runs": nr}
+            for metric, value in (("mean", float(x.mean())), ("in_band_frac", in_band), ("band_lo", b_lo),
+                                  ("band_hi", b_hi), ("n_eff", n_eff))]
 
 
 #: consistency statistics of a picture that carries a ``nis`` column (its innovations): the

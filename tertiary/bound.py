@@ -279,20 +279,17 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
 
 def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
                   cfg: BoundConfig = BoundConfig(), max_elevation: dict[str, float] | None = None,
-                  t0_us: int | None = None) -> pl.DataFrame:
+                  t0_us: int | None = None, origins: dict[int, float] | None = None) -> pl.DataFrame:
     """Every (truth_id, radar_id, time) at which a radar's beam covers an aircraft, with the
     expected measurement information as its inverse ``r_eq`` (flattened 3×3, m²) — the
-    events of the bound (module docstring). ``max_elevation``: per radar name (the scenario's)."""
+    events of the bound (module docstring). ``max_elevation``: per radar name (the scenario's);
+    ``origins``: :func:`scan_origins` of ``t0_us``, when known (else read from ``reports``)."""
     t0 = int(truth["time"].cast(TIME).dt.epoch("us").min()) if t0_us is None else t0_us
     tr = _Truth.of(truth, t0)
     parts = []
-    rep = reports.select("radar_id", pl.col("time").cast(TIME).dt.epoch("us").alias("us"), "azimuth_deg")
+    origins = scan_origins(radars, reports, t0) if origins is None else origins
     for row in radars.iter_rows(named=True):          # a handful of radars
-        mine = rep.filter(pl.col("radar_id") == row["radar_id"])
-        rotating = (row.get("timing") or "rotating") == "rotating"
-        off = float(row.get("time_offset_s") or 0.0)
-        s0 = _scan_origin((mine["us"].to_numpy() - t0) / US - off, mine["azimuth_deg"].to_numpy(),
-                          float(row["scan_period_s"]), rotating)
+        s0 = origins.get(row["radar_id"])
         if s0 is None:
             continue
         max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
@@ -303,6 +300,22 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     schema = {"truth_id": pl.Int64, "radar_id": pl.UInt32, "t_s": pl.Float64, "r_eq": pl.Array(pl.Float64, 9)}
     out = pl.concat(parts) if parts else pl.DataFrame(schema=schema)
     return out.with_columns((pl.lit(t0) + (pl.col("t_s") * US).round().cast(pl.Int64)).cast(TIME).alias("time"))
+
+
+def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dict[int, float]:
+    """radar_id → s_0 (seconds from ``t0_us``, mod T) recovered from each radar's reports
+    (:func:`_scan_origin`); a radar without reports has none."""
+    rep = reports.select("radar_id", pl.col("time").cast(TIME).dt.epoch("us").alias("us"), "azimuth_deg")
+    out = {}
+    for row in radars.iter_rows(named=True):
+        mine = rep.filter(pl.col("radar_id") == row["radar_id"])
+        rotating = (row.get("timing") or "rotating") == "rotating"
+        off = float(row.get("time_offset_s") or 0.0)
+        s0 = _scan_origin((mine["us"].to_numpy() - t0_us) / US - off, mine["azimuth_deg"].to_numpy(),
+                          float(row["scan_period_s"]), rotating)
+        if s0 is not None:
+            out[row["radar_id"]] = s0
+    return out
 
 
 def _singer9(cfg: BoundConfig):
@@ -363,6 +376,8 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
 
 #: rows (events and requested epochs) of the aircraft whose bounds are computed at a time
 BOUND_BLOCK_ROWS = 262_144
+#: aircraft whose illuminations are made and bounds pooled at a time (:func:`bound_stage`)
+BOUND_AIRCRAFT = 256
 
 
 def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int, int]]:
@@ -388,18 +403,36 @@ def bound_metrics(scored: pl.DataFrame, accuracy: pl.DataFrame, bound: pl.DataFr
     and the signed gap to the picture's accuracy row (``accuracy``: metrics rows of stages
     fusion/tracker). ``scored``: method, run, epoch, truth_id, seg_class; ``bound``: from
     :func:`pcrb_at`."""
-    spec = TABLES["metrics"].required
-    if scored.is_empty() or bound.is_empty():
-        return pl.DataFrame(schema=spec)
-    s = scored.select("method", "run", pl.col("epoch").cast(TIME), pl.col("truth_id").cast(pl.Int64), "seg_class")
-    s = s.join(bound, on=["truth_id", "epoch"], how="inner")
+    return _bound_rows(_bound_sums(scored, bound), accuracy)
+
+
+def _bound_sums(scored: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:
+    """Per (method, segment, epoch, run): the sums of each bound column over the scored samples
+    and their count — what :func:`bound_metrics` pools, summable over blocks of aircraft."""
     cols = [c for c, _ in BOUND_METRICS.values()]
-    aggs = [*[pl.col(c).mean() for c in cols], pl.col("run").n_unique().alias("__runs")]
+    if scored.is_empty() or bound.is_empty():
+        return pl.DataFrame(schema={"method": pl.String, "segment": pl.String, "epoch": TIME, "run": pl.UInt32,
+                                    **{c: pl.Float64 for c in cols}, "__n": pl.UInt32})
+    s = scored.select("method", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                      pl.col("truth_id").cast(pl.Int64), "seg_class")
+    s = s.join(bound, on=["truth_id", "epoch"], how="inner")
+    aggs = [*[pl.col(c).sum() for c in cols], pl.len().cast(pl.UInt32).alias("__n")]
     # segment "all" and each sample's straight/turn class grouped in place: the samples of every
     # picture are not copied once per segment (the stage's peak on a long run, issue 16)
-    per = pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch").agg(*aggs),
-                     s.group_by("method", pl.col("seg_class").alias("segment"), "epoch").agg(*aggs)
-                     .filter(pl.col("segment").is_not_null())])
+    return pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch", "run").agg(*aggs),
+                      s.group_by("method", pl.col("seg_class").alias("segment"), "epoch", "run").agg(*aggs)
+                      .filter(pl.col("segment").is_not_null())])
+
+
+def _bound_rows(sums: pl.DataFrame, accuracy: pl.DataFrame) -> pl.DataFrame:
+    """:func:`bound_metrics` rows from the :func:`_bound_sums` of every sample."""
+    spec = TABLES["metrics"].required
+    if sums.is_empty():
+        return pl.DataFrame(schema=spec)
+    cols = [c for c, _ in BOUND_METRICS.values()]
+    per = sums.group_by("method", "segment", "epoch").agg(*[(pl.col(c).sum() / pl.col("__n").sum()).alias(c)
+                                                            for c in cols],
+                                                          pl.col("run").n_unique().alias("__runs"))
     pooled = per.group_by("method", "segment").agg(*[pl.col(c).mean().sqrt() for c in cols],
                                                    pl.col("__runs").max().alias("n_runs"))
     long = pooled.unpivot(index=["method", "segment", "n_runs"], on=cols, variable_name="col", value_name="value")
@@ -447,5 +480,17 @@ def bound_stage(ds, truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataF
     scen = getattr(ds, "scenario", None)
     cfg = BoundConfig.from_scenario(scen)
     max_el = {r.name: float(r.max_elevation_deg) for r in getattr(scen, "radars", ()) or ()}
-    events = illuminations(truth, radars, reports, ds.origin, cfg, max_el)
-    return bound_metrics(scored, accuracy, pcrb_at(scored, events, cfg))
+    t0 = int(truth["time"].cast(TIME).dt.epoch("us").min())
+    origins = scan_origins(radars, reports, t0)
+    ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
+    sums = []
+    # a block of aircraft at a time (each one's bound is its own recursion): the illuminations
+    # and bounds of the whole recording are never held (the stage's peak on a long run, issue 16)
+    for lo in range(0, len(ids), BOUND_AIRCRAFT):
+        block = ids[lo:lo + BOUND_AIRCRAFT].tolist()
+        mine = scored.filter(pl.col("truth_id").cast(pl.Int64).is_in(block))
+        events = illuminations(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(block)), radars, reports,
+                               ds.origin, cfg, max_el, t0_us=t0, origins=origins)
+        sums.append(_bound_sums(mine, pcrb_at(mine, events, cfg)))
+        del mine, events
+    return _bound_rows(pl.concat(sums) if sums else _bound_sums(scored.clear(), pl.DataFrame()), accuracy)

@@ -669,7 +669,8 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         for k, v in i["counts"].items():
             counts[k] = counts.get(k, 0) + v
         notes.extend(n for n in i["notes"] if n not in notes)
-    st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts)
+    # the association metrics are scored from the relabelled rows (a partition's ids are its own)
+    st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts, scores=None)
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
         sink = pipeline.store_sink(store, notes)

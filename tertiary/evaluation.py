@@ -492,18 +492,62 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
       system targets at that epoch (one aircraft shown as several targets);
     * ``merged_targets``: number of (run, epoch, target_id) whose reports come from two or
       more aircraft (several aircraft shown as one target).
+
+    Computed as one :func:`score_associations` step and :func:`association_score`: the same
+    rows as a run scored window by window.
     """
+    return association_score(score_associations(AssociationScore(), associations, report_truth))
+
+
+_TARGET = ["run", "target_id"]
+
+
+def _empty_key(schema: dict[str, pl.DataType]) -> pl.DataFrame:
+    return pl.DataFrame(schema=schema)
+
+
+@dataclass
+class AssociationScore:
+    """What :func:`association_metrics` needs of the association rows seen so far, carried
+    across windows (issue 16: evaluation accumulators, a step function's explicit state). A
+    window holds whole epochs, so the per-epoch counts add up; what spans epochs is carried
+    per target or aircraft: each target's majority aircraft at its last epoch (swaps), whether
+    it ever had a real report (false targets), every (aircraft, target) majority pair and the
+    aircraft with a labelled report (targets per aircraft). Its size grows with the targets and
+    aircraft of the run, not with its reports."""
+
+    rows: int = 0
+    correct: int = 0
+    real: int = 0
+    swaps: int = 0
+    split: int = 0
+    merged: int = 0
+    runs: pl.DataFrame = field(default_factory=lambda: _empty_key({"run": pl.UInt32}))
+    last: pl.DataFrame = field(default_factory=lambda: _empty_key(
+        {"run": pl.UInt32, "target_id": pl.UInt64, "target_truth": pl.Int64}))
+    seen: pl.DataFrame = field(default_factory=lambda: _empty_key(
+        {"run": pl.UInt32, "target_id": pl.UInt64, "__real": pl.Boolean}))
+    truths: pl.DataFrame = field(default_factory=lambda: _empty_key({"run": pl.UInt32, "truth_id": pl.Int64}))
+    pairs: pl.DataFrame = field(default_factory=lambda: _empty_key(
+        {"run": pl.UInt32, "truth_id": pl.Int64, "target_id": pl.UInt64}))
+
+
+def _keys(frame: pl.DataFrame, schema: pl.DataFrame) -> pl.DataFrame:
+    """``frame``'s key columns in the state's types (a state is concatenated window by window)."""
+    return frame.select(pl.col(c).cast(t) for c, t in schema.schema.items())
+
+
+def score_associations(state: AssociationScore, associations: pl.DataFrame, report_truth: pl.DataFrame
+                       ) -> AssociationScore:
+    """``state`` after the association rows of whole epochs (a window's) are scored;
+    ``report_truth``: (run, report_id, truth_id) of at least their reports."""
     if associations.is_empty():
-        return pl.DataFrame(schema=TABLES["metrics"].required)
+        return state
     # the columns read, then the join: a long run's associations are not copied whole through it
     keep = [c for c in ("run", "epoch", "target_id", "report_id") if c in associations.columns]
     labelled = _report_truth(associations.select(keep).with_columns(pl.col("epoch").cast(TIME)), report_truth)
     maj = _majority(labelled, _KEY).rename({"truth_id": "target_truth"})
-    n_runs = associations["run"].n_unique()
-    false_targets = (labelled.group_by(["run", "target_id"]).agg(pl.col("truth_id").is_null().all().alias("clutter"))
-                     ["clutter"].sum())
-    # the labelled rows are released once their real ones are joined: a long run's association
-    # rows are not held three times over (memory, issue 16)
+    seen = labelled.group_by(_TARGET).agg(pl.col("truth_id").is_not_null().any().alias("__real"))
     real = labelled.filter(pl.col("truth_id").is_not_null()).join(maj, on=_KEY, how="left")
     del labelled
     # the aircraft's principal target at the epoch: most of its reports (ties: lowest id)
@@ -512,35 +556,58 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
                  .unique(subset=["run", "epoch", "truth_id"], keep="first", maintain_order=True)
                  .select("run", "epoch", "truth_id", pl.col("target_id").alias("__principal")))
     real = real.join(principal, on=["run", "epoch", "truth_id"], how="left")
-    correct = (real.select(((pl.col("truth_id") == pl.col("target_truth"))
-                            & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).mean()).item()
-               if real.height else float("nan"))
+    correct = int(real.select(((pl.col("truth_id") == pl.col("target_truth"))
+                               & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).sum()).item())
+    # a target's majority aircraft continues from its last epoch of the windows before
+    before = _keys(state.last, state.last).with_columns(pl.lit(None, TIME).alias("epoch"),
+                                                        pl.lit(True).alias("__old"))
+    seq = (pl.concat([before.select("run", "target_id", "epoch", "target_truth", "__old"),
+                      _keys(maj, state.last).with_columns(maj["epoch"], pl.lit(False).alias("__old"))
+                      .select("run", "target_id", "epoch", "target_truth", "__old")])
+           .sort(["run", "target_id", "epoch"], nulls_last=False))
+    prev = pl.col("target_truth").shift(1).over(_TARGET)
+    swaps = int(seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
+                            & pl.col("target_truth").is_not_null() & ~pl.col("__old")).fill_null(False).sum()).item())
+    last = seq.group_by(_TARGET).agg(pl.col("target_truth").last()).select(state.last.columns)
+    split = real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n")
+                                                             ).filter(pl.col("n") > 1).height
+    merged = real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height
+    pairs = (maj.filter(pl.col("target_truth").is_not_null())
+             .select("run", pl.col("target_truth").alias("truth_id"), "target_id"))
+    return AssociationScore(
+        rows=state.rows + associations.height, correct=state.correct + correct, real=state.real + real.height,
+        swaps=state.swaps + swaps, split=state.split + split, merged=state.merged + merged,
+        runs=pl.concat([state.runs, _keys(associations, state.runs)]).unique(),
+        last=last,
+        seen=pl.concat([state.seen, _keys(seen, state.seen)]).group_by(_TARGET).agg(pl.col("__real").any())
+        .select(state.seen.columns),
+        truths=pl.concat([state.truths, _keys(real, state.truths)]).unique(),
+        pairs=pl.concat([state.pairs, _keys(pairs, state.pairs)]).unique())
 
-    seq = maj.sort(["run", "target_id", "epoch"])
-    prev = pl.col("target_truth").shift(1).over(["run", "target_id"])
-    swaps = seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
-                        & pl.col("target_truth").is_not_null()).fill_null(False).sum()).item()
 
-    truths = real.select("run", "truth_id").unique()
-    got = (maj.filter(pl.col("target_truth").is_not_null())
-           .group_by(["run", "target_truth"]).agg(pl.col("target_id").n_unique().alias("n_targets"))
-           .rename({"target_truth": "truth_id"}))
-    per_truth = truths.join(got, on=["run", "truth_id"], how="left").with_columns(pl.col("n_targets").fill_null(0))
+def association_score(state: AssociationScore) -> pl.DataFrame:
+    """The :func:`association_metrics` rows of every association row scored into ``state``."""
+    if state.rows == 0:
+        return pl.DataFrame(schema=TABLES["metrics"].required)
+    correct = state.correct / state.real if state.real else float("nan")
+    got = state.pairs.group_by(["run", "truth_id"]).agg(pl.len().alias("n_targets"))
+    per_truth = (state.truths.join(got, on=["run", "truth_id"], how="left")
+                 .with_columns(pl.col("n_targets").fill_null(0)))
     tpt = float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
-
-    split = (real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n"))
-             .filter(pl.col("n") > 1).height)
-    merged = (real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height)
-
+    false_targets = int((~state.seen["__real"]).sum())
     out = pl.DataFrame({
         "stage": "association", "method": "assignment",
         "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets",
                    "merged_targets"],
         "segment": "all",
-        "value": [float(correct), float(swaps), tpt, float(false_targets), float(split), float(merged)],
-        "n_runs": n_runs,
+        "value": [float(correct), float(state.swaps), tpt, float(false_targets), float(state.split),
+                  float(state.merged)],
+        "n_runs": state.runs.height,
     })
     return out.select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
+
+
+__all__ += ["AssociationScore", "score_associations", "association_score"]
 
 
 __all__ += ["read_pictures"]

@@ -45,7 +45,8 @@ from tertiary.clustering import ClusteringConfig, cluster
 from tertiary.collection import CollectionConfig
 from tertiary.bound import bound_stage
 from tertiary.accuracy import BY_EPOCH_SCHEMA
-from tertiary.evaluation import (NEIGHBOUR_COLUMNS, Evaluation, EvaluationConfig, association_metrics, evaluate_each,
+from tertiary.evaluation import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, EvaluationConfig, association_metrics,
+                                 association_score, evaluate_each, score_associations,
                                  read_reference, reference_files, write_reference, write_reference_pieces)
 from tertiary.filters import REGISTRY
 from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state
@@ -642,6 +643,10 @@ class StreamState:
     recent: pl.DataFrame            # validated reports still needed by a later window (plots)
     counts: dict = field(default_factory=dict)
     departures: Any = None          # tertiary.flight_data.DepartureState (None: initial)
+    #: the association metrics' accumulators (tertiary.evaluation.AssociationScore); None: not
+    #: carried (a state from before them, or the Dask engine's relabelled partitions), so
+    #: finalize scores the association rows read back
+    scores: Any = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -708,7 +713,7 @@ def init_stream_state(cfg: PipelineConfig) -> StreamState:
                        track=init_track_state(cfg.filters), conflicts=init_conflict_state(),
                        identity=pl.DataFrame(schema={"run": pl.UInt32, "filter": pl.String, "method": pl.String,
                                                      "track_id": pl.UInt64, "mode_s": pl.String}),
-                       recent=pl.DataFrame())
+                       recent=pl.DataFrame(), scores=AssociationScore())
 
 
 def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.DataFrame, w: Window,
@@ -755,6 +760,12 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     rejects = pl.concat([rejects, _stage_rejects(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
     clock.stage("associate")
     (associations, stats), s_assoc = associate_step(st.associate, aligned, w.t0_us, w.t1_us, cfg.association)
+    s_scores = st.scores
+    if s_scores is not None and "truth_id" in recent.columns:
+        clock.stage("score_associations")
+        # scored as the run goes (evaluation-only labels): finalize does not read the rows back;
+        # ``recent`` holds the reports of every row the window associates (as the fusion reads them)
+        s_scores = score_associations(s_scores, associations, recent.select("run", "report_id", "truth_id"))
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     fresh = recent.join(aligned.filter(pl.col("fresh")).select("run", "report_id"), on=["run", "report_id"],
@@ -789,7 +800,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep)
+                            s_dep, s_scores)
 
 
 def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
@@ -1198,7 +1209,7 @@ def _finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState
                              reassignments=st.counts.get("reassignments", 0))
     return _evaluate_run(ds, cfg, ing, aligned, associations, stats, fused, clusters, tracks, conflicts, clock,
                          sink, n_in, t_all, int(getattr(st.align, "conversion_invalid", 0)), observed, later,
-                         scratch, on_disk)
+                         scratch, on_disk, getattr(st, "scores", None))
 
 
 def _timed_sink(sink: Sink, clock: _Clock) -> Sink:
@@ -1219,7 +1230,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
                   conflicts: pl.DataFrame, clock: _Clock, sink: Sink, n_in: int, t_all: float,
                   conversion_invalid: int = 0, observed: pl.DataFrame | None = None,
                   reports: "_Deferred | None" = None, scratch: Path | None = None,
-                  on_disk: StreamedTruth | None = None) -> Results:
+                  on_disk: StreamedTruth | None = None, scores: "AssociationScore | None" = None) -> Results:
     """The whole-run stages after the tables are sunk. An on-disk run hands ``aligned`` and the
     ``reports`` (then ``ing.reports`` has no row) as :class:`_Deferred` and ``observed``
     (:func:`_observed`) computed before: both are read back after the evaluation's peak. With a
@@ -1290,12 +1301,20 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     release_memory()
+    # the association metrics scored window by window when every row was (issue 16); else from
+    # the rows read back
+    carried = has_truth and scores is not None and scores.rows == associations.height
     if isinstance(associations, _Deferred):
-        associations = associations.read()
+        associations = pl.DataFrame() if carried else associations.read()    # on disk, in the database
     if reports is not None:
         ing.reports = reports.read()
-    report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
-    metrics = _association_metrics(associations, stats, report_truth)
+    if carried:
+        metrics = _association_metrics(scores.runs.height if scores.rows else 0, stats, association_score(scores))
+    else:
+        report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
+        metrics = _association_metrics(int(associations["run"].n_unique()) if associations.height else 0, stats,
+                                       association_metrics(associations, report_truth) if report_truth is not None
+                                       else None)
     release_memory()
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
@@ -1583,19 +1602,19 @@ def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -
         raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
 
 
-def _association_metrics(associations: pl.DataFrame, stats, report_truth: pl.DataFrame | None) -> pl.DataFrame:
-    """The association stage's counts and, with truth labels, its correctness
-    (:func:`tertiary.evaluation.association_metrics`)."""
+def _association_metrics(n_runs: int, stats, scored: pl.DataFrame | None) -> pl.DataFrame:
+    """The association stage's counts over ``n_runs`` runs, after its correctness rows
+    (``scored``: :func:`tertiary.evaluation.association_metrics`) when the run has truth labels."""
     counts = pl.DataFrame({
         "stage": "association", "method": "assignment",
         "metric": ["gated_pairs", "ambiguous_components", "targets", "reassignments"],
         "segment": "all", "value": [float(stats.pairs), float(stats.ambiguous_components), float(stats.targets),
                                     float(stats.reassignments)],
-        "n_runs": int(associations["run"].n_unique()) if associations.height else 0,
+        "n_runs": n_runs,
     }).with_columns(pl.col("n_runs").cast(pl.UInt32))
-    if report_truth is None:
+    if scored is None:
         return counts
-    return pl.concat([association_metrics(associations, report_truth), counts], how="vertical_relaxed")
+    return pl.concat([scored, counts], how="vertical_relaxed")
 
 
 def _storable_as_is(table: StreamedTable, name: str) -> bool:

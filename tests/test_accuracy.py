@@ -341,6 +341,74 @@ def test_tie_goes_to_smallest_truth_id():
     assert _value(association_metrics(assoc, reports), "swaps", method="assignment") == 1.0
 
 
+def _association_oracle(rows) -> dict[str, float]:
+    """The association metrics by brute force over (run, epoch, target_id, truth_id) rows."""
+    from collections import Counter, defaultdict
+    votes, by_target, real = defaultdict(Counter), defaultdict(list), [r for r in rows if r[3] is not None]
+    for run, k, tgt, tid in real:
+        votes[run, k, tgt][tid] += 1
+    maj = {key: min(c, key=lambda t: (-c[t], t)) for key, c in votes.items()}
+    for run, k, tgt, _ in rows:
+        by_target[run, tgt].append(k)
+    swaps = 0
+    for (run, tgt), ks in by_target.items():
+        seq = [maj.get((run, k, tgt)) for k in sorted(set(ks))]
+        swaps += sum(a is not None and b is not None and a != b for a, b in zip(seq, seq[1:]))
+    held = defaultdict(Counter)
+    for run, k, tgt, tid in real:
+        held[run, k, tid][tgt] += 1
+    principal = {key: min(c, key=lambda t: (-c[t], t)) for key, c in held.items()}
+    correct = sum(maj.get((run, k, tgt)) == tid and principal[run, k, tid] == tgt for run, k, tgt, tid in real)
+    truths = {(run, tid) for run, _, _, tid in real}
+    targets = defaultdict(set)
+    for (run, k, tgt), tid in maj.items():
+        targets[run, tid].add(tgt)
+    clutter = {(r[0], r[2]) for r in rows} - {(r[0], r[2]) for r in real}
+    return {"assoc_correct_frac": correct / len(real), "swaps": swaps,
+            "targets_per_truth": float(np.mean([len(targets[t]) for t in truths])), "false_targets": len(clutter),
+            "split_targets": sum(len(c) > 1 for c in held.values()),
+            "merged_targets": sum(len({tid for run2, k2, tgt2, tid in real if (run2, k2, tgt2) == key}) > 1
+                                  for key in votes)}
+
+
+@pytest.mark.parametrize("cuts", [(), (7,), (1, 2, 3, 20, 21), tuple(range(1, 40))])
+def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
+    """Issue 16, evaluation accumulators: the association metrics of rows scored a block of
+    epochs at a time (:func:`score_associations`, the pipeline's windows) equal those of the
+    whole run at once, and a brute-force count. Targets change aircraft across the cuts and
+    some epochs are clutter only. Fails if a target's majority aircraft is not carried to the
+    next window (swaps), a target's reports are judged per window (false targets), or a
+    target's aircraft are counted per window (targets per aircraft)."""
+    from tertiary.evaluation import AssociationScore, association_score, score_associations
+    rng = np.random.default_rng(11)
+    rows, flies = [], {}
+    for run in (0, 1):
+        for k in range(40):
+            for tgt in range(1, 9):
+                if rng.random() < 0.1:
+                    continue
+                if (run, tgt) not in flies or rng.random() < 0.08:
+                    flies[run, tgt] = int(rng.integers(1, 6))
+                for _ in range(int(rng.integers(1, 4))):
+                    u = rng.random()
+                    rows.append((run, k, tgt, flies[run, tgt] if u < 0.7 else int(rng.integers(1, 6)) if u < 0.85
+                                 else None))
+    # target 9 has a real report at epoch 3 only, target 10 never: one false target per run
+    rows += [(run, k, tgt, 2 if (tgt, k) == (9, 3) else None) for run in (0, 1) for k in range(40) for tgt in (9, 10)]
+    assoc, reports = _assoc_rows(rows)
+    whole = association_metrics(assoc, reports)
+    state, t = AssociationScore(), assoc["epoch"]
+    for lo, hi in zip((0, *cuts), (*cuts, 40)):
+        block = assoc.filter((t >= _t(lo)) & (t < _t(hi)))
+        state = score_associations(state, block, reports)
+    from polars.testing import assert_frame_equal
+    assert_frame_equal(association_score(state), whole)
+    want = _association_oracle(rows)
+    for name, value in want.items():
+        assert _value(whole, name, method="assignment") == pytest.approx(value, rel=1e-12), name
+    assert want["swaps"] > 5 and want["false_targets"] == 2 and want["split_targets"] > 0
+
+
 def test_picture_accuracy_is_one_stage_in_the_metrics_schema():
     truth = _truth(4)
     fused = _fused(truth, {0: (1.0,), 1: (-1.0,), 2: (0.0,)})

@@ -173,3 +173,36 @@ def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monke
     got = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
     assert whole.height == samples.height and whole["truth_id"].n_unique() == 3
     assert_frame_equal(got, whole, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
+
+
+@pytest.mark.parametrize("aircraft", [1, 2])
+def test_the_bound_stage_pooled_a_block_of_aircraft_at_a_time_equals_the_whole(monkeypatch, aircraft):
+    """``bound_stage`` makes the illuminations and bounds of a block of aircraft at a time and
+    pools per-epoch sums over the blocks (issue 16, memory): the bound rows equal one block's.
+    Two pictures (methods) share the epochs of three aircraft, so an epoch's mean takes samples
+    from several blocks. Fails if a block's sums are pooled as a mean of means, a block drops
+    another's aircraft, or the blocks read different scan origins."""
+    from types import SimpleNamespace
+
+    from tertiary import bound
+    origin, truth, radars, reports = _one_radar_truth()
+    many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
+                                         pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
+    base = many.select("truth_id", pl.col("time").alias("epoch"), pl.lit(0, pl.UInt32).alias("run"))
+    k = pl.int_range(pl.len()).over("truth_id")          # the same epochs of every aircraft
+    scored = pl.concat([base.filter(k % 2 == 0).with_columns(pl.lit("a").alias("method")),
+                        base.filter(k % 3 == 0).with_columns(pl.lit("b").alias("method"))])
+    seg = pl.when(pl.col("truth_id") == 8).then(pl.lit("turn")).otherwise(pl.lit("straight"))
+    scored = scored.with_columns(seg.alias("seg_class")).select("method", "run", "epoch", "truth_id", "seg_class")
+    acc = pl.DataFrame({"stage": "fusion", "method": ["a", "b"], "metric": "rmse_pos_m", "segment": "all",
+                        "value": [100.0, 90.0], "n_runs": 1})
+    ds = SimpleNamespace(origin=origin, scenario=None)
+    whole = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
+    monkeypatch.setattr(bound, "BOUND_AIRCRAFT", aircraft)
+    got = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
+    assert set(whole["segment"]) == {"all", "straight", "turn"} and set(whole["method"]) == {"a", "b"}
+    assert_frame_equal(got, whole, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
+    # the pooling is over every sample of an epoch: a mean of the blocks' means would differ
+    one = bound.bound_metrics(scored, acc, pcrb_at(scored, illuminations(many, radars, reports, origin),
+                                                   BoundConfig.from_scenario(None)))
+    assert_frame_equal(got, one, check_exact=False, rel_tol=1e-9, abs_tol=0.0)

@@ -113,6 +113,19 @@ def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monk
     assert st.centralized.radars.join(kept, on=["run", "target_id"], how="anti").height == 0
 
 
+def test_association_metrics_are_scored_window_by_window(terminal, terminal_whole, monkeypatch):
+    """Issue 16, evaluation accumulators: the association metrics come from the state the
+    windows carry (:class:`tertiary.evaluation.AssociationScore`), not from the whole run's rows
+    read back in finalize — the whole-run function is not called — and equal one window's."""
+    def whole_run(*_a, **_k):
+        raise AssertionError("association rows scored in finalize")
+    monkeypatch.setattr(pipeline, "association_metrics", whole_run)
+    got = pipeline.process(terminal, FAST, window_s=5.0)
+    rows = got.metrics.filter(pl.col("stage") == "association")
+    assert {"assoc_correct_frac", "swaps", "false_targets", "gated_pairs"} <= set(rows["metric"])
+    _same(rows, terminal_whole["metrics"].filter(pl.col("stage") == "association"), "metrics")
+
+
 def test_windowed_evaluation_equals_one_window(terminal):
     """The whole-run stages (matching, accuracy, alert scoring, STCA curves) on windowed tables."""
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
@@ -522,9 +535,10 @@ def _timed_reports(n: int, span_s: float, t0_us: int = 1_700_000_000_000_000) ->
 
 
 def test_auto_window_holds_about_the_report_budget():
-    """``--window auto``: windows of about the report budget at the mean rate, in whole minutes,
-    within 60 s – 1 h; one report dated year 9999 does not stretch the span (it would make the
-    window a thousand times longer), an untimed input gets the fixed default."""
+    """``--window auto``: windows of about the report budget (at the mean rate for a uniform
+    recording), in whole minutes, within 60 s – 1 h; one report dated year 9999 does not stretch
+    the span (it would make the window a thousand times longer), an untimed input gets the fixed
+    default."""
     from tertiary.engine import AUTO_WINDOW_BOUNDS_S, DEFAULT_WINDOW_S, ReportSource, auto_window_s, resolve_window
     src = ReportSource(_timed_reports(36_000, 3600.0))                  # 10 reports/s
     assert auto_window_s(src, 6_000) == 600.0
@@ -541,6 +555,26 @@ def test_auto_window_holds_about_the_report_budget():
     # five fusion methods: a fifth of the reports a window (each method adds its picture's rows)
     assert resolve_window("auto", _timed_reports(36_000, 3600.0), methods=5) == auto_window_s(src, 10_000) == 1020.0
     assert resolve_window(90, None) == 90.0 and resolve_window(None, None) is None
+
+
+def test_auto_window_is_sized_by_the_busiest_stretch_not_the_mean():
+    """A recording with a busy hour between two quiet ones: the mean rate would size windows that
+    hold three times the budget at the peak; the auto window holds about the budget there (a
+    window's memory grows with its rows: memory bounded by the window, issue 16)."""
+    from tertiary.engine import ReportSource, auto_window_s
+    t0 = 1_700_000_000_000_000
+    quiet = [_timed_reports(3_600, 3600.0, t0), _timed_reports(3_600, 3600.0, t0 + 7200 * US)]
+    busy = _timed_reports(36_000, 3600.0, t0 + 3600 * US)                 # 10 reports/s
+    src = ReportSource(pl.concat([quiet[0], busy, quiet[1]]))
+    mean_rate = 43_200 / (3 * 3600.0)
+    assert round(6_000 / mean_rate / 60) * 60 == 1500.0                   # what the mean gave
+    w = auto_window_s(src, 6_000)
+    assert w == 600.0
+    counts = src.minute_counts()
+    assert counts.sum() == src.n_rows and len(counts) == 181      # the last report opens minute 180
+    m = int(w // 60)
+    busiest = max(counts[i:i + m].sum() for i in range(len(counts) - m + 1))
+    assert busiest <= 6_000 * 1.02
 
 
 def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
