@@ -558,17 +558,19 @@ def score_associations(state: AssociationScore, associations: pl.DataFrame, repo
     real = real.join(principal, on=["run", "epoch", "truth_id"], how="left")
     correct = int(real.select(((pl.col("truth_id") == pl.col("target_truth"))
                                & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).sum()).item())
-    # a target's majority aircraft continues from its last epoch of the windows before
-    before = _keys(state.last, state.last).with_columns(pl.lit(None, TIME).alias("epoch"),
-                                                        pl.lit(True).alias("__old"))
-    seq = (pl.concat([before.select("run", "target_id", "epoch", "target_truth", "__old"),
-                      _keys(maj, state.last).with_columns(maj["epoch"], pl.lit(False).alias("__old"))
-                      .select("run", "target_id", "epoch", "target_truth", "__old")])
+    # a target's majority aircraft continues from its last epoch of the windows before: the
+    # carried rows of this window's targets go first in each target's sequence
+    now = _keys(maj, state.last).with_columns(maj["epoch"], pl.lit(False).alias("__old"))
+    before = (state.last.join(now.select(_TARGET).unique(), on=_TARGET, how="semi")
+              .with_columns(pl.lit(None, TIME).alias("epoch"), pl.lit(True).alias("__old")))
+    seq = (pl.concat([before.select(now.columns), now])
            .sort(["run", "target_id", "epoch"], nulls_last=False))
-    prev = pl.col("target_truth").shift(1).over(_TARGET)
+    same = (pl.col("run") == pl.col("run").shift(1)) & (pl.col("target_id") == pl.col("target_id").shift(1))
+    prev = pl.when(same).then(pl.col("target_truth").shift(1))
     swaps = int(seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
                             & pl.col("target_truth").is_not_null() & ~pl.col("__old")).fill_null(False).sum()).item())
-    last = seq.group_by(_TARGET).agg(pl.col("target_truth").last()).select(state.last.columns)
+    ended = seq.group_by(_TARGET).agg(pl.col("target_truth").last()).select(state.last.columns)
+    last = pl.concat([state.last.join(ended.select(_TARGET), on=_TARGET, how="anti"), ended])
     split = real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n")
                                                              ).filter(pl.col("n") > 1).height
     merged = real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height
