@@ -297,7 +297,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
                   seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
                   keep_matched: bool = True, surveillance: bool = True,
-                  empty: pl.DataFrame | None = None) -> Evaluation:
+                  empty: pl.DataFrame | None = None, id_map: bool = True) -> Evaluation:
     """:func:`evaluate_pictures` on pictures given one at a time (each frame one ``method``):
     a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
     holds one picture, never all of them. A picture may come as blocks of rows in time order
@@ -306,7 +306,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     picture's covariances and the matcher's scratch are never held whole. The same metrics as
     one call on their union. ``truth`` may be a reference file or directory
     (:func:`write_reference`, :func:`write_reference_pieces`): then only the slices a picture's
-    blocks read are held."""
+    blocks read are held. ``id_map=False``: no id map (a caller that scores no alert on these
+    pictures does not hold one row per picture row through its later stages)."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
@@ -329,9 +330,10 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         parts["metrics"].append(seed)
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)
-        parts["id_map"].append(matched.select(
-            "run", "method", "epoch", pl.col("track_id").alias(id_col),
-            pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
+        if id_map:
+            parts["id_map"].append(matched.select(
+                "run", "method", "epoch", pl.col("track_id").alias(id_col),
+                pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
         # released before the next picture is matched: two pictures' rows are never held at once

@@ -1446,15 +1446,18 @@ def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
+    # the id map of the safety picture only: the alert scoring reads no other (memory)
+    safety_ids = _safety_names(cfg, fused, tracks)[1] if cfg.safety else None
     fused_pictures = list(_fused_pictures(fused, _NOT_SCORED, blocks=True))
     # the heap the last picture freed is handed back before the next is read (memory)
     ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id",
-                              seed_stage="fusion", **kw) if fused_pictures else none)
+                              seed_stage="fusion", id_map=safety_ids == "target_id", **kw)
+                if fused_pictures else none)
     track_pictures = list(_track_pictures(tracks, _NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
     return ev_fused, evaluate_each((_released(get) for get in track_pictures), reference, seed_stage="tracker",
-                                   **kw)
+                                   id_map=safety_ids == "track_id", **kw)
 
 
 def _released(get: Callable[[], Any]) -> Any:

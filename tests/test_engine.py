@@ -620,3 +620,19 @@ def test_prefetched_keeps_order_reads_one_ahead_and_raises_where_the_item_is_tak
         if k == 1:
             break
     assert made == [0, 1, 2]
+
+
+def test_alerts_on_the_fused_picture_are_scored_with_its_id_map(terminal):
+    """The evaluation keeps the id map of the safety picture only (memory): with
+    ``safety_picture="fused"`` the fusion pictures' map scores the alerts — every fused
+    method's safety rows are there and some alerts are genuine (fails if the fusion pictures'
+    map is not kept: no alert then names an aircraft)."""
+    cfg = dataclasses.replace(FAST, safety_picture="fused")
+    res = pipeline.process(terminal, cfg, window_s=60.0)
+    fused = {*cfg.methods, "centralized"}
+    rows = res.metrics.filter((pl.col("stage") == "safety") & (pl.col("metric") == "alert_episodes"))
+    assert set(rows["method"]) == fused and rows["value"].sum() == res.alerts.height > 0
+    assert set(res.conflicts["method"]) <= fused and set(res.alerts["method"]) <= fused
+    # an alert is genuine only when the map names the aircraft of its targets
+    genuine = res.metrics.filter((pl.col("stage") == "safety") & (pl.col("metric") == "genuine_alerts"))
+    assert genuine["value"].sum() > 0
