@@ -479,7 +479,8 @@ def run(
         = "corrected",
     window: Annotated[str, typer.Option("--window", metavar="SECONDS|auto",
                                         help="process the recording in time windows of this many seconds (>= 1; "
-                                             "0: one window; auto: about 50 000 reports in the busiest window divided by the number of fusion methods, 60 s to 1 h, "
+                                             "0: one window; auto: about 50 000 reports in the busiest window divided by "
+                                             "the number of fusion methods, 60 s to 1 h, "
                                              "300 s with --engine dask), carrying every stage's state; each "
                                              "window is stored as it completes")]
         = AUTO_WINDOW,
