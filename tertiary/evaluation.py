@@ -504,10 +504,6 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
 _TARGET = ["run", "target_id"]
 
 
-def _empty_key(schema: dict[str, pl.DataType]) -> pl.DataFrame:
-    return pl.DataFrame(schema=schema)
-
-
 @dataclass
 class AssociationScore:
     """What :func:`association_metrics` needs of the association rows seen so far, carried
@@ -524,14 +520,14 @@ class AssociationScore:
     swaps: int = 0
     split: int = 0
     merged: int = 0
-    runs: pl.DataFrame = field(default_factory=lambda: _empty_key({"run": pl.UInt32}))
-    last: pl.DataFrame = field(default_factory=lambda: _empty_key(
-        {"run": pl.UInt32, "target_id": pl.UInt64, "target_truth": pl.Int64}))
-    seen: pl.DataFrame = field(default_factory=lambda: _empty_key(
-        {"run": pl.UInt32, "target_id": pl.UInt64, "__real": pl.Boolean}))
-    truths: pl.DataFrame = field(default_factory=lambda: _empty_key({"run": pl.UInt32, "truth_id": pl.Int64}))
-    pairs: pl.DataFrame = field(default_factory=lambda: _empty_key(
-        {"run": pl.UInt32, "truth_id": pl.Int64, "target_id": pl.UInt64}))
+    runs: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema={"run": pl.UInt32}))
+    last: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"run": pl.UInt32, "target_id": pl.UInt64, "target_truth": pl.Int64}))
+    seen: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"run": pl.UInt32, "target_id": pl.UInt64, "__real": pl.Boolean}))
+    truths: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema={"run": pl.UInt32, "truth_id": pl.Int64}))
+    pairs: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"run": pl.UInt32, "truth_id": pl.Int64, "target_id": pl.UInt64}))
 
 
 def _keys(frame: pl.DataFrame, schema: pl.DataFrame) -> pl.DataFrame:

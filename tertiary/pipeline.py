@@ -863,10 +863,13 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
            ) -> tuple["RunContext", "StreamState"]:
     """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
     slice of a distributed run does (:mod:`tertiary.distributed`); ``grid_origin_us`` puts the
-    epochs on a grid given from outside (the whole recording's), not this input's first second."""
+    epochs on a grid given from outside (the whole recording's), not this input's first second.
+    The association metrics are not scored on the way (``StreamState.scores`` None): a slice's
+    ids are its own until stitched, so the finalize scores the relabelled rows."""
     cfg = adapt_to_scenario(check_config(cfg), ds)
+    start = dataclasses.replace(init_stream_state(cfg), scores=None)
     ctx, st, _ = _stream(ds, cfg, _Clock(progress or (lambda _m: None)), [] if notes is None else notes,
-                         check_window(window_s), parts, None, 0, grid_origin_us)
+                         check_window(window_s), parts, start, 0, grid_origin_us)
     return ctx, st
 
 
