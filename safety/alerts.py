@@ -24,8 +24,9 @@ sampling step. Segments are paired by a KD-tree on their mid points (box half-wi
 (the alerts' gap, 15 s) are merged — separation regained for a second in the middle of one
 encounter is not a second loss: one **LoS episode** = (run, truth_a, truth_b, t_start,
 t_end). *Proximity* intervals are the same with both minima × the ``proximity_factor`` (1.5).
-The resampled grid is bounded before it is allocated (``max_grid_rows``,
-:class:`tertiary.errors.ResourceError`).
+The grid is resampled a block of consecutive union times at a time (a segment pair lies in one
+union interval, so the blocks' intervals are the whole grid's), and each block is bounded before
+it is allocated (``max_grid_rows``, :class:`tertiary.errors.ResourceError`).
 
 Level pairs (``AlertConfig.level_pairs``, default on). Two aircraft in level flight at levels
 the vertical minimum apart are separated by their levels — the principle the prediction's
@@ -95,7 +96,7 @@ import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import polars as pl
@@ -154,7 +155,8 @@ class AlertConfig:
       alert raised when the pair enters the (uncertainty-widened) threshold within T^пор is about
       the encounter it predicted, which can come after T^пор (module docstring). False: the
       fixed window only.
-    * ``max_grid_rows``: bound of the resampled truth grid (aircraft × union sample times).
+    * ``max_grid_rows``: bound of the resampled truth rows held at once (aircraft × union sample
+      times of a block of them; :func:`_resampled_blocks`).
     * ``level_pairs``: the truth's losses and proximities use the prediction's level-pair
       threshold (``conflict.level_pair_tolerance_m`` / ``level_rate_mps``) where both aircraft
       are level (module docstring "Level pairs"); False: the full vertical minimum everywhere.
@@ -245,58 +247,72 @@ def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> p
                                                                            pl.Series("hdot_mps", rate))
 
 
-def _resample(tr: pl.DataFrame, max_rows: int) -> dict[str, NDArray]:
+#: resampled truth rows held at once (:func:`_resampled_blocks`): the national hour's grid of
+#: 5 M rows took 1.4 GB over its truth when resampled whole (memory, issue 18)
+RESAMPLE_ROWS = 1_000_000
+
+
+def _resampled_blocks(tr: pl.DataFrame, max_rows: int, rows: int = RESAMPLE_ROWS) -> Iterator[dict[str, NDArray]]:
     """Every aircraft at every union sample time of its run within its own span (linear
-    interpolation between its samples): rows ordered by (run, aircraft, time). The row count is
-    computed (searchsorted) and checked against ``max_rows`` before anything is allocated."""
+    interpolation between its samples), a block of consecutive union times at a time: rows
+    ordered by (aircraft, time) in a block, blocks of one run in time order, each sharing its
+    first union time with the previous block's last, so that every segment between two
+    consecutive union times of an aircraft lies in exactly one block. A block holds at most
+    ``min(rows, max_rows)`` rows; two consecutive union times needing more than ``max_rows``
+    raise before anything is allocated. ``ac`` indexes the run's aircraft in ``tid``/``run``;
+    ``gk`` is the union-time index within the run."""
     run = tr["run"].to_numpy().astype(np.int64) if "run" in tr.columns else np.zeros(tr.height, np.int64)
     tid = tr["truth_id"].to_numpy()
     t = tr["t_us"].to_numpy()
     xyz = tr.select("x_m", "y_m", "h_m").to_numpy()
+    rate = tr["hdot_mps"].to_numpy() if "hdot_mps" in tr.columns else None
+    del tr
     new_ac = np.ones(len(t), bool)
     new_ac[1:] = (run[1:] != run[:-1]) | (tid[1:] != tid[:-1])
     ac_start = np.flatnonzero(new_ac)
     ac_end = np.append(ac_start[1:], len(t))
     ac_run = run[ac_start]
-    runs = np.unique(run)
-    unions = {int(r): np.unique(t[run == r]) for r in runs}        # one np.unique per run
-    lo = np.empty(len(ac_start), np.int64)
-    hi = np.empty(len(ac_start), np.int64)
-    offset = np.zeros(len(ac_start), np.int64)
-    base = 0
-    for r in runs:
-        m = ac_run == r
-        u = unions[int(r)]
-        lo[m] = np.searchsorted(u, t[ac_start[m]], "left")
-        hi[m] = np.searchsorted(u, t[ac_end[m] - 1], "right")
-        offset[m] = base
-        base += len(u)
-    cnt = hi - lo
-    total = int(cnt.sum())
-    if total > max_rows:
-        raise ResourceError(f"truth: resampling {len(ac_start)} aircraft at the union of their sample times needs "
-                            f"{total} rows > max_grid_rows={max_rows} (AlertConfig)")
-    ac = np.repeat(np.arange(len(ac_start)), cnt)
-    k = np.repeat(lo, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
-    u_all = np.concatenate([unions[int(r)] for r in runs]) if len(runs) else np.zeros(0, np.int64)
-    gk = offset[ac] + k                                            # dense (run, union time) index
-    tt = u_all[gk]
     # the sample interval of each row: search within the aircraft's own samples (a packed key)
     span = int(t.max() - t.min()) + 1 if len(t) else 1
     if len(ac_start) * span >= 1 << 62:
         raise ResourceError("truth: time span too long for the packed interpolation key")
     key_s = np.repeat(np.arange(len(ac_start)), ac_end - ac_start) * span + (t - t.min())
-    j = np.searchsorted(key_s, ac * span + (tt - t.min()), "right") - 1
-    j = np.clip(j, ac_start[ac], np.maximum(ac_end[ac] - 2, ac_start[ac]))
-    j1 = np.minimum(j + 1, ac_end[ac] - 1)
-    dt = (t[j1] - t[j]).astype(np.float64)
-    w = np.where(dt > 0, (tt - t[j]) / np.where(dt > 0, dt, 1.0), 0.0)
-    pos = xyz[j] + w[:, None] * (xyz[j1] - xyz[j])
-    out = {"ac": ac, "gk": gk, "t": tt, "pos": pos, "tid": tid[ac_start], "run": ac_run}
-    if "hdot_mps" in tr.columns:
-        r = tr["hdot_mps"].to_numpy()
-        out["hdot"] = r[j] + w * (r[j1] - r[j])
-    return out
+    cap = max(min(int(rows), int(max_rows)), 1)
+    for r in np.unique(ac_run):
+        acs = np.flatnonzero(ac_run == r)                          # the run's aircraft, consecutive
+        u = np.unique(t[ac_start[acs[0]]:ac_end[acs[-1]]])
+        lo = np.searchsorted(u, t[ac_start[acs]], "left")          # the aircraft spans u[lo:hi]
+        hi = np.searchsorted(u, t[ac_end[acs] - 1], "right")
+        alive = np.cumsum(np.bincount(lo, minlength=len(u) + 1) - np.bincount(hi, minlength=len(u) + 1))[:-1]
+        before = np.concatenate([[0], np.cumsum(alive)])           # rows of u[:i]
+        i0 = 0
+        while i0 < len(u) - 1:
+            # the last union time whose block from i0 holds at most ``cap`` rows, at least i0 + 1
+            i1 = max(int(np.searchsorted(before, before[i0] + cap, "right")) - 2, i0 + 1)
+            i1 = min(i1, len(u) - 1)
+            need = int(before[i1 + 1] - before[i0])
+            if need > max_rows:
+                raise ResourceError(f"truth: resampling {int(alive[i0:i1 + 1].max())} aircraft at two consecutive "
+                                    f"union sample times needs {need} rows > max_grid_rows={max_rows} (AlertConfig)")
+            sel = np.flatnonzero((lo <= i1) & (hi > i0))
+            klo, khi = np.maximum(lo[sel], i0), np.minimum(hi[sel], i1 + 1)
+            cnt = khi - klo
+            total = int(cnt.sum())
+            ac = np.repeat(acs[sel], cnt)
+            k = np.repeat(klo, cnt) + (np.arange(total) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+            tt = u[k]
+            j = np.searchsorted(key_s, ac * span + (tt - t.min()), "right") - 1
+            j = np.clip(j, ac_start[ac], np.maximum(ac_end[ac] - 2, ac_start[ac]))
+            j1 = np.minimum(j + 1, ac_end[ac] - 1)
+            dt = (t[j1] - t[j]).astype(np.float64)
+            w = np.where(dt > 0, (tt - t[j]) / np.where(dt > 0, dt, 1.0), 0.0)
+            out = {"ac": ac, "gk": k, "t": tt, "pos": xyz[j] + w[:, None] * (xyz[j1] - xyz[j]),
+                   "tid": tid[ac_start], "run": ac_run}
+            if rate is not None:
+                out["hdot"] = rate[j] + w * (rate[j1] - rate[j])
+            del j, j1, dt, w
+            yield out
+            i0 = i1
 
 
 #: union sample intervals per box of the loss-of-separation screen: each aircraft's segments in
@@ -409,10 +425,31 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
     empty = [pl.DataFrame(schema=out_schema) for _ in factors]
     if tr.height < 2:
         return empty
-    rs = _resample(tr, max_rows)
     fmax = max(factors)
     reach_h, reach_v = (dr_h_m, dr_v_m) if enroute is None else (max(dr_h_m, enroute[1]), max(dr_v_m, enroute[2]))
-    a, b = _pair_segments(rs, fmax * reach_h, fmax * reach_v)
+    pieces: list[list[tuple[NDArray, ...]]] = [[] for _ in factors]
+    # a block of union sample times at a time: a segment pair lies in one union interval, so the
+    # blocks' pieces are the whole grid's (memory, issue 18)
+    blocks = _resampled_blocks(tr, max_rows)
+    del tr                        # the blocks hold its columns as arrays, not the frame too
+    for rs in blocks:
+        for got, f_pieces in zip(_block_pieces(rs, fmax * reach_h, fmax * reach_v, dr_h_m, dr_v_m, factors,
+                                               level_pairs, enroute, zones), pieces):
+            f_pieces.append(got)
+        del rs
+    gap_us = int(round(merge_gap_s * _US))
+    return [_merge(*[np.concatenate([p[k] for p in f_pieces]) for k in range(5)], out_schema, gap_us)
+            if f_pieces else pl.DataFrame(schema=out_schema) for f_pieces in pieces]
+
+
+def _block_pieces(rs: dict[str, NDArray], reach_h: float, reach_v: float, dr_h_m: float, dr_v_m: float,
+                  factors: Sequence[float], level_pairs: tuple[float, float] | None,
+                  enroute: tuple[float, float, float] | None, zones: Sequence[AerodromeZone]
+                  ) -> list[tuple[NDArray, ...]]:
+    """Per factor, (run, truth_a, truth_b, start µs, end µs) of every segment pair of one
+    resampled block within the factor's minima (before merging), exact under linear motion."""
+    none = (np.zeros(0, np.uint32), *[np.zeros(0, np.int64)] * 4)
+    a, b = _pair_segments(rs, reach_h, reach_v)
     same = rs["gk"][a] == rs["gk"][b]
     a, b = a[same], b[same]
     if len(zones) and len(a):
@@ -422,7 +459,7 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
         inside = (za >= 0) & (z[a + 1] == za) & (z[b] == za) & (z[b + 1] == za)
         a, b = a[~inside], b[~inside]
     if not len(a):
-        return empty
+        return [none for _ in factors]
     pos, t, ac = rs["pos"], rs["t"], rs["ac"]
     if enroute is not None:
         low = np.maximum(np.maximum(pos[a, 2], pos[a + 1, 2]), np.maximum(pos[b, 2], pos[b + 1, 2])) < enroute[0]
@@ -431,7 +468,7 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
     r0 = pos[b] - pos[a]
     w = ((pos[b + 1] - pos[a + 1]) - r0) / dt[:, None]
     ta_, tb_ = rs["tid"][ac[a]], rs["tid"][ac[b]]
-    run = rs["run"][ac[a]]
+    run = rs["run"][ac[a]].astype(np.uint32)
     tol = 0.0 if level_pairs is None else np.where(_both_level(rs, a, b, dt, level_pairs[1]), level_pairs[0], 0.0)
     out = []
     for f in factors:
@@ -440,8 +477,8 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
         ok = t_out > t_in
         s_us = t[a][ok] + np.round(t_in[ok] * _US).astype(np.int64)
         e_us = t[a][ok] + np.round(t_out[ok] * _US).astype(np.int64)
-        out.append(_merge(run[ok], np.minimum(ta_, tb_)[ok], np.maximum(ta_, tb_)[ok], s_us, e_us, out_schema,
-                          int(round(merge_gap_s * _US))))
+        out.append((run[ok], np.minimum(ta_, tb_)[ok].astype(np.int64), np.maximum(ta_, tb_)[ok].astype(np.int64),
+                    s_us, e_us))
     return out
 
 

@@ -15,7 +15,7 @@ import pytest
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_episodes, compare_at_equal_nuisance,
                            los_episodes, loss_of_separation, score_alerts, separation_intervals, stca_tradeoff,
                            tradeoff_metrics)
-from safety.conflicts import ConflictConfig, predict_conflicts
+from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
 from tertiary.errors import ResourceError
 from tertiary.geo import LocalFrame
 from tertiary.schema import validate
@@ -174,8 +174,13 @@ def test_truth_heights_in_blocks_are_the_heights_of_every_sample(monkeypatch):
 
 
 def test_grid_is_bounded_before_allocation(truth):
+    """``max_grid_rows`` bounds the resampled rows held at once: a grid larger than it is
+    resampled in blocks (same losses), and two union times that alone need more raise."""
+    whole = loss_of_separation(truth)
+    assert whole.height
+    assert loss_of_separation(truth, AlertConfig(max_grid_rows=50)).equals(whole)
     with pytest.raises(ResourceError, match="max_grid_rows"):
-        loss_of_separation(truth, AlertConfig(max_grid_rows=1000))
+        loss_of_separation(truth, AlertConfig(max_grid_rows=1))
 
 
 # --------------------------------------------------------------------------- alert episodes
@@ -512,15 +517,11 @@ def test_loss_intervals_a_few_seconds_apart_are_one_episode():
     assert loss_of_separation(tr, AlertConfig(merge_gap_s=0.0)).height == 3
 
 
-@pytest.mark.parametrize("block", [1, 5, 32, 1000])
-def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, monkeypatch):
-    """The loss-of-separation screen (aircraft × block boxes, then segment boxes) against no
-    screen at all (every pair of segments in the same union interval): the same LoS and
-    proximity intervals, en-route minima included. 30 aircraft in a 30 km box, two runs, each
-    aircraft with a few long gaps in its samples (the widest boxes, queried one by one) and
-    its own sample times, and block sizes from one interval to more than the recording."""
-    import safety.alerts as al
-    rng = np.random.default_rng(11)
+def _crowd(seed: int = 11, with_rate: bool = False) -> pl.DataFrame:
+    """30 aircraft in a 30 km box, two runs, each with its own sample times and a ~75 s gap;
+    levels 300 and 100 m apart (the level-pair tolerance matters) and, ``with_rate``, the
+    truth's own vertical rate."""
+    rng = np.random.default_rng(seed)
     rows = []
     for run in (0, 1):
         for tid in range(30):
@@ -529,10 +530,23 @@ def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, mon
             x = rng.uniform(-15e3, 15e3) + np.cumsum(rng.normal(0, 250, len(t)))
             y = rng.uniform(-15e3, 15e3) + np.cumsum(rng.normal(0, 250, len(t)))
             h = rng.choice([3000.0, 3300.0, 4600.0, 4700.0]) + np.cumsum(rng.normal(0, 20, len(t)))
+            rate = rng.choice([0.0, 0.0, 4.0], len(t))
             rows += [{"run": run, "truth_id": tid, "time": _t(s), "x_m": a, "y_m": b, "z_m": c, "vx_mps": 0.0,
-                      "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": c} for s, a, b, c in zip(t, x, y, h)]
-    tr = pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")), pl.col("run").cast(pl.UInt32))
+                      "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": c, **({"alt_rate_mps": v} if with_rate else {})}
+                     for s, a, b, c, v in zip(t, x, y, h, rate)]
+    return pl.DataFrame(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")),
+                                           pl.col("run").cast(pl.UInt32))
 
+
+@pytest.mark.parametrize("block", [1, 5, 32, 1000])
+def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, monkeypatch):
+    """The loss-of-separation screen (aircraft × block boxes, then segment boxes) against no
+    screen at all (every pair of segments in the same union interval): the same LoS and
+    proximity intervals, en-route minima included. 30 aircraft in a 30 km box, two runs, each
+    aircraft with a few long gaps in its samples (the widest boxes, queried one by one) and
+    its own sample times, and block sizes from one interval to more than the recording."""
+    import safety.alerts as al
+    tr = _crowd()
     def every_pair(rs, reach_h, reach_v):
         seg = np.flatnonzero(rs["ac"][1:] == rs["ac"][:-1])
         seg = seg[np.argsort(rs["gk"][seg], kind="stable")]
@@ -552,3 +566,39 @@ def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, mon
     assert want[0].height >= 10 and want[1].height > want[0].height
     for g, w in zip(got, want):
         assert g.equals(w)
+
+
+@pytest.mark.parametrize("rows", [2, 7, 60, 900])
+def test_the_truth_resampled_a_block_of_union_times_at_a_time_gives_the_whole_grids_intervals(rows, monkeypatch):
+    """The truth's LoS and proximity intervals computed a block of union sample times at a time
+    (down to one interval per block: 2 rows ask for the smallest block) equal those of the
+    whole grid at once, and the pieces of an encounter cut by a block boundary are one episode.
+    Two runs with their own sample times, gaps, level pairs with the truth's rates, en-route
+    minima and an aerodrome zone. The whole grid is the blocks' union: the rows of every block
+    are the whole-grid rows at its union times, and each segment is in exactly one block."""
+    import safety.alerts as al
+    tr = _crowd(5, with_rate=True)
+    args = dict(dr_h_m=2000.0, dr_v_m=300.0, factors=(1.0, 1.5), enroute=(4500.0, 3000.0, 300.0),
+                level_pairs=(30.0, 2.5), merge_gap_s=15.0,
+                zones=[AerodromeZone(x_m=0.0, y_m=0.0, radius_m=4000.0, ceiling_m=3200.0)])
+    whole = al.separation_intervals(tr, **args)
+    assert whole[0].height >= 5 and whole[1].height > whole[0].height
+    blocks = al._resampled_blocks
+    seen = []
+
+    def recorded(tr_, max_rows, rows_=al.RESAMPLE_ROWS):
+        for rs in blocks(tr_, max_rows, rows):
+            seen.append(rs)
+            yield rs
+    monkeypatch.setattr(al, "_resampled_blocks", recorded)
+    got = al.separation_intervals(tr, **args)
+    assert len(seen) > (1 if rows > 2 else 300)
+    for g, w in zip(got, whole):
+        assert g.equals(w)
+    # segments (consecutive rows of one aircraft) of all blocks: each (run, aircraft, start) once
+    starts = np.concatenate([np.column_stack([rs["run"][rs["ac"]], rs["tid"][rs["ac"]], rs["t"]])[
+        np.flatnonzero(rs["ac"][1:] == rs["ac"][:-1])] for rs in seen])
+    assert len(np.unique(starts, axis=0)) == len(starts)
+    one = list(blocks(al.truth_heights(tr), 10**9, 10**9))
+    want = sum(int(np.sum(rs["ac"][1:] == rs["ac"][:-1])) for rs in one)
+    assert len(starts) == want
