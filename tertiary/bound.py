@@ -365,8 +365,7 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
         r_eq = np.full((hi - lo, 3, 3), np.nan)
         if (s >= 0).any():
             r_eq[s >= 0] = events["r_eq"].gather(s[s >= 0]).to_numpy().reshape(-1, 3, 3)
-        out.append(pcrb_linear(t[lo:hi], r_eq, starts[g0:g1] - lo, lengths[g0:g1], _singer9(cfg), _prior9(cfg),
-                               POS, record[lo:hi], _bound_summary))
+        out.append(_pcrb_block(t[lo:hi], r_eq, starts[g0:g1] - lo, lengths[g0:g1], record[lo:hi], cfg))
         del r_eq
     b = np.concatenate(out)
     return rows.filter(record).select("truth_id", "epoch").with_columns(
@@ -378,6 +377,23 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
 BOUND_BLOCK_ROWS = 262_144
 #: aircraft whose illuminations are made and bounds pooled at a time (:func:`bound_stage`)
 BOUND_AIRCRAFT = 256
+
+
+def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig) -> F64:
+    """:func:`pcrb_linear` on the 9-state Singer model with :func:`_bound_summary`, compiled
+    (:func:`tertiary.bound_kernel.pcrb_singer9`): (n_record, 3) in row order."""
+    from tertiary.bound_kernel import pcrb_singer9
+    from tertiary.kernels import arg, ready_for
+    tau = np.zeros(len(t))
+    tau[1:] = np.diff(t)                 # a sequence's first row has none: it starts from the prior
+    slot = np.full(len(t), -1, np.int64)
+    slot[record] = np.arange(int(record.sum()))
+    out = np.full((int(record.sum()), 3), np.nan)
+    ready_for("pcrb")
+    pcrb_singer9(arg(singer_phi(tau, cfg.alpha, cfg.variant)), arg(singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)),
+                 arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(starts, np.int64), arg(lengths, np.int64),
+                 arg(_prior9(cfg)), slot, out)
+    return out
 
 
 def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int, int]]:

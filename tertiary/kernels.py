@@ -64,9 +64,18 @@ def _imm_update():  # noqa: ANN202
     return _imm_update_nb(), (f3, f4, f2, f2, f3, f2, f3, f1, t.Array(t.boolean, 1, "C"), t.float64)
 
 
+def _pcrb():  # noqa: ANN202
+    from numba import types as t
+
+    from tertiary.bound_kernel import pcrb_singer9
+    f2, f3 = t.Array(t.float64, 2, "C"), t.Array(t.float64, 3, "C")
+    i1, b1 = t.Array(t.int64, 1, "C"), t.Array(t.boolean, 1, "C")
+    return pcrb_singer9, (f3, f3, f3, b1, i1, i1, f2, i1, f2)
+
+
 #: name → (dispatcher, the one signature its callers give it)
 KERNELS: dict[str, Callable[[], tuple]] = {"altitude": _altitude, "imm_predict": _imm_predict,
-                                            "imm_update": _imm_update}
+                                            "imm_update": _imm_update, "pcrb": _pcrb}
 
 _jobs: dict[str, subprocess.Popen] = {}
 _lock = threading.Lock()
@@ -91,9 +100,10 @@ def is_cached(name: str) -> bool:
     return in_cache(disp, sig)
 
 
-def kernels_for(filters: Iterable[str]) -> list[str]:
+def kernels_for(filters: Iterable[str], bound: bool = False) -> list[str]:
     """The kernels a run with tracker ``filters`` calls: the altitude filter (fusion and the
-    centralised reference) always, the IMM's when a filter is the compiled IMM."""
+    centralised reference) always, the IMM's when a filter is the compiled IMM, and with
+    ``bound`` (the run has a truth to evaluate against) the Cramér–Rao bound's recursion."""
     from tertiary.filters import make_filter
     from tertiary.filters.imm import IMMFilter
     names = ["altitude"]
@@ -105,12 +115,12 @@ def kernels_for(filters: Iterable[str]) -> list[str]:
         if isinstance(flt, IMMFilter) and flt._q_iso is not None:
             names += ["imm_predict", "imm_update"]
             break
-    return names
+    return names + (["pcrb"] if bound else [])
 
 
 #: kernels compiled together, in the order a run first calls them: the first group at the run's
 #: priority (the fusion waits for it within seconds), later ones niced (the tracker's come later)
-GROUPS: tuple[tuple[str, ...], ...] = (("altitude",), ("imm_predict", "imm_update"))
+GROUPS: tuple[tuple[str, ...], ...] = (("altitude",), ("imm_predict", "imm_update"), ("pcrb",))
 
 
 #: this package's directory: the background process compiles these very sources

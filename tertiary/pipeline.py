@@ -588,7 +588,7 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
     cfg = adapt_to_scenario(check_config(cfg), ds)
     window_s = check_window(window_s)
     # a fresh install compiles the kernels on the other core while the first stages run
-    warm_kernels(kernels_for(cfg.filters))
+    warm_kernels(kernels_for(cfg.filters, bound=_truth_lazy(ds) is not None))
     clock = _Clock(progress or (lambda _m: None))
     sink = sink or (lambda _n, _f: None)
     parts = parts if parts is not None else MemoryParts()
@@ -1685,7 +1685,8 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     """
     t_wall = time.perf_counter()
     cfg = adapt_to_scenario(check_config(cfg), ds)
-    warm_kernels(kernels_for(cfg.filters))      # before anything reads the input (process: again, a no-op)
+    # before anything reads the input (process: again, a no-op)
+    warm_kernels(kernels_for(cfg.filters, bound=_truth_lazy(ds) is not None))
     window_s = _run_window(window_s, ds, cfg)
     say = progress or (lambda _m: None)
     out = Path(out_dir)

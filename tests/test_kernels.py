@@ -53,6 +53,12 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     pred = flt.predict(st, _read_only(np.full(b, 4.0)))
     flt.update(pred, _read_only(rng.normal(0.0, 1e3, (b, 3))), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)),
                _read_only(np.ones(b, bool)))
+    # the bound's recursion, from a read-only truth-time column and a strided record mask
+    from tertiary.bound import BoundConfig, _pcrb_block
+    r_eq = np.full((n, 3, 3), np.nan)
+    r_eq[::3] = np.diag([2500.0, 2500.0, 1e4])
+    _pcrb_block(_read_only(t), r_eq, _read_only(starts), lengths.astype(np.int32), np.ones(2 * n, bool)[::2],
+                BoundConfig())
     for name, get in kernels.KERNELS.items():
         disp, sig = get()
         assert [tuple(s) for s in disp.signatures] == [tuple(sig)], name
@@ -86,6 +92,7 @@ def test_a_run_warms_only_the_kernels_its_filters_call():
     assert kernels.kernels_for(("singer",)) == ["altitude"]
     assert kernels.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
     assert kernels.kernels_for(("no-such-filter",)) == ["altitude"]
+    assert kernels.kernels_for(("singer",), bound=True) == ["altitude", "pcrb"]
 
 
 def test_nothing_is_warmed_when_numba_compiles_nothing():
