@@ -1045,6 +1045,27 @@ def _allocate_levels(route: NDArray[np.int64], entry: NDArray[np.int64], land: N
     return out_r, out_e, left
 
 
+def _allocate_levels_compiled(route: NDArray[np.int64], entry: NDArray[np.int64], land: NDArray[np.int64],
+                              levels: list[NDArray[np.int64]], group: NDArray[np.int64], length: NDArray[np.int64],
+                              keys: NDArray[np.int64], stride: int, origin: NDArray[np.int64],
+                              dest: NDArray[np.int64], take_off_gap: int, landing_gap: int, delays: NDArray[np.int64]
+                              ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
+    """:func:`_allocate_levels`, the same plan, compiled (:func:`tertiary.simulate.plan_kernel.plan`)."""
+    from tertiary.simulate.plan_kernel import plan
+    T = len(length)
+    i64 = lambda a: np.ascontiguousarray(a, np.int64)        # noqa: E731 - one signature
+    pair_any = np.zeros(T * T, np.bool_)
+    pair_any[np.unique(keys >> _OFFSET_BITS)] = True
+    lv_ptr = np.concatenate([[0], np.cumsum([len(v) for v in levels])])
+    lv_idx = np.concatenate(levels) if levels else np.zeros(0, np.int64)
+    out_r, out_e = i64(route).copy(), i64(entry).copy()
+    reach = int(length.max()) + int(np.max(delays)) + 3600
+    left = plan(i64(np.argsort(entry, kind="stable")), i64(route), i64(entry), i64(land), i64(lv_ptr), i64(lv_idx),
+                i64(group), i64(length), i64(keys), pair_any, int(stride), i64(origin), i64(dest),
+                int(take_off_gap), int(landing_gap), i64(delays), reach, _OFFSET_BITS, out_r, out_e)
+    return out_r, out_e, int(left)
+
+
 def _template_grid(tpl: list[dict]):
     """Templates padded to one length (last sample repeated), velocities from the commands
     (the step that starts at a sample; the last repeats); positions (x, y, height)."""
@@ -1160,10 +1181,10 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
         n = max(2, int(round(n * cfg.peak_airborne / max(peak, 1))))
     route, entry = schedule(n, seeds[1])
     land = np.where(kind[route] == "domestic", entry + length[route], -1)
-    route, entry, _ = _allocate_levels(route, entry, land, levels, group, length, keys, stride, orig, dest,
-                                       int(round(cfg.departure_spacing_s / dt)),
-                                       int(round(cfg.landing_spacing_s / dt)),
-                                       np.rint(np.asarray(DECONFLICT_DELAYS_S) / dt).astype(np.int64))
+    route, entry, _ = _allocate_levels_compiled(route, entry, land, levels, group, length, keys, stride, orig, dest,
+                                                int(round(cfg.departure_spacing_s / dt)),
+                                                int(round(cfg.landing_spacing_s / dt)),
+                                                np.rint(np.asarray(DECONFLICT_DELAYS_S) / dt).astype(np.int64))
     order = np.argsort(entry, kind="stable")          # flight numbers in order of entry
     route, entry = route[order], entry[order]
     role = np.where(kind[route] == "domestic", "domestic", "overflight")
