@@ -68,19 +68,29 @@ def plan(order, route, entry, land, lv_ptr, lv_idx, group, length, keys, pair_an
             if ends[order[i]] >= e_min:
                 near[m] = order[i]
                 m += 1
-        ok = np.ones(nc, np.bool_)
-        if domestic and m:                             # the runways' spacing at both ends
+        # the flights using its runways (a domestic flight keeps its airports at every choice)
+        same_o = np.empty(m, np.int64)
+        same_d = np.empty(m, np.int64)
+        no = nd_ = 0
+        if domestic:
             o, gd = origin[cand[0]], dest[cand[0]]
-            for c in range(nc):
-                for i in range(m):
-                    h = near[i]
-                    if origin[out_r[h]] == o and abs(e[c] - done_e[h]) < take_off_gap:
-                        ok[c] = False
-                    if dest[out_r[h]] == gd and abs(land[f] + d[c] - lands[h]) < landing_gap:
-                        ok[c] = False
+            for i in range(m):
+                if origin[out_r[near[i]]] == o:
+                    same_o[no] = near[i]
+                    no += 1
+                if dest[out_r[near[i]]] == gd:
+                    same_d[nd_] = near[i]
+                    nd_ += 1
+        ok = np.ones(nc, np.bool_)
         hits = np.zeros(nc, np.int64)
         last = nc - 1
         for c in range(nc):
+            for i in range(no):                        # the runways' spacing at both ends
+                if abs(e[c] - done_e[same_o[i]]) < take_off_gap:
+                    ok[c] = False
+            for i in range(nd_):
+                if abs(land[f] + d[c] - lands[same_d[i]]) < landing_gap:
+                    ok[c] = False
             for i in range(m):
                 h = near[i]
                 if pair_any[cand[c] * T + out_r[h]]:
