@@ -232,3 +232,54 @@ def test_the_compiled_recursion_equals_the_vectorised_reference(variant):
     assert got.shape == (record.sum(), 3) and np.isfinite(got).all()
     np.testing.assert_allclose(got, want, rtol=1e-9)
     assert got[:, 0].min() < 0.01 * got[:, 0].max()             # updates pulled some far below the prior
+
+
+def test_the_range_screen_keeps_every_illumination(monkeypatch):
+    """A rotating radar (12 s, 30 km) and 40 fast aircraft (250 m/s) crossing its range in and
+    out on straight lines, two with a 40 s truth gap across the boundary: the scans dropped
+    before the beam-passage iterations (``RANGE_SCREEN``) hold no illumination — the events
+    equal those without the screen, while the iterations see fewer scans. A screen without
+    the motion margin loses illuminations (checked here: the test can tell)."""
+    from tertiary import bound
+    origin = geo.LocalFrame(48.0, 2.0, 0.0)
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 601.0)
+    rows = []
+    for k in range(40):
+        heading = rng.uniform(0, 2 * np.pi)
+        miss = rng.uniform(-20_000, 20_000)                  # closest approach to the site
+        along = 250.0 * (t - rng.uniform(100, 500))
+        x = along * np.sin(heading) + miss * np.cos(heading)
+        y = along * np.cos(heading) - miss * np.sin(heading)
+        keep = np.ones(len(t), bool)
+        if k < 2:                                             # a gap where it crosses 30 km
+            cross = int(np.argmin(np.abs(np.hypot(x, y) - 30_000.0)))
+            keep[max(cross - 20, 1):cross + 20] = False
+        us = (t[keep] * 1e6).astype(np.int64) + 1_600_000_000_000_000
+        rows.append(pl.DataFrame({"truth_id": k, "time": pl.Series(us).cast(pl.Datetime("us", "UTC")),
+                                  "x_m": x[keep], "y_m": y[keep], "z_m": 3000.0,
+                                  "vx_mps": 250.0 * np.sin(heading), "vy_mps": 250.0 * np.cos(heading),
+                                  "vz_mps": 0.0}))
+    truth = pl.concat(rows)
+    radars = pl.DataFrame({"radar_id": pl.Series([1], dtype=pl.UInt32), "name": ["R"], "lat_deg": [48.0],
+                           "lon_deg": [2.0], "alt_m": [0.0], "scan_period_s": [12.0], "sigma_range_m": [50.0],
+                           "sigma_azimuth_deg": [0.1], "sigma_elevation_deg": [0.1], "max_range_m": [30_000.0],
+                           "scan_phase_s": [1.0], "min_elevation_deg": [0.0], "pd": [1.0],
+                           "time_offset_s": [0.0], "timing": ["rotating"]})
+    reports = pl.DataFrame({"radar_id": pl.Series([1, 1], dtype=pl.UInt32),
+                            "time": truth["time"].gather([1, 5]), "azimuth_deg": [10.0, 50.0]})
+    seen = []
+    at = bound._Truth.at
+    monkeypatch.setattr(bound._Truth, "at", lambda self, a, tt: seen.append(len(a)) or at(self, a, tt))
+    monkeypatch.setattr(bound, "RANGE_SCREEN", False)
+    want = illuminations(truth, radars, reports, origin)
+    unscreened = sum(seen[1:])
+    seen.clear()
+    monkeypatch.setattr(bound, "RANGE_SCREEN", True)
+    got = illuminations(truth, radars, reports, origin)
+    assert want.height > 200 and sum(seen[1:]) < 0.7 * unscreened
+    assert_frame_equal(got, want)
+    tight = bound._Truth.top_speed
+    monkeypatch.setattr(bound._Truth, "top_speed", property(lambda self: -500.0 / 12.0))   # no motion margin
+    assert illuminations(truth, radars, reports, origin).height < want.height
+    monkeypatch.setattr(bound._Truth, "top_speed", tight)
