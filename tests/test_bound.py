@@ -91,14 +91,20 @@ def _one_radar_truth():
                           .cast(pl.Datetime("us", "UTC")),
                           "x_m": x, "y_m": y, "z_m": np.full_like(t, 3000.0), "vx_mps": 0.0, "vy_mps": 100.0,
                           "vz_mps": 0.0})
+    radars, reports = _radar(truth, 4.0, 200_000.0, "synchronous")
+    return origin, truth, radars, reports
+
+
+def _radar(truth: pl.DataFrame, period_s: float, max_range_m: float, timing: str) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """One radar at (48° N, 2° E) and two of its reports (its scan phase)."""
     radars = pl.DataFrame({"radar_id": pl.Series([1], dtype=pl.UInt32), "name": ["R"], "lat_deg": [48.0],
-                           "lon_deg": [2.0], "alt_m": [0.0], "scan_period_s": [4.0], "sigma_range_m": [50.0],
-                           "sigma_azimuth_deg": [0.1], "sigma_elevation_deg": [0.1], "max_range_m": [200_000.0],
+                           "lon_deg": [2.0], "alt_m": [0.0], "scan_period_s": [period_s], "sigma_range_m": [50.0],
+                           "sigma_azimuth_deg": [0.1], "sigma_elevation_deg": [0.1], "max_range_m": [max_range_m],
                            "scan_phase_s": [1.0], "min_elevation_deg": [0.0], "pd": [1.0],
-                           "time_offset_s": [0.0], "timing": ["synchronous"]})
+                           "time_offset_s": [0.0], "timing": [timing]})
     reports = pl.DataFrame({"radar_id": pl.Series([1, 1], dtype=pl.UInt32),
                             "time": truth["time"].gather([1, 5]), "azimuth_deg": [10.0, 50.0]})
-    return origin, truth, radars, reports
+    return radars, reports
 
 
 def test_scan_schedule_and_single_scan_information():
@@ -261,13 +267,7 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
                                   "vx_mps": 250.0 * np.sin(heading), "vy_mps": 250.0 * np.cos(heading),
                                   "vz_mps": 0.0}))
     truth = pl.concat(rows)
-    radars = pl.DataFrame({"radar_id": pl.Series([1], dtype=pl.UInt32), "name": ["R"], "lat_deg": [48.0],
-                           "lon_deg": [2.0], "alt_m": [0.0], "scan_period_s": [12.0], "sigma_range_m": [50.0],
-                           "sigma_azimuth_deg": [0.1], "sigma_elevation_deg": [0.1], "max_range_m": [30_000.0],
-                           "scan_phase_s": [1.0], "min_elevation_deg": [0.0], "pd": [1.0],
-                           "time_offset_s": [0.0], "timing": ["rotating"]})
-    reports = pl.DataFrame({"radar_id": pl.Series([1, 1], dtype=pl.UInt32),
-                            "time": truth["time"].gather([1, 5]), "azimuth_deg": [10.0, 50.0]})
+    radars, reports = _radar(truth, 12.0, 30_000.0, "rotating")
     seen = []
     at = bound._Truth.at
     monkeypatch.setattr(bound._Truth, "at", lambda self, a, tt: seen.append(len(a)) or at(self, a, tt))
