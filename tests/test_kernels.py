@@ -87,6 +87,27 @@ def test_warm_compiles_into_the_cache_and_the_first_call_loads_it(tmp_path):
     assert any((tmp_path / "numba").rglob("*_filter*.nbc"))
 
 
+def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
+    """The tracker's kernels and the bound's are compiled in one background process, in that
+    order: the tracker's wait ends when its own kernels are in the cache, while the process is
+    still compiling the bound's. Oracle: numba's cache index and the process's state."""
+    script = textwrap.dedent("""
+        from tertiary import kernels
+        names = ["imm_predict", "imm_update", "pcrb"]
+        assert kernels.warm(names) == names
+        job = kernels._jobs["pcrb"]
+        kernels.ready_for("imm_predict")
+        kernels.ready_for("imm_update")
+        assert kernels.is_cached("imm_update") and job.poll() is None     # the bound's still compiling
+        kernels.ready_for("pcrb")
+        assert kernels.is_cached("pcrb")
+        print("ok")
+    """)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
 def test_a_run_warms_only_the_kernels_its_filters_call():
     assert kernels.kernels_for(()) == ["altitude"]
     assert kernels.kernels_for(("singer",)) == ["altitude"]
