@@ -1050,7 +1050,8 @@ def _allocate_levels_compiled(route: NDArray[np.int64], entry: NDArray[np.int64]
                               keys: NDArray[np.int64], stride: int, origin: NDArray[np.int64],
                               dest: NDArray[np.int64], take_off_gap: int, landing_gap: int, delays: NDArray[np.int64]
                               ) -> tuple[NDArray[np.int64], NDArray[np.int64], int]:
-    """:func:`_allocate_levels`, the same plan, compiled (:func:`tertiary.simulate.plan_kernel.plan`)."""
+    """:func:`_allocate_levels`, the same plan, compiled
+    (:func:`tertiary.simulate.plan_kernel.plan`)."""
     from tertiary.simulate.plan_kernel import plan
     T = len(length)
     i64 = lambda a: np.ascontiguousarray(a, np.int64)        # noqa: E731 - one signature
