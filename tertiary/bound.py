@@ -342,6 +342,9 @@ def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dic
 
 
 def _singer9(cfg: BoundConfig):
+    """Φ(τ), Q(τ) of the 9-state Singer model for :func:`pcrb_linear`: with
+    :func:`_bound_summary`, the reference :func:`_pcrb_block`'s compiled kernel is tested
+    against (the run calls the kernel only)."""
     def phi_q(tau: F64) -> tuple[F64, F64]:
         return (_blockdiag3(singer_phi(tau, cfg.alpha, cfg.variant)),
                 _blockdiag3(singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)))
@@ -430,7 +433,8 @@ def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int
 
 
 def _bound_summary(p: F64) -> F64:
-    """(tr P_pos, P_xx + P_yy, tr P_vel) of stacked 9-state bounds (m, 9, 9)."""
+    """(tr P_pos, P_xx + P_yy, tr P_vel) of stacked 9-state bounds (m, 9, 9): what the compiled
+    kernel records, for :func:`pcrb_linear` as its reference (:func:`_singer9`)."""
     pos = p[:, POS[:, None], POS[None, :]]
     return np.column_stack([np.trace(pos, axis1=1, axis2=2), pos[:, 0, 0] + pos[:, 1, 1],
                             p[:, VEL, VEL].sum(axis=1)])
