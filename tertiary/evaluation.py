@@ -32,11 +32,12 @@ import numpy as np
 import polars as pl
 
 from tertiary import geo
-from tertiary.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
+from tertiary.accuracy import (AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, picture_accuracy_buckets,
+                               row_scores)
 from tertiary.errors import DataError
 from tertiary.matching import (MatchConfig, between_expr, between_mask, match_with_reference, neighbour_times,
                                reference_identity)
-from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
+from tertiary.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics, picture_metrics_buckets
 from tertiary.requirements import Requirements, check_requirements
 from tertiary.schema import TABLES, TIME
 
@@ -109,10 +110,11 @@ _METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", *_STATE, "a
                    "mode_3a", "callsign", "icao24")
 
 
-def _metric_columns(matched: pl.DataFrame) -> list[str]:
+def _metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
     """The columns of ``matched`` the surveillance metrics read: a picture's covariances and
     diagnostics are not copied through their joins (memory of the stage, issue 16)."""
-    return [c for c in matched.columns if c in _METRIC_COLUMNS or c.startswith("true_")]
+    names = matched.collect_schema().names() if isinstance(matched, pl.LazyFrame) else matched.columns
+    return [c for c in names if c in _METRIC_COLUMNS or c.startswith("true_")]
 
 
 def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> None:
@@ -236,18 +238,23 @@ def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
 
 
 def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: EvaluationConfig,
-                  id_col: str, slim: bool = False) -> tuple[pl.DataFrame, pl.DataFrame] | None:
+                  id_col: str, slim: bool = False, spill: Path | None = None
+                  ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame] | None:
     """(matched rows with their :func:`row_scores`, reference at the picture's epochs) of one
     picture given in blocks, or None when it has no row. A block is matched against the
     reference samples its epochs read (:func:`reference_between`): the matcher is per epoch
     and the row scores per row, so the result is that of the whole picture at once. ``slim``:
-    only the columns the metrics read are kept (:func:`_scored_only`)."""
+    only the columns the metrics read are kept (:func:`_scored_only`). ``spill`` (a picture of
+    several blocks): each block's rows go to Parquet files there as they are made, and both
+    come back as scans of those files, never held whole (memory, issues 16 and 18)."""
     it = (b for b in blocks if b.height)
     first = next(it, None)
     if first is None:
         return None
     second = next(it, None)
     whole = second is None                  # one block: matched against the whole reference
+    if whole:
+        spill = None
     matched, expected, last = [], [], None
     for block in itertools.chain([first], [] if whole else [second], it):
         _check_inputs(block, reference.empty, id_col)
@@ -264,7 +271,34 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
         matched.append(_scored_only(scored, id_col) if slim else scored)
         del m, scored
         expected.append(ref)
+        if spill is not None:
+            matched, expected = _spilled(spill, matched, expected)
+    if spill is not None:
+        # relaxed: a block whose column is all null may have stored it with another type
+        return tuple(pl.concat([pl.scan_parquet(f) for f in sorted((spill / k).glob("*.parquet"))],
+                               how="vertical_relaxed") for k in ("matched", "expected"))
     return _concat(matched), _concat(expected)
+
+
+def _spilled(spill: Path, matched: list[pl.DataFrame], expected: list[pl.DataFrame]
+             ) -> tuple[list[pl.DataFrame], list[pl.DataFrame]]:
+    """The block just made (the last of each list) written to ``spill``; empty lists back."""
+    for name, frames in (("matched", matched), ("expected", expected)):
+        d = spill / name
+        d.mkdir(parents=True, exist_ok=True)
+        frames[-1].write_parquet(d / f"{len(list(d.glob('*.parquet'))):06d}.parquet", statistics=False)
+    return [], []
+
+
+#: rows of a spilled picture whose metrics are computed at a time (:func:`evaluate_each`): a
+#: 427 k-row picture of a 12 h terminal-area run took ~450 MiB over its rows whole
+EVAL_BUCKET_ROWS = 150_000
+
+
+def _buckets(matched: pl.LazyFrame, rows: int) -> int:
+    """How many buckets keep each at about ``rows`` rows of ``matched`` (at least one)."""
+    n = matched.select(pl.len()).collect().item()
+    return max(1, -(-n // max(1, rows)))
 
 
 def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
@@ -297,7 +331,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
                   seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
                   keep_matched: bool = True, surveillance: bool = True,
-                  empty: pl.DataFrame | None = None, id_map: bool = True) -> Evaluation:
+                  empty: pl.DataFrame | None = None, id_map: bool = True, spill: Path | None = None,
+                  bucket_rows: int | None = None) -> Evaluation:
     """:func:`evaluate_pictures` on pictures given one at a time (each frame one ``method``):
     a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
     holds one picture, never all of them. A picture may come as blocks of rows in time order
@@ -307,37 +342,55 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     one call on their union. ``truth`` may be a reference file or directory
     (:func:`write_reference`, :func:`write_reference_pieces`): then only the slices a picture's
     blocks read are held. ``id_map=False``: no id map (a caller that scores no alert on these
-    pictures does not hold one row per picture row through its later stages)."""
+    pictures does not hold one row per picture row through its later stages). ``spill`` (a
+    scratch directory; with ``keep_matched=False``): a picture of several blocks is matched to
+    Parquet files there, and its metrics are computed in buckets of at most ``bucket_rows``
+    rows (default :data:`EVAL_BUCKET_ROWS`) of aircraft or tracks
+    (:func:`~tertiary.accuracy.picture_accuracy_buckets`,
+    :func:`~tertiary.picture_metrics.picture_metrics_buckets`): the same metrics, with the
+    stage's memory bounded by a bucket, not by the recording (issues 16 and 18)."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
     reference = _Reference(truth)
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
-    for picture in pictures:
+    for i, picture in enumerate(pictures):
+        where = None if spill is None or keep_matched else spill / f"picture-{i:03d}"
+        if where is not None:
+            shutil.rmtree(where, ignore_errors=True)        # an interrupted evaluation's files
         got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
-                            slim=not keep_matched)
+                            slim=not keep_matched, spill=where)
         if got is None:
             continue
         matched, expected = got
         if id_col != "track_id":
             matched = matched.rename({id_col: "track_id"})
-        seed, by_epoch, samples = picture_accuracy(
-            matched, seed_stage, cfg.accuracy,
-            observed if observed is not None else expected.select("run", "epoch", "truth_id"))
-        if surveillance:
-            parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
-                                                    radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
+        seen = observed if observed is not None else expected.select("run", "epoch", "truth_id")
+        if isinstance(matched, pl.LazyFrame):
+            k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
+            seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen, buckets=k)
+            if surveillance:
+                parts["metrics"].append(picture_metrics_buckets(
+                    matched.select(_metric_columns(matched)), expected=expected, radar_xy=radar_xy,
+                    breakdown=breakdown, cfg=cfg.metrics, buckets=k))
+        else:
+            seed, by_epoch, samples = picture_accuracy(matched, seed_stage, cfg.accuracy, seen)
+            if surveillance:
+                parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
+                                                        radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
         parts["metrics"].append(seed)
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)
         if id_map:
-            parts["id_map"].append(matched.select(
-                "run", "method", "epoch", pl.col("track_id").alias(id_col),
-                pl.coalesce("truth_id", "gated_truth_id").alias("truth_id")))
+            ids = matched.select("run", "method", "epoch", pl.col("track_id").alias(id_col),
+                                 pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
+            parts["id_map"].append(ids.collect() if isinstance(ids, pl.LazyFrame) else ids)
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
         # released before the next picture is matched: two pictures' rows are never held at once
         del got, matched, expected, seed, by_epoch, samples
+        if where is not None:
+            shutil.rmtree(where, ignore_errors=True)
 
     def cat(k: str, none: pl.DataFrame) -> pl.DataFrame:
         return pl.concat(parts[k], how="diagonal_relaxed") if parts[k] else none

@@ -1262,7 +1262,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         elif scratch is not None:
             reference = write_reference(ing.truth, scratch / "reference.parquet")
             ing.truth = ing.truth.clear()
-        ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, observed, reference, ing, ds)
+        ev_fused, ev_tracks = _score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
+                                              None if scratch is None else scratch / "evaluation")
         del observed
         if scratch is not None:
             release_memory()
@@ -1437,17 +1438,19 @@ def _observed(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFrame:
 
 
 def _score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
-                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset
-                    ) -> tuple[Evaluation, Evaluation]:
+                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
+                    spill: Path | None = None) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
     aircraft covered at the epochs it had a report (``observed``). Pictures are read one at a
-    time; ``reference``: the truth, or its reference file (:func:`write_reference`)."""
+    time; ``reference``: the truth, or its reference file (:func:`write_reference`); ``spill``: a
+    scratch directory where a picture of several blocks is matched to disk and scored in
+    buckets (:func:`tertiary.evaluation.evaluate_each`)."""
     from tertiary.requirements import example_path, load_requirements
     reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
-              keep_matched=False, surveillance=cfg.evaluation)
+              keep_matched=False, surveillance=cfg.evaluation, spill=spill)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     # the id map of the safety picture only: the alert scoring reads no other (memory)
     safety_ids = _safety_names(cfg, fused, tracks)[1] if cfg.safety else None

@@ -289,6 +289,36 @@ def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
         assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-12, abs_tol=1e-12)
 
 
+def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(small, tmp_path, monkeypatch):
+    """A long picture is matched to Parquet files block by block and its metrics computed in
+    buckets of aircraft or tracks (``spill``, issues 16 and 18: the stage's memory bounded by a
+    bucket). On a tracker picture in blocks, with buckets of 150, 400 and 10 000 rows, every
+    output equals the in-memory path's and the spill directory is left empty. Fails if the
+    spilled blocks lose or repeat rows, or if the buckets are not combined exactly."""
+    from tertiary import evaluation
+    root, ds, files = small
+    picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
+    kw = dict(radars=ds.radars, frame=ds.origin, requirements=load_requirements(example_path()),
+              keep_matched=False)
+    edges = picture["epoch"].unique().sort().gather_every(13)
+    cut = picture.join(pl.DataFrame({"epoch": edges, "__b": range(len(edges))}), on="epoch", how="left").sort("epoch")
+    parts = [p.drop("__b") for p in cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
+             .partition_by("__b", maintain_order=True)]
+    want = evaluate_each([iter(parts)], ds.truth, **kw)
+    calls = []
+    real = evaluation.picture_accuracy_buckets
+    monkeypatch.setattr(evaluation, "picture_accuracy_buckets",
+                        lambda *a, **k: calls.append(k["buckets"]) or real(*a, **k))
+    for rows in (150, 400, 10_000):
+        got = evaluate_each([iter(parts)], ds.truth, spill=tmp_path / "spill", bucket_rows=rows, **kw)
+        for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
+            a, b = getattr(got, name), getattr(want, name)
+            assert a.columns == b.columns, name
+            assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
+        assert not list((tmp_path / "spill").glob("*/*"))
+    assert calls == [-(-picture.height // 150), -(-picture.height // 400), 1] and calls[0] > 3
+
+
 def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     """The association rows are labelled with their reports' aircraft a block of rows at a time
     (issue 16, memory). With blocks of 4 rows over 37 rows (reports seen by two radars, clutter,
