@@ -24,13 +24,15 @@ Public API (the CLI is a thin layer over these):
 import os as _os
 import sys as _sys
 
-#: polars' allocator (jemalloc, prefix ``_rjem_``) keeps the pages a stage frees for 0.5 s
-#: (dirty) and 1 s more (muzzy), polars' own setting: a stage that allocates while the last
-#: one's pages wait stands on them (a 12 h terminal-area finalize: 1 457 -> 1 212 MiB with them
-#: handed back at once). polars appends this variable to its setting when it loads, and jemalloc
-#: reads the result once: set before any import of polars, unless the environment sets it.
+#: polars' allocator (jemalloc, prefix ``_rjem_``) purges a freed page after 0.5 s (dirty
+#: decay, polars' own setting) but then only advises the kernel it may take it (muzzy decay,
+#: 1 s): such pages stay in the resident set, so a stage stood on the last ones' pages. Muzzy
+#: decay 0 hands them back when purged (12 h terminal-area production run: peak 1 240 -> 1 185
+#: MiB, 112 -> 104 s wall; dirty decay 0 too: 1 093 MiB but 158 s). polars appends this variable
+#: to its own setting when it loads, and jemalloc reads the result once: set before any import
+#: of polars, unless the environment sets it.
 if "polars" not in _sys.modules:
-    _os.environ.setdefault("_RJEM_MALLOC_CONF", "dirty_decay_ms:0,muzzy_decay_ms:0")
+    _os.environ.setdefault("_RJEM_MALLOC_CONF", "muzzy_decay_ms:0")
 
 from tertiary import accuracy, align, altitude, associate, bound, centralized, geo  # noqa: E402
 from tertiary.align import AlignConfig
