@@ -169,6 +169,35 @@ def test_terminal_area_streams_in_blocks(tmp_path, monkeypatch):
     assert lengths and max(lengths) <= 600 + 12 + 2 + 1
 
 
+def test_a_window_is_released_before_the_next_is_made(monkeypatch):
+    """A streamed simulation does not hold the last window's tables while it makes the next
+    one (issue 16 item 4: beside the next one's, they doubled a national day's peak-hour
+    windows). With the consumer done with window k, its reports and truth are gone when window
+    k + 1's first block is observed. Fails if the generator keeps them bound until the next
+    window's names are bound again."""
+    import gc
+    import importlib
+    import weakref
+    sim = importlib.import_module("tertiary.simulate")     # the package, not the function
+    cfg = _small_terminal()
+    alive: list[bool] = []
+    last: list[weakref.ref] = []
+    real = sim._observe_block
+
+    def spy(*args, **kwargs):
+        gc.collect()
+        alive.extend(r() is not None for r in last)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(sim, "_observe_block", spy)
+    _, _, windows = simulate_windows(cfg, 600.0)
+    n = 0
+    for w in windows:
+        last[:] = [weakref.ref(w.reports), weakref.ref(w.truth)]
+        n += 1
+        del w
+    assert n >= 2 and len(alive) >= 2 and not any(alive)
+
+
 def test_terminal_area_data_do_not_depend_on_the_window(tmp_path):
     """Window by window (600 s, 1 200 s) equals the one-window simulation: same rows, track
     numbers, truth ids, EHS columns and flight plans; estimates to round-off."""
