@@ -21,7 +21,8 @@ thresholds, STCA performance against real losses of separation and accuracy-vers
 
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, AlertConfig, alert_episodes,
                            compare_at_equal_nuisance, loss_of_separation, los_episodes, score_alerts,
-                           separation_intervals, stca_tables, stca_tradeoff, tradeoff_metrics, truth_heights, truth_intervals)
+                           separation_intervals, stca_tables, stca_tables_by_picture, stca_tradeoff, tradeoff_metrics,
+                           truth_heights, truth_intervals)
 from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacity_from_metrics,
                              conflict_radius, nmax_seed, nmax_sound, p_np, p_pij, ppob_curves, ppob_seed,
                              ppob_sound, rate_per_hour, v_ob)
@@ -42,7 +43,8 @@ __all__ = [
     "AerodromeZone", "zone_index",
     # alerts
     "AlertConfig", "score_alerts", "alert_episodes", "los_episodes", "loss_of_separation", "separation_intervals",
-    "truth_heights", "truth_intervals", "stca_tables", "stca_tradeoff", "compare_at_equal_nuisance", "tradeoff_metrics",
+    "truth_heights", "truth_intervals", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
+    "compare_at_equal_nuisance", "tradeoff_metrics",
     "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA",
     # capacity
     "SeedRisk", "v_ob", "p_pij", "p_np", "ppob_seed", "nmax_seed", "conflict_radius", "ppob_sound",

@@ -1243,7 +1243,7 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
     reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run)."""
     # imported here: `safety` builds on `tertiary` (schema), so a module-level import would be
     # circular when a program imports `safety` first
-    from safety import AlertConfig, capacity_from_metrics, stca_tables, tradeoff_metrics
+    from safety import AlertConfig, capacity_from_metrics, stca_tables_by_picture, tradeoff_metrics
     from safety.alerts import truth_intervals
 
     alerts = pl.DataFrame()
@@ -1296,8 +1296,10 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         span = truth.select(c for c in ("run", "time") if c in truth.columns)
         del truth
         release_memory()
-        safety_metrics, alerts, _los = stca_tables(conflicts, id_map, span, acfg, id_col=id_col,
-                                                    methods=methods, frame=ds.origin, intervals=intervals)
+        # a picture at a time: the same tables, with one picture's rows in the scoring's joins
+        safety_metrics, alerts, _los = stca_tables_by_picture(conflicts, id_map, span, acfg, id_col=id_col,
+                                                               methods=methods, frame=ds.origin,
+                                                               intervals=intervals)
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")

@@ -305,6 +305,33 @@ def test_metrics_names_rates_and_methods(truth):
     assert _metrics(none, "c")["missed_los"] == 1
 
 
+def test_tables_one_picture_at_a_time_equal_one_call(truth):
+    """The pipeline scores alerts a picture at a time (issue 16, memory: the full comparison's
+    14 pictures' joins at once): the metrics, alerts and LoS tables equal one call's, with an
+    id map per picture or shared, and a listed picture without alerts. Fails if a picture's
+    rows are scored against another's id map or the union is not in one call's order."""
+    from safety.alerts import stca_tables, stca_tables_by_picture
+    alerts = pl.concat([_alerts({(11, 12): [100, 105], (15, 16): [150], (13, 14): [150]}, method="b"),
+                        _alerts({(15, 16): [150], (11, 12): [104]}, method="a"),
+                        _alerts({(11, 12): [150], (13, 14): [120, 125]}, method="d"),
+                        _alerts({(13, 14): [110]}, method="a", run=1), _alerts({(11, 12): [90]}, method="b", run=1)])
+    shared = _id_map(runs=(0, 1))
+    per = pl.concat([shared.with_columns(pl.lit(m).alias("method")) for m in ("a", "b", "c", "d")])
+    # picture d's ids 11 and 12 stand for other aircraft: only its own map gives its classification
+    per = per.with_columns(pl.when((pl.col("method") == "d") & pl.col("id").is_in([11, 12]))
+                           .then(pl.col("truth_id") + 4).otherwise(pl.col("truth_id")).alias("truth_id"))
+    for ids in (shared, per):
+        for methods in (None, ["a", "b", "c", "d"]):
+            want = stca_tables(alerts, ids, truth, CFG, methods=methods)
+            got = stca_tables_by_picture(alerts, ids, truth, CFG, methods=methods)
+            assert want[1].height == 9 and want[0].height > 10 and want[1]["run"].n_unique() == 2
+            for a, b in zip(got, want):
+                assert a.equals(b)
+    d = stca_tables(alerts, per, truth, CFG)[1].filter(pl.col("method") == "d")
+    assert d["truth_a"].to_list() != stca_tables(alerts, shared, truth, CFG)[1].filter(
+        pl.col("method") == "d")["truth_a"].to_list()
+
+
 def test_runs_shared_truth(truth):
     alerts = pl.concat([_alerts({(11, 12): [100]}, run=0), _alerts({(15, 16): [100]}, run=1)])
     m = _metrics(score_alerts(alerts, _id_map(runs=(0, 1)), truth, CFG))

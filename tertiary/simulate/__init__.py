@@ -747,6 +747,7 @@ def write_stream(cfg: ScenarioConfig, out_dir: str | Path, window_s: float | Non
             write_parquet_atomic(table, out / name / f"part-{win.index:04d}.parquet", **_ROW_GROUPS)
             entry[f"{name}_rows"] = table.height
         parts.append(entry)
+        del win, table          # not held while the next window is made (see _streamed_windows)
     if plans:
         write_parquet_atomic(pl.concat(plans), out / "flight_plans.parquet")
     write_text_atomic(out / "scenario.toml", scenario_toml(scen))
