@@ -646,8 +646,8 @@ def test_importing_tertiary_first_hands_polars_freed_pages_back_at_once():
     code = "import tertiary, os; print(os.environ['_RJEM_MALLOC_CONF'])"
     env = {k: v for k, v in os.environ.items() if k != "_RJEM_MALLOC_CONF"}
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    # after polars' own setting (whatever its defaults): the last value of an option wins
     assert got.stdout.strip().endswith(",muzzy_decay_ms:0")
-    assert got.stdout.strip().startswith("dirty_decay_ms:500")          # polars' own, then ours
     env["_RJEM_MALLOC_CONF"] = "dirty_decay_ms:250"
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip().endswith(",dirty_decay_ms:250") and "muzzy_decay_ms:0" not in got.stdout
