@@ -468,3 +468,49 @@ def test_scenario_toml_origin_off_the_globe_is_refused_even_with_origin_option(t
         read_dataset(out, origin=(-33.9, 151.2))
     toml.write_text(text)
     assert read_dataset(out, origin=(-33.9, 151.2)).scenario.origin[:2] == (-33.9, 151.2)
+
+
+def test_a_table_write_failure_in_finalize_names_write_tables(small: Dataset, tmp_path: Path, monkeypatch) -> None:
+    """The finalize's tables are written on a thread beside the whole-run stages: a write that
+    fails (here the ``fused`` table) is raised as ``write_tables``'s failure, not as the stage
+    that happened to run then, the tables after it are not written, and the run record and the
+    tables written before it are kept."""
+    from tertiary.store import RunStore as Store
+    real, written = Store.write_parts, []
+
+    def boom(self, name, parts):
+        if name == "fused":
+            raise OSError("disk full while writing fused")
+        written.append(name)
+        return real(self, name, parts)
+    monkeypatch.setattr(Store, "write_parts", boom)
+    with pytest.raises(pipeline.StageError, match="stage 'write_tables' failed .*disk full") as err:
+        pipeline.run(small, tmp_path / "run", CFG, window_s=30.0)
+    assert "while writing table 'fused'" in "".join(getattr(err.value.__cause__, "__notes__", []))
+    rec = _record(tmp_path / "run")
+    assert rec["status"] == "failed" and rec["failed_stage"] == "write_tables"
+    # written before ``fused`` in the finalize's order, and nothing after it (the failed run's
+    # tables are then written whole from the windows' parts, not part by part)
+    assert {"reports", "aligned"} <= set(written) and "tracks" not in written
+    with RunStore.open(tmp_path / "run") as st:
+        assert {"reports", "aligned"} <= set(st.tables())
+
+
+def test_the_finalize_tables_are_written_in_order_and_whole(small: Dataset) -> None:
+    """The sink receives every table once, in the order the finalize gives them, each complete,
+    whatever thread wrote it: the same tables as a sink called in the stages' own thread."""
+    got: list[tuple[str, int]] = []
+    threads = set()
+
+    def sink(name, frame):
+        import threading
+        threads.add(threading.current_thread().name)
+        rows = sum(f.height for f in frame.parts()) if isinstance(frame, pipeline.StreamedTable) else frame.height
+        got.append((name, rows))
+    res = pipeline.process(small, CFG, sink=sink, window_s=30.0)
+    names = [n for n, _ in got]
+    assert len(names) == len(set(names)) and names[-2:] == ["metrics", "accuracy_by_epoch"]
+    rows = dict(got)
+    assert rows["metrics"] == res.metrics.height and rows["tracks"] == res.tracks.height
+    assert rows["fused"] == res.fused.height and rows["reports"] == res.ingested.reports.height
+    assert all(t.startswith("finalize-sink") for t in threads)
