@@ -4,6 +4,12 @@ stitching effects against the local engine; an estimate for 8/32/128 workers fro
 per-slice times and overhead. Results: benchmarks/results/bench_dask.json.
 
     PYTHONPATH=. python benchmarks/bench_dask.py [--aircraft 60] [--duration 1200] [--slice 300] [--overlap 60]
+
+An existing dataset instead (e.g. an hour of the national day, with ``--config production``:
+one fusion method, the ``imm_sym`` tracker, no centralised reference, the STCA curves):
+
+    PYTHONPATH=. python benchmarks/bench_dask.py --dataset DIR --config production --slice 900 --overlap 120 \
+        --out benchmarks/results/bench_dask_national.json
 """
 
 from __future__ import annotations
@@ -17,12 +23,16 @@ import tempfile
 import time
 from pathlib import Path
 
+import polars as pl
+
 from tertiary import distributed as D, pipeline
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
 from tertiary.store import RunStore
 
 OUT = Path(__file__).parent / "results" / "bench_dask.json"
 CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), methods=("information",), filters=("singer",))
+CONFIGS = {"light": CFG,
+           "production": pipeline.PipelineConfig(methods=("information",), filters=("imm_sym",), centralized=False)}
 
 
 
@@ -43,7 +53,8 @@ def _tables(db: Path) -> dict:
         return {n: s.read(n) for n in ("associations", "fused", "tracks", "partitions") if n in s.tables()}
 
 
-def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, overlap_s: float) -> dict:
+def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, overlap_s: float,
+              cfg: pipeline.PipelineConfig = CFG) -> dict:
     from distributed import Client, LocalCluster
     t = time.perf_counter()
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
@@ -52,7 +63,7 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
     try:
         per_task = _overhead(client)
         t = time.perf_counter()
-        res = D.run_dask_detailed(ds_dir, out, CFG, client=client, window_s=window_s, slice_s=slice_s,
+        res = D.run_dask_detailed(ds_dir, out, cfg, client=client, window_s=window_s, slice_s=slice_s,
                                   overlap_s=overlap_s)
         wall = time.perf_counter() - t
     finally:
@@ -87,19 +98,36 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=1200.0)
     ap.add_argument("--slice", type=float, default=300.0)
     ap.add_argument("--overlap", type=float, default=60.0)
+    ap.add_argument("--dataset", type=Path, default=None, help="an existing dataset instead of a simulated one")
+    ap.add_argument("--config", choices=sorted(CONFIGS), default="light")
+    ap.add_argument("--work", type=Path, default=None, help="work directory [default: a new temporary one]")
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--day-reports", type=float, default=None,
+                    help="reports in the day of the estimate [default: 24 h at this recording's rate]")
     a = ap.parse_args()
     window_s = 60.0
-    tmp = Path(tempfile.mkdtemp(prefix="bench_dask_"))
-    cfg = load_scenario("terminal-area")
-    cfg = dataclasses.replace(cfg, duration_s=a.duration - 10.0, runs=1,
-                              traffic=dataclasses.replace(cfg.traffic, aircraft=a.aircraft))
-    ds = simulate(cfg)
-    write_dataset(ds, tmp / "ds")
-    n_reports = ds.reports.height
+    run_cfg = CONFIGS[a.config]
+    tmp = a.work or Path(tempfile.mkdtemp(prefix="bench_dask_"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    if a.dataset is None:
+        cfg = load_scenario("terminal-area")
+        cfg = dataclasses.replace(cfg, duration_s=a.duration - 10.0, runs=1,
+                                  traffic=dataclasses.replace(cfg.traffic, aircraft=a.aircraft))
+        ds = simulate(cfg)
+        write_dataset(ds, tmp / "ds")
+        ds_dir, scenario = tmp / "ds", {"kind": "terminal-area", "aircraft": a.aircraft}
+    else:
+        ds_dir = a.dataset
+        ds = read_dataset(ds_dir, lazy=True)
+        scenario = {"kind": ds.scenario.name, "dataset": str(ds_dir)}
+    lf = read_dataset(ds_dir, lazy=True).reports
+    n_reports = int(lf.select(pl.len()).collect().item())
+    span = lf.select(pl.col("time").min().alias("a"), pl.col("time").max().alias("b")).collect()
+    a.duration = (span["b"][0] - span["a"][0]).total_seconds() if a.dataset is not None else a.duration
     t = time.perf_counter()
-    local_db = pipeline.run(read_dataset(tmp / "ds", lazy=True), tmp / "local", CFG, window_s=window_s)
+    local_db = pipeline.run(read_dataset(ds_dir, lazy=True), tmp / "local", run_cfg, window_s=window_s)
     local_s = time.perf_counter() - t
-    runs = [_dask_run(tmp / "ds", tmp / f"dask{w}", w, window_s, a.slice, a.overlap) for w in (1, 2)]
+    runs = [_dask_run(ds_dir, tmp / f"dask{w}", w, window_s, a.slice, a.overlap, run_cfg) for w in (1, 2)]
     dk, lc = _tables(Path(runs[-1]["db"])), _tables(local_db)
     bounds = sorted(D._parse_utc(x) for x in dk["partitions"]["kept_from_utc"].to_list()[1:])
     effects = D.stitching_effects(dk, lc, bounds)
@@ -112,25 +140,30 @@ def main() -> None:
     day_s = 86400.0
     n_day = math.ceil(day_s / a.slice)
     rate = n_reports / a.duration                       # this recording's report rate (reports/s of data)
+    if a.day_reports:                                   # a day's mean rate (the national day's curve)
+        rate = a.day_reports / day_s
     task_day = s_per_row * rate * (a.slice + a.overlap)
     fin_day = r2["finalize_s"] / n_reports * rate * day_s
     est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day) for w in (8, 32, 128)]
     result = {
-        "window_s": window_s, "config": {"methods": list(CFG.methods), "filters": list(CFG.filters)},
-        "scenario": {"kind": "terminal-area", "aircraft": a.aircraft, "duration_s": a.duration, "reports": n_reports},
+        "window_s": window_s, "config": {"name": a.config, "methods": list(run_cfg.methods),
+                                         "filters": list(run_cfg.filters), "centralized": run_cfg.centralized,
+                                         "stca_curves": bool(run_cfg.stca_lookaheads_s)},
+        "scenario": {**scenario, "duration_s": a.duration, "reports": n_reports},
         "slice_s": a.slice, "overlap_s": a.overlap, "machine_cores": 2,
         "local": {"wall_s": local_s, "reports_per_s": n_reports / local_s},
         "dask": [{k: v for k, v in r.items() if k != "db"} | {"reports_per_s": n_reports / r["wall_s"]}
                  for r in runs],
         "speedup_2_vs_1": runs[0]["wall_s"] / runs[1]["wall_s"],
         "stitching_effects": effects,
-        "estimate_day": {"model": "24 h at this recording's report rate, slices of slice_s with overlap_s warm-up; "
+        "estimate_day": {"model": "24 h at this recording's report rate (or --day-reports over 24 h), "
+                                  "slices of slice_s with overlap_s warm-up; "
                                   "task time = measured s per input report x slice input; waves of tasks over the "
                                   "workers + scheduler round trip per task + client stitching per boundary "
                                   "(sequential) + finalize on the client (measured s per report)",
                          "slices": n_day, "task_s_per_slice": task_day, "estimates": est},
     }
-    OUT.write_text(json.dumps(result, indent=1, default=str))
+    a.out.write_text(json.dumps(result, indent=1, default=str))
     print(json.dumps({k: result[k] for k in ("local", "speedup_2_vs_1")}, indent=1))
     for r in result["dask"]:
         print(r["workers"], "workers:", f"{r['wall_s']:.1f} s", f"tasks {r['partition_task_s']}",

@@ -470,7 +470,8 @@ def test_scenario_toml_origin_off_the_globe_is_refused_even_with_origin_option(t
     assert read_dataset(out, origin=(-33.9, 151.2)).scenario.origin[:2] == (-33.9, 151.2)
 
 
-def test_a_table_write_failure_in_finalize_names_write_tables(small: Dataset, tmp_path: Path, monkeypatch) -> None:
+def test_a_table_write_failure_in_finalize_names_write_tables(small: Dataset, tmp_path: Path,
+                                                               monkeypatch) -> None:
     """The finalize's tables are written on a thread beside the whole-run stages: a write that
     fails (here the ``fused`` table) is raised as ``write_tables``'s failure, not as the stage
     that happened to run then, the tables after it are not written, and the run record and the
