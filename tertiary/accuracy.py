@@ -75,12 +75,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.buckets import file_buckets
 from tertiary.distributions import chi2_ppf
 from tertiary.schema import TABLES, TIME
 
@@ -571,8 +573,8 @@ def continuity_metrics(matched: pl.DataFrame, observed: pl.DataFrame | None, sta
     return _continuity_table(_track_counts(m), m.select("method", "run").unique(), coverage, stage)
 
 
-def _continuity_columns(matched: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
-    return matched.select("method", pl.col("run").cast(pl.UInt32), "epoch", "track_id", "truth_id")
+def _continuity_columns(matched: pl.DataFrame | pl.LazyFrame, *extra: str) -> pl.DataFrame | pl.LazyFrame:
+    return matched.select("method", pl.col("run").cast(pl.UInt32), "epoch", "track_id", "truth_id", *extra)
 
 
 def _track_counts(m: pl.DataFrame) -> pl.DataFrame:
@@ -690,8 +692,8 @@ _FFT_CELLS = 1 << 21
 
 
 def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyConfig = AccuracyConfig(),
-                             observed: pl.DataFrame | pl.LazyFrame | None = None, buckets: int = 1
-                             ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+                             observed: pl.DataFrame | pl.LazyFrame | None = None, buckets: int = 1,
+                             scratch: Path | None = None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """:func:`picture_accuracy` of ``matched.collect()`` (and ``observed`` collected), with the
     rows read ``buckets`` parts at a time, never whole: a long recording's picture (a scan of
     Parquet parts) is scored with the memory of about 1/``buckets`` of its rows, plus the
@@ -703,28 +705,38 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
     added up exactly: the (2.15) sums per (method, segment, epoch, run), the consistency sums per
     epoch and per lag (:class:`_Lags`), the counts and sets of runs; then finished by the code of
     :func:`picture_accuracy`. ``matched`` may carry the :data:`ROW_SCORES` (else each part is
-    row-scored: :func:`row_scores` is row-wise)."""
+    row-scored: :func:`row_scores` is row-wise). With a ``scratch`` directory the rows are filed
+    by bucket once (:func:`tertiary.buckets.file_buckets`) and each bucket reads its own; without,
+    each bucket filters the whole of ``matched``."""
     if buckets < 1:
         raise ValueError(f"buckets must be >= 1, got {buckets}")
     schema = matched.collect_schema()          # a scan's schema: no row is read
     wanted = (*_KEEP, *ROW_SCORES) if set(ROW_SCORES) <= set(schema.names()) else _ROW_INPUTS
     lf = matched.lazy().with_row_index(_ROW)
     cols = [_ROW, *(c for c in schema.names() if c in wanted)]
+    filed = scratch is not None and buckets > 1
+    by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks")
+                if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
     parts = _Parts()
     for k in range(buckets):
-        part = lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols).collect()
+        part = by_track[k].collect()
         if part.height:
             parts.add_tracks(part, cfg)
         del part
     if not parts.rows:
         return picture_accuracy(pl.DataFrame(), stage, cfg)
     coverage = None if observed is None else _coverage_buckets(
-        lf, observed, schema["epoch"], parts.tables["tracks"].select("method"), buckets)
+        lf, observed, schema["epoch"], parts.tables["tracks"].select("method"), buckets,
+        scratch / "aircraft" if filed else None)
     return parts.finish(stage, cfg, coverage)
 
 
 def _in_bucket(key: list[pl.Expr], buckets: int, k: int) -> pl.Expr:
-    return pl.lit(True) if buckets == 1 else pl.struct(key).hash() % buckets == k
+    return pl.lit(True) if buckets == 1 else _bucket_of(key, buckets) == k
+
+
+def _bucket_of(key: list[pl.Expr], buckets: int) -> pl.Expr:
+    return pl.struct(key).hash() % buckets
 
 
 def _track_key() -> list[pl.Expr]:
@@ -738,14 +750,29 @@ def _aircraft_key() -> list[pl.Expr]:
 
 
 def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, epoch: pl.DataType,
-                      methods: pl.DataFrame, buckets: int) -> pl.DataFrame:
-    """:func:`_coverage` of the matched rows ``lf`` with whole (run, aircraft) walked per bucket."""
+                      methods: pl.DataFrame, buckets: int, scratch: Path | None = None) -> pl.DataFrame:
+    """:func:`_coverage` of the matched rows ``lf`` with whole (run, aircraft) walked per bucket
+    (the rows filed by bucket once in ``scratch``, if given)."""
     seen = _aircraft_epochs(observed.lazy(), epoch)
+    tracked = lf.filter(pl.col("truth_id").is_not_null())
+    by_aircraft = None
+    if scratch is not None:
+        # each row's bucket as the filter below makes it: hashed before ``run`` is cast
+        src = tracked.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab"))
+        by_aircraft = [f.drop("__ab") for f in
+                       file_buckets(_continuity_columns(src, "__ab"), pl.col("__ab"), buckets, scratch)]
+    seen_by = None
+    if scratch is not None:         # the aircraft seen, cut once too
+        s = seen.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab")).collect()
+        seen_by = {k: f.drop("__ab") for (k,), f in s.partition_by("__ab", as_dict=True).items()}
+        empty = s.drop("__ab").clear()
+        del s
     counts = []
     for k in range(buckets):
-        m = _continuity_columns(lf.filter(pl.col("truth_id").is_not_null()
-                                          & _in_bucket(_aircraft_key(), buckets, k))).collect()
-        aircraft = seen.filter(_in_bucket(_aircraft_key(), buckets, k)).unique().collect()
+        m = (by_aircraft[k].collect() if by_aircraft is not None else
+             _continuity_columns(tracked.filter(_in_bucket(_aircraft_key(), buckets, k))).collect())
+        aircraft = (seen_by.get(k, empty).unique() if seen_by is not None else
+                    seen.filter(_in_bucket(_aircraft_key(), buckets, k)).unique().collect())
         counts.append(_coverage_counts(m, aircraft, methods))
         del m, aircraft
     return _coverage_table(pl.concat(counts))

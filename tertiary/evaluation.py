@@ -368,11 +368,14 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         seen = observed if observed is not None else expected.select("run", "epoch", "truth_id")
         if isinstance(matched, pl.LazyFrame):
             k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
-            seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen, buckets=k)
+            # each bucket reads its own rows, filed once beside the spilled picture (linear in
+            # the picture's rows, not rows × buckets: issue 18)
+            seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen, buckets=k,
+                                                               scratch=where / "accuracy")
             if surveillance:
                 parts["metrics"].append(picture_metrics_buckets(
                     matched.select(_metric_columns(matched)), expected=expected, radar_xy=radar_xy,
-                    breakdown=breakdown, cfg=cfg.metrics, buckets=k))
+                    breakdown=breakdown, cfg=cfg.metrics, buckets=k, scratch=where / "metrics"))
         else:
             seed, by_epoch, samples = picture_accuracy(matched, seed_stage, cfg.accuracy, seen)
             if surveillance:

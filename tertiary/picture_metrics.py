@@ -64,11 +64,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.buckets import file_buckets
 from tertiary.errors import DataError, OptionError
 
 __all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics",
@@ -591,20 +593,40 @@ class _BucketScan:
     schema: pl.Schema           # of matched
     exp_cols: tuple[str, ...]   # what is read of expected: its keys and reference (true_*) columns
     buckets: int
+    #: each bucket's tracked rows of matched and rows of expected, filed once (:meth:`filed`)
+    filed_matched: list[pl.LazyFrame] | None = None
+    filed_expected: list[pl.LazyFrame] | None = None
+
+    @classmethod
+    def filed(cls, matched: pl.LazyFrame, expected: pl.LazyFrame | None, schema: pl.Schema,
+              exp_cols: tuple[str, ...], buckets: int, scratch: Path) -> "_BucketScan":
+        """The scan with the rows filed by bucket once under ``scratch``
+        (:func:`tertiary.buckets.file_buckets`): a bucket reads its own rows only."""
+        bucket = _aircraft_bucket(schema, buckets)
+        m = file_buckets(matched.filter(pl.col("truth_id").is_not_null()), bucket, buckets, scratch / "matched")
+        e = None
+        if expected is not None:
+            src = expected.with_columns(bucket.alias("__ab")).select(*exp_cols, "__ab")
+            e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected")]
+        return cls(matched, expected, schema, exp_cols, buckets, m, e)
 
     def _where(self, k: int) -> pl.Expr | None:
         return None if self.buckets == 1 else _aircraft_bucket(self.schema, self.buckets) == k
 
     def matched(self, k: int, cols: Sequence[str]) -> pl.DataFrame:
         """Bucket ``k``'s tracked rows of ``matched``, columns ``cols`` (those it has)."""
+        names = [c for c in self.schema.names() if c in cols]
+        if self.filed_matched is not None:
+            return self.filed_matched[k].select(names).collect()
         where, tracked = self._where(k), pl.col("truth_id").is_not_null()
-        return (self.matched_lf.filter(tracked if where is None else tracked & where)
-                .select(c for c in self.schema.names() if c in cols).collect())
+        return self.matched_lf.filter(tracked if where is None else tracked & where).select(names).collect()
 
     def expected(self, k: int) -> pl.DataFrame | None:
         """Bucket ``k``'s rows of ``expected`` (None without it)."""
         if self.expected_lf is None:
             return None
+        if self.filed_expected is not None:
+            return self.filed_expected[k].collect()
         where = self._where(k)
         return (self.expected_lf if where is None else self.expected_lf.filter(where)).select(self.exp_cols).collect()
 
@@ -742,7 +764,8 @@ def _merged_buckets(scan: _BucketScan, bare: pl.DataFrame, base: pl.DataFrame, b
 
 def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | None = None,
                             radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
-                            cfg: MetricsConfig = MetricsConfig(), buckets: int = 1) -> pl.DataFrame:
+                            cfg: MetricsConfig = MetricsConfig(), buckets: int = 1,
+                            scratch: Path | None = None) -> pl.DataFrame:
     """:func:`picture_metrics` of ``matched.collect()`` (and ``expected.collect()``) with the row
     work done on one of ``buckets`` buckets of aircraft at a time (a long recording's picture is
     never held whole: memory of the stage, issue 18).
@@ -753,6 +776,8 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     Held whole: the per-track table (false tracks, picture hours; one streamed scan of five
     columns), the values the quantiles need (32 bytes an error row) and the bare expected rows
     for merged tracks, joined in a second pass with each bucket's representative tracks.
+    With a ``scratch`` directory the rows are filed by bucket once
+    (:func:`tertiary.buckets.file_buckets`); without, each bucket filters the whole input.
     """
     if buckets < 1:
         raise OptionError("must be ≥ 1", option="buckets")
@@ -765,7 +790,9 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     del real
     merge = exp_names is not None and {"true_x_m", "true_y_m"} <= set(exp_names)
     exp_cols = tuple(c for c in exp_names or () if c in ("run", "truth_id", "epoch") or c.startswith("true_"))
-    scan = _BucketScan(matched, expected, schema, exp_cols, buckets)
+    filed = scratch is not None and buckets > 1
+    scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
+            else _BucketScan(matched, expected, schema, exp_cols, buckets))
     reads = {*_ERROR_INPUTS, *_CONTINUITY_INPUTS, *(c for c in schema.names() if c.startswith("true_"))}
     out = _Partials()
     for k in range(buckets):

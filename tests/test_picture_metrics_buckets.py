@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import tempfile
+from pathlib import Path
 from datetime import datetime, timezone
 
 import numpy as np
@@ -130,7 +133,23 @@ def _check(matched: pl.DataFrame, expected: pl.DataFrame | None, buckets=BUCKETS
         got = picture_metrics_buckets(matched.lazy(), expected=None if expected is None else expected.lazy(),
                                       buckets=b, **kw)
         assert_frame_equal(got, want, check_exact=False, rel_tol=1e-9)
+        # the rows filed by bucket once (in slices of 29 rows: the slices' order kept in a bucket)
+        with tempfile.TemporaryDirectory() as tmp, _slices(29):
+            got = picture_metrics_buckets(matched.lazy(), expected=None if expected is None else expected.lazy(),
+                                          buckets=b, scratch=Path(tmp), **kw)
+        assert_frame_equal(got, want, check_exact=False, rel_tol=1e-9)
     return want
+
+
+@contextlib.contextmanager
+def _slices(rows: int):
+    """:func:`tertiary.buckets.file_buckets` reading its input ``rows`` at a time."""
+    from tertiary import buckets as B
+    keep, B.FILE_SLICE_ROWS = B.FILE_SLICE_ROWS, rows
+    try:
+        yield
+    finally:
+        B.FILE_SLICE_ROWS = keep
 
 
 def _value(metrics: pl.DataFrame, metric: str, method: str = "p", segment: str = "all") -> float:
