@@ -215,8 +215,15 @@ class _Reference:
     def between(self, t0, t1) -> pl.DataFrame:
         cols = [c for c in self.empty.columns if c in _MATCHED_REF]
         if self.path is not None:
-            # the filter runs in the reader, which keeps the rows' order: the frame's slice
-            return pl.scan_parquet(self.files).filter(between_expr(t0, t1)).select(cols).collect()
+            # the reader keeps the rows' order: the frame's slice. It takes a coarse test on the
+            # columns themselves (every row the exact one keeps passes it: its time is ≥ t0 or
+            # its next sample's is, and ≤ t1 or its previous one's is), which skips the row
+            # groups of other times; the exact test, with ``fill_null``, kept it from skipping
+            # any, so every block of a long picture read the whole reference (issue 18)
+            coarse = (((pl.col("time") >= t0) | (pl.col("__next") >= t0))
+                      & ((pl.col("time") <= t1) | (pl.col("__prev") <= t1)))
+            return (pl.scan_parquet(self.files).filter(coarse).select(*cols, *NEIGHBOUR_COLUMNS).collect()
+                    .filter(between_expr(t0, t1)).select(cols))
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice
             # copies only its own rows of the columns the matcher reads (memory, issue 16)

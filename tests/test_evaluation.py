@@ -345,3 +345,29 @@ def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     assert_frame_equal(_report_truth(assoc, truth_of), whole)
     assert_frame_equal(association_metrics(assoc, truth_of), want)
     assert whole.height == n and whole["truth_id"].null_count() < n
+
+
+def test_a_reference_file_gives_the_slices_of_the_frame(tmp_path, monkeypatch):
+    """A time slice read from a reference file (coarse test in the scan, exact one after) holds
+    the rows of the in-memory slice, in order: samples inside, the last one before and the
+    first one after each aircraft's gaps, aircraft with one sample, slices between samples."""
+    import numpy as np
+    from datetime import datetime, timedelta, timezone
+    from tertiary import evaluation as E
+    monkeypatch.setattr(E, "REFERENCE_GROUP_ROWS", 64)
+    rng = np.random.default_rng(5)
+    t0 = datetime(2021, 10, 7, 8, tzinfo=timezone.utc)
+    rows = []
+    for tid in range(1, 40):
+        times = np.sort(rng.choice(3600, size=int(rng.integers(1, 60)), replace=False))
+        rows += [(0, tid, t0 + timedelta(seconds=int(s)), float(s), 0.0, 1000.0) for s in times]
+    truth = pl.DataFrame(rows, schema={"run": pl.UInt32, "truth_id": pl.Int64, "time": pl.Datetime("us", "UTC"),
+                                       "x_m": pl.Float64, "y_m": pl.Float64, "z_m": pl.Float64},
+                         orient="row").sort("time")
+    path = E.write_reference(truth, tmp_path / "ref.parquet")
+    on_disk, in_memory = E._Reference(path), E._Reference(truth)
+    for a in list(rng.integers(0, 3700, 40)) + [0, 3599]:
+        lo = t0 + timedelta(seconds=int(a))
+        hi = lo + timedelta(seconds=int(rng.integers(0, 200)))
+        want = in_memory.between(lo, hi)
+        assert_frame_equal(on_disk.between(lo, hi), want)
