@@ -5,7 +5,7 @@ their own rows only.
 :func:`~tertiary.picture_metrics.picture_metrics_buckets` compute a spilled picture's metrics a
 bucket of whole tracks or whole aircraft at a time. Each bucket used to filter the whole spilled
 picture, so a picture of n rows in ⌈n / 150 000⌉ buckets was read that many times: quadratic in
-the recording's length (a national hour's evaluation took 64 s, three hours 270 s).
+the recording's length (three national hours' evaluation: 270.7 s before, 235.2 s after).
 :func:`file_buckets` reads the rows once, a slice at a time, and writes each slice's rows of
 bucket k to ``where/b=k/``; bucket k is then a scan of its own files, its rows in the input's
 order.
@@ -26,8 +26,8 @@ def file_buckets(lf: pl.LazyFrame, bucket: pl.Expr, buckets: int, where: Path,
                  slice_rows: int | None = None) -> list[pl.LazyFrame]:
     """``lf``'s rows in ``buckets`` lazy frames: row r goes to the frame ``bucket`` (an
     expression with values in [0, buckets)) gives it, rows kept in ``lf``'s order. ``lf`` is
-    read once, ``slice_rows`` (default :data:`FILE_SLICE_ROWS`) at a time, and filed as Parquet under ``where`` (emptied first;
-    the caller removes it)."""
+    read once, ``slice_rows`` (default :data:`FILE_SLICE_ROWS`) at a time, and filed as Parquet
+    under ``where`` (emptied first; the caller removes it)."""
     slice_rows = FILE_SLICE_ROWS if slice_rows is None else slice_rows
     shutil.rmtree(where, ignore_errors=True)
     where.mkdir(parents=True)
