@@ -4,9 +4,9 @@ values to round-off), and no bucket reads much more than its share of the rows."
 
 from __future__ import annotations
 
-import contextlib
 import math
 import tempfile
+from unittest import mock
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
@@ -15,6 +15,7 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
+from tertiary import buckets as B
 from tertiary.accuracy import ROW_SCORES, AccuracyConfig, picture_accuracy, picture_accuracy_buckets, row_scores
 
 # rows whose full covariance is null: the reference's determinant check sees NaN (it skips them)
@@ -38,21 +39,11 @@ def _check(matched: pl.DataFrame, observed: pl.DataFrame | None, cfg: AccuracyCo
     for b in buckets:
         _assert_same(picture_accuracy_buckets(matched.lazy(), "tracker", cfg, observed, buckets=b), want)
         # the rows filed by bucket once (in slices of 37 rows: the slices' order kept in a bucket)
-        with tempfile.TemporaryDirectory() as tmp, _slices(37):
+        with tempfile.TemporaryDirectory() as tmp, mock.patch.object(B, "FILE_SLICE_ROWS", 37):
             _assert_same(picture_accuracy_buckets(matched.lazy(), "tracker", cfg, observed, buckets=b,
                                                   scratch=Path(tmp)), want)
     return want
 
-
-@contextlib.contextmanager
-def _slices(rows: int):
-    """:func:`tertiary.buckets.file_buckets` reading its input ``rows`` at a time."""
-    from tertiary import buckets as B
-    keep, B.FILE_SLICE_ROWS = B.FILE_SLICE_ROWS, rows
-    try:
-        yield
-    finally:
-        B.FILE_SLICE_ROWS = keep
 
 
 # --------------------------------------------------------------------------- hand-built pictures

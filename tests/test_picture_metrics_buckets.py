@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 import tempfile
+from unittest import mock
 from pathlib import Path
 from datetime import datetime, timezone
 
@@ -14,6 +14,7 @@ import pytest
 from polars.io.plugins import register_io_source
 from polars.testing import assert_frame_equal
 
+from tertiary import buckets as filing
 from tertiary.errors import OptionError
 from tertiary.picture_metrics import MetricsConfig, _aircraft_bucket, picture_metrics, picture_metrics_buckets
 
@@ -134,22 +135,12 @@ def _check(matched: pl.DataFrame, expected: pl.DataFrame | None, buckets=BUCKETS
                                       buckets=b, **kw)
         assert_frame_equal(got, want, check_exact=False, rel_tol=1e-9)
         # the rows filed by bucket once (in slices of 29 rows: the slices' order kept in a bucket)
-        with tempfile.TemporaryDirectory() as tmp, _slices(29):
+        with tempfile.TemporaryDirectory() as tmp, mock.patch.object(filing, "FILE_SLICE_ROWS", 29):
             got = picture_metrics_buckets(matched.lazy(), expected=None if expected is None else expected.lazy(),
                                           buckets=b, scratch=Path(tmp), **kw)
         assert_frame_equal(got, want, check_exact=False, rel_tol=1e-9)
     return want
 
-
-@contextlib.contextmanager
-def _slices(rows: int):
-    """:func:`tertiary.buckets.file_buckets` reading its input ``rows`` at a time."""
-    from tertiary import buckets as B
-    keep, B.FILE_SLICE_ROWS = B.FILE_SLICE_ROWS, rows
-    try:
-        yield
-    finally:
-        B.FILE_SLICE_ROWS = keep
 
 
 def _value(metrics: pl.DataFrame, metric: str, method: str = "p", segment: str = "all") -> float:
