@@ -12,7 +12,6 @@ import pytest
 from tertiary import schema
 
 
-
 def _reference(cov: np.ndarray, limits: schema.Limits) -> np.ndarray:
     a = cov.reshape(-1, 6, 6)
     code = np.zeros(len(a), np.int8)

@@ -497,21 +497,27 @@ def test_a_table_write_failure_in_finalize_names_write_tables(small: Dataset, tm
         assert {"reports", "aligned"} <= set(st.tables())
 
 
-def test_the_finalize_tables_are_written_in_order_and_whole(small: Dataset) -> None:
+def test_the_finalize_tables_are_written_in_order_and_whole(small: Dataset, monkeypatch) -> None:
     """The sink receives every table once, in the order the finalize gives them, each complete,
-    whatever thread wrote it: the same tables as a sink called in the stages' own thread."""
-    got: list[tuple[str, int]] = []
-    threads = set()
+    from the writer thread: the same (table, rows) sequence as a sink called in the stages' own
+    thread."""
+    import threading
 
-    def sink(name, frame):
-        import threading
-        threads.add(threading.current_thread().name)
-        rows = sum(f.height for f in frame.parts()) if isinstance(frame, pipeline.StreamedTable) else frame.height
-        got.append((name, rows))
-    res = pipeline.process(small, CFG, sink=sink, window_s=30.0)
-    names = [n for n, _ in got]
-    assert len(names) == len(set(names)) and names[-2:] == ["metrics", "accuracy_by_epoch"]
-    rows = dict(got)
-    assert rows["metrics"] == res.metrics.height and rows["tracks"] == res.tracks.height
-    assert rows["fused"] == res.fused.height and rows["reports"] == res.ingested.reports.height
-    assert all(t.startswith("finalize-sink") for t in threads)
+    def run(threads: set) -> list[tuple[str, int]]:
+        got: list[tuple[str, int]] = []
+
+        def sink(name, frame):
+            threads.add(threading.current_thread().name)
+            rows = (sum(f.height for f in frame.parts()) if isinstance(frame, pipeline.StreamedTable)
+                    else frame.height)
+            got.append((name, rows))
+        pipeline.process(small, CFG, sink=sink, window_s=30.0)
+        return got
+    threaded, inline = set(), set()
+    got = run(threaded)
+    # the same finalize with each table handed over at once, in the stages' thread
+    monkeypatch.setattr(pipeline._SinkThread, "__call__", lambda self, name, frame: self.sink(name, frame))
+    want = run(inline)
+    assert got == want and len(got) == len({n for n, _ in got}) > 8
+    assert [n for n, _ in got][-2:] == ["metrics", "accuracy_by_epoch"]
+    assert threaded == {"finalize-sink_0"} and inline == {threading.main_thread().name}
