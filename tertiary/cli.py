@@ -499,6 +499,10 @@ def run(
                                                                          "(s, a multiple of --window; its outputs "
                                                                          "are discarded, ids stitched in it) "
                                                                          "[default: one window]")] = None,
+    tables: Annotated[str, typer.Option("--tables", help="database: copy the streamed tables into "
+                                                          "results.duckdb; parquet: keep them as Parquet in "
+                                                          "RUN_DIR/tables with views over them in the database "
+                                                          "(no copy: long recordings)")] = "database",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.
@@ -508,6 +512,8 @@ def run(
     window_s = _window_option(window, engine)
     if engine not in ("local", "dask"):
         raise OptionError(f"choose local or dask, got {engine!r}", option="--engine")
+    if tables not in pipeline.TABLE_MODES:
+        raise OptionError(f"choose {' or '.join(pipeline.TABLE_MODES)}, got {tables!r}", option="--tables")
     if engine == "local":
         for name, value in (("--workers", workers), ("--scheduler", scheduler), ("--slice", slice_s),
                             ("--overlap", overlap_s)):
@@ -569,11 +575,11 @@ def run(
         with _Steps("pipeline (dask)") as say:
             overlap = overlap_s if overlap_s is not None else (window_s or 120.0)
             db = run_dask(source, run_dir, cfg, workers=workers, scheduler=scheduler, window_s=window_s,
-                          slice_s=slice_s, overlap_s=overlap, progress=say)
+                          slice_s=slice_s, overlap_s=overlap, progress=say, tables=tables)
     else:
         with _Steps("pipeline") as say:
             db = pipeline.run(ds, run_dir, cfg, progress=say, window_s=window_s, resume=resume is not None,
-                              dataset_label=str(dataset) if dataset is not None else "")
+                              dataset_label=str(dataset) if dataset is not None else "", tables=tables)
     html_path = None
     if report:
         from tertiary.report import build_report

@@ -330,6 +330,10 @@ class UnionParts:
             return None
         return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
+    def part_files(self, name: str) -> list[Path]:
+        """The files of every partition's rows of ``name``, in partition and window order."""
+        return [f for i in range(self.n) for f in _files(self.out, i, "kept", name)]
+
     def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
         """Each partition's rows of ``name``, read as they are needed."""
         for i in range(self.n):
@@ -627,7 +631,8 @@ def run_dask(dataset_dir: str | Path, out_dir: str | Path, cfg: pipeline.Pipelin
              workers: int | None = None, scheduler: str | None = None, client: Any = None,
              window_s: float | None = DEFAULT_WINDOW_S, slice_s: float | None = None,
              overlap_s: float = DEFAULT_OVERLAP_S, lookahead_s: float | None = None,
-             gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None) -> Path:
+             gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None,
+             tables: str = "database") -> Path:
     """Run the job on ``dask.distributed`` and write ``out_dir/results.duckdb``; returns its path.
 
     ``client``: an existing :class:`distributed.Client`; else ``Client(scheduler)`` when an address
@@ -635,10 +640,12 @@ def run_dask(dataset_dir: str | Path, out_dir: str | Path, cfg: pipeline.Pipelin
     Partitions: every Monte-Carlo run, and with ``slice_s`` every time slice of it (warm-up
     ``overlap_s`` before each slice, ``lookahead_s`` after it: default 0 with windows — a window's
     outputs depend on no later report — else ``overlap_s``). ``window_s``: the windows each task
-    streams in (slice and overlap must be multiples of it). See the module docstring."""
+    streams in (slice and overlap must be multiples of it). ``tables="parquet"``: the
+    partitions' parts are registered in the database, not copied (:func:`tertiary.pipeline.run`).
+    See the module docstring."""
     res = run_dask_detailed(dataset_dir, out_dir, cfg, workers=workers, scheduler=scheduler, client=client,
                             window_s=window_s, slice_s=slice_s, overlap_s=overlap_s, lookahead_s=lookahead_s,
-                            gate_m=gate_m, progress=progress)
+                            gate_m=gate_m, progress=progress, tables=tables)
     return res.db
 
 
@@ -665,7 +672,8 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
                       workers: int | None = None, scheduler: str | None = None, client: Any = None,
                       window_s: float | None = DEFAULT_WINDOW_S, slice_s: float | None = None,
                       overlap_s: float = DEFAULT_OVERLAP_S, lookahead_s: float | None = None,
-                      gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None) -> DaskRun:
+                      gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None,
+                      tables: str = "database") -> DaskRun:
     """:func:`run_dask` returning what it measured (partitions, stitching, timings)."""
     from tertiary.simulate import read_dataset
     from tertiary.store import RunStore, record_run
@@ -674,6 +682,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     cfg = pipeline.check_config(cfg)
     window_s = check_window(window_s)
     out = Path(out_dir)
+    pipeline.check_tables(tables, out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -704,7 +713,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts, scores=None)
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
-        sink = pipeline.store_sink(store, notes)
+        sink = pipeline.store_sink(store, notes, tables)
 
         t = time.perf_counter()
         failure: Exception | None = None

@@ -403,6 +403,10 @@ class PartStore:
         for f in self._files(name):
             yield pl.read_parquet(f)
 
+    def part_files(self, name: str) -> list[Path]:
+        """The files of every complete window's part of ``name``, in window order."""
+        return self._files(name)
+
     def _files(self, name: str) -> list[Path]:
         files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
         return [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]

@@ -61,7 +61,7 @@ from tertiary.tracker import TrackerConfig, track_methods
 from tertiary.kernels import kernels_for
 from tertiary.kernels import warm as warm_kernels
 from tertiary.matching import neighbour_times
-from tertiary.store import RunStore, record_run
+from tertiary.store import TABLES_DIR, RunStore, record_run
 
 if TYPE_CHECKING:  # `safety` builds on `tertiary`; at run time it is imported where it is used
     from safety.conflicts import ConflictConfig
@@ -1090,18 +1090,40 @@ class StreamedTable:
     parts: Callable[[], Iterator[pl.DataFrame]]
     files: tuple[Path, ...] = ()
     drop: tuple[str, ...] = ()
+    #: the windows' Parquet parts that are exactly the table's rows in order: a sink that
+    #: registers tables (``tertiary run --tables parquet``) keeps these files instead of copying
+    parts_files: tuple[Path, ...] = ()
 
 
 def _streamed(parts, name: str, empty: pl.DataFrame) -> "StreamedTable | pl.DataFrame":
     """``name`` for a sink: its parts one at a time, or ``empty`` when no window wrote any."""
     if next(iter(parts.iter_parts(name)), None) is None:
         return empty
-    return StreamedTable(lambda: parts.iter_parts(name))
+    files = tuple(parts.part_files(name)) if hasattr(parts, "part_files") else ()
+    return StreamedTable(lambda: parts.iter_parts(name), parts_files=files)
 
 
-def store_sink(store: RunStore, notes: list[str]) -> Sink:
+#: where a run's streamed tables go: copied into the database, or kept as Parquet files beside it
+#: with views over them (:meth:`RunStore.register_parquet`)
+TABLE_MODES = ("database", "parquet")
+
+
+def check_tables(tables: str, out_dir: str | Path) -> None:
+    """``--tables``: a known mode, and a run directory DuckDB's file search path can name."""
+    if tables not in TABLE_MODES:
+        raise OptionError(f"choose {' or '.join(TABLE_MODES)}, got {tables!r}", option="--tables")
+    if tables == "parquet" and "," in str(Path(out_dir).resolve()):
+        # the search path is a comma-separated list: the views could not find their files
+        raise OptionError("the run directory's path must not contain a comma to register Parquet tables",
+                          option="--tables")
+
+
+def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> Sink:
     """The sink that writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable`
-    part by part (:meth:`RunStore.write_parts`)."""
+    part by part (:meth:`RunStore.write_parts`), or with ``tables="parquet"`` its window parts
+    registered where they are (:meth:`RunStore.register_parquet`) when they are storable as
+    they are."""
+    check_tables(tables, store.path.parent)
     def storable(frame: pl.DataFrame, name: str) -> pl.DataFrame:
         said: list[str] = []
         out = _storable(frame, name, said)
@@ -1109,9 +1131,14 @@ def store_sink(store: RunStore, notes: list[str]) -> Sink:
         return out
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        if isinstance(frame, StreamedTable) and tables == "parquet" and frame.parts_files:
+            if _storable_as_is(frame.parts_files[0], name, frame.drop):
+                store.register_parquet(name, frame.parts_files, frame.drop)
+                return
         if isinstance(frame, StreamedTable):
             # the files as they are, when no column of theirs needs making storable
-            if frame.files and _storable_as_is(frame, name) and store.write_files(name, frame.files, frame.drop):
+            if (frame.files and _storable_as_is(frame.files[0], name, frame.drop)
+                    and store.write_files(name, frame.files, frame.drop)):
                 return
             # the next window's part is read while this one is inserted
             store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
@@ -1685,9 +1712,9 @@ def _association_metrics(n_runs: int, stats, scored: pl.DataFrame | None) -> pl.
     return pl.concat([scored, counts], how="vertical_relaxed")
 
 
-def _storable_as_is(table: StreamedTable, name: str) -> bool:
-    """Whether :func:`_storable` leaves ``table``'s files' columns as they are."""
-    probe = pl.DataFrame(schema=pl.read_parquet_schema(table.files[0])).drop(table.drop, strict=False)
+def _storable_as_is(file: Path, name: str, drop: Collection[str] = ()) -> bool:
+    """Whether :func:`_storable` leaves the columns of Parquet ``file`` (but ``drop``) as they are."""
+    probe = pl.DataFrame(schema=pl.read_parquet_schema(file)).drop(drop, strict=False)
     return _storable(probe, name, []).schema == probe.schema
 
 
@@ -1731,7 +1758,7 @@ def _run_window(window_s: float | str | None, ds: Dataset, cfg: PipelineConfig) 
 
 def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
         progress: Progress | None = None, window_s: float | str | None = AUTO_WINDOW, resume: bool = False,
-        dataset_label: str = "") -> Path:
+        dataset_label: str = "", tables: str = "database") -> Path:
     """Run the job on a dataset in windows of ``window_s`` seconds (``"auto"``: sized by the
     recording's report rate, :func:`tertiary.engine.auto_window_s`; None: one window) and write
     ``out_dir/results.duckdb`` atomically.
@@ -1739,7 +1766,9 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     Each window's streamed tables are written to ``out_dir/parts`` as it completes, with the
     carried state and a manifest (:mod:`tertiary.engine`); ``resume`` continues a killed run from
     its last complete window (same configuration, window and dataset, else :class:`OptionError`).
-    The database is built at the end and the manifest marked complete. If a stage fails
+    The database is built at the end and the manifest marked complete; ``tables="parquet"``
+    keeps the streamed tables' window parts as Parquet in ``out_dir/tables`` with views over
+    them in the database instead of copying them in (:meth:`RunStore.register_parquet`). If a stage fails
     (including "no valid report left"), the database still holds every completed window's
     tables, the rejects and a run record with ``failed_stage`` and ``error``; then a
     :class:`TertiaryError` is raised (the original one, or :class:`StageError` wrapping an
@@ -1747,6 +1776,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     """
     t_wall = time.perf_counter()
     cfg = adapt_to_scenario(check_config(cfg), ds)
+    check_tables(tables, out_dir)
     # before anything reads the input (process: again, a no-op)
     warm_kernels(kernels_for(cfg.filters, bound=_truth_lazy(ds) is not None))
     window_s = _run_window(window_s, ds, cfg)
@@ -1768,8 +1798,9 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
         say(f"resuming after window {start} ({parts.manifest.get('time_done', '?')})")
     else:
         parts = PartStore.start(out, header)
+        shutil.rmtree(out / TABLES_DIR, ignore_errors=True)     # a replaced run's registered tables
     with RunStore.create(out) as store:
-        sink = store_sink(store, notes)
+        sink = store_sink(store, notes, tables)
         try:
             res = process(ds, cfg, say, sink=sink, notes=notes, window_s=window_s, parts=parts,
                           resume_state=state, start=start)
@@ -1787,6 +1818,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
             "versions": _versions(),
             "fingerprints": {k: _fingerprint_any(getattr(ds, k)) for k in ("radars", "reports", "truth")},
             "window_s": window_s,
+            "tables": tables,
         }
         if res is not None:
             res.timings["store_s"] = time.perf_counter() - t

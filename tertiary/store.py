@@ -32,6 +32,12 @@ The database is ATTACHed to a fresh in-memory connection rather than opened with
 ``duckdb.connect(path)``: DuckDB caches instances by path within a process, so a
 second ``connect`` to a replaced file would silently see the old database while
 any earlier connection to that path is still open.
+
+A table may also be *registered* rather than copied (:meth:`RunStore.register_parquet`,
+``tertiary run --tables parquet``): its Parquet files are kept in ``RUN_DIR/tables/<name>/`` and
+the database holds a view reading them in place, by a path relative to the run directory. Every
+connection made here searches the run directory for it (DuckDB's ``file_search_path``); a DuckDB
+shell opened elsewhere needs ``SET file_search_path = 'RUN_DIR'`` first.
 """
 
 from __future__ import annotations
@@ -71,6 +77,8 @@ __all__ = [
 
 DB_FILENAME = "results.duckdb"
 _ALIAS = "run"
+#: the directory of a run's registered Parquet tables (:meth:`RunStore.register_parquet`)
+TABLES_DIR = "tables"
 _NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _HELD_LOCKS: set[str] = set()
 _HELD_GUARD = threading.Lock()
@@ -200,6 +208,10 @@ def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPy
     try:
         con.execute("SET TimeZone = 'UTC'")
         con.execute("SET enable_progress_bar = false")   # the CLI draws its own progress
+        # registered tables are views over files named relative to the run directory; a relative
+        # path in a query is still found from the working directory (searched second)
+        search = ",".join((str(db_file.resolve().parent), os.getcwd()))
+        con.execute(f"SET file_search_path = {_literal(search)}")
         if not read_only:
             # a writer keeps every block it wrote in its buffer pool (default: 80 % of RAM), so
             # without a cap the process grows by the database's size (~275 MB for a 4 h
@@ -339,6 +351,11 @@ _SHARED = {"fused": (("run", "epoch", "target_id"), "method", "centralized",
                      ("n_sources", "radar_ids", "mode_s", "n_fresh", "age_s", "tentative", "alt_m", "alt_rate_mps",
                       "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps"))}
 _DIAG_UT = [0, 6, 11, 15, 18, 20]       # positions of the diagonal in a row-major 6×6 upper triangle
+
+
+def _literal(text: str) -> str:
+    """``text`` as an SQL string literal."""
+    return "'" + text.replace("'", "''") + "'"
 
 
 def _q(name: str) -> str:
@@ -697,6 +714,45 @@ class RunStore:
             return False
         return True
 
+    def register_parquet(self, name: str, files: Sequence[str | os.PathLike[str]], drop: Sequence[str] = ()) -> int:
+        """Table ``name`` as a view over the rows of the Parquet ``files`` in order (without the
+        ``drop`` columns), which are kept in ``RUN_DIR/tables/<name>/`` and read in place: nothing
+        is copied into the database (issue 18, scale: a national day's streamed tables are ~47 GB
+        of Parquet that a copy would nearly double, and the copy was a run's longest write).
+        The files are hard-linked there (copied where the file system cannot link), numbered in
+        order; a previous registration's files are replaced. Files without rows are left out
+        (an empty window may lack optional columns); the view keeps the files' column types,
+        fixed-size arrays as arrays. Returns the number of rows."""
+        import pyarrow.parquet as pq
+        if self.read_only:
+            raise PermissionError(f"{self.path} is open read-only")
+        table = f'"{validate_name(name)}"'
+        rows = [pq.ParquetFile(f).metadata.num_rows for f in files]
+        keep = [Path(f) for f, n in zip(files, rows) if n] or [Path(f) for f in files[:1]]
+        if not keep:
+            raise ValueError(f"no Parquet file to register as {name!r}")
+        dest = self.path.parent / TABLES_DIR / name
+        shutil.rmtree(dest, ignore_errors=True)
+        dest.mkdir(parents=True)
+        for i, f in enumerate(keep):
+            _link_or_copy(f, dest / f"part-{i:06d}.parquet")
+        glob = f"{TABLES_DIR}/{name}/part-*.parquet"
+        # DuckDB reads a fixed-size list from Parquet as a list: cast back to the array it was
+        fixed = {c: t for f in keep for c, t in pl.read_parquet_schema(f).items() if isinstance(t, pl.Array)}
+        scan = f"read_parquet({_literal(glob)}, union_by_name = true)"
+        cols = []
+        for c, kind, *_ in self._con.execute(f"DESCRIBE SELECT * FROM {scan}").fetchall():
+            if c in drop:
+                continue
+            t = fixed.get(c)
+            if t is not None and kind.endswith("[]"):
+                cols.append(f"CAST({_q(c)} AS {kind[:-2]}[{t.size}]) AS {_q(c)}")
+            else:
+                cols.append(_q(c))
+        self._transaction(*self._drop_statements(name),
+                          f"CREATE VIEW {table} AS SELECT {', '.join(cols)} FROM {scan}")
+        return int(sum(rows))
+
     def write_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> None:
         """:meth:`write` of the concatenation of the frames ``parts()`` yields, holding one part
         in memory at a time (a streamed table, window by window: issue 16, memory).
@@ -855,6 +911,14 @@ class RunStore:
             self._con.rollback()
             raise
         self._con.commit()
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` as a hard link to ``src`` (no space taken), a copy where linking fails."""
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
 
 
 def _copy_database(src: Path, dst: Path) -> None:
