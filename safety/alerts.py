@@ -407,7 +407,8 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
                          frame: geo.LocalFrame | None = None, max_rows: int = 50_000_000,
                          level_pairs: tuple[float, float] | None = None, merge_gap_s: float = 0.0,
                          enroute: tuple[float, float, float] | None = None,
-                         zones: Sequence[AerodromeZone] = ()) -> list[pl.DataFrame]:
+                         zones: Sequence[AerodromeZone] = (),
+                         clip_us: tuple[int, int] | None = None) -> list[pl.DataFrame]:
     """For each factor f: the merged intervals during which pairs of aircraft are within
     f·Δr_г horizontally **and** f·Δr_в vertically at the same instant, exact under linear
     motion between the union sample times (see the module docstring). ``level_pairs`` =
@@ -417,8 +418,11 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
     these minima instead (:mod:`safety.conflicts`, "En-route airspace"). ``zones``: aerodrome
     zones; a segment pair whose four ends are in one zone is not a loss (:mod:`safety.conflicts`,
     "Aerodrome zones"). Intervals of a pair at
-    most ``merge_gap_s`` apart are one episode. One frame per factor: (run, truth_a, truth_b,
-    t_start_us, t_end_us), truth_a < truth_b (run 0 without a run column)."""
+    most ``merge_gap_s`` apart are one episode. ``clip_us`` = [lo, hi) µs: only the part of each
+    segment pair's interval inside it, cut before merging (a time chunk of a long truth:
+    :func:`merge_intervals` of the chunks' frames is then the whole truth's). One frame per
+    factor: (run, truth_a, truth_b, t_start_us, t_end_us), truth_a < truth_b (run 0 without a
+    run column)."""
     tr = truth_heights(truth, frame)
     out_schema = {"run": pl.UInt32, "truth_a": pl.Int64, "truth_b": pl.Int64, "t_start_us": pl.Int64,
                   "t_end_us": pl.Int64}
@@ -438,8 +442,37 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
             f_pieces.append(got)
         del rs
     gap_us = int(round(merge_gap_s * _US))
-    return [_merge(*[np.concatenate([p[k] for p in f_pieces]) for k in range(5)], out_schema, gap_us)
+    return [_merge(*_clipped([np.concatenate([p[k] for p in f_pieces]) for k in range(5)], clip_us), out_schema,
+                   gap_us)
             if f_pieces else pl.DataFrame(schema=out_schema) for f_pieces in pieces]
+
+
+def _clipped(cols: list[NDArray], clip_us: tuple[int, int] | None) -> list[NDArray]:
+    """Pieces (run, truth_a, truth_b, start µs, end µs) cut to [lo, hi); those left empty dropped."""
+    if clip_us is None:
+        return cols
+    s, e = np.maximum(cols[3], clip_us[0]), np.minimum(cols[4], clip_us[1])
+    keep = e > s
+    return [cols[0][keep], cols[1][keep], cols[2][keep], s[keep], e[keep]]
+
+
+def merge_intervals(chunks: Sequence[tuple[pl.DataFrame, pl.DataFrame]], cfg: AlertConfig = AlertConfig()
+                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The (LoS, proximity) intervals of a truth from those of its time chunks
+    (:func:`truth_intervals` with ``clip_us`` over a partition of its time span): each pair's
+    intervals merged again by the same rule, so an episode cut at a chunk's edge is one again
+    and the result is the whole truth's (exact: a partition's pieces cover what the whole's do)."""
+    gap_us = int(round(cfg.merge_gap_s * _US))
+    out = []
+    for k in range(2):
+        frames = [c[k] for c in chunks if c[k].height]
+        if not frames:
+            out.append(chunks[0][k].clear() if chunks else pl.DataFrame())
+            continue
+        f = pl.concat(frames)
+        out.append(_merge(*(f[c].to_numpy() for c in ("run", "truth_a", "truth_b", "t_start_us", "t_end_us")),
+                          f.schema, gap_us))
+    return out[0], out[1]
 
 
 def _block_pieces(rs: dict[str, NDArray], reach_h: float, reach_v: float, dr_h_m: float, dr_v_m: float,
@@ -536,15 +569,16 @@ def _to_time(col: str, name: str) -> pl.Expr:
     return pl.col(col).cast(pl.Datetime("us", "UTC")).alias(name)
 
 
-def truth_intervals(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame: geo.LocalFrame | None = None
-                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
+def truth_intervals(truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(), frame: geo.LocalFrame | None = None,
+                    clip_us: tuple[int, int] | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(LoS intervals, proximity intervals) of the truth in the internal form of
     :func:`separation_intervals` (compute once, pass to :func:`alert_episodes` & co. as
-    ``intervals`` when scoring many pictures or settings)."""
+    ``intervals`` when scoring many pictures or settings); ``clip_us``: of a time chunk
+    (:func:`merge_intervals`)."""
     cc = cfg.conflict
     los, prox = separation_intervals(truth, cc.sep_h_m, cc.sep_v_m, (1.0, cfg.proximity_factor), frame,
                                      cfg.max_grid_rows, cfg.truth_level_pairs, cfg.merge_gap_s, _enroute(cc),
-                                     cc.aerodrome_zones)
+                                     cc.aerodrome_zones, clip_us)
     return los, prox
 
 

@@ -1369,11 +1369,14 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         _note_minima(cfg.conflicts, ing.notes)
         # the truth's LoS and proximity intervals, computed once for the alerts and every curve
         # setting (they depend on the separation minima, which the curves do not vary)
-        truth = truth_columns(_ALERT_TRUTH)
-        intervals = truth_intervals(truth, acfg, ds.origin)
-        # what the scoring reads of the truth once its intervals are made: its time span and runs
-        span = truth.select(c for c in ("run", "time") if c in truth.columns)
-        del truth
+        if truth_file is not None:
+            # an hour of truth at a time: a national day's truth held whole for them peaked at
+            # ~16 GB (issue 18, memory)
+            intervals, span = reference_intervals(truth_file, acfg, ds.origin)
+        else:
+            truth = truth_columns(_ALERT_TRUTH)
+            intervals, span = truth_intervals(truth, acfg, ds.origin), _time_span(truth)
+            del truth
         release_memory()
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
         safety_metrics, alerts, _los = stca_tables_by_picture(conflicts, id_map, span, acfg, id_col=id_col,
@@ -1459,6 +1462,58 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         aligned = align_stage.empty_aligned()
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
+
+
+#: the time chunk in which :func:`reference_intervals` reads an on-disk truth (s)
+TRUTH_CHUNK_S = 3600.0
+
+
+def _time_span(truth: "pl.DataFrame | pl.LazyFrame") -> pl.DataFrame:
+    """What the alert scoring reads of the truth besides its intervals: each run's first and
+    last sample time (``run`` and ``time``; no ``run`` column without one)."""
+    keys = ["run"] if "run" in truth.collect_schema() else []
+    ends = [truth.group_by(keys).agg(f(pl.col("time"))) if keys else truth.select(f(pl.col("time")))
+            for f in (pl.Expr.min, pl.Expr.max)]
+    out = pl.concat([e.collect() if isinstance(e, pl.LazyFrame) else e for e in ends])
+    return out.sort(*keys, "time") if keys else out.sort("time")
+
+
+def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
+    return lf.group_by("run").agg(agg) if "run" in lf.collect_schema() else lf.select(agg)
+
+
+def reference_intervals(reference: Path, acfg, frame: geo.LocalFrame, chunk_s: float = TRUTH_CHUNK_S
+                        ) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
+    """(the truth's (LoS, proximity) intervals, its :func:`_time_span`) from a reference on disk
+    (:func:`tertiary.evaluation.write_reference`), ``chunk_s`` of truth at a time, merged by
+    :func:`safety.alerts.merge_intervals`: the whole truth's. A chunk [a, b) reads every sample
+    from the last sample time before a to the first after b, and each aircraft's neighbours of
+    those: inside, the union sample grid and so the segment pairs are the whole truth's, and
+    each chunk keeps the part of its intervals in [a, b)."""
+    from safety.alerts import merge_intervals, truth_intervals
+    lf = pl.scan_parquet(reference_files(reference))
+    span = _time_span(lf)
+    cols = [c for c in _ALERT_TRUTH if c in lf.collect_schema()]
+    t = pl.col("time")
+    lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
+    step = max(int(chunk_s * US), 1)
+    chunks = []
+    for a in range(lo, hi, step):
+        b = min(a + step, hi)
+        ta, tb = (pl.lit(v, pl.Int64).cast(pl.Datetime("us", "UTC")) for v in (a, b))
+        # per run (each has its own sample grid): the earliest of the runs' last times before a,
+        # the latest of their first times from b
+        p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
+        q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
+        near = pl.lit(True)
+        if p is not None:
+            near = near & ((t >= p) | (pl.col("__next") >= p))
+        if q is not None:
+            near = near & ((t <= q) | (pl.col("__prev") <= q))
+        truth = lf.filter(near).select(cols).collect()
+        chunks.append(truth_intervals(truth, acfg, frame, clip_us=(a, b)))
+        del truth
+    return merge_intervals(chunks, acfg), span
 
 
 def _note_minima(cc: "ConflictConfig", notes: list[str]) -> None:

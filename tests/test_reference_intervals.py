@@ -1,0 +1,90 @@
+"""The truth's separation intervals from an on-disk reference, a time chunk at a time (issue 18,
+memory: a national day's truth held whole for them peaked at ~16 GB): equal to the whole
+truth's, with chunk edges anywhere, irregular sample times, several runs and the segment-end
+rules (level pairs, en-route floor, aerodrome zone) in force."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from safety import AlertConfig
+from safety.alerts import _merge, merge_intervals, truth_intervals
+from safety.conflicts import AerodromeZone, ConflictConfig
+from tertiary import pipeline
+from tertiary.evaluation import write_reference
+from tertiary.simulate import load_scenario, simulate
+
+
+@pytest.fixture(scope="module")
+def truth():
+    """Two runs of terminal traffic with designed conflicts; in each run each aircraft's samples
+    are shifted by its own fraction of a second and a third of them dropped: no two aircraft
+    share a sample time, so a chunk edge falls inside segments (the case a naive cut gets
+    wrong), and the runs' sample grids differ."""
+    cfg = load_scenario("terminal-area")
+    ds = simulate(dataclasses.replace(cfg, duration_s=600.0,
+                                      traffic=dataclasses.replace(cfg.traffic, aircraft=40, conflict_pairs=6)))
+    rng = np.random.default_rng(3)
+    ids = ds.truth["truth_id"].unique().sort()
+    runs = []
+    for run in range(2):
+        shift = pl.DataFrame({"truth_id": ids, "__us": rng.integers(1, 999_999, len(ids))})
+        t = (ds.truth.join(shift, on="truth_id")
+             .with_columns(pl.col("time") + pl.duration(microseconds=pl.col("__us")), pl.lit(run, pl.UInt32)
+                           .alias("run")).drop("__us"))
+        runs.append(t.filter(pl.Series(rng.random(t.height) > 0.33)))
+    return pl.concat(runs).sort("run", "truth_id", "time"), ds.origin
+
+
+def _config() -> AlertConfig:
+    # an en-route floor low enough to split the terminal traffic, and one aerodrome zone
+    cc = ConflictConfig(enroute_above_m=1500.0, aerodrome_zones=(AerodromeZone(0.0, 0.0),))
+    return AlertConfig(conflict=cc)
+
+
+@pytest.mark.parametrize("chunk_s", [37.3, 120.0])
+def test_chunked_intervals_equal_the_whole_truths(truth, tmp_path, chunk_s):
+    t, frame = truth
+    acfg = _config()
+    whole = truth_intervals(t, acfg, frame)
+    assert whole[0].height and whole[1].height           # losses and proximities to compare
+    ref = write_reference(t, tmp_path / "ref.parquet")
+    (los, prox), span = pipeline.reference_intervals(ref, acfg, frame, chunk_s=chunk_s)
+    assert_frame_equal(los, whole[0])
+    assert_frame_equal(prox, whole[1])
+    ends = t.group_by("run").agg(pl.col("time").min().alias("a"), pl.col("time").max().alias("b"))
+    assert span.height == 2 * ends.height
+    assert set(span["time"].to_list()) == set(ends["a"].to_list()) | set(ends["b"].to_list())
+
+
+def test_a_chunk_that_reads_only_its_own_samples_differs(truth, tmp_path, monkeypatch):
+    """The check above can fail: chunks cut without the samples before their edge lose the
+    pieces of the segments that straddle it."""
+    t, frame = truth
+    acfg = _config()
+    whole = truth_intervals(t, acfg, frame)
+    us = t["time"].dt.epoch("us")
+    lo, hi = int(us.min()), int(us.max()) + 1
+    edges = [*range(lo, hi, 45_000_000), hi]
+    chunks = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        own = t.filter(us.is_between(a, b, closed="left"))
+        chunks.append(truth_intervals(own, acfg, frame, clip_us=(a, b)))
+    naive = merge_intervals(chunks, acfg)
+    assert not (naive[1].equals(whole[1]) and naive[0].equals(whole[0]))
+
+
+def test_merge_intervals_joins_pieces_cut_at_an_edge():
+    schema = {"run": pl.UInt32, "truth_a": pl.Int64, "truth_b": pl.Int64, "t_start_us": pl.Int64,
+              "t_end_us": pl.Int64}
+    one = _merge(np.array([0]), np.array([1]), np.array([2]), np.array([0]), np.array([100]), schema)
+    cut = [(_merge(np.array([0]), np.array([1]), np.array([2]), np.array([0]), np.array([40]), schema),) * 2,
+           (_merge(np.array([0]), np.array([1]), np.array([2]), np.array([40]), np.array([100]), schema),) * 2]
+    los, prox = merge_intervals(cut, AlertConfig(merge_gap_s=0.0))
+    assert_frame_equal(los, one)
+    assert_frame_equal(prox, one)
