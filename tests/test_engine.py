@@ -178,6 +178,32 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert per_picture["len"].min() >= 3
 
 
+def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, tmp_path, monkeypatch):
+    """A run of one fusion method and one filter: its fused and tracks parts each hold one
+    picture, so finalize reads them where they are instead of regrouping them into copies
+    (issue 18: a national day's copies were ~15 GB). The same metrics, alerts and counts as the
+    in-memory run; fails if a part is skipped or the in-place reader reads other rows."""
+    copies: list[str] = []
+    monkeypatch.setattr(pl.DataFrame, "write_parquet", lambda self, f, *a, w=pl.DataFrame.write_parquet, **k:
+                        (copies.append(str(f)) if "_by_picture_" in str(f) else None) or w(self, f, *a, **k))
+    monkeypatch.setattr(pipeline, "EVAL_BLOCK_ROWS", 500)
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), centralized=False,
+                                  stca_lookaheads_s=(105.0,))
+    mem = pipeline.process(terminal, cfg, window_s=60.0)
+    made: list = []
+    monkeypatch.setattr(pipeline._OnDisk, "__init__", lambda self, *a, f=pipeline._OnDisk.__init__:
+                        f(self, *a) or made.append(self))
+    pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
+    assert not copies
+    assert {d.name for d in made} == {"fused", "tracks"} and all(d.direct for d in made)
+    with RunStore.open(tmp_path / "run") as st:
+        _same(st.read("metrics"), mem.metrics, "metrics")
+        _same(st.read("alerts"), mem.alerts, "alerts")
+        record = st.read("run")
+    rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
+    assert rows == json.loads(json.dumps(mem.counts))
+
+
 def test_empty_window_in_the_middle(terminal, terminal_whole):
     """A silence longer than a window (no report for 90 s): empty windows carry the state unchanged."""
     from datetime import timedelta
