@@ -1168,10 +1168,11 @@ def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> S
         return out
 
     def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
-        if isinstance(frame, StreamedTable) and tables == "parquet" and frame.parts_files:
-            if _storable_as_is(frame.parts_files[0], name, frame.drop):
-                store.register_parquet(name, frame.parts_files, frame.drop)
-                return
+        # the windows' parts, or files that are exactly the table (the truth's reference files)
+        own = (frame.parts_files or frame.files) if isinstance(frame, StreamedTable) else ()
+        if tables == "parquet" and own and _storable_as_is(own[0], name, frame.drop):
+            store.register_parquet(name, own, frame.drop)
+            return
         if isinstance(frame, StreamedTable):
             # the files as they are, when no column of theirs needs making storable
             if (frame.files and _storable_as_is(frame.files[0], name, frame.drop)
