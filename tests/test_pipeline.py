@@ -194,21 +194,26 @@ def test_tracks_carry_the_identity_of_their_targets():
     assert sorted(frac["method"]) == ["information", "information+singer"] and (frac["value"] > 0.95).all()
 
 
-def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch):
+@pytest.mark.parametrize("offset", [0, 10**12])
+def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch, offset):
     """An on-disk run finds which aircraft had a report aligned at each epoch a block of aligned
-    rows at a time (issue 16, memory). With blocks of 3 rows over aligned rows that repeat a
-    report (one per radar), cross block edges and include a report without an aircraft and one
-    of another run, the set equals the whole join's. Fails if a block's rows are dropped or an
-    (aircraft, epoch) seen in two blocks counts twice."""
+    rows at a time (issue 16, memory), through a table indexed by report id (issue 18, speed)
+    or, with ids too sparse for it (``offset``), a join. With blocks of 3 rows over aligned rows
+    that repeat a report (one per radar), cross block edges and include a report without an
+    aircraft, one of another run, one whose report is unknown and one of an unknown run, the set
+    equals the whole join's. Fails if a block's rows are dropped, an (aircraft, epoch) seen in
+    two blocks counts twice, or a report is looked up in another run's or another report's row."""
     monkeypatch.setattr(pipeline, "OBSERVED_BLOCK_ROWS", 3)
     from datetime import datetime, timedelta, timezone
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
-    aligned = pl.DataFrame({"run": [0, 0, 0, 0, 0, 0, 1, 0], "report_id": [1, 2, 3, 3, 4, 5, 5, 6],
-                            "epoch": [t0 + timedelta(seconds=s) for s in (0, 0, 4, 4, 4, 8, 8, 12)]},
+    aligned = pl.DataFrame({"run": [0, 0, 0, 0, 0, 0, 1, 0, 0, 3],
+                            "report_id": [offset + i for i in (1, 2, 3, 3, 4, 5, 5, 6, 99, 2)],
+                            "epoch": [t0 + timedelta(seconds=s) for s in (0, 0, 4, 4, 4, 8, 8, 12, 12, 12)]},
                            schema={"run": pl.UInt32, "report_id": pl.UInt64, "epoch": schema.TIME})
-    reports = pl.DataFrame({"run": [0] * 6 + [1], "report_id": [1, 2, 3, 4, 5, 6, 5],
+    reports = pl.DataFrame({"run": [0] * 6 + [1], "report_id": [offset + i for i in (1, 2, 3, 4, 5, 6, 5)],
                             "truth_id": [10, 11, 10, 11, None, 12, 10]},
                            schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
+    assert (pipeline._report_truth(reports) is None) == (offset > 0)
     want = (aligned.join(reports, on=["run", "report_id"], how="left").select("run", "epoch", "truth_id")
             .drop_nulls().unique())
     got = pipeline._observed(aligned, reports)
