@@ -93,10 +93,13 @@ look-ahead vary; the two threshold families compared at equal nuisance + false r
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
+import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
@@ -920,7 +923,8 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
                   fixed_est_h_m: Sequence[float] = (0.0, 150.0, 300.0, 600.0, 1200.0, 2400.0),
                   lookaheads_s: Sequence[float] | None = None,
                   warning_s: Sequence[float] = (0.0, 30.0, 60.0),
-                  intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
+                  intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None,
+                  spill: "str | os.PathLike[str] | None" = None) -> pl.DataFrame:
     """Trade-off curves of every picture of ``picture`` (a fused or track table; ``method`` names
     the picture; ``id_col`` its id column, ``map_id_col`` that of ``id_map``, default the
     same): for each look-ahead T (default: ``cfg.conflict``'s) and each point — covariance
@@ -931,14 +935,17 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     fixed_est_h_m), t_thr_s, warning_s, los_episodes, alerted_fraction, genuine_alerts,
     nuisance_alerts, false_alerts, nuisance_false_per_hour, picture_hours, n_runs. ``intervals``:
     :func:`truth_intervals` of ``truth`` when already computed (curves drawn a picture at a time).
-    Each picture's rows depend on that picture alone."""
+    ``spill``: a scratch directory where each setting's predicted rows wait for their scoring
+    on disk, so one setting's rows are held at a time (:func:`_scored_rows`). Each picture's
+    rows depend on that picture alone."""
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
     looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
     rows = []
     settings = _settings(cfg.conflict, confidences, fixed_est_h_m, looks)
-    scored = _scored_rows(picture, [cc for _, _, cc in settings], id_col, frame)
+    scored = _scored_rows(picture, [cc for _, _, cc in settings], id_col, frame, spill=spill)
     for (mode, par, cc), c in zip(settings, scored):
+        c = c() if callable(c) else c         # a spilled setting's rows, read back now
         acfg = dataclasses.replace(cfg, conflict=cc)
         alerts, los, grid = _score(c, id_map, truth, acfg, map_id_col or id_col, methods, frame, intervals)
         per = _per_method(alerts, los, grid)
@@ -966,8 +973,13 @@ CURVE_WINDOW_ROWS = 100_000
 CURVE_THREADS = min(2, os.cpu_count() or 1)
 
 
+#: the columns of predicted conflict rows the alert scoring reads
+_SCORED_CONFLICT_COLUMNS = ("alert", "run", "method", "epoch", "id_a", "id_b", "r_min_m", "dz_min_m", "t_min_s")
+
+
 def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: str, frame: geo.LocalFrame | None,
-                 window_s: float | None = None) -> list[pl.DataFrame]:
+                 window_s: float | None = None, spill: "str | os.PathLike[str] | None" = None
+                 ) -> list["pl.DataFrame | Callable[[], pl.DataFrame]"]:
     """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture`` under
     each configuration of ``cfgs``: its alert rows and one row per (run, method, epoch) (the
     epoch grid of :func:`_grid`), predicted window by window
@@ -975,7 +987,9 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     carried), so that a long picture's every screened pair is never held at once. Each window
     of the picture is cut, prepared and screened once for every configuration; the
     per-configuration work runs :data:`CURVE_THREADS` at a time. The scores equal those of the
-    whole table."""
+    whole table. With ``spill`` each window's rows of each configuration are written there and
+    a reader of each configuration's rows is returned instead (a national day's alert rows of
+    twelve settings held together outgrew 24 GB; issue 18, memory)."""
     if picture.height == 0:
         return [predict_conflicts(picture, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
@@ -989,17 +1003,37 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
 
     def scored(out: pl.DataFrame) -> pl.DataFrame:
+        # only what the scoring reads (:func:`_grid`, :func:`_alert_rows`): every setting's rows of
+        # a whole day are held until scored (a national day's 12 settings peaked at ~20 GB)
+        out = out.select([c for c in _SCORED_CONFLICT_COLUMNS if c in out.columns])
         grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
         return pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
+    dirs = None if spill is None else [Path(spill) / f"setting-{k:03d}" for k in range(len(cfgs))]
+    for d in dirs or ():
+        shutil.rmtree(d, ignore_errors=True)
+        d.mkdir(parents=True)
     with ThreadPoolExecutor(CURVE_THREADS) as pool:
-        for t0, t1 in zip(edges[:-1], edges[1:]):
+        for w, (t0, t1) in enumerate(zip(edges[:-1], edges[1:])):
             lo, hi = np.searchsorted(us, [t0, t1])
             steps = conflicts_steps(states, picture[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
                                     map_=pool.map)
             states = [state for _, state in steps]
             for k, rows in enumerate(pool.map(scored, [out for out, _ in steps])):
-                parts[k].append(rows)
-    return [pl.concat(p) for p in parts]
+                if dirs is None:
+                    parts[k].append(rows)
+                else:
+                    rows.write_parquet(dirs[k] / f"w={w:06d}.parquet", compression="lz4")
+    if dirs is None:
+        return [pl.concat(p) for p in parts]
+    return [functools.partial(_read_spilled, d) for d in dirs]
+
+
+def _read_spilled(d: Path) -> pl.DataFrame:
+    """A configuration's spilled rows (:func:`_scored_rows`) in window order; the files removed."""
+    files = sorted(d.glob("w=*.parquet"))
+    out = pl.concat([pl.read_parquet(f) for f in files])
+    shutil.rmtree(d, ignore_errors=True)
+    return out
 
 
 def compare_at_equal_nuisance(curve: pl.DataFrame, warning_s: float = 30.0, t_thr_s: float | None = None,

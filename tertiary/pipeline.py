@@ -1424,7 +1424,8 @@ def _evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, aligned: "pl.
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
-            curve = _stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals)
+            curve = _stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
+                                 None if scratch is None else scratch / "curves")
             safety_metrics = pl.concat([safety_metrics, tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     release_memory()
@@ -1754,13 +1755,15 @@ def _safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
 
 def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
                  id_map: pl.DataFrame, truth: pl.DataFrame, acfg, id_col: str, frame: geo.LocalFrame,
-                 methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame]) -> pl.DataFrame:
+                 methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame],
+                 spill: Path | None = None) -> pl.DataFrame:
     """The STCA trade-off curves of the safety picture: in one call when it is in memory, a
     picture at a time (read from disk) when the run is on disk — each picture's curve depends
-    on that picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``."""
+    on that picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``;
+    ``spill``: scratch for each setting's predicted rows (:func:`safety.stca_tradeoff`)."""
     from safety import stca_tradeoff
     kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
-              fixed_est_h_m=cfg.stca_fixed_m, intervals=intervals)
+              fixed_est_h_m=cfg.stca_fixed_m, intervals=intervals, spill=spill)
     on_disk = tracks if id_col == "track_id" else fused
     if not isinstance(on_disk, _OnDisk) or not (on_disk.pictures if id_col == "track_id" else on_disk.shown):
         picture, _ = _safety_picture(cfg, fused, tracks, [])

@@ -429,6 +429,26 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
     assert stca_tradeoff(pic, _id_map(), truth, CFG, **kw).equals(one)
 
 
+def test_curves_spilled_setting_by_setting_score_like_held_ones(truth, tmp_path, monkeypatch):
+    """With a spill directory each setting's predicted rows wait on disk and are read back one
+    setting at a time (issue 18, memory): the same rows in the same order, the same curves, and
+    nothing left behind. Fails if a window's rows go to another setting or are read out of order."""
+    import safety.alerts as alerts_mod
+    pic = _picture(truth, noise=400.0)
+    ccs = [ConflictConfig(confirm_m=3, confirm_n=4),
+           ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3)]
+    held = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0)
+    spilled = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0, spill=tmp_path / "s")
+    assert held[0].height != held[1].height
+    for rows, read in zip(held, spilled):
+        assert read().equals(rows)
+    assert not list((tmp_path / "s").rglob("*.parquet"))
+    kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(300.0,))
+    monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 15.0)
+    one = stca_tradeoff(pic, _id_map(), truth, CFG, **kw)
+    assert stca_tradeoff(pic, _id_map(), truth, CFG, spill=tmp_path / "c", **kw).equals(one)
+
+
 def test_config_validation():
     with pytest.raises(ValueError):
         AlertConfig(proximity_factor=0.9)
