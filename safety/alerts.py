@@ -99,7 +99,7 @@ import shutil
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 import polars as pl
@@ -916,7 +916,7 @@ def _settings(base: ConflictConfig, confidences, fixed_est_h_m, lookaheads_s):
     return out
 
 
-def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(),
+def stca_tradeoff(picture: "pl.DataFrame | Iterable[pl.DataFrame]", id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(),
                   id_col: str = "target_id", methods: list[str] | None = None, frame: geo.LocalFrame | None = None,
                   map_id_col: str | None = None,
                   confidences: Sequence[float] = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999),
@@ -936,8 +936,8 @@ def stca_tradeoff(picture: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     nuisance_alerts, false_alerts, nuisance_false_per_hour, picture_hours, n_runs. ``intervals``:
     :func:`truth_intervals` of ``truth`` when already computed (curves drawn a picture at a time).
     ``spill``: a scratch directory where each setting's predicted rows wait for their scoring
-    on disk, so one setting's rows are held at a time (:func:`_scored_rows`). Each picture's
-    rows depend on that picture alone."""
+    on disk, so one setting's rows are held at a time; ``picture`` may come as blocks in time
+    order (:func:`_scored_rows`). Each picture's rows depend on that picture alone."""
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
     looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
@@ -977,9 +977,9 @@ CURVE_THREADS = min(2, os.cpu_count() or 1)
 _SCORED_CONFLICT_COLUMNS = ("alert", "run", "method", "epoch", "id_a", "id_b", "r_min_m", "dz_min_m", "t_min_s")
 
 
-def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: str, frame: geo.LocalFrame | None,
-                 window_s: float | None = None, spill: "str | os.PathLike[str] | None" = None
-                 ) -> list["pl.DataFrame | Callable[[], pl.DataFrame]"]:
+def _scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence[ConflictConfig], id_col: str,
+                 frame: geo.LocalFrame | None, window_s: float | None = None,
+                 spill: "str | os.PathLike[str] | None" = None) -> list["pl.DataFrame | Callable[[], pl.DataFrame]"]:
     """What scoring reads of :func:`~safety.conflicts.predict_conflicts` of ``picture`` under
     each configuration of ``cfgs``: its alert rows and one row per (run, method, epoch) (the
     epoch grid of :func:`_grid`), predicted window by window
@@ -987,18 +987,18 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     carried), so that a long picture's every screened pair is never held at once. Each window
     of the picture is cut, prepared and screened once for every configuration; the
     per-configuration work runs :data:`CURVE_THREADS` at a time. The scores equal those of the
-    whole table. With ``spill`` each window's rows of each configuration are written there and
-    a reader of each configuration's rows is returned instead (a national day's alert rows of
-    twelve settings held together outgrew 24 GB; issue 18, memory)."""
-    if picture.height == 0:
-        return [predict_conflicts(picture, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
-    us = picture["epoch"].cast(TIME).dt.epoch("us").to_numpy()
-    order = np.argsort(us, kind="stable")
-    us = us[order]
+    whole table. ``picture`` may come as blocks in time order (each block's epochs after the
+    previous block's but its last; a block's last epoch is completed by the next block's rows):
+    the picture is then never held whole (a national day's tracker picture with its covariances
+    is ~10 GB; issue 18, memory). With ``spill`` each window's rows of each configuration are
+    written there and a reader of each configuration's rows is returned instead (a national
+    day's alert rows of twelve settings held together outgrew 24 GB)."""
+    blocks = iter([picture] if isinstance(picture, pl.DataFrame) else picture)
+    first = next(blocks, None)
+    if first is None or first.height == 0 and isinstance(picture, pl.DataFrame):
+        empty = pl.DataFrame() if first is None else first
+        return [predict_conflicts(empty, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     step = int(round((CURVE_WINDOW_S if window_s is None else window_s) * _US))
-    # a dense picture is cut finer: every setting's screened pairs of a window are held together
-    edges = np.unique(np.concatenate([np.arange(int(us[0]), int(us[-1]) + 1, step), us[::CURVE_WINDOW_ROWS],
-                                      [int(us[-1]) + 1]])).tolist()
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
 
@@ -1012,20 +1012,53 @@ def _scored_rows(picture: pl.DataFrame, cfgs: Sequence[ConflictConfig], id_col: 
     for d in dirs or ():
         shutil.rmtree(d, ignore_errors=True)
         d.mkdir(parents=True)
+    w = 0
     with ThreadPoolExecutor(CURVE_THREADS) as pool:
-        for w, (t0, t1) in enumerate(zip(edges[:-1], edges[1:])):
-            lo, hi = np.searchsorted(us, [t0, t1])
-            steps = conflicts_steps(states, picture[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
-                                    map_=pool.map)
-            states = [state for _, state in steps]
-            for k, rows in enumerate(pool.map(scored, [out for out, _ in steps])):
-                if dirs is None:
-                    parts[k].append(rows)
-                else:
-                    rows.write_parquet(dirs[k] / f"w={w:06d}.parquet", compression="lz4")
+        for block in _whole_epochs(first, blocks):
+            us = block["epoch"].cast(TIME).dt.epoch("us").to_numpy()
+            order = np.argsort(us, kind="stable")
+            us = us[order]
+            # a dense picture is cut finer: every setting's screened pairs of a window are held
+            # together
+            edges = np.unique(np.concatenate([np.arange(int(us[0]), int(us[-1]) + 1, step),
+                                              us[::CURVE_WINDOW_ROWS], [int(us[-1]) + 1]])).tolist()
+            for t0, t1 in zip(edges[:-1], edges[1:]):
+                lo, hi = np.searchsorted(us, [t0, t1])
+                steps = conflicts_steps(states, block[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
+                                        map_=pool.map)
+                states = [state for _, state in steps]
+                for k, rows in enumerate(pool.map(scored, [out for out, _ in steps])):
+                    if dirs is None:
+                        parts[k].append(rows)
+                    else:
+                        rows.write_parquet(dirs[k] / f"w={w:06d}.parquet", compression="lz4")
+                w += 1
+    if w == 0:                  # blocks without a row
+        for d in dirs or ():
+            shutil.rmtree(d, ignore_errors=True)
+        return [predict_conflicts(first.clear(), cfg, id_col=id_col, frame=frame) for cfg in cfgs]
     if dirs is None:
         return [pl.concat(p) for p in parts]
     return [functools.partial(_read_spilled, d) for d in dirs]
+
+
+def _whole_epochs(first: pl.DataFrame, rest: Iterator[pl.DataFrame]) -> Iterator[pl.DataFrame]:
+    """The blocks ``first``, ``*rest`` with rows, each ending on a whole epoch: the rows of a
+    block's last epoch move to the next block (a window of the prediction holds whole epochs)."""
+    held = first
+    for block in rest:
+        if block.height == 0:
+            continue
+        if held.height:
+            last = held["epoch"].max()
+            tail = held["epoch"] == last
+            if held.height > int(tail.sum()):
+                yield held.filter(~tail)
+            held = pl.concat([held.filter(tail), block], how="vertical_relaxed")
+        else:
+            held = block
+    if held.height:
+        yield held
 
 
 def _read_spilled(d: Path) -> pl.DataFrame:

@@ -1753,6 +1753,10 @@ def _safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks
     return _shown(_whole(fused)), "target_id"      # clutter-only targets never reach safety
 
 
+#: rows of an on-disk picture the STCA curves read at a time (whole windows)
+CURVE_BLOCK_ROWS = 200_000
+
+
 def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "pl.DataFrame | _OnDisk",
                  id_map: pl.DataFrame, truth: pl.DataFrame, acfg, id_col: str, frame: geo.LocalFrame,
                  methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame],
@@ -1769,15 +1773,15 @@ def _stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | _OnDisk", tracks: "
         picture, _ = _safety_picture(cfg, fused, tracks, [])
         return stca_tradeoff(picture, id_map, truth, acfg, methods=methods, **kw)
     curves = []
-    # read without the columns conflict prediction does not read either (memory)
-    pictures = (_track_pictures(tracks, _NOT_SCORED) if id_col == "track_id"
-                else _fused_pictures(fused, _NOT_SCORED))
-    for get in pictures:
-        picture = get()
-        name = picture["method"][0]
-        curves.append(stca_tradeoff(picture, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],
+    # read without the columns conflict prediction does not read either, in time blocks: a
+    # national day's tracker picture whole, with its covariances, was ~10 GB (memory, issue 18)
+    keys = on_disk.pictures if id_col == "track_id" else on_disk.shown
+    show = _as_picture if id_col == "track_id" else _shown
+    for key in keys:
+        name = "+".join(key)
+        blocks = (show(b) for b in on_disk.blocks(key, _NOT_SCORED, rows=CURVE_BLOCK_ROWS))
+        curves.append(stca_tradeoff(blocks, id_map.filter(pl.col("method") == name), truth, acfg, methods=[name],
                                     **kw))
-        del picture
         release_memory()
     curve = pl.concat(curves, how="vertical_relaxed")
     return curve.sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")

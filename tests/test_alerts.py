@@ -443,6 +443,17 @@ def test_curves_spilled_setting_by_setting_score_like_held_ones(truth, tmp_path,
     for rows, read in zip(held, spilled):
         assert read().equals(rows)
     assert not list((tmp_path / "s").rglob("*.parquet"))
+    # the picture in time blocks (an on-disk picture): an epoch cut between two blocks, an empty
+    # block; the same rows
+    pic = pic.sort("epoch", maintain_order=True)
+    cut = pic.height // 2 + 1
+    assert pic["epoch"][cut - 1] == pic["epoch"][cut]
+    blocks = [pic.slice(0, cut // 2), pic.clear(), pic.slice(cut // 2, cut - cut // 2), pic.slice(cut)]
+    by_blocks = alerts_mod._scored_rows(iter(blocks), ccs, "target_id", None, window_s=12.0)
+    whole = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0)
+    for got, rows in zip(by_blocks, whole):
+        assert got.sort(got.columns).equals(rows.sort(rows.columns))
+    assert len(alerts_mod._scored_rows(iter([pic.clear()]), ccs, "target_id", None)) == 2
     kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(300.0,))
     monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 15.0)
     one = stca_tradeoff(pic, _id_map(), truth, CFG, **kw)
