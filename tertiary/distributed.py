@@ -764,6 +764,12 @@ def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pip
     t = time.perf_counter()
     maps, stitching = stitch(Path(out), parts, gate_m) if len(parts) > 1 else ({}, pl.DataFrame())
     timings["stitch_s"] = time.perf_counter() - t
+    # each boundary's continuity as soon as it is known (a long run's log tells it before the
+    # whole-run stages end; the stitching table holds the same rows)
+    for row in stitching.iter_rows(named=True) if stitching.height else ():
+        say(f"stitched at {row['boundary_utc']}: targets {row['targets_continued']}/{row['targets']}, "
+            f"tracks {row['tracks_continued']}/{row['tracks']}, clusters {row['clusters_continued']}/"
+            f"{row['clusters']} continued")
     t = time.perf_counter()
     if maps:
         c.gather([c.submit(relabel_partition, out, i, m, pure=False) for i, m in maps.items()])
