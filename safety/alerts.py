@@ -451,7 +451,7 @@ def separation_intervals(truth: pl.DataFrame, dr_h_m: float, dr_v_m: float, fact
 
 
 def _clipped(cols: list[NDArray], clip_us: tuple[int, int] | None) -> list[NDArray]:
-    """Pieces (run, truth_a, truth_b, start µs, end µs) cut to [lo, hi); those left empty dropped."""
+    """Pieces (run, truth_a, truth_b, start µs, end µs) cut to [lo, hi); empty ones dropped."""
     if clip_us is None:
         return cols
     s, e = np.maximum(cols[3], clip_us[0]), np.minimum(cols[4], clip_us[1])
@@ -916,7 +916,8 @@ def _settings(base: ConflictConfig, confidences, fixed_est_h_m, lookaheads_s):
     return out
 
 
-def stca_tradeoff(picture: "pl.DataFrame | Iterable[pl.DataFrame]", id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig = AlertConfig(),
+def stca_tradeoff(picture: "pl.DataFrame | Iterable[pl.DataFrame]", id_map: pl.DataFrame, truth: pl.DataFrame,
+                  cfg: AlertConfig = AlertConfig(),
                   id_col: str = "target_id", methods: list[str] | None = None, frame: geo.LocalFrame | None = None,
                   map_id_col: str | None = None,
                   confidences: Sequence[float] = (0.5, 0.8, 0.9, 0.95, 0.99, 0.999),

@@ -714,10 +714,11 @@ class RunStore:
             return False
         return True
 
-    def register_parquet(self, name: str, files: Sequence[str | os.PathLike[str]], drop: Sequence[str] = ()) -> int:
+    def register_parquet(self, name: str, files: Sequence[str | os.PathLike[str]],
+                         drop: Sequence[str] = ()) -> int:
         """Table ``name`` as a view over the rows of the Parquet ``files`` in order (without the
         ``drop`` columns), which are kept in ``RUN_DIR/tables/<name>/`` and read in place: nothing
-        is copied into the database (issue 18, scale: a national day's streamed tables are ~47 GB
+        is copied into the database (issue 18, scale: a national day's streamed tables are ~50 GB
         of Parquet that a copy would nearly double, and the copy was a run's longest write).
         The files are hard-linked there (copied where the file system cannot link), numbered in
         order; a previous registration's files are replaced. Files without rows are left out
