@@ -75,8 +75,11 @@ def _time_log(path: Path) -> dict:
     wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): (\S+)", text).group(1)
     secs = sum(float(x) * 60 ** i for i, x in enumerate(reversed(wall.split(":"))))
     peak = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", text).group(1)) / 1024
+    # a process killed by a signal is reported with "Exit status: 0": its signal, negated, instead
+    signal = re.search(r"Command terminated by signal (\d+)", text)
     status = re.search(r"Exit status: (\d+)", text)
-    return {"cmd": f"(from {path.name})", "exit": int(status.group(1)) if status else None, "wall_s": round(secs, 1),
+    code = -int(signal.group(1)) if signal else int(status.group(1)) if status else None
+    return {"cmd": f"(from {path.name})", "exit": code, "wall_s": round(secs, 1),
             "tree_peak_rss_mib": round(peak, 1), "processes": [{"kind": "client", "peak_rss_mib": round(peak, 1)}]}
 
 

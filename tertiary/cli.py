@@ -512,8 +512,8 @@ def run(
     window_s = _window_option(window, engine)
     if engine not in ("local", "dask"):
         raise OptionError(f"choose local or dask, got {engine!r}", option="--engine")
-    if tables not in pipeline.TABLE_MODES:
-        raise OptionError(f"choose {' or '.join(pipeline.TABLE_MODES)}, got {tables!r}", option="--tables")
+    # before any simulation; the run directory, when not given, is made under this one
+    pipeline.check_tables(tables, out if out is not None else resume if resume is not None else Path.cwd())
     if engine == "local":
         for name, value in (("--workers", workers), ("--scheduler", scheduler), ("--slice", slice_s),
                             ("--overlap", overlap_s)):
