@@ -996,9 +996,8 @@ def _scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequenc
     day's alert rows of twelve settings held together outgrew 24 GB)."""
     blocks = iter([picture] if isinstance(picture, pl.DataFrame) else picture)
     first = next(blocks, None)
-    if first is None or first.height == 0 and isinstance(picture, pl.DataFrame):
-        empty = pl.DataFrame() if first is None else first
-        return [predict_conflicts(empty, cfg, id_col=id_col, frame=frame) for cfg in cfgs]
+    if first is None:
+        raise ValueError("_scored_rows: a picture of no block (give an empty frame instead)")
     step = int(round((CURVE_WINDOW_S if window_s is None else window_s) * _US))
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
@@ -1034,7 +1033,7 @@ def _scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequenc
                     else:
                         rows.write_parquet(dirs[k] / f"w={w:06d}.parquet", compression="lz4")
                 w += 1
-    if w == 0:                  # blocks without a row
+    if w == 0:                  # an empty picture
         for d in dirs or ():
             shutil.rmtree(d, ignore_errors=True)
         return [predict_conflicts(first.clear(), cfg, id_col=id_col, frame=frame) for cfg in cfgs]
