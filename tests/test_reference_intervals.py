@@ -88,3 +88,39 @@ def test_merge_intervals_joins_pieces_cut_at_an_edge():
     los, prox = merge_intervals(cut, AlertConfig(merge_gap_s=0.0))
     assert_frame_equal(los, one)
     assert_frame_equal(prox, one)
+
+
+def _edge_truth() -> pl.DataFrame:
+    """Three aircraft, one run, times in s from 0: A (far away) ends at 9.5 s, just before the
+    chunk edge at 10 s; B and C fly side by side 7.4 km apart (between the terminal 3 NM and the
+    en-route 5 NM) at one height, sampled at 0, 9, 11, 20 s, descending through the 1 500 m
+    en-route floor at 9.1 s. On the whole truth's sample grid the segment pair [9, 9.5] has an
+    end above the floor (en-route minima: a loss) and [9.5, 11] none (terminal minima: no loss),
+    so the loss ends at 9.5 s. A chunk from 10 s that reads only from its edge back to each
+    aircraft's previous sample misses A's 9.5 s sample, judges [9, 11] whole by the en-route
+    minima and finds a loss in [10, 11]."""
+    t0 = 1_700_000_000_000_000
+    rows = [(1, s, 50_000.0, 50_000.0, 3_000.0) for s in (0.0, 9.5)]
+    for tid, y in ((2, 0.0), (3, 7_400.0)):
+        rows += [(tid, s, 200.0 * s, y, 1_502.0 - 20.0 * (s - 9.0)) for s in (0.0, 9.0, 11.0, 20.0)]
+    f = pl.DataFrame(rows, schema={"truth_id": pl.Int64, "s": pl.Float64, "x_m": pl.Float64, "y_m": pl.Float64,
+                                   "alt_m": pl.Float64}, orient="row")
+    return (f.with_columns((pl.lit(t0) + (pl.col("s") * 1e6).cast(pl.Int64)).cast(pl.Datetime("us", "UTC"))
+                           .alias("time"), pl.lit(0.0).alias("z_m"), pl.lit(0, pl.UInt32).alias("run"))
+            .drop("s").sort("run", "truth_id", "time"))
+
+
+def test_a_chunk_reads_from_the_last_sample_before_its_edge(truth, tmp_path):
+    """The union sample grid inside a chunk is the whole truth's only when the chunk reads from
+    the last sample time before its edge (of any aircraft, here one that ends there): the
+    en-route rule judges a segment pair by its ends, so a coarser grid changes the losses."""
+    _, frame = truth
+    t = _edge_truth()
+    acfg = AlertConfig(conflict=ConflictConfig(enroute_above_m=1_500.0))
+    whole = truth_intervals(t, acfg, frame)
+    t0 = int(t["time"].dt.epoch("us").min())
+    assert whole[0].select("truth_a", "truth_b", "t_start_us", "t_end_us").rows() == [(2, 3, t0, t0 + 9_500_000)]
+    ref = write_reference(t, tmp_path / "ref.parquet")
+    (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=10.0)
+    assert_frame_equal(los, whole[0])
+    assert_frame_equal(prox, whole[1])
