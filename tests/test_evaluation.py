@@ -294,7 +294,8 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
     buckets of aircraft or tracks (``spill``, issues 16 and 18: the stage's memory bounded by a
     bucket). On a tracker picture in blocks, with buckets of 150, 400 and 10 000 rows, every
     output equals the in-memory path's and the spill directory is left empty. Fails if the
-    spilled blocks lose or repeat rows, or if the buckets are not combined exactly."""
+    spilled blocks lose or repeat rows, or if the buckets are not combined exactly; and if the
+    accuracy's filed rows are still on disk when the metrics file theirs."""
     from tertiary import evaluation
     root, ds, files = small
     picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
@@ -305,10 +306,17 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
     parts = [p.drop("__b") for p in cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
              .partition_by("__b", maintain_order=True)]
     want = evaluate_each([iter(parts)], ds.truth, **kw)
-    calls = []
+    calls, left = [], []
     real = evaluation.picture_accuracy_buckets
     monkeypatch.setattr(evaluation, "picture_accuracy_buckets",
                         lambda *a, **k: calls.append(k["buckets"]) or real(*a, **k))
+    real_metrics = evaluation.picture_metrics_buckets
+
+    def metrics(*a, **k):
+        # the accuracy's filed rows are gone before the metrics file theirs (disk peak)
+        left.extend(k["scratch"].parent.glob("accuracy/*"))
+        return real_metrics(*a, **k)
+    monkeypatch.setattr(evaluation, "picture_metrics_buckets", metrics)
     for rows in (150, 400, 10_000):
         got = evaluate_each([iter(parts)], ds.truth, spill=tmp_path / "spill", bucket_rows=rows, **kw)
         for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
@@ -317,6 +325,7 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
             assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
         assert not list((tmp_path / "spill").glob("*/*"))
     assert calls == [-(-picture.height // 150), -(-picture.height // 400), 1] and calls[0] > 3
+    assert not left
 
 
 def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
