@@ -721,7 +721,10 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         failure: Exception | None = None
         res = None
         try:
-            res = pipeline.finalize(ds, cfg, ctx, st, UnionParts(out, len(parts)), n_rows, sink=sink, notes=notes)
+            # each whole-run stage said as it starts, as the local engine does: the client's
+            # finalize is a third of a national day, and silent it looked stuck (issue 18)
+            res = pipeline.finalize(ds, cfg, ctx, st, UnionParts(out, len(parts)), n_rows, progress=say,
+                                    sink=sink, notes=notes)
         except Exception as exc:  # recorded, then re-raised
             failure = exc
         timings["finalize_s"] = time.perf_counter() - t

@@ -132,8 +132,11 @@ def long_run(tmp_path_factory):
 
 
 def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_run, tmp_path):
+    said: list[str] = []
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
-                              overlap_s=60.0)
+                              overlap_s=60.0, progress=said.append)
+    # the client's whole-run stages are said as they start, after "finalize"
+    assert said.index("finalize") < said.index("evaluation") < said.index("score_alerts"), said
     got = _tables(res.db)
     want = _tables(pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
     assert got["partitions"].height == 3 and res.stitching.height == 2
