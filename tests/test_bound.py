@@ -283,3 +283,38 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
     monkeypatch.setattr(bound._Truth, "top_speed", property(lambda self: -500.0 / 12.0))   # no motion margin
     assert illuminations(truth, radars, reports, origin).height < want.height
     monkeypatch.setattr(bound._Truth, "top_speed", tight)
+
+
+def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(monkeypatch, tmp_path):
+    """On an on-disk run the bound's truth is a scan of the reference (issue 18: the national
+    day's 79 M truth rows held whole were ~5.7 GB), read ``BOUND_READ_AIRCRAFT`` aircraft at a
+    time: the bound rows equal those of the truth in memory, and no read holds another read's
+    aircraft. Fails if a read drops or repeats aircraft, or if the scan is read whole."""
+    from types import SimpleNamespace
+
+    from tertiary import bound
+    from tertiary.evaluation import write_reference
+    origin, truth, radars, reports = _one_radar_truth()
+    many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
+                                         pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
+    scored = many.select(pl.lit("a").alias("method"), pl.lit(0, pl.UInt32).alias("run"),
+                         pl.col("time").alias("epoch"), "truth_id", pl.lit("straight").alias("seg_class"))
+    acc = pl.DataFrame({"stage": "fusion", "method": ["a"], "metric": "rmse_pos_m", "segment": "all",
+                        "value": [100.0], "n_runs": 1})
+    ds = SimpleNamespace(origin=origin, scenario=None)
+    want = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
+    scan = pl.scan_parquet(write_reference(many, tmp_path / "ref.parquet")).drop("__prev", "__next")
+    held: list[list[int]] = []
+    real = bound._truth_reads
+
+    def reads(t, ids):
+        for read, rows in real(t, ids):
+            held.append(sorted(set(rows["truth_id"].to_list())))
+            assert read.tolist() == held[-1]
+            yield read, rows
+    monkeypatch.setattr(bound, "_truth_reads", reads)
+    monkeypatch.setattr(bound, "BOUND_READ_AIRCRAFT", 2)
+    got = bound.bound_stage(ds, scan, radars, reports, scored, acc, [])
+    assert held == [[7, 8], [9]]
+    assert want.height
+    assert_frame_equal(got, want, check_exact=False, rel_tol=1e-12, abs_tol=0.0)

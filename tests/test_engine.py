@@ -159,9 +159,22 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 1_500)
     monkeypatch.setattr(pipeline, "_stream_truth", lambda *a, f=pipeline._stream_truth: streamed.append(f(*a))
                         or streamed[-1])
+    from tertiary import bound
+    bound_reads: list[tuple[bool, int]] = []         # (from a scan, aircraft) of each truth read
+
+    def truth_reads(truth, ids, f=bound._truth_reads):
+        for read, rows in f(truth, ids):
+            bound_reads.append((isinstance(truth, pl.LazyFrame), len(read)))
+            yield read, rows
+    monkeypatch.setattr(bound, "_truth_reads", truth_reads)
+    monkeypatch.setattr(bound, "BOUND_READ_AIRCRAFT", 7)
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
+    assert bound_reads == [(False, bound_reads[0][1])]
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
+    # the bound's truth read from the reference on disk, 7 aircraft at a time (issue 18)
+    assert len(bound_reads) > 2 and all(lazy and n <= 7 for lazy, n in bound_reads[1:])
+    assert sum(n for _, n in bound_reads[1:]) == bound_reads[0][1]
     assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
     with RunStore.open(tmp_path / "run") as st:
         metrics, alerts, record = st.read("metrics"), st.read("alerts"), st.read("run")
