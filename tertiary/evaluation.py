@@ -380,7 +380,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
             seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen, buckets=k,
                                                                scratch=where / "accuracy")
             # its filed rows go before the metrics file theirs: the scratch's peak is the spilled
-            # picture and one filing, not two (a national day's: 7.6 GB a picture, issue 18)
+            # picture and one filing, not two (a national day's: 7.6 GiB a picture, issue 18)
             shutil.rmtree(where / "accuracy", ignore_errors=True)
             if surveillance:
                 parts["metrics"].append(picture_metrics_buckets(

@@ -1659,8 +1659,8 @@ def _scored_blocks(blocks: Iterable[pl.DataFrame], reports: pl.DataFrame) -> Ass
     """:class:`AssociationScore` of association rows given as frames of whole epochs in time order
     (each run's), gathered to about :data:`ASSOCIATION_BLOCK_ROWS` rows and each scored with its
     reports' aircraft (:func:`_report_truth`): a run's rows read back are never held, nor joined,
-    whole. Whole at once, a national day's 67 M rows with the 34.5 M reports took the Dask
-    client to 22.6 GB and 718 s (issue 18); a step per block is what the local engine does
+    whole. Whole at once, a national day's 66.9 M rows with the 34.5 M reports took the Dask
+    client to 22 623 MiB and 718 s (issue 18); a step per block is what the local engine does
     per window, so the metrics are the same."""
     truth_of = reports.select("run", "report_id", "truth_id")
     look = _report_truth(truth_of)

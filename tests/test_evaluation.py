@@ -386,7 +386,7 @@ def test_a_reference_file_gives_the_slices_of_the_frame(tmp_path, monkeypatch):
 def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, sparse):
     """A run whose association scores were not carried (the Dask engine's relabelled rows) is
     scored from its rows read back, gathered to blocks of whole windows (issue 18: the national
-    day's rows whole took the client to 22.6 GB): the metrics equal one call on every row.
+    day's rows whole took the client to 22 623 MiB): the metrics equal one call on every row.
     Two runs, 12 epochs in 5 windows, targets that change aircraft across windows (swaps),
     clutter; blocks of at least 70 rows gather 2–3 windows. With ``sparse`` report ids
     the lookup falls back to the join. Fails if a block is scored out of order, lost or
