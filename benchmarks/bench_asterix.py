@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tertiary.asterix import codec, fast048  # noqa: E402
+from tertiary.io.asterix import codec, fast048  # noqa: E402
 
 PER_BLOCK = 40
 
@@ -87,8 +87,8 @@ def _cat021_rate(n: int) -> dict[str, float]:
     """CAT021 decode (compiled walker + numpy field reads) against libasterix, on n records made
     by repeating 600 encoded ADS-B reports."""
     import polars as pl
-    from tertiary import geo
-    from tertiary.asterix import encode, importer
+    from tertiary.core import geo
+    from tertiary.io.asterix import encode, importer
     m = 600
     rng = np.random.default_rng(2)
     truth = pl.DataFrame({
@@ -139,8 +139,8 @@ def main() -> None:
     for b in lib_blocks:
         n_lib += len([codec.ref048(r) for r in codec.parse_block(b)])   # type: ignore[union-attr]
     lib_s = time.perf_counter() - t
-    from tertiary.asterix import dataset
-    from tertiary.asterix.sites import sites_toml
+    from tertiary.io.asterix import dataset
+    from tertiary.io.asterix.sites import sites_toml
     import polars as pl
     with tempfile.TemporaryDirectory() as tmp:
         rec_file = Path(tmp) / "day.ast"

@@ -32,7 +32,7 @@ import json, time, resource, statistics
 from datetime import datetime, timedelta, timezone
 import numpy as np, polars as pl
 from safety.conflicts import ConflictConfig, candidate_pairs, height_and_rate, predict_conflicts
-from tertiary.geo import LocalFrame
+from tertiary.core.geo import LocalFrame
 FRAME = LocalFrame(48.7, 2.4, 0.0)                # heights from WGS-84 geodesy (the system origin)
 
 def traffic(n, box_m, epochs, seed=0):

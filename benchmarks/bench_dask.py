@@ -25,9 +25,10 @@ from pathlib import Path
 
 import polars as pl
 
-from tertiary import distributed as D, pipeline
+from tertiary.runtime import dask_engine as D
+from tertiary.pipeline import job as pipeline
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 OUT = Path(__file__).parent / "results" / "bench_dask.json"
 CFG = pipeline.PipelineConfig(stca_lookaheads_s=(), methods=("information",), filters=("singer",))

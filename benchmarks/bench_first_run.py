@@ -47,7 +47,7 @@ def _timings(db: Path) -> dict:
 
 def _run(data: Path, out: Path, cache: Path) -> dict:
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONHASHSEED": "0"}
-    cmd = [sys.executable, "-m", "tertiary.cli", "run", str(data), "--out", str(out), "--force", "--quiet",
+    cmd = [sys.executable, "-m", "tertiary.cli.main", "run", str(data), "--out", str(out), "--force", "--quiet",
            "--no-report", *CONFIG]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -67,7 +67,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         data = work / "ta"
-        subprocess.run([sys.executable, "-m", "tertiary.cli", "simulate", "terminal-area", "--out", str(data),
+        subprocess.run([sys.executable, "-m", "tertiary.cli.main", "simulate", "terminal-area", "--out", str(data),
                         "--aircraft", str(args.aircraft), "--duration", str(args.duration), "--quiet"],
                        check=True, capture_output=True)
         pairs = []

@@ -50,7 +50,7 @@ TARGET_MIB = {"production": 1.5 * 1024, "full": 3.0 * 1024}
 #: the child runs the CLI and, whatever its exit, prints its own peak RSS (KiB) as the last line
 _CHILD = ("import resource, runpy, sys\n"
           "sys.argv = ['tertiary'] + sys.argv[1:]\n"
-          "try:\n    runpy.run_module('tertiary.cli', run_name='__main__')\n"
+          "try:\n    runpy.run_module('tertiary.cli.main', run_name='__main__')\n"
           "except SystemExit as e:\n    code = e.code\nelse:\n    code = 0\n"
           "print('PEAK_KIB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)\n"
           "sys.exit(code or 0)\n")

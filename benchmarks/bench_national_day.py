@@ -90,7 +90,7 @@ def _size_gb(path: Path) -> float:
 
 
 def _from_db(run: Path) -> dict:
-    from tertiary.store import RunStore
+    from tertiary.store.run_store import RunStore
     with RunStore.open(run) as store:
         rec = dict(store.sql("SELECT key, value FROM run").iter_rows())
     out = {k: json.loads(rec[k]) for k in ("rows", "timings", "memory_mib") if k in rec}
@@ -109,7 +109,7 @@ def main() -> None:
     ap.add_argument("--time-log", type=Path, action="append", default=[],
                     help="a phase already run under /usr/bin/time -v (its output), recorded first")
     args = ap.parse_args()
-    cmd = [sys.executable, "-m", "tertiary.cli", "run", str(args.dataset), *PRODUCTION]
+    cmd = [sys.executable, "-m", "tertiary.cli.main", "run", str(args.dataset), *PRODUCTION]
     if args.engine == "dask":
         cmd += ["--out", str(args.out), "--engine", "dask", "--workers", str(args.workers), "--slice",
                 str(args.slice)]

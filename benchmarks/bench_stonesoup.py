@@ -14,7 +14,7 @@ with ONE rule (:func:`score`).
     ``GNNWith2DAssignment``, ``MultiMeasurementInitiator`` (2 points), ``UpdateTimeStepsDeleter``
     (``--delete-after`` s without update), ``TimeSyncFeeder`` (``--sync`` s) over a
     time-ordered reader. Stone Soup sees the plots only (no Mode C altitude, no radar tracks).
-(b) tertiary: ``tertiary.pipeline.run`` with ``information`` fusion, the ``imm_sym`` tracker,
+(b) tertiary: ``tertiary.pipeline.job.run`` with ``information`` fusion, the ``imm_sym`` tracker,
     conflicts, evaluation and the store (``--centralized`` adds the centralised reference).
 
 Conventions: Stone Soup's bearing is atan2(y, x), counter-clockwise from the x axis (east);
@@ -73,7 +73,7 @@ import polars as pl
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _util import record, run_isolated  # noqa: E402
 
-from tertiary import geo  # noqa: E402
+from tertiary.core import geo  # noqa: E402
 
 BENCH_DIR = Path(__file__).resolve().parent
 #: the scoring rule's version recorded with every run (earlier runs: the superseded rule, see score_all)
@@ -505,7 +505,7 @@ def tertiary_states(db: str, t0, system: geo.LocalFrame) -> pl.DataFrame:
     the tracks' height channel ``alt_m`` (the geodetic height of z where it is null).
     ``updated``: the track took a plot at this epoch (status ``confirmed``) AND that fused plot
     held a fresh measurement (``fused.n_fresh`` > 0): a plot that only re-extrapolates the
-    radars' tracks holds a track without updating it (tertiary.tracker). ``confirmed``: the
+    radars' tracks holds a track without updating it (tertiary.stages.tracking.tracker). ``confirmed``: the
     superseded definition (status only)."""
     import duckdb
     with duckdb.connect(db, read_only=True) as con:

@@ -1,4 +1,4 @@
-"""Run-database size: the lean layout (tertiary.store) against every table stored as given.
+"""Run-database size: the lean layout (tertiary.store.run_store) against every table stored as given.
 
 Runs the job once on a dataset (default: the default job's input, terminal-area as simulated by
 ``tertiary simulate terminal-area``), stores its tables twice — ``RunStore.create(lean=False)``
@@ -30,9 +30,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from tertiary import pipeline, sql_reports  # noqa: E402
+from tertiary.pipeline import job as pipeline
+from tertiary.store import sql_reports  # noqa: E402
 from tertiary.simulate import read_dataset  # noqa: E402
-from tertiary.store import LEAN_PREFIX, RunStore  # noqa: E402
+from tertiary.store.run_store import LEAN_PREFIX, RunStore  # noqa: E402
 
 #: float agreement allowed between the two layouts: float32 keeps ≤ 6e-8 relative on each stored
 #: value, so ≤ 0.008 m on a coordinate of 1e5 m; a derived figure (an RMSE, a minimum) moves by
@@ -52,7 +53,7 @@ def process(dataset: Path, cfg: pipeline.PipelineConfig | None = None) -> tuple[
 
 
 def store(tables: list[tuple[str, pl.DataFrame]], info: dict, run_dir: Path, lean: bool) -> Path:
-    from tertiary.store import record_run
+    from tertiary.store.run_store import record_run
     with RunStore.create(run_dir, lean=lean) as st:
         for name, frame in tables:
             st.write(name, frame)

@@ -39,9 +39,9 @@ import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
 from _util import RESULTS, record
-from tertiary.filters import make_filter
-from tertiary.filters.imm import PAPER_MU0, PAPER_OMEGAS, PAPER_TPM, model_matrices
-from tertiary.filters.singer import singer_phi, singer_q
+from tertiary.stages.tracking.filters import make_filter
+from tertiary.stages.tracking.filters.imm import PAPER_MU0, PAPER_OMEGAS, PAPER_TPM, model_matrices
+from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
 
 TAU = 4.0
 R = 50.0 ** 2
@@ -126,7 +126,7 @@ def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
     """Fused vs tracker RMSE per fusion method (and NEES, target counts) on one dataset."""
     import polars as pl
 
-    from tertiary import pipeline
+    from tertiary.pipeline import job as pipeline
     from tertiary.simulate import read_dataset
 
     ds = read_dataset(dataset)
@@ -187,7 +187,7 @@ def _same_rows(a, b) -> bool:
 
 _FIRST_RUN = """
 import resource, sys, time, numpy as np
-from tertiary.filters import make_filter
+from tertiary.stages.tracking.filters import make_filter
 f = make_filter("imm_sym", compiled=sys.argv[1] == "1")
 s = f.init(np.full((5, 3), 1e4), np.full((5, 3), 1e4))
 t = time.perf_counter()
@@ -225,10 +225,10 @@ def tracker_stage(dataset: str, filters: tuple[str, ...], reps: int = 2) -> dict
 
     import polars as pl
 
-    from tertiary import pipeline
-    from tertiary.filters.base import REGISTRY
+    from tertiary.pipeline import job as pipeline
+    from tertiary.stages.tracking.filters.base import REGISTRY
     from tertiary.simulate import read_dataset
-    from tertiary.tracker import track, track_methods
+    from tertiary.stages.tracking.tracker import track, track_methods
 
     ds = read_dataset(dataset)
     res = pipeline.process(ds, pipeline.PipelineConfig(filters=(), safety=False, centralized=False))

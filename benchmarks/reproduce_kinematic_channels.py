@@ -25,9 +25,9 @@ import time
 import numpy as np
 
 from _util import record
-from tertiary.filters import kinematic_los as los
-from tertiary.filters.kinematic import KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux
-from tertiary.filters.singer import predict_elementwise, singer_coefficients, update_elementwise
+from tertiary.stages.tracking.filters import kinematic_los as los
+from tertiary.stages.tracking.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
+from tertiary.stages.tracking.filters.singer import (predict_elementwise, singer_coefficients, update_elementwise)
 from tertiary.simulate import load_scenario
 from tertiary.simulate.ehs import ehs_parameters
 from tertiary.simulate.traffic import BIG_BOX_TURN_RATE, big_box
@@ -85,7 +85,7 @@ def measurements(traj: Trajectories, runs: int, sig_r: float, sig_ang_deg: float
 
 def run_singer(z: np.ndarray, tau: float, sig_r: float, alpha: float, sigma_m: float, v0: float = 300.0
                ) -> dict[str, np.ndarray]:
-    """The per-radar Singer range channel (printed (2.49)–(2.63), tertiary.local_tracks' kernels)."""
+    """The per-radar Singer range channel (printed (2.49)–(2.63), tertiary.sensors.local_tracks' kernels)."""
     t_n, b = z.shape
     x = np.zeros((3, b))
     x[0] = z[0]

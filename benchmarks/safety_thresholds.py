@@ -20,8 +20,8 @@ import polars as pl
 
 from _util import record
 from safety import AlertConfig, predict_conflicts, slim_conflicts, stca_tables
-from tertiary import pipeline
-from tertiary.evaluation import evaluate_pictures
+from tertiary.pipeline import job as pipeline
+from tertiary.evaluation.evaluate import evaluate_pictures
 from tertiary.simulate import load_scenario, simulate
 
 SETTINGS = [("covariance", c, mn) for c in (0.5, 0.8, 0.95) for mn in ((1, 1), (2, 3), (3, 4), (4, 5))] + \

@@ -6,7 +6,7 @@ Inputs
 * ``conflicts`` — :func:`safety.conflicts.predict_conflicts` on one or more pictures (column
   ``method`` names the picture); only ``alert`` rows are used.
 * ``id_map`` — (run, epoch, ``id_col``, truth_id[, method]): which aircraft each picture id is
-  at each epoch (the matcher's ``gated_truth_id``, :func:`tertiary.matching.match_to_reference`).
+  at each epoch (the matcher's ``gated_truth_id``, :func:`tertiary.evaluation.matching.match_to_reference`).
   Its epochs, with the alert epochs, form the picture's **epoch grid** per (run, method).
 * ``truth`` — (truth_id, time, x_m … vz_mps[, run][, alt_m]) in the system ENU frame; without
   ``run`` it is shared by all runs (Monte-Carlo). Heights: ``alt_m`` where present, else the
@@ -26,7 +26,7 @@ encounter is not a second loss: one **LoS episode** = (run, truth_a, truth_b, t_
 t_end). *Proximity* intervals are the same with both minima × the ``proximity_factor`` (1.5).
 The grid is resampled a block of consecutive union times at a time (a segment pair lies in one
 union interval, so the blocks' intervals are the whole grid's), and each block is bounded before
-it is allocated (``max_grid_rows``, :class:`tertiary.errors.ResourceError`).
+it is allocated (``max_grid_rows``, :class:`tertiary.core.errors.ResourceError`).
 
 Level pairs (``AlertConfig.level_pairs``, default on). Two aircraft in level flight at levels
 the vertical minimum apart are separated by their levels — the principle the prediction's
@@ -108,9 +108,9 @@ from scipy.spatial import cKDTree
 
 from safety.conflicts import (AerodromeZone, ConflictConfig, conflict_interval, conflicts_steps, height_and_rate,
                               init_conflict_state, predict_conflicts, zone_index)
-from tertiary import geo
-from tertiary.errors import ResourceError
-from tertiary.schema import TABLES, TIME
+from tertiary.core import geo
+from tertiary.core.errors import ResourceError
+from tertiary.contract.schema import TABLES, TIME
 
 __all__ = [
     "AlertConfig",
@@ -135,7 +135,7 @@ ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", 
                  "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
                  "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
 #: the ``alerts`` table: one row per alert episode
-ALERTS_SCHEMA: dict[str, pl.DataType] = dict(TABLES["alerts"].required)   # columns: tertiary.schema
+ALERTS_SCHEMA: dict[str, pl.DataType] = dict(TABLES["alerts"].required)   # columns: tertiary.contract.schema
 #: one row per loss-of-separation episode and picture
 LOS_SCHEMA: dict[str, pl.DataType] = {
     "run": pl.UInt32(), "method": pl.String(), "truth_a": pl.Int64(), "truth_b": pl.Int64(), "t_start": TIME,

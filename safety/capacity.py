@@ -47,7 +47,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.schema import TABLES
+from tertiary.contract.schema import TABLES
 
 __all__ = [
     "V_BC_M3",

@@ -57,7 +57,7 @@ capture/overshoot of a level-off) — the predicted height is
 (a bust in progress, or a stale selection) and rows without one keep the linear prediction.
 Where no selected level is downlinked (a Mode C-only aircraft, or a Mode S one that does not
 downlink BDS 4,0) the row's cleared level from flight data (``cleared_alt_m``,
-:mod:`tertiary.flight_data`) takes its place under the same consistency test, as real STCAs use
+:mod:`tertiary.stages.flight_data`) takes its place under the same consistency test, as real STCAs use
 the controller's CFL: the crew's selection wins where both are known (it is what the aircraft
 will do; a wrong selection is a bust).
 Δh(t) of a pair is then piecewise linear with at most three pieces (breaks at τ_i, τ_j);
@@ -210,7 +210,7 @@ pairs (zones of 4 NM, 2 000 ft) — mostly a departure at lift-off and an arriva
 Candidate search
 ----------------
 One KD-tree over all (run, epoch, method) groups at once (a fourth coordinate = group index ×
-a constant larger than any query radius, as in ``tertiary.gating``): no O(N²) loop, no dense
+a constant larger than any query radius, as in ``tertiary.stages.association.gating``): no O(N²) loop, no dense
 N×N matrix. Every track is placed at its position at the centre t_c of W (half-length T_w).
 If a pair comes within the thresholds at some t ∈ W then, horizontally,
 
@@ -265,9 +265,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from safety.confirmation import confirm_alerts
-from tertiary import geo
-from tertiary.distributions import chi2_ppf, norm_ppf
-from tertiary.schema import CLEARED_ALT_COLUMN, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN
+from tertiary.core import geo
+from tertiary.core.distributions import chi2_ppf, norm_ppf
+from tertiary.contract.schema import CLEARED_ALT_COLUMN, SELECTED_ALT_COLUMN, TABLES, TIME, TURN_RATE_COLUMN
 
 __all__ = [
     "NM_M",
@@ -333,7 +333,7 @@ def height_and_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None
     origin's up (ENU z), which tilts by ρ/R: at ρ = 100 km a level aircraft's z drops
     ρ²/2R ≈ 785 m and a level radial flight at 200 m/s shows v·ρ/R ≈ 3 m/s of false z-rate.
 
-    ``frame=None`` (no origin known): a sphere of radius :data:`tertiary.geo.EARTH_RADIUS_M`
+    ``frame=None`` (no origin known): a sphere of radius :data:`tertiary.core.geo.EARTH_RADIUS_M`
     through the origin (h measured from the origin's height; the radius of curvature varies by
     ±0.5 % with azimuth, so the height of an aircraft at ρ errs by ≤ 0.005·ρ²/2R: ≤ 9 m at
     150 km, ≤ 4 m at 100 km). Pass the scenario origin whenever it is known.
@@ -2175,7 +2175,7 @@ def _track_level_off(tracks: pl.DataFrame, cfg: ConflictConfig, h: NDArray[np.fl
     cols = [c for c in (SELECTED_ALT_COLUMN, CLEARED_ALT_COLUMN) if c in tracks.columns]
     if cfg.mode != "corrected" or not cfg.use_selected_level or not cols:
         return None
-    # the crew's selection where downlinked, else the controller's clearance (tertiary.flight_data)
+    # the crew's selection where downlinked, else the controller's clearance (tertiary.stages.flight_data)
     sel = tracks.select(pl.coalesce([pl.col(c).cast(pl.Float64).fill_nan(None) for c in cols])).to_series()
     sel = sel.fill_null(np.nan).to_numpy()
     tau = level_off_times(h, hdot, sel, from_alt, cfg.selected_level_tolerance_m)

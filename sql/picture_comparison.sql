@@ -1,5 +1,5 @@
 -- Pictures side by side (the evaluation stage, segment 'all' unless given): per picture the
--- surveillance metrics of tertiary.picture_metrics — horizontal RMS and 95th percentile, height
+-- surveillance metrics of tertiary.evaluation.picture_metrics — horizontal RMS and 95th percentile, height
 -- RMS, along- and across-track RMS, latency, probability of update, ID changes per hour, false
 -- tracks per hour, split and merged tracks, Mode S correctness — so that "ours against the
 -- existing system" is one table.

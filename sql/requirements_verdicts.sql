@@ -1,4 +1,4 @@
--- Requirements with pass/fail (tertiary.requirements): one row per requirement and picture, with
+-- Requirements with pass/fail (tertiary.evaluation.requirements): one row per requirement and picture, with
 -- the measured value, the sample size, the one-sided confidence bound and the verdict (pass, fail,
 -- or insufficient: the value meets the threshold but too few samples back it); failures first.
 -- Columns: requirement, method, metric, breakdown, op, threshold, value, bound, n_samples, verdict.

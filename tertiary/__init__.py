@@ -3,18 +3,18 @@
 Public API (the CLI is a thin layer over these):
 
 * data contract: :func:`validate`, :data:`TABLES`, :class:`SchemaError`
-* geodesy: :mod:`tertiary.geo` (WGS-84, ENU frames, radar polar, covariance propagation)
+* geodesy: :mod:`tertiary.core.geo` (WGS-84, ENU frames, radar polar, covariance propagation)
 * simulation: :func:`simulate`, :func:`load_scenario`, :func:`write_dataset`, :func:`read_dataset`
 * the radar's own secondary processing: :func:`track_reports`
 * storage: :class:`RunStore`, :func:`export_parquet`
-* stages: :func:`tertiary.align.align`, :func:`candidate_pairs`, :func:`tertiary.associate.associate`,
+* stages: :func:`tertiary.stages.align.align`, :func:`candidate_pairs`, :func:`tertiary.stages.association.associate.associate`,
   :func:`fuse`, :func:`cluster`; the one evaluation stage :func:`evaluate_pictures` (matching by
-  :func:`match_to_reference`, seed metrics in :mod:`tertiary.accuracy`), the centralised reference in
-  :mod:`tertiary.centralized`, the posterior Cramér–Rao bound in :mod:`tertiary.bound`
+  :func:`match_to_reference`, seed metrics in :mod:`tertiary.evaluation.accuracy`), the centralised reference in
+  :mod:`tertiary.stages.fusion.centralized`, the posterior Cramér–Rao bound in :mod:`tertiary.evaluation.bound`
 * radars that err: :class:`RadarTrackerConfig`, :class:`TransponderConfig` (the simulated radars'
   own association, :mod:`tertiary.simulate.radar_tracker`)
 * the batch job: :func:`run` (writes the run database window by window, resumable), :func:`process`
-  (in memory), :func:`ingest`; the windowed engine (:mod:`tertiary.engine`): :func:`stream` (the
+  (in memory), :func:`ingest`; the windowed engine (:mod:`tertiary.runtime.windows`): :func:`stream` (the
   streamed stages, each a step function ``<stage>_step(state, window) -> (outputs, state)``) and
   :func:`finalize` (the whole-run stages)
 * results: :func:`run_report` / :func:`list_reports` (the named SQL reports of ``sql/``, read-only,
@@ -34,29 +34,34 @@ import sys as _sys
 if "polars" not in _sys.modules:
     _os.environ.setdefault("_RJEM_MALLOC_CONF", "muzzy_decay_ms:0")
 
-from tertiary import accuracy, align, altitude, associate, bound, centralized, geo  # noqa: E402
-from tertiary.align import AlignConfig
-from tertiary.associate import AssociationConfig
-from tertiary.local_tracks import LocalTrackerConfig, track_reports
-from tertiary.clustering import ClusteringConfig, cluster
-from tertiary.fusion import METHODS, ConfirmState, FusionConfig, confirm_step, fuse, fuse_bar_shalom_campo, measured_plots
-from tertiary.gating import GatingConfig, candidate_pairs
-from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
-from tertiary.align import AlignState, align_step, init_align_state
-from tertiary.associate import AssociateState, AssociationStats, associate_step, init_associate_state
-from tertiary.clustering import ClusterState, cluster_step, init_cluster_state
-from tertiary.fusion import FuseState, fuse_step, init_fuse_state
-from tertiary.centralized import CentralizedState, centralized_step, init_centralized_state
-from tertiary.tracker import TrackState, init_track_state, track_step
-from tertiary.engine import PartStore, ReportSource, Window, windows
-from tertiary.pipeline import PipelineConfig, StageError, finalize, ingest, process, run, screen, stream
-from tertiary.schema import RULES, TABLES, Limits, SchemaError, UnsortedTimeWarning, contract_rules, validate
+from tertiary.evaluation import accuracy, bound
+from tertiary.stages import align
+from tertiary.stages.tracking import altitude
+from tertiary.stages.association import associate
+from tertiary.stages.fusion import centralized
+from tertiary.core import geo  # noqa: E402
+from tertiary.stages.align import AlignConfig
+from tertiary.stages.association.associate import AssociationConfig
+from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
+from tertiary.stages.clustering import ClusteringConfig, cluster
+from tertiary.stages.fusion.fuse import (METHODS, ConfirmState, FusionConfig, confirm_step, fuse, fuse_bar_shalom_campo, measured_plots)
+from tertiary.stages.association.gating import GatingConfig, candidate_pairs
+from tertiary.core.errors import DataError, OptionError, ResourceError, TertiaryError
+from tertiary.stages.align import AlignState, align_step, init_align_state
+from tertiary.stages.association.associate import (AssociateState, AssociationStats, associate_step, init_associate_state)
+from tertiary.stages.clustering import ClusterState, cluster_step, init_cluster_state
+from tertiary.stages.fusion.fuse import FuseState, fuse_step, init_fuse_state
+from tertiary.stages.fusion.centralized import CentralizedState, centralized_step, init_centralized_state
+from tertiary.stages.tracking.tracker import TrackState, init_track_state, track_step
+from tertiary.runtime.windows import PartStore, ReportSource, Window, windows
+from tertiary.pipeline.job import PipelineConfig, StageError, finalize, ingest, process, run, screen, stream
+from tertiary.contract.schema import (RULES, TABLES, Limits, SchemaError, UnsortedTimeWarning, contract_rules, validate)
 from tertiary.simulate import Dataset, check_scenario, load_scenario, read_dataset, simulate, write_dataset
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 from tertiary.simulate.config import TransponderConfig
-from tertiary.report import build_report
-from tertiary.sql_reports import list_reports, run_report
-from tertiary.store import RunStore, export_parquet
+from tertiary.report.html import build_report
+from tertiary.store.sql_reports import list_reports, run_report
+from tertiary.store.run_store import RunStore, export_parquet
 
 __version__ = "0.1.0"
 
@@ -78,17 +83,17 @@ __all__ = ["geo", "validate", "TABLES", "Limits", "SchemaError", "UnsortedTimeWa
            "init_associate_state", "ClusterState", "cluster_step", "init_cluster_state", "FuseState", "fuse_step",
            "init_fuse_state", "CentralizedState", "centralized_step", "init_centralized_state", "TrackState",
            "init_track_state", "track_step", "PartStore", "ReportSource", "Window", "windows", "stream", "finalize"]
-from tertiary.evaluation import evaluate_pictures  # noqa: E402  (after the stages it builds on)
-from tertiary.matching import MatchConfig, match_to_reference  # noqa: E402
-from tertiary.requirements import check_requirements, load_requirements  # noqa: E402
-from tertiary.fusion import ALL_METHODS  # noqa: E402
-from tertiary.collection import CollectionConfig, collect  # noqa: E402
-from tertiary.indicators import IndicatorConfig  # noqa: E402  (indicators(): tertiary.indicators)
-from tertiary.gating import bayes_threshold  # noqa: E402
-from tertiary.align import conversion_valid  # noqa: E402
-from tertiary.filters import make_range_channel  # noqa: E402
-from tertiary.flight_data import check_flight_plans  # noqa: E402
-from tertiary.flight_data import correlate as correlate_flight_plans  # noqa: E402
-from tertiary.flight_data import DepartureConfig  # noqa: E402
-from tertiary.flight_data import departure_step as correlate_departures  # noqa: E402
-from tertiary.pipeline import adapt_to_scenario  # noqa: E402
+from tertiary.evaluation.evaluate import evaluate_pictures  # noqa: E402  (after the stages it builds on)
+from tertiary.evaluation.matching import MatchConfig, match_to_reference  # noqa: E402
+from tertiary.evaluation.requirements import check_requirements, load_requirements  # noqa: E402
+from tertiary.stages.fusion.fuse import ALL_METHODS  # noqa: E402
+from tertiary.sensors.collection import CollectionConfig, collect  # noqa: E402
+from tertiary.evaluation.indicators import IndicatorConfig  # noqa: E402  (indicators(): tertiary.indicators)
+from tertiary.stages.association.gating import bayes_threshold  # noqa: E402
+from tertiary.stages.align import conversion_valid  # noqa: E402
+from tertiary.stages.tracking.filters import make_range_channel  # noqa: E402
+from tertiary.stages.flight_data import check_flight_plans  # noqa: E402
+from tertiary.stages.flight_data import correlate as correlate_flight_plans  # noqa: E402
+from tertiary.stages.flight_data import DepartureConfig  # noqa: E402
+from tertiary.stages.flight_data import departure_step as correlate_departures  # noqa: E402
+from tertiary.pipeline.job import adapt_to_scenario  # noqa: E402

@@ -65,7 +65,7 @@ def build_bases(root: Path) -> Path:
     """Write the base datasets and one run directory (for ``sql``) under ``root`` unless present."""
     import polars as pl  # noqa: F401  (import cost paid here, not in the first case)
 
-    from tertiary import pipeline
+    from tertiary.pipeline import job as pipeline
     from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
     from tertiary.simulate.config import with_radar_count
 
@@ -719,7 +719,7 @@ def invoke(args: list[str]):
     global _runner
     from typer.testing import CliRunner
 
-    from tertiary.cli import app
+    from tertiary.cli.main import app
 
     _runner = _runner or CliRunner()
     return _runner.invoke(app, args, catch_exceptions=True, color=False)
@@ -1003,7 +1003,7 @@ def _db_state(db: Path) -> tuple:
 
 
 def _sql_subprocess(args: list[str], timeout: float) -> tuple[int | None, str, str, float]:
-    code = "import sys; from tertiary.cli import app; sys.argv[0] = 'tertiary'; app()"
+    code = "import sys; from tertiary.cli.main import app; sys.argv[0] = 'tertiary'; app()"
     t = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
@@ -1104,7 +1104,7 @@ def _run_api(case: dict, bases: Path, work: Path, o: Outcome) -> Outcome:
     import polars as pl
 
     import tertiary
-    from tertiary.errors import TertiaryError
+    from tertiary.core.errors import TertiaryError
 
     t = case["table"]
     frames = {x: pl.read_parquet(bases / case["base"] / f"{x}.parquet") for x in ("radars", t)}

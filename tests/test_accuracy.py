@@ -11,11 +11,10 @@ import polars as pl
 import pytest
 from scipy.stats import chi2
 
-from tertiary.accuracy import (AccuracyConfig, accuracy_by_epoch_from_matched, accuracy_from_matched, picture_accuracy,
-                               scored_rows)
-from tertiary.evaluation import association_metrics
-from tertiary.matching import match_to_reference
-from tertiary.schema import TABLES, validate
+from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_by_epoch_from_matched, accuracy_from_matched, picture_accuracy, scored_rows)
+from tertiary.evaluation.evaluate import association_metrics
+from tertiary.evaluation.matching import match_to_reference
+from tertiary.contract.schema import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 NO_SKIP = AccuracyConfig(skip_first_s=0.0)
@@ -379,7 +378,7 @@ def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
     some epochs are clutter only. Fails if a target's majority aircraft is not carried to the
     next window (swaps), a target's reports are judged per window (false targets), or a
     target's aircraft are counted per window (targets per aircraft)."""
-    from tertiary.evaluation import AssociationScore, association_score, score_associations
+    from tertiary.evaluation.evaluate import AssociationScore, association_score, score_associations
     rng = np.random.default_rng(11)
     rows, flies = [], {}
     for run in (0, 1):
@@ -423,7 +422,7 @@ def test_picture_accuracy_is_one_stage_in_the_metrics_schema():
 
 # --------------------------------------------------------------------------- consistency
 
-from tertiary.accuracy import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
+from tertiary.evaluation.accuracy import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
 
 
 def _kf_nees(runs: int, epochs: int, r_scale: float = 1.0, seed: int = 5) -> pl.DataFrame:
@@ -516,7 +515,7 @@ def test_chi2_band_vectorised_and_for_a_fractional_sample_size():
 # Track rows sit on an aircraft's lane (or on lane 9, where no aircraft flies: a false track);
 # which aircraft a row is comes from the matcher's geometry only.
 
-from tertiary.tracker import TRACK_COLUMNS  # noqa: E402
+from tertiary.stages.tracking.tracker import TRACK_COLUMNS  # noqa: E402
 
 LANES = {7: 1000.0, 8: -1000.0, 9: 30_000.0}      # truth_id → y of an eastbound lane (100 m/s)
 
@@ -658,10 +657,10 @@ def test_empty_picture_gives_empty_metrics():
 def test_end_to_end_on_a_small_terminal_area(small_terminal):
     """Simulated terminal area → pipeline → tracker picture scored by the one evaluation stage:
     the picture is nearly complete, with few extra, spurious or swapped tracks."""
-    from tertiary.evaluation import evaluate_pictures
-    from tertiary.filters import make_filter
-    from tertiary.pipeline import PipelineConfig, process
-    from tertiary.tracker import track
+    from tertiary.evaluation.evaluate import evaluate_pictures
+    from tertiary.stages.tracking.filters import make_filter
+    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.stages.tracking.tracker import track
 
     res = process(small_terminal, PipelineConfig(methods=("aposteriori",), filters=(), centralized=False))
     fused = res.fused.filter(pl.col("method") == "aposteriori")
@@ -683,7 +682,7 @@ def test_a_singular_full_covariance_blanks_only_its_own_nees():
     """The 6-state NEES of a row whose full covariance is singular is NaN (its position NEES
     stays); every other row of the same block keeps eᵀ P⁻¹ e. Before, one singular row made
     the whole 131 072-row block NaN, so the result depended on how rows were blocked."""
-    from tertiary.accuracy import add_nees
+    from tertiary.evaluation.accuracy import add_nees
     rng = np.random.default_rng(5)
     n = 6
     a = rng.normal(size=(n, 6, 6))

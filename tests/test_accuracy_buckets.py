@@ -15,8 +15,8 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import buckets as B
-from tertiary.accuracy import ROW_SCORES, AccuracyConfig, picture_accuracy, picture_accuracy_buckets, row_scores
+from tertiary.evaluation import buckets as B
+from tertiary.evaluation.accuracy import (ROW_SCORES, AccuracyConfig, picture_accuracy, picture_accuracy_buckets, row_scores)
 
 # rows whose full covariance is null: the reference's determinant check sees NaN (it skips them)
 pytestmark = pytest.mark.filterwarnings("ignore:invalid value encountered in det:RuntimeWarning")
@@ -205,10 +205,10 @@ def terminal_picture(small_terminal):
     the reference aircraft at its epochs. The "plots" are the radars' measured plots in the
     system frame with their covariance and Mode C height, epochs on a 4 s grid, radars 1/3 and
     2/4 as two runs; two pictures: the singer and cv filters."""
-    from tertiary.filters import make_filter
-    from tertiary.fusion import measured_plots
-    from tertiary.matching import MatchConfig, match_with_reference, reference_identity
-    from tertiary.tracker import track_methods
+    from tertiary.stages.tracking.filters import make_filter
+    from tertiary.stages.fusion.fuse import measured_plots
+    from tertiary.evaluation.matching import MatchConfig, match_with_reference, reference_identity
+    from tertiary.stages.tracking.tracker import track_methods
 
     ds = small_terminal
     plots = ds.reports.select("run", "report_id", "radar_id", "time", "altitude_m").join(

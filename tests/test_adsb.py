@@ -1,4 +1,4 @@
-"""Tests for ``tertiary.simulate.adsb``: the real Paris ADS-B file and small hand-built frames.
+"""Tests for ``tertiary.io.adsb``: the real Paris ADS-B file and small hand-built frames.
 
 Oracles: the input rows themselves (row accounting, round trip of positions to lat/lon at the
 original timestamps), pymap3d for the per-fix velocity rotation, and straight/turning tracks
@@ -16,9 +16,8 @@ import pymap3d as pm
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.geo import LocalFrame
-from tertiary.simulate.adsb import (FPM, FT, KT, AdsbCleaning, adsb_to_trajectories, clean_adsb,
-                                    read_adsb)
+from tertiary.core.geo import LocalFrame
+from tertiary.io.adsb import FPM, FT, KT, AdsbCleaning, adsb_to_trajectories, clean_adsb, read_adsb
 from tertiary.simulate.trajectory import SEG_CLIMB, SEG_STRAIGHT, SEG_TURN, Trajectories
 
 # the real sample ships with the project (datasets/, and tertiary/datasets/ in the wheel)

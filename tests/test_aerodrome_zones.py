@@ -14,7 +14,7 @@ import pytest
 
 from safety.alerts import AlertConfig, loss_of_separation
 from safety.conflicts import FT_M, NM_M, AerodromeZone, ConflictConfig, predict_conflicts, zone_index
-from tertiary.pipeline import PipelineConfig, _note_minima, adapt_to_scenario
+from tertiary.pipeline.job import PipelineConfig, _note_minima, adapt_to_scenario
 
 from test_approach_volumes import T0, _picture     # one track table for the STCA's airspace tests
 
@@ -120,7 +120,7 @@ def test_validation():
 def test_pipeline_takes_the_zones_from_the_national_airports(small_terminal):
     """national: one zone per airport, at its reference point; terminal-area: none; off, or
     configured, they are left alone; the run notes say so."""
-    from tertiary.geo import LocalFrame
+    from tertiary.core.geo import LocalFrame
     from tertiary.simulate import load_scenario
 
     scen = load_scenario("national")

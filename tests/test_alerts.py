@@ -16,9 +16,9 @@ from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_epis
                            los_episodes, loss_of_separation, score_alerts, separation_intervals, stca_tradeoff,
                            tradeoff_metrics)
 from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
-from tertiary.errors import ResourceError
-from tertiary.geo import LocalFrame
-from tertiary.schema import validate
+from tertiary.core.errors import ResourceError
+from tertiary.core.geo import LocalFrame
+from tertiary.contract.schema import validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 GRID = [T0 + timedelta(seconds=s) for s in range(0, 301, 5)]       # picture epochs, every 5 s
@@ -516,7 +516,7 @@ def test_los_intervals_match_dense_sampling_on_irregular_truth():
 
 
 def test_no_alerts_still_scores_missed_losses(truth):
-    from tertiary import schema
+    from tertiary.contract import schema
     empty = schema.empty_frame("conflicts", False)
     m = _metrics(score_alerts(empty, _id_map(), truth, CFG, methods=["m"]))
     assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alert_episodes"] == 0

@@ -6,7 +6,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import align, geo
+from tertiary.stages import align
+from tertiary.core import geo
 
 US = 1_000_000
 
@@ -139,7 +140,7 @@ def test_plan_row_estimate_is_exact_and_bounded(small_terminal):
     limit below it is refused with ResourceError before any aligned row exists."""
     from dataclasses import replace
 
-    from tertiary.errors import ResourceError
+    from tertiary.core.errors import ResourceError
     ds = small_terminal
     p = align.plan(ds.reports, ds.radars, ds.origin)
     assert p.rows == align.expand(p).height > 0
@@ -157,8 +158,8 @@ def test_align_rejects_index_the_input_rows(small_terminal):
     """rejects.row_index is the row of the input table for align-stage rejects too: input
     shuffled, with invalid rows first (so validated and input rows differ)."""
     import dataclasses as dc
-    from tertiary import pipeline
-    from tertiary.align import AlignConfig
+    from tertiary.pipeline import job as pipeline
+    from tertiary.stages.align import AlignConfig
     rep = small_terminal.reports.sample(fraction=1.0, shuffle=True, seed=1)
     bad = rep.head(3).with_columns(pl.lit(-5.0).alias("range_m"), (pl.col("report_id") + 10 ** 9).alias("report_id"))
     rep = pl.concat([bad, rep])

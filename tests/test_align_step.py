@@ -11,9 +11,9 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import align
-from tertiary.errors import DataError, OptionError
-from tertiary.local_tracks import LocalTrackerConfig
+from tertiary.stages import align
+from tertiary.core.errors import DataError, OptionError
+from tertiary.sensors.local_tracks import LocalTrackerConfig
 
 US = 1_000_000
 ALIGNED_KEY = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
@@ -264,7 +264,7 @@ def test_held_report_keeps_its_next_report_epoch(rows):
     """A report whose next report was seen (and rejected, so not held) keeps that report's first
     epoch as its end: it must not be re-linked to a later report in the next window."""
     from test_align import _radars
-    from tertiary import geo
+    from tertiary.core import geo
     case = Case(_synthetic(rows), _radars(), geo.LocalFrame(48.75, 2.5, 0.0), align.AlignConfig(period_s=4.0))
     whole, whole_rej, _ = _whole(case)
     assert whole_rej.height == 1
@@ -274,10 +274,10 @@ def test_held_report_keeps_its_next_report_epoch(rows):
 
 
 def test_local_tracker_step_equals_one_call(small_terminal):
-    """tertiary.local_tracks.track_reports_step over time pieces = track_reports on the whole
+    """tertiary.sensors.local_tracks.track_reports_step over time pieces = track_reports on the whole
     stream (no restart gaps here: every track continues its carried Singer channels, the
     innovation of a piece's first report included)."""
-    from tertiary import local_tracks
+    from tertiary.sensors import local_tracks
     plots = small_terminal.reports.select(PLOT_COLUMNS)
     whole = local_tracks.track_reports(plots, small_terminal.radars).sort("report_id")
     t = plots["time"].dt.epoch("us").to_numpy()

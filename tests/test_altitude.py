@@ -1,4 +1,4 @@
-"""The vertical channel (tertiary.altitude) and its use by simulation, fusion and evaluation."""
+"""The vertical channel (tertiary.stages.tracking.altitude) and its use by simulation, fusion and evaluation."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import pymap3d
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary import geo
-from tertiary.altitude import (QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks, filter_tracks_carry,
-                               geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
-from tertiary.accuracy import error_columns
+from tertiary.core import geo
+from tertiary.stages.tracking.altitude import (QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks, filter_tracks_carry, geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
+from tertiary.evaluation.accuracy import error_columns
 from tertiary.simulate.radar import quantum_m, transponder_altitude
 from tertiary.simulate.trajectory import Trajectories
 
@@ -284,12 +283,12 @@ def test_pipeline_heights_come_from_mode_c(small_terminal):
     """Simulated terminal area → fusion, centralised reference and tracker all carry the Mode C
     channel: height RMSE of a few metres (elevation-based heights are off by ~100 m), and a
     target whose reports lose their altitude falls back to the geodetic height."""
-    from tertiary.accuracy import AccuracyConfig, scored_rows
-    from tertiary.evaluation import evaluate_pictures
-    from tertiary.fusion import fuse
-    from tertiary.matching import MatchConfig, match_to_reference
-    from tertiary.pipeline import PipelineConfig, process
-    from tertiary.schema import validate
+    from tertiary.evaluation.accuracy import AccuracyConfig, scored_rows
+    from tertiary.evaluation.evaluate import evaluate_pictures
+    from tertiary.stages.fusion.fuse import fuse
+    from tertiary.evaluation.matching import MatchConfig, match_to_reference
+    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.contract.schema import validate
 
     res = process(small_terminal, PipelineConfig(methods=("arithmetic",), filters=("singer",)))
     validate(res.fused, "fused")
@@ -361,7 +360,7 @@ def _assert_same_filter(a, b) -> None:
                                  AltitudeConfig(unconfirmed_sigma_m=None, max_rejects=3)],
                          ids=["imm", "cv", "confirmed-only"])
 def test_compiled_filter_equals_the_vectorised_reference(cfg):
-    """The compiled per-track recursion (tertiary.altitude_kernel) gives the vectorised loop's
+    """The compiled per-track recursion (tertiary.stages.tracking.altitude_kernel) gives the vectorised loop's
     estimates, masks and carry — in one call, and in two calls per track (the second from the
     first's carry), with garbles, missing altitudes and identity swaps."""
     t, z, var, starts, lengths, ident = _replies(np.random.default_rng(5))

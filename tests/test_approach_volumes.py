@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from safety.conflicts import NM_M, ApproachVolume, ConflictConfig, approach_membership, predict_conflicts
-from tertiary.pipeline import PipelineConfig, adapt_to_scenario
+from tertiary.pipeline.job import PipelineConfig, adapt_to_scenario
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 FIXED = ConflictConfig(threshold_mode="fixed")          # R_thr = 5 556 + 500 + 300 = 6 356 m
@@ -124,7 +124,7 @@ def test_pipeline_takes_the_volumes_from_the_scenario(small_terminal):
 
 
 def test_national_scenario_has_both_runway_ends_of_every_airport():
-    from tertiary.geo import LocalFrame
+    from tertiary.core.geo import LocalFrame
     from tertiary.simulate import load_scenario
     from tertiary.simulate.traffic import final_approaches
     sc = load_scenario("national")

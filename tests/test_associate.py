@@ -8,8 +8,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.associate import AssociationConfig, associate, carry_target_ids, group_reports
-from tertiary.gating import GatingConfig, candidate_pairs
+from tertiary.stages.association.associate import (AssociationConfig, associate, carry_target_ids, group_reports)
+from tertiary.stages.association.gating import GatingConfig, candidate_pairs
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 

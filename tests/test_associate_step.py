@@ -12,11 +12,10 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import align as A
-from tertiary.associate import (AssociateState, AssociationConfig, AssociationStats, T_MAX, T_MIN, associate,
-                                associate_step, init_associate_state)
-from tertiary.errors import DataError, OptionError
-from tertiary.pipeline import PipelineConfig, screen
+from tertiary.stages import align as A
+from tertiary.stages.association.associate import (AssociateState, AssociationConfig, AssociationStats, T_MAX, T_MIN, associate, associate_step, init_associate_state)
+from tertiary.core.errors import DataError, OptionError
+from tertiary.pipeline.job import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 
 SLOWEST_SCAN_S = 12.0                       # ENR-E of the terminal-area scenario
@@ -164,7 +163,7 @@ def test_live_targets_hold_every_id_that_can_return():
     comes back with its target id — which was live at the boundary although its track was not
     seen at the window's last epoch. A track silent for 39 s (longer than the gap) at the
     boundary is not live, and its id is not given again."""
-    from tertiary.associate import carry_step, init_associate_state
+    from tertiary.stages.association.associate import carry_step, init_associate_state
     t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 
     def rows(spec):   # (radar_id, local_track_id, seconds)

@@ -11,10 +11,9 @@ import polars as pl
 import pytest
 from scipy.stats import multivariate_normal
 
-from tertiary.associate import (AssociationConfig, _solve_component, feasible_tuples,
-                                group_reports, solve_joint)
-from tertiary.errors import OptionError
-from tertiary.gating import GatingConfig, bayes_threshold, candidate_pairs, gate_volume
+from tertiary.stages.association.associate import (AssociationConfig, _solve_component, feasible_tuples, group_reports, solve_joint)
+from tertiary.core.errors import OptionError
+from tertiary.stages.association.gating import GatingConfig, bayes_threshold, candidate_pairs, gate_volume
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 COV = np.diag([900.0, 900.0, 90000.0, 25.0, 25.0, 4.0])

@@ -12,10 +12,10 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary import geo
-from tertiary.asterix import capture, codec, dataset, encode, importer
-from tertiary.asterix.sites import read_sites, sites_toml
-from tertiary.cli import app
+from tertiary.core import geo
+from tertiary.io.asterix import capture, codec, dataset, encode, importer
+from tertiary.io.asterix.sites import read_sites, sites_toml
+from tertiary.cli.main import app
 
 DATA = Path(__file__).parent / "data"
 PCAP = DATA / "cat_034_048.pcap"
@@ -155,7 +155,7 @@ def test_sites_errors(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory):
-    from tertiary.cli import build_scenario
+    from tertiary.cli.main import build_scenario
     from tertiary.simulate import simulate, write_dataset
     out = tmp_path_factory.mktemp("sim")
     ds = simulate(build_scenario("terminal-area", aircraft=6, duration=150, runs=1, seed=3))
@@ -257,7 +257,7 @@ def test_rejects_detail_names_the_place(real: dataset.ImportResult) -> None:
 
 
 def _rmse(run_dir: Path) -> dict[str, float]:
-    from tertiary.store import RunStore
+    from tertiary.store.run_store import RunStore
     with RunStore.open(run_dir, read_only=True) as store:
         m = store.sql("SELECT method, value FROM metrics WHERE stage = 'fusion' AND metric = 'rmse_horizontal_m' "
                       "AND segment = 'all'")
@@ -312,7 +312,7 @@ def test_import_is_lazy() -> None:
     """`import tertiary` (and the CLI module) must not pay libasterix's import cost."""
     import subprocess
     import sys
-    code = "import sys, tertiary, tertiary.cli; print('asterix' in sys.modules)"
+    code = "import sys, tertiary, tertiary.cli.main; print('asterix' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.stdout.split() == ["False"]
@@ -403,7 +403,7 @@ def test_enu_velocity_against_finite_differences() -> None:
 
 def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None:
     """A CAT062 picture = the truth shifted 30 m east, with the truth as CAT021 in the same file:
-    every matched row is 30 m off (within resolution), and the pooled RMSE of tertiary.accuracy
+    every matched row is 30 m off (within resolution), and the pooled RMSE of tertiary.evaluation.accuracy
     ((2.15): σ²(k) = Σ e² / (N_k − 1) over the few aircraft of an epoch) lies in [30, 30·√2]."""
     ds, _, _ = simulated
     truth = ds.truth.filter(pl.col("icao24").fill_null("") != "")
@@ -417,7 +417,7 @@ def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None
     f = tmp_path / "both.ast"
     f.write_bytes(encode.interleave(recs))
     res = dataset.import_recordings([f], date="2021-10-07", origin=ds.scenario.origin)
-    from tertiary.asterix.external import match_external
+    from tertiary.io.asterix.external import match_external
     rows = match_external(res.external_tracks, res.truth)
     assert rows.height == tracks.height
     assert (rows["x_m"] - rows["true_x_m"] - 30.0).abs().max() < 0.35

@@ -10,8 +10,8 @@ import polars as pl
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from tertiary.asterix import capture, codec, dataset, encode, fast048
-from tertiary.errors import TertiaryError
+from tertiary.io.asterix import capture, codec, dataset, encode, fast048
+from tertiary.core.errors import TertiaryError
 
 DATA = Path(__file__).parent / "data"
 PCAP = DATA / "cat_034_048.pcap"
@@ -164,7 +164,7 @@ _SIM = _sim_blocks()
 
 
 def _cat062_blocks() -> list[bytes]:
-    from tertiary import geo
+    from tertiary.core import geo
     n = 6
     tracks = pl.DataFrame({
         "epoch": pl.datetime_range(pl.datetime(2024, 1, 1, 12, time_zone="UTC"),
@@ -183,7 +183,7 @@ _SIM62 = _cat062_blocks()
 
 
 def _cat021_blocks() -> list[bytes]:
-    from tertiary import geo
+    from tertiary.core import geo
     n = 6
     truth = pl.DataFrame({
         "truth_id": pl.Series(np.arange(n) % 2, dtype=pl.Int64),
@@ -275,7 +275,7 @@ def test_bad_bytes_never_crash(sites: Path, tmp_path_factory: pytest.TempPathFac
 def test_vectorised_values_equal_libasterix_quantities() -> None:
     """The importer's vectorised unit conversions against libasterix's own quantities, record
     for record (negative flight levels, absent items, every identity format included)."""
-    from tertiary.asterix import importer
+    from tertiary.io.asterix import importer
     blocks = [b for b in _real_blocks() if b[0] == 48] + _SIM
     raw, _, bad = fast048.decode_blocks(blocks)
     assert not bad
@@ -320,7 +320,7 @@ def test_vectorised_values_equal_libasterix_quantities() -> None:
 
 def _same_walk(blocks: list[bytes], cat: int) -> None:
     """The spec-driven walker accepts/refuses each block as libasterix does and cuts the same records."""
-    from tertiary.asterix import fastwalk
+    from tertiary.io.asterix import fastwalk
     prog = fastwalk.program(codec.spec(cat).cv_record)
     buf, offs, block, rs, re, bad = fastwalk.walk(blocks, prog)
     refused = {k for k, _, _ in bad}
@@ -378,7 +378,7 @@ def test_walker_cat021_fuzzed(cases: list) -> None:
 
 
 def test_cat021_values_equal_libasterix_quantities() -> None:
-    from tertiary.asterix import importer
+    from tertiary.io.asterix import importer
     items = [(b, {"file": "x", "datagram": 0}, float("nan"), "raw") for b in _SIM21]
     frame = importer._decode_021(items, [])
     recs = [r for b in _SIM21 for r in codec.parse_block(b)]

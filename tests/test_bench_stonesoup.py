@@ -13,7 +13,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import geo
+from tertiary.core import geo
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_stonesoup.py"
 sys.path.insert(0, str(_PATH.parent))

@@ -8,8 +8,8 @@ import pytest
 from polars.testing import assert_frame_equal
 from scipy.linalg import solve_discrete_are
 
-from tertiary import geo
-from tertiary.bound import BoundConfig, bound_metrics, illuminations, pcrb_at, pcrb_linear
+from tertiary.core import geo
+from tertiary.evaluation.bound import BoundConfig, bound_metrics, illuminations, pcrb_at, pcrb_linear
 
 
 def _cv(q: float):
@@ -166,7 +166,7 @@ def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monke
     block of 300, all in one of 700: the bounds equal one block's, row for row. Fails if a
     block cuts an aircraft's sequence, gathers another block's measurements, or puts its rows
     out of order."""
-    from tertiary import bound
+    from tertiary.evaluation import bound
     origin, truth, radars, reports = _one_radar_truth()
     many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
                                          pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
@@ -190,7 +190,7 @@ def test_the_bound_stage_pooled_a_block_of_aircraft_at_a_time_equals_the_whole(m
     another's aircraft, or the blocks read different scan origins."""
     from types import SimpleNamespace
 
-    from tertiary import bound
+    from tertiary.evaluation import bound
     origin, truth, radars, reports = _one_radar_truth()
     many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
                                          pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
@@ -216,13 +216,13 @@ def test_the_bound_stage_pooled_a_block_of_aircraft_at_a_time_equals_the_whole(m
 
 @pytest.mark.parametrize("variant", ["printed", "exact"])
 def test_the_compiled_recursion_equals_the_vectorised_reference(variant):
-    """``pcrb_at`` runs (T34) compiled (:mod:`tertiary.bound_kernel`: per-axis blocks of Φ and
+    """``pcrb_at`` runs (T34) compiled (:mod:`tertiary.evaluation.bound_kernel`: per-axis blocks of Φ and
     Q, Cholesky-solved update). Against :func:`pcrb_linear` with the 9×9 block-diagonal model:
     sequences of different lengths (one of a single row), irregular times, events without a
     measurement, full 3×3 measurement covariances as a rotated radar gives, recorded and
     unrecorded rows — the same (tr P_pos, P_xx + P_yy, tr P_vel) to round-off. Fails if the
     prediction skips a block, the update drops the cross-axis terms or a record lands elsewhere."""
-    from tertiary.bound import POS, _bound_summary, _pcrb_block, _prior9, _singer9
+    from tertiary.evaluation.bound import POS, _bound_summary, _pcrb_block, _prior9, _singer9
     rng = np.random.default_rng(7)
     lengths = np.array([1, 37, 5, 120, 60])
     starts = np.r_[0, np.cumsum(lengths)[:-1]]
@@ -246,7 +246,7 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
     before the beam-passage iterations (``RANGE_SCREEN``) hold no illumination — the events
     equal those without the screen, while the iterations see fewer scans. A screen without
     the motion margin loses illuminations (checked here: the test can tell)."""
-    from tertiary import bound
+    from tertiary.evaluation import bound
     origin = geo.LocalFrame(48.0, 2.0, 0.0)
     rng = np.random.default_rng(5)
     t = np.arange(0.0, 601.0)
@@ -292,8 +292,8 @@ def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(mon
     aircraft. Fails if a read drops or repeats aircraft, or if the scan is read whole."""
     from types import SimpleNamespace
 
-    from tertiary import bound
-    from tertiary.evaluation import write_reference
+    from tertiary.evaluation import bound
+    from tertiary.evaluation.evaluate import write_reference
     origin, truth, radars, reports = _one_radar_truth()
     many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
                                          pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])

@@ -11,7 +11,7 @@ import pytest
 
 from safety.capacity import (capacity_curve, capacity_from_metrics, conflict_radius, nmax_seed, nmax_sound, p_np,
                              p_pij, ppob_curves, ppob_seed, ppob_sound, rate_per_hour, v_ob)
-from tertiary.schema import TABLES, validate
+from tertiary.contract.schema import TABLES, validate
 
 
 def _sig(x: float, digits: int) -> float:

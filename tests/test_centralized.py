@@ -10,18 +10,17 @@ import polars as pl
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary import geo
-from tertiary.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots,
-                                  initial_state, transition)
-from tertiary.accuracy import AccuracyConfig, accuracy_from_matched, consistency_metrics, scored_rows
-from tertiary.matching import match_to_reference
+from tertiary.core import geo
+from tertiary.stages.fusion.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots, initial_state, transition)
+from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_from_matched, consistency_metrics, scored_rows)
+from tertiary.evaluation.matching import match_to_reference
 
 
 def _scored(fused: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     """The pictures matched by the one matcher, scored after the 20 s transient."""
     matched = match_to_reference(fused, truth, id_col="target_id").rename({"target_id": "track_id"})
     return scored_rows(matched, AccuracyConfig(skip_first_s=20.0))
-from tertiary.schema import TABLES, validate
+from tertiary.contract.schema import TABLES, validate
 from tertiary.simulate import load_scenario, simulate
 
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
@@ -144,7 +143,7 @@ def test_centralized_beats_every_single_radar(big_box_fused):
 
 
 def test_centralized_is_consistent(big_box_fused):
-    """Monte-Carlo consistency done properly (tertiary.accuracy.consistency_metrics): the
+    """Monte-Carlo consistency done properly (tertiary.evaluation.accuracy.consistency_metrics): the
     position NEES averaged over the N = 10 runs at each epoch lies in the two-sided 95 % band
     χ²(3N)/N on most epochs; the same test rejects a covariance twice too large or too small."""
     ds, assoc, cen = big_box_fused
@@ -161,12 +160,12 @@ def test_centralized_is_consistent(big_box_fused):
 
 def test_centralized_is_near_the_posterior_cramer_rao_bound(big_box_fused):
     """The PCRB of the simulated truth with the scenario's Singer model and the radars' polar
-    noise (tertiary.bound) is a lower bound the centralised filter — the same model, every
+    noise (tertiary.evaluation.bound) is a lower bound the centralised filter — the same model, every
     plot — nearly attains: RMSE within [0.9, 1.15] PCRB. Not [1, …]: the bound averages over
     Singer trajectories, the simulated truth flies straight legs without acceleration, where
     a filter of that model does better than the average (≈ 4 % below on big-box straights,
     10 % above in turns); the 3-D figure lands within a few per cent of the bound."""
-    from tertiary.bound import BoundConfig, illuminations, pcrb_at
+    from tertiary.evaluation.bound import BoundConfig, illuminations, pcrb_at
     ds, assoc, cen = big_box_fused
     matched = _scored(cen, ds.truth)
     cfg = BoundConfig.from_scenario(ds.scenario)

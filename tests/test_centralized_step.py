@@ -10,11 +10,10 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-import tertiary.align
-import tertiary.associate
-from tertiary.centralized import (CentralizedConfig, CentralizedState, centralized_filter, centralized_filter_carry,
-                                  centralized_fusion, centralized_step, init_centralized_state)
-from tertiary.pipeline import PipelineConfig, screen
+import tertiary.stages.align
+import tertiary.stages.association.associate
+from tertiary.stages.fusion.centralized import (CentralizedConfig, CentralizedState, centralized_filter, centralized_filter_carry, centralized_fusion, centralized_step, init_centralized_state)
+from tertiary.pipeline.job import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 
 KEYS = ["run", "epoch", "target_id"]
@@ -28,8 +27,8 @@ def case():
     ds = simulate(sc)
     cfg = PipelineConfig()
     ing = screen(ds, cfg)
-    aligned = tertiary.align.expand(ing.plan, cfg.align)
-    assoc, _ = tertiary.associate.associate(aligned, cfg.association)
+    aligned = tertiary.stages.align.expand(ing.plan, cfg.align)
+    assoc, _ = tertiary.stages.association.associate.associate(aligned, cfg.association)
     rows = aligned.with_columns(assoc["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
     return ing.reports, ing.radars, assoc, keys, ds.origin

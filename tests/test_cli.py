@@ -10,7 +10,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli import app, cell, choose_run_dir
+from tertiary.cli.main import app, cell, choose_run_dir
 
 runner = CliRunner()
 
@@ -109,7 +109,7 @@ def test_choose_run_dir_never_overwrites(tmp_path, monkeypatch):
     (first / "results.duckdb").write_bytes(b"")
     second, note = choose_run_dir(None, "terminal-area", force=False)
     assert second.as_posix() == "runs/terminal-area-2" and "runs/terminal-area-2" in note
-    from tertiary.errors import OptionError
+    from tertiary.core.errors import OptionError
     with pytest.raises(OptionError, match="--force"):
         choose_run_dir(first, "x", force=False)
     assert choose_run_dir(first, "x", force=True) == (first, None)
@@ -248,5 +248,5 @@ def test_one_malloc_arena_is_set_on_glibc():
     """The CLI limits glibc to one malloc arena (threads would each keep one): set on glibc,
     a no-op elsewhere."""
     import platform
-    from tertiary.cli import one_malloc_arena
+    from tertiary.cli.main import one_malloc_arena
     assert one_malloc_arena() is (platform.libc_ver()[0] == "glibc")

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli import app
+from tertiary.cli.main import app
 
 runner = CliRunner()
 

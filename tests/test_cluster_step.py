@@ -11,13 +11,12 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import align as A
-from tertiary.associate import associate
-from tertiary.clustering import (ClusteringConfig, ClusterState, T_MAX, T_MIN, cluster, cluster_step,
-                                 init_cluster_state)
-from tertiary.errors import DataError, OptionError
-from tertiary.fusion import fuse
-from tertiary.pipeline import PipelineConfig, screen
+from tertiary.stages import align as A
+from tertiary.stages.association.associate import associate
+from tertiary.stages.clustering import (ClusteringConfig, ClusterState, T_MAX, T_MIN, cluster, cluster_step, init_cluster_state)
+from tertiary.core.errors import DataError, OptionError
+from tertiary.stages.fusion.fuse import fuse
+from tertiary.pipeline.job import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 
 CONFIGS = {

@@ -9,8 +9,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.clustering import ClusteringConfig, cluster, cluster_summary
-from tertiary.schema import TABLES, validate
+from tertiary.stages.clustering import ClusteringConfig, cluster, cluster_summary
+from tertiary.contract.schema import TABLES, validate
 
 T0 = datetime(2024, 3, 1, 12, 0, 0, tzinfo=timezone.utc)
 ALWAYS = ClusteringConfig(always=True)
@@ -280,7 +280,7 @@ def test_performance_50_epochs_400_targets(algorithm):
 
 
 def test_parallel_greedy_equals_sequential_greedy():
-    from tertiary.clustering import _greedy_leads
+    from tertiary.stages.clustering import _greedy_leads
 
     rng = np.random.default_rng(7)
     for _ in range(50):
@@ -334,7 +334,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from sklearn.cluster import DBSCAN
 
-from tertiary.clustering import _single_linkage
+from tertiary.stages.clustering import _single_linkage
 
 
 def _partition(labels: np.ndarray) -> set[frozenset[int]]:

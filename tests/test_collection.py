@@ -12,11 +12,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline
-from tertiary.collection import (ACCEPTED, LOST_BUFFER, LOST_BUSY, LOST_WAIT, CollectionConfig, collect,
-                                 collection_stage, erlang_b, md1_wait, mm1_limited_loss, mm1_wait, mm1k_loss,
-                                 queue_kernel)
-from tertiary.errors import OptionError
+from tertiary.pipeline import job as pipeline
+from tertiary.sensors.collection import (ACCEPTED, LOST_BUFFER, LOST_BUSY, LOST_WAIT, CollectionConfig, collect, collection_stage, erlang_b, md1_wait, mm1_limited_loss, mm1_wait, mm1k_loss, queue_kernel)
+from tertiary.core.errors import OptionError
 
 
 def poisson(lam: float, n: int, seed: int) -> np.ndarray:
@@ -225,7 +223,7 @@ def test_cli_run_with_collection(tmp_path):
     import duckdb
     from typer.testing import CliRunner
 
-    from tertiary.cli import app
+    from tertiary.cli.main import app
     runner = CliRunner()
     bad = runner.invoke(app, ["run", "--out", str(tmp_path / "x"), "--collection", "queue"])
     assert bad.exit_code == 2 and "--collection" in bad.output           # refused before simulating
@@ -246,7 +244,7 @@ def test_alignment_uses_a_report_from_its_collection_time_on(small_terminal):
     """A report delayed by the queue (collection_delay_s) reaches its first epoch one epoch later
     when the delay is one epoch period; its time (and so its extrapolation) is unchanged."""
     import numpy as np
-    from tertiary import align
+    from tertiary.stages import align
     ds = small_terminal
     p0 = align.plan(ds.reports, ds.radars, ds.origin, align.AlignConfig())
     p1 = align.plan(ds.reports.with_columns(pl.lit(p0.period).alias("collection_delay_s")), ds.radars, ds.origin,

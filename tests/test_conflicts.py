@@ -19,8 +19,8 @@ from scipy.stats import chi2, norm
 
 from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, candidate_pairs, conflict_interval,
                               conflict_interval_levelled, height_and_rate, pair_geometry, predict_conflicts, slim_conflicts, tangent_plane_error_bound)
-from tertiary.geo import EARTH_RADIUS_M, LocalFrame
-from tertiary.schema import TABLES, validate
+from tertiary.core.geo import EARTH_RADIUS_M, LocalFrame
+from tertiary.contract.schema import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 FIXED = ConflictConfig(threshold_mode="fixed", dr_v_m=300.0)      # digest §7.2 thresholds
@@ -299,7 +299,7 @@ def test_covariance_thresholds_diag_and_full():
         a = rng.normal(size=(6, 6)) * np.array([80, 60, 30, 3, 2, 1])[:, None]
         covs.append(a @ a.T)
     # geodetic heights 100 km from the centre: the height variance is along the local up at
-    # each target (pymap3d's normal, independent of tertiary.geo), not along ENU z
+    # each target (pymap3d's normal, independent of tertiary.core.geo), not along ENU z
     frame = LocalFrame(48.7, 2.4, 0.0)
     pos = np.array([[100_000.0, 0, 3000], [120_000.0, 0, 3100]])
     dfc = (_frame(pos, [[100, 0, 0], [-100, 0, 0]], alt=False)

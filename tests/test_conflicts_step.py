@@ -18,7 +18,7 @@ from polars.testing import assert_frame_equal
 from safety.conflicts import (STCA_CONFIRMATION, ApproachVolume, ConflictConfig, ConflictState, conflicts_step,
                               conflicts_steps, init_conflict_state,
                               predict_conflicts, slim_conflicts)
-from tertiary.pipeline import PipelineConfig, process
+from tertiary.pipeline.job import PipelineConfig, process
 
 KEYS = ["run", "epoch", "method", "id_a", "id_b"]
 US = 1_000_000

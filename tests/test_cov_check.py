@@ -9,7 +9,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import schema
+from tertiary.contract import schema
 
 
 def _reference(cov: np.ndarray, limits: schema.Limits) -> np.ndarray:

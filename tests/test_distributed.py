@@ -11,9 +11,10 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import distributed as D, pipeline
+from tertiary.runtime import dask_engine as D
+from tertiary.pipeline import job as pipeline
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 
 
@@ -177,12 +178,12 @@ def test_gated_pairs_equal_brute_force():
 
 
 def test_a_partition_reads_its_windows_from_a_scan_that_takes_their_time_test(long_run, tmp_path):
-    """A partition's input (:func:`~tertiary.distributed.partition_input`) is the rows of its
+    """A partition's input (:func:`~tertiary.runtime.dask_engine.partition_input`) is the rows of its
     input expression in input order (a row without a time in the first slice), and a window
     of it is read by a scan that takes the window's time test. On ``lf.filter(...)`` the
     stream's row index came after the filter and every window read the partition's whole
     input (2.4 s instead of 0.25 s a window on a national hour)."""
-    from tertiary.engine import ReportSource
+    from tertiary.runtime.windows import ReportSource
     reports = read_dataset(long_run, lazy=True).reports.collect()
     reports = reports.with_columns(pl.when(pl.int_range(pl.len()) == 5).then(None).otherwise(pl.col("time"))
                                    .alias("time"))

@@ -1,4 +1,4 @@
-"""The χ² and normal quantiles of :mod:`tertiary.distributions` against scipy.stats (the oracle),
+"""The χ² and normal quantiles of :mod:`tertiary.core.distributions` against scipy.stats (the oracle),
 and the reason the module exists: the package imports without scipy.stats."""
 
 import subprocess
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, norm
 
-from tertiary.distributions import chi2_ppf, norm_ppf
+from tertiary.core.distributions import chi2_ppf, norm_ppf
 
 Q = np.array([0.0, 1e-12, 1e-6, 0.0027, 0.025, 0.05, 0.5, 0.9, 0.95, 0.975, 0.9973, 0.999, 1 - 1e-9, 1.0])
 
@@ -35,6 +35,6 @@ def test_normal_quantile_is_scipy_stats():
 def test_the_package_and_cli_import_without_scipy_stats():
     """Importing scipy.stats cost 1.4 s of every command's start: the package, the safety
     package and the CLI must not import it (tests and benchmarks may, as an oracle)."""
-    code = "import sys, tertiary, safety, tertiary.cli; print(sorted(m for m in sys.modules if m.startswith('scipy.stats')))"
+    code = "import sys, tertiary, safety, tertiary.cli.main; print(sorted(m for m in sys.modules if m.startswith('scipy.stats')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

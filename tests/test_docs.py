@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from tertiary import schema
+from tertiary.contract import schema
 
 ROOT = Path(__file__).resolve().parents[1]
 USER_TEXTS = [ROOT / "README.md", ROOT / "datasets" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

@@ -17,10 +17,10 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import pipeline
-from tertiary.engine import END_US, US, Window, incomplete_message, windows
+from tertiary.pipeline import job as pipeline
+from tertiary.runtime.windows import END_US, US, Window, incomplete_message, windows
 from tertiary.simulate import load_scenario, simulate, write_dataset
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 #: each table's row key (rows are compared after sorting by it; floats to round-off)
 KEYS = {
@@ -115,7 +115,7 @@ def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monk
 
 def test_association_metrics_are_scored_window_by_window(terminal, terminal_whole, monkeypatch):
     """Issue 16, evaluation accumulators: the association metrics come from the state the
-    windows carry (:class:`tertiary.evaluation.AssociationScore`), not from the whole run's rows
+    windows carry (:class:`tertiary.evaluation.evaluate.AssociationScore`), not from the whole run's rows
     read back in finalize — the whole-run function is not called — and equal one window's."""
     def whole_run(*_a, **_k):
         raise AssertionError("association rows scored in finalize")
@@ -159,7 +159,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 1_500)
     monkeypatch.setattr(pipeline, "_stream_truth", lambda *a, f=pipeline._stream_truth: streamed.append(f(*a))
                         or streamed[-1])
-    from tertiary import bound
+    from tertiary.evaluation import bound
     bound_reads: list[tuple[bool, int]] = []         # (from a scan, aircraft) of each truth read
 
     def truth_reads(truth, ids, f=bound._truth_reads):
@@ -254,7 +254,7 @@ def dataset_dir(tmp_path_factory, terminal):
 
 
 def _cli(*args: str, env=None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "tertiary.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "tertiary.cli.main", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "200", **(env or {})})
 
 
@@ -304,7 +304,7 @@ def test_windows_are_stored_behind_the_run_in_order_with_the_state_they_were_giv
 
     import numpy as np
 
-    from tertiary.engine import STATE_FILE, PartStore
+    from tertiary.runtime.windows import STATE_FILE, PartStore
     events: list[tuple[str, int]] = []
 
     class Recorded(PartStore):
@@ -407,7 +407,7 @@ def test_window_read_is_pushed_into_the_parquet_scan(tmp_path):
     """A window of a partitioned input reads its own files, not all of them (issue 18: the
     reading was quadratic in the number of windows): the coarse time test sits in the scan
     itself, under the input row index, and the window's rows are exactly the exact test's."""
-    from tertiary.engine import INPUT_ROW, ReportSource
+    from tertiary.runtime.windows import INPUT_ROW, ReportSource
     t0 = 1_700_000_000_000_000
     files = []
     for k in range(3):
@@ -487,8 +487,8 @@ def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path,
     (the time-major rows would come out by aircraft), a part's neighbour times cross aircraft, a
     row is lost between batch and part, or the unsorted note counts one part only."""
     from types import SimpleNamespace
-    from tertiary.evaluation import read_reference, reference_files
-    from tertiary.matching import neighbour_times
+    from tertiary.evaluation.evaluate import read_reference, reference_files
+    from tertiary.evaluation.matching import neighbour_times
     bad = _spoilt_truth(terminal.truth, unsorted)
     if not unsorted:                               # time-major: the aircraft interleaved
         bad = bad.sort("time", maintain_order=True, nulls_last=True)
@@ -524,7 +524,7 @@ def test_truth_files_go_to_the_database_as_the_frame_path_would(tmp_path):
     needs making storable (a user's extra Duration column): then it goes part by part through
     the same conversion as a frame, with its note. Fails if the files path skipped the
     conversion (the column would be stored as an INTERVAL, not Int64 microseconds)."""
-    from tertiary.store import RunStore
+    from tertiary.store.run_store import RunStore
     rows = pl.DataFrame({"truth_id": [1, 2], "__prev": [None, None],
                          "wait": pl.Series([1_500_000, 3], dtype=pl.Duration("us"))})
     plain = rows.drop("wait")
@@ -550,7 +550,7 @@ def test_a_wide_truth_too_large_for_the_writers_pool_goes_part_by_part(tmp_path)
     whole, the database usable and no scratch view left. Fails if the scan's error escapes, or
     the inserts' (hidden before behind "Current transaction is aborted")."""
     import numpy as np
-    from tertiary.store import RunStore
+    from tertiary.store.run_store import RunStore
     n, k = 100_000, 80
     wide = pl.DataFrame({"truth_id": np.arange(n) // 1_000, "__prev": [None] * n,
                          **{f"extra_{i}": np.arange(n, dtype=float) * (i + 1) for i in range(k)}})
@@ -579,7 +579,7 @@ def test_auto_window_holds_about_the_report_budget():
     recording), in whole minutes, within 60 s – 1 h; one report dated year 9999 does not stretch
     the span (it would make the window a thousand times longer), an untimed input gets the fixed
     default."""
-    from tertiary.engine import AUTO_WINDOW_BOUNDS_S, DEFAULT_WINDOW_S, ReportSource, auto_window_s, resolve_window
+    from tertiary.runtime.windows import (AUTO_WINDOW_BOUNDS_S, DEFAULT_WINDOW_S, ReportSource, auto_window_s, resolve_window)
     src = ReportSource(_timed_reports(36_000, 3600.0))                  # 10 reports/s
     assert auto_window_s(src, 6_000) == 600.0
     assert auto_window_s(src, 6_200) == 600.0                           # 620 s: whole minutes
@@ -601,7 +601,7 @@ def test_auto_window_is_sized_by_the_busiest_stretch_not_the_mean():
     """A recording with a busy hour between two quiet ones: the mean rate would size windows that
     hold three times the budget at the peak; the auto window holds about the budget there (a
     window's memory grows with its rows: memory bounded by the window, issue 16)."""
-    from tertiary.engine import ReportSource, auto_window_s
+    from tertiary.runtime.windows import ReportSource, auto_window_s
     t0 = 1_700_000_000_000_000
     quiet = [_timed_reports(3_600, 3600.0, t0), _timed_reports(3_600, 3600.0, t0 + 7200 * US)]
     busy = _timed_reports(36_000, 3600.0, t0 + 3600 * US)                 # 10 reports/s
@@ -620,7 +620,7 @@ def test_auto_window_is_sized_by_the_busiest_stretch_not_the_mean():
 def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
     """The CLI's default ``--window`` is ``auto``, resolved once from the dataset and recorded in
     the run record (which a resume compares)."""
-    from tertiary.engine import ReportSource, auto_window_s
+    from tertiary.runtime.windows import ReportSource, auto_window_s
     from tertiary.simulate import read_dataset
     p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "a"), "--filters", "", "--methods", "arithmetic",
              "--no-centralized", "--no-report", "--quiet")
@@ -633,7 +633,7 @@ def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
 
 
 def test_prefetched_keeps_order_reads_one_ahead_and_raises_where_the_item_is_taken():
-    from tertiary.engine import prefetched
+    from tertiary.runtime.windows import prefetched
     made: list[int] = []
 
     def items(fail_at: int | None = None):

@@ -1,4 +1,4 @@
-"""The one evaluation stage (tertiary.evaluation) and `tertiary evaluate` on a picture file the
+"""The one evaluation stage (tertiary.evaluation.evaluate) and `tertiary evaluate` on a picture file the
 pipeline did not write."""
 
 from __future__ import annotations
@@ -12,14 +12,14 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary import pipeline
-from tertiary.cli import app
+from tertiary.pipeline import job as pipeline
+from tertiary.cli.main import app
 from polars.testing import assert_frame_equal
 
-from tertiary.errors import DataError
-from tertiary.evaluation import EvaluationConfig, comparison, evaluate_each, evaluate_pictures, read_picture
-from tertiary.matching import MatchConfig
-from tertiary.requirements import example_path, load_requirements
+from tertiary.core.errors import DataError
+from tertiary.evaluation.evaluate import (EvaluationConfig, comparison, evaluate_each, evaluate_pictures, read_picture)
+from tertiary.evaluation.matching import MatchConfig
+from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.simulate import load_scenario, simulate, write_dataset
 
 runner = CliRunner()
@@ -145,9 +145,9 @@ def test_reconstructed_reference_is_scored_against_truth_and_radars_are_evaluate
 def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
     """Issue 13 item 5: ADS-B points filtered by quality, only short gaps interpolated, and the
     reference's σ beside the accuracy; a picture 30 m east of the ADS-B flights scores 30 m."""
-    from tertiary import geo
-    from tertiary.evaluation import adsb_reference_table, reference_error_metrics
-    from tertiary.matching import MatchConfig
+    from tertiary.core import geo
+    from tertiary.evaluation.evaluate import adsb_reference_table, reference_error_metrics
+    from tertiary.evaluation.matching import MatchConfig
     from tertiary.simulate.config import builtin_dir
     raw = pl.read_parquet(builtin_dir() / "adsb_paris_2021-10-07.parquet")
     raw = raw.filter(pl.col("icao24").is_in(raw["icao24"].unique().sort().head(6).to_list()))
@@ -158,7 +158,7 @@ def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
         pl.lit(0, pl.UInt32).alias("run"), pl.col("time").alias("epoch"), pl.col("truth_id").cast(pl.UInt64)
         .alias("track_id"), (pl.col("x_m") + 30.0).alias("x_m"), "y_m", "z_m", pl.col("vx_mps").fill_null(0.0),
         pl.col("vy_mps").fill_null(0.0), "vz_mps", "alt_m", pl.lit("shifted").alias("method"))
-    from tertiary.evaluation import EvaluationConfig
+    from tertiary.evaluation.evaluate import EvaluationConfig
     ev = evaluate_pictures(pic, ref, cfg=EvaluationConfig(match=MatchConfig(max_gap_s=10.0)))
     got = dict(ev.metrics.filter((pl.col("segment") == "all") & (pl.col("stage") == "evaluation")).select("metric", "value").iter_rows())
     assert got["rmse_horizontal_m"] == pytest.approx(30.0, abs=0.5)
@@ -234,8 +234,8 @@ def test_a_reference_file_scores_as_the_reference_in_memory(small, tmp_path, mon
     frame's, for the picture in blocks and whole; the file reads back as the truth. Fails if
     the file's slice is not the frame's (another row group's samples, another order) or the
     identity items come from another sample than each aircraft's first."""
-    from tertiary import evaluation
-    from tertiary.evaluation import read_reference, write_reference
+    from tertiary.evaluation import evaluate as evaluation
+    from tertiary.evaluation.evaluate import read_reference, write_reference
     root, ds, files = small
     monkeypatch.setattr(evaluation, "REFERENCE_GROUP_ROWS", 16)
     picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
@@ -296,7 +296,7 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
     output equals the in-memory path's and the spill directory is left empty. Fails if the
     spilled blocks lose or repeat rows, or if the buckets are not combined exactly; and if the
     accuracy's filed rows are still on disk when the metrics file theirs."""
-    from tertiary import evaluation
+    from tertiary.evaluation import evaluate as evaluation
     root, ds, files = small
     picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
     kw = dict(radars=ds.radars, frame=ds.origin, requirements=load_requirements(example_path()),
@@ -335,8 +335,8 @@ def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     association metric equal one join's. Fails if a block's rows are lost, repeated or
     reordered."""
     from datetime import datetime, timedelta, timezone
-    from tertiary import evaluation
-    from tertiary.evaluation import _report_truth, association_metrics
+    from tertiary.evaluation import evaluate as evaluation
+    from tertiary.evaluation.evaluate import _report_truth, association_metrics
     rng = np.random.default_rng(5)
     n = 37
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
@@ -362,7 +362,7 @@ def test_a_reference_file_gives_the_slices_of_the_frame(tmp_path, monkeypatch):
     first one after each aircraft's gaps, aircraft with one sample, slices between samples."""
     import numpy as np
     from datetime import datetime, timedelta, timezone
-    from tertiary import evaluation as E
+    from tertiary.evaluation import evaluate as E
     monkeypatch.setattr(E, "REFERENCE_GROUP_ROWS", 64)
     rng = np.random.default_rng(5)
     t0 = datetime(2021, 10, 7, 8, tzinfo=timezone.utc)
@@ -392,8 +392,8 @@ def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, s
     the lookup falls back to the join. Fails if a block is scored out of order, lost or
     repeated, or labelled with another run's aircraft."""
     from datetime import datetime, timedelta, timezone
-    from tertiary import pipeline
-    from tertiary.evaluation import association_metrics, association_score
+    from tertiary.pipeline import job as pipeline
+    from tertiary.evaluation.evaluate import association_metrics, association_score
     rng = np.random.default_rng(11)
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
     n = 160

@@ -1,4 +1,4 @@
-"""Cleared levels from flight data (tertiary.flight_data): validated with reasons, correlated with
+"""Cleared levels from flight data (tertiary.stages.flight_data): validated with reasons, correlated with
 reports by Mode 3/A code (unique plan only), simulated from the clearances (never from the truth
 or from what transponders reply), carried to the tracks, and used by conflict prediction where no
 selected level is downlinked."""
@@ -14,8 +14,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safety.conflicts import ConflictConfig, predict_conflicts
-from tertiary.errors import DataError
-from tertiary.flight_data import FLIGHT_PLANS_SCHEMA, check_flight_plans, correlate
+from tertiary.core.errors import DataError
+from tertiary.stages.flight_data import FLIGHT_PLANS_SCHEMA, check_flight_plans, correlate
 from tertiary.simulate.traffic import ARRIVAL_CLEARED_M, SID_TOP_FL, flight_level_m
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
@@ -76,7 +76,7 @@ def test_simulated_plans_come_from_the_clearances(small_terminal):
 
 
 def test_tracks_carry_the_cleared_level(small_terminal):
-    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.pipeline.job import PipelineConfig, process
     res = process(small_terminal, PipelineConfig(methods=("information",), filters=("imm_sym",), evaluation=False,
                                                  safety=False, centralized=False))
     assert "cleared_alt_m" in res.tracks.columns and res.tracks["cleared_alt_m"].is_not_null().mean() > 0.8
@@ -126,7 +126,7 @@ def test_dataset_round_trip_keeps_the_flight_plans(small_terminal, tmp_path):
 
 def test_validate_and_run_reject_the_same_flight_plan_rows(small_terminal, tmp_path):
     import dataclasses
-    from tertiary.pipeline import PipelineConfig, process, screen
+    from tertiary.pipeline.job import PipelineConfig, process, screen
     bad = small_terminal.flight_plans.with_columns(
         pl.when(pl.int_range(pl.len()) == 2).then(pl.lit("9999")).otherwise(pl.col("mode_3a")).alias("mode_3a"))
     ds = dataclasses.replace(small_terminal, flight_plans=bad)
@@ -174,8 +174,8 @@ def test_a_wrongly_typed_flight_plan_column_is_named(column, values):
 
 
 # ----------------------------------------------------------------- departure correlation
-from tertiary import geo  # noqa: E402
-from tertiary.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state  # noqa: E402
+from tertiary.core import geo  # noqa: E402
+from tertiary.stages.flight_data import DepartureConfig, departure_plans, departure_step, init_departure_state  # noqa: E402
 
 FRAME = geo.LocalFrame(48.85, 2.35)
 S = timedelta(seconds=1)
@@ -313,7 +313,7 @@ def test_run_pairs_a_wrongly_squawking_departure_with_its_plan(small_terminal):
     """A departure whose crew squawks a code no plan holds: by code it has no cleared level; the
     run pairs it with its plan by aerodrome and time, so its tracks carry the SID top."""
     import dataclasses
-    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.pipeline.job import PipelineConfig, process
     ds = small_terminal
     first = ds.truth.sort("time").group_by("truth_id").agg(pl.col("role").first(), pl.col("time").first())
     lifted = first.filter((pl.col("role") == "departure") & (pl.col("time") > ds.truth["time"].min()))

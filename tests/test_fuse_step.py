@@ -10,12 +10,11 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-import tertiary.align
-import tertiary.associate
-from tertiary.altitude import AltitudeConfig, filter_tracks, filter_tracks_carry
-from tertiary.fusion import (ALL_METHODS, FuseState, FusionConfig, fuse, fuse_step, init_fuse_state,
-                             measured_plots)
-from tertiary.pipeline import PipelineConfig, screen
+import tertiary.stages.align
+import tertiary.stages.association.associate
+from tertiary.stages.tracking.altitude import AltitudeConfig, filter_tracks, filter_tracks_carry
+from tertiary.stages.fusion.fuse import (ALL_METHODS, FuseState, FusionConfig, fuse, fuse_step, init_fuse_state, measured_plots)
+from tertiary.pipeline.job import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 
 KEYS = ["method", "run", "epoch", "target_id"]
@@ -30,8 +29,8 @@ def case():
     ds = simulate(sc)
     cfg = PipelineConfig()
     ing = screen(ds, cfg)
-    aligned = tertiary.align.expand(ing.plan, cfg.align)
-    assoc, _ = tertiary.associate.associate(aligned, cfg.association)
+    aligned = tertiary.stages.align.expand(ing.plan, cfg.align)
+    assoc, _ = tertiary.stages.association.associate.associate(aligned, cfg.association)
     rows = aligned.with_columns(assoc["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     plots = measured_plots(ing.reports, ing.radars, ds.origin, cfg.align.local_tracker.altitude_sigma_m)
     assert ing.radars["scan_period_s"].max() * 1e6 == SLOWEST_SCAN_US

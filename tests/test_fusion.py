@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tertiary import fusion
-from tertiary.fusion import METHODS, FusionConfig, Layout, fuse
-from tertiary.schema import FUSED_EXTRA, TABLES
+from tertiary.stages.fusion import fuse as fusion
+from tertiary.stages.fusion.fuse import METHODS, FusionConfig, Layout, fuse
+from tertiary.contract.schema import FUSED_EXTRA, TABLES
 
 T0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 SIGMA_R = 50.0

@@ -9,9 +9,10 @@ import polars as pl
 import pytest
 from scipy.stats import multivariate_normal, norm
 
-from tertiary import fusion, geo, pipeline
-from tertiary.fusion import (ALL_METHODS, EXTRA_METHODS, METHODS, FusionConfig, chi2_threshold, coord_loglik,
-                             fuse, gate_pass, los_innovation, mv_loglik, trace_test)
+from tertiary.stages.fusion import fuse as fusion
+from tertiary.core import geo
+from tertiary.pipeline import job as pipeline
+from tertiary.stages.fusion.fuse import (ALL_METHODS, EXTRA_METHODS, METHODS, FusionConfig, chi2_threshold, coord_loglik, fuse, gate_pass, los_innovation, mv_loglik, trace_test)
 
 T0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 SIGMA_R = 50.0
@@ -262,8 +263,8 @@ def test_trace_test_by_hand():
 
 # ---------------------------------------------------------------------------- radar health
 
-from tertiary import schema  # noqa: E402
-from tertiary.radar_health import HealthConfig, adaptive_r, nis_samples, radar_health, windowed_nis  # noqa: E402
+from tertiary.contract import schema  # noqa: E402
+from tertiary.sensors.radar_health import HealthConfig, adaptive_r, nis_samples, radar_health, windowed_nis  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
 

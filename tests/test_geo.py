@@ -1,4 +1,4 @@
-"""Independent oracle tests for ``tertiary.geo``.
+"""Independent oracle tests for ``tertiary.core.geo``.
 
 Oracles
 -------
@@ -20,7 +20,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tertiary import geo
+from tertiary.core import geo
 
 MM = 1e-3  # 1 millimetre
 SETTINGS = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -14,7 +14,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.indicators import IndicatorConfig, gain_history, gain_metrics, indicators, picture_indicators
+from tertiary.evaluation.indicators import (IndicatorConfig, gain_history, gain_metrics, indicators, picture_indicators)
 
 T0 = 1_633_608_000 * 1_000_000
 AIRCRAFT = {1: (10e3, 0, 100), 2: (50e3, 0, 40), 3: (30e3, 60, 100), 4: (-120e3, 0, 100)}

@@ -2,9 +2,9 @@
 (issue 18: compilation must not make a fresh install's first run much slower).
 
 * Whatever arrays a caller passes (read-only columns, strided views, other dtypes), each kernel
-  is compiled for the one signature :data:`tertiary.kernels.KERNELS` declares. Oracle: numba's
+  is compiled for the one signature :data:`tertiary.runtime.warmup.KERNELS` declares. Oracle: numba's
   own list of the dispatcher's compiled signatures.
-* :func:`tertiary.kernels.warm` compiles a kernel into numba's cache in another process, and the
+* :func:`tertiary.runtime.warmup.warm` compiles a kernel into numba's cache in another process, and the
   run's first call then loads it instead of compiling. Oracle: numba's cache statistics, in a
   fresh process with an empty cache directory.
 """
@@ -18,9 +18,9 @@ import textwrap
 
 import numpy as np
 
-from tertiary import kernels
-from tertiary.altitude import AltitudeConfig, FilterCarry, filter_tracks_carry
-from tertiary.filters import make_filter
+from tertiary.runtime import warmup as kernels
+from tertiary.stages.tracking.altitude import AltitudeConfig, FilterCarry, filter_tracks_carry
+from tertiary.stages.tracking.filters import make_filter
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -54,7 +54,7 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     flt.update(pred, _read_only(rng.normal(0.0, 1e3, (b, 3))), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)),
                _read_only(np.ones(b, bool)))
     # the bound's recursion, from a read-only truth-time column and a strided record mask
-    from tertiary.bound import BoundConfig, _pcrb_block
+    from tertiary.evaluation.bound import BoundConfig, _pcrb_block
     r_eq = np.full((n, 3, 3), np.nan)
     r_eq[::3] = np.diag([2500.0, 2500.0, 1e4])
     _pcrb_block(_read_only(t), r_eq, _read_only(starts), lengths.astype(np.int32), np.ones(2 * n, bool)[::2],
@@ -68,8 +68,8 @@ def test_warm_compiles_into_the_cache_and_the_first_call_loads_it(tmp_path):
     script = textwrap.dedent("""
         import numpy as np
         from tertiary import kernels
-        from tertiary.altitude import AltitudeConfig, filter_tracks_carry
-        from tertiary.altitude_kernel import _filter
+        from tertiary.stages.tracking.altitude import AltitudeConfig, filter_tracks_carry
+        from tertiary.stages.tracking.altitude_kernel import _filter
         assert not kernels.is_cached("altitude")
         assert kernels.warm(["altitude"]) == ["altitude"]
         assert kernels.warm(["altitude"]) == []          # one compilation, not two

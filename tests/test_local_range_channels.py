@@ -9,12 +9,12 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import geo
-from tertiary.align import AlignConfig, estimates_by_track_life
-from tertiary.errors import OptionError
-from tertiary.local_tracks import LocalTrackerConfig, track_reports
-from tertiary.reference import interpolate_reference
-from tertiary.schema import EHS_REPORT_COLUMNS
+from tertiary.core import geo
+from tertiary.stages.align import AlignConfig, estimates_by_track_life
+from tertiary.core.errors import OptionError
+from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
+from tertiary.evaluation.reference import interpolate_reference
+from tertiary.contract.schema import EHS_REPORT_COLUMNS
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.ehs import RESOLUTION, REPORT_COLUMN
 

@@ -1,4 +1,4 @@
-"""Geometric matching of any picture to a reference (tertiary.matching)."""
+"""Geometric matching of any picture to a reference (tertiary.evaluation.matching)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import polars as pl
 
-from tertiary.matching import MatchConfig, match_to_reference
+from tertiary.evaluation.matching import MatchConfig, match_to_reference
 
 T0 = datetime(2021, 10, 7, 12, 0, 0, tzinfo=timezone.utc)
 
@@ -106,7 +106,7 @@ def test_candidate_pairs_are_every_gated_pair_of_an_epoch_in_row_order():
     (run, method, epoch), horizontal distance ≤ the gate, height difference ≤ the vertical gate
     — each once, sorted by (track row, reference row), with its cost. Many rows near one
     another at each epoch, so that a row has several candidates."""
-    from tertiary.matching import _candidates
+    from tertiary.evaluation.matching import _candidates
     rng = np.random.default_rng(5)
     cfg = MatchConfig(gate_h_m=1000.0, gate_v_m=200.0)
     n_t, n_r = 900, 700

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from tertiary import geo
+from tertiary.core import geo
 from tertiary.simulate import builtin_scenarios, load_scenario
 from tertiary.simulate.config import check_scenario
 from tertiary.simulate import traffic
@@ -136,7 +136,7 @@ def test_window_lookup_matches_the_template(day):
 
 def test_national_needs_its_table():
     cfg = load_scenario("national")
-    from tertiary.errors import OptionError
+    from tertiary.core.errors import OptionError
     with pytest.raises(OptionError, match="national"):
         check_scenario(dataclasses.replace(cfg, national=None))
     with pytest.raises(OptionError, match="national.block_s"):

@@ -13,10 +13,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline
-from tertiary.errors import OptionError
+from tertiary.pipeline import job as pipeline
+from tertiary.core.errors import OptionError
 from tertiary.simulate import load_scenario, simulate
-from tertiary.store import TABLES_DIR, RunStore
+from tertiary.store.run_store import TABLES_DIR, RunStore
 
 #: each streamed table's row key (rows compared in this order)
 KEYS = {
@@ -27,7 +27,7 @@ KEYS = {
     "tracks": ["run", "method", "filter", "epoch", "track_id"],
     "conflicts": ["run", "method", "epoch", "id_a", "id_b"],
 }
-#: the copied database narrows a picture's floats to float32 (tertiary.store, lean layout)
+#: the copied database narrows a picture's floats to float32 (tertiary.store.run_store, lean layout)
 F32 = 3e-7
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.errors import OptionError
-from tertiary.picture_metrics import MetricsConfig, picture_metrics
-from tertiary.schema import validate
+from tertiary.core.errors import OptionError
+from tertiary.evaluation.picture_metrics import MetricsConfig, picture_metrics
+from tertiary.contract.schema import validate
 
 T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]

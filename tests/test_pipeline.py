@@ -8,10 +8,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline, schema
-from tertiary.clustering import ClusteringConfig
-from tertiary.fusion import METHODS
-from tertiary.store import RunStore
+from tertiary.pipeline import job as pipeline
+from tertiary.contract import schema
+from tertiary.stages.clustering import ClusteringConfig
+from tertiary.stages.fusion.fuse import METHODS
+from tertiary.store.run_store import RunStore
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import dataclasses
 import polars as pl
 import pytest
 
-from tertiary.radar_eval import radar_metrics
-from tertiary.schema import validate
+from tertiary.evaluation.radar_eval import radar_metrics
+from tertiary.contract.schema import validate
 from tertiary.simulate import load_scenario, simulate
 
 

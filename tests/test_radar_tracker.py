@@ -8,7 +8,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline
+from tertiary.pipeline import job as pipeline
 from tertiary.simulate import RadarTrackerConfig, TransponderConfig, load_scenario, simulate, simulate_windows
 from tertiary.simulate import radar_tracker as rt
 

@@ -10,9 +10,8 @@ import polars as pl
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary import geo
-from tertiary.reference import (K95_2D, ReferenceConfig, SmootherConfig, _fq, adsb_reference, interpolate_reference,
-                                plot_measurements, reconstruct_reference, rts_smooth)
+from tertiary.core import geo
+from tertiary.evaluation.reference import (K95_2D, ReferenceConfig, SmootherConfig, _fq, adsb_reference, interpolate_reference, plot_measurements, reconstruct_reference, rts_smooth)
 from tertiary.simulate import load_scenario, simulate
 
 ORIGIN = geo.LocalFrame(48.9, 2.4, 0.0)

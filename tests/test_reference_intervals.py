@@ -15,8 +15,8 @@ from polars.testing import assert_frame_equal
 from safety import AlertConfig
 from safety.alerts import _merge, merge_intervals, truth_intervals
 from safety.conflicts import AerodromeZone, ConflictConfig
-from tertiary import pipeline
-from tertiary.evaluation import write_reference
+from tertiary.pipeline import job as pipeline
+from tertiary.evaluation.evaluate import write_reference
 from tertiary.simulate import load_scenario, simulate
 
 

@@ -8,8 +8,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import align, geo, registration as reg
-from tertiary.errors import DataError
+from tertiary.stages import align
+from tertiary.core import geo
+from tertiary.sensors import registration as reg
+from tertiary.core.errors import DataError
 from tertiary.simulate import load_scenario, simulate
 
 US = 1_000_000
@@ -237,7 +239,7 @@ def biased(tmp_path_factory):
 
 
 def test_pipeline_register_improves_fused_accuracy(biased):
-    from tertiary import pipeline
+    from tertiary.pipeline import job as pipeline
     from tertiary.simulate import read_dataset
     ds = read_dataset(biased)
     base = pipeline.PipelineConfig(methods=("information",), filters=(), centralized=False, safety=False)
@@ -254,7 +256,7 @@ def test_pipeline_register_improves_fused_accuracy(biased):
 
 def test_cli_register_writes_the_table_and_run_applies_it(biased, tmp_path):
     from typer.testing import CliRunner
-    from tertiary.cli import app
+    from tertiary.cli.main import app
     runner = CliRunner()
     res = runner.invoke(app, ["register", str(biased), "--no-steps"])
     assert res.exit_code == 0, res.output

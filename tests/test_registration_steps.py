@@ -9,7 +9,7 @@ import polars as pl
 import pytest
 from test_registration import ORIGIN, _hand_case
 
-from tertiary import registration as reg
+from tertiary.sensors import registration as reg
 from tertiary.simulate import load_scenario, simulate
 
 US = 1_000_000

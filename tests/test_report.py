@@ -11,12 +11,11 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary import pipeline
-from tertiary.cli import app
-from tertiary.report import (CENTRALIZED, MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, _breakable, _thin,
-                             build_report, build_sections, figure_count)
+from tertiary.pipeline import job as pipeline
+from tertiary.cli.main import app
+from tertiary.report.html import (CENTRALIZED, MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, _breakable, _thin, build_report, build_sections, figure_count)
 from tertiary.simulate import load_scenario, simulate, write_dataset
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 runner = CliRunner()
 
@@ -57,7 +56,7 @@ def page(run_dir) -> str:
 
 
 def test_one_self_contained_file(run_dir, page):
-    # no temp files; the manifest marks the run complete (tertiary.engine)
+    # no temp files; the manifest marks the run complete (tertiary.runtime.windows)
     assert sorted(p.name for p in run_dir.iterdir()) == ["manifest.json", REPORT_FILENAME, "results.duckdb"]
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     # plotly.js inline exactly once, nothing loaded from a CDN or any other URL
@@ -199,7 +198,7 @@ def test_default_visible_traces_are_best_picture_reference_and_best_radar(built,
     # the best radar is the one with the lowest pooled horizontal RMSE (its own tracks)
     best_name = best_radar[0].removeprefix("radar ")
     with RunStore.open(run_dir) as store:
-        from tertiary.sql_reports import run_report
+        from tertiary.store.sql_reports import run_report
         ra = run_report(store, "radar_accuracy_over_time", {})
     pooled = ra.group_by("name").agg((pl.col("rmse_horizontal_m") ** 2).mean().sqrt().alias("h")).sort("h")
     assert pooled["name"][0] == best_name
@@ -299,7 +298,7 @@ def test_report_survives_missing_tables(run_dir, tmp_path):
 
 def test_report_command_errors(tmp_path):
     res = runner.invoke(app, ["report", str(tmp_path)])
-    # a missing run database is a data error (tertiary.errors.DataError, exit 3) with a one-line message
+    # a missing run database is a data error (tertiary.core.errors.DataError, exit 3) with a one-line message
     assert res.exit_code == 3 and "no run database" in res.output
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from tertiary import pipeline
-from tertiary.report import REPORT_FILENAME, build_report, figure_count
+from tertiary.pipeline import job as pipeline
+from tertiary.report.html import REPORT_FILENAME, build_report, figure_count
 from tertiary.simulate import load_scenario, simulate
 
 ARTIFACTS = Path(__file__).resolve().parent / "artifacts"

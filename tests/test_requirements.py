@@ -9,9 +9,8 @@ import polars as pl
 import pytest
 from scipy import stats
 
-from tertiary.errors import DataError
-from tertiary.requirements import (Requirement, Requirements, check_requirements, example_path,
-                                   load_requirements, metric_kind)
+from tertiary.core.errors import DataError
+from tertiary.evaluation.requirements import (Requirement, Requirements, check_requirements, example_path, load_requirements, metric_kind)
 
 
 def _metrics(rows: list[tuple[str, str, str, float]], stage: str = "evaluation") -> pl.DataFrame:

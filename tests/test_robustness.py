@@ -16,12 +16,13 @@ import polars.selectors as cs
 import pytest
 
 import tertiary
-from tertiary import pipeline, schema
-from tertiary.align import AlignConfig
-from tertiary.errors import DataError, OptionError, ResourceError, TertiaryError
+from tertiary.pipeline import job as pipeline
+from tertiary.contract import schema
+from tertiary.stages.align import AlignConfig
+from tertiary.core.errors import DataError, OptionError, ResourceError, TertiaryError
 from tertiary.simulate import Dataset, read_dataset, simulate, write_dataset
 from tertiary.simulate.config import Anomalies, check_scenario, load_scenario, with_radar_count
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 CFG = pipeline.PipelineConfig(methods=("arithmetic",), filters=(), centralized=False, safety=False)
 US = 1_000_000
@@ -426,7 +427,7 @@ def test_capacity_p_at_least_1_is_nan_with_a_note() -> None:
 def test_a_late_stage_failure_keeps_the_completed_stages(small: Dataset, tmp_path: Path, monkeypatch) -> None:
     """Clustering fails in the third window (of 30 s): the two completed windows' tables are stored (and
     nothing of the failing window), with a run record naming the stage."""
-    from tertiary import clustering
+    from tertiary.stages import clustering
     real, calls = clustering.cluster_step, []
 
     def boom(*a, **k):
@@ -456,7 +457,7 @@ def test_rules_table_is_documented() -> None:
 def test_scenario_toml_origin_off_the_globe_is_refused_even_with_origin_option(tmp_path):
     """Found by the fuzz campaign: --origin overrode a scenario.toml origin of latitude 148.85 and
     the bad field was never checked; the file is validated whole."""
-    from tertiary.errors import DataError
+    from tertiary.core.errors import DataError
     from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
     ds = simulate(load_scenario("big-box").replace(runs=1, duration_s=60.0))
     out = write_dataset(ds, tmp_path / "ds")
@@ -476,7 +477,7 @@ def test_a_table_write_failure_in_finalize_names_write_tables(small: Dataset, tm
     fails (here the ``fused`` table) is raised as ``write_tables``'s failure, not as the stage
     that happened to run then, the tables after it are not written, and the run record and the
     tables written before it are kept."""
-    from tertiary.store import RunStore as Store
+    from tertiary.store.run_store import RunStore as Store
     real, written = Store.write_parts, []
 
     def boom(self, name, parts):

@@ -178,7 +178,7 @@ def test_selected_altitude_is_the_clearance(traffic):
     assert np.allclose(sel[dep], flight_level_m(SID_TOP_FL, cfg.level_buffer_m))
     assert np.allclose(sel[arr], ARRIVAL_CLEARED_M)
     # level traffic: the selection is the height it flies at (start = end)
-    from tertiary.altitude import geodetic_height_rate  # noqa: F401  (heights: the sphere, frame None)
+    from tertiary.stages.tracking.altitude import geodetic_height_rate  # noqa: F401  (heights: the sphere, frame None)
     r = 6_371_000.0
     h = np.sqrt(traj.pos[..., 0] ** 2 + traj.pos[..., 1] ** 2 + (r + traj.pos[..., 2]) ** 2) - r
     top = np.where(traj.active, h, -np.inf).max(axis=1)
@@ -275,7 +275,7 @@ def test_bds40_extraction_quantised_and_missing(traffic):
 def test_selected_altitude_reaches_the_tracks(tmp_path):
     """A small simulated run: reports → aligned → fused → tracks carry selected_alt_m; a track's
     value is one its aircraft selected."""
-    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.pipeline.job import PipelineConfig, process
     from tertiary.simulate import load_scenario, simulate
     scen = load_scenario("terminal-area")
     scen = dataclasses.replace(scen, duration_s=600.0, runs=1,

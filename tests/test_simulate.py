@@ -8,17 +8,17 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import geo
-from tertiary.errors import DataError
+from tertiary.core import geo
+from tertiary.core.errors import DataError
 from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
-from tertiary.simulate.config import Anomalies, RadarConfig, scenario_toml, from_dict, ScenarioConfig, with_radar_count
+from tertiary.simulate.config import (Anomalies, RadarConfig, scenario_toml, from_dict, ScenarioConfig, with_radar_count)
 from tertiary.simulate.traffic import big_box, BIG_BOX_SPEED
 from tertiary.simulate.trajectory import SEG_TURN
 
 import tomllib
 from pathlib import Path
 
-from tertiary.pipeline import ingest
+from tertiary.pipeline.job import ingest
 
 
 # --------------------------------------------------------------------------- big box geometry
@@ -280,7 +280,7 @@ def test_adsb_generic_places_radars_around_traffic():
 def test_every_shipped_scenario_passes_its_own_checks():
     """check_scenario runs before every simulation: it must accept what the package ships (the
     generic adsb scenario needs --truth, and says so)."""
-    from tertiary.errors import OptionError
+    from tertiary.core.errors import OptionError
     from tertiary.simulate import builtin_scenarios
     from tertiary.simulate.config import check_scenario
     for name in builtin_scenarios():

@@ -11,8 +11,8 @@ import pyarrow.parquet as pq
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.errors import DataError, OptionError
-from tertiary.simulate import Dataset, load_scenario, read_dataset, simulate, simulate_windows, write_dataset, write_stream
+from tertiary.core.errors import DataError, OptionError
+from tertiary.simulate import (Dataset, load_scenario, read_dataset, simulate, simulate_windows, write_dataset, write_stream)
 
 
 def _small_national(duration: float = 1200.0, peak: int = 150):
@@ -236,7 +236,7 @@ def test_ehs_refresh_phase_does_not_depend_on_the_window():
     clock: a window looked up from a later sample, holding other aircraft in other rows, gives
     the values of the whole scenario's truth. Fails with a phase keyed by row or by the epoch."""
     import numpy as np
-    from tertiary import geo
+    from tertiary.core import geo
     from tertiary.simulate.ehs import EHS_COLUMNS, EhsConfig, ehs_parameters
     from tertiary.simulate.traffic import terminal_traffic
     cfg = _small_terminal()

@@ -11,9 +11,9 @@ import polars as pl
 import pytest
 
 import tertiary
-from tertiary import pipeline
+from tertiary.pipeline import job as pipeline
 from tertiary.simulate import load_scenario, simulate
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 SQL_DIR = Path(__file__).resolve().parents[1] / "sql"
 
@@ -38,7 +38,7 @@ def test_sql_and_scenarios_shipped_with_installed_package():
     from tertiary.simulate.config import builtin_dir, builtin_scenarios
     assert builtin_dir() == pkg / "datasets"
     assert {"big-box", "terminal-area", "adsb-paris", "adsb"} <= set(builtin_scenarios())
-    from tertiary.requirements import example_path, load_requirements
+    from tertiary.evaluation.requirements import example_path, load_requirements
     assert example_path().is_file() and pkg in example_path().parents   # the example requirements ship
     assert load_requirements(example_path()).items
 

@@ -14,11 +14,12 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary import pipeline, sql_reports
-from tertiary.cli import app
-from tertiary.errors import OptionError
+from tertiary.pipeline import job as pipeline
+from tertiary.store import sql_reports
+from tertiary.cli.main import app
+from tertiary.core.errors import OptionError
 from tertiary.simulate import load_scenario, simulate
-from tertiary.store import RunStore
+from tertiary.store.run_store import RunStore
 
 T0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
 TIME = pl.Datetime("us", "UTC")

@@ -1,4 +1,4 @@
-"""Tests for the run store (tertiary.store)."""
+"""Tests for the run store (tertiary.store.run_store)."""
 
 from __future__ import annotations
 
@@ -12,15 +12,7 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.store import (
-    DB_FILENAME,
-    RunStore,
-    atomic_path,
-    export_parquet,
-    record_run,
-    write_parquet_atomic,
-    write_text_atomic,
-)
+from tertiary.store.run_store import (DB_FILENAME, RunStore, atomic_path, export_parquet, record_run, write_parquet_atomic, write_text_atomic)
 
 UTC = dt.timezone.utc
 
@@ -381,7 +373,7 @@ def test_record_run(tmp_path: Path) -> None:
 def test_covariances_are_stored_as_float32_upper_triangles_and_read_back_whole(tmp_path):
     """A lean run database (issue 16 item 5): 21 float32 instead of 36 float64 per matrix."""
     import numpy as np
-    from tertiary.store import RunStore
+    from tertiary.store.run_store import RunStore
     rng = np.random.default_rng(0)
     a = rng.normal(size=(50, 6, 6)) * 30.0
     cov = a @ a.transpose(0, 2, 1) + np.eye(6) * 100.0

@@ -15,9 +15,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline, sql_reports
+from tertiary.pipeline import job as pipeline
+from tertiary.store import sql_reports
 from tertiary.simulate import load_scenario, simulate, write_dataset
-from tertiary.store import LEAN_PREFIX, RunStore
+from tertiary.store.run_store import LEAN_PREFIX, RunStore
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_store.py"
 sys.path.insert(0, str(_PATH.parent))
@@ -94,7 +95,7 @@ def test_narrowed_columns_keep_float32_precision_and_the_rest_is_exact(runs):
 def _normalised_html(run_dir: Path) -> str:
     """The report's HTML without what differs between two renderings of one run (its build time,
     the database's path)."""
-    from tertiary.report import render_report
+    from tertiary.report.html import render_report
     page, _n = render_report(run_dir)
     page = re.sub(r"Report built\s+\S+ \S+ UTC in [0-9.]+ s", "Report built", page)
     return page.replace("<wbr>", "").replace(str(run_dir), "RUN")

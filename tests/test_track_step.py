@@ -18,11 +18,11 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary import pipeline
-from tertiary.filters import make_filter
-from tertiary.schema import TIME
+from tertiary.pipeline import job as pipeline
+from tertiary.stages.tracking.filters import make_filter
+from tertiary.contract.schema import TIME
 from tertiary.simulate import load_scenario, simulate
-from tertiary.tracker import TrackerConfig, TrackState, init_track_state, track_methods, track_step
+from tertiary.stages.tracking.tracker import (TrackerConfig, TrackState, init_track_state, track_methods, track_step)
 
 FILTERS = ("singer", "imm_sym", "cv")
 KEYS = ["method", "filter", "run", "epoch", "track_id"]

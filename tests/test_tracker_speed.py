@@ -16,10 +16,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import pipeline
-from tertiary.filters import make_filter
+from tertiary.pipeline import job as pipeline
+from tertiary.stages.tracking.filters import make_filter
 from tertiary.simulate import load_scenario, simulate
-from tertiary.tracker import track, track_methods
+from tertiary.stages.tracking.tracker import track, track_methods
 
 REL = 1e-9
 

@@ -8,7 +8,7 @@ import polars as pl
 import pytest
 
 import safety
-from tertiary import geo
+from tertiary.core import geo
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.traffic import AIRWAYS, GLIDE_DEG, THRESHOLD, TCH_M, flight_level_m
 

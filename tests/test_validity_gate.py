@@ -7,8 +7,9 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary import align, geo
-from tertiary.centralized import converted_plots, debias_enu, plot_validity
+from tertiary.stages import align
+from tertiary.core import geo
+from tertiary.stages.fusion.centralized import converted_plots, debias_enu, plot_validity
 
 US = 1_000_000
 

@@ -17,19 +17,15 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary import geo
-from tertiary.errors import DataError, OptionError
-from tertiary.local_tracks import track_reports
-from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarTrackerConfig, ScenarioConfig,
-                                      TrackerParams, TrafficConfig, TransponderConfig, auto_radars, builtin_scenarios, check_name, check_origin,
-                                      check_scenario, load_scenario, read_scenario_toml, resolve_data_path,
-                                      scenario_toml)
+from tertiary.core import geo
+from tertiary.core.errors import DataError, OptionError
+from tertiary.sensors.local_tracks import track_reports
+from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarTrackerConfig, ScenarioConfig, TrackerParams, TrafficConfig, TransponderConfig, auto_radars, builtin_scenarios, check_name, check_origin, check_scenario, load_scenario, read_scenario_toml, resolve_data_path, scenario_toml)
 from tertiary.simulate.ehs import SIMULATED_COLUMNS, EhsConfig, ehs_report_columns, ehs_rng
-from tertiary.simulate.radar import (Plots, Transponders, _octal, number_plots, observe, site_frame,
-                                    transponders)
+from tertiary.simulate.radar import (Plots, Transponders, _octal, number_plots, observe, site_frame, transponders)
 from tertiary.simulate.traffic import TerminalTraffic, big_box, terminal_area, terminal_traffic
 from tertiary.simulate.trajectory import Trajectories
-from tertiary.store import write_parquet_atomic, write_text_atomic
+from tertiary.store.run_store import write_parquet_atomic, write_text_atomic
 
 __all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "simulate_windows", "write_stream", "Window", "load_scenario", "builtin_scenarios",
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
@@ -49,7 +45,7 @@ class Dataset:
     truth: pl.DataFrame
     scenario: ScenarioConfig
     removed: pl.DataFrame = field(default_factory=pl.DataFrame)   # truth rows dropped by ADS-B cleaning
-    #: the controllers' cleared levels by Mode 3/A code (tertiary.flight_data; empty: none)
+    #: the controllers' cleared levels by Mode 3/A code (tertiary.stages.flight_data; empty: none)
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)
     notes: list[str] = field(default_factory=list)                # how the dataset was completed on load
 
@@ -65,7 +61,7 @@ class Dataset:
 
 def _read_truth_file(path: Path) -> pl.DataFrame:
     """The ADS-B truth file, or a :class:`DataError` naming it and what is wrong."""
-    from tertiary.simulate import adsb
+    from tertiary.io import adsb
     try:
         frame = adsb.read_adsb(path)
     except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
@@ -82,7 +78,7 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
     if cfg.kind == "big-box":
         return cfg, big_box(cfg.dt), pl.DataFrame()
     if cfg.kind == "adsb":
-        from tertiary.simulate import adsb
+        from tertiary.io import adsb
         frame = _read_truth_file(resolve_data_path(cfg.adsb.truth_file))
         t0 = frame["timestamp"].min().replace(microsecond=0)
         start = t0 + timedelta(seconds=cfg.adsb.start_s)
@@ -169,7 +165,7 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
     radar's own Singer-channel secondary processing. Same config (incl. seed) → identical tables.
 
     ``ehs``: Mode S reports carry the enhanced-surveillance parameters
-    (:data:`tertiary.schema.EHS_REPORT_COLUMNS`, :mod:`tertiary.simulate.ehs`); None leaves the
+    (:data:`tertiary.contract.schema.EHS_REPORT_COLUMNS`, :mod:`tertiary.simulate.ehs`); None leaves the
     columns out. Their noise comes from a stream of its own (:func:`~tertiary.simulate.ehs.ehs_rng`):
     every other column is bit-identical with EHS on or off."""
     cfg = check_scenario(cfg)
@@ -203,14 +199,14 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
 
 
 def flight_plans(traffic: TerminalTraffic, tx: Transponders) -> pl.DataFrame:
-    """The ``flight_plans`` table (:mod:`tertiary.flight_data`) of terminal-area traffic, which
+    """The ``flight_plans`` table (:mod:`tertiary.stages.flight_data`) of terminal-area traffic, which
     carries cleared levels (:attr:`TerminalTraffic.cleared_alt_m`): per aircraft, the code ATC
     assigned it and its cleared level, valid over its time in the scenario — two rows when ATC
     changed its code (the transponder's ``t_change``: the flight data follow the instruction).
     The assigned code is the traffic's squawk, not what the transponder replies: a crew squawking
     another aircraft's code (``duplicate_code_fraction``) is not correlated by code, as in reality.
     A departure's plan also names its aerodrome and its ATD to the minute (the tower's departure
-    message), with which :func:`tertiary.flight_data.departure_step` pairs a departure that
+    message), with which :func:`tertiary.stages.flight_data.departure_step` pairs a departure that
     squawks the wrong code. Known from the schedule before the aircraft fly (filed plans) and
     the tower's message. Never the truth id."""
     cleared = traffic.cleared_alt_m
@@ -371,7 +367,7 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
     used, with a note) and the scenario name is the directory name made an identifier.
     Every problem (missing or unreadable file, malformed TOML, bad origin or name) is a
     :class:`DataError` naming the file. ``lazy``: reports and truth are Parquet scans
-    (:class:`polars.LazyFrame`), read window by window by the run (:mod:`tertiary.engine`).
+    (:class:`polars.LazyFrame`), read window by window by the run (:mod:`tertiary.runtime.windows`).
     """
     d = Path(path)
     if not d.is_dir():
@@ -442,7 +438,7 @@ NATIONAL_EPOCH = datetime(2021, 10, 7, 0, 0, 0, tzinfo=timezone.utc)
 PARTS_MANIFEST = "parts.json"
 PARTITIONED = ("reports", "truth")
 #: Parquet row groups of the dataset's tables: small enough that a reader of one time window
-#: (``tertiary run``, :class:`tertiary.engine.ReportSource`) skips the groups outside it by their
+#: (``tertiary run``, :class:`tertiary.runtime.windows.ReportSource`) skips the groups outside it by their
 #: time statistics — a 60 s window of a national hour read 35 k reports in 0.1 s instead of 2 s
 _ROW_GROUPS = {"row_group_size": 16_384, "statistics": True}
 #: scenario kinds simulated from a schedule, block by block

@@ -11,9 +11,9 @@ import re
 import types
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
-from tertiary.errors import DataError, OptionError, ResourceError
-from tertiary.filters.singer import SingerModel
-from tertiary.local_tracks import LocalTrackerConfig
+from tertiary.core.errors import DataError, OptionError, ResourceError
+from tertiary.stages.tracking.filters.singer import SingerModel
+from tertiary.sensors.local_tracks import LocalTrackerConfig
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 
 Kind = Literal["big-box", "terminal-area", "adsb", "national"]
@@ -191,7 +191,7 @@ class NationalConfig:
     ``enroute_floor_fl``: the floor of the area's en-route airspace (0: none): two aircraft
     both below it may be 3 NM apart (the terminal area), any other pair needs 5 NM (its traffic
     is planned so above FL150); the pipeline's STCA and its loss-of-separation scoring take it
-    (:func:`tertiary.pipeline.adapt_to_scenario`)."""
+    (:func:`tertiary.pipeline.job.adapt_to_scenario`)."""
 
     airports: tuple[Airport, ...] = ()
     peak_airborne: int = 1500
@@ -495,7 +495,7 @@ def check_origin(origin: Any, option: str = "origin") -> tuple[float, float, flo
 
 
 def _check_radar(where: str, r: Any) -> None:
-    from tertiary.schema import Limits
+    from tertiary.contract.schema import Limits
     lim = Limits()
     if not isinstance(r, RadarConfig):
         raise _type_error(where, "a radar table", r)

@@ -49,8 +49,8 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.errors import DataError
-from tertiary.schema import EHS_REPORT_COLUMNS
+from tertiary.core.errors import DataError
+from tertiary.contract.schema import EHS_REPORT_COLUMNS
 from tertiary.simulate.trajectory import Trajectories
 
 F64 = NDArray[np.float64]
@@ -70,10 +70,10 @@ EHS_COLUMNS = tuple(RESOLUTION)
 FT = 0.3048
 #: BDS 4,0 MCP/FCU selected altitude: (LSB, lower, upper) in metres
 SELECTED_ALT_RESOLUTION = (16.0 * FT, 0.0, 65520.0 * FT)
-#: the ``reports`` column of the BDS 4,0 selected altitude (:data:`tertiary.schema.SELECTED_ALT_COLUMN`)
+#: the ``reports`` column of the BDS 4,0 selected altitude (:data:`tertiary.contract.schema.SELECTED_ALT_COLUMN`)
 SELECTED_ALT_COLUMN = "selected_alt_m"
 
-#: EHS field → the ``reports`` column carrying it (:data:`tertiary.schema.EHS_REPORT_COLUMNS`)
+#: EHS field → the ``reports`` column carrying it (:data:`tertiary.contract.schema.EHS_REPORT_COLUMNS`)
 REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
 #: spawn key of the EHS noise stream: a child of the scenario seed no other simulator stream uses
 #: (radars use children 0 … n_radars), so switching EHS on or off leaves every other column

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary import geo
+from tertiary.core import geo
 from tertiary.simulate import radar_tracker as rt
 from tertiary.simulate.config import Anomalies, RadarConfig, TransponderConfig
 from tertiary.simulate.trajectory import Trajectories
@@ -272,7 +272,7 @@ def transponder_altitude(alt_m: NDArray[np.float64], quantum: NDArray[np.float64
                          garble_rate: float = GARBLE_RATE, missing_rate: float = MISSING_ALT_RATE
                          ) -> NDArray[np.float64]:
     """Pressure altitude as a transponder replies it: the true pressure altitude (= geodetic
-    height, ISA without QNH/temperature deviation; see :mod:`tertiary.altitude`) rounded to the
+    height, ISA without QNH/temperature deviation; see :mod:`tertiary.stages.tracking.altitude`) rounded to the
     aircraft's quantum; a fraction ``garble_rate`` of replies carry a wrong code — one of the
     low bits of the altitude count N (alt = N·q + offset) flipped, an error of ±q·2^b,
     b uniform in 0…b_max (10 for 25 ft, 8 for 100 ft: |error| ≤ :data:`GARBLE_MAX_M`), never

@@ -392,7 +392,7 @@ def _update(i, r, s_t, s_x, s_p, s_hits, s_misses, s_conf, s_ms, s_a, p_t, p_z, 
 def is_ready() -> bool:
     """The loop is compiled in this process, or numba's cache holds it for this source (then
     it loads in about a second instead of compiling for 12–20 s on the 2-core machine)."""
-    from tertiary.kernels import in_cache
+    from tertiary.runtime.warmup import in_cache
     return bool(_scan_loop.signatures) or in_cache(_scan_loop)
 
 

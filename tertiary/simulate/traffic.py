@@ -61,11 +61,10 @@ from datetime import datetime
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary import geo
-from tertiary.errors import OptionError
+from tertiary.core import geo
+from tertiary.core.errors import OptionError
 from tertiary.simulate.config import TrafficConfig
-from tertiary.simulate.trajectory import (DEFAULT_EPOCH, SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT,
-                                          SEG_TURN, Trajectories, integrate_commands)
+from tertiary.simulate.trajectory import (DEFAULT_EPOCH, SEG_CLIMB, SEG_DESCENT, SEG_HOLD, SEG_STRAIGHT, SEG_TURN, Trajectories, integrate_commands)
 
 
 
@@ -195,7 +194,7 @@ def heights_to_enu(pos: NDArray[np.float64], vel: NDArray[np.float64], frame: ge
                    active: NDArray[np.bool_] | None = None) -> None:
     """In place: z and vz of (…, 3) positions/velocities given as (x, y, height, vx, vy, ḣ)
     become tangent-plane z and ż such that the geodetic height of the point is the height
-    (WGS-84 with ``frame``, else the sphere of :data:`tertiary.geo.EARTH_RADIUS_M` that
+    (WGS-84 with ``frame``, else the sphere of :data:`tertiary.core.geo.EARTH_RADIUS_M` that
     :func:`safety.conflicts.height_and_rate` uses without a frame).
 
     Sphere: z = √((R+h)² − x² − y²) − R, ż = ((R+h)ḣ − x·vx − y·vy)/(R + z). With a frame,

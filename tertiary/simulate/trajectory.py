@@ -16,8 +16,8 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary import geo
-from tertiary.altitude import geodetic_height_rate
+from tertiary.core import geo
+from tertiary.stages.tracking.altitude import geodetic_height_rate
 
 #: manoeuvre segment codes stored per sample
 SEGMENTS = ("straight", "turn", "climb", "descent", "hold")
@@ -113,7 +113,7 @@ class Trajectories:
 
         With the system ``frame`` the table also carries the vertical reference the
         transponders report: ``alt_m`` = pressure altitude = geodetic height of the position
-        (standard atmosphere, no QNH or temperature deviation; :mod:`tertiary.altitude`) and
+        (standard atmosphere, no QNH or temperature deviation; :mod:`tertiary.stages.tracking.altitude`) and
         ``alt_rate_mps`` = its rate n̂·v (n̂ the ellipsoid normal at the aircraft) — never the
         ENU z, which falls away from the height by ρ²/2R."""
         a_idx, k_idx = np.nonzero(self.active[:, ::stride])

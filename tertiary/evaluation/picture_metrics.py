@@ -1,0 +1,808 @@
+"""Air-picture metrics of issue 13 item 3, computed from a *matched* frame (pure functions).
+
+Input contract
+--------------
+``matched``: one row per (picture, track row), i.e. per track state a picture reports at an
+epoch, after the matcher has paired it with a reference aircraft (or with none).
+
+===========================  =====================================================================
+``method`` (str)             the picture's name (becomes ``metrics.method``)
+``run`` (u32), ``epoch``     Monte-Carlo run and the state's time (Datetime(us, UTC))
+``track_id`` (u64)           the picture's track number
+``truth_id`` (i64, null)     the reference aircraft the track row represents; null = unmatched
+``x_m … vz_mps``             the track state in the system ENU frame
+``alt_m, alt_rate_mps``      optional: the track's height channel (else ``z_m``/``vz_mps``)
+``true_x_m … true_vz_mps``   the reference state at ``epoch`` (null when unmatched)
+``true_alt_m``,              optional: reference pressure altitude and its rate (else
+``true_alt_rate_mps``        ``true_z_m``/``true_vz_mps``)
+``mode_s``, ``icao24``       optional: the track's Mode S address and the reference's
+===========================  =====================================================================
+
+``expected`` (optional): the reference sampled at the evaluation epochs, one row per
+(run, truth_id, epoch) where the aircraft exists and has a usable reference (``"evaluated"``),
+with the same ``true_*`` columns. It is what continuity needs: exposure (aircraft-hours),
+update intervals with no update, and merged tracks (an aircraft with no track of its own).
+Without it, exposure is the span from an aircraft's first to last matched epoch and merged
+tracks are not computed.
+
+Definitions (errors are track − reference)
+------------------------------------------
+* horizontal error e = (x−x*, y−y*); along = e·u, across = u_x e_y − u_y e_x (positive to the
+  left of travel), u = v*/|v*| the *reference* horizontal velocity direction (rows with
+  |v*| < ``min_speed_mps`` are left out of along/across/latency/track angle).      (1)
+* latency τ = −mean(along / |v*|): a track that reports the position of time t − τ lags by
+  along = −|v*| τ, so a positive latency is a lagging track.                          (2)
+* height error: ``alt_m − true_alt_m`` when both exist, else ``z_m − true_z_m``.
+* ``prob_update``: the time of each (run, aircraft) from its first expected epoch is cut into
+  intervals of ``expected_interval_s``; the fraction of intervals holding ≥ 1 track update.
+* representative track of an aircraft at an epoch: among the tracks matched to it then, the one
+  matched to it most often over the run (ties: lowest id) — stable under short splits.
+  ``id_changes_per_hour``: changes of the representative id per aircraft-hour; a swap of two
+  aircraft's tracks is one change for each.
+* a *break*: consecutive represented epochs of an aircraft more than ``break_gap_s`` apart;
+  ``mean_reacquire_s`` is the mean length of those gaps.
+* ``false_tracks_per_hour``: tracks never matched to any aircraft, per hour of picture (sum over
+  runs of each run's epoch span). ``split_tracks``: distinct tracks that were, at some epoch,
+  a non-representative second track of an aircraft. ``merged_tracks``: distinct tracks whose
+  position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
+  track of its own while representing another aircraft.
+* identity correctness, on matched rows where both sides carry the item: ``mode_s_correct_frac``
+  (track Mode S address = reference ``icao24``), ``mode_3a_correct_frac`` (track ``mode_3a`` =
+  reference ``mode_3a``), ``callsign_correct_frac`` (blank-stripped, case-insensitive), and
+  ``flight_level_correct_frac`` (|track alt_m − reference alt_m| ≤ ``flight_level_tolerance_m``,
+  200 ft), each with its sample count ``n_mode_s``, ``n_mode_3a``, ``n_callsign``, ``n_flight_level``.
+* flight phase from the reference: ``phase:turn`` if |turn rate| > ``turn_rate_dps``, else
+  ``phase:climb-descent`` if |vertical rate| > ``vertical_rate_mps``, else ``phase:level``.
+
+Output: the ``metrics`` table (stage ``evaluation``, method = picture, segment = ``all``,
+``alt:0-3000m``, ``range:0-50km``, ``phase:turn`` …). Sample sizes ride along as metrics
+``n_points`` (accuracy rows), ``n_update_intervals``, ``aircraft_hours``, ``picture_hours`` and
+``n_tracks`` so that :mod:`tertiary.evaluation.requirements` can state the confidence of a verdict.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+
+from tertiary.evaluation.buckets import file_buckets
+from tertiary.core.errors import DataError, OptionError
+
+__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics",
+           "picture_metrics_buckets"]
+
+BREAKDOWNS = ("alt", "range", "phase")
+STAGE = "evaluation"
+_KEY = ["method", "run", "truth_id"]
+_US_PER_H = 3.6e9
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """Settings of the picture metrics (every threshold documented in the module docstring)."""
+
+    expected_interval_s: float = 5.0
+    break_gap_s: float | None = None          # None: 3 × expected_interval_s
+    min_speed_mps: float = 10.0
+    alt_bands_m: tuple[float, ...] = (0.0, 3000.0, 6000.0, 9000.0, 15000.0)
+    range_rings_m: tuple[float, ...] = (0.0, 50_000.0, 100_000.0, 150_000.0, 250_000.0)
+    turn_rate_dps: float = 0.5
+    vertical_rate_mps: float = 2.5
+    merge_gate_m: float = 1000.0
+    merge_gate_v_m: float = 300.0
+    #: a track's flight level is correct within ± this of the reference pressure altitude
+    #: (200 ft: a Mode C code is validated within ±200 ft in ICAO Annex 10 / Doc 8071 practice)
+    flight_level_tolerance_m: float = 60.96
+
+    @property
+    def gap_s(self) -> float:
+        return 3.0 * self.expected_interval_s if self.break_gap_s is None else self.break_gap_s
+
+
+# --------------------------------------------------------------------------- checks and helpers
+
+
+def _require(columns: Sequence[str], cols: Sequence[str], what: str) -> None:
+    missing = [c for c in cols if c not in columns]
+    if missing:
+        raise DataError(f"{what} is missing column(s) {', '.join(missing)}")
+
+
+def _height(frame: pl.DataFrame, prefix: str = "") -> tuple[pl.Expr, pl.Expr]:
+    """(height, height rate) expressions: the altitude channel when present, else ENU z/vz."""
+    alt, rate = f"{prefix}alt_m", f"{prefix}alt_rate_mps"
+    h = pl.col(alt) if alt in frame.columns else pl.col(f"{prefix}z_m")
+    hd = pl.col(rate) if rate in frame.columns else pl.col(f"{prefix}vz_mps")
+    return h, hd
+
+
+def band_labels(values: pl.Expr, edges: Sequence[float], prefix: str, scale: float, unit: str) -> pl.Expr:
+    """``prefix:lo-hi<unit>`` for values in [lo, hi), null outside every band."""
+    out = pl.lit(None, dtype=pl.String)
+    for lo, hi in zip(edges[-2::-1], edges[:0:-1]):           # reversed so the first band wins
+        label = f"{prefix}:{lo / scale:g}-{hi / scale:g}{unit}"
+        out = pl.when((values >= lo) & (values < hi)).then(pl.lit(label)).otherwise(out)
+    return out
+
+
+# --------------------------------------------------------------------------- per-row quantities
+
+
+def accuracy_errors(matched: pl.DataFrame, cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """``matched`` rows with a reference, with the error columns of (1)–(2): ``err_h_m``,
+    ``along_m``, ``across_m``, ``err_height_m``, ``err_gs_mps``, ``err_track_deg``,
+    ``err_vrate_mps``, ``latency_sample_s`` (null where the reference is too slow)."""
+    m = matched.filter(pl.col("truth_id").is_not_null() & pl.col("true_x_m").is_not_null())
+    h, hd = _height(m)
+    th, thd = _height(m, "true_")
+    ex, ey = pl.col("x_m") - pl.col("true_x_m"), pl.col("y_m") - pl.col("true_y_m")
+    gs_t = (pl.col("true_vx_mps") ** 2 + pl.col("true_vy_mps") ** 2).sqrt()
+    gs = (pl.col("vx_mps") ** 2 + pl.col("vy_mps") ** 2).sqrt()
+    fast = gs_t >= cfg.min_speed_mps
+    ux, uy = pl.col("true_vx_mps") / gs_t, pl.col("true_vy_mps") / gs_t
+    along = ex * ux + ey * uy
+    dang = pl.arctan2(pl.col("vx_mps"), pl.col("vy_mps")) - pl.arctan2(pl.col("true_vx_mps"), pl.col("true_vy_mps"))
+    dang = (dang + np.pi) % (2 * np.pi) - np.pi            # wrap to [-π, π)
+    return m.with_columns(
+        (ex * ex + ey * ey).sqrt().alias("err_h_m"),
+        pl.when(fast).then(along).alias("along_m"),
+        pl.when(fast).then(ux * ey - uy * ex).alias("across_m"),
+        (h - th).alias("err_height_m"),
+        (gs - gs_t).alias("err_gs_mps"),
+        pl.when(fast).then(dang.degrees()).alias("err_track_deg"),
+        (hd - thd).alias("err_vrate_mps"),
+        pl.when(fast).then(-along / gs_t).alias("latency_sample_s"),
+    )
+
+
+def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = None,
+                     cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """Breakdown labels of unique reference states (run, truth_id, epoch, ``true_*``): columns
+    ``alt`` (altitude band), ``range`` (ring from the nearest radar in ``radar_xy`` (R, 2), the
+    system-frame sites; null without radars) and ``phase`` (from the reference turn and
+    vertical rates; turn rate by differencing the reference heading between epochs)."""
+    ref = ref.unique(["run", "truth_id", "epoch"]).sort(["run", "truth_id", "epoch"])
+    th, thd = _height(ref, "true_")
+    heading = pl.arctan2(pl.col("true_vx_mps"), pl.col("true_vy_mps"))
+    by = ["run", "truth_id"]
+    dt = (pl.col("epoch").diff().over(by).dt.total_microseconds() / 1e6)
+    dpsi = ((heading.diff().over(by) + np.pi) % (2 * np.pi) - np.pi)
+    rate = (dpsi / dt).degrees().abs()
+    rate = pl.coalesce(rate, rate.shift(-1).over(by))          # first epoch: the next step's rate
+    phase = (pl.when(rate > cfg.turn_rate_dps).then(pl.lit("phase:turn"))
+             .when(thd.abs() > cfg.vertical_rate_mps).then(pl.lit("phase:climb-descent"))
+             .otherwise(pl.lit("phase:level")))
+    out = ref.select(*by, "epoch", band_labels(th, cfg.alt_bands_m, "alt", 1.0, "m").alias("alt"),
+                     phase.alias("phase"))
+    if radar_xy is not None and len(radar_xy):
+        xy = ref.select("true_x_m", "true_y_m").to_numpy()
+        d = np.min(np.hypot(xy[:, None, 0] - radar_xy[None, :, 0], xy[:, None, 1] - radar_xy[None, :, 1]), axis=1)
+        rng = pl.Series("__rng", d)
+        out = out.with_columns(band_labels(pl.lit(rng), cfg.range_rings_m, "range", 1000.0, "km").alias("range"))
+    else:
+        out = out.with_columns(pl.lit(None, dtype=pl.String).alias("range"))
+    # categorical inside the stage: a label is repeated on every (aircraft, epoch) of a run and
+    # on every copy of a breakdown (4 bytes a row, not a string); the output segments are text
+    return out.with_columns(pl.col(c).cast(pl.Categorical) for c in ("alt", "phase", "range"))
+
+
+#: segment "all", of the labels' type (categorical: see :func:`reference_labels`)
+_ALL = pl.lit("all").cast(pl.Categorical)
+
+
+def _by_segment(frame: pl.DataFrame, breakdown: Sequence[str], *aggs: pl.Expr, by: Sequence[str] = ()) -> pl.DataFrame:
+    """``aggs`` per (method, segment, ``by``…): segment ``all`` (every row) and each label of each
+    breakdown column (the rows that have it). Grouped in place, once per breakdown: the frame
+    is never copied per label (the memory of the stage on a long run)."""
+    parts = [frame.group_by("method", _ALL.alias("segment"), *by).agg(*aggs)]
+    for b in breakdown:
+        parts.append(frame.group_by("method", pl.col(b).alias("segment"), *by).agg(*aggs)
+                     .filter(pl.col("segment").is_not_null()))
+    return pl.concat(parts, how="vertical")
+
+
+def _long(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
+    """(method, segment, n_runs, metric columns) → metrics rows (NaN/null values dropped)."""
+    return (wide.unpivot(index=["method", "segment", "n_runs"], on=list(names), variable_name="metric")
+            .filter(pl.col("value").is_not_null() & pl.col("value").is_finite()))
+
+
+# --------------------------------------------------------------------------- metric groups
+
+
+def _quantiles(abs_height: pl.Expr) -> list[pl.Expr]:
+    """The accuracy quantiles (of ``err_h_m`` and of ``abs_height``, |height error|)."""
+    return [pl.col("err_h_m").quantile(0.95, "linear").alias("p95_horizontal_m"),
+            pl.col("err_h_m").quantile(0.99, "linear").alias("p99_horizontal_m"),
+            abs_height.quantile(0.95, "linear").alias("p95_height_m")]
+
+
+def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    def rms(c: str) -> pl.Expr:
+        return (pl.col(c) ** 2).mean().sqrt()
+
+    wide = _by_segment(
+        err, breakdown,
+        pl.col("run").n_unique().alias("n_runs"),
+        rms("err_h_m").alias("rmse_horizontal_m"),
+        rms("err_height_m").alias("rmse_height_m"),
+        *_quantiles(pl.col("err_height_m").abs()),
+        pl.col("err_h_m").max().alias("max_horizontal_m"),
+        pl.col("err_height_m").abs().max().alias("max_height_m"),
+        rms("along_m").alias("along_track_rms_m"),
+        pl.col("along_m").mean().alias("along_track_bias_m"),
+        rms("across_m").alias("across_track_rms_m"),
+        pl.col("across_m").mean().alias("across_track_bias_m"),
+        pl.col("latency_sample_s").mean().alias("latency_s"),
+        rms("err_gs_mps").alias("ground_speed_rms_mps"),
+        pl.col("err_gs_mps").mean().alias("ground_speed_bias_mps"),
+        rms("err_track_deg").alias("track_angle_rms_deg"),
+        rms("err_vrate_mps").alias("vertical_rate_rms_mps"),
+        pl.len().cast(pl.Float64).alias("n_points"),
+    )
+    names = [c for c in wide.columns if c not in ("method", "segment", "n_runs")]
+    return _long(wide, names)
+
+
+def _representatives(m: pl.DataFrame) -> pl.DataFrame:
+    """One row per (method, run, truth_id, epoch): the representative track (see docstring)."""
+    counts = m.group_by(_KEY + ["track_id"]).agg(pl.len().alias("__n"))
+    return (m.join(counts, on=_KEY + ["track_id"])
+            .sort(_KEY + ["epoch", "__n", "track_id"], descending=[False] * 4 + [True, False])
+            .unique(_KEY + ["epoch"], keep="first", maintain_order=True))
+
+
+def _exposure(rep: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
+              labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+    """Rows carrying the observed time of each aircraft: ``expected`` (crossed with the
+    pictures; a row counts until the next one, at most ``gap_s`` — a longer step is a reference
+    gap, not evaluated) or, without it, the representative rows (a row counts until the next
+    represented epoch: gaps are inside the aircraft's span)."""
+    if expected is None:
+        rows, cap = rep.select(_KEY + ["epoch"]), None
+    else:
+        rows, cap = expected.select("run", "truth_id", "epoch").unique().join(methods, how="cross"), cfg.gap_s
+    rows = rows.sort(_KEY + ["epoch"])
+    dt = (pl.col("epoch").shift(-1).over(_KEY) - pl.col("epoch")).dt.total_microseconds().fill_null(0) / 1e6
+    if cap is not None:
+        dt = pl.when(dt > cap).then(0.0).otherwise(dt)
+    return rows.with_columns((dt / 3600.0).alias("__hours")).join(labels, on=["run", "truth_id", "epoch"], how="left")
+
+
+def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig, span: bool) -> pl.DataFrame:
+    """(method, run, truth_id, bin, labels…, updated) per expected update interval: the
+    intervals holding an ``expo`` row, or (``span``) every interval from the first to the last
+    ``expo`` row, labelled by the last row at or before its start."""
+    t_us = int(round(cfg.expected_interval_s * 1e6))
+    t0 = expo.group_by(_KEY).agg(pl.col("epoch").min().alias("__t0"))
+
+    def binned(f: pl.DataFrame) -> pl.DataFrame:
+        return f.join(t0, on=_KEY).with_columns(
+            ((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() // t_us).alias("__bin"))
+
+    bins = binned(expo).sort(_KEY + ["epoch"]).unique(_KEY + ["__bin"], keep="first", maintain_order=True)
+    if span:
+        every = (bins.group_by(_KEY).agg(pl.int_ranges(0, pl.col("__bin").max() + 1).first().alias("__bin"),
+                                         pl.col("__t0").first())
+                 .explode("__bin").with_columns(
+                     (pl.col("__t0") + pl.duration(microseconds=pl.col("__bin") * t_us)).alias("epoch"))
+                 .drop("__t0").sort("epoch"))
+        labels = [c for c in bins.columns if c not in _KEY + ["__bin", "__t0", "epoch", "__hours"]]
+        bins = every.join_asof(bins.select(_KEY + ["epoch"] + labels).sort("epoch"), on="epoch",
+                               by=_KEY, strategy="backward", check_sortedness=False)  # sorted by epoch
+    upd = binned(rep).select(_KEY + ["__bin"]).unique().with_columns(pl.lit(True).alias("updated"))
+    return bins.join(upd, on=_KEY + ["__bin"], how="left").with_columns(pl.col("updated").fill_null(False))
+
+
+#: what :func:`accuracy_errors` and the identity checks read of a matched picture (beside ``true_*``)
+_ERROR_INPUTS = (*_KEY, "epoch", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m", "alt_rate_mps",
+                 "mode_s", "icao24", "mode_3a", "callsign")
+#: the error columns of :func:`accuracy_errors`
+_ERRORS = ("err_h_m", "along_m", "across_m", "err_height_m", "err_gs_mps", "err_track_deg", "err_vrate_mps",
+           "latency_sample_s")
+#: the items :func:`_identity_checks` compares
+_IDENTITY = ("mode_s", "icao24", "mode_3a", "true_mode_3a", "callsign", "true_callsign", "alt_m", "true_alt_m")
+#: what the continuity metrics read of a matched picture
+_CONTINUITY_INPUTS = (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m")
+
+
+def _rep_events(m: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+    """The representative rows with their labels, id change (``__change``), time since the
+    aircraft's previous represented epoch (``__gap_s``) and break flag (``__break``)."""
+    rep = _representatives(m).sort(_KEY + ["epoch"])
+    gap = (pl.col("epoch") - pl.col("epoch").shift(1).over(_KEY)).dt.total_microseconds() / 1e6
+    rep = rep.with_columns(
+        (pl.col("track_id") != pl.col("track_id").shift(1).over(_KEY)).fill_null(False).alias("__change"),
+        gap.alias("__gap_s")).join(labels, on=["run", "truth_id", "epoch"], how="left")
+    return rep.with_columns((pl.col("__gap_s") > cfg.gap_s).fill_null(False).alias("__break"))
+
+
+def _continuity_rows(hours: pl.DataFrame, events: pl.DataFrame, ints: pl.DataFrame) -> pl.DataFrame:
+    """Metrics rows of the continuity groups per (method, segment): ``hours`` (aircraft_hours,
+    n_runs), ``events`` (__changes, track_breaks, mean_reacquire_s), ``ints`` (prob_update,
+    n_update_intervals); a segment without exposure has none of them."""
+    wide = (hours.join(events, on=["method", "segment"], how="left").join(ints, on=["method", "segment"], how="left")
+            .with_columns((pl.col("__changes") / pl.col("aircraft_hours")).alias("id_changes_per_hour"),
+                          (pl.col("track_breaks") / pl.col("aircraft_hours")).alias("track_breaks_per_hour"),
+                          pl.col("track_breaks").cast(pl.Float64)))
+    names = ["aircraft_hours", "id_changes_per_hour", "track_breaks", "track_breaks_per_hour",
+             "mean_reacquire_s", "prob_update", "n_update_intervals"]
+    return _long(wide, names)
+
+
+def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
+                breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+    # what the continuity metrics read: a long picture's other columns are not copied through them
+    m = m.select(c for c in m.columns if c in _CONTINUITY_INPUTS)
+    rep = _rep_events(m, labels, cfg)
+    methods = m.select("method").unique()
+    expo = _exposure(rep, expected, methods, labels, cfg)
+    hours = _by_segment(expo, breakdown,
+                        pl.col("__hours").sum().alias("aircraft_hours"), pl.col("run").n_unique().alias("n_runs"))
+    events = _by_segment(rep, breakdown,
+                         pl.col("__change").sum().alias("__changes"), pl.col("__break").sum().alias("track_breaks"),
+                         pl.col("__gap_s").filter(pl.col("__break")).mean().alias("mean_reacquire_s"))
+    ints = _by_segment(_update_intervals(rep, expo, cfg, expected is None), breakdown,
+                       pl.col("updated").mean().alias("prob_update"),
+                       pl.len().cast(pl.Float64).alias("n_update_intervals"))
+    out = [_continuity_rows(hours, events, ints), _split(rep, m, labels, breakdown)]
+    if expected is not None and {"true_x_m", "true_y_m"} <= set(expected.columns):
+        out.append(_merged(m, rep.select(m.columns), expected, labels, methods, breakdown, cfg))
+    return pl.concat(out, how="vertical")
+
+
+def _second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame) -> pl.DataFrame:
+    """The rows of ``m`` whose track is not its aircraft's representative then, labelled."""
+    return (m.join(rep.select(_KEY + ["epoch", pl.col("track_id").alias("__rep")]), on=_KEY + ["epoch"])
+            .filter(pl.col("track_id") != pl.col("__rep")).join(labels, on=["run", "truth_id", "epoch"], how="left"))
+
+
+def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    base = rep.select("method", "run").unique()
+    return _count_tracks(_second_tracks(rep, m, labels), base, breakdown, "split_tracks")
+
+
+def _count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
+    """Distinct (run, track_id) per (method, segment); zero in ``all`` for pictures without any."""
+    got = _by_segment(events, breakdown, pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name),
+                      pl.col("run").n_unique().alias("n_runs"))
+    zero = base.group_by("method").agg(pl.col("run").n_unique().alias("n_runs")).with_columns(
+        _ALL.alias("segment"), pl.lit(0.0).alias(name))
+    got = pl.concat([got, zero.join(got, on=["method", "segment"], how="anti").select(got.columns)])
+    return _long(got, [name])
+
+
+def _bare(m: pl.DataFrame, expected: pl.DataFrame, methods: pl.DataFrame) -> pl.DataFrame:
+    """The expected rows (× pictures) of an aircraft with no track of its own at their epoch:
+    (method, run, epoch, truth_id, true_x_m, true_y_m, ``__h`` its height)."""
+    exp = expected.join(methods, how="cross")
+    covered = m.filter(pl.col("truth_id").is_not_null()).select("method", "run", "truth_id", "epoch").unique()
+    bare = exp.join(covered, on=["method", "run", "truth_id", "epoch"], how="anti")
+    th, _ = _height(bare, "true_")
+    return bare.select("method", "run", "epoch", "truth_id", "true_x_m", "true_y_m", th.alias("__h"))
+
+
+def _rep_points(rep: pl.DataFrame) -> pl.DataFrame:
+    """Where each representative track is: (method, run, epoch, track_id, ``__other`` the aircraft
+    it represents, x_m, y_m, ``__th`` its height)."""
+    h, _ = _height(rep)
+    return rep.select("method", "run", "epoch", "track_id", pl.col("truth_id").alias("__other"), "x_m", "y_m",
+                      h.alias("__th"))
+
+
+def _cells(frame: pl.DataFrame, x: str, y: str, side: float, spread: bool) -> pl.DataFrame:
+    """``frame`` with its grid cell (cx, cy) of ``side`` metres; ``spread``: one row per cell of
+    its 3 × 3 neighbourhood."""
+    out = frame.with_columns((pl.col(x) / side).floor().cast(pl.Int64).alias("cx"),
+                             (pl.col(y) / side).floor().cast(pl.Int64).alias("cy"))
+    if not spread:
+        return out
+    nb = pl.DataFrame({"__dx": np.repeat([-1, 0, 1], 3), "__dy": np.tile([-1, 0, 1], 3)})
+    return (out.join(nb, how="cross").with_columns(pl.col("cx") + pl.col("__dx"), pl.col("cy") + pl.col("__dy"))
+            .drop("__dx", "__dy"))
+
+
+def _merge_hits(bare: pl.DataFrame, trk: pl.DataFrame, cfg: MetricsConfig, spread_bare: bool = True) -> pl.DataFrame:
+    """(bare row, representative track) pairs within the merge gates (a grid-cell join: cells of
+    side ``merge_gate_m``, one side spread over its 3 × 3 cells — ``spread_bare`` or the
+    tracks: the smaller side should be spread, the pairs are the same)."""
+    g = cfg.merge_gate_m
+    near = ((pl.col("x_m") - pl.col("true_x_m")) ** 2 + (pl.col("y_m") - pl.col("true_y_m")) ** 2) <= g * g
+    return (_cells(bare, "true_x_m", "true_y_m", g, spread_bare)
+            .join(_cells(trk, "x_m", "y_m", g, not spread_bare), on=["method", "run", "epoch", "cx", "cy"])
+            .filter((pl.col("__other") != pl.col("truth_id")) & near
+                    & ((pl.col("__th") - pl.col("__h")).abs() <= cfg.merge_gate_v_m)))
+
+
+def _merged(m: pl.DataFrame, rep: pl.DataFrame, expected: pl.DataFrame, labels: pl.DataFrame,
+            methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+    """Representative tracks lying on an expected aircraft that has no track of its own
+    (grid-cell join: each bare aircraft looks in its 3 × 3 cells of side ``merge_gate_m``)."""
+    hits = (_merge_hits(_bare(m, expected, methods), _rep_points(rep), cfg)
+            .join(labels, on=["run", "truth_id", "epoch"], how="left"))
+    return _count_tracks(hits, m.select("method", "run").unique(), breakdown, "merged_tracks")
+
+
+def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, pl.Expr]]:
+    """(item, "is correct" expression, null where a side lacks the item) for every identity item
+    both the picture and the reference carry."""
+    cols = set(err.columns)
+    checks = []
+    if {"mode_s", "icao24"} <= cols:
+        checks.append(("mode_s", pl.col("mode_s").str.to_lowercase() == pl.col("icao24").str.to_lowercase()))
+    if {"mode_3a", "true_mode_3a"} <= cols:
+        checks.append(("mode_3a", pl.col("mode_3a").cast(pl.String) == pl.col("true_mode_3a").cast(pl.String)))
+    if {"callsign", "true_callsign"} <= cols:
+        norm = lambda c: pl.col(c).str.replace_all(" ", "").str.to_uppercase()  # noqa: E731
+        checks.append(("callsign", norm("callsign") == norm("true_callsign")))
+    if {"alt_m", "true_alt_m"} <= cols:
+        dh = pl.col("alt_m").cast(pl.Float64).fill_nan(None) - pl.col("true_alt_m")
+        checks.append(("flight_level", dh.abs() <= cfg.flight_level_tolerance_m))
+    return checks
+
+
+def _identity_rows(err: pl.DataFrame, breakdown: Sequence[str], ok: pl.Expr) -> pl.DataFrame:
+    """(method, run, labels…, ``__ok``) of the rows where both sides carry the item."""
+    return err.select("method", "run", *breakdown, ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
+
+
+def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Expr) -> pl.DataFrame:
+    w = _by_segment(_identity_rows(err, breakdown, ok), breakdown, pl.col("run").n_unique().alias("n_runs"),
+                    pl.col("__ok").mean().alias(f"{name}_correct_frac"), pl.len().cast(pl.Float64).alias(f"n_{name}"))
+    return _long(w, [f"{name}_correct_frac", f"n_{name}"])
+
+
+#: what :func:`_track_table` reads of a matched picture
+_TRACK_INPUTS = ("method", "run", "track_id", "epoch", "truth_id")
+
+
+def _track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
+    """One row per (method, run, track_id): ``__real`` (some row has a truth_id), its first and
+    last epochs ``__t0``, ``__t1`` (a picture's span is that of its tracks' rows)."""
+    return m.group_by("method", "run", "track_id").agg(pl.col("truth_id").is_not_null().any().alias("__real"),
+                                                       pl.col("epoch").min().alias("__t0"),
+                                                       pl.col("epoch").max().alias("__t1"))
+
+
+def _picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
+    """picture_hours, n_tracks, false_tracks(_per_hour) per method, from :func:`_track_table`."""
+    span = tracks.group_by("method", "run").agg(
+        ((pl.col("__t1").max() - pl.col("__t0").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
+    hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
+                                        pl.col("run").n_unique().alias("n_runs"))
+    false = tracks.group_by("method").agg((~pl.col("__real")).sum().alias("__false"),
+                                          pl.len().cast(pl.Float64).alias("n_tracks"))
+    wide = hours.join(false, on="method").with_columns(
+        _ALL.alias("segment"),
+        (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
+        pl.col("__false").cast(pl.Float64).alias("false_tracks"))
+    return _long(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])
+
+
+def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str],
+                        cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    out = [_picture_rows(_track_table(m.select(_TRACK_INPUTS)))]
+    out += [_identity(err, breakdown, name, ok) for name, ok in _identity_checks(err, cfg)]
+    return pl.concat(out, how="vertical")
+
+
+# --------------------------------------------------------------------------- entry point
+
+#: the columns a matched picture must have
+_MATCHED_REQUIRED = ("method", "run", "epoch", "track_id", "truth_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps",
+                     "vz_mps", "true_x_m", "true_y_m", "true_z_m", "true_vx_mps", "true_vy_mps", "true_vz_mps")
+
+
+def _options(columns: Sequence[str], exp_columns: Sequence[str] | None, radar_xy: NDArray[np.float64] | None,
+             breakdown: Sequence[str], cfg: MetricsConfig) -> list[str]:
+    """Checks the inputs; the breakdowns that apply (``range`` needs radars)."""
+    bad = [b for b in breakdown if b not in BREAKDOWNS]
+    if bad:
+        raise OptionError(f"unknown breakdown {', '.join(bad)}; expected any of {', '.join(BREAKDOWNS)}",
+                          option="breakdown")
+    if cfg.expected_interval_s <= 0:
+        raise OptionError("must be > 0", option="expected_interval_s")
+    _require(columns, _MATCHED_REQUIRED, "matched table")
+    if exp_columns is not None:
+        _require(exp_columns, ["run", "truth_id", "epoch"], "expected reference table")
+    return [b for b in breakdown if b != "range" or radar_xy is not None]
+
+
+def _labels(matched: pl.DataFrame, expected: pl.DataFrame | None, radar_xy: NDArray[np.float64] | None,
+            cfg: MetricsConfig) -> pl.DataFrame:
+    """:func:`reference_labels` of ``expected`` when it has the picture's ``true_*`` columns, else
+    of the reference on the matched rows."""
+    ref_cols = [c for c in matched.columns if c.startswith("true_")]
+    ref = (expected if expected is not None and set(ref_cols) <= set(expected.columns)
+           else matched.filter(pl.col("truth_id").is_not_null()).select(["run", "truth_id", "epoch"] + ref_cols))
+    return reference_labels(ref, radar_xy, cfg)
+
+
+def _errors(matched: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+    """:func:`accuracy_errors` with the identity items and the labels: the columns it reads, then
+    the rows (a long picture is never copied whole through the errors' joins, issue 16)."""
+    cols = [c for c in matched.columns if c in _ERROR_INPUTS or c.startswith("true_")]
+    return (accuracy_errors(matched.select(cols), cfg)
+            .select(c for c in (*_KEY, "epoch", *_ERRORS, *_IDENTITY) if c in matched.columns or c in _ERRORS)
+            .join(labels, on=["run", "truth_id", "epoch"], how="left"))
+
+
+def _finish(parts: list[pl.DataFrame]) -> pl.DataFrame:
+    """The metrics rows of every group in the ``metrics`` table schema, in a fixed order."""
+    out = pl.concat(parts, how="vertical")
+    return out.select(pl.lit(STAGE).alias("stage"), "method", "metric", pl.col("segment").cast(pl.String),
+                      pl.col("value").cast(pl.Float64), pl.col("n_runs").cast(pl.UInt32)
+                      ).sort("method", "metric", "segment")
+
+
+def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = None,
+                    radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
+                    cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
+    """Every item-3 metric of every picture in ``matched``, in the ``metrics`` table schema.
+
+    ``breakdown``: any of ``alt``, ``range`` (needs ``radar_xy``, the radar sites (R, 2) in the
+    system frame), ``phase``; segment ``all`` is always there.
+    """
+    breakdown = _options(matched.columns, None if expected is None else expected.columns, radar_xy, breakdown, cfg)
+    labels = _labels(matched, expected, radar_xy, cfg)
+    # the columns each group reads, then the rows: a long picture is never copied whole through
+    # the errors' and the continuity's joins, and each group's rows are released before the next
+    # group's are made (memory of the stage, issue 16)
+    err = _errors(matched, labels, cfg)
+    parts = [_accuracy(err, breakdown),
+             _identity_and_false(matched, err, breakdown, cfg)]
+    del err
+    m = matched.select(c for c in matched.columns if c in _CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
+    if m.height:
+        parts.append(_continuity(m, expected, labels, breakdown, cfg))
+    return _finish(parts)
+
+
+# --------------------------------------------------------------------------- in buckets of aircraft
+
+#: seed of the bucket hash: any fixed value (a row must fall in the same bucket in every scan)
+_SEED = 20211007
+
+#: the accuracy metrics that are a root mean square (metric → error column) or a mean
+_RMS = {"rmse_horizontal_m": "err_h_m", "rmse_height_m": "err_height_m", "along_track_rms_m": "along_m",
+        "across_track_rms_m": "across_m", "ground_speed_rms_mps": "err_gs_mps", "track_angle_rms_deg": "err_track_deg",
+        "vertical_rate_rms_mps": "err_vrate_mps"}
+_MEAN = {"along_track_bias_m": "along_m", "across_track_bias_m": "across_m", "latency_s": "latency_sample_s",
+         "ground_speed_bias_mps": "err_gs_mps"}
+
+
+def _aircraft_bucket(schema: pl.Schema, buckets: int) -> pl.Expr:
+    """The bucket of a row's aircraft (run, truth_id), hashed in ``matched``'s dtypes (``schema``)
+    so that an ``expected`` row falls in the bucket of its aircraft's track rows."""
+    key = pl.struct(pl.col("run").cast(schema["run"]), pl.col("truth_id").cast(schema["truth_id"]))
+    return key.hash(_SEED) % buckets
+
+
+@dataclass(frozen=True)
+class _BucketScan:
+    """One bucket of aircraft of the inputs at a time: the rows of ``matched`` with a truth_id
+    and the rows of ``expected`` whose (run, truth_id) hash to bucket k."""
+
+    matched_lf: pl.LazyFrame
+    expected_lf: pl.LazyFrame | None
+    schema: pl.Schema           # of matched
+    exp_cols: tuple[str, ...]   # what is read of expected: its keys and reference (true_*) columns
+    buckets: int
+    #: each bucket's tracked rows of matched and rows of expected, filed once (:meth:`filed`)
+    filed_matched: list[pl.LazyFrame] | None = None
+    filed_expected: list[pl.LazyFrame] | None = None
+
+    @classmethod
+    def filed(cls, matched: pl.LazyFrame, expected: pl.LazyFrame | None, schema: pl.Schema,
+              exp_cols: tuple[str, ...], buckets: int, scratch: Path) -> "_BucketScan":
+        """The scan with the rows filed by bucket once under ``scratch``
+        (:func:`tertiary.evaluation.buckets.file_buckets`): a bucket reads its own rows only."""
+        bucket = _aircraft_bucket(schema, buckets)
+        m = file_buckets(matched.filter(pl.col("truth_id").is_not_null()), bucket, buckets, scratch / "matched")
+        e = None
+        if expected is not None:
+            src = expected.with_columns(bucket.alias("__ab")).select(*exp_cols, "__ab")
+            e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected")]
+        return cls(matched, expected, schema, exp_cols, buckets, m, e)
+
+    def _where(self, k: int) -> pl.Expr | None:
+        return None if self.buckets == 1 else _aircraft_bucket(self.schema, self.buckets) == k
+
+    def matched(self, k: int, cols: Sequence[str]) -> pl.DataFrame:
+        """Bucket ``k``'s tracked rows of ``matched``, columns ``cols`` (those it has)."""
+        names = [c for c in self.schema.names() if c in cols]
+        if self.filed_matched is not None:
+            return self.filed_matched[k].select(names).collect()
+        where, tracked = self._where(k), pl.col("truth_id").is_not_null()
+        return self.matched_lf.filter(tracked if where is None else tracked & where).select(names).collect()
+
+    def expected(self, k: int) -> pl.DataFrame | None:
+        """Bucket ``k``'s rows of ``expected`` (None without it)."""
+        if self.expected_lf is None:
+            return None
+        if self.filed_expected is not None:
+            return self.filed_expected[k].collect()
+        where = self._where(k)
+        return (self.expected_lf if where is None else self.expected_lf.filter(where)).select(self.exp_cols).collect()
+
+
+def _ratio(num: pl.Expr, den: pl.Expr) -> pl.Expr:
+    """num / den, null where den is 0 (the mean of no value)."""
+    return pl.when(den > 0).then(num / den)
+
+
+@dataclass
+class _Partials:
+    """What the buckets leave for the combine step: sums per (method, segment, run) (a few rows
+    per segment), the accuracy values the quantiles need (``values``: 4 bytes of method and of
+    each label + 16 of values a row), distinct split tracks and the bare expected rows."""
+
+    accuracy: list[pl.DataFrame] = field(default_factory=list)
+    values: list[pl.DataFrame] = field(default_factory=list)
+    identity: dict[str, list[pl.DataFrame]] = field(default_factory=dict)
+    hours: list[pl.DataFrame] = field(default_factory=list)
+    events: list[pl.DataFrame] = field(default_factory=list)
+    intervals: list[pl.DataFrame] = field(default_factory=list)
+    split: list[pl.DataFrame] = field(default_factory=list)
+    bare: list[pl.DataFrame] = field(default_factory=list)
+
+
+def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: _Partials) -> None:
+    """Accuracy and identity sums of one bucket's error rows, and its quantile values."""
+    aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
+            pl.col("err_height_m").abs().max().alias("max_height_m")]
+    for name, c in _RMS.items():
+        aggs += [(pl.col(c) ** 2).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
+    for name, c in _MEAN.items():
+        aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
+    out.accuracy.append(_by_segment(err, breakdown, *aggs, by=["run"]))
+    out.values.append(err.select(pl.col("method").cast(pl.Categorical), *breakdown, "err_h_m",
+                                 pl.col("err_height_m").abs().alias("__abs_h")))
+    for name, ok in _identity_checks(err, cfg):
+        out.identity.setdefault(name, []).append(_by_segment(
+            _identity_rows(err, breakdown, ok), breakdown, pl.col("__ok").sum(), pl.len().alias("__n"), by=["run"]))
+
+
+def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
+                         methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
+                         out: _Partials) -> None:
+    """:func:`_continuity`'s sums of one bucket's aircraft (``methods``: every picture with a
+    matched row, in any bucket), its split tracks and (``merge``) its bare expected rows."""
+    rep = _rep_events(m, labels, cfg)
+    expo = _exposure(rep, expected, methods, labels, cfg)
+    out.hours.append(_by_segment(expo, breakdown, pl.col("__hours").sum(), by=["run"]))
+    out.events.append(_by_segment(rep, breakdown, pl.col("__change").sum().alias("__changes"),
+                                  pl.col("__break").sum().alias("track_breaks"),
+                                  pl.col("__gap_s").filter(pl.col("__break")).sum().alias("__gaps"), by=["run"]))
+    ints = _update_intervals(rep, expo, cfg, expected is None)
+    out.intervals.append(_by_segment(ints, breakdown, pl.col("updated").sum().alias("__updated"),
+                                     pl.len().alias("__n"), by=["run"]))
+    del ints, expo
+    out.split.append(_second_tracks(rep, m, labels).select("method", "run", "track_id", *breakdown).unique())
+    if merge:
+        out.bare.append(_bare(m, expected, methods).join(labels, on=["run", "truth_id", "epoch"], how="left")
+                        .select(pl.col("method").cast(pl.Categorical), "run", "epoch", "truth_id", "true_x_m",
+                                "true_y_m", "__h", *breakdown))
+
+
+def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
+                     radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
+                     out: _Partials) -> None:
+    """Everything one bucket's rows (``m``: its tracked rows, ``expected``: its reference rows)
+    leave for the combine step; nothing without a row."""
+    if m.height == 0 and (expected is None or expected.height == 0):
+        return
+    labels = _labels(m, expected, radar_xy, cfg)
+    _error_partials(_errors(m, labels, cfg), breakdown, cfg, out)
+    if methods.height:                      # continuity of every picture with a matched row
+        _continuity_partials(m.select(c for c in m.columns if c in _CONTINUITY_INPUTS), expected, labels,
+                             methods, breakdown, cfg, merge, out)
+
+
+def _accuracy_combined(out: _Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
+    """:func:`_accuracy` from the buckets' sums, and the quantiles from their values."""
+    aggs = [pl.col("run").n_unique().alias("n_runs"), pl.col("n_points").sum().cast(pl.Float64),
+            pl.col("max_horizontal_m").max(), pl.col("max_height_m").max()]
+    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).sqrt().alias(n) for n in _RMS]
+    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).alias(n) for n in _MEAN]
+    wide = pl.concat(out.accuracy).group_by("method", "segment").agg(*aggs)
+    values = pl.concat(out.values)
+    out.values.clear()
+    q = _by_segment(values, breakdown, *_quantiles(pl.col("__abs_h"))).with_columns(pl.col("method").cast(method))
+    del values
+    wide = wide.join(q, on=["method", "segment"], how="left")
+    return _long(wide, [c for c in wide.columns if c not in ("method", "segment", "n_runs")])
+
+
+def _identity_combined(name: str, sums: list[pl.DataFrame]) -> pl.DataFrame:
+    """:func:`_identity` of one item from the buckets' sums."""
+    w = pl.concat(sums).group_by("method", "segment").agg(
+        pl.col("run").n_unique().alias("n_runs"),
+        (pl.col("__ok").sum() / pl.col("__n").sum()).alias(f"{name}_correct_frac"),
+        pl.col("__n").sum().cast(pl.Float64).alias(f"n_{name}"))
+    return _long(w, [f"{name}_correct_frac", f"n_{name}"])
+
+
+def _continuity_combined(out: _Partials, base: pl.DataFrame, breakdown: Sequence[str]) -> list[pl.DataFrame]:
+    """:func:`_continuity`'s rows (but merged tracks) from the buckets' sums; ``base``: the
+    (method, run) with a matched row."""
+    by = ["method", "segment"]
+    hours = pl.concat(out.hours).group_by(by).agg(pl.col("__hours").sum().alias("aircraft_hours"),
+                                                  pl.col("run").n_unique().alias("n_runs"))
+    breaks = pl.col("track_breaks").sum()
+    events = pl.concat(out.events).group_by(by).agg(pl.col("__changes").sum(), breaks,
+                                                    _ratio(pl.col("__gaps").sum(), breaks).alias("mean_reacquire_s"))
+    ints = pl.concat(out.intervals).group_by(by).agg(
+        _ratio(pl.col("__updated").sum(), pl.col("__n").sum()).alias("prob_update"),
+        pl.col("__n").sum().cast(pl.Float64).alias("n_update_intervals"))
+    return [_continuity_rows(hours, events, ints), _count_tracks(pl.concat(out.split), base, breakdown, "split_tracks")]
+
+
+def _merged_buckets(scan: _BucketScan, bare: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str],
+                    cfg: MetricsConfig) -> pl.DataFrame:
+    """:func:`_merged` with the bare rows of every bucket (``bare``, labelled, held whole: one
+    row per uncovered expected aircraft-epoch) against each bucket's representative tracks in
+    turn (a second pass: a track may lie on a bare aircraft of another bucket)."""
+    schema = scan.schema
+    hits = [pl.DataFrame(schema={"method": pl.Categorical, "run": schema["run"], "track_id": schema["track_id"],
+                                 **{b: pl.Categorical for b in breakdown}})]
+    for k in range(scan.buckets if bare.height else 0):
+        m = scan.matched(k, _CONTINUITY_INPUTS)
+        if m.height:
+            trk = _rep_points(_representatives(m)).with_columns(pl.col("method").cast(pl.Categorical))
+            hits.append(_merge_hits(bare, trk, cfg, spread_bare=bare.height < trk.height)
+                        .select("method", "run", "track_id", *breakdown).unique())
+        del m
+    events = pl.concat(hits, how="vertical_relaxed").with_columns(pl.col("method").cast(schema["method"]))
+    return _count_tracks(events, base, breakdown, "merged_tracks")
+
+
+def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | None = None,
+                            radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
+                            cfg: MetricsConfig = MetricsConfig(), buckets: int = 1,
+                            scratch: Path | None = None) -> pl.DataFrame:
+    """:func:`picture_metrics` of ``matched.collect()`` (and ``expected.collect()``) with the row
+    work done on one of ``buckets`` buckets of aircraft at a time (a long recording's picture is
+    never held whole: memory of the stage, issue 18).
+
+    The rows with a truth_id and the expected rows are bucketed by a hash of (run, truth_id):
+    every per-aircraft quantity (labels, errors, representatives, exposure, intervals, breaks)
+    is exact in its bucket, and each bucket leaves sums per (method, segment, run) that add up.
+    Held whole: the per-track table (false tracks, picture hours; one streamed scan of five
+    columns), the values the quantiles need (32 bytes an error row) and the bare expected rows
+    for merged tracks, joined in a second pass with each bucket's representative tracks.
+    With a ``scratch`` directory the rows are filed by bucket once
+    (:func:`tertiary.evaluation.buckets.file_buckets`); without, each bucket filters the whole input.
+    """
+    if buckets < 1:
+        raise OptionError("must be ≥ 1", option="buckets")
+    schema = matched.collect_schema()
+    exp_names = None if expected is None else expected.collect_schema().names()
+    breakdown = _options(schema.names(), exp_names, radar_xy, breakdown, cfg)
+    tracks = _track_table(matched.select(_TRACK_INPUTS)).collect(engine="streaming")
+    real = tracks.filter(pl.col("__real"))
+    methods, base = real.select("method").unique(), real.select("method", "run").unique()
+    del real
+    merge = exp_names is not None and {"true_x_m", "true_y_m"} <= set(exp_names)
+    exp_cols = tuple(c for c in exp_names or () if c in ("run", "truth_id", "epoch") or c.startswith("true_"))
+    filed = scratch is not None and buckets > 1
+    scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
+            else _BucketScan(matched, expected, schema, exp_cols, buckets))
+    reads = {*_ERROR_INPUTS, *_CONTINUITY_INPUTS, *(c for c in schema.names() if c.startswith("true_"))}
+    out = _Partials()
+    for k in range(buckets):
+        _bucket_partials(scan.matched(k, reads), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
+    parts = [_picture_rows(tracks)]
+    if out.accuracy:
+        parts.append(_accuracy_combined(out, breakdown, schema["method"]))
+    parts += [_identity_combined(name, sums) for name, sums in out.identity.items()]
+    if methods.height:
+        parts += _continuity_combined(out, base, breakdown)
+        if merge:
+            parts.append(_merged_buckets(scan, pl.concat(out.bare), base, breakdown, cfg))
+    return _finish(parts)

@@ -1,0 +1,27 @@
+"""ASTERIX recordings in and out (issue 17; docs/asterix.md).
+
+* :func:`import_recordings` / :func:`write_import` — pcap, pcapng or raw data blocks of CAT048
+  (reports), CAT034 (antenna timing), CAT021 (truth) and CAT062 (external tracks) → a dataset.
+* :func:`write_recording` — a dataset's reports, truth and scans as ``recording.ast`` + ``sites.toml``.
+* :func:`export_picture` — a picture (``tracks`` schema) as CAT062 system tracks.
+* :func:`read_sites` — the SAC/SIC → radar registry.
+
+libasterix (the codec, ~2.4 s to import) and numba (the compiled CAT048 decoder) load only when
+one of these is first used.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["import_recordings", "write_import", "write_recording", "export_picture", "read_sites"]
+
+_WHERE = {"import_recordings": "dataset", "write_import": "dataset", "write_recording": "encode",
+          "export_picture": "encode", "read_sites": "sites"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        import importlib
+        return getattr(importlib.import_module(f"tertiary.io.asterix.{_WHERE[name]}"), name)
+    raise AttributeError(f"module 'tertiary.io.asterix' has no attribute {name!r}")

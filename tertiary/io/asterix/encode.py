@@ -1,0 +1,231 @@
+"""Tables → ASTERIX bytes with libasterix: reports as CAT048 (+ CAT034 north markers per scan),
+truth as CAT021 (ADS-B), pictures as CAT062 system tracks.
+
+Values are rounded to the item's resolution by libasterix (I048/040: 1/256 NM, 360/2¹⁶ °;
+I048/140: 1/128 s; I048/090: 1/4 FL). A value outside an item's range would wrap silently in
+the bit field, so it is refused here with the rows named.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from tertiary.core import geo
+from tertiary.io.asterix import codec
+from tertiary.core.errors import DataError
+
+ADSB_SAC_SIC = (0, 250)
+
+
+def _seconds(col: pl.Series) -> np.ndarray:
+    return col.cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy() / 1e6
+
+
+def _check(ok: np.ndarray, what: str, table: str) -> None:
+    if not ok.all():
+        rows = np.flatnonzero(~ok)
+        raise DataError(f"{table}: {len(rows)} row(s) cannot be encoded: {what} (e.g. row {rows[0]})")
+
+
+def sac_sic(radar_ids: pl.Series) -> tuple[np.ndarray, np.ndarray]:
+    """SAC/SIC of radar ids (id = SAC · 256 + SIC, the importer's default); ids ≥ 2¹⁶ are refused."""
+    ids = radar_ids.cast(pl.Int64).to_numpy()
+    _check(ids < 65536, "radar_id above 65535 has no SAC/SIC", "radars")
+    return ids // 256, ids % 256
+
+
+def cat048(reports: pl.DataFrame) -> list[object]:
+    """CAT048 records of ``reports`` (one run), in time order."""
+    s = codec.spec(48).cv_record
+    rep = reports.sort("time")
+    rng_nm = rep["range_m"].to_numpy() / codec.NM
+    _check((rng_nm >= 0) & (rng_nm < 256 - 1 / 512), "range beyond 256 NM (I048/040)", "reports")
+    trk = rep["local_track_id"].cast(pl.Int64).to_numpy()
+    _check(trk < 4096, "local_track_id above 4095 (I048/161 has 12 bits)", "reports")
+    sac, sic = sac_sic(rep["radar_id"])
+    tod = np.fmod(_seconds(rep["time"]), 86400.0)
+    alt = rep["altitude_m"].fill_null(np.nan).to_numpy() if "altitude_m" in rep.columns else np.full(rep.height, np.nan)
+    fl = alt / codec.FT / 100.0
+    _check(~np.isfinite(fl) | ((fl >= -12) & (fl < 1500)), "altitude outside FL -12..1500 (I048/090)", "reports")
+    get = lambda c: rep[c].to_list() if c in rep.columns else [None] * rep.height  # noqa: E731
+    az = np.mod(rep["azimuth_deg"].to_numpy(), 360.0)
+    out = []
+    for i, (m3a, ms, cs) in enumerate(zip(get("mode_3a"), get("mode_s"), get("callsign"))):
+        items: dict[str, object] = {
+            "010": (("SAC", int(sac[i])), ("SIC", int(sic[i]))), "140": float(tod[i]),
+            "020": ((5 if ms else 2) << 4,),   # first octet TYP|SIM|RDP|SPI|RAB: Mode S roll-call / SSR
+            "040": (("RHO", float(rng_nm[i])), ("THETA", float(az[i]))),
+            "161": (0, ("TRN", int(trk[i]))), "170": (2 << 4,),     # CNF=0 confirmed, RAD=2 SSR/Mode S track
+        }
+        if m3a:
+            items["070"] = (0, 0, 0, 0, ("MODE3A", str(m3a).zfill(4)))
+        if math.isfinite(fl[i]):
+            items["090"] = (("V", 0), ("G", 0), ("FL", float(fl[i])))
+        if ms:
+            items["220"] = int(ms, 16)
+        if cs:
+            items["240"] = str(cs)[:8].ljust(8)
+        out.append(s.create(items))
+    return out
+
+
+def cat034_north(radars: pl.DataFrame, t0: float, t1: float) -> list[tuple[float, object]]:
+    """(time, CAT034 north marker) of every scan of every radar in [t0, t1] (I034/041 sent)."""
+    s = codec.spec(34).cv_record
+    out = []
+    for r in radars.iter_rows(named=True):
+        period = float(r["scan_period_s"])
+        phase = float(r.get("scan_phase_s") or 0.0)
+        k0 = math.ceil((t0 - phase) / period)
+        sac, sic = int(r["radar_id"]) // 256, int(r["radar_id"]) % 256
+        for k in range(k0, int(math.floor((t1 - phase) / period)) + 1):
+            t = phase + k * period
+            out.append((t, s.create({"010": (("SAC", sac), ("SIC", sic)), "000": 1,
+                                     "030": float(math.fmod(t, 86400.0)), "041": period})))
+    return out
+
+
+def cat021(truth: pl.DataFrame, system: geo.LocalFrame) -> list[tuple[float, object]]:
+    """(time, CAT021 record) per truth row: address = icao24 (else truth_id), I021/131 position,
+    I021/140 geometric height, I021/145 flight level (from alt_m), I021/160 ground vector and
+    I021/157 geometric rate in the aircraft's local ENU frame."""
+    s = codec.spec(21).cv_record
+    x, y, z = (truth[c].to_numpy() for c in ("x_m", "y_m", "z_m"))
+    lat, lon, h = system.to_geodetic(x, y, z)
+    # velocity system frame → local ENU at the aircraft: the transpose of importer.enu_velocity
+    r = system.rotation
+    v = [truth[c].to_numpy() for c in ("vx_mps", "vy_mps", "vz_mps")]
+    ex, ey, ez = (r[0, j] * v[0] + r[1, j] * v[1] + r[2, j] * v[2] for j in range(3))
+    la, lo = np.radians(lat), np.radians(lon)
+    ve = -np.sin(lo) * ex + np.cos(lo) * ey
+    vn = -np.sin(la) * np.cos(lo) * ex - np.sin(la) * np.sin(lo) * ey + np.cos(la) * ez
+    vu = np.cos(la) * np.cos(lo) * ex + np.cos(la) * np.sin(lo) * ey + np.sin(la) * ez
+    gs, ta = np.hypot(ve, vn) / codec.NM, np.degrees(np.arctan2(ve, vn)) % 360.0
+    t = _seconds(truth["time"])
+    icao = truth["icao24"].to_list() if "icao24" in truth.columns else [None] * truth.height
+    addr = [int(a, 16) if a else int(tid) for a, tid in zip(icao, truth["truth_id"].to_list())]
+    _check(np.array([0 <= a < 2**24 for a in addr]), "address (icao24 or truth_id) beyond 24 bits", "truth")
+    alt = truth["alt_m"].fill_null(np.nan).to_numpy() if "alt_m" in truth.columns else np.full(truth.height, np.nan)
+    calls = truth["callsign"].to_list() if "callsign" in truth.columns else [None] * truth.height
+    out = []
+    for i in range(truth.height):
+        items: dict[str, object] = {
+            "010": (("SAC", ADSB_SAC_SIC[0]), ("SIC", ADSB_SAC_SIC[1])), "040": (0,),
+            "071": float(math.fmod(t[i], 86400.0)), "080": addr[i],
+            "131": (("LAT", float(lat[i])), ("LON", float(lon[i]))), "140": float(h[i] / codec.FT),
+            "160": (("RE", 0), ("GS", float(gs[i])), ("TA", float(ta[i]))),
+            "157": (("RE", 0), ("GVR", float(vu[i] / codec.FT * 60.0))),
+        }
+        if math.isfinite(alt[i]):
+            items["145"] = float(alt[i] / codec.FT / 100.0)
+        if calls[i]:
+            items["170"] = str(calls[i])[:8].ljust(8)
+        out.append((t[i], s.create(items)))
+    return out
+
+
+def interleave(items: list[tuple[float, int, object]], max_bytes: int = 1400) -> bytes:
+    """(time, category, record) → data blocks in time order; consecutive records of one category
+    share a block of at most ``max_bytes``."""
+    items = sorted(items, key=lambda x: x[0])
+    out, batch, cat, size = [], [], None, 3
+    for _t, c, rec in items:
+        n = len(rec.unparse().to_bytes())
+        if batch and (c != cat or size + n > max_bytes):
+            out.append(codec.datablock(cat, batch))
+            batch, size = [], 3
+        batch.append(rec)
+        cat, size = c, size + n
+    if batch:
+        out.append(codec.datablock(cat, batch))
+    return b"".join(out)
+
+
+def write_recording(ds: object, out_dir: str | Path) -> tuple[Path, Path, str]:
+    """``recording.ast`` (CAT048 of run 0, CAT034 north markers of every scan, CAT021 of the
+    truth, in time order) and ``sites.toml`` beside the Parquet files of a dataset. Returns the
+    two paths and the date (YYYY-MM-DD) the recording starts on, for ``import --date``."""
+    from tertiary.io.asterix.sites import sites_toml
+    from tertiary.store.run_store import atomic_path, write_text_atomic
+    reports: pl.DataFrame = ds.reports  # type: ignore[attr-defined]
+    radars: pl.DataFrame = ds.radars  # type: ignore[attr-defined]
+    truth: pl.DataFrame = ds.truth  # type: ignore[attr-defined]
+    if "run" in reports.columns:
+        reports = reports.filter(pl.col("run") == 0)
+    if reports.height == 0:
+        raise DataError("no report of run 0 to encode", path=str(out_dir))
+    t = _seconds(reports.sort("time")["time"])
+    items = [(float(ti), 48, r) for ti, r in zip(t, cat048(reports))]
+    items += [(ti, 34, r) for ti, r in cat034_north(radars, float(t[0]), float(t[-1]))]
+    if truth.height:
+        items += [(float(ti), 21, r) for ti, r in cat021(truth, ds.origin)]  # type: ignore[attr-defined]
+    d = Path(out_dir)
+    rec_path, sites_path = d / "recording.ast", d / "sites.toml"
+    with atomic_path(rec_path) as tmp:
+        tmp.write_bytes(interleave(items))
+    sac, sic = sac_sic(radars["radar_id"])
+    sites = radars.select("radar_id", "name", "lat_deg", "lon_deg", "alt_m", "sigma_range_m", "sigma_azimuth_deg",
+                          "max_range_m", "sigma_elevation_deg", "scan_period_s")
+    write_text_atomic(sites_path, sites_toml(sites.with_columns(pl.Series("sac", sac), pl.Series("sic", sic))))
+    day = reports["time"].min().strftime("%Y-%m-%d")  # type: ignore[union-attr]
+    return rec_path, sites_path, day
+
+
+def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int = 1) -> list[tuple[float, object]]:
+    """(time, CAT062 record) per picture row (``tracks`` schema, system frame): I062/040 track
+    number (track_id mod 2¹⁶), /070 time of track, /105 WGS-84 and /100 Cartesian position (the
+    system frame), /185 velocity, /130 geometric height, /136 flight level (alt_m), /220 rate,
+    /080 track status, /060, /380 ADR + ID when the picture carries them, /500 accuracies
+    (σ from ``cov_diag``, clipped to each field's range)."""
+    s = codec.spec(62).cv_record
+    x, y, z = (tracks[c].to_numpy() for c in ("x_m", "y_m", "z_m"))
+    lat, lon, h = system.to_geodetic(x, y, z)
+    t = _seconds(tracks["epoch"])
+    vx, vy, vz = (tracks[c].to_numpy() for c in ("vx_mps", "vy_mps", "vz_mps"))
+    _check((np.abs(x) < 2**23 * 0.5) & (np.abs(y) < 2**23 * 0.5), "position beyond ±4 194 km (I062/100)", "tracks")
+    _check((np.abs(vx) < 8192) & (np.abs(vy) < 8192), "speed beyond 8 192 m/s (I062/185)", "tracks")
+    cov = np.stack(tracks["cov_diag"].to_numpy()) if tracks.height else np.zeros((0, 6))
+    sig = np.sqrt(np.clip(np.nan_to_num(cov, nan=0.0), 0.0, None))
+    alt = tracks["alt_m"].fill_null(np.nan).to_numpy() if "alt_m" in tracks.columns else np.full(tracks.height, np.nan)
+    col = lambda c: tracks[c].to_list() if c in tracks.columns else [None] * tracks.height  # noqa: E731
+    m3a, ms, cs = col("mode_3a"), col("mode_s"), col("callsign")
+    ids = tracks["track_id"].cast(pl.Int64).to_numpy() % 65536
+    out = []
+    for i in range(tracks.height):
+        items: dict[str, object] = {
+            "010": (("SAC", sac), ("SIC", sic)), "040": int(ids[i]), "070": float(math.fmod(t[i], 86400.0)),
+            "105": (("LAT", float(lat[i])), ("LON", float(lon[i]))), "100": (("X", float(x[i])), ("Y", float(y[i]))),
+            "185": (("VX", float(vx[i])), ("VY", float(vy[i]))), "130": float(h[i] / codec.FT),
+            "220": float(np.clip(vz[i] / codec.FT * 60.0, -204800, 204799)),
+            "080": (0,),
+            "500": {"APC": (("X", float(min(sig[i, 0], 32767.0))), ("Y", float(min(sig[i, 1], 32767.0)))),
+                    "AGA": float(min(sig[i, 2] / codec.FT, 1593.0)),
+                    "ATV": (("X", float(min(sig[i, 3], 63.75))), ("Y", float(min(sig[i, 4], 63.75)))),
+                    "ARC": float(min(sig[i, 5] / codec.FT * 60.0, 1593.0))},
+        }
+        if math.isfinite(alt[i]):
+            items["136"] = float(alt[i] / codec.FT / 100.0)
+        if m3a[i]:
+            items["060"] = (0, 0, 0, 0, ("MODE3A", str(m3a[i]).zfill(4)))
+        adr: dict[str, object] = {}
+        if ms[i]:
+            adr["ADR"] = int(ms[i], 16)
+        if cs[i]:
+            adr["ID"] = str(cs[i])[:8].ljust(8)
+        if adr:
+            items["380"] = adr
+        out.append((t[i], s.create(items)))
+    return out
+
+
+def export_picture(tracks: pl.DataFrame, system: geo.LocalFrame, out: str | Path) -> int:
+    """Write a picture as CAT062 data blocks to ``out`` (atomic); returns the record count."""
+    from tertiary.store.run_store import atomic_path
+    recs = cat062(tracks.sort("epoch", "track_id"), system)
+    with atomic_path(Path(out)) as tmp:
+        tmp.write_bytes(interleave([(t, 62, r) for t, r in recs]))
+    return len(recs)

@@ -1,0 +1,912 @@
+"""A run on ``dask.distributed`` (issue 18 item 3): partitions processed in parallel, each writing
+its own output partition, then the whole-run stages on their union.
+
+Partitions
+    * every Monte-Carlo run is one partition (runs never interact in any stage);
+    * with ``slice_s``, a run is also cut into time slices [s_k, s_k+1) on the grid from the
+      recording's origin. A slice's task reads the reports with time in
+      [s_k - overlap_s, s_k+1 + lookahead_s): the warm-up [s_k - overlap_s, s_k) rebuilds the
+      carried state (local tracks, target ids, fusion recursions, trackers, episodes) and its
+      outputs are discarded (kept aside for stitching only); rows are kept when their epoch is in
+      [s_k, s_k+1) (``reports``/``rejects``: when the report's time is).
+
+Every task reads the dataset itself (paths are shipped, never frames), runs
+:func:`tertiary.pipeline.job.stream` with the whole recording's epoch grid origin and writes Parquet
+parts under ``OUT/slices/<i>/{kept,overlap}/<table>/w=<k>.parquet``.
+
+Ids. ``target_id`` is numbered per run in the local engine (:func:`tertiary.stages.association.associate.carry_step`),
+``track_id`` per (run, method, filter) from 1 and ``cluster_id`` per (run, method): a run
+partition gets exactly the local engine's ids, and a time slice's ids are local to it. The client therefore
+(1) stitches each slice's ids to the previous slice's by matching in the overlap — targets by the
+reports they share (same report row → same target), tracks by position (same epoch, distance
+≤ ``gate_m``), clusters by lead target — one-to-one (Hungarian, most coinciding epochs first),
+unmatched ids getting fresh ids above every id used so far; (2) renumbers target ids by (run,
+first epoch, id), the order in which the local engine creates them; then every partition's parts
+are relabelled in place by a task (atomic rewrites). The finalize stage (evaluation, alert
+scoring, …) runs on the client over the union of the partitions and ``results.duckdb`` is built
+as :func:`tertiary.pipeline.job.run` builds it, with a ``partitions`` table registering every output
+partition (its span, rows, wall time, worker, id changes at its start boundary).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from tertiary.pipeline import job as pipeline
+from tertiary.runtime.windows import (DEFAULT_WINDOW_S, END_US, US, ReportSource, Window, check_window, peak_rss_mib)
+from tertiary.core.errors import DataError, OptionError
+
+#: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
+#: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
+DEFAULT_OVERLAP_S = 120.0
+#: tables stitched across slice boundaries (their warm-up rows are kept aside for matching)
+STITCHED = ("associations", "fused", "clusters", "tracks")
+#: tables whose rows belong to a slice by epoch (the others by report time)
+EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "conflicts")
+#: gate of the positional match of tracks in the overlap (m)
+DEFAULT_GATE_M = 500.0
+SLICES = "slices"
+#: the finalize stage's scratch files, beside the partitions
+SCRATCH = "_scratch"
+
+
+@dataclass(frozen=True)
+class Partition:
+    """One task: a run (or every run) and a time slice of it."""
+
+    index: int
+    run: Any                 # the run value its reports have (None: the dataset has no run column)
+    first_run: bool          # also takes the rows whose run is null
+    slice: int               # slice index within its run
+    t0_us: int               # kept span [t0_us, t1_us) (±END_US: open)
+    t1_us: int
+    warm_us: int             # warm-up before t0_us (0 for the first slice)
+    ahead_us: int            # reports after t1_us also read (0 for the last slice)
+
+    @property
+    def first_slice(self) -> bool:
+        return self.t0_us <= -END_US
+
+    def input_expr(self) -> pl.Expr:
+        """The partition's input rows (null times go to the first slice, null runs to the first run)."""
+        cond = pl.lit(True)
+        if self.run is not None:
+            cond = pl.col("run") == self.run
+            if self.first_run:
+                cond = cond | pl.col("run").is_null()
+        t = pl.col("time").dt.epoch("us")
+        if not self.first_slice:
+            cond = cond & (t >= self.t0_us - self.warm_us)
+        if self.t1_us < END_US:
+            tc = t < self.t1_us + self.ahead_us
+            cond = cond & (tc | pl.col("time").is_null() if self.first_slice else tc)
+        return cond
+
+    def coarse_expr(self, time_dtype: pl.DataType) -> pl.Expr:
+        """A superset of :meth:`input_expr`'s times that a Parquet scan can take: the column
+        compared with literals of its own type (a test on an expression of the column is not
+        pushed into the scan), 1 ms wide of each bound."""
+        lit = lambda us: pl.lit(us, pl.Int64).cast(pl.Datetime("us")).cast(time_dtype)  # noqa: E731
+        cond = pl.lit(True)
+        if not self.first_slice:
+            cond = pl.col("time") >= lit(self.t0_us - self.warm_us - 1000)
+        if self.t1_us < END_US and not self.first_slice:     # the first slice also takes null times
+            cond = cond & (pl.col("time") < lit(self.t1_us + self.ahead_us + 1000))
+        return cond
+
+    def run_expr(self) -> pl.Expr:
+        """The partition's rows by run only (an input without timestamps is never sliced)."""
+        if self.run is None:
+            return pl.lit(True)
+        cond = pl.col("run") == self.run
+        return cond | pl.col("run").is_null() if self.first_run else cond
+
+
+@dataclass
+class DaskRun:
+    """What :func:`run_dask` measured (also in ``results.duckdb``'s run record)."""
+
+    db: Path
+    partitions: pl.DataFrame
+    stitching: pl.DataFrame
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- planning
+
+
+def plan(dataset_dir: str | Path, cfg: pipeline.PipelineConfig, window_s: float | None, slice_s: float | None,
+         overlap_s: float, lookahead_s: float | None = None, notes: list[str] | None = None
+         ) -> tuple[int | None, int, list[Partition]]:
+    """(grid origin µs, input rows, partitions) of a dataset: one per run × time slice."""
+    from tertiary.simulate import read_dataset
+    notes = [] if notes is None else notes
+    ds = read_dataset(dataset_dir, lazy=True)
+    source = ReportSource(ds.reports)
+    if source.n_rows == 0:
+        raise DataError("reports: the table has no rows; nothing to process", path=str(dataset_dir))
+    origin = (source.first_us // US) * US if source.windowable else None
+    lf = source.lf
+    runs: list[Any] = [None]
+    if "run" in lf.collect_schema():
+        runs = sorted(lf.select(pl.col("run").drop_nulls().unique()).collect()["run"].to_list()) or [None]
+    bounds = _slice_bounds(cfg, source, origin, window_s, slice_s, overlap_s, notes)
+    warm = int(round(overlap_s * US))
+    ahead = int(round((lookahead_s if lookahead_s is not None else (0.0 if window_s else overlap_s)) * US))
+    parts = []
+    for r_i, run in enumerate(runs):
+        for k, (t0, t1) in enumerate(bounds):
+            parts.append(Partition(len(parts), run, r_i == 0, k, t0, t1, 0 if t0 <= -END_US else warm,
+                                   0 if t1 >= END_US else ahead))
+    return origin, source.n_rows, parts
+
+
+def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float | None, slice_s: float | None,
+                  overlap_s: float, notes: list[str]) -> list[tuple[int, int]]:
+    """Kept spans of the time slices on the grid from ``origin`` (one open span: no slicing)."""
+    if slice_s is None:
+        return [(-END_US, END_US)]
+    if not (math.isfinite(slice_s) and slice_s > 0):
+        raise OptionError(f"must be a number of seconds > 0, got {slice_s}", option="--slice")
+    if not (math.isfinite(overlap_s) and overlap_s >= 0):
+        raise OptionError(f"must be a number of seconds >= 0, got {overlap_s}", option="--overlap")
+    if window_s is not None:
+        for name, v in (("--slice", slice_s), ("--overlap", overlap_s)):
+            if abs(v / window_s - round(v / window_s)) > 1e-9:
+                raise OptionError(f"{v} s is not a multiple of the window ({window_s} s): slices must start on "
+                                  "window boundaries", option=name)
+    if pipeline._windowable(cfg, source, 1.0, notes) is None:
+        notes.append("not cut into time slices: the run cannot be cut in time")
+        return [(-END_US, END_US)]
+    s = int(round(slice_s * US))
+    n = max(1, (source.last_us - origin) // s + 1)
+    edges = [-END_US] + [origin + j * s for j in range(1, n)] + [END_US]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+# --------------------------------------------------------------------------- the partition task
+
+
+class PartitionWriter:
+    """A partition's sink for :func:`tertiary.pipeline.job.stream`: each window's kept rows (and the
+    warm-up rows of the stitched tables) as Parquet parts; rejects' ``row_index`` made the row of
+    the whole input; association counts taken between the slice's boundaries."""
+
+    def __init__(self, out: Path, part: Partition, rowmap: pl.DataFrame, windowed: bool) -> None:
+        self.out, self.part, self.windowed = out, part, windowed
+        self.g = rowmap["__g"].to_numpy()
+        self.t = rowmap["__t"].to_numpy()
+        self.t_null = rowmap["__t"].is_null().to_numpy()
+        self.rows: dict[str, int] = {}
+        self.c0: dict = {}
+        self.c1: dict | None = None
+        self.last: dict = {}
+        shutil.rmtree(out, ignore_errors=True)
+
+    def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
+        from tertiary.store.run_store import write_parquet_atomic
+        for name, frame in outputs.items():
+            if frame.width == 0:
+                continue
+            kept, aside = self._split(name, frame)
+            for sub, f in (("kept", kept), ("overlap", aside)):
+                if f is None or (sub == "overlap" and f.height == 0):
+                    continue
+                d = self.out / sub / name
+                d.mkdir(parents=True, exist_ok=True)
+                write_parquet_atomic(f, d / f"w={w.index + 1:06d}.parquet", compression="zstd")
+                if sub == "kept":
+                    self.rows[name] = self.rows.get(name, 0) + f.height
+
+    def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
+        counts = {k: v for k, v in state.counts.items() if not k.startswith("_")}
+        if w.t1_us == self.part.t0_us:
+            self.c0 = counts
+        if w.t1_us == self.part.t1_us:
+            self.c1 = counts
+        self.last = counts
+
+    def counts(self) -> dict[str, int]:
+        """Association counts of the kept span (whole input when windows do not meet the bounds)."""
+        end = self.c1 if self.c1 is not None else self.last
+        return {k: int(end.get(k, 0)) - int(self.c0.get(k, 0)) for k in end}
+
+    def _split(self, name: str, frame: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame | None]:
+        p = self.part
+        if name == "rejects":
+            return self._rejects(frame), None
+        if name == "reports":
+            t = pl.col("time").dt.epoch("us")
+            return frame.filter((t >= p.t0_us) & (t < p.t1_us)), None
+        if name not in EPOCH_TABLES or frame.height == 0:
+            return frame, (frame.clear() if name in STITCHED else None)
+        e = pl.col("epoch").dt.epoch("us")
+        kept = frame.filter((e >= p.t0_us) & (e < p.t1_us))
+        aside = frame.filter((e >= p.t0_us - p.warm_us) & (e < p.t0_us)) if name in STITCHED and p.warm_us else None
+        return kept, aside
+
+    def _rejects(self, frame: pl.DataFrame) -> pl.DataFrame:
+        """Rejects of the partition's reports with the row of the whole input; radar rejects only
+        in partition 0; a report's reject kept where its time is (null time: the first slice)."""
+        p = self.part
+        if frame.height == 0:
+            return frame
+        is_rep = (frame["input_table"] == "reports").to_numpy()
+        keep = np.where(is_rep, True, p.index == 0)
+        if is_rep.any():
+            local = frame["row_index"].to_numpy()
+            ok = is_rep & (local < len(self.g))
+            li = np.where(ok, local, 0).astype(np.int64)
+            t, tnull = self.t[li], self.t_null[li]
+            inside = np.where(tnull, p.first_slice, (t >= p.t0_us) & (t < p.t1_us))
+            keep &= np.where(is_rep, inside, True)
+            frame = frame.with_columns(pl.Series("row_index", np.where(ok, self.g[li], local).astype(np.uint64)))
+        return frame.filter(pl.Series(keep))
+
+
+def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfig, window_s: float | None,
+                  grid_origin_us: int | None, out_dir: str) -> dict:
+    """The task of one partition (runs on a worker): read its reports, stream, write its parts."""
+    from tertiary.simulate import read_dataset
+    t_start = time.perf_counter()
+    ds = read_dataset(dataset_dir, lazy=True)
+    lf = ds.reports.lazy()
+    timed = isinstance(lf.collect_schema().get("time"), pl.Datetime)
+    cond = part.input_expr() if timed else part.run_expr()
+    tcol = pl.col("time").dt.epoch("us") if timed else pl.lit(None, pl.Int64)
+    rowmap = lf.with_row_index("__g").filter(cond).select("__g", tcol.alias("__t")).collect()
+    out = Path(out_dir) / SLICES / str(part.index)
+    writer = PartitionWriter(out, part, rowmap, window_s is not None)
+    info = {"index": part.index, "n_input": rowmap.height, "worker": os.getpid(), "notes": []}
+    if rowmap.height:
+        source = out.parent / f"{part.index}.input.parquet"
+        source.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            reports = partition_input(lf, part, source) if timed else lf.filter(cond)
+            sub = dataclasses.replace(ds, reports=reports, truth=pl.DataFrame())
+            ctx, _st = pipeline.stream(sub, cfg, writer, window_s, notes=info["notes"],
+                                       grid_origin_us=grid_origin_us)
+        finally:
+            source.unlink(missing_ok=True)
+        info["radars"] = ctx.radars
+    info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
+                peak_rss_mib=round(peak_rss_mib(), 1))
+    return info
+
+
+def partition_input(lf: pl.LazyFrame, part: Partition, path: Path) -> pl.LazyFrame:
+    """The partition's input rows (:meth:`Partition.input_expr`, in input order) written to
+    ``path`` and scanned from there. The windows of the partition then read their rows from a
+    plain scan, which takes their time test: on ``lf.filter(...)`` the row index the stream
+    puts on its input came after the filter and kept every window's test out of the scan, so
+    each of a national hour's 60 s windows read the whole hour again (2.4 s a window instead of
+    0.25 s, issue 18)."""
+    coarse = part.coarse_expr(lf.collect_schema()["time"])
+    lf.filter(coarse).filter(part.input_expr()).sink_parquet(path, compression="lz4", maintain_order=True)
+    return pl.scan_parquet(path)
+
+
+# --------------------------------------------------------------------------- reading partitions back
+
+
+def _files(out: Path, part: int, sub: str, name: str) -> list[Path]:
+    return sorted((out / SLICES / str(part) / sub / name).glob("w=*.parquet"))
+
+
+def read_part(out: Path, part: int, name: str, sub: str = "kept", columns: list[str] | None = None
+              ) -> pl.DataFrame | None:
+    files = _files(out, part, sub, name)
+    if not files:
+        return None
+    frames = [pl.read_parquet(f, columns=None if columns is None else
+                              [c for c in columns if c in pl.read_parquet_schema(f)]) for f in files]
+    return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
+
+
+class UnionParts:
+    """The finalize stage's view of every partition: ``table(name)`` concatenates them."""
+
+    def __init__(self, out: Path, n: int) -> None:
+        self.out, self.n = out, n
+
+    def table(self, name: str, columns: list[str] | None = None) -> pl.DataFrame | None:
+        """Every partition's rows of ``name`` (``columns``: only those, where a partition has them;
+        only those are read: a national day's aligned rows read whole before the selection
+        took the client past 23 GB, issue 18)."""
+        frames = [f for i in range(self.n) if (f := read_part(self.out, i, name, columns=columns)) is not None]
+        if not frames:
+            return None
+        # a partition may lack an optional column (null there)
+        return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
+
+    def part_files(self, name: str) -> list[Path]:
+        """The files of every partition's rows of ``name``, in partition and window order."""
+        return [f for i in range(self.n) for f in _files(self.out, i, "kept", name)]
+
+    def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
+        """Each partition's rows of ``name``, read as they are needed."""
+        for i in range(self.n):
+            for f in _files(self.out, i, "kept", name):
+                yield pl.read_parquet(f)
+
+    def scratch(self) -> Path:
+        """A directory for the finalize stage's scratch files (removed when it ends)."""
+        d = self.out / SLICES / SCRATCH
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+# --------------------------------------------------------------------------- stitching
+
+
+def _assign(pairs: pl.DataFrame, group: list[str]) -> pl.DataFrame:
+    """One-to-one matches of (a, b) pairs with ``n`` coinciding epochs and mean distance ``d``:
+    per group, the Hungarian assignment maximising coinciding epochs (then closeness)."""
+    from scipy.optimize import linear_sum_assignment
+    out = []
+    for _key, g in pairs.group_by(group, maintain_order=True) if group else [((), pairs)]:
+        ua, ia = np.unique(g["a"].to_numpy(), return_inverse=True)
+        ub, ib = np.unique(g["b"].to_numpy(), return_inverse=True)
+        score = np.zeros((len(ua), len(ub)))
+        # many coinciding epochs first; among equals the nearer (d < gate, so d/gate < 1)
+        score[ia, ib] = g["n"].to_numpy() - g["d"].to_numpy() / (1.0 + g["d"].max())
+        r, c = linear_sum_assignment(score, maximize=True)
+        ok = score[r, c] > 0
+        m = pl.DataFrame({"a": ua[r[ok]], "b": ub[c[ok]]}, schema={"a": pl.UInt64, "b": pl.UInt64})
+        first = g.row(0, named=True)
+        out.append(m.with_columns([pl.lit(first[k], g.schema[k]).alias(k) for k in group]).select(*group, "a", "b"))
+    if not out:
+        return pairs.select(*group, pl.col("a").cast(pl.UInt64), pl.col("b").cast(pl.UInt64)).clear()
+    return pl.concat(out)
+
+
+def _pairs(prev: pl.DataFrame, cur: pl.DataFrame, on: list[str], group: list[str], id_col: str,
+           gate_m: float | None) -> pl.DataFrame:
+    """Coinciding (prev id a, cur id b) per group: rows joined on ``on`` (and within ``gate_m``)."""
+    cols = ["x_m", "y_m", "z_m"] if gate_m is not None else []
+    if gate_m is None:
+        j = prev.select(*on, pl.col(id_col).alias("a")).join(cur.select(*on, pl.col(id_col).alias("b")), on=on)
+        j = j.with_columns(pl.lit(0.0).alias("d"))
+    else:
+        # candidates from the 3 x 3 grid cells of side gate_m around each row, not every row of an
+        # epoch against every other (quadratic: ~20 GB on a national-peak slice)
+        cell = [(pl.col("x_m") // gate_m).cast(pl.Int64).alias("__cx"),
+                (pl.col("y_m") // gate_m).cast(pl.Int64).alias("__cy")]
+        a = prev.select(*on, pl.col(id_col).alias("a"), *cols).with_columns(cell)
+        b = cur.select(*on, pl.col(id_col).alias("b"), *cols).with_columns(cell)
+        key = [*on, "__cx", "__cy"]
+        j = pl.concat([a.join(b.with_columns(pl.col("__cx") + dx, pl.col("__cy") + dy), on=key, suffix="_b")
+                       for dx in (-1, 0, 1) for dy in (-1, 0, 1)]).drop("__cx", "__cy")
+        d = ((pl.col("x_m") - pl.col("x_m_b")) ** 2 + (pl.col("y_m") - pl.col("y_m_b")) ** 2
+             + (pl.col("z_m") - pl.col("z_m_b")) ** 2).sqrt()
+        j = j.with_columns(d.alias("d")).filter(pl.col("d") <= gate_m)
+    return j.group_by(*group, "a", "b").agg(pl.len().alias("n"), pl.col("d").mean())
+
+
+class _IdSpace:
+    """Ids handed out per group (e.g. per (run, method, filter) for tracks): a slice's id maps to
+    the previous slice's id it matched, else to a fresh id above every id of its group so far."""
+
+    def __init__(self, group: list[str]) -> None:
+        self.group = group
+        self.top: pl.DataFrame | None = None
+
+    def fresh(self, ids: pl.DataFrame, matched: pl.DataFrame | None, keep: bool = False) -> pl.DataFrame:
+        """Map (group…, old, new) of every id in ``ids`` (group…, b); ``matched`` (group…, a, b);
+        ``keep``: the ids stay (a run's first slice)."""
+        g = self.group
+        if keep or matched is None or matched.height == 0:
+            m = ids.with_columns((pl.col("b") if keep else pl.lit(None)).cast(pl.UInt64).alias("a"))
+        else:
+            m = ids.join(matched.select(*g, pl.col("a").cast(pl.UInt64), pl.col("b").cast(ids.schema["b"])),
+                         on=[*g, "b"], how="left")
+        un = m.filter(pl.col("a").is_null()).sort(*g, "b")
+        un = (un.join(self.top, on=g, how="left") if self.top is not None
+              else un.with_columns(pl.lit(None, pl.Int64).alias("top")))
+        un = un.with_columns((pl.col("top").fill_null(-1) + 1 + pl.int_range(pl.len()).over(g))
+                             .cast(pl.UInt64).alias("a")).drop("top")
+        mapped = pl.concat([m.filter(pl.col("a").is_not_null()), un.select(m.columns)])
+        top = mapped.group_by(g).agg(pl.col("a").max().cast(pl.Int64).alias("top"))
+        self.top = top if self.top is None else pl.concat([self.top, top]).group_by(g).agg(pl.col("top").max())
+        return mapped.select(*g, pl.col("b").alias("old"), pl.col("a").alias("new"))
+
+
+def _ids(out: Path, i: int, name: str, cols: list[str], id_col: str) -> pl.DataFrame:
+    """Distinct (group, id) of a partition's kept rows of ``name`` (``id_col`` renamed ``b``)."""
+    f = read_part(out, i, name, columns=[*cols, id_col])
+    if f is None:
+        return pl.DataFrame()
+    return f.select(*cols, pl.col(id_col).alias("b")).unique()
+
+
+def _run_key(p: "Partition") -> int:
+    """The run a partition's ids are numbered in (0 for a dataset without runs)."""
+    return 0 if p.run is None else int(p.run)
+
+
+def _target_ids(out: Path, i: int) -> pl.DataFrame:
+    parts = [_ids(out, i, "associations", [], "target_id"), _ids(out, i, "fused", [], "target_id"),
+             _ids(out, i, "tracks", [], "plot_target_id"), _ids(out, i, "clusters", [], "lead_target_id")]
+    parts = [p.cast({"b": pl.UInt64}) for p in parts if p.width]
+    return pl.concat(parts).drop_nulls().unique() if parts else pl.DataFrame(schema={"b": pl.UInt64})
+
+
+TRACK_GROUP = ["run", "method", "filter"]
+CLUSTER_GROUP = ["run", "method"]
+
+
+def _remap(frame: pl.DataFrame | None, maps: dict[str, pl.DataFrame]) -> pl.DataFrame | None:
+    """``frame`` with its target, track and cluster ids through ``maps`` (old → new)."""
+    if frame is None or frame.height == 0:
+        return frame
+    tm = maps["target"]
+    old, new = tm["old"], tm["new"]
+
+    def tgt(c: str) -> pl.Expr:
+        return pl.col(c).replace_strict(old, new, default=None, return_dtype=pl.UInt64)
+
+    cols = frame.columns
+    out = frame
+    if "target_id" in cols:
+        out = out.with_columns(tgt("target_id"))
+    if "plot_target_id" in cols:
+        out = out.with_columns(tgt("plot_target_id"))
+    if "lead_target_id" in cols:
+        out = out.with_columns(tgt("lead_target_id"),
+                               pl.col("members").list.eval(pl.element().replace_strict(old, new, default=None,
+                                                                                        return_dtype=pl.UInt64)))
+    if "cluster_id" in cols and maps.get("cluster") is not None:
+        out = _join_map(out, maps["cluster"], CLUSTER_GROUP, "cluster_id")
+    if "track_id" in cols and "filter" in cols and maps.get("track") is not None:
+        out = _join_map(out, maps["track"], TRACK_GROUP, "track_id")
+    if "id_a" in cols:
+        out = _remap_conflicts(out, maps)
+    return out
+
+
+def _join_map(frame: pl.DataFrame, m: pl.DataFrame, group: list[str], col: str) -> pl.DataFrame:
+    m = m.select(*group, pl.col("old").cast(frame.schema[col]).alias(col), pl.col("new").alias("__new"))
+    j = frame.join(m, on=[*group, col], how="left", maintain_order="left")
+    return j.with_columns(pl.coalesce("__new", col).cast(frame.schema[col]).alias(col)).drop("__new")
+
+
+def _remap_conflicts(frame: pl.DataFrame, maps: dict[str, pl.DataFrame]) -> pl.DataFrame:
+    """id_a/id_b are track ids where the picture is "<method>+<filter>", else target ids."""
+    tm = maps["target"]
+    is_track = pl.col("method").str.contains("+", literal=True)
+    out = frame.with_columns(pl.col("method").str.split_exact("+", 1).struct.rename_fields(["__m", "__f"])
+                             .alias("__mf")).unnest("__mf")
+    for c in ("id_a", "id_b"):
+        tgt = pl.col(c).replace_strict(tm["old"], tm["new"], default=pl.col(c), return_dtype=pl.UInt64)
+        if maps.get("track") is not None:
+            m = maps["track"].select(pl.col("run"), pl.col("method").alias("__m"), pl.col("filter").alias("__f"),
+                                     pl.col("old").alias(c), pl.col("new").alias("__new"))
+            out = out.join(m, on=["run", "__m", "__f", c], how="left", maintain_order="left")
+            trk = pl.coalesce("__new", c)
+        else:
+            out = out.with_columns(pl.lit(None, pl.UInt64).alias("__new"))
+            trk = pl.col(c)
+        out = out.with_columns(pl.when(is_track).then(trk).otherwise(tgt).cast(pl.UInt64).alias(c)).drop("__new")
+    return out.drop("__m", "__f")
+
+
+def stitch(out: Path, parts: list[Partition], gate_m: float = DEFAULT_GATE_M) -> tuple[dict[int, dict], pl.DataFrame]:
+    """Id maps of every partition (old → new target/track/cluster ids) and, per slice boundary,
+    what stitching did (ids matched and given fresh ids). Sequential over the partitions (each
+    slice's map depends on the previous slice's), on the overlap rows only."""
+    spaces = {"target": _IdSpace(["__all"]), "track": _IdSpace(TRACK_GROUP), "cluster": _IdSpace(CLUSTER_GROUP)}
+    maps: dict[int, dict] = {}
+    report = []
+    by_index = {p.index: p for p in parts}
+    for p in parts:
+        prev = by_index.get(p.index - 1) if p.slice > 0 else None
+        maps[p.index], row = _stitch_one(out, p, prev, maps.get(p.index - 1), spaces, gate_m)
+        if row:
+            report.append(row)
+    _canonical_targets(out, parts, maps)
+    return maps, pl.DataFrame(report) if report else pl.DataFrame()
+
+
+def _matches(out: Path, p: Partition, prev: Partition, prev_maps: dict, gate_m: float) -> dict[str, pl.DataFrame]:
+    """Matches (group…, a = previous slice's final id, b = this slice's id) in the overlap."""
+    lo = p.t0_us - p.warm_us
+
+    def before(name: str) -> pl.DataFrame | None:
+        files = _files(out, prev.index, "kept", name)
+        if not files:
+            return None
+        f = pl.concat([pl.scan_parquet(x).filter(pl.col("epoch").dt.epoch("us") >= lo).collect() for x in files],
+                      how="vertical_relaxed")
+        return _remap(f, prev_maps)
+
+    got: dict[str, pl.DataFrame] = {}
+    a0, a1 = before("associations"), read_part(out, p.index, "associations", sub="overlap")
+    if a0 is not None and a1 is not None and a0.height and a1.height:
+        key = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
+        got["target"] = _assign(_pairs(a0, a1, key, [], "target_id", None), []).with_columns(__all=pl.lit(_run_key(p)))
+    t0, t1 = before("tracks"), read_part(out, p.index, "tracks", sub="overlap")
+    if t0 is not None and t1 is not None and t0.height and t1.height:
+        got["track"] = _assign(_pairs(t0, t1, [*TRACK_GROUP, "epoch"], TRACK_GROUP, "track_id", gate_m),
+                               TRACK_GROUP)
+    c0, c1 = before("clusters"), read_part(out, p.index, "clusters", sub="overlap")
+    if c0 is not None and c1 is not None and c0.height and c1.height and "target" in got:
+        # the warm-up clusters' leads in the previous slice's ids (unmatched leads become null)
+        tm = got["target"].select(pl.col("b").alias("old"), pl.col("a").alias("new"))
+        c1 = _remap(c1, {"target": tm})
+        got["cluster"] = _assign(_pairs(c0, c1, [*CLUSTER_GROUP, "epoch", "lead_target_id"], CLUSTER_GROUP,
+                                        "cluster_id", None), CLUSTER_GROUP)
+    return got
+
+
+def _stitch_one(out: Path, p: Partition, prev: Partition | None, prev_maps: dict | None,
+                spaces: dict[str, _IdSpace], gate_m: float) -> tuple[dict, dict]:
+    # target ids are numbered per run (tertiary.stages.association.associate), like track and cluster ids; a
+    # partition holds one run, so its target space is that run's
+    ids = {"target": _target_ids(out, p.index).with_columns(__all=pl.lit(_run_key(p))),
+           "track": _ids(out, p.index, "tracks", TRACK_GROUP, "track_id"),
+           "cluster": _ids(out, p.index, "clusters", CLUSTER_GROUP, "cluster_id")}
+    got = _matches(out, p, prev, prev_maps, gate_m) if prev is not None else {}
+    maps: dict[str, pl.DataFrame | None] = {}
+    for kind, space in spaces.items():
+        if ids[kind].width == 0:
+            maps[kind] = None
+            continue
+        # a run's first slice keeps its track and cluster ids (numbered per run, like the local engine)
+        keep = prev is None
+        maps[kind] = space.fresh(ids[kind], got.get(kind), keep=keep)
+    maps["target"] = maps["target"].drop("__all") if maps["target"] is not None else \
+        pl.DataFrame(schema={"old": pl.UInt64, "new": pl.UInt64})
+    row: dict = {}
+    if prev is not None:
+        row = {"partition": p.index, "run": p.run, "boundary_utc": _utc(p.t0_us)}
+        for kind in spaces:
+            m = maps[kind]
+            row[f"{kind}s"] = m.height if m is not None else 0
+            # kept ids that continue an id of the previous slice (the others got fresh ids)
+            row[f"{kind}s_continued"] = (m.join(got[kind].select(pl.col("b").alias("old")).unique(), on="old",
+                                               how="semi").height if kind in got and m is not None else 0)
+    return maps, row
+
+
+def _canonical_targets(out: Path, parts: list[Partition], maps: dict[int, dict]) -> None:
+    """Target ids renumbered by (first kept epoch, run, stitched id): the local engine's creation order."""
+    firsts = []
+    for p in parts:
+        a = read_part(out, p.index, "associations", columns=["run", "epoch", "target_id"])
+        f = read_part(out, p.index, "fused", columns=["run", "epoch", "target_id"])
+        both = [x for x in (a, f) if x is not None and x.height]
+        if not both:
+            continue
+        rows = pl.concat(both, how="vertical_relaxed").group_by("target_id").agg(pl.col("epoch").min())
+        m = maps[p.index]["target"]
+        firsts.append(rows.join(m, left_on="target_id", right_on="old").select("new", "epoch")
+                      .with_columns(run=pl.lit(_run_key(p), pl.Int64)))
+    if not firsts:
+        return
+    order = (pl.concat(firsts).group_by("run", "new").agg(pl.col("epoch").min())
+             .sort("run", "epoch", "new").with_columns(canon=pl.int_range(pl.len()).over("run")))
+    for p in parts:
+        m = maps[p.index]["target"].with_columns(run=pl.lit(_run_key(p), pl.Int64))
+        maps[p.index]["target"] = (m.join(order.select("run", "new", "canon"), on=["run", "new"], how="left")
+                                   .select("old", pl.coalesce("canon", "new").cast(pl.UInt64).alias("new")))
+
+
+def relabel_partition(out_dir: str, index: int, maps: dict) -> int:
+    """Rewrite a partition's kept parts with the stitched ids (a task; atomic per file)."""
+    from tertiary.store.run_store import write_parquet_atomic
+    n = 0
+    for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
+        for f in _files(Path(out_dir), index, "kept", name):
+            frame = pl.read_parquet(f)
+            new = _remap(frame, maps)
+            for c in ("target_id", "plot_target_id", "lead_target_id"):
+                if c in frame.columns and new[c].null_count() > frame[c].null_count():
+                    raise RuntimeError(f"stitching lost {c} values in {f}")
+            write_parquet_atomic(new, f, compression="zstd")
+            n += frame.height
+    return n
+
+
+def _utc(us: int) -> str:
+    if abs(us) >= END_US:
+        return "open"
+    return datetime.fromtimestamp(us / US, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def run_dask(dataset_dir: str | Path, out_dir: str | Path, cfg: pipeline.PipelineConfig | None = None, *,
+             workers: int | None = None, scheduler: str | None = None, client: Any = None,
+             window_s: float | None = DEFAULT_WINDOW_S, slice_s: float | None = None,
+             overlap_s: float = DEFAULT_OVERLAP_S, lookahead_s: float | None = None,
+             gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None,
+             tables: str = "database") -> Path:
+    """Run the job on ``dask.distributed`` and write ``out_dir/results.duckdb``; returns its path.
+
+    ``client``: an existing :class:`distributed.Client`; else ``Client(scheduler)`` when an address
+    is given, else a ``LocalCluster(n_workers=workers, threads_per_worker=1, processes=True)``.
+    Partitions: every Monte-Carlo run, and with ``slice_s`` every time slice of it (warm-up
+    ``overlap_s`` before each slice, ``lookahead_s`` after it: default 0 with windows — a window's
+    outputs depend on no later report — else ``overlap_s``). ``window_s``: the windows each task
+    streams in (slice and overlap must be multiples of it). ``tables="parquet"``: the
+    partitions' parts are registered in the database, not copied (:func:`tertiary.pipeline.job.run`).
+    See the module docstring."""
+    res = run_dask_detailed(dataset_dir, out_dir, cfg, workers=workers, scheduler=scheduler, client=client,
+                            window_s=window_s, slice_s=slice_s, overlap_s=overlap_s, lookahead_s=lookahead_s,
+                            gate_m=gate_m, progress=progress, tables=tables)
+    return res.db
+
+
+def _client(workers: int | None, scheduler: str | None, client: Any):
+    """(client, closer) for the run."""
+    from distributed import Client, LocalCluster
+    if client is not None:
+        return client, lambda: None
+    if scheduler:
+        try:
+            c = Client(scheduler, timeout="30s")
+        except (OSError, TimeoutError) as exc:
+            raise OptionError(f"cannot reach the Dask scheduler at {scheduler}: {exc}", option="--scheduler") from exc
+        return c, c.close
+    if workers is not None and (not isinstance(workers, int) or workers < 1):
+        raise OptionError(f"must be an integer >= 1, got {workers}", option="--workers")
+    cluster = LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                           dashboard_address=":0")     # any free port: two clusters at once do not collide
+    c = Client(cluster)
+    return c, lambda: (c.close(), cluster.close())
+
+
+def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipeline.PipelineConfig | None = None, *,
+                      workers: int | None = None, scheduler: str | None = None, client: Any = None,
+                      window_s: float | None = DEFAULT_WINDOW_S, slice_s: float | None = None,
+                      overlap_s: float = DEFAULT_OVERLAP_S, lookahead_s: float | None = None,
+                      gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None,
+                      tables: str = "database") -> DaskRun:
+    """:func:`run_dask` returning what it measured (partitions, stitching, timings)."""
+    from tertiary.simulate import read_dataset
+    from tertiary.store.run_store import RunStore, record_run
+    t_wall = time.perf_counter()
+    say = progress or (lambda _m: None)
+    cfg = pipeline.check_config(cfg)
+    window_s = check_window(window_s)
+    out = Path(out_dir)
+    pipeline.check_tables(tables, out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot create the run directory: {exc.strerror or exc}", path=str(out)) from exc
+    shutil.rmtree(out / SLICES, ignore_errors=True)
+    notes: list[str] = []
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+    origin, n_rows, parts = plan(dataset_dir, cfg, window_s, slice_s, overlap_s, lookahead_s, notes)
+    timings["plan_s"] = time.perf_counter() - t
+    say(f"{len(parts)} partition(s)")
+    c, close = _client(workers, scheduler, client)
+    try:
+        infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
+                                             window_s, origin, gate_m, timings, say)
+    finally:
+        close()
+    say("finalize")
+    ds = read_dataset(dataset_dir, lazy=True)
+    radars = next((i["radars"] for i in infos if "radars" in i), None)
+    ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0)
+    counts: dict[str, int] = {}
+    for i in infos:
+        for k, v in i["counts"].items():
+            counts[k] = counts.get(k, 0) + v
+        notes.extend(n for n in i["notes"] if n not in notes)
+    # the association metrics are scored from the relabelled rows (a partition's ids are its own)
+    st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts, scores=None)
+    table = _partition_table(parts, infos, stitching, out)
+    with RunStore.create(out) as store:
+        sink = pipeline.store_sink(store, notes, tables)
+
+        t = time.perf_counter()
+        failure: Exception | None = None
+        res = None
+        try:
+            # each whole-run stage said as it starts, as the local engine does: the client's
+            # finalize is a third of a national day, and silent it looked stuck (issue 18)
+            res = pipeline.finalize(ds, cfg, ctx, st, UnionParts(out, len(parts)), n_rows, progress=say,
+                                    sink=sink, notes=notes)
+        except Exception as exc:  # recorded, then re-raised
+            failure = exc
+        timings["finalize_s"] = time.perf_counter() - t
+        shutil.rmtree(out / SLICES / SCRATCH, ignore_errors=True)
+        store.write("partitions", table)
+        if stitching.height:
+            store.write("stitching", stitching)
+        timings["wall_s"] = time.perf_counter() - t_wall
+        info = {"scenario": ds.scenario.name, "scenario_toml": pipeline._scenario_text(ds, notes),
+                "config": pipeline._config_dict(cfg), "created_utc": datetime.now(timezone.utc).isoformat(
+                    timespec="seconds"), "versions": pipeline._versions(), "window_s": window_s,
+                "engine": "dask", "slice_s": slice_s, "overlap_s": overlap_s, "partitions": len(parts),
+                "notes": notes, "timings": {**(res.timings if res else {}), **timings}}
+        if res is not None:
+            # the client's memory by stage; each worker's is in the partitions table
+            info.update(rows=res.counts, memory_mib=res.memory_mib, status="completed")
+        else:
+            info.update(status="failed", failed_stage=getattr(failure, "tertiary_stage", "finalize"),
+                        error=f"{type(failure).__name__}: {failure}")
+        record_run(store, info)
+    if failure is not None:
+        raise failure
+    return DaskRun(out / "results.duckdb", table, stitching, timings)
+
+
+def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pipeline.PipelineConfig,
+                window_s: float | None, origin: int | None, gate_m: float, timings: dict, say
+                ) -> tuple[list[dict], dict, pl.DataFrame]:
+    """The partitions' tasks, the stitching on the client, the relabelling tasks."""
+    from distributed import as_completed
+    t = time.perf_counter()
+    futs = [c.submit(run_partition, dataset, p, cfg, window_s, origin, out, pure=False,
+                     key=f"tertiary-partition-{p.index}-{time.time_ns()}") for p in parts]
+    infos: dict[int, dict] = {}
+    for fut in as_completed(futs):
+        info = fut.result()                       # a failed task raises here, with its traceback
+        info["done_s"] = time.perf_counter() - t
+        infos[info["index"]] = info
+        say(f"partition {info['index'] + 1}/{len(parts)} done in {info['seconds']:.1f} s")
+    timings["partitions_s"] = time.perf_counter() - t
+    timings["partition_task_s_sum"] = sum(i["seconds"] for i in infos.values())
+    t = time.perf_counter()
+    maps, stitching = stitch(Path(out), parts, gate_m) if len(parts) > 1 else ({}, pl.DataFrame())
+    timings["stitch_s"] = time.perf_counter() - t
+    # each boundary's continuity as soon as it is known (a long run's log tells it before the
+    # whole-run stages end; the stitching table holds the same rows)
+    for row in stitching.iter_rows(named=True) if stitching.height else ():
+        say(f"stitched at {row['boundary_utc']}: targets {row['targets_continued']}/{row['targets']}, "
+            f"tracks {row['tracks_continued']}/{row['tracks']}, clusters {row['clusters_continued']}/"
+            f"{row['clusters']} continued")
+    t = time.perf_counter()
+    if maps:
+        c.gather([c.submit(relabel_partition, out, i, m, pure=False) for i, m in maps.items()])
+    timings["relabel_s"] = time.perf_counter() - t
+    return [infos[p.index] for p in parts], maps, stitching
+
+
+def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.DataFrame, out: Path) -> pl.DataFrame:
+    """The ``partitions`` table: every output partition, its span, rows, time and worker."""
+    return pl.DataFrame({
+        "partition": [p.index for p in parts],
+        "run": [None if p.run is None else int(p.run) for p in parts],
+        "slice": [p.slice for p in parts],
+        "kept_from_utc": [_utc(p.t0_us) for p in parts],
+        "kept_to_utc": [_utc(p.t1_us) for p in parts],
+        "warmup_s": [p.warm_us / US for p in parts],
+        "input_rows": [i["n_input"] for i in infos],
+        "rows": [json.dumps(i["rows"]) for i in infos],
+        "task_s": [i["seconds"] for i in infos],
+        "worker_pid": [i["worker"] for i in infos],
+        # the worker process's peak resident memory by the end of this task (a worker runs several)
+        "worker_peak_rss_mib": [i.get("peak_rss_mib") for i in infos],
+        "path": [str((out / SLICES / str(p.index)).resolve()) for p in parts],
+    }, schema_overrides={"run": pl.Int64})
+
+
+# --------------------------------------------------------------------------- what stitching changes
+
+
+def _since(epoch: pl.Expr, bounds: list[int]) -> pl.Expr:
+    """Seconds since the last slice boundary at or before ``epoch`` (null before the first)."""
+    b = pl.Series(sorted(bounds), dtype=pl.Int64)
+    e = epoch.dt.epoch("us")
+    last = pl.lit(None, pl.Int64)
+    for x in b:      # a handful of boundaries: one when/then per boundary, vectorised over rows
+        last = pl.when(e >= x).then(pl.lit(x)).otherwise(last)
+    return ((e - last) / US).alias("since_s")
+
+
+def _target_link(dask_assoc: pl.DataFrame, local_assoc: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, target_id → target_id_local): the local target most of a distributed target's
+    reports belong to at that epoch."""
+    key = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
+    j = dask_assoc.select(*key, "target_id").join(local_assoc.select(*key, pl.col("target_id").alias("local")),
+                                                  on=key)
+    return (j.group_by("run", "epoch", "target_id", "local").len().sort("len", descending=True)
+            .group_by("run", "epoch", "target_id").agg(pl.col("local").first()))
+
+
+def stitching_effects(dask: dict[str, pl.DataFrame], local: dict[str, pl.DataFrame], bounds_us: list[int],
+                      bins_s: tuple[float, ...] = (0, 5, 10, 20, 30, 60, 120, 300, 1e9), around_s: float = 30.0
+                      ) -> dict[str, Any]:
+    """What slicing and stitching change against the local engine's tables (same dataset, same
+    configuration): per table the rows equal to the local engine's, by seconds since the last
+    slice boundary (``bins_s``); per boundary the local targets/tracks alive within ``around_s``
+    on both sides whose distributed id changes across it."""
+    link = _target_link(dask["associations"], local["associations"])
+    out: dict[str, Any] = {"boundaries": [_utc(b) for b in bounds_us]}
+    f = dask["fused"].join(link, on=["run", "epoch", "target_id"], how="left")
+    fused = _rowwise(f.rename({"target_id": "dask_id", "local": "target_id"}), local["fused"],
+                     ["run", "method", "epoch", "target_id"], bounds_us, bins_s)
+    out["fused"] = fused
+    out["target_id_changes"] = _id_changes(f.rename({"target_id": "dask_id", "local": "target_id"}),
+                                           ["run"], "target_id", bounds_us, around_s)
+    if dask.get("tracks") is not None and dask["tracks"].height and local["tracks"].height:
+        lt = local["tracks"].join(local["fused"].select("run", "epoch", "method", pl.col("target_id")
+                                                        .alias("plot_target_id")).unique(), how="semi",
+                                  on=["run", "epoch", "method", "plot_target_id"])
+        dt = (dask["tracks"].join(link.rename({"target_id": "plot_target_id"}), on=["run", "epoch", "plot_target_id"],
+                                  how="left")
+              .rename({"track_id": "dask_id"}))
+        # a distributed track row ↔ the local track updated by the same aircraft's plot at that epoch
+        pair = dt.join(lt.select("run", "method", "filter", "epoch", pl.col("plot_target_id").alias("local"),
+                                 "track_id"), on=["run", "method", "filter", "epoch", "local"], how="left")
+        # each distributed track (within a slice) ↔ the local track most of its updated rows match,
+        # so that coasting rows (no plot) are compared too
+        grp = ["run", "method", "filter"]
+        slice_of = sum((pl.col("epoch").dt.epoch("us") >= b).cast(pl.Int32) for b in bounds_us) if bounds_us \
+            else pl.lit(0)
+        link_t = (pair.filter(pl.col("track_id").is_not_null()).with_columns(slice_of.alias("__s"))
+                  .group_by(*grp, "__s", "dask_id", "track_id").len().sort("len", descending=True)
+                  .group_by(*grp, "__s", "dask_id").agg(pl.col("track_id").first()))
+        rows = (dt.drop("local").with_columns(slice_of.alias("__s"))
+                .join(link_t, on=[*grp, "__s", "dask_id"], how="left").drop("__s"))
+        out["tracks"] = _rowwise(rows, local["tracks"], [*grp, "epoch", "track_id"], bounds_us, bins_s)
+        out["track_id_changes"] = _id_changes(pair, ["run", "method", "filter"], "track_id", bounds_us, around_s)
+    return out
+
+
+def _rowwise(d: pl.DataFrame, loc: pl.DataFrame, key: list[str], bounds: list[int], bins: tuple[float, ...]
+             ) -> list[dict]:
+    """Per bin of seconds since the last boundary: local rows, distributed rows matched to them,
+    rows identical (positions within 1e-6 m), the RMS and max position difference (m)."""
+    pos = ["x_m", "y_m", "z_m"]
+    loc = loc.with_columns(_since(pl.col("epoch"), bounds))
+    j = loc.select(*key, *pos, "since_s").join(d.filter(pl.col(key[-1]).is_not_null()).select(*key, *pos)
+                                               .unique(subset=key, keep="first"), on=key, how="left", suffix="_d")
+    err = sum((pl.col(c) - pl.col(f"{c}_d")) ** 2 for c in pos).sqrt().alias("err")
+    j = j.with_columns(err, pl.col("since_s").fill_null(-1.0)
+                       .bin_intervals([float(b) for b in bins], labels=_interval_labels(bins)).alias("bin"))
+    g = (j.group_by("bin").agg(pl.len().alias("local_rows"), pl.col("err").is_not_null().sum().alias("matched"),
+                               (pl.col("err") <= 1e-6).sum().alias("identical"),
+                               (pl.col("err") ** 2).mean().sqrt().alias("rms_m"), pl.col("err").max().alias("max_m"))
+         .sort("bin"))
+    return g.with_columns(pl.col("bin").cast(pl.String)).to_dicts()
+
+
+def _interval_labels(bins: tuple[float, ...]) -> list[str]:
+    """"[a, b)" for each left-closed bin the breakpoints ``bins`` make, −inf and inf at the ends."""
+    edges = ["-inf", *(str(int(b)) if float(b).is_integer() else str(float(b)) for b in bins), "inf"]
+    return [f"[{a}, {b})" for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _id_changes(pair: pl.DataFrame, group: list[str], local_col: str, bounds: list[int], around_s: float
+                ) -> list[dict]:
+    """Per boundary: local ids alive on both sides (±``around_s``) and those whose distributed id
+    (majority over their rows) differs across the boundary."""
+    w = int(around_s * US)
+    res = []
+    e = pl.col("epoch").dt.epoch("us")
+    p = pair.filter(pl.col(local_col).is_not_null() & pl.col("dask_id").is_not_null())
+    for b in bounds:
+        side = []
+        for lo, hi in ((b - w, b), (b, b + w)):
+            side.append(p.filter((e >= lo) & (e < hi)).group_by(*group, local_col, "dask_id").len()
+                        .sort("len", descending=True).group_by(*group, local_col).agg(pl.col("dask_id").first()))
+        both = side[0].join(side[1], on=[*group, local_col], suffix="_after")
+        res.append({"boundary_utc": _utc(b), "alive": both.height,
+                    "id_changed": int((both["dask_id"] != both["dask_id_after"]).sum())})
+    return res
+
+
+def _parse_utc(text: str) -> int:
+    """µs since the Unix epoch of a ``%Y-%m-%d %H:%M:%S`` UTC text (the ``partitions`` table's)."""
+    return int(datetime.strptime(text, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc).timestamp()) * US

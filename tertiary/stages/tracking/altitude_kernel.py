@@ -1,0 +1,163 @@
+"""The altitude filter's recursion over each track's replies, compiled (numba, ``cache=True``).
+
+The same equations as :func:`tertiary.stages.tracking.altitude.filter_tracks_carry` — (A1)–(A4), the IMM
+(A5)–(A9), the garble gate, confirmation, restarts and identity swaps — written per track and
+per reply instead of vectorised over tracks per reply rank. The vectorised loop paid a few
+dozen numpy calls per rank, ~7 % of a production run in the fusion's and the centralised
+reference's vertical channels (issue 18); tracks are independent, so the compiled loop runs
+them one after another. The Python loop stays the reference (compared in the tests).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_jit = numba.njit(cache=True, error_model="numpy")     # x / 0 is inf or nan, as in numpy
+
+
+@_jit
+def _predict(s, tau, q, out):
+    """(A1)–(A2): ``s`` (5,) = (h, ḣ, P_hh, P_hḣ, P_ḣḣ) over ``tau`` into ``out``."""
+    t2 = tau * tau
+    out[2] = s[2] + 2.0 * tau * s[3] + t2 * s[4] + q * t2 * tau / 3.0
+    out[3] = s[3] + tau * s[4] + q * t2 / 2.0
+    out[0] = s[0] + tau * s[1]
+    out[1] = s[1]
+    out[4] = s[4] + q * tau
+
+
+@_jit
+def _mix(states, w, nm, out):
+    """(A6)/(A9): Σ w_j N(x_j, P_j) moment-matched into ``out``."""
+    h = 0.0
+    r = 0.0
+    for j in range(nm):
+        h = h + w[j] * states[j, 0]
+    for j in range(nm):
+        r = r + w[j] * states[j, 1]
+    phh = 0.0
+    phr = 0.0
+    prr = 0.0
+    for j in range(nm):
+        phh = phh + w[j] * (states[j, 2] + (states[j, 0] - h) ** 2)
+    for j in range(nm):
+        phr = phr + w[j] * (states[j, 3] + (states[j, 0] - h) * (states[j, 1] - r))
+    for j in range(nm):
+        prr = prr + w[j] * (states[j, 4] + (states[j, 1] - r) ** 2)
+    out[0], out[1], out[2], out[3], out[4] = h, r, phh, phr, prr
+
+
+@_jit
+def _filter(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
+            c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, out, has, rejected):
+    """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
+    place); per row the output state ``out`` (5, n), ``has`` and ``rejected``. ``weak_var`` < 0:
+    unconfirmed filters are not output."""
+    nm = len(qs)
+    cur = np.empty((nm, 5))
+    preds = np.empty((nm, 5))
+    upd = np.empty((nm, 5))
+    mixed = np.empty(5)
+    s = np.empty(5)
+    u = np.empty(5)
+    w = np.empty(nm)
+    c = np.empty(nm)
+    mu = np.empty(nm)
+    mu_u = np.empty(nm)
+    lik = np.empty(nm)
+    pij = np.empty((nm, nm))
+    for g in range(len(starts)):
+        for j in range(nm):
+            mu[j] = c_mu[j, g]
+            for f in range(5):
+                cur[j, f] = c_models[j, f, g]
+        t_last, ok, conf, miss, last_id = c_t[g], c_ok[g], c_conf[g], c_miss[g], c_id[g]
+        for k in range(lengths[g]):
+            i = starts[g] + k
+            zk, vk, tk = z[i], var[i], t[i]
+            valid = np.isfinite(zk)
+            zz = zk if valid else 0.0
+            tau = tk - t_last
+            # (A5)-(A6) and each model's prediction
+            if nm == 1:
+                c[0] = 1.0
+                _predict(cur[0], tau, qs[0], preds[0])
+            else:
+                for a in range(nm):
+                    p_sw = 1.0 - np.exp(-tau / sojourn[a])
+                    pij[a, a], pij[a, 1 - a] = 1.0 - p_sw, p_sw
+                for j in range(nm):
+                    cj = pij[0, j] * mu[0] + pij[1, j] * mu[1]
+                    c[j] = cj if (cj > 1e-300 or cj != cj) else 1e-300
+                for j in range(nm):
+                    for a in range(nm):
+                        w[a] = pij[a, j] * mu[a] / c[j]
+                    _mix(cur, w, nm, mixed)
+                    _predict(mixed, tau, qs[j], preds[j])
+            # (A7)-(A9)
+            tot = 0.0
+            for j in range(nm):
+                nu = zz - preds[j, 0]
+                sv = preds[j, 2] + vk
+                kh, kr = preds[j, 2] / sv, preds[j, 3] / sv
+                upd[j, 0], upd[j, 1] = preds[j, 0] + kh * nu, preds[j, 1] + kr * nu
+                upd[j, 2], upd[j, 3] = preds[j, 2] - kh * preds[j, 2], preds[j, 3] - kh * preds[j, 3]
+                upd[j, 4] = preds[j, 4] - kr * preds[j, 3]
+                lik[j] = np.exp(-0.5 * nu * nu / sv) / np.sqrt(2 * np.pi * sv)
+                w[j] = lik[j] * c[j]
+                tot = tot + w[j]
+            for j in range(nm):
+                mu_u[j] = w[j] / tot if tot > 0 else c[j]
+            _mix(upd, mu_u, nm, u)
+            _mix(preds, c, nm, s)                                   # combined prediction
+            nu = zz - s[0]
+            sv = s[2] + vk
+            sv0 = sv if (sv > 0.0 or sv != sv) else 0.0                 # np.maximum: NaN stays NaN
+            inside = np.abs(nu) <= gate_sigma * np.sqrt(sv0) + gate_floor
+            run = ok
+            idk = ids[i]
+            swapped = valid and run and idk >= 0 and last_id >= 0 and idk != last_id
+            if valid and idk >= 0:
+                last_id = idk
+            accept = run and valid and inside and not swapped
+            bad = run and valid and (not inside) and not swapped
+            if accept:
+                miss = 0
+            elif bad:
+                miss += 1
+            restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped
+            if restart:
+                for j in range(nm):
+                    cur[j, 0], cur[j, 1], cur[j, 2], cur[j, 3], cur[j, 4] = zz, 0.0, vk, 0.0, v0 * v0
+                    mu[j] = 1.0 / nm
+                out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = zz, 0.0, vk, 0.0, v0 * v0
+                miss = 0
+                conf = False
+            else:
+                for j in range(nm):
+                    for f in range(5):
+                        cur[j, f] = upd[j, f] if accept else preds[j, f]
+                    mu[j] = mu_u[j] if accept else c[j]
+                for f in range(5):
+                    out[f, i] = u[f] if accept else s[f]
+                conf = conf or accept
+            ok = ok or restart
+            t_last = tk
+            if weak_var >= 0.0:
+                if ok and not conf:
+                    ph = out[2, i]
+                    out[2, i] = ph if (ph >= weak_var or ph != ph) else weak_var
+                has[i] = ok
+            else:
+                has[i] = ok and conf
+            rejected[i] = bad and not restart
+        for j in range(nm):
+            c_mu[j, g] = mu[j]
+            for f in range(5):
+                c_models[j, f, g] = cur[j, f]
+        c_t[g], c_ok[g], c_conf[g], c_miss[g], c_id[g] = t_last, ok, conf, miss, last_id
+        last = starts[g] + lengths[g] - 1
+        for f in range(5):
+            c_post[f, g] = out[f, last]
+        c_has[g] = has[last]
