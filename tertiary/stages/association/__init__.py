@@ -1,1 +1,2 @@
-"""TODO"""
+"""Association of aligned local tracks to system targets: gating, then the Hungarian assignment
+carried across windows."""
