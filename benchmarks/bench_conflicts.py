@@ -31,7 +31,7 @@ CODE = """
 import json, time, resource, statistics
 from datetime import datetime, timedelta, timezone
 import numpy as np, polars as pl
-from safety.conflicts import ConflictConfig, candidate_pairs, height_and_rate, predict_conflicts
+from safety.conflicts import ConflictConfig, conflict_candidates, height_and_rate, predict_conflicts
 from tertiary.core.geo import LocalFrame
 FRAME = LocalFrame(48.7, 2.4, 0.0)                # heights from WGS-84 geodesy (the system origin)
 
@@ -88,7 +88,7 @@ if "{what}" == "epoch":
     screen = []
     for f in frames:
         t = time.perf_counter()
-        i, j = candidate_pairs(f, cfg, frame=FRAME)
+        i, j = conflict_candidates(f, cfg, frame=FRAME)
         screen.append(time.perf_counter() - t)
         cand.append(len(i))
     res = {{"s_per_epoch_best": min(times), "s_per_epoch_median": statistics.median(times),

@@ -26,8 +26,9 @@ from pathlib import Path
 import polars as pl
 
 from tertiary.runtime import dask_engine as D
-from tertiary.pipeline import job as pipeline
-from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+from tertiary import pipeline
+from tertiary.io.dataset import read_dataset, write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
 OUT = Path(__file__).parent / "results" / "bench_dask.json"
@@ -130,7 +131,7 @@ def main() -> None:
     local_s = time.perf_counter() - t
     runs = [_dask_run(ds_dir, tmp / f"dask{w}", w, window_s, a.slice, a.overlap, run_cfg) for w in (1, 2)]
     dk, lc = _tables(Path(runs[-1]["db"])), _tables(local_db)
-    bounds = sorted(D._parse_utc(x) for x in dk["partitions"]["kept_from_utc"].to_list()[1:])
+    bounds = sorted(D.parse_utc(x) for x in dk["partitions"]["kept_from_utc"].to_list()[1:])
     effects = D.stitching_effects(dk, lc, bounds)
     # per-slice model from the 2-worker run: a slice's task time per input report, the client's
     # stitching per boundary, the finalize stage per report

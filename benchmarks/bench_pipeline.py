@@ -1,7 +1,7 @@
 """Pipeline throughput: alignment → clustering on terminal-area (200 aircraft, 4 radars, 1 h).
 
 In a fresh process per repetition: simulate (not timed), then time each stage of
-``tertiary.pipeline.job.process`` without trackers (validation, alignment, association, fusion
+``tertiary.pipeline.process`` without trackers (validation, alignment, association, fusion
 with every method, the centralised reference, clustering, evaluation) and record reports/s through
 alignment → clustering and the peak resident memory reached by the end of clustering (it
 includes the simulated dataset held in memory). Target (issue 3): ≥ 500 000 reports/s, < 2 GB.

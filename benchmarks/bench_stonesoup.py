@@ -14,7 +14,7 @@ with ONE rule (:func:`score`).
     ``GNNWith2DAssignment``, ``MultiMeasurementInitiator`` (2 points), ``UpdateTimeStepsDeleter``
     (``--delete-after`` s without update), ``TimeSyncFeeder`` (``--sync`` s) over a
     time-ordered reader. Stone Soup sees the plots only (no Mode C altitude, no radar tracks).
-(b) tertiary: ``tertiary.pipeline.job.run`` with ``information`` fusion, the ``imm_sym`` tracker,
+(b) tertiary: ``tertiary.pipeline.run`` with ``information`` fusion, the ``imm_sym`` tracker,
     conflicts, evaluation and the store (``--centralized`` adds the centralised reference).
 
 Conventions: Stone Soup's bearing is atan2(y, x), counter-clockwise from the x axis (east);
@@ -373,7 +373,7 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
     from stonesoup.types.update import Update
     from stonesoup.updater.kalman import ExtendedKalmanUpdater
 
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
 
     def models_for(radars, system):
         return {rid: CartesianToElevationBearingRange(
@@ -461,7 +461,7 @@ print(json.dumps(b.stonesoup_job({dataset!r}, {out!r}, {q!r}, {sync!r}, {delete_
 
 TERTIARY_CODE = """
 import json, time
-from tertiary.simulate import read_dataset
+from tertiary.io.dataset import read_dataset
 from tertiary import pipeline
 t0 = time.perf_counter()   # as for Stone Soup: from reading the dataset to the tracks stored
 ds = read_dataset({dataset!r})
@@ -478,7 +478,8 @@ print(json.dumps({{"reports": ds.reports.height, "wall_s": time.perf_counter() -
 def make_dataset(path: Path, duration_s: float, aircraft: int, seed: int | None) -> Path:
     """A terminal-area recording (1 run) written to ``path`` unless already there; designed
     conflict pairs scaled down for recordings shorter than 15 min so that they fit."""
-    from tertiary.simulate import load_scenario, simulate, write_dataset
+    from tertiary.io.dataset import write_dataset
+    from tertiary.simulate import load_scenario, simulate
     if (path / "reports.parquet").exists():
         return path
     cfg = load_scenario("terminal-area")
@@ -572,7 +573,7 @@ def main() -> None:
                                                centralized=args.centralized))
         jobs.write_text(json.dumps([ss, te]))
 
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
     ds = read_dataset(data)
     t0 = ds.truth["time"].min()
     grid = truth_grid(ds.truth, t0)

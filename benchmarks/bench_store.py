@@ -30,9 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.store import sql_reports  # noqa: E402
-from tertiary.simulate import read_dataset  # noqa: E402
+from tertiary.io.dataset import read_dataset  # noqa: E402
 from tertiary.store.run_store import LEAN_PREFIX, RunStore  # noqa: E402
 
 #: float agreement allowed between the two layouts: float32 keeps ≤ 6e-8 relative on each stored
@@ -46,7 +46,7 @@ def process(dataset: Path, cfg: pipeline.PipelineConfig | None = None) -> tuple[
     ds = read_dataset(dataset)
     tables: list[tuple[str, pl.DataFrame]] = []
     notes: list[str] = []
-    res = pipeline.process(ds, cfg, sink=lambda n, f: tables.append((n, pipeline._storable(f, n, notes)))
+    res = pipeline.process(ds, cfg, sink=lambda n, f: tables.append((n, pipeline.make_storable(f, n, notes)))
                            if f.width else None, notes=notes)
     return tables, {"scenario": ds.scenario.name, "rows": res.counts, "notes": notes, "timings": res.timings,
                     "status": "completed"}
@@ -165,7 +165,8 @@ def main() -> None:
         work = args.keep or Path(tmp)
         dataset = args.dataset
         if dataset is None:
-            from tertiary.simulate import load_scenario, simulate, write_dataset
+            from tertiary.io.dataset import write_dataset
+            from tertiary.simulate import load_scenario, simulate
             dataset = work / "dataset"
             write_dataset(simulate(load_scenario("terminal-area")), dataset)
         t = time.perf_counter()

@@ -126,8 +126,8 @@ def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
     """Fused vs tracker RMSE per fusion method (and NEES, target counts) on one dataset."""
     import polars as pl
 
-    from tertiary.pipeline import job as pipeline
-    from tertiary.simulate import read_dataset
+    from tertiary import pipeline
+    from tertiary.io.dataset import read_dataset
 
     ds = read_dataset(dataset)
     cfg = pipeline.PipelineConfig(filters=filters, safety=False, centralized=False)
@@ -225,9 +225,9 @@ def tracker_stage(dataset: str, filters: tuple[str, ...], reps: int = 2) -> dict
 
     import polars as pl
 
-    from tertiary.pipeline import job as pipeline
+    from tertiary import pipeline
     from tertiary.stages.tracking.filters.base import REGISTRY
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
     from tertiary.stages.tracking.tracker import track, track_methods
 
     ds = read_dataset(dataset)
@@ -239,7 +239,7 @@ def tracker_stage(dataset: str, filters: tuple[str, ...], reps: int = 2) -> dict
         return make_filter(name, compiled=False) if ok else make_filter(name)
 
     def before(pics: pl.DataFrame, names: tuple[str, ...]) -> pl.DataFrame:
-        parts = [track(pics.filter(pl.col("method") == m), numpy_filter(n), pipeline.TrackerConfig())
+        parts = [track(pics.filter(pl.col("method") == m), numpy_filter(n), pipeline.PipelineConfig().tracker)
                  for m in sorted(pics["method"].unique().to_list()) for n in names]
         return pl.concat(parts, how="vertical")
 

@@ -7,7 +7,7 @@ N − 1 denominator over N Monte-Carlo runs, with equal a-priori weights (4.87).
 different sites, the fused quantity is scored as e_TOI = b₁e₁ + b₂e₂ with e_n = D_o n − D_n
 (digest §5, chosen interpretation).
 
-The weights are the package's own (`tertiary.stages.fusion.fuse.seed_weights`, `markov_weights`); the
+The weights are the package's own (`tertiary.stages.fusion.seed_weights`, `markov_weights`); the
 radars' range channels are the simulator's per-radar Singer filters. Sweeps the radars'
 manoeuvre intensity σ_m (lag-dominated 0.3 m/s² as in the digest's indicative check, and the
 default 2 m/s²) and records, per weighting: the maximum over the manoeuvre windows of
@@ -27,7 +27,7 @@ import polars as pl
 
 from _util import record
 from tertiary.core import geo
-from tertiary.stages.fusion.fuse import Layout, markov_weights, seed_weights
+from tertiary.stages.fusion import Layout, markov_weights, seed_weights
 from tertiary.simulate import load_scenario, simulate
 
 TURNS = [(180, 210), (306, 336), (576, 606), (702, 732)]   # big-box turn windows (s)

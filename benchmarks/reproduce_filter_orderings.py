@@ -19,7 +19,7 @@ import json
 import polars as pl
 
 from _util import record
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.simulate import load_scenario, simulate
 
 FILTERS = ("cv", "alpha_beta", "alpha_beta_gamma", "singer", "adaptive", "two_model", "imm", "aekf")

@@ -19,7 +19,7 @@ in the unobservable directions).
 Part B — the digest's transfer to multi-radar picture fusion ("DRMS does not increase as radars
 are added"): terminal-area's four radars (sites, σ), a grid of target positions; per nested set
 of radars 1 … 4 the horizontal geometry factor √tr[(Σ_r C_r⁻¹)⁻¹]_xy of the information fusion
-and the Monte-Carlo DRMS of :func:`tertiary.stages.fusion.fuse.fuse_information` on noisy plots converted
+and the Monte-Carlo DRMS of :func:`tertiary.stages.fusion.fuse_information` on noisy plots converted
 exactly (site polar → site ENU → system ENU, :mod:`tertiary.core.geo`).
 
     python benchmarks/reproduce_seed003_sources.py [--runs 200]
@@ -36,7 +36,7 @@ import numpy as np
 
 from _util import record
 from tertiary.core import geo
-from tertiary.stages.fusion.fuse import fuse_information
+from tertiary.stages.fusion import fuse_information
 from tertiary.simulate import load_scenario, simulate
 
 SV_DIRS_DEG = [(30.0, 70.0), (150.0, 40.0), (270.0, 35.0), (210.0, 55.0), (90.0, 25.0)]   # (azimuth, elevation)

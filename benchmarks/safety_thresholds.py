@@ -20,7 +20,8 @@ import polars as pl
 
 from _util import record
 from safety import AlertConfig, predict_conflicts, slim_conflicts, stca_tables
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
+from tertiary.pipeline.pictures import safety_picture
 from tertiary.evaluation.evaluate import evaluate_pictures
 from tertiary.simulate import load_scenario, simulate
 
@@ -34,7 +35,7 @@ def main(method: str = "information", filt: str = "imm_sym") -> None:
     # the pipeline's rule as a run applies it: the scenario's final-approach volumes included
     base = pipeline.adapt_to_scenario(cfg, ds).conflicts
     res = pipeline.process(ds, cfg)
-    picture, id_col = pipeline._safety_picture(cfg, res.fused, res.tracks, [])
+    picture, id_col = safety_picture(cfg, res.fused, res.tracks, [])
     # which aircraft each track is at each epoch: the evaluation's matcher, as the pipeline scores alerts
     id_map = evaluate_pictures(picture, ds.truth, radars=ds.radars, frame=ds.origin, id_col=id_col,
                                keep_matched=False, surveillance=False).id_map

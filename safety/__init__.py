@@ -1,22 +1,10 @@
-"""Safety evaluation of the merged air picture: conflict prediction with accuracy-aware
-thresholds, STCA performance against real losses of separation and accuracy-versus-capacity
-(monograph chapter 5).
-
-* :mod:`safety.conflicts` — (5.1)–(5.17) on height (never ENU z): :func:`predict_conflicts`
-  (KD-tree candidates, ``mode="seed"`` (5.14) as printed / ``"corrected"`` same-time rule,
-  thresholds from the tracks' covariances at clip(T_min, 0, T) or fixed),
-  :func:`conflict_interval`, with heights stopped at the Mode S selected level
-  :func:`conflict_interval_levelled` / :func:`level_off_times`, along turns (optional)
-  :func:`arc_offsets` / :func:`conflict_interval_arc`, :func:`height_and_rate`, :func:`slim_conflicts`,
-  :func:`tangent_plane_error_bound`, :func:`pair_geometry`; final-approach volumes with their own
-  minimum and look-ahead :class:`ApproachVolume` / :func:`approach_membership`; aerodrome
-  traffic zones where STCA is inhibited :class:`AerodromeZone` / :func:`zone_index`.
-* :mod:`safety.alerts` — losses of separation in the truth (closed form between samples),
-  alert episodes per pair of aircraft classified genuine / nuisance / false
-  (:func:`alert_episodes`, the ``alerts`` table), :func:`score_alerts` (STCA metrics per
-  picture), trade-off curves :func:`stca_tradeoff` / :func:`compare_at_equal_nuisance`.
-* :mod:`safety.capacity` — (5.18)–(5.21) as printed (``*_seed``) and a sounder probabilistic
-  model (``*_sound``), curves for figs. 5.2/5.3 and :func:`capacity_from_metrics`.
+"""Safety evaluation of the merged air picture (monograph chapter 5), the last stage after the
+pictures are built and matched: conflict prediction with accuracy-aware thresholds
+(:mod:`safety.conflicts`, (5.1)–(5.17); method in docs/methods.md, "Conflict prediction
+(STCA)"), m-of-n alert confirmation (:mod:`safety.confirmation`), STCA performance against the
+truth's losses of separation with trade-off curves (:mod:`safety.alerts`), and accuracy versus
+capacity (:mod:`safety.capacity`, (5.18)–(5.21)). It builds on :mod:`tertiary.core` and
+:mod:`tertiary.contract` only.
 """
 
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, AlertConfig, alert_episodes,
@@ -27,16 +15,16 @@ from safety.capacity import (V_BC_M3, V_ZO_M3, SeedRisk, capacity_curve, capacit
                              conflict_radius, nmax_seed, nmax_sound, p_np, p_pij, ppob_curves, ppob_seed,
                              ppob_sound, rate_per_hour, v_ob)
 from safety.conflicts import (ALT_COLUMNS, CONFLICT_EXTRA, FT_M, NM_M, SEPARATION_MINIMA, AerodromeZone, ApproachVolume,
-                              ConflictConfig, PairGeometry, approach_membership, candidate_pairs, conflict_interval,
-                              height_and_rate, pair_geometry, pair_thresholds, zone_index,
-                              predict_conflicts, slim_conflicts, tangent_plane_error_bound, vertical_state,
-                              ConflictState, conflicts_step, init_conflict_state, conflict_interval_levelled,
-                              level_off_times, arc_offsets, conflict_interval_arc)
+                              ConflictConfig, ConflictState, PairGeometry, approach_membership, arc_offsets,
+                              conflict_candidates, conflict_interval, conflict_interval_arc, conflict_interval_levelled,
+                              conflicts_step, height_and_rate, init_conflict_state, level_off_times, pair_geometry,
+                              pair_thresholds, predict_conflicts, slim_conflicts, tangent_plane_error_bound,
+                              vertical_state, zone_index)
 
 __all__ = [
     # conflicts
     "ConflictConfig", "PairGeometry", "predict_conflicts", "pair_geometry", "pair_thresholds",
-    "candidate_pairs", "conflict_interval", "height_and_rate", "vertical_state", "slim_conflicts",
+    "conflict_candidates", "conflict_interval", "height_and_rate", "vertical_state", "slim_conflicts",
     "tangent_plane_error_bound", "SEPARATION_MINIMA", "NM_M", "FT_M", "ALT_COLUMNS", "CONFLICT_EXTRA",
     "ConflictState", "conflicts_step", "init_conflict_state", "conflict_interval_levelled", "level_off_times",
     "arc_offsets", "conflict_interval_arc", "ApproachVolume", "approach_membership",

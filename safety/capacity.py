@@ -1,5 +1,5 @@
 """Accuracy versus capacity: how many aircraft a controller may hold at a given risk, as a
-function of the position accuracy (monograph §5.3, (5.18)–(5.21); digest §8, figs. 5.2/5.3).
+function of the position accuracy (monograph §5.3, (5.18)–(5.21), figs. 5.2/5.3).
 
 Units: σ in metres (the coordinate RMS error; the seed's fig. 5.2 uses the range RMS σ_d),
 volumes in m³, probabilities dimensionless, n = number of aircraft in the zone.
@@ -22,8 +22,8 @@ so n_max ∝ σ⁻³. **With the printed volumes (V_зо ≤ 10¹⁴ m³, σ ≥
 n = 1 at P* = 10⁻⁶**: no second aircraft (n = 2 needs V_об ≤ 1.0e6 m³, σ ≤ 10.3 m at 10¹²).
 Fig. 5.3 must therefore rest on other parameters; P* and V_зо are always parameters here.
 
-Sounder model (separate, opt-in; digest §8 "sounder alternative")
-----------------------------------------------------------------
+Sounder model (separate, opt-in)
+--------------------------------
 Aircraft independent and uniform in V_зо; a pair conflicts when one lies within R_c of the
 other, p = (4/3)π R_c³ / V_зо with R_c ∈ {``"6sigma"`` (reproduces (5.21) to first order),
 ``"12sigma"`` (two 6σ spheres intersect), ``"separation"`` (Δr + 3√2·σ: separation minimum
@@ -32,8 +32,8 @@ plus three sigma of the relative error)} or a number of metres:
     P_1(n)   = 1 − (1 − p)^(n − 1)           a given aircraft conflicts with any other
     P_any(n) = 1 − (1 − p)^(n(n − 1)/2)      any pair conflicts
 
-and an optional hourly rate −ln(1 − P)/T_corr (:func:`rate_per_hour`). This fixes oddities 1, 2,
-4 and 5 of the digest (odds shape, the P_нп factor, n − 1 instead of pairs, point-in-sphere);
+and an optional hourly rate −ln(1 − P)/T_corr (:func:`rate_per_hour`). This fixes four oddities
+of the printed model (odds shape, the P_нп factor, n − 1 instead of pairs, point-in-sphere);
 it keeps the absence of exposure time unless a rate is asked for.
 """
 
@@ -47,7 +47,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.contract.schema import TABLES
+from tertiary.contract import TABLES
 
 __all__ = [
     "V_BC_M3",
@@ -75,7 +75,7 @@ V_BC_M3 = 6000.0
 #: default near-zone volume V_зо (m³; the seed quotes 10¹⁰…10¹⁴)
 V_ZO_M3 = 1e12
 
-#: the run's capacity figures (issue 11, item 8): parameters at which the models discriminate
+#: the run's capacity figures: parameters at which the models discriminate
 #: between pictures. V_зо = 10¹⁴ m³ is a 100 km × 100 km × 10 km zone — the size of the default
 #: terminal area; at the printed P* = 10⁻⁶ and V_зо = 10¹² every realistic σ gives n_max = 1.
 CAPACITY_P_STAR = 1e-3

@@ -65,8 +65,9 @@ def build_bases(root: Path) -> Path:
     """Write the base datasets and one run directory (for ``sql``) under ``root`` unless present."""
     import polars as pl  # noqa: F401  (import cost paid here, not in the first case)
 
-    from tertiary.pipeline import job as pipeline
-    from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+    from tertiary import pipeline
+    from tertiary.io.dataset import read_dataset, write_dataset
+    from tertiary.simulate import load_scenario, simulate
     from tertiary.simulate.config import with_radar_count
 
     root.mkdir(parents=True, exist_ok=True)

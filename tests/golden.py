@@ -76,12 +76,12 @@ def run_tables(db: Path) -> dict[str, pl.DataFrame]:
 
 
 def compute(work: Path) -> dict[str, dict[str, pl.DataFrame]]:
-    from tertiary.simulate import write_dataset
-    from tertiary.pipeline import job as pipeline
+    from tertiary.io.dataset import write_dataset
+    from tertiary import pipeline
     ds = small_dataset()
     path = work / "ds"
     write_dataset(ds, path)
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
     ds = read_dataset(path)
     res = {"one_window": run_tables(pipeline.run(ds, work / "one", window_s=None, dataset_label="golden")),
            "windowed": run_tables(pipeline.run(ds, work / "win", window_s=60.0, dataset_label="golden"))}

@@ -14,7 +14,7 @@ from scipy.stats import chi2
 from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_by_epoch_from_matched, accuracy_from_matched, picture_accuracy, scored_rows)
 from tertiary.evaluation.evaluate import association_metrics
 from tertiary.evaluation.matching import match_to_reference
-from tertiary.contract.schema import TABLES, validate
+from tertiary.contract import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 NO_SKIP = AccuracyConfig(skip_first_s=0.0)
@@ -422,7 +422,7 @@ def test_picture_accuracy_is_one_stage_in_the_metrics_schema():
 
 # --------------------------------------------------------------------------- consistency
 
-from tertiary.evaluation.accuracy import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
+from tertiary.evaluation.consistency import chi2_band, consistency_metrics, integrated_autocorrelation  # noqa: E402
 
 
 def _kf_nees(runs: int, epochs: int, r_scale: float = 1.0, seed: int = 5) -> pl.DataFrame:
@@ -659,7 +659,7 @@ def test_end_to_end_on_a_small_terminal_area(small_terminal):
     the picture is nearly complete, with few extra, spurious or swapped tracks."""
     from tertiary.evaluation.evaluate import evaluate_pictures
     from tertiary.stages.tracking.filters import make_filter
-    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.pipeline import PipelineConfig, process
     from tertiary.stages.tracking.tracker import track
 
     res = process(small_terminal, PipelineConfig(methods=("aposteriori",), filters=(), centralized=False))
@@ -682,7 +682,7 @@ def test_a_singular_full_covariance_blanks_only_its_own_nees():
     """The 6-state NEES of a row whose full covariance is singular is NaN (its position NEES
     stays); every other row of the same block keeps eᵀ P⁻¹ e. Before, one singular row made
     the whole 131 072-row block NaN, so the result depended on how rows were blocked."""
-    from tertiary.evaluation.accuracy import add_nees
+    from tertiary.evaluation.consistency import add_nees
     rng = np.random.default_rng(5)
     n = 6
     a = rng.normal(size=(n, 6, 6))

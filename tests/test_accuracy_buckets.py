@@ -16,7 +16,8 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.evaluation import buckets as B
-from tertiary.evaluation.accuracy import (ROW_SCORES, AccuracyConfig, picture_accuracy, picture_accuracy_buckets, row_scores)
+from tertiary.evaluation.accuracy import (ROW_SCORES, AccuracyConfig, picture_accuracy, row_scores)
+from tertiary.evaluation.accuracy_buckets import picture_accuracy_buckets
 
 # rows whose full covariance is null: the reference's determinant check sees NaN (it skips them)
 pytestmark = pytest.mark.filterwarnings("ignore:invalid value encountered in det:RuntimeWarning")
@@ -206,7 +207,7 @@ def terminal_picture(small_terminal):
     system frame with their covariance and Mode C height, epochs on a 4 s grid, radars 1/3 and
     2/4 as two runs; two pictures: the singer and cv filters."""
     from tertiary.stages.tracking.filters import make_filter
-    from tertiary.stages.fusion.fuse import measured_plots
+    from tertiary.stages.fusion import measured_plots
     from tertiary.evaluation.matching import MatchConfig, match_with_reference, reference_identity
     from tertiary.stages.tracking.tracker import track_methods
 

@@ -14,7 +14,7 @@ import pytest
 
 from safety.alerts import AlertConfig, loss_of_separation
 from safety.conflicts import FT_M, NM_M, AerodromeZone, ConflictConfig, predict_conflicts, zone_index
-from tertiary.pipeline.job import PipelineConfig, _note_minima, adapt_to_scenario
+from tertiary.pipeline import PipelineConfig, adapt_to_scenario, note_minima
 
 from test_approach_volumes import T0, _picture     # one track table for the STCA's airspace tests
 
@@ -140,6 +140,6 @@ def test_pipeline_takes_the_zones_from_the_national_airports(small_terminal):
     mine = PipelineConfig(stca_approach_volumes=False, conflicts=ZONED)
     assert adapt_to_scenario(mine, _Ds()).conflicts.aerodrome_zones == ZONED.aerodrome_zones
     notes: list[str] = []
-    _note_minima(cfg.conflicts, notes)
+    note_minima(cfg.conflicts, notes)
     assert notes[0].startswith("aerodrome zones: no STCA alert and no loss of separation scored between two "
                                f"aircraft both within 4 NM and below 2,000 ft of one of {len(zones)} aerodromes")

@@ -18,7 +18,7 @@ from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_epis
 from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
 from tertiary.core.errors import ResourceError
 from tertiary.core.geo import LocalFrame
-from tertiary.contract.schema import validate
+from tertiary.contract import validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 GRID = [T0 + timedelta(seconds=s) for s in range(0, 301, 5)]       # picture epochs, every 5 s
@@ -42,7 +42,7 @@ def _aircraft(tid: int, x0: float, vx: float, y: float, z: float = 3000.0, vz: f
 def _truth(step: float = 1.0) -> pl.DataFrame:
     """1–2 head-on, 1 km miss at t = 200 s (LoS for |60000 − 300 t| < √(5556² − 1000²));
     3–4 pass 7 km apart (no LoS, inside 1.5× the minima: proximity); 5–6 stay 30 km apart;
-    7–8 the climbing pair of issue 11 (CPA 0 m at t = 100 s, 8 is 300 m above 7 and climbs
+    7–8 a climbing pair (CPA 0 m at t = 100 s, 8 is 300 m above 7 and climbs
     10 m/s: 1 300 m apart at the CPA, never a LoS, never within 1.5× the minima)."""
     return pl.concat([
         _aircraft(1, -30000.0, 150.0, 0.0, step=step), _aircraft(2, 30000.0, -150.0, 1000.0, step=step),
@@ -153,11 +153,11 @@ def test_truth_heights_are_geodetic_far_from_centre():
 
 
 def test_truth_heights_in_blocks_are_the_heights_of_every_sample(monkeypatch):
-    """The truth is converted to geodetic height a block of samples at a time (issue 16, memory):
+    """The truth is converted to geodetic height a block of samples at a time (memory):
     with blocks of 7 samples (a ragged last block) every height equals the conversion of the
     whole at once, in the output's (truth_id, time) order. Fails if a block is skipped, written
     at the wrong rows or converted twice."""
-    import safety.alerts as alerts
+    import safety.alerts.separation as alerts
     from safety.conflicts import height_and_rate
     frame = LocalFrame(48.7, 2.4, 0.0)
     rng = np.random.default_rng(3)
@@ -165,7 +165,7 @@ def test_truth_heights_in_blocks_are_the_heights_of_every_sample(monkeypatch):
     truth = pl.DataFrame({"truth_id": rng.integers(1, 4, n), "time": [_t(float(s)) for s in rng.permutation(n)],
                           "x_m": rng.uniform(-2e5, 2e5, n), "y_m": rng.uniform(-2e5, 2e5, n),
                           "z_m": rng.uniform(0, 1e4, n)}).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
-    monkeypatch.setattr(alerts, "_HEIGHT_BLOCK", 7)
+    monkeypatch.setattr(alerts, "HEIGHT_BLOCK", 7)
     got = alerts.truth_heights(truth, frame)
     rows = truth.sort("truth_id", "time")
     pos = rows.select("x_m", "y_m", "z_m").to_numpy()
@@ -306,8 +306,8 @@ def test_metrics_names_rates_and_methods(truth):
 
 
 def test_tables_one_picture_at_a_time_equal_one_call(truth):
-    """The pipeline scores alerts a picture at a time (issue 16, memory: the full comparison's
-    14 pictures' joins at once): the metrics, alerts and LoS tables equal one call's, with an
+    """The pipeline scores alerts a picture at a time (memory: not every
+    picture's joins at once): the metrics, alerts and LoS tables equal one call's, with an
     id map per picture or shared, and a listed picture without alerts. Fails if a picture's
     rows are scored against another's id map or the union is not in one call's order."""
     from safety.alerts import stca_tables, stca_tables_by_picture
@@ -396,12 +396,13 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
     the alert rows and the epoch grid: the scores equal those of the whole screened table,
     with windows shorter than the confirmation's 4 epochs (20 s) and longer than the picture.
     Fails if the confirmation state is not carried across windows or the grid loses epochs."""
-    import safety.alerts as alerts_mod
+    import safety.alerts.tradeoff as alerts_mod
+    from safety.alerts.episodes import picture_grid
     pic = _picture(truth, noise=400.0)
     ccs = (ConflictConfig(confirm_m=3, confirm_n=4),
            ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3))
     # every configuration predicted in one pass over the windows, each with its own state
-    together = {w: alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=w) for w in (12.0, 20.0, 1e6)}
+    together = {w: alerts_mod.scored_rows(pic, ccs, "target_id", None, window_s=w) for w in (12.0, 20.0, 1e6)}
     for k, cc in enumerate(ccs):
         whole = predict_conflicts(pic, cc, id_col="target_id")
         assert whole.filter(~pl.col("alert")).height > 0 and whole["alert"].sum() > 0
@@ -413,10 +414,10 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
         idm = _id_map().filter(~pl.col("epoch").is_in(quiet.implode()))
         want = alert_episodes(whole, idm, truth, AlertConfig(conflict=cc), id_col="id")
         for w in (12.0, 20.0, 1e6):
-            rows = alerts_mod._scored_rows(pic, [cc], "target_id", None, window_s=w)[0]
+            rows = alerts_mod.scored_rows(pic, [cc], "target_id", None, window_s=w)[0]
             assert together[w][k].equals(rows)
             assert rows.height < whole.height
-            assert alerts_mod._grid(rows, idm, None).equals(alerts_mod._grid(whole, idm, None))
+            assert picture_grid(rows, idm, None).equals(picture_grid(whole, idm, None))
             got = alert_episodes(rows, idm, truth, AlertConfig(conflict=cc), id_col="id")
             assert got.equals(want), (cc.threshold_mode, w)
     kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(300.0,))
@@ -431,14 +432,15 @@ def test_curves_predicted_in_windows_score_like_the_whole_picture(truth, monkeyp
 
 def test_curves_spilled_setting_by_setting_score_like_held_ones(truth, tmp_path, monkeypatch):
     """With a spill directory each setting's predicted rows wait on disk and are read back one
-    setting at a time (issue 18, memory): the same rows in the same order, the same curves, and
+    setting at a time (memory): the same rows in the same order, the same curves, and
     nothing left behind. Fails if a window's rows go to another setting or are read out of order."""
-    import safety.alerts as alerts_mod
+    import safety.alerts.tradeoff as alerts_mod
+    from safety.alerts.episodes import picture_grid
     pic = _picture(truth, noise=400.0)
     ccs = [ConflictConfig(confirm_m=3, confirm_n=4),
            ConflictConfig(threshold_mode="fixed", fixed_est_h_m=3000.0, confirm_m=2, confirm_n=3)]
-    held = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0)
-    spilled = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0, spill=tmp_path / "s")
+    held = alerts_mod.scored_rows(pic, ccs, "target_id", None, window_s=12.0)
+    spilled = alerts_mod.scored_rows(pic, ccs, "target_id", None, window_s=12.0, spill=tmp_path / "s")
     assert held[0].height != held[1].height
     for rows, read in zip(held, spilled):
         assert read().equals(rows)
@@ -449,11 +451,11 @@ def test_curves_spilled_setting_by_setting_score_like_held_ones(truth, tmp_path,
     cut = pic.height // 2 + 1
     assert pic["epoch"][cut - 1] == pic["epoch"][cut]
     blocks = [pic.slice(0, cut // 2), pic.clear(), pic.slice(cut // 2, cut - cut // 2), pic.slice(cut)]
-    by_blocks = alerts_mod._scored_rows(iter(blocks), ccs, "target_id", None, window_s=12.0)
-    whole = alerts_mod._scored_rows(pic, ccs, "target_id", None, window_s=12.0)
+    by_blocks = alerts_mod.scored_rows(iter(blocks), ccs, "target_id", None, window_s=12.0)
+    whole = alerts_mod.scored_rows(pic, ccs, "target_id", None, window_s=12.0)
     for got, rows in zip(by_blocks, whole):
         assert got.sort(got.columns).equals(rows.sort(rows.columns))
-    assert len(alerts_mod._scored_rows(iter([pic.clear()]), ccs, "target_id", None)) == 2
+    assert len(alerts_mod.scored_rows(iter([pic.clear()]), ccs, "target_id", None)) == 2
     kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(300.0,))
     monkeypatch.setattr(alerts_mod, "CURVE_WINDOW_S", 15.0)
     one = stca_tradeoff(pic, _id_map(), truth, CFG, **kw)
@@ -516,7 +518,7 @@ def test_los_intervals_match_dense_sampling_on_irregular_truth():
 
 
 def test_no_alerts_still_scores_missed_losses(truth):
-    from tertiary.contract import schema
+    from tertiary import contract as schema
     empty = schema.empty_frame("conflicts", False)
     m = _metrics(score_alerts(empty, _id_map(), truth, CFG, methods=["m"]))
     assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alert_episodes"] == 0
@@ -603,7 +605,7 @@ def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, mon
     proximity intervals, en-route minima included. 30 aircraft in a 30 km box, two runs, each
     aircraft with a few long gaps in its samples (the widest boxes, queried one by one) and
     its own sample times, and block sizes from one interval to more than the recording."""
-    import safety.alerts as al
+    import safety.alerts.separation as al
     tr = _crowd()
     def every_pair(rs, reach_h, reach_v):
         seg = np.flatnonzero(rs["ac"][1:] == rs["ac"][:-1])
@@ -616,10 +618,10 @@ def test_the_boxed_screen_keeps_every_loss_an_unscreened_search_finds(block, mon
         return seg[i], seg[j]
 
     args = dict(dr_h_m=2000.0, dr_v_m=300.0, factors=(1.0, 1.5), enroute=(4500.0, 3000.0, 300.0))
-    boxed = al._pair_segments
-    monkeypatch.setattr(al, "_pair_segments", lambda rs, rh, rv: boxed(rs, rh, rv, block))
+    boxed = al.pair_segments
+    monkeypatch.setattr(al, "pair_segments", lambda rs, rh, rv: boxed(rs, rh, rv, block))
     got = al.separation_intervals(tr, **args)
-    monkeypatch.setattr(al, "_pair_segments", every_pair)
+    monkeypatch.setattr(al, "pair_segments", every_pair)
     want = al.separation_intervals(tr, **args)
     assert want[0].height >= 10 and want[1].height > want[0].height
     for g, w in zip(got, want):
@@ -634,21 +636,21 @@ def test_the_truth_resampled_a_block_of_union_times_at_a_time_gives_the_whole_gr
     Two runs with their own sample times, gaps, level pairs with the truth's rates, en-route
     minima and an aerodrome zone. The whole grid is the blocks' union: the rows of every block
     are the whole-grid rows at its union times, and each segment is in exactly one block."""
-    import safety.alerts as al
+    import safety.alerts.separation as al
     tr = _crowd(5, with_rate=True)
     args = dict(dr_h_m=2000.0, dr_v_m=300.0, factors=(1.0, 1.5), enroute=(4500.0, 3000.0, 300.0),
                 level_pairs=(30.0, 2.5), merge_gap_s=15.0,
                 zones=[AerodromeZone(x_m=0.0, y_m=0.0, radius_m=4000.0, ceiling_m=3200.0)])
     whole = al.separation_intervals(tr, **args)
     assert whole[0].height >= 5 and whole[1].height > whole[0].height
-    blocks = al._resampled_blocks
+    blocks = al.resampled_blocks
     seen = []
 
     def recorded(tr_, max_rows, rows_=al.RESAMPLE_ROWS):
         for rs in blocks(tr_, max_rows, rows):
             seen.append(rs)
             yield rs
-    monkeypatch.setattr(al, "_resampled_blocks", recorded)
+    monkeypatch.setattr(al, "resampled_blocks", recorded)
     got = al.separation_intervals(tr, **args)
     assert len(seen) > (1 if rows > 2 else 300)
     for g, w in zip(got, whole):

@@ -158,7 +158,7 @@ def test_align_rejects_index_the_input_rows(small_terminal):
     """rejects.row_index is the row of the input table for align-stage rejects too: input
     shuffled, with invalid rows first (so validated and input rows differ)."""
     import dataclasses as dc
-    from tertiary.pipeline import job as pipeline
+    from tertiary import pipeline
     from tertiary.stages.align import AlignConfig
     rep = small_terminal.reports.sample(fraction=1.0, shuffle=True, seed=1)
     bad = rep.head(3).with_columns(pl.lit(-5.0).alias("range_m"), (pl.col("report_id") + 10 ** 9).alias("report_id"))

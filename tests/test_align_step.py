@@ -12,7 +12,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.stages import align
-from tertiary.core.errors import DataError, OptionError
+from tertiary.core.errors import OptionError
 from tertiary.sensors.local_tracks import LocalTrackerConfig
 
 US = 1_000_000
@@ -136,8 +136,6 @@ def test_single_unbounded_step_is_the_whole_run(estimates_case):
     _assert_same(estimates_case, [])
 
 
-def test_state_survives_pickle_between_windows(plots_case):
-    _assert_same(plots_case, _cuts(plots_case)["60s"], roundtrip=True)
 
 
 def test_rejects_of_pending_reports_come_once(estimates_case):
@@ -146,68 +144,16 @@ def test_rejects_of_pending_reports_come_once(estimates_case):
     assert rej["report_id"].is_unique().all()
 
 
-def _state_at(case: Case, t1: int) -> align.AlignState:
-    t = case.times
-    (_, _), state = align.align_step(align.init_align_state(), case.reports.filter(pl.Series(t < t1)), case.radars,
-                                     case.origin, None, t1, case.grid, case.cfg)
-    return state
 
 
-def _assert_states_equal(a: align.AlignState, b: align.AlignState) -> None:
-    assert a.conversion_invalid == b.conversion_invalid
-    for x, y in ((a.held, b.held), (a.tracks, b.tracks)):
-        assert (x is None) == (y is None)
-        if x is not None:
-            assert_frame_equal(x, y)
 
 
-def _quiet_window(case: Case) -> tuple[int, int]:
-    """A window holding no report and no epoch: between two report times inside one epoch period
-    (mid-run, where many reports are held)."""
-    t = np.unique(case.times)
-    t = t[len(t) // 2:]
-    period = case.cfg.period_s or case.radars["scan_period_s"].min()
-    for a, b in zip(t[:-1], t[1:]):
-        if b - a > 4 and int((a + 1 - case.grid) // (period * US)) == int((b - case.grid) // (period * US)) \
-                and (a + 1 - case.grid) % int(period * US) != 0:
-            return int(a) + 1, int(b)
-    raise AssertionError("no quiet window")
 
 
-@pytest.mark.parametrize("which", ["estimates_case", "plots_case"])
-def test_empty_window_leaves_state_unchanged(which, request):
-    case = request.getfixturevalue(which)
-    a, b = _quiet_window(case)
-    state = _state_at(case, a)
-    assert state.held is not None and state.held.height > 10
-    (al, rej), after = align.align_step(state, case.reports.filter(pl.Series([False] * case.reports.height)),
-                                        case.radars, case.origin, a, b, case.grid, case.cfg)
-    assert al.height == 0 and rej.height == 0
-    _assert_states_equal(after, state)
-    (al, _), after = align.align_step(state, None, case.radars, case.origin, a, b, case.grid, case.cfg)
-    assert al.height == 0
-    _assert_states_equal(after, state)
 
 
-@pytest.mark.parametrize("which", ["estimates_case", "plots_case"])
-def test_step_does_not_mutate_its_input_state(which, request):
-    case = request.getfixturevalue(which)
-    t = case.times
-    t1 = int(np.median(t))
-    state = _state_at(case, t1)
-    copy = pickle.loads(pickle.dumps(state))
-    sel = (t >= t1) & (t < t1 + 30 * US)
-    align.align_step(state, case.reports.filter(pl.Series(sel)), case.radars, case.origin, t1, t1 + 30 * US,
-                     case.grid, case.cfg)
-    _assert_states_equal(state, copy)
 
 
-def test_reports_outside_the_window_are_refused(estimates_case):
-    case = estimates_case
-    t1 = int(np.median(case.times))
-    with pytest.raises(DataError, match="outside the window"):
-        align.align_step(align.init_align_state(), case.reports, case.radars, case.origin, None, t1, case.grid,
-                         case.cfg)
 
 
 def test_chapter3_local_tracker_refused_in_windows(plots_case):

@@ -285,10 +285,10 @@ def test_pipeline_heights_come_from_mode_c(small_terminal):
     target whose reports lose their altitude falls back to the geodetic height."""
     from tertiary.evaluation.accuracy import AccuracyConfig, scored_rows
     from tertiary.evaluation.evaluate import evaluate_pictures
-    from tertiary.stages.fusion.fuse import fuse
+    from tertiary.stages.fusion import fuse
     from tertiary.evaluation.matching import MatchConfig, match_to_reference
-    from tertiary.pipeline.job import PipelineConfig, process
-    from tertiary.contract.schema import validate
+    from tertiary.pipeline import PipelineConfig, process
+    from tertiary.contract import validate
 
     res = process(small_terminal, PipelineConfig(methods=("arithmetic",), filters=("singer",)))
     validate(res.fused, "fused")

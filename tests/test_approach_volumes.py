@@ -1,4 +1,4 @@
-"""STCA final-approach volumes (issue 11): pairs established on one final are decided with the
+"""STCA final-approach volumes: pairs established on one final are decided with the
 reduced in-trail minimum and a shorter look-ahead; every other pair, seed mode and the scoring
 keep the configured parameters; the pipeline takes the volumes from the scenario's runways."""
 
@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 
 from safety.conflicts import NM_M, ApproachVolume, ConflictConfig, approach_membership, predict_conflicts
-from tertiary.pipeline.job import PipelineConfig, adapt_to_scenario
+from tertiary.pipeline import PipelineConfig, adapt_to_scenario
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 FIXED = ConflictConfig(threshold_mode="fixed")          # R_thr = 5 556 + 500 + 300 = 6 356 m

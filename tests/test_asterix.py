@@ -12,6 +12,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
+from tertiary.evaluation.external import match_external, score_import
 from tertiary.core import geo
 from tertiary.io.asterix import capture, codec, dataset, encode, importer
 from tertiary.io.asterix.sites import read_sites, sites_toml
@@ -155,8 +156,9 @@ def test_sites_errors(tmp_path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory):
-    from tertiary.cli.main import build_scenario
-    from tertiary.simulate import simulate, write_dataset
+    from tertiary.cli.common import build_scenario
+    from tertiary.io.dataset import write_dataset
+    from tertiary.simulate import simulate
     out = tmp_path_factory.mktemp("sim")
     ds = simulate(build_scenario("terminal-area", aircraft=6, duration=150, runs=1, seed=3))
     write_dataset(ds, out)
@@ -237,7 +239,7 @@ def test_cli_import_real(tmp_path: Path) -> None:
     assert "25/201" in r.output                                        # the latency table
     for name in ("reports", "radars", "rejects", "latency", "antenna"):
         assert (out / f"{name}.parquet").is_file()
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
     ds = read_dataset(out)
     assert ds.reports.height == 63 and ds.radars.height == 7
 
@@ -293,13 +295,14 @@ def test_cli_simulate_import_run_export(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "--picture" in r.output
 
 
-def test_readme_asterix_lines_name_real_options() -> None:
+def test_asterix_doc_lines_name_real_options() -> None:
+    """Every ``tertiary …`` line of docs/asterix.md's code blocks names a command and options the CLI has."""
     import typer.main
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = readme.split("## ASTERIX recordings", 1)[1].split("```", 2)[1]
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "asterix.md").read_text()
+    block = "\n".join(doc.split("```")[1::2])
     group = typer.main.get_command(app)
     lines = [ln.split("#")[0].split() for ln in block.splitlines() if ln.startswith("tertiary ")]
-    assert {ln[1] for ln in lines} >= {"simulate", "import", "run", "report", "export"}
+    assert {ln[1] for ln in lines} >= {"simulate", "import", "run", "export"}
     for words in lines:
         cmd = group.commands[words[1]]
         if words[1] in ("import", "export"):
@@ -416,8 +419,7 @@ def test_external_picture_scored_against_adsb(tmp_path: Path, simulated) -> None
     recs = [(t, 62, r) for t, r in encode.cat062(tracks, system)] + [(t, 21, r) for t, r in encode.cat021(truth, system)]
     f = tmp_path / "both.ast"
     f.write_bytes(encode.interleave(recs))
-    res = dataset.import_recordings([f], date="2021-10-07", origin=ds.scenario.origin)
-    from tertiary.io.asterix.external import match_external
+    res = score_import(dataset.import_recordings([f], date="2021-10-07", origin=ds.scenario.origin))
     rows = match_external(res.external_tracks, res.truth)
     assert rows.height == tracks.height
     assert (rows["x_m"] - rows["true_x_m"] - 30.0).abs().max() < 0.35

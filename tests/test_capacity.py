@@ -1,4 +1,4 @@
-"""Accuracy versus capacity (5.18)–(5.21): the digest's worked tables to their printed digits,
+"""Accuracy versus capacity (5.18)–(5.21): the worked tables to their printed digits,
 the pole and validity flag, the closed-form n_max, and the sounder model's table."""
 
 from __future__ import annotations
@@ -11,15 +11,15 @@ import pytest
 
 from safety.capacity import (capacity_curve, capacity_from_metrics, conflict_radius, nmax_seed, nmax_sound, p_np,
                              p_pij, ppob_curves, ppob_seed, ppob_sound, rate_per_hour, v_ob)
-from tertiary.contract.schema import TABLES, validate
+from tertiary.contract import TABLES, validate
 
 
 def _sig(x: float, digits: int) -> float:
-    """``x`` rounded to ``digits`` significant digits (the digest's printing)."""
+    """``x`` rounded to ``digits`` significant digits (the worked tables' printing)."""
     return float(f"{x:.{digits - 1}e}")
 
 
-# digest §8 worked example: V_ВС = 6000 m³, V_зо = 10¹² m³
+# worked example: V_ВС = 6000 m³, V_зо = 10¹² m³
 NS = [2, 10, 50, 100, 139, 140, 200]
 TABLE = {
     50: ("1.131e8", "0.9999470", ["1.131e-4", "1.019e-3", "5.572e-3", "1.132e-2", "1.585e-2", "1.597e-2", "2.302e-2"]),
@@ -37,7 +37,7 @@ def _digits(s: str) -> int:
 def test_seed_table_reproduced(sigma):
     vo, pnp, row = TABLE[sigma]
     assert _sig(float(v_ob(sigma)), 4) == float(vo)
-    # P_нп(50 m) = 0.99994695 rounds to 0.9999469; the digest prints 0.9999470 (last digit off by one)
+    # P_нп(50 m) = 0.99994695 rounds to 0.9999469; the worked table prints 0.9999470 (last digit off by one)
     assert float(p_np(sigma)) == pytest.approx(float(pnp), abs=1.0e-7 if sigma == 50 else 0.5e-7)
     p, _ = ppob_seed(NS, sigma)
     for got, printed in zip(p, row):

@@ -12,7 +12,8 @@ from filterpy.kalman import KalmanFilter
 
 from tertiary.core import geo
 from tertiary.stages.fusion.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots, initial_state, transition)
-from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_from_matched, consistency_metrics, scored_rows)
+from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_from_matched, scored_rows)
+from tertiary.evaluation.consistency import consistency_metrics
 from tertiary.evaluation.matching import match_to_reference
 
 
@@ -20,7 +21,7 @@ def _scored(fused: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     """The pictures matched by the one matcher, scored after the 20 s transient."""
     matched = match_to_reference(fused, truth, id_col="target_id").rename({"target_id": "track_id"})
     return scored_rows(matched, AccuracyConfig(skip_first_s=20.0))
-from tertiary.contract.schema import TABLES, validate
+from tertiary.contract import TABLES, validate
 from tertiary.simulate import load_scenario, simulate
 
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]

@@ -10,7 +10,9 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli.main import app, cell, choose_run_dir
+from tertiary.cli import app
+from tertiary.cli.common import cell
+from tertiary.pipeline.workflows import choose_run_dir
 
 runner = CliRunner()
 
@@ -53,11 +55,13 @@ def test_validate_help_is_not_markup():
 
 
 def test_readme_options_exist_where_it_says():
-    """Every `tertiary ...` line of the README's command block parses (options exist)."""
+    """Every `tertiary ...` line of the README's and docs/cli.md's command blocks parses (options exist)."""
     from pathlib import Path
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = readme.split("## Command line", 1)[1].split("```", 2)[1]
-    lines = [ln.split("#")[0].strip() for ln in block.splitlines() if ln.strip().startswith("tertiary ")]
+    root = Path(__file__).resolve().parents[1]
+    blocks = [b for f in (root / "README.md", root / "docs" / "cli.md")
+              for b in f.read_text().split("```bash")[1:]]
+    lines = [ln.split("#")[0].strip() for b in blocks for ln in b.split("```", 1)[0].splitlines()
+             if ln.strip().startswith("tertiary ")]
     assert len(lines) >= 8
     import typer.main
     group = typer.main.get_command(app)
@@ -248,5 +252,5 @@ def test_one_malloc_arena_is_set_on_glibc():
     """The CLI limits glibc to one malloc arena (threads would each keep one): set on glibc,
     a no-op elsewhere."""
     import platform
-    from tertiary.cli.main import one_malloc_arena
+    from tertiary.core.memory import one_malloc_arena
     assert one_malloc_arena() is (platform.libc_ver()[0] == "glibc")

@@ -4,7 +4,6 @@ whole-run ``clusters`` table (same ids, leads and members)."""
 from __future__ import annotations
 
 import dataclasses
-import pickle
 
 import numpy as np
 import polars as pl
@@ -13,10 +12,11 @@ from polars.testing import assert_frame_equal
 
 from tertiary.stages import align as A
 from tertiary.stages.association.associate import associate
-from tertiary.stages.clustering import (ClusteringConfig, ClusterState, T_MAX, T_MIN, cluster, cluster_step, init_cluster_state)
-from tertiary.core.errors import DataError, OptionError
-from tertiary.stages.fusion.fuse import fuse
-from tertiary.pipeline.job import PipelineConfig, screen
+from tertiary.stages.clustering import (ClusteringConfig, ClusterState, cluster, cluster_step, init_cluster_state)
+from tertiary.core.errors import OptionError
+from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.stages.fusion import fuse
+from tertiary.pipeline import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 
 CONFIGS = {
@@ -112,31 +112,8 @@ def test_holes_are_bridged_as_in_the_whole_run(fused, holed):
     assert before.height and before.join(after, on=["cluster_id", "lead_target_id"]).height
 
 
-def test_empty_window_leaves_state_unchanged(fused):
-    cfg = CONFIGS["dbscan"]
-    edges = cuts(fused, "sub_scan")
-    _, _, state = run_windows(fused, edges[:8], cfg)
-    assert state.streams.height == 4 and state.targets.height > 0
-    t = edges[7]
-    out, after = cluster_step(state, fused.clear(), t, t + 2_000_000, cfg)
-    assert out.height == 0
-    assert_frame_equal(after.streams, state.streams)
-    assert_frame_equal(after.targets, state.targets)
-    assert after.t_us == t + 2_000_000
 
 
-def test_step_does_not_mutate_state_and_state_pickles(fused):
-    cfg = CONFIGS["dbscan"]
-    edges = cuts(fused, "sub_scan")
-    _, _, state = run_windows(fused, edges[:8], cfg)
-    before = pickle.dumps(state)
-    ep = pl.col("epoch").dt.epoch("us")
-    out, new = cluster_step(state, fused.filter((ep >= edges[7]) & (ep < edges[8])), edges[7], edges[8], cfg)
-    assert out.height > 0
-    assert pickle.dumps(state) == before
-    restored = pickle.loads(pickle.dumps(new))
-    assert_frame_equal(restored.targets, new.targets)
-    assert (new.streams["next_id"] >= state.streams.sort("run", "method")["next_id"]).all()
 
 
 def test_state_holds_the_last_clustered_picture_by_natural_keys(fused):
@@ -160,12 +137,10 @@ def test_state_holds_the_last_clustered_picture_by_natural_keys(fused):
         fused["epoch"].dt.epoch("us") < edges[7]).max())).all()
 
 
-def test_window_contract_is_checked(fused):
+def test_a_window_before_the_state_end_is_refused(fused):
     lo = int(fused["epoch"].dt.epoch("us").min())
-    with pytest.raises(DataError, match="epoch outside the window"):
-        cluster_step(init_cluster_state(), fused, lo, lo + 1)
-    _, state = cluster_step(init_cluster_state(), fused.clear(), T_MIN, lo)
+    _, state = cluster_step(init_cluster_state(), fused.clear(), T_MIN_US, lo)
     with pytest.raises(OptionError, match="does not follow"):
         cluster_step(state, fused.clear(), lo - 10, lo)
-    _, state = cluster_step(init_cluster_state(), fused, T_MIN, T_MAX, CONFIGS["dbscan"])
-    assert state.t_us == T_MAX
+    _, state = cluster_step(init_cluster_state(), fused, T_MIN_US, T_MAX_US, CONFIGS["dbscan"])
+    assert state.t_us == T_MAX_US

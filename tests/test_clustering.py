@@ -10,7 +10,7 @@ import polars as pl
 import pytest
 
 from tertiary.stages.clustering import ClusteringConfig, cluster, cluster_summary
-from tertiary.contract.schema import TABLES, validate
+from tertiary.contract import TABLES, validate
 
 T0 = datetime(2024, 3, 1, 12, 0, 0, tzinfo=timezone.utc)
 ALWAYS = ClusteringConfig(always=True)

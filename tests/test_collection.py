@@ -12,7 +12,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.sensors.collection import (ACCEPTED, LOST_BUFFER, LOST_BUSY, LOST_WAIT, CollectionConfig, collect, collection_stage, erlang_b, md1_wait, mm1_limited_loss, mm1_wait, mm1k_loss, queue_kernel)
 from tertiary.core.errors import OptionError
 

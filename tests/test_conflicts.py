@@ -1,5 +1,5 @@
 """Conflict prediction (5.10)–(5.17): geometry against an independent exact computation, the
-digest worked example, thresholds, KD-tree candidates against brute force, output contract."""
+worked example, thresholds, KD-tree candidates against brute force, output contract."""
 
 from __future__ import annotations
 
@@ -17,18 +17,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2, norm
 
-from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, candidate_pairs, conflict_interval,
-                              conflict_interval_levelled, height_and_rate, pair_geometry, predict_conflicts, slim_conflicts, tangent_plane_error_bound)
+from safety.conflicts import (CONFLICT_EXTRA, ConflictConfig, conflict_candidates, conflict_interval,
+                              conflict_interval_levelled, height_and_rate, pair_geometry, predict_conflicts,
+                              slim_conflicts, tangent_plane_error_bound)
 from tertiary.core.geo import EARTH_RADIUS_M, LocalFrame
-from tertiary.contract.schema import TABLES, validate
+from tertiary.contract import TABLES, validate
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
-FIXED = ConflictConfig(threshold_mode="fixed", dr_v_m=300.0)      # digest §7.2 thresholds
+FIXED = ConflictConfig(threshold_mode="fixed", dr_v_m=300.0)      # the seed's fixed thresholds
 
 
 def _frame(pos, vel, ids=None, run=0, epoch=T0, method=None, cov=None, cov_diag=None, alt=True) -> pl.DataFrame:
     """A picture; ``alt=True`` also gives the height channel alt_m = z, alt_rate_mps = vz (the
-    digest's flat (x, y, h) geometry); ``alt=False`` leaves heights to the geodetic conversion."""
+    worked example's flat (x, y, h) geometry); ``alt=False`` leaves heights to the geodetic conversion."""
     pos, vel = np.asarray(pos, float).reshape(-1, 3), np.asarray(vel, float).reshape(-1, 3)
     n = len(pos)
     data = {"run": np.full(n, run, np.uint32), "epoch": [epoch] * n,
@@ -51,7 +52,7 @@ def _frame(pos, vel, ids=None, run=0, epoch=T0, method=None, cov=None, cov_diag=
 # --------------------------------------------------------------------------- worked example
 
 
-def test_digest_worked_example_geometry():
+def test_worked_example_geometry():
     g = pair_geometry([0, 0, 3000], [120, 0, 0], [15000, 6000, 3600], [-100, -40, -5])
     assert float(g.r_min) == pytest.approx(3219.9, abs=0.05)
     assert float(g.t_min) == pytest.approx(70.80, abs=0.005)
@@ -61,7 +62,7 @@ def test_digest_worked_example_geometry():
 
 
 @pytest.mark.parametrize("mode", ["seed", "corrected"])
-def test_digest_worked_example_decision(mode):
+def test_worked_example_decision(mode):
     cfg = ConflictConfig(threshold_mode="fixed", dr_v_m=300.0, mode=mode)
     assert cfg.t_thr_s == 105.0
     df = _frame([[0, 0, 3000], [15000, 6000, 3600]], [[120, 0, 0], [-100, -40, -5]])
@@ -477,7 +478,7 @@ def test_kdtree_candidates_equal_brute_force(mode, threshold_mode, cov_kind, see
     for k, (rh, rv) in ref.items():
         assert got[k][0] == pytest.approx(rh, rel=1e-9) and got[k][1] == pytest.approx(rv, rel=1e-9)
     # the screen is a superset of the brute-force set, within groups only
-    i, j = candidate_pairs(df, cfg)
+    i, j = conflict_candidates(df, cfg)
     ids = df["track_id"].to_numpy()
     runs, epochs = df["run"].to_list(), df["epoch"].to_list()
     assert all(runs[a] == runs[b] and epochs[a] == epochs[b] for a, b in zip(i, j))
@@ -512,7 +513,7 @@ def test_screen_is_sparse_on_large_pictures():
     spd, hdg = rng.uniform(70, 250, n), rng.uniform(0, 2 * np.pi, n)
     vel = np.column_stack([spd * np.sin(hdg), spd * np.cos(hdg), rng.choice([0.0, 8.0, -8.0], n)])
     df = _frame(pos, vel, cov_diag=np.tile([2500.0, 2500.0, 6400.0, 25.0, 25.0, 4.0], (n, 1)))
-    i, _ = candidate_pairs(df, ConflictConfig())
+    i, _ = conflict_candidates(df, ConflictConfig())
     assert len(i) < 0.05 * n * (n - 1) / 2
 
 

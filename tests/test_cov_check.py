@@ -1,4 +1,4 @@
-"""The reports' est_cov check (schema._cov_codes): the factorisation that clears most matrices
+"""The reports' est_cov check (tertiary.contract.validation._cov_codes): the factorisation that clears most matrices
 before their eigenvalues are computed gives exactly the codes of the eigenvalues alone."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.contract import schema
+from tertiary.contract import validation as schema
 
 
 def _reference(cov: np.ndarray, limits: schema.Limits) -> np.ndarray:

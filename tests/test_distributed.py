@@ -12,8 +12,9 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.runtime import dask_engine as D
-from tertiary.pipeline import job as pipeline
-from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+from tertiary import pipeline
+from tertiary.io.dataset import read_dataset, write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
 
@@ -146,7 +147,7 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
         _same(got[name], want[name], name)
     # the same reports grouped into the same targets, with one target id each across boundaries
     _target_bijection(got["associations"], want["associations"])
-    bounds = sorted(D._parse_utc(x) for x in got["partitions"]["kept_from_utc"].to_list()[1:])
+    bounds = sorted(D.parse_utc(x) for x in got["partitions"]["kept_from_utc"].to_list()[1:])
     eff = D.stitching_effects(got, want, bounds)
     assert all(b["id_changed"] == 0 for b in eff["target_id_changes"])
     assert all(b["id_changed"] <= 0.1 * b["alive"] for b in eff["track_id_changes"]), eff["track_id_changes"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from tertiary.contract import schema
+from tertiary import contract as schema
 
 ROOT = Path(__file__).resolve().parents[1]
 USER_TEXTS = [ROOT / "README.md", ROOT / "datasets" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -44,3 +44,18 @@ def test_tests_use_no_file_outside_the_repository():
     for path in set((ROOT / "tests").glob("*.py")) - {Path(__file__).resolve()}:
         text = path.read_text(encoding="utf-8")
         assert not any(o in text for o in outside), f"{path.name} reads outside the repository"
+
+
+def test_the_readme_is_a_manual_not_a_history():
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 150
+    assert not re.search(r"\b20\d\d-\d\d-\d\d\b", text), "a date in the README: history lives in git"
+
+
+def test_code_and_docs_carry_no_history():
+    """No issue numbers, dated measurements or documents outside the repository in docstrings and docs."""
+    pattern = re.compile(r"\b[Ii]ssues? \d+|\(was [0-9]|\b20\d\d-\d\d-\d\d\b(?![\w.]*parquet)|seeds?/|digest ``")
+    texts = [*USER_TEXTS, *ROOT.joinpath("tertiary").rglob("*.py"), *ROOT.joinpath("safety").rglob("*.py")]
+    bad = [f"{p.relative_to(ROOT)}:{i}" for p in texts
+           for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if pattern.search(line)]
+    assert not bad, bad

@@ -17,9 +17,11 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
+from tertiary.pipeline import ingestion, runner, streaming, tables, whole_run
 from tertiary.runtime.windows import END_US, US, Window, incomplete_message, windows
-from tertiary.simulate import load_scenario, simulate, write_dataset
+from tertiary.io.dataset import write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
 #: each table's row key (rows are compared after sorting by it; floats to round-off)
@@ -98,12 +100,12 @@ def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monk
     the targets the association can still continue (those a carried local track points at), not
     every target ever seen — the windowed tables above equal one window's with it."""
     seen = {}
-    real = pipeline._finalize
+    real = runner.finalize_stages
 
     def spy(ds, cfg, ctx, st, *args, **kw):
         seen["st"] = st
         return real(ds, cfg, ctx, st, *args, **kw)
-    monkeypatch.setattr(pipeline, "_finalize", spy)
+    monkeypatch.setattr(runner, "finalize_stages", spy)
     res = pipeline.process(terminal, FAST, window_s=20.0)
     st = seen["st"]
     kept = st.centralized.targets.select("run", "target_id")
@@ -117,9 +119,9 @@ def test_association_metrics_are_scored_window_by_window(terminal, terminal_whol
     """Issue 16, evaluation accumulators: the association metrics come from the state the
     windows carry (:class:`tertiary.evaluation.evaluate.AssociationScore`), not from the whole run's rows
     read back in finalize — the whole-run function is not called — and equal one window's."""
-    def whole_run(*_a, **_k):
+    def whole_run_scored(*_a, **_k):
         raise AssertionError("association rows scored in finalize")
-    monkeypatch.setattr(pipeline, "association_metrics", whole_run)
+    monkeypatch.setattr(whole_run, "association_metrics", whole_run_scored)
     got = pipeline.process(terminal, FAST, window_s=5.0)
     rows = got.metrics.filter(pl.col("stage") == "association")
     assert {"assoc_correct_frac", "swaps", "false_targets", "gated_pairs"} <= set(rows["metric"])
@@ -145,19 +147,19 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     parts, scored from its reference files): the run database's truth is the in-memory run's."""
     read, blocks, streamed = [], [], []
 
-    def counted(self, key, *a, f=pipeline._OnDisk.blocks, **k):
+    def counted(self, key, *a, f=tables.OnDiskTable.blocks, **k):
         read.append((self.name, key, "blocks"))
         for b in f(self, key, *a, **k):
             blocks.append((self.name, key))
             yield b
 
-    monkeypatch.setattr(pipeline._OnDisk, "picture", lambda self, key, *a, f=pipeline._OnDisk.picture:
+    monkeypatch.setattr(tables.OnDiskTable, "picture", lambda self, key, *a, f=tables.OnDiskTable.picture:
                         read.append((self.name, key, "whole")) or f(self, key, *a))
-    monkeypatch.setattr(pipeline._OnDisk, "blocks", counted)
-    monkeypatch.setattr(pipeline, "EVAL_BLOCK_ROWS", 500)        # several blocks per picture
-    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 1_000)      # the truth in parts and batches
-    monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 1_500)
-    monkeypatch.setattr(pipeline, "_stream_truth", lambda *a, f=pipeline._stream_truth: streamed.append(f(*a))
+    monkeypatch.setattr(tables.OnDiskTable, "blocks", counted)
+    monkeypatch.setattr(tables, "EVAL_BLOCK_ROWS", 500)        # several blocks per picture
+    monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 1_000)      # the truth in parts and batches
+    monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 1_500)
+    monkeypatch.setattr(whole_run, "stream_truth", lambda *a, f=ingestion.stream_truth: streamed.append(f(*a))
                         or streamed[-1])
     from tertiary.evaluation import bound
     bound_reads: list[tuple[bool, int]] = []         # (from a scan, aircraft) of each truth read
@@ -200,12 +202,12 @@ def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, 
     copies: list[str] = []
     monkeypatch.setattr(pl.DataFrame, "write_parquet", lambda self, f, *a, w=pl.DataFrame.write_parquet, **k:
                         (copies.append(str(f)) if "_by_picture_" in str(f) else None) or w(self, f, *a, **k))
-    monkeypatch.setattr(pipeline, "EVAL_BLOCK_ROWS", 500)
+    monkeypatch.setattr(tables, "EVAL_BLOCK_ROWS", 500)
     cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), centralized=False,
                                   stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     made: list = []
-    monkeypatch.setattr(pipeline._OnDisk, "__init__", lambda self, *a, f=pipeline._OnDisk.__init__:
+    monkeypatch.setattr(tables.OnDiskTable, "__init__", lambda self, *a, f=tables.OnDiskTable.__init__:
                         f(self, *a) or made.append(self))
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     assert not copies
@@ -234,10 +236,10 @@ def test_empty_window_in_the_middle(terminal, terminal_whole):
 def test_windows_cover_the_grid_and_the_last_is_open():
     ws = list(windows(10 * US, 10 * US + 95 * US, 30.0))
     assert [w.index for w in ws] == [0, 1, 2, 3]
-    assert ws[0].t0_us == -END_US and ws[-1].t1_us == END_US and ws[-1].last
+    assert ws[0].open_start and ws[-1].t1_us == END_US and ws[-1].last
     assert all(a.t1_us == b.t0_us for a, b in zip(ws, ws[1:]))
     assert ws[1].t0_us == 40 * US
-    assert list(windows(0, 5 * US, None)) == [Window(0, -END_US, END_US)]
+    assert list(windows(0, 5 * US, None)) == [Window.unbounded()]
 
 
 # --------------------------------------------------------------------------- run store, resume
@@ -319,7 +321,7 @@ def test_windows_are_stored_behind_the_run_in_order_with_the_state_they_were_giv
             events.append(("manifest", w.index))
             super().commit(w, state, **info)
     parts = Recorded.start(tmp_path, {"dataset": "x"})
-    store = pipeline._WindowStore(parts)
+    store = streaming.WindowStore(parts)
     held = {"x": np.zeros(3)}
     store.put(Window(0, 0, 10), {"t": pl.DataFrame({"a": [1]})}, held)
     held["x"][:] = 7.0                             # the next window changes the state's arrays
@@ -458,9 +460,9 @@ def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
     cfg = pipeline.PipelineConfig()
     results = []
     for rows in (10**9, 700):
-        monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", rows)
+        monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", rows)
         notes: list[str] = []
-        clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
+        clean, rej = ingestion.validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
         results.append((clean, rej, notes))
     (c1, r1, n1), (c2, r2, n2) = results
     assert r1.height == 6 and any("out of order" in n for n in n1)     # not vacuous
@@ -495,13 +497,13 @@ def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path,
     bad.write_parquet(tmp_path / "truth.parquet")
     window = (terminal.truth["time"].min(), terminal.truth["time"].max(), "the reports' span")
     cfg = pipeline.PipelineConfig()
-    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 10**9)
+    monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 10**9)
     notes1: list[str] = []
-    clean, rej = pipeline._validate_truth(SimpleNamespace(truth=bad), cfg, notes1, window)
-    monkeypatch.setattr(pipeline, "TRUTH_PART_ROWS", 700)
-    monkeypatch.setattr(pipeline, "TRUTH_BATCH_ROWS", 900)
+    clean, rej = ingestion.validate_truth(SimpleNamespace(truth=bad), cfg, notes1, window)
+    monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 700)
+    monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 900)
     notes2: list[str] = []
-    got = pipeline._stream_truth(SimpleNamespace(truth=pl.scan_parquet(tmp_path / "truth.parquet")), cfg, notes2,
+    got = ingestion.stream_truth(SimpleNamespace(truth=pl.scan_parquet(tmp_path / "truth.parquet")), cfg, notes2,
                                  window, tmp_path / "scratch")
     assert got is not None
     on_disk, rej2 = got
@@ -621,7 +623,7 @@ def test_the_default_run_window_is_the_auto_window(dataset_dir, tmp_path):
     """The CLI's default ``--window`` is ``auto``, resolved once from the dataset and recorded in
     the run record (which a resume compares)."""
     from tertiary.runtime.windows import ReportSource, auto_window_s
-    from tertiary.simulate import read_dataset
+    from tertiary.io.dataset import read_dataset
     p = _cli("run", str(dataset_dir), "--out", str(tmp_path / "a"), "--filters", "", "--methods", "arithmetic",
              "--no-centralized", "--no-report", "--quiet")
     _, err = p.communicate(timeout=600)

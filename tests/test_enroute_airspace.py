@@ -14,7 +14,7 @@ import pytest
 
 from safety.alerts import AlertConfig, loss_of_separation, separation_intervals
 from safety.conflicts import FT_M, NM_M, ConflictConfig, predict_conflicts
-from tertiary.pipeline.job import PipelineConfig, adapt_to_scenario
+from tertiary.pipeline import PipelineConfig, adapt_to_scenario
 
 from test_approach_volumes import T0, _picture     # one track table for the STCA's airspace tests
 
@@ -143,11 +143,11 @@ def test_pipeline_takes_the_floor_from_the_national_scenario(small_terminal):
 
 
 def test_the_run_notes_say_which_minima_the_alerts_are_scored_on():
-    from tertiary.pipeline.job import _note_minima
+    from tertiary.pipeline import note_minima
     notes: list[str] = []
-    _note_minima(FIXED, notes)
+    note_minima(FIXED, notes)
     assert notes == []
-    _note_minima(EN_ROUTE, notes)
-    _note_minima(EN_ROUTE, notes)
+    note_minima(EN_ROUTE, notes)
+    note_minima(EN_ROUTE, notes)
     assert len(notes) == 1
     assert "3 NM / 1,000 ft for pairs both below 15,000 ft (terminal), 5 NM / 1,000 ft otherwise" in notes[0]

@@ -12,7 +12,8 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
+from tertiary.pipeline import scoring
 from tertiary.cli.main import app
 from polars.testing import assert_frame_equal
 
@@ -20,7 +21,8 @@ from tertiary.core.errors import DataError
 from tertiary.evaluation.evaluate import (EvaluationConfig, comparison, evaluate_each, evaluate_pictures, read_picture)
 from tertiary.evaluation.matching import MatchConfig
 from tertiary.evaluation.requirements import example_path, load_requirements
-from tertiary.simulate import load_scenario, simulate, write_dataset
+from tertiary.io.dataset import write_dataset
+from tertiary.simulate import load_scenario, simulate
 
 runner = CliRunner()
 
@@ -392,7 +394,7 @@ def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, s
     the lookup falls back to the join. Fails if a block is scored out of order, lost or
     repeated, or labelled with another run's aircraft."""
     from datetime import datetime, timedelta, timezone
-    from tertiary.pipeline import job as pipeline
+    from tertiary import pipeline
     from tertiary.evaluation.evaluate import association_metrics, association_score
     rng = np.random.default_rng(11)
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
@@ -406,12 +408,12 @@ def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, s
     reports = pl.DataFrame({"run": assoc["run"], "report_id": assoc["report_id"],
                             "truth_id": [None if k % 9 == 0 else int(rng.integers(0, 4)) for k in range(n)]},
                            schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
-    assert (pipeline._report_truth(reports) is None) == sparse
+    assert (scoring.report_truth(reports) is None) == sparse
     want = association_metrics(assoc, reports)
     assert want.filter(pl.col("metric") == "swaps")["value"][0] > 0
     window = (pl.col("epoch").dt.epoch("s") - int(t0.timestamp())) // 10
     parts = assoc.with_columns(window.alias("__w")).partition_by("__w", maintain_order=True)
-    monkeypatch.setattr(pipeline, "ASSOCIATION_BLOCK_ROWS", 70)
-    got = association_score(pipeline._scored_blocks((p.drop("__w") for p in parts), reports))
+    monkeypatch.setattr(scoring, "ASSOCIATION_BLOCK_ROWS", 70)
+    got = association_score(scoring.scored_blocks((p.drop("__w") for p in parts), reports))
     assert len(parts) == 5
     assert_frame_equal(got, want)

@@ -7,7 +7,8 @@ import pytest
 from scipy import stats
 
 import tertiary.stages.tracking.filters.imm  # noqa: F401  (registers "imm")
-import tertiary.stages.tracking.filters.linear  # noqa: F401  (registers "cv", "singer")
+import tertiary.stages.tracking.filters.linear  # noqa: F401  (registers "cv")
+import tertiary.stages.tracking.filters.manoeuvring  # noqa: F401  (registers "singer")
 from tertiary.stages.tracking.filters.adaptive_r import AdaptiveR
 from tertiary.stages.tracking.filters.base import concat, make_filter, take
 from tertiary.stages.tracking.filters.imm import q_cv

@@ -9,7 +9,8 @@ from filterpy.kalman import KalmanFilter
 
 from tertiary.stages.tracking.filters.base import full_cov, make_filter
 from tertiary.stages.tracking.filters.coupled import CoupledCV, CoupledSinger
-from tertiary.stages.tracking.filters.linear import CVFilter, SingerFilter
+from tertiary.stages.tracking.filters.linear import CVFilter
+from tertiary.stages.tracking.filters.manoeuvring import SingerFilter
 from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
 
 

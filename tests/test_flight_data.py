@@ -76,7 +76,7 @@ def test_simulated_plans_come_from_the_clearances(small_terminal):
 
 
 def test_tracks_carry_the_cleared_level(small_terminal):
-    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.pipeline import PipelineConfig, process
     res = process(small_terminal, PipelineConfig(methods=("information",), filters=("imm_sym",), evaluation=False,
                                                  safety=False, centralized=False))
     assert "cleared_alt_m" in res.tracks.columns and res.tracks["cleared_alt_m"].is_not_null().mean() > 0.8
@@ -115,7 +115,7 @@ def test_cleared_level_stops_a_climb_when_no_selected_level_is_known():
 
 
 def test_dataset_round_trip_keeps_the_flight_plans(small_terminal, tmp_path):
-    from tertiary.simulate import read_dataset, write_dataset
+    from tertiary.io.dataset import read_dataset, write_dataset
     write_dataset(small_terminal, tmp_path / "ds")
     back = read_dataset(tmp_path / "ds")
     assert back.flight_plans.equals(small_terminal.flight_plans)
@@ -126,7 +126,7 @@ def test_dataset_round_trip_keeps_the_flight_plans(small_terminal, tmp_path):
 
 def test_validate_and_run_reject_the_same_flight_plan_rows(small_terminal, tmp_path):
     import dataclasses
-    from tertiary.pipeline.job import PipelineConfig, process, screen
+    from tertiary.pipeline import PipelineConfig, process, screen
     bad = small_terminal.flight_plans.with_columns(
         pl.when(pl.int_range(pl.len()) == 2).then(pl.lit("9999")).otherwise(pl.col("mode_3a")).alias("mode_3a"))
     ds = dataclasses.replace(small_terminal, flight_plans=bad)
@@ -140,7 +140,8 @@ def test_validate_and_run_reject_the_same_flight_plan_rows(small_terminal, tmp_p
 
 
 def test_partitioned_dataset_keeps_the_flight_plans(small_terminal, tmp_path):
-    from tertiary.simulate import read_dataset, write_stream
+    from tertiary.io.dataset import read_dataset
+    from tertiary.simulate import write_stream
     write_stream(small_terminal.scenario, tmp_path / "parts", 600.0)          # one block
     assert read_dataset(tmp_path / "parts").flight_plans.equals(small_terminal.flight_plans)
 
@@ -313,7 +314,7 @@ def test_run_pairs_a_wrongly_squawking_departure_with_its_plan(small_terminal):
     """A departure whose crew squawks a code no plan holds: by code it has no cleared level; the
     run pairs it with its plan by aerodrome and time, so its tracks carry the SID top."""
     import dataclasses
-    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.pipeline import PipelineConfig, process
     ds = small_terminal
     first = ds.truth.sort("time").group_by("truth_id").agg(pl.col("role").first(), pl.col("time").first())
     lifted = first.filter((pl.col("role") == "departure") & (pl.col("time") > ds.truth["time"].min()))

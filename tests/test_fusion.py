@@ -1,4 +1,4 @@
-"""Tests of stage 5, fusion: hand computations, the digest's numbers, properties."""
+"""Tests of stage 5, fusion: hand computations, worked numbers, properties."""
 
 from __future__ import annotations
 
@@ -11,9 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tertiary.stages.fusion import fuse as fusion
-from tertiary.stages.fusion.fuse import METHODS, FusionConfig, Layout, fuse
-from tertiary.contract.schema import FUSED_EXTRA, TABLES
+from tertiary.core.units import STATE
+from tertiary.stages import fusion
+from tertiary.stages.fusion import METHODS, FusionConfig, Layout, fuse
+from tertiary.contract import FUSED_EXTRA, TABLES
 
 T0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 SIGMA_R = 50.0
@@ -28,7 +29,7 @@ def report(run=0, k=0, target=1, radar=1, x=(0, 0, 0, 0, 0, 0), cov=None, res=0.
     return {
         "run": run, "epoch": T0 + timedelta(seconds=k), "target_id": target, "radar_id": radar,
         "local_track_id": radar if track is None else track, "report_id": 1000 * k + 10 * target + radar,
-        **dict(zip(fusion.STATE, map(float, x))), "cov": c.reshape(36).tolist(),
+        **dict(zip(STATE, map(float, x))), "cov": c.reshape(36).tolist(),
         "res_range_m": res, "res_range_var_m2": SIGMA_R**2 + 100.0 if var is None else var,
         "fresh": fresh, "nominal_var": list(map(float, nominal)),
     }
@@ -37,7 +38,7 @@ def report(run=0, k=0, target=1, radar=1, x=(0, 0, 0, 0, 0, 0), cov=None, res=0.
 SCHEMA = {
     "run": pl.UInt32, "epoch": pl.Datetime("us", "UTC"), "target_id": pl.UInt64,
     "radar_id": pl.UInt32, "local_track_id": pl.UInt32, "report_id": pl.UInt64,
-    **dict.fromkeys(fusion.STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
+    **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
     "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "fresh": pl.Boolean,
     "nominal_var": pl.Array(pl.Float64, 3),
 }
@@ -60,7 +61,7 @@ def state_of(out: pl.DataFrame, method: str, target: int = 1, k: int = 0) -> np.
     sel = out.filter((pl.col("method") == method) & (pl.col("target_id") == target)
                      & (pl.col("epoch") == T0 + timedelta(seconds=k)))
     assert sel.height == 1
-    return sel.select(fusion.STATE).to_numpy()[0], np.asarray(sel["cov"][0]).reshape(6, 6)
+    return sel.select(STATE).to_numpy()[0], np.asarray(sel["cov"][0]).reshape(6, 6)
 
 
 def ratio_rows(n_epochs: int, res2: float = np.sqrt(2 * 100.0 * LN3), target: int = 1, **kw) -> list[dict]:
@@ -226,7 +227,7 @@ def test_ci_three_sources_fast_weights():
 
 
 # ---------------------------------------------------------------------------
-# a-posteriori weights: the digest's numbers
+# a-posteriori weights: worked numbers
 # ---------------------------------------------------------------------------
 
 
@@ -454,7 +455,7 @@ def test_weights_sum_to_one(seed, n_targets, n_epochs):
     sums = out["weights"].list.sum().to_numpy()
     np.testing.assert_allclose(sums, 1.0, atol=1e-12, rtol=0)
     assert (out["weights"].list.len() == out["n_sources"]).all()
-    assert np.isfinite(out.select(fusion.STATE).to_numpy()).all()
+    assert np.isfinite(out.select(STATE).to_numpy()).all()
 
 
 # ---------------------------------------------------------------------------
@@ -614,10 +615,10 @@ def test_confirmation_state_carries_across_windows():
     rows = [report(k=k, target=1, radar=1, track=5) for k in range(3)] + \
            [report(k=k, target=2, radar=2, track=8, fresh=(k == 0)) for k in range(3)]
     f = frame(rows)
-    whole, _ = fusion.confirm_step(fusion.ConfirmState.empty(), f)
+    whole, _ = fusion.confirm_targets_step(fusion.ConfirmState.empty(), f)
     cut = T0 + timedelta(seconds=1)
-    a, st = fusion.confirm_step(fusion.ConfirmState.empty(), f.filter(pl.col("epoch") < cut))
-    b, _ = fusion.confirm_step(st, f.filter(pl.col("epoch") >= cut))
+    a, st = fusion.confirm_targets_step(fusion.ConfirmState.empty(), f.filter(pl.col("epoch") < cut))
+    b, _ = fusion.confirm_targets_step(st, f.filter(pl.col("epoch") >= cut))
     assert pl.concat([a, b]).sort("target_id", "epoch").equals(whole.sort("target_id", "epoch"))
     assert whole.filter(pl.col("target_id") == 1)["tentative"].to_list() == [True, False, False]
     assert whole.filter(pl.col("target_id") == 2)["tentative"].to_list() == [True, True, True]
@@ -654,11 +655,11 @@ def test_a_reused_track_number_starts_a_new_life_for_confirmation():
                          row(3, 2, gap=120.0)],                       # 2 min later: a clutter plot, same number
                         schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
                                           "local_track_id": pl.UInt32})
-    out, state = fusion.confirm_step(fusion.ConfirmState.empty(), rows)
+    out, state = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows)
     assert out["tentative"].to_list() == [True, False, False, True]
     # carried across windows: the same answer, and the state holds the new life's single plot
-    a, st = fusion.confirm_step(fusion.ConfirmState.empty(), rows.head(3))
-    b, st2 = fusion.confirm_step(st, rows.tail(1))
+    a, st = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows.head(3))
+    b, st2 = fusion.confirm_targets_step(st, rows.tail(1))
     assert a["tentative"].to_list() + b["tentative"].to_list() == out["tentative"].to_list()
     assert st2.tracks["n_plots"].to_list() == [1]
 
@@ -681,13 +682,13 @@ def test_a_one_scan_split_off_stays_tentative():
     rows = pl.DataFrame([row(k, 1, 1, 7) for k in range(8)] + [row(k, seen[k], 2, 4) for k in range(8)],
                         schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
                                           "local_track_id": pl.UInt32}).sort("epoch", "radar_id")
-    out, _ = fusion.confirm_step(fusion.ConfirmState.empty(), rows)
+    out, _ = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows)
     flags = dict(zip(zip(out["target_id"], out["epoch"]), out["tentative"]))
     assert flags[(2, t0 + timedelta(seconds=12))] is True
     assert [flags[(3, t0 + timedelta(seconds=4.0 * k))] for k in (6, 7)] == [True, False]
     assert not any(v for (tg, _), v in flags.items() if tg == 1 and _ > t0)
     for cut in (3, 4, 6, 7):          # the target change seen across the window edge
         edge = t0 + timedelta(seconds=4.0 * cut)
-        a, st = fusion.confirm_step(fusion.ConfirmState.empty(), rows.filter(pl.col("epoch") < edge))
-        b, _ = fusion.confirm_step(st, rows.filter(pl.col("epoch") >= edge))
+        a, st = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows.filter(pl.col("epoch") < edge))
+        b, _ = fusion.confirm_targets_step(st, rows.filter(pl.col("epoch") >= edge))
         assert pl.concat([a, b]).sort("target_id", "epoch").equals(out.sort("target_id", "epoch"))

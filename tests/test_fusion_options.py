@@ -1,4 +1,4 @@
-"""Optional fusion methods and the NIS gate (issue 19 item 5) against hand computations."""
+"""Optional fusion methods and the NIS gate against hand computations."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import polars as pl
 import pytest
 from scipy.stats import multivariate_normal, norm
 
-from tertiary.stages.fusion import fuse as fusion
+from tertiary.core.units import STATE
 from tertiary.core import geo
-from tertiary.pipeline import job as pipeline
-from tertiary.stages.fusion.fuse import (ALL_METHODS, EXTRA_METHODS, METHODS, FusionConfig, chi2_threshold, coord_loglik, fuse, gate_pass, los_innovation, mv_loglik, trace_test)
+from tertiary import pipeline
+from tertiary.stages.fusion import (ALL_METHODS, EXTRA_METHODS, METHODS, FusionConfig, chi2_threshold, coord_loglik, fuse, gate_pass, los_innovation, mv_loglik, trace_test)
 
 T0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
 SIGMA_R = 50.0
@@ -34,7 +34,7 @@ RADARS = _radars()
 SCHEMA = {
     "run": pl.UInt32, "epoch": pl.Datetime("us", "UTC"), "target_id": pl.UInt64,
     "radar_id": pl.UInt32, "local_track_id": pl.UInt32, "report_id": pl.UInt64,
-    **dict.fromkeys(fusion.STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
+    **dict.fromkeys(STATE, pl.Float64), "cov": pl.Array(pl.Float64, 36),
     "res_range_m": pl.Float64, "res_range_var_m2": pl.Float64, "fresh": pl.Boolean,
     "nominal_var": pl.Array(pl.Float64, 3),
 }
@@ -44,7 +44,7 @@ def report(k=0, radar=1, x=(0, 0, 0, 0, 0, 0), cov=1.0, res=0.0, var=SIGMA_R**2 
            nominal=(1.0, 1.0, 1.0)) -> dict:
     c = np.diag(np.broadcast_to(np.asarray(cov, float), 6)) if np.ndim(cov) <= 1 else np.asarray(cov)
     return {"run": 0, "epoch": T0 + timedelta(seconds=k), "target_id": 1, "radar_id": radar,
-            "local_track_id": radar, "report_id": 1000 * k + radar, **dict(zip(fusion.STATE, map(float, x))),
+            "local_track_id": radar, "report_id": 1000 * k + radar, **dict(zip(STATE, map(float, x))),
             "cov": c.reshape(36).tolist(), "res_range_m": res, "res_range_var_m2": var, "fresh": fresh,
             "nominal_var": list(map(float, nominal))}
 
@@ -57,7 +57,7 @@ def at(out: pl.DataFrame, method: str, k: int = 0) -> dict:
     sel = out.filter((pl.col("method") == method) & (pl.col("epoch") == T0 + timedelta(seconds=k)))
     assert sel.height == 1
     row = sel.row(0, named=True)
-    row["x"] = np.array([row[c] for c in fusion.STATE])
+    row["x"] = np.array([row[c] for c in STATE])
     row["P"] = np.asarray(row["cov"]).reshape(6, 6)
     return row
 
@@ -185,8 +185,8 @@ def test_aposteriori_coord_one_epoch_by_hand():
         s_c = (row["res_range_var_m2"] - SIGMA_R**2) * u**2 + np.asarray(row["nominal_var"])
         lik.append(norm.pdf(u * row["res_range_m"], scale=np.sqrt(s_c)))   # N(ν_c; 0, S_c) per axis
     b1 = lik[0] / (lik[0] + lik[1])                                        # (3,)
-    x1 = np.array([rows[0][c] for c in fusion.STATE])
-    x2 = np.array([rows[1][c] for c in fusion.STATE])
+    x1 = np.array([rows[0][c] for c in STATE])
+    x2 = np.array([rows[1][c] for c in STATE])
     w1 = np.tile(b1, 2)
     r = at(out, "aposteriori_coord")
     np.testing.assert_allclose(r["x"], w1 * x1 + (1 - w1) * x2, rtol=1e-12)
@@ -263,7 +263,7 @@ def test_trace_test_by_hand():
 
 # ---------------------------------------------------------------------------- radar health
 
-from tertiary.contract import schema  # noqa: E402
+from tertiary.contract import validate  # noqa: E402
 from tertiary.sensors.radar_health import HealthConfig, adaptive_r, nis_samples, radar_health, windowed_nis  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
@@ -300,7 +300,7 @@ def test_divergence_alarm_detects_a_noise_step_per_radar():
     rows = pl.concat([health_rows(nu1, 1.0, radar=1), health_rows(rng.normal(0, 1, 900), 1.0, radar=2)])
     radars = pl.DataFrame({"radar_id": pl.Series([1, 2], dtype=pl.UInt32), "sigma_range_m": [1.0, 1.0]})
     m = radar_health(rows, radars, HealthConfig(window_s=60.0, hold_s=20.0))
-    schema.validate(m, "metrics", strict=True)
+    validate(m, "metrics", strict=True)
     v = {(r, k): x for r, k, x in m.select("method", "metric", "value").iter_rows()}
     assert 450 < v["1", "first_alarm_s"] <= 450 + 20 + 30      # held 20 s after the window mean crosses
     assert v["1", "alarm_episodes"] >= 1 and np.isnan(v["2", "first_alarm_s"]) and v["2", "alarm_episodes"] == 0

@@ -1,12 +1,12 @@
 """The compiled kernels: one signature each, warmed in the background on a fresh install
-(issue 18: compilation must not make a fresh install's first run much slower).
+(compilation must not make a fresh install's first run much slower).
 
 * Whatever arrays a caller passes (read-only columns, strided views, other dtypes), each kernel
-  is compiled for the one signature :data:`tertiary.runtime.warmup.KERNELS` declares. Oracle: numba's
-  own list of the dispatcher's compiled signatures.
-* :func:`tertiary.runtime.warmup.warm` compiles a kernel into numba's cache in another process, and the
-  run's first call then loads it instead of compiling. Oracle: numba's cache statistics, in a
-  fresh process with an empty cache directory.
+  is compiled for the one signature registered in :data:`tertiary.core.jit.KERNELS`. Oracle:
+  numba's own list of the dispatcher's compiled signatures.
+* :func:`tertiary.pipeline.warmup.warm_kernels` compiles a kernel into numba's cache in another
+  process, and the run's first call then loads it instead of compiling. Oracle: numba's cache
+  statistics, in a fresh process with an empty cache directory.
 """
 
 from __future__ import annotations
@@ -18,7 +18,9 @@ import textwrap
 
 import numpy as np
 
-from tertiary.runtime import warmup as kernels
+from tertiary.core import jit
+from tertiary.evaluation.bound import BoundConfig, _pcrb_block
+from tertiary.pipeline import warmup
 from tertiary.stages.tracking.altitude import AltitudeConfig, FilterCarry, filter_tracks_carry
 from tertiary.stages.tracking.filters import make_filter
 
@@ -54,37 +56,39 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     flt.update(pred, _read_only(rng.normal(0.0, 1e3, (b, 3))), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)),
                _read_only(np.ones(b, bool)))
     # the bound's recursion, from a read-only truth-time column and a strided record mask
-    from tertiary.evaluation.bound import BoundConfig, _pcrb_block
     r_eq = np.full((n, 3, 3), np.nan)
     r_eq[::3] = np.diag([2500.0, 2500.0, 1e4])
     _pcrb_block(_read_only(t), r_eq, _read_only(starts), lengths.astype(np.int32), np.ones(2 * n, bool)[::2],
                 BoundConfig())
-    for name, get in kernels.KERNELS.items():
-        disp, sig = get()
-        assert [tuple(s) for s in disp.signatures] == [tuple(sig)], name
+    assert set(warmup.GROUPS[0] + warmup.GROUPS[1]) <= set(jit.KERNELS)
+    for name, k in jit.KERNELS.items():
+        if k.module.startswith("tertiary.simulate"):     # the simulator's, not a run's
+            continue
+        assert [tuple(s) for s in k.dispatcher.signatures] == [tuple(k.signature())], name
 
 
 def test_warm_compiles_into_the_cache_and_the_first_call_loads_it(tmp_path):
     script = textwrap.dedent("""
         import numpy as np
-        from tertiary import kernels
+        from tertiary.core import jit
+        from tertiary.pipeline.warmup import warm_kernels
         from tertiary.stages.tracking.altitude import AltitudeConfig, filter_tracks_carry
-        from tertiary.stages.tracking.altitude_kernel import _filter
-        assert not kernels.is_cached("altitude")
-        assert kernels.warm(["altitude"]) == ["altitude"]
-        assert kernels.warm(["altitude"]) == []          # one compilation, not two
-        kernels.ready_for("altitude")
-        assert kernels.is_cached("altitude")
+        from tertiary.stages.tracking.altitude_kernel import filter_recursion
+        assert not jit.is_cached("altitude")
+        assert warm_kernels(["altitude"]) == ["altitude"]
+        assert warm_kernels(["altitude"]) == []          # one compilation, not two
+        jit.ready_for("altitude")
+        assert jit.is_cached("altitude")
         t = np.arange(10.0)
         filter_tracks_carry(t, 1000.0 + t, np.full(10, 100.0), np.array([0]), np.array([10]), AltitudeConfig())
-        stats = _filter.stats
+        stats = filter_recursion.stats
         assert sum(stats.cache_hits.values()) == 1 and not stats.cache_misses, stats
         print("ok")
     """)
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr[-2000:]
-    assert any((tmp_path / "numba").rglob("*_filter*.nbc"))
+    assert any((tmp_path / "numba").rglob("*filter_recursion*.nbc"))
 
 
 def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
@@ -92,15 +96,16 @@ def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
     order: the tracker's wait ends when its own kernels are in the cache, while the process is
     still compiling the bound's. Oracle: numba's cache index and the process's state."""
     script = textwrap.dedent("""
-        from tertiary import kernels
+        from tertiary.core import jit
+        from tertiary.pipeline.warmup import warm_kernels
         names = ["imm_predict", "imm_update", "pcrb"]
-        assert kernels.warm(names) == names
-        job = kernels._jobs["pcrb"]
-        kernels.ready_for("imm_predict")
-        kernels.ready_for("imm_update")
-        assert kernels.is_cached("imm_update") and job.poll() is None     # the bound's still compiling
-        kernels.ready_for("pcrb")
-        assert kernels.is_cached("pcrb")
+        assert warm_kernels(names) == names
+        job = jit.job("pcrb")
+        jit.ready_for("imm_predict")
+        jit.ready_for("imm_update")
+        assert jit.is_cached("imm_update") and job.poll() is None     # the bound's still compiling
+        jit.ready_for("pcrb")
+        assert jit.is_cached("pcrb")
         print("ok")
     """)
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
@@ -109,18 +114,19 @@ def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
 
 
 def test_a_run_warms_only_the_kernels_its_filters_call():
-    assert kernels.kernels_for(()) == ["altitude"]
-    assert kernels.kernels_for(("singer",)) == ["altitude"]
-    assert kernels.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
-    assert kernels.kernels_for(("no-such-filter",)) == ["altitude"]
-    assert kernels.kernels_for(("singer",), bound=True) == ["altitude", "pcrb"]
+    assert warmup.kernels_for(()) == ["altitude"]
+    assert warmup.kernels_for(("singer",)) == ["altitude"]
+    assert warmup.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
+    assert warmup.kernels_for(("no-such-filter",)) == ["altitude"]
+    assert warmup.kernels_for(("singer",), bound=True) == ["altitude", "pcrb"]
 
 
 def test_nothing_is_warmed_when_numba_compiles_nothing():
     """NUMBA_DISABLE_JIT (a debugging switch) leaves plain functions: no background process, no error."""
-    script = ("from tertiary import kernels\n"
-              "assert all(kernels.is_cached(n) for n in kernels.KERNELS)\n"
-              "assert kernels.warm(list(kernels.KERNELS)) == []\n"
+    script = ("from tertiary.core import jit\n"
+              "from tertiary.pipeline.warmup import warm_kernels\n"
+              "assert all(jit.is_cached(n) for n in jit.KERNELS)\n"
+              "assert warm_kernels(list(jit.KERNELS)) == []\n"
               "print('ok')\n")
     out = subprocess.run([sys.executable, "-c", script], env=dict(os.environ, NUMBA_DISABLE_JIT="1"),
                          capture_output=True, text=True, timeout=300)

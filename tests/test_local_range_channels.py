@@ -1,4 +1,4 @@
-"""Chapter 3 range channels as per-radar local-track options (issue 19 item 2) and the simulated
+"""Chapter 3 range channels as per-radar local-track options and the simulated
 Mode S EHS report columns that feed them."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from tertiary.stages.align import AlignConfig, estimates_by_track_life
 from tertiary.core.errors import OptionError
 from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
 from tertiary.evaluation.reference import interpolate_reference
-from tertiary.contract.schema import EHS_REPORT_COLUMNS
+from tertiary.contract import EHS_REPORT_COLUMNS
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.ehs import RESOLUTION, REPORT_COLUMN
 

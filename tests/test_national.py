@@ -1,4 +1,4 @@
-"""The national scenario (issue 18 item 1): listed, valid, and its traffic looks like a day's."""
+"""The national scenario: listed, valid, and its traffic looks like a day's."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from tertiary.core import geo
 from tertiary.simulate import builtin_scenarios, load_scenario
 from tertiary.simulate.config import check_scenario
-from tertiary.simulate import traffic
+from tertiary.simulate.traffic import national as traffic
 from tertiary.simulate.traffic import FT, national_flights
 from tertiary.simulate import NATIONAL_EPOCH
 
@@ -22,19 +22,19 @@ _PLANNED: list[tuple] = []
 def day():
     cfg = check_scenario(load_scenario("national"))
     frame = geo.LocalFrame(*cfg.origin)
-    compiled = traffic._allocate_levels_compiled
+    compiled = traffic.allocate_levels_compiled
 
     def kept(*args):                 # the day's planning inputs, for the reference below
         _PLANNED.append(args)
         return compiled(*args)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(traffic, "_allocate_levels_compiled", kept)
+        mp.setattr(traffic, "allocate_levels_compiled", kept)
         return cfg, frame, national_flights(cfg.national, cfg.duration_s, cfg.dt,
                                             np.random.default_rng(1), frame, NATIONAL_EPOCH)
 
 
 def test_the_compiled_plan_is_the_reference_plan(day):
-    """The day's level and delay plan (:func:`_allocate_levels`, sequential: each flight against
+    """The day's level and delay plan (:func:`~tertiary.simulate.traffic.national.allocate_levels`, sequential: each flight against
     those planned before it) compiled gives the Python reference's plan, flight for flight, on
     the day's first 2 500 flights in order of entry (domestic and overflights, runway spacing,
     flights left in conflict). Fails if a choice is tested against another set of flights, a
@@ -42,8 +42,8 @@ def test_the_compiled_plan_is_the_reference_plan(day):
     (route, entry, land, *rest), = _PLANNED
     first = np.sort(np.argsort(entry, kind="stable")[:2500])
     args = (route[first], entry[first], land[first], *rest)
-    want = traffic._allocate_levels(*args)
-    got = traffic._allocate_levels_compiled(*args)
+    want = traffic.allocate_levels(*args)
+    got = traffic.allocate_levels_compiled(*args)
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]) and got[2] == want[2]
     assert (got[0] != route[first]).sum() > 50 and (got[1] != entry[first]).sum() > 50   # levels and delays changed
 

@@ -13,7 +13,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
+from tertiary.pipeline import ingestion
 from tertiary.core.errors import OptionError
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import TABLES_DIR, RunStore
@@ -40,7 +41,7 @@ def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("tables")
     with pytest.MonkeyPatch.context() as mp:
         # the truth validated to disk in parts (a long run's path): its reference files registered
-        mp.setattr(pipeline, "TRUTH_PART_ROWS", 1_000)
+        mp.setattr(ingestion, "TRUTH_PART_ROWS", 1_000)
         for mode in pipeline.TABLE_MODES:
             pipeline.run(ds, base / mode, pc, window_s=60.0, tables=mode)
     return base / "database", base / "parquet"

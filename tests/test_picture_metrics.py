@@ -10,7 +10,7 @@ import pytest
 
 from tertiary.core.errors import OptionError
 from tertiary.evaluation.picture_metrics import MetricsConfig, picture_metrics
-from tertiary.contract.schema import validate
+from tertiary.contract import validate
 
 T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]

@@ -16,7 +16,8 @@ from polars.testing import assert_frame_equal
 
 from tertiary.evaluation import buckets as filing
 from tertiary.core.errors import OptionError
-from tertiary.evaluation.picture_metrics import (MetricsConfig, _aircraft_bucket, picture_metrics, picture_metrics_buckets)
+from tertiary.evaluation.picture_buckets import _aircraft_bucket, picture_metrics_buckets
+from tertiary.evaluation.picture_metrics import MetricsConfig, picture_metrics
 
 T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
 STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
@@ -210,7 +211,7 @@ def test_bad_bucket_count(picture):
 def terminal(small_terminal) -> tuple[pl.DataFrame, pl.DataFrame, np.ndarray]:
     """(matched, expected, radar sites) of two tracker pictures of the small terminal area."""
     from tertiary.evaluation.matching import match_with_reference
-    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.pipeline import PipelineConfig, process
 
     ds = small_terminal
     res = process(ds, PipelineConfig(methods=("aposteriori", "information"), filters=("singer",), centralized=False,

@@ -8,10 +8,11 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
-from tertiary.contract import schema
+from tertiary import pipeline
+from tertiary.pipeline import scoring
+from tertiary import contract as schema
 from tertiary.stages.clustering import ClusteringConfig
-from tertiary.stages.fusion.fuse import METHODS
+from tertiary.stages.fusion import METHODS
 from tertiary.store.run_store import RunStore
 
 
@@ -204,7 +205,7 @@ def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch, of
     aircraft, one of another run, one whose report is unknown and one of an unknown run, the set
     equals the whole join's. Fails if a block's rows are dropped, an (aircraft, epoch) seen in
     two blocks counts twice, or a report is looked up in another run's or another report's row."""
-    monkeypatch.setattr(pipeline, "OBSERVED_BLOCK_ROWS", 3)
+    monkeypatch.setattr(scoring, "OBSERVED_BLOCK_ROWS", 3)
     from datetime import datetime, timedelta, timezone
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
     aligned = pl.DataFrame({"run": [0, 0, 0, 0, 0, 0, 1, 0, 0, 3],
@@ -214,11 +215,11 @@ def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch, of
     reports = pl.DataFrame({"run": [0] * 6 + [1], "report_id": [offset + i for i in (1, 2, 3, 4, 5, 6, 5)],
                             "truth_id": [10, 11, 10, 11, None, 12, 10]},
                            schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
-    assert (pipeline._report_truth(reports) is None) == (offset > 0)
+    assert (scoring.report_truth(reports) is None) == (offset > 0)
     want = (aligned.join(reports, on=["run", "report_id"], how="left").select("run", "epoch", "truth_id")
             .drop_nulls().unique())
-    got = pipeline._observed(aligned, reports)
+    got = scoring.observed_aircraft(aligned, reports)
     key = ["run", "epoch", "truth_id"]
     assert got.height == want.height == 6
     assert got.sort(key).equals(want.sort(key))
-    assert pipeline._observed(aligned.clear(), reports).columns == key
+    assert scoring.observed_aircraft(aligned.clear(), reports).columns == key

@@ -8,7 +8,7 @@ import polars as pl
 import pytest
 
 from tertiary.evaluation.radar_eval import radar_metrics
-from tertiary.contract.schema import validate
+from tertiary.contract import validate
 from tertiary.simulate import load_scenario, simulate
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.simulate import RadarTrackerConfig, TransponderConfig, load_scenario, simulate, simulate_windows
 from tertiary.simulate import radar_tracker as rt
 
@@ -276,14 +276,13 @@ def test_a_small_job_does_not_wait_for_the_compiler(monkeypatch):
     """With the loop neither compiled nor cached, a job below ``COMPILE_PAYS_PLOTS`` runs the
     Python reference (a fresh install's first simulation is not slowed by ~12 s of
     compilation); a large job, or a ready loop, runs compiled."""
-    from tertiary.simulate import radar_scan_kernel as kern
     k, t, z, _ = _crossing(np.random.default_rng(2))
     scans = _scans(z, t)
     used = []
-    real = kern.run_scans_compiled
-    monkeypatch.setattr(kern, "run_scans_compiled", lambda *a: used.append(True) or real(*a))
+    real = rt.run_scans_compiled
+    monkeypatch.setattr(rt, "run_scans_compiled", lambda *a: used.append(True) or real(*a))
     for ready, job, want in ((False, 1_000, False), (False, rt.COMPILE_PAYS_PLOTS, True), (True, 1_000, True)):
-        monkeypatch.setattr(kern, "is_ready", lambda ready=ready: ready)
+        monkeypatch.setattr(rt, "is_ready", lambda ready=ready: ready)
         used.clear()
         rt.run_scans(RadarTrackerConfig(), k, scans, np.array([40]), job_plots=job)
         assert bool(used) is want, (ready, job)

@@ -13,9 +13,9 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from safety import AlertConfig
-from safety.alerts import _merge, merge_intervals, truth_intervals
+from safety.alerts import merge_intervals, merge_pair_intervals, truth_intervals
 from safety.conflicts import AerodromeZone, ConflictConfig
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.evaluation.evaluate import write_reference
 from tertiary.simulate import load_scenario, simulate
 
@@ -82,9 +82,11 @@ def test_a_chunk_that_reads_only_its_own_samples_differs(truth, tmp_path, monkey
 def test_merge_intervals_joins_pieces_cut_at_an_edge():
     schema = {"run": pl.UInt32, "truth_a": pl.Int64, "truth_b": pl.Int64, "t_start_us": pl.Int64,
               "t_end_us": pl.Int64}
-    one = _merge(np.array([0]), np.array([1]), np.array([2]), np.array([0]), np.array([100]), schema)
-    cut = [(_merge(np.array([0]), np.array([1]), np.array([2]), np.array([0]), np.array([40]), schema),) * 2,
-           (_merge(np.array([0]), np.array([1]), np.array([2]), np.array([40]), np.array([100]), schema),) * 2]
+    def piece(s_us: int, e_us: int) -> pl.DataFrame:
+        return merge_pair_intervals(np.array([0]), np.array([1]), np.array([2]), np.array([s_us]), np.array([e_us]),
+                                    schema)
+    one = piece(0, 100)
+    cut = [(piece(0, 40),) * 2, (piece(40, 100),) * 2]
     los, prox = merge_intervals(cut, AlertConfig(merge_gap_s=0.0))
     assert_frame_equal(los, one)
     assert_frame_equal(prox, one)

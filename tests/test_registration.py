@@ -228,7 +228,7 @@ def test_bias_step_is_detected_with_its_delay():
 @pytest.fixture(scope="module")
 def biased(tmp_path_factory):
     """Terminal area with five times the built-in biases and clock offsets, written to disk."""
-    from tertiary.simulate import write_dataset
+    from tertiary.io.dataset import write_dataset
     cfg = load_scenario("terminal-area")
     radars = tuple(dataclasses.replace(r, bias_range_m=5 * r.bias_range_m, bias_azimuth_deg=5 * r.bias_azimuth_deg,
                                        time_offset_s=5 * r.time_offset_s) for r in cfg.radars)
@@ -239,8 +239,8 @@ def biased(tmp_path_factory):
 
 
 def test_pipeline_register_improves_fused_accuracy(biased):
-    from tertiary.pipeline import job as pipeline
-    from tertiary.simulate import read_dataset
+    from tertiary import pipeline
+    from tertiary.io.dataset import read_dataset
     ds = read_dataset(biased)
     base = pipeline.PipelineConfig(methods=("information",), filters=(), centralized=False, safety=False)
 

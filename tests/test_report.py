@@ -11,10 +11,12 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.cli.main import app
-from tertiary.report.html import (CENTRALIZED, MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, _breakable, _thin, build_report, build_sections, figure_count)
-from tertiary.simulate import load_scenario, simulate, write_dataset
+from tertiary.report.common import CENTRALIZED, breakable as _breakable, thin as _thin
+from tertiary.report.html import (MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, build_report, build_sections, figure_count)
+from tertiary.io.dataset import write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
 runner = CliRunner()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.report.html import REPORT_FILENAME, build_report, figure_count
 from tertiary.simulate import load_scenario, simulate
 

@@ -16,11 +16,13 @@ import polars.selectors as cs
 import pytest
 
 import tertiary
-from tertiary.pipeline import job as pipeline
-from tertiary.contract import schema
+from tertiary import pipeline
+from tertiary.pipeline import tables
+from tertiary import contract as schema
 from tertiary.stages.align import AlignConfig
 from tertiary.core.errors import DataError, OptionError, ResourceError, TertiaryError
-from tertiary.simulate import Dataset, read_dataset, simulate, write_dataset
+from tertiary.io.dataset import Dataset, read_dataset, write_dataset
+from tertiary.simulate import simulate
 from tertiary.simulate.config import Anomalies, check_scenario, load_scenario, with_radar_count
 from tertiary.store.run_store import RunStore
 
@@ -458,7 +460,8 @@ def test_scenario_toml_origin_off_the_globe_is_refused_even_with_origin_option(t
     """Found by the fuzz campaign: --origin overrode a scenario.toml origin of latitude 148.85 and
     the bad field was never checked; the file is validated whole."""
     from tertiary.core.errors import DataError
-    from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+    from tertiary.io.dataset import read_dataset, write_dataset
+    from tertiary.simulate import load_scenario, simulate
     ds = simulate(load_scenario("big-box").replace(runs=1, duration_s=60.0))
     out = write_dataset(ds, tmp_path / "ds")
     toml = out / "scenario.toml"
@@ -517,7 +520,7 @@ def test_the_finalize_tables_are_written_in_order_and_whole(small: Dataset, monk
     threaded, inline = set(), set()
     got = run(threaded)
     # the same finalize with each table handed over at once, in the stages' thread
-    monkeypatch.setattr(pipeline._SinkThread, "__call__", lambda self, name, frame: self.sink(name, frame))
+    monkeypatch.setattr(tables.SinkThread, "__call__", lambda self, name, frame: self.sink(name, frame))
     want = run(inline)
     assert got == want and len(got) == len({n for n, _ in got}) > 8
     assert [n for n, _ in got][-2:] == ["metrics", "accuracy_by_epoch"]

@@ -1,4 +1,4 @@
-"""Tests of the data contract in ``tertiary.contract.schema``."""
+"""Tests of the data contract in ``tertiary.contract``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tertiary.contract.schema import (TABLES, Limits, SchemaError, TableSchema, UnsortedTimeWarning, empty_frame, rejects_table, validate)
+from tertiary.contract import (TABLES, Limits, SchemaError, TableSchema, UnsortedTimeWarning, empty_frame, rejects_table, validate)
 
 T0 = datetime(2024, 3, 1, 12, 0, 0, tzinfo=timezone.utc)
 UTC_US = pl.Datetime("us", "UTC")
@@ -583,7 +583,7 @@ def test_row_accounting(case: tuple[pl.DataFrame, set[int], int]) -> None:
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tertiary.contract.schema import is_sorted_by
+from tertiary.contract import is_sorted_by
 
 
 @settings(max_examples=80, deadline=None)

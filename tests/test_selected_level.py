@@ -275,7 +275,7 @@ def test_bds40_extraction_quantised_and_missing(traffic):
 def test_selected_altitude_reaches_the_tracks(tmp_path):
     """A small simulated run: reports → aligned → fused → tracks carry selected_alt_m; a track's
     value is one its aircraft selected."""
-    from tertiary.pipeline.job import PipelineConfig, process
+    from tertiary.pipeline import PipelineConfig, process
     from tertiary.simulate import load_scenario, simulate
     scen = load_scenario("terminal-area")
     scen = dataclasses.replace(scen, duration_s=600.0, runs=1,

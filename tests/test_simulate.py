@@ -10,7 +10,8 @@ import pytest
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError
-from tertiary.simulate import load_scenario, read_dataset, simulate, write_dataset
+from tertiary.io.dataset import read_dataset, write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.config import (Anomalies, RadarConfig, scenario_toml, from_dict, ScenarioConfig, with_radar_count)
 from tertiary.simulate.traffic import big_box, BIG_BOX_SPEED
 from tertiary.simulate.trajectory import SEG_TURN
@@ -18,7 +19,7 @@ from tertiary.simulate.trajectory import SEG_TURN
 import tomllib
 from pathlib import Path
 
-from tertiary.pipeline.job import ingest
+from tertiary.pipeline import ingest
 
 
 # --------------------------------------------------------------------------- big box geometry

@@ -1,4 +1,4 @@
-"""Streamed simulation (issue 16 item 4): window by window into time parts, read back alike."""
+"""Streamed simulation: window by window into time parts, read back alike."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.core.errors import DataError, OptionError
-from tertiary.simulate import (Dataset, load_scenario, read_dataset, simulate, simulate_windows, write_dataset, write_stream)
+from tertiary.io.dataset import Dataset, read_dataset, write_dataset
+from tertiary.simulate import load_scenario, simulate, simulate_windows, write_stream
 
 
 def _small_national(duration: float = 1200.0, peak: int = 150):
@@ -151,7 +152,7 @@ def _small_terminal(duration: float = 1800.0, aircraft: int = 40):
 
 
 def test_terminal_area_streams_in_blocks(tmp_path, monkeypatch):
-    """Terminal-area traffic is looked up window by window (issue 16 item 4): no truth array
+    """Terminal-area traffic is looked up window by window: no truth array
     spans more than a block (+ the scan margin) or a window, whatever the scenario's length.
     Fails if the traffic is built over the whole duration."""
     from tertiary.simulate import block_s
@@ -171,14 +172,13 @@ def test_terminal_area_streams_in_blocks(tmp_path, monkeypatch):
 
 def test_a_window_is_released_before_the_next_is_made(monkeypatch):
     """A streamed simulation does not hold the last window's tables while it makes the next
-    one (issue 16 item 4: beside the next one's, they doubled a national day's peak-hour
-    windows). With the consumer done with window k, its reports and truth are gone when window
+    one (beside the next one's they would double the peak memory). With the consumer done with window k, its reports and truth are gone when window
     k + 1's first block is observed. Fails if the generator keeps them bound until the next
     window's names are bound again."""
     import gc
     import importlib
     import weakref
-    sim = importlib.import_module("tertiary.simulate")     # the package, not the function
+    sim = importlib.import_module("tertiary.simulate.simulator")
     cfg = _small_terminal()
     alive: list[bool] = []
     last: list[weakref.ref] = []

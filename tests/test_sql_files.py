@@ -11,7 +11,7 @@ import polars as pl
 import pytest
 
 import tertiary
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 

@@ -14,7 +14,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.store import sql_reports
 from tertiary.cli.main import app
 from tertiary.core.errors import OptionError

@@ -15,9 +15,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.store import sql_reports
-from tertiary.simulate import load_scenario, simulate, write_dataset
+from tertiary.io.dataset import write_dataset
+from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import LEAN_PREFIX, RunStore
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_store.py"

@@ -16,8 +16,9 @@ import polars as pl
 import pytest
 
 from tertiary.stages.tracking.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
-from tertiary.contract.schema import validate
-from tertiary.stages.tracking.tracker import TRACK_COLUMNS, TrackerConfig, _assign, track
+from tertiary.contract import validate
+from tertiary.stages.tracking.gating import assign
+from tertiary.stages.tracking.tracker import TRACK_COLUMNS, TrackerConfig, track
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 DT = 4.0        # scan period of the test plots (s)
@@ -349,7 +350,7 @@ def test_assign_hungarian_matches_brute_force():
         dense = rng.uniform(0, 10, (n_o, n_p))
         gated = rng.random((n_o, n_p)) < 0.5
         o, p = np.nonzero(gated)
-        out = _assign(o, p, dense[o, p], n_o, n_p, "hungarian")
+        out = assign(o, p, dense[o, p], n_o, n_p, "hungarian")
         # reference: most gated assignments, then least cost
         big = 1e6
         ref = np.where(gated, dense, big)
@@ -365,8 +366,8 @@ def test_assign_hungarian_matches_brute_force():
 def test_assign_nearest_is_greedy_and_one_to_one():
     # objects 0, 1; plots 0, 1: both prefer plot 0, object 0 is closer to it
     o, p, c = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1]), np.array([1.0, 2.0, 1.5, 5.0])
-    assert _assign(o, p, c, 2, 2, "nearest").tolist() == [0, 1]
-    assert _assign(o, p, c, 2, 2, "hungarian").tolist() == [1, 0]      # 2.0 + 1.5 < 1.0 + 5.0
+    assert assign(o, p, c, 2, 2, "nearest").tolist() == [0, 1]
+    assert assign(o, p, c, 2, 2, "hungarian").tolist() == [1, 0]      # 2.0 + 1.5 < 1.0 + 5.0
 
 
 # --------------------------------------------------------------------------- Monte-Carlo runs
@@ -594,7 +595,7 @@ def test_best_tracker_beats_its_fused_input(fixture, request):
     the test fails on a return to filtering the radars' correlated estimates. The tracker NEES stays near its 3 degrees of
     freedom (the χ² band is the evaluation stage's business; 1.5–6 catches a filter that
     counts the same information twice)."""
-    from tertiary.pipeline import job as pipeline
+    from tertiary import pipeline
 
     ds = request.getfixturevalue(fixture)
     cfg = pipeline.PipelineConfig(methods=("arithmetic", "information", "bar_shalom_campo"),

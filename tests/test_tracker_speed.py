@@ -16,7 +16,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.pipeline import job as pipeline
+from tertiary import pipeline
 from tertiary.stages.tracking.filters import make_filter
 from tertiary.simulate import load_scenario, simulate
 from tertiary.stages.tracking.tracker import track, track_methods

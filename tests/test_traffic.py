@@ -1,4 +1,4 @@
-"""Terminal-area traffic that flies procedures (issue 11 item 6), checked with the safety
+"""Terminal-area traffic that flies procedures, checked with the safety
 oracle (closed-form losses of separation on the truth table ``tertiary.simulate`` produces)."""
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safety.conflicts import (ConflictConfig, arc_offsets, conflict_interval_arc, predict_conflicts)
-from tertiary.contract.schema import TURN_RATE_COLUMN
+from tertiary.contract import TURN_RATE_COLUMN
 
 T0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
 CFG = ConflictConfig(threshold_mode="fixed", fixed_est_h_m=0.0, fixed_est_v_m=0.0, pilot_h_m=0.0, pilot_v_m=0.0,

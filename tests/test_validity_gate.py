@@ -15,7 +15,7 @@ US = 1_000_000
 
 
 def test_range_limit_is_39_39_km_for_30_m_and_1_deg():
-    # (14): r < 0.4 σ_r / σ_θ² = 0.4 · 30 / (π/180)² = 39 393.7 m (the digest: 39.39 km)
+    # (14): r < 0.4 σ_r / σ_θ² = 0.4 · 30 / (π/180)² = 39 393.7 m
     assert align.validity_range_limit(30.0, np.radians(1.0)) == pytest.approx(12.0 / (np.pi / 180) ** 2)
     assert align.validity_range_limit(30.0, np.radians(1.0)) == pytest.approx(39_390.0, abs=5.0)
 

@@ -1,4 +1,4 @@
-"""`tertiary import asterix` and `tertiary export asterix` (typer sub-apps registered by tertiary.cli.main)."""
+"""`tertiary import asterix` and `tertiary export asterix` (typer sub-apps registered by :mod:`tertiary.cli.commands`)."""
 
 from __future__ import annotations
 
@@ -13,16 +13,18 @@ import polars as pl
 import typer
 from rich.table import Table
 
+from tertiary.cli.common import console, parse_origin
+from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
+from tertiary.evaluation.external import score_import
+from tertiary.io.asterix.dataset import import_recordings, write_import
+from tertiary.io.asterix.encode import export_picture
+from tertiary.pipeline.workflows import check_writable_dir
+from tertiary.store.run_store import RunStore
 
 import_app = typer.Typer(help="Import recordings from other formats into a dataset directory.",
                          no_args_is_help=True, rich_markup_mode=None)
 export_app = typer.Typer(help="Export a run's picture to other formats.", no_args_is_help=True, rich_markup_mode=None)
-
-
-def _origin_option(text: str | None) -> tuple[float, float, float] | None:
-    from tertiary.cli.main import _origin
-    return _origin(text)
 
 
 @import_app.command("asterix")
@@ -46,18 +48,16 @@ def import_asterix(
     force: Annotated[bool, typer.Option(help="replace a dataset already in OUT")] = False,
 ) -> None:
     """Decode ASTERIX recordings into reports/radars/[truth]/[external_tracks]/rejects Parquet files."""
-    from tertiary.io.asterix.dataset import import_recordings, write_import
-    from tertiary.cli.main import _writable_dir, console
-
-    _writable_dir(out, "--out")
+    check_writable_dir(out, "--out")
     if (out / "reports.parquet").exists() and not force:
         raise OptionError(f"{out} already holds a dataset; give --force to replace it", option="--out")
     for f in files:
         if not f.is_file():
             raise DataError("no such file" if not f.exists() else "not a file", path=str(f))
     t = time.perf_counter()
-    res = import_recordings(files, sites=sites, date=date, stale_s=stale_s, template=write_sites_template,
-                            origin=_origin_option(origin), skip_unknown=skip_unknown_sites)
+    res = score_import(import_recordings(files, sites=sites, date=date, stale_s=stale_s,
+                                         template=write_sites_template, origin=parse_origin(origin),
+                                         skip_unknown=skip_unknown_sites))
     name = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in out.resolve().name).strip("_-") or "asterix"
     write_import(res, out, name[:64])
     c = res.counts
@@ -77,7 +77,6 @@ def import_asterix(
 
 
 def _latency_table(latency: pl.DataFrame) -> None:
-    from tertiary.cli.main import console
     table = Table(title="per-radar latency: capture time - time of day (s)")
     for col in ("SAC/SIC", "records", "min", "median", "p95", "max", "stale", "out of order"):
         table.add_column(col, justify="right")
@@ -90,7 +89,6 @@ def _latency_table(latency: pl.DataFrame) -> None:
 
 def _picture(run_dir: Path, name: str) -> tuple[pl.DataFrame, tuple[float, float, float]]:
     """The rows of picture NAME (FILTER/METHOD from tracks, or fused/METHOD) and the run's origin."""
-    from tertiary.store.run_store import RunStore
     if not (run_dir / "results.duckdb").is_file():
         raise DataError("no run database here (expected results.duckdb)", path=str(run_dir))
     kind, sep, method = name.partition("/")
@@ -128,10 +126,6 @@ def export_asterix(
     run: Annotated[int, typer.Option(help="Monte-Carlo run to export")] = 0,
 ) -> None:
     """Write a picture of a run as CAT062 system tracks (position, velocity, accuracy, identity)."""
-    from tertiary.core import geo
-    from tertiary.io.asterix.encode import export_picture
-    from tertiary.cli.main import console
-
     if out.is_dir():
         raise OptionError(f"{out} is a directory; give a file name", option="--out")
     frame, origin = _picture(run_dir, picture)

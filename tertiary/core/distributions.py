@@ -3,8 +3,8 @@ confidence bounds and conflict thresholds read them.
 
 They are the formulas ``scipy.stats`` evaluates (``chi2.ppf(q, k) = 2·P⁻¹(k/2, q)`` with ``P`` the
 regularised lower incomplete gamma function, ``norm.ppf = ndtri``), called through
-``scipy.special`` directly: ``scipy.stats`` is slow to import, and without it ``tertiary --help``
-takes 1.63 s instead of 2.19 s on the 2-core machine (medians of 10 whole-process runs).
+``scipy.special`` directly: ``scipy.stats`` is slow to import, and every start of the command
+line would pay for it.
 ``tests/test_distributions.py`` checks them against ``scipy.stats``.
 """
 

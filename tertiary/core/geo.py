@@ -377,3 +377,36 @@ def elevation_from_altitude(range_m: ArrayLike, target_alt_m: ArrayLike, radar_a
 def wrap_deg(angle_deg: ArrayLike) -> F64:
     """Wrap an angle difference to [-180, 180)."""
     return np.mod(_f(angle_deg) + 180.0, 360.0) - 180.0
+
+
+def height_and_rate(pos: ArrayLike, vel: ArrayLike, frame: LocalFrame | None) -> tuple[F64, F64, F64]:
+    """Height above the WGS-84 ellipsoid, its rate and the local up unit vector at the target,
+    from system-frame ENU positions/velocities ``(n, 3)``.
+
+    h = geodetic height of the ECEF point frame.to_ecef(pos); ḣ = n̂·v with n̂ the ellipsoid
+    normal *at the target* (∇h = n̂ exactly), expressed in the system ENU axes — not the
+    origin's up (ENU z), which tilts by ρ/R: at ρ = 100 km a level aircraft's z drops
+    ρ²/2R ≈ 785 m and a level radial flight at 200 m/s shows v·ρ/R ≈ 3 m/s of false z-rate.
+
+    ``frame=None`` (no origin known): a sphere of radius :data:`EARTH_RADIUS_M` through the
+    origin (h measured from the origin's height; the radius of curvature varies by ±0.5 % with
+    azimuth, so the height of an aircraft at ρ errs by ≤ 0.005·ρ²/2R: ≤ 9 m at 150 km, ≤ 4 m at
+    100 km). Pass the scenario origin whenever it is known.
+    Returns (h (n,), ḣ (n,), up (n, 3)).
+    """
+    p = np.asarray(pos, np.float64).reshape(-1, 3)
+    v = np.asarray(vel, np.float64).reshape(-1, 3)
+    if frame is None:
+        r = EARTH_RADIUS_M
+        c = p + np.array([0.0, 0.0, r])
+        norm_c = np.sqrt(np.einsum("ij,ij->i", c, c))
+        up = c / norm_c[:, None]
+        h = norm_c - r
+    else:
+        lat, lon, h = ecef_to_geodetic(*frame.to_ecef(p[:, 0], p[:, 1], p[:, 2]))
+        la, lo = np.radians(lat), np.radians(lon)
+        n_ecef = np.column_stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)])
+        up = n_ecef @ frame.rotation.T                   # the ECEF normal in the system ENU axes
+        h = np.asarray(h, np.float64)
+    hdot = np.einsum("ij,ij->i", up, v)
+    return h, hdot, up

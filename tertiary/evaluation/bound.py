@@ -72,8 +72,11 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
+from tertiary.core.jit import arg, ready_for
+from tertiary.core.units import US
+from tertiary.evaluation.bound_kernel import pcrb_singer9
 from tertiary.stages.tracking.filters.singer import Variant, singer_phi, singer_q
-from tertiary.contract.schema import TABLES, TIME
+from tertiary.contract import TABLES, TIME
 
 __all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS"]
 
@@ -90,10 +93,8 @@ _GAP = {"pcrb_pos_m": "gap_pos_m", "pcrb_horizontal_m": "gap_horizontal_m", "pcr
 #: 9-state (x, vx, ax, y, vy, ay, z, vz, az) indices of the positions and velocities
 POS = np.array([0, 3, 6])
 VEL = np.array([1, 4, 7])
-US = 1_000_000
 #: drop the scans that cannot bring an aircraft within a rotating radar's range before the
-#: beam-passage iterations (:func:`_radar_events`; the same events, the national hour's in 8.5 s
-#: instead of 12.0)
+#: beam-passage iterations (:func:`_radar_events`; the same events, found sooner)
 RANGE_SCREEN = True
 
 
@@ -385,7 +386,7 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
     src = rows["__ev"].to_numpy()
     out = []
     # aircraft a block at a time (each sequence is independent): the events' 3x3 matrices are
-    # gathered for a block, never for the whole recording (the stage's peak, issue 16)
+    # gathered for a block, never for the whole recording (the stage's peak)
     for lo, hi, g0, g1 in _aircraft_blocks(starts, len(tid), BOUND_BLOCK_ROWS):
         s = src[lo:hi]
         r_eq = np.full((hi - lo, 3, 3), np.nan)
@@ -403,16 +404,14 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
 BOUND_BLOCK_ROWS = 262_144
 #: aircraft whose illuminations are made and bounds pooled at a time (:func:`bound_stage`)
 BOUND_AIRCRAFT = 256
-#: aircraft whose truth :func:`bound_stage` reads at a time from a reference on disk: a national
-#: day's 20 147 aircraft in 5 reads (its 79 M truth rows whole were ~5.7 GB, issue 18)
+#: aircraft whose truth :func:`bound_stage` reads at a time from a reference on disk: a long
+#: recording's aircraft in a few reads, its truth never held whole
 BOUND_READ_AIRCRAFT = 4_096
 
 
 def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig) -> F64:
     """:func:`pcrb_linear` on the 9-state Singer model with :func:`_bound_summary`, compiled
     (:func:`tertiary.evaluation.bound_kernel.pcrb_singer9`): (n_record, 3) in row order."""
-    from tertiary.evaluation.bound_kernel import pcrb_singer9
-    from tertiary.runtime.warmup import arg, ready_for
     tau = np.zeros(len(t))
     tau[1:] = np.diff(t)                 # a sequence's first row has none: it starts from the prior
     slot = np.full(len(t), -1, np.int64)
@@ -464,7 +463,7 @@ def _bound_sums(scored: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:
     s = s.join(bound, on=["truth_id", "epoch"], how="inner")
     aggs = [*[pl.col(c).sum() for c in cols], pl.len().cast(pl.UInt32).alias("__n")]
     # segment "all" and each sample's straight/turn class grouped in place: the samples of every
-    # picture are not copied once per segment (the stage's peak on a long run, issue 16)
+    # picture are not copied once per segment (the stage's peak on a long run)
     return pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch", "run").agg(*aggs),
                       s.group_by("method", pl.col("seg_class").alias("segment"), "epoch", "run").agg(*aggs)
                       .filter(pl.col("segment").is_not_null())])
@@ -534,7 +533,7 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
     sums = []
     # a block of aircraft at a time (each one's bound is its own recursion): the illuminations
-    # and bounds of the whole recording are never held (the stage's peak on a long run, issue 16)
+    # and bounds of the whole recording are never held (the stage's peak on a long run)
     for read, held in _truth_reads(truth, ids):
         for lo in range(0, len(read), BOUND_AIRCRAFT):
             block = read[lo:lo + BOUND_AIRCRAFT].tolist()
@@ -552,7 +551,7 @@ def _truth_reads(truth: pl.DataFrame | pl.LazyFrame, ids: NDArray[np.int64]
     """(aircraft ids, their truth rows) in reads of :data:`BOUND_READ_AIRCRAFT` aircraft from a
     scan; a frame already in memory in one read. Each read scans the whole reference (it is in
     time order, so no row group holds few aircraft): few reads of many aircraft keep that cost
-    a few passes while the truth held is a fraction of a national day's 79 M rows (issue 18)."""
+    a few passes while the truth held is a fraction of a long recording's."""
     if isinstance(truth, pl.DataFrame):
         yield ids, truth
         return

@@ -3,17 +3,20 @@
 
 :func:`tertiary.evaluation.bound.pcrb_linear` runs the recursion vectorised over aircraft per event rank:
 a few numpy calls on stacks of 9×9 matrices per rank, and an aircraft seen for hours keeps the
-loop going with a handful of sequences. On the national hour it was 12 s of the finalize. Here
-each aircraft's events run one after another. Φ and Q are block diagonal (one 3×3 Singer block
-per axis), so the prediction is done per block; the update is (T34) with H selecting the three
-positions and the 3×3 innovation matrix solved by Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear`
-stays the reference (compared in the tests).
+loop going with a handful of sequences. Here each aircraft's events run one after another.
+Φ and Q are block diagonal (one 3×3 Singer block per axis), so the prediction is done per block;
+the update is (T34) with H selecting the three positions and the 3×3 innovation matrix solved by
+Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear` stays the reference (compared in the
+tests).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+from numba import types as nbt
+
+from tertiary.core.jit import register_kernel
 
 _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 
@@ -95,3 +98,13 @@ def pcrb_singer9(phi, q, r_eq, has, starts, lengths, p0, slot, out):
                 out[k, 0] = p[0, 0] + p[3, 3] + p[6, 6]
                 out[k, 1] = p[0, 0] + p[3, 3]
                 out[k, 2] = p[1, 1] + p[4, 4] + p[7, 7]
+
+
+def _signature() -> tuple:
+    """The one signature :func:`tertiary.evaluation.bound.bound_stage` calls it with."""
+    f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
+    i1, b1 = nbt.Array(nbt.int64, 1, "C"), nbt.Array(nbt.boolean, 1, "C")
+    return (f3, f3, f3, b1, i1, i1, f2, i1, f2)
+
+
+register_kernel("pcrb", __name__, pcrb_singer9, _signature)

@@ -1,12 +1,11 @@
-"""A long picture's rows filed once by bucket (issue 18, scale): the evaluation's buckets read
-their own rows only.
+"""A long picture's rows filed once by bucket: the evaluation's buckets read their own rows
+only.
 
-:func:`~tertiary.evaluation.accuracy.picture_accuracy_buckets` and
-:func:`~tertiary.evaluation.picture_metrics.picture_metrics_buckets` compute a spilled picture's metrics a
-bucket of whole tracks or whole aircraft at a time. Each bucket used to filter the whole spilled
-picture, so a picture of n rows in ⌈n / 150 000⌉ buckets was read that many times: quadratic in
-the recording's length (three national hours' evaluation: 270.7 s before, 235.2 s after).
-:func:`file_buckets` reads the rows once, a slice at a time, and writes each slice's rows of
+:func:`~tertiary.evaluation.accuracy_buckets.picture_accuracy_buckets` and
+:func:`~tertiary.evaluation.picture_buckets.picture_metrics_buckets` compute a spilled picture's metrics a
+bucket of whole tracks or whole aircraft at a time. Were each bucket to filter the whole spilled
+picture, a picture of n rows in ⌈n / 150 000⌉ buckets would be read that many times: quadratic in
+the recording's length. :func:`file_buckets` reads the rows once, a slice at a time, and writes each slice's rows of
 bucket k to ``where/b=k/``; bucket k is then a scan of its own files, its rows in the input's
 order.
 """

@@ -1,4 +1,4 @@
-"""One evaluation stage for any air picture (issue 13): match once, score with the metrics
+"""One evaluation stage for any air picture: match once, score with the metrics
 surveillance engineers use, judge against requirements.
 
     tracks (any picture, ``tracks`` schema) + reference (truth / ADS-B / reconstructed)
@@ -32,12 +32,16 @@ import numpy as np
 import polars as pl
 
 from tertiary.core import geo
-from tertiary.evaluation.accuracy import (AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, picture_accuracy_buckets, row_scores)
+from tertiary.evaluation.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
+from tertiary.evaluation.accuracy_buckets import picture_accuracy_buckets
 from tertiary.core.errors import DataError
 from tertiary.evaluation.matching import (MatchConfig, between_expr, between_mask, match_with_reference, neighbour_times, reference_identity)
-from tertiary.evaluation.picture_metrics import (BREAKDOWNS, MetricsConfig, picture_metrics, picture_metrics_buckets)
+from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
+from tertiary.evaluation.picture_buckets import picture_metrics_buckets
+from tertiary.evaluation.reference import adsb_reference, plot_measurements, reconstruct_reference
 from tertiary.evaluation.requirements import Requirements, check_requirements
-from tertiary.contract.schema import TABLES, TIME
+from tertiary.contract import TABLES, TIME
+from tertiary.store.files import write_parquet_atomic
 
 __all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
            "write_reference_pieces", "reference_files",
@@ -110,7 +114,7 @@ _METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", *_STATE, "a
 
 def _metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
     """The columns of ``matched`` the surveillance metrics read: a picture's covariances and
-    diagnostics are not copied through their joins (memory of the stage, issue 16)."""
+    diagnostics are not copied through their joins (memory of the stage)."""
     names = matched.collect_schema().names() if isinstance(matched, pl.LazyFrame) else matched.columns
     return [c for c in names if c in _METRIC_COLUMNS or c.startswith("true_")]
 
@@ -144,9 +148,8 @@ def write_reference(truth: pl.DataFrame, path: str | Path) -> Path:
     """``truth`` as a reference file the evaluation reads a time slice at a time (give its path
     as ``truth`` to :func:`evaluate_each`): its rows in their order, with each sample's aircraft's
     neighbouring sample times, so a slice is read without the rest of the reference. A long
-    run's reference is then not held through the evaluation (issue 16, memory);
+    run's reference is then not held through the evaluation (memory);
     :func:`read_reference` gives ``truth`` back."""
-    from tertiary.store.run_store import write_parquet_atomic
     times = neighbour_times(truth)          # beside the frame's own columns: no copy of them
     frame = truth.with_columns(times["__prev"], times["__next"])
     return write_parquet_atomic(frame, path, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
@@ -156,7 +159,7 @@ def write_reference_pieces(pieces: Iterable[pl.DataFrame], path: str | Path) -> 
     """A reference written a piece at a time, in order, as a directory of reference files (one
     per piece, read back in name order): each piece already carries its samples' ``__prev``/
     ``__next`` (:func:`neighbour_times` of whole aircraft), so a truth that is never held whole
-    is written without a second copy (issue 18, memory). :func:`read_reference`,
+    is written without a second copy (memory). :func:`read_reference`,
     :func:`evaluate_each` and the run database read the directory as one reference. The
     directory appears whole (renamed from a temporary one when the last piece is written)."""
     final = Path(path)
@@ -216,15 +219,15 @@ class _Reference:
             # the reader keeps the rows' order: the frame's slice. It takes a coarse test on the
             # columns themselves (every row the exact one keeps passes it: its time is ≥ t0 or
             # its next sample's is, and ≤ t1 or its previous one's is), which skips the row
-            # groups of other times; the exact test, with ``fill_null``, kept it from skipping
-            # any, so every block of a long picture read the whole reference (issue 18)
+            # groups of other times; the exact test alone, with ``fill_null``, would skip none,
+            # and every block of a long picture would read the whole reference
             coarse = (((pl.col("time") >= t0) | (pl.col("__next") >= t0))
                       & ((pl.col("time") <= t1) | (pl.col("__prev") <= t1)))
             return (pl.scan_parquet(self.files).filter(coarse).select(*cols, *NEIGHBOUR_COLUMNS).collect()
                     .filter(between_expr(t0, t1)).select(cols))
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice
-            # copies only its own rows of the columns the matcher reads (memory, issue 16)
+            # copies only its own rows of the columns the matcher reads (memory)
             self._times = neighbour_times(self._truth)
         return self._truth.select(cols).filter(between_mask(self._times, t0, t1))
 
@@ -237,7 +240,7 @@ _SCORED_COLUMNS = (*_METRIC_COLUMNS, *ROW_SCORES, "gated_truth_id", "nis")
 def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
     """The columns of a matched, row-scored block that the metrics and the id map read: a long
     picture's other columns (the fusion's and tracker's diagnostics, the reference's segment
-    once classified) are not held whole until its metrics run (memory of the stage, issue 16)."""
+    once classified) are not held whole until its metrics run (memory of the stage)."""
     return matched.select(c for c in matched.columns
                           if c in _SCORED_COLUMNS or c == id_col or c.startswith("true_"))
 
@@ -251,7 +254,7 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
     and the row scores per row, so the result is that of the whole picture at once. ``slim``:
     only the columns the metrics read are kept (:func:`_scored_only`). ``spill`` (a picture of
     several blocks): each block's rows go to Parquet files there as they are made, and both
-    come back as scans of those files, never held whole (memory, issues 16 and 18)."""
+    come back as scans of those files, never held whole (memory)."""
     it = (b for b in blocks if b.height)
     first = next(it, None)
     if first is None:
@@ -295,8 +298,8 @@ def _spilled(spill: Path, matched: list[pl.DataFrame], expected: list[pl.DataFra
     return [], []
 
 
-#: rows of a spilled picture whose metrics are computed at a time (:func:`evaluate_each`): a
-#: 427 k-row picture of a 12 h terminal-area run took ~450 MiB over its rows whole
+#: rows of a spilled picture whose metrics are computed at a time (:func:`evaluate_each`): the
+#: stage's memory is a bucket's, not the picture's
 EVAL_BUCKET_ROWS = 150_000
 
 
@@ -351,9 +354,9 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     scratch directory; with ``keep_matched=False``): a picture of several blocks is matched to
     Parquet files there, and its metrics are computed in buckets of at most ``bucket_rows``
     rows (default :data:`EVAL_BUCKET_ROWS`) of aircraft or tracks
-    (:func:`~tertiary.evaluation.accuracy.picture_accuracy_buckets`,
-    :func:`~tertiary.evaluation.picture_metrics.picture_metrics_buckets`): the same metrics, with the
-    stage's memory bounded by a bucket, not by the recording (issues 16 and 18)."""
+    (:func:`~tertiary.evaluation.accuracy_buckets.picture_accuracy_buckets`,
+    :func:`~tertiary.evaluation.picture_buckets.picture_metrics_buckets`): the same metrics, with the
+    stage's memory bounded by a bucket, not by the recording."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
@@ -374,11 +377,11 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         if isinstance(matched, pl.LazyFrame):
             k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
             # each bucket reads its own rows, filed once beside the spilled picture (linear in
-            # the picture's rows, not rows × buckets: issue 18)
+            # the picture's rows, not rows × buckets)
             seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen, buckets=k,
                                                                scratch=where / "accuracy")
             # its filed rows go before the metrics file theirs: the scratch's peak is the spilled
-            # picture and one filing, not two (a national day's: 7.6 GiB a picture, issue 18)
+            # picture and one filing, not two
             shutil.rmtree(where / "accuracy", ignore_errors=True)
             if surveillance:
                 parts["metrics"].append(picture_metrics_buckets(
@@ -415,14 +418,13 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
 
 def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: geo.LocalFrame,
                             key: str = "truth_id") -> pl.DataFrame:
-    """Issue 13 item 6: a reference per aircraft reconstructed offline from every radar plot by a
+    """A reference per aircraft reconstructed offline from every radar plot by a
     fixed-interval smoother (:func:`tertiary.evaluation.reference.reconstruct_reference`: forward Kalman pass
     + Rauch–Tung–Striebel backward pass), in the truth schema (truth_id, time, x_m … vz_mps,
     alt_m, sigma_h_m). The smoother's state is (x, y, height); the ENU z of the truth schema is
     derived from the height (z ≈ h − ρ²/2R, ≤ 1 m error below 150 km) only so that the frame is
     complete; heights are compared through ``alt_m``. ``key``: the aircraft identity of the
     plots (``truth_id`` in simulation, ``mode_s`` on a recording)."""
-    from tertiary.evaluation.reference import plot_measurements, reconstruct_reference
     rec = reconstruct_reference(plot_measurements(reports, radars, frame, key=key), key=key)
     rho2 = pl.col("x_m") ** 2 + pl.col("y_m") ** 2
     return rec.select(pl.col("truth_id").cast(pl.Int64) if key == "truth_id" else "truth_id", "time", "x_m", "y_m",
@@ -431,12 +433,11 @@ def reconstructed_reference(reports: pl.DataFrame, radars: pl.DataFrame, frame: 
 
 
 def adsb_reference_table(raw: pl.DataFrame, frame: geo.LocalFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Issue 13 item 5: an ADS-B recording (OpenSky / ``traffic`` schema) as the reference, in the
+    """An ADS-B recording (OpenSky / ``traffic`` schema) as the reference, in the
     truth schema: points filtered by their declared quality (NACp/NIC/NUCp where present), jumps
     and stale positions (:func:`tertiary.evaluation.reference.adsb_reference`), with the reference's own
     horizontal σ per point (``sigma_h_m``). Returns (reference, removed rows with reasons). Use it
     with ``MatchConfig(max_gap_s=...)`` so that only short gaps are interpolated."""
-    from tertiary.evaluation.reference import adsb_reference
     points, removed = adsb_reference(raw, frame)
     ref = points.with_columns(pl.col("alt_rate_mps").fill_nan(None).fill_null(0.0).alias("vz_mps"),
                               pl.col("vx_mps").fill_nan(None), pl.col("vy_mps").fill_nan(None))
@@ -517,7 +518,7 @@ def _report_truth(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.
         on = ["run", "report_id"]
     rt = report_truth.select(*[pl.col(c).cast(associations.schema[c]) for c in on],
                              pl.col("truth_id").cast(pl.Int64)).unique(subset=on, keep="first")
-    # a block of rows joined at a time: a long run's join scratch is a block's (memory, issue 16)
+    # a block of rows joined at a time: a long run's join scratch is a block's (memory)
     size = max(1, LABEL_BLOCK_ROWS)
     return pl.concat([associations.slice(k, size).join(rt, on=on, how="left", maintain_order="left")
                       for k in range(0, max(associations.height, 1), size)])
@@ -571,7 +572,7 @@ _TARGET = ["run", "target_id"]
 @dataclass
 class AssociationScore:
     """What :func:`association_metrics` needs of the association rows seen so far, carried
-    across windows (issue 16: evaluation accumulators, a step function's explicit state). A
+    across windows (evaluation accumulators, a step function's explicit state). A
     window holds whole epochs, so the per-epoch counts add up; what spans epochs is carried
     per target or aircraft: each target's majority aircraft at its last epoch (swaps), whether
     it ever had a real report (false targets), every (aircraft, target) majority pair and the

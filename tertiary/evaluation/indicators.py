@@ -49,13 +49,13 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
+from tertiary.core.units import US
 from tertiary.evaluation.matching import MatchConfig, match_to_reference, reference_at_epochs
-from tertiary.contract.schema import TABLES, TIME
+from tertiary.contract import TABLES, TIME
 
 __all__ = ["IndicatorConfig", "indicators", "picture_indicators", "gain_history", "gain_metrics", "STAGE"]
 
 STAGE = "indicators"
-US = 1_000_000
 
 
 @dataclass(frozen=True)

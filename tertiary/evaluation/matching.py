@@ -49,13 +49,12 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tertiary.contract.schema import TIME
+from tertiary.contract import TIME
+from tertiary.core.units import STATE
 
 __all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference", "match_with_reference",
            "reference_identity", "with_neighbours", "reference_between",
            "neighbour_times", "between_mask", "between_expr"]
-
-STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
 
 def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
@@ -234,7 +233,7 @@ def neighbour_times(truth: pl.DataFrame) -> pl.DataFrame:
     """(time, ``__prev``, ``__next``) of each sample of ``truth``, in its row order: the sample's
     time and its aircraft's previous and next sample times — :func:`between_mask` cuts a time
     slice with these three columns alone, never a copy of the reference (memory of the
-    evaluation, issue 16)."""
+    evaluation)."""
     keys = ["truth_id"] + (["run"] if "run" in truth.columns else [])
     t = pl.col("time").cast(TIME)
     return truth.select(pl.col("time"), t.shift(1).over(keys, order_by=t).alias("__prev"),

@@ -1,4 +1,4 @@
-"""Air-picture metrics of issue 13 item 3, computed from a *matched* frame (pure functions).
+"""Air-picture metrics (surveillance quality of a picture), computed from a *matched* frame (pure functions).
 
 Input contract
 --------------
@@ -63,18 +63,15 @@ Output: the ``metrics`` table (stage ``evaluation``, method = picture, segment =
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.evaluation.buckets import file_buckets
 from tertiary.core.errors import DataError, OptionError
 
-__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics",
-           "picture_metrics_buckets"]
+__all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics"]
 
 BREAKDOWNS = ("alt", "range", "phase")
 STAGE = "evaluation"
@@ -195,7 +192,7 @@ def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = N
 _ALL = pl.lit("all").cast(pl.Categorical)
 
 
-def _by_segment(frame: pl.DataFrame, breakdown: Sequence[str], *aggs: pl.Expr, by: Sequence[str] = ()) -> pl.DataFrame:
+def by_segment(frame: pl.DataFrame, breakdown: Sequence[str], *aggs: pl.Expr, by: Sequence[str] = ()) -> pl.DataFrame:
     """``aggs`` per (method, segment, ``by``…): segment ``all`` (every row) and each label of each
     breakdown column (the rows that have it). Grouped in place, once per breakdown: the frame
     is never copied per label (the memory of the stage on a long run)."""
@@ -206,7 +203,7 @@ def _by_segment(frame: pl.DataFrame, breakdown: Sequence[str], *aggs: pl.Expr, b
     return pl.concat(parts, how="vertical")
 
 
-def _long(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
+def long_rows(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
     """(method, segment, n_runs, metric columns) → metrics rows (NaN/null values dropped)."""
     return (wide.unpivot(index=["method", "segment", "n_runs"], on=list(names), variable_name="metric")
             .filter(pl.col("value").is_not_null() & pl.col("value").is_finite()))
@@ -215,7 +212,7 @@ def _long(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
 # --------------------------------------------------------------------------- metric groups
 
 
-def _quantiles(abs_height: pl.Expr) -> list[pl.Expr]:
+def height_quantiles(abs_height: pl.Expr) -> list[pl.Expr]:
     """The accuracy quantiles (of ``err_h_m`` and of ``abs_height``, |height error|)."""
     return [pl.col("err_h_m").quantile(0.95, "linear").alias("p95_horizontal_m"),
             pl.col("err_h_m").quantile(0.99, "linear").alias("p99_horizontal_m"),
@@ -226,12 +223,12 @@ def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
     def rms(c: str) -> pl.Expr:
         return (pl.col(c) ** 2).mean().sqrt()
 
-    wide = _by_segment(
+    wide = by_segment(
         err, breakdown,
         pl.col("run").n_unique().alias("n_runs"),
         rms("err_h_m").alias("rmse_horizontal_m"),
         rms("err_height_m").alias("rmse_height_m"),
-        *_quantiles(pl.col("err_height_m").abs()),
+        *height_quantiles(pl.col("err_height_m").abs()),
         pl.col("err_h_m").max().alias("max_horizontal_m"),
         pl.col("err_height_m").abs().max().alias("max_height_m"),
         rms("along_m").alias("along_track_rms_m"),
@@ -246,10 +243,10 @@ def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
         pl.len().cast(pl.Float64).alias("n_points"),
     )
     names = [c for c in wide.columns if c not in ("method", "segment", "n_runs")]
-    return _long(wide, names)
+    return long_rows(wide, names)
 
 
-def _representatives(m: pl.DataFrame) -> pl.DataFrame:
+def representatives(m: pl.DataFrame) -> pl.DataFrame:
     """One row per (method, run, truth_id, epoch): the representative track (see docstring)."""
     counts = m.group_by(_KEY + ["track_id"]).agg(pl.len().alias("__n"))
     return (m.join(counts, on=_KEY + ["track_id"])
@@ -257,7 +254,7 @@ def _representatives(m: pl.DataFrame) -> pl.DataFrame:
             .unique(_KEY + ["epoch"], keep="first", maintain_order=True))
 
 
-def _exposure(rep: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
+def exposure_rows(rep: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
               labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
     """Rows carrying the observed time of each aircraft: ``expected`` (crossed with the
     pictures; a row counts until the next one, at most ``gap_s`` — a longer step is a reference
@@ -274,7 +271,7 @@ def _exposure(rep: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.Data
     return rows.with_columns((dt / 3600.0).alias("__hours")).join(labels, on=["run", "truth_id", "epoch"], how="left")
 
 
-def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig, span: bool) -> pl.DataFrame:
+def update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig, span: bool) -> pl.DataFrame:
     """(method, run, truth_id, bin, labels…, updated) per expected update interval: the
     intervals holding an ``expo`` row, or (``span``) every interval from the first to the last
     ``expo`` row, labelled by the last row at or before its start."""
@@ -300,21 +297,21 @@ def _update_intervals(rep: pl.DataFrame, expo: pl.DataFrame, cfg: MetricsConfig,
 
 
 #: what :func:`accuracy_errors` and the identity checks read of a matched picture (beside ``true_*``)
-_ERROR_INPUTS = (*_KEY, "epoch", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m", "alt_rate_mps",
+ERROR_INPUTS = (*_KEY, "epoch", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m", "alt_rate_mps",
                  "mode_s", "icao24", "mode_3a", "callsign")
 #: the error columns of :func:`accuracy_errors`
 _ERRORS = ("err_h_m", "along_m", "across_m", "err_height_m", "err_gs_mps", "err_track_deg", "err_vrate_mps",
            "latency_sample_s")
-#: the items :func:`_identity_checks` compares
+#: the items :func:`identity_checks` compares
 _IDENTITY = ("mode_s", "icao24", "mode_3a", "true_mode_3a", "callsign", "true_callsign", "alt_m", "true_alt_m")
 #: what the continuity metrics read of a matched picture
-_CONTINUITY_INPUTS = (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m")
+CONTINUITY_INPUTS = (*_KEY, "epoch", "track_id", "x_m", "y_m", "z_m", "alt_m")
 
 
-def _rep_events(m: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+def rep_events(m: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
     """The representative rows with their labels, id change (``__change``), time since the
     aircraft's previous represented epoch (``__gap_s``) and break flag (``__break``)."""
-    rep = _representatives(m).sort(_KEY + ["epoch"])
+    rep = representatives(m).sort(_KEY + ["epoch"])
     gap = (pl.col("epoch") - pl.col("epoch").shift(1).over(_KEY)).dt.total_microseconds() / 1e6
     rep = rep.with_columns(
         (pl.col("track_id") != pl.col("track_id").shift(1).over(_KEY)).fill_null(False).alias("__change"),
@@ -322,7 +319,7 @@ def _rep_events(m: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl
     return rep.with_columns((pl.col("__gap_s") > cfg.gap_s).fill_null(False).alias("__break"))
 
 
-def _continuity_rows(hours: pl.DataFrame, events: pl.DataFrame, ints: pl.DataFrame) -> pl.DataFrame:
+def continuity_rows(hours: pl.DataFrame, events: pl.DataFrame, ints: pl.DataFrame) -> pl.DataFrame:
     """Metrics rows of the continuity groups per (method, segment): ``hours`` (aircraft_hours,
     n_runs), ``events`` (__changes, track_breaks, mean_reacquire_s), ``ints`` (prob_update,
     n_update_intervals); a segment without exposure has none of them."""
@@ -332,31 +329,31 @@ def _continuity_rows(hours: pl.DataFrame, events: pl.DataFrame, ints: pl.DataFra
                           pl.col("track_breaks").cast(pl.Float64)))
     names = ["aircraft_hours", "id_changes_per_hour", "track_breaks", "track_breaks_per_hour",
              "mean_reacquire_s", "prob_update", "n_update_intervals"]
-    return _long(wide, names)
+    return long_rows(wide, names)
 
 
 def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
                 breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
     # what the continuity metrics read: a long picture's other columns are not copied through them
-    m = m.select(c for c in m.columns if c in _CONTINUITY_INPUTS)
-    rep = _rep_events(m, labels, cfg)
+    m = m.select(c for c in m.columns if c in CONTINUITY_INPUTS)
+    rep = rep_events(m, labels, cfg)
     methods = m.select("method").unique()
-    expo = _exposure(rep, expected, methods, labels, cfg)
-    hours = _by_segment(expo, breakdown,
+    expo = exposure_rows(rep, expected, methods, labels, cfg)
+    hours = by_segment(expo, breakdown,
                         pl.col("__hours").sum().alias("aircraft_hours"), pl.col("run").n_unique().alias("n_runs"))
-    events = _by_segment(rep, breakdown,
+    events = by_segment(rep, breakdown,
                          pl.col("__change").sum().alias("__changes"), pl.col("__break").sum().alias("track_breaks"),
                          pl.col("__gap_s").filter(pl.col("__break")).mean().alias("mean_reacquire_s"))
-    ints = _by_segment(_update_intervals(rep, expo, cfg, expected is None), breakdown,
+    ints = by_segment(update_intervals(rep, expo, cfg, expected is None), breakdown,
                        pl.col("updated").mean().alias("prob_update"),
                        pl.len().cast(pl.Float64).alias("n_update_intervals"))
-    out = [_continuity_rows(hours, events, ints), _split(rep, m, labels, breakdown)]
+    out = [continuity_rows(hours, events, ints), _split(rep, m, labels, breakdown)]
     if expected is not None and {"true_x_m", "true_y_m"} <= set(expected.columns):
         out.append(_merged(m, rep.select(m.columns), expected, labels, methods, breakdown, cfg))
     return pl.concat(out, how="vertical")
 
 
-def _second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame) -> pl.DataFrame:
+def second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame) -> pl.DataFrame:
     """The rows of ``m`` whose track is not its aircraft's representative then, labelled."""
     return (m.join(rep.select(_KEY + ["epoch", pl.col("track_id").alias("__rep")]), on=_KEY + ["epoch"])
             .filter(pl.col("track_id") != pl.col("__rep")).join(labels, on=["run", "truth_id", "epoch"], how="left"))
@@ -364,20 +361,20 @@ def _second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame) -> 
 
 def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
     base = rep.select("method", "run").unique()
-    return _count_tracks(_second_tracks(rep, m, labels), base, breakdown, "split_tracks")
+    return count_tracks(second_tracks(rep, m, labels), base, breakdown, "split_tracks")
 
 
-def _count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
+def count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
     """Distinct (run, track_id) per (method, segment); zero in ``all`` for pictures without any."""
-    got = _by_segment(events, breakdown, pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name),
+    got = by_segment(events, breakdown, pl.struct("run", "track_id").n_unique().cast(pl.Float64).alias(name),
                       pl.col("run").n_unique().alias("n_runs"))
     zero = base.group_by("method").agg(pl.col("run").n_unique().alias("n_runs")).with_columns(
         _ALL.alias("segment"), pl.lit(0.0).alias(name))
     got = pl.concat([got, zero.join(got, on=["method", "segment"], how="anti").select(got.columns)])
-    return _long(got, [name])
+    return long_rows(got, [name])
 
 
-def _bare(m: pl.DataFrame, expected: pl.DataFrame, methods: pl.DataFrame) -> pl.DataFrame:
+def bare_rows(m: pl.DataFrame, expected: pl.DataFrame, methods: pl.DataFrame) -> pl.DataFrame:
     """The expected rows (× pictures) of an aircraft with no track of its own at their epoch:
     (method, run, epoch, truth_id, true_x_m, true_y_m, ``__h`` its height)."""
     exp = expected.join(methods, how="cross")
@@ -387,7 +384,7 @@ def _bare(m: pl.DataFrame, expected: pl.DataFrame, methods: pl.DataFrame) -> pl.
     return bare.select("method", "run", "epoch", "truth_id", "true_x_m", "true_y_m", th.alias("__h"))
 
 
-def _rep_points(rep: pl.DataFrame) -> pl.DataFrame:
+def rep_points(rep: pl.DataFrame) -> pl.DataFrame:
     """Where each representative track is: (method, run, epoch, track_id, ``__other`` the aircraft
     it represents, x_m, y_m, ``__th`` its height)."""
     h, _ = _height(rep)
@@ -407,7 +404,7 @@ def _cells(frame: pl.DataFrame, x: str, y: str, side: float, spread: bool) -> pl
             .drop("__dx", "__dy"))
 
 
-def _merge_hits(bare: pl.DataFrame, trk: pl.DataFrame, cfg: MetricsConfig, spread_bare: bool = True) -> pl.DataFrame:
+def merge_hits(bare: pl.DataFrame, trk: pl.DataFrame, cfg: MetricsConfig, spread_bare: bool = True) -> pl.DataFrame:
     """(bare row, representative track) pairs within the merge gates (a grid-cell join: cells of
     side ``merge_gate_m``, one side spread over its 3 × 3 cells — ``spread_bare`` or the
     tracks: the smaller side should be spread, the pairs are the same)."""
@@ -423,12 +420,12 @@ def _merged(m: pl.DataFrame, rep: pl.DataFrame, expected: pl.DataFrame, labels: 
             methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
     """Representative tracks lying on an expected aircraft that has no track of its own
     (grid-cell join: each bare aircraft looks in its 3 × 3 cells of side ``merge_gate_m``)."""
-    hits = (_merge_hits(_bare(m, expected, methods), _rep_points(rep), cfg)
+    hits = (merge_hits(bare_rows(m, expected, methods), rep_points(rep), cfg)
             .join(labels, on=["run", "truth_id", "epoch"], how="left"))
-    return _count_tracks(hits, m.select("method", "run").unique(), breakdown, "merged_tracks")
+    return count_tracks(hits, m.select("method", "run").unique(), breakdown, "merged_tracks")
 
 
-def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, pl.Expr]]:
+def identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, pl.Expr]]:
     """(item, "is correct" expression, null where a side lacks the item) for every identity item
     both the picture and the reference carry."""
     cols = set(err.columns)
@@ -446,22 +443,22 @@ def _identity_checks(err: pl.DataFrame, cfg: MetricsConfig) -> list[tuple[str, p
     return checks
 
 
-def _identity_rows(err: pl.DataFrame, breakdown: Sequence[str], ok: pl.Expr) -> pl.DataFrame:
+def identity_rows(err: pl.DataFrame, breakdown: Sequence[str], ok: pl.Expr) -> pl.DataFrame:
     """(method, run, labels…, ``__ok``) of the rows where both sides carry the item."""
     return err.select("method", "run", *breakdown, ok.alias("__ok")).filter(pl.col("__ok").is_not_null())
 
 
 def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Expr) -> pl.DataFrame:
-    w = _by_segment(_identity_rows(err, breakdown, ok), breakdown, pl.col("run").n_unique().alias("n_runs"),
+    w = by_segment(identity_rows(err, breakdown, ok), breakdown, pl.col("run").n_unique().alias("n_runs"),
                     pl.col("__ok").mean().alias(f"{name}_correct_frac"), pl.len().cast(pl.Float64).alias(f"n_{name}"))
-    return _long(w, [f"{name}_correct_frac", f"n_{name}"])
+    return long_rows(w, [f"{name}_correct_frac", f"n_{name}"])
 
 
-#: what :func:`_track_table` reads of a matched picture
-_TRACK_INPUTS = ("method", "run", "track_id", "epoch", "truth_id")
+#: what :func:`track_table` reads of a matched picture
+TRACK_INPUTS = ("method", "run", "track_id", "epoch", "truth_id")
 
 
-def _track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
+def track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
     """One row per (method, run, track_id): ``__real`` (some row has a truth_id), its first and
     last epochs ``__t0``, ``__t1`` (a picture's span is that of its tracks' rows)."""
     return m.group_by("method", "run", "track_id").agg(pl.col("truth_id").is_not_null().any().alias("__real"),
@@ -469,8 +466,8 @@ def _track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
                                                        pl.col("epoch").max().alias("__t1"))
 
 
-def _picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
-    """picture_hours, n_tracks, false_tracks(_per_hour) per method, from :func:`_track_table`."""
+def picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
+    """picture_hours, n_tracks, false_tracks(_per_hour) per method, from :func:`track_table`."""
     span = tracks.group_by("method", "run").agg(
         ((pl.col("__t1").max() - pl.col("__t0").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
     hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
@@ -481,13 +478,13 @@ def _picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
         _ALL.alias("segment"),
         (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
         pl.col("__false").cast(pl.Float64).alias("false_tracks"))
-    return _long(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])
+    return long_rows(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])
 
 
 def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str],
                         cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
-    out = [_picture_rows(_track_table(m.select(_TRACK_INPUTS)))]
-    out += [_identity(err, breakdown, name, ok) for name, ok in _identity_checks(err, cfg)]
+    out = [picture_rows(track_table(m.select(TRACK_INPUTS)))]
+    out += [_identity(err, breakdown, name, ok) for name, ok in identity_checks(err, cfg)]
     return pl.concat(out, how="vertical")
 
 
@@ -498,7 +495,7 @@ _MATCHED_REQUIRED = ("method", "run", "epoch", "track_id", "truth_id", "x_m", "y
                      "vz_mps", "true_x_m", "true_y_m", "true_z_m", "true_vx_mps", "true_vy_mps", "true_vz_mps")
 
 
-def _options(columns: Sequence[str], exp_columns: Sequence[str] | None, radar_xy: NDArray[np.float64] | None,
+def checked_breakdown(columns: Sequence[str], exp_columns: Sequence[str] | None, radar_xy: NDArray[np.float64] | None,
              breakdown: Sequence[str], cfg: MetricsConfig) -> list[str]:
     """Checks the inputs; the breakdowns that apply (``range`` needs radars)."""
     bad = [b for b in breakdown if b not in BREAKDOWNS]
@@ -513,7 +510,7 @@ def _options(columns: Sequence[str], exp_columns: Sequence[str] | None, radar_xy
     return [b for b in breakdown if b != "range" or radar_xy is not None]
 
 
-def _labels(matched: pl.DataFrame, expected: pl.DataFrame | None, radar_xy: NDArray[np.float64] | None,
+def picture_labels(matched: pl.DataFrame, expected: pl.DataFrame | None, radar_xy: NDArray[np.float64] | None,
             cfg: MetricsConfig) -> pl.DataFrame:
     """:func:`reference_labels` of ``expected`` when it has the picture's ``true_*`` columns, else
     of the reference on the matched rows."""
@@ -523,16 +520,16 @@ def _labels(matched: pl.DataFrame, expected: pl.DataFrame | None, radar_xy: NDAr
     return reference_labels(ref, radar_xy, cfg)
 
 
-def _errors(matched: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+def error_rows(matched: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
     """:func:`accuracy_errors` with the identity items and the labels: the columns it reads, then
-    the rows (a long picture is never copied whole through the errors' joins, issue 16)."""
-    cols = [c for c in matched.columns if c in _ERROR_INPUTS or c.startswith("true_")]
+    the rows (a long picture is never copied whole through the errors' joins)."""
+    cols = [c for c in matched.columns if c in ERROR_INPUTS or c.startswith("true_")]
     return (accuracy_errors(matched.select(cols), cfg)
             .select(c for c in (*_KEY, "epoch", *_ERRORS, *_IDENTITY) if c in matched.columns or c in _ERRORS)
             .join(labels, on=["run", "truth_id", "epoch"], how="left"))
 
 
-def _finish(parts: list[pl.DataFrame]) -> pl.DataFrame:
+def finish_metrics(parts: list[pl.DataFrame]) -> pl.DataFrame:
     """The metrics rows of every group in the ``metrics`` table schema, in a fixed order."""
     out = pl.concat(parts, how="vertical")
     return out.select(pl.lit(STAGE).alias("stage"), "method", "metric", pl.col("segment").cast(pl.String),
@@ -543,266 +540,23 @@ def _finish(parts: list[pl.DataFrame]) -> pl.DataFrame:
 def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = None,
                     radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
                     cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
-    """Every item-3 metric of every picture in ``matched``, in the ``metrics`` table schema.
+    """Every air-picture metric of every picture in ``matched``, in the ``metrics`` table schema.
 
     ``breakdown``: any of ``alt``, ``range`` (needs ``radar_xy``, the radar sites (R, 2) in the
     system frame), ``phase``; segment ``all`` is always there.
     """
-    breakdown = _options(matched.columns, None if expected is None else expected.columns, radar_xy, breakdown, cfg)
-    labels = _labels(matched, expected, radar_xy, cfg)
+    breakdown = checked_breakdown(matched.columns, None if expected is None else expected.columns, radar_xy, breakdown, cfg)
+    labels = picture_labels(matched, expected, radar_xy, cfg)
     # the columns each group reads, then the rows: a long picture is never copied whole through
     # the errors' and the continuity's joins, and each group's rows are released before the next
-    # group's are made (memory of the stage, issue 16)
-    err = _errors(matched, labels, cfg)
+    # group's are made (memory of the stage)
+    err = error_rows(matched, labels, cfg)
     parts = [_accuracy(err, breakdown),
              _identity_and_false(matched, err, breakdown, cfg)]
     del err
-    m = matched.select(c for c in matched.columns if c in _CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
+    m = matched.select(c for c in matched.columns if c in CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
     if m.height:
         parts.append(_continuity(m, expected, labels, breakdown, cfg))
-    return _finish(parts)
+    return finish_metrics(parts)
 
 
-# --------------------------------------------------------------------------- in buckets of aircraft
-
-#: seed of the bucket hash: any fixed value (a row must fall in the same bucket in every scan)
-_SEED = 20211007
-
-#: the accuracy metrics that are a root mean square (metric → error column) or a mean
-_RMS = {"rmse_horizontal_m": "err_h_m", "rmse_height_m": "err_height_m", "along_track_rms_m": "along_m",
-        "across_track_rms_m": "across_m", "ground_speed_rms_mps": "err_gs_mps", "track_angle_rms_deg": "err_track_deg",
-        "vertical_rate_rms_mps": "err_vrate_mps"}
-_MEAN = {"along_track_bias_m": "along_m", "across_track_bias_m": "across_m", "latency_s": "latency_sample_s",
-         "ground_speed_bias_mps": "err_gs_mps"}
-
-
-def _aircraft_bucket(schema: pl.Schema, buckets: int) -> pl.Expr:
-    """The bucket of a row's aircraft (run, truth_id), hashed in ``matched``'s dtypes (``schema``)
-    so that an ``expected`` row falls in the bucket of its aircraft's track rows."""
-    key = pl.struct(pl.col("run").cast(schema["run"]), pl.col("truth_id").cast(schema["truth_id"]))
-    return key.hash(_SEED) % buckets
-
-
-@dataclass(frozen=True)
-class _BucketScan:
-    """One bucket of aircraft of the inputs at a time: the rows of ``matched`` with a truth_id
-    and the rows of ``expected`` whose (run, truth_id) hash to bucket k."""
-
-    matched_lf: pl.LazyFrame
-    expected_lf: pl.LazyFrame | None
-    schema: pl.Schema           # of matched
-    exp_cols: tuple[str, ...]   # what is read of expected: its keys and reference (true_*) columns
-    buckets: int
-    #: each bucket's tracked rows of matched and rows of expected, filed once (:meth:`filed`)
-    filed_matched: list[pl.LazyFrame] | None = None
-    filed_expected: list[pl.LazyFrame] | None = None
-
-    @classmethod
-    def filed(cls, matched: pl.LazyFrame, expected: pl.LazyFrame | None, schema: pl.Schema,
-              exp_cols: tuple[str, ...], buckets: int, scratch: Path) -> "_BucketScan":
-        """The scan with the rows filed by bucket once under ``scratch``
-        (:func:`tertiary.evaluation.buckets.file_buckets`): a bucket reads its own rows only."""
-        bucket = _aircraft_bucket(schema, buckets)
-        m = file_buckets(matched.filter(pl.col("truth_id").is_not_null()), bucket, buckets, scratch / "matched")
-        e = None
-        if expected is not None:
-            src = expected.with_columns(bucket.alias("__ab")).select(*exp_cols, "__ab")
-            e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected")]
-        return cls(matched, expected, schema, exp_cols, buckets, m, e)
-
-    def _where(self, k: int) -> pl.Expr | None:
-        return None if self.buckets == 1 else _aircraft_bucket(self.schema, self.buckets) == k
-
-    def matched(self, k: int, cols: Sequence[str]) -> pl.DataFrame:
-        """Bucket ``k``'s tracked rows of ``matched``, columns ``cols`` (those it has)."""
-        names = [c for c in self.schema.names() if c in cols]
-        if self.filed_matched is not None:
-            return self.filed_matched[k].select(names).collect()
-        where, tracked = self._where(k), pl.col("truth_id").is_not_null()
-        return self.matched_lf.filter(tracked if where is None else tracked & where).select(names).collect()
-
-    def expected(self, k: int) -> pl.DataFrame | None:
-        """Bucket ``k``'s rows of ``expected`` (None without it)."""
-        if self.expected_lf is None:
-            return None
-        if self.filed_expected is not None:
-            return self.filed_expected[k].collect()
-        where = self._where(k)
-        return (self.expected_lf if where is None else self.expected_lf.filter(where)).select(self.exp_cols).collect()
-
-
-def _ratio(num: pl.Expr, den: pl.Expr) -> pl.Expr:
-    """num / den, null where den is 0 (the mean of no value)."""
-    return pl.when(den > 0).then(num / den)
-
-
-@dataclass
-class _Partials:
-    """What the buckets leave for the combine step: sums per (method, segment, run) (a few rows
-    per segment), the accuracy values the quantiles need (``values``: 4 bytes of method and of
-    each label + 16 of values a row), distinct split tracks and the bare expected rows."""
-
-    accuracy: list[pl.DataFrame] = field(default_factory=list)
-    values: list[pl.DataFrame] = field(default_factory=list)
-    identity: dict[str, list[pl.DataFrame]] = field(default_factory=dict)
-    hours: list[pl.DataFrame] = field(default_factory=list)
-    events: list[pl.DataFrame] = field(default_factory=list)
-    intervals: list[pl.DataFrame] = field(default_factory=list)
-    split: list[pl.DataFrame] = field(default_factory=list)
-    bare: list[pl.DataFrame] = field(default_factory=list)
-
-
-def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: _Partials) -> None:
-    """Accuracy and identity sums of one bucket's error rows, and its quantile values."""
-    aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
-            pl.col("err_height_m").abs().max().alias("max_height_m")]
-    for name, c in _RMS.items():
-        aggs += [(pl.col(c) ** 2).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    for name, c in _MEAN.items():
-        aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    out.accuracy.append(_by_segment(err, breakdown, *aggs, by=["run"]))
-    out.values.append(err.select(pl.col("method").cast(pl.Categorical), *breakdown, "err_h_m",
-                                 pl.col("err_height_m").abs().alias("__abs_h")))
-    for name, ok in _identity_checks(err, cfg):
-        out.identity.setdefault(name, []).append(_by_segment(
-            _identity_rows(err, breakdown, ok), breakdown, pl.col("__ok").sum(), pl.len().alias("__n"), by=["run"]))
-
-
-def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
-                         methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
-                         out: _Partials) -> None:
-    """:func:`_continuity`'s sums of one bucket's aircraft (``methods``: every picture with a
-    matched row, in any bucket), its split tracks and (``merge``) its bare expected rows."""
-    rep = _rep_events(m, labels, cfg)
-    expo = _exposure(rep, expected, methods, labels, cfg)
-    out.hours.append(_by_segment(expo, breakdown, pl.col("__hours").sum(), by=["run"]))
-    out.events.append(_by_segment(rep, breakdown, pl.col("__change").sum().alias("__changes"),
-                                  pl.col("__break").sum().alias("track_breaks"),
-                                  pl.col("__gap_s").filter(pl.col("__break")).sum().alias("__gaps"), by=["run"]))
-    ints = _update_intervals(rep, expo, cfg, expected is None)
-    out.intervals.append(_by_segment(ints, breakdown, pl.col("updated").sum().alias("__updated"),
-                                     pl.len().alias("__n"), by=["run"]))
-    del ints, expo
-    out.split.append(_second_tracks(rep, m, labels).select("method", "run", "track_id", *breakdown).unique())
-    if merge:
-        out.bare.append(_bare(m, expected, methods).join(labels, on=["run", "truth_id", "epoch"], how="left")
-                        .select(pl.col("method").cast(pl.Categorical), "run", "epoch", "truth_id", "true_x_m",
-                                "true_y_m", "__h", *breakdown))
-
-
-def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
-                     radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
-                     out: _Partials) -> None:
-    """Everything one bucket's rows (``m``: its tracked rows, ``expected``: its reference rows)
-    leave for the combine step; nothing without a row."""
-    if m.height == 0 and (expected is None or expected.height == 0):
-        return
-    labels = _labels(m, expected, radar_xy, cfg)
-    _error_partials(_errors(m, labels, cfg), breakdown, cfg, out)
-    if methods.height:                      # continuity of every picture with a matched row
-        _continuity_partials(m.select(c for c in m.columns if c in _CONTINUITY_INPUTS), expected, labels,
-                             methods, breakdown, cfg, merge, out)
-
-
-def _accuracy_combined(out: _Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
-    """:func:`_accuracy` from the buckets' sums, and the quantiles from their values."""
-    aggs = [pl.col("run").n_unique().alias("n_runs"), pl.col("n_points").sum().cast(pl.Float64),
-            pl.col("max_horizontal_m").max(), pl.col("max_height_m").max()]
-    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).sqrt().alias(n) for n in _RMS]
-    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).alias(n) for n in _MEAN]
-    wide = pl.concat(out.accuracy).group_by("method", "segment").agg(*aggs)
-    values = pl.concat(out.values)
-    out.values.clear()
-    q = _by_segment(values, breakdown, *_quantiles(pl.col("__abs_h"))).with_columns(pl.col("method").cast(method))
-    del values
-    wide = wide.join(q, on=["method", "segment"], how="left")
-    return _long(wide, [c for c in wide.columns if c not in ("method", "segment", "n_runs")])
-
-
-def _identity_combined(name: str, sums: list[pl.DataFrame]) -> pl.DataFrame:
-    """:func:`_identity` of one item from the buckets' sums."""
-    w = pl.concat(sums).group_by("method", "segment").agg(
-        pl.col("run").n_unique().alias("n_runs"),
-        (pl.col("__ok").sum() / pl.col("__n").sum()).alias(f"{name}_correct_frac"),
-        pl.col("__n").sum().cast(pl.Float64).alias(f"n_{name}"))
-    return _long(w, [f"{name}_correct_frac", f"n_{name}"])
-
-
-def _continuity_combined(out: _Partials, base: pl.DataFrame, breakdown: Sequence[str]) -> list[pl.DataFrame]:
-    """:func:`_continuity`'s rows (but merged tracks) from the buckets' sums; ``base``: the
-    (method, run) with a matched row."""
-    by = ["method", "segment"]
-    hours = pl.concat(out.hours).group_by(by).agg(pl.col("__hours").sum().alias("aircraft_hours"),
-                                                  pl.col("run").n_unique().alias("n_runs"))
-    breaks = pl.col("track_breaks").sum()
-    events = pl.concat(out.events).group_by(by).agg(pl.col("__changes").sum(), breaks,
-                                                    _ratio(pl.col("__gaps").sum(), breaks).alias("mean_reacquire_s"))
-    ints = pl.concat(out.intervals).group_by(by).agg(
-        _ratio(pl.col("__updated").sum(), pl.col("__n").sum()).alias("prob_update"),
-        pl.col("__n").sum().cast(pl.Float64).alias("n_update_intervals"))
-    return [_continuity_rows(hours, events, ints), _count_tracks(pl.concat(out.split), base, breakdown, "split_tracks")]
-
-
-def _merged_buckets(scan: _BucketScan, bare: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str],
-                    cfg: MetricsConfig) -> pl.DataFrame:
-    """:func:`_merged` with the bare rows of every bucket (``bare``, labelled, held whole: one
-    row per uncovered expected aircraft-epoch) against each bucket's representative tracks in
-    turn (a second pass: a track may lie on a bare aircraft of another bucket)."""
-    schema = scan.schema
-    hits = [pl.DataFrame(schema={"method": pl.Categorical, "run": schema["run"], "track_id": schema["track_id"],
-                                 **{b: pl.Categorical for b in breakdown}})]
-    for k in range(scan.buckets if bare.height else 0):
-        m = scan.matched(k, _CONTINUITY_INPUTS)
-        if m.height:
-            trk = _rep_points(_representatives(m)).with_columns(pl.col("method").cast(pl.Categorical))
-            hits.append(_merge_hits(bare, trk, cfg, spread_bare=bare.height < trk.height)
-                        .select("method", "run", "track_id", *breakdown).unique())
-        del m
-    events = pl.concat(hits, how="vertical_relaxed").with_columns(pl.col("method").cast(schema["method"]))
-    return _count_tracks(events, base, breakdown, "merged_tracks")
-
-
-def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | None = None,
-                            radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
-                            cfg: MetricsConfig = MetricsConfig(), buckets: int = 1,
-                            scratch: Path | None = None) -> pl.DataFrame:
-    """:func:`picture_metrics` of ``matched.collect()`` (and ``expected.collect()``) with the row
-    work done on one of ``buckets`` buckets of aircraft at a time (a long recording's picture is
-    never held whole: memory of the stage, issue 18).
-
-    The rows with a truth_id and the expected rows are bucketed by a hash of (run, truth_id):
-    every per-aircraft quantity (labels, errors, representatives, exposure, intervals, breaks)
-    is exact in its bucket, and each bucket leaves sums per (method, segment, run) that add up.
-    Held whole: the per-track table (false tracks, picture hours; one streamed scan of five
-    columns), the values the quantiles need (32 bytes an error row) and the bare expected rows
-    for merged tracks, joined in a second pass with each bucket's representative tracks.
-    With a ``scratch`` directory the rows are filed by bucket once
-    (:func:`tertiary.evaluation.buckets.file_buckets`); without, each bucket filters the whole input.
-    """
-    if buckets < 1:
-        raise OptionError("must be ≥ 1", option="buckets")
-    schema = matched.collect_schema()
-    exp_names = None if expected is None else expected.collect_schema().names()
-    breakdown = _options(schema.names(), exp_names, radar_xy, breakdown, cfg)
-    tracks = _track_table(matched.select(_TRACK_INPUTS)).collect(engine="streaming")
-    real = tracks.filter(pl.col("__real"))
-    methods, base = real.select("method").unique(), real.select("method", "run").unique()
-    del real
-    merge = exp_names is not None and {"true_x_m", "true_y_m"} <= set(exp_names)
-    exp_cols = tuple(c for c in exp_names or () if c in ("run", "truth_id", "epoch") or c.startswith("true_"))
-    filed = scratch is not None and buckets > 1
-    scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
-            else _BucketScan(matched, expected, schema, exp_cols, buckets))
-    reads = {*_ERROR_INPUTS, *_CONTINUITY_INPUTS, *(c for c in schema.names() if c.startswith("true_"))}
-    out = _Partials()
-    for k in range(buckets):
-        _bucket_partials(scan.matched(k, reads), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
-    parts = [_picture_rows(tracks)]
-    if out.accuracy:
-        parts.append(_accuracy_combined(out, breakdown, schema["method"]))
-    parts += [_identity_combined(name, sums) for name, sums in out.identity.items()]
-    if methods.height:
-        parts += _continuity_combined(out, base, breakdown)
-        if merge:
-            parts.append(_merged_buckets(scan, pl.concat(out.bare), base, breakdown, cfg))
-    return _finish(parts)

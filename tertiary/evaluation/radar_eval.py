@@ -1,4 +1,4 @@
-"""Per-radar evaluation against a reference (issue 13 item 7): the table a radar engineer
+"""Per-radar evaluation against a reference: the table a radar engineer
 checks before a radar joins the system.
 
 Inputs: ``reports`` (the ``reports`` schema; a report is scored when its ``truth_id`` — in
@@ -42,13 +42,13 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError
+from tertiary.core.units import FT
 from tertiary.evaluation.picture_metrics import band_labels
 from tertiary.evaluation.reference import interpolate_reference
 
 __all__ = ["RadarEvalConfig", "radar_errors", "detections", "radar_metrics"]
 
 STAGE = "radar"
-FT = 0.3048
 
 
 @dataclass(frozen=True)

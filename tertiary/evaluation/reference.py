@@ -1,8 +1,8 @@
-"""The reference an air picture is scored against when there is no simulator truth
-(issue 13 items 5 and 6).
+"""The reference an air picture is scored against when there is no simulator truth: ADS-B, or
+a reference reconstructed offline from the radar plots.
 
-ADS-B reference (item 5)
-------------------------
+ADS-B reference
+---------------
 :func:`adsb_reference` keeps a fix only when it is usable as a reference:
 
 1. the cleaning of :func:`tertiary.io.adsb.clean_adsb` (null/out-of-band values, on
@@ -19,8 +19,8 @@ Without any quality column (OpenSky state vectors) the assumed ``default_epu95_m
 (aircraft, time), linearly between two fixes at most ``max_gap_s`` apart; anything else is
 ``not evaluated`` with the reason, never scored.
 
-Reconstructed reference (item 6)
---------------------------------
+Reconstructed reference
+-----------------------
 :func:`rts_smooth` is a fixed-interval Rauch–Tung–Striebel smoother on a nearly-constant-
 velocity (white-acceleration) model per axis, state [x, y, h, vx, vy, vh]:
 F = [[1, Δt], [0, 1]], Q = q [[Δt³/3, Δt²/2], [Δt²/2, Δt]]                          (2)
@@ -46,7 +46,8 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError
-from tertiary.io.adsb import FT, AdsbCleaning, _reported_velocity, clean_adsb
+from tertiary.core.units import FT
+from tertiary.io.adsb import AdsbCleaning, clean_adsb, reported_velocity
 
 __all__ = ["ReferenceConfig", "SmootherConfig", "adsb_reference", "interpolate_reference", "rts_smooth",
            "plot_measurements", "reconstruct_reference", "NACP_EPU95_M", "NUCP_HFOM95_M"]
@@ -110,7 +111,7 @@ def adsb_reference(frame: pl.DataFrame, origin: geo.LocalFrame, cfg: ReferenceCo
     lat, lon = clean["latitude"].to_numpy(), clean["longitude"].to_numpy()
     alt = clean["altitude"].to_numpy() * FT
     x, y, z = origin.from_geodetic(lat, lon, alt)
-    vel = _reported_velocity(clean, lat, lon, origin)
+    vel = reported_velocity(clean, lat, lon, origin)
     points = clean.select(
         pl.col("flight").cast(pl.Int64).alias("truth_id"), "icao24", "callsign", pl.col("timestamp").alias("time"),
         pl.Series("x_m", x), pl.Series("y_m", y), pl.Series("z_m", z), pl.Series("alt_m", alt),

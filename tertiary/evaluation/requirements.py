@@ -1,4 +1,4 @@
-"""Requirements with pass/fail (issue 13 item 4): an editable TOML, its validating loader, and
+"""Requirements with pass/fail: an editable TOML, its validating loader, and
 :func:`check_requirements` turning the ``metrics`` table into the ``requirements`` table.
 
 File format: see ``datasets/requirements/example.toml`` (example values, not quotations of any
@@ -85,8 +85,9 @@ class Requirements:
 def example_path() -> Path:
     """The shipped example file: ``tertiary/datasets/requirements/example.toml`` in an installed
     wheel, ``datasets/requirements/example.toml`` in a source checkout."""
-    from tertiary.simulate.config import builtin_dir
-    return builtin_dir() / "requirements" / "example.toml"
+    package = Path(__file__).resolve().parents[1]
+    installed = package / "datasets" / "requirements" / "example.toml"
+    return installed if installed.is_file() else package.parent / "datasets" / "requirements" / "example.toml"
 
 
 def metric_kind(metric: str) -> str:
@@ -171,7 +172,7 @@ def load_requirements(path: str | Path) -> Requirements:
 
 
 def requirements_schema() -> dict[str, pl.DataType]:
-    """Columns of the ``requirements`` table (the first seven are the issue's names)."""
+    """Columns of the ``requirements`` table (the first seven name the requirement and its verdict)."""
     return {"requirement": pl.String(), "metric": pl.String(), "breakdown": pl.String(), "threshold": pl.Float64(),
             "value": pl.Float64(), "n_samples": pl.Float64(), "verdict": pl.String(), "method": pl.String(),
             "stage": pl.String(), "op": pl.String(), "bound": pl.Float64(), "confidence": pl.Float64()}

@@ -1,2 +1,3 @@
-"""Reading what a recording carries into the data contract: datasets on disk, real ADS-B
-trajectories and their cleaning, and ASTERIX captures (:mod:`tertiary.io.asterix`)."""
+"""Reading what a recording carries into the data contract, the pipeline's input: datasets on disk
+(:mod:`tertiary.io.dataset`), real ADS-B trajectories and their cleaning (:mod:`tertiary.io.adsb`),
+and ASTERIX captures (:mod:`tertiary.io.asterix`)."""

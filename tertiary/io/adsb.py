@@ -1,6 +1,6 @@
 """Real ADS-B trajectories as simulation truth: read, clean, split into flights, resample.
 
-Input is the OpenSky / ``traffic`` schema (see ``/work/shared/data/README.md``):
+Input is the OpenSky / ``traffic`` schema:
 
 ========================  ============================================================
 ``timestamp``             Datetime (UTC); naive values are taken as UTC, numbers as Unix s
@@ -61,10 +61,11 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.core.errors import DataError
 from tertiary.core.geo import EARTH_RADIUS_M, LocalFrame, ecef_to_geodetic, geodetic_to_ecef, wrap_deg
+from tertiary.core.units import FT, US
 from tertiary.simulate.trajectory import SEG_CLIMB, SEG_DESCENT, SEG_STRAIGHT, SEG_TURN, Trajectories
 
-FT = 0.3048                      #: metres per foot
 KT = 1852.0 / 3600.0             #: m/s per knot
 FPM = FT / 60.0                  #: m/s per foot per minute
 
@@ -133,6 +134,19 @@ def read_adsb(path: str | Path) -> pl.DataFrame:
     else:
         frame = pl.read_parquet(path)
     return normalise_adsb(frame)
+
+
+def read_truth_file(path: Path) -> pl.DataFrame:
+    """An ADS-B truth file (:func:`read_adsb`), or a :class:`DataError` naming it and what is wrong."""
+    try:
+        frame = read_adsb(path)
+    except (OSError, ValueError, pl.exceptions.PolarsError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"not a readable ADS-B trajectory table (OpenSky/traffic schema): {first}",
+                        path=str(path)) from exc
+    if frame.filter(pl.col("timestamp").is_not_null()).height == 0:
+        raise DataError("no ADS-B row with a timestamp", path=str(path))
+    return frame
 
 
 def normalise_adsb(frame: pl.DataFrame) -> pl.DataFrame:
@@ -429,20 +443,20 @@ def adsb_to_trajectories(frame: pl.DataFrame, origin: LocalFrame | None = None,
         origin = LocalFrame(float(lat0), float(lon0), 0.0)
     ts_us = clean["timestamp"].dt.epoch("us").to_numpy().astype(np.int64)
     if epoch is None:
-        epoch_us = int(ts_us.min() // 1_000_000 * 1_000_000)
+        epoch_us = int(ts_us.min() // US * US)
     else:
         if epoch.tzinfo is None:
             epoch = epoch.replace(tzinfo=timezone.utc)
         epoch_us = round(epoch.timestamp() * 1e6)
-    epoch_dt = datetime.fromtimestamp(epoch_us // 1_000_000, tz=timezone.utc).replace(
-        microsecond=int(epoch_us % 1_000_000))
+    epoch_dt = datetime.fromtimestamp(epoch_us // US, tz=timezone.utc).replace(
+        microsecond=int(epoch_us % US))
     t = (ts_us - epoch_us) / 1e6                       # s since epoch, per fix
     fid = clean["flight"].to_numpy()
     n_flights = int(fid.max()) + 1
 
     # fixes -> system ENU
     e, n, u = origin.from_geodetic(lat, lon, alt)
-    v_fix = _reported_velocity(clean, lat, lon, origin)
+    v_fix = reported_velocity(clean, lat, lon, origin)
 
     # flight extents on the grid
     first = np.flatnonzero(np.r_[True, fid[1:] != fid[:-1]])
@@ -498,7 +512,7 @@ def adsb_to_trajectories(frame: pl.DataFrame, origin: LocalFrame | None = None,
     return traj, removed
 
 
-def _reported_velocity(clean: pl.DataFrame, lat: NDArray, lon: NDArray, origin: LocalFrame) -> NDArray[np.float64]:
+def reported_velocity(clean: pl.DataFrame, lat: NDArray, lon: NDArray, origin: LocalFrame) -> NDArray[np.float64]:
     """(N, 3) velocity of each fix in the system ENU from groundspeed/track/vertical rate,
     rotated per fix from the aircraft's local ENU through ECEF; NaN where any is null."""
     gs = clean["groundspeed"].fill_null(np.nan).to_numpy().astype(np.float64) * KT

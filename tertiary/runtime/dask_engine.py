@@ -1,4 +1,4 @@
-"""A run on ``dask.distributed`` (issue 18 item 3): partitions processed in parallel, each writing
+"""A run on ``dask.distributed``: partitions processed in parallel, each writing
 its own output partition, then the whole-run stages on their union.
 
 Partitions
@@ -11,7 +11,7 @@ Partitions
       [s_k, s_k+1) (``reports``/``rejects``: when the report's time is).
 
 Every task reads the dataset itself (paths are shipped, never frames), runs
-:func:`tertiary.pipeline.job.stream` with the whole recording's epoch grid origin and writes Parquet
+:func:`tertiary.pipeline.stream` with the whole recording's epoch grid origin and writes Parquet
 parts under ``OUT/slices/<i>/{kept,overlap}/<table>/w=<k>.parquet``.
 
 Ids. ``target_id`` is numbered per run in the local engine (:func:`tertiary.stages.association.associate.carry_step`),
@@ -24,7 +24,7 @@ unmatched ids getting fresh ids above every id used so far; (2) renumbers target
 first epoch, id), the order in which the local engine creates them; then every partition's parts
 are relabelled in place by a task (atomic rewrites). The finalize stage (evaluation, alert
 scoring, …) runs on the client over the union of the partitions and ``results.duckdb`` is built
-as :func:`tertiary.pipeline.job.run` builds it, with a ``partitions`` table registering every output
+as :func:`tertiary.pipeline.run` builds it, with a ``partitions`` table registering every output
 partition (its span, rows, wall time, worker, id changes at its start boundary).
 """
 
@@ -45,8 +45,14 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from tertiary.pipeline import job as pipeline
-from tertiary.runtime.windows import (DEFAULT_WINDOW_S, END_US, US, ReportSource, Window, check_window, peak_rss_mib)
+from scipy.optimize import linear_sum_assignment
+
+from tertiary import pipeline
+from tertiary.io.dataset import read_dataset
+from tertiary.runtime.stitch_effects import boundary_utc, parse_utc, stitching_effects  # noqa: F401 (re-exported)
+from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
+from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
@@ -71,14 +77,14 @@ class Partition:
     run: Any                 # the run value its reports have (None: the dataset has no run column)
     first_run: bool          # also takes the rows whose run is null
     slice: int               # slice index within its run
-    t0_us: int               # kept span [t0_us, t1_us) (±END_US: open)
+    t0_us: int               # kept span [t0_us, t1_us) (T_MIN_US / T_MAX_US: open)
     t1_us: int
     warm_us: int             # warm-up before t0_us (0 for the first slice)
     ahead_us: int            # reports after t1_us also read (0 for the last slice)
 
     @property
     def first_slice(self) -> bool:
-        return self.t0_us <= -END_US
+        return self.t0_us <= T_MIN_US
 
     def input_expr(self) -> pl.Expr:
         """The partition's input rows (null times go to the first slice, null runs to the first run)."""
@@ -90,7 +96,7 @@ class Partition:
         t = pl.col("time").dt.epoch("us")
         if not self.first_slice:
             cond = cond & (t >= self.t0_us - self.warm_us)
-        if self.t1_us < END_US:
+        if self.t1_us < T_MAX_US:
             tc = t < self.t1_us + self.ahead_us
             cond = cond & (tc | pl.col("time").is_null() if self.first_slice else tc)
         return cond
@@ -103,7 +109,7 @@ class Partition:
         cond = pl.lit(True)
         if not self.first_slice:
             cond = pl.col("time") >= lit(self.t0_us - self.warm_us - 1000)
-        if self.t1_us < END_US and not self.first_slice:     # the first slice also takes null times
+        if self.t1_us < T_MAX_US and not self.first_slice:     # the first slice also takes null times
             cond = cond & (pl.col("time") < lit(self.t1_us + self.ahead_us + 1000))
         return cond
 
@@ -132,7 +138,6 @@ def plan(dataset_dir: str | Path, cfg: pipeline.PipelineConfig, window_s: float 
          overlap_s: float, lookahead_s: float | None = None, notes: list[str] | None = None
          ) -> tuple[int | None, int, list[Partition]]:
     """(grid origin µs, input rows, partitions) of a dataset: one per run × time slice."""
-    from tertiary.simulate import read_dataset
     notes = [] if notes is None else notes
     ds = read_dataset(dataset_dir, lazy=True)
     source = ReportSource(ds.reports)
@@ -149,8 +154,8 @@ def plan(dataset_dir: str | Path, cfg: pipeline.PipelineConfig, window_s: float 
     parts = []
     for r_i, run in enumerate(runs):
         for k, (t0, t1) in enumerate(bounds):
-            parts.append(Partition(len(parts), run, r_i == 0, k, t0, t1, 0 if t0 <= -END_US else warm,
-                                   0 if t1 >= END_US else ahead))
+            parts.append(Partition(len(parts), run, r_i == 0, k, t0, t1, 0 if t0 <= T_MIN_US else warm,
+                                   0 if t1 >= T_MAX_US else ahead))
     return origin, source.n_rows, parts
 
 
@@ -158,7 +163,7 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
                   overlap_s: float, notes: list[str]) -> list[tuple[int, int]]:
     """Kept spans of the time slices on the grid from ``origin`` (one open span: no slicing)."""
     if slice_s is None:
-        return [(-END_US, END_US)]
+        return [(T_MIN_US, T_MAX_US)]
     if not (math.isfinite(slice_s) and slice_s > 0):
         raise OptionError(f"must be a number of seconds > 0, got {slice_s}", option="--slice")
     if not (math.isfinite(overlap_s) and overlap_s >= 0):
@@ -168,12 +173,12 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
             if abs(v / window_s - round(v / window_s)) > 1e-9:
                 raise OptionError(f"{v} s is not a multiple of the window ({window_s} s): slices must start on "
                                   "window boundaries", option=name)
-    if pipeline._windowable(cfg, source, 1.0, notes) is None:
+    if pipeline.windowable(cfg, source, 1.0, notes) is None:
         notes.append("not cut into time slices: the run cannot be cut in time")
-        return [(-END_US, END_US)]
+        return [(T_MIN_US, T_MAX_US)]
     s = int(round(slice_s * US))
     n = max(1, (source.last_us - origin) // s + 1)
-    edges = [-END_US] + [origin + j * s for j in range(1, n)] + [END_US]
+    edges = [T_MIN_US] + [origin + j * s for j in range(1, n)] + [T_MAX_US]
     return list(zip(edges[:-1], edges[1:]))
 
 
@@ -181,7 +186,7 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
 
 
 class PartitionWriter:
-    """A partition's sink for :func:`tertiary.pipeline.job.stream`: each window's kept rows (and the
+    """A partition's sink for :func:`tertiary.pipeline.stream`: each window's kept rows (and the
     warm-up rows of the stitched tables) as Parquet parts; rejects' ``row_index`` made the row of
     the whole input; association counts taken between the slice's boundaries."""
 
@@ -197,7 +202,6 @@ class PartitionWriter:
         shutil.rmtree(out, ignore_errors=True)
 
     def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
-        from tertiary.store.run_store import write_parquet_atomic
         for name, frame in outputs.items():
             if frame.width == 0:
                 continue
@@ -260,7 +264,6 @@ class PartitionWriter:
 def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfig, window_s: float | None,
                   grid_origin_us: int | None, out_dir: str) -> dict:
     """The task of one partition (runs on a worker): read its reports, stream, write its parts."""
-    from tertiary.simulate import read_dataset
     t_start = time.perf_counter()
     ds = read_dataset(dataset_dir, lazy=True)
     lf = ds.reports.lazy()
@@ -292,8 +295,7 @@ def partition_input(lf: pl.LazyFrame, part: Partition, path: Path) -> pl.LazyFra
     ``path`` and scanned from there. The windows of the partition then read their rows from a
     plain scan, which takes their time test: on ``lf.filter(...)`` the row index the stream
     puts on its input came after the filter and kept every window's test out of the scan, so
-    each of a national hour's 60 s windows read the whole hour again (2.4 s a window instead of
-    0.25 s, issue 18)."""
+    each window would read the whole partition again."""
     coarse = part.coarse_expr(lf.collect_schema()["time"])
     lf.filter(coarse).filter(part.input_expr()).sink_parquet(path, compression="lz4", maintain_order=True)
     return pl.scan_parquet(path)
@@ -324,8 +326,7 @@ class UnionParts:
 
     def table(self, name: str, columns: list[str] | None = None) -> pl.DataFrame | None:
         """Every partition's rows of ``name`` (``columns``: only those, where a partition has them;
-        only those are read: a national day's aligned rows read whole before the selection
-        took the client past 23 GB, issue 18)."""
+        only those are read: the whole of a large table would not fit the client's memory)."""
         frames = [f for i in range(self.n) if (f := read_part(self.out, i, name, columns=columns)) is not None]
         if not frames:
             return None
@@ -355,7 +356,6 @@ class UnionParts:
 def _assign(pairs: pl.DataFrame, group: list[str]) -> pl.DataFrame:
     """One-to-one matches of (a, b) pairs with ``n`` coinciding epochs and mean distance ``d``:
     per group, the Hungarian assignment maximising coinciding epochs (then closeness)."""
-    from scipy.optimize import linear_sum_assignment
     out = []
     for _key, g in pairs.group_by(group, maintain_order=True) if group else [((), pairs)]:
         ua, ia = np.unique(g["a"].to_numpy(), return_inverse=True)
@@ -571,7 +571,7 @@ def _stitch_one(out: Path, p: Partition, prev: Partition | None, prev_maps: dict
         pl.DataFrame(schema={"old": pl.UInt64, "new": pl.UInt64})
     row: dict = {}
     if prev is not None:
-        row = {"partition": p.index, "run": p.run, "boundary_utc": _utc(p.t0_us)}
+        row = {"partition": p.index, "run": p.run, "boundary_utc": boundary_utc(p.t0_us)}
         for kind in spaces:
             m = maps[kind]
             row[f"{kind}s"] = m.height if m is not None else 0
@@ -606,7 +606,6 @@ def _canonical_targets(out: Path, parts: list[Partition], maps: dict[int, dict])
 
 def relabel_partition(out_dir: str, index: int, maps: dict) -> int:
     """Rewrite a partition's kept parts with the stitched ids (a task; atomic per file)."""
-    from tertiary.store.run_store import write_parquet_atomic
     n = 0
     for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
         for f in _files(Path(out_dir), index, "kept", name):
@@ -618,12 +617,6 @@ def relabel_partition(out_dir: str, index: int, maps: dict) -> int:
             write_parquet_atomic(new, f, compression="zstd")
             n += frame.height
     return n
-
-
-def _utc(us: int) -> str:
-    if abs(us) >= END_US:
-        return "open"
-    return datetime.fromtimestamp(us / US, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
 
 
 # --------------------------------------------------------------------------- the run
@@ -643,7 +636,7 @@ def run_dask(dataset_dir: str | Path, out_dir: str | Path, cfg: pipeline.Pipelin
     ``overlap_s`` before each slice, ``lookahead_s`` after it: default 0 with windows — a window's
     outputs depend on no later report — else ``overlap_s``). ``window_s``: the windows each task
     streams in (slice and overlap must be multiples of it). ``tables="parquet"``: the
-    partitions' parts are registered in the database, not copied (:func:`tertiary.pipeline.job.run`).
+    partitions' parts are registered in the database, not copied (:func:`tertiary.pipeline.run`).
     See the module docstring."""
     res = run_dask_detailed(dataset_dir, out_dir, cfg, workers=workers, scheduler=scheduler, client=client,
                             window_s=window_s, slice_s=slice_s, overlap_s=overlap_s, lookahead_s=lookahead_s,
@@ -677,8 +670,6 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
                       gate_m: float = DEFAULT_GATE_M, progress: pipeline.Progress | None = None,
                       tables: str = "database") -> DaskRun:
     """:func:`run_dask` returning what it measured (partitions, stitching, timings)."""
-    from tertiary.simulate import read_dataset
-    from tertiary.store.run_store import RunStore, record_run
     t_wall = time.perf_counter()
     say = progress or (lambda _m: None)
     cfg = pipeline.check_config(cfg)
@@ -722,7 +713,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         res = None
         try:
             # each whole-run stage said as it starts, as the local engine does: the client's
-            # finalize is a third of a national day, and silent it looked stuck (issue 18)
+            # finalize is long, and silent it looks stuck
             res = pipeline.finalize(ds, cfg, ctx, st, UnionParts(out, len(parts)), n_rows, progress=say,
                                     sink=sink, notes=notes)
         except Exception as exc:  # recorded, then re-raised
@@ -733,9 +724,9 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         if stitching.height:
             store.write("stitching", stitching)
         timings["wall_s"] = time.perf_counter() - t_wall
-        info = {"scenario": ds.scenario.name, "scenario_toml": pipeline._scenario_text(ds, notes),
-                "config": pipeline._config_dict(cfg), "created_utc": datetime.now(timezone.utc).isoformat(
-                    timespec="seconds"), "versions": pipeline._versions(), "window_s": window_s,
+        info = {"scenario": ds.scenario.name, "scenario_toml": pipeline.scenario_text(ds, notes),
+                "config": pipeline.config_dict(cfg), "created_utc": datetime.now(timezone.utc).isoformat(
+                    timespec="seconds"), "versions": pipeline.versions(), "window_s": window_s,
                 "engine": "dask", "slice_s": slice_s, "overlap_s": overlap_s, "partitions": len(parts),
                 "notes": notes, "timings": {**(res.timings if res else {}), **timings}}
         if res is not None:
@@ -788,8 +779,8 @@ def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.Da
         "partition": [p.index for p in parts],
         "run": [None if p.run is None else int(p.run) for p in parts],
         "slice": [p.slice for p in parts],
-        "kept_from_utc": [_utc(p.t0_us) for p in parts],
-        "kept_to_utc": [_utc(p.t1_us) for p in parts],
+        "kept_from_utc": [boundary_utc(p.t0_us) for p in parts],
+        "kept_to_utc": [boundary_utc(p.t1_us) for p in parts],
         "warmup_s": [p.warm_us / US for p in parts],
         "input_rows": [i["n_input"] for i in infos],
         "rows": [json.dumps(i["rows"]) for i in infos],
@@ -799,114 +790,3 @@ def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.Da
         "worker_peak_rss_mib": [i.get("peak_rss_mib") for i in infos],
         "path": [str((out / SLICES / str(p.index)).resolve()) for p in parts],
     }, schema_overrides={"run": pl.Int64})
-
-
-# --------------------------------------------------------------------------- what stitching changes
-
-
-def _since(epoch: pl.Expr, bounds: list[int]) -> pl.Expr:
-    """Seconds since the last slice boundary at or before ``epoch`` (null before the first)."""
-    b = pl.Series(sorted(bounds), dtype=pl.Int64)
-    e = epoch.dt.epoch("us")
-    last = pl.lit(None, pl.Int64)
-    for x in b:      # a handful of boundaries: one when/then per boundary, vectorised over rows
-        last = pl.when(e >= x).then(pl.lit(x)).otherwise(last)
-    return ((e - last) / US).alias("since_s")
-
-
-def _target_link(dask_assoc: pl.DataFrame, local_assoc: pl.DataFrame) -> pl.DataFrame:
-    """(run, epoch, target_id → target_id_local): the local target most of a distributed target's
-    reports belong to at that epoch."""
-    key = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
-    j = dask_assoc.select(*key, "target_id").join(local_assoc.select(*key, pl.col("target_id").alias("local")),
-                                                  on=key)
-    return (j.group_by("run", "epoch", "target_id", "local").len().sort("len", descending=True)
-            .group_by("run", "epoch", "target_id").agg(pl.col("local").first()))
-
-
-def stitching_effects(dask: dict[str, pl.DataFrame], local: dict[str, pl.DataFrame], bounds_us: list[int],
-                      bins_s: tuple[float, ...] = (0, 5, 10, 20, 30, 60, 120, 300, 1e9), around_s: float = 30.0
-                      ) -> dict[str, Any]:
-    """What slicing and stitching change against the local engine's tables (same dataset, same
-    configuration): per table the rows equal to the local engine's, by seconds since the last
-    slice boundary (``bins_s``); per boundary the local targets/tracks alive within ``around_s``
-    on both sides whose distributed id changes across it."""
-    link = _target_link(dask["associations"], local["associations"])
-    out: dict[str, Any] = {"boundaries": [_utc(b) for b in bounds_us]}
-    f = dask["fused"].join(link, on=["run", "epoch", "target_id"], how="left")
-    fused = _rowwise(f.rename({"target_id": "dask_id", "local": "target_id"}), local["fused"],
-                     ["run", "method", "epoch", "target_id"], bounds_us, bins_s)
-    out["fused"] = fused
-    out["target_id_changes"] = _id_changes(f.rename({"target_id": "dask_id", "local": "target_id"}),
-                                           ["run"], "target_id", bounds_us, around_s)
-    if dask.get("tracks") is not None and dask["tracks"].height and local["tracks"].height:
-        lt = local["tracks"].join(local["fused"].select("run", "epoch", "method", pl.col("target_id")
-                                                        .alias("plot_target_id")).unique(), how="semi",
-                                  on=["run", "epoch", "method", "plot_target_id"])
-        dt = (dask["tracks"].join(link.rename({"target_id": "plot_target_id"}), on=["run", "epoch", "plot_target_id"],
-                                  how="left")
-              .rename({"track_id": "dask_id"}))
-        # a distributed track row ↔ the local track updated by the same aircraft's plot at that epoch
-        pair = dt.join(lt.select("run", "method", "filter", "epoch", pl.col("plot_target_id").alias("local"),
-                                 "track_id"), on=["run", "method", "filter", "epoch", "local"], how="left")
-        # each distributed track (within a slice) ↔ the local track most of its updated rows match,
-        # so that coasting rows (no plot) are compared too
-        grp = ["run", "method", "filter"]
-        slice_of = sum((pl.col("epoch").dt.epoch("us") >= b).cast(pl.Int32) for b in bounds_us) if bounds_us \
-            else pl.lit(0)
-        link_t = (pair.filter(pl.col("track_id").is_not_null()).with_columns(slice_of.alias("__s"))
-                  .group_by(*grp, "__s", "dask_id", "track_id").len().sort("len", descending=True)
-                  .group_by(*grp, "__s", "dask_id").agg(pl.col("track_id").first()))
-        rows = (dt.drop("local").with_columns(slice_of.alias("__s"))
-                .join(link_t, on=[*grp, "__s", "dask_id"], how="left").drop("__s"))
-        out["tracks"] = _rowwise(rows, local["tracks"], [*grp, "epoch", "track_id"], bounds_us, bins_s)
-        out["track_id_changes"] = _id_changes(pair, ["run", "method", "filter"], "track_id", bounds_us, around_s)
-    return out
-
-
-def _rowwise(d: pl.DataFrame, loc: pl.DataFrame, key: list[str], bounds: list[int], bins: tuple[float, ...]
-             ) -> list[dict]:
-    """Per bin of seconds since the last boundary: local rows, distributed rows matched to them,
-    rows identical (positions within 1e-6 m), the RMS and max position difference (m)."""
-    pos = ["x_m", "y_m", "z_m"]
-    loc = loc.with_columns(_since(pl.col("epoch"), bounds))
-    j = loc.select(*key, *pos, "since_s").join(d.filter(pl.col(key[-1]).is_not_null()).select(*key, *pos)
-                                               .unique(subset=key, keep="first"), on=key, how="left", suffix="_d")
-    err = sum((pl.col(c) - pl.col(f"{c}_d")) ** 2 for c in pos).sqrt().alias("err")
-    j = j.with_columns(err, pl.col("since_s").fill_null(-1.0)
-                       .bin_intervals([float(b) for b in bins], labels=_interval_labels(bins)).alias("bin"))
-    g = (j.group_by("bin").agg(pl.len().alias("local_rows"), pl.col("err").is_not_null().sum().alias("matched"),
-                               (pl.col("err") <= 1e-6).sum().alias("identical"),
-                               (pl.col("err") ** 2).mean().sqrt().alias("rms_m"), pl.col("err").max().alias("max_m"))
-         .sort("bin"))
-    return g.with_columns(pl.col("bin").cast(pl.String)).to_dicts()
-
-
-def _interval_labels(bins: tuple[float, ...]) -> list[str]:
-    """"[a, b)" for each left-closed bin the breakpoints ``bins`` make, −inf and inf at the ends."""
-    edges = ["-inf", *(str(int(b)) if float(b).is_integer() else str(float(b)) for b in bins), "inf"]
-    return [f"[{a}, {b})" for a, b in zip(edges[:-1], edges[1:])]
-
-
-def _id_changes(pair: pl.DataFrame, group: list[str], local_col: str, bounds: list[int], around_s: float
-                ) -> list[dict]:
-    """Per boundary: local ids alive on both sides (±``around_s``) and those whose distributed id
-    (majority over their rows) differs across the boundary."""
-    w = int(around_s * US)
-    res = []
-    e = pl.col("epoch").dt.epoch("us")
-    p = pair.filter(pl.col(local_col).is_not_null() & pl.col("dask_id").is_not_null())
-    for b in bounds:
-        side = []
-        for lo, hi in ((b - w, b), (b, b + w)):
-            side.append(p.filter((e >= lo) & (e < hi)).group_by(*group, local_col, "dask_id").len()
-                        .sort("len", descending=True).group_by(*group, local_col).agg(pl.col("dask_id").first()))
-        both = side[0].join(side[1], on=[*group, local_col], suffix="_after")
-        res.append({"boundary_utc": _utc(b), "alive": both.height,
-                    "id_changed": int((both["dask_id"] != both["dask_id_after"]).sum())})
-    return res
-
-
-def _parse_utc(text: str) -> int:
-    """µs since the Unix epoch of a ``%Y-%m-%d %H:%M:%S`` UTC text (the ``partitions`` table's)."""
-    return int(datetime.strptime(text, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc).timestamp()) * US

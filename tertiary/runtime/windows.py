@@ -16,20 +16,19 @@ atomically), the manifest says ``complete`` and the parts and the state are remo
 
 Why Parquet parts and not appends to DuckDB: a DuckDB append of a lean-layout table rewrites it
 (its layout is decided on the whole table), a Parquet part is written once and never touched
-again, so a kill costs at most one window, and a Dask worker (issue 18) can write its own part
-without a shared database writer.
+again, so a kill costs at most one window, and a Dask worker can write its own part without a
+shared database writer.
 
 What streams and what does not (measured in ``benchmarks/bench_memory.py``): ingest, align,
 associate, fuse, the centralised reference, clustering, the trackers and conflict prediction
-carry explicit state (``tertiary.<stage>.<Stage>State``) and see one window at a time; the
-finalize stage holds the streamed tables of the whole run.
+carry explicit state (the :class:`tertiary.runtime.stage.Stage` contract) and see one window at a
+time; the finalize stage holds the streamed tables of the whole run.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import dataclasses
 import functools
 import hashlib
 import json
@@ -40,22 +39,25 @@ import shutil
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, is_dataclass
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 import polars as pl
 
-from tertiary.contract import schema
+from tertiary import contract as schema
+from tertiary.store.run_store import atomic_path, write_parquet_atomic, write_text_atomic
 from tertiary.core.errors import DataError, OptionError
+from tertiary.core.units import US
+from tertiary.runtime.stage import T_MIN_US, T_MAX_US, Window
 
 T = TypeVar("T")
 
-US = 1_000_000
 #: the end of time on the grid (µs): the last window is open-ended so that every carried row
-#: (alignment hold-back, coasting tracks) is flushed
-END_US = 1 << 62
+#: (alignment hold-back, coasting tracks) is flushed; the start of time is ``-END_US`` or below
+END_US = T_MAX_US
 #: window length (s) of the API's windowed functions, and of ``--window auto`` when the input
 #: has no usable time span (or with ``--engine dask``, whose slices are multiples of it)
 DEFAULT_WINDOW_S = 300.0
@@ -66,8 +68,7 @@ AUTO_WINDOW = "auto"
 #: window's memory grows with its rows, and every window costs a fixed overhead (about a second of
 #: small table operations on the 2-core machine), so a busy recording gets short windows and a
 #: sparse one long ones. Parts above DuckDB's row group (122 880 rows) are written to the run
-#: database optimistically and leave free blocks in it (measured: +23 % file size with 7 methods
-#: in 2 520 s windows), which the division by the methods avoids.
+#: database optimistically and leave free blocks in it, which the division by the methods avoids.
 WINDOW_REPORTS = 50_000
 #: the bounds (s) of an automatic window
 AUTO_WINDOW_BOUNDS_S = (60.0, 3600.0)
@@ -79,19 +80,6 @@ PARTS = "parts"
 ENGINE_VERSION = 1
 
 Progress = Callable[[str], None]
-
-
-@dataclass(frozen=True)
-class Window:
-    """Epochs (and report times) in [t0_us, t1_us) of the absolute grid; the last is open-ended."""
-
-    index: int
-    t0_us: int
-    t1_us: int
-
-    @property
-    def last(self) -> bool:
-        return self.t1_us >= END_US
 
 
 def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int = 0,
@@ -106,7 +94,7 @@ def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int =
     no stage's state changes in it (a silence of hours costs nothing)."""
     if window_s is None:
         if start == 0:
-            yield Window(0, -END_US, END_US)
+            yield Window.unbounded()
         return
     w = int(round(window_s * US))
     first = max(0, ((t_first_us if t_first_us is not None else origin_us) - origin_us) // w)
@@ -118,8 +106,8 @@ def windows(origin_us: int, t_last_us: int, window_s: float | None, start: int =
     for k in range(max(start, first), n):
         if live is not None and k not in live and k not in (first, n - 1):
             continue
-        yield Window(k, -END_US if k == first else origin_us + k * w,
-                     END_US if k == n - 1 else origin_us + (k + 1) * w)
+        yield Window(k, T_MIN_US if k == first else origin_us + k * w,
+                     T_MAX_US if k == n - 1 else origin_us + (k + 1) * w)
 
 
 def auto_window_s(source: "ReportSource", reports_per_window: int = WINDOW_REPORTS) -> float:
@@ -129,8 +117,7 @@ def auto_window_s(source: "ReportSource", reports_per_window: int = WINDOW_REPOR
 
     A window's memory grows with its rows, so the budget is held by the busiest stretch of the
     recording, not by its mean: a day with a midday peak gets shorter windows than an hour of
-    the same mean rate (12 h terminal area: the mean sized 2 040 s windows that held up to
-    65 000 reports at the peak). The length is the fixed point of w ← budget / peak rate over
+    the same mean rate. The length is the fixed point of w ← budget / peak rate over
     w (:meth:`ReportSource.minute_counts`), from the mean-rate length; a uniform recording gets
     the mean-rate length."""
     if not source.windowable or source.n_rows == 0:
@@ -194,7 +181,6 @@ class ReportSource:
     one window (nothing can be cut)."""
 
     def __init__(self, reports: pl.DataFrame | pl.LazyFrame, limits: schema.Limits = schema.Limits()) -> None:
-        from datetime import datetime, timedelta, timezone
         lf = reports.lazy() if isinstance(reports, pl.DataFrame) else reports
         # the row index straight on the scan (nothing resolved before it, not even the schema):
         # a time filter is then pushed into the scan, which skips the files outside a window
@@ -245,11 +231,11 @@ class ReportSource:
         return set(k.to_series().to_list())
 
     def rows(self, w: Window) -> pl.DataFrame:
-        if not self.windowable or (w.t0_us <= -END_US and w.t1_us >= END_US):
+        if not self.windowable or (w.open_start and w.open_end):
             return self.lf.collect()
         t = pl.col("time").dt.epoch("us")
         cond = (t >= w.t0_us) & (t < w.t1_us) & (t >= self.lo_us) & (t <= self.hi_us)
-        if w.t0_us <= -END_US:   # the first window also takes the rows without a plausible time
+        if w.open_start:   # the first window also takes the rows without a plausible time
             return self.lf.filter(cond | pl.col("time").is_null() | (t < self.lo_us) | (t > self.hi_us)).collect()
         # the same rows, with a coarse test on the column itself first: a scan skips the files
         # and row groups whose time statistics lie outside it (a test on an expression of the
@@ -267,9 +253,18 @@ class ReportSource:
 # --------------------------------------------------------------------------- parts, state, manifest
 
 
+def config_dict(cfg: Any) -> Any:
+    """A configuration (nested frozen dataclasses) as plain dicts and lists, as the run record
+    stores it and :func:`config_hash` hashes it."""
+    if is_dataclass(cfg):
+        return {f.name: config_dict(getattr(cfg, f.name)) for f in fields(cfg)}
+    if isinstance(cfg, tuple):
+        return [config_dict(x) for x in cfg]
+    return cfg
+
+
 def config_hash(cfg: Any, window_s: float | None, dataset: str) -> str:
-    from tertiary.pipeline.job import _config_dict
-    text = json.dumps({"config": _config_dict(cfg), "window_s": window_s, "dataset": dataset,
+    text = json.dumps({"config": config_dict(cfg), "window_s": window_s, "dataset": dataset,
                        "engine": ENGINE_VERSION}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -345,16 +340,14 @@ class PartStore:
         return store, state
 
     def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
-        from tertiary.store.run_store import write_parquet_atomic
         for name, frame in outputs.items():
             # an empty window's frame is kept only while the table has no part at all (its schema)
             if frame.width == 0 or (frame.height == 0 and self.manifest["tables"].get(name) is not None):
                 continue
             d = self.dir / PARTS / name
             d.mkdir(parents=True, exist_ok=True)
-            # lz4: the parts are scratch (read back once, removed when the run completes); on
-            # 60 000-row slices of the run's tables it wrote 1.6-3.3x faster than zstd for
-            # 12-33 % more bytes
+            # lz4: the parts are scratch (read back once, removed when the run completes), so
+            # writing fast matters more than a few more bytes
             write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="lz4")
             self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
 
@@ -369,7 +362,6 @@ class PartStore:
 
     def commit(self, w: Window, state: bytes, **info: Any) -> None:
         """:meth:`checkpoint` of a state already pickled (:meth:`state_bytes`)."""
-        from tertiary.store.run_store import atomic_path
         with atomic_path(self.dir / STATE_FILE) as tmp:
             with open(tmp, "wb") as fh:
                 fh.write(state)
@@ -395,7 +387,7 @@ class PartStore:
         files = self._files(name)
         if not files:
             return None
-        return _concat([pl.scan_parquet(f).select(_present(f, columns)).collect() if columns else pl.read_parquet(f)
+        return concat_parts([pl.scan_parquet(f).select(_present(f, columns)).collect() if columns else pl.read_parquet(f)
                         for f in files])
 
     def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
@@ -412,12 +404,11 @@ class PartStore:
         return [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]
 
     def _commit(self) -> None:
-        from tertiary.store.run_store import write_text_atomic
         write_text_atomic(self.dir / MANIFEST, json.dumps(self.manifest, indent=1, default=str))
 
 
 class MemoryParts:
-    """The in-memory sink of :func:`tertiary.pipeline.job.process`: every window's rows kept."""
+    """The in-memory sink of :func:`tertiary.pipeline.process`: every window's rows kept."""
 
     def __init__(self) -> None:
         self.frames: dict[str, list[pl.DataFrame]] = {}
@@ -432,7 +423,7 @@ class MemoryParts:
 
     def table(self, name: str) -> pl.DataFrame | None:
         parts = self.frames.get(name)
-        return _concat(parts) if parts else None
+        return concat_parts(parts) if parts else None
 
 
 _END = object()
@@ -460,7 +451,7 @@ def _present(path: Path, columns: list[str]) -> list[str]:
     return [c for c in columns if c in have]
 
 
-def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
+def concat_parts(frames: list[pl.DataFrame]) -> pl.DataFrame:
     """Windows' rows of one table: empty windows' frames dropped (they may lack optional columns)."""
     full = [f for f in frames if f.height] or frames[:1]
     if len(full) == 1:
@@ -488,7 +479,7 @@ def _malloc_trim() -> Callable[[int], int] | None:
 def release_memory() -> None:
     """Hand the heap's freed pages back to the system (glibc ``malloc_trim``). numpy's freed
     arrays stay in the heap, fragmented, after each window: a 12-hour run's windows left 170 MiB
-    of them under the whole-run stages' own peak (issue 16, memory). A no-op without glibc."""
+    of them under the whole-run stages' own peak. A no-op without glibc."""
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
@@ -515,11 +506,15 @@ class Meter:
     def window(self, w: Window, t0_us: int, t1_us: int, n: int) -> None:
         self.reports += n
         dt = max(time.perf_counter() - self.t_start, 1e-9)
-        fmt = lambda us: _utc(us)
+        fmt = utc_text
         self.say(f"window {w.index + 1}/{self.n_windows} {fmt(t0_us)} – {fmt(t1_us)}: {self.reports:,} reports so "
                  f"far, {self.reports / dt:,.0f} reports/s, RSS {rss_mib():,.0f} MiB")
 
 
-def _utc(us: int) -> str:
-    from datetime import datetime, timezone
+def utc_text(us: int) -> str:
+    """A grid time (µs since the Unix epoch) as ``YYYY-MM-DD HH:MM:SS`` UTC."""
     return datetime.fromtimestamp(us / US, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+
+
+#: the old private name, still imported by :mod:`tertiary.pipeline.tables`
+_concat = concat_parts

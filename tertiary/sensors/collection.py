@@ -1,4 +1,4 @@
-"""Report collection ahead of alignment (monograph §1.4, digest ``tertiary-and-safety.md`` §1 item 1).
+"""Report collection ahead of alignment (monograph §1.4).
 
 The tertiary processor receives the radars' reports over time and processes them one at a
 time (``servers`` processors in parallel); a report that cannot be taken at once meets one of
@@ -38,7 +38,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.contract import schema
+from tertiary import contract as schema
 from tertiary.core.errors import OptionError
 
 __all__ = [

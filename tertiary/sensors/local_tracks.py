@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.errors import OptionError
-from tertiary.contract.schema import EHS_REPORT_COLUMNS, is_sorted_by
+from tertiary.contract import EHS_REPORT_COLUMNS, is_sorted_by
 from tertiary.stages.tracking.filters import kinematic_los as los
 from tertiary.stages.tracking.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
 from tertiary.stages.tracking.filters.singer import (SingerModel, predict_elementwise, singer_coefficients, update_elementwise)
@@ -51,7 +51,7 @@ ESTIMATE_COLUMNS = [
 class LocalTrackerConfig:
     """Parameters of the per-radar Singer channels (documented defaults).
 
-    * ``range_model``: range channel, α_ф = 1/30 s⁻¹ (30 s manoeuvre time constant, digest §3)
+    * ``range_model``: range channel, α_ф = 1/30 s⁻¹ (30 s manoeuvre time constant)
       and σ_m = 2 m/s² (a 3°/s turn at 80–150 m/s has 4–8 m/s² centripetal acceleration, of
       which the line-of-sight part is usually much smaller).
     * ``cross_sigma_m``: the same intensity across the line of sight, in m/s²; the angular
@@ -65,7 +65,7 @@ class LocalTrackerConfig:
       degrees per scan).
     * ``range_channel``: the range channel — ``"singer"`` (above), or the chapter 3
       ``"kinematic"`` (§3.4) / ``"kinematic_dynamic"`` (§3.5) channel driven by the Mode S EHS
-      report columns (:data:`tertiary.contract.schema.EHS_REPORT_COLUMNS`) for local tracks whose first
+      report columns (:data:`tertiary.contract.EHS_REPORT_COLUMNS`) for local tracks whose first
       report and at least ``ehs_min_fraction`` of all reports carry them (between EHS replies
       the auxiliary filters coast); other tracks keep the Singer channel.
     * ``range_variant``: (3.11) resp. (3.62) ``"corrected"`` or ``"printed"``.
@@ -76,8 +76,8 @@ class LocalTrackerConfig:
       which V̇ = 0 turns into a range-acceleration bias. False: as printed.
     * ``range_sigma_u``: √D_a, σ of the chapter 3 channels' input-acceleration error (m/s²).
       u is held over a scan (4–12 s): 0.5 m/s² covers the EHS noise carried into u in steady
-      flight and part of the hold error at turn entry/exit (measured on terminal-area: 0.2 is
-      best in steady flight, larger in turns; 0.5 the compromise).
+      flight and part of the hold error at turn entry/exit (smaller is better in steady flight,
+      larger in turns; 0.5 the compromise).
     """
 
     range_model: SingerModel = field(default_factory=lambda: SingerModel(alpha=1 / 30, sigma_m=2.0))
@@ -519,7 +519,7 @@ def track_reports(reports: pl.DataFrame, radars: pl.DataFrame,
                   cfg: LocalTrackerConfig = LocalTrackerConfig()) -> pl.DataFrame:
     """Add the radar track estimate, covariance and range innovation columns to plot reports.
 
-    ``reports`` must be valid (see :func:`tertiary.contract.schema.validate`); it is returned sorted by
+    ``reports`` must be valid (see :func:`tertiary.contract.validate`); it is returned sorted by
     (run, radar_id, local_track_id, time) with :data:`ESTIMATE_COLUMNS` added (replacing any
     existing ones). The first report of a track has no innovation (NaN).
     """

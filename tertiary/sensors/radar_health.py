@@ -1,5 +1,4 @@
-"""Radar health from the radars' own innovations (seed 003, digest ``anomalous-conditions-003.md``
-§2.2, §4.3 and §6): windowed-NIS divergence alarm, innovation-based adaptive R (variants A and B)
+"""Radar health from the radars' own innovations (seed 003 §2.2, §4.3 and §6): windowed-NIS divergence alarm, innovation-based adaptive R (variants A and B)
 and the share of reports failing the χ² NIS gate, per radar, as rows of the ``metrics`` table
 (stage ``"radar_health"``, method = the radar id).
 
@@ -8,7 +7,7 @@ Input: the ``aligned`` rows (or the fusion input rows): ``run``, ``radar_id``,
 ``epoch``). Only fresh rows count (each report once), with a finite range innovation ν and
 variance S > 0; NIS = ν²/S (m = 1).
 
-* **Windowed NIS** (digest 003 §6, "consistency monitoring"): per (run, radar), the mean NIS
+* **Windowed NIS** (seed 003 §6, "consistency monitoring"): per (run, radar), the mean NIS
   of the reports of the last ``window_s`` seconds, (t − window_s, t]. For a consistent filter the
   k NIS values of a window are χ²₁, so their mean is χ²_k/k; its bound is χ²_k(``alarm_prob``)/k
   for the k samples actually in the window.
@@ -19,7 +18,7 @@ variance S > 0; NIS = ν²/S (m = 1).
   H P⁻ Hᵀ = S − σ²_range (the radar's nominal R): variant A (seed 003 (4.16)–(4.24), the
   mean-removed Myers–Tapley form) R̂_A = 1/(N−1) Σ (ν_j − ν̄)² − (1/N) Σ (H P⁻ Hᵀ)_j (the printed
   (4.24) pulls a (N−1)/N in front of the current H P⁻ Hᵀ instead; with per-sample prior terms it
-  is the mean, digest §4.3 safeguard 2), and variant B R̂_B = (1/N) Σ (ν_j² − (H P⁻ Hᵀ)_j)
+  is the mean, seed 003 §4.3 safeguard 2), and variant B R̂_B = (1/N) Σ (ν_j² − (H P⁻ Hᵀ)_j)
   (as :class:`tertiary.stages.tracking.filters.adaptive_r.AdaptiveR`). Clamped to [``floor_frac``,
   ``ceil_frac``] × σ²_range, used from ``r_min_samples`` samples on. A absorbs an innovation
   bias, B turns it into variance (safeguard 5): their ratio flags a bias.

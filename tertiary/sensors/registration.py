@@ -73,7 +73,6 @@ from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
 
 F64 = NDArray[np.float64]
-US = 1_000_000
 
 #: columns of the registration table (``registration.parquet``), in this order
 TABLE_COLUMNS = ["radar_id", "name", "range_bias_m", "range_bias_sigma_m", "azimuth_bias_deg",

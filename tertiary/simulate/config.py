@@ -11,6 +11,7 @@ import re
 import types
 from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
+from tertiary.contract import Limits
 from tertiary.core.errors import DataError, OptionError, ResourceError
 from tertiary.stages.tracking.filters.singer import SingerModel
 from tertiary.sensors.local_tracks import LocalTrackerConfig
@@ -68,7 +69,7 @@ class Anomalies:
 
 @dataclass(frozen=True)
 class TrafficConfig:
-    """Terminal-area traffic generator (procedures: :func:`tertiary.simulate.traffic.terminal_area`).
+    """Terminal-area traffic generator (procedures: :func:`tertiary.simulate.traffic.terminal.terminal_area`).
 
     ``aircraft`` is the number that fly during the scenario (they enter and leave over it).
     After ``conflict_pairs`` designed losses of separation and ``near_miss_pairs`` designed
@@ -83,7 +84,7 @@ class TrafficConfig:
     ``area_radius_m`` … ``lifetime_s`` are kept for compatibility (the procedure generator
     does not use them; routes are fixed by the procedure design).
 
-    Selected altitude (Mode S EHS BDS 4,0, :class:`tertiary.simulate.traffic.TrafficTrajectories`):
+    Selected altitude (Mode S EHS BDS 4,0, :class:`tertiary.simulate.traffic.base.TrafficTrajectories`):
     ``selected_alt_fraction`` of the aircraft downlink the level their crew selected;
     ``bust_selected`` is what a level-bust aircraft selected: ``"flown"`` (the wrong level it
     then climbs to — the common real cause) or ``"cleared"`` (its cleared level, below).
@@ -175,14 +176,14 @@ class Airport:
 
 @dataclass(frozen=True)
 class NationalConfig:
-    """National traffic (:func:`tertiary.simulate.traffic.national_flights`): domestic flights
+    """National traffic (:func:`tertiary.simulate.traffic.national.national_flights`): domestic flights
     between ``airports`` (SID climb, cruise at a semicircular flight level, descent and a
     straight-in final) and overflights on ``airways`` across the area, entering over a day
     whose airborne count follows ``hourly_curve`` (relative weights per UTC hour, scaled so
     that the peak is ``peak_airborne``). ``landing_spacing_s`` separates landings at an
     airport, ``departure_spacing_s`` its take-offs, ``lane_spacing_s`` entries on one (route,
     level) lane; each flight's level and delay are planned so that flights keep 5 NM and a
-    buffer, or 1 000 ft, apart above FL150 (:func:`tertiary.simulate.traffic._allocate_levels`).
+    buffer, or 1 000 ft, apart above FL150 (:func:`tertiary.simulate.traffic.national.allocate_levels`).
     Random draws of the radar scans are made per ``block_s`` of time, so the data do not depend
     on the window the simulation is written in (a window must be a multiple of ``block_s``).
     The run covers [``start_s``, ``start_s`` + duration) of the day (the schedule is the whole
@@ -191,7 +192,7 @@ class NationalConfig:
     ``enroute_floor_fl``: the floor of the area's en-route airspace (0: none): two aircraft
     both below it may be 3 NM apart (the terminal area), any other pair needs 5 NM (its traffic
     is planned so above FL150); the pipeline's STCA and its loss-of-separation scoring take it
-    (:func:`tertiary.pipeline.job.adapt_to_scenario`)."""
+    (:func:`tertiary.pipeline.adapt_to_scenario`)."""
 
     airports: tuple[Airport, ...] = ()
     peak_airborne: int = 1500
@@ -495,7 +496,6 @@ def check_origin(origin: Any, option: str = "origin") -> tuple[float, float, flo
 
 
 def _check_radar(where: str, r: Any) -> None:
-    from tertiary.contract.schema import Limits
     lim = Limits()
     if not isinstance(r, RadarConfig):
         raise _type_error(where, "a radar table", r)

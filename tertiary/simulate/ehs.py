@@ -1,4 +1,4 @@
-"""Mode S enhanced-surveillance (EHS) parameters a radar extracts from a transponder (issue 19 item 2).
+"""Mode S enhanced-surveillance (EHS) parameters a radar extracts from a transponder.
 
 The monograph's chapter 3 range channels take onboard parameters "sent over the discrete-address
 datalink". A real Mode S radar gets them by Comm-B extraction of the EHS registers; this module
@@ -23,7 +23,7 @@ BDS 4,0 (selected vertical intention): the MCP/FCU selected altitude, 16 ft LSB,
 reference of ``altitude_m``. It is the level the crew selected at the reply time — the
 aircraft's clearance as the traffic generator flies it, changed where the crew's procedure
 changes it (an arrival's missed-approach altitude once on the glide path;
-:class:`tertiary.simulate.traffic.TrafficTrajectories`; level busts: the wrong level selected,
+:class:`tertiary.simulate.traffic.base.TrafficTrajectories`; level busts: the wrong level selected,
 see there), never a value read off the future trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
 Mode S reply, for aircraft that do not downlink it (non-EHS, or a trajectory source without
 intent: big box, ADS-B, national) and for a fraction ``selected_alt_missing`` of replies (the
@@ -50,12 +50,13 @@ import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.core.errors import DataError
-from tertiary.contract.schema import EHS_REPORT_COLUMNS
+from tertiary.core.units import FT, US
+from tertiary.contract import EHS_REPORT_COLUMNS
 from tertiary.simulate.trajectory import Trajectories
 
 F64 = NDArray[np.float64]
 KT = 1852.0 / 3600.0
-FPM = 0.3048 / 60.0
+FPM = FT / 60.0
 G0 = 9.80665
 
 #: (LSB, lower, upper) of each EHS field, in the table's units
@@ -67,13 +68,12 @@ RESOLUTION = {
     "vertical_rate_mps": (32.0 * FPM, -16352.0 * FPM, 16352.0 * FPM),
 }
 EHS_COLUMNS = tuple(RESOLUTION)
-FT = 0.3048
 #: BDS 4,0 MCP/FCU selected altitude: (LSB, lower, upper) in metres
 SELECTED_ALT_RESOLUTION = (16.0 * FT, 0.0, 65520.0 * FT)
-#: the ``reports`` column of the BDS 4,0 selected altitude (:data:`tertiary.contract.schema.SELECTED_ALT_COLUMN`)
+#: the ``reports`` column of the BDS 4,0 selected altitude (:data:`tertiary.contract.SELECTED_ALT_COLUMN`)
 SELECTED_ALT_COLUMN = "selected_alt_m"
 
-#: EHS field → the ``reports`` column carrying it (:data:`tertiary.contract.schema.EHS_REPORT_COLUMNS`)
+#: EHS field → the ``reports`` column carrying it (:data:`tertiary.contract.EHS_REPORT_COLUMNS`)
 REPORT_COLUMN = dict(zip(EHS_COLUMNS, EHS_REPORT_COLUMNS))
 #: spawn key of the EHS noise stream: a child of the scenario seed no other simulator stream uses
 #: (radars use children 0 … n_radars), so switching EHS on or off leaves every other column
@@ -171,7 +171,7 @@ def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generato
     lookup = pl.DataFrame({"truth_id": pl.Series(list(index), dtype=pl.Int64),
                            "__ac": pl.Series(list(index.values()), dtype=pl.Int64)})
     ms = ms.join(lookup, on="truth_id", how="inner", maintain_order="left")
-    epoch_us = int(traj.epoch.timestamp() * 1_000_000)
+    epoch_us = int(traj.epoch.timestamp() * US)
     t = (ms["time"].cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy() - epoch_us) * 1e-6
     values, ok = ehs_parameters(traj, ms["__ac"].to_numpy(), t, rng, cfg)
     keys = [c for c in ("run", "radar_id", "local_track_id", "time", "mode_s") if c in ms.columns]

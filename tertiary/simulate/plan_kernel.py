@@ -1,10 +1,10 @@
-"""The national day's strategic plan (:func:`tertiary.simulate.traffic._allocate_levels`),
+"""The national day's strategic plan (:func:`tertiary.simulate.traffic.national.allocate_levels`),
 compiled (numba, ``cache=True``).
 
 The plan is sequential by nature: flights in order of entry, each taking the first (delay,
 level) that conflicts with no flight planned before it. The Python loop over the day's ~20 000
-flights, a few dozen numpy calls each, was 20 s of every national simulation, whatever its
-length (the whole day is planned; issue 18, simulation speed). Here each flight's choices are
+flights, a few dozen numpy calls each, would weigh on every national simulation, whatever its
+length (the whole day is planned). Here each flight's choices are
 tested against the flights airborne with it in plain loops. The Python function stays the
 reference (compared in the tests).
 """
@@ -19,7 +19,7 @@ _jit = numba.njit(cache=True, error_model="numpy", nogil=True)
 
 @_jit
 def _key(a, b, m, T, bits):
-    """:func:`tertiary.simulate.traffic._conflict_key` of one (template, template, offset)."""
+    """:func:`tertiary.simulate.traffic.national.conflict_key` of one (template, template, offset)."""
     half = 1 << (bits - 1)
     m = min(max(m, -half + 1), half - 1)
     return (a * T + b) * (1 << bits) + m + half
@@ -29,7 +29,7 @@ def _key(a, b, m, T, bits):
 def plan(order, route, entry, land, lv_ptr, lv_idx, group, length, keys, pair_any, stride, origin, dest,
          take_off_gap, landing_gap, delays, reach, bits, out_r, out_e):
     """(T templates, ``keys`` sorted): each flight ``order[rank]`` in turn gets ``out_r`` /
-    ``out_e`` as :func:`tertiary.simulate.traffic._allocate_levels` gives them; ``levels[g]`` is
+    ``out_e`` as :func:`tertiary.simulate.traffic.national.allocate_levels` gives them; ``levels[g]`` is
     ``lv_idx[lv_ptr[g]:lv_ptr[g + 1]]``. Returns the flights left in conflict."""
     n, T = len(route), len(length)
     big = np.iinfo(np.int64).max // 4

@@ -24,11 +24,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tertiary.core import geo
+from tertiary.core.units import FT
 from tertiary.simulate import radar_tracker as rt
 from tertiary.simulate.config import Anomalies, RadarConfig, TransponderConfig
 from tertiary.simulate.trajectory import Trajectories
 
-FT = 0.3048
 #: transponder altitude quanta (m): Mode S replies in 25 ft, Mode C-only (Gillham) in 100 ft
 QUANTUM_MODE_S_M = 25 * FT
 QUANTUM_MODE_C_M = 100 * FT
@@ -112,7 +112,7 @@ def _strings(traj: Trajectories, name: str) -> NDArray[np.str_]:
     return np.array(["" if v is None else str(v) for v in np.asarray(values, dtype=object)], dtype=str)
 
 
-def _octal(codes: NDArray[np.str_]) -> NDArray[np.int64]:
+def octal_codes(codes: NDArray[np.str_]) -> NDArray[np.int64]:
     """Mode 3/A codes written in octal (4 digits 0–7), -1 where not one."""
     ok = (np.char.str_len(codes) == 4) & np.char.isdigit(codes)
     ok &= ~np.char.count(codes, "8").astype(bool) & ~np.char.count(codes, "9").astype(bool)
@@ -135,7 +135,7 @@ def transponders(traj: Trajectories, cfg: TransponderConfig, rng: np.random.Gene
         icao = np.where(rng.random(n) < cfg.mode_s_fraction, np.where(icao == "", made_up, icao), "")
     addresses, inverse = np.unique(icao, return_inverse=True)
     address = np.where(icao == "", -1, inverse.reshape(-1)).astype(np.int64)
-    code = _octal(_strings(traj, "squawk"))
+    code = octal_codes(_strings(traj, "squawk"))
     code = np.where(code < 0, rng.integers(0o1000, 0o7777, n), code)
     dup = rng.random(n) < cfg.duplicate_code_fraction
     if n > 1:
@@ -315,7 +315,8 @@ def _merge(a: Plots, b: Plots) -> Plots:
     return Plots(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in Plots.__dataclass_fields__))
 
 
-def _take(p: Plots, order: NDArray[np.int64]) -> Plots:
+def take_plots(p: Plots, order: NDArray[np.int64]) -> Plots:
+    """The plots at ``order`` (rows of every field)."""
     return Plots(*(getattr(p, f)[order] for f in Plots.__dataclass_fields__))
 
 
@@ -332,16 +333,16 @@ def number_plots(plots: list[Plots], radars: list[RadarConfig], runs: int, durat
                  cfg: rt.RadarTrackerConfig) -> list[Plots]:
     """Each radar's plots with its own track numbers, sorted by (run, track number, time).
 
-    ``cfg.ideal``: numbers from the truth (:func:`_numbered`). Else every radar runs its own
+    ``cfg.ideal``: numbers from the truth (:func:`numbered_by_truth`). Else every radar runs its own
     association (:func:`tertiary.simulate.radar_tracker.run_scans`) on what it measured —
     plot positions in its ground plane with its nominal accuracy, its own clock, the replied
     codes — all radars and runs in one pass over the scan index."""
     if cfg.ideal:
-        return [_numbered(p, r) for p, r in zip(plots, radars)]
+        return [numbered_by_truth(p, r) for p, r in zip(plots, radars)]
     if not plots:
         return []
     idx = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(plots)])
-    allp = plots[0] if len(plots) == 1 else _merge_all(plots)
+    allp = plots[0] if len(plots) == 1 else merge_plots(plots)
     sig = np.array([[r.sigma_range_m, r.sigma_azimuth_deg, r.sigma_elevation_deg] for r in radars])[idx]
     z, cov = rt.ground_plots(allp.range_m, allp.azimuth_deg, allp.elevation_deg, sig[:, 0], sig[:, 1], sig[:, 2])
     period = np.array([r.scan_period_s for r in radars])
@@ -354,16 +355,17 @@ def number_plots(plots: list[Plots], radars: list[RadarConfig], runs: int, durat
     allp.local_track_id, allp.track_life = numbers[:, 0].astype(np.uint32), numbers[:, 1]
     out = []
     for i in range(len(plots)):
-        p = _take(allp, np.flatnonzero(idx == i))
-        out.append(_take(p, np.lexsort((p.t_true, p.local_track_id, p.run))))
+        p = take_plots(allp, np.flatnonzero(idx == i))
+        out.append(take_plots(p, np.lexsort((p.t_true, p.local_track_id, p.run))))
     return out
 
 
-def _merge_all(parts: list[Plots]) -> Plots:
+def merge_plots(parts: list[Plots]) -> Plots:
+    """The plots of ``parts`` one after another."""
     return Plots(*(np.concatenate([getattr(p, f) for p in parts]) for f in Plots.__dataclass_fields__))
 
 
-def _numbered(plots: Plots, radar: RadarConfig) -> Plots:
+def numbered_by_truth(plots: Plots, radar: RadarConfig) -> Plots:
     """Detections and false reports merged with the radar's own track numbers, sorted by (run,
     track number, time) — the order of its secondary processing, which then needs no sort.
 
@@ -374,12 +376,12 @@ def _numbered(plots: Plots, radar: RadarConfig) -> Plots:
     (run-major, then aircraft, then scan), so only the false reports are sorted.
     """
     real = plots.aircraft >= 0
-    det, clutter = _take(plots, np.flatnonzero(real)), _take(plots, np.flatnonzero(~real))
+    det, clutter = take_plots(plots, np.flatnonzero(real)), take_plots(plots, np.flatnonzero(~real))
     if not _in_order(det.run, det.aircraft, det.t_true):
-        det = _take(det, np.lexsort((det.t_true, det.aircraft, det.run)))
-    p = _merge(_take(clutter, np.lexsort((clutter.t_true, clutter.run))), det)
+        det = take_plots(det, np.lexsort((det.t_true, det.aircraft, det.run)))
+    p = _merge(take_plots(clutter, np.lexsort((clutter.t_true, clutter.run))), det)
     if not _in_order(p.run):
-        p = _take(p, np.argsort(p.run, kind="stable"))
+        p = take_plots(p, np.argsort(p.run, kind="stable"))
     run, ac, t = p.run, p.aircraft, p.t_true
     new = np.ones(len(run), bool)
     if len(run):

@@ -4,8 +4,8 @@ The same model as :func:`tertiary.simulate.radar_tracker.step` — equations (1)
 module, its gate, cost, greedy global nearest neighbour, track management and number reuse —
 written as one loop over scans and, inside a scan, over each partition's tracks and plots. The
 Python :func:`~tertiary.simulate.radar_tracker.step` stays the reference (the two are compared in
-the tests): the loop over ~1 000 scans an hour was 70 % of a simulation, each scan a few
-milliseconds of small numpy calls (issue 18, simulation speed).
+the tests): in Python the loop over ~1 000 scans an hour dominates a simulation, each scan a
+few milliseconds of small numpy calls.
 
 Order of the pairs (what decides ties of equal cost): the reference breaks them by the pair's
 position in the KD-tree's output, this kernel by (track in state order, plot in x order); two
@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+
+from tertiary.core.jit import in_cache
+from tertiary.simulate.radar_track_state import TRACK_FIELDS, RadarTrackState, init_state
 
 _jit = numba.njit(cache=True, error_model="numpy")   # x / 0 is inf, as in numpy
 
@@ -392,14 +395,12 @@ def _update(i, r, s_t, s_x, s_p, s_hits, s_misses, s_conf, s_ms, s_a, p_t, p_z, 
 def is_ready() -> bool:
     """The loop is compiled in this process, or numba's cache holds it for this source (then
     it loads in about a second instead of compiling for 12–20 s on the 2-core machine)."""
-    from tertiary.runtime.warmup import in_cache
     return bool(_scan_loop.signatures) or in_cache(_scan_loop)
 
 
 def run_scans_compiled(cfg, scan_index, plots, scans_of_part, state):
     """:func:`tertiary.simulate.radar_tracker.run_scans` through the compiled loop: the same
     arguments and the same (numbers, state)."""
-    from tertiary.simulate.radar_tracker import TRACK_FIELDS, RadarTrackState, init_state
     st = state if state is not None else init_state()
     n0, n = len(st), len(scan_index)
     order = np.argsort(scan_index, kind="stable")

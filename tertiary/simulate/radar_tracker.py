@@ -38,15 +38,17 @@ runs once it is cached or when a job is large enough to repay compiling it
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from tertiary.simulate.radar_scan_kernel import is_ready, run_scans_compiled
+from tertiary.simulate.radar_track_state import STATE_VERSION, TRACK_FIELDS, RadarTrackState, init_state
+
 #: partitions are laid side by side this far apart (m) in one KD-tree
 _PART_OFFSET = 1.0e8
-STATE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -75,50 +77,6 @@ class RadarTrackerConfig:
     mode_s_gate: bool = True
     code_mismatch_cost: float = 9.0
     reuse_after_scans: int = 10
-
-
-@dataclass(frozen=True)
-class RadarTrackState:
-    """Live tracks of every partition, sorted by (part, number); carried from scan to scan."""
-
-    part: NDArray[np.int64]          # partition (radar × run)
-    number: NDArray[np.int64]        # track number (≥ 1, unique in its partition)
-    t: NDArray[np.float64]           # time of the last plot (s)
-    x: NDArray[np.float64]           # (n, 4) x, y, ẋ, ẏ at t (radar ground plane, m, m/s)
-    p: NDArray[np.float64]           # (n, 4, 4) covariance at t
-    hits: NDArray[np.int64]
-    misses: NDArray[np.int64]        # consecutive scans without a plot
-    confirmed: NDArray[np.bool_]
-    mode_s: NDArray[np.int64]        # last Mode S address seen (-1 none)
-    mode_3a: NDArray[np.int64]       # last Mode 3/A code seen (-1 none)
-    period: NDArray[np.float64]      # the radar's scan period (s)
-    drop_misses: NDArray[np.int64]   # a confirmed track is deleted at this many misses
-    life: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))   # unique per track life
-    next_life: int = 0
-    #: numbers of deleted tracks not yet free again: partition, number, scans left
-    held_part: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    held_number: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    held_scans: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    version: int = STATE_VERSION
-
-    def __len__(self) -> int:
-        return len(self.part)
-
-    def take(self, idx: NDArray[np.int64]) -> "RadarTrackState":
-        """The tracks ``idx`` (held numbers unchanged)."""
-        return replace(self, **{f: getattr(self, f)[idx] for f in TRACK_FIELDS})
-
-
-#: per-track columns of :class:`RadarTrackState`
-TRACK_FIELDS = ("part", "number", "t", "x", "p", "hits", "misses", "confirmed", "mode_s", "mode_3a", "period",
-                "drop_misses", "life")
-
-
-def init_state() -> RadarTrackState:
-    """No track anywhere."""
-    i, f = np.zeros(0, np.int64), np.zeros(0)
-    return RadarTrackState(part=i, number=i, t=f, x=np.zeros((0, 4)), p=np.zeros((0, 4, 4)), hits=i, misses=i,
-                           confirmed=np.zeros(0, bool), mode_s=i, mode_3a=i, period=f, drop_misses=i)
 
 
 @dataclass(frozen=True)
@@ -366,10 +324,7 @@ def compiled_pays(job_plots: int) -> bool:
     """Whether :func:`run_scans` should run the compiled loop for a job of ``job_plots`` plots:
     when the loop is compiled already (in this process or in numba's cache: it then loads in
     about a second) or when the job is large enough to repay compiling it."""
-    if job_plots >= COMPILE_PAYS_PLOTS:
-        return True
-    from tertiary.simulate.radar_scan_kernel import is_ready
-    return is_ready()
+    return job_plots >= COMPILE_PAYS_PLOTS or is_ready()
 
 
 def run_scans(cfg: RadarTrackerConfig, scan_index: NDArray[np.int64], plots: ScanPlots,
@@ -387,7 +342,6 @@ def run_scans(cfg: RadarTrackerConfig, scan_index: NDArray[np.int64], plots: Sca
     if compiled is None:
         compiled = compiled_pays(len(scan_index) if job_plots is None else job_plots)
     if compiled:
-        from tertiary.simulate.radar_scan_kernel import run_scans_compiled
         return run_scans_compiled(cfg, scan_index, plots, scans_of_part, state)
     st = state if state is not None else init_state()
     order = np.argsort(scan_index, kind="stable")
@@ -404,5 +358,5 @@ def run_scans(cfg: RadarTrackerConfig, scan_index: NDArray[np.int64], plots: Sca
     return numbers, st
 
 
-__all__ = ["RadarTrackerConfig", "RadarTrackState", "ScanPlots", "init_state", "step", "run_scans", "compiled_pays",
+__all__ = ["RadarTrackerConfig", "RadarTrackState", "ScanPlots", "TRACK_FIELDS", "STATE_VERSION", "init_state", "step", "run_scans", "compiled_pays",
            "ground_plots", "greedy_assignment", "lowest_free_numbers", "drop_misses"]

@@ -17,6 +17,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
+from tertiary.core.units import US
 from tertiary.stages.tracking.altitude import geodetic_height_rate
 
 #: manoeuvre segment codes stored per sample
@@ -121,7 +122,7 @@ class Trajectories:
         flat = a_idx * self.n_times + k_idx
         pos, vel = self.pos.reshape(-1, 3).take(flat, axis=0), self.vel.reshape(-1, 3).take(flat, axis=0)
         t_us = np.round(k_idx * self.dt * 1e6).astype(np.int64)
-        epoch_us = int(self.epoch.timestamp() * 1_000_000)
+        epoch_us = int(self.epoch.timestamp() * US)
         cols = {
             "truth_id": self.truth_id[a_idx],
             "time": pl.Series(t_us + epoch_us, dtype=pl.Int64).cast(pl.Datetime("us", "UTC")),

@@ -32,10 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from tertiary.core import geo
 from tertiary.sensors import local_tracks
 from tertiary.core.errors import DataError, OptionError, ResourceError
+from tertiary.core.units import STATE, US
 from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
-
-STATE = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
-US = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -124,7 +122,7 @@ def report_conversion_valid(reports: pl.DataFrame, radars: pl.DataFrame) -> NDAr
 
 def needs_estimates(reports: pl.DataFrame) -> bool:
     """True when the reports lack the radar-track estimate or innovation columns."""
-    return any(c not in reports.columns for c in STATE + ["est_cov", "res_range_m", "res_range_var_m2"])
+    return any(c not in reports.columns for c in [*STATE, "est_cov", "res_range_m", "res_range_var_m2"])
 
 
 def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame

@@ -52,7 +52,7 @@ Rules (every choice the monograph leaves open is fixed here):
   (run, method) in order of creation.
 * Rows with a non-finite position or horizontal velocity are never clustered (shown alone).
 
-Windowed runs (issue 16): :func:`cluster_step` clusters the fused rows of one window of epochs,
+Windowed runs: :func:`cluster_step` clusters the fused rows of one window of epochs,
 carrying a :class:`ClusterState` per (run, method): its last epoch in ``fused`` (absolute µs),
 the number of ids it has created, and the targets clustered at that epoch with their cluster
 id and lead flag. Consecutive windows give the whole-run table; :func:`cluster` is one step.
@@ -70,8 +70,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tertiary.core.errors import DataError, OptionError
-from tertiary.contract.schema import TABLES
+from tertiary.runtime.stage import T_MIN_US, Window, check_window
+from tertiary.contract import TABLES
 
 __all__ = ["ClusteringConfig", "ClusterState", "cluster", "cluster_step", "cluster_summary", "init_cluster_state"]
 
@@ -311,11 +311,8 @@ def _height(fused: pl.DataFrame) -> NDArray[np.float64]:
     return np.where(np.isfinite(alt), alt, z)
 
 
-#: bounds of a whole-run "window" (int64 µs): :func:`cluster` is one :func:`cluster_step` over it
-T_MIN = int(np.iinfo(np.int64).min)
-T_MAX = int(np.iinfo(np.int64).max)
-_NEVER = T_MIN               # a target's last clustered epoch: none carried
-_NO_PREV = T_MIN + 1         # a stream's previous epoch: none (differs from _NEVER: no match)
+_NEVER = T_MIN_US            # a target's last clustered epoch: none carried
+_NO_PREV = T_MIN_US + 1         # a stream's previous epoch: none (differs from _NEVER: no match)
 _SH = np.int64(1 << 32)      # stride of a stream in the in-step cluster keys (stream · _SH + id)
 _STREAM = ["run", "method"]
 _STREAMS = {"run": pl.Int64, "method": pl.String, "last_us": pl.Int64, "next_id": pl.Int64}
@@ -333,12 +330,12 @@ class ClusterState:
     * ``targets``: run, method, target_id of the targets clustered at their stream's last
       epoch, with that ``cluster_id`` (0-based) and ``lead``; no other target can continue a
       cluster, so nothing else is kept.
-    * ``t_us``: end of the last window processed (``T_MIN`` before the first).
+    * ``t_us``: end of the last window processed (:data:`~tertiary.runtime.stage.T_MIN_US` before the first).
     """
 
     streams: pl.DataFrame
     targets: pl.DataFrame
-    t_us: int = T_MIN
+    t_us: int = T_MIN_US
 
 
 def init_cluster_state() -> ClusterState:
@@ -413,17 +410,6 @@ def _screen(fused: pl.DataFrame) -> pl.DataFrame:
     return fused
 
 
-def _check_window(fused: pl.DataFrame, t0_us: int, t1_us: int, t_us: int) -> None:
-    """The window follows the state's and its rows have epoch in [t0_us, t1_us)."""
-    if t0_us > t1_us or t0_us < t_us:
-        raise OptionError(f"window [{t0_us}, {t1_us}) does not follow the state's end {t_us}", option="t0_us")
-    if fused.height:
-        ep = fused["epoch"].dt.epoch("us")
-        lo, hi = int(ep.min()), int(ep.max())      # type: ignore[arg-type]
-        if lo < t0_us or hi >= t1_us:
-            raise DataError(f"epoch outside the window [{t0_us}, {t1_us}) µs: rows span [{lo}, {hi}]", path="fused")
-
-
 def cluster_step(state: ClusterState, fused_window: pl.DataFrame, t0_us: int, t1_us: int,
                  cfg: ClusteringConfig = ClusteringConfig()) -> tuple[pl.DataFrame, ClusterState]:
     """One window of :func:`cluster`: (the window's ``clusters`` rows, new state).
@@ -433,7 +419,7 @@ def cluster_step(state: ClusterState, fused_window: pl.DataFrame, t0_us: int, t1
     earlier epochs (leads, cluster ids, the previous epoch of each (run, method)) is in
     ``state``. Pure: ``state`` is not modified.
     """
-    _check_window(fused_window, t0_us, t1_us, state.t_us)
+    check_window(fused_window, Window(0, t0_us, t1_us), after_us=state.t_us, table="fused")
     fused = _screen(fused_window)
     if fused.height == 0:
         return _empty(), ClusterState(state.streams, state.targets, t1_us)
@@ -453,7 +439,8 @@ def cluster(fused: pl.DataFrame, cfg: ClusteringConfig = ClusteringConfig()) -> 
     the rules. Tentative targets (``tentative`` True: clutter-only) are not targets on the
     display and are left out. One :func:`cluster_step` over the whole run.
     """
-    return cluster_step(init_cluster_state(), fused, T_MIN, T_MAX, cfg)[0]
+    w = Window.unbounded()
+    return cluster_step(init_cluster_state(), fused, w.t0_us, w.t1_us, cfg)[0]
 
 
 def _cluster_pictures(fused: pl.DataFrame, idx: _Index, carry: _Carry, cfg: ClusteringConfig) -> pl.DataFrame:

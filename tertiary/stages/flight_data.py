@@ -26,7 +26,7 @@ Correlation (:func:`correlate`): a report gets the cleared level of the one flig
 holds the code it replied with at its time. None, or more than one (a code assigned to two
 flights at once), gives null: an ambiguous correlation is no correlation. A report without a
 code gets null. The level then travels reports → aligned → fused (the target's newest) →
-tracks (``cleared_alt_m``, :data:`tertiary.contract.schema.CLEARED_ALT_COLUMN`), where conflict
+tracks (``cleared_alt_m``, :data:`tertiary.contract.CLEARED_ALT_COLUMN`), where conflict
 prediction stops a climb or descent at it when no selected level is known
 (:mod:`safety.conflicts`, "Selected level").
 
@@ -65,7 +65,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tertiary.contract.schema import CLEARED_ALT_COLUMN, Limits, TIME, rejects_table
+from tertiary.contract import CLEARED_ALT_COLUMN, Limits, TIME, rejects_table
+from tertiary.core.errors import DataError
 
 __all__ = ["FLIGHT_PLANS_SCHEMA", "DepartureConfig", "DepartureState", "check_flight_plans", "correlate",
            "departure_step", "empty_flight_plans", "init_departure_state"]
@@ -109,7 +110,6 @@ def _reason(limits: Limits) -> pl.Expr:
 def check_flight_plans(plans: pl.DataFrame, limits: Limits = Limits()) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(valid rows in :data:`FLIGHT_PLANS_SCHEMA`, ``rejects`` rows of the others with their
     reason). A missing required column or a value of the wrong type is a :class:`DataError` naming it."""
-    from tertiary.core.errors import DataError
     missing = [c for c in _REQUIRED if c not in plans.columns]
     if missing:
         raise DataError(f"flight_plans: required column {missing[0]!r} is missing "

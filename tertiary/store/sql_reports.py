@@ -36,7 +36,8 @@ import duckdb
 import polars as pl
 
 from tertiary.core.errors import DataError, OptionError, ResourceError
-from tertiary.store.run_store import RunStore, utc_times, write_parquet_atomic, write_text_atomic
+from tertiary.store.files import write_parquet_atomic, write_text_atomic
+from tertiary.store.run_store import RunStore, utc_times
 
 __all__ = [
     "ReadOnlyQueryError",
@@ -113,11 +114,11 @@ class SqlReport:
 def sql_dir() -> Path:
     """Directory of the named reports: ``tertiary/sql`` in an installed package, the repository's
     ``sql/`` in a source checkout."""
-    here = Path(__file__).resolve().parent
-    for candidate in (here / "sql", here.parent / "sql"):
+    package = Path(__file__).resolve().parents[1]
+    for candidate in (package / "sql", package.parent / "sql"):
         if candidate.is_dir() and any(candidate.glob("*.sql")):
             return candidate
-    raise FileNotFoundError(f"no SQL report directory next to {here}")
+    raise FileNotFoundError(f"no SQL report directory in or beside {package}")
 
 
 def _parse(path: Path) -> SqlReport:

@@ -1,4 +1,5 @@
-"""ASTERIX recordings in and out (issue 17; docs/asterix.md).
+"""ASTERIX recordings in and out (docs/asterix.md): a reader of the pipeline's input beside
+:mod:`tertiary.io.dataset`, and a writer of its inputs and pictures.
 
 * :func:`import_recordings` / :func:`write_import` — pcap, pcapng or raw data blocks of CAT048
   (reports), CAT034 (antenna timing), CAT021 (truth) and CAT062 (external tracks) → a dataset.
@@ -12,6 +13,7 @@ one of these is first used.
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 __all__ = ["import_recordings", "write_import", "write_recording", "export_picture", "read_sites"]
@@ -22,6 +24,5 @@ _WHERE = {"import_recordings": "dataset", "write_import": "dataset", "write_reco
 
 def __getattr__(name: str) -> Any:
     if name in _WHERE:
-        import importlib
         return getattr(importlib.import_module(f"tertiary.io.asterix.{_WHERE[name]}"), name)
     raise AttributeError(f"module 'tertiary.io.asterix' has no attribute {name!r}")

@@ -1,9 +1,10 @@
 """libasterix as codec: the editions used, record decoding to plain values, record encoding.
 
-``libasterix`` (module ``asterix``) is imported lazily by :func:`lib` — it takes ~2.4 s — so
-``import tertiary`` stays fast. Each data block is parsed on its own (a whole multi-block file in
-one call hits a RecursionError). Parsing never raises: libasterix returns ``ValueError`` objects,
-which become reject reasons.
+``libasterix`` (module ``asterix``) takes ~2.4 s to import: :func:`lib` imports it on first use,
+so that ``import tertiary`` and the CLI stay fast (``tests/test_asterix.py::test_import_is_lazy``).
+Each data block is parsed on its own (a whole multi-block file in one call hits a
+RecursionError). Parsing never raises: libasterix returns ``ValueError`` objects, which become
+reject reasons.
 """
 
 from __future__ import annotations
@@ -15,12 +16,12 @@ from typing import Any
 #: category -> edition name in asterix.generated (decode and encode)
 EDITIONS = {21: "Cat_021_2_7", 34: "Cat_034_1_29", 48: "Cat_048_1_32", 62: "Cat_062_1_21"}
 NM = 1852.0
-FT = 0.3048
 
 
 @functools.cache
 def lib() -> tuple[ModuleType, ModuleType]:
-    """(asterix.base, asterix.generated), imported on first use."""
+    """(asterix.base, asterix.generated), imported on first use: deferred for its import time,
+    as an optional dependency is (the modules that import this one load with the CLI)."""
     import asterix.base as base
     import asterix.generated as gen
     return base, gen

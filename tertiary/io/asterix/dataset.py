@@ -11,7 +11,6 @@ import polars as pl
 
 from tertiary.core import geo
 from tertiary.io.asterix import importer
-from tertiary.io.asterix.external import external_metrics
 from tertiary.io.asterix.sites import read_sites, write_template
 from tertiary.core.errors import DataError, OptionError
 from tertiary.simulate.config import ScenarioConfig, scenario_toml
@@ -30,6 +29,7 @@ class ImportResult:
     antenna: pl.DataFrame
     antenna_messages: pl.DataFrame
     latency: pl.DataFrame
+    #: the external picture scored (:func:`tertiary.evaluation.external.score_import`); empty until then
     external_metrics: pl.DataFrame = field(default_factory=pl.DataFrame)
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
@@ -91,13 +91,12 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     if dec.cat062.height and system is not None:
         tracks, rej = importer.external_tracks(dec.cat062, system, day0)
         rejects += rej
-    scored = external_metrics(tracks, truth) if tracks.height and truth.height else pl.DataFrame()
     counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat034_distinct": messages.height,
                             "cat021_records": dec.cat021.height, "cat062_records": dec.cat062.height,
                             "radars": codes.height, "reports": reports.height, "rejects": len(rejects)}
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,
                         latency.join(radars.select("sac", "sic", "radar_id"), on=["sac", "sic"], how="left")
-                        if radars.height else latency, scored, counts, notes, origin)
+                        if radars.height else latency, pl.DataFrame(), counts, notes, origin)
 
 
 def label_reports(reports: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:

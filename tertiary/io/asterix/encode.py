@@ -16,7 +16,10 @@ import polars as pl
 
 from tertiary.core import geo
 from tertiary.io.asterix import codec
+from tertiary.io.asterix.sites import sites_toml
+from tertiary.core.units import FT
 from tertiary.core.errors import DataError
+from tertiary.store.run_store import atomic_path, write_text_atomic
 
 ADSB_SAC_SIC = (0, 250)
 
@@ -49,7 +52,7 @@ def cat048(reports: pl.DataFrame) -> list[object]:
     sac, sic = sac_sic(rep["radar_id"])
     tod = np.fmod(_seconds(rep["time"]), 86400.0)
     alt = rep["altitude_m"].fill_null(np.nan).to_numpy() if "altitude_m" in rep.columns else np.full(rep.height, np.nan)
-    fl = alt / codec.FT / 100.0
+    fl = alt / FT / 100.0
     _check(~np.isfinite(fl) | ((fl >= -12) & (fl < 1500)), "altitude outside FL -12..1500 (I048/090)", "reports")
     get = lambda c: rep[c].to_list() if c in rep.columns else [None] * rep.height  # noqa: E731
     az = np.mod(rep["azimuth_deg"].to_numpy(), 360.0)
@@ -116,12 +119,12 @@ def cat021(truth: pl.DataFrame, system: geo.LocalFrame) -> list[tuple[float, obj
         items: dict[str, object] = {
             "010": (("SAC", ADSB_SAC_SIC[0]), ("SIC", ADSB_SAC_SIC[1])), "040": (0,),
             "071": float(math.fmod(t[i], 86400.0)), "080": addr[i],
-            "131": (("LAT", float(lat[i])), ("LON", float(lon[i]))), "140": float(h[i] / codec.FT),
+            "131": (("LAT", float(lat[i])), ("LON", float(lon[i]))), "140": float(h[i] / FT),
             "160": (("RE", 0), ("GS", float(gs[i])), ("TA", float(ta[i]))),
-            "157": (("RE", 0), ("GVR", float(vu[i] / codec.FT * 60.0))),
+            "157": (("RE", 0), ("GVR", float(vu[i] / FT * 60.0))),
         }
         if math.isfinite(alt[i]):
-            items["145"] = float(alt[i] / codec.FT / 100.0)
+            items["145"] = float(alt[i] / FT / 100.0)
         if calls[i]:
             items["170"] = str(calls[i])[:8].ljust(8)
         out.append((t[i], s.create(items)))
@@ -149,8 +152,6 @@ def write_recording(ds: object, out_dir: str | Path) -> tuple[Path, Path, str]:
     """``recording.ast`` (CAT048 of run 0, CAT034 north markers of every scan, CAT021 of the
     truth, in time order) and ``sites.toml`` beside the Parquet files of a dataset. Returns the
     two paths and the date (YYYY-MM-DD) the recording starts on, for ``import --date``."""
-    from tertiary.io.asterix.sites import sites_toml
-    from tertiary.store.run_store import atomic_path, write_text_atomic
     reports: pl.DataFrame = ds.reports  # type: ignore[attr-defined]
     radars: pl.DataFrame = ds.radars  # type: ignore[attr-defined]
     truth: pl.DataFrame = ds.truth  # type: ignore[attr-defined]
@@ -199,16 +200,16 @@ def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int 
         items: dict[str, object] = {
             "010": (("SAC", sac), ("SIC", sic)), "040": int(ids[i]), "070": float(math.fmod(t[i], 86400.0)),
             "105": (("LAT", float(lat[i])), ("LON", float(lon[i]))), "100": (("X", float(x[i])), ("Y", float(y[i]))),
-            "185": (("VX", float(vx[i])), ("VY", float(vy[i]))), "130": float(h[i] / codec.FT),
-            "220": float(np.clip(vz[i] / codec.FT * 60.0, -204800, 204799)),
+            "185": (("VX", float(vx[i])), ("VY", float(vy[i]))), "130": float(h[i] / FT),
+            "220": float(np.clip(vz[i] / FT * 60.0, -204800, 204799)),
             "080": (0,),
             "500": {"APC": (("X", float(min(sig[i, 0], 32767.0))), ("Y", float(min(sig[i, 1], 32767.0)))),
-                    "AGA": float(min(sig[i, 2] / codec.FT, 1593.0)),
+                    "AGA": float(min(sig[i, 2] / FT, 1593.0)),
                     "ATV": (("X", float(min(sig[i, 3], 63.75))), ("Y", float(min(sig[i, 4], 63.75)))),
-                    "ARC": float(min(sig[i, 5] / codec.FT * 60.0, 1593.0))},
+                    "ARC": float(min(sig[i, 5] / FT * 60.0, 1593.0))},
         }
         if math.isfinite(alt[i]):
-            items["136"] = float(alt[i] / codec.FT / 100.0)
+            items["136"] = float(alt[i] / FT / 100.0)
         if m3a[i]:
             items["060"] = (0, 0, 0, 0, ("MODE3A", str(m3a[i]).zfill(4)))
         adr: dict[str, object] = {}
@@ -224,7 +225,6 @@ def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int 
 
 def export_picture(tracks: pl.DataFrame, system: geo.LocalFrame, out: str | Path) -> int:
     """Write a picture as CAT062 data blocks to ``out`` (atomic); returns the record count."""
-    from tertiary.store.run_store import atomic_path
     recs = cat062(tracks.sort("epoch", "track_id"), system)
     with atomic_path(Path(out)) as tmp:
         tmp.write_bytes(interleave([(t, 62, r) for t, r in recs]))

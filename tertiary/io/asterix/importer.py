@@ -32,8 +32,9 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.io.asterix import capture, codec, fast048, fastwalk
+from tertiary.core.units import FT
 from tertiary.core.errors import DataError, OptionError
-from tertiary.contract.schema import TABLES
+from tertiary.contract import TABLES
 
 DAY = 86400.0
 TIME = pl.Datetime("us", "UTC")
@@ -281,7 +282,7 @@ def cat048_values(raw: pl.DataFrame) -> pl.DataFrame:
         .fill_nan(None),                                                 # I048/040 RHO: 1/256 NM
         "azimuth_deg": pl.Series(np.where(raw["theta"].to_numpy() >= 0, raw["theta"].to_numpy() * (360.0 / 65536.0),
                                           np.nan)).fill_nan(None),       # THETA: 360/2^16 deg
-        "altitude_m": pl.Series(np.where(alt_ok, fl * 100.0 * codec.FT, np.nan)).fill_nan(None),
+        "altitude_m": pl.Series(np.where(alt_ok, fl * 100.0 * FT, np.nan)).fill_nan(None),
         "flight_level": pl.Series(np.where(g["i090"] >= 0, fl, np.nan)).fill_nan(None),
         "mode_3a": pl.Series(_octal4(g["i070"])).cast(pl.String).str.zfill(4).set(pl.Series(~m3a_ok), None),
         "mode_s": pl.Series(_hex6(np.maximum(g["i220"], 0))).set(pl.Series(g["i220"] < 0), None),
@@ -490,17 +491,17 @@ def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None
     ok = cat021.filter(need & ~impossible.fill_null(False)).filter(key.is_first_distinct())
     t = absolute_time(ok["tod_s"].to_numpy(), ok["capture_s"].to_numpy(), day0)
     lat, lon = ok["lat_deg"].to_numpy(), ok["lon_deg"].to_numpy()
-    h = ok["height_ft"].to_numpy() * codec.FT
+    h = ok["height_ft"].to_numpy() * FT
     x, y, z = system.from_geodetic(lat, lon, h)
     gs = ok["gs_nmps"].fill_null(np.nan).to_numpy() * codec.NM
     ta = np.radians(ok["ta_deg"].fill_null(np.nan).to_numpy())
-    vu = ok["gvr_ftpm"].fill_null(0.0).to_numpy() * codec.FT / 60.0
+    vu = ok["gvr_ftpm"].fill_null(0.0).to_numpy() * FT / 60.0
     vx, vy, vz = enu_velocity(lat, lon, gs * np.sin(ta), gs * np.cos(ta), vu, system)
     truth = pl.DataFrame({
         "truth_id": ok["address"], "time": pl.Series((t * 1e6).round().astype(np.int64)).cast(TIME),
         "x_m": x, "y_m": y, "z_m": z, "vx_mps": vx, "vy_mps": vy, "vz_mps": vz,
         "lat_deg": lat, "lon_deg": lon,
-        "alt_m": (ok["fl"] * 100.0 * codec.FT),
+        "alt_m": (ok["fl"] * 100.0 * FT),
         "icao24": pl.Series(_hex6(ok["address"].to_numpy()), dtype=pl.String),
         "callsign": ok["callsign"].str.strip_chars_end(" ").replace("", None),
     }).with_columns(pl.col(c).fill_nan(None) for c in ("vx_mps", "vy_mps", "vz_mps"))
@@ -528,11 +529,11 @@ def external_tracks(cat062: pl.DataFrame, system: geo.LocalFrame, day0: float | 
     ok = cat062.filter(need & ~impossible.fill_null(False)).filter(pl.struct("bytes").is_first_distinct())
     t = absolute_time(ok["tod_s"].to_numpy(), ok["capture_s"].to_numpy(), day0)
     lat, lon = ok["lat_deg"].to_numpy(), ok["lon_deg"].to_numpy()
-    x, y, z = system.from_geodetic(lat, lon, ok["height_ft"].to_numpy() * codec.FT)
-    vz = ok["rocd_ftpm"].fill_null(0.0).to_numpy() * codec.FT / 60.0
+    x, y, z = system.from_geodetic(lat, lon, ok["height_ft"].to_numpy() * FT)
+    vz = ok["rocd_ftpm"].fill_null(0.0).to_numpy() * FT / 60.0
     sig = {k: ok[k].fill_null(np.nan).to_numpy() for k in ("sx_m", "sy_m", "sz_ft", "svx_mps", "svy_mps", "svz_ftpm")}
-    cov = np.stack([sig["sx_m"] ** 2, sig["sy_m"] ** 2, (sig["sz_ft"] * codec.FT) ** 2, sig["svx_mps"] ** 2,
-                    sig["svy_mps"] ** 2, (sig["svz_ftpm"] * codec.FT / 60.0) ** 2], axis=1)
+    cov = np.stack([sig["sx_m"] ** 2, sig["sy_m"] ** 2, (sig["sz_ft"] * FT) ** 2, sig["svx_mps"] ** 2,
+                    sig["svy_mps"] ** 2, (sig["svz_ftpm"] * FT / 60.0) ** 2], axis=1)
     n = ok.height
     tracks = pl.DataFrame({
         "run": pl.Series(np.zeros(n, np.uint32)), "epoch": pl.Series((t * 1e6).round().astype(np.int64)).cast(TIME),
@@ -542,7 +543,7 @@ def external_tracks(cat062: pl.DataFrame, system: geo.LocalFrame, day0: float | 
         "cov_diag": pl.Series(cov, dtype=pl.Array(pl.Float64, 6)),
         "innovation": pl.Series([None] * n, dtype=pl.List(pl.Float64)), "nis": pl.Series([None] * n, dtype=pl.Float64),
         "model_probs": pl.Series([None] * n, dtype=pl.List(pl.Float64)),
-        "alt_m": ok["fl"] * 100.0 * codec.FT,
+        "alt_m": ok["fl"] * 100.0 * FT,
         "track_number": ok["track_number"].cast(pl.UInt32), "mode_s": ok["mode_s"], "mode_3a": ok["mode_3a"],
         "callsign": ok["callsign"], "lat_deg": lat, "lon_deg": lon, "flight_level": ok["fl"],
     })
@@ -570,7 +571,7 @@ def parse_date(text: str | None) -> float | None:
 
 
 def origin_of(radars: pl.DataFrame, fallback: tuple[float, float] | None) -> tuple[float, float, float]:
-    """System origin: mean radar site (as ``tertiary.simulate.read_dataset`` places it), else ``fallback``."""
+    """System origin: mean radar site (as :func:`tertiary.io.dataset.read_dataset` places it), else ``fallback``."""
     if radars.height:
         return float(radars["lat_deg"].mean()), float(radars["lon_deg"].mean()), 0.0
     if fallback is None:

@@ -1,4 +1,4 @@
-"""Association: which aligned reports are the same aircraft (monograph §1.4 / digest §1.2).
+"""Association: which aligned reports are the same aircraft (monograph §1.4).
 
 Within each connected component of the gate graph (hypothesis H1 "same target" holds along
 every gated edge, H2 "different targets" elsewhere):
@@ -37,7 +37,7 @@ target keeps its number while its radars keep theirs (vote ties go to the id car
 group's lowest-numbered radar, which resolves a radar swapping its own track numbers).
 ``reassignments`` counts local tracks whose system target changed.
 
-Windowed runs (issue 16): :func:`associate_step` processes the aligned rows of one window of
+Windowed runs: :func:`associate_step` processes the aligned rows of one window of
 epochs, carrying an :class:`AssociateState` (each local track's last system target id and
 epoch by (run, radar_id, local_track_id), absolute µs; the next fresh id). Gating and
 assignment never span epochs, so that is all a window needs from earlier ones; consecutive
@@ -60,7 +60,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tertiary.core.distributions import chi2_ppf
-from tertiary.core.errors import DataError, OptionError
+from tertiary.core.errors import OptionError
+from tertiary.runtime.stage import T_MIN_US, Window, check_window
 from tertiary.stages.association.gating import GatingConfig, Pairs, candidate_pairs, group_index
 
 BIG = 1e18
@@ -121,9 +122,6 @@ class AssociationStats:
         return out
 
 
-#: the bounds of a whole-run "window" (int64 µs): the whole-run functions are one step over it
-T_MIN = int(np.iinfo(np.int64).min)
-T_MAX = int(np.iinfo(np.int64).max)
 _TRACK_KEY = ("run", "radar_id", "local_track_id")
 _TRACKS_SCHEMA = {"run": pl.Int64, "radar_id": pl.Int64, "local_track_id": pl.Int64,
                   "target_id": pl.Int64, "seen_us": pl.Int64}
@@ -137,14 +135,14 @@ class AssociateState:
       its system target id on: ``target_id`` at its last epoch and ``seen_us`` = that epoch
       (absolute µs). Tracks silent for more than ``carry_gap_s`` before the latest epoch seen
       are dropped (they could never vote again), so the state stays bounded.
-    * ``t_us``: end of the last window processed (``T_MIN`` before the first).
+    * ``t_us``: end of the last window processed (:data:`~tertiary.runtime.stage.T_MIN_US` before the first).
     * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
       Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
       gets the ids it gets in the whole job.
     """
 
     tracks: pl.DataFrame
-    t_us: int = T_MIN
+    t_us: int = T_MIN_US
     run_next: tuple[tuple[int, int], ...] = ()
 
     def live_targets(self) -> pl.DataFrame:
@@ -493,17 +491,6 @@ def _vote(vg: NDArray[np.int64], vc: NDArray[np.int64], vr: NDArray[np.int64],
     return out
 
 
-def _check_window(table: str, frame: pl.DataFrame, t0_us: int, t1_us: int, t_us: int) -> None:
-    """The window follows the state's and its rows have epoch in [t0_us, t1_us)."""
-    if t0_us > t1_us or t0_us < t_us:
-        raise OptionError(f"window [{t0_us}, {t1_us}) does not follow the state's end {t_us}", option="t0_us")
-    if frame.height:
-        ep = frame["epoch"].dt.epoch("us")
-        lo, hi = int(ep.min()), int(ep.max())      # type: ignore[arg-type]
-        if lo < t0_us or hi >= t1_us:
-            raise DataError(f"epoch outside the window [{t0_us}, {t1_us}) µs: rows span [{lo}, {hi}]", path=table)
-
-
 def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: int, t1_us: int,
                    cfg: AssociationConfig = AssociationConfig()
                    ) -> tuple[tuple[pl.DataFrame, AssociationStats], AssociateState]:
@@ -516,7 +503,7 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     window's counts (:class:`AssociationStats` add up over windows). Pure: ``state`` is not
     modified.
     """
-    _check_window("aligned", aligned_window, t0_us, t1_us, state.t_us)
+    check_window(aligned_window, Window(0, t0_us, t1_us), after_us=state.t_us, table="aligned")
     label, stats = group_reports(aligned_window, cfg)
     target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s)
     stats.targets = new.next_id - state.next_id
@@ -531,5 +518,6 @@ def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig(
     """The ``associations`` table (run, epoch, radar_id, local_track_id, report_id,
     target_id, cost) for every aligned row, and run statistics: one
     :func:`associate_step` over the whole run."""
-    (out, stats), _ = associate_step(init_associate_state(), aligned, T_MIN, T_MAX, cfg)
+    w = Window.unbounded()
+    (out, stats), _ = associate_step(init_associate_state(), aligned, w.t0_us, w.t1_us, cfg)
     return out, stats

@@ -8,11 +8,11 @@ ellipsoidal gate (Δx² + Δy²)/Δr² + Δz²/Δh² ≤ 1 is a single ``query_p
 different epochs are never paired. No loop over epochs, reports or pairs.
 
 Options: the Mahalanobis gate d² = Δpᵀ(C_a + C_b)⁻¹Δp ≤ χ²₃(P_gate) on top of the box;
-the Bayes minimum-error H1/H2 decision (monograph §1.4, digest §1.1): with Δ ~ N(0, S) under
+the Bayes minimum-error H1/H2 decision (monograph §1.4): with Δ ~ N(0, S) under
 H1 (same target) and Δ uniform over the gate volume V_G under H2 (different targets), the
 rule "decide H1 iff P(H1) N(Δ; 0, S) ≥ P(H2)/V_G" is d² ≤ γ with
 
-    γ = 2 ln[P(H1) V_G / (P(H2) (2π)^{m/2} |S|^{1/2})],   m = 3                  (digest §1.1)
+    γ = 2 ln[P(H1) V_G / (P(H2) (2π)^{m/2} |S|^{1/2})],   m = 3
 
 a threshold per pair (|S| differs); and Mode S: two reports with different Mode S addresses
 are never the same aircraft.
@@ -92,7 +92,7 @@ def gate_volume(cfg: GatingConfig) -> float:
 
 def bayes_threshold(det_s: NDArray[np.float64] | float, prior_h1: float, volume: float, m: int = 3
                     ) -> NDArray[np.float64]:
-    """Minimum-error H1/H2 threshold on d² (digest §1.1):
+    """Minimum-error H1/H2 threshold on d²:
     γ = 2 ln[P(H1) V_G / (P(H2) (2π)^{m/2} |S|^{1/2})]; H1 iff d² ≤ γ (γ < 0: never)."""
     if not (0.0 < prior_h1 < 1.0) or not volume > 0:
         raise ValueError(f"bayes gate needs 0 < prior_h1 < 1 and a volume > 0, got {prior_h1}, {volume}")

@@ -1,4 +1,4 @@
-"""Centralised measurement-level Kalman filter: a centralised **reference** for fusion (DESIGN §6).
+"""Centralised measurement-level Kalman filter: a centralised **reference** for fusion.
 
 All radars' **plots** (the measured range, azimuth and elevation of every report — not the
 radars' own track estimates) that the association assigned to one system target go, in time
@@ -75,7 +75,7 @@ from tertiary.stages.align import conversion_valid
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict, quantisation_variance)
 from tertiary.stages.tracking.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
-from tertiary.contract.schema import TABLES, TIME
+from tertiary.contract import TABLES, TIME
 
 __all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "centralized_filter_carry",
            "CentralizedState", "init_centralized_state", "centralized_step", "converted_plots", "debias_enu",
@@ -434,9 +434,8 @@ def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rada
 
     ``live``: (run, target_id) of the targets that may still be associated after this window
     (:meth:`tertiary.stages.association.associate.AssociateState.live_targets`); the returned state keeps only
-    them, so it is bounded by the traffic of a window, not by the recording (issue 16: at the
-    end of the 12 h terminal-area run it held all 41 919 targets ever seen, 37 MiB, 98 % of the
-    carried state). A target outside it can never reach this step again, so the outputs do not
+    them, so it is bounded by the traffic of a window, not by the recording (otherwise it would
+    hold every target ever seen). A target outside it can never reach this step again, so the outputs do not
     change. None keeps every target.
 
     ``associations_window``: the association rows with epoch in the window (every aligned

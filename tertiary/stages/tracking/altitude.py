@@ -1,4 +1,4 @@
-"""The vertical channel: height and its rate as a state of their own (DESIGN §3, issue 11).
+"""The vertical channel: height and its rate as a state of their own.
 
 Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + …, 785 m low at
 ρ = 100 km). Two sources, in order of preference:
@@ -56,6 +56,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.core import geo
+from tertiary.core.jit import arg, ready_for
+from tertiary.core.units import FT
+from tertiary.stages.tracking.altitude_kernel import filter_recursion
 
 __all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "AltitudeConfig", "AltState",
            "quantisation_variance", "predict", "update", "update2", "filter_tracks", "filter_tracks_carry",
@@ -63,7 +66,8 @@ __all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "Altit
            "geodetic_channel", "combine_min_variance"]
 
 F64 = NDArray[np.float64]
-FT_M = 0.3048
+#: metres per foot (:data:`tertiary.core.units.FT`)
+FT_M = FT
 QUANTUM_MODE_S_M = 25.0 * FT_M
 QUANTUM_MODE_C_M = 100.0 * FT_M
 #: the vertical channel of ``fused`` and ``tracks`` (safety.conflicts.ALT_COLUMNS)
@@ -394,9 +398,7 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
 def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                      cfg: AltitudeConfig, ident: NDArray[np.int64] | None, init: FilterCarry | None
                      ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
-    """:func:`filter_tracks_carry` by :func:`tertiary.stages.tracking.altitude_kernel._filter`."""
-    from tertiary.stages.tracking.altitude_kernel import _filter
-    from tertiary.runtime.warmup import arg, ready_for
+    """:func:`filter_tracks_carry` by :func:`tertiary.stages.tracking.altitude_kernel.filter_recursion`."""
     qs, sojourn = _models(cfg)
     n, k = len(t), len(starts)
     c0 = FilterCarry.fresh(k, cfg) if init is None else init
@@ -411,9 +413,9 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
     ids = np.full(n, -1, np.int64) if ident is None else arg(ident, np.int64)
     weak = -1.0 if cfg.unconfirmed_sigma_m is None else float(cfg.unconfirmed_sigma_m) ** 2
     ready_for("altitude")
-    # every array writable and contiguous (kernels.arg): one compiled signature, not one per
+    # every array writable and contiguous (jit.arg): one compiled signature, not one per
     # read-only column the caller happens to pass
-    _filter(arg(t), arg(z), arg(var), ids, arg(starts, np.int64), arg(lengths, np.int64),
+    filter_recursion(arg(t), arg(z), arg(var), ids, arg(starts, np.int64), arg(lengths, np.int64),
             arg(qs), arg(sojourn),
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
             carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id, carry.post,

@@ -3,15 +3,17 @@
 The same equations as :func:`tertiary.stages.tracking.altitude.filter_tracks_carry` — (A1)–(A4), the IMM
 (A5)–(A9), the garble gate, confirmation, restarts and identity swaps — written per track and
 per reply instead of vectorised over tracks per reply rank. The vectorised loop paid a few
-dozen numpy calls per rank, ~7 % of a production run in the fusion's and the centralised
-reference's vertical channels (issue 18); tracks are independent, so the compiled loop runs
-them one after another. The Python loop stays the reference (compared in the tests).
+dozen numpy calls per rank in the fusion's and the centralised reference's vertical channels;
+tracks are independent, so the compiled loop runs them one after another. The Python loop stays the reference (compared in the tests).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
+from numba import types as nbt
+
+from tertiary.core.jit import register_kernel
 
 _jit = numba.njit(cache=True, error_model="numpy")     # x / 0 is inf or nan, as in numpy
 
@@ -49,7 +51,7 @@ def _mix(states, w, nm, out):
 
 
 @_jit
-def _filter(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
+def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
             c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, out, has, rejected):
     """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
     place); per row the output state ``out`` (5, n), ``has`` and ``rejected``. ``weak_var`` < 0:
@@ -161,3 +163,14 @@ def _filter(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor
         for f in range(5):
             c_post[f, g] = out[f, last]
         c_has[g] = has[last]
+
+
+def _signature() -> tuple:
+    """The one signature :func:`tertiary.stages.tracking.altitude.filter_tracks_carry` calls it with."""
+    f1, i1, b1 = (nbt.Array(d, 1, "C") for d in (nbt.float64, nbt.int64, nbt.boolean))
+    f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
+    return (f1, f1, f1, i1, i1, i1, f1, f1, nbt.float64, nbt.float64, nbt.int64, nbt.float64, nbt.float64,
+            f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, b1, b1)
+
+
+register_kernel("altitude", __name__, filter_recursion, _signature)

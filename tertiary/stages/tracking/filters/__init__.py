@@ -1,12 +1,14 @@
-"""Filters vectorised over tracks (and Monte-Carlo runs).
+"""Filters vectorised over tracks (and Monte-Carlo runs), the secondary tracker's estimators.
 
 Every tracker filter implements :class:`tertiary.stages.tracking.filters.base.TrackFilter` and registers its
-name; :func:`make_filter` builds one by name. Importing this package registers them all.
+name; :func:`make_filter` builds one by name (the only way to get one). Importing this package
+registers them all. The chapter 3 range channels (:mod:`.kinematic`) are exported too.
 """
 
-from tertiary.stages.tracking.filters import adaptive_r, coupled, ekf, imm, linear, quasi_optimal  # noqa: F401  (registration)
+from tertiary.stages.tracking.filters import adaptive_r, coupled, ekf, imm, linear, manoeuvring, quasi_optimal  # noqa: F401  (registration)
 from tertiary.stages.tracking.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
+from tertiary.stages.tracking.filters.kinematic import KinematicDynamicRangeChannel, KinematicRangeChannel, make_range_channel
 from tertiary.stages.tracking.filters.singer import SingerModel, singer_phi, singer_q
 
-__all__ = ["singer_phi", "singer_q", "SingerModel", "TrackFilter", "Output", "Innovation", "make_filter", "REGISTRY"]
-from tertiary.stages.tracking.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, make_range_channel)  # noqa: E402,F401  (chapter 3 range channels)
+__all__ = ["singer_phi", "singer_q", "SingerModel", "TrackFilter", "Output", "Innovation", "make_filter", "REGISTRY",
+           "KinematicDynamicRangeChannel", "KinematicRangeChannel", "make_range_channel"]

@@ -1,9 +1,9 @@
-"""Innovation-based adaptive measurement noise (seed 003, digest §4.3 and §8) as a wrapper
+"""Innovation-based adaptive measurement noise (seed 003) as a wrapper
 around any *linear* :class:`~tertiary.stages.tracking.filters.base.TrackFilter`.
 
 Covariance matching: the innovation covariance is H P⁻ Hᵀ + R, so R is estimated from a
 sliding window of the last N innovations of each track (variant B of the source, per-channel
-diagonal, each sample's own prior term subtracted — safeguard 2 of digest §4.3):
+diagonal, each sample's own prior term subtracted — safeguard 2):
 
     R̂_ii = (1/n) Σ_{j in window} (ν_{i,j}² − (H P⁻ Hᵀ)_{ii,j})
 
@@ -12,14 +12,14 @@ filter S = H P⁻ Hᵀ + R, so (H P⁻ Hᵀ)_ii = S_ii − R_ii with the R the w
 nonlinear / converted filters, e.g. ``ekf_spherical``, S is not of that form and the wrapper
 does not apply.)
 
-Safeguards (digest §4.3): warm-up — the nominal R (the plots' ``r``) is used until a track has
+Safeguards: warm-up — the nominal R (the plots' ``r``) is used until a track has
 ``n_min`` samples; floor and ceiling — R̂ is clamped to [floor_frac, ceil_frac] × nominal per
 axis; optional gate — once adapted, innovations with NIS above ``gate`` do not enter the window
 (during warm-up everything enters, otherwise a mismatched nominal R would lock the estimator
 out). The R̂ used at each update comes from the window *before* the current innovation, so the
 reported NIS is a genuine prediction check. ``mode="scale"`` estimates one factor per axis,
 R̂ = r · Σ(ν² − HPHᵀ)/Σ r_nominal, which tracks plot-to-plot changes of the nominal variance
-(e.g. range-dependent cross-range noise); the default ``"absolute"`` is the digest's formula.
+(e.g. range-dependent cross-range noise); the default ``"absolute"`` is the source's formula.
 
 Only a diagonal R is adapted: a full ``r`` (B, 3, 3) is reduced to its diagonal.
 The adapted R of the last update is kept in the state as ``aekf_r`` (B, 3) for logging as a
@@ -52,8 +52,8 @@ class AdaptiveR(TrackFilter):
 
     Parameters:
         inner:      registry name or a TrackFilter instance, default "singer"
-        window:     sliding-window length N (digest: 10–50), default 50. With N = 20 (the
-                    digest sketch) the estimator is unstable when H P⁻ Hᵀ is comparable to R
+        window:     sliding-window length N (source: 10–50), default 50. With N = 20 (the
+                    source's sketch) the estimator is unstable when H P⁻ Hᵀ is comparable to R
                     (e.g. the default Singer inner filter under a 6× mismatch: NIS mean ≈ 6 of 3,
                     4 % of errors outside 3σ); N = 50 is consistent (see the tests)
         n_min:      samples before R̂ replaces the nominal R (warm-up), default 20 (None: min(20, window))

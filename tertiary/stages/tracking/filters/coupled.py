@@ -124,7 +124,7 @@ class _Coupled(TrackFilter):
 @register
 @dataclass(frozen=True)
 class CoupledSinger(_Coupled):
-    """Singer model per axis (as :class:`tertiary.stages.tracking.filters.linear.SingerFilter`: α_ф ``alpha``
+    """Singer model per axis (as :class:`tertiary.stages.tracking.filters.manoeuvring.SingerFilter`: α_ф ``alpha``
     s⁻¹, σ_m ``sigma_m`` m/s², ``variant``), coupled through the full 3×3 R."""
 
     name: ClassVar[str] = "singer_full"

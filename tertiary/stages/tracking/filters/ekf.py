@@ -1,9 +1,9 @@
-"""Six-state EKF in radar spherical coordinates — seed 004 (Masharov), as decoded in the digest.
+"""Six-state EKF in radar spherical coordinates — seed 004 (Masharov).
 
 State X = [D, α, γ, V, B, Γ]: slant range (m), azimuth α (rad, clockwise from north), elevation
 γ (rad above the horizon), speed V (m/s), course B (rad, clockwise from north) and "pitch" Γ (rad).
 The paper's γ ("from the zenith") and Γ ("from the vertical", test case Γ = 270°) are stored in
-the intended common reference of digest §3.7 row 2: γ = elevation above the horizon and
+the intended common reference: γ = elevation above the horizon and
 Γ = Γ_printed − 270°, so that level flight has Γ = 0 and the model sees γ − Γ = e.
 
 Model (1) discretised by Euler (3)/(5), T the step:
@@ -14,8 +14,8 @@ Model (1) discretised by Euler (3)/(5), T the step:
     V⁺ = V,  B⁺ = B,  Γ⁺ = Γ
 
 (the azimuth rate carries a cos² e factor vs exact level-flight kinematics — a model limitation
-kept for fidelity, digest §3.4). Measurement Z = [D, α, γ] + ε, H = [I₃ | 0]; EKF (6)–(7) with
-the analytic Jacobian F = ∂Φ/∂X of digest §3.5 (:func:`phi_jacobian`), Joseph-form covariance
+kept for fidelity). Measurement Z = [D, α, γ] + ε, H = [I₃ | 0]; EKF (6)–(7) with
+the analytic Jacobian F = ∂Φ/∂X (:func:`phi_jacobian`), Joseph-form covariance
 update, wrapped azimuth innovation.
 
 For fused plots the "radar" is the system origin (the processing centre): each ENU plot z with
@@ -24,7 +24,7 @@ at the plot (a full 3×3; the paper's R_ε is diagonal for a real radar). The fi
 only meaningful for targets well away from the origin and from the zenith.
 
 Process noise: the paper adds a diagonal R_w per step; here R_w = diag(q)·Δt so that variable
-scan intervals work. The default q = (0, 0, 0, 10⁻², 10⁻⁸, 10⁻⁸) gives the digest's
+scan intervals work. The default q = (0, 0, 0, 10⁻², 10⁻⁸, 10⁻⁸) gives the paper's
 R_w = diag(0, 0, 0, 10⁻⁴, 10⁻¹⁰, 10⁻¹⁰) at T = 10 ms.
 """
 
@@ -56,7 +56,7 @@ def phi(x: F64, t: ArrayLike) -> F64:
 
 
 def phi_jacobian(x: F64, t: ArrayLike) -> F64:
-    """F = ∂Φ/∂X (..., 6, 6), written out as in digest §3.5."""
+    """F = ∂Φ/∂X (..., 6, 6), written out."""
     x = np.asarray(x, float)
     t = np.broadcast_to(np.asarray(t, float), x.shape[:-1])
     d, a, g, v, b, gg = np.moveaxis(x, -1, 0)
@@ -124,7 +124,7 @@ class SphericalEKF(TrackFilter):
 
     Parameters:
         q:            diagonal process-noise rates, R_w = diag(q)·Δt (units²/s), default
-                      (0, 0, 0, 1e-2, 1e-8, 1e-8) = the digest's R_w at T = 10 ms
+                      (0, 0, 0, 1e-2, 1e-8, 1e-8) = the paper's R_w at T = 10 ms
         v0:           initial speed when starting from a plot (m/s), default 150
         sigma_v0:     its σ (m/s), default 100
         course0_deg:  initial course (deg clockwise from north); None = inbound (towards the
@@ -143,7 +143,7 @@ class SphericalEKF(TrackFilter):
         self.sig_b0, self.sig_g0 = np.radians(sigma_course0_deg), np.radians(sigma_pitch0_deg)
 
     def init(self, z: F64, r: F64) -> State:
-        """Measurement initialisation (digest §3.6, the conclusions' recommendation): D, α, γ and
+        """Measurement initialisation (the conclusions' recommendation): D, α, γ and
         their covariance from the first plot; V, B, Γ from the constructor's priors."""
         zm, rm = enu_to_measurement(z, r)
         b = len(zm)
@@ -218,7 +218,7 @@ class SphericalEKF(TrackFilter):
 def simulate_seed004(n_runs: int = 300, steps: int = 1000, t: float = 0.01, sigma_d: float = 100.0,
                      sigma_ang_deg: float = 0.3, altitude: float = 1000.0, seed: int = 4
                      ) -> tuple[F64, F64, F64]:
-    """The paper's test case (digest §3.8): D(0) = 10 km, α(0) = 2°, level flight at ``altitude``
+    """The paper's test case: D(0) = 10 km, α(0) = 2°, level flight at ``altitude``
     heading south (B = 180°, Γ = 0 in the intended reference) at 1500 km/h, straight Cartesian
     truth with exact (D, α, e). Returns truth states (T, 6) (T = steps + 1), noisy measurements
     (N, T, 3) and the measurement covariance (3, 3)."""
@@ -237,7 +237,7 @@ def simulate_seed004(n_runs: int = 300, steps: int = 1000, t: float = 0.01, sigm
     return truth, meas, np.diag(sig ** 2)
 
 
-#: assumed a-priori bounds of the midpoint initialisation (digest §3.6; the paper gives none):
+#: assumed a-priori bounds of the midpoint initialisation (the paper gives none):
 #: a short-range radar's instrumented range and a fast air target's speed
 MIDPOINT_RANGE_M = (500.0, 30_000.0)
 MIDPOINT_SPEED_MPS = (50.0, 700.0)
@@ -246,7 +246,7 @@ MIDPOINT_SPEED_MPS = (50.0, 700.0)
 def initial_state_seed004(meas0: F64, truth0: F64, rm: F64, rng: np.random.Generator, init: str = "measurement",
                           range_bounds: tuple[float, float] = MIDPOINT_RANGE_M,
                           speed_bounds: tuple[float, float] = MIDPOINT_SPEED_MPS) -> tuple[F64, F64]:
-    """X̂(0), P(0|0) (N, 6), (N, 6, 6) of digest §3.6 for the k = 0 measurements ``meas0`` (N, 3).
+    """X̂(0), P(0|0) (N, 6), (N, 6, 6) of the midpoint initialisation for the k = 0 measurements ``meas0`` (N, 3).
 
     * ``measurement`` (the conclusions' recommendation, the §3.8 default): D, α, γ = Z(0) with
       P = R_ε; V, B, Γ = truth + N(0, diag(50 m/s, 5°, 5°)²) with those variances.

@@ -22,7 +22,7 @@ elementwise kernels. Auxiliary filters (3.34)–(3.58)/(3.88)–(3.127): x_i = [
 Φ_i = [[1, τ], [0, 1 − α_i τ]], Q_i = diag(0, D_i), H = [1, 0], R_i, with
 D_i = σ_i²(2α_i τ − α_i²τ²) (stationary rate variance σ_i², as :func:`~tertiary.stages.tracking.filters.singer.singer_q`).
 
-Per-step order (digest §9): u(k) from the auxiliary x⁺(k); base predict + update with D(k+1);
+Per-step order: u(k) from the auxiliary x⁺(k); base predict + update with D(k+1);
 auxiliary predict + update with their measurements at k+1. Angle innovations are wrapped to
 (−π, π] (the source does not say so). A NaN measurement means "no measurement": that filter
 coasts (x⁺ = x⁻, P⁺ = P⁻, memory mode §2.1).
@@ -68,7 +68,7 @@ class AuxFilter:
     angle: bool = False
 
 
-# Defaults (documented choices; the source gives none, digest §12):
+# Defaults (documented choices; the source gives none):
 #  * datalink σ: Mode S EHS resolution and onboard-sensor noise of tertiary.simulate.ehs
 #    combined (noise² + LSB²/12): ground speed 0.5 m/s & 2 kt, track 0.2° & 90/512°,
 #    roll 0.3° & 45/256°, vertical rate 0.3 m/s & 32 ft/min (θ = atan(ḣ/V) ⇒ σ_θ ≈ σ_ḣ/V).
@@ -180,7 +180,7 @@ class _Channel:
         return state
 
     def step(self, state: State, z: dict[str, F64], tau: ArrayLike) -> tuple[State, F64, F64, F64]:
-        """One step k → k+1 (digest §9 order); returns (state, range innovation ν, its variance S,
+        """One step k → k+1 (the order above); returns (state, range innovation ν, its variance S,
         the base gain K (B, 3) = P⁻Hᵀ/S (K₃ ≡ 0: P⁻₀₂ = 0))."""
         b = len(state["x"])
         tau = np.broadcast_to(np.asarray(tau, float), (b,))

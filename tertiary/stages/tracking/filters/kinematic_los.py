@@ -1,6 +1,6 @@
 """Line-of-sight kinematics of monograph chapter 3 (§§3.2–3.3, Tables 3.1–3.2, eqs. 3.1–3.11, 3.61–3.62).
 
-Frames (kalman-filters digest §8), all vectorised over any leading shape:
+Frames, all vectorised over any leading shape:
 
 * normal frame O x_g y_g z_g: x north, y up, z east (treated as fixed); :func:`enu_to_normal`.
 * trajectory frame: x_T along the velocity, reached by the path angle φ about y_g and the
@@ -15,7 +15,7 @@ Frames (kalman-filters digest §8), all vectorised over any leading shape:
 Kinematics: trajectory-frame acceleration (3.5), LOS velocity (3.9), LOS acceleration (3.11)
 with V multiplying all three bracketed terms (as in (3.12), (3.15); the printed (3.11) closes
 the bracket early), the LOS load factor n_XL from the trajectory-frame load factor (derived
-form of (3.61), digest §10) and the range acceleration of (3.62) printed (g·n_XL) or corrected
+form of (3.61)) and the range acceleration of (3.62) printed (g·n_XL) or corrected
 (g(n_XL − sin ε_B) + (V² − V_L²)/D).
 """
 
@@ -182,7 +182,7 @@ def trajectory_load_factor(n_x: ArrayLike, n_y: ArrayLike, n_z: ArrayLike, gamma
 
 def los_load_factor(n_x: ArrayLike, n_y: ArrayLike, n_z: ArrayLike, gamma: ArrayLike, theta: ArrayLike,
                     phi: ArrayLike, eps_b: ArrayLike, eps_g: ArrayLike) -> F64:
-    """n_XL, the load factor along the LOS ((3.61) in the form derived from Tables 3.1/3.2, digest §10):
+    """n_XL, the load factor along the LOS ((3.61) in the form derived from Tables 3.1/3.2):
 
         n_XL = n_x c_x + n_y (cos γ c_y + sin γ c_z) + n_z (−sin γ c_y + cos γ c_z).
     """
@@ -206,7 +206,7 @@ def range_acceleration(n_xl: ArrayLike, eps_b: ArrayLike, speed: ArrayLike, v_lo
     """The kinematic+dynamic channel's input u, (3.62)/(3.86).
 
     * ``"printed"``:   u = g n_XL  (no gravity, no LOS-rotation term)
-    * ``"corrected"``: u = D̈ = g (n_XL − sin ε_B) + (V² − V_L²)/D  (digest §10 (a), (b))
+    * ``"corrected"``: u = D̈ = g (n_XL − sin ε_B) + (V² − V_L²)/D
     """
     if variant == "printed":
         return g * _f(n_xl) + 0.0 * _f(rng)

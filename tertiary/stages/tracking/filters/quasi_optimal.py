@@ -2,9 +2,9 @@
 
 State Λ = [x, y, z] (position only, random walk Φ = I, increments with variances
 D = diag(D_x, D_y, D_z) per interval), measurements of azimuth β = atan2(Δy, Δx) (from +X towards
-+Y), elevation ε = atan2(z − z₀, ρ) and slant range R (digest §1.2–1.4). One Newton step of the
++Y), elevation ε = atan2(z − z₀, ρ) and slant range R. One Newton step of the
 measurement log-likelihood F(Λ) = −½ rᵀ K_q⁻¹ r, r = Q̂ − q(Λ), from the predicted point, with
-the covariance in information form (digest §1.5):
+the covariance in information form:
 
     K_э = K_ps + D·Δt/t_ref                      (34) corrected: from the *posterior*
     G   = Wᵀ K_q⁻¹ r                             (11), W = ∂q/∂Λ (15) with corrected row ε (17)
@@ -29,7 +29,7 @@ Fused plots: the radar is the processing centre (``radar`` = frame origin by def
 plot z with variances r becomes Q̂ = q(z) with K_q = W(z) diag(r) W(z)ᵀ (full 3×3; the paper's
 K_q is diagonal for independent β, ε, R meters). Process noise: the paper's D is per interval;
 here ``b`` are the per-axis increment σ (m) over ``t_ref`` seconds, D = b²·Δt/t_ref, so the
-default b = (5, 5, 1) m at 1 s is the digest's default scenario. The filter has no velocity:
+default b = (5, 5, 1) m at 1 s is the paper's default scenario. The filter has no velocity:
 :meth:`output` reports velocity 0 with infinite variance.
 """
 
@@ -66,7 +66,7 @@ def primary(lam: ArrayLike, radar: ArrayLike = (0.0, 0.0, 0.0)) -> F64:
 
 
 def jacobian(lam: ArrayLike, radar: ArrayLike = (0.0, 0.0, 0.0), printed: bool = False) -> F64:
-    """W = ∂(β, ε, R)/∂(x, y, z) (..., 3, 3), digest §1.6 (``printed=True``: the ε row of (17))."""
+    """W = ∂(β, ε, R)/∂(x, y, z) (..., 3, 3) (``printed=True``: the ε row of (17))."""
     dx, dy, z, rho2, rho, r2, r = _parts(lam, radar)
     w = np.zeros(dx.shape + (3, 3))
     w[..., 0, 0] = -dy / rho2
@@ -86,7 +86,7 @@ def jacobian(lam: ArrayLike, radar: ArrayLike = (0.0, 0.0, 0.0), printed: bool =
 
 
 def hessians(lam: ArrayLike, radar: ArrayLike = (0.0, 0.0, 0.0)) -> F64:
-    """Second derivatives ∇²β, ∇²ε, ∇²R (..., 3, 3, 3) (index: quantity, λ_i, λ_k), digest §1.6."""
+    """Second derivatives ∇²β, ∇²ε, ∇²R (..., 3, 3, 3) (index: quantity, λ_i, λ_k)."""
     dx, dy, z, rho2, rho, r2, r = _parts(lam, radar)
     h = np.zeros(dx.shape + (3, 3, 3))
     rho4 = rho2 * rho2

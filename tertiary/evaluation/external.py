@@ -8,10 +8,13 @@ pipeline's own pictures (``stage`` = ``external``, ``method`` = ``sdps-SAC-SIC``
 
 from __future__ import annotations
 
+import dataclasses
+
 import polars as pl
 
 from tertiary.evaluation.accuracy import AccuracyConfig, accuracy_from_matched, scored_rows
 from tertiary.evaluation.matching import match_to_reference
+from tertiary.io.asterix.dataset import ImportResult
 
 
 def match_external(tracks: pl.DataFrame, truth: pl.DataFrame, skip_first_s: float = 0.0) -> pl.DataFrame:
@@ -30,3 +33,10 @@ def external_metrics(tracks: pl.DataFrame, truth: pl.DataFrame, skip_first_s: fl
     cfg = AccuracyConfig(skip_first_s=skip_first_s)
     matched = match_external(tracks, truth, skip_first_s)
     return accuracy_from_matched(matched if matched.height else pl.DataFrame(), cfg, "external")
+
+
+def score_import(result: ImportResult) -> ImportResult:
+    """The import with its external picture (CAT062) scored against its ADS-B truth (CAT021)."""
+    if not (result.external_tracks.height and result.truth.height):
+        return result
+    return dataclasses.replace(result, external_metrics=external_metrics(result.external_tracks, result.truth))

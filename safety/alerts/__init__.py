@@ -1,0 +1,21 @@
+"""STCA performance against what really happened, the last step of the safety evaluation: it
+reads the ``conflicts`` of :mod:`safety.conflicts`, the matcher's id map and the truth, and
+gives losses of separation in the truth (:mod:`.separation`), alert episodes per pair of
+aircraft classified genuine / nuisance / false with the STCA metrics per picture
+(:mod:`.episodes`), and trade-off curves of the threshold settings (:mod:`.tradeoff`);
+options in :class:`AlertConfig` (:mod:`.config`).
+"""
+
+from safety.alerts.config import AlertConfig
+from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, alert_episodes, los_episodes,
+                                    score_alerts, stca_tables, stca_tables_by_picture)
+from safety.alerts.separation import (loss_of_separation, merge_intervals, merge_pair_intervals, separation_intervals,
+                                      truth_heights, truth_intervals)
+from safety.alerts.tradeoff import compare_at_equal_nuisance, stca_tradeoff, tradeoff_metrics
+
+__all__ = [
+    "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "separation_intervals",
+    "loss_of_separation", "truth_intervals", "merge_intervals", "merge_pair_intervals", "alert_episodes",
+    "los_episodes", "score_alerts", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
+    "compare_at_equal_nuisance", "tradeoff_metrics",
+]

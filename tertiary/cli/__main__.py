@@ -1,0 +1,5 @@
+"""``python -m tertiary.cli``: the ``tertiary`` command."""
+
+from tertiary.cli.main import main
+
+main()

@@ -1,0 +1,236 @@
+"""The seed metrics of a picture too long to hold whole: :func:`picture_accuracy_buckets` reads
+the matched rows a bucket of whole tracks (and of whole aircraft for the coverage walk) at a time,
+adds up exactly what crosses buckets, and finishes with the code of
+:func:`tertiary.evaluation.accuracy.picture_accuracy`, so the tables are the same.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import polars as pl
+
+from tertiary.contract import TABLES
+from tertiary.core.units import STATE
+from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUSION_METRICS, ROW_SCORES,
+                                          AccuracyConfig, accuracy_table, aircraft_epochs, by_epoch_table,
+                                          continuity_columns, continuity_table, coverage_counts, coverage_table,
+                                          empty_metrics, metrics_concat, picture_accuracy, pool_epochs,
+                                          potential_table, scored_rows, scored_samples, track_counts,
+                                          with_segments)
+from tertiary.evaluation.buckets import file_buckets
+from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, consistency_dicts, consistency_statistics,
+                                             series_codes)
+
+__all__ = ["picture_accuracy_buckets"]
+
+#: what :func:`row_scores` and :func:`picture_accuracy` read of a picture not yet row-scored
+_ROW_INPUTS = (*ACCURACY_COLUMNS, "segment", *STATE, *(f"true_{c}" for c in STATE), "alt_m", "true_alt_m", "cov",
+               "cov_diag")
+#: the row index :func:`picture_accuracy_buckets` gives ``matched``: the order of the samples
+_ROW = "__row"
+
+
+def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyConfig = AccuracyConfig(),
+                             observed: pl.DataFrame | pl.LazyFrame | None = None, buckets: int = 1,
+                             scratch: Path | None = None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """:func:`picture_accuracy` of ``matched.collect()`` (and ``observed`` collected), with the
+    rows read ``buckets`` parts at a time, never whole: a long recording's picture (a scan of
+    Parquet parts) is scored with the memory of about 1/``buckets`` of its rows, plus the
+    scored samples (five columns a row, whole-picture by nature).
+
+    Whole tracks (hash of (method, run, track_id)) make a part: the transient cut, the NEES/NIS
+    series, spurious tracks and swaps are per track. Whole aircraft (hash of (run, truth_id))
+    make a part of the coverage walk, with ``observed`` cut the same way. What crosses parts is
+    added up exactly: the (2.15) sums per (method, segment, epoch, run), the consistency sums per
+    epoch and per lag (:class:`Lags`), the counts and sets of runs; then finished by the code of
+    :func:`picture_accuracy`. ``matched`` may carry the :data:`ROW_SCORES` (else each part is
+    row-scored: :func:`row_scores` is row-wise). With a ``scratch`` directory the rows are filed
+    by bucket once (:func:`tertiary.evaluation.buckets.file_buckets`) and each bucket reads its own; without,
+    each bucket filters the whole of ``matched``."""
+    if buckets < 1:
+        raise ValueError(f"buckets must be >= 1, got {buckets}")
+    schema = matched.collect_schema()          # a scan's schema: no row is read
+    wanted = (*ACCURACY_COLUMNS, *ROW_SCORES) if set(ROW_SCORES) <= set(schema.names()) else _ROW_INPUTS
+    lf = matched.lazy().with_row_index(_ROW)
+    cols = [_ROW, *(c for c in schema.names() if c in wanted)]
+    filed = scratch is not None and buckets > 1
+    by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks")
+                if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
+    parts = _Parts()
+    for k in range(buckets):
+        part = by_track[k].collect()
+        if part.height:
+            parts.add_tracks(part, cfg)
+        del part
+    if not parts.rows:
+        return picture_accuracy(pl.DataFrame(), stage, cfg)
+    coverage = None if observed is None else _coverage_buckets(
+        lf, observed, schema["epoch"], parts.tables["tracks"].select("method"), buckets,
+        scratch / "aircraft" if filed else None)
+    return parts.finish(stage, cfg, coverage)
+
+
+def _in_bucket(key: list[pl.Expr], buckets: int, k: int) -> pl.Expr:
+    return pl.lit(True) if buckets == 1 else _bucket_of(key, buckets) == k
+
+
+def _bucket_of(key: list[pl.Expr], buckets: int) -> pl.Expr:
+    return pl.struct(key).hash() % buckets
+
+
+def _track_key() -> list[pl.Expr]:
+    return [pl.col("method"), pl.col("run"), pl.col("track_id")]
+
+
+def _aircraft_key() -> list[pl.Expr]:
+    """(run, truth_id) in the types of :func:`aircraft_epochs`: matched rows and ``observed``
+    hash alike."""
+    return [pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64)]
+
+
+def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, epoch: pl.DataType,
+                      methods: pl.DataFrame, buckets: int, scratch: Path | None = None) -> pl.DataFrame:
+    """The coverage (completeness, breaks) of the matched rows ``lf`` with whole (run, aircraft)
+    walked per bucket (the rows filed by bucket once in ``scratch``, if given)."""
+    seen = aircraft_epochs(observed.lazy(), epoch)
+    tracked = lf.filter(pl.col("truth_id").is_not_null())
+    by_aircraft = None
+    if scratch is not None:
+        # each row's bucket as the filter below makes it: hashed before ``run`` is cast
+        src = tracked.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab"))
+        by_aircraft = [f.drop("__ab") for f in
+                       file_buckets(continuity_columns(src, "__ab"), pl.col("__ab"), buckets, scratch)]
+    seen_by = None
+    if scratch is not None:         # the aircraft seen, cut once too
+        s = seen.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab")).collect()
+        seen_by = {k: f.drop("__ab") for (k,), f in s.partition_by("__ab", as_dict=True).items()}
+        empty = s.drop("__ab").clear()
+        del s
+    counts = []
+    for k in range(buckets):
+        m = (by_aircraft[k].collect() if by_aircraft is not None else
+             continuity_columns(tracked.filter(_in_bucket(_aircraft_key(), buckets, k))).collect())
+        aircraft = (seen_by.get(k, empty).unique() if seen_by is not None else
+                    seen.filter(_in_bucket(_aircraft_key(), buckets, k)).unique().collect())
+        counts.append(coverage_counts(m, aircraft, methods))
+        del m, aircraft
+    return coverage_table(pl.concat(counts))
+
+
+@dataclass
+class _Parts:
+    """What :func:`picture_accuracy_buckets` keeps of the track buckets seen: small tables
+    (``tables``: per method, segment, epoch and run at most), the per-lag sums of each
+    consistency series set (``lags``: (prefix, method, segment) → :class:`Lags`) and the scored
+    samples with their row index."""
+
+    rows: int = 0
+    tables: dict[str, pl.DataFrame] = field(default_factory=dict)
+    lags: dict[tuple[str, str, str], Lags] = field(default_factory=dict)
+    samples: list[pl.DataFrame] = field(default_factory=list)
+
+    def fold(self, name: str, part: pl.DataFrame, keys: list[str]) -> None:
+        """Add ``part`` (sums per ``keys``, ``__first`` a minimum; keys only: a set) to ``name``."""
+        old = self.tables.get(name)
+        both = part if old is None else pl.concat([old, part])
+        aggs = [pl.col(c).min() if c == "__first" else pl.col(c).sum() for c in both.columns if c not in keys]
+        self.tables[name] = both.group_by(keys).agg(aggs) if aggs else both.unique()
+
+    def add_tracks(self, part: pl.DataFrame, cfg: AccuracyConfig) -> None:
+        """The partial sums of one bucket of whole tracks (the columns :func:`picture_accuracy` reads)."""
+        self.rows += part.height
+        m = continuity_columns(part)
+        self.fold("tracks", track_counts(m), ["method"])
+        self.fold("track_runs", m.select("method", "run").unique(), ["method", "run"])
+        del m
+        scored = scored_rows(part, cfg)
+        scored = scored.select(c for c in scored.columns if c in ACCURACY_COLUMNS or c == _ROW)
+        self.samples.append(pl.concat([scored.select(_ROW), scored_samples(scored)], how="horizontal"))
+        if scored.height:
+            self.add_scored(scored)
+
+    def add_scored(self, scored: pl.DataFrame) -> None:
+        """The partial sums of a bucket's scored rows: (2.15), potential accuracy, consistency."""
+        key = ["method", "eval_segment", "epoch", "run"]
+        e2 = [pl.col(c).sum() for c in FUSION_METRICS.values()]
+        self.fold("epochs", pl.concat([
+            r.group_by(key).agg(*e2, pl.len().alias("n")).filter(pl.col("eval_segment").is_not_null())
+            for r in (scored.with_columns(pl.lit("all").alias("eval_segment")),
+                      scored.with_columns(pl.col("seg_class").alias("eval_segment")))]), key)
+        pot = scored.select("method", "run", "seg_class", "sd_pos", _ROW).filter(pl.col("sd_pos").is_not_null())
+        if pot.height:
+            pot = with_segments(pot)
+            self.fold("potential", pot.group_by("method", "eval_segment").agg(
+                pl.col("sd_pos").sum().alias("__sum"), pl.len().alias("__n"), pl.col(_ROW).min().alias("__first")),
+                ["method", "eval_segment"])
+            self.fold("potential_runs", pot.select("method", "eval_segment", "run").unique(),
+                      ["method", "eval_segment", "run"])
+        for prefix, (col, _dof) in consistency_statistics(scored.columns).items():
+            self.add_statistic(scored, prefix, col)
+
+    def add_statistic(self, scored: pl.DataFrame, prefix: str, col: str) -> None:
+        """Per-epoch sums and per-lag sums of one NEES/NIS statistic (:func:`consistency_metrics`)."""
+        r = scored.select("method", "run", "epoch", "track_id", "seg_class", col).filter(
+            pl.col(col).is_not_null() & pl.col(col).is_finite()).sort("method", "run", "track_id", "epoch")
+        if r.is_empty():
+            return
+        both = with_segments(r)
+        self.fold(f"{prefix}:epochs", both.group_by("method", "eval_segment", "epoch").agg(
+            pl.col(col).sum().alias("__sum"), pl.len().alias("__n")), ["method", "eval_segment", "epoch"])
+        self.fold(f"{prefix}:runs", both.select("method", "eval_segment", "run").unique(),
+                  ["method", "eval_segment", "run"])
+        del both
+        for method in r["method"].unique().to_list():
+            m = r.filter(pl.col("method") == method)
+            for seg in ["all", *m["seg_class"].drop_nulls().unique().to_list()]:
+                g = m if seg == "all" else m.filter(pl.col("seg_class") == seg)
+                lags = Lags.of(g[col].to_numpy(), series_codes(g, "track_id"))
+                old = self.lags.get((prefix, method, seg))
+                self.lags[(prefix, method, seg)] = lags if old is None else old + lags
+
+    def finish(self, stage: str, cfg: AccuracyConfig, coverage: pl.DataFrame | None
+               ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+        """:func:`picture_accuracy`'s three tables from the sums of every bucket."""
+        t = self.tables
+        accuracy, by_epoch = empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA)
+        if "epochs" in t:
+            agg = t["epochs"].group_by("method", "eval_segment", "epoch").agg(
+                *[pl.col(c).sum() for c in FUSION_METRICS.values()], pl.col("n").sum(), pl.len().alias("n_runs"))
+            runs = t["epochs"].group_by("method", "eval_segment").agg(pl.col("run").n_unique().alias("n_runs"))
+            accuracy = accuracy_table(pool_epochs(agg, ["method", "eval_segment"], cfg), runs, stage)
+            whole = agg.filter(pl.col("eval_segment") == "all").drop("eval_segment")
+            by_epoch = by_epoch_table(pool_epochs(whole, ["method"], cfg))
+        out = [accuracy]
+        if "potential" in t:
+            out.append(potential_table(self._potential(), stage))
+        for prefix, (_col, dof) in CONSISTENCY_ALL.items():
+            if f"{prefix}:epochs" in t:
+                out.append(self._statistic(prefix, dof, stage, cfg.band))
+        out.append(continuity_table(t["tracks"], t["track_runs"], coverage, stage))
+        samples = pl.concat(self.samples).sort(_ROW).drop(_ROW)
+        return metrics_concat(out), by_epoch, samples
+
+    def _potential(self) -> pl.DataFrame:
+        """(method, eval_segment, value, n_runs) in :func:`picture_accuracy`'s order of appearance:
+        segment ``all`` first, then each group by its first row."""
+        n_runs = self.tables["potential_runs"].group_by("method", "eval_segment").agg(
+            pl.col("run").n_unique().alias("n_runs"))
+        return (self.tables["potential"].join(n_runs, on=["method", "eval_segment"], how="left")
+                .sort(pl.col("eval_segment") != "all", "__first")
+                .select("method", "eval_segment", (pl.col("__sum") / pl.col("__n")).alias("value"), "n_runs"))
+
+    def _statistic(self, prefix: str, dof: int, stage: str, band: float) -> pl.DataFrame:
+        """:func:`consistency_metrics` of one statistic from its sums."""
+        epochs = self.tables[f"{prefix}:epochs"]
+        n_runs = {(m, s): n for m, s, n in self.tables[f"{prefix}:runs"].group_by("method", "eval_segment")
+                  .agg(pl.col("run").n_unique()).iter_rows()}
+        out = []
+        for method, seg in sorted(k[1:] for k in self.lags if k[0] == prefix):
+            lags = self.lags[(prefix, method, seg)]
+            e = epochs.filter((pl.col("method") == method) & (pl.col("eval_segment") == seg))
+            out += consistency_dicts(stage, method, seg, prefix, dof, band, lags.total / lags.n,
+                                      (e["__sum"] / e["__n"]).to_numpy(), e["__n"].to_numpy(), lags.n, lags.tau(),
+                                      n_runs[(method, seg)])
+        return pl.DataFrame(out, schema=TABLES["metrics"].required)

@@ -1,0 +1,356 @@
+"""Ingest: the data contract applied to a dataset's tables (:func:`ingest`), every rule of the job
+that can reject a report (:func:`screen`, what ``tertiary validate`` reports) and the validation
+of the truth, whole or from disk to disk (:func:`validate_truth`, :func:`stream_truth`)."""
+
+from __future__ import annotations
+
+import shutil
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import timedelta
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from tertiary import contract
+from tertiary.core import geo
+from tertiary.core.errors import DataError
+from tertiary.evaluation.evaluate import reference_files, write_reference_pieces
+from tertiary.evaluation.matching import neighbour_times
+from tertiary.io.dataset import Dataset
+from tertiary.pipeline.config import PipelineConfig, check_config
+from tertiary.sensors import registration
+from tertiary.sensors.collection import collection_stage
+from tertiary.stages import align as align_stage
+from tertiary.stages.align import AlignPlan
+from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
+
+__all__ = ["Ingested", "StreamedTruth", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
+           "truth_lazy", "truth_window", "no_rejects", "registered", "valid_flight_plans", "stage_rejects_table",
+           "TRUTH_PART_ROWS", "TRUTH_BATCH_ROWS"]
+
+
+@dataclass
+class Ingested:
+    """Validated input tables and every rejected row with its reason.
+
+    ``report_rows`` maps each valid report's ``report_id`` to its input row; ``plan`` holds the
+    align stage's decisions once :func:`screen` has run."""
+
+    radars: pl.DataFrame
+    reports: pl.DataFrame
+    truth: pl.DataFrame
+    rejects: pl.DataFrame
+    notes: list[str] = field(default_factory=list)
+    report_rows: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"report_id": pl.UInt64, "row_index": pl.UInt64}))
+    plan: AlignPlan | None = None
+
+    @property
+    def valid_reports(self) -> int:
+        """Reports the job will align (0: ``run`` stops with "no valid report left")."""
+        return int(self.plan.keep.sum()) if self.plan is not None else 0
+
+
+def validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[str], **kw: Any
+                   ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(clean, packed rejects, raw rejects) of one input table; its unsorted-time warnings go to
+    ``notes``."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", contract.UnsortedTimeWarning)
+        out = contract.validate(frame, kind, strict=strict, **kw)
+    notes.extend(str(w.message) for w in caught if issubclass(w.category, contract.UnsortedTimeWarning))
+    if strict:
+        return out, contract.empty_frame("rejects"), pl.DataFrame()
+    clean, rejects = out
+    if contract.INPUT_ROW in rejects.columns:      # a window's rows: their position in the whole input
+        rejects = rejects.with_columns(pl.col(contract.INPUT_ROW).cast(pl.UInt64).alias(contract.ROW_INDEX))
+    rejects = rejects.drop(contract.INPUT_ROW, strict=False)
+    return clean, contract.rejects_table(rejects, kind, "ingest"), rejects
+
+
+#: truth rows validated at a time (whole aircraft) in finalize: the checks copy every column
+#: several times, so a long recording's truth is validated in parts (memory)
+TRUTH_PART_ROWS = 250_000
+
+
+def validate_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(clean truth, packed rejects): :func:`validate_table` of the whole truth, computed a few
+    aircraft at a time. Every truth check is row-wise or within one aircraft (its key and its
+    order are (truth_id, time)), the table's median time is taken once from the whole and each
+    part carries its rows' input positions, so the clean table (in input order), its rejects
+    and the notes are those of one call on the whole."""
+    truth = contract.as_frame(ds.truth, "truth")
+    kw = dict(limits=cfg.limits, time_window=window)
+    if truth.height == 0:
+        return truth, no_rejects()
+    if (cfg.strict or truth.height <= TRUTH_PART_ROWS or truth.schema.get("truth_id") is None
+            or truth.schema.get("time") != contract.TIME or contract.INPUT_ROW in truth.columns):
+        clean, rej, _ = validate_table(truth, "truth", cfg.strict, notes, **kw)
+        return clean, rej
+    med = contract.table_median_time(truth, cfg.limits)
+    # a group-by on the frame would first copy every column into one chunk: on the key alone
+    sizes = truth.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True)
+    part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
+    where = truth.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
+                                          maintain_order="left")["__part"]
+    cleans, rejs = [], []
+    for k in range(int(part_of["__part"].max()) + 1):
+        rows = (where == k).arg_true()
+        part = truth[rows].with_columns(rows.cast(pl.UInt64).alias(contract.INPUT_ROW))
+        # the parts' unsorted-time notes are left out: the whole table's is taken below
+        clean, rej, _ = validate_table(part, "truth", False, [], median_time=med, **kw)
+        cleans.append(clean)
+        rejs.append(rej)
+    del truth, where
+    clean = pl.concat(cleans, how="vertical")
+    del cleans
+    order = clean[contract.INPUT_ROW].arg_sort()
+    clean = clean.drop(contract.INPUT_ROW)
+    # back in input order a column at a time, each source column released once gathered: the
+    # table is never held twice (a whole-frame sort would)
+    gathered = {}
+    for name in clean.columns:
+        gathered[name] = clean[name].gather(order)
+        clean = clean.drop(name)
+    clean = pl.DataFrame(gathered)
+    del gathered
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", contract.UnsortedTimeWarning)
+        clean = contract.sort_tracks(clean, "truth")
+    notes.extend(str(w.message) for w in caught if issubclass(w.category, contract.UnsortedTimeWarning))
+    return clean, pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+
+
+#: input truth rows read at a time by :func:`stream_truth` (then split into aircraft parts)
+TRUTH_BATCH_ROWS = 262_144
+
+
+@dataclass
+class StreamedTruth:
+    """The validated truth of an on-disk run, on disk (:func:`stream_truth`): its reference
+    directory (None when no row is clean), its number of clean rows and its schema (``empty``)."""
+
+    reference: Path | None
+    rows: int
+    empty: pl.DataFrame
+
+    def pieces(self) -> Iterator[pl.DataFrame]:
+        """The clean truth, in order, a reference file at a time (for the run database)."""
+        for f in reference_files(self.reference):
+            yield pl.read_parquet(f, columns=list(self.empty.columns))
+
+
+def truth_lazy(ds: Dataset) -> pl.LazyFrame | None:
+    """The dataset's truth as a lazy frame (None: it has none in a frame)."""
+    truth = ds.truth
+    return truth if isinstance(truth, pl.LazyFrame) else truth.lazy() if isinstance(truth, pl.DataFrame) else None
+
+
+def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
+                 scratch: Path) -> tuple[StreamedTruth, pl.DataFrame] | None:
+    """(the clean truth on disk, packed rejects): :func:`validate_truth` from disk to disk, so
+    neither the input truth nor the clean one is ever held whole (memory). None where
+    :func:`validate_truth` validates the table in one call (strict mode, a small or malformed table): the caller does that.
+
+    One pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows by
+    aircraft part (:func:`validate_truth`'s parts); each part is validated, put back in input
+    order and given its samples' neighbour times; the clean rows are then written as a reference
+    (:func:`write_reference_pieces`) in :func:`validate_truth`'s order — input order, or
+    (truth_id, time) when some aircraft's times decrease — a file per input batch or per part.
+    Every check is row-wise or within one aircraft, the median time is the whole table's and
+    the unsorted-time note adds the parts' counts, so the rows, rejects and notes are
+    :func:`validate_truth`'s."""
+    lf = truth_lazy(ds)
+    if lf is None or cfg.strict:
+        return None
+    sch = lf.collect_schema()
+    if sch.get("truth_id") is None or sch.get("time") != contract.TIME or contract.INPUT_ROW in sch:
+        return None
+    n = lf.select(pl.len()).collect().item()
+    if n <= TRUTH_PART_ROWS:
+        return None
+    kw = dict(limits=cfg.limits, time_window=window)
+    med = contract.table_median_time(lf.select("time").collect(), cfg.limits)
+    sizes = lf.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True).collect()
+    part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
+    n_parts = int(part_of["__part"].max()) + 1
+    work = scratch / "truth"
+    shutil.rmtree(work, ignore_errors=True)        # a resumed finalize's leftovers
+    n_batches = -(-n // TRUTH_BATCH_ROWS)
+    for b in range(n_batches):
+        off = b * TRUTH_BATCH_ROWS
+        batch = lf.slice(off, TRUTH_BATCH_ROWS).collect()
+        batch = batch.with_columns(pl.int_range(off, off + batch.height, dtype=pl.UInt64).alias(contract.INPUT_ROW),
+                                   batch.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
+                                                                 maintain_order="left")["__part"])
+        for (k,), rows in batch.partition_by("__part", as_dict=True, maintain_order=True).items():
+            (work / f"in-{k:06d}").mkdir(parents=True, exist_ok=True)
+            rows.drop("__part").write_parquet(work / f"in-{k:06d}" / f"{b:06d}.parquet", compression="lz4")
+        del batch
+    rejs, n_bad, n_groups, clean_rows, empty = [], 0, 0, 0, None
+    for k in range(n_parts):
+        src = work / f"in-{k:06d}"
+        part = pl.read_parquet(sorted(src.glob("*.parquet")))
+        shutil.rmtree(src)
+        # the parts' unsorted-time notes are left out: the whole table's is made below
+        clean, rej, _ = validate_table(part, "truth", False, [], median_time=med, **kw)
+        del part
+        rejs.append(rej)
+        clean = clean.sort(contract.INPUT_ROW)                 # input order (validation may have sorted)
+        empty = clean.drop(contract.INPUT_ROW).clear()
+        bad, groups = contract.unsorted_groups(clean, "truth")
+        n_bad, n_groups, clean_rows = n_bad + bad, n_groups + groups, clean_rows + clean.height
+        times = neighbour_times(clean)
+        clean = clean.with_columns(times["__prev"], times["__next"],
+                                   (pl.col(contract.INPUT_ROW) // TRUTH_BATCH_ROWS).alias("__batch"))
+        for (b,), rows in clean.partition_by("__batch", as_dict=True, maintain_order=True).items():
+            rows.drop("__batch").write_parquet(work / f"out-{b:06d}-{k:06d}.parquet", compression="lz4")
+    rejects = pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+    if n_bad:
+        notes.append(contract.unsorted_message("truth", n_bad, n_groups))
+    if clean_rows == 0:
+        shutil.rmtree(work, ignore_errors=True)
+        return StreamedTruth(None, 0, empty), rejects
+
+    def ordered() -> Iterator[pl.DataFrame]:
+        # an input batch's rows are in these files only, a part's in these
+        groups = ([sorted(work.glob(f"out-{b:06d}-*.parquet")) for b in range(n_batches)] if not n_bad else
+                  [sorted(work.glob(f"out-*-{k:06d}.parquet")) for k in range(n_parts)])
+        for files in groups:
+            if not files:
+                continue
+            piece = pl.read_parquet(files).sort(contract.INPUT_ROW)
+            if n_bad:       # the parts hold whole aircraft, in truth_id order
+                piece = piece.sort(list(contract.table_order("truth")), maintain_order=True)
+            yield piece.drop(contract.INPUT_ROW)
+            for f in files:
+                f.unlink()
+
+    path = write_reference_pieces(ordered(), scratch / "reference")
+    shutil.rmtree(work, ignore_errors=True)
+    return StreamedTruth(path, clean_rows, empty), rejects
+
+
+def no_rejects() -> pl.DataFrame:
+    """An empty ``rejects`` table."""
+    return contract.empty_frame("rejects")
+
+
+def ingest(ds: Dataset, strict: bool = False, limits: contract.Limits = contract.Limits()) -> Ingested:
+    """Validate radars, reports (against the valid radars) and truth (against the reports' span).
+
+    Strict mode raises :class:`tertiary.contract.SchemaError` on the first problem; lenient mode
+    moves bad rows to ``rejects`` with a reason (a rejected radar takes its reports along).
+    """
+    notes: list[str] = []
+    radars, rej_r, raw_r = validate_table(contract.as_frame(ds.radars, "radars"), "radars", strict, notes,
+                                          limits=limits)
+    gone = (raw_r["radar_id"].cast(pl.UInt32, strict=False).drop_nulls().to_list()
+            if "radar_id" in raw_r.columns else [])
+    if radars.height == 0:
+        notes.append("radars: no valid radar; every report is rejected")
+    raw = contract.as_frame(ds.reports, "reports")
+    raw = raw.drop(contract.INPUT_ROW, strict=False).with_row_index(contract.INPUT_ROW)
+    reports, rej_p, _ = validate_table(raw, "reports", strict, notes, radars=radars, limits=limits,
+                                       rejected_radars=gone)
+    rows = reports.select("report_id", pl.col(contract.INPUT_ROW).cast(pl.UInt64).alias("row_index"))
+    reports = reports.drop(contract.INPUT_ROW)
+    truth_in = contract.as_frame(ds.truth, "truth")
+    truth, rej_t = truth_in, no_rejects()
+    if truth_in.height:
+        truth, rej_t, _ = validate_table(truth_in, "truth", strict, notes, limits=limits,
+                                         time_window=truth_window(reports, limits))
+    rejects = pl.concat([r for r in (rej_r, rej_p, rej_t) if r.height] or [no_rejects()],
+                        how="vertical_relaxed")
+    return Ingested(radars, reports, truth, rejects, notes, rows)
+
+
+def truth_window(reports: pl.DataFrame, limits: contract.Limits):
+    """(start, end, label) the truth must fall in: the valid reports' span ± the pad."""
+    if reports.height == 0:
+        return None
+    pad = timedelta(seconds=limits.truth_pad_s)
+    return (reports["time"].min() - pad, reports["time"].max() + pad,
+            f"the reports' span +- {limits.truth_pad_s:g} s")
+
+
+def screen(ds: Dataset, cfg: PipelineConfig | None = None) -> Ingested:
+    """Every rule of the job that can reject a report, applied without running the job.
+
+    Ingest (the data contract) and the align stage's rejections (its plan: unusable estimate,
+    implausible speed, superseded, too old); ``rejects`` then holds exactly the rows — reasons,
+    stages and input row indices — that :func:`run` rejects. :func:`process` uses it, so
+    ``tertiary validate`` and ``tertiary run`` cannot disagree."""
+    cfg = check_config(cfg)
+    ing = ingest(ds, strict=cfg.strict, limits=cfg.limits)
+    ing.notes[:0] = getattr(ds, "notes", [])
+    _, rej_f = valid_flight_plans(ds, cfg, ing.notes)        # the same rows `run` rejects
+    if rej_f.height:
+        ing.rejects = pl.concat([ing.rejects, rej_f], how="vertical_relaxed")
+    if _height(ds.reports) == 0:
+        raise DataError("reports: the table has no rows; nothing to process")
+    if ing.reports.height == 0:
+        ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
+        return ing
+    if cfg.register:
+        ing.reports = registered(ing, ds.origin, cfg)
+    if cfg.collection is not None:   # report collection queue (§1.4): lost reports -> rejects
+        ing.reports, lost, collected = collection_stage(ing.reports, ing.report_rows, cfg.collection)
+        ing.rejects = pl.concat([ing.rejects, lost], how="vertical_relaxed")
+        ing.notes.extend(collected)
+    ing.plan = align_stage.plan(ing.reports, ing.radars, ds.origin, cfg.align)
+    align_rej = stage_rejects_table(ing.plan.rejects, ing.reports, ing.report_rows, "align")
+    ing.rejects = pl.concat([ing.rejects, align_rej], how="vertical_relaxed")
+    if int(ing.plan.keep.sum()) == 0:
+        ing.notes.append(f"no valid report left: all {_height(ds.reports):,} reports rejected")
+    return ing
+
+
+def registered(ing: Ingested, origin: geo.LocalFrame, cfg: PipelineConfig) -> pl.DataFrame:
+    """The valid reports with each radar's registration applied (``cfg.registration`` rows,
+    else estimated radar to radar from these reports — never from the truth that scores the run)."""
+    if cfg.registration:
+        table = pl.DataFrame([list(map(float, row)) for row in cfg.registration], orient="row",
+                             schema=["radar_id", "range_bias_m", "azimuth_bias_deg", "time_offset_s", "range_gain"])
+        table = table.with_columns(pl.col("radar_id").cast(pl.UInt32))
+        source = "given"
+    else:
+        table = registration.estimate(ing.reports, ing.radars, origin, None,
+                                      registration.RegistrationConfig(method="multi")).table
+        source = "estimated radar to radar"
+    for row in table.iter_rows(named=True):       # one note per radar (a handful)
+        ing.notes.append(f"registration ({source}) radar {row['radar_id']}: range {row['range_bias_m']:+.2f} m, "
+                         f"azimuth {row['azimuth_bias_deg']:+.4f} deg, clock {row['time_offset_s']:+.4f} s")
+    return align_stage.apply_registration(ing.reports, table)
+
+
+def _height(frame) -> int:
+    return frame.height if isinstance(frame, pl.DataFrame) else len(contract.as_frame(frame, "reports"))
+
+
+def valid_flight_plans(ds: Dataset, cfg: PipelineConfig, notes: list[str]) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The dataset's valid flight plans and the rejects of the others (strict: the first bad row
+    is a :class:`DataError`)."""
+    if ds.flight_plans is None or ds.flight_plans.height == 0:
+        return empty_flight_plans(), no_rejects()
+    plans, rej = check_flight_plans(ds.flight_plans, cfg.limits)
+    if rej.height:
+        text = f"flight_plans: {rej.height} row(s) rejected (first: row {rej['row_index'][0]}, {rej['reason'][0]})"
+        if cfg.strict:
+            raise DataError(text)
+        notes.append(text)
+    return plans, rej
+
+
+def stage_rejects_table(stage_rejects: pl.DataFrame, reports: pl.DataFrame, report_rows: pl.DataFrame,
+                        stage: str) -> pl.DataFrame:
+    """A stage's (report_id, reason) rejects in the canonical ``rejects`` schema; ``row_index``
+    is the report's row in the input table (``report_rows``), the detail its validated row."""
+    if stage_rejects.height == 0:
+        return contract.empty_frame("rejects", False)
+    rows = (reports.join(report_rows, on="report_id", how="inner")
+            .join(stage_rejects, on="report_id", how="inner").sort("row_index"))
+    return contract.rejects_table(rows, "reports", stage)

@@ -1,0 +1,321 @@
+"""The streamed stages as :class:`~tertiary.runtime.stage.Stage` values, in pipeline order.
+
+Each class is a thin adapter: it binds a stage's configuration and the run's fixed context
+(radars, system frame, fusion methods, tracker filters…) when it is built and calls the stage's
+step function, so it produces exactly what that function produces. Inputs and outputs are
+named tables holding the window's rows (what :func:`tertiary.pipeline.streaming.pipeline_step` passes
+and receives); an adapter refuses a bad window or rows outside it with
+:func:`~tertiary.runtime.stage.check_window`.
+
+Two kinds of outputs are not a window's rows: :attr:`totals` are one-row counts that add up
+over windows (the association statistics) and :attr:`snapshots` describe the state after the
+window (the association's live targets, which the centralised reference of the same window
+reads).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
+
+import polars as pl
+
+from safety.confirmation import ConfirmState, confirm_step
+from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state
+from tertiary import contract as schema
+from tertiary.core import geo
+from tertiary.runtime.stage import Stage, Window, check_window
+from tertiary.stages import align as align_stage
+from tertiary.stages.association.associate import AssociationConfig, associate_step, init_associate_state
+from tertiary.stages.clustering import ClusteringConfig, cluster_step, init_cluster_state
+from tertiary.stages.flight_data import DepartureConfig, departure_step, init_departure_state
+from tertiary.stages.fusion.centralized import CentralizedConfig, centralized_step, init_centralized_state
+from tertiary.stages.fusion import FusionConfig, fuse_step, init_fuse_state
+from tertiary.stages.tracking.tracker import TrackerConfig, init_track_state, track_step
+
+#: the streamed stages, in pipeline order (one window goes through them in this order)
+STAGES: tuple[str, ...] = ("align", "departures", "associate", "fuse", "centralized", "cluster", "track",
+                           "conflicts", "alert_confirmation")
+
+
+class _Adapter:
+    """What every adapter shares: its name and the outputs that are not rows of the window."""
+
+    name: ClassVar[str]
+    #: one-row outputs whose columns add up over windows
+    totals: ClassVar[tuple[str, ...]] = ()
+    #: outputs that describe the state after the window (not appended)
+    snapshots: ClassVar[tuple[str, ...]] = ()
+
+
+@dataclass(frozen=True)
+class AlignStage(_Adapter):
+    """Reports onto the epoch grid (:func:`tertiary.stages.align.align_step`).
+
+    Input ``reports`` (time in the window); outputs ``aligned`` and ``rejects``. The grid origin
+    is the run's (``grid_origin_us``), or, for a run that is one window, the window's own."""
+
+    radars: pl.DataFrame
+    origin: geo.LocalFrame
+    cfg: align_stage.AlignConfig
+    grid_origin_us: int | None = None
+    name: ClassVar[str] = "align"
+
+    def init(self) -> align_stage.AlignState:
+        return align_stage.init_align_state()
+
+    def step(self, state: align_stage.AlignState, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], align_stage.AlignState]:
+        reports = inputs["reports"]
+        check_window(reports, window, column="time", table="reports")
+        g0 = self.grid_origin_us
+        if g0 is None:
+            g0 = align_stage.epoch_grid(reports, self.radars, self.cfg)[0] if reports.height else 0
+        (aligned, rejects), new = align_stage.align_step(
+            state, reports, self.radars, self.origin, None if window.open_start else window.t0_us,
+            None if window.open_end else window.t1_us, g0, self.cfg)
+        return {"aligned": aligned, "rejects": rejects}, new
+
+
+@dataclass(frozen=True)
+class DeparturesStage(_Adapter):
+    """Departure correlation by aerodrome and time (:func:`tertiary.stages.flight_data.departure_step`).
+
+    Inputs ``aligned`` (epoch in the window), ``reports`` (the window's new reports) and
+    ``codes`` (run, report_id, mode_3a of every report ``aligned`` refers to); output ``aligned``
+    with the cleared levels filled."""
+
+    plans: pl.DataFrame
+    cfg: DepartureConfig
+    name: ClassVar[str] = "departures"
+
+    def init(self) -> Any:
+        return init_departure_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        aligned = inputs["aligned"]
+        check_window(aligned, window, table="aligned")
+        codes = inputs.get("codes")
+        if codes is None or self.plans.height == 0:
+            return {"aligned": aligned}, state
+        aligned, new = departure_step(state, aligned, inputs["reports"], codes, self.plans, self.cfg)
+        return {"aligned": aligned}, new
+
+
+@dataclass(frozen=True)
+class AssociateStage(_Adapter):
+    """Which aligned reports are the same aircraft (:func:`~tertiary.stages.association.associate.associate_step`).
+
+    Input ``aligned``; outputs ``associations``, ``stats`` (one row of
+    :class:`~tertiary.stages.association.associate.AssociationStats`) and ``live_targets`` (the
+    target ids that may still be associated after the window)."""
+
+    cfg: AssociationConfig
+    name: ClassVar[str] = "associate"
+    totals: ClassVar[tuple[str, ...]] = ("stats",)
+    snapshots: ClassVar[tuple[str, ...]] = ("live_targets",)
+
+    def init(self) -> Any:
+        return init_associate_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        aligned = inputs["aligned"]
+        check_window(aligned, window, after_us=state.t_us, table="aligned")
+        (associations, stats), new = associate_step(state, aligned, window.t0_us, window.t1_us, self.cfg)
+        return {"associations": associations, "stats": pl.DataFrame([asdict(stats)]),
+                "live_targets": new.live_targets()}, new
+
+
+@dataclass(frozen=True)
+class FuseStage(_Adapter):
+    """Multi-radar fusion by every configured method (:func:`~tertiary.stages.fusion.fuse_step`).
+
+    Inputs ``rows`` (aligned rows with their ``target_id``, epoch in the window, sorted by run,
+    epoch, target_id, radar_id) and ``plots`` (measured plots of the reports up to the window's
+    end); output ``fused``."""
+
+    radars: pl.DataFrame
+    methods: tuple[str, ...]
+    cfg: FusionConfig
+    origin: geo.LocalFrame
+    name: ClassVar[str] = "fuse"
+
+    def init(self) -> Any:
+        return init_fuse_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        rows = inputs["rows"]
+        check_window(rows, window, table="rows")
+        fused, new = fuse_step(state, rows, self.radars, self.methods, self.cfg, self.origin, inputs.get("plots"),
+                               window.t0_us, window.t1_us)
+        return {"fused": fused}, new
+
+
+@dataclass(frozen=True)
+class CentralizedStage(_Adapter):
+    """The centralised reference (:func:`~tertiary.stages.fusion.centralized.centralized_step`).
+
+    Inputs ``reports`` (validated reports up to the window's end), ``associations``, ``keys``
+    (run, epoch, target_id to estimate, epoch in the window) and ``live`` (the association's
+    ``live_targets`` after the window; optional); output ``centralized`` (fused rows of method
+    "centralized")."""
+
+    radars: pl.DataFrame
+    origin: geo.LocalFrame
+    cfg: CentralizedConfig
+    name: ClassVar[str] = "centralized"
+
+    def init(self) -> Any:
+        return init_centralized_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        keys = inputs["keys"]
+        check_window(keys, window, table="keys")
+        out, new = centralized_step(state, inputs["reports"], self.radars, inputs["associations"], keys, self.origin,
+                                    self.cfg, window.t0_us, window.t1_us, live=inputs.get("live"))
+        return {"centralized": out}, new
+
+
+@dataclass(frozen=True)
+class ClusterStage(_Adapter):
+    """Clustering of fused targets (:func:`~tertiary.stages.clustering.cluster_step`): input
+    ``fused``, output ``clusters``."""
+
+    cfg: ClusteringConfig
+    name: ClassVar[str] = "cluster"
+
+    def init(self) -> Any:
+        return init_cluster_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        fused = inputs["fused"]
+        check_window(fused, window, after_us=state.t_us, table="fused")
+        clusters, new = cluster_step(state, fused, window.t0_us, window.t1_us, self.cfg)
+        return {"clusters": clusters}, new
+
+
+@dataclass(frozen=True)
+class TrackStage(_Adapter):
+    """The secondary trackers (:func:`~tertiary.stages.tracking.tracker.track_step`): input
+    ``fused`` (every fusion method's picture, no centralised reference), output ``tracks``.
+    Without filters no track is made."""
+
+    filters: Any                      # names, or name → filter (tracker ``Filters``)
+    cfg: TrackerConfig
+    names: Sequence[str] | None = None   # the filters' names the state is made for (default: ``filters``)
+    name: ClassVar[str] = "track"
+
+    def init(self) -> Any:
+        return init_track_state(self.filters if self.names is None else self.names)
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        fused = inputs["fused"]
+        check_window(fused, window, table="fused")
+        if not self.filters:
+            return {"tracks": schema.empty_frame("tracks", False)}, state
+        tracks, new = track_step(state, fused, self.filters, self.cfg, window.t0_us, window.t1_us)
+        return {"tracks": tracks}, new
+
+
+@dataclass(frozen=True)
+class ConflictsStage(_Adapter):
+    """Conflict prediction (:func:`safety.conflicts.conflicts_step`): input ``picture`` (its ids
+    in ``id_col``, every picture named in ``method``), output ``conflicts``."""
+
+    cfg: ConflictConfig
+    id_col: str
+    origin: geo.LocalFrame
+    name: ClassVar[str] = "conflicts"
+
+    def init(self) -> Any:
+        return init_conflict_state()
+
+    def step(self, state: Any, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], Any]:
+        picture = inputs["picture"]
+        check_window(picture, window, table="picture")
+        conflicts, new = conflicts_step(state, picture, self.cfg, self.id_col, self.origin, window.t0_us,
+                                        window.t1_us)
+        return {"conflicts": conflicts}, new
+
+
+@dataclass(frozen=True)
+class AlertConfirmationStage(_Adapter):
+    """m-of-n alert confirmation (:func:`safety.confirmation.confirm_step`), one picture epoch
+    at a time.
+
+    Inputs ``conflicts`` (run, epoch, method, id_a, id_b and the unconfirmed condition
+    ``raw_alert``, or ``alert`` when there is no ``raw_alert``) and ``epochs`` (optional: the
+    picture's epochs in the window, column ``epoch``; an epoch without a conflict row still
+    counts as one without the condition). The pictures share their epochs. Output ``conflicts``
+    with ``raw_alert`` and the confirmed ``alert``."""
+
+    m: int
+    n: int
+    name: ClassVar[str] = "alert_confirmation"
+
+    def init(self) -> ConfirmState:
+        return ConfirmState()
+
+    def step(self, state: ConfirmState, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], ConfirmState]:
+        rows = inputs["conflicts"]
+        check_window(rows, window, table="conflicts")
+        if "raw_alert" not in rows.columns:
+            rows = rows.with_columns(pl.col("alert").alias("raw_alert"))
+        epochs = rows["epoch"]
+        if inputs.get("epochs") is not None:
+            check_window(inputs["epochs"], window, table="epochs")
+            epochs = pl.concat([epochs, inputs["epochs"]["epoch"].cast(epochs.dtype)])
+        out = []
+        for epoch in epochs.unique().sort():
+            part = rows.filter(pl.col("epoch") == epoch)
+            state, flags = confirm_step(state, part, self.m, self.n)
+            out.append(part.with_columns(flags))
+        return {"conflicts": pl.concat(out) if out else rows.with_columns(pl.col("raw_alert").alias("alert"))}, state
+
+
+#: the adapter of each name of :data:`STAGES`
+CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, AssociateStage, FuseStage,
+                                                  CentralizedStage, ClusterStage, TrackStage, ConflictsStage,
+                                                  AlertConfirmationStage)}
+
+
+def safety_id_column(cfg: Any) -> str:
+    """The id column of the picture conflict prediction runs on (``PipelineConfig.safety_picture``):
+    ``track_id`` on the trackers' tracks, ``target_id`` on the fused pictures."""
+    return "track_id" if cfg.safety_picture == "tracks" and cfg.filters and cfg.methods else "target_id"
+
+
+def build_stage(name: str, cfg: Any, context: Any) -> Stage:
+    """The stage ``name`` of :data:`STAGES` for a ``PipelineConfig`` and a run context (its
+    ``radars``, ``origin``, ``grid_origin_us``, ``filters`` and ``departure_plans``)."""
+    radars, origin = context.radars, context.origin
+    builders = {
+        "align": lambda: AlignStage(radars, origin, cfg.align, context.grid_origin_us),
+        "departures": lambda: DeparturesStage(getattr(context, "departure_plans", pl.DataFrame()), cfg.departures),
+        "associate": lambda: AssociateStage(cfg.association),
+        "fuse": lambda: FuseStage(radars, tuple(cfg.methods), cfg.fusion, origin),
+        "centralized": lambda: CentralizedStage(radars, origin, cfg.centralized_cfg),
+        "cluster": lambda: ClusterStage(cfg.clustering),
+        "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
+        "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),
+        "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
+    }
+    if name not in builders:
+        raise KeyError(f"no stage {name!r}; the stages are {', '.join(STAGES)}")
+    return builders[name]()
+
+
+def build_stages(cfg: Any, context: Any, names: Sequence[str] = STAGES) -> list[Stage]:
+    """The stages ``names`` (default: every one of :data:`STAGES`, in pipeline order) built for
+    ``cfg`` (a ``PipelineConfig``) and ``context`` (a ``RunContext``). Which of them a run
+    uses is the configuration's: ``centralized``, ``filters``, ``safety``, departure plans."""
+    return [build_stage(n, cfg, context) for n in names]

@@ -1,0 +1,165 @@
+"""What the whole-run evaluation scores: every picture against the truth (:func:`score_pictures`),
+the aircraft continuity expects covered (:func:`observed_aircraft`) and the association metrics
+of rows read back a block at a time (:func:`scored_blocks`)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from tertiary.evaluation.evaluate import AssociationScore, Evaluation, evaluate_each, score_associations
+from tertiary.evaluation.requirements import example_path, load_requirements
+from tertiary.io.dataset import Dataset
+from tertiary.pipeline.config import PipelineConfig
+from tertiary.pipeline.ingestion import Ingested
+from tertiary.pipeline.pictures import NOT_SCORED, fused_readers, safety_names, track_readers
+from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
+from tertiary.runtime.windows import release_memory
+from tertiary.stages.association.associate import AssociationStats
+
+__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "association_blocks", "association_stage_metrics",
+           "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
+
+
+#: aligned rows joined to their reports' aircraft at a time (:func:`observed_aircraft`)
+OBSERVED_BLOCK_ROWS = 262_144
+
+
+def report_truth(truth_of: pl.DataFrame) -> Callable[[pl.DataFrame], pl.Series] | None:
+    """A lookup of the ``truth_id`` of each (run, report_id) of a frame in ``truth_of`` (one row
+    per report; null where absent), through a table indexed by run × (largest report_id + 1) +
+    report_id; None when the ids are too sparse for it (the table would be over four times the
+    reports). A join of each block of aligned rows with every report rebuilt its hash table a
+    block at a time."""
+    if truth_of.height == 0 or truth_of["run"].null_count() or truth_of["report_id"].null_count():
+        return None
+    top, runs = int(truth_of["report_id"].max()) + 1, int(truth_of["run"].max()) + 1
+    if top * runs > 4 * truth_of.height + (1 << 20):
+        return None
+    key = truth_of["run"].cast(pl.UInt64).to_numpy() * top + truth_of["report_id"].cast(pl.UInt64).to_numpy()
+    tid = truth_of["truth_id"]
+    known = tid.is_not_null().to_numpy()
+    table, have = np.zeros(top * runs, np.int64), np.zeros(top * runs, np.bool_)
+    table[key[known]] = tid.fill_null(0).cast(pl.Int64).to_numpy()[known]
+    have[key[known]] = True
+
+    def lookup(frame: pl.DataFrame) -> pl.Series:
+        run, rid = (frame[c].cast(pl.UInt64).fill_null(np.iinfo(np.uint64).max).to_numpy()
+                    for c in ("run", "report_id"))
+        inside = (run < runs) & (rid < top)
+        k = np.where(inside, run * top + np.where(inside, rid, 0), 0)
+        found = pl.Series(inside & have[k])
+        return pl.select(pl.when(found).then(pl.Series(table[k])).cast(tid.dtype).alias("truth_id")).to_series()
+    return lookup
+
+
+#: association rows scored at a time when read back (:func:`scored_blocks`)
+ASSOCIATION_BLOCK_ROWS = 2_000_000
+
+
+def association_blocks(parts) -> Iterator[pl.DataFrame]:
+    """The association rows of ``parts``' windows (what the metrics read), in window order."""
+    for f in parts.iter_parts("associations"):
+        yield f.select(c for c in ASSOCIATION_COLUMNS if c in f.columns)
+
+
+def scored_blocks(blocks: Iterable[pl.DataFrame], reports: pl.DataFrame) -> AssociationScore:
+    """:class:`AssociationScore` of association rows given as frames of whole epochs in time order
+    (each run's), gathered to about :data:`ASSOCIATION_BLOCK_ROWS` rows and each scored with its
+    reports' aircraft (:func:`report_truth`): a run's rows read back are never held, nor joined,
+    whole (a long run's rows and reports joined at once would not fit memory); a step per block
+    is what the local engine does per window, so the metrics are the same."""
+    truth_of = reports.select("run", "report_id", "truth_id")
+    look = report_truth(truth_of)
+    state = AssociationScore()
+
+    def step(frames: list[pl.DataFrame]) -> None:
+        nonlocal state
+        block = pl.concat(frames, how="vertical_relaxed")
+        label = (block.select("run", "report_id").with_columns(look(block)) if look is not None
+                 else truth_of)
+        state = score_associations(state, block, label)
+    pending, rows = [], 0
+    for frame in blocks:
+        if frame.height:
+            pending.append(frame)
+            rows += frame.height
+        if rows >= ASSOCIATION_BLOCK_ROWS:
+            step(pending)
+            pending, rows = [], 0
+    if pending:
+        step(pending)
+    return state
+
+
+def observed_aircraft(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, truth_id) of every aircraft with a report aligned at the epoch: what
+    continuity expects covered. Joined a block of aligned rows at a time: a long run's join is
+    not held whole (memory)."""
+    truth_of = reports.select("run", "report_id", "truth_id")
+    keys = aligned.select("run", "epoch", "report_id")
+    look = report_truth(truth_of)
+
+    def aircraft(block: pl.DataFrame) -> pl.DataFrame:
+        if look is not None:
+            return block.with_columns(look(block))
+        return block.join(truth_of, on=["run", "report_id"], how="left")
+    blocks = [aircraft(keys.slice(k, OBSERVED_BLOCK_ROWS)).select("run", "epoch", "truth_id").drop_nulls().unique()
+              for k in range(0, keys.height, OBSERVED_BLOCK_ROWS)]
+    if not blocks:
+        none = pl.lit(None, truth_of.schema["truth_id"]).alias("truth_id")
+        return keys.select("run", "epoch").with_columns(none).clear()
+    return pl.concat(blocks).unique()
+
+
+def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
+                   observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
+                   spill: Path | None = None) -> tuple[Evaluation, Evaluation]:
+    """Every picture scored by the one evaluation stage against the truth: each fusion method's
+    confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
+    each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
+    aircraft covered at the epochs it had a report (``observed``). Pictures are read one at a
+    time; ``reference``: the truth, or its reference file (:func:`write_reference`); ``spill``: a
+    scratch directory where a picture of several blocks is matched to disk and scored in
+    buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`)."""
+    reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
+    kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
+              keep_matched=False, surveillance=cfg.evaluation, spill=spill)
+    none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
+    # the id map of the safety picture only: the alert scoring reads no other (memory)
+    safety_ids = safety_names(cfg, fused, tracks)[1] if cfg.safety else None
+    fused_pictures = list(fused_readers(fused, NOT_SCORED, blocks=True))
+    # the heap the last picture freed is handed back before the next is read (memory)
+    ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id",
+                              seed_stage="fusion", id_map=safety_ids == "target_id", **kw)
+                if fused_pictures else none)
+    track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))
+    if not track_pictures:
+        return ev_fused, none
+    return ev_fused, evaluate_each((_released(get) for get in track_pictures), reference, seed_stage="tracker",
+                                   id_map=safety_ids == "track_id", **kw)
+
+
+def _released(get: Callable[[], Any]) -> Any:
+    """``get()`` after the heap's freed pages are handed back."""
+    release_memory()
+    return get()
+
+
+def association_stage_metrics(n_runs: int, stats: AssociationStats, scored: pl.DataFrame | None) -> pl.DataFrame:
+    """The association stage's counts over ``n_runs`` runs, after its correctness rows
+    (``scored``: :func:`tertiary.evaluation.evaluate.association_metrics`) when the run has truth labels."""
+    counts = pl.DataFrame({
+        "stage": "association", "method": "assignment",
+        "metric": ["gated_pairs", "ambiguous_components", "targets", "reassignments"],
+        "segment": "all", "value": [float(stats.pairs), float(stats.ambiguous_components), float(stats.targets),
+                                    float(stats.reassignments)],
+        "n_runs": n_runs,
+    }).with_columns(pl.col("n_runs").cast(pl.UInt32))
+    if scored is None:
+        return counts
+    return pl.concat([scored, counts], how="vertical_relaxed")

@@ -1,0 +1,135 @@
+"""The STCA's scoring against the truth beyond the alert list: the truth's separation intervals
+read from a reference on disk an hour at a time (:func:`reference_intervals`), the note of the
+separation minima the alerts follow (:func:`note_minima`) and the trade-off curves of the safety
+picture (:func:`stca_curves`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import polars as pl
+
+from safety import alerts as safety_alerts
+from safety import conflicts as safety_conflicts
+from tertiary.core import geo
+from tertiary.core.units import FT, US
+from tertiary.evaluation.evaluate import reference_files
+from tertiary.pipeline.config import PipelineConfig
+from tertiary.pipeline.pictures import NOT_SCORED, as_picture, confirmed_only, safety_picture
+from tertiary.pipeline.tables import ALERT_TRUTH, OnDiskTable
+from tertiary.runtime.windows import release_memory
+
+__all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "note_minima", "reference_intervals", "stca_curves", "time_span"]
+
+# `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
+# package imports this one) while `safety` is half initialised, and only a module binding
+# survives that
+
+
+#: the time chunk in which :func:`reference_intervals` reads an on-disk truth (s)
+TRUTH_CHUNK_S = 3600.0
+
+
+def time_span(truth: "pl.DataFrame | pl.LazyFrame") -> pl.DataFrame:
+    """What the alert scoring reads of the truth besides its intervals: each run's first and
+    last sample time (``run`` and ``time``; no ``run`` column without one)."""
+    keys = ["run"] if "run" in truth.collect_schema() else []
+    ends = [truth.group_by(keys).agg(f(pl.col("time"))) if keys else truth.select(f(pl.col("time")))
+            for f in (pl.Expr.min, pl.Expr.max)]
+    out = pl.concat([e.collect() if isinstance(e, pl.LazyFrame) else e for e in ends])
+    return out.sort(*keys, "time") if keys else out.sort("time")
+
+
+def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
+    """``agg`` of each run (of the whole frame without a ``run`` column)."""
+    return lf.group_by("run").agg(agg) if "run" in lf.collect_schema() else lf.select(agg)
+
+
+def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
+                        chunk_s: float = TRUTH_CHUNK_S) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
+    """(the truth's (LoS, proximity) intervals, its :func:`time_span`) from a reference on disk
+    (:func:`tertiary.evaluation.evaluate.write_reference`), ``chunk_s`` of truth at a time, merged by
+    :func:`safety.alerts.merge_intervals`: the whole truth's. A chunk [a, b) reads every sample
+    from the last sample time before a to the first after b, and each aircraft's neighbours of
+    those: inside, the union sample grid and so the segment pairs are the whole truth's, and
+    each chunk keeps the part of its intervals in [a, b)."""
+    lf = pl.scan_parquet(reference_files(reference))
+    span = time_span(lf)
+    cols = [c for c in ALERT_TRUTH if c in lf.collect_schema()]
+    t = pl.col("time")
+    lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
+    step = max(int(chunk_s * US), 1)
+    chunks = []
+    for a in range(lo, hi, step):
+        b = min(a + step, hi)
+        ta, tb = (pl.lit(v, pl.Int64).cast(pl.Datetime("us", "UTC")) for v in (a, b))
+        # per run (each has its own sample grid): the earliest of the runs' last times before a,
+        # the latest of their first times from b
+        p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
+        q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
+        near = pl.lit(True)
+        if p is not None:
+            near = near & ((t >= p) | (pl.col("__next") >= p))
+        if q is not None:
+            near = near & ((t <= q) | (pl.col("__prev") <= q))
+        truth = lf.filter(near).select(cols).collect()
+        chunks.append(safety_alerts.truth_intervals(truth, acfg, frame, clip_us=(a, b)))
+        del truth
+    return safety_alerts.merge_intervals(chunks, acfg), span
+
+
+def note_minima(cc: safety_conflicts.ConflictConfig, notes: list[str]) -> None:
+    """A note of the separation minima of the alerts and their scoring when they are not one
+    set everywhere (an en-route floor, aerodrome zones): the reader of an alert list must know
+    its rule."""
+    if cc.aerodrome_zones:
+        radii = sorted({z.radius_m for z in cc.aerodrome_zones})
+        ceilings = sorted({z.ceiling_m for z in cc.aerodrome_zones})
+        text = (f"aerodrome zones: no STCA alert and no loss of separation scored between two aircraft both "
+                f"within {'/'.join(f'{r / safety_conflicts.NM_M:g}' for r in radii)} NM and below "
+                f"{'/'.join(f'{c / FT:,.0f}' for c in ceilings)} ft of one of {len(cc.aerodrome_zones)} "
+                "aerodromes (aerodrome control, not radar separation)")
+        if text not in notes:
+            notes.append(text)
+    if cc.enroute_above_m is None:
+        return
+    nm = safety_conflicts.NM_M
+    text = (f"separation minima: {cc.sep_h_m / nm:g} NM / {cc.sep_v_m / FT:,.0f} ft for pairs both below "
+            f"{cc.enroute_above_m / FT:,.0f} ft (terminal), {cc.enroute_h_m / nm:g} NM / "
+            f"{cc.enroute_v_m / FT:,.0f} ft otherwise (en-route) — in the alerts and in the losses of "
+            "separation they are scored on")
+    if text not in notes:
+        notes.append(text)
+
+
+#: rows of an on-disk picture the STCA curves read at a time (whole windows)
+CURVE_BLOCK_ROWS = 200_000
+
+
+def stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
+                id_map: pl.DataFrame, truth: pl.DataFrame, acfg: safety_alerts.AlertConfig, id_col: str,
+                frame: geo.LocalFrame, methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame],
+                spill: Path | None = None) -> pl.DataFrame:
+    """The STCA trade-off curves of the safety picture: in one call when it is in memory, a
+    picture at a time (read from disk) when the run is on disk — each picture's curve depends
+    on that picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``;
+    ``spill``: scratch for each setting's predicted rows (:func:`safety.stca_tradeoff`)."""
+    kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
+              fixed_est_h_m=cfg.stca_fixed_m, intervals=intervals, spill=spill)
+    on_disk = tracks if id_col == "track_id" else fused
+    if not isinstance(on_disk, OnDiskTable) or not (on_disk.pictures if id_col == "track_id" else on_disk.shown):
+        picture, _ = safety_picture(cfg, fused, tracks, [])
+        return safety_alerts.stca_tradeoff(picture, id_map, truth, acfg, methods=methods, **kw)
+    curves = []
+    # read without the columns conflict prediction does not read either, in time blocks: a
+    # tracker picture whole, with its covariances, is the largest table of a run (memory)
+    keys = on_disk.pictures if id_col == "track_id" else on_disk.shown
+    show = as_picture if id_col == "track_id" else confirmed_only
+    for key in keys:
+        name = "+".join(key)
+        blocks = (show(b) for b in on_disk.blocks(key, NOT_SCORED, rows=CURVE_BLOCK_ROWS))
+        curves.append(safety_alerts.stca_tradeoff(blocks, id_map.filter(pl.col("method") == name), truth, acfg,
+                                                  methods=[name], **kw))
+        release_memory()
+    curve = pl.concat(curves, how="vertical_relaxed")
+    return curve.sort("method", "t_thr_s", "warning_s", "threshold_mode", "parameter")

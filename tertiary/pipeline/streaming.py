@@ -1,0 +1,391 @@
+"""The streamed stages: every window of a run through ingest → align → associate → fuse (+ the
+centralised reference) → cluster → track → conflicts (:func:`pipeline_step`), each stage's state
+carried from window to window (:class:`StreamState`), and the loop over the windows that stores
+each one as it completes (:func:`stream_windows`; :func:`stream` for one slice of a distributed
+run)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime
+from typing import Any
+
+import polars as pl
+
+from safety import conflicts as safety_conflicts
+from tertiary import contract
+from tertiary.core import geo
+from tertiary.core.errors import DataError
+from tertiary.core.units import US
+from tertiary.evaluation.evaluate import AssociationScore, score_associations
+from tertiary.io.dataset import Dataset
+from tertiary.pipeline.clock import Progress, StageClock
+from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
+from tertiary.pipeline.ingestion import (Ingested, no_rejects, registered, stage_rejects_table, valid_flight_plans,
+                                         validate_table)
+from tertiary.pipeline.pictures import safety_picture
+from tertiary.runtime.windows import (DEFAULT_WINDOW_S, END_US, Meter, PartStore, ReportSource, Window, check_window,
+                                      utc_text, windows)
+from tertiary.sensors.collection import collection_stage
+from tertiary.stages import align as align_stage
+from tertiary.stages.align import AlignState
+from tertiary.stages.association.associate import AssociateState, associate_step, init_associate_state
+from tertiary.stages.clustering import ClusterState, cluster_step, init_cluster_state
+from tertiary.stages.flight_data import (DepartureState, correlate, departure_plans, departure_step,
+                                         init_departure_state)
+from tertiary.stages.fusion import FuseState, fuse_step, init_fuse_state, measured_plots
+from tertiary.stages.fusion.centralized import CentralizedState, centralized_step, init_centralized_state
+from tertiary.stages.tracking.filters import TrackFilter
+from tertiary.stages.tracking.tracker import TrackState, filter_dict, init_track_state, track_step
+
+__all__ = ["RunContext", "StreamState", "WindowStore", "init_stream_state", "pipeline_step", "stream",
+           "stream_windows", "track_identity", "windowable"]
+
+# `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
+# package imports this one) while `safety` is half initialised, and only a module binding
+# survives that
+
+
+@dataclass
+class RunContext:
+    """What every window of a run shares: the validated radars (and the ids of rejected ones), the
+    system frame, the epoch grid origin and how long validated reports stay at hand."""
+
+    radars: pl.DataFrame
+    gone: list[int]
+    origin: geo.LocalFrame
+    grid_origin_us: int | None
+    keep_us: int
+    filters: dict[str, TrackFilter] = field(default_factory=dict)   # the tracker's filters, built once per run
+    median: datetime | None = None    # the whole input's median report time (windows are validated against it)
+    flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # valid rows (tertiary.stages.flight_data)
+    departure_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # flight_data.departure_plans
+
+
+@dataclass(frozen=True)
+class StreamState:
+    """Every streamed stage's carried state after a window (pickled by the engine's checkpoint)."""
+
+    align: AlignState
+    associate: AssociateState
+    fuse: FuseState
+    centralized: CentralizedState
+    cluster: ClusterState
+    track: TrackState
+    conflicts: safety_conflicts.ConflictState
+    identity: pl.DataFrame          # last Mode S address per (run, filter, method, track_id)
+    recent: pl.DataFrame            # validated reports still needed by a later window (plots)
+    #: the association statistics summed over windows, and ``_rows``: the input rows of the
+    #: reports kept in ``recent``
+    counts: dict[str, Any] = field(default_factory=dict)
+    departures: DepartureState | None = None      # None: initial
+    #: the association metrics' accumulators; None: not carried (a state from before them, or
+    #: the Dask engine's relabelled partitions), so finalize scores the association rows read back
+    scores: AssociationScore | None = None
+
+
+def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
+    """The run's shared context and the radar rejects."""
+    radars, rej_r, raw_r = validate_table(contract.as_frame(ds.radars, "radars"), "radars", cfg.strict, notes,
+                                          limits=cfg.limits)
+    gone = (raw_r["radar_id"].cast(pl.UInt32, strict=False).drop_nulls().to_list()
+            if "radar_id" in raw_r.columns else [])
+    if radars.height == 0:
+        notes.append("radars: no valid radar; every report is rejected")
+    period = radars["scan_period_s"].max() if radars.height else None
+    slowest = float(period) if period is not None and math.isfinite(period) else 12.0
+    hold_s = cfg.align.max_age_scans * slowest + 4 * slowest + _max_delay_s(cfg)
+    origin_us = (source.first_us // US) * US if source.windowable else None
+    plans, rej_f = valid_flight_plans(ds, cfg, notes)
+    rejects = pl.concat([r for r in (rej_r, rej_f) if r.height] or [rej_r], how="vertical_relaxed")
+    return RunContext(radars, gone, ds.origin, origin_us, int(hold_s * US), filter_dict(cfg.filters),
+                      flight_plans=plans, departure_plans=departure_plans(plans, ds.origin)), rejects
+
+
+def _max_delay_s(cfg: PipelineConfig) -> float:
+    """How long the report collection queue may hold a report back (s)."""
+    return 60.0 if cfg.collection is not None else 0.0
+
+
+def _ingest_window(raw: pl.DataFrame, ctx: RunContext, cfg: PipelineConfig, notes: list[str]
+                   ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(valid reports, their input rows, ingest rejects) of one window's input rows (``raw``
+    carries each row's input position in ``__input_row``)."""
+    if raw.height == 0:
+        return raw.drop(contract.INPUT_ROW), pl.DataFrame(schema={"report_id": pl.UInt64, "row_index": pl.UInt64}), \
+            no_rejects()
+    kw = {"median_time": ctx.median} if ctx.median is not None else {}
+    reports, rej_p, _ = validate_table(raw, "reports", cfg.strict, notes, radars=ctx.radars, limits=cfg.limits,
+                                       rejected_radars=ctx.gone, **kw)
+    rows = reports.select("report_id", pl.col(contract.INPUT_ROW).cast(pl.UInt64).alias("row_index"))
+    return reports.drop(contract.INPUT_ROW), rows, rej_p
+
+
+def init_stream_state(cfg: PipelineConfig) -> StreamState:
+    """Every streamed stage's state before the first window."""
+    return StreamState(align=align_stage.init_align_state(), associate=init_associate_state(),
+                       fuse=init_fuse_state(), centralized=init_centralized_state(), cluster=init_cluster_state(),
+                       track=init_track_state(cfg.filters), conflicts=safety_conflicts.init_conflict_state(),
+                       identity=pl.DataFrame(schema={"run": pl.UInt32, "filter": pl.String, "method": pl.String,
+                                                     "track_id": pl.UInt64, "mode_s": pl.String}),
+                       recent=pl.DataFrame(), scores=AssociationScore())
+
+
+def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.DataFrame, w: Window,
+                  clock: StageClock, notes: list[str]) -> tuple[dict[str, pl.DataFrame], StreamState]:
+    """One window through every streamed stage: ingest → align → associate → fuse (+ the
+    centralised reference) → cluster → track → conflicts. Outputs hold the window's epochs only
+    (``reports``/``rejects``: the window's input rows)."""
+
+    clock.stage("validate")
+    reports, report_rows, rejects = _ingest_window(raw, ctx, cfg, notes)
+    if cfg.register and reports.height:      # whole-run options: their runs are one window (windowable)
+        reports = registered(Ingested(ctx.radars, reports, pl.DataFrame(), rejects, notes), ctx.origin, cfg)
+    if cfg.collection is not None and reports.height:   # report collection queue (§1.4): lost reports -> rejects
+        reports, lost, collected = collection_stage(reports, report_rows, cfg.collection)
+        rejects = pl.concat([rejects, lost], how="vertical_relaxed")
+        notes.extend(collected)
+    if ctx.radars.height == 0:     # no valid radar: every report was rejected, nothing can be aligned
+        return {"reports": reports, "rejects": rejects}, st
+    recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
+    to_align = reports
+    if ctx.flight_plans.height:     # each report's cleared level, by its Mode 3/A code (tertiary.stages.flight_data)
+        to_align = correlate(reports, ctx.flight_plans)
+    clock.stage("align")
+    t0 = None if w.t0_us <= -END_US else w.t0_us     # None: unbounded (the last window flushes held rows)
+    t1 = None if w.last else w.t1_us
+    g0 = ctx.grid_origin_us if ctx.grid_origin_us is not None else align_stage.epoch_grid(reports, ctx.radars, cfg.align)[0] \
+        if reports.height else 0
+    (aligned, align_rej), s_align = align_stage.align_step(st.align, to_align, ctx.radars, ctx.origin, t0, t1, g0,
+                                                           cfg.align)
+    s_dep = st.departures
+    if ctx.departure_plans.height and "mode_3a" in recent.columns:   # uncorrelated by code: by aerodrome and time
+        codes = recent.select("run", "report_id", "mode_3a")
+        aligned, s_dep = departure_step(s_dep or init_departure_state(), aligned, reports, codes,
+                                        ctx.departure_plans, cfg.departures)
+    rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
+    rejects = pl.concat([rejects, stage_rejects_table(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
+    clock.stage("associate")
+    (associations, stats), s_assoc = associate_step(st.associate, aligned, w.t0_us, w.t1_us, cfg.association)
+    s_scores = st.scores
+    if s_scores is not None and "truth_id" in recent.columns:
+        clock.stage("score_associations")
+        # scored as the run goes (evaluation-only labels): finalize does not read the rows back;
+        # ``recent`` holds the reports of every row the window associates (as the fusion reads them)
+        s_scores = score_associations(s_scores, associations, recent.select("run", "report_id", "truth_id"))
+    clock.stage("fuse")
+    rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
+    fresh = recent.join(aligned.filter(pl.col("fresh")).select("run", "report_id"), on=["run", "report_id"],
+                        how="semi") if aligned.height else recent.clear()
+    plots = measured_plots(fresh, ctx.radars, ctx.origin, cfg.align.local_tracker.altitude_sigma_m)
+    fused, s_fuse = fuse_step(st.fuse, rows, ctx.radars, cfg.methods, cfg.fusion, ctx.origin, plots,
+                              w.t0_us, w.t1_us)
+    s_central = st.centralized
+    if cfg.centralized:
+        clock.stage("centralized")
+        keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
+        central, s_central = centralized_step(st.centralized, recent, ctx.radars, associations, keys, ctx.origin,
+                                              cfg.centralized_cfg, w.t0_us, w.t1_us, live=s_assoc.live_targets())
+        fused = pl.concat([fused, central], how="diagonal_relaxed")
+    clock.stage("cluster")
+    clusters, s_cluster = cluster_step(st.cluster, fused, w.t0_us, w.t1_us, cfg.clustering)
+    clock.stage("track")
+    pictures = fused.filter(pl.col("method") != "centralized")
+    tracks, s_track = contract.empty_frame("tracks", False), st.track
+    if cfg.filters:
+        tracks, s_track = track_step(st.track, pictures, ctx.filters, cfg.tracker, w.t0_us, w.t1_us)
+    tracks, identity = _identity_step(st.identity, tracks, pictures)
+    conflicts, s_conf = contract.empty_frame("conflicts", False), st.conflicts
+    if cfg.safety:
+        clock.stage("conflicts")
+        picture, id_col = safety_picture(cfg, fused, tracks, notes)
+        conflicts, s_conf = safety_conflicts.conflicts_step(st.conflicts, picture, cfg.conflicts, id_col, ctx.origin,
+                                                            w.t0_us, w.t1_us)
+    keep_from = (w.t1_us if w.t1_us < END_US else END_US) - ctx.keep_us
+    recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
+    counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
+                         if recent.height else rows_in.clear())
+    out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
+           "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
+    return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
+                            s_dep, s_scores)
+
+
+def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
+    """Association statistics summed over windows; ``_rows`` the input rows of the reports kept."""
+    out = dict(counts)
+    for k in ("pairs", "components", "ambiguous_components", "reassignments"):
+        out[k] = out.get(k, 0) + int(getattr(stats, k, 0) or 0)
+    out["_rows"] = rows
+    return out
+
+
+#: what a track carries from the target it was last updated with, besides its Mode S address
+_CARRIED = (contract.SELECTED_ALT_COLUMN, contract.TURN_RATE_COLUMN, contract.CLEARED_ALT_COLUMN)
+
+
+def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
+                   ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`track_identity` carried across windows: each track's Mode S address and selected
+    altitude (and track-angle rate) continue from their last values of the previous windows while
+    it coasts (``last`` gains the :data:`_CARRIED` columns it lacks)."""
+    if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
+        return tracks, last
+    keys = ["run", "filter", "method", "track_id"]
+    opt = [c for c in _CARRIED if c in pictures.columns]
+    carried_cols = ["mode_s", *opt]
+    for c in opt:
+        if c not in last.columns:
+            last = last.with_columns(pl.lit(None, pl.Float64).alias(c))
+    ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *carried_cols)
+    t = (tracks.drop(*carried_cols, strict=False)
+         .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
+         .with_row_index("__i"))
+    first = t.group_by(keys).agg(pl.col("__i").min())
+    seed = first.join(last.select(*keys, *(pl.col(c).alias(f"__last_{c}") for c in carried_cols)),
+                      on=keys, how="inner").select("__i", *(f"__last_{c}" for c in carried_cols))
+    t = (t.join(seed, on="__i", how="left", maintain_order="left")
+         .with_columns(pl.coalesce(c, f"__last_{c}").alias(c) for c in carried_cols)
+         .drop(*(f"__last_{c}" for c in carried_cols))
+         .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in carried_cols))
+    now = (t.sort("epoch").group_by(keys).agg(pl.col(c).last() for c in carried_cols)
+           .filter(pl.any_horizontal(pl.col(c).is_not_null() for c in carried_cols)))
+    now = now.with_columns(pl.lit(None, last.schema[c]).alias(c) for c in last.columns if c not in now.columns)
+    carried = pl.concat([last.join(now.select(keys), on=keys, how="anti"), now.select(last.columns).cast(last.schema)])
+    return t.drop("__i"), carried
+
+
+def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEFAULT_WINDOW_S,
+           progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None
+           ) -> tuple[RunContext, StreamState]:
+    """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
+    slice of a distributed run does (:mod:`tertiary.runtime.dask_engine`); ``grid_origin_us`` puts the
+    epochs on a grid given from outside (the whole recording's), not this input's first second.
+    The association metrics are not scored on the way (``StreamState.scores`` None): a slice's
+    ids are its own until stitched, so the finalize scores the relabelled rows."""
+    cfg = adapt_to_scenario(check_config(cfg), ds)
+    start = dataclasses.replace(init_stream_state(cfg), scores=None)
+    ctx, st, _ = stream_windows(ds, cfg, StageClock(progress or (lambda _m: None)), [] if notes is None else notes,
+                                check_window(window_s), parts, start, 0, grid_origin_us)
+    return ctx, st
+
+
+def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
+                   parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None
+                   ) -> tuple[RunContext, StreamState, ReportSource]:
+    """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
+    initial state), each stored in ``parts`` as it completes; the run's context, its last state
+    and its report source."""
+    notes.extend(getattr(ds, "notes", []))
+    clock.stage("validate")
+    source = ReportSource(ds.reports, cfg.limits)
+    if source.n_rows == 0:
+        raise DataError("reports: the table has no rows; nothing to process")
+    window_s = windowable(cfg, source, window_s, notes)
+    ctx, rej_radars = _context(ds, cfg, notes, source)
+    if window_s is None:      # one window: the grid starts at the first *valid* report, as it always did
+        ctx.grid_origin_us = None
+    else:
+        ctx.median = source.median
+    if grid_origin_us is not None:
+        ctx.grid_origin_us = grid_origin_us
+    st = resume_state or init_stream_state(cfg)
+    if start == 0:
+        parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
+    occupied = source.occupied(ctx.grid_origin_us, window_s) if window_s is not None else None
+    ws = list(windows(ctx.grid_origin_us or 0, source.last_us or 0, window_s, start,
+                      source.first_us if source.windowable else None, occupied, ctx.keep_us))
+    meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
+    store = WindowStore(parts)
+    try:
+        for w in ws:
+            clock.stage("read_window", say=False)     # timed apart: not the last stage's time
+            raw = source.rows(w)
+            out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
+            clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
+            store.put(w, out, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
+            if window_s is not None:
+                meter.window(w, max(w.t0_us, source.first_us), min(w.t1_us, source.last_us + 1), raw.height)
+        store.join()
+    finally:
+        store.close()
+    return ctx, st, source
+
+
+class WindowStore:
+    """A window's parts, carried state and manifest written to a run directory on a thread of
+    their own while the next window computes (the windows alone keep the second core idle). One
+    window in flight: :meth:`put` waits for the previous one first, so the manifest names a
+    window complete only once its parts and state are on disk, in window order. The state is
+    pickled by the caller before the next window runs (a stage may reuse its state's arrays).
+    Other part stores (in memory, the Dask engine's) are written at once."""
+
+    def __init__(self, parts) -> None:
+        self.parts = parts
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-store") if isinstance(parts, PartStore) else None
+        self._pending: Future | None = None
+
+    def put(self, w: Window, out: dict[str, pl.DataFrame], st: StreamState, **info: Any) -> None:
+        """Store window ``w``'s tables and state (``info``: the manifest's progress fields)."""
+        if self._pool is None:
+            self.parts.write(w, out)
+            self.parts.checkpoint(w, st, **info)
+            return
+        state = PartStore.state_bytes(w, st)
+        self.join()
+        self._pending = self._pool.submit(self._store, w, out, state, info)
+
+    def _store(self, w: Window, out: dict[str, pl.DataFrame], state: bytes, info: dict) -> None:
+        self.parts.write(w, out)
+        self.parts.commit(w, state, **info)
+
+    def join(self) -> None:
+        """Wait for the window in flight; its failure raised here."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def close(self) -> None:
+        """Wait for the writes in flight (a failing run's stored windows are read back next)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+
+
+def _span_text(w: Window, source: ReportSource) -> str:
+    """How far the input is processed once window ``w`` is (for the manifest)."""
+    return utc_text(min(w.t1_us, (source.last_us or 0) + 1)) if source.windowable else "end"
+
+
+def windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | None, notes: list[str]) -> float | None:
+    """``window_s``, or None (one window) with a note when the run cannot be cut in time."""
+    if window_s is None:
+        return None
+    why = ("the reports' time column is not a timestamp" if not source.windowable else
+           "radar registration is estimated from the whole recording" if cfg.register else
+           "the report collection queue is simulated over the whole recording" if cfg.collection is not None else
+           "strict mode stops at the first invalid row of the whole input" if cfg.strict else None)
+    if why:
+        notes.append(f"processed as one window: {why}")
+        return None
+    return window_s
+
+
+def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
+    """``tracks`` with ``mode_s``: the Mode S address of the fused target each track was last
+    updated with (carried while it coasts), so that a controller's picture has an identity —
+    what identity correctness is scored on and what tells a duplicate track of one aircraft
+    from a second aircraft — and likewise ``selected_alt_m`` (the target's Mode S selected
+    altitude, latest known), ``ehs_track_rate_dps`` (its BDS 5,0 track-angle rate, latest
+    known: conflict prediction follows a turn with it) and ``cleared_alt_m`` (its cleared level
+    from flight data, latest known) when ``fused`` carries them."""
+    if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
+        return tracks
+    cols = ["mode_s", *(c for c in _CARRIED if c in fused.columns)]
+    ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *cols)
+    keys = ["run", "filter", "method", "track_id"]
+    return (tracks.drop(*cols, strict=False)
+            .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
+            .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in cols))

@@ -1,0 +1,342 @@
+"""The run's tables between the windows and the run database: the tables finalize leaves on disk
+(:class:`OnDiskTable`) or reads back late (:class:`DeferredTable`), the sink that writes them
+(:func:`store_sink`; on a thread of its own in finalize: :class:`SinkThread`) and what DuckDB
+can store (:func:`make_storable`)."""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+import weakref
+from collections.abc import Callable, Collection, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from tertiary import contract
+from tertiary.core.errors import OptionError
+from tertiary.pipeline.clock import StageClock
+from tertiary.runtime.windows import PARTS, PartStore, prefetched
+from tertiary.runtime.windows import _concat as _concat_parts
+from tertiary.store.run_store import RunStore
+
+__all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
+           "check_tables", "store_sink", "for_sink", "read_table", "table_columns", "whole_table", "target_counts",
+           "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "REPORT_COLUMNS", "ALIGNED_COLUMNS",
+           "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH"]
+
+
+#: where a run's tables go: a frame whole, or a streamed table part by part (:class:`StreamedTable`)
+Sink = Callable[[str, "pl.DataFrame | StreamedTable"], None]
+
+
+class OnDiskTable:
+    """A streamed table finalize leaves on disk once stored (memory): evaluation reads
+    it back one picture at a time, so the whole-run stages never hold every picture at once.
+    The windows' parts are regrouped once by picture (one part in memory at a time), so reading
+    a picture reads that picture only; the same pass takes what finalize needs of the whole
+    table (height, pictures in order of appearance, confirmed pictures, target counts)."""
+
+    def __init__(self, parts, name: str, empty: pl.DataFrame) -> None:
+        self.parts, self.name = parts, name
+        self.keys = ["method", "filter"] if name == "tracks" else ["method"]
+        # beside the parts (removed with them when the run completes), else in the temp directory
+        base = parts.dir / PARTS if isinstance(parts, PartStore) else None
+        self.dir = Path(tempfile.mkdtemp(prefix=f"_by_picture_{name}_", dir=base))
+        weakref.finalize(self, shutil.rmtree, self.dir, True)
+        self.index: dict[tuple, int] = {}
+        #: the picture's files when every part holds that one picture: read in place, not copied
+        self.direct: list[Path] | None = None
+        if self._in_place(parts, name):
+            return
+        first, slim = None, []
+        for w, part in enumerate(prefetched(parts.iter_parts(name))):   # one pass; the next part read meanwhile
+            first = part.clear() if first is None else first
+            slim.append(part.select(c for c in ("run", "method", "filter", "target_id", "tentative")
+                                    if c in part.columns))
+            if part.height == 0:
+                continue
+            for key, rows in part.partition_by(self.keys, as_dict=True, maintain_order=True).items():
+                d = self.dir / str(self.index.setdefault(key, len(self.index)))
+                d.mkdir(exist_ok=True)
+                # a scratch copy read back once or twice: fast compression, not small files
+                rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
+        self.empty = empty if first is None else first
+        self._facts(_concat_parts(slim) if slim else pl.DataFrame())
+
+    _SLIM = ("run", "method", "filter", "target_id", "tentative")
+
+    def _in_place(self, parts, name: str) -> bool:
+        """Whether every part with rows holds one and the same picture (a run of one fusion
+        method and one filter): the parts are then read where they are, without the regrouping
+        copy (disk and a rewrite of the whole table)."""
+        if not hasattr(parts, "part_files"):
+            return False
+        files, slim, keys = [], [], set()
+        for f in parts.part_files(name):
+            have = pl.read_parquet_schema(f)
+            part = pl.read_parquet(f, columns=[c for c in self._SLIM if c in have])
+            if part.height == 0:
+                continue
+            keys.update(part.select(self.keys).unique().rows())
+            if len(keys) > 1:
+                return False
+            files.append(f)
+            slim.append(part)
+        if not files:
+            return False
+        self.direct = files
+        self.index = {keys.pop(): 0}
+        self.empty = pl.DataFrame(schema=pl.read_parquet_schema(files[0]))
+        self._facts(_concat_parts(slim))
+        return True
+
+    def _facts(self, frame: pl.DataFrame) -> None:
+        """What finalize needs of the whole table, from its (run, method, filter, target_id,
+        tentative) columns."""
+        self.height = frame.height
+        self.pictures = list(self.index)                            # in order of appearance
+        shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
+        self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
+        self.target_counts = target_counts(frame) if self.name == "fused" else {}
+
+    def picture(self, key: tuple, skip: Collection[str] = ()) -> pl.DataFrame:
+        """One picture's rows, without the columns in ``skip``."""
+        files, cols = self._files(key, skip)
+        return (_concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
+                else self.empty.select(cols))
+
+    def blocks(self, key: tuple, skip: Collection[str] = (), rows: int | None = None) -> Iterator[pl.DataFrame]:
+        """One picture's rows (as :meth:`picture`) in blocks of whole windows, in time order, each
+        of at least ``rows`` rows (default :data:`EVAL_BLOCK_ROWS`) but the last."""
+        rows = EVAL_BLOCK_ROWS if rows is None else rows
+        files, cols = self._files(key, skip)
+        held, n = [], 0
+        for f in files:
+            held.append(pl.read_parquet(f, columns=cols))
+            n += held[-1].height
+            if n >= rows:
+                yield _concat_parts(held)
+                held, n = [], 0
+        if held:
+            yield _concat_parts(held)
+
+    def _files(self, key: tuple, skip: Collection[str]) -> tuple[list[Path], list[str]]:
+        """A picture's window files in window order, and the columns read (all but ``skip``)."""
+        k = self.index.get(tuple(key))
+        if k is not None and self.direct is not None:
+            return self.direct, [c for c in self.empty.columns if c not in skip]
+        files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
+        return files, [c for c in self.empty.columns if c not in skip]
+
+    def collect(self) -> pl.DataFrame:
+        """The whole table (every picture), read back."""
+        got = self.parts.table(self.name)
+        return self.empty if got is None else got
+
+
+class DeferredTable:
+    """A whole-run table of an on-disk run read back (``read``) only where it is used, not held
+    through the evaluation's peak: ``associations`` (``facts``: its number of targets, distinct
+    (run, target_id)) and ``reports`` (memory). Its height is taken now."""
+
+    def __init__(self, read: Callable[[], pl.DataFrame], height: int,
+                 blocks: Callable[[], Iterator[pl.DataFrame]] | None = None, **facts: int) -> None:
+        #: ``blocks()``: the rows again, as frames of whole epochs in time order (each run's)
+        self.read, self.height, self.blocks, self.facts = read, height, blocks, facts
+
+
+def whole_table(table: "pl.DataFrame | OnDiskTable") -> pl.DataFrame:
+    """The whole table, read back when it is on disk."""
+    return table.collect() if isinstance(table, OnDiskTable) else table
+
+
+def read_table(parts: Any, name: str, empty: pl.DataFrame) -> pl.DataFrame:
+    """Table ``name`` of every window in ``parts`` (``empty`` when no window wrote it)."""
+    t = parts.table(name)
+    return empty if t is None else t
+
+
+#: what the whole-run stages read of ``reports`` and ``aligned`` (an on-disk run holds no more)
+REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
+ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
+ASSOCIATION_COLUMNS = ["run", "epoch", "target_id", "report_id"]
+#: what the stages after the evaluation read of the truth (an on-disk run reads them from its
+#: reference): the separation intervals (``truth_heights``) and the bound
+ALERT_TRUTH = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "alt_m", "alt_rate_mps"]
+BOUND_TRUTH = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
+
+
+def table_columns(parts: Any, name: str, columns: list[str] | None, empty: pl.DataFrame) -> pl.DataFrame:
+    """:func:`read_table` of ``columns`` only (None: all), read only those."""
+    t = parts.table(name, columns=columns) if columns is not None else parts.table(name)
+    if t is None:
+        return empty.select([c for c in columns if c in empty.columns]) if columns is not None else empty
+    return t
+
+
+@dataclass(frozen=True)
+class StreamedTable:
+    """A streamed table handed to a sink window by window: ``parts()`` yields each window's
+    frame, in order (an on-disk run never holds the whole table). ``files``: when given, the
+    table is also exactly these Parquet files' rows in order without the ``drop`` columns, which
+    a sink may read itself (:meth:`RunStore.write_files`)."""
+
+    parts: Callable[[], Iterator[pl.DataFrame]]
+    files: tuple[Path, ...] = ()
+    drop: tuple[str, ...] = ()
+    #: the windows' Parquet parts that are exactly the table's rows in order: a sink that
+    #: registers tables (``tertiary run --tables parquet``) keeps these files instead of copying
+    parts_files: tuple[Path, ...] = ()
+
+
+def for_sink(parts, name: str, empty: pl.DataFrame) -> "StreamedTable | pl.DataFrame":
+    """``name`` for a sink: its parts one at a time, or ``empty`` when no window wrote any."""
+    if next(iter(parts.iter_parts(name)), None) is None:
+        return empty
+    files = tuple(parts.part_files(name)) if hasattr(parts, "part_files") else ()
+    return StreamedTable(lambda: parts.iter_parts(name), parts_files=files)
+
+
+#: where a run's streamed tables go: copied into the database, or kept as Parquet files beside it
+#: with views over them (:meth:`RunStore.register_parquet`)
+TABLE_MODES = ("database", "parquet")
+
+
+def check_tables(tables: str, out_dir: str | Path) -> None:
+    """``--tables``: a known mode, and a run directory DuckDB's file search path can name."""
+    if tables not in TABLE_MODES:
+        raise OptionError(f"choose {' or '.join(TABLE_MODES)}, got {tables!r}", option="--tables")
+    if tables == "parquet" and "," in str(Path(out_dir).resolve()):
+        # the search path is a comma-separated list: the views could not find their files
+        raise OptionError("the run directory's path must not contain a comma to register Parquet tables",
+                          option="--tables")
+
+
+def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> Sink:
+    """The sink that writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable`
+    part by part (:meth:`RunStore.write_parts`), or with ``tables="parquet"`` its window parts
+    registered where they are (:meth:`RunStore.register_parquet`) when they are storable as
+    they are."""
+    check_tables(tables, store.path.parent)
+    def storable(frame: pl.DataFrame, name: str) -> pl.DataFrame:
+        said: list[str] = []
+        out = make_storable(frame, name, said)
+        notes.extend(n for n in said if n not in notes)      # once per table, not once per window
+        return out
+
+    def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        # the windows' parts, or files that are exactly the table (the truth's reference files)
+        own = (frame.parts_files or frame.files) if isinstance(frame, StreamedTable) else ()
+        if tables == "parquet" and own and storable_as_is(own[0], name, frame.drop):
+            store.register_parquet(name, own, frame.drop)
+            return
+        if isinstance(frame, StreamedTable):
+            # the files as they are, when no column of theirs needs making storable
+            if (frame.files and storable_as_is(frame.files[0], name, frame.drop)
+                    and store.write_files(name, frame.files, frame.drop)):
+                return
+            # the next window's part is read while this one is inserted
+            store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
+        elif frame.width:
+            store.write(name, storable(frame, name))
+    return sink
+
+
+class SinkThread:
+    """The finalize's tables handed to ``sink`` on a thread of their own, in the order they
+    come, while the whole-run stages go on (speed: copying the tables into the run database
+    would otherwise hold up the stages on one core). The
+    streamed tables are read from their parts on disk and the frames given are never changed
+    after, so the stages and the writes share nothing but the disk. A write's failure stops
+    the later writes and is raised, as a failure of ``write_tables``, at the next table given
+    or at :meth:`join`."""
+
+    def __init__(self, sink: Sink) -> None:
+        self.sink = sink
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="finalize-sink")
+        self._pending: list[Future] = []
+        self._error: BaseException | None = None
+        #: seconds the writes took (beside the stages)
+        self.busy_s = 0.0
+
+    def __call__(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        self._raise()
+        self._pending = [f for f in self._pending if not f.done()]
+        self._pending.append(self._pool.submit(self._write, name, frame))
+
+    def _write(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        if self._error is not None:
+            return
+        t = time.perf_counter()
+        try:
+            self.sink(name, frame)
+        except BaseException as exc:  # raised in the stages' thread
+            exc.add_note(f"while writing table {name!r} to the run database")
+            self._error = exc
+        finally:
+            self.busy_s += time.perf_counter() - t
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            err, self._error = self._error, None
+            err.tertiary_stage = "write_tables"  # type: ignore[attr-defined]
+            raise err
+
+    def join(self, clock: StageClock) -> None:
+        """Wait for every table given (counted as ``write_tables``); a failure raised here."""
+        clock.stage("write_tables", say=False)
+        for f in self._pending:
+            f.result()
+        self._pending = []
+        clock.stage(None)
+        self._raise()
+
+    def close(self) -> None:
+        """Wait for the writes in flight (after a failure the caller writes what it has)."""
+        self._pool.shutdown(wait=True)
+
+
+#: rows of an on-disk picture matched and row-scored at a time (whole windows): the evaluation's
+#: scratch and a picture's covariances are held a block at a time (memory)
+EVAL_BLOCK_ROWS = 200_000
+
+
+def target_counts(fused: "pl.DataFrame | OnDiskTable") -> dict[str, int]:
+    """System targets (run, target_id) that were ever confirmed, and those only ever tentative."""
+    if isinstance(fused, OnDiskTable):
+        return fused.target_counts
+    if "tentative" not in fused.columns or fused.height == 0:
+        return {"confirmed_targets": 0, "tentative_targets": 0}
+    ever = (fused.filter(pl.col("tentative").is_not_null()).group_by("run", "target_id")
+            .agg(pl.col("tentative").all().alias("t")))
+    n_tent = int(ever["t"].sum())
+    return {"confirmed_targets": ever.height - n_tent, "tentative_targets": n_tent}
+
+
+def storable_as_is(file: Path, name: str, drop: Collection[str] = ()) -> bool:
+    """Whether :func:`make_storable` leaves the columns of Parquet ``file`` (but ``drop``) as is."""
+    probe = pl.DataFrame(schema=pl.read_parquet_schema(file)).drop(drop, strict=False)
+    return make_storable(probe, name, []).schema == probe.schema
+
+
+def make_storable(frame: pl.DataFrame, name: str, notes: list[str]) -> pl.DataFrame:
+    """``frame`` with columns DuckDB cannot hold or give back made storable (with a note):
+    Duration as Int64 microseconds, 128-bit integers as text, Object columns dropped."""
+    fix, drop = [], []
+    for col, dtype in frame.schema.items():
+        if isinstance(dtype, pl.Duration):
+            fix.append(pl.col(col).dt.total_microseconds())
+            notes.append(f"{name}.{col}: Duration stored as Int64 microseconds")
+        elif dtype in (pl.Int128, pl.UInt128):
+            fix.append(pl.col(col).cast(pl.String))
+            notes.append(f"{name}.{col}: 128-bit integers stored as text")
+        elif contract.has_dtype(dtype, (pl.Object, pl.Duration)) or dtype in (pl.Int128, pl.UInt128):
+            drop.append(col)
+    if drop:
+        notes.append(f"{name}: column(s) {', '.join(drop)} not stored (Object/nested Duration values)")
+    return frame.with_columns(fix).drop(drop)

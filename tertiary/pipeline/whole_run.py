@@ -1,0 +1,378 @@
+"""The whole-run stages: once every window is stored, the truth is validated, every streamed table
+sunk, and the one evaluation stage, alert scoring and STCA curves, the posterior Cramér–Rao
+bound, capacity and requirements run on the whole run (:func:`finalize`). An on-disk run keeps
+its pictures on disk and reads them back one at a time."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from safety import alerts as safety_alerts
+from safety import capacity as safety_capacity
+from tertiary import contract
+from tertiary.core.errors import DataError
+from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
+from tertiary.evaluation.bound import bound_stage
+from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, association_metrics,
+                                          association_score, read_reference, reference_files, write_reference)
+from tertiary.evaluation.indicators import indicators
+from tertiary.io.dataset import Dataset
+from tertiary.pipeline.clock import Progress, StageClock
+from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
+from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, stream_truth, truth_window,
+                                         validate_truth)
+from tertiary.pipeline.pictures import safety_names
+from tertiary.pipeline.scoring import (association_blocks, association_stage_metrics, observed_aircraft,
+                                       score_pictures, scored_blocks)
+from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
+from tertiary.pipeline.streaming import RunContext, StreamState
+from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
+                                      DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, for_sink,
+                                      read_table, table_columns, target_counts, whole_table)
+from tertiary.runtime.windows import release_memory
+from tertiary.sensors.radar_health import radar_health
+from tertiary.stages import align as align_stage
+from tertiary.stages.association.associate import AssociationStats
+
+__all__ = ["Results", "RunTables", "evaluate_run", "finalize", "finalize_stages"]
+
+# `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
+# package imports this one) while `safety` is half initialised, and only a module binding
+# survives that
+
+
+@dataclass
+class Results:
+    """Every table of a run (also written to ``results.duckdb``)."""
+
+    ingested: Ingested
+    aligned: pl.DataFrame
+    associations: pl.DataFrame
+    fused: pl.DataFrame
+    clusters: pl.DataFrame
+    tracks: pl.DataFrame
+    conflicts: pl.DataFrame
+    rejects: pl.DataFrame
+    metrics: pl.DataFrame
+    accuracy_by_epoch: pl.DataFrame
+    timings: dict[str, float]
+    counts: dict[str, int]
+    alerts: pl.DataFrame = field(default_factory=pl.DataFrame)
+    #: the process's peak resident memory (MiB) by the end of each stage (streamed stages over
+    #: every window; ``finalize:<stage>`` for the whole-run stages): where a run's memory goes
+    memory_mib: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RunTables:
+    """The streamed tables as finalize hands them to the whole-run stages, with what was taken of
+    them on the way. An on-disk run hands ``aligned`` and ``reports`` as :class:`DeferredTable`
+    and ``observed`` (:func:`observed_aircraft`) computed before, its fused and tracks as
+    :class:`OnDiskTable`; ``scratch`` is its scratch directory and ``on_disk`` its truth
+    validated to disk (:func:`stream_truth`)."""
+
+    aligned: pl.DataFrame | DeferredTable
+    associations: pl.DataFrame | DeferredTable
+    stats: AssociationStats
+    fused: pl.DataFrame | OnDiskTable
+    clusters: pl.DataFrame
+    tracks: pl.DataFrame | OnDiskTable
+    conflicts: pl.DataFrame
+    n_in: int                   # input reports
+    t_all: float                # when the run started (``time.perf_counter()``)
+    conversion_invalid: int = 0
+    observed: pl.DataFrame | None = None
+    reports: DeferredTable | None = None
+    scratch: Path | None = None
+    on_disk: StreamedTruth | None = None
+    scores: AssociationScore | None = None
+
+
+def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
+             progress: Progress | None = None, sink: Sink | None = None, notes: list[str] | None = None) -> Results:
+    """The whole-run stages on streamed tables held by ``parts`` (see :func:`stream`)."""
+    return finalize_stages(ds, adapt_to_scenario(check_config(cfg), ds), ctx, st, parts,
+                           StageClock(progress or (lambda _m: None)), sink or (lambda _n, _f: None),
+                           [] if notes is None else notes, n_reports, time.perf_counter())
+
+
+def finalize_stages(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any,
+                    clock: StageClock, sink: Sink, notes: list[str], n_in: int, t_all: float) -> Results:
+    """The whole-run stages on the streamed tables: truth validation, the one evaluation stage,
+    alert scoring and STCA curves, the bound, capacity, requirements — and every table sunk."""
+    clock.stage(None)
+    clock.prefix = "finalize:"
+    clock.stage("validate")      # the truth, and the whole run's accounting
+    release_memory()             # what the windows freed, before the whole-run stages
+    writer = SinkThread(sink)
+    try:
+        return _finalize_tables(ds, cfg, ctx, st, parts, clock, writer, notes, n_in, t_all)
+    finally:
+        writer.close()
+
+
+def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any,
+                     clock: StageClock, sink: SinkThread, notes: list[str], n_in: int, t_all: float) -> Results:
+    """Truth validation and the run's accounting, every streamed table sunk, then
+    :func:`evaluate_run` on them."""
+    # an on-disk run keeps in memory only what the whole-run stages read, and its streamed tables
+    # go to the database one window's part at a time (memory)
+    lean = hasattr(parts, "iter_parts")
+    empty_reports = contract.empty_frame("reports", False)
+    reports = (table_columns(parts, "reports", REPORT_COLUMNS, empty_reports) if lean
+               else read_table(parts, "reports", empty_reports))
+    rejects = read_table(parts, "rejects", no_rejects()).sort("input_table", "row_index", nulls_last=True,
+                                                              maintain_order=True)
+    scratch = parts.scratch() if lean else None
+    window = truth_window(reports, cfg.limits)
+    # an on-disk run validates the truth from disk to disk: the whole-run stages read it there
+    streamed = stream_truth(ds, cfg, notes, window, scratch) if lean else None
+    on_disk = None
+    if streamed is None:
+        truth, rej_t = validate_truth(ds, cfg, notes, window)
+    else:
+        on_disk, rej_t = streamed
+        truth = on_disk.empty
+    release_memory()             # the validation's scratch
+    if rej_t.height:
+        rejects = pl.concat([rejects, rej_t], how="vertical_relaxed")
+    ing = Ingested(ctx.radars, reports, truth, rejects, notes)
+    sink("radars", ing.radars)
+    sink("reports", for_sink(parts, "reports", empty_reports) if lean else reports)
+    sink("truth", StreamedTable(on_disk.pieces, tuple(reference_files(on_disk.reference)), NEIGHBOUR_COLUMNS)
+         if on_disk is not None and on_disk.rows else truth)
+    del truth                   # held by ``ing`` alone: the evaluation may release it
+    sink("rejects", rejects)
+    empty_aligned = align_stage.empty_aligned()
+    aligned = (table_columns(parts, "aligned", None if cfg.radar_health else ALIGNED_COLUMNS, empty_aligned)
+               if lean else read_table(parts, "aligned", empty_aligned))
+    if aligned.height == 0:
+        top = (rejects.group_by("reason").len().sort("len", descending=True).head(3)
+               if rejects.height else pl.DataFrame({"reason": [], "len": []}))
+        why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
+        raise DataError(f"no valid report left: all {n_in:,} reports rejected"
+                        + (f" (most common: {why})" if why else ""))
+    _check_accounting(n_in, aligned, rejects)
+    sink("aligned", for_sink(parts, "aligned", empty_aligned) if lean else aligned)
+    release_memory()             # the scratch of the reports' and aligned rows' copies to the database
+    observed, later = None, None
+    if lean:
+        # the evaluation and the alert scoring read neither the reports nor the aligned rows, only
+        # which aircraft had a report at which epoch: both are read back after them (memory)
+        observed = observed_aircraft(aligned, reports)
+        cols = None if cfg.radar_health else ALIGNED_COLUMNS
+        aligned = DeferredTable(lambda: table_columns(parts, "aligned", cols, empty_aligned), aligned.height,
+                                reports=aligned["report_id"].n_unique())
+        later = DeferredTable(lambda: table_columns(parts, "reports", REPORT_COLUMNS, empty_reports), reports.height)
+        ing.reports = reports.clear()         # its schema until then: what the stages test for
+        del reports
+    tables = {}
+    for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
+        empty = (contract.empty_frame(name, False) if name in ("tracks", "conflicts") else pl.DataFrame())
+        if lean and name == "associations":
+            # read back after the evaluation and the alert scoring, which do not read it: its
+            # rows are not held through their peak (memory)
+            sink(name, for_sink(parts, name, empty))
+            keys = table_columns(parts, name, ["run", "target_id"], empty)
+            # what the association metrics read (the rows are in the database)
+            frame = DeferredTable(lambda: table_columns(parts, "associations", ASSOCIATION_COLUMNS, pl.DataFrame()),
+                                  keys.height, blocks=lambda: association_blocks(parts),
+                                  targets=keys.n_unique() if keys.height else 0)
+            del keys
+        elif not lean or name == "conflicts":
+            frame = read_table(parts, name, empty)
+            sink(name, for_sink(parts, name, empty) if lean else frame)
+        else:
+            sink(name, for_sink(parts, name, empty))
+            if name == "clusters":
+                frame = table_columns(parts, name, ["run", "method"], empty)
+            else:
+                # left on disk: evaluation and the STCA curves read one picture at a time
+                frame = OnDiskTable(parts, name, empty)
+        tables[name] = frame
+    associations, fused, clusters, tracks, conflicts = (tables[k] for k in ("associations", "fused", "clusters",
+                                                                            "tracks", "conflicts"))
+    stats = AssociationStats(pairs=st.counts.get("pairs", 0), components=st.counts.get("components", 0),
+                             ambiguous_components=st.counts.get("ambiguous_components", 0),
+                             targets=(associations.facts["targets"] if isinstance(associations, DeferredTable) else
+                                      associations.select("run", "target_id").n_unique() if associations.height
+                                      else 0),
+                             reassignments=st.counts.get("reassignments", 0))
+    run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
+                    int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
+                    getattr(st, "scores", None))
+    return evaluate_run(ds, cfg, ing, run, clock, sink)
+
+
+def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables, clock: StageClock,
+                 sink: Sink) -> Results:
+    """The whole-run stages after the tables are sunk. The deferred tables and ``observed`` are
+    read back after the evaluation's peak. With a ``scratch`` directory the evaluation reads the
+    truth from reference files there, and the truth is not held through it (``on_disk``: it is
+    already there). The stages after the evaluation then read the truth's columns they use from
+    the reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run)."""
+    aligned, associations, stats, fused, clusters, tracks, conflicts = (
+        run.aligned, run.associations, run.stats, run.fused, run.clusters, run.tracks, run.conflicts)
+    observed, reports, scratch, on_disk, scores = run.observed, run.reports, run.scratch, run.on_disk, run.scores
+    n_in, conversion_invalid = run.n_in, run.conversion_invalid
+    alerts = pl.DataFrame()
+    truth_rows = on_disk.rows if on_disk is not None else ing.truth.height
+    has_truth = bool(truth_rows) and "truth_id" in ing.reports.columns
+    empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
+    ev_fused, ev_tracks = empty, empty
+    truth_file: Path | None = None
+    if has_truth:
+        clock.stage("evaluation")
+        if observed is None:
+            observed = observed_aircraft(aligned, ing.reports)
+        reference: "pl.DataFrame | Path" = ing.truth
+        if on_disk is not None:
+            reference = on_disk.reference
+        elif scratch is not None:
+            reference = write_reference(ing.truth, scratch / "reference.parquet")
+            ing.truth = ing.truth.clear()
+        ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
+                                             None if scratch is None else scratch / "evaluation")
+        del observed
+        if scratch is not None:
+            release_memory()
+            if cfg.indicators:          # they match the picture again: the whole truth
+                ing.truth = read_reference(reference)
+            else:
+                # the later stages each read the columns they use from the reference, and the
+                # truth is not held between them (memory)
+                truth_file = reference
+    elif on_disk is not None and on_disk.rows:
+        ing.truth = read_reference(on_disk.reference)      # nothing scored against it: as it came
+
+    def truth_columns(columns: list[str]) -> pl.DataFrame:
+        return ing.truth if truth_file is None else read_reference(truth_file, columns)
+
+    def truth_scan(columns: list[str]) -> "pl.DataFrame | pl.LazyFrame":
+        """The truth's ``columns`` (those it has), as a scan of the reference when on disk."""
+        if truth_file is None:
+            return ing.truth
+        lf = pl.scan_parquet(reference_files(truth_file))
+        return lf.select(c for c in columns if c in lf.collect_schema())
+    if cfg.safety and has_truth:
+        clock.stage("score_alerts")
+        methods, id_col = safety_names(cfg, fused, tracks)
+        # which aircraft each picture row represents: the one matcher's answer
+        id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
+        if id_map.width == 0:           # nothing scored (e.g. every target tentative)
+            id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": contract.TIME,
+                                          id_col: pl.UInt64, "truth_id": pl.Int64})
+        acfg = safety_alerts.AlertConfig(conflict=cfg.conflicts)
+        note_minima(cfg.conflicts, ing.notes)
+        # the truth's LoS and proximity intervals, computed once for the alerts and every curve
+        # setting (they depend on the separation minima, which the curves do not vary)
+        if truth_file is not None:
+            # an hour of truth at a time: a long recording's truth held whole would not fit (memory)
+            intervals, span = reference_intervals(truth_file, acfg, ds.origin)
+        else:
+            truth = truth_columns(ALERT_TRUTH)
+            intervals, span = safety_alerts.truth_intervals(truth, acfg, ds.origin), time_span(truth)
+            del truth
+        release_memory()
+        # a picture at a time: the same tables, with one picture's rows in the scoring's joins
+        safety_metrics, alerts, _los = safety_alerts.stca_tables_by_picture(
+            conflicts, id_map, span, acfg, id_col=id_col, methods=methods, frame=ds.origin, intervals=intervals)
+        sink("alerts", alerts)
+        if cfg.stca_lookaheads_s:
+            clock.stage("stca_curves")
+            curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
+                                None if scratch is None else scratch / "curves")
+            safety_metrics = pl.concat([safety_metrics, safety_alerts.tradeoff_metrics(curve)], how="vertical_relaxed")
+    clock.stage("evaluate")
+    release_memory()
+    # the association metrics scored window by window when every row was; else from
+    # the rows read back
+    carried = has_truth and scores is not None and scores.rows == associations.height
+    blocks = associations.blocks if isinstance(associations, DeferredTable) and has_truth and not carried else None
+    if isinstance(associations, DeferredTable):
+        # on disk, in the database; scored from there a block at a time when not carried
+        associations = pl.DataFrame() if carried or blocks is not None else associations.read()
+    if reports is not None:
+        ing.reports = reports.read()
+    if blocks is not None:
+        scores = scored_blocks(blocks(), ing.reports)
+    if carried or blocks is not None:
+        metrics = association_stage_metrics(scores.runs.height if scores.rows else 0, stats, association_score(scores))
+    else:
+        report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
+        metrics = association_stage_metrics(int(associations["run"].n_unique()) if associations.height else 0, stats,
+                                            association_metrics(associations, report_truth) if report_truth is not None
+                                            else None)
+    release_memory()
+    by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
+    if has_truth:
+        metrics = pl.concat([metrics, *[e.metrics for e in (ev_fused, ev_tracks) if e.metrics.height]],
+                            how="vertical_relaxed")
+        by_epoch = ev_fused.by_epoch
+        samples = [e.samples for e in (ev_fused, ev_tracks) if e.samples.height]
+        scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
+        # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.evaluation.bound)
+        # read by blocks of aircraft from the reference, never whole (memory)
+        extra = [bound_stage(ds, truth_scan(BOUND_TRUTH), ing.radars, ing.reports, scored, metrics, ing.notes)]
+        if cfg.safety:
+            extra.append(safety_metrics)
+        metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
+        if cfg.safety:
+            capacity = safety_capacity.capacity_from_metrics(metrics, notes=ing.notes)
+            metrics = pl.concat([metrics, capacity], how="vertical_relaxed")
+        if cfg.evaluation:
+            reqs = [e.requirements for e in (ev_fused, ev_tracks) if e.requirements.height]
+            if reqs:
+                sink("requirements", pl.concat(reqs, how="vertical_relaxed"))
+    aligned_rows, aligned_reports = ((aligned.height, aligned.facts["reports"]) if isinstance(aligned, DeferredTable)
+                                     else (aligned.height, aligned["report_id"].n_unique()))
+    if cfg.radar_health and aligned.height:
+        if isinstance(aligned, DeferredTable):
+            aligned = aligned.read()
+        metrics = pl.concat([metrics, radar_health(aligned, ing.radars)], how="vertical_relaxed")
+    if has_truth and cfg.indicators and tracks.height:
+        clock.stage("indicators")
+        metrics = pl.concat([metrics, indicators(whole_table(tracks), ing.truth)], how="vertical_relaxed")
+    sink("metrics", metrics)
+    sink("accuracy_by_epoch", by_epoch)
+    clock.stage(None)
+    if isinstance(sink, SinkThread):
+        sink.join(clock)
+        # the writes' own time, beside the stages; the stages' wait for the last ones apart
+        clock.timings["write_tables_wait_s"] = clock.timings.pop("write_tables_s", 0.0)
+        clock.timings["write_tables_s"] = sink.busy_s
+    clock.timings["alignment_to_clustering_s"] = sum(
+        clock.timings.get(f"{k}_s", 0.0) for k in ("align", "associate", "fuse", "centralized", "cluster"))
+    clock.timings["total_s"] = time.perf_counter() - run.t_all
+    rejects = ing.rejects
+    counts = {"reports_in": n_in, "reports_aligned": int(aligned_reports),
+              "reports_rejected": int(rejects.filter(pl.col("input_table") == "reports").height),
+              "aligned_rows": aligned_rows, "gated_pairs": stats.pairs, "components": stats.components,
+              "ambiguous_components": stats.ambiguous_components, "targets": stats.targets,
+              "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
+              "conversion_invalid": conversion_invalid,
+              "track_rows": tracks.height, "conflict_rows": conflicts.height,
+              "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
+              "alert_episodes": alerts.height,
+              "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
+              **target_counts(fused)}
+    # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
+    # its aligned rows when they were not read back
+    fused, tracks = (t.empty if isinstance(t, OnDiskTable) else t for t in (fused, tracks))
+    if isinstance(aligned, DeferredTable):
+        aligned = align_stage.empty_aligned()
+    return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
+                   clock.timings, counts, alerts, dict(clock.memory))
+
+
+def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -> None:
+    """Every input report is aligned or rejected, never both, never neither."""
+    n_ok = aligned["report_id"].n_unique()
+    n_rej = rejects.filter(pl.col("input_table") == "reports").height
+    if n_ok + n_rej != n_in:
+        raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")

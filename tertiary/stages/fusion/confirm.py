@@ -1,0 +1,91 @@
+"""Target confirmation: which fused groups are *tentative* (the ``tentative`` column), a step
+function with explicit carried state (:class:`ConfirmState`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import polars as pl
+
+from tertiary.contract import TIME
+from tertiary.stages.fusion.base import CHAIN, GROUP, TRACK
+
+__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_targets_step"]
+
+
+@dataclass(frozen=True)
+class ConfirmState:
+    """Carried state of target confirmation (natural keys, no ranks): per local track the plots
+    of its current life in its current target, the time of its last plot and that target
+    (``tracks``: run, radar_id, local_track_id, n_plots, last_time, target_id) and the targets
+    already confirmed (``targets``: run, target_id)."""
+
+    tracks: pl.DataFrame
+    targets: pl.DataFrame
+
+    @staticmethod
+    def empty() -> ConfirmState:
+        """The state before the first window: no track, no target."""
+        return ConfirmState(
+            pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
+                                 "n_plots": pl.Int64, "last_time": TIME, "target_id": pl.UInt64}),
+            pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64}))
+
+
+#: a local track silent for longer than this has ended; a plot under the same number after it
+#: starts a new life (radars reuse track numbers) whose plots are counted afresh
+LIFE_GAP_S = 30.0
+
+
+def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2
+                 ) -> tuple[pl.DataFrame, ConfirmState]:
+    """Which (run, epoch, target_id) groups of ``rows`` are tentative, and the new state.
+
+    A local track supports its target from the epoch at which it has ``min_plots`` plots in
+    its current life *in that target* (its fresh rows counted, carried across windows by
+    ``state``; a silence longer than :data:`LIFE_GAP_S` starts a new life, since radars reuse
+    the numbers of ended tracks, often for a false plot); a group is supported when one of its
+    local tracks is, or when two radars see the target. A target is confirmed from its first
+    supported group on and stays so; before that it is *tentative*: made only of one radar's
+    unconfirmed one-plot tracks — the clutter signature (a lone false plot never gets a second
+    plot of its local track). Counting in the target, not over the local track's life, keeps a
+    split-off tentative: one radar's plot that misses the gate with the others for a scan is
+    grouped alone under a new id and rejoins its aircraft's target at the next scan (counted
+    over the track's life, such one-scan targets would all be confirmed). Returns the groups (GROUP + ``tentative``) in ``rows``' group
+    order."""
+    key_types = {c: t for c, t in state.tracks.schema.items() if c in TRACK}
+    has_time = "time" in rows.columns
+    when = pl.col("time").cast(TIME) if has_time else pl.col("epoch").cast(TIME)
+    r = rows.select(*GROUP, *[pl.col(c).cast(t) for c, t in key_types.items() if c != "run"],
+                    pl.col("fresh").fill_null(False), when.alias("__t")).with_row_index("__i")
+    r = (r.join(state.tracks.rename({"target_id": "__last_target"}), on=TRACK, how="left", maintain_order="left")
+         .sort("epoch", "__i"))
+    fresh_t = pl.when(pl.col("fresh")).then(pl.col("__t"))
+    prev = pl.coalesce(fresh_t.forward_fill().shift(1).over(TRACK), pl.col("last_time"))
+    gap_us = round(LIFE_GAP_S * 1e6)
+    brk = pl.col("fresh") & ((pl.col("__t") - prev).dt.total_microseconds() > gap_us).fill_null(False)
+    # the track's target at its previous row (this window's, else the carried one)
+    before = pl.coalesce(pl.col("target_id").shift(1).over(TRACK), pl.col("__last_target"))
+    moved = (pl.col("target_id") != before).fill_null(False)
+    r = r.with_columns((brk | moved).cast(pl.Int64).cum_sum().over(TRACK).alias("__life"))
+    base = pl.when(pl.col("__life") == 0).then(pl.col("n_plots").fill_null(0)).otherwise(0)
+    r = r.with_columns((base + pl.col("fresh").cast(pl.Int64).cum_sum().over([*TRACK, "__life"])).alias("__n"))
+    grp = (r.group_by(GROUP, maintain_order=True)
+           .agg(((pl.col("__n").max() >= min_plots) | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
+           .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left",
+                 maintain_order="left")
+           .with_columns((pl.col("__sup") | pl.col("__was").fill_null(False)).cum_max().over(CHAIN)
+                         .alias("__conf")))
+    order = rows.select(GROUP).unique(maintain_order=True)
+    out = order.join(grp.select(*GROUP, (~pl.col("__conf")).alias("tentative")), on=GROUP, how="left",
+                     maintain_order="left")
+    last = r.group_by(TRACK).agg(pl.col("__n").last().alias("n_plots"),
+                                 pl.col("__t").filter(pl.col("fresh")).max().alias("__lt"),
+                                 pl.col("target_id").last().alias("__tg"))
+    tracks = (state.tracks.join(last, on=TRACK, how="full", coalesce=True)
+              .select(*TRACK, pl.coalesce("n_plots_right", "n_plots").alias("n_plots"),
+                      pl.coalesce("__lt", "last_time").alias("last_time"),
+                      pl.coalesce("__tg", "target_id").alias("target_id"))
+              .cast(state.tracks.schema))
+    targets = pl.concat([state.targets, grp.filter("__conf").select(CHAIN).cast(state.targets.schema)]).unique()
+    return out, ConfirmState(tracks, targets)

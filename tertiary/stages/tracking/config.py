@@ -1,0 +1,71 @@
+"""The secondary tracker's options (:class:`TrackerConfig`) and its output columns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import polars as pl
+
+from tertiary.contract import TABLES
+from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltitudeConfig
+
+__all__ = ["STATUS", "TRACK_COLUMNS", "TrackerConfig"]
+
+#: a track row's status (tentative tracks are not emitted)
+STATUS = ("tentative", "confirmed", "coasting")
+
+#: the ``tracks`` table columns plus the tracker's extra columns
+TRACK_COLUMNS: dict[str, pl.DataType] = {
+    **TABLES["tracks"].required,
+    **{c: TABLES["tracks"].optional[c] for c in ALT_COLUMNS},
+    "cov": TABLES["tracks"].optional["cov"],
+    "status": pl.String(),
+    "plot_target_id": pl.UInt64(),
+}
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Track management options (the rules: :mod:`tertiary.stages.tracking.tracker`).
+
+    * ``initiation``: ``"three_scan"`` (annulus S₁ then circle S₂) or ``"m_of_n"``.
+    * ``v_min_mps``, ``v_max_mps``: annulus radii R_min = v_min·T, R_max = v_max·T (1.1).
+    * ``confirm_gate_m``: radius of the scan-3 circle S₂.
+    * ``m``, ``n``: M-of-N confirmation (``m`` plots within the first ``n`` scans).
+    * ``gate_sigma``, ``gate_min_m``: tracking gate half-width per axis
+      gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
+    * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
+    * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
+    * ``altitude``: the vertical-channel filter (q_a of (A1)).
+    """
+
+    initiation: Literal["three_scan", "m_of_n"] = "three_scan"
+    v_min_mps: float = 30.0
+    v_max_mps: float = 350.0
+    confirm_gate_m: float = 1500.0
+    m: int = 3
+    n: int = 4
+    gate_sigma: float = 4.0
+    gate_min_m: float = 500.0
+    assignment: Literal["nearest", "hungarian"] = "hungarian"
+    max_misses: int = 3
+    altitude: AltitudeConfig = AltitudeConfig()
+
+    def __post_init__(self) -> None:
+        if self.initiation not in ("three_scan", "m_of_n"):
+            raise ValueError(f"initiation must be 'three_scan' or 'm_of_n', got {self.initiation!r}")
+        if self.assignment not in ("nearest", "hungarian"):
+            raise ValueError(f"assignment must be 'nearest' or 'hungarian', got {self.assignment!r}")
+        if not 0 <= self.v_min_mps < self.v_max_mps:
+            raise ValueError(f"need 0 <= v_min_mps < v_max_mps, got {self.v_min_mps}, {self.v_max_mps}")
+        if not 1 <= self.m <= self.n:
+            raise ValueError(f"need 1 <= m <= n, got m={self.m}, n={self.n}")
+        if self.max_misses < 1:
+            raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
+        if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
+            raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
+
+
+# --------------------------------------------------------------------------- object bookkeeping
+
