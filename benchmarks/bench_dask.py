@@ -25,7 +25,7 @@ from pathlib import Path
 
 import polars as pl
 
-from tertiary.runtime import dask_engine as D
+from tertiary.pipeline import dask_engine as D
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset, write_dataset
 from tertiary.simulate import load_scenario, simulate

@@ -39,9 +39,9 @@ import numpy as np
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
 from _util import RESULTS, record
-from tertiary.stages.tracking.filters import make_filter
-from tertiary.stages.tracking.filters.imm import PAPER_MU0, PAPER_OMEGAS, PAPER_TPM, model_matrices
-from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
+from tertiary.filters import make_filter
+from tertiary.filters.imm import PAPER_MU0, PAPER_OMEGAS, PAPER_TPM, model_matrices
+from tertiary.filters.singer import singer_phi, singer_q
 
 TAU = 4.0
 R = 50.0 ** 2
@@ -187,7 +187,7 @@ def _same_rows(a, b) -> bool:
 
 _FIRST_RUN = """
 import resource, sys, time, numpy as np
-from tertiary.stages.tracking.filters import make_filter
+from tertiary.filters import make_filter
 f = make_filter("imm_sym", compiled=sys.argv[1] == "1")
 s = f.init(np.full((5, 3), 1e4), np.full((5, 3), 1e4))
 t = time.perf_counter()
@@ -226,7 +226,7 @@ def tracker_stage(dataset: str, filters: tuple[str, ...], reps: int = 2) -> dict
     import polars as pl
 
     from tertiary import pipeline
-    from tertiary.stages.tracking.filters.base import REGISTRY
+    from tertiary.filters.base import REGISTRY
     from tertiary.io.dataset import read_dataset
     from tertiary.stages.tracking.tracker import track, track_methods
 

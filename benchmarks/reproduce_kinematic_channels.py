@@ -25,9 +25,9 @@ import time
 import numpy as np
 
 from _util import record
-from tertiary.stages.tracking.filters import kinematic_los as los
-from tertiary.stages.tracking.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
-from tertiary.stages.tracking.filters.singer import (predict_elementwise, singer_coefficients, update_elementwise)
+from tertiary.filters import kinematic_los as los
+from tertiary.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
+from tertiary.filters.singer import (predict_elementwise, singer_coefficients, update_elementwise)
 from tertiary.simulate import load_scenario
 from tertiary.simulate.ehs import ehs_parameters
 from tertiary.simulate.traffic import BIG_BOX_TURN_RATE, big_box

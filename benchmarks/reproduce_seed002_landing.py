@@ -11,7 +11,7 @@
   scans, ≈ 13–18 m near C.
 
 Uses the package's own scenario and IMM (:func:`tertiary.simulate.landing.run_imm_landing`,
-:class:`tertiary.stages.tracking.filters.imm.HorizontalIMM`). ``tests/test_filters_imm.py`` asserts Q3 and a
+:class:`tertiary.filters.imm.HorizontalIMM`). ``tests/test_filters_imm.py`` asserts Q3 and a
 weak form of Q4/Q5 on the same run; this script records the numbers and the q_f = 0.01 part.
 
     python benchmarks/reproduce_seed002_landing.py [--runs 130] [--seed 2022]

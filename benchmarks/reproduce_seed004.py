@@ -16,7 +16,7 @@ With the digest §3.8 defaults (D(0) = 10 km, α(0) = 2°, level flight at 1 km 
 * T5 convergence: initialising from the k = 0 measurement with a reduced P(0|0) converges faster
   (time to stay within 2× of the final RMSE) than the midpoint initialisation.
 
-Uses :func:`tertiary.stages.tracking.filters.ekf.run_seed004` (initialisations: :func:`initial_state_seed004`).
+Uses :func:`tertiary.filters.ekf.run_seed004` (initialisations: :func:`initial_state_seed004`).
 
     python benchmarks/reproduce_seed004.py [--runs 300]
 """
@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from _util import record
-from tertiary.stages.tracking.filters.ekf import MIDPOINT_RANGE_M, MIDPOINT_SPEED_MPS, run_seed004
+from tertiary.filters.ekf import MIDPOINT_RANGE_M, MIDPOINT_SPEED_MPS, run_seed004
 
 T = 0.01
 STATES = ("D_m", "alpha_deg", "gamma_deg", "V_mps", "B_deg", "Gamma_deg")

@@ -720,7 +720,7 @@ def invoke(args: list[str]):
     global _runner
     from typer.testing import CliRunner
 
-    from tertiary.cli.main import app
+    from tertiary.cli.commands import app
 
     _runner = _runner or CliRunner()
     return _runner.invoke(app, args, catch_exceptions=True, color=False)
@@ -1004,7 +1004,7 @@ def _db_state(db: Path) -> tuple:
 
 
 def _sql_subprocess(args: list[str], timeout: float) -> tuple[int | None, str, str, float]:
-    code = "import sys; from tertiary.cli.main import app; sys.argv[0] = 'tertiary'; app()"
+    code = "import sys; from tertiary.cli.commands import app; sys.argv[0] = 'tertiary'; app()"
     t = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)

@@ -86,7 +86,7 @@ def compute(work: Path) -> dict[str, dict[str, pl.DataFrame]]:
     res = {"one_window": run_tables(pipeline.run(ds, work / "one", window_s=None, dataset_label="golden")),
            "windowed": run_tables(pipeline.run(ds, work / "win", window_s=60.0, dataset_label="golden"))}
     from distributed import Client, LocalCluster
-    from tertiary.runtime import dask_engine as D
+    from tertiary.pipeline import dask_engine as D
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         res["dask"] = run_tables(D.run_dask(path, work / "dask", client=client, window_s=60.0))

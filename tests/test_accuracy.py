@@ -658,7 +658,7 @@ def test_end_to_end_on_a_small_terminal_area(small_terminal):
     """Simulated terminal area → pipeline → tracker picture scored by the one evaluation stage:
     the picture is nearly complete, with few extra, spurious or swapped tracks."""
     from tertiary.evaluation.evaluate import evaluate_pictures
-    from tertiary.stages.tracking.filters import make_filter
+    from tertiary.filters import make_filter
     from tertiary.pipeline import PipelineConfig, process
     from tertiary.stages.tracking.tracker import track
 

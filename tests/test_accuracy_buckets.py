@@ -206,7 +206,7 @@ def terminal_picture(small_terminal):
     the reference aircraft at its epochs. The "plots" are the radars' measured plots in the
     system frame with their covariance and Mode C height, epochs on a 4 s grid, radars 1/3 and
     2/4 as two runs; two pictures: the singer and cv filters."""
-    from tertiary.stages.tracking.filters import make_filter
+    from tertiary.filters import make_filter
     from tertiary.stages.fusion import measured_plots
     from tertiary.evaluation.matching import MatchConfig, match_with_reference, reference_identity
     from tertiary.stages.tracking.tracker import track_methods

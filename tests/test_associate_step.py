@@ -14,7 +14,7 @@ from polars.testing import assert_frame_equal
 from tertiary.stages import align as A
 from tertiary.stages.association.associate import (AssociateState, AssociationConfig, AssociationStats, associate, associate_step, init_associate_state)
 from tertiary.core.errors import OptionError
-from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.pipeline import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate
 

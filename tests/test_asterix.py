@@ -16,7 +16,7 @@ from tertiary.evaluation.external import match_external, score_import
 from tertiary.core import geo
 from tertiary.io.asterix import capture, codec, dataset, encode, importer
 from tertiary.io.asterix.sites import read_sites, sites_toml
-from tertiary.cli.main import app
+from tertiary.cli.commands import app
 
 DATA = Path(__file__).parent / "data"
 PCAP = DATA / "cat_034_048.pcap"
@@ -315,7 +315,7 @@ def test_import_is_lazy() -> None:
     """`import tertiary` (and the CLI module) must not pay libasterix's import cost."""
     import subprocess
     import sys
-    code = "import sys, tertiary, tertiary.cli.main; print('asterix' in sys.modules)"
+    code = "import sys, tertiary, tertiary.cli.commands; print('asterix' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.stdout.split() == ["False"]

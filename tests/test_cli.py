@@ -10,7 +10,7 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli import app
+from tertiary.cli.commands import app
 from tertiary.cli.common import cell
 from tertiary.pipeline.workflows import choose_run_dir
 

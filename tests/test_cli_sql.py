@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from typer.testing import CliRunner
 
-from tertiary.cli.main import app
+from tertiary.cli.commands import app
 
 runner = CliRunner()
 

@@ -14,7 +14,7 @@ from tertiary.stages import align as A
 from tertiary.stages.association.associate import associate
 from tertiary.stages.clustering import (ClusteringConfig, ClusterState, cluster, cluster_step, init_cluster_state)
 from tertiary.core.errors import OptionError
-from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.stages.fusion import fuse
 from tertiary.pipeline import PipelineConfig, screen
 from tertiary.simulate import load_scenario, simulate

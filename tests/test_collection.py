@@ -223,7 +223,7 @@ def test_cli_run_with_collection(tmp_path):
     import duckdb
     from typer.testing import CliRunner
 
-    from tertiary.cli.main import app
+    from tertiary.cli.commands import app
     runner = CliRunner()
     bad = runner.invoke(app, ["run", "--out", str(tmp_path / "x"), "--collection", "queue"])
     assert bad.exit_code == 2 and "--collection" in bad.output           # refused before simulating

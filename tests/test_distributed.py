@@ -11,7 +11,7 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.runtime import dask_engine as D
+from tertiary.pipeline import dask_engine as D
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset, write_dataset
 from tertiary.simulate import load_scenario, simulate
@@ -179,7 +179,7 @@ def test_gated_pairs_equal_brute_force():
 
 
 def test_a_partition_reads_its_windows_from_a_scan_that_takes_their_time_test(long_run, tmp_path):
-    """A partition's input (:func:`~tertiary.runtime.dask_engine.partition_input`) is the rows of its
+    """A partition's input (:func:`~tertiary.pipeline.dask_engine.partition_input`) is the rows of its
     input expression in input order (a row without a time in the first slice), and a window
     of it is read by a scan that takes the window's time test. On ``lf.filter(...)`` the
     stream's row index came after the filter and every window read the partition's whole

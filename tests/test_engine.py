@@ -19,7 +19,8 @@ from polars.testing import assert_frame_equal
 
 from tertiary import pipeline
 from tertiary.pipeline import ingestion, runner, streaming, tables, whole_run
-from tertiary.runtime.windows import END_US, US, Window, incomplete_message, windows
+from tertiary.core.stage import T_MAX_US
+from tertiary.runtime.windows import US, Window, incomplete_message, windows
 from tertiary.io.dataset import write_dataset
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
@@ -236,7 +237,7 @@ def test_empty_window_in_the_middle(terminal, terminal_whole):
 def test_windows_cover_the_grid_and_the_last_is_open():
     ws = list(windows(10 * US, 10 * US + 95 * US, 30.0))
     assert [w.index for w in ws] == [0, 1, 2, 3]
-    assert ws[0].open_start and ws[-1].t1_us == END_US and ws[-1].last
+    assert ws[0].open_start and ws[-1].t1_us == T_MAX_US and ws[-1].last
     assert all(a.t1_us == b.t0_us for a, b in zip(ws, ws[1:]))
     assert ws[1].t0_us == 40 * US
     assert list(windows(0, 5 * US, None)) == [Window.unbounded()]
@@ -680,16 +681,19 @@ def test_alerts_on_the_fused_picture_are_scored_with_its_id_map(terminal):
     assert genuine["value"].sum() > 0
 
 
-def test_importing_tertiary_first_hands_polars_freed_pages_back_at_once():
-    """jemalloc (polars' allocator) reads its decay once, when polars loads: ``import tertiary``
-    before polars appends a zero muzzy decay to polars' own setting (purged pages leave the
-    resident set at once, issue 16, memory); a caller's own setting wins. Fails if the setting
-    comes after polars is loaded, or overrides the caller's."""
-    code = "import tertiary, os; print(os.environ['_RJEM_MALLOC_CONF'])"
+def test_the_command_hands_polars_freed_pages_back_at_once():
+    """jemalloc (polars' allocator) reads its decay once, when polars loads: the command's entry
+    configures it first, appending a zero muzzy decay to polars' own setting (purged pages leave
+    the resident set at once); a caller's own setting wins; importing the package sets nothing.
+    Fails if the setting comes after polars is loaded, or overrides the caller's."""
+    code = ("import os, sys, tertiary, tertiary.cli.main; assert '_RJEM_MALLOC_CONF' not in os.environ; "
+            "from tertiary.core.memory import configure_allocator; configure_allocator(); "
+            "import polars; print(os.environ['_RJEM_MALLOC_CONF'])")
     env = {k: v for k, v in os.environ.items() if k != "_RJEM_MALLOC_CONF"}
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     # after polars' own setting (whatever its defaults): the last value of an option wins
     assert got.stdout.strip().endswith(",muzzy_decay_ms:0")
     env["_RJEM_MALLOC_CONF"] = "dirty_decay_ms:250"
+    code = code.replace("assert '_RJEM_MALLOC_CONF' not in os.environ; ", "")
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip().endswith(",dirty_decay_ms:250") and "muzzy_decay_ms:0" not in got.stdout

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.pipeline import scoring
-from tertiary.cli.main import app
+from tertiary.cli.commands import app
 from polars.testing import assert_frame_equal
 
 from tertiary.core.errors import DataError

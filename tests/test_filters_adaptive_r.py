@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-import tertiary.stages.tracking.filters.imm  # noqa: F401  (registers "imm")
-import tertiary.stages.tracking.filters.linear  # noqa: F401  (registers "cv")
-import tertiary.stages.tracking.filters.manoeuvring  # noqa: F401  (registers "singer")
-from tertiary.stages.tracking.filters.adaptive_r import AdaptiveR
-from tertiary.stages.tracking.filters.base import concat, make_filter, take
-from tertiary.stages.tracking.filters.imm import q_cv
-from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
+import tertiary.filters.imm  # noqa: F401  (registers "imm")
+import tertiary.filters.linear  # noqa: F401  (registers "cv")
+import tertiary.filters.manoeuvring  # noqa: F401  (registers "singer")
+from tertiary.filters.adaptive_r import AdaptiveR
+from tertiary.filters.base import concat, make_filter, take
+from tertiary.filters.imm import q_cv
+from tertiary.filters.singer import singer_phi, singer_q
 
 
 def test_default_wraps_singer_and_registry_name():

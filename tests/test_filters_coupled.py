@@ -1,4 +1,4 @@
-"""Coupled Cartesian filters (tertiary.stages.tracking.filters.coupled): filterpy equality with a full 3×3 R,
+"""Coupled Cartesian filters (tertiary.filters.coupled): filterpy equality with a full 3×3 R,
 equality with the per-axis filters when R is diagonal, the full 6×6 output covariance."""
 
 from __future__ import annotations
@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary.stages.tracking.filters.base import full_cov, make_filter
-from tertiary.stages.tracking.filters.coupled import CoupledCV, CoupledSinger
-from tertiary.stages.tracking.filters.linear import CVFilter
-from tertiary.stages.tracking.filters.manoeuvring import SingerFilter
-from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
+from tertiary.filters.base import full_cov, make_filter
+from tertiary.filters.coupled import CoupledCV, CoupledSinger
+from tertiary.filters.linear import CVFilter
+from tertiary.filters.manoeuvring import SingerFilter
+from tertiary.filters.singer import singer_phi, singer_q
 
 
 def _scenario(seed: int, b: int = 12, steps: int = 40, p_detect: float = 0.8):

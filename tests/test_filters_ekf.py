@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from tertiary.stages.tracking.filters.base import make_filter
-from tertiary.stages.tracking.filters.ekf import (enu_to_measurement, phi, phi_jacobian, run_seed004, state_to_enu, wrap_pi)
-from tertiary.stages.tracking.filters import quasi_optimal as qo
+from tertiary.filters.base import make_filter
+from tertiary.filters.ekf import (enu_to_measurement, phi, phi_jacobian, run_seed004, state_to_enu, wrap_pi)
+from tertiary.filters import quasi_optimal as qo
 from tertiary.core.geo import enu_to_polar, polar_to_enu
 
 

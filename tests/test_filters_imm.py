@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
 
-from tertiary.stages.tracking.filters.base import make_filter
-from tertiary.stages.tracking.filters.imm import (PAPER_MU0, PAPER_TPM, a_ct, a_cv, conversion_range_limit, convert_polar_2d, model_matrices, q_ct, q_cv, q_van_loan)
+from tertiary.filters.base import make_filter
+from tertiary.filters.imm import (PAPER_MU0, PAPER_TPM, a_ct, a_cv, conversion_range_limit, convert_polar_2d, model_matrices, q_ct, q_cv, q_van_loan)
 from tertiary.core.geo import conversion_valid
 from tertiary.simulate.landing import LandingPattern, nominal_path, run_imm_landing
 
@@ -220,7 +220,7 @@ def test_landing_imm_beats_raw_converted_measurements():
 def test_symmetric_imm_follows_right_turns():
     """``imm_sym`` mirrors the seed's left-turn model: a right (clockwise) coordinated turn is
     carried by the CT(−ω) model, which the seed's set (ω > 0 only) cannot represent."""
-    from tertiary.stages.tracking.filters import make_filter
+    from tertiary.filters import make_filter
     from tertiary.simulate.trajectory import integrate_commands
 
     dt, steps = 4.0, 60
@@ -251,8 +251,8 @@ def test_single_cv_model_imm_with_correlated_r_equals_coupled_cv():
     """An IMM reduced to one CV model is the CV Kalman filter: with a plot covariance whose
     E–N terms are correlated (|ρ| = 0.8) its horizontal estimate, covariance and 6×6 output
     covariance equal ``cv_full``'s — so the full horizontal R is used, not its diagonal."""
-    from tertiary.stages.tracking.filters import make_filter
-    from tertiary.stages.tracking.filters.imm import IMMFilter
+    from tertiary.filters import make_filter
+    from tertiary.filters.imm import IMMFilter
 
     rng = np.random.default_rng(4)
     b, steps = 6, 12

@@ -1,4 +1,4 @@
-"""Linear filter family (tertiary.stages.tracking.filters.linear, .manoeuvring): filterpy equality, closed forms, adaptivity,
+"""Linear filter family (tertiary.filters.linear, .manoeuvring): filterpy equality, closed forms, adaptivity,
 two-model weights, state plumbing, speed."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary.stages.tracking.filters.base import REGISTRY, concat, make_filter, size, take
-from tertiary.stages.tracking.filters.axes import full_covariance
-from tertiary.stages.tracking.filters.linear import (AlphaBetaFilter, AlphaBetaGammaFilter, CVFilter, abg_gamma, kalata_alpha_beta, kalata_beta, steady_state_abg)
-from tertiary.stages.tracking.filters.manoeuvring import AdaptiveSingerFilter, SingerFilter, TwoModelFilter, two_model_weights
-from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
+from tertiary.filters.base import REGISTRY, concat, make_filter, size, take
+from tertiary.filters.axes import full_covariance
+from tertiary.filters.linear import (AlphaBetaFilter, AlphaBetaGammaFilter, CVFilter, abg_gamma, kalata_alpha_beta, kalata_beta, steady_state_abg)
+from tertiary.filters.manoeuvring import AdaptiveSingerFilter, SingerFilter, TwoModelFilter, two_model_weights
+from tertiary.filters.singer import singer_phi, singer_q
 
 NAMES = ["cv", "alpha_beta", "alpha_beta_gamma", "singer", "adaptive", "two_model"]
 

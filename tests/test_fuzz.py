@@ -256,7 +256,7 @@ def test_traceback_only_with_debug(worker, tmp_path):
 
     from typer.testing import CliRunner
 
-    from tertiary.cli.main import app
+    from tertiary.cli.commands import app
 
     ds = tmp_path / "ds"
     shutil.copytree(worker.bases / "ta", ds)

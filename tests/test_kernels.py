@@ -22,7 +22,7 @@ from tertiary.core import jit
 from tertiary.evaluation.bound import BoundConfig, _pcrb_block
 from tertiary.pipeline import warmup
 from tertiary.stages.tracking.altitude import AltitudeConfig, FilterCarry, filter_tracks_carry
-from tertiary.stages.tracking.filters import make_filter
+from tertiary.filters import make_filter
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:

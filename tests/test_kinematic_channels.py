@@ -1,4 +1,4 @@
-"""Chapter 3 kinematics and range channels (tertiary.stages.tracking.filters.kinematic_los / kinematic) and the
+"""Chapter 3 kinematics and range channels (tertiary.filters.kinematic_los / kinematic) and the
 Mode S EHS simulator (tertiary.simulate.ehs), against brute-force numerics and independent
 matrix-form references."""
 
@@ -9,9 +9,9 @@ import polars as pl
 import pytest
 
 from tertiary.core.errors import DataError
-from tertiary.stages.tracking.filters import kinematic_los as los
-from tertiary.stages.tracking.filters.kinematic import (AuxFilter, KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, make_range_channel)
-from tertiary.stages.tracking.filters.singer import singer_phi, singer_q
+from tertiary.filters import kinematic_los as los
+from tertiary.filters.kinematic import (AuxFilter, KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, make_range_channel)
+from tertiary.filters.singer import singer_phi, singer_q
 from tertiary.simulate.ehs import RESOLUTION, EhsConfig, ehs_parameters, ehs_table, ehs_truth, quantise
 from tertiary.simulate.traffic import big_box
 from tertiary.simulate.trajectory import Trajectories, integrate_commands

@@ -256,7 +256,7 @@ def test_pipeline_register_improves_fused_accuracy(biased):
 
 def test_cli_register_writes_the_table_and_run_applies_it(biased, tmp_path):
     from typer.testing import CliRunner
-    from tertiary.cli.main import app
+    from tertiary.cli.commands import app
     runner = CliRunner()
     res = runner.invoke(app, ["register", str(biased), "--no-steps"])
     assert res.exit_code == 0, res.output

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tertiary import pipeline
-from tertiary.cli.main import app
+from tertiary.cli.commands import app
 from tertiary.report.common import CENTRALIZED, breakable as _breakable, thin as _thin
 from tertiary.report.html import (MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, build_report, build_sections, figure_count)
 from tertiary.io.dataset import write_dataset

@@ -14,7 +14,7 @@ import reproduce_seed002_landing as s002  # noqa: E402
 import reproduce_seed003_sources as s003  # noqa: E402
 import reproduce_seed004 as s004  # noqa: E402
 
-from tertiary.stages.tracking.filters.ekf import initial_state_seed004, run_seed004  # noqa: E402
+from tertiary.filters.ekf import initial_state_seed004, run_seed004  # noqa: E402
 
 
 def test_dip_below_one_finds_the_longest_run_after_first_scan():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from tertiary.stages.tracking.filters.singer import (predict_elementwise, singer_coefficients, singer_phi, singer_q, update_elementwise)
+from tertiary.filters.singer import (predict_elementwise, singer_coefficients, singer_phi, singer_q, update_elementwise)
 
 PAIRS = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 

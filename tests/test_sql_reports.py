@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.store import sql_reports
-from tertiary.cli.main import app
+from tertiary.cli.commands import app
 from tertiary.core.errors import OptionError
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore

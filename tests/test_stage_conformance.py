@@ -1,5 +1,5 @@
 """Every streamed stage of :data:`tertiary.pipeline.plan.STAGES` follows the stage contract
-(:mod:`tertiary.runtime.stage`), checked on one small simulated run:
+(:mod:`tertiary.core.stage`), checked on one small simulated run:
 
 (a) stepping window by window gives what one step over the whole run gives (rows concatenated,
     totals added up, the final state equal);
@@ -26,7 +26,7 @@ from polars.testing import assert_frame_equal
 from tertiary.core.errors import DataError, OptionError
 from tertiary.core.units import US
 from tertiary.pipeline import PipelineConfig, plan, screen
-from tertiary.runtime.stage import T_MAX_US, T_MIN_US, Stage, Window
+from tertiary.core.stage import T_MAX_US, T_MIN_US, Stage, Window
 from tertiary.runtime.windows import concat_parts
 from tertiary.simulate import load_scenario, simulate
 from tertiary.stages import align
@@ -40,6 +40,8 @@ CLOCK_FIELDS = {"t_us", "reached_us"}
 #: with the column before t1, "all" — every row (what a stage may look back at: extra rows are
 #: ignored)
 IN, UPTO, ALL = "in", "upto", "all"
+#: the stages the pipeline steps, then those with the same contract that it does not
+EVERY_STAGE = (*plan.STAGES, *plan.EXTRA_STAGES)
 
 
 @dataclass
@@ -70,7 +72,7 @@ def _build_cases() -> tuple[dict[str, Case], list[int]]:
     ctx = dataclasses.make_dataclass("Ctx", ["radars", "origin", "grid_origin_us", "filters", "departure_plans"])(
         ing.radars, ds.origin, align.grid_origin_us(int(times.min())), ("singer",),
         departure_plans(plans, ds.origin))
-    stages = {s.name: s for s in plan.build_stages(cfg, ctx)}
+    stages = plan.build_stages(cfg, ctx, EVERY_STAGE)
     cases: dict[str, Case] = {}
 
     def add(name: str, inputs: dict[str, pl.DataFrame], cut: dict[str, tuple[str, str]]) -> dict[str, pl.DataFrame]:
@@ -219,13 +221,13 @@ def _joined(stage: Stage, outs: list[dict[str, pl.DataFrame]]) -> dict[str, pl.D
 
 def test_every_stage_is_covered_and_built_in_order(run):
     cases, _ = run
-    assert set(cases) == set(plan.STAGES), "a stage of plan.STAGES has no conformance case"
-    assert [c.stage.name for c in cases.values()] == list(plan.STAGES)
+    assert set(cases) == set(EVERY_STAGE), "a stage of plan.STAGES has no conformance case"
+    assert [c.stage.name for c in cases.values()] == list(EVERY_STAGE)
     for case in cases.values():
         assert isinstance(case.stage, Stage)
 
 
-@pytest.mark.parametrize("name", plan.STAGES)
+@pytest.mark.parametrize("name", EVERY_STAGE)
 def test_windowed_steps_equal_one_whole_step(run, name):
     cases, cuts = run
     case = cases[name]
@@ -243,7 +245,7 @@ def _first_window(cuts: list[int]) -> Window:
     return _windows(cuts)[0]
 
 
-@pytest.mark.parametrize("name", plan.STAGES)
+@pytest.mark.parametrize("name", EVERY_STAGE)
 def test_an_empty_window_leaves_the_state_unchanged(run, name):
     cases, cuts = run
     case = cases[name]
@@ -260,7 +262,7 @@ def test_an_empty_window_leaves_the_state_unchanged(run, name):
     assert_same_state(after, state, ignore=frozenset(CLOCK_FIELDS))
 
 
-@pytest.mark.parametrize("name", plan.STAGES)
+@pytest.mark.parametrize("name", EVERY_STAGE)
 def test_step_does_not_modify_its_input_state(run, name):
     cases, cuts = run
     case = cases[name]
@@ -271,7 +273,7 @@ def test_step_does_not_modify_its_input_state(run, name):
     assert_same_state(state, before)
 
 
-@pytest.mark.parametrize("name", plan.STAGES)
+@pytest.mark.parametrize("name", EVERY_STAGE)
 def test_the_state_pickles_and_steps_on_the_same(run, name):
     cases, cuts = run
     case = cases[name]
@@ -286,7 +288,7 @@ def test_the_state_pickles_and_steps_on_the_same(run, name):
     assert_same_state(b, a)
 
 
-@pytest.mark.parametrize("name", plan.STAGES)
+@pytest.mark.parametrize("name", EVERY_STAGE)
 def test_a_bad_window_is_refused(run, name):
     cases, cuts = run
     case = cases[name]

@@ -18,7 +18,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary import pipeline
-from tertiary.stages.tracking.filters import make_filter
+from tertiary.filters import make_filter
 from tertiary.contract import TIME
 from tertiary.simulate import load_scenario, simulate
 from tertiary.stages.tracking.tracker import (TrackerConfig, TrackState, init_track_state, track_methods, track_step)

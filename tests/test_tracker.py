@@ -15,7 +15,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.stages.tracking.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
+from tertiary.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
 from tertiary.contract import validate
 from tertiary.stages.tracking.gating import assign
 from tertiary.stages.tracking.tracker import TRACK_COLUMNS, TrackerConfig, track
@@ -424,7 +424,7 @@ def test_bad_config(kw):
 def _registered(name: str) -> TrackFilter:
     # an import error is a failure here, never a skip: the registry must hold every shipped filter
     for mod in ("linear", "singer"):
-        importlib.import_module(f"tertiary.stages.tracking.filters.{mod}")
+        importlib.import_module(f"tertiary.filters.{mod}")
     assert name in REGISTRY, f"filter {name!r} is not registered"
     return make_filter(name)
 

@@ -17,7 +17,7 @@ import polars as pl
 import pytest
 
 from tertiary import pipeline
-from tertiary.stages.tracking.filters import make_filter
+from tertiary.filters import make_filter
 from tertiary.simulate import load_scenario, simulate
 from tertiary.stages.tracking.tracker import track, track_methods
 

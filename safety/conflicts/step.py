@@ -16,6 +16,8 @@ from safety.conflicts.config import FT_M, NM_M, ConflictConfig
 from safety.conflicts.pairs import CONFLICT_EXTRA, WindowRows
 from tertiary.contract import TABLES
 from tertiary.core import geo
+from tertiary.core.errors import OptionError
+from tertiary.core.stage import T_MAX_US, T_MIN_US, Window, check_window
 
 __all__ = ["T_MIN_US", "T_MAX_US", "ConflictState", "init_conflict_state", "conflicts_step", "conflicts_steps",
            "predict_conflicts", "slim_conflicts"]
@@ -61,11 +63,6 @@ def _established(tracks: pl.DataFrame, cfg: ConflictConfig) -> pl.DataFrame:
     return tracks.filter(var <= lim * lim)
 
 
-#: unbounded window ends (int64 µs): the whole-run call is one step over (−∞, +∞)
-T_MIN_US = -(1 << 63)
-
-
-T_MAX_US = (1 << 63) - 1
 
 
 #: schemas of the carried state (natural keys, absolute int64 µs times)
@@ -131,19 +128,6 @@ def _normalise(picture: pl.DataFrame, id_col: str, method_col: str, default_meth
     if method_col not in picture.columns:
         picture = picture.with_columns(pl.lit(default_method, pl.String).alias(method_col))
     return picture
-
-
-def _check_window(state: ConflictState, picture: pl.DataFrame, t0_us: int, t1_us: int) -> None:
-    """Windows come in time order and every row lies in [t0_us, t1_us)."""
-    if not t0_us < t1_us:
-        raise ValueError(f"conflicts_step: empty or reversed window [{t0_us}, {t1_us}) µs")
-    if state.t_us is not None and t0_us < state.t_us:
-        raise ValueError(f"conflicts_step: window [{t0_us}, {t1_us}) µs starts before the end of the "
-                         f"previous one ({state.t_us} µs)")
-    if picture.height:
-        lo, hi = picture.select(_epoch_us_expr().min().alias("lo"), _epoch_us_expr().max().alias("hi")).row(0)
-        if lo < t0_us or hi >= t1_us:
-            raise ValueError(f"tracks: epochs [{lo}, {hi}] µs outside the window [{t0_us}, {t1_us}) µs")
 
 
 def _epoch_grid(carried: pl.DataFrame, picture: pl.DataFrame, method_col: str) -> pl.DataFrame:
@@ -216,7 +200,9 @@ def conflicts_steps(states: Sequence[ConflictState], picture: pl.DataFrame, cfgs
         raise ValueError("conflicts_steps: one state per configuration")
     tracks = _normalise(picture, id_col, method_col, default_method)
     for state in states:
-        _check_window(state, tracks, t0_us, t1_us)
+        if not t0_us < t1_us:       # a conflict window holds at least one epoch
+            raise OptionError(f"conflicts_step: empty or reversed window [{t0_us}, {t1_us}) µs", option="window")
+        check_window(tracks, Window(0, t0_us, t1_us), after_us=state.t_us, table="tracks")
     grids = _shared([s.grid for s in states], lambda carried: _epoch_grid(carried, tracks, method_col))
     kept: list[tuple[pl.DataFrame, pl.DataFrame]] = []
     memo: list[tuple[tuple, pl.DataFrame, tuple[pl.DataFrame, pl.DataFrame]]] = []

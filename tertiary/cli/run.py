@@ -22,7 +22,7 @@ from tertiary.sensors.collection import CollectionConfig
 from tertiary.stages.association.associate import AssociationConfig
 from tertiary.stages.association.gating import GatingConfig
 from tertiary.stages.fusion import ALL_METHODS
-from tertiary.stages.tracking.filters import REGISTRY
+from tertiary.filters import REGISTRY
 from tertiary.store.summary import run_summary
 
 

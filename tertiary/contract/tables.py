@@ -89,7 +89,7 @@ _RADARS = TableSchema(
 #: Mode S enhanced-surveillance parameters extracted with a report (BDS 5,0 ground speed, true
 #: track angle (° clockwise from north), track-angle rate (°/s), roll angle (°, right wing down
 #: positive); BDS 6,0 inertial vertical rate (m/s)); null without a Mode S reply or not extracted.
-#: Inputs of the chapter 3 range channels (:mod:`tertiary.stages.tracking.filters.kinematic`).
+#: Inputs of the chapter 3 range channels (:mod:`tertiary.filters.kinematic`).
 EHS_REPORT_COLUMNS = ("ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_roll_deg", "ehs_vrate_mps")
 #: Mode S EHS BDS 4,0 MCP/FCU selected altitude (m, 16 ft quantum, the pressure-altitude reference
 #: of ``altitude_m``): the level the crew selected, null without one. Carried reports → aligned →

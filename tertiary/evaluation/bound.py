@@ -16,7 +16,7 @@ eq. (34); no measurement values enter):
 
 Dynamics: the simulator's own process model — the Singer model of its radars' channels,
 per Cartesian axis of the system frame, state (p, v, a), Φ(τ) and Q(τ) = diag(0, 0, D_a) from
-:func:`tertiary.stages.tracking.filters.singer.singer_phi` / ``singer_q`` with the scenario's ``[tracker]``
+:func:`tertiary.filters.singer.singer_phi` / ``singer_q`` with the scenario's ``[tracker]``
 α, σ_m and variant (monograph (2.49)–(2.63), tertiary (4.46)). Prior at an aircraft's first
 event: position σ ``p0_sigma_m`` (diffuse), velocity σ ``v0_sigma_mps``, acceleration σ_m.
 
@@ -75,7 +75,7 @@ from tertiary.core import geo
 from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import US
 from tertiary.evaluation.bound_kernel import pcrb_singer9
-from tertiary.stages.tracking.filters.singer import Variant, singer_phi, singer_q
+from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.contract import TABLES, TIME
 
 __all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS"]

@@ -24,7 +24,7 @@ from tertiary.stages.clustering import ClusteringConfig
 from tertiary.stages.flight_data import DepartureConfig
 from tertiary.stages.fusion import ALL_METHODS, METHODS, FusionConfig
 from tertiary.stages.fusion.centralized import CentralizedConfig
-from tertiary.stages.tracking.filters import REGISTRY
+from tertiary.filters import REGISTRY
 from tertiary.stages.tracking.tracker import TrackerConfig
 
 __all__ = ["PipelineConfig", "adapt_to_scenario", "check_config", "config_dict", "default_conflict_config"]

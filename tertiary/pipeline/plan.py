@@ -1,11 +1,11 @@
-"""The streamed stages as :class:`~tertiary.runtime.stage.Stage` values, in pipeline order.
+"""The streamed stages as :class:`~tertiary.core.stage.Stage` values, in pipeline order.
 
 Each class is a thin adapter: it binds a stage's configuration and the run's fixed context
 (radars, system frame, fusion methods, tracker filters…) when it is built and calls the stage's
 step function, so it produces exactly what that function produces. Inputs and outputs are
 named tables holding the window's rows (what :func:`tertiary.pipeline.streaming.pipeline_step` passes
 and receives); an adapter refuses a bad window or rows outside it with
-:func:`~tertiary.runtime.stage.check_window`.
+:func:`~tertiary.core.stage.check_window`.
 
 Two kinds of outputs are not a window's rows: :attr:`totals` are one-row counts that add up
 over windows (the association statistics) and :attr:`snapshots` describe the state after the
@@ -25,7 +25,7 @@ from safety.confirmation import ConfirmState, confirm_step
 from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state
 from tertiary import contract as schema
 from tertiary.core import geo
-from tertiary.runtime.stage import Stage, Window, check_window
+from tertiary.core.stage import Stage, Window, check_window
 from tertiary.stages import align as align_stage
 from tertiary.stages.association.associate import AssociationConfig, associate_step, init_associate_state
 from tertiary.stages.clustering import ClusteringConfig, cluster_step, init_cluster_state
@@ -34,9 +34,13 @@ from tertiary.stages.fusion.centralized import CentralizedConfig, centralized_st
 from tertiary.stages.fusion import FusionConfig, fuse_step, init_fuse_state
 from tertiary.stages.tracking.tracker import TrackerConfig, init_track_state, track_step
 
-#: the streamed stages, in pipeline order (one window goes through them in this order)
+#: the streamed stages the pipeline runs, in pipeline order (one window goes through them in this
+#: order; :func:`tertiary.pipeline.streaming.pipeline_step` steps each through its adapter)
 STAGES: tuple[str, ...] = ("align", "departures", "associate", "fuse", "centralized", "cluster", "track",
-                           "conflicts", "alert_confirmation")
+                           "conflicts")
+#: stages with the same contract that a run does not step on their own: conflict prediction
+#: confirms its alerts itself; the m-of-n confirmation is a stage for pictures scored alone
+EXTRA_STAGES: tuple[str, ...] = ("alert_confirmation",)
 
 
 class _Adapter:
@@ -310,12 +314,12 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
     }
     if name not in builders:
-        raise KeyError(f"no stage {name!r}; the stages are {', '.join(STAGES)}")
+        raise KeyError(f"no stage {name!r}; the stages are {', '.join((*STAGES, *EXTRA_STAGES))}")
     return builders[name]()
 
 
-def build_stages(cfg: Any, context: Any, names: Sequence[str] = STAGES) -> list[Stage]:
+def build_stages(cfg: Any, context: Any, names: Sequence[str] = STAGES) -> dict[str, Stage]:
     """The stages ``names`` (default: every one of :data:`STAGES`, in pipeline order) built for
     ``cfg`` (a ``PipelineConfig``) and ``context`` (a ``RunContext``). Which of them a run
     uses is the configuration's: ``centralized``, ``filters``, ``safety``, departure plans."""
-    return [build_stage(n, cfg, context) for n in names]
+    return {n: build_stage(n, cfg, context) for n in names}

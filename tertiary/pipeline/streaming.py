@@ -19,6 +19,7 @@ from safety import conflicts as safety_conflicts
 from tertiary import contract
 from tertiary.core import geo
 from tertiary.core.errors import DataError
+from tertiary.core.stage import Stage
 from tertiary.core.units import US
 from tertiary.evaluation.evaluate import AssociationScore, score_associations
 from tertiary.io.dataset import Dataset
@@ -27,7 +28,8 @@ from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_co
 from tertiary.pipeline.ingestion import (Ingested, no_rejects, registered, stage_rejects_table, valid_flight_plans,
                                          validate_table)
 from tertiary.pipeline.pictures import safety_picture
-from tertiary.runtime.windows import (DEFAULT_WINDOW_S, END_US, Meter, PartStore, ReportSource, Window, check_window,
+from tertiary.pipeline.plan import build_stages
+from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
 from tertiary.stages import align as align_stage
@@ -38,7 +40,7 @@ from tertiary.stages.flight_data import (DepartureState, correlate, departure_pl
                                          init_departure_state)
 from tertiary.stages.fusion import FuseState, fuse_step, init_fuse_state, measured_plots
 from tertiary.stages.fusion.centralized import CentralizedState, centralized_step, init_centralized_state
-from tertiary.stages.tracking.filters import TrackFilter
+from tertiary.filters import TrackFilter
 from tertiary.stages.tracking.tracker import TrackState, filter_dict, init_track_state, track_step
 
 __all__ = ["RunContext", "StreamState", "WindowStore", "init_stream_state", "pipeline_step", "stream",
@@ -63,6 +65,9 @@ class RunContext:
     median: datetime | None = None    # the whole input's median report time (windows are validated against it)
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # valid rows (tertiary.stages.flight_data)
     departure_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # flight_data.departure_plans
+    #: the declared stages (:data:`tertiary.pipeline.plan.STAGES`) built for the run; empty: built
+    #: by :func:`pipeline_step` on first use
+    stages: dict[str, Stage] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -154,22 +159,22 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     to_align = reports
     if ctx.flight_plans.height:     # each report's cleared level, by its Mode 3/A code (tertiary.stages.flight_data)
         to_align = correlate(reports, ctx.flight_plans)
+    stages = ctx.stages or build_stages(cfg, ctx)
+    ctx.stages = stages
     clock.stage("align")
-    t0 = None if w.t0_us <= -END_US else w.t0_us     # None: unbounded (the last window flushes held rows)
-    t1 = None if w.last else w.t1_us
-    g0 = ctx.grid_origin_us if ctx.grid_origin_us is not None else align_stage.epoch_grid(reports, ctx.radars, cfg.align)[0] \
-        if reports.height else 0
-    (aligned, align_rej), s_align = align_stage.align_step(st.align, to_align, ctx.radars, ctx.origin, t0, t1, g0,
-                                                           cfg.align)
+    out, s_align = stages["align"].step(st.align, {"reports": to_align}, w)
+    aligned, align_rej = out["aligned"], out["rejects"]
     s_dep = st.departures
     if ctx.departure_plans.height and "mode_3a" in recent.columns:   # uncorrelated by code: by aerodrome and time
         codes = recent.select("run", "report_id", "mode_3a")
-        aligned, s_dep = departure_step(s_dep or init_departure_state(), aligned, reports, codes,
-                                        ctx.departure_plans, cfg.departures)
+        out, s_dep = stages["departures"].step(s_dep or stages["departures"].init(),
+                                               {"aligned": aligned, "reports": reports, "codes": codes}, w)
+        aligned = out["aligned"]
     rows_in = pl.concat([st.counts.get("_rows", pl.DataFrame(schema=report_rows.schema)), report_rows])
     rejects = pl.concat([rejects, stage_rejects_table(align_rej, recent, rows_in, "align")], how="vertical_relaxed")
     clock.stage("associate")
-    (associations, stats), s_assoc = associate_step(st.associate, aligned, w.t0_us, w.t1_us, cfg.association)
+    out, s_assoc = stages["associate"].step(st.associate, {"aligned": aligned}, w)
+    associations, stats = out["associations"], out["stats"].row(0, named=True)
     s_scores = st.scores
     if s_scores is not None and "truth_id" in recent.columns:
         clock.stage("score_associations")
@@ -181,30 +186,30 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     fresh = recent.join(aligned.filter(pl.col("fresh")).select("run", "report_id"), on=["run", "report_id"],
                         how="semi") if aligned.height else recent.clear()
     plots = measured_plots(fresh, ctx.radars, ctx.origin, cfg.align.local_tracker.altitude_sigma_m)
-    fused, s_fuse = fuse_step(st.fuse, rows, ctx.radars, cfg.methods, cfg.fusion, ctx.origin, plots,
-                              w.t0_us, w.t1_us)
+    out, s_fuse = stages["fuse"].step(st.fuse, {"rows": rows, "plots": plots}, w)
+    fused = out["fused"]
     s_central = st.centralized
     if cfg.centralized:
         clock.stage("centralized")
         keys = rows.select("run", "epoch", "target_id").unique(maintain_order=True)
-        central, s_central = centralized_step(st.centralized, recent, ctx.radars, associations, keys, ctx.origin,
-                                              cfg.centralized_cfg, w.t0_us, w.t1_us, live=s_assoc.live_targets())
-        fused = pl.concat([fused, central], how="diagonal_relaxed")
+        out, s_central = stages["centralized"].step(
+            st.centralized, {"reports": recent, "associations": associations, "keys": keys,
+                             "live": s_assoc.live_targets()}, w)
+        fused = pl.concat([fused, out["centralized"]], how="diagonal_relaxed")
     clock.stage("cluster")
-    clusters, s_cluster = cluster_step(st.cluster, fused, w.t0_us, w.t1_us, cfg.clustering)
+    out, s_cluster = stages["cluster"].step(st.cluster, {"fused": fused}, w)
+    clusters = out["clusters"]
     clock.stage("track")
     pictures = fused.filter(pl.col("method") != "centralized")
-    tracks, s_track = contract.empty_frame("tracks", False), st.track
-    if cfg.filters:
-        tracks, s_track = track_step(st.track, pictures, ctx.filters, cfg.tracker, w.t0_us, w.t1_us)
-    tracks, identity = _identity_step(st.identity, tracks, pictures)
+    out, s_track = stages["track"].step(st.track, {"fused": pictures}, w)
+    tracks, identity = _identity_step(st.identity, out["tracks"], pictures)
     conflicts, s_conf = contract.empty_frame("conflicts", False), st.conflicts
     if cfg.safety:
         clock.stage("conflicts")
-        picture, id_col = safety_picture(cfg, fused, tracks, notes)
-        conflicts, s_conf = safety_conflicts.conflicts_step(st.conflicts, picture, cfg.conflicts, id_col, ctx.origin,
-                                                            w.t0_us, w.t1_us)
-    keep_from = (w.t1_us if w.t1_us < END_US else END_US) - ctx.keep_us
+        picture, _ = safety_picture(cfg, fused, tracks, notes)
+        out, s_conf = stages["conflicts"].step(st.conflicts, {"picture": picture}, w)
+        conflicts = out["conflicts"]
+    keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
                          if recent.height else rows_in.clear())
@@ -214,11 +219,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
                             s_dep, s_scores)
 
 
-def _add_counts(counts: dict, stats, rows: pl.DataFrame) -> dict:
+def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
     """Association statistics summed over windows; ``_rows`` the input rows of the reports kept."""
     out = dict(counts)
     for k in ("pairs", "components", "ambiguous_components", "reassignments"):
-        out[k] = out.get(k, 0) + int(getattr(stats, k, 0) or 0)
+        out[k] = out.get(k, 0) + int(stats.get(k, 0) or 0)
     out["_rows"] = rows
     return out
 
@@ -262,7 +267,7 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
            progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None
            ) -> tuple[RunContext, StreamState]:
     """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
-    slice of a distributed run does (:mod:`tertiary.runtime.dask_engine`); ``grid_origin_us`` puts the
+    slice of a distributed run does (:mod:`tertiary.pipeline.dask_engine`); ``grid_origin_us`` puts the
     epochs on a grid given from outside (the whole recording's), not this input's first second.
     The association metrics are not scored on the way (``StreamState.scores`` None): a slice's
     ids are its own until stitched, so the finalize scores the relabelled rows."""

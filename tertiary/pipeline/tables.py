@@ -21,7 +21,7 @@ from tertiary import contract
 from tertiary.core.errors import OptionError
 from tertiary.pipeline.clock import StageClock
 from tertiary.runtime.windows import PARTS, PartStore, prefetched
-from tertiary.runtime.windows import _concat as _concat_parts
+from tertiary.runtime.windows import concat_parts
 from tertiary.store.run_store import RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
@@ -66,7 +66,7 @@ class OnDiskTable:
                 # a scratch copy read back once or twice: fast compression, not small files
                 rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
         self.empty = empty if first is None else first
-        self._facts(_concat_parts(slim) if slim else pl.DataFrame())
+        self._facts(concat_parts(slim) if slim else pl.DataFrame())
 
     _SLIM = ("run", "method", "filter", "target_id", "tentative")
 
@@ -92,7 +92,7 @@ class OnDiskTable:
         self.direct = files
         self.index = {keys.pop(): 0}
         self.empty = pl.DataFrame(schema=pl.read_parquet_schema(files[0]))
-        self._facts(_concat_parts(slim))
+        self._facts(concat_parts(slim))
         return True
 
     def _facts(self, frame: pl.DataFrame) -> None:
@@ -107,7 +107,7 @@ class OnDiskTable:
     def picture(self, key: tuple, skip: Collection[str] = ()) -> pl.DataFrame:
         """One picture's rows, without the columns in ``skip``."""
         files, cols = self._files(key, skip)
-        return (_concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
+        return (concat_parts([pl.read_parquet(f, columns=cols) for f in files]) if files
                 else self.empty.select(cols))
 
     def blocks(self, key: tuple, skip: Collection[str] = (), rows: int | None = None) -> Iterator[pl.DataFrame]:
@@ -120,10 +120,10 @@ class OnDiskTable:
             held.append(pl.read_parquet(f, columns=cols))
             n += held[-1].height
             if n >= rows:
-                yield _concat_parts(held)
+                yield concat_parts(held)
                 held, n = [], 0
         if held:
-            yield _concat_parts(held)
+            yield concat_parts(held)
 
     def _files(self, key: tuple, skip: Collection[str]) -> tuple[list[Path], list[str]]:
         """A picture's window files in window order, and the columns read (all but ``skip``)."""

@@ -9,8 +9,8 @@ from collections.abc import Iterable
 from tertiary.core import jit
 from tertiary.evaluation import bound_kernel  # noqa: F401  (registers "pcrb")
 from tertiary.stages.tracking import altitude_kernel  # noqa: F401  (registers "altitude")
-from tertiary.stages.tracking.filters import make_filter
-from tertiary.stages.tracking.filters.imm import IMMFilter
+from tertiary.filters import make_filter
+from tertiary.filters.imm import IMMFilter
 
 __all__ = ["GROUPS", "kernels_for", "warm_kernels"]
 

@@ -28,7 +28,7 @@ from tertiary.io.dataset import Dataset, read_dataset, write_dataset
 from tertiary.pipeline.runner import run
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.report.html import build_report
-from tertiary.runtime.dask_engine import run_dask
+from tertiary.pipeline.dask_engine import run_dask
 from tertiary.pipeline.warmup import kernels_for, warm_kernels
 from tertiary.sensors.local_tracks import ESTIMATE_COLUMNS
 from tertiary.sensors.registration import read_table

@@ -21,7 +21,7 @@ shared database writer.
 
 What streams and what does not (measured in ``benchmarks/bench_memory.py``): ingest, align,
 associate, fuse, the centralised reference, clustering, the trackers and conflict prediction
-carry explicit state (the :class:`tertiary.runtime.stage.Stage` contract) and see one window at a
+carry explicit state (the :class:`tertiary.core.stage.Stage` contract) and see one window at a
 time; the finalize stage holds the streamed tables of the whole run.
 """
 
@@ -51,13 +51,10 @@ from tertiary import contract as schema
 from tertiary.store.run_store import atomic_path, write_parquet_atomic, write_text_atomic
 from tertiary.core.errors import DataError, OptionError
 from tertiary.core.units import US
-from tertiary.runtime.stage import T_MIN_US, T_MAX_US, Window
+from tertiary.core.stage import T_MIN_US, T_MAX_US, Window
 
 T = TypeVar("T")
 
-#: the end of time on the grid (µs): the last window is open-ended so that every carried row
-#: (alignment hold-back, coasting tracks) is flushed; the start of time is ``-END_US`` or below
-END_US = T_MAX_US
 #: window length (s) of the API's windowed functions, and of ``--window auto`` when the input
 #: has no usable time span (or with ``--engine dask``, whose slices are multiples of it)
 DEFAULT_WINDOW_S = 300.0
@@ -517,4 +514,3 @@ def utc_text(us: int) -> str:
 
 
 #: the old private name, still imported by :mod:`tertiary.pipeline.tables`
-_concat = concat_parts

@@ -34,6 +34,7 @@ import math
 from dataclasses import dataclass
 from functools import cache
 
+import numba
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
@@ -184,7 +185,6 @@ def _queue_py(t, service, seg_starts, mode, max_wait, servers, places):  # noqa:
 
 @cache
 def _compiled():
-    import numba
     return numba.njit(cache=True)(_queue_py)
 
 

@@ -8,7 +8,7 @@ Each local track is filtered in three decoupled polar channels (range, azimuth, 
 each a Singer Kalman filter (monograph eqs. (4.46), (4.53)–(4.71); range channel exactly as the
 seed's per-radar range channel). As an option (``LocalTrackerConfig.range_channel``) the range
 coordinate of tracks whose reports carry Mode S enhanced-surveillance parameters runs one of the
-monograph's chapter 3 channels instead (:mod:`tertiary.stages.tracking.filters.kinematic`: kinematic-parameter
+monograph's chapter 3 channels instead (:mod:`tertiary.filters.kinematic`: kinematic-parameter
 (3.12)–(3.58) or kinematic + dynamic (3.59)–(3.127)); other tracks keep the Singer channel. Angular channels use the cross-range manoeuvre intensity
 divided by the range, so one σ_m in m/s² describes the aircraft. The polar estimate with its
 rates is converted to radar-local ENU position/velocity with the full 6×6 covariance J P Jᵀ.
@@ -32,9 +32,9 @@ from numpy.typing import NDArray
 from tertiary.core import geo
 from tertiary.core.errors import OptionError
 from tertiary.contract import EHS_REPORT_COLUMNS, is_sorted_by
-from tertiary.stages.tracking.filters import kinematic_los as los
-from tertiary.stages.tracking.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
-from tertiary.stages.tracking.filters.singer import (SingerModel, predict_elementwise, singer_coefficients, update_elementwise)
+from tertiary.filters import kinematic_los as los
+from tertiary.filters.kinematic import (KinematicDynamicRangeChannel, KinematicRangeChannel, channel_inputs, dynamic_aux, kinematic_aux)
+from tertiary.filters.singer import (SingerModel, predict_elementwise, singer_coefficients, update_elementwise)
 
 TRACK_KEY = ["run", "radar_id", "local_track_id"]
 
@@ -70,7 +70,7 @@ class LocalTrackerConfig:
       the auxiliary filters coast); other tracks keep the Singer channel.
     * ``range_variant``: (3.11) resp. (3.62) ``"corrected"`` or ``"printed"``.
     * ``range_speed_rate``: add the along-track acceleration V̇ (the rate of the V_ц auxiliary
-      filter) to u — the term V̇ c_x of :func:`~tertiary.stages.tracking.filters.kinematic_los.los_acceleration`
+      filter) to u — the term V̇ c_x of :func:`~tertiary.filters.kinematic_los.los_acceleration`
       (kinematic) resp. V̇/g in n_x (kinematic + dynamic). The monograph's (3.11) is the V̇ = 0
       case; terminal-area traffic accelerates and decelerates (departures 0.3 m/s² for minutes),
       which V̇ = 0 turns into a range-acceleration bias. False: as printed.
@@ -319,7 +319,7 @@ def ehs_tracks(df: pl.DataFrame, starts: NDArray[np.int64], lengths: NDArray[np.
 
 
 def _chapter3_inputs(df: pl.DataFrame, z: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
-    """Channel inputs (:func:`~tertiary.stages.tracking.filters.kinematic.channel_inputs`) of every report: the
+    """Channel inputs (:func:`~tertiary.filters.kinematic.channel_inputs`) of every report: the
     plot's range, azimuth, elevation and the EHS ground speed, track, vertical rate and roll."""
     e = {c: df[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in _EHS_NEEDED}
     return channel_inputs(z[:, 0], np.degrees(z[:, 1]), np.degrees(z[:, 2]), e["ehs_gs_mps"], e["ehs_track_deg"],

@@ -19,7 +19,7 @@ variance S > 0; NIS = ν²/S (m = 1).
   mean-removed Myers–Tapley form) R̂_A = 1/(N−1) Σ (ν_j − ν̄)² − (1/N) Σ (H P⁻ Hᵀ)_j (the printed
   (4.24) pulls a (N−1)/N in front of the current H P⁻ Hᵀ instead; with per-sample prior terms it
   is the mean, seed 003 §4.3 safeguard 2), and variant B R̂_B = (1/N) Σ (ν_j² − (H P⁻ Hᵀ)_j)
-  (as :class:`tertiary.stages.tracking.filters.adaptive_r.AdaptiveR`). Clamped to [``floor_frac``,
+  (as :class:`tertiary.filters.adaptive_r.AdaptiveR`). Clamped to [``floor_frac``,
   ``ceil_frac``] × σ²_range, used from ``r_min_samples`` samples on. A absorbs an innovation
   bias, B turns it into variance (safeguard 5): their ratio flags a bias.
 * **NIS gate flags**: share of reports with NIS above χ²₁(``gate_prob``) (9.0 at 0.9973).

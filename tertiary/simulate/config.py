@@ -13,7 +13,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 
 from tertiary.contract import Limits
 from tertiary.core.errors import DataError, OptionError, ResourceError
-from tertiary.stages.tracking.filters.singer import SingerModel
+from tertiary.filters.singer import SingerModel
 from tertiary.sensors.local_tracks import LocalTrackerConfig
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 

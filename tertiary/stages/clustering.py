@@ -70,7 +70,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from tertiary.runtime.stage import T_MIN_US, Window, check_window
+from tertiary.core.stage import T_MIN_US, Window, check_window
 from tertiary.contract import TABLES
 
 __all__ = ["ClusteringConfig", "ClusterState", "cluster", "cluster_step", "cluster_summary", "init_cluster_state"]
@@ -330,7 +330,7 @@ class ClusterState:
     * ``targets``: run, method, target_id of the targets clustered at their stream's last
       epoch, with that ``cluster_id`` (0-based) and ``lead``; no other target can continue a
       cluster, so nothing else is kept.
-    * ``t_us``: end of the last window processed (:data:`~tertiary.runtime.stage.T_MIN_US` before the first).
+    * ``t_us``: end of the last window processed (:data:`~tertiary.core.stage.T_MIN_US` before the first).
     """
 
     streams: pl.DataFrame

@@ -61,7 +61,7 @@ from scipy.sparse.csgraph import connected_components
 
 from tertiary.core.distributions import chi2_ppf
 from tertiary.core.errors import OptionError
-from tertiary.runtime.stage import T_MIN_US, Window, check_window
+from tertiary.core.stage import T_MIN_US, Window, check_window
 from tertiary.stages.association.gating import GatingConfig, Pairs, candidate_pairs, group_index
 
 BIG = 1e18
@@ -135,7 +135,7 @@ class AssociateState:
       its system target id on: ``target_id`` at its last epoch and ``seen_us`` = that epoch
       (absolute µs). Tracks silent for more than ``carry_gap_s`` before the latest epoch seen
       are dropped (they could never vote again), so the state stays bounded.
-    * ``t_us``: end of the last window processed (:data:`~tertiary.runtime.stage.T_MIN_US` before the first).
+    * ``t_us``: end of the last window processed (:data:`~tertiary.core.stage.T_MIN_US` before the first).
     * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
       Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
       gets the ids it gets in the whole job.

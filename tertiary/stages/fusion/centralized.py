@@ -19,7 +19,7 @@ own channels (monograph (2.49)–(2.63), tertiary (4.46)): state [p, v, a] per a
 
     Φ(τ) = blockdiag(φ(τ), φ(τ), φ(τ)),   Q(τ) = blockdiag(q(τ), q(τ), q(τ))        (2.51)/(4.46)
 
-with φ, q from :func:`tertiary.stages.tracking.filters.singer.singer_phi` / ``singer_q`` (``variant="printed"``
+with φ, q from :func:`tertiary.filters.singer.singer_phi` / ``singer_q`` (``variant="printed"``
 by default: φ₃₃ = 1 − ατ, D_a = σ_m²(2ατ − α²τ²)).
 
 Measurement: the plot converted to Cartesian coordinates, radar polar → radar-local ENU →
@@ -73,7 +73,7 @@ from numpy.typing import NDArray
 from tertiary.core import geo
 from tertiary.stages.align import conversion_valid
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict, quantisation_variance)
-from tertiary.stages.tracking.filters.singer import Variant, singer_phi, singer_q
+from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
 from tertiary.contract import TABLES, TIME
 

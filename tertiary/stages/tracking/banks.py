@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from tertiary.core.units import STATE, US
 from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltState, predict as alt_predict, update2 as alt_update
 from tertiary.stages.tracking.config import TRACK_COLUMNS, TrackerConfig
-from tertiary.stages.tracking.filters.base import State, TrackFilter, concat, full_cov, size, take
+from tertiary.filters.base import State, TrackFilter, concat, full_cov, size, take
 from tertiary.stages.tracking.gating import PlotIndex, Plots, assign, likelihood_cost, tracking_pairs, vertical_ok
 
 __all__ = ["Bank", "Emitted", "track_batch"]

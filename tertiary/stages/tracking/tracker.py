@@ -20,7 +20,7 @@ Input is the ``fused`` table of ONE fusion method. Each fused row is a *plot* in
   A ``fused`` table without these columns is used as before, its fused position with the full
   3×3 position block of ``cov`` as the measurement at the epoch.
 
-Filters that declare ``full_r`` (:mod:`tertiary.stages.tracking.filters.coupled`) get the full 3×3
+Filters that declare ``full_r`` (:mod:`tertiary.filters.coupled`) get the full 3×3
 covariance, the per-axis filters its diagonal. Rows flagged ``tentative`` (clutter-only
 targets) are dropped on input. The fused target ids are not used for association (the tracker
 associates by position only); they are reported per row as ``plot_target_id`` so the
@@ -120,7 +120,7 @@ from numpy.typing import NDArray
 from tertiary.contract import TIME
 from tertiary.stages.tracking.banks import Bank, track_batch
 from tertiary.stages.tracking.config import STATUS, TRACK_COLUMNS, TrackerConfig
-from tertiary.stages.tracking.filters.base import TrackFilter, make_filter
+from tertiary.filters.base import TrackFilter, make_filter
 from tertiary.stages.tracking.gating import PlotIndex
 
 __all__ = ["TrackerConfig", "TrackState", "Filters", "filter_dict", "init_track_state", "track", "track_methods",

@@ -41,7 +41,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
 from tertiary.core.geo import sandwich
 
 Variant = Literal["newton", "gauss_newton", "printed"]

@@ -1,5 +1,5 @@
 """Innovation-based adaptive measurement noise (seed 003) as a wrapper
-around any *linear* :class:`~tertiary.stages.tracking.filters.base.TrackFilter`.
+around any *linear* :class:`~tertiary.filters.base.TrackFilter`.
 
 Covariance matching: the innovation covariance is H P⁻ Hᵀ + R, so R is estimated from a
 sliding window of the last N innovations of each track (variant B of the source, per-channel
@@ -33,7 +33,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary.stages.tracking.filters.base import (F64, Innovation, Output, State, TrackFilter, make_filter, register)
+from tertiary.filters.base import (F64, Innovation, Output, State, TrackFilter, make_filter, register)
 
 PREFIX = "aekf_"
 

@@ -1,5 +1,5 @@
 """What stitching a sliced run changes: :func:`stitching_effects` compares a sliced run's tables
-(:mod:`tertiary.runtime.dask_engine`) with an unsliced run's, by time since the nearest slice
+(:mod:`tertiary.pipeline.dask_engine`) with an unsliced run's, by time since the nearest slice
 boundary."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from typing import Any
 import polars as pl
 
 from tertiary.core.units import US
-from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.core.stage import T_MAX_US, T_MIN_US
 
 
 def boundary_utc(us: int) -> str:

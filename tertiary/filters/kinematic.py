@@ -1,6 +1,6 @@
 """Chapter 3 range channels driven by onboard parameters, batched over tracks / Monte-Carlo runs.
 
-Two per-radar range channels that sit beside the Singer channel (:mod:`tertiary.stages.tracking.filters.singer`):
+Two per-radar range channels that sit beside the Singer channel (:mod:`tertiary.filters.singer`):
 
 ``kinematic``          §3.4, (3.12)–(3.58): base filter x = [D, V, a] whose acceleration is the
                        kinematic LOS acceleration u = a_L (3.11)/(3.32) computed from five
@@ -20,14 +20,14 @@ so the predicted acceleration *is* u(k) with variance D_a (P⁻ third row [0, 0,
 filter is the printed Singer recursion (2.49)–(2.63) with Φ₃₃ = 0 plus the input, and reuses its
 elementwise kernels. Auxiliary filters (3.34)–(3.58)/(3.88)–(3.127): x_i = [p_i, ṗ_i],
 Φ_i = [[1, τ], [0, 1 − α_i τ]], Q_i = diag(0, D_i), H = [1, 0], R_i, with
-D_i = σ_i²(2α_i τ − α_i²τ²) (stationary rate variance σ_i², as :func:`~tertiary.stages.tracking.filters.singer.singer_q`).
+D_i = σ_i²(2α_i τ − α_i²τ²) (stationary rate variance σ_i², as :func:`~tertiary.filters.singer.singer_q`).
 
 Per-step order: u(k) from the auxiliary x⁺(k); base predict + update with D(k+1);
 auxiliary predict + update with their measurements at k+1. Angle innovations are wrapped to
 (−π, π] (the source does not say so). A NaN measurement means "no measurement": that filter
 coasts (x⁺ = x⁻, P⁺ = P⁻, memory mode §2.1).
 
-State (a :data:`~tertiary.stages.tracking.filters.base.State`, track axis first so ``take``/``concat`` apply):
+State (a :data:`~tertiary.filters.base.State`, track axis first so ``take``/``concat`` apply):
 ``x`` (B, 3) base [D, V, a]; ``P`` (B, 6) packed (P00, P01, P02, P11, P12, P22);
 ``ax`` (B, n, 2) auxiliary [p, ṗ]; ``aP`` (B, n, 3) packed (P00, P01, P11); ``u`` (B,) the input
 used for the next prediction.
@@ -46,9 +46,9 @@ from typing import ClassVar, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.stages.tracking.filters import kinematic_los as los
-from tertiary.stages.tracking.filters.base import F64, State
-from tertiary.stages.tracking.filters.singer import predict_elementwise, update_elementwise
+from tertiary.filters import kinematic_los as los
+from tertiary.filters.base import F64, State
+from tertiary.filters.singer import predict_elementwise, update_elementwise
 
 __all__ = ["AuxFilter", "KinematicRangeChannel", "KinematicDynamicRangeChannel", "channel_inputs",
            "RANGE_CHANNELS", "make_range_channel"]
@@ -238,7 +238,7 @@ class KinematicRangeChannel(_Channel):
     """§3.4 kinematic-parameter range channel (3.12)–(3.58); u = a_L of (3.11)/(3.32) from the
     corrected auxiliary estimates (V_ц⁺, θ⁺, ω_θ⁺, φ⁺, ω_φ⁺, ε_B⁺, ω_B⁺, ε_Г⁺, ω_Г⁺)(k).
     ``variant="printed"`` uses (3.11) with the V bracket closed early as printed (see
-    :func:`~tertiary.stages.tracking.filters.kinematic_los.los_acceleration`); ``"corrected"`` as (3.12)/(3.15)."""
+    :func:`~tertiary.filters.kinematic_los.los_acceleration`); ``"corrected"`` as (3.12)/(3.15)."""
 
     name: ClassVar[str] = "kinematic"
     variant: Variant = "corrected"
@@ -294,7 +294,7 @@ def channel_inputs(range_m: ArrayLike, azimuth_deg: ArrayLike, elevation_deg: Ar
 
     V_ц = √(GS² + ḣ²), θ = atan2(ḣ, GS), φ = −track, γ_v = roll (positive right wing down turns
     right, i.e. φ decreasing: ω_φ = −(g/V) tan γ); load factors of coordinated flight with
-    constant speed and flight-path angle (:func:`~tertiary.stages.tracking.filters.kinematic_los.coordinated_load_factors`),
+    constant speed and flight-path angle (:func:`~tertiary.filters.kinematic_los.coordinated_load_factors`),
     since EHS carries no accelerometer data."""
     gs, vr = np.asarray(ground_speed_mps, float), np.asarray(vertical_rate_mps, float)
     theta = np.arctan2(vr, gs)

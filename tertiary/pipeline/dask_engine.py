@@ -49,9 +49,9 @@ from scipy.optimize import linear_sum_assignment
 
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset
-from tertiary.runtime.stitch_effects import boundary_utc, parse_utc, stitching_effects  # noqa: F401 (re-exported)
+from tertiary.pipeline.stitch_effects import boundary_utc, parse_utc, stitching_effects  # noqa: F401 (re-exported)
 from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
-from tertiary.runtime.stage import T_MAX_US, T_MIN_US
+from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
 

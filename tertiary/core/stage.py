@@ -73,7 +73,8 @@ def check_window(frame: pl.DataFrame, window: Window, *, after_us: int | None = 
     if t0 > t1:
         raise OptionError(f"window [{t0}, {t1}) µs ends before it starts", option="window")
     if after_us is not None and t0 < after_us:
-        raise OptionError(f"window [{t0}, {t1}) µs does not follow the state's end {after_us} µs", option="window")
+        raise OptionError(f"window [{t0}, {t1}) µs does not follow the state's end: it starts before the end of "
+                          f"the previous one ({after_us} µs)", option="window")
     if frame.height == 0:
         return
     if column not in frame.columns:

@@ -8,7 +8,7 @@ fused plot as independent scalar-measurement channels — the monograph's single
 All arithmetic is elementwise over arrays of shape (B, 3) (tracks × axes): no Python loop over
 tracks and no per-track matrices.
 
-State layout (track axis first, as :mod:`tertiary.stages.tracking.filters.base` requires):
+State layout (track axis first, as :mod:`tertiary.filters.base` requires):
 
 ``x``  (B, 3, n)  per-axis state, n = 2 ([p, v]) or 3 ([p, v, a])
 ``P``  (B, 3, m)  per-axis covariance, packed upper triangle: (P00, P01, P11) for n = 2,
@@ -16,7 +16,7 @@ State layout (track axis first, as :mod:`tertiary.stages.tracking.filters.base` 
 
 plus filter-specific keys documented on each class. Internally the component axis is moved to
 the front — (n, B, 3) contiguous arrays — so each component is one flat array (see
-:func:`tertiary.stages.tracking.filters.singer.predict_elementwise`).
+:func:`tertiary.filters.singer.predict_elementwise`).
 
 Filters (registry names):
 
@@ -35,7 +35,7 @@ Common conventions:
 * ``predict`` never modifies its input; ``update`` keeps the prediction (x⁺ = x⁻, P⁺ = P⁻,
   "memory mode" §2.1) where ``mask`` is False. Measurements and variances of masked-out tracks
   are ignored (they may be NaN).
-* :class:`~tertiary.stages.tracking.filters.base.Innovation`: ν = z − Hx⁻ and S = HP⁻Hᵀ + R per axis, NaN for
+* :class:`~tertiary.filters.base.Innovation`: ν = z − Hx⁻ and S = HP⁻Hᵀ + R per axis, NaN for
   tracks without a plot; NIS = Σ_axes ν²/S.
 * Per-axis parameters (q, σ_m, …) accept a scalar (all axes) or a 3-sequence (x, y, z).
 """
@@ -49,11 +49,11 @@ from typing import ClassVar, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.stages.tracking.filters.axes import (PAIRS, PerAxis, axis_param, components, gain_update, init_state,
+from tertiary.filters.axes import (PAIRS, PerAxis, axis_param, components, gain_update, init_state,
                                                     innovation, mask3, masked_innovation, masked_variance, output6,
                                                     per_axis, predict2, state_layout, tau3, update2)
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.stages.tracking.filters.singer import predict_elementwise
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.singer import predict_elementwise
 
 __all__ = ["CVFilter", "AlphaBetaFilter", "AlphaBetaGammaFilter", "kalata_alpha_beta", "kalata_beta", "steady_state_abg",
            "abg_gamma"]

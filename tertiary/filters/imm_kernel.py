@@ -1,6 +1,6 @@
 """The IMM's prediction and update per track, compiled (numba, ``cache=True``): the equations of
-:mod:`tertiary.stages.tracking.filters.imm` written out per track, used by
-:class:`~tertiary.stages.tracking.filters.imm.IMMFilter` when its q is isotropic (the numpy path
+:mod:`tertiary.filters.imm` written out per track, used by
+:class:`~tertiary.filters.imm.IMMFilter` when its q is isotropic (the numpy path
 stays the reference, compared in the tests)."""
 
 from __future__ import annotations

@@ -14,11 +14,11 @@ from typing import ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary.stages.tracking.filters.axes import (PerAxis, axis_param, components, init_state, innovation, mask3,
+from tertiary.filters.axes import (PerAxis, axis_param, components, init_state, innovation, mask3,
                                                     masked_innovation, masked_variance, output6, per_axis, predict2,
                                                     state_layout, tau3, update2)
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.stages.tracking.filters.singer import (Variant, predict_elementwise, singer_coefficients, update_elementwise)
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.singer import (Variant, predict_elementwise, singer_coefficients, update_elementwise)
 
 __all__ = ["SingerFilter", "AdaptiveSingerFilter", "TwoModelFilter", "two_model_weights"]
 
@@ -48,7 +48,7 @@ def _check_variant(variant: str) -> None:
 @dataclass(frozen=True)
 class SingerFilter(TrackFilter):
     """Singer Kalman filter per axis (2.49)–(2.63) / seed (4.46): x = [p, v, a],
-    Φ from :func:`tertiary.stages.tracking.filters.singer.singer_phi`, Q = diag(0, 0, D_a), H = [1, 0, 0].
+    Φ from :func:`tertiary.filters.singer.singer_phi`, Q = diag(0, 0, D_a), H = [1, 0, 0].
 
     ``alpha`` is α_ф (s⁻¹, inverse manoeuvre time constant; default 1/30), ``sigma_m`` the
     stationary acceleration std (m/s², default 2; per axis allowed), ``variant`` "printed"

@@ -2,14 +2,14 @@
 (:mod:`.linear`, :mod:`.manoeuvring`): the three Cartesian axes of a fused plot as independent
 scalar channels, all arithmetic elementwise over (B, 3) arrays (tracks × axes).
 
-State layout (track axis first, as :mod:`tertiary.stages.tracking.filters.base` requires):
+State layout (track axis first, as :mod:`tertiary.filters.base` requires):
 
 ``x``  (B, 3, n)  per-axis state, n = 2 ([p, v]) or 3 ([p, v, a])
 ``P``  (B, 3, m)  per-axis covariance, packed upper triangle: (P00, P01, P11) for n = 2,
                   (P00, P01, P02, P11, P12, P22) for n = 3 (:func:`full_covariance` unpacks)
 
 Internally the component axis is moved to the front — (n, B, 3) contiguous arrays — so each
-component is one flat array (see :func:`tertiary.stages.tracking.filters.singer.predict_elementwise`).
+component is one flat array (see :func:`tertiary.filters.singer.predict_elementwise`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output
+from tertiary.filters.base import F64, Innovation, Output
 
 __all__ = ["PerAxis", "PAIRS", "full_covariance", "per_axis", "axis_param", "components", "state_layout", "tau3",
            "mask3", "masked_innovation", "masked_variance", "innovation", "init_state", "output6", "predict2",

@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
 from tertiary.core.geo import enu_to_polar, polar_jacobian, polar_state_to_enu, sandwich
 
 TWO_PI = 2.0 * np.pi

@@ -29,7 +29,7 @@ paper (only the truth's q = 0.01 m²/s³); the default is q = 1 m²/s³.
 Measurements: the 2-D converted-measurement form of the paper (§2.4) is
 :func:`convert_polar_2d` — (r, θ) → (r cos θ, r sin θ) with R = J Rᵖ Jᵀ, J at the measured point;
 θ is measured from +X towards +Y (with X = east: θ = π/2 − azimuth). As a
-:class:`~tertiary.stages.tracking.filters.base.TrackFilter` the IMM takes fused ENU plots: ``r`` (B, 3) diagonal
+:class:`~tertiary.filters.base.TrackFilter` the IMM takes fused ENU plots: ``r`` (B, 3) diagonal
 variances or a full (B, 3, 3) covariance, whose horizontal 2×2 block is used in full (the
 horizontal–vertical cross-covariance is ignored: the vertical channel is separate).
 
@@ -46,8 +46,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
 from tertiary.core.jit import arg, ready_for
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.stages.tracking.filters.imm_kernel import imm_predict_kernel, imm_update_kernel
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.imm_kernel import imm_predict_kernel, imm_update_kernel
 
 #: paper's model set (rad/s; 0 = CV), TPM and normalised μ₀ (the paper's table 2.6 row 20)
 PAPER_OMEGAS = (0.001, 0.045, 0.0)

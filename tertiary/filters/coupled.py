@@ -1,6 +1,6 @@
 """Coupled Cartesian Kalman filters that use the full 3×3 measurement covariance.
 
-The per-axis filters of :mod:`tertiary.stages.tracking.filters.linear` treat x, y, z as independent scalar
+The per-axis filters of :mod:`tertiary.filters.linear` treat x, y, z as independent scalar
 channels and so can only take the diagonal of a plot's covariance. A radar plot converted from
 polar to Cartesian coordinates has strongly correlated errors (range along the line of sight,
 azimuth across it: |ρ| up to ~0.8 between E and N), and that correlation is information the
@@ -10,7 +10,7 @@ diagonal throws away. These filters keep one joint state per track:
     Φ(τ) = I₃ ⊗ φ(τ),  Q(τ) = I₃ ⊗ q(τ),   H = I₃ ⊗ [1, 0(, 0)]
 
 with the per-axis model φ, q of the Singer filter (monograph (2.49)–(2.63), seed (4.46), as
-:func:`tertiary.stages.tracking.filters.singer.singer_phi` / ``singer_q``) or of the continuous white-noise
+:func:`tertiary.filters.singer.singer_phi` / ``singer_q``) or of the continuous white-noise
 acceleration CV model (q [[τ³/3, τ²/2], [τ²/2, τ]]). The update is the standard Kalman update
 (2.10)–(2.14) with the full R (B, 3, 3), in Joseph form:
 
@@ -29,8 +29,8 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from tertiary.stages.tracking.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.stages.tracking.filters.singer import Variant, singer_phi, singer_q
+from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
+from tertiary.filters.singer import Variant, singer_phi, singer_q
 
 __all__ = ["CoupledCV", "CoupledSinger", "full_r"]
 
@@ -124,7 +124,7 @@ class _Coupled(TrackFilter):
 @register
 @dataclass(frozen=True)
 class CoupledSinger(_Coupled):
-    """Singer model per axis (as :class:`tertiary.stages.tracking.filters.manoeuvring.SingerFilter`: α_ф ``alpha``
+    """Singer model per axis (as :class:`tertiary.filters.manoeuvring.SingerFilter`: α_ф ``alpha``
     s⁻¹, σ_m ``sigma_m`` m/s², ``variant``), coupled through the full 3×3 R."""
 
     name: ClassVar[str] = "singer_full"
