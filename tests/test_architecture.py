@@ -195,3 +195,11 @@ def test_public_names_are_few():
     import tertiary
     assert 15 <= len(tertiary.__all__) <= 40
     assert all(hasattr(tertiary, n) for n in tertiary.__all__)
+
+
+def test_every_sub_package_is_installed():
+    """A sub-package missing from pyproject's package list would be absent from the wheel."""
+    import tomllib
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for pkg in PACKAGES for p in (ROOT / pkg).rglob("__init__.py")}
+    assert not found - listed, sorted(found - listed)
