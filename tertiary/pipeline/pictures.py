@@ -11,8 +11,16 @@ import polars as pl
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.tables import OnDiskTable, whole_table
 
-__all__ = ["NOT_SCORED", "as_picture", "confirmed_only", "fused_readers", "safety_names", "safety_picture",
-           "track_readers"]
+__all__ = ["NOT_SCORED", "as_picture", "confirmed_only", "fused_readers", "safety_id_column", "safety_names",
+           "safety_picture", "track_readers"]
+
+
+def safety_id_column(cfg: PipelineConfig) -> str:
+    """The id column of the picture conflict prediction runs on: ``track_id`` on the trackers'
+    tracks (``safety_picture="tracks"`` with filters and methods), else ``target_id`` on the fused
+    pictures. Decided by the configuration, never by the rows: a window without tracks must not
+    switch a run's picture."""
+    return "track_id" if cfg.safety_picture == "tracks" and cfg.filters and cfg.methods else "target_id"
 
 
 def confirmed_only(fused: pl.DataFrame) -> pl.DataFrame:
@@ -67,12 +75,10 @@ def safety_picture(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
                    notes: list[str]) -> tuple[pl.DataFrame, str]:
     """The picture conflict prediction runs on, with its id column; every picture is named in
     ``method`` ("<fusion method>+<filter>" for tracks), so every alert names where it came from."""
+    if safety_id_column(cfg) == "track_id":
+        # tentative tracks are never emitted by the tracker: every row is a confirmed track
+        return whole_table(tracks).with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
     if cfg.safety_picture == "tracks":
-        # decided by the configuration, never by the rows: a window without tracks must not
-        # switch a run's picture (windowed engine)
-        if cfg.filters and cfg.methods:
-            # tentative tracks are never emitted by the tracker: every row is a confirmed track
-            return whole_table(tracks).with_columns(pl.format("{}+{}", "method", "filter").alias("method")), "track_id"
         text = "conflict prediction ran on the fused pictures: no tracker filter was configured"
         if text not in notes:
             notes.append(text)
@@ -83,7 +89,7 @@ def safety_names(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", track
                   ) -> tuple[list[str], str]:
     """The sorted picture names of :func:`safety_picture`'s picture and its id column, without
     reading the picture."""
-    if cfg.safety_picture == "tracks" and cfg.filters and cfg.methods:
+    if safety_id_column(cfg) == "track_id":
         if isinstance(tracks, OnDiskTable):
             return sorted({f"{m}+{f}" for m, f in tracks.pictures}), "track_id"
         return sorted(as_picture(tracks)["method"].unique().to_list()), "track_id"

@@ -26,6 +26,7 @@ from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state
 from tertiary import contract as schema
 from tertiary.core import geo
 from tertiary.core.stage import Stage, Window, check_window
+from tertiary.pipeline.pictures import safety_id_column
 from tertiary.stages import align as align_stage
 from tertiary.stages.association.associate import AssociationConfig, associate_step, init_associate_state
 from tertiary.stages.clustering import ClusteringConfig, cluster_step, init_cluster_state
@@ -290,12 +291,6 @@ class AlertConfirmationStage(_Adapter):
 CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, AssociateStage, FuseStage,
                                                   CentralizedStage, ClusterStage, TrackStage, ConflictsStage,
                                                   AlertConfirmationStage)}
-
-
-def safety_id_column(cfg: Any) -> str:
-    """The id column of the picture conflict prediction runs on (``PipelineConfig.safety_picture``):
-    ``track_id`` on the trackers' tracks, ``target_id`` on the fused pictures."""
-    return "track_id" if cfg.safety_picture == "tracks" and cfg.filters and cfg.methods else "target_id"
 
 
 def build_stage(name: str, cfg: Any, context: Any) -> Stage:

@@ -65,8 +65,8 @@ class RunContext:
     median: datetime | None = None    # the whole input's median report time (windows are validated against it)
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # valid rows (tertiary.stages.flight_data)
     departure_plans: pl.DataFrame = field(default_factory=pl.DataFrame)   # flight_data.departure_plans
-    #: the declared stages (:data:`tertiary.pipeline.plan.STAGES`) built for the run; empty: built
-    #: by :func:`pipeline_step` on first use
+    #: the declared stages (:data:`tertiary.pipeline.plan.STAGES`) built on this context once it
+    #: is final (:func:`stream_windows`)
     stages: dict[str, Stage] = field(default_factory=dict)
 
 
@@ -159,8 +159,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     to_align = reports
     if ctx.flight_plans.height:     # each report's cleared level, by its Mode 3/A code (tertiary.stages.flight_data)
         to_align = correlate(reports, ctx.flight_plans)
-    stages = ctx.stages or build_stages(cfg, ctx)
-    ctx.stages = stages
+    stages = ctx.stages
     clock.stage("align")
     out, s_align = stages["align"].step(st.align, {"reports": to_align}, w)
     aligned, align_rej = out["aligned"], out["rejects"]
@@ -297,6 +296,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.median = source.median
     if grid_origin_us is not None:
         ctx.grid_origin_us = grid_origin_us
+    ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin) is final
     st = resume_state or init_stream_state(cfg)
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
