@@ -60,12 +60,31 @@ def test_safety_runs_on_the_confirmed_tracks_of_every_picture(results):
         assert set(ALERT_METRICS) <= set(got), pic
         los.add(got["los_episodes"])
     assert len(los) == 1 and los.pop() > 0          # one truth: the same losses for every picture
-    alerts = results.alerts
+    alerts = results.alerts.filter(pl.col("method") != "truth")
     assert alerts.height > 0 and set(alerts["method"].unique().to_list()) <= pictures
     assert set(alerts["classification"].unique().to_list()) <= {"genuine", "nuisance", "false"}
     genuine = alerts.filter(pl.col("classification") == "genuine")
     assert genuine.height > 0 and genuine["los_start"].null_count() == 0
     schema.validate(alerts, "alerts", strict=True)
+
+
+def test_every_alert_is_attributed_to_the_picture_or_the_predictor(results):
+    """The truth picture is predicted like the others; every system picture's alert episode is
+    picture- or predictor-induced, and the counts split the picture's own."""
+    alerts = results.alerts
+    truth = alerts.filter(pl.col("method") == "truth")
+    system = alerts.filter(pl.col("method") != "truth")
+    assert truth.height > 0 and truth["induced"].null_count() == truth.height
+    assert system.height > 0 and set(system["induced"].unique().to_list()) <= {"picture", "predictor"}
+    assert truth["classification"].eq("genuine").any()          # the perfect picture alerts a real loss
+    m = results.metrics.filter(pl.col("stage") == "safety")
+    for pic in system["method"].unique().to_list():
+        got = dict(m.filter(pl.col("method") == pic).select("metric", "value").iter_rows())
+        assert got["alerts_picture_induced"] + got["alerts_predictor_induced"] == got["alert_episodes"], pic
+        assert (got["false_alerts_picture_induced"] + got["false_alerts_predictor_induced"]
+                == got["false_alerts"]), pic
+        assert got["missed_los_picture_induced"] + got["missed_los_predictor_induced"] <= got["missed_los"], pic
+        assert 0 <= got["valid_alerts"] <= got["nuisance_alerts"] + got["false_alerts"], pic
 
 
 def test_every_method_and_the_centralised_reference_are_fused(results):

@@ -2,10 +2,12 @@
 reads the ``conflicts`` of :mod:`safety.conflicts`, the matcher's id map and the truth, and
 gives losses of separation in the truth (:mod:`.separation`), alert episodes per pair of
 aircraft classified genuine / nuisance / false with the STCA metrics per picture
-(:mod:`.episodes`), and trade-off curves of the threshold settings (:mod:`.tradeoff`);
+(:mod:`.episodes`), which of them the picture causes (:mod:`.attribution`), and trade-off curves of the threshold settings (:mod:`.tradeoff`);
 options in :class:`AlertConfig` (:mod:`.config`).
 """
 
+from safety.alerts.attribution import (ATTRIBUTION_METRICS, TRUTH_PICTURE, attribute_alerts, attribute_los,
+                                       attribution_metrics, manoeuvre_onsets, valid_alerts)
 from safety.alerts.config import AlertConfig
 from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, alert_episodes, los_episodes,
                                     score_alerts, stca_tables, stca_tables_by_picture)
@@ -17,5 +19,6 @@ __all__ = [
     "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "separation_intervals",
     "loss_of_separation", "truth_intervals", "merge_intervals", "merge_pair_intervals", "alert_episodes",
     "los_episodes", "score_alerts", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
-    "compare_at_equal_nuisance", "tradeoff_metrics",
+    "compare_at_equal_nuisance", "tradeoff_metrics", "ATTRIBUTION_METRICS", "TRUTH_PICTURE", "attribute_alerts",
+    "attribute_los", "attribution_metrics", "manoeuvre_onsets", "valid_alerts",
 ]

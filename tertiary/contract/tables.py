@@ -296,8 +296,11 @@ _ALERTS = TableSchema(
         "r_min_pred_m": F64, "dz_min_pred_m": F64, "t_min_first_s": F64, "los_start": TIME, "warning_s": F64,
         "classification": STR,
     },
+    # induced: "picture" / "predictor" (null on the truth picture's own episodes); valid: a
+    # nuisance or false alert followed by a manoeuvre within the look-ahead
+    optional={"induced": STR, "valid": pl.Boolean()},
     nullable=frozenset({"truth_a", "truth_b", "r_min_pred_m", "dz_min_pred_m", "t_min_first_s", "los_start",
-                        "warning_s"}),
+                        "warning_s", "induced"}),
     key=("run", "method", "id_a", "id_b", "t_start"),
 )
 

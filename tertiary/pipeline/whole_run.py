@@ -21,6 +21,7 @@ from tertiary.evaluation.bound import bound_stage
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, association_metrics,
                                           association_score, read_reference, reference_files, write_reference)
 from tertiary.evaluation.indicators import indicators
+from tertiary.evaluation.truth_picture import TRUTH_PICTURE, observed_spans
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
@@ -31,6 +32,7 @@ from tertiary.pipeline.scoring import (association_blocks, association_stage_met
                                        score_pictures, scored_blocks)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
 from tertiary.pipeline.streaming import RunContext, StreamState
+from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
                                       DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, for_sink,
                                       read_table, table_columns, target_counts, whole_table)
@@ -238,6 +240,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             ing.truth = ing.truth.clear()
         ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
                                              None if scratch is None else scratch / "evaluation")
+        # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
+        spans, grid = observed_spans(observed), observed.select("run", "epoch").unique().sort("run", "epoch")
         del observed
         if scratch is not None:
             release_memory()
@@ -252,6 +256,11 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
 
     def truth_columns(columns: list[str]) -> pl.DataFrame:
         return ing.truth if truth_file is None else read_reference(truth_file, columns)
+
+    def truth_between(t0_us: int, t1_us: int) -> pl.DataFrame:
+        """The truth picture's columns of the samples in [t0_us, t1_us]."""
+        t = pl.col("time").dt.epoch("us")
+        return pl.DataFrame(truth_scan(TRUTH_PICTURE_COLUMNS).lazy().filter(t.is_between(t0_us, t1_us)).collect())
 
     def truth_scan(columns: list[str]) -> "pl.DataFrame | pl.LazyFrame":
         """The truth's ``columns`` (those it has), as a scan of the reference when on disk."""
@@ -279,9 +288,20 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             intervals, span = safety_alerts.truth_intervals(truth, acfg, ds.origin), time_span(truth)
             del truth
         release_memory()
+        # the same prediction on the truth picture: which alerts the picture causes
+        t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
+        if t_conf.height or t_ids.height:
+            conflicts_all = pl.concat([conflicts, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts
+            id_map = pl.concat([id_map, t_ids.select(id_map.columns).cast(id_map.schema)])
+            methods = [*methods, TRUTH_PICTURE]
+        else:
+            conflicts_all = conflicts
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
-        safety_metrics, alerts, _los = safety_alerts.stca_tables_by_picture(
-            conflicts, id_map, span, acfg, id_col=id_col, methods=methods, frame=ds.origin, intervals=intervals)
+        safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
+            conflicts_all, id_map, span, acfg, id_col=id_col, methods=methods, frame=ds.origin, intervals=intervals)
+        del conflicts_all
+        alerts, attribution = attributed(alerts, los, onsets, acfg)
+        safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         sink("alerts", alerts)
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
@@ -358,7 +378,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": alerts.height,
+              "alert_episodes": (alerts.filter(pl.col("method") != TRUTH_PICTURE).height if alerts.height else 0),
               "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **target_counts(fused)}
     # an on-disk run's fused and tracks are in its database only (empty frames here), and so are

@@ -71,12 +71,19 @@ def _safety_lines(metrics: pl.DataFrame, rows: dict[str, Any]) -> list[str]:
     for method in sorted(per_hour["method"].unique().to_list() if per_hour.height else []):
         v = {k: _value(_metric(metrics, "safety", k), method) for k in
              ("genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes", "alerted_los", "missed_los",
-              "warning_median_s")}
+              "warning_median_s", "alerts_picture_induced", "false_alerts_picture_induced",
+              "nuisance_alerts_picture_induced", "missed_los_picture_induced")}
         count = lambda k: "–" if v[k] is None or not math.isfinite(v[k]) else f"{v[k]:,.0f}"  # noqa: E731
-        lines.append(f"  safety   {method:28s} {_m(_value(per_hour, method), ' alerts/h')}: {count('genuine_alerts')} "
-                     f"genuine, {count('nuisance_alerts')} nuisance, {count('false_alerts')} false; losses of "
-                     f"separation {count('los_episodes')}, alerted {count('alerted_los')}, missed "
-                     f"{count('missed_los')}; median warning {_m(v['warning_median_s'], ' s')}")
+        line = (f"  safety   {method:28s} {_m(_value(per_hour, method), ' alerts/h')}: {count('genuine_alerts')} "
+                f"genuine, {count('nuisance_alerts')} nuisance, {count('false_alerts')} false; losses of "
+                f"separation {count('los_episodes')}, alerted {count('alerted_los')}, missed "
+                f"{count('missed_los')}; median warning {_m(v['warning_median_s'], ' s')}")
+        if v["alerts_picture_induced"] is not None:
+            # what a better picture can remove (the truth picture does not raise them)
+            line += (f"; picture-induced: {count('alerts_picture_induced')} alerts ({count('false_alerts_picture_induced')}"
+                     f" false, {count('nuisance_alerts_picture_induced')} nuisance), "
+                     f"{count('missed_los_picture_induced')} missed losses")
+        lines.append(line)
     if not per_hour.height and rows.get("alert_rows"):
         lines.append(f"alerts: {rows['alert_rows']:,} alert rows (no truth to score them against)")
     return lines

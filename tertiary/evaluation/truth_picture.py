@@ -1,0 +1,106 @@
+"""The truth picture: the perfect air picture, evaluation only.
+
+Conflict prediction run on it (the same configuration, confirmation and look-ahead as on the
+system's pictures) raises the alerts a perfect tracker would cause; an alert of a system
+picture that the truth picture does not raise for that pair at that time is the picture's
+doing, one the truth picture raises too is the predictor's (:mod:`safety.alerts.attribution`).
+This is the *test predictor on truth data* of Torres & McKay (2009, "Assessing tactical alert
+function accuracy performance").
+
+Sampled like the picture: each aircraft the radars observe is in the truth picture at every
+epoch of the picture's grid from its first to its last observed epoch (a system track lives
+between reports too), with its true state interpolated at the epoch
+(:func:`tertiary.evaluation.reference.interpolate_reference`) and a zero covariance — the
+estimation term of the thresholds is nil, the piloting term and the look-ahead are the
+configuration's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import polars as pl
+
+from tertiary.contract import TIME
+from tertiary.evaluation.reference import interpolate_reference
+
+__all__ = ["TRUTH_PICTURE", "observed_spans", "truth_picture", "truth_picture_blocks"]
+
+#: the truth picture's name in ``method``
+TRUTH_PICTURE = "truth"
+
+_STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
+
+
+def observed_spans(observed: pl.DataFrame) -> pl.DataFrame:
+    """(run, truth_id, first, last) of each aircraft's observed epochs, from ``observed``
+    (run, epoch, truth_id: :func:`tertiary.pipeline.scoring.observed_aircraft`)."""
+    return (observed.group_by("run", "truth_id")
+            .agg(pl.col("epoch").min().alias("first"), pl.col("epoch").max().alias("last"))
+            .sort("run", "truth_id"))
+
+
+def _requests(spans: pl.DataFrame, epochs: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, truth_id) of every grid epoch inside each aircraft's span: per run one
+    ``searchsorted`` of the span ends in the run's sorted epochs, then the index ranges."""
+    out = []
+    for (run,), ep in epochs.partition_by("run", as_dict=True, maintain_order=True).items():
+        grid = ep["epoch"].unique().sort()
+        us = grid.dt.epoch("us").to_numpy()
+        sp = spans.filter(pl.col("run") == run)
+        if not sp.height or not len(us):
+            continue
+        lo = np.searchsorted(us, sp["first"].dt.epoch("us").to_numpy(), side="left")
+        hi = np.searchsorted(us, sp["last"].dt.epoch("us").to_numpy(), side="right")
+        rows = (pl.DataFrame({"truth_id": sp["truth_id"], "__k": pl.int_ranges(pl.Series(lo), pl.Series(hi),
+                                                                                   eager=True)})
+                .explode("__k").drop_nulls("__k"))
+        out.append(rows.select(pl.lit(run, pl.UInt32).alias("run"),
+                               pl.Series("epoch", grid).gather(rows["__k"]).cast(TIME), pl.col("truth_id")))
+    if not out:
+        return pl.DataFrame(schema={"run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64})
+    return pl.concat(out)
+
+
+def truth_picture(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame, id_col: str = "track_id",
+                  max_gap_s: float = 10.0) -> pl.DataFrame:
+    """The truth picture at ``epochs`` (run, epoch: the picture's grid) for the aircraft and
+    spans of ``spans`` (:func:`observed_spans`): columns run, epoch, method (``"truth"``),
+    ``id_col`` (the truth id), the system-frame state, ``alt_m``/``alt_rate_mps`` when the truth
+    has a height channel, ``cov_diag`` (zeros) and ``mode_s`` (the ICAO address when known).
+    Epochs where the truth has no sample within ``max_gap_s`` are left out."""
+    req = _requests(spans.with_columns(pl.col("truth_id").cast(pl.Int64)), epochs)
+    req = req.with_columns(pl.col("epoch").alias("time"))
+    ref = interpolate_reference(truth.with_columns(pl.col("truth_id").cast(pl.Int64)), req, max_gap_s)
+    ref = ref.filter(pl.col("status") == "evaluated")
+    has_alt = "alt_m" in truth.columns
+    cols = [pl.col("run"), pl.col("epoch"), pl.lit(TRUTH_PICTURE).alias("method"),
+            pl.col("truth_id").cast(pl.UInt64).alias(id_col),
+            *[pl.col(f"true_{c}").alias(c) for c in _STATE]]
+    if has_alt:
+        cols += [pl.col("true_alt_m").alias("alt_m"), pl.col("true_alt_rate_mps").alias("alt_rate_mps")]
+    cols.append(pl.lit([0.0] * 6, pl.Array(pl.Float64, 6)).alias("cov_diag"))
+    out = ref.select(cols)
+    if "icao24" in truth.columns:
+        ident = (truth.select(pl.col("truth_id").cast(pl.UInt64).alias(id_col), pl.col("icao24").alias("mode_s"))
+                 .unique(id_col, keep="first"))
+        out = out.join(ident, on=id_col, how="left")
+    return out.sort("run", "epoch", id_col)
+
+
+def truth_picture_blocks(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame, id_col: str,
+                         block_s: float) -> Iterator[tuple[int, int, pl.DataFrame]]:
+    """:func:`truth_picture` in consecutive time blocks [t0_us, t1_us) of ``block_s`` seconds of
+    grid epochs: (t0_us, t1_us, the block's rows), for a step function carrying state across
+    them. Every grid epoch is in exactly one block."""
+    if not epochs.height:
+        return
+    us = epochs["epoch"].dt.epoch("us")
+    lo, hi = int(us.min()), int(us.max()) + 1
+    step = max(int(block_s * 1e6), 1)
+    for a in range(lo, hi, step):
+        b = min(a + step, hi)
+        ep = epochs.filter(us.is_between(a, b, closed="left"))
+        if ep.height:
+            yield a, b, truth_picture(truth, spans, ep, id_col)
