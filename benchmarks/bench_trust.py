@@ -1,0 +1,268 @@
+"""Verdicts on traffic nothing was tuned on: the national peak, the default hour, real ADS-B
+traffic, and trajectories made here in the OpenSky format (circling aircraft, en-route traffic at
+high level with long turns).
+
+Each dataset is simulated and run with the CLI, each command in a fresh process, and the run's
+database is read for every figure a verdict rests on:
+
+* safety, per picture (the truth picture included): alert episodes genuine / nuisance / false,
+  how many of them (and of the missed losses) are picture-induced or predictor-induced, Torres &
+  McKay's valid alerts, losses of separation alerted and missed, median warning;
+* system targets and tracks per aircraft;
+* horizontal RMSE of every tracker against its fused input, overall and per flight phase;
+* the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
+* the false-track rate of the centralised reference against the best fused picture.
+
+    python benchmarks/bench_trust.py [--only national15,default,adsb-paris,made] [--work DIR]
+
+Results: ``benchmarks/results/bench_trust.json`` (one entry per dataset; ``--only`` keeps the
+entries of the datasets it does not run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _util import RESULTS, record  # noqa: E402
+from bench_memory import _CHILD, CONFIGS  # noqa: E402
+
+#: every dataset: how it is made, and the run's arguments
+DATASETS = ("national15", "default", "adsb-paris", "made")
+SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "alerts_picture_induced",
+          "alerts_predictor_induced", "false_alerts_picture_induced", "false_alerts_predictor_induced",
+          "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
+          "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s", "alerts_per_hour")
+#: the trackers run on the made trajectories: production's and the turn-rate-estimating one
+MADE_FILTERS = "imm_sym"
+PHASES = ("all", "phase:level", "phase:turn", "phase:climb-descent")
+FT, KT, FPM = 0.3048, 1852.0 / 3600.0, 0.3048 / 60.0
+EARTH_R = 6_371_000.0
+
+
+def _child(args: list[str]) -> tuple[float, str]:
+    """(wall s, stdout) of one CLI command in a fresh interpreter."""
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", _CHILD, *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"tertiary {' '.join(args)} failed ({proc.returncode}): {proc.stderr.strip()[-600:]}")
+    return time.perf_counter() - t0, proc.stdout
+
+
+# --------------------------------------------------------------------------- OpenSky-format trajectories
+
+
+def _flight(icao: str, lat0: float, lon0: float, t0: float, legs: list[tuple[float, float, float]],
+            speed_mps: float, alt_ft: float, climb: list[tuple[float, float, float]] = ()) -> dict[str, np.ndarray]:
+    """One aircraft at 1 s: ``legs`` (duration s, turn rate °/s, initial heading ° for the first
+    leg only) flown one after another from (lat0, lon0); ``climb`` (start s, end s, rate ft/min)."""
+    rates = np.concatenate([np.full(int(d), w) for d, w, _ in legs])
+    t = np.arange(len(rates), dtype=float)
+    heading = legs[0][2] + np.concatenate([[0.0], np.cumsum(rates[:-1])])
+    vs = np.zeros_like(t)
+    for a, b, r in climb:
+        vs[(t >= a) & (t < b)] = r
+    alt = alt_ft + np.concatenate([[0.0], np.cumsum(vs[:-1] / 60.0)])
+    h = np.radians(heading)
+    north, east = np.cumsum(speed_mps * np.cos(h)), np.cumsum(speed_mps * np.sin(h))
+    lat = lat0 + np.degrees(north / EARTH_R)
+    lon = lon0 + np.degrees(east / (EARTH_R * np.cos(np.radians(lat0))))
+    return {"timestamp": t0 + t, "icao24": np.full(len(t), icao), "latitude": lat, "longitude": lon,
+            "altitude": alt, "groundspeed": np.full(len(t), speed_mps / KT), "track": heading % 360.0,
+            "vertical_rate": vs, "onground": np.zeros(len(t), bool), "callsign": np.full(len(t), f"T{icao[-4:]}")}
+
+
+def _at(lat: float, lon: float, heading: float, speed: float, before_s: float) -> tuple[float, float]:
+    """The point ``before_s`` seconds of straight flight before (lat, lon) on ``heading``."""
+    h = math.radians(heading)
+    d = speed * before_s
+    return (lat - math.degrees(d * math.cos(h) / EARTH_R),
+            lon - math.degrees(d * math.sin(h) / (EARTH_R * math.cos(math.radians(lat)))))
+
+
+def _encounters(t0: float) -> list[dict[str, np.ndarray]]:
+    """Designed en-route encounters at FL350 (speeds 230 m/s), each meeting point 1 200 s in:
+    a 90° crossing that misses by 1 NM (a loss of separation), one that misses by 8 NM (none), an
+    in-trail pair 8 NM apart, a crossing 1 000 ft apart, and a head-on pair that misses by 3 NM
+    because one turns away 150 s before the closest approach (a loss avoided by a manoeuvre)."""
+    nm, v, meet, out = 1852.0, 230.0, 1200.0, []
+    spots = [(49.6, 1.2), (49.6, 3.6), (48.0, 1.2), (48.0, 3.6), (48.8, 4.2)]
+    dlat = lambda m: math.degrees(m / EARTH_R)                    # noqa: E731
+    for k, (miss, dz_ft, trail) in enumerate(((1.0, 0, False), (8.0, 0, False), (8.0, 0, True), (0.0, 1000, False))):
+        lat, lon = spots[k]
+        h2 = 90.0 if trail else 0.0
+        la, lo = _at(lat, lon, 90.0, v, meet)
+        out.append(_flight(f"c{k}0000", la, lo, t0, [(2400, 0.0, 90.0)], v, 35000.0))
+        lb, lob = _at(lat + (0.0 if trail else dlat(miss * nm)), lon - (math.degrees(miss * nm / (EARTH_R * math.cos(
+            math.radians(lat)))) if trail else 0.0), h2, v, meet)
+        out.append(_flight(f"c{k}0001", lb, lob, t0, [(2400, 0.0, h2)], v, 35000.0 + dz_ft))
+    lat, lon = spots[4]
+    la, lo = _at(lat, lon, 90.0, v, meet)
+    out.append(_flight("c40000", la, lo, t0, [(2400, 0.0, 90.0)], v, 35000.0))
+    lb, lob = _at(lat + dlat(0.5 * nm), lon, 270.0, v, meet)
+    out.append(_flight("c40001", lb, lob, t0, [(int(meet - 150), 0.0, 270.0), (10, -3.0, 0.0), (1500, 0.0, 0.0)],
+                       v, 35000.0))
+    return out
+
+
+def made_trajectories(path: Path, seed: int = 11) -> Path:
+    """An hour of made traffic around 48.8° N 2.4° E in the OpenSky schema: a flight-inspection
+    aircraft flying wide circles (0.2°/s) and one flying standard-rate orbits (3°/s, both ways),
+    24 en-route aircraft at FL300–FL390 on long legs with long gentle turns (0.3–1.5°/s) and a few
+    level changes, and the designed encounters of :func:`_encounters`."""
+    import polars as pl
+    rng = np.random.default_rng(seed)
+    t0 = datetime(2021, 10, 7, 9, 0, tzinfo=timezone.utc).timestamp()
+    flights = [
+        _flight("f10001", 48.70, 2.20, t0, [(300, 0.0, 90.0)] + [(1800, 0.2, 0.0), (600, 0.0, 0.0), (600, -0.2, 0.0)],
+                70.0, 6000.0),
+        _flight("f10002", 48.95, 2.60, t0, [(240, 0.0, 200.0)] + [(240, 1.5, 0.0), (120, 0.0, 0.0), (120, 3.0, 0.0),
+                                                                 (300, 0.0, 0.0), (120, -3.0, 0.0), (240, -1.5, 0.0),
+                                                                 (600, 0.0, 0.0)] * 2, 110.0, 8000.0),
+    ]
+    flights += _encounters(t0)
+    for k in range(24):
+        legs, total = [], 0
+        heading = float(rng.uniform(0, 360))
+        while total < 3600:
+            straight = int(rng.uniform(300, 900))
+            turn_deg = float(rng.uniform(20, 90)) * rng.choice([-1, 1])
+            rate = float(rng.uniform(0.3, 1.5)) * np.sign(turn_deg)
+            legs += [(straight, 0.0, heading), (int(abs(turn_deg / rate)), rate, heading)]
+            total += straight + int(abs(turn_deg / rate))
+        alt = float(rng.choice(np.arange(30000, 39001, 1000)))
+        climb = [(float(rng.uniform(600, 2400)), 0.0, float(rng.choice([-1500, 1500])))] if k % 3 == 0 else []
+        climb = [(a, a + 2000 * FT / (abs(r) * FPM) / 1.0, r) for a, _, r in climb]   # a 2 000 ft change
+        lat0, lon0 = 48.8 + float(rng.uniform(-1.2, 1.2)), 2.4 + float(rng.uniform(-1.6, 1.6))
+        flights.append(_flight(f"e{20000 + k:05d}", lat0, lon0, t0 + float(rng.uniform(0, 600)), legs,
+                               float(rng.uniform(210, 250)), alt, climb))
+    cols = {c: np.concatenate([f[c] for f in flights]) for c in flights[0]}
+    df = pl.DataFrame(cols).with_columns(pl.from_epoch(pl.col("timestamp"), time_unit="s").dt.replace_time_zone("UTC"))
+    df = df.filter(pl.col("timestamp") < pl.lit(datetime.fromtimestamp(t0 + 3600, timezone.utc)))
+    df.write_parquet(path)
+    return path
+
+
+# --------------------------------------------------------------------------- figures from a run
+
+
+def _rows(db: Path, sql: str) -> list[tuple]:
+    import duckdb
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.execute(sql).fetchall()
+    finally:
+        con.close()
+
+
+def _clean(v):
+    return None if v is None or (isinstance(v, float) and not math.isfinite(v)) else round(float(v), 3)
+
+
+def figures(db: Path) -> dict:
+    """Every figure of the verdicts from one run database."""
+    m: dict[tuple[str, str, str, str], float] = {
+        (s, meth, k, seg): v for s, meth, k, seg, v in _rows(db, "select stage, method, metric, segment, value "
+                                                                "from metrics")}
+    run = dict(_rows(db, "select key, value from run"))
+    rows = json.loads(run.get("rows", "{}"))
+    pictures = sorted({meth for (s, meth, k, _) in m if s == "safety" and k == "alert_episodes"})
+    safety = {p: {k: _clean(m.get(("safety", p, k, "all"))) for k in SAFETY} for p in pictures}
+    for p, v in safety.items():
+        if v["los_episodes"]:
+            v["alerted_fraction"] = _clean(v["alerted_los"] / v["los_episodes"])
+    fused = sorted({meth for (s, meth, k, _) in m if s == "fusion" and k == "rmse_horizontal_m"})
+    tracked = sorted({meth for (s, meth, k, _) in m if s == "tracker" and k == "rmse_horizontal_m"})
+    accuracy = {}
+    for p in fused + tracked:
+        stage = "tracker" if p in tracked else "fusion"
+        accuracy[p] = {seg: _clean(m.get((stage, p, "rmse_horizontal_m", seg))) for seg in PHASES}
+    tracker_vs_input = {}
+    for p in tracked:
+        src = p.split("+")[0]
+        tracker_vs_input[p] = {seg: (None if accuracy[p][seg] is None or accuracy.get(src, {}).get(seg) is None
+                                     else round(accuracy[p][seg] - accuracy[src][seg], 2)) for seg in PHASES}
+    bound = {}
+    for (s, meth, k, seg), v in m.items():
+        if s == "bound" and k in ("pcrb_horizontal_m", "gap_horizontal_m", "pcrb_pos_m", "gap_pos_m",
+                                  "pcrb_vel_mps", "gap_vel_mps"):
+            bound.setdefault(meth, {}).setdefault(seg, {})[k] = _clean(v)
+    below = sorted({meth for meth, segs in bound.items() for seg, g in segs.items()
+                    if any((g.get(k) or 0.0) < 0.0 for k in ("gap_horizontal_m", "gap_pos_m", "gap_vel_mps"))})
+    false_tracks = {meth: _clean(v) for (meth, v) in _rows(
+        db, "select method, value from requirements where metric = 'false_tracks_per_hour' and breakdown = 'all'")}
+    tracks_per_aircraft = {p: _clean(m.get(("tracker", p, "tracks", "all"), float("nan")) / rows["aircraft"])
+                           for p in tracked if rows.get("aircraft")}
+    return {"safety": safety, "accuracy_horizontal_m": accuracy, "tracker_minus_input_m": tracker_vs_input,
+            "bound": bound, "pictures_below_bound": below, "false_tracks_per_hour": false_tracks,
+            "targets_per_aircraft": _clean(rows.get("confirmed_targets", 0) / rows["aircraft"])
+            if rows.get("aircraft") else None,
+            "tracks_per_aircraft": tracks_per_aircraft, "aircraft": rows.get("aircraft"),
+            "notes": json.loads(run.get("notes", "[]"))}
+
+
+# --------------------------------------------------------------------------- datasets
+
+
+def _national15(work: Path) -> list[str]:
+    from tertiary.simulate import load_scenario
+    from tertiary.simulate.config import scenario_toml
+    base = load_scenario("national")
+    cfg = dataclasses.replace(base, duration_s=900.0, national=dataclasses.replace(base.national, start_s=28800.0))
+    (work / "national15.toml").write_text(scenario_toml(cfg))
+    return [str(work / "national15.toml")]
+
+
+def run_dataset(name: str, work: Path) -> dict:
+    data, out = work / name, work / f"{name}-run"
+    if name == "national15":
+        sim, args = _national15(work), CONFIGS["production"]
+    elif name == "default":
+        sim, args = ["terminal-area"], []
+    elif name == "adsb-paris":
+        sim, args = ["adsb-paris"], CONFIGS["production"]
+    else:
+        sim = ["adsb", "--truth", str(made_trajectories(work / "made.parquet"))]
+        args = ["--methods", "information", "--filters", MADE_FILTERS]
+    wall_s, _ = _child(["simulate", *sim, "--out", str(data), "--force", "--quiet"])
+    wall_r, stdout = _child(["run", str(data), "--out", str(out), "--force", "--no-report", *args])
+    print(stdout, flush=True)
+    return {"simulate": sim, "run_args": args, "simulate_s": round(wall_s, 1), "run_s": round(wall_r, 1),
+            "summary": [line.strip() for line in stdout.splitlines()
+                        if line.strip().startswith(("run ", "system targets", "fusion", "tracker", "safety "))],
+            **figures(out / "results.duckdb")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--only", default=",".join(DATASETS), help="comma-separated datasets to run")
+    ap.add_argument("--work", type=Path, default=None, help="keep the datasets and runs here (default: a temp dir)")
+    args = ap.parse_args()
+    names = [n for n in args.only.split(",") if n]
+    unknown = sorted(set(names) - set(DATASETS))
+    if unknown:
+        raise SystemExit(f"unknown datasets {unknown}; choose from {list(DATASETS)}")
+    old = RESULTS / "bench_trust.json"
+    results = json.loads(old.read_text()).get("datasets", {}) if old.exists() else {}
+    with tempfile.TemporaryDirectory() as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            results[name] = run_dataset(name, work)
+            record("bench_trust", {"datasets": results})
+    print(json.dumps({k: v["safety"] for k, v in results.items()}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
