@@ -1,4 +1,5 @@
-"""The posterior Cramér–Rao bound: closed forms, a Monte-Carlo check and the simulated truth."""
+"""The posterior Cramér–Rao bound: closed forms, a Monte-Carlo check, the model fitted to the truth and the
+simulated truth."""
 
 from __future__ import annotations
 
@@ -126,7 +127,7 @@ def test_bound_rows_pool_like_rmse_and_gap_is_signed():
     origin, truth, radars, reports = _one_radar_truth()
     ev = illuminations(truth, radars, reports, origin)
     samples = truth.select("truth_id", pl.col("time").alias("epoch")).slice(40, 200)
-    b = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
+    b = pcrb_at(samples, ev, BoundConfig(), truth=truth)
     assert b.height == 200 and (b["b2_pos"] > b["b2_horizontal"]).all()
     # between scans the bound grows (prediction), at a scan it drops
     v = b["b2_pos"].to_numpy()
@@ -143,9 +144,9 @@ def test_bound_rows_pool_like_rmse_and_gap_is_signed():
 
 
 def test_a_summary_keeps_what_it_takes_of_each_recorded_bound():
-    """``pcrb_at`` records only (tr P_pos, P_xx + P_yy, tr P_vel) of each bound (issue 16,
-    memory): a summary gives, at the recorded rows only and in row order, exactly what it
-    takes of the full bounds. Fails if a summary row lands on another row or is skipped."""
+    """``pcrb_at`` records only (tr P_pos, P_xx + P_yy, tr P_vel) of each bound (memory): a
+    summary gives, at the recorded rows only and in row order, exactly what it takes of the full
+    bounds. Fails if a summary row lands on another row or is skipped."""
     rng = np.random.default_rng(3)
     n, seqs = 40, 3
     t = np.tile(np.cumsum(rng.uniform(0.5, 4.0, n)), seqs)
@@ -161,7 +162,7 @@ def test_a_summary_keeps_what_it_takes_of_each_recorded_bound():
 
 @pytest.mark.parametrize("size", [50, 300, 700])
 def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monkeypatch, size):
-    """``pcrb_at`` runs the recursion a block of whole aircraft at a time (issue 16, memory).
+    """``pcrb_at`` runs the recursion a block of whole aircraft at a time (memory).
     Three aircraft seen by one radar, each sequence longer than a block of 50 rows, two to a
     block of 300, all in one of 700: the bounds equal one block's, row for row. Fails if a
     block cuts an aircraft's sequence, gathers another block's measurements, or puts its rows
@@ -172,11 +173,11 @@ def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monke
                                          pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
     ev = illuminations(many, radars, reports, origin)
     samples = many.select("truth_id", pl.col("time").alias("epoch")).gather_every(2)
-    whole = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
+    whole = pcrb_at(samples, ev, BoundConfig(), truth=many)
     monkeypatch.setattr(bound, "BOUND_BLOCK_ROWS", size)
     blocks = bound._aircraft_blocks(np.array([0, 200, 350]), 500, size)
     assert len(blocks) == {50: 3, 300: 2, 700: 1}[size]
-    got = pcrb_at(samples, ev, BoundConfig(sigma_m=0.5))
+    got = pcrb_at(samples, ev, BoundConfig(), truth=many)
     assert whole.height == samples.height and whole["truth_id"].n_unique() == 3
     assert_frame_equal(got, whole, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
 
@@ -184,7 +185,7 @@ def test_the_bound_computed_a_block_of_aircraft_at_a_time_equals_the_whole(monke
 @pytest.mark.parametrize("aircraft", [1, 2])
 def test_the_bound_stage_pooled_a_block_of_aircraft_at_a_time_equals_the_whole(monkeypatch, aircraft):
     """``bound_stage`` makes the illuminations and bounds of a block of aircraft at a time and
-    pools per-epoch sums over the blocks (issue 16, memory): the bound rows equal one block's.
+    pools per-epoch sums over the blocks (memory): the bound rows equal one block's.
     Two pictures (methods) share the epochs of three aircraft, so an epoch's mean takes samples
     from several blocks. Fails if a block's sums are pooled as a mean of means, a block drops
     another's aircraft, or the blocks read different scan origins."""
@@ -210,19 +211,19 @@ def test_the_bound_stage_pooled_a_block_of_aircraft_at_a_time_equals_the_whole(m
     assert_frame_equal(got, whole, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
     # the pooling is over every sample of an epoch: a mean of the blocks' means would differ
     one = bound.bound_metrics(scored, acc, pcrb_at(scored, illuminations(many, radars, reports, origin),
-                                                   BoundConfig.from_scenario(None)))
+                                                   BoundConfig.from_scenario(None), truth=many))
     assert_frame_equal(got, one, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
 
 
-@pytest.mark.parametrize("variant", ["printed", "exact"])
-def test_the_compiled_recursion_equals_the_vectorised_reference(variant):
+def test_the_compiled_recursion_equals_the_vectorised_reference():
     """``pcrb_at`` runs (T34) compiled (:mod:`tertiary.evaluation.bound_kernel`: per-axis blocks of Φ and
-    Q, Cholesky-solved update). Against :func:`pcrb_linear` with the 9×9 block-diagonal model:
-    sequences of different lengths (one of a single row), irregular times, events without a
-    measurement, full 3×3 measurement covariances as a rotated radar gives, recorded and
-    unrecorded rows — the same (tr P_pos, P_xx + P_yy, tr P_vel) to round-off. Fails if the
-    prediction skips a block, the update drops the cross-axis terms or a record lands elsewhere."""
-    from tertiary.evaluation.bound import POS, _bound_summary, _pcrb_block, _prior9, _singer9
+    Q = d dᵀ, Cholesky-solved update). Against :func:`pcrb_linear` with the 9×9 block-diagonal model
+    M: sequences of different lengths (one of a single row), irregular times, events without a
+    measurement, full 3×3 measurement covariances as a rotated radar gives, deviations on some rows
+    only (other axes' differ), a prior acceleration per sequence, recorded and unrecorded rows — the
+    same (tr P_pos, P_xx + P_yy, tr P_vel) to round-off. Fails if the prediction skips a block or
+    mixes the axes' deviations, the update drops the cross-axis terms or a record lands elsewhere."""
+    from tertiary.evaluation.bound import POS, _bound_summary, _ca9, _pcrb_block, _prior9
     rng = np.random.default_rng(7)
     lengths = np.array([1, 37, 5, 120, 60])
     starts = np.r_[0, np.cumsum(lengths)[:-1]]
@@ -232,12 +233,77 @@ def test_the_compiled_recursion_equals_the_vectorised_reference(variant):
     r_eq = a @ a.swapaxes(1, 2) * 400.0 + np.eye(3) * 100.0      # full, positive definite
     r_eq[rng.random(n) < 0.35] = np.nan
     record = rng.random(n) < 0.6
-    cfg = BoundConfig(variant=variant)
-    want = pcrb_linear(t, r_eq, starts, lengths, _singer9(cfg), _prior9(cfg), POS, record, _bound_summary)
-    got = _pcrb_block(t, r_eq, starts, lengths, record, cfg)
+    dev = rng.normal(size=(n, 3, 3)) * np.array([20.0, 5.0, 1.0])
+    dev[rng.random(n) < 0.6] = 0.0                                # straight stretches: no process noise
+    acc0 = rng.normal(size=(len(lengths), 3))
+    cfg = BoundConfig()
+    tau = np.r_[0.0, np.diff(t)]
+    want = pcrb_linear(t, r_eq, starts, lengths, _ca9(tau, dev), _prior9(cfg, acc0), POS, record, _bound_summary)
+    got = _pcrb_block(t, r_eq, starts, lengths, record, cfg, dev, acc0)
     assert got.shape == (record.sum(), 3) and np.isfinite(got).all()
     np.testing.assert_allclose(got, want, rtol=1e-9)
     assert got[:, 0].min() < 0.01 * got[:, 0].max()             # updates pulled some far below the prior
+    swapped = _pcrb_block(t, r_eq, starts, lengths, record, cfg, dev[:, ::-1], acc0)
+    assert not np.allclose(swapped, want, rtol=1e-6)
+
+
+def test_without_manoeuvres_the_bound_is_the_regression_bound():
+    """No deviation and a known zero acceleration (a straight leg): M is a deterministic line, and
+    after n plots of σ² per axis at unit spacing (diffuse prior) the bound is the least-squares
+    line's: position at the last plot σ²(4n − 2)/(n(n + 1)), velocity 12σ²/(n(n² − 1)) per axis."""
+    from tertiary.evaluation.bound import POS, _ca9, _prior9
+    n, sig2 = 30, 400.0
+    t = np.arange(n, dtype=float)
+    cfg = BoundConfig(p0_sigma_m=1e7, v0_sigma_mps=1e5)
+    p = pcrb_linear(t, np.tile(np.eye(3) * sig2, (n, 1, 1)), np.array([0]), np.array([n]),
+                    _ca9(np.r_[0.0, np.ones(n - 1)], np.zeros((n, 3, 3))), _prior9(cfg, np.zeros((1, 3))), POS,
+                    np.ones(n, bool))
+    k = np.arange(2, n + 1)
+    assert p[1:, 0, 0] == pytest.approx(sig2 * (4 * k - 2) / (k * (k + 1)), rel=1e-6)
+    assert p[1:, 1, 1] == pytest.approx(12 * sig2 / (k * (k * k - 1)), rel=1e-6)
+    assert p[1:, 6, 6] == pytest.approx(p[1:, 0, 0], rel=1e-12)
+
+
+def test_the_truth_is_the_unit_realisation_of_the_model():
+    """The model's deviation d over an interval (M2) is exactly the truth's departure from the
+    constant-acceleration prediction: a truth whose acceleration steps on (10 s, 25 s) between its
+    1 s samples, rows at irregular times — d = x(t_k) − Φ(τ) x(t_{k−1}) of the analytic (p, v, a),
+    and ā at each row the truth's. Zero on the straight stretches before and after. Fails if a step
+    is counted in the wrong interval, weighted by the wrong lever arm or taken from the wrong axis."""
+    from tertiary.evaluation.bound import _Truth
+    a_on = np.array([1.5, -0.5, 0.2])
+
+    def state(t):
+        t = np.asarray(t, float)[:, None]
+        dt = np.clip(t - 10.0, 0.0, 15.0)
+        v = np.array([100.0, 20.0, 0.0]) + a_on * dt
+        p = np.array([1e4, -2e3, 3e3]) + np.array([100.0, 20.0, 0.0]) * t + a_on * dt ** 2 / 2 + a_on * 15.0 * np.clip(
+            t - 25.0, 0.0, None)
+        acc = np.where((t >= 10.0) & (t < 25.0), a_on, 0.0)
+        return p, v, acc
+    ts = np.arange(0.0, 41.0)
+    p, v, _ = state(ts)
+    truth = pl.DataFrame({"truth_id": 3, "time": pl.Series((ts * 1e6).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
+                          "x_m": p[:, 0], "y_m": p[:, 1], "z_m": p[:, 2], "vx_mps": v[:, 0], "vy_mps": v[:, 1],
+                          "vz_mps": v[:, 2]})
+    tr = _Truth.of(truth, 0, half_window_s=0.0)
+    rows = np.array([1.3, 3.3, 7.1, 10.0, 12.6, 18.0, 24.5, 27.4, 31.9, 39.0])
+    first = np.zeros(len(rows), bool)
+    first[0] = True
+    dev, acc = tr.deviations(np.zeros(len(rows), np.int64), rows, first)
+    p, v, a = state(rows)
+    x = np.stack([p, v, a], axis=-1)                                  # (n, axis, (p, v, a))
+    tau = np.diff(rows)
+    phi = np.zeros((len(tau), 3, 3))
+    phi[:, 0, 0] = phi[:, 1, 1] = phi[:, 2, 2] = 1.0
+    phi[:, 0, 1] = phi[:, 1, 2] = tau
+    phi[:, 0, 2] = tau ** 2 / 2
+    want = x[1:] - np.einsum("nij,nkj->nki", phi, x[:-1])
+    np.testing.assert_allclose(dev[1:], want, rtol=1e-9, atol=1e-9)
+    # only the intervals holding the onset (10 s) and the end (25 s) deviate; none at constant acceleration
+    assert (dev[[0, 1, 2, 8, 9]] == 0).all() and np.abs(dev[[4, 5, 6]]).max() < 1e-9
+    assert np.abs(dev[3]).max() > 1.0 and np.abs(dev[7]).max() > 1.0
+    np.testing.assert_allclose(acc, a, atol=1e-12)
 
 
 def test_the_range_screen_keeps_every_illumination(monkeypatch):
@@ -286,7 +352,7 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
 
 
 def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(monkeypatch, tmp_path):
-    """On an on-disk run the bound's truth is a scan of the reference (issue 18: the national
+    """On an on-disk run the bound's truth is a scan of the reference (memory: the national
     day's 79 M truth rows held whole were ~5.7 GB), read ``BOUND_READ_AIRCRAFT`` aircraft at a
     time: the bound rows equal those of the truth in memory, and no read holds another read's
     aircraft. Fails if a read drops or repeats aircraft, or if the scan is read whole."""

@@ -1,24 +1,53 @@
-"""Posterior Cramér–Rao lower bound (PCRB) for the simulated truth (evaluation, stage ``bound``).
+"""Posterior Cramér–Rao lower bound (PCRB) for the truth's own motion (evaluation, stage ``bound``).
 
 What is bounded
 ---------------
-The mean-square error of **any** estimator of an aircraft's state at an epoch k that uses the
-radar measurements up to k is bounded below by the inverse of the posterior Fisher information
-J_k (Tichavský, Muravchik, Nehorai 1998, IEEE TSP 46(5), eq. (21)):
+Model M, per Cartesian axis of the system frame, state (p, v, a): between consecutive events
+t_{k−1} < t_k (an aircraft's illuminations and scored epochs, τ = t_k − t_{k−1})
+
+    x_k = Φ(τ) x_{k−1} + ξ_k d_k,   Φ(τ) = [[1, τ, τ²/2], [0, 1, τ], [0, 0, 1]],   ξ_k ~ N(0, 1)   (M1)
+    d_k = Σ_{s_m ∈ (t_{k−1}, t_k]} Δa_m (½(t_k − s_m)², t_k − s_m, 1)                           (M2)
+
+i.i.d. per axis and interval: Q_k = d_k d_kᵀ. The truth's acceleration is piecewise constant
+between its samples s_m, ā_m = (v(s_{m+W}) − v(s_{m−W})) / (s_{m+W} − s_{m−W}) (centred
+velocity difference over ± ``accel_half_window_s``, clipped to the aircraft's span: it
+reproduces the simulator's piecewise-constant commands up to a spread of each onset over the
+window, and averages out the quantised, jittery velocities of ADS-B truth rather than taking
+them for manoeuvres — a jitter taken for manoeuvres would dilute the bound with independent
+random-sign steps, a random walk the truth's mean-reverting jitter does not make), and
+Δa_m = ā_m − ā_{m−1} are its steps; d_k is the deviation of that
+trajectory from the constant-acceleration prediction over the interval. The truth (its
+fitted acceleration profile) is the realisation ξ ≡ 1 of M. Prior at an aircraft's first event:
+p σ ``p0_sigma_m`` (diffuse), v σ ``v0_sigma_mps``, a ~ N(0, diag(ā²)) of the truth there.
+
+So d_k = 0 wherever the truth's acceleration is constant — straight legs, steady climbs and
+descents, a constant deceleration: no process noise, the bound integrates every plot since the
+last manoeuvre — and at a manoeuvre (turn entry and exit, a vertical-rate or speed change,
+the rotation of the acceleration inside a turn) the information about (p, v, a) is diluted by
+exactly that manoeuvre's size along its own profile.
+
+Why it is a lower bound: the MSE of **any** estimator of x_k from the radar measurements up to
+k, averaged over M, is bounded below by J_k⁻¹ (Tichavský, Muravchik, Nehorai 1998, IEEE TSP
+46(5), eq. (21)):
 
     J_{k+1} = D22 − D21 (J_k + D11)⁻¹ D12 + J_Z(k+1)                                 (T21)
 
-For linear-Gaussian dynamics x_{k+1} = Φ x_k + w, w ~ N(0, Q), the D terms reduce the recursion
-to the Kalman covariance recursion run on the *expected* measurement information (Tichavský
-eq. (34); no measurement values enter):
+and for linear-Gaussian M the D terms reduce (T21) to the Kalman covariance recursion on the
+*expected* measurement information (Tichavský eq. (34); no measurement values enter; in this
+covariance form it holds for the singular Q = d dᵀ and Q = 0 of M, where the information form's
+Q⁻¹ does not exist):
 
     P⁻ = Φ P Φᵀ + Q,     P = (P⁻⁻¹ + J_Z)⁻¹,     PCRB_k = P_k                          (T34)
 
-Dynamics: the simulator's own process model — the Singer model of its radars' channels,
-per Cartesian axis of the system frame, state (p, v, a), Φ(τ) and Q(τ) = diag(0, 0, D_a) from
-:func:`tertiary.filters.singer.singer_phi` / ``singer_q`` with the scenario's ``[tracker]``
-α, σ_m and variant (monograph (2.49)–(2.63), tertiary (4.46)). Prior at an aircraft's first
-event: position σ ``p0_sigma_m`` (diffuse), velocity σ ``v0_sigma_mps``, acceleration σ_m.
+The optimal estimator under M is told the instant, the axis and the time profile of every
+manoeuvre and that nothing happens between them; only the sign and scale ξ of each are
+unknown. It is an estimator that knew the manoeuvres' onsets but not their magnitudes, with
+every plot's expected information and no bias, clutter or misassociation. The pipeline's
+estimators know none of this — they must detect each manoeuvre from the plots, and carry
+process noise on straight legs against manoeuvres to come — so their MSE on the truth lies
+above M's optimum, which (T34) gives. (A Bayesian bound averages over M's ensemble; on the
+single realisation ξ ≡ 1, each manoeuvre exactly one σ, an estimator could sit below it only
+by being biased towards that realisation, i.e. knowing the manoeuvres before their plots.)
 
 Measurements: each radar measures (range, azimuth, elevation) with independent Gaussian errors
 of its nominal σ (``radars`` table; the simulator's noise, :mod:`tertiary.simulate.radar`).
@@ -43,12 +72,12 @@ elevation within [``min_elevation_deg``, max elevation (the scenario's, else 90�
 truth exists (no truth gap) at that instant. Truth between samples is the cubic Hermite
 interpolation of the truth positions and velocities (the simulator's interpolation).
 
-What is not in the bound (so a method may legitimately sit below it there): the Mode C
-altitude channel (a quantised measurement — it has no Fisher information in the regular
-sense; the height metric ``rmse_height_m`` uses it, so no height bound is given), and the
-truth's actual motion: the simulator flies deterministic straight legs and coordinated turns,
-while the bound averages over Singer trajectories. Radar biases, clock offsets, clutter and
-association errors only add error, so leaving them out keeps the bound a lower bound.
+What is not in the bound: the Mode C altitude — it feeds the pictures' separate height channel
+(``rmse_height_m``, :mod:`tertiary.stages.tracking.altitude`; a quantised measurement has no
+Fisher information in the regular sense, so no height bound is given), while a picture's
+(x, y, z), which the bound covers, is estimated from the radar plots; and radar biases, clock
+offsets, clutter and association errors, which only add error, so leaving them out keeps the
+bound a lower bound. The run's notes state the model (:meth:`BoundConfig.describe`, :data:`MODEL`).
 
 Metrics (stage ``bound``, one block per picture)
 ------------------------------------------------
@@ -56,9 +85,9 @@ Over the *same scored samples* (run, epoch, truth_id) as a picture's accuracy ro
 pooled as the RMSE is: ``pcrb_pos_m`` = sqrt(mean_k mean_{j∈k} tr P_pos), ``pcrb_horizontal_m``
 (P_xx + P_yy), ``pcrb_vel_mps`` (tr P_vel), and the signed gaps ``gap_pos_m`` =
 ``rmse_pos_m`` − ``pcrb_pos_m``, ``gap_horizontal_m``, ``gap_vel_mps`` (> 0: above the bound),
-per segment all/straight/turn. The bound is the same in every Monte-Carlo run (the geometry
-and the expected information do not depend on the noise draw), so it is computed once per
-(truth_id, epoch).
+per segment all/straight/turn. The bound is the same in every Monte-Carlo run (the geometry,
+the truth and the expected information do not depend on the noise draw), so it is computed
+once per (truth_id, epoch).
 """
 
 from __future__ import annotations
@@ -74,11 +103,10 @@ from numpy.typing import NDArray
 from tertiary.core import geo
 from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import US
-from tertiary.evaluation.bound_kernel import pcrb_singer9
-from tertiary.filters.singer import Variant, singer_phi, singer_q
+from tertiary.evaluation.bound_kernel import pcrb_ca9
 from tertiary.contract import TABLES, TIME
 
-__all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS"]
+__all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS", "MODEL"]
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -96,29 +124,41 @@ VEL = np.array([1, 4, 7])
 #: drop the scans that cannot bring an aircraft within a rotating radar's range before the
 #: beam-passage iterations (:func:`_radar_events`; the same events, found sooner)
 RANGE_SCREEN = True
+#: half-width (s) of the centred velocity difference that fits the truth's acceleration (model M):
+#: long enough to average out the jitter of ADS-B truth's vertical rate, short beside a manoeuvre
+ACCEL_HALF_WINDOW_S = 10.0
 
 
 @dataclass(frozen=True)
 class BoundConfig:
-    """The process model of the bound (the scenario's ``[tracker]``: Singer α, σ_m, variant),
-    the prior (``p0_sigma_m``, ``v0_sigma_mps``) and the elevation limit used when the
-    scenario does not give one per radar (``max_elevation_deg``)."""
+    """The bound's model M (module docstring): the half-width of the centred velocity
+    difference that gives the truth's acceleration (``accel_half_window_s``), the prior
+    (``p0_sigma_m``, ``v0_sigma_mps``; the acceleration's is the truth's own) and the elevation
+    limit used when the scenario does not give one per radar (``max_elevation_deg``)."""
 
-    alpha: float = 1.0 / 30.0
-    sigma_m: float = 2.0
-    variant: Variant = "printed"
+    accel_half_window_s: float = ACCEL_HALF_WINDOW_S
     p0_sigma_m: float = 10_000.0
     v0_sigma_mps: float = 300.0
     max_elevation_deg: float = 90.0
 
     @classmethod
     def from_scenario(cls, scenario) -> "BoundConfig":
-        """The bound for a scenario's own Singer model (its ``tracker`` section)."""
-        t = getattr(scenario, "tracker", None)
-        if t is None:
-            return cls()
-        return cls(alpha=float(t.alpha), sigma_m=float(t.sigma_m), variant=t.variant,
-                   v0_sigma_mps=float(t.v0_sigma_mps))
+        """The bound of a scenario: M is fitted to the truth, whatever the scenario's filters
+        assume, so every scenario has the defaults."""
+        return cls()
+
+    def describe(self) -> str:
+        """The motion model the bound assumes, one line (the run's note)."""
+        return (f"motion model of the bound: the truth's own piecewise-constant acceleration (per axis "
+                f"(p, v, a), acceleration from ±{self.accel_half_window_s:g} s velocity differences of the "
+                f"truth); process noise per interval = the truth's deviation from the constant-acceleration "
+                f"prediction (rank one, sign unknown): none on straight legs and steady climbs, each "
+                f"manoeuvre's onset known, not its magnitude; prior σ_p {self.p0_sigma_m:g} m, "
+                f"σ_v {self.v0_sigma_mps:g} m/s; radar plots only (nominal σ, Pd, scan schedule)")
+
+
+#: the motion model of the default bound, as the run's notes state it
+MODEL = BoundConfig().describe()
 
 
 # --------------------------------------------------------------------------- recursion
@@ -138,20 +178,21 @@ def pcrb_linear(t: F64, r_eq: F64, starts: I64, lengths: I64, phi_q, p0: F64, ob
     Sequence g owns rows ``starts[g] : starts[g] + lengths[g]`` (time order ``t``); row i
     carries the inverse of its measurement information about the observed states ``obs``,
     ``r_eq[i]`` (m, m), or NaN for an event without a measurement (an output epoch).
-    ``phi_q(tau)`` returns Φ(τ), Q(τ) stacked (n, d, d); ``p0`` (d, d) is the prior at a
-    sequence's first event. Returns the bound P (n_record, d, d) at the ``record`` rows,
-    in row order — or, with ``summary`` (stacked P (m, d, d) → (m, s)), only what it keeps of
-    each (n_record, s): the recorded bounds of a long recording are never held whole. The
-    loop runs over the event rank, batched over the sequences.
+    ``phi_q(tau)`` returns Φ(τ), Q(τ) stacked (n, d, d), or ``phi_q`` is that pair per row
+    already (Φ, Q of row i from the previous row); ``p0`` (d, d), or (n_sequences, d, d) one per
+    sequence, is the prior at a sequence's first event. Returns the bound P (n_record, d, d) at
+    the ``record`` rows, in row order — or, with ``summary`` (stacked P (m, d, d) → (m, s)), only
+    what it keeps of each (n_record, s): the recorded bounds of a long recording are never held
+    whole. The loop runs over the event rank, batched over the sequences.
     """
-    n, d = len(t), p0.shape[0]
+    n, d = len(t), p0.shape[-1]
     slot = np.full(n, -1)
     slot[record] = np.arange(int(record.sum()))
     keep = summary or (lambda pk: pk)
-    out = np.full((int(record.sum()), *keep(p0[None]).shape[1:]), np.nan)
+    out = np.full((int(record.sum()), *keep(np.zeros((1, d, d))).shape[1:]), np.nan)
     order = np.argsort(-np.asarray(lengths), kind="stable")
     st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
-    p = np.broadcast_to(p0, (len(st), d, d)).copy()
+    p = (np.asarray(p0)[order] if np.ndim(p0) == 3 else np.broadcast_to(p0, (len(st), d, d))).copy()
     tau = np.zeros(n)
     tau[1:] = np.diff(t)
     alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")   # sequences longer than k
@@ -160,7 +201,7 @@ def pcrb_linear(t: F64, r_eq: F64, starts: I64, lengths: I64, phi_q, p0: F64, ob
         idx = st[:m] + k
         pk = p[:m]
         if k:
-            phi, q = phi_q(tau[idx])
+            phi, q = phi_q(tau[idx]) if callable(phi_q) else (phi_q[0][idx], phi_q[1][idx])
             pk = phi @ pk @ phi.swapaxes(1, 2) + q
         u = has[idx]
         if u.any():
@@ -199,9 +240,10 @@ class _Truth:
     span: float
     key: F64
     gap_s: F64
+    half_window_s: float = ACCEL_HALF_WINDOW_S
 
     @classmethod
-    def of(cls, truth: pl.DataFrame, t0_us: int) -> "_Truth":
+    def of(cls, truth: pl.DataFrame, t0_us: int, half_window_s: float = ACCEL_HALF_WINDOW_S) -> "_Truth":
         tr = (truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME).dt.epoch("us").alias("us"),
                            "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
               .drop_nulls().unique(["truth_id", "us"], keep="first").sort("truth_id", "us"))
@@ -216,7 +258,53 @@ class _Truth:
             g = pl.DataFrame({"a": owner[1:][same], "d": d[same]}).group_by("a").agg(pl.col("d").median())
             gap[g["a"].to_numpy()] = 1.5 * g["d"].to_numpy()
         return cls(ids, first, count, t, tr.select("x_m", "y_m", "z_m").to_numpy(),
-                   tr.select("vx_mps", "vy_mps", "vz_mps").to_numpy(), span, owner * span + t, gap)
+                   tr.select("vx_mps", "vy_mps", "vz_mps").to_numpy(), span, owner * span + t, gap, half_window_s)
+
+    @functools.cached_property
+    def accel(self) -> F64:
+        """ā (n, 3) on the interval that starts at each sample: the centred velocity difference
+        over ± ``half_window_s`` (W samples of the aircraft's median spacing), clipped to the
+        aircraft's span (module docstring, M1–M2); 0 for an aircraft of one sample."""
+        owner = np.repeat(np.arange(len(self.ids)), self.count)
+        lo_a, hi_a = self.first[owner], self.first[owner] + self.count[owner] - 1
+        spacing = self.gap_s[owner] / 1.5
+        w = np.where(np.isfinite(spacing), np.round(self.half_window_s / np.where(spacing > 0, spacing, 1.0)), 0.0)
+        j = np.arange(len(self.t))
+        hi = np.minimum(j + 1 + w.astype(np.int64), hi_a)
+        lo = np.minimum(np.maximum(j - w.astype(np.int64), lo_a), np.maximum(hi - 1, lo_a))
+        h = self.t[hi] - self.t[lo]
+        return np.where((h > 0)[:, None], (self.vel[hi] - self.vel[lo]) / np.where(h > 0, h, 1.0)[:, None], 0.0)
+
+    @functools.cached_property
+    def _steps(self) -> tuple[F64, F64, F64]:
+        """Per aircraft, the running sums C_r = Σ_{m ≤ j} Δa_m τ_m^r (r = 0, 1, 2; τ from the
+        aircraft's first sample) of the acceleration steps Δa_m = ā_m − ā_{m−1} (none at the
+        first sample): (M2) over any interval is a difference of them."""
+        owner = np.repeat(np.arange(len(self.ids)), self.count)
+        acc = self.accel
+        step = np.zeros_like(acc)
+        same = owner[1:] == owner[:-1]
+        step[1:][same] = (acc[1:] - acc[:-1])[same]
+        tau = (self.t - self.t[self.first[owner]])[:, None]
+        cols = {f"{r}{k}": (step * tau ** r)[:, k] for r in range(3) for k in range(3)}
+        c = pl.DataFrame({"a": owner, **cols}).select(pl.exclude("a").cum_sum().over("a")).to_numpy()
+        return c[:, 0:3], c[:, 3:6], c[:, 6:9]
+
+    def deviations(self, a: I64, t: F64, first: NDArray[np.bool_]) -> tuple[F64, F64]:
+        """For rows of aircraft index ``a`` (−1: not in the truth) at times ``t`` in sequence
+        order (``first``: a sequence's first row): d (n, 3 axes, 3) of (M2) over the interval
+        from the previous row (0 at a first row) and the truth's ā (n, 3) at each row."""
+        known = a >= 0
+        ak = np.where(known, a, 0)
+        lo, hi = self.first[ak], self.first[ak] + self.count[ak] - 1
+        j = np.clip(np.searchsorted(self.key, ak * self.span + t, side="right") - 1, lo, hi)
+        c0, c1, c2 = (c[j] for c in self._steps)
+        prev = np.r_[0, np.arange(len(t) - 1)]
+        d0, d1, d2 = c0 - c0[prev], c1 - c1[prev], c2 - c2[prev]
+        big_t = (t - self.t[lo])[:, None]
+        dev = np.stack([0.5 * (big_t * big_t * d0 - 2.0 * big_t * d1 + d2), big_t * d0 - d1, d0], axis=-1)
+        dev[first | ~known] = 0.0
+        return dev, np.where(known[:, None], self.accel[j], 0.0)
 
     @functools.cached_property
     def top_speed(self) -> float:
@@ -342,29 +430,39 @@ def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dic
     return out
 
 
-def _singer9(cfg: BoundConfig):
-    """Φ(τ), Q(τ) of the 9-state Singer model for :func:`pcrb_linear`: with
-    :func:`_bound_summary`, the reference :func:`_pcrb_block`'s compiled kernel is tested
+def _ca9(tau: F64, dev: F64) -> tuple[F64, F64]:
+    """Φ(τ), Q = blockdiag(d dᵀ per axis) of model M (M1) as 9×9 stacks for :func:`pcrb_linear`:
+    with :func:`_bound_summary`, the reference :func:`_pcrb_block`'s compiled kernel is tested
     against (the run calls the kernel only)."""
-    def phi_q(tau: F64) -> tuple[F64, F64]:
-        return (_blockdiag3(singer_phi(tau, cfg.alpha, cfg.variant)),
-                _blockdiag3(singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)))
-    return phi_q
+    phi3 = np.zeros((len(tau), 3, 3))
+    phi3[:, 0, 0] = phi3[:, 1, 1] = phi3[:, 2, 2] = 1.0
+    phi3[:, 0, 1] = phi3[:, 1, 2] = tau
+    phi3[:, 0, 2] = 0.5 * tau * tau
+    q = np.zeros((len(tau), 9, 9))
+    for ax in range(3):
+        q[:, 3 * ax:3 * ax + 3, 3 * ax:3 * ax + 3] = dev[:, ax, :, None] * dev[:, ax, None, :]
+    return _blockdiag3(phi3), q
 
 
-def _prior9(cfg: BoundConfig) -> F64:
-    p = np.zeros((9, 9))
-    p[POS, POS] = cfg.p0_sigma_m ** 2
-    p[VEL, VEL] = cfg.v0_sigma_mps ** 2
-    p[POS + 2, POS + 2] = cfg.sigma_m ** 2
+def _prior9(cfg: BoundConfig, accel: F64) -> F64:
+    """The prior (n_sequences, 9, 9) at each sequence's first row: p σ ``p0_sigma_m``, v σ
+    ``v0_sigma_mps``, a ~ N(0, diag(ā²)) with ā (n_sequences, 3) the truth's acceleration there."""
+    p = np.zeros((len(accel), 9, 9))
+    p[:, POS, POS] = cfg.p0_sigma_m ** 2
+    p[:, VEL, VEL] = cfg.v0_sigma_mps ** 2
+    p[:, POS + 2, POS + 2] = np.asarray(accel) ** 2
     return p
 
 
-def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = BoundConfig()) -> pl.DataFrame:
+def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = BoundConfig(),
+            truth: pl.DataFrame | None = None) -> pl.DataFrame:
     """The bound at each distinct (truth_id, epoch) of ``samples``: columns truth_id, epoch and
     ``b2_pos`` (tr P_pos, m²), ``b2_horizontal`` (P_xx + P_yy), ``b2_vel`` (tr P_vel) — the
-    recursion (T34) over :func:`illuminations` ``events`` and the requested epochs of each
-    aircraft in time order (a measurement at an epoch counts at that epoch)."""
+    recursion (T34) of model M fitted to ``truth`` (its samples' velocities; module docstring)
+    over :func:`illuminations` ``events`` and the requested epochs of each aircraft in time
+    order (a measurement at an epoch counts at that epoch)."""
+    if truth is None:
+        raise ValueError("pcrb_at: the bound's motion model is fitted to the truth; give truth=")
     want = samples.select(pl.col("truth_id").cast(pl.Int64), pl.col("epoch").cast(TIME)).unique()
     out_schema = {"truth_id": pl.Int64, "epoch": TIME, "b2_pos": pl.Float64, "b2_horizontal": pl.Float64,
                   "b2_vel": pl.Float64}
@@ -384,16 +482,22 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
     lengths = np.diff(np.append(starts, len(tid)))
     record = rows["__k"].to_numpy() == 1
     src = rows["__ev"].to_numpy()
+    tr = _Truth.of(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(np.unique(tid).tolist())), int(us.min()),
+                   cfg.accel_half_window_s)
+    pos = np.searchsorted(tr.ids, tid)
+    a = np.where((pos < len(tr.ids)) & (tr.ids[np.minimum(pos, len(tr.ids) - 1)] == tid), pos, -1)
     out = []
-    # aircraft a block at a time (each sequence is independent): the events' 3x3 matrices are
-    # gathered for a block, never for the whole recording (the stage's peak)
+    # aircraft a block at a time (each sequence is independent): the events' 3x3 matrices and the
+    # model's deviations are gathered for a block, never for the whole recording (the stage's peak)
     for lo, hi, g0, g1 in _aircraft_blocks(starts, len(tid), BOUND_BLOCK_ROWS):
         s = src[lo:hi]
         r_eq = np.full((hi - lo, 3, 3), np.nan)
         if (s >= 0).any():
             r_eq[s >= 0] = events["r_eq"].gather(s[s >= 0]).to_numpy().reshape(-1, 3, 3)
-        out.append(_pcrb_block(t[lo:hi], r_eq, starts[g0:g1] - lo, lengths[g0:g1], record[lo:hi], cfg))
-        del r_eq
+        dev, acc = tr.deviations(a[lo:hi], t[lo:hi], new[lo:hi])
+        st = starts[g0:g1] - lo
+        out.append(_pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, acc[st]))
+        del r_eq, dev
     b = np.concatenate(out)
     return rows.filter(record).select("truth_id", "epoch").with_columns(
         pl.Series("b2_pos", b[:, 0]), pl.Series("b2_horizontal", b[:, 1]), pl.Series("b2_vel", b[:, 2])
@@ -409,18 +513,22 @@ BOUND_AIRCRAFT = 256
 BOUND_READ_AIRCRAFT = 4_096
 
 
-def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig) -> F64:
-    """:func:`pcrb_linear` on the 9-state Singer model with :func:`_bound_summary`, compiled
-    (:func:`tertiary.evaluation.bound_kernel.pcrb_singer9`): (n_record, 3) in row order."""
+def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig,
+                dev: F64 | None = None, accel0: F64 | None = None) -> F64:
+    """:func:`pcrb_linear` on model M (9 states; ``dev`` (n, 3, 3) the deviations d of (M2)
+    per row and axis, none if not given; ``accel0`` (n_sequences, 3) the truth's ā at each
+    sequence's first row, 0 if not given) with :func:`_bound_summary`, compiled
+    (:func:`tertiary.evaluation.bound_kernel.pcrb_ca9`): (n_record, 3) in row order."""
     tau = np.zeros(len(t))
     tau[1:] = np.diff(t)                 # a sequence's first row has none: it starts from the prior
     slot = np.full(len(t), -1, np.int64)
     slot[record] = np.arange(int(record.sum()))
     out = np.full((int(record.sum()), 3), np.nan)
+    dev = np.zeros((len(t), 3, 3)) if dev is None else dev
+    accel0 = np.zeros((len(starts), 3)) if accel0 is None else accel0
     ready_for("pcrb")
-    pcrb_singer9(arg(singer_phi(tau, cfg.alpha, cfg.variant)), arg(singer_q(tau, cfg.alpha, cfg.sigma_m, cfg.variant)),
-                 arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(starts, np.int64), arg(lengths, np.int64),
-                 arg(_prior9(cfg)), slot, out)
+    pcrb_ca9(arg(tau), arg(dev), arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(starts, np.int64),
+             arg(lengths, np.int64), arg(_prior9(cfg, accel0)), slot, out)
     return out
 
 
@@ -436,7 +544,7 @@ def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int
 
 def _bound_summary(p: F64) -> F64:
     """(tr P_pos, P_xx + P_yy, tr P_vel) of stacked 9-state bounds (m, 9, 9): what the compiled
-    kernel records, for :func:`pcrb_linear` as its reference (:func:`_singer9`)."""
+    kernel records, for :func:`pcrb_linear` as its reference (:func:`_ca9`)."""
     pos = p[:, POS[:, None], POS[None, :]]
     return np.column_stack([np.trace(pos, axis1=1, axis2=2), pos[:, 0, 0] + pos[:, 1, 1],
                             p[:, VEL, VEL].sum(axis=1)])
@@ -528,6 +636,7 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     scen = getattr(ds, "scenario", None)
     cfg = BoundConfig.from_scenario(scen)
     max_el = {r.name: float(r.max_elevation_deg) for r in getattr(scen, "radars", ()) or ()}
+    notes.append(f"bound: {cfg.describe()}")
     t0 = int(truth.select(pl.col("time").cast(TIME).dt.epoch("us").min()).lazy().collect().item())
     origins = scan_origins(radars, reports, t0)
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
@@ -540,7 +649,8 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
             mine = scored.filter(pl.col("truth_id").cast(pl.Int64).is_in(block))
             events = illuminations(held.filter(pl.col("truth_id").cast(pl.Int64).is_in(block)), radars, reports,
                                    ds.origin, cfg, max_el, t0_us=t0, origins=origins)
-            sums.append(_bound_sums(mine, pcrb_at(mine, events, cfg)))
+            sums.append(_bound_sums(mine, pcrb_at(mine, events, cfg, truth=held.filter(
+                pl.col("truth_id").cast(pl.Int64).is_in(block)))))
             del mine, events
         del held
     return _bound_rows(pl.concat(sums) if sums else _bound_sums(scored.clear(), pl.DataFrame()), accuracy)

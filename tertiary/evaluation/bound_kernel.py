@@ -1,12 +1,13 @@
-"""The posterior Cramér–Rao bound's recursion (T34) on the 9-state Singer model, compiled
-(numba, ``cache=True``).
+"""The posterior Cramér–Rao bound's recursion (T34) on the bound's model M (9 states, per axis
+constant acceleration with the truth's rank-one deviations; :mod:`tertiary.evaluation.bound`),
+compiled (numba, ``cache=True``).
 
 :func:`tertiary.evaluation.bound.pcrb_linear` runs the recursion vectorised over aircraft per event rank:
 a few numpy calls on stacks of 9×9 matrices per rank, and an aircraft seen for hours keeps the
 loop going with a handful of sequences. Here each aircraft's events run one after another.
-Φ and Q are block diagonal (one 3×3 Singer block per axis), so the prediction is done per block;
-the update is (T34) with H selecting the three positions and the 3×3 innovation matrix solved by
-Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear` stays the reference (compared in the
+Φ and Q are block diagonal (one 3×3 block per axis: the constant-acceleration φ(τ) and d dᵀ), so
+the prediction is done per block; the update is (T34) with H selecting the three positions and
+the 3×3 innovation matrix solved by Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear` stays the reference (compared in the
 tests).
 """
 
@@ -25,8 +26,12 @@ _POS = (0, 3, 6)
 
 
 @_jit
-def _predict(p, phi, q, tmp):
-    """P ← Φ P Φᵀ + Q in place, Φ = blockdiag(φ, φ, φ), Q = blockdiag(q, q, q)."""
+def _predict(p, tau, dev, phi, tmp):
+    """P ← Φ P Φᵀ + Q in place: Φ = blockdiag(φ, φ, φ), φ the 3×3 constant-acceleration
+    transition over ``tau`` (written into ``phi``, zero below the diagonal), Q = blockdiag(d_x d_xᵀ,
+    d_y d_yᵀ, d_z d_zᵀ) (``dev`` (3, 3): axis, (p, v, a))."""
+    phi[0, 1] = phi[1, 2] = tau
+    phi[0, 2] = 0.5 * tau * tau
     for a in range(3):
         for b in range(3):
             for i in range(3):                 # tmp = block(a, b) of P Φᵀ
@@ -42,7 +47,7 @@ def _predict(p, phi, q, tmp):
                     s = 0.0
                     for m in range(3):
                         s += phi[i, m] * tmp[3 * a + m, 3 * b + j]
-                    p[3 * a + i, 3 * b + j] = s + (q[i, j] if a == b else 0.0)
+                    p[3 * a + i, 3 * b + j] = s + (dev[a, i] * dev[a, j] if a == b else 0.0)
 
 
 @_jit
@@ -76,21 +81,23 @@ def _update(p, r, ph, s, tmp):
 
 
 @_jit
-def pcrb_singer9(phi, q, r_eq, has, starts, lengths, p0, slot, out):
+def pcrb_ca9(tau, dev, r_eq, has, starts, lengths, p0, slot, out):
     """(T34) over every sequence g (rows ``starts[g] : starts[g] + lengths[g]``, time order):
-    from ``p0`` at its first row, Φ(τ)/Q(τ) of row i (``phi[i]``, ``q[i]``, 3×3 per axis) from
-    the previous row, then the update with ``r_eq[i]`` where ``has[i]``. At rows with
-    ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos, P_xx + P_yy, tr P_vel) after the update."""
+    from ``p0[g]`` at its first row, the prediction over ``tau[i]`` from the previous row with
+    the deviations ``dev[i]`` (3 axes × (p, v, a)) of model M, then the update with ``r_eq[i]``
+    where ``has[i]``. At rows with ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
+    P_xx + P_yy, tr P_vel) after the update."""
     p = np.empty((9, 9))
     tmp = np.empty((9, 9))
     ph = np.empty((9, 3))
     s = np.empty((3, 3))
+    phi = np.eye(3)
     for g in range(len(starts)):
         first = starts[g]
-        p[:, :] = p0
+        p[:, :] = p0[g]
         for i in range(first, first + lengths[g]):
             if i > first:
-                _predict(p, phi[i], q[i], tmp)
+                _predict(p, tau[i], dev[i], phi, tmp)
             if has[i]:
                 _update(p, r_eq[i], ph, s, tmp)
             k = slot[i]
@@ -102,9 +109,9 @@ def pcrb_singer9(phi, q, r_eq, has, starts, lengths, p0, slot, out):
 
 def _signature() -> tuple:
     """The one signature :func:`tertiary.evaluation.bound.bound_stage` calls it with."""
-    f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
+    f1, f2, f3 = (nbt.Array(nbt.float64, k, "C") for k in (1, 2, 3))
     i1, b1 = nbt.Array(nbt.int64, 1, "C"), nbt.Array(nbt.boolean, 1, "C")
-    return (f3, f3, f3, b1, i1, i1, f2, i1, f2)
+    return (f1, f3, f3, b1, i1, i1, f3, i1, f2)
 
 
-register_kernel("pcrb", __name__, pcrb_singer9, _signature)
+register_kernel("pcrb", __name__, pcrb_ca9, _signature)
