@@ -2,10 +2,13 @@
 -- table) — true-conflict episodes, hits, misses, false alerts, mean warning time and alert flicker;
 -- and, where the safety stage scores against real losses of separation, the losses (los_episodes),
 -- those alerted and missed, genuine / nuisance alerts, alerts per hour and the median and
--- 5th-percentile warning times (null where the metrics table has no such row).
+-- 5th-percentile warning times; how many alerts (false, nuisance) and missed losses the picture
+-- causes (the truth picture does not raise / does alert them) and the valid alerts (null where the
+-- metrics table has no such row).
 -- Columns: method, episodes, hits, misses, false_alerts, mean_warning_s, flicker, flicker_per_hit,
 -- los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts, alerts_per_hour,
--- warning_median_s, warning_p05_s, n_runs.
+-- warning_median_s, warning_p05_s, alerts_picture_induced, false_alerts_picture_induced,
+-- nuisance_alerts_picture_induced, missed_los_picture_induced, valid_alerts, n_runs.
 -- param: method = null   picture (fusion method) (null: all)
 SELECT method,
        max(value) FILTER (WHERE metric = 'episodes')         AS episodes,
@@ -23,12 +26,19 @@ SELECT method,
        max(value) FILTER (WHERE metric = 'alerts_per_hour')  AS alerts_per_hour,
        max(value) FILTER (WHERE metric = 'warning_median_s') AS warning_median_s,
        max(value) FILTER (WHERE metric = 'warning_p05_s')    AS warning_p05_s,
+       max(value) FILTER (WHERE metric = 'alerts_picture_induced')          AS alerts_picture_induced,
+       max(value) FILTER (WHERE metric = 'false_alerts_picture_induced')    AS false_alerts_picture_induced,
+       max(value) FILTER (WHERE metric = 'nuisance_alerts_picture_induced') AS nuisance_alerts_picture_induced,
+       max(value) FILTER (WHERE metric = 'missed_los_picture_induced')      AS missed_los_picture_induced,
+       max(value) FILTER (WHERE metric = 'valid_alerts')                    AS valid_alerts,
        max(n_runs)                                           AS n_runs
 FROM metrics
 WHERE stage = 'safety'
   AND metric IN ('episodes', 'hits', 'misses', 'false_alerts', 'mean_warning_s', 'flicker', 'flicker_per_hit',
                  'los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts',
-                 'alerts_per_hour', 'warning_median_s', 'warning_p05_s')
+                 'alerts_per_hour', 'warning_median_s', 'warning_p05_s', 'alerts_picture_induced',
+                 'false_alerts_picture_induced', 'nuisance_alerts_picture_induced', 'missed_los_picture_induced',
+                 'valid_alerts')
   AND ($method IS NULL OR method = $method)
 GROUP BY method
 ORDER BY method;

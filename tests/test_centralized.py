@@ -11,7 +11,9 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from tertiary.core import geo
-from tertiary.stages.fusion.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion, converted_plots, initial_state, transition)
+from tertiary.stages.fusion.centralized import (POS, CentralizedConfig, centralized_filter, centralized_fusion,
+                                                centralized_step, converted_plots, init_centralized_state,
+                                                initial_state, transition)
 from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_from_matched, scored_rows)
 from tertiary.evaluation.consistency import consistency_metrics
 from tertiary.evaluation.matching import match_to_reference
@@ -120,8 +122,9 @@ def big_box_fused(big_box10):
 
 def test_output_is_in_the_fused_schema(big_box_fused):
     ds, assoc, cen = big_box_fused
-    assert cen.schema == pl.Schema(TABLES["fused"].columns)
-    validate(cen, "fused")
+    assert cen.schema == pl.Schema({**TABLES["fused"].columns, "tentative": pl.Boolean})
+    validate(cen.drop("tentative"), "fused")
+    assert cen["tentative"].null_count() == 0
     assert cen.height == 10 * 852
     assert set(cen["method"]) == {"centralized"}
     assert cen["n_sources"].unique().to_list() == [2]          # two synchronous radars per 1 s epoch
@@ -159,23 +162,21 @@ def test_centralized_is_consistent(big_box_fused):
         assert bad.filter((pl.col("metric") == "nees_in_band_frac") & (pl.col("segment") == "all"))["value"].item() < 0.5
 
 
-def test_centralized_is_near_the_posterior_cramer_rao_bound(big_box_fused):
-    """The PCRB of the simulated truth with the scenario's Singer model and the radars' polar
-    noise (tertiary.evaluation.bound) is a lower bound the centralised filter — the same model, every
-    plot — nearly attains: RMSE within [0.9, 1.15] PCRB. Not [1, …]: the bound averages over
-    Singer trajectories, the simulated truth flies straight legs without acceleration, where
-    a filter of that model does better than the average (≈ 4 % below on big-box straights,
-    10 % above in turns); the 3-D figure lands within a few per cent of the bound."""
+def test_centralized_is_above_the_posterior_cramer_rao_bound(big_box_fused):
+    """The PCRB for the motion the truth flies (tertiary.evaluation.bound: each manoeuvre's
+    onset and shape known, not its size) and the radars' polar noise bounds the centralised
+    filter — every plot, but a Singer model that knows nothing of the manoeuvres — from below,
+    and not by an order of magnitude: RMSE within [1, 2] PCRB."""
     from tertiary.evaluation.bound import BoundConfig, illuminations, pcrb_at
     ds, assoc, cen = big_box_fused
     matched = _scored(cen, ds.truth)
     cfg = BoundConfig.from_scenario(ds.scenario)
     ev = illuminations(ds.truth, ds.radars, ds.reports, ds.origin, cfg)
-    b = pcrb_at(matched.select("truth_id", "epoch"), ev, cfg)
+    b = pcrb_at(matched.select("truth_id", "epoch"), ev, cfg, truth=ds.truth)
     pcrb = float(np.sqrt(b["b2_pos"].mean()))
     rmse = float(np.sqrt(matched["e2_pos"].mean()))
     print(f"centralized RMSE {rmse:.2f} m, PCRB {pcrb:.2f} m")
-    assert 0.9 * pcrb <= rmse <= 1.15 * pcrb
+    assert pcrb <= rmse <= 2.0 * pcrb
 
 
 def test_epochs_between_plots_are_predictions(big_box10):
@@ -212,6 +213,34 @@ def test_epochs_between_plots_are_predictions(big_box10):
     np.testing.assert_allclose(np.asarray(first["cov"]).reshape(6, 6), cov, rtol=1e-12)
 
 
+def test_epochs_between_reports_keep_the_confirmation_reached(big_box10):
+    """One aircraft seen by radar 1 alone for 3 s (one plot a second), epochs every half second:
+    tentative at its first plot and half a second after it (one radar, one plot so far),
+    confirmed from its local track's second plot on, predicted epochs included."""
+    ds = big_box10
+    rep = ds.reports.filter((pl.col("run") == 0) & (pl.col("radar_id") == 1) & (pl.col("truth_id") == 0))
+    t0 = rep["time"].min()
+    rep = rep.filter(pl.col("time") < t0 + timedelta(seconds=3))
+    grid = [t0 + timedelta(milliseconds=500 * k) for k in range(6)]
+    epochs = pl.DataFrame({"run": 0, "epoch": grid, "target_id": 0}).with_columns(
+        pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64),
+        pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+    assoc = _truth_associations(rep)
+    out = centralized_fusion(rep, ds.radars, assoc, epochs, ds.origin)
+    assert out["n_sources"].to_list() == [1, 0, 1, 0, 1, 0]
+    assert out["tentative"].to_list() == [True, True, False, False, False, False]
+    # the same in two windows cut between the second plot and the next epoch: the status is carried
+    cut = int((t0 + timedelta(milliseconds=1200)).timestamp() * 1e6)
+    state, flags = init_centralized_state(), []
+    for before in (True, False):
+        def part(f: pl.DataFrame, c: str) -> pl.DataFrame:
+            return f.filter((pl.col(c).dt.epoch("us") < cut) == before)
+        out, state = centralized_step(state, part(rep, "time"), ds.radars, part(assoc, "epoch"), part(epochs, "epoch"),
+                                      ds.origin)
+        flags += out["tentative"].to_list()
+    assert flags == [True, True, False, False, False, False]
+
+
 def test_reports_without_association_or_elevation_are_not_used(big_box10):
     ds = big_box10
     rep = ds.reports.filter(pl.col("run") == 0).head(50)
@@ -228,4 +257,4 @@ def test_empty_inputs_give_an_empty_fused_table(big_box10):
     ds = big_box10
     assoc = _truth_associations(ds.reports).head(0)
     out = centralized_fusion(ds.reports, ds.radars, assoc, assoc.select("run", "epoch", "target_id"), ds.origin)
-    assert out.is_empty() and out.schema == pl.Schema(TABLES["fused"].columns)
+    assert out.is_empty() and out.schema == pl.Schema({**TABLES["fused"].columns, "tentative": pl.Boolean})

@@ -70,6 +70,7 @@ def test_windowed_reference_equals_whole_run(case, cuts, margin_s):
     reports, radars, assoc, keys, origin = case
     whole = centralized_fusion(reports, radars, assoc, keys, origin)
     assert whole.height > 1000 and (whole["n_sources"] > 1).any()
+    assert whole["tentative"].any() and not whole["tentative"].all()     # the confirmation is compared too
     _assert_same(_windowed(case, cuts, margin_s * 1_000_000), whole)
 
 

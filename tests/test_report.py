@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.cli.commands import app
-from tertiary.report.common import CENTRALIZED, breakable as _breakable, thin as _thin
+from tertiary.report.common import CENTRALIZED, breakable as _breakable, fmt_cell as _fmt_cell, thin as _thin
 from tertiary.report.html import (MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, build_report, build_sections, figure_count)
 from tertiary.io.dataset import write_dataset
 from tertiary.simulate import load_scenario, simulate
@@ -146,6 +146,51 @@ def test_verdict_opens_the_report(page, run_dir):
     # the pipeline judges its tracker pictures against the shipped example requirements
     assert "Requirements" in verdict and "requirements)." in verdict
     assert re.search(r"\d+ pass, \d+ fail, \d+ insufficient samples", verdict)
+
+
+def _metric(m: pl.DataFrame, stage: str, method: str, metric: str) -> float:
+    return m.filter((pl.col("stage") == stage) & (pl.col("method") == method) & (pl.col("metric") == metric)
+                    & (pl.col("segment") == "all"))["value"].item()
+
+
+def test_verdict_ranks_against_truth_and_bound_and_gives_the_reference_its_own_row(page, run_dir):
+    """The verdict ranks the pictures by their error against the truth, each with its gap to the
+    PCRB, and never measures them against the centralised reference; the reference's own
+    figures (RMSE, gap, false tracks per hour) are a row of their own, unranked."""
+    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
+    assert "the reference's" not in verdict and "against the centralised reference" not in verdict
+    with RunStore.open(run_dir) as store:
+        m = store.read("metrics")
+    best = re.search(r"Best picture: ([^<]+)</b>", verdict).group(1)
+    gap, pcrb = _metric(m, "bound", best, "gap_horizontal_m"), _metric(m, "bound", best, "pcrb_horizontal_m")
+    side = "above" if gap >= 0 else "below"
+    assert (f"{abs(gap):,.1f} m {side} the posterior Cramér–Rao bound (PCRB {pcrb:,.1f} m on the same samples)"
+            in verdict)
+    accuracy = verdict[:verdict.index("<h3>Safety")]
+    rows = [c for c in (re.findall(r"<td[^>]*>([^<]*)</td>", r) for r in re.findall(r"<tr>(.*?)</tr>", accuracy)) if c]
+    ref = [r for r in rows if r[1] == CENTRALIZED]
+    assert len(ref) == 1 and ref[0][0] == "" and ref[0][2] == "centralised reference (not ranked)"
+    for stage, metric in (("fusion", "rmse_horizontal_m"), ("bound", "gap_horizontal_m"),
+                          ("evaluation", "false_tracks_per_hour")):
+        assert _fmt_cell(_metric(m, stage, CENTRALIZED, metric)) in ref[0], metric
+    ranks = [r[0] for r in rows if r[0]]
+    assert ranks == [str(k) for k in range(1, len(ranks) + 1)] and rows[0][:3] == ["1", best, "best picture"]
+
+
+def test_verdict_of_an_evaluation_never_ranks_the_reference_first(run_dir, tmp_path):
+    """Even when the centralised reference has the smallest error, the most accurate picture
+    named is a picture; the reference is named as itself, with its false tracks per hour."""
+    shutil.copy(run_dir / "results.duckdb", tmp_path / "results.duckdb")
+    with RunStore.update(tmp_path) as store:
+        store.con.execute("UPDATE metrics SET value = 0.5 WHERE method = 'centralized' AND stage = 'evaluation' "
+                          "AND metric = 'rmse_horizontal_m'")
+        store.con.execute("DELETE FROM run WHERE key = 'kind'")
+        store.con.execute("INSERT INTO run VALUES ('kind', 'evaluation')")
+    page = build_report(tmp_path, tmp_path / "r.html").read_text()
+    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
+    assert "Most accurate picture: " in verdict and f"Most accurate picture: {CENTRALIZED}" not in verdict
+    assert f"Centralised reference ({CENTRALIZED}, not ranked): horizontal RMS 0.5 m" in verdict
+    assert "false tracks per hour" in verdict
 
 
 def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path):

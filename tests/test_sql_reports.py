@@ -116,6 +116,11 @@ METRICS = [
     ("safety", "apriori", "alerts_per_hour", "all", 12.5, 2),
     ("safety", "apriori", "warning_median_s", "all", 45.0, 2),
     ("safety", "apriori", "warning_p05_s", "all", 20.0, 2),
+    ("safety", "apriori", "alerts_picture_induced", "all", 6.0, 2),
+    ("safety", "apriori", "false_alerts_picture_induced", "all", 5.0, 2),
+    ("safety", "apriori", "nuisance_alerts_picture_induced", "all", 1.0, 2),
+    ("safety", "apriori", "missed_los_picture_induced", "all", 0.0, 2),
+    ("safety", "apriori", "valid_alerts", "all", 2.0, 2),
     ("safety", "apriori", "alert_episodes", "all", 13.0, 2),
     ("safety", "apriori", "nuisance_false_per_hour", "all", 11.0, 2),
     ("safety", "apriori", "alert_duration_median_s", "all", 30.0, 2),
@@ -637,8 +642,11 @@ def test_alert_scores(q):
     df = q("alert_scores")
     assert df.columns == ["method", "episodes", "hits", "misses", "false_alerts", "mean_warning_s", "flicker",
                           "flicker_per_hit", "los_episodes", "alerted_los", "missed_los", "genuine_alerts",
-                          "nuisance_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s", "n_runs"]
-    assert rows(df) == [("apriori", 5.0, 4.0, 1.0, 7.0, 60.5, 2.0, 0.5, 3.0, 2.0, 1.0, 2.0, 4.0, 12.5, 45.0, 20.0, 2)]
+                          "nuisance_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s",
+                          "alerts_picture_induced", "false_alerts_picture_induced", "nuisance_alerts_picture_induced",
+                          "missed_los_picture_induced", "valid_alerts", "n_runs"]
+    assert rows(df) == [("apriori", 5.0, 4.0, 1.0, 7.0, 60.5, 2.0, 0.5, 3.0, 2.0, 1.0, 2.0, 4.0, 12.5, 45.0, 20.0,
+                         6.0, 5.0, 1.0, 0.0, 2.0, 2)]
     # capacity rows (apriori+singer, fusion/information) are not scores
 
 

@@ -16,7 +16,7 @@ reads).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, ClassVar
 
 import polars as pl
@@ -302,7 +302,9 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "departures": lambda: DeparturesStage(getattr(context, "departure_plans", pl.DataFrame()), cfg.departures),
         "associate": lambda: AssociateStage(cfg.association),
         "fuse": lambda: FuseStage(radars, tuple(cfg.methods), cfg.fusion, origin),
-        "centralized": lambda: CentralizedStage(radars, origin, cfg.centralized_cfg),
+        # the reference confirms its targets with the pictures' own rule and parameter
+        "centralized": lambda: CentralizedStage(radars, origin,
+                                                replace(cfg.centralized_cfg, min_plots=cfg.fusion.min_plots)),
         "cluster": lambda: ClusterStage(cfg.clustering),
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),

@@ -45,10 +45,18 @@ Output
 ------
 At every requested (run, epoch, target_id) from the target's first plot on: the state
 predicted from the last update at or before the epoch to the epoch, in the ``fused`` schema
-with ``method = "centralized"``, ``weights = []``, ``radar_ids`` = the radars whose plots the
-target has received so far and ``n_sources`` = the number of plots used since the target's
-previous output epoch (for the first output epoch: since the start). Epochs before the
-target's first plot produce no row.
+plus ``tentative`` (below), with ``method = "centralized"``, ``weights = []``, ``radar_ids`` =
+the radars whose plots the target has received so far and ``n_sources`` = the number of plots
+used since the target's previous output epoch (for the first output epoch: since the start).
+Epochs before the target's first plot produce no row.
+
+Confirmation: the reference publishes what a track manager would, as the fused pictures do:
+``tentative`` comes from the same rule and parameter
+(:func:`tertiary.stages.fusion.confirm.confirm_targets_step`, ``min_plots``) run on the same
+association rows — each report fresh at its first association epoch — so a clutter-only target
+is tentative here exactly when it is in the pictures, and every consumer that leaves tentative
+rows out (evaluation, clustering, report) leaves them out of the reference too. An epoch
+between a target's reports takes the status reached by then.
 
 Vertical channel: the ``fused`` columns ``alt_m`` … ``alt_cov_m2ps`` from one two-state Mode C
 filter per target over all its radars' replies in time order (:mod:`tertiary.stages.tracking.altitude`:
@@ -63,7 +71,7 @@ runs) that have at least that many plots — never a loop per report.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -72,6 +80,8 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.stages.align import conversion_valid
+from tertiary.stages.fusion.config import FusionConfig
+from tertiary.stages.fusion.confirm import ConfirmState, confirm_targets_step, tentative_at
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
@@ -110,6 +120,9 @@ class CentralizedConfig:
       (:func:`debias_enu`, the multiplicative unbiased conversion).
     * ``conversion_gate``: ``"reject"`` leaves plots failing the seed 002 (13) validity gate
       (:func:`tertiary.stages.align.conversion_valid`) out of the filter; ``"off"`` uses every plot.
+    * ``min_plots``: target confirmation (``tentative``), the fused pictures' parameter
+      (:attr:`tertiary.stages.fusion.config.FusionConfig.min_plots`); set both alike, or the reference
+      publishes other targets than the pictures it is compared with.
     """
 
     alpha: float = 1.0 / 30.0
@@ -120,6 +133,11 @@ class CentralizedConfig:
     altitude: AltitudeConfig = AltitudeConfig()
     conversion: Literal["linear", "debiased"] = "linear"
     conversion_gate: Literal["off", "reject"] = "off"
+    min_plots: int = FusionConfig.min_plots
+
+    def __post_init__(self) -> None:
+        if self.min_plots < 1:
+            raise ValueError(f"min_plots must be >= 1, got {self.min_plots}")
 
 
 # --------------------------------------------------------------------------- model
@@ -332,8 +350,34 @@ def _first_association(associations: pl.DataFrame) -> pl.DataFrame:
             .drop("epoch"))
 
 
+#: the output: the ``fused`` columns and, as the fusion stage adds it, ``tentative``
+_SCHEMA = {**TABLES["fused"].columns, "tentative": pl.Boolean}
+
+
 def _empty_fused() -> pl.DataFrame:
-    return pl.DataFrame(schema=TABLES["fused"].columns)
+    return pl.DataFrame(schema=_SCHEMA)
+
+
+def _confirmation(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame, reports: pl.DataFrame,
+                  min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
+    """:func:`~tertiary.stages.fusion.confirm.confirm_targets_step` on the window's association
+    rows, which are the fused pictures' rows: a row is fresh at its report's first association
+    epoch (``new``: the rows of the reports not associated before the window), as the aligned
+    row of a report's first epoch is; only fresh rows need their report's ``time``, and those
+    reports are in ``reports``. Returns the groups (run, epoch, target_id, ``tentative``) and
+    the new state; an empty window leaves the state as it is, as the fusion stage does."""
+    if associations.is_empty():
+        empty = pl.DataFrame(schema={"run": pl.UInt32, "epoch": TIME, "target_id": pl.UInt64, "tentative": pl.Boolean})
+        return empty, before
+    first = new.group_by("run", "report_id").agg(pl.col("epoch").min().alias("__first"))
+    rows = (associations.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                                pl.col("target_id").cast(pl.UInt64), "radar_id", "local_track_id",
+                                pl.col("report_id").cast(pl.UInt64))
+            .join(first, on=["run", "report_id"], how="left", maintain_order="left")
+            .with_columns((pl.col("epoch") == pl.col("__first")).fill_null(False).alias("fresh"))
+            .join(reports.select("run", "report_id", "time"), on=["run", "report_id"], how="left",
+                  maintain_order="left"))
+    return confirm_targets_step(before, rows, min_plots)
 
 
 def _predict_to_epochs(x_post: F64, p_post: F64, src: NDArray[np.int64], tau: F64, cfg: CentralizedConfig,
@@ -366,10 +410,11 @@ class CentralizedState:
       epoch seen — a report held into the next window is one of them (its association rows are
       consecutive epochs), so it is not taken as new there;
     * ``ref_us``: the time base of the filters (the first plot time ever used), so times are the
-      same floats as in one whole-run call; ``reached_us``: the end of the last window.
+      same floats as in one whole-run call; ``reached_us``: the end of the last window;
+    * ``confirm``: target confirmation (:class:`~tertiary.stages.fusion.confirm.ConfirmState`).
 
-    ``targets``/``radars`` keep one row per target seen, or, with :func:`centralized_step`'s
-    ``live``, per target that may still be associated."""
+    ``targets``/``radars`` and the confirmed targets keep one row per target seen, or, with
+    :func:`centralized_step`'s ``live``, per target that may still be associated."""
 
     targets: pl.DataFrame | None
     radars: pl.DataFrame
@@ -377,6 +422,7 @@ class CentralizedState:
     last_epoch_us: int | None = None
     ref_us: int | None = None
     reached_us: int | None = None
+    confirm: ConfirmState = field(default_factory=ConfirmState.empty)
 
 
 def init_centralized_state() -> CentralizedState:
@@ -396,9 +442,9 @@ def centralized_fusion(reports: pl.DataFrame, radars: pl.DataFrame, associations
     and ``elevation_deg`` and/or ``altitude_m`` (``run`` defaults to 0); ``associations``: the
     association table (report_id → target_id; a report associated at several epochs counts at
     its first); ``epochs``: any frame with (run, epoch, target_id) — e.g. ``fused`` — at which
-    to output; ``origin``: the system frame. Returns rows in the ``fused`` schema,
-    method ``"centralized"``, sorted by (run, epoch, target_id). The whole run as one window of
-    :func:`centralized_step`.
+    to output; ``origin``: the system frame. Returns rows in the ``fused`` schema plus
+    ``tentative``, method ``"centralized"``, sorted by (run, epoch, target_id). The whole run as
+    one window of :func:`centralized_step`.
     """
     return centralized_step(init_centralized_state(), reports, radars, associations, epochs, origin, cfg)[0]
 
@@ -439,7 +485,8 @@ def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rada
     change. None keeps every target.
 
     ``associations_window``: the association rows with epoch in the window (every aligned
-    row's, as :func:`tertiary.stages.association.associate.associate` returns them); ``keys_window``: the (run,
+    row's, as :func:`tertiary.stages.association.associate.associate` returns them; target
+    confirmation counts them as the fusion stage counts its rows); ``keys_window``: the (run,
     epoch, target_id) to output, epochs in the window; ``reports_window``: (at least) the
     reports first associated in the window — a report's first association is its first epoch,
     so the reports with time in [t0_us − epoch period − max collection delay, t1_us) suffice;
@@ -456,7 +503,9 @@ def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rada
         keys = live.select(pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64)).unique()
         new = replace(new, radars=new.radars.join(keys, on=["run", "target_id"], how="semi", maintain_order="left"),
                       targets=None if new.targets is None else
-                      new.targets.join(keys, on=["run", "target_id"], how="semi", maintain_order="left"))
+                      new.targets.join(keys, on=["run", "target_id"], how="semi", maintain_order="left"),
+                      confirm=replace(new.confirm, targets=new.confirm.targets.join(
+                          keys, on=["run", "target_id"], how="semi", maintain_order="left")))
     return out, new
 
 
@@ -470,12 +519,13 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
         if (t0_us is not None and e.min() < t0_us) or (t1_us is not None and e.max() >= t1_us):
             raise ValueError(f"centralized_step: keys_window has epochs outside [{t0_us}, {t1_us}) µs")
     assoc, last_ids, last_epoch = _new_associations(state, associations_window)
-    base = replace(state, last_ids=last_ids, last_epoch_us=last_epoch, reached_us=reached)
     rep = reports_window if "run" in reports_window.columns else reports_window.with_columns(
         pl.lit(0, pl.UInt32).alias("run"))
     rep = rep.select(c for c in [*PLOT_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
+    groups, confirm = _confirmation(state.confirm, associations_window, assoc, rep, cfg.min_plots)
+    base = replace(state, last_ids=last_ids, last_epoch_us=last_epoch, reached_us=reached, confirm=confirm)
     rep = rep.join(_first_association(assoc), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m, conversion=cfg.conversion,
                                gate=cfg.conversion_gate == "reject")
@@ -580,9 +630,9 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
         pl.Series("cov", cov6, dtype=pl.Array(pl.Float64, 36)),
         pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
         *(pl.Series(c, alt[c]) for c in ALT_COLUMNS),
+        tentative_at(state.confirm, groups, want),
     ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
-    spec = TABLES["fused"].columns
-    return out.select([pl.col(c).cast(tp) for c, tp in spec.items()]), new_state  # `want` is in output order
+    return out.select([pl.col(c).cast(tp) for c, tp in _SCHEMA.items()]), new_state  # `want` is in output order
 
 
 def _vertical_step(rep: pl.DataFrame, t: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],

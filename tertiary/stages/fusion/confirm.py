@@ -10,7 +10,7 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.stages.fusion.base import CHAIN, GROUP, TRACK
 
-__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_targets_step"]
+__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_targets_step", "tentative_at"]
 
 
 @dataclass(frozen=True)
@@ -89,3 +89,19 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
               .cast(state.tracks.schema))
     targets = pl.concat([state.targets, grp.filter("__conf").select(CHAIN).cast(state.targets.schema)]).unique()
     return out, ConfirmState(tracks, targets)
+
+
+def tentative_at(before: ConfirmState, groups: pl.DataFrame, keys: pl.DataFrame) -> pl.Series:
+    """``tentative`` at arbitrary (run, epoch, target_id) ``keys``, from the state before a window
+    and that window's ``groups`` (:func:`confirm_targets_step`'s output): a target is confirmed
+    from its first non-tentative group on, or throughout when ``before`` had confirmed it. Keys
+    between the target's groups (an estimate predicted to an epoch it has no report at) take
+    the status the target has reached by then, as a confirmed target never turns back."""
+    first = (groups.filter(~pl.col("tentative")).group_by(CHAIN).agg(pl.col("epoch").min().alias("__from"))
+             .cast({"run": before.targets.schema["run"], "target_id": before.targets.schema["target_id"]}))
+    k = (keys.select(pl.col("run").cast(before.targets.schema["run"]), pl.col("epoch").cast(TIME),
+                     pl.col("target_id").cast(before.targets.schema["target_id"]))
+         .join(before.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left", maintain_order="left")
+         .join(first, on=CHAIN, how="left", maintain_order="left"))
+    return k.select((~(pl.col("__was").fill_null(False) | (pl.col("epoch") >= pl.col("__from")).fill_null(False)))
+                    .alias("tentative")).to_series()
