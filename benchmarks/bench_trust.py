@@ -212,6 +212,80 @@ def figures(db: Path) -> dict:
             "notes": json.loads(run.get("notes", "[]"))}
 
 
+def _truth_of(data: Path):
+    import polars as pl
+    files = sorted(p for p in [*data.glob("truth.parquet"), *data.glob("truth/*.parquet")])
+    return pl.read_parquet(files)
+
+
+def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> dict:
+    """The cause of each picture-induced alert episode of ``picture`` at its first epoch, the first
+    rule that fires: ``one aircraft or unmatched`` (the episode has no two distinct aircraft),
+    ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
+    ``height error`` (> 150 m), ``en-route/terminal boundary`` (one track above the en-route floor,
+    one below), ``estimation term`` (the covariance-based widening of the horizontal threshold
+    above 1 km: an uncertain or inconsistent velocity), else ``other``. Counts per
+    classification and cause; the medians of the estimation term and of the tracks' velocity
+    standard deviation against their real velocity error."""
+    import duckdb
+    import polars as pl
+    from tertiary.evaluation.reference import interpolate_reference
+    con = duckdb.connect(str(db), read_only=True)
+    q = lambda sql: pl.from_arrow(con.sql(sql).to_arrow_table())    # noqa: E731
+    al = q(f"select * from alerts where method = '{picture}' and induced = 'picture'")
+    if not al.height:
+        return {}
+    method, flt = picture.split("+")
+    conf = q(f"select run, epoch, id_a, id_b, r_thr_m from conflicts where method = '{picture}'")
+    tr = q(f"select run, epoch, track_id, x_m, y_m, vx_mps, vy_mps, alt_m, cov_diag, status from tracks "
+           f"where method = '{method}' and filter = '{flt}'")
+    run = dict(con.sql("select key, value from run").fetchall())
+    con.close()
+    cc = json.loads(run["config"])["conflicts"]
+    truth = _truth_of(data)
+    a = al.with_row_index("k").join(conf, left_on=["run", "t_start", "id_a", "id_b"],
+                                     right_on=["run", "epoch", "id_a", "id_b"], how="left")
+    for side in ("a", "b"):
+        t = a.select("k", "run", "t_start", pl.col(f"id_{side}").alias("track_id"), "truth_a", "truth_b").join(
+            tr, left_on=["run", "t_start", "track_id"], right_on=["run", "epoch", "track_id"], how="left")
+        near = []
+        for which in ("truth_a", "truth_b"):           # the track's own aircraft: the nearer of the pair
+            r = interpolate_reference(truth, t.with_columns(pl.col("t_start").alias("time"),
+                                                            pl.col(which).fill_null(-1).alias("truth_id")))
+            near.append(r.with_columns((((pl.col("x_m") - pl.col("true_x_m")) ** 2
+                                         + (pl.col("y_m") - pl.col("true_y_m")) ** 2).sqrt()).fill_null(1e12)
+                                       .alias("__d")).with_row_index("__i"))
+        r = pl.concat(near).sort("__i", "__d").unique("__i", keep="first", maintain_order=True)
+        a = a.join(r.select("k", pl.col("__d").alias(f"perr_{side}"),
+                            (pl.col("alt_m") - pl.col("true_alt_m")).abs().alias(f"herr_{side}"),
+                            pl.col("alt_m").alias(f"alt_{side}"), (pl.col("status") == "coasting").alias(f"coast_{side}"),
+                            pl.max_horizontal(pl.col("cov_diag").arr.get(3), pl.col("cov_diag").arr.get(4)).sqrt()
+                            .alias(f"sv_{side}"),
+                            (((pl.col("vx_mps") - pl.col("true_vx_mps")) ** 2 + (pl.col("vy_mps") - pl.col("true_vy_mps"))
+                              ** 2).sqrt()).alias(f"verr_{side}")), on="k", how="left")
+    floor = cc.get("enroute_above_m")
+    hi = pl.max_horizontal("alt_a", "alt_b")
+    sep = (pl.when(hi >= floor).then(cc["enroute_h_m"]).otherwise(3 * 1852.0) if floor is not None
+           else pl.lit(cc["dr_h_m"] or 3 * 1852.0))
+    a = a.with_columns((pl.col("r_thr_m") - sep - cc["pilot_h_m"]).alias("est_h_m"))
+    cause = (pl.when(pl.col("truth_a").is_null()).then(pl.lit("one aircraft or unmatched"))
+             .when(pl.col("coast_a") | pl.col("coast_b")).then(pl.lit("coasting track"))
+             .when(pl.max_horizontal("perr_a", "perr_b") > 2000).then(pl.lit("track far from its aircraft"))
+             .when(pl.max_horizontal("herr_a", "herr_b") > 150).then(pl.lit("height error"))
+             .when(pl.lit(floor is not None) & (hi >= (floor or 0.0))
+                   & (pl.min_horizontal("alt_a", "alt_b") < (floor or 0.0))).then(pl.lit("en-route/terminal boundary"))
+             .when(pl.col("est_h_m") > 1000).then(pl.lit("estimation term"))
+             .otherwise(pl.lit("other")))
+    a = a.with_columns(cause.alias("cause"))
+    counts = {f"{c}: {k}": n for c, k, n in a.group_by("classification", "cause").len().sort("classification", "cause")
+              .iter_rows()}
+    med = a.filter(pl.col("classification") == "false").select(
+        pl.col("est_h_m").median(), pl.max_horizontal("sv_a", "sv_b").median().alias("velocity_sigma_mps"),
+        pl.max_horizontal("verr_a", "verr_b").median().alias("velocity_error_mps"))
+    return {"picture": picture, "counts": counts,
+            "false_medians": {k: _clean(v) for k, v in med.row(0, named=True).items()} if med.height else {}}
+
+
 # --------------------------------------------------------------------------- datasets
 
 
@@ -241,7 +315,7 @@ def run_dataset(name: str, work: Path) -> dict:
     return {"simulate": sim, "run_args": args, "simulate_s": round(wall_s, 1), "run_s": round(wall_r, 1),
             "summary": [line.strip() for line in stdout.splitlines()
                         if line.strip().startswith(("run ", "system targets", "fusion", "tracker", "safety "))],
-            **figures(out / "results.duckdb")}
+            **figures(out / "results.duckdb"), "picture_induced_causes": alert_causes(out / "results.duckdb", data)}
 
 
 def main() -> None:
