@@ -27,6 +27,15 @@ kernels (fresh numba cache vs cached vs numpy, CPU seconds of a fresh process). 
 ``results/bench_trackers.json`` (key ``tracker_stage``):
 
     python benchmarks/bench_trackers.py --stage DATASET_DIR [--filters singer,imm_sym]
+
+Turning mode: on one dataset (e.g. circling or en-route ADS-B trajectories made into truth by
+``tertiary simulate adsb --truth FILE``), the ``information`` picture and every tracker of
+``--filters``: horizontal RMSE per evaluation segment (``all``, ``phase:*``, ``range:*``,
+``alt:*``) from the pipeline's ``metrics`` (stage evaluation), each tracker's NEES, and the
+throughput of the turn-capable filters (10 000 tracks, numpy/compiled as shipped). Recorded in
+``results/trackers_turning_<label>.json``:
+
+    python benchmarks/bench_trackers.py --turns DATASET_DIR --label circle-wide [--filters imm_sym,imm_ct]
 """
 
 from __future__ import annotations
@@ -159,6 +168,44 @@ def accuracy(dataset: str, filters: tuple[str, ...]) -> dict:
                         "tentative": c.get("tentative_targets")}}
 
 
+def turning(dataset: str, filters: tuple[str, ...], tracks: int = 10_000, steps: int = 20) -> dict:
+    """Fused ``information`` vs trackers, horizontal RMSE per evaluation segment, NEES, and the
+    batched throughput of each filter."""
+    import polars as pl
+
+    from tertiary import pipeline
+    from tertiary.io.dataset import read_dataset
+
+    ds = read_dataset(dataset)
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=filters, safety=False, centralized=False)
+    t = time.perf_counter()
+    res = pipeline.process(ds, cfg)
+    wall = time.perf_counter() - t
+    m = res.metrics
+    ev = m.filter((pl.col("stage") == "evaluation") & (pl.col("metric") == "rmse_horizontal_m"))
+    pictures = ["information", *(f"information+{f}" for f in filters)]
+    per_segment = {}
+    for seg in sorted(ev["segment"].unique().to_list()):
+        row = {}
+        for pic in pictures:
+            v = ev.filter((pl.col("segment") == seg) & (pl.col("method") == pic))["value"]
+            row[pic] = float(v[0]) if len(v) else None
+        per_segment[seg] = row
+    nees = {}
+    for f in filters:
+        v = m.filter((pl.col("stage") == "tracker") & (pl.col("method") == f"information+{f}")
+                     & (pl.col("segment") == "all") & pl.col("metric").is_in(["nees_mean", "nees6_mean"]))
+        nees[f] = {r["metric"]: r["value"] for r in v.iter_rows(named=True)}
+    z, r = inputs(tracks, steps)
+    throughput = {f: max(time_batched(f, z, r, steps) for _ in range(2)) for f in filters}
+    below = {f: {seg: (row[f"information+{f}"] is not None and row["information"] is not None
+                       and row[f"information+{f}"] < row["information"]) for seg, row in per_segment.items()}
+             for f in filters}
+    return {"dataset": dataset, "filters": list(filters), "wall_s": wall,
+            "rmse_horizontal_m": per_segment, "tracker_below_fused": below, "nees": nees,
+            "updates_per_s": throughput, "throughput_tracks": tracks}
+
+
 def _same_rows(a, b) -> bool:
     """Equal tables up to round-off (≤ 1e-9 of each float column's scale)."""
     import polars as pl
@@ -283,6 +330,7 @@ def main() -> None:
     ap.add_argument("--accuracy", metavar="DATASET_DIR", help="run the accuracy mode on this dataset")
     ap.add_argument("--label", default="run", help="accuracy mode: results/trackers_accuracy_<label>.json")
     ap.add_argument("--stage", metavar="DATASET_DIR", help="run the tracker-stage mode on this dataset")
+    ap.add_argument("--turns", metavar="DATASET_DIR", help="run the turning mode on this dataset")
     ap.add_argument("--filters", default=None, help="accuracy: singer,imm_sym,cv_full,singer_full; "
                                                     "stage: singer,imm_sym")
     ap.add_argument("--tracks", type=int, default=10_000)
@@ -293,6 +341,12 @@ def main() -> None:
     if args.stage:
         out = tracker_stage(args.stage, tuple(f for f in (args.filters or "singer,imm_sym").split(",") if f))
         path = _merge("tracker_stage", out)
+        print(json.dumps(out, indent=2))
+        print(f"recorded in {path}")
+        return
+    if args.turns:
+        out = turning(args.turns, tuple(f for f in (args.filters or "imm_sym,imm_ct").split(",") if f))
+        path = record(f"trackers_turning_{args.label}", out)
         print(json.dumps(out, indent=2))
         print(f"recorded in {path}")
         return

@@ -45,7 +45,7 @@ SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts",
           "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
           "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s", "alerts_per_hour")
 #: the trackers run on the made trajectories: production's and the turn-rate-estimating one
-MADE_FILTERS = "imm_sym"
+MADE_FILTERS = "imm_sym,imm_ct"
 PHASES = ("all", "phase:level", "phase:turn", "phase:climb-descent")
 FT, KT, FPM = 0.3048, 1852.0 / 3600.0, 0.3048 / 60.0
 EARTH_R = 6_371_000.0

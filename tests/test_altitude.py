@@ -382,3 +382,40 @@ def test_compiled_filter_equals_the_vectorised_reference(cfg):
                                 init=a[3].take(np.flatnonzero(more)), compiled=compiled)
         np.testing.assert_allclose(b[0].h, want[0].h[rest], rtol=1e-12, atol=1e-9)
         assert np.array_equal(b[1], want[1][rest])
+
+
+# --------------------------------------------------------------------------- extrapolation of the IMM's estimate
+
+
+def test_the_combined_estimate_is_extrapolated_with_the_mode_weighted_intensity():
+    """(A5) over τ: c_M = μ_M(1 − p_ML) + (1 − μ_M)p_LM; the intensity is c_L q_L + c_M q_M (the
+    manoeuvre model's alone where μ is unknown, the one model's for "cv")."""
+    from tertiary.stages.tracking.altitude import mixture_q
+    cfg = AltitudeConfig()
+    tau = np.array([4.0, 4.0, 4.0, 10.0])
+    mu = np.array([0.0, 1.0, np.nan, 0.2])
+    p_lm, p_ml = 1 - np.exp(-tau / cfg.level_sojourn_s), 1 - np.exp(-tau / cfg.manoeuvre_sojourn_s)
+    c_m = np.array([p_lm[0], 1 - p_ml[1], 1.0, 0.2 * (1 - p_ml[3]) + 0.8 * p_lm[3]])
+    np.testing.assert_allclose(mixture_q(mu, tau, cfg), (1 - c_m) * cfg.q_level_m2ps3 + c_m * cfg.q_m2ps3, rtol=1e-12)
+    np.testing.assert_allclose(mixture_q(mu, tau, AltitudeConfig(model="cv")), cfg.q_m2ps3)
+
+
+def test_a_level_aircraft_rate_stays_known_between_its_replies():
+    """A radar track of a level aircraft (Mode S, a reply every 10 s) read at epochs up to 9 s
+    after its last reply: the vertical channel's rate σ stays that of the level model (a few
+    cm/s grown by the small chance of a manoeuvre), never the manoeuvre model's q_M·τ — which
+    made a conflict probe see every level aircraft as possibly climbing at ~1 m/s (a 95 %
+    vertical estimation term of ~200 m over the look-ahead) and alert pairs 1 000 ft apart."""
+    from tertiary.stages.fusion.vertical import _mode_c_per_row
+    n = 60
+    t0 = np.datetime64("2021-10-07T08:00:00", "us")
+    times = t0 + (np.arange(n) * 10_000_000).astype("timedelta64[us]")
+    rows = pl.DataFrame({"run": np.zeros(n, np.uint32), "radar_id": np.ones(n, np.uint32),
+                         "local_track_id": np.full(n, 7, np.uint32), "report_id": np.arange(n, dtype=np.uint64),
+                         "time": times, "epoch": times + np.timedelta64(9, "s"), "altitude_m": np.full(n, 10668.0),
+                         "fresh": np.ones(n, bool), "mode_s": ["3c6444"] * n}
+                        ).with_columns(pl.col("time", "epoch").cast(pl.Datetime("us", "UTC")))
+    est, has, _ = _mode_c_per_row(rows, AltitudeConfig())
+    assert has[5:].all()
+    assert np.sqrt(est.prr[-20:]).max() < 0.6                 # q_M·τ alone would give √(0.5·9) ≈ 2.1 m/s
+    assert np.abs(est.r[-20:]).max() < 1e-6

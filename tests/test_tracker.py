@@ -423,13 +423,13 @@ def test_bad_config(kw):
 
 def _registered(name: str) -> TrackFilter:
     # an import error is a failure here, never a skip: the registry must hold every shipped filter
-    for mod in ("linear", "singer"):
+    for mod in ("linear", "singer", "imm", "turn"):
         importlib.import_module(f"tertiary.filters.{mod}")
     assert name in REGISTRY, f"filter {name!r} is not registered"
     return make_filter(name)
 
 
-@pytest.mark.parametrize("name", ["cv", "singer"])
+@pytest.mark.parametrize("name", ["cv", "singer", "imm_sym", "imm_ct"])
 def test_registered_filters_track_two_aircraft(name):
     filt = _registered(name)
     tracks = track(_fused(_two_aircraft(skip_a=(8,))), filt)
@@ -441,7 +441,7 @@ def test_registered_filters_track_two_aircraft(name):
     assert tracks["filter"].unique().to_list() == [filt.name]
 
 
-@pytest.mark.parametrize("name", ["cv", "singer"])
+@pytest.mark.parametrize("name", ["cv", "singer", "imm_ct"])
 def test_registered_filters_crossing_pair(name):
     filt = _registered(name)
     rows, _ = _crossing_rows()

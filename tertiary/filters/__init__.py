@@ -7,7 +7,7 @@ name; :func:`make_filter` builds one by name (the only way to get one). Importin
 registers them all. The chapter 3 range channels (:mod:`.kinematic`) are exported too.
 """
 
-from tertiary.filters import adaptive_r, coupled, ekf, imm, linear, manoeuvring, quasi_optimal  # noqa: F401  (registration)
+from tertiary.filters import adaptive_r, coupled, ekf, imm, linear, manoeuvring, quasi_optimal, turn  # noqa: F401  (registration)
 from tertiary.filters.base import REGISTRY, Innovation, Output, TrackFilter, make_filter
 from tertiary.filters.kinematic import KinematicDynamicRangeChannel, KinematicRangeChannel, make_range_channel
 from tertiary.filters.singer import SingerModel, singer_phi, singer_q

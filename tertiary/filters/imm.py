@@ -352,7 +352,7 @@ class HorizontalIMM:
 # --------------------------------------------------------------------------- TrackFilter
 
 
-def _cv1_predict(x: F64, p: F64, dt: F64, q: float) -> tuple[F64, F64]:
+def cv1_predict(x: F64, p: F64, dt: F64, q: float) -> tuple[F64, F64]:
     """Scalar-axis CV prediction on (B, 2), (B, 2, 2); A P Aᵀ + Q written out (A = [[1, dt], [0, 1]]):
     stacked 2×2 matmuls cost far more per call."""
     x = np.stack([x[:, 0] + dt * x[:, 1], x[:, 1]], axis=1)
@@ -363,6 +363,25 @@ def _cv1_predict(x: F64, p: F64, dt: F64, q: float) -> tuple[F64, F64]:
     out[:, 1, 0] = p[:, 1, 0] + p[:, 1, 1] * dt + dt ** 2 / 2 * q
     out[:, 1, 1] = p[:, 1, 1] + dt * q
     return x, _sym(out)
+
+
+def split_r(r: F64) -> tuple[F64, F64]:
+    """The horizontal 2×2 block (B, 2, 2) and the vertical variance (B,) of a plot covariance
+    given as diagonal variances (B, 3) or in full (B, 3, 3)."""
+    if r.ndim == 3:
+        return r[:, :2, :2], r[:, 2, 2]
+    rh = np.zeros((len(r), 2, 2))
+    rh[:, 0, 0], rh[:, 1, 1] = r[:, 0], r[:, 1]
+    return rh, r[:, 2]
+
+
+def cv1_update(xv: F64, pv: F64, nu_z: F64, s_z: F64, ok: NDArray[np.bool_]) -> tuple[F64, F64]:
+    """Scalar-axis CV update (H = [1, 0]) of the vertical channel with innovation ``nu_z`` and
+    its variance ``s_z``; tracks outside ``ok`` keep x⁻, P⁻."""
+    k = pv[:, :, 0] / s_z[:, None]
+    xu = xv + k * nu_z[:, None]
+    pu = _sym(pv - s_z[:, None, None] * k[:, :, None] * k[:, None, :])
+    return np.where(ok[:, None], xu, xv), np.where(ok[:, None, None], pu, pv)
 
 
 @register
@@ -410,7 +429,7 @@ class IMMFilter(TrackFilter):
     # ---- construction
     def init(self, z: F64, r: F64) -> State:
         z = np.asarray(z, float)
-        rh, rz = self._split_r(np.asarray(r, float))
+        rh, rz = split_r(np.asarray(r, float))
         b = len(z)
         x0 = np.zeros((b, 4))
         x0[:, 0], x0[:, 2] = z[:, 0], z[:, 1]
@@ -443,20 +462,12 @@ class IMMFilter(TrackFilter):
                 arg(self.core.tpm), self._q_iso, arg(state["xv"]), arg(state["Pv"]), self.q_z)
             return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
         x, p, cbar = self.core.predict(state["x"], state["P"], state["mu"], dt)
-        xv, pv = _cv1_predict(state["xv"], state["Pv"], dt, self.q_z)
+        xv, pv = cv1_predict(state["xv"], state["Pv"], dt, self.q_z)
         return {"x": x, "P": p, "mu": cbar, "xv": xv, "Pv": pv}
-
-    @staticmethod
-    def _split_r(r: F64) -> tuple[F64, F64]:
-        if r.ndim == 3:
-            return r[:, :2, :2], r[:, 2, 2]
-        rh = np.zeros((len(r), 2, 2))
-        rh[:, 0, 0], rh[:, 1, 1] = r[:, 0], r[:, 1]
-        return rh, r[:, 2]
 
     def update(self, state: State, z: F64, r: F64, mask: NDArray[np.bool_]) -> tuple[State, Innovation]:
         z, mask = np.asarray(z, float), np.asarray(mask, bool)
-        rh, rz = self._split_r(np.asarray(r, float))
+        rh, rz = split_r(np.asarray(r, float))
         ok = mask & np.all(np.isfinite(z), axis=1)
         if self._q_iso is not None and len(ok):
             ready_for("imm_update")
@@ -478,12 +489,7 @@ class IMMFilter(TrackFilter):
         # horizontal IMM
         x, p, mu, _ = self.core.update(state["x"], state["P"], state["mu"], zz[:, :2], rh, ok)
         # vertical CV channel
-        pv = state["Pv"]
-        k = pv[:, :, 0] / s_z[:, None]
-        xv = state["xv"] + k * nu_z[:, None]
-        pvu = _sym(pv - s_z[:, None, None] * k[:, :, None] * k[:, None, :])
-        xv = np.where(ok[:, None], xv, state["xv"])
-        pvu = np.where(ok[:, None, None], pvu, pv)
+        xv, pvu = cv1_update(state["xv"], state["Pv"], nu_z, s_z, ok)
         nu = np.concatenate([nu_h, nu_z[:, None]], axis=1)
         s = np.stack([s_h[:, 0, 0], s_h[:, 1, 1], s_z], axis=1)
         nan = ~ok
@@ -507,23 +513,59 @@ class IMMFilter(TrackFilter):
         return imm_combine(state["x"], state["P"], state["mu"])
 
 
+def symmetric_tpm(n_turn: int, stay_turn: float = 0.98, stay_cv: float = 0.998) -> F64:
+    """TPM of ``n_turn`` turn models followed by one CV model, where every turn model
+    communicates only through CV: turn i stays with ``stay_turn`` or goes to CV; CV stays with
+    ``stay_cv`` or goes to each turn model with (1 − stay_cv)/n_turn."""
+    m = n_turn + 1
+    tpm = np.zeros((m, m))
+    tpm[np.arange(n_turn), np.arange(n_turn)] = stay_turn
+    tpm[:n_turn, -1] = 1.0 - stay_turn
+    tpm[-1, :n_turn] = (1.0 - stay_cv) / n_turn
+    tpm[-1, -1] = stay_cv
+    return tpm
+
+
+#: ``imm_sym``'s turn rates (rad/s) — 0.23, 0.57, 1.4, 3.2 and 6.3 °/s, left and right — then CV
+SYM_OMEGAS = (0.004, -0.004, 0.01, -0.01, 0.025, -0.025, 0.055, -0.055, 0.11, -0.11, 0.0)
+
+
 @register
 class SymmetricIMMFilter(IMMFilter):
-    """:class:`IMMFilter` with turn models in both directions: CT(+0.045), CT(−0.045), CV.
+    """:class:`IMMFilter` with a symmetric grid of fixed turn rates and CV (:data:`SYM_OMEGAS`).
 
-    The seed's model set (CT 0.001, CT 0.045, CV) only turns left, which suits its landing
-    pattern but loses right-turning traffic; this variant keeps the seed's TPM structure
-    (CT models communicate through CV) and priors, with the turn model mirrored.
+    A fixed-rate CT model fits a turn only near its own rate, and its acceleration ω·v grows
+    with speed: a single CT(±0.045) pair (2.6 °/s; 10 m/s² at 230 m/s) fits neither a wide
+    circle of a few mrad/s nor a gentle en-route turn (0.3–1.5 °/s), so there the IMM
+    alternates between CV and a model turning far too fast, and lags. The grid spaces the rates
+    by ×2–2.5 from 0.004 to 0.11 rad/s, so every rate of 0–6 °/s either way lies between two
+    neighbouring models. Between them the IMM mixes the two; at cruise speed a rate midway
+    between grid rates (Δω·v ≈ 1.7 m/s² at 230 m/s) is still followed less closely than by a
+    model that estimates ω (:class:`tertiary.filters.turn.IMMCTFilter`, ``imm_ct``).
+
+    The turn models communicate only through CV (:func:`symmetric_tpm`: a turn model stays with
+    0.98, CV with 0.998). The moment-matched output adds Σ μ_j d_j d_jᵀ, and a turn model's
+    velocity offset d_j ≈ ω_j v Δt is tens of m/s, so even a small μ_j on a straight leg
+    widens the combined velocity covariance well beyond the error (pessimistic NEES; the
+    conflict prediction grows P_vv by t² up to 105 s). The low CV→turn prior keeps the turn
+    models' probability, and that spread, small on straight legs; a real turn still wins within
+    a few scans, its likelihood ratio growing every scan.
 
     Default ``q`` = 0.3 m²/s³ (the seed's IMM: 1): with the tracker fed independent plots
-    (no re-extrapolated estimates), q = 0.3 gave the lowest position RMSE on the simulated and
-    the real-traffic scenarios alike; the turn models carry the manoeuvres, so the models' own
-    noise can stay low.
+    (no re-extrapolated estimates) the turn models carry the manoeuvres, so the models' own
+    noise can stay low. With ``omegas`` given and ``tpm`` None, the last rate must be the CV
+    model (0).
     """
 
     name = "imm_sym"
 
-    def __init__(self, omegas: Sequence[float] = (0.045, -0.045, 0.0),
-                 tpm: ArrayLike = ((0.98, 0.0, 0.02), (0.0, 0.98, 0.02), (0.01, 0.01, 0.98)),
-                 mu0: ArrayLike = (0.25, 0.25, 0.5), q: float | tuple[float, float] = 0.3, **kwargs):
+    def __init__(self, omegas: Sequence[float] = SYM_OMEGAS, tpm: ArrayLike | None = None,
+                 mu0: ArrayLike | None = None, q: float | tuple[float, float] = 0.3, **kwargs):
+        n_turn = len(omegas) - 1
+        if tpm is None:
+            if float(omegas[-1]) != 0.0:
+                raise ValueError("with the default tpm the last of omegas must be the CV model (0)")
+            tpm = symmetric_tpm(n_turn)
+        if mu0 is None:
+            mu0 = np.r_[np.full(n_turn, 0.5 / max(n_turn, 1)), 0.5]
         super().__init__(omegas=omegas, tpm=tpm, mu0=mu0, q=q, **kwargs)

@@ -118,7 +118,7 @@ def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, 
                     v = 0.5 * (po[b, j, r, n] + po[b, j, n, r])
                     po[b, j, r, n] = v
                     po[b, j, n, r] = v
-        # vertical CV channel (_cv1_predict)
+        # vertical CV channel (cv1_predict)
         xvo[b, 0] = xv[b, 0] + t * xv[b, 1]
         xvo[b, 1] = xv[b, 1]
         ap0 = pv[b, 0, 0] + t * pv[b, 1, 0]

@@ -82,7 +82,7 @@ from tertiary.core import geo
 from tertiary.stages.align import conversion_valid
 from tertiary.stages.fusion.config import FusionConfig
 from tertiary.stages.fusion.confirm import ConfirmState, confirm_targets_step, tentative_at
-from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict, quantisation_variance)
+from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict_combined, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
 from tertiary.contract import TABLES, TIME
@@ -647,6 +647,7 @@ def _vertical_step(rep: pl.DataFrame, t: F64, starts: NDArray[np.int64], lengths
     if "altitude_m" not in rep.columns:
         return fb, None
     post_cols, has_rows = {c: np.full(len(ri), np.nan) for c in _FIELDS}, np.zeros(len(ri), bool)
+    mu_rows = np.full(len(ri), np.nan)
     end = None
     if rep.height:
         z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
@@ -655,17 +656,21 @@ def _vertical_step(rep: pl.DataFrame, t: F64, starts: NDArray[np.int64], lengths
         default = FilterCarry.fresh(1, cfg).columns()
         init = FilterCarry.from_columns({c: (carry[c].fill_null(v[0]).to_numpy() if c in carry.columns
                                              else np.repeat(v, carry.height)) for c, v in default.items()}, cfg)
-        post, has, _, end = filter_tracks_carry(t, z, var, starts, lengths, cfg, init=init)
+        post, has, _, end, mu = filter_tracks_carry(t, z, var, starts, lengths, cfg, init=init, with_mu=True)
         w = ri[from_win]
         for f in _FIELDS:
             post_cols[f][from_win] = getattr(post, f)[w]
         has_rows[from_win] = has[w]
+        mu_rows[from_win] = mu[w]
     if (~from_win).any() and old is not None and "af_has" in old.columns:
         hc = held.join(old, on=["run", "target_id"], how="left", maintain_order="left")
         for f in _FIELDS:
             post_cols[f][~from_win] = hc[f"af_post_{f}"].fill_null(np.nan).to_numpy()
         has_rows[~from_win] = hc["af_has"].fill_null(False).to_numpy()
-    mc = predict(AltState(*(post_cols[f] for f in _FIELDS)), tau, cfg.q_m2ps3).columns()
+        last_mu = sorted(c for c in hc.columns if c.startswith("af_mu"))[-1]
+        mu_rows[~from_win] = hc[last_mu].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    # the IMM's combined estimate extrapolated with its mode-weighted q (vertical.py, same reason)
+    mc = predict_combined(AltState(*(post_cols[f] for f in _FIELDS)), tau, mu_rows, cfg).columns()
     return {c: np.where(has_rows, mc[c], fb[c]) for c in ALT_COLUMNS}, end
 
 

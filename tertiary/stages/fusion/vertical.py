@@ -24,7 +24,7 @@ from tertiary.core import geo
 from tertiary.stages.fusion.base import TRACK, B, F, Layout, track_keys
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel,
-                                               predict, quantisation_variance)
+                                               predict_combined, quantisation_variance)
 
 __all__ = ["AltCarry", "vertical_channel"]
 
@@ -45,9 +45,10 @@ def _alt_lookup(carry: pl.DataFrame) -> pl.DataFrame:
     """(run, report_id) → the :data:`ALT_COLUMNS` and ``__has`` of each carried track's last report."""
     names = dict(zip(("h", "r", "phh", "phr", "prr"),
                      ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")))
+    mu = sorted(c for c in carry.columns if c.startswith("af_mu"))
     return carry.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                         *(pl.col(f"af_post_{f}").alias(c) for f, c in names.items()),
-                        pl.col("af_has").alias("__has"))
+                        pl.col("af_has").alias("__has"), pl.col(mu[-1]).cast(pl.Float64).alias("__mu"))
 
 
 def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = AltCarry()
@@ -84,11 +85,11 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
         z = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
         var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
         init = _alt_init(rep[starts].select(TRACK), old, cfg)
-        post, has, _, final = filter_tracks_carry(t, z, var, starts, lengths, cfg,
-                                                  ident=rep["__ident"].to_numpy(), init=init)
+        post, has, _, final, mu = filter_tracks_carry(t, z, var, starts, lengths, cfg,
+                                                      ident=rep["__ident"].to_numpy(), init=init, with_mu=True)
         cols = post.columns()
         lookups.insert(0, rep.select("run", "report_id").with_columns(
-            *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has)))
+            *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has), pl.Series("__mu", mu)))
         now = rep[starts + lengths - 1].select(*TRACK, "report_id").with_columns(
             pl.Series(c, v) for c, v in final.columns().items())
         tracks = now if old is None else pl.concat([old.join(now, on=TRACK, how="anti"), now])
@@ -101,7 +102,10 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
     at = AltState(*(j[c].fill_null(np.nan).to_numpy() for c in
                     ("alt_m", "alt_rate_mps", "alt_var_m2", "alt_cov_m2ps", "alt_rate_var_m2ps2")))
     age = (j["epoch"].dt.epoch("us").to_numpy() - j["time"].dt.epoch("us").to_numpy()) * 1e-6
-    return (predict(at, np.maximum(age, 0.0), cfg.q_m2ps3), j["__has"].fill_null(False).to_numpy(),
+    # extrapolated as the IMM predicts its combined estimate (the mode-weighted q), not with the
+    # manoeuvre model's q: a level aircraft's rate stays known to cm/s between its replies
+    mu = j["__mu"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    return (predict_combined(at, np.maximum(age, 0.0), mu, cfg), j["__has"].fill_null(False).to_numpy(),
             AltCarry(tracks, ref_us))
 
 

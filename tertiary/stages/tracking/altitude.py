@@ -61,7 +61,7 @@ from tertiary.core.units import FT
 from tertiary.stages.tracking.altitude_kernel import filter_recursion
 
 __all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "AltitudeConfig", "AltState",
-           "quantisation_variance", "predict", "update", "update2", "filter_tracks", "filter_tracks_carry",
+           "quantisation_variance", "predict", "mixture_q", "predict_combined", "update", "update2", "filter_tracks", "filter_tracks_carry",
            "FilterCarry", "geodetic_height_rate",
            "geodetic_channel", "combine_min_variance"]
 
@@ -149,13 +149,38 @@ def quantisation_variance(quantum_m: ArrayLike) -> F64:
     return q * q / 12.0
 
 
-def predict(s: AltState, tau: ArrayLike, q: float) -> AltState:
-    """(A1)–(A2) over ``tau`` seconds (per row)."""
+def predict(s: AltState, tau: ArrayLike, q: ArrayLike) -> AltState:
+    """(A1)–(A2) over ``tau`` seconds with intensity ``q`` (scalars or per row)."""
     t = np.asarray(tau, np.float64)
     t2 = t * t
     phh = s.phh + 2.0 * t * s.phr + t2 * s.prr + q * t2 * t / 3.0
     phr = s.phr + t * s.prr + q * t2 / 2.0
     return AltState(s.h + t * s.r, s.r.copy(), phh, phr, s.prr + q * t)
+
+
+def mixture_q(mu_last: ArrayLike, tau: ArrayLike, cfg: AltitudeConfig = AltitudeConfig()) -> F64:
+    """The intensity the IMM's combined estimate (A9) is extrapolated with over ``tau``:
+    Σ_j c_j(τ) q_j with c_j(τ) = Σ_i p_ij(τ) μ_i (A5), ``mu_last`` the manoeuvre model's μ
+    after the last reply (NaN: unknown, the manoeuvre model's q). Extrapolating a level
+    aircraft's estimate with the manoeuvre model's q alone adds q_M·τ to its rate variance —
+    ~1 m/s of rate σ after a scan — and a conflict probe then sees a climb into every
+    neighbouring level; the mixture weighs q_M by the probability of a manoeuvre."""
+    qs, sojourn = _models(cfg)
+    tau = np.asarray(tau, np.float64)
+    if len(qs) == 1:
+        return np.full(tau.shape, qs[0])
+    mu_m = np.asarray(mu_last, np.float64)
+    p_lm, p_ml = 1.0 - np.exp(-tau / sojourn[0]), 1.0 - np.exp(-tau / sojourn[1])
+    c_m = np.where(np.isfinite(mu_m), mu_m * (1.0 - p_ml) + (1.0 - mu_m) * p_lm, 1.0)
+    return (1.0 - c_m) * qs[0] + c_m * qs[1]
+
+
+def predict_combined(s: AltState, tau: ArrayLike, mu_last: ArrayLike, cfg: AltitudeConfig = AltitudeConfig()
+                     ) -> AltState:
+    """The combined estimate ``s`` (A9) extrapolated over ``tau`` by :func:`predict` with
+    :func:`mixture_q` (the model-mean spread over τ is neglected: the models share the reply
+    history, their means differ by far less than their common covariance)."""
+    return predict(s, tau, mixture_q(mu_last, tau, cfg))
 
 
 def update(s: AltState, z: F64, var: F64) -> tuple[AltState, F64, F64]:
@@ -323,20 +348,23 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
 
 def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                         cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None,
-                        init: FilterCarry | None = None, compiled: bool = True
-                        ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
+                        init: FilterCarry | None = None, compiled: bool = True, with_mu: bool = False) -> tuple:
     """:func:`filter_tracks` continued from ``init`` (one entry per track, in ``starts`` order;
     :meth:`FilterCarry.fresh` entries for tracks never seen; ``t`` on the same time base as
     ``init.t_last``), also returning each track's state after its last row. Running a track's
     replies in two calls, the second from the first's carry, gives the one-call results.
     ``compiled``: the recursion compiled per track (:mod:`tertiary.stages.tracking.altitude_kernel`, the same
-    equations); False: the loop below, vectorised over tracks per reply rank (the reference)."""
+    equations); False: the loop below, vectorised over tracks per reply rank (the reference).
+    ``with_mu``: a fifth element, the last model's probability after each row (the manoeuvre
+    model's for ``"imm"``, 1 for ``"cv"``), what :func:`predict_combined` extrapolates with."""
     if compiled and len(starts) and np.min(lengths) >= 1:
-        return _filter_compiled(t, z, var, starts, lengths, cfg, ident, init)
+        res = _filter_compiled(t, z, var, starts, lengths, cfg, ident, init)
+        return res if with_mu else res[:4]
     qs, sojourn = _models(cfg)
     nm = len(qs)
     n = len(t)
     out, has, rejected = AltState.full(n), np.zeros(n, bool), np.zeros(n, bool)
+    mu_rows = np.full(n, np.nan)
     order = np.argsort(-np.asarray(lengths), kind="stable")
     st, ln = np.asarray(starts)[order], np.asarray(lengths)[order]
     c0 = FilterCarry.fresh(len(st), cfg) if init is None else init.take(order)
@@ -386,13 +414,14 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
         else:
             has[idx] = ok[:m] & conf[:m]
         out.put(idx, nxt)
+        mu_rows[idx] = mu[nm - 1, :m]
         rejected[idx] = bad & ~restart
     last = st + ln - 1
     final = FilterCarry(np.stack([_as_array(cj) for cj in cur]), mu, t_last, ok, conf, miss, last_id,
                         _as_array(out.take(last)), has[last])
     inv = np.empty_like(order)
     inv[order] = np.arange(len(order))
-    return out, has, rejected, final.take(inv)
+    return (out, has, rejected, final.take(inv)) + ((mu_rows,) if with_mu else ())
 
 
 def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
@@ -408,7 +437,7 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
         (c0.models, np.float64), (c0.mu, np.float64), (c0.t_last, np.float64), (c0.ok, bool),
         (c0.conf, bool), (c0.miss, np.int64), (c0.last_id, np.int64), (c0.post, np.float64),
         (c0.has, bool))))
-    out = np.full((5, n), np.nan)
+    out = np.full((6, n), np.nan)          # the state and the last model's probability
     has, rejected = np.zeros(n, bool), np.zeros(n, bool)
     ids = np.full(n, -1, np.int64) if ident is None else arg(ident, np.int64)
     weak = -1.0 if cfg.unconfirmed_sigma_m is None else float(cfg.unconfirmed_sigma_m) ** 2
@@ -420,7 +449,7 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
             carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id, carry.post,
             carry.has, out, has, rejected)
-    return _as_state(out), has, rejected, carry
+    return _as_state(out), has, rejected, carry, np.array(out[5])
 
 
 def geodetic_height_rate(pos: ArrayLike, vel: ArrayLike, frame: geo.LocalFrame | None

@@ -54,8 +54,8 @@ def _mix(states, w, nm, out):
 def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
             c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, out, has, rejected):
     """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
-    place); per row the output state ``out`` (5, n), ``has`` and ``rejected``. ``weak_var`` < 0:
-    unconfirmed filters are not output."""
+    place); per row the output state ``out`` (6, n: the state (5) and the last model's
+    probability), ``has`` and ``rejected``. ``weak_var`` < 0: unconfirmed filters are not output."""
     nm = len(qs)
     cur = np.empty((nm, 5))
     preds = np.empty((nm, 5))
@@ -144,6 +144,7 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
                 for f in range(5):
                     out[f, i] = u[f] if accept else s[f]
                 conf = conf or accept
+            out[5, i] = mu[nm - 1]
             ok = ok or restart
             t_last = tk
             if weak_var >= 0.0:
