@@ -342,6 +342,26 @@ def test_crossing_pair_nearest_neighbour_swaps():
     assert at_bad == 2                      # A's track took B's plot: the greedy choice
 
 
+def test_a_track_never_takes_a_plot_of_another_mode_s_address():
+    """The greedy swap of the crossing above, with each aircraft's plots carrying its Mode S
+    address: A's track holds A's address and B's plot is not in its gate, so no assignment
+    (greedy either) can give A's track B's plot, identity and level. Plots without an
+    address are gated on position as before."""
+    rows, k_bad = _crossing_rows()
+    fused = _fused(rows, sigma=(20.0, 20.0, 20.0)).with_columns(
+        pl.when(pl.col("target_id") == 1).then(pl.lit("3c6444")).otherwise(pl.lit("4ca123")).alias("mode_s"))
+    for assignment in ("nearest", "hungarian"):
+        per = _by_track(track(fused, CVDouble(q=1.0), TrackerConfig(assignment=assignment, gate_min_m=300.0)))
+        assert len(per) == 2
+        for v in per.values():
+            assert len({t for _, _, t in v if t is not None}) == 1, assignment      # no swap
+    # without addresses (or with the rule off) the greedy tracker swaps, as above
+    per = _by_track(track(fused, CVDouble(q=1.0), TrackerConfig(assignment="nearest", gate_min_m=300.0,
+                                                                  use_mode_s=False)))
+    track_a = next(v for v in per.values() if v[0][2] == 1)
+    assert dict((s, t) for s, _, t in track_a)[k_bad] == 2
+
+
 def test_assign_hungarian_matches_brute_force():
     from scipy.optimize import linear_sum_assignment
     rng = np.random.default_rng(0)

@@ -33,8 +33,8 @@ _TA = 16
 _NF = 17
 # int columns: run index, kind, track id (0 until confirmed), consecutive misses, M-of-N hits
 # and scans, uid of the scan-1 plot, uid of the scan-2 plot
-_RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2 = range(8)
-_NI = 8
+_RUN, _KIND, _ID, _MISS, _HITS, _SCANS, _ROOT, _UID2, _IDENT = range(9)
+_NI = 9
 
 
 @dataclass
@@ -62,7 +62,8 @@ class _Objects:
         return _Objects(np.concatenate([o.f for o in objs]), np.concatenate([o.i for o in objs]))
 
     @staticmethod
-    def new(run: NDArray, t: float, z: NDArray, rz: NDArray, uid: NDArray, alt: NDArray) -> "_Objects":
+    def new(run: NDArray, t: float, z: NDArray, rz: NDArray, uid: NDArray, alt: NDArray,
+            ident: NDArray | None = None) -> "_Objects":
         n = len(run)
         f = np.zeros((n, _NF))
         f[:, _ALT] = alt
@@ -75,6 +76,7 @@ class _Objects:
         i[:, _HITS] = i[:, _SCANS] = 1
         i[:, _ROOT] = uid
         i[:, _UID2] = -1
+        i[:, _IDENT] = -1 if ident is None else ident
         return _Objects(f, i)
 
 
@@ -272,7 +274,7 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
 
         # --- confirmed tracks: gate and assign
         conf = np.flatnonzero(kind == _CONF)
-        o, p, c = tracking_pairs(plots, free, m.i[conf, _RUN], xp[conf], vp[conf], cfg)
+        o, p, c = tracking_pairs(plots, free, m.i[conf, _RUN], xp[conf], vp[conf], cfg, m.i[conf, _IDENT])
         plot_of_conf = assign(o, p, c, len(conf), n_plot, cfg.assignment)
         free[plot_of_conf[plot_of_conf >= 0]] = False
         opens = free.copy()                      # plots that open new tentative tracks
@@ -305,7 +307,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
             o1 = np.flatnonzero(one)[o1]
             c1 = likelihood_cost(plots.z[p1] - xp[tent[o1]], vp[tent[o1]] + plots.r[p1])
             many = np.flatnonzero(~one)
-            o2, p2, c2 = tracking_pairs(plots, free, m.i[tent[many], _RUN], xp[tent[many]], vp[tent[many]], cfg)
+            o2, p2, c2 = tracking_pairs(plots, free, m.i[tent[many], _RUN], xp[tent[many]], vp[tent[many]], cfg,
+                                        m.i[tent[many], _IDENT])
             plot_of_tent = assign(np.r_[o1, many[o2]], np.r_[p1, p2], np.r_[c1, c2], len(tent), n_plot,
                                    cfg.assignment)
             used = plot_of_tent >= 0
@@ -333,6 +336,9 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         else:
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
+        # a track keeps the last Mode S address its plots carried
+        got = mask & (plots.ident[safe] >= 0)
+        mu.i[:, _IDENT] = np.where(got, plots.ident[safe], mu.i[:, _IDENT])
         mu.f[:, _T] = t - age
         mu.f[:, _TA] = t
         n_c, n_w, n_p = int(alive.sum()), len(win), len(pair_obj)
@@ -390,7 +396,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         newp = np.flatnonzero(opens)
         rn = plots.rm[newp]
         sn = filt.init(plots.zm[newp], rn if filt.full_r else np.einsum("bii->bi", rn)) if len(newp) else {}
-        mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp])
+        mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp],
+                           plots.ident[newp])
         mn.f[:, _T] = t - plots.age[newp]
         kept = np.flatnonzero(keep)
         state = _join_states(_take_state(state, idle, len(objs)) if len(idle) else {},

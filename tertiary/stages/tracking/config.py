@@ -37,6 +37,8 @@ class TrackerConfig:
       gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
     * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
+    * ``use_mode_s``: a confirmed track holds the Mode S address of the plots it took and never
+      takes a plot with another address (a plot or track without one is gated on position).
     * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
@@ -50,6 +52,7 @@ class TrackerConfig:
     gate_min_m: float = 500.0
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
+    use_mode_s: bool = True
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:

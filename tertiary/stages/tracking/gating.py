@@ -17,7 +17,7 @@ from scipy.sparse.csgraph import connected_components
 from tertiary.contract import TIME
 from tertiary.stages.tracking.config import TrackerConfig
 
-__all__ = ["Plots", "PlotIndex", "likelihood_cost", "tracking_pairs", "vertical_ok", "assign"]
+__all__ = ["Plots", "PlotIndex", "likelihood_cost", "mode_s_ident", "tracking_pairs", "vertical_ok", "assign"]
 
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
@@ -63,6 +63,7 @@ class Plots:
     rm: NDArray               # (n, 3, 3) its full covariance
     age: NDArray              # (n,) measurement time = epoch − age
     fresh: NDArray            # (n,) the fused plot holds a new measurement
+    ident: NDArray            # (n,) the plot's Mode S address as an integer (−1: none)
     keys: NDArray
     classes: NDArray          # σ classes present
     rmax_x: NDArray           # largest x variance of each present class
@@ -115,6 +116,7 @@ class PlotIndex:
         zm, rm, age, fresh = _measurements(f, z, cov)
         self.zm, self.rm = np.ascontiguousarray(zm[order]), np.ascontiguousarray(rm[order])
         self.age, self.fresh = age[order], fresh[order]
+        self.ident = mode_s_ident(f)[order]
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -133,7 +135,8 @@ class PlotIndex:
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
-                      self.fresh[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1], self.seg_rmax_x[s0:s1])
+                      self.fresh[lo:hi], self.ident[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1],
+                      self.seg_rmax_x[s0:s1])
 
 
 def _measurements(f: pl.DataFrame, z: NDArray, cov36: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
@@ -161,15 +164,30 @@ def likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
     return (d * d / s + np.log(s)).sum(axis=1)
 
 
+def mode_s_ident(f: pl.DataFrame) -> NDArray:
+    """Each row's Mode S address as an integer (−1 where it has none)."""
+    if "mode_s" not in f.columns:
+        return np.full(f.height, -1, np.int64)
+    return (f["mode_s"].cast(pl.String).str.to_integer(base=16, strict=False).fill_null(-1)
+            .cast(pl.Int64).to_numpy())
+
+
 def tracking_pairs(plots: Plots, free: NDArray, run: NDArray, xp: NDArray, vp: NDArray,
-                    cfg: TrackerConfig) -> tuple[NDArray, NDArray, NDArray]:
-    """Gated (object, plot, cost) triples of the tracking gate around the predictions ``xp``."""
+                   cfg: TrackerConfig, ident: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """Gated (object, plot, cost) triples of the tracking gate around the predictions ``xp``.
+    ``ident``: the objects' Mode S addresses (−1: none); a plot carrying another address than
+    its track's is never in its gate — a track must not take another aircraft's plot (the
+    swap that gives it the other's identity and level), however close it is."""
     if len(run) == 0 or not free.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     radius = cfg.gate_sigma * np.sqrt(vp[None, :, 0] + plots.rmax_x[:, None]) + cfg.gate_min_m
     o, p = plots.window(run, xp[:, 0], radius)
     if not free.all():
         keep = free[p]
+        o, p = o[keep], p[keep]
+    if ident is not None and cfg.use_mode_s:
+        a, b = ident[o], plots.ident[p]
+        keep = (a < 0) | (b < 0) | (a == b)
         o, p = o[keep], p[keep]
     # one axis at a time on 1-D gathers, y first: the x window leaves most candidates to fail
     # on y, so the full 3-axis rows are gathered only for the few that pass
