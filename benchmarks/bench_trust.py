@@ -186,8 +186,11 @@ def figures(db: Path) -> dict:
     tracked = sorted({meth for (s, meth, k, _) in m if s == "tracker" and k == "rmse_horizontal_m"})
     accuracy = {}
     for p in fused + tracked:
-        stage = "tracker" if p in tracked else "fusion"
-        accuracy[p] = {seg: _clean(m.get((stage, p, "rmse_horizontal_m", seg))) for seg in PHASES}
+        # the evaluation stage's own accuracy (per flight phase too); the fusion / tracker
+        # stage's figure where a run has no evaluation stage
+        own = ("tracker" if p in tracked else "fusion", p, "rmse_horizontal_m", "all")
+        accuracy[p] = {seg: _clean(m.get(("evaluation", p, "rmse_horizontal_m", seg),
+                                         m.get(own) if seg == "all" else None)) for seg in PHASES}
     tracker_vs_input = {}
     for p in tracked:
         src = p.split("+")[0]
@@ -298,8 +301,12 @@ def _national15(work: Path) -> list[str]:
     return [str(work / "national15.toml")]
 
 
-def run_dataset(name: str, work: Path) -> dict:
+def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
     data, out = work / name, work / f"{name}-run"
+    if figures_only:                    # the figures again from a kept run (no simulation, no run)
+        old = json.loads((RESULTS / "bench_trust.json").read_text())["datasets"].get(name, {})
+        return {**old, **figures(out / "results.duckdb"),
+                "picture_induced_causes": alert_causes(out / "results.duckdb", data)}
     if name == "national15":
         sim, args = _national15(work), CONFIGS["production"]
     elif name == "default":
@@ -322,7 +329,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default=",".join(DATASETS), help="comma-separated datasets to run")
     ap.add_argument("--work", type=Path, default=None, help="keep the datasets and runs here (default: a temp dir)")
+    ap.add_argument("--figures-only", action="store_true", help="read the figures again from the runs kept in --work")
     args = ap.parse_args()
+    if args.figures_only and args.work is None:
+        raise SystemExit("--figures-only reads the runs of --work")
     names = [n for n in args.only.split(",") if n]
     unknown = sorted(set(names) - set(DATASETS))
     if unknown:
@@ -333,7 +343,7 @@ def main() -> None:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         for name in names:
-            results[name] = run_dataset(name, work)
+            results[name] = run_dataset(name, work, args.figures_only)
             record("bench_trust", {"datasets": results})
     print(json.dumps({k: v["safety"] for k, v in results.items()}, indent=1))
 

@@ -18,7 +18,9 @@ from tertiary.store.run_store import RunStore
 
 @pytest.fixture(scope="module")
 def results(small_terminal):
-    cfg = pipeline.PipelineConfig(clustering=ClusteringConfig(always=True))
+    # a wide grouping (15 km, 200 m/s): 30 aircraft over 10 minutes rarely come within the
+    # default 5 km, and the reference's clutter-only targets are tentative (never clustered)
+    cfg = pipeline.PipelineConfig(clustering=ClusteringConfig(always=True, eps_m=15_000.0, dv_mps=200.0))
     return pipeline.process(small_terminal, cfg)
 
 
@@ -121,18 +123,16 @@ def _all(m: pl.DataFrame, stage: str, metric: str) -> dict[str, float]:
 
 def test_every_picture_has_its_bound_and_a_signed_gap(results):
     """Every fused and tracker picture gets pcrb_pos_m (stage bound) and gap = RMSE − PCRB.
-    The bound is the Singer-model PCRB; trackers whose model fits the straight legs better
-    (IMM) can sit up to ~35 % below it here (docs/metrics.md), none by half; the centralised
-    filter of the bound's own model lands within 10 % of it (a unit, frame or timing error in
-    the bound moves it by far more)."""
+    The bound is that of the motion the truth flies (docs/metrics.md): no picture is below
+    it, and none is an order of magnitude above it (a unit, frame or timing error in the
+    bound moves it by far more)."""
     m = results.metrics
     rmse = {**_all(m, "fusion", "rmse_pos_m"), **_all(m, "tracker", "rmse_pos_m")}
     pcrb, gap = _all(m, "bound", "pcrb_pos_m"), _all(m, "bound", "gap_pos_m")
     assert set(pcrb) == set(rmse) == set(gap)
     for pic, b in pcrb.items():
         assert gap[pic] == pytest.approx(rmse[pic] - b)
-        assert 0.5 * b <= rmse[pic] <= 10 * b, (pic, rmse[pic], b)
-    assert 0.9 * pcrb["centralized"] <= rmse["centralized"] <= 1.1 * pcrb["centralized"]
+        assert b <= rmse[pic] <= 10 * b, (pic, rmse[pic], b)
 
 
 def test_consistency_rows_for_every_picture(results):
@@ -166,7 +166,7 @@ def test_one_aircraft_one_run_has_accuracy_for_every_picture(small_terminal):
 
 def test_clusters_reference_fused_targets(results):
     c = results.clusters
-    assert c.height > 0
+    assert c.height > 0 and set(c["method"]) - {"centralized"}
     fused_ids = results.fused.select("run", "epoch", "method", "target_id")
     members = c.explode("members").select("run", "epoch", "method", pl.col("members").alias("target_id"))
     assert members.join(fused_ids, on=["run", "epoch", "method", "target_id"], how="anti").height == 0

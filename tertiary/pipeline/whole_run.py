@@ -290,16 +290,15 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         release_memory()
         # the same prediction on the truth picture: which alerts the picture causes
         t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
+        conflicts_all, id_map_all, scored = conflicts, id_map, methods
         if t_conf.height or t_ids.height:
             conflicts_all = pl.concat([conflicts, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts
-            id_map = pl.concat([id_map, t_ids.select(id_map.columns).cast(id_map.schema)])
-            methods = [*methods, TRUTH_PICTURE]
-        else:
-            conflicts_all = conflicts
+            id_map_all = pl.concat([id_map, t_ids.select(id_map.columns).cast(id_map.schema)])
+            scored = [*methods, TRUTH_PICTURE]
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
         safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
-            conflicts_all, id_map, span, acfg, id_col=id_col, methods=methods, frame=ds.origin, intervals=intervals)
-        del conflicts_all
+            conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
+        del conflicts_all, id_map_all
         alerts, attribution = attributed(alerts, los, onsets, acfg)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         sink("alerts", alerts)
