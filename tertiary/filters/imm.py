@@ -490,12 +490,7 @@ class IMMFilter(TrackFilter):
         x, p, mu, _ = self.core.update(state["x"], state["P"], state["mu"], zz[:, :2], rh, ok)
         # vertical CV channel
         xv, pvu = cv1_update(state["xv"], state["Pv"], nu_z, s_z, ok)
-        nu = np.concatenate([nu_h, nu_z[:, None]], axis=1)
-        s = np.stack([s_h[:, 0, 0], s_h[:, 1, 1], s_z], axis=1)
-        nan = ~ok
-        innov = Innovation(np.where(nan[:, None], np.nan, nu), np.where(nan[:, None], np.nan, s),
-                           np.where(nan, np.nan, nis))
-        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innov
+        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innovation(nu_h, nu_z, s_h, s_z, nis, ok)
 
     def output(self, state: State) -> Output:
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])
@@ -511,6 +506,16 @@ class IMMFilter(TrackFilter):
     def combined_horizontal(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 4) and covariance (B, 4, 4)."""
         return imm_combine(state["x"], state["P"], state["mu"])
+
+
+def innovation(nu_h: F64, nu_z: F64, s_h: F64, s_z: F64, nis: F64, ok: NDArray[np.bool_]) -> Innovation:
+    """The :class:`Innovation` of a horizontal (2-D) plus vertical update: (x, y, z) innovations,
+    their variances and the NIS, NaN where no plot updated the track."""
+    nu = np.concatenate([nu_h, nu_z[:, None]], axis=1)
+    s = np.stack([s_h[:, 0, 0], s_h[:, 1, 1], s_z], axis=1)
+    nan = ~ok
+    return Innovation(np.where(nan[:, None], np.nan, nu), np.where(nan[:, None], np.nan, s),
+                      np.where(nan, np.nan, nis))
 
 
 def symmetric_tpm(n_turn: int, stay_turn: float = 0.98, stay_cv: float = 0.998) -> F64:

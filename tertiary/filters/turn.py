@@ -30,8 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.filters.imm import (a_ct, a_cv, cv1_predict, cv1_update, imm_combine, imm_mix, imm_update, q_ct, q_cv,
-                                  split_r)
+from tertiary.filters.imm import (a_ct, a_cv, cv1_predict, cv1_update, imm_combine, imm_mix, imm_update, innovation,
+                                  q_ct, q_cv, split_r)
 
 __all__ = ["ct_jacobian_omega", "ct_ekf_predict", "IMMCTFilter"]
 
@@ -158,12 +158,7 @@ class IMMCTFilter(TrackFilter):
         nis = np.einsum("bi,bij,bj->b", nu_h, np.linalg.inv(s_h), nu_h) + nu_z ** 2 / s_z
         x, p, mu, _ = imm_update(state["x"], state["P"], state["mu"], zz[:, :2], rh, ok, self.mu_floor)
         xv, pv = cv1_update(state["xv"], state["Pv"], nu_z, s_z, ok)
-        nu = np.concatenate([nu_h, nu_z[:, None]], axis=1)
-        s = np.stack([s_h[:, 0, 0], s_h[:, 1, 1], s_z], axis=1)
-        nan = ~ok
-        innov = Innovation(np.where(nan[:, None], np.nan, nu), np.where(nan[:, None], np.nan, s),
-                           np.where(nan, np.nan, nis))
-        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}, innov
+        return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}, innovation(nu_h, nu_z, s_h, s_z, nis, ok)
 
     def combined(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 5) = [x, vx, y, vy, ω] and its covariance (B, 5, 5)."""
