@@ -552,9 +552,10 @@ def test_level_pairs_the_vertical_minimum_apart_are_separated_in_the_truth():
     flips = np.where(np.arange(n) % 10 == 5, 1000.0 - 25.0, 1000.0) * ft     # B flips 25 ft down every 10 s
     level = _two(np.full(n, 3000.0 * ft), 3000.0 * ft + flips, np.zeros(n), np.zeros(n))
     assert loss_of_separation(level).height == 0
-    # the plain rule: exactly 1 000 ft is on the closed bound, 975 ft inside: a "loss" all along
+    # the plain rule: exactly 1 000 ft is separated, each 975 ft flip (4 s → 6 s around it) a
+    # "loss", the flips 10 s apart merged into one episode from the first to the last
     plain = loss_of_separation(level, AlertConfig(level_pairs=False))
-    assert plain.height == 1 and (plain["t_end"][0] - plain["t_start"][0]).total_seconds() == pytest.approx(n - 1)
+    assert plain.height == 1 and (plain["t_end"][0] - plain["t_start"][0]).total_seconds() == pytest.approx(112.0)
     no_rate = _two(np.full(n, 3000.0 * ft), 3000.0 * ft + flips)
     assert loss_of_separation(no_rate).height >= 1
     bust = _two(np.full(n, 3000.0 * ft), np.full(n, 3150.0 * ft), np.zeros(n), np.zeros(n))
@@ -662,3 +663,23 @@ def test_the_truth_resampled_a_block_of_union_times_at_a_time_gives_the_whole_gr
     one = list(blocks(al.truth_heights(tr), 10**9, 10**9))
     want = sum(int(np.sum(rs["ac"][1:] == rs["ac"][:-1])) for rs in one)
     assert len(starts) == want
+
+
+def test_quantised_altitudes_exactly_the_vertical_minimum_apart_are_separated():
+    """Two aircraft crossing head-on 1 000 ft apart in quantised (25 ft) altitude, one of them
+    jittering by a quantum between replies (so not "level" for the level-pair rule): the
+    height difference is at, never below, the minimum — no loss of separation; 25 ft closer it
+    is one."""
+    t = np.arange(0.0, 301.0)
+    jitter = np.where((t.astype(int) // 5) % 2 == 0, 0.0, 25.0 * 0.3048)     # 5 s at each code
+    # FL280 over FL270: in metres their difference rounds to just under 304.8 m (the minimum)
+    hi = 28000.0 * 0.3048 + jitter
+    for low_ft, expect in ((27000.0, 0), (27025.0, 1)):
+        low = np.full_like(t, low_ft * 0.3048)
+        rows = []
+        for tid, x0, vx, h in ((1, -30000.0, 150.0, low), (2, 30000.0, -150.0, hi)):
+            rows.append(pl.DataFrame({"truth_id": tid, "time": [_t(s) for s in t], "x_m": x0 + vx * t, "y_m": 0.0,
+                                      "z_m": h, "vx_mps": vx, "vy_mps": 0.0, "vz_mps": 0.0, "alt_m": h}))
+        truth = pl.concat(rows).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+        los = loss_of_separation(truth, AlertConfig(conflict=ConflictConfig(airspace="en-route")))
+        assert los.height == expect, (low_ft, los)

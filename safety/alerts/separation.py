@@ -356,14 +356,23 @@ def _block_pieces(rs: dict[str, NDArray], reach_h: float, reach_v: float, dr_h_m
     tol = 0.0 if level_pairs is None else np.where(_both_level(rs, a, b, dt, level_pairs[1]), level_pairs[0], 0.0)
     out = []
     for f in factors:
-        # closed ≤ in the interval, strict < for LoS: they differ on a null set (t_out > t_in)
-        t_in, t_out = _segment_interval(r0, w, f * dr_h_m, f * dr_v_m - tol, dt)
+        # a loss is strictly inside both minima; the closed interval differs from it on a null
+        # set (t_out > t_in) except where a height difference stays exactly at the vertical
+        # minimum — two quantised altitudes 1 000 ft apart, one of them jittering by a quantum
+        # (not "level"): the pair is separated, so the vertical bound is taken just inside
+        d_v = f * dr_v_m - tol
+        t_in, t_out = _segment_interval(r0, w, f * dr_h_m, d_v - _AT_MINIMUM_REL * np.maximum(d_v, 1.0), dt)
         ok = t_out > t_in
         s_us = t[a][ok] + np.round(t_in[ok] * US).astype(np.int64)
         e_us = t[a][ok] + np.round(t_out[ok] * US).astype(np.int64)
         out.append((run[ok], np.minimum(ta_, tb_)[ok].astype(np.int64), np.maximum(ta_, tb_)[ok].astype(np.int64),
                     s_us, e_us))
     return out
+
+
+#: relative margin inside the vertical minimum of a loss: a height difference equal to the
+#: minimum (to the rounding of a quantised altitude converted to metres) is no loss
+_AT_MINIMUM_REL = 1e-9
 
 
 def _both_level(rs: dict[str, NDArray], a: NDArray, b: NDArray, dt: NDArray, level_rate: float) -> NDArray[np.bool_]:
