@@ -125,7 +125,7 @@ def test_the_truth_picture_is_the_truth_at_the_grid_within_the_observed_spans():
     observed = pl.DataFrame({"run": pl.Series([0, 0, 0, 0], dtype=pl.UInt32),
                              "epoch": [_t(10.5), _t(200.5), _t(50.5), _t(60.5)],
                              "truth_id": [1, 1, 2, 2]}).with_columns(pl.col("epoch").cast(TIME))
-    pic = truth_picture(truth, observed_spans(observed), grid, "target_id")
+    pic = truth_picture(truth, observed_spans(observed), grid, "truth", "target_id")
     per = dict(pic.group_by("target_id").agg(pl.len()).iter_rows())
     assert per == {1: 39, 2: 3}                          # 10.5 … 200.5 and 50.5 … 60.5 every 5 s; 3 unobserved
     one = pic.filter(pl.col("target_id") == 1).sort("epoch")
@@ -139,7 +139,7 @@ def test_the_truth_picture_alerts_a_real_conflict_and_steps_like_one_call():
     grid = pl.DataFrame({"run": pl.Series([0] * 60, dtype=pl.UInt32),
                          "epoch": [_t(s) for s in range(0, 300, 5)]}).with_columns(pl.col("epoch").cast(TIME))
     observed = grid.join(pl.DataFrame({"truth_id": [1, 2, 3]}), how="cross")
-    pic = truth_picture(truth, observed_spans(observed), grid, "target_id")
+    pic = truth_picture(truth, observed_spans(observed), grid, "truth", "target_id")
     cc = ConflictConfig(confirm_m=3, confirm_n=4)
     whole = predict_conflicts(pic, cc, id_col="target_id")
     alerts = whole.filter(pl.col("alert"))

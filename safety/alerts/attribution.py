@@ -24,7 +24,7 @@ import numpy as np
 import polars as pl
 
 from safety.alerts.config import AlertConfig
-from tertiary.contract import TABLES
+from safety.alerts.episodes import metrics_long
 from tertiary.core.units import US
 
 __all__ = ["ATTRIBUTION_METRICS", "TRUTH_PICTURE", "attribute_alerts", "attribute_los", "attribution_metrics",
@@ -144,9 +144,4 @@ def attribution_metrics(alerts: pl.DataFrame, los: pl.DataFrame, truth: str = TR
              .group_by("method").agg(pl.col("run").n_unique().alias("n_runs")))
     per = names.join(per, on="method", how="left").join(lo, on="method", how="left").with_columns(
         pl.col(list(ATTRIBUTION_METRICS)).cast(pl.Float64).fill_null(0.0))
-    long = per.unpivot(index=["method", "n_runs"], on=list(ATTRIBUTION_METRICS), variable_name="metric", value_name="value")
-    order = pl.col("metric").replace_strict({m: i for i, m in enumerate(ATTRIBUTION_METRICS)}, return_dtype=pl.Int8)
-    out = long.sort(pl.col("method"), order).select(
-        pl.lit("safety").alias("stage"), "method", "metric", pl.lit("all").alias("segment"), "value", "n_runs")
-    spec = TABLES["metrics"].required
-    return out.select([pl.col(c).cast(t) for c, t in spec.items()])
+    return metrics_long(per, ATTRIBUTION_METRICS)

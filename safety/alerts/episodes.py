@@ -64,7 +64,7 @@ from tertiary.core import geo
 from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
-           "los_episodes", "per_picture", "score_alerts", "stca_tables", "stca_tables_by_picture"]
+           "los_episodes", "metrics_long", "per_picture", "score_alerts", "stca_tables", "stca_tables_by_picture"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
@@ -334,13 +334,14 @@ def score_alerts(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFr
     """STCA performance per picture in the ``metrics`` schema (stage ``"safety"``, segment
     ``"all"``): :data:`ALERT_METRICS`."""
     alerts, los, grid = score_pictures(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)
-    return _metrics_long(per_picture(alerts, los, grid))
+    return metrics_long(per_picture(alerts, los, grid))
 
 
-def _metrics_long(per: pl.DataFrame) -> pl.DataFrame:
-    long = per.unpivot(index=["method", "n_runs"], on=list(ALERT_METRICS), variable_name="metric",
-                       value_name="value")
-    order = pl.col("metric").replace_strict({m: i for i, m in enumerate(ALERT_METRICS)}, return_dtype=pl.Int8)
+def metrics_long(per: pl.DataFrame, names: tuple[str, ...] = ALERT_METRICS) -> pl.DataFrame:
+    """``per`` (one row per picture: ``method``, ``n_runs`` and the columns ``names``) in the
+    ``metrics`` schema, stage ``"safety"``, segment ``"all"``, metrics in the order of ``names``."""
+    long = per.unpivot(index=["method", "n_runs"], on=list(names), variable_name="metric", value_name="value")
+    order = pl.col("metric").replace_strict({m: i for i, m in enumerate(names)}, return_dtype=pl.Int8)
     out = long.sort([pl.col("method"), order]).select(
         pl.lit("safety").alias("stage"), "method", "metric", pl.lit("all").alias("segment"), "value", "n_runs")
     spec = TABLES["metrics"].required
@@ -355,7 +356,7 @@ def stca_tables(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     """(metrics, alerts, LoS episodes) in one pass: :func:`score_alerts`,
     :func:`alert_episodes` and :func:`los_episodes` without scoring twice (pipeline use)."""
     alerts, los, grid = score_pictures(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)
-    return _metrics_long(per_picture(alerts, los, grid)), alerts, los
+    return metrics_long(per_picture(alerts, los, grid)), alerts, los
 
 
 def stca_tables_by_picture(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,

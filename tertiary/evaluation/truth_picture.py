@@ -17,18 +17,13 @@ configuration's.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import polars as pl
 
 from tertiary.contract import TIME
 from tertiary.evaluation.reference import interpolate_reference
 
-__all__ = ["TRUTH_PICTURE", "observed_spans", "truth_picture", "truth_picture_blocks"]
-
-#: the truth picture's name in ``method``
-TRUTH_PICTURE = "truth"
+__all__ = ["observed_spans", "truth_picture"]
 
 _STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -63,10 +58,11 @@ def _requests(spans: pl.DataFrame, epochs: pl.DataFrame) -> pl.DataFrame:
     return pl.concat(out)
 
 
-def truth_picture(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame, id_col: str = "track_id",
-                  max_gap_s: float = 10.0) -> pl.DataFrame:
+def truth_picture(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame, name: str,
+                  id_col: str = "track_id", max_gap_s: float = 10.0) -> pl.DataFrame:
     """The truth picture at ``epochs`` (run, epoch: the picture's grid) for the aircraft and
-    spans of ``spans`` (:func:`observed_spans`): columns run, epoch, method (``"truth"``),
+    spans of ``spans`` (:func:`observed_spans`): columns run, epoch, method (``name``;
+    :data:`safety.alerts.TRUTH_PICTURE` in a run),
     ``id_col`` (the truth id), the system-frame state, ``alt_m``/``alt_rate_mps`` when the truth
     has a height channel, ``cov_diag`` (zeros) and ``mode_s`` (the ICAO address when known).
     Epochs where the truth has no sample within ``max_gap_s`` are left out."""
@@ -75,7 +71,7 @@ def truth_picture(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame
     ref = interpolate_reference(truth.with_columns(pl.col("truth_id").cast(pl.Int64)), req, max_gap_s)
     ref = ref.filter(pl.col("status") == "evaluated")
     has_alt = "alt_m" in truth.columns
-    cols = [pl.col("run"), pl.col("epoch"), pl.lit(TRUTH_PICTURE).alias("method"),
+    cols = [pl.col("run"), pl.col("epoch"), pl.lit(name).alias("method"),
             pl.col("truth_id").cast(pl.UInt64).alias(id_col),
             *[pl.col(f"true_{c}").alias(c) for c in _STATE]]
     if has_alt:
@@ -87,20 +83,3 @@ def truth_picture(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame
                  .unique(id_col, keep="first"))
         out = out.join(ident, on=id_col, how="left")
     return out.sort("run", "epoch", id_col)
-
-
-def truth_picture_blocks(truth: pl.DataFrame, spans: pl.DataFrame, epochs: pl.DataFrame, id_col: str,
-                         block_s: float) -> Iterator[tuple[int, int, pl.DataFrame]]:
-    """:func:`truth_picture` in consecutive time blocks [t0_us, t1_us) of ``block_s`` seconds of
-    grid epochs: (t0_us, t1_us, the block's rows), for a step function carrying state across
-    them. Every grid epoch is in exactly one block."""
-    if not epochs.height:
-        return
-    us = epochs["epoch"].dt.epoch("us")
-    lo, hi = int(us.min()), int(us.max()) + 1
-    step = max(int(block_s * 1e6), 1)
-    for a in range(lo, hi, step):
-        b = min(a + step, hi)
-        ep = epochs.filter(us.is_between(a, b, closed="left"))
-        if ep.height:
-            yield a, b, truth_picture(truth, spans, ep, id_col)

@@ -47,7 +47,7 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
         ep = epochs.filter(us.is_between(a, b, closed="left"))
         truth = truth_slice(a - margin, b + margin)
         if ep.height:
-            pic = truth_picture(truth, spans, ep, id_col)
+            pic = truth_picture(truth, spans, ep, safety_alerts.TRUTH_PICTURE, id_col)
             rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, a, b)
             out.append(rows)
             ids.append(pic.select("run", "method", "epoch", id_col, pl.col(id_col).cast(pl.Int64).alias("truth_id")))

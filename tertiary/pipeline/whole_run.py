@@ -21,7 +21,7 @@ from tertiary.evaluation.bound import bound_stage
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, association_metrics,
                                           association_score, read_reference, reference_files, write_reference)
 from tertiary.evaluation.indicators import indicators
-from tertiary.evaluation.truth_picture import TRUTH_PICTURE, observed_spans
+from tertiary.evaluation.truth_picture import observed_spans
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
@@ -260,7 +260,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
     def truth_between(t0_us: int, t1_us: int) -> pl.DataFrame:
         """The truth picture's columns of the samples in [t0_us, t1_us]."""
         t = pl.col("time").dt.epoch("us")
-        return pl.DataFrame(truth_scan(TRUTH_PICTURE_COLUMNS).lazy().filter(t.is_between(t0_us, t1_us)).collect())
+        return truth_scan(TRUTH_PICTURE_COLUMNS).lazy().filter(t.is_between(t0_us, t1_us)).collect()
 
     def truth_scan(columns: list[str]) -> "pl.DataFrame | pl.LazyFrame":
         """The truth's ``columns`` (those it has), as a scan of the reference when on disk."""
@@ -294,7 +294,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         if t_conf.height or t_ids.height:
             conflicts_all = pl.concat([conflicts, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts
             id_map_all = pl.concat([id_map, t_ids.select(id_map.columns).cast(id_map.schema)])
-            scored = [*methods, TRUTH_PICTURE]
+            scored = [*methods, safety_alerts.TRUTH_PICTURE]
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
         safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
             conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
@@ -377,7 +377,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": (alerts.filter(pl.col("method") != TRUTH_PICTURE).height if alerts.height else 0),
+              "alert_episodes": (alerts.filter(pl.col("method") != safety_alerts.TRUTH_PICTURE).height
+                                 if alerts.height else 0),
               "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **target_counts(fused)}
     # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
