@@ -35,6 +35,7 @@ from tertiary.core import geo
 from tertiary.evaluation.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.evaluation.accuracy_buckets import picture_accuracy_buckets
 from tertiary.core.errors import DataError
+from tertiary.evaluation.multitarget import MultiTargetConfig, multitarget_metrics
 from tertiary.evaluation.matching import (MatchConfig, between_expr, between_mask, match_with_reference, neighbour_times, reference_identity)
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.evaluation.picture_buckets import picture_metrics_buckets
@@ -70,6 +71,8 @@ class EvaluationConfig:
     breakdown: tuple[str, ...] = BREAKDOWNS
     #: the seed metrics (:mod:`tertiary.evaluation.accuracy`): the transient, the (2.15) denominator, bands
     accuracy: AccuracyConfig = field(default_factory=AccuracyConfig)
+    #: OSPA/GOSPA cut-off and order, the SIAP association distance (:mod:`tertiary.evaluation.multitarget`)
+    multitarget: MultiTargetConfig = field(default_factory=MultiTargetConfig)
 
 
 @dataclass
@@ -313,6 +316,17 @@ def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
     return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
 
+def _multitarget(matched: pl.DataFrame | pl.LazyFrame, expected: pl.DataFrame | pl.LazyFrame,
+                 cfg: MultiTargetConfig) -> pl.DataFrame:
+    """OSPA, GOSPA and SIAP of one matched picture: its rows' ENU positions against the
+    reference at its epochs (only those columns are read of a spilled picture)."""
+    tracks = matched.select("method", "run", "epoch", "track_id", "x_m", "y_m", "z_m")
+    truth = expected.select("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
+    if isinstance(tracks, pl.LazyFrame):
+        tracks, truth = pl.collect_all([tracks, truth])
+    return multitarget_metrics(tracks, truth, str(tracks["method"][0]), cfg)
+
+
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
                       frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                       cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
@@ -392,6 +406,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
             if surveillance:
                 parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
                                                         radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
+        if surveillance:
+            parts["metrics"].append(_multitarget(matched, expected, cfg.multitarget))
         parts["metrics"].append(seed)
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)

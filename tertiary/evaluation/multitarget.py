@@ -1,0 +1,308 @@
+"""The field's standard multi-target metrics of a picture against the truth at its epochs.
+
+Each (run, epoch) of a picture is a pair of finite sets: the picture's track positions
+X = {x_1 … x_N} and the truth positions Y = {y_1 … y_M} interpolated at that epoch
+(:func:`tertiary.evaluation.matching.reference_at_epochs`, the reference the matcher uses).
+Positions are local ENU (x, y, z) in metres; d(x, y) is their Euclidean distance. These metrics
+use their own definitions' assignment, not the project's matcher, so that they equal the
+literature's and Stone Soup's.
+
+OSPA (Schuhmacher, Vo & Vo 2008), cut-off c, order 1 ≤ p < ∞, n = max(N, M), m = min(N, M)::
+
+    OSPA = ( (1/n) ( min_π Σ_{i≤m} min(d, c)^p + c^p (n − m) ) )^(1/p)
+
+GOSPA (Rahmathullah, García-Fernández & Svensson 2017), α = 2::
+
+    GOSPA = ( min_γ Σ_{(i,j)∈γ} d^p + c^p/2 (N − |γ|) + c^p/2 (M − |γ|) )^(1/p)
+
+over partial assignments γ of pairs with d < c; the three terms are GOSPA's localisation,
+false and missed parts (Stone Soup's ``localisation``, ``false``, ``missed``: sums of p-th
+powers, not rooted). Both minima are the same problem — a maximum-weight matching of the pairs
+with d < c, weights c^p − d^p — solved once per picture for every epoch together
+(:func:`_max_weight_matching`).
+
+SIAP (Votruba et al. 2001, as Stone Soup's ``SIAPMetrics`` computes them): each track state
+is associated with the nearest truth at its epoch closer than the SIAP threshold (Stone Soup's
+``TrackToTruth`` with one confirming and one ending state; several tracks may share a truth).
+At epoch t: J truths, JT truths with an associated track, N tracks, NA associated tracks, PA
+the sum of their position errors. Over the picture: completeness ΣJT/ΣJ, ambiguity ΣNA/ΣJT,
+spuriousness Σ(N − NA)/ΣN, position accuracy ΣPA/ΣNA. ID continuity: a segment is a run of
+consecutive states of one track associated with one truth, [first, last] epoch; for truth j,
+NU_j is the fewest segments covering its associated epochs (Stone Soup's greedy), TT_j the time
+its segments cover, TL_j its longest segment, T_j its lifetime. Rate of track number changes
+R = Σ_j (NU_j − 1) / Σ_j TT_j (NU_j > 0), longest segment LS = Σ_j TL_j / Σ_j T_j.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix, csr_matrix
+from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite_matching
+from scipy.spatial import cKDTree
+
+from tertiary.contract import TABLES
+
+__all__ = ["MultiTargetConfig", "multitarget_by_epoch", "siap_continuity", "multitarget_metrics", "METRICS"]
+
+#: the metrics :func:`multitarget_metrics` writes (stage ``evaluation``, segment ``all``)
+METRICS = ("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false", "siap_completeness",
+           "siap_ambiguity", "siap_spuriousness", "siap_position_accuracy_m", "siap_track_changes_per_hour",
+           "siap_longest_segment_frac", "multitarget_epochs")
+
+_TRACK = ("run", "epoch", "track_id", "x_m", "y_m", "z_m")
+_TRUTH = ("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
+
+
+@dataclass(frozen=True)
+class MultiTargetConfig:
+    """OSPA/GOSPA cut-off ``c_m`` and order ``p``; the SIAP association distance."""
+
+    c_m: float = 1852.0
+    p: float = 2.0
+    siap_threshold_m: float = 1852.0
+
+    def __post_init__(self) -> None:
+        if not (self.c_m > 0 and self.siap_threshold_m > 0):
+            raise ValueError("the cut-off and the SIAP threshold must be > 0")
+        if not 1.0 <= self.p < np.inf:
+            raise ValueError("the order p must be in [1, inf)")
+
+
+def _epoch_index(tracks: pl.DataFrame, truth: pl.DataFrame) -> tuple[pl.DataFrame, NDArray, NDArray]:
+    """The (run, epoch) groups of the picture, and each track / truth row's group."""
+    keys = ["run", "epoch"]
+    groups = tracks.select(keys).unique().sort(keys).with_row_index("g")
+    gt = tracks.select(keys).join(groups, on=keys, how="left", maintain_order="left")["g"].to_numpy()
+    # truth rows at epochs without a picture row are not the picture's epochs
+    gr = truth.select(keys).join(groups, on=keys, how="left", maintain_order="left")["g"].fill_null(-1).to_numpy()
+    return groups, gt.astype(np.int64), gr.astype(np.int64)
+
+
+def _pairs(pt: NDArray, gt: NDArray, pr: NDArray, gr: NDArray, radius: float) -> tuple[NDArray, NDArray, NDArray]:
+    """(track row, truth row, distance) of every pair at one epoch closer than ``radius``."""
+    if len(pt) == 0 or len(pr) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    # one tree for every epoch: the group index offsets x by more than the radius; the tree only
+    # finds candidates (the offset costs precision), distances come from the raw positions
+    off = 3.0 * radius
+    shift_t = np.column_stack([pt[:, 0] + gt * off, pt[:, 1:]])
+    shift_r = np.column_stack([pr[:, 0] + gr * off, pr[:, 1:]])
+    near = cKDTree(shift_t).sparse_distance_matrix(cKDTree(shift_r), radius * (1 + 1e-6) + 1e-3,
+                                                   output_type="ndarray")
+    i, j = near["i"].astype(np.int64), near["j"].astype(np.int64)
+    d = np.sqrt(((pt[i] - pr[j]) ** 2).sum(axis=1))
+    keep = (gt[i] == gr[j]) & (d < radius)
+    order = np.lexsort((j[keep], i[keep]))
+    return i[keep][order], j[keep][order], d[keep][order]
+
+
+def _max_weight_matching(i: NDArray, j: NDArray, w: NDArray, n_t: int, n_r: int) -> NDArray[np.bool_]:
+    """Which pairs (i, j) with weights w > 0 form a maximum-weight matching (each row at most
+    once). A component with one pair is matched alone; the others are solved together as one
+    full matching (LAPJVsp) in which every track and truth may also take its own dummy."""
+    chosen = np.zeros(len(i), bool)
+    if len(i) == 0:
+        return chosen
+    graph = coo_matrix((np.ones(len(i)), (i, n_t + j)), shape=(n_t + n_r, n_t + n_r))
+    _, label = connected_components(graph, directed=False)
+    comp = label[i]
+    simple = np.bincount(comp)[comp] == 1
+    chosen[simple] = True
+    rest = np.flatnonzero(~simple)
+    if len(rest) == 0:
+        return chosen
+    ti, a = np.unique(i[rest], return_inverse=True)
+    tj, b = np.unique(j[rest], return_inverse=True)
+    na, nb = len(ti), len(tj)
+    # rows: tracks, then a dummy per truth; columns: truths, then a dummy per track. Every full
+    # matching costs (na + nb)·k − Σ w of its real pairs, so the cheapest is the heaviest;
+    # k > max w keeps every cost > 0 (a zero would be a missing edge)
+    k = 2.0 * float(w[rest].max()) + 1.0
+    ones = np.full(len(rest), k)
+    rows = np.concatenate([a, np.arange(na), na + np.arange(nb), na + b])
+    cols = np.concatenate([b, nb + np.arange(na), np.arange(nb), nb + a])
+    cost = np.concatenate([k - w[rest], np.full(na, k), np.full(nb, k), ones])
+    r, c = min_weight_full_bipartite_matching(csr_matrix((cost, (rows, cols)), shape=(na + nb, na + nb)))
+    real = (r < na) & (c < nb)
+    pick = {(int(x), int(y)) for x, y in zip(r[real], c[real])}
+    chosen[rest] = [(int(x), int(y)) in pick for x, y in zip(a, b)]
+    return chosen
+
+
+def _positions(frame: pl.DataFrame, cols: tuple[str, ...]) -> NDArray:
+    return frame.select(cols).to_numpy().astype(np.float64)
+
+
+def _prepared(tracks: pl.DataFrame, truth: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The columns read, a shared ``run``, truth at the picture's epochs only."""
+    def run(f: pl.DataFrame) -> pl.DataFrame:
+        return f if "run" in f.columns else f.with_columns(pl.lit(0, pl.UInt32).alias("run"))
+    tr = run(tracks).select(_TRACK).with_columns(pl.col("run").cast(pl.UInt32))
+    ref = run(truth).select(_TRUTH).with_columns(pl.col("run").cast(pl.UInt32))
+    ref = ref.join(tr.select("run", "epoch").unique(), on=["run", "epoch"], how="semi", maintain_order="left")
+    return tr, ref
+
+
+def multitarget_by_epoch(tracks: pl.DataFrame, truth: pl.DataFrame,
+                         cfg: MultiTargetConfig = MultiTargetConfig()) -> pl.DataFrame:
+    """Per (run, epoch) of ``tracks`` (run, epoch, track_id, x_m, y_m, z_m): OSPA, GOSPA and its
+    parts, and the SIAP counts (module docstring) against ``truth`` (run, epoch, truth_id,
+    true_x_m, true_y_m, true_z_m: the truth at the picture's epochs). Columns: run, epoch,
+    n_tracks (N), n_truths (J), ospa_m, gospa_m, gospa_localisation, gospa_missed, gospa_false,
+    siap_truths_assoc (JT), siap_tracks_assoc (NA), siap_error_sum_m (PA)."""
+    tr, ref = _prepared(tracks, truth)
+    groups, gt, gr = _epoch_index(tr, ref)
+    pt, pr = _positions(tr, _TRACK[3:]), _positions(ref, _TRUTH[3:])
+    c, p = cfg.c_m, cfg.p
+    i, j, d = _pairs(pt, gt, pr, gr, max(c, cfg.siap_threshold_m))
+    cut = d < c
+    won = _max_weight_matching(i[cut], j[cut], c ** p - d[cut] ** p, len(pt), len(pr))
+    g_m = gt[i[cut][won]]
+    n_g = groups.height
+    matched = np.bincount(g_m, minlength=n_g).astype(np.float64)
+    loc = np.bincount(g_m, weights=d[cut][won] ** p, minlength=n_g)
+    n_t = np.bincount(gt, minlength=n_g).astype(np.float64)
+    n_r = np.bincount(gr[gr >= 0], minlength=n_g).astype(np.float64)
+    n = np.maximum(n_t, n_r)
+    ospa = ((loc + c ** p * (n - matched)) / n) ** (1.0 / p)
+    missed, false = c ** p / 2 * (n_r - matched), c ** p / 2 * (n_t - matched)
+    it, jt, dt = _nearest(i, j, d, cfg.siap_threshold_m)
+    return groups.select("run", "epoch").with_columns(
+        pl.Series("n_tracks", n_t.astype(np.int64)), pl.Series("n_truths", n_r.astype(np.int64)),
+        pl.Series("ospa_m", ospa), pl.Series("gospa_m", (loc + missed + false) ** (1.0 / p)),
+        pl.Series("gospa_localisation", loc), pl.Series("gospa_missed", missed), pl.Series("gospa_false", false),
+        pl.Series("siap_truths_assoc", np.bincount(gr[np.unique(jt)], minlength=n_g)),
+        pl.Series("siap_tracks_assoc", np.bincount(gt[it], minlength=n_g)),
+        pl.Series("siap_error_sum_m", np.bincount(gt[it], weights=dt, minlength=n_g)))
+
+
+def _nearest(i: NDArray, j: NDArray, d: NDArray, threshold: float) -> tuple[NDArray, NDArray, NDArray]:
+    """(track row, its nearest truth row, distance) for each track row with a truth closer
+    than ``threshold`` (the SIAP association)."""
+    near = d < threshold
+    i, j, d = i[near], j[near], d[near]
+    order = np.lexsort((d, i))
+    first = order[np.r_[True, np.diff(i[order]) != 0]] if len(order) else order
+    return i[first], j[first], d[first]
+
+
+def _associations(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MultiTargetConfig) -> pl.DataFrame:
+    """Each track row (run, epoch, track_id) with its SIAP truth (``truth_id``, null: none)."""
+    groups, gt, gr = _epoch_index(tracks, truth)
+    pt, pr = _positions(tracks, _TRACK[3:]), _positions(truth, _TRUTH[3:])
+    i, j, d = _pairs(pt, gt, pr, gr, cfg.siap_threshold_m)
+    it, jt, _ = _nearest(i, j, d, cfg.siap_threshold_m)
+    ids = np.full(tracks.height, -1, np.int64)
+    ids[it] = truth["truth_id"].cast(pl.Int64).to_numpy()[jt]
+    return tracks.select("run", "epoch", "track_id").with_columns(
+        pl.when(pl.Series(ids >= 0)).then(pl.Series(ids)).otherwise(None).alias("truth_id"))
+
+
+def _segments(assoc: pl.DataFrame) -> pl.DataFrame:
+    """Runs of consecutive states of one track associated with one truth: run, truth_id,
+    track_id, start, end."""
+    seq = assoc.sort("run", "track_id", "epoch")
+    same = ((pl.col("track_id") == pl.col("track_id").shift(1)) & (pl.col("run") == pl.col("run").shift(1))
+            & (pl.col("truth_id") == pl.col("truth_id").shift(1))).fill_null(False)
+    return (seq.with_columns((~same).cum_sum().alias("__seg")).filter(pl.col("truth_id").is_not_null())
+            .group_by("__seg").agg(pl.col("run", "truth_id", "track_id").first(),
+                                   pl.col("epoch").min().alias("start"), pl.col("epoch").max().alias("end"))
+            .drop("__seg"))
+
+
+def _tracks_needed(seg: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """NU_j of each (run, truth_id) with a segment, by Stone Soup's greedy cover: at the first
+    uncovered truth epoch, of the segments there take the one whose track's association with
+    the truth ends last (Stone Soup merges a track's segments with a truth into one
+    association), and continue at the truth epoch after that segment's end. A segment reaches
+    back to the truth epoch before its start (``reach``): "there at the epoch after the covered
+    end" is "reaches the covered end and ends after it". Each pass of the loop advances every
+    truth at once."""
+    key = ["run", "truth_id"]
+    times = truth.select(*key, pl.col("epoch").alias("reach")).sort("reach")
+    seg = (seg.sort("start").join_asof(times, left_on="start", right_on="reach", by=key, strategy="backward",
+                                       allow_exact_matches=False, check_sortedness=False)
+           .with_columns(pl.col("reach").fill_null(pl.col("start") - pl.duration(microseconds=1)),
+                         pl.col("end").max().over(*key, "track_id").alias("last"))
+           .sort(*key, "last", "end", "track_id"))
+    t0 = seg["reach"].min()
+    reach, end, last = ((seg[c] - t0).dt.total_microseconds().to_numpy() + 1 for c in ("reach", "end", "last"))
+    new = (pl.col("run") != pl.col("run").shift(1)) | (pl.col("truth_id") != pl.col("truth_id").shift(1))
+    grp = seg.select(new.fill_null(True).cum_sum() - 1).to_series().to_numpy().astype(np.int64)
+    n_grp = int(grp[-1]) + 1
+    covered = np.zeros(n_grp, np.int64)
+    count = np.zeros(n_grp, np.int64)
+    live = np.ones(n_grp, bool)
+    while live.any():
+        ahead = live[grp] & (end > covered[grp])
+        here = ahead & (reach <= covered[grp])
+        # rows are in (truth, last, end) order: the last candidate row of a truth is its pick
+        rows = np.flatnonzero(here)
+        pick = rows[np.r_[grp[rows][1:] != grp[rows][:-1], True]] if len(rows) else rows
+        covered[grp[pick]] = end[pick]
+        count[grp[pick]] += 1
+        # nothing there: resume at the nearest reach ahead
+        idle = np.flatnonzero(ahead & ~np.isin(grp, grp[pick]))
+        if len(idle):
+            first = np.full(n_grp, np.iinfo(np.int64).max)
+            np.minimum.at(first, grp[idle], reach[idle])
+            gi = np.unique(grp[idle])
+            covered[gi] = first[gi]
+        live[:] = False
+        live[grp[ahead]] = True
+    out = seg.select(key).with_columns(pl.Series("__g", grp)).unique("__g", keep="first").sort("__g")
+    return out.select(key).with_columns(pl.Series("nu", count))
+
+
+def _union_s(seg: pl.DataFrame) -> pl.DataFrame:
+    """TT_j: seconds of each (run, truth_id) covered by the union of its segments."""
+    key = ["run", "truth_id"]
+    prev = pl.col("end").cum_max().shift(1).over(key, order_by="start")
+    lo = pl.max_horizontal("start", prev.fill_null(pl.col("start")))
+    piece = pl.max_horizontal((pl.col("end") - lo).dt.total_microseconds(), pl.lit(0))
+    return seg.group_by(key).agg((piece / 1e6).sum().alias("tt_s"))
+
+
+def siap_continuity(tracks: pl.DataFrame, truth: pl.DataFrame,
+                    cfg: MultiTargetConfig = MultiTargetConfig()) -> tuple[float, float]:
+    """(R in track number changes per second, LS): the SIAP continuity of ``tracks`` against
+    ``truth`` (the frames of :func:`multitarget_by_epoch`; module docstring)."""
+    tr, ref = _prepared(tracks, truth)
+    key = ["run", "truth_id"]
+    ref = ref.with_columns(pl.col("truth_id").cast(pl.Int64))
+    life = ref.group_by(key).agg(((pl.col("epoch").max() - pl.col("epoch").min()).dt.total_microseconds() / 1e6)
+                                 .alias("t_s"))
+    seg = _segments(_associations(tr, ref, cfg))
+    total = float(life["t_s"].sum())
+    if seg.height == 0:
+        return 0.0, 0.0
+    # a track's segments with one truth are one association in Stone Soup: TL_j is the longest
+    # total time one track is associated with the truth
+    per_track = seg.group_by(*key, "track_id").agg(
+        ((pl.col("end") - pl.col("start")).dt.total_microseconds() / 1e6).sum().alias("s"))
+    longest = float(per_track.group_by(key).agg(pl.col("s").max())["s"].sum())
+    tt = float(_union_s(seg)["tt_s"].sum())
+    changes = float((_tracks_needed(seg, ref)["nu"] - 1).sum())
+    return (changes / tt if tt else 0.0), (longest / total if total else 0.0)
+
+
+def multitarget_metrics(tracks: pl.DataFrame, truth: pl.DataFrame, method: str,
+                        cfg: MultiTargetConfig = MultiTargetConfig()) -> pl.DataFrame:
+    """The :data:`METRICS` rows of one picture (metrics schema, stage ``evaluation``, segment
+    ``all``): OSPA, GOSPA and its parts as means over the picture's (run, epoch), the SIAP
+    measures pooled over them as Stone Soup pools them (module docstring)."""
+    ep = multitarget_by_epoch(tracks, truth, cfg)
+    s = ep.select(pl.exclude("run", "epoch").sum())
+    mean = ep.select(pl.col("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false").mean())
+    j, jt, n, na = (float(s[c].item()) for c in ("n_truths", "siap_truths_assoc", "n_tracks", "siap_tracks_assoc"))
+    rate, longest = siap_continuity(tracks, truth, cfg)
+    values = [*(float(mean[c].item()) for c in mean.columns),
+              jt / j if j else 0.0, na / jt if jt else 1.0, (n - na) / n if n else 0.0,
+              float(s["siap_error_sum_m"].item()) / na if na else 0.0, 3600.0 * rate, longest, float(ep.height)]
+    return pl.DataFrame({"stage": "evaluation", "method": method, "metric": list(METRICS), "segment": "all",
+                         "value": values, "n_runs": ep["run"].n_unique()}
+                        ).select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
