@@ -14,7 +14,9 @@ from types import ModuleType
 from typing import Any
 
 #: category -> edition name in asterix.generated (decode and encode)
-EDITIONS = {21: "Cat_021_2_7", 34: "Cat_034_1_29", 48: "Cat_048_1_32", 62: "Cat_062_1_21"}
+EDITIONS = {1: "Cat_001_1_4", 2: "Cat_002_1_2", 4: "Cat_004_1_13", 20: "Cat_020_1_11", 21: "Cat_021_2_7",
+            34: "Cat_034_1_29", 48: "Cat_048_1_32", 62: "Cat_062_1_21"}
+SUPPORTED = ", ".join(f"CAT{c:03d}" for c in EDITIONS)
 NM = 1852.0
 
 
@@ -37,14 +39,39 @@ def parse_block(block: bytes) -> list[Any] | str:
     base, _ = lib()
     cat = block[0]
     if cat not in EDITIONS:
-        return f"category {cat} not supported (CAT021, CAT034, CAT048, CAT062 are)"
+        return f"category {cat} not supported ({SUPPORTED} are)"
     try:
-        recs = spec(cat).cv_uap.parse(base.Bits.from_bytes(block[3:]))
+        bits = base.Bits.from_bytes(block[3:])
+        recs = parse_selected(cat, bits) if cat == 1 else spec(cat).cv_uap.parse(bits)
     except RecursionError:   # pragma: no cover - one block is small; kept as a guard
         return "record structure too deep to parse"
     if isinstance(recs, ValueError):
         return f"CAT{cat:03d} record: {recs}"
     return recs
+
+
+def parse_selected(cat: int, bits: Any) -> list[Any] | ValueError:
+    """Records of a two-UAP category (CAT001: plot / track by I001/020 TYP), which libasterix
+    parses only with a given UAP: each record is parsed with each class and kept with the one
+    its own selector names (none: the block is refused)."""
+    base, _ = lib()
+    uap = spec(cat).cv_uap
+    (items, table) = uap.cv_selector
+    out = []
+    while len(bits):
+        for name, record in uap.cv_uaps.items():
+            res = record.parse(base.ParsingMode.StrictParsing, bits)
+            if isinstance(res, ValueError):
+                continue
+            rec, rest = res
+            sel = rec.get_item(items[0])
+            if sel is not None and table.get(sel.variation.get_item(items[1]).as_uint()) == name:
+                out.append(rec)
+                bits = rest
+                break
+        else:
+            return ValueError("no record class (plot or track) parses this record with its own selector")
+    return out
 
 
 # --------------------------------------------------------------------------- field access

@@ -10,7 +10,8 @@ from pathlib import Path
 import polars as pl
 
 from tertiary.core import geo
-from tertiary.io.asterix import importer
+from tertiary.contract import TABLES
+from tertiary.io.asterix import importer, plots
 from tertiary.io.asterix.sites import read_sites, write_template
 from tertiary.core.errors import DataError, OptionError
 from tertiary.simulate.config import ScenarioConfig, scenario_toml
@@ -34,6 +35,8 @@ class ImportResult:
     counts: dict[str, int] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     origin: tuple[float, float, float] | None = None
+    #: CAT004 STCA episodes (``alerts`` schema, picture ``external:SAC/SIC``, unscored)
+    alerts: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
 def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = None, date: str | None = None,
@@ -55,22 +58,27 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     day0 = importer.parse_date(date)
     dec = importer.decode_files(paths)
     rejects = list(dec.rejects)
-    if not (dec.cat048.height or dec.cat021.height or dec.cat062.height):
+    main = (dec.cat048, dec.cat021, dec.cat062, dec.cat001, dec.cat020, dec.cat004)
+    if not any(c.height for c in main):
         first = "; ".join(dict.fromkeys(str(r["reason"]) for r in rejects[:50]))[:300] or "no data block"
-        raise DataError(f"no CAT048, CAT021 or CAT062 record decoded from {', '.join(map(str, paths))} "
-                        f"({len(rejects)} problem(s): {first})")
-    undated = [c for c in (dec.cat048, dec.cat034, dec.cat021, dec.cat062)
-               if c.height and c["capture_s"].is_nan().any()]
+        raise DataError(f"no CAT048, CAT001, CAT020, CAT021, CAT062 or CAT004 record decoded from "
+                        f"{', '.join(map(str, paths))} ({len(rejects)} problem(s): {first})")
+    undated = [c for c in (*main, dec.cat034, dec.cat002) if c.height and c["capture_s"].is_nan().any()]
     if day0 is None and undated:
         raise OptionError("the recording has no capture time stamps (raw data blocks carry only the time of day); "
                           "give the date of the recording", option="--date")
-    codes = dec.cat048.filter(pl.col("sac") >= 0).select("sac", "sic").unique().sort("sac", "sic")
+    codes = pl.concat([c.filter(pl.col("sac") >= 0).select("sac", "sic") for c in (dec.cat048, dec.cat001, dec.cat020)
+                       if c.height] or [dec.cat048.select("sac", "sic")]).unique().sort("sac", "sic")
     table = read_sites(sites) if sites is not None else None
     if not (skip_unknown and table is not None):
         _check_sites(codes, table, sites, template, dec.cat034, day0)
     reports, rej, latency, counts = importer.build_reports(dec.cat048, table, day0, stale_s)
     rejects += rej
-    messages, timing = importer.antenna_timing(dec.cat034, day0)
+    reports, more = _other_reports(reports, dec, table, day0, stale_s, rejects)
+    counts |= more
+    service = pl.concat([dec.cat034, dec.cat002.drop("seq")], how="vertical_relaxed") if dec.cat002.height \
+        else dec.cat034
+    messages, timing = importer.antenna_timing(service, day0)
     notes: list[str] = []
     if table is not None:
         radars, notes = importer.radars_table(table, timing, codes)
@@ -91,12 +99,42 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     if dec.cat062.height and system is not None:
         tracks, rej = importer.external_tracks(dec.cat062, system, day0)
         rejects += rej
+    alerts = pl.DataFrame()
+    if dec.cat004.height:
+        alerts, rej, more = plots.alerts_table(dec.cat004, day0)
+        rejects += rej
+        counts |= more
     counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat034_distinct": messages.height,
                             "cat021_records": dec.cat021.height, "cat062_records": dec.cat062.height,
                             "radars": codes.height, "reports": reports.height, "rejects": len(rejects)}
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,
                         latency.join(radars.select("sac", "sic", "radar_id"), on=["sac", "sic"], how="left")
-                        if radars.height else latency, pl.DataFrame(), counts, notes, origin)
+                        if radars.height else latency, pl.DataFrame(), counts, notes, origin, alerts)
+
+
+def _other_reports(reports: pl.DataFrame, dec: importer.Decoded, sites: pl.DataFrame | None, day0: float | None,
+                   stale_s: float, rejects: list[dict[str, object]]) -> tuple[pl.DataFrame, dict[str, int]]:
+    """CAT048 reports with the CAT001 and CAT020 reports appended (report ids renumbered)."""
+    parts, counts = [reports], {}
+    if dec.cat001.height:
+        rep, rej, c = plots.cat001_reports(dec.cat001, dec.cat002, sites, day0, stale_s)
+        parts.append(rep), rejects.extend(rej), counts.update(c)
+    if dec.cat020.height:
+        rep, rej, c = plots.cat020_reports(dec.cat020, sites, day0, stale_s)
+        parts.append(rep), rejects.extend(rej), counts.update(c)
+    if len(parts) == 1:
+        return reports, counts
+    out = pl.concat([p for p in parts if p.width], how="diagonal_relaxed")
+    return out.with_columns(pl.int_range(pl.len(), dtype=pl.UInt64).alias("report_id")), counts
+
+
+def external_alerts(paths: Sequence[str | Path], date: str | None = None, gap_s: float = 30.0) -> pl.DataFrame:
+    """The CAT004 STCA alerts of recordings as ``alerts`` rows (picture ``external:SAC/SIC``,
+    ``classification`` "unscored"): the frame to score against the truth."""
+    dec = importer.decode_files(paths)
+    if dec.cat004.height == 0:
+        return pl.DataFrame(schema=dict(TABLES["alerts"].required) | plots.ALERT_EXTRA)
+    return plots.alerts_table(dec.cat004, importer.parse_date(date), gap_s)[0]
 
 
 def label_reports(reports: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
@@ -155,9 +193,11 @@ def write_import(result: ImportResult, out: str | Path, name: str) -> Path:
         tables["external_tracks"] = result.external_tracks
     if result.external_metrics.height:
         tables["external_metrics"] = result.external_metrics
+    if result.alerts.height:
+        tables["alerts"] = result.alerts
     for key, frame in tables.items():
         write_parquet_atomic(frame, d / f"{key}.parquet")
-    for key in {"truth", "external_tracks", "external_metrics"} - set(tables):   # of an earlier import
+    for key in {"truth", "external_tracks", "external_metrics", "alerts"} - set(tables):   # of an earlier import
         (d / f"{key}.parquet").unlink(missing_ok=True)
     if result.origin is not None:
         write_text_atomic(d / "scenario.toml", scenario_toml(ScenarioConfig(name=name, kind="terminal-area",

@@ -269,3 +269,138 @@ def uint_at(buf: NDArray[np.uint8], offs: NDArray[np.int64], start: int, width: 
 def signed(v: NDArray[np.int64], bits: int) -> NDArray[np.int64]:
     """Two's complement of ``bits``-bit fields (absent -1 values stay meaningless: mask first)."""
     return np.where(v >= 1 << (bits - 1), v - (1 << bits), v)
+
+
+# --------------------------------------------------------------------------- two record classes (CAT001)
+
+#: error of a two-UAP record whose selector item is absent
+NO_SELECTOR = 8
+ERRORS[NO_SELECTOR] = "no selector item: plot or track record unknown"
+
+
+@numba.njit(cache=True)
+def _select(buf, pos, end, fmax, lead_bytes):  # noqa: ANN001, ANN202 - numba kernel
+    """The selector bit (first bit of FRN 2, after a fixed FRN 1 of ``lead_bytes``), or -code."""
+    nf = _fspec(buf, pos, end, fmax)
+    if nf < 0:
+        return nf
+    if (buf[pos] & 0x40) == 0:
+        return -NO_SELECTOR
+    p = pos + nf + (lead_bytes if buf[pos] & 0x80 else 0)
+    if p >= end:
+        return -3
+    return np.int64(buf[p] >> 7)
+
+
+@numba.njit(cache=True)
+def _walk_sel(buf, starts, ends, fmax, lead, a, b, fill, out, uap, block, rec_start, rec_end, counts):  # noqa
+    """:func:`_walk` for records whose class is chosen per record by :func:`_select` (0: ``a``, 1: ``b``)."""
+    scratch = np.empty(out.shape[1], np.int64)
+    r = 0
+    for k in range(starts.shape[0]):
+        if fill and counts[k] <= 0:
+            continue
+        pos, end, n = starts[k], ends[k], 0
+        while pos < end:
+            row = out[r] if fill else scratch
+            sel = _select(buf, pos, end, fmax, lead)
+            if sel < 0:
+                q = sel
+            elif sel == 0:
+                q = _record(buf, pos, end, a[0][0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], row, fill)
+            else:
+                q = _record(buf, pos, end, b[0][0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], b[8], row, fill)
+            if q < 0:
+                n = q
+                rec_start[k] = pos
+                break
+            if fill:
+                uap[r] = sel
+                block[r] = k
+                rec_start[r] = pos
+                rec_end[r] = q
+                r += 1
+            n += 1
+            pos = q
+        if not fill:
+            counts[k] = n
+
+
+def _arrays(prog: Program, width: int) -> tuple[NDArray[np.int64], ...]:
+    """A program's arrays for the kernel; the slot arrays padded to ``width`` with spare slots."""
+    pad = width - len(prog.kind)
+    k = np.concatenate([prog.kind, np.full(pad, SPARE, np.int64)])
+    z = np.zeros(pad, np.int64)
+    return (np.array([prog.fspec_max], np.int64), k, np.concatenate([prog.p1, z]), np.concatenate([prog.p2, z]),
+            np.concatenate([prog.sub_start, z]), prog.sub_kind, prog.sub_p1, prog.sub_p2, prog.groups)
+
+
+def walk_select(blocks: list[bytes], a: Program, b: Program, lead_bytes: int
+                ) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
+                           NDArray[np.int64], NDArray[np.int64], list[tuple[int, int, str]]]:
+    """:func:`walk` for a category with two record classes chosen by the first bit of the item
+    at FRN 2 (CAT001 I001/020 TYP: 0 plot, 1 track); FRN 1 is fixed, ``lead_bytes`` long.
+    Returns (buffer, offsets, record class 0/1, block, record start, record end, refused)."""
+    body = [x[3:] for x in blocks]
+    lens = np.fromiter((len(x) for x in body), np.int64, len(body))
+    ends = np.cumsum(lens)
+    starts = ends - lens
+    buf = np.frombuffer(b"".join(body), np.uint8) if body else np.zeros(0, np.uint8)
+    width = max(len(a.kind), len(b.kind))
+    pa, pb = _arrays(a, width), _arrays(b, width)
+    # the selector's FSPEC bound is the larger one; each class then checks its own
+    fmax = max(a.fspec_max, b.fspec_max)
+    counts = np.zeros(len(blocks), np.int64)
+    fail_at = np.zeros(len(blocks), np.int64)
+    dummy = np.zeros((1, width), np.int64)
+    _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, False, dummy, counts, counts, fail_at, counts, counts)
+    n = int(counts[counts > 0].sum())
+    out = np.empty((n, width), np.int64)
+    uap, block = np.empty(n, np.int64), np.empty(n, np.int64)
+    rs, re = np.empty(n, np.int64), np.empty(n, np.int64)
+    _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, True, out, uap, block, rs, re, counts)
+    bad = [(int(k), int(fail_at[k] - starts[k]) + 3, f"CAT{blocks[k][0]:03d} record: {ERRORS[-int(counts[k])]}")
+           for k in np.flatnonzero(counts < 0)]
+    return buf, out, uap, block, rs, re, bad
+
+
+@numba.njit(cache=True)
+def record_hash(buf, rs, re):  # noqa: ANN001, ANN201 - numba kernel
+    """FNV-1a 64 of each record's bytes (the de-duplication key of redundant lines)."""
+    out = np.empty(rs.shape[0], np.int64)
+    for i in range(rs.shape[0]):
+        h = np.uint64(14695981039346656037)
+        for j in range(rs[i], re[i]):
+            h = (h ^ np.uint64(buf[j])) * np.uint64(1099511628211)
+        out[i] = np.int64(h)
+    return out
+
+
+def sub_offsets(buf: NDArray[np.uint8], offs: NDArray[np.int64], sizes: tuple[int, ...]) -> list[NDArray[np.int64]]:
+    """Offsets of the subfields of a compound item at ``offs`` (-1 where item or subfield is
+    absent). ``sizes``: octets per subfield in FSPEC order, 0 for an extended subfield of
+    one-octet groups (its length read from the FX bits). The item was validated by the walker."""
+    ok = offs >= 0
+    pos = np.where(ok, offs, 0)
+    nf = np.zeros(len(offs), np.int64)               # primary subfield octets (FX chained)
+    more = ok.copy()
+    while more.any():
+        octet = buf[pos + nf] if len(buf) else np.zeros(len(offs), np.uint8)
+        nf = nf + more
+        more = more & ((octet & 1) == 1)
+    p = pos + nf
+    out = []
+    for j, size in enumerate(sizes):
+        octet = buf[np.where(ok & (nf > j // 7), pos + j // 7, 0)] if len(buf) else np.zeros(len(offs), np.uint8)
+        present = ok & (nf > j // 7) & ((octet & (0x80 >> (j % 7))) != 0)
+        out.append(np.where(present, p, -1))
+        if size:
+            p = p + np.where(present, size, 0)
+        else:
+            length = np.zeros(len(offs), np.int64)
+            go = present.copy()
+            while go.any():
+                length = length + go
+                go = go & ((buf[np.where(go, p + length - 1, 0)] & 1) == 1)
+            p = p + length
+    return out

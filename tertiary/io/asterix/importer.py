@@ -31,7 +31,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
-from tertiary.io.asterix import capture, codec, fast048, fastwalk
+from tertiary.io.asterix import capture, codec, fast048, fastcats, fastwalk
 from tertiary.core.units import FT
 from tertiary.core.errors import DataError, OptionError
 from tertiary.contract import TABLES
@@ -53,6 +53,11 @@ class Decoded:
     cat062: pl.DataFrame
     rejects: list[dict[str, object]] = field(default_factory=list)
     counts: dict[str, int] = field(default_factory=dict)
+    #: CAT001 plots/tracks, CAT002 service messages, CAT004 safety-net messages, CAT020 MLAT reports
+    cat001: pl.DataFrame = field(default_factory=pl.DataFrame)
+    cat002: pl.DataFrame = field(default_factory=pl.DataFrame)
+    cat004: pl.DataFrame = field(default_factory=pl.DataFrame)
+    cat020: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
 # --------------------------------------------------------------------------- time
@@ -102,12 +107,13 @@ def _records_libasterix(blocks: list[bytes], where: list[dict[str, object]], rej
 def decode_files(paths: Sequence[str | Path]) -> Decoded:
     """Decode every data block of ``paths`` (pcap, pcapng or raw blocks)."""
     rejects: list[dict[str, object]] = []
-    parts: dict[int, list[tuple[bytes, dict[str, object], float, str]]] = {21: [], 34: [], 48: [], 62: []}
+    parts: dict[int, list[tuple[bytes, dict[str, object], float, str, int]]] = {c: [] for c in codec.EDITIONS}
     counts = {"datagrams": 0, "blocks": 0}
     for path in paths:
         grams = capture.read_recording(path)
         blocks = capture.split_blocks(grams)
         counts["datagrams"] += len(grams.payloads)
+        seq0 = counts["blocks"]          # arrival order of blocks across files (CAT001 time reference)
         counts["blocks"] += len(blocks.data)
         for g, off, reason in blocks.problems:
             _reject(rejects, reason, file=str(path), datagram=g, offset=off)
@@ -115,13 +121,14 @@ def decode_files(paths: Sequence[str | Path]) -> Decoded:
             g = int(blocks.datagram[k])
             where = {"file": str(path), "datagram": g, "offset": int(blocks.offset[k])}
             if int(cat) not in parts:
-                _reject(rejects, f"category {int(cat)} not supported (CAT021, CAT034, CAT048, CAT062 are)",
+                _reject(rejects, f"category {int(cat)} not supported ({codec.SUPPORTED} are)",
                         **where, hex=data[:32].hex())
                 continue
-            parts[int(cat)].append((data, where, grams.capture_s[g], grams.line[g]))
+            parts[int(cat)].append((data, where, grams.capture_s[g], grams.line[g], seq0 + k))
     counts |= {f"cat{c:03d}_blocks": len(v) for c, v in parts.items()}
+    more = {f"cat{c:03d}": getattr(fastcats, f"decode_{c:03d}")(parts[c], rejects) for c in (1, 2, 4, 20)}
     return Decoded(_decode_048(parts[48], rejects), _decode_034(parts[34], rejects), _decode_021(parts[21], rejects),
-                   _decode_062(parts[62], rejects), rejects, counts)
+                   _decode_062(parts[62], rejects), rejects, counts, **more)
 
 
 def _decode_048(items: list[tuple[bytes, dict[str, object], float, str]], rejects: list[dict[str, object]]
@@ -453,7 +460,7 @@ def radars_table(sites: pl.DataFrame, timing: pl.DataFrame, used: pl.DataFrame) 
         codes = ", ".join(f"{a}/{b}" for a, b in missing.select("sac", "sic").iter_rows())
         raise DataError(f"no scan period for radar(s) {codes}: the recording has no CAT034 antenna messages for "
                         "them; give scan_period_s in the sites file")
-    cols = list(TABLES["radars"].required)
+    cols = list(TABLES["radars"].required) + (["kind"] if "kind" in frame.columns else [])
     return frame.select(*cols, "sac", "sic").cast({"radar_id": pl.UInt32}), notes
 
 

@@ -16,6 +16,8 @@ come from this file::
     sigma_elevation_deg = 1.0    # optional [default 1.0]: SSR measures no elevation
     max_range_m = 463000.0
     scan_period_s = 4.0          # optional when the recording holds CAT034 antenna messages
+    kind = "radar"               # optional [default "radar"]; "mlat": an MLAT / WAM system (CAT020),
+                                 # its site the system reference point, scan_period_s its update period
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ from tertiary.store.run_store import write_text_atomic
 
 REQUIRED = ("lat_deg", "lon_deg", "alt_m", "sigma_range_m", "sigma_azimuth_deg", "max_range_m")
 OPTIONAL = {"sigma_elevation_deg": 1.0, "scan_period_s": math.nan}
-KEYS = {"sac", "sic", "name", "radar_id", *REQUIRED, *OPTIONAL}
+KINDS = ("radar", "mlat")
+KEYS = {"sac", "sic", "name", "radar_id", "kind", *REQUIRED, *OPTIONAL}
 
 
 def radar_id(sac: int, sic: int) -> int:
@@ -79,10 +82,14 @@ def read_sites(path: str | Path) -> pl.DataFrame:
         rid = e.get("radar_id", radar_id(sac, sic))
         if isinstance(rid, bool) or not isinstance(rid, int) or not 0 <= rid < 2**32:
             raise DataError(f"{where}: radar_id must be an integer in [0, 2^32), got {rid!r}")
-        row = {"sac": sac, "sic": sic, "radar_id": rid, "name": str(e.get("name", f"{sac}-{sic}"))}
+        kind = e.get("kind", "radar")
+        if kind not in KINDS:
+            raise DataError(f"{where}: kind must be one of {', '.join(KINDS)}, got {kind!r}")
+        row = {"sac": sac, "sic": sic, "radar_id": rid, "name": str(e.get("name", f"{sac}-{sic}")), "kind": kind}
         row |= {k: _number(e, k, where) for k in (*REQUIRED, *OPTIONAL)}
         rows.append(row)
     frame = pl.DataFrame(rows, schema={"sac": pl.Int64, "sic": pl.Int64, "radar_id": pl.UInt32, "name": pl.String,
+                                       "kind": pl.String,
                                        **dict.fromkeys((*REQUIRED, *OPTIONAL), pl.Float64)})
     dup = frame.filter(pl.col("radar_id").is_duplicated())
     if dup.height:
@@ -97,6 +104,8 @@ def sites_toml(sites: pl.DataFrame) -> str:
         name = json.dumps(str(row["name"]), ensure_ascii=False)      # a TOML basic string, escaped
         lines += ["", "[[radar]]", f"sac = {row['sac']}", f"sic = {row['sic']}", f"name = {name}",
                   f"radar_id = {row['radar_id']}"]
+        if row.get("kind", "radar") != "radar":
+            lines.append(f"kind = {json.dumps(str(row['kind']))}")
         for k in (*REQUIRED, *OPTIONAL):
             v = row.get(k, math.nan)
             v = math.nan if v is None else float(v)
