@@ -1,0 +1,205 @@
+"""OSPA, GOSPA and SIAP (tertiary.evaluation.multitarget): hand-computed small cases, the
+evaluation stage's rows, and the same values as Stone Soup's own metric generators."""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+import polars as pl
+import pytest
+
+from tertiary.contract import TIME
+from tertiary.evaluation.evaluate import EvaluationConfig, evaluate_pictures
+from tertiary.evaluation.matching import reference_at_epochs
+from tertiary.evaluation.multitarget import METRICS, MultiTargetConfig, multitarget_by_epoch, multitarget_metrics
+
+T0 = datetime(2024, 5, 1, 12, tzinfo=timezone.utc)
+
+
+def _frame(rows: list[tuple], cols: tuple[str, ...]) -> pl.DataFrame:
+    f = pl.DataFrame(rows, schema=["k", "id", "x", "y", "z"], orient="row")
+    return f.select(pl.lit(0, pl.UInt32).alias("run"),
+                    (pl.lit(T0) + pl.duration(seconds=pl.col("k"))).cast(TIME).alias("epoch"),
+                    pl.col("id").alias(cols[0]), *[pl.col(a).cast(pl.Float64).alias(b) for a, b in zip("xyz", cols[1:])])
+
+
+def tracks(*rows: tuple) -> pl.DataFrame:
+    """(epoch s, track_id, x, y, z) rows."""
+    return _frame(list(rows), ("track_id", "x_m", "y_m", "z_m"))
+
+
+def truth(*rows: tuple) -> pl.DataFrame:
+    """(epoch s, truth_id, x, y, z) rows: the truth at the picture's epochs."""
+    return _frame(list(rows), ("truth_id", "true_x_m", "true_y_m", "true_z_m"))
+
+
+def one(tr: pl.DataFrame, ref: pl.DataFrame, c: float, p: float) -> dict:
+    return multitarget_by_epoch(tr, ref, MultiTargetConfig(c_m=c, p=p)).row(0, named=True)
+
+
+# --------------------------------------------------------------------------- hand-computed
+
+
+def test_two_truths_one_track_gospa_alpha_2():
+    # the track 50 m from truth 1; truth 2 missed: OSPA pays c for the missing one out of
+    # n = 2, GOSPA (alpha = 2) pays c^p / 2 for it, not c^p
+    tr, ref = tracks((0, 1, 30, 40, 0)), truth((0, 1, 0, 0, 0), (0, 2, 1000, 0, 0))
+    e1, e2 = one(tr, ref, 100.0, 1.0), one(tr, ref, 100.0, 2.0)
+    assert e1["ospa_m"] == pytest.approx((50 + 100) / 2, rel=1e-12)
+    assert e2["ospa_m"] == pytest.approx(math.sqrt((50**2 + 100**2) / 2), rel=1e-12)
+    assert (e2["gospa_localisation"], e2["gospa_missed"], e2["gospa_false"]) == pytest.approx((2500.0, 5000.0, 0.0))
+    assert e2["gospa_m"] == pytest.approx(math.sqrt(7500.0), rel=1e-12)
+    assert e1["gospa_m"] == pytest.approx(50 + 50, rel=1e-12)
+
+
+def test_cut_off_saturates():
+    # 500 m apart with c = 100: no localisation, one missed and one false; OSPA is c at any p
+    tr, ref = tracks((0, 1, 500, 0, 0)), truth((0, 1, 0, 0, 0))
+    for p in (1.0, 2.0, 3.0):
+        e = one(tr, ref, 100.0, p)
+        assert e["ospa_m"] == pytest.approx(100.0, rel=1e-12)
+        assert e["gospa_localisation"] == 0.0
+        assert e["gospa_missed"] == e["gospa_false"] == pytest.approx(100.0**p / 2)
+        assert e["gospa_m"] == pytest.approx(100.0, rel=1e-12)
+    # exactly at the cut-off is no localisation either (Stone Soup: d < c)
+    assert one(tracks((0, 1, 100, 0, 0)), ref, 100.0, 2.0)["gospa_localisation"] == 0.0
+
+
+def test_order_p_changes_the_optimal_assignment():
+    # distances track→truth: [[0, 300], [300, 500]]. p = 1: the diagonal (0 + 500 < 300 + 300);
+    # p = 2: the cross (300² + 300² < 0 + 500²). The assignment minimises Σ d^p, not Σ d.
+    x, y = -700.0 / 6.0, math.sqrt(90000.0 - (700.0 / 6.0) ** 2)
+    tr = tracks((0, 1, 0, 0, 0), (0, 2, x, y, 0))
+    ref = truth((0, 1, 0, 0, 0), (0, 2, 300, 0, 0))
+    assert math.hypot(x - 300, y) == pytest.approx(500.0)
+    assert one(tr, ref, 1000.0, 1.0)["ospa_m"] == pytest.approx(250.0, rel=1e-12)
+    assert one(tr, ref, 1000.0, 2.0)["ospa_m"] == pytest.approx(300.0, rel=1e-12)
+    assert one(tr, ref, 1000.0, 2.0)["gospa_localisation"] == pytest.approx(2 * 300.0**2, rel=1e-12)
+
+
+def test_siap_counts_and_continuity():
+    # truth 1: track 1 at epochs 0-4, then track 2 at 5-9 (one track number change, 8 s
+    # tracked, longest 4 s of a 9 s life); a duplicate track 3 on truth 1 at epoch 0; a false
+    # track 4 at epoch 0; truth 2 alive at epochs 0-1, never tracked
+    rows = [(k, 1 if k < 5 else 2, k * 100.0 + 10.0, 0.0, 0.0) for k in range(10)]
+    tr = tracks(*rows, (0, 3, -20.0, 0.0, 0.0), (0, 4, 50_000.0, 0.0, 0.0))
+    ref = truth(*[(k, 1, k * 100.0, 0.0, 0.0) for k in range(10)], (0, 2, 0.0, 9_000.0, 0.0),
+                (1, 2, 0.0, 9_000.0, 0.0))
+    m = dict(multitarget_metrics(tr, ref, "p", MultiTargetConfig(siap_threshold_m=500.0)).select("metric", "value")
+             .iter_rows())
+    assert m["siap_completeness"] == pytest.approx(10 / 12)             # ΣJT / ΣJ
+    assert m["siap_ambiguity"] == pytest.approx(11 / 10)                # ΣNA / ΣJT: the duplicate
+    assert m["siap_spuriousness"] == pytest.approx(1 / 12)              # Σ(N − NA) / ΣN: the false track
+    assert m["siap_position_accuracy_m"] == pytest.approx((10 * 10 + 20) / 11)
+    assert m["siap_track_changes_per_hour"] == pytest.approx(3600 * 1 / 8)   # (NU − 1) / TT
+    assert m["siap_longest_segment_frac"] == pytest.approx(4 / (9 + 1))      # ΣTL / ΣT (truth 2 lives 1 s)
+    assert m["multitarget_epochs"] == 10
+
+
+def test_epoch_means_and_rows():
+    tr = tracks((0, 1, 0, 0, 0), (1, 1, 10, 0, 0))
+    ref = truth((0, 1, 0, 0, 0), (1, 1, 0, 0, 0))
+    out = multitarget_metrics(tr, ref, "pic", MultiTargetConfig(c_m=100.0, p=2.0))
+    assert out["metric"].to_list() == list(METRICS)
+    assert set(out["stage"]) == {"evaluation"} and set(out["segment"]) == {"all"} and set(out["method"]) == {"pic"}
+    m = dict(out.select("metric", "value").iter_rows())
+    assert m["ospa_m"] == pytest.approx(5.0) and m["gospa_localisation"] == pytest.approx(50.0)
+
+
+def test_the_evaluation_stage_writes_them():
+    epochs = [T0 + timedelta(seconds=4 * k) for k in range(5)]
+    true = pl.DataFrame({"truth_id": [1] * 5, "time": epochs, "x_m": [100.0 * k for k in range(5)], "y_m": 0.0,
+                         "z_m": 3000.0, "vx_mps": 25.0, "vy_mps": 0.0, "vz_mps": 0.0}).with_columns(
+        pl.col("time").cast(TIME))
+    pic = true.rename({"time": "epoch", "truth_id": "track_id"}).with_columns(
+        pl.col("x_m") + 30.0, pl.lit(0, pl.UInt32).alias("run"), pl.lit("mine").alias("method"),
+        pl.col("track_id").cast(pl.UInt64))
+    cfg = EvaluationConfig(multitarget=MultiTargetConfig(c_m=1000.0, p=1.0))
+    ev = evaluate_pictures(pic, true, cfg=cfg, keep_matched=False)
+    got = ev.metrics.filter(pl.col("metric").is_in(list(METRICS)) & (pl.col("method") == "mine"))
+    assert got.height == len(METRICS)
+    assert dict(got.select("metric", "value").iter_rows())["ospa_m"] == pytest.approx(30.0)
+
+
+# --------------------------------------------------------------------------- Stone Soup
+
+
+def _scene(seed: int = 1) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """A truth table (6 aircraft) and a picture: noisy tracks, some aircraft handed from one
+    track to another, a false track at random."""
+    rng = np.random.default_rng(seed)
+    truth_rows, track_rows, tid = [], [], 100
+    for a in range(6):
+        p0, v = rng.uniform(-5000, 5000, 3), rng.uniform(-150, 150, 3)
+        v[2] = rng.uniform(-5, 5)
+        ks = range(int(rng.integers(0, 10)), int(rng.integers(30, 41)))
+        truth_rows += [(a, T0 + timedelta(seconds=4 * k), *(p0 + v * 4 * k), *v) for k in ks]
+        ks = list(ks)
+        for piece in ([ks[: len(ks) // 2], ks[len(ks) // 2:]] if a % 2 else [ks]):
+            tid += 1
+            track_rows += [(tid, T0 + timedelta(seconds=4 * k), *(p0 + v * 4 * k + rng.normal(0, [300, 300, 50])), *v)
+                           for k in piece]
+    track_rows += [(999, T0 + timedelta(seconds=4 * k), *rng.uniform(-8000, 8000, 2), 1000.0, 0.0, 0.0, 0.0)
+                   for k in range(40) if rng.random() < 0.5]
+    state = ["x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"]
+    true = pl.DataFrame(truth_rows, schema=["truth_id", "time", *state], orient="row").with_columns(
+        pl.col("time").cast(TIME))
+    pic = pl.DataFrame(track_rows, schema=["track_id", "epoch", *state], orient="row").with_columns(
+        pl.col("epoch").cast(TIME), pl.lit(0, pl.UInt32).alias("run"), pl.lit("pic").alias("method"))
+    return pic, true
+
+
+def _ours(pic: pl.DataFrame, true: pl.DataFrame, cfg: MultiTargetConfig) -> tuple[pl.DataFrame, dict]:
+    at = reference_at_epochs(pic.select("run", "epoch"), true)
+    return (multitarget_by_epoch(pic, at, cfg),
+            dict(multitarget_metrics(pic, at, "pic", cfg).select("metric", "value").iter_rows()))
+
+
+def test_same_as_stone_soup():
+    pytest.importorskip("stonesoup")
+    from stonesoup.dataassociator.tracktotrack import TrackToTruth
+    from stonesoup.measures import Euclidean
+    from stonesoup.metricgenerator.manager import MultiManager
+    from stonesoup.metricgenerator.ospametric import GOSPAMetric, OSPAMetric
+    from stonesoup.metricgenerator.tracktotruthmetrics import SIAPMetrics
+
+    from tertiary.interop import POSITION_MAPPING, VELOCITY_MAPPING, to_stonesoup
+
+    pic, true = _scene()
+    tracks_ss, truths_ss = to_stonesoup(pic, true)
+    pos = Euclidean(mapping=POSITION_MAPPING)
+    close = dict(rtol=1e-9, atol=1e-9)
+    # Stone Soup's OSPA assigns by Σ min(d, c) whatever p: OSPA at p = 1 (where that is Σ d^p)
+    for c, p in ((800.0, 1.0), (800.0, 2.0), (3000.0, 2.0)):
+        gens = [GOSPAMetric(c=c, p=p, measure=pos)] + ([OSPAMetric(c=c, p=p, measure=pos)] if p == 1 else [])
+        manager = MultiManager(gens)
+        manager.add_data({"tracks": tracks_ss, "groundtruth_paths": truths_ss})
+        got = manager.generate_metrics()
+        ep, _ = _ours(pic, true, MultiTargetConfig(c_m=c, p=p))
+        gospa = got["gospa_generator"]["GOSPA Metrics"].value
+        assert [g.timestamp for g in gospa] == ep["epoch"].to_list()
+        for theirs, ours in (("distance", "gospa_m"), ("localisation", "gospa_localisation"),
+                             ("missed", "gospa_missed"), ("false", "gospa_false")):
+            np.testing.assert_allclose(ep[ours].to_numpy(), [g.value[theirs] for g in gospa], **close)
+        if p == 1:
+            ospa = got["ospa_generator"]["OSPA distances"].value
+            np.testing.assert_allclose(ep["ospa_m"].to_numpy(), [o.value for o in ospa], **close)
+    # SIAP with Stone Soup's track-to-truth association, one state to confirm and one to end
+    cfg = MultiTargetConfig(siap_threshold_m=900.0)
+    siap = SIAPMetrics(position_measure=pos, velocity_measure=Euclidean(mapping=VELOCITY_MAPPING))
+    manager = MultiManager([siap], associator=TrackToTruth(association_threshold=900.0, consec_pairs_confirm=1,
+                                                           consec_misses_end=1, measure=pos))
+    manager.add_data({"tracks": tracks_ss, "groundtruth_paths": truths_ss})
+    got = manager.generate_metrics()["siap_generator"]
+    _, ours = _ours(pic, true, cfg)
+    for theirs, mine, scale in (("SIAP Completeness", "siap_completeness", 1.0),
+                                ("SIAP Ambiguity", "siap_ambiguity", 1.0),
+                                ("SIAP Spuriousness", "siap_spuriousness", 1.0),
+                                ("SIAP Position Accuracy", "siap_position_accuracy_m", 1.0),
+                                ("SIAP Rate of Track Number Change", "siap_track_changes_per_hour", 3600.0),
+                                ("SIAP Longest Track Segment", "siap_longest_segment_frac", 1.0)):
+        np.testing.assert_allclose(ours[mine], scale * got[theirs].value, **close, err_msg=theirs)
+    # the scene exercises what is compared: misses, false tracks, hand-overs
+    assert 0 < ours["siap_spuriousness"] and ours["siap_completeness"] < 1 and ours["siap_track_changes_per_hour"] > 0
