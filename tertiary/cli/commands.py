@@ -13,7 +13,7 @@ from typing import Annotated, Any
 import typer
 from typer.core import TyperGroup
 
-from tertiary.cli import dataset, results, run, simulate
+from tertiary.cli import dataset, inspect, results, run, simulate
 from tertiary.cli.asterix import export_app, import_app
 from tertiary.cli.common import err_console, reset_output
 from tertiary.core.errors import TertiaryError
@@ -81,6 +81,8 @@ app.command("register")(dataset.register)
 app.command("evaluate")(run.evaluate)
 app.command("report")(results.report)
 app.command("sql")(results.sql)
+app.command("episodes")(inspect.episodes)
+app.command("compare")(inspect.compare)
 app.command("scenarios")(simulate.scenarios)
 app.add_typer(import_app, name="import")
 app.add_typer(export_app, name="export")
