@@ -1,28 +1,20 @@
--- Alert scores per picture: conflict alerts scored against truth (safety stage of the metrics
--- table) — true-conflict episodes, hits, misses, false alerts, mean warning time and alert flicker;
--- and, where the safety stage scores against real losses of separation, the losses (los_episodes),
--- those alerted and missed, genuine / nuisance alerts, alerts per hour and the median and
--- 5th-percentile warning times; how many alerts (false, nuisance) and missed losses the picture
--- causes (the truth picture does not raise / does alert them) and the valid alerts (null where the
--- metrics table has no such row).
--- Columns: method, episodes, hits, misses, false_alerts, mean_warning_s, flicker, flicker_per_hit,
--- los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts, alerts_per_hour,
--- warning_median_s, warning_p05_s, alerts_picture_induced, false_alerts_picture_induced,
--- nuisance_alerts_picture_induced, missed_los_picture_induced, valid_alerts, n_runs.
+-- Alert scores per picture: conflict alerts scored against the losses of separation in truth
+-- (safety stage of the metrics table) — the losses (los_episodes), those alerted and missed,
+-- genuine / nuisance / false alerts, alerts per hour and the median and 5th-percentile warning
+-- times; how many alerts (false, nuisance) and missed losses the picture causes (the truth picture
+-- does not raise / does alert them) and the valid alerts (followed by an avoiding manoeuvre).
+-- Columns: method, los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts,
+-- false_alerts, alerts_per_hour, warning_median_s, warning_p05_s, alerts_picture_induced,
+-- false_alerts_picture_induced, nuisance_alerts_picture_induced, missed_los_picture_induced,
+-- valid_alerts, n_runs.
 -- param: method = null   picture (fusion method) (null: all)
 SELECT method,
-       max(value) FILTER (WHERE metric = 'episodes')         AS episodes,
-       max(value) FILTER (WHERE metric = 'hits')             AS hits,
-       max(value) FILTER (WHERE metric = 'misses')           AS misses,
-       max(value) FILTER (WHERE metric = 'false_alerts')     AS false_alerts,
-       max(value) FILTER (WHERE metric = 'mean_warning_s')   AS mean_warning_s,
-       max(value) FILTER (WHERE metric = 'flicker')          AS flicker,
-       max(value) FILTER (WHERE metric = 'flicker_per_hit')  AS flicker_per_hit,
        max(value) FILTER (WHERE metric = 'los_episodes')     AS los_episodes,
        max(value) FILTER (WHERE metric = 'alerted_los')      AS alerted_los,
        max(value) FILTER (WHERE metric = 'missed_los')       AS missed_los,
        max(value) FILTER (WHERE metric = 'genuine_alerts')   AS genuine_alerts,
        max(value) FILTER (WHERE metric = 'nuisance_alerts')  AS nuisance_alerts,
+       max(value) FILTER (WHERE metric = 'false_alerts')     AS false_alerts,
        max(value) FILTER (WHERE metric = 'alerts_per_hour')  AS alerts_per_hour,
        max(value) FILTER (WHERE metric = 'warning_median_s') AS warning_median_s,
        max(value) FILTER (WHERE metric = 'warning_p05_s')    AS warning_p05_s,
@@ -34,8 +26,7 @@ SELECT method,
        max(n_runs)                                           AS n_runs
 FROM metrics
 WHERE stage = 'safety'
-  AND metric IN ('episodes', 'hits', 'misses', 'false_alerts', 'mean_warning_s', 'flicker', 'flicker_per_hit',
-                 'los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts',
+  AND metric IN ('los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts', 'false_alerts',
                  'alerts_per_hour', 'warning_median_s', 'warning_p05_s', 'alerts_picture_induced',
                  'false_alerts_picture_induced', 'nuisance_alerts_picture_induced', 'missed_los_picture_induced',
                  'valid_alerts')

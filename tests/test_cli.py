@@ -4,6 +4,7 @@ same rejects, runs that never overwrite, and the end-of-run summary."""
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import duckdb
 import polars as pl
@@ -137,6 +138,23 @@ def test_simulate_writes_a_dataset_and_refuses_to_overwrite_it(dataset):
     assert pl.read_parquet(dataset / "truth.parquet")["truth_id"].n_unique() == 12
     res = runner.invoke(app, ["simulate", "terminal-area", "--out", str(dataset), "--aircraft", "3"])
     assert res.exit_code == 2 and "--force" in res.output
+
+
+def test_simulate_summary_counts_what_it_wrote(tmp_path):
+    """The summary counts the radars written (an ADS-B scenario places them from the traffic) and
+    says how many designed pairs a short terminal area holds."""
+    truth = Path(__file__).resolve().parents[1] / "datasets" / "adsb_paris_2021-10-07.parquet"
+    res = runner.invoke(app, ["simulate", "adsb", "--truth", str(truth), "--out", str(tmp_path / "adsb")],
+                        terminal_width=300)
+    assert res.exit_code == 0, res.output
+    n = pl.read_parquet(tmp_path / "adsb" / "radars.parquet").height
+    assert n > 0 and f" {n} radars" in res.output, res.output
+    res = runner.invoke(app, ["simulate", "terminal-area", "--out", str(tmp_path / "ta"), "--aircraft", "30",
+                              "--duration", "600"], terminal_width=300)
+    assert res.exit_code == 0, res.output
+    assert "designed pairs: 10 losses of separation and 2 near misses per run" in res.output
+    roles = pl.read_parquet(tmp_path / "ta" / "truth.parquet").group_by("truth_id").agg(pl.col("role").first())
+    assert roles.filter(pl.col("role").str.starts_with("conflict-")).height == 20
 
 
 def _counts(output: str) -> dict[tuple[str, str], int]:

@@ -375,3 +375,21 @@ def test_stca_curves_section_draws_both_threshold_families(built):
     assert table.height == len({n.split(" — ")[0] for n in names})          # one row per picture
     # the covariance family's own point at confidence 0.95 is always on its curve
     assert table[:, 1].is_not_null().all() and table[:, 2].is_not_null().all()
+
+
+def test_named_reports_have_no_empty_column_on_the_main_job(run_dir):
+    """Every named SQL report on a main-job run fills each column it prints (a column no stage
+    fills is a dead column). The one data-dependent gap: no manoeuvre epoch, no manoeuvre gain."""
+    from tertiary.store import sql_reports
+
+    with sql_reports.open_read_only(run_dir) as store:
+        for rep in sql_reports.list_reports():
+            frame = sql_reports.run_report(store, rep.name, {})
+            if rep.name == "cluster_statistics":       # clustering is not a stage of the main job
+                assert frame.height == 0
+                continue
+            assert frame.height > 0, rep.name
+            empty = {c for c in frame.columns if frame[c].null_count() == frame.height}
+            if rep.name == "aposteriori_gain" and (frame["manoeuvre_epochs"] == 0).all():
+                empty.discard("max_gain_manoeuvre")
+            assert not empty, f"{rep.name}: columns without a value: {sorted(empty)}"

@@ -7,6 +7,7 @@ import dataclasses
 import numpy as np
 import polars as pl
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError
@@ -14,6 +15,7 @@ from tertiary.io.dataset import read_dataset, write_dataset
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.config import (Anomalies, RadarConfig, scenario_toml, from_dict, ScenarioConfig, with_radar_count)
 from tertiary.simulate.traffic import big_box, BIG_BOX_SPEED
+from tertiary.simulate.traffic.terminal import pair_counts, terminal_traffic
 from tertiary.simulate.trajectory import SEG_TURN
 
 import tomllib
@@ -291,3 +293,25 @@ def test_every_shipped_scenario_passes_its_own_checks():
                 check_scenario(cfg)
         else:
             assert check_scenario(cfg) is cfg
+
+
+@settings(max_examples=60, deadline=None)
+@given(duration=st.floats(120.0, 4000.0), aircraft=st.integers(0, 300), conflicts=st.integers(0, 30),
+       near=st.integers(0, 30), seed=st.integers(0, 2**31))
+def test_designed_pairs_fit_any_duration_and_fleet(duration, aircraft, conflicts, near, seed):
+    """A short or small terminal area gets the designed pairs that fit (never a "do not fit"
+    error), exactly as many as :func:`pair_counts` promises, and every requested aircraft."""
+    cfg = load_scenario("terminal-area")
+    tc = dataclasses.replace(cfg.traffic, aircraft=aircraft, conflict_pairs=conflicts, near_miss_pairs=near)
+    tr = terminal_traffic(tc, duration, cfg.dt, np.random.default_rng(seed))
+    roles = tr.meta["role"]
+    placed = (sum(r.startswith("conflict-") for r in roles) // 2, sum(r == "near-miss" for r in roles) // 2)
+    assert placed == pair_counts(conflicts, near, aircraft, duration)
+    assert len(roles) == aircraft
+
+
+def test_default_terminal_area_keeps_every_designed_pair():
+    cfg = load_scenario("terminal-area")
+    assert pair_counts(cfg.traffic.conflict_pairs, cfg.traffic.near_miss_pairs, cfg.traffic.aircraft,
+                       cfg.duration_s) == (cfg.traffic.conflict_pairs, cfg.traffic.near_miss_pairs)
+    assert pair_counts(10, 5, 200, 600.0) == (10, 2)         # near misses give way first

@@ -235,6 +235,9 @@ NoiseWinOpt = Annotated[Optional[str], typer.Option(help="T0:T1 seconds of the n
 DropoutOpt = Annotated[Optional[str], typer.Option(help="RADAR:T0:T1 radar dropout window (radar name, seconds)")]
 OutliersOpt = Annotated[Optional[float], typer.Option(help="fraction of gross-error reports, in [0, 1]")]
 BiasStepOpt = Annotated[Optional[str], typer.Option(help="T:DRANGE_M:DAZ_DEG range/azimuth bias step at T seconds")]
+RequirementsOpt = Annotated[Optional[Path], typer.Option(help="requirements TOML with pass/fail thresholds "
+                                                              "[default: the shipped example, "
+                                                              "datasets/requirements/example.toml]")]
 QuietOpt = Annotated[bool, typer.Option("--quiet", help="print no progress (the final summary only)")]
 LogFormatOpt = Annotated[str, typer.Option(help="progress lines: text, or json (one object per line: t_s, "
                                                 "task, step, peak_rss_mib) for schedulers")]
@@ -265,13 +268,37 @@ def cell(value: Any, column: str) -> str:
     return str(value)
 
 
-def print_frame(frame: pl.DataFrame, title: str, limit: int) -> None:
-    """``frame`` as a table of its first ``limit`` rows, with a caption of the row count."""
-    shown = f" (first {limit:,} shown; --limit to change, --format csv for all)" if frame.height > limit else ""
-    table = Table(title=title, caption=f"{frame.height:,} row{'' if frame.height == 1 else 's'}{shown}")
-    for col, dtype in frame.schema.items():
-        table.add_column(col, justify="right" if dtype.is_numeric() else "left", overflow="fold")
+def print_frame(frame: pl.DataFrame, title: str, limit: int, *, hide_empty: bool = False) -> None:
+    """``frame``'s first ``limit`` rows with a caption of the row count: a table when its columns fit
+    the terminal at their natural width, else one record per row (column, value), as psql's
+    expanded display; with ``hide_empty`` the columns without a value in any row are left out
+    (and named in the caption)."""
+    empty = [c for c in frame.columns if frame.height and frame[c].null_count() == frame.height] if hide_empty else []
+    frame = frame.drop(empty)
     cols = frame.columns
-    for row in frame.head(limit).iter_rows():
-        table.add_row(*[cell(v, c) for v, c in zip(row, cols)])
-    console.print(table)
+    rows = [[cell(v, c) for v, c in zip(row, cols)] for row in frame.head(limit).iter_rows()]
+    shown = f" (first {limit:,} shown; --limit to change, --format csv for all)" if frame.height > limit else ""
+    caption = f"{frame.height:,} row{'' if frame.height == 1 else 's'}{shown}"
+    if empty:
+        caption += f"; left out, empty in this run: {', '.join(empty)}"
+    widths = [max([len(c), *(len(r[i]) for r in rows)]) for i, c in enumerate(cols)]
+    if sum(w + 3 for w in widths) + 1 <= console.width:
+        table = Table(title=title, caption=caption)
+        for col, dtype in frame.schema.items():
+            table.add_column(col, justify="right" if dtype.is_numeric() else "left", no_wrap=True)
+        for r in rows:
+            table.add_row(*r)
+        console.print(table)
+        return
+    _print_records(title, cols, rows, frame.height, caption)
+
+
+def _print_records(title: str, cols: list[str], rows: list[list[str]], height: int, caption: str) -> None:
+    """One block per row, a line per column: what a wide result looks like in a narrow terminal."""
+    name_w = max(map(len, cols), default=0)
+    lines = [f"{title} (one record per row: the columns do not fit a {console.width}-column terminal)"]
+    for i, r in enumerate(rows, 1):
+        lines.append(f"-[ {title} row {i} of {height:,} ]" + "-" * max(0, name_w - len(title)))
+        lines += [f"{c:<{name_w}} | {v}" for c, v in zip(cols, r)]
+    lines.append(caption)
+    console.print("\n".join(lines), soft_wrap=True)

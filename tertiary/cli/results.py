@@ -53,12 +53,14 @@ def sql(
     fmt: Annotated[str, typer.Option("--format", "-f", help="table (print), csv or parquet")] = "table",
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="export file, written atomically; never a file "
                                                                      "inside the run directory")] = None,
+    columns: Annotated[Optional[str], typer.Option("--columns", "-c", help="comma-separated columns to keep, in "
+                                                                           "this order [default: all]")] = None,
     limit: Annotated[int, typer.Option(help="rows printed in table format")] = 100,
     timeout: Annotated[float, typer.Option(help="statement timeout in seconds")] = 60.0,
 ) -> None:
     """Run a named SQL report (sql/NAME.sql) or an ad-hoc read-only query on a run database.
 
-    tertiary sql RUN_DIR --list; tertiary sql RUN_DIR NAME [-p KEY=VALUE] [--format csv|parquet --out FILE];
+    tertiary sql RUN_DIR --list; tertiary sql RUN_DIR NAME [-p KEY=VALUE] [-c COL,COL] [--format csv|parquet --out FILE];
     tertiary sql RUN_DIR --query "SELECT ..."."""
     if sum([bool(list_), name is not None, query is not None]) != 1:
         raise OptionError("give exactly one of NAME, --list or --query")
@@ -84,13 +86,25 @@ def sql(
             frame, title = sql_reports.query(store, query, timeout_s=timeout), "query"
         else:
             frame, title = sql_reports.run_report(store, name, params, timeout_s=timeout), name
+    if columns is not None:
+        frame = _select_columns(frame, columns)
     if out is not None:
         path = sql_reports.export_frame(frame, out, fmt)
         console.print(f"wrote {path} ({frame.height:,} rows, {fmt})")
     elif fmt == "csv":
         sys.stdout.write(sql_reports.frame_to_csv(frame))
-    else:
-        print_frame(frame, title, limit)
+    else:       # what the run's stages filled: a column empty in every row is named, not printed
+        print_frame(frame, title, limit, hide_empty=True)
+
+
+def _select_columns(frame: Any, columns: str) -> Any:
+    """``frame`` with the ``--columns`` list, in its order; an unknown name is an option error."""
+    wanted = [c.strip() for c in columns.split(",") if c.strip()]
+    unknown = [c for c in wanted if c not in frame.columns]
+    if unknown or not wanted:
+        raise OptionError(f"no column {', '.join(unknown) or '(none given)'}; this result has "
+                          f"{', '.join(frame.columns)}", option="--columns")
+    return frame.select(wanted)
 
 
 def _export_format(fmt: str, out: Path | None, run_dir: Path) -> str:

@@ -11,7 +11,7 @@ import typer
 
 from tertiary.cli.common import (DEFAULT_FILTERS, DEFAULT_METHODS, DEFAULT_SCENARIO, AircraftOpt, BiasStepOpt,
                                  DropoutOpt, DurationOpt, LogFormatOpt, NoiseOpt, NoiseWinOpt, OriginOpt, OutliersOpt,
-                                 QuietOpt, RadarsOpt, RunsOpt, SeedOpt, Steps, TruthOpt, build_scenario, console,
+                                 QuietOpt, RadarsOpt, RequirementsOpt, RunsOpt, SeedOpt, Steps, TruthOpt, build_scenario, console,
                                  names, parse_origin, print_frame, print_note, set_log, window_option)
 from tertiary.core.errors import OptionError
 from tertiary.pipeline import PipelineConfig, check_config, check_tables
@@ -46,7 +46,7 @@ def run(
     duration: DurationOpt = None, truth: TruthOpt = None, noise_factor: NoiseOpt = None,
     noise_window: NoiseWinOpt = None, dropout: DropoutOpt = None, outliers: OutliersOpt = None,
     bias_step: BiasStepOpt = None,
-    quiet: QuietOpt = False, log_format: LogFormatOpt = "text",
+    quiet: QuietOpt = False, log_format: LogFormatOpt = "text", requirements: RequirementsOpt = None,
     register: Annotated[bool, typer.Option("--register/--no-register",
                                            help="correct each radar's range/azimuth bias and clock offset before "
                                                 "alignment: DATASET/registration.parquet (from `tertiary register`) "
@@ -114,7 +114,8 @@ def run(
                          filters=names(filters, sorted(REGISTRY), "--filters"),
                          centralized=centralized, strict=strict, safety_picture=safety_picture,
                          indicators=indicators, association=_association(assignment, gate),
-                         radar_health=radar_health)
+                         radar_health=radar_health,
+                         requirements_file=None if requirements is None else str(requirements))
     if collection is not None:   # checked here, before any simulation
         cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))
     if range_channel is not None:
@@ -201,8 +202,7 @@ def evaluate(
                                                        "x_m ... vz_mps[, alt_m]) in the same frame")] = None,
     dataset: Annotated[Optional[Path], typer.Option(help="dataset directory whose truth.parquet is the reference "
                                                          "(its radars give the range rings)")] = None,
-    requirements: Annotated[Optional[Path], typer.Option(help="requirements TOML with pass/fail thresholds "
-                                                              "[default: none; see datasets/requirements]")] = None,
+    requirements: RequirementsOpt = None,
     reference: Annotated[str, typer.Option(help="with --dataset: truth (the dataset's truth.parquet), "
                                                 "reconstruct (smoothed offline from every radar plot; scored "
                                                 "against the truth too when there is one) or adsb (the --adsb "

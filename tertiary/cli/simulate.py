@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 from typing import Annotated, Optional
 
+import polars as pl
 import typer
 
 from tertiary.cli.common import (AircraftOpt, BiasStepOpt, DropoutOpt, DurationOpt, LogFormatOpt, NoiseOpt,
@@ -15,7 +16,7 @@ from tertiary.core.errors import OptionError
 from tertiary.io.asterix.encode import write_recording
 from tertiary.io.dataset import write_dataset
 from tertiary.pipeline.workflows import check_writable_dir
-from tertiary.simulate import builtin_scenarios, load_scenario, simulate as simulate_dataset, write_stream
+from tertiary.simulate import ScenarioConfig, builtin_scenarios, load_scenario, simulate as simulate_dataset, write_stream
 
 
 def simulate(
@@ -54,14 +55,16 @@ def simulate(
             done = write_stream(cfg, out, window if window is not None else
                                 (cfg.national.block_s if cfg.national else None), progress=say)
         console.print(f"wrote {out}/ ({done['reports']:,} reports, {done['truth_rows']:,} truth rows in "
-                      f"{len(done['parts'])} parts, {len(cfg.radars)} radars, {cfg.runs} run(s)) in "
+                      f"{len(done['parts'])} parts, {done['radars']} radars, {cfg.runs} run(s)) in "
                       f"{time.perf_counter() - t:.1f} s", soft_wrap=True)
         return
     with Steps(f"simulate {cfg.name}") as say:
         ds = simulate_dataset(cfg, progress=say)
     write_dataset(ds, out)
     console.print(f"wrote {out}/ ({ds.reports.height:,} reports, {ds.truth.height:,} truth rows, "
-                  f"{len(cfg.radars)} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s", soft_wrap=True)
+                  f"{ds.radars.height} radars, {cfg.runs} run(s)) in {time.perf_counter() - t:.1f} s", soft_wrap=True)
+    if designed := designed_pairs(ds.truth, cfg):
+        console.print(designed, soft_wrap=True)
     if ds.removed.height:
         console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet)")
     if fmt == "asterix":
@@ -69,6 +72,22 @@ def simulate(
         runs_note = f" (run 0 of {cfg.runs})" if cfg.runs > 1 else ""
         console.print(f"wrote {rec}{runs_note} and {sites}; import with: tertiary import asterix {rec} "
                       f"--sites {sites} --date {day} --out DATASET_DIR", soft_wrap=True)
+
+
+def designed_pairs(truth: pl.DataFrame, cfg: ScenarioConfig) -> str:
+    """What the simulation placed of the designed losses of separation and near misses ("" when the
+    scenario designs none): fewer than asked when the duration or the aircraft do not hold them."""
+    asked = (cfg.traffic.conflict_pairs, cfg.traffic.near_miss_pairs) if cfg.kind == "terminal-area" else (0, 0)
+    if "role" not in truth.columns or not any(asked):
+        return ""
+    first = truth.filter(pl.col("run") == pl.col("run").min()) if "run" in truth.columns else truth
+    roles = first.group_by("truth_id").agg(pl.col("role").first())["role"]
+    placed = (int(roles.str.starts_with("conflict-").sum()) // 2, int((roles == "near-miss").sum()) // 2)
+    text = (f"designed pairs: {placed[0]} losses of separation and {placed[1]} near misses per run")
+    if placed != asked:
+        text += (f" (the scenario asks for {asked[0]} and {asked[1]}; as many as fit in {cfg.duration_s:g} s "
+                 f"with {cfg.traffic.aircraft} aircraft)")
+    return text
 
 
 def scenarios() -> None:

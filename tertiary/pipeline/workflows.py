@@ -23,7 +23,7 @@ from tertiary.evaluation.evaluate import (RECONSTRUCTED, Evaluation, EvaluationC
                                          reconstructed_reference, reference_error_metrics)
 from tertiary.evaluation.matching import MatchConfig
 from tertiary.evaluation.radar_eval import radar_metrics
-from tertiary.evaluation.requirements import Requirements, load_requirements
+from tertiary.evaluation.requirements import Requirements, example_path, load_requirements
 from tertiary.io.dataset import Dataset, read_dataset, write_dataset
 from tertiary.pipeline.runner import run
 from tertiary.pipeline.config import PipelineConfig
@@ -264,7 +264,7 @@ def evaluate_run(tracks: list[Path], out: Path, *, truth: Path | None = None, da
     """Score the pictures in ``tracks`` against a reference (``truth`` file, or ``dataset`` with
     ``reference`` truth, reconstruct or adsb) and store everything in ``out``/results.duckdb."""
     ref = _reference(truth, dataset, reference, adsb)
-    reqs = load_requirements(requirements) if requirements is not None else None
+    reqs = load_requirements(requirements or example_path())      # the same default as the main job's
     if out.exists() and (out / "results.duckdb").exists() and not force:
         raise OptionError(f"{out} already holds a run; choose another --out or add --force", option="--out")
     pictures = read_pictures(tracks)
@@ -285,6 +285,6 @@ def evaluate_run(tracks: list[Path], out: Path, *, truth: Path | None = None, da
                                "pictures": sorted(pictures["method"].unique().to_list()),
                                "tracks_files": [str(p) for p in tracks],
                                "reference": f"{truth or dataset} ({reference})",
-                               "requirements": str(requirements or ""),
+                               "requirements": str(requirements or example_path()),
                                "status": "complete", "timings": {"wall_s": time.perf_counter() - t}})
     return EvaluationRun(ev, pictures, ref.table, out / "results.duckdb", time.perf_counter() - t, reqs is not None)

@@ -518,7 +518,7 @@ def write_stream(cfg: ScenarioConfig, out_dir: str | Path, window_s: float | Non
     if plans:
         write_parquet_atomic(pl.concat(plans), out / "flight_plans.parquet")
     write_text_atomic(out / "scenario.toml", scenario_toml(scen))
-    summary = {"window_s": None if window_s is None else float(window_s), "parts": parts,
+    summary = {"window_s": None if window_s is None else float(window_s), "parts": parts, "radars": radars.height,
                "reports": sum(p["reports_rows"] for p in parts), "truth_rows": sum(p["truth_rows"] for p in parts)}
     write_text_atomic(out / PARTS_MANIFEST, json.dumps(summary, indent=1) + "\n")
     return summary

@@ -22,7 +22,9 @@ System frame x east, y north; runway 27 at the origin (threshold (1 500, 0), lan
   those levels): ``conflict_pairs`` crossing / converging (same level, horizontal miss in
   ``conflict_miss_m``) or level bust (climbs from the level below and levels off 100–250 ft
   under the occupied level); ``near_miss_pairs`` at the same level with a miss of
-  1.15–1.45 × the horizontal minimum. Each pair has its own (zone, level, time) slot.
+  1.15–1.45 × the horizontal minimum. Each pair has its own (zone, level, time) slot; a short
+  or small scenario gets as many pairs as are sure to fit (:func:`pair_counts`), conflicts
+  before near misses.
 
 Vertical bands: departures ≤ FL70, arrivals ≤ FL100, holding and pairs FL110–FL140 (north /
 south), overflights ≥ FL150 — so the only losses of separation are the designed conflicts.
@@ -191,10 +193,45 @@ def _slots(rng, n: int, lo: float, hi: float, gap: float) -> NDArray[np.float64]
     return lo + np.sort(rng.uniform(0.0, free, n)) + np.arange(n) * gap
 
 
+#: time a designed pair holds its (zone, level) lane: its active span and a minute either side
+PAIR_SLOT_S = PAIR_LEAD_S + PAIR_TRAIL_S + 120.0
+#: spread of the conflicts' closest approaches over the run (fractions of the duration) and their jitter (s)
+CONFLICT_SPAN, PAIR_JITTER_S = (0.2, 0.8), 20.0
+
+
+def _conflicts_together(n_conf: int, duration_s: float) -> int:
+    """Most conflicts whose lanes can be busy at the same time: their closest approaches are
+    evenly spread over :data:`CONFLICT_SPAN`, each moved by up to the jitter (and a sample's
+    rounding), and two overlap when less than :data:`PAIR_SLOT_S` apart."""
+    if n_conf <= 1:
+        return n_conf
+    spacing = (CONFLICT_SPAN[1] - CONFLICT_SPAN[0]) * duration_s / (n_conf - 1)
+    if spacing <= 0.0:
+        return n_conf
+    reach = 2.0 * (PAIR_SLOT_S + 2.0 * PAIR_JITTER_S) + 60.0      # + 60 s: rounding to the sample grid
+    return min(n_conf, int(reach // spacing) + 1)
+
+
+def pair_counts(conflicts: int, near_misses: int, aircraft: int, duration_s: float) -> tuple[int, int]:
+    """The designed (conflict, near-miss) pairs a scenario gets: what the aircraft allow and what
+    is sure to find a lane. First-fit placement (:func:`_place_pairs`) only fails a pair when every
+    one of the zone × level lanes holds an overlapping pair, so it always succeeds when no pair
+    overlaps more than ``lanes − 1`` others: near misses are drawn anywhere (count them all as
+    overlapping), conflicts are evenly spread. Near misses are dropped first, then conflicts."""
+    lanes = len(PAIR_ZONES) * len(PAIR_LEVELS)
+    n_conf = min(conflicts, aircraft // 2)
+    n_near = min(near_misses, (aircraft - 2 * n_conf) // 2)
+    while n_conf + n_near > 0 and _conflicts_together(n_conf, duration_s) + n_near > lanes:
+        if n_near:
+            n_near -= 1
+        else:
+            n_conf -= 1
+    return n_conf, n_near
+
+
 def _counts(cfg: TrafficConfig, duration_s: float) -> dict[str, int]:
     n = cfg.aircraft
-    pairs = min(cfg.conflict_pairs, n // 2)
-    near = min(cfg.near_miss_pairs, (n - 2 * pairs) // 2)
+    pairs, near = pair_counts(cfg.conflict_pairs, cfg.near_miss_pairs, n, duration_s)
     rest = n - 2 * (pairs + near)
     arr_cap = int((duration_s + 400.0) // cfg.arrival_spacing_s)
     hold_cap = len(HOLD_FIXES) * len(HOLD_LEVELS) * max(1, int((duration_s + 600.0) // 900.0))
@@ -301,7 +338,7 @@ def _place_pairs(kinds: NDArray, t_c: NDArray, duration_s: float) -> tuple[NDArr
     level = np.zeros(len(t_c), np.int64)
     kinds = kinds.copy()
     for p in range(len(t_c)):
-        lo, hi = t_c[p] - PAIR_LEAD_S - 60.0, t_c[p] + PAIR_TRAIL_S + 60.0
+        lo, hi = t_c[p] - PAIR_LEAD_S - 60.0, t_c[p] + PAIR_TRAIL_S + 60.0     # PAIR_SLOT_S long
         free = lambda z, lv: all(hi <= a or lo >= b for a, b in busy.get((z, lv), []))
         options = [(z, lv) for z in range(len(PAIR_ZONES)) for lv in range(len(PAIR_LEVELS))]
         found = None
@@ -334,8 +371,9 @@ def _pairs(rng, cfg: TrafficConfig, n_conf: int, n_near: int, dt: float, duratio
         f, i = np.zeros(0), np.zeros(0, np.int64)
         return {"heading": f, "speed": f, "anchor": np.zeros((0, 2)), "k_c": i, "z": f, "rate": f, "k_climb": i,
                 "n_climb": i, "t0": f, "t1": f, "role": np.zeros(0, str), "selected": f, "cleared": f}
-    t_c = np.concatenate([np.linspace(0.2, 0.8, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
-                          rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-20, 20, n_p)
+    t_c = np.concatenate([np.linspace(*CONFLICT_SPAN, n_conf) if n_conf > 1 else np.full(n_conf, 0.5),
+                          rng.uniform(0.15, 0.85, n_near)]) * duration_s + rng.uniform(-PAIR_JITTER_S,
+                                                                                       PAIR_JITTER_S, n_p)
     t_c = np.clip(np.round(t_c / dt) * dt, dt, duration_s - dt)
     kind = np.concatenate([rng.integers(0, 3, n_conf), np.full(n_near, 3)])
     kind = np.where((kind == 2) & (t_c < 100.0), 0, kind)      # a bust needs its climb inside the run
