@@ -18,7 +18,7 @@ from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
 from tertiary.evaluation.external import score_import
 from tertiary.io.asterix.dataset import import_recordings, write_import
-from tertiary.io.asterix.encode import export_picture
+from tertiary.io.asterix.encode import export_alerts, export_picture
 from tertiary.pipeline.workflows import check_writable_dir
 from tertiary.store.run_store import RunStore
 
@@ -31,9 +31,10 @@ export_app = typer.Typer(help="Export a run's picture to other formats.", no_arg
 def import_asterix(
     files: Annotated[list[Path], typer.Argument(
         metavar="FILE", help="pcap/pcapng captures (UDP payloads) or raw ASTERIX data-block files; CAT048, CAT034, "
-                             "CAT021, CAT062 may be mixed")],
+                             "CAT001, CAT002, CAT020, CAT021, CAT062, CAT004 may be mixed")],
     out: Annotated[Path, typer.Option("--out", "-o", help="dataset directory to write")],
-    sites: Annotated[Optional[Path], typer.Option(help="SAC/SIC -> radar registry TOML (required with CAT048; "
+    sites: Annotated[Optional[Path], typer.Option(help="SAC/SIC -> radar registry TOML (required with CAT048, "
+                                                       "CAT001, CAT020; "
                                                        "see docs/asterix.md)")] = None,
     date: Annotated[Optional[str], typer.Option(help="YYYY-MM-DD the recording starts on [default: the capture "
                                                      "time stamps; required for raw data blocks]")] = None,
@@ -66,6 +67,12 @@ def import_asterix(
                   f"{c['distinct']:,} distinct), {c['cat034_messages']:,} CAT034 messages ({c['cat034_distinct']:,} "
                   f"distinct), {res.truth.height:,} truth rows (CAT021), {res.external_tracks.height:,} external "
                   f"track rows (CAT062), {res.rejects.height:,} rejects", soft_wrap=True)
+    more = [f"{c[f'cat{k}_reports']:,} {what} reports (CAT{k})" for k, what in (("001", "legacy radar"), ("020", "MLAT"))
+            if f"cat{k}_reports" in c]
+    if res.alerts.height:
+        more.append(f"{res.alerts.height:,} STCA alert episodes (CAT004, alerts.parquet)")
+    if more:
+        console.print("of which " + ", ".join(more), soft_wrap=True)
     for note in res.notes:
         console.print(f"note: {note}", soft_wrap=True)
     if res.latency.height:
@@ -124,10 +131,16 @@ def export_asterix(
     picture: Annotated[str, typer.Option(help="FILTER/METHOD (e.g. singer/information) or fused/METHOD")],
     out: Annotated[Path, typer.Option("--out", "-o", help="ASTERIX file to write (CAT062 data blocks)")],
     run: Annotated[int, typer.Option(help="Monte-Carlo run to export")] = 0,
+    alerts: Annotated[bool, typer.Option(help="write the picture's STCA alert episodes as CAT004 instead of its "
+                                              "tracks")] = False,
 ) -> None:
-    """Write a picture of a run as CAT062 system tracks (position, velocity, accuracy, identity)."""
+    """Write a picture of a run as CAT062 system tracks (position, velocity, accuracy, identity),
+    or with --alerts its STCA alerts as CAT004."""
     if out.is_dir():
         raise OptionError(f"{out} is a directory; give a file name", option="--out")
+    if alerts:
+        _export_alerts(run_dir, picture, out, run)
+        return
     frame, origin = _picture(run_dir, picture)
     frame = frame.filter(pl.col("run") == run)
     if frame.height == 0:
@@ -137,3 +150,22 @@ def export_asterix(
     console.print(f"wrote {out} ({n:,} CAT062 records, {out.stat().st_size / 1e6:.2f} MB) in "
                   f"{time.perf_counter() - t:.1f} s; system origin {origin[0]:.5f}, {origin[1]:.5f}"
                   + ("" if math.isfinite(origin[2]) else ""), soft_wrap=True)
+
+
+def _export_alerts(run_dir: Path, picture: str, out: Path, run: int) -> None:
+    """The alerts rows of PICTURE (the ``method`` of the run's ``alerts`` table) as CAT004."""
+    if not (run_dir / "results.duckdb").is_file():
+        raise DataError("no run database here (expected results.duckdb)", path=str(run_dir))
+    with RunStore.open(run_dir, read_only=True) as store:
+        if "alerts" not in store.tables():
+            raise DataError("the run has no alerts table (run with conflict alerts and a truth)", path=str(run_dir))
+        frame = store.read("alerts")
+    rows = frame.filter((pl.col("method") == picture) & (pl.col("run") == run))
+    if rows.height == 0:
+        known = ", ".join(sorted(frame["method"].unique().to_list())) or "none"
+        raise OptionError(f"no alerts of picture {picture!r} in run {run} (pictures with alerts: {known})",
+                          option="--picture")
+    t = time.perf_counter()
+    n = export_alerts(rows, out)
+    console.print(f"wrote {out} ({n:,} CAT004 STCA records of {rows.height:,} alert episodes) in "
+                  f"{time.perf_counter() - t:.1f} s", soft_wrap=True)

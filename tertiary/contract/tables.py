@@ -14,7 +14,8 @@ from tertiary.core.errors import OptionError
 from tertiary.core.units import STATE
 
 __all__ = [
-    "BOOL", "CLEARED_ALT_COLUMN", "COV", "EHS_REPORT_COLUMNS", "F64", "FUSED_EXTRA", "I64", "INPUT_ROW", "REASON",
+    "BOOL", "CLEARED_ALT_COLUMN", "COV", "EHS_REPORT_COLUMNS", "F64", "FUSED_EXTRA", "I64", "INPUT_ROW",
+    "MLAT_PLOT_COLUMNS", "REASON",
     "ROW_INDEX", "SELECTED_ALT_COLUMN", "STR", "TABLES", "TIME", "TURN_RATE_COLUMN", "TableSchema", "U32", "U64",
     "empty_frame", "is_sorted_by", "table_schema",
 ]
@@ -81,6 +82,9 @@ _RADARS = TableSchema(
             "bias_range_m", "bias_azimuth_deg", "time_offset_s",
         ),
         "timing": STR,
+        # "radar" (default when absent or null) or "mlat": a multilateration / WAM system whose
+        # site is its reference point and whose reports carry a Cartesian plot (MLAT_PLOT_COLUMNS)
+        "kind": STR,
     },
     key=("radar_id",),
     finite=True,
@@ -105,6 +109,14 @@ TURN_RATE_COLUMN = "ehs_track_rate_dps"
 #: without a unique flight plan. Carried like :data:`SELECTED_ALT_COLUMN`; conflict prediction
 #: uses it where no selected level is downlinked (a Mode C-only aircraft, say)
 CLEARED_ALT_COLUMN = "cleared_alt_m"
+
+#: the Cartesian plot of a report of a sensor of kind "mlat" (CAT020): east/north in the
+#: sensor's local ENU frame at its site (m), the same point in WGS-84, its geometric height (m),
+#: and its accuracy: standard deviations along x and y (m) and the x-y term (m; covariance =
+#: sign · term², the ASTERIX convention); the polar range_m/azimuth_deg of such a report are
+#: the same point seen from the site
+MLAT_PLOT_COLUMNS = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "plot_height_m", "plot_sigma_x_m",
+                     "plot_sigma_y_m", "plot_sigma_xy_m")
 
 _REPORTS = TableSchema(
     name="reports",
@@ -134,6 +146,7 @@ _REPORTS = TableSchema(
         "truth_id": I64,
         **_floats(*EHS_REPORT_COLUMNS),
         SELECTED_ALT_COLUMN: F64,
+        **_floats(*MLAT_PLOT_COLUMNS),
     },
     key=("run", "radar_id", "local_track_id", "time"),
     finite=True,
@@ -297,8 +310,10 @@ _ALERTS = TableSchema(
         "classification": STR,
     },
     # induced: "picture" / "predictor" (null on the truth picture's own episodes); valid: a
-    # nuisance or false alert followed by a manoeuvre within the look-ahead
-    optional={"induced": STR, "valid": pl.Boolean()},
+    # nuisance or false alert followed by a manoeuvre within the look-ahead; an external alert
+    # list (CAT004) adds its alert identifier and the identities of the two aircraft
+    optional={"induced": STR, "valid": pl.Boolean(), "alert_id": U32, "callsign_a": STR, "callsign_b": STR,
+              "mode_s_ident_a": STR, "mode_s_ident_b": STR, "mode_3a_a": STR, "mode_3a_b": STR},
     nullable=frozenset({"truth_a", "truth_b", "r_min_pred_m", "dz_min_pred_m", "t_min_first_s", "los_start",
                         "warning_s", "induced"}),
     key=("run", "method", "id_a", "id_b", "t_start"),

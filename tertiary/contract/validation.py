@@ -154,6 +154,26 @@ def _range_check(work: pl.DataFrame, radars: pl.DataFrame, limits: Limits) -> tu
     )
 
 
+def _mlat_cov_check() -> _Check:
+    """The x-y term of an MLAT plot's accuracy within sqrt(sigma_x sigma_y) (|correlation| <= 1)."""
+    sx, sy, sxy = pl.col("plot_sigma_x_m"), pl.col("plot_sigma_y_m"), pl.col("plot_sigma_xy_m")
+    bad = (sxy.abs() > (sx * sy).sqrt() * (1 + 1e-9)).fill_null(False)
+    return _Check(("plot_sigma_xy_m",), "not a covariance (|xy term| above sqrt(sigma_x sigma_y))", bad,
+                  pl.format("plot_sigma_xy_m: |{}| above sqrt(plot_sigma_x_m x plot_sigma_y_m) = sqrt({} x {}): "
+                            "not a covariance", sxy.cast(pl.String), sx.cast(pl.String), sy.cast(pl.String)))
+
+
+def _mlat_plot_check(work: pl.DataFrame, radars: pl.DataFrame) -> tuple[pl.DataFrame, _Check]:
+    """Reports of a sensor of kind mlat carry their Cartesian plot (plot_x_m, plot_y_m)."""
+    mlat = radars.filter(pl.col("kind") == "mlat").select(pl.col("radar_id").cast(U32, strict=False)).to_series()
+    have = [pl.col(c).is_not_null() & pl.col(c).is_not_nan() for c in ("plot_x_m", "plot_y_m") if c in work.columns]
+    ok = pl.all_horizontal(have) if len(have) == 2 else pl.lit(False)
+    bad = pl.col("radar_id").is_in(mlat.implode()) & ~ok
+    return work, _Check(("plot_x_m",), "MLAT report without its Cartesian plot", bad,
+                        pl.format("plot_x_m: radar {} is of kind mlat; its report has no plot_x_m, plot_y_m",
+                                  pl.col("radar_id")))
+
+
 def table_median_time(frame: pl.DataFrame, limits: Limits = Limits()) -> datetime | None:
     """The median of ``frame``'s times in the configured years: what a time is judged near (a
     table validated in parts is given its whole median)."""
@@ -280,6 +300,11 @@ def _context_checks(
         checks += _time_checks(work, limits, time_window, median)
     if schema.name == "reports" and "est_cov" in work.columns:
         work, check = _cov_check(work, limits)
+        checks.append(check)
+    if schema.name == "reports" and {"plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m"} <= set(work.columns):
+        checks.append(_mlat_cov_check())
+    if schema.name == "reports" and radars is not None and {"kind", "radar_id"} <= set(radars.columns):
+        work, check = _mlat_plot_check(work, radars)
         checks.append(check)
     if (schema.name == "reports" and radars is not None and "range_m" in work.columns
             and {"radar_id", "max_range_m"} <= set(radars.columns)):

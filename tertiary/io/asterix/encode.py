@@ -229,3 +229,60 @@ def export_picture(tracks: pl.DataFrame, system: geo.LocalFrame, out: str | Path
     with atomic_path(Path(out)) as tmp:
         tmp.write_bytes(interleave([(t, 62, r) for t, r in recs]))
     return len(recs)
+
+
+def cat004(alerts: pl.DataFrame, sac: int = 0, sic: int = 1) -> list[tuple[float, object]]:
+    """(time, CAT004 STCA record) per alert episode (``alerts`` schema): a message at its start
+    and, when later, at its end, each with I004/040 alert identifier (row number mod 2¹⁶, or
+    ``alert_id``), /030 and /035 track numbers (id mod 2¹⁶, as the CAT062 export numbers
+    tracks), /070 TCA (``t_min_first_s``), MHS (``r_min_pred_m``), MVS (``dz_min_pred_m``) and
+    /170, /171 callsign and Mode 3/A when the rows carry them."""
+    s = codec.spec(4).cv_record
+    rows = alerts.sort("t_start", "id_a", "id_b")
+    ids = rows["alert_id"].to_list() if "alert_id" in rows.columns else [None] * rows.height
+    get = lambda c: rows[c].to_list() if c in rows.columns else [None] * rows.height  # noqa: E731
+    out = []
+    for i, r in enumerate(rows.iter_rows(named=True)):
+        items: dict[str, object] = {
+            "010": (("SAC", sac), ("SIC", sic)), "000": 7, "040": int(ids[i] if ids[i] is not None else i) % 65536,
+            "030": int(r["id_a"]) % 65536, "035": int(r["id_b"]) % 65536}
+        timing = _timing(r)
+        if timing:
+            items["070"] = timing
+        for item, k in (("170", "a"), ("171", "b")):
+            ident = _identity(get(f"callsign_{k}")[i], get(f"mode_3a_{k}")[i])
+            if ident:
+                items[item] = ident
+        for t in sorted({_seconds(pl.Series([r["t_start"]]))[0], _seconds(pl.Series([r["t_end"]]))[0]}):
+            out.append((float(t), s.create({**items, "020": float(math.fmod(t, 86400.0))})))
+    return out
+
+
+def _timing(r: dict[str, object]) -> dict[str, object]:
+    """I004/070 subfields of an alert row (values outside a subfield's range left out)."""
+    out: dict[str, object] = {}
+    tca, mhs, mvs = (r.get(k) for k in ("t_min_first_s", "r_min_pred_m", "dz_min_pred_m"))
+    if isinstance(tca, float) and 0 <= tca < 2**24 / 128:
+        out["TCA"] = tca
+    if isinstance(mhs, float) and 0 <= mhs < 2**16 * 0.5:
+        out["MHS"] = mhs
+    if isinstance(mvs, float) and 0 <= mvs / FT < 2**16 * 25:
+        out["MVS"] = mvs / FT
+    return out
+
+
+def _identity(callsign: object, mode_3a: object) -> dict[str, object]:
+    out: dict[str, object] = {}
+    if callsign:
+        out["AI1"] = str(callsign)[:7].ljust(7)
+    if mode_3a:
+        out["M31"] = (0, ("MODE3A", str(mode_3a).zfill(4)))
+    return out
+
+
+def export_alerts(alerts: pl.DataFrame, out: str | Path, sac: int = 0, sic: int = 1) -> int:
+    """Write alert episodes as CAT004 STCA messages to ``out`` (atomic); returns the record count."""
+    recs = cat004(alerts, sac, sic)
+    with atomic_path(Path(out)) as tmp:
+        tmp.write_bytes(interleave([(t, 4, r) for t, r in recs]))
+    return len(recs)
