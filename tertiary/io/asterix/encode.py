@@ -249,8 +249,8 @@ def cat004(alerts: pl.DataFrame, sac: int = 0, sic: int = 1) -> list[tuple[float
         timing = _timing(r)
         if timing:
             items["070"] = timing
-        for item, k in (("170", "a"), ("171", "b")):
-            ident = _identity(get(f"callsign_{k}")[i], get(f"mode_3a_{k}")[i])
+        for item, k, n in (("170", "a", 1), ("171", "b", 2)):
+            ident = _identity(get(f"callsign_{k}")[i], get(f"mode_3a_{k}")[i], n)
             if ident:
                 items[item] = ident
         for t in sorted({_seconds(pl.Series([r["t_start"]]))[0], _seconds(pl.Series([r["t_end"]]))[0]}):
@@ -271,12 +271,13 @@ def _timing(r: dict[str, object]) -> dict[str, object]:
     return out
 
 
-def _identity(callsign: object, mode_3a: object) -> dict[str, object]:
+def _identity(callsign: object, mode_3a: object, n: int) -> dict[str, object]:
+    """I004/170 (n = 1) or /171 (n = 2) subfields: AIn callsign, M3n Mode 3/A."""
     out: dict[str, object] = {}
     if callsign:
-        out["AI1"] = str(callsign)[:7].ljust(7)
+        out[f"AI{n}"] = str(callsign)[:7].ljust(7)
     if mode_3a:
-        out["M31"] = (0, ("MODE3A", str(mode_3a).zfill(4)))
+        out[f"M3{n}"] = (0, ("MODE3A", str(mode_3a).zfill(4)))
     return out
 
 

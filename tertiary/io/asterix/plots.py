@@ -111,7 +111,8 @@ def cat001_time(plots: pl.DataFrame, cat002: pl.DataFrame) -> pl.Series:
     if cat002.height:
         marks = (cat002.filter(pl.col("tod_s").is_not_null()).select("sac", "sic", "seq", pl.col("tod_s").alias("ref"))
                  .sort("seq"))
-        ref = ref.sort("seq").join_asof(marks, on="seq", by=["sac", "sic"], strategy="nearest").sort("__i")
+        ref = ref.sort("seq").join_asof(marks, on="seq", by=["sac", "sic"], strategy="nearest",
+                                             check_sortedness=False).sort("__i")
         r = ref["ref"].fill_null(np.nan).to_numpy()
     else:
         r = np.full(plots.height, np.nan)
