@@ -80,22 +80,45 @@ def test_order_p_changes_the_optimal_assignment():
 
 
 def test_siap_counts_and_continuity():
-    # truth 1: track 1 at epochs 0-4, then track 2 at 5-9 (one track number change, 8 s
-    # tracked, longest 4 s of a 9 s life); a duplicate track 3 on truth 1 at epoch 0; a false
-    # track 4 at epoch 0; truth 2 alive at epochs 0-1, never tracked
+    # truth 1: track 1 at epochs 0-4, then track 2 at 5-9 (one track number change; 8 s
+    # tracked: the 4-5 s step is in no segment; longest 4 s of a 9 s life); a duplicate track
+    # 3 on truth 1 at epochs 0-2 (ambiguity, and an overlap the time tracked counts once); a
+    # false track 4 at epoch 0; truth 2 alive at epochs 0-1, never tracked
     rows = [(k, 1 if k < 5 else 2, k * 100.0 + 10.0, 0.0, 0.0) for k in range(10)]
-    tr = tracks(*rows, (0, 3, -20.0, 0.0, 0.0), (0, 4, 50_000.0, 0.0, 0.0))
+    dup = [(k, 3, k * 100.0 - 20.0, 0.0, 0.0) for k in range(3)]
+    tr = tracks(*rows, *dup, (0, 4, 50_000.0, 0.0, 0.0))
     ref = truth(*[(k, 1, k * 100.0, 0.0, 0.0) for k in range(10)], (0, 2, 0.0, 9_000.0, 0.0),
                 (1, 2, 0.0, 9_000.0, 0.0))
     m = dict(multitarget_metrics(tr, ref, "p", MultiTargetConfig(siap_threshold_m=500.0)).select("metric", "value")
              .iter_rows())
     assert m["siap_completeness"] == pytest.approx(10 / 12)             # ΣJT / ΣJ
-    assert m["siap_ambiguity"] == pytest.approx(11 / 10)                # ΣNA / ΣJT: the duplicate
-    assert m["siap_spuriousness"] == pytest.approx(1 / 12)              # Σ(N − NA) / ΣN: the false track
-    assert m["siap_position_accuracy_m"] == pytest.approx((10 * 10 + 20) / 11)
+    assert m["siap_ambiguity"] == pytest.approx(13 / 10)                # ΣNA / ΣJT: the duplicate
+    assert m["siap_spuriousness"] == pytest.approx(1 / 14)              # Σ(N − NA) / ΣN: the false track
+    assert m["siap_position_accuracy_m"] == pytest.approx((10 * 10 + 3 * 20) / 13)
     assert m["siap_track_changes_per_hour"] == pytest.approx(3600 * 1 / 8)   # (NU − 1) / TT
     assert m["siap_longest_segment_frac"] == pytest.approx(4 / (9 + 1))      # ΣTL / ΣT (truth 2 lives 1 s)
     assert m["multitarget_epochs"] == 10
+
+
+def test_siap_track_changes_follow_stone_soups_cover():
+    # track 1 on the truth at epochs 0-3 and 6-9 (away at 4-5), track 2 at 0-5. A track's
+    # segments with a truth are one association: at 0 the cover takes track 1 (its association
+    # ends last, at 9) up to 3, then track 2 to 5, then track 1 again — NU = 3 in 8 s tracked
+    away = {4: 5_000.0, 5: 5_000.0}
+    tr = tracks(*[(k, 1, k * 100.0 + away.get(k, 10.0), 0.0, 0.0) for k in range(10)],
+                *[(k, 2, k * 100.0 - 10.0, 0.0, 0.0) for k in range(6)])
+    ref = truth(*[(k, 1, k * 100.0, 0.0, 0.0) for k in range(10)])
+    m = dict(multitarget_metrics(tr, ref, "p", MultiTargetConfig(siap_threshold_m=500.0)).select("metric", "value")
+             .iter_rows())
+    assert m["siap_track_changes_per_hour"] == pytest.approx(3600 * 2 / 8)
+    assert m["siap_longest_segment_frac"] == pytest.approx(6 / 9)       # track 1: 3 s + 3 s
+
+
+def test_siap_associates_the_nearest_truth():
+    # both truths are within the threshold; the track is truth 2's (100 m), not truth 1's (400 m)
+    tr, ref = tracks((0, 1, 0, 0, 0)), truth((0, 1, 400, 0, 0), (0, 2, -100, 0, 0))
+    e = multitarget_by_epoch(tr, ref, MultiTargetConfig(siap_threshold_m=500.0)).row(0, named=True)
+    assert (e["siap_tracks_assoc"], e["siap_truths_assoc"], e["siap_error_sum_m"]) == (1, 1, pytest.approx(100.0))
 
 
 def test_epoch_means_and_rows():
