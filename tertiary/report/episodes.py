@@ -25,6 +25,7 @@ import html
 import json
 import math
 import os
+import tomllib
 from dataclasses import dataclass, fields
 from datetime import datetime, timedelta
 from importlib import resources
@@ -192,7 +193,6 @@ def _truth_frame(store: RunStore) -> tuple[pl.DataFrame, LocalFrame | None]:
     raw = store.sql("SELECT value FROM run WHERE key = 'scenario_toml'")
     origin = None
     if raw.height:
-        import tomllib
         try:
             origin = tomllib.loads(raw.item()).get("origin")
         except tomllib.TOMLDecodeError:
