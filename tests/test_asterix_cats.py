@@ -144,6 +144,20 @@ def test_walker_programs_cover_the_editions() -> None:
     assert fastcats.program(1, "plot").names[:2] == fastcats.program(1, "track").names[:2] == ("010", "020")
 
 
+def test_cat020_values_equal_libasterix_quantities() -> None:
+    """Signed fields (southern, western positions; negative Cartesian) read as libasterix reads them."""
+    s = codec.spec(20).cv_record
+    recs = [s.create({"010": (("SAC", 1), ("SIC", 2)), "140": 86399.5, "041": (("LAT", lat), ("LON", lon)),
+                      "042": (("X", x), ("Y", -x)), "090": (("V", 0), ("G", 0), ("FL", fl))})
+            for lat, lon, x, fl in ((-33.9, -70.6, -1234.5, -5.25), (51.5, 179.9, 99999.5, 400.0))]
+    frame = fastcats.decode_020([(codec.datablock(20, recs), {"file": "f", "datagram": 0}, math.nan, "raw", 0)], [])
+    for row, rec in zip(frame.iter_rows(named=True), recs):
+        assert row["lat_deg"] == codec.sub_qty(rec, "041", "LAT", "°")
+        assert row["lon_deg"] == codec.sub_qty(rec, "041", "LON", "°")
+        assert (row["x_m"], row["y_m"]) == (codec.sub_qty(rec, "042", "X", "m"), codec.sub_qty(rec, "042", "Y", "m"))
+        assert row["flight_level"] == codec.sub_qty(rec, "090", "FL", "FL") and row["tod"] == 86399.5 * 128
+
+
 def _import(tmp_path: Path, blocks: list[bytes]) -> dataset.ImportResult:
     rec, sites = tmp_path / "rec.ast", tmp_path / "sites.toml"
     rec.write_bytes(b"".join(blocks))
