@@ -6,9 +6,15 @@ Input: N distinct CAT048 records of a typical Mode S plot layout (010, 140, 020,
 lines (so the import de-duplicates N of 2N). The records are laid out with numpy (byte positions
 of that fixed layout) and a sample of them is checked against libasterix before timing.
 
-    PYTHONPATH=. python benchmarks/bench_asterix.py [--records 1000000]
+CAT001 (plots and tracks, with a CAT002 north marker per 40 blocks), CAT002, CAT004 (STCA)
+and CAT020 (MLAT): records encoded by libasterix as templates, made distinct with numpy at
+their item offsets (time of day, track numbers, positions), checked against libasterix on a
+sample; decode (compiled walker + numpy) and whole import (decode, de-duplication, time,
+values, rejects; CAT002: antenna timing; CAT004: alert episodes) timed per category.
 
-Writes benchmarks/results/asterix.json.
+    PYTHONPATH=. python benchmarks/bench_asterix.py [--records 1000000] [--only-new]
+
+Writes benchmarks/results/bench_asterix.json (``--only-new`` keeps its CAT048/CAT021 entries).
 """
 
 from __future__ import annotations
@@ -117,11 +123,147 @@ def _cat021_rate(n: int) -> dict[str, float]:
             "cat021_libasterix_records_per_s": round(k / lib_s)}
 
 
+SITES_NEW = [{"sac": 9, "sic": 1, "radar_id": 9 * 256 + 1, "name": "legacy", "lat_deg": 45.5, "lon_deg": 16.5,
+              "alt_m": 300.0, "sigma_range_m": 70.0, "sigma_azimuth_deg": 0.08, "max_range_m": 463000.0,
+              "sigma_elevation_deg": 1.0, "scan_period_s": 4.0},
+             {"sac": 7, "sic": 20, "radar_id": 7 * 256 + 20, "name": "wam", "kind": "mlat", "lat_deg": 45.0,
+              "lon_deg": 16.0, "alt_m": 100.0, "sigma_range_m": 20.0, "sigma_azimuth_deg": 0.5,
+              "max_range_m": 200000.0, "sigma_elevation_deg": 1.0, "scan_period_s": 1.0}]
+
+
+def _templates(cat: int) -> list[object]:
+    """libasterix records of one category: the layouts the benchmark repeats."""
+    if cat == 20:
+        return [codec.spec(20).cv_record.create({
+            "010": (("SAC", 7), ("SIC", 20)), "020": (0x40,), "140": 0.0, "041": (("LAT", 45.1), ("LON", 16.1)),
+            "042": (("X", 7800.0), ("Y", 11100.0)), "161": (0, ("TRN", 0)), "070": (0, 0, 0, 0, ("MODE3A", "1234")),
+            "090": (("V", 0), ("G", 0), ("FL", 350.0)), "220": 0xABCDEF, "245": (("STI", 2), 0, ("CHR", "WAM01   ")),
+            "105": 36000.0, "500": {"SDP": (("X", 7.5), ("Y", 10.0), ("XY", 2.0))}})]
+    if cat == 1:
+        u = codec.spec(1).cv_uap
+        return [u.cv_uaps["plot"].create({"010": (("SAC", 9), ("SIC", 1)), "020": (0x10,),
+                                          "040": (("RHO", 40.5), ("THETA", 45.0)),
+                                          "070": (0, 0, 0, 0, ("MODE3A", "4321")),
+                                          "090": (("V", 0), ("G", 0), ("HGT", 120.0)), "141": 0.0}),
+                u.cv_uaps["track"].create({"010": (("SAC", 9), ("SIC", 1)), "020": (0x50,), "161": 0,
+                                           "040": (("RHO", 100.0), ("THETA", 270.0)),
+                                           "070": (0, 0, 0, 0, ("MODE3A", "1200")),
+                                           "090": (("V", 0), ("G", 0), ("HGT", 80.0)), "141": 0.0})]
+    if cat == 2:
+        return [codec.spec(2).cv_record.create({"010": (("SAC", 9), ("SIC", 1)), "000": 2, "020": 0.0, "030": 0.0,
+                                                "041": 4.0})]
+    return [codec.spec(4).cv_record.create({
+        "010": (("SAC", 3), ("SIC", 4)), "000": 7, "020": 0.0, "040": 0, "030": 0, "035": 0,
+        "070": {"TCA": 42.5, "MHS": 1800.0, "MVS": 500.0}, "170": {"AI1": "AFR123 ", "M31": (0, ("MODE3A", "1234"))},
+        "171": {"AI2": "BAW9   "}})]
+
+
+#: per category: (item, byte in the item, width, value of record i) made distinct in each copy
+_VARY = {
+    20: lambda i: [("140", 0, 3, i * 128 // 50 % (86400 * 128)), ("161", 0, 2, i % 4096),
+                   ("041", 2, 2, i * 37 % 65536), ("042", 1, 2, i * 91 % 65536)],
+    1: lambda i: [("141", 0, 2, i * 128 // 50 % 65536), ("040", 0, 2, 2000 + i * 7 % 60000),
+                  ("040", 2, 2, i * 131 % 65536), ("070", 0, 2, i % 4096)],
+    2: lambda i: [("030", 0, 3, i * 128 * 4 // 32 % (86400 * 128)), ("020", 0, 1, i * 8 % 256)],
+    4: lambda i: [("020", 0, 3, i * 128 // 20 % (86400 * 128)), ("040", 0, 2, i // 10 % 65536),
+                  ("030", 0, 2, (i // 10) * 2 % 65536), ("035", 0, 2, (i // 10) * 2 + 1 % 65536)],
+}
+
+
+def distinct_blocks(cat: int, n: int) -> list[bytes]:
+    """``n`` distinct records of ``cat`` in blocks of PER_BLOCK (see the module docstring)."""
+    from tertiary.io.asterix import fastcats, fastwalk
+    temps = _templates(cat)
+    body = b"".join(r.unparse().to_bytes() for r in temps)              # type: ignore[attr-defined]
+    if cat == 1:
+        buf, offs, uap, *_ = fastwalk.walk_select([bytes([1, 0, 0]) + body], fastcats.program(1, "plot"),
+                                                  fastcats.program(1, "track"), 2)
+        progs = [fastcats.program(1, "plot" if u == 0 else "track") for u in uap]
+    else:
+        buf, offs, *_ = fastwalk.walk([bytes([cat, 0, 0]) + body], fastcats.program(cat))
+        progs = [fastcats.program(cat)] * len(temps)
+    tpl = np.frombuffer(body, np.uint8)
+    reps = -(-n // len(temps))
+    rec = np.tile(tpl, (reps, 1))
+    idx = np.arange(reps)
+    for j, prog in enumerate(progs):
+        for item, at, width, value in _VARY[cat](idx * len(temps) + j):
+            col = offs[j, prog.slot(item)] + at
+            for b in range(width):
+                rec[:, col + b] = (value >> (8 * (width - 1 - b))) & 0xFF
+    size = len(body) // len(temps)
+    flat = rec.reshape(-1, size)[:n] if len({len(t.unparse().to_bytes()) for t in temps}) == 1 else None
+    rows = [r.tobytes() for r in (flat if flat is not None else rec)]
+    per = PER_BLOCK if flat is not None else PER_BLOCK // len(temps)
+    out = [bytes([cat]) + (3 + sum(map(len, rows[i:i + per]))).to_bytes(2, "big") + b"".join(rows[i:i + per])
+           for i in range(0, len(rows), per)]
+    ref = codec.parse_block(out[-1 if len(out) < 2 else 1])
+    assert not isinstance(ref, str) and (len(out) < 2 or len(ref) == (PER_BLOCK if flat is not None
+                                                                       else per * len(temps))), ref
+    return out
+
+
+def _new_rates(n: int) -> dict[str, int]:
+    """Decode and whole-import rates of CAT001, CAT002, CAT004, CAT020 on ``n`` records each."""
+    import polars as pl
+    from tertiary.io.asterix import dataset, fastcats, importer
+    from tertiary.io.asterix.sites import sites_toml
+    out: dict[str, int] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        sites = Path(tmp) / "sites.toml"
+        sites.write_text(sites_toml(pl.DataFrame(SITES_NEW)))
+        for cat in (1, 2, 4, 20):
+            blks = distinct_blocks(cat, n)
+            items = [(b, {"file": "bench", "datagram": 0}, float("nan"), "raw", k) for k, b in enumerate(blks)]
+            decode = getattr(fastcats, f"decode_{cat:03d}")
+            decode(items[:2], [])                                    # compile / load the cache
+            t = time.perf_counter()
+            frame = decode(items, [])
+            out[f"cat{cat:03d}_fast_records_per_s"] = round(frame.height / (time.perf_counter() - t))
+            rec = Path(tmp) / f"cat{cat:03d}.ast"
+            # CAT001: a north marker (full time of day) per 40 blocks of 40 records at 50 records/s
+            north = [codec.datablock(2, [codec.spec(2).cv_record.create({
+                "010": (("SAC", 9), ("SIC", 1)), "000": 1, "030": k * PER_BLOCK / 50.0})])
+                for k in range(0, len(blks), 40)] if cat == 1 else []
+            with rec.open("wb") as fh:
+                for k, b in enumerate(blks):
+                    if cat == 1 and k % 40 == 0:
+                        fh.write(north[k // 40])
+                    fh.write(b)
+            t = time.perf_counter()
+            if cat == 2:
+                dec = importer.decode_files([rec])
+                importer.antenna_timing(dec.cat002.drop("seq"), importer.parse_date("2024-01-01"))
+                kept = dec.cat002.height
+            else:
+                res = dataset.import_recordings([rec], sites=sites, date="2024-01-01")
+                kept = res.alerts.height if cat == 4 else res.reports.height
+                assert res.rejects.height == 0, res.rejects.head()
+            s = time.perf_counter() - t
+            out |= {f"cat{cat:03d}_records": frame.height, f"cat{cat:03d}_import_rows_out": kept,
+                    f"cat{cat:03d}_import_s": round(s, 2), f"cat{cat:03d}_import_records_per_s": round(frame.height / s)}
+    return out
+
+
+def _write(result: dict[str, object]) -> None:
+    out = Path(__file__).parent / "results" / "bench_asterix.json"
+    out.parent.mkdir(exist_ok=True)
+    old = json.loads(out.read_text()) if out.exists() else {}
+    out.write_text(json.dumps(old | result, indent=2) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--records", type=int, default=1_000_000)
     ap.add_argument("--lib-records", type=int, default=2_000)
+    ap.add_argument("--only-new", action="store_true", help="measure CAT001/002/004/020 only")
     args = ap.parse_args()
+    if args.only_new:
+        result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
+                  **_new_rates(args.records // 5)}
+        print(json.dumps(result, indent=2))
+        _write(result)
+        return
     t = time.perf_counter()
     codec.lib()
     import_s = time.perf_counter() - t
@@ -167,12 +309,10 @@ def main() -> None:
         "import_records_in": 2 * args.records, "import_reports_out": res.reports.height,
         "import_duplicates": res.counts["duplicates"], "import_s": round(imp_s, 2),
         "import_records_per_s": round(2 * args.records / imp_s),
-        **cat021,
+        **cat021, **_new_rates(args.records // 5),
     }
     print(json.dumps(result, indent=2))
-    out = Path(__file__).parent / "results" / "asterix.json"
-    out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
+    _write(result)
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     main = (dec.cat048, dec.cat021, dec.cat062, dec.cat001, dec.cat020, dec.cat004)
     if not any(c.height for c in main):
         first = "; ".join(dict.fromkeys(str(r["reason"]) for r in rejects[:50]))[:300] or "no data block"
-        raise DataError(f"no CAT048, CAT001, CAT020, CAT021, CAT062 or CAT004 record decoded from "
+        raise DataError(f"no CAT048, CAT021 or CAT062 record decoded (nor CAT001, CAT020 or CAT004) from "
                         f"{', '.join(map(str, paths))} ({len(rejects)} problem(s): {first})")
     undated = [c for c in (*main, dec.cat034, dec.cat002) if c.height and c["capture_s"].is_nan().any()]
     if day0 is None and undated:

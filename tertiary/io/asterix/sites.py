@@ -104,7 +104,7 @@ def sites_toml(sites: pl.DataFrame) -> str:
         name = json.dumps(str(row["name"]), ensure_ascii=False)      # a TOML basic string, escaped
         lines += ["", "[[radar]]", f"sac = {row['sac']}", f"sic = {row['sic']}", f"name = {name}",
                   f"radar_id = {row['radar_id']}"]
-        if row.get("kind", "radar") != "radar":
+        if (row.get("kind") or "radar") != "radar":
             lines.append(f"kind = {json.dumps(str(row['kind']))}")
         for k in (*REQUIRED, *OPTIONAL):
             v = row.get(k, math.nan)
