@@ -125,27 +125,71 @@ def _shown(fig) -> set[str]:
     return {t.legendgroup or t.name for t in fig.data if t.visible in (None, True)}
 
 
+def _section(page: str, key: str) -> str:
+    start = page.index(f'<section id="{key}"')
+    return page[start:page.index("</section>", start)].replace("<wbr>", "")
+
+
 def test_verdict_opens_the_report(page, run_dir):
     first = re.search(r'<section id="([^"]+)"', page)
     assert first and first.group(1) == "verdict"
-    verdict = page[first.start():page.index("</section>", first.start())].replace("<wbr>", "")
+    verdict = _section(page, "verdict")
     assert page.index('<section id="verdict"') < page.index("<nav>")         # before the table of contents
-    # the best picture, the reference and the best radar, with units; safety; requirements
+    # three lines: the best picture against the best radar and the reference, the bound, the alerts
     with RunStore.open(run_dir) as store:
         m = store.read("metrics")
     fus = m.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
                    & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
     best = fus["method"][0]
-    assert f"Best picture: {best}</b>" in verdict
-    assert f"horizontal RMSE <b>{fus['value'][0]:,.1f} m</b>" in verdict
-    assert "vertical (height) RMSE <b>" in verdict and "Centralised reference" in verdict
-    assert "Best radar alone" in verdict and "horizontal RMSE (m)" in verdict and "vertical RMSE (m)" in verdict
-    # losses of separation alerted / missed where the safety stage scores them, else the alert scores
-    assert "Safety performance" in verdict and "false alerts" in verdict
-    assert "losses alerted" in verdict or "alerted in time" in verdict
-    # the pipeline judges its tracker pictures against the shipped example requirements
-    assert "Requirements" in verdict and "requirements)." in verdict
-    assert re.search(r"\d+ pass, \d+ fail, \d+ insufficient samples", verdict)
+    assert f"<b>Best picture {best}</b>: horizontal RMSE <b>{fus['value'][0]:,.1f} m</b>" in verdict
+    assert "the best radar alone" in verdict and "centralised reference" in verdict
+    assert "the posterior Cramér–Rao bound" in verdict and "no picture is below the bound" in verdict
+    assert "losses of separation alerted</b>" in verdict and "picture-induced" in verdict
+    # the pipeline judges its pictures against the shipped example requirements: the matrix
+    assert 'id="verdict-matrix"' in verdict and ("Failing: " in verdict or "No requirement fails" in verdict)
+    # the long tables are below the table of contents: in detail and in the appendix
+    detail = _section(page, "verdict-detail")
+    assert "Best radar alone" in detail and "horizontal RMSE (m)" in detail and "vertical RMSE (m)" in detail
+    assert "Safety performance" in detail and "false alerts" in detail and "losses alerted" in detail
+    appendix = _section(page, "requirements")
+    assert page.index("<nav>") < page.index('<section id="verdict-detail"') < page.index('<section id="requirements"')
+    assert re.search(r"\d+ pass, \d+ fail, \d+ insufficient samples", appendix)
+
+
+def test_verdict_matrix_has_one_cell_per_requirement_and_picture(page, run_dir):
+    """Rows are the requirements, columns the pictures (most accurate first), each cell coloured
+    by its verdict with the value on hover, and the failing cells are named above the matrix."""
+    with RunStore.open(run_dir) as store:
+        req = store.read("requirements")
+    verdict = _section(page, "verdict")
+    matrix = verdict[verdict.index('id="verdict-matrix"'):]
+    pictures = re.findall(r'<th class="vm-pic"><span>([^<]+)</span></th>', matrix)
+    assert sorted(pictures) == sorted(req["method"].unique()) and pictures[-1] == CENTRALIZED
+    rows = re.findall(r'<th class="vm-req"[^>]*>([^<]+)</th>', matrix)
+    assert rows == req["requirement"].unique(maintain_order=True).to_list()
+    cells = re.findall(r'<td class="vm verdict-(\w+)" title="([^"]+)">', matrix)
+    assert len(cells) == req.height
+    for r in req.iter_rows(named=True):
+        cell = [c for c in cells if c[1].startswith(f"{r['requirement']} on {r['method']}:")]
+        assert len(cell) == 1 and cell[0][0] == r["verdict"]
+        value = "n/a" if r["value"] is None else f"{r['value']:,.4g}"
+        assert cell[0][1].endswith(f": {r['verdict']}") and f"= {value}," in cell[0][1]
+    sentence = verdict[verdict.index('<p class="vm-sentence">'):verdict.index('id="verdict-matrix"')]
+    for name in req.filter(pl.col("verdict") == "fail")["requirement"].unique():
+        assert f"<b>{name}</b> on " in sentence
+    for name in set(req["requirement"]) - set(req.filter(pl.col("verdict") == "fail")["requirement"]):
+        assert f"<b>{name}</b>" not in sentence
+
+
+def test_failing_pictures_are_named_by_family():
+    from tertiary.report.verdict import _name_pictures
+
+    pics = ["information+imm_sym", "apriori+imm_sym", "information", "apriori", "information+singer",
+            "apriori+singer", CENTRALIZED]
+    assert _name_pictures(["apriori+imm_sym", "information+singer", "apriori+singer", CENTRALIZED], pics) == (
+        "apriori+imm_sym, every +singer picture and centralized")
+    assert _name_pictures(["information", "apriori"], pics) == "every fused picture"
+    assert _name_pictures(pics, pics) == "every picture"
 
 
 def _metric(m: pl.DataFrame, stage: str, method: str, metric: str) -> float:
@@ -157,7 +201,7 @@ def test_verdict_ranks_against_truth_and_bound_and_gives_the_reference_its_own_r
     """The verdict ranks the pictures by their error against the truth, each with its gap to the
     PCRB, and never measures them against the centralised reference; the reference's own
     figures (RMSE, gap, false tracks per hour) are a row of their own, unranked."""
-    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
+    verdict = _section(page, "verdict-detail")
     assert "the reference's" not in verdict and "against the centralised reference" not in verdict
     with RunStore.open(run_dir) as store:
         m = store.read("metrics")
@@ -187,10 +231,11 @@ def test_verdict_of_an_evaluation_never_ranks_the_reference_first(run_dir, tmp_p
         store.con.execute("DELETE FROM run WHERE key = 'kind'")
         store.con.execute("INSERT INTO run VALUES ('kind', 'evaluation')")
     page = build_report(tmp_path, tmp_path / "r.html").read_text()
-    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
-    assert "Most accurate picture: " in verdict and f"Most accurate picture: {CENTRALIZED}" not in verdict
-    assert f"Centralised reference ({CENTRALIZED}, not ranked): horizontal RMS 0.5 m" in verdict
-    assert "false tracks per hour" in verdict
+    verdict, detail = _section(page, "verdict"), _section(page, "verdict-detail")
+    assert "<b>Most accurate picture " in verdict and f"Most accurate picture {CENTRALIZED}" not in verdict
+    assert "Most accurate picture: " in detail and f"Most accurate picture: {CENTRALIZED}" not in detail
+    assert f"Centralised reference ({CENTRALIZED}, not ranked): horizontal RMS 0.5 m" in detail
+    assert "false tracks per hour" in detail
 
 
 def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path):
@@ -198,7 +243,7 @@ def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path)
     req = pl.DataFrame({"requirement": ["horizontal RMS terminal", "probability of update"],
                         "metric": ["rmse_horizontal_m", "prob_update"], "breakdown": ["all", "all"],
                         "threshold": [150.0, 0.97], "value": [48.0, 0.9], "n_samples": [1000, 12],
-                        "verdict": ["pass", "insufficient"]})
+                        "verdict": ["pass", "insufficient"], "method": "information"})
     los = pl.DataFrame({"stage": "safety", "method": "information",
                         "metric": ["los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
                                    "alerts_per_hour", "warning_median_s", "warning_p05_s"],
@@ -209,22 +254,24 @@ def test_verdict_renders_requirements_and_losses_when_present(run_dir, tmp_path)
         store.con.execute("DELETE FROM metrics WHERE stage = 'safety' AND metric IN (SELECT metric FROM los)")
         store.con.execute("INSERT INTO metrics SELECT * FROM los")
     page = build_report(tmp_path, tmp_path / "r.html").read_text()
-    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
-    assert "1 pass, 0 fail, 1 insufficient samples</b> (of 2 requirements)" in verdict
-    assert 'class="verdict-pass"' in verdict and 'class="verdict-insufficient"' in verdict
-    assert "5th-percentile warning (s)" in verdict and "median warning (s)" in verdict
-    assert "4 losses of separation in truth, <b>3 alerted</b>, <b>1 missed</b>" in verdict
-    assert "(6.5 alerts per hour); median warning 41 s, 5th percentile 12 s" in verdict
+    verdict, detail, appendix = (_section(page, k) for k in ("verdict", "verdict-detail", "requirements"))
+    assert "1 pass, 0 fail, 1 insufficient samples</b> (of 2 requirement × picture cells" in appendix
+    assert 'class="verdict-pass"' in appendix and 'class="verdict-insufficient"' in appendix
+    assert "No requirement fails on any picture. 1 cell(s) have too few samples" in verdict
+    assert 'class="vm verdict-pass"' in verdict and 'class="vm verdict-insufficient"' in verdict
+    assert "<b>3 of 4 losses of separation alerted</b>, median warning 41 s" in verdict
+    assert "5th-percentile warning (s)" in detail and "median warning (s)" in detail
+    assert "4 losses of separation in truth, <b>3 alerted</b>, <b>1 missed</b>" in detail
+    assert "(6.5 alerts per hour); median warning 41 s, 5th percentile 12 s" in detail
 
 
-def test_verdict_without_loss_of_separation_scores_gives_alert_scores(run_dir, tmp_path):
+def test_verdict_without_loss_of_separation_scores_says_so(run_dir, tmp_path):
     shutil.copy(run_dir / "results.duckdb", tmp_path / "results.duckdb")
     with RunStore.update(tmp_path) as store:
         store.con.execute("DELETE FROM metrics WHERE metric IN ('los_episodes', 'alerted_los', 'missed_los')")
     page = build_report(tmp_path, tmp_path / "r.html").read_text()
-    verdict = page[page.index('<section id="verdict"'):page.index("<nav>")].replace("<wbr>", "")
-    assert "true-conflict episodes in truth" in verdict and "alerted in time" in verdict
-    assert "mean warning (s)" in verdict and "losses of separation" not in verdict
+    verdict, detail = _section(page, "verdict"), _section(page, "verdict-detail")
+    assert "<b>Alerts</b>" not in verdict and "No losses of separation were scored" in detail
 
 
 def test_default_visible_traces_are_best_picture_reference_and_best_radar(built, run_dir):

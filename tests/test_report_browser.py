@@ -108,7 +108,7 @@ def report(tmp_path_factory) -> Path:
     cfg = dataclasses.replace(cfg, duration_s=300.0, traffic=dataclasses.replace(cfg.traffic, aircraft=20,
                                                                                   conflict_pairs=3))
     out = tmp_path_factory.mktemp("browser_run")
-    pipeline.run(simulate(cfg), out, pipeline.PipelineConfig(filters=("singer",)))
+    pipeline.run(simulate(cfg), out, pipeline.PipelineConfig())        # the main job's pictures (22)
     return build_report(out)
 
 
@@ -145,3 +145,16 @@ def test_javascript_errors_are_caught(report, tmp_path):
     assert "boom" in dom.errors or "null" in dom.errors
     assert dom.body.get("data-js-errors") == "1"
     assert dom.body.get("data-rendered") == dom.body.get("data-figures")
+
+
+def test_verdict_matrix_fits_one_screen(report):
+    """With the main job's pictures, the verdict (three lines, the failing cells, the matrix) ends
+    above the fold of a 1400 × 900 window."""
+    res = chromium(f"--virtual-time-budget={BUDGET_MS}", "--window-size=1400,900", "--dump-dom",
+                   report.resolve().as_uri())
+    assert res.returncode == 0, res.stderr[-2000:]
+    dom = DomSummary()
+    dom.feed(res.stdout)
+    assert report.read_text().count('<th class="vm-pic">') == 22
+    bottom = int(dom.body.get("data-verdict-bottom", "100000"))
+    assert 0 < bottom <= 900, f"the verdict matrix ends at {bottom} px"

@@ -75,7 +75,7 @@ from tertiary.report.common import (MAX_POINTS, MIN_SAMPLE_FRAC, Ctx, Progress, 
 from tertiary.report.figures import (sec_accuracy, sec_conflicts, sec_evaluation, sec_kinematics, sec_map,
                                      sec_post_prior, sec_quality, sec_residuals, sec_rmse_time)
 from tertiary.report.safety_figures import sec_capacity, sec_ppob, sec_stca
-from tertiary.report.verdict import sec_verdict
+from tertiary.report.verdict import sec_requirements_long, sec_verdict, sec_verdict_detail
 from tertiary.store.files import write_text_atomic
 from tertiary.store.sql_reports import open_read_only
 
@@ -127,6 +127,7 @@ def _template(name: str) -> str:
 
 _SECTIONS: list[tuple[str, Callable[[Ctx], Section]]] = [
     ("verdict", sec_verdict),
+    ("verdict in detail", sec_verdict_detail),
     ("scenario map", sec_map),
     ("range, rate, acceleration", sec_kinematics),
     ("residuals", sec_residuals),
@@ -139,11 +140,13 @@ _SECTIONS: list[tuple[str, Callable[[Ctx], Section]]] = [
     ("STCA curves", sec_stca),
     ("P_pob", sec_ppob),
     ("capacity", sec_capacity),
+    ("requirements", sec_requirements_long),
     ("metadata", sec_metadata),
 ]
 
 
-_EVAL_SECTIONS = [("verdict", sec_verdict), ("evaluation", sec_evaluation), ("metadata", sec_metadata)]
+_EVAL_SECTIONS = [("verdict", sec_verdict), ("verdict in detail", sec_verdict_detail), ("evaluation", sec_evaluation),
+                  ("requirements", sec_requirements_long), ("metadata", sec_metadata)]
 
 @dataclass
 class _Built:
@@ -225,7 +228,7 @@ def render_report(run_dir: str | os.PathLike[str], progress: Progress | None = N
     built_at = datetime.now(timezone.utc).strftime('%Y-%m-%d %H:%M:%S')
     page = Template(_template("page.html")).substitute(
         title=html.escape(built.scenario), head_script=_template("head.js"),
-        css=_template("report.css"), n_figures=n_fig, created=html.escape(built.created),
+        css=_template("report.css"), n_figures=n_fig, created=html.escape(built.created[:19].replace('T', ' ')),
         summary=html.escape(summary), built=built_at, seconds=f"{time.perf_counter() - t_all:.1f}",
         verdict="".join(top), toc="".join(toc), body="".join(body))
     return page, n_fig

@@ -17,6 +17,11 @@
     record('unhandled rejection: ' + ((r && (r.stack || r.message)) || r));
   });
   document.addEventListener('DOMContentLoaded', show);
+  // where the verdict matrix ends on the page (px from the top): "above the fold" is checkable
+  window.addEventListener('load', function () {
+    var m = document.getElementById('verdict-matrix');
+    if (m) { document.body.dataset.verdictBottom = String(Math.round(m.getBoundingClientRect().bottom + window.scrollY)); }
+  });
   window.__reportRendered = 0;
   window.__reportDone = function (id) {
     var el = document.getElementById(id);
