@@ -127,3 +127,10 @@ def test_cli_compare_refuses_a_missing_or_incomplete_run(runs, tmp_path):
         cmp.load_runs([runs[0]])
     res = runner.invoke(app, ["compare", str(runs[0]), str(runs[1]), "--out", str(tmp_path / "x.txt")])
     assert res.exit_code == 2 and "--out" in res.output
+
+
+def test_requirements_are_told_apart_by_rule_and_breakdown():
+    req = pl.DataFrame({"requirement": ["H-RMS", "H-RMS"], "metric": ["rmse_horizontal_m"] * 2, "op": ["<="] * 2,
+                        "threshold": [150.0, 150.0], "breakdown": ["all", "range:0-50km"]})
+    names = req.select(cmp._requirement(req.columns).alias("q"))["q"].to_list()
+    assert names == ["H-RMS: rmse_horizontal_m <= 150.0", "H-RMS: rmse_horizontal_m <= 150.0 (range:0-50km)"]

@@ -118,7 +118,7 @@ def test_figure_draws_the_episodes_tracks_cpa_and_minima(run):
     assert "east x (km)" == fig.layout.xaxis.title.text and "T_min" in caption
 
 
-def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path):
+def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
     """The safety stage's missed losses are not stored: an alerted loss whose alerts are deleted
     must come back as a missed loss of that pair."""
     copy = tmp_path / "run"
@@ -135,6 +135,11 @@ def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path):
     with _store(copy) as store:
         missed, note = ev.missed_losses(store, best)
         fig, caption = ev.episode_figure(store, missed[0])
+        of_pair, _ = ev.missed_losses(store, best, (gone["truth_a"], gone["truth_b"]))   # that pair's truth only
+        monkeypatch.setattr(ev, "MAX_TRUTH_ROWS", 10)
+        none, too_big = ev.missed_losses(store, best)
+    assert [m.t_start for m in of_pair] == [m.t_start for m in missed]
+    assert none == [] and "--pair" in too_big
     assert [(m.truth_a, m.truth_b) for m in missed] == [(gone["truth_a"], gone["truth_b"])]
     assert abs((missed[0].t_start - gone["los_start"]).total_seconds()) < 1.0
     assert missed[0].induced == "picture"        # the truth picture alerted it
