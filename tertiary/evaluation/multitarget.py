@@ -86,9 +86,11 @@ def _pairs(pt: NDArray, gt: NDArray, pr: NDArray, gr: NDArray, radius: float) ->
     """(track row, truth row, distance) of every pair at one epoch closer than ``radius``."""
     if len(pt) == 0 or len(pr) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-    # one tree for every epoch: the group index offsets x by more than the radius; the tree only
-    # finds candidates (the offset costs precision), distances come from the raw positions
-    off = 3.0 * radius
+    # one tree for every epoch: the group index offsets x by more than the picture's extent, so
+    # epochs never meet; the tree only finds candidates (the offset costs precision), distances
+    # come from the raw positions
+    xs = np.concatenate([pt[:, 0], pr[:, 0]])
+    off = float(xs.max() - xs.min()) + 3.0 * radius
     shift_t = np.column_stack([pt[:, 0] + gt * off, pt[:, 1:]])
     shift_r = np.column_stack([pr[:, 0] + gr * off, pr[:, 1:]])
     near = cKDTree(shift_t).sparse_distance_matrix(cKDTree(shift_r), radius * (1 + 1e-6) + 1e-3,
@@ -128,8 +130,9 @@ def _max_weight_matching(i: NDArray, j: NDArray, w: NDArray, n_t: int, n_r: int)
     cost = np.concatenate([k - w[rest], np.full(na, k), np.full(nb, k), ones])
     r, c = min_weight_full_bipartite_matching(csr_matrix((cost, (rows, cols)), shape=(na + nb, na + nb)))
     real = (r < na) & (c < nb)
-    pick = {(int(x), int(y)) for x, y in zip(r[real], c[real])}
-    chosen[rest] = [(int(x), int(y)) in pick for x, y in zip(a, b)]
+    partner = np.full(na, -1)
+    partner[r[real]] = c[real]
+    chosen[rest] = partner[a] == b
     return chosen
 
 
@@ -147,6 +150,32 @@ def _prepared(tracks: pl.DataFrame, truth: pl.DataFrame) -> tuple[pl.DataFrame, 
     return tr, ref
 
 
+@dataclass(frozen=True)
+class _Scene:
+    """One picture's rows and truth, their (run, epoch) groups and every pair of a track and a
+    truth at one epoch closer than the larger of the cut-off and the SIAP distance."""
+
+    tracks: pl.DataFrame
+    truth: pl.DataFrame
+    groups: pl.DataFrame
+    gt: NDArray
+    gr: NDArray
+    i: NDArray
+    j: NDArray
+    d: NDArray
+    #: the SIAP association: (track row, its nearest truth row, distance)
+    nearest: tuple[NDArray, NDArray, NDArray]
+
+
+def _scene(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MultiTargetConfig) -> _Scene:
+    tr, ref = _prepared(tracks, truth)
+    groups, gt, gr = _epoch_index(tr, ref)
+    i, j, d = _pairs(_positions(tr, _TRACK[3:]), gt, _positions(ref, _TRUTH[3:]), gr,
+                     max(cfg.c_m, cfg.siap_threshold_m))
+    return _Scene(tr, ref.with_columns(pl.col("truth_id").cast(pl.Int64)), groups, gt, gr, i, j, d,
+                  _nearest(i, j, d, cfg.siap_threshold_m))
+
+
 def multitarget_by_epoch(tracks: pl.DataFrame, truth: pl.DataFrame,
                          cfg: MultiTargetConfig = MultiTargetConfig()) -> pl.DataFrame:
     """Per (run, epoch) of ``tracks`` (run, epoch, track_id, x_m, y_m, z_m): OSPA, GOSPA and its
@@ -154,24 +183,23 @@ def multitarget_by_epoch(tracks: pl.DataFrame, truth: pl.DataFrame,
     true_x_m, true_y_m, true_z_m: the truth at the picture's epochs). Columns: run, epoch,
     n_tracks (N), n_truths (J), ospa_m, gospa_m, gospa_localisation, gospa_missed, gospa_false,
     siap_truths_assoc (JT), siap_tracks_assoc (NA), siap_error_sum_m (PA)."""
-    tr, ref = _prepared(tracks, truth)
-    groups, gt, gr = _epoch_index(tr, ref)
-    pt, pr = _positions(tr, _TRACK[3:]), _positions(ref, _TRUTH[3:])
-    c, p = cfg.c_m, cfg.p
-    i, j, d = _pairs(pt, gt, pr, gr, max(c, cfg.siap_threshold_m))
-    cut = d < c
-    won = _max_weight_matching(i[cut], j[cut], c ** p - d[cut] ** p, len(pt), len(pr))
-    g_m = gt[i[cut][won]]
-    n_g = groups.height
-    matched = np.bincount(g_m, minlength=n_g).astype(np.float64)
-    loc = np.bincount(g_m, weights=d[cut][won] ** p, minlength=n_g)
+    return _by_epoch(_scene(tracks, truth, cfg), cfg)
+
+
+def _by_epoch(sc: _Scene, cfg: MultiTargetConfig) -> pl.DataFrame:
+    c, p, gt, gr, n_g = cfg.c_m, cfg.p, sc.gt, sc.gr, sc.groups.height
+    cut = sc.d < c
+    i, d = sc.i[cut], sc.d[cut]
+    won = _max_weight_matching(i, sc.j[cut], c ** p - d ** p, sc.tracks.height, sc.truth.height)
+    matched = np.bincount(gt[i[won]], minlength=n_g).astype(np.float64)
+    loc = np.bincount(gt[i[won]], weights=d[won] ** p, minlength=n_g)
     n_t = np.bincount(gt, minlength=n_g).astype(np.float64)
     n_r = np.bincount(gr[gr >= 0], minlength=n_g).astype(np.float64)
     n = np.maximum(n_t, n_r)
     ospa = ((loc + c ** p * (n - matched)) / n) ** (1.0 / p)
     missed, false = c ** p / 2 * (n_r - matched), c ** p / 2 * (n_t - matched)
-    it, jt, dt = _nearest(i, j, d, cfg.siap_threshold_m)
-    return groups.select("run", "epoch").with_columns(
+    it, jt, dt = sc.nearest
+    return sc.groups.select("run", "epoch").with_columns(
         pl.Series("n_tracks", n_t.astype(np.int64)), pl.Series("n_truths", n_r.astype(np.int64)),
         pl.Series("ospa_m", ospa), pl.Series("gospa_m", (loc + missed + false) ** (1.0 / p)),
         pl.Series("gospa_localisation", loc), pl.Series("gospa_missed", missed), pl.Series("gospa_false", false),
@@ -190,15 +218,12 @@ def _nearest(i: NDArray, j: NDArray, d: NDArray, threshold: float) -> tuple[NDAr
     return i[first], j[first], d[first]
 
 
-def _associations(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MultiTargetConfig) -> pl.DataFrame:
+def _associations(sc: _Scene) -> pl.DataFrame:
     """Each track row (run, epoch, track_id) with its SIAP truth (``truth_id``, null: none)."""
-    groups, gt, gr = _epoch_index(tracks, truth)
-    pt, pr = _positions(tracks, _TRACK[3:]), _positions(truth, _TRUTH[3:])
-    i, j, d = _pairs(pt, gt, pr, gr, cfg.siap_threshold_m)
-    it, jt, _ = _nearest(i, j, d, cfg.siap_threshold_m)
-    ids = np.full(tracks.height, -1, np.int64)
-    ids[it] = truth["truth_id"].cast(pl.Int64).to_numpy()[jt]
-    return tracks.select("run", "epoch", "track_id").with_columns(
+    it, jt, _ = sc.nearest
+    ids = np.full(sc.tracks.height, -1, np.int64)
+    ids[it] = sc.truth["truth_id"].to_numpy()[jt]
+    return sc.tracks.select("run", "epoch", "track_id").with_columns(
         pl.when(pl.Series(ids >= 0)).then(pl.Series(ids)).otherwise(None).alias("truth_id"))
 
 
@@ -271,12 +296,14 @@ def siap_continuity(tracks: pl.DataFrame, truth: pl.DataFrame,
                     cfg: MultiTargetConfig = MultiTargetConfig()) -> tuple[float, float]:
     """(R in track number changes per second, LS): the SIAP continuity of ``tracks`` against
     ``truth`` (the frames of :func:`multitarget_by_epoch`; module docstring)."""
-    tr, ref = _prepared(tracks, truth)
-    key = ["run", "truth_id"]
-    ref = ref.with_columns(pl.col("truth_id").cast(pl.Int64))
+    return _continuity(_scene(tracks, truth, cfg))
+
+
+def _continuity(sc: _Scene) -> tuple[float, float]:
+    key, ref = ["run", "truth_id"], sc.truth
     life = ref.group_by(key).agg(((pl.col("epoch").max() - pl.col("epoch").min()).dt.total_microseconds() / 1e6)
                                  .alias("t_s"))
-    seg = _segments(_associations(tr, ref, cfg))
+    seg = _segments(_associations(sc))
     total = float(life["t_s"].sum())
     if seg.height == 0:
         return 0.0, 0.0
@@ -295,11 +322,12 @@ def multitarget_metrics(tracks: pl.DataFrame, truth: pl.DataFrame, method: str,
     """The :data:`METRICS` rows of one picture (metrics schema, stage ``evaluation``, segment
     ``all``): OSPA, GOSPA and its parts as means over the picture's (run, epoch), the SIAP
     measures pooled over them as Stone Soup pools them (module docstring)."""
-    ep = multitarget_by_epoch(tracks, truth, cfg)
+    sc = _scene(tracks, truth, cfg)
+    ep = _by_epoch(sc, cfg)
     s = ep.select(pl.exclude("run", "epoch").sum())
     mean = ep.select(pl.col("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false").mean())
     j, jt, n, na = (float(s[c].item()) for c in ("n_truths", "siap_truths_assoc", "n_tracks", "siap_tracks_assoc"))
-    rate, longest = siap_continuity(tracks, truth, cfg)
+    rate, longest = _continuity(sc)
     values = [*(float(mean[c].item()) for c in mean.columns),
               jt / j if j else 0.0, na / jt if jt else 1.0, (n - na) / n if n else 0.0,
               float(s["siap_error_sum_m"].item()) / na if na else 0.0, 3600.0 * rate, longest, float(ep.height)]
