@@ -136,10 +136,7 @@ def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
         missed, note = ev.missed_losses(store, best)
         fig, caption = ev.episode_figure(store, missed[0])
         of_pair, _ = ev.missed_losses(store, best, (gone["truth_a"], gone["truth_b"]))   # that pair's truth only
-        monkeypatch.setattr(ev, "MAX_TRUTH_ROWS", 10)
-        none, too_big = ev.missed_losses(store, best)
     assert [m.t_start for m in of_pair] == [m.t_start for m in missed]
-    assert none == [] and "--pair" in too_big
     assert [(m.truth_a, m.truth_b) for m in missed] == [(gone["truth_a"], gone["truth_b"])]
     assert abs((missed[0].t_start - gone["los_start"]).total_seconds()) < 1.0
     assert missed[0].induced == "picture"        # the truth picture alerted it
@@ -149,6 +146,10 @@ def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
     assert any((t.name or "").startswith("A: track ") for t in fig.data), "the picture's nearest tracks drawn"
     _p, figs, _n = ev.episode_figures(copy, n=1)
     assert "missed loss" in figs[-1][0].layout.title.text     # the section draws every missed loss
+    monkeypatch.setattr(ev, "MAX_TRUTH_ROWS", 10)
+    with _store(copy) as store:
+        none, too_big = ev.missed_losses(store, best)
+    assert none == [] and "--pair" in too_big
 
 
 def test_section_fragment_counts_its_figures(run):
