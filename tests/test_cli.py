@@ -272,3 +272,39 @@ def test_one_malloc_arena_is_set_on_glibc():
     import platform
     from tertiary.core.memory import one_malloc_arena
     assert one_malloc_arena() is (platform.libc_ver()[0] == "glibc")
+
+
+def test_counted_steps_drive_the_progress_bar():
+    from tertiary.cli.common import counted_step
+
+    assert counted_step("window 3/12 done, 12:00 – 12:05: 9,000 reports so far, 4,321 reports/s") == (
+        3, 12, "4,321 reports/s")
+    assert counted_step("radar scans window 3/12") == (2, 12, "")          # running: two done
+    assert counted_step("align") is None
+
+
+def test_a_terminal_shows_a_bar_with_rate_and_eta(monkeypatch):
+    """In a terminal, windows done of the total, reports/s and the remaining time; a batch log
+    (not a terminal) keeps its one line per window."""
+    import io
+
+    from rich.console import Console
+
+    from tertiary.cli import common
+
+    out = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=out, force_terminal=True, width=150))
+    common.set_log(False, "text")
+    with common.Steps("pipeline") as say:
+        say("pipeline: validate")
+        say("window 2/8 done, 12:00 – 12:05: 2,000 reports so far, 5,000 reports/s, RSS 1 MiB")
+        task = say._prog.tasks[0]
+        assert (task.completed, task.total, task.fields["rate"]) == (2, 8, "5,000 reports/s")
+        say._prog.refresh()
+    screen = out.getvalue()
+    assert "2/8" in screen and "5,000 reports/s" in screen and "ETA" in screen
+    log = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=log, force_terminal=False, width=150))
+    with common.Steps("pipeline") as say:
+        say("window 2/8 done, 12:00 – 12:05: 2,000 reports so far, 5,000 reports/s, RSS 1 MiB")
+    assert "pipeline: window 2/8 done" in log.getvalue() and "━" not in log.getvalue()

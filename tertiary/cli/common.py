@@ -11,6 +11,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import sys
 import time
 from datetime import datetime, timezone
@@ -20,7 +21,8 @@ from typing import Annotated, Any, Optional
 import polars as pl
 import typer
 from rich.console import Console
-from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn,
+                           TimeRemainingColumn)
 from rich.table import Table
 
 from tertiary.core.errors import DataError, OptionError
@@ -71,23 +73,54 @@ def set_log(quiet: bool, log_format: str) -> None:
     _LOG["mode"] = "quiet" if quiet else log_format
 
 
+#: a step of a counted loop: "window 3/12" (running) or "window 3/12 done"; "part" and "block" too
+_COUNTED = re.compile(r"\b(?:window|part|block) (\d+)/(\d+)( done)?")
+_RATE = re.compile(r"([\d,]+) reports/s")
+
+
+def counted_step(message: str) -> tuple[int, int, str] | None:
+    """(done, total, rate) of a counted step's message: a step K/N running has K − 1 done, one that
+    says ``done`` K; the rate is its "N reports/s" (else ""); None for any other message."""
+    m = _COUNTED.search(message)
+    if m is None:
+        return None
+    k, n = int(m.group(1)), int(m.group(2))
+    rate = _RATE.search(message)
+    return (k if m.group(3) else k - 1), n, (f"{rate.group(1)} reports/s" if rate else "")
+
+
 class Steps:
-    """Stage progress: a transient status line in a terminal, plain time-stamped lines in a batch
-    log (no spinner glyphs, one line per stage, flushed as it happens, with the peak memory so
-    far), JSON lines with ``--log-format json``, nothing with ``--quiet``."""
+    """Stage progress: in a terminal a transient status line, which becomes a bar (done of total,
+    reports/s, elapsed and remaining time) as soon as a step is counted (:func:`counted_step`);
+    plain time-stamped lines in a batch log (no glyphs, one line per stage or window, flushed as it
+    happens, with the peak memory so far), JSON lines with ``--log-format json``, nothing with
+    ``--quiet``."""
 
     def __init__(self, title: str) -> None:
         self.title, self.t0 = title, time.perf_counter()
         self._prog: Progress | None = None
         self._task: Any = None
+        self._counted = False
 
     def __enter__(self) -> Steps:
         if console.is_terminal and _LOG["mode"] == "text":
-            self._prog = Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                                  console=console, transient=True)
-            self._prog.__enter__()
-            self._task = self._prog.add_task(self.title, total=None)
+            self._start(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn())
         return self
+
+    def _start(self, *columns: Any, total: int | None = None) -> None:
+        """A transient status line with these columns (replacing the one shown)."""
+        if self._prog is not None:
+            self._prog.__exit__(None, None, None)
+        self._prog = Progress(*columns, console=console, transient=True)
+        self._prog.__enter__()
+        self._task = self._prog.add_task(self.title, total=total, rate="")
+
+    def _bar(self, total: int) -> None:
+        """From the first counted step on: done of total, reports/s, elapsed and remaining time."""
+        self._start(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(bar_width=30), MofNCompleteColumn(),
+                    TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                    total=total)
+        self._counted = True
 
     def __exit__(self, *exc: Any) -> None:
         if self._prog is not None:
@@ -103,7 +136,16 @@ class Steps:
                                          "peak_rss_mib": round(peak_rss_mib(), 1)}) + "\n")
             sys.stdout.flush()
         elif self._prog is not None:
-            self._prog.update(self._task, description=f"{self.title}: {message}")
+            counted = counted_step(message)
+            if counted is None:
+                self._prog.update(self._task, description=f"{self.title}: {message}")
+            else:
+                done, total, rate = counted
+                if not self._counted:
+                    self._bar(total)
+                label = message[:_COUNTED.search(message).end()]       # "window 3/12 done"
+                self._prog.update(self._task, description=f"{self.title}: {label}",
+                                  completed=done, total=total, rate=rate or self._prog.tasks[0].fields["rate"])
         else:
             console.print(f"[{elapsed:7.1f} s] {self.title}: {message} (peak {peak_rss_mib():,.0f} MiB)",
                           soft_wrap=True)

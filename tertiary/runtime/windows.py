@@ -504,8 +504,8 @@ class Meter:
         self.reports += n
         dt = max(time.perf_counter() - self.t_start, 1e-9)
         fmt = utc_text
-        self.say(f"window {w.index + 1}/{self.n_windows} {fmt(t0_us)} – {fmt(t1_us)}: {self.reports:,} reports so "
-                 f"far, {self.reports / dt:,.0f} reports/s, RSS {rss_mib():,.0f} MiB")
+        self.say(f"window {w.index + 1}/{self.n_windows} done, {fmt(t0_us)} – {fmt(t1_us)}: {self.reports:,} reports "
+                 f"so far, {self.reports / dt:,.0f} reports/s, RSS {rss_mib():,.0f} MiB")
 
 
 def utc_text(us: int) -> str:
