@@ -4,16 +4,17 @@ Every figure and table is drawn from the named SQL reports in ``sql/`` (run read
 :mod:`tertiary.store.sql_reports`); only the capacity-model curves of figs. 5.2/5.3 come from
 :mod:`safety.capacity`. The plotly.js bundle is embedded inline once, so the file opens offline.
 
-The report opens with a **verdict** block: the best pictures ranked by their accuracy against the
-truth, each with its gap to the posterior Cramér–Rao bound, the centralised reference on a row of
-its own (never ranked) and the best radar beside them; the safety performance (losses of
-separation alerted / missed where the safety stage scores them, how many alerts the picture
-causes against the truth picture, else the alert scores against truth) and the requirements
-pass/fail table when the run holds a ``requirements`` table. The *best picture* is the fused or
-tracker picture (not the centralised reference) with the lowest horizontal RMSE (segment
-``all``); the *best radar* the radar whose own track estimates have the lowest horizontal RMSE.
-In the accuracy and conflict figures these three are drawn by default; every other trace is in
-the legend (click to show).
+The report opens with a **verdict** that fits one screen (:mod:`tertiary.report.verdict`): three
+lines — the best picture against the best radar and the centralised reference, its gap to the
+posterior Cramér–Rao bound, its alerts and how many the picture causes against the truth picture
+— then the requirements × pictures matrix, the failing cells named in one sentence above it.
+"Verdict in detail" follows the table of contents (the pictures ranked by their accuracy against
+the truth, each with its gap to the bound; the centralised reference on a row of its own, never
+ranked; the best radar; the safety table), and the requirements' long form is an appendix. The
+*best picture* is the fused or tracker picture (not the centralised reference) with the lowest
+horizontal RMSE (segment ``all``); the *best radar* the radar whose own track estimates have the
+lowest horizontal RMSE. In the accuracy and conflict figures these three are drawn by default;
+every other trace is in the legend (click to show).
 
 Edge-of-coverage rule: accuracy curves over time leave out epochs whose number of scored samples
 N_k is below :data:`MIN_SAMPLE_FRAC` of the median N_k of that curve (at the start and end of
@@ -49,7 +50,8 @@ terminal-area run gives a few MB (of which plotly.js is about 4.6 MB).
 Browser checks: a small script in the page head records every JavaScript error (``error`` and
 ``unhandledrejection`` events) into ``<pre id="js-errors">`` and ``body[data-js-errors]``;
 each figure increments ``body[data-rendered]`` once plotly has drawn it, and
-``body[data-figures]`` holds the number of figures in the file.
+``body[data-figures]`` holds the number of figures in the file; ``body[data-verdict-bottom]`` where the
+verdict matrix ends (px from the top of the page), so "above the fold" is checked in a browser.
 """
 
 
