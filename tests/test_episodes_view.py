@@ -35,8 +35,8 @@ _DONE: dict[str, Path] = {}
 
 
 def small_run(factory: pytest.TempPathFactory, name: str = "base") -> Path:
-    """A small terminal-area run (20 aircraft, 300 s, 3 conflict pairs, one tracker filter),
-    built once per process and shared by the view tests."""
+    """A small terminal-area run (20 aircraft, 300 s, 3 conflict pairs, one tracker filter, no
+    STCA curves), built once per process and shared by the view tests."""
     if name not in _DONE:
         if "dataset" not in _DONE:
             cfg = load_scenario("terminal-area")
@@ -44,7 +44,9 @@ def small_run(factory: pytest.TempPathFactory, name: str = "base") -> Path:
                                                                                           conflict_pairs=3))
             _DONE["dataset"] = simulate(cfg)          # type: ignore[assignment]
         out = factory.mktemp(f"view_run_{name}")
-        pipeline.run(_DONE["dataset"], out, pipeline.PipelineConfig(methods=RUNS[name], filters=("imm_sym",)))
+        # no STCA trade-off curves: half the run's time, and no view reads them
+        pipeline.run(_DONE["dataset"], out, pipeline.PipelineConfig(methods=RUNS[name], filters=("imm_sym",),
+                                                                    stca_lookaheads_s=()))
         _DONE[name] = out
     return _DONE[name]
 
