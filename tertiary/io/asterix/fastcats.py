@@ -72,13 +72,14 @@ def icao_text(v: NDArray[np.int64], chars: int = 8) -> pl.Series:
     return s.set(pl.Series(v < 0) | (s == ""), None)
 
 
-def ascii_text(buf: NDArray[np.uint8], offs: NDArray[np.int64], n: int) -> pl.Series:
-    """``n`` ASCII octets at ``offs`` (null where absent or blank), trailing spaces and NULs removed."""
-    pos = np.where(offs >= 0, offs, 0)[:, None] + np.arange(n)
-    raw = buf[pos] if len(buf) else np.zeros((len(offs), n), np.uint8)
+def ascii_text(v: NDArray[np.int64], n: int) -> pl.Series:
+    """``n`` ASCII octets held big-endian in ``v`` (-1: absent) → text, trailing spaces removed,
+    null when blank or absent; octets outside printable ASCII read as spaces."""
+    w = np.maximum(v, 0)
+    raw = np.stack([(w >> (8 * (n - 1 - i))) & 0xFF for i in range(n)], axis=1).astype(np.uint8)
     raw = np.where((raw >= 32) & (raw < 127), raw, 32).astype(np.uint8)
     s = pl.Series(np.ascontiguousarray(raw).view(f"S{n}").ravel()).cast(pl.String).str.strip_chars_end(" ")
-    return s.set(pl.Series(offs < 0) | (s == ""), None)
+    return s.set(pl.Series(v < 0) | (s == ""), None)
 
 
 def hex6(v: NDArray[np.int64]) -> pl.Series:
@@ -100,6 +101,17 @@ def flight_level(v: NDArray[np.int64]) -> tuple[pl.Series, pl.Series]:
     fl = fastwalk.signed(v & 0x3FFF, 14) / 4.0
     return (pl.Series(np.where(v >= 0, fl, np.nan)).fill_nan(None),
             pl.Series(np.where((v >= 0) & ((v & 0xC000) == 0), fl, np.nan)).fill_nan(None))
+
+
+def identities(frame: pl.DataFrame, suffixes: tuple[str, ...]) -> pl.DataFrame:
+    """Raw CAT004 identity columns ``ai_X``, ``m3_X``, ``ms_X`` (X in ``suffixes``) → text
+    columns ``callsign_X``, ``mode_3a_X``, ``mode_s_ident_X``."""
+    out = []
+    for k in suffixes:
+        out += [ascii_text(frame[f"ai_{k}"].fill_null(-1).to_numpy(), 7).alias(f"callsign_{k}"),
+                mode_3a(frame[f"m3_{k}"].fill_null(-1).to_numpy()).alias(f"mode_3a_{k}"),
+                icao_text(frame[f"ms_{k}"].fill_null(-1).to_numpy()).alias(f"mode_s_ident_{k}")]
+    return frame.drop(*(f"{c}_{k}" for k in suffixes for c in ("ai", "m3", "ms"))).with_columns(out)
 
 
 def _nan(ok: NDArray[np.bool_], v: NDArray[Any]) -> pl.Series:
@@ -220,10 +232,10 @@ def decode_004(items: list[Item], rejects: Rejects) -> pl.DataFrame:
     }
     for item, k in (("170", "1"), ("171", "2")):
         sub = fastwalk.sub_offsets(buf, offs[:, prog.slot(item)], _sizes(prog, item))
-        g = Fields(buf, {"m3": sub[1], "ms": sub[7]})
+        g = Fields(buf, {"ai": sub[0], "m3": sub[1], "ms": sub[7]})
         m3 = g.u("m3", 0, 2)           # spare(4) | code(12): no V/G bits
-        cols |= {f"callsign_{k}": ascii_text(buf, sub[0], 7), f"mode_3a_{k}": mode_3a(np.where(m3 >= 0, m3 & 0x0FFF, -1)),
-                 f"mode_s_ident_{k}": icao_text(g.u("ms", 0, 6))}
+        # raw values: text is made per alert episode (:func:`identities`), not per message
+        cols |= {f"ai_{k}": g.u("ai", 0, 7), f"m3_{k}": np.where(m3 >= 0, m3 & 0x0FFF, -1), f"ms_{k}": g.u("ms", 0, 6)}
     tc = fastwalk.sub_offsets(buf, offs[:, prog.slot("070")], _sizes(prog, "070"))
     g = Fields(buf, {"tca": tc[1], "mhs": tc[3], "mvs": tc[5]})
     meta = _meta(items, block)

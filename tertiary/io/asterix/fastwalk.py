@@ -231,39 +231,96 @@ def _walk(buf, starts, ends, fmax, kind, p1, p2, sub_start, sub_kind, sub_p1, su
             counts[k] = n
 
 
+@numba.njit(cache=True)
+def _walk_once(buf, starts, ends, fmax, kind, p1, p2, sub_start, sub_kind, sub_p1, sub_p2, groups, out, block,
+               rec_start, rec_end, counts, fail_at):  # noqa: ANN001, ANN202 - numba kernel
+    """Count and fill in one pass into ``out`` of a guessed size: rows written, or -1 when
+    ``out`` is too small. A refused block's rows are taken back (the block is refused whole)."""
+    r = 0
+    for k in range(starts.shape[0]):
+        pos, end, n, r0 = starts[k], ends[k], 0, r
+        while pos < end:
+            if r >= out.shape[0]:
+                return -1
+            q = _record(buf, pos, end, fmax, kind, p1, p2, sub_start, sub_kind, sub_p1, sub_p2, groups, out[r], True)
+            if q < 0:
+                n, fail_at[k], r = q, pos, r0
+                break
+            block[r], rec_start[r], rec_end[r] = k, pos, q
+            r += 1
+            n += 1
+            pos = q
+        counts[k] = n
+    return r
+
+
+def _layout(blocks: list[bytes]) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64]]:
+    """The blocks' record parts concatenated, and where each starts and ends."""
+    body = [b[3:] for b in blocks]
+    lens = np.fromiter((len(b) for b in body), np.int64, len(body))
+    ends = np.cumsum(lens)
+    buf = np.frombuffer(b"".join(body), np.uint8) if body else np.zeros(0, np.uint8)
+    return buf, ends - lens, ends
+
+
+#: largest offsets matrix a one-pass walk allocates on a guess (bytes)
+ONE_PASS_BYTES = 1 << 29
+
+
+def _guess_rows(buf: NDArray[np.uint8], first_len: int, width: int) -> int:
+    """Rows for a one-pass walk: 1.5 × what records as long as the first would fill (one pass
+    instead of count + fill); 0 (the two passes) without a first record or when that would
+    allocate more than :data:`ONE_PASS_BYTES`. Shorter records later overflow it: two passes."""
+    rows = int(1.5 * len(buf) / first_len) + 64 if first_len > 0 else 0
+    return rows if rows * width * 8 <= ONE_PASS_BYTES else 0
+
+
 def walk(blocks: list[bytes], prog: Program) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64],
                                                       NDArray[np.int64], NDArray[np.int64], list[tuple[int, int, str]]]:
     """Parse data blocks: (buffer, item offsets [records × slots], block index, record start,
     record end — offsets into the buffer of the blocks' record parts — and the refused blocks
     as (block index, byte offset in the block, reason))."""
-    body = [b[3:] for b in blocks]
-    lens = np.fromiter((len(b) for b in body), np.int64, len(body))
-    ends = np.cumsum(lens)
-    starts = ends - lens
-    buf = np.frombuffer(b"".join(body), np.uint8) if body else np.zeros(0, np.uint8)
+    buf, starts, ends = _layout(blocks)
     args = (prog.fspec_max, prog.kind, prog.p1, prog.p2, prog.sub_start, prog.sub_kind, prog.sub_p1, prog.sub_p2,
             prog.groups)
     counts = np.zeros(len(blocks), np.int64)
     fail_at = np.zeros(len(blocks), np.int64)
-    dummy = np.zeros((1, len(prog.kind)), np.int64)
-    _walk(buf, starts, ends, *args, False, dummy, counts, fail_at, counts, counts)
-    n = int(counts[counts > 0].sum())
-    out = np.empty((n, len(prog.kind)), np.int64)
-    block, rs, re = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
-    _walk(buf, starts, ends, *args, True, out, block, rs, re, counts)
+    width = len(prog.kind)
+    first = _record(buf, starts[0], ends[0], *args, np.zeros(width, np.int64), False) - starts[0] if len(blocks) \
+        else 0          # negative when the first record fails: then two passes
+    rows = _guess_rows(buf, int(first), width)
+    out = np.empty((rows, width), np.int64)
+    block, rs, re = np.empty(rows, np.int64), np.empty(rows, np.int64), np.empty(rows, np.int64)
+    n = _walk_once(buf, starts, ends, *args, out, block, rs, re, counts, fail_at)
+    if n < 0:
+        dummy = np.zeros((1, width), np.int64)
+        _walk(buf, starts, ends, *args, False, dummy, counts, fail_at, counts, counts)
+        n = int(counts[counts > 0].sum())
+        out = np.empty((n, width), np.int64)
+        block, rs, re = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+        _walk(buf, starts, ends, *args, True, out, block, rs, re, counts)
     bad = [(int(k), int(fail_at[k] - starts[k]) + 3, f"CAT{blocks[k][0]:03d} record: {ERRORS[-int(counts[k])]}")
            for k in np.flatnonzero(counts < 0)]
-    return buf, out, block, rs, re, bad
+    return buf, out[:n], block[:n], rs[:n], re[:n], bad
+
+
+@numba.njit(cache=True)
+def _uint_at(buf, offs, start, width):  # noqa: ANN001, ANN202 - numba kernel
+    out = np.empty(offs.shape[0], np.int64)
+    for i in range(offs.shape[0]):
+        if offs[i] < 0:
+            out[i] = -1
+            continue
+        v = 0
+        for j in range(width):
+            v = (v << 8) | buf[offs[i] + start + j]
+        out[i] = v
+    return out
 
 
 def uint_at(buf: NDArray[np.uint8], offs: NDArray[np.int64], start: int, width: int) -> NDArray[np.int64]:
     """Big-endian unsigned integers of ``width`` octets at ``offs + start`` (-1 where offs < 0)."""
-    ok = offs >= 0
-    pos = np.where(ok, offs + start, 0)
-    v = np.zeros(len(offs), np.int64)
-    for i in range(width):
-        v = (v << 8) | buf[pos + i].astype(np.int64) if len(buf) else v
-    return np.where(ok, v, -1)
+    return _uint_at(buf, np.ascontiguousarray(offs, np.int64), start, width)
 
 
 def signed(v: NDArray[np.int64], bits: int) -> NDArray[np.int64]:
@@ -326,6 +383,33 @@ def _walk_sel(buf, starts, ends, fmax, lead, a, b, fill, out, uap, block, rec_st
             counts[k] = n
 
 
+@numba.njit(cache=True)
+def _walk_sel_once(buf, starts, ends, fmax, lead, a, b, out, uap, block, rec_start, rec_end, counts, fail_at):  # noqa
+    """:func:`_walk_once` for two record classes (:func:`_walk_sel`)."""
+    r = 0
+    for k in range(starts.shape[0]):
+        pos, end, n, r0 = starts[k], ends[k], 0, r
+        while pos < end:
+            if r >= out.shape[0]:
+                return -1
+            sel = _select(buf, pos, end, fmax, lead)
+            if sel < 0:
+                q = sel
+            elif sel == 0:
+                q = _record(buf, pos, end, a[0][0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], out[r], True)
+            else:
+                q = _record(buf, pos, end, b[0][0], b[1], b[2], b[3], b[4], b[5], b[6], b[7], b[8], out[r], True)
+            if q < 0:
+                n, fail_at[k], r = q, pos, r0
+                break
+            uap[r], block[r], rec_start[r], rec_end[r] = sel, k, pos, q
+            r += 1
+            n += 1
+            pos = q
+        counts[k] = n
+    return r
+
+
 def _arrays(prog: Program, width: int) -> tuple[NDArray[np.int64], ...]:
     """A program's arrays for the kernel; the slot arrays padded to ``width`` with spare slots."""
     pad = width - len(prog.kind)
@@ -335,30 +419,46 @@ def _arrays(prog: Program, width: int) -> tuple[NDArray[np.int64], ...]:
             np.concatenate([prog.sub_start, z]), prog.sub_kind, prog.sub_p1, prog.sub_p2, prog.groups)
 
 
+def _first_length(buf: NDArray[np.uint8], starts: NDArray[np.int64], ends: NDArray[np.int64], fmax: int,
+                  lead: int, pa: tuple[NDArray[np.int64], ...], pb: tuple[NDArray[np.int64], ...], width: int) -> int:
+    """Length of the first record of the first block (0 when none parses)."""
+    if not len(starts):
+        return 0
+    one, end = np.zeros(1, np.int64), np.zeros(1, np.int64)
+    # one row: stops after the first record (its end in ``end``), or takes it back when it fails
+    _walk_sel_once(buf, starts[:1], ends[:1], fmax, lead, pa, pb, np.zeros((1, width), np.int64), one, one.copy(),
+                   one.copy(), end, one.copy(), one.copy())
+    return int(end[0] - starts[0]) if end[0] > starts[0] else 0
+
+
 def walk_select(blocks: list[bytes], a: Program, b: Program, lead_bytes: int
                 ) -> tuple[NDArray[np.uint8], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
                            NDArray[np.int64], NDArray[np.int64], list[tuple[int, int, str]]]:
     """:func:`walk` for a category with two record classes chosen by the first bit of the item
     at FRN 2 (CAT001 I001/020 TYP: 0 plot, 1 track); FRN 1 is fixed, ``lead_bytes`` long.
     Returns (buffer, offsets, record class 0/1, block, record start, record end, refused)."""
-    body = [x[3:] for x in blocks]
-    lens = np.fromiter((len(x) for x in body), np.int64, len(body))
-    ends = np.cumsum(lens)
-    starts = ends - lens
-    buf = np.frombuffer(b"".join(body), np.uint8) if body else np.zeros(0, np.uint8)
+    buf, starts, ends = _layout(blocks)
     width = max(len(a.kind), len(b.kind))
     pa, pb = _arrays(a, width), _arrays(b, width)
     # the selector's FSPEC bound is the larger one; each class then checks its own
     fmax = max(a.fspec_max, b.fspec_max)
     counts = np.zeros(len(blocks), np.int64)
     fail_at = np.zeros(len(blocks), np.int64)
-    dummy = np.zeros((1, width), np.int64)
-    _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, False, dummy, counts, counts, fail_at, counts, counts)
-    n = int(counts[counts > 0].sum())
-    out = np.empty((n, width), np.int64)
-    uap, block = np.empty(n, np.int64), np.empty(n, np.int64)
-    rs, re = np.empty(n, np.int64), np.empty(n, np.int64)
-    _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, True, out, uap, block, rs, re, counts)
+    first = _first_length(buf, starts, ends, fmax, lead_bytes, pa, pb, width)
+    rows = _guess_rows(buf, first, width)
+    out = np.empty((rows, width), np.int64)
+    uap, block = np.empty(rows, np.int64), np.empty(rows, np.int64)
+    rs, re = np.empty(rows, np.int64), np.empty(rows, np.int64)
+    n = _walk_sel_once(buf, starts, ends, fmax, lead_bytes, pa, pb, out, uap, block, rs, re, counts, fail_at)
+    if n < 0:
+        dummy = np.zeros((1, width), np.int64)
+        _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, False, dummy, counts, counts, fail_at, counts, counts)
+        n = int(counts[counts > 0].sum())
+        out = np.empty((n, width), np.int64)
+        uap, block = np.empty(n, np.int64), np.empty(n, np.int64)
+        rs, re = np.empty(n, np.int64), np.empty(n, np.int64)
+        _walk_sel(buf, starts, ends, fmax, lead_bytes, pa, pb, True, out, uap, block, rs, re, counts)
+    out, uap, block, rs, re = out[:n], uap[:n], block[:n], rs[:n], re[:n]
     bad = [(int(k), int(fail_at[k] - starts[k]) + 3, f"CAT{blocks[k][0]:03d} record: {ERRORS[-int(counts[k])]}")
            for k in np.flatnonzero(counts < 0)]
     return buf, out, uap, block, rs, re, bad
@@ -376,31 +476,36 @@ def record_hash(buf, rs, re):  # noqa: ANN001, ANN201 - numba kernel
     return out
 
 
+@numba.njit(cache=True)
+def _sub_offsets(buf, offs, sizes):  # noqa: ANN001, ANN202 - numba kernel
+    out = np.full((sizes.shape[0], offs.shape[0]), -1, np.int64)
+    for i in range(offs.shape[0]):
+        pos = offs[i]
+        if pos < 0:
+            continue
+        nf = 1
+        while buf[pos + nf - 1] & 1:
+            nf += 1
+        p = pos + nf
+        for j in range(sizes.shape[0]):
+            if j // 7 >= nf or (buf[pos + j // 7] & (0x80 >> (j % 7))) == 0:
+                continue
+            out[j, i] = p
+            if sizes[j] > 0:
+                p += sizes[j]
+            elif sizes[j] == 0:
+                p += 1
+                while buf[p - 1] & 1:
+                    p += 1
+            else:
+                break            # a subfield not read here: those after it are not placed
+    return out
+
+
 def sub_offsets(buf: NDArray[np.uint8], offs: NDArray[np.int64], sizes: tuple[int, ...]) -> list[NDArray[np.int64]]:
     """Offsets of the subfields of a compound item at ``offs`` (-1 where item or subfield is
     absent). ``sizes``: octets per subfield in FSPEC order, 0 for an extended subfield of
-    one-octet groups (its length read from the FX bits). The item was validated by the walker."""
-    ok = offs >= 0
-    pos = np.where(ok, offs, 0)
-    nf = np.zeros(len(offs), np.int64)               # primary subfield octets (FX chained)
-    more = ok.copy()
-    while more.any():
-        octet = buf[pos + nf] if len(buf) else np.zeros(len(offs), np.uint8)
-        nf = nf + more
-        more = more & ((octet & 1) == 1)
-    p = pos + nf
-    out = []
-    for j, size in enumerate(sizes):
-        octet = buf[np.where(ok & (nf > j // 7), pos + j // 7, 0)] if len(buf) else np.zeros(len(offs), np.uint8)
-        present = ok & (nf > j // 7) & ((octet & (0x80 >> (j % 7))) != 0)
-        out.append(np.where(present, p, -1))
-        if size:
-            p = p + np.where(present, size, 0)
-        else:
-            length = np.zeros(len(offs), np.int64)
-            go = present.copy()
-            while go.any():
-                length = length + go
-                go = go & ((buf[np.where(go, p + length - 1, 0)] & 1) == 1)
-            p = p + length
-    return out
+    one-octet groups (its length read from the FX bits), -1 for one not read (the subfields
+    after it are not placed). The item was validated by the walker."""
+    out = _sub_offsets(buf, np.ascontiguousarray(offs, np.int64), np.asarray(sizes, np.int64))
+    return list(out)

@@ -23,6 +23,7 @@ import polars as pl
 
 from tertiary.core import geo
 from tertiary.core.units import FT
+from tertiary.io.asterix import fastcats
 from tertiary.io.asterix.importer import DAY, TIME, absolute_time
 
 Rejects = list[dict[str, object]]
@@ -235,11 +236,12 @@ def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
     good, rej = _split(frame, reasons, "CAT004")
     swap = pl.col("track_1") > pl.col("track_2")
     pick = lambda a, b: pl.when(swap).then(pl.col(b)).otherwise(pl.col(a))  # noqa: E731
+    raw = ("ai", "ms", "m3")
     good = good.with_columns(
         id_a=pick("track_1", "track_2"), id_b=pick("track_2", "track_1"),
-        **{f"{c}_a": pick(f"{c}_1", f"{c}_2") for c in ("callsign", "mode_s_ident", "mode_3a")},
-        **{f"{c}_b": pick(f"{c}_2", f"{c}_1") for c in ("callsign", "mode_s_ident", "mode_3a")},
-    ).sort("sac", "sic", "alert_id", "id_a", "id_b", "t")
+        **{f"{c}_a": pick(f"{c}_1", f"{c}_2") for c in raw}, **{f"{c}_b": pick(f"{c}_2", f"{c}_1") for c in raw},
+    ).with_columns(pl.col(f"{c}_{k}").replace(-1, None) for c in raw for k in "ab"
+                   ).sort("sac", "sic", "alert_id", "id_a", "id_b", "t")
     key = ["sac", "sic", "alert_id", "id_a", "id_b"]
     good = good.with_columns(
         ((pl.col("t").diff().over(key).fill_null(0.0) > gap_s).cum_sum().over(key)).alias("__ep"))
@@ -247,7 +249,8 @@ def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
         pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"), pl.len().alias("alert_epochs"),
         pl.col("mhs_m").min().alias("r_min_pred_m"), (pl.col("mvs_ft").min() * FT).alias("dz_min_pred_m"),
         pl.col("tca_s").first().alias("t_min_first_s"),
-        *(pl.col(c).drop_nulls().first() for c in ALERT_EXTRA if c != "alert_id"))
+        *(pl.col(f"{c}_{k}").drop_nulls().first() for c in raw for k in "ab"))
+    eps = fastcats.identities(eps, ("a", "b"))
     us = lambda c: (pl.col(c) * 1e6).round().cast(pl.Int64).cast(TIME)  # noqa: E731
     alerts = eps.select(
         pl.lit(0, pl.UInt32).alias("run"), pl.format("external:{}/{}", "sac", "sic").alias("method"),
