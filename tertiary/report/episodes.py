@@ -447,8 +447,8 @@ def episode_figure(store: RunStore, ep: Episode, rank: int | None = None, cc: Co
     if ep.picture != TRUTH_PICTURE:
         _lines(fig, d.tracks, d.ids, (f"A: {id_names[0]}", f"B: {id_names[1]}"), "solid", d.t_ref)
     _lines(fig, d.truth, ac, (f"A: truth of aircraft {ac[0]}", f"B: truth of aircraft {ac[1]}"), "dot", d.t_ref)
-    h_min, v_min = _draw_cpa(fig, d, cc)
     true = _true_cpa(d.truth, ep, d.t_ref)
+    h_min, v_min = _draw_cpa(fig, d, cc, true)
     if true is not None:
         r, dist, dh = true
         t = float(_secs(r["t"], d.t_ref)[0])
@@ -468,19 +468,20 @@ def episode_figure(store: RunStore, ep: Episode, rank: int | None = None, cc: Co
     return fig, _caption(ep, h_min, v_min, d)
 
 
-def _draw_cpa(fig: go.Figure, d: _Data, cc: ConflictConfig) -> tuple[float, float]:
-    """The predicted CPA of both tracks, the horizontal minimum around A's, the vertical band."""
+def _draw_cpa(fig: go.Figure, d: _Data, cc: ConflictConfig, true: tuple | None) -> tuple[float, float]:
+    """The predicted CPA of both tracks and the minima around A's; without a prediction (a
+    missed loss) the minima around A's truth at the true closest approach."""
     if d.cpa is None:
-        mid = d.truth["h_m"].median() if d.truth.height else None
-        return minima(cc, mid)
+        if true is None:
+            return minima(cc, d.truth["h_m"].median() if d.truth.height else None)
+        r = true[0]
+        a = np.array([r["x_m"][0], r["y_m"][0], r["h_m"][0]])
+        h_min, v_min = minima(cc, float(min(r["h_m"][0], r["h_m_b"][0])))
+        _minima(fig, a, h_min, v_min, "the true closest approach")
+        return h_min, v_min
     a, b, t = d.cpa
     h_min, v_min = minima(cc, float(min(a[2], b[2])))
-    ang = np.linspace(0.0, 2.0 * math.pi, 73)
-    fig.add_trace(go.Scatter(x=(a[0] + h_min * np.cos(ang)) / 1e3, y=(a[1] + h_min * np.sin(ang)) / 1e3,
-                             mode="lines", line=dict(color="#ff7f0e", width=1.2), fill="toself",
-                             fillcolor="rgba(255,127,14,0.08)", hoverinfo="skip",
-                             name=f"horizontal minimum {h_min / 1852:.1f} NM around A at the predicted CPA"),
-                  row=1, col=1)
+    _minima(fig, a, h_min, v_min, "the predicted CPA")
     sep = math.hypot(*(a[:2] - b[:2]))
     for p, name, color in ((a, "A", _A), (b, "B", _B)):
         fig.add_trace(go.Scatter(x=[p[0] / 1e3], y=[p[1] / 1e3], mode="markers", showlegend=name == "A",
@@ -492,12 +493,21 @@ def _draw_cpa(fig: go.Figure, d: _Data, cc: ConflictConfig) -> tuple[float, floa
                                  marker=dict(symbol="x", size=11, color=color),
                                  hovertemplate=f"{name} at the predicted CPA: %{{y:.0f}} ft<extra></extra>"),
                       row=1, col=2)
+    return h_min, v_min
+
+
+def _minima(fig: go.Figure, a: np.ndarray, h_min: float, v_min: float, where: str) -> None:
+    """A circle of the horizontal minimum around ``a`` (plan view) and a band of ± the vertical
+    minimum around its altitude (vertical profile): B inside both is a loss of separation."""
+    ang = np.linspace(0.0, 2.0 * math.pi, 73)
+    fig.add_trace(go.Scatter(x=(a[0] + h_min * np.cos(ang)) / 1e3, y=(a[1] + h_min * np.sin(ang)) / 1e3,
+                             mode="lines", line=dict(color="#ff7f0e", width=1.2), fill="toself",
+                             fillcolor="rgba(255,127,14,0.08)", hoverinfo="skip",
+                             name=f"horizontal minimum {h_min / 1852:.1f} NM around A at {where}"), row=1, col=1)
     fig.add_hrect(y0=(a[2] - v_min) / FT, y1=(a[2] + v_min) / FT, fillcolor="#ff7f0e", opacity=0.10,
                   line=dict(color="#ff7f0e", width=1), row=1, col=2)
     fig.add_trace(go.Scatter(x=[None], y=[None], mode="lines", line=dict(color="#ff7f0e", width=6),
-                             name=f"vertical minimum ±{v_min / FT:.0f} ft around A at the predicted CPA"),
-                  row=1, col=2)
-    return h_min, v_min
+                             name=f"vertical minimum ±{v_min / FT:.0f} ft around A at {where}"), row=1, col=2)
 
 
 def _shade_times(fig: go.Figure, ep: Episode, t_ref: datetime, v_min: float, d: _Data) -> None:
@@ -516,7 +526,8 @@ def _shade_times(fig: go.Figure, ep: Episode, t_ref: datetime, v_min: float, d: 
 def _caption(ep: Episode, h_min: float, v_min: float, d: _Data) -> str:
     parts = [f"Solid: the picture's tracks ({ep.picture}); dotted: the truth of both aircraft."]
     if ep.kind == "alert":
-        parts.append(f"Yellow: the alert episode ({(ep.t_end - ep.t_start).total_seconds():.0f} s); "
+        parts.append(f"Circles: the tracks at the first alert. Yellow: the alert episode "
+                     f"({(ep.t_end - ep.t_start).total_seconds():.0f} s); "
                      + ("dashed red line: start of the loss of separation it warned of. " if ep.los_start else ""))
         if d.cpa is not None:
             parts.append(f"x: both tracks at the closest approach the episode's closest alert predicted (states at "
@@ -526,8 +537,10 @@ def _caption(ep: Episode, h_min: float, v_min: float, d: _Data) -> str:
         else:
             parts.append("No predicted CPA drawn (the picture's conflicts or tracks at the alert are not stored).")
     else:
-        parts.append(f"Red: the loss of separation (minima {h_min:,.0f} m, {v_min / FT:.0f} ft), which the picture "
-                     "did not alert; tracks are the picture's ids nearest each aircraft's truth.")
+        parts.append(f"Red: the loss of separation, which the picture did not alert; the circle and the band are "
+                     f"the minima ({h_min:,.0f} m, ±{v_min / FT:.0f} ft) around A at the true closest approach; "
+                     "tracks are the picture's ids nearest each aircraft's truth, circles where they were when "
+                     "the loss began.")
         if ep.induced:
             parts.append("Picture-induced: the same prediction on the truth picture alerted it." if ep.induced ==
                          "picture" else "Predictor-induced: the truth picture did not alert it either.")
