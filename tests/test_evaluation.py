@@ -80,7 +80,7 @@ def test_evaluate_command_on_renamed_files_writes_a_run(small, tmp_path):
     verdicts = {r[0] for r in con.sql("SELECT DISTINCT verdict FROM requirements").fetchall()}
     assert verdicts <= {"pass", "fail", "insufficient"}
     page = (out / "report.html").read_text()
-    assert "Requirements" in page and "Pictures against the reference" in page and "Not available" not in page
+    assert 'id="verdict-matrix"' in page and "Pictures against the reference" in page and "Not available" not in page
     again = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(out)])
     assert again.exit_code == 2 and "--force" in again.output
 
@@ -417,3 +417,18 @@ def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, s
     got = association_score(scoring.scored_blocks((p.drop("__w") for p in parts), reports))
     assert len(parts) == 5
     assert_frame_equal(got, want)
+
+
+def test_evaluate_judges_the_same_default_requirements_as_run(small, tmp_path):
+    """Without --requirements, `evaluate` judges the shipped example requirements, as `run` does,
+    and prints them as a requirements × pictures matrix."""
+    root, _ds, files = small
+    out = tmp_path / "ev"
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(out),
+                              "--no-report"], terminal_width=250)
+    assert res.exit_code == 0, res.output
+    con = duckdb.connect(str(out / "results.duckdb"), read_only=True)
+    judged = {r[0] for r in con.sql("SELECT DISTINCT requirement FROM requirements").fetchall()}
+    assert judged == {r.name for r in load_requirements(example_path()).items}
+    assert pipeline.PipelineConfig().requirements_file is None      # run's default: the same example file
+    assert "Requirements × pictures" in res.output and "H-RMS-ENR" in res.output

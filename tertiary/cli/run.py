@@ -7,6 +7,7 @@ import dataclasses
 from pathlib import Path
 from typing import Annotated, Optional
 
+import polars as pl
 import typer
 
 from tertiary.cli.common import (DEFAULT_FILTERS, DEFAULT_METHODS, DEFAULT_SCENARIO, AircraftOpt, BiasStepOpt,
@@ -137,6 +138,13 @@ def run(
     print_summary(job.db, job.report)
 
 
+def requirements_matrix(requirements: pl.DataFrame) -> pl.DataFrame:
+    """One row per requirement, one column per picture, each cell its verdict (FAIL in capitals)."""
+    mark = {"pass": "pass", "fail": "FAIL", "insufficient": "?"}
+    cells = requirements.select("requirement", "method", pl.col("verdict").replace_strict(mark, default=pl.col("verdict")))
+    return cells.pivot(on="method", index="requirement", values="verdict", maintain_order=True)
+
+
 def _check_engine(engine: str, tables: str, out: Path | None, resume: Path | None, range_channel: str | None,
                   dask_options: dict[str, object]) -> None:
     """The --engine options that go together, checked before any simulation."""
@@ -231,8 +239,9 @@ def evaluate(
                   f"against {res.reference['truth_id'].n_unique():,} reference aircraft in {res.wall_s:.1f} s")
     print_frame(ev.comparison, "Pictures compared (segment all)", 50)
     if res.with_requirements:
-        print_frame(ev.requirements.select("requirement", "method", "metric", "breakdown", "threshold", "value",
-                                           "n_samples", "verdict"), "Requirements", 200)
+        print_frame(requirements_matrix(ev.requirements), "Requirements × pictures", 200)
+        console.print("pass, FAIL or ? (too few samples); values: tertiary sql RUN_DIR requirements_verdicts",
+                      soft_wrap=True)
     console.print(f"results: {res.db}", soft_wrap=True)
     if report:
         with Steps("report") as say:
