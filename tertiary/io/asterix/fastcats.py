@@ -63,6 +63,13 @@ class Fields:
         return self.o[name] >= 0
 
 
+def per_value(v: NDArray[np.int64], text: Any) -> pl.Series:
+    """``text(values)`` computed once per distinct value (identities repeat over an aircraft's
+    reports) and gathered back to every row."""
+    u, inv = np.unique(v, return_inverse=True)
+    return text(u).gather(pl.Series(inv.ravel()))
+
+
 def icao_text(v: NDArray[np.int64], chars: int = 8) -> pl.Series:
     """ICAO 6-bit characters (48 bits) → text, trailing spaces removed, null when empty or absent."""
     w = np.maximum(v, 0).astype(np.uint64)
@@ -138,9 +145,9 @@ def decode_020(items: list[Item], rejects: Rejects) -> pl.DataFrame:
         "x_m": _nan(f.has("042"), fastwalk.signed(f.u("042", 0, 3), 24) * 0.5),
         "y_m": _nan(f.has("042"), fastwalk.signed(f.u("042", 3, 3), 24) * 0.5),
         "trn": pl.Series(np.where(f.has("161"), f.u("161", 0, 2) & 0x0FFF, -1)),
-        "mode_3a": mode_3a(f.u("070", 0, 2)), "flight_level": fl, "fl_valid": alt_fl,
+        "mode_3a": per_value(f.u("070", 0, 2), mode_3a), "flight_level": fl, "fl_valid": alt_fl,
         "height_ft": _nan(f.has("105"), fastwalk.signed(f.u("105", 0, 2), 16) * 6.25),
-        "mode_s": hex6(f.u("220", 0, 3)), "callsign": icao_text(f.u("245", 1, 6)),
+        "mode_s": per_value(f.u("220", 0, 3), hex6), "callsign": per_value(f.u("245", 1, 6), icao_text),
         "sigma_x_m": _nan(s.has("sdp"), s.u("sdp", 0, 2) * 0.25),
         "sigma_y_m": _nan(s.has("sdp"), s.u("sdp", 2, 2) * 0.25),
         "sigma_xy_m": _nan(s.has("sdp"), s.u("sdp", 4, 2) * 0.25),
@@ -187,7 +194,8 @@ def decode_001(items: list[Item], rejects: Rejects) -> pl.DataFrame:
     return pl.DataFrame({
         "sac": f.u("010", 0, 1), "sic": f.u("010", 1, 1), "plot": ~is_track, "tod_trunc": f.u("141", 0, 2),
         "range_m": _nan(rho >= 0, rho / 128.0 * codec.NM), "azimuth_deg": _nan(theta >= 0, theta * (360 / 65536)),
-        "trn": f.u("161", 0, 2), "mode_3a": mode_3a(f.u("070", 0, 2)), "flight_level": fl, "fl_valid": alt_fl,
+        "trn": f.u("161", 0, 2), "mode_3a": per_value(f.u("070", 0, 2), mode_3a), "flight_level": fl,
+        "fl_valid": alt_fl,
         "detection": pl.Series(np.where(f.has("020"), (f.u("020") >> 4) & 3, -1)).cast(pl.Int8).replace(-1, None),
         "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": rs,
         **_meta(items, block),

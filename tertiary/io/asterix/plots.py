@@ -20,6 +20,7 @@ import json
 
 import numpy as np
 import polars as pl
+from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.units import FT
@@ -150,37 +151,41 @@ def cat001_reports(raw: pl.DataFrame, cat002: pl.DataFrame, sites: pl.DataFrame 
 # --------------------------------------------------------------------------- CAT020
 
 
+def _site_plot(g: dict[str, NDArray[np.float64]], h: NDArray[np.float64], frame: geo.LocalFrame, site_alt: float
+               ) -> tuple[NDArray[np.float64], ...]:
+    """(x, y, up, lat, lon) of plots in the site's ENU frame: x, y from I020/042 when sent, else
+    from I020/041; lat, lon from I020/041 when sent, else from x, y."""
+    wgs = np.isfinite(g["lat_deg"])
+    e, n, u = (np.full(len(h), np.nan) for _ in range(3))
+    e[wgs], n[wgs], u[wgs] = frame.from_geodetic(g["lat_deg"][wgs], g["lon_deg"][wgs], h[wgs])
+    # Cartesian only: the tangent plane falls away from the ellipsoid by d²/2R
+    cu = h - site_alt - (g["x_m"] ** 2 + g["y_m"] ** 2) / (2 * geo.EARTH_RADIUS_M)
+    cart = ~wgs & np.isfinite(g["x_m"])
+    lat, lon = g["lat_deg"].copy(), g["lon_deg"].copy()
+    lat[cart], lon[cart], _ = frame.to_geodetic(g["x_m"][cart], g["y_m"][cart], cu[cart])
+    x = np.where(np.isfinite(g["x_m"]), g["x_m"], e)
+    y = np.where(np.isfinite(g["y_m"]), g["y_m"], n)
+    return x, y, np.where(wgs, u, cu), lat, lon
+
+
 def _mlat_geometry(work: pl.DataFrame) -> pl.DataFrame:
     """Cartesian and WGS-84 plot of every report, and its range and azimuth from the sensor's
     reference point (the site), per sensor."""
     parts = []
     for _, grp in work.group_by("radar_id", maintain_order=True):
         site = grp.row(0, named=True)
+        cols = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "range_m", "azimuth_deg")
         if site["radar_id"] is None:
-            parts.append(grp.with_columns(*(pl.lit(None, pl.Float64).alias(c) for c in (
-                "plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "range_m", "azimuth_deg"))))
+            parts.append(grp.with_columns(pl.lit(None, pl.Float64).alias(c) for c in cols))
             continue
-        frame = geo.LocalFrame(site["site_lat"], site["site_lon"], site["site_alt"])
         g = {c: grp[c].fill_null(np.nan).to_numpy() for c in ("lat_deg", "lon_deg", "x_m", "y_m", "height_ft",
                                                                "altitude_m")}
         h = np.where(np.isfinite(g["height_ft"]), g["height_ft"] * FT,
                      np.where(np.isfinite(g["altitude_m"]), g["altitude_m"], site["site_alt"]))
-        wgs = np.isfinite(g["lat_deg"])
-        e, n, u = frame.from_geodetic(np.where(wgs, g["lat_deg"], site["site_lat"]),
-                                      np.where(wgs, g["lon_deg"], site["site_lon"]), h)
-        # Cartesian only: the tangent plane falls away from the ellipsoid by d²/2R
-        cu = h - site["site_alt"] - (g["x_m"] ** 2 + g["y_m"] ** 2) / (2 * geo.EARTH_RADIUS_M)
-        lat, lon, _ = frame.to_geodetic(np.nan_to_num(g["x_m"]), np.nan_to_num(g["y_m"]), np.nan_to_num(cu))
-        x = np.where(np.isfinite(g["x_m"]), g["x_m"], np.where(wgs, e, np.nan))
-        y = np.where(np.isfinite(g["y_m"]), g["y_m"], np.where(wgs, n, np.nan))
-        up = np.where(wgs, u, cu)
-        rng = np.sqrt(x ** 2 + y ** 2 + up ** 2)
-        parts.append(grp.with_columns(
-            pl.Series("plot_x_m", x).fill_nan(None), pl.Series("plot_y_m", y).fill_nan(None),
-            pl.Series("plot_lat_deg", np.where(wgs, g["lat_deg"], np.where(np.isfinite(x), lat, np.nan))).fill_nan(None),
-            pl.Series("plot_lon_deg", np.where(wgs, g["lon_deg"], np.where(np.isfinite(x), lon, np.nan))).fill_nan(None),
-            pl.Series("range_m", rng).fill_nan(None),
-            pl.Series("azimuth_deg", np.mod(np.degrees(np.arctan2(x, y)), 360.0)).fill_nan(None)))
+        frame = geo.LocalFrame(site["site_lat"], site["site_lon"], site["site_alt"])
+        x, y, up, lat, lon = _site_plot(g, h, frame, site["site_alt"])
+        values = (x, y, lat, lon, np.sqrt(x ** 2 + y ** 2 + up ** 2), np.mod(np.degrees(np.arctan2(x, y)), 360.0))
+        parts.append(grp.with_columns(pl.Series(c, v).fill_nan(None) for c, v in zip(cols, values)))
     return pl.concat(parts, how="vertical_relaxed").sort("__i") if parts else work
 
 
