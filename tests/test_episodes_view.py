@@ -24,6 +24,7 @@ from tertiary.cli.commands import app
 from tertiary.core.errors import OptionError
 from tertiary.core.units import FT
 from tertiary.report import episodes as ev
+from tertiary.report.common import Ctx
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
@@ -95,7 +96,7 @@ def test_figure_draws_the_episodes_tracks_cpa_and_minima(run):
                            "coalesce(alt_rate_mps, vz_mps) AS vh FROM tracks WHERE method = $m AND filter = $f "
                            "AND epoch = $t AND track_id IN ($a, $b) ORDER BY track_id",
                            {"m": method, "f": filt, "t": row["cpa_epoch"], "a": row["id_a"], "b": row["id_b"]})
-        cc = ev.conflict_config(ev._config(store))
+        cc = ev.conflict_config(ev.run_config(store))
     track_a = _trace(fig, f"A: track {row['id_a']}")
     assert len(track_a.x) >= 3 and f"B: track {row['id_b']}" in [t.name for t in fig.data]
     assert any((t.name or "").startswith(f"A: truth of aircraft {row['truth_a']}") for t in fig.data)
@@ -159,6 +160,14 @@ def test_section_fragment_counts_its_figures(run):
     assert html.startswith('<div class="episodes" data-figures="2">')
     assert html.count('class="plotly-graph-div"') == 2 and "window.__reportDone" in html
     assert "<script src=" not in html and "</script><" in html        # no plotly.js, no network
+    with _store(run) as store:
+        sec = ev.sec_episodes(Ctx(store, lambda _m: None))               # the report's section form
+    assert sec.key == "episodes" and len(sec.figures) == min(ev.DEFAULT_EPISODES, _alerts_of_best(run))
+
+
+def _alerts_of_best(run: Path) -> int:
+    with _store(run) as store:
+        return store.sql("SELECT count(*) FROM alerts WHERE method = $p", {"p": ev.best_alert_picture(store)}).item()
 
 
 def test_pair_parsing():

@@ -44,7 +44,7 @@ from safety.conflicts import AerodromeZone, ApproachVolume, ConflictConfig
 from tertiary.core.errors import DataError, OptionError
 from tertiary.core.geo import LocalFrame
 from tertiary.core.units import FT
-from tertiary.report.common import Ctx, table_html
+from tertiary.report.common import Ctx, Section, f32, table_html
 from tertiary.runtime.windows import incomplete_message
 from tertiary.store.files import write_text_atomic
 from tertiary.store.run_store import RunStore
@@ -52,7 +52,7 @@ from tertiary.store.sql_reports import open_read_only
 
 __all__ = ["DEFAULT_EPISODES", "EPISODES_FILENAME", "Episode", "best_alert_picture", "episode_figure",
            "episode_figures", "episodes_section", "figure_div", "list_episodes", "page_html", "parse_pair",
-           "render_episodes", "write_episodes"]
+           "render_episodes", "run_config", "sec_episodes", "write_episodes"]
 
 #: alert episodes drawn by default (most severe first)
 DEFAULT_EPISODES = 5
@@ -98,7 +98,8 @@ def _columns(store: RunStore, table: str) -> set[str]:
     return set(store.sql(f"SELECT * FROM {table} LIMIT 0").columns)
 
 
-def _config(store: RunStore) -> dict:
+def run_config(store: RunStore) -> dict:
+    """The run's recorded pipeline configuration (empty when it has none)."""
     raw = store.sql("SELECT value FROM run WHERE key = 'config'") if "run" in store.tables() else pl.DataFrame()
     try:
         return json.loads(raw.item()) if raw.height else {}
@@ -240,7 +241,7 @@ def missed_losses(store: RunStore, picture: str, pair: tuple[int, int] | None = 
     if pair is None and rows > MAX_TRUTH_ROWS:      # the stage's own search runs an hour at a time
         return [], (f"Missed losses not drawn: the truth ({rows:,} rows) is too large to search again here; "
                     f"`tertiary episodes RUN_DIR --pair A,B` draws a pair's (the run's missed_los metric: {n_run}).")
-    cc = conflict_config(_config(store))
+    cc = conflict_config(run_config(store))
     acfg = AlertConfig(conflict=cc)
     truth, frame = _truth_frame(store, pair)
     los = loss_of_separation(truth, acfg, frame)
@@ -403,8 +404,8 @@ def _lines(fig: go.Figure, frame: pl.DataFrame, ids: tuple, names: tuple[str, st
         t = _secs(part["t"], t_ref)
         ft = part["h_m"].to_numpy() / FT
         style = dict(color=color, dash=dash, width=2.0 if dash == "solid" else 1.5)
-        fig.add_trace(go.Scatter(x=part["x_m"].to_numpy() / 1e3, y=part["y_m"].to_numpy() / 1e3, mode="lines",
-                                 name=name, legendgroup=name, line=style, customdata=np.c_[t, ft],
+        fig.add_trace(go.Scatter(x=f32(part["x_m"] / 1e3), y=f32(part["y_m"] / 1e3), mode="lines",
+                                 name=name, legendgroup=name, line=style, customdata=f32(np.c_[t, ft]),
                                  hovertemplate="t = %{customdata[0]:.0f} s, %{customdata[1]:.0f} ft<extra>"
                                                + name + "</extra>"), row=1, col=1)
         if dash == "solid" and (t >= 0).any():      # where the track was when the alert (or the loss) began
@@ -413,8 +414,8 @@ def _lines(fig: go.Figure, frame: pl.DataFrame, ids: tuple, names: tuple[str, st
                                      marker=dict(symbol="circle-open", size=10, color=color, line=dict(width=2)),
                                      legendgroup=name, showlegend=False, hovertemplate="t = 0 s<extra>" + name
                                      + "</extra>"), row=1, col=1)
-        fig.add_trace(go.Scatter(x=t, y=ft, mode="lines", name=name, legendgroup=name, showlegend=False, line=style,
-                                 customdata=ft / 100.0,
+        fig.add_trace(go.Scatter(x=f32(t), y=f32(ft), mode="lines", name=name, legendgroup=name, showlegend=False,
+                                 line=style, customdata=f32(ft / 100.0),
                                  hovertemplate="%{y:.0f} ft (FL%{customdata:.0f})<extra>" + name + "</extra>"),
                       row=1, col=2)
 
@@ -438,7 +439,7 @@ def episode_figure(store: RunStore, ep: Episode, rank: int | None = None, cc: Co
                    ) -> tuple[go.Figure, str]:
     """One episode: plan view (ENU km) beside the vertical profile (ft against seconds from the
     first alert, or from the start of a missed loss), and its caption."""
-    cc = cc or conflict_config(_config(store))
+    cc = cc or conflict_config(run_config(store))
     d = _episode_data(store, ep)
     fig = make_subplots(rows=1, cols=2, column_widths=[0.5, 0.5], horizontal_spacing=0.09,
                         subplot_titles=["plan view (system ENU frame)", "vertical profile"])
@@ -588,7 +589,7 @@ def episode_figures(run_dir_or_store: RunStore | str | os.PathLike[str], picture
     store, owned = _store_of(run_dir_or_store)
     try:
         picture, chosen, note = _selected(store, picture, n, pair)
-        cc = conflict_config(_config(store))
+        cc = conflict_config(run_config(store))
         return picture, [episode_figure(store, ep, rank, cc) for ep, rank in chosen], note
     finally:
         if owned:
@@ -610,6 +611,12 @@ def figure_div(fig: go.Figure, div_id: str) -> str:
 def _figures_html(figs: list[tuple[go.Figure, str]], prefix: str) -> str:
     return "".join(f'<div class="figure">{figure_div(fig, f"{prefix}-{i}")}<p class="caption">'
                    f'{html.escape(cap)}</p></div>' for i, (fig, cap) in enumerate(figs))
+
+
+def sec_episodes(ctx: Ctx) -> Section:
+    """The report's section (``_SECTIONS`` form): :func:`episode_figures` of the best picture."""
+    _picture, figs, note = episode_figures(ctx.store)
+    return Section("episodes", "Alert episodes", text=note, figures=figs)
 
 
 def episodes_section(run_dir_or_store: RunStore | str | os.PathLike[str], picture: str | None = None,
