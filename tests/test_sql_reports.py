@@ -140,6 +140,10 @@ METRICS = [
     ("evaluation", "ours", "p95_horizontal_m", "all", 80.0, 1),
     ("evaluation", "ours", "prob_update", "all", 0.98, 1),
     ("evaluation", "ours", "rmse_horizontal_m", "phase:turn", 70.0, 1),
+    ("evaluation", "ours", "ospa_m", "all", 120.0, 1),
+    ("evaluation", "ours", "gospa_m", "all", 300.0, 1),
+    ("evaluation", "ours", "siap_completeness", "all", 0.97, 1),
+    ("evaluation", "ours", "multitarget_epochs", "all", 50.0, 1),
     ("evaluation", "theirs", "rmse_horizontal_m", "all", 99.0, 1),
     ("evaluation", "theirs", "id_changes_per_hour", "all", 1.5, 1),
 ]
@@ -679,6 +683,15 @@ def test_stca_tradeoff(q):
                 "alerted_fraction") == [("covariance", 0.95, 120.0, 30.0, 6.0, 0.75),
                                         ("fixed", 300.0, 120.0, 30.0, 9.0, 0.5)]
     assert q("stca_tradeoff", warning_s=60).height == 0
+
+
+@covers("multitarget_metrics")
+def test_multitarget_metrics(q):
+    df = q("multitarget_metrics")
+    assert df.columns[:4] == ["method", "rmse_horizontal_m", "ospa_m", "gospa_m"] and df.columns[-1] == "epochs"
+    # a picture without multi-target metrics (theirs) has no row
+    assert rows(df, "method", "rmse_horizontal_m", "ospa_m", "gospa_m", "siap_completeness", "siap_ambiguity",
+                "epochs") == [("ours", 44.0, 120.0, 300.0, 0.97, None, 50.0)]
 
 
 @covers("picture_comparison")

@@ -340,6 +340,10 @@ def sec_evaluation(ctx: Ctx) -> Section:
                              " interpolated reference, 1 NM horizontal / 300 m vertical gate, one-to-one per epoch), errors split into "
                              "horizontal, along-track, across-track and height (sql/picture_comparison.sql)."))
     sec.tables.append(("Pictures compared (sql/picture_comparison.sql)", cmp))
+    multi = ctx.q("multitarget_metrics")
+    if multi.height:
+        sec.tables.append(("Multi-target metrics beside RMSE: OSPA, GOSPA (and its parts), SIAP "
+                           "(sql/multitarget_metrics.sql)", multi))
     by = ctx.store.sql("SELECT method, segment, value FROM metrics WHERE stage = 'evaluation' "
                        "AND metric = 'rmse_horizontal_m' ORDER BY segment")
     if by.height:
