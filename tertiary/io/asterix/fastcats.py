@@ -10,6 +10,7 @@ Units are libasterix's (checked in ``tests/test_asterix_cats.py``): I001/040 RHO
 from __future__ import annotations
 
 import functools
+import json
 from typing import Any
 
 import numpy as np
@@ -33,11 +34,12 @@ def program(cat: int, uap: str | None = None) -> fastwalk.Program:
 
 
 def _reject_blocks(items: list[Item], bad: list[tuple[int, int, str]], cat: int, rejects: Rejects) -> None:
-    from tertiary.io.asterix.importer import _reject
+    """Refused blocks as rejects rows (the importer's form), the edition named in the reason."""
     ed = codec.EDITIONS[cat].rsplit("_", 2)
     for k, off, reason in bad:
-        reason = reason.replace("record:", f"record (edition {ed[-2]}.{ed[-1]}):", 1)
-        _reject(rejects, reason, **items[k][1], block_offset=off, hex=items[k][0][:32].hex())
+        detail = {**items[k][1], "block_offset": off, "hex": items[k][0][:32].hex()}
+        rejects.append({"reason": reason.replace("record:", f"record (edition {ed[-2]}.{ed[-1]}):", 1),
+                        "detail": json.dumps(detail, default=str)})
 
 
 def _meta(items: list[Item], block: NDArray[np.int64]) -> dict[str, pl.Series]:

@@ -22,6 +22,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.contract import TABLES
 from tertiary.core import geo
 from tertiary.core.units import FT
 from tertiary.io.asterix import fastcats
@@ -229,7 +230,6 @@ def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
     """CAT004 STCA messages → ``alerts`` rows (picture ``external:SAC/SIC``, unscored): one
     episode per SDPS, alert identifier and track pair, split where messages stop for more than
     ``gap_s``; other message types are counted, not kept."""
-    from tertiary.contract import TABLES
     counts = {"cat004_records": raw.height, "cat004_other_types": int((raw["message_type"] != STCA).sum())}
     frame = raw.filter(pl.col("message_type") == STCA).with_columns(
         pl.when(pl.col("tod") >= 0).then(pl.col("tod") / 128.0).alias("tod_s"), pl.lit(8).alias("length"))
