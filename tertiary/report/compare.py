@@ -28,10 +28,10 @@ from tertiary.report.common import COLORS, Ctx, breakable, fmt_cell
 from tertiary.report.episodes import figure_div, page_html
 from tertiary.runtime.windows import incomplete_message
 from tertiary.store.files import write_text_atomic
-from tertiary.store.sql_reports import open_read_only, run_report
+from tertiary.store.sql_reports import open_read_only
 
-__all__ = ["BETTER", "RunFacts", "compare_table", "differences", "headline", "load_runs", "render_compare", "summary_lines",
-           "verdict_changes", "write_compare"]
+__all__ = ["BETTER", "RunFacts", "compare_table", "differences", "headline", "load_runs", "render_compare",
+           "summary_lines", "verdict_changes", "write_compare"]
 
 #: quantity → +1 when higher is better, −1 when lower is better (others: no direction)
 BETTER: dict[str, int] = {
@@ -296,7 +296,8 @@ def _accuracy_figure(table: pl.DataFrame, labels: list[str]) -> go.Figure | None
         fig.add_trace(go.Bar(x=acc["picture"].to_list(), y=acc[label].to_list(), name=label,
                              marker_color=COLORS[i % len(COLORS)]))
     fig.update_layout(title=dict(text="Horizontal RMSE per picture and run", x=0.01), barmode="group", height=460,
-                      template="plotly_white", margin=dict(l=70, r=20, t=60, b=140), legend=dict(orientation="h", y=1.12, x=0.4))
+                      template="plotly_white", margin=dict(l=70, r=20, t=60, b=140),
+                      legend=dict(orientation="h", y=1.12, x=0.4))
     fig.update_xaxes(title_text="picture", tickangle=-40)
     fig.update_yaxes(title_text="horizontal RMSE (m)")
     return fig
@@ -317,7 +318,8 @@ def render_compare(runs: list[RunFacts]) -> tuple[str, pl.DataFrame, pl.DataFram
     n_changed = int(table["changed"].sum())
     flips = verdict_changes(table, labels)
     parts = [_CSS, f"<p>Baseline: <b>{html.escape(labels[0])}</b>; Δ = run − baseline. {n_changed} of "
-                   f"{table.height} figures differ; {flips.height} requirement verdict(s) change.</p>", _runs_html(runs),
+                   f"{table.height} figures differ; {flips.height} requirement verdict(s) change.</p>",
+             _runs_html(runs),
              "<h2>What differs</h2><ul>" + "".join(f"<li>{html.escape(s)}</li>" for s in summary_lines(diff))
              + "</ul>"]
     if diff.height:

@@ -668,9 +668,9 @@ def render_episodes(run_dir_or_store: RunStore | str | os.PathLike[str], picture
     title = f"Alert episodes: {picture}" if picture else "Alert episodes"
     if pair:
         title += f", aircraft {pair[0]} & {pair[1]}"
-    index = pl.DataFrame({"figure": list(range(1, len(figs) + 1)),
-                          "episode": [html.unescape(f.layout.title.text) for f, _c in figs]}, schema={"figure": pl.UInt32,
-                                                                                        "episode": pl.String})
+    titles = [html.unescape(f.layout.title.text) for f, _c in figs]
+    index = pl.DataFrame({"figure": list(range(1, len(figs) + 1)), "episode": titles},
+                         schema={"figure": pl.UInt32, "episode": pl.String})
     body = (f'<p>{html.escape(note)}</p>' + (table_html(index) if figs else "")
             + _figures_html(figs, "fig-episode"))
     return page_html(title, body, len(figs)), len(figs), note
