@@ -1,10 +1,13 @@
 """ASTERIX recordings in and out (docs/asterix.md): a reader of the pipeline's input beside
 :mod:`tertiary.io.dataset`, and a writer of its inputs and pictures.
 
-* :func:`import_recordings` / :func:`write_import` — pcap, pcapng or raw data blocks of CAT048
-  (reports), CAT034 (antenna timing), CAT021 (truth) and CAT062 (external tracks) → a dataset.
+* :func:`import_recordings` / :func:`write_import` — pcap, pcapng or raw data blocks of CAT048,
+  CAT001 and CAT020 (reports; CAT020 of MLAT sensors), CAT034 and CAT002 (antenna timing),
+  CAT021 (truth), CAT062 (external tracks) and CAT004 (STCA alerts) → a dataset.
+* :func:`external_alerts` — the CAT004 STCA alerts of recordings as ``alerts`` rows (unscored).
 * :func:`write_recording` — a dataset's reports, truth and scans as ``recording.ast`` + ``sites.toml``.
 * :func:`export_picture` — a picture (``tracks`` schema) as CAT062 system tracks.
+* :func:`export_alerts` — alert episodes (``alerts`` schema) as CAT004 STCA messages.
 * :func:`read_sites` — the SAC/SIC → radar registry.
 
 libasterix (the codec, ~2.4 s to import) and numba (the compiled CAT048 decoder) load only when
@@ -16,10 +19,11 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = ["import_recordings", "write_import", "write_recording", "export_picture", "read_sites"]
+__all__ = ["import_recordings", "write_import", "write_recording", "export_picture", "read_sites", "external_alerts",
+           "export_alerts"]
 
 _WHERE = {"import_recordings": "dataset", "write_import": "dataset", "write_recording": "encode",
-          "export_picture": "encode", "read_sites": "sites"}
+          "export_picture": "encode", "read_sites": "sites", "external_alerts": "dataset", "export_alerts": "encode"}
 
 
 def __getattr__(name: str) -> Any:
