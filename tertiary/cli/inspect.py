@@ -21,7 +21,7 @@ from tertiary.store import sql_reports
 
 def episodes(
     run_dir: Annotated[Path, typer.Argument(help="run directory holding results.duckdb")],
-    picture: Annotated[Optional[str], typer.Option("--picture", "-p", help="picture, e.g. information+imm_sym "
+    picture: Annotated[Optional[str], typer.Option("--picture", help="picture, e.g. information+imm_sym "
                                                                              "[default: the best picture]")] = None,
     pair: Annotated[Optional[str], typer.Option("--pair", help="A,B: every episode of these two aircraft (truth "
                                                                "ids; picture ids for a pair without aircraft)")] = None,
