@@ -251,3 +251,25 @@ def test_malformed_blocks_are_rejects_with_the_edition(tmp_path: Path) -> None:
                  "category 99 not supported"):
         assert any(text in r for r in reasons), (text, reasons)
     assert res.reports.height == 2
+
+
+def test_cli_imports_every_new_category_and_validate_reads_it(tmp_path: Path) -> None:
+    """`tertiary import asterix` on a mixed recording, then `tertiary validate` on the dataset:
+    every report accepted; an MLAT plot whose accuracy is no covariance rejected with the reason."""
+    from typer.testing import CliRunner
+    from tertiary.cli.commands import app
+    rec, sites, out = tmp_path / "mixed.ast", tmp_path / "sites.toml", tmp_path / "ds"
+    rec.write_bytes(b"".join(BLOCKS[2] + BLOCKS[1] + BLOCKS[20] + BLOCKS[4]))
+    sites.write_text(SITES)
+    r = CliRunner().invoke(app, ["import", "asterix", str(rec), "--sites", str(sites), "--date", "2024-03-01",
+                                 "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "6 legacy radar reports (CAT001), 6 MLAT reports (CAT020)" in r.output and "2 STCA alert" in r.output
+    assert pl.read_parquet(out / "alerts.parquet").height == 2
+    r = CliRunner().invoke(app, ["validate", str(out)])
+    assert r.exit_code == 0 and "not a covariance" not in r.output, r.output
+    reports = pl.read_parquet(out / "reports.parquet")
+    reports.with_columns(pl.when(pl.col("local_track_id") == 100).then(50.0).otherwise(pl.col("plot_sigma_xy_m"))
+                         .alias("plot_sigma_xy_m")).write_parquet(out / "reports.parquet")
+    r = CliRunner().invoke(app, ["validate", str(out)])
+    assert r.exit_code == 0 and "not a covariance" in r.output, r.output
