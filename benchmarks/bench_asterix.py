@@ -260,7 +260,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.only_new:
         result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-                  **_new_rates(args.records // 5)}
+                  "load_average_1min": round(os.getloadavg()[0], 2), **_new_rates(args.records // 5)}
         print(json.dumps(result, indent=2))
         _write(result)
         return
@@ -301,7 +301,7 @@ def main() -> None:
     cat021 = _cat021_rate(args.records // 5)
     result = {
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-        "records": args.records, "record_bytes": int(recs.shape[1]),
+        "load_average_1min": round(os.getloadavg()[0], 2), "records": args.records, "record_bytes": int(recs.shape[1]),
         "libasterix_import_s": round(import_s, 2),
         "fast_decode_records_per_s": round(args.records / fast_s),
         "libasterix_decode_records_per_s": round(n_lib / lib_s),

@@ -273,3 +273,12 @@ def test_cli_imports_every_new_category_and_validate_reads_it(tmp_path: Path) ->
                          .alias("plot_sigma_xy_m")).write_parquet(out / "reports.parquet")
     r = CliRunner().invoke(app, ["validate", str(out)])
     assert r.exit_code == 0 and "not a covariance" in r.output, r.output
+
+
+def test_cat004_episode_splits_at_a_gap() -> None:
+    """One alert identifier and pair: messages 0, 1, 2 s and 100 s later are two episodes (gap 30 s)."""
+    blk = codec.datablock(4, [cat004_stca(7200.0 + t, 5, 12, 3) for t in (0, 1, 2, 102)])
+    raw = fastcats.decode_004([(blk, {"file": "f", "datagram": 0}, math.nan, "raw", 0)], [])
+    alerts, rejects, _ = plots.alerts_table(raw, DAY0)
+    assert not rejects and alerts["alert_epochs"].to_list() == [3, 1]
+    assert alerts["duration_s"].to_list() == [2.0, 0.0]

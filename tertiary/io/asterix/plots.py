@@ -248,9 +248,10 @@ def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
     ).with_columns(pl.col(f"{c}_{k}").replace(-1, None) for c in raw for k in "ab"
                    ).sort("sac", "sic", "alert_id", "id_a", "id_b", "t")
     key = ["sac", "sic", "alert_id", "id_a", "id_b"]
-    good = good.with_columns(
-        ((pl.col("t").diff().over(key).fill_null(0.0) > gap_s).cum_sum().over(key)).alias("__ep"))
-    eps = good.group_by([*key, "__ep"], maintain_order=True).agg(
+    # sorted by key and time: an episode starts at a new key or after a gap (no window functions)
+    run = pl.struct(key).rle_id()
+    good = good.with_columns(((run.diff().fill_null(1) != 0) | (pl.col("t").diff() > gap_s)).cum_sum().alias("__ep"))
+    eps = good.group_by("__ep", maintain_order=True).agg(*(pl.col(c).first() for c in key),
         pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"), pl.len().alias("alert_epochs"),
         pl.col("mhs_m").min().alias("r_min_pred_m"), (pl.col("mvs_ft").min() * FT).alias("dz_min_pred_m"),
         pl.col("tca_s").first().alias("t_min_first_s"),
