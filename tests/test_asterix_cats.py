@@ -282,3 +282,21 @@ def test_cat004_episode_splits_at_a_gap() -> None:
     alerts, rejects, _ = plots.alerts_table(raw, DAY0)
     assert not rejects and alerts["alert_epochs"].to_list() == [3, 1]
     assert alerts["duration_s"].to_list() == [2.0, 0.0]
+
+
+def test_mutated_recordings_import_without_a_traceback(tmp_path: Path) -> None:
+    """Flipped, cut and deleted bytes in every new category: the import ends with rejects rows
+    (or a clear TertiaryError), never another exception; every reject has a reason."""
+    from tertiary.core.errors import TertiaryError
+    rng = np.random.default_rng(7)
+    sites = tmp_path / "sites.toml"
+    sites.write_text(SITES)
+    for i in range(12):
+        blocks = [b for cat in (2, 1, 20, 4) for b in _mutants(BLOCKS[cat], rng, 2)]
+        rec = tmp_path / f"m{i}.ast"
+        rec.write_bytes(b"".join(blocks))
+        try:
+            res = dataset.import_recordings([rec], sites=sites, date="2024-03-01", skip_unknown=True)
+        except TertiaryError:
+            continue
+        assert res.rejects["reason"].str.len_chars().min() > 0 if res.rejects.height else True

@@ -201,6 +201,8 @@ def cat020_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | 
     work = _flags(_mlat_geometry(_with_sites(frame, sites)), stale_s)
     reasons = _site_reasons("020", "tod") + [
         (pl.col("lat_deg").is_null() & pl.col("x_m").is_null(), "no I020/041 or I020/042 (position)"),
+        ((pl.col("lat_deg").abs() > 90) | (pl.col("lon_deg").abs() > 180),
+         pl.format("I020/041 position {}, {} off the globe", pl.col("lat_deg"), pl.col("lon_deg"))),
         (pl.col("trn") < 0, "no I020/161 (track number)"),
         (pl.col("radar_id").is_not_null() & (pl.col("kind") != "mlat"),
          pl.format("SAC/SIC {}/{} is not of kind mlat in the sites file", pl.col("sac"), pl.col("sic"))),
