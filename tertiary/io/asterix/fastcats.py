@@ -42,6 +42,12 @@ def _reject_blocks(items: list[Item], bad: list[tuple[int, int, str]], cat: int,
                         "detail": json.dumps(detail, default=str)})
 
 
+def _in_block(items: list[Item], block: NDArray[np.int64], rs: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Record offsets in their block's record part (``rs`` are offsets in the concatenation)."""
+    lens = np.fromiter((len(it[0]) - 3 for it in items), np.int64, len(items))
+    return rs - (np.cumsum(lens) - lens)[block] if len(items) else rs
+
+
 def _meta(items: list[Item], block: NDArray[np.int64]) -> dict[str, pl.Series]:
     """Per-record attributes of their blocks (gathered by block index: a loop over blocks only)."""
     idx = pl.Series(block)
@@ -153,7 +159,7 @@ def decode_020(items: list[Item], rejects: Rejects) -> pl.DataFrame:
         "sigma_x_m": _nan(s.has("sdp"), s.u("sdp", 0, 2) * 0.25),
         "sigma_y_m": _nan(s.has("sdp"), s.u("sdp", 2, 2) * 0.25),
         "sigma_xy_m": _nan(s.has("sdp"), s.u("sdp", 4, 2) * 0.25),
-        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": rs,
+        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": _in_block(items, block, rs),
         **_meta(items, block),
     })
 
@@ -199,7 +205,7 @@ def decode_001(items: list[Item], rejects: Rejects) -> pl.DataFrame:
         "trn": f.u("161", 0, 2), "mode_3a": per_value(f.u("070", 0, 2), mode_3a), "flight_level": fl,
         "fl_valid": alt_fl,
         "detection": pl.Series(np.where(f.has("020"), (f.u("020") >> 4) & 3, -1)).cast(pl.Int8).replace(-1, None),
-        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": rs,
+        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": _in_block(items, block, rs),
         **_meta(items, block),
     })
 
@@ -254,5 +260,5 @@ def decode_004(items: list[Item], rejects: Rejects) -> pl.DataFrame:
         "tca_s": _nan(g.has("tca"), g.u("tca", 0, 3) / 128.0),
         "mhs_m": _nan(g.has("mhs"), g.u("mhs", 0, 2) * 0.5),
         "mvs_ft": _nan(g.has("mvs"), g.u("mvs", 0, 2) * 25.0),
-        "hash": fastwalk.record_hash(buf, rs, re), **meta,
+        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": _in_block(items, block, rs), **meta,
     })

@@ -22,7 +22,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.contract import TABLES
+from tertiary.contract import MLAT_PLOT_COLUMNS, TABLES
 from tertiary.core import geo
 from tertiary.core.units import FT
 from tertiary.io.asterix import fastcats
@@ -51,6 +51,7 @@ def _flags(work: pl.DataFrame, stale_s: float) -> pl.DataFrame:
 
 def _split(work: pl.DataFrame, reasons: list[tuple[pl.Expr, object]], cat: str
            ) -> tuple[pl.DataFrame, Rejects]:
+    """(rows no reason applies to, rejects rows naming every reason that does and the place)."""
     reason = pl.concat_str([pl.when(c).then(pl.lit(r) if isinstance(r, str) else r) for c, r in reasons],
                            separator="; ", ignore_nulls=True)
     work = work.with_columns(reason=reason)
@@ -78,6 +79,7 @@ def _dedup(frame: pl.DataFrame, counts: dict[str, int], cat: str) -> pl.DataFram
 
 
 def _with_sites(frame: pl.DataFrame, sites: pl.DataFrame | None) -> pl.DataFrame:
+    """Each record with its sensor's radar_id, kind and site (null when not in the sites file)."""
     cols = ["sac", "sic", "radar_id", "lat_deg", "lon_deg", "alt_m", "kind"]
     if sites is None:
         return frame.with_columns(pl.lit(None, pl.UInt32).alias("radar_id"), pl.lit(None, pl.String).alias("kind"))
@@ -87,6 +89,7 @@ def _with_sites(frame: pl.DataFrame, sites: pl.DataFrame | None) -> pl.DataFrame
 
 
 def _reports(good: pl.DataFrame, extra: list[str]) -> pl.DataFrame:
+    """The ``reports`` columns (CAT048's order and types) plus the category's ``extra`` ones."""
     return good.select(
         pl.col("radar_id").cast(pl.UInt32), (pl.col("t") * 1e6).round().cast(pl.Int64).cast(TIME).alias("time"),
         pl.col("trn").cast(pl.UInt32).alias("local_track_id"), "range_m", "azimuth_deg", "altitude_m", *_COMMON,
@@ -95,6 +98,7 @@ def _reports(good: pl.DataFrame, extra: list[str]) -> pl.DataFrame:
 
 
 def _site_reasons(cat: str, time_item: str) -> list[tuple[pl.Expr, object]]:
+    """Reasons every report category shares: source, time, a SAC/SIC missing from the sites file."""
     return [(pl.col("sac") < 0, f"no I{cat}/010 (SAC/SIC)"),
             (pl.col("tod_s").is_null() & (pl.col(time_item) < 0), f"no I{cat} time of day"),
             (pl.col("tod_s") >= DAY, pl.format("time of day {} s not below 86400", pl.col("tod_s"))),
@@ -115,7 +119,7 @@ def cat001_time(plots: pl.DataFrame, cat002: pl.DataFrame) -> pl.Series:
         marks = (cat002.filter(pl.col("tod_s").is_not_null()).select("sac", "sic", "seq", pl.col("tod_s").alias("ref"))
                  .sort("seq"))
         ref = ref.sort("seq").join_asof(marks, on="seq", by=["sac", "sic"], strategy="nearest",
-                                             check_sortedness=False).sort("__i")
+                                        check_sortedness=False).sort("__i")
         r = ref["ref"].fill_null(np.nan).to_numpy()
     else:
         r = np.full(plots.height, np.nan)
@@ -212,19 +216,51 @@ def cat020_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | 
                              pl.col("sigma_x_m").alias("plot_sigma_x_m"), pl.col("sigma_y_m").alias("plot_sigma_y_m"),
                              pl.col("sigma_xy_m").alias("plot_sigma_xy_m"))
     counts |= {"cat020_reports": good.height, "cat020_rejected": len(rej)}
-    return _reports(good, list(MLAT_COLUMNS)), rej, counts
-
-
-#: the Cartesian plot columns of an MLAT report (see docs/data-contract.md)
-MLAT_COLUMNS = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "plot_height_m", "plot_sigma_x_m",
-                "plot_sigma_y_m", "plot_sigma_xy_m")
+    return _reports(good, list(MLAT_PLOT_COLUMNS)), rej, counts
 
 
 # --------------------------------------------------------------------------- CAT004
 
 
+#: an episode's key: the SDPS, its alert identifier, the (ordered) pair of tracks
+_ALERT_KEY = ("sac", "sic", "alert_id", "id_a", "id_b")
+#: CAT004 raw identities per aircraft: AI callsign, MS Mode S identification, M3 Mode 3/A
+_IDS = ("ai", "ms", "m3")
 ALERT_EXTRA = {"alert_id": pl.UInt32, "callsign_a": pl.String, "callsign_b": pl.String, "mode_s_ident_a": pl.String,
                "mode_s_ident_b": pl.String, "mode_3a_a": pl.String, "mode_3a_b": pl.String}
+
+
+def _stca_messages(raw: pl.DataFrame, day0: float | None, counts: dict[str, int]) -> tuple[pl.DataFrame, Rejects]:
+    """The distinct, usable STCA messages with absolute times, each pair ordered (id_a < id_b,
+    the identities of each aircraft with its track), and the rejects."""
+    frame = raw.filter(pl.col("message_type") == STCA).with_columns(
+        pl.when(pl.col("tod") >= 0).then(pl.col("tod") / 128.0).alias("tod_s"))
+    frame = _dedup(_times(frame, day0), counts, "cat004")
+    reasons = [(pl.col("sac") < 0, "no I004/010 (SAC/SIC)"), (pl.col("tod_s").is_null(), "no I004/020 (time)"),
+               (pl.col("tod_s") >= DAY, pl.format("time of day {} s not below 86400", pl.col("tod_s"))),
+               ((pl.col("track_1") < 0) | (pl.col("track_2") < 0), "STCA without I004/030 or I004/035 (tracks)")]
+    good, rej = _split(frame, reasons, "CAT004")
+    swap = pl.col("track_1") > pl.col("track_2")
+    pick = lambda a, b: pl.when(swap).then(pl.col(b)).otherwise(pl.col(a))  # noqa: E731
+    good = good.with_columns(
+        id_a=pick("track_1", "track_2"), id_b=pick("track_2", "track_1"),
+        **{f"{c}_a": pick(f"{c}_1", f"{c}_2") for c in _IDS}, **{f"{c}_b": pick(f"{c}_2", f"{c}_1") for c in _IDS},
+    ).with_columns(pl.col(f"{c}_{k}").replace(-1, None) for c in _IDS for k in "ab")
+    return good, rej
+
+
+def _episodes(msgs: pl.DataFrame, gap_s: float) -> pl.DataFrame:
+    """One row per episode: messages of one key in time order, split where they stop for more
+    than ``gap_s`` (sorted by key and time, so no window function is needed)."""
+    msgs = msgs.sort(*_ALERT_KEY, "t")
+    run = pl.struct(_ALERT_KEY).rle_id()
+    msgs = msgs.with_columns(((run.diff().fill_null(1) != 0) | (pl.col("t").diff() > gap_s)).cum_sum().alias("__ep"))
+    eps = msgs.group_by("__ep", maintain_order=True).agg(
+        *(pl.col(c).first() for c in _ALERT_KEY), pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"),
+        pl.len().alias("alert_epochs"), pl.col("mhs_m").min().alias("r_min_pred_m"),
+        (pl.col("mvs_ft").min() * FT).alias("dz_min_pred_m"), pl.col("tca_s").first().alias("t_min_first_s"),
+        *(pl.col(f"{c}_{k}").drop_nulls().first() for c in _IDS for k in "ab"))
+    return fastcats.identities(eps, ("a", "b"))
 
 
 def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
@@ -233,34 +269,9 @@ def alerts_table(raw: pl.DataFrame, day0: float | None, gap_s: float = 30.0
     episode per SDPS, alert identifier and track pair, split where messages stop for more than
     ``gap_s``; other message types are counted, not kept."""
     counts = {"cat004_records": raw.height, "cat004_other_types": int((raw["message_type"] != STCA).sum())}
-    frame = raw.filter(pl.col("message_type") == STCA).with_columns(
-        pl.when(pl.col("tod") >= 0).then(pl.col("tod") / 128.0).alias("tod_s"), pl.lit(8).alias("length"))
-    frame = _dedup(_times(frame, day0), counts, "cat004")
-    frame = frame.with_columns(pl.lit(-1).alias("offset"))
-    reasons = [(pl.col("sac") < 0, "no I004/010 (SAC/SIC)"), (pl.col("tod_s").is_null(), "no I004/020 (time)"),
-               (pl.col("tod_s") >= DAY, pl.format("time of day {} s not below 86400", pl.col("tod_s"))),
-               ((pl.col("track_1") < 0) | (pl.col("track_2") < 0), "STCA without I004/030 and I004/035 (tracks)")]
-    good, rej = _split(frame, reasons, "CAT004")
-    swap = pl.col("track_1") > pl.col("track_2")
-    pick = lambda a, b: pl.when(swap).then(pl.col(b)).otherwise(pl.col(a))  # noqa: E731
-    raw = ("ai", "ms", "m3")
-    good = good.with_columns(
-        id_a=pick("track_1", "track_2"), id_b=pick("track_2", "track_1"),
-        **{f"{c}_a": pick(f"{c}_1", f"{c}_2") for c in raw}, **{f"{c}_b": pick(f"{c}_2", f"{c}_1") for c in raw},
-    ).with_columns(pl.col(f"{c}_{k}").replace(-1, None) for c in raw for k in "ab"
-                   ).sort("sac", "sic", "alert_id", "id_a", "id_b", "t")
-    key = ["sac", "sic", "alert_id", "id_a", "id_b"]
-    # sorted by key and time: an episode starts at a new key or after a gap (no window functions)
-    run = pl.struct(key).rle_id()
-    good = good.with_columns(((run.diff().fill_null(1) != 0) | (pl.col("t").diff() > gap_s)).cum_sum().alias("__ep"))
-    eps = good.group_by("__ep", maintain_order=True).agg(*(pl.col(c).first() for c in key),
-        pl.col("t").min().alias("t0"), pl.col("t").max().alias("t1"), pl.len().alias("alert_epochs"),
-        pl.col("mhs_m").min().alias("r_min_pred_m"), (pl.col("mvs_ft").min() * FT).alias("dz_min_pred_m"),
-        pl.col("tca_s").first().alias("t_min_first_s"),
-        *(pl.col(f"{c}_{k}").drop_nulls().first() for c in raw for k in "ab"))
-    eps = fastcats.identities(eps, ("a", "b"))
+    msgs, rej = _stca_messages(raw, day0, counts)
     us = lambda c: (pl.col(c) * 1e6).round().cast(pl.Int64).cast(TIME)  # noqa: E731
-    alerts = eps.select(
+    alerts = _episodes(msgs, gap_s).select(
         pl.lit(0, pl.UInt32).alias("run"), pl.format("external:{}/{}", "sac", "sic").alias("method"),
         pl.col("id_a").cast(pl.UInt64), pl.col("id_b").cast(pl.UInt64), pl.lit(None, pl.Int64).alias("truth_a"),
         pl.lit(None, pl.Int64).alias("truth_b"), us("t0").alias("t_start"), us("t1").alias("t_end"),
