@@ -24,6 +24,11 @@ runner = CliRunner()
 #: figures of a complete run: map, range, range rate, acceleration, residuals, RMSE over time,
 #: a-posteriori vs a-priori, accuracy bars, conflict timeline, P_pob, capacity
 N_FIGURES = 13
+
+
+def n_figures(page: str) -> int:
+    """The figures a complete run's report holds: the fixed ones and one per alert episode drawn."""
+    return N_FIGURES + len(re.findall(r'id="fig-episodes-\d+"', page))
 SEED_FIGURES = ["4.4", "4.5", "4.6", "4.7", "4.9", "4.10", "4.11", "5.2", "5.3"]
 
 
@@ -68,10 +73,12 @@ def test_one_self_contained_file(run_dir, page):
 
 
 def test_every_figure_is_embedded(page):
-    assert figure_count(page) == N_FIGURES
-    assert page.count('class="plotly-graph-div"') == N_FIGURES
-    assert page.count("window.__reportDone(") == N_FIGURES          # each marks itself rendered
-    assert page.count("Plotly.newPlot(") == N_FIGURES
+    n = n_figures(page)
+    assert n > N_FIGURES                                             # alert episodes are drawn
+    assert figure_count(page) == n
+    assert page.count('class="plotly-graph-div"') == n
+    assert page.count("window.__reportDone(") == n                  # each marks itself rendered
+    assert page.count("Plotly.newPlot(") == n
     assert '<pre id="js-errors"' in page
     for fig in SEED_FIGURES:
         assert f"fig. {fig})" in page or f"fig. {fig}," in page or f"figs. {fig}" in page, fig
@@ -94,7 +101,7 @@ def test_figures_and_tables_come_from_sql_reports(page):
 def test_size_is_bounded(run_dir):
     size = (run_dir / REPORT_FILENAME).stat().st_size
     assert size < 20e6
-    assert size < 8e6            # plotly.js (≈ 4.7 MB) plus a few hundred kB of thinned data
+    assert size <= 6e6           # plotly.js (≈ 4.8 MB) plus about a megabyte of thinned data
 
 
 def test_thin():
@@ -334,7 +341,7 @@ def test_kinematics_are_small_multiples(built, run_dir):
         assert sum(bool(t.showlegend) for t in fig.data) <= 3              # one legend entry per aircraft
 
 
-UNIT = re.compile(r"\((m|km|s|m/s|m/s²|%|1/min|1/h|pairs|aircraft|dimensionless)\)")
+UNIT = re.compile(r"\((m|km|s|m/s|m/s²|%|1/min|1/h|pairs|aircraft|dimensionless)\)|\(ft[;)]")
 
 
 def test_every_axis_has_its_unit(built):
@@ -386,7 +393,7 @@ def test_report_survives_missing_tables(run_dir, tmp_path):
     out = build_report(tmp_path, tmp_path / "r.html")
     page = out.read_text()
     assert "Not available for this run" in page
-    assert 0 < figure_count(page) < N_FIGURES
+    assert 0 < figure_count(page) < n_figures(page)
     assert page.count('class="plotly-graph-div"') == figure_count(page)
 
 
@@ -410,7 +417,7 @@ def test_run_writes_database_and_report(tmp_path):
     assert html_path.is_file()
     flat = " ".join(res.output.split())
     assert "results.duckdb" in flat and REPORT_FILENAME in flat          # where the results and report are
-    assert figure_count(html_path.read_text()) == N_FIGURES
+    assert figure_count(html_path.read_text()) == n_figures(html_path.read_text())
 
 
 def test_stca_curves_section_draws_both_threshold_families(built):
@@ -440,3 +447,19 @@ def test_named_reports_have_no_empty_column_on_the_main_job(run_dir):
             if rep.name == "aposteriori_gain" and (frame["manoeuvre_epochs"] == 0).all():
                 empty.discard("max_gain_manoeuvre")
             assert not empty, f"{rep.name}: columns without a value: {sorted(empty)}"
+
+
+def test_step_curves_keep_only_their_changes_and_draw_the_same_line():
+    """A step curve (shape "hv") thinned to its changes holds, at every original x, the value of
+    the last kept point at or before it: the line drawn is the same."""
+    import numpy as np
+
+    from tertiary.report.common import step_changes
+
+    rng = np.random.default_rng(3)
+    y = np.repeat(rng.integers(0, 4, 60), rng.integers(1, 30, 60))
+    frame = pl.DataFrame({"t_s": np.arange(len(y), dtype=float), "alerts": y})
+    kept = step_changes(frame, "alerts")
+    assert kept.height < frame.height / 4 and kept["t_s"][-1] == frame["t_s"][-1]
+    idx = np.searchsorted(kept["t_s"].to_numpy(), frame["t_s"].to_numpy(), side="right") - 1
+    assert (kept["alerts"].to_numpy()[idx] == y).all()

@@ -4,6 +4,7 @@ that draw figures and tables the same way everywhere."""
 
 from __future__ import annotations
 
+import functools
 import html
 import json
 import math
@@ -14,6 +15,8 @@ from datetime import datetime, timezone
 from typing import Any
 
 import numpy as np
+import plotly.graph_objects as go
+import plotly.io as pio
 import polars as pl
 
 from tertiary.store.run_store import RunStore
@@ -183,8 +186,29 @@ def thin(frame: pl.DataFrame, max_points: int = MAX_POINTS) -> pl.DataFrame:
     return frame.filter((idx % step == 0) | (idx == n - 1))
 
 
+@functools.cache
+def lean_template() -> go.layout.Template:
+    """plotly's ``plotly_white`` look with only what 2-D scatter and bar figures use: the full
+    template (every trace type, colour scales, 3-D and map defaults) is ~7 kB in each figure."""
+    full = pio.templates["plotly_white"]
+    layout = {k: v for k, v in full.layout.to_plotly_json().items()
+              if k not in ("polar", "ternary", "scene", "geo", "mapbox", "colorscale", "coloraxis")}
+    data = {k: v for k, v in full.data.to_plotly_json().items() if k in ("scatter", "bar")}
+    return go.layout.Template(layout=layout, data=data)
+
+
+def step_changes(frame: pl.DataFrame, y: str) -> pl.DataFrame:
+    """The rows of a step curve (drawn with ``shape="hv"``, in x order) where ``y`` changes, and
+    the last: the same line, drawn from a fraction of the points when the value mostly holds."""
+    if frame.height < 3:
+        return frame
+    prev = pl.col(y).shift(1)
+    keep = prev.is_null() | (pl.col(y) != prev) | (pl.int_range(pl.len()) == pl.len() - 1)
+    return frame.filter(keep)
+
+
 def style(fig, title: str, xtitle: str, ytitle: str, height: int = 460, **kw: Any) -> None:
-    fig.update_layout(title=dict(text=title, x=0.01), template="plotly_white", height=height,
+    fig.update_layout(title=dict(text=title, x=0.01), template=lean_template(), height=height,
                       margin=dict(l=70, r=20, t=60, b=55), legend=dict(orientation="v"),
                       hovermode="closest", **kw)
     fig.update_xaxes(title_text=xtitle)

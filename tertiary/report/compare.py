@@ -24,7 +24,7 @@ import plotly.graph_objects as go
 import polars as pl
 
 from tertiary.core.errors import DataError, OptionError
-from tertiary.report.common import COLORS, Ctx, breakable, fmt_cell
+from tertiary.report.common import COLORS, Ctx, breakable, fmt_cell, lean_template
 from tertiary.report.episodes import figure_div, page_html
 from tertiary.runtime.windows import incomplete_message
 from tertiary.store.files import write_text_atomic
@@ -296,7 +296,7 @@ def _accuracy_figure(table: pl.DataFrame, labels: list[str]) -> go.Figure | None
         fig.add_trace(go.Bar(x=acc["picture"].to_list(), y=acc[label].to_list(), name=label,
                              marker_color=COLORS[i % len(COLORS)]))
     fig.update_layout(title=dict(text="Horizontal RMSE per picture and run", x=0.01), barmode="group", height=460,
-                      template="plotly_white", margin=dict(l=70, r=20, t=60, b=140),
+                      template=lean_template(), margin=dict(l=70, r=20, t=60, b=140),
                       legend=dict(orientation="h", y=1.12, x=0.4))
     fig.update_xaxes(title_text="picture", tickangle=-40)
     fig.update_yaxes(title_text="horizontal RMSE (m)")

@@ -44,7 +44,7 @@ from safety.conflicts import AerodromeZone, ApproachVolume, ConflictConfig
 from tertiary.core.errors import DataError, OptionError
 from tertiary.core.geo import LocalFrame
 from tertiary.core.units import FT
-from tertiary.report.common import Ctx, Section, f32, table_html
+from tertiary.report.common import Ctx, Section, f32, lean_template, table_html
 from tertiary.runtime.windows import incomplete_message
 from tertiary.store.files import write_text_atomic
 from tertiary.store.run_store import RunStore
@@ -420,6 +420,21 @@ def _lines(fig: go.Figure, frame: pl.DataFrame, ids: tuple, names: tuple[str, st
                       row=1, col=2)
 
 
+#: the truth drawn every this many seconds (its closest approach is found on every sample): a
+#: straight or turning aircraft is still a smooth line, and the report stays small
+TRUTH_DRAW_STEP_S = 4
+
+
+def _thinned(truth: pl.DataFrame) -> pl.DataFrame:
+    """Each aircraft's truth every :data:`TRUTH_DRAW_STEP_S` seconds, its first and last sample kept."""
+    if truth.height == 0:
+        return truth
+    t0 = truth["t"].min()
+    k = ((pl.col("t") - t0).dt.total_seconds() // TRUTH_DRAW_STEP_S)
+    keep = (k != k.shift(1).over("id")) | (pl.col("t") == pl.col("t").max().over("id"))
+    return truth.sort("id", "t").filter(keep)
+
+
 def _true_cpa(truth: pl.DataFrame, ep: Episode, t_ref: datetime) -> tuple[pl.DataFrame, float, float] | None:
     """The truths' closest horizontal approach in the window: (both rows, distance m, Δh m)."""
     if ep.truth_a is None or truth.height == 0:
@@ -447,7 +462,8 @@ def episode_figure(store: RunStore, ep: Episode, rank: int | None = None, cc: Co
     ac = (ep.truth_a, ep.truth_b)
     if ep.picture != TRUTH_PICTURE:
         _lines(fig, d.tracks, d.ids, (f"A: {id_names[0]}", f"B: {id_names[1]}"), "solid", d.t_ref)
-    _lines(fig, d.truth, ac, (f"A: truth of aircraft {ac[0]}", f"B: truth of aircraft {ac[1]}"), "dot", d.t_ref)
+    _lines(fig, _thinned(d.truth), ac, (f"A: truth of aircraft {ac[0]}", f"B: truth of aircraft {ac[1]}"), "dot",
+           d.t_ref)
     true = _true_cpa(d.truth, ep, d.t_ref)
     h_min, v_min = _draw_cpa(fig, d, cc, true)
     if true is not None:
@@ -459,7 +475,7 @@ def episode_figure(store: RunStore, ep: Episode, rank: int | None = None, cc: Co
                       row=1, col=1)
     _shade_times(fig, ep, d.t_ref, v_min, d)
     fig.update_layout(title=dict(text=html.escape(_title(ep, rank)), x=0.01, font=dict(size=14)), height=470,
-                      template="plotly_white", margin=dict(l=60, r=20, t=70, b=50), hovermode="closest",
+                      template=lean_template(), margin=dict(l=60, r=20, t=70, b=50), hovermode="closest",
                       legend=dict(orientation="h", y=-0.18, font=dict(size=11)))
     fig.update_xaxes(title_text="east x (km)", row=1, col=1)
     fig.update_yaxes(title_text="north y (km)", scaleanchor="x", scaleratio=1, row=1, col=1)

@@ -13,7 +13,7 @@ from plotly.subplots import make_subplots
 
 from tertiary.core.geo import LocalFrame
 from tertiary.report.common import (CENTRALIZED, COLORS, CONFLICT_ROWS, DASHES, KINEMATICS_AIRCRAFT, MIN_SAMPLE_FRAC,
-                                    Ctx, Section, f32, radar_names, style, thin, visible)
+                                    Ctx, Section, f32, radar_names, step_changes, style, thin, visible)
 
 def sec_map(ctx: Ctx) -> Section:
     sec = Section("map", "Scenario map (seed fig. 4.4)")
@@ -293,7 +293,7 @@ def sec_conflicts(ctx: Ctx) -> Section:
                   .group_by("t0").agg(pl.col("new_alerts").sum()).sort("t0"))
         color = "black" if m == main else COLORS[i % len(COLORS)]
         label = m + (" (best picture)" if m == main else " (centralised reference)" if m == CENTRALIZED else "")
-        part = thin(part)
+        part = thin(step_changes(part.sort("t_s"), "alerts"))
         fig.add_trace(go.Scatter(x=f32(part["t_s"]), y=f32(part["alerts"]), mode="lines", name=label,
                                  legendgroup=m, visible=visible(m, shown),
                                  line=dict(color=color, width=1.2, shape="hv")), row=1, col=1)

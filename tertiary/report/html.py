@@ -33,6 +33,8 @@ Figures (seed numbering):
 * accuracy by method, filter and segment, horizontal and vertical panels (``accuracy_by_method``)
 * conflict timeline: pairs in alert and new alerts per minute (``conflict_timeline``,
   ``conflicts``, ``alert_scores``)
+* alert episodes: the most severe episodes of the best picture and its missed losses, each in
+  plan view and vertical profile (:mod:`tertiary.report.episodes`)
 * STCA curves: losses alerted with ≥ 30 s warning against nuisance + false alerts per hour,
   covariance vs fixed thresholds, per look-ahead (``stca_tradeoff``,
   :func:`safety.alerts.compare_at_equal_nuisance`)
@@ -77,6 +79,7 @@ from tertiary.report.common import (MAX_POINTS, MIN_SAMPLE_FRAC, Ctx, Progress, 
 from tertiary.report.figures import (sec_accuracy, sec_conflicts, sec_evaluation, sec_kinematics, sec_map,
                                      sec_post_prior, sec_quality, sec_residuals, sec_rmse_time)
 from tertiary.report.safety_figures import sec_capacity, sec_ppob, sec_stca
+from tertiary.report.episodes import sec_episodes
 from tertiary.report.verdict import sec_requirements_long, sec_verdict, sec_verdict_detail
 from tertiary.store.files import write_text_atomic
 from tertiary.store.sql_reports import open_read_only
@@ -139,6 +142,7 @@ _SECTIONS: list[tuple[str, Callable[[Ctx], Section]]] = [
     ("evaluation", sec_evaluation),
     ("quality", sec_quality),
     ("conflicts", sec_conflicts),
+    ("alert episodes", sec_episodes),
     ("STCA curves", sec_stca),
     ("P_pob", sec_ppob),
     ("capacity", sec_capacity),
