@@ -240,8 +240,9 @@ def _new_rates(n: int) -> dict[str, int]:
                 kept = res.alerts.height if cat == 4 else res.reports.height
                 assert res.rejects.height == 0, res.rejects.head()
             s = time.perf_counter() - t
-            out |= {f"cat{cat:03d}_records": frame.height, f"cat{cat:03d}_import_rows_out": kept,
-                    f"cat{cat:03d}_import_s": round(s, 2), f"cat{cat:03d}_import_records_per_s": round(frame.height / s)}
+            c = f"cat{cat:03d}"
+            out |= {f"{c}_records": frame.height, f"{c}_import_rows_out": kept, f"{c}_import_s": round(s, 2),
+                    f"{c}_import_records_per_s": round(frame.height / s)}
     return out
 
 

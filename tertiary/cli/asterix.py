@@ -64,11 +64,12 @@ def import_asterix(
     c = res.counts
     console.print(f"wrote {out}/ in {time.perf_counter() - t:.1f} s: {c['reports']:,} reports from {c['radars']} "
                   f"radar(s) ({c['cat048_records']:,} CAT048 records, {c['duplicates']:,} redundant copies removed, "
-                  f"{c['distinct']:,} distinct), {c['cat034_messages']:,} CAT034 messages ({c['cat034_distinct']:,} "
-                  f"distinct), {res.truth.height:,} truth rows (CAT021), {res.external_tracks.height:,} external "
-                  f"track rows (CAT062), {res.rejects.height:,} rejects", soft_wrap=True)
-    more = [f"{c[f'cat{k}_reports']:,} {what} reports (CAT{k})" for k, what in (("001", "legacy radar"), ("020", "MLAT"))
-            if f"cat{k}_reports" in c]
+                  f"{c['distinct']:,} distinct), {c['cat034_messages']:,} CAT034 messages{_and_002(c)} "
+                  f"({c['cat034_distinct']:,} distinct), {res.truth.height:,} truth rows (CAT021), "
+                  f"{res.external_tracks.height:,} external track rows (CAT062), {res.rejects.height:,} rejects",
+                  soft_wrap=True)
+    more = [f"{c[f'cat{k}_reports']:,} {what} reports (CAT{k})"
+            for k, what in (("001", "legacy radar"), ("020", "MLAT")) if f"cat{k}_reports" in c]
     if res.alerts.height:
         more.append(f"{res.alerts.height:,} STCA alert episodes (CAT004, alerts.parquet)")
     if more:
@@ -81,6 +82,11 @@ def import_asterix(
             (pl.col("segment") == "all") & pl.col("metric").is_in(["rmse_horizontal_m", "rmse_height_m"])
     ).select("method", "metric", "value").iter_rows() if res.external_metrics.height else []:
         console.print(f"external picture {method} against the ADS-B truth: {metric} {value:,.1f} m")
+
+
+def _and_002(counts: dict[str, int]) -> str:
+    """The CAT002 service messages of the recording, when any (distinct ones counted with CAT034's)."""
+    return f" and {counts['cat002_messages']:,} CAT002" if counts.get("cat002_messages") else ""
 
 
 def _latency_table(latency: pl.DataFrame) -> None:

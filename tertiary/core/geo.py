@@ -410,3 +410,15 @@ def height_and_rate(pos: ArrayLike, vel: ArrayLike, frame: LocalFrame | None) ->
         h = np.asarray(h, np.float64)
     hdot = np.einsum("ij,ij->i", up, v)
     return h, hdot, up
+
+
+def up_at_height(frame: LocalFrame, e: ArrayLike, n: ArrayLike, height_m: ArrayLike, iterations: int = 3) -> F64:
+    """The up coordinate u in ``frame``'s ENU of the point with east ``e``, north ``n`` (that
+    frame) and geodetic height ``height_m`` (WGS-84): a Cartesian plot placed at its Mode C
+    height. Fixed point from the spherical drop, u₀ = h − h₀ − (e² + n²)/2R, then
+    u ← u + h − h(e, n, u) (the height changes along u at rate ≈ 1: mm after three steps)."""
+    e, n, h = _f(e), _f(n), _f(height_m)
+    u = h - frame.alt_m - (e * e + n * n) / (2.0 * EARTH_RADIUS_M)
+    for _ in range(iterations):
+        u = u + h - frame.to_geodetic(e, n, u)[2]
+    return u

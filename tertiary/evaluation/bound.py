@@ -72,6 +72,21 @@ elevation within [``min_elevation_deg``, max elevation (the scenario's, else 90�
 truth exists (no truth gap) at that instant. Truth between samples is the cubic Hermite
 interpolation of the truth positions and velocities (the simulator's interpolation).
 
+MLAT / WAM (a ``radars`` row of kind ``mlat``, :mod:`tertiary.sensors.mlat`): a Cartesian plot
+z = H p + w in the site's horizontal plane, H = the first two rows of the system-to-site
+rotation, w ~ N(0, R_xy); its Fisher information is the linear model's
+
+    J_Z = Hᵀ R_xy⁻¹ H + e_u e_uᵀ/V,     i.e.  R_eq = M diag(R_xy, V) Mᵀ                (MLAT-3)
+
+(M the site-to-system rotation, e_u the site's vertical). Its events are its plots on the
+aircraft (report times less its clock offset), each with the covariance the plot states (else
+the sensor's nominal ``sigma_range_m`` per axis — a lower bound on the achieved accuracy keeps
+J_Z an upper bound on the information and the PCRB a lower bound): the information of the
+plots received, no Pd factor. The plot's height is its Mode C reply, which the pictures' z then
+carries; V = (25 ft)²/12, the finest quantisation's variance, gives it at least the information
+of any reply (a Gaussian stand-in: a quantised reply has no regular Fisher information; the
+stand-in's is the larger, so the bound stays below).
+
 What is not in the bound: the Mode C altitude — it feeds the pictures' separate height channel
 (``rmse_height_m``, :mod:`tertiary.stages.tracking.altitude`; a quantised measurement has no
 Fisher information in the regular sense, so no height bound is given), while a picture's
@@ -102,9 +117,10 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.jit import arg, ready_for
-from tertiary.core.units import US
+from tertiary.core.units import FT, US
 from tertiary.evaluation.bound_kernel import pcrb_ca9
 from tertiary.contract import TABLES, TIME
+from tertiary.sensors import mlat
 
 __all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS", "MODEL"]
 
@@ -124,6 +140,10 @@ VEL = np.array([1, 4, 7])
 #: drop the scans that cannot bring an aircraft within a rotating radar's range before the
 #: beam-passage iterations (:func:`_radar_events`; the same events, found sooner)
 RANGE_SCREEN = True
+#: variance (m²) along the site's vertical of an MLAT plot in the bound: the plot is placed at its
+#: Mode C height, so the pictures' z takes that reply's information; the finest quantisation's
+#: q²/12 (25 ft, Mode S) gives it at least the information any reply holds (module docstring)
+MLAT_VERTICAL_VAR_M2 = (25.0 * FT) ** 2 / 12.0
 #: half-width (s) of the centred velocity difference that fits the truth's acceleration (model M):
 #: long enough to average out the jitter of ADS-B truth's vertical rate, short beside a manoeuvre
 ACCEL_HALF_WINDOW_S = 10.0
@@ -389,6 +409,35 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
     return a, t, r_eq
 
 
+def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalFrame, t0_us: int
+                 ) -> tuple[I64, F64, F64]:
+    """(aircraft index, time, R_eq) of every plot of an MLAT sensor on an aircraft of ``tr``
+    (module docstring, "MLAT / WAM"): R_eq = M R_local Mᵀ with the plot's stated horizontal
+    covariance (MLAT-1), else the sensor's nominal ``sigma_range_m`` on each axis, and
+    :data:`MLAT_VERTICAL_VAR_M2` along the site's vertical."""
+    cols = [c for c in ("truth_id", "time", "plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m") if c in reports.columns]
+    rep = reports.filter((pl.col("radar_id") == row["radar_id"]) & pl.col("truth_id").is_not_null()).select(cols) \
+        if "truth_id" in reports.columns else reports.clear().select("time")
+    if rep.height == 0:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3, 3))
+    tid = rep["truth_id"].cast(pl.Int64).to_numpy()
+    pos = np.searchsorted(tr.ids, tid)
+    known = (pos < len(tr.ids)) & (tr.ids[np.minimum(pos, len(tr.ids) - 1)] == tid)
+    a = np.where(known, pos, 0)
+    t = (rep["time"].cast(TIME).dt.epoch("us").to_numpy() - t0_us) / US - float(row.get("time_offset_s") or 0.0)
+    ok = known & tr.at(a, t)[1]
+    nominal = float(row["sigma_range_m"])
+    sig = [rep[c].cast(pl.Float64).fill_null(np.nan).to_numpy() if c in rep.columns else np.full(rep.height, np.nan)
+           for c in ("plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m")]
+    stated = np.isfinite(sig[0]) & np.isfinite(sig[1])
+    r = np.zeros((rep.height, 3, 3))
+    r[:, :2, :2] = mlat.plot_cov_xy(np.where(stated, sig[0], nominal), np.where(stated, sig[1], nominal),
+                                    np.where(stated & np.isfinite(sig[2]), sig[2], 0.0))
+    r[:, 2, 2] = MLAT_VERTICAL_VAR_M2
+    site = geo.LocalFrame(float(row["lat_deg"]), float(row["lon_deg"]), float(row["alt_m"]))
+    return a[ok], t[ok], geo.congruence(site.rotation_to(origin), r[ok])
+
+
 def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
                   cfg: BoundConfig = BoundConfig(), max_elevation: dict[str, float] | None = None,
                   t0_us: int | None = None, origins: dict[int, float] | None = None) -> pl.DataFrame:
@@ -402,10 +451,13 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     origins = scan_origins(radars, reports, t0) if origins is None else origins
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
-        if s0 is None:
+        if row.get("kind") == mlat.MLAT:
+            a, t, r_eq = _mlat_events(tr, row, reports, origin, t0)
+        elif s0 is None:
             continue
-        max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
-        a, t, r_eq = _radar_events(tr, row, s0, origin, max_el)
+        else:
+            max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
+            a, t, r_eq = _radar_events(tr, row, s0, origin, max_el)
         parts.append(pl.DataFrame({
             "truth_id": tr.ids[a], "radar_id": pl.Series(np.full(len(a), row["radar_id"]), dtype=pl.UInt32),
             "t_s": t, "r_eq": pl.Series(r_eq.reshape(-1, 9), dtype=pl.Array(pl.Float64, 9))}))
@@ -420,6 +472,8 @@ def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dic
     rep = reports.select("radar_id", pl.col("time").cast(TIME).dt.epoch("us").alias("us"), "azimuth_deg")
     out = {}
     for row in radars.iter_rows(named=True):
+        if row.get("kind") == mlat.MLAT:              # no scan: its plots are its events (_mlat_events)
+            continue
         mine = rep.filter(pl.col("radar_id") == row["radar_id"])
         rotating = (row.get("timing") or "rotating") == "rotating"
         off = float(row.get("time_offset_s") or 0.0)

@@ -302,6 +302,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         alerts, attribution = attributed(alerts, los, onsets, acfg)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         sink("alerts", alerts)
+        sink("losses", los)          # each loss of separation per picture, alerted or missed
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
             curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,

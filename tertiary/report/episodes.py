@@ -237,6 +237,8 @@ def missed_losses(store: RunStore, picture: str, pair: tuple[int, int] | None = 
         else None
     if n_run == 0 and pair is None:
         return [], "No missed loss of separation on this picture (the run's missed_los metric is 0)."
+    if "losses" in tabs:
+        return _stored_missed(store, picture, pair)
     rows = store.sql("SELECT count(*) FROM truth").item()
     if pair is None and rows > MAX_TRUTH_ROWS:      # the stage's own search runs an hour at a time
         return [], (f"Missed losses not drawn: the truth ({rows:,} rows) is too large to search again here; "
@@ -271,6 +273,24 @@ def missed_losses(store: RunStore, picture: str, pair: tuple[int, int] | None = 
     if pair is None and n_run is not None:
         note += f"; the run's missed_los metric counts {n_run}"
     return eps, note + "."
+
+
+def _stored_missed(store: RunStore, picture: str, pair: tuple[int, int] | None) -> tuple[list[Episode], str]:
+    """The missed losses the run's scoring stored (table ``losses``): exactly what its
+    ``missed_los`` counts, picture-induced when the truth picture alerted the same loss."""
+    where = "" if pair is None else f" AND truth_a = {int(pair[0])} AND truth_b = {int(pair[1])}"
+    los = store.sql("SELECT run, method, truth_a, truth_b, t_start, t_end, alerted FROM losses "
+                    f"WHERE method IN ($p, $t){where} ORDER BY run, t_start, truth_a, truth_b",
+                    {"p": picture, "t": TRUTH_PICTURE})
+    ref = los.filter(pl.col("method") == TRUTH_PICTURE).select("run", "truth_a", "truth_b", "t_start",
+                                                                 pl.col("alerted").alias("__ref"))
+    mine = los.filter((pl.col("method") == picture) & ~pl.col("alerted"))
+    missed = mine.join(ref, on=["run", "truth_a", "truth_b", "t_start"], how="left")
+    eps = [Episode("missed", picture, int(r["run"]), int(r["truth_a"]), int(r["truth_b"]), None, None, r["t_start"],
+                   r["t_end"], "missed loss", None if r["__ref"] is None else ("picture" if r["__ref"] else "predictor"),
+                   los_start=r["t_start"])
+           for r in missed.iter_rows(named=True)]
+    return eps, f"{len(eps)} missed loss(es) of separation (the run's scoring, table losses)."
 
 
 # --------------------------------------------------------------------------- one episode's data

@@ -30,6 +30,8 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
+from tertiary.sensors import mlat
+from tertiary.sensors.mlat import radial_innovation
 from tertiary.core.errors import OptionError
 from tertiary.contract import EHS_REPORT_COLUMNS, is_sorted_by
 from tertiary.filters import kinematic_los as los
@@ -187,7 +189,7 @@ OUT_X, OUT_RATE, OUT_P00, OUT_P01, OUT_P11, OUT_RES = 0, 3, 6, 9, 12, 15
 
 def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64],
             starts: NDArray[np.int64], lengths: NDArray[np.int64], cfg: LocalTrackerConfig,
-            prior: "_Prior | None" = None):
+            prior: "_Prior | None" = None, cartesian: bool = False):
     """Run the three channels over every track; returns, in report order, the estimates
     (2 (pos, rate), 3 channels, n), covariances (3 (P00, P01, P11), 3 channels, n), the range
     innovation and its variance, and the channel states after each track's last report:
@@ -204,6 +206,11 @@ def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64
     so the result does not depend on which reports share the call. With ``prior`` the tracks
     it marks continue from its states (a windowed run): their first report here is a
     prediction + update from the prior state over τ = t − t_prior, not an initiation.
+
+    ``cartesian``: the three channels are the east, north, up axes of an MLAT sensor's local
+    ENU (:mod:`tertiary.sensors.mlat`): one manoeuvre intensity σ_m per axis (no range scaling, no
+    angle wrap), and the innovation returned is the one along the line of sight from the site
+    (:func:`tertiary.sensors.mlat.radial_innovation`), the range innovation's counterpart.
     """
     n, m_tracks = len(us), len(starts)
     perm, alive, offsets = _rank_major(starts, lengths)
@@ -213,7 +220,8 @@ def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64
     if cont.any():                             # rank 0 is the first m_tracks rows, tracks in order
         tau[:m_tracks][cont] = (us[perm[:m_tracks]][cont] - prior.t_us[cont]) * 1e-6
     missing = ~np.isfinite(zr[:, 0])           # no range: the channel scale comes from the state
-    rng_now = np.maximum(np.where(missing, 0.0, zr[:, 0]), 100.0)
+    rng_now = np.ones(n) if cartesian else np.maximum(np.where(missing, 0.0, zr[:, 0]), 100.0)
+    innovation = _cartesian_innovation if cartesian else _range_innovation
     coeffs = _coefficients(tau, rng_now, cfg)
     z3, r3, tau3 = zr.ravel(), rr.ravel(), np.repeat(tau, 3)
     has_missing = np.add.reduceat(missing, offsets[:-1]) > 0 if n else np.zeros(0, bool)
@@ -233,15 +241,15 @@ def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64
                 c3 = (3 * np.flatnonzero(cont)[:, None] + np.arange(3)).ravel()
                 xc, pc = xs[:, c3], ps[:, c3]
                 nu, s = _step(xc, pc, zk[c3], rk[c3], tau3[sl][c3], tuple(c[sl][c3] for c in coeffs),
-                              tuple(v[c3] for v in init), cfg)
+                              tuple(v[c3] for v in init), cfg, wrap=not cartesian)
                 xs[:, c3], ps[:, c3] = xc, pc
-                out[np.flatnonzero(cont), OUT_RES], out[np.flatnonzero(cont), OUT_RES + 1] = nu[0::3], s[0::3]
+                out[np.flatnonzero(cont), OUT_RES], out[np.flatnonzero(cont), OUT_RES + 1] = innovation(nu, s, zk[c3])
             fresh = ~np.repeat(cont, 3)
             xs[0], ps[0], ps[3], ps[5] = (np.where(fresh, v, old) for v, old in zip(init, (xs[0], ps[0], ps[3], ps[5])))
         else:
             nu, s = _step(xs, ps, zk, rk, tau3[sl], tuple(c[sl] for c in coeffs),
-                          None, cfg, rng_rows=rng_now[rows])
-            out[rows, OUT_RES], out[rows, OUT_RES + 1] = nu[0::3], s[0::3]
+                          None, cfg, rng_rows=rng_now[rows], wrap=not cartesian)
+            out[rows, OUT_RES], out[rows, OUT_RES + 1] = innovation(nu, s, zk)
         block = out[rows]
         for col, v in ((OUT_X, xs[0]), (OUT_RATE, xs[1]), (OUT_P00, ps[0]), (OUT_P01, ps[1]), (OUT_P11, ps[3])):
             block[:, col:col + 3] = v.reshape(m, 3)
@@ -252,14 +260,26 @@ def _filter(us: NDArray[np.int64], z: NDArray[np.float64], r: NDArray[np.float64
             x, p)
 
 
-def _step(xs, ps, zk, rk, tau3, coeffs, init, cfg: LocalTrackerConfig, rng_rows=None):
+def _range_innovation(nu, s, zk) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The range channel's innovation and its variance per track (channels interleaved)."""
+    return nu[0::3], s[0::3]
+
+
+def _cartesian_innovation(nu, s, zk) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The Cartesian channels' innovation along the line of sight from the site (per track)."""
+    return radial_innovation(nu.reshape(-1, 3), s.reshape(-1, 3), zk.reshape(-1, 3))
+
+
+def _step(xs, ps, zk, rk, tau3, coeffs, init, cfg: LocalTrackerConfig, rng_rows=None, wrap: bool = True):
     """One Singer step of (track, channel) pairs in place: predict over τ, update on the plot,
     re-initiate the channels whose innovation fails ``cfg.reinit_gate``. ``init`` is the
     one-point initiation of these pairs (computed from ``rng_rows`` when None, only if a
-    channel is lost). Returns the innovation and its variance."""
+    channel is lost). ``wrap``: the second channel is an azimuth. Returns the innovation and
+    its variance."""
     predict_elementwise(xs, ps, tau3, coeffs)
     nu = zk - xs[0]
-    nu[1::3] = np.mod(nu[1::3] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
+    if wrap:
+        nu[1::3] = np.mod(nu[1::3] + np.pi, 2 * np.pi) - np.pi   # azimuth wraps
     lost = np.isfinite(nu) & (nu * nu > cfg.reinit_gate * (ps[0] + rk))
     s = update_elementwise(xs, ps, np.where(lost, np.nan, nu), rk)
     if lost.any():
@@ -466,14 +486,58 @@ def _prior_for(carry: pl.DataFrame, keys: NDArray[np.int64]) -> _Prior:
 
 def _track(reports: pl.DataFrame, radars: pl.DataFrame, cfg: LocalTrackerConfig,
            carry: pl.DataFrame | None) -> tuple[pl.DataFrame, pl.DataFrame | None]:
-    """:func:`track_reports`; with ``carry`` also continue its tracks and return the new carry."""
+    """:func:`track_reports`; with ``carry`` also continue its tracks and return the new carry.
+    The tracks of MLAT sensors (:mod:`tertiary.sensors.mlat`) run Cartesian channels, the others polar."""
     df = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     df = df.drop([c for c in ESTIMATE_COLUMNS if c in df.columns])
     if not is_sorted_by(df, TRACK_KEY + ["time"]):   # the simulator emits them so
         df = df.sort(TRACK_KEY + ["time"], maintain_order=True)
+    cart = mlat.is_mlat(df, radars)
+    if not cart.any():
+        return _track_part(df, radars, cfg, carry, False)
+    parts = []
+    for which in (False, True):
+        sub = df.filter(pl.Series(cart == which))
+        if sub.height:
+            got, new_carry = _track_part(sub, radars, cfg, carry, which)
+            parts.append(got)
+            carry = new_carry if carry is not None else None
+    return pl.concat(parts, how="diagonal_relaxed").sort(TRACK_KEY + ["time"], maintain_order=True), carry
+
+
+def _estimate_columns(est, cov, res, res_var, cartesian: bool) -> list[pl.Series]:
+    """The :data:`ESTIMATE_COLUMNS` of :func:`_filter`'s estimates, polar or Cartesian channels."""
+    if cartesian:
+        c = mlat.cartesian_estimates(est, cov)
+        pos, vel, cov_enu = c.pop("pos"), c.pop("vel"), c.pop("cov")
+        polar = [pl.Series(k, v) for k, v in c.items()]
+    else:
+        pos, vel, cov_enu = _to_enu(est, cov)
+        deg2 = np.degrees(1.0) ** 2
+        polar = [pl.Series("est_range_m", est[0, 0]), pl.Series("est_range_rate_mps", est[1, 0]),
+                 pl.Series("est_azimuth_deg", np.mod(np.degrees(est[0, 1]), 360.0)),
+                 pl.Series("est_elevation_deg", np.degrees(est[0, 2])), pl.Series("est_range_var_m2", cov[0, 0]),
+                 pl.Series("est_azimuth_var_deg2", cov[0, 1] * deg2),
+                 pl.Series("est_elevation_var_deg2", cov[0, 2] * deg2)]
+    return [*polar,
+            pl.Series("x_m", pos[:, 0]), pl.Series("y_m", pos[:, 1]), pl.Series("z_m", pos[:, 2]),
+            pl.Series("vx_mps", vel[:, 0]), pl.Series("vy_mps", vel[:, 1]), pl.Series("vz_mps", vel[:, 2]),
+            pl.Series("est_cov", cov_enu, dtype=pl.Array(pl.Float64, 36)),
+            pl.Series("res_range_m", res), pl.Series("res_range_var_m2", res_var)]
+
+
+def _track_part(df: pl.DataFrame, radars: pl.DataFrame, cfg: LocalTrackerConfig, carry: pl.DataFrame | None,
+                cartesian: bool) -> tuple[pl.DataFrame, pl.DataFrame | None]:
+    """:func:`_track` of sorted reports whose tracks all run polar channels or all Cartesian
+    ones (an MLAT sensor's plot (MLAT-1), its axis variances: the x-y covariance is left out
+    of the decoupled channels)."""
     n = len(df)
     us = df["time"].cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy()
-    z, r = measurement_polar(df, radars, cfg.altitude_sigma_m)
+    if cartesian:
+        z, r3 = mlat.local_plots(df, radars, cfg.altitude_sigma_m)
+        r = np.diagonal(r3, axis1=1, axis2=2).copy()
+    else:
+        z, r = measurement_polar(df, radars, cfg.altitude_sigma_m)
     keys = df.select(pl.col(TRACK_KEY).cast(pl.Int64)).to_numpy()
     new = np.ones(n, dtype=bool)
     if n:
@@ -482,26 +546,11 @@ def _track(reports: pl.DataFrame, radars: pl.DataFrame, cfg: LocalTrackerConfig,
     lengths = np.diff(np.append(starts, n))
     order = np.argsort(-lengths, kind="stable")
     prior = None if carry is None or carry.height == 0 else _prior_for(carry, keys[starts[order]])
-    est, cov, res, res_var, x_end, p_end = _filter(us, z, r, starts[order], lengths[order], cfg, prior)
-    if cfg.range_channel != "singer":
+    est, cov, res, res_var, x_end, p_end = _filter(us, z, r, starts[order], lengths[order], cfg, prior, cartesian)
+    if cfg.range_channel != "singer" and not cartesian:
         t, _ = _seconds(df["time"])
         _chapter3_range(df, radars, t, z, starts, lengths, cfg, est, cov, res, res_var)
-    pos, vel, cov_enu = _to_enu(est, cov)
-    deg2 = np.degrees(1.0) ** 2
-    out = df.with_columns(
-        pl.Series("est_range_m", est[0, 0]),
-        pl.Series("est_range_rate_mps", est[1, 0]),
-        pl.Series("est_azimuth_deg", np.mod(np.degrees(est[0, 1]), 360.0)),
-        pl.Series("est_elevation_deg", np.degrees(est[0, 2])),
-        pl.Series("est_range_var_m2", cov[0, 0]),
-        pl.Series("est_azimuth_var_deg2", cov[0, 1] * deg2),
-        pl.Series("est_elevation_var_deg2", cov[0, 2] * deg2),
-        pl.Series("x_m", pos[:, 0]), pl.Series("y_m", pos[:, 1]), pl.Series("z_m", pos[:, 2]),
-        pl.Series("vx_mps", vel[:, 0]), pl.Series("vy_mps", vel[:, 1]), pl.Series("vz_mps", vel[:, 2]),
-        pl.Series("est_cov", cov_enu, dtype=pl.Array(pl.Float64, 36)),
-        pl.Series("res_range_m", res),
-        pl.Series("res_range_var_m2", res_var),
-    )
+    out = df.with_columns(_estimate_columns(est, cov, res, res_var, cartesian))
     if carry is None:
         return out, None
     m = len(starts)

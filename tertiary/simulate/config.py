@@ -15,6 +15,7 @@ from tertiary.contract import Limits
 from tertiary.core.errors import DataError, OptionError, ResourceError
 from tertiary.filters.singer import SingerModel
 from tertiary.sensors.local_tracks import LocalTrackerConfig
+from tertiary.simulate.mlat import MlatConfig, check_mlat
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 
 Kind = Literal["big-box", "terminal-area", "adsb", "national"]
@@ -226,6 +227,7 @@ class ScenarioConfig:
     transponders: TransponderConfig = field(default_factory=TransponderConfig)
     radar_tracker: RadarTrackerConfig = field(default_factory=RadarTrackerConfig)
     national: NationalConfig | None = None                 # kind "national" only (omitted elsewhere)
+    mlat: tuple[MlatConfig, ...] | None = None             # MLAT / WAM sensors ([[mlat]]), after the radars
 
     def replace(self, **changes: Any) -> "ScenarioConfig":
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
@@ -624,7 +626,12 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
     for i, r in enumerate(cfg.radars):
         _check_radar(f"radars[{i}]", r)
     names = [r.name for r in cfg.radars] or [r.name for r in auto_radars()]
-    if len(set(names)) != len(names):
+    for i, m in enumerate(cfg.mlat or ()):
+        check_mlat(f"mlat[{i}]", m, _number)
+    if cfg.mlat and cfg.kind not in ("terminal-area", "national"):
+        raise OptionError(f"MLAT sensors are simulated in the streamed scenarios (terminal-area, national), "
+                          f"not {cfg.kind!r}", option="mlat")
+    if len(set(names + [m.name for m in cfg.mlat or ()])) != len(names) + len(cfg.mlat or ()):
         raise OptionError(f"radar names must be unique, got {', '.join(names)}", option="radars")
     _check_traffic(cfg.traffic)
     _check_anomalies(cfg.anomalies, names)

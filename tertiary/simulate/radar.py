@@ -61,6 +61,13 @@ class Plots:
     track_life: NDArray[np.int64]      # the local track's life (a reused number starts a new one)
     #: (n, E) the EHS report columns extracted with each reply (E = 0: not simulated here)
     ehs: NDArray[np.float64]
+    #: (n, 5) an MLAT sensor's Cartesian plot: x, y (its local ENU), σx, σy, the x-y term
+    #: (:data:`tertiary.contract.MLAT_PLOT_COLUMNS`); (n, 0) for a radar
+    cart: NDArray[np.float64] | None = None
+
+    def __post_init__(self) -> None:
+        if self.cart is None:
+            self.cart = np.zeros((len(self.run), 0))
 
     def __len__(self) -> int:
         return len(self.run)
@@ -162,7 +169,7 @@ def _blocks(fn, n: int, *arrays: NDArray) -> tuple[NDArray, ...]:
     return tuple(np.concatenate(p) for p in zip(*parts))
 
 
-def _illumination(traj: Trajectories, radar: RadarConfig, sys_to_site, scan_start):
+def illumination(traj: Trajectories, radar: RadarConfig, sys_to_site, scan_start):
     """Illumination times and truth for every (aircraft, scan) pair where the aircraft exists
     during the scan; returns flat arrays of the valid pairs: aircraft index, scan index, time,
     system-frame position and the site polar range, azimuth and elevation."""
@@ -213,7 +220,7 @@ def observe(traj: Trajectories, radar: RadarConfig, system: geo.LocalFrame, runs
         return q[..., 0], q[..., 1], q[..., 2]
 
     scan_start = scan_starts(radar, traj.duration)
-    ia, ik, t, pos, rng_true, az_true, el_true = _illumination(traj, radar, sys_to_site, scan_start)
+    ia, ik, t, pos, rng_true, az_true, el_true = illumination(traj, radar, sys_to_site, scan_start)
     covered = (rng_true <= radar.max_range_m) & (el_true >= radar.min_elevation_deg) & \
         (el_true <= radar.max_elevation_deg)
     ia, ik = ia[covered], ik[covered]
@@ -311,8 +318,17 @@ def _clutter(radar: RadarConfig, scan_start: NDArray[np.float64], runs: int, rng
                  ehs=np.zeros((c, 0)))
 
 
+def _cat(arrays: list[NDArray]) -> NDArray:
+    """Rows of ``arrays`` one after another; 2-D fields of different widths (EHS, Cartesian
+    plot: a sensor without them) padded with NaN."""
+    if arrays[0].ndim == 2 and len({a.shape[1] for a in arrays}) > 1:
+        w = max(a.shape[1] for a in arrays)
+        arrays = [np.pad(a, ((0, 0), (0, w - a.shape[1])), constant_values=np.nan) for a in arrays]
+    return np.concatenate(arrays)
+
+
 def _merge(a: Plots, b: Plots) -> Plots:
-    return Plots(*(np.concatenate([getattr(a, f), getattr(b, f)]) for f in Plots.__dataclass_fields__))
+    return Plots(*(_cat([getattr(a, f), getattr(b, f)]) for f in Plots.__dataclass_fields__))
 
 
 def take_plots(p: Plots, order: NDArray[np.int64]) -> Plots:
@@ -362,7 +378,7 @@ def number_plots(plots: list[Plots], radars: list[RadarConfig], runs: int, durat
 
 def merge_plots(parts: list[Plots]) -> Plots:
     """The plots of ``parts`` one after another."""
-    return Plots(*(np.concatenate([getattr(p, f) for p in parts]) for f in Plots.__dataclass_fields__))
+    return Plots(*(_cat([getattr(p, f) for p in parts]) for f in Plots.__dataclass_fields__))
 
 
 def numbered_by_truth(plots: Plots, radar: RadarConfig) -> Plots:

@@ -26,6 +26,8 @@ from tertiary.sensors.local_tracks import track_reports
 from tertiary.simulate import radar_tracker as rt
 from tertiary.simulate.config import Anomalies, ScenarioConfig, auto_radars, check_scenario, resolve_data_path, scenario_toml
 from tertiary.simulate.ehs import SIMULATED_COLUMNS, EhsConfig, ehs_report_columns, ehs_rng
+from tertiary.sensors.mlat import plot_cov_xy
+from tertiary.simulate.mlat_observe import mlat_site, observe_mlat
 from tertiary.simulate.radar import (Plots, Transponders, merge_plots, number_plots, numbered_by_truth, observe, octal_codes,
                                      scan_starts, site_frame, take_plots, transponders)
 from tertiary.simulate.traffic import TerminalTraffic, big_box, national_flights, terminal_traffic
@@ -59,10 +61,15 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
     raise ValueError(f"unknown scenario kind {cfg.kind!r}")
 
 
+def sensors(cfg: ScenarioConfig) -> tuple:
+    """The scenario's sensors in ``radar_id`` order: its radars, then its MLAT systems."""
+    return (*cfg.radars, *(cfg.mlat or ()))
+
+
 def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
     system = geo.LocalFrame(*cfg.origin)
     sites = [site_frame(r, system) for r in cfg.radars]
-    return pl.DataFrame({
+    frame = pl.DataFrame({
         "radar_id": pl.Series(np.arange(1, len(cfg.radars) + 1), dtype=pl.UInt32),
         "name": [r.name for r in cfg.radars],
         "lat_deg": [s.lat_deg for s in sites], "lon_deg": [s.lon_deg for s in sites],
@@ -73,6 +80,44 @@ def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
             "time_offset_s")},
         "timing": [r.timing for r in cfg.radars],
     })
+    return pl.concat([frame.with_columns(pl.lit("radar").alias("kind")), mlat_frame(cfg, len(cfg.radars))],
+                     how="vertical_relaxed") if cfg.mlat else frame
+
+
+def mlat_frame(cfg: ScenarioConfig, first: int) -> pl.DataFrame:
+    """The ``radars`` rows of the scenario's MLAT sensors (kind ``mlat``, ids after ``first``):
+    site = the reference point, ``scan_period_s`` = the update period, ``sigma_range_m`` = the
+    accuracy floor (:func:`tertiary.simulate.mlat.nominal_sigma_m`), ``max_range_m`` = the receiver
+    range beyond the farthest receiver; the angle sigmas are placeholders."""
+    system = geo.LocalFrame(*cfg.origin)
+    ms = cfg.mlat
+    sites = [mlat_site(m, system) for m in ms]
+    reach = [m.receiver_range_m + float(np.max(np.linalg.norm(np.asarray(m.receivers_enu_m) - np.asarray(m.site), axis=1)))
+             for m in ms]
+    return pl.DataFrame({
+        "radar_id": pl.Series(np.arange(first + 1, first + len(ms) + 1), dtype=pl.UInt32),
+        "name": [m.name for m in ms], "lat_deg": [s.lat_deg for s in sites], "lon_deg": [s.lon_deg for s in sites],
+        "alt_m": [s.alt_m for s in sites], "scan_period_s": [m.update_period_s for m in ms],
+        "sigma_range_m": [m.sigma_range_m for m in ms], "sigma_azimuth_deg": [m.sigma_azimuth_deg for m in ms],
+        "sigma_elevation_deg": [m.sigma_elevation_deg for m in ms], "max_range_m": reach,
+        "scan_phase_s": [m.update_phase_s for m in ms], "min_elevation_deg": [-90.0] * len(ms),
+        "pd": [m.pd for m in ms], "clutter_rate": [0.0] * len(ms), "bias_range_m": [0.0] * len(ms),
+        "bias_azimuth_deg": [0.0] * len(ms), "time_offset_s": [m.time_offset_s for m in ms],
+        "timing": ["synchronous"] * len(ms), "kind": ["mlat"] * len(ms)})
+
+
+def _mlat_columns(frame: pl.DataFrame, plots: Plots, site: geo.LocalFrame) -> pl.DataFrame:
+    """An MLAT sensor's report frame with its Cartesian plot (:data:`tertiary.contract.MLAT_PLOT_COLUMNS`
+    but ``plot_height_m``: the height is not multilaterated) and no elevation."""
+    x, y, sx, sy, sxy = plots.cart[:, :5].T
+    up = np.zeros(len(x))
+    has = np.isfinite(plots.altitude_m)
+    if has.any():
+        up[has] = geo.up_at_height(site, x[has], y[has], plots.altitude_m[has])
+    lat, lon, _ = site.to_geodetic(x, y, up)
+    return frame.with_columns(pl.lit(None, pl.Float64).alias("elevation_deg"), *(
+        pl.Series(c, v) for c, v in (("plot_x_m", x), ("plot_y_m", y), ("plot_lat_deg", lat), ("plot_lon_deg", lon),
+                                     ("plot_sigma_x_m", sx), ("plot_sigma_y_m", sy), ("plot_sigma_xy_m", sxy))))
 
 
 #: Mode 3/A codes 0…4095 as their four octal digits
@@ -249,8 +294,9 @@ def block_s(cfg: ScenarioConfig) -> float:
         return cfg.national.block_s
     if cfg.kind != "terminal-area":
         return cfg.dt
-    steps = [Fraction(v).limit_denominator(1000) for v in (cfg.dt, *(r.scan_period_s for r in cfg.radars))]
-    if any(abs(float(f) - v) > 1e-9 for f, v in zip(steps, (cfg.dt, *(r.scan_period_s for r in cfg.radars)))):
+    periods = (cfg.dt, *(r.scan_period_s for r in sensors(cfg)))
+    steps = [Fraction(v).limit_denominator(1000) for v in periods]
+    if any(abs(float(f) - v) > 1e-9 for f, v in zip(steps, periods)):
         return cfg.duration_s
     den = math.lcm(*(f.denominator for f in steps))
     common = Fraction(math.lcm(*(int(f * den) for f in steps)), den)
@@ -318,7 +364,7 @@ def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float,
     blk = block_s(cfg)
     tb0 = b * blk
     nb = min(blk, cfg.duration_s - tb0)
-    margin = max(r.scan_period_s for r in cfg.radars) + 2 * cfg.dt
+    margin = max(r.scan_period_s for r in sensors(cfg)) + 2 * cfg.dt
     k0 = sched.k_start + int(round(tb0 / cfg.dt))
     traj = sched.traffic.window(k0, int(round((nb + margin) / cfg.dt)) + 1)
     sub = _tx_subset(sched.tx, traj.truth_id, tb0)
@@ -333,11 +379,23 @@ def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float,
             # a register sampled in the first half step of a block differences the velocity one-sided
             cols = ehs_report_columns(traj, p.aircraft, p.t_true, p.mode_s >= 0, ehs_rng(cfg.seed, i, day_block), ehs)
             p.ehs = np.column_stack([cols[c] for c in SIMULATED_COLUMNS])
-        p.aircraft = np.where(p.aircraft >= 0, traj.truth_id[np.maximum(p.aircraft, 0)], -1)
-        p.t_true, p.t_report = p.t_true + tb0, p.t_report + tb0
-        p.scan = p.scan + int(round((tb0 - t_win0) / radar.scan_period_s))
-        out.append(p)
+        out.append(_to_window(p, traj, tb0, t_win0, radar.scan_period_s))
+    for j, m in enumerate(cfg.mlat or ()):
+        # keyed apart from the radars' draws: adding an MLAT sensor leaves the radars' plots as they were
+        rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(8, day_block, j)))
+        p = observe_mlat(traj, m, sched.system, cfg.runs, rng, sub)
+        p = take_plots(p, np.flatnonzero(p.scan < len(scan_starts(m, nb))))
+        out.append(_to_window(p, traj, tb0, t_win0, m.scan_period_s))
     return out
+
+
+def _to_window(p: Plots, traj: Trajectories, tb0: float, t_win0: float, period: float) -> Plots:
+    """A block's plots in the scenario's time, global aircraft indices and scan numbers counted
+    from the window start."""
+    p.aircraft = np.where(p.aircraft >= 0, traj.truth_id[np.maximum(p.aircraft, 0)], -1)
+    p.t_true, p.t_report = p.t_true + tb0, p.t_report + tb0
+    p.scan = p.scan + int(round((tb0 - t_win0) / period))
+    return p
 
 
 def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], state, job_plots: int | None = None):
@@ -346,14 +404,17 @@ def _number_window(cfg: ScenarioConfig, plots: list[Plots], n_scans: list[int], 
     Ideal radar trackers (``radar_tracker.ideal``, one window only) number from the truth.
     ``job_plots``: the whole simulation's plots (estimated), for the compiled loop's decision."""
     if cfg.radar_tracker.ideal:
-        plots = [numbered_by_truth(p, r) for p, r in zip(plots, cfg.radars)]
+        plots = [numbered_by_truth(p, r) for p, r in zip(plots, sensors(cfg))]
     idx = np.concatenate([np.full(len(p), i, np.int64) for i, p in enumerate(plots)])
     allp = plots[0] if len(plots) == 1 else merge_plots(plots)
     if cfg.radar_tracker.ideal:
         return allp, idx, None
-    radars = cfg.radars
+    radars = sensors(cfg)
     sig = np.array([[r.sigma_range_m, r.sigma_azimuth_deg, r.sigma_elevation_deg] for r in radars])[idx]
     z, cov = rt.ground_plots(allp.range_m, allp.azimuth_deg, allp.elevation_deg, sig[:, 0], sig[:, 1], sig[:, 2])
+    if allp.cart.shape[1]:           # an MLAT sensor's tracker associates its Cartesian plots as stated
+        c = np.flatnonzero(np.isfinite(allp.cart[:, 0]))
+        z[c], cov[c] = allp.cart[c, :2], plot_cov_xy(*allp.cart[c, 2:5].T)
     period = np.array([r.scan_period_s for r in radars])
     drop = np.array([rt.drop_misses(r.track_drop_scans) for r in radars], np.int64)
     scan = rt.ScanPlots(part=idx * cfg.runs + allp.run.astype(np.int64), t=allp.t_report, z=z, r=cov,
@@ -427,15 +488,19 @@ def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], pr
         say(f"radar scans window {w + 1}/{len(bounds)}")
         blocks = [_observe_block(cfg, sched, b, t0, ehs)
                   for b in range(int(round(t0 / blk)), int(math.ceil(t1 / blk - 1e-9)))]
-        plots = [_merged([bl[i] for bl in blocks]) for i in range(len(cfg.radars))]
-        n_scans = [len(scan_starts(r, t1 - t0)) for r in cfg.radars]
+        plots = [_merged([bl[i] for bl in blocks]) for i in range(len(sensors(cfg)))]
+        n_scans = [len(scan_starts(r, t1 - t0)) for r in sensors(cfg)]
         say(f"radar plot-to-track window {w + 1}/{len(bounds)}")
         # the job's plots, estimated from this window's, decide whether compiling the loop pays
         job = sum(len(p) for p in plots) * (len(bounds) - w)
         allp, idx, state = _number_window(cfg, plots, n_scans, state, job)
         parts = [_reports_frame(take_plots(allp, np.flatnonzero(idx == i)), i + 1, sched.ghost, sched.tx)
                  for i in range(len(cfg.radars))]
-        frame = pl.concat(([carry] if carry is not None else []) + parts, how="vertical")
+        parts += [_mlat_columns(_reports_frame(p, len(cfg.radars) + j + 1, sched.ghost, sched.tx), p,
+                                mlat_site(m, sched.system))
+                  for j, m in enumerate(cfg.mlat or ())
+                  for p in [take_plots(allp, np.flatnonzero(idx == len(cfg.radars) + j))]]
+        frame = pl.concat(([carry] if carry is not None else []) + parts, how="diagonal" if cfg.mlat else "vertical")
         last = w == len(bounds) - 1
         live = state.life if state is not None and not last else np.zeros(0, np.int64)
         alive = pl.Series(np.isin(frame["__life"].to_numpy(), live))

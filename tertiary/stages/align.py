@@ -30,7 +30,7 @@ import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.core import geo
-from tertiary.sensors import local_tracks
+from tertiary.sensors import local_tracks, mlat
 from tertiary.core.errors import DataError, OptionError, ResourceError
 from tertiary.core.units import STATE, US
 from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
@@ -105,7 +105,8 @@ def conversion_valid(range_m: ArrayLike, sigma_range_m: ArrayLike, *sigma_angles
 def report_conversion_valid(reports: pl.DataFrame, radars: pl.DataFrame) -> NDArray[np.bool_]:
     """:func:`conversion_valid` of each report (measured ``range_m``; its radar's nominal
     ``sigma_range_m``, ``sigma_azimuth_deg`` and, where the report has an ``elevation_deg``,
-    ``sigma_elevation_deg``)."""
+    ``sigma_elevation_deg``). An MLAT report (:mod:`tertiary.sensors.mlat`) is a Cartesian plot: no
+    polar conversion, always valid."""
     site = reports.select("radar_id").join(
         radars.select("radar_id", "sigma_range_m", "sigma_azimuth_deg", "sigma_elevation_deg"),
         on="radar_id", how="left", maintain_order="left")
@@ -114,10 +115,11 @@ def report_conversion_valid(reports: pl.DataFrame, radars: pl.DataFrame) -> NDAr
         s_el = np.where(reports["elevation_deg"].is_not_null().to_numpy(), s_el, np.nan)
     else:
         s_el = np.full(reports.height, np.nan)
-    return conversion_valid(reports["range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
-                            site["sigma_range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
-                            np.radians(site["sigma_azimuth_deg"].cast(pl.Float64).fill_null(np.nan).to_numpy()),
-                            s_el)
+    valid = conversion_valid(reports["range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
+                             site["sigma_range_m"].cast(pl.Float64).fill_null(np.nan).to_numpy(),
+                             np.radians(site["sigma_azimuth_deg"].cast(pl.Float64).fill_null(np.nan).to_numpy()),
+                             s_el)
+    return valid | mlat.is_mlat(reports, radars)
 
 
 def needs_estimates(reports: pl.DataFrame) -> bool:
@@ -125,10 +127,13 @@ def needs_estimates(reports: pl.DataFrame) -> bool:
     return any(c not in reports.columns for c in [*STATE, "est_cov", "res_range_m", "res_range_var_m2"])
 
 
-def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame
+def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
+                    altitude_sigma_m: float = LocalTrackerConfig.altitude_sigma_m
                     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Radar-local estimates to the system frame: state (n, 6), flattened covariance (n, 36)
-    and the nominal plot variance per system axis (n, 3) from the radar's nominal sigmas."""
+    and the nominal plot variance per system axis (n, 3): from the radar's nominal sigmas, for
+    an MLAT report the diagonal of its own plot covariance (MLAT-2) (:mod:`tertiary.sensors.mlat`;
+    height from Mode C with ``altitude_sigma_m``)."""
     n = reports.height
     state = np.empty((n, 6))
     cov = np.empty((n, 36))
@@ -150,6 +155,10 @@ def to_system_frame(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
                                           row["sigma_azimuth_deg"], row["sigma_elevation_deg"])
         rot = site.rotation_to(origin)
         nominal[sel] = np.einsum("ij,njk,ik->ni", rot, nom, rot)
+    cart = mlat.is_mlat(reports, radars)
+    if cart.any():
+        _, r, _ = mlat.system_plots(reports.filter(pl.Series(cart)), radars, origin, altitude_sigma_m)
+        nominal[cart] = np.diagonal(r, axis1=1, axis2=2)
     return state, cov, nominal
 
 
@@ -388,7 +397,7 @@ def _plan_frame(df: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame, 
     delay = df["collection_delay_s"].fill_null(0.0).to_numpy() if "collection_delay_s" in df.columns else 0.0
     k = _first_epoch(t_us, delay, t0_us, period) if df.height else np.zeros(0, np.int64)
 
-    state, cov, nominal = to_system_frame(df, radars, origin)
+    state, cov, nominal = to_system_frame(df, radars, origin, cfg.local_tracker.altitude_sigma_m)
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
     plausible = np.linalg.norm(np.nan_to_num(state[:, 3:]), axis=1) <= cfg.max_speed_mps
     conv_ok = report_conversion_valid(df, radars)

@@ -104,7 +104,9 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
         alerts, rej, more = plots.alerts_table(dec.cat004, day0)
         rejects += rej
         counts |= more
-    counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat034_distinct": messages.height,
+    # distinct service messages of both categories (CAT002 joins CAT034 in the antenna timing)
+    counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat002_messages": dec.cat002.height,
+                            "cat034_distinct": messages.height,
                             "cat021_records": dec.cat021.height, "cat062_records": dec.cat062.height,
                             "radars": codes.height, "reports": reports.height, "rejects": len(rejects)}
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,

@@ -458,8 +458,8 @@ def radars_table(sites: pl.DataFrame, timing: pl.DataFrame, used: pl.DataFrame) 
     missing = frame.filter(pl.col("scan_period_s").is_null() | pl.col("scan_period_s").is_nan())
     if missing.height:
         codes = ", ".join(f"{a}/{b}" for a, b in missing.select("sac", "sic").iter_rows())
-        raise DataError(f"no scan period for radar(s) {codes}: the recording has no CAT034 or CAT002 antenna messages for "
-                        "them; give scan_period_s in the sites file")
+        raise DataError(f"no scan period for radar(s) {codes}: the recording has no CAT034 or CAT002 antenna "
+                        "messages for them; give scan_period_s in the sites file")
     cols = list(TABLES["radars"].required) + (["kind"] if "kind" in frame.columns else [])
     return frame.select(*cols, "sac", "sic").cast({"radar_id": pl.UInt32}), notes
 

@@ -22,8 +22,9 @@ own channels (monograph (2.49)–(2.63), tertiary (4.46)): state [p, v, a] per a
 with φ, q from :func:`tertiary.filters.singer.singer_phi` / ``singer_q`` (``variant="printed"``
 by default: φ₃₃ = 1 − ατ, D_a = σ_m²(2ατ − α²τ²)).
 
-Measurement: the plot converted to Cartesian coordinates, radar polar → radar-local ENU →
-system ENU (:func:`tertiary.core.geo.polar_to_enu`, :func:`tertiary.core.geo.frame_to_frame`), with
+Measurement: an MLAT / WAM report's Cartesian plot as it is (:mod:`tertiary.sensors.mlat`,
+(MLAT-1)–(MLAT-2): z = M z_local + o, R = M R_local Mᵀ, H = [I₃ on the positions]); a radar's
+plot converted to Cartesian coordinates, radar polar → radar-local ENU → system ENU (:func:`tertiary.core.geo.polar_to_enu`, :func:`tertiary.core.geo.frame_to_frame`), with
 H = [I₃ on the three positions] and the converted covariance
 
     R = M J R_polar Jᵀ Mᵀ                                       (seed 002 eq. 12)
@@ -85,7 +86,8 @@ from tertiary.stages.fusion.confirm import ConfirmState, confirm_targets_step, t
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict_combined, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
-from tertiary.contract import TABLES, TIME
+from tertiary.contract import MLAT_PLOT_COLUMNS, TABLES, TIME
+from tertiary.sensors import mlat
 
 __all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "centralized_filter_carry",
            "CentralizedState", "init_centralized_state", "centralized_step", "converted_plots", "debias_enu",
@@ -302,7 +304,8 @@ def plot_validity(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m:
     """Seed 002 (13) validity gate of each plot's conversion (:func:`tertiary.stages.align.conversion_valid`)
     with the variances the centralised filter uses (elevation from Mode C where the plot has none)."""
     polar, var = measurement_polar(reports, radars, altitude_sigma_m)
-    return conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
+    return (conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
+            | mlat.is_mlat(reports, radars))
 
 
 def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
@@ -311,10 +314,14 @@ def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
     """Each report's plot in the system frame: z (n, 3), R (n, 3, 3) = M J R_polar Jᵀ Mᵀ from the
     radar's nominal sigmas (seed 002 eq. 12), and a validity mask (False where neither an
     elevation nor a Mode C altitude is available, and with ``gate`` where the seed 002 (13)
-    linearisation condition fails). ``conversion="debiased"``: :func:`debias_enu`."""
+    linearisation condition fails). ``conversion="debiased"``: :func:`debias_enu`.
+
+    An MLAT report's plot is Cartesian: z and R of (MLAT-1)–(MLAT-2)
+    (:func:`tertiary.sensors.mlat.system_plots`), neither converted nor gated."""
     n = reports.height
     polar, var = measurement_polar(reports, radars, altitude_sigma_m)   # (range, az rad, el rad)
-    ok = np.all(np.isfinite(polar), axis=1)
+    cart = mlat.is_mlat(reports, radars)
+    ok = np.all(np.isfinite(polar), axis=1) & ~cart
     if gate:
         ok &= conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
     z = np.full((n, 3), np.nan)
@@ -335,6 +342,10 @@ def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loc
         jac = geo.polar_jacobian(rng, az, el)
         g = (jac.swapaxes(1, 2).reshape(-1, 3) @ site.rotation_to(origin).T).reshape(-1, 3, 3).swapaxes(1, 2)
         r[sel] = (g * var[sel][:, None, :]) @ g.swapaxes(1, 2)
+    if cart.any():
+        rows = np.flatnonzero(cart)
+        zc, rc, okc = mlat.system_plots(reports[rows], radars, origin, altitude_sigma_m)
+        z[rows], r[rows], ok[rows] = zc, rc, okc
     ok &= np.all(np.isfinite(z), axis=1)
     return z, r, ok
 
@@ -521,7 +532,7 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
     assoc, last_ids, last_epoch = _new_associations(state, associations_window)
     rep = reports_window if "run" in reports_window.columns else reports_window.with_columns(
         pl.lit(0, pl.UInt32).alias("run"))
-    rep = rep.select(c for c in [*PLOT_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
+    rep = rep.select(c for c in [*PLOT_COLUMNS, *MLAT_PLOT_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     groups, confirm = _confirmation(state.confirm, associations_window, assoc, rep, cfg.min_plots)
