@@ -121,10 +121,9 @@ def test_figure_draws_the_episodes_tracks_cpa_and_minima(run):
     assert "east x (km)" == fig.layout.xaxis.title.text and "T_min" in caption
 
 
-def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
-    """The safety stage's missed losses are not stored: an alerted loss whose alerts are deleted
-    must come back as a missed loss of that pair."""
-    copy = tmp_path / "run"
+def _miss_one(run: Path, copy: Path, stored: bool) -> tuple[str, dict]:
+    """A copy of the run where the best picture missed its first genuine loss: its alerts of that
+    pair deleted and, with ``stored``, the stored loss marked missed (else the losses table dropped)."""
     copy.mkdir()
     shutil.copy(run / "results.duckdb", copy / "results.duckdb")
     with RunStore.open(copy, read_only=False) as store:
@@ -135,6 +134,33 @@ def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
                   {"p": best, "a": gone["truth_a"], "b": gone["truth_b"]})
         store.sql("UPDATE metrics SET value = 1 WHERE stage = 'safety' AND metric = 'missed_los' AND method = $p",
                   {"p": best})
+        if stored:
+            store.sql("UPDATE losses SET alerted = false WHERE method = $p AND truth_a = $a AND truth_b = $b "
+                      "AND t_start = $t", {"p": best, "a": gone["truth_a"], "b": gone["truth_b"],
+                                           "t": gone["los_start"]})
+        else:
+            store.sql("DROP TABLE losses")
+    return best, gone
+
+
+def test_a_stored_missed_loss_is_drawn(run, tmp_path):
+    """The run's scoring stores every loss per picture (table losses): its missed ones are drawn,
+    exactly those, picture-induced when the truth picture alerted them."""
+    best, gone = _miss_one(run, tmp_path / "run", stored=True)
+    with _store(tmp_path / "run") as store:
+        missed, note = ev.missed_losses(store, best)
+        fig, _caption = ev.episode_figure(store, missed[0])
+    assert [(m.truth_a, m.truth_b, m.t_start) for m in missed] == [(gone["truth_a"], gone["truth_b"],
+                                                                     gone["los_start"])]
+    assert missed[0].induced == "picture" and "table losses" in note
+    assert "missed loss of separation (picture-induced)" in fig.layout.title.text
+
+
+def test_a_missed_loss_is_found_again_and_drawn(run, tmp_path, monkeypatch):
+    """Without a stored losses table (an older run), an alerted loss whose alerts are deleted must
+    come back as a missed loss of that pair, found again from the truth."""
+    best, gone = _miss_one(run, tmp_path / "run", stored=False)
+    copy = tmp_path / "run"
     with _store(copy) as store:
         missed, note = ev.missed_losses(store, best)
         fig, caption = ev.episode_figure(store, missed[0])

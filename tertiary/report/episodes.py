@@ -317,8 +317,13 @@ def _states(store: RunStore, table: str, id_col: str, t_col: str, ids: list[int]
     where += ["run = $run"] if "run" in cols else []
     where += [f"{k} = ${k}" for k in match]
     params = {"t0": t0, "t1": t1, **match, **({"run": run} if "run" in cols else {})}
-    return store.sql(f"SELECT {id_col}::BIGINT AS id, {t_col} AS t, x_m, y_m, {h} AS h_m, vx_mps, vy_mps, "
-                     f"{vh} AS vh_mps FROM {table} WHERE {' AND '.join(where)} ORDER BY id, t", params)
+    # float32 values (the lean store's, and a figure's resolution): every figure drawn from them is
+    # the same whether the run's tables were stored narrowed or not
+    f32 = lambda e, name: f"({e})::FLOAT::DOUBLE AS {name}"      # noqa: E731
+    cols_sql = ", ".join(f32(e, n) for e, n in (("x_m", "x_m"), ("y_m", "y_m"), (h, "h_m"), ("vx_mps", "vx_mps"),
+                                                 ("vy_mps", "vy_mps"), (vh, "vh_mps")))
+    return store.sql(f"SELECT {id_col}::BIGINT AS id, {t_col} AS t, {cols_sql} FROM {table} "
+                     f"WHERE {' AND '.join(where)} ORDER BY id, t", params)
 
 
 def _ids_of(store: RunStore, ep: Episode, t0: datetime, t1: datetime, truth: pl.DataFrame) -> tuple[int | None, ...]:
