@@ -51,15 +51,15 @@ def _flags(work: pl.DataFrame, stale_s: float) -> pl.DataFrame:
 
 def _split(work: pl.DataFrame, reasons: list[tuple[pl.Expr, object]], cat: str
            ) -> tuple[pl.DataFrame, Rejects]:
-    """(rows no reason applies to, rejects rows naming every reason that does and the place)."""
-    reason = pl.concat_str([pl.when(c).then(pl.lit(r) if isinstance(r, str) else r) for c, r in reasons],
-                           separator="; ", ignore_nulls=True)
-    work = work.with_columns(reason=reason)
-    bad_rows = pl.col("reason").is_not_null() & (pl.col("reason") != "")
+    """(rows no reason applies to, rejects rows naming every reason that does and the place);
+    the reason text is built for the rejected rows only."""
+    work = work.with_columns(pl.any_horizontal([c.fill_null(False) for c, _ in reasons]).alias("__bad"))
+    bad = work.filter(pl.col("__bad")).with_columns(reason=pl.concat_str(
+        [pl.when(c).then(pl.lit(r) if isinstance(r, str) else r) for c, r in reasons], separator="; ",
+        ignore_nulls=True))
     rej = [{"reason": f"{cat}: {r.pop('reason')}", "detail": json.dumps(r | {"stage": "import"})}
-           for r in work.filter(bad_rows).select("reason", "file", "datagram", "offset", "sac", "sic",
-                                                  "tod_s").iter_rows(named=True)]
-    return work.filter(~bad_rows), rej
+           for r in bad.select("reason", "file", "datagram", "offset", "sac", "sic", "tod_s").iter_rows(named=True)]
+    return work.filter(~pl.col("__bad")).drop("__bad"), rej
 
 
 def _times(frame: pl.DataFrame, day0: float | None) -> pl.DataFrame:
@@ -82,7 +82,8 @@ def _with_sites(frame: pl.DataFrame, sites: pl.DataFrame | None) -> pl.DataFrame
     """Each record with its sensor's radar_id, kind and site (null when not in the sites file)."""
     cols = ["sac", "sic", "radar_id", "lat_deg", "lon_deg", "alt_m", "kind"]
     if sites is None:
-        return frame.with_columns(pl.lit(None, pl.UInt32).alias("radar_id"), pl.lit(None, pl.String).alias("kind"))
+        return frame.with_columns(pl.lit(None, pl.UInt32).alias("radar_id"), pl.lit(None, pl.String).alias("kind"),
+                                  *(pl.lit(None, pl.Float64).alias(c) for c in ("site_lat", "site_lon", "site_alt")))
     s = sites if "kind" in sites.columns else sites.with_columns(pl.lit("radar").alias("kind"))
     return frame.join(s.select(cols).rename({"lat_deg": "site_lat", "lon_deg": "site_lon", "alt_m": "site_alt"}),
                       on=["sac", "sic"], how="left", maintain_order="left")
@@ -175,23 +176,24 @@ def _site_plot(g: dict[str, NDArray[np.float64]], h: NDArray[np.float64], frame:
 
 def _mlat_geometry(work: pl.DataFrame) -> pl.DataFrame:
     """Cartesian and WGS-84 plot of every report, and its range and azimuth from the sensor's
-    reference point (the site), per sensor."""
-    parts = []
-    for _, grp in work.group_by("radar_id", maintain_order=True):
-        site = grp.row(0, named=True)
-        cols = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "range_m", "azimuth_deg")
-        if site["radar_id"] is None:
-            parts.append(grp.with_columns(pl.lit(None, pl.Float64).alias(c) for c in cols))
-            continue
-        g = {c: grp[c].fill_null(np.nan).to_numpy() for c in ("lat_deg", "lon_deg", "x_m", "y_m", "height_ft",
-                                                               "altitude_m")}
-        h = np.where(np.isfinite(g["height_ft"]), g["height_ft"] * FT,
-                     np.where(np.isfinite(g["altitude_m"]), g["altitude_m"], site["site_alt"]))
-        frame = geo.LocalFrame(site["site_lat"], site["site_lon"], site["site_alt"])
-        x, y, up, lat, lon = _site_plot(g, h, frame, site["site_alt"])
+    reference point (the site), sensor by sensor (null without a site)."""
+    g = {c: work[c].fill_null(np.nan).to_numpy() for c in ("lat_deg", "lon_deg", "x_m", "y_m", "height_ft",
+                                                           "altitude_m", "site_lat", "site_lon", "site_alt")}
+    rid = work["radar_id"].cast(pl.Int64).fill_null(-1).to_numpy()
+    cols = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "range_m", "azimuth_deg")
+    out = {c: np.full(work.height, np.nan) for c in cols}
+    for r in np.unique(rid[rid >= 0]):
+        m = rid == r
+        k = int(np.argmax(m))
+        site = (g["site_lat"][k], g["site_lon"][k], g["site_alt"][k])
+        sub = {c: v[m] for c, v in g.items()}
+        h = np.where(np.isfinite(sub["height_ft"]), sub["height_ft"] * FT,
+                     np.where(np.isfinite(sub["altitude_m"]), sub["altitude_m"], site[2]))
+        x, y, up, lat, lon = _site_plot(sub, h, geo.LocalFrame(*site), site[2])
         values = (x, y, lat, lon, np.sqrt(x ** 2 + y ** 2 + up ** 2), np.mod(np.degrees(np.arctan2(x, y)), 360.0))
-        parts.append(grp.with_columns(pl.Series(c, v).fill_nan(None) for c, v in zip(cols, values)))
-    return pl.concat(parts, how="vertical_relaxed").sort("__i") if parts else work
+        for c, v in zip(cols, values):
+            out[c][m] = v
+    return work.with_columns(pl.Series(c, v).fill_nan(None) for c, v in out.items())
 
 
 def cat020_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | None, stale_s: float
@@ -201,7 +203,7 @@ def cat020_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | 
     frame = raw.with_columns((pl.col("tod") / 128.0).alias("tod_s"))
     frame = frame.with_columns(pl.when(pl.col("tod") >= 0).then(pl.col("tod_s")).alias("tod_s"))
     frame = _dedup(_times(frame, day0), counts, "cat020")
-    frame = frame.with_columns(altitude_m=pl.col("fl_valid") * 100.0 * FT).with_row_index("__i")
+    frame = frame.with_columns(altitude_m=pl.col("fl_valid") * 100.0 * FT)
     work = _flags(_mlat_geometry(_with_sites(frame, sites)), stale_s)
     reasons = _site_reasons("020", "tod") + [
         (pl.col("lat_deg").is_null() & pl.col("x_m").is_null(), "no I020/041 or I020/042 (position)"),
