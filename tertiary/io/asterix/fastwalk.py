@@ -169,7 +169,10 @@ def _compound(buf, pos, end, start, count, fmax, sub_kind, sub_p1, sub_p2, group
                 j = o * 7 + b
                 if j >= count or sub_kind[start + j] == UNDEFINED:
                     return -5
-                p = _simple(buf, p, end, sub_kind[start + j], sub_p1[start + j], sub_p2[start + j], groups)
+                if sub_kind[start + j] == FIXED:
+                    p = p + sub_p1[start + j] if p + sub_p1[start + j] <= end else -3
+                else:
+                    p = _simple(buf, p, end, sub_kind[start + j], sub_p1[start + j], sub_p2[start + j], groups)
                 if p < 0:
                     return p
     return p
@@ -193,7 +196,9 @@ def _record(buf, pos, end, fmax, kind, p1, p2, sub_start, sub_kind, sub_p1, sub_
                     return -7
                 if fill:
                     offs[s] = p
-                if kind[s] == COMPOUND:
+                if kind[s] == FIXED:          # most items: no call
+                    q = p + p1[s] if p + p1[s] <= end else -3
+                elif kind[s] == COMPOUND:
                     q = _compound(buf, p, end, sub_start[s], p2[s], p1[s], sub_kind, sub_p1, sub_p2, groups)
                 else:
                     q = _simple(buf, p, end, kind[s], p1[s], p2[s], groups)
