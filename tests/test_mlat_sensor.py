@@ -12,6 +12,7 @@ import polars as pl
 import pymap3d
 import pytest
 
+from tertiary.contract import MLAT_PLOT_COLUMNS
 from tertiary.core import geo
 from tertiary.sensors import mlat as sm
 from tertiary.simulate import load_scenario, simulate
@@ -38,6 +39,21 @@ def test_gdop_of_a_ring_of_receivers_is_the_closed_form():
         assert count[0] == n
         np.testing.assert_allclose(np.diag(p[0]), [want, want], rtol=1e-9)
         assert abs(p[0, 0, 1]) < 1e-9 * want
+
+
+def test_gdop_equals_the_time_difference_model():
+    """(G1) with the emission time unknown equals the TDOA solution: differences to receiver 0,
+    ρ_i − ρ_0 with noise covariance (cσ_t)²(I + 11ᵀ), Jacobian rows (û_i − û_0)_h — for
+    asymmetric geometries, inside and outside the hull."""
+    rng = np.random.default_rng(4)
+    rec = np.column_stack([rng.uniform(-30e3, 30e3, (5, 2)), rng.uniform(0, 200, 5)])
+    pos = np.array([[2e3, -5e3, 4e3], [70e3, 20e3, 8e3], [-15e3, 25e3, 1e3]])
+    p, _ = accuracy(pos, rec, np.ones((3, 5), bool), SIGMA_T)
+    for k, x in enumerate(pos):
+        u = (x - rec) / np.linalg.norm(x - rec, axis=1)[:, None]
+        jac = (u[1:] - u[0])[:, :2]
+        cov = (LIGHT_MPS * SIGMA_T) ** 2 * (np.eye(4) + np.ones((4, 4)))
+        np.testing.assert_allclose(p[k], np.linalg.inv(jac.T @ np.linalg.solve(cov, jac)), rtol=1e-8)
 
 
 def test_accuracy_grows_outside_the_receiver_hull():
@@ -166,3 +182,30 @@ def test_simulated_mlat_reports_are_noisy_cartesian_plots_with_their_sigma(small
     ground = np.hypot(rep["plot_x_m"].to_numpy(), rep["plot_y_m"].to_numpy())
     assert np.all(rep["range_m"].to_numpy() >= ground - 1e-6)          # slant range to the Mode C height
     assert np.abs(rep["x_m"] - rep["plot_x_m"]).median() < 3 * rep["plot_sigma_x_m"].median()
+
+
+def test_plot_only_mlat_reports_get_cartesian_tracks_window_by_window_as_whole(small_mlat):
+    """Plot-only input (as imported from CAT020: no estimate columns): alignment's own local
+    tracker runs Cartesian channels on the MLAT plots — within a few σ of the plot, not the
+    polar channels' — and the windowed steps give the whole run's rows."""
+    ds = small_mlat
+    keep = ["report_id", "run", "radar_id", "time", "local_track_id", "range_m", "azimuth_deg", "elevation_deg",
+            "altitude_m", "mode_s", "truth_id", *MLAT_PLOT_COLUMNS]
+    rep = ds.reports.select([c for c in keep if c in ds.reports.columns])
+    est = align.estimates_by_track_life(rep, ds.radars)
+    wam = est.filter(pl.col("radar_id") == 2)
+    assert (np.abs(wam["x_m"] - wam["plot_x_m"]) / wam["plot_sigma_x_m"]).median() < 1.5
+    cfg = align.AlignConfig()
+    whole, _ = align.align(rep, ds.radars, ds.origin, cfg)
+    t = rep["time"].dt.epoch("us").to_numpy()
+    grid = align.grid_origin_us(int(t.min()))
+    state, parts = align.init_align_state(), []
+    for lo, hi in ((None, grid + 40 * 10**6), (grid + 40 * 10**6, grid + 80 * 10**6), (grid + 80 * 10**6, None)):
+        win = rep.filter(pl.Series((t >= (lo or -2**62)) & (t < (hi or 2**62))))
+        (got, _), state = align.align_step(state, win, ds.radars, ds.origin, lo, hi, grid, cfg)
+        parts.append(got)
+    step = pl.concat(parts).sort("run", "epoch", "radar_id", "local_track_id", "report_id")
+    whole = whole.sort("run", "epoch", "radar_id", "local_track_id", "report_id")
+    assert step.height == whole.height
+    np.testing.assert_allclose(step.select("x_m", "y_m", "vx_mps").to_numpy(), whole.select("x_m", "y_m", "vx_mps").to_numpy(),
+                               rtol=1e-9, atol=1e-6)
