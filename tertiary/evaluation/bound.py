@@ -691,6 +691,9 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     cfg = BoundConfig.from_scenario(scen)
     max_el = {r.name: float(r.max_elevation_deg) for r in getattr(scen, "radars", ()) or ()}
     notes.append(f"bound: {cfg.describe()}")
+    if "kind" in radars.columns and (radars["kind"] == mlat.MLAT).any():
+        notes.append("bound: MLAT plots as Cartesian measurements (MLAT-3): their stated covariance, else the "
+                     "sensor's sigma_range_m per axis; height as a Mode S reply")
     t0 = int(truth.select(pl.col("time").cast(TIME).dt.epoch("us").min()).lazy().collect().item())
     origins = scan_origins(radars, reports, t0)
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
