@@ -300,3 +300,25 @@ def test_mutated_recordings_import_without_a_traceback(tmp_path: Path) -> None:
         except TertiaryError:
             continue
         assert res.rejects["reason"].str.len_chars().min() > 0 if res.rejects.height else True
+
+
+def test_cli_exports_a_pictures_alerts_as_cat004(tmp_path: Path) -> None:
+    """`tertiary export asterix --alerts` writes the picture's alerts rows; importing the file
+    gives back their pairs and times; an unknown picture names the ones with alerts."""
+    from typer.testing import CliRunner
+    from tertiary.cli.commands import app
+    from tertiary.store.run_store import RunStore
+    alerts = _import(tmp_path, BLOCKS[4]).alerts.with_columns(pl.lit("fused/information").alias("method"))
+    run = tmp_path / "run"
+    with RunStore.create(run) as store:
+        store.write("alerts", alerts.select(list(TABLES["alerts"].required)))
+    out = tmp_path / "stca.ast"
+    r = CliRunner().invoke(app, ["export", "asterix", str(run), "--picture", "fused/information", "--alerts",
+                                 "--out", str(out)])
+    assert r.exit_code == 0 and "3 CAT004 STCA records of 2 alert episodes" in r.output, r.output
+    back = dataset.external_alerts([out], date="2024-03-01")
+    cols = ["id_a", "id_b", "t_start", "t_end"]
+    assert back.sort(cols).select(cols).equals(alerts.sort(cols).select(cols))
+    r = CliRunner().invoke(app, ["export", "asterix", str(run), "--picture", "singer/x", "--alerts", "--out",
+                                 str(out)])
+    assert r.exit_code != 0 and "fused/information" in r.output
