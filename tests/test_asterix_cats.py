@@ -128,7 +128,7 @@ def _mutants(blocks: list[bytes], rng: np.random.Generator, n: int) -> list[byte
 def test_walker_accepts_and_refuses_as_libasterix(cat: int) -> None:
     """Block for block and record count for record count, on encoded and mutated bytes (CAT001:
     each record with the class its own I001/020 TYP names)."""
-    blocks = BLOCKS[cat] + _mutants(BLOCKS[cat], np.random.default_rng(cat), 150)
+    blocks = BLOCKS[cat] + _mutants(BLOCKS[cat], np.random.default_rng(cat), 100)
     counts, refused = _walk(cat, blocks)
     for k, b in enumerate(blocks):
         ref = codec.parse_block(b)
@@ -291,7 +291,7 @@ def test_mutated_recordings_import_without_a_traceback(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     sites = tmp_path / "sites.toml"
     sites.write_text(SITES)
-    for i in range(12):
+    for i in range(8):
         blocks = [b for cat in (2, 1, 20, 4) for b in _mutants(BLOCKS[cat], rng, 2)]
         rec = tmp_path / f"m{i}.ast"
         rec.write_bytes(b"".join(blocks))

@@ -182,7 +182,7 @@ def _origin(radars: pl.DataFrame, dec: importer.Decoded) -> tuple[float, float, 
 
 def write_import(result: ImportResult, out: str | Path, name: str) -> Path:
     """Write the dataset directory (atomic files): reports, radars, [truth], [external_tracks],
-    rejects, antenna, latency Parquet files and a scenario.toml holding the system origin."""
+    [alerts], rejects, antenna, latency Parquet files and a scenario.toml holding the system origin."""
     d = Path(out)
     if d.exists() and not d.is_dir():
         raise DataError("exists and is not a directory", path=str(d))

@@ -7,6 +7,8 @@
 * CAT034 → antenna timing per radar (scan period from I034/041, else north-marker intervals,
   else the slope of sector crossings; north-crossing instants).
 * CAT021 → ``truth`` (ADS-B reference), CAT062 → ``external_tracks`` (``tracks`` schema + ids).
+* CAT001, CAT020 → ``reports``, CAT002 → antenna timing, CAT004 → ``alerts``: decoded by
+  :mod:`tertiary.io.asterix.fastcats`, built by :mod:`tertiary.io.asterix.plots`.
 
 Time: t = midnight(date) + time of day, the date from ``date`` or else from the capture time
 stamp, taking the instant nearest the capture (midnight roll-over either way); without either,
