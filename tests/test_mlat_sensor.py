@@ -15,6 +15,7 @@ import pytest
 from tertiary.contract import MLAT_PLOT_COLUMNS
 from tertiary.core import geo
 from tertiary.sensors import mlat as sm
+from tertiary.sensors import registration
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.mlat import LIGHT_MPS, MlatConfig, accuracy, nominal_sigma_m, visible
 from tertiary.stages import align
@@ -209,3 +210,14 @@ def test_plot_only_mlat_reports_get_cartesian_tracks_window_by_window_as_whole(s
     assert step.height == whole.height
     np.testing.assert_allclose(step.select("x_m", "y_m", "vx_mps").to_numpy(), whole.select("x_m", "y_m", "vx_mps").to_numpy(),
                                rtol=1e-9, atol=1e-6)
+
+
+def test_registration_leaves_the_mlat_sensor_out(small_mlat):
+    """An MLAT sensor has no range or azimuth bias to estimate: registration gives it no row,
+    so alignment leaves its reports as they are."""
+    ds = small_mlat
+    reg = registration.estimate(ds.reports, ds.radars, ds.origin, ds.truth)
+    assert reg.table["radar_id"].to_list() == [1]
+    fixed = align.apply_registration(ds.reports, reg.table)
+    wam = pl.col("radar_id") == 2
+    assert fixed.filter(wam).select("range_m", "x_m").equals(ds.reports.filter(wam).select("range_m", "x_m"))

@@ -12,6 +12,9 @@ monograph's chapter 3 channels instead (:mod:`tertiary.filters.kinematic`: kinem
 (3.12)–(3.58) or kinematic + dynamic (3.59)–(3.127)); other tracks keep the Singer channel. Angular channels use the cross-range manoeuvre intensity
 divided by the range, so one σ_m in m/s² describes the aircraft. The polar estimate with its
 rates is converted to radar-local ENU position/velocity with the full 6×6 covariance J P Jᵀ.
+The tracks of an MLAT / WAM sensor (:mod:`tertiary.sensors.mlat`) run the same Singer channels on
+the east, north and up axes of its local ENU instead (its Cartesian plot at its Mode C height),
+with the innovation along the line of sight from its site in place of the range innovation.
 
 The recursion is vectorised across all local tracks of all radars and Monte-Carlo runs: the
 Python loop runs over the report rank within a track (the scan count), never over reports.

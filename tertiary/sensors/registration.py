@@ -71,6 +71,7 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
+from tertiary.sensors import mlat
 
 F64 = NDArray[np.float64]
 
@@ -570,7 +571,12 @@ def _reference_keys(reports: pl.DataFrame, truth: pl.DataFrame) -> tuple[str, ND
 def estimate(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
              truth: pl.DataFrame | None = None, cfg: RegistrationConfig = RegistrationConfig()) -> Registration:
     """Each radar's range bias, azimuth bias and clock offset (and range gain with
-    ``cfg.gain``) with 1σ uncertainties; see the module docstring for the model."""
+    ``cfg.gain``) with 1σ uncertainties; see the module docstring for the model. MLAT sensors
+    (:mod:`tertiary.sensors.mlat`) measure no range or azimuth: they and their reports are left
+    out (no row in the table: alignment leaves them as they are)."""
+    if mlat.mlat_ids(radars).size:
+        reports = reports.filter(~pl.Series(mlat.is_mlat(reports, radars)))
+        radars = radars.filter(~pl.col("radar_id").cast(pl.Int64).is_in(mlat.mlat_ids(radars).tolist()))
     if cfg.method not in ("auto", "reference", "multi"):
         raise OptionError(f"choose auto, reference or multi, got {cfg.method!r}", option="registration.method")
     if not (cfg.knot_s > 0 and cfg.accel_sigma_mps2 > 0 and cfg.gate > 0 and cfg.iterations >= 1):

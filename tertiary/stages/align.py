@@ -4,7 +4,9 @@
   covariance) is moved into the system frame (ENU at the processing centre) with the exact
   rotation + translation of :func:`tertiary.core.geo.frame_to_frame`. Reports that arrive as plots
   only get an estimate from the package's own per-radar Singer channels first
-  (:func:`tertiary.sensors.local_tracks.track_reports`).
+  (:func:`tertiary.sensors.local_tracks.track_reports`). An MLAT / WAM report (a sensor of kind
+  ``mlat``) is a Cartesian plot: its a-priori variance is its own plot covariance moved to the
+  system frame ((MLAT-1)–(MLAT-2), :mod:`tertiary.sensors.mlat`), and no polar validity gate applies.
 * **Common time.** Epochs ``t0 + k·Δ`` (Δ defaults to the fastest scan period). At each epoch a
   local track is represented by its latest report at or before the epoch, extrapolated under
   uniform straight-line motion x(t_c) = x(t_i) + v(t_i)(t_c − t_i) (§1.4), with the covariance

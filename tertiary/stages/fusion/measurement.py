@@ -32,7 +32,8 @@ def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loca
                    altitude_sigma_m: float = 30.0) -> pl.DataFrame:
     """Each report's *measured* plot in the system frame, one row per report: run, report_id
     and :data:`PLOT_COLUMNS` (position and row-major 3×3 covariance R = M J R_polar Jᵀ Mᵀ from
-    the radar's nominal sigmas, seed 002 eq. 12; :func:`tertiary.stages.fusion.centralized.converted_plots`),
+    the radar's nominal sigmas, seed 002 eq. 12; an MLAT report's Cartesian plot and its own
+    covariance, (MLAT-2); :func:`tertiary.stages.fusion.centralized.converted_plots`),
     NaN where the plot cannot be converted. Unlike the radars' track estimates, these errors
     are white: independent from scan to scan and between radars. Pass it to :func:`fuse`
     (``plots=``): it is joined to the fresh rows only, so the aligned rows are not widened."""
