@@ -98,6 +98,7 @@ def ascii_text(v: NDArray[np.int64], n: int) -> pl.Series:
 
 
 def hex6(v: NDArray[np.int64]) -> pl.Series:
+    """24-bit addresses → six lower-case hex digits, null where absent (-1)."""
     w = np.maximum(v, 0)
     digits = HEX[np.stack([(w >> (4 * (5 - i))) & 15 for i in range(6)], axis=1)]
     return pl.Series(np.ascontiguousarray(digits).view("S6").ravel()).cast(pl.String).set(pl.Series(v < 0), None)
@@ -130,6 +131,7 @@ def identities(frame: pl.DataFrame, suffixes: tuple[str, ...]) -> pl.DataFrame:
 
 
 def _nan(ok: NDArray[np.bool_], v: NDArray[Any]) -> pl.Series:
+    """``v`` where ``ok``, null elsewhere."""
     return pl.Series(np.where(ok, v, np.nan)).fill_nan(None)
 
 

@@ -40,9 +40,8 @@ from tertiary.contract import TABLES
 
 DAY = 86400.0
 TIME = pl.Datetime("us", "UTC")
-#: ICAO 6-bit alphabet; "~" marks codes outside it, dropped as libasterix drops them
-ICAO_CHARS = np.frombuffer(b"~ABCDEFGHIJKLMNOPQRSTUVWXYZ~~~~~ ~~~~~~~~~~~~~~~0123456789~~~~~~", np.uint8)
-HEX = np.frombuffer(b"0123456789abcdef", np.uint8)
+#: ICAO 6-bit alphabet ("~" marks codes outside it, dropped as libasterix drops them), hex digits
+ICAO_CHARS, HEX = fastcats.ICAO_CHARS, fastcats.HEX
 
 
 @dataclass
