@@ -111,8 +111,8 @@ def test_the_plot_goes_to_the_system_frame_as_pymap3d_places_it():
     for i in range(rep.height):
         lat, lon, h = pymap3d.enu2geodetic(*zl[i], site["lat_deg"], site["lon_deg"], site["alt_m"])
         assert h == pytest.approx(rep["altitude_m"][i], abs=1e-3)     # the plot sits at its Mode C height
-        np.testing.assert_allclose(z[i], pymap3d.geodetic2enu(lat, lon, h, ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m),
-                                   atol=1e-3)
+        want = pymap3d.geodetic2enu(lat, lon, h, ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m)
+        np.testing.assert_allclose(z[i], want, atol=1e-3)
     cols = [pymap3d.uvw2enu(*pymap3d.enu2uvw(*e, site["lat_deg"], site["lon_deg"]), ORIGIN.lat_deg, ORIGIN.lon_deg)
             for e in np.eye(3)]
     m = np.array(cols).T
@@ -208,8 +208,8 @@ def test_plot_only_mlat_reports_get_cartesian_tracks_window_by_window_as_whole(s
     step = pl.concat(parts).sort("run", "epoch", "radar_id", "local_track_id", "report_id")
     whole = whole.sort("run", "epoch", "radar_id", "local_track_id", "report_id")
     assert step.height == whole.height
-    np.testing.assert_allclose(step.select("x_m", "y_m", "vx_mps").to_numpy(), whole.select("x_m", "y_m", "vx_mps").to_numpy(),
-                               rtol=1e-9, atol=1e-6)
+    cols = ["x_m", "y_m", "vx_mps"]
+    np.testing.assert_allclose(step.select(cols).to_numpy(), whole.select(cols).to_numpy(), rtol=1e-9, atol=1e-6)
 
 
 def test_registration_leaves_the_mlat_sensor_out(small_mlat):

@@ -91,7 +91,8 @@ def local_plots(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: f
     for row in site.unique("radar_id").iter_rows(named=True):     # a few sensors, not reports
         sel = np.flatnonzero((rid == row["radar_id"]) & np.isfinite(h))
         if sel.size:
-            u[sel] = geo.up_at_height(geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"]), x[sel], y[sel], h[sel])
+            frame = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
+            u[sel] = geo.up_at_height(frame, x[sel], y[sel], h[sel])
     z[rows] = np.column_stack([x, y, u])
     r[rows] = rl
     return z, r

@@ -128,7 +128,8 @@ def visible(pos: F64, height_m: F64, receivers: F64, receiver_height_m: F64, ran
     ``receivers`` (M, 3) in one frame; heights above the ellipsoid (m)."""
     d = pos[:, None, :] - receivers[None, :, :]
     k_r = 2.0 * geo.EARTH_RADIUS_M * geo.REFRACTION_K
-    horizon = np.sqrt(k_r * np.maximum(height_m, 0.0))[:, None] + np.sqrt(k_r * np.maximum(receiver_height_m, 1.0))[None]
+    horizon = (np.sqrt(k_r * np.maximum(height_m, 0.0))[:, None]
+               + np.sqrt(k_r * np.maximum(receiver_height_m, 1.0))[None])
     return (np.linalg.norm(d, axis=2) <= range_m) & (np.hypot(d[..., 0], d[..., 1]) <= horizon)
 
 

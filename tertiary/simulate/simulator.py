@@ -1,6 +1,8 @@
-"""The simulator: truth trajectories observed by simulated radars with their own secondary
-processing, producing a dataset's ``radars``, ``reports``, ``truth`` and ``flight_plans`` tables —
-whole (:func:`simulate`) or window by window (:func:`simulate_windows`, :func:`write_stream`)."""
+"""The simulator: truth trajectories observed by simulated radars and MLAT / WAM systems
+(``[[mlat]]``, :mod:`tertiary.simulate.mlat_observe`: ``radars`` rows of kind ``mlat`` after the
+radars, their own random streams) with their own secondary processing, producing a dataset's
+``radars``, ``reports``, ``truth`` and ``flight_plans`` tables — whole (:func:`simulate`) or
+window by window (:func:`simulate_windows`, :func:`write_stream`)."""
 
 from __future__ import annotations
 
@@ -92,8 +94,8 @@ def mlat_frame(cfg: ScenarioConfig, first: int) -> pl.DataFrame:
     system = geo.LocalFrame(*cfg.origin)
     ms = cfg.mlat
     sites = [mlat_site(m, system) for m in ms]
-    reach = [m.receiver_range_m + float(np.max(np.linalg.norm(np.asarray(m.receivers_enu_m) - np.asarray(m.site), axis=1)))
-             for m in ms]
+    spread = [float(np.linalg.norm(np.asarray(m.receivers_enu_m) - np.asarray(m.site), axis=1).max()) for m in ms]
+    reach = [m.receiver_range_m + d for m, d in zip(ms, spread)]
     return pl.DataFrame({
         "radar_id": pl.Series(np.arange(first + 1, first + len(ms) + 1), dtype=pl.UInt32),
         "name": [m.name for m in ms], "lat_deg": [s.lat_deg for s in sites], "lon_deg": [s.lon_deg for s in sites],
