@@ -322,3 +322,46 @@ def test_cli_exports_a_pictures_alerts_as_cat004(tmp_path: Path) -> None:
     r = CliRunner().invoke(app, ["export", "asterix", str(run), "--picture", "singer/x", "--alerts", "--out",
                                  str(out)])
     assert r.exit_code != 0 and "fused/information" in r.output
+
+
+def _layout(prog: fastwalk.Program) -> list[tuple[object, ...]]:
+    """Per UAP slot: name, kind, fixed size or repetition, and for extended items (top level or
+    subfield) the group sizes — what decides where each item of a record ends."""
+    def ext(p1: int, p2: int) -> tuple[int, ...]:
+        return tuple(int(g) for g in prog.groups[p1:p1 + p2])
+    out = []
+    for s, name in enumerate(prog.names):
+        k, p1, p2 = int(prog.kind[s]), int(prog.p1[s]), int(prog.p2[s])
+        if k == fastwalk.EXTENDED:
+            out.append((name, k, ext(p1, p2)))
+        elif k == fastwalk.COMPOUND:
+            subs = range(prog.sub_start[s], prog.sub_start[s] + p2)
+            out.append((name, k, tuple(ext(prog.sub_p1[j], prog.sub_p2[j]) if prog.sub_kind[j] == fastwalk.EXTENDED
+                                       else (int(prog.sub_kind[j]), int(prog.sub_p1[j]), int(prog.sub_p2[j]))
+                                       for j in subs)))
+        else:
+            out.append((name, k, p1, p2))
+    return out
+
+
+def _prefix(old: object, new: object) -> bool:
+    """``old`` equals ``new`` but for extended items whose groups may be a prefix of the new ones."""
+    if isinstance(old, tuple) and isinstance(new, tuple):
+        if len(old) <= len(new) and all(isinstance(x, int) for x in (*old, *new)):
+            return old == new[:len(old)]
+        return len(old) == len(new) and all(_prefix(a, b) for a, b in zip(old, new))
+    return old == new
+
+
+@pytest.mark.parametrize("cat, older", [(1, ("1_2", "1_3")), (2, ("1_0", "1_1")), (4, ("1_12",)),
+                                        (20, ("1_9", "1_10"))])
+def test_older_editions_read_by_the_newest(cat: int, older: tuple[str, ...]) -> None:
+    """Data blocks name no edition: the older editions libasterix ships lay their records out as
+    the one read does (extended items may have gained groups), so it reads them."""
+    _, gen = codec.lib()
+    uaps = ("plot", "track") if cat == 1 else (None,)
+    for ed in older:
+        spec = getattr(gen, f"Cat_{cat:03d}_{ed}").cv_uap
+        for uap in uaps:
+            old = fastwalk.program(spec.cv_uaps[uap] if uap else spec.cv_record)
+            assert _prefix(tuple(_layout(old)), tuple(_layout(fastcats.program(cat, uap)))), (cat, ed, uap)
