@@ -242,3 +242,15 @@ def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch, of
     assert got.height == want.height == 6
     assert got.sort(key).equals(want.sort(key))
     assert scoring.observed_aircraft(aligned.clear(), reports).columns == key
+
+
+def test_a_recording_without_truth_runs_and_stores(small_terminal, tmp_path):
+    """A recording with no truth (a radar capture without CAT021: no truth table, no truth_id
+    column) runs every stage to the run database; only what needs a reference is left out."""
+    ds = dataclasses.replace(small_terminal, reports=small_terminal.reports.drop("truth_id"),
+                             truth=small_terminal.truth.clear())
+    pipeline.run(ds, tmp_path, pipeline.PipelineConfig(methods=("information",), filters=("singer",),
+                                                       centralized=False))
+    with RunStore.open(tmp_path) as store:
+        assert store.sql("SELECT count(*) FROM tracks").item() > 0
+        assert store.sql("SELECT count(*) FROM metrics WHERE stage = 'evaluation'").item() == 0

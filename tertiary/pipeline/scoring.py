@@ -100,8 +100,10 @@ def observed_aircraft(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFr
     """(run, epoch, truth_id) of every aircraft with a report aligned at the epoch: what
     continuity expects covered. Joined a block of aligned rows at a time: a long run's join is
     not held whole (memory)."""
-    truth_of = reports.select("run", "report_id", "truth_id")
     keys = aligned.select("run", "epoch", "report_id")
+    if "truth_id" not in reports.columns:        # a recording without truth: nobody to expect
+        return keys.select("run", "epoch").with_columns(pl.lit(None, pl.Int64).alias("truth_id")).clear()
+    truth_of = reports.select("run", "report_id", "truth_id")
     look = report_truth(truth_of)
 
     def aircraft(block: pl.DataFrame) -> pl.DataFrame:
