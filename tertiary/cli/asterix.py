@@ -13,7 +13,7 @@ import polars as pl
 import typer
 from rich.table import Table
 
-from tertiary.cli.common import console, parse_origin
+from tertiary.cli.common import Steps, console, parse_origin
 from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
 from tertiary.evaluation.external import score_import
@@ -56,11 +56,13 @@ def import_asterix(
         if not f.is_file():
             raise DataError("no such file" if not f.exists() else "not a file", path=str(f))
     t = time.perf_counter()
-    res = score_import(import_recordings(files, sites=sites, date=date, stale_s=stale_s,
-                                         template=write_sites_template, origin=parse_origin(origin),
-                                         skip_unknown=skip_unknown_sites))
-    name = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in out.resolve().name).strip("_-") or "asterix"
-    write_import(res, out, name[:64])
+    with Steps("import") as say:
+        res = score_import(import_recordings(files, sites=sites, date=date, stale_s=stale_s,
+                                             template=write_sites_template, origin=parse_origin(origin),
+                                             skip_unknown=skip_unknown_sites, progress=say))
+        say("part 4/4 writing the dataset")
+        name = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in out.resolve().name).strip("_-") or "asterix"
+        write_import(res, out, name[:64])
     c = res.counts
     console.print(f"wrote {out}/ in {time.perf_counter() - t:.1f} s: {c['reports']:,} reports from {c['radars']} "
                   f"radar(s) ({c['cat048_records']:,} CAT048 records, {c['duplicates']:,} redundant copies removed, "

@@ -143,7 +143,8 @@ class Steps:
                 done, total, rate = counted
                 if not self._counted:
                     self._bar(total)
-                label = message[:_COUNTED.search(message).end()]       # "window 3/12 done"
+                end = _COUNTED.search(message).end()              # "window 3/12 done", "part 1/4 decoding"
+                label = message[:end] + re.split(r"[,:]", message[end:], maxsplit=1)[0]
                 self._prog.update(self._task, description=f"{self.title}: {label}",
                                   completed=done, total=total, rate=rate or self._prog.tasks[0].fields["rate"])
         else:

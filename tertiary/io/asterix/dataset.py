@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,20 +42,22 @@ class ImportResult:
 def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = None, date: str | None = None,
                       stale_s: float = 10.0, template: str | Path | None = None,
                       origin: tuple[float, float, float] | None = None, skip_unknown: bool = False,
-                      ) -> ImportResult:
+                      progress: Callable[[str], None] | None = None) -> ImportResult:
     """Decode ``paths`` and build the dataset tables (see :mod:`tertiary.io.asterix.importer`).
 
     ``sites`` is required when CAT048 is present; SAC/SICs missing from it are listed in the
     error, and ``template`` (a path) receives a sites file to fill in for them. ``origin`` (lat,
     lon, alt) is the system frame of truth and external tracks [default: mean radar site].
     ``skip_unknown`` sends reports of SAC/SICs missing from the sites file to ``rejects``
-    instead of refusing the import.
+    instead of refusing the import. ``progress`` hears each of the import's parts ("part K/4 …").
     """
+    say = progress or (lambda _m: None)
     if not paths:
         raise OptionError("give at least one recording file", option="FILE")
     if not (math.isfinite(stale_s) and stale_s > 0):
         raise OptionError(f"must be a positive number of seconds, got {stale_s}", option="--stale-s")
     day0 = importer.parse_date(date)
+    say(f"part 1/4 decoding {len(paths)} file(s)")
     dec = importer.decode_files(paths)
     rejects = list(dec.rejects)
     main = (dec.cat048, dec.cat021, dec.cat062, dec.cat001, dec.cat020, dec.cat004)
@@ -72,6 +74,7 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     table = read_sites(sites) if sites is not None else None
     if not (skip_unknown and table is not None):
         _check_sites(codes, table, sites, template, dec.cat034, day0)
+    say("part 2/4 reports")
     reports, rej, latency, counts = importer.build_reports(dec.cat048, table, day0, stale_s)
     rejects += rej
     reports, more = _other_reports(reports, dec, table, day0, stale_s, rejects)
@@ -88,6 +91,7 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
                          f"{', '.join(f'{a}/{b}' for a, b in unknown.rows())} not in the sites file went to rejects")
     else:
         radars = pl.DataFrame()
+    say("part 3/4 truth, external tracks and alerts")
     origin = tuple(origin) if origin is not None else _origin(radars, dec)
     system = geo.LocalFrame(*origin) if origin is not None else None
     truth = tracks = pl.DataFrame()
@@ -104,6 +108,7 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
         alerts, rej, more = plots.alerts_table(dec.cat004, day0)
         rejects += rej
         counts |= more
+    say("part 3/4 done")
     # distinct service messages of both categories (CAT002 joins CAT034 in the antenna timing)
     counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat002_messages": dec.cat002.height,
                             "cat034_distinct": messages.height,
