@@ -2,7 +2,8 @@
 reads the ``conflicts`` of :mod:`safety.conflicts`, the matcher's id map and the truth, and
 gives losses of separation in the truth (:mod:`.separation`), alert episodes per pair of
 aircraft classified genuine / nuisance / false with the STCA metrics per picture
-(:mod:`.episodes`), which of them the picture causes (:mod:`.attribution`), and trade-off curves of the threshold settings (:mod:`.tradeoff`);
+(:mod:`.episodes`), which of them the picture causes (:mod:`.attribution`), another system's
+alert list scored the same way (:mod:`.external`), and trade-off curves of the threshold settings (:mod:`.tradeoff`);
 options in :class:`AlertConfig` (:mod:`.config`).
 """
 
@@ -11,6 +12,7 @@ from safety.alerts.attribution import (ATTRIBUTION_METRICS, TRUTH_PICTURE, attri
 from safety.alerts.config import AlertConfig
 from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, alert_episodes, los_episodes,
                                     score_alerts, stca_tables, stca_tables_by_picture)
+from safety.alerts.external import EXTERNAL_METRICS, EXTERNAL_PREFIX, identify_aircraft, score_external
 from safety.alerts.separation import (loss_of_separation, merge_intervals, merge_pair_intervals, separation_intervals,
                                       truth_heights, truth_intervals)
 from safety.alerts.tradeoff import compare_at_equal_nuisance, stca_tradeoff, tradeoff_metrics
@@ -20,5 +22,6 @@ __all__ = [
     "loss_of_separation", "truth_intervals", "merge_intervals", "merge_pair_intervals", "alert_episodes",
     "los_episodes", "score_alerts", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
     "compare_at_equal_nuisance", "tradeoff_metrics", "ATTRIBUTION_METRICS", "TRUTH_PICTURE", "attribute_alerts",
-    "attribute_los", "attribution_metrics", "manoeuvre_onsets", "valid_alerts",
+    "attribute_los", "attribution_metrics", "manoeuvre_onsets", "valid_alerts", "EXTERNAL_METRICS", "EXTERNAL_PREFIX",
+    "identify_aircraft", "score_external",
 ]
