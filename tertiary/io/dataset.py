@@ -1,7 +1,8 @@
 """Datasets on disk: the ``radars``, ``reports`` and ``truth`` tables (and the optional
-``truth_removed`` and ``flight_plans``) as Parquet files beside ``scenario.toml``, single files
-or window by window in parts listed in ``parts.json``. The run reads its input here, whether the
-simulator (:mod:`tertiary.simulate`), the ASTERIX importer or a user wrote it.
+``truth_removed``, ``flight_plans`` and another system's alert list ``alerts``) as Parquet files
+beside ``scenario.toml``, single files or window by window in parts listed in ``parts.json``. The
+run reads its input here, whether the simulator (:mod:`tertiary.simulate`), the ASTERIX importer
+or a user wrote it.
 
 A dataset's scenario is a :class:`~tertiary.simulate.config.ScenarioConfig`: this module imports
 that configuration module (plain dataclasses and their TOML form) from the simulator package,
@@ -46,6 +47,9 @@ class Dataset:
     #: the controllers' cleared levels by Mode 3/A code (tertiary.stages.flight_data; empty: none)
     flight_plans: pl.DataFrame = field(default_factory=pl.DataFrame)
     notes: list[str] = field(default_factory=list)                # how the dataset was completed on load
+    #: another system's alert list (``alerts`` schema, ``external:SAC/SIC``, unscored; empty: none),
+    #: scored beside the pictures' alerts (:func:`safety.alerts.score_external`)
+    external_alerts: pl.DataFrame = field(default_factory=pl.DataFrame)
 
     @property
     def origin(self) -> geo.LocalFrame:
@@ -82,6 +86,8 @@ def write_dataset(ds: Dataset, out_dir: str | Path) -> Path:
         write_parquet_atomic(ds.flight_plans, out / "flight_plans.parquet")
     else:
         (out / "flight_plans.parquet").unlink(missing_ok=True)
+    if ds.external_alerts.height:
+        write_parquet_atomic(ds.external_alerts, out / "alerts.parquet")
     write_text_atomic(out / "scenario.toml", scenario_toml(ds.scenario))
     return out
 
@@ -195,6 +201,7 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
         truth = read(d / "truth.parquet", False)
     removed = _read_table(d / "truth_removed.parquet", False)
     plans = _read_table(d / "flight_plans.parquet", False)
+    external = _read_table(d / "alerts.parquet", False)
     notes: list[str] = []
     if origin is not None:
         try:
@@ -233,4 +240,4 @@ def read_dataset(path: str | Path, origin: tuple[float, ...] | None = None, lazy
     if origin is not None:
         scen = dataclasses.replace(scen, origin=tuple(origin))
     return Dataset(radars=radars, reports=reports, truth=truth, scenario=scen, removed=removed, notes=notes,
-                   flight_plans=plans)
+                   flight_plans=plans, external_alerts=external)

@@ -43,6 +43,9 @@ from tertiary.stages.association.associate import AssociationStats
 
 __all__ = ["Results", "RunTables", "evaluate_run", "finalize", "finalize_stages"]
 
+#: what the scoring of an external alert list reads of the truth besides its intervals
+EXTERNAL_TRUTH = ["run", "truth_id", "time", "icao24", "callsign", "mode_3a", "squawk"]
+
 # `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
 # package imports this one) while `safety` is half initialised, and only a module binding
 # survives that
@@ -301,6 +304,9 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         del conflicts_all, id_map_all
         alerts, attribution = attributed(alerts, los, onsets, acfg)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
+        if ds.external_alerts.height:
+            safety_metrics, alerts, los = _with_external(ds, acfg, truth_scan(EXTERNAL_TRUTH), intervals,
+                                                         (safety_metrics, alerts, los), ing.notes)
         sink("alerts", alerts)
         sink("losses", los)          # each loss of separation per picture, alerted or missed
         if cfg.stca_lookaheads_s:
@@ -378,7 +384,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": (alerts.filter(pl.col("method") != safety_alerts.TRUTH_PICTURE).height
+              "alert_episodes": (alerts.filter((pl.col("method") != safety_alerts.TRUTH_PICTURE)
+                                               & ~pl.col("method").str.starts_with(safety_alerts.EXTERNAL_PREFIX)).height
                                  if alerts.height else 0),
               "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **target_counts(fused)}
@@ -397,3 +404,21 @@ def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -
     n_rej = rejects.filter(pl.col("input_table") == "reports").height
     if n_ok + n_rej != n_in:
         raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
+
+
+def _with_external(ds: Dataset, acfg: "safety_alerts.AlertConfig", truth: "pl.DataFrame | pl.LazyFrame",
+                   intervals: tuple[pl.DataFrame, pl.DataFrame], tables: tuple[pl.DataFrame, ...], notes: list[str]
+                   ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(metrics, alerts, losses) with the dataset's external alert list scored beside the pictures
+    on the same truth intervals (:func:`safety.alerts.score_external`)."""
+    cols = [c for c in EXTERNAL_TRUTH if c in truth.collect_schema().names()]
+    metrics, alerts, los = safety_alerts.score_external(ds.external_alerts, truth.lazy().select(cols), acfg,
+                                                        ds.origin, intervals)
+    lost = metrics.filter(pl.col("metric") == "unidentified_alerts")
+    for method, n in lost.select("method", "value").iter_rows():
+        if n:
+            total = ds.external_alerts.filter(pl.col("method") == method).height
+            notes.append(f"{method}: {int(n):,} of {total:,} alert(s) without two aircraft identified in the truth "
+                         "(Mode S, callsign, Mode 3/A): scored false")
+    return tuple(pl.concat([a, b], how=how) for a, b, how in zip(
+        tables, (metrics, alerts, los), ("vertical_relaxed", "diagonal_relaxed", "diagonal_relaxed")))
