@@ -1,19 +1,41 @@
-"""Stone Soup side by side (issue 18 item 4): the same terminal-area reports through Stone Soup's
-standard multi-target tracker and through ``tertiary``'s production picture, back to back.
+"""Stone Soup side by side: the same terminal-area reports through Stone Soup, configured and
+tuned as its users would run it for many targets, and through ``tertiary``'s production picture.
 
-Both jobs run in a fresh process each (``_util.run_isolated``: wall time from reading the
-dataset to the tracks written, peak RSS of the process); both are scored here, afterwards,
-with ONE rule (:func:`score`).
+Reports: the terminal area, 200 aircraft, 15 min, nine radars (the scenario's four and five
+sites added by ``with_radar_count``: the four alone give ~47 000 reports in 15 min, nine give
+~103 000). Two recordings: the tuning seed (``--tune-seed``) for the sweep, the evaluation seed
+(``--seed``) for the comparison. Each job runs in a fresh process (``_util.run_isolated``: wall
+and CPU time from reading the dataset to the tracks written, peak RSS of the process); both are
+scored afterwards with ONE rule (:func:`score_one`).
 
-(a) Stone Soup (``pip install 'tertiary[bench]'``): the reports' plots (``range_m``,
-    ``azimuth_deg``, ``elevation_deg``, every report of run 0, false plots included) as
-    ``Detection`` s, each with its radar's ``CartesianToElevationBearingRange`` (the site's
-    position and axes in the system ENU frame, σ from ``radars``); 3-D constant velocity
-    (``ConstantVelocity`` ×3, q = ``--q``), ``ExtendedKalmanPredictor`` /
-    ``ExtendedKalmanUpdater``, ``DistanceHypothesiser`` (``Mahalanobis``, missed distance 3),
-    ``GNNWith2DAssignment``, ``MultiMeasurementInitiator`` (2 points), ``UpdateTimeStepsDeleter``
-    (``--delete-after`` s without update), ``TimeSyncFeeder`` (``--sync`` s) over a
-    time-ordered reader. Stone Soup sees the plots only (no Mode C altitude, no radar tracks).
+(a) Stone Soup (``pip install 'tertiary[bench]' rtree``), :func:`stonesoup_job`: every plot of
+    run 0 (false plots included) is a ``Detection`` with its radar's measurement model: the
+    plot's (elevation, bearing, range) by ``CartesianToElevationBearingRange`` (the site's
+    position and axes in the system ENU frame, σ from ``radars``) stacked with its Mode C
+    height by a ``LinearGaussian`` on z in a ``CombinedReversibleGaussianMeasurementModel``
+    (4-D; the height as the system frame's z at the plot's position, :func:`mode_c_to_z`, σ its
+    quantisation, 25 ft with a Mode S address else 100 ft, :func:`mode_c_sigma`); a plot
+    without Mode C keeps the 3-D polar model. Radar plots are polar with range-dependent
+    cross-range error, so the nonlinear model with an EKF is what Stone Soup's radar tutorials
+    use; a fixed-covariance ``LinearGaussian`` on converted positions would misstate the noise
+    by a factor of ~3 between near and far plots. Motion: ``ConstantVelocity`` (q_h) ×2 and
+    (q_v) in a ``CombinedLinearGaussianTransitionModel``; ``KalmanPredictor``,
+    ``ExtendedKalmanUpdater``; ``DistanceHypothesiser`` (``Mahalanobis``, ``missed_distance`` =
+    gate); association by Stone Soup's tree associator for many targets, ``TPRTreeGNN2D`` (an
+    rtree TPR-tree of the tracks in x-y, queried with each detection's inverse): the k-d tree
+    associators (``DetectionKDTreeGNN2D``) need every detection of a step under one measurement
+    model, which nine radars' plots in one feeder window are not; ``MultiMeasurementInitiator``
+    (its own ``TPRTreeGNN2D``, ``UpdateTimeDeleter``, ``min_points``), ``UpdateTimeDeleter``,
+    ``TimeSyncFeeder`` over a time-ordered reader, ``MultiTargetTracker``. Two workarounds,
+    both marked where they are: Stone Soup's combined inverse adds its models' inverses (z
+    counted twice when two models map it), so the inverse takes x, y from the plot and z from
+    the height; where rtree refuses a query (a detection older than the tree's current time)
+    the tree is rebuilt as Stone Soup does after a ``KeyError`` (counted: ``tree_rebuilds``).
+    Tuning (``sweep``): the base configuration and one parameter changed at a time
+    (:data:`SWEEP_AXES`: q horizontal and vertical, initiator points, gate, deleter) on the first
+    ``--tune-window`` s of the tuning recording, chosen by :data:`SELECTION_RULE` (tracks per
+    aircraft ≤ 1.2), frozen in the results file and run by ``compare`` on the whole evaluation
+    recording.
 (b) tertiary: ``tertiary.pipeline.run`` with ``information`` fusion, the ``imm_sym`` tracker,
     conflicts, evaluation and the store (``--centralized`` adds the centralised reference).
 
@@ -35,26 +57,23 @@ the owner is checked against the majority ``truth_id`` of the detections that up
 track (``owner_agrees_with_detections``). Horizontal error Δx² + Δy²; vertical error = the
 tracker's reported height − true geodetic height, where the reported height is the tracker's
 own height channel when it has one (tertiary ``alt_m``), else the geodetic height of its 3-D
-position (Stone Soup); the system-frame Δz is reported too. Tracks per aircraft = tracks owning
-an aircraft / aircraft owning ≥ 1 track.
+position (Stone Soup, whose z carries the Mode C height); the system-frame Δz is reported too.
+Tracks per aircraft = tracks owning an aircraft / aircraft owning ≥ 1 track. Coverage
+(:func:`coverage`) = the share of (aircraft, instant) pairs between the aircraft's first and
+last report that hold a state of a track it owns.
 
-Which states (:func:`score_all`). Headline: both pictures at the SAME instants — tertiary's
+Which states (:func:`score_one`). Headline: both pictures at the SAME instants — tertiary's
 epoch grid (:func:`picture_at`): each track alive at instant tᵢ with its latest state at or
-before tᵢ (Stone Soup: a feeder step ≤ 2·``--sync`` s old, moved to tᵢ by its own CV
+before tᵢ (Stone Soup: a feeder step ≤ 2 feeder windows old, moved to tᵢ by its own CV
 prediction; tertiary: its state at the epoch, itself predicted from its last measurement's time
 epoch − age). "Updated" = the track's last measurement update is within the preceding epoch
 period (Stone Soup: an ``Update``; tertiary: status ``confirmed`` with a fused plot holding a
 fresh measurement, ``fused.n_fresh`` > 0). Also reported: ``own_times`` — each tracker at its own
 state times (Stone Soup every feeder step, its updates at the plot's own time with no
-prediction; tertiary at its epochs) — and ``legacy``, the superseded rule behind the results
-before 2026-11-25, which (i) held the truth at an aircraft's last sample past the end of the
-recording, so tertiary's states at the epochs after the last report (radar tracks extrapolated
-up to 1.5 scans) were scored against where the aircraft had been up to 13 s earlier, within the
-1 km gate, and (ii) counted a tertiary track holding a plot without a fresh measurement as
-updated. On the 180 s / 50-aircraft run these two alone made tertiary's horizontal RMSE 85.5 m
-instead of 41 m.
+prediction; tertiary at its epochs).
 
-    python benchmarks/bench_stonesoup.py [--duration 900] [--aircraft 200] [--workdir DIR]
+    python benchmarks/bench_stonesoup.py sweep   --workdir DIR    # the recorded sweep, frozen choice
+    python benchmarks/bench_stonesoup.py compare --workdir DIR    # both systems on the evaluation seed
 """
 
 from __future__ import annotations
@@ -76,8 +95,8 @@ from _util import record, run_isolated  # noqa: E402
 from tertiary.core import geo  # noqa: E402
 
 BENCH_DIR = Path(__file__).resolve().parent
-#: the scoring rule's version recorded with every run (earlier runs: the superseded rule, see score_all)
-RULE_VERSION = "2026-11-25 common instants, truth never extrapolated, updated = fresh measurement"
+#: the scoring rule's name recorded with every run
+RULE_VERSION = "common instants, truth never extrapolated, updated = fresh measurement, coverage in reported span"
 SCORING_RULE = ("both pictures at the same instants (tertiary's epoch grid; Stone Soup's latest state moved to the "
                 "instant by its own CV prediction); each state labelled with the truth aircraft nearest in (x, y, "
                 "reported height) among those within the gate horizontally; each track owned by its majority label; "
@@ -191,10 +210,10 @@ def _interp(grid: TruthGrid, a: np.ndarray | slice, t: np.ndarray, strict: bool 
     """Truth of aircraft ``a`` at times ``t``: linear between two active grid samples, the
     sample itself at a sample time; NaN elsewhere — before the first or after the last sample
     of the aircraft's life, and after the end of the truth grid (``strict``, the scoring rule:
-    truth is never extrapolated). ``strict=False`` is the superseded rule (results before
-    2026-11-25): at the ends of a life the active neighbour, and beyond the end of the grid its
-    last sample, so a track state after the recording's end was compared with the aircraft
-    where it was seconds earlier. ``a`` a slice gives (A, n, 4) for every aircraft, an index
+    truth is never extrapolated). ``strict=False`` is a looser rule kept for comparison: at
+    the ends of a life the active neighbour, and beyond the end of the grid its last sample, so
+    a track state after the recording's end is compared with the aircraft where it was seconds
+    earlier. ``a`` a slice gives (A, n, 4) for every aircraft, an index
     array (n,) gives (n, 4) for one aircraft per time."""
     k = np.clip(np.searchsorted(grid.t, t, side="right") - 1, 0, len(grid.t) - 1)
     k1 = np.minimum(k + 1, len(grid.t) - 1)
@@ -262,7 +281,7 @@ def score(states: pl.DataFrame, grid: TruthGrid, gate_m: float = 1000.0, strict:
     each track the aircraft most of its states were labelled with (:func:`owners`), then score
     every state of a track against its owner's truth at the state's time; a state more than the
     gate from its owner (or whose track owns none, or whose owner has no truth at that time) is
-    unmatched and not in the RMSE. ``strict=False``: the superseded truth rule (:func:`_interp`)."""
+    unmatched and not in the RMSE. ``strict=False``: the looser truth rule (:func:`_interp`)."""
     t = states["t"].to_numpy()
     xyz = states.select("x_m", "y_m", "z_m").to_numpy()
     idx, _ = match_nearest(grid, t, xyz[:, :2], gate_m, states["h_m"].to_numpy(), strict=strict)
@@ -292,7 +311,7 @@ def picture_at(states: pl.DataFrame, instants: np.ndarray, max_age_s: float, per
     with its own velocity (its constant-velocity prediction over tᵢ − t); ``updated`` when the
     track's last measurement update is within (tᵢ − ``period_s``, tᵢ]. ``states``: track_id,
     t, x_m, y_m, z_m, h_m, updated and vx_mps, vy_mps, vz_mps. Without velocity columns (Stone
-    Soup outputs written before 2026-11-25) each state's velocity is recovered from its
+    Soup outputs without them) each state's velocity is recovered from its
     constant-velocity predictions: (x_{k+1} − x_k)/Δt when state k+1 is a prediction of state
     k (exact), else (x_k − x_{k−1})/Δt when state k is itself a prediction, else the latter
     difference as an approximation."""
@@ -343,27 +362,70 @@ def track_counts(table: pl.DataFrame) -> dict:
             "tracks_per_aircraft": real.height / aircraft if aircraft else None}
 
 
-# --------------------------------------------------------------------------- the two jobs (child processes)
+# --------------------------------------------------------------------------- Stone Soup as its users run it
 
 
-def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_s: float, min_points: int,
-                  limit_s: float | None = None) -> dict:
-    """Stone Soup's standard multi-target tracker on the plots of ``dataset`` (run 0; only the
+@dataclass(frozen=True)
+class StoneSoupConfig:
+    """The tuned parameters of the Stone Soup tracker (:func:`stonesoup_job`).
+
+    ``q_h_m2ps3`` / ``q_v_m2ps3``: ``ConstantVelocity`` noise diffusion coefficient of the two
+    horizontal axes / the vertical axis; ``min_points``: ``MultiMeasurementInitiator``
+    confirmation updates; ``delete_after_s``: ``UpdateTimeDeleter`` of confirmed tracks (time
+    without update); ``gate``: ``DistanceHypothesiser`` ``missed_distance`` (Mahalanobis, on the
+    4-D measurement); ``sync_s``: ``TimeSyncFeeder`` window; ``tentative_delete_after_s``: the
+    initiator's own ``UpdateTimeDeleter`` of tracks not yet confirmed; ``prior_speed_mps`` /
+    ``prior_vspeed_mps``: the initiator prior's velocity σ; ``tree_margin_m``: added to each side
+    of the TPR tree's track boxes (the largest plot noise, 3 cross-range σ at 100 km, ~500 m)."""
+
+    q_h_m2ps3: float = 200.0
+    q_v_m2ps3: float = 20.0
+    min_points: int = 5
+    delete_after_s: float = 20.0
+    gate: float = 4.0
+    sync_s: float = 0.25
+    tentative_delete_after_s: float = 6.0
+    prior_speed_mps: float = 200.0
+    prior_vspeed_mps: float = 20.0
+    tree_margin_m: float = 500.0
+
+
+def mode_c_to_z(xyz: np.ndarray, altitude_m: np.ndarray, system: geo.LocalFrame) -> np.ndarray:
+    """A plot's Mode C height as the system frame's z: the point at the plot's latitude and
+    longitude (from its converted 3-D position ``xyz`` (n, 3)) and at height ``altitude_m``,
+    in the system ENU frame (the curvature drop, ≈ (x² + y²) / 2R, is ~280 m at 60 km).
+    NaN where the plot has no Mode C."""
+    lat, lon, _ = system.to_geodetic(xyz[:, 0], xyz[:, 1], xyz[:, 2])
+    return np.asarray(system.from_geodetic(lat, lon, np.asarray(altitude_m, float))[2], float)
+
+
+def mode_c_sigma(mode_s: np.ndarray) -> np.ndarray:
+    """σ (m) of a Mode C height: its quantisation, 25 ft with a Mode S address, else 100 ft (q/√12)."""
+    quantum = np.where(np.asarray(mode_s, bool), 25.0, 100.0) * 0.3048
+    return quantum / np.sqrt(12.0)
+
+
+def stonesoup_job(dataset: str, out: str, cfg: dict, limit_s: float | None = None) -> dict:
+    """Stone Soup's multi-target tracker, configured as its users would for many targets and
+    radar plots with Mode C (module docstring), on the plots of ``dataset`` (run 0; only the
     first ``limit_s`` seconds of reports when given); writes the track states to ``out``
     (Parquet) and returns the wall time from reading the dataset to the states written. The
     conversion is checked first against tertiary's geo on a sample of plots (not timed)."""
     import datetime
     import time
     from stonesoup.buffered_generator import BufferedGenerator
-    from stonesoup.dataassociator.neighbour import GNNWith2DAssignment
-    from stonesoup.deleter.time import UpdateTimeStepsDeleter
+    from rtree.exceptions import RTreeError
+    from stonesoup.dataassociator.tree import TPRTreeGNN2D
+    from stonesoup.deleter.time import UpdateTimeDeleter
     from stonesoup.feeder.time import TimeSyncFeeder
     from stonesoup.hypothesiser.distance import DistanceHypothesiser
     from stonesoup.initiator.simple import MultiMeasurementInitiator
     from stonesoup.measures import Mahalanobis
-    from stonesoup.models.measurement.nonlinear import CartesianToElevationBearingRange
+    from stonesoup.models.measurement.linear import LinearGaussian
+    from stonesoup.models.measurement.nonlinear import (CartesianToElevationBearingRange,
+                                                        CombinedReversibleGaussianMeasurementModel)
     from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel, ConstantVelocity
-    from stonesoup.predictor.kalman import ExtendedKalmanPredictor
+    from stonesoup.predictor.kalman import KalmanPredictor
     from stonesoup.reader.base import DetectionReader
     from stonesoup.tracker.simple import MultiTargetTracker
     from stonesoup.types.angle import Bearing, Elevation
@@ -375,29 +437,57 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
 
     from tertiary.io.dataset import read_dataset
 
-    def models_for(radars, system):
+    c = StoneSoupConfig(**cfg)
+
+    class PolarWithHeight(CombinedReversibleGaussianMeasurementModel):
+        """(elevation, bearing, range) of the site plus the Mode C height as z. Stone Soup's
+        combined inverse adds the models' inverses, which counts z twice when two models map
+        it; here x, y come from the plot and z from the height."""
+
+        def inverse_function(self, detection, **kwargs):
+            polar, _ = self.model_list
+            sv = polar.inverse_function(Detection(detection.state_vector[:3, :], measurement_model=polar))
+            sv[4, 0] = detection.state_vector[3, 0]
+            return sv
+
+    def polar_models(radars, system):
         return {rid: CartesianToElevationBearingRange(
             ndim_state=6, mapping=(0, 2, 4), noise_covar=CovarianceMatrix(np.diag(g.sigma ** 2)),
             translation_offset=StateVector(g.translation), rotation_offset=StateVector(g.angles))
             for rid, g in site_geometry(radars, system).items()}
 
+    def height_models(polar):   # per radar: with a Mode S (25 ft) or Mode C (100 ft) height
+        return {(rid, s): PolarWithHeight([m, LinearGaussian(ndim_state=6, mapping=(4,), noise_covar=CovarianceMatrix(
+            [[float(mode_c_sigma(np.array([s]))[0]) ** 2]]))]) for rid, m in polar.items() for s in (True, False)}
+
     # conversion check with the real Stone Soup model (not timed)
     ds = read_dataset(dataset)
-    models = models_for(ds.radars, ds.origin)
-    worst_m = check_conversion(ds, models, Detection, StateVector)
+    worst_m = check_conversion(ds, polar_models(ds.radars, ds.origin), Detection, StateVector)
 
-    t_start = time.perf_counter()
+    t_start, cpu_start = time.perf_counter(), time.process_time()
     ds = read_dataset(dataset)
-    models = models_for(ds.radars, ds.origin)
+    polar = polar_models(ds.radars, ds.origin)
+    with_h = height_models(polar)
     rep = ds.reports.filter(pl.col("run") == pl.col("run").min()).sort("time")
     if limit_s is not None:
         rep = rep.filter(pl.col("time") < pl.col("time").min() + datetime.timedelta(seconds=limit_s))
     meas = plots_to_measurements(rep["range_m"].to_numpy(), rep["azimuth_deg"].to_numpy(),
                                  rep["elevation_deg"].to_numpy())
-    dets = [Detection(StateVector([Elevation(m[0]), Bearing(m[1]), m[2]]), timestamp=ts,
-                      measurement_model=models[rid], metadata={"truth_id": tid})
-            for m, ts, rid, tid in zip(meas, rep["time"].to_list(), rep["radar_id"].to_list(),
-                                       rep["truth_id"].to_list())]
+    rid = rep["radar_id"].to_numpy()
+    xyz = np.empty((rep.height, 3))
+    geom = site_geometry(ds.radars, ds.origin)
+    for r in np.unique(rid):
+        xyz[rid == r] = ss_inverse(meas[rid == r], geom[int(r)])
+    alt = rep["altitude_m"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    z_h = mode_c_to_z(xyz, alt, ds.origin)
+    mode_s = rep["mode_s"].is_not_null().to_numpy()
+    dets = []
+    for m, zh, s, ts, r, tid in zip(meas, z_h, mode_s, rep["time"].to_list(), rid.tolist(), rep["truth_id"].to_list()):
+        if np.isfinite(zh):
+            sv, model = StateVector([Elevation(m[0]), Bearing(m[1]), m[2], zh]), with_h[(r, bool(s))]
+        else:
+            sv, model = StateVector([Elevation(m[0]), Bearing(m[1]), m[2]]), polar[r]
+        dets.append(Detection(sv, timestamp=ts, measurement_model=model, metadata={"truth_id": tid}))
 
     class PlotReader(DetectionReader):  # one time-ordered detection at a time
         @BufferedGenerator.generator_method
@@ -405,16 +495,53 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
             for d in dets:
                 yield d.timestamp, {d}
 
-    cv = CombinedLinearGaussianTransitionModel([ConstantVelocity(q)] * 3)
-    predictor = ExtendedKalmanPredictor(cv)
+    cv = CombinedLinearGaussianTransitionModel([ConstantVelocity(c.q_h_m2ps3), ConstantVelocity(c.q_h_m2ps3),
+                                                ConstantVelocity(c.q_v_m2ps3)])
+    predictor = KalmanPredictor(cv)
     updater = ExtendedKalmanUpdater(measurement_model=None)
-    hyp = DistanceHypothesiser(predictor, updater, measure=Mahalanobis(), missed_distance=3)
-    assoc = GNNWith2DAssignment(hyp)
-    deleter = UpdateTimeStepsDeleter(time_steps_since_update=int(np.ceil(delete_after_s / sync_s)))
-    prior = GaussianState(StateVector(np.zeros(6)), CovarianceMatrix(np.diag([0, 200.0, 0, 200.0, 0, 20.0]) ** 2))
-    initiator = MultiMeasurementInitiator(prior_state=prior, deleter=deleter, data_associator=assoc,
-                                          updater=updater, min_points=min_points)
-    feeder = TimeSyncFeeder(PlotReader(), time_window=datetime.timedelta(seconds=sync_s))
+    hyp = DistanceHypothesiser(predictor, updater, measure=Mahalanobis(), missed_distance=c.gate)
+    class TPRTree(TPRTreeGNN2D):
+        """Stone Soup's TPR-tree GNN with its track boxes (3σ of the track's position) widened by
+        ``tree_margin_m``: the box holds the track's uncertainty only, not the plot's noise, so
+        a plot a cross-range σ off a well-settled track would never reach the Mahalanobis gate.
+        Where rtree refuses a query (a detection older than the
+        tree's current time, as in the initiator's tree of tentative tracks), the tree is rebuilt
+        from the current tracks as Stone Soup itself does after a KeyError, and failing that
+        the step is hypothesised without the tree."""
+
+        def _track_tree_coordinates(self, track):
+            (lo_hi, vel, t) = super()._track_tree_coordinates(track)
+            n = len(lo_hi) // 2
+            return (tuple(v - c.tree_margin_m for v in lo_hi[:n]) + tuple(v + c.tree_margin_m for v in lo_hi[n:]),
+                    vel, t)
+
+        def generate_hypotheses(self, tracks, detections, timestamp, **kwargs):
+            try:
+                return super().generate_hypotheses(tracks, detections, timestamp, **kwargs)
+            except RTreeError:
+                self.rebuilds += 1
+                self._reset_tree()
+            try:
+                return super().generate_hypotheses(tracks, detections, timestamp, **kwargs)
+            except RTreeError:
+                self.untreed += 1
+                self._reset_tree()
+                return {t: self.hypothesiser.hypothesise(t, detections, timestamp, **kwargs) for t in tracks}
+
+    def tree():   # one tree per track set: the tracker's and the initiator's
+        a = TPRTree(hyp, measurement_model=next(iter(polar.values())), pos_mapping=(0, 2), vel_mapping=(1, 3),
+                    horizon_time=datetime.timedelta(seconds=c.delete_after_s))
+        a.rebuilds = a.untreed = 0
+        return a
+    assoc = tree()
+    deleter = UpdateTimeDeleter(time_since_update=datetime.timedelta(seconds=c.delete_after_s))
+    prior = GaussianState(StateVector(np.zeros(6)), CovarianceMatrix(np.diag(
+        [0, c.prior_speed_mps, 0, c.prior_speed_mps, 0, c.prior_vspeed_mps]) ** 2))
+    init_assoc = tree()
+    initiator = MultiMeasurementInitiator(
+        prior_state=prior, data_associator=init_assoc, updater=updater, min_points=c.min_points,
+        deleter=UpdateTimeDeleter(time_since_update=datetime.timedelta(seconds=c.tentative_delete_after_s)))
+    feeder = TimeSyncFeeder(PlotReader(), time_window=datetime.timedelta(seconds=c.sync_s))
     tracker = MultiTargetTracker(initiator=initiator, deleter=deleter, detector=feeder,
                                  data_associator=assoc, updater=updater)
     tracks: set = set()
@@ -429,7 +556,10 @@ def stonesoup_job(dataset: str, out: str, q: float, sync_s: float, delete_after_
                                        "truth_id": pl.Int64}, orient="row")
     frame.write_parquet(out)
     wall = time.perf_counter() - t_start
-    return {"reports": rep.height, "wall_s": wall, "tracks": len(tracks), "conversion_check_max_m": worst_m}
+    return {"reports": rep.height, "wall_s": wall, "cpu_s": time.process_time() - cpu_start, "tracks": len(tracks),
+            "conversion_check_max_m": worst_m, "tree_rebuilds": [assoc.rebuilds, init_assoc.rebuilds],
+            "tree_bypassed_steps": [assoc.untreed, init_assoc.untreed],
+            "mode_c_fraction": float(np.isfinite(z_h).mean())}
 
 
 def check_conversion(ds, models: dict, detection_cls, state_vector_cls, n: int = 200, tol_m: float = 1e-6) -> float:
@@ -456,30 +586,33 @@ STONESOUP_CODE = """
 import sys, json
 sys.path.insert(0, {bench!r})
 import bench_stonesoup as b
-print(json.dumps(b.stonesoup_job({dataset!r}, {out!r}, {q!r}, {sync!r}, {delete_after!r}, {min_points!r}, {limit!r})))
+print(json.dumps(b.stonesoup_job({dataset!r}, {out!r}, {cfg!r}, {limit!r})))
 """
 
 TERTIARY_CODE = """
 import json, time
 from tertiary.io.dataset import read_dataset
 from tertiary import pipeline
-t0 = time.perf_counter()   # as for Stone Soup: from reading the dataset to the tracks stored
+t0, c0 = time.perf_counter(), time.process_time()   # as for Stone Soup: from reading the dataset to the tracks stored
 ds = read_dataset({dataset!r})
 cfg = pipeline.PipelineConfig(methods=("information",), filters=("imm_sym",), centralized={centralized!r})
 import shutil; shutil.rmtree({out!r}, ignore_errors=True)
 db = pipeline.run(ds, {out!r}, cfg)
-print(json.dumps({{"reports": ds.reports.height, "wall_s": time.perf_counter() - t0, "db": str(db)}}))
+print(json.dumps({{"reports": ds.reports.height, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+                  "db": str(db)}}))
 """
 
 
 # --------------------------------------------------------------------------- driver
 
 
-def make_dataset(path: Path, duration_s: float, aircraft: int, seed: int | None) -> Path:
-    """A terminal-area recording (1 run) written to ``path`` unless already there; designed
+def make_dataset(path: Path, duration_s: float, aircraft: int, seed: int | None, radars: int | None = None) -> Path:
+    """A terminal-area recording (1 run) written to ``path`` unless already there, with
+    ``radars`` radars (the scenario's four, then sites added by ``with_radar_count``); designed
     conflict pairs scaled down for recordings shorter than 15 min so that they fit."""
     from tertiary.io.dataset import write_dataset
     from tertiary.simulate import load_scenario, simulate
+    from tertiary.simulate.config import with_radar_count
     if (path / "reports.parquet").exists():
         return path
     cfg = load_scenario("terminal-area")
@@ -488,6 +621,8 @@ def make_dataset(path: Path, duration_s: float, aircraft: int, seed: int | None)
                                   conflict_pairs=int(round(cfg.traffic.conflict_pairs * k)),
                                   near_miss_pairs=int(round(cfg.traffic.near_miss_pairs * k)))
     cfg = dataclasses.replace(cfg, duration_s=duration_s, runs=1, traffic=traffic)
+    if radars is not None:
+        cfg = with_radar_count(cfg, radars)
     if seed is not None:
         cfg = cfg.replace(seed=seed)
     write_dataset(simulate(cfg), path)
@@ -506,8 +641,7 @@ def tertiary_states(db: str, t0, system: geo.LocalFrame) -> pl.DataFrame:
     the tracks' height channel ``alt_m`` (the geodetic height of z where it is null).
     ``updated``: the track took a plot at this epoch (status ``confirmed``) AND that fused plot
     held a fresh measurement (``fused.n_fresh`` > 0): a plot that only re-extrapolates the
-    radars' tracks holds a track without updating it (tertiary.stages.tracking.tracker). ``confirmed``: the
-    superseded definition (status only)."""
+    radars' tracks holds a track without updating it (tertiary.stages.tracking.tracker). ``confirmed``: status only."""
     import duckdb
     with duckdb.connect(db, read_only=True) as con:
         f = con.sql("select track_id, epoch as time, x_m, y_m, z_m, vx_mps, vy_mps, vz_mps, alt_m, status, "
@@ -534,132 +668,274 @@ def picture_instants(db: str, t0) -> np.ndarray:
     return ep.select(seconds("time", t0)).to_series().to_numpy()
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=900.0, help="recording length, s")
-    ap.add_argument("--aircraft", type=int, default=200)
-    ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--workdir", type=Path, default=None, help="dataset and outputs [default: a temp dir]")
-    ap.add_argument("--q", type=float, default=1.0, help="Stone Soup CV noise diffusion coefficient, m²/s³")
-    ap.add_argument("--sync", type=float, default=0.25, help="Stone Soup TimeSyncFeeder window, s")
-    ap.add_argument("--delete-after", type=float, default=20.0, help="Stone Soup deletion, s without update")
-    ap.add_argument("--min-points", type=int, default=2, help="Stone Soup initiator confirmation points")
-    ap.add_argument("--gate", type=float, default=1000.0, help="scoring gate, m (horizontal)")
-    ap.add_argument("--centralized", action="store_true", help="tertiary also runs the centralised reference")
-    ap.add_argument("--stonesoup-seconds", type=float, default=None,
-                    help="Stone Soup processes only the first S seconds of reports (its cost grows with tracks x "
-                         "detections); both trackers are then scored on that window only")
-    ap.add_argument("--rescore", action="store_true", help="re-score the jobs already run in --workdir")
-    ap.add_argument("--rerun-tertiary", action="store_true",
-                    help="re-run only the tertiary job, re-score with the Stone Soup job already run in --workdir")
-    ap.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/bench_stonesoup.json")
-    args = ap.parse_args()
-    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_stonesoup_"))
-    work.mkdir(parents=True, exist_ok=True)
-    data = make_dataset(work / f"ta_{int(args.duration)}s_{args.aircraft}ac", args.duration, args.aircraft, args.seed)
+def detection_spans(reports: pl.DataFrame, grid: TruthGrid, t0) -> np.ndarray:
+    """(A, 2) first and last report time (s) of every truth aircraft (NaN: never reported)."""
+    f = (reports.filter(pl.col("truth_id").is_not_null() & (pl.col("truth_id") >= 0))
+         .group_by("truth_id").agg(seconds("time", t0).min().alias("a"), seconds("time", t0).max().alias("b")))
+    spans = np.full((len(grid.ids), 2), np.nan)
+    pos = np.searchsorted(grid.ids, f["truth_id"].to_numpy())
+    ok = (pos < len(grid.ids)) & (grid.ids[np.minimum(pos, len(grid.ids) - 1)] == f["truth_id"].to_numpy())
+    spans[pos[ok]] = f.select("a", "b").to_numpy()[ok]
+    return spans
 
-    ss_out, jobs = work / "stonesoup_states.parquet", work / "jobs.json"
-    if args.rescore or args.rerun_tertiary:   # score the outputs of an earlier invocation again (development)
-        ss, te = json.loads(jobs.read_text())
-        if args.rerun_tertiary:
-            te = run_isolated(TERTIARY_CODE.format(dataset=str(data), out=str(work / "tertiary_run"),
-                                                   centralized=args.centralized))
-            jobs.write_text(json.dumps([ss, te]))
-    else:
-        ss = run_isolated(STONESOUP_CODE.format(bench=str(BENCH_DIR), dataset=str(data), out=str(ss_out), q=args.q,
-                                                sync=args.sync, delete_after=args.delete_after,
-                                                min_points=args.min_points, limit=args.stonesoup_seconds))
-        te = run_isolated(TERTIARY_CODE.format(dataset=str(data), out=str(work / "tertiary_run"),
-                                               centralized=args.centralized))
-        jobs.write_text(json.dumps([ss, te]))
 
-    from tertiary.io.dataset import read_dataset
-    ds = read_dataset(data)
-    t0 = ds.truth["time"].min()
-    grid = truth_grid(ds.truth, t0)
-    ss_states, te_states = stonesoup_states(ss_out, t0, ds.origin), tertiary_states(te["db"], t0, ds.origin)
-    instants = picture_instants(te["db"], t0)
-    if args.stonesoup_seconds is not None:   # the same window for both
-        t_end = ds.reports.select(seconds("time", t0).min()).item() + args.stonesoup_seconds
-        te_states = te_states.filter(pl.col("t") < t_end)
-        instants = instants[instants < t_end]
-    ss_score, te_score = score_all(ss_states, te_states, instants, grid, args.gate, args.sync)
-    detected = ds.reports["truth_id"].drop_nulls().filter(ds.reports["truth_id"].drop_nulls() >= 0).n_unique()
-    for s in (ss_score, te_score):
-        s["aircraft_detected"] = detected
-    ss_rate, te_rate = ss["reports"] / ss["wall_s"], te["reports"] / te["wall_s"]
-    result = {
-        "scenario": {"name": "terminal-area", "aircraft": args.aircraft, "duration_s": args.duration,
-                     "radars": ds.radars.height, "reports": ds.reports.height,
-                     "stonesoup_window_s": args.stonesoup_seconds, "stonesoup_reports": ss["reports"]},
-        "stonesoup": {"version": _version("stonesoup"), "wall_s": ss["wall_s"], "reports_per_s": ss_rate,
-                      "peak_rss_mib": ss["peak_rss_mib"], "conversion_check_max_m": ss.get("conversion_check_max_m"),
-                      "config": {"q_m2ps3": args.q, "sync_s": args.sync, "delete_after_s": args.delete_after,
-                                 "min_points": args.min_points, "missed_distance": 3.0}, **ss_score},
-        "tertiary": {"wall_s": te["wall_s"], "reports_per_s": te_rate, "peak_rss_mib": te["peak_rss_mib"],
-                     "config": {"methods": ["information"], "filters": ["imm_sym"],
-                                "centralized": args.centralized, "conflicts": True, "store": True}, **te_score},
-        "ratio": te_rate / ss_rate, "scoring_gate_m": args.gate, "scoring_rule_version": RULE_VERSION,
-    }
-    tag = f"{int(args.duration)}s_{args.aircraft}ac" + (f"_window{int(args.stonesoup_seconds)}s"
-                                                        if args.stonesoup_seconds is not None else "")
-    if not args.no_record:
-        print(f"recorded in {record('bench_stonesoup', summary(tag, result))}")
-    print(json.dumps(result, indent=2))
+def coverage(picture: pl.DataFrame, grid: TruthGrid, gate_m: float, instants: np.ndarray, spans: np.ndarray) -> float:
+    """Share of the (aircraft, instant) pairs inside the aircraft's reported span (first to last
+    report, truth present) that hold a state of a track owned by that aircraft within the gate."""
+    t = picture["t"].to_numpy()
+    xyz = picture.select("x_m", "y_m", "z_m").to_numpy()
+    idx, _ = match_nearest(grid, t, xyz[:, :2], gate_m, picture["h_m"].to_numpy())
+    own, _ = owners(picture["track_id"].to_numpy(), idx)
+    tru = np.full((len(t), 4), np.nan)
+    has = own >= 0
+    tru[has] = _interp(grid, own[has], t[has])
+    ok = ((xyz[:, :2] - tru[:, :2]) ** 2).sum(axis=1) <= gate_m ** 2
+    got = {(int(a), float(b)) for a, b in zip(own[ok], t[ok])}
+    at = truth_at(grid, instants)[..., 0]                                   # (A, n)
+    inside = (instants[None, :] >= spans[:, :1]) & (instants[None, :] <= spans[:, 1:]) & np.isfinite(at)
+    a_i, t_i = np.nonzero(inside)
+    n = len(a_i)
+    hit = sum((int(a), float(instants[k])) in got for a, k in zip(a_i, t_i))
+    return hit / n if n else 0.0
 
 
 def score_all(ss_states: pl.DataFrame, te_states: pl.DataFrame, instants: np.ndarray, grid: TruthGrid,
-              gate_m: float, sync_s: float) -> tuple[dict, dict]:
-    """Both trackers scored with the same rules: the headline at common instants
+              gate_m: float, sync_s: float, spans: np.ndarray | None = None) -> tuple[dict, dict]:
+    """Both trackers scored with the same rule: the headline at common instants
     (:func:`picture_at` on tertiary's epoch grid: Stone Soup's latest state ≤ 2 feeder windows
-    old, moved to the instant by its own CV prediction; tertiary's state at the epoch),
-    ``own_times`` at each tracker's own state times, and ``legacy`` — the superseded rule
-    (truth held at the ends of lives and past the end of the recording; tertiary "updated" =
-    status confirmed) that produced the results before 2026-11-25."""
+    old, moved to the instant by its own CV prediction; tertiary's state at the epoch), its
+    ``coverage`` (with ``spans``), and ``own_times`` at each tracker's own state times."""
+    return tuple(score_one(states, instants, grid, gate_m, max_age, spans)
+                 for states, max_age in ((ss_states, 2.0 * sync_s), (te_states, 0.0)))
+
+
+def score_one(states: pl.DataFrame, instants: np.ndarray, grid: TruthGrid, gate_m: float, max_age_s: float,
+              spans: np.ndarray | None = None) -> dict:
+    """One tracker's states scored with the module's rule (see :func:`score_all`)."""
     period = float(np.median(np.diff(instants))) if len(instants) > 1 else 1.0
-    out = []
-    for states, max_age in ((ss_states, 2.0 * sync_s), (te_states, 0.0)):
-        s = score(picture_at(states, instants, max_age, period), grid, gate_m)
-        own = score(states, grid, gate_m)
-        legacy_states = states.with_columns(pl.col("confirmed").alias("updated")) if "confirmed" in states.columns \
-            else states
-        legacy = score(legacy_states, grid, gate_m, strict=False)
-        if "owner_agrees_with_detections" in own:
-            s["owner_agrees_with_detections"] = own.pop("owner_agrees_with_detections")
-            legacy.pop("owner_agrees_with_detections", None)
-        out.append({**s, "picture_period_s": period, "own_times": own, "legacy": legacy})
-    return out[0], out[1]
+    pic = picture_at(states, instants, max_age_s, period)
+    s = score(pic, grid, gate_m)
+    own = score(states, grid, gate_m)
+    if "owner_agrees_with_detections" in own:
+        s["owner_agrees_with_detections"] = own.pop("owner_agrees_with_detections")
+    if spans is not None:
+        s["coverage"] = coverage(pic, grid, gate_m, instants, spans)
+    return {**s, "picture_period_s": period, "own_times": own}
 
 
-def summary(tag: str, result: dict) -> dict:
-    """The results file: every measured size under ``runs`` (earlier ones kept), the headline
-    names from the largest complete run (Stone Soup over the whole recording), else this one."""
-    path = BENCH_DIR / "results" / "bench_stonesoup.json"
-    runs = json.loads(path.read_text()).get("runs", {}) if path.exists() else {}
-    for r in runs.values():   # earlier runs keep their figures, marked with the rule that made them
-        r.setdefault("scoring_rule_version", "legacy (superseded: truth held past the recording's end, "
-                                             "tertiary updated = status confirmed)")
-    runs[tag] = result
-    complete = [r for r in runs.values() if r["scenario"]["stonesoup_window_s"] is None
-                and r["scoring_rule_version"] == RULE_VERSION]
-    head = max(complete, key=lambda r: r["scenario"]["reports"]) if complete else result
-    def rmse(r: dict) -> dict:
-        one = lambda d: {"horizontal": d["rmse_horizontal_m"], "vertical": d["rmse_vertical_m"],  # noqa: E731
-                         "horizontal_updated": d["rmse_horizontal_updated_m"],
-                         "vertical_updated": d["rmse_vertical_updated_m"]}
-        return {**one(r), **({"own_times": one(r["own_times"]), "legacy": one(r["legacy"])} if "legacy" in r else {})}
+#: what the sweep minimises (one number per configuration, the same scoring rule as the comparison)
+SELECTION_RULE = ("minimise rmse_horizontal_m + rmse_vertical_m (picture at the common instants) among the "
+                  "configurations with tracks_per_aircraft <= 1.2 and coverage >= 0.9 x the best coverage of the "
+                  "sweep; coordinate-wise from the base configuration: each swept parameter takes its best value")
 
-    return {"headline_run": next(k for k, v in runs.items() if v is head),
-            "tertiary_reports_per_s": head["tertiary"]["reports_per_s"],
-            "stonesoup_reports_per_s": head["stonesoup"]["reports_per_s"], "ratio": head["ratio"],
-            "tertiary_rmse_m": rmse(head["tertiary"]), "stonesoup_rmse_m": rmse(head["stonesoup"]),
-            "tracks_per_aircraft": {"tertiary": head["tertiary"]["tracks_per_aircraft"],
-                                    "stonesoup": head["stonesoup"]["tracks_per_aircraft"]},
-            "peak_rss_mib": {"tertiary": head["tertiary"]["peak_rss_mib"],
-                             "stonesoup": head["stonesoup"]["peak_rss_mib"]},
-            "target": {"ratio": 300, "accuracy": "equal or better RMSE"},
-            "scoring": {"gate_m": head["scoring_gate_m"], "rule": SCORING_RULE},
-            "runs": runs}
+#: the sweep: the base configuration, then one parameter changed at a time
+SWEEP_BASE = StoneSoupConfig()
+SWEEP_AXES = {"q_h_m2ps3": (800.0,), "min_points": (7,), "gate": (5.0,), "q_v_m2ps3": (2.0,),
+              "delete_after_s": (10.0,)}
+
+
+def sweep_points(base: StoneSoupConfig = SWEEP_BASE, axes: dict = SWEEP_AXES) -> list[StoneSoupConfig]:
+    """The base configuration then each axis value with the other parameters at the base."""
+    return [base] + [dataclasses.replace(base, **{k: v}) for k, vs in axes.items() for v in vs]
+
+
+def select(points: list[dict], base: dict, axes: tuple[str, ...]) -> dict:
+    """The frozen configuration from scored sweep points (:data:`SELECTION_RULE`): each point
+    {"config": {...}, "score": {...}}; returns the chosen config."""
+    best_cov = max((p["score"].get("coverage") or 0.0) for p in points)
+
+    def admissible(p):
+        s = p["score"]
+        return ((s.get("tracks_per_aircraft") or 99.0) <= 1.2 and (s.get("coverage") or 0.0) >= 0.9 * best_cov
+                and s.get("rmse_horizontal_m") is not None and s.get("rmse_vertical_m") is not None)
+
+    def cost(p):
+        return p["score"]["rmse_horizontal_m"] + p["score"]["rmse_vertical_m"]
+
+    chosen = dict(base)
+    for ax in axes:   # points on this axis: the base and the points differing from it only on ax
+        on_axis = [p for p in points if all(p["config"][k] == base[k] for k in base if k != ax) and admissible(p)]
+        if on_axis:
+            chosen[ax] = min(on_axis, key=cost)["config"][ax]
+    return chosen
+
+
+def run_tertiary(data: Path, out: Path, centralized: bool = False) -> dict:
+    return run_isolated(TERTIARY_CODE.format(dataset=str(data), out=str(out), centralized=centralized))
+
+
+def run_stonesoup(data: Path, out: Path, cfg: StoneSoupConfig, limit_s: float | None) -> dict:
+    return run_isolated(STONESOUP_CODE.format(bench=str(BENCH_DIR), dataset=str(data), out=str(out),
+                                              cfg=dataclasses.asdict(cfg), limit=limit_s))
+
+
+RESULTS = BENCH_DIR / "results" / "bench_stonesoup.json"
+
+
+def _load() -> dict:
+    return json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+
+
+def _save(doc: dict) -> None:
+    doc.pop("machine", None)
+    print(f"recorded in {record('bench_stonesoup', doc)}")
+
+
+def scenario_of(ds, args, seed: int, window_s: float | None) -> dict:
+    return {"name": "terminal-area", "aircraft": args.aircraft, "duration_s": args.duration, "radars": ds.radars.height,
+            "seed": seed, "reports": ds.reports.height, "window_s": window_s}
+
+
+def sweep(args, work: Path) -> None:
+    """The recorded sweep on the tuning seed: Stone Soup on the first ``--tune-window`` s of
+    the tuning recording, each configuration in a fresh process, scored at tertiary's epochs."""
+    from tertiary.io.dataset import read_dataset
+    data = make_dataset(work / f"tune_seed{args.tune_seed}", args.duration, args.aircraft, args.tune_seed, args.radars)
+    ds = read_dataset(data)
+    t0 = ds.truth["time"].min()
+    grid = truth_grid(ds.truth, t0)
+    db = work / "tune_tertiary" / "results.duckdb"   # tertiary's epochs on the tuning recording: run once
+    te = {"db": str(db)} if db.exists() else run_tertiary(data, work / "tune_tertiary")
+    t_end = ds.reports.select(seconds("time", t0).min()).item() + args.tune_window
+    instants = picture_instants(te["db"], t0)
+    instants = instants[instants < t_end]
+    spans = detection_spans(ds.reports.filter(seconds("time", t0) < t_end), grid, t0)
+    te_score = score_one(tertiary_states(te["db"], t0, ds.origin).filter(pl.col("t") < t_end), instants, grid,
+                         args.gate, 0.0, spans)
+    old = _load()
+    done = {json.dumps(p["config"], sort_keys=True): p for p in old.get("sweep", {}).get("points", [])
+            if old["sweep"].get("scenario", {}).get("window_s") == args.tune_window and "score" in p}
+    doc = {k: v for k, v in old.items() if k == "evaluation"}
+    doc["sweep"] = {"scenario": scenario_of(ds, args, args.tune_seed, args.tune_window),
+                    "selection_rule": SELECTION_RULE, "base": dataclasses.asdict(SWEEP_BASE),
+                    "axes": {k: list(v) for k, v in SWEEP_AXES.items()},
+                    "tertiary_on_the_window": {k: te_score[k] for k in _TABLE if k in te_score}, "points": []}
+    for cfg in sweep_points():
+        out = work / "tune_stonesoup.parquet"
+        key = json.dumps(dataclasses.asdict(cfg), sort_keys=True)
+        if key in done:   # a point measured by an earlier, interrupted sweep of the same window
+            doc["sweep"]["points"].append(done[key])
+            continue
+        try:
+            ss = run_stonesoup(data, out, cfg, args.tune_window)
+        except Exception as exc:   # noqa: BLE001 — a failed configuration is recorded, not fatal
+            doc["sweep"]["points"].append({"config": dataclasses.asdict(cfg), "error": repr(exc)[:300]})
+            continue
+        s = score_one(stonesoup_states(out, t0, ds.origin), instants, grid, args.gate, 2.0 * cfg.sync_s, spans)
+        point = {"config": dataclasses.asdict(cfg), "wall_s": ss["wall_s"], "cpu_s": ss.get("cpu_s"),
+                 "reports": ss["reports"],
+                 "reports_per_s": ss["reports"] / ss["wall_s"], "peak_rss_mib": ss["peak_rss_mib"],
+                 "score": {k: s[k] for k in _TABLE if k in s}}
+        doc["sweep"]["points"].append(point)
+        print(json.dumps(point), flush=True)
+        ok = [p for p in doc["sweep"]["points"] if "score" in p]
+        doc["sweep"]["frozen"] = select(ok, dataclasses.asdict(SWEEP_BASE), tuple(SWEEP_AXES))
+        _save(doc)
+
+
+_TABLE = ("states", "states_matched_fraction", "rmse_horizontal_m", "rmse_vertical_m", "rmse_horizontal_updated_m",
+          "rmse_vertical_updated_m", "rmse_z_enu_m", "tracks", "false_tracks", "aircraft_tracked",
+          "tracks_per_aircraft", "coverage", "owner_agrees_with_detections")
+
+
+def compare(args, work: Path) -> None:
+    """The frozen configuration and tertiary's production picture on the evaluation seed, the
+    whole recording for both, each in a fresh process, scored with the one rule."""
+    from tertiary.io.dataset import read_dataset
+    doc = _load()
+    frozen = StoneSoupConfig(**doc["sweep"]["frozen"]) if "sweep" in doc and "frozen" in doc["sweep"] \
+        else StoneSoupConfig()
+    data = make_dataset(work / f"eval_seed{args.seed}", args.duration, args.aircraft, args.seed, args.radars)
+    ss_out, jobs = work / "eval_stonesoup.parquet", work / "eval_jobs.json"
+    if args.rescore:
+        ss, te = json.loads(jobs.read_text())
+    else:
+        ss = run_stonesoup(data, ss_out, frozen, None)
+        te = run_tertiary(data, work / "eval_tertiary", args.centralized)
+        jobs.write_text(json.dumps([ss, te]))
+    ds = read_dataset(data)
+    t0 = ds.truth["time"].min()
+    grid = truth_grid(ds.truth, t0)
+    instants = picture_instants(te["db"], t0)
+    spans = detection_spans(ds.reports, grid, t0)
+    ss_score, te_score = score_all(stonesoup_states(ss_out, t0, ds.origin), tertiary_states(te["db"], t0, ds.origin),
+                                   instants, grid, args.gate, frozen.sync_s, spans)
+    detected = int(np.isfinite(spans[:, 0]).sum())
+    ss_rate, te_rate = ss["reports"] / ss["wall_s"], te["reports"] / te["wall_s"]
+    row = lambda job, rate, s: {"wall_s": job["wall_s"], "cpu_s": job.get("cpu_s"), "reports_per_s": rate,  # noqa: E731
+                                "peak_rss_mib": job["peak_rss_mib"], **{k: s[k] for k in _TABLE if k in s},
+                                "aircraft_detected": detected, "own_times": s["own_times"]}
+    doc["evaluation"] = {
+        "scenario": {**scenario_of(ds, args, args.seed, None), "stonesoup_reports": ss["reports"],
+                     "tertiary_reports": te["reports"]},
+        "stonesoup": {"version": _version("stonesoup"), "config": dataclasses.asdict(frozen),
+                      "components": STONESOUP_COMPONENTS, "mode_c_fraction": ss.get("mode_c_fraction"),
+                      "conversion_check_max_m": ss.get("conversion_check_max_m"), **row(ss, ss_rate, ss_score)},
+        "tertiary": {"config": {"methods": ["information"], "filters": ["imm_sym"], "centralized": args.centralized,
+                                "conflicts": True, "store": True}, **row(te, te_rate, te_score)},
+        "ratio": te_rate / ss_rate}
+    doc["ratio"] = te_rate / ss_rate
+    doc["ratio_cpu"] = (te["reports"] / te["cpu_s"]) / (ss["reports"] / ss["cpu_s"]) if ss.get("cpu_s") else None
+    doc["stonesoup_better_on"] = where_better(doc["evaluation"]["stonesoup"], doc["evaluation"]["tertiary"])
+    doc["target"] = {"ratio": 300, "accuracy": "clearly better RMSE", "ratio_met": te_rate / ss_rate >= 300}
+    doc["scoring"] = {"gate_m": args.gate, "rule": SCORING_RULE, "version": RULE_VERSION}
+    _save(doc)
+    print(json.dumps(doc["evaluation"], indent=2))
+
+
+#: the compared figures and whether lower is better
+_BETTER_LOW = {"rmse_horizontal_m": True, "rmse_vertical_m": True, "rmse_horizontal_updated_m": True,
+               "rmse_vertical_updated_m": True, "rmse_z_enu_m": True, "tracks_per_aircraft": True,
+               "false_tracks": True, "peak_rss_mib": True, "wall_s": True, "coverage": False,
+               "states_matched_fraction": False, "aircraft_tracked": False}
+
+
+def where_better(ss: dict, te: dict) -> dict:
+    """The figures on which Stone Soup beats tertiary: {name: [stonesoup, tertiary]}."""
+    out = {}
+    for k, low in _BETTER_LOW.items():
+        a, b = ss.get(k), te.get(k)
+        if a is not None and b is not None and ((a < b) if low else (a > b)):
+            out[k] = [a, b]
+    return out
+
+
+#: the Stone Soup components of :func:`stonesoup_job`, recorded with the results
+STONESOUP_COMPONENTS = {
+    "tracker": "stonesoup.tracker.simple.MultiTargetTracker",
+    "feeder": "stonesoup.feeder.time.TimeSyncFeeder over a time-ordered DetectionReader",
+    "measurement_model": "per radar CombinedReversibleGaussianMeasurementModel(CartesianToElevationBearingRange, "
+                         "LinearGaussian on z = Mode C height); CartesianToElevationBearingRange alone without Mode C",
+    "transition_model": "CombinedLinearGaussianTransitionModel(ConstantVelocity(q_h) x 2, ConstantVelocity(q_v))",
+    "predictor": "stonesoup.predictor.kalman.KalmanPredictor",
+    "updater": "stonesoup.updater.kalman.ExtendedKalmanUpdater",
+    "hypothesiser": "stonesoup.hypothesiser.distance.DistanceHypothesiser(Mahalanobis, missed_distance = gate)",
+    "data_associator": "stonesoup.dataassociator.tree.TPRTreeGNN2D (rtree TPR-tree of the tracks, x-y, "
+                       "horizon = delete_after_s)",
+    "initiator": "stonesoup.initiator.simple.MultiMeasurementInitiator (GNNWith2DAssignment, "
+                 "UpdateTimeDeleter(tentative_delete_after_s), min_points)",
+    "deleter": "stonesoup.deleter.time.UpdateTimeDeleter(delete_after_s)",
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("mode", choices=("sweep", "compare"), help="sweep: tune Stone Soup on the tuning seed; "
+                    "compare: the frozen configuration and tertiary on the evaluation seed")
+    ap.add_argument("--duration", type=float, default=900.0, help="recording length, s")
+    ap.add_argument("--aircraft", type=int, default=200)
+    ap.add_argument("--radars", type=int, default=9, help="radars (the scenario's 4, then added sites)")
+    ap.add_argument("--seed", type=int, default=5, help="evaluation seed")
+    ap.add_argument("--tune-seed", type=int, default=11, help="tuning seed (sweep)")
+    ap.add_argument("--tune-window", type=float, default=45.0, help="sweep: Stone Soup on the first S s")
+    ap.add_argument("--workdir", type=Path, default=None, help="datasets and outputs [default: a temp dir]")
+    ap.add_argument("--gate", type=float, default=1000.0, help="scoring gate, m (horizontal)")
+    ap.add_argument("--centralized", action="store_true", help="tertiary also runs the centralised reference")
+    ap.add_argument("--rescore", action="store_true", help="compare: re-score the jobs already run in --workdir")
+    args = ap.parse_args()
+    work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_stonesoup_"))
+    work.mkdir(parents=True, exist_ok=True)
+    (sweep if args.mode == "sweep" else compare)(args, work)
 
 
 def _version(name: str) -> str | None:

@@ -19,6 +19,7 @@ _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_stonesoup.py
 sys.path.insert(0, str(_PATH.parent))
 _spec = importlib.util.spec_from_file_location("bench_stonesoup", _PATH)
 bench = importlib.util.module_from_spec(_spec)
+sys.modules.setdefault("bench_stonesoup", bench)   # dataclasses resolve their module
 _spec.loader.exec_module(bench)
 
 SYSTEM = geo.LocalFrame(48.85, 2.35, 0.0)
@@ -258,3 +259,58 @@ def test_tertiary_updated_needs_a_fresh_measurement(tmp_path):
     assert st["updated"].to_list() == [True, False, False]
     assert st["confirmed"].to_list() == [True, True, False]
     np.testing.assert_allclose(bench.picture_instants(db, T0), [0.0, 4.0])
+
+
+def test_mode_c_height_becomes_the_system_z_with_the_curvature_drop():
+    e, n = np.array([0.0, 60_000.0, 0.0]), np.array([0.0, 0.0, -30_000.0])
+    h = np.array([3000.0, 3000.0, 900.0])
+    lat, lon, _ = SYSTEM.to_geodetic(e, n, np.zeros(3))
+    xyz = np.stack([e, n, np.zeros(3)], axis=1)
+    z = bench.mode_c_to_z(xyz, h, SYSTEM)
+    np.testing.assert_allclose(z, SYSTEM.from_geodetic(lat, lon, h)[2], atol=1e-6)
+    # a point 60 km away at 3000 m sits ~280 m lower in the system frame; no Mode C gives NaN
+    assert 250.0 < 3000.0 - z[1] < 310.0 and abs(z[0] - 3000.0) < 1e-6
+    assert np.isnan(bench.mode_c_to_z(xyz[:1], np.array([np.nan]), SYSTEM)).all()
+
+
+def test_mode_c_sigma_is_the_quantisation():
+    np.testing.assert_allclose(bench.mode_c_sigma(np.array([True, False])),
+                               [25 * 0.3048 / np.sqrt(12), 100 * 0.3048 / np.sqrt(12)])
+
+
+def test_sweep_points_change_one_parameter_at_a_time():
+    pts = bench.sweep_points()
+    base = bench.SWEEP_BASE
+    assert pts[0] == base and len(pts) == 1 + sum(len(v) for v in bench.SWEEP_AXES.values())
+    for p in pts[1:]:
+        diff = [k for k in bench.SWEEP_AXES if getattr(p, k) != getattr(base, k)]
+        assert len(diff) == 1
+
+
+def test_selection_rule_respects_tracks_per_aircraft_and_coverage():
+    base = {"q": 1.0, "m": 5}
+
+    def pt(q, m, h, v, tpa, cov):
+        return {"config": {"q": q, "m": m}, "score": {"rmse_horizontal_m": h, "rmse_vertical_m": v,
+                                                      "tracks_per_aircraft": tpa, "coverage": cov}}
+    points = [pt(1.0, 5, 80, 20, 1.1, 0.95), pt(2.0, 5, 60, 20, 1.1, 0.95), pt(4.0, 5, 40, 20, 1.5, 0.95),
+              pt(1.0, 3, 50, 20, 1.1, 0.50), pt(1.0, 7, 70, 20, 1.0, 0.94)]
+    # q: 4 has too many tracks per aircraft, 2 is best; m: 3 covers too little, 7 beats the base
+    assert bench.select(points, base, ("q", "m")) == {"q": 2.0, "m": 7}
+
+
+def test_coverage_counts_owned_states_inside_the_reported_span():
+    grid = bench.truth_grid(_truth(), T0)
+    instants = np.array([2.0, 4.0, 6.0, 8.0])
+    spans = np.array([[0.0, 10.0], [2.0, 5.0]])   # B reported from 2 s to 5 s only
+    pic = pl.DataFrame({"track_id": [1, 1, 1, 2], "t": [2.0, 4.0, 6.0, 4.0],
+                        "x_m": [200.0, 400.0, 600.0, 5000.0], "y_m": [0.0, 0.0, 0.0, 200.0],
+                        "z_m": [3000.0, 3000.0, 3000.0, 6000.0], "h_m": [3000.0, 3000.0, 3000.0, 6000.0]})
+    # A: 3 of 4 instants; B: 1 of 2 (2 s and 4 s inside its span)
+    assert bench.coverage(pic, grid, 1000.0, instants, spans) == pytest.approx(4 / 6)
+
+
+def test_where_better_lists_the_figures_stone_soup_wins():
+    ss = {"rmse_horizontal_m": 50.0, "coverage": 0.99, "peak_rss_mib": 900.0, "tracks_per_aircraft": 1.0}
+    te = {"rmse_horizontal_m": 40.0, "coverage": 0.95, "peak_rss_mib": 500.0, "tracks_per_aircraft": 1.0}
+    assert bench.where_better(ss, te) == {"coverage": [0.99, 0.95]}
