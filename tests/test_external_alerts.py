@@ -61,9 +61,8 @@ def _alerts(*rows: dict, origin: datetime = T0) -> pl.DataFrame:
     out = []
     for k, r in enumerate(rows):
         s, e = r.pop("s"), r.pop("e")
-        out.append(base | {"id_a": 100 + 2 * k, "id_b": 101 + 2 * k, "alert_id": k, "t_start": origin + timedelta(seconds=s),
-                           "t_end": origin + timedelta(seconds=e),
-                           "duration_s": e - s} | r)
+        out.append(base | {"id_a": 100 + 2 * k, "id_b": 101 + 2 * k, "alert_id": k, "duration_s": e - s,
+                           "t_start": origin + timedelta(seconds=s), "t_end": origin + timedelta(seconds=e)} | r)
     return pl.DataFrame(out, schema=ALERT_COLUMNS)
 
 

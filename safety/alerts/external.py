@@ -100,7 +100,8 @@ def _side(rows: pl.DataFrame, spans: list[tuple[tuple[str, ...], str, pl.DataFra
             continue
         q = rows.select("__row", "run", "__s", "__e", pl.coalesce(*(_norm(pl.col(n), how) for n in names))
                         .alias("__v")).drop_nulls("__v")
-        hit = (q.join(sp, on=on, how="inner").filter((pl.col("__t0") <= pl.col("__e")) & (pl.col("__t1") >= pl.col("__s")))
+        alive = (pl.col("__t0") <= pl.col("__e")) & (pl.col("__t1") >= pl.col("__s"))
+        hit = (q.join(sp, on=on, how="inner").filter(alive)
                .group_by("__row").agg(pl.col("truth_id").unique().alias("__ids"))
                .filter(pl.col("__ids").list.len() == 1).select("__row", pl.col("__ids").list.first().alias("__t")))
         got = rows.select("__row").join(hit, on="__row", how="left", maintain_order="left")["__t"]

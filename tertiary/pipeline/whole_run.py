@@ -384,9 +384,9 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
               "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
-              "alert_episodes": (alerts.filter((pl.col("method") != safety_alerts.TRUTH_PICTURE)
-                                               & ~pl.col("method").str.starts_with(safety_alerts.EXTERNAL_PREFIX)).height
-                                 if alerts.height else 0),
+              "alert_episodes": (alerts.filter(
+                  (pl.col("method") != safety_alerts.TRUTH_PICTURE)
+                  & ~pl.col("method").str.starts_with(safety_alerts.EXTERNAL_PREFIX)).height if alerts.height else 0),
               "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **target_counts(fused)}
     # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
