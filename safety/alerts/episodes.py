@@ -224,7 +224,10 @@ def _linked(left: pl.DataFrame, iv: pl.DataFrame, link_us: int, shared: bool, on
             .filter((pl.col("t_start_us") <= _reach(link_us)) & (pl.col("t_end_us") >= pl.col("t0"))))
 
 
-def _classify(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
+def classify_episodes(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool
+                      ) -> pl.DataFrame:
+    """Each alert episode genuine (linked to a loss of separation of its pair: ``los_start_us``
+    and the warning time), nuisance (linked only to a proximity interval) or false."""
     pairs = ["truth_a", "truth_b"]
     known = eps.filter(pl.col("kind") == 0).select("__ep", "run", *pairs, "t0", "t1", "t_cpa")
     g = (_linked(known, los, link_us, shared, pairs)
@@ -238,7 +241,9 @@ def _classify(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us:
                           ((pl.col("los_start_us") - pl.col("t0")) / US).alias("warning_s"))
 
 
-def _los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
+def los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
+    """Each loss of separation inside a picture's scored span, alerted or missed, with its first
+    linked alert and warning time (:data:`LOS_SCHEMA`)."""
     spans = grid.group_by("run", "method").agg(pl.col("t_us").min().alias("__g0"), pl.col("t_us").max().alias("__g1"))
     base = spans.join(los.drop("run"), how="cross") if shared else spans.join(los, on="run", how="inner")
     base = base.filter((pl.col("t_end_us") >= pl.col("__g0")) & (pl.col("t_start_us") <= pl.col("__g1"))
@@ -270,13 +275,13 @@ def score_pictures(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     link_us = int(round(cfg.link * US))
     grid = picture_grid(conflicts, id_map, methods)
     eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s, cfg.cpa_reach)
-    eps = _classify(eps, los, prox, link_us, shared)
+    eps = classify_episodes(eps, los, prox, link_us, shared)
     alerts = eps.select(
         "run", "method", "id_a", "id_b", "truth_a", "truth_b", to_time("t0", "t_start"), to_time("t1", "t_end"),
         ((pl.col("t1") - pl.col("t0")) / US).alias("duration_s"), "alert_epochs", "flicker", "r_min_pred_m",
         "dz_min_pred_m", "t_min_first_s", to_time("los_start_us", "los_start"), "warning_s", "classification",
     ).sort("run", "method", "t_start", "id_a", "id_b").cast(ALERTS_SCHEMA)
-    return alerts, _los_table(grid, eps, los, link_us, shared), grid
+    return alerts, los_table(grid, eps, los, link_us, shared), grid
 
 
 def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,

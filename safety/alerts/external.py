@@ -38,8 +38,8 @@ from datetime import datetime
 import polars as pl
 
 from safety.alerts.config import AlertConfig
-from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, _classify, _los_table, metrics_long,
-                                    per_picture)
+from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, classify_episodes, los_table,
+                                    metrics_long, per_picture)
 from safety.alerts.separation import epoch_micros, to_time, truth_intervals
 from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
@@ -188,7 +188,7 @@ def score_external(alerts: pl.DataFrame, truth: pl.DataFrame | pl.LazyFrame, cfg
     link_us = int(round(cfg.link * US))
     ident = identify_aircraft(alerts, lf)
     grid = _span_grid(ident, lf, recording)
-    eps = _classify(_episodes(ident, grid, cfg), los_iv, prox_iv, link_us, shared)
+    eps = classify_episodes(_episodes(ident, grid, cfg), los_iv, prox_iv, link_us, shared)
     extra = [pl.col(c).cast(t) for c, t in _EXTRA.items() if c in eps.columns]
     scored = eps.select(
         *(pl.col(c).cast(t) for c, t in ALERTS_SCHEMA.items() if c in ("run", "method", "id_a", "id_b",
@@ -198,7 +198,7 @@ def score_external(alerts: pl.DataFrame, truth: pl.DataFrame | pl.LazyFrame, cfg
         to_time("los_start_us", "los_start"), "warning_s", "classification", *extra,
         pl.lit(None, pl.String).alias("induced"),
     ).cast(ALERTS_SCHEMA).sort("run", "method", "t_start", "id_a", "id_b")
-    los = _los_table(grid, eps, los_iv, link_us, shared).cast(LOS_SCHEMA)
+    los = los_table(grid, eps, los_iv, link_us, shared).cast(LOS_SCHEMA)
     per = per_picture(scored, los, grid).join(
         ident.group_by("method").agg(pl.col("truth_a").is_null().sum().cast(pl.Float64).alias("unidentified_alerts")),
         on="method", how="left").with_columns(pl.col("unidentified_alerts").fill_null(0.0))
