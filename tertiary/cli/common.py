@@ -288,6 +288,18 @@ OriginOpt = Annotated[Optional[str], typer.Option(help="LAT,LON[,ALT_M] processi
                                                        "scenario.toml [default: mean of the radar sites]")]
 
 
+def checked_format(fmt: str, out: Path | None) -> str:
+    """A table output's ``--format`` (table, csv or parquet) checked against its ``--out``: parquet
+    needs a file, and a file is never a directory."""
+    if fmt not in ("table", "csv", "parquet"):
+        raise OptionError(f"use table, csv or parquet, got {fmt!r}", option="--format")
+    if out is None and fmt == "parquet":
+        raise OptionError("parquet needs --out FILE", option="--out")
+    if out is not None and out.is_dir():
+        raise OptionError(f"{out} is a directory; give a file name", option="--out")
+    return fmt
+
+
 # --------------------------------------------------------------------------- tables
 
 _PLAIN_INT = ("id", "run", "epoch", "sic", "sac", "mode_3a", "year")

@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 import polars as pl
 import typer
 
-from tertiary.cli.common import console, err_console, print_frame, refuse_incomplete
+from tertiary.cli.common import checked_format, console, err_console, print_frame, refuse_incomplete
 from tertiary.core.errors import DataError, OptionError
 from tertiary.report import compare as cmp
 from tertiary.report.episodes import DEFAULT_EPISODES, parse_pair, write_episodes
@@ -50,14 +50,9 @@ def episodes(
 
 def _out_format(out: Path | None, fmt: str) -> str:
     """``html`` for an .html --out, else the table format (table, csv, parquet)."""
-    if fmt not in ("table", "csv", "parquet"):
-        raise OptionError(f"use table, csv or parquet, got {fmt!r}", option="--format")
+    fmt = checked_format(fmt, out)
     if out is None:
-        if fmt == "parquet":
-            raise OptionError("parquet needs --out FILE", option="--out")
         return fmt
-    if out.is_dir():
-        raise OptionError(f"{out} is a directory; give a file name", option="--out")
     suffix = {".html": "html", ".htm": "html", ".csv": "csv", ".parquet": "parquet"}.get(out.suffix.lower())
     if fmt != "table":
         return fmt

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Optional
 import typer
 from rich.table import Table
 
-from tertiary.cli.common import Steps, console, print_frame, refuse_incomplete
+from tertiary.cli.common import Steps, checked_format, console, print_frame, refuse_incomplete
 from tertiary.core.errors import DataError, OptionError
 from tertiary.report.html import build_report
 from tertiary.store import sql_reports
@@ -108,14 +108,9 @@ def _select_columns(frame: Any, columns: str) -> Any:
 
 
 def _export_format(fmt: str, out: Path | None, run_dir: Path) -> str:
-    if fmt not in ("table", "csv", "parquet"):
-        raise OptionError(f"use table, csv or parquet, got {fmt!r}", option="--format")
+    fmt = checked_format(fmt, out)
     if out is None:
-        if fmt == "parquet":
-            raise OptionError("parquet needs --out FILE", option="--out")
         return fmt
-    if out.is_dir():
-        raise OptionError(f"{out} is a directory; give a file name", option="--out")
     if out.resolve().parent == run_dir.resolve() or run_dir.resolve() in out.resolve().parents:
         raise OptionError(f"{out} is inside the run directory {run_dir}; write exports elsewhere", option="--out")
     if fmt == "table":
