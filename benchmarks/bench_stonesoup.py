@@ -26,10 +26,12 @@ scored afterwards with ONE rule (:func:`score_one`).
     associators (``DetectionKDTreeGNN2D``) need every detection of a step under one measurement
     model, which nine radars' plots in one feeder window are not; ``MultiMeasurementInitiator``
     (its own ``TPRTreeGNN2D``, ``UpdateTimeDeleter``, ``min_points``), ``UpdateTimeDeleter``,
-    ``TimeSyncFeeder`` over a time-ordered reader, ``MultiTargetTracker``. Two workarounds,
-    both marked where they are: Stone Soup's combined inverse adds its models' inverses (z
+    ``TimeSyncFeeder`` over a time-ordered reader, ``MultiTargetTracker``. Three workarounds,
+    each marked where it is: Stone Soup's combined inverse adds its models' inverses (z
     counted twice when two models map it), so the inverse takes x, y from the plot and z from
-    the height; where rtree refuses a query (a detection older than the tree's current time)
+    the height; the TPR tree's track box (3σ of the track alone) is widened by
+    ``tree_margin_m`` for the plot's own noise (without it, plots missed settled tracks and
+    started second tracks: ``sweep.preliminary`` in the results); where rtree refuses a query (a detection older than the tree's current time)
     the tree is rebuilt as Stone Soup does after a ``KeyError`` (counted: ``tree_rebuilds``).
     Tuning (``sweep``): the base configuration and one parameter changed at a time
     (:data:`SWEEP_AXES`: q horizontal and vertical, initiator points, gate, deleter) on the first
@@ -911,8 +913,8 @@ STONESOUP_COMPONENTS = {
     "updater": "stonesoup.updater.kalman.ExtendedKalmanUpdater",
     "hypothesiser": "stonesoup.hypothesiser.distance.DistanceHypothesiser(Mahalanobis, missed_distance = gate)",
     "data_associator": "stonesoup.dataassociator.tree.TPRTreeGNN2D (rtree TPR-tree of the tracks, x-y, "
-                       "horizon = delete_after_s)",
-    "initiator": "stonesoup.initiator.simple.MultiMeasurementInitiator (GNNWith2DAssignment, "
+                       "horizon = delete_after_s, boxes widened by tree_margin_m, rebuilt where rtree refuses a query)",
+    "initiator": "stonesoup.initiator.simple.MultiMeasurementInitiator (its own TPRTreeGNN2D, "
                  "UpdateTimeDeleter(tentative_delete_after_s), min_points)",
     "deleter": "stonesoup.deleter.time.UpdateTimeDeleter(delete_after_s)",
 }
