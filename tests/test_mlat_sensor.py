@@ -20,6 +20,7 @@ from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.mlat import LIGHT_MPS, MlatConfig, accuracy, nominal_sigma_m, visible
 from tertiary.stages import align
 from tertiary.stages.fusion.centralized import converted_plots
+from tertiary.evaluation.reference import plot_measurements
 
 SIGMA_T = 50e-9
 ORIGIN = geo.LocalFrame(48.85, 2.35, 0.0)
@@ -153,6 +154,19 @@ def test_the_centralised_reference_filters_the_cartesian_plot():
     assert ok.all() and okc.all()
     np.testing.assert_allclose(z, zc)
     np.testing.assert_allclose(r, rc)
+
+
+def test_the_reconstructed_reference_takes_the_cartesian_plot():
+    """The offline reference (``--reference reconstruct``) measures an MLAT report at its plot,
+    with its covariance, not converted from range/azimuth with the sensor's angle σ."""
+    radars, rep = _mlat_radars(sigma_azimuth_deg=2.0), _mlat_reports()
+    rep = rep.with_columns(pl.int_range(pl.len()).alias("truth_id"), pl.lit(0.0).alias("time"))
+    meas = plot_measurements(rep, radars, ORIGIN, sigma_alt_m=30.0)
+    z, r, ok = sm.system_plots(rep, radars, ORIGIN, 30.0)
+    assert ok.all()
+    np.testing.assert_allclose(meas.select("mx_m", "my_m").to_numpy(), z[:, :2], rtol=0, atol=1e-6)
+    cov = meas["r_cov"].to_numpy().reshape(-1, 3, 3)[:, :2, :2]
+    np.testing.assert_allclose(cov, r[:, :2, :2], rtol=1e-12)
 
 
 @pytest.fixture(scope="module")

@@ -44,6 +44,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.sensors import mlat
 from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.units import FT
@@ -277,7 +278,8 @@ def plot_measurements(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.L
     """Radar plots as smoother measurements in the system frame: (x, y) from range, azimuth and
     the elevation implied by the Mode C altitude (measured elevation without it), h = Mode C
     altitude (variance 1e12, i.e. no height update, without it); covariance from the radar's
-    nominal σ. A Mode C altitude more than ``alt_outlier_m`` from the median of the aircraft's
+    nominal σ; an MLAT plot (sensor of kind mlat) is its own Cartesian position and covariance
+    (:func:`tertiary.sensors.mlat.system_plots`). A Mode C altitude more than ``alt_outlier_m`` from the median of the aircraft's
     (``key``) five nearest altitudes in time is a garbled code and is not used (neither for h
     nor for the elevation, where 2 km of height error would move a 15 km plot by ~600 m).
     Columns: every input column + ``mx_m, my_m, mh_m, r_cov`` (Array 9), input order kept."""
@@ -304,6 +306,11 @@ def plot_measurements(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.L
                                      cov=geo.polar_sigmas_to_enu_cov(rng[sel], az[sel], el, row["sigma_range_m"],
                                                                      row["sigma_azimuth_deg"], row["sigma_elevation_deg"]))
         mx[sel], my[sel], cov[sel, :2, :2] = p[:, 0], p[:, 1], c[:, :2, :2]
+    # an MLAT plot is Cartesian: its own position and covariance, not a polar conversion (MLAT-2)
+    z, r, ok = mlat.system_plots(reports, radars, origin, sigma_alt_m)
+    cart = mlat.is_mlat(reports, radars) & np.isfinite(r).all(axis=(1, 2))
+    mx[ok], my[ok] = z[ok, 0], z[ok, 1]
+    cov[cart, :2, :2] = r[cart, :2, :2]
     has_h = np.isfinite(alt)
     mh[has_h] = alt[has_h]
     cov[:, 2, 2] = np.where(has_h, sigma_alt_m ** 2, 1e12)

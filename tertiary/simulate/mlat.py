@@ -88,7 +88,8 @@ class MlatConfig:
     def sigma_range_m(self) -> float:
         return nominal_sigma_m(self)
 
-    #: placeholders of the radar columns (an MLAT measures no angle; valid values for the contract)
+    #: the angle σ the radars table requires of every sensor; no stage reads them for kind mlat
+    #: (an MLAT measures no angle: its plots carry their own Cartesian σ)
     sigma_azimuth_deg = 0.1
     sigma_elevation_deg = 1.0
     #: every aircraft's update at the same instant (the radars' synchronous timing)

@@ -90,7 +90,7 @@ def mlat_frame(cfg: ScenarioConfig, first: int) -> pl.DataFrame:
     """The ``radars`` rows of the scenario's MLAT sensors (kind ``mlat``, ids after ``first``):
     site = the reference point, ``scan_period_s`` = the update period, ``sigma_range_m`` = the
     accuracy floor (:func:`tertiary.simulate.mlat.nominal_sigma_m`), ``max_range_m`` = the receiver
-    range beyond the farthest receiver; the angle sigmas are placeholders."""
+    range beyond the farthest receiver; the angle σ the table requires, read by no stage for an MLAT."""
     system = geo.LocalFrame(*cfg.origin)
     ms = cfg.mlat
     sites = [mlat_site(m, system) for m in ms]
