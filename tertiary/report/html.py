@@ -47,7 +47,8 @@ versions, input fingerprints, timings, row accounting, rejects).
 
 Size is bounded: trajectories are thinned in SQL, time series are capped at
 :data:`MAX_POINTS` points per trace and arrays are stored as base64 float32, so the default
-terminal-area run gives a few MB (of which plotly.js is about 4.6 MB).
+terminal-area run gives under 6 MB, of which plotly.js is about 4.8 MB; figures share a lean template
+(:func:`tertiary.report.common.lean_template`) and step curves keep only their changes.
 
 Browser checks: a small script in the page head records every JavaScript error (``error`` and
 ``unhandledrejection`` events) into ``<pre id="js-errors">`` and ``body[data-js-errors]``;
