@@ -237,6 +237,8 @@ def evaluate(
     pictures, ev = res.pictures, res.evaluation
     console.print(f"evaluated {pictures['method'].n_unique()} picture(s), {pictures.height:,} track rows, "
                   f"against {res.reference['truth_id'].n_unique():,} reference aircraft in {res.wall_s:.1f} s")
+    for note in res.notes:
+        print_note(note)
     print_frame(ev.comparison, "Pictures compared (segment all)", 50)
     if res.with_requirements:
         print_frame(requirements_matrix(ev.requirements), "Requirements × pictures", 200)

@@ -6,14 +6,14 @@ row must meet (:mod:`~tertiary.contract.rules`), and the validation that turns b
 from tertiary.contract.errors import SchemaError, UnsortedTimeWarning
 from tertiary.contract.rejects import has_dtype, rejects_table
 from tertiary.contract.rules import RULES, Limits, Rule, contract_rules, rules_markdown
-from tertiary.contract.tables import (BOOL, CLEARED_ALT_COLUMN, COV, EHS_REPORT_COLUMNS, F64, FUSED_EXTRA, I64, INPUT_ROW,
+from tertiary.contract.tables import (ADSB_QUALITY_COLUMNS, BOOL, CLEARED_ALT_COLUMN, COV, EHS_REPORT_COLUMNS, F64, FUSED_EXTRA, I64, INPUT_ROW,
                                       MLAT_PLOT_COLUMNS, REASON, ROW_INDEX, SELECTED_ALT_COLUMN, STR, TABLES, TIME,
                                       TURN_RATE_COLUMN, U32, U64, TableSchema, empty_frame, is_sorted_by, table_schema)
 from tertiary.contract.validation import (as_frame, sort_tracks, table_median_time, table_order, unsorted_groups,
                                           unsorted_message, validate)
 
 __all__ = [
-    "BOOL", "CLEARED_ALT_COLUMN", "COV", "EHS_REPORT_COLUMNS", "F64", "FUSED_EXTRA", "I64", "INPUT_ROW", "Limits",
+    "ADSB_QUALITY_COLUMNS", "BOOL", "CLEARED_ALT_COLUMN", "COV", "EHS_REPORT_COLUMNS", "F64", "FUSED_EXTRA", "I64", "INPUT_ROW", "Limits",
     "MLAT_PLOT_COLUMNS", "REASON", "ROW_INDEX", "RULES", "Rule", "SELECTED_ALT_COLUMN", "STR", "SchemaError", "TABLES",
     "TIME", "TURN_RATE_COLUMN", "TableSchema", "U32", "U64", "UnsortedTimeWarning", "as_frame", "contract_rules",
     "empty_frame",

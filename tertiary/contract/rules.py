@@ -105,15 +105,17 @@ def contract_rules(limits: Limits = Limits()) -> tuple[Rule, ...]:
              f"|value| <= {limits.position_m:g} m / {limits.speed_mps:g} m/s",
              "values like 1e300 overflow distances, KD-trees and conflict geometry"),
         Rule("reports, truth", "key columns", "unique", "a duplicate would be counted twice"),
-        Rule("radars", "kind", "radar or mlat (null = radar)", "the measurement model of the sensor's reports"),
-        Rule("reports", "plot_lat_deg, plot_lon_deg", "[-90, 90], [-180, 180]", "an MLAT plot is on the globe"),
+        Rule("radars", "kind", "radar, mlat or adsb (null = radar)", "the measurement model of the sensor's reports"),
+        Rule("reports", "plot_lat_deg, plot_lon_deg", "[-90, 90], [-180, 180]", "an MLAT or ADS-B plot is on the globe"),
         Rule("reports", "plot_x_m, plot_y_m / plot_height_m", f"|value| <= {limits.position_m:g} m / "
              f"[{num_text(limits.altitude_m[0])}, {num_text(limits.altitude_m[1])}] m", "as for x_m and altitude_m"),
         Rule("reports", "plot_sigma_x_m, plot_sigma_y_m, plot_sigma_xy_m",
              f"(0, {num_text(limits.position_m)}] m, |plot_sigma_xy_m| <= sqrt(plot_sigma_x_m x plot_sigma_y_m) "
              "(NaN = no value)", "a Cartesian measurement covariance must be positive semi-definite"),
-        Rule("reports", "plot_x_m, plot_y_m", "present on every report of a sensor of kind mlat",
-             "an MLAT report is a Cartesian plot; without it there is no measurement"),
+        Rule("reports", "plot_x_m, plot_y_m", "present on every report of a sensor of kind mlat or adsb",
+             "an MLAT or ADS-B report is a Cartesian plot; without it there is no measurement"),
+        Rule("reports", "adsb_nacp, adsb_nic, adsb_sil", "[0, 11], [0, 11], [0, 3] (null = not broadcast)",
+             "the DO-260B ranges of the quality indicators"),
     )
 
 
@@ -204,7 +206,7 @@ def value_rules(kind: str, limits: Limits) -> dict[str, ValueRule]:
             "pd": Range(0.0, 1.0),
             "clutter_rate": Range(*limits.clutter_rate),
             "timing": OneOf(("rotating", "synchronous")),
-            "kind": OneOf(("radar", "mlat")),
+            "kind": OneOf(("radar", "mlat", "adsb")),
         }
     if kind == "reports":
         return {
@@ -230,6 +232,9 @@ def value_rules(kind: str, limits: Limits) -> dict[str, ValueRule]:
             "plot_sigma_x_m": Range(0.0, limits.position_m, closed="right"),
             "plot_sigma_y_m": Range(0.0, limits.position_m, closed="right"),
             "plot_sigma_xy_m": pos,
+            "adsb_nacp": Range(0, 11),
+            "adsb_nic": Range(0, 11),
+            "adsb_sil": Range(0, 3),
         }
     if kind == "truth":
         acc = Range(-limits.accel_mps2, limits.accel_mps2)

@@ -82,8 +82,9 @@ _RADARS = TableSchema(
             "bias_range_m", "bias_azimuth_deg", "time_offset_s",
         ),
         "timing": STR,
-        # "radar" (default when absent or null) or "mlat": a multilateration / WAM system whose
-        # site is its reference point and whose reports carry a Cartesian plot (MLAT_PLOT_COLUMNS)
+        # "radar" (default when absent or null), "mlat": a multilateration / WAM system, or
+        # "adsb": an ADS-B ground station; the site of either is its reference point and its
+        # reports carry a Cartesian plot (MLAT_PLOT_COLUMNS)
         "kind": STR,
     },
     key=("radar_id",),
@@ -117,6 +118,9 @@ CLEARED_ALT_COLUMN = "cleared_alt_m"
 #: the same point seen from the site
 MLAT_PLOT_COLUMNS = ("plot_x_m", "plot_y_m", "plot_lat_deg", "plot_lon_deg", "plot_height_m", "plot_sigma_x_m",
                      "plot_sigma_y_m", "plot_sigma_xy_m")
+#: the quality indicators of an ADS-B report (sensor of kind "adsb", CAT021 I021/090): NACp
+#: (its σ where no plot σ is stated), NIC and SIL (its eligibility for fusion); null = not broadcast
+ADSB_QUALITY_COLUMNS = ("adsb_nacp", "adsb_nic", "adsb_sil")
 
 _REPORTS = TableSchema(
     name="reports",
@@ -147,6 +151,7 @@ _REPORTS = TableSchema(
         **_floats(*EHS_REPORT_COLUMNS),
         SELECTED_ALT_COLUMN: F64,
         **_floats(*MLAT_PLOT_COLUMNS),
+        **dict.fromkeys(ADSB_QUALITY_COLUMNS, pl.UInt8),
     },
     key=("run", "radar_id", "local_track_id", "time"),
     finite=True,

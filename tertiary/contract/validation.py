@@ -164,13 +164,13 @@ def _mlat_cov_check() -> _Check:
 
 
 def _mlat_plot_check(work: pl.DataFrame, radars: pl.DataFrame) -> tuple[pl.DataFrame, _Check]:
-    """Reports of a sensor of kind mlat carry their Cartesian plot (plot_x_m, plot_y_m)."""
-    mlat = radars.filter(pl.col("kind") == "mlat").select(pl.col("radar_id").cast(U32, strict=False)).to_series()
+    """Reports of a sensor of kind mlat or adsb carry their Cartesian plot (plot_x_m, plot_y_m)."""
+    mlat = radars.filter(pl.col("kind").is_in(("mlat", "adsb"))).select(pl.col("radar_id").cast(U32, strict=False)).to_series()
     have = [pl.col(c).is_not_null() & pl.col(c).is_not_nan() for c in ("plot_x_m", "plot_y_m") if c in work.columns]
     ok = pl.all_horizontal(have) if len(have) == 2 else pl.lit(False)
     bad = pl.col("radar_id").is_in(mlat.implode()) & ~ok
-    return work, _Check(("plot_x_m",), "MLAT report without its Cartesian plot", bad,
-                        pl.format("plot_x_m: radar {} is of kind mlat; its report has no plot_x_m, plot_y_m",
+    return work, _Check(("plot_x_m",), "MLAT or ADS-B report without its Cartesian plot", bad,
+                        pl.format("plot_x_m: radar {} is of kind mlat or adsb; its report has no plot_x_m, plot_y_m",
                                   pl.col("radar_id")))
 
 

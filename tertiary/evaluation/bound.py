@@ -121,6 +121,7 @@ from tertiary.core.units import FT, US
 from tertiary.evaluation.bound_kernel import pcrb_ca9
 from tertiary.contract import TABLES, TIME
 from tertiary.sensors import mlat
+from tertiary.sensors.adsb import sigma_from_nacp
 
 __all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS", "MODEL"]
 
@@ -412,10 +413,11 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
 def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalFrame, t0_us: int
                  ) -> tuple[I64, F64, F64]:
     """(aircraft index, time, R_eq) of every plot of an MLAT sensor on an aircraft of ``tr``
-    (module docstring, "MLAT / WAM"): R_eq = M R_local Mᵀ with the plot's stated horizontal
-    covariance (MLAT-1), else the sensor's nominal ``sigma_range_m`` on each axis, and
+    or an ADS-B station (module docstring, "MLAT / WAM"): R_eq = M R_local Mᵀ with the plot's stated
+    horizontal covariance (MLAT-1), else its NACp's σ (ADSB-1), else the sensor's nominal ``sigma_range_m`` on each axis, and
     :data:`MLAT_VERTICAL_VAR_M2` along the site's vertical."""
-    cols = [c for c in ("truth_id", "time", "plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m") if c in reports.columns]
+    cols = [c for c in ("truth_id", "time", "plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m", "adsb_nacp")
+            if c in reports.columns]
     rep = reports.filter((pl.col("radar_id") == row["radar_id"]) & pl.col("truth_id").is_not_null()).select(cols) \
         if "truth_id" in reports.columns else reports.clear().select("time")
     if rep.height == 0:
@@ -426,7 +428,9 @@ def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.Local
     a = np.where(known, pos, 0)
     t = (rep["time"].cast(TIME).dt.epoch("us").to_numpy() - t0_us) / US - float(row.get("time_offset_s") or 0.0)
     ok = known & tr.at(a, t)[1]
-    nominal = float(row["sigma_range_m"])
+    declared = sigma_from_nacp(rep["adsb_nacp"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+                               if "adsb_nacp" in rep.columns else np.full(rep.height, np.nan))
+    nominal = np.where(np.isfinite(declared), declared, float(row["sigma_range_m"]))    # (ADSB-1)
     sig = [rep[c].cast(pl.Float64).fill_null(np.nan).to_numpy() if c in rep.columns else np.full(rep.height, np.nan)
            for c in ("plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m")]
     stated = np.isfinite(sig[0]) & np.isfinite(sig[1])
@@ -451,7 +455,7 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     origins = scan_origins(radars, reports, t0) if origins is None else origins
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
-        if row.get("kind") == mlat.MLAT:
+        if row.get("kind") in mlat.CARTESIAN_KINDS:
             a, t, r_eq = _mlat_events(tr, row, reports, origin, t0)
         elif s0 is None:
             continue
@@ -472,7 +476,7 @@ def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dic
     rep = reports.select("radar_id", pl.col("time").cast(TIME).dt.epoch("us").alias("us"), "azimuth_deg")
     out = {}
     for row in radars.iter_rows(named=True):
-        if row.get("kind") == mlat.MLAT:              # no scan: its plots are its events (_mlat_events)
+        if row.get("kind") in mlat.CARTESIAN_KINDS:   # no scan: its plots are its events (_mlat_events)
             continue
         mine = rep.filter(pl.col("radar_id") == row["radar_id"])
         rotating = (row.get("timing") or "rotating") == "rotating"
@@ -691,9 +695,10 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     cfg = BoundConfig.from_scenario(scen)
     max_el = {r.name: float(r.max_elevation_deg) for r in getattr(scen, "radars", ()) or ()}
     notes.append(f"bound: {cfg.describe()}")
-    if "kind" in radars.columns and (radars["kind"] == mlat.MLAT).any():
-        notes.append("bound: MLAT plots as Cartesian measurements (MLAT-3): their stated covariance, else the "
-                     "sensor's sigma_range_m per axis; height as a Mode S reply")
+    if "kind" in radars.columns and radars["kind"].is_in(mlat.CARTESIAN_KINDS).any():
+        notes.append("bound: MLAT and ADS-B plots as Cartesian measurements (MLAT-3): their stated covariance, "
+                     "else their NACp's sigma (ADSB-1), else the sensor's sigma_range_m per axis; height as a "
+                     "Mode S reply")
     t0 = int(truth.select(pl.col("time").cast(TIME).dt.epoch("us").min()).lazy().collect().item())
     origins = scan_origins(radars, reports, t0)
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())

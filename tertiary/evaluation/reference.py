@@ -45,20 +45,17 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.sensors import mlat
+from tertiary.sensors.adsb import K95_2D, NACP_EPU95_M
 from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.units import FT
 from tertiary.io.adsb import AdsbCleaning, clean_adsb, reported_velocity
 
-__all__ = ["ReferenceConfig", "SmootherConfig", "adsb_reference", "interpolate_reference", "rts_smooth",
+__all__ = ["ReferenceConfig", "adsb_quality_note", "SmootherConfig", "adsb_reference", "interpolate_reference", "rts_smooth",
            "plot_measurements", "reconstruct_reference", "NACP_EPU95_M", "NUCP_HFOM95_M"]
 
-#: NACp → estimated position uncertainty, 95 % horizontal bound (m) (DO-260B)
-NACP_EPU95_M = {11: 3.0, 10: 10.0, 9: 30.0, 8: 92.6, 7: 185.2, 6: 555.6, 5: 926.0, 4: 1852.0,
-                3: 3704.0, 2: 7408.0, 1: 18520.0}
 #: NUCp → horizontal figure of merit, 95 % bound (m) (DO-260, version 0 messages)
 NUCP_HFOM95_M = {9: 3.0, 8: 10.0, 7: 92.6, 6: 185.2, 5: 463.0, 4: 926.0, 3: 1852.0, 2: 9260.0, 1: 18520.0}
-K95_2D = float(np.sqrt(-2.0 * np.log(0.05)))       # 2.4477, eq. (1)
 
 
 @dataclass(frozen=True)
@@ -123,6 +120,14 @@ def adsb_reference(frame: pl.DataFrame, origin: geo.LocalFrame, cfg: ReferenceCo
     removed = pl.concat([removed, bad.drop("flight", "epu95_m", "quality_declared").select(removed.columns)],
                         how="vertical_relaxed")
     return points, removed
+
+
+def adsb_quality_note(cfg: ReferenceConfig, removed: pl.DataFrame) -> str:
+    """The quality filter an ADS-B reference used, in words, with what it dropped."""
+    low = removed.filter(pl.col("reason").str.starts_with("declared")).height if "reason" in removed.columns else 0
+    return (f"reference: ADS-B points kept when NACp >= {cfg.min_nacp} (else NUCp >= {cfg.min_nucp}) and "
+            f"NIC >= {cfg.min_nic}; {low:,} point(s) below that quality and {removed.height - low:,} removed by the "
+            f"cleaning are in rejects")
 
 
 _REF_COLS = ("true_x_m", "true_y_m", "true_z_m", "true_vx_mps", "true_vy_mps", "true_vz_mps", "true_alt_m",

@@ -100,6 +100,11 @@ def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportS
             if "radar_id" in raw_r.columns else [])
     if radars.height == 0:
         notes.append("radars: no valid radar; every report is rejected")
+    if "kind" in radars.columns and (radars["kind"] == "adsb").any():
+        q = cfg.align.adsb_quality
+        notes.append(f"ADS-B fused when its declared quality is NACp >= {max(q.min_nacp, 1)}, NIC >= {q.min_nic} "
+                     f"and SIL >= {q.min_sil} (sigma from NACp, EPU/2.448 per axis); reports below it are rejected "
+                     f"with the indicator as the reason")
     period = radars["scan_period_s"].max() if radars.height else None
     slowest = float(period) if period is not None and math.isfinite(period) else 12.0
     hold_s = cfg.align.max_age_scans * slowest + 4 * slowest + _max_delay_s(cfg)

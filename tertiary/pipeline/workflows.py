@@ -23,6 +23,7 @@ from tertiary.evaluation.evaluate import (RECONSTRUCTED, Evaluation, EvaluationC
                                          reconstructed_reference, reference_error_metrics)
 from tertiary.evaluation.matching import MatchConfig
 from tertiary.evaluation.radar_eval import radar_metrics
+from tertiary.evaluation.reference import ReferenceConfig, adsb_quality_note
 from tertiary.evaluation.requirements import Requirements, example_path, load_requirements
 from tertiary.io.dataset import Dataset, read_dataset, write_dataset
 from tertiary.pipeline.runner import run
@@ -205,6 +206,7 @@ class EvaluationRun:
     db: Path
     wall_s: float
     with_requirements: bool
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 @dataclass
@@ -215,6 +217,10 @@ class _Reference:
     frame: geo.LocalFrame | None = None
     reports: pl.DataFrame | None = None
     cfg: EvaluationConfig = dataclasses.field(default_factory=EvaluationConfig)
+    #: the reference rows left out, with their reasons (an ADS-B reference's quality filter)
+    removed: pl.DataFrame | None = None
+    #: how the reference was built, in words
+    notes: list[str] = dataclasses.field(default_factory=list)
 
 
 def _reference(truth: Path | None, dataset: Path | None, kind: str, adsb: Path | None) -> _Reference:
@@ -230,8 +236,9 @@ def _reference(truth: Path | None, dataset: Path | None, kind: str, adsb: Path |
         ref.truth, ref.table = ref.table, reconstructed_reference(reports, ds.radars, ds.origin, key=key)
     elif kind == "adsb":
         raw = read_parquet_file(adsb)
-        ref.truth, (ref.table, _removed) = ref.table, adsb_reference_table(raw, ds.origin)
+        ref.truth, (ref.table, ref.removed) = ref.table, adsb_reference_table(raw, ds.origin)
         ref.cfg = EvaluationConfig(match=MatchConfig(max_gap_s=10.0))   # short gaps only
+        ref.notes.append(adsb_quality_note(ReferenceConfig(), ref.removed))
     if ref.table.height == 0:
         raise DataError("the dataset has no usable truth.parquet to evaluate against", path=str(dataset))
     return ref
@@ -280,11 +287,14 @@ def evaluate_run(tracks: list[Path], out: Path, *, truth: Path | None = None, da
                 "run", "epoch", "method", "track_id", "truth_id", "match_cost"))
             if reqs is not None:
                 store.write("requirements", ev.requirements)
-            record_run(store, {"kind": "evaluation", "scenario": "evaluation",
+            if ref.removed is not None:
+                store.write("rejects", ref.removed.select(pl.lit("truth").alias("table"), "reason"))
+            record_run(store, {"kind": "evaluation", "scenario": "evaluation", "notes": ref.notes,
                                "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                                "pictures": sorted(pictures["method"].unique().to_list()),
                                "tracks_files": [str(p) for p in tracks],
                                "reference": f"{truth or dataset} ({reference})",
                                "requirements": str(requirements or example_path()),
                                "status": "complete", "timings": {"wall_s": time.perf_counter() - t}})
-    return EvaluationRun(ev, pictures, ref.table, out / "results.duckdb", time.perf_counter() - t, reqs is not None)
+    return EvaluationRun(ev, pictures, ref.table, out / "results.duckdb", time.perf_counter() - t, reqs is not None,
+                         ref.notes)

@@ -1,4 +1,6 @@
-"""The Cartesian measurement model of a multilateration / WAM sensor (``radars.kind == "mlat"``).
+"""The Cartesian measurement model of a multilateration / WAM sensor (``radars.kind == "mlat"``),
+shared by ADS-B ground stations (kind ``"adsb"``, :mod:`tertiary.sensors.adsb`): both report a
+position, not a range and azimuth.
 
 An MLAT report is a plot (x, y) in the sensor's local ENU frame at its site, with the accuracy
 (σx, σy, σxy-term) the system states for it (``tertiary.contract.MLAT_PLOT_COLUMNS``). Its height
@@ -8,7 +10,8 @@ Mode C altitude (or at ``plot_height_m``, the geometric height, when given). So
     z_local = (x, y, u(x, y, h)),     R_local = [[σx², c, 0], [c, σy², 0], [0, 0, σ_h²]],
     c = sign(t)·t²  (t = plot_sigma_xy_m, the ASTERIX I020/500 convention)          (MLAT-1)
 
-with u from :func:`tertiary.core.geo.up_at_height` and σ_h the Mode C accuracy; to the system frame
+with u from :func:`tertiary.core.geo.up_at_height` and σ_h the Mode C accuracy (an ADS-B report
+without stated σ takes σx = σy from its NACp, (ADSB-1), and c = 0); to the system frame
 by the exact affine transform of :func:`tertiary.core.geo.frame_to_frame`:
 
     z = M z_local + o,     R = M R_local Mᵀ                                          (MLAT-2)
@@ -25,25 +28,29 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
+from tertiary.sensors.adsb import ADSB, sigma_from_nacp
 
-__all__ = ["MLAT", "cartesian_estimates", "is_mlat", "local_plots", "mlat_ids", "plot_cov_xy", "radial_innovation",
+__all__ = ["CARTESIAN_KINDS", "MLAT", "cartesian_estimates", "is_mlat", "local_plots", "mlat_ids", "plot_cov_xy", "radial_innovation",
            "system_plots"]
 
 F64 = NDArray[np.float64]
 
 #: the ``radars.kind`` of a multilateration / WAM sensor
 MLAT = "mlat"
+#: the sensor kinds whose reports are Cartesian plots (this module's measurement model)
+CARTESIAN_KINDS = (MLAT, ADSB)
 
 
 def mlat_ids(radars: pl.DataFrame) -> NDArray[np.int64]:
-    """The radar_ids of the sensors of kind mlat (none without a ``kind`` column)."""
+    """The radar_ids of the sensors whose reports are Cartesian plots (kinds
+    :data:`CARTESIAN_KINDS`; none without a ``kind`` column)."""
     if "kind" not in radars.columns or radars.height == 0:
         return np.zeros(0, np.int64)
-    return radars.filter(pl.col("kind") == MLAT)["radar_id"].cast(pl.Int64).to_numpy()
+    return radars.filter(pl.col("kind").is_in(CARTESIAN_KINDS))["radar_id"].cast(pl.Int64).to_numpy()
 
 
 def is_mlat(reports: pl.DataFrame, radars: pl.DataFrame) -> NDArray[np.bool_]:
-    """Per report: whether its sensor is of kind mlat."""
+    """Per report: whether its sensor reports Cartesian plots (MLAT / WAM or ADS-B)."""
     ids = mlat_ids(radars)
     if ids.size == 0 or reports.height == 0:
         return np.zeros(reports.height, bool)
@@ -82,6 +89,8 @@ def local_plots(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: f
     nominal = site["sigma_range_m"].to_numpy()
     sx, sy = _col(sub, "plot_sigma_x_m"), _col(sub, "plot_sigma_y_m")
     stated = np.isfinite(sx) & np.isfinite(sy)
+    declared = sigma_from_nacp(_col(sub, "adsb_nacp"))       # (ADSB-1) where σ is not stated
+    nominal = np.where(np.isfinite(declared), declared, nominal)
     sxy = np.where(stated & np.isfinite(_col(sub, "plot_sigma_xy_m")), _col(sub, "plot_sigma_xy_m"), 0.0)
     rl = np.zeros((rows.size, 3, 3))
     rl[:, :2, :2] = plot_cov_xy(np.where(stated, sx, nominal), np.where(stated, sy, nominal), sxy)

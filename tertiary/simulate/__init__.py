@@ -1,6 +1,7 @@
 """Scenario simulation, the input side of the pipeline beside the readers of :mod:`tertiary.io`:
 truth trajectories (:mod:`.traffic`, :mod:`.trajectory`) observed by simulated radars
-(:mod:`.radar`, :mod:`.radar_tracker`) and MLAT / WAM systems (:mod:`.mlat`, :mod:`.mlat_observe`)
+(:mod:`.radar`, :mod:`.radar_tracker`), MLAT / WAM systems (:mod:`.mlat`, :mod:`.mlat_observe`) and
+ADS-B ground stations (:mod:`.adsb_station`)
 with their own secondary processing, producing a dataset's
 ``radars``, ``reports`` and ``truth`` tables (:mod:`.simulator`), configured by a scenario
 (:mod:`.config`). :class:`Dataset`, :func:`read_dataset` and :func:`write_dataset` live in
@@ -12,6 +13,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+from tertiary.simulate.adsb_station import AdsbStationConfig
 from tertiary.simulate.mlat import MlatConfig
 from tertiary.simulate.config import (AdsbConfig, Anomalies, RadarConfig, RadarTrackerConfig, ScenarioConfig, TrackerParams, TrafficConfig, TransponderConfig, builtin_scenarios, check_scenario, load_scenario, read_scenario_toml, resolve_data_path)
 from tertiary.simulate.traffic import TerminalTraffic, big_box, terminal_area, terminal_traffic
@@ -19,7 +21,7 @@ from tertiary.simulate.trajectory import Trajectories
 
 __all__ = ["Dataset", "simulate", "write_dataset", "read_dataset", "simulate_windows", "write_stream", "SimWindow", "load_scenario", "builtin_scenarios",
            "ScenarioConfig", "RadarConfig", "Anomalies", "TrafficConfig", "TrackerParams", "AdsbConfig",
-           "TransponderConfig", "RadarTrackerConfig", "MlatConfig",
+           "TransponderConfig", "RadarTrackerConfig", "MlatConfig", "AdsbStationConfig",
            "Trajectories", "big_box", "terminal_area", "resolve_data_path", "check_scenario",
            "read_scenario_toml", "block_s", "terminal_traffic", "TerminalTraffic", "NATIONAL_EPOCH"]
 

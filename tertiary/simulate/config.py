@@ -15,6 +15,7 @@ from tertiary.contract import Limits
 from tertiary.core.errors import DataError, OptionError, ResourceError
 from tertiary.filters.singer import SingerModel
 from tertiary.sensors.local_tracks import LocalTrackerConfig
+from tertiary.simulate.adsb_station import AdsbStationConfig, check_adsb_station
 from tertiary.simulate.mlat import MlatConfig, check_mlat
 from tertiary.simulate.radar_tracker import RadarTrackerConfig
 
@@ -228,6 +229,7 @@ class ScenarioConfig:
     radar_tracker: RadarTrackerConfig = field(default_factory=RadarTrackerConfig)
     national: NationalConfig | None = None                 # kind "national" only (omitted elsewhere)
     mlat: tuple[MlatConfig, ...] | None = None             # MLAT / WAM sensors ([[mlat]]), after the radars
+    adsb_station: tuple[AdsbStationConfig, ...] | None = None   # ADS-B ground stations, after the MLAT
 
     def replace(self, **changes: Any) -> "ScenarioConfig":
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
@@ -628,10 +630,14 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
     names = [r.name for r in cfg.radars] or [r.name for r in auto_radars()]
     for i, m in enumerate(cfg.mlat or ()):
         check_mlat(f"mlat[{i}]", m, _number)
-    if cfg.mlat and cfg.kind not in ("terminal-area", "national"):
-        raise OptionError(f"MLAT sensors are simulated in the streamed scenarios (terminal-area, national), "
-                          f"not {cfg.kind!r}", option="mlat")
-    if len(set(names + [m.name for m in cfg.mlat or ()])) != len(names) + len(cfg.mlat or ()):
+    for i, st in enumerate(cfg.adsb_station or ()):
+        check_adsb_station(f"adsb_station[{i}]", st, _number)
+    for key in ("mlat", "adsb_station"):
+        if getattr(cfg, key) and cfg.kind not in ("terminal-area", "national"):
+            raise OptionError(f"MLAT sensors and ADS-B stations are simulated in the streamed scenarios "
+                              f"(terminal-area, national), not {cfg.kind!r}", option=key)
+    extra = [m.name for m in (*(cfg.mlat or ()), *(cfg.adsb_station or ()))]
+    if len(set(names + extra)) != len(names) + len(extra):
         raise OptionError(f"radar names must be unique, got {', '.join(names)}", option="radars")
     _check_traffic(cfg.traffic)
     _check_anomalies(cfg.anomalies, names)

@@ -1,6 +1,7 @@
-"""The simulator: truth trajectories observed by simulated radars and MLAT / WAM systems
+"""The simulator: truth trajectories observed by simulated radars, MLAT / WAM systems
 (``[[mlat]]``, :mod:`tertiary.simulate.mlat_observe`: ``radars`` rows of kind ``mlat`` after the
-radars, their own random streams) with their own secondary processing, producing a dataset's
+radars, their own random streams) and ADS-B ground stations (``[[adsb_station]]``,
+:mod:`tertiary.simulate.adsb_station`: kind ``adsb``, after the MLAT systems) with their own secondary processing, producing a dataset's
 ``radars``, ``reports``, ``truth`` and ``flight_plans`` tables — whole (:func:`simulate`) or
 window by window (:func:`simulate_windows`, :func:`write_stream`)."""
 
@@ -19,6 +20,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.contract import ADSB_QUALITY_COLUMNS
 from tertiary.core import geo
 from tertiary.core.errors import OptionError
 from tertiary.core.units import US
@@ -29,6 +31,8 @@ from tertiary.simulate import radar_tracker as rt
 from tertiary.simulate.config import Anomalies, ScenarioConfig, auto_radars, check_scenario, resolve_data_path, scenario_toml
 from tertiary.simulate.ehs import SIMULATED_COLUMNS, EhsConfig, ehs_report_columns, ehs_rng
 from tertiary.sensors.mlat import plot_cov_xy
+from tertiary.simulate.adsb_observe import observe_adsb
+from tertiary.simulate.adsb_station import AdsbStationConfig, station_site
 from tertiary.simulate.mlat_observe import mlat_site, observe_mlat
 from tertiary.simulate.radar import (Plots, Transponders, merge_plots, number_plots, numbered_by_truth, observe, octal_codes,
                                      scan_starts, site_frame, take_plots, transponders)
@@ -64,8 +68,19 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
 
 
 def sensors(cfg: ScenarioConfig) -> tuple:
-    """The scenario's sensors in ``radar_id`` order: its radars, then its MLAT systems."""
-    return (*cfg.radars, *(cfg.mlat or ()))
+    """The scenario's sensors in ``radar_id`` order: its radars, then its MLAT systems, then its
+    ADS-B ground stations."""
+    return (*cfg.radars, *cartesian_sensors(cfg))
+
+
+def cartesian_sensors(cfg: ScenarioConfig) -> tuple:
+    """The sensors whose reports are Cartesian plots: MLAT systems, then ADS-B stations."""
+    return (*(cfg.mlat or ()), *(cfg.adsb_station or ()))
+
+
+def _site(sensor, system: geo.LocalFrame) -> geo.LocalFrame:
+    """A Cartesian sensor's local frame (its plots' x, y)."""
+    return station_site(sensor, system) if isinstance(sensor, AdsbStationConfig) else mlat_site(sensor, system)
 
 
 def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
@@ -82,20 +97,24 @@ def radars_frame(cfg: ScenarioConfig) -> pl.DataFrame:
             "time_offset_s")},
         "timing": [r.timing for r in cfg.radars],
     })
+    if not cartesian_sensors(cfg):
+        return frame
     return pl.concat([frame.with_columns(pl.lit("radar").alias("kind")), mlat_frame(cfg, len(cfg.radars))],
-                     how="vertical_relaxed") if cfg.mlat else frame
+                     how="vertical_relaxed")
 
 
 def mlat_frame(cfg: ScenarioConfig, first: int) -> pl.DataFrame:
-    """The ``radars`` rows of the scenario's MLAT sensors (kind ``mlat``, ids after ``first``):
-    site = the reference point, ``scan_period_s`` = the update period, ``sigma_range_m`` = the
-    accuracy floor (:func:`tertiary.simulate.mlat.nominal_sigma_m`), ``max_range_m`` = the receiver
-    range beyond the farthest receiver; the angle σ the table requires, read by no stage for an MLAT."""
+    """The ``radars`` rows of the scenario's MLAT sensors (kind ``mlat``) and ADS-B stations (kind
+    ``adsb``), ids after ``first``: site = the reference point, ``scan_period_s`` = the update
+    period, ``sigma_range_m`` = an MLAT's accuracy floor (:func:`tertiary.simulate.mlat.nominal_sigma_m`)
+    or a station's most common NACp's σ, ``max_range_m`` = the receiver range beyond the farthest
+    receiver (a station's own range); the angle σ the table requires, read by no stage for them."""
     system = geo.LocalFrame(*cfg.origin)
-    ms = cfg.mlat
-    sites = [mlat_site(m, system) for m in ms]
-    spread = [float(np.linalg.norm(np.asarray(m.receivers_enu_m) - np.asarray(m.site), axis=1).max()) for m in ms]
-    reach = [m.receiver_range_m + d for m, d in zip(ms, spread)]
+    ms = cartesian_sensors(cfg)
+    sites = [_site(m, system) for m in ms]
+    station = [isinstance(m, AdsbStationConfig) for m in ms]
+    reach = [m.range_m if st else m.receiver_range_m + float(np.linalg.norm(
+        np.asarray(m.receivers_enu_m) - np.asarray(m.site), axis=1).max()) for m, st in zip(ms, station)]
     return pl.DataFrame({
         "radar_id": pl.Series(np.arange(first + 1, first + len(ms) + 1), dtype=pl.UInt32),
         "name": [m.name for m in ms], "lat_deg": [s.lat_deg for s in sites], "lon_deg": [s.lon_deg for s in sites],
@@ -105,18 +124,22 @@ def mlat_frame(cfg: ScenarioConfig, first: int) -> pl.DataFrame:
         "scan_phase_s": [m.update_phase_s for m in ms], "min_elevation_deg": [-90.0] * len(ms),
         "pd": [m.pd for m in ms], "clutter_rate": [0.0] * len(ms), "bias_range_m": [0.0] * len(ms),
         "bias_azimuth_deg": [0.0] * len(ms), "time_offset_s": [m.time_offset_s for m in ms],
-        "timing": ["synchronous"] * len(ms), "kind": ["mlat"] * len(ms)})
+        "timing": ["synchronous"] * len(ms), "kind": ["adsb" if st else "mlat" for st in station]})
 
 
 def _mlat_columns(frame: pl.DataFrame, plots: Plots, site: geo.LocalFrame) -> pl.DataFrame:
-    """An MLAT sensor's report frame with its Cartesian plot (:data:`tertiary.contract.MLAT_PLOT_COLUMNS`
-    but ``plot_height_m``: the height is not multilaterated) and no elevation."""
+    """An MLAT sensor's or ADS-B station's report frame with its Cartesian plot
+    (:data:`tertiary.contract.MLAT_PLOT_COLUMNS` but ``plot_height_m``: the height is not measured),
+    no elevation, and a station's quality indicators (:data:`tertiary.contract.ADSB_QUALITY_COLUMNS`)."""
     x, y, sx, sy, sxy = plots.cart[:, :5].T
     up = np.zeros(len(x))
     has = np.isfinite(plots.altitude_m)
     if has.any():
         up[has] = geo.up_at_height(site, x[has], y[has], plots.altitude_m[has])
     lat, lon, _ = site.to_geodetic(x, y, up)
+    if plots.cart.shape[1] >= 8 and np.isfinite(plots.cart[:, 5]).any():
+        frame = frame.with_columns(pl.Series(c, plots.cart[:, 5 + i]).fill_nan(None).cast(pl.UInt8)
+                                   for i, c in enumerate(ADSB_QUALITY_COLUMNS))
     return frame.with_columns(pl.lit(None, pl.Float64).alias("elevation_deg"), *(
         pl.Series(c, v) for c, v in (("plot_x_m", x), ("plot_y_m", y), ("plot_lat_deg", lat), ("plot_lon_deg", lon),
                                      ("plot_sigma_x_m", sx), ("plot_sigma_y_m", sy), ("plot_sigma_xy_m", sxy))))
@@ -388,6 +411,11 @@ def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float,
         p = observe_mlat(traj, m, sched.system, cfg.runs, rng, sub)
         p = take_plots(p, np.flatnonzero(p.scan < len(scan_starts(m, nb))))
         out.append(_to_window(p, traj, tb0, t_win0, m.scan_period_s))
+    for j, st in enumerate(cfg.adsb_station or ()):
+        rng = np.random.default_rng(np.random.SeedSequence(cfg.seed, spawn_key=(9, day_block, j)))
+        p = observe_adsb(traj, st, sched.system, cfg.runs, rng, sub, cfg.seed)
+        p = take_plots(p, np.flatnonzero(p.scan < len(scan_starts(st, nb))))
+        out.append(_to_window(p, traj, tb0, t_win0, st.scan_period_s))
     return out
 
 
@@ -499,10 +527,11 @@ def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], pr
         parts = [_reports_frame(take_plots(allp, np.flatnonzero(idx == i)), i + 1, sched.ghost, sched.tx)
                  for i in range(len(cfg.radars))]
         parts += [_mlat_columns(_reports_frame(p, len(cfg.radars) + j + 1, sched.ghost, sched.tx), p,
-                                mlat_site(m, sched.system))
-                  for j, m in enumerate(cfg.mlat or ())
+                                _site(m, sched.system))
+                  for j, m in enumerate(cartesian_sensors(cfg))
                   for p in [take_plots(allp, np.flatnonzero(idx == len(cfg.radars) + j))]]
-        frame = pl.concat(([carry] if carry is not None else []) + parts, how="diagonal" if cfg.mlat else "vertical")
+        frame = pl.concat(([carry] if carry is not None else []) + parts,
+                          how="diagonal_relaxed" if cartesian_sensors(cfg) else "vertical")
         last = w == len(bounds) - 1
         live = state.life if state is not None and not last else np.zeros(0, np.int64)
         alive = pl.Series(np.isin(frame["__life"].to_numpy(), live))

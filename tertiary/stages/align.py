@@ -32,7 +32,7 @@ import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.core import geo
-from tertiary.sensors import local_tracks, mlat
+from tertiary.sensors import adsb, local_tracks, mlat
 from tertiary.core.errors import DataError, OptionError, ResourceError
 from tertiary.core.units import STATE, US
 from tertiary.sensors.local_tracks import LocalTrackerConfig, track_reports
@@ -62,6 +62,8 @@ class AlignConfig:
       reports to ``rejects`` (their J R Jᵀ covariance is not trustworthy).
     * ``identity``: carry the reports' ``mode_3a`` and ``callsign`` into ``aligned`` (as
       strings, null where absent) for fine identification in association.
+    * ``adsb_quality``: the minimum declared quality (NACp, NIC, SIL) of an ADS-B report that is fused;
+      a report below it goes to ``rejects`` naming the indicator (:mod:`tertiary.sensors.adsb`).
     """
 
     period_s: float | None = None
@@ -73,6 +75,7 @@ class AlignConfig:
     restart_gap_scans: float = 4.0
     conversion_gate: Literal["count", "flag", "reject"] = "count"
     identity: bool = False
+    adsb_quality: adsb.AdsbQuality = adsb.AdsbQuality()
 
 
 #: report attributes carried into ``aligned`` with ``AlignConfig.identity``
@@ -403,7 +406,9 @@ def _plan_frame(df: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame, 
     finite = np.isfinite(state).all(axis=1) & np.isfinite(cov).all(axis=1)
     plausible = np.linalg.norm(np.nan_to_num(state[:, 3:]), axis=1) <= cfg.max_speed_mps
     conv_ok = report_conversion_valid(df, radars)
-    usable = finite & plausible & (conv_ok | (cfg.conversion_gate != "reject"))
+    low_quality = adsb.fusion_rejects(df, radars, cfg.adsb_quality)
+    eligible = np.equal(low_quality, None)
+    usable = finite & plausible & eligible & (conv_ok | (cfg.conversion_gate != "reject"))
 
     keys = df.select("run", "radar_id", "local_track_id").to_numpy()
     has_next = np.zeros(len(df), bool)
@@ -421,12 +426,13 @@ def _plan_frame(df: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame, 
     keep = usable & ~superseded & (last_k >= k) & ~pending
     n_rows = int(np.sum((last_k - k + 1)[keep], dtype=np.float64))
 
-    reason = np.where(~finite, "no usable track estimate (non-finite state or covariance)",
+    reason = np.where(~eligible, low_quality.astype(str),
+             np.where(~finite, "no usable track estimate (non-finite state or covariance)",
                       np.where(~plausible, f"implausible track speed (> {cfg.max_speed_mps:g} m/s)",
                       np.where(~usable, "polar conversion invalid (seed 002 (13): r sigma_az^2/sigma_r >= 0.4 "
                                         "or sigma >= 0.4 rad)",
                       np.where(superseded, "superseded by a newer report of the same local track before the next epoch",
-                               "track estimate too old for any epoch"))))
+                               "track estimate too old for any epoch")))))
     rej = ~keep & ~pending
     rejects = df.filter(pl.Series(rej)).select("report_id").with_columns(
         pl.Series("reason", reason[rej], dtype=pl.String))

@@ -86,7 +86,7 @@ from tertiary.stages.fusion.confirm import ConfirmState, confirm_targets_step, t
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict_combined, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.sensors.local_tracks import measurement_polar
-from tertiary.contract import MLAT_PLOT_COLUMNS, TABLES, TIME
+from tertiary.contract import ADSB_QUALITY_COLUMNS, MLAT_PLOT_COLUMNS, TABLES, TIME
 from tertiary.sensors import mlat
 
 __all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "centralized_filter_carry",
@@ -532,7 +532,7 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
     assoc, last_ids, last_epoch = _new_associations(state, associations_window)
     rep = reports_window if "run" in reports_window.columns else reports_window.with_columns(
         pl.lit(0, pl.UInt32).alias("run"))
-    rep = rep.select(c for c in [*PLOT_COLUMNS, *MLAT_PLOT_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
+    rep = rep.select(c for c in [*PLOT_COLUMNS, *MLAT_PLOT_COLUMNS, *ADSB_QUALITY_COLUMNS, "mode_s"] if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     groups, confirm = _confirmation(state.confirm, associations_window, assoc, rep, cfg.min_plots)
