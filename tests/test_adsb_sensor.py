@@ -149,3 +149,28 @@ def test_the_station_improves_the_weighted_pictures_and_the_bound_still_bounds(r
             assert got[method] < 0.8 * base[method], (metric, method, got[method], base[method])
     gaps = runs["with"][1].metrics.filter((pl.col("stage") == "bound") & pl.col("metric").str.starts_with("gap_"))
     assert gaps.height >= 10 and (gaps["value"] >= 0).all(), gaps.filter(pl.col("value") < 0)
+
+
+def _paris_flight() -> pl.DataFrame:
+    from tertiary.io.adsb import read_adsb
+    from tertiary.simulate.config import resolve_data_path
+    raw = read_adsb(resolve_data_path("adsb_paris_2021-10-07.parquet"))
+    first = raw.filter(~pl.col("onground").fill_null(False))["icao24"].drop_nulls()[0]
+    return raw.filter(pl.col("icao24") == first).head(400)
+
+
+def test_ads_b_truth_below_the_reference_quality_is_removed_with_the_reason():
+    """OpenSky-format fixes declaring NACp 6 are not truth (NACp >= 8 by default), each with its
+    reason; a lower minimum keeps them; the reference's own NACp rule is not applied twice."""
+    from tertiary.evaluation.reference import ReferenceConfig, adsb_reference
+    from tertiary.io.adsb import AdsbCleaning, clean_adsb
+    flight = _paris_flight()
+    nacp = np.where(np.arange(flight.height) % 10 == 3, 6, 9)
+    frame = flight.with_columns(pl.Series("nacp", nacp))
+    _, removed = clean_adsb(frame, AdsbCleaning())
+    low = removed.filter(pl.col("reason") == "declared quality below the reference bound (NACp 6)")
+    assert low.height == int((nacp == 6).sum())
+    _, kept = clean_adsb(frame, AdsbCleaning(min_nacp=6))
+    assert not kept["reason"].str.contains("NACp").any()
+    points, _ = adsb_reference(frame, geo.LocalFrame(48.85, 2.35, 0.0), ReferenceConfig(min_nacp=6))
+    assert (points["epu95_m"] == adsb.NACP_EPU95_M[6]).sum() >= 0.8 * low.height     # some fail other rules

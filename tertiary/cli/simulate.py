@@ -66,7 +66,9 @@ def simulate(
     if designed := designed_pairs(ds.truth, cfg):
         console.print(designed, soft_wrap=True)
     if ds.removed.height:
-        console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet)")
+        low = ds.removed.filter(pl.col("reason").str.starts_with("declared quality")).height
+        console.print(f"ADS-B cleaning removed {ds.removed.height:,} rows (truth_removed.parquet), {low:,} of them "
+                      f"below the reference quality (NACp >= {cfg.adsb.min_nacp} where declared)", soft_wrap=True)
     if fmt == "asterix":
         rec, sites, day = write_recording(ds, out)
         runs_note = f" (run 0 of {cfg.runs})" if cfg.runs > 1 else ""

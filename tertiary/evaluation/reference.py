@@ -38,6 +38,7 @@ simulation, else the Mode S address or the picture's target id) and smooths each
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,7 +102,7 @@ def adsb_reference(frame: pl.DataFrame, origin: geo.LocalFrame, cfg: ReferenceCo
     ``x_m, y_m, z_m`` (system ENU), ``alt_m`` (barometric), reported ``vx_mps, vy_mps,
     alt_rate_mps`` (NaN when not reported), ``sigma_h_m`` (per axis, eq. 1), ``sigma_v_m``,
     ``epu95_m`` and ``quality_declared``. ``removed``: every other input row with ``reason``."""
-    clean, removed = clean_adsb(frame, cfg.cleaning)
+    clean, removed = clean_adsb(frame, dataclasses.replace(cfg.cleaning, min_nacp=0))   # NACp judged below
     reason, bound, declared = _quality(clean, cfg)
     clean = clean.with_columns(reason.alias("reason"), bound.alias("epu95_m"), declared.alias("quality_declared"))
     bad = clean.filter(pl.col("reason").is_not_null())

@@ -110,6 +110,9 @@ class AdsbCleaning:
     drop_stale: bool = True
     #: longest run of consecutive fixes removed as one spike/jump excursion
     max_excursion_fixes: int = 4
+    #: a fix declaring a NACp below this is not a reference (EPU ≥ 0.05 NM below 8); fixes
+    #: without a ``nacp`` column or value are kept
+    min_nacp: int = 8
 
 
 @dataclass
@@ -192,6 +195,7 @@ _REASONS: dict[int, str] = {
     9: "vertical rate out of band ({} m/s)", 10: "duplicate timestamp",
     11: "stale position (repeated latitude/longitude)", 12: "altitude spike (implied {} m/s)",
     13: "position jump (implied {} m/s)", 14: "flight shorter than {} s",
+    15: "declared quality below the reference bound (NACp {})",
 }
 _C_SPIKE, _C_JUMP, _C_SHORT = 12, 13, 14
 
@@ -285,6 +289,9 @@ def _static_checks(df: pl.DataFrame, cfg: AdsbCleaning) -> tuple[NDArray[np.int8
         ((gs > cfg.max_groundspeed_mps).fill_null(False), 8, gs),
         ((vr.abs() > cfg.max_vertical_rate_mps).fill_null(False), 9, vr),
     ]
+    if "nacp" in df.columns:
+        nacp = pl.col("nacp").cast(pl.Float64)
+        rules.append(((nacp < cfg.min_nacp).fill_null(False), 15, nacp))
     code_expr: pl.Expr = pl.lit(0, dtype=pl.Int8)
     value_expr: pl.Expr = pl.lit(np.nan, dtype=pl.Float64)
     for cond, code, val in reversed(rules):

@@ -162,6 +162,7 @@ class AdsbConfig:
     start_s: float = 0.0                 # offset into the recording
     max_alt_m: float = 15_000.0
     max_gap_s: float = 60.0
+    min_nacp: int = 8                    # fixes declaring a lower NACp are not truth (when declared)
 
 
 @dataclass(frozen=True)
@@ -656,6 +657,7 @@ def check_scenario(cfg: ScenarioConfig) -> ScenarioConfig:
         _number("adsb.start_s", cfg.adsb.start_s, 0.0)
         _number("adsb.max_alt_m", cfg.adsb.max_alt_m, 0.0, 1e5, open_lo=True)
         _number("adsb.max_gap_s", cfg.adsb.max_gap_s, 0.0, 86400.0, open_lo=True)
+        _number("adsb.min_nacp", cfg.adsb.min_nacp, 0, 11, integer=True)
     if cfg.kind == "national":
         _check_national(cfg.national, cfg)
     elif cfg.national is not None:

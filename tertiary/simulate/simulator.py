@@ -61,7 +61,8 @@ def _truth(cfg: ScenarioConfig, rng: np.random.Generator) -> tuple[ScenarioConfi
             cfg = dataclasses.replace(cfg, origin=(float(ok["latitude"].median()), float(ok["longitude"].median()), 0.0))
         if not cfg.radars:
             cfg = dataclasses.replace(cfg, radars=auto_radars())
-        cleaning = adsb.AdsbCleaning(max_alt_m=cfg.adsb.max_alt_m, max_gap_s=cfg.adsb.max_gap_s, dt=cfg.dt)
+        cleaning = adsb.AdsbCleaning(max_alt_m=cfg.adsb.max_alt_m, max_gap_s=cfg.adsb.max_gap_s, dt=cfg.dt,
+                                     min_nacp=cfg.adsb.min_nacp)
         traj, removed = adsb.adsb_to_trajectories(frame, geo.LocalFrame(*cfg.origin), cleaning, epoch=start)
         return cfg, traj, removed
     raise ValueError(f"unknown scenario kind {cfg.kind!r}")
