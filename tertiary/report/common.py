@@ -111,6 +111,8 @@ class Best:
     picture: str | None = None
     fused: str | None = None
     radar: str | None = None
+    #: how the best single sensor is named: "radar", or "sensor (MLAT)" / "sensor (ADS-B)"
+    radar_kind: str = "radar"
     ranked_by: str = "rmse_horizontal_m"
     unranked: list[str] = field(default_factory=list)
 
@@ -145,7 +147,19 @@ def _best_pictures(ctx: Ctx) -> Best:
         best.fused = fus["picture"][0] if fus.height else None
     if radars.height:
         best.radar = radars.sort("horizontal_m", nulls_last=True)["radar"][0]
+        best.radar_kind = _sensor_word(ctx, best.radar)
     return best
+
+
+_SENSOR_WORDS = {"mlat": "sensor (MLAT)", "adsb": "sensor (ADS-B)"}
+
+
+def _sensor_word(ctx: Ctx, name: str) -> str:
+    """How a sensor of the radars table is named in a sentence, by its kind."""
+    if "radars" not in ctx.tables or "kind" not in ctx.store.sql("SELECT * FROM radars LIMIT 0").columns:
+        return "radar"
+    kind = ctx.store.sql("SELECT kind FROM radars WHERE name = ?", [name])["kind"]
+    return _SENSOR_WORDS.get(kind[0] if kind.len() else None, "radar")
 
 
 def _radar_pooled(ctx: Ctx) -> pl.DataFrame:

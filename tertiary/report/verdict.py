@@ -108,7 +108,7 @@ def _line_best(ctx: Ctx) -> str:
             f"vertical <b>{_m(pic['height_m'])}</b>")
     if b.radar:
         rad = b.radars.filter(pl.col("radar") == b.radar).row(0, named=True)
-        text += (f", {_rel(pic['horizontal_m'], rad['horizontal_m'])} the best radar alone "
+        text += (f", {_rel(pic['horizontal_m'], rad['horizontal_m'])} the best {b.radar_kind} alone "
                  f"({html.escape(b.radar)}, {_m(rad['horizontal_m'])})")
     ref = b.pictures.filter(pl.col("picture") == CENTRALIZED)
     if ref.height:
@@ -325,7 +325,7 @@ def _verdict_accuracy(ctx: Ctx) -> str:
     rows = [(r["rank"], r["picture"], "best picture" if r["picture"] == b.picture else "picture", r)
             for r in ranked.iter_rows(named=True)]
     rows += [(None, CENTRALIZED, "centralised reference (not ranked)", ref)] if ref else []
-    rows += [(None, b.radar, "best radar alone", {**rad, **dict.fromkeys(_FIGURES)})] if rad else []
+    rows += [(None, b.radar, f"best {b.radar_kind} alone", {**rad, **dict.fromkeys(_FIGURES)})] if rad else []
     num = ("horizontal RMSE (m)", "vertical RMSE (m)", "3-D RMSE (m)", f"{what} PCRB (m)",
            f"{what} gap to PCRB (m)", "false tracks per hour")
     src = ("horizontal_m", "height_m", "pos_m", pcrb, gap, "false_tracks_per_hour")
