@@ -6,13 +6,15 @@ Input: N distinct CAT048 records of a typical Mode S plot layout (010, 140, 020,
 lines (so the import de-duplicates N of 2N). The records are laid out with numpy (byte positions
 of that fixed layout) and a sample of them is checked against libasterix before timing.
 
-CAT001 (plots and tracks, with a CAT002 north marker per 40 blocks), CAT002, CAT004 (STCA)
-and CAT020 (MLAT): records encoded by libasterix as templates, made distinct with numpy at
-their item offsets (time of day, track numbers, positions), checked against libasterix on a
-sample; decode (compiled walker + numpy) and whole import (decode, de-duplication, time,
-values, rejects; CAT002: antenna timing; CAT004: alert episodes) timed per category.
+CAT001 (plots and tracks, with a CAT002 north marker per 40 blocks), CAT002, CAT004 (STCA),
+CAT020 (MLAT) and CAT021 of an ADS-B ground station (a sites entry of kind adsb: reports, key
+``cat021_station``): records encoded by libasterix as templates, made distinct with numpy at
+their item offsets (time of day, track numbers, addresses, positions), checked against
+libasterix on a sample; decode (compiled walker + numpy) and whole import (decode,
+de-duplication, time, values, rejects; CAT002: antenna timing; CAT004: alert episodes) timed
+per category, with the 1-minute load average at its start.
 
-    PYTHONPATH=. python benchmarks/bench_asterix.py [--records 1000000] [--only-new]
+    PYTHONPATH=. python benchmarks/bench_asterix.py [--records 1000000] [--only-new] [--cats 1,2,4,20,21]
 
 Writes benchmarks/results/bench_asterix.json (``--only-new`` keeps its CAT048/CAT021 entries).
 """
@@ -128,7 +130,10 @@ SITES_NEW = [{"sac": 9, "sic": 1, "radar_id": 9 * 256 + 1, "name": "legacy", "la
               "sigma_elevation_deg": 1.0, "scan_period_s": 4.0},
              {"sac": 7, "sic": 20, "radar_id": 7 * 256 + 20, "name": "wam", "kind": "mlat", "lat_deg": 45.0,
               "lon_deg": 16.0, "alt_m": 100.0, "sigma_range_m": 20.0, "sigma_azimuth_deg": 0.5,
-              "max_range_m": 200000.0, "sigma_elevation_deg": 1.0, "scan_period_s": 1.0}]
+              "max_range_m": 200000.0, "sigma_elevation_deg": 1.0, "scan_period_s": 1.0},
+             {"sac": 7, "sic": 30, "radar_id": 7 * 256 + 30, "name": "adsb", "kind": "adsb", "lat_deg": 45.2,
+              "lon_deg": 16.3, "alt_m": 50.0, "sigma_range_m": 30.0, "sigma_azimuth_deg": 0.5,
+              "max_range_m": 400000.0, "sigma_elevation_deg": 1.0, "scan_period_s": 1.0}]
 
 
 def _templates(cat: int) -> list[object]:
@@ -139,6 +144,11 @@ def _templates(cat: int) -> list[object]:
             "042": (("X", 7800.0), ("Y", 11100.0)), "161": (0, ("TRN", 0)), "070": (0, 0, 0, 0, ("MODE3A", "1234")),
             "090": (("V", 0), ("G", 0), ("FL", 350.0)), "220": 0xABCDEF, "245": (("STI", 2), 0, ("CHR", "WAM01   ")),
             "105": 36000.0, "500": {"SDP": (("X", 7.5), ("Y", 10.0), ("XY", 2.0))}})]
+    if cat == 21:
+        return [codec.spec(21).cv_record.create({
+            "010": (("SAC", 7), ("SIC", 30)), "040": (0,), "071": 0.0, "080": 0x3C6500,
+            "131": (("LAT", 45.1), ("LON", 16.1)), "145": 350.0, "090": (8, (3 << 4) | 9),
+            "070": (0, ("MODE3A", "1234")), "170": "DLH4AB  "})]
     if cat == 1:
         u = codec.spec(1).cv_uap
         return [u.cv_uaps["plot"].create({"010": (("SAC", 9), ("SIC", 1)), "020": (0x10,),
@@ -162,6 +172,8 @@ def _templates(cat: int) -> list[object]:
 _VARY = {
     20: lambda i: [("140", 0, 3, i * 128 // 50 % (86400 * 128)), ("161", 0, 2, i % 4096),
                    ("041", 2, 2, i * 37 % 65536), ("042", 1, 2, i * 91 % 65536)],
+    21: lambda i: [("071", 0, 3, i * 128 // 50 % (86400 * 128)), ("080", 0, 3, 0x3C6500 + i % 500),
+                   ("131", 2, 2, i * 37 % 65536), ("131", 6, 2, i * 91 % 65536)],
     1: lambda i: [("141", 0, 2, i * 128 // 50 % 65536), ("040", 0, 2, 2000 + i * 7 % 60000),
                   ("040", 2, 2, i * 131 % 65536), ("070", 0, 2, i % 4096)],
     2: lambda i: [("030", 0, 3, i * 128 * 4 // 32 % (86400 * 128)), ("020", 0, 1, i * 8 % 256)],
@@ -203,19 +215,21 @@ def distinct_blocks(cat: int, n: int) -> list[bytes]:
     return out
 
 
-def _new_rates(n: int) -> dict[str, int]:
-    """Decode and whole-import rates of CAT001, CAT002, CAT004, CAT020 on ``n`` records each."""
+def _new_rates(n: int, cats: tuple[int, ...] = (1, 2, 4, 20, 21)) -> dict[str, float]:
+    """Decode and whole-import rates of CAT001, CAT002, CAT004, CAT020 and station CAT021 on ``n``
+    records each."""
     import polars as pl
     from tertiary.io.asterix import dataset, fastcats, importer
     from tertiary.io.asterix.sites import sites_toml
-    out: dict[str, int] = {}
+    out: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         sites = Path(tmp) / "sites.toml"
         sites.write_text(sites_toml(pl.DataFrame(SITES_NEW)))
-        for cat in (1, 2, 4, 20):
+        for cat in cats:
+            load = os.getloadavg()[0]
             blks = distinct_blocks(cat, n)
             items = [(b, {"file": "bench", "datagram": 0}, float("nan"), "raw", k) for k, b in enumerate(blks)]
-            decode = getattr(fastcats, f"decode_{cat:03d}")
+            decode = importer._decode_021 if cat == 21 else getattr(fastcats, f"decode_{cat:03d}")
             decode(items[:2], [])                                    # compile / load the cache
             t = time.perf_counter()
             frame = decode(items, [])
@@ -240,8 +254,12 @@ def _new_rates(n: int) -> dict[str, int]:
                 kept = res.alerts.height if cat == 4 else res.reports.height
                 assert res.rejects.height == 0, res.rejects.head()
             s = time.perf_counter() - t
-            c = f"cat{cat:03d}"
-            out |= {f"{c}_records": frame.height, f"{c}_import_rows_out": kept, f"{c}_import_s": round(s, 2),
+            c = "cat021_station" if cat == 21 else f"cat{cat:03d}"
+            if cat == 21:
+                assert res.counts["cat021_reports"] == frame.height and res.truth.height == 0
+                out[f"{c}_fast_records_per_s"] = out.pop("cat021_fast_records_per_s")
+            out |= {f"{c}_load_average_1min": round(load, 2), f"{c}_records": frame.height,
+                    f"{c}_import_rows_out": kept, f"{c}_import_s": round(s, 2),
                     f"{c}_import_records_per_s": round(frame.height / s)}
     return out
 
@@ -257,11 +275,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--records", type=int, default=1_000_000)
     ap.add_argument("--lib-records", type=int, default=2_000)
-    ap.add_argument("--only-new", action="store_true", help="measure CAT001/002/004/020 only")
+    ap.add_argument("--only-new", action="store_true", help="measure CAT001/002/004/020/station CAT021 only")
+    ap.add_argument("--cats", default="1,2,4,20,21", help="with --only-new: the categories (21: station CAT021)")
     args = ap.parse_args()
     if args.only_new:
+        cats = tuple(int(c) for c in args.cats.split(","))
         result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-                  "load_average_1min": round(os.getloadavg()[0], 2), **_new_rates(args.records // 5)}
+                  **_new_rates(args.records // 5, cats)}
         print(json.dumps(result, indent=2))
         _write(result)
         return

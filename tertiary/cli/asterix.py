@@ -31,10 +31,11 @@ export_app = typer.Typer(help="Export a run's picture to other formats.", no_arg
 def import_asterix(
     files: Annotated[list[Path], typer.Argument(
         metavar="FILE", help="pcap/pcapng captures (UDP payloads) or raw ASTERIX data-block files; CAT048, CAT034, "
-                             "CAT001, CAT002, CAT020, CAT021, CAT062, CAT004 may be mixed")],
+                             "CAT001, CAT002, CAT020, CAT021, CAT062, CAT004 may be mixed (CAT021 of a sites "
+                             "entry of kind adsb: reports; other CAT021: truth)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="dataset directory to write")],
     sites: Annotated[Optional[Path], typer.Option(help="SAC/SIC -> radar registry TOML (required with CAT048, "
-                                                       "CAT001, CAT020; "
+                                                       "CAT001, CAT020, and for an ADS-B station's CAT021; "
                                                        "see docs/asterix.md)")] = None,
     date: Annotated[Optional[str], typer.Option(help="YYYY-MM-DD the recording starts on [default: the capture "
                                                      "time stamps; required for raw data blocks]")] = None,
@@ -71,7 +72,8 @@ def import_asterix(
                   f"{res.external_tracks.height:,} external track rows (CAT062), {res.rejects.height:,} rejects",
                   soft_wrap=True)
     more = [f"{c[f'cat{k}_reports']:,} {what} reports (CAT{k})"
-            for k, what in (("001", "legacy radar"), ("020", "MLAT")) if f"cat{k}_reports" in c]
+            for k, what in (("001", "legacy radar"), ("020", "MLAT"), ("021", "ADS-B ground station"))
+            if f"cat{k}_reports" in c]
     if res.alerts.height:
         more.append(f"{res.alerts.height:,} STCA alert episodes (CAT004, alerts.parquet)")
     if more:

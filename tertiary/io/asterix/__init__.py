@@ -2,10 +2,12 @@
 :mod:`tertiary.io.dataset`, and a writer of its inputs and pictures.
 
 * :func:`import_recordings` / :func:`write_import` — pcap, pcapng or raw data blocks of CAT048,
-  CAT001 and CAT020 (reports; CAT020 of MLAT sensors), CAT034 and CAT002 (antenna timing),
-  CAT021 (truth), CAT062 (external tracks) and CAT004 (STCA alerts) → a dataset.
+  CAT001, CAT020 and CAT021 of ADS-B ground stations (reports; CAT020 of MLAT sensors), CAT034
+  and CAT002 (antenna timing), other CAT021 (truth), CAT062 (external tracks) and CAT004 (STCA
+  alerts) → a dataset.
 * :func:`external_alerts` — the CAT004 STCA alerts of recordings as ``alerts`` rows (unscored).
-* :func:`write_recording` — a dataset's reports, truth and scans as ``recording.ast`` + ``sites.toml``.
+* :func:`write_recording` — a dataset's reports (CAT048, CAT020, CAT021 by sensor kind), truth
+  (CAT021) and scans (CAT034) as ``recording.ast`` + ``sites.toml``.
 * :func:`export_picture` — a picture (``tracks`` schema) as CAT062 system tracks.
 * :func:`export_alerts` — alert episodes (``alerts`` schema) as CAT004 STCA messages.
 * :func:`read_sites` — the SAC/SIC → radar registry.

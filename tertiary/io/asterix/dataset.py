@@ -14,6 +14,7 @@ from tertiary.contract import TABLES
 from tertiary.io.asterix import importer, plots
 from tertiary.io.asterix.sites import read_sites, write_template
 from tertiary.core.errors import DataError, OptionError
+from tertiary.evaluation.reference import ReferenceConfig
 from tertiary.simulate.config import ScenarioConfig, scenario_toml
 from tertiary.store.run_store import write_parquet_atomic, write_text_atomic
 
@@ -74,10 +75,14 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     table = read_sites(sites) if sites is not None else None
     if not (skip_unknown and table is not None):
         _check_sites(codes, table, sites, template, dec.cat034, day0)
+    # CAT021 of the ADS-B ground stations of the sites file are reports, the rest truth
+    station = plots.adsb_station_rows(dec.cat021, table)
+    adsb, cat021 = dec.cat021.filter(station), dec.cat021.filter(~station)
+    codes = pl.concat([codes, adsb.select("sac", "sic").unique()]).unique().sort("sac", "sic")
     say("part 2/4 reports")
     reports, rej, latency, counts = importer.build_reports(dec.cat048, table, day0, stale_s)
     rejects += rej
-    reports, more = _other_reports(reports, dec, table, day0, stale_s, rejects)
+    reports, more = _other_reports(reports, dec, adsb, table, day0, stale_s, rejects)
     counts |= more
     service = pl.concat([dec.cat034, dec.cat002.drop("seq")], how="vertical_relaxed") if dec.cat002.height \
         else dec.cat034
@@ -95,9 +100,14 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     origin = tuple(origin) if origin is not None else _origin(radars, dec)
     system = geo.LocalFrame(*origin) if origin is not None else None
     truth = tracks = pl.DataFrame()
-    if dec.cat021.height and system is not None:
-        truth, rej = importer.truth_table(dec.cat021, system, day0)
+    if cat021.height and system is not None:
+        ref = ReferenceConfig()
+        truth, rej, counts["truth_below_quality"] = importer.truth_table(cat021, system, day0, ref.min_nacp,
+                                                                         ref.min_nic)
         rejects += rej
+        notes.append(f"truth (CAT021): the reference keeps points whose I021/090 declares NACp >= {ref.min_nacp}"
+                     f" and NIC >= {ref.min_nic} (ReferenceConfig; points without I021/090 are kept); "
+                     f"{counts['truth_below_quality']:,} point(s) below it went to rejects")
     if truth.height and reports.height:
         reports = label_reports(reports, truth)
     if dec.cat062.height and system is not None:
@@ -112,22 +122,28 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     # distinct service messages of both categories (CAT002 joins CAT034 in the antenna timing)
     counts |= dec.counts | {"cat034_messages": dec.cat034.height, "cat002_messages": dec.cat002.height,
                             "cat034_distinct": messages.height,
-                            "cat021_records": dec.cat021.height, "cat062_records": dec.cat062.height,
+                            "cat021_records": dec.cat021.height, "cat021_truth_records": cat021.height,
+                            "cat062_records": dec.cat062.height,
                             "radars": codes.height, "reports": reports.height, "rejects": len(rejects)}
     return ImportResult(reports, radars, truth, tracks, importer.rejects_frame(rejects), timing, messages,
                         latency.join(radars.select("sac", "sic", "radar_id"), on=["sac", "sic"], how="left")
                         if radars.height else latency, pl.DataFrame(), counts, notes, origin, alerts)
 
 
-def _other_reports(reports: pl.DataFrame, dec: importer.Decoded, sites: pl.DataFrame | None, day0: float | None,
-                   stale_s: float, rejects: list[dict[str, object]]) -> tuple[pl.DataFrame, dict[str, int]]:
-    """CAT048 reports with the CAT001 and CAT020 reports appended (report ids renumbered)."""
+def _other_reports(reports: pl.DataFrame, dec: importer.Decoded, adsb: pl.DataFrame, sites: pl.DataFrame | None,
+                   day0: float | None, stale_s: float, rejects: list[dict[str, object]]
+                   ) -> tuple[pl.DataFrame, dict[str, int]]:
+    """CAT048 reports with the CAT001, CAT020 and ADS-B station (``adsb``: CAT021) reports
+    appended (report ids renumbered)."""
     parts, counts = [reports], {}
     if dec.cat001.height:
         rep, rej, c = plots.cat001_reports(dec.cat001, dec.cat002, sites, day0, stale_s)
         parts.append(rep), rejects.extend(rej), counts.update(c)
     if dec.cat020.height:
         rep, rej, c = plots.cat020_reports(dec.cat020, sites, day0, stale_s)
+        parts.append(rep), rejects.extend(rej), counts.update(c)
+    if adsb.height:
+        rep, rej, c = plots.cat021_reports(adsb, sites, day0, stale_s)
         parts.append(rep), rejects.extend(rej), counts.update(c)
     if len(parts) == 1:
         return reports, counts

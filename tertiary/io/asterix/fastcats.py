@@ -58,6 +58,10 @@ def _meta(items: list[Item], block: NDArray[np.int64]) -> dict[str, pl.Series]:
             "seq": pl.Series(np.array([it[4] for it in items], np.int64)).gather(idx)}
 
 
+#: the in-block offsets of records, for the decoders of other modules
+in_block = _in_block
+
+
 class Fields:
     """Numpy reads of a walked category: ``u(item, start, width)`` unsigned, -1 where absent."""
 

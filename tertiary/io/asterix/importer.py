@@ -6,7 +6,10 @@
   I048/220, /240, /070, /200, /170, /020 kept.
 * CAT034 → antenna timing per radar (scan period from I034/041, else north-marker intervals,
   else the slope of sector crossings; north-crossing instants).
-* CAT021 → ``truth`` (ADS-B reference), CAT062 → ``external_tracks`` (``tracks`` schema + ids).
+* CAT021 → ``truth`` (ADS-B reference; points below the reference's declared quality, I021/090
+  NACp / NIC, to ``rejects``), except the CAT021 of ADS-B ground stations (sites of kind
+  ``adsb``: reports, :mod:`tertiary.io.asterix.plots`); CAT062 → ``external_tracks`` (``tracks``
+  schema + ids).
 * CAT001, CAT020 → ``reports``, CAT002 → antenna timing, CAT004 → ``alerts``: decoded by
   :mod:`tertiary.io.asterix.fastcats`, built by :mod:`tertiary.io.asterix.plots`.
 
@@ -163,22 +166,26 @@ def _decode_034(items: list[tuple[bytes, dict[str, object], float, str]], reject
 
 _CAT021_SCHEMA = {"sac": pl.Int64, "sic": pl.Int64, "address": pl.Int64, "tod_s": pl.Float64, "lat_deg": pl.Float64,
                   "lon_deg": pl.Float64, "height_ft": pl.Float64, "fl": pl.Float64, "gs_nmps": pl.Float64,
-                  "ta_deg": pl.Float64, "gvr_ftpm": pl.Float64, "callsign": pl.String, "capture_s": pl.Float64}
+                  "ta_deg": pl.Float64, "gvr_ftpm": pl.Float64, "callsign": pl.String, "capture_s": pl.Float64,
+                  "nic": pl.Int64, "nacp": pl.Int64, "sil": pl.Int64, "mode_3a": pl.String, "tod": pl.Int64,
+                  "hash": pl.Int64, "length": pl.Int64, "offset": pl.Int64, "line": pl.String, "file": pl.String,
+                  "datagram": pl.Int64}
 
 
 def _decode_021(items: list[tuple[bytes, dict[str, object], float, str]], rejects: list[dict[str, object]]
                 ) -> pl.DataFrame:
     """CAT021 2.7 records with the compiled walker and numpy field reads (units as libasterix's:
     I021/071, /073 1/128 s; /131 180/2³⁰ °, /130 180/2²³ °; /140 6.25 ft; /145 1/4 FL; /160 GS
-    2⁻¹⁴ NM/s, TA 360/2¹⁶ °; /157 6.25 ft/min; /170 ICAO characters)."""
+    2⁻¹⁴ NM/s, TA 360/2¹⁶ °; /157 6.25 ft/min; /170 ICAO characters; /090 octet 1 bits 4-1
+    NUCp/NIC, octet 2 (when octet 1's FX is set) bits 6-5 SIL, 4-1 NACp; /070 12-bit code)."""
     if not items:
         return pl.DataFrame(schema=_CAT021_SCHEMA)
     prog = _program(21)
     buf, offs, block, rs, re, bad = fastwalk.walk([d for d, *_ in items], prog)
     for k, off, reason in bad:
         _reject(rejects, reason, **items[k][1], block_offset=off, hex=items[k][0][:32].hex())
-    o = {name: offs[:, prog.slot(name)] for name in ("010", "071", "073", "080", "130", "131", "140", "145", "157",
-                                                      "160", "170")}
+    o = {name: offs[:, prog.slot(name)] for name in ("010", "070", "071", "073", "080", "090", "130", "131", "140",
+                                                      "145", "157", "160", "170")}
     u = lambda name, start, width: fastwalk.uint_at(buf, o[name], start, width)  # noqa: E731
 
     def q(v: NDArray[np.int64], ok: NDArray[np.bool_], lsb: float) -> NDArray[np.float64]:
@@ -195,8 +202,14 @@ def _decode_021(items: list[tuple[bytes, dict[str, object], float, str]], reject
     gs = u("160", 0, 2)
     gvr = u("157", 0, 2)
     calls = pl.Series(_callsign(np.maximum(u("170", 0, 6), 0))).str.replace_all("~", "", literal=True)
+    q1 = u("090", 0, 1)
+    q2 = fastwalk.uint_at(buf, np.where((q1 >= 0) & ((q1 & 1) == 1), o["090"] + 1, -1), 0, 1)
+    m3a = u("070", 0, 2)
     idx = pl.Series(block)
-    cap = pl.Series(np.array([it[2] for it in items], float)).gather(idx)
+    meta = {"capture_s": pl.Series(np.array([it[2] for it in items], float)).gather(idx),
+            "line": pl.Series([it[3] for it in items], dtype=pl.String).gather(idx),
+            "file": pl.Series([str(it[1]["file"]) for it in items], dtype=pl.String).gather(idx),
+            "datagram": pl.Series([int(it[1]["datagram"]) for it in items], dtype=pl.Int64).gather(idx)}
     return pl.DataFrame({
         "sac": u("010", 0, 1), "sic": u("010", 1, 1), "address": u("080", 0, 3),
         "tod_s": np.where((t071 >= 0) | (t073 >= 0), tod, np.nan),
@@ -205,11 +218,16 @@ def _decode_021(items: list[tuple[bytes, dict[str, object], float, str]], reject
         "fl": q(fastwalk.signed(u("145", 0, 2), 16), o["145"] >= 0, 0.25),
         "gs_nmps": q(gs & 0x7FFF, gs >= 0, 2.0**-14), "ta_deg": q(u("160", 2, 2), gs >= 0, 360 / 65536),
         "gvr_ftpm": q(fastwalk.signed(gvr & 0x7FFF, 15), gvr >= 0, 6.25),
-        "callsign": calls.set(pl.Series(o["170"] < 0), None), "capture_s": cap,
+        "callsign": calls.set(pl.Series(o["170"] < 0), None), "capture_s": meta["capture_s"],
+        "nic": np.where(q1 >= 0, (q1 >> 1) & 15, -1), "nacp": np.where(q2 >= 0, (q2 >> 1) & 15, -1),
+        "sil": np.where(q2 >= 0, (q2 >> 5) & 3, -1),
+        "mode_3a": fastcats.per_value(np.where(m3a >= 0, m3a & 0x0FFF, -1), fastcats.mode_3a),
+        "tod": np.where(t071 >= 0, t071, t073),
+        "hash": fastwalk.record_hash(buf, rs, re), "length": re - rs, "offset": fastcats.in_block(items, block, rs),
+        **{k: meta[k] for k in ("line", "file", "datagram")},
     }, schema=_CAT021_SCHEMA).with_columns(
-        *(pl.col(c).replace(-1, None) for c in ("sac", "sic", "address")),
-        *(pl.col(c).fill_nan(None) for c in _CAT021_SCHEMA if c not in ("capture_s", "callsign", "sac", "sic",
-                                                                        "address")))
+        *(pl.col(c).replace(-1, None) for c in ("sac", "sic", "address", "nic", "nacp", "sil")),
+        *(pl.col(c).fill_nan(None) for c in _CAT021_SCHEMA if _CAT021_SCHEMA[c] == pl.Float64 and c != "capture_s"))
 
 
 @functools.cache
@@ -482,9 +500,13 @@ def enu_velocity(lat_deg: NDArray[np.float64], lon_deg: NDArray[np.float64], ve:
         r[2, 0] * x + r[2, 1] * y + r[2, 2] * z
 
 
-def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None,
-                ) -> tuple[pl.DataFrame, list[dict[str, object]]]:
-    """CAT021 reports → ``truth`` (truth_id = 24-bit address) in the system frame."""
+def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None, min_nacp: int = 0,
+                min_nic: int = 0) -> tuple[pl.DataFrame, list[dict[str, object]], int]:
+    """CAT021 reports → (``truth`` (truth_id = 24-bit address) in the system frame, rejects, the
+    number of points below the declared quality). A record whose I021/090 declares NACp below
+    ``min_nacp`` or NIC below ``min_nic`` is not a reference point (a record without I021/090
+    declares nothing and is kept), as :class:`tertiary.evaluation.reference.ReferenceConfig`
+    filters an ADS-B reference."""
     need = pl.col("address").is_not_null() & pl.col("tod_s").is_not_null() & pl.col("lat_deg").is_not_null() \
         & pl.col("height_ft").is_not_null()
     impossible = (pl.col("lat_deg").abs() > 90) | (pl.col("lon_deg").abs() > 180) | (pl.col("tod_s") >= DAY)
@@ -496,7 +518,17 @@ def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None
                for r in bad.iter_rows(named=True)]
     # redundant lines: the same report (source, aircraft, time, position) once
     key = pl.struct("sac", "sic", "address", "tod_s", "lat_deg", "lon_deg", "height_ft")
-    ok = cat021.filter(need & ~impossible.fill_null(False)).filter(key.is_first_distinct())
+    cat021 = cat021.filter(need & ~impossible.fill_null(False)).filter(key.is_first_distinct())
+    low = pl.coalesce(
+        pl.when(pl.col("nacp") < min_nacp).then(
+            pl.format(f"declared quality below the reference bound (NACp {{}} < {min_nacp})", pl.col("nacp"))),
+        pl.when(pl.col("nic") < min_nic).then(
+            pl.format(f"declared integrity below the reference bound (NIC {{}} < {min_nic})", pl.col("nic"))))
+    cat021 = cat021.with_columns(low.alias("__low"))
+    poor = cat021.filter(pl.col("__low").is_not_null())
+    detail = pl.struct("sac", "sic", "address", "tod_s", "nacp", "nic", "file", "datagram", "offset")
+    rejects += poor.select(pl.col("__low").alias("reason"), detail.struct.json_encode().alias("detail")).to_dicts()
+    ok = cat021.filter(pl.col("__low").is_null()).drop("__low")
     t = absolute_time(ok["tod_s"].to_numpy(), ok["capture_s"].to_numpy(), day0)
     lat, lon = ok["lat_deg"].to_numpy(), ok["lon_deg"].to_numpy()
     h = ok["height_ft"].to_numpy() * FT
@@ -515,7 +547,7 @@ def truth_table(cat021: pl.DataFrame, system: geo.LocalFrame, day0: float | None
     }).with_columns(pl.col(c).fill_nan(None) for c in ("vx_mps", "vy_mps", "vz_mps"))
     truth = truth.filter(pl.all_horizontal(pl.col("vx_mps", "vy_mps").is_not_null())) \
         .unique(["truth_id", "time"], keep="first", maintain_order=True).sort("truth_id", "time")
-    return truth, rejects
+    return truth, rejects, poor.height
 
 
 def external_tracks(cat062: pl.DataFrame, system: geo.LocalFrame, day0: float | None,

@@ -12,6 +12,12 @@ messages → ``alerts`` (an external alert list). Decoding: :mod:`tertiary.io.as
   ``plot_sigma_x_m``, ``plot_sigma_y_m``, ``plot_sigma_xy_m``; I020/105 → ``plot_height_m``;
   the position as seen from the sensor's reference point → ``range_m``, ``azimuth_deg`` (so the
   polar stages can place the plot until the Cartesian measurement model is wired).
+* CAT021 of a SAC/SIC the sites file names with ``kind = "adsb"`` (an ADS-B ground station):
+  the broadcast position I021/131 (or /130) as the same Cartesian plot, in the station's ENU
+  frame; I021/145 → ``altitude_m``, I021/140 → ``plot_height_m``, I021/080 → ``mode_s`` and
+  ``local_track_id`` (the 24-bit address: one local track per aircraft), I021/090 →
+  ``adsb_nacp``, ``adsb_nic``, ``adsb_sil`` and the plot σ from NACp (σ per axis EPU/2.448,
+  σxy 0; null without NACp). CAT021 of any other SAC/SIC is truth (:mod:`.importer`).
 """
 
 from __future__ import annotations
@@ -22,10 +28,11 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
-from tertiary.contract import MLAT_PLOT_COLUMNS, TABLES
+from tertiary.contract import ADSB_QUALITY_COLUMNS, MLAT_PLOT_COLUMNS, TABLES
 from tertiary.core import geo
 from tertiary.core.units import FT
 from tertiary.io.asterix import fastcats
+from tertiary.sensors.adsb import ADSB, sigma_from_nacp
 from tertiary.io.asterix.importer import DAY, TIME, absolute_time
 
 Rejects = list[dict[str, object]]
@@ -219,6 +226,48 @@ def cat020_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | 
                              pl.col("sigma_xy_m").alias("plot_sigma_xy_m"))
     counts |= {"cat020_reports": good.height, "cat020_rejected": len(rej)}
     return _reports(good, list(MLAT_PLOT_COLUMNS)), rej, counts
+
+
+# --------------------------------------------------------------------------- CAT021 of ADS-B ground stations
+
+
+def adsb_station_rows(cat021: pl.DataFrame, sites: pl.DataFrame | None) -> pl.Series:
+    """Per CAT021 record: whether its SAC/SIC is an ADS-B ground station (kind "adsb") of the
+    sites file."""
+    if sites is None or "kind" not in sites.columns or cat021.height == 0:
+        return pl.Series("adsb", np.zeros(cat021.height, bool))
+    st = sites.filter(pl.col("kind") == ADSB).select("sac", "sic", pl.lit(True).alias("adsb"))
+    return cat021.select("sac", "sic").join(st, on=["sac", "sic"], how="left", maintain_order="left")["adsb"] \
+        .fill_null(False)
+
+
+def cat021_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | None, stale_s: float
+                   ) -> tuple[pl.DataFrame, Rejects, dict[str, int]]:
+    """CAT021 records of ADS-B ground stations (:func:`adsb_station_rows`) → (reports, rejects,
+    counts); the geometry and the flags as for CAT020."""
+    counts = {"cat021_station_records": raw.height}
+    frame = _dedup(_times(raw, day0), counts, "cat021")
+    frame = frame.with_columns(
+        trn=pl.col("address"), altitude_m=pl.col("fl") * 100.0 * FT, flight_level=pl.col("fl"),
+        mode_s=fastcats.per_value(frame["address"].fill_null(-1).to_numpy(), fastcats.hex6),
+        x_m=pl.lit(None, pl.Float64), y_m=pl.lit(None, pl.Float64),
+        callsign=pl.col("callsign").str.strip_chars_end(" ").replace("", None))
+    work = _flags(_mlat_geometry(_with_sites(frame, sites)), stale_s)
+    reasons = _site_reasons("021", "tod") + [
+        (pl.col("address").is_null(), "no I021/080 (target address)"),
+        (pl.col("lat_deg").is_null(), "no I021/131 or I021/130 (position)"),
+        ((pl.col("lat_deg").abs() > 90) | (pl.col("lon_deg").abs() > 180),
+         pl.format("I021/131 position {}, {} off the globe", pl.col("lat_deg"), pl.col("lon_deg"))),
+    ]
+    good, rej = _split(work, reasons, "CAT021")
+    sigma = sigma_from_nacp(good["nacp"].cast(pl.Float64).fill_null(np.nan).to_numpy())
+    good = good.with_columns(
+        (pl.col("height_ft") * FT).alias("plot_height_m"), pl.Series("plot_sigma_x_m", sigma).fill_nan(None),
+        pl.Series("plot_sigma_y_m", sigma).fill_nan(None),
+        pl.Series("plot_sigma_xy_m", np.where(np.isfinite(sigma), 0.0, np.nan)).fill_nan(None),
+        *(pl.col(c).cast(pl.UInt8).alias(f"adsb_{c}") for c in ("nacp", "nic", "sil")))
+    counts |= {"cat021_reports": good.height, "cat021_rejected": len(rej)}
+    return _reports(good, [*MLAT_PLOT_COLUMNS, *ADSB_QUALITY_COLUMNS]), rej, counts
 
 
 # --------------------------------------------------------------------------- CAT004

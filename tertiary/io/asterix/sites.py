@@ -17,7 +17,9 @@ come from this file::
     max_range_m = 463000.0
     scan_period_s = 4.0          # optional when the recording holds CAT034 antenna messages
     kind = "radar"               # optional [default "radar"]; "mlat": an MLAT / WAM system (CAT020),
-                                 # its site the system reference point, scan_period_s its update period
+                                 # its site the system reference point, scan_period_s its update period;
+                                 # "adsb": an ADS-B ground station (its CAT021 are reports, not truth),
+                                 # its site the antenna, scan_period_s its update period
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from tertiary.store.run_store import write_text_atomic
 
 REQUIRED = ("lat_deg", "lon_deg", "alt_m", "sigma_range_m", "sigma_azimuth_deg", "max_range_m")
 OPTIONAL = {"sigma_elevation_deg": 1.0, "scan_period_s": math.nan}
-KINDS = ("radar", "mlat")
+KINDS = ("radar", "mlat", "adsb")
 KEYS = {"sac", "sic", "name", "radar_id", "kind", *REQUIRED, *OPTIONAL}
 
 
