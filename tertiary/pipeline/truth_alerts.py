@@ -60,9 +60,10 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
 
 
 def attributed(alerts: pl.DataFrame, los: pl.DataFrame, onsets: pl.DataFrame, acfg: safety_alerts.AlertConfig
-               ) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """(alerts with ``induced`` and ``valid``, the attribution metrics per system picture)."""
+               ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(alerts with ``induced`` and ``valid``, losses with ``induced`` (a missed loss's cause),
+    the attribution metrics per system picture)."""
     alerts = safety_alerts.valid_alerts(safety_alerts.attribute_alerts(alerts, acfg), onsets, acfg)
     los = safety_alerts.attribute_los(los)
-    return alerts, safety_alerts.attribution_metrics(alerts, los)
+    return alerts, los, safety_alerts.attribution_metrics(alerts, los)
 
