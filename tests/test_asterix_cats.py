@@ -365,3 +365,19 @@ def test_older_editions_read_by_the_newest(cat: int, older: tuple[str, ...]) -> 
         for uap in uaps:
             old = fastwalk.program(spec.cv_uaps[uap] if uap else spec.cv_record)
             assert _prefix(tuple(_layout(old)), tuple(_layout(fastcats.program(cat, uap)))), (cat, ed, uap)
+
+
+def test_a_long_alert_exported_as_cat004_comes_back_as_one_episode(tmp_path: Path) -> None:
+    """An STCA repeats an active alert every cycle: an episode of 100 s is exported as messages
+    4 s apart and imported as one episode with its start and end, not split at the importer's
+    30 s silence."""
+    from datetime import datetime, timedelta, timezone
+    from tertiary.io.asterix import encode
+    t0 = datetime(2024, 3, 1, 10, 0, tzinfo=timezone.utc)
+    alerts = pl.DataFrame({"method": ["information+imm_sym"], "id_a": [11], "id_b": [12], "t_start": [t0],
+                           "t_end": [t0 + timedelta(seconds=100)]})
+    out = tmp_path / "stca.ast"
+    assert encode.export_alerts(alerts, out) == 26
+    back = dataset.external_alerts([out], date="2024-03-01")
+    assert back.height == 1
+    assert back["t_start"][0] == t0 and back["t_end"][0] == t0 + timedelta(seconds=100)

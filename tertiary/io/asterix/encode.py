@@ -426,9 +426,15 @@ def export_picture(tracks: pl.DataFrame, system: geo.LocalFrame, out: str | Path
     return len(recs)
 
 
-def cat004(alerts: pl.DataFrame, sac: int = 0, sic: int = 1) -> list[tuple[float, object]]:
-    """(time, CAT004 STCA record) per alert episode (``alerts`` schema): a message at its start
-    and, when later, at its end, each with I004/040 alert identifier (row number mod 2¹⁶, or
+#: the update cycle of an exported STCA alert: an operational STCA repeats each active alert at
+#: every cycle, and an importer ends an episode at a silence (``alerts_table``'s gap)
+STCA_CYCLE_S = 4.0
+
+
+def cat004(alerts: pl.DataFrame, sac: int = 0, sic: int = 1, cycle_s: float = STCA_CYCLE_S
+           ) -> list[tuple[float, object]]:
+    """(time, CAT004 STCA record) per alert episode (``alerts`` schema) and cycle: a message at
+    its start, every ``cycle_s`` while it lasts and at its end, each with I004/040 alert identifier (row number mod 2¹⁶, or
     ``alert_id``), /030 and /035 track numbers (id mod 2¹⁶, as the CAT062 export numbers
     tracks), /070 TCA (``t_min_first_s``), MHS (``r_min_pred_m``), MVS (``dz_min_pred_m``) and
     /170, /171 callsign and Mode 3/A when the rows carry them."""
@@ -448,7 +454,8 @@ def cat004(alerts: pl.DataFrame, sac: int = 0, sic: int = 1) -> list[tuple[float
             ident = _identity(get(f"callsign_{k}")[i], get(f"mode_3a_{k}")[i], n)
             if ident:
                 items[item] = ident
-        for t in sorted({_seconds(pl.Series([r["t_start"]]))[0], _seconds(pl.Series([r["t_end"]]))[0]}):
+        t0, t1 = (_seconds(pl.Series([r[c]]))[0] for c in ("t_start", "t_end"))
+        for t in sorted({*np.arange(t0, t1, cycle_s).tolist(), t1}):
             out.append((float(t), s.create({**items, "020": float(math.fmod(t, 86400.0))})))
     return out
 
