@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from tertiary.core import geo
 from tertiary.core.errors import OptionError
 from tertiary.sensors.adsb import sigma_from_nacp
+from tertiary.simulate.mlat import PeriodicSensor
 
 __all__ = ["AdsbStationConfig", "check_adsb_station", "station_site"]
 
@@ -36,7 +37,7 @@ F64 = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class AdsbStationConfig:
+class AdsbStationConfig(PeriodicSensor):
     """One ADS-B ground station (module docstring).
 
     ``site_enu_m``: its antenna in the system frame (east, north, up; m); ``update_period_s`` /
@@ -63,15 +64,6 @@ class AdsbStationConfig:
     time_offset_s: float = 0.0
     track_drop_scans: float = 10.0
 
-    # the radar-like attributes its plot numbering and the radars table read
-    @property
-    def scan_period_s(self) -> float:
-        return self.update_period_s
-
-    @property
-    def scan_phase_s(self) -> float:
-        return self.update_phase_s
-
     @property
     def site(self) -> tuple[float, float, float]:
         return tuple(float(v) for v in self.site_enu_m)
@@ -81,12 +73,6 @@ class AdsbStationConfig:
         """Nominal accuracy: the σ of the most common NACp (a report without NACp gets it)."""
         nacp, _ = max(self.nacp_weights, key=lambda p: p[1])
         return float(sigma_from_nacp([nacp])[0])
-
-    #: the angle σ the radars table requires of every sensor; no stage reads them for kind adsb
-    sigma_azimuth_deg = 0.1
-    sigma_elevation_deg = 1.0
-    #: every aircraft's update at the same instant
-    timing = "synchronous"
 
 
 def check_adsb_station(where: str, s: AdsbStationConfig, number) -> None:

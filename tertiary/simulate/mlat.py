@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from tertiary.core import geo
 from tertiary.core.errors import OptionError
 
-__all__ = ["LIGHT_MPS", "MlatConfig", "accuracy", "check_mlat", "nominal_sigma_m", "visible"]
+__all__ = ["LIGHT_MPS", "MlatConfig", "PeriodicSensor", "accuracy", "check_mlat", "nominal_sigma_m", "visible"]
 
 F64 = NDArray[np.float64]
 
@@ -42,8 +42,31 @@ F64 = NDArray[np.float64]
 LIGHT_MPS = 299_792_458.0
 
 
+class PeriodicSensor:
+    """What a sensor that outputs every aircraft at once each ``update_period_s`` (an MLAT / WAM
+    system, an ADS-B station) shows the radar-shaped code: its plot numbering
+    (:mod:`tertiary.simulate.radar_tracker`) and the ``radars`` table read a scan period and
+    phase, a timing, and the angle σ every row must have (no stage reads them for these kinds:
+    their plots carry their own Cartesian σ)."""
+
+    update_period_s: float
+    update_phase_s: float
+    sigma_azimuth_deg = 0.1
+    sigma_elevation_deg = 1.0
+    #: every aircraft's update at the same instant (the radars' synchronous timing)
+    timing = "synchronous"
+
+    @property
+    def scan_period_s(self) -> float:
+        return self.update_period_s
+
+    @property
+    def scan_phase_s(self) -> float:
+        return self.update_phase_s
+
+
 @dataclass(frozen=True)
-class MlatConfig:
+class MlatConfig(PeriodicSensor):
     """One simulated MLAT / WAM system (a ``[[mlat]]`` table of a scenario).
 
     ``receivers_enu_m``: the ground receivers in the system frame (east, north, up; m).
@@ -68,15 +91,6 @@ class MlatConfig:
     time_offset_s: float = 0.0
     track_drop_scans: float = 5.0
 
-    # the radar-like attributes its plot numbering reads (tertiary.simulate.radar_tracker)
-    @property
-    def scan_period_s(self) -> float:
-        return self.update_period_s
-
-    @property
-    def scan_phase_s(self) -> float:
-        return self.update_phase_s
-
     @property
     def site(self) -> tuple[float, float, float]:
         """Its reference point in the system frame (ENU, m)."""
@@ -87,13 +101,6 @@ class MlatConfig:
     @property
     def sigma_range_m(self) -> float:
         return nominal_sigma_m(self)
-
-    #: the angle σ the radars table requires of every sensor; no stage reads them for kind mlat
-    #: (an MLAT measures no angle: its plots carry their own Cartesian σ)
-    sigma_azimuth_deg = 0.1
-    sigma_elevation_deg = 1.0
-    #: every aircraft's update at the same instant (the radars' synchronous timing)
-    timing = "synchronous"
 
 
 def nominal_sigma_m(cfg: MlatConfig) -> float:
