@@ -1,4 +1,4 @@
-"""A fresh install's first run against the next ones (issue 18 item 2: compilation must not make
+"""A fresh install's first run against the next ones (compilation must not make
 the first ``tertiary run`` slower by more than a few seconds).
 
 Simulates terminal-area once (the default scenario's 200 aircraft over 1 h unless told
@@ -31,7 +31,7 @@ from _util import record  # noqa: E402
 
 CONFIG = ["--methods", "information", "--filters", "imm_sym"]
 KERNEL_STAGES = ("fuse_s", "centralized_s", "track_s")
-#: "a few seconds" (issue 18), read as at most this
+#: "a few seconds", read as at most this
 TARGET_EXTRA_S = 5.0
 
 

@@ -1,9 +1,9 @@
-"""Memory against the length of the recording (issue 16 item 6).
+"""Memory against the length of the recording.
 
 Simulates terminal-area at the default scenario's traffic rate (200 aircraft per hour, so a
 longer recording is a longer recording of the same traffic, not the same 200 aircraft spread
 thinner) for several durations with ``tertiary simulate --window 1800`` (partitioned Parquet,
-simulated from the traffic schedule window by window: issue 16 item 4; its wall time and peak
+simulated from the traffic schedule window by window; its wall time and peak
 memory are recorded per duration as ``simulations``), then runs ``tertiary run DATASET`` (the
 windowed engine, default ``--window auto``) on it in two
 configurations, each in a fresh process, and records wall time, reports/s and the peak resident
@@ -14,7 +14,7 @@ run record's peak by the end of each stage (``memory_mib``: where the memory goe
   (``--methods information --filters imm_sym``);
 * ``full``: every default fusion method, the centralised reference and both default trackers.
 
-Targets (issue 16): the peaks of 1 h, 4 h and 12 h within 15 % of each other; < 1.5 GB for
+Targets: the peaks of 1 h, 4 h and 12 h within 15 % of each other; < 1.5 GB for
 production and < 3 GB for full. The streamed stages hold one window; the finalize stage
 (evaluation, alert scoring, building results.duckdb) still reads the streamed tables of the whole
 run, so the peak grows with the duration; the benchmark measures by how much.

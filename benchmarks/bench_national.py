@@ -1,4 +1,4 @@
-"""The national scenario (issue 18): an hour of the day simulated and processed on one machine.
+"""The national scenario: an hour of the day simulated and processed on one machine.
 
 Simulates ``national`` (16 radars, the daily traffic curve) for ``--duration`` seconds from
 ``--start-s`` after 00:00 UTC (default: the 08:00 peak hour) with ``tertiary simulate``

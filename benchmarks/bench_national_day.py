@@ -1,4 +1,4 @@
-"""The national day (issue 18): the 24 h ``national`` recording processed on one machine, with
+"""The national day: the 24 h ``national`` recording processed on one machine, with
 the local engine or with Dask, in the production configuration (one fusion method, one tracker,
 conflicts, evaluation; the streamed tables registered as Parquet, ``--tables parquet``).
 

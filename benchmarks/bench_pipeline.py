@@ -4,7 +4,7 @@ In a fresh process per repetition: simulate (not timed), then time each stage of
 ``tertiary.pipeline.process`` without trackers (validation, alignment, association, fusion
 with every method, the centralised reference, clustering, evaluation) and record reports/s through
 alignment → clustering and the peak resident memory reached by the end of clustering (it
-includes the simulated dataset held in memory). Target (issue 3): ≥ 500 000 reports/s, < 2 GB.
+includes the simulated dataset held in memory). Target: ≥ 500 000 reports/s, < 2 GB.
 
     python benchmarks/bench_pipeline.py [--repeat 2] [--aircraft 200] [--duration 3600]
 """

@@ -2,7 +2,7 @@
 
 Measures, in a fresh process per repetition: wall time of ``tertiary.simulate`` (truth,
 every radar's scans, each radar's Singer secondary processing), generated reports per second
-and peak resident memory. Target (issue 2): ≥ 500 000 reports/s, < 1 GB peak.
+and peak resident memory. Target: ≥ 500 000 reports/s, < 1 GB peak.
 
     python benchmarks/bench_simulate.py [--repeat 3] [--aircraft 200] [--radars 4] [--duration 3600]
 """

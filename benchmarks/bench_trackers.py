@@ -6,11 +6,11 @@ three per-axis ``KalmanFilter`` (dim 3, scalar measurement) per track, exactly t
 model of ``singer``; IMM: ``IMMEstimator`` over three horizontal ``KalmanFilter`` (CT 0.001,
 CT 0.045, CV) plus a vertical CV ``KalmanFilter`` per track). filterpy is timed on a subset of
 tracks and steps (it is linear in both) and scaled to updates/s.
-Targets (issue 4): ≥ 1 000 000 Singer updates/s and ≥ 100× the filterpy loop.
+Targets: ≥ 1 000 000 Singer updates/s and ≥ 100× the filterpy loop.
 
     python benchmarks/bench_trackers.py [--tracks 10000] [--steps 50] [--ref-tracks 200]
 
-Accuracy mode (issue 12): the fused picture's and every tracker's position RMSE per fusion
+Accuracy mode: the fused picture's and every tracker's position RMSE per fusion
 method, from the ``metrics`` the pipeline computes (stage fusion / tracker, ``rmse_pos_m``,
 segment ``all``), with the trackers' NEES, and the confirmed / tentative target counts against
 the aircraft; recorded in ``results/trackers_accuracy_<label>.json``:
@@ -18,7 +18,7 @@ the aircraft; recorded in ``results/trackers_accuracy_<label>.json``:
     python benchmarks/bench_trackers.py --accuracy DATASET_DIR --label big-box-n100 \
         [--filters singer,imm_sym,cv_full,singer_full]
 
-Tracker-stage mode (issue 18): the secondary tracker stage on one dataset's fusion pictures,
+Tracker-stage mode: the secondary tracker stage on one dataset's fusion pictures,
 before (the per-(method, filter) loop with the numpy filters: :func:`track` per method) and
 after (:func:`track_methods`: (method, run) folded into the batch axis, compiled IMM), for the
 full configuration (every method × ``--filters``) and the production one (``information`` ×
@@ -365,7 +365,7 @@ def main() -> None:
         ours = max(time_batched(name, z, r, args.steps) for _ in range(3))
         theirs = ref(zr, args.ref_steps)
         result[name] = {"updates_per_s": ours, "filterpy_loop_updates_per_s": theirs, "speedup": ours / theirs}
-        if name == "imm":       # the numpy path beside the compiled kernels (issue 18)
+        if name == "imm":       # the numpy path beside the compiled kernels
             result[name]["numpy_updates_per_s"] = max(time_batched(name, z, r, args.steps, compiled=False)
                                                       for _ in range(3))
     result["targets"] = {"singer_updates_per_s": 1_000_000, "speedup": 100}

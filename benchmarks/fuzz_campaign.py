@@ -1,4 +1,4 @@
-"""The long fuzz campaign of issue 15 (item 7): thousands of hypothesis-drawn cases over every
+"""The long fuzz campaign: thousands of hypothesis-drawn cases over every
 entry point, each run in a memory-limited worker process with a per-case timeout.
 
     python benchmarks/fuzz_campaign.py --cases 2000 --seed 15

@@ -1,5 +1,5 @@
 """Seed 002 IMM on the landing approach: reproduction targets 3–5 of the radar-filters digest
-§2.10 (issue 19 item 7, "Q3–Q5").
+§2.10 ("Q3–Q5").
 
 * Q3 (main claim): time-averaged position RMSE of the raw converted measurements over that of
   the IMM output, scans 20 … end, N = 130, is ≥ 1.3 (paper 1.3–1.5; a correct filter ≈ 3.2–3.5

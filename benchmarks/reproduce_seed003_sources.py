@@ -1,5 +1,5 @@
 """Seed 003: accuracy against the number of sources (anomalous-conditions digest §7 target 5,
-source Table 3.1; issue 19 item 7).
+source Table 3.1).
 
 The source (INS + GNSS pseudoranges, optionally ADS-B ground stations as extra pseudorange
 sources, "dispersion" D_GNSS = 30 m², D_ADS-B = 10 m², initial planar error 100 m) gives DRMS

@@ -1,5 +1,5 @@
 """Seed 004 six-state spherical EKF: reproduction targets 2–5 of the radar-filters digest §3.11
-(issue 19 item 7: the curve-order targets and the midpoint-initialisation convergence claim).
+(the curve-order targets and the midpoint-initialisation convergence claim).
 
 With the digest §3.8 defaults (D(0) = 10 km, α(0) = 2°, level flight at 1 km heading south at
 1500 km/h, T = 10 ms, 10 s = 1000 steps) and N = 300 runs:

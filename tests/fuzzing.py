@@ -1,4 +1,4 @@
-"""Fuzz harness over every entry point of ``tertiary`` (issue 15, item 7).
+"""Fuzz harness over every entry point of ``tertiary``.
 
 A *case* is a JSON-able dict, drawn by the hypothesis strategies below, for one entry point:
 

@@ -372,7 +372,7 @@ def _association_oracle(rows) -> dict[str, float]:
 
 @pytest.mark.parametrize("cuts", [(), (7,), (1, 2, 3, 20, 21), tuple(range(1, 40))])
 def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
-    """Issue 16, evaluation accumulators: the association metrics of rows scored a block of
+    """evaluation accumulators: the association metrics of rows scored a block of
     epochs at a time (:func:`score_associations`, the pipeline's windows) equal those of the
     whole run at once, and a brute-force count. Targets change aircraft across the cuts and
     some epochs are clutter only. Fails if a target's majority aircraft is not carried to the

@@ -1,4 +1,4 @@
-"""The align stage as a step function (issue 16, docs: /work/notes/stream_contract.md): any cut of
+"""The align stage as a step function (docs: /work/notes/stream_contract.md): any cut of
 the run into consecutive time windows gives the whole-run alignment's rows and rejects."""
 
 from __future__ import annotations

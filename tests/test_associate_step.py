@@ -1,4 +1,4 @@
-"""Association as a step function (issue 16): any cut of a run into epoch windows gives the
+"""Association as a step function: any cut of a run into epoch windows gives the
 whole-run ``associations`` and ``AssociationStats``."""
 
 from __future__ import annotations

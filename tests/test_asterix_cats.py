@@ -13,6 +13,7 @@ import polars as pl
 import pytest
 
 import tertiary
+from asterix_mutants import mutants
 from tertiary.contract import TABLES
 from tertiary.core.units import FT
 from tertiary.io.asterix import codec, dataset, encode, fastcats, fastwalk, plots
@@ -108,27 +109,11 @@ def _walk(cat: int, blocks: list[bytes]) -> tuple[np.ndarray, set[int]]:
     return np.bincount(block, minlength=len(blocks)), {k for k, _, _ in bad}
 
 
-def _mutants(blocks: list[bytes], rng: np.random.Generator, n: int) -> list[bytes]:
-    out = []
-    for _ in range(n):
-        b = bytearray(blocks[rng.integers(len(blocks))])
-        op = rng.integers(3)
-        if op == 0:
-            b[rng.integers(3, len(b))] ^= 1 << rng.integers(8)
-        elif op == 1:
-            del b[rng.integers(4, len(b)):]
-        else:
-            del b[rng.integers(3, len(b))]
-        b[1:3] = len(b).to_bytes(2, "big")
-        out.append(bytes(b))
-    return out
-
-
 @pytest.mark.parametrize("cat", [1, 2, 4, 20])
 def test_walker_accepts_and_refuses_as_libasterix(cat: int) -> None:
     """Block for block and record count for record count, on encoded and mutated bytes (CAT001:
     each record with the class its own I001/020 TYP names)."""
-    blocks = BLOCKS[cat] + _mutants(BLOCKS[cat], np.random.default_rng(cat), 100)
+    blocks = BLOCKS[cat] + mutants(BLOCKS[cat], np.random.default_rng(cat), 100)
     counts, refused = _walk(cat, blocks)
     for k, b in enumerate(blocks):
         ref = codec.parse_block(b)
@@ -292,7 +277,7 @@ def test_mutated_recordings_import_without_a_traceback(tmp_path: Path) -> None:
     sites = tmp_path / "sites.toml"
     sites.write_text(SITES)
     for i in range(8):
-        blocks = [b for cat in (2, 1, 20, 4) for b in _mutants(BLOCKS[cat], rng, 2)]
+        blocks = [b for cat in (2, 1, 20, 4) for b in mutants(BLOCKS[cat], rng, 2)]
         rec = tmp_path / f"m{i}.ast"
         rec.write_bytes(b"".join(blocks))
         try:

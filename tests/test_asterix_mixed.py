@@ -16,6 +16,7 @@ import numpy as np
 import polars as pl
 import pytest
 
+from asterix_mutants import mutants
 from tertiary.core import geo
 from tertiary.core.errors import TertiaryError
 from tertiary.core.units import FT
@@ -171,22 +172,6 @@ def test_truth_below_the_reference_quality_goes_to_rejects(tmp_path: Path) -> No
     assert len(note) == 1 and f"NACp >= {bound}" in note[0] and f"{len(low)} point(s)" in note[0]
 
 
-def _mutants(blocks: list[bytes], rng: np.random.Generator, n: int) -> list[bytes]:
-    out = []
-    for _ in range(n):
-        b = bytearray(blocks[rng.integers(len(blocks))])
-        op = rng.integers(3)
-        if op == 0:
-            b[rng.integers(3, len(b))] ^= 1 << rng.integers(8)
-        elif op == 1:
-            del b[rng.integers(4, len(b)):]
-        else:
-            del b[rng.integers(3, len(b))]
-        b[1:3] = len(b).to_bytes(2, "big")
-        out.append(bytes(b))
-    return out
-
-
 def test_mutated_cat020_and_cat021_never_raise(tmp_path: Path) -> None:
     """Flipped, cut and deleted bytes of the CAT020 and station CAT021 blocks: the import ends
     with rejects (each with a reason) or a clear TertiaryError, and every report it keeps is a
@@ -207,7 +192,7 @@ def test_mutated_cat020_and_cat021_never_raise(tmp_path: Path) -> None:
     seen = 0
     for i in range(12):
         f = tmp_path / f"m{i}.ast"
-        f.write_bytes(b"".join([holes, *_mutants(wam, rng, 3), *_mutants(st, rng, 3), *wam[:1], *st[:1]]))
+        f.write_bytes(b"".join([holes, *mutants(wam, rng, 3), *mutants(st, rng, 3), *wam[:1], *st[:1]]))
         try:
             res = dataset.import_recordings([f], sites=sites, date=day, skip_unknown=True)
         except TertiaryError:

@@ -160,7 +160,7 @@ def test_capacity_from_metrics():
 
 
 def test_run_capacity_figures_vary_with_the_measured_sigma():
-    """Issue 11 item 8: no per-method capacity figure is constant over realistic σ."""
+    """no per-method capacity figure is constant over realistic σ."""
     sig = [40.0, 60.0, 90.0, 150.0]
     metrics = pl.DataFrame({"stage": "fusion", "method": [f"m{i}" for i in range(4)], "metric": "rmse_pos_m",
                             "segment": "all", "value": sig, "n_runs": 1}).cast(TABLES["metrics"].required)

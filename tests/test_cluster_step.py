@@ -1,4 +1,4 @@
-"""Clustering as a step function (issue 16): any cut of a run into epoch windows gives the
+"""Clustering as a step function: any cut of a run into epoch windows gives the
 whole-run ``clusters`` table (same ids, leads and members)."""
 
 from __future__ import annotations

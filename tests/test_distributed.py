@@ -1,4 +1,4 @@
-"""The Dask engine (issue 18 item 3) on a LocalCluster of 2 workers: Monte-Carlo runs as partitions
+"""The Dask engine on a LocalCluster of 2 workers: Monte-Carlo runs as partitions
 give the local engine's tables; a run cut into time slices gives them outside the warm-up
 overlaps, with the stitching effects measured (id changes per boundary, accuracy after it)."""
 
@@ -205,7 +205,7 @@ def test_a_partition_reads_its_windows_from_a_scan_that_takes_their_time_test(lo
 
 def test_the_union_of_partitions_reads_only_the_columns_asked_for(tmp_path, monkeypatch):
     """The client's finalize reads a few columns of each partition's reports and aligned rows
-    (issue 18: a national day's aligned rows read whole before the selection took the client
+    (a national day's aligned rows read whole before the selection took the client
     past 23 GB). Only those columns are read, a partition without an optional one gives the
     others, and the rows are every partition's in order."""
     for i, frame in enumerate([pl.DataFrame({"a": [1, 2], "big": [0.0, 0.0], "opt": ["x", "y"]}),

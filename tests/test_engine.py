@@ -1,4 +1,4 @@
-"""The windowed engine (issue 16 items 1–3, 7): a windowed run's tables equal a one-window run's,
+"""The windowed engine (7): a windowed run's tables equal a one-window run's,
 table by table; a killed run resumed from its last complete window ends identical to an
 uninterrupted one; incomplete runs say so; batch progress gives one line per window."""
 
@@ -117,7 +117,7 @@ def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monk
 
 
 def test_association_metrics_are_scored_window_by_window(terminal, terminal_whole, monkeypatch):
-    """Issue 16, evaluation accumulators: the association metrics come from the state the
+    """evaluation accumulators: the association metrics come from the state the
     windows carry (:class:`tertiary.evaluation.evaluate.AssociationScore`), not from the whole run's rows
     read back in finalize — the whole-run function is not called — and equal one window's."""
     def whole_run_scored(*_a, **_k):
@@ -141,7 +141,7 @@ def test_windowed_evaluation_equals_one_window(terminal):
 
 def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time,
-    each in time blocks of whole windows (issue 16, memory): the same metrics, alerts,
+    each in time blocks of whole windows (memory): the same metrics, alerts,
     requirements and counts as the in-memory run, which holds every picture and scores it whole.
     Fails if a picture is skipped, read twice or read incompletely, or if a block is matched or
     scored differently from the whole picture. The truth goes from disk to disk too (validated in
@@ -175,7 +175,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
-    # the bound's truth read from the reference on disk, 7 aircraft at a time (issue 18)
+    # the bound's truth read from the reference on disk, 7 aircraft at a time
     assert len(bound_reads) > 2 and all(lazy and n <= 7 for lazy, n in bound_reads[1:])
     assert sum(n for _, n in bound_reads[1:]) == bound_reads[0][1]
     assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
@@ -188,7 +188,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
     # every tracker picture read back from disk in blocks, for the evaluation and for the curves
-    # (issue 18: a national day's picture whole was ~10 GB), never whole
+    # (a national day's picture whole was ~10 GB), never whole
     assert sum(n == "tracks" and how == "blocks" for n, _, how in read) == 2 * 2 * len(cfg.methods)
     assert not any(how == "whole" for _, _, how in read)
     per_picture = pl.DataFrame({"picture": [str(k) for _, k in blocks]}).group_by("picture").len()
@@ -198,7 +198,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
 def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, tmp_path, monkeypatch):
     """A run of one fusion method and one filter: its fused and tracks parts each hold one
     picture, so finalize reads them where they are instead of regrouping them into copies
-    (issue 18: a national day's copies were ~15 GB). The same metrics, alerts and counts as the
+    (a national day's copies were ~15 GB). The same metrics, alerts and counts as the
     in-memory run; fails if a part is skipped or the in-place reader reads other rows."""
     copies: list[str] = []
     monkeypatch.setattr(pl.DataFrame, "write_parquet", lambda self, f, *a, w=pl.DataFrame.write_parquet, **k:
@@ -407,7 +407,7 @@ def test_engine_options_are_checked(dataset_dir, tmp_path):
 
 
 def test_window_read_is_pushed_into_the_parquet_scan(tmp_path):
-    """A window of a partitioned input reads its own files, not all of them (issue 18: the
+    """A window of a partitioned input reads its own files, not all of them (the
     reading was quadratic in the number of windows): the coarse time test sits in the scan
     itself, under the input row index, and the window's rows are exactly the exact test's."""
     from tertiary.runtime.windows import INPUT_ROW, ReportSource
@@ -449,7 +449,7 @@ def _spoilt_truth(truth: pl.DataFrame, unsorted: bool) -> pl.DataFrame:
 
 
 def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
-    """Finalize validates a long truth a few aircraft at a time (issue 16, memory): the clean
+    """Finalize validates a long truth a few aircraft at a time (memory): the clean
     table (in input order), the rejects (their row_index and detail, the duplicate's first row
     named by its input position) and the unsorted-time note are those of one call. The truth is
     spoilt the ways validation sees: repeated (truth_id, time), a group out of time order, a NaN
@@ -480,7 +480,7 @@ def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
 
 @pytest.mark.parametrize("unsorted", [False, True])
 def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path, unsorted):
-    """An on-disk run validates its truth from disk to disk (issue 18, memory): batches of input
+    """An on-disk run validates its truth from disk to disk (memory): batches of input
     rows filed by aircraft part, each part validated, the clean rows written as a reference in
     input batches (or, when an aircraft's times decrease, by part in (truth_id, time) order).
     With batches and parts that cut across each other, a time-major input (aircraft
@@ -603,7 +603,7 @@ def test_auto_window_holds_about_the_report_budget():
 def test_auto_window_is_sized_by_the_busiest_stretch_not_the_mean():
     """A recording with a busy hour between two quiet ones: the mean rate would size windows that
     hold three times the budget at the peak; the auto window holds about the budget there (a
-    window's memory grows with its rows: memory bounded by the window, issue 16)."""
+    window's memory grows with its rows: memory bounded by the window)."""
     from tertiary.runtime.windows import ReportSource, auto_window_s
     t0 = 1_700_000_000_000_000
     quiet = [_timed_reports(3_600, 3600.0, t0), _timed_reports(3_600, 3600.0, t0 + 7200 * US)]

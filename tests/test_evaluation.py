@@ -102,7 +102,7 @@ def test_evaluate_refuses_bad_input_with_one_line(small, tmp_path):
 
 
 def test_an_imported_cat062_picture_is_evaluated_like_our_own(tmp_path):
-    """Issue 17: CAT062 → external picture → scored by the same stage as the pipeline's pictures."""
+    """CAT062 → external picture → scored by the same stage as the pipeline's pictures."""
     def cli(*args):
         res = runner.invoke(app, [*map(str, args)], terminal_width=250)
         assert res.exit_code == 0, res.output
@@ -145,7 +145,7 @@ def test_reconstructed_reference_is_scored_against_truth_and_radars_are_evaluate
 
 
 def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
-    """Issue 13 item 5: ADS-B points filtered by quality, only short gaps interpolated, and the
+    """ADS-B points filtered by quality, only short gaps interpolated, and the
     reference's σ beside the accuracy; a picture 30 m east of the ADS-B flights scores 30 m."""
     from tertiary.core import geo
     from tertiary.evaluation.evaluate import adsb_reference_table, reference_error_metrics
@@ -194,7 +194,7 @@ def _sorted(frame: pl.DataFrame) -> pl.DataFrame:
 
 def test_a_picture_scored_in_time_blocks_equals_the_whole_picture(small):
     """The pipeline scores an on-disk picture a block of windows at a time, each block against its
-    time slice of the reference (issue 16, memory). On a sparse reference (a sample every 23 s,
+    time slice of the reference (memory). On a sparse reference (a sample every 23 s,
     so most epochs interpolate across a block edge) with a gap longer than ``max_gap_s``,
     aircraft appearing and leaving inside blocks and blocks cut between reference samples, every
     output equals one call on the whole picture. Fails if a slice loses the samples just outside
@@ -230,7 +230,7 @@ def test_a_picture_scored_in_time_blocks_equals_the_whole_picture(small):
 
 def test_a_reference_file_scores_as_the_reference_in_memory(small, tmp_path, monkeypatch):
     """An on-disk run hands the evaluation its truth as a reference file and releases the frame
-    (issue 16, memory): each block's time slice is read from the file. With row groups of 16
+    (memory): each block's time slice is read from the file. With row groups of 16
     samples (a slice spans and skips many), a sparse reference whose samples straddle the
     blocks' edges and identity items that change part-way, every output of the file equals the
     frame's, for the picture in blocks and whole; the file reads back as the truth. Fails if
@@ -268,7 +268,7 @@ def test_a_reference_file_scores_as_the_reference_in_memory(small, tmp_path, mon
 
 def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
     """The pipeline asks for no matched rows back (``keep_matched=False``), and the evaluation
-    then keeps of each matched block only the columns its metrics read (issue 16, memory). On a
+    then keeps of each matched block only the columns its metrics read (memory). On a
     tracker picture carrying its diagnostics (``nis``, covariances, Mode S, altitude channel) every
     output equals the full path's. Fails if the slim path drops a column a metric reads: the
     consistency rows of ``nis``, an identity item, or the id map's ``gated_truth_id``."""
@@ -293,7 +293,7 @@ def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
 
 def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(small, tmp_path, monkeypatch):
     """A long picture is matched to Parquet files block by block and its metrics computed in
-    buckets of aircraft or tracks (``spill``, issues 16 and 18: the stage's memory bounded by a
+    buckets of aircraft or tracks (``spill``: the stage's memory bounded by a
     bucket). On a tracker picture in blocks, with buckets of 150, 400 and 10 000 rows, every
     output equals the in-memory path's and the spill directory is left empty. Fails if the
     spilled blocks lose or repeat rows, or if the buckets are not combined exactly; and if the
@@ -332,7 +332,7 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
 
 def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     """The association rows are labelled with their reports' aircraft a block of rows at a time
-    (issue 16, memory). With blocks of 4 rows over 37 rows (reports seen by two radars, clutter,
+    (memory). With blocks of 4 rows over 37 rows (reports seen by two radars, clutter,
     a report of another run with the same id), the labelled rows (in order) and every
     association metric equal one join's. Fails if a block's rows are lost, repeated or
     reordered."""
@@ -387,7 +387,7 @@ def test_a_reference_file_gives_the_slices_of_the_frame(tmp_path, monkeypatch):
 @pytest.mark.parametrize("sparse", [False, True])
 def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, sparse):
     """A run whose association scores were not carried (the Dask engine's relabelled rows) is
-    scored from its rows read back, gathered to blocks of whole windows (issue 18: the national
+    scored from its rows read back, gathered to blocks of whole windows (the national
     day's rows whole took the client to 22 623 MiB): the metrics equal one call on every row.
     Two runs, 12 epochs in 5 windows, targets that change aircraft across windows (swaps),
     clutter; blocks of at least 70 rows gather 2–3 windows. With ``sparse`` report ids

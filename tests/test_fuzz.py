@@ -1,4 +1,4 @@
-"""Fuzz suite (issue 15, item 7): a small hypothesis budget over every entry point, and one
+"""Fuzz suite: a small hypothesis budget over every entry point, and one
 regression test per distinct crash class the campaign found.
 
 Every case runs in a memory-limited worker process (``fuzzing.Worker``) with a per-case timeout,
@@ -61,7 +61,7 @@ def test_fuzz_budget(worker, entry):
 
 
 # ---------------------------------------------------------------------------
-# regression tests, one per distinct crash class (issue 15 list and campaign findings)
+# regression tests, one per distinct crash class (the listed ones and the campaign's findings)
 # ---------------------------------------------------------------------------
 
 

@@ -89,7 +89,7 @@ def test_a_reference_with_nothing_alive_leaves_every_row_unmatched():
 
 
 def test_a_reference_gap_longer_than_allowed_is_not_interpolated():
-    """An ADS-B reference is interpolated only across short gaps (issue 13 item 5)."""
+    """An ADS-B reference is interpolated only across short gaps."""
     truth = _truth().filter(~((pl.col("truth_id") == 1) & pl.col("time").is_between(
         T0 + timedelta(seconds=30), T0 + timedelta(seconds=70))))          # a 48 s hole for aircraft 1
     loose = match_to_reference(_tracks(truth), truth)

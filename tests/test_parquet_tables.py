@@ -1,4 +1,4 @@
-"""Registered Parquet tables (issue 18, scale): ``tertiary run --tables parquet`` keeps the
+"""Registered Parquet tables: ``tertiary run --tables parquet`` keeps the
 streamed tables' window parts beside the database, with views over them, instead of copying
 them in. The run's tables read the same as a copied run's (to the copy's float32 narrowing),
 from any working directory, and nothing of them is left in ``parts``."""

@@ -1,4 +1,4 @@
-"""Picture metrics against hand computations (issue 13 item 3)."""
+"""Picture metrics against hand computations."""
 
 from __future__ import annotations
 

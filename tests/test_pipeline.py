@@ -218,7 +218,7 @@ def test_tracks_carry_the_identity_of_their_targets():
 @pytest.mark.parametrize("offset", [0, 10**12])
 def test_observed_aircraft_joined_in_blocks_equal_the_whole_join(monkeypatch, offset):
     """An on-disk run finds which aircraft had a report aligned at each epoch a block of aligned
-    rows at a time (issue 16, memory), through a table indexed by report id (issue 18, speed)
+    rows at a time (memory), through a table indexed by report id (speed)
     or, with ids too sparse for it (``offset``), a join. With blocks of 3 rows over aligned rows
     that repeat a report (one per radar), cross block edges and include a report without an
     aircraft, one of another run, one whose report is unknown and one of an unknown run, the set

@@ -1,4 +1,4 @@
-"""Per-radar evaluation recovers what the simulator injected (issue 13 item 7)."""
+"""Per-radar evaluation recovers what the simulator injected."""
 
 from __future__ import annotations
 

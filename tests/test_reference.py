@@ -1,4 +1,4 @@
-"""ADS-B reference quality, interpolation limits, and the RTS smoother (issue 13 items 5–6)."""
+"""ADS-B reference quality, interpolation limits, and the RTS smoother."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""The truth's separation intervals from an on-disk reference, a time chunk at a time (issue 18,
-memory: a national day's truth held whole for them peaked at ~16 GB): equal to the whole
+"""The truth's separation intervals from an on-disk reference, a time chunk at a time (memory:
+a national day's truth held whole for them takes ~16 GB): equal to the whole
 truth's, with chunk edges anywhere, irregular sample times, several runs and the segment-end
 rules (level pairs, en-route floor, aerodrome zone) in force."""
 

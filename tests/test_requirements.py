@@ -1,4 +1,4 @@
-"""Requirements TOML, its validation, and verdicts with their confidence (issue 13 item 4)."""
+"""Requirements TOML, its validation, and verdicts with their confidence."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Bad input never crashes (issue 15): one regression test per crash or silent acceptance found
+"""Bad input never crashes: one regression test per crash or silent acceptance found
 by the fuzz campaign in the data contract, the dataset reader, scenario options, the pipeline,
 alignment and the capacity model. Each ends in a clear TertiaryError or in rejects with a reason."""
 

@@ -122,7 +122,7 @@ def test_write_replaces_and_append_appends(tmp_path: Path) -> None:
 
 
 def test_write_files_is_write_of_their_rows_in_order(tmp_path: Path) -> None:
-    """A table written from Parquet files by DuckDB itself (a long truth, issue 18) reads back
+    """A table written from Parquet files by DuckDB itself (a long truth) reads back
     as :meth:`RunStore.write` of the files' rows in file order without the dropped columns, and
     replaces the table; a table with a lean layout rule is refused (written part by part
     instead). Fails if the files are read out of order, a dropped column is kept, or a type
@@ -371,7 +371,7 @@ def test_record_run(tmp_path: Path) -> None:
 
 
 def test_covariances_are_stored_as_float32_upper_triangles_and_read_back_whole(tmp_path):
-    """A lean run database (issue 16 item 5): 21 float32 instead of 36 float64 per matrix."""
+    """A lean run database: 21 float32 instead of 36 float64 per matrix."""
     import numpy as np
     from tertiary.store.run_store import RunStore
     rng = np.random.default_rng(0)

@@ -1,4 +1,4 @@
-"""The lean run database (issue 16 item 5): the run's large tables stored in a lean physical layout
+"""The lean run database: the run's large tables stored in a lean physical layout
 behind views with the old names give every SQL report and every table read-back the same answer
 as the tables stored as given (to float32 round-off where a column is narrowed)."""
 
@@ -292,7 +292,7 @@ def _dump(path: Path) -> dict[str, pl.DataFrame]:
 
 @pytest.mark.parametrize("case", ["fused", "tracks", "aligned"])
 def test_write_parts_equals_write_of_the_whole(tmp_path, case):
-    """A streamed table written window by window (issue 16: the database built part by part)
+    """A streamed table written window by window (the database built part by part)
     is the table written whole: same physical tables, same rows in the same order, same view."""
     if case == "fused":
         whole = _fused_case().sort("epoch", maintain_order=True)     # windows are time slices:

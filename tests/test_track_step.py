@@ -1,4 +1,4 @@
-"""The secondary tracker as a step function (issue 16, docs: notes/stream_contract.md).
+"""The secondary tracker as a step function (docs: notes/stream_contract.md).
 
 Oracle: the whole-run :func:`track_methods` on the same fused pictures. Expected: the windowed
 steps' tracks, concatenated, equal it row for row (same ids, values to 1e-9) for any cut of the

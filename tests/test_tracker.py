@@ -609,7 +609,7 @@ def test_tracks_carry_the_full_six_by_six_covariance():
 @pytest.mark.parametrize("fixture", ["small_terminal", "big_box_runs"])
 def test_best_tracker_beats_its_fused_input(fixture, request):
     """End to end on simulated data: for every fusion method the best tracker's 3-D position
-    RMSE is below that of the fused picture it tracks (issue 12). With the tracker filtering
+    RMSE is below that of the fused picture it tracks. With the tracker filtering
     the fused estimates themselves (before this change), this fixture's big-box gave
     information 22.47 m fused vs 22.76 m for the best tracker and arithmetic 26.62 vs 26.75:
     the test fails on a return to filtering the radars' correlated estimates. The tracker NEES stays near its 3 degrees of

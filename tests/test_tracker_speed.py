@@ -1,4 +1,4 @@
-"""The fast tracker paths give the results of the plain ones (issue 18 item 2).
+"""The fast tracker paths give the results of the plain ones.
 
 * ``track_methods`` folds (method, run) into the batch axis (one epoch loop per filter over every
   method's picture). Oracle: the unfolded path — :func:`track` per method, one filter object
