@@ -126,6 +126,46 @@ def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_data
     assert (tmp_path / "run" / D.SLICES).is_dir() and not (tmp_path / "run" / D.SLICES / D.SCRATCH).exists()
 
 
+def test_a_worker_killed_in_the_middle_of_a_partition_changes_no_table(client, runs_dataset, tmp_path):
+    """A worker process killed (SIGKILL) while it runs a partition: the scheduler gives the
+    partition to a worker again, which rewrites its parts from scratch, and every table equals
+    the local engine's; the partition's recorded worker is not the killed one."""
+    import os
+    import signal
+    import threading
+    import time
+    out: dict[str, object] = {}
+
+    def run() -> None:
+        try:
+            out["db"] = D.run_dask(runs_dataset, tmp_path / "run", CFG, client=client, window_s=WINDOW)
+        except BaseException as exc:            # re-raised in the test's thread below
+            out["error"] = exc
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    killed, deadline = None, time.time() + 120
+    while killed is None and time.time() < deadline and thread.is_alive():
+        busy = {w: keys for w, keys in client.processing().items()
+                if any(str(k).startswith("tertiary-partition-") for k in keys)}
+        if busy:
+            worker = sorted(busy)[0]
+            time.sleep(0.5)                     # inside the partition: it reads, then streams windows
+            killed = client.run(os.getpid, workers=[worker])[worker]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.02)
+    thread.join(timeout=600)
+    assert killed is not None, "no partition was seen running"
+    if "error" in out:
+        raise out["error"]
+    got = _tables(out["db"])
+    want = _tables(pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
+    for name in KEYS:
+        _same(got[name], want[name], name)
+    assert killed not in got["partitions"]["worker_pid"].to_list()
+    client.wait_for_workers(2, timeout=120)     # the nanny's new worker, for the next tests
+
+
 @pytest.fixture(scope="module")
 def long_run(tmp_path_factory):
     path = tmp_path_factory.mktemp("long") / "ds"
