@@ -27,8 +27,10 @@ Reason strings (``<value>`` is the offending value as text, strings quoted)::
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 
@@ -64,6 +66,7 @@ class _Check:
     bad: pl.Expr
     reason: pl.Expr
     context: dict[str, pl.Expr] = field(default_factory=dict)  # whole-frame columns for ``reason``
+    repeat_of: tuple[str, ...] = ()  # a check of rows repeating an earlier row's values of these columns
 
 
 def _orig(name: str) -> str:
@@ -90,19 +93,21 @@ def _column_checks(
 ) -> list[_Check]:
     """Cast, null, finiteness and value checks of one column."""
     dtype = schema.columns[name]
-    col, value = pl.col(name), _as_text(pl.col(_orig(name)), orig)
-    checks = [
-        _Check(
+    col = pl.col(name)
+    cast = orig != dtype      # a column already of its dtype loses nothing (see _cast_frame)
+    checks = []
+    if cast:
+        value = _as_text(pl.col(_orig(name)), orig)
+        checks.append(_Check(
             (name,),
             f"cannot cast to {dtype_label(dtype)}",
             pl.col(_lost(name)),
             pl.format(f"{name}: cannot cast {{}} to {dtype_label(dtype)}", value),
-        )
-    ]
+        ))
     required = name in schema.required
     identifying = required or name in schema.key or name == "report_id"
     if identifying and name not in schema.nullable:
-        null = col.is_null() & ~pl.col(_lost(name))
+        null = col.is_null() & ~pl.col(_lost(name)) if cast else col.is_null()
         checks.append(_Check((name,), "null", null, pl.lit(f"{name}: null")))
     finite = required and schema.finite and dtype.is_float()
     if finite:
@@ -138,13 +143,13 @@ def _radar_check(radars: pl.DataFrame, table: str, rejected: Iterable[int] = ())
 
 
 def _range_check(work: pl.DataFrame, radars: pl.DataFrame, limits: Limits) -> tuple[pl.DataFrame, _Check]:
-    """range_m <= max_range_m x margin of the report's radar (joined as ``__ctx_rmax``)."""
+    """range_m <= max_range_m x margin of the report's radar (null for a radar not in ``radars``)."""
     cap = radars.select(
         pl.col("radar_id").cast(U32, strict=False),
-        (pl.col("max_range_m").cast(F64, strict=False) * limits.range_margin).alias("__ctx_rmax"),
+        (pl.col("max_range_m").cast(F64, strict=False) * limits.range_margin).alias("rmax"),
     ).drop_nulls("radar_id").unique("radar_id", keep="first")
-    work = work.join(cap, on="radar_id", how="left", maintain_order="left")
-    rng, rmax = pl.col("range_m"), pl.col("__ctx_rmax")
+    rng = pl.col("range_m")
+    rmax = pl.col("radar_id").replace_strict(cap["radar_id"], cap["rmax"], default=None, return_dtype=F64)
     return work, _Check(
         ("range_m",),
         f"beyond max_range_m x {limits.range_margin:g} of its radar",
@@ -178,7 +183,8 @@ def table_median_time(frame: pl.DataFrame, limits: Limits = Limits()) -> datetim
     """The median of ``frame``'s times in the configured years: what a time is judged near (a
     table validated in parts is given its whole median)."""
     lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
-    return frame.filter(pl.col("time").is_between(lo, hi, closed="left").fill_null(False))["time"].median()
+    time = frame["time"]
+    return time.filter(time.is_between(lo, hi, closed="left").fill_null(False)).median()
 
 
 def _time_checks(
@@ -215,31 +221,72 @@ _COV_PROBLEMS = {
 }
 
 
+#: matrices checked at a time: the block's 36 entries are rows of contiguous numbers (each step of
+#: the checks is one numpy operation over the block) and its temporaries stay in cache
+_COV_BLOCK = 8_192
+_DIAG = tuple(range(0, 36, 7))
+_PAIRS = tuple((i * 6 + j, j * 6 + i) for i in range(6) for j in range(i + 1, 6))
+
+
 def _cov_codes(cov: pl.Series, limits: Limits) -> NDArray[np.int8]:
     """Per row 0 (a covariance, or NaN/null: left to the align stage) or the _COV_PROBLEMS code."""
     n = len(cov)
     code = np.zeros(n, np.int8)
     if n == 0:
         return code
-    a = cov.to_numpy().reshape(n, 6, 6)
+    a = cov.to_numpy().reshape(n, 36)
+
+    def block(lo: int) -> None:
+        code[lo:lo + _COV_BLOCK] = _cov_block(np.ascontiguousarray(a[lo:lo + _COV_BLOCK].T), limits)
+
+    starts = range(0, n, _COV_BLOCK)
+    workers = min(len(starts), os.cpu_count() or 1, 4)
+    if workers > 1:         # numpy works on a block without the GIL: blocks side by side
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(block, starts))
+    else:
+        for lo in starts:
+            block(lo)
+    return code
+
+
+def _cov_block(flat: NDArray[np.float64], limits: Limits) -> NDArray[np.int8]:
+    """:func:`_cov_codes` of the matrices whose entry (i, j) is row 6·i + j of ``flat``."""
+    m = flat.shape[1]
     with np.errstate(all="ignore"):
-        nan = np.isnan(a).any(axis=(1, 2))
-        inf = np.isinf(a).any(axis=(1, 2)) & ~nan
-        diag = np.diagonal(a, axis1=1, axis2=2)
-        scale = np.abs(diag).max(axis=1)
-        big = ~nan & ~inf & (scale > limits.variance_max)
+        finite = np.isfinite(flat).all(axis=0)
+        nan, inf = np.zeros(m, bool), np.zeros(m, bool)
+        odd = np.flatnonzero(~finite)
+        if len(odd):
+            nan[odd] = np.isnan(flat[:, odd]).any(axis=0)
+            inf[odd] = ~nan[odd]
+        scale = np.abs(flat[_DIAG, :]).max(axis=0)
+        big = finite & (scale > limits.variance_max)
         tol = limits.cov_rel_tol * scale
-        asym = ~nan & ~inf & ~big & (np.abs(a - a.transpose(0, 2, 1)).max(axis=(1, 2)) > tol)
-        test = np.flatnonzero(~nan & ~inf & ~big & ~asym)
-        not_psd = np.zeros(n, bool)
-        for lo in range(0, len(test), 262_144):  # bounded temporaries
-            rows = test[lo:lo + 262_144]
-            sym = 0.5 * (a[rows] + a[rows].transpose(0, 2, 1))
-            if limits.cov_rel_tol >= _PSD_FAST_MIN_TOL:
-                # the eigenvalues only of the matrices a factorisation cannot clear at once
-                sure = _cholesky_ok(sym, 0.5 * tol[rows])
-                rows, sym = rows[~sure], sym[~sure]
-            not_psd[rows] = np.linalg.eigvalsh(sym)[:, 0] < -tol[rows]
+        # the lower triangle of the symmetric part, (P + P^T) / 2 (what the factorisation reads),
+        # and |P - P^T|, largest off the diagonal (0 on it)
+        sym = np.empty_like(flat)
+        skew, diff = np.zeros(m), np.empty(m)
+        for d in _DIAG:
+            sym[d] = 0.5 * (flat[d] + flat[d])
+        for ij, ji in _PAIRS:
+            np.subtract(flat[ij], flat[ji], out=diff)
+            np.maximum(skew, np.abs(diff, out=diff), out=skew)
+            np.add(flat[ji], flat[ij], out=sym[ji])
+            sym[ji] *= 0.5
+        asym = finite & ~big & (skew > tol)
+        test = finite & ~big & ~asym
+        if limits.cov_rel_tol >= _PSD_FAST_MIN_TOL:
+            # the eigenvalues only of the matrices a factorisation cannot clear at once
+            rows = np.flatnonzero(test & ~_cholesky_flat(sym, 0.5 * tol))
+        else:
+            rows = np.flatnonzero(test)
+        not_psd = np.zeros(m, bool)
+        if len(rows):
+            part = np.ascontiguousarray(flat[:, rows].T).reshape(-1, 6, 6)
+            mats = 0.5 * (part + part.transpose(0, 2, 1))
+            not_psd[rows] = np.linalg.eigvalsh(mats)[:, 0] < -tol[rows]
+    code = np.zeros(m, np.int8)
     code[not_psd], code[asym], code[big], code[inf] = 4, 3, 2, 1
     return code
 
@@ -250,18 +297,22 @@ _PSD_FAST_MIN_TOL = 1e-10
 
 
 def _cholesky_ok(sym: NDArray[np.float64], shift: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Per matrix: ``sym + shift·I`` has a Cholesky factor (every pivot > 0), over the batch at
-    once (column by column, numpy over the matrices; ``np.linalg.cholesky`` stops the whole
-    batch at the first failure). A factor means λmin(sym) ≥ −shift − ~1e-13·max|diag| (the
-    factorisation's backward error), so with ``shift`` half the tolerance such a matrix is
-    surely not below −tolerance and its eigenvalues need not be computed (they took 9.5 % of
-    a national hour's windows). False only means "not cleared": the caller computes them."""
+    """Per matrix of ``sym`` (m × k × k): ``sym + shift·I`` has a Cholesky factor (every pivot > 0),
+    over the batch at once (:func:`_cholesky_flat`)."""
     m, k = sym.shape[0], sym.shape[1]
-    # the lower triangle as rows of the batch: every step below is one numpy
-    # operation over all the matrices (a 6×6 factor is ~100 of them)
-    flat = sym.reshape(m, k * k).T
+    return _cholesky_flat(np.ascontiguousarray(sym.reshape(m, k * k).T), shift)
+
+
+def _cholesky_flat(flat: NDArray[np.float64], shift: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Per matrix (entry (i, j) of matrix c at ``flat[i·k + j, c]``): ``sym + shift·I`` has a
+    Cholesky factor (every pivot > 0), column by column with numpy over the matrices
+    (``np.linalg.cholesky`` stops the whole batch at the first failure). A factor means
+    λmin(sym) ≥ −shift − ~1e-13·max|diag| (the factorisation's backward error), so with
+    ``shift`` half the tolerance such a matrix is surely not below −tolerance and its eigenvalues
+    need not be computed. False only means "not cleared": the caller computes them."""
+    k = int(round(np.sqrt(flat.shape[0])))
     low: dict[tuple[int, int], NDArray[np.float64]] = {}
-    ok = np.ones(m, bool)
+    ok = np.ones(flat.shape[1], bool)
     for j in range(k):
         piv = flat[j * k + j] + shift
         for c in range(j):
@@ -335,6 +386,7 @@ def _duplicate_checks(schema: TableSchema, columns: list[str], own_ids: bool) ->
                 "duplicate value",
                 _is_repeat(["report_id"]),
                 pl.format("report_id: duplicate value {}", pl.col("report_id")),
+                repeat_of=("report_id",),
             )
         )
     if schema.key and all(c in columns for c in schema.key):
@@ -349,31 +401,70 @@ def _duplicate_checks(schema: TableSchema, columns: list[str], own_ids: bool) ->
                 _is_repeat(key),
                 pl.format(f"duplicate of {ident} {{}} ({', '.join(key)})", pl.col("__first_id")),
                 {"__first_id": pl.col(ident_col).first().over(key)},
+                repeat_of=schema.key,
             )
         )
     return checks
 
 
-def _split(work: pl.DataFrame, checks: list[_Check]) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """Split into rows passing all checks and flagged rows.
+def _split(work: pl.DataFrame, checks: list[_Check]) -> tuple[pl.Series, pl.DataFrame]:
+    """(mask of the rows failing any check, those rows).
 
-    Flagged rows carry the ``__bad{i}`` masks and the joined ``__reason``;
-    reasons are only formatted for flagged rows.
+    The checks are evaluated once over the whole frame, as boolean columns only; the flagged
+    rows alone are then taken with every column, their ``__bad{i}`` masks and the joined
+    ``__reason`` (reasons are formatted for flagged rows only; a check's ``context`` is
+    computed over the whole frame, for the checks that flag a row).
     """
     names = [f"__bad{i}" for i in range(len(checks))]
-    work = work.with_columns(c.bad.fill_null(False).alias(n) for c, n in zip(checks, names))
-    counts = work.select(pl.col(names).sum()).row(0) if checks else ()
+    none = pl.Series("__flagged", [], dtype=pl.Boolean).extend_constant(False, work.height)
+    if not checks:
+        return none, work.clear().with_columns(pl.lit(None, pl.String).alias("__reason"))
+    masks = work.select(c.bad.fill_null(False).alias(n) for c, n in zip(checks, names))
+    counts = masks.select(pl.col(names).sum()).row(0)
     hit = [(c, n) for c, n, count in zip(checks, names, counts) if count]
     if not hit:
-        no_rows = work.clear().with_columns(pl.lit(None, pl.String).alias("__reason"))
-        return work.drop(names), no_rows
+        return none, work.clear().with_columns(pl.lit(None, pl.String).alias("__reason"))
+    flagged = masks.select(pl.any_horizontal([n for _, n in hit]).alias("__flagged")).to_series()
+    bad = pl.concat([work.filter(flagged), masks.filter(flagged)], how="horizontal")
     context = {k: e for c, _ in hit for k, e in c.context.items()}
-    work = work.with_columns(**context)
-    flagged = pl.any_horizontal(names)
-    good = work.filter(~flagged).drop(*names, *context)
+    if context:
+        bad = pl.concat([bad, work.select(**context).filter(flagged)], how="horizontal")
     reasons = [pl.when(pl.col(n)).then(c.reason) for c, n in hit]
     joined = pl.concat_str(reasons, separator="; ", ignore_nulls=True)
-    return good, work.filter(flagged).with_columns(joined.alias("__reason"))
+    return flagged, bad.with_columns(joined.alias("__reason"))
+
+
+def _occurs_twice(values: pl.Series) -> pl.Series:
+    """Per row: whether its value occurs in more than one row (found in a sorted copy)."""
+    ordered = np.sort(values.to_numpy())
+    twice = np.unique(ordered[1:][ordered[1:] == ordered[:-1]])
+    return values.is_in(pl.Series(twice, dtype=values.dtype).implode())
+
+
+def _split_repeats(work: pl.DataFrame, ok: pl.Series, dups: list[_Check]) -> tuple[pl.Series, pl.DataFrame]:
+    """(mask of the rows of ``work`` that repeat an ``ok`` row's key, those rows): :func:`_split`
+    of the ``ok`` rows by the duplicate checks, on the columns the checks read only."""
+    used = {_IDX}
+    for c in dups:
+        for e in (c.bad, c.reason, *c.context.values()):
+            used.update(e.meta.root_names())
+    keys = work.select(c for c in work.columns if c in used).filter(ok)
+    if dups and all(c.repeat_of for c in dups):
+        # only rows whose key hash occurs twice can repeat a key, and every row of a repeated key
+        # is among them (in order): the checks and their first rows are the same on these rows
+        maybe = pl.repeat(False, keys.height, eager=True)
+        for c in dups:
+            maybe = maybe | _occurs_twice(keys.select(c.repeat_of).hash_rows())
+        keys = keys.filter(maybe)
+    flagged, rep = _split(keys, dups)
+    if rep.height == 0:
+        return flagged.clear().extend_constant(False, work.height), \
+            work.clear().with_columns(pl.lit(None, pl.String).alias("__reason"))
+    mask = np.zeros(work.height, bool)
+    mask[rep[_IDX].to_numpy()] = True
+    rows = pl.Series("__repeat", mask)
+    extra = [c for c in rep.columns if c not in keys.columns or c.startswith(("__bad", "__reason"))]
+    return rows, pl.concat([work.filter(rows), rep.select(extra)], how="horizontal")
 
 
 def _short(value: object, limit: int = 60) -> str:
@@ -440,18 +531,24 @@ def _prepare(frame: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:
 
 
 def _cast_frame(prepared: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:
-    """Cast schema columns, keeping originals and loss masks in ``__`` columns."""
-    work = prepared
+    """Cast schema columns, keeping the originals and loss masks of the cast ones in ``__``
+    columns (a column already of its dtype is its own original and loses nothing)."""
+    columns = []
     for name, dtype in schema.columns.items():
         if name not in prepared.columns:
             continue
-        cast, lost = cast_column(prepared[name], dtype, schema.name)
-        work = work.with_columns(
-            prepared[name].alias(_orig(name)), lost.alias(_lost(name)), cast
-        )
-    if schema.name == "reports":  # a null run is the default run 0
-        default = pl.when(pl.col(_orig("run")).is_null()).then(0).otherwise(pl.col("run"))
-        work = work.with_columns(default.cast(pl.UInt32).alias("run"))
+        src = prepared[name]
+        if src.dtype == dtype:
+            if name == "run":       # the rejects show a null run, the clean rows run 0
+                columns.append(src.alias(_orig(name)))
+            continue
+        cast, lost = cast_column(src, dtype, schema.name)
+        columns += [src.alias(_orig(name)), lost.alias(_lost(name)), cast]
+    work = prepared.with_columns(columns) if columns else prepared
+    if schema.name == "reports" and work[_orig("run")].null_count():  # a null run is the default run 0
+        orig, run = work[_orig("run")], work["run"]
+        default = pl.select(pl.when(orig.is_null()).then(0).otherwise(run).cast(pl.UInt32).alias("run"))
+        work = work.with_columns(default.to_series())
     return work
 
 
@@ -516,6 +613,8 @@ def _unsorted_message(schema: TableSchema, n_bad: int, n_groups: int) -> str:
 def _sort_tracks(clean: pl.DataFrame, schema: TableSchema) -> pl.DataFrame:
     """Sort by ``schema.order`` if times decrease within any group, with a warning."""
     if not schema.order or not all(c in clean.columns for c in schema.order):
+        return clean
+    if clean[schema.order[-1]].is_sorted():      # in time order overall: in time order in every group
         return clean
     n_bad, n_groups = _unsorted(clean, schema)
     if n_bad == 0:
@@ -594,19 +693,23 @@ def validate(
     if radars is not None:
         radars = as_frame(radars, "radars")
     _require(frame, schema)
-    prepared = _prepare(frame, schema)
+    # one copy into contiguous columns: a frame of many chunks (parquet row groups, concatenated
+    # parts) would be copied so by each filter and each expression over it
+    prepared = _prepare(frame.rechunk(), schema)
     checks = _row_checks(prepared, schema, radars, limits, rejected_radars)
     work, more = _context_checks(_cast_frame(prepared, schema), schema, radars, limits, time_window, median_time)
     checks += more
-    ok, bad = _split(work, checks)
+    flagged, bad = _split(work, checks)
     if strict:
         _raise_first(bad, checks, kind)
     own_ids = kind == "reports" and "report_id" in frame.columns
-    dups = _duplicate_checks(schema, ok.columns, own_ids)
-    clean, repeats = _split(ok, dups)
+    dups = _duplicate_checks(schema, work.columns, own_ids)
+    repeated, repeats = _split_repeats(work, ~flagged, dups)
     if strict:
         _raise_first(repeats, dups, kind)
-    clean = _sort_tracks(clean.select(_clean_columns(schema, clean.columns)), schema)
+    keep = ~(flagged | repeated)
+    clean = work.select(_clean_columns(schema, work.columns))
+    clean = _sort_tracks(clean if bad.height + repeats.height == 0 else clean.filter(keep), schema)
     if strict:
         return clean
     rejects = pl.concat([_rejects(bad, prepared), _rejects(repeats, prepared)]).sort(ROW_INDEX)

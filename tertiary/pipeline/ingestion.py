@@ -29,7 +29,7 @@ from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
 
 __all__ = ["Ingested", "StreamedTruth", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
            "truth_lazy", "truth_window", "no_rejects", "registered", "valid_flight_plans", "stage_rejects_table",
-           "TRUTH_PART_ROWS", "TRUTH_BATCH_ROWS"]
+           "TRUTH_PART_ROWS", "TRUTH_WHOLE_ROWS", "TRUTH_BATCH_ROWS"]
 
 
 @dataclass
@@ -71,17 +71,24 @@ def validate_table(frame: pl.DataFrame, kind: str, strict: bool, notes: list[str
     return clean, contract.rejects_table(rejects, kind, "ingest"), rejects
 
 
-#: truth rows validated at a time (whole aircraft) in finalize: the checks copy every column
-#: several times, so a long recording's truth is validated in parts (memory)
+#: truth rows validated at a time (whole aircraft) in finalize when the truth is longer than
+#: TRUTH_WHOLE_ROWS: each part is gathered, validated and put back in input order (memory); a
+#: part's rejects are packed together (a float column holding a NaN anywhere in them is spelt
+#: as text in their details)
 TRUTH_PART_ROWS = 250_000
+#: truth rows validated in one call (its rejects still packed part by part): validation holds
+#: about one copy of the table beside the input, the parts' gathers and reordering cost more
+#: time than the checks
+TRUTH_WHOLE_ROWS = 2_000_000
 
 
 def validate_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """(clean truth, packed rejects): :func:`validate_table` of the whole truth, computed a few
-    aircraft at a time. Every truth check is row-wise or within one aircraft (its key and its
-    order are (truth_id, time)), the table's median time is taken once from the whole and each
-    part carries its rows' input positions, so the clean table (in input order), its rejects
-    and the notes are those of one call on the whole."""
+    """(clean truth, packed rejects): :func:`validate_table` of the whole truth, computed in one
+    call up to TRUTH_WHOLE_ROWS rows and a few aircraft at a time above. Every truth check is
+    row-wise or within one aircraft (its key and its order are (truth_id, time)), the table's
+    median time is taken once from the whole and each part carries its rows' input positions,
+    so the clean table (in input order), its rejects and the notes are those of one call on the
+    whole; a truth longer than TRUTH_PART_ROWS has its rejects packed part by part either way."""
     truth = contract.as_frame(ds.truth, "truth")
     kw = dict(limits=cfg.limits, time_window=window)
     if truth.height == 0:
@@ -96,10 +103,16 @@ def validate_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window) -
     part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
     where = truth.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
                                           maintain_order="left")["__part"]
+    if truth.height <= TRUTH_WHOLE_ROWS:
+        clean, _, raw = validate_table(truth, "truth", False, notes, median_time=med, **kw)
+        return clean, _pack_by_part(raw, where)
     cleans, rejs = [], []
     for k in range(int(part_of["__part"].max()) + 1):
         rows = (where == k).arg_true()
-        part = truth[rows].with_columns(rows.cast(pl.UInt64).alias(contract.INPUT_ROW))
+        # a part of consecutive rows (a truth in aircraft order) is a slice, not a copy
+        run = rows.len() and int(rows[-1]) - int(rows[0]) + 1 == rows.len()
+        part = truth.slice(int(rows[0]), rows.len()) if run else truth[rows]
+        part = part.with_columns(rows.cast(pl.UInt64).alias(contract.INPUT_ROW))
         # the parts' unsorted-time notes are left out: the whole table's is taken below
         clean, rej, _ = validate_table(part, "truth", False, [], median_time=med, **kw)
         cleans.append(clean)
@@ -107,21 +120,34 @@ def validate_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window) -
     del truth, where
     clean = pl.concat(cleans, how="vertical")
     del cleans
-    order = clean[contract.INPUT_ROW].arg_sort()
+    in_order = clean[contract.INPUT_ROW].is_sorted()
+    order = None if in_order else clean[contract.INPUT_ROW].arg_sort()
     clean = clean.drop(contract.INPUT_ROW)
-    # back in input order a column at a time, each source column released once gathered: the
-    # table is never held twice (a whole-frame sort would)
-    gathered = {}
-    for name in clean.columns:
-        gathered[name] = clean[name].gather(order)
-        clean = clean.drop(name)
-    clean = pl.DataFrame(gathered)
-    del gathered
+    if order is not None:
+        # back in input order a column at a time, each source column released once gathered:
+        # the table is never held twice (a whole-frame sort would)
+        gathered = {}
+        for name in clean.columns:
+            gathered[name] = clean[name].gather(order)
+            clean = clean.drop(name)
+        clean = pl.DataFrame(gathered)
+        del gathered
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", contract.UnsortedTimeWarning)
         clean = contract.sort_tracks(clean, "truth")
     notes.extend(str(w.message) for w in caught if issubclass(w.category, contract.UnsortedTimeWarning))
     return clean, pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
+
+
+def _pack_by_part(raw: pl.DataFrame, where: pl.Series) -> pl.DataFrame:
+    """The raw truth rejects packed as :func:`validate_truth`'s parts pack them (``where``: each
+    input row's part), in row order."""
+    if raw.height == 0:
+        return contract.rejects_table(raw, "truth", "ingest")
+    part = where.gather(raw[contract.ROW_INDEX].cast(pl.UInt64))
+    packed = [contract.rejects_table(rows.drop("__part"), "truth", "ingest")
+              for _, rows in raw.with_columns(part.alias("__part")).group_by("__part", maintain_order=True)]
+    return pl.concat(packed, how="vertical_relaxed").sort("row_index", maintain_order=True)
 
 
 #: input truth rows read at a time by :func:`stream_truth` (then split into aircraft parts)
