@@ -1,7 +1,7 @@
 """The run's tables between the windows and the run database: the tables finalize leaves on disk
 (:class:`OnDiskTable`) or reads back late (:class:`DeferredTable`), the sink that writes them
-(:func:`store_sink`; on a thread of its own in finalize: :class:`SinkThread`) and what DuckDB
-can store (:func:`make_storable`)."""
+(:func:`store_sink`; on a thread of its own in finalize: :class:`SinkThread`), the columns each
+``--tables`` mode stores (:data:`LEAN_COLUMNS`) and what DuckDB can store (:func:`make_storable`)."""
 
 from __future__ import annotations
 
@@ -16,18 +16,20 @@ from pathlib import Path
 from typing import Any
 
 import polars as pl
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from tertiary import contract
 from tertiary.core.errors import OptionError
 from tertiary.pipeline.clock import StageClock
 from tertiary.runtime.windows import PARTS, PartStore, prefetched
 from tertiary.runtime.windows import concat_parts
-from tertiary.store.run_store import RunStore
+from tertiary.store.run_store import TABLES_DIR, RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
            "check_tables", "store_sink", "for_sink", "read_table", "table_columns", "whole_table", "target_counts",
-           "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "REPORT_COLUMNS", "ALIGNED_COLUMNS",
-           "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH"]
+           "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
+           "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH"]
 
 
 #: where a run's tables go: a frame whole, or a streamed table part by part (:class:`StreamedTable`)
@@ -202,30 +204,84 @@ def for_sink(parts, name: str, empty: pl.DataFrame) -> "StreamedTable | pl.DataF
     return StreamedTable(lambda: parts.iter_parts(name), parts_files=files)
 
 
-#: where a run's streamed tables go: copied into the database, or kept as Parquet files beside it
-#: with views over them (:meth:`RunStore.register_parquet`)
-TABLE_MODES = ("database", "parquet")
+#: where a run's streamed tables go: copied into the database with the columns its readers read
+#: (:data:`LEAN_COLUMNS`), copied with every column (``full``), or kept as Parquet files beside it
+#: with views over them (:meth:`RunStore.register_parquet`, the columns its readers read)
+TABLE_MODES = ("database", "full", "parquet")
+
+#: the columns ``--tables database`` (and ``parquet``) stores of the per-epoch tables: what the
+#: HTML report (tertiary.report, its alert episodes included) and the named SQL (sql/*.sql) read,
+#: with the keys that join them (``aligned`` takes its report columns from ``reports`` by
+#: ``report_id``; ``associations``, whole, links each report to its system target). The other
+#: columns (covariances, innovations, model probabilities, weights, the measurement columns of
+#: ``fused``, the reports' raw plots and EHS, the conflicts' thresholds ...) are per-epoch detail
+#: no reader of a run reads: ``--tables full`` stores them too. A table not named here is stored
+#: whole; a run whose table lacks a listed column stores the ones it has.
+LEAN_COLUMNS: dict[str, tuple[str, ...]] = {
+    # alert episodes (tertiary.report.episodes): a picture's states around an episode; row_accounting:
+    # its rows; the fused target a track's plots came from (a track picture's link to its method's)
+    "tracks": ("run", "epoch", "track_id", "filter", "method", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps",
+               "alt_m", "alt_rate_mps", "plot_target_id"),
+    "fused": ("run", "epoch", "target_id", "method", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps",
+              "alt_m", "alt_rate_mps"),
+    # radar_accuracy_over_time, row_accounting
+    "aligned": ("run", "epoch", "report_id", "radar_id", "local_track_id", "truth_id", "x_m", "y_m", "z_m"),
+    # radar_kinematics, radar_residuals(_over_time), reports_by_radar, radar_sites, the runs' start
+    # (min(time)), the report_id aligned joins on
+    "reports": ("run", "report_id", "radar_id", "time", "local_track_id", "truth_id", "est_range_m",
+                "est_range_rate_mps", "res_range_m", "res_range_var_m2"),
+    # conflicts, conflict_timeline, alert episodes
+    "conflicts": ("run", "epoch", "method", "id_a", "id_b", "r_min_m", "t_min_s", "dz_m", "alert", "severity"),
+}
+
+
+def lean_columns(tables: str) -> dict[str, tuple[str, ...]]:
+    """The columns mode ``tables`` stores of each table it slims (empty: every column)."""
+    return {} if tables == "full" else LEAN_COLUMNS
 
 
 def check_tables(tables: str, out_dir: str | Path) -> None:
     """``--tables``: a known mode, and a run directory DuckDB's file search path can name."""
     if tables not in TABLE_MODES:
-        raise OptionError(f"choose {' or '.join(TABLE_MODES)}, got {tables!r}", option="--tables")
+        raise OptionError(f"choose database or parquet, or full (every column in the database), got {tables!r}",
+                          option="--tables")
     if tables == "parquet" and "," in str(Path(out_dir).resolve()):
         # the search path is a comma-separated list: the views could not find their files
         raise OptionError("the run directory's path must not contain a comma to register Parquet tables",
                           option="--tables")
 
 
+def _tables_dir(store: RunStore) -> Path:
+    d = store.path.parent / TABLES_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def _slim_copy(src: Path, drop: Collection[str], out: Path) -> Path:
+    """Parquet ``src`` without the ``drop`` columns, written to ``out`` (zstd) with min/max
+    statistics on its non-float columns only: DuckDB's Parquet scan takes ``NOT isnan(x)`` as
+    always true on a row group whose float statistics (which leave NaN out) are finite, and keeps
+    its NaN rows (the named SQL over ``reports`` filter NaN residuals so)."""
+    keep = [c for c in pl.read_parquet_schema(src) if c not in drop]
+    table = pq.read_table(src, columns=keep)
+    stats = [f.name for f in table.schema if not pa.types.is_floating(f.type)]
+    pq.write_table(table, out, compression="zstd", write_statistics=stats)
+    return out
+
+
 def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> Sink:
     """The sink that writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable`
     part by part (:meth:`RunStore.write_parts`), or with ``tables="parquet"`` its window parts
     registered where they are (:meth:`RunStore.register_parquet`) when they are storable as
-    they are."""
+    they are. ``database`` and ``parquet`` store only the :data:`LEAN_COLUMNS` of the tables named
+    there (``parquet``: the parts' read columns copied to Parquet files of their own, which are
+    registered); ``full`` every column."""
     check_tables(tables, store.path.parent)
+    keep = lean_columns(tables)
+
     def storable(frame: pl.DataFrame, name: str) -> pl.DataFrame:
         said: list[str] = []
-        out = make_storable(frame, name, said)
+        out = make_storable(slim(frame, name), name, said)
         notes.extend(n for n in said if n not in notes)      # once per table, not once per window
         return out
 
@@ -233,17 +289,38 @@ def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> S
         # the windows' parts, or files that are exactly the table (the truth's reference files)
         own = (frame.parts_files or frame.files) if isinstance(frame, StreamedTable) else ()
         if tables == "parquet" and own and storable_as_is(own[0], name, frame.drop):
-            store.register_parquet(name, own, frame.drop)
+            gone = {c for f in own for c in unkept(pl.read_parquet_schema(f), name)}   # an empty part has fewer
+            if not gone:
+                store.register_parquet(name, own, frame.drop)
+                return
+            # the read columns only, copied beside the registered tables (the same file system:
+            # registering links them) and registered; the scratch copies' names then go
+            scratch = Path(tempfile.mkdtemp(prefix=f".slim-{name}-", dir=_tables_dir(store)))
+            try:
+                gone_or_dropped = {*frame.drop, *gone}
+                slim_files = [_slim_copy(f, gone_or_dropped, scratch / f"part-{i:06d}.parquet")
+                              for i, f in enumerate(own)]
+                store.register_parquet(name, slim_files)
+            finally:
+                shutil.rmtree(scratch, ignore_errors=True)
             return
         if isinstance(frame, StreamedTable):
             # the files as they are, when no column of theirs needs making storable
-            if (frame.files and storable_as_is(frame.files[0], name, frame.drop)
-                    and store.write_files(name, frame.files, frame.drop)):
+            drop = (*frame.drop, *unkept(pl.read_parquet_schema(frame.files[0]), name)) if frame.files else ()
+            if (frame.files and storable_as_is(frame.files[0], name, drop)
+                    and store.write_files(name, frame.files, drop)):
                 return
             # the next window's part is read while this one is inserted
             store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
         elif frame.width:
             store.write(name, storable(frame, name))
+
+    def unkept(schema: Any, name: str) -> list[str]:
+        return [c for c in schema if name in keep and c not in keep[name]]
+
+    def slim(frame: pl.DataFrame, name: str) -> pl.DataFrame:
+        drop = unkept(frame.schema, name)
+        return frame.drop(drop) if drop else frame
     return sink
 
 

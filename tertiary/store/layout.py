@@ -11,10 +11,18 @@ a column that fails its check is stored as it came:
 ``conflicts`` (already slim: alerts and near pairs only) stays a plain table: tools drop it with
 DROP TABLE to test a run without safety, and float32 would save little there.
 
-* NARROW: float64 columns holding metres / m/s / s-scale quantities, variances, weights and
-  probabilities stored as float32 (7 significant digits: 0.008 m at 100 km, 0.06 m at 1 000 km,
-  3e-5 m/s at 300 m/s, 1e-7 relative on a variance) — far below any radar's metres-scale error;
-  the view casts them back to DOUBLE. Inputs (``reports``, ``truth``) are never narrowed.
+* RESIDUAL: the absolute positions of ``tracks`` and ``fused`` (x, y, z, altitude; the measurement
+  positions of ``fused``) are narrowed to float32 and keep, beside it, their remainder
+  ``<name>__res``: (value − float32 value) in units of 0.1 mm, truncated toward zero (BIGINT,
+  bit-packed into a few bits: ±39 units at 100 km, ±625 at 2 000 km). The view adds it back:
+  within 0.1 mm at any range (float32 alone: up to 4 mm at 100 km, 31 mm at 1 000 km, 62 mm at
+  2 000 km), never further from the value than its float32 (so a reader that casts to FLOAT, as
+  the report's figures do, gets the float32 of the value), for a few bits more than float32.
+* NARROW: float64 columns holding velocities, weights, variances, innovations, NIS and
+  probabilities stored as float32 (7 significant digits: 2e-5 m/s at 300 m/s, 1e-7 relative on
+  a variance) — far below any radar's metres-scale error; the view casts them back to DOUBLE. An
+  altitude stored once per target (``_lean_fused__shared``) is float32 alone: ≤ 0.5 mm below
+  16 384 m. Inputs (``reports``, ``truth``) are never narrowed.
 * fixed-size float arrays (``cov_ut`` FLOAT[21], ``meas_cov``, ``nominal_var``) stored as one
   column per element: each element column is homogeneous in scale, so DuckDB's ALP/ALPRD
   compress it (a FLOAT[21] column interleaves variances and cross terms and barely compresses).
@@ -38,8 +46,9 @@ import duckdb
 import numpy as np
 import polars as pl
 
-__all__ = ["COV_SUFFIX", "LEAN_PREFIX", "compact_covariances", "expand_covariances", "Layout", "lean_layout",
-           "view_sql", "layout_signature", "column_types", "arrow_view", "sql_literal", "quote"]
+__all__ = ["COV_SUFFIX", "LEAN_PREFIX", "RESIDUAL", "RESIDUAL_SUFFIX", "RESIDUAL_UNITS", "compact_covariances",
+           "expand_covariances", "Layout", "lean_layout", "view_sql", "layout_signature", "column_types",
+           "arrow_view", "sql_literal", "quote"]
 
 #: a 6×6 covariance column (row-major Array(Float64, 36)) is stored as its upper triangle
 #: ``<name>_ut`` Array(Float32, 21) — symmetric, so 15 of the 36 doubles are repeats, and float32
@@ -114,6 +123,13 @@ FROM_REPORTS = {"aligned": ("run", "radar_id", "local_track_id", "time", "res_ra
 SHARED = {"fused": (("run", "epoch", "target_id"), "method", "centralized",
                      ("n_sources", "radar_ids", "mode_s", "n_fresh", "age_s", "tentative", "alt_m", "alt_rate_mps",
                       "alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps"))}
+#: narrowed absolute positions stored with their remainder (``<name>__res``, see RESIDUAL above)
+_POSITIONS = ("x_m", "y_m", "z_m", "alt_m")
+RESIDUAL: dict[str, tuple[str, ...]] = {"tracks": _POSITIONS,
+                                        "fused": (*_POSITIONS, "meas_x_m", "meas_y_m", "meas_z_m")}
+RESIDUAL_SUFFIX = "__res"
+#: remainder units per metre (0.1 mm)
+RESIDUAL_UNITS = 10_000
 _DIAG_UT = [0, 6, 11, 15, 18, 20]       # positions of the diagonal in a row-major 6×6 upper triangle
 
 
@@ -174,6 +190,8 @@ def lean_layout(name: str, frame: pl.DataFrame, con: duckdb.DuckDBPyConnection,
         _drop_cov_diag(lay)
     narrow = [c for c in NARROW.get(name, ()) if c in lay.phys.columns and _narrowed(lay.phys.schema[c])]
     lay.phys = lay.phys.with_columns(pl.col(c).cast(_narrowed(lay.phys.schema[c])) for c in narrow)
+    if name in RESIDUAL:
+        _add_residuals(lay, RESIDUAL[name])
     if lay.shared is not None:
         sn = [c for c in narrow if c in lay.shared.columns]
         lay.shared = lay.shared.with_columns(pl.col(c).cast(_narrowed(lay.shared.schema[c])) for c in sn)
@@ -198,6 +216,26 @@ def _split_arrays(lay: Layout) -> None:
             lay.exprs["cov_diag"] = f"CASE WHEN p.{quote(parts[0])} IS NULL THEN NULL ELSE {diag} END"
     if lay.exprs.get("cov_diag", "").startswith("DIAG:"):          # cov_ut kept whole
         lay.exprs["cov_diag"] = "list_select(p.cov_ut, [1, 7, 12, 16, 19, 21])"
+
+
+def _add_residuals(lay: Layout, columns: tuple[str, ...]) -> None:
+    """Each narrowed column of ``columns`` read from the physical table alone gets its remainder
+    ``<name>__res`` = trunc((value − float32 value) · RESIDUAL_UNITS) beside it, 0 where the
+    float32 is not finite (NaN, ±inf, a value beyond float32's range: the float32 as it is), null
+    where the value is null; the view adds it back."""
+    for c in columns:
+        if (c not in lay.orig.columns or lay.orig.schema[c] != pl.Float64 or lay.phys.schema.get(c) != pl.Float32
+                or lay.exprs.get(c) != f"p.{quote(c)}"):
+            continue
+        hi = lay.phys[c].cast(pl.Float64)
+        diff = (lay.orig[c] - hi) * RESIDUAL_UNITS
+        res = pl.select(pl.when(hi.is_finite()).then(diff).otherwise(pl.when(hi.is_null()).then(None)
+                                                                     .otherwise(0.0))
+                        .fill_nan(0.0).cast(pl.Int64).alias(c + RESIDUAL_SUFFIX)).to_series()
+        order = [x for col in lay.phys.columns for x in ((col, res.name) if col == c else (col,))]
+        lay.phys = lay.phys.with_columns(res).select(order)
+        lay.exprs[c] = (f"CAST(p.{quote(c)} AS DOUBLE) + CAST(p.{quote(res.name)} AS DOUBLE) "
+                        f"/ CAST({RESIDUAL_UNITS} AS DOUBLE)")
 
 
 def _drop_cov_diag(lay: Layout) -> None:
