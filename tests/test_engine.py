@@ -159,6 +159,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     monkeypatch.setattr(tables.OnDiskTable, "blocks", counted)
     monkeypatch.setattr(tables, "EVAL_BLOCK_ROWS", 500)        # several blocks per picture
     monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 1_000)      # the truth in parts and batches
+    monkeypatch.setattr(ingestion, "TRUTH_WHOLE_ROWS", 0)
     monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 1_500)
     monkeypatch.setattr(whole_run, "stream_truth", lambda *a, f=ingestion.stream_truth: streamed.append(f(*a))
                         or streamed[-1])
@@ -462,6 +463,7 @@ def test_truth_validated_in_parts_equals_one_call(terminal, monkeypatch):
     results = []
     for rows in (10**9, 700):
         monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", rows)
+        monkeypatch.setattr(ingestion, "TRUTH_WHOLE_ROWS", 10**9 if rows == 10**9 else 0)
         notes: list[str] = []
         clean, rej = ingestion.validate_truth(SimpleNamespace(truth=bad), cfg, notes, window)
         results.append((clean, rej, notes))
@@ -499,9 +501,11 @@ def test_truth_streamed_to_disk_equals_one_call(terminal, monkeypatch, tmp_path,
     window = (terminal.truth["time"].min(), terminal.truth["time"].max(), "the reports' span")
     cfg = pipeline.PipelineConfig()
     monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 10**9)
+    monkeypatch.setattr(ingestion, "TRUTH_WHOLE_ROWS", 10**9)
     notes1: list[str] = []
     clean, rej = ingestion.validate_truth(SimpleNamespace(truth=bad), cfg, notes1, window)
     monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 700)
+    monkeypatch.setattr(ingestion, "TRUTH_WHOLE_ROWS", 0)
     monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 900)
     notes2: list[str] = []
     got = ingestion.stream_truth(SimpleNamespace(truth=pl.scan_parquet(tmp_path / "truth.parquet")), cfg, notes2,

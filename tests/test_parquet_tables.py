@@ -42,6 +42,7 @@ def runs(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         # the truth validated to disk in parts (a long run's path): its reference files registered
         mp.setattr(ingestion, "TRUTH_PART_ROWS", 1_000)
+        mp.setattr(ingestion, "TRUTH_WHOLE_ROWS", 0)
         for mode in pipeline.TABLE_MODES:
             pipeline.run(ds, base / mode, pc, window_s=60.0, tables=mode)
     return base / "database", base / "parquet"
