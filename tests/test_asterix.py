@@ -289,6 +289,7 @@ def test_cli_simulate_import_run_export(tmp_path: Path) -> None:
     r = runner.invoke(app, ["export", "asterix", str(tmp_path / "run-ast"), "--picture", "singer/information",
                             "--out", str(out)])
     assert r.exit_code == 0, r.output
+    assert "I062/500 accuracy not written" in r.output          # a lean run stores no covariances
     back = dataset.import_recordings([out], date="2021-10-07")
     assert back.external_tracks.height > 0 and back.rejects.height == 0
     r = runner.invoke(app, ["export", "asterix", str(tmp_path / "run-ast"), "--picture", "nope/x", "--out", str(out)])

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 import tomllib
 from pathlib import Path
 from typing import Annotated, Optional
 
+import numpy as np
 import polars as pl
 import typer
 from rich.table import Table
 
-from tertiary.cli.common import Steps, console, parse_origin
+from tertiary.cli.common import Steps, console, parse_origin, print_note
 from tertiary.core import geo
 from tertiary.core.errors import DataError, OptionError
 from tertiary.evaluation.external import score_import
@@ -123,9 +123,10 @@ def _picture(run_dir: Path, name: str) -> tuple[pl.DataFrame, tuple[float, float
     if frame.height == 0:
         raise OptionError(f"no picture {name!r} in {run_dir}", option="--picture")
     if kind == "fused":
-        cov = frame["cov"].to_numpy()
-        frame = frame.with_columns(pl.Series("cov_diag", [c[::7] for c in cov], pl.Array(pl.Float64, 6)),
-                                   pl.col("target_id").alias("track_id"))
+        frame = frame.with_columns(pl.col("target_id").alias("track_id"))
+        if "cov" in frame.columns:
+            cov = np.stack(frame["cov"].to_numpy()).reshape(-1, 36)[:, ::7]
+            frame = frame.with_columns(pl.Series("cov_diag", cov, pl.Array(pl.Float64, 6)))
     try:
         text = record.get("scenario_toml", "")
         text = json.loads(text) if text.startswith('"') else text
@@ -158,8 +159,10 @@ def export_asterix(
     t = time.perf_counter()
     n = export_picture(frame, geo.LocalFrame(*origin), out)
     console.print(f"wrote {out} ({n:,} CAT062 records, {out.stat().st_size / 1e6:.2f} MB) in "
-                  f"{time.perf_counter() - t:.1f} s; system origin {origin[0]:.5f}, {origin[1]:.5f}"
-                  + ("" if math.isfinite(origin[2]) else ""), soft_wrap=True)
+                  f"{time.perf_counter() - t:.1f} s; system origin {origin[0]:.5f}, {origin[1]:.5f}", soft_wrap=True)
+    if "cov_diag" not in frame.columns:
+        print_note("I062/500 accuracy not written: the run stored no covariances (run it with --tables full "
+                   "to keep them)")
 
 
 def _export_alerts(run_dir: Path, picture: str, out: Path, run: int) -> None:

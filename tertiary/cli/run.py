@@ -96,9 +96,12 @@ def run(
                                                                          "are discarded, ids stitched in it) "
                                                                          "[default: one window]")] = None,
     tables: Annotated[str, typer.Option("--tables", help="database: copy the streamed tables into "
-                                                          "results.duckdb; parquet: keep them as Parquet in "
-                                                          "RUN_DIR/tables with views over them in the database "
-                                                          "(no copy: long recordings)")] = "database",
+                                                          "results.duckdb, the columns the report and the named "
+                                                          "SQL read; parquet: the same columns kept as Parquet "
+                                                          "in RUN_DIR/tables with views over them (long "
+                                                          "recordings); full: every column (covariances, "
+                                                          "innovations, model probabilities) copied in")
+                  ] = "database",
 ) -> None:
     """The main job: (simulate,) validate, align, associate, fuse, cluster, track, predict conflicts,
     evaluate and store everything in RUN_DIR/results.duckdb, then write RUN_DIR/report.html.

@@ -376,7 +376,8 @@ def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int 
     number (track_id mod 2¹⁶), /070 time of track, /105 WGS-84 and /100 Cartesian position (the
     system frame), /185 velocity, /130 geometric height, /136 flight level (alt_m), /220 rate,
     /080 track status, /060, /380 ADR + ID when the picture carries them, /500 accuracies
-    (σ from ``cov_diag``, clipped to each field's range)."""
+    (σ from ``cov_diag``, clipped to each field's range) when it has them (a lean run does not
+    store them)."""
     s = codec.spec(62).cv_record
     x, y, z = (tracks[c].to_numpy() for c in ("x_m", "y_m", "z_m"))
     lat, lon, h = system.to_geodetic(x, y, z)
@@ -384,7 +385,8 @@ def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int 
     vx, vy, vz = (tracks[c].to_numpy() for c in ("vx_mps", "vy_mps", "vz_mps"))
     _check((np.abs(x) < 2**23 * 0.5) & (np.abs(y) < 2**23 * 0.5), "position beyond ±4 194 km (I062/100)", "tracks")
     _check((np.abs(vx) < 8192) & (np.abs(vy) < 8192), "speed beyond 8 192 m/s (I062/185)", "tracks")
-    cov = np.stack(tracks["cov_diag"].to_numpy()) if tracks.height else np.zeros((0, 6))
+    accuracy = "cov_diag" in tracks.columns
+    cov = np.stack(tracks["cov_diag"].to_numpy()) if tracks.height and accuracy else np.zeros((tracks.height, 6))
     sig = np.sqrt(np.clip(np.nan_to_num(cov, nan=0.0), 0.0, None))
     alt = tracks["alt_m"].fill_null(np.nan).to_numpy() if "alt_m" in tracks.columns else np.full(tracks.height, np.nan)
     col = lambda c: tracks[c].to_list() if c in tracks.columns else [None] * tracks.height  # noqa: E731
@@ -398,11 +400,12 @@ def cat062(tracks: pl.DataFrame, system: geo.LocalFrame, sac: int = 0, sic: int 
             "185": (("VX", float(vx[i])), ("VY", float(vy[i]))), "130": float(h[i] / FT),
             "220": float(np.clip(vz[i] / FT * 60.0, -204800, 204799)),
             "080": (0,),
-            "500": {"APC": (("X", float(min(sig[i, 0], 32767.0))), ("Y", float(min(sig[i, 1], 32767.0)))),
-                    "AGA": float(min(sig[i, 2] / FT, 1593.0)),
-                    "ATV": (("X", float(min(sig[i, 3], 63.75))), ("Y", float(min(sig[i, 4], 63.75)))),
-                    "ARC": float(min(sig[i, 5] / FT * 60.0, 1593.0))},
         }
+        if accuracy:
+            items["500"] = {"APC": (("X", float(min(sig[i, 0], 32767.0))), ("Y", float(min(sig[i, 1], 32767.0)))),
+                            "AGA": float(min(sig[i, 2] / FT, 1593.0)),
+                            "ATV": (("X", float(min(sig[i, 3], 63.75))), ("Y", float(min(sig[i, 4], 63.75)))),
+                            "ARC": float(min(sig[i, 5] / FT * 60.0, 1593.0))}
         if math.isfinite(alt[i]):
             items["136"] = float(alt[i] / FT / 100.0)
         if m3a[i]:
