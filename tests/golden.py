@@ -83,13 +83,17 @@ def compute(work: Path) -> dict[str, dict[str, pl.DataFrame]]:
     write_dataset(ds, path)
     from tertiary.io.dataset import read_dataset
     ds = read_dataset(path)
-    res = {"one_window": run_tables(pipeline.run(ds, work / "one", window_s=None, dataset_label="golden")),
-           "windowed": run_tables(pipeline.run(ds, work / "win", window_s=60.0, dataset_label="golden"))}
+    # every column stored (``full``): the lean modes' columns are a subset, checked equal to these
+    # by the named SQL (tests/test_lean_tables.py)
+    res = {"one_window": run_tables(pipeline.run(ds, work / "one", window_s=None, dataset_label="golden",
+                                                 tables="full")),
+           "windowed": run_tables(pipeline.run(ds, work / "win", window_s=60.0, dataset_label="golden",
+                                               tables="full"))}
     from distributed import Client, LocalCluster
     from tertiary.pipeline import dask_engine as D
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
-        res["dask"] = run_tables(D.run_dask(path, work / "dask", client=client, window_s=60.0))
+        res["dask"] = run_tables(D.run_dask(path, work / "dask", client=client, window_s=60.0, tables="full"))
     return res
 
 
