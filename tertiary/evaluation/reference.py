@@ -46,7 +46,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.sensors import mlat
-from tertiary.sensors.adsb import K95_2D, NACP_EPU95_M
+from tertiary.sensors.adsb import K95_2D, NACP_EPU95_M, REFERENCE_MIN_NACP, REFERENCE_MIN_NIC
 from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.units import FT
@@ -63,9 +63,9 @@ NUCP_HFOM95_M = {9: 3.0, 8: 10.0, 7: 92.6, 6: 185.2, 5: 463.0, 4: 926.0, 3: 1852
 class ReferenceConfig:
     """ADS-B reference settings."""
 
-    min_nacp: int = 8                  # EPU < 0.05 NM
+    min_nacp: int = REFERENCE_MIN_NACP  # EPU < 0.05 NM
     min_nucp: int = 7                  # HFOM < 0.05 NM
-    min_nic: int = 0
+    min_nic: int = REFERENCE_MIN_NIC
     default_epu95_m: float = 30.0      # assumed without declared quality (NACp 9, typical GNSS)
     sigma_alt_m: float = 25 * FT / np.sqrt(12.0)   # 25 ft barometric quantisation
     max_gap_s: float = 10.0            # interpolate only across gaps up to this

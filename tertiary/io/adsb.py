@@ -64,6 +64,7 @@ from numpy.typing import NDArray
 from tertiary.core.errors import DataError
 from tertiary.core.geo import EARTH_RADIUS_M, LocalFrame, ecef_to_geodetic, geodetic_to_ecef, wrap_deg
 from tertiary.core.units import FT, US
+from tertiary.sensors.adsb import REFERENCE_MIN_NACP
 from tertiary.simulate.trajectory import SEG_CLIMB, SEG_DESCENT, SEG_STRAIGHT, SEG_TURN, Trajectories
 
 KT = 1852.0 / 3600.0             #: m/s per knot
@@ -112,7 +113,7 @@ class AdsbCleaning:
     max_excursion_fixes: int = 4
     #: a fix declaring a NACp below this is not a reference (EPU ≥ 0.05 NM below 8); fixes
     #: without a ``nacp`` column or value are kept
-    min_nacp: int = 8
+    min_nacp: int = REFERENCE_MIN_NACP
 
 
 @dataclass

@@ -30,7 +30,8 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["ADSB", "AdsbQuality", "K95_2D", "NACP_EPU95_M", "QUALITY_COLUMNS", "fusion_rejects", "sigma_from_nacp",
+__all__ = ["ADSB", "AdsbQuality", "K95_2D", "NACP_EPU95_M", "QUALITY_COLUMNS", "REFERENCE_MIN_NACP",
+           "REFERENCE_MIN_NIC", "fusion_rejects", "sigma_from_nacp",
            "station_rows"]
 
 #: the ``radars.kind`` of an ADS-B ground station
@@ -42,6 +43,10 @@ NACP_EPU95_M = {11: 3.0, 10: 10.0, 9: 30.0, 8: 92.6, 7: 185.2, 6: 555.6, 5: 926.
                 3: 3704.0, 2: 7408.0, 1: 18520.0}
 #: radial 95 % point of a circular Gaussian in units of its per-axis σ, (ADSB-1)
 K95_2D = float(np.sqrt(-2.0 * np.log(0.05)))
+#: the default quality of an ADS-B point used as the reference (truth): NACp 8 = EPU < 0.05 NM;
+#: NIC not required (:class:`tertiary.evaluation.reference.ReferenceConfig`, the ASTERIX import)
+REFERENCE_MIN_NACP = 8
+REFERENCE_MIN_NIC = 0
 
 
 @dataclass(frozen=True)

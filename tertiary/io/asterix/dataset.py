@@ -14,7 +14,7 @@ from tertiary.contract import TABLES
 from tertiary.io.asterix import importer, plots
 from tertiary.io.asterix.sites import read_sites, write_template
 from tertiary.core.errors import DataError, OptionError
-from tertiary.evaluation.reference import ReferenceConfig
+from tertiary.sensors.adsb import REFERENCE_MIN_NACP, REFERENCE_MIN_NIC
 from tertiary.simulate.config import ScenarioConfig, scenario_toml
 from tertiary.store.run_store import write_parquet_atomic, write_text_atomic
 
@@ -101,12 +101,11 @@ def import_recordings(paths: Sequence[str | Path], sites: str | Path | None = No
     system = geo.LocalFrame(*origin) if origin is not None else None
     truth = tracks = pl.DataFrame()
     if cat021.height and system is not None:
-        ref = ReferenceConfig()
-        truth, rej, counts["truth_below_quality"] = importer.truth_table(cat021, system, day0, ref.min_nacp,
-                                                                         ref.min_nic)
+        truth, rej, counts["truth_below_quality"] = importer.truth_table(cat021, system, day0, REFERENCE_MIN_NACP,
+                                                                         REFERENCE_MIN_NIC)
         rejects += rej
-        notes.append(f"truth (CAT021): the reference keeps points whose I021/090 declares NACp >= {ref.min_nacp}"
-                     f" and NIC >= {ref.min_nic} (ReferenceConfig; points without I021/090 are kept); "
+        notes.append(f"truth (CAT021): the reference keeps points whose I021/090 declares NACp >= "
+                     f"{REFERENCE_MIN_NACP} and NIC >= {REFERENCE_MIN_NIC} (points without I021/090 are kept); "
                      f"{counts['truth_below_quality']:,} point(s) below it went to rejects")
     if truth.height and reports.height:
         reports = label_reports(reports, truth)
