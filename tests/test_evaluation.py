@@ -168,6 +168,29 @@ def test_an_adsb_recording_is_a_reference_with_its_own_error_stated(tmp_path):
     assert sig["metric"].to_list() == ["reference_sigma_h_m"] and 5.0 < sig["value"][0] < 100.0
 
 
+def test_an_adsb_reference_says_its_quality_filter_and_keeps_what_it_dropped(small, tmp_path):
+    """``evaluate --reference adsb``: points declaring NACp below 8 are in the evaluation's
+    ``rejects`` with the reason, and the printed and recorded notes name the filter and the count."""
+    import json
+    from tertiary.simulate.config import builtin_dir
+    from tertiary.store.run_store import RunStore
+    root, _ds, files = small
+    raw = pl.read_parquet(builtin_dir() / "adsb_paris_2021-10-07.parquet")
+    raw = raw.filter(pl.col("icao24").is_in(raw["icao24"].unique().sort().head(6).to_list()))
+    raw = raw.with_columns(pl.when(pl.int_range(pl.len()) % 10 == 3).then(6).otherwise(9).alias("nacp"))
+    raw.write_parquet(tmp_path / "adsb.parquet")
+    res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(tmp_path / "e"),
+                              "--reference", "adsb", "--adsb", str(tmp_path / "adsb.parquet")])
+    assert res.exit_code == 0, res.output
+    with RunStore.open(tmp_path / "e") as store:
+        low = store.sql("SELECT count(*) AS n FROM rejects WHERE reason = "
+                        "'declared quality below the reference bound (NACP 6 < 8)'")["n"][0]
+        notes = json.loads(dict(store.sql("SELECT key, value FROM run").iter_rows())["notes"])
+    assert low > 0.5 * (raw["nacp"] == 6).sum()          # the rest fail the cleaning first (on ground, ...)
+    assert f"NACp >= 8 (else NUCp >= 7) and NIC >= 0; {low:,} point(s) below that quality" in notes[0]
+    assert "NACp >= 8" in " ".join(res.output.split())
+
+
 def test_reference_options_are_checked(small, tmp_path):
     root, _ds, files = small
     res = runner.invoke(app, ["evaluate", str(files[0]), "--dataset", str(root / "ds"), "--out", str(tmp_path / "a"),
