@@ -139,6 +139,25 @@ def test_windowed_evaluation_equals_one_window(terminal):
     assert got.counts == whole.counts
 
 
+def test_stca_curves_predicted_by_the_windows_equal_the_whole_run_prediction(terminal, monkeypatch):
+    """Every point of the STCA curves is predicted window by window (one carried state per
+    setting) and only scored at the end: the curves equal those of the prediction run on the
+    whole picture after the windows. Fails if a setting's state is not carried, if a window's
+    rows are dropped or given to another setting, or if the scoring reads them differently."""
+    cfg = pipeline.PipelineConfig(stca_lookaheads_s=(90.0, 120.0))
+    streamed_rows: list[int] = []
+    monkeypatch.setattr(whole_run, "stca_curves", lambda *a, f=whole_run.stca_curves:
+                        streamed_rows.append(-1 if a[-1] is None else a[-1].height) or f(*a))
+    got = pipeline.process(terminal, cfg, window_s=60.0)
+    monkeypatch.setattr(streaming, "stca_settings", lambda _cfg: ())     # the windows predict no curve
+    end = pipeline.process(terminal, cfg, window_s=60.0)
+    assert streamed_rows[0] > 0 and streamed_rows[1] == -1
+    curve = got.metrics.filter(pl.col("stage") == "safety_tradeoff")
+    assert curve.height == end.metrics.filter(pl.col("stage") == "safety_tradeoff").height > 0
+    assert curve.filter(pl.col("metric") == "nuisance_false_per_hour")["value"].n_unique() > 3
+    _same(got.metrics, end.metrics, "metrics")
+
+
 def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time,
     each in time blocks of whole windows (memory): the same metrics, alerts,
@@ -188,9 +207,9 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     _same(alerts, mem.alerts, "alerts")
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
-    # every tracker picture read back from disk in blocks, for the evaluation and for the curves
-    # (a national day's picture whole was ~10 GB), never whole
-    assert sum(n == "tracks" and how == "blocks" for n, _, how in read) == 2 * 2 * len(cfg.methods)
+    # every tracker picture read back from disk in blocks for the evaluation (a national day's
+    # picture whole was ~10 GB), never whole; the windows predicted the curves
+    assert sum(n == "tracks" and how == "blocks" for n, _, how in read) == 2 * len(cfg.methods)
     assert not any(how == "whole" for _, _, how in read)
     per_picture = pl.DataFrame({"picture": [str(k) for _, k in blocks]}).group_by("picture").len()
     assert per_picture["len"].min() >= 3

@@ -94,6 +94,11 @@ def _build_cases() -> tuple[dict[str, Case], list[int]]:
     tracks = add("track", {"fused": fused}, {"fused": ("epoch", IN)})["tracks"]
     picture = tracks.with_columns(pl.format("{}+{}", "method", "filter").alias("method"))
     conflicts = add("conflicts", {"picture": picture}, {"picture": ("epoch", IN)})["conflicts"]
+    # the curves' stage with points of both threshold families (the run above draws none)
+    stages["stca_curves"] = plan.build_stage("stca_curves", dataclasses.replace(
+        cfg, stca_lookaheads_s=(90.0,), stca_confidences=(0.9,), stca_fixed_m=(300.0,)), ctx)
+    curves = add("stca_curves", {"picture": picture}, {"picture": ("epoch", IN)})["curve_rows"]
+    assert curves["setting"].n_unique() == 2 and curves["alert"].any(), "the curve case screens nothing"
     epochs = picture.select("epoch").unique()
     add("alert_confirmation", {"conflicts": conflicts, "epochs": epochs},
         {"conflicts": ("epoch", IN), "epochs": ("epoch", IN)})

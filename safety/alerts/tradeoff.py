@@ -28,11 +28,15 @@ from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
 from tertiary.core.units import US
 
-__all__ = ["stca_tradeoff", "CURVE_WINDOW_S", "CURVE_WINDOW_ROWS", "CURVE_THREADS", "scored_rows",
-           "compare_at_equal_nuisance", "tradeoff_metrics"]
+__all__ = ["stca_tradeoff", "CURVE_WINDOW_S", "CURVE_WINDOW_ROWS", "CURVE_THREADS", "scored_rows", "curve_settings",
+           "curve_rows", "tradeoff_from_rows", "compare_at_equal_nuisance", "tradeoff_metrics"]
 
-def _settings(base: ConflictConfig, confidences, fixed_est_h_m, lookaheads_s):
-    """(threshold_mode, parameter, ConflictConfig) of every point of the curves."""
+
+def curve_settings(base: ConflictConfig, confidences: Sequence[float], fixed_est_h_m: Sequence[float],
+                   lookaheads_s: Sequence[float]) -> list[tuple[str, float, ConflictConfig]]:
+    """(threshold_mode, parameter, ConflictConfig) of every point of the curves, in curve order:
+    for each look-ahead, the covariance thresholds at each confidence, then the fixed ones at
+    each estimation term (vertical term scaled like ``base``'s fixed pair)."""
     ratio = base.fixed_est_v_m / base.fixed_est_h_m if base.fixed_est_h_m > 0 else 50.0 / 300.0
     t0 = base.t_thr_s - base.t_margin_s
     out = []
@@ -68,16 +72,28 @@ def stca_tradeoff(picture: "pl.DataFrame | Iterable[pl.DataFrame]", id_map: pl.D
     ``spill``: a scratch directory where each setting's predicted rows wait for their scoring
     on disk, so one setting's rows are held at a time; ``picture`` may come as blocks in time
     order (:func:`scored_rows`). Each picture's rows depend on that picture alone."""
+    looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
+    settings = curve_settings(cfg.conflict, confidences, fixed_est_h_m, looks)
+    scored = scored_rows(picture, [cc for _, _, cc in settings], id_col, frame, spill=spill)
+    return tradeoff_from_rows(scored, settings, id_map, truth, cfg, map_id_col or id_col, methods, frame, warning_s,
+                              intervals)
+
+
+def tradeoff_from_rows(scored: Sequence["pl.DataFrame | Callable[[], pl.DataFrame]"],
+                       settings: Sequence[tuple[str, float, ConflictConfig]], id_map: pl.DataFrame,
+                       truth: pl.DataFrame, cfg: AlertConfig, map_id_col: str, methods: list[str] | None,
+                       frame: geo.LocalFrame | None, warning_s: Sequence[float] = (0.0, 30.0, 60.0),
+                       intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
+    """The curves of :func:`stca_tradeoff` from each setting's predicted rows already made
+    (``scored[k]`` of ``settings[k]``: :func:`curve_rows` of the prediction, or a reader of
+    them), e.g. by the pipeline's windows, which predict every setting as the run goes."""
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
-    looks = (cfg.conflict.t_thr_s,) if lookaheads_s is None else tuple(lookaheads_s)
     rows = []
-    settings = _settings(cfg.conflict, confidences, fixed_est_h_m, looks)
-    scored = scored_rows(picture, [cc for _, _, cc in settings], id_col, frame, spill=spill)
     for (mode, par, cc), c in zip(settings, scored):
         c = c() if callable(c) else c         # a spilled setting's rows, read back now
         acfg = dataclasses.replace(cfg, conflict=cc)
-        alerts, los, grid = score_pictures(c, id_map, truth, acfg, map_id_col or id_col, methods, frame, intervals)
+        alerts, los, grid = score_pictures(c, id_map, truth, acfg, map_id_col, methods, frame, intervals)
         per = per_picture(alerts, los, grid)
         for x in warning_s:
             frac = (los.group_by("method").agg(
@@ -110,6 +126,16 @@ CURVE_THREADS = min(2, os.cpu_count() or 1)
 _SCORED_CONFLICT_COLUMNS = ("alert", "run", "method", "epoch", "id_a", "id_b", "r_min_m", "dz_min_m", "t_min_s")
 
 
+def curve_rows(out: pl.DataFrame) -> pl.DataFrame:
+    """What the scoring of a curve point reads of its predicted rows (every screened row,
+    ``slim=False``): the alert rows and one row per (run, method, epoch) for the epoch grid of
+    :func:`~safety.alerts.episodes.picture_grid` — a setting's rows of a long picture are
+    held until scored, so not the rest."""
+    out = out.select([c for c in _SCORED_CONFLICT_COLUMNS if c in out.columns])
+    grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
+    return pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
+
+
 def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence[ConflictConfig], id_col: str,
                 frame: geo.LocalFrame | None, window_s: float | None = None,
                 spill: "str | os.PathLike[str] | None" = None) -> list["pl.DataFrame | Callable[[], pl.DataFrame]"]:
@@ -133,12 +159,6 @@ def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence
     states = [init_conflict_state() for _ in cfgs]
     parts: list[list[pl.DataFrame]] = [[] for _ in cfgs]
 
-    def scored(out: pl.DataFrame) -> pl.DataFrame:
-        # only what the scoring reads (:func:`picture_grid`, alert rows): every setting's rows of
-        # the whole picture are held until scored
-        out = out.select([c for c in _SCORED_CONFLICT_COLUMNS if c in out.columns])
-        grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
-        return pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
     dirs = None if spill is None else [Path(spill) / f"setting-{k:03d}" for k in range(len(cfgs))]
     for d in dirs or ():
         shutil.rmtree(d, ignore_errors=True)
@@ -158,7 +178,7 @@ def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence
                 steps = conflicts_steps(states, block[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
                                         map_=pool.map)
                 states = [state for _, state in steps]
-                for k, rows in enumerate(pool.map(scored, [out for out, _ in steps])):
+                for k, rows in enumerate(pool.map(curve_rows, [out for out, _ in steps])):
                     if dirs is None:
                         parts[k].append(rows)
                     else:

@@ -61,7 +61,7 @@ DEFAULT_OVERLAP_S = 120.0
 #: tables stitched across slice boundaries (their warm-up rows are kept aside for matching)
 STITCHED = ("associations", "fused", "clusters", "tracks")
 #: tables whose rows belong to a slice by epoch (the others by report time)
-EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "conflicts")
+EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "curve_rows")
 #: gate of the positional match of tracks in the overlap (m)
 DEFAULT_GATE_M = 500.0
 SLICES = "slices"
@@ -607,7 +607,7 @@ def _canonical_targets(out: Path, parts: list[Partition], maps: dict[int, dict])
 def relabel_partition(out_dir: str, index: int, maps: dict) -> int:
     """Rewrite a partition's kept parts with the stitched ids (a task; atomic per file)."""
     n = 0
-    for name in ("associations", "fused", "clusters", "tracks", "conflicts"):
+    for name in ("associations", "fused", "clusters", "tracks", "conflicts", "curve_rows"):
         for f in _files(Path(out_dir), index, "kept", name):
             frame = pl.read_parquet(f)
             new = _remap(frame, maps)

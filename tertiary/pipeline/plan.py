@@ -16,13 +16,15 @@ reads).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import Any, ClassVar
 
 import polars as pl
 
 from safety.confirmation import ConfirmState, confirm_step
-from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state
+from safety.alerts.tradeoff import CURVE_THREADS, curve_rows, curve_settings
+from safety.conflicts import ConflictConfig, ConflictState, conflicts_step, conflicts_steps, init_conflict_state
 from tertiary import contract as schema
 from tertiary.core import geo
 from tertiary.core.stage import Stage, Window, check_window
@@ -38,7 +40,7 @@ from tertiary.stages.tracking.tracker import TrackerConfig, init_track_state, tr
 #: the streamed stages the pipeline runs, in pipeline order (one window goes through them in this
 #: order; :func:`tertiary.pipeline.streaming.pipeline_step` steps each through its adapter)
 STAGES: tuple[str, ...] = ("align", "departures", "associate", "fuse", "centralized", "cluster", "track",
-                           "conflicts")
+                           "conflicts", "stca_curves")
 #: stages with the same contract that a run does not step on their own: conflict prediction
 #: confirms its alerts itself; the m-of-n confirmation is a stage for pictures scored alone
 EXTRA_STAGES: tuple[str, ...] = ("alert_confirmation",)
@@ -252,6 +254,57 @@ class ConflictsStage(_Adapter):
 
 
 @dataclass(frozen=True)
+class StcaCurvesStage(_Adapter):
+    """Conflict prediction under every point of the STCA trade-off curves
+    (:func:`safety.alerts.tradeoff.curve_settings`), one carried state per setting: input
+    ``picture`` (as :class:`ConflictsStage`), output ``curve_rows`` — each setting's
+    :func:`~safety.alerts.tradeoff.curve_rows` with its index in ``setting``. The whole-run
+    stage then only scores them."""
+
+    settings: tuple[ConflictConfig, ...]
+    id_col: str
+    origin: geo.LocalFrame
+    name: ClassVar[str] = "stca_curves"
+
+    def init(self) -> tuple[ConflictState, ...]:
+        return tuple(init_conflict_state() for _ in self.settings)
+
+    def step(self, state: tuple[ConflictState, ...], inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], tuple[ConflictState, ...]]:
+        picture = inputs["picture"]
+        check_window(picture, window, table="picture")
+        if not self.settings:
+            return {"curve_rows": empty_curve_rows()}, state
+        # each setting's work is mostly numpy, polars and the KD-tree, outside the GIL
+        with ThreadPoolExecutor(CURVE_THREADS) as pool:
+            steps = conflicts_steps(list(state), picture, list(self.settings), self.id_col, self.origin,
+                                    window.t0_us, window.t1_us, slim=False, map_=pool.map)
+            rows = list(pool.map(curve_rows, [out for out, _ in steps]))
+        out = pl.concat([r.with_columns(pl.lit(k, pl.UInt16).alias("setting")) for k, r in enumerate(rows)],
+                        how="vertical_relaxed")
+        return {"curve_rows": out.select(list(CURVE_ROWS)).cast(CURVE_ROWS)}, tuple(s for _, s in steps)
+
+
+#: the columns of the ``curve_rows`` a run's windows make (:class:`StcaCurvesStage`)
+CURVE_ROWS: dict[str, pl.DataType] = {
+    "setting": pl.UInt16, "run": pl.UInt32, "method": pl.String, "epoch": schema.TIME, "id_a": pl.UInt64,
+    "id_b": pl.UInt64, "alert": pl.Boolean, "r_min_m": pl.Float64, "dz_min_m": pl.Float64, "t_min_s": pl.Float64}
+
+
+def empty_curve_rows() -> pl.DataFrame:
+    return pl.DataFrame(schema=CURVE_ROWS)
+
+
+def stca_settings(cfg: Any) -> tuple[ConflictConfig, ...]:
+    """The conflict configuration of every point of a run's STCA curves (none without safety or
+    without a look-ahead), in :func:`safety.alerts.tradeoff.curve_settings` order."""
+    if not (cfg.safety and cfg.stca_lookaheads_s):
+        return ()
+    return tuple(cc for _, _, cc in curve_settings(cfg.conflicts, cfg.stca_confidences, cfg.stca_fixed_m,
+                                                   cfg.stca_lookaheads_s))
+
+
+@dataclass(frozen=True)
 class AlertConfirmationStage(_Adapter):
     """m-of-n alert confirmation (:func:`safety.confirmation.confirm_step`), one picture epoch
     at a time.
@@ -290,7 +343,7 @@ class AlertConfirmationStage(_Adapter):
 #: the adapter of each name of :data:`STAGES`
 CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, AssociateStage, FuseStage,
                                                   CentralizedStage, ClusterStage, TrackStage, ConflictsStage,
-                                                  AlertConfirmationStage)}
+                                                  StcaCurvesStage, AlertConfirmationStage)}
 
 
 def build_stage(name: str, cfg: Any, context: Any) -> Stage:
@@ -308,6 +361,7 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "cluster": lambda: ClusterStage(cfg.clustering),
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),
+        "stca_curves": lambda: StcaCurvesStage(stca_settings(cfg), safety_id_column(cfg), origin),
         "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
     }
     if name not in builders:

@@ -5,12 +5,14 @@ picture (:func:`stca_curves`)."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import polars as pl
 
 from safety import alerts as safety_alerts
 from safety import conflicts as safety_conflicts
+from safety.alerts.tradeoff import curve_settings, tradeoff_from_rows as curve_from_rows
 from tertiary.core import geo
 from tertiary.core.units import FT, US
 from tertiary.evaluation.evaluate import reference_files
@@ -102,6 +104,18 @@ def note_minima(cc: safety_conflicts.ConflictConfig, notes: list[str]) -> None:
         notes.append(text)
 
 
+def _scored_curves(cfg: PipelineConfig, rows: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
+                   acfg: safety_alerts.AlertConfig, id_col: str, frame: geo.LocalFrame, methods: list[str],
+                   intervals: tuple[pl.DataFrame, pl.DataFrame]) -> pl.DataFrame:
+    """The curves from the windows' ``curve_rows``: each setting's rows scored as
+    :func:`safety.alerts.stca_tradeoff` scores its own predictions."""
+    settings = curve_settings(acfg.conflict, cfg.stca_confidences, cfg.stca_fixed_m, cfg.stca_lookaheads_s)
+    by = rows.partition_by("setting", as_dict=True, include_key=False)
+    empty = rows.clear().drop("setting")
+    scored = [functools.partial(by.pop, (k,), empty) for k in range(len(settings))]   # each released once scored
+    return curve_from_rows(scored, settings, id_map, truth, acfg, id_col, methods, frame, intervals=intervals)
+
+
 #: rows of an on-disk picture the STCA curves read at a time (whole windows)
 CURVE_BLOCK_ROWS = 200_000
 
@@ -109,11 +123,16 @@ CURVE_BLOCK_ROWS = 200_000
 def stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
                 id_map: pl.DataFrame, truth: pl.DataFrame, acfg: safety_alerts.AlertConfig, id_col: str,
                 frame: geo.LocalFrame, methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame],
-                spill: Path | None = None) -> pl.DataFrame:
-    """The STCA trade-off curves of the safety picture: in one call when it is in memory, a
-    picture at a time (read from disk) when the run is on disk — each picture's curve depends
-    on that picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``;
-    ``spill``: scratch for each setting's predicted rows (:func:`safety.stca_tradeoff`)."""
+                spill: Path | None = None, rows: pl.DataFrame | None = None) -> pl.DataFrame:
+    """The STCA trade-off curves of the safety picture. ``rows``: every point's predicted rows
+    as the run's windows made them (``curve_rows``, :class:`~tertiary.pipeline.plan.StcaCurvesStage`):
+    only their scoring is left. Without them the prediction runs here: in one call when the
+    picture is in memory, a picture at a time (read from disk) when the run is on disk — each
+    picture's curve depends on that picture alone. ``intervals``:
+    :func:`safety.alerts.truth_intervals` of ``truth``; ``spill``: scratch for each setting's
+    predicted rows (:func:`safety.stca_tradeoff`)."""
+    if rows is not None:
+        return _scored_curves(cfg, rows, id_map, truth, acfg, id_col, frame, methods, intervals)
     kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,
               fixed_est_h_m=cfg.stca_fixed_m, intervals=intervals, spill=spill)
     on_disk = tracks if id_col == "track_id" else fused

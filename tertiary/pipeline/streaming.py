@@ -1,5 +1,6 @@
 """The streamed stages: every window of a run through ingest → align → associate → fuse (+ the
-centralised reference) → cluster → track → conflicts (:func:`pipeline_step`), each stage's state
+centralised reference) → cluster → track → conflicts → the STCA curves' predictions
+(:func:`pipeline_step`), each stage's state
 carried from window to window (:class:`StreamState`), and the loop over the windows that stores
 each one as it completes (:func:`stream_windows`; :func:`stream` for one slice of a distributed
 run)."""
@@ -25,10 +26,10 @@ from tertiary.evaluation.evaluate import AssociationScore, score_associations
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
-from tertiary.pipeline.ingestion import (Ingested, no_rejects, registered, stage_rejects_table, valid_flight_plans,
-                                         validate_table)
+from tertiary.pipeline.ingestion import (Ingested, no_rejects, registered, stage_rejects_table, truth_lazy,
+                                         valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_picture
-from tertiary.pipeline.plan import build_stages
+from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
@@ -68,6 +69,9 @@ class RunContext:
     #: the declared stages (:data:`tertiary.pipeline.plan.STAGES`) built on this context once it
     #: is final (:func:`stream_windows`)
     stages: dict[str, Stage] = field(default_factory=dict)
+    #: the windows predict every point of the STCA curves (a run with curve settings and a truth
+    #: to score them on)
+    curves: bool = False
 
 
 @dataclass(frozen=True)
@@ -90,6 +94,8 @@ class StreamState:
     #: the association metrics' accumulators; None: not carried (a state from before them, or
     #: the Dask engine's relabelled partitions), so finalize scores the association rows read back
     scores: AssociationScore | None = None
+    #: one conflict prediction state per point of the STCA curves (None: initial)
+    curves: tuple | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -213,14 +219,24 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         picture, _ = safety_picture(cfg, fused, tracks, notes)
         out, s_conf = stages["conflicts"].step(st.conflicts, {"picture": picture}, w)
         conflicts = out["conflicts"]
+    s_curves, curves = st.curves, None
+    if cfg.safety and ctx.curves and "truth_id" in recent.columns:
+        # every point of the trade-off curves predicted as the run goes: the whole-run stage
+        # only scores their rows
+        clock.stage("stca_curves")
+        stage = stages["stca_curves"]
+        out, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": picture}, w)
+        curves = out["curve_rows"]
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
                          if recent.height else rows_in.clear())
     out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
+    if curves is not None:
+        out["curve_rows"] = curves
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores)
+                            s_dep, s_scores, s_curves)
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -302,6 +318,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     if grid_origin_us is not None:
         ctx.grid_origin_us = grid_origin_us
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin) is final
+    ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     st = resume_state or init_stream_state(cfg)
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})

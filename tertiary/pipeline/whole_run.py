@@ -96,6 +96,9 @@ class RunTables:
     scratch: Path | None = None
     on_disk: StreamedTruth | None = None
     scores: AssociationScore | None = None
+    #: every point of the STCA curves as the windows predicted it (:class:`~tertiary.pipeline.plan.StcaCurvesStage`);
+    #: None: not predicted on the way, so the curves predict it here
+    curve_rows: pl.DataFrame | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -210,7 +213,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                              reassignments=st.counts.get("reassignments", 0))
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
-                    getattr(st, "scores", None))
+                    getattr(st, "scores", None), parts.table("curve_rows") if ctx.curves else None)
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -312,7 +315,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         if cfg.stca_lookaheads_s:
             clock.stage("stca_curves")
             curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
-                                None if scratch is None else scratch / "curves")
+                                None if scratch is None else scratch / "curves", run.curve_rows)
             safety_metrics = pl.concat([safety_metrics, safety_alerts.tradeoff_metrics(curve)], how="vertical_relaxed")
     clock.stage("evaluate")
     release_memory()
