@@ -109,9 +109,16 @@ def _same(a: pl.DataFrame, b: pl.DataFrame, name: str) -> None:
 
 
 def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_dataset, tmp_path):
-    db = D.run_dask(runs_dataset, tmp_path / "run", CFG, client=client, window_s=WINDOW)
+    """Every table, the metrics included: the STCA curves, whose points the partitions predict on
+    the workers, equal the local engine's."""
+    cfg = dataclasses.replace(CFG, stca_lookaheads_s=(105.0,))
+    db = D.run_dask(runs_dataset, tmp_path / "run", cfg, client=client, window_s=WINDOW)
     got = _tables(db)
-    want = _tables(pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
+    want = _tables(pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", cfg, window_s=WINDOW))
+    curve = got["metrics"].filter(pl.col("stage") == "safety_tradeoff")
+    assert curve.height and curve.filter(pl.col("metric") == "nuisance_false_per_hour")["value"].max() > 0
+    # predicted by the partitions, not by the client's finalize
+    assert len({f.parent for f in (tmp_path / "run" / D.SLICES).rglob("curve_rows/*.parquet")}) == 2
     # the 3 bad ranges rejected at their rows of the whole input (a null run is run 0: kept)
     assert got["rejects"].filter(pl.col("input_table") == "reports").height >= 3
     # target ids are numbered per run in both engines: identical, not merely one-to-one
