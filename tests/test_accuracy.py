@@ -408,6 +408,45 @@ def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
     assert want["swaps"] > 5 and want["false_targets"] == 2 and want["split_targets"] > 0
 
 
+@pytest.mark.parametrize("cuts", [(7,), (1, 2, 3, 20, 21), tuple(range(1, 40))])
+def test_association_scores_of_time_slices_merge_to_the_whole_run(cuts):
+    """A distributed run scores each time slice apart, with its own target ids: the slices'
+    states, relabelled to the run's ids and merged in time order
+    (:func:`merge_association_scores`), give the whole run's metrics. Fails if a swap across a
+    slice boundary is lost, a target of two slices is counted twice (targets per aircraft,
+    false targets) or a slice's ids are not relabelled."""
+    from tertiary.evaluation.evaluate import (AssociationScore, association_score, merge_association_scores,
+                                              relabel_association_score, score_associations)
+    rng = np.random.default_rng(5)
+    rows, flies = [], {}
+    for run in (0, 1):
+        for k in range(40):
+            for tgt in range(1, 9):
+                if rng.random() < 0.1:
+                    continue
+                if (run, tgt) not in flies or rng.random() < 0.08:
+                    flies[run, tgt] = int(rng.integers(1, 6))
+                for _ in range(int(rng.integers(1, 4))):
+                    u = rng.random()
+                    rows.append((run, k, tgt, flies[run, tgt] if u < 0.7 else int(rng.integers(1, 6)) if u < 0.85
+                                 else None))
+    rows += [(run, k, tgt, 2 if (tgt, k) == (9, 3) else None) for run in (0, 1) for k in range(40) for tgt in (9, 10)]
+    assoc, reports = _assoc_rows(rows)
+    whole = association_metrics(assoc, reports)
+    t, merged = assoc["epoch"], None
+    for i, (lo, hi) in enumerate(zip((0, *cuts), (*cuts, 40))):
+        # each slice numbers its targets its own way: id + 1000 * (slice + 1)
+        block = assoc.filter((t >= _t(lo)) & (t < _t(hi)))
+        local = block.with_columns(pl.col("target_id") + 1000 * (i + 1))
+        state = score_associations(AssociationScore(), local, reports)
+        ids = local.select(pl.col("target_id").alias("old"), block["target_id"].alias("new")).unique()
+        state = relabel_association_score(state, ids)
+        merged = state if merged is None else merge_association_scores(merged, state)
+    from polars.testing import assert_frame_equal
+    assert_frame_equal(association_score(merged), whole)
+    assert _value(whole, "swaps", method="assignment") > 5
+
+
 def test_picture_accuracy_is_one_stage_in_the_metrics_schema():
     truth = _truth(4)
     fused = _fused(truth, {0: (1.0,), 1: (-1.0,), 2: (0.0,)})

@@ -25,6 +25,7 @@ from __future__ import annotations
 import itertools
 import shutil
 from collections.abc import Iterable, Sequence
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -609,6 +610,10 @@ class AssociationScore:
     truths: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema={"run": pl.UInt32, "truth_id": pl.Int64}))
     pairs: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
         schema={"run": pl.UInt32, "truth_id": pl.Int64, "target_id": pl.UInt64}))
+    #: each target's majority aircraft at its first epoch scored here: what a state of the
+    #: time before it compares with its ``last`` when the two are merged (:func:`merge_association_scores`)
+    first: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(
+        schema={"run": pl.UInt32, "target_id": pl.UInt64, "target_truth": pl.Int64}))
 
 
 def _keys(frame: pl.DataFrame, schema: pl.DataFrame) -> pl.DataFrame:
@@ -650,6 +655,8 @@ def score_associations(state: AssociationScore, associations: pl.DataFrame, repo
                             & pl.col("target_truth").is_not_null() & ~pl.col("__old")).fill_null(False).sum()).item())
     ended = seq.group_by(_TARGET).agg(pl.col("target_truth").last()).select(state.last.columns)
     last = pl.concat([state.last.join(ended.select(_TARGET), on=_TARGET, how="anti"), ended])
+    began = (seq.filter(~pl.col("__old")).group_by(_TARGET).agg(pl.col("target_truth").first())
+             .join(state.first, on=_TARGET, how="anti").select(state.first.columns))
     split = real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n")
                                                              ).filter(pl.col("n") > 1).height
     merged = real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height
@@ -663,7 +670,41 @@ def score_associations(state: AssociationScore, associations: pl.DataFrame, repo
         seen=pl.concat([state.seen, _keys(seen, state.seen)]).group_by(_TARGET).agg(pl.col("__real").any())
         .select(state.seen.columns),
         truths=pl.concat([state.truths, _keys(real, state.truths)]).unique(),
-        pairs=pl.concat([state.pairs, _keys(pairs, state.pairs)]).unique())
+        pairs=pl.concat([state.pairs, _keys(pairs, state.pairs)]).unique(),
+        first=pl.concat([state.first, began]))
+
+
+def merge_association_scores(earlier: AssociationScore, later: AssociationScore) -> AssociationScore:
+    """The state of :func:`score_associations` over the epochs of ``earlier`` then those of
+    ``later`` (scored apart, e.g. by two time slices of a distributed run, with the same target
+    ids): the per-epoch counts add up, a target's majority aircraft at its first epoch in
+    ``later`` is compared with its last in ``earlier`` (a swap across the boundary), and the
+    sets are united. Equal to one state scored over both."""
+    prev = earlier.last.join(later.first, on=_TARGET, how="inner", suffix="__b")
+    across = int(prev.select((pl.col("target_truth") != pl.col("target_truth__b")).fill_null(False).sum()).item())
+    last = pl.concat([earlier.last.join(later.last.select(_TARGET), on=_TARGET, how="anti"), later.last])
+    first = pl.concat([earlier.first, later.first.join(earlier.first.select(_TARGET), on=_TARGET, how="anti")])
+    seen = pl.concat([earlier.seen, later.seen]).group_by(_TARGET).agg(pl.col("__real").any())
+    return AssociationScore(
+        rows=earlier.rows + later.rows, correct=earlier.correct + later.correct, real=earlier.real + later.real,
+        swaps=earlier.swaps + later.swaps + across, split=earlier.split + later.split,
+        merged=earlier.merged + later.merged, runs=pl.concat([earlier.runs, later.runs]).unique(), last=last,
+        seen=seen.select(earlier.seen.columns), truths=pl.concat([earlier.truths, later.truths]).unique(),
+        pairs=pl.concat([earlier.pairs, later.pairs]).unique(), first=first)
+
+
+def relabel_association_score(state: AssociationScore, targets: pl.DataFrame) -> AssociationScore:
+    """``state`` with its target ids through ``targets`` (columns ``old``, ``new``; an id not
+    in it is kept): a distributed run's slice scored with its own ids, put in the run's."""
+    if targets.height == 0:
+        return state
+    m = targets.select(pl.col("old").cast(pl.UInt64), pl.col("new").cast(pl.UInt64)).unique("old")
+
+    def ids(frame: pl.DataFrame) -> pl.DataFrame:
+        return (frame.join(m, left_on="target_id", right_on="old", how="left", maintain_order="left")
+                .with_columns(pl.coalesce("new", "target_id").alias("target_id")).select(frame.columns))
+    return dataclasses.replace(state, last=ids(state.last), seen=ids(state.seen), pairs=ids(state.pairs).unique(),
+                               first=ids(state.first))
 
 
 def association_score(state: AssociationScore) -> pl.DataFrame:
@@ -688,7 +729,8 @@ def association_score(state: AssociationScore) -> pl.DataFrame:
     return out.select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
 
 
-__all__ += ["AssociationScore", "score_associations", "association_score"]
+__all__ += ["AssociationScore", "score_associations", "association_score", "merge_association_scores",
+            "relabel_association_score"]
 
 
 __all__ += ["read_pictures"]
