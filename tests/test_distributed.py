@@ -12,6 +12,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.pipeline import dask_engine as D
+from tertiary.pipeline import whole_run
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset, write_dataset
 from tertiary.simulate import load_scenario, simulate
@@ -180,8 +181,10 @@ def long_run(tmp_path_factory):
     return path
 
 
-def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_run, tmp_path):
+def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_run, tmp_path, monkeypatch):
     said: list[str] = []
+    # the association metrics come from the partitions' merged states: no row is read back for them
+    monkeypatch.setattr(whole_run, "scored_blocks", lambda *a: pytest.fail("association rows scored on the client"))
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
                               overlap_s=60.0, progress=said.append)
     # the client's whole-run stages are said as they start, after "finalize"
@@ -194,6 +197,11 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
         _same(got[name], want[name], name)
     # the same reports grouped into the same targets, with one target id each across boundaries
     _target_bijection(got["associations"], want["associations"])
+    # so the association metrics, scored by each slice on its kept span and merged, are the local ones
+    assoc = (pl.col("stage") == "association") & pl.col("metric").is_in(
+        ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets", "merged_targets"])
+    assert got["metrics"].filter(assoc).height == 6
+    _same(got["metrics"].filter(assoc), want["metrics"].filter(assoc), "metrics")
     bounds = sorted(D.parse_utc(x) for x in got["partitions"]["kept_from_utc"].to_list()[1:])
     eff = D.stitching_effects(got, want, bounds)
     assert all(b["id_changed"] == 0 for b in eff["target_id_changes"])

@@ -54,6 +54,7 @@ from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
+from tertiary.evaluation.evaluate import AssociationScore, merge_association_scores, relabel_association_score
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -280,11 +281,12 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
         try:
             reports = partition_input(lf, part, source) if timed else lf.filter(cond)
             sub = dataclasses.replace(ds, reports=reports, truth=pl.DataFrame())
-            ctx, _st = pipeline.stream(sub, cfg, writer, window_s, notes=info["notes"],
-                                       grid_origin_us=grid_origin_us)
+            ctx, st = pipeline.stream(sub, cfg, writer, window_s, notes=info["notes"],
+                                      grid_origin_us=grid_origin_us, scored_span=(part.t0_us, part.t1_us))
         finally:
             source.unlink(missing_ok=True)
         info["radars"] = ctx.radars
+        info["scores"] = st.scores          # the kept span's association metrics, the slice's own ids
     info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
                 peak_rss_mib=round(peak_rss_mib(), 1))
     return info
@@ -702,8 +704,9 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         for k, v in i["counts"].items():
             counts[k] = counts.get(k, 0) + v
         notes.extend(n for n in i["notes"] if n not in notes)
-    # the association metrics are scored from the relabelled rows (a partition's ids are its own)
-    st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts, scores=None)
+    # the association metrics the partitions scored, in the run's ids and merged
+    st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts,
+                             scores=merged_scores(parts, infos, maps))
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
         sink = pipeline.store_sink(store, notes, tables)
@@ -771,6 +774,25 @@ def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pip
         c.gather([c.submit(relabel_partition, out, i, m, pure=False) for i, m in maps.items()])
     timings["relabel_s"] = time.perf_counter() - t
     return [infos[p.index] for p in parts], maps, stitching
+
+
+def merged_scores(parts: list[Partition], infos: list[dict], maps: dict[int, dict]) -> AssociationScore | None:
+    """The association metrics' state of the whole run: each partition's (its kept span, its own
+    target ids) relabelled by the stitching and merged in time order within each run; None when
+    a partition with input has none (the finalize then scores the relabelled rows)."""
+    merged: AssociationScore | None = AssociationScore()
+    order = sorted(range(len(parts)), key=lambda k: (_run_key(parts[k]), parts[k].t0_us))
+    for k in order:
+        p, info = parts[k], infos[k]
+        if not info["n_input"]:
+            continue
+        state = info.get("scores")
+        if state is None:
+            return None
+        targets = maps.get(p.index, {}).get("target")
+        merged = merge_association_scores(merged, state if targets is None else
+                                          relabel_association_score(state, targets))
+    return merged
 
 
 def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.DataFrame, out: Path) -> pl.DataFrame:

@@ -72,6 +72,9 @@ class RunContext:
     #: the windows predict every point of the STCA curves (a run with curve settings and a truth
     #: to score them on)
     curves: bool = False
+    #: the epochs [t0_us, t1_us) whose association rows are scored as the run goes (None: all):
+    #: a time slice of a distributed run scores its kept span, not its warm-up
+    scored_span: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -190,7 +193,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         clock.stage("score_associations")
         # scored as the run goes (evaluation-only labels): finalize does not read the rows back;
         # ``recent`` holds the reports of every row the window associates (as the fusion reads them)
-        s_scores = score_associations(s_scores, associations, recent.select("run", "report_id", "truth_id"))
+        scored = associations
+        if ctx.scored_span is not None and associations.height:
+            e = pl.col("epoch").dt.epoch("us")
+            scored = associations.filter((e >= ctx.scored_span[0]) & (e < ctx.scored_span[1]))
+        s_scores = score_associations(s_scores, scored, recent.select("run", "report_id", "truth_id"))
     clock.stage("fuse")
     rows = aligned.with_columns(associations["target_id"]).sort("run", "epoch", "target_id", "radar_id")
     fresh = recent.join(aligned.filter(pl.col("fresh")).select("run", "report_id"), on=["run", "report_id"],
@@ -284,23 +291,24 @@ def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFr
 
 
 def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEFAULT_WINDOW_S,
-           progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None
-           ) -> tuple[RunContext, StreamState]:
-    """The streamed stages only (ingest → conflicts), window by window into ``parts`` — what one
-    slice of a distributed run does (:mod:`tertiary.pipeline.dask_engine`); ``grid_origin_us`` puts the
-    epochs on a grid given from outside (the whole recording's), not this input's first second.
-    The association metrics are not scored on the way (``StreamState.scores`` None): a slice's
-    ids are its own until stitched, so the finalize scores the relabelled rows."""
+           progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None,
+           scored_span: tuple[int, int] | None = None) -> tuple[RunContext, StreamState]:
+    """The streamed stages only (ingest → the STCA curves), window by window into ``parts`` —
+    what one slice of a distributed run does (:mod:`tertiary.pipeline.dask_engine`);
+    ``grid_origin_us`` puts the epochs on a grid given from outside (the whole recording's), not
+    this input's first second. The association metrics are scored on the way for the epochs of
+    ``scored_span`` (the slice's kept span) with the slice's own ids (``StreamState.scores``:
+    the client relabels and merges them); None: not scored."""
     cfg = adapt_to_scenario(check_config(cfg), ds)
-    start = dataclasses.replace(init_stream_state(cfg), scores=None)
+    start = dataclasses.replace(init_stream_state(cfg), scores=None if scored_span is None else AssociationScore())
     ctx, st, _ = stream_windows(ds, cfg, StageClock(progress or (lambda _m: None)), [] if notes is None else notes,
-                                check_window(window_s), parts, start, 0, grid_origin_us)
+                                check_window(window_s), parts, start, 0, grid_origin_us, scored_span)
     return ctx, st
 
 
 def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
-                   parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None
-                   ) -> tuple[RunContext, StreamState, ReportSource]:
+                   parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None,
+                   scored_span: tuple[int, int] | None = None) -> tuple[RunContext, StreamState, ReportSource]:
     """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
     initial state), each stored in ``parts`` as it completes; the run's context, its last state
     and its report source."""
@@ -319,6 +327,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.grid_origin_us = grid_origin_us
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
+    ctx.scored_span = scored_span
     st = resume_state or init_stream_state(cfg)
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
