@@ -147,7 +147,7 @@ def test_stca_curves_predicted_by_the_windows_equal_the_whole_run_prediction(ter
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(90.0, 120.0))
     streamed_rows: list[int] = []
     monkeypatch.setattr(whole_run, "stca_curves", lambda *a, f=whole_run.stca_curves:
-                        streamed_rows.append(-1 if a[-1] is None else a[-1].height) or f(*a))
+                        streamed_rows.append(-1 if a[-1] is None else a[-1](0).height) or f(*a))
     got = pipeline.process(terminal, cfg, window_s=60.0)
     monkeypatch.setattr(streaming, "stca_settings", lambda _cfg: ())     # the windows predict no curve
     end = pipeline.process(terminal, cfg, window_s=60.0)

@@ -6,6 +6,7 @@ picture (:func:`stca_curves`)."""
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from pathlib import Path
 
 import polars as pl
@@ -104,15 +105,13 @@ def note_minima(cc: safety_conflicts.ConflictConfig, notes: list[str]) -> None:
         notes.append(text)
 
 
-def _scored_curves(cfg: PipelineConfig, rows: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
-                   acfg: safety_alerts.AlertConfig, id_col: str, frame: geo.LocalFrame, methods: list[str],
-                   intervals: tuple[pl.DataFrame, pl.DataFrame]) -> pl.DataFrame:
-    """The curves from the windows' ``curve_rows``: each setting's rows scored as
-    :func:`safety.alerts.stca_tradeoff` scores its own predictions."""
+def _scored_curves(cfg: PipelineConfig, rows: Callable[[int], pl.DataFrame], id_map: pl.DataFrame,
+                   truth: pl.DataFrame, acfg: safety_alerts.AlertConfig, id_col: str, frame: geo.LocalFrame,
+                   methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame]) -> pl.DataFrame:
+    """The curves from the windows' ``curve_rows``, one point's rows read at a time: each scored
+    as :func:`safety.alerts.stca_tradeoff` scores its own predictions."""
     settings = curve_settings(acfg.conflict, cfg.stca_confidences, cfg.stca_fixed_m, cfg.stca_lookaheads_s)
-    by = rows.partition_by("setting", as_dict=True, include_key=False)
-    empty = rows.clear().drop("setting")
-    scored = [functools.partial(by.pop, (k,), empty) for k in range(len(settings))]   # each released once scored
+    scored = [functools.partial(rows, k) for k in range(len(settings))]
     return curve_from_rows(scored, settings, id_map, truth, acfg, id_col, methods, frame, intervals=intervals)
 
 
@@ -123,10 +122,10 @@ CURVE_BLOCK_ROWS = 200_000
 def stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
                 id_map: pl.DataFrame, truth: pl.DataFrame, acfg: safety_alerts.AlertConfig, id_col: str,
                 frame: geo.LocalFrame, methods: list[str], intervals: tuple[pl.DataFrame, pl.DataFrame],
-                spill: Path | None = None, rows: pl.DataFrame | None = None) -> pl.DataFrame:
-    """The STCA trade-off curves of the safety picture. ``rows``: every point's predicted rows
-    as the run's windows made them (``curve_rows``, :class:`~tertiary.pipeline.plan.StcaCurvesStage`):
-    only their scoring is left. Without them the prediction runs here: in one call when the
+                spill: Path | None = None, rows: Callable[[int], pl.DataFrame] | None = None) -> pl.DataFrame:
+    """The STCA trade-off curves of the safety picture. ``rows``: a reader of each point's
+    predicted rows (by its index) as the run's windows made them (``curve_rows``,
+    :class:`~tertiary.pipeline.plan.StcaCurvesStage`): only their scoring is left. Without them the prediction runs here: in one call when the
     picture is in memory, a picture at a time (read from disk) when the run is on disk — each
     picture's curve depends on that picture alone. ``intervals``:
     :func:`safety.alerts.truth_intervals` of ``truth``; ``spill``: scratch for each setting's

@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import polars as pl
@@ -28,6 +29,7 @@ from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_co
 from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, stream_truth, truth_window,
                                          validate_truth)
 from tertiary.pipeline.pictures import safety_names
+from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (association_blocks, association_stage_metrics, observed_aircraft,
                                        score_pictures, scored_blocks)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
@@ -96,9 +98,10 @@ class RunTables:
     scratch: Path | None = None
     on_disk: StreamedTruth | None = None
     scores: AssociationScore | None = None
-    #: every point of the STCA curves as the windows predicted it (:class:`~tertiary.pipeline.plan.StcaCurvesStage`);
-    #: None: not predicted on the way, so the curves predict it here
-    curve_rows: pl.DataFrame | None = None
+    #: a reader of each point's rows of the STCA curves as the windows predicted them (by its
+    #: index: :class:`~tertiary.pipeline.plan.StcaCurvesStage`); None: not predicted on the way,
+    #: so the curves predict them here
+    curve_rows: Callable[[int], pl.DataFrame] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -213,7 +216,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                              reassignments=st.counts.get("reassignments", 0))
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
-                    getattr(st, "scores", None), parts.table("curve_rows") if ctx.curves else None)
+                    getattr(st, "scores", None), curve_reader(parts) if ctx.curves else None)
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -399,6 +402,26 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         aligned = align_stage.empty_aligned()
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
+
+
+def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
+    """A reader of one point's ``curve_rows`` (by its index) from the windows' parts; None when
+    no window wrote any. Parts on disk are read one point at a time: every point's rows of a
+    long run are never held together (memory)."""
+    files = parts.part_files("curve_rows") if hasattr(parts, "part_files") else None
+    if files is not None:
+        if not files:
+            return None
+        return lambda k: (pl.scan_parquet(files).filter(pl.col("setting") == k).drop("setting")
+                          .collect().cast(CURVE_ROWS_SCORED))
+    rows = parts.table("curve_rows")
+    if rows is None:
+        return None
+    return lambda k: rows.filter(pl.col("setting") == k).drop("setting")
+
+
+#: the types of a point's curve rows without its index
+CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
 
 
 def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -> None:
