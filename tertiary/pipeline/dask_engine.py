@@ -54,7 +54,7 @@ from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
-from tertiary.evaluation.evaluate import AssociationScore, merge_association_scores, relabel_association_score
+from tertiary.pipeline.partition_states import merged_scores
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -774,25 +774,6 @@ def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pip
         c.gather([c.submit(relabel_partition, out, i, m, pure=False) for i, m in maps.items()])
     timings["relabel_s"] = time.perf_counter() - t
     return [infos[p.index] for p in parts], maps, stitching
-
-
-def merged_scores(parts: list[Partition], infos: list[dict], maps: dict[int, dict]) -> AssociationScore | None:
-    """The association metrics' state of the whole run: each partition's (its kept span, its own
-    target ids) relabelled by the stitching and merged in time order within each run; None when
-    a partition with input has none (the finalize then scores the relabelled rows)."""
-    merged: AssociationScore | None = AssociationScore()
-    order = sorted(range(len(parts)), key=lambda k: (_run_key(parts[k]), parts[k].t0_us))
-    for k in order:
-        p, info = parts[k], infos[k]
-        if not info["n_input"]:
-            continue
-        state = info.get("scores")
-        if state is None:
-            return None
-        targets = maps.get(p.index, {}).get("target")
-        merged = merge_association_scores(merged, state if targets is None else
-                                          relabel_association_score(state, targets))
-    return merged
 
 
 def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.DataFrame, out: Path) -> pl.DataFrame:

@@ -1,0 +1,33 @@
+"""What the partitions of a distributed run return besides their parts, and how the client
+merges it: each partition's state of a whole-run accumulator, in its own ids, relabelled with
+the stitched ids and merged in time order (:mod:`tertiary.pipeline.dask_engine`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from tertiary.evaluation.evaluate import AssociationScore, merge_association_scores, relabel_association_score
+
+__all__ = ["merged_scores"]
+
+
+def merged_scores(parts: Sequence[Any], infos: Sequence[dict], maps: dict[int, dict]) -> AssociationScore | None:
+    """The association metrics' state of the whole run: each partition's (its kept span, its own
+    target ids) relabelled by the stitching and merged in time order within each run; None when
+    a partition with input has none (the finalize then scores the relabelled rows)."""
+    merged = AssociationScore()
+
+    def when(k: int) -> tuple[int, int]:       # a run's slices in time order
+        return 0 if parts[k].run is None else int(parts[k].run), parts[k].t0_us
+    for k in sorted(range(len(parts)), key=when):
+        p, info = parts[k], infos[k]
+        if not info["n_input"]:
+            continue
+        state = info.get("scores")
+        if state is None:
+            return None
+        targets = maps.get(p.index, {}).get("target")
+        merged = merge_association_scores(merged, state if targets is None else
+                                          relabel_association_score(state, targets))
+    return merged
