@@ -370,16 +370,11 @@ def _association_oracle(rows) -> dict[str, float]:
                                   for key in votes)}
 
 
-@pytest.mark.parametrize("cuts", [(), (7,), (1, 2, 3, 20, 21), tuple(range(1, 40))])
-def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
-    """evaluation accumulators: the association metrics of rows scored a block of
-    epochs at a time (:func:`score_associations`, the pipeline's windows) equal those of the
-    whole run at once, and a brute-force count. Targets change aircraft across the cuts and
-    some epochs are clutter only. Fails if a target's majority aircraft is not carried to the
-    next window (swaps), a target's reports are judged per window (false targets), or a
-    target's aircraft are counted per window (targets per aircraft)."""
-    from tertiary.evaluation.evaluate import AssociationScore, association_score, score_associations
-    rng = np.random.default_rng(11)
+def _random_association_rows(seed: int) -> list[tuple]:
+    """(run, epoch index, target, truth_id or None) of association rows over 40 epochs and two
+    runs: targets change aircraft now and then, some reports are clutter or another aircraft's;
+    target 9 has a real report at epoch 3 only, target 10 never (one false target per run)."""
+    rng = np.random.default_rng(seed)
     rows, flies = [], {}
     for run in (0, 1):
         for k in range(40):
@@ -392,8 +387,20 @@ def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
                     u = rng.random()
                     rows.append((run, k, tgt, flies[run, tgt] if u < 0.7 else int(rng.integers(1, 6)) if u < 0.85
                                  else None))
-    # target 9 has a real report at epoch 3 only, target 10 never: one false target per run
-    rows += [(run, k, tgt, 2 if (tgt, k) == (9, 3) else None) for run in (0, 1) for k in range(40) for tgt in (9, 10)]
+    return rows + [(run, k, tgt, 2 if (tgt, k) == (9, 3) else None)
+                   for run in (0, 1) for k in range(40) for tgt in (9, 10)]
+
+
+@pytest.mark.parametrize("cuts", [(), (7,), (1, 2, 3, 20, 21), tuple(range(1, 40))])
+def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
+    """evaluation accumulators: the association metrics of rows scored a block of
+    epochs at a time (:func:`score_associations`, the pipeline's windows) equal those of the
+    whole run at once, and a brute-force count. Targets change aircraft across the cuts and
+    some epochs are clutter only. Fails if a target's majority aircraft is not carried to the
+    next window (swaps), a target's reports are judged per window (false targets), or a
+    target's aircraft are counted per window (targets per aircraft)."""
+    from tertiary.evaluation.evaluate import AssociationScore, association_score, score_associations
+    rows = _random_association_rows(11)
     assoc, reports = _assoc_rows(rows)
     whole = association_metrics(assoc, reports)
     state, t = AssociationScore(), assoc["epoch"]
@@ -417,20 +424,7 @@ def test_association_scores_of_time_slices_merge_to_the_whole_run(cuts):
     false targets) or a slice's ids are not relabelled."""
     from tertiary.evaluation.evaluate import (AssociationScore, association_score, merge_association_scores,
                                               relabel_association_score, score_associations)
-    rng = np.random.default_rng(5)
-    rows, flies = [], {}
-    for run in (0, 1):
-        for k in range(40):
-            for tgt in range(1, 9):
-                if rng.random() < 0.1:
-                    continue
-                if (run, tgt) not in flies or rng.random() < 0.08:
-                    flies[run, tgt] = int(rng.integers(1, 6))
-                for _ in range(int(rng.integers(1, 4))):
-                    u = rng.random()
-                    rows.append((run, k, tgt, flies[run, tgt] if u < 0.7 else int(rng.integers(1, 6)) if u < 0.85
-                                 else None))
-    rows += [(run, k, tgt, 2 if (tgt, k) == (9, 3) else None) for run in (0, 1) for k in range(40) for tgt in (9, 10)]
+    rows = _random_association_rows(5)
     assoc, reports = _assoc_rows(rows)
     whole = association_metrics(assoc, reports)
     t, merged = assoc["epoch"], None
