@@ -316,7 +316,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         sink("alerts", alerts)
         sink("losses", los)          # each loss of separation per picture, alerted or missed
         if cfg.stca_lookaheads_s:
-            clock.stage("stca_curves")
+            clock.stage("score_curves")   # the points the windows predicted, scored
             curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
                                 None if scratch is None else scratch / "curves", run.curve_rows)
             safety_metrics = pl.concat([safety_metrics, safety_alerts.tradeoff_metrics(curve)], how="vertical_relaxed")
