@@ -79,7 +79,21 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
             # what the partition phase cost beyond the tasks' own work spread over the workers
             "partitions_phase_overhead_s": tm["partitions_s"] - sum(tasks) / workers,
             "stitch_s": tm["stitch_s"], "relabel_s": tm["relabel_s"], "finalize_s": tm["finalize_s"],
-            "plan_s": tm["plan_s"], "stitching": res.stitching.to_dicts(), "db": str(res.db)}
+            "plan_s": tm["plan_s"], "finalize_stages_s": _finalize_stages(res.db), "stitching": res.stitching.to_dicts(),
+            "db": str(res.db)}
+
+
+#: the stages the client runs after the partitions (their times in the run record)
+FINALIZE_STAGES = ("validate", "evaluation", "score_alerts", "score_curves", "stca_curves", "evaluate",
+                   "write_tables")
+
+
+def _finalize_stages(db: Path) -> dict[str, float]:
+    """The client's whole-run stages and their times (s) from the run record."""
+    with RunStore.open(db.parent) as s:
+        run = dict(s.read("run").iter_rows())
+    timings = json.loads(run["timings"])
+    return {k: round(timings[f"{k}_s"], 2) for k in FINALIZE_STAGES if f"{k}_s" in timings}
 
 
 def _estimate(run: dict, n_slices_day: int, workers: int, task_s: float, stitch_per_boundary_s: float,
