@@ -113,7 +113,10 @@ def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_data
     """Every table, the metrics included: the STCA curves, whose points the partitions predict on
     the workers, equal the local engine's."""
     cfg = dataclasses.replace(CFG, stca_lookaheads_s=(105.0,))
-    db = D.run_dask(runs_dataset, tmp_path / "run", cfg, client=client, window_s=WINDOW)
+    import safety.alerts
+    with pytest.MonkeyPatch.context() as mp:     # the client scores the points, it does not predict them
+        mp.setattr(safety.alerts, "stca_tradeoff", lambda *a, **k: pytest.fail("curves predicted on the client"))
+        db = D.run_dask(runs_dataset, tmp_path / "run", cfg, client=client, window_s=WINDOW)
     got = _tables(db)
     want = _tables(pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", cfg, window_s=WINDOW))
     curve = got["metrics"].filter(pl.col("stage") == "safety_tradeoff")

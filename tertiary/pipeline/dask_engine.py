@@ -286,6 +286,7 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
         finally:
             source.unlink(missing_ok=True)
         info["radars"] = ctx.radars
+        info["curves"] = ctx.curves         # the windows predicted the STCA curves' points
         info["scores"] = st.scores          # the kept span's association metrics, the slice's own ids
     info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
                 peak_rss_mib=round(peak_rss_mib(), 1))
@@ -698,7 +699,8 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     say("finalize")
     ds = read_dataset(dataset_dir, lazy=True)
     radars = next((i["radars"] for i in infos if "radars" in i), None)
-    ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0)
+    ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
+                              curves=all(i.get("curves", True) for i in infos if i["n_input"]))
     counts: dict[str, int] = {}
     for i in infos:
         for k, v in i["counts"].items():
