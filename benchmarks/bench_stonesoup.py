@@ -684,7 +684,8 @@ t0, c0 = time.perf_counter(), time.process_time()   # as for Stone Soup: from re
 ds = read_dataset({dataset!r})
 cfg = pipeline.PipelineConfig(methods=("information",), filters=("imm_sym",), centralized={centralized!r})
 import shutil; shutil.rmtree({out!r}, ignore_errors=True)
-db = pipeline.run(ds, {out!r}, cfg)
+# every column stored: the scoring reads each track row's status and the fused plots' fresh count
+db = pipeline.run(ds, {out!r}, cfg, tables="full")
 print(json.dumps({{"reports": ds.reports.height, "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
                   "db": str(db)}}))
 """
@@ -956,6 +957,10 @@ def compare(args, work: Path) -> None:
     ss_out, jobs = work / "eval_stonesoup.parquet", work / "eval_jobs.json"
     if args.rescore:
         ss, te = json.loads(jobs.read_text())
+    elif args.tertiary_only:      # Stone Soup's job of an earlier call kept; tertiary run again, fresh
+        ss = json.loads(jobs.read_text())[0]
+        te = run_tertiary(data, work / "eval_tertiary", args.centralized)
+        jobs.write_text(json.dumps([ss, te]))
     else:
         ss = run_stonesoup(data, ss_out, frozen, None)
         te = run_tertiary(data, work / "eval_tertiary", args.centralized)
@@ -1066,6 +1071,8 @@ def main() -> None:
     ap.add_argument("--gate", type=float, default=1000.0, help="scoring gate, m (horizontal)")
     ap.add_argument("--centralized", action="store_true", help="tertiary also runs the centralised reference")
     ap.add_argument("--rescore", action="store_true", help="compare: re-score the jobs already run in --workdir")
+    ap.add_argument("--tertiary-only", action="store_true",
+                    help="compare: keep the Stone Soup job already run in --workdir, run tertiary again")
     args = ap.parse_args()
     work = args.workdir or Path(tempfile.mkdtemp(prefix="bench_stonesoup_"))
     work.mkdir(parents=True, exist_ok=True)
