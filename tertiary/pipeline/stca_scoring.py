@@ -125,11 +125,11 @@ def stca_curves(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks
                 spill: Path | None = None, rows: Callable[[int], pl.DataFrame] | None = None) -> pl.DataFrame:
     """The STCA trade-off curves of the safety picture. ``rows``: a reader of each point's
     predicted rows (by its index) as the run's windows made them (``curve_rows``,
-    :class:`~tertiary.pipeline.plan.StcaCurvesStage`): only their scoring is left. Without them the prediction runs here: in one call when the
-    picture is in memory, a picture at a time (read from disk) when the run is on disk — each
-    picture's curve depends on that picture alone. ``intervals``:
-    :func:`safety.alerts.truth_intervals` of ``truth``; ``spill``: scratch for each setting's
-    predicted rows (:func:`safety.stca_tradeoff`)."""
+    :class:`~tertiary.pipeline.plan.StcaCurvesStage`): only their scoring is left. Without
+    them the prediction runs here: in one call when the picture is in memory, a picture at a
+    time (read from disk) when the run is on disk — each picture's curve depends on that
+    picture alone. ``intervals``: :func:`safety.alerts.truth_intervals` of ``truth``;
+    ``spill``: scratch for each setting's predicted rows (:func:`safety.stca_tradeoff`)."""
     if rows is not None:
         return _scored_curves(cfg, rows, id_map, truth, acfg, id_col, frame, methods, intervals)
     kw = dict(id_col=id_col, frame=frame, lookaheads_s=cfg.stca_lookaheads_s, confidences=cfg.stca_confidences,

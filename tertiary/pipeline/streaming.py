@@ -94,8 +94,8 @@ class StreamState:
     #: reports kept in ``recent``
     counts: dict[str, Any] = field(default_factory=dict)
     departures: DepartureState | None = None      # None: initial
-    #: the association metrics' accumulators; None: not carried (a state from before them, or
-    #: the Dask engine's relabelled partitions), so finalize scores the association rows read back
+    #: the association metrics' accumulators (a Dask partition's: of its kept span, in its own
+    #: ids); None: not carried, so finalize scores the association rows read back
     scores: AssociationScore | None = None
     #: one conflict prediction state per point of the STCA curves (None: initial)
     curves: tuple | None = None

@@ -6,9 +6,9 @@ its pictures on disk and reads them back one at a time."""
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any
 
 import polars as pl
