@@ -623,10 +623,17 @@ def _keys(frame: pl.DataFrame, schema: pl.DataFrame) -> pl.DataFrame:
 
 def score_associations(state: AssociationScore, associations: pl.DataFrame, report_truth: pl.DataFrame
                        ) -> AssociationScore:
-    """``state`` after the association rows of whole epochs (a window's) are scored;
-    ``report_truth``: (run, report_id, truth_id) of at least their reports."""
+    """``state`` after the association rows of whole epochs (a window's) are scored: the window
+    scored alone, merged after ``state`` (:func:`merge_association_scores`); ``report_truth``:
+    (run, report_id, truth_id) of at least their reports."""
     if associations.is_empty():
         return state
+    return merge_association_scores(state, _window_score(associations, report_truth))
+
+
+def _window_score(associations: pl.DataFrame, report_truth: pl.DataFrame) -> AssociationScore:
+    """The :class:`AssociationScore` of the association rows of whole epochs on their own."""
+    empty = AssociationScore()
     # the columns read, then the join: a long run's associations are not copied whole through it
     keep = [c for c in ("run", "epoch", "target_id", "report_id") if c in associations.columns]
     labelled = _report_truth(associations.select(keep).with_columns(pl.col("epoch").cast(TIME)), report_truth)
@@ -642,36 +649,25 @@ def score_associations(state: AssociationScore, associations: pl.DataFrame, repo
     real = real.join(principal, on=["run", "epoch", "truth_id"], how="left")
     correct = int(real.select(((pl.col("truth_id") == pl.col("target_truth"))
                                & (pl.col("target_id") == pl.col("__principal"))).fill_null(False).sum()).item())
-    # a target's majority aircraft continues from its last epoch of the windows before: the
-    # carried rows of this window's targets go first in each target's sequence
-    now = _keys(maj, state.last).with_columns(maj["epoch"], pl.lit(False).alias("__old"))
-    before = (state.last.join(now.select(_TARGET).unique(), on=_TARGET, how="semi")
-              .with_columns(pl.lit(None, TIME).alias("epoch"), pl.lit(True).alias("__old")))
-    seq = (pl.concat([before.select(now.columns), now])
-           .sort(["run", "target_id", "epoch"], nulls_last=False))
+    # each target's majority aircraft epoch by epoch: a change between two known ones is a swap
+    seq = _keys(maj, empty.last).with_columns(maj["epoch"]).sort(["run", "target_id", "epoch"])
     same = (pl.col("run") == pl.col("run").shift(1)) & (pl.col("target_id") == pl.col("target_id").shift(1))
     prev = pl.when(same).then(pl.col("target_truth").shift(1))
     swaps = int(seq.select(((pl.col("target_truth") != prev) & prev.is_not_null()
-                            & pl.col("target_truth").is_not_null() & ~pl.col("__old")).fill_null(False).sum()).item())
-    ended = seq.group_by(_TARGET).agg(pl.col("target_truth").last()).select(state.last.columns)
-    last = pl.concat([state.last.join(ended.select(_TARGET), on=_TARGET, how="anti"), ended])
-    began = (seq.filter(~pl.col("__old")).group_by(_TARGET).agg(pl.col("target_truth").first())
-             .join(state.first, on=_TARGET, how="anti").select(state.first.columns))
+                            & pl.col("target_truth").is_not_null()).fill_null(False).sum()).item())
+    ends = seq.group_by(_TARGET).agg(pl.col("target_truth").first().alias("__first"),
+                                     pl.col("target_truth").last().alias("target_truth"))
     split = real.group_by(["run", "epoch", "truth_id"]).agg(pl.col("target_id").n_unique().alias("n")
                                                              ).filter(pl.col("n") > 1).height
     merged = real.group_by(_KEY).agg(pl.col("truth_id").n_unique().alias("n")).filter(pl.col("n") > 1).height
     pairs = (maj.filter(pl.col("target_truth").is_not_null())
              .select("run", pl.col("target_truth").alias("truth_id"), "target_id"))
     return AssociationScore(
-        rows=state.rows + associations.height, correct=state.correct + correct, real=state.real + real.height,
-        swaps=state.swaps + swaps, split=state.split + split, merged=state.merged + merged,
-        runs=pl.concat([state.runs, _keys(associations, state.runs)]).unique(),
-        last=last,
-        seen=pl.concat([state.seen, _keys(seen, state.seen)]).group_by(_TARGET).agg(pl.col("__real").any())
-        .select(state.seen.columns),
-        truths=pl.concat([state.truths, _keys(real, state.truths)]).unique(),
-        pairs=pl.concat([state.pairs, _keys(pairs, state.pairs)]).unique(),
-        first=pl.concat([state.first, began]))
+        rows=associations.height, correct=correct, real=real.height, swaps=swaps, split=split, merged=merged,
+        runs=_keys(associations, empty.runs).unique(), last=ends.select(empty.last.columns),
+        seen=_keys(seen, empty.seen), truths=_keys(real, empty.truths).unique(),
+        pairs=_keys(pairs, empty.pairs).unique(),
+        first=ends.select("run", "target_id", pl.col("__first").alias("target_truth")).select(empty.first.columns))
 
 
 def merge_association_scores(earlier: AssociationScore, later: AssociationScore) -> AssociationScore:
