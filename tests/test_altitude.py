@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import polars as pl
 import pymap3d
@@ -9,7 +11,7 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from tertiary.core import geo
-from tertiary.stages.tracking.altitude import (QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks, filter_tracks_carry, geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
+from tertiary.stages.tracking.altitude import (FT_M, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, filter_tracks, filter_tracks_carry, geodetic_channel, geodetic_height_rate, predict, quantisation_variance, update2)
 from tertiary.evaluation.accuracy import error_columns
 from tertiary.simulate.radar import quantum_m, transponder_altitude
 from tertiary.simulate.trajectory import Trajectories
@@ -86,9 +88,10 @@ def _filterpy_imm(t, z, r, cfg):
 
 
 def test_imm_altitude_filter_matches_filterpy_imm():
-    """(A5)–(A9) against filterpy's IMMEstimator: level, climb, level-off, constant interval."""
+    """(A5)–(A9) against filterpy's IMMEstimator: level, climb, level-off, constant interval
+    (the plain IMM: no garble gate, no held replies)."""
     rng = np.random.default_rng(7)
-    cfg = AltitudeConfig(gate_floor_m=1e9, unconfirmed_sigma_m=None)
+    cfg = AltitudeConfig(gate_floor_m=1e9, unconfirmed_sigma_m=None, hold_sigma=0.0)
     t = np.arange(80) * 4.0
     h = np.where(t < 100, 3000.0, np.where(t < 200, 3000.0 + 10.0 * (t - 100), 4000.0))
     z = h + rng.normal(0, 2.2, len(t))
@@ -336,6 +339,8 @@ def _replies(rng: np.random.Generator, n_tracks: int = 200):
     z += rng.normal(0.0, 7.0, n)
     garble = rng.random(n) < 0.03
     z[garble] += rng.choice([-1.0, 1.0], garble.sum()) * rng.uniform(100.0, 3_000.0, garble.sum())
+    low_bit = rng.random(n) < 0.03         # 100 / 200 ft codes: inside the garble gate, held
+    z[low_bit] += rng.choice([-1.0, 1.0], low_bit.sum()) * rng.choice([100.0, 200.0], low_bit.sum()) * FT_M
     z[rng.random(n) < 0.05] = np.nan
     var = quantisation_variance(np.where(rng.random(n) < 0.5, QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
     ident = np.where(rng.random(n) < 0.01, 7, 3)
@@ -348,7 +353,7 @@ def _assert_same_filter(a, b) -> None:
     for f in ("h", "r", "phh", "phr", "prr"):
         np.testing.assert_allclose(getattr(ob, f), getattr(oa, f), rtol=1e-12, atol=1e-9, err_msg=f)
     assert np.array_equal(ha, hb) and np.array_equal(ra, rb)
-    for f in ("models", "mu", "t_last", "ok", "conf", "miss", "last_id", "post", "has"):
+    for f in ("models", "mu", "t_last", "ok", "conf", "miss", "last_id", "post", "has", "held", "held_id"):
         x, y = getattr(ca, f), getattr(cb, f)
         if x.dtype.kind == "f":
             np.testing.assert_allclose(y, x, rtol=1e-12, atol=1e-9, err_msg=f)
@@ -368,6 +373,10 @@ def test_compiled_filter_equals_the_vectorised_reference(cfg):
     got = filter_tracks_carry(t, z, var, starts, lengths, cfg, ident=ident, compiled=True)
     _assert_same_filter(want, got)
     assert want[2].sum() > 20 and (~want[1]).sum() > 0 and not np.isnan(want[0].h).all()   # not vacuous
+    if cfg.model == "imm":          # replies were held and decided both ways
+        without = filter_tracks_carry(t, z, var, starts, lengths, dataclasses.replace(cfg, hold_sigma=0.0),
+                                      ident=ident, compiled=False)
+        assert (np.abs(without[0].h - want[0].h) > 1.0).sum() > 20
     # each track's replies in two calls: the first half, then the rest from the carry
     first = np.maximum(lengths // 2, 1)
     keep = np.concatenate([np.arange(s, s + m) for s, m in zip(starts, first)])
@@ -382,6 +391,53 @@ def test_compiled_filter_equals_the_vectorised_reference(cfg):
                                 init=a[3].take(np.flatnonzero(more)), compiled=compiled)
         np.testing.assert_allclose(b[0].h, want[0].h[rest], rtol=1e-12, atol=1e-9)
         assert np.array_equal(b[1], want[1][rest])
+
+
+
+def _level_with_garbles(garble_ft: float, scan_s: float = 8.0):
+    """A level Mode S aircraft at FL391 seen every ``scan_s``, one reply of which carries a code
+    ``garble_ft`` low (a low bit flipped), and the filter's estimate of every row."""
+    t = np.arange(40) * scan_s
+    z = np.full(len(t), 11_925.3)
+    z[25] -= garble_ft * FT_M
+    var = np.full(len(t), float(quantisation_variance(QUANTUM_MODE_S_M)))
+    return t, z, var
+
+
+@pytest.mark.parametrize("garble_ft", [100.0, 200.0])
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_low_bit_garble_does_not_start_a_descent(garble_ft, compiled):
+    """One garbled reply inside the garble gate of a level aircraft is held, then dropped when
+    the next reply is level again: the rate stays at zero and the height at the level. Without
+    the hold (``hold_sigma=0``) the same reply gives a 4–10 m/s phantom descent, which a
+    conflict probe extrapolates by ~0.5–1 km over its look-ahead."""
+    t, z, var = _level_with_garbles(garble_ft)
+    one = (np.array([0]), np.array([len(t)]))
+    est, has, rej = filter_tracks_carry(t, z, var, *one, AltitudeConfig(), compiled=compiled)[:3]
+    assert has[5:].all() and not rej.any()            # inside the garble gate: not a "garble" to it
+    assert np.abs(est.r[20:]).max() < 0.2
+    assert np.abs(est.h[20:] - 11_925.3).max() < 2.0
+    old = filter_tracks_carry(t, z, var, *one, AltitudeConfig(hold_sigma=0.0), compiled=compiled)[0]
+    assert old.r[25] < -3.0                            # what the hold removes
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_real_descent_starts_one_reply_later(compiled):
+    """A descent at 10 m/s from level flight: the first reply off the level is held, the second
+    confirms it, and both are applied — the estimate then follows as without the hold."""
+    t = np.arange(60) * 4.0
+    h = np.where(t < 100.0, 9_000.0, 9_000.0 - 10.0 * (t - 100.0))
+    rng = np.random.default_rng(3)
+    z = np.round((h + rng.normal(0.0, 1.0, len(t))) / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    var = np.full(len(t), float(quantisation_variance(QUANTUM_MODE_S_M)))
+    one = (np.array([0]), np.array([len(t)]))
+    est = filter_tracks_carry(t, z, var, *one, AltitudeConfig(), compiled=compiled)[0]
+    free = filter_tracks_carry(t, z, var, *one, AltitudeConfig(hold_sigma=0.0), compiled=compiled)[0]
+    late = t >= 140.0                                  # 40 s into the descent
+    np.testing.assert_allclose(est.r[late], -10.0, atol=1.0)
+    np.testing.assert_allclose(est.h[late], free.h[late], atol=5.0)
+    onset = int(np.argmax(np.abs(free.r) > 2.0))      # the first row the free filter sees the descent at
+    assert abs(est.r[onset]) < abs(free.r[onset]) and abs(est.r[onset + 1]) > 2.0
 
 
 # --------------------------------------------------------------------------- extrapolation of the IMM's estimate

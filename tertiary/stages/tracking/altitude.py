@@ -35,6 +35,16 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
        x = Σ_j μ_j x_j,  P = Σ_j μ_j [P_j + (x_j − x)(x_j − x)ᵀ]  (the reported channel)   (A9)
 
    The garble gate uses the combined prediction; a rejected or missing reply leaves μ = c.
+
+   **Held replies.** A garbled code one low bit off (100 or 200 ft) passes the garble gate of a
+   level aircraft, and the manoeuvre model then turns that one reply into a climb or descent of
+   5–10 m/s, which a conflict probe extrapolates by half a kilometre over its look-ahead. A
+   confirmed filter in level flight (c_level ≥ ½) therefore holds a reply that it would accept
+   but that lies beyond ``hold_sigma`` of the level model's prediction: the row outputs the
+   prediction, and the next reply decides. Within ``hold_sigma`` of the level prediction, it
+   says the aircraft is still level and the held reply is dropped as a garble; otherwise the
+   held reply is applied at its own time and then the new one. A real climb or descent
+   therefore starts in the estimate one reply later. A garble does not start one at all.
 2. **Geodetic height** of an ENU state (elevation-based, the fallback for targets without
    Mode C): h = height above the WGS-84 ellipsoid of the point, ḣ = n̂·v with n̂ the
    ellipsoid normal at the target; variances from the position–velocity covariance along
@@ -88,6 +98,8 @@ class AltitudeConfig:
     * ``v0_sigma_mps``: initial ḣ standard deviation (one-point initiation at ḣ = 0).
     * ``gate_sigma``, ``gate_floor_m``: garble gate |ν| ≤ g·√S + f.
     * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
+    * ``hold_sigma``: the manoeuvre-onset hold of the IMM (module docstring, "Held replies");
+      0 disables it.
     * ``unconfirmed_sigma_m``: a filter not yet confirmed by a second consistent reply is output
       with at least this height σ (and its initial rate σ), so that any confirmed channel of
       another source wins (minimum variance) but a lone reply still beats the elevation-based
@@ -105,6 +117,7 @@ class AltitudeConfig:
     gate_sigma: float = 5.0
     gate_floor_m: float = 45.0
     max_rejects: int = 2
+    hold_sigma: float = 3.0
 
     def __post_init__(self) -> None:
         if self.model not in ("imm", "cv"):
@@ -113,6 +126,8 @@ class AltitudeConfig:
                 and self.gate_floor_m >= 0 and self.level_sojourn_s > 0 and self.manoeuvre_sojourn_s > 0):
             raise ValueError("altitude filter: q_m2ps3, q_level_m2ps3, sojourn times, v0_sigma_mps, gate_sigma "
                              "must be > 0, gate_floor_m >= 0")
+        if not self.hold_sigma >= 0:
+            raise ValueError(f"altitude filter: hold_sigma must be >= 0, got {self.hold_sigma}")
         if self.max_rejects < 1:
             raise ValueError("altitude filter: max_rejects must be >= 1")
 
@@ -266,8 +281,9 @@ class FilterCarry:
     state ``models[j]`` (5, k) = (h, ḣ, P_hh, P_hḣ, P_ḣḣ), the model probabilities ``mu``
     (n_models, k), the last reply time ``t_last`` (k,) (seconds on the caller's time base),
     ``ok`` (running), ``conf`` (confirmed), ``miss`` (consecutive garbles), ``last_id`` (the
-    last identity seen, −1 none), and the output after the last reply: ``post`` (5, k) and
-    ``has`` (k,)."""
+    last identity seen, −1 none), the output after the last reply: ``post`` (5, k) and
+    ``has`` (k,), and a reply held for the next one's verdict: ``held`` (3, k) = (t, z, R), NaN
+    none, with its identity ``held_id``."""
 
     models: F64
     mu: F64
@@ -278,6 +294,8 @@ class FilterCarry:
     last_id: NDArray[np.int64]
     post: F64
     has: NDArray[np.bool_]
+    held: F64
+    held_id: NDArray[np.int64]
 
     @staticmethod
     def fresh(k: int, cfg: AltitudeConfig = AltitudeConfig()) -> "FilterCarry":
@@ -285,7 +303,8 @@ class FilterCarry:
         nm = len(_models(cfg)[0])
         return FilterCarry(np.full((nm, 5, k), np.nan), np.full((nm, k), 1.0 / nm), np.zeros(k),
                            np.zeros(k, bool), np.zeros(k, bool), np.zeros(k, np.int64), np.full(k, -1, np.int64),
-                           np.full((5, k), np.nan), np.zeros(k, bool))
+                           np.full((5, k), np.nan), np.zeros(k, bool), np.full((3, k), np.nan),
+                           np.full(k, -1, np.int64))
 
     def columns(self) -> dict[str, NDArray]:
         """Flat named columns (k values each), e.g. for a polars frame keyed by track."""
@@ -296,6 +315,8 @@ class FilterCarry:
         out.update(af_t_last=self.t_last, af_ok=self.ok, af_conf=self.conf, af_miss=self.miss,
                    af_last_id=self.last_id, af_has=self.has)
         out.update({f"af_post_{f}": self.post[i] for i, f in enumerate(_FIELDS)})
+        out.update({f"af_held_{f}": self.held[i] for i, f in enumerate(_HELD)})
+        out["af_held_id"] = self.held_id
         return out
 
     @staticmethod
@@ -308,14 +329,17 @@ class FilterCarry:
             np.stack([f64(f"af_mu{j}") for j in range(nm)]), f64("af_t_last"),
             np.asarray(cols["af_ok"], bool), np.asarray(cols["af_conf"], bool),
             np.asarray(cols["af_miss"], np.int64), np.asarray(cols["af_last_id"], np.int64),
-            np.stack([f64(f"af_post_{f}") for f in _FIELDS]), np.asarray(cols["af_has"], bool))
+            np.stack([f64(f"af_post_{f}") for f in _FIELDS]), np.asarray(cols["af_has"], bool),
+            np.stack([f64(f"af_held_{f}") for f in _HELD]), np.asarray(cols["af_held_id"], np.int64))
 
     def take(self, idx: NDArray) -> "FilterCarry":
         return FilterCarry(self.models[:, :, idx], self.mu[:, idx], self.t_last[idx], self.ok[idx], self.conf[idx],
-                           self.miss[idx], self.last_id[idx], self.post[:, idx], self.has[idx])
+                           self.miss[idx], self.last_id[idx], self.post[:, idx], self.has[idx], self.held[:, idx],
+                           self.held_id[idx])
 
 
 _FIELDS = ("h", "r", "phh", "phr", "prr")
+_HELD = ("t", "z", "var")
 
 
 def _as_state(a: F64) -> AltState:
@@ -376,37 +400,66 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
     conf = c0.conf.copy()
     ids = np.full(n, -1, np.int64) if ident is None else np.asarray(ident, np.int64)
     last_id = c0.last_id.copy()
-    alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
-    for k, m in enumerate(alive):
-        idx = st[:m] + k
-        zk, vk, tk = z[idx], var[idx], t[idx]
+    held, held_id = c0.held.copy(), c0.held_id.copy()
+    holding = cfg.hold_sigma > 0 and nm == 2
+
+    def step(sel, zk, vk, tk, idk, last_pass):
+        """One reply per track of ``sel`` (positions in the sorted order); what the row records."""
         valid = np.isfinite(zk)
-        models = [c.take(slice(0, m)) for c in cur]
-        preds, c = _mix_predict(models, mu[:, :m], tk - t_last[:m], qs, sojourn)
+        models = [c.take(sel) for c in cur]
+        preds, c = _mix_predict(models, mu[:, sel], tk - t_last[sel], qs, sojourn)
         upd, mu_u, u = _update_models(preds, c, np.where(valid, zk, 0.0), vk)
         s = _mix(preds, list(c))                                  # combined prediction
         nu, sv = np.where(valid, zk, 0.0) - s.h, s.phh + vk
         inside = np.abs(nu) <= cfg.gate_sigma * np.sqrt(np.maximum(sv, 0.0)) + cfg.gate_floor_m
-        run = ok[:m]
-        idk = ids[idx]
-        swapped = valid & run & (idk >= 0) & (last_id[:m] >= 0) & (idk != last_id[:m])   # another aircraft
-        last_id[:m] = np.where(valid & (idk >= 0), idk, last_id[:m])
+        run = ok[sel]
+        swapped = valid & run & (idk >= 0) & (last_id[sel] >= 0) & (idk != last_id[sel])   # another aircraft
+        last_id[sel] = np.where(valid & (idk >= 0), idk, last_id[sel])
         accept = run & valid & inside & ~swapped
         bad = run & valid & ~inside & ~swapped
-        miss[:m] = np.where(accept, 0, np.where(bad, miss[:m] + 1, miss[:m]))
+        if holding and last_pass:
+            # a level filter's reply beyond hold_sigma of the level model waits for the next one
+            off = np.abs(np.where(valid, zk, 0.0) - preds[0].h) > cfg.hold_sigma * np.sqrt(
+                np.maximum(preds[0].phh + vk, 0.0))
+            hold = accept & conf[sel] & (c[0] >= 0.5) & off
+            accept &= ~hold
+            held[:, sel] = np.where(hold, np.stack([tk, zk, vk]), held[:, sel])
+            held_id[sel] = np.where(hold, idk, held_id[sel])
+        miss[sel] = np.where(accept, 0, np.where(bad, miss[sel] + 1, miss[sel]))
         # an unconfirmed filter restarts on any reply outside its gate (a garbled first reply
         # must not hold the channel for max_rejects replies)
-        restart = (valid & ~run) | (bad & ((miss[:m] >= cfg.max_rejects) | ~conf[:m])) | swapped
+        restart = (valid & ~run) | (bad & ((miss[sel] >= cfg.max_rejects) | ~conf[sel])) | swapped
+        held[1, sel] = np.where(restart, np.nan, held[1, sel])
         new = _init(np.where(valid, zk, 0.0), vk, cfg)
-        # a reply not used (missing, garble): each model keeps its prediction and μ = c
+        # a reply not used (missing, garble, held): each model keeps its prediction and μ = c
         for j in range(nm):
-            cur[j].put(slice(0, m), _select(restart, new, _select(accept, upd[j], preds[j])))
-        mu[:, :m] = np.where(restart, 1.0 / nm, np.where(accept, mu_u, c))
+            cur[j].put(sel, _select(restart, new, _select(accept, upd[j], preds[j])))
+        mu[:, sel] = np.where(restart, 1.0 / nm, np.where(accept, mu_u, c))
         nxt = _select(restart, new, _select(accept, u, s))
-        miss[:m] = np.where(restart, 0, miss[:m])
-        conf[:m] = np.where(restart, False, conf[:m] | accept)
-        ok[:m] |= restart
-        t_last[:m] = tk
+        miss[sel] = np.where(restart, 0, miss[sel])
+        conf[sel] = np.where(restart, False, conf[sel] | accept)
+        ok[sel] |= restart
+        t_last[sel] = tk
+        return nxt, bad & ~restart
+
+    alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
+    for k, m in enumerate(alive):
+        idx = st[:m] + k
+        sel = np.arange(m)
+        zk, vk, tk, idk = z[idx], var[idx], t[idx], ids[idx]
+        pending = np.isfinite(held[1, :m]) & np.isfinite(zk)
+        if pending.any():
+            # a held reply is dropped (a garble) when this reply says the track is level, else
+            # applied just before it (at the last time when rows without altitude came between)
+            p = np.flatnonzero(pending)
+            lvl = _mix_predict([c.take(p) for c in cur], mu[:, p], tk[p] - t_last[p], qs, sojourn)[0][0]
+            level = np.abs(zk[p] - lvl.h) <= cfg.hold_sigma * np.sqrt(np.maximum(lvl.phh + vk[p], 0.0))
+            apply = p[~level]
+            hz = held[:, apply].copy()
+            held[1, p] = np.nan
+            if apply.size:
+                step(apply, hz[1], hz[2], np.maximum(hz[0], t_last[apply]), held_id[apply], False)
+        nxt, rej = step(sel, zk, vk, tk, idk, True)
         if cfg.unconfirmed_sigma_m is not None:
             weak = ok[:m] & ~conf[:m]
             nxt.phh = np.where(weak, np.maximum(nxt.phh, cfg.unconfirmed_sigma_m ** 2), nxt.phh)
@@ -415,10 +468,10 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
             has[idx] = ok[:m] & conf[:m]
         out.put(idx, nxt)
         mu_rows[idx] = mu[nm - 1, :m]
-        rejected[idx] = bad & ~restart
+        rejected[idx] = rej
     last = st + ln - 1
     final = FilterCarry(np.stack([_as_array(cj) for cj in cur]), mu, t_last, ok, conf, miss, last_id,
-                        _as_array(out.take(last)), has[last])
+                        _as_array(out.take(last)), has[last], held, held_id)
     inv = np.empty_like(order)
     inv[order] = np.arange(len(order))
     return (out, has, rejected, final.take(inv)) + ((mu_rows,) if with_mu else ())
@@ -436,7 +489,7 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
     carry = FilterCarry(*(np.array(a, d, order="C") for a, d in (
         (c0.models, np.float64), (c0.mu, np.float64), (c0.t_last, np.float64), (c0.ok, bool),
         (c0.conf, bool), (c0.miss, np.int64), (c0.last_id, np.int64), (c0.post, np.float64),
-        (c0.has, bool))))
+        (c0.has, bool), (c0.held, np.float64), (c0.held_id, np.int64))))
     out = np.full((6, n), np.nan)          # the state and the last model's probability
     has, rejected = np.zeros(n, bool), np.zeros(n, bool)
     ids = np.full(n, -1, np.int64) if ident is None else arg(ident, np.int64)
@@ -447,8 +500,8 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
     filter_recursion(arg(t), arg(z), arg(var), ids, arg(starts, np.int64), arg(lengths, np.int64),
             arg(qs), arg(sojourn),
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
-            carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id, carry.post,
-            carry.has, out, has, rejected)
+            float(cfg.hold_sigma), carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss,
+            carry.last_id, carry.post, carry.has, carry.held, carry.held_id, out, has, rejected)
     return _as_state(out), has, rejected, carry, np.array(out[5])
 
 

@@ -51,11 +51,34 @@ def _mix(states, w, nm, out):
 
 
 @_jit
+def _level_consistent(cur, mu, tau, zk, vk, qs, sojourn, hold_sigma):
+    """Whether reply ``zk`` lies within ``hold_sigma`` of the level model's (model 0) prediction
+    over ``tau`` from ``cur``/``mu`` (A5)–(A6)."""
+    p_sw0 = 1.0 - np.exp(-tau / sojourn[0])
+    p_sw1 = 1.0 - np.exp(-tau / sojourn[1])
+    c0 = (1.0 - p_sw0) * mu[0] + p_sw1 * mu[1]
+    c0 = c0 if (c0 > 1e-300 or c0 != c0) else 1e-300
+    w = np.empty(2)
+    w[0], w[1] = (1.0 - p_sw0) * mu[0] / c0, p_sw1 * mu[1] / c0
+    mixed = np.empty(5)
+    pred = np.empty(5)
+    _mix(cur, w, 2, mixed)
+    _predict(mixed, tau, qs[0], pred)
+    sv = pred[2] + vk
+    return np.abs(zk - pred[0]) <= hold_sigma * np.sqrt(sv if sv > 0.0 else 0.0)
+
+
+@_jit
 def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
-            c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, out, has, rejected):
+            hold_sigma, c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, c_held, c_held_id,
+            out, has, rejected):
     """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
     place); per row the output state ``out`` (6, n: the state (5) and the last model's
-    probability), ``has`` and ``rejected``. ``weak_var`` < 0: unconfirmed filters are not output."""
+    probability), ``has`` and ``rejected``. ``weak_var`` < 0: unconfirmed filters are not output.
+    ``hold_sigma`` > 0 (the IMM only): a reply that a confirmed, level filter would use but that
+    lies beyond ``hold_sigma`` of the level model's prediction is held (the row outputs the
+    prediction) until the next reply: dropped as a garble when that reply is level-consistent,
+    else applied just before it. ``c_held`` (3, k): the held reply's (t, z, R), NaN none."""
     nm = len(qs)
     cur = np.empty((nm, 5))
     preds = np.empty((nm, 5))
@@ -69,84 +92,105 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
     mu_u = np.empty(nm)
     lik = np.empty(nm)
     pij = np.empty((nm, nm))
+    holding = hold_sigma > 0.0 and nm == 2
     for g in range(len(starts)):
         for j in range(nm):
             mu[j] = c_mu[j, g]
             for f in range(5):
                 cur[j, f] = c_models[j, f, g]
         t_last, ok, conf, miss, last_id = c_t[g], c_ok[g], c_conf[g], c_miss[g], c_id[g]
+        h_t, h_z, h_v, h_id = c_held[0, g], c_held[1, g], c_held[2, g], c_held_id[g]
         for k in range(lengths[g]):
             i = starts[g] + k
-            zk, vk, tk = z[i], var[i], t[i]
-            valid = np.isfinite(zk)
-            zz = zk if valid else 0.0
-            tau = tk - t_last
-            # (A5)-(A6) and each model's prediction
-            if nm == 1:
-                c[0] = 1.0
-                _predict(cur[0], tau, qs[0], preds[0])
-            else:
-                for a in range(nm):
-                    p_sw = 1.0 - np.exp(-tau / sojourn[a])
-                    pij[a, a], pij[a, 1 - a] = 1.0 - p_sw, p_sw
-                for j in range(nm):
-                    cj = pij[0, j] * mu[0] + pij[1, j] * mu[1]
-                    c[j] = cj if (cj > 1e-300 or cj != cj) else 1e-300
-                for j in range(nm):
+            # a held reply is applied before this one unless this one says the track is level
+            n_pass = 1
+            if h_z == h_z and np.isfinite(z[i]):
+                if holding and _level_consistent(cur, mu, t[i] - t_last, z[i], var[i], qs, sojourn, hold_sigma):
+                    h_z = np.nan
+                else:
+                    n_pass = 2
+            for p in range(n_pass):
+                last_pass = p == n_pass - 1
+                if last_pass:
+                    zk, vk, tk, idk = z[i], var[i], t[i], ids[i]
+                else:
+                    # held before rows without an altitude: applied at the last time (its delay)
+                    zk, vk, tk, idk = h_z, h_v, h_t if h_t > t_last else t_last, h_id
+                    h_z = np.nan
+                valid = np.isfinite(zk)
+                zz = zk if valid else 0.0
+                tau = tk - t_last
+                # (A5)-(A6) and each model's prediction
+                if nm == 1:
+                    c[0] = 1.0
+                    _predict(cur[0], tau, qs[0], preds[0])
+                else:
                     for a in range(nm):
-                        w[a] = pij[a, j] * mu[a] / c[j]
-                    _mix(cur, w, nm, mixed)
-                    _predict(mixed, tau, qs[j], preds[j])
-            # (A7)-(A9)
-            tot = 0.0
-            for j in range(nm):
-                nu = zz - preds[j, 0]
-                sv = preds[j, 2] + vk
-                kh, kr = preds[j, 2] / sv, preds[j, 3] / sv
-                upd[j, 0], upd[j, 1] = preds[j, 0] + kh * nu, preds[j, 1] + kr * nu
-                upd[j, 2], upd[j, 3] = preds[j, 2] - kh * preds[j, 2], preds[j, 3] - kh * preds[j, 3]
-                upd[j, 4] = preds[j, 4] - kr * preds[j, 3]
-                lik[j] = np.exp(-0.5 * nu * nu / sv) / np.sqrt(2 * np.pi * sv)
-                w[j] = lik[j] * c[j]
-                tot = tot + w[j]
-            for j in range(nm):
-                mu_u[j] = w[j] / tot if tot > 0 else c[j]
-            _mix(upd, mu_u, nm, u)
-            _mix(preds, c, nm, s)                                   # combined prediction
-            nu = zz - s[0]
-            sv = s[2] + vk
-            sv0 = sv if (sv > 0.0 or sv != sv) else 0.0                 # np.maximum: NaN stays NaN
-            inside = np.abs(nu) <= gate_sigma * np.sqrt(sv0) + gate_floor
-            run = ok
-            idk = ids[i]
-            swapped = valid and run and idk >= 0 and last_id >= 0 and idk != last_id
-            if valid and idk >= 0:
-                last_id = idk
-            accept = run and valid and inside and not swapped
-            bad = run and valid and (not inside) and not swapped
-            if accept:
-                miss = 0
-            elif bad:
-                miss += 1
-            restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped
-            if restart:
+                        p_sw = 1.0 - np.exp(-tau / sojourn[a])
+                        pij[a, a], pij[a, 1 - a] = 1.0 - p_sw, p_sw
+                    for j in range(nm):
+                        cj = pij[0, j] * mu[0] + pij[1, j] * mu[1]
+                        c[j] = cj if (cj > 1e-300 or cj != cj) else 1e-300
+                    for j in range(nm):
+                        for a in range(nm):
+                            w[a] = pij[a, j] * mu[a] / c[j]
+                        _mix(cur, w, nm, mixed)
+                        _predict(mixed, tau, qs[j], preds[j])
+                # (A7)-(A9)
+                tot = 0.0
                 for j in range(nm):
-                    cur[j, 0], cur[j, 1], cur[j, 2], cur[j, 3], cur[j, 4] = zz, 0.0, vk, 0.0, v0 * v0
-                    mu[j] = 1.0 / nm
-                out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = zz, 0.0, vk, 0.0, v0 * v0
-                miss = 0
-                conf = False
-            else:
+                    nu = zz - preds[j, 0]
+                    sv = preds[j, 2] + vk
+                    kh, kr = preds[j, 2] / sv, preds[j, 3] / sv
+                    upd[j, 0], upd[j, 1] = preds[j, 0] + kh * nu, preds[j, 1] + kr * nu
+                    upd[j, 2], upd[j, 3] = preds[j, 2] - kh * preds[j, 2], preds[j, 3] - kh * preds[j, 3]
+                    upd[j, 4] = preds[j, 4] - kr * preds[j, 3]
+                    lik[j] = np.exp(-0.5 * nu * nu / sv) / np.sqrt(2 * np.pi * sv)
+                    w[j] = lik[j] * c[j]
+                    tot = tot + w[j]
                 for j in range(nm):
+                    mu_u[j] = w[j] / tot if tot > 0 else c[j]
+                _mix(upd, mu_u, nm, u)
+                _mix(preds, c, nm, s)                                   # combined prediction
+                nu = zz - s[0]
+                sv = s[2] + vk
+                sv0 = sv if (sv > 0.0 or sv != sv) else 0.0                 # np.maximum: NaN stays NaN
+                inside = np.abs(nu) <= gate_sigma * np.sqrt(sv0) + gate_floor
+                run = ok
+                swapped = valid and run and idk >= 0 and last_id >= 0 and idk != last_id
+                if valid and idk >= 0:
+                    last_id = idk
+                accept = run and valid and inside and not swapped
+                bad = run and valid and (not inside) and not swapped
+                if accept and holding and last_pass and conf and c[0] >= 0.5:
+                    lv = preds[0, 2] + vk
+                    if np.abs(zz - preds[0, 0]) > hold_sigma * np.sqrt(lv if lv > 0.0 else 0.0):
+                        accept = False              # held: the row is a prediction until the next reply
+                        h_t, h_z, h_v, h_id = tk, zk, vk, idk
+                if accept:
+                    miss = 0
+                elif bad:
+                    miss += 1
+                restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped
+                if restart:
+                    h_z = np.nan
+                    for j in range(nm):
+                        cur[j, 0], cur[j, 1], cur[j, 2], cur[j, 3], cur[j, 4] = zz, 0.0, vk, 0.0, v0 * v0
+                        mu[j] = 1.0 / nm
+                    out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = zz, 0.0, vk, 0.0, v0 * v0
+                    miss = 0
+                    conf = False
+                else:
+                    for j in range(nm):
+                        for f in range(5):
+                            cur[j, f] = upd[j, f] if accept else preds[j, f]
+                        mu[j] = mu_u[j] if accept else c[j]
                     for f in range(5):
-                        cur[j, f] = upd[j, f] if accept else preds[j, f]
-                    mu[j] = mu_u[j] if accept else c[j]
-                for f in range(5):
-                    out[f, i] = u[f] if accept else s[f]
-                conf = conf or accept
-            out[5, i] = mu[nm - 1]
-            ok = ok or restart
-            t_last = tk
+                        out[f, i] = u[f] if accept else s[f]
+                    conf = conf or accept
+                out[5, i] = mu[nm - 1]
+                ok = ok or restart
+                t_last = tk
             if weak_var >= 0.0:
                 if ok and not conf:
                     ph = out[2, i]
@@ -160,6 +204,7 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
             for f in range(5):
                 c_models[j, f, g] = cur[j, f]
         c_t[g], c_ok[g], c_conf[g], c_miss[g], c_id[g] = t_last, ok, conf, miss, last_id
+        c_held[0, g], c_held[1, g], c_held[2, g], c_held_id[g] = h_t, h_z, h_v, h_id
         last = starts[g] + lengths[g] - 1
         for f in range(5):
             c_post[f, g] = out[f, last]
@@ -171,7 +216,7 @@ def _signature() -> tuple:
     f1, i1, b1 = (nbt.Array(d, 1, "C") for d in (nbt.float64, nbt.int64, nbt.boolean))
     f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
     return (f1, f1, f1, i1, i1, i1, f1, f1, nbt.float64, nbt.float64, nbt.int64, nbt.float64, nbt.float64,
-            f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, b1, b1)
+            nbt.float64, f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, i1, f2, b1, b1)
 
 
 register_kernel("altitude", __name__, filter_recursion, _signature)
