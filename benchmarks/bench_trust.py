@@ -317,7 +317,8 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
         sim = ["adsb", "--truth", str(made_trajectories(work / "made.parquet"))]
         args = ["--methods", "information", "--filters", MADE_FILTERS]
     wall_s, _ = _child(["simulate", *sim, "--out", str(data), "--force", "--quiet"])
-    wall_r, stdout = _child(["run", str(data), "--out", str(out), "--force", "--no-report", *args])
+    # every table: the causes read each alert's conflict row (its threshold) and the tracks' status
+    wall_r, stdout = _child(["run", str(data), "--out", str(out), "--force", "--no-report", "--tables", "full", *args])
     print(stdout, flush=True)
     return {"simulate": sim, "run_args": args, "simulate_s": round(wall_s, 1), "run_s": round(wall_r, 1),
             "summary": [line.strip() for line in stdout.splitlines()
