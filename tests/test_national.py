@@ -30,7 +30,8 @@ def day():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(traffic, "allocate_levels_compiled", kept)
         return cfg, frame, national_flights(cfg.national, cfg.duration_s, cfg.dt,
-                                            np.random.default_rng(1), frame, NATIONAL_EPOCH)
+                                            np.random.default_rng(1), frame, NATIONAL_EPOCH,
+                                            cfg.traffic.selected_alt_fraction)
 
 
 def test_the_compiled_plan_is_the_reference_plan(day):
@@ -132,6 +133,35 @@ def test_window_lookup_matches_the_template(day):
     both = a.active[:, 1:] & a.active[:, :-1]
     step = np.linalg.norm(np.diff(a.pos, axis=1), axis=2)[both]
     assert np.percentile(np.abs(step - np.linalg.norm(a.vel[:, :-1], axis=2)[both]), 99) < 1.0
+
+
+
+def test_crews_select_their_planned_level_then_the_approach_altitude(day):
+    """The selected altitude (Mode S BDS 4,0) of a window's flights: the level a cruising
+    aircraft flies, the level a climbing one climbs to, and below a descending one (the
+    approach altitude from its top of descent); the declared fraction downlinks it, and a
+    flight's selection is the same in two overlapping windows."""
+    cfg, frame, tr = day
+    a, b = tr.window(30000, 600), tr.window(30300, 600)
+    n, k = a.active.shape
+    ac, step = np.nonzero(a.active)
+    sel = a.selected_at(ac, step * a.dt)
+    h, hdot, _ = geo.height_and_rate(a.pos[ac, step], a.vel[ac, step], frame)
+    has = np.isfinite(sel)
+    flights = np.isfinite(a.selected_alt_m)
+    assert abs(flights.mean() - cfg.traffic.selected_alt_fraction) < 0.03
+    level = has & (np.abs(hdot) < 0.1)
+    climb, descent = has & (hdot > 1.0), has & (hdot < -1.0)
+    assert level.sum() > 10_000 and climb.sum() > 500 and descent.sum() > 500
+    assert np.percentile(np.abs(sel[level] - h[level]), 99) < 5.0           # the 16 ft field's rounding
+    assert (sel[climb] > h[climb]).all()
+    above_approach = descent & (h > traffic.APPROACH_SELECTED_M + 50.0)
+    assert (sel[above_approach] < h[above_approach]).mean() > 0.99
+    # the same selection whatever the window
+    common = np.intersect1d(a.truth_id, b.truth_id)
+    ia, ib = np.searchsorted(a.truth_id, common), np.searchsorted(b.truth_id, common)
+    t_a = np.full(len(common), 450.0)
+    np.testing.assert_array_equal(a.selected_at(ia, t_a), b.selected_at(ib, t_a - 300.0))
 
 
 def test_national_needs_its_table():

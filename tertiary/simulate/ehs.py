@@ -26,7 +26,7 @@ changes it (an arrival's missed-approach altitude once on the glide path;
 :class:`tertiary.simulate.traffic.base.TrafficTrajectories`; level busts: the wrong level selected,
 see there), never a value read off the future trajectory — quantised, without noise (a setting, not a measurement). Null without a decoded
 Mode S reply, for aircraft that do not downlink it (non-EHS, or a trajectory source without
-intent: big box, ADS-B, national) and for a fraction ``selected_alt_missing`` of replies (the
+intent: big box, ADS-B) and for a fraction ``selected_alt_missing`` of replies (the
 register not extracted that scan).
 
 Values are rounded to the nearest LSB and clipped to the field's range, after adding the

@@ -357,7 +357,8 @@ def _schedule(cfg: ScenarioConfig) -> _Schedule:
     traffic_rng = np.random.default_rng(np.random.SeedSequence(cfg.seed).spawn(1)[0])
     steps = int(round(cfg.duration_s / cfg.dt))
     if cfg.kind == "national":
-        traffic = national_flights(cfg.national, cfg.duration_s, cfg.dt, traffic_rng, system, NATIONAL_EPOCH)
+        traffic = national_flights(cfg.national, cfg.duration_s, cfg.dt, traffic_rng, system, NATIONAL_EPOCH,
+                                   cfg.traffic.selected_alt_fraction)
         epoch, k_start = NATIONAL_EPOCH + timedelta(seconds=cfg.national.start_s), int(round(cfg.national.start_s / cfg.dt))
         tx_seed = np.random.SeedSequence(cfg.seed).spawn(2)[1]
     else:
@@ -493,8 +494,7 @@ def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progres
 
     ``terminal-area`` and ``national``: streamed in bounded memory (module comment above); the
     tables do not depend on ``window_s`` (a multiple of :func:`block_s`; None: one window).
-    Terminal-area reports carry the EHS columns (``ehs``; None: without); the national traffic
-    has none. Other kinds are simulated whole (:func:`simulate`) and cut into windows by time."""
+    Their Mode S reports carry the EHS columns (``ehs``; None: without). Other kinds are simulated whole (:func:`simulate`) and cut into windows by time."""
     cfg = check_scenario(cfg)
     if cfg.kind not in STREAMED:
         ds = simulate(cfg, progress, ehs)
@@ -503,7 +503,7 @@ def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progres
     if cfg.radar_tracker.ideal and len(bounds) > 1:
         raise OptionError("ideal radar trackers number plots from a whole run's truth; a windowed simulation "
                           "streams: use the radars' own association or one window", option="radar_tracker.ideal")
-    return cfg, radars_frame(cfg), _streamed_windows(cfg, bounds, progress, ehs if cfg.kind == "terminal-area" else None)
+    return cfg, radars_frame(cfg), _streamed_windows(cfg, bounds, progress, ehs)
 
 
 def _streamed_windows(cfg: ScenarioConfig, bounds: list[tuple[float, float]], progress: Progress | None,

@@ -31,8 +31,10 @@ from tertiary.core import geo
 from tertiary.core.units import FT
 from tertiary.simulate.plan_kernel import plan
 from tertiary.simulate.trajectory import Trajectories
-from tertiary.simulate.traffic.base import (GLIDE_DEG, TCH_M, THRESHOLD, constant, flight_level_m, fly, flyby,
-                                            heights_to_enu, level_segments, template_grid, vertical_segments)
+from tertiary.simulate.traffic.base import (GLIDE_DEG, TCH_M, THRESHOLD, TrafficTrajectories, constant, flight_level_m,
+                                            fly, flyby, heights_to_enu, level_segments, template_grid,
+                                            vertical_segments)
+from tertiary.simulate.trajectory import SEG_DESCENT
 from tertiary.simulate.traffic.terminal import ARRIVALS
 
 NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
@@ -41,6 +43,9 @@ FINAL_M = 30_000.0                    # straight-in final from the initial appro
 TURN_LEG_M = 15_000.0                 # crosswind / downwind offset of a flight turning back
 CLIMB_GRADIENT = 0.075                # 7.5 % climb to the cruise level
 DESCENT_GRADIENT = 0.052              # ~3° descent from cruise, then the 3° glide path
+#: what an arrival's crew selects at the top of descent: the 3 000 ft at which the descent joins
+#: the glide path (:func:`_domestic_profiles`)
+APPROACH_SELECTED_M = 3000.0 * FT
 CRUISE_SPEED = (210.0, 240.0)         # m/s true airspeed ≈ ground speed (no wind)
 #: flight levels (hundreds of feet) a route's flights are planned at, by the semicircular rule:
 #: domestic routes under 400 km, longer ones, the airways across the area
@@ -112,7 +117,12 @@ class NationalTraffic:
 
     Per flight: template ``route``, ``entry`` sample (k = entry is the template's first
     sample), identity and ``role``; per template: padded (x, y, z) positions (tangent-plane z,
-    heights converted once), velocities and segment codes, and its ``length`` in steps."""
+    heights converted once), velocities and segment codes, and its ``length`` in steps.
+    The crews' selected altitudes (Mode S BDS 4,0; :class:`~tertiary.simulate.traffic.base.TrafficTrajectories`):
+    per flight ``selected_alt_m`` (its planned flight level, NaN for an aircraft that does not
+    downlink it), and per template ``tod`` (the top of descent, in steps from the entry; the
+    length + 1 for a flight that never descends), where an arrival's crew selects
+    :data:`APPROACH_SELECTED_M`."""
 
     dt: float
     route: NDArray[np.int64]
@@ -124,6 +134,8 @@ class NationalTraffic:
     tseg: NDArray[np.int8]             # (R, K+1)
     length: NDArray[np.int64]          # (R,)
     epoch: datetime
+    selected_alt_m: NDArray[np.float64] | None = None   # (F,)
+    tod: NDArray[np.int64] | None = None                # (R,)
 
     @property
     def n_flights(self) -> int:
@@ -148,9 +160,15 @@ class NationalTraffic:
         pos = self.tpos.reshape(-1, 3).take(flat.reshape(-1), axis=0).reshape(len(ids), n, 3)
         vel = self.tvel.reshape(-1, 3).take(flat.reshape(-1), axis=0).reshape(len(ids), n, 3)
         seg = self.tseg.reshape(-1).take(flat)
-        return Trajectories(dt=self.dt, pos=pos, vel=vel, active=inside, segment=seg.astype(np.int8),
-                            truth_id=ids.astype(np.int64), epoch=self.epoch + timedelta(seconds=k0 * self.dt),
-                            meta={k: v[ids] for k, v in self.meta.items()})
+        common = dict(dt=self.dt, pos=pos, vel=vel, active=inside, segment=seg.astype(np.int8),
+                      truth_id=ids.astype(np.int64), epoch=self.epoch + timedelta(seconds=k0 * self.dt),
+                      meta={k: v[ids] for k, v in self.meta.items()})
+        if self.selected_alt_m is None or self.tod is None:
+            return Trajectories(**common)
+        sel = self.selected_alt_m[ids]
+        change = np.where(np.isfinite(sel), (self.entry[ids] + self.tod[r] - k0) * self.dt, np.inf)
+        return TrafficTrajectories(**common, selected_alt_m=sel, selected_change_s=change,
+                                   selected_next_m=np.where(np.isfinite(sel), APPROACH_SELECTED_M, np.nan))
 
 
 def _national_templates(cfg, sites: NDArray[np.float64], dt: float, frame: geo.LocalFrame | None):
@@ -386,7 +404,7 @@ def _national_routes(airports: tuple, min_route_km: float, half_width_km: float,
 
 
 def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator, frame: geo.LocalFrame,
-                     epoch) -> NationalTraffic:
+                     epoch, selected_alt_fraction: float = 0.0) -> NationalTraffic:
     """The day's traffic (:class:`tertiary.simulate.config.NationalConfig`): domestic flights
     between airports chosen by weight (pairs closer than ``min_route_km`` excluded), landings
     at an airport ≥ ``landing_spacing_s`` apart; overflights on the airways, entries on a
@@ -395,7 +413,9 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
     (computed on the schedule, one rescaling pass). Then each flight's level and delay are
     planned (:func:`allocate_levels`): apart from the flights planned before it above FL150,
     take-offs ≥ ``departure_spacing_s`` and landings ≥ ``landing_spacing_s`` apart where the
-    runways allow."""
+    runways allow. A fraction ``selected_alt_fraction`` of the flights downlink their crew's
+    selected altitude: the planned flight level, then :data:`APPROACH_SELECTED_M` from the top
+    of descent on (:class:`NationalTraffic`)."""
     stride = max(1, int(round(DECONFLICT_STRIDE_S / dt)))
     tpos, tvel, tseg, length, info, keys = _national_routes(cfg.airports, cfg.min_route_km, cfg.area_half_width_km,
                                                             dt, frame, stride)
@@ -446,7 +466,17 @@ def national_flights(cfg, duration_s: float, dt: float, rng: np.random.Generator
             "role": role, "squawk": np.array([f"{v:04o}" for v in rng.integers(0o1000, 0o7777, n)]),
             "origin": np.where(orig[route] >= 0, names[np.maximum(orig[route], 0)], ""),
             "destination": np.where(dest[route] >= 0, names[np.maximum(dest[route], 0)], "")}
-    return NationalTraffic(dt, route, entry, role, meta, tpos, tvel, tseg, length, epoch)
+    # drawn last: every earlier draw (and so every other column) is the same as without it
+    downlinks = rng.random(n) < selected_alt_fraction
+    level_m = flight_level_m(np.array([i[4] for i in info]), 1.0)
+    return NationalTraffic(dt, route, entry, role, meta, tpos, tvel, tseg, length, epoch,
+                           selected_alt_m=np.where(downlinks, level_m[route], np.nan), tod=_top_of_descent(tseg, length))
+
+
+def _top_of_descent(tseg: NDArray[np.int8], length: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Per template, the first step of its descent (its length + 1 when it never descends)."""
+    down = (tseg == SEG_DESCENT) & (np.arange(tseg.shape[1])[None, :] <= length[:, None])
+    return np.where(down.any(axis=1), np.argmax(down, axis=1), length + 1).astype(np.int64)
 
 
 def final_approaches(scenario, frame: "geo.LocalFrame | None" = None) -> list[tuple[float, float, float, float]]:
