@@ -225,7 +225,8 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
     """The cause of each picture-induced alert episode of ``picture`` at its first epoch, the first
     rule that fires: ``one aircraft or unmatched`` (the episode has no two distinct aircraft),
     ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
-    ``height error`` (> 150 m), ``en-route/terminal boundary`` (one track above the en-route floor,
+    ``height error`` (> 150 m), ``vertical rate error`` (> 2 m/s: a climb or descent the
+    aircraft does not fly, or the reverse), ``en-route/terminal boundary`` (one track above the en-route floor,
     one below), ``estimation term`` (the covariance-based widening of the horizontal threshold
     above 1 km: an uncertain or inconsistent velocity), else ``other``. Counts per
     classification and cause; the medians of the estimation term and of the tracks' velocity
@@ -240,7 +241,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
         return {}
     method, flt = picture.split("+")
     conf = q(f"select run, epoch, id_a, id_b, r_thr_m from conflicts where method = '{picture}'")
-    tr = q(f"select run, epoch, track_id, x_m, y_m, vx_mps, vy_mps, alt_m, cov_diag, status from tracks "
+    tr = q(f"select run, epoch, track_id, x_m, y_m, vx_mps, vy_mps, alt_m, alt_rate_mps, cov_diag, status from tracks "
            f"where method = '{method}' and filter = '{flt}'")
     run = dict(con.sql("select key, value from run").fetchall())
     con.close()
@@ -261,6 +262,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
         r = pl.concat(near).sort("__i", "__d").unique("__i", keep="first", maintain_order=True)
         a = a.join(r.select("k", pl.col("__d").alias(f"perr_{side}"),
                             (pl.col("alt_m") - pl.col("true_alt_m")).abs().alias(f"herr_{side}"),
+                            (pl.col("alt_rate_mps") - pl.col("true_alt_rate_mps")).abs().alias(f"rerr_{side}"),
                             pl.col("alt_m").alias(f"alt_{side}"), (pl.col("status") == "coasting").alias(f"coast_{side}"),
                             pl.max_horizontal(pl.col("cov_diag").arr.get(3), pl.col("cov_diag").arr.get(4)).sqrt()
                             .alias(f"sv_{side}"),
@@ -275,6 +277,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
              .when(pl.col("coast_a") | pl.col("coast_b")).then(pl.lit("coasting track"))
              .when(pl.max_horizontal("perr_a", "perr_b") > 2000).then(pl.lit("track far from its aircraft"))
              .when(pl.max_horizontal("herr_a", "herr_b") > 150).then(pl.lit("height error"))
+             .when(pl.max_horizontal("rerr_a", "rerr_b") > 2.0).then(pl.lit("vertical rate error"))
              .when(pl.lit(floor is not None) & (hi >= (floor or 0.0))
                    & (pl.min_horizontal("alt_a", "alt_b") < (floor or 0.0))).then(pl.lit("en-route/terminal boundary"))
              .when(pl.col("est_h_m") > 1000).then(pl.lit("estimation term"))
