@@ -46,7 +46,7 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     # read back from a frame can be: CI once compiled two more signatures from it
     carry = FilterCarry(*(np.asfortranarray(a) if a.ndim > 1 else a[::-1][::-1] for a in (
         carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss, carry.last_id,
-        carry.post, carry.has)))
+        carry.post, carry.has, carry.held, carry.held_id)))
     filter_tracks_carry(t + 300.0, z, var, starts, lengths, AltitudeConfig(), init=carry)
     flt = make_filter("imm_sym")
     b = 3
