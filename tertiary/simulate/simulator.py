@@ -494,7 +494,8 @@ def simulate_windows(cfg: ScenarioConfig, window_s: float | None = None, progres
 
     ``terminal-area`` and ``national``: streamed in bounded memory (module comment above); the
     tables do not depend on ``window_s`` (a multiple of :func:`block_s`; None: one window).
-    Their Mode S reports carry the EHS columns (``ehs``; None: without). Other kinds are simulated whole (:func:`simulate`) and cut into windows by time."""
+    Their Mode S reports carry the EHS columns (``ehs``; None: without). Other kinds are
+    simulated whole (:func:`simulate`) and cut into windows by time."""
     cfg = check_scenario(cfg)
     if cfg.kind not in STREAMED:
         ds = simulate(cfg, progress, ehs)

@@ -30,11 +30,10 @@ from scipy.spatial import cKDTree
 from tertiary.core import geo
 from tertiary.core.units import FT
 from tertiary.simulate.plan_kernel import plan
-from tertiary.simulate.trajectory import Trajectories
+from tertiary.simulate.trajectory import SEG_DESCENT, Trajectories
 from tertiary.simulate.traffic.base import (GLIDE_DEG, TCH_M, THRESHOLD, TrafficTrajectories, constant, flight_level_m,
                                             fly, flyby, heights_to_enu, level_segments, template_grid,
                                             vertical_segments)
-from tertiary.simulate.trajectory import SEG_DESCENT
 from tertiary.simulate.traffic.terminal import ARRIVALS
 
 NATIONAL_EPOCH_HOUR = 0               # the day starts at 00:00 UTC (the hourly curve is in UTC)
