@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 import pytest
+from polars.testing import assert_frame_equal
 
 from tertiary.core.errors import OptionError
 from tertiary.io.dataset import write_dataset
@@ -217,3 +218,80 @@ def test_parquet_tables_filter_nan_residuals_as_the_database_does(tmp_path):
             counts[mode] = st.sql("SELECT count(*) FROM reports WHERE NOT isnan(res_range_m)").item()
             assert st.sql("SELECT * FROM reports LIMIT 0").columns == ["run", "report_id", "radar_id", "res_range_m"]
     assert counts == {"database": n - (n + 6) // 7, "parquet": n - (n + 6) // 7}
+
+
+# ----------------------------------------------------------------------------- the windows' parts
+
+
+@pytest.fixture(scope="module")
+def windowed(tmp_path_factory):
+    """One small windowed job run with ``--tables database`` and ``--tables full``; each run's
+    window parts' columns, read before the completed run removes them."""
+    from tertiary.pipeline import PipelineConfig, run
+    from tertiary.runtime import windows
+    cfg = load_scenario("terminal-area")
+    cfg = dataclasses.replace(cfg, duration_s=240.0, traffic=dataclasses.replace(cfg.traffic, aircraft=20,
+                                                                                 conflict_pairs=3))
+    root = tmp_path_factory.mktemp("lean_parts")
+    ds = simulate(cfg)
+    seen: dict[str, dict[str, set[str]]] = {}
+    finish = windows.PartStore.finish
+
+    def keep_schemas(self, status, **info):
+        if status == "complete":
+            seen[self.dir.name] = {d.name: set().union(*(pl.read_parquet_schema(f) for f in d.glob("w=*.parquet")))
+                                   for d in (self.dir / windows.PARTS).iterdir() if not d.name.startswith("_")}
+        return finish(self, status, **info)
+    windows.PartStore.finish = keep_schemas
+    try:
+        pcfg = PipelineConfig(methods=("information",), filters=("imm_sym",))
+        dbs = {mode: run(ds, root / mode, pcfg, window_s=60.0, tables=mode) for mode in ("database", "full")}
+    finally:
+        windows.PartStore.finish = finish
+    return dbs, seen
+
+
+def test_a_lean_run_writes_only_what_is_read_back_to_its_parts(windowed):
+    """A run that stores lean tables writes lean window parts: no covariance of a report or an
+    aligned plot, none of the fusion's inputs or the tracker's diagnostics (a day's parts would
+    otherwise be several times its input); ``--tables full`` writes every column."""
+    from tertiary.pipeline.tables import ALIGNED_COLUMNS, NOT_SCORED, REPORT_COLUMNS
+    _, seen = windowed
+    lean, full = seen["database"], seen["full"]
+    assert lean["aligned"] <= {*LEAN_COLUMNS["aligned"], *ALIGNED_COLUMNS}
+    assert lean["reports"] <= {*LEAN_COLUMNS["reports"], *REPORT_COLUMNS}
+    assert {"cov", "nominal_var"} <= full["aligned"] and "est_cov" in full["reports"]
+    for name in ("fused", "tracks"):
+        gone = full[name] & set(NOT_SCORED) - set(LEAN_COLUMNS[name])
+        assert gone and not lean[name] & gone, name
+        assert "cov" in lean[name], name          # the evaluation's consistency reads it
+
+
+def test_lean_parts_give_the_tables_and_metrics_of_whole_parts(windowed):
+    """Every stored table and metric of the lean-parts run equals the whole-parts run's (its
+    stored columns), to 1e-9: nothing a whole-run stage reads was trimmed."""
+    dbs, _ = windowed
+    with RunStore.open(dbs["database"]) as lean, RunStore.open(dbs["full"]) as full:
+        assert lean.tables() == full.tables()
+        for name in lean.tables():
+            if name == "run":
+                continue
+            a = lean.sql(f'SELECT * FROM "{name}"')
+            b = full.sql(f'SELECT {", ".join(chr(34) + c + chr(34) for c in a.columns)} FROM "{name}"')
+            assert a.height == b.height > 0 or name in ("clusters", "rejects", "alerts", "losses"), name
+            key = [c for c in a.columns if a.schema[c] not in (pl.Float32, pl.Float64) and not
+                   isinstance(a.schema[c], (pl.List, pl.Array, pl.Struct))]
+            assert_frame_equal(a.sort(key, nulls_last=True), b.sort(key, nulls_last=True),
+                                          check_exact=False, rel_tol=1e-9, abs_tol=1e-9)
+
+
+def test_a_run_resumes_only_with_the_parts_it_wrote(windowed, tmp_path):
+    """``--resume`` with another ``--tables`` mode would mix lean and whole parts: refused."""
+    from tertiary.runtime.windows import PartStore
+    header = {"dataset": "d", "window_s": 60.0, "config_hash": "h", "parts": "lean"}
+    store = PartStore.start(tmp_path, header)
+    store.manifest["windows_done"] = 0
+    store._commit()
+    with pytest.raises(OptionError, match="--tables"):
+        PartStore.resume(tmp_path, {**header, "parts": "full"})
+    PartStore.resume(tmp_path, header)

@@ -19,11 +19,12 @@ from tertiary.pipeline.runner import StageError, fingerprint, process, run, scen
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals
 from tertiary.pipeline.streaming import (RunContext, StreamState, init_stream_state, pipeline_step, stream,
                                       track_identity, windowable)
-from tertiary.pipeline.tables import TABLE_MODES, Sink, StreamedTable, check_tables, make_storable, store_sink
+from tertiary.pipeline.tables import (TABLE_MODES, PartTrim, Sink, StreamedTable, check_tables, make_storable, part_trim,
+                                      store_sink)
 from tertiary.pipeline.whole_run import Results, finalize
 
 __all__ = ["PipelineConfig", "adapt_to_scenario", "check_config", "config_dict", "Progress", "StageClock",
            "Ingested", "StreamedTruth", "ingest", "screen", "RunContext", "StreamState", "init_stream_state",
            "pipeline_step", "stream", "track_identity", "windowable", "Results", "finalize", "StageError",
            "process", "run", "fingerprint", "scenario_text", "versions", "TABLE_MODES", "Sink", "StreamedTable",
-           "check_tables", "store_sink", "make_storable", "note_minima", "reference_intervals"]
+           "check_tables", "store_sink", "make_storable", "note_minima", "reference_intervals", "PartTrim", "part_trim"]

@@ -191,8 +191,9 @@ class PartitionWriter:
     warm-up rows of the stitched tables) as Parquet parts; rejects' ``row_index`` made the row of
     the whole input; association counts taken between the slice's boundaries."""
 
-    def __init__(self, out: Path, part: Partition, rowmap: pl.DataFrame, windowed: bool) -> None:
-        self.out, self.part, self.windowed = out, part, windowed
+    def __init__(self, out: Path, part: Partition, rowmap: pl.DataFrame, windowed: bool,
+                 trim: pipeline.PartTrim | None = None) -> None:
+        self.out, self.part, self.windowed, self.trim = out, part, windowed, trim
         self.g = rowmap["__g"].to_numpy()
         self.t = rowmap["__t"].to_numpy()
         self.t_null = rowmap["__t"].is_null().to_numpy()
@@ -206,6 +207,7 @@ class PartitionWriter:
         for name, frame in outputs.items():
             if frame.width == 0:
                 continue
+            frame = frame if self.trim is None else self.trim(name, frame)
             kept, aside = self._split(name, frame)
             for sub, f in (("kept", kept), ("overlap", aside)):
                 if f is None or (sub == "overlap" and f.height == 0):
@@ -263,8 +265,9 @@ class PartitionWriter:
 
 
 def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfig, window_s: float | None,
-                  grid_origin_us: int | None, out_dir: str) -> dict:
-    """The task of one partition (runs on a worker): read its reports, stream, write its parts."""
+                  grid_origin_us: int | None, out_dir: str, tables: str = "full") -> dict:
+    """The task of one partition (runs on a worker): read its reports, stream, write its parts
+    (what ``tables`` stores and the whole-run stages read: :func:`~tertiary.pipeline.part_trim`)."""
     t_start = time.perf_counter()
     ds = read_dataset(dataset_dir, lazy=True)
     lf = ds.reports.lazy()
@@ -273,7 +276,7 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
     tcol = pl.col("time").dt.epoch("us") if timed else pl.lit(None, pl.Int64)
     rowmap = lf.with_row_index("__g").filter(cond).select("__g", tcol.alias("__t")).collect()
     out = Path(out_dir) / SLICES / str(part.index)
-    writer = PartitionWriter(out, part, rowmap, window_s is not None)
+    writer = PartitionWriter(out, part, rowmap, window_s is not None, pipeline.part_trim(tables, cfg.radar_health))
     info = {"index": part.index, "n_input": rowmap.height, "worker": os.getpid(), "notes": []}
     if rowmap.height:
         source = out.parent / f"{part.index}.input.parquet"
@@ -693,7 +696,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     c, close = _client(workers, scheduler, client)
     try:
         infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
-                                             window_s, origin, gate_m, timings, say)
+                                             window_s, origin, gate_m, timings, say, tables)
     finally:
         close()
     say("finalize")
@@ -747,12 +750,12 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
 
 
 def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pipeline.PipelineConfig,
-                window_s: float | None, origin: int | None, gate_m: float, timings: dict, say
-                ) -> tuple[list[dict], dict, pl.DataFrame]:
+                window_s: float | None, origin: int | None, gate_m: float, timings: dict, say,
+                tables: str = "full") -> tuple[list[dict], dict, pl.DataFrame]:
     """The partitions' tasks, the stitching on the client, the relabelling tasks."""
     from distributed import as_completed
     t = time.perf_counter()
-    futs = [c.submit(run_partition, dataset, p, cfg, window_s, origin, out, pure=False,
+    futs = [c.submit(run_partition, dataset, p, cfg, window_s, origin, out, tables, pure=False,
                      key=f"tertiary-partition-{p.index}-{time.time_ns()}") for p in parts]
     infos: dict[int, dict] = {}
     for fut in as_completed(futs):

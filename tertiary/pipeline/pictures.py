@@ -9,7 +9,7 @@ from collections.abc import Callable, Collection, Iterator
 import polars as pl
 
 from tertiary.pipeline.config import PipelineConfig
-from tertiary.pipeline.tables import OnDiskTable, whole_table
+from tertiary.pipeline.tables import NOT_SCORED, OnDiskTable, whole_table
 
 __all__ = ["NOT_SCORED", "as_picture", "confirmed_only", "fused_readers", "safety_id_column", "safety_names",
            "safety_picture", "track_readers"]
@@ -28,10 +28,6 @@ def confirmed_only(fused: pl.DataFrame) -> pl.DataFrame:
     return fused.filter(~pl.col("tentative").fill_null(False)) if "tentative" in fused.columns else fused
 
 
-#: what no evaluation metric (nor conflict prediction) reads of a picture (the fusion's inputs
-#: and the tracker's diagnostics): an on-disk picture is scored without them (memory)
-NOT_SCORED = ("meas_cov", "weights", "radar_ids", "innovation", "model_probs", "meas_x_m", "meas_y_m",
-              "meas_z_m", "n_fresh", "age_s")
 
 
 def fused_readers(fused: "pl.DataFrame | OnDiskTable", skip: Collection[str] = (), blocks: bool = False

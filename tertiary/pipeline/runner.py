@@ -22,7 +22,7 @@ from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config, config_dict
 from tertiary.pipeline.ingestion import truth_lazy
 from tertiary.pipeline.streaming import StreamState, stream_windows
-from tertiary.pipeline.tables import Sink, check_tables, make_storable, store_sink
+from tertiary.pipeline.tables import Sink, check_tables, make_storable, part_trim, store_sink
 from tertiary.pipeline.warmup import kernels_for, warm_kernels
 from tertiary.pipeline.whole_run import Results, finalize_stages
 from tertiary.runtime.windows import (AUTO_WINDOW, DEFAULT_WINDOW_S, STREAMED, MemoryParts, PartStore, check_window,
@@ -158,15 +158,17 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     notes: list[str] = []
     failure: Exception | None = None
     res: Results | None = None
+    trim = part_trim(tables, cfg.radar_health)
     header = {"dataset": dataset_label or ds.scenario.name, "window_s": window_s,
-              "config_hash": config_hash(cfg, window_s, _input_identity(ds, dataset_label))}
+              "config_hash": config_hash(cfg, window_s, _input_identity(ds, dataset_label)),
+              "parts": "full" if trim is None else "lean"}
     state, start = None, 0
     if resume:
-        parts, state = PartStore.resume(out, header)
+        parts, state = PartStore.resume(out, header, trim)
         start = int(parts.manifest["windows_done"])
         say(f"resuming after window {start} ({parts.manifest.get('time_done', '?')})")
     else:
-        parts = PartStore.start(out, header)
+        parts = PartStore.start(out, header, trim)
         shutil.rmtree(out / TABLES_DIR, ignore_errors=True)     # a replaced run's registered tables
     with RunStore.create(out) as store:
         sink = store_sink(store, notes, tables)

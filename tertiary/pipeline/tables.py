@@ -29,7 +29,8 @@ from tertiary.store.run_store import TABLES_DIR, RunStore
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
            "check_tables", "store_sink", "for_sink", "read_table", "table_columns", "whole_table", "target_counts",
            "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
-           "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH"]
+           "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH", "NOT_SCORED", "PartTrim",
+           "part_trim"]
 
 
 #: where a run's tables go: a frame whole, or a streamed table part by part (:class:`StreamedTable`)
@@ -167,6 +168,10 @@ def read_table(parts: Any, name: str, empty: pl.DataFrame) -> pl.DataFrame:
 REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
 ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
 ASSOCIATION_COLUMNS = ["run", "epoch", "target_id", "report_id"]
+#: what no evaluation metric (nor conflict prediction) reads of a picture (the fusion's inputs
+#: and the tracker's diagnostics): an on-disk picture is scored without them (memory)
+NOT_SCORED = ("meas_cov", "weights", "radar_ids", "innovation", "model_probs", "meas_x_m", "meas_y_m",
+              "meas_z_m", "n_fresh", "age_s")
 #: what the stages after the evaluation read of the truth (an on-disk run reads them from its
 #: reference): the separation intervals (``truth_heights``) and the bound
 ALERT_TRUTH = ["run", "truth_id", "time", "x_m", "y_m", "z_m", "alt_m", "alt_rate_mps"]
@@ -238,6 +243,31 @@ LEAN_COLUMNS: dict[str, tuple[str, ...]] = {
 def lean_columns(tables: str) -> dict[str, tuple[str, ...]]:
     """The columns mode ``tables`` stores of each table it slims (empty: every column)."""
     return {} if tables == "full" else LEAN_COLUMNS
+
+
+PartTrim = Callable[[str, pl.DataFrame], pl.DataFrame]
+
+
+def part_trim(tables: str, whole_aligned: bool = False) -> PartTrim | None:
+    """What a window writes of each table when the run stores lean tables: the columns the
+    whole-run stages and the stored tables read, not the per-epoch detail that only ``--tables
+    full`` keeps (disk: a day's parts would otherwise be several times its input, most of it
+    covariances nobody reads back). ``aligned`` keeps its stored columns and the accounting's,
+    every column when ``whole_aligned`` (radar health reads them); ``reports`` its stored columns
+    and the truth window's; ``fused`` and ``tracks`` all but :data:`NOT_SCORED`. None (``full``):
+    every column."""
+    if tables == "full":
+        return None
+    keep = {"reports": (*LEAN_COLUMNS["reports"], *REPORT_COLUMNS)}
+    if not whole_aligned:
+        keep["aligned"] = (*LEAN_COLUMNS["aligned"], *ALIGNED_COLUMNS)
+    drop = {name: tuple(c for c in NOT_SCORED if c not in LEAN_COLUMNS[name]) for name in ("fused", "tracks")}
+
+    def trim(name: str, frame: pl.DataFrame) -> pl.DataFrame:
+        if name in keep:
+            return frame.select(c for c in frame.columns if c in keep[name])
+        return frame.drop(drop.get(name, ()), strict=False)
+    return trim
 
 
 def check_tables(tables: str, out_dir: str | Path) -> None:

@@ -291,21 +291,26 @@ def incomplete_message(run_dir: str | Path) -> str | None:
 
 
 class PartStore:
-    """Per-window Parquet parts, the carried state and the manifest of one run directory."""
+    """Per-window Parquet parts, the carried state and the manifest of one run directory.
+    ``trim(name, frame)``: what of a window's table is written (None: all of it); the header's
+    ``parts`` names it, and a run is resumed only with the same."""
 
-    def __init__(self, run_dir: Path, manifest: dict) -> None:
-        self.dir, self.manifest = run_dir, manifest
+    def __init__(self, run_dir: Path, manifest: dict,
+                 trim: Callable[[str, pl.DataFrame], pl.DataFrame] | None = None) -> None:
+        self.dir, self.manifest, self.trim = run_dir, manifest, trim
 
     @classmethod
-    def start(cls, run_dir: Path, header: dict) -> PartStore:
+    def start(cls, run_dir: Path, header: dict,
+              trim: Callable[[str, pl.DataFrame], pl.DataFrame] | None = None) -> PartStore:
         for old in (run_dir / PARTS, run_dir / STATE_FILE):
             shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
-        store = cls(run_dir, {**header, "status": "running", "windows_done": 0, "tables": {}})
+        store = cls(run_dir, {**header, "status": "running", "windows_done": 0, "tables": {}}, trim)
         store._commit()
         return store
 
     @classmethod
-    def resume(cls, run_dir: Path, header: dict) -> tuple[PartStore, Any]:
+    def resume(cls, run_dir: Path, header: dict,
+               trim: Callable[[str, pl.DataFrame], pl.DataFrame] | None = None) -> tuple[PartStore, Any]:
         """The store and the state after the last complete window; parts of later windows are dropped."""
         m = read_manifest(run_dir)
         if m is None:
@@ -317,6 +322,9 @@ class PartStore:
                               f"(hash {m.get('config_hash')} != {header['config_hash']}; its windows: "
                               f"{m.get('window_s')} s, now {header.get('window_s')} s); give the same options",
                               option="--resume")
+        if m.get("parts", "full") != header.get("parts", "full"):
+            raise OptionError(f"the run in {run_dir} wrote {m.get('parts', 'full')} parts, this one would write "
+                              f"{header.get('parts', 'full')}: give the same --tables", option="--resume")
         done = int(m.get("windows_done", 0))
         state = None
         if done:
@@ -329,7 +337,7 @@ class PartStore:
                 raise DataError(f"state is of window {saved.get('windows_done')}, manifest says {done}",
                                 path=str(run_dir / STATE_FILE))
             state = saved["state"]
-        store = cls(run_dir, m)
+        store = cls(run_dir, m, trim)
         for part in (run_dir / PARTS).glob("*/w=*.parquet"):
             if int(part.stem.split("=")[1]) >= done:       # a killed window's leftovers
                 part.unlink()
@@ -341,6 +349,8 @@ class PartStore:
             # an empty window's frame is kept only while the table has no part at all (its schema)
             if frame.width == 0 or (frame.height == 0 and self.manifest["tables"].get(name) is not None):
                 continue
+            if self.trim is not None:
+                frame = self.trim(name, frame)
             d = self.dir / PARTS / name
             d.mkdir(parents=True, exist_ok=True)
             # lz4: the parts are scratch (read back once, removed when the run completes), so
