@@ -105,6 +105,7 @@ def main() -> None:
     ap.add_argument("--engine", default="local", choices=["local", "dask"])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--slice", type=float, default=7200.0, help="--engine dask: time slice (s)")
+    ap.add_argument("--key", help="the entry's name in the results (default: the engine's)")
     ap.add_argument("--resume", action="store_true", help="resume the killed run in --out (local engine)")
     ap.add_argument("--time-log", type=Path, action="append", default=[],
                     help="a phase already run under /usr/bin/time -v (its output), recorded first")
@@ -133,12 +134,13 @@ def main() -> None:
              "peak_rss_mib_by_kind": {k: max(q["peak_rss_mib"] for p in phases for q in p["processes"]
                                              if q["kind"] == k)
                                       for k in {q["kind"] for p in phases for q in p["processes"]}},
-             "disk_gb": {"tables": _size_gb(args.out / "tables"), "database": _size_gb(args.out / "results.duckdb")},
+             "disk_gb": {"tables": _size_gb(args.out / "tables"), "database": _size_gb(args.out / "results.duckdb"),
+                         "input": _size_gb(args.dataset)},
              **got}
     path = RESULTS / "bench_national_day.json"
     old = json.loads(path.read_text()) if path.exists() else {}
     old.pop("machine", None)
-    old[args.engine] = entry
+    old[args.key or args.engine] = entry
     path.write_text(json.dumps({"machine": machine(), **old}, indent=2) + "\n")
     print(json.dumps({k: entry[k] for k in ("wall_s", "reports", "reports_per_s", "peak_rss_mib_by_kind",
                                             "disk_gb")}, indent=1))
