@@ -722,3 +722,30 @@ def test_the_command_hands_polars_freed_pages_back_at_once():
     code = code.replace("assert '_RJEM_MALLOC_CONF' not in os.environ; ", "")
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip().endswith(",dirty_decay_ms:250") and "muzzy_decay_ms:0" not in got.stdout
+
+def test_aligned_facts_read_part_by_part_equal_the_whole_tables(terminal, tmp_path):
+    """The row accounting and the observed aircraft taken from the aligned parts one at a time
+    (their own ``truth_id``) equal those of the whole aligned rows joined to their reports; a
+    report aligned in two parts is one report; parts without ``truth_id`` leave the observed
+    aircraft to the reports."""
+    from tertiary.pipeline.scoring import aligned_facts, observed_aircraft
+    mem = pipeline.process(terminal, FAST, window_s=60.0)
+    aligned, reports = mem.aligned, mem.ingested.reports
+    epochs = aligned["epoch"].unique().sort()
+    cuts = [epochs[k] for k in (len(epochs) // 3, 2 * len(epochs) // 3)]
+    parts = [aligned.filter(pl.col("epoch") < cuts[0]),
+             aligned.filter(pl.col("epoch").is_between(cuts[0], cuts[1], closed="left")),
+             aligned.filter(pl.col("epoch") >= cuts[1]), aligned.clear()]
+    files = []
+    for i, p in enumerate(parts):
+        files.append(tmp_path / f"w={i:06d}.parquet")
+        p.write_parquet(files[-1])
+    got = aligned_facts(files)
+    # a report's plot is aligned at more than one epoch, across parts too: not vacuous
+    assert aligned.height > aligned["report_id"].n_unique()
+    assert got.rows == aligned.height and got.reports == aligned["report_id"].n_unique()
+    want = observed_aircraft(aligned, reports)
+    assert got.observed.height == want.height > 100
+    assert_frame_equal(got.observed.sort(want.columns), want.sort(want.columns))
+    aligned.drop("truth_id").write_parquet(files[0])
+    assert aligned_facts(files).observed is None

@@ -4,7 +4,8 @@ of rows read back a block at a time (:func:`scored_blocks`)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +22,8 @@ from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
 from tertiary.runtime.windows import release_memory
 from tertiary.stages.association.associate import AssociationStats
 
-__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "association_blocks", "association_stage_metrics",
-           "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
+__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "aligned_facts", "association_blocks",
+           "association_stage_metrics", "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
 
 
 #: aligned rows joined to their reports' aircraft at a time (:func:`observed_aircraft`)
@@ -116,6 +117,42 @@ def observed_aircraft(aligned: pl.DataFrame, reports: pl.DataFrame) -> pl.DataFr
         none = pl.lit(None, truth_of.schema["truth_id"]).alias("truth_id")
         return keys.select("run", "epoch").with_columns(none).clear()
     return pl.concat(blocks).unique()
+
+
+@dataclass(frozen=True)
+class AlignedFacts:
+    """What the whole-run stages take of the aligned rows: their number, the distinct reports
+    among them (the row accounting) and :func:`observed_aircraft` (None: the rows carry no
+    ``truth_id``, so it needs the reports)."""
+
+    rows: int
+    reports: int
+    observed: pl.DataFrame | None
+
+
+def aligned_facts(files: Sequence[Path]) -> AlignedFacts:
+    """:class:`AlignedFacts` of the aligned rows in ``files`` (a run's window parts), read a part
+    at a time: neither the aligned rows nor the reports are held whole (memory: a day's are
+    several GB). Each aligned row carries its report's ``truth_id``, and an epoch's rows are all
+    in one part, so each part's observed aircraft are its own."""
+    rows, ids, seen, schema = 0, [], [], None
+    for f in files:
+        have = pl.read_parquet_schema(f)
+        part = pl.read_parquet(f, columns=[c for c in ("run", "epoch", "report_id", "truth_id") if c in have])
+        if part.height == 0:
+            continue
+        rows += part.height
+        ids.append(part["report_id"].unique())
+        if "truth_id" not in part.columns:
+            schema = False
+        elif schema is not False:
+            keys = part.select("run", "epoch", "truth_id")
+            schema = keys.schema
+            seen.append(keys.drop_nulls().unique())
+    n_reports = pl.concat(ids).n_unique() if ids else 0
+    if not schema:
+        return AlignedFacts(rows, n_reports, None)
+    return AlignedFacts(rows, n_reports, pl.concat(seen).unique() if seen else pl.DataFrame(schema=schema))
 
 
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",

@@ -30,7 +30,7 @@ from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, st
                                          validate_truth)
 from tertiary.pipeline.pictures import safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
-from tertiary.pipeline.scoring import (association_blocks, association_stage_metrics, observed_aircraft,
+from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, observed_aircraft,
                                        score_pictures, scored_blocks)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
 from tertiary.pipeline.streaming import RunContext, StreamState
@@ -134,13 +134,19 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     # an on-disk run keeps in memory only what the whole-run stages read, and its streamed tables
     # go to the database one window's part at a time (memory)
     lean = hasattr(parts, "iter_parts")
+    # an on-disk run's aligned rows and reports are not read whole here: what the stages take of
+    # them is read a part at a time (memory), unless radar health reads every aligned column
+    facts = aligned_facts(parts.part_files("aligned")) if lean and not cfg.radar_health else None
     empty_reports = contract.empty_frame("reports", False)
-    reports = (table_columns(parts, "reports", REPORT_COLUMNS, empty_reports) if lean
-               else read_table(parts, "reports", empty_reports))
+    reports = (read_table(parts, "reports", empty_reports) if not lean else
+               table_columns(parts, "reports", ["time"] if facts else REPORT_COLUMNS, empty_reports))
+    n_reports = reports.height
     rejects = read_table(parts, "rejects", no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                               maintain_order=True)
     scratch = parts.scratch() if lean else None
     window = truth_window(reports, cfg.limits)
+    if facts:
+        reports = _report_schema(parts, empty_reports)
     # an on-disk run validates the truth from disk to disk: the whole-run stages read it there
     streamed = stream_truth(ds, cfg, notes, window, scratch) if lean else None
     on_disk = None
@@ -160,26 +166,34 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     del truth                   # held by ``ing`` alone: the evaluation may release it
     sink("rejects", rejects)
     empty_aligned = align_stage.empty_aligned()
-    aligned = (table_columns(parts, "aligned", None if cfg.radar_health else ALIGNED_COLUMNS, empty_aligned)
+    aligned = (empty_aligned if facts else
+               table_columns(parts, "aligned", None if cfg.radar_health else ALIGNED_COLUMNS, empty_aligned)
                if lean else read_table(parts, "aligned", empty_aligned))
-    if aligned.height == 0:
+    n_aligned, n_ok = (facts.rows, facts.reports) if facts else (aligned.height, None)
+    if n_aligned == 0:
         top = (rejects.group_by("reason").len().sort("len", descending=True).head(3)
                if rejects.height else pl.DataFrame({"reason": [], "len": []}))
         why = "; ".join(f"{n:,} × {r}" for r, n in top.iter_rows())
         raise DataError(f"no valid report left: all {n_in:,} reports rejected"
                         + (f" (most common: {why})" if why else ""))
-    _check_accounting(n_in, aligned, rejects)
+    n_ok = aligned["report_id"].n_unique() if n_ok is None else n_ok
+    _check_accounting(n_in, n_ok, rejects)
     sink("aligned", for_sink(parts, "aligned", empty_aligned) if lean else aligned)
     release_memory()             # the scratch of the reports' and aligned rows' copies to the database
     observed, later = None, None
     if lean:
         # the evaluation and the alert scoring read neither the reports nor the aligned rows, only
         # which aircraft had a report at which epoch: both are read back after them (memory)
-        observed = observed_aircraft(aligned, reports)
+        if facts is not None and facts.observed is not None:
+            observed = facts.observed
+        else:
+            both = reports if not facts else table_columns(parts, "reports", REPORT_COLUMNS, empty_reports)
+            observed = observed_aircraft(aligned if not facts else table_columns(
+                parts, "aligned", ALIGNED_COLUMNS, empty_aligned), both)
+            del both
         cols = None if cfg.radar_health else ALIGNED_COLUMNS
-        aligned = DeferredTable(lambda: table_columns(parts, "aligned", cols, empty_aligned), aligned.height,
-                                reports=aligned["report_id"].n_unique())
-        later = DeferredTable(lambda: table_columns(parts, "reports", REPORT_COLUMNS, empty_reports), reports.height)
+        aligned = DeferredTable(lambda: table_columns(parts, "aligned", cols, empty_aligned), n_aligned, reports=n_ok)
+        later = DeferredTable(lambda: table_columns(parts, "reports", REPORT_COLUMNS, empty_reports), n_reports)
         ing.reports = reports.clear()         # its schema until then: what the stages test for
         del reports
     tables = {}
@@ -424,9 +438,18 @@ def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
 CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
 
 
-def _check_accounting(n_in: int, aligned: pl.DataFrame, rejects: pl.DataFrame) -> None:
-    """Every input report is aligned or rejected, never both, never neither."""
-    n_ok = aligned["report_id"].n_unique()
+def _report_schema(parts: Any, empty: pl.DataFrame) -> pl.DataFrame:
+    """The stored reports' :data:`REPORT_COLUMNS` (those they have), no row: read of one part."""
+    first = next(iter(parts.part_files("reports")), None)
+    if first is None:
+        return empty.select(c for c in REPORT_COLUMNS if c in empty.columns)
+    have = pl.read_parquet_schema(first)
+    return pl.read_parquet(first, columns=[c for c in REPORT_COLUMNS if c in have], n_rows=0)
+
+
+def _check_accounting(n_in: int, n_ok: int, rejects: pl.DataFrame) -> None:
+    """Every input report is aligned (``n_ok`` distinct reports) or rejected, never both, never
+    neither."""
     n_rej = rejects.filter(pl.col("input_table") == "reports").height
     if n_ok + n_rej != n_in:
         raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
