@@ -323,6 +323,21 @@ def test_majority_truth_and_swap_count():
     validate(a, "metrics")
 
 
+def test_confirmed_targets_per_truth_leaves_out_targets_never_confirmed():
+    """An aircraft whose stray plot started a tentative target that never confirmed has one
+    target a controller sees, not two; an aircraft only ever in tentative targets has none."""
+    rows = [(0, k, 1, 10) for k in range(4)] + [(0, 2, 7, 10)]          # aircraft 10: target 1, stray target 7
+    rows += [(0, k, 2, 20) for k in range(4)] + [(0, k, 3, 20) for k in (2, 3)]    # aircraft 20: targets 2 and 3
+    rows += [(0, 0, 9, 30)]                                               # aircraft 30: a tentative target only
+    assoc, reports = _assoc_rows(rows)
+    confirmed = pl.DataFrame({"run": [0, 0, 0], "target_id": [1, 2, 3]})
+    a = association_metrics(assoc, reports, confirmed)
+    assert _value(a, "targets_per_truth", method="assignment") == pytest.approx((2 + 2 + 1) / 3)
+    assert _value(a, "confirmed_targets_per_truth", method="assignment") == pytest.approx((1 + 2 + 0) / 3)
+    assert "confirmed_targets_per_truth" not in association_metrics(assoc, reports)["metric"].to_list()
+    validate(a, "metrics")
+
+
 def test_swaps_sum_over_runs_and_ignore_null_pairs():
     rows = [(r, k, 5, tid) for r in (0, 1) for k, tid in enumerate([1, 2, 2, 1])]      # 2 swaps per run
     rows += [(0, k, 6, tid) for k, tid in enumerate([3, None, 4])]                      # no non-null pair

@@ -202,8 +202,9 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     _target_bijection(got["associations"], want["associations"])
     # so the association metrics, scored by each slice on its kept span and merged, are the local ones
     assoc = (pl.col("stage") == "association") & pl.col("metric").is_in(
-        ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets", "merged_targets"])
-    assert got["metrics"].filter(assoc).height == 6
+        ["assoc_correct_frac", "swaps", "targets_per_truth", "confirmed_targets_per_truth", "false_targets",
+         "split_targets", "merged_targets"])
+    assert got["metrics"].filter(assoc).height == 7
     _same(got["metrics"].filter(assoc), want["metrics"].filter(assoc), "metrics")
     bounds = sorted(D.parse_utc(x) for x in got["partitions"]["kept_from_utc"].to_list()[1:])
     eff = D.stitching_effects(got, want, bounds)

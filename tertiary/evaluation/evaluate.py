@@ -556,7 +556,8 @@ def _majority(labelled: pl.DataFrame, key: list[str]) -> pl.DataFrame:
     return keys.join(votes, on=key, how="left")
 
 
-def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) -> pl.DataFrame:
+def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame,
+                        confirmed: pl.DataFrame | None = None) -> pl.DataFrame:
     """Association correctness (metrics schema, stage ``association``, method ``assignment``,
     segment ``all``):
 
@@ -565,6 +566,9 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
       clutter does not vote; ties → smallest id) are both non-null and differ; summed;
     * ``targets_per_truth``: for each (run, truth_id) with at least one associated report, the
       number of distinct target ids that had it as majority truth at some epoch; the mean;
+    * ``confirmed_targets_per_truth`` (with ``confirmed``: the (run, target_id) ever shown
+      confirmed): the same count of confirmed targets only — the system targets a controller
+      sees per aircraft; a tentative target of a plot or two that never confirms is not one;
     * ``false_targets``: (run, target_id) whose associated reports are all clutter;
 
     * ``assoc_correct_frac``: among association rows whose report has a truth_id, the fraction
@@ -580,7 +584,7 @@ def association_metrics(associations: pl.DataFrame, report_truth: pl.DataFrame) 
     Computed as one :func:`score_associations` step and :func:`association_score`: the same
     rows as a run scored window by window.
     """
-    return association_score(score_associations(AssociationScore(), associations, report_truth))
+    return association_score(score_associations(AssociationScore(), associations, report_truth), confirmed)
 
 
 _TARGET = ["run", "target_id"]
@@ -703,25 +707,31 @@ def relabel_association_score(state: AssociationScore, targets: pl.DataFrame) ->
                                first=ids(state.first))
 
 
-def association_score(state: AssociationScore) -> pl.DataFrame:
-    """The :func:`association_metrics` rows of every association row scored into ``state``."""
+def _per_truth(state: AssociationScore, pairs: pl.DataFrame) -> float:
+    """Mean over the aircraft with a labelled report of their distinct targets in ``pairs``."""
+    got = pairs.group_by(["run", "truth_id"]).agg(pl.len().alias("n_targets"))
+    per_truth = (state.truths.join(got, on=["run", "truth_id"], how="left")
+                 .with_columns(pl.col("n_targets").fill_null(0)))
+    return float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
+
+
+def association_score(state: AssociationScore, confirmed: pl.DataFrame | None = None) -> pl.DataFrame:
+    """The :func:`association_metrics` rows of every association row scored into ``state``
+    (``confirmed``: the targets ever shown confirmed, for ``confirmed_targets_per_truth``)."""
     if state.rows == 0:
         return pl.DataFrame(schema=TABLES["metrics"].required)
     correct = state.correct / state.real if state.real else float("nan")
-    got = state.pairs.group_by(["run", "truth_id"]).agg(pl.len().alias("n_targets"))
-    per_truth = (state.truths.join(got, on=["run", "truth_id"], how="left")
-                 .with_columns(pl.col("n_targets").fill_null(0)))
-    tpt = float(per_truth["n_targets"].mean()) if per_truth.height else float("nan")
     false_targets = int((~state.seen["__real"]).sum())
-    out = pl.DataFrame({
-        "stage": "association", "method": "assignment",
-        "metric": ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets",
-                   "merged_targets"],
-        "segment": "all",
-        "value": [float(correct), float(state.swaps), tpt, float(false_targets), float(state.split),
-                  float(state.merged)],
-        "n_runs": state.runs.height,
-    })
+    metric = ["assoc_correct_frac", "swaps", "targets_per_truth", "false_targets", "split_targets", "merged_targets"]
+    value = [float(correct), float(state.swaps), _per_truth(state, state.pairs), float(false_targets),
+             float(state.split), float(state.merged)]
+    if confirmed is not None:
+        shown = state.pairs.join(_keys(confirmed, AssociationScore().first.select(_TARGET)).unique(), on=_TARGET,
+                                 how="semi")
+        metric.append("confirmed_targets_per_truth")
+        value.append(_per_truth(state, shown))
+    out = pl.DataFrame({"stage": "association", "method": "assignment", "metric": metric, "segment": "all",
+                        "value": value, "n_runs": state.runs.height})
     return out.select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
 
 

@@ -27,7 +27,7 @@ from tertiary.runtime.windows import concat_parts
 from tertiary.store.run_store import TABLES_DIR, RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
-           "check_tables", "store_sink", "for_sink", "read_table", "table_columns", "whole_table", "target_counts",
+           "check_tables", "store_sink", "for_sink", "confirmed_targets", "read_table", "table_columns", "whole_table", "target_counts",
            "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
            "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH", "NOT_SCORED", "PartTrim",
            "part_trim"]
@@ -106,6 +106,7 @@ class OnDiskTable:
         shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
         self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []
         self.target_counts = target_counts(frame) if self.name == "fused" else {}
+        self.confirmed = _confirmed(frame) if self.name == "fused" else None
 
     def picture(self, key: tuple, skip: Collection[str] = ()) -> pl.DataFrame:
         """One picture's rows, without the columns in ``skip``."""
@@ -423,6 +424,21 @@ def target_counts(fused: "pl.DataFrame | OnDiskTable") -> dict[str, int]:
             .agg(pl.col("tentative").all().alias("t")))
     n_tent = int(ever["t"].sum())
     return {"confirmed_targets": ever.height - n_tent, "tentative_targets": n_tent}
+
+
+def confirmed_targets(fused: "pl.DataFrame | OnDiskTable") -> pl.DataFrame:
+    """(run, target_id) of every system target a fusion method showed confirmed at least once
+    (the centralised reference's own targets left out)."""
+    return fused.confirmed if isinstance(fused, OnDiskTable) else _confirmed(fused)
+
+
+def _confirmed(frame: pl.DataFrame) -> pl.DataFrame:
+    if frame.height == 0 or "target_id" not in frame.columns:
+        return pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64})
+    shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
+    if "method" in shown.columns:
+        shown = shown.filter(pl.col("method") != "centralized")
+    return shown.select(pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64)).unique()
 
 
 def storable_as_is(file: Path, name: str, drop: Collection[str] = ()) -> bool:

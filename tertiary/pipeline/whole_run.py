@@ -36,8 +36,8 @@ from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stc
 from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
-                                      DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, for_sink,
-                                      read_table, table_columns, target_counts, whole_table)
+                                      DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, confirmed_targets,
+                                      for_sink, read_table, table_columns, target_counts, whole_table)
 from tertiary.runtime.windows import release_memory
 from tertiary.sensors.radar_health import radar_health
 from tertiary.stages import align as align_stage
@@ -348,12 +348,13 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
     if blocks is not None:
         scores = scored_blocks(blocks(), ing.reports)
     if carried or blocks is not None:
-        metrics = association_stage_metrics(scores.runs.height if scores.rows else 0, stats, association_score(scores))
+        metrics = association_stage_metrics(scores.runs.height if scores.rows else 0, stats,
+                                            association_score(scores, confirmed_targets(fused)))
     else:
         report_truth = ing.reports.select("run", "report_id", "truth_id") if has_truth else None
         metrics = association_stage_metrics(int(associations["run"].n_unique()) if associations.height else 0, stats,
-                                            association_metrics(associations, report_truth) if report_truth is not None
-                                            else None)
+                                            association_metrics(associations, report_truth, confirmed_targets(fused))
+                                            if report_truth is not None else None)
     release_memory()
     by_epoch = pl.DataFrame(schema=BY_EPOCH_SCHEMA)
     if has_truth:
