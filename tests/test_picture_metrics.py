@@ -9,6 +9,7 @@ import polars as pl
 import pytest
 
 from tertiary.core.errors import OptionError
+from tertiary.evaluation import sketch
 from tertiary.evaluation.picture_metrics import MetricsConfig, picture_metrics
 from tertiary.contract import validate
 
@@ -69,7 +70,8 @@ def test_constant_across_offset_gives_across_rms_and_zero_along():
     assert _value(met, "along_track_rms_m") == pytest.approx(0.0, abs=1e-9)
     assert _value(met, "latency_s") == pytest.approx(0.0, abs=1e-12)
     assert _value(met, "rmse_height_m") == pytest.approx(30.0)
-    assert _value(met, "p95_horizontal_m") == pytest.approx(100.0)
+    # every error is 100 m: the sketch's percentile is within its relative accuracy of it
+    assert _value(met, "p95_horizontal_m") == pytest.approx(100.0, rel=sketch.ALPHA)
     assert _value(met, "max_horizontal_m") == pytest.approx(100.0)
 
 

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from tertiary.core.errors import OptionError
 from tertiary.evaluation import picture_metrics as pm
+from tertiary.evaluation import sketch
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig
 
@@ -94,8 +95,8 @@ def _ratio(num: pl.Expr, den: pl.Expr) -> pl.Expr:
 @dataclass
 class _Partials:
     """What the buckets leave for the combine step: sums per (method, segment, run) (a few rows
-    per segment), the accuracy values the quantiles need (``values``: 4 bytes of method and of
-    each label + 16 of values a row), distinct split tracks and the bare expected rows."""
+    per segment), the percentiles' sketches (``values``: counts per bucket of the error, a few
+    hundred rows per segment), distinct split tracks and the bare expected rows."""
 
     accuracy: list[pl.DataFrame] = field(default_factory=list)
     values: list[pl.DataFrame] = field(default_factory=list)
@@ -108,7 +109,7 @@ class _Partials:
 
 
 def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: _Partials) -> None:
-    """Accuracy and identity sums of one bucket's error rows, and its quantile values."""
+    """Accuracy and identity sums of one bucket's error rows, and the sketch of its percentiles."""
     aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
             pl.col("err_height_m").abs().max().alias("max_height_m")]
     for name, c in _RMS.items():
@@ -116,8 +117,7 @@ def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsCon
     for name, c in _MEAN.items():
         aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
     out.accuracy.append(pm.by_segment(err, breakdown, *aggs, by=["run"]))
-    out.values.append(err.select(pl.col("method").cast(pl.Categorical), *breakdown, "err_h_m",
-                                 pl.col("err_height_m").abs().alias("__abs_h")))
+    out.values.append(pm.percentile_counts(err.with_columns(pl.col("method").cast(pl.Categorical)), breakdown))
     for name, ok in pm.identity_checks(err, cfg):
         out.identity.setdefault(name, []).append(pm.by_segment(
             pm.identity_rows(err, breakdown, ok), breakdown, pl.col("__ok").sum(), pl.len().alias("__n"), by=["run"]))
@@ -160,17 +160,14 @@ def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl
 
 
 def _accuracy_combined(out: _Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
-    """The accuracy rows from the buckets' sums, and the quantiles from their values."""
+    """The accuracy rows from the buckets' sums, and the percentiles from their merged sketches."""
     aggs = [pl.col("run").n_unique().alias("n_runs"), pl.col("n_points").sum().cast(pl.Float64),
             pl.col("max_horizontal_m").max(), pl.col("max_height_m").max()]
     aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).sqrt().alias(n) for n in _RMS]
     aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).alias(n) for n in _MEAN]
     wide = pl.concat(out.accuracy).group_by("method", "segment").agg(*aggs)
-    values = pl.concat(out.values)
+    q = pm.percentiles(sketch.merge_counts(out.values, ["method", "segment"])).with_columns(pl.col("method").cast(method))
     out.values.clear()
-    q = (pm.by_segment(values, breakdown, *pm.height_quantiles(pl.col("__abs_h")))
-         .with_columns(pl.col("method").cast(method)))
-    del values
     wide = wide.join(q, on=["method", "segment"], how="left")
     return pm.long_rows(wide, [c for c in wide.columns if c not in ("method", "segment", "n_runs")])
 
@@ -231,8 +228,7 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     every per-aircraft quantity (labels, errors, pm.representatives, exposure, intervals, breaks)
     is exact in its bucket, and each bucket leaves sums per (method, segment, run) that add up.
     Held whole: the per-track table (false tracks, picture hours; one streamed scan of five
-    columns), the values the quantiles need (32 bytes an error row) and the bare expected rows
-    for merged tracks, joined in a second pass with each bucket's representative tracks.
+    columns) and the bare expected rows for merged tracks, joined in a second pass with each bucket's representative tracks.
     With a ``scratch`` directory the rows are filed by bucket once
     (:func:`tertiary.evaluation.buckets.file_buckets`); without, each bucket filters the whole input.
     """

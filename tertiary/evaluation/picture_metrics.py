@@ -70,6 +70,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core.errors import DataError, OptionError
+from tertiary.evaluation import sketch
 
 __all__ = ["MetricsConfig", "BREAKDOWNS", "accuracy_errors", "band_labels", "reference_labels", "picture_metrics"]
 
@@ -212,11 +213,25 @@ def long_rows(wide: pl.DataFrame, names: Sequence[str]) -> pl.DataFrame:
 # --------------------------------------------------------------------------- metric groups
 
 
-def height_quantiles(abs_height: pl.Expr) -> list[pl.Expr]:
-    """The accuracy quantiles (of ``err_h_m`` and of ``abs_height``, |height error|)."""
-    return [pl.col("err_h_m").quantile(0.95, "linear").alias("p95_horizontal_m"),
-            pl.col("err_h_m").quantile(0.99, "linear").alias("p99_horizontal_m"),
-            abs_height.quantile(0.95, "linear").alias("p95_height_m")]
+#: the accuracy percentiles: (quantity, q) of a quantile sketch (:mod:`tertiary.evaluation.sketch`,
+#: within its relative accuracy of the order statistic), mergeable over any split of the rows
+PERCENTILES = {"p95_horizontal_m": ("horizontal", 0.95), "p99_horizontal_m": ("horizontal", 0.99),
+               "p95_height_m": ("height", 0.95)}
+
+
+def percentile_counts(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+    """The sketch of the horizontal and absolute height errors per (method, segment)."""
+    parts = []
+    for quantity, values in (("horizontal", pl.col("err_h_m")), ("height", pl.col("err_height_m").abs())):
+        keyed = err.select("method", *breakdown, sketch.bucket(values).alias(sketch.KEY)).drop_nulls(sketch.KEY)
+        parts.append(by_segment(keyed, breakdown, pl.len().cast(pl.UInt64).alias(sketch.COUNT), by=[sketch.KEY])
+                     .with_columns(pl.lit(quantity).alias("quantity")))
+    return pl.concat(parts).select("method", "segment", "quantity", sketch.KEY, sketch.COUNT)
+
+
+def percentiles(counts: pl.DataFrame) -> pl.DataFrame:
+    """(method, segment, the :data:`PERCENTILES`) of merged :func:`percentile_counts`."""
+    return sketch.quantiles(counts, ["method", "segment"], PERCENTILES)
 
 
 def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
@@ -228,7 +243,6 @@ def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
         pl.col("run").n_unique().alias("n_runs"),
         rms("err_h_m").alias("rmse_horizontal_m"),
         rms("err_height_m").alias("rmse_height_m"),
-        *height_quantiles(pl.col("err_height_m").abs()),
         pl.col("err_h_m").max().alias("max_horizontal_m"),
         pl.col("err_height_m").abs().max().alias("max_height_m"),
         rms("along_m").alias("along_track_rms_m"),
@@ -242,6 +256,7 @@ def _accuracy(err: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
         rms("err_vrate_mps").alias("vertical_rate_rms_mps"),
         pl.len().cast(pl.Float64).alias("n_points"),
     )
+    wide = wide.join(percentiles(percentile_counts(err, breakdown)), on=["method", "segment"], how="left")
     names = [c for c in wide.columns if c not in ("method", "segment", "n_runs")]
     return long_rows(wide, names)
 
