@@ -15,6 +15,8 @@ from pathlib import Path
 
 import polars as pl
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from polars.testing import assert_frame_equal
 
 from tertiary import pipeline
@@ -722,6 +724,20 @@ def test_the_command_hands_polars_freed_pages_back_at_once():
     code = code.replace("assert '_RJEM_MALLOC_CONF' not in os.environ; ", "")
     got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert got.stdout.strip().endswith(",dirty_decay_ms:250") and "muzzy_decay_ms:0" not in got.stdout
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.lists(st.one_of(st.none(), st.integers(-5, 3_000), st.integers(0, 2**40)), max_size=40),
+                max_size=6))
+def test_distinct_ids_count_as_n_unique_whatever_the_id_space(frames):
+    """The bitmap count of distinct ids, with its fallback for negative or sparse ids, equals
+    polars' ``n_unique`` of all the frames together (a null counted once)."""
+    from tertiary.pipeline.scoring import DistinctIds
+    ids = DistinctIds()
+    for f in frames:
+        ids.add(pl.Series(f, dtype=pl.Int64))
+    whole = pl.Series([v for f in frames for v in f], dtype=pl.Int64)
+    assert ids.count() == whole.n_unique()
+
 
 def test_aligned_facts_read_part_by_part_equal_the_whole_tables(terminal, tmp_path):
     """The row accounting and the observed aircraft taken from the aligned parts one at a time

@@ -448,3 +448,25 @@ def test_radars_every_bad_value() -> None:
     clean, rejects, _ = _lenient(bad_radars(), "radars")
     assert list(zip(rejects["row_index"].to_list(), rejects["reason"].to_list())) == RADAR_REJECTS
     assert clean["radar_id"].to_list() == [1, 2, 4]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_streamed_median_time_is_the_median_of_the_whole_column(seed):
+    """The median time read a batch at a time (count and range, a histogram, the middle
+    buckets' values) is exactly the polars median of the whole column: odd and even counts,
+    times in one bucket or spread over decades, repeated times, nulls and times outside the
+    years left out."""
+    from tertiary.contract import streamed_median_time, table_median_time
+    rng = np.random.default_rng(seed)
+    base = 1_633_000_000_000_000
+    for scale in (1, 1_000, 10**6, 10**9, 10**12, 10**14):
+        for n in (1, 2, 7, 1_000, 4_001):
+            v = base + (rng.integers(0, scale, n) if n % 2 else rng.integers(0, 5, n) * scale)
+            s = pl.concat([pl.Series(v).cast(pl.Datetime("us", "UTC")),
+                           pl.Series([None, datetime(1900, 1, 1, tzinfo=timezone.utc)], dtype=pl.Datetime("us", "UTC"))])
+            k = int(rng.integers(1, 60))
+
+            def batches(s=s, k=k):
+                return (s.slice(o, k) for o in range(0, s.len(), k))
+            assert streamed_median_time(batches) == table_median_time(pl.DataFrame({"time": s}))
+    assert streamed_median_time(lambda: iter([pl.Series([None], dtype=pl.Datetime("us", "UTC"))])) is None

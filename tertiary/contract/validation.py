@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
@@ -45,7 +45,7 @@ from tertiary.contract.tables import F64, INPUT_ROW, REASON, ROW_INDEX, U32, Tab
 from tertiary.core.errors import DataError, OptionError
 
 __all__ = [
-    "as_frame", "sort_tracks", "table_median_time", "table_order", "unsorted_groups", "unsorted_message", "validate",
+    "as_frame", "sort_tracks", "streamed_median_time", "table_median_time", "table_order", "unsorted_groups", "unsorted_message", "validate",
 ]
 
 _IDX = "__row_index"  # internal input position, exposed as ``row_index`` in rejects
@@ -185,6 +185,44 @@ def table_median_time(frame: pl.DataFrame, limits: Limits = Limits()) -> datetim
     lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
     time = frame["time"]
     return time.filter(time.is_between(lo, hi, closed="left").fill_null(False)).median()
+
+
+#: buckets of the streamed median's middle pass (:func:`streamed_median_time`)
+_MEDIAN_BUCKETS = 1 << 20
+
+
+def streamed_median_time(batches: Callable[[], Iterable[pl.Series]], limits: Limits = Limits()) -> datetime | None:
+    """:func:`table_median_time` of the times ``batches()`` yields (called once per pass;
+    microseconds, UTC), exactly, holding one batch and a histogram, never the column (memory: a day's truth times
+    are hundreds of MB, their median's sort several times that). Three passes: the count and
+    range; a histogram of ``_MEDIAN_BUCKETS`` buckets locating the middle rank(s); those
+    buckets' values, whose middle one or two the polars median of the whole takes."""
+    lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
+
+    def kept() -> Iterable[NDArray[np.int64]]:
+        for s in batches():
+            s = s.filter(s.is_between(lo, hi, closed="left").fill_null(False))
+            if s.len():
+                yield s.dt.epoch("us").to_numpy()
+    n, first, last = 0, None, None
+    for v in kept():
+        n, first, last = n + v.size, v.min() if first is None else min(first, v.min()), (
+            v.max() if last is None else max(last, v.max()))
+    if n == 0:
+        return None
+    shift = max(0, int(last - first).bit_length() - _MEDIAN_BUCKETS.bit_length() + 1)
+    counts = np.zeros(_MEDIAN_BUCKETS, np.int64)
+    for v in kept():
+        counts += np.bincount((v - first) >> shift, minlength=_MEDIAN_BUCKETS)
+    ranks = sorted({(n - 1) // 2, n // 2})
+    ends = np.cumsum(counts)
+    where = np.searchsorted(ends, ranks, side="right")       # the bucket holding each rank
+    inside = [np.concatenate([v[((v - first) >> shift) == b] for v in kept()] or [np.empty(0, np.int64)])
+              for b in sorted(set(where.tolist()))]
+    values = np.sort(np.concatenate(inside))
+    before = ends[where.min()] - counts[where.min()]           # rows below the first such bucket
+    middle = values[[r - before for r in ranks]]
+    return pl.Series(middle).cast(pl.Datetime("us", "UTC")).median()
 
 
 def _time_checks(

@@ -36,7 +36,7 @@ from tertiary.core import geo
 from tertiary.evaluation.accuracy import AccuracyConfig, BY_EPOCH_SCHEMA, ROW_SCORES, picture_accuracy, row_scores
 from tertiary.evaluation.accuracy_buckets import picture_accuracy_buckets
 from tertiary.core.errors import DataError
-from tertiary.evaluation.multitarget import MultiTargetConfig, multitarget_metrics
+from tertiary.evaluation.multitarget import MultiTargetConfig, MultiTargetState, multitarget_result, multitarget_step
 from tertiary.evaluation.matching import (MatchConfig, between_expr, between_mask, match_with_reference, neighbour_times, reference_identity)
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.evaluation.picture_buckets import picture_metrics_buckets
@@ -250,10 +250,12 @@ def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
 
 
 def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: EvaluationConfig,
-                  id_col: str, slim: bool = False, spill: Path | None = None
-                  ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame] | None:
-    """(matched rows with their :func:`row_scores`, reference at the picture's epochs) of one
-    picture given in blocks, or None when it has no row. A block is matched against the
+                  id_col: str, slim: bool = False, spill: Path | None = None, multitarget: bool = False
+                  ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame, pl.DataFrame | None] | None:
+    """(matched rows with their :func:`row_scores`, reference at the picture's epochs, the
+    picture's OSPA, GOSPA and SIAP rows when ``multitarget``, stepped a block at a time:
+    :func:`~tertiary.evaluation.multitarget.multitarget_step`) of one picture given in blocks,
+    or None when it has no row. A block is matched against the
     reference samples its epochs read (:func:`reference_between`): the matcher is per epoch
     and the row scores per row, so the result is that of the whole picture at once. ``slim``:
     only the columns the metrics read are kept (:func:`_scored_only`). ``spill`` (a picture of
@@ -267,7 +269,8 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
     whole = second is None                  # one block: matched against the whole reference
     if whole:
         spill = None
-    matched, expected, last = [], [], None
+    matched, expected, last, mt = [], [], None, MultiTargetState()
+    method = str(first["method"][0]) if "method" in first.columns else "picture"
     for block in itertools.chain([first], [] if whole else [second], it):
         _check_inputs(block, reference.empty, id_col)
         if "method" not in block.columns:
@@ -279,17 +282,21 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
         truth = reference.whole() if whole else reference.between(t0, t1)
         m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
         del block, truth
+        if multitarget:
+            mt = multitarget_step(mt, m.select("run", "epoch", pl.col(id_col).alias("track_id"), *_STATE[:3]),
+                                  ref.select(_MT_TRUTH), cfg.multitarget)
         scored = row_scores(m)
         matched.append(_scored_only(scored, id_col) if slim else scored)
         del m, scored
         expected.append(ref)
         if spill is not None:
             matched, expected = _spilled(spill, matched, expected)
+    mt_rows = multitarget_result(mt, method) if multitarget else None
     if spill is not None:
         # relaxed: a block whose column is all null may have stored it with another type
-        return tuple(pl.concat([pl.scan_parquet(f) for f in sorted((spill / k).glob("*.parquet"))],
-                               how="vertical_relaxed") for k in ("matched", "expected"))
-    return _concat(matched), _concat(expected)
+        return (*(pl.concat([pl.scan_parquet(f) for f in sorted((spill / k).glob("*.parquet"))],
+                            how="vertical_relaxed") for k in ("matched", "expected")), mt_rows)
+    return _concat(matched), _concat(expected), mt_rows
 
 
 def _spilled(spill: Path, matched: list[pl.DataFrame], expected: list[pl.DataFrame]
@@ -317,15 +324,8 @@ def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
     return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
 
-def _multitarget(matched: pl.DataFrame | pl.LazyFrame, expected: pl.DataFrame | pl.LazyFrame,
-                 cfg: MultiTargetConfig) -> pl.DataFrame:
-    """OSPA, GOSPA and SIAP of one matched picture: its rows' ENU positions against the
-    reference at its epochs (only those columns are read of a spilled picture)."""
-    tracks = matched.select("method", "run", "epoch", "track_id", "x_m", "y_m", "z_m")
-    truth = expected.select("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
-    if isinstance(tracks, pl.LazyFrame):
-        tracks, truth = pl.collect_all([tracks, truth])
-    return multitarget_metrics(tracks, truth, str(tracks["method"][0]), cfg)
+#: what the multi-target metrics read of the reference at a picture's epochs
+_MT_TRUTH = ("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
 
 
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
@@ -382,10 +382,10 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         if where is not None:
             shutil.rmtree(where, ignore_errors=True)        # an interrupted evaluation's files
         got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
-                            slim=not keep_matched, spill=where)
+                            slim=not keep_matched, spill=where, multitarget=surveillance)
         if got is None:
             continue
-        matched, expected = got
+        matched, expected, mt_rows = got
         if id_col != "track_id":
             matched = matched.rename({id_col: "track_id"})
         seen = observed if observed is not None else expected.select("run", "epoch", "truth_id")
@@ -408,7 +408,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
                 parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
                                                         radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
         if surveillance:
-            parts["metrics"].append(_multitarget(matched, expected, cfg.multitarget))
+            parts["metrics"].append(mt_rows)
         parts["metrics"].append(seed)
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)
@@ -419,7 +419,7 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
         # released before the next picture is matched: two pictures' rows are never held at once
-        del got, matched, expected, seed, by_epoch, samples
+        del got, matched, expected, seed, by_epoch, samples, mt_rows
         if where is not None:
             shutil.rmtree(where, ignore_errors=True)
 

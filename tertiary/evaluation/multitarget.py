@@ -35,7 +35,7 @@ R = Σ_j (NU_j − 1) / Σ_j TT_j (NU_j > 0), longest segment LS = Σ_j TL_j / �
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -44,9 +44,10 @@ from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
 
-from tertiary.contract import TABLES
+from tertiary.contract import TABLES, TIME
 
-__all__ = ["MultiTargetConfig", "multitarget_by_epoch", "siap_continuity", "multitarget_metrics", "METRICS"]
+__all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "multitarget_by_epoch", "multitarget_metrics",
+           "multitarget_result", "multitarget_step", "siap_continuity"]
 
 #: the metrics :func:`multitarget_metrics` writes (stage ``evaluation``, segment ``all``)
 METRICS = ("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false", "siap_completeness",
@@ -247,12 +248,22 @@ def _tracks_needed(seg: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     back to the truth epoch before its start (``reach``): "there at the epoch after the covered
     end" is "reaches the covered end and ends after it". Each pass of the loop advances every
     truth at once."""
+    return _greedy_cover(_with_reach(seg, truth).with_columns(
+        pl.col("reach").fill_null(pl.col("start") - pl.duration(microseconds=1))))
+
+
+def _with_reach(seg: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
+    """``seg`` with ``reach``: its truth's epoch before its start in ``truth`` (null: none)."""
     key = ["run", "truth_id"]
     times = truth.select(*key, pl.col("epoch").alias("reach")).sort("reach")
-    seg = (seg.sort("start").join_asof(times, left_on="start", right_on="reach", by=key, strategy="backward",
+    return seg.sort("start").join_asof(times, left_on="start", right_on="reach", by=key, strategy="backward",
                                        allow_exact_matches=False, check_sortedness=False)
-           .with_columns(pl.col("reach").fill_null(pl.col("start") - pl.duration(microseconds=1)),
-                         pl.col("end").max().over(*key, "track_id").alias("last"))
+
+
+def _greedy_cover(seg: pl.DataFrame) -> pl.DataFrame:
+    """:func:`_tracks_needed` of segments with their ``reach``."""
+    key = ["run", "truth_id"]
+    seg = (seg.with_columns(pl.col("end").max().over(*key, "track_id").alias("last"))
            .sort(*key, "last", "end", "track_id"))
     t0 = seg["reach"].min()
     reach, end, last = ((seg[c] - t0).dt.total_microseconds().to_numpy() + 1 for c in ("reach", "end", "last"))
@@ -300,11 +311,20 @@ def siap_continuity(tracks: pl.DataFrame, truth: pl.DataFrame,
 
 
 def _continuity(sc: _Scene) -> tuple[float, float]:
-    key, ref = ["run", "truth_id"], sc.truth
-    life = ref.group_by(key).agg(((pl.col("epoch").max() - pl.col("epoch").min()).dt.total_microseconds() / 1e6)
-                                 .alias("t_s"))
     seg = _segments(_associations(sc))
-    total = float(life["t_s"].sum())
+    return _continuity_of(seg, sc.truth, _lifetimes(sc.truth))
+
+
+def _lifetimes(ref: pl.DataFrame) -> pl.DataFrame:
+    """(run, truth_id, first, last) epoch of each truth at the picture's epochs."""
+    return ref.group_by("run", "truth_id").agg(pl.col("epoch").min().alias("first"),
+                                               pl.col("epoch").max().alias("last"))
+
+
+def _continuity_of(seg: pl.DataFrame, ref: pl.DataFrame | None, life: pl.DataFrame) -> tuple[float, float]:
+    """(R, LS) of the segments ``seg`` (with ``reach`` when ``ref`` is None) and lifetimes."""
+    key = ["run", "truth_id"]
+    total = float(((life["last"] - life["first"]).dt.total_microseconds() / 1e6).sum()) if life.height else 0.0
     if seg.height == 0:
         return 0.0, 0.0
     # a track's segments with one truth are one association in Stone Soup: TL_j is the longest
@@ -313,7 +333,9 @@ def _continuity(sc: _Scene) -> tuple[float, float]:
         ((pl.col("end") - pl.col("start")).dt.total_microseconds() / 1e6).sum().alias("s"))
     longest = float(per_track.group_by(key).agg(pl.col("s").max())["s"].sum())
     tt = float(_union_s(seg)["tt_s"].sum())
-    changes = float((_tracks_needed(seg, ref)["nu"] - 1).sum())
+    cover = (_tracks_needed(seg, ref) if ref is not None else _greedy_cover(seg.with_columns(
+        pl.col("reach").fill_null(pl.col("start") - pl.duration(microseconds=1)))))
+    changes = float((cover["nu"] - 1).sum())
     return (changes / tt if tt else 0.0), (longest / total if total else 0.0)
 
 
@@ -324,13 +346,95 @@ def multitarget_metrics(tracks: pl.DataFrame, truth: pl.DataFrame, method: str,
     measures pooled over them as Stone Soup pools them (module docstring)."""
     sc = _scene(tracks, truth, cfg)
     ep = _by_epoch(sc, cfg)
-    s = ep.select(pl.exclude("run", "epoch").sum())
-    mean = ep.select(pl.col("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false").mean())
-    j, jt, n, na = (float(s[c].item()) for c in ("n_truths", "siap_truths_assoc", "n_tracks", "siap_tracks_assoc"))
-    rate, longest = _continuity(sc)
-    values = [*(float(mean[c].item()) for c in mean.columns),
+    return _metric_rows(method, _sums(ep), _continuity(sc), ep["run"].unique())
+
+
+#: what the epochs' rows add up to (:func:`_sums`): the epoch means' numerators, then the SIAP counts
+_MEANS = ("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false")
+_COUNTS = ("n_truths", "siap_truths_assoc", "n_tracks", "siap_tracks_assoc", "siap_error_sum_m")
+
+
+def _sums(ep: pl.DataFrame) -> NDArray:
+    """(epochs, Σ of each of :data:`_MEANS` and :data:`_COUNTS`) of :func:`_by_epoch` rows."""
+    return np.array([float(ep.height), *(float(ep[c].sum()) for c in (*_MEANS, *_COUNTS))])
+
+
+def _metric_rows(method: str, sums: NDArray, continuity: tuple[float, float], runs: pl.Series) -> pl.DataFrame:
+    n_ep, means, (j, jt, n, na, pa) = sums[0], sums[1:1 + len(_MEANS)], sums[1 + len(_MEANS):]
+    rate, longest = continuity
+    values = [*(float(m / n_ep) if n_ep else float("nan") for m in means),
               jt / j if j else 0.0, na / jt if jt else 1.0, (n - na) / n if n else 0.0,
-              float(s["siap_error_sum_m"].item()) / na if na else 0.0, 3600.0 * rate, longest, float(ep.height)]
+              pa / na if na else 0.0, 3600.0 * rate, longest, float(n_ep)]
     return pl.DataFrame({"stage": "evaluation", "method": method, "metric": list(METRICS), "segment": "all",
-                         "value": values, "n_runs": ep["run"].n_unique()}
+                         "value": values, "n_runs": runs.n_unique()}
                         ).select([pl.col(c).cast(t) for c, t in TABLES["metrics"].required.items()])
+
+
+@dataclass(frozen=True)
+class MultiTargetState:
+    """:func:`multitarget_metrics` of a picture given in blocks of whole epochs in time order
+    (:func:`multitarget_step`): the epoch sums, the runs, each truth's lifetime, the closed
+    SIAP segments, and the open ones — a track's segment holding its latest state, which its
+    next state (in a later block) may continue. Its size is the segments', not the rows'."""
+
+    sums: NDArray = field(default_factory=lambda: np.zeros(1 + len(_MEANS) + len(_COUNTS)))
+    runs: pl.Series = field(default_factory=lambda: pl.Series("run", [], pl.UInt32))
+    life: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE))
+    closed: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
+    open: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
+    #: each truth's latest epoch
+    truth_last: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE).drop("first"))
+
+
+_LIFE = {"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "last": TIME}
+_SEGMENT = {"run": pl.UInt32, "truth_id": pl.Int64, "track_id": pl.UInt64, "start": TIME, "end": TIME,
+            "reach": TIME}
+
+
+def multitarget_step(state: MultiTargetState, tracks: pl.DataFrame, truth: pl.DataFrame,
+                     cfg: MultiTargetConfig = MultiTargetConfig()) -> MultiTargetState:
+    """``state`` after one block of a picture (the frames of :func:`multitarget_by_epoch`; its
+    epochs after every earlier block's). The per-epoch terms only add up; a SIAP segment runs
+    over consecutive states of a track, so the segment holding a track's latest state stays
+    open until its next state shows another truth or none."""
+    if tracks.height == 0:
+        return state
+    sc = _scene(tracks, truth, cfg)
+    ep = _by_epoch(sc, cfg)
+    key = ["run", "truth_id"]
+    assoc = _associations(sc).with_columns(pl.col("track_id").cast(pl.UInt64))
+    seg = _with_reach(_segments(assoc).cast({"track_id": pl.UInt64}), sc.truth).join(
+        state.truth_last.rename({"last": "__before"}), on=key, how="left")
+    seg = seg.with_columns(pl.coalesce("reach", "__before").alias("reach")).drop("__before")
+    firsts = assoc.sort("epoch").group_by("run", "track_id").agg(pl.col("truth_id").first().alias("head"),
+                                                                 pl.col("epoch").first().alias("head_epoch"),
+                                                                 pl.col("epoch").last().alias("__last"))
+    # an open segment goes on where its track's first state here shows its truth
+    opened = state.open.join(firsts, on=["run", "track_id"], how="left")
+    goes_on = (pl.col("head") == pl.col("truth_id")).fill_null(False)
+    carried = opened.filter(goes_on).select("run", "track_id", "truth_id", "start", "reach", "head_epoch")
+    ended = opened.filter(~goes_on & pl.col("head_epoch").is_not_null()).select(list(_SEGMENT))
+    still = opened.filter(pl.col("head_epoch").is_null()).select(list(_SEGMENT))
+    joined = seg.join(carried, left_on=["run", "track_id", "truth_id", "start"],
+                      right_on=["run", "track_id", "truth_id", "head_epoch"], how="left", suffix="_old")
+    merged = pl.col("start_old").is_not_null()
+    seg = joined.with_columns(pl.when(merged).then("start_old").otherwise("start").alias("start"),
+                              pl.when(merged).then("reach_old").otherwise("reach").alias("reach")
+                              ).select(list(_SEGMENT))
+    # the segment holding a track's latest state here stays open
+    seg = seg.join(firsts.select("run", "track_id", "__last"), on=["run", "track_id"], how="left")
+    is_open = pl.col("end") == pl.col("__last")
+    life = pl.concat([state.life, _lifetimes(sc.truth).select(list(_LIFE))]).group_by(key).agg(
+        pl.col("first").min(), pl.col("last").max())
+    return MultiTargetState(
+        sums=state.sums + _sums(ep), runs=pl.concat([state.runs, ep["run"].unique()]).unique(),
+        life=life, closed=pl.concat([state.closed, ended, seg.filter(~is_open).select(list(_SEGMENT))]),
+        open=pl.concat([still, seg.filter(is_open).select(list(_SEGMENT))]),
+        truth_last=life.select("run", "truth_id", "last"))
+
+
+def multitarget_result(state: MultiTargetState, method: str) -> pl.DataFrame:
+    """The :data:`METRICS` rows of the blocks stepped into ``state`` (:func:`multitarget_metrics`
+    of their union)."""
+    seg = pl.concat([state.closed, state.open])
+    return _metric_rows(method, state.sums, _continuity_of(seg, None, state.life), state.runs)

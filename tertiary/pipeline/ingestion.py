@@ -28,7 +28,7 @@ from tertiary.stages.align import AlignPlan
 from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
 
 __all__ = ["Ingested", "StreamedTruth", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
-           "truth_lazy", "truth_window", "no_rejects", "registered", "valid_flight_plans", "stage_rejects_table",
+           "truth_lazy", "span_window", "truth_window", "no_rejects", "registered", "valid_flight_plans", "stage_rejects_table",
            "TRUTH_PART_ROWS", "TRUTH_WHOLE_ROWS", "TRUTH_BATCH_ROWS"]
 
 
@@ -186,7 +186,8 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     order and given its samples' neighbour times; the clean rows are then written as a reference
     (:func:`write_reference_pieces`) in :func:`validate_truth`'s order — input order, or
     (truth_id, time) when some aircraft's times decrease — a file per input batch or per part.
-    Every check is row-wise or within one aircraft, the median time is the whole table's and
+    Every check is row-wise or within one aircraft, the median time is the whole table's (read a
+    batch at a time: :func:`~tertiary.contract.validation.streamed_median_time`) and
     the unsorted-time note adds the parts' counts, so the rows, rejects and notes are
     :func:`validate_truth`'s."""
     lf = truth_lazy(ds)
@@ -199,7 +200,12 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     if n <= TRUTH_PART_ROWS:
         return None
     kw = dict(limits=cfg.limits, time_window=window)
-    med = contract.table_median_time(lf.select("time").collect(), cfg.limits)
+    times = lf.select("time")
+
+    def batches():
+        for off in range(0, n, TRUTH_BATCH_ROWS):
+            yield times.slice(off, TRUTH_BATCH_ROWS).collect()["time"]
+    med = contract.streamed_median_time(batches, cfg.limits)
     sizes = lf.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True).collect()
     part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
     n_parts = int(part_of["__part"].max()) + 1
@@ -298,9 +304,13 @@ def truth_window(reports: pl.DataFrame, limits: contract.Limits):
     """(start, end, label) the truth must fall in: the valid reports' span ± the pad."""
     if reports.height == 0:
         return None
+    return span_window(reports["time"].min(), reports["time"].max(), limits)
+
+
+def span_window(first, last, limits: contract.Limits):
+    """:func:`truth_window` of reports from ``first`` to ``last``."""
     pad = timedelta(seconds=limits.truth_pad_s)
-    return (reports["time"].min() - pad, reports["time"].max() + pad,
-            f"the reports' span +- {limits.truth_pad_s:g} s")
+    return first - pad, last + pad, f"the reports' span +- {limits.truth_pad_s:g} s"
 
 
 def screen(ds: Dataset, cfg: PipelineConfig | None = None) -> Ingested:

@@ -22,7 +22,7 @@ from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
 from tertiary.runtime.windows import release_memory
 from tertiary.stages.association.associate import AssociationStats
 
-__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "aligned_facts", "association_blocks",
+__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "DistinctIds", "aligned_facts", "association_blocks",
            "association_stage_metrics", "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
 
 
@@ -130,29 +130,74 @@ class AlignedFacts:
     observed: pl.DataFrame | None
 
 
+class DistinctIds:
+    """How many distinct values of a non-negative integer id were added, a frame at a time: a
+    bitmap over the id space (a day's 35 M report ids in 35 MB, where their hash set took GBs),
+    or the frames' unique values when the ids are negative or too sparse for it."""
+
+    #: id space the bitmap may span beyond eight per id added (sparse ids fall back to values)
+    SLACK = 1 << 24
+
+    def __init__(self) -> None:
+        self.seen: np.ndarray | None = np.zeros(0, np.bool_)
+        self.values: list[pl.Series] = []
+        self.added, self.null = 0, False
+
+    def add(self, ids: pl.Series) -> None:
+        self.null |= ids.null_count() > 0
+        ids = ids.drop_nulls()
+        self.added += ids.len()
+        if self.seen is not None and ids.len():
+            top, low = ids.max(), ids.min()
+            if low < 0 or top >= 8 * self.added + self.SLACK:
+                self.values.append(pl.Series(np.flatnonzero(self.seen)).cast(ids.dtype))
+                self.seen = None
+            else:
+                if top >= self.seen.size:
+                    self.seen = np.concatenate([self.seen, np.zeros(max(top + 1, 2 * self.seen.size) - self.seen.size,
+                                                                    np.bool_)])
+                self.seen[ids.cast(pl.Int64).to_numpy()] = True
+                return
+        if ids.len():
+            self.values.append(ids.unique())
+
+    def count(self) -> int:
+        """The distinct values added (a null counted as one, as ``n_unique``)."""
+        if self.seen is not None:
+            return int(np.count_nonzero(self.seen)) + self.null
+        return (pl.concat(self.values).n_unique() if self.values else 0) + self.null
+
+
 def aligned_facts(files: Sequence[Path]) -> AlignedFacts:
     """:class:`AlignedFacts` of the aligned rows in ``files`` (a run's window parts), read a part
     at a time: neither the aligned rows nor the reports are held whole (memory: a day's are
-    several GB). Each aligned row carries its report's ``truth_id``, and an epoch's rows are all
-    in one part, so each part's observed aircraft are its own."""
-    rows, ids, seen, schema = 0, [], [], None
+    several GB), and the distinct reports are counted in a bitmap (:class:`DistinctIds`). Each
+    aligned row carries its report's ``truth_id``; when each part's epochs follow the previous
+    part's (a run's windows), each part's observed aircraft are its own and are not made
+    unique again over the run (a hash of every aircraft-epoch)."""
+    rows, ids, seen, schema, last, ordered = 0, DistinctIds(), [], None, None, True
     for f in files:
         have = pl.read_parquet_schema(f)
         part = pl.read_parquet(f, columns=[c for c in ("run", "epoch", "report_id", "truth_id") if c in have])
         if part.height == 0:
             continue
         rows += part.height
-        ids.append(part["report_id"].unique())
+        ids.add(part["report_id"])
+        first = part["epoch"].min()
+        ordered &= last is None or first is None or first > last
+        last = part["epoch"].max() if last is None else max(last, part["epoch"].max())
         if "truth_id" not in part.columns:
             schema = False
         elif schema is not False:
             keys = part.select("run", "epoch", "truth_id")
             schema = keys.schema
             seen.append(keys.drop_nulls().unique())
-    n_reports = pl.concat(ids).n_unique() if ids else 0
     if not schema:
-        return AlignedFacts(rows, n_reports, None)
-    return AlignedFacts(rows, n_reports, pl.concat(seen).unique() if seen else pl.DataFrame(schema=schema))
+        return AlignedFacts(rows, ids.count(), None)
+    if not seen:
+        return AlignedFacts(rows, ids.count(), pl.DataFrame(schema=schema))
+    observed = pl.concat(seen)
+    return AlignedFacts(rows, ids.count(), observed if ordered else observed.unique())
 
 
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",

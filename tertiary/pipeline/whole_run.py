@@ -26,8 +26,8 @@ from tertiary.evaluation.truth_picture import observed_spans
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
-from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, stream_truth, truth_window,
-                                         validate_truth)
+from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, span_window, stream_truth,
+                                         truth_window, validate_truth)
 from tertiary.pipeline.pictures import safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, observed_aircraft,
@@ -138,15 +138,17 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     # them is read a part at a time (memory), unless radar health reads every aligned column
     facts = aligned_facts(parts.part_files("aligned")) if lean and not cfg.radar_health else None
     empty_reports = contract.empty_frame("reports", False)
-    reports = (read_table(parts, "reports", empty_reports) if not lean else
-               table_columns(parts, "reports", ["time"] if facts else REPORT_COLUMNS, empty_reports))
-    n_reports = reports.height
+    if facts:
+        # the reports' count and span, a part at a time (memory: a day's times are 280 MB)
+        n_reports, window = _report_span(parts.part_files("reports"), cfg)
+        reports = _report_schema(parts, empty_reports)
+    else:
+        reports = (read_table(parts, "reports", empty_reports) if not lean else
+                   table_columns(parts, "reports", REPORT_COLUMNS, empty_reports))
+        n_reports, window = reports.height, truth_window(reports, cfg.limits)
     rejects = read_table(parts, "rejects", no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                               maintain_order=True)
     scratch = parts.scratch() if lean else None
-    window = truth_window(reports, cfg.limits)
-    if facts:
-        reports = _report_schema(parts, empty_reports)
     # an on-disk run validates the truth from disk to disk: the whole-run stages read it there
     streamed = stream_truth(ds, cfg, notes, window, scratch) if lean else None
     on_disk = None
@@ -437,6 +439,17 @@ def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
 
 #: the types of a point's curve rows without its index
 CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
+
+
+def _report_span(files: list[Path], cfg: PipelineConfig):
+    """(rows, :func:`truth_window`) of the valid reports in ``files``, read a part at a time."""
+    n, first, last = 0, None, None
+    for f in files:
+        got = pl.scan_parquet(f).select(pl.len(), pl.col("time").min().alias("a"), pl.col("time").max().alias("b"))
+        k, a, b = got.collect().row(0)
+        if k:
+            n, first, last = n + k, a if first is None else min(first, a), b if last is None else max(last, b)
+    return n, (span_window(first, last, cfg.limits) if n else None)
 
 
 def _report_schema(parts: Any, empty: pl.DataFrame) -> pl.DataFrame:
