@@ -462,8 +462,8 @@ def test_streamed_median_time_is_the_median_of_the_whole_column(seed):
     for scale in (1, 1_000, 10**6, 10**9, 10**12, 10**14):
         for n in (1, 2, 7, 1_000, 4_001):
             v = base + (rng.integers(0, scale, n) if n % 2 else rng.integers(0, 5, n) * scale)
-            s = pl.concat([pl.Series(v).cast(pl.Datetime("us", "UTC")),
-                           pl.Series([None, datetime(1900, 1, 1, tzinfo=timezone.utc)], dtype=pl.Datetime("us", "UTC"))])
+            odd = [None, datetime(1900, 1, 1, tzinfo=timezone.utc)]
+            s = pl.concat([pl.Series(v).cast(pl.Datetime("us", "UTC")), pl.Series(odd, dtype=pl.Datetime("us", "UTC"))])
             k = int(rng.integers(1, 60))
 
             def batches(s=s, k=k):

@@ -45,7 +45,8 @@ from tertiary.contract.tables import F64, INPUT_ROW, REASON, ROW_INDEX, U32, Tab
 from tertiary.core.errors import DataError, OptionError
 
 __all__ = [
-    "as_frame", "sort_tracks", "streamed_median_time", "table_median_time", "table_order", "unsorted_groups", "unsorted_message", "validate",
+    "as_frame", "sort_tracks", "streamed_median_time", "table_median_time", "table_order", "unsorted_groups",
+    "unsorted_message", "validate",
 ]
 
 _IDX = "__row_index"  # internal input position, exposed as ``row_index`` in rejects

@@ -22,7 +22,8 @@ from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
 from tertiary.runtime.windows import release_memory
 from tertiary.stages.association.associate import AssociationStats
 
-__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "DistinctIds", "aligned_facts", "association_blocks",
+__all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "DistinctIds", "aligned_facts",
+           "association_blocks",
            "association_stage_metrics", "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
 
 
