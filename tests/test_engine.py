@@ -765,3 +765,17 @@ def test_aligned_facts_read_part_by_part_equal_the_whole_tables(terminal, tmp_pa
     assert_frame_equal(got.observed.sort(want.columns), want.sort(want.columns))
     aligned.drop("truth_id").write_parquet(files[0])
     assert aligned_facts(files).observed is None
+
+
+def test_distinct_targets_read_part_by_part_equal_the_whole_count(terminal, tmp_path):
+    """The association rows and distinct (run, target_id) counted a part at a time equal the
+    whole table's, with a second run sharing the first run's target ids."""
+    from tertiary.pipeline.scoring import distinct_targets
+    assoc = pipeline.process(terminal, FAST, window_s=60.0).associations.select("run", "epoch", "target_id")
+    both = pl.concat([assoc, assoc.head(5_000).with_columns(pl.lit(1, pl.UInt32).alias("run"))])
+    files = []
+    for i, p in enumerate(both.sort("epoch").iter_slices(7_000)):
+        files.append(tmp_path / f"w={i:06d}.parquet")
+        p.write_parquet(files[-1])
+    assert distinct_targets(files) == (both.height, both.select("run", "target_id").n_unique())
+    assert both.select("run", "target_id").n_unique() > both["target_id"].n_unique()    # the runs count apart

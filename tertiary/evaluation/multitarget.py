@@ -18,8 +18,9 @@ GOSPA (Rahmathullah, García-Fernández & Svensson 2017), α = 2::
 over partial assignments γ of pairs with d < c; the three terms are GOSPA's localisation,
 false and missed parts (Stone Soup's ``localisation``, ``false``, ``missed``: sums of p-th
 powers, not rooted). Both minima are the same problem — a maximum-weight matching of the pairs
-with d < c, weights c^p − d^p — solved once per picture for every epoch together
-(:func:`_max_weight_matching`).
+with d < c, weights c^p − d^p — solved once for every epoch of a block together
+(:func:`_max_weight_matching`). A picture may be given a block of epochs at a time
+(:func:`multitarget_step`, :func:`multitarget_result`): the same metrics, its memory a block's.
 
 SIAP (Votruba et al. 2001, as Stone Soup's ``SIAPMetrics`` computes them): each track state
 is associated with the nearest truth at its epoch closer than the SIAP threshold (Stone Soup's

@@ -30,8 +30,8 @@ from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, sp
                                          truth_window, validate_truth)
 from tertiary.pipeline.pictures import safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
-from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, observed_aircraft,
-                                       score_pictures, scored_blocks)
+from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
+                                       observed_aircraft, score_pictures, scored_blocks)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
 from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
@@ -205,12 +205,10 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             # read back after the evaluation and the alert scoring, which do not read it: its
             # rows are not held through their peak (memory)
             sink(name, for_sink(parts, name, empty))
-            keys = table_columns(parts, name, ["run", "target_id"], empty)
+            n_rows, n_targets = distinct_targets(parts.part_files(name))
             # what the association metrics read (the rows are in the database)
             frame = DeferredTable(lambda: table_columns(parts, "associations", ASSOCIATION_COLUMNS, pl.DataFrame()),
-                                  keys.height, blocks=lambda: association_blocks(parts),
-                                  targets=keys.n_unique() if keys.height else 0)
-            del keys
+                                  n_rows, blocks=lambda: association_blocks(parts), targets=n_targets)
         elif not lean or name == "conflicts":
             frame = read_table(parts, name, empty)
             sink(name, for_sink(parts, name, empty) if lean else frame)
