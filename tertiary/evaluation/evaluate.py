@@ -293,10 +293,19 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
             matched, expected = _spilled(spill, matched, expected)
     mt_rows = multitarget_result(mt, method) if multitarget else None
     if spill is not None:
-        # relaxed: a block whose column is all null may have stored it with another type
-        return (*(pl.concat([pl.scan_parquet(f) for f in sorted((spill / k).glob("*.parquet"))],
-                            how="vertical_relaxed") for k in ("matched", "expected")), mt_rows)
+        return (*(_scan_spilled(sorted((spill / k).glob("*.parquet"))) for k in ("matched", "expected")), mt_rows)
     return _concat(matched), _concat(expected), mt_rows
+
+
+def _scan_spilled(files: list[Path]) -> pl.LazyFrame:
+    """The spilled blocks ``files`` as one scan: of the files together when they share a schema
+    (a slice of it then reads only its own files: the metrics' buckets are filed a slice at a
+    time), else of each, relaxed (a block whose column is all null may have stored it with
+    another type; a slice of that concatenation reads every file before it)."""
+    first = pl.read_parquet_schema(files[0])
+    if all(pl.read_parquet_schema(f) == first for f in files[1:]):
+        return pl.scan_parquet(files)
+    return pl.concat([pl.scan_parquet(f) for f in files], how="vertical_relaxed")
 
 
 def _spilled(spill: Path, matched: list[pl.DataFrame], expected: list[pl.DataFrame]
