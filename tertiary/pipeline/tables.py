@@ -146,7 +146,8 @@ class OnDiskTable:
 class DeferredTable:
     """A whole-run table of an on-disk run read back (``read``) only where it is used, not held
     through the evaluation's peak: ``associations`` (``facts``: its number of targets, distinct
-    (run, target_id)) and ``reports`` (memory). Its height is taken now."""
+    (run, target_id)), ``conflicts`` (``facts``: its alert rows) and ``reports`` (memory). Its
+    height is taken now."""
 
     def __init__(self, read: Callable[[], pl.DataFrame], height: int,
                  blocks: Callable[[], Iterator[pl.DataFrame]] | None = None, **facts: int) -> None:

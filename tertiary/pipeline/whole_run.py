@@ -209,9 +209,15 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             # what the association metrics read (the rows are in the database)
             frame = DeferredTable(lambda: table_columns(parts, "associations", ASSOCIATION_COLUMNS, pl.DataFrame()),
                                   n_rows, blocks=lambda: association_blocks(parts), targets=n_targets)
-        elif not lean or name == "conflicts":
+        elif not lean:
             frame = read_table(parts, name, empty)
-            sink(name, for_sink(parts, name, empty) if lean else frame)
+            sink(name, frame)
+        elif name == "conflicts":
+            sink(name, for_sink(parts, name, empty))
+            # read back where the alerts are scored, not held through the evaluation (memory: a
+            # day's conflict rows are 1.2 GB)
+            rows, alerts = _conflict_counts(parts)
+            frame = DeferredTable(lambda e=empty: read_table(parts, "conflicts", e), rows, alerts=alerts)
         else:
             sink(name, for_sink(parts, name, empty))
             if name == "clusters":
@@ -313,6 +319,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         release_memory()
         # the same prediction on the truth picture: which alerts the picture causes
         t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
+        if isinstance(conflicts, DeferredTable):
+            conflicts = conflicts.read()
         conflicts_all, id_map_all, scored = conflicts, id_map, methods
         if t_conf.height or t_ids.height:
             conflicts_all = pl.concat([conflicts, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts
@@ -322,6 +330,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
             conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
         del conflicts_all, id_map_all
+        if isinstance(run.conflicts, DeferredTable):
+            conflicts = run.conflicts           # in the database: not held through the later stages
         alerts, los, attribution = attributed(alerts, los, onsets, acfg)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         if ds.external_alerts.height:
@@ -404,7 +414,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "reassignments": stats.reassignments, "fused_rows": fused.height, "clusters": clusters.height,
               "conversion_invalid": conversion_invalid,
               "track_rows": tracks.height, "conflict_rows": conflicts.height,
-              "alert_rows": int(conflicts["alert"].sum()) if conflicts.height else 0,
+              "alert_rows": (conflicts.facts["alerts"] if isinstance(conflicts, DeferredTable)
+                             else int(conflicts["alert"].sum()) if conflicts.height else 0),
               "alert_episodes": (alerts.filter(
                   (pl.col("method") != safety_alerts.TRUTH_PICTURE)
                   & ~pl.col("method").str.starts_with(safety_alerts.EXTERNAL_PREFIX)).height if alerts.height else 0),
@@ -415,6 +426,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
     fused, tracks = (t.empty if isinstance(t, OnDiskTable) else t for t in (fused, tracks))
     if isinstance(aligned, DeferredTable):
         aligned = align_stage.empty_aligned()
+    if isinstance(conflicts, DeferredTable):
+        conflicts = contract.empty_frame("conflicts", False)
     return Results(ing, aligned, associations, fused, clusters, tracks, conflicts, rejects, metrics, by_epoch,
                    clock.timings, counts, alerts, dict(clock.memory))
 
@@ -437,6 +450,15 @@ def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
 
 #: the types of a point's curve rows without its index
 CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
+
+
+def _conflict_counts(parts: Any) -> tuple[int, int]:
+    """(rows, alert rows) of the conflict parts, read a part's ``alert`` column at a time."""
+    rows = alerts = 0
+    for f in parts.part_files("conflicts"):
+        alert = pl.read_parquet(f, columns=["alert"])["alert"]
+        rows, alerts = rows + alert.len(), alerts + int(alert.sum())
+    return rows, alerts
 
 
 def _report_span(files: list[Path], cfg: PipelineConfig):
