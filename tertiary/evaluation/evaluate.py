@@ -314,7 +314,8 @@ def _spilled(spill: Path, matched: list[pl.DataFrame], expected: list[pl.DataFra
     for name, frames in (("matched", matched), ("expected", expected)):
         d = spill / name
         d.mkdir(parents=True, exist_ok=True)
-        frames[-1].write_parquet(d / f"{len(list(d.glob('*.parquet'))):06d}.parquet", statistics=False)
+        frames[-1].write_parquet(d / f"{len(list(d.glob('*.parquet'))):06d}.parquet", statistics=False,
+                                 compression="lz4")
     return [], []
 
 
