@@ -467,7 +467,9 @@ def metrics_concat(parts: list[pl.DataFrame]) -> pl.DataFrame:
 
 
 def scored_samples(matched: pl.DataFrame) -> pl.DataFrame:
-    """(method, run, epoch, truth_id, seg_class) of scored rows: what a bound is pooled over."""
-    return matched.select("method", "run", pl.col("epoch").cast(TIME), pl.col("truth_id").cast(pl.Int64),
-                          "seg_class")
+    """(method, run, epoch, truth_id, seg_class) of scored rows: what a bound is pooled over,
+    held through the evaluation for every row of every picture (a national day's two pictures:
+    40 M rows). The two names are categorical: 28 bytes a row, against 46 as strings."""
+    return matched.select(pl.col("method").cast(pl.Categorical), "run", pl.col("epoch").cast(TIME),
+                          pl.col("truth_id").cast(pl.Int64), pl.col("seg_class").cast(pl.Categorical))
 

@@ -630,9 +630,11 @@ def _bound_sums(scored: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:
     aggs = [*[pl.col(c).sum() for c in cols], pl.len().cast(pl.UInt32).alias("__n")]
     # segment "all" and each sample's straight/turn class grouped in place: the samples of every
     # picture are not copied once per segment (the stage's peak on a long run)
-    return pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch", "run").agg(*aggs),
+    names = [pl.col("method", "segment").cast(pl.String)]       # the samples' may be categorical
+    return pl.concat([s.group_by("method", pl.lit("all").alias("segment"), "epoch", "run").agg(*aggs)
+                      .with_columns(names),
                       s.group_by("method", pl.col("seg_class").alias("segment"), "epoch", "run").agg(*aggs)
-                      .filter(pl.col("segment").is_not_null())])
+                      .filter(pl.col("segment").is_not_null()).with_columns(names)])
 
 
 def _bound_rows(sums: pl.DataFrame, accuracy: pl.DataFrame) -> pl.DataFrame:
