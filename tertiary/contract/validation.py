@@ -194,10 +194,11 @@ _MEDIAN_BUCKETS = 1 << 20
 
 def streamed_median_time(batches: Callable[[], Iterable[pl.Series]], limits: Limits = Limits()) -> datetime | None:
     """:func:`table_median_time` of the times ``batches()`` yields (called once per pass;
-    microseconds, UTC), exactly, holding one batch and a histogram, never the column (memory: a day's truth times
-    are hundreds of MB, their median's sort several times that). Three passes: the count and
-    range; a histogram of ``_MEDIAN_BUCKETS`` buckets locating the middle rank(s); those
-    buckets' values, whose middle one or two the polars median of the whole takes."""
+    microseconds, UTC), exactly, holding one batch and a histogram, never the column (memory: a
+    day's truth times are hundreds of MB, their median's sort several times that). Three
+    passes: the count and range; a histogram of ``_MEDIAN_BUCKETS`` buckets locating the middle
+    rank(s); those buckets' values, whose middle one or two the polars median of the whole
+    takes."""
     lo, hi = (datetime(y, 1, 1, tzinfo=timezone.utc) for y in limits.years)
 
     def kept() -> Iterable[NDArray[np.int64]]:
@@ -218,9 +219,7 @@ def streamed_median_time(batches: Callable[[], Iterable[pl.Series]], limits: Lim
     ranks = sorted({(n - 1) // 2, n // 2})
     ends = np.cumsum(counts)
     where = np.searchsorted(ends, ranks, side="right")       # the bucket holding each rank
-    inside = [np.concatenate([v[((v - first) >> shift) == b] for v in kept()] or [np.empty(0, np.int64)])
-              for b in sorted(set(where.tolist()))]
-    values = np.sort(np.concatenate(inside))
+    values = np.sort(np.concatenate([v[np.isin((v - first) >> shift, where)] for v in kept()]))
     before = ends[where.min()] - counts[where.min()]           # rows below the first such bucket
     middle = values[[r - before for r in ranks]]
     return pl.Series(middle).cast(pl.Datetime("us", "UTC")).median()

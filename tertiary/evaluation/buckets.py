@@ -26,8 +26,8 @@ def file_buckets(lf: pl.LazyFrame, bucket: pl.Expr, buckets: int, where: Path,
     """``lf``'s rows in ``buckets`` lazy frames: row r goes to the frame ``bucket`` (an
     expression with values in [0, buckets)) gives it, rows kept in ``lf``'s order. ``lf`` is
     read once, ``slice_rows`` (default :data:`FILE_SLICE_ROWS`) at a time, and filed as Parquet
-    under ``where`` (emptied first; the caller removes it), LZ4-compressed: scratch read once,
-    where zstd's encoding took a third of the filing."""
+    under ``where`` (emptied first; the caller removes it), LZ4-compressed: scratch is read once,
+    and zstd's encoding is a third of the filing's time."""
     slice_rows = FILE_SLICE_ROWS if slice_rows is None else slice_rows
     shutil.rmtree(where, ignore_errors=True)
     where.mkdir(parents=True)

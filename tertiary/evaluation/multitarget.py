@@ -383,8 +383,6 @@ class MultiTargetState:
     life: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE))
     closed: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
     open: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
-    #: each truth's latest epoch
-    truth_last: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE).drop("first"))
 
 
 _LIFE = {"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "last": TIME}
@@ -404,8 +402,8 @@ def multitarget_step(state: MultiTargetState, tracks: pl.DataFrame, truth: pl.Da
     ep = _by_epoch(sc, cfg)
     key = ["run", "truth_id"]
     assoc = _associations(sc).with_columns(pl.col("track_id").cast(pl.UInt64))
-    seg = _with_reach(_segments(assoc).cast({"track_id": pl.UInt64}), sc.truth).join(
-        state.truth_last.rename({"last": "__before"}), on=key, how="left")
+    seg = _with_reach(_segments(assoc), sc.truth).join(
+        state.life.select(*key, pl.col("last").alias("__before")), on=key, how="left")
     seg = seg.with_columns(pl.coalesce("reach", "__before").alias("reach")).drop("__before")
     firsts = assoc.sort("epoch").group_by("run", "track_id").agg(pl.col("truth_id").first().alias("head"),
                                                                  pl.col("epoch").first().alias("head_epoch"),
@@ -430,8 +428,7 @@ def multitarget_step(state: MultiTargetState, tracks: pl.DataFrame, truth: pl.Da
     return MultiTargetState(
         sums=state.sums + _sums(ep), runs=pl.concat([state.runs, ep["run"].unique()]).unique(),
         life=life, closed=pl.concat([state.closed, ended, seg.filter(~is_open).select(list(_SEGMENT))]),
-        open=pl.concat([still, seg.filter(is_open).select(list(_SEGMENT))]),
-        truth_last=life.select("run", "truth_id", "last"))
+        open=pl.concat([still, seg.filter(is_open).select(list(_SEGMENT))]))
 
 
 def multitarget_result(state: MultiTargetState, method: str) -> pl.DataFrame:

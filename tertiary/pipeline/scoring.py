@@ -133,7 +133,7 @@ class AlignedFacts:
 
 class DistinctIds:
     """How many distinct values of a non-negative integer id were added, a frame at a time: a
-    bitmap over the id space (a day's 35 M report ids in 35 MB, where their hash set took GBs),
+    bitmap over the id space (a day's 35 M report ids in 35 MB, where a hash set of them is GBs),
     or the frames' unique values when the ids are negative or too sparse for it."""
 
     #: id space the bitmap may span beyond eight per id added (sparse ids fall back to values)
@@ -204,7 +204,7 @@ def aligned_facts(files: Sequence[Path]) -> AlignedFacts:
 def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
     """(association rows, distinct (run, target_id)) of the association parts ``files``, read a
     part at a time and counted in a bitmap per run (:class:`DistinctIds`): a day's 67 M rows'
-    keys made unique at once took 4 GB."""
+    keys made unique at once peak at 4 GB."""
     rows, per_run = 0, {}
     for f in files:
         part = pl.read_parquet(f, columns=["run", "target_id"])
