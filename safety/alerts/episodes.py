@@ -64,7 +64,8 @@ from tertiary.core import geo
 from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
-           "los_episodes", "metrics_long", "per_picture", "score_alerts", "stca_tables", "stca_tables_by_picture"]
+           "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
+           "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
@@ -96,6 +97,40 @@ def picture_grid(conflicts: pl.DataFrame, id_map: pl.DataFrame, methods: list[st
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
         epoch_micros("epoch").alias("t_us"))
+
+
+#: the columns of the conflict rows that the alert scoring reads
+SCORED_CONFLICT_COLUMNS = ("run", "epoch", "method", "id_a", "id_b", "alert", "r_min_m", "dz_min_m", "t_min_s")
+
+
+def scored_conflicts(conflicts: pl.DataFrame) -> pl.DataFrame:
+    """The conflict rows :func:`score_pictures` reads, in input order: every alert row and one
+    row of each picture epoch (for :func:`picture_grid`), with :data:`SCORED_CONFLICT_COLUMNS`.
+    Scoring them equals scoring every row: the other rows add no alert and no grid epoch. Parts
+    of a table reduced apart and concatenated score the same (a repeated grid row adds nothing)."""
+    if conflicts.height == 0:
+        return conflicts
+    cols = [c for c in SCORED_CONFLICT_COLUMNS if c in conflicts.columns]
+    first = pl.struct("run", "method", "epoch").is_first_distinct()
+    return conflicts.select(cols).filter(pl.col("alert") | first)
+
+
+def scored_ids(id_map: pl.DataFrame, conflicts: pl.DataFrame, id_col: str) -> pl.DataFrame:
+    """The rows of ``id_map`` that :func:`score_pictures` reads with ``conflicts``, in input
+    order: every row of an id of an alert row at its epoch (all of them, so the first of
+    duplicates stays first), and one row of each picture epoch (for :func:`picture_grid`)."""
+    if id_map.height == 0:
+        return id_map
+    on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
+    a = conflicts.filter(pl.col("alert")) if conflicts.height else conflicts
+    keys = (pl.concat([a.select(*on, pl.col(side).alias(id_col)) for side in ("id_a", "id_b")])
+            if a.height else pl.DataFrame(schema={**{c: id_map.schema[c] for c in on}, id_col: id_map.schema[id_col]}))
+    keys = (keys.select([pl.col(c).cast(id_map.schema[c]) for c in [*on, id_col]]).unique()
+            .with_columns(pl.lit(True).alias("__hit")))
+    hit = id_map.select([*on, id_col]).join(keys, on=[*on, id_col], how="left", nulls_equal=True,
+                                            maintain_order="left")["__hit"].fill_null(False)
+    first = id_map.select(pl.struct(on).is_first_distinct())
+    return id_map.filter(hit | first.to_series())
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:

@@ -34,7 +34,9 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
                     ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(conflicts, id map, manoeuvre onsets) of the truth picture at the picture grid
     ``epochs`` (run, epoch) for the observed ``spans``; ``truth_slice(t0_us, t1_us)`` returns the
-    truth's :data:`TRUTH_PICTURE_COLUMNS` (those it has) with samples in [t0_us, t1_us]."""
+    truth's :data:`TRUTH_PICTURE_COLUMNS` (those it has) with samples in [t0_us, t1_us]. The
+    conflicts and id map hold the rows the alert scoring reads
+    (:func:`safety.alerts.scored_conflicts`, :func:`safety.alerts.scored_ids`)."""
     state = safety_conflicts.init_conflict_state()
     out, ids, onsets = [], [], []
     if not epochs.height:
@@ -49,8 +51,12 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
         if ep.height:
             pic = truth_picture(truth, spans, ep, safety_alerts.TRUTH_PICTURE, id_col)
             rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, a, b)
+            # only the rows the alert scoring reads are kept: a day's truth picture has tens of
+            # millions of conflict and id rows, a few thousand of them alerts (memory)
+            rows = safety_alerts.scored_conflicts(rows)
             out.append(rows)
-            ids.append(pic.select("run", "method", "epoch", id_col, pl.col(id_col).cast(pl.Int64).alias("truth_id")))
+            pid = pic.select("run", "method", "epoch", id_col, pl.col(id_col).cast(pl.Int64).alias("truth_id"))
+            ids.append(safety_alerts.scored_ids(pid, rows, id_col))
         if truth.height:
             on = safety_alerts.manoeuvre_onsets(truth)
             onsets.append(on.filter(pl.col("t_us").is_between(a, b, closed="left")))

@@ -6,7 +6,7 @@ its pictures on disk and reads them back one at a time."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -217,7 +217,8 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             # read back where the alerts are scored, not held through the evaluation (memory: a
             # day's conflict rows are 1.2 GB)
             rows, alerts = _conflict_counts(parts)
-            frame = DeferredTable(lambda e=empty: read_table(parts, "conflicts", e), rows, alerts=alerts)
+            frame = DeferredTable(lambda e=empty: read_table(parts, "conflicts", e), rows,
+                                  blocks=lambda: _scored_conflict_parts(parts), alerts=alerts)
         else:
             sink(name, for_sink(parts, name, empty))
             if name == "clusters":
@@ -319,19 +320,21 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         release_memory()
         # the same prediction on the truth picture: which alerts the picture causes
         t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
-        if isinstance(conflicts, DeferredTable):
-            conflicts = conflicts.read()
-        conflicts_all, id_map_all, scored = conflicts, id_map, methods
+        # the rows the scoring reads: a day's conflict rows are 1.2 GB, its id map 40 M rows (memory)
+        scored_rows = (list(conflicts.blocks()) if isinstance(conflicts, DeferredTable)
+                       else [safety_alerts.scored_conflicts(conflicts)])
+        conflicts_all = (pl.concat(scored_rows, how="vertical_relaxed") if scored_rows
+                         else contract.empty_frame("conflicts", False))
+        del scored_rows
+        id_map_all, scored = safety_alerts.scored_ids(id_map, conflicts_all, id_col), methods
         if t_conf.height or t_ids.height:
-            conflicts_all = pl.concat([conflicts, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts
-            id_map_all = pl.concat([id_map, t_ids.select(id_map.columns).cast(id_map.schema)])
+            conflicts_all = pl.concat([conflicts_all, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts_all
+            id_map_all = pl.concat([id_map_all, t_ids.select(id_map.columns).cast(id_map.schema)])
             scored = [*methods, safety_alerts.TRUTH_PICTURE]
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
         safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
             conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
         del conflicts_all, id_map_all
-        if isinstance(run.conflicts, DeferredTable):
-            conflicts = run.conflicts           # in the database: not held through the later stages
         alerts, los, attribution = attributed(alerts, los, onsets, acfg)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         if ds.external_alerts.height:
@@ -450,6 +453,16 @@ def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
 
 #: the types of a point's curve rows without its index
 CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
+
+
+def _scored_conflict_parts(parts: Any) -> Iterator[pl.DataFrame]:
+    """Each conflict part's rows that the alert scoring reads (:func:`safety.alerts.scored_conflicts`),
+    read a part's columns at a time."""
+    for f in parts.part_files("conflicts"):
+        lf = pl.scan_parquet(f)
+        have = lf.collect_schema()
+        yield safety_alerts.scored_conflicts(
+            lf.select(c for c in safety_alerts.SCORED_CONFLICT_COLUMNS if c in have).collect())
 
 
 def _conflict_counts(parts: Any) -> tuple[int, int]:
