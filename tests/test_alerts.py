@@ -725,16 +725,17 @@ def _random_scene(seed: int) -> tuple[pl.DataFrame, pl.DataFrame]:
 def test_scoring_the_rows_it_reads_equals_scoring_every_row(truth, seed):
     """The pipeline scores the alerts from the conflict rows and id-map rows the scoring reads
     (a day's truth picture has tens of millions of each): the metrics, alerts and losses equal
-    those of every row, also when the conflict rows are reduced part by part. Fails if a picture
-    epoch with no alert is dropped from the grid, from either table (flicker, adjacency and
-    picture hours change), or an id-map row of an alerting id is dropped (the pair's aircraft
-    change)."""
+    those of every row, also when the conflict rows are reduced part by part (an empty part
+    among them). Fails if a picture epoch with no alert is dropped from the grid, from either
+    table (flicker, adjacency and picture hours change), if an id-map row of an alerting id is
+    dropped (the pair's aircraft change), or if an empty part keeps other columns."""
     from safety.alerts import scored_conflicts, scored_ids, stca_tables_by_picture
     conflicts, id_map = _random_scene(seed)
     want = stca_tables_by_picture(conflicts, id_map, truth, CFG, id_col="id")
     assert want[1]["flicker"].sum() > 0 and want[1]["classification"].n_unique() >= 2
     cut = GRID[30]
-    parts = pl.concat([scored_conflicts(conflicts.filter(pl.col("epoch") < cut)),
+    # a part without rows (a block of a picture with no conflict) has the columns of the others
+    parts = pl.concat([scored_conflicts(conflicts.filter(pl.col("epoch") < cut)), scored_conflicts(conflicts.clear()),
                        scored_conflicts(conflicts.filter(pl.col("epoch") >= cut))])
     for c in (scored_conflicts(conflicts), parts):
         ids = scored_ids(id_map, c, "id")

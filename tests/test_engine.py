@@ -19,8 +19,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from polars.testing import assert_frame_equal
 
+from safety import alerts as safety_alerts
 from tertiary import pipeline
-from tertiary.pipeline import ingestion, runner, streaming, tables, whole_run
+from tertiary.pipeline import ingestion, plan, runner, streaming, tables, whole_run
 from tertiary.core.stage import T_MAX_US
 from tertiary.runtime.windows import US, Window, incomplete_message, windows
 from tertiary.io.dataset import write_dataset
@@ -193,6 +194,10 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
             yield read, rows
     monkeypatch.setattr(bound, "_truth_reads", truth_reads)
     monkeypatch.setattr(bound, "BOUND_READ_AIRCRAFT", 7)
+    # the on-disk run's evaluation keeps the id-map rows of the alerts and curve points alone
+    kept: list[int] = []
+    monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:
+                        kept.append(keys.height) or f(ids, keys, id_col))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
@@ -201,6 +206,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert len(bound_reads) > 2 and all(lazy and n <= 7 for lazy, n in bound_reads[1:])
     assert sum(n for _, n in bound_reads[1:]) == bound_reads[0][1]
     assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
+    assert len(kept) == 2 * len(cfg.methods) and min(kept) > 0
     with RunStore.open(tmp_path / "run") as st:
         metrics, alerts, record = st.read("metrics"), st.read("alerts"), st.read("run")
         assert_frame_equal(st.read("truth"), mem.ingested.truth)
@@ -226,14 +232,26 @@ def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, 
     monkeypatch.setattr(pl.DataFrame, "write_parquet", lambda self, f, *a, w=pl.DataFrame.write_parquet, **k:
                         (copies.append(str(f)) if "_by_picture_" in str(f) else None) or w(self, f, *a, **k))
     monkeypatch.setattr(tables, "EVAL_BLOCK_ROWS", 500)
+    # a curve point with a wide margin alerts on pairs the production setting never alerts on:
+    # the on-disk evaluation keeps their id-map rows too
     cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), centralized=False,
-                                  stca_lookaheads_s=(105.0,))
+                                  stca_lookaheads_s=(105.0,), stca_fixed_m=(0.0, 4000.0))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     made: list = []
     monkeypatch.setattr(tables.OnDiskTable, "__init__", lambda self, *a, f=tables.OnDiskTable.__init__:
                         f(self, *a) or made.append(self))
+    predicted, kept = [], []        # the curve points' rows as the windows keep them; the kept id map
+    monkeypatch.setattr(plan, "scored_conflicts", lambda c, f=plan.scored_conflicts: predicted.append(f(c))
+                        or predicted[-1])
+    monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:
+                        kept.append(f(ids, keys, id_col).collect()) or kept[-1].lazy())
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     assert not copies
+    # every alert of every curve point finds its ids in the kept id map
+    on = ["run", "method", "epoch", "track_id"]
+    alerting = safety_alerts.alert_ids(pl.concat(predicted), "track_id")
+    assert len(kept) == 1 and kept[0].height < mem.tracks.height
+    assert alerting.height > 0 and alerting.join(kept[0].select(on), on=on, how="anti").height == 0
     assert {d.name for d in made} == {"fused", "tracks"} and all(d.direct for d in made)
     with RunStore.open(tmp_path / "run") as st:
         _same(st.read("metrics"), mem.metrics, "metrics")

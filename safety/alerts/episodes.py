@@ -65,7 +65,7 @@ from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
-           "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture"]
+           "alert_ids", "id_rows", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
@@ -108,29 +108,43 @@ def scored_conflicts(conflicts: pl.DataFrame) -> pl.DataFrame:
     row of each picture epoch (for :func:`picture_grid`), with :data:`SCORED_CONFLICT_COLUMNS`.
     Scoring them equals scoring every row: the other rows add no alert and no grid epoch. Parts
     of a table reduced apart and concatenated score the same (a repeated grid row adds nothing)."""
-    if conflicts.height == 0:
-        return conflicts
     cols = [c for c in SCORED_CONFLICT_COLUMNS if c in conflicts.columns]
+    if conflicts.height == 0:
+        return conflicts.select(cols)
     first = pl.struct("run", "method", "epoch").is_first_distinct()
     return conflicts.select(cols).filter(pl.col("alert") | first)
 
 
+def alert_ids(conflicts: pl.DataFrame, id_col: str) -> pl.DataFrame:
+    """(run, method, epoch, ``id_col``): each id of an alert row at its epoch, once."""
+    cols = ["run", "method", "epoch"]
+    if conflicts.height == 0:
+        return conflicts.select(*cols, pl.col("id_a").alias(id_col))
+    a = conflicts.filter(pl.col("alert"))
+    return pl.concat([a.select(*cols, pl.col(side).alias(id_col)) for side in ("id_a", "id_b")]).unique()
+
+
+def id_rows(id_map: "pl.DataFrame | pl.LazyFrame", keys: pl.DataFrame, id_col: str
+            ) -> "pl.DataFrame | pl.LazyFrame":
+    """The rows of ``id_map`` that :func:`score_pictures` reads for alert rows with the ids
+    ``keys`` (:func:`alert_ids`), in input order: every row of such an id at its epoch (all of
+    them, so the first of duplicates stays first) and one row of each picture epoch (for
+    :func:`picture_grid`)."""
+    schema = id_map.collect_schema()
+    on = ["run", "epoch"] + (["method"] if "method" in schema else [])
+    k = (keys.select([pl.col(c).cast(schema[c]) for c in [*on, id_col]]).unique()
+         .with_columns(pl.lit(True).alias("__hit")))
+    hit = pl.col("__hit").fill_null(False) | pl.struct(on).is_first_distinct()
+    joined = id_map.join(k.lazy() if isinstance(id_map, pl.LazyFrame) else k, on=[*on, id_col], how="left",
+                         nulls_equal=True, maintain_order="left")
+    return joined.filter(hit).drop("__hit")
+
+
 def scored_ids(id_map: pl.DataFrame, conflicts: pl.DataFrame, id_col: str) -> pl.DataFrame:
-    """The rows of ``id_map`` that :func:`score_pictures` reads with ``conflicts``, in input
-    order: every row of an id of an alert row at its epoch (all of them, so the first of
-    duplicates stays first), and one row of each picture epoch (for :func:`picture_grid`)."""
+    """:func:`id_rows` of ``id_map`` for the alert rows of ``conflicts``."""
     if id_map.height == 0:
         return id_map
-    on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
-    a = conflicts.filter(pl.col("alert")) if conflicts.height else conflicts
-    keys = (pl.concat([a.select(*on, pl.col(side).alias(id_col)) for side in ("id_a", "id_b")])
-            if a.height else pl.DataFrame(schema={**{c: id_map.schema[c] for c in on}, id_col: id_map.schema[id_col]}))
-    keys = (keys.select([pl.col(c).cast(id_map.schema[c]) for c in [*on, id_col]]).unique()
-            .with_columns(pl.lit(True).alias("__hit")))
-    hit = id_map.select([*on, id_col]).join(keys, on=[*on, id_col], how="left", nulls_equal=True,
-                                            maintain_order="left")["__hit"].fill_null(False)
-    first = id_map.select(pl.struct(on).is_first_distinct())
-    return id_map.filter(hit | first.to_series())
+    return id_rows(id_map, alert_ids(conflicts, id_col), id_col)
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:

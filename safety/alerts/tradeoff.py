@@ -21,7 +21,7 @@ import numpy as np
 import polars as pl
 
 from safety.alerts.config import AlertConfig
-from safety.alerts.episodes import per_picture, score_pictures
+from safety.alerts.episodes import per_picture, score_pictures, scored_conflicts
 from safety.alerts.separation import truth_intervals
 from safety.conflicts import ConflictConfig, conflicts_steps, init_conflict_state, predict_conflicts
 from tertiary.contract import TABLES, TIME
@@ -29,7 +29,7 @@ from tertiary.core import geo
 from tertiary.core.units import US
 
 __all__ = ["stca_tradeoff", "CURVE_WINDOW_S", "CURVE_WINDOW_ROWS", "CURVE_THREADS", "scored_rows", "curve_settings",
-           "curve_rows", "tradeoff_from_rows", "compare_at_equal_nuisance", "tradeoff_metrics"]
+           "tradeoff_from_rows", "compare_at_equal_nuisance", "tradeoff_metrics"]
 
 
 def curve_settings(base: ConflictConfig, confidences: Sequence[float], fixed_est_h_m: Sequence[float],
@@ -85,8 +85,9 @@ def tradeoff_from_rows(scored: Sequence["pl.DataFrame | Callable[[], pl.DataFram
                        frame: geo.LocalFrame | None, warning_s: Sequence[float] = (0.0, 30.0, 60.0),
                        intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
     """The curves of :func:`stca_tradeoff` from each setting's predicted rows already made
-    (``scored[k]`` of ``settings[k]``: :func:`curve_rows` of the prediction, or a reader of
-    them), e.g. by the pipeline's windows, which predict every setting as the run goes."""
+    (``scored[k]`` of ``settings[k]``: :func:`~safety.alerts.episodes.scored_conflicts` of the
+    prediction, or a reader of them), e.g. by the pipeline's windows, which predict every
+    setting as the run goes."""
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
     rows = []
@@ -120,20 +121,6 @@ CURVE_WINDOW_ROWS = 100_000
 #: settings of the curves predicted at once, in threads: each setting's prediction is
 #: independent and most of its time is spent in numpy, polars and the KD-tree, outside the GIL
 CURVE_THREADS = min(2, os.cpu_count() or 1)
-
-
-#: the columns of predicted conflict rows the alert scoring reads
-_SCORED_CONFLICT_COLUMNS = ("alert", "run", "method", "epoch", "id_a", "id_b", "r_min_m", "dz_min_m", "t_min_s")
-
-
-def curve_rows(out: pl.DataFrame) -> pl.DataFrame:
-    """What the scoring of a curve point reads of its predicted rows (every screened row,
-    ``slim=False``): the alert rows and one row per (run, method, epoch) for the epoch grid of
-    :func:`~safety.alerts.episodes.picture_grid` — a setting's rows of a long picture are
-    held until scored, so not the rest."""
-    out = out.select([c for c in _SCORED_CONFLICT_COLUMNS if c in out.columns])
-    grid = out.unique(["run", "method", "epoch"], keep="first", maintain_order=True)
-    return pl.concat([out.filter(pl.col("alert")), grid.filter(~pl.col("alert"))])
 
 
 def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence[ConflictConfig], id_col: str,
@@ -178,7 +165,7 @@ def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence
                 steps = conflicts_steps(states, block[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
                                         map_=pool.map)
                 states = [state for _, state in steps]
-                for k, rows in enumerate(pool.map(curve_rows, [out for out, _ in steps])):
+                for k, rows in enumerate(pool.map(scored_conflicts, [out for out, _ in steps])):
                     if dirs is None:
                         parts[k].append(rows)
                     else:

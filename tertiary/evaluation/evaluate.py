@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import itertools
 import shutil
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -364,7 +364,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
                   seed_stage: str = "tracker", observed: pl.DataFrame | None = None,
                   keep_matched: bool = True, surveillance: bool = True,
-                  empty: pl.DataFrame | None = None, id_map: bool = True, spill: Path | None = None,
+                  empty: pl.DataFrame | None = None,
+                  id_map: "bool | Callable[[pl.LazyFrame], pl.LazyFrame]" = True, spill: Path | None = None,
                   bucket_rows: int | None = None) -> Evaluation:
     """:func:`evaluate_pictures` on pictures given one at a time (each frame one ``method``):
     a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
@@ -375,7 +376,8 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     one call on their union. ``truth`` may be a reference file or directory
     (:func:`write_reference`, :func:`write_reference_pieces`): then only the slices a picture's
     blocks read are held. ``id_map=False``: no id map (a caller that scores no alert on these
-    pictures does not hold one row per picture row through its later stages). ``spill`` (a
+    pictures does not hold one row per picture row through its later stages); a function: the
+    id map of the rows it keeps (of each picture's, as a lazy frame). ``spill`` (a
     scratch directory; with ``keep_matched=False``): a picture of several blocks is matched to
     Parquet files there, and its metrics are computed in buckets of at most ``bucket_rows``
     rows (default :data:`EVAL_BUCKET_ROWS`) of aircraft or tracks
@@ -423,9 +425,9 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)
         if id_map:
-            ids = matched.select("run", "method", "epoch", pl.col("track_id").alias(id_col),
-                                 pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
-            parts["id_map"].append(ids.collect() if isinstance(ids, pl.LazyFrame) else ids)
+            ids = matched.lazy().select("run", "method", "epoch", pl.col("track_id").alias(id_col),
+                                        pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
+            parts["id_map"].append((id_map(ids) if callable(id_map) else ids).collect())
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))
         # released before the next picture is matched: two pictures' rows are never held at once

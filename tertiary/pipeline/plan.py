@@ -23,7 +23,8 @@ from typing import Any, ClassVar
 import polars as pl
 
 from safety.confirmation import ConfirmState, confirm_step
-from safety.alerts.tradeoff import CURVE_THREADS, curve_rows, curve_settings
+from safety.alerts.episodes import scored_conflicts
+from safety.alerts.tradeoff import CURVE_THREADS, curve_settings
 from safety.conflicts import ConflictConfig, ConflictState, conflicts_step, conflicts_steps, init_conflict_state
 from tertiary import contract as schema
 from tertiary.core import geo
@@ -258,7 +259,7 @@ class StcaCurvesStage(_Adapter):
     """Conflict prediction under every point of the STCA trade-off curves
     (:func:`safety.alerts.tradeoff.curve_settings`), one carried state per setting: input
     ``picture`` (as :class:`ConflictsStage`), output ``curve_rows`` — each setting's
-    :func:`~safety.alerts.tradeoff.curve_rows` with its index in ``setting``. The whole-run
+    :func:`~safety.alerts.episodes.scored_conflicts` with its index in ``setting``. The whole-run
     stage then only scores them."""
 
     settings: tuple[ConflictConfig, ...]
@@ -279,7 +280,7 @@ class StcaCurvesStage(_Adapter):
         with ThreadPoolExecutor(CURVE_THREADS) as pool:
             steps = conflicts_steps(list(state), picture, list(self.settings), self.id_col, self.origin,
                                     window.t0_us, window.t1_us, slim=False, map_=pool.map)
-            rows = list(pool.map(curve_rows, [out for out, _ in steps]))
+            rows = list(pool.map(scored_conflicts, [out for out, _ in steps]))
         out = pl.concat([r.with_columns(pl.lit(k, pl.UInt16).alias("setting")) for k, r in enumerate(rows)],
                         how="vertical_relaxed")
         return {"curve_rows": out.select(list(CURVE_ROWS)).cast(CURVE_ROWS)}, tuple(s for _, s in steps)

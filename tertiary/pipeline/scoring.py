@@ -4,6 +4,7 @@ of rows read back a block at a time (:func:`scored_blocks`)."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,6 +13,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from safety import alerts as safety_alerts
 from tertiary.evaluation.evaluate import AssociationScore, Evaluation, evaluate_each, score_associations
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
@@ -216,30 +218,37 @@ def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
 
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
-                   spill: Path | None = None) -> tuple[Evaluation, Evaluation]:
+                   spill: Path | None = None, alert_keys: pl.DataFrame | None = None) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
     aircraft covered at the epochs it had a report (``observed``). Pictures are read one at a
     time; ``reference``: the truth, or its reference file (:func:`write_reference`); ``spill``: a
     scratch directory where a picture of several blocks is matched to disk and scored in
-    buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`)."""
+    buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`). ``alert_keys``: the ids of
+    every alert the safety picture's scoring will read (:func:`safety.alerts.alert_ids`): its id
+    map keeps only their rows and a row per epoch (:func:`safety.alerts.id_rows`)."""
     reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation, spill=spill)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     # the id map of the safety picture only: the alert scoring reads no other (memory)
     safety_ids = safety_names(cfg, fused, tracks)[1] if cfg.safety else None
+
+    def id_map(col: str) -> "bool | Callable[[pl.LazyFrame], pl.LazyFrame]":
+        if safety_ids != col or alert_keys is None:
+            return safety_ids == col
+        return functools.partial(safety_alerts.id_rows, keys=alert_keys, id_col=col)
     fused_pictures = list(fused_readers(fused, NOT_SCORED, blocks=True))
     # the heap the last picture freed is handed back before the next is read (memory)
     ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id",
-                              seed_stage="fusion", id_map=safety_ids == "target_id", **kw)
+                              seed_stage="fusion", id_map=id_map("target_id"), **kw)
                 if fused_pictures else none)
     track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
     return ev_fused, evaluate_each((_released(get) for get in track_pictures), reference, seed_stage="tracker",
-                                   id_map=safety_ids == "track_id", **kw)
+                                   id_map=id_map("track_id"), **kw)
 
 
 def _released(get: Callable[[], Any]) -> Any:

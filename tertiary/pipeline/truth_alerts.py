@@ -15,10 +15,13 @@ from tertiary.core import geo
 from tertiary.core.units import US
 from tertiary.evaluation.truth_picture import truth_picture
 
-__all__ = ["TRUTH_BLOCK_S", "TRUTH_PICTURE_COLUMNS", "truth_conflicts", "attributed"]
+__all__ = ["TRUTH_BLOCK_S", "TRUTH_STEP_S", "TRUTH_PICTURE_COLUMNS", "truth_conflicts", "attributed"]
 
-#: the time block in which the truth picture is made and predicted (s)
+#: the time block of truth read at once (s) ...
 TRUTH_BLOCK_S = 3600.0
+#: ... and the step in which its picture is made and predicted, the state carried (s): a
+#: national hour's truth picture predicted at once held 1.4 GB
+TRUTH_STEP_S = 300.0
 #: what the truth picture reads of the truth
 TRUTH_PICTURE_COLUMNS = ["truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m",
                          "alt_rate_mps", "icao24"]
@@ -30,11 +33,13 @@ TruthSlice = Callable[[int, int], pl.DataFrame]
 
 
 def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice, spans: pl.DataFrame,
-                    epochs: pl.DataFrame, id_col: str, frame: geo.LocalFrame, block_s: float = TRUTH_BLOCK_S
-                    ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+                    epochs: pl.DataFrame, id_col: str, frame: geo.LocalFrame, block_s: float = TRUTH_BLOCK_S,
+                    step_s: float = TRUTH_STEP_S) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(conflicts, id map, manoeuvre onsets) of the truth picture at the picture grid
     ``epochs`` (run, epoch) for the observed ``spans``; ``truth_slice(t0_us, t1_us)`` returns the
-    truth's :data:`TRUTH_PICTURE_COLUMNS` (those it has) with samples in [t0_us, t1_us]. The
+    truth's :data:`TRUTH_PICTURE_COLUMNS` (those it has) with samples in [t0_us, t1_us], read
+    ``block_s`` at a time; the picture is made and predicted ``step_s`` at a time, the
+    prediction's state carried, so the rows equal one step's over the whole span. The
     conflicts and id map hold the rows the alert scoring reads
     (:func:`safety.alerts.scored_conflicts`, :func:`safety.alerts.scored_ids`)."""
     state = safety_conflicts.init_conflict_state()
@@ -43,20 +48,25 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
         return pl.DataFrame(), pl.DataFrame(), pl.DataFrame(schema={"truth_id": pl.Int64, "t_us": pl.Int64})
     us = epochs["epoch"].dt.epoch("us")
     lo, hi = int(us.min()), int(us.max()) + 1
-    step, margin = max(int(block_s * US), 1), int(_MARGIN_S * US)
-    for a in range(lo, hi, step):
-        b = min(a + step, hi)
-        ep = epochs.filter(us.is_between(a, b, closed="left"))
+    block, margin = max(int(block_s * US), 1), int(_MARGIN_S * US)
+    step = max(int(step_s * US), 1)
+    for a in range(lo, hi, block):
+        b = min(a + block, hi)
         truth = truth_slice(a - margin, b + margin)
-        if ep.height:
+        for c in range(a, b, step):
+            d = min(c + step, b)
+            ep = epochs.filter(us.is_between(c, d, closed="left"))
+            if not ep.height:
+                continue
             pic = truth_picture(truth, spans, ep, safety_alerts.TRUTH_PICTURE, id_col)
-            rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, a, b)
+            rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, c, d)
             # only the rows the alert scoring reads are kept: a day's truth picture has tens of
             # millions of conflict and id rows, a few thousand of them alerts (memory)
             rows = safety_alerts.scored_conflicts(rows)
             out.append(rows)
             pid = pic.select("run", "method", "epoch", id_col, pl.col(id_col).cast(pl.Int64).alias("truth_id"))
             ids.append(safety_alerts.scored_ids(pid, rows, id_col))
+            del pic
         if truth.height:
             on = safety_alerts.manoeuvre_onsets(truth)
             onsets.append(on.filter(pl.col("t_us").is_between(a, b, closed="left")))

@@ -28,7 +28,7 @@ from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
 from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, span_window, stream_truth,
                                          truth_window, validate_truth)
-from tertiary.pipeline.pictures import safety_names
+from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
                                        observed_aircraft, score_pictures, scored_blocks)
@@ -102,6 +102,10 @@ class RunTables:
     #: index: :class:`~tertiary.pipeline.plan.StcaCurvesStage`); None: not predicted on the way,
     #: so the curves predict them here
     curve_rows: Callable[[int], pl.DataFrame] | None = None
+    #: (run, method, epoch, id) of every alert row of the safety picture and of its curve
+    #: points: the only ids whose id-map rows the alert scoring reads (:func:`safety.alerts.id_rows`);
+    #: None: the whole id map is kept
+    alert_keys: pl.DataFrame | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -216,9 +220,9 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             sink(name, for_sink(parts, name, empty))
             # read back where the alerts are scored, not held through the evaluation (memory: a
             # day's conflict rows are 1.2 GB)
-            rows, alerts = _conflict_counts(parts)
+            rows, alerts, scored = _scored_conflict_parts(parts)
             frame = DeferredTable(lambda e=empty: read_table(parts, "conflicts", e), rows,
-                                  blocks=lambda: _scored_conflict_parts(parts), alerts=alerts)
+                                  blocks=lambda s=scored: iter(s), alerts=alerts)
         else:
             sink(name, for_sink(parts, name, empty))
             if name == "clusters":
@@ -235,9 +239,16 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                                       associations.select("run", "target_id").n_unique() if associations.height
                                       else 0),
                              reassignments=st.counts.get("reassignments", 0))
+    curves = curve_reader(parts) if ctx.curves else None
+    # the evaluation keeps only the id-map rows the alert scoring reads when it knows every alert
+    # beforehand: the conflicts' and, with curves, the windows' curve points' (memory)
+    keys = (_alert_keys(conflicts, parts, safety_id_column(cfg))
+            if lean and cfg.safety and isinstance(conflicts, DeferredTable)
+            and (curves is not None or not cfg.stca_lookaheads_s)
+            else None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
-                    getattr(st, "scores", None), curve_reader(parts) if ctx.curves else None)
+                    getattr(st, "scores", None), curves, keys)
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -269,7 +280,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             reference = write_reference(ing.truth, scratch / "reference.parquet")
             ing.truth = ing.truth.clear()
         ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
-                                             None if scratch is None else scratch / "evaluation")
+                                             None if scratch is None else scratch / "evaluation", run.alert_keys)
         # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
         spans, grid = observed_spans(observed), observed.select("run", "epoch").unique().sort("run", "epoch")
         del observed
@@ -328,7 +339,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         del scored_rows
         id_map_all, scored = safety_alerts.scored_ids(id_map, conflicts_all, id_col), methods
         if t_conf.height or t_ids.height:
-            conflicts_all = pl.concat([conflicts_all, t_conf], how="diagonal_relaxed") if t_conf.height else conflicts_all
+            if t_conf.height:
+                conflicts_all = pl.concat([conflicts_all, t_conf], how="diagonal_relaxed")
             id_map_all = pl.concat([id_map_all, t_ids.select(id_map.columns).cast(id_map.schema)])
             scored = [*methods, safety_alerts.TRUTH_PICTURE]
         # a picture at a time: the same tables, with one picture's rows in the scoring's joins
@@ -455,23 +467,31 @@ def curve_reader(parts: Any) -> Callable[[int], pl.DataFrame] | None:
 CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
 
 
-def _scored_conflict_parts(parts: Any) -> Iterator[pl.DataFrame]:
-    """Each conflict part's rows that the alert scoring reads (:func:`safety.alerts.scored_conflicts`),
-    read a part's columns at a time."""
+def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
+    """(rows, alert rows, each part's rows that the alert scoring reads:
+    :func:`safety.alerts.scored_conflicts`) of the conflict parts, read a part's columns at a time."""
+    rows = alerts = 0
+    scored = []
     for f in parts.part_files("conflicts"):
         lf = pl.scan_parquet(f)
         have = lf.collect_schema()
-        yield safety_alerts.scored_conflicts(
-            lf.select(c for c in safety_alerts.SCORED_CONFLICT_COLUMNS if c in have).collect())
+        part = lf.select(c for c in safety_alerts.SCORED_CONFLICT_COLUMNS if c in have).collect()
+        rows, alerts = rows + part.height, alerts + int(part["alert"].sum())
+        scored.append(safety_alerts.scored_conflicts(part))
+    return rows, alerts, scored
 
 
-def _conflict_counts(parts: Any) -> tuple[int, int]:
-    """(rows, alert rows) of the conflict parts, read a part's ``alert`` column at a time."""
-    rows = alerts = 0
-    for f in parts.part_files("conflicts"):
-        alert = pl.read_parquet(f, columns=["alert"])["alert"]
-        rows, alerts = rows + alert.len(), alerts + int(alert.sum())
-    return rows, alerts
+def _alert_keys(conflicts: DeferredTable, parts: Any, id_col: str) -> pl.DataFrame:
+    """:func:`safety.alerts.alert_ids` of the conflicts' alert rows and the curve points' (all
+    settings: an id is kept when any point alerts on it)."""
+    keys = [safety_alerts.alert_ids(c, id_col) for c in conflicts.blocks()]
+    files = parts.part_files("curve_rows")
+    if files:
+        rows = (pl.scan_parquet(files).filter(pl.col("alert"))
+                .select("run", "method", "epoch", "id_a", "id_b", "alert").collect())
+        keys.append(safety_alerts.alert_ids(rows, id_col))
+    out = pl.concat(keys, how="vertical_relaxed") if keys else pl.DataFrame()
+    return out.unique() if out.height else out
 
 
 def _report_span(files: list[Path], cfg: PipelineConfig):
