@@ -29,8 +29,9 @@ __all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "note_minima", "reference_interv
 # survives that
 
 
-#: the time chunk in which :func:`reference_intervals` reads an on-disk truth (s)
-TRUTH_CHUNK_S = 3600.0
+#: the time chunk in which :func:`reference_intervals` reads an on-disk truth (s): the
+#: separation intervals' geodesy holds a dozen arrays the length of the chunk's samples
+TRUTH_CHUNK_S = 900.0
 
 
 def time_span(truth: "pl.DataFrame | pl.LazyFrame") -> pl.DataFrame:

@@ -17,10 +17,10 @@ from tertiary.evaluation.truth_picture import truth_picture
 
 __all__ = ["TRUTH_BLOCK_S", "TRUTH_STEP_S", "TRUTH_PICTURE_COLUMNS", "truth_conflicts", "attributed"]
 
-#: the time block of truth read at once (s) ...
-TRUTH_BLOCK_S = 3600.0
-#: ... and the step in which its picture is made and predicted, the state carried (s): a
-#: national hour's truth picture predicted at once held 1.4 GB
+#: the time block of truth read at once (s): a national hour's truth is 5 M samples ...
+TRUTH_BLOCK_S = 900.0
+#: ... and the step in which its picture is made and predicted, the state carried (s): the
+#: prediction's pairs grow with the epochs predicted at once
 TRUTH_STEP_S = 300.0
 #: what the truth picture reads of the truth
 TRUTH_PICTURE_COLUMNS = ["truth_id", "time", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps", "alt_m",
