@@ -797,3 +797,21 @@ def test_distinct_targets_read_part_by_part_equal_the_whole_count(terminal, tmp_
         p.write_parquet(files[-1])
     assert distinct_targets(files) == (both.height, both.select("run", "target_id").n_unique())
     assert both.select("run", "target_id").n_unique() > both["target_id"].n_unique()    # the runs count apart
+
+
+def test_alert_keys_of_a_run_without_conflict_parts_keep_a_row_per_epoch():
+    """A run whose windows wrote no conflict part and no curve point has no alert: the
+    evaluation's id map then keeps one row per picture epoch (the grid), not an error. Fails if
+    the keys come back without columns (the id map's filter cannot join on them)."""
+    class NoParts:
+        def part_files(self, name):
+            return []
+    none = tables.DeferredTable(lambda: pl.DataFrame(), 0, blocks=lambda: iter([]), alerts=0)
+    keys = whole_run._alert_keys(none, NoParts(), "track_id")
+    from datetime import datetime, timedelta, timezone
+    t = datetime(2021, 10, 7, 8, tzinfo=timezone.utc)
+    ids = pl.DataFrame({"run": [0, 0, 0], "method": ["m"] * 3, "epoch": [t, t, t + timedelta(seconds=4)],
+                        "track_id": [1, 2, 1], "truth_id": [5, 6, 5]}).with_columns(
+        pl.col("run").cast(pl.UInt32), pl.col("track_id").cast(pl.UInt64), pl.col("epoch").dt.cast_time_unit("us"))
+    kept = safety_alerts.id_rows(ids, keys, "track_id")
+    assert keys.height == 0 and kept["track_id"].to_list() == [1, 1] and kept["epoch"].n_unique() == 2

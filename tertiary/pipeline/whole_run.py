@@ -490,8 +490,10 @@ def _alert_keys(conflicts: DeferredTable, parts: Any, id_col: str) -> pl.DataFra
         rows = (pl.scan_parquet(files).filter(pl.col("alert"))
                 .select("run", "method", "epoch", "id_a", "id_b", "alert").collect())
         keys.append(safety_alerts.alert_ids(rows, id_col))
-    out = pl.concat(keys, how="vertical_relaxed") if keys else pl.DataFrame()
-    return out.unique() if out.height else out
+    if not keys:        # no conflict part: no alert, the id map keeps a row per epoch
+        return pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": contract.TIME,
+                                    id_col: pl.UInt64})
+    return pl.concat(keys, how="vertical_relaxed").unique()
 
 
 def _report_span(files: list[Path], cfg: PipelineConfig):
