@@ -12,6 +12,10 @@ the monograph's "memory mode", §2.1).
 
 Every filter reports its estimate in one common form, :class:`Output`: the 6-state
 (x, y, z, vx, vy, vz), its covariance diagonal, and model probabilities where relevant.
+
+A plot may also carry the aircraft's own turn rate (Mode S BDS 5,0 track-angle rate, downlinked
+by an enhanced-surveillance transponder). :meth:`TrackFilter.observe_turn_rate` hands it to the
+filter after the position update; a filter with a turn-rate model uses it, the others ignore it.
 """
 
 from __future__ import annotations
@@ -101,6 +105,12 @@ class TrackFilter(ABC):
     @abstractmethod
     def output(self, state: State) -> Output:
         """The common 6-state estimate of every track."""
+
+    def observe_turn_rate(self, state: State, omega: F64, mask: NDArray[np.bool_]) -> State:
+        """Use the downlinked turn rate ``omega`` (B,) rad/s, positive counter-clockwise (a left
+        turn, as the CT models' ω; NaN where none) of the tracks with ``mask``, after their
+        position update. A filter without a turn-rate model returns ``state`` unchanged."""
+        return state
 
 
 REGISTRY: dict[str, Callable[..., TrackFilter]] = {}

@@ -43,6 +43,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import special
 from scipy.linalg import expm
 
 from tertiary.core.jit import arg, ready_for
@@ -56,6 +57,10 @@ PAPER_MU0 = tuple(np.array([0.53, 0.33, 0.13]) / 0.99)
 PAPER_P00 = (1e3, 0.05, 1e3, 0.05)
 
 _HIDX = np.array([0, 2])  # H = [[1,0,0,0],[0,0,1,0]]
+#: σ of a downlinked turn rate's error (rad/s) the IMMs' mode evidence allows for: well above the
+#: register's own noise and LSB (0.05, 1/32 °/s), for a rate a few seconds older than its plot and
+#: for registers read off noisy recorded trajectories
+RATE_SIGMA = float(np.radians(0.5))
 
 
 # --------------------------------------------------------------------------- model matrices
@@ -289,6 +294,48 @@ def imm_update(x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.b
             np.where(m, mu, mu_pred), np.where(m, loglik, np.nan))
 
 
+def _ramp(x: F64, sigma: float) -> F64:
+    """E[(x + n)₊] for n ~ N(0, σ²): x Φ(x/σ) + σ φ(x/σ) (the ramp itself at σ = 0)."""
+    if sigma == 0.0:
+        return np.maximum(x, 0.0)
+    u = x / sigma
+    return x * special.ndtr(u) + sigma * np.exp(-0.5 * u * u) / np.sqrt(2.0 * np.pi)
+
+
+def turn_rate_evidence(omegas: Sequence[float], omega: F64, floor: float, sigma: float = 0.0) -> F64:
+    """The evidence (B, M) a measured turn rate ``omega`` (B,) rad/s gives each model of the
+    fixed rates ``omegas`` (M,).
+
+    Each model's weight is its hat function on the sorted rates: 1 on its own rate, falling
+    linearly to 0 at its neighbours' (the extreme models keep 1 beyond the extreme rates), so
+    a rate between two models is shared by linear interpolation, as the IMM's moment-matched
+    output then mixes them towards it. The measured rate's error (σ ``sigma``, rad/s) is
+    averaged over: the hats are written as sums of ramps (x − ω_k)₊, and each ramp's
+    expectation under N(0, σ²) is :func:`_ramp`. The weights are scaled into [``floor``, 1],
+    so that no model is excluded by a wrong or stale value. NaN rates give 1 everywhere (no
+    evidence)."""
+    w = np.asarray(omegas, float)
+    omega = np.asarray(omega, float)
+    ev = np.ones((len(omega), len(w)))
+    if len(w) < 2 or len(omega) == 0:
+        return ev
+    order = np.argsort(w, kind="stable")
+    g = w[order]
+    if (np.diff(g) <= 0).any():
+        raise ValueError(f"turn-rate evidence needs distinct model rates, got {tuple(w)}")
+    ok = np.isfinite(omega)
+    x = np.where(ok, omega, 0.0)[:, None]
+    r = _ramp(x - g[None, :], sigma)                            # (B, M): E[(ω − g_k)₊]
+    inv = 1.0 / np.diff(g)                                      # (M − 1,) slopes between neighbours
+    hat = np.zeros_like(r)
+    # rising edge of model k from g_{k−1}, falling edge to g_{k+1}
+    hat[:, 1:] += (r[:, :-1] - r[:, 1:]) * inv
+    hat[:, :-1] -= (r[:, :-1] - r[:, 1:]) * inv
+    hat[:, 0] += 1.0                                            # the lowest model: 1 below its rate
+    ev[:, order] = np.where(ok[:, None], floor + (1.0 - floor) * np.clip(hat, 0.0, 1.0), 1.0)
+    return ev
+
+
 class HorizontalIMM:
     """The horizontal IMM on plain arrays (state [x, vx, y, vy] per model), batched over B."""
 
@@ -399,6 +446,9 @@ class IMMFilter(TrackFilter):
         sigma_v0: horizontal velocity σ (m/s) when a track starts from a single plot
                   (:meth:`init`; velocity 0, vertical velocity σ = sigma_v0/10), default 150
         mu_floor: floor on μ after each update (renormalised), default 1e-12
+        rate_floor: the least evidence a downlinked turn rate gives a model
+                  (:meth:`observe_turn_rate`, :func:`turn_rate_evidence`), default 0.01
+        rate_sigma: σ (rad/s) of a downlinked turn rate's error, averaged over by the evidence
         compiled: predict and update with compiled per-track kernels (numba, cached on disk;
                   same equations, round-off differences only) when q is isotropic; False: numpy
     """
@@ -411,8 +461,11 @@ class IMMFilter(TrackFilter):
     def __init__(self, omegas: Sequence[float] = PAPER_OMEGAS, tpm: ArrayLike = PAPER_TPM,
                  mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, q_z: float = 1.0,
                  p00: Sequence[float] = PAPER_P00, sigma_v0: float = 150.0, mu_floor: float = 1e-12,
-                 compiled: bool = True):
+                 rate_floor: float = 0.01, rate_sigma: float = RATE_SIGMA, compiled: bool = True):
+        if not 0.0 < rate_floor <= 1.0 or rate_sigma < 0:
+            raise ValueError(f"need rate_floor in (0, 1] and rate_sigma >= 0, got {rate_floor}, {rate_sigma}")
         self.core = HorizontalIMM(omegas, tpm, mu0, q, mu_floor)
+        self.rate_floor, self.rate_sigma = float(rate_floor), float(rate_sigma)
         qx, qy = (q, q) if np.isscalar(q) else q
         # the compiled prediction has the isotropic closed form only (anisotropic q: Van Loan)
         self._q_iso = float(qx) if compiled and float(qx) == float(qy) else None
@@ -491,6 +544,24 @@ class IMMFilter(TrackFilter):
         # vertical CV channel
         xv, pvu = cv1_update(state["xv"], state["Pv"], nu_z, s_z, ok)
         return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pvu}, innovation(nu_h, nu_z, s_h, s_z, nis, ok)
+
+    def observe_turn_rate(self, state: State, omega: F64, mask: NDArray[np.bool_]) -> State:
+        """The mode probabilities given the downlinked turn rate as well: μ_j ∝ μ_j e_j with
+        e_j the rate's evidence for model j (:func:`turn_rate_evidence`). The rate is a
+        measurement of the mode, independent of the position given the mode, so the mode
+        posterior multiplies by its likelihood; the models' states are unchanged. On a straight
+        leg this keeps the turn models' probability, and the spread their offsets add to the
+        combined covariance, down; at a turn's onset it moves the probability to the turning
+        models before the positions can."""
+        omega = np.where(np.asarray(mask, bool), np.asarray(omega, float), np.nan)
+        if not np.isfinite(omega).any():
+            return state
+        mu = state["mu"] * turn_rate_evidence(self.core.omegas, omega, self.rate_floor, self.rate_sigma)
+        mu = mu / mu.sum(axis=1, keepdims=True)
+        if self.core.mu_floor > 0:
+            mu = np.maximum(mu, self.core.mu_floor)
+            mu = mu / mu.sum(axis=1, keepdims=True)
+        return {**state, "mu": mu}
 
     def output(self, state: State) -> Output:
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])

@@ -333,6 +333,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
                 base = filt.predict(_take_state(prev, idx, len(m)), np.maximum(t - age - mu.f[:, _T], 0.0))
             rm = plots.rm[safe]
             su, inn = filt.update(base, plots.zm[safe], rm if filt.full_r else np.einsum("bii->bi", rm), fresh)
+            if cfg.use_turn_rate:
+                su = filt.observe_turn_rate(su, plots.omega[safe], fresh)
         else:
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)

@@ -39,6 +39,9 @@ class TrackerConfig:
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
     * ``use_mode_s``: a confirmed track holds the Mode S address of the plots it took and never
       takes a plot with another address (a plot or track without one is gated on position).
+    * ``use_turn_rate``: a plot's downlinked turn rate (Mode S BDS 5,0 track-angle rate) is
+      handed to the filter after its position update
+      (:meth:`tertiary.filters.base.TrackFilter.observe_turn_rate`).
     * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
@@ -53,6 +56,7 @@ class TrackerConfig:
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
     use_mode_s: bool = True
+    use_turn_rate: bool = True
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:

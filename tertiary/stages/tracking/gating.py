@@ -14,7 +14,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from tertiary.contract import TIME
+from tertiary.contract import TIME, TURN_RATE_COLUMN
 from tertiary.stages.tracking.config import TrackerConfig
 
 __all__ = ["Plots", "PlotIndex", "likelihood_cost", "mode_s_ident", "tracking_pairs", "vertical_ok", "assign"]
@@ -64,6 +64,7 @@ class Plots:
     age: NDArray              # (n,) measurement time = epoch − age
     fresh: NDArray            # (n,) the fused plot holds a new measurement
     ident: NDArray            # (n,) the plot's Mode S address as an integer (−1: none)
+    omega: NDArray            # (n,) the downlinked turn rate, rad/s counter-clockwise (NaN: none)
     keys: NDArray
     classes: NDArray          # σ classes present
     rmax_x: NDArray           # largest x variance of each present class
@@ -117,6 +118,7 @@ class PlotIndex:
         self.zm, self.rm = np.ascontiguousarray(zm[order]), np.ascontiguousarray(rm[order])
         self.age, self.fresh = age[order], fresh[order]
         self.ident = mode_s_ident(f)[order]
+        self.omega = downlinked_turn_rate(f)[order]
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -135,7 +137,7 @@ class PlotIndex:
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
-                      self.fresh[lo:hi], self.ident[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1],
+                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1],
                       self.seg_rmax_x[s0:s1])
 
 
@@ -157,6 +159,15 @@ def _measurements(f: pl.DataFrame, z: NDArray, cov36: NDArray) -> tuple[NDArray,
     age = f["age_s"].cast(pl.Float64).fill_null(0.0).to_numpy()
     fresh = np.isfinite(zm).all(axis=1) & np.isfinite(rm).all(axis=(1, 2))
     return np.where(fresh[:, None], zm, z), np.where(fresh[:, None, None], rm, pos), np.where(fresh, age, 0.0), fresh
+
+
+def downlinked_turn_rate(f: pl.DataFrame) -> NDArray:
+    """Each row's downlinked turn rate (BDS 5,0 track-angle rate, ``ehs_track_rate_dps``,
+    positive clockwise: a right turn) as the filters' ω: rad/s, positive counter-clockwise
+    in the east-north plane; NaN where the row has none."""
+    if TURN_RATE_COLUMN not in f.columns:
+        return np.full(f.height, np.nan)
+    return -np.radians(f[TURN_RATE_COLUMN].cast(pl.Float64).fill_null(np.nan).to_numpy())
 
 
 def likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
