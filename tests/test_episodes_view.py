@@ -103,9 +103,11 @@ def test_figure_draws_the_episodes_tracks_cpa_and_minima(run):
     # the predicted CPA: each track's state at the closest alert row moved on straight for T_min
     t_min = max(row["cpa_t_min_s"], 0.0) if math.isfinite(row["cpa_t_min_s"]) else 0.0
     a = states.filter(pl.col("track_id") == row["id_a"]).row(0, named=True)
+    # the figure draws the float32 values of the lean store (positions to a few mm at 40 km)
+    a = {k: float(np.float32(v)) if isinstance(v, float) else v for k, v in a.items()}
     pred = np.array([a["x_m"] + a["vx_mps"] * t_min, a["y_m"] + a["vy_mps"] * t_min]) / 1e3
     cpa = _trace(fig, "predicted CPA")
-    assert [cpa.x[0], cpa.y[0]] == pytest.approx(pred, abs=1e-6)
+    assert [cpa.x[0], cpa.y[0]] == pytest.approx(pred, abs=1e-9)
     # the horizontal minimum at its size around A's predicted position (km on the plan view)
     circle = _trace(fig, "horizontal minimum")
     r = np.hypot(np.asarray(circle.x) - pred[0], np.asarray(circle.y) - pred[1])

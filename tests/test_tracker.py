@@ -631,3 +631,50 @@ def test_best_tracker_beats_its_fused_input(fixture, request):
     assert len(nees) == 3 and ((nees > 1.5) & (nees < 6.0)).all()
     assert res.counts["confirmed_targets"] > 0
     assert res.tracks["cov"].null_count() == 0
+
+
+# --------------------------------------------------------------------------- barometric altitude in association
+
+
+def _stacked(skip_upper=(10, 11), climb_mps=0.0):
+    """Two aircraft at one plan position, 1 830 m apart vertically (a radar's elevation makes
+    their ENU heights ±600 m): the upper one without a Mode S address, missing ``skip_upper``
+    scans; the lower one (Mode S) appears at scan 9. ``climb_mps``: the upper one climbs from
+    scan 12 on. Fused rows with the barometric vertical channel."""
+    rows, alt, ident = [], [], []
+    rng = np.random.default_rng(7)
+    for k in range(20):
+        x, y = 200.0 * DT * k, 0.0
+        h_up = 12530.0 + climb_mps * DT * max(k - 12, 0)
+        if k not in skip_upper:
+            rows.append((0, k, 1, x + rng.normal(0, 20), y + rng.normal(0, 20), h_up + rng.normal(0, 600)))
+            alt.append(h_up)
+            ident.append(None)
+        if k >= 9:
+            rows.append((0, k, 2, x + rng.normal(0, 20), y + rng.normal(0, 20), 10700.0 + rng.normal(0, 600)))
+            alt.append(10700.0)
+            ident.append("3b24a4")
+    f = _fused(rows, sigma=(30.0, 30.0, 600.0))
+    return f.with_columns(pl.Series("alt_m", alt), pl.lit(0.0).alias("alt_rate_mps"), pl.lit(60.0).alias("alt_var_m2"),
+                          pl.lit(0.0).alias("alt_cov_m2ps"), pl.lit(4.0).alias("alt_rate_var_m2ps2"),
+                          pl.Series("mode_s", ident, dtype=pl.String))
+
+
+def test_a_track_without_an_address_does_not_take_the_plot_of_an_aircraft_below_it():
+    f = _stacked()
+    first = lambda tracks: tracks.filter(pl.col("track_id") == tracks["track_id"].min())  # noqa: E731
+    upper = first(track(f, make_filter("cv")))
+    # the upper aircraft's track coasts through its missed scans: never the lower one's plot or level
+    assert set(upper["plot_target_id"].drop_nulls().to_list()) == {1}
+    assert (upper["alt_m"] > 12000.0).all()
+    # without the altitude in association the same scene swaps (the scene is one that can)
+    swapped = first(track(f, make_filter("cv"), TrackerConfig(alt_gate_m=None)))
+    assert 2 in swapped["plot_target_id"].drop_nulls().to_list()
+
+
+def test_a_climb_stays_in_the_altitude_gate():
+    f = _stacked(skip_upper=(), climb_mps=15.0)
+    per = _by_track(track(f, make_filter("cv")))
+    # two aircraft, two tracks, each on its own plots throughout
+    assert len(per) == 2
+    assert all(len({t for _, _, t in v if t is not None}) == 1 for v in per.values())

@@ -15,7 +15,8 @@ from tertiary.core.units import STATE, US
 from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltState, predict as alt_predict, update2 as alt_update
 from tertiary.stages.tracking.config import TRACK_COLUMNS, TrackerConfig
 from tertiary.filters.base import State, TrackFilter, concat, full_cov, size, take
-from tertiary.stages.tracking.gating import PlotIndex, Plots, assign, likelihood_cost, tracking_pairs, vertical_ok
+from tertiary.stages.tracking.gating import (PlotIndex, Plots, altitude_ok, assign, likelihood_cost, tracking_pairs,
+                                             vertical_ok)
 
 __all__ = ["Bank", "Emitted", "track_batch"]
 
@@ -98,6 +99,13 @@ def _alt_step(f: NDArray, t: float, plot_alt: NDArray, mask: NDArray, q: float) 
     return np.column_stack(cols) if len(f) else np.zeros((0, 5))
 
 
+def _alt_at(f: NDArray, t: float, q: float) -> NDArray:
+    """The objects' altitude filter predicted to ``t``: (n, 2) altitude and its variance (NaN:
+    no altitude yet)."""
+    pred = alt_predict(AltState(*(f[:, _ALT.start + i] for i in range(5))), t - f[:, _TA], q)
+    return np.column_stack([pred.h, pred.phh]) if len(f) else np.zeros((0, 2))
+
+
 def _take_state(state: State, idx: NDArray, n: int) -> State:
     """``take`` that skips the copy when ``idx`` selects every track in order."""
     if len(idx) == n and (n == 0 or (idx[0] == 0 and (n == 1 or bool((np.diff(idx) == 1).all())))):
@@ -129,6 +137,8 @@ def _annulus_pairs(plots: Plots, free: NDArray, objs: _Objects, t: float,
     dh = np.hypot(plots.z[p, 0] - p1[o, 0], plots.z[p, 1] - p1[o, 1])
     ok = ((dh >= cfg.v_min_mps * dt[o]) & (dh <= cfg.v_max_mps * dt[o])
           & vertical_ok(plots.z[p, 2] - p1[o, 2], objs.f[o, _RZ1], plots.r[p, 2], cfg))
+    if cfg.alt_gate_m is not None:
+        ok &= altitude_ok(_alt_at(objs.f, t, cfg.altitude.q_m2ps3)[o], plots.alt[p], cfg)
     return o[ok], p[ok]
 
 
@@ -148,6 +158,8 @@ def _confirm_pairs(plots: Plots, free: NDArray, hyp: _Objects, t: float,
     dh2 = (plots.z[p, 0] - x3[o, 0]) ** 2 + (plots.z[p, 1] - x3[o, 1]) ** 2
     tol = cfg.gate_sigma * np.sqrt(hyp.f[o, _RZ2] + plots.r[p, 2]) + cfg.gate_min_m
     ok = (np.abs(dz) <= tol) & (dh2 <= cfg.confirm_gate_m ** 2)
+    if cfg.alt_gate_m is not None:
+        ok &= altitude_ok(_alt_at(hyp.f, t, cfg.altitude.q_m2ps3)[o], plots.alt[p], cfg)
     return o[ok], p[ok], dh2[ok] / cfg.confirm_gate_m ** 2 + (dz[ok] / tol[ok]) ** 2
 
 
@@ -274,7 +286,9 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
 
         # --- confirmed tracks: gate and assign
         conf = np.flatnonzero(kind == _CONF)
-        o, p, c = tracking_pairs(plots, free, m.i[conf, _RUN], xp[conf], vp[conf], cfg, m.i[conf, _IDENT])
+        alt_now = _alt_at(m.f, t, cfg.altitude.q_m2ps3)
+        o, p, c = tracking_pairs(plots, free, m.i[conf, _RUN], xp[conf], vp[conf], cfg, m.i[conf, _IDENT],
+                                 alt_now[conf])
         plot_of_conf = assign(o, p, c, len(conf), n_plot, cfg.assignment)
         free[plot_of_conf[plot_of_conf >= 0]] = False
         opens = free.copy()                      # plots that open new tentative tracks
@@ -308,7 +322,7 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
             c1 = likelihood_cost(plots.z[p1] - xp[tent[o1]], vp[tent[o1]] + plots.r[p1])
             many = np.flatnonzero(~one)
             o2, p2, c2 = tracking_pairs(plots, free, m.i[tent[many], _RUN], xp[tent[many]], vp[tent[many]], cfg,
-                                        m.i[tent[many], _IDENT])
+                                        m.i[tent[many], _IDENT], alt_now[tent[many]])
             plot_of_tent = assign(np.r_[o1, many[o2]], np.r_[p1, p2], np.r_[c1, c2], len(tent), n_plot,
                                    cfg.assignment)
             used = plot_of_tent >= 0

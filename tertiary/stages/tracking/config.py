@@ -39,6 +39,10 @@ class TrackerConfig:
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
     * ``use_mode_s``: a confirmed track holds the Mode S address of the plots it took and never
       takes a plot with another address (a plot or track without one is gated on position).
+    * ``alt_gate_m``: a plot whose barometric altitude lies further than gate_sigma·σ +
+      ``alt_gate_m`` from an object's predicted altitude (its altitude filter, σ of both) is not
+      in its gates, and within them the altitude's d²/S adds to the assignment cost; None: the
+      altitude is not used in association.
     * ``use_turn_rate``: a plot's downlinked turn rate (Mode S BDS 5,0 track-angle rate) is
       handed to the filter after its position update
       (:meth:`tertiary.filters.base.TrackFilter.observe_turn_rate`).
@@ -56,6 +60,7 @@ class TrackerConfig:
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
     use_mode_s: bool = True
+    alt_gate_m: float | None = 300.0
     use_turn_rate: bool = True
     altitude: AltitudeConfig = AltitudeConfig()
 
@@ -70,6 +75,8 @@ class TrackerConfig:
             raise ValueError(f"need 1 <= m <= n, got m={self.m}, n={self.n}")
         if self.max_misses < 1:
             raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
+        if self.alt_gate_m is not None and self.alt_gate_m < 0:
+            raise ValueError(f"alt_gate_m must be >= 0 or None, got {self.alt_gate_m}")
         if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
             raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
 

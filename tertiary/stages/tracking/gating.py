@@ -17,7 +17,8 @@ from scipy.sparse.csgraph import connected_components
 from tertiary.contract import TIME, TURN_RATE_COLUMN
 from tertiary.stages.tracking.config import TrackerConfig
 
-__all__ = ["Plots", "PlotIndex", "likelihood_cost", "mode_s_ident", "tracking_pairs", "vertical_ok", "assign"]
+__all__ = ["Plots", "PlotIndex", "altitude_cost", "altitude_ok", "likelihood_cost", "mode_s_ident", "tracking_pairs",
+           "vertical_ok", "assign"]
 
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
@@ -184,11 +185,15 @@ def mode_s_ident(f: pl.DataFrame) -> NDArray:
 
 
 def tracking_pairs(plots: Plots, free: NDArray, run: NDArray, xp: NDArray, vp: NDArray,
-                   cfg: TrackerConfig, ident: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
+                   cfg: TrackerConfig, ident: NDArray | None = None,
+                   alt: NDArray | None = None) -> tuple[NDArray, NDArray, NDArray]:
     """Gated (object, plot, cost) triples of the tracking gate around the predictions ``xp``.
     ``ident``: the objects' Mode S addresses (−1: none); a plot carrying another address than
     its track's is never in its gate — a track must not take another aircraft's plot (the
-    swap that gives it the other's identity and level), however close it is."""
+    swap that gives it the other's identity and level), however close it is. ``alt``: the
+    objects' predicted barometric altitude and its variance (n, 2), NaN where none; with the
+    plot's own (:func:`altitude_ok`, :func:`altitude_cost`) it gates and costs the pairs, so an
+    aircraft without an address does not take the plot of one flying above or below it."""
     if len(run) == 0 or not free.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     radius = cfg.gate_sigma * np.sqrt(vp[None, :, 0] + plots.rmax_x[:, None]) + cfg.gate_min_m
@@ -206,7 +211,32 @@ def tracking_pairs(plots: Plots, free: NDArray, run: NDArray, xp: NDArray, vp: N
         d = plots.z[p, axis] - xp[o, axis]
         ok = np.abs(d) <= cfg.gate_sigma * np.sqrt(vp[o, axis] + plots.r[p, axis]) + cfg.gate_min_m
         o, p = o[ok], p[ok]
-    return o, p, likelihood_cost(plots.z[p] - xp[o], vp[o] + plots.r[p])
+    cost = likelihood_cost(plots.z[p] - xp[o], vp[o] + plots.r[p])
+    if alt is not None and cfg.alt_gate_m is not None:
+        ok = altitude_ok(alt[o], plots.alt[p], cfg)
+        o, p = o[ok], p[ok]
+        cost = cost[ok] + altitude_cost(alt[o], plots.alt[p])
+    return o, p, cost
+
+
+def altitude_ok(obj: NDArray, plot: NDArray, cfg: TrackerConfig) -> NDArray:
+    """Whether plots of barometric altitude ``plot[:, 0]`` (variance ``plot[:, 2]``, the
+    :class:`Plots` ``alt`` layout) may belong to objects predicted at ``obj[:, 0]`` (variance
+    ``obj[:, 1]``): within ``gate_sigma`` standard deviations plus ``alt_gate_m``. A pair
+    without an altitude on either side passes (Mode A/C-only plots without Mode C, new objects)."""
+    d = plot[:, 0] - obj[:, 0]
+    lim = cfg.gate_sigma * np.sqrt(np.maximum(obj[:, 1], 0.0) + np.maximum(plot[:, 2], 0.0)) + cfg.alt_gate_m
+    return ~np.isfinite(d) | ~np.isfinite(lim) | (np.abs(d) <= lim)
+
+
+def altitude_cost(obj: NDArray, plot: NDArray) -> NDArray:
+    """The barometric altitude's normalised squared distance d²/S, added to a pair's
+    :func:`likelihood_cost` (0 where either side has no altitude): the assignment then prefers,
+    between two plots in a track's gate, the one at its own level."""
+    d = plot[:, 0] - obj[:, 0]
+    s = np.maximum(obj[:, 1], 0.0) + np.maximum(plot[:, 2], 0.0) + 1.0     # +1 m²: exact levels
+    c = d * d / s
+    return np.where(np.isfinite(c), c, 0.0)
 
 
 def vertical_ok(dz: NDArray, rz_a: NDArray, rz_b: NDArray, cfg: TrackerConfig) -> NDArray:
