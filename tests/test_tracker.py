@@ -432,7 +432,8 @@ def test_monte_carlo_batch_matches_single_runs():
 
 
 @pytest.mark.parametrize("kw", [dict(initiation="two_scan"), dict(assignment="gnn"), dict(m=5, n=4),
-                                dict(max_misses=0), dict(v_min_mps=400.0), dict(confirm_gate_m=0.0)])
+                                dict(max_misses=0), dict(v_min_mps=400.0), dict(confirm_gate_m=0.0),
+                                dict(alt_gate_m=-1.0), dict(alt_gate_m=float("nan"))])
 def test_bad_config(kw):
     with pytest.raises(ValueError):
         TrackerConfig(**kw)

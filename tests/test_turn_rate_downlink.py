@@ -67,9 +67,11 @@ def test_repeated_model_rates_are_refused():
         turn_rate_evidence((0.0, 0.01, 0.01), np.array([0.005]), 0.01)
 
 
-def test_the_rate_floor_is_checked():
+@pytest.mark.parametrize("kw", [dict(rate_floor=0.0), dict(rate_floor=1.5), dict(rate_sigma=-0.01),
+                                dict(rate_sigma=float("nan"))])
+def test_the_rate_floor_and_error_are_checked(kw):
     with pytest.raises(ValueError, match="rate_floor"):
-        make_filter("imm_sym", rate_floor=0.0)
+        make_filter("imm_sym", **kw)
 
 
 # --------------------------------------------------------------------------- one IMM, a turn
@@ -220,3 +222,7 @@ def test_every_filter_takes_a_turn_rate_and_keeps_its_state_form(name):
     if "mu" in used:
         np.testing.assert_allclose(used["mu"].sum(axis=1), 1.0)
         np.testing.assert_array_equal(used["mu"][3], st["mu"][3])
+        # a track without a rate in a batch with rates keeps its probabilities bit for bit
+        odd = {**st, "mu": st["mu"] * (1.0 + 1e-12)}
+        np.testing.assert_array_equal(filt.observe_turn_rate(odd, np.array([0.02, np.nan, np.nan, np.nan, np.nan]),
+                                                             np.ones(5, bool))["mu"][1:], odd["mu"][1:])

@@ -462,7 +462,7 @@ class IMMFilter(TrackFilter):
                  mu0: ArrayLike = PAPER_MU0, q: float | tuple[float, float] = 1.0, q_z: float = 1.0,
                  p00: Sequence[float] = PAPER_P00, sigma_v0: float = 150.0, mu_floor: float = 1e-12,
                  rate_floor: float = 0.01, rate_sigma: float = RATE_SIGMA, compiled: bool = True):
-        if not 0.0 < rate_floor <= 1.0 or rate_sigma < 0:
+        if not (0.0 < rate_floor <= 1.0 and rate_sigma >= 0.0):          # NaN fails too
             raise ValueError(f"need rate_floor in (0, 1] and rate_sigma >= 0, got {rate_floor}, {rate_sigma}")
         self.core = HorizontalIMM(omegas, tpm, mu0, q, mu_floor)
         self.rate_floor, self.rate_sigma = float(rate_floor), float(rate_sigma)
@@ -554,14 +554,15 @@ class IMMFilter(TrackFilter):
         combined covariance, down; at a turn's onset it moves the probability to the turning
         models before the positions can."""
         omega = np.where(np.asarray(mask, bool), np.asarray(omega, float), np.nan)
-        if not np.isfinite(omega).any():
+        ok = np.isfinite(omega)
+        if not ok.any():
             return state
         mu = state["mu"] * turn_rate_evidence(self.core.omegas, omega, self.rate_floor, self.rate_sigma)
         mu = mu / mu.sum(axis=1, keepdims=True)
         if self.core.mu_floor > 0:
             mu = np.maximum(mu, self.core.mu_floor)
             mu = mu / mu.sum(axis=1, keepdims=True)
-        return {**state, "mu": mu}
+        return {**state, "mu": np.where(ok[:, None], mu, state["mu"])}
 
     def output(self, state: State) -> Output:
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])

@@ -75,7 +75,7 @@ class TrackerConfig:
             raise ValueError(f"need 1 <= m <= n, got m={self.m}, n={self.n}")
         if self.max_misses < 1:
             raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
-        if self.alt_gate_m is not None and self.alt_gate_m < 0:
+        if self.alt_gate_m is not None and not self.alt_gate_m >= 0:          # NaN fails too
             raise ValueError(f"alt_gate_m must be >= 0 or None, got {self.alt_gate_m}")
         if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
             raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
