@@ -162,6 +162,35 @@ def enu_to_geodetic(e: ArrayLike, n: ArrayLike, u: ArrayLike,
     return LocalFrame(lat0_deg, lon0_deg, alt0_m).to_geodetic(e, n, u)
 
 
+def local_vector_to_frame(e: ArrayLike, n: ArrayLike, u: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike,
+                          frame: LocalFrame) -> tuple[F64, F64, F64]:
+    """Vectors given in the ENU axes at each point (lat, lon) — an aircraft's velocity over true
+    north and the local vertical — expressed in ``frame``'s ENU axes: v = R₀ R(lat, lon)ᵀ v_local.
+    Away from the frame's origin the two differ by the meridian convergence (about Δlon·sin lat
+    in azimuth) and the tilt of the local vertical (the great-circle angle to the origin)."""
+    lat, lon = np.radians(_f(lat_deg)), np.radians(_f(lon_deg))
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    e, n, u = _f(e), _f(n), _f(u)
+    # ECEF components: the columns of R(lat, lon)ᵀ (east, north, up unit vectors) weighted
+    ecef = np.stack([-so * e - sl * co * n + cl * co * u,
+                     co * e - sl * so * n + cl * so * u,
+                     cl * n + sl * u], axis=-1)
+    out = _rows_times(ecef, frame.rotation.T)
+    return out[..., 0], out[..., 1], out[..., 2]
+
+
+def frame_vector_to_local(e: ArrayLike, n: ArrayLike, u: ArrayLike, lat_deg: ArrayLike, lon_deg: ArrayLike,
+                          frame: LocalFrame) -> tuple[F64, F64, F64]:
+    """The inverse of :func:`local_vector_to_frame`: vectors in ``frame``'s ENU axes expressed in
+    the ENU axes at each point (lat, lon), v_local = R(lat, lon) R₀ᵀ v (over true north and the
+    local vertical there)."""
+    ecef = _rows_times(np.stack(np.broadcast_arrays(_f(e), _f(n), _f(u)), axis=-1), frame.rotation)
+    lat, lon = np.radians(_f(lat_deg)), np.radians(_f(lon_deg))
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    x, y, z = ecef[..., 0], ecef[..., 1], ecef[..., 2]
+    return -so * x + co * y, -sl * co * x - sl * so * y + cl * z, cl * co * x + cl * so * y + sl * z
+
+
 # --------------------------------------------------------------------------- frame to frame
 
 

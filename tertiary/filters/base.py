@@ -112,6 +112,13 @@ class TrackFilter(ABC):
         position update. A filter without a turn-rate model returns ``state`` unchanged."""
         return state
 
+    def observe_velocity(self, state: State, v: F64, r: F64, mask: NDArray[np.bool_]) -> State:
+        """Use a measured horizontal velocity ``v`` (B, 2) m/s, system east and north, of
+        covariance ``r`` (B, 2, 2) (a Mode S aircraft's downlinked ground speed and track; NaN
+        where none) of the tracks with ``mask``, at the time of their last update. A filter
+        that does not take one returns ``state`` unchanged."""
+        return state
+
 
 REGISTRY: dict[str, Callable[..., TrackFilter]] = {}
 

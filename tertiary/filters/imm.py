@@ -57,6 +57,8 @@ PAPER_MU0 = tuple(np.array([0.53, 0.33, 0.13]) / 0.99)
 PAPER_P00 = (1e3, 0.05, 1e3, 0.05)
 
 _HIDX = np.array([0, 2])  # H = [[1,0,0,0],[0,0,1,0]]
+#: the horizontal velocity components of the models' states [x, vx, y, vy(, ω)]
+VEL_IDX = np.array([1, 3])
 #: σ of a downlinked turn rate's error (rad/s) the IMMs' mode evidence allows for: well above the
 #: register's own noise and LSB (0.05, 1/32 °/s), for a rate a few seconds older than its plot and
 #: for registers read off noisy recorded trajectories
@@ -266,13 +268,14 @@ def imm_combine_diag(x: F64, p: F64, mu: F64) -> tuple[F64, F64]:
 
 
 def imm_update(x: F64, p: F64, mu_pred: F64, z: F64, rr: F64, mask: NDArray[np.bool_],
-               mu_floor: float = 0.0) -> tuple[F64, F64, F64, F64]:
+               mu_floor: float = 0.0, h: NDArray[np.intp] = _HIDX) -> tuple[F64, F64, F64, F64]:
     """Steps 6–9 for the horizontal models with H = [[1,0,0,0],[0,0,1,0]]: x⁻ (B, M, 4),
     P⁻ (B, M, 4, 4), c̄ (B, M), z (B, 2), R (B, 2, 2). Tracks outside ``mask`` keep x⁻, P⁻, c̄.
-    Returns x⁺, P⁺, μ, and the per-model log-likelihoods (B, M)."""
-    nu = z[:, None, :] - x[:, :, _HIDX]                      # (B, M, 2)
-    pht = p[:, :, :, _HIDX]                                  # (B, M, 4, 2)
-    s = pht[:, :, _HIDX, :] + rr[:, None]                    # (B, M, 2, 2)
+    ``h``: the two state components measured (default the positions; :data:`VEL_IDX` the
+    velocities). Returns x⁺, P⁺, μ, and the per-model log-likelihoods (B, M)."""
+    nu = z[:, None, :] - x[:, :, h]                          # (B, M, 2)
+    pht = p[:, :, :, h]                                      # (B, M, 4, 2)
+    s = pht[:, :, h, :] + rr[:, None]                        # (B, M, 2, 2)
     si, det = _inv2(s)
     # the 2-wide inner products written out: stacked tiny matmuls/einsums cost far more per call
     k = _mul2(pht, si)                                       # (B, M, 4, 2)
@@ -564,6 +567,12 @@ class IMMFilter(TrackFilter):
             mu = mu / mu.sum(axis=1, keepdims=True)
         return {**state, "mu": np.where(ok[:, None], mu, state["mu"])}
 
+    def observe_velocity(self, state: State, v: F64, r: F64, mask: NDArray[np.bool_]) -> State:
+        """Every model updated with the measured horizontal velocity (H picks vx, vy), and the
+        mode probabilities with its likelihood under each model: a velocity measurement tells a
+        turn model from CV at once, where positions need several scans."""
+        return imm_velocity_update(state, v, r, mask, self.core.mu_floor)
+
     def output(self, state: State) -> Output:
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])
         xv, pv = state["xv"], state["Pv"]
@@ -578,6 +587,20 @@ class IMMFilter(TrackFilter):
     def combined_horizontal(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 4) and covariance (B, 4, 4)."""
         return imm_combine(state["x"], state["P"], state["mu"])
+
+
+def imm_velocity_update(state: State, v: F64, r: F64, mask: NDArray[np.bool_], mu_floor: float) -> State:
+    """The IMM states ``x`` (B, M, N ≥ 4), ``P``, ``mu`` updated with horizontal velocities ``v``
+    (B, 2) of covariance ``r`` (B, 2, 2) where ``mask`` and both are finite (:func:`imm_update`
+    with :data:`VEL_IDX`); the other entries of ``state`` are carried."""
+    v, r = np.asarray(v, float), np.asarray(r, float)
+    ok = np.asarray(mask, bool) & np.isfinite(v).all(axis=1) & np.isfinite(r).all(axis=(1, 2))
+    if not ok.any():
+        return state
+    vv = np.where(ok[:, None], v, 0.0)
+    rr = np.where(ok[:, None, None], r, np.eye(2))
+    x, p, mu, _ = imm_update(state["x"], state["P"], state["mu"], vv, rr, ok, mu_floor, h=VEL_IDX)
+    return {**state, "x": x, "P": p, "mu": mu}
 
 
 def innovation(nu_h: F64, nu_z: F64, s_h: F64, s_z: F64, nis: F64, ok: NDArray[np.bool_]) -> Innovation:

@@ -30,8 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.filters.imm import (a_ct, a_cv, cv1_predict, cv1_update, imm_combine, imm_mix, imm_update, innovation,
-                                  q_ct, q_cv, split_r)
+from tertiary.filters.imm import (a_ct, a_cv, cv1_predict, cv1_update, imm_combine, imm_mix, imm_update,
+                                  imm_velocity_update, innovation, q_ct, q_cv, split_r)
 
 __all__ = ["ct_jacobian_omega", "ct_ekf_predict", "IMMCTFilter"]
 
@@ -159,6 +159,12 @@ class IMMCTFilter(TrackFilter):
         x, p, mu, _ = imm_update(state["x"], state["P"], state["mu"], zz[:, :2], rh, ok, self.mu_floor)
         xv, pv = cv1_update(state["xv"], state["Pv"], nu_z, s_z, ok)
         return {"x": x, "P": p, "mu": mu, "xv": xv, "Pv": pv}, innovation(nu_h, nu_z, s_h, s_z, nis, ok)
+
+    def observe_velocity(self, state: State, v: F64, r: F64, mask: NDArray[np.bool_]) -> State:
+        """Both models updated with the measured horizontal velocity, the mode probabilities with
+        its likelihood (:func:`tertiary.filters.imm.imm_velocity_update`); in the CT-EKF the
+        velocity is linear in the state, and its correlation with ω corrects the turn rate."""
+        return imm_velocity_update(state, v, r, mask, self.mu_floor)
 
     def combined(self, state: State) -> tuple[F64, F64]:
         """Combined horizontal estimate (B, 5) = [x, vx, y, vy, ω] and its covariance (B, 5, 5)."""

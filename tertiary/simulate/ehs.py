@@ -49,6 +49,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import ArrayLike, NDArray
 
+from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.units import FT, US
 from tertiary.contract import EHS_REPORT_COLUMNS
@@ -113,16 +114,30 @@ def quantise(values: ArrayLike, column: str) -> F64:
     return np.clip(np.round(v / lsb) * lsb, lo, hi)
 
 
-def ehs_truth(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike) -> tuple[dict[str, F64], NDArray[np.bool_]]:
+def ehs_truth(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, frame: geo.LocalFrame | None = None
+              ) -> tuple[dict[str, F64], NDArray[np.bool_]]:
     """What the aircraft's own navigation system knows at time ``t`` (s after the epoch): the EHS
-    fields before noise and quantisation, and validity (on the trajectory's active grid)."""
+    fields before noise and quantisation, and validity (on the trajectory's active grid).
+
+    ``frame``: the system frame the trajectories are in. The registers are over true north and
+    the local vertical at the aircraft, so its velocity is turned into the ENU axes there
+    (:func:`tertiary.core.geo.frame_vector_to_local`; at 500 km from the system origin the
+    axes differ by several degrees: a level aircraft has a system-frame vertical velocity of
+    ~18 m/s at 230 m/s). None: the trajectories' axes are taken as the local ones (a flat
+    synthetic trajectory)."""
     aircraft = np.asarray(aircraft, np.int64)
     t = np.asarray(t, float)
     h = 0.5 * traj.dt
     lo, hi = np.clip(t - h, 0.0, traj.duration), np.clip(t + h, 0.0, traj.duration)
-    _, vel, ok = traj.state_at(aircraft, t)
+    pos, vel, ok = traj.state_at(aircraft, t)
     _, v_lo, ok_lo = traj.state_at(aircraft, lo)
     _, v_hi, ok_hi = traj.state_at(aircraft, hi)
+    if frame is not None:
+        # all three in the axes at the aircraft's position at t: the axes' own turn over ±dt/2
+        # (v/R ≈ 0.002 °/s) is far below the track-rate LSB
+        lat, lon, _ = frame.to_geodetic(pos[..., 0], pos[..., 1], pos[..., 2])
+        vel, v_lo, v_hi = (np.stack(geo.frame_vector_to_local(v[..., 0], v[..., 1], v[..., 2], lat, lon, frame), axis=-1)
+                           for v in (vel, v_lo, v_hi))
     acc = (v_hi - v_lo) / np.maximum(hi - lo, 1e-9)[..., None]
     ve, vn = vel[..., 0], vel[..., 1]
     gs2 = np.maximum(ve * ve + vn * vn, 1e-12)
@@ -139,9 +154,11 @@ def ehs_truth(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike) -> tuple[di
 
 
 def ehs_parameters(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, rng: np.random.Generator,
-                   cfg: EhsConfig = EhsConfig()) -> tuple[dict[str, F64], NDArray[np.bool_]]:
+                   cfg: EhsConfig = EhsConfig(), frame: geo.LocalFrame | None = None
+                   ) -> tuple[dict[str, F64], NDArray[np.bool_]]:
     """EHS fields as extracted at times ``t`` for ``aircraft`` (indices into ``traj``): truth at
-    the register's sampling time + sensor noise, quantised to the BDS 5,0/6,0 resolutions."""
+    the register's sampling time + sensor noise, quantised to the BDS 5,0/6,0 resolutions
+    (``frame``: :func:`ehs_truth`)."""
     aircraft = np.asarray(aircraft, np.int64)
     t = np.asarray(t, float)
     if cfg.refresh_s > 0:
@@ -151,13 +168,13 @@ def ehs_parameters(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, rng: n
         phase = cfg.refresh_s * np.mod((np.asarray(traj.truth_id, np.float64)[aircraft] + 1.0) * GOLDEN, 1.0)
         base = np.mod(traj.epoch.timestamp(), cfg.refresh_s)
         t = np.maximum(np.floor((t + base - phase) / cfg.refresh_s) * cfg.refresh_s + phase - base, 0.0)
-    truth, ok = ehs_truth(traj, aircraft, t)
+    truth, ok = ehs_truth(traj, aircraft, t, frame)
     out = {c: quantise(truth[c] + getattr(cfg, c) * rng.standard_normal(t.shape), c) for c in EHS_COLUMNS}
     return out, ok
 
 
 def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generator,
-              cfg: EhsConfig = EhsConfig()) -> pl.DataFrame:
+              cfg: EhsConfig = EhsConfig(), frame: geo.LocalFrame | None = None) -> pl.DataFrame:
     """EHS parameters extracted with each Mode S report (reports without an address get none).
 
     Keyed like the reports (``run``, ``radar_id``, ``local_track_id``, ``time``) plus ``mode_s``
@@ -173,7 +190,7 @@ def ehs_table(reports: pl.DataFrame, traj: Trajectories, rng: np.random.Generato
     ms = ms.join(lookup, on="truth_id", how="inner", maintain_order="left")
     epoch_us = int(traj.epoch.timestamp() * US)
     t = (ms["time"].cast(pl.Datetime("us", "UTC")).dt.epoch("us").to_numpy() - epoch_us) * 1e-6
-    values, ok = ehs_parameters(traj, ms["__ac"].to_numpy(), t, rng, cfg)
+    values, ok = ehs_parameters(traj, ms["__ac"].to_numpy(), t, rng, cfg, frame)
     keys = [c for c in ("run", "radar_id", "local_track_id", "time", "mode_s") if c in ms.columns]
     table = ms.select(keys).with_columns(**{c: pl.Series(c, v) for c, v in values.items()})
     return table.filter(pl.Series(ok))
@@ -208,19 +225,21 @@ def ehs_rng(seed: int, radar_index: int, block: int | None = None) -> np.random.
 
 
 def ehs_report_columns(traj: Trajectories, aircraft: ArrayLike, t_true: ArrayLike, replied: ArrayLike,
-                       rng: np.random.Generator, cfg: EhsConfig = EhsConfig()) -> dict[str, F64]:
+                       rng: np.random.Generator, cfg: EhsConfig = EhsConfig(), frame: geo.LocalFrame | None = None
+                       ) -> dict[str, F64]:
     """The ``reports`` EHS columns (:data:`REPORT_COLUMN` names) of one radar's plots: the
     parameters extracted (Comm-B) with each reply whose Mode S address was decoded
     (``replied``), sampled at the true illumination time ``t_true`` (s after the epoch); NaN for
     clutter, non-Mode-S replies and times off the trajectory. With them ``selected_alt_m``
     (BDS 4,0, :func:`selected_altitude`; its draws follow the BDS 5,0/6,0 noise in ``rng``, so
-    those columns do not depend on it)."""
+    those columns do not depend on it). ``frame``: the trajectories' system frame
+    (:func:`ehs_truth`)."""
     aircraft = np.asarray(aircraft, np.int64)
     sel = np.flatnonzero(np.asarray(replied, bool) & (aircraft >= 0))
     out = {REPORT_COLUMN[c]: np.full(len(aircraft), np.nan) for c in EHS_COLUMNS}
     out[SELECTED_ALT_COLUMN] = np.full(len(aircraft), np.nan)
     if sel.size:
-        values, ok = ehs_parameters(traj, aircraft[sel], np.asarray(t_true, float)[sel], rng, cfg)
+        values, ok = ehs_parameters(traj, aircraft[sel], np.asarray(t_true, float)[sel], rng, cfg, frame)
         for c in EHS_COLUMNS:
             out[REPORT_COLUMN[c]][sel] = np.where(ok, values[c], np.nan)
         selected = selected_altitude(traj, aircraft[sel], rng, cfg.selected_alt_missing,

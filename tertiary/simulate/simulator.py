@@ -185,13 +185,14 @@ def _reports_frame(plots: Plots, radar_id: int, traj: Trajectories, tx: Transpon
     })
 
 
-def _ehs_columns(plots: Plots, index: int, traj: Trajectories, seed: int, cfg: EhsConfig | None
-                 ) -> dict[str, NDArray[np.float64]] | None:
+def _ehs_columns(plots: Plots, index: int, traj: Trajectories, seed: int, cfg: EhsConfig | None,
+                 system: geo.LocalFrame) -> dict[str, NDArray[np.float64]] | None:
     """The EHS report columns of radar ``index``'s plots (replies with a decoded Mode S
     address), from the radar's own EHS noise stream; None when EHS is off."""
     if cfg is None:
         return None
-    return ehs_report_columns(traj, plots.aircraft, plots.t_true, plots.mode_s >= 0, ehs_rng(seed, index), cfg)
+    return ehs_report_columns(traj, plots.aircraft, plots.t_true, plots.mode_s >= 0, ehs_rng(seed, index), cfg,
+                              system)
 
 
 def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: EhsConfig | None = EhsConfig()
@@ -219,7 +220,7 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
         plots.append(observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies, tx))
     say("radar plot-to-track association")
     plots = number_plots(plots, list(cfg.radars), cfg.runs, traj.duration, cfg.radar_tracker)
-    parts = [_reports_frame(p, i + 1, traj, tx, _ehs_columns(p, i, traj, cfg.seed, ehs)) for i, p in enumerate(plots)]
+    parts = [_reports_frame(p, i + 1, traj, tx, _ehs_columns(p, i, traj, cfg.seed, ehs, system)) for i, p in enumerate(plots)]
     reports = pl.concat(parts, how="vertical") if parts else pl.DataFrame()
     say("radar secondary processing")
     # each track life is filtered on its own (a reused number restarts the radar's filter)
@@ -404,7 +405,8 @@ def _observe_block(cfg: ScenarioConfig, sched: _Schedule, b: int, t_win0: float,
         p = take_plots(p, np.flatnonzero(p.scan < len(scan_starts(radar, nb))))
         if ehs is not None:
             # a register sampled in the first half step of a block differences the velocity one-sided
-            cols = ehs_report_columns(traj, p.aircraft, p.t_true, p.mode_s >= 0, ehs_rng(cfg.seed, i, day_block), ehs)
+            cols = ehs_report_columns(traj, p.aircraft, p.t_true, p.mode_s >= 0, ehs_rng(cfg.seed, i, day_block), ehs,
+                                      sched.system)
             p.ehs = np.column_stack([cols[c] for c in SIMULATED_COLUMNS])
         out.append(_to_window(p, traj, tb0, t_win0, radar.scan_period_s))
     for j, m in enumerate(cfg.mlat or ()):

@@ -22,9 +22,13 @@ from tertiary.stages.fusion.base import B, F, Ix, Layout, per_row, segsum, sym
 from tertiary.stages.fusion.centralized import converted_plots
 from tertiary.stages.fusion.registry import REGISTRY
 
-__all__ = ["PLOT_COLUMNS", "measured_plots", "measurements", "plot_measurement"]
+__all__ = ["EHS_PLOT_COLUMNS", "PLOT_COLUMNS", "downlinked_velocity", "ehs_measurement", "measured_plots",
+           "measurements", "plot_measurement"]
 
 PLOT_COLUMNS = ["plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"]
+#: a measured plot's downlinked ground velocity in the system frame (east, north; m/s) and its
+#: downlinked turn rate (rad/s, counter-clockwise), NaN without them
+EHS_PLOT_COLUMNS = ["plot_vx_mps", "plot_vy_mps", "plot_rate_rps"]
 
 
 
@@ -39,9 +43,38 @@ def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loca
     (``plots=``): it is joined to the fresh rows only, so the aligned rows are not widened."""
     rep = reports if "run" in reports.columns else reports.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     z, r, ok = converted_plots(rep, radars, origin, altitude_sigma_m)
+    z = np.where(ok[:, None], z, np.nan)
+    v = downlinked_velocity(rep, z, origin)
     return rep.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64)).with_columns(
-        *(pl.Series(c, np.where(ok, z[:, i], np.nan)) for i, c in enumerate(PLOT_COLUMNS[:3])),
-        pl.Series("plot_cov", np.where(ok[:, None], r.reshape(-1, 9), np.nan), dtype=pl.Array(pl.Float64, 9)))
+        *(pl.Series(c, z[:, i]) for i, c in enumerate(PLOT_COLUMNS[:3])),
+        pl.Series("plot_cov", np.where(ok[:, None], r.reshape(-1, 9), np.nan), dtype=pl.Array(pl.Float64, 9)),
+        *(pl.Series(c, v[:, i]) for i, c in enumerate(EHS_PLOT_COLUMNS)))
+
+
+def _column(frame: pl.DataFrame, name: str) -> F:
+    if name not in frame.columns:
+        return np.full(frame.height, np.nan)
+    return frame[name].cast(pl.Float64).fill_null(np.nan).to_numpy()
+
+
+def downlinked_velocity(reports: pl.DataFrame, z: F, origin: geo.LocalFrame) -> F:
+    """(n, 3): each report's downlinked ground velocity (Mode S BDS 5,0 ground speed
+    ``ehs_gs_mps`` along the true track ``ehs_track_deg``) as system-frame east and north
+    components, and its track-angle rate ``ehs_track_rate_dps`` as ω (rad/s, counter-clockwise:
+    the register's rate is clockwise positive). The track is over true north at the aircraft
+    (the plot ``z``), so the velocity is turned into the system frame's axes there
+    (:func:`tertiary.core.geo.local_vector_to_frame`: the meridian convergence, several degrees
+    at a national system's edge). NaN where the report or its plot has none."""
+    gs, track = _column(reports, "ehs_gs_mps"), np.radians(_column(reports, "ehs_track_deg"))
+    out = np.full((len(gs), 3), np.nan)
+    out[:, 2] = -np.radians(_column(reports, "ehs_track_rate_dps"))
+    ok = np.isfinite(gs) & np.isfinite(track) & np.isfinite(z).all(axis=1)
+    if ok.any():
+        lat, lon, _ = origin.to_geodetic(z[ok, 0], z[ok, 1], z[ok, 2])
+        e, n, _ = geo.local_vector_to_frame(gs[ok] * np.sin(track[ok]), gs[ok] * np.cos(track[ok]), 0.0,
+                                            lat, lon, origin)
+        out[ok, 0], out[ok, 1] = e, n
+    return out
 
 
 def _solve3(r: F) -> F:
@@ -89,18 +122,46 @@ def plot_measurement(zp: F, rp: F, use: B, age: F, vel: F, pvv: F, w: F | None, 
     return z, r, np.where(none, np.nan, a0)
 
 
-def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tuple[F, F] | None:
-    """Plot position (k, 3) and covariance (k, 3, 3) of the rows ``idx``: from ``plots`` (joined
-    on run, report_id) or from the rows' own :data:`PLOT_COLUMNS`; None without either."""
+def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tuple[F, F, F] | None:
+    """Plot position (k, 3), covariance (k, 3, 3) and downlinked velocity and rate (k, 3,
+    :data:`EHS_PLOT_COLUMNS`, NaN without) of the rows ``idx``: from ``plots`` (joined on run,
+    report_id) or from the rows' own :data:`PLOT_COLUMNS`; None without either."""
     if plots is not None:
         sub = rows.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64))[idx].join(
             plots, on=["run", "report_id"], how="left", maintain_order="left")
     elif all(c in rows.columns for c in PLOT_COLUMNS):
-        sub = rows.select(PLOT_COLUMNS)[idx]
+        sub = rows.select(c for c in (*PLOT_COLUMNS, *EHS_PLOT_COLUMNS) if c in rows.columns)[idx]
     else:
         return None
     zp = sub.select(PLOT_COLUMNS[:3]).cast(pl.Float64).fill_null(np.nan).to_numpy()
-    return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3)
+    ehs = np.column_stack([_column(sub, c) for c in EHS_PLOT_COLUMNS])
+    return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3), ehs
+
+
+def ehs_measurement(ehs: F, age: F, a0: F, starts: Ix) -> F:
+    """The downlinked ground velocity of each group (G, 2) at its measurement's age ``a0`` (G,):
+    that of the group's newest plot carrying one (rows ``ehs`` (n, 3) of
+    :data:`EHS_PLOT_COLUMNS`, ages ``age`` (n,)), turned by its own downlinked rate over
+    d = its age − a0 ≥ 0 (the aircraft turns at that rate meanwhile; without a rate it is not
+    turned). One plot, not an average: every radar reads the same register, so the values of
+    two radars share the aircraft's navigation error. NaN where no plot of the group has one."""
+    n, g = len(ehs), len(starts)
+    out = np.full((g, 2), np.nan)
+    has = np.isfinite(ehs[:, :2]).all(axis=1) & np.isfinite(age)
+    if n == 0 or not has.any():
+        return out
+    grp = np.repeat(np.arange(g), np.diff(np.r_[starts, n]))
+    # the newest carrying plot per group: order by (group, age) and take each group's first
+    cand = np.flatnonzero(has)
+    cand = cand[np.lexsort((age[cand], grp[cand]))]
+    first = cand[np.r_[True, grp[cand][1:] != grp[cand][:-1]]]
+    gi = grp[first]
+    d = np.maximum(age[first] - a0[gi], 0.0)
+    turn = np.nan_to_num(ehs[first, 2]) * np.where(np.isfinite(a0[gi]), d, 0.0)
+    c, s = np.cos(turn), np.sin(turn)
+    vx, vy = ehs[first, 0], ehs[first, 1]
+    out[gi, 0], out[gi, 1] = c * vx - s * vy, s * vx + c * vy
+    return out
 
 
 def _plot_weights(method: str, a: Mapping[str, NDArray], lay: Layout, idx: Ix, rp: F, sub_starts: Ix, w: F,
@@ -131,12 +192,13 @@ def measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], 
     with np.errstate(invalid="ignore"):
         newest = np.fmin.reduceat(age, lay.starts) if n else np.zeros(0)
     out = {"n_fresh": np.repeat(n_fresh[None], m, axis=0), "age_s": np.repeat(newest[None], m, axis=0),
-           "meas": np.full((m, g, 3), np.nan), "meas_cov": np.full((m, g, 9), np.nan)}
+           "meas": np.full((m, g, 3), np.nan), "meas_cov": np.full((m, g, 9), np.nan),
+           "meas_v": np.full((m, g, 2), np.nan)}
     idx = np.flatnonzero(fresh)
     got = _fresh_plots(rows, idx, plots) if len(idx) and "age_s" in rows.columns else None
     if got is None:
         return out
-    zp, rp = got
+    zp, rp, ehs = got
     gid = lay.group[idx]
     sub_starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
     gsub = gid[sub_starts]
@@ -146,4 +208,5 @@ def measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], 
         z, r, a0 = plot_measurement(zp, rp, np.ones(len(idx), bool), age[idx], vel, pvv, w, sub_starts)
         out["meas"][i, gsub], out["meas_cov"][i, gsub] = z, r.reshape(-1, 9)
         out["age_s"][i, gsub] = np.where(np.isfinite(a0), a0, newest[gsub])
+        out["meas_v"][i, gsub] = ehs_measurement(ehs, age[idx], a0, sub_starts)
     return out

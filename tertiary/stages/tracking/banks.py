@@ -16,7 +16,7 @@ from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltState, predict as 
 from tertiary.stages.tracking.config import TRACK_COLUMNS, TrackerConfig
 from tertiary.filters.base import State, TrackFilter, concat, full_cov, size, take
 from tertiary.stages.tracking.gating import (PlotIndex, Plots, altitude_ok, assign, likelihood_cost, tracking_pairs,
-                                             vertical_ok)
+                                             velocity_covariance, vertical_ok)
 
 __all__ = ["Bank", "Emitted", "track_batch"]
 
@@ -349,6 +349,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
             su, inn = filt.update(base, plots.zm[safe], rm if filt.full_r else np.einsum("bii->bi", rm), fresh)
             if cfg.use_turn_rate:
                 su = filt.observe_turn_rate(su, plots.omega[safe], fresh)
+            if cfg.use_velocity:
+                su = _observe_velocity(filt, su, plots, safe, fresh, cfg)
         else:
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
@@ -412,6 +414,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         newp = np.flatnonzero(opens)
         rn = plots.rm[newp]
         sn = filt.init(plots.zm[newp], rn if filt.full_r else np.einsum("bii->bi", rn)) if len(newp) else {}
+        if cfg.use_velocity and len(newp):
+            sn = _observe_velocity(filt, sn, plots, newp, plots.fresh[newp], cfg)
         mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp],
                            plots.ident[newp])
         mn.f[:, _T] = t - plots.age[newp]
@@ -421,6 +425,27 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         objs = _Objects.concat(objs.take(idle) if len(idle) else _Objects.empty(), mu.take(kept), mn)
 
     return emitted, Bank(f=objs.f, i=objs.i, next_id=next_id, filt_state=state)
+
+
+def _observe_velocity(filt: TrackFilter, state: State, plots: Plots, rows: NDArray, mask: NDArray,
+                      cfg: TrackerConfig) -> State:
+    """``state`` given the downlinked velocities of ``plots`` rows ``rows`` where ``mask``, each
+    used only if its NIS against the state's own velocity estimate is within
+    ``cfg.velocity_gate`` (a stale, misread or other aircraft's register is left out)."""
+    if type(filt).observe_velocity is TrackFilter.observe_velocity:
+        return state
+    v = plots.vm[rows]
+    use = mask & np.isfinite(v).all(axis=1)
+    if not use.any():
+        return state
+    r = velocity_covariance(v, plots.omega[rows], cfg)
+    out = filt.output(state)
+    s = full_cov(out)[:, 3:5, 3:5] + r
+    d = np.where(use[:, None], v - out.x[:, 3:5], 0.0)
+    det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        nis = (s[:, 1, 1] * d[:, 0] ** 2 - 2.0 * s[:, 0, 1] * d[:, 0] * d[:, 1] + s[:, 0, 0] * d[:, 1] ** 2) / det
+    return filt.observe_velocity(state, v, r, use & (nis <= cfg.velocity_gate))
 
 
 def _resolve_conflicts(got: NDArray, cost: NDArray, root: NDArray, uid2: NDArray) -> NDArray:

@@ -46,6 +46,15 @@ class TrackerConfig:
     * ``use_turn_rate``: a plot's downlinked turn rate (Mode S BDS 5,0 track-angle rate) is
       handed to the filter after its position update
       (:meth:`tertiary.filters.base.TrackFilter.observe_turn_rate`).
+    * ``use_velocity``: a plot's downlinked ground velocity (Mode S BDS 5,0 ground speed and
+      true track, in the system frame: the fused ``meas_vx_mps``, ``meas_vy_mps``) is handed to
+      the filter after its position update
+      (:meth:`tertiary.filters.base.TrackFilter.observe_velocity`), and to a new track's filter
+      at its first plot. Its covariance: ``velocity_speed_sigma_mps`` along the track;
+      across it the track angle's error ``velocity_track_sigma_deg`` at the ground speed, and the
+      turn the aircraft makes while its register may be ``velocity_refresh_s`` older than the
+      plot (uniform age: (ω v)² τ²/3). A velocity whose NIS against the track's prediction
+      exceeds ``velocity_gate`` (χ², 2 degrees of freedom) is not used.
     * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
@@ -62,6 +71,11 @@ class TrackerConfig:
     use_mode_s: bool = True
     alt_gate_m: float | None = 300.0
     use_turn_rate: bool = True
+    use_velocity: bool = True
+    velocity_speed_sigma_mps: float = 1.0
+    velocity_track_sigma_deg: float = 0.5
+    velocity_refresh_s: float = 1.0
+    velocity_gate: float = 13.82
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
@@ -77,6 +91,10 @@ class TrackerConfig:
             raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
         if self.alt_gate_m is not None and not self.alt_gate_m >= 0:          # NaN fails too
             raise ValueError(f"alt_gate_m must be >= 0 or None, got {self.alt_gate_m}")
+        if not (self.velocity_speed_sigma_mps > 0 and self.velocity_track_sigma_deg > 0
+                and self.velocity_refresh_s >= 0 and self.velocity_gate > 0):       # NaN fails too
+            raise ValueError("velocity_speed_sigma_mps, velocity_track_sigma_deg and velocity_gate must be > 0, "
+                             "velocity_refresh_s >= 0")
         if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
             raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
 

@@ -66,6 +66,7 @@ class Plots:
     fresh: NDArray            # (n,) the fused plot holds a new measurement
     ident: NDArray            # (n,) the plot's Mode S address as an integer (−1: none)
     omega: NDArray            # (n,) the downlinked turn rate, rad/s counter-clockwise (NaN: none)
+    vm: NDArray               # (n, 2) the downlinked ground velocity at the measurement's time (NaN: none)
     keys: NDArray
     classes: NDArray          # σ classes present
     rmax_x: NDArray           # largest x variance of each present class
@@ -120,6 +121,7 @@ class PlotIndex:
         self.age, self.fresh = age[order], fresh[order]
         self.ident = mode_s_ident(f)[order]
         self.omega = downlinked_turn_rate(f)[order]
+        self.vm = np.ascontiguousarray(downlinked_velocity(f)[order])
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -138,7 +140,8 @@ class PlotIndex:
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
-                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.keys[lo:hi], self.seg_cls[s0:s1],
+                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.vm[lo:hi], self.keys[lo:hi],
+                      self.seg_cls[s0:s1],
                       self.seg_rmax_x[s0:s1])
 
 
@@ -169,6 +172,28 @@ def downlinked_turn_rate(f: pl.DataFrame) -> NDArray:
     if TURN_RATE_COLUMN not in f.columns:
         return np.full(f.height, np.nan)
     return -np.radians(f[TURN_RATE_COLUMN].cast(pl.Float64).fill_null(np.nan).to_numpy())
+
+
+def downlinked_velocity(f: pl.DataFrame) -> NDArray:
+    """(n, 2): each fused row's downlinked ground velocity in the system frame (``meas_vx_mps``,
+    ``meas_vy_mps``; NaN where the row has none)."""
+    cols = ("meas_vx_mps", "meas_vy_mps")
+    if not all(c in f.columns for c in cols):
+        return np.full((f.height, 2), np.nan)
+    return np.column_stack([f[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in cols])
+
+
+def velocity_covariance(v: NDArray, omega: NDArray, cfg: TrackerConfig) -> NDArray:
+    """(n, 2, 2) covariance of downlinked ground velocities ``v`` (n, 2) with turn rates ``omega``
+    (n,) rad/s (NaN: none, counted as straight): σ_s² along the track, (s σ_χ)² + (ω s τ)²/3
+    across it (s the speed; :class:`TrackerConfig` ``velocity_*``)."""
+    s = np.hypot(v[:, 0], v[:, 1])
+    u = np.where(s[:, None] > 0, v / np.where(s > 0, s, 1.0)[:, None], np.array([1.0, 0.0]))
+    turn = np.nan_to_num(omega) * s * cfg.velocity_refresh_s
+    cross = (s * np.radians(cfg.velocity_track_sigma_deg)) ** 2 + turn ** 2 / 3.0
+    along = cfg.velocity_speed_sigma_mps ** 2
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    return along * u[:, :, None] * u[:, None, :] + cross[:, None, None] * n[:, :, None] * n[:, None, :]
 
 
 def likelihood_cost(d: NDArray, s: NDArray) -> NDArray:
