@@ -3,8 +3,10 @@ whole import (decode + de-duplication + time + values + flags), on one machine.
 
 Input: N distinct CAT048 records of a typical Mode S plot layout (010, 140, 020, 040, 070, 090,
 220, 240, 161, 200, 170; 32 bytes), packed 40 per data block, every block sent on two redundant
-lines (so the import de-duplicates N of 2N). The records are laid out with numpy (byte positions
-of that fixed layout) and a sample of them is checked against libasterix before timing.
+lines (so the import de-duplicates N of 2N). ``--mb K`` adds I048/250 with K Comm-B registers
+(BDS 4,0, 5,0, 6,0 in that order, random MB data; 33 + 8·K bytes), the enhanced-surveillance
+layout. The records are laid out with numpy (byte positions of that fixed layout) and a sample
+of them is checked against libasterix before timing.
 
 CAT001 (plots and tracks, with a CAT002 north marker per 40 blocks), CAT002, CAT004 (STCA),
 CAT020 (MLAT) and CAT021 of an ADS-B ground station (a sites entry of kind adsb: reports, key
@@ -15,8 +17,10 @@ de-duplication, time, values, rejects; CAT002: antenna timing; CAT004: alert epi
 per category, with the 1-minute load average at its start.
 
     PYTHONPATH=. python benchmarks/bench_asterix.py [--records 1000000] [--only-new] [--cats 1,2,4,20,21]
+    PYTHONPATH=. python benchmarks/bench_asterix.py --mb 3 [--records 1000000]
 
-Writes benchmarks/results/bench_asterix.json (``--only-new`` keeps its CAT048/CAT021 entries).
+Writes benchmarks/results/bench_asterix.json (``--only-new`` keeps its CAT048/CAT021 entries;
+``--mb K`` writes only its CAT048 entries, under keys ending ``_mb``).
 """
 
 from __future__ import annotations
@@ -47,10 +51,12 @@ def icao6(text: str) -> int:
     return v
 
 
-def records(n: int, seed: int = 1) -> np.ndarray:
-    """n CAT048 records (n × 32 bytes): FSPEC FD D6 (010 140 020 040 070 090 | 220 240 161 200 170)."""
+def records(n: int, seed: int = 1, mb: int = 0) -> np.ndarray:
+    """n CAT048 records (n × 32 bytes): FSPEC FD D6 (010 140 020 040 070 090 | 220 240 161 200 170);
+    with ``mb`` > 0 also I048/250 (FRN 10) holding ``mb`` registers (n × (33 + 8·mb) bytes)."""
     rng = np.random.default_rng(seed)
-    rec = np.zeros((n, 32), np.uint8)
+    extra = 1 + 8 * mb if mb else 0
+    rec = np.zeros((n, 32 + extra), np.uint8)
     rec[:, 0], rec[:, 1] = 0xFD, 0xD6          # FRN 1-6 + FX; FRN 8, 9, 11, 13, 14 (1101 0110)
 
     def put(col: int, width: int, values: np.ndarray) -> None:
@@ -67,10 +73,16 @@ def records(n: int, seed: int = 1) -> np.ndarray:
     put(14, 2, rng.integers(0, 1600, n))                            # FL x 4
     put(16, 3, rng.integers(0, 2**24, n))                           # aircraft address
     put(19, 6, np.full(n, icao6("CAF1234")))                        # identification
-    put(25, 2, rng.integers(0, 4096, n))                            # track number
-    put(27, 2, rng.integers(0, 2**14, n))                           # ground speed
-    put(29, 2, rng.integers(0, 65536, n))                           # heading
-    put(31, 1, np.full(n, 2 << 4))                                  # 170: RAD=2
+    if mb:
+        rec[:, 1] |= 0x20                                           # FRN 10: I048/250
+        put(25, 1, np.full(n, mb))                                  # REP
+        for k in range(mb):                                         # 56-bit MB data | BDS1 | BDS2
+            put(26 + 8 * k, 7, rng.integers(0, 2**56, n, dtype=np.int64))
+            put(33 + 8 * k, 1, np.full(n, 0x40 + 0x10 * k))
+    put(25 + extra, 2, rng.integers(0, 4096, n))                    # track number
+    put(27 + extra, 2, rng.integers(0, 2**14, n))                   # ground speed
+    put(29 + extra, 2, rng.integers(0, 65536, n))                   # heading
+    put(31 + extra, 1, np.full(n, 2 << 4))                          # 170: RAD=2
     return rec
 
 
@@ -271,40 +283,27 @@ def _write(result: dict[str, object]) -> None:
     out.write_text(json.dumps(old | result, indent=2) + "\n")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--records", type=int, default=1_000_000)
-    ap.add_argument("--lib-records", type=int, default=2_000)
-    ap.add_argument("--only-new", action="store_true", help="measure CAT001/002/004/020/station CAT021 only")
-    ap.add_argument("--cats", default="1,2,4,20,21", help="with --only-new: the categories (21: station CAT021)")
-    args = ap.parse_args()
-    if args.only_new:
-        cats = tuple(int(c) for c in args.cats.split(","))
-        result = {"machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-                  **_new_rates(args.records // 5, cats)}
-        print(json.dumps(result, indent=2))
-        _write(result)
-        return
-    t = time.perf_counter()
-    codec.lib()
-    import_s = time.perf_counter() - t
-    recs = records(args.records)
+def _cat048_rates(n: int, lib_records: int, mb: int = 0) -> dict[str, object]:
+    """CAT048: compiled decode, libasterix decode and whole import of ``n`` distinct records
+    (each block sent twice), the records with ``mb`` Comm-B registers (:func:`records`)."""
+    import polars as pl
+    from tertiary.io.asterix import dataset
+    from tertiary.io.asterix.sites import sites_toml
+    load = os.getloadavg()[0]
+    recs = records(n, mb=mb)
     blks = blocks(recs)
     check_sample(blks)
     fast048.decode_blocks(blks[:2])                       # compile / load the cache
     t = time.perf_counter()
     raw, _, bad = fast048.decode_blocks(blks)
     fast_s = time.perf_counter() - t
-    assert raw.shape[0] == args.records and not bad
-    lib_blocks = blks[: max(1, args.lib_records // PER_BLOCK)]
+    assert raw.shape[0] == n and not bad
+    lib_blocks = blks[: max(1, lib_records // PER_BLOCK)]
     t = time.perf_counter()
     n_lib = 0
     for b in lib_blocks:
         n_lib += len([codec.ref048(r) for r in codec.parse_block(b)])   # type: ignore[union-attr]
     lib_s = time.perf_counter() - t
-    from tertiary.io.asterix import dataset
-    from tertiary.io.asterix.sites import sites_toml
-    import polars as pl
     with tempfile.TemporaryDirectory() as tmp:
         rec_file = Path(tmp) / "day.ast"
         with rec_file.open("wb") as fh:                  # every block twice: two redundant lines
@@ -319,19 +318,38 @@ def main() -> None:
         t = time.perf_counter()
         res = dataset.import_recordings([rec_file], sites=sites, date="2024-01-01")
         imp_s = time.perf_counter() - t
-    cat021 = _cat021_rate(args.records // 5)
-    result = {
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}",
-        "load_average_1min": round(os.getloadavg()[0], 2), "records": args.records, "record_bytes": int(recs.shape[1]),
-        "libasterix_import_s": round(import_s, 2),
-        "fast_decode_records_per_s": round(args.records / fast_s),
-        "libasterix_decode_records_per_s": round(n_lib / lib_s),
-        "speedup": round((args.records / fast_s) / (n_lib / lib_s), 1),
-        "import_records_in": 2 * args.records, "import_reports_out": res.reports.height,
-        "import_duplicates": res.counts["duplicates"], "import_s": round(imp_s, 2),
-        "import_records_per_s": round(2 * args.records / imp_s),
-        **cat021, **_new_rates(args.records // 5),
-    }
+    return {"load_average_1min": round(load, 2), "records": n, "record_bytes": int(recs.shape[1]),
+            "fast_decode_records_per_s": round(n / fast_s), "libasterix_decode_records_per_s": round(n_lib / lib_s),
+            "speedup": round((n / fast_s) / (n_lib / lib_s), 1),
+            "import_records_in": 2 * n, "import_reports_out": res.reports.height,
+            "import_duplicates": res.counts["duplicates"], "import_s": round(imp_s, 2),
+            "import_records_per_s": round(2 * n / imp_s)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--records", type=int, default=1_000_000)
+    ap.add_argument("--lib-records", type=int, default=2_000)
+    ap.add_argument("--only-new", action="store_true", help="measure CAT001/002/004/020/station CAT021 only")
+    ap.add_argument("--cats", default="1,2,4,20,21", help="with --only-new: the categories (21: station CAT021)")
+    ap.add_argument("--mb", type=int, default=0, choices=range(4),
+                    help="measure CAT048 only, its records carrying I048/250 with this many registers")
+    args = ap.parse_args()
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    if args.only_new:
+        cats = tuple(int(c) for c in args.cats.split(","))
+        result = {"machine": machine, **_new_rates(args.records // 5, cats)}
+    elif args.mb:
+        rates = _cat048_rates(args.records, args.lib_records, args.mb)
+        result = {"machine": machine, "mb_registers": args.mb, **{f"{k}_mb": v for k, v in rates.items()}}
+    else:
+        t = time.perf_counter()
+        codec.lib()
+        import_s = time.perf_counter() - t
+        rates = _cat048_rates(args.records, args.lib_records)
+        cat021 = _cat021_rate(args.records // 5)
+        result = {"machine": machine, **rates, "libasterix_import_s": round(import_s, 2), **cat021,
+                  **_new_rates(args.records // 5)}
     print(json.dumps(result, indent=2))
     _write(result)
 

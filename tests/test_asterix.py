@@ -183,6 +183,14 @@ def test_simulated_round_trip_reports(simulated) -> None:
     assert alt <= 25 * 0.3048 / 2 + 1e-9                                           # 1/4 FL
     for c in ("mode_s", "mode_3a", "callsign"):
         assert (m[c].fill_null("") == m[f"{c}_b"].fill_null("")).all(), c
+    # the simulator's EHS values are on the BDS 4,0/5,0/6,0 grids: I048/250 returns them (true
+    # track in [0, 360) where the simulator says [-180, 180))
+    ehs = ("selected_alt_m", "ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_roll_deg", "ehs_vrate_mps")
+    for c in ehs:
+        assert m[c].is_not_null().sum() > 100 and (m[c].is_null() == m[f"{c}_b"].is_null()).all(), c
+        d = (m[f"{c}_b"] - m[c]).drop_nulls()
+        d = ((d + 180) % 360 - 180) if c == "ehs_track_deg" else d
+        assert d.abs().max() < 1e-9, c
     assert res.radars.sort("radar_id")["scan_period_s"].to_list() == ds.radars.sort("radar_id")["scan_period_s"].to_list()
 
 

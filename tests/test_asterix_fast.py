@@ -115,6 +115,9 @@ EDGE = [
     _blk(bytes.fromhex("010104" "40" "03" + "11" * 12)),   # I048/120 RDS count beyond the data
     _blk(bytes.fromhex("0120" "02" + "11" * 16)),    # I048/250, 2 repetitions
     _blk(bytes.fromhex("0120" "03" + "11" * 16)),    # I048/250 count beyond the data
+    # I048/250 BDS 4,0 twice (the first is kept), 6,0, 5,1 (not kept), 5,0
+    _blk(bytes.fromhex("0120" "05" + "11" * 7 + "40" + "22" * 7 + "40" + "33" * 7 + "60" + "44" * 7 + "51"
+                       + "55" * 7 + "50")),
     _blk(bytes.fromhex("010140" "0302")),            # I048/030 FX chain
     _blk(bytes.fromhex("010140" "0303")),            # I048/030 FX chain cut
     _blk(bytes.fromhex("0102" "8181")),              # I048/170 with FX set in its last octet

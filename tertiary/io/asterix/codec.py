@@ -118,7 +118,13 @@ def ref048(rec: Any) -> dict[str, int]:
         "gs": g(sub_uint(rec, "200", "GSP")), "hdg": g(sub_uint(rec, "200", "HDG")),
         "i170a": -1 if i170 is None else i170.variation.unparse().to_bytes()[0],
         "i170b": -1 if tre is None else i170.variation.unparse().to_bytes()[1],
+        "mb40": -1, "mb50": -1, "mb60": -1,
     }
+    i250 = rec.get_item("250")
+    for reg in [] if i250 is None else i250.variation.get_list():    # the first register of each kind
+        key = f"mb{reg.get_item('BDS1').as_uint():x}{reg.get_item('BDS2').as_uint():x}"
+        if row.get(key) == -1:
+            row[key] = reg.get_item("MBDATA").as_uint()
     return row
 
 

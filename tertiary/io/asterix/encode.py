@@ -6,7 +6,9 @@ CAT062 system tracks; alerts as CAT004.
 Values are rounded to the item's resolution by libasterix (I048/040: 1/256 NM, 360/2¹⁶ °;
 I048/140, I020/140, I021/071: 1/128 s; I048/090, I020/090, I021/145: 1/4 FL; I020/041: 180/2²⁵ °;
 I020/042: 0.5 m; I020/500: 0.25 m; I021/131: 180/2³⁰ °). A value outside an item's range would
-wrap silently in the bit field, so it is refused here with the rows named.
+wrap silently in the bit field, so it is refused here with the rows named; the Comm-B registers
+of I048/250 are the exception: their fields saturate at their limits, as Doc 9871 has an
+aircraft send a parameter beyond a field's range (:mod:`tertiary.io.asterix.commb`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 import polars as pl
 
 from tertiary.core import geo
-from tertiary.io.asterix import codec
+from tertiary.io.asterix import codec, commb
 from tertiary.io.asterix.sites import sites_toml
 from tertiary.core.units import FT
 from tertiary.core.errors import DataError
@@ -49,7 +51,10 @@ def sac_sic(radar_ids: pl.Series) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cat048(reports: pl.DataFrame) -> list[object]:
-    """CAT048 records of ``reports`` (one run), in time order."""
+    """CAT048 records of ``reports`` (one run), in time order. I048/250 carries the BDS 4,0
+    (``selected_alt_m``), 5,0 (``ehs_roll_deg``, ``ehs_track_deg``, ``ehs_gs_mps``,
+    ``ehs_track_rate_dps``) and 6,0 (``ehs_vrate_mps``, as the inertial vertical velocity)
+    registers of a row that has any of their columns (:func:`tertiary.io.asterix.commb.registers`)."""
     s = codec.spec(48).cv_record
     rep = reports.sort("time")
     rng_nm = rep["range_m"].to_numpy() / codec.NM
@@ -63,6 +68,7 @@ def cat048(reports: pl.DataFrame) -> list[object]:
     _check(~np.isfinite(fl) | ((fl >= -12) & (fl < 1500)), "altitude outside FL -12..1500 (I048/090)", "reports")
     get = lambda c: rep[c].to_list() if c in rep.columns else [None] * rep.height  # noqa: E731
     az = np.mod(rep["azimuth_deg"].to_numpy(), 360.0)
+    mb = commb.registers({c: _floats(rep, c) for c in commb.COLUMNS}, rep.height)
     out = []
     for i, (m3a, ms, cs) in enumerate(zip(get("mode_3a"), get("mode_s"), get("callsign"))):
         items: dict[str, object] = {
@@ -79,6 +85,9 @@ def cat048(reports: pl.DataFrame) -> list[object]:
             items["220"] = int(ms, 16)
         if cs:
             items["240"] = str(cs)[:8].ljust(8)
+        regs = [(("MBDATA", int(v[i])), ("BDS1", bds >> 4), ("BDS2", bds & 15)) for bds, v in mb.items() if v[i] >= 0]
+        if regs:
+            items["250"] = regs
         out.append(s.create(items))
     return out
 

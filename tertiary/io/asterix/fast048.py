@@ -42,10 +42,13 @@ for _i, (_n, _k, _s) in enumerate(LAYOUT):
     if _k == COMPOUND:
         _SUB[_i] = _s
 
-#: columns of the raw field matrix (value -1 where the item is absent)
+#: columns of the raw field matrix (value -1 where the item is absent); ``mb40``, ``mb50``,
+#: ``mb60``: the 56-bit MB data of the first I048/250 register whose BDS1/BDS2 nibbles say 4,0,
+#: 5,0, 6,0 (:mod:`tertiary.io.asterix.commb` reads them)
 FIELDS = ("sac", "sic", "tod", "i020", "rho", "theta", "i070", "i090", "i220", "i240", "i161",
-          "i042", "gs", "hdg", "i170a", "i170b", "offset", "length", "hash")
+          "i042", "gs", "hdg", "i170a", "i170b", "offset", "length", "hash", "mb40", "mb50", "mb60")
 _F = {name: i for i, name in enumerate(FIELDS)}
+_MB_COL = _F["mb40"]            # mb50, mb60 follow it
 
 ERRORS = {1: "record truncated in FSPEC", 2: "FSPEC longer than 4 octets", 3: "item truncated",
           4: "extended item: FX set in its last octet", 5: "compound item: bad primary subfield",
@@ -189,6 +192,14 @@ def _extract(buf, p, frn, row):  # noqa: ANN001, ANN202 - numba kernel
     elif frn == 13:
         row[14] = buf[p]
         row[15] = buf[p + 1] if buf[p] & 1 else -1
+    elif frn == 9:              # I048/250: REP, then per register MB data (7 octets) | BDS1 BDS2
+        for k in range(buf[p]):
+            q = p + 1 + 8 * k
+            bds = buf[q + 7]
+            if bds == 0x40 or bds == 0x50 or bds == 0x60:
+                j = _MB_COL + (bds >> 4) - 4
+                if row[j] < 0:
+                    row[j] = _uint(buf, q, 7)
 
 
 @numba.njit(cache=True)

@@ -3,7 +3,8 @@
 * CAT048 → ``reports`` (compiled decoder :mod:`tertiary.io.asterix.fast048`, checked against
   libasterix); range ρ = RHO · 1/256 NM, azimuth θ = THETA · 360/2¹⁶ ° (I048/040), flight level
   FL · 1/4 → ``altitude_m`` = FL · 100 ft (I048/090, pressure altitude), I048/161 → local track,
-  I048/220, /240, /070, /200, /170, /020 kept.
+  I048/220, /240, /070, /200, /170, /020 kept; the I048/250 Comm-B registers the radar names BDS
+  4,0, 5,0, 6,0 → ``selected_alt_m`` and the EHS columns (:mod:`tertiary.io.asterix.commb`).
 * CAT034 → antenna timing per radar (scan period from I034/041, else north-marker intervals,
   else the slope of sector crossings; north-crossing instants).
 * CAT021 → ``truth`` (ADS-B reference; points below the reference's declared quality, I021/090
@@ -36,7 +37,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
-from tertiary.io.asterix import capture, codec, fast048, fastcats, fastwalk
+from tertiary.io.asterix import capture, codec, commb, fast048, fastcats, fastwalk
 from tertiary.core.units import FT
 from tertiary.core.errors import DataError, OptionError
 from tertiary.contract import TABLES
@@ -317,7 +318,15 @@ def cat048_values(raw: pl.DataFrame) -> pl.DataFrame:
         "heading_deg": pl.Series(np.where(g["hdg"] >= 0, g["hdg"] * (360.0 / 65536.0), np.nan)).fill_nan(None),
         "detection_type": pl.Series(np.where(g["i020"] >= 0, g["i020"] >> 5, -1)).cast(pl.Int8).replace(-1, None),
         **_track_status(g["i170a"], g["i170b"]),
+        **_enhanced_surveillance(raw),
     })
+
+
+def _enhanced_surveillance(raw: pl.DataFrame) -> dict[str, pl.Series]:
+    """I048/250 BDS 4,0, 5,0, 6,0 registers → ``selected_alt_m`` and the EHS columns
+    (:mod:`tertiary.io.asterix.commb`); null where the register or the field's status is absent."""
+    cols = commb.decode(*(raw[c].to_numpy() for c in ("mb40", "mb50", "mb60")))
+    return {name: pl.Series(name, v, pl.Float64).fill_nan(None) for name, v in cols.items()}
 
 
 def _track_status(a: NDArray[np.int64], b: NDArray[np.int64]) -> dict[str, pl.Series]:
@@ -398,10 +407,20 @@ def build_reports(raw: pl.DataFrame, sites: pl.DataFrame | None, day0: float | N
         "flight_level", "ground_speed_mps", "heading_deg", "detection_type",
         "tentative", "doubtful", "manoeuvre", "climb_mode", "track_end", "ghost",
         pl.col("sac").cast(pl.UInt8), pl.col("sic").cast(pl.UInt8),
-        "out_of_order", "stale", "latency_s",
+        "out_of_order", "stale", "latency_s", *commb.COLUMNS,
     )
+    counts |= _register_counts(good)
     latency = _latency(work)
     return reports, _raw_rejects(bad, "import"), latency, counts
+
+
+def _register_counts(work: pl.DataFrame) -> dict[str, int]:
+    """Reports carrying each Comm-B register (``cat048_bds40`` …) and the fields of those
+    registers with status 0 but value bits set (``cat048_mb_status_conflicts``: left null)."""
+    mb = {bds: work[f"mb{bds:x}"].to_numpy() for bds in commb.LAYOUT}
+    conflicts = sum(int(commb.status_conflicts(v, bds).sum()) for bds, v in mb.items())
+    return {**{f"cat048_bds{bds:x}": int((v >= 0).sum()) for bds, v in mb.items()},
+            "cat048_mb_status_conflicts": conflicts}
 
 
 def _latency(work: pl.DataFrame) -> pl.DataFrame:
