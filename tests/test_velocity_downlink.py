@@ -24,6 +24,7 @@ from tertiary.filters.imm import imm_velocity_update
 from tertiary.simulate.ehs import ehs_truth
 from tertiary.simulate.trajectory import Trajectories
 from tertiary.stages.fusion.measurement import downlinked_velocity, ehs_measurement
+from tertiary.stages.tracking.altitude import AltState, update_rate
 from tertiary.stages.tracking.config import TrackerConfig
 from tertiary.stages.tracking.gating import velocity_covariance
 from tertiary.stages.tracking.tracker import track_methods
@@ -85,7 +86,8 @@ def test_the_plot_velocity_is_the_register_turned_into_the_system_frame():
     gs, track = rng.uniform(60.0, 280.0, 50), rng.uniform(-180.0, 180.0, 50)
     z = np.stack(pm.geodetic2enu(lat, lon, 9000.0, SYSTEM.lat_deg, SYSTEM.lon_deg, SYSTEM.alt_m), axis=-1)
     gs[3], track[4], z[5] = np.nan, np.nan, np.nan
-    reports = pl.DataFrame({"ehs_gs_mps": gs, "ehs_track_deg": track, "ehs_track_rate_dps": np.full(50, 1.5)})
+    reports = pl.DataFrame({"ehs_gs_mps": gs, "ehs_track_deg": track, "ehs_track_rate_dps": np.full(50, 1.5),
+                            "ehs_vrate_mps": np.full(50, -4.5)})
     got = downlinked_velocity(reports, z, SYSTEM)
     ve, vn = gs * np.sin(np.radians(track)), gs * np.cos(np.radians(track))
     want = np.array(pm.uvw2enu(*pm.enu2uvw(ve, vn, 0.0, lat, lon), SYSTEM.lat_deg, SYSTEM.lon_deg))[:2].T
@@ -94,18 +96,20 @@ def test_the_plot_velocity_is_the_register_turned_into_the_system_frame():
     np.testing.assert_allclose(got[ok, :2], want[ok], atol=1e-6)
     assert np.isnan(got[~ok, :2]).all()
     np.testing.assert_allclose(got[:, 2], -np.radians(1.5))           # clockwise °/s → ω rad/s
+    np.testing.assert_allclose(got[:, 3], -4.5)                       # along the local vertical: as sent
 
 
 def test_the_measurement_takes_the_newest_plot_with_a_velocity_turned_to_the_measurement_time():
-    # group 0: plots aged 1.0 (no velocity), 2.5 and 3.0 s; group 1: none has one
-    ehs = np.array([[np.nan, np.nan, np.nan], [100.0, 0.0, 0.02], [0.0, 50.0, 0.0],
-                    [np.nan, np.nan, 0.01]])
-    age = np.array([1.0, 2.5, 3.0, 0.5])
+    # group 0: plots aged 1.0 (vertical rate only), 2.5 and 3.0 s; group 1: no velocity, a rate
+    ehs = np.array([[np.nan, np.nan, np.nan, -3.0], [100.0, 0.0, 0.02, np.nan], [0.0, 50.0, 0.0, 7.0],
+                    [np.nan, np.nan, 0.01, 2.0], [np.nan, np.nan, np.nan, 4.0]])
+    age = np.array([1.0, 2.5, 3.0, 1.5, 0.5])
     a0 = np.array([1.0, 0.5])
     got = ehs_measurement(ehs, age, a0, np.array([0, 3]))
-    # by hand: the 2.5 s plot, turned by 0.02 rad/s over 1.5 s counter-clockwise
-    np.testing.assert_allclose(got[0], [100.0 * np.cos(0.03), 100.0 * np.sin(0.03)], atol=1e-12)
-    assert np.isnan(got[1]).all()
+    # by hand: the 2.5 s plot, turned by 0.02 rad/s over 1.5 s counter-clockwise; the vertical
+    # rate of the 1.0 s plot (the newest carrying one)
+    np.testing.assert_allclose(got[0], [100.0 * np.cos(0.03), 100.0 * np.sin(0.03), -3.0], atol=1e-12)
+    assert np.isnan(got[1, :2]).all() and got[1, 2] == 4.0
 
 
 # --------------------------------------------------------------------------- the filter update
@@ -154,7 +158,7 @@ def test_the_velocity_covariance_is_along_and_across_the_track():
 def _fused_straight(velocity: str = "true", outlier_at: int | None = None, seed: int = 7):
     """A ``fused`` frame of 30 aircraft flying straight at 150–250 m/s, plots σ 80 m per axis
     every DT, and each row's downlinked velocity: the truth + 0.7 m/s noise ("true"), its
-    opposite ("flipped") or none ("none"); ``outlier_at``: one scan's register 60 m/s off."""
+    opposite ("flipped") or none ("none"); ``outlier_at``: one scan's register 150 m/s off (no aircraft changes its velocity so fast)."""
     rng = np.random.default_rng(seed)
     b, n = 30, 30
     hdg = rng.uniform(0.0, 2.0 * np.pi, b)
@@ -167,7 +171,7 @@ def _fused_straight(velocity: str = "true", outlier_at: int | None = None, seed:
     if velocity == "flipped":
         vm = -vm
     if outlier_at is not None:
-        vm[:, outlier_at] += np.array([0.0, 60.0])
+        vm[:, outlier_at] += np.array([0.0, 150.0])
     cov = np.zeros(36)
     cov[[0, 7, 14]] = 80.0 ** 2
     cov[[21, 28, 35]] = 400.0
@@ -226,10 +230,84 @@ def test_a_register_far_from_the_tracks_velocity_is_left_out():
 
 
 @pytest.mark.parametrize("kw", [dict(velocity_speed_sigma_mps=0.0), dict(velocity_track_sigma_deg=float("nan")),
-                                dict(velocity_refresh_s=-1.0), dict(velocity_gate=float("nan"))])
+                                dict(velocity_refresh_s=-1.0), dict(velocity_gate=float("nan")),
+                                dict(vertical_rate_sigma_mps=float("nan")), dict(vertical_rate_gate=0.0)])
 def test_the_velocity_parameters_are_checked(kw):
-    with pytest.raises(ValueError, match="velocity"):
+    with pytest.raises(ValueError, match="velocity|vertical_rate"):
         TrackerConfig(**kw)
+
+
+# --------------------------------------------------------------------------- the vertical rate
+
+
+def test_a_rate_update_of_the_altitude_filter_equals_filterpy():
+    rng = np.random.default_rng(9)
+    n = 6
+    h, r = rng.normal(9000.0, 100.0, n), rng.normal(0.0, 5.0, n)
+    a = rng.normal(0.0, 1.0, (n, 2, 2))
+    p = a @ np.swapaxes(a, -1, -2) + np.eye(2)
+    z, var = rng.normal(0.0, 5.0, n), rng.uniform(0.1, 4.0, n)
+    got, nu, sv = update_rate(AltState(h, r, p[:, 0, 0], p[:, 0, 1], p[:, 1, 1]), z, var)
+    for i in range(n):
+        kf = KalmanFilter(dim_x=2, dim_z=1)
+        kf.x, kf.P, kf.H, kf.R = np.array([h[i], r[i]]), p[i].copy(), np.array([[0.0, 1.0]]), np.array([[var[i]]])
+        kf.update(np.array([z[i]]))
+        np.testing.assert_allclose([got.h[i], got.r[i]], kf.x, rtol=1e-12)
+        np.testing.assert_allclose([[got.phh[i], got.phr[i]], [got.phr[i], got.prr[i]]], kf.P, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose([nu[i], sv[i]], [z[i] - r[i], p[i, 1, 1] + var[i]], rtol=1e-12)
+
+
+def _fused_climb(rate: str = "true", outlier_at: int | None = None, seed: int = 11):
+    """``_fused_straight`` aircraft that climb at 12 m/s from scan 15, with each plot's vertical
+    channel a height σ 10 m and no rate knowledge (0 ± 30 m/s), and the downlinked vertical
+    rate: truth + 0.3 m/s noise ("true") or none; ``outlier_at``: one scan's rate 40 m/s off."""
+    frame, pos, vel = _fused_straight("none", seed=seed)
+    b, n = len(pos), pos.shape[1]
+    rng = np.random.default_rng(seed + 1)
+    k = np.arange(n)
+    true_rate = np.where(k >= 15, 12.0, 0.0)
+    h = 9000.0 + np.r_[0.0, np.cumsum(true_rate[1:] * DT)]
+    h = np.broadcast_to(h, (b, n))
+    cols = {"alt_m": (h + rng.normal(0.0, 10.0, (b, n))).ravel(), "alt_rate_mps": np.zeros(b * n),
+            "alt_var_m2": np.full(b * n, 100.0), "alt_cov_m2ps": np.zeros(b * n),
+            "alt_rate_var_m2ps2": np.full(b * n, 900.0)}
+    if rate != "none":
+        vr = np.broadcast_to(true_rate, (b, n)) + rng.normal(0.0, 0.3, (b, n))
+        if outlier_at is not None:
+            vr = vr.copy()
+            vr[:, outlier_at] += 40.0
+        cols["meas_vrate_mps"] = vr.ravel()
+    return frame.with_columns(pl.Series(c, v) for c, v in cols.items()), true_rate
+
+
+def _rate_rmse(tracks: pl.DataFrame, true_rate: np.ndarray) -> float:
+    """The altitude rate RMSE over the climb's first 6 scans."""
+    t = tracks.with_columns(k=((pl.col("epoch") - T0).dt.total_seconds() / DT).round().cast(pl.Int64))
+    t = t.filter((pl.col("k") >= 15) & (pl.col("k") < 21))
+    return float(np.sqrt(np.mean((t["alt_rate_mps"].to_numpy() - true_rate[t["k"].to_numpy()]) ** 2)))
+
+
+def test_the_tracker_hands_the_downlinked_vertical_rate_to_the_altitude_filter():
+    filters = {"imm_sym": make_filter("imm_sym")}
+    given, true_rate = _fused_climb("true")
+    none, _ = _fused_climb("none")
+    on = _rate_rmse(track_methods(given, filters), true_rate)
+    off = _rate_rmse(track_methods(given, filters, TrackerConfig(use_vertical_rate=False)), true_rate)
+    absent = _rate_rmse(track_methods(none, filters), true_rate)
+    assert off == absent
+    assert on < 0.3 * off, (on, off)
+
+
+def test_a_vertical_rate_far_from_the_tracks_is_left_out():
+    filters = {"imm_sym": make_filter("imm_sym")}
+    bad, _ = _fused_climb("true", outlier_at=10)
+    good, _ = _fused_climb("true")
+    gap = good.with_columns(pl.when(pl.col("epoch") == T0 + timedelta(seconds=10 * DT)).then(None)
+                            .otherwise(pl.col("meas_vrate_mps")).alias("meas_vrate_mps"))
+    cols = ("epoch", "track_id", "alt_m", "alt_rate_mps")
+    assert track_methods(bad, filters).select(cols).equals(track_methods(gap, filters).select(cols))
+    loose = track_methods(bad, filters, TrackerConfig(vertical_rate_gate=1e9)).select(cols)
+    assert not loose.equals(track_methods(gap, filters).select(cols))
 
 
 # --------------------------------------------------------------------------- every filter

@@ -238,14 +238,15 @@ _FUSED = TableSchema(
 #: epoch − ``age_s``: ``meas_x_m``…``meas_z_m`` with its full 3×3 covariance ``meas_cov``
 #: (row-major, null without a fresh plot), ``meas_vx_mps``, ``meas_vy_mps`` the downlinked
 #: ground velocity (Mode S BDS 5,0) of its newest fresh plot carrying one, in the system frame
-#: at that time (null without); ``selected_alt_m`` the selected altitude of the
+#: at that time, ``meas_vrate_mps`` the downlinked vertical rate (BDS 6,0) of its newest fresh
+#: plot carrying one (null without); ``selected_alt_m`` the selected altitude of the
 #: target's newest report carrying one (:data:`SELECTED_ALT_COLUMN`). Not in ``_FUSED.optional``:
 #: the centralised stage (which emits every ``fused`` column) produces only ``tentative`` of them.
 FUSED_EXTRA: dict[str, pl.DataType] = {
     "n_fresh": U32, "age_s": F64, "tentative": BOOL, "mode_s": STR, SELECTED_ALT_COLUMN: F64,
     TURN_RATE_COLUMN: F64, CLEARED_ALT_COLUMN: F64,
     **_floats("meas_x_m", "meas_y_m", "meas_z_m"), "meas_cov": pl.Array(pl.Float64, 9),
-    **_floats("meas_vx_mps", "meas_vy_mps"),
+    **_floats("meas_vx_mps", "meas_vy_mps", "meas_vrate_mps"),
 }
 
 _CLUSTERS = TableSchema(

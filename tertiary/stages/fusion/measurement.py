@@ -26,9 +26,9 @@ __all__ = ["EHS_PLOT_COLUMNS", "PLOT_COLUMNS", "downlinked_velocity", "ehs_measu
            "measurements", "plot_measurement"]
 
 PLOT_COLUMNS = ["plot_x_m", "plot_y_m", "plot_z_m", "plot_cov"]
-#: a measured plot's downlinked ground velocity in the system frame (east, north; m/s) and its
-#: downlinked turn rate (rad/s, counter-clockwise), NaN without them
-EHS_PLOT_COLUMNS = ["plot_vx_mps", "plot_vy_mps", "plot_rate_rps"]
+#: a measured plot's downlinked ground velocity in the system frame (east, north; m/s), its
+#: downlinked turn rate (rad/s, counter-clockwise) and vertical rate (m/s), NaN without them
+EHS_PLOT_COLUMNS = ["plot_vx_mps", "plot_vy_mps", "plot_rate_rps", "plot_vrate_mps"]
 
 
 
@@ -58,16 +58,18 @@ def _column(frame: pl.DataFrame, name: str) -> F:
 
 
 def downlinked_velocity(reports: pl.DataFrame, z: F, origin: geo.LocalFrame) -> F:
-    """(n, 3): each report's downlinked ground velocity (Mode S BDS 5,0 ground speed
+    """(n, 4): each report's downlinked ground velocity (Mode S BDS 5,0 ground speed
     ``ehs_gs_mps`` along the true track ``ehs_track_deg``) as system-frame east and north
-    components, and its track-angle rate ``ehs_track_rate_dps`` as ω (rad/s, counter-clockwise:
-    the register's rate is clockwise positive). The track is over true north at the aircraft
+    components, its track-angle rate ``ehs_track_rate_dps`` as ω (rad/s, counter-clockwise:
+    the register's rate is clockwise positive) and its vertical rate ``ehs_vrate_mps`` (BDS 6,0,
+    along the local vertical: the rate of the altitude channel). The track is over true north at the aircraft
     (the plot ``z``), so the velocity is turned into the system frame's axes there
     (:func:`tertiary.core.geo.local_vector_to_frame`: the meridian convergence, several degrees
     at a national system's edge). NaN where the report or its plot has none."""
     gs, track = _column(reports, "ehs_gs_mps"), np.radians(_column(reports, "ehs_track_deg"))
-    out = np.full((len(gs), 3), np.nan)
+    out = np.full((len(gs), 4), np.nan)
     out[:, 2] = -np.radians(_column(reports, "ehs_track_rate_dps"))
+    out[:, 3] = _column(reports, "ehs_vrate_mps")
     ok = np.isfinite(gs) & np.isfinite(track) & np.isfinite(z).all(axis=1)
     if ok.any():
         lat, lon, _ = origin.to_geodetic(z[ok, 0], z[ok, 1], z[ok, 2])
@@ -138,24 +140,30 @@ def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tup
     return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3), ehs
 
 
+def _newest(has: B, age: F, grp: Ix) -> tuple[Ix, Ix]:
+    """The row of each group's newest plot among ``has`` (smallest age) and its group."""
+    cand = np.flatnonzero(has & np.isfinite(age))
+    cand = cand[np.lexsort((age[cand], grp[cand]))]
+    first = cand[np.r_[True, grp[cand][1:] != grp[cand][:-1]]] if len(cand) else cand
+    return first, grp[first]
+
+
 def ehs_measurement(ehs: F, age: F, a0: F, starts: Ix) -> F:
-    """The downlinked ground velocity of each group (G, 2) at its measurement's age ``a0`` (G,):
-    that of the group's newest plot carrying one (rows ``ehs`` (n, 3) of
-    :data:`EHS_PLOT_COLUMNS`, ages ``age`` (n,)), turned by its own downlinked rate over
-    d = its age − a0 ≥ 0 (the aircraft turns at that rate meanwhile; without a rate it is not
-    turned). One plot, not an average: every radar reads the same register, so the values of
-    two radars share the aircraft's navigation error. NaN where no plot of the group has one."""
+    """The downlinked ground velocity and vertical rate of each group (G, 3) at its measurement's
+    age ``a0`` (G,). The velocity is that of the group's newest plot carrying one (rows ``ehs``
+    (n, 4) of :data:`EHS_PLOT_COLUMNS`, ages ``age`` (n,)), turned by its own downlinked rate
+    over d = its age − a0 ≥ 0 (the aircraft turns at that rate meanwhile; without a rate it is
+    not turned); the vertical rate that of the newest plot carrying one (a separate register).
+    One plot, not an average: every radar reads the same register, so the values of two radars
+    share the aircraft's navigation error. NaN where no plot of the group has one."""
     n, g = len(ehs), len(starts)
-    out = np.full((g, 2), np.nan)
-    has = np.isfinite(ehs[:, :2]).all(axis=1) & np.isfinite(age)
-    if n == 0 or not has.any():
+    out = np.full((g, 3), np.nan)
+    if n == 0:
         return out
     grp = np.repeat(np.arange(g), np.diff(np.r_[starts, n]))
-    # the newest carrying plot per group: order by (group, age) and take each group's first
-    cand = np.flatnonzero(has)
-    cand = cand[np.lexsort((age[cand], grp[cand]))]
-    first = cand[np.r_[True, grp[cand][1:] != grp[cand][:-1]]]
-    gi = grp[first]
+    first, gi = _newest(np.isfinite(ehs[:, 3]), age, grp)
+    out[gi, 2] = ehs[first, 3]
+    first, gi = _newest(np.isfinite(ehs[:, :2]).all(axis=1), age, grp)
     d = np.maximum(age[first] - a0[gi], 0.0)
     turn = np.nan_to_num(ehs[first, 2]) * np.where(np.isfinite(a0[gi]), d, 0.0)
     c, s = np.cos(turn), np.sin(turn)
@@ -193,7 +201,7 @@ def measurements(rows: pl.DataFrame, methods: list[str], a: dict[str, NDArray], 
         newest = np.fmin.reduceat(age, lay.starts) if n else np.zeros(0)
     out = {"n_fresh": np.repeat(n_fresh[None], m, axis=0), "age_s": np.repeat(newest[None], m, axis=0),
            "meas": np.full((m, g, 3), np.nan), "meas_cov": np.full((m, g, 9), np.nan),
-           "meas_v": np.full((m, g, 2), np.nan)}
+           "meas_v": np.full((m, g, 3), np.nan)}
     idx = np.flatnonzero(fresh)
     got = _fresh_plots(rows, idx, plots) if len(idx) and "age_s" in rows.columns else None
     if got is None:

@@ -262,7 +262,7 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
     # states and covariances of all methods in one go (they are stacked in method order)
     xs = xs.reshape(-1, 6)
     mz = meas["meas"].reshape(-1, 3)
-    mv = meas["meas_v"].reshape(-1, 2)
+    mv = meas["meas_v"].reshape(-1, 3)
     return keys.with_columns(
         *(pl.Series(c, xs[:, j]) for j, c in enumerate(STATE)),
         pl.Series("cov", covs.reshape(-1, 36)),
@@ -271,6 +271,7 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
         pl.Series("age_s", meas["age_s"].reshape(-1)).fill_nan(None),
         *(pl.Series(c, mz[:, j]).fill_nan(None) for j, c in enumerate(("meas_x_m", "meas_y_m", "meas_z_m"))),
         pl.Series("meas_cov", meas["meas_cov"].reshape(-1, 9), dtype=pl.Array(pl.Float64, 9)),
-        *(pl.Series(c, mv[:, j]).fill_nan(None) for j, c in enumerate(("meas_vx_mps", "meas_vy_mps"))),
+        *(pl.Series(c, mv[:, j]).fill_nan(None) for j, c in enumerate(("meas_vx_mps", "meas_vy_mps",
+                                                                      "meas_vrate_mps"))),
     ).with_columns(pl.when(pl.col("meas_x_m").is_not_null()).then(pl.col("meas_cov")).alias("meas_cov")
                    ).select(list(out_schema)).cast(out_schema), new_state

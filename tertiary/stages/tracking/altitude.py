@@ -207,6 +207,16 @@ def update(s: AltState, z: F64, var: F64) -> tuple[AltState, F64, F64]:
     return out, nu, sv
 
 
+def update_rate(s: AltState, z: F64, var: F64) -> tuple[AltState, F64, F64]:
+    """Kalman update with a measurement z of the rate ḣ alone (H = [0, 1]) of variance ``var``;
+    returns (posterior, ν, S)."""
+    nu = z - s.r
+    sv = s.prr + var
+    kh, kr = s.phr / sv, s.prr / sv
+    out = AltState(s.h + kh * nu, s.r + kr * nu, s.phh - kh * s.phr, s.phr - kh * s.prr, s.prr - kr * s.prr)
+    return out, nu, sv
+
+
 def update2(s: AltState, z: AltState) -> AltState:
     """Kalman update with a measurement of both h and ḣ (H = I), R = the covariance of ``z``:
     K = P⁻(P⁻ + R)⁻¹, x⁺ = x⁻ + K(z − x⁻), P⁺ = (I − K)P⁻ (2×2 closed form)."""

@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 
 from tertiary.core.units import STATE, US
 from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltState, predict as alt_predict, update2 as alt_update
+from tertiary.stages.tracking.altitude import update_rate as alt_update_rate
 from tertiary.stages.tracking.config import TRACK_COLUMNS, TrackerConfig
 from tertiary.filters.base import State, TrackFilter, concat, full_cov, size, take
 from tertiary.stages.tracking.gating import (PlotIndex, Plots, altitude_ok, assign, likelihood_cost, tracking_pairs,
@@ -97,6 +98,27 @@ def _alt_step(f: NDArray, t: float, plot_alt: NDArray, mask: NDArray, q: float) 
         p, u, m = getattr(pred, name), getattr(upd, name), getattr(meas, name)
         cols.append(np.where(have_m, np.where(have_t, u, m), p))
     return np.column_stack(cols) if len(f) else np.zeros((0, 5))
+
+
+def _alt_rate_step(alt: NDArray, rate: NDArray, mask: NDArray, cfg: TrackerConfig, dt: NDArray) -> NDArray:
+    """The (n, 5) altitude filter block ``alt`` updated with the downlinked vertical rates
+    ``rate`` where ``mask``, the filter has an estimate and the NIS is within the gate, its
+    variance grown by the vertical acceleration allowed over the ``dt`` since the last update.
+    A rate outside the plain gate but inside the grown one is the onset of a climb or a
+    level-off, which the constant-rate filter cannot know: its rate variance takes that
+    allowance before the update, so that the rate follows the register at once."""
+    s = AltState(*(alt[:, i] for i in range(5)))
+    var = np.full(len(alt), cfg.vertical_rate_sigma_mps ** 2)
+    allow = (cfg.vertical_accel_mps2 * np.maximum(dt, 0.0)) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d2 = (rate - s.r) ** 2
+        onset = d2 > cfg.vertical_rate_gate * (s.prr + var)
+        use = mask & np.isfinite(rate) & np.isfinite(s.h) & (d2 <= cfg.vertical_rate_gate * (s.prr + var + allow))
+        prior = AltState(s.h, s.r, s.phh, s.phr, np.where(onset, s.prr + allow, s.prr))
+        upd, _, _ = alt_update_rate(prior, rate, var)
+    if not use.any():
+        return alt
+    return np.where(use[:, None], np.column_stack([upd.h, upd.r, upd.phh, upd.phr, upd.prr]), alt)
 
 
 def _alt_at(f: NDArray, t: float, q: float) -> NDArray:
@@ -350,10 +372,12 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
             if cfg.use_turn_rate:
                 su = filt.observe_turn_rate(su, plots.omega[safe], fresh)
             if cfg.use_velocity:
-                su = _observe_velocity(filt, su, plots, safe, fresh, cfg)
+                su = _observe_velocity(filt, su, plots, safe, fresh, cfg, t - age - mu.f[:, _T])
         else:
             su, inn = {}, None
         mu.f[:, _ALT] = _alt_step(mu.f, t, plots.alt[safe], mask, cfg.altitude.q_m2ps3)
+        if cfg.use_vertical_rate:
+            mu.f[:, _ALT] = _alt_rate_step(mu.f[:, _ALT], plots.vr[safe], fresh, cfg, t - mu.f[:, _TA])
         # a track keeps the last Mode S address its plots carried
         got = mask & (plots.ident[safe] >= 0)
         mu.i[:, _IDENT] = np.where(got, plots.ident[safe], mu.i[:, _IDENT])
@@ -415,10 +439,12 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         rn = plots.rm[newp]
         sn = filt.init(plots.zm[newp], rn if filt.full_r else np.einsum("bii->bi", rn)) if len(newp) else {}
         if cfg.use_velocity and len(newp):
-            sn = _observe_velocity(filt, sn, plots, newp, plots.fresh[newp], cfg)
+            sn = _observe_velocity(filt, sn, plots, newp, plots.fresh[newp], cfg, np.zeros(len(newp)))
         mn = _Objects.new(plots.run[newp], t, plots.z[newp], plots.r[newp, 2], plots.uid[newp], plots.alt[newp],
                            plots.ident[newp])
         mn.f[:, _T] = t - plots.age[newp]
+        if cfg.use_vertical_rate and len(newp):
+            mn.f[:, _ALT] = _alt_rate_step(mn.f[:, _ALT], plots.vr[newp], plots.fresh[newp], cfg, np.zeros(len(newp)))
         kept = np.flatnonzero(keep)
         state = _join_states(_take_state(state, idle, len(objs)) if len(idle) else {},
                              _take_state(su, kept, len(idx)) if len(idx) else {}, sn)
@@ -428,10 +454,11 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
 
 
 def _observe_velocity(filt: TrackFilter, state: State, plots: Plots, rows: NDArray, mask: NDArray,
-                      cfg: TrackerConfig) -> State:
+                      cfg: TrackerConfig, dt: NDArray) -> State:
     """``state`` given the downlinked velocities of ``plots`` rows ``rows`` where ``mask``, each
     used only if its NIS against the state's own velocity estimate is within
-    ``cfg.velocity_gate`` (a stale, misread or other aircraft's register is left out)."""
+    ``cfg.velocity_gate`` (a misread or other aircraft's register is left out), the gate's
+    covariance grown by the acceleration allowed over the ``dt`` since the previous update."""
     if type(filt).observe_velocity is TrackFilter.observe_velocity:
         return state
     v = plots.vm[rows]
@@ -440,7 +467,7 @@ def _observe_velocity(filt: TrackFilter, state: State, plots: Plots, rows: NDArr
         return state
     r = velocity_covariance(v, plots.omega[rows], cfg)
     out = filt.output(state)
-    s = full_cov(out)[:, 3:5, 3:5] + r
+    s = full_cov(out)[:, 3:5, 3:5] + r + ((cfg.velocity_accel_mps2 * np.maximum(dt, 0.0)) ** 2)[:, None, None] * np.eye(2)
     d = np.where(use[:, None], v - out.x[:, 3:5], 0.0)
     det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
     with np.errstate(invalid="ignore", divide="ignore"):

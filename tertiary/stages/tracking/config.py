@@ -53,8 +53,17 @@ class TrackerConfig:
       at its first plot. Its covariance: ``velocity_speed_sigma_mps`` along the track;
       across it the track angle's error ``velocity_track_sigma_deg`` at the ground speed, and the
       turn the aircraft makes while its register may be ``velocity_refresh_s`` older than the
-      plot (uniform age: (ω v)² τ²/3). A velocity whose NIS against the track's prediction
-      exceeds ``velocity_gate`` (χ², 2 degrees of freedom) is not used.
+      plot (uniform age: (ω v)² τ²/3). A velocity whose NIS against the track's estimate exceeds
+      ``velocity_gate`` (χ², 2 degrees of freedom) is not used; the gate's covariance adds
+      (a Δt)² per axis, a = ``velocity_accel_mps2`` (a 30° banked turn) over the Δt since the
+      track's previous update, so that a manoeuvre's onset, which the track cannot yet know,
+      is not refused.
+    * ``use_vertical_rate``: a plot's downlinked vertical rate (Mode S BDS 6,0, the fused
+      ``meas_vrate_mps``) updates the altitude filter's rate after the plot's vertical channel,
+      with σ ``vertical_rate_sigma_mps`` (the register's noise and LSB, and the rate's change
+      over the plot's age at a level-off), unless its NIS exceeds ``vertical_rate_gate`` (χ², 1
+      degree of freedom; the gate's variance adds (a Δt)², a = ``vertical_accel_mps2``, for the
+      onset of a climb or a level-off).
     * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
@@ -76,6 +85,11 @@ class TrackerConfig:
     velocity_track_sigma_deg: float = 0.5
     velocity_refresh_s: float = 1.0
     velocity_gate: float = 13.82
+    velocity_accel_mps2: float = 6.0
+    use_vertical_rate: bool = True
+    vertical_rate_sigma_mps: float = 1.0
+    vertical_rate_gate: float = 10.83
+    vertical_accel_mps2: float = 2.0
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
@@ -95,6 +109,10 @@ class TrackerConfig:
                 and self.velocity_refresh_s >= 0 and self.velocity_gate > 0):       # NaN fails too
             raise ValueError("velocity_speed_sigma_mps, velocity_track_sigma_deg and velocity_gate must be > 0, "
                              "velocity_refresh_s >= 0")
+        if not (self.vertical_rate_sigma_mps > 0 and self.vertical_rate_gate > 0 and self.vertical_accel_mps2 >= 0
+                and self.velocity_accel_mps2 >= 0):                                  # NaN fails too
+            raise ValueError("vertical_rate_sigma_mps and vertical_rate_gate must be > 0, vertical_accel_mps2 "
+                             "and velocity_accel_mps2 >= 0")
         if self.confirm_gate_m <= 0 or self.gate_sigma <= 0 or self.gate_min_m < 0:
             raise ValueError("confirm_gate_m and gate_sigma must be > 0, gate_min_m >= 0")
 

@@ -67,6 +67,7 @@ class Plots:
     ident: NDArray            # (n,) the plot's Mode S address as an integer (−1: none)
     omega: NDArray            # (n,) the downlinked turn rate, rad/s counter-clockwise (NaN: none)
     vm: NDArray               # (n, 2) the downlinked ground velocity at the measurement's time (NaN: none)
+    vr: NDArray               # (n,) the downlinked vertical rate (NaN: none)
     keys: NDArray
     classes: NDArray          # σ classes present
     rmax_x: NDArray           # largest x variance of each present class
@@ -122,6 +123,7 @@ class PlotIndex:
         self.ident = mode_s_ident(f)[order]
         self.omega = downlinked_turn_rate(f)[order]
         self.vm = np.ascontiguousarray(downlinked_velocity(f)[order])
+        self.vr = downlinked_vertical_rate(f)[order]
         self.keys = self.cls * _CLASS_SEP + self.run * _RUN_SEP + self.z[:, 0]
         self.epochs, starts = np.unique(epoch_us[order], return_index=True)
         self.bounds = np.r_[starts, len(order)]
@@ -140,7 +142,7 @@ class PlotIndex:
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
-                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.vm[lo:hi], self.keys[lo:hi],
+                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.vm[lo:hi], self.vr[lo:hi], self.keys[lo:hi],
                       self.seg_cls[s0:s1],
                       self.seg_rmax_x[s0:s1])
 
@@ -181,6 +183,13 @@ def downlinked_velocity(f: pl.DataFrame) -> NDArray:
     if not all(c in f.columns for c in cols):
         return np.full((f.height, 2), np.nan)
     return np.column_stack([f[c].cast(pl.Float64).fill_null(np.nan).to_numpy() for c in cols])
+
+
+def downlinked_vertical_rate(f: pl.DataFrame) -> NDArray:
+    """(n,): each fused row's downlinked vertical rate (``meas_vrate_mps``; NaN without)."""
+    if "meas_vrate_mps" not in f.columns:
+        return np.full(f.height, np.nan)
+    return f["meas_vrate_mps"].cast(pl.Float64).fill_null(np.nan).to_numpy()
 
 
 def velocity_covariance(v: NDArray, omega: NDArray, cfg: TrackerConfig) -> NDArray:
