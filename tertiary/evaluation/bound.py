@@ -87,6 +87,16 @@ carries; V = (25 ft)²/12, the finest quantisation's variance, gives it at least
 of any reply (a Gaussian stand-in: a quantised reply has no regular Fisher information; the
 stand-in's is the larger, so the bound stays below).
 
+Downlinked velocity: a Mode S aircraft's ground speed and true track (BDS 5,0), which the
+trackers take as a velocity measurement, carry information the plots do not. At every
+illumination of an aircraft whose reports carry a Mode S address, each radar adds a measurement
+of the velocity, H selecting (v_x, v_y, v_z), with R = Lᵀ diag(R_h, V) L: L the system-to-local
+rotation at the aircraft, R_h σ ``ehs_speed_sigma_mps`` along the truth's track and its speed ×
+``ehs_track_sigma_deg`` across it (the registers' noise; the quantisation is left out, which
+only adds information), V = :data:`VELOCITY_VERTICAL_VAR` (no vertical information), times 1/Pd
+as a plot. Every radar and every illumination counts, even where a radar did not extract the
+register: more information than the data hold keeps the bound below.
+
 What is not in the bound: the Mode C altitude — it feeds the pictures' separate height channel
 (``rmse_height_m``, :mod:`tertiary.stages.tracking.altitude`; a quantised measurement has no
 Fisher information in the regular sense, so no height bound is given), while a picture's
@@ -148,16 +158,25 @@ MLAT_VERTICAL_VAR_M2 = (25.0 * FT) ** 2 / 12.0
 #: half-width (s) of the centred velocity difference that fits the truth's acceleration (model M):
 #: long enough to average out the jitter of ADS-B truth's vertical rate, short beside a manoeuvre
 ACCEL_HALF_WINDOW_S = 10.0
+#: variance ((m/s)²) along the aircraft's vertical of a downlinked ground velocity in the bound:
+#: a horizontal measurement, no vertical information
+VELOCITY_VERTICAL_VAR = 1e10
 
 
 @dataclass(frozen=True)
 class BoundConfig:
     """The bound's model M (module docstring): the half-width of the centred velocity
-    difference that gives the truth's acceleration (``accel_half_window_s``), the prior
+    difference that gives the truth's acceleration (``accel_half_window_s``), whether a Mode S
+    aircraft's downlinked ground velocity counts (``downlinked_velocity``; off: the bound of an
+    estimator of the radar plots alone) and its noise (``ehs_speed_sigma_mps``,
+    ``ehs_track_sigma_deg``: the simulator's register noise, :class:`tertiary.simulate.ehs.EhsConfig`), the prior
     (``p0_sigma_m``, ``v0_sigma_mps``; the acceleration's is the truth's own) and the elevation
     limit used when the scenario does not give one per radar (``max_elevation_deg``)."""
 
     accel_half_window_s: float = ACCEL_HALF_WINDOW_S
+    downlinked_velocity: bool = True
+    ehs_speed_sigma_mps: float = 0.5
+    ehs_track_sigma_deg: float = 0.2
     p0_sigma_m: float = 10_000.0
     v0_sigma_mps: float = 300.0
     max_elevation_deg: float = 90.0
@@ -175,7 +194,10 @@ class BoundConfig:
                 f"truth); process noise per interval = the truth's deviation from the constant-acceleration "
                 f"prediction (rank one, sign unknown): none on straight legs and steady climbs, each "
                 f"manoeuvre's onset known, not its magnitude; prior σ_p {self.p0_sigma_m:g} m, "
-                f"σ_v {self.v0_sigma_mps:g} m/s; radar plots only (nominal σ, Pd, scan schedule)")
+                f"σ_v {self.v0_sigma_mps:g} m/s; radar plots (nominal σ, Pd, scan schedule)"
+                + (f" and, for a Mode S aircraft, a downlinked ground velocity at every illumination "
+                   f"(σ {self.ehs_speed_sigma_mps:g} m/s along the track, {self.ehs_track_sigma_deg:g}° across)"
+                   if self.downlinked_velocity else " only"))
 
 
 #: the motion model of the default bound, as the run's notes state it
@@ -337,6 +359,16 @@ class _Truth:
         chord = np.linalg.norm(np.diff(self.pos, axis=0)[one], axis=1) / np.where(dt > 0, dt, np.inf)
         return float(max(np.linalg.norm(self.vel, axis=1).max(initial=0.0), chord.max(initial=0.0)))
 
+    def velocity_at(self, a: I64, t: F64) -> F64:
+        """The truth's sampled velocities of aircraft index ``a`` interpolated linearly to ``t``
+        (clipped to the aircraft's span)."""
+        lo, hi = self.first[a], self.first[a] + self.count[a] - 1
+        j = np.clip(np.searchsorted(self.key, a * self.span + t, side="right") - 1, lo, np.maximum(hi - 1, lo))
+        j1 = np.minimum(j + 1, hi)
+        h = self.t[j1] - self.t[j]
+        s = np.clip((t - self.t[j]) / np.where(h > 0, h, 1.0), 0.0, 1.0)[:, None]
+        return (1.0 - s) * self.vel[j] + s * self.vel[j1]
+
     def at(self, a: I64, t: F64) -> tuple[F64, NDArray[np.bool_]]:
         """Cubic Hermite position of aircraft index ``a`` at ``t`` (the simulator's
         interpolation) and its validity: inside the aircraft's span and not across a truth gap."""
@@ -453,8 +485,10 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     tr = _Truth.of(truth, t0)
     parts = []
     origins = scan_origins(radars, reports, t0) if origins is None else origins
+    mode_s = _mode_s_aircraft(tr, reports) if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool)
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
+        n_vel = 0
         if row.get("kind") in mlat.CARTESIAN_KINDS:
             a, t, r_eq = _mlat_events(tr, row, reports, origin, t0)
         elif s0 is None:
@@ -462,12 +496,53 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
         else:
             max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
             a, t, r_eq = _radar_events(tr, row, s0, origin, max_el)
+            # the downlinked velocity of a Mode S aircraft at each illumination (Pd as the plot)
+            v = mode_s[a]
+            pd = float(row.get("pd") if row.get("pd") is not None else 1.0)
+            a = np.r_[a, a[v]]
+            r_eq = np.concatenate([r_eq, _velocity_r(tr, a[len(v):], t[v], origin, cfg) / pd])
+            t = np.r_[t, t[v]]
+            n_vel = int(v.sum())
+        n_pos = len(a) - n_vel
         parts.append(pl.DataFrame({
             "truth_id": tr.ids[a], "radar_id": pl.Series(np.full(len(a), row["radar_id"]), dtype=pl.UInt32),
-            "t_s": t, "r_eq": pl.Series(r_eq.reshape(-1, 9), dtype=pl.Array(pl.Float64, 9))}))
-    schema = {"truth_id": pl.Int64, "radar_id": pl.UInt32, "t_s": pl.Float64, "r_eq": pl.Array(pl.Float64, 9)}
+            "t_s": t, "r_eq": pl.Series(r_eq.reshape(-1, 9), dtype=pl.Array(pl.Float64, 9)),
+            "velocity": np.arange(len(a)) >= n_pos}))
+    schema = {"truth_id": pl.Int64, "radar_id": pl.UInt32, "t_s": pl.Float64, "r_eq": pl.Array(pl.Float64, 9),
+              "velocity": pl.Boolean}
     out = pl.concat(parts) if parts else pl.DataFrame(schema=schema)
     return out.with_columns((pl.lit(t0) + (pl.col("t_s") * US).round().cast(pl.Int64)).cast(TIME).alias("time"))
+
+
+def _mode_s_aircraft(tr: _Truth, reports: pl.DataFrame) -> NDArray[np.bool_]:
+    """Per aircraft of ``tr``: whether any of its reports carries a Mode S address."""
+    out = np.zeros(len(tr.ids), bool)
+    if not {"truth_id", "mode_s"} <= set(reports.columns):
+        return out
+    ids = reports.filter(pl.col("mode_s").is_not_null()).select(pl.col("truth_id").cast(pl.Int64)).drop_nulls()
+    return np.isin(tr.ids, ids.unique().to_series().to_numpy())
+
+
+def _velocity_r(tr: _Truth, a: I64, t: F64, origin: geo.LocalFrame, cfg: BoundConfig) -> F64:
+    """(n, 3, 3) covariance, in the system frame's axes, of a downlinked ground velocity of
+    aircraft ``a`` at ``t``: σ ``ehs_speed_sigma_mps`` along the truth's track and its speed ×
+    ``ehs_track_sigma_deg`` across it in the horizontal plane at the aircraft,
+    :data:`VELOCITY_VERTICAL_VAR` along its vertical (no vertical information)."""
+    pos, _ = tr.at(a, t)
+    vel = tr.velocity_at(a, t)
+    lat, lon, _ = origin.to_geodetic(pos[:, 0], pos[:, 1], pos[:, 2])
+    # rows of L: the aircraft's east, north, up in the system axes (L v_sys = v_local)
+    axes = np.stack([np.stack(geo.local_vector_to_frame(*e, lat, lon, origin), axis=-1)
+                     for e in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))], axis=1)
+    v_loc = np.einsum("nij,nj->ni", axes, vel)
+    speed = np.hypot(v_loc[:, 0], v_loc[:, 1])
+    u = np.where(speed[:, None] > 0, v_loc[:, :2] / np.where(speed > 0, speed, 1.0)[:, None], [0.0, 1.0])
+    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    r = np.zeros((len(a), 3, 3))
+    r[:, :2, :2] = (cfg.ehs_speed_sigma_mps ** 2 * u[:, :, None] * u[:, None, :]
+                    + ((speed * np.radians(cfg.ehs_track_sigma_deg)) ** 2)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
+    r[:, 2, 2] = VELOCITY_VERTICAL_VAR
+    return np.einsum("nki,nkl,nlj->nij", axes, r, axes)
 
 
 def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dict[int, float]:
@@ -550,11 +625,14 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
     for lo, hi, g0, g1 in _aircraft_blocks(starts, len(tid), BOUND_BLOCK_ROWS):
         s = src[lo:hi]
         r_eq = np.full((hi - lo, 3, 3), np.nan)
+        vel = np.zeros(hi - lo, bool)
         if (s >= 0).any():
             r_eq[s >= 0] = events["r_eq"].gather(s[s >= 0]).to_numpy().reshape(-1, 3, 3)
+            if "velocity" in events.columns:
+                vel[s >= 0] = events["velocity"].gather(s[s >= 0]).to_numpy()
         dev, acc = tr.deviations(a[lo:hi], t[lo:hi], new[lo:hi])
         st = starts[g0:g1] - lo
-        out.append(_pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, acc[st]))
+        out.append(_pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, acc[st], vel))
         del r_eq, dev
     b = np.concatenate(out)
     return rows.filter(record).select("truth_id", "epoch").with_columns(
@@ -572,10 +650,11 @@ BOUND_READ_AIRCRAFT = 4_096
 
 
 def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig,
-                dev: F64 | None = None, accel0: F64 | None = None) -> F64:
+                dev: F64 | None = None, accel0: F64 | None = None, vel: NDArray[np.bool_] | None = None) -> F64:
     """:func:`pcrb_linear` on model M (9 states; ``dev`` (n, 3, 3) the deviations d of (M2)
     per row and axis, none if not given; ``accel0`` (n_sequences, 3) the truth's ā at each
-    sequence's first row, 0 if not given) with :func:`_bound_summary`, compiled
+    sequence's first row, 0 if not given; ``vel``: the rows whose ``r_eq`` is a velocity
+    measurement's, none if not given) with :func:`_bound_summary`, compiled
     (:func:`tertiary.evaluation.bound_kernel.pcrb_ca9`): (n_record, 3) in row order."""
     tau = np.zeros(len(t))
     tau[1:] = np.diff(t)                 # a sequence's first row has none: it starts from the prior
@@ -585,8 +664,9 @@ def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np
     dev = np.zeros((len(t), 3, 3)) if dev is None else dev
     accel0 = np.zeros((len(starts), 3)) if accel0 is None else accel0
     ready_for("pcrb")
-    pcrb_ca9(arg(tau), arg(dev), arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(starts, np.int64),
-             arg(lengths, np.int64), arg(_prior9(cfg, accel0)), slot, out)
+    vel = np.zeros(len(t), bool) if vel is None else vel
+    pcrb_ca9(arg(tau), arg(dev), arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(vel, np.bool_),
+             arg(starts, np.int64), arg(lengths, np.int64), arg(_prior9(cfg, accel0)), slot, out)
     return out
 
 

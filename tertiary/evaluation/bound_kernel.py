@@ -6,8 +6,9 @@ compiled (numba, ``cache=True``).
 a few numpy calls on stacks of 9×9 matrices per rank, and an aircraft seen for hours keeps the
 loop going with a handful of sequences. Here each aircraft's events run one after another.
 Φ and Q are block diagonal (one 3×3 block per axis: the constant-acceleration φ(τ) and d dᵀ), so
-the prediction is done per block; the update is (T34) with H selecting the three positions and
-the 3×3 innovation matrix solved by Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear` stays the reference (compared in the
+the prediction is done per block; the update is (T34) with H selecting the three positions (a
+plot) or the three velocities (a downlinked velocity) and the 3×3 innovation matrix solved by
+Cholesky. :func:`tertiary.evaluation.bound.pcrb_linear` stays the reference (compared in the
 tests).
 """
 
@@ -51,14 +52,15 @@ def _predict(p, tau, dev, phi, tmp):
 
 
 @_jit
-def _update(p, r, ph, s, tmp):
-    """P ← P − P Hᵀ (H P Hᵀ + R)⁻¹ H P, symmetrised; H selects the positions."""
+def _update(p, r, ph, s, tmp, off):
+    """P ← P − P Hᵀ (H P Hᵀ + R)⁻¹ H P, symmetrised; H selects the positions (``off`` 0) or the
+    velocities (``off`` 1)."""
     for i in range(9):
         for k in range(3):
-            ph[i, k] = p[i, _POS[k]]
+            ph[i, k] = p[i, _POS[k] + off]
     for i in range(3):
         for j in range(3):
-            s[i, j] = ph[_POS[i], j] + r[i, j]
+            s[i, j] = ph[_POS[i] + off, j] + r[i, j]
     # Cholesky S = L Lᵀ (S is the positions' bound plus a covariance: positive definite)
     l00 = np.sqrt(s[0, 0])
     l10 = s[1, 0] / l00
@@ -81,11 +83,11 @@ def _update(p, r, ph, s, tmp):
 
 
 @_jit
-def pcrb_ca9(tau, dev, r_eq, has, starts, lengths, p0, slot, out):
+def pcrb_ca9(tau, dev, r_eq, has, vel, starts, lengths, p0, slot, out):
     """(T34) over every sequence g (rows ``starts[g] : starts[g] + lengths[g]``, time order):
     from ``p0[g]`` at its first row, the prediction over ``tau[i]`` from the previous row with
     the deviations ``dev[i]`` (3 axes × (p, v, a)) of model M, then the update with ``r_eq[i]``
-    where ``has[i]``. At rows with ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
+    where ``has[i]``, of the positions, or of the velocities where ``vel[i]``. At rows with ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
     P_xx + P_yy, tr P_vel) after the update."""
     p = np.empty((9, 9))
     tmp = np.empty((9, 9))
@@ -99,7 +101,7 @@ def pcrb_ca9(tau, dev, r_eq, has, starts, lengths, p0, slot, out):
             if i > first:
                 _predict(p, tau[i], dev[i], phi, tmp)
             if has[i]:
-                _update(p, r_eq[i], ph, s, tmp)
+                _update(p, r_eq[i], ph, s, tmp, 1 if vel[i] else 0)
             k = slot[i]
             if k >= 0:
                 out[k, 0] = p[0, 0] + p[3, 3] + p[6, 6]
@@ -111,7 +113,7 @@ def _signature() -> tuple:
     """The one signature :func:`tertiary.evaluation.bound.bound_stage` calls it with."""
     f1, f2, f3 = (nbt.Array(nbt.float64, k, "C") for k in (1, 2, 3))
     i1, b1 = nbt.Array(nbt.int64, 1, "C"), nbt.Array(nbt.boolean, 1, "C")
-    return (f1, f3, f3, b1, i1, i1, f3, i1, f2)
+    return (f1, f3, f3, b1, b1, i1, i1, f3, i1, f2)
 
 
 register_kernel("pcrb", __name__, pcrb_ca9, _signature)

@@ -71,6 +71,17 @@ class Trajectories:
         vel = ((6 * s2 - 6 * s) * p0 + (3 * s2 - 4 * s + 1) * v0 + (-6 * s2 + 6 * s) * p1 + (3 * s2 - 2 * s) * v1) / self.dt
         return pos, vel, ok
 
+    def velocity_at(self, aircraft: NDArray[np.integer], t: NDArray[np.float64]
+                    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The sampled velocities of ``aircraft[i]`` interpolated linearly to ``t[i]`` and the
+        validity (as :meth:`state_at`). Unlike the derivative of the position interpolant it
+        never leaves the range of the samples: a trajectory made of recorded fixes (ADS-B) has
+        positions and velocities that do not integrate into each other, and there the
+        interpolant's derivative swings far from either sample."""
+        flat, s, ok = self._bracket(aircraft, t)
+        _, _, v0, v1 = self._samples(flat)
+        return ((1.0 - s) * v0 + s * v1) / self.dt, ok
+
     def position_at(self, aircraft: NDArray[np.integer], t: NDArray[np.float64]
                     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Position and validity only (as :meth:`state_at`, without the velocity)."""
