@@ -312,7 +312,8 @@ def test_a_downlinked_velocity_is_measured_along_and_across_the_track():
     e, n, u = float(e), float(n), float(u)
     far = truth.with_columns(pl.Series("x_m", e + 200.0 * north[0] * t), pl.Series("y_m", n + 200.0 * north[1] * t),
                              pl.Series("z_m", u + 200.0 * north[2] * t),
-                             *(pl.lit(200.0 * float(c)).alias(name) for c, name in zip(north, ("vx_mps", "vy_mps", "vz_mps"))))
+                             *(pl.lit(200.0 * float(c)).alias(name)
+                               for c, name in zip(north, ("vx_mps", "vy_mps", "vz_mps"))))
     tr = _Truth.of(far, int(far["time"].dt.epoch("us").min()))
     r = _velocity_r(tr, np.zeros(1, np.int64), np.array([0.0]), origin, cfg)[0]
     w, v = np.linalg.eigh(r)

@@ -177,7 +177,8 @@ def test_the_velocity_covariance_is_along_and_across_the_track():
 def _fused_straight(velocity: str = "true", outlier_at: int | None = None, seed: int = 7):
     """A ``fused`` frame of 30 aircraft flying straight at 150–250 m/s, plots σ 80 m per axis
     every DT, and each row's downlinked velocity: the truth + 0.7 m/s noise ("true"), its
-    opposite ("flipped") or none ("none"); ``outlier_at``: one scan's register 150 m/s off (no aircraft changes its velocity so fast)."""
+    opposite ("flipped") or none ("none"); ``outlier_at``: one scan's register 150 m/s off (no
+    aircraft changes its velocity so fast)."""
     rng = np.random.default_rng(seed)
     b, n = 30, 30
     hdg = rng.uniform(0.0, 2.0 * np.pi, b)

@@ -539,8 +539,9 @@ def _velocity_r(tr: _Truth, a: I64, t: F64, origin: geo.LocalFrame, cfg: BoundCo
     u = np.where(speed[:, None] > 0, v_loc[:, :2] / np.where(speed > 0, speed, 1.0)[:, None], [0.0, 1.0])
     nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
     r = np.zeros((len(a), 3, 3))
+    cross = (speed * np.radians(cfg.ehs_track_sigma_deg)) ** 2
     r[:, :2, :2] = (cfg.ehs_speed_sigma_mps ** 2 * u[:, :, None] * u[:, None, :]
-                    + ((speed * np.radians(cfg.ehs_track_sigma_deg)) ** 2)[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
+                    + cross[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
     r[:, 2, 2] = VELOCITY_VERTICAL_VAR
     return np.einsum("nki,nkl,nlj->nij", axes, r, axes)
 

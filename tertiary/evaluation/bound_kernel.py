@@ -87,7 +87,8 @@ def pcrb_ca9(tau, dev, r_eq, has, vel, starts, lengths, p0, slot, out):
     """(T34) over every sequence g (rows ``starts[g] : starts[g] + lengths[g]``, time order):
     from ``p0[g]`` at its first row, the prediction over ``tau[i]`` from the previous row with
     the deviations ``dev[i]`` (3 axes × (p, v, a)) of model M, then the update with ``r_eq[i]``
-    where ``has[i]``, of the positions, or of the velocities where ``vel[i]``. At rows with ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
+    where ``has[i]``, of the positions, or of the velocities where ``vel[i]``. At rows with
+    ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
     P_xx + P_yy, tr P_vel) after the update."""
     p = np.empty((9, 9))
     tmp = np.empty((9, 9))

@@ -142,8 +142,8 @@ def ehs_truth(traj: Trajectories, aircraft: ArrayLike, t: ArrayLike, frame: geo.
         # (v/R ≈ 0.002 °/s) is far below the track-rate LSB
         pos, _ = traj.position_at(aircraft, t)
         lat, lon, _ = frame.to_geodetic(pos[..., 0], pos[..., 1], pos[..., 2])
-        vel, v_lo, v_hi = (np.stack(geo.frame_vector_to_local(v[..., 0], v[..., 1], v[..., 2], lat, lon, frame), axis=-1)
-                           for v in (vel, v_lo, v_hi))
+        vel, v_lo, v_hi = (np.stack(geo.frame_vector_to_local(v[..., 0], v[..., 1], v[..., 2], lat, lon, frame),
+                                    axis=-1) for v in (vel, v_lo, v_hi))
     acc = (v_hi - v_lo) / np.maximum(hi - lo, 1e-9)[..., None]
     ve, vn = vel[..., 0], vel[..., 1]
     gs2 = np.maximum(ve * ve + vn * vn, 1e-12)

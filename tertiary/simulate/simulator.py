@@ -220,7 +220,8 @@ def _simulate_whole(cfg: ScenarioConfig, progress: Progress | None = None, ehs: 
         plots.append(observe(traj, radar, system, cfg.runs, np.random.default_rng(seeds[i + 1]), cfg.anomalies, tx))
     say("radar plot-to-track association")
     plots = number_plots(plots, list(cfg.radars), cfg.runs, traj.duration, cfg.radar_tracker)
-    parts = [_reports_frame(p, i + 1, traj, tx, _ehs_columns(p, i, traj, cfg.seed, ehs, system)) for i, p in enumerate(plots)]
+    parts = [_reports_frame(p, i + 1, traj, tx, _ehs_columns(p, i, traj, cfg.seed, ehs, system))
+             for i, p in enumerate(plots)]
     reports = pl.concat(parts, how="vertical") if parts else pl.DataFrame()
     say("radar secondary processing")
     # each track life is filtered on its own (a reused number restarts the radar's filter)

@@ -467,7 +467,8 @@ def _observe_velocity(filt: TrackFilter, state: State, plots: Plots, rows: NDArr
         return state
     r = velocity_covariance(v, plots.omega[rows], cfg)
     out = filt.output(state)
-    s = full_cov(out)[:, 3:5, 3:5] + r + ((cfg.velocity_accel_mps2 * np.maximum(dt, 0.0)) ** 2)[:, None, None] * np.eye(2)
+    allow = (cfg.velocity_accel_mps2 * np.maximum(dt, 0.0)) ** 2
+    s = full_cov(out)[:, 3:5, 3:5] + r + allow[:, None, None] * np.eye(2)
     d = np.where(use[:, None], v - out.x[:, 3:5], 0.0)
     det = s[:, 0, 0] * s[:, 1, 1] - s[:, 0, 1] * s[:, 1, 0]
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -142,9 +142,8 @@ class PlotIndex:
         s0, s1 = self.seg_bounds[k], self.seg_bounds[k + 1]
         return Plots(self.run[lo:hi], self.z[lo:hi], self.r[lo:hi], self.alt[lo:hi], self.tid[lo:hi],
                       np.arange(self.uid0 + lo, self.uid0 + hi, dtype=np.int64), self.zm[lo:hi], self.rm[lo:hi], self.age[lo:hi],
-                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.vm[lo:hi], self.vr[lo:hi], self.keys[lo:hi],
-                      self.seg_cls[s0:s1],
-                      self.seg_rmax_x[s0:s1])
+                      self.fresh[lo:hi], self.ident[lo:hi], self.omega[lo:hi], self.vm[lo:hi], self.vr[lo:hi],
+                      self.keys[lo:hi], self.seg_cls[s0:s1], self.seg_rmax_x[s0:s1])
 
 
 def _measurements(f: pl.DataFrame, z: NDArray, cov36: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
