@@ -49,6 +49,8 @@ MADE_FILTERS = "imm_sym,imm_ct"
 PHASES = ("all", "phase:level", "phase:turn", "phase:climb-descent")
 FT, KT, FPM = 0.3048, 1852.0 / 3600.0, 0.3048 / 60.0
 EARTH_R = 6_371_000.0
+#: WGS-84 semi-major axis (m) and first eccentricity squared: the made fixes lie on the ellipsoid
+WGS84_A, WGS84_E2 = 6_378_137.0, 6.69437999014e-3
 
 
 def _child(args: list[str]) -> tuple[float, str]:
@@ -74,10 +76,19 @@ def _flight(icao: str, lat0: float, lon0: float, t0: float, legs: list[tuple[flo
     for a, b, r in climb:
         vs[(t >= a) & (t < b)] = r
     alt = alt_ft + np.concatenate([[0.0], np.cumsum(vs[:-1] / 60.0)])
-    h = np.radians(heading)
-    north, east = np.cumsum(speed_mps * np.cos(h)), np.cumsum(speed_mps * np.sin(h))
-    lat = lat0 + np.degrees(north / EARTH_R)
-    lon = lon0 + np.degrees(east / (EARTH_R * np.cos(np.radians(lat0))))
+    # each 1 s step flown at its mid-step heading from the sample before, on the WGS-84 ellipsoid
+    # (meridian and prime-vertical radii at the current latitude): the positions integrate the
+    # reported ground speed and track, as a real aircraft's fixes and velocity messages do
+    h = np.radians(heading + 0.5 * rates)
+    step_n, step_e = speed_mps * np.cos(h), speed_mps * np.sin(h)
+    lat = lat0 + np.degrees(np.concatenate([[0.0], np.cumsum(step_n[:-1])]) / EARTH_R)
+    for _ in range(2):                     # the meridian radius at the latitude reached
+        s2 = np.sin(np.radians(lat)) ** 2
+        m = WGS84_A * (1 - WGS84_E2) / (1 - WGS84_E2 * s2) ** 1.5
+        lat = lat0 + np.degrees(np.concatenate([[0.0], np.cumsum(step_n[:-1] / m[:-1])]))
+    s2 = np.sin(np.radians(lat)) ** 2
+    n_rad = WGS84_A / np.sqrt(1 - WGS84_E2 * s2)
+    lon = lon0 + np.degrees(np.concatenate([[0.0], np.cumsum(step_e[:-1] / (n_rad[:-1] * np.cos(np.radians(lat[:-1]))))]))
     return {"timestamp": t0 + t, "icao24": np.full(len(t), icao), "latitude": lat, "longitude": lon,
             "altitude": alt, "groundspeed": np.full(len(t), speed_mps / KT), "track": heading % 360.0,
             "vertical_rate": vs, "onground": np.zeros(len(t), bool), "callsign": np.full(len(t), f"T{icao[-4:]}")}
