@@ -7,6 +7,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 import polars as pl
+import pymap3d as pm
 import pytest
 from polars.testing import assert_frame_equal
 from scipy.linalg import solve_discrete_are
@@ -116,7 +117,7 @@ def test_scan_schedule_and_single_scan_information():
     """Events at the radar's scan times (phase from its reports), and one scan's information
     equals the converted polar covariance at the true point (independent computation)."""
     origin, truth, radars, reports = _one_radar_truth()
-    ev = illuminations(truth, radars, reports, origin)
+    ev = illuminations(truth, radars, reports, origin, BoundConfig(mode_c_height=False))
     t = ev["t_s"].to_numpy()
     assert t == pytest.approx(1.0 + 4.0 * np.arange(len(t)))
     assert len(t) == 75
@@ -125,6 +126,15 @@ def test_scan_schedule_and_single_scan_information():
     rng, az, el = geo.enu_to_polar(*pos)          # site = origin: system frame is the site frame
     expect = geo.polar_sigmas_to_enu_cov(rng, az, el, 50.0, 0.1, 0.1)
     assert r_eq == pytest.approx(expect, rel=1e-6)
+    # with the plot's barometric height: the information (R⁻¹ + e eᵀ/V) written out, e the local
+    # vertical at the aircraft (by pymap3d)
+    from tertiary.evaluation.bound_measurements import HEIGHT_VAR_M2
+    with_h = illuminations(truth, radars, reports, origin)["r_eq"].to_numpy()[3].reshape(3, 3)
+    lat, lon, _ = pm.enu2geodetic(*pos, origin.lat_deg, origin.lon_deg, origin.alt_m)
+    up = np.array(pm.uvw2enu(*pm.enu2uvw(0.0, 0.0, 1.0, lat, lon), origin.lat_deg, origin.lon_deg))
+    want = np.linalg.inv(np.linalg.inv(expect) + np.outer(up, up) / HEIGHT_VAR_M2)
+    assert with_h == pytest.approx(want, rel=1e-6, abs=1e-9)
+    assert with_h[2, 2] < 1.01 * HEIGHT_VAR_M2 < expect[2, 2]          # the local vertical is near the z axis here
 
 
 def test_bound_rows_pool_like_rmse_and_gap_is_signed():
@@ -293,29 +303,16 @@ def test_a_downlinked_velocity_is_measured_along_and_across_the_track():
     """At the system origin (no change of axes) an aircraft flying north at 200 m/s: the
     velocity's covariance is σ_s² along y, (200 m/s · σ_χ)² along x and no vertical information;
     at 7° of longitude from the origin its axes are turned by the meridian convergence."""
-    from tertiary.evaluation.bound import VELOCITY_VERTICAL_VAR, _Truth, _velocity_r
+    from tertiary.evaluation.bound_measurements import VELOCITY_VERTICAL_VAR, velocity_covariance
     origin = geo.LocalFrame(47.0, 2.0, 0.0)
-    t = np.arange(0.0, 20.0)
-    truth = pl.DataFrame({"truth_id": np.ones(20, np.int64),
-                          "time": pl.datetime_range(T0, T0 + pl.duration(seconds=19), "1s", eager=True),
-                          "x_m": np.zeros(20), "y_m": 200.0 * t, "z_m": np.full(20, 9000.0),
-                          "vx_mps": np.zeros(20), "vy_mps": np.full(20, 200.0), "vz_mps": np.zeros(20)})
-    tr = _Truth.of(truth, int(truth["time"].dt.epoch("us").min()))
-    cfg = BoundConfig(ehs_speed_sigma_mps=0.5, ehs_track_sigma_deg=0.2)
-    r = _velocity_r(tr, np.zeros(1, np.int64), np.array([0.0]), origin, cfg)[0]
+    r = velocity_covariance(np.array([[0.0, 0.0, 9000.0]]), np.array([[0.0, 200.0, 0.0]]), origin, 0.5, 0.2)[0]
     cross = (200.0 * np.radians(0.2)) ** 2
     np.testing.assert_allclose(r[:2, :2], np.diag([cross, 0.25]), atol=1e-6)
     assert r[2, 2] > 1e9 * 0.25
     # far east: the aircraft's north is the system's north turned by the convergence
     e, n, u = origin.from_geodetic(47.0, 9.0, 9000.0)
     north = np.array(geo.local_vector_to_frame(0.0, 1.0, 0.0, 47.0, 9.0, origin)).ravel()
-    e, n, u = float(e), float(n), float(u)
-    far = truth.with_columns(pl.Series("x_m", e + 200.0 * north[0] * t), pl.Series("y_m", n + 200.0 * north[1] * t),
-                             pl.Series("z_m", u + 200.0 * north[2] * t),
-                             *(pl.lit(200.0 * float(c)).alias(name)
-                               for c, name in zip(north, ("vx_mps", "vy_mps", "vz_mps"))))
-    tr = _Truth.of(far, int(far["time"].dt.epoch("us").min()))
-    r = _velocity_r(tr, np.zeros(1, np.int64), np.array([0.0]), origin, cfg)[0]
+    r = velocity_covariance(np.array([[float(e), float(n), float(u)]]), 200.0 * north[None], origin, 0.5, 0.2)[0]
     w, v = np.linalg.eigh(r)
     along = v[:, np.argmin(np.abs(w - 0.25))]
     assert abs(abs(along @ north) - 1.0) < 1e-9 and abs(north[0]) > 0.08          # 5.1° from the system's y

@@ -97,12 +97,15 @@ only adds information), V = :data:`VELOCITY_VERTICAL_VAR` (no vertical informati
 as a plot. Every radar and every illumination counts, even where a radar did not extract the
 register: more information than the data hold keeps the bound below.
 
-What is not in the bound: the Mode C altitude — it feeds the pictures' separate height channel
-(``rmse_height_m``, :mod:`tertiary.stages.tracking.altitude`; a quantised measurement has no
-Fisher information in the regular sense, so no height bound is given), while a picture's
-(x, y, z), which the bound covers, is estimated from the radar plots; and radar biases, clock
-offsets, clutter and association errors, which only add error, so leaving them out keeps the
-bound a lower bound. The run's notes state the model (:meth:`BoundConfig.describe`, :data:`MODEL`).
+Barometric height: a radar plot's Mode C / Mode S altitude gives the pictures' plots their
+elevation, which at long range pins the ground range and so the horizontal position too. Each
+plot therefore also measures the height along the local vertical at the aircraft, with the
+25 ft quantum's variance (``mode_c_height``; a Gaussian stand-in with at least any reply's
+information, as for MLAT; :mod:`tertiary.evaluation.bound_measurements`). Leaving it out would
+raise the bound above estimators that use it.
+
+What is not in the bound: radar biases, clock offsets, clutter and association errors, which
+only add error, so leaving them out keeps the bound a lower bound. The run's notes state the model (:meth:`BoundConfig.describe`, :data:`MODEL`).
 
 Metrics (stage ``bound``, one block per picture)
 ------------------------------------------------
@@ -129,6 +132,8 @@ from tertiary.core import geo
 from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import FT, US
 from tertiary.evaluation.bound_kernel import pcrb_ca9
+from tertiary.evaluation.bound_measurements import (VELOCITY_VERTICAL_VAR, mode_s_aircraft, velocity_covariance,
+                                                    with_height)
 from tertiary.contract import TABLES, TIME
 from tertiary.sensors import mlat
 from tertiary.sensors.adsb import sigma_from_nacp
@@ -158,15 +163,13 @@ MLAT_VERTICAL_VAR_M2 = (25.0 * FT) ** 2 / 12.0
 #: half-width (s) of the centred velocity difference that fits the truth's acceleration (model M):
 #: long enough to average out the jitter of ADS-B truth's vertical rate, short beside a manoeuvre
 ACCEL_HALF_WINDOW_S = 10.0
-#: variance ((m/s)²) along the aircraft's vertical of a downlinked ground velocity in the bound:
-#: a horizontal measurement, no vertical information
-VELOCITY_VERTICAL_VAR = 1e10
 
 
 @dataclass(frozen=True)
 class BoundConfig:
     """The bound's model M (module docstring): the half-width of the centred velocity
-    difference that gives the truth's acceleration (``accel_half_window_s``), whether a Mode S
+    difference that gives the truth's acceleration (``accel_half_window_s``), whether a radar
+    plot's barometric height counts (``mode_c_height``), whether a Mode S
     aircraft's downlinked ground velocity counts (``downlinked_velocity``; off: the bound of an
     estimator of the radar plots alone) and its noise (``ehs_speed_sigma_mps``,
     ``ehs_track_sigma_deg``: the simulator's register noise, :class:`tertiary.simulate.ehs.EhsConfig`), the prior
@@ -174,6 +177,7 @@ class BoundConfig:
     limit used when the scenario does not give one per radar (``max_elevation_deg``)."""
 
     accel_half_window_s: float = ACCEL_HALF_WINDOW_S
+    mode_c_height: bool = True
     downlinked_velocity: bool = True
     ehs_speed_sigma_mps: float = 0.5
     ehs_track_sigma_deg: float = 0.2
@@ -194,7 +198,8 @@ class BoundConfig:
                 f"truth); process noise per interval = the truth's deviation from the constant-acceleration "
                 f"prediction (rank one, sign unknown): none on straight legs and steady climbs, each "
                 f"manoeuvre's onset known, not its magnitude; prior σ_p {self.p0_sigma_m:g} m, "
-                f"σ_v {self.v0_sigma_mps:g} m/s; radar plots (nominal σ, Pd, scan schedule)"
+                f"σ_v {self.v0_sigma_mps:g} m/s; radar plots (nominal σ, Pd, scan schedule"
+                + (", with their barometric height at the 25 ft quantum's variance)" if self.mode_c_height else ")")
                 + (f" and, for a Mode S aircraft, a downlinked ground velocity at every illumination "
                    f"(σ {self.ehs_speed_sigma_mps:g} m/s along the track, {self.ehs_track_sigma_deg:g}° across)"
                    if self.downlinked_velocity else " only"))
@@ -398,10 +403,11 @@ def _scan_origin(times_s: F64, az_deg: F64, period: float, rotating: bool) -> fl
     return float(np.mod(np.median(r), period))
 
 
-def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_el: float
+def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_el: float, height: bool = True
                   ) -> tuple[I64, F64, F64]:
     """(aircraft index, time, R_eq = G R_polar Gᵀ / Pd) of every illumination of one radar that
-    covers an aircraft (module docstring)."""
+    covers an aircraft (module docstring); with ``height``, the plot's barometric height too
+    (:func:`tertiary.evaluation.bound_measurements.with_height`)."""
     T = float(row["scan_period_s"])
     pd = float(row.get("pd") if row.get("pd") is not None else 1.0)
     if not (T > 0 and pd > 0):
@@ -434,12 +440,14 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
     rng, az, el = geo.enu_to_polar(*(pos @ rot.T + off).T)
     min_el = float(row.get("min_elevation_deg") if row.get("min_elevation_deg") is not None else -90.0)
     ok &= (rng <= float(row["max_range_m"])) & (el >= min_el) & (el <= max_el) & (rng > 0)
-    a, t, rng, az, el = a[ok], t[ok], rng[ok], az[ok], el[ok]
+    a, t, rng, az, el, pos = a[ok], t[ok], rng[ok], az[ok], el[ok], pos[ok]
     var = np.array([float(row["sigma_range_m"]) ** 2, np.radians(float(row["sigma_azimuth_deg"])) ** 2,
                     np.radians(float(row["sigma_elevation_deg"])) ** 2])
     g = rot.T @ geo.polar_jacobian(rng, az, el)                       # ∂p_sys/∂(r, β, ε)
-    r_eq = (g * var[None, None, :]) @ g.swapaxes(1, 2) / pd
-    return a, t, r_eq
+    r_eq = (g * var[None, None, :]) @ g.swapaxes(1, 2)
+    if height:
+        r_eq = with_height(r_eq, pos, origin)
+    return a, t, r_eq / pd
 
 
 def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalFrame, t0_us: int
@@ -485,7 +493,7 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     tr = _Truth.of(truth, t0)
     parts = []
     origins = scan_origins(radars, reports, t0) if origins is None else origins
-    mode_s = _mode_s_aircraft(tr, reports) if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool)
+    mode_s = mode_s_aircraft(tr.ids, reports) if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool)
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
         n_vel = 0
@@ -495,12 +503,15 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
             continue
         else:
             max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
-            a, t, r_eq = _radar_events(tr, row, s0, origin, max_el)
+            a, t, r_eq = _radar_events(tr, row, s0, origin, max_el, cfg.mode_c_height)
             # the downlinked velocity of a Mode S aircraft at each illumination (Pd as the plot)
             v = mode_s[a]
             pd = float(row.get("pd") if row.get("pd") is not None else 1.0)
             a = np.r_[a, a[v]]
-            r_eq = np.concatenate([r_eq, _velocity_r(tr, a[len(v):], t[v], origin, cfg) / pd])
+            av, tv = a[len(v):], t[v]
+            r_v = velocity_covariance(tr.at(av, tv)[0], tr.velocity_at(av, tv), origin, cfg.ehs_speed_sigma_mps,
+                                      cfg.ehs_track_sigma_deg)
+            r_eq = np.concatenate([r_eq, r_v / pd])
             t = np.r_[t, t[v]]
             n_vel = int(v.sum())
         n_pos = len(a) - n_vel
@@ -512,38 +523,6 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
               "velocity": pl.Boolean}
     out = pl.concat(parts) if parts else pl.DataFrame(schema=schema)
     return out.with_columns((pl.lit(t0) + (pl.col("t_s") * US).round().cast(pl.Int64)).cast(TIME).alias("time"))
-
-
-def _mode_s_aircraft(tr: _Truth, reports: pl.DataFrame) -> NDArray[np.bool_]:
-    """Per aircraft of ``tr``: whether any of its reports carries a Mode S address."""
-    out = np.zeros(len(tr.ids), bool)
-    if not {"truth_id", "mode_s"} <= set(reports.columns):
-        return out
-    ids = reports.filter(pl.col("mode_s").is_not_null()).select(pl.col("truth_id").cast(pl.Int64)).drop_nulls()
-    return np.isin(tr.ids, ids.unique().to_series().to_numpy())
-
-
-def _velocity_r(tr: _Truth, a: I64, t: F64, origin: geo.LocalFrame, cfg: BoundConfig) -> F64:
-    """(n, 3, 3) covariance, in the system frame's axes, of a downlinked ground velocity of
-    aircraft ``a`` at ``t``: σ ``ehs_speed_sigma_mps`` along the truth's track and its speed ×
-    ``ehs_track_sigma_deg`` across it in the horizontal plane at the aircraft,
-    :data:`VELOCITY_VERTICAL_VAR` along its vertical (no vertical information)."""
-    pos, _ = tr.at(a, t)
-    vel = tr.velocity_at(a, t)
-    lat, lon, _ = origin.to_geodetic(pos[:, 0], pos[:, 1], pos[:, 2])
-    # rows of L: the aircraft's east, north, up in the system axes (L v_sys = v_local)
-    axes = np.stack([np.stack(geo.local_vector_to_frame(*e, lat, lon, origin), axis=-1)
-                     for e in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))], axis=1)
-    v_loc = np.einsum("nij,nj->ni", axes, vel)
-    speed = np.hypot(v_loc[:, 0], v_loc[:, 1])
-    u = np.where(speed[:, None] > 0, v_loc[:, :2] / np.where(speed > 0, speed, 1.0)[:, None], [0.0, 1.0])
-    nrm = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    r = np.zeros((len(a), 3, 3))
-    cross = (speed * np.radians(cfg.ehs_track_sigma_deg)) ** 2
-    r[:, :2, :2] = (cfg.ehs_speed_sigma_mps ** 2 * u[:, :, None] * u[:, None, :]
-                    + cross[:, None, None] * nrm[:, :, None] * nrm[:, None, :])
-    r[:, 2, 2] = VELOCITY_VERTICAL_VAR
-    return np.einsum("nki,nkl,nlj->nij", axes, r, axes)
 
 
 def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dict[int, float]:
