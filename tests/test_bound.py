@@ -117,7 +117,7 @@ def test_scan_schedule_and_single_scan_information():
     """Events at the radar's scan times (phase from its reports), and one scan's information
     equals the converted polar covariance at the true point (independent computation)."""
     origin, truth, radars, reports = _one_radar_truth()
-    ev = illuminations(truth, radars, reports, origin, BoundConfig(mode_c_height=False))
+    ev = illuminations(truth, radars, reports, origin)
     t = ev["t_s"].to_numpy()
     assert t == pytest.approx(1.0 + 4.0 * np.arange(len(t)))
     assert len(t) == 75
@@ -129,7 +129,8 @@ def test_scan_schedule_and_single_scan_information():
     # with the plot's barometric height: the information (R⁻¹ + e eᵀ/V) written out, e the local
     # vertical at the aircraft (by pymap3d)
     from tertiary.evaluation.bound_measurements import HEIGHT_VAR_M2
-    with_h = illuminations(truth, radars, reports, origin)["r_eq"].to_numpy()[3].reshape(3, 3)
+    with_h = illuminations(truth, radars, reports, origin, BoundConfig(mode_c_height=True))["r_eq"].to_numpy()[3]
+    with_h = with_h.reshape(3, 3)
     lat, lon, _ = pm.enu2geodetic(*pos, origin.lat_deg, origin.lon_deg, origin.alt_m)
     up = np.array(pm.uvw2enu(*pm.enu2uvw(0.0, 0.0, 1.0, lat, lon), origin.lat_deg, origin.lon_deg))
     want = np.linalg.inv(np.linalg.inv(expect) + np.outer(up, up) / HEIGHT_VAR_M2)
