@@ -320,6 +320,12 @@ def test_a_downlinked_velocity_is_measured_along_and_across_the_track():
     assert w.max() == pytest.approx(VELOCITY_VERTICAL_VAR, rel=1e-6)
 
 
+@pytest.mark.parametrize("kw", [dict(ehs_speed_sigma_mps=0.0), dict(ehs_track_sigma_deg=float("nan"))])
+def test_the_register_noise_of_the_bound_is_checked(kw):
+    with pytest.raises(ValueError, match="ehs_"):
+        BoundConfig(**kw)
+
+
 def test_a_downlinked_velocity_lowers_the_bound_of_a_mode_s_aircraft():
     """The bound with the downlinked velocities is below the plots-only bound wherever an
     aircraft has a Mode S address, and equal elsewhere."""

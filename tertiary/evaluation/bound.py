@@ -101,9 +101,8 @@ Barometric height: with ``mode_c_height`` each radar plot also measures the heig
 local vertical at the aircraft, with the 25 ft quantum's variance (a Gaussian stand-in with at
 least any reply's information, as for MLAT; :mod:`tertiary.evaluation.bound_measurements`).
 It is off by default: the pictures' system-frame z is estimated from the radars' elevations (their
-height is the separate channel), so with it the 3-D bound falls more than tenfold below every
-picture's 3-D error, while the horizontal bound hardly moves (national peak 15 minutes: 50.0 against
-49.7 m).
+height is the separate channel), so with it the 3-D bound falls far below every picture's 3-D
+error while the horizontal bound hardly moves.
 
 What is not in the bound: radar biases, clock offsets, clutter and association errors, which
 only add error, so leaving them out keeps the bound a lower bound. The run's notes state the model (:meth:`BoundConfig.describe`, :data:`MODEL`).
@@ -185,6 +184,12 @@ class BoundConfig:
     p0_sigma_m: float = 10_000.0
     v0_sigma_mps: float = 300.0
     max_elevation_deg: float = 90.0
+
+    def __post_init__(self) -> None:
+        # a zero σ makes a velocity event's covariance singular (the recursion's Cholesky gives NaN)
+        if not (self.ehs_speed_sigma_mps > 0 and self.ehs_track_sigma_deg > 0):          # NaN fails too
+            raise ValueError(f"need ehs_speed_sigma_mps and ehs_track_sigma_deg > 0, got {self.ehs_speed_sigma_mps}, "
+                             f"{self.ehs_track_sigma_deg}")
 
     @classmethod
     def from_scenario(cls, scenario) -> "BoundConfig":
