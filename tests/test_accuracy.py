@@ -746,3 +746,23 @@ def test_a_singular_full_covariance_blanks_only_its_own_nees():
     full = [est[i] @ np.linalg.solve(p[i], est[i]) for i in range(n) if i != 3]
     assert np.isnan(nees[3]) and nees_pos[3] == pytest.approx(est[3, :3] @ est[3, :3] / 4.0)
     np.testing.assert_allclose(np.delete(nees, 3), full, rtol=1e-10)
+
+
+def test_an_aircraft_is_scored_from_its_first_reported_epoch():
+    """A track matched to an aircraft before any sensor reported it is another object's inside
+    the gate, not an estimate of it: those rows are no accuracy sample, in one piece or in
+    buckets. Fails when ``observed`` does not cut the scored rows."""
+    from tertiary.evaluation.accuracy_buckets import picture_accuracy_buckets
+    rows = [dict(run=r, s=s, track_id=1, at=7, err=[e, 0, 0, 0, 0, 0])
+            for r in (0, 1) for s, e in ((0, 900.0), (4, 900.0), (8, 3.0), (12, 3.0))]
+    observed = _observed([(r, s, 7) for r in (0, 1) for s in (8, 12)])
+    m = _tracker(rows, observed)
+    assert _tv(m, "rmse_pos_m") == pytest.approx(math.sqrt(18.0))      # (9 + 9)/(2 − 1) at 8 and 12
+    matched = match_to_reference(_track_rows(rows), _lanes_truth())
+    _, by_epoch, samples = picture_accuracy(matched, "tracker", NO_SKIP, observed)
+    assert sorted(samples["epoch"].unique().to_list()) == [_t(8), _t(12)]
+    assert by_epoch["epoch"].min() == _t(8)
+    buckets = picture_accuracy_buckets(matched.lazy(), "tracker", NO_SKIP, observed, buckets=2)[0]
+    assert _tv(buckets, "rmse_pos_m") == pytest.approx(math.sqrt(18.0))
+    # without the reports' epochs every matched row is scored, as for a picture judged alone
+    assert _tv(_tracker(rows), "rmse_pos_m") > 600.0

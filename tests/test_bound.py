@@ -489,3 +489,28 @@ def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(mon
     assert held == [[7, 8], [9]]
     assert want.height
     assert_frame_equal(got, want, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
+
+
+def test_samples_before_the_first_measurement_have_no_bound_and_are_counted():
+    """An epoch before an aircraft's first plot holds the prior alone: no bound there, and the
+    pooled bound is that of the measured samples, the rest counted in
+    ``bound_unmeasured_samples``. Fails when such samples keep the prior (its 10 km per axis
+    would dominate the pooled figure)."""
+    origin, truth, radars, reports = _one_radar_truth()
+    ev = illuminations(truth, radars, reports, origin)
+    first = ev["time"].min()
+    samples = truth.select("truth_id", pl.col("time").alias("epoch")).head(60)
+    before = samples.filter(pl.col("epoch") < first).height
+    assert 0 < before < samples.height
+    b = pcrb_at(samples, ev, BoundConfig(), truth=truth)
+    unmeasured = b.filter(pl.col("epoch") < first)
+    assert unmeasured.height == before and unmeasured["b2_pos"].is_nan().all()
+    measured = b.filter(pl.col("epoch") >= first)
+    assert measured["b2_pos"].is_not_nan().all() and (measured["b2_pos"] < 1e8).all()
+    scored = samples.with_columns(pl.lit("m").alias("method"), pl.lit(0).alias("run"),
+                                  pl.lit(None, pl.String).alias("seg_class"))
+    acc = pl.DataFrame({"stage": "fusion", "method": "m", "metric": "rmse_pos_m", "segment": "all",
+                        "value": 100.0, "n_runs": 1})
+    got = {r["metric"]: r["value"] for r in bound_metrics(scored, acc, b).iter_rows(named=True)}
+    assert got["pcrb_pos_m"] == pytest.approx(np.sqrt(measured["b2_pos"].mean()))
+    assert got["bound_unmeasured_samples"] == before

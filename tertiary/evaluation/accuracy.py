@@ -11,6 +11,11 @@ The matched rows with a reference aircraft, at least ``skip_first_s`` (default 2
 filter transient) after the first epoch of their (run, picture, track). Rows the
 matcher left unmatched (false tracks, second tracks on an aircraft, gross errors beyond the
 gate) are not accuracy samples: they are counted by the continuity and picture metrics.
+Where the epochs at which each aircraft was reported are known (``observed``: the pipeline's
+aligned reports), an aircraft is scored from its first reported epoch on: a row matched to an
+aircraft that no sensor has reported yet is some other object's track inside the matching gate
+(an aircraft entering beside another), not an estimate of that aircraft, and no estimator of it
+could be nearer than its prior.
 
 Real accuracy (monograph (2.15), (4.84))
 ----------------------------------------
@@ -89,6 +94,7 @@ __all__ = [
     "continuity_metrics",
     "picture_accuracy",
     "scored_samples",
+    "first_seen",
 ]
 
 Denominator = Literal["n-1", "n"]
@@ -318,19 +324,40 @@ def row_scores(matched: pl.DataFrame) -> pl.DataFrame:
     return m.drop("__nees_diag")
 
 
-def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig()) -> pl.DataFrame:
+def scored_rows(matched: pl.DataFrame, cfg: AccuracyConfig = AccuracyConfig(),
+                first_seen: pl.DataFrame | None = None) -> pl.DataFrame:
     """The accuracy samples of a matched picture (module docstring): rows with a ``truth_id``,
     after the transient, with ``seg_class``, the squared errors ``e2_*`` (:func:`error_columns`),
     ``sd_pos`` and the NEES columns ``nees_pos`` (3 dof) and ``nees`` (6 dof; null without a full
     covariance). The ``cov`` column is consumed (not returned). ``matched`` may carry the
-    :func:`row_scores` already (a picture scored in blocks)."""
+    :func:`row_scores` already (a picture scored in blocks). ``first_seen``
+    (:func:`first_seen`): only rows at or after their aircraft's first reported epoch."""
     m = matched
+    if first_seen is not None and m.height:
+        m = m.join(first_seen, on=["run", "truth_id"], how="left", maintain_order="left")
     keep = pl.col("truth_id").is_not_null()
+    if first_seen is not None and m.height:
+        keep = keep & (pl.col("epoch") >= pl.col(_FIRST_SEEN))
     if cfg.skip_first_s > 0 and m.height:
         first = pl.col("epoch").min().over(_TRACK)
         keep = keep & ((pl.col("epoch") - first).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
-    m = m.filter(keep)                   # one filter: the picture copied once
+    m = m.filter(keep).drop(_FIRST_SEEN, strict=False)      # one filter: the picture copied once
     return m if set(ROW_SCORES) <= set(m.columns) else row_scores(m)
+
+
+_FIRST_SEEN = "__first_seen"
+
+
+def first_seen(observed: pl.DataFrame | pl.LazyFrame | None, matched_schema: pl.Schema) -> pl.DataFrame | None:
+    """(run, truth_id, first reported epoch) of every aircraft in ``observed`` (run, epoch,
+    truth_id), in the types of the matched rows (``matched_schema``), for :func:`scored_rows`;
+    None without ``observed``."""
+    if observed is None:
+        return None
+    return (observed.lazy().drop_nulls("truth_id").group_by("run", "truth_id")
+            .agg(pl.col("epoch").min().alias(_FIRST_SEEN))
+            .select(pl.col("run").cast(matched_schema["run"]), pl.col("truth_id").cast(matched_schema["truth_id"]),
+                    pl.col(_FIRST_SEEN).cast(matched_schema["epoch"])).collect())
 
 
 def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataFrame]:
@@ -452,7 +479,8 @@ def picture_accuracy(matched: pl.DataFrame, stage: str, cfg: AccuracyConfig = Ac
             schema={"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64, "seg_class": pl.String}))
     # what the metrics below read: the picture's other columns are not copied through them
     scored = scored_rows(matched.select(c for c in matched.columns if c in ACCURACY_COLUMNS or c in ROW_SCORES)
-                         if set(ROW_SCORES) <= set(matched.columns) else matched, cfg)
+                         if set(ROW_SCORES) <= set(matched.columns) else matched, cfg,
+                         first_seen(observed, matched.schema))
     scored = scored.select(c for c in scored.columns if c in ACCURACY_COLUMNS)
     parts = [accuracy_from_matched(scored, cfg, stage), *_consistency(scored, stage, cfg.band),
              continuity_metrics(matched, observed, stage)]

@@ -16,7 +16,7 @@ from tertiary.core.units import STATE
 from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUSION_METRICS, ROW_SCORES,
                                           AccuracyConfig, accuracy_table, aircraft_epochs, by_epoch_table,
                                           continuity_columns, continuity_table, coverage_counts, coverage_table,
-                                          empty_metrics, metrics_concat, picture_accuracy, pool_epochs,
+                                          empty_metrics, first_seen, metrics_concat, picture_accuracy, pool_epochs,
                                           potential_table, scored_rows, scored_samples, track_counts,
                                           with_segments)
 from tertiary.evaluation.buckets import file_buckets
@@ -59,10 +59,11 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
     by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks")
                 if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
     parts = _Parts()
+    seen_from = first_seen(observed, schema)
     for k in range(buckets):
         part = by_track[k].collect()
         if part.height:
-            parts.add_tracks(part, cfg)
+            parts.add_tracks(part, cfg, seen_from)
         del part
     if not parts.rows:
         return picture_accuracy(pl.DataFrame(), stage, cfg)
@@ -138,14 +139,15 @@ class _Parts:
         aggs = [pl.col(c).min() if c == "__first" else pl.col(c).sum() for c in both.columns if c not in keys]
         self.tables[name] = both.group_by(keys).agg(aggs) if aggs else both.unique()
 
-    def add_tracks(self, part: pl.DataFrame, cfg: AccuracyConfig) -> None:
-        """The partial sums of one bucket of whole tracks (the columns :func:`picture_accuracy` reads)."""
+    def add_tracks(self, part: pl.DataFrame, cfg: AccuracyConfig, seen_from: pl.DataFrame | None = None) -> None:
+        """The partial sums of one bucket of whole tracks (the columns :func:`picture_accuracy` reads);
+        ``seen_from``: each aircraft's first reported epoch (:func:`first_seen`)."""
         self.rows += part.height
         m = continuity_columns(part)
         self.fold("tracks", track_counts(m), ["method"])
         self.fold("track_runs", m.select("method", "run").unique(), ["method", "run"])
         del m
-        scored = scored_rows(part, cfg)
+        scored = scored_rows(part, cfg, seen_from)
         scored = scored.select(c for c in scored.columns if c in ACCURACY_COLUMNS or c == _ROW)
         self.samples.append(pl.concat([scored.select(_ROW), scored_samples(scored)], how="horizontal"))
         if scored.height:

@@ -113,7 +113,11 @@ Over the *same scored samples* (run, epoch, truth_id) as a picture's accuracy ro
 pooled as the RMSE is: ``pcrb_pos_m`` = sqrt(mean_k mean_{j∈k} tr P_pos), ``pcrb_horizontal_m``
 (P_xx + P_yy), ``pcrb_vel_mps`` (tr P_vel), and the signed gaps ``gap_pos_m`` =
 ``rmse_pos_m`` − ``pcrb_pos_m``, ``gap_horizontal_m``, ``gap_vel_mps`` (> 0: above the bound),
-per segment all/straight/turn. The bound is the same in every Monte-Carlo run (the geometry,
+per segment all/straight/turn. A sample at an epoch before its aircraft's first measurement
+holds only the prior; the accuracy scores an aircraft from its first reported epoch on, so such a
+sample is rare (a plot stamped just before an epoch that the radar's clock offset puts just after
+it) and is counted in ``bound_unmeasured_samples``, not pooled. The bound is the same in every
+Monte-Carlo run (the geometry,
 the truth and the expected information do not depend on the noise draw), so it is computed
 once per (truth_id, epoch).
 """
@@ -150,6 +154,8 @@ BOUND_METRICS: dict[str, tuple[str, str]] = {
     "pcrb_vel_mps": ("b2_vel", "rmse_vel_mps"),
 }
 _GAP = {"pcrb_pos_m": "gap_pos_m", "pcrb_horizontal_m": "gap_horizontal_m", "pcrb_vel_mps": "gap_vel_mps"}
+#: the scored samples before their aircraft's first measurement: no bound, not pooled
+UNMEASURED = "bound_unmeasured_samples"
 #: 9-state (x, vx, ax, y, vy, ay, z, vz, az) indices of the positions and velocities
 POS = np.array([0, 3, 6])
 VEL = np.array([1, 4, 7])
@@ -621,6 +627,11 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
         out.append(_pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, acc[st], vel))
         del r_eq, dev
     b = np.concatenate(out)
+    # an epoch before its aircraft's first measurement holds the prior alone: a sample scored
+    # there is not an estimate of that aircraft (tertiary.evaluation.accuracy, "Scored rows"),
+    # so it has no bound (NaN: counted, not pooled, by bound_metrics)
+    seen = np.cumsum(~record) - np.repeat(np.cumsum(~record)[starts] - (~record)[starts], lengths)
+    b[seen[record] == 0] = np.nan
     return rows.filter(record).select("truth_id", "epoch").with_columns(
         pl.Series("b2_pos", b[:, 0]), pl.Series("b2_horizontal", b[:, 1]), pl.Series("b2_vel", b[:, 2])
     ).cast(out_schema)
@@ -689,11 +700,13 @@ def _bound_sums(scored: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:
     cols = [c for c, _ in BOUND_METRICS.values()]
     if scored.is_empty() or bound.is_empty():
         return pl.DataFrame(schema={"method": pl.String, "segment": pl.String, "epoch": TIME, "run": pl.UInt32,
-                                    **{c: pl.Float64 for c in cols}, "__n": pl.UInt32})
+                                    **{c: pl.Float64 for c in cols}, "__n": pl.UInt32, "__unmeasured": pl.UInt32})
     s = scored.select("method", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                       pl.col("truth_id").cast(pl.Int64), "seg_class")
     s = s.join(bound, on=["truth_id", "epoch"], how="inner")
-    aggs = [*[pl.col(c).sum() for c in cols], pl.len().cast(pl.UInt32).alias("__n")]
+    measured = pl.col(cols[0]).is_not_nan()
+    aggs = [*[pl.col(c).filter(measured).sum() for c in cols], measured.sum().cast(pl.UInt32).alias("__n"),
+            (~measured).sum().cast(pl.UInt32).alias("__unmeasured")]
     # segment "all" and each sample's straight/turn class grouped in place: the samples of every
     # picture are not copied once per segment (the stage's peak on a long run)
     names = [pl.col("method", "segment").cast(pl.String)]       # the samples' may be categorical
@@ -711,24 +724,28 @@ def _bound_rows(sums: pl.DataFrame, accuracy: pl.DataFrame) -> pl.DataFrame:
     cols = [c for c, _ in BOUND_METRICS.values()]
     per = sums.group_by("method", "segment", "epoch").agg(*[(pl.col(c).sum() / pl.col("__n").sum()).alias(c)
                                                             for c in cols],
+                                                          pl.col("__n").sum(), pl.col("__unmeasured").sum(),
                                                           pl.col("run").n_unique().alias("__runs"))
-    pooled = per.group_by("method", "segment").agg(*[pl.col(c).mean().sqrt() for c in cols],
+    measured = pl.col("__n") > 0          # an epoch whose samples all precede their first plot pools nothing
+    pooled = per.group_by("method", "segment").agg(*[pl.col(c).filter(measured).mean().sqrt() for c in cols],
+                                                   pl.col("__unmeasured").sum().cast(pl.Float64).alias(UNMEASURED),
                                                    pl.col("__runs").max().alias("n_runs"))
-    long = pooled.unpivot(index=["method", "segment", "n_runs"], on=cols, variable_name="col", value_name="value")
-    name = {c: m for m, (c, _) in BOUND_METRICS.items()}
+    long = pooled.unpivot(index=["method", "segment", "n_runs"], on=[*cols, UNMEASURED], variable_name="col",
+                          value_name="value")
+    name = {c: m for m, (c, _) in BOUND_METRICS.items()} | {UNMEASURED: UNMEASURED}
     long = long.with_columns(pl.col("col").replace_strict(name, return_dtype=pl.String).alias("metric"))
     if "stage" in accuracy.columns:      # the seed accuracy rows (not the surveillance stage's)
         accuracy = accuracy.filter(pl.col("stage").is_in(["fusion", "tracker"]))
     acc = accuracy.filter(pl.col("metric").is_in([a for _, a in BOUND_METRICS.values()])).select(
         "method", "segment", pl.col("metric").alias("__acc"), pl.col("value").alias("__rmse"))
     acc_of = {m: a for m, (_, a) in BOUND_METRICS.items()}
-    gap = (long.with_columns(pl.col("metric").replace_strict(acc_of, return_dtype=pl.String).alias("__acc"))
+    gap = (long.filter(pl.col("metric").is_in(list(BOUND_METRICS))).with_columns(pl.col("metric").replace_strict(acc_of, return_dtype=pl.String).alias("__acc"))
            .join(acc, on=["method", "segment", "__acc"], how="inner")
            .with_columns((pl.col("__rmse") - pl.col("value")).alias("value"),
                          pl.col("metric").replace_strict(_GAP, return_dtype=pl.String).alias("metric")))
     out = pl.concat([long.select("method", "metric", "segment", "value", "n_runs"),
                      gap.select("method", "metric", "segment", "value", "n_runs")])
-    order = {m: i for i, m in enumerate([*BOUND_METRICS, *_GAP.values()])}
+    order = {m: i for i, m in enumerate([*BOUND_METRICS, *_GAP.values(), UNMEASURED])}
     seg = pl.col("segment").replace_strict({"all": 0, "straight": 1, "turn": 2}, default=3, return_dtype=pl.Int8)
     return (out.with_columns(pl.lit("bound").alias("stage"))
             .sort(pl.col("method"), seg, pl.col("metric").replace_strict(order, return_dtype=pl.Int8))
