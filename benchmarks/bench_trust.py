@@ -235,10 +235,12 @@ def _truth_of(data: Path):
 def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> dict:
     """The cause of each picture-induced alert episode of ``picture`` at its first epoch, the first
     rule that fires: ``one aircraft or unmatched`` (the episode has no two distinct aircraft),
-    ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
+    ``the picture's uncertainty`` (the truth's own states, given the two tracks' covariances,
+    raise the same alert: :func:`_uncertainty_alerts`; no error of the picture's states is
+    needed), ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
     ``height error`` (> 150 m), ``vertical rate error`` (> 2 m/s: a climb or descent the
     aircraft does not fly, or the reverse), ``en-route/terminal boundary`` (one track above the en-route floor,
-    one below), ``estimation term`` (the covariance-based widening of the horizontal threshold
+    one below), ``wide horizontal threshold`` (the covariance-based widening of the horizontal threshold
     above 1 km: an uncertain or inconsistent velocity), else ``other``. Counts per
     classification and cause; the medians of the estimation term and of the tracks' velocity
     standard deviation against their real velocity error."""
@@ -284,14 +286,16 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
     sep = (pl.when(hi >= floor).then(cc["enroute_h_m"]).otherwise(3 * 1852.0) if floor is not None
            else pl.lit(cc["dr_h_m"] or 3 * 1852.0))
     a = a.with_columns((pl.col("r_thr_m") - sep - cc["pilot_h_m"]).alias("est_h_m"))
+    a = a.join(_uncertainty_alerts(db, data, a, picture, truth), on="k", how="left")
     cause = (pl.when(pl.col("truth_a").is_null()).then(pl.lit("one aircraft or unmatched"))
+             .when(pl.col("uncertainty")).then(pl.lit("the picture's uncertainty"))
              .when(pl.col("coast_a") | pl.col("coast_b")).then(pl.lit("coasting track"))
              .when(pl.max_horizontal("perr_a", "perr_b") > 2000).then(pl.lit("track far from its aircraft"))
              .when(pl.max_horizontal("herr_a", "herr_b") > 150).then(pl.lit("height error"))
              .when(pl.max_horizontal("rerr_a", "rerr_b") > 2.0).then(pl.lit("vertical rate error"))
              .when(pl.lit(floor is not None) & (hi >= (floor or 0.0))
                    & (pl.min_horizontal("alt_a", "alt_b") < (floor or 0.0))).then(pl.lit("en-route/terminal boundary"))
-             .when(pl.col("est_h_m") > 1000).then(pl.lit("estimation term"))
+             .when(pl.col("est_h_m") > 1000).then(pl.lit("wide horizontal threshold"))
              .otherwise(pl.lit("other")))
     a = a.with_columns(cause.alias("cause"))
     counts = {f"{c}: {k}": n for c, k, n in a.group_by("classification", "cause").len().sort("classification", "cause")
@@ -301,6 +305,57 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
         pl.max_horizontal("verr_a", "verr_b").median().alias("velocity_error_mps"))
     return {"picture": picture, "counts": counts,
             "false_medians": {k: _clean(v) for k, v in med.row(0, named=True).items()} if med.height else {}}
+
+
+def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, before_s: float = 40.0):
+    """(k, uncertainty) per alert of ``alerts`` (k, run, t_start, id_a, id_b, truth_a, truth_b):
+    whether the same conflict prediction (the run's configuration and confirmation) on the
+    truth's states of the two aircraft, each given its track's covariance and height-channel
+    variances at every epoch (the epochs from ``before_s`` before the alert's first to it),
+    raises the alert (confirmed) at the alert's first epoch. True: the picture's uncertainty alone
+    alerts (a perfect state with that covariance would too); False: the picture's states differ
+    from the truth enough to alert where their truth would not."""
+    import duckdb
+    import polars as pl
+    from datetime import timedelta
+    from safety import alerts as sa, conflicts as sc
+    from tertiary.evaluation.truth_picture import truth_picture
+    from tertiary.io.dataset import read_dataset
+    from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
+    ds = read_dataset(data)
+    cc = adapt_to_scenario(check_config(PipelineConfig()), ds).conflicts
+    method, flt = picture.split("+")
+    con = duckdb.connect(str(db), read_only=True)
+    var = ["alt_var_m2", "alt_rate_var_m2ps2", "alt_cov_m2ps"]
+    out = []
+    for r in alerts.filter(pl.col("truth_a").is_not_null() & pl.col("truth_b").is_not_null()).iter_rows(named=True):
+        t0 = r["t_start"] - timedelta(seconds=before_s)
+        cov = pl.from_arrow(con.sql(
+            f"select epoch, track_id, cov_ut, {', '.join(var)} from tracks where method = '{method}' "
+            f"and filter = '{flt}' and run = {int(r['run'])} and track_id in ({int(r['id_a'])}, {int(r['id_b'])}) "
+            f"and epoch between '{t0.isoformat()}' and '{r['t_start'].isoformat()}'").to_arrow_table())
+        ids = {r["id_a"]: r["truth_a"], r["id_b"]: r["truth_b"]}
+        cov = cov.with_columns(pl.col("track_id").replace_strict(ids, return_dtype=pl.UInt64),
+                               pl.col("epoch").cast(pl.Datetime("us", "UTC")))
+        ut = cov["cov_ut"].to_numpy().reshape(-1, 21).astype(float)
+        full = np.zeros((cov.height, 6, 6))
+        iu = np.triu_indices(6)
+        full[:, iu[0], iu[1]] = ut
+        full[:, iu[1], iu[0]] = ut
+        cov = cov.drop("cov_ut").with_columns(pl.Series("cov", full.reshape(-1, 36), pl.Array(pl.Float64, 36)))
+        pair = truth.filter(pl.col("truth_id").is_in([r["truth_a"], r["truth_b"]]))
+        spans = pair.group_by("truth_id").agg(pl.col("time").min().alias("first"), pl.col("time").max().alias("last"))
+        epochs = cov.select(pl.lit(r["run"], pl.UInt32).alias("run"), "epoch").unique().sort("epoch")
+        pic = truth_picture(pair, spans.with_columns(pl.lit(r["run"], pl.UInt32).alias("run")), epochs, picture)
+        pic = pic.drop("cov_diag", *var, strict=False).join(cov, on=["epoch", "track_id"], how="inner")
+        us = epochs["epoch"].dt.epoch("us")
+        rows, _ = sc.conflicts_step(sc.init_conflict_state(), pic, cc, "track_id", ds.origin, int(us.min()),
+                                    int(us.max()) + 1, slim=False)
+        at = int(pl.Series([r["t_start"]]).dt.epoch("us")[0])
+        hit = rows.filter((pl.col("epoch").dt.epoch("us") == at) & pl.col("alert"))
+        out.append({"k": r["k"], "uncertainty": hit.height > 0})
+    con.close()
+    return pl.DataFrame(out, schema={"k": pl.UInt32, "uncertainty": pl.Boolean})
 
 
 # --------------------------------------------------------------------------- datasets
