@@ -475,3 +475,39 @@ def test_a_level_aircraft_rate_stays_known_between_its_replies():
     assert has[5:].all()
     assert np.sqrt(est.prr[-20:]).max() < 0.6                 # q_M·τ alone would give √(0.5·9) ≈ 2.1 m/s
     assert np.abs(est.r[-20:]).max() < 1e-6
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "reference"])
+def test_a_refused_reply_is_no_better_than_its_residual_so_a_levelled_off_source_wins(compiled):
+    """An aircraft climbing at 16.5 m/s levels off; two radars' filters (replies every 8 s, 4 s
+    apart) both refuse the first level replies. A refused reply's output variance holds its
+    residual, so from the moment one source has restarted on the level it wins the
+    minimum-variance choice, instead of the other filter that is still extrapolating the climb.
+    Fails when a refused row outputs the prediction's own variance (the extrapolating filter,
+    a few metres of σ, is kept, 230 m above the level)."""
+    from tertiary.stages.tracking.altitude import combine_min_variance, predict_combined
+    cfg = AltitudeConfig()
+    level_t, rate, h0 = 200.0, 16.5, 5000.0
+
+    def height(t):
+        return h0 + rate * np.minimum(t, level_t)
+    ta, tb = np.arange(0.0, 300.0, 8.0), np.arange(4.0, 300.0, 8.0)
+    t = np.r_[ta, tb]
+    z = np.round(height(t) / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    var = np.full(len(t), quantisation_variance(QUANTUM_MODE_S_M))
+    starts, lengths = np.array([0, len(ta)]), np.array([len(ta), len(tb)])
+    est, has, rej, _, mu = filter_tracks_carry(t, z, var, starts, lengths, cfg, compiled=compiled, with_mu=True)
+    assert rej.any()
+    refused = np.flatnonzero(rej)
+    assert (est.phh[refused] > (z[refused] - (est.h[refused])) ** 2).all()
+    # the first restart on the level: the second refused reply of one source
+    first = t[(t > level_t) & ~rej & (np.abs(est.h - height(t)) < QUANTUM_MODE_S_M)].min()
+    assert first < level_t + 16.0
+    worst = 0.0
+    for epoch in np.arange(first + 2.0, 280.0, 4.0):     # every epoch after it
+        last = [s + np.searchsorted(t[s:s + n], epoch, side="right") - 1 for s, n in zip(starts, lengths)]
+        now = predict_combined(est.take(np.array(last)), epoch - t[last], mu[last], cfg)
+        pick, ok = combine_min_variance(now, has[last], np.zeros(2, np.int64), 1)
+        assert ok[0]
+        worst = max(worst, abs(pick.h[0] - height(epoch)))
+    assert worst < 10.0, worst

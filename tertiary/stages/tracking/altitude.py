@@ -15,7 +15,13 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    A reply with |ν| > g·√S + f (``gate_sigma`` g, ``gate_floor_m`` f) is a **garble** (a
    wrong code) and is not used; the ``max_rejects``-th consecutive reply outside the gate
    restarts the filter on itself (a real altitude jump persists, independent garbles do
-   not). Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
+   not). A refused reply leaves the filter's state as predicted, but the row's output height
+   variance takes the refused residual ν² as well: the reply was a garble or the aircraft has
+   left the filter's motion (a level-off, the onset of a climb), and until the next reply decides
+   the filter's height is no better than the residual it could not explain. Where several
+   radars see the aircraft, a source whose filter used (or restarted on) its reply then wins
+   the minimum-variance choice over one that is extrapolating a climb the aircraft no longer
+   flies. Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
    *confirmed* once a second reply falls inside the gate of its first; an unconfirmed filter
    restarts on any reply outside its gate, and is output only with an inflated σ
    (``unconfirmed_sigma_m``), so a garbled first reply never outweighs a confirmed source. A
@@ -446,6 +452,8 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
             cur[j].put(sel, _select(restart, new, _select(accept, upd[j], preds[j])))
         mu[:, sel] = np.where(restart, 1.0 / nm, np.where(accept, mu_u, c))
         nxt = _select(restart, new, _select(accept, u, s))
+        refused = bad & ~restart
+        nxt.phh = np.where(refused, s.phh + nu ** 2, nxt.phh)       # the refused residual (module docstring)
         miss[sel] = np.where(restart, 0, miss[sel])
         conf[sel] = np.where(restart, False, conf[sel] | accept)
         ok[sel] |= restart

@@ -187,6 +187,8 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
                         mu[j] = mu_u[j] if accept else c[j]
                     for f in range(5):
                         out[f, i] = u[f] if accept else s[f]
+                    if bad:
+                        out[2, i] = s[2] + nu * nu       # the refused residual (module altitude)
                     conf = conf or accept
                 out[5, i] = mu[nm - 1]
                 ok = ok or restart
