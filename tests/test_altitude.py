@@ -511,3 +511,89 @@ def test_a_refused_reply_is_no_better_than_its_residual_so_a_levelled_off_source
         assert ok[0]
         worst = max(worst, abs(pick.h[0] - height(epoch)))
     assert worst < 10.0, worst
+
+
+def _level_offs(rng: np.random.Generator, n_tracks: int = 150):
+    """Tracks that climb or descend at 5–20 m/s and level off (or level aircraft that start a
+    climb) part-way, a reply every 4–12 s, with each reply's downlinked vertical rate (σ 1 m/s,
+    missing on a third), 3 % garbles of 0.1–3 km and 5 % missing altitudes."""
+    lengths = rng.integers(2, 60, n_tracks)
+    starts = np.r_[0, np.cumsum(lengths)[:-1]]
+    t = np.concatenate([np.cumsum(rng.uniform(4.0, 12.0, m)) for m in lengths])
+    z, vr = np.empty(len(t)), np.empty(len(t))
+    for g, (s, m) in enumerate(zip(starts, lengths)):
+        tt = t[s:s + m] - t[s]
+        change = rng.uniform(0.0, tt[-1] + 1.0)
+        before, after = (rng.choice([-1.0, 1.0]) * rng.uniform(5.0, 20.0), 0.0)
+        if g % 3 == 0:
+            before, after = after, before
+        rate = np.where(tt < change, before, after)
+        z[s:s + m] = 3000.0 + before * np.minimum(tt, change) + after * np.maximum(tt - change, 0.0)
+        vr[s:s + m] = rate + rng.normal(0.0, 1.0, m)
+    z = np.round(z / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    garble = rng.random(len(t)) < 0.03
+    z[garble] += rng.choice([-1.0, 1.0], garble.sum()) * rng.uniform(100.0, 3_000.0, garble.sum())
+    z[rng.random(len(t)) < 0.05] = np.nan
+    vr[rng.random(len(t)) < 0.33] = np.nan
+    return t, z, np.full(len(t), quantisation_variance(QUANTUM_MODE_S_M)), starts, lengths, vr
+
+
+@pytest.mark.parametrize("cfg", [AltitudeConfig(), AltitudeConfig(model="cv")], ids=["imm", "cv"])
+def test_the_compiled_filter_equals_the_reference_with_downlinked_rates(cfg):
+    """With downlinked vertical rates the compiled recursion still gives the vectorised loop's
+    estimates, masks and carry, and the registers do restart filters (not vacuous)."""
+    t, z, var, starts, lengths, vr = _level_offs(np.random.default_rng(9))
+    want = filter_tracks_carry(t, z, var, starts, lengths, cfg, compiled=False, vrate=vr)
+    got = filter_tracks_carry(t, z, var, starts, lengths, cfg, compiled=True, vrate=vr)
+    _assert_same_filter(want, got)
+    blind = filter_tracks_carry(t, z, var, starts, lengths, cfg, compiled=False)
+    assert (np.abs(blind[0].h - want[0].h) > 30.0).sum() > 10
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "reference"])
+def test_a_level_off_said_by_the_register_restarts_the_filter_at_once(compiled):
+    """A climb at 16.5 m/s levels off between two replies (every 8 s). The first level reply is
+    outside the garble gate; its downlinked vertical rate (0 m/s) says the aircraft changed its
+    vertical motion, so the filter restarts on it at once with that rate, instead of
+    extrapolating the climb (+130 m) until the second refused reply. A garbled code whose
+    register agrees with the filter's rate is still refused. Fails without the register's
+    restart."""
+    cfg = AltitudeConfig()
+    t = np.arange(0.0, 320.0, 8.0)
+    h = 5000.0 + 16.5 * np.minimum(t, 200.0)
+    z = np.round(h / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    vr = np.where(t <= 200.0, 16.5, 0.0)
+    z[10] += 25 * 2 ** 7 * FT_M                   # a garbled code in the climb, its register the climb's
+    var = np.full(len(t), quantisation_variance(QUANTUM_MODE_S_M))
+    est, has, rej, _ = filter_tracks_carry(t, z, var, np.array([0]), np.array([len(t)]), cfg, compiled=compiled,
+                                           vrate=vr)
+    first = int(np.searchsorted(t, 200.0, side="right"))        # the first level reply
+    assert rej[10] and abs(est.h[10] - h[10]) < 10.0
+    assert not rej[first] and abs(est.h[first] - h[first]) < QUANTUM_MODE_S_M and abs(est.r[first]) < 1e-9
+    assert np.abs(est.h[first:] - h[first:]).max() < QUANTUM_MODE_S_M
+    blind = filter_tracks_carry(t, z, var, np.array([0]), np.array([len(t)]), cfg, compiled=compiled)[0]
+    assert blind.h[first] - h[first] > 100.0                   # what the register prevents
+
+
+def test_the_fused_vertical_channel_reads_the_reports_downlinked_rate():
+    """A radar track's reports (every 8 s) of a climb that levels off, each with its downlinked
+    vertical rate ``ehs_vrate_mps``: the fused vertical channel's row of the first level report
+    is at the level, not 130 m above it. Fails when the channel does not hand the reports'
+    registers to its filters."""
+    from tertiary.stages.fusion.vertical import _mode_c_per_row
+    n = 40
+    sec = np.arange(n) * 8.0
+    h = 5000.0 + 16.5 * np.minimum(sec, 200.0)
+    t0 = np.datetime64("2021-10-07T08:00:00", "us")
+    times = t0 + (sec * 1e6).astype("timedelta64[us]")
+    rows = pl.DataFrame({"run": np.zeros(n, np.uint32), "radar_id": np.ones(n, np.uint32),
+                         "local_track_id": np.full(n, 7, np.uint32), "report_id": np.arange(n, dtype=np.uint64),
+                         "time": times, "epoch": times, "fresh": np.ones(n, bool), "mode_s": ["3c6444"] * n,
+                         "altitude_m": np.round(h / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M,
+                         "ehs_vrate_mps": np.where(sec <= 200.0, 16.5, 0.0)}
+                        ).with_columns(pl.col("time", "epoch").cast(pl.Datetime("us", "UTC")))
+    est, has, _ = _mode_c_per_row(rows, AltitudeConfig())
+    first = int(np.searchsorted(sec, 200.0, side="right"))
+    assert has[first] and abs(est.h[first] - h[first]) < QUANTUM_MODE_S_M
+    blind, _, _ = _mode_c_per_row(rows.drop("ehs_vrate_mps"), AltitudeConfig())
+    assert blind.h[first] - h[first] > 100.0

@@ -3,7 +3,8 @@
 
 When the rows carry the reports' barometric ``altitude_m`` (with ``time``), a two-state (h, ḣ)
 filter runs per (run, radar, local track) over its reports' replies (quantum 25 ft with
-``mode_s``, 100 ft without, R = q²/12, garble gate), is extrapolated from the report time to the
+``mode_s``, 100 ft without, R = q²/12, garble gate; a refused reply whose downlinked vertical
+rate ``ehs_vrate_mps`` says the aircraft changed its vertical motion restarts it), is extrapolated from the report time to the
 epoch ((A1)–(A2)) and, among the target's sources with an estimate, the one with the smallest
 height variance is kept (all radars decode the same reply, so their errors are not independent:
 :func:`tertiary.stages.tracking.altitude.combine_min_variance`). This channel does not depend on
@@ -66,7 +67,9 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
     # aircraft, and its altitude filter restarts (tertiary.stages.tracking.altitude.filter_tracks, ident)
     ident = (pl.col("mode_s").cast(pl.String).str.to_integer(base=16, strict=False).fill_null(-1)
              if has_s else pl.lit(-1, pl.Int64))
-    rep = track_keys(rows.filter(fresh).select(*TRACK, pl.col("report_id").cast(pl.UInt64), "time", "altitude_m",
+    vrate = (pl.col("ehs_vrate_mps").cast(pl.Float64) if "ehs_vrate_mps" in rows.columns
+             else pl.lit(None, pl.Float64)).alias("__vrate")
+    rep = track_keys(rows.filter(fresh).select(*TRACK, pl.col("report_id").cast(pl.UInt64), "time", "altitude_m", vrate,
                                                 (pl.col("mode_s").is_not_null() if has_s else pl.lit(True)).alias("__s"),
                                                 ident.cast(pl.Int64).alias("__ident"))
                       .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
@@ -86,7 +89,8 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
         var = quantisation_variance(np.where(rep["__s"].to_numpy(), QUANTUM_MODE_S_M, QUANTUM_MODE_C_M))
         init = _alt_init(rep[starts].select(TRACK), old, cfg)
         post, has, _, final, mu = filter_tracks_carry(t, z, var, starts, lengths, cfg,
-                                                      ident=rep["__ident"].to_numpy(), init=init, with_mu=True)
+                                                      ident=rep["__ident"].to_numpy(), init=init, with_mu=True,
+                                                      vrate=rep["__vrate"].fill_null(np.nan).to_numpy())
         cols = post.columns()
         lookups.insert(0, rep.select("run", "report_id").with_columns(
             *(pl.Series(c, cols[c]) for c in ALT_COLUMNS), pl.Series("__has", has), pl.Series("__mu", mu)))

@@ -21,7 +21,12 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    the filter's height is no better than the residual it could not explain. Where several
    radars see the aircraft, a source whose filter used (or restarted on) its reply then wins
    the minimum-variance choice over one that is extrapolating a climb the aircraft no longer
-   flies. Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
+   flies. A refused reply whose own downlinked vertical rate (Mode S BDS 6,0, a Comm-B reply
+   of its own, which a garbled altitude code does not corrupt) differs from the filter's rate,
+   (r_reg − ḣ⁻)² > g_v (P⁻_ḣḣ + σ_v²), says the aircraft has changed its vertical motion (a
+   level-off, the onset of a climb): the filter restarts on that reply at once, with the
+   register's rate (variance σ_v²), instead of extrapolating the old motion until
+   ``max_rejects`` replies have been refused. Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
    *confirmed* once a second reply falls inside the gate of its first; an unconfirmed filter
    restarts on any reply outside its gate, and is output only with an inflated σ
    (``unconfirmed_sigma_m``), so a garbled first reply never outweighs a confirmed source. A
@@ -106,6 +111,8 @@ class AltitudeConfig:
     * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
     * ``hold_sigma``: the manoeuvre-onset hold of the IMM (module docstring, "Held replies");
       0 disables it.
+    * ``vertical_rate_sigma_mps``, ``vertical_rate_gate``: σ_v of a downlinked vertical rate
+      (BDS 6,0) and the χ²(1) gate g_v beyond which it restarts a filter that refused the reply.
     * ``unconfirmed_sigma_m``: a filter not yet confirmed by a second consistent reply is output
       with at least this height σ (and its initial rate σ), so that any confirmed channel of
       another source wins (minimum variance) but a lone reply still beats the elevation-based
@@ -124,6 +131,8 @@ class AltitudeConfig:
     gate_floor_m: float = 45.0
     max_rejects: int = 2
     hold_sigma: float = 3.0
+    vertical_rate_sigma_mps: float = 1.0
+    vertical_rate_gate: float = 10.83
 
     def __post_init__(self) -> None:
         if self.model not in ("imm", "cv"):
@@ -134,6 +143,8 @@ class AltitudeConfig:
                              "must be > 0, gate_floor_m >= 0")
         if not self.hold_sigma >= 0:
             raise ValueError(f"altitude filter: hold_sigma must be >= 0, got {self.hold_sigma}")
+        if not (self.vertical_rate_sigma_mps > 0 and self.vertical_rate_gate > 0):
+            raise ValueError("altitude filter: vertical_rate_sigma_mps and vertical_rate_gate must be > 0")
         if self.max_rejects < 1:
             raise ValueError("altitude filter: max_rejects must be >= 1")
 
@@ -388,7 +399,8 @@ def filter_tracks(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: 
 
 def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
                         cfg: AltitudeConfig = AltitudeConfig(), ident: NDArray[np.int64] | None = None,
-                        init: FilterCarry | None = None, compiled: bool = True, with_mu: bool = False) -> tuple:
+                        init: FilterCarry | None = None, compiled: bool = True, with_mu: bool = False,
+                        vrate: F64 | None = None) -> tuple:
     """:func:`filter_tracks` continued from ``init`` (one entry per track, in ``starts`` order;
     :meth:`FilterCarry.fresh` entries for tracks never seen; ``t`` on the same time base as
     ``init.t_last``), also returning each track's state after its last row. Running a track's
@@ -396,9 +408,12 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
     ``compiled``: the recursion compiled per track (:mod:`tertiary.stages.tracking.altitude_kernel`, the same
     equations); False: the loop below, vectorised over tracks per reply rank (the reference).
     ``with_mu``: a fifth element, the last model's probability after each row (the manoeuvre
-    model's for ``"imm"``, 1 for ``"cv"``), what :func:`predict_combined` extrapolates with."""
+    model's for ``"imm"``, 1 for ``"cv"``), what :func:`predict_combined` extrapolates with.
+    ``vrate`` (n,), optional: each reply's downlinked vertical rate, NaN where none (module
+    docstring)."""
+    vr_all = np.full(len(t), np.nan) if vrate is None else np.asarray(vrate, np.float64)
     if compiled and len(starts) and np.min(lengths) >= 1:
-        res = _filter_compiled(t, z, var, starts, lengths, cfg, ident, init)
+        res = _filter_compiled(t, z, var, starts, lengths, cfg, ident, init, vr_all)
         return res if with_mu else res[:4]
     qs, sojourn = _models(cfg)
     nm = len(qs)
@@ -419,7 +434,9 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
     held, held_id = c0.held.copy(), c0.held_id.copy()
     holding = cfg.hold_sigma > 0 and nm == 2
 
-    def step(sel, zk, vk, tk, idk, last_pass):
+    var_v = cfg.vertical_rate_sigma_mps ** 2
+
+    def step(sel, zk, vk, tk, idk, last_pass, vrk):
         """One reply per track of ``sel`` (positions in the sorted order); what the row records."""
         valid = np.isfinite(zk)
         models = [c.take(sel) for c in cur]
@@ -444,9 +461,12 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
         miss[sel] = np.where(accept, 0, np.where(bad, miss[sel] + 1, miss[sel]))
         # an unconfirmed filter restarts on any reply outside its gate (a garbled first reply
         # must not hold the channel for max_rejects replies)
-        restart = (valid & ~run) | (bad & ((miss[sel] >= cfg.max_rejects) | ~conf[sel])) | swapped
+        with np.errstate(invalid="ignore"):
+            moved = bad & np.isfinite(vrk) & ((vrk - s.r) ** 2 > cfg.vertical_rate_gate * (s.prr + var_v))
+        restart = (valid & ~run) | (bad & ((miss[sel] >= cfg.max_rejects) | ~conf[sel])) | swapped | moved
         held[1, sel] = np.where(restart, np.nan, held[1, sel])
         new = _init(np.where(valid, zk, 0.0), vk, cfg)
+        new.r, new.prr = np.where(moved, vrk, new.r), np.where(moved, var_v, new.prr)
         # a reply not used (missing, garble, held): each model keeps its prediction and μ = c
         for j in range(nm):
             cur[j].put(sel, _select(restart, new, _select(accept, upd[j], preds[j])))
@@ -476,8 +496,9 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
             hz = held[:, apply].copy()
             held[1, p] = np.nan
             if apply.size:
-                step(apply, hz[1], hz[2], np.maximum(hz[0], t_last[apply]), held_id[apply], False)
-        nxt, rej = step(sel, zk, vk, tk, idk, True)
+                step(apply, hz[1], hz[2], np.maximum(hz[0], t_last[apply]), held_id[apply], False,
+                     np.full(apply.size, np.nan))
+        nxt, rej = step(sel, zk, vk, tk, idk, True, vr_all[idx])
         if cfg.unconfirmed_sigma_m is not None:
             weak = ok[:m] & ~conf[:m]
             nxt.phh = np.where(weak, np.maximum(nxt.phh, cfg.unconfirmed_sigma_m ** 2), nxt.phh)
@@ -496,8 +517,8 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
 
 
 def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],
-                     cfg: AltitudeConfig, ident: NDArray[np.int64] | None, init: FilterCarry | None
-                     ) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
+                     cfg: AltitudeConfig, ident: NDArray[np.int64] | None, init: FilterCarry | None,
+                     vrate: F64) -> tuple[AltState, NDArray[np.bool_], NDArray[np.bool_], FilterCarry]:
     """:func:`filter_tracks_carry` by :func:`tertiary.stages.tracking.altitude_kernel.filter_recursion`."""
     qs, sojourn = _models(cfg)
     n, k = len(t), len(starts)
@@ -515,10 +536,11 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
     ready_for("altitude")
     # every array writable and contiguous (jit.arg): one compiled signature, not one per
     # read-only column the caller happens to pass
-    filter_recursion(arg(t), arg(z), arg(var), ids, arg(starts, np.int64), arg(lengths, np.int64),
+    filter_recursion(arg(t), arg(z), arg(var), arg(vrate), ids, arg(starts, np.int64), arg(lengths, np.int64),
             arg(qs), arg(sojourn),
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
-            float(cfg.hold_sigma), carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss,
+            float(cfg.hold_sigma), float(cfg.vertical_rate_sigma_mps) ** 2, float(cfg.vertical_rate_gate),
+            carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss,
             carry.last_id, carry.post, carry.has, carry.held, carry.held_id, out, has, rejected)
     return _as_state(out), has, rejected, carry, np.array(out[5])
 

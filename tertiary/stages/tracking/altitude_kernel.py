@@ -69,8 +69,8 @@ def _level_consistent(cur, mu, tau, zk, vk, qs, sojourn, hold_sigma):
 
 
 @_jit
-def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0, weak_var,
-            hold_sigma, c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, c_held, c_held_id,
+def filter_recursion(t, z, var, vr, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0,
+            weak_var, hold_sigma, vr_var, vr_gate, c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, c_held, c_held_id,
             out, has, rejected):
     """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
     place); per row the output state ``out`` (6, n: the state (5) and the last model's
@@ -78,7 +78,10 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
     ``hold_sigma`` > 0 (the IMM only): a reply that a confirmed, level filter would use but that
     lies beyond ``hold_sigma`` of the level model's prediction is held (the row outputs the
     prediction) until the next reply: dropped as a garble when that reply is level-consistent,
-    else applied just before it. ``c_held`` (3, k): the held reply's (t, z, R), NaN none."""
+    else applied just before it. ``c_held`` (3, k): the held reply's (t, z, R), NaN none. ``vr``:
+    each reply's downlinked vertical rate (NaN none): a refused reply whose register differs from
+    the filter's rate beyond ``vr_gate`` (with variance ``vr_var``) restarts the filter on it at
+    once, with that rate."""
     nm = len(qs)
     cur = np.empty((nm, 5))
     preds = np.empty((nm, 5))
@@ -171,13 +174,16 @@ def filter_recursion(t, z, var, ids, starts, lengths, qs, sojourn, gate_sigma, g
                     miss = 0
                 elif bad:
                     miss += 1
-                restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped
+                vrk = vr[i] if last_pass else np.nan
+                moved = bad and vrk == vrk and (vrk - s[1]) ** 2 > vr_gate * (s[4] + vr_var)
+                restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped or moved
                 if restart:
                     h_z = np.nan
+                    r0, prr0 = (vrk, vr_var) if moved else (0.0, v0 * v0)
                     for j in range(nm):
-                        cur[j, 0], cur[j, 1], cur[j, 2], cur[j, 3], cur[j, 4] = zz, 0.0, vk, 0.0, v0 * v0
+                        cur[j, 0], cur[j, 1], cur[j, 2], cur[j, 3], cur[j, 4] = zz, r0, vk, 0.0, prr0
                         mu[j] = 1.0 / nm
-                    out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = zz, 0.0, vk, 0.0, v0 * v0
+                    out[0, i], out[1, i], out[2, i], out[3, i], out[4, i] = zz, r0, vk, 0.0, prr0
                     miss = 0
                     conf = False
                 else:
@@ -217,8 +223,8 @@ def _signature() -> tuple:
     """The one signature :func:`tertiary.stages.tracking.altitude.filter_tracks_carry` calls it with."""
     f1, i1, b1 = (nbt.Array(d, 1, "C") for d in (nbt.float64, nbt.int64, nbt.boolean))
     f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
-    return (f1, f1, f1, i1, i1, i1, f1, f1, nbt.float64, nbt.float64, nbt.int64, nbt.float64, nbt.float64,
-            nbt.float64, f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, i1, f2, b1, b1)
+    return (f1, f1, f1, f1, i1, i1, i1, f1, f1, nbt.float64, nbt.float64, nbt.int64, nbt.float64, nbt.float64,
+            nbt.float64, nbt.float64, nbt.float64, f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, i1, f2, b1, b1)
 
 
 register_kernel("altitude", __name__, filter_recursion, _signature)
