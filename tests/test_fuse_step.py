@@ -120,3 +120,18 @@ def test_altitude_filter_continued_from_its_carry_equals_one_call():
         np.testing.assert_allclose(np.r_[out1.h, out2.h], whole.h[np.r_[a, b]], rtol=1e-12)
         np.testing.assert_allclose(np.r_[out1.prr, out2.prr], whole.prr[np.r_[a, b]], rtol=1e-12)
         np.testing.assert_array_equal(rej2, rej[b])
+
+
+def test_the_vertical_channel_takes_the_plots_downlinked_vertical_rates(case):
+    """The measured plots' downlinked vertical rates reach the fused vertical channel's
+    filters: without them (the same plots, registers blanked) the channel differs. Fails when
+    fuse_step does not hand its plots to the vertical channel."""
+    rows, radars, origin, plots = case
+    assert plots["plot_vrate_mps"].is_not_nan().sum() > 100
+    blank = plots.with_columns(pl.lit(float("nan")).alias("plot_vrate_mps"))
+    got = fuse(rows, radars, ("information",), FusionConfig(), origin, plots).sort(KEYS)
+    without = fuse(rows, radars, ("information",), FusionConfig(), origin, blank).sort(KEYS)
+    moved = (got["alt_m"] - without["alt_m"]).abs()
+    # on this scene the replies inside the garble gate decide almost everything: the registers
+    # change the channel a little (they restart filters on the sources it does not choose)
+    assert (moved > 0).sum() > 0, moved.max()

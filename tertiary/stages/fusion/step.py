@@ -235,7 +235,7 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
     d_fixed = lambda: seed_fixed_variance(rows, radars, state.seed_first)  # noqa: E731
     b0 = _carried_weights(rows, state.chains, methods)
     xs, covs, ws, axis_w = run_methods(methods, RunInputs(a, lay, cfg, d_fixed), b0)
-    alt, alt_carry = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude, state.alt)
+    alt, alt_carry = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude, state.alt, plots_window)
     meas = measurements(rows, methods, a, lay, ws, plots_window, axis_w)
     tentative, confirm = confirm_targets_step(state.confirm, rows, cfg.min_plots)
     new_state = FuseState(_new_chains(rows, state.chains, methods, ws, axis_w), seed_first, nis_carry, alt_carry,

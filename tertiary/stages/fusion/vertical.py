@@ -52,11 +52,14 @@ def _alt_lookup(carry: pl.DataFrame) -> pl.DataFrame:
                         pl.col("af_has").alias("__has"), pl.col(mu[-1]).cast(pl.Float64).alias("__mu"))
 
 
-def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = AltCarry()
-                    ) -> tuple[AltState, B, AltCarry]:
+def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = AltCarry(),
+                    plots: pl.DataFrame | None = None) -> tuple[AltState, B, AltCarry]:
     """Each row's Mode C estimate (h, ḣ, P) at its epoch and whether it has one: the filter of
     its (run, radar, local track) after the row's report, extrapolated by epoch − time. The
-    filters continue from ``carry`` (earlier windows) and the new carry is returned."""
+    filters continue from ``carry`` (earlier windows) and the new carry is returned. Each
+    report's downlinked vertical rate is the rows' ``ehs_vrate_mps``, else the ``plots``'
+    ``plot_vrate_mps`` (:func:`~tertiary.stages.fusion.measurement.measured_plots`, joined on
+    run and report_id)."""
     n = rows.height
     none = AltState.full(n), np.zeros(n, bool), carry
     if "altitude_m" not in rows.columns or "time" not in rows.columns:
@@ -74,6 +77,11 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
                                                 ident.cast(pl.Int64).alias("__ident"))
                       .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
                       .sort([*TRACK, "time"]))
+    if "ehs_vrate_mps" not in rows.columns and plots is not None and "plot_vrate_mps" in plots.columns and rep.height:
+        reg = plots.select(pl.col("run").cast(rep.schema["run"]), pl.col("report_id").cast(pl.UInt64),
+                           pl.col("plot_vrate_mps").cast(pl.Float64).alias("__reg")).unique(["run", "report_id"])
+        rep = rep.join(reg, on=["run", "report_id"], how="left", maintain_order="left").with_columns(
+            pl.col("__reg").alias("__vrate")).drop("__reg")
     old = carry.tracks
     lookups = [] if old is None else [_alt_lookup(old)]
     ref_us, tracks = carry.ref_us, old
@@ -125,12 +133,14 @@ def _alt_init(keys: pl.DataFrame, old: pl.DataFrame | None, cfg: AltitudeConfig)
 
 
 def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: geo.LocalFrame | None,
-                     cfg: AltitudeConfig, carry: AltCarry = AltCarry()) -> tuple[dict[str, F], AltCarry]:
+                     cfg: AltitudeConfig, carry: AltCarry = AltCarry(), plots: pl.DataFrame | None = None
+                     ) -> tuple[dict[str, F], AltCarry]:
     """The :data:`~tertiary.stages.tracking.altitude.ALT_COLUMNS` of every (method, group), shape (M, G) each,
     stacked in method order: Mode C where a source has it, else the geodetic height of the
-    method's fused state (see the module docstring); and the Mode C filters' new carry."""
+    method's fused state (see the module docstring); and the Mode C filters' new carry.
+    ``plots``: the reports' measured plots, for their downlinked vertical rates."""
     n_groups = len(lay.starts)
-    per_row, has, carry = _mode_c_per_row(rows, cfg, carry)
+    per_row, has, carry = _mode_c_per_row(rows, cfg, carry, plots)
     mode_c, got = combine_min_variance(per_row, has, lay.group, n_groups)
     mc = mode_c.columns()
     out = {c: np.repeat(mc[c][None], len(xs), axis=0) for c in ALT_COLUMNS}
