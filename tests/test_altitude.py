@@ -601,3 +601,30 @@ def test_the_fused_vertical_channel_reads_the_reports_downlinked_rate():
     plots = rows.select("run", "report_id", pl.col("ehs_vrate_mps").alias("plot_vrate_mps"))
     via, _, _ = _mode_c_per_row(rows.drop("ehs_vrate_mps"), AltitudeConfig(), plots=plots)
     np.testing.assert_allclose(via.h, est.h)
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "reference"])
+def test_a_register_updates_the_rate_of_a_reply_inside_the_garble_gate(compiled):
+    """A climb at 16.5 m/s levels off 1 s before a reply (every 12 s): the reply's altitude is
+    inside the garble gate, so only its downlinked vertical rate (0 m/s) can show the level-off.
+    The rate update takes it (the gate grown by the vertical acceleration allowed over 12 s), and
+    the channel read between the replies stays at the level instead of climbing 200 m to the next
+    reply. Fails without the rate update of a used reply."""
+    from tertiary.stages.tracking.altitude import predict_combined
+    cfg = AltitudeConfig()
+    t = np.arange(0.0, 400.0, 12.0) + 1.0
+    level_t = 12.0 * 16
+    h = 5000.0 + 16.5 * np.minimum(t, level_t)
+    z = np.round(h / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    vr = np.where(t <= level_t, 16.5, 0.0)
+    var = np.full(len(t), quantisation_variance(QUANTUM_MODE_S_M))
+    one = (np.array([0]), np.array([len(t)]))
+    est, has, rej, _, mu = filter_tracks_carry(t, z, var, *one, cfg, compiled=compiled, with_mu=True, vrate=vr)
+    k = int(np.searchsorted(t, level_t, side="right"))     # the first level reply, 1 s after the level-off
+    assert not rej[k] and abs(est.r[k]) < 1.5
+    ahead = predict_combined(est.take(np.array([k])), np.array([11.0]), mu[[k]], cfg)
+    assert abs(ahead.h[0] - (5000.0 + 16.5 * level_t)) < 25.0
+    assert not rej[k + 1:].any()
+    blind = filter_tracks_carry(t, z, var, *one, cfg, compiled=compiled, with_mu=True)
+    far = predict_combined(blind[0].take(np.array([k])), np.array([11.0]), blind[4][[k]], cfg)
+    assert far.h[0] - (5000.0 + 16.5 * level_t) > 150.0

@@ -26,7 +26,13 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    (r_reg − ḣ⁻)² > g_v (P⁻_ḣḣ + σ_v²), says the aircraft has changed its vertical motion (a
    level-off, the onset of a climb): the filter restarts on that reply at once, with the
    register's rate (variance σ_v²), instead of extrapolating the old motion until
-   ``max_rejects`` replies have been refused. Missing altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
+   ``max_rejects`` replies have been refused. Any other reply's register (one whose altitude
+   was used, refused or missing) then updates every model's rate (H = [0, 1], σ_v²; its
+   likelihood updates μ), within the gate g_v of the combined estimate grown by (a_v τ)² (τ the
+   time since the previous reply, a_v ``vertical_accel_mps2``): a rate outside the plain gate is
+   the onset of a level-off or a climb, which a quantised altitude reply inside the garble gate
+   cannot show, and each model's rate variance takes that allowance before the update. Missing
+   altitude (null) only predicts. Like an SSR's Mode C validation, a filter is
    *confirmed* once a second reply falls inside the gate of its first; an unconfirmed filter
    restarts on any reply outside its gate, and is output only with an inflated σ
    (``unconfirmed_sigma_m``), so a garbled first reply never outweighs a confirmed source. A
@@ -55,7 +61,9 @@ Height is never the ENU ``z`` of the system tangent plane (z = h − ρ²/2R + �
    prediction, and the next reply decides. Within ``hold_sigma`` of the level prediction, it
    says the aircraft is still level and the held reply is dropped as a garble; otherwise the
    held reply is applied at its own time and then the new one. A real climb or descent
-   therefore starts in the estimate one reply later. A garble does not start one at all.
+   therefore starts in the estimate one reply later. A garble does not start one at all. A
+   reply whose downlinked vertical rate says the vertical motion changed (outside g_v, above)
+   is not held: a garbled altitude code does not change the register.
 2. **Geodetic height** of an ENU state (elevation-based, the fallback for targets without
    Mode C): h = height above the WGS-84 ellipsoid of the point, ḣ = n̂·v with n̂ the
    ellipsoid normal at the target; variances from the position–velocity covariance along
@@ -111,8 +119,10 @@ class AltitudeConfig:
     * ``max_rejects``: the this-many-th consecutive reply outside the gate restarts the filter.
     * ``hold_sigma``: the manoeuvre-onset hold of the IMM (module docstring, "Held replies");
       0 disables it.
-    * ``vertical_rate_sigma_mps``, ``vertical_rate_gate``: σ_v of a downlinked vertical rate
-      (BDS 6,0) and the χ²(1) gate g_v beyond which it restarts a filter that refused the reply.
+    * ``vertical_rate_sigma_mps``, ``vertical_rate_gate``, ``vertical_accel_mps2``: σ_v of a
+      downlinked vertical rate (BDS 6,0), the χ²(1) gate g_v beyond which it restarts a filter
+      that refused the reply, and the vertical acceleration a_v whose (a_v τ)² grows that gate
+      for a rate update.
     * ``unconfirmed_sigma_m``: a filter not yet confirmed by a second consistent reply is output
       with at least this height σ (and its initial rate σ), so that any confirmed channel of
       another source wins (minimum variance) but a lone reply still beats the elevation-based
@@ -133,6 +143,7 @@ class AltitudeConfig:
     hold_sigma: float = 3.0
     vertical_rate_sigma_mps: float = 1.0
     vertical_rate_gate: float = 10.83
+    vertical_accel_mps2: float = 2.0
 
     def __post_init__(self) -> None:
         if self.model not in ("imm", "cv"):
@@ -143,8 +154,9 @@ class AltitudeConfig:
                              "must be > 0, gate_floor_m >= 0")
         if not self.hold_sigma >= 0:
             raise ValueError(f"altitude filter: hold_sigma must be >= 0, got {self.hold_sigma}")
-        if not (self.vertical_rate_sigma_mps > 0 and self.vertical_rate_gate > 0):
-            raise ValueError("altitude filter: vertical_rate_sigma_mps and vertical_rate_gate must be > 0")
+        if not (self.vertical_rate_sigma_mps > 0 and self.vertical_rate_gate > 0 and self.vertical_accel_mps2 >= 0):
+            raise ValueError("altitude filter: vertical_rate_sigma_mps and vertical_rate_gate must be > 0, "
+                             "vertical_accel_mps2 >= 0")
         if self.max_rejects < 1:
             raise ValueError("altitude filter: max_rejects must be >= 1")
 
@@ -439,8 +451,9 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
     def step(sel, zk, vk, tk, idk, last_pass, vrk):
         """One reply per track of ``sel`` (positions in the sorted order); what the row records."""
         valid = np.isfinite(zk)
+        tau = tk - t_last[sel]
         models = [c.take(sel) for c in cur]
-        preds, c = _mix_predict(models, mu[:, sel], tk - t_last[sel], qs, sojourn)
+        preds, c = _mix_predict(models, mu[:, sel], tau, qs, sojourn)
         upd, mu_u, u = _update_models(preds, c, np.where(valid, zk, 0.0), vk)
         s = _mix(preds, list(c))                                  # combined prediction
         nu, sv = np.where(valid, zk, 0.0) - s.h, s.phh + vk
@@ -450,19 +463,22 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
         last_id[sel] = np.where(valid & (idk >= 0), idk, last_id[sel])
         accept = run & valid & inside & ~swapped
         bad = run & valid & ~inside & ~swapped
+        hold = np.zeros(len(sel), bool)
+        with np.errstate(invalid="ignore"):
+            # a register that says the vertical motion changed: the reply is no garble to hold
+            changed = np.isfinite(vrk) & ((vrk - s.r) ** 2 > cfg.vertical_rate_gate * (s.prr + var_v))
         if holding and last_pass:
             # a level filter's reply beyond hold_sigma of the level model waits for the next one
             off = np.abs(np.where(valid, zk, 0.0) - preds[0].h) > cfg.hold_sigma * np.sqrt(
                 np.maximum(preds[0].phh + vk, 0.0))
-            hold = accept & conf[sel] & (c[0] >= 0.5) & off
+            hold = accept & conf[sel] & (c[0] >= 0.5) & off & ~changed
             accept &= ~hold
             held[:, sel] = np.where(hold, np.stack([tk, zk, vk]), held[:, sel])
             held_id[sel] = np.where(hold, idk, held_id[sel])
         miss[sel] = np.where(accept, 0, np.where(bad, miss[sel] + 1, miss[sel]))
         # an unconfirmed filter restarts on any reply outside its gate (a garbled first reply
         # must not hold the channel for max_rejects replies)
-        with np.errstate(invalid="ignore"):
-            moved = bad & np.isfinite(vrk) & ((vrk - s.r) ** 2 > cfg.vertical_rate_gate * (s.prr + var_v))
+        moved = bad & changed
         restart = (valid & ~run) | (bad & ((miss[sel] >= cfg.max_rejects) | ~conf[sel])) | swapped | moved
         held[1, sel] = np.where(restart, np.nan, held[1, sel])
         new = _init(np.where(valid, zk, 0.0), vk, cfg)
@@ -477,8 +493,44 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
         miss[sel] = np.where(restart, 0, miss[sel])
         conf[sel] = np.where(restart, False, conf[sel] | accept)
         ok[sel] |= restart
+        if last_pass:
+            rate = ok[sel] & np.isfinite(vrk) & ~moved & ~hold
+            if rate.any():
+                nxt = _rate_rows(sel, np.flatnonzero(rate), vrk, tau, nxt, refused, nu)
         t_last[sel] = tk
         return nxt, bad & ~restart
+
+    def _rate_rows(sel, rows, vrk, tau, nxt, refused, nu):
+        """:func:`tertiary.stages.tracking.altitude_kernel._rate_step` on the tracks ``sel[rows]``
+        (the reference's vectorised form): their models, μ and the rows' output updated."""
+        idx = sel[rows]
+        models = [c.take(idx) for c in cur]
+        w = mu[:, idx]
+        comb = _mix(models, list(w))
+        z, allow = vrk[rows], (cfg.vertical_accel_mps2 * tau[rows]) ** 2
+        d2 = (z - comb.r) ** 2
+        onset = d2 > cfg.vertical_rate_gate * (comb.prr + var_v)
+        inside = d2 <= cfg.vertical_rate_gate * (comb.prr + var_v + allow)
+        lik = []
+        for j in range(nm):
+            m = models[j]
+            prr = np.where(onset, m.prr + allow, m.prr)
+            sv = prr + var_v
+            v = z - m.r
+            kh, kr = m.phr / sv, prr / sv
+            new = AltState(m.h + kh * v, m.r + kr * v, m.phh - kh * m.phr, m.phr - kh * prr, prr - kr * prr)
+            cur[j].put(idx[inside], new.take(inside))
+            lik.append(np.exp(-0.5 * v * v / sv) / np.sqrt(2 * np.pi * sv) * w[j])
+        tot = sum(lik)
+        if nm > 1:
+            upd_mu = np.where(tot > 0, np.stack(lik) / np.where(tot > 0, tot, 1.0), w)
+            mu[:, idx[inside]] = upd_mu[:, inside]
+        done = _mix([c.take(idx) for c in cur], list(mu[:, idx]))
+        at = rows[inside]
+        out = AltState(nxt.h.copy(), nxt.r.copy(), nxt.phh.copy(), nxt.phr.copy(), nxt.prr.copy())
+        out.put(at, done.take(inside))
+        out.phh[at] = np.where(refused[at], out.phh[at] + nu[at] ** 2, out.phh[at])
+        return out
 
     alive = np.searchsorted(-ln, -np.arange(ln.max(initial=0)), side="left")
     for k, m in enumerate(alive):
@@ -540,7 +592,7 @@ def _filter_compiled(t: F64, z: F64, var: F64, starts: NDArray[np.int64], length
             arg(qs), arg(sojourn),
             float(cfg.gate_sigma), float(cfg.gate_floor_m), int(cfg.max_rejects), float(cfg.v0_sigma_mps), weak,
             float(cfg.hold_sigma), float(cfg.vertical_rate_sigma_mps) ** 2, float(cfg.vertical_rate_gate),
-            carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss,
+            float(cfg.vertical_accel_mps2), carry.models, carry.mu, carry.t_last, carry.ok, carry.conf, carry.miss,
             carry.last_id, carry.post, carry.has, carry.held, carry.held_id, out, has, rejected)
     return _as_state(out), has, rejected, carry, np.array(out[5])
 

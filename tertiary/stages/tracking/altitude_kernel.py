@@ -51,6 +51,37 @@ def _mix(states, w, nm, out):
 
 
 @_jit
+def _rate_step(cur, mu, nm, vrk, vr_var, vr_gate, allow, lik, tmp):
+    """The models ``cur`` (nm, 5) and probabilities ``mu`` updated in place with a downlinked
+    vertical rate ``vrk`` (H = [0, 1], variance ``vr_var``), each model's rate variance grown by
+    ``allow`` first when the rate lies outside the plain gate of the combined estimate (the
+    onset of a climb or a level-off); False (nothing changed) outside the grown gate."""
+    _mix(cur, mu, nm, tmp)
+    d2 = (vrk - tmp[1]) ** 2
+    onset = d2 > vr_gate * (tmp[4] + vr_var)
+    if not d2 <= vr_gate * (tmp[4] + vr_var + allow):
+        return False
+    tot = 0.0
+    for j in range(nm):
+        prr = cur[j, 4] + allow if onset else cur[j, 4]
+        sv = prr + vr_var
+        nu = vrk - cur[j, 1]
+        phr = cur[j, 3]
+        kh, kr = phr / sv, prr / sv
+        cur[j, 0] = cur[j, 0] + kh * nu
+        cur[j, 1] = cur[j, 1] + kr * nu
+        cur[j, 2] = cur[j, 2] - kh * phr
+        cur[j, 3] = phr - kh * prr
+        cur[j, 4] = prr - kr * prr
+        lik[j] = np.exp(-0.5 * nu * nu / sv) / np.sqrt(2 * np.pi * sv) * mu[j]
+        tot = tot + lik[j]
+    if nm > 1 and tot > 0:
+        for j in range(nm):
+            mu[j] = lik[j] / tot
+    return True
+
+
+@_jit
 def _level_consistent(cur, mu, tau, zk, vk, qs, sojourn, hold_sigma):
     """Whether reply ``zk`` lies within ``hold_sigma`` of the level model's (model 0) prediction
     over ``tau`` from ``cur``/``mu`` (A5)–(A6)."""
@@ -70,7 +101,7 @@ def _level_consistent(cur, mu, tau, zk, vk, qs, sojourn, hold_sigma):
 
 @_jit
 def filter_recursion(t, z, var, vr, ids, starts, lengths, qs, sojourn, gate_sigma, gate_floor, max_rejects, v0,
-            weak_var, hold_sigma, vr_var, vr_gate, c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, c_held, c_held_id,
+            weak_var, hold_sigma, vr_var, vr_gate, vr_acc, c_models, c_mu, c_t, c_ok, c_conf, c_miss, c_id, c_post, c_has, c_held, c_held_id,
             out, has, rejected):
     """Every track g (rows ``starts[g]`` … in time order) from its carry ``c_*[g]`` (updated in
     place); per row the output state ``out`` (6, n: the state (5) and the last model's
@@ -81,7 +112,8 @@ def filter_recursion(t, z, var, vr, ids, starts, lengths, qs, sojourn, gate_sigm
     else applied just before it. ``c_held`` (3, k): the held reply's (t, z, R), NaN none. ``vr``:
     each reply's downlinked vertical rate (NaN none): a refused reply whose register differs from
     the filter's rate beyond ``vr_gate`` (with variance ``vr_var``) restarts the filter on it at
-    once, with that rate."""
+    once, with that rate; any other reply's register then updates the rate (:func:`_rate_step`,
+    the gate grown by (``vr_acc`` τ)² at an onset)."""
     nm = len(qs)
     cur = np.empty((nm, 5))
     preds = np.empty((nm, 5))
@@ -165,17 +197,21 @@ def filter_recursion(t, z, var, vr, ids, starts, lengths, qs, sojourn, gate_sigm
                     last_id = idk
                 accept = run and valid and inside and not swapped
                 bad = run and valid and (not inside) and not swapped
-                if accept and holding and last_pass and conf and c[0] >= 0.5:
+                held_now = False
+                vrk = vr[i] if last_pass else np.nan
+                # a register that says the vertical motion changed: the reply is no garble to hold
+                changed = vrk == vrk and (vrk - s[1]) ** 2 > vr_gate * (s[4] + vr_var)
+                if accept and holding and last_pass and conf and c[0] >= 0.5 and not changed:
                     lv = preds[0, 2] + vk
                     if np.abs(zz - preds[0, 0]) > hold_sigma * np.sqrt(lv if lv > 0.0 else 0.0):
                         accept = False              # held: the row is a prediction until the next reply
+                        held_now = True
                         h_t, h_z, h_v, h_id = tk, zk, vk, idk
                 if accept:
                     miss = 0
                 elif bad:
                     miss += 1
-                vrk = vr[i] if last_pass else np.nan
-                moved = bad and vrk == vrk and (vrk - s[1]) ** 2 > vr_gate * (s[4] + vr_var)
+                moved = bad and changed
                 restart = (valid and not run) or (bad and (miss >= max_rejects or not conf)) or swapped or moved
                 if restart:
                     h_z = np.nan
@@ -198,6 +234,14 @@ def filter_recursion(t, z, var, vr, ids, starts, lengths, qs, sojourn, gate_sigm
                     conf = conf or accept
                 out[5, i] = mu[nm - 1]
                 ok = ok or restart
+                if (ok and vrk == vrk and not moved and not held_now
+                        and _rate_step(cur, mu, nm, vrk, vr_var, vr_gate, (vr_acc * tau) ** 2, lik, mixed)):
+                    _mix(cur, mu, nm, u)
+                    for f in range(5):
+                        out[f, i] = u[f]
+                    if bad and not restart:
+                        out[2, i] = u[2] + nu * nu
+                    out[5, i] = mu[nm - 1]
                 t_last = tk
             if weak_var >= 0.0:
                 if ok and not conf:
@@ -224,7 +268,7 @@ def _signature() -> tuple:
     f1, i1, b1 = (nbt.Array(d, 1, "C") for d in (nbt.float64, nbt.int64, nbt.boolean))
     f2, f3 = nbt.Array(nbt.float64, 2, "C"), nbt.Array(nbt.float64, 3, "C")
     return (f1, f1, f1, f1, i1, i1, i1, f1, f1, nbt.float64, nbt.float64, nbt.int64, nbt.float64, nbt.float64,
-            nbt.float64, nbt.float64, nbt.float64, f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, i1, f2, b1, b1)
+            nbt.float64, nbt.float64, nbt.float64, nbt.float64, f3, f2, f1, b1, b1, i1, i1, f2, b1, f2, i1, f2, b1, b1)
 
 
 register_kernel("altitude", __name__, filter_recursion, _signature)
