@@ -45,6 +45,10 @@ def main() -> None:
     ap.add_argument("--start-s", type=float, default=8 * 3600.0, help="start of the run after 00:00 UTC")
     ap.add_argument("--duration", type=float, default=3600.0)
     ap.add_argument("--work", type=Path, default=None, help="keep the dataset and run here (default: a temp dir)")
+    ap.add_argument("--causes", action="store_true",
+                    help="store every table (--tables full) and record the cause of each picture-induced alert")
+    ap.add_argument("--causes-before", type=Path, default=None,
+                    help="a JSON of the causes on an earlier tree (alert_causes' output) to record beside them")
     args = ap.parse_args()
     from tertiary.simulate import load_scenario
     from tertiary.simulate.config import scenario_toml
@@ -60,7 +64,8 @@ def main() -> None:
                                     "--quiet"])
         parts = json.loads((data / "parts.json").read_text())
         print(json.dumps({"simulate_s": round(wall_s, 1), "reports": parts["reports"]}), flush=True)
-        wall_r, peak_r, stdout = _child(["run", str(data), "--out", str(out), "--force", "--no-report",
+        tables = ["--tables", "full"] if args.causes else []
+        wall_r, peak_r, stdout = _child(["run", str(data), "--out", str(out), "--force", "--no-report", *tables,
                                          *CONFIGS["production"]])
         db = out / "results.duckdb"
         reports = _reports_in(stdout)
@@ -69,7 +74,7 @@ def main() -> None:
                          "radars": len(cfg.radars), "reports": parts["reports"], "truth_rows": parts["truth_rows"]},
             "simulation": {"wall_s": round(wall_s, 1), "reports_per_s": round(parts["reports"] / wall_s, 1),
                            "peak_rss_mib": round(peak_s, 1)},
-            "run": {"config": "production", "args": CONFIGS["production"], "wall_s": round(wall_r, 1),
+            "run": {"config": "production", "args": [*CONFIGS["production"], *tables], "wall_s": round(wall_r, 1),
                     "reports": reports, "reports_per_s": round(reports / wall_r, 1) if reports else None,
                     "peak_rss_mib": round(peak_r, 1), "window_s": _recorded(db, "window_s"),
                     "db_mb": round(db.stat().st_size / 1e6, 1),
@@ -80,6 +85,11 @@ def main() -> None:
             # a day's reports at this hour's rate, as a yardstick (the curve is lower at night)
             "day_at_this_rate_s": round(wall_r * 86400.0 / args.duration, 0),
         }
+        if args.causes:
+            from bench_trust import alert_causes
+            row["picture_induced_causes"] = alert_causes(db, data)
+            if args.causes_before is not None:
+                row["picture_induced_causes_before"] = json.loads(args.causes_before.read_text())
         print(json.dumps(row, indent=2), flush=True)
         print("recorded in", record("bench_national", row))
 
