@@ -354,10 +354,12 @@ def first_seen(observed: pl.DataFrame | pl.LazyFrame | None, matched_schema: pl.
     None without ``observed``."""
     if observed is None:
         return None
+    # an aggregate over the whole of ``observed``, one row per aircraft: streamed, so a long
+    # recording's aircraft-epochs on disk are never held
     return (observed.lazy().drop_nulls("truth_id").group_by("run", "truth_id")
             .agg(pl.col("epoch").min().alias(_FIRST_SEEN))
             .select(pl.col("run").cast(matched_schema["run"]), pl.col("truth_id").cast(matched_schema["truth_id"]),
-                    pl.col(_FIRST_SEEN).cast(matched_schema["epoch"])).collect())
+                    pl.col(_FIRST_SEEN).cast(matched_schema["epoch"])).collect(engine="streaming"))
 
 
 def _consistency(scored: pl.DataFrame, stage: str, band: float) -> list[pl.DataFrame]:
