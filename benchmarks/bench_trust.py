@@ -322,6 +322,7 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
     from tertiary.evaluation.truth_picture import truth_picture
     from tertiary.io.dataset import read_dataset
     from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
+    from tertiary.store.layout import expand_covariances
     ds = read_dataset(data)
     cc = adapt_to_scenario(check_config(PipelineConfig()), ds).conflicts
     method, flt = picture.split("+")
@@ -337,12 +338,7 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
         ids = {r["id_a"]: r["truth_a"], r["id_b"]: r["truth_b"]}
         cov = cov.with_columns(pl.col("track_id").replace_strict(ids, return_dtype=pl.UInt64),
                                pl.col("epoch").cast(pl.Datetime("us", "UTC")))
-        ut = cov["cov_ut"].to_numpy().reshape(-1, 21).astype(float)
-        full = np.zeros((cov.height, 6, 6))
-        iu = np.triu_indices(6)
-        full[:, iu[0], iu[1]] = ut
-        full[:, iu[1], iu[0]] = ut
-        cov = cov.drop("cov_ut").with_columns(pl.Series("cov", full.reshape(-1, 36), pl.Array(pl.Float64, 36)))
+        cov = expand_covariances(cov)                     # cov_ut → the 6×6 the thresholds read
         pair = truth.filter(pl.col("truth_id").is_in([r["truth_a"], r["truth_b"]]))
         spans = pair.group_by("truth_id").agg(pl.col("time").min().alias("first"), pl.col("time").max().alias("last"))
         epochs = cov.select(pl.lit(r["run"], pl.UInt32).alias("run"), "epoch").unique().sort("epoch")

@@ -577,8 +577,7 @@ def test_a_level_off_said_by_the_register_restarts_the_filter_at_once(compiled):
 
 def test_the_fused_vertical_channel_reads_the_reports_downlinked_rate():
     """A radar track's reports (every 8 s) of a climb that levels off, each with its downlinked
-    vertical rate ``ehs_vrate_mps`` (on the rows, or as the measured plots' ``plot_vrate_mps``):
-    the fused vertical channel's row of the first level report is at the level, not 130 m above
+    vertical rate (the measured plots' ``plot_vrate_mps``): the fused vertical channel's row of the first level report is at the level, not 130 m above
     it. Fails when the channel does not hand the reports' registers to its filters."""
     from tertiary.stages.fusion.vertical import _mode_c_per_row
     n = 40
@@ -592,15 +591,14 @@ def test_the_fused_vertical_channel_reads_the_reports_downlinked_rate():
                          "altitude_m": np.round(h / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M,
                          "ehs_vrate_mps": np.where(sec <= 200.0, 16.5, 0.0)}
                         ).with_columns(pl.col("time", "epoch").cast(pl.Datetime("us", "UTC")))
-    est, has, _ = _mode_c_per_row(rows, AltitudeConfig())
+    # the aligned rows do not carry the register: the measured plots do
+    plots = rows.select("run", "report_id", pl.col("ehs_vrate_mps").alias("plot_vrate_mps"))
+    rows = rows.drop("ehs_vrate_mps")
+    est, has, _ = _mode_c_per_row(rows, AltitudeConfig(), plots=plots)
     first = int(np.searchsorted(sec, 200.0, side="right"))
     assert has[first] and abs(est.h[first] - h[first]) < QUANTUM_MODE_S_M
-    blind, _, _ = _mode_c_per_row(rows.drop("ehs_vrate_mps"), AltitudeConfig())
+    blind, _, _ = _mode_c_per_row(rows, AltitudeConfig())
     assert blind.h[first] - h[first] > 100.0
-    # the pipeline's rows do not carry the register: the measured plots do
-    plots = rows.select("run", "report_id", pl.col("ehs_vrate_mps").alias("plot_vrate_mps"))
-    via, _, _ = _mode_c_per_row(rows.drop("ehs_vrate_mps"), AltitudeConfig(), plots=plots)
-    np.testing.assert_allclose(via.h, est.h)
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "reference"])

@@ -3,8 +3,9 @@
 
 When the rows carry the reports' barometric ``altitude_m`` (with ``time``), a two-state (h, ḣ)
 filter runs per (run, radar, local track) over its reports' replies (quantum 25 ft with
-``mode_s``, 100 ft without, R = q²/12, garble gate; a refused reply whose downlinked vertical
-rate ``ehs_vrate_mps`` says the aircraft changed its vertical motion restarts it), is extrapolated from the report time to the
+``mode_s``, 100 ft without, R = q²/12, garble gate; each report's downlinked vertical rate,
+from the measured plots, restarts it at a level-off or a climb's onset and updates its rate),
+is extrapolated from the report time to the
 epoch ((A1)–(A2)) and, among the target's sources with an estimate, the one with the smallest
 height variance is kept (all radars decode the same reply, so their errors are not independent:
 :func:`tertiary.stages.tracking.altitude.combine_min_variance`). This channel does not depend on
@@ -57,9 +58,8 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
     """Each row's Mode C estimate (h, ḣ, P) at its epoch and whether it has one: the filter of
     its (run, radar, local track) after the row's report, extrapolated by epoch − time. The
     filters continue from ``carry`` (earlier windows) and the new carry is returned. Each
-    report's downlinked vertical rate is the rows' ``ehs_vrate_mps``, else the ``plots``'
-    ``plot_vrate_mps`` (:func:`~tertiary.stages.fusion.measurement.measured_plots`, joined on
-    run and report_id)."""
+    report's downlinked vertical rate is the ``plots``' ``plot_vrate_mps``
+    (:func:`~tertiary.stages.fusion.measurement.measured_plots`, joined on run and report_id)."""
     n = rows.height
     none = AltState.full(n), np.zeros(n, bool), carry
     if "altitude_m" not in rows.columns or "time" not in rows.columns:
@@ -70,18 +70,17 @@ def _mode_c_per_row(rows: pl.DataFrame, cfg: AltitudeConfig, carry: AltCarry = A
     # aircraft, and its altitude filter restarts (tertiary.stages.tracking.altitude.filter_tracks, ident)
     ident = (pl.col("mode_s").cast(pl.String).str.to_integer(base=16, strict=False).fill_null(-1)
              if has_s else pl.lit(-1, pl.Int64))
-    vrate = (pl.col("ehs_vrate_mps").cast(pl.Float64) if "ehs_vrate_mps" in rows.columns
-             else pl.lit(None, pl.Float64)).alias("__vrate")
-    rep = track_keys(rows.filter(fresh).select(*TRACK, pl.col("report_id").cast(pl.UInt64), "time", "altitude_m", vrate,
+    rep = track_keys(rows.filter(fresh).select(*TRACK, pl.col("report_id").cast(pl.UInt64), "time", "altitude_m",
                                                 (pl.col("mode_s").is_not_null() if has_s else pl.lit(True)).alias("__s"),
                                                 ident.cast(pl.Int64).alias("__ident"))
                       .unique(subset=["run", "report_id"], keep="first", maintain_order=True)
                       .sort([*TRACK, "time"]))
-    if "ehs_vrate_mps" not in rows.columns and plots is not None and "plot_vrate_mps" in plots.columns and rep.height:
+    if plots is not None and "plot_vrate_mps" in plots.columns and rep.height:
         reg = plots.select(pl.col("run").cast(rep.schema["run"]), pl.col("report_id").cast(pl.UInt64),
-                           pl.col("plot_vrate_mps").cast(pl.Float64).alias("__reg")).unique(["run", "report_id"])
-        rep = rep.join(reg, on=["run", "report_id"], how="left", maintain_order="left").with_columns(
-            pl.col("__reg").alias("__vrate")).drop("__reg")
+                           pl.col("plot_vrate_mps").cast(pl.Float64).alias("__vrate")).unique(["run", "report_id"])
+        rep = rep.join(reg, on=["run", "report_id"], how="left", maintain_order="left")
+    else:
+        rep = rep.with_columns(pl.lit(None, pl.Float64).alias("__vrate"))
     old = carry.tracks
     lookups = [] if old is None else [_alt_lookup(old)]
     ref_us, tracks = carry.ref_us, old

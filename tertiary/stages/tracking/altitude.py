@@ -514,11 +514,8 @@ def filter_tracks_carry(t: F64, z: F64, var: F64, starts: NDArray[np.int64], len
         lik = []
         for j in range(nm):
             m = models[j]
-            prr = np.where(onset, m.prr + allow, m.prr)
-            sv = prr + var_v
-            v = z - m.r
-            kh, kr = m.phr / sv, prr / sv
-            new = AltState(m.h + kh * v, m.r + kr * v, m.phh - kh * m.phr, m.phr - kh * prr, prr - kr * prr)
+            new, v, sv = update_rate(AltState(m.h, m.r, m.phh, m.phr, np.where(onset, m.prr + allow, m.prr)),
+                                     z, var_v)
             cur[j].put(idx[inside], new.take(inside))
             lik.append(np.exp(-0.5 * v * v / sv) / np.sqrt(2 * np.pi * sv) * w[j])
         tot = sum(lik)
