@@ -162,12 +162,13 @@ def test_stca_curves_predicted_by_the_windows_equal_the_whole_run_prediction(ter
 
 
 def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
-    """An on-disk run's finalize leaves fused and tracks on disk and scores one picture at a time,
-    each in time blocks of whole windows (memory): the same metrics, alerts,
-    requirements and counts as the in-memory run, which holds every picture and scores it whole.
-    Fails if a picture is skipped, read twice or read incompletely, or if a block is matched or
-    scored differently from the whole picture. The truth goes from disk to disk too (validated in
-    parts, scored from its reference files): the run database's truth is the in-memory run's."""
+    """An on-disk run validates the truth before its windows and matches every picture to it as
+    the windows make them; its finalize only reduces the matched rows to metrics, a picture at a
+    time, and never reads a picture back: the same metrics, alerts, requirements and counts as the
+    in-memory run, which matches and scores every picture whole at the end. Fails if a picture
+    is skipped or matched differently in the windows. The truth goes from disk to disk too
+    (validated in parts, scored from its reference files): the run database's truth is the
+    in-memory run's."""
     read, blocks, streamed = [], [], []
 
     def counted(self, key, *a, f=tables.OnDiskTable.blocks, **k):
@@ -183,8 +184,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     monkeypatch.setattr(ingestion, "TRUTH_PART_ROWS", 1_000)      # the truth in parts and batches
     monkeypatch.setattr(ingestion, "TRUTH_WHOLE_ROWS", 0)
     monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 1_500)
-    monkeypatch.setattr(whole_run, "stream_truth", lambda *a, f=ingestion.stream_truth: streamed.append(f(*a))
+    monkeypatch.setattr(ingestion, "stream_truth", lambda *a, f=ingestion.stream_truth: streamed.append(f(*a))
                         or streamed[-1])
+    windowed: list[str] = []
+    monkeypatch.setattr(whole_run, "windowed_pictures", lambda parts, state, surveillance, name,
+                        f=whole_run.windowed_pictures: windowed.append(name) or f(parts, state, surveillance, name))
     from tertiary.evaluation import bound
     bound_reads: list[tuple[bool, int]] = []         # (from a scan, aircraft) of each truth read
 
@@ -215,12 +219,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     _same(alerts, mem.alerts, "alerts")
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
-    # every tracker picture read back from disk in blocks for the evaluation (a national day's
-    # picture whole was ~10 GB), never whole; the windows predicted the curves
-    assert sum(n == "tracks" and how == "blocks" for n, _, how in read) == 2 * len(cfg.methods)
-    assert not any(how == "whole" for _, _, how in read)
-    per_picture = pl.DataFrame({"picture": [str(k) for _, k in blocks]}).group_by("picture").len()
-    assert per_picture["len"].min() >= 3
+    # every picture matched in the windows (each fusion method, the centralised reference, each
+    # tracker picture), none read back for the evaluation; the windows predicted the curves
+    assert sorted(windowed) == sorted([*cfg.methods, "centralized",
+                                       *(f"{m}+{f}" for m in cfg.methods for f in cfg.filters)])
+    assert read == [] and blocks == []
 
 
 def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, tmp_path, monkeypatch):

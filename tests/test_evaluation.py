@@ -399,7 +399,7 @@ def test_a_reference_file_gives_the_slices_of_the_frame(tmp_path, monkeypatch):
                                        "x_m": pl.Float64, "y_m": pl.Float64, "z_m": pl.Float64},
                          orient="row").sort("time")
     path = E.write_reference(truth, tmp_path / "ref.parquet")
-    on_disk, in_memory = E._Reference(path), E._Reference(truth)
+    on_disk, in_memory = E.Reference(path), E.Reference(truth)
     for a in list(rng.integers(0, 3700, 40)) + [0, 3599]:
         lo = t0 + timedelta(seconds=int(a))
         hi = lo + timedelta(seconds=int(rng.integers(0, 200)))
@@ -455,3 +455,39 @@ def test_evaluate_judges_the_same_default_requirements_as_run(small, tmp_path):
     assert judged == {r.name for r in load_requirements(example_path()).items}
     assert pipeline.PipelineConfig().requirements_file is None      # run's default: the same example file
     assert "Requirements × pictures" in res.output and "H-RMS-ENR" in res.output
+
+
+def test_pictures_matched_together_in_a_window_equal_each_matched_alone(small):
+    """The evaluation's window stage matches a window's pictures of one schema in one call and
+    steps their multi-target states together. Each picture's matched rows, its reference at its
+    own epochs and its OSPA/GOSPA/SIAP rows equal those of the picture matched alone — with two
+    pictures whose epochs differ (one drops every third epoch, the other an aircraft). Fails if a
+    picture's expected rows are the window's instead of its own, or if the pictures' states mix."""
+    from tertiary.evaluation.evaluate import Reference, match_block
+    from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result
+    from tertiary.evaluation.streamed import MatchState, expected_table, match_window, matched_table
+    root, ds, files = small
+    a = read_picture(files[0]).with_columns(pl.lit("a").alias("method"))
+    b = read_picture(files[1]).with_columns(pl.lit("b").alias("method"))
+    epochs = a["epoch"].unique().sort()
+    a = a.filter(~pl.col("epoch").is_in(epochs.gather_every(3).implode()))
+    b = b.filter(pl.col("track_id") != b["track_id"].min()).select(a.columns)
+    reference, cfg = Reference(ds.truth), EvaluationConfig()
+    cut = epochs[len(epochs) // 2]
+    state = MatchState()
+    got: dict[str, list[pl.DataFrame]] = {}
+    for inside in (pl.col("epoch") < cut, pl.col("epoch") >= cut):
+        pictures = [("a", "track_id", a.filter(inside)), ("b", "track_id", b.filter(inside))]
+        out, state = match_window(state, pictures, reference, cfg, multitarget=True)
+        for name, frame in out.items():
+            got.setdefault(name, []).append(frame)
+    for name, rows in (("a", a), ("b", b)):
+        mt, want_m, want_e = MultiTargetState(), [], []
+        for inside in (pl.col("epoch") < cut, pl.col("epoch") >= cut):
+            m, e, mt = match_block(rows.filter(inside), None, reference, cfg, "track_id", mt, slim=True)
+            want_m.append(m)
+            want_e.append(e)
+        for table, want in ((matched_table(name), want_m), (expected_table(name), want_e)):
+            assert_frame_equal(_sorted(pl.concat(got[table])), _sorted(pl.concat(want)))
+        assert_frame_equal(multitarget_result(state.pictures[name], name), multitarget_result(mt, name))
+    assert pl.concat(got[expected_table("a")]).height < pl.concat(got[expected_table("b")]).height

@@ -258,3 +258,43 @@ def test_steps_over_any_split_of_the_epochs_equal_the_whole_picture(seed):
         # the state's segments are the whole picture's, each reaching back to the same truth epoch
         key = ["run", "truth_id", "track_id", "start", "end", "reach"]
         assert_frame_equal(pl.concat([state.closed, state.open]).select(key).sort(key), segments.sort(key))
+
+
+@pytest.mark.parametrize("seed", range(1, 4))
+def test_pictures_stepped_together_equal_each_stepped_alone(seed):
+    """:func:`multitarget_steps` (every picture of a window in one call, each keyed apart) leaves
+    each picture the state :func:`multitarget_step` gives it alone, block after block, with
+    pictures that start late, skip a block or have several runs."""
+    from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, multitarget_step, multitarget_steps
+    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
+    scenes = {}
+    for k in range(3):
+        pic, true = _scene(seed + 10 * k)
+        if k == 2:          # a second run, of another scene
+            other, other_true = _scene(seed + 50)
+            pic = pl.concat([pic, other.with_columns(pl.lit(1, pl.UInt32).alias("run"))])
+            true = pl.concat([true.with_columns(pl.lit(0, pl.UInt32).alias("run")),
+                              other_true.with_columns(pl.lit(1, pl.UInt32).alias("run"))])
+        scenes[f"p{k}"] = (pic, reference_at_epochs(pic.select("run", "epoch"), true))
+    epochs = pl.concat([p.select("epoch") for p, _ in scenes.values()]).unique().sort("epoch")["epoch"]
+    cuts = [0, len(epochs) // 3, len(epochs) // 2, len(epochs)]
+    alone = {n: MultiTargetState() for n in scenes}
+    together: dict = {}
+    for i, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        inside = pl.col("epoch").is_between(epochs[a], epochs[b - 1])
+        blocks = [(n, p.filter(inside), t.filter(inside)) for n, (p, t) in scenes.items()
+                  if not (n == "p0" and i == 0) and not (n == "p1" and i == 1)]
+        for n, p, t in blocks:
+            alone[n] = multitarget_step(alone[n], p, t, cfg)
+        together = multitarget_steps(together, blocks, cfg)
+    assert set(together) == set(alone)
+    for n in scenes:
+        want = dict(multitarget_result(alone[n], n).select("metric", "value").iter_rows())
+        got = dict(multitarget_result(together[n], n).select("metric", "value").iter_rows())
+        assert got == pytest.approx(want, rel=1e-9, abs=1e-9), n
+        key = ["run", "truth_id", "track_id", "start", "end", "reach"]
+        for part in ("closed", "open", "life"):
+            a, b = getattr(alone[n], part), getattr(together[n], part)
+            cols = [c for c in key if c in a.columns] + [c for c in ("first", "last") if c in a.columns]
+            assert a.sort(cols).equals(b.sort(cols)), (n, part)
+    assert together["p2"].runs.sort().to_list() == [0, 1]

@@ -25,6 +25,7 @@ from polars.testing import assert_frame_equal
 
 from tertiary.core.errors import DataError, OptionError
 from tertiary.core.units import US
+from tertiary.evaluation.evaluate import Reference
 from tertiary.pipeline import PipelineConfig, plan, screen
 from tertiary.core.stage import T_MAX_US, T_MIN_US, Stage, Window
 from tertiary.runtime.windows import concat_parts
@@ -69,9 +70,10 @@ def _build_cases() -> tuple[dict[str, Case], list[int]]:
     plans, _ = check_flight_plans(ds.flight_plans)
     reports = correlate(ing.reports, plans)
     times = reports["time"].dt.epoch("us")
-    ctx = dataclasses.make_dataclass("Ctx", ["radars", "origin", "grid_origin_us", "filters", "departure_plans"])(
+    ctx = dataclasses.make_dataclass("Ctx", ["radars", "origin", "grid_origin_us", "filters", "departure_plans",
+                                             "reference"])(
         ing.radars, ds.origin, align.grid_origin_us(int(times.min())), ("singer",),
-        departure_plans(plans, ds.origin))
+        departure_plans(plans, ds.origin), Reference(ing.truth))
     stages = plan.build_stages(cfg, ctx, EVERY_STAGE)
     cases: dict[str, Case] = {}
 
@@ -99,6 +101,11 @@ def _build_cases() -> tuple[dict[str, Case], list[int]]:
         cfg, stca_lookaheads_s=(90.0,), stca_confidences=(0.9,), stca_fixed_m=(300.0,)), ctx)
     curves = add("stca_curves", {"picture": picture}, {"picture": ("epoch", IN)})["curve_rows"]
     assert curves["setting"].n_unique() == 2 and curves["alert"].any(), "the curve case screens nothing"
+    # the evaluation's matching, with the multi-target state (the run above scores no picture)
+    stages["evaluation"] = plan.build_stage("evaluation", dataclasses.replace(cfg, evaluation=True), ctx)
+    matched = add("evaluation", {"fused": pl.concat([fused, central], how="diagonal_relaxed"), "tracks": tracks},
+                  {"fused": ("epoch", IN), "tracks": ("epoch", IN)})
+    assert matched["matched.information+singer"]["truth_id"].is_not_null().any(), "the matching case matches nothing"
     epochs = picture.select("epoch").unique()
     add("alert_confirmation", {"conflicts": conflicts, "epochs": epochs},
         {"conflicts": ("epoch", IN), "epochs": ("epoch", IN)})

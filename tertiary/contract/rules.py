@@ -94,7 +94,8 @@ def contract_rules(limits: Limits = Limits()) -> tuple[Rule, ...]:
         Rule("reports, truth", "time", f"within +-{span_h / 2:g} h of the table's median time",
              "grids in time (epochs, alert ticks) are sized by the span; a stray date would allocate "
              "terabytes"),
-        Rule("truth", "time", f"within the span of the valid reports +- {num_text(limits.truth_pad_s)} s",
+        Rule("truth", "time", "within the span of the reports' times that pass the two rules above "
+             f"+- {num_text(limits.truth_pad_s)} s",
              "truth scores the reports; truth far from them cannot be matched and would size the grids"),
         Rule("reports", "est_range_var_m2, est_azimuth_var_deg2, est_elevation_var_deg2, res_range_var_m2",
              f"(0, {limits.variance_max:g}], not infinite (NaN = no value)", "a variance is positive and finite"),

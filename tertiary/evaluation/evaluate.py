@@ -45,7 +45,7 @@ from tertiary.evaluation.requirements import Requirements, check_requirements
 from tertiary.contract import TABLES, TIME
 from tertiary.store.files import write_parquet_atomic
 
-__all__ = ["EvaluationConfig", "Evaluation", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
+__all__ = ["EvaluationConfig", "Evaluation", "Matched", "Reference", "match_block", "scan_spilled", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
            "write_reference_pieces", "reference_files",
            "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
@@ -195,7 +195,7 @@ def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl
     return pl.read_parquet(files, columns=names if columns is None else [c for c in names if c in columns])
 
 
-class _Reference:
+class Reference:
     """The reference of one evaluation: whole, its aircraft's identity items, and its time
     slices (:meth:`between`). Held in memory (a frame; the neighbour times are made when a
     picture first comes in blocks) or read from a reference file (:func:`write_reference`)."""
@@ -249,7 +249,29 @@ def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
                           if c in _SCORED_COLUMNS or c == id_col or c.startswith("true_"))
 
 
-def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: EvaluationConfig,
+def match_block(block: pl.DataFrame, truth: pl.DataFrame | None, reference: "Reference", cfg: EvaluationConfig,
+                id_col: str, mt: MultiTargetState | None, slim: bool
+                ) -> tuple[pl.DataFrame, pl.DataFrame, MultiTargetState | None]:
+    """(row-scored matched rows, reference at the block's epochs, ``mt`` stepped; None: no
+    multi-target metrics) of one block of a picture (whole epochs, after every earlier block's),
+    matched against ``truth`` (None: the reference samples its epochs read,
+    :meth:`Reference.between`). The matcher is per epoch and the row scores per row: the step of
+    :func:`_match_blocks`, and of the evaluation's window stage."""
+    _check_inputs(block, reference.empty, id_col)
+    if "method" not in block.columns:
+        block = block.with_columns(pl.lit("picture").alias("method"))
+    if truth is None:
+        truth = reference.between(block["epoch"].min(), block["epoch"].max())
+    m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
+    del block, truth
+    if mt is not None:
+        mt = multitarget_step(mt, m.select("run", "epoch", pl.col(id_col).alias("track_id"), *_STATE[:3]),
+                              ref.select(MULTITARGET_TRUTH), cfg.multitarget)
+    scored = row_scores(m)
+    return (_scored_only(scored, id_col) if slim else scored), ref, mt
+
+
+def _match_blocks(blocks: Iterable[pl.DataFrame], reference: Reference, cfg: EvaluationConfig,
                   id_col: str, slim: bool = False, spill: Path | None = None, multitarget: bool = False
                   ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame, pl.DataFrame | None] | None:
     """(matched rows with their :func:`row_scores`, reference at the picture's epochs, the
@@ -273,31 +295,25 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: _Reference, cfg: Ev
     method = str(first["method"][0]) if "method" in first.columns else "picture"
     for block in itertools.chain([first], [] if whole else [second], it):
         _check_inputs(block, reference.empty, id_col)
-        if "method" not in block.columns:
-            block = block.with_columns(pl.lit("picture").alias("method"))
-        t0, t1 = block["epoch"].min(), block["epoch"].max()
+        t0 = block["epoch"].min()
         if last is not None and t0 <= last:
             raise DataError("a picture's blocks must be in time order, no epoch in two blocks")
-        last = t1
-        truth = reference.whole() if whole else reference.between(t0, t1)
-        m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
-        del block, truth
-        if multitarget:
-            mt = multitarget_step(mt, m.select("run", "epoch", pl.col(id_col).alias("track_id"), *_STATE[:3]),
-                                  ref.select(_MT_TRUTH), cfg.multitarget)
-        scored = row_scores(m)
-        matched.append(_scored_only(scored, id_col) if slim else scored)
-        del m, scored
+        last = block["epoch"].max()
+        scored, ref, mt = match_block(block, reference.whole() if whole else None, reference, cfg, id_col,
+                                      mt if multitarget else None, slim)
+        del block
+        matched.append(scored)
         expected.append(ref)
+        del scored
         if spill is not None:
             matched, expected = _spilled(spill, matched, expected)
     mt_rows = multitarget_result(mt, method) if multitarget else None
     if spill is not None:
-        return (*(_scan_spilled(sorted((spill / k).glob("*.parquet"))) for k in ("matched", "expected")), mt_rows)
+        return (*(scan_spilled(sorted((spill / k).glob("*.parquet"))) for k in ("matched", "expected")), mt_rows)
     return _concat(matched), _concat(expected), mt_rows
 
 
-def _scan_spilled(files: list[Path]) -> pl.LazyFrame:
+def scan_spilled(files: list[Path]) -> pl.LazyFrame:
     """The spilled blocks ``files`` as one scan: of the files together when they share a schema
     (a slice of it then reads only its own files: the metrics' buckets are filed a slice at a
     time), else of each, relaxed (a block whose column is all null may have stored it with
@@ -330,12 +346,33 @@ def _buckets(matched: pl.LazyFrame, rows: int) -> int:
     return max(1, -(-n // max(1, rows)))
 
 
+def _held_if_small(picture: Matched, rows: int, surveillance: bool
+                   ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame | None, pl.DataFrame | None]:
+    """A matched picture's (matched, expected, multi-target rows): read into memory when it has at
+    most ``rows`` rows (its metrics then need no bucket), else left as scans."""
+    mt = picture.multitarget if surveillance else None
+    if picture.matched.select(pl.len()).collect().item() > rows:
+        return picture.matched, picture.expected, mt
+    return picture.matched.collect(), None if picture.expected is None else picture.expected.collect(), mt
+
+
 def _concat(frames: list[pl.DataFrame]) -> pl.DataFrame:
     return frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical_relaxed")
 
 
 #: what the multi-target metrics read of the reference at a picture's epochs
-_MT_TRUTH = ("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
+MULTITARGET_TRUTH = ("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z_m")
+
+
+@dataclass(frozen=True)
+class Matched:
+    """A picture matched as it was made (the evaluation's window stage): its slim, row-scored
+    matched rows and the reference at its epochs as scans, and its OSPA, GOSPA and SIAP rows.
+    :func:`evaluate_each` scores it as a picture it matched itself, in buckets (its ``spill``)."""
+
+    matched: pl.LazyFrame
+    expected: pl.LazyFrame | None
+    multitarget: pl.DataFrame | None
 
 
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
@@ -358,7 +395,7 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
                          empty=tracks.clear())
 
 
-def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], truth: pl.DataFrame | str | Path, *,
+def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Matched"], truth: pl.DataFrame | str | Path, *,
                   radars: pl.DataFrame | None = None,
                   frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",
@@ -387,14 +424,17 @@ def evaluate_each(pictures: Iterable[pl.DataFrame | Iterable[pl.DataFrame]], tru
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = _radar_xy(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
-    reference = _Reference(truth)
+    reference = Reference(truth)
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
     for i, picture in enumerate(pictures):
         where = None if spill is None or keep_matched else spill / f"picture-{i:03d}"
         if where is not None:
             shutil.rmtree(where, ignore_errors=True)        # an interrupted evaluation's files
-        got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
-                            slim=not keep_matched, spill=where, multitarget=surveillance)
+        if isinstance(picture, Matched):
+            got = _held_if_small(picture, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows, surveillance)
+        else:
+            got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
+                                slim=not keep_matched, spill=where, multitarget=surveillance)
         if got is None:
             continue
         matched, expected, mt_rows = got

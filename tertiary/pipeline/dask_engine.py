@@ -1,5 +1,4 @@
-"""A run on ``dask.distributed``: partitions processed in parallel, each writing
-its own output partition, then the whole-run stages on their union.
+"""A run on ``dask.distributed``: partitions in parallel, each writing its own output, then the whole-run stages.
 
 Partitions
     * every Monte-Carlo run is one partition (runs never interact in any stage);
@@ -702,8 +701,9 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     say("finalize")
     ds = read_dataset(dataset_dir, lazy=True)
     radars = next((i["radars"] for i in infos if "radars" in i), None)
+    span = pipeline.ingestion.plausible_span(ds.reports, cfg.limits)     # the truth's window, as a local run's
     ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
-                              curves=all(i.get("curves", True) for i in infos if i["n_input"]))
+                              curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span)
     counts: dict[str, int] = {}
     for i in infos:
         for k, v in i["counts"].items():

@@ -8,7 +8,7 @@ import shutil
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -17,17 +17,18 @@ import polars as pl
 from tertiary import contract
 from tertiary.core import geo
 from tertiary.core.errors import DataError
-from tertiary.evaluation.evaluate import reference_files, write_reference_pieces
+from tertiary.evaluation.evaluate import Reference, reference_files, write_reference, write_reference_pieces
 from tertiary.evaluation.matching import neighbour_times
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig, check_config
+from tertiary.runtime.windows import ReportSource
 from tertiary.sensors import registration
 from tertiary.sensors.collection import collection_stage
 from tertiary.stages import align as align_stage
 from tertiary.stages.align import AlignPlan
 from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
 
-__all__ = ["Ingested", "StreamedTruth", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
+__all__ = ["Ingested", "StreamedTruth", "ValidTruth", "first_truth", "plausible_span", "report_span_window", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
            "truth_lazy", "span_window", "truth_window", "no_rejects", "registered", "valid_flight_plans",
            "stage_rejects_table",
            "TRUTH_PART_ROWS", "TRUTH_WHOLE_ROWS", "TRUTH_BATCH_ROWS"]
@@ -267,13 +268,56 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     return StreamedTruth(path, clean_rows, empty), rejects
 
 
+@dataclass
+class ValidTruth:
+    """The truth validated before the windows (:func:`first_truth`): whole (``frame``) or on disk
+    (``on_disk``), its packed rejects, and the reference file the windows match their pictures
+    to (None: no clean row)."""
+
+    frame: pl.DataFrame | None
+    on_disk: StreamedTruth | None
+    rejects: pl.DataFrame
+    reference: Path | None
+
+    def matcher(self) -> Reference | None:
+        """The reference the evaluation's window stage reads its time slices from."""
+        return Reference(self.reference) if self.reference is not None else None
+
+
+def first_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: Any, parts: Any,
+                clock: Any) -> ValidTruth | None:
+    """The truth validated before the first window of a run on disk (``parts`` with a scratch
+    directory), so that every window can match its pictures to it: :func:`stream_truth`, or
+    :func:`validate_truth` for a small truth. Its time window is the span of the reports'
+    plausible times (``source``: :class:`~tertiary.runtime.windows.ReportSource`) ± the pad, known
+    before any report is validated. None: nothing to score on here (no truth, reports without
+    ``truth_id``, a run in memory) — finalize then validates the truth itself."""
+    lf = truth_lazy(ds)
+    if (lf is None or not hasattr(parts, "scratch") or not hasattr(parts, "part_files") or cfg.strict
+            or source.first_us is None or "truth_id" not in source.lf.collect_schema().names()):
+        return None
+    if lf.select(pl.len()).collect().item() == 0:
+        return None
+    clock.stage("validate_truth")
+    window = report_span_window((source.first_us, source.last_us), cfg.limits)
+    scratch = parts.scratch()
+    streamed = stream_truth(ds, cfg, notes, window, scratch)
+    if streamed is not None:
+        on_disk, rejects = streamed
+        return ValidTruth(None, on_disk, rejects, on_disk.reference)
+    truth, rejects = validate_truth(ds, cfg, notes, window)
+    ref = write_reference(truth, scratch / "reference.parquet") if truth.height else None
+    return ValidTruth(truth, None, rejects, ref)
+
+
 def no_rejects() -> pl.DataFrame:
     """An empty ``rejects`` table."""
     return contract.empty_frame("rejects")
 
 
 def ingest(ds: Dataset, strict: bool = False, limits: contract.Limits = contract.Limits()) -> Ingested:
-    """Validate radars, reports (against the valid radars) and truth (against the reports' span).
+    """Validate radars, reports (against the valid radars) and truth (against the reports' span:
+    their plausible times, :func:`report_span_window`).
 
     Strict mode raises :class:`tertiary.contract.SchemaError` on the first problem; lenient mode
     moves bad rows to ``rejects`` with a reason (a rejected radar takes its reports along).
@@ -294,8 +338,10 @@ def ingest(ds: Dataset, strict: bool = False, limits: contract.Limits = contract
     truth_in = contract.as_frame(ds.truth, "truth")
     truth, rej_t = truth_in, no_rejects()
     if truth_in.height:
-        truth, rej_t, _ = validate_table(truth_in, "truth", strict, notes, limits=limits,
-                                         time_window=truth_window(reports, limits))
+        span = plausible_span(ds.reports, limits)
+        window = (report_span_window(span, limits) if span is not None and reports.height
+                  else truth_window(reports, limits))
+        truth, rej_t, _ = validate_table(truth_in, "truth", strict, notes, limits=limits, time_window=window)
     rejects = pl.concat([r for r in (rej_r, rej_p, rej_t) if r.height] or [no_rejects()],
                         how="vertical_relaxed")
     return Ingested(radars, reports, truth, rejects, notes, rows)
@@ -312,6 +358,21 @@ def span_window(first, last, limits: contract.Limits):
     """:func:`truth_window` of reports from ``first`` to ``last``."""
     pad = timedelta(seconds=limits.truth_pad_s)
     return first - pad, last + pad, f"the reports' span +- {limits.truth_pad_s:g} s"
+
+
+def plausible_span(reports: pl.DataFrame | pl.LazyFrame, limits: contract.Limits) -> tuple[int, int] | None:
+    """(first, last) µs of the reports' plausible times (:class:`~tertiary.runtime.windows.ReportSource`);
+    None: no report has one."""
+    source = ReportSource(reports, limits)
+    return None if source.first_us is None else (source.first_us, source.last_us)
+
+
+def report_span_window(span_us: tuple[int, int], limits: contract.Limits):
+    """:func:`span_window` of the reports' plausible times (first, last µs: those of
+    :class:`~tertiary.runtime.windows.ReportSource`), known before any report is validated: the
+    truth window of a run's truth, whichever engine validates it."""
+    epoch = datetime(1970, 1, 1, tzinfo=timezone.utc)
+    return span_window(epoch + timedelta(microseconds=span_us[0]), epoch + timedelta(microseconds=span_us[1]), limits)
 
 
 def screen(ds: Dataset, cfg: PipelineConfig | None = None) -> Ingested:

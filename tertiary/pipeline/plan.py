@@ -29,7 +29,10 @@ from safety.conflicts import ConflictConfig, ConflictState, conflicts_step, conf
 from tertiary import contract as schema
 from tertiary.core import geo
 from tertiary.core.stage import Stage, Window, check_window
-from tertiary.pipeline.pictures import safety_id_column
+from tertiary.evaluation.evaluate import EvaluationConfig, Reference
+from tertiary.evaluation.streamed import MatchState, match_window
+from tertiary.pipeline.pictures import as_picture, confirmed_only, safety_id_column
+from tertiary.pipeline.tables import NOT_SCORED
 from tertiary.stages import align as align_stage
 from tertiary.stages.association.associate import AssociationConfig, associate_step, init_associate_state
 from tertiary.stages.clustering import ClusteringConfig, cluster_step, init_cluster_state
@@ -41,7 +44,7 @@ from tertiary.stages.tracking.tracker import TrackerConfig, init_track_state, tr
 #: the streamed stages the pipeline runs, in pipeline order (one window goes through them in this
 #: order; :func:`tertiary.pipeline.streaming.pipeline_step` steps each through its adapter)
 STAGES: tuple[str, ...] = ("align", "departures", "associate", "fuse", "centralized", "cluster", "track",
-                           "conflicts", "stca_curves")
+                           "conflicts", "stca_curves", "evaluation")
 #: stages with the same contract that a run does not step on their own: conflict prediction
 #: confirms its alerts itself; the m-of-n confirmation is a stage for pictures scored alone
 EXTRA_STAGES: tuple[str, ...] = ("alert_confirmation",)
@@ -286,6 +289,48 @@ class StcaCurvesStage(_Adapter):
         return {"curve_rows": out.select(list(CURVE_ROWS)).cast(CURVE_ROWS)}, tuple(s for _, s in steps)
 
 
+@dataclass(frozen=True)
+class EvaluationStage(_Adapter):
+    """The evaluation's matching (:func:`tertiary.evaluation.streamed.match_window`) against the
+    run's validated truth (``reference``): inputs ``fused`` and ``tracks`` (the window's rows),
+    outputs ``matched.<picture>`` and ``expected.<picture>`` for every picture of ``pictures``
+    (name, id column) and any other the window has — each fusion method's confirmed targets
+    (``target_id``) and each tracker picture "<method>+<filter>" (``track_id``). The whole-run
+    stage then only reduces them to metrics."""
+
+    reference: Reference
+    cfg: EvaluationConfig
+    pictures: tuple[tuple[str, str], ...]
+    multitarget: bool
+    name: ClassVar[str] = "evaluation"
+
+    def init(self) -> MatchState:
+        return MatchState()
+
+    def step(self, state: MatchState, inputs: Mapping[str, pl.DataFrame], window: Window
+             ) -> tuple[dict[str, pl.DataFrame], MatchState]:
+        fused, tracks = inputs["fused"], inputs["tracks"]
+        check_window(fused, window, table="fused")
+        check_window(tracks, window, table="tracks")
+        rows = {}
+        # the columns the whole-run stage would not read of a stored picture, dropped as it does
+        for frame, id_col in ((confirmed_only(fused), "target_id"), (as_picture(tracks) if tracks.height else tracks,
+                                                                      "track_id")):
+            if frame.height:
+                for (name,), part in frame.partition_by("method", as_dict=True, maintain_order=True).items():
+                    rows[name] = (id_col, part.drop(NOT_SCORED, strict=False))
+        names = [*self.pictures, *((n, c) for n, (c, _) in rows.items() if (n, c) not in self.pictures)]
+        pictures = [(n, c, rows[n][1] if n in rows else pl.DataFrame()) for n, c in names]
+        return match_window(state, pictures, self.reference, self.cfg, self.multitarget)
+
+
+def evaluation_pictures(cfg: Any) -> tuple[tuple[str, str], ...]:
+    """(name, id column) of every picture a run's evaluation scores, in the order it scores them."""
+    fused = (*cfg.methods, *(("centralized",) if cfg.centralized else ()))
+    return (*((m, "target_id") for m in fused),
+            *((f"{m}+{f}", "track_id") for m in cfg.methods for f in cfg.filters))
+
+
 #: the columns of the ``curve_rows`` a run's windows make (:class:`StcaCurvesStage`)
 CURVE_ROWS: dict[str, pl.DataType] = {
     "setting": pl.UInt16, "run": pl.UInt32, "method": pl.String, "epoch": schema.TIME, "id_a": pl.UInt64,
@@ -344,7 +389,7 @@ class AlertConfirmationStage(_Adapter):
 #: the adapter of each name of :data:`STAGES`
 CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, AssociateStage, FuseStage,
                                                   CentralizedStage, ClusterStage, TrackStage, ConflictsStage,
-                                                  StcaCurvesStage, AlertConfirmationStage)}
+                                                  StcaCurvesStage, EvaluationStage, AlertConfirmationStage)}
 
 
 def build_stage(name: str, cfg: Any, context: Any) -> Stage:
@@ -363,6 +408,8 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),
         "stca_curves": lambda: StcaCurvesStage(stca_settings(cfg), safety_id_column(cfg), origin),
+        "evaluation": lambda: EvaluationStage(getattr(context, "reference", None), cfg.scoring,
+                                              evaluation_pictures(cfg), cfg.evaluation),
         "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
     }
     if name not in builders:

@@ -100,7 +100,7 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: StageClock, sink: Sink, no
     t_all = time.perf_counter()
     notes = [] if notes is None else notes
     parts = parts if parts is not None else MemoryParts()
-    ctx, st, source = stream_windows(ds, cfg, clock, notes, window_s, parts, resume_state, start)
+    ctx, st, source = stream_windows(ds, cfg, clock, notes, window_s, parts, resume_state, start, evaluate=True)
     return finalize_stages(ds, cfg, ctx, st, parts, clock, sink, notes, source.n_rows, t_all)
 
 

@@ -14,7 +14,10 @@ import numpy as np
 import polars as pl
 
 from safety import alerts as safety_alerts
-from tertiary.evaluation.evaluate import AssociationScore, Evaluation, evaluate_each, score_associations
+from tertiary.evaluation.evaluate import (AssociationScore, Evaluation, Matched, evaluate_each, scan_spilled,
+                                          score_associations)
+from tertiary.evaluation.multitarget import multitarget_result
+from tertiary.evaluation.streamed import MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig
@@ -216,9 +219,23 @@ def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
     return rows, sum(ids.count() for ids in per_run.values())
 
 
+def windowed_pictures(parts: Any, state: MatchState, surveillance: bool, name: str) -> Matched | None:
+    """Picture ``name`` as the windows matched it (the evaluation's window stage): scans of its
+    matched and expected parts, and its OSPA, GOSPA and SIAP rows from the carried state when
+    ``surveillance``; None when no window had a row of it."""
+    files = parts.part_files(matched_table(name))
+    if not files:
+        return None
+    expected = parts.part_files(expected_table(name))
+    mt = state.pictures.get(name)
+    return Matched(scan_spilled(files), scan_spilled(expected) if expected else None,
+                   multitarget_result(mt, name) if surveillance and mt is not None else None)
+
+
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
-                   spill: Path | None = None, alert_keys: pl.DataFrame | None = None) -> tuple[Evaluation, Evaluation]:
+                   spill: Path | None = None, alert_keys: pl.DataFrame | None = None,
+                   matched: Callable[[str], Matched | None] | None = None) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
@@ -239,16 +256,24 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
         if safety_ids != col or alert_keys is None:
             return safety_ids == col
         return functools.partial(safety_alerts.id_rows, keys=alert_keys, id_col=col)
-    fused_pictures = list(fused_readers(fused, NOT_SCORED, blocks=True))
-    # the heap the last picture freed is handed back before the next is read (memory)
-    ev_fused = (evaluate_each((_released(get) for get in fused_pictures), reference, id_col="target_id",
-                              seed_stage="fusion", id_map=id_map("target_id"), **kw)
+    if matched is not None and isinstance(fused, OnDiskTable) and isinstance(tracks, OnDiskTable):
+        # matched as the windows made them: the pictures are only reduced to metrics here
+        fused_pictures = [functools.partial(matched, key[0]) for key in fused.shown]
+        track_pictures = [functools.partial(matched, f"{m}+{f}") for m, f in tracks.pictures]
+    else:
+        fused_pictures = list(fused_readers(fused, NOT_SCORED, blocks=True))
+        track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))
+
+    def each(readers: list) -> Iterator:
+        # the heap the last picture freed is handed back before the next is read (memory)
+        return (p for p in (_released(get) for get in readers) if p is not None)
+    ev_fused = (evaluate_each(each(fused_pictures), reference, id_col="target_id", seed_stage="fusion",
+                              id_map=id_map("target_id"), **kw)
                 if fused_pictures else none)
-    track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))
     if not track_pictures:
         return ev_fused, none
-    return ev_fused, evaluate_each((_released(get) for get in track_pictures), reference, seed_stage="tracker",
-                                   id_map=id_map("track_id"), **kw)
+    return ev_fused, evaluate_each(each(track_pictures), reference, seed_stage="tracker", id_map=id_map("track_id"),
+                                   **kw)
 
 
 def _released(get: Callable[[], Any]) -> Any:

@@ -22,11 +22,12 @@ from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.stage import Stage
 from tertiary.core.units import US
-from tertiary.evaluation.evaluate import AssociationScore, score_associations
+from tertiary.evaluation.evaluate import AssociationScore, Reference, score_associations
+from tertiary.evaluation.streamed import MatchState
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
-from tertiary.pipeline.ingestion import (Ingested, no_rejects, registered, stage_rejects_table, truth_lazy,
+from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table, truth_lazy,
                                          valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
@@ -75,6 +76,14 @@ class RunContext:
     #: the epochs [t0_us, t1_us) whose association rows are scored as the run goes (None: all):
     #: a time slice of a distributed run scores its kept span, not its warm-up
     scored_span: tuple[int, int] | None = None
+    #: the input reports' plausible times (first, last µs): the truth's time window
+    #: (:func:`~tertiary.pipeline.ingestion.report_span_window`); None: the valid reports' span
+    report_span: tuple[int, int] | None = None
+    #: the truth validated before the windows (:func:`first_truth`); None: finalize validates it
+    truth: ValidTruth | None = None
+    #: the reference the windows match their pictures to (the evaluation stage); None: the
+    #: whole-run evaluation matches them
+    reference: Reference | None = None
 
 
 @dataclass(frozen=True)
@@ -99,6 +108,8 @@ class StreamState:
     scores: AssociationScore | None = None
     #: one conflict prediction state per point of the STCA curves (None: initial)
     curves: tuple | None = None
+    #: the evaluation's matching state (None: initial, or not matched in the windows)
+    evaluation: MatchState | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -234,6 +245,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         stage = stages["stca_curves"]
         out, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": picture}, w)
         curves = out["curve_rows"]
+    s_eval = st.evaluation
+    if ctx.reference is not None:
+        clock.stage("match_pictures")      # matched as the run goes: the whole-run evaluation only reduces
+        stage = stages["evaluation"]
+        out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval, {"fused": fused, "tracks": tracks}, w)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -242,8 +258,10 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
     if curves is not None:
         out["curve_rows"] = curves
+    if ctx.reference is not None:
+        out.update(out_eval)
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves)
+                            s_dep, s_scores, s_curves, s_eval)
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -308,10 +326,12 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
 
 def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
                    parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None,
-                   scored_span: tuple[int, int] | None = None) -> tuple[RunContext, StreamState, ReportSource]:
+                   scored_span: tuple[int, int] | None = None, evaluate: bool = False
+                   ) -> tuple[RunContext, StreamState, ReportSource]:
     """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
     initial state), each stored in ``parts`` as it completes; the run's context, its last state
-    and its report source."""
+    and its report source. ``evaluate``: a run on disk with truth validates the truth first and
+    matches its pictures to it in the windows (:func:`first_truth`)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
     source = ReportSource(ds.reports, cfg.limits)
@@ -325,7 +345,12 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.median = source.median
     if grid_origin_us is not None:
         ctx.grid_origin_us = grid_origin_us
-    ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin) is final
+    if source.first_us is not None:
+        ctx.report_span = (source.first_us, source.last_us)
+    if evaluate:
+        ctx.truth = first_truth(ds, cfg, notes, source, parts, clock)
+        ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
+    ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     ctx.scored_span = scored_span
     st = resume_state or init_stream_state(cfg)

@@ -1,10 +1,13 @@
-"""The whole-run stages: once every window is stored, the truth is validated, every streamed table
-sunk, and the one evaluation stage, alert scoring and STCA curves, the posterior Cramér–Rao
-bound, capacity and requirements run on the whole run (:func:`finalize`). An on-disk run keeps
-its pictures on disk and reads them back one at a time."""
+"""The whole-run stages: once every window is stored, the truth is validated (unless the local run
+validated it before its first window), every streamed table sunk, and the one evaluation stage,
+alert scoring and STCA curves, the posterior Cramér–Rao bound, capacity and requirements run on
+the whole run (:func:`finalize`). An on-disk run keeps its pictures on disk; where its windows
+matched them to the truth, the evaluation only reduces the matched rows to metrics, else it reads
+each picture back, one at a time."""
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,19 +22,19 @@ from tertiary import contract
 from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_stage
-from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, association_metrics,
+from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, Matched, association_metrics,
                                           association_score, read_reference, reference_files, write_reference)
 from tertiary.evaluation.indicators import indicators
 from tertiary.evaluation.truth_picture import observed_spans
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
-from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, span_window, stream_truth,
-                                         truth_window, validate_truth)
+from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, report_span_window, span_window,
+                                         stream_truth, truth_window, validate_truth)
 from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
-                                       observed_aircraft, score_pictures, scored_blocks)
+                                       observed_aircraft, score_pictures, scored_blocks, windowed_pictures)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
 from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
@@ -106,6 +109,9 @@ class RunTables:
     #: points: the only ids whose id-map rows the alert scoring reads (:func:`safety.alerts.id_rows`);
     #: None: the whole id map is kept
     alert_keys: pl.DataFrame | None = None
+    #: the pictures as the windows matched them, by name (:func:`windowed_pictures`); None: the
+    #: evaluation matches them itself
+    matched: Callable[[str], Matched | None] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -150,14 +156,19 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
         reports = (read_table(parts, "reports", empty_reports) if not lean else
                    table_columns(parts, "reports", REPORT_COLUMNS, empty_reports))
         n_reports, window = reports.height, truth_window(reports, cfg.limits)
+    if ctx.report_span is not None and n_reports:
+        window = report_span_window(ctx.report_span, cfg.limits)      # as the windows' engine knew it
     rejects = read_table(parts, "rejects", no_rejects()).sort("input_table", "row_index", nulls_last=True,
                                                               maintain_order=True)
     scratch = parts.scratch() if lean else None
+    first = ctx.truth           # validated before the windows, which matched their pictures to it
     # an on-disk run validates the truth from disk to disk: the whole-run stages read it there
-    streamed = stream_truth(ds, cfg, notes, window, scratch) if lean else None
+    streamed = ((first.on_disk, first.rejects) if first is not None and first.on_disk is not None
+                else stream_truth(ds, cfg, notes, window, scratch) if lean and first is None else None)
     on_disk = None
     if streamed is None:
-        truth, rej_t = validate_truth(ds, cfg, notes, window)
+        truth, rej_t = ((first.frame, first.rejects) if first is not None
+                        else validate_truth(ds, cfg, notes, window))
     else:
         on_disk, rej_t = streamed
         truth = on_disk.empty
@@ -246,9 +257,11 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             if lean and cfg.safety and isinstance(conflicts, DeferredTable)
             and (curves is not None or not cfg.stca_lookaheads_s)
             else None)
+    matched = (functools.partial(windowed_pictures, parts, st.evaluation, cfg.evaluation)
+               if ctx.reference is not None and st.evaluation is not None else None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
-                    getattr(st, "scores", None), curves, keys)
+                    getattr(st, "scores", None), curves, keys, matched)
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -280,7 +293,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             reference = write_reference(ing.truth, scratch / "reference.parquet")
             ing.truth = ing.truth.clear()
         ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
-                                             None if scratch is None else scratch / "evaluation", run.alert_keys)
+                                             None if scratch is None else scratch / "evaluation", run.alert_keys,
+                                             run.matched)
         # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
         spans, grid = observed_spans(observed), observed.select("run", "epoch").unique().sort("run", "epoch")
         del observed
