@@ -224,7 +224,9 @@ def test_batch_progress_as_json_lines_or_nothing(dataset, tmp_path):
     assert res.exit_code == 0, res.output
     lines = [json.loads(line) for line in res.output.splitlines() if line.startswith("{")]
     steps = [d["step"] for d in lines if d["task"] == "pipeline"]
-    assert steps[:3] == ["validate", "align", "associate"] and "store" in steps
+    # a dataset with truth: validated before the first window, every picture matched in the windows
+    assert steps[:4] == ["validate", "validate_truth", "align", "associate"] and "store" in steps
+    assert "match_pictures" in steps
     assert all(d["peak_rss_mib"] > 0 and d["t_s"] >= 0 for d in lines)
     assert "wall time" in res.output                         # the summary is still printed
     quiet = runner.invoke(app, [*args, "--out", str(tmp_path / "q"), "--quiet"])
