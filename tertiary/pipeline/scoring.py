@@ -221,14 +221,18 @@ def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
 
 def windowed_pictures(parts: Any, state: MatchState, surveillance: bool, name: str) -> Matched | None:
     """Picture ``name`` as the windows matched it (the evaluation's window stage): scans of its
-    matched and expected parts, and its OSPA, GOSPA and SIAP rows from the carried state when
-    ``surveillance``; None when no window had a row of it."""
-    files = parts.part_files(matched_table(name))
+    rows of the matched and expected parts of the groups it was written in, and its OSPA, GOSPA
+    and SIAP rows from the carried state when ``surveillance``; None when no window had a row of
+    it."""
+    groups = state.groups.get(name, ())
+    files = [f for g in groups for f in parts.part_files(matched_table(g))]
     if not files:
         return None
-    expected = parts.part_files(expected_table(name))
+    expected = [f for g in groups for f in parts.part_files(expected_table(g))]
+    mine = pl.col("method") == name
     mt = state.pictures.get(name)
-    return Matched(scan_spilled(files), scan_spilled(expected) if expected else None,
+    return Matched(scan_spilled(files).filter(mine),
+                   scan_spilled(expected).filter(mine).drop("method") if expected else None,
                    multitarget_result(mt, name) if surveillance and mt is not None else None)
 
 
