@@ -6,7 +6,8 @@ tree), runs ``tertiary run DATASET --no-report ARGS`` in a fresh process, reads 
 last "window K/N done" progress line and the run record's stage timings, and records: wall time,
 the windows' time, the time after the last window and its share of the run, peak memory, and the
 timings of the stages after the windows. Trees alternate job by job; ``--repeat`` runs each pair
-again and keeps every run.
+again and keeps every run; ``--warmup`` runs each tree first, uncounted (a fresh source tree
+compiles its kernels on its first run); ``--merge`` keeps the recorded jobs not run again.
 
     python benchmarks/bench_after_windows.py --job default=DATA \
         --job national=NATIONAL:--methods,information,--filters,imm_sym --tree before=OLD --tree after=.
@@ -29,7 +30,7 @@ from pathlib import Path
 import duckdb
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _util import record  # noqa: E402
+from _util import RESULTS, record  # noqa: E402
 from bench_memory import _CHILD  # noqa: E402
 
 #: a batch log's line for a finished window: "[   31.0 s] pipeline: window 13/13 done, ..."
@@ -71,6 +72,9 @@ def main() -> None:
     ap.add_argument("--job", action="append", required=True, help="NAME=DATASET[:ARG,ARG...]")
     ap.add_argument("--tree", action="append", default=None, help="LABEL=DIR (default: this tree)")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=0,
+                    help="runs of each tree before the counted ones (a fresh tree compiles its kernels on its first)")
+    ap.add_argument("--merge", action="store_true", help="keep the recorded jobs these runs do not replace")
     ap.add_argument("--what", default="", help="what the trees are (recorded beside the results)")
     args = ap.parse_args()
     trees = [(t.split("=", 1)[0], Path(t.split("=", 1)[1]).resolve()) for t in
@@ -81,7 +85,11 @@ def main() -> None:
             name, rest = spec.split("=", 1)
             data, _, extra = rest.partition(":")
             run_args = [a for a in extra.split(",") if a]
-            job = rows.setdefault(name, {"dataset": data, "args": run_args, "runs": {label: [] for label, _ in trees}})
+            job = rows.setdefault(name, {"dataset": data, "args": run_args, "warmup": args.warmup,
+                                         "runs": {label: [] for label, _ in trees}})
+            for _ in range(args.warmup):
+                for label, tree in trees:
+                    _run(tree, data, run_args, Path(tmp) / f"{name}-{label}")
             for _ in range(args.repeat):
                 for label, tree in trees:
                     got = _run(tree, data, run_args, Path(tmp) / f"{name}-{label}")
@@ -91,6 +99,10 @@ def main() -> None:
             job["median"] = {label: {k: _median([r[k] for r in runs]) for k in
                                      ("wall_s", "windows_s", "after_windows_s", "after_windows_share", "peak_rss_mib")}
                              for label, runs in job["runs"].items()}
+    if args.merge and (RESULTS / "bench_after_windows.json").exists():
+        old = json.loads((RESULTS / "bench_after_windows.json").read_text())
+        rows = {**old.get("jobs", {}), **rows}
+        args.what = "; ".join(w for w in (old.get("what", ""), args.what) if w)
     print("recorded in", record("bench_after_windows", {"what": args.what,
                                                           "trees": {label: str(t) for label, t in trees},
                                                           "jobs": rows}))
