@@ -96,7 +96,7 @@ def main() -> None:
                     job["runs"][label].append(got)
                     print(json.dumps({"job": name, "tree": label, **{k: v for k, v in got.items()
                                                                       if not k.endswith("timings_s")}}), flush=True)
-            job["median"] = {label: {k: _median([r[k] for r in runs]) for k in
+            job["median"] = {label: {k: round(_median([r[k] for r in runs]), 3) for k in
                                      ("wall_s", "windows_s", "after_windows_s", "after_windows_share", "peak_rss_mib")}
                              for label, runs in job["runs"].items()}
     if args.merge and (RESULTS / "bench_after_windows.json").exists():
