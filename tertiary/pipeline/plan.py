@@ -293,10 +293,11 @@ class StcaCurvesStage(_Adapter):
 class EvaluationStage(_Adapter):
     """The evaluation's matching (:func:`tertiary.evaluation.streamed.match_window`) against the
     run's validated truth (``reference``): inputs ``fused`` and ``tracks`` (the window's rows),
-    outputs ``matched.<picture>`` and ``expected.<picture>`` for every picture of ``pictures``
-    (name, id column) and any other the window has — each fusion method's confirmed targets
-    (``target_id``) and each tracker picture "<method>+<filter>" (``track_id``). The whole-run
-    stage then only reduces them to metrics."""
+    outputs ``matched.<group>`` and ``expected.<group>``, one pair per picture schema (a
+    picture's rows told by ``method``), for every picture of ``pictures`` (name, id column) and
+    any other the window has — each fusion method's confirmed targets (``target_id``) and each
+    tracker picture "<method>+<filter>" (``track_id``). The whole-run stage then only reduces
+    them to metrics."""
 
     reference: Reference
     cfg: EvaluationConfig
