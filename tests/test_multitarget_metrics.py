@@ -265,7 +265,8 @@ def test_pictures_stepped_together_equal_each_stepped_alone(seed):
     """:func:`multitarget_steps` (every picture of a window in one call, each keyed apart) leaves
     each picture the state :func:`multitarget_step` gives it alone, block after block, with
     pictures that start late, skip a block or have several runs."""
-    from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, multitarget_step, multitarget_steps
+    from tertiary.evaluation.multitarget import (MultiTargetState, multitarget_result, multitarget_step,
+                                                 multitarget_steps)
     cfg = MultiTargetConfig(c_m=800.0, p=2.0)
     scenes = {}
     for k in range(3):

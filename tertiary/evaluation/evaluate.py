@@ -45,8 +45,8 @@ from tertiary.evaluation.requirements import Requirements, check_requirements
 from tertiary.contract import TABLES, TIME
 from tertiary.store.files import write_parquet_atomic
 
-__all__ = ["EvaluationConfig", "Evaluation", "Matched", "Reference", "match_block", "scan_spilled", "evaluate_pictures", "evaluate_each", "write_reference", "read_reference",
-           "write_reference_pieces", "reference_files",
+__all__ = ["EvaluationConfig", "Evaluation", "Matched", "Reference", "match_block", "scan_spilled", "evaluate_pictures",
+           "evaluate_each", "write_reference", "read_reference", "write_reference_pieces", "reference_files",
            "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
            "reference_error_metrics", "read_parquet_file", "association_metrics"]
@@ -368,7 +368,8 @@ MULTITARGET_TRUTH = ("run", "epoch", "truth_id", "true_x_m", "true_y_m", "true_z
 class Matched:
     """A picture matched as it was made (the evaluation's window stage): its slim, row-scored
     matched rows and the reference at its epochs as scans, and its OSPA, GOSPA and SIAP rows.
-    :func:`evaluate_each` scores it as a picture it matched itself, in buckets (its ``spill``)."""
+    :func:`evaluate_each` scores it as a picture it matched itself: in memory when it is small,
+    else in buckets (its ``spill``)."""
 
     matched: pl.LazyFrame
     expected: pl.LazyFrame | None
@@ -395,7 +396,8 @@ def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.D
                          empty=tracks.clear())
 
 
-def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Matched"], truth: pl.DataFrame | str | Path, *,
+def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Matched"],
+                  truth: pl.DataFrame | str | Path, *,
                   radars: pl.DataFrame | None = None,
                   frame: geo.LocalFrame | None = None, requirements: Requirements | None = None,
                   cfg: EvaluationConfig = EvaluationConfig(), id_col: str = "track_id",

@@ -28,7 +28,8 @@ from tertiary.stages import align as align_stage
 from tertiary.stages.align import AlignPlan
 from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
 
-__all__ = ["Ingested", "StreamedTruth", "ValidTruth", "first_truth", "plausible_span", "report_span_window", "ingest", "screen", "validate_table", "validate_truth", "stream_truth",
+__all__ = ["Ingested", "StreamedTruth", "ValidTruth", "first_truth", "plausible_span", "report_span_window", "ingest",
+           "screen", "validate_table", "validate_truth", "stream_truth",
            "truth_lazy", "span_window", "truth_window", "no_rejects", "registered", "valid_flight_plans",
            "stage_rejects_table",
            "TRUTH_PART_ROWS", "TRUTH_WHOLE_ROWS", "TRUTH_BATCH_ROWS"]

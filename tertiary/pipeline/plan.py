@@ -294,14 +294,12 @@ class EvaluationStage(_Adapter):
     """The evaluation's matching (:func:`tertiary.evaluation.streamed.match_window`) against the
     run's validated truth (``reference``): inputs ``fused`` and ``tracks`` (the window's rows),
     outputs ``matched.<group>`` and ``expected.<group>``, one pair per picture schema (a
-    picture's rows told by ``method``), for every picture of ``pictures`` (name, id column) and
-    any other the window has — each fusion method's confirmed targets (``target_id``) and each
-    tracker picture "<method>+<filter>" (``track_id``). The whole-run stage then only reduces
-    them to metrics."""
+    picture's rows told by ``method``), for each picture the window has — each fusion method's
+    confirmed targets (``target_id``) and each tracker picture "<method>+<filter>"
+    (``track_id``). The whole-run stage then only reduces them to metrics."""
 
     reference: Reference
     cfg: EvaluationConfig
-    pictures: tuple[tuple[str, str], ...]
     multitarget: bool
     name: ClassVar[str] = "evaluation"
 
@@ -313,23 +311,14 @@ class EvaluationStage(_Adapter):
         fused, tracks = inputs["fused"], inputs["tracks"]
         check_window(fused, window, table="fused")
         check_window(tracks, window, table="tracks")
-        rows = {}
+        pictures = []
         # the columns the whole-run stage would not read of a stored picture, dropped as it does
         for frame, id_col in ((confirmed_only(fused), "target_id"), (as_picture(tracks) if tracks.height else tracks,
                                                                       "track_id")):
             if frame.height:
-                for (name,), part in frame.partition_by("method", as_dict=True, maintain_order=True).items():
-                    rows[name] = (id_col, part.drop(NOT_SCORED, strict=False))
-        names = [*self.pictures, *((n, c) for n, (c, _) in rows.items() if (n, c) not in self.pictures)]
-        pictures = [(n, c, rows[n][1] if n in rows else pl.DataFrame()) for n, c in names]
+                pictures += [(name, id_col, part.drop(NOT_SCORED, strict=False)) for (name,), part in
+                             frame.partition_by("method", as_dict=True, maintain_order=True).items()]
         return match_window(state, pictures, self.reference, self.cfg, self.multitarget)
-
-
-def evaluation_pictures(cfg: Any) -> tuple[tuple[str, str], ...]:
-    """(name, id column) of every picture a run's evaluation scores, in the order it scores them."""
-    fused = (*cfg.methods, *(("centralized",) if cfg.centralized else ()))
-    return (*((m, "target_id") for m in fused),
-            *((f"{m}+{f}", "track_id") for m in cfg.methods for f in cfg.filters))
 
 
 #: the columns of the ``curve_rows`` a run's windows make (:class:`StcaCurvesStage`)
@@ -409,8 +398,7 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),
         "stca_curves": lambda: StcaCurvesStage(stca_settings(cfg), safety_id_column(cfg), origin),
-        "evaluation": lambda: EvaluationStage(getattr(context, "reference", None), cfg.scoring,
-                                              evaluation_pictures(cfg), cfg.evaluation),
+        "evaluation": lambda: EvaluationStage(getattr(context, "reference", None), cfg.scoring, cfg.evaluation),
         "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
     }
     if name not in builders:

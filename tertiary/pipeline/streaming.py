@@ -27,8 +27,8 @@ from tertiary.evaluation.streamed import MatchState
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
-from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table, truth_lazy,
-                                         valid_flight_plans, validate_table)
+from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table,
+                                         truth_lazy, valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
