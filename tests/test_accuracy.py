@@ -12,7 +12,7 @@ import pytest
 from scipy.stats import chi2
 
 from tertiary.evaluation.accuracy import (AccuracyConfig, accuracy_by_epoch_from_matched, accuracy_from_matched, picture_accuracy, scored_rows)
-from tertiary.evaluation.evaluate import association_metrics
+from tertiary.evaluation.association import association_metrics
 from tertiary.evaluation.matching import match_to_reference
 from tertiary.contract import TABLES, validate
 
@@ -414,7 +414,7 @@ def test_association_metrics_scored_window_by_window_equal_the_whole_run(cuts):
     some epochs are clutter only. Fails if a target's majority aircraft is not carried to the
     next window (swaps), a target's reports are judged per window (false targets), or a
     target's aircraft are counted per window (targets per aircraft)."""
-    from tertiary.evaluation.evaluate import AssociationScore, association_score, score_associations
+    from tertiary.evaluation.association import AssociationScore, association_score, score_associations
     rows = _random_association_rows(11)
     assoc, reports = _assoc_rows(rows)
     whole = association_metrics(assoc, reports)
@@ -437,7 +437,7 @@ def test_association_scores_of_time_slices_merge_to_the_whole_run(cuts):
     (:func:`merge_association_scores`), give the whole run's metrics. Fails if a swap across a
     slice boundary is lost, a target of two slices is counted twice (targets per aircraft,
     false targets) or a slice's ids are not relabelled."""
-    from tertiary.evaluation.evaluate import (AssociationScore, association_score, merge_association_scores,
+    from tertiary.evaluation.association import (AssociationScore, association_score, merge_association_scores,
                                               relabel_association_score, score_associations)
     rows = _random_association_rows(5)
     assoc, reports = _assoc_rows(rows)

@@ -21,7 +21,7 @@ from polars.testing import assert_frame_equal
 
 from safety import alerts as safety_alerts
 from tertiary import pipeline
-from tertiary.pipeline import ingestion, plan, runner, streaming, tables, whole_run
+from tertiary.pipeline import ingestion, plan, runner, scoring, streaming, tables, whole_run
 from tertiary.core.stage import T_MAX_US
 from tertiary.runtime.windows import US, Window, incomplete_message, windows
 from tertiary.io.dataset import write_dataset
@@ -121,7 +121,7 @@ def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monk
 
 def test_association_metrics_are_scored_window_by_window(terminal, terminal_whole, monkeypatch):
     """evaluation accumulators: the association metrics come from the state the
-    windows carry (:class:`tertiary.evaluation.evaluate.AssociationScore`), not from the whole run's rows
+    windows carry (:class:`tertiary.evaluation.association.AssociationScore`), not from the whole run's rows
     read back in finalize — the whole-run function is not called — and equal one window's."""
     def whole_run_scored(*_a, **_k):
         raise AssertionError("association rows scored in finalize")
@@ -186,9 +186,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     monkeypatch.setattr(ingestion, "TRUTH_BATCH_ROWS", 1_500)
     monkeypatch.setattr(ingestion, "stream_truth", lambda *a, f=ingestion.stream_truth: streamed.append(f(*a))
                         or streamed[-1])
-    windowed: list[str] = []
-    monkeypatch.setattr(whole_run, "windowed_pictures", lambda parts, state, surveillance, name,
-                        f=whole_run.windowed_pictures: windowed.append(name) or f(parts, state, surveillance, name))
+    windowed, seeded = [], []
+    monkeypatch.setattr(scoring.WindowedPictures, "__call__", lambda self, name, f=scoring.WindowedPictures.__call__:
+                        windowed.append(name) or f(self, name))
+    monkeypatch.setattr(scoring.WindowedPictures, "_seed_tables", lambda self, name, *a,
+                        f=scoring.WindowedPictures._seed_tables: seeded.append(name) or f(self, name, *a))
     from tertiary.evaluation import bound
     bound_reads: list[tuple[bool, int]] = []         # (from a scan, aircraft) of each truth read
 
@@ -220,9 +222,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     rows = json.loads(record.filter(pl.col("key") == "rows")["value"][0])
     assert rows == json.loads(json.dumps(mem.counts))
     # every picture matched in the windows (each fusion method, the centralised reference, each
-    # tracker picture), none read back for the evaluation; the windows predicted the curves
+    # tracker picture) and its seed metrics stepped there, none read back for the evaluation;
+    # the windows predicted the curves
     assert sorted(windowed) == sorted([*cfg.methods, "centralized",
                                        *(f"{m}+{f}" for m in cfg.methods for f in cfg.filters)])
+    assert sorted(seeded) == sorted(windowed)
     assert read == [] and blocks == []
 
 

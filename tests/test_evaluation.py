@@ -361,7 +361,7 @@ def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     reordered."""
     from datetime import datetime, timedelta, timezone
     from tertiary.evaluation import evaluate as evaluation
-    from tertiary.evaluation.evaluate import _report_truth, association_metrics
+    from tertiary.evaluation.association import _report_truth, association_metrics
     rng = np.random.default_rng(5)
     n = 37
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
@@ -418,7 +418,7 @@ def test_association_rows_read_back_are_scored_in_blocks_as_whole(monkeypatch, s
     repeated, or labelled with another run's aircraft."""
     from datetime import datetime, timedelta, timezone
     from tertiary import pipeline
-    from tertiary.evaluation.evaluate import association_metrics, association_score
+    from tertiary.evaluation.association import association_metrics, association_score
     rng = np.random.default_rng(11)
     t0 = datetime(2021, 1, 1, tzinfo=timezone.utc)
     n = 160

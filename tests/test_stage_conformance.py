@@ -101,12 +101,15 @@ def _build_cases() -> tuple[dict[str, Case], list[int]]:
         cfg, stca_lookaheads_s=(90.0,), stca_confidences=(0.9,), stca_fixed_m=(300.0,)), ctx)
     curves = add("stca_curves", {"picture": picture}, {"picture": ("epoch", IN)})["curve_rows"]
     assert curves["setting"].n_unique() == 2 and curves["alert"].any(), "the curve case screens nothing"
-    # the evaluation's matching, with the multi-target state (the run above scores no picture)
+    # the evaluation's matching, with the multi-target state and the seed metrics (the run above
+    # scores no picture)
     stages["evaluation"] = plan.build_stage("evaluation", dataclasses.replace(cfg, evaluation=True), ctx)
-    matched = add("evaluation", {"fused": pl.concat([fused, central], how="diagonal_relaxed"), "tracks": tracks},
-                  {"fused": ("epoch", IN), "tracks": ("epoch", IN)})
+    matched = add("evaluation", {"fused": pl.concat([fused, central], how="diagonal_relaxed"), "tracks": tracks,
+                                 "aligned": aligned},
+                  {"fused": ("epoch", IN), "tracks": ("epoch", IN), "aligned": ("epoch", IN)})
     rows = pl.concat([f for k, f in matched.items() if k.startswith("matched.") and f.height], how="diagonal_relaxed")
     assert rows.filter(pl.col("method") == "information+singer")["truth_id"].is_not_null().any(), "nothing matched"
+    assert matched["scored"].filter(pl.col("method") == "information+singer").height, "nothing scored"
     epochs = picture.select("epoch").unique()
     add("alert_confirmation", {"conflicts": conflicts, "epochs": epochs},
         {"conflicts": ("epoch", IN), "epochs": ("epoch", IN)})

@@ -23,7 +23,7 @@ from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, consistency_dicts, consistency_statistics,
                                              series_codes)
 
-__all__ = ["picture_accuracy_buckets"]
+__all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows"]
 
 #: what :func:`row_scores` and :func:`picture_accuracy` read of a picture not yet row-scored
 _ROW_INPUTS = (*ACCURACY_COLUMNS, "segment", *STATE, *(f"true_{c}" for c in STATE), "alt_m", "true_alt_m", "cov",
@@ -58,7 +58,7 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
     filed = scratch is not None and buckets > 1
     by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks")
                 if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
-    parts = _Parts()
+    parts = SeedSums()
     seen_from = first_seen(observed, schema)
     for k in range(buckets):
         part = by_track[k].collect()
@@ -120,12 +120,19 @@ def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, e
     return coverage_table(pl.concat(counts))
 
 
+def statistic_rows(scored: pl.DataFrame, col: str) -> pl.DataFrame:
+    """The rows of a consistency statistic ``col`` (finite values), sorted along each series."""
+    return scored.select("method", "run", "epoch", "track_id", "seg_class", col).filter(
+        pl.col(col).is_not_null() & pl.col(col).is_finite()).sort("method", "run", "track_id", "epoch")
+
+
 @dataclass
-class _Parts:
-    """What :func:`picture_accuracy_buckets` keeps of the track buckets seen: small tables
-    (``tables``: per method, segment, epoch and run at most), the per-lag sums of each
-    consistency series set (``lags``: (prefix, method, segment) → :class:`Lags`) and the scored
-    samples with their row index."""
+class SeedSums:
+    """What the seed metrics keep of the rows seen (the track buckets of
+    :func:`picture_accuracy_buckets`, or the windows of
+    :mod:`tertiary.evaluation.accuracy_streamed`): small tables (``tables``: per method,
+    segment, epoch and run at most), the per-lag sums of each consistency series set (``lags``:
+    (prefix, method, segment) → :class:`Lags`) and the scored samples with their row index."""
 
     rows: int = 0
     tables: dict[str, pl.DataFrame] = field(default_factory=dict)
@@ -153,8 +160,9 @@ class _Parts:
         if scored.height:
             self.add_scored(scored)
 
-    def add_scored(self, scored: pl.DataFrame) -> None:
-        """The partial sums of a bucket's scored rows: (2.15), potential accuracy, consistency."""
+    def add_scored(self, scored: pl.DataFrame, lags: bool = True) -> None:
+        """The partial sums of a bucket's scored rows: (2.15), potential accuracy, consistency
+        (``lags``: with the per-lag sums of each series, which need its rows whole)."""
         key = ["method", "eval_segment", "epoch", "run"]
         e2 = [pl.col(c).sum() for c in FUSION_METRICS.values()]
         self.fold("epochs", pl.concat([
@@ -170,12 +178,12 @@ class _Parts:
             self.fold("potential_runs", pot.select("method", "eval_segment", "run").unique(),
                       ["method", "eval_segment", "run"])
         for prefix, (col, _dof) in consistency_statistics(scored.columns).items():
-            self.add_statistic(scored, prefix, col)
+            self.add_statistic(scored, prefix, col, lags)
 
-    def add_statistic(self, scored: pl.DataFrame, prefix: str, col: str) -> None:
-        """Per-epoch sums and per-lag sums of one NEES/NIS statistic (:func:`consistency_metrics`)."""
-        r = scored.select("method", "run", "epoch", "track_id", "seg_class", col).filter(
-            pl.col(col).is_not_null() & pl.col(col).is_finite()).sort("method", "run", "track_id", "epoch")
+    def add_statistic(self, scored: pl.DataFrame, prefix: str, col: str, lags: bool = True) -> None:
+        """Per-epoch sums and (``lags``) per-lag sums of one NEES/NIS statistic
+        (:func:`consistency_metrics`)."""
+        r = statistic_rows(scored, col)
         if r.is_empty():
             return
         both = with_segments(r)
@@ -184,6 +192,11 @@ class _Parts:
         self.fold(f"{prefix}:runs", both.select("method", "eval_segment", "run").unique(),
                   ["method", "eval_segment", "run"])
         del both
+        if lags:
+            self.add_lags(r, prefix, col)
+
+    def add_lags(self, r: pl.DataFrame, prefix: str, col: str) -> None:
+        """The per-lag sums of a statistic's rows ``r`` (:func:`statistic_rows`: whole series)."""
         for method in r["method"].unique().to_list():
             m = r.filter(pl.col("method") == method)
             for seg in ["all", *m["seg_class"].drop_nulls().unique().to_list()]:
@@ -195,6 +208,13 @@ class _Parts:
     def finish(self, stage: str, cfg: AccuracyConfig, coverage: pl.DataFrame | None
                ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
         """:func:`picture_accuracy`'s three tables from the sums of every bucket."""
+        metrics, by_epoch = self.tables_of(stage, cfg, coverage)
+        return metrics, by_epoch, pl.concat(self.samples).sort(_ROW).drop(_ROW)
+
+    def tables_of(self, stage: str, cfg: AccuracyConfig, coverage: pl.DataFrame | None
+                  ) -> tuple[pl.DataFrame, pl.DataFrame]:
+        """(the seed metrics, the per-epoch accuracy) from the sums (``tables`` ``tracks`` and
+        ``track_runs``: :func:`continuity_table`'s inputs)."""
         t = self.tables
         accuracy, by_epoch = empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA)
         if "epochs" in t:
@@ -211,8 +231,7 @@ class _Parts:
             if f"{prefix}:epochs" in t:
                 out.append(self._statistic(prefix, dof, stage, cfg.band))
         out.append(continuity_table(t["tracks"], t["track_runs"], coverage, stage))
-        samples = pl.concat(self.samples).sort(_ROW).drop(_ROW)
-        return metrics_concat(out), by_epoch, samples
+        return metrics_concat(out), by_epoch
 
     def _potential(self) -> pl.DataFrame:
         """(method, eval_segment, value, n_runs) in :func:`picture_accuracy`'s order of appearance:

@@ -1,7 +1,9 @@
 """The evaluation's matching as a streamed step: each window's pictures are matched to the
 reference and row-scored as they are made (:func:`match_window`), each picture's multi-target
-state carried from window to window. What is left for the end of the run is the reduction of
-the matched rows to metrics (:class:`~tertiary.evaluation.evaluate.Matched`).
+state and every picture's seed metrics (:mod:`tertiary.evaluation.accuracy_streamed`, one step
+a window) carried from window to window. What is left for the end of the run is to finish the
+seed metrics and reduce the matched rows to the surveillance metrics
+(:class:`~tertiary.evaluation.evaluate.Matched`).
 
 The matcher is per epoch and the row scores per row, so the rows of a run stepped window by
 window are those of the whole run matched at once. Pictures of one id column and one schema are
@@ -17,10 +19,14 @@ from dataclasses import dataclass, field
 
 import polars as pl
 
+from tertiary.evaluation.accuracy_streamed import SCORED_ROWS, SeedState, Walk, seed_rows, seed_step, walk_step
 from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Reference, match_block
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
 
-__all__ = ["MatchState", "match_window", "matched_table", "expected_table"]
+__all__ = ["MatchState", "match_window", "matched_table", "expected_table", "SCORED"]
+
+#: the window output of every picture's scored rows (:data:`~tertiary.evaluation.accuracy_streamed.SCORED_ROWS`)
+SCORED = "scored"
 
 
 def matched_table(group: str) -> str:
@@ -41,20 +47,34 @@ def _group(id_col: str, schema: pl.Schema) -> str:
 @dataclass(frozen=True)
 class MatchState:
     """Each picture's :class:`~tertiary.evaluation.multitarget.MultiTargetState` and the groups
-    its rows were written in, by name."""
+    its rows were written in, by name; every picture's seed metrics so far
+    (:class:`~tertiary.evaluation.accuracy_streamed.SeedState`) and the run's coverage walk
+    (``walk``; None: the seed metrics are not stepped, the run's aligned rows carry no
+    aircraft)."""
 
     pictures: dict[str, MultiTargetState] = field(default_factory=dict)
     groups: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    seed: SeedState = field(default_factory=SeedState)
+    walk: Walk | None = field(default_factory=Walk)
 
 
 def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFrame]], reference: Reference,
-                 cfg: EvaluationConfig, multitarget: bool) -> tuple[dict[str, pl.DataFrame], MatchState]:
+                 cfg: EvaluationConfig, multitarget: bool, observed: pl.DataFrame | None = None
+                 ) -> tuple[dict[str, pl.DataFrame], MatchState]:
     """The matched rows (only the columns the metrics read) and the reference at the epochs of
     each picture (name, id column, its rows in the window), by group; a group seen before but
     not in this window gives empty tables, a picture without a row keeps its state.
-    ``multitarget``: the OSPA, GOSPA and SIAP states are stepped."""
-    carried, where = dict(state.pictures), dict(state.groups)
+    ``multitarget``: the OSPA, GOSPA and SIAP states are stepped. ``observed``: the window's
+    (run, epoch, truth_id) of the aligned reports; with it each picture's seed metrics are
+    stepped and their scored rows written (:data:`SCORED`); None, in any window: not."""
+    carried, where, seed, walk = dict(state.pictures), dict(state.groups), state.seed, state.walk
     out = {t(g): pl.DataFrame() for gs in where.values() for g in gs for t in (matched_table, expected_table)}
+    walk_rows = None
+    if walk is not None and observed is not None:
+        walk_rows, walk = walk_step(walk, observed)
+    else:
+        seed, walk = SeedState(), None
+    to_seed = []
     groups: dict[str, tuple[str, list[tuple[str, pl.DataFrame]]]] = {}
     for name, id_col, rows in pictures:
         if rows.height:
@@ -75,12 +95,19 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
             seen = expected.join(mine.select("run", "epoch").unique(), on=["run", "epoch"], how="semi",
                                  maintain_order="left") if len(named) > 1 else expected
             seen_all.append(seen.with_columns(pl.lit(name).alias("method")))
+            if walk_rows is not None:
+                to_seed.append(seed_rows(mine, id_col))
             if group not in where.get(name, ()):
                 where[name] = (*where.get(name, ()), group)
             blocks.append((name, mine.select("run", "epoch", pl.col(id_col).alias("track_id"), "x_m", "y_m", "z_m"),
                            seen.select(MULTITARGET_TRUTH)))
         out[matched_table(group)] = scored
         out[expected_table(group)] = pl.concat(seen_all, how="vertical")
+    if walk_rows is not None:
+        # one step for every picture of the window (their rows told by ``method``)
+        rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
+        out[SCORED], seed = (seed_step(seed, rows, walk_rows, walk, cfg.accuracy) if rows.height
+                             else (pl.DataFrame(schema=SCORED_ROWS), seed))
     if multitarget:
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
-    return out, MatchState(carried, where)
+    return out, MatchState(carried, where, seed, walk)

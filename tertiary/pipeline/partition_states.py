@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from tertiary.evaluation.evaluate import AssociationScore, merge_association_scores, relabel_association_score
+from tertiary.evaluation.association import AssociationScore, merge_association_scores, relabel_association_score
 
 __all__ = ["merged_scores"]
 

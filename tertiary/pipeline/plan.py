@@ -291,12 +291,14 @@ class StcaCurvesStage(_Adapter):
 
 @dataclass(frozen=True)
 class EvaluationStage(_Adapter):
-    """The evaluation's matching (:func:`tertiary.evaluation.streamed.match_window`) against the
-    run's validated truth (``reference``): inputs ``fused`` and ``tracks`` (the window's rows),
-    outputs ``matched.<group>`` and ``expected.<group>``, one pair per picture schema (a
-    picture's rows told by ``method``), for each picture the window has — each fusion method's
-    confirmed targets (``target_id``) and each tracker picture "<method>+<filter>"
-    (``track_id``). The whole-run stage then only reduces them to metrics."""
+    """The evaluation's matching and seed metrics (:func:`tertiary.evaluation.streamed.match_window`)
+    against the run's validated truth (``reference``): inputs ``fused`` and ``tracks`` (the
+    window's rows) and, optional, ``aligned`` (its reports' aircraft: what continuity expects
+    covered); outputs ``matched.<group>`` and ``expected.<group>``, one pair per picture schema
+    (a picture's rows told by ``method``), for each picture the window has — each fusion
+    method's confirmed targets (``target_id``) and each tracker picture "<method>+<filter>"
+    (``track_id``) — and, with ``aligned``, every picture's ``scored`` rows. The whole-run stage
+    then finishes the metrics."""
 
     reference: Reference
     cfg: EvaluationConfig
@@ -318,7 +320,20 @@ class EvaluationStage(_Adapter):
             if frame.height:
                 pictures += [(name, id_col, part.drop(NOT_SCORED, strict=False)) for (name,), part in
                              frame.partition_by("method", as_dict=True, maintain_order=True).items()]
-        return match_window(state, pictures, self.reference, self.cfg, self.multitarget)
+        return match_window(state, pictures, self.reference, self.cfg, self.multitarget,
+                            _observed(inputs.get("aligned"), window))
+
+
+def _observed(aligned: pl.DataFrame | None, window: Window) -> pl.DataFrame | None:
+    """(run, epoch, truth_id) of a window's aligned rows; None without them or their aircraft."""
+    if aligned is None:
+        return None
+    check_window(aligned, window, table="aligned")
+    if "truth_id" in aligned.columns:
+        return aligned.select("run", "epoch", "truth_id")
+    if aligned.height == 0:         # a window without reports: nobody to expect covered
+        return pl.DataFrame(schema={"run": pl.UInt32, "epoch": schema.TIME, "truth_id": pl.Int64})
+    return None
 
 
 #: the columns of the ``curve_rows`` a run's windows make (:class:`StcaCurvesStage`)

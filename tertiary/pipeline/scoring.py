@@ -14,10 +14,14 @@ import numpy as np
 import polars as pl
 
 from safety import alerts as safety_alerts
-from tertiary.evaluation.evaluate import (AssociationScore, Evaluation, Matched, evaluate_each, scan_spilled,
-                                          score_associations)
+from tertiary.evaluation.association import AssociationScore, score_associations
+from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
 from tertiary.evaluation.multitarget import multitarget_result
-from tertiary.evaluation.streamed import MatchState, expected_table, matched_table
+from tertiary.contract import TIME
+from tertiary.evaluation.accuracy import AccuracyConfig, scored_samples
+from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags
+from tertiary.evaluation.consistency import Lags
+from tertiary.evaluation.streamed import SCORED, MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig
@@ -29,8 +33,12 @@ from tertiary.stages.association.associate import AssociationStats
 
 __all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "DistinctIds", "aligned_facts",
            "association_blocks", "distinct_targets",
-           "association_stage_metrics", "observed_aircraft", "report_truth", "score_pictures", "scored_blocks"]
+           "association_stage_metrics", "observed_aircraft", "report_truth", "score_pictures", "scored_blocks",
+           "WindowedPictures"]
 
+
+#: the columns of a picture's scored samples (:func:`~tertiary.evaluation.accuracy.scored_samples`)
+SAMPLE_SCHEMA = {"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64, "seg_class": pl.String}
 
 #: aligned rows joined to their reports' aircraft at a time (:func:`observed_aircraft`)
 OBSERVED_BLOCK_ROWS = 262_144
@@ -219,21 +227,52 @@ def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
     return rows, sum(ids.count() for ids in per_run.values())
 
 
-def windowed_pictures(parts: Any, state: MatchState, surveillance: bool, name: str) -> Matched | None:
-    """Picture ``name`` as the windows matched it (the evaluation's window stage): scans of its
-    rows of the matched and expected parts of the groups it was written in, and its OSPA, GOSPA
-    and SIAP rows from the carried state when ``surveillance``; None when no window had a row of
-    it."""
-    groups = state.groups.get(name, ())
-    files = [f for g in groups for f in parts.part_files(matched_table(g))]
-    if not files:
-        return None
-    expected = [f for g in groups for f in parts.part_files(expected_table(g))]
-    mine = pl.col("method") == name
-    mt = state.pictures.get(name)
-    return Matched(scan_spilled(files).filter(mine),
-                   scan_spilled(expected).filter(mine).drop("method") if expected else None,
-                   multitarget_result(mt, name) if surveillance and mt is not None else None)
+class WindowedPictures:
+    """The pictures as the windows matched them (the evaluation's window stage), by name
+    (:meth:`__call__`); every picture's scored rows read once, when a first picture's seed
+    metrics are finished (:meth:`scored`)."""
+
+    def __init__(self, parts: Any, state: MatchState, surveillance: bool) -> None:
+        self.parts, self.state, self.surveillance = parts, state, surveillance
+
+    def __call__(self, name: str) -> Matched | None:
+        """Picture ``name``: scans of its rows of the matched and expected parts of the groups it
+        was written in, its OSPA, GOSPA and SIAP rows from the carried state when
+        ``surveillance``, its seed metrics from the carried state; None when no window had a row
+        of it."""
+        state = self.state
+        groups = state.groups.get(name, ())
+        files = [f for g in groups for f in self.parts.part_files(matched_table(g))]
+        if not files:
+            return None
+        expected = [f for g in groups for f in self.parts.part_files(expected_table(g))]
+        mine = pl.col("method") == name
+        mt = state.pictures.get(name)
+        seed = None if state.walk is None else functools.partial(self._seed_tables, name)
+        return Matched(scan_spilled(files).filter(mine),
+                       scan_spilled(expected).filter(mine).drop("method") if expected else None,
+                       multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed)
+
+    @functools.cached_property
+    def scored(self) -> tuple[dict[tuple[str, str, str], Lags], dict[str, pl.DataFrame]]:
+        """(τ's lag sums of every picture, each picture's scored samples) from the windows'
+        scored rows, in one pass: a bucket of whole tracks at a time for the lag sums."""
+        files = self.parts.part_files(SCORED)
+        if not files:
+            return {}, {}
+        scan = scan_spilled(files)
+        samples = scan.select(list(SAMPLE_SCHEMA)).collect()
+        lags = statistic_lags(scan, samples.height)
+        return lags, {name: scored_samples(part) for (name,), part in
+                      samples.partition_by("method", as_dict=True, maintain_order=True).items()}
+
+    def _seed_tables(self, name: str, stage: str, cfg: AccuracyConfig
+                     ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+        """Picture ``name``'s seed metrics, per-epoch accuracy and scored samples finished."""
+        lags, samples = self.scored
+        metrics, by_epoch = seed_tables(self.state.seed, self.state.walk, name, stage, cfg, lags)
+        mine = samples.get(name)
+        return metrics, by_epoch, mine if mine is not None else scored_samples(pl.DataFrame(schema=SAMPLE_SCHEMA))
 
 
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",

@@ -22,7 +22,8 @@ from tertiary.core import geo
 from tertiary.core.errors import DataError
 from tertiary.core.stage import Stage
 from tertiary.core.units import US
-from tertiary.evaluation.evaluate import AssociationScore, Reference, score_associations
+from tertiary.evaluation.association import AssociationScore, score_associations
+from tertiary.evaluation.evaluate import Reference
 from tertiary.evaluation.streamed import MatchState
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
@@ -247,9 +248,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         curves = out["curve_rows"]
     s_eval = st.evaluation
     if ctx.reference is not None:
-        clock.stage("match_pictures")      # matched as the run goes: the whole-run evaluation only reduces
+        # matched and seed-scored as the run goes: the whole-run evaluation finishes the metrics
+        clock.stage("match_pictures")
         stage = stages["evaluation"]
-        out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval, {"fused": fused, "tracks": tracks}, w)
+        out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval,
+                                      {"fused": fused, "tracks": tracks, "aligned": aligned}, w)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))

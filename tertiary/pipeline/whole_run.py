@@ -2,8 +2,9 @@
 validated it before its first window), every streamed table sunk, and the one evaluation stage,
 alert scoring and STCA curves, the posterior Cramér–Rao bound, capacity and requirements run on
 the whole run (:func:`finalize`). An on-disk run keeps its pictures on disk; where its windows
-matched them to the truth, the evaluation only reduces the matched rows to metrics, else it reads
-each picture back, one at a time."""
+matched them to the truth (and stepped their seed metrics), the evaluation only finishes those
+and reduces the matched rows to the surveillance metrics, else it reads each picture back, one
+at a time."""
 
 from __future__ import annotations
 
@@ -22,8 +23,9 @@ from tertiary import contract
 from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_stage
-from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, AssociationScore, Evaluation, Matched, association_metrics,
-                                          association_score, read_reference, reference_files, write_reference)
+from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
+from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
+                                          write_reference)
 from tertiary.evaluation.indicators import indicators
 from tertiary.evaluation.truth_picture import observed_spans
 from tertiary.io.dataset import Dataset
@@ -34,7 +36,7 @@ from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, re
 from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
-                                       observed_aircraft, score_pictures, scored_blocks, windowed_pictures)
+                                       observed_aircraft, score_pictures, scored_blocks, WindowedPictures)
 from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
 from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
@@ -109,7 +111,7 @@ class RunTables:
     #: points: the only ids whose id-map rows the alert scoring reads (:func:`safety.alerts.id_rows`);
     #: None: the whole id map is kept
     alert_keys: pl.DataFrame | None = None
-    #: the pictures as the windows matched them, by name (:func:`windowed_pictures`); None: the
+    #: the pictures as the windows matched them, by name (:class:`WindowedPictures`); None: the
     #: evaluation matches them itself
     matched: Callable[[str], Matched | None] | None = None
 
@@ -257,7 +259,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             if lean and cfg.safety and isinstance(conflicts, DeferredTable)
             and (curves is not None or not cfg.stca_lookaheads_s)
             else None)
-    matched = (functools.partial(windowed_pictures, parts, st.evaluation, cfg.evaluation)
+    matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation)
                if ctx.reference is not None and st.evaluation is not None else None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,

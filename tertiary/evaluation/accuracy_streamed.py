@@ -1,0 +1,244 @@
+"""The seed metrics (:mod:`tertiary.evaluation.accuracy`) stepped window by window: what a
+window's matched rows add to a picture's sums, with what crosses windows carried, so that the
+end of a run only finishes the tables (:func:`seed_tables`).
+
+The same figures as :func:`~tertiary.evaluation.accuracy.picture_accuracy` on the whole
+picture, not an approximation. A run's windows hold disjoint epochs, so the (2.15) sums per
+epoch, the consistency sums per epoch and the potential accuracy add up
+(:class:`~tertiary.evaluation.accuracy_buckets.SeedSums`). What a row's verdict needs from
+earlier windows is carried:
+
+* per track (:attr:`SeedState.tracks`): its first epoch (the transient cut), whether it was ever
+  matched (spurious tracks) and the aircraft it was last matched to (swaps);
+* per aircraft (:class:`Walk`, shared by every picture): its first reported epoch (scored from
+  then on) and how many reported epochs the coverage walk has passed (each epoch's position in
+  the walk, so that a gap across windows is a break);
+* per aircraft and picture (:attr:`SeedState.cover`): the walk position and the track of its
+  last covered epoch.
+
+τ of the consistency bands is the one figure a window cannot give: its lag sums pair the rows of
+a track up to :data:`~tertiary.evaluation.consistency.MAX_LAG` rows apart, across any number of
+windows (:class:`~tertiary.evaluation.consistency.Lags`). The windows write each scored row's
+statistics and aircraft (:data:`SCORED_ROWS`: the bound's samples too); the end reads them
+once, a bucket of whole tracks at a time (:func:`statistic_lags`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import polars as pl
+
+from tertiary.contract import TIME
+from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, AccuracyConfig, BY_EPOCH_SCHEMA, coverage_table,
+                                          empty_metrics)
+from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
+from tertiary.evaluation.consistency import CONSISTENCY_ALL, Lags
+
+__all__ = ["Walk", "SeedState", "walk_step", "seed_rows", "seed_step", "statistic_lags", "seed_tables",
+           "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS"]
+
+_AIRCRAFT = ["run", "truth_id"]
+_TRACK = ["method", "run", "track_id"]
+_COVER = ["method", "run", "truth_id"]
+#: the row index of a picture's matched rows (the order :class:`SeedSums` keeps for potential accuracy)
+_ROW = "__row"
+_STATISTICS = tuple(c for c, _ in CONSISTENCY_ALL.values())
+#: what the windows write of each scored row: the bound's samples and τ's series
+SCORED_ROWS: dict[str, pl.DataType] = {"method": pl.String, "run": pl.UInt32, "epoch": TIME, "truth_id": pl.Int64,
+                                       "track_id": pl.UInt64, "seg_class": pl.String,
+                                       **{c: pl.Float64 for c in _STATISTICS}}
+#: what :func:`seed_step` reads of a picture's matched, row-scored rows
+SEED_COLUMNS = (*ACCURACY_COLUMNS, "method")
+#: scored rows whose per-lag sums are made at a time at the end of a run (whole tracks)
+LAG_BUCKET_ROWS = 2_000_000
+
+
+def _aircraft_schema() -> dict[str, pl.DataType]:
+    return {"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "walked": pl.UInt32}
+
+
+@dataclass(frozen=True)
+class Walk:
+    """Every picture's coverage walk so far: per (run, aircraft) its first reported epoch and the
+    number of its reported epochs walked (``aircraft``), and their ``total``."""
+
+    aircraft: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_aircraft_schema()))
+    total: int = 0
+
+
+def _observed(observed: pl.DataFrame) -> pl.DataFrame:
+    """(run, epoch, truth_id) of the aircraft reported at each epoch, once, without nulls."""
+    return (observed.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                            pl.col("truth_id").cast(pl.Int64))
+            .drop_nulls().unique().sort("run", "truth_id", "epoch"))
+
+
+def walk_step(walk: Walk, observed: pl.DataFrame) -> tuple[pl.DataFrame, Walk]:
+    """(the window's walk: run, epoch, truth_id and ``k``, each aircraft-epoch's position in its
+    aircraft's walk; the walk after the window) from the window's ``observed`` (run, epoch,
+    truth_id: the aligned reports' aircraft)."""
+    obs = _observed(observed)
+    before = walk.aircraft
+    rows = (obs.join(before.select(*_AIRCRAFT, "walked"), on=_AIRCRAFT, how="left", maintain_order="left")
+            .with_columns((pl.col("walked").fill_null(0).cast(pl.Int64)
+                           + pl.int_range(pl.len(), dtype=pl.Int64).over(_AIRCRAFT)).alias("k"))
+            .drop("walked"))
+    new = obs.group_by(_AIRCRAFT).agg(pl.col("epoch").min().alias("first"), pl.len().cast(pl.UInt32).alias("n"))
+    # a window's epochs follow every earlier one's: an aircraft seen before keeps its first epoch
+    aircraft = (before.join(new, on=_AIRCRAFT, how="full", coalesce=True)
+                .select(*_AIRCRAFT, pl.coalesce("first", "first_right").alias("first"),
+                        (pl.col("walked").fill_null(0) + pl.col("n").fill_null(0)).cast(pl.UInt32).alias("walked")))
+    return rows, Walk(aircraft, walk.total + obs.height)
+
+
+def _tracks_schema() -> dict[str, pl.DataType]:
+    return {"method": pl.String, "run": pl.UInt32, "track_id": pl.UInt64, "first": TIME, "matched": pl.Boolean,
+            "last_truth": pl.Int64}
+
+
+def _cover_schema() -> dict[str, pl.DataType]:
+    return {"method": pl.String, "run": pl.UInt32, "truth_id": pl.Int64, "last_k": pl.Int64, "last_id": pl.UInt64}
+
+
+def _counts_schema() -> dict[str, pl.DataType]:
+    return {"method": pl.String, "rows": pl.Int64, "swaps": pl.Int64, "covered": pl.Int64, "breaks": pl.Int64}
+
+
+@dataclass(frozen=True)
+class SeedState:
+    """Every picture's seed metrics so far, keyed by ``method``: the sums (``sums``), per track
+    (``tracks``: first epoch, ever matched, last aircraft), per aircraft the walk position and
+    track of its last covered epoch (``cover``), and per picture (``counts``) its matched rows
+    seen, swaps, covered epochs and breaks."""
+
+    sums: SeedSums = field(default_factory=SeedSums)
+    tracks: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_tracks_schema()))
+    cover: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_cover_schema()))
+    counts: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_counts_schema()))
+
+
+def seed_rows(rows: pl.DataFrame, id_col: str) -> pl.DataFrame:
+    """What :func:`seed_step` reads of a picture's matched, row-scored ``rows`` (id column
+    ``id_col``), in the carried types: the rows of several schemas then stack."""
+    if id_col != "track_id":
+        rows = rows.rename({id_col: "track_id"})
+    return rows.select(c for c in rows.columns if c in SEED_COLUMNS).with_columns(
+        pl.col("run").cast(pl.UInt32), pl.col("track_id").cast(pl.UInt64), pl.col("truth_id").cast(pl.Int64),
+        pl.col("epoch").cast(TIME), pl.col("method").cast(pl.String))
+
+
+def _tracks_step(state: SeedState, m: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(every track so far with its first epoch, ever matched and last aircraft; per method the
+    swaps the window adds): a track's first matched row of the window is compared with its
+    last before."""
+    seq = (m.filter(pl.col("truth_id").is_not_null()).select(*_TRACK, "epoch", "truth_id")
+           .sort(*_TRACK, "epoch")
+           .join(state.tracks.select(*_TRACK, "last_truth"), on=_TRACK, how="left", maintain_order="left"))
+    first_row = pl.int_range(pl.len()).over(_TRACK) == 0
+    prev = pl.when(first_row).then(pl.col("last_truth")).otherwise(pl.col("truth_id").shift(1).over(_TRACK))
+    swaps = seq.group_by("method").agg((prev.is_not_null() & (pl.col("truth_id") != prev)).sum().alias("swaps"))
+    win = (m.group_by(_TRACK).agg(pl.col("epoch").min().alias("first"),
+                                  pl.col("truth_id").is_not_null().any().alias("matched"))
+           .join(seq.group_by(_TRACK).agg(pl.col("truth_id").last().alias("last_truth")), on=_TRACK, how="left"))
+    tracks = (state.tracks.join(win, on=_TRACK, how="full", coalesce=True)
+              .select(*_TRACK, pl.coalesce("first", "first_right").alias("first"),
+                      (pl.col("matched").fill_null(False) | pl.col("matched_right").fill_null(False)).alias("matched"),
+                      pl.coalesce("last_truth_right", "last_truth").alias("last_truth")))
+    return tracks.cast(_tracks_schema()), swaps
+
+
+def _cover_step(state: SeedState, m: pl.DataFrame, walk_rows: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(the carried last covered walk position and track per picture and aircraft; per method
+    the covered epochs and breaks the window adds) of
+    :func:`~tertiary.evaluation.accuracy.coverage_counts`."""
+    cover = (m.filter(pl.col("truth_id").is_not_null()).group_by("method", "run", "epoch", "truth_id")
+             .agg(pl.col("track_id").min().alias("cover_id")))
+    cov = (cover.join(walk_rows, on=["run", "epoch", "truth_id"], how="inner").sort(*_COVER, "k")
+           .join(state.cover, on=_COVER, how="left", maintain_order="left"))
+    first_row = pl.int_range(pl.len()).over(_COVER) == 0
+    prev_k = pl.when(first_row).then(pl.col("last_k")).otherwise(pl.col("k").shift(1).over(_COVER))
+    prev_id = pl.when(first_row).then(pl.col("last_id")).otherwise(pl.col("cover_id").shift(1).over(_COVER))
+    brk = (prev_k.is_not_null() & ((pl.col("k") - prev_k > 1) | (pl.col("cover_id") != prev_id))).fill_null(False)
+    counts = cov.group_by("method").agg(pl.len().alias("covered"), brk.sum().alias("breaks"))
+    last = cov.group_by(_COVER).agg(pl.col("k").last().alias("last_k"), pl.col("cover_id").last().alias("last_id"))
+    carried = pl.concat([state.cover.join(last, on=_COVER, how="anti"), last.cast(_cover_schema())])
+    return carried, counts
+
+
+def _added(counts: pl.DataFrame, *parts: pl.DataFrame) -> pl.DataFrame:
+    """``counts`` with each part's per-method columns added."""
+    both = pl.concat([counts, *(p.cast({c: pl.Int64 for c in p.columns if c != "method"}) for p in parts)],
+                     how="diagonal_relaxed")
+    cols = [c for c in _counts_schema() if c != "method"]
+    return both.group_by("method").agg(pl.col(c).fill_null(0).sum() for c in cols).cast(_counts_schema())
+
+
+def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, walk: Walk, cfg: AccuracyConfig
+              ) -> tuple[pl.DataFrame, SeedState]:
+    """(the window's scored rows, :data:`SCORED_ROWS`; the state after the window) of every
+    picture's matched, row-scored ``rows`` of a window (:func:`seed_rows`; each picture's in its
+    order), the window's coverage walk ``walk_rows`` (:func:`walk_step`) and the walk after it
+    (``walk``: each aircraft's first reported epoch, the window's included)."""
+    offset = state.counts.select("method", pl.col("rows").alias("__offset"))
+    m = (rows.join(offset, on="method", how="left", maintain_order="left")
+         .with_columns((pl.col("__offset").fill_null(0) + pl.int_range(pl.len()).over("method")).alias(_ROW))
+         .drop("__offset"))
+    tracks, swaps = _tracks_step(state, m)
+    cover, covered = _cover_step(state, m, walk_rows)
+    # scored as :func:`~tertiary.evaluation.accuracy.scored_rows` scores a whole picture: from the
+    # aircraft's first reported epoch, after the transient of the track's first epoch
+    s = (m.join(walk.aircraft.select(*_AIRCRAFT, pl.col("first").alias("__seen")), on=_AIRCRAFT, how="left",
+                maintain_order="left")
+         .join(tracks.select(*_TRACK, pl.col("first").alias("__t0")), on=_TRACK, how="left", maintain_order="left"))
+    keep = pl.col("truth_id").is_not_null() & (pl.col("epoch") >= pl.col("__seen"))
+    if cfg.skip_first_s > 0:
+        keep = keep & ((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
+    scored = s.filter(keep).select(c for c in s.columns if c in ACCURACY_COLUMNS or c == _ROW)
+    sums = SeedSums(0, dict(state.sums.tables))
+    if scored.height:
+        sums.add_scored(scored, lags=False)
+    counts = _added(state.counts, m.group_by("method").agg(pl.len().alias("rows")), swaps, covered)
+    out = scored.select(pl.col(c).cast(t) if c in scored.columns else pl.lit(None, t).alias(c)
+                        for c, t in SCORED_ROWS.items())
+    return out, SeedState(sums, tracks, cover, counts)
+
+
+def statistic_lags(scored: pl.LazyFrame, rows: int) -> dict[tuple[str, str, str], Lags]:
+    """The per-lag sums (:class:`Lags`) of every consistency statistic of a picture's scored
+    rows (:data:`SCORED_ROWS`, a scan of the windows' parts of ``rows`` rows), read a bucket of
+    whole tracks at a time: each series is whole in one bucket."""
+    buckets = max(1, -(-rows // LAG_BUCKET_ROWS))
+    sums = SeedSums()
+    for k in range(buckets):
+        part = scored if buckets == 1 else scored.filter(pl.struct("method", "run", "track_id").hash() % buckets == k)
+        part = part.collect()
+        for prefix, (col, _dof) in CONSISTENCY_ALL.items():
+            r = statistic_rows(part, col)
+            if r.height:
+                sums.add_lags(r, prefix, col)
+        del part
+    return sums.lags
+
+
+def seed_tables(state: SeedState, walk: Walk, method: str, stage: str, cfg: AccuracyConfig,
+                lags: dict[tuple[str, str, str], Lags]) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(the seed metrics, the per-epoch accuracy) of picture ``method`` from the state at the end
+    of the run, the run's walk and the picture's consistency ``lags`` (:func:`statistic_lags`)."""
+    mine = pl.col("method") == method
+    c = state.counts.filter(mine)
+    if not c.height or not c["rows"][0]:
+        return empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA)
+    c = c.row(0, named=True)
+    t = state.tracks.filter(mine)
+    counts = pl.DataFrame({"method": [method], "spurious_tracks": [float((~t["matched"]).sum())],
+                           "tracks": [float(t.height)], "swaps": [float(c["swaps"])]})
+    some = [method] if walk.total else []
+    walked = pl.DataFrame({"method": some, "__walk": [walk.total] * len(some), "__covered": [c["covered"]] * len(some),
+                           "breaks": [float(c["breaks"])] * len(some)},
+                          schema={"method": pl.String, "__walk": pl.UInt32, "__covered": pl.UInt32,
+                                  "breaks": pl.Float64})
+    tables = {k: v.filter(mine) for k, v in state.sums.tables.items()}
+    sums = SeedSums(c["rows"], {**tables, "tracks": counts, "track_runs": t.select("method", "run").unique()},
+                    {k: v for k, v in lags.items() if k[1] == method})
+    return sums.tables_of(stage, cfg, coverage_table(walked))
