@@ -120,10 +120,12 @@ def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, e
     return coverage_table(pl.concat(counts))
 
 
-def statistic_rows(scored: pl.DataFrame, col: str) -> pl.DataFrame:
-    """The rows of a consistency statistic ``col`` (finite values), sorted along each series."""
-    return scored.select("method", "run", "epoch", "track_id", "seg_class", col).filter(
-        pl.col(col).is_not_null() & pl.col(col).is_finite()).sort("method", "run", "track_id", "epoch")
+def statistic_rows(scored: pl.DataFrame, col: str, ordered: bool = True) -> pl.DataFrame:
+    """The rows of a consistency statistic ``col`` (finite values), sorted along each series
+    (``ordered``)."""
+    r = scored.select("method", "run", "epoch", "track_id", "seg_class", col).filter(
+        pl.col(col).is_not_null() & pl.col(col).is_finite())
+    return r.sort("method", "run", "track_id", "epoch") if ordered else r
 
 
 @dataclass
@@ -183,7 +185,8 @@ class SeedSums:
     def add_statistic(self, scored: pl.DataFrame, prefix: str, col: str, lags: bool = True) -> None:
         """Per-epoch sums and (``lags``) per-lag sums of one NEES/NIS statistic
         (:func:`consistency_metrics`)."""
-        r = statistic_rows(scored, col)
+        # the rows in series order only for the lag sums: the per-epoch sums need no order
+        r = statistic_rows(scored, col, ordered=lags)
         if r.is_empty():
             return
         both = with_segments(r)

@@ -128,6 +128,11 @@ def seed_rows(rows: pl.DataFrame, id_col: str) -> pl.DataFrame:
         pl.col("epoch").cast(TIME), pl.col("method").cast(pl.String))
 
 
+def _first_of(keys: list[str]) -> pl.Expr:
+    """Whether a row is the first of its ``keys`` in rows sorted by them (a shift, not a group)."""
+    return pl.any_horizontal((pl.col(k) != pl.col(k).shift(1)).fill_null(True) for k in keys)
+
+
 def _tracks_step(state: SeedState, m: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(every track so far with its first epoch, ever matched and last aircraft; per method the
     swaps the window adds): a track's first matched row of the window is compared with its
@@ -135,8 +140,7 @@ def _tracks_step(state: SeedState, m: pl.DataFrame) -> tuple[pl.DataFrame, pl.Da
     seq = (m.filter(pl.col("truth_id").is_not_null()).select(*_TRACK, "epoch", "truth_id")
            .sort(*_TRACK, "epoch")
            .join(state.tracks.select(*_TRACK, "last_truth"), on=_TRACK, how="left", maintain_order="left"))
-    first_row = pl.int_range(pl.len()).over(_TRACK) == 0
-    prev = pl.when(first_row).then(pl.col("last_truth")).otherwise(pl.col("truth_id").shift(1).over(_TRACK))
+    prev = pl.when(_first_of(_TRACK)).then(pl.col("last_truth")).otherwise(pl.col("truth_id").shift(1))
     swaps = seq.group_by("method").agg((prev.is_not_null() & (pl.col("truth_id") != prev)).sum().alias("swaps"))
     win = (m.group_by(_TRACK).agg(pl.col("epoch").min().alias("first"),
                                   pl.col("truth_id").is_not_null().any().alias("matched"))
@@ -156,9 +160,9 @@ def _cover_step(state: SeedState, m: pl.DataFrame, walk_rows: pl.DataFrame) -> t
              .agg(pl.col("track_id").min().alias("cover_id")))
     cov = (cover.join(walk_rows, on=["run", "epoch", "truth_id"], how="inner").sort(*_COVER, "k")
            .join(state.cover, on=_COVER, how="left", maintain_order="left"))
-    first_row = pl.int_range(pl.len()).over(_COVER) == 0
-    prev_k = pl.when(first_row).then(pl.col("last_k")).otherwise(pl.col("k").shift(1).over(_COVER))
-    prev_id = pl.when(first_row).then(pl.col("last_id")).otherwise(pl.col("cover_id").shift(1).over(_COVER))
+    first_row = _first_of(_COVER)
+    prev_k = pl.when(first_row).then(pl.col("last_k")).otherwise(pl.col("k").shift(1))
+    prev_id = pl.when(first_row).then(pl.col("last_id")).otherwise(pl.col("cover_id").shift(1))
     brk = (prev_k.is_not_null() & ((pl.col("k") - prev_k > 1) | (pl.col("cover_id") != prev_id))).fill_null(False)
     counts = cov.group_by("method").agg(pl.len().alias("covered"), brk.sum().alias("breaks"))
     last = cov.group_by(_COVER).agg(pl.col("k").last().alias("last_k"), pl.col("cover_id").last().alias("last_id"))
