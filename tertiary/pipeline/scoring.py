@@ -14,13 +14,13 @@ import numpy as np
 import polars as pl
 
 from safety import alerts as safety_alerts
-from tertiary.evaluation.association import AssociationScore, score_associations
-from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
-from tertiary.evaluation.multitarget import multitarget_result
 from tertiary.contract import TIME
 from tertiary.evaluation.accuracy import AccuracyConfig, scored_samples
 from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags
+from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
+from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
+from tertiary.evaluation.multitarget import multitarget_result
 from tertiary.evaluation.streamed import SCORED, MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
@@ -261,9 +261,10 @@ class WindowedPictures:
         if not files:
             return {}, {}
         scan = scan_spilled(files)
-        samples = scan.select(list(SAMPLE_SCHEMA)).collect()
+        # the two names categorical as they are read: a long run's samples are held to the end
+        samples = scored_samples(scan.select(list(SAMPLE_SCHEMA))).collect()
         lags = statistic_lags(scan, samples.height)
-        return lags, {name: scored_samples(part) for (name,), part in
+        return lags, {str(name): part for (name,), part in
                       samples.partition_by("method", as_dict=True, maintain_order=True).items()}
 
     def _seed_tables(self, name: str, stage: str, cfg: AccuracyConfig
