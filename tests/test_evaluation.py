@@ -289,6 +289,27 @@ def test_a_reference_file_scores_as_the_reference_in_memory(small, tmp_path, mon
             assert_frame_equal(a, b, check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
 
 
+def test_a_reference_in_pieces_has_each_aircrafts_identity_from_its_first_sample(small, tmp_path):
+    """A reference written in pieces (the streamed truth) is read for its identity items a piece
+    at a time: each aircraft's items are those of its first sample even when later pieces
+    carry others, and an aircraft first seen in a later piece comes after the earlier ones."""
+    from tertiary.evaluation.evaluate import Reference, write_reference_pieces
+    from tertiary.evaluation.matching import neighbour_times, reference_identity
+    _, ds, _ = small
+    truth = ds.truth.sort("time")
+    late = pl.col("time") > truth["time"].min() + pl.duration(seconds=150)
+    truth = truth.with_columns(pl.when(late).then(pl.lit("ffffff")).otherwise(pl.col("icao24")).alias("icao24"),
+                               pl.when(late).then(pl.lit("LATE1")).otherwise(pl.col("callsign")).alias("callsign"))
+    times = neighbour_times(truth)
+    whole = truth.with_columns(times["__prev"], times["__next"])
+    pieces = [whole.slice(k, 997) for k in range(0, whole.height, 997)]
+    ref = Reference(write_reference_pieces(pieces, tmp_path / "reference"))
+    assert len(ref.files) >= 4 and truth["truth_id"].n_unique() >= 3
+    want = reference_identity(truth)
+    assert want["icao24"].ne("ffffff").any()
+    assert_frame_equal(ref.identity, want)
+
+
 def test_a_picture_scored_without_its_matched_rows_has_the_same_metrics(small):
     """The pipeline asks for no matched rows back (``keep_matched=False``), and the evaluation
     then keeps of each matched block only the columns its metrics read (memory). On a

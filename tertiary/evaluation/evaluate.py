@@ -194,6 +194,20 @@ def read_reference(path: str | Path, columns: Sequence[str] | None = None) -> pl
     return pl.read_parquet(files, columns=names if columns is None else [c for c in names if c in columns])
 
 
+def _identity_of(files: Sequence[Path], columns: list[str]) -> pl.DataFrame | None:
+    """:func:`reference_identity` of a reference on disk, read a file at a time: each aircraft's
+    items from its first sample. Its identity columns read whole are strings a sample (a
+    national day's: 6 GB) for a few thousand aircraft."""
+    out = None
+    for f in files:
+        part = reference_identity(pl.read_parquet(f, columns=columns))
+        if part is None:
+            return None
+        # the earlier files' first samples come first: keep="first" keeps them
+        out = part if out is None else pl.concat([out, part]).unique("truth_id", keep="first", maintain_order=True)
+    return out
+
+
 class Reference:
     """The reference of one evaluation: whole, its aircraft's identity items, and its time
     slices (:meth:`between`). Held in memory (a frame; the neighbour times are made when a
@@ -210,8 +224,8 @@ class Reference:
         self.files = reference_files(self.path)
         schema = {k: v for k, v in pl.read_parquet_schema(self.files[0]).items() if k not in NEIGHBOUR_COLUMNS}
         self.empty = pl.DataFrame(schema=schema)
-        ident = [c for c in ("truth_id", "icao24", "callsign", "mode_3a") if c in schema]
-        self.identity = reference_identity(read_reference(self.path, ident))
+        self.identity = _identity_of(self.files, [c for c in ("truth_id", "icao24", "callsign", "mode_3a")
+                                                   if c in schema])
 
     def whole(self) -> pl.DataFrame:
         return self._truth if self.path is None else read_reference(self.path)
