@@ -381,7 +381,7 @@ def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
     association metric equal one join's. Fails if a block's rows are lost, repeated or
     reordered."""
     from datetime import datetime, timedelta, timezone
-    from tertiary.evaluation import evaluate as evaluation
+    from tertiary.evaluation import association
     from tertiary.evaluation.association import _report_truth, association_metrics
     rng = np.random.default_rng(5)
     n = 37
@@ -396,7 +396,7 @@ def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):
                             schema={"run": pl.UInt32, "report_id": pl.UInt64, "truth_id": pl.Int64})
     whole = _report_truth(assoc, truth_of)
     want = association_metrics(assoc, truth_of)
-    monkeypatch.setattr(evaluation, "LABEL_BLOCK_ROWS", 4)
+    monkeypatch.setattr(association, "LABEL_BLOCK_ROWS", 4)
     assert_frame_equal(_report_truth(assoc, truth_of), whole)
     assert_frame_equal(association_metrics(assoc, truth_of), want)
     assert whole.height == n and whole["truth_id"].null_count() < n
