@@ -93,3 +93,18 @@ def test_random_windows(seed):
     for method in ("a", "b"):
         want = picture_accuracy(matched.filter(pl.col("method") == method), "tracker", cfg, observed)
         _assert_same(_finished(state, walk, scored, method, cfg), want)
+
+
+@pytest.mark.parametrize("bucket_rows", [50, 211])
+def test_lag_sums_read_in_buckets_of_tracks_equal_one_read(monkeypatch, bucket_rows):
+    """Scored rows beyond one bucket: τ from the per-lag sums of buckets of whole tracks is the
+    whole picture's."""
+    from tertiary.evaluation import accuracy_streamed
+    matched, observed = _hand_picture(9, "cov")
+    cfg = AccuracyConfig()
+    state, walk, scored = _stepped(matched, observed, cfg, [7, 19, 30])
+    monkeypatch.setattr(accuracy_streamed, "LAG_BUCKET_ROWS", bucket_rows)
+    assert scored.height > 2 * bucket_rows
+    for method in ("a", "b"):
+        want = picture_accuracy(matched.filter(pl.col("method") == method), "tracker", cfg, observed)
+        _assert_same(_finished(state, walk, scored, method, cfg), want)

@@ -20,8 +20,8 @@ from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUS
                                           potential_table, scored_rows, scored_samples, track_counts,
                                           with_segments)
 from tertiary.evaluation.buckets import file_buckets
-from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, consistency_dicts, consistency_statistics,
-                                             series_codes)
+from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, consistency_dicts,
+                                             consistency_statistics, series_codes)
 
 __all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows"]
 
@@ -198,13 +198,15 @@ class SeedSums:
         if lags:
             self.add_lags(r, prefix, col)
 
-    def add_lags(self, r: pl.DataFrame, prefix: str, col: str) -> None:
-        """The per-lag sums of a statistic's rows ``r`` (:func:`statistic_rows`: whole series)."""
+    def add_lags(self, r: pl.DataFrame, prefix: str, col: str, whole: bool = False) -> None:
+        """The per-lag sums of a statistic's rows ``r`` (:func:`statistic_rows`: whole series);
+        ``whole``: ``r`` holds every row of its pictures, nothing will be added to them, and τ
+        is summed directly (:class:`WholeSeries`)."""
         for method in r["method"].unique().to_list():
             m = r.filter(pl.col("method") == method)
             for seg in ["all", *m["seg_class"].drop_nulls().unique().to_list()]:
                 g = m if seg == "all" else m.filter(pl.col("seg_class") == seg)
-                lags = Lags.of(g[col].to_numpy(), series_codes(g, "track_id"))
+                lags = (WholeSeries if whole else Lags).of(g[col].to_numpy(), series_codes(g, "track_id"))
                 old = self.lags.get((prefix, method, seg))
                 self.lags[(prefix, method, seg)] = lags if old is None else old + lags
 

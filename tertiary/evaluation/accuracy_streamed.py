@@ -33,7 +33,7 @@ from tertiary.contract import TIME
 from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, AccuracyConfig, BY_EPOCH_SCHEMA, coverage_table,
                                           empty_metrics)
 from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
-from tertiary.evaluation.consistency import CONSISTENCY_ALL, Lags
+from tertiary.evaluation.consistency import CONSISTENCY_ALL, Lags, WholeSeries
 
 __all__ = ["Walk", "SeedState", "walk_step", "seed_rows", "seed_step", "statistic_lags", "seed_tables",
            "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS"]
@@ -208,10 +208,11 @@ def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, wal
     return out, SeedState(sums, tracks, cover, counts)
 
 
-def statistic_lags(scored: pl.LazyFrame, rows: int) -> dict[tuple[str, str, str], Lags]:
-    """The per-lag sums (:class:`Lags`) of every consistency statistic of a picture's scored
+def statistic_lags(scored: pl.LazyFrame, rows: int) -> dict[tuple[str, str, str], Lags | WholeSeries]:
+    """The per-lag sums (:class:`Lags`) of every consistency statistic of the pictures' scored
     rows (:data:`SCORED_ROWS`, a scan of the windows' parts of ``rows`` rows), read a bucket of
-    whole tracks at a time: each series is whole in one bucket."""
+    whole tracks at a time: each series is whole in one bucket. Rows that fit one bucket give
+    τ summed directly (:class:`WholeSeries`)."""
     buckets = max(1, -(-rows // LAG_BUCKET_ROWS))
     sums = SeedSums()
     for k in range(buckets):
@@ -220,13 +221,13 @@ def statistic_lags(scored: pl.LazyFrame, rows: int) -> dict[tuple[str, str, str]
         for prefix, (col, _dof) in CONSISTENCY_ALL.items():
             r = statistic_rows(part, col)
             if r.height:
-                sums.add_lags(r, prefix, col)
+                sums.add_lags(r, prefix, col, whole=buckets == 1)
         del part
     return sums.lags
 
 
 def seed_tables(state: SeedState, walk: Walk, method: str, stage: str, cfg: AccuracyConfig,
-                lags: dict[tuple[str, str, str], Lags]) -> tuple[pl.DataFrame, pl.DataFrame]:
+                lags: dict[tuple[str, str, str], Lags | WholeSeries]) -> tuple[pl.DataFrame, pl.DataFrame]:
     """(the seed metrics, the per-epoch accuracy) of picture ``method`` from the state at the end
     of the run, the run's walk and the picture's consistency ``lags`` (:func:`statistic_lags`)."""
     mine = pl.col("method") == method

@@ -23,7 +23,7 @@ from tertiary.core.distributions import chi2_ppf
 from tertiary.core.units import STATE
 
 __all__ = ["add_nees", "chi2_band", "integrated_autocorrelation", "consistency_metrics", "consistency_dicts",
-           "consistency_statistics", "series_codes", "Lags", "CONSISTENCY", "CONSISTENCY_ALL", "NIS_DOF", "MAX_LAG"]
+           "consistency_statistics", "series_codes", "Lags", "WholeSeries", "CONSISTENCY", "CONSISTENCY_ALL", "NIS_DOF", "MAX_LAG"]
 
 #: cells of one zero-padded FFT block of :func:`_lag_products` (16 MiB of float64)
 _FFT_CELLS = 1 << 21
@@ -278,6 +278,24 @@ class Lags:
             return 1.0
         s = np.where(y.p > 0, y.s, 0.0)             # no pair at a lag: exactly 0, not FFT round-off
         return _geyer_tau(lambda lag: float(s[lag]) / (n * g0), n, MAX_LAG)
+
+
+@dataclass(frozen=True)
+class WholeSeries:
+    """:class:`Lags`' finish (``n``, ``total``, :meth:`tau`) of rows read whole, τ summed lag by
+    lag up to Geyer's truncation (:func:`integrated_autocorrelation`): what a set of rows that
+    is never merged with another needs, without every lag's sums."""
+
+    n: int
+    total: float
+    value: float
+
+    @classmethod
+    def of(cls, x: NDArray[np.float64], series: NDArray) -> WholeSeries:
+        return cls(len(x), float(x.sum()), integrated_autocorrelation(x, series))
+
+    def tau(self) -> float:
+        return self.value
 
 
 def _lag_products(y: NDArray[np.float64], starts: NDArray, lengths: NDArray) -> NDArray[np.float64]:
