@@ -52,6 +52,10 @@ def run(
                                            help="correct each radar's range/azimuth bias and clock offset before "
                                                 "alignment: DATASET/registration.parquet (from `tertiary register`) "
                                                 "when present, else estimated radar to radar")] = False,
+    measure_downlinks: Annotated[bool, typer.Option(
+        "--measure-downlinks/--no-measure-downlinks",
+        help="the tracker weighs the downlinked ground velocity and vertical rate by their noise measured from "
+             "the recording's replies, not the configured σ")] = False,
     indicators: Annotated[bool, typer.Option(help="also write the §1.7/§5.1 indicators of every tracker picture "
                                                   "(metrics stage 'indicators'; needs truth)")] = False,
     assignment: Annotated[str, typer.Option(help="association with >= 3 radars: pairwise (to the reference "
@@ -120,6 +124,8 @@ def run(
                          indicators=indicators, association=_association(assignment, gate),
                          radar_health=radar_health,
                          requirements_file=None if requirements is None else str(requirements))
+    if measure_downlinks:
+        cfg = dataclasses.replace(cfg, tracker=dataclasses.replace(cfg.tracker, calibrate_downlinks=True))
     if collection is not None:   # checked here, before any simulation
         cfg = dataclasses.replace(cfg, collection=CollectionConfig(collection, service_time, service_model, max_wait))
     if range_channel is not None:

@@ -26,6 +26,7 @@ from tertiary.stages.fusion import ALL_METHODS, METHODS, FusionConfig
 from tertiary.stages.fusion.centralized import CentralizedConfig
 from tertiary.filters import REGISTRY
 from tertiary.stages.tracking.tracker import TrackerConfig
+from tertiary.stages.tracking.downlinks import downlink_noise, with_noise
 
 __all__ = ["PipelineConfig", "adapt_to_scenario", "check_config", "config_dict", "default_conflict_config"]
 
@@ -113,7 +114,12 @@ def adapt_to_scenario(cfg: PipelineConfig, ds: Dataset) -> PipelineConfig:
     (:func:`tertiary.simulate.traffic.final_approaches`; off with ``stca_approach_volumes``) and
     the floor of its en-route airspace (``national.enroute_floor_fl``; off with
     ``stca_enroute_floor``) and its aerodrome zones (:func:`tertiary.simulate.traffic.aerodromes`;
-    off with ``stca_aerodrome_zones``)."""
+    off with ``stca_aerodrome_zones``); and, unless ``cfg.tracker.calibrate_downlinks`` is off,
+    the noise of the downlinked registers measured from its replies
+    (:func:`tertiary.stages.tracking.downlinks.downlink_noise`), once: the configuration returned
+    carries the σ measured, so a slice of the run adapted again keeps the whole run's."""
+    if cfg.tracker.calibrate_downlinks:
+        cfg = with_noise(cfg, downlink_noise(ds.reports))
     scen = getattr(ds, "scenario", None)
     if scen is None:
         return cfg

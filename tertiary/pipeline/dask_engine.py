@@ -677,7 +677,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     """:func:`run_dask` returning what it measured (partitions, stitching, timings)."""
     t_wall = time.perf_counter()
     say = progress or (lambda _m: None)
-    cfg = pipeline.check_config(cfg)
+    cfg = pipeline.adapt_to_scenario(pipeline.check_config(cfg), read_dataset(dataset_dir, lazy=True))
     window_s = check_window(window_s)
     out = Path(out_dir)
     pipeline.check_tables(tables, out)

@@ -132,6 +132,8 @@ def finalize_stages(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Strea
     clock.prefix = "finalize:"
     clock.stage("validate")      # the truth, and the whole run's accounting
     release_memory()             # what the windows freed, before the whole-run stages
+    if cfg.tracker.measured_downlinks:
+        notes.append(f"tracker: {cfg.tracker.measured_downlinks}")
     writer = SinkThread(sink)
     try:
         return _finalize_tables(ds, cfg, ctx, st, parts, clock, writer, notes, n_in, t_all)

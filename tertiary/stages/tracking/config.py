@@ -64,6 +64,12 @@ class TrackerConfig:
       over the plot's age at a level-off), unless its NIS exceeds ``vertical_rate_gate`` (χ², 1
       degree of freedom; the gate's variance adds (a Δt)², a = ``vertical_accel_mps2``, for the
       onset of a climb or a level-off).
+    * ``calibrate_downlinks``: the σ of the downlinked ground speed, true track and vertical
+      rate above (and of the altitude channels' rate) are measured from the recording's replies
+      before the first window (:mod:`tertiary.stages.tracking.downlinks`); False: as configured.
+      Off by default: with the measured σ the tracks' position covariance becomes optimistic,
+      because the fused plots' errors are correlated over scans and the filters take them as
+      white (docs/methods.md). ``measured_downlinks`` says what was measured (empty: nothing).
     * ``altitude``: the vertical-channel filter (q_a of (A1)).
     """
 
@@ -90,6 +96,8 @@ class TrackerConfig:
     vertical_rate_sigma_mps: float = 1.0
     vertical_rate_gate: float = 10.83
     vertical_accel_mps2: float = 2.0
+    calibrate_downlinks: bool = False
+    measured_downlinks: str = ""
     altitude: AltitudeConfig = AltitudeConfig()
 
     def __post_init__(self) -> None:
