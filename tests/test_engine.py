@@ -204,9 +204,17 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     kept: list[int] = []
     monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:
                         kept.append(keys.height) or f(ids, keys, id_col))
+    # the truth's separation intervals: the chunks the windows passed computed there, the rest
+    # at the end from their state
+    steps, finished = [], []
+    monkeypatch.setattr(streaming, "intervals_step", lambda *a, f=streaming.intervals_step: steps.append(a[-1])
+                        or f(*a))
+    monkeypatch.setattr(whole_run, "reference_intervals", lambda *a, f=whole_run.reference_intervals, **k:
+                        finished.append(k.get("state")) or f(*a, **k))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
+    assert steps == [] and finished == []            # in memory: the whole truth's at the end
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     # the bound's truth read from the reference on disk, 7 aircraft at a time
     assert len(bound_reads) > 2 and all(lazy and n <= 7 for lazy, n in bound_reads[1:])
@@ -228,6 +236,9 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
                                        *(f"{m}+{f}" for m in cfg.methods for f in cfg.filters)])
     assert sorted(seeded) == sorted(windowed)
     assert read == [] and blocks == []
+    assert len(steps) > 4 and steps == sorted(steps)
+    [done] = finished
+    assert done is not None and done.merged is not None and done.next_us >= steps[0]
 
 
 def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, tmp_path, monkeypatch):

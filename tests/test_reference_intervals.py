@@ -126,3 +126,29 @@ def test_a_chunk_reads_from_the_last_sample_before_its_edge(truth, tmp_path):
     (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=10.0)
     assert_frame_equal(los, whole[0])
     assert_frame_equal(prox, whole[1])
+
+
+def test_chunks_done_as_the_windows_pass_and_finished_at_the_end_equal_the_whole_truths(truth, tmp_path,
+                                                                                        monkeypatch):
+    """The windows compute the chunks their progress has passed (with holes where no window
+    ran); the end computes only the rest, and the result is the whole truth's."""
+    from tertiary.pipeline import stca_scoring
+    t, frame = truth
+    acfg = _config()
+    whole = truth_intervals(t, acfg, frame)
+    ref = write_reference(t, tmp_path / "ref.parquet")
+    span = stca_scoring.time_span(pl.scan_parquet(ref))
+    lo = int(t["time"].dt.epoch("us").min())
+    calls = []
+    real = stca_scoring._chunk_intervals
+    monkeypatch.setattr(stca_scoring, "_chunk_intervals", lambda *a: calls.append(a[-2:]) or real(*a))
+    state = stca_scoring.TruthIntervals()
+    for end_s in (30, 60, 90, 250, 260, 400):           # window ends, a hole from 90 to 250 s
+        state = stca_scoring.intervals_step(state, ref, span, acfg, frame, lo + end_s * 1_000_000, chunk_s=37.3)
+    in_windows = len(calls)
+    assert in_windows == int(400 // 37.3) and state.next_us == lo + in_windows * 37_300_000
+    (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=37.3, state=state)
+    assert len(calls) - in_windows == int(np.ceil((int(span["time"].dt.epoch("us").max()) + 1 - state.next_us)
+                                                  / 37_300_000))
+    assert_frame_equal(los, whole[0])
+    assert_frame_equal(prox, whole[1])

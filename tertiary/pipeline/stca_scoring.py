@@ -1,5 +1,6 @@
 """The STCA's scoring against the truth beyond the alert list: the truth's separation intervals
-read from a reference on disk an hour at a time (:func:`reference_intervals`), the note of the
+read from a reference on disk a chunk at a time, as the windows pass (:func:`intervals_step`) and
+at the end (:func:`reference_intervals`), the note of the
 separation minima the alerts follow (:func:`note_minima`) and the trade-off curves of the safety
 picture (:func:`stca_curves`)."""
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import polars as pl
@@ -22,7 +24,8 @@ from tertiary.pipeline.pictures import NOT_SCORED, as_picture, confirmed_only, s
 from tertiary.pipeline.tables import ALERT_TRUTH, OnDiskTable
 from tertiary.runtime.windows import release_memory
 
-__all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "note_minima", "reference_intervals", "stca_curves", "time_span"]
+__all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "TruthIntervals", "intervals_step", "note_minima",
+           "reference_intervals", "stca_curves", "time_span"]
 
 # `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
 # package imports this one) while `safety` is half initialised, and only a module binding
@@ -49,37 +52,68 @@ def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
     return lf.group_by("run").agg(agg) if "run" in lf.collect_schema() else lf.select(agg)
 
 
-def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
-                        chunk_s: float = TRUTH_CHUNK_S) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
-    """(the truth's (LoS, proximity) intervals, its :func:`time_span`) from a reference on disk
-    (:func:`tertiary.evaluation.evaluate.write_reference`), ``chunk_s`` of truth at a time, merged by
-    :func:`safety.alerts.merge_intervals`: the whole truth's. A chunk [a, b) reads every sample
-    from the last sample time before a to the first after b, and each aircraft's neighbours of
-    those: inside, the union sample grid and so the segment pairs are the whole truth's, and
-    each chunk keeps the part of its intervals in [a, b)."""
+@dataclass(frozen=True)
+class TruthIntervals:
+    """The truth's separation intervals of the chunks of :func:`reference_intervals` done so
+    far, merged (None: none yet), and the start of the next chunk (µs; None: the first)."""
+
+    merged: tuple[pl.DataFrame, pl.DataFrame] | None = None
+    next_us: int | None = None
+
+
+def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, acfg: safety_alerts.AlertConfig,
+                   frame: geo.LocalFrame, until_us: int | None = None, chunk_s: float = TRUTH_CHUNK_S
+                   ) -> TruthIntervals:
+    """``state`` with the chunks of the truth's span (:func:`time_span` ``span``) that end by
+    ``until_us`` (None: every chunk left) done and merged in: the windows compute the chunks
+    their progress has passed, the end of the run the rest. The chunks are
+    :func:`reference_intervals`'s whatever the windows, so the result is the same."""
+    if not span.height:
+        return state
     lf = pl.scan_parquet(reference_files(reference))
-    span = time_span(lf)
     cols = [c for c in ALERT_TRUTH if c in lf.collect_schema()]
-    t = pl.col("time")
     lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
     step = max(int(chunk_s * US), 1)
-    chunks = []
-    for a in range(lo, hi, step):
+    merged, a = state.merged, lo if state.next_us is None else state.next_us
+    while a < hi and (until_us is None or min(a + step, hi) <= until_us):
         b = min(a + step, hi)
-        ta, tb = (pl.lit(v, pl.Int64).cast(pl.Datetime("us", "UTC")) for v in (a, b))
-        # per run (each has its own sample grid): the earliest of the runs' last times before a,
-        # the latest of their first times from b
-        p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
-        q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
-        near = pl.lit(True)
-        if p is not None:
-            near = near & ((t >= p) | (pl.col("__next") >= p))
-        if q is not None:
-            near = near & ((t <= q) | (pl.col("__prev") <= q))
-        truth = lf.filter(near).select(cols).collect()
-        chunks.append(safety_alerts.truth_intervals(truth, acfg, frame, clip_us=(a, b)))
-        del truth
-    return safety_alerts.merge_intervals(chunks, acfg), span
+        chunk = _chunk_intervals(lf, cols, acfg, frame, a, b)
+        merged = chunk if merged is None else safety_alerts.merge_intervals([merged, chunk], acfg)
+        a = b
+    return TruthIntervals(merged, a)
+
+
+def _chunk_intervals(lf: pl.LazyFrame, cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
+                     a: int, b: int) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The truth's intervals in [a, b) µs (module :func:`reference_intervals`)."""
+    t = pl.col("time")
+    ta, tb = (pl.lit(v, pl.Int64).cast(pl.Datetime("us", "UTC")) for v in (a, b))
+    # per run (each has its own sample grid): the earliest of the runs' last times before a,
+    # the latest of their first times from b
+    p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
+    q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
+    near = pl.lit(True)
+    if p is not None:
+        near = near & ((t >= p) | (pl.col("__next") >= p))
+    if q is not None:
+        near = near & ((t <= q) | (pl.col("__prev") <= q))
+    truth = lf.filter(near).select(cols).collect()
+    return safety_alerts.truth_intervals(truth, acfg, frame, clip_us=(a, b))
+
+
+def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
+                        chunk_s: float = TRUTH_CHUNK_S, state: TruthIntervals | None = None
+                        ) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
+    """(the truth's (LoS, proximity) intervals, its :func:`time_span`) from a reference on disk
+    (:func:`tertiary.evaluation.evaluate.write_reference`), ``chunk_s`` of truth at a time, each
+    merged into those before by :func:`safety.alerts.merge_intervals`: the whole truth's. A
+    chunk [a, b) reads every sample from the last sample time before a to the first after b,
+    and each aircraft's neighbours of those: inside, the union sample grid and so the segment
+    pairs are the whole truth's, and each chunk keeps the part of its intervals in [a, b).
+    ``state``: the chunks the windows did (:func:`intervals_step`), finished here."""
+    span = time_span(pl.scan_parquet(reference_files(reference)))
+    done = intervals_step(state or TruthIntervals(), reference, span, acfg, frame, None, chunk_s)
+    return (safety_alerts.merge_intervals([], acfg) if done.merged is None else done.merged), span
 
 
 def note_minima(cc: safety_conflicts.ConflictConfig, notes: list[str]) -> None:

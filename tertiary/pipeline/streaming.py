@@ -16,6 +16,7 @@ from typing import Any
 
 import polars as pl
 
+from safety import alerts as safety_alerts
 from safety import conflicts as safety_conflicts
 from tertiary import contract
 from tertiary.core import geo
@@ -32,6 +33,7 @@ from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_r
                                          truth_lazy, valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
+from tertiary.pipeline.stca_scoring import TruthIntervals, intervals_step, time_span
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
@@ -85,6 +87,9 @@ class RunContext:
     #: the reference the windows match their pictures to (the evaluation stage); None: the
     #: whole-run evaluation matches them
     reference: Reference | None = None
+    #: each run's first and last truth sample (:func:`time_span`) when the windows compute the
+    #: truth's separation intervals as they pass (a run with safety and its reference on disk)
+    truth_span: pl.DataFrame | None = None
 
 
 @dataclass(frozen=True)
@@ -111,6 +116,9 @@ class StreamState:
     curves: tuple | None = None
     #: the evaluation's matching state (None: initial, or not matched in the windows)
     evaluation: MatchState | None = None
+    #: the truth's separation intervals of the chunks the windows have passed (None: initial, or
+    #: not computed in the windows)
+    intervals: TruthIntervals | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -253,6 +261,13 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         stage = stages["evaluation"]
         out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval,
                                       {"fused": fused, "tracks": tracks, "aligned": aligned}, w)
+    s_int = st.intervals
+    if ctx.truth_span is not None and ctx.reference is not None and ctx.reference.path is not None:
+        # the truth's separation intervals of every chunk the windows have passed: the alert
+        # scoring at the end merges the last chunks only
+        clock.stage("truth_intervals")
+        s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
+                               safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -264,7 +279,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     if ctx.reference is not None:
         out.update(out_eval)
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves, s_eval)
+                            s_dep, s_scores, s_curves, s_eval, s_int)
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -353,6 +368,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     if evaluate:
         ctx.truth = first_truth(ds, cfg, notes, source, parts, clock)
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
+        if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
+            ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     ctx.scored_span = scored_span

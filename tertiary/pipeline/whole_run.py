@@ -37,7 +37,8 @@ from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
                                        observed_aircraft, score_pictures, scored_blocks, WindowedPictures)
-from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stca_curves, time_span
+from tertiary.pipeline.stca_scoring import (TruthIntervals, note_minima, reference_intervals, stca_curves,
+                                           time_span)
 from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
@@ -114,6 +115,9 @@ class RunTables:
     #: the pictures as the windows matched them, by name (:class:`WindowedPictures`); None: the
     #: evaluation matches them itself
     matched: Callable[[str], Matched | None] | None = None
+    #: the truth's separation intervals of the chunks the windows passed, with the reference file
+    #: they read (None: none computed in the windows)
+    intervals: tuple[TruthIntervals, Path] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -263,9 +267,11 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             else None)
     matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation)
                if ctx.reference is not None and st.evaluation is not None else None)
+    done = getattr(st, "intervals", None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
-                    getattr(st, "scores", None), curves, keys, matched)
+                    getattr(st, "scores", None), curves, keys, matched,
+                    (done, ctx.reference.path) if done is not None and ctx.reference is not None else None)
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -340,8 +346,10 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         # the truth's LoS and proximity intervals, computed once for the alerts and every curve
         # setting (they depend on the separation minima, which the curves do not vary)
         if truth_file is not None:
-            # an hour of truth at a time: a long recording's truth held whole would not fit (memory)
-            intervals, span = reference_intervals(truth_file, acfg, ds.origin)
+            # a chunk of truth at a time: a long recording's truth held whole would not fit (memory)
+            # the chunks the windows did, if they read this reference, and the rest
+            done = run.intervals[0] if run.intervals is not None and run.intervals[1] == truth_file else None
+            intervals, span = reference_intervals(truth_file, acfg, ds.origin, state=done)
         else:
             truth = truth_columns(ALERT_TRUTH)
             intervals, span = safety_alerts.truth_intervals(truth, acfg, ds.origin), time_span(truth)
