@@ -27,11 +27,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
 import polars as pl
-from scipy import stats
 
 __all__ = ["DownlinkNoise", "MIN_TRIPLES", "SAMPLE_ROWS", "TRIM", "downlink_noise", "trimmed_sigma", "with_noise"]
 
@@ -82,8 +82,8 @@ def trimmed_sigma(d2: np.ndarray, trim: float = TRIM) -> float:
     if not d2.size:
         return math.nan
     keep = np.sort(np.abs(d2))[: max(1, int(math.floor(trim * d2.size)))]
-    z = stats.norm.ppf(0.5 + trim / 2.0)
-    kept = 1.0 - 2.0 * z * stats.norm.pdf(z) / trim
+    z = NormalDist().inv_cdf(0.5 + trim / 2.0)
+    kept = 1.0 - 2.0 * z * NormalDist().pdf(z) / trim
     return float(math.sqrt(np.mean(keep ** 2) / (6.0 * kept)))
 
 
