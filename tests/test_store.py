@@ -169,6 +169,50 @@ def test_a_table_too_wide_for_the_writers_pool_is_written_whole(tmp_path: Path) 
         assert left.fetchall()[0][0] == 0
 
 
+class _Recording:
+    """A connection that records the writer's pool at every commit and checkpoint."""
+
+    def __init__(self, con: duckdb.DuckDBPyConnection, seen: list[tuple[str, str]]) -> None:
+        self._con, self._seen = con, seen
+
+    def _pool(self) -> str:
+        return self._con.sql("SELECT current_setting('memory_limit')").fetchall()[0][0]
+
+    def commit(self):
+        self._seen.append(("commit", self._pool()))
+        return self._con.commit()
+
+    def execute(self, sql, *a, **k):
+        if isinstance(sql, str) and sql.startswith("CHECKPOINT"):
+            self._seen.append(("checkpoint", self._pool()))
+        return self._con.execute(sql, *a, **k)
+
+    def __getattr__(self, name):
+        return getattr(self._con, name)
+
+
+def test_commits_and_the_last_checkpoint_run_in_a_pool_of_their_own(tmp_path: Path) -> None:
+    """A checkpoint (the last one, or one a commit triggers when the write-ahead log has grown)
+    that runs out of the writer's small pool fails and invalidates the database: a national
+    quarter-hour's one-window run lost its database so ("Checkpoint failed ... could not allocate
+    block ... 61.0 MiB"). Each runs in CHECKPOINT_MEMORY_MB, and the pool is set back after."""
+    from tertiary.store import run_store
+    seen: list[tuple[str, str]] = []
+    with RunStore.create(tmp_path / "run") as store:
+        small = store.con.sql("SELECT current_setting('memory_limit')").fetchall()[0][0]
+        store._con = _Recording(store._con, seen)
+        store.write("a", pl.DataFrame({"x": [1.0, 2.0]}))
+        store.append("a", pl.DataFrame({"x": [3.0]}))
+        assert store.con.sql("SELECT current_setting('memory_limit')").fetchall()[0][0] == small
+    probe = duckdb.connect()
+    probe.execute(f"SET memory_limit = '{run_store.CHECKPOINT_MEMORY_MB}MB'")
+    big = probe.sql("SELECT current_setting('memory_limit')").fetchall()[0][0]
+    assert {k for k, _ in seen} == {"commit", "checkpoint"} and seen[-1][0] == "checkpoint"
+    assert all(pool == big for _, pool in seen), seen
+    with RunStore.open(tmp_path / "run") as store:
+        assert store.read("a")["x"].to_list() == [1.0, 2.0, 3.0]
+
+
 def test_tables_hides_registered_views(run_dir: Path) -> None:
     with RunStore.open(run_dir) as store:
         store.con.register("scratch", pl.DataFrame({"x": [1]}).to_arrow())

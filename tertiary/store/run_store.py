@@ -141,6 +141,9 @@ WRITER_MEMORY_MB = 64
 WRITER_MEMORY_LIMIT = f"{WRITER_MEMORY_MB}MB"
 #: ... and the most it is raised to for a table too wide for it (:meth:`RunStore._sized`)
 WRITER_MEMORY_MAX_MB = 4096
+#: the pool a checkpoint runs in (:meth:`RunStore._commit`, :meth:`RunStore.checkpoint`): only what it
+#: uses is taken, and the writer's pool is set back after
+CHECKPOINT_MEMORY_MB = 512
 
 
 def _connect(db_file: Path, read_only: bool, spill_dir: Path) -> duckdb.DuckDBPyConnection:
@@ -200,6 +203,7 @@ class RunStore:
         self.lean = lean
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
+        self._pool = WRITER_MEMORY_LIMIT        # the writer's buffer pool now (:meth:`_sized`)
 
     # ---- constructors
 
@@ -246,7 +250,7 @@ class RunStore:
                 store = cls(tmp, read_only=False, lean=lean)
                 try:
                     yield store
-                    store.con.execute(f"CHECKPOINT {_ALIAS}")
+                    store.checkpoint()
                 finally:
                     store.close()
                 if sidecars[0].exists():
@@ -261,6 +265,15 @@ class RunStore:
     def con(self) -> duckdb.DuckDBPyConnection:
         """The DuckDB connection (the run database is its default catalog)."""
         return self._con
+
+    def checkpoint(self) -> None:
+        """Write every committed change into the database file (:meth:`_commit`'s pool: a
+        checkpoint that runs out of the writer's small pool invalidates the database)."""
+        self._con.execute(f"SET memory_limit = '{CHECKPOINT_MEMORY_MB}MB'")
+        try:
+            self._con.execute(f"CHECKPOINT {_ALIAS}")
+        finally:
+            self._con.execute(f"SET memory_limit = '{self._pool}'")
 
     def close(self) -> None:
         """Close the connection and drop its spill directory."""
@@ -431,7 +444,7 @@ class RunStore:
         except BaseException:
             self._con.rollback()
             raise
-        self._con.commit()
+        self._commit()
         return True
 
     def _insert(self, table: str, frame: pl.DataFrame, create: bool) -> None:
@@ -475,9 +488,11 @@ class RunStore:
                     if mb >= WRITER_MEMORY_MAX_MB:
                         raise
                     mb = min(4 * mb, WRITER_MEMORY_MAX_MB)
-                    self._con.execute(f"SET memory_limit = '{mb}MB'")
+                    self._pool = f"{mb}MB"
+                    self._con.execute(f"SET memory_limit = '{self._pool}'")
         finally:
             if mb != WRITER_MEMORY_MB:
+                self._pool = WRITER_MEMORY_LIMIT
                 self._con.execute(f"SET memory_limit = '{WRITER_MEMORY_LIMIT}'")
 
     def read(self, name: str) -> pl.DataFrame:
@@ -526,6 +541,17 @@ class RunStore:
         """Register ``frame`` (as Arrow) under a unique temp view name (:func:`arrow_view`)."""
         return arrow_view(self._con, frame, "src")
 
+    def _commit(self) -> None:
+        """Commit the open transaction. A commit may checkpoint the database (its write-ahead
+        log grown past the threshold), and a checkpoint that runs out of the writer's small pool
+        fails and invalidates the database, with nothing to retry: it runs in a pool of
+        :data:`CHECKPOINT_MEMORY_MB`, set back after (only what it uses is taken)."""
+        self._con.execute(f"SET memory_limit = '{CHECKPOINT_MEMORY_MB}MB'")
+        try:
+            self._con.commit()
+        finally:
+            self._con.execute(f"SET memory_limit = '{self._pool}'")
+
     def _transaction(self, *statements: str | tuple[str, Params]) -> None:
         """Run ``statements`` (SQL, or (SQL, parameters)) in one transaction."""
         self._con.begin()
@@ -535,7 +561,7 @@ class RunStore:
         except BaseException:
             self._con.rollback()
             raise
-        self._con.commit()
+        self._commit()
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
