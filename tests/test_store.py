@@ -193,9 +193,9 @@ class _Recording:
 
 def test_commits_and_the_last_checkpoint_run_in_a_pool_of_their_own(tmp_path: Path) -> None:
     """A checkpoint (the last one, or one a commit triggers when the write-ahead log has grown)
-    that runs out of the writer's small pool fails and invalidates the database: a national
-    quarter-hour's one-window run lost its database so ("Checkpoint failed ... could not allocate
-    block ... 61.0 MiB"). Each runs in CHECKPOINT_MEMORY_MB, and the pool is set back after."""
+    that runs out of the writer's small pool fails and invalidates the database ("Checkpoint
+    failed ... could not allocate block ... 61.0 MiB", as a one-window national quarter-hour with
+    every table needs). Each runs in CHECKPOINT_MEMORY_MB, and the pool is set back after."""
     from tertiary.store import run_store
     seen: list[tuple[str, str]] = []
     with RunStore.create(tmp_path / "run") as store:

@@ -100,22 +100,30 @@ def test_the_register_of_recorded_fixes_is_their_reported_velocity():
 
 
 def test_the_plot_velocity_is_the_register_turned_into_the_system_frame():
+    """Ground velocity and vertical rate together are the aircraft's velocity in its local axes:
+    turned into the system frame, a climb far from the origin has a horizontal part there
+    (the local vertical leans over the frame's). Without a vertical rate, the horizontal alone."""
     lat, lon, *_ = _points(50, 1)
     rng = np.random.default_rng(2)
     gs, track = rng.uniform(60.0, 280.0, 50), rng.uniform(-180.0, 180.0, 50)
+    vrate = rng.uniform(-15.0, 25.0, 50)
     z = np.stack(pm.geodetic2enu(lat, lon, 9000.0, SYSTEM.lat_deg, SYSTEM.lon_deg, SYSTEM.alt_m), axis=-1)
-    gs[3], track[4], z[5] = np.nan, np.nan, np.nan
+    gs[3], track[4], z[5], vrate[6] = np.nan, np.nan, np.nan, np.nan
     reports = pl.DataFrame({"ehs_gs_mps": gs, "ehs_track_deg": track, "ehs_track_rate_dps": np.full(50, 1.5),
-                            "ehs_vrate_mps": np.full(50, -4.5)})
+                            "ehs_vrate_mps": vrate})
     got = downlinked_velocity(reports, z, SYSTEM)
     ve, vn = gs * np.sin(np.radians(track)), gs * np.cos(np.radians(track))
-    want = np.array(pm.uvw2enu(*pm.enu2uvw(ve, vn, 0.0, lat, lon), SYSTEM.lat_deg, SYSTEM.lon_deg))[:2].T
+    want = np.array(pm.uvw2enu(*pm.enu2uvw(ve, vn, np.nan_to_num(vrate), lat, lon), SYSTEM.lat_deg,
+                               SYSTEM.lon_deg))[:2].T
     ok = np.ones(50, bool)
     ok[[3, 4, 5]] = False
     np.testing.assert_allclose(got[ok, :2], want[ok], atol=1e-6)
     assert np.isnan(got[~ok, :2]).all()
+    # the points lie up to ~800 km out: the vertical rate moves them by up to ~3 m/s there
+    level = np.array(pm.uvw2enu(*pm.enu2uvw(ve, vn, 0.0, lat, lon), SYSTEM.lat_deg, SYSTEM.lon_deg))[:2].T
+    assert np.nanmax(np.abs(want[ok] - level[ok])) > 1.0
     np.testing.assert_allclose(got[:, 2], -np.radians(1.5))           # clockwise °/s → ω rad/s
-    np.testing.assert_allclose(got[:, 3], -4.5)                       # along the local vertical: as sent
+    np.testing.assert_allclose(got[:, 3], vrate)                      # along the local vertical: as sent
 
 
 def test_the_measurement_takes_the_newest_plot_with_a_velocity_turned_to_the_measurement_time():

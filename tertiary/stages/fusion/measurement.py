@@ -65,7 +65,10 @@ def downlinked_velocity(reports: pl.DataFrame, z: F, origin: geo.LocalFrame) -> 
     along the local vertical: the rate of the altitude channel). The track is over true north at the aircraft
     (the plot ``z``), so the velocity is turned into the system frame's axes there
     (:func:`tertiary.core.geo.local_vector_to_frame`: the meridian convergence, several degrees
-    at a national system's edge). NaN where the report or its plot has none."""
+    at a national system's edge), with the vertical rate along the local vertical where the
+    report has one: away from the origin the local vertical leans over the system frame's
+    (the great-circle angle to the origin), so a climb at 20 m/s 300 km out moves the aircraft
+    1 m/s horizontally in the system frame. NaN where the report or its plot has none."""
     gs, track = _column(reports, "ehs_gs_mps"), np.radians(_column(reports, "ehs_track_deg"))
     out = np.full((len(gs), 4), np.nan)
     out[:, 2] = -np.radians(_column(reports, "ehs_track_rate_dps"))
@@ -73,7 +76,8 @@ def downlinked_velocity(reports: pl.DataFrame, z: F, origin: geo.LocalFrame) -> 
     ok = np.isfinite(gs) & np.isfinite(track) & np.isfinite(z).all(axis=1)
     if ok.any():
         lat, lon, _ = origin.to_geodetic(z[ok, 0], z[ok, 1], z[ok, 2])
-        e, n, _ = geo.local_vector_to_frame(gs[ok] * np.sin(track[ok]), gs[ok] * np.cos(track[ok]), 0.0,
+        up = np.nan_to_num(out[ok, 3])         # no vertical rate: the horizontal velocity alone
+        e, n, _ = geo.local_vector_to_frame(gs[ok] * np.sin(track[ok]), gs[ok] * np.cos(track[ok]), up,
                                             lat, lon, origin)
         out[ok, 0], out[ok, 1] = e, n
     return out
