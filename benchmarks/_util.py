@@ -36,3 +36,24 @@ def record(name: str, payload: dict) -> Path:
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps({"machine": machine(), **payload}, indent=2) + "\n")
     return path
+
+
+def each_dataset(bench: str, only: str, known: "tuple[str, ...]", work: "Path | None", run, **extra) -> dict:
+    """``run(name, work)`` for each dataset of ``only`` (comma-separated, each one of ``known``)
+    in ``work`` (None: a temporary directory), ``bench``'s results recorded after each one with
+    ``extra`` beside them; the recorded entries of the datasets not run are kept. Returns the
+    datasets' entries."""
+    import tempfile
+    names = [n for n in only.split(",") if n]
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        raise SystemExit(f"unknown datasets {unknown}; choose from {list(known)}")
+    old = RESULTS / f"{bench}.json"
+    results = json.loads(old.read_text()).get("datasets", {}) if old.exists() else {}
+    with tempfile.TemporaryDirectory() as tmp:
+        where = work or Path(tmp)
+        where.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            results[name] = run(name, where)
+            record(bench, {**extra, "datasets": results})
+    return results

@@ -23,13 +23,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _util import RESULTS, record  # noqa: E402
+from _util import each_dataset  # noqa: E402
 from bench_memory import CONFIGS  # noqa: E402
 from bench_trust import _child, _national15  # noqa: E402
 
@@ -125,18 +124,7 @@ def main() -> None:
     ap.add_argument("--only", default=",".join(DATASETS))
     ap.add_argument("--work", type=Path, default=None, help="keep the datasets and runs here (default: a temp dir)")
     args = ap.parse_args()
-    names = [n for n in args.only.split(",") if n]
-    if unknown := sorted(set(names) - set(DATASETS)):
-        raise SystemExit(f"unknown datasets {unknown}; choose from {list(DATASETS)}")
-    old = RESULTS / "bench_downlinks.json"
-    results = json.loads(old.read_text()).get("datasets", {}) if old.exists() else {}
-    with tempfile.TemporaryDirectory() as tmp:
-        work = args.work or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
-        for name in names:
-            results[name] = run_dataset(name, work)
-            record("bench_downlinks", {"picture": "+".join(PICTURE), "datasets": results})
-
+    each_dataset("bench_downlinks", args.only, DATASETS, args.work, run_dataset, picture="+".join(PICTURE))
 
 if __name__ == "__main__":
     main()

@@ -27,7 +27,6 @@ import json
 import math
 import subprocess
 import sys
-import tempfile
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _util import RESULTS, record  # noqa: E402
+from _util import RESULTS, each_dataset  # noqa: E402
 from bench_memory import _CHILD, CONFIGS  # noqa: E402
 
 #: every dataset: how it is made, and the run's arguments
@@ -399,18 +398,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.figures_only and args.work is None:
         raise SystemExit("--figures-only reads the runs of --work")
-    names = [n for n in args.only.split(",") if n]
-    unknown = sorted(set(names) - set(DATASETS))
-    if unknown:
-        raise SystemExit(f"unknown datasets {unknown}; choose from {list(DATASETS)}")
-    old = RESULTS / "bench_trust.json"
-    results = json.loads(old.read_text()).get("datasets", {}) if old.exists() else {}
-    with tempfile.TemporaryDirectory() as tmp:
-        work = args.work or Path(tmp)
-        work.mkdir(parents=True, exist_ok=True)
-        for name in names:
-            results[name] = run_dataset(name, work, args.figures_only)
-            record("bench_trust", {"datasets": results})
+    results = each_dataset("bench_trust", args.only, DATASETS, args.work,
+                           lambda name, work: run_dataset(name, work, args.figures_only))
     print(json.dumps({k: v["safety"] for k, v in results.items()}, indent=1))
 
 
