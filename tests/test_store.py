@@ -435,3 +435,24 @@ def test_covariances_are_stored_as_float32_upper_triangles_and_read_back_whole(t
     assert back["cov"].is_null().to_list() == (~ok).tolist()
     np.testing.assert_allclose(got[ok], cov[ok], rtol=1e-6)
     assert (got[ok] == got[ok].transpose(0, 2, 1)).all()
+
+
+def test_a_commit_keeps_a_pool_raised_for_a_wide_table(tmp_path: Path, monkeypatch) -> None:
+    """A commit inside :meth:`RunStore._sized`'s retry, whose pool it raised for a table too wide
+    for the writer's, runs in that raised pool, never in a smaller checkpoint pool; the pool
+    is set back to the raised one after."""
+    from tertiary.store import run_store
+    monkeypatch.setattr(run_store, "CHECKPOINT_MEMORY_MB", 16)
+    seen: list[tuple[str, str]] = []
+    probe = duckdb.connect()
+
+    def shown(mb: int) -> str:
+        probe.execute(f"SET memory_limit = '{mb}MB'")
+        return probe.sql("SELECT current_setting('memory_limit')").fetchall()[0][0]
+    with RunStore.create(tmp_path / "run") as store:
+        store._pool_mb = 256                      # as _sized leaves it while it retries
+        store.con.execute("SET memory_limit = '256MB'")
+        store._con = _Recording(store._con, seen)
+        store.write("a", pl.DataFrame({"x": [1.0]}))
+        assert store.con.sql("SELECT current_setting('memory_limit')").fetchall()[0][0] == shown(256)
+    assert [p for kind, p in seen if kind == "commit"] == [shown(256)]

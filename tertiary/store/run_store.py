@@ -203,7 +203,7 @@ class RunStore:
         self.lean = lean
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
-        self._pool = WRITER_MEMORY_LIMIT        # the writer's buffer pool now (:meth:`_sized`)
+        self._pool_mb = WRITER_MEMORY_MB        # the writer's buffer pool now (:meth:`_sized`)
 
     # ---- constructors
 
@@ -267,13 +267,21 @@ class RunStore:
         return self._con
 
     def checkpoint(self) -> None:
-        """Write every committed change into the database file (:meth:`_commit`'s pool: a
-        checkpoint that runs out of the writer's small pool invalidates the database)."""
-        self._con.execute(f"SET memory_limit = '{CHECKPOINT_MEMORY_MB}MB'")
-        try:
+        """Write every committed change into the database file, in :meth:`_checkpoint_pool`."""
+        with self._checkpoint_pool():
             self._con.execute(f"CHECKPOINT {_ALIAS}")
+
+    @contextmanager
+    def _checkpoint_pool(self) -> Iterator[None]:
+        """A checkpoint that runs out of the writer's small pool fails and invalidates the
+        database, with nothing to retry: inside, the pool is at least
+        :data:`CHECKPOINT_MEMORY_MB` (more if :meth:`_sized` raised it), set back after (only
+        what the checkpoint uses is taken)."""
+        self._con.execute(f"SET memory_limit = '{max(CHECKPOINT_MEMORY_MB, self._pool_mb)}MB'")
+        try:
+            yield
         finally:
-            self._con.execute(f"SET memory_limit = '{self._pool}'")
+            self._con.execute(f"SET memory_limit = '{self._pool_mb}MB'")
 
     def close(self) -> None:
         """Close the connection and drop its spill directory."""
@@ -487,12 +495,11 @@ class RunStore:
                 except duckdb.OutOfMemoryException:
                     if mb >= WRITER_MEMORY_MAX_MB:
                         raise
-                    mb = min(4 * mb, WRITER_MEMORY_MAX_MB)
-                    self._pool = f"{mb}MB"
-                    self._con.execute(f"SET memory_limit = '{self._pool}'")
+                    mb = self._pool_mb = min(4 * mb, WRITER_MEMORY_MAX_MB)
+                    self._con.execute(f"SET memory_limit = '{mb}MB'")
         finally:
             if mb != WRITER_MEMORY_MB:
-                self._pool = WRITER_MEMORY_LIMIT
+                self._pool_mb = WRITER_MEMORY_MB
                 self._con.execute(f"SET memory_limit = '{WRITER_MEMORY_LIMIT}'")
 
     def read(self, name: str) -> pl.DataFrame:
@@ -542,15 +549,10 @@ class RunStore:
         return arrow_view(self._con, frame, "src")
 
     def _commit(self) -> None:
-        """Commit the open transaction. A commit may checkpoint the database (its write-ahead
-        log grown past the threshold), and a checkpoint that runs out of the writer's small pool
-        fails and invalidates the database, with nothing to retry: it runs in a pool of
-        :data:`CHECKPOINT_MEMORY_MB`, set back after (only what it uses is taken)."""
-        self._con.execute(f"SET memory_limit = '{CHECKPOINT_MEMORY_MB}MB'")
-        try:
+        """Commit the open transaction, in :meth:`_checkpoint_pool`: a commit checkpoints the
+        database when its write-ahead log has grown past the threshold."""
+        with self._checkpoint_pool():
             self._con.commit()
-        finally:
-            self._con.execute(f"SET memory_limit = '{self._pool}'")
 
     def _transaction(self, *statements: str | tuple[str, Params]) -> None:
         """Run ``statements`` (SQL, or (SQL, parameters)) in one transaction."""
