@@ -172,3 +172,14 @@ def test_a_distributed_run_hands_every_partition_the_whole_recordings_measure(tm
     want = downlink_noise(ds.reports)
     assert seen[0].tracker.velocity_speed_sigma_mps == pytest.approx(want.speed_mps)
     assert not seen[0].tracker.calibrate_downlinks          # a partition does not measure its slice again
+
+
+def test_unvalidated_input_measures_what_it_can_and_never_raises():
+    """The measure reads the input before validation: a register sent as text is read where it
+    is a number, a time column that is not a time leaves every σ as configured."""
+    good = _replies()
+    texts = good.with_columns(pl.col("ehs_gs_mps").cast(pl.String).str.replace(r"^1", "x"))
+    noise = downlink_noise(texts)
+    assert noise.speed_mps is not None and noise.triples["speed"] < 2 * 40 * 58
+    assert noise.track_deg == pytest.approx(downlink_noise(good).track_deg, rel=0.2)
+    assert downlink_noise(good.with_columns(pl.col("time").cast(pl.String))) == DownlinkNoise(None, None, None, {})

@@ -6,6 +6,7 @@ picture (:func:`stca_curves`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -55,10 +56,12 @@ def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
 @dataclass(frozen=True)
 class TruthIntervals:
     """The truth's separation intervals of the chunks of :func:`reference_intervals` done so
-    far, merged (None: none yet), and the start of the next chunk (µs; None: the first)."""
+    far, merged (None: none yet), the start of the next chunk (µs; None: the first) and the
+    truth's :func:`time_span` they were cut from (None: not yet read)."""
 
     merged: tuple[pl.DataFrame, pl.DataFrame] | None = None
     next_us: int | None = None
+    span: pl.DataFrame | None = None
 
 
 def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, acfg: safety_alerts.AlertConfig,
@@ -69,7 +72,7 @@ def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, a
     their progress has passed, the end of the run the rest. The chunks are
     :func:`reference_intervals`'s whatever the windows, so the result is the same."""
     if not span.height:
-        return state
+        return dataclasses.replace(state, span=span)
     lf = pl.scan_parquet(reference_files(reference))
     cols = [c for c in ALERT_TRUTH if c in lf.collect_schema()]
     lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
@@ -80,7 +83,7 @@ def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, a
         chunk = _chunk_intervals(lf, cols, acfg, frame, a, b)
         merged = chunk if merged is None else safety_alerts.merge_intervals([merged, chunk], acfg)
         a = b
-    return TruthIntervals(merged, a)
+    return TruthIntervals(merged, a, span)
 
 
 def _chunk_intervals(lf: pl.LazyFrame, cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
@@ -111,8 +114,9 @@ def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame:
     and each aircraft's neighbours of those: inside, the union sample grid and so the segment
     pairs are the whole truth's, and each chunk keeps the part of its intervals in [a, b).
     ``state``: the chunks the windows did (:func:`intervals_step`), finished here."""
-    span = time_span(pl.scan_parquet(reference_files(reference)))
-    done = intervals_step(state or TruthIntervals(), reference, span, acfg, frame, None, chunk_s)
+    state = state or TruthIntervals()
+    span = state.span if state.span is not None else time_span(pl.scan_parquet(reference_files(reference)))
+    done = intervals_step(state, reference, span, acfg, frame, None, chunk_s)
     return (safety_alerts.merge_intervals([], acfg) if done.merged is None else done.merged), span
 
 

@@ -113,9 +113,11 @@ def downlink_noise(reports: pl.DataFrame | pl.LazyFrame, sample_rows: int = SAMP
     names = lf.collect_schema().names()
     keys = [*(["run"] if "run" in names else []), *_KEYS]
     present = [c for c in _FIELDS.values() if c in names]
-    if not present or any(k not in names for k in (*_KEYS, "time")):
+    schema = lf.collect_schema()
+    if not present or any(k not in names for k in (*_KEYS, "time")) or not isinstance(schema["time"], pl.Datetime):
         return DownlinkNoise(None, None, None, {})
-    cols = [*keys, "time", *present]
+    # the input as it came, before validation: a value that is not a number is not a reply's
+    cols = [*keys, "time", *(pl.col(c).cast(pl.Float64, strict=False) for c in present)]
     sample = (lf.select(cols).filter(pl.col("mode_s").is_not_null()
                                      & pl.any_horizontal(pl.col(c).is_not_null() for c in present))
               .head(sample_rows).collect().lazy())
