@@ -362,6 +362,45 @@ def test_a_track_never_takes_a_plot_of_another_mode_s_address():
     assert dict((s, t) for s, _, t in track_a)[k_bad] == 2
 
 
+def _opposite_levels(offset_m: float = 650.0, a_from: int = 1, b_from: int = 0, y0_m: float = -224.0 * DT * 2):
+    """Two Mode S aircraft at adjacent levels (300 m apart) on opposite tracks at 224 m/s, ``offset_m``
+    apart across the track: A northbound from y0_m with plots from scan ``a_from``, B southbound
+    with plots from scan ``b_from``, missing scan 2. With the defaults they pass each other at
+    scan 2, so B's initiation hypothesis (B₀, B₁) finds A's plot inside its scan-3 circle, and
+    no plot of its own."""
+    a = _line((0.0, y0_m, 9479.0), (0.0, 224.0, 0.0), range(a_from, 12), 1, noise=20.0, seed=1)
+    b = _line((offset_m, 224.0 * DT * 2, 9179.0), (0.0, -224.0, 0.0), [k for k in range(b_from, 12) if k != 2], 2,
+              noise=20.0, seed=2)
+    return _fused(a + b).with_columns(
+        pl.when(pl.col("target_id") == 1).then(pl.lit("396321")).otherwise(pl.lit("396202")).alias("mode_s"))
+
+
+def test_initiation_never_joins_plots_of_two_mode_s_addresses():
+    """B's hypothesis may not confirm on A's plot (another address): one track per aircraft,
+    each of its own plots only. Without the addresses the hypothesis confirms on A's plot with
+    B's velocity, coasts off A's path and dies, and A and B each get a track of their own after
+    it (three tracks for two aircraft)."""
+    per = _by_track(track(_opposite_levels(), CVDouble(q=1.0)))
+    assert len(per) == 2
+    assert sorted({t for _, _, t in v if t is not None}.pop() for v in per.values()) == [1, 2]
+    assert all(len({t for _, _, t in v if t is not None}) == 1 for v in per.values())
+    blind = _by_track(track(_opposite_levels(), CVDouble(q=1.0), TrackerConfig(use_mode_s=False)))
+    assert len(blind) == 3
+
+
+def test_m_of_n_tentative_never_counts_a_plot_of_another_mode_s_address():
+    """M-of-N (2 of 3): B's one-plot tentative (B₁) may not take A's plot A₂ from its annulus
+    as its second hit (B misses scan 2): one track per aircraft. Without the addresses it is
+    confirmed on A's plot, coasts and dies: three tracks for two aircraft."""
+    scene = _opposite_levels(offset_m=1000.0, a_from=2, b_from=1, y0_m=0.0)
+    cfg = TrackerConfig(initiation="m_of_n", m=2, n=3)
+    per = _by_track(track(scene, CVDouble(q=1.0), cfg))
+    assert len(per) == 2
+    assert all(len({t for _, _, t in v if t is not None}) == 1 for v in per.values())
+    blind = _by_track(track(scene, CVDouble(q=1.0), TrackerConfig(initiation="m_of_n", m=2, n=3, use_mode_s=False)))
+    assert len(blind) == 3
+
+
 def test_assign_hungarian_matches_brute_force():
     from scipy.optimize import linear_sum_assignment
     rng = np.random.default_rng(0)

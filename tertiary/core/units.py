@@ -4,6 +4,8 @@ from __future__ import annotations
 
 #: metres per foot (the international foot)
 FT = 0.3048
+#: standard gravity (m/s²)
+G0 = 9.80665
 #: microseconds per second: times are int64 µs on the absolute epoch grid
 US = 1_000_000
 #: the kinematic state's columns, in the order of every state vector and covariance

@@ -26,8 +26,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from tertiary.core.units import G0
+
 F64 = NDArray[np.float64]
-G0 = 9.80665
 BeamVariant = Literal["corrected", "printed"]
 AccVariant = Literal["printed", "corrected"]
 

@@ -54,14 +54,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from tertiary.core import geo
 from tertiary.core.errors import DataError
-from tertiary.core.units import FT, US
+from tertiary.core.units import FT, G0, US
 from tertiary.contract import EHS_REPORT_COLUMNS
 from tertiary.simulate.trajectory import Trajectories
 
 F64 = NDArray[np.float64]
 KT = 1852.0 / 3600.0
 FPM = FT / 60.0
-G0 = 9.80665
 
 #: (LSB, lower, upper) of each EHS field, in the table's units
 RESOLUTION = {

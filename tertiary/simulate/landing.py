@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from tertiary.core.units import G0
 from tertiary.filters.imm import (PAPER_MU0, PAPER_OMEGAS, PAPER_P00, PAPER_TPM, HorizontalIMM, conversion_range_limit, convert_polar_2d, q_cv)
 
 F64 = NDArray[np.float64]
-G0 = 9.80665
 
 
 @dataclass(frozen=True)

@@ -16,8 +16,8 @@ from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltState, predict as 
 from tertiary.stages.tracking.altitude import update_rate as alt_update_rate
 from tertiary.stages.tracking.config import TRACK_COLUMNS, TrackerConfig
 from tertiary.filters.base import State, TrackFilter, concat, full_cov, size, take
-from tertiary.stages.tracking.gating import (PlotIndex, Plots, altitude_ok, assign, likelihood_cost, tracking_pairs,
-                                             velocity_covariance, vertical_ok)
+from tertiary.stages.tracking.gating import (PlotIndex, Plots, altitude_ok, assign, identity_ok, likelihood_cost,
+                                             tracking_pairs, velocity_covariance, vertical_ok)
 
 __all__ = ["Bank", "Emitted", "track_batch"]
 
@@ -149,7 +149,8 @@ def _join_states(*states: State) -> State:
 def _annulus_pairs(plots: Plots, free: NDArray, objs: _Objects, t: float,
                    cfg: TrackerConfig) -> tuple[NDArray, NDArray]:
     """(object, plot) pairs with the plot in the annulus S₁ around the object's last plot:
-    v_min·T ≤ horizontal distance ≤ v_max·T, T = t − t₁ (1.1), and a plausible height change."""
+    v_min·T ≤ horizontal distance ≤ v_max·T, T = t − t₁ (1.1), a plausible height change and
+    no other Mode S address than the object's (:func:`identity_ok`)."""
     if len(objs) == 0 or not free.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     p1, dt = objs.f[:, _P1], t - objs.f[:, _T1]
@@ -158,7 +159,8 @@ def _annulus_pairs(plots: Plots, free: NDArray, objs: _Objects, t: float,
     o, p = o[keep], p[keep]
     dh = np.hypot(plots.z[p, 0] - p1[o, 0], plots.z[p, 1] - p1[o, 1])
     ok = ((dh >= cfg.v_min_mps * dt[o]) & (dh <= cfg.v_max_mps * dt[o])
-          & vertical_ok(plots.z[p, 2] - p1[o, 2], objs.f[o, _RZ1], plots.r[p, 2], cfg))
+          & vertical_ok(plots.z[p, 2] - p1[o, 2], objs.f[o, _RZ1], plots.r[p, 2], cfg)
+          & identity_ok(objs.i[o, _IDENT], plots.ident[p], cfg))
     if cfg.alt_gate_m is not None:
         ok &= altitude_ok(_alt_at(objs.f, t, cfg.altitude.q_m2ps3)[o], plots.alt[p], cfg)
     return o[ok], p[ok]
@@ -167,7 +169,8 @@ def _annulus_pairs(plots: Plots, free: NDArray, objs: _Objects, t: float,
 def _confirm_pairs(plots: Plots, free: NDArray, hyp: _Objects, t: float,
                    cfg: TrackerConfig) -> tuple[NDArray, NDArray, NDArray]:
     """(hypothesis, plot, cost) of plots inside the scan-3 circle S₂ around
-    x̂₃ = x₂ + (x₂ − x₁)·(t − t₂)/(t₂ − t₁); cost = (d_h/R_S₂)² + (Δz/tolerance)²."""
+    x̂₃ = x₂ + (x₂ − x₁)·(t − t₂)/(t₂ − t₁) and of no other Mode S address than the hypothesis';
+    cost = (d_h/R_S₂)² + (Δz/tolerance)²."""
     if len(hyp) == 0 or not free.any():
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     p1, p2 = hyp.f[:, _P1], hyp.f[:, _P2]
@@ -179,7 +182,7 @@ def _confirm_pairs(plots: Plots, free: NDArray, hyp: _Objects, t: float,
     dz = plots.z[p, 2] - x3[o, 2]
     dh2 = (plots.z[p, 0] - x3[o, 0]) ** 2 + (plots.z[p, 1] - x3[o, 1]) ** 2
     tol = cfg.gate_sigma * np.sqrt(hyp.f[o, _RZ2] + plots.r[p, 2]) + cfg.gate_min_m
-    ok = (np.abs(dz) <= tol) & (dh2 <= cfg.confirm_gate_m ** 2)
+    ok = (np.abs(dz) <= tol) & (dh2 <= cfg.confirm_gate_m ** 2) & identity_ok(hyp.i[o, _IDENT], plots.ident[p], cfg)
     if cfg.alt_gate_m is not None:
         ok &= altitude_ok(_alt_at(hyp.f, t, cfg.altitude.q_m2ps3)[o], plots.alt[p], cfg)
     return o[ok], p[ok], dh2[ok] / cfg.confirm_gate_m ** 2 + (dz[ok] / tol[ok]) ** 2

@@ -37,8 +37,9 @@ class TrackerConfig:
       gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
     * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
-    * ``use_mode_s``: a confirmed track holds the Mode S address of the plots it took and never
-      takes a plot with another address (a plot or track without one is gated on position).
+    * ``use_mode_s``: a track, tentative or initiation hypothesis holds the Mode S address of the
+      plots it took and never takes a plot with another address (a plot or object without one
+      is gated on position).
     * ``alt_gate_m``: a plot whose barometric altitude lies further than gate_sigma·σ +
       ``alt_gate_m`` from an object's predicted altitude (its altitude filter, σ of both) is not
       in its gates, and within them the altitude's d²/S adds to the assignment cost; None: the

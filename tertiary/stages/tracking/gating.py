@@ -234,9 +234,8 @@ def tracking_pairs(plots: Plots, free: NDArray, run: NDArray, xp: NDArray, vp: N
     if not free.all():
         keep = free[p]
         o, p = o[keep], p[keep]
-    if ident is not None and cfg.use_mode_s:
-        a, b = ident[o], plots.ident[p]
-        keep = (a < 0) | (b < 0) | (a == b)
+    if ident is not None:
+        keep = identity_ok(ident[o], plots.ident[p], cfg)
         o, p = o[keep], p[keep]
     # one axis at a time on 1-D gathers, y first: the x window leaves most candidates to fail
     # on y, so the full 3-axis rows are gathered only for the few that pass
@@ -250,6 +249,15 @@ def tracking_pairs(plots: Plots, free: NDArray, run: NDArray, xp: NDArray, vp: N
         o, p = o[ok], p[ok]
         cost = cost[ok] + altitude_cost(alt[o], plots.alt[p])
     return o, p, cost
+
+
+def identity_ok(obj: NDArray, plot: NDArray, cfg: TrackerConfig) -> NDArray:
+    """Whether plots of Mode S address ``plot`` may belong to objects holding ``obj`` (−1: none):
+    with ``use_mode_s``, unless both are known and differ. Two aircraft crossing at adjacent
+    levels are closer than any position or altitude gate can tell apart; their addresses do."""
+    if not cfg.use_mode_s:
+        return np.ones(len(obj), bool)
+    return (obj < 0) | (plot < 0) | (obj == plot)
 
 
 def altitude_ok(obj: NDArray, plot: NDArray, cfg: TrackerConfig) -> NDArray:
