@@ -7,7 +7,8 @@ database is read for every figure a verdict rests on:
 
 * safety, per picture (the truth picture included): alert episodes genuine / nuisance / false,
   how many of them (and of the missed losses) are picture-induced or predictor-induced, Torres &
-  McKay's valid alerts, losses of separation alerted and missed, median warning;
+  McKay's valid alerts, losses of separation alerted and missed (and the missed ones under way
+  when their aircraft were first observed, which no alert can precede), median warning;
 * system targets and tracks per aircraft;
 * horizontal RMSE of every tracker against its fused input, overall and per flight phase;
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
@@ -42,7 +43,7 @@ DATASETS = ("national15", "default", "adsb-paris", "made")
 SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "alerts_picture_induced",
           "alerts_predictor_induced", "false_alerts_picture_induced", "false_alerts_predictor_induced",
           "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
-          "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s", "alerts_per_hour")
+          "missed_los_under_way", "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s", "alerts_per_hour")
 #: the trackers run on the made trajectories: production's and the turn-rate-estimating one
 MADE_FILTERS = "imm_sym,imm_ct"
 PHASES = ("all", "phase:level", "phase:turn", "phase:climb-descent")
@@ -192,6 +193,9 @@ def figures(db: Path) -> dict:
     for p, v in safety.items():
         if v["los_episodes"]:
             v["alerted_fraction"] = _clean(v["alerted_los"] / v["los_episodes"])
+            # of the losses an alert could precede: those under way when first observed left out
+            v["alerted_fraction_alertable"] = _clean(v["alerted_los"] / max(v["los_episodes"]
+                                                                           - (v["missed_los_under_way"] or 0.0), 1.0))
     fused = sorted({meth for (s, meth, k, _) in m if s == "fusion" and k == "rmse_horizontal_m"})
     tracked = sorted({meth for (s, meth, k, _) in m if s == "tracker" and k == "rmse_horizontal_m"})
     accuracy = {}

@@ -2,11 +2,12 @@
 -- (safety stage of the metrics table) — the losses (los_episodes), those alerted and missed,
 -- genuine / nuisance / false alerts, alerts per hour and the median and 5th-percentile warning
 -- times; how many alerts (false, nuisance) and missed losses the picture causes (the truth picture
--- does not raise / does alert them) and the valid alerts (followed by an avoiding manoeuvre).
+-- does not raise / does alert them), the missed losses under way when their aircraft were first
+-- observed (no alert can precede them) and the valid alerts (followed by an avoiding manoeuvre).
 -- Columns: method, los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts,
 -- false_alerts, alerts_per_hour, warning_median_s, warning_p05_s, alerts_picture_induced,
 -- false_alerts_picture_induced, nuisance_alerts_picture_induced, missed_los_picture_induced,
--- valid_alerts, n_runs.
+-- missed_los_under_way, valid_alerts, n_runs.
 -- param: method = null   picture (fusion method) (null: all)
 SELECT method,
        max(value) FILTER (WHERE metric = 'los_episodes')     AS los_episodes,
@@ -22,6 +23,7 @@ SELECT method,
        max(value) FILTER (WHERE metric = 'false_alerts_picture_induced')    AS false_alerts_picture_induced,
        max(value) FILTER (WHERE metric = 'nuisance_alerts_picture_induced') AS nuisance_alerts_picture_induced,
        max(value) FILTER (WHERE metric = 'missed_los_picture_induced')      AS missed_los_picture_induced,
+       max(value) FILTER (WHERE metric = 'missed_los_under_way')            AS missed_los_under_way,
        max(value) FILTER (WHERE metric = 'valid_alerts')                    AS valid_alerts,
        max(n_runs)                                           AS n_runs
 FROM metrics
@@ -29,7 +31,7 @@ WHERE stage = 'safety'
   AND metric IN ('los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts', 'false_alerts',
                  'alerts_per_hour', 'warning_median_s', 'warning_p05_s', 'alerts_picture_induced',
                  'false_alerts_picture_induced', 'nuisance_alerts_picture_induced', 'missed_los_picture_induced',
-                 'valid_alerts')
+                 'missed_los_under_way', 'valid_alerts')
   AND ($method IS NULL OR method = $method)
 GROUP BY method
 ORDER BY method;

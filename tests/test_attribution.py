@@ -74,6 +74,26 @@ def test_a_missed_loss_the_truth_picture_alerted_is_the_pictures():
     assert set(m["method"]) == {"p", "q"}                # the truth picture is the yardstick, not scored
 
 
+
+def test_a_missed_loss_under_way_when_its_aircraft_were_first_observed_is_put_down_to_that():
+    """A loss the recording starts inside (or an aircraft enters coverage inside) cannot be
+    alerted beforehand by any picture: its own class, not the predictor's."""
+    row = lambda m, a, b, s0: {"run": 0, "method": m, "truth_a": a, "truth_b": b, "t_start": _t(s0),  # noqa: E731
+                               "t_end": _t(s0 + 30), "alerted": False, "first_alert": None, "warning_s": None}
+    los = pl.DataFrame([row("truth", 1, 2, 0), row("truth", 3, 4, 100), row("truth", 5, 6, 100),
+                        row("p", 1, 2, 0), row("p", 3, 4, 100), row("p", 5, 6, 100)], schema=LOS_SCHEMA)
+    # 1 and 2 seen from 0 s (the recording's start, inside the loss); 3 from 0 s, 4 only from
+    # 104 s (it enters coverage in loss); 5 and 6 from 0 s (the loss begins at 100 s: alertable)
+    spans = pl.DataFrame({"run": [0] * 6, "truth_id": [1, 2, 3, 4, 5, 6],
+                          "first": [_t(0), _t(0), _t(0), _t(104), _t(0), _t(0)]},
+                         schema={"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME})
+    got = attribute_los(los, spans=spans)
+    assert got["induced"].to_list() == [None, None, None, "under_way", "under_way", "predictor"]
+    assert attribute_los(los)["induced"].to_list()[3:] == ["predictor"] * 3     # no spans: not known
+    m = dict(attribution_metrics(attribute_alerts(_alerts([])), got).filter(pl.col("method") == "p")
+             .select("metric", "value").iter_rows())
+    assert m["missed_los_under_way"] == 2 and m["missed_los_predictor_induced"] == 1
+
 def _track(tid: int, t: np.ndarray, heading_deg: np.ndarray, speed: float = 100.0, vz: np.ndarray | None = None
            ) -> pl.DataFrame:
     h = np.radians(heading_deg)

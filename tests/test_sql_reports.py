@@ -120,6 +120,7 @@ METRICS = [
     ("safety", "apriori", "false_alerts_picture_induced", "all", 5.0, 2),
     ("safety", "apriori", "nuisance_alerts_picture_induced", "all", 1.0, 2),
     ("safety", "apriori", "missed_los_picture_induced", "all", 0.0, 2),
+    ("safety", "apriori", "missed_los_under_way", "all", 1.0, 2),
     ("safety", "apriori", "valid_alerts", "all", 2.0, 2),
     ("safety", "apriori", "alert_episodes", "all", 13.0, 2),
     ("safety", "apriori", "nuisance_false_per_hour", "all", 11.0, 2),
@@ -647,8 +648,8 @@ def test_alert_scores(q):
     assert df.columns == ["method", "los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
                           "false_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s",
                           "alerts_picture_induced", "false_alerts_picture_induced", "nuisance_alerts_picture_induced",
-                          "missed_los_picture_induced", "valid_alerts", "n_runs"]
-    assert rows(df) == [("apriori", 3.0, 2.0, 1.0, 2.0, 4.0, 7.0, 12.5, 45.0, 20.0, 6.0, 5.0, 1.0, 0.0, 2.0, 2)]
+                          "missed_los_picture_induced", "missed_los_under_way", "valid_alerts", "n_runs"]
+    assert rows(df) == [("apriori", 3.0, 2.0, 1.0, 2.0, 4.0, 7.0, 12.5, 45.0, 20.0, 6.0, 5.0, 1.0, 0.0, 1.0, 2.0, 2)]
     # capacity rows (apriori+singer, fusion/information) are not scores
 
 

@@ -7,8 +7,10 @@ against those of the truth picture (the same conflict prediction on the true sta
   else **picture-induced** (also every episode without two distinct aircraft: the picture made
   the pair up). A better tracker can remove the latter only; the former need a better
   predictor (look-ahead, intent, thresholds).
-* A missed loss of separation is **picture-induced** when the truth picture alerted it, else
-  predictor-induced.
+* A missed loss of separation is **picture-induced** when the truth picture alerted it; else
+  **under way** when it had begun by the time the later of its two aircraft was first observed
+  (no alert can precede such a loss: the recording starts, or an aircraft enters coverage,
+  inside it); else predictor-induced.
 * **Valid** (Torres & McKay 2009): a nuisance or false alert followed, within the look-ahead
   T^пор of its start, by a manoeuvre of either aircraft (:func:`manoeuvre_onsets`) — the alert
   may have been acted on.
@@ -36,7 +38,8 @@ TRUTH_PICTURE = "truth"
 ATTRIBUTION_METRICS = ("alerts_picture_induced", "alerts_predictor_induced", "genuine_alerts_picture_induced",
                        "nuisance_alerts_picture_induced", "nuisance_alerts_predictor_induced",
                        "false_alerts_picture_induced", "false_alerts_predictor_induced",
-                       "missed_los_picture_induced", "missed_los_predictor_induced", "valid_alerts")
+                       "missed_los_picture_induced", "missed_los_predictor_induced", "missed_los_under_way",
+                       "valid_alerts")
 
 _PAIR = ["run", "truth_a", "truth_b"]
 
@@ -63,17 +66,37 @@ def attribute_alerts(alerts: pl.DataFrame, cfg: AlertConfig = AlertConfig(), tru
             .with_columns(induced.alias("induced")).drop("__row", "__hit"))
 
 
-def attribute_los(los: pl.DataFrame, truth: str = TRUTH_PICTURE) -> pl.DataFrame:
+def attribute_los(los: pl.DataFrame, truth: str = TRUTH_PICTURE, spans: pl.DataFrame | None = None
+                  ) -> pl.DataFrame:
     """The LoS table (one row per loss and picture) with column ``induced`` for the system
     pictures' missed losses: ``"picture"`` when the truth picture alerted that loss, else
-    ``"predictor"``; null for alerted losses and for the truth picture's rows."""
+    ``"under_way"`` when the loss began no later than the later first observation of its two
+    aircraft (``spans``: run, truth_id, first — :func:`tertiary.evaluation.truth_picture.observed_spans`),
+    else ``"predictor"``; null for alerted losses and for the truth picture's rows."""
     ref = (los.filter(pl.col("method") == truth)
            .select(*_PAIR, "t_start", pl.col("alerted").alias("__ref_alerted")))
     out = los.join(ref, on=[*_PAIR, "t_start"], how="left", maintain_order="left")
+    out = out.with_columns(_under_way(out, spans).alias("__under_way"))
     induced = (pl.when((pl.col("method") == truth) | pl.col("alerted") | pl.col("__ref_alerted").is_null())
                .then(pl.lit(None, pl.String))
-               .when(pl.col("__ref_alerted")).then(pl.lit("picture")).otherwise(pl.lit("predictor")))
-    return out.with_columns(induced.alias("induced")).drop("__ref_alerted")
+               .when(pl.col("__ref_alerted")).then(pl.lit("picture"))
+               .when(pl.col("__under_way")).then(pl.lit("under_way")).otherwise(pl.lit("predictor")))
+    return out.with_columns(induced.alias("induced")).drop("__ref_alerted", "__under_way")
+
+
+def _under_way(los: pl.DataFrame, spans: pl.DataFrame | None) -> pl.Series:
+    """Per row of ``los``: whether the loss had begun when the later of its two aircraft was
+    first observed (False without ``spans`` or for an aircraft never observed)."""
+    if spans is None or not los.height:
+        return pl.Series([False] * los.height, dtype=pl.Boolean)
+    first = spans.select(pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64),
+                         pl.col("first").cast(los.schema["t_start"]))
+    seen = los.select("run", "truth_a", "truth_b", "t_start").with_row_index("__r")
+    for side in ("a", "b"):
+        seen = seen.join(first.rename({"truth_id": f"truth_{side}", "first": f"__first_{side}"}),
+                         on=["run", f"truth_{side}"], how="left")
+    later = pl.when(pl.col("__first_a") > pl.col("__first_b")).then("__first_a").otherwise("__first_b")
+    return seen.sort("__r").select((later >= pl.col("t_start")).fill_null(False)).to_series()
 
 
 def manoeuvre_onsets(truth: pl.DataFrame, turn_dps: float = 0.5, climb_mps: float = 2.5, min_s: float = 10.0
@@ -139,7 +162,8 @@ def attribution_metrics(alerts: pl.DataFrame, los: pl.DataFrame, truth: str = TR
         pl.col("valid").sum().alias("valid_alerts"))
     lo = los.filter(pl.col("method") != truth).group_by("method").agg(
         (pl.col("induced") == "picture").sum().alias("missed_los_picture_induced"),
-        (pl.col("induced") == "predictor").sum().alias("missed_los_predictor_induced"))
+        (pl.col("induced") == "predictor").sum().alias("missed_los_predictor_induced"),
+        (pl.col("induced") == "under_way").sum().alias("missed_los_under_way"))
     names = (pl.concat([a.select("method", "run"), los.filter(pl.col("method") != truth).select("method", "run")])
              .group_by("method").agg(pl.col("run").n_unique().alias("n_runs")))
     per = names.join(per, on="method", how="left").join(lo, on="method", how="left").with_columns(

@@ -75,11 +75,12 @@ def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice
             pl.concat(onsets) if onsets else pl.DataFrame(schema={"truth_id": pl.Int64, "t_us": pl.Int64}))
 
 
-def attributed(alerts: pl.DataFrame, los: pl.DataFrame, onsets: pl.DataFrame, acfg: safety_alerts.AlertConfig
-               ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """(alerts with ``induced`` and ``valid``, losses with ``induced`` (a missed loss's cause),
+def attributed(alerts: pl.DataFrame, los: pl.DataFrame, onsets: pl.DataFrame, acfg: safety_alerts.AlertConfig,
+               spans: pl.DataFrame | None = None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(alerts with ``induced`` and ``valid``, losses with ``induced`` (a missed loss's cause;
+    ``spans``: the aircraft's observed spans, which tell a loss under way when first observed),
     the attribution metrics per system picture)."""
     alerts = safety_alerts.valid_alerts(safety_alerts.attribute_alerts(alerts, acfg), onsets, acfg)
-    los = safety_alerts.attribute_los(los)
+    los = safety_alerts.attribute_los(los, spans=spans)
     return alerts, los, safety_alerts.attribution_metrics(alerts, los)
 

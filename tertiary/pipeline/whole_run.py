@@ -373,7 +373,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
             conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
         del conflicts_all, id_map_all
-        alerts, los, attribution = attributed(alerts, los, onsets, acfg)
+        alerts, los, attribution = attributed(alerts, los, onsets, acfg, spans)
         safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
         if ds.external_alerts.height:
             safety_metrics, alerts, los = _with_external(ds, acfg, truth_scan(EXTERNAL_TRUTH), intervals,

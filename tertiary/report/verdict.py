@@ -371,7 +371,8 @@ def _verdict_safety(ctx: Ctx) -> str:
                  f"({f(r['false_alerts_picture_induced'])} false, {f(r['nuisance_alerts_picture_induced'])} "
                  f"nuisance): the same prediction on the truth picture does not raise them; the others are the "
                  f"predictor's. {f(r['missed_los_picture_induced'])} of its missed losses were alerted on the "
-                 f"truth picture.")
+                 f"truth picture; {f(r.get('missed_los_under_way'))} were under way when their aircraft were first "
+                 f"observed (no alert can precede them).")
         cols += ["false_alerts_picture_induced", "nuisance_alerts_picture_induced", "missed_los_picture_induced"]
     table = scores.select(cols).rename({c: _SAFETY_COLS[c] for c in cols})
     note = ("Scored against truth per picture (sql/alert_scores.sql); the full table with flicker is in the "
