@@ -14,7 +14,7 @@ database is read for every figure a verdict rests on:
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
 * the false-track rate of the centralised reference against the best fused picture.
 
-    python benchmarks/bench_trust.py [--only national15,default,adsb-paris,made] [--work DIR]
+    python benchmarks/bench_trust.py [--only national15,national15-evening,default,adsb-paris,made] [--work DIR]
 
 Results: ``benchmarks/results/bench_trust.json`` (one entry per dataset; ``--only`` keeps the
 entries of the datasets it does not run).
@@ -39,7 +39,10 @@ from _util import RESULTS, each_dataset  # noqa: E402
 from bench_memory import _CHILD, CONFIGS  # noqa: E402
 
 #: every dataset: how it is made, and the run's arguments
-DATASETS = ("national15", "default", "adsb-paris", "made")
+DATASETS = ("national15", "national15-evening", "default", "adsb-paris", "made")
+#: start (s after midnight) of the national scenario's 15 minutes: the peak every check reads,
+#: and an evening slice that no change was checked on before it was made
+NATIONAL15_START_S = {"national15": 28800.0, "national15-evening": 64800.0}
 SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "alerts_picture_induced",
           "alerts_predictor_induced", "false_alerts_picture_induced", "false_alerts_predictor_induced",
           "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
@@ -360,13 +363,14 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
 # --------------------------------------------------------------------------- datasets
 
 
-def _national15(work: Path) -> list[str]:
+def _national15(work: Path, name: str) -> list[str]:
     from tertiary.simulate import load_scenario
     from tertiary.simulate.config import scenario_toml
     base = load_scenario("national")
-    cfg = dataclasses.replace(base, duration_s=900.0, national=dataclasses.replace(base.national, start_s=28800.0))
-    (work / "national15.toml").write_text(scenario_toml(cfg))
-    return [str(work / "national15.toml")]
+    start = NATIONAL15_START_S[name]
+    cfg = dataclasses.replace(base, duration_s=900.0, national=dataclasses.replace(base.national, start_s=start))
+    (work / f"{name}.toml").write_text(scenario_toml(cfg))
+    return [str(work / f"{name}.toml")]
 
 
 def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
@@ -375,8 +379,8 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
         old = json.loads((RESULTS / "bench_trust.json").read_text())["datasets"].get(name, {})
         return {**old, **figures(out / "results.duckdb"),
                 "picture_induced_causes": alert_causes(out / "results.duckdb", data)}
-    if name == "national15":
-        sim, args = _national15(work), CONFIGS["production"]
+    if name in NATIONAL15_START_S:
+        sim, args = _national15(work, name), CONFIGS["production"]
     elif name == "default":
         sim, args = ["terminal-area"], []
     elif name == "adsb-paris":

@@ -162,3 +162,84 @@ def test_live_targets_hold_every_id_that_can_return():
     assert second[(1, 7)] == first[(1, 7)] and second[(2, 3)] == first[(2, 3)]
     assert second[(3, 5)] not in set(ids1.tolist())
     assert set(ids2.tolist()) & set(ids1.tolist()) <= live
+
+
+def _identity_rows(spec, t0):
+    """(radar_id, local_track_id, seconds, mode_s) → aligned-like rows for :func:`carry_step`."""
+    return pl.DataFrame({"run": [0] * len(spec), "radar_id": [r for r, _, _, _ in spec],
+                         "local_track_id": [k for _, k, _, _ in spec],
+                         "epoch": [t0 + timedelta(seconds=s) for _, _, s, _ in spec],
+                         "mode_s": [m for _, _, _, m in spec]},
+                        schema_overrides={"mode_s": pl.String}).with_columns(
+        pl.col("run").cast(pl.UInt32), pl.col("radar_id").cast(pl.UInt32), pl.col("local_track_id").cast(pl.UInt32))
+
+
+def _carry(rows, state=None, gap=30.0):
+    from tertiary.stages.association.associate import carry_step
+    label = (rows["radar_id"].cast(pl.Int64) * 1000 + rows["local_track_id"].cast(pl.Int64)).to_numpy()
+    ids, _, st = carry_step(state or init_associate_state(), rows, label, gap)
+    return dict(zip(zip(rows["radar_id"].to_list(), rows["local_track_id"].to_list(), rows["epoch"].to_list()),
+                    ids.tolist())), st
+
+
+def test_a_mode_s_aircraft_handed_to_another_radar_stays_one_target():
+    """Radar 1 sees the aircraft until 20 s, radar 2 (a new local track, nothing shared) from
+    28 s: the Mode S address carries the system target id across the handover, also across a
+    window boundary and only within the carry gap; without an address, or with another one, the
+    new local track is a new target."""
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    at = lambda r, k, s: (r, k, t0 + timedelta(seconds=s))    # noqa: E731
+    spec = lambda ms2, start=28: ([(1, 7, s, "4ca1b2") for s in range(0, 21, 4)]     # noqa: E731
+                                  + [(2, 3, s, ms2) for s in range(start, 70, 4)])
+    ids, _ = _carry(_identity_rows(spec("4ca1b2"), t0))
+    assert ids[at(2, 3, 28)] == ids[at(1, 7, 0)]
+    for other in (None, "3c6544"):
+        ids, _ = _carry(_identity_rows(spec(other), t0))
+        assert ids[at(2, 3, 28)] != ids[at(1, 7, 0)]
+    ids, _ = _carry(_identity_rows(spec("4ca1b2", start=56), t0))     # silent 36 s > the 30 s gap
+    assert ids[at(2, 3, 56)] != ids[at(1, 7, 0)]
+    # across a window boundary: the address and its id are carried state, and live
+    rows = _identity_rows(spec("4ca1b2"), t0)
+    first, st = _carry(rows.filter(pl.col("epoch") < t0 + timedelta(seconds=24)))
+    assert first[at(1, 7, 0)] in set(st.live_targets()["target_id"].to_list())
+    second, _ = _carry(rows.filter(pl.col("epoch") >= t0 + timedelta(seconds=24)), st)
+    assert second[at(2, 3, 28)] == first[at(1, 7, 0)]
+
+
+def test_an_address_id_held_by_another_group_is_not_given_twice():
+    """Radar 1's track of the aircraft runs on while radar 2's plot of the same address forms a
+    group of its own (outside the gate): the id stays with the group that holds it, the other
+    group is a new target — one id is never two groups at one epoch."""
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    spec = [(1, 7, s, "4ca1b2") for s in range(0, 41, 4)] + [(2, 3, s, "4ca1b2") for s in range(28, 41, 4)]
+    ids, _ = _carry(_identity_rows(spec, t0))
+    at = lambda r, k, s: ids[(r, k, t0 + timedelta(seconds=s))]     # noqa: E731
+    assert all(at(1, 7, s) == at(1, 7, 0) for s in range(0, 41, 4))
+    assert at(2, 3, 28) != at(1, 7, 28)
+
+
+def test_a_split_of_one_address_returns_to_the_older_id_when_the_older_part_ends():
+    """Radar 2's new local track of the aircraft forms a group of its own (a new id) while
+    radar 1's track still holds the aircraft's id; when radar 1's track ends, the group takes
+    the address's id back instead of living on as a second target of one aircraft."""
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    spec = [(1, 7, s, "4ca1b2") for s in range(0, 29, 4)] + [(2, 3, s, "4ca1b2") for s in range(24, 49, 4)]
+    ids, _ = _carry(_identity_rows(spec, t0))
+    at = lambda r, k, s: ids[(r, k, t0 + timedelta(seconds=s))]     # noqa: E731
+    assert at(2, 3, 24) != at(1, 7, 24)                  # beside each other: two groups, two ids
+    assert all(at(2, 3, s) == at(1, 7, 0) for s in range(32, 49, 4))
+
+
+@pytest.mark.parametrize("other", [None, "3c6544"])
+def test_an_id_carried_to_another_aircraft_goes_back_to_its_address(other):
+    """Radar 1's local track 7 follows the aircraft 4ca1b2 until 20 s, then swaps to another
+    aircraft (no address, or another one) while radar 2 picks 4ca1b2 up under a new local
+    track: the system target id stays with the aircraft, the swapped track's group is a new
+    target."""
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    spec = ([(1, 7, s, "4ca1b2") for s in range(0, 21, 4)] + [(1, 7, s, other) for s in range(24, 41, 4)]
+            + [(2, 3, s, "4ca1b2") for s in range(24, 41, 4)])
+    ids, _ = _carry(_identity_rows(spec, t0))
+    at = lambda r, k, s: ids[(r, k, t0 + timedelta(seconds=s))]     # noqa: E731
+    assert all(at(2, 3, s) == at(1, 7, 0) for s in range(24, 41, 4))
+    assert all(at(1, 7, s) != at(1, 7, 0) for s in range(24, 41, 4))

@@ -34,7 +34,14 @@ conflict is evidence, not proof). They need the aligned columns ``mode_3a``/``ca
 System target ids are carried across epochs: a group inherits the id its members' local tracks
 had at their previous epoch (majority vote; a contested id goes to the larger group), so a
 target keeps its number while its radars keep theirs (vote ties go to the id carried by the
-group's lowest-numbered radar, which resolves a radar swapping its own track numbers).
+group's lowest-numbered radar, which resolves a radar swapping its own track numbers). A group
+that carries a Mode S address and another id than the one that address last had (or none) takes
+the address's id, when that was at most ``carry_gap_s`` ago and no group of that address holds
+it at this epoch: an aircraft handed from one radar's coverage to another's, whose local tracks
+were all dropped and restarted, or whose new local track formed a group of its own beside the
+old one until the old one ended, stays one system target (the address is unique to the
+airframe); and a group without that address whose local tracks carried the id over from the
+aircraft (a local track swapped to another aircraft) gives it back and becomes a new target.
 ``reassignments`` counts local tracks whose system target changed.
 
 Windowed runs: :func:`associate_step` processes the aligned rows of one window of
@@ -125,6 +132,8 @@ class AssociationStats:
 _TRACK_KEY = ("run", "radar_id", "local_track_id")
 _TRACKS_SCHEMA = {"run": pl.Int64, "radar_id": pl.Int64, "local_track_id": pl.Int64,
                   "target_id": pl.Int64, "seen_us": pl.Int64}
+_ADDRESS_KEY = ("run", "mode_s")
+_ADDRESSES_SCHEMA = {"run": pl.Int64, "mode_s": pl.String, "target_id": pl.Int64, "seen_us": pl.Int64}
 
 
 @dataclass(frozen=True)
@@ -139,16 +148,21 @@ class AssociateState:
     * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
       Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
       gets the ids it gets in the whole job.
+    * ``addresses``: one row per Mode S address (run, mode_s) seen within ``carry_gap_s``: the
+      system target id it had at its last epoch and that epoch (``seen_us``).
     """
 
     tracks: pl.DataFrame
     t_us: int = T_MIN_US
     run_next: tuple[tuple[int, int], ...] = ()
+    addresses: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_ADDRESSES_SCHEMA))
 
     def live_targets(self) -> pl.DataFrame:
         """(run, target_id) that may still be associated: a target id is only ever continued from
-        a local track of ``tracks`` (:func:`carry_step`), so no other id ever returns."""
-        return self.tracks.select("run", "target_id").unique()
+        a local track of ``tracks`` or a Mode S address of ``addresses`` (:func:`carry_step`),
+        so no other id ever returns."""
+        return pl.concat([self.tracks.select("run", "target_id"),
+                          self.addresses.select("run", "target_id")]).unique()
 
     @property
     def next_id(self) -> int:
@@ -384,6 +398,63 @@ def carry_target_ids(aligned: pl.DataFrame, label: NDArray[np.int64], carry_gap_
     return target, reassigned
 
 
+def _address_codes(state: AssociateState, aligned: pl.DataFrame
+                   ) -> tuple[NDArray[np.int64], NDArray[np.int64], pl.DataFrame]:
+    """Dense codes of (run, mode_s) over the state's addresses and the rows, as
+    :func:`_track_codes`; a row without an address gets −1."""
+    rows = (aligned.select(pl.col("run").cast(pl.Int64), pl.col("mode_s").cast(pl.String))
+            if "mode_s" in aligned.columns else
+            aligned.select(pl.col("run").cast(pl.Int64), pl.lit(None, pl.String).alias("mode_s")))
+    keys = pl.concat([state.addresses.select(_ADDRESS_KEY), rows])
+    known = keys["mode_s"].is_not_null().to_numpy()
+    named = keys.filter(pl.Series(known))
+    kc = named.select(pl.struct(_ADDRESS_KEY).rank("dense").cast(pl.Int64) - 1).to_series().to_numpy()
+    code = np.full(keys.height, -1, np.int64)
+    code[known] = kc
+    _, first = np.unique(kc, return_index=True)
+    ns = state.addresses.height
+    return code[:ns], code[ns:], named[first]
+
+
+def _by_address(assigned: NDArray[np.int64], g_addr: NDArray[np.int64], g_run: NDArray[np.int64],
+                a_last: NDArray[np.int64], a_seen: NDArray[np.int64], t_us: int, gap_us: float
+                ) -> NDArray[np.int64]:
+    """``assigned`` (−1: no carried id) with every group that carries a Mode S address given the
+    id that address had last (at most ``gap_us`` before ``t_us``) when its own differs: a fresh
+    group, or the younger id of a split whose older part has ended. The address owns its id: a
+    group holding it that lacks that address (none, or another: its local tracks swapped to
+    another aircraft) gives it up (−1) — a group of the address itself keeps it. Of two groups
+    of one address the first takes it."""
+    has = g_addr >= 0
+    if not has.any():
+        return assigned
+    at = np.where(has, g_addr, 0)
+    want = np.where(has, a_last[at], -1)
+    ok = has & (want >= 0) & (want != assigned) & (t_us - a_seen[at] <= gap_us)
+    if not ok.any():
+        return assigned
+    hold = np.flatnonzero(assigned >= 0)
+    hq = g_run[hold] * _RUN_Q + assigned[hold]
+    o = np.argsort(hq)
+    hold, hq = hold[o], hq[o]
+    g = np.flatnonzero(ok)
+    q = g_run[g] * _RUN_Q + want[g]
+    holder = np.full(len(g), -1, np.int64)               # the group holding the wanted id now
+    if len(hq):
+        k = np.minimum(np.searchsorted(hq, q), len(hq) - 1)
+        hit = hq[k] == q
+        holder[hit] = hold[k[hit]]
+    # a holder of the address itself keeps the id (a split of one aircraft)
+    free = (holder < 0) | (g_addr[np.maximum(holder, 0)] != g_addr[g])
+    g, q, holder = g[free], q[free], holder[free]
+    _, first = np.unique(q, return_index=True)
+    g, holder = g[first], holder[first]
+    out = assigned.copy()
+    out[holder[holder >= 0]] = -1
+    out[g] = want[g]
+    return out
+
+
 def _track_codes(state: AssociateState, aligned: pl.DataFrame
                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], pl.DataFrame]:
     """Dense codes of the natural key (run, radar_id, local_track_id) over the state's tracks
@@ -409,6 +480,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     if n == 0:
         return np.zeros(0, np.int64), 0, state
     code_state, keys, key_frame = _track_codes(state, aligned)
+    a_state, addr, a_frame = _address_codes(state, aligned)
     epoch = aligned["epoch"].dt.epoch("us").to_numpy()
     radar = aligned["radar_id"].to_numpy().astype(np.int64)
     runs = aligned["run"].to_numpy().astype(np.int64)
@@ -419,6 +491,10 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     seen = np.zeros(len(last), np.int64)                # epoch (µs) of that row
     last[code_state] = state.tracks["target_id"].to_numpy()
     seen[code_state] = state.tracks["seen_us"].to_numpy()
+    a_last = np.full(a_frame.height, -1, np.int64)     # system target id at each address's last row
+    a_seen = np.zeros(len(a_last), np.int64)
+    a_last[a_state] = state.addresses["target_id"].to_numpy()
+    a_seen[a_state] = state.addresses["seen_us"].to_numpy()
     gap_us = carry_gap_s * 1e6
     target = np.empty(n, np.int64)
     reassigned = 0
@@ -435,9 +511,18 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
             q = runs[rows][ok] * _RUN_Q + cand[ok]
             assigned = _vote(gi[ok], q, radar[rows][ok], assigned)
             assigned = np.where(assigned >= 0, assigned % _RUN_Q, -1)
+        g_addr = np.full(len(ug), -1, np.int64)          # the gate never joins two addresses
+        np.maximum.at(g_addr, gi, addr[rows])
+        g_run = runs[rows][first]
+        assigned = _by_address(assigned, g_addr, g_run, a_last, a_seen, int(epoch[rows[0]]), gap_us)
         fresh = assigned < 0
         if fresh.any():
-            assigned[fresh] = _fresh_ids(runs[rows][first][fresh], nxt)
+            assigned[fresh] = _fresh_ids(g_run[fresh], nxt)
+        # an address follows its group; of two groups of one address, the one holding its id
+        ga = np.flatnonzero(g_addr >= 0)
+        ga = ga[np.argsort(assigned[ga] == a_last[g_addr[ga]], kind="stable")]
+        a_last[g_addr[ga]] = assigned[ga]
+        a_seen[g_addr[ga]] = epoch[rows[0]]
         new = assigned[gi]
         reassigned += int(np.count_nonzero(ok & (cand != new)))
         last[kr] = new
@@ -446,7 +531,10 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     # a track silent for more than the gap before the latest epoch can never vote again
     live = (last >= 0) & (seen >= float(epoch.max()) - gap_us)
     tracks = key_frame.with_columns(pl.Series("target_id", last), pl.Series("seen_us", seen)).filter(pl.Series(live))
-    return target, reassigned, AssociateState(tracks, state.t_us, tuple(sorted(nxt.items())))
+    a_live = (a_last >= 0) & (a_seen >= float(epoch.max()) - gap_us)
+    addresses = a_frame.with_columns(pl.Series("target_id", a_last), pl.Series("seen_us", a_seen)
+                                     ).filter(pl.Series(a_live)).cast(_ADDRESSES_SCHEMA)
+    return target, reassigned, AssociateState(tracks, state.t_us, tuple(sorted(nxt.items())), addresses)
 
 
 #: (run, target id) packed into one int64 for the vote (ids of a run stay below 2^40)
@@ -510,7 +598,7 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
     out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
         pl.Series("target_id", target.astype(np.uint64)), pl.Series("cost", cost))
-    return (out, stats), AssociateState(new.tracks, t1_us, new.run_next)
+    return (out, stats), AssociateState(new.tracks, t1_us, new.run_next, new.addresses)
 
 
 def associate(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
