@@ -46,7 +46,8 @@ NATIONAL15_START_S = {"national15": 28800.0, "national15-evening": 64800.0}
 SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "alerts_picture_induced",
           "alerts_predictor_induced", "false_alerts_picture_induced", "false_alerts_predictor_induced",
           "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
-          "missed_los_under_way", "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s", "alerts_per_hour")
+          "missed_los_under_way", "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s",
+          "alerts_per_hour")
 #: the trackers run on the made trajectories: production's and the turn-rate-estimating one
 MADE_FILTERS = "imm_sym,imm_ct"
 PHASES = ("all", "phase:level", "phase:turn", "phase:climb-descent")
