@@ -200,6 +200,13 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
             yield read, rows
     monkeypatch.setattr(bound, "_truth_reads", truth_reads)
     monkeypatch.setattr(bound, "BOUND_READ_AIRCRAFT", 7)
+    # on disk the windows bound each aircraft once its truth ends, reading its truth from the
+    # reference a batch at a time; the end bounds the aircraft still flying
+    from tertiary.evaluation import bound_streamed
+    batches: list[int] = []
+    monkeypatch.setattr(bound_streamed, "_truth_of", lambda setup, ids, f=bound_streamed._truth_of:
+                        batches.append(len(ids)) or f(setup, ids))
+    monkeypatch.setattr(bound_streamed, "RETIRE_BATCH", 7)
     # the on-disk run's evaluation keeps the id-map rows of the alerts and curve points alone
     kept: list[int] = []
     monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:
@@ -216,9 +223,10 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert bound_reads == [(False, bound_reads[0][1])]
     assert steps == [] and finished == []            # in memory: the whole truth's at the end
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
-    # the bound's truth read from the reference on disk, 7 aircraft at a time
-    assert len(bound_reads) > 2 and all(lazy and n <= 7 for lazy, n in bound_reads[1:])
-    assert sum(n for _, n in bound_reads[1:]) == bound_reads[0][1]
+    # the bound's truth read from the reference on disk as its aircraft ended, 7 at least at a
+    # time in the windows, the rest at the end; never the whole-run stage's reads
+    assert len(bound_reads) == 1 and len(batches) > 2 and all(n >= 7 for n in batches[:-1])
+    assert sum(batches) == bound_reads[0][1]
     assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
     assert len(kept) == 2 * len(cfg.methods) and min(kept) > 0
     with RunStore.open(tmp_path / "run") as st:

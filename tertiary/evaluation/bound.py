@@ -144,7 +144,7 @@ from tertiary.sensors import mlat
 from tertiary.sensors.adsb import sigma_from_nacp
 
 __all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS", "UNMEASURED",
-           "MODEL"]
+           "MODEL", "bound_setup", "block_sums", "bound_stage", "scan_origins"]
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -489,16 +489,20 @@ def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.Local
 
 def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
                   cfg: BoundConfig = BoundConfig(), max_elevation: dict[str, float] | None = None,
-                  t0_us: int | None = None, origins: dict[int, float] | None = None) -> pl.DataFrame:
+                  t0_us: int | None = None, origins: dict[int, float] | None = None,
+                  mode_s_ids: NDArray[np.int64] | None = None) -> pl.DataFrame:
     """Every (truth_id, radar_id, time) at which a radar's beam covers an aircraft, with the
     expected measurement information as its inverse ``r_eq`` (flattened 3×3, m²) — the
     events of the bound (module docstring). ``max_elevation``: per radar name (the scenario's);
-    ``origins``: :func:`scan_origins` of ``t0_us``, when known (else read from ``reports``)."""
+    ``origins``: :func:`scan_origins` of ``t0_us``, when known (else read from ``reports``);
+    ``mode_s_ids``: the aircraft with a Mode S report, when known (else read from ``reports``,
+    which then need only hold the Cartesian sensors' plots)."""
     t0 = int(truth["time"].cast(TIME).dt.epoch("us").min()) if t0_us is None else t0_us
     tr = _Truth.of(truth, t0)
     parts = []
     origins = scan_origins(radars, reports, t0) if origins is None else origins
-    mode_s = mode_s_aircraft(tr.ids, reports) if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool)
+    mode_s = ((mode_s_aircraft(tr.ids, reports) if mode_s_ids is None else np.isin(tr.ids, mode_s_ids))
+              if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool))
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
         n_vel = 0
@@ -530,15 +534,21 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     return out.with_columns((pl.lit(t0) + (pl.col("t_s") * US).round().cast(pl.Int64)).cast(TIME).alias("time"))
 
 
-def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame, t0_us: int) -> dict[int, float]:
-    """radar_id → s_0 (seconds from ``t0_us``, mod T) recovered from each radar's reports
-    (:func:`_scan_origin`); a radar without reports has none."""
-    rep = reports.select("radar_id", pl.col("time").cast(TIME).dt.epoch("us").alias("us"), "azimuth_deg")
+def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame | pl.LazyFrame, t0_us: int) -> dict[int, float]:
+    """radar_id → s_0 (seconds from ``t0_us``, mod T) recovered from each radar's reports with a
+    time and an azimuth (:func:`_scan_origin`); a radar without any has none. ``reports`` may be
+    a scan: it is read a radar at a time, two columns (a long recording's times are not held)."""
+    lf = reports.lazy()
+    if not {"radar_id", "time", "azimuth_deg"} <= set(lf.collect_schema().names()):
+        return {}
+    us = pl.col("time").cast(TIME).dt.epoch("us")
     out = {}
     for row in radars.iter_rows(named=True):
         if row.get("kind") in mlat.CARTESIAN_KINDS:   # no scan: its plots are its events (_mlat_events)
             continue
-        mine = rep.filter(pl.col("radar_id") == row["radar_id"])
+        mine = (lf.filter((pl.col("radar_id") == row["radar_id"]) & pl.col("time").is_not_null()
+                          & pl.col("azimuth_deg").is_finite())
+                .select(us.alias("us"), pl.col("azimuth_deg").cast(pl.Float64)).collect())
         rotating = (row.get("timing") or "rotating") == "rotating"
         off = float(row.get("time_offset_s") or 0.0)
         s0 = _scan_origin((mine["us"].to_numpy() - t0_us) / US - off, mine["azimuth_deg"].to_numpy(),
@@ -683,22 +693,18 @@ NEEDED = ("radar_id", "lat_deg", "lon_deg", "alt_m", "scan_period_s", "sigma_ran
           "sigma_elevation_deg", "max_range_m")
 
 
-def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, reports: pl.DataFrame,
-                scored: pl.DataFrame, accuracy: pl.DataFrame, notes: list[str]) -> pl.DataFrame:
-    """The pipeline's ``bound`` rows (:func:`bound_metrics`) for a dataset ``ds`` with truth;
-    without what the bound needs (radar columns, truth velocities, scored samples) no rows and
-    a note saying why. Missing ``pd`` counts as 1, missing ``timing`` as rotating, missing
-    ``min_elevation_deg`` as no limit (each with a note). ``truth`` may be a scan (of the
-    reference on disk): it is then read :data:`BOUND_READ_AIRCRAFT` aircraft at a time, never
-    whole."""
-    spec = TABLES["metrics"].required
-    names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
+def bound_setup(ds, truth_columns: list[str], radars: pl.DataFrame, notes: list[str], scored: bool = True
+                ) -> tuple[BoundConfig, dict[str, float]] | None:
+    """The bound's model and each radar's elevation limit for a dataset ``ds`` whose truth has
+    ``truth_columns``, the run's notes said; None (and a note saying why) without what the bound
+    needs: radar columns, truth velocities, scored samples (``scored``). Missing ``pd`` counts as
+    1, missing ``timing`` as rotating, missing ``min_elevation_deg`` as no limit (each with a note)."""
     missing = [c for c in NEEDED if c not in radars.columns]
-    missing += [c for c in ("x_m", "vx_mps", "vy_mps", "vz_mps") if c not in names]
-    if missing or scored.is_empty() or radars.is_empty():
+    missing += [c for c in ("x_m", "vx_mps", "vy_mps", "vz_mps") if c not in truth_columns]
+    if missing or not scored or radars.is_empty():
         why = f"missing column(s) {', '.join(missing)}" if missing else "nothing scored against truth"
         notes.append(f"bound: no posterior Cramér–Rao bound ({why})")
-        return pl.DataFrame(schema=spec)
+        return None
     for col, default in (("pd", "1"), ("timing", "rotating"), ("min_elevation_deg", "no limit")):
         if col not in radars.columns:
             notes.append(f"bound: radars has no {col}; taken as {default}")
@@ -710,21 +716,43 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
         notes.append("bound: MLAT and ADS-B plots as Cartesian measurements (MLAT-3): their stated covariance, "
                      "else their NACp's sigma (ADSB-1), else the sensor's sigma_range_m per axis; height as a "
                      "Mode S reply")
+    return cfg, max_el
+
+
+def block_sums(truth: pl.DataFrame, scored: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame,
+               origin: geo.LocalFrame, cfg: BoundConfig, max_el: dict[str, float], t0_us: int,
+               origins: dict[int, float], mode_s_ids: NDArray[np.int64] | None = None) -> pl.DataFrame:
+    """:func:`bound_sums` of a block of aircraft: ``truth`` and ``scored`` hold theirs (each
+    aircraft's bound is its own recursion over its truth and illuminations)."""
+    events = illuminations(truth, radars, reports, origin, cfg, max_el, t0_us=t0_us, origins=origins,
+                           mode_s_ids=mode_s_ids)
+    return bound_sums(scored, pcrb_at(scored, events, cfg, truth=truth))
+
+
+def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, reports: pl.DataFrame,
+                scored: pl.DataFrame, accuracy: pl.DataFrame, notes: list[str],
+                origins: dict[int, float] | None = None) -> pl.DataFrame:
+    """The pipeline's ``bound`` rows (:func:`bound_metrics`) for a dataset ``ds`` with truth;
+    without what the bound needs no rows and a note saying why (:func:`bound_setup`). ``truth``
+    may be a scan (of the reference on disk): it is then read :data:`BOUND_READ_AIRCRAFT`
+    aircraft at a time, never whole. ``origins``: the radars' scan origins, when known (else
+    read from ``reports``)."""
+    names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
+    setup = bound_setup(ds, names, radars, notes, not scored.is_empty())
+    if setup is None:
+        return pl.DataFrame(schema=TABLES["metrics"].required)
+    cfg, max_el = setup
     t0 = int(truth.select(pl.col("time").cast(TIME).dt.epoch("us").min()).lazy().collect().item())
-    origins = scan_origins(radars, reports, t0)
+    origins = scan_origins(radars, reports, t0) if origins is None else origins
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
     sums = []
     # a block of aircraft at a time (each one's bound is its own recursion): the illuminations
     # and bounds of the whole recording are never held (the stage's peak on a long run)
     for read, held in _truth_reads(truth, ids):
         for lo in range(0, len(read), BOUND_AIRCRAFT):
-            block = read[lo:lo + BOUND_AIRCRAFT].tolist()
-            mine = scored.filter(pl.col("truth_id").cast(pl.Int64).is_in(block))
-            events = illuminations(held.filter(pl.col("truth_id").cast(pl.Int64).is_in(block)), radars, reports,
-                                   ds.origin, cfg, max_el, t0_us=t0, origins=origins)
-            sums.append(bound_sums(mine, pcrb_at(mine, events, cfg, truth=held.filter(
-                pl.col("truth_id").cast(pl.Int64).is_in(block)))))
-            del mine, events
+            block = pl.col("truth_id").cast(pl.Int64).is_in(read[lo:lo + BOUND_AIRCRAFT].tolist())
+            sums.append(block_sums(held.filter(block), scored.filter(block), radars, reports, ds.origin, cfg,
+                                   max_el, t0, origins))
         del held
     return bound_rows(pl.concat(sums) if sums else bound_sums(scored.clear(), pl.DataFrame()), accuracy)
 

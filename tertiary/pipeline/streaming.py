@@ -24,8 +24,9 @@ from tertiary.core.errors import DataError
 from tertiary.core.stage import Stage
 from tertiary.core.units import US
 from tertiary.evaluation.association import AssociationScore, score_associations
+from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_setup, bound_step
 from tertiary.evaluation.evaluate import Reference
-from tertiary.evaluation.streamed import MatchState
+from tertiary.evaluation.streamed import SCORED, MatchState
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
@@ -90,6 +91,9 @@ class RunContext:
     #: each run's first and last truth sample (:func:`time_span`) when the windows compute the
     #: truth's separation intervals as they pass (a run with safety and its reference on disk)
     truth_span: pl.DataFrame | None = None
+    #: what the windows' bound fixes before the first of them (a run on disk with truth whose
+    #: bound can be made); None: the end of the run bounds the whole recording
+    bound: BoundSetup | None = None
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,8 @@ class StreamState:
     #: the truth's separation intervals of the chunks the windows have passed (None: initial, or
     #: not computed in the windows)
     intervals: TruthIntervals | None = None
+    #: the bound's carried samples and sums (None: initial, or not bounded in the windows)
+    bound: BoundState | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -268,6 +274,12 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         clock.stage("truth_intervals")
         s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
                                safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
+    s_bound = st.bound
+    if ctx.bound is not None and ctx.reference is not None:
+        # each aircraft bounded once its truth has ended: the end bounds those still flying
+        clock.stage("bound")
+        scored = out_eval.get(SCORED)
+        s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w.t1_us)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -279,7 +291,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     if ctx.reference is not None:
         out.update(out_eval)
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves, s_eval, s_int)
+                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound)
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -370,6 +382,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
+        if ctx.reference is not None and ctx.reference.path is not None:
+            ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     ctx.scored_span = scored_span

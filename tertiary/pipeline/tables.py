@@ -166,8 +166,10 @@ def read_table(parts: Any, name: str, empty: pl.DataFrame) -> pl.DataFrame:
     return empty if t is None else t
 
 
-#: what the whole-run stages read of ``reports`` and ``aligned`` (an on-disk run holds no more)
-REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s"]
+#: what the whole-run stages read of ``reports`` (with the Cartesian sensors' stated plot
+#: accuracy: the bound's MLAT and ADS-B events) and ``aligned`` (an on-disk run holds no more)
+REPORT_COLUMNS = ["run", "report_id", "radar_id", "time", "azimuth_deg", "truth_id", "mode_s", "plot_sigma_x_m",
+                  "plot_sigma_y_m", "plot_sigma_xy_m", "adsb_nacp"]
 ALIGNED_COLUMNS = ["run", "epoch", "report_id", "radar_id", "local_track_id"]
 ASSOCIATION_COLUMNS = ["run", "epoch", "target_id", "report_id"]
 #: what no evaluation metric (nor conflict prediction) reads of a picture (the fusion's inputs

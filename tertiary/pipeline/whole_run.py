@@ -22,7 +22,9 @@ from safety import capacity as safety_capacity
 from tertiary import contract
 from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
-from tertiary.evaluation.bound import bound_stage
+from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
+from tertiary.evaluation.bound_pooling import bound_rows
+from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_finish
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
                                           write_reference)
@@ -118,6 +120,9 @@ class RunTables:
     #: the truth's separation intervals of the chunks the windows passed, with the reference file
     #: they read (None: none computed in the windows)
     intervals: tuple[TruthIntervals, Path] | None = None
+    #: the bound as the windows made it: its setup and carried state (None: the end bounds the
+    #: whole recording)
+    bound: tuple[BoundSetup, BoundState] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -271,8 +276,33 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
                     getattr(st, "scores", None), curves, keys, matched,
-                    (done, ctx.reference.path) if done is not None and ctx.reference is not None else None)
+                    (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
+                    _windows_bound(ctx, st))
     return evaluate_run(ds, cfg, ing, run, clock, sink)
+
+
+def _windows_bound(ctx: RunContext, st: StreamState) -> tuple[BoundSetup, BoundState] | None:
+    """The bound the windows carried, when they made it for every window."""
+    state = getattr(st, "bound", None)
+    setup = getattr(ctx, "bound", None)
+    return (setup, state) if setup is not None and state is not None and state.complete else None
+
+
+def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
+                scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
+    """The bound's metrics rows: from the sums the windows carried (the aircraft still flying
+    bounded here), else over the whole recording; the radars' scan origins from the input
+    reports either way (:func:`tertiary.evaluation.bound.scan_origins`)."""
+    if run.bound is not None:
+        setup, state = run.bound
+        names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
+        if bound_setup(ds, names, ing.radars, ing.notes, not scored.is_empty()) is None:
+            return pl.DataFrame(schema=contract.TABLES["metrics"].required)
+        return bound_rows(bound_finish(setup, state), metrics)
+    t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
+    reports = ds.reports if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else ing.reports
+    origins = scan_origins(ing.radars, reports, int(t0)) if t0 is not None else {}
+    return bound_stage(ds, truth, ing.radars, ing.reports, scored, metrics, ing.notes, origins)
 
 
 def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables, clock: StageClock,
@@ -416,7 +446,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
         # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.evaluation.bound)
         # read by blocks of aircraft from the reference, never whole (memory)
-        extra = [bound_stage(ds, truth_scan(BOUND_TRUTH), ing.radars, ing.reports, scored, metrics, ing.notes)]
+        extra = [_bound_rows(ds, run, truth_scan(BOUND_TRUTH), ing, scored, metrics)]
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")

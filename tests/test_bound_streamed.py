@@ -1,0 +1,147 @@
+"""The bound made as the windows pass (:mod:`tertiary.evaluation.bound_streamed`) equals the
+whole-run stage's (:func:`tertiary.evaluation.bound.bound_stage`): each aircraft bounded once its
+truth has ended, those still flying at the end, its Mode S flag and Cartesian plots carried."""
+
+from __future__ import annotations
+
+import pickle
+from datetime import datetime, timezone
+from types import SimpleNamespace
+
+import numpy as np
+import polars as pl
+import pytest
+from polars.testing import assert_frame_equal
+
+from tertiary.core import geo
+from tertiary.core.units import US
+from tertiary.evaluation import bound_streamed as bs
+from tertiary.evaluation.bound import bound_stage, scan_origins
+from tertiary.evaluation.bound_pooling import bound_rows
+from tertiary.evaluation.evaluate import write_reference
+
+T0_US = int(datetime(2021, 10, 7, 8, 0, tzinfo=timezone.utc).timestamp()) * US
+TIME = pl.Datetime("us", "UTC")
+ORIGIN = geo.LocalFrame(48.0, 2.0, 0.0)
+#: (truth_id, first s, last s, turn rate rad/s, Mode S): two end early, one turns, one is Mode A/C
+AIRCRAFT = ((7, 0, 200, 0.0, True), (8, 20, 420, 0.02, False), (9, 60, 900, 0.0, True), (10, 300, 900, 0.01, True))
+
+
+def _times(t: np.ndarray) -> pl.Series:
+    return pl.Series((T0_US + t * US).astype(np.int64)).cast(TIME)
+
+
+def _truth() -> pl.DataFrame:
+    out = []
+    for k, (tid, a, b, w, _) in enumerate(AIRCRAFT):
+        t = np.arange(a, b + 1, 1.0)
+        heading = w * np.maximum(t - a - 60.0, 0.0)         # a turn from a minute in
+        vx, vy = 120.0 * np.sin(heading), 120.0 * np.cos(heading)
+        x = 15_000.0 * (k + 1) + np.cumsum(vx) - vx[0]
+        y = -40_000.0 + np.cumsum(vy) - vy[0]
+        out.append(pl.DataFrame({"run": pl.Series(np.zeros(len(t)), dtype=pl.UInt32), "truth_id": tid,
+                                 "time": _times(t), "x_m": x, "y_m": y, "z_m": np.full_like(t, 3000.0 + 300 * k),
+                                 "vx_mps": vx, "vy_mps": vy, "vz_mps": 0.0}))
+    return pl.concat(out).sort("time", "truth_id")
+
+
+def _radars() -> pl.DataFrame:
+    common = {"lat_deg": [48.0, 48.1], "lon_deg": [2.0, 2.1], "alt_m": [0.0, 0.0], "sigma_range_m": [50.0, 30.0],
+              "sigma_azimuth_deg": [0.1, 0.0], "sigma_elevation_deg": [0.1, 0.0], "max_range_m": [200_000.0] * 2,
+              "min_elevation_deg": [0.0, 0.0], "pd": [0.9, 1.0], "time_offset_s": [0.0, 0.0]}
+    return pl.DataFrame({"radar_id": pl.Series([1, 2], dtype=pl.UInt32), "name": ["R", "M"], "kind": ["radar", "mlat"],
+                         "scan_period_s": [4.0, 1.0], "timing": ["synchronous", "synchronous"], **common})
+
+
+def _reports(truth: pl.DataFrame) -> pl.DataFrame:
+    """Radar 1's reports (the scan phase; Mode S for the aircraft so flagged) every 4 s and the
+    MLAT sensor's plots of aircraft 8 (stated σ on some) every 5 s."""
+    mode_s = {tid: f"{tid:06x}" if ms else None for tid, *_, ms in AIRCRAFT}
+    radar = (truth.filter(pl.col("time").dt.epoch("us") % (4 * US) == US)
+             .select(pl.lit(1, pl.UInt32).alias("radar_id"), "truth_id", "time", pl.lit(10.0).alias("azimuth_deg"),
+                     pl.col("truth_id").replace_strict(mode_s, return_dtype=pl.String).alias("mode_s")))
+    plots = (truth.filter((pl.col("truth_id") == 8) & (pl.col("time").dt.epoch("us") % (5 * US) == 0))
+             .select(pl.lit(2, pl.UInt32).alias("radar_id"), "truth_id", "time")
+             .with_columns(pl.when(pl.int_range(pl.len()) % 2 == 0).then(20.0).alias("plot_sigma_x_m"),
+                           pl.when(pl.int_range(pl.len()) % 2 == 0).then(25.0).alias("plot_sigma_y_m")))
+    return pl.concat([radar, plots], how="diagonal_relaxed").sort("time")
+
+
+def _samples(truth: pl.DataFrame) -> pl.DataFrame:
+    k = pl.int_range(pl.len()).over("truth_id")
+    base = truth.select("run", pl.col("time").alias("epoch"), "truth_id")
+    seg = pl.when(pl.col("truth_id") == 8).then(pl.lit("turn")).otherwise(pl.lit("straight"))
+    return (pl.concat([base.filter(k % 2 == 0).with_columns(pl.lit("a").alias("method")),
+                       base.filter(k % 3 == 1).with_columns(pl.lit("b").alias("method"))])
+            .with_columns(seg.alias("seg_class")).select("method", "run", "epoch", "truth_id", "seg_class"))
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    truth = _truth()
+    ref = write_reference(truth, tmp_path_factory.mktemp("bound") / "reference.parquet")
+    radars, reports = _radars(), _reports(truth)
+    acc = pl.DataFrame({"stage": "fusion", "method": ["a", "b"], "metric": "rmse_pos_m", "segment": "all",
+                        "value": [100.0, 90.0], "n_runs": 1})
+    ds = SimpleNamespace(origin=ORIGIN, scenario=None)
+    samples = _samples(truth)
+    whole = bound_stage(ds, truth, radars, reports, samples, acc, [], scan_origins(radars, reports, T0_US))
+    return SimpleNamespace(truth=truth, ref=ref, radars=radars, reports=reports, acc=acc, ds=ds, samples=samples,
+                           whole=whole)
+
+
+def _stepped(case, window_s: float, roundtrip: bool = False) -> tuple[bs.BoundSetup, bs.BoundState, list[int]]:
+    setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
+    state, bounded = bs.BoundState(), []
+    w = int(window_s * US)
+    for a in range(T0_US, T0_US + 901 * US, w):
+        inside = pl.col("epoch").dt.epoch("us").is_between(a, a + w, closed="left")
+        now = pl.col("time").dt.epoch("us").is_between(a, a + w, closed="left")
+        state = bs.bound_step(setup, state, case.samples.filter(inside), case.reports.filter(now), a + w)
+        if roundtrip:
+            state = pickle.loads(pickle.dumps(state))
+        bounded.append(state.bounded)
+    return setup, state, bounded
+
+
+@pytest.mark.parametrize("window_s", [30.0, 97.0, 1000.0])
+def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, window_s):
+    """Aircraft 7 and 8 end mid-run and are bounded in the windows, 9 and 10 at the end; the
+    rows equal the whole-run stage's. Fails if an aircraft is bounded before all its samples
+    came, if its Mode S flag (downlinked velocity) or MLAT plots are not carried to it, or if
+    an aircraft is bounded twice."""
+    monkeypatch.setattr(bs, "RETIRE_BATCH", 1)
+    setup, state, bounded = _stepped(case, window_s)
+    if window_s < 900:
+        assert 0 < bounded[-1] < len(AIRCRAFT), "no aircraft bounded in the windows, or none left for the end"
+        assert set(state.samples["truth_id"].unique()) == {9, 10}
+    got = bound_rows(bs.bound_finish(setup, state), case.acc)
+    assert case.whole.height and set(case.whole["segment"]) == {"all", "straight", "turn"}
+    assert_frame_equal(got, case.whole, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
+
+
+def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch):
+    """With a batch of two aircraft, aircraft 7 waits for 8 to end; a state pickled after each
+    window bounds the same."""
+    monkeypatch.setattr(bs, "RETIRE_BATCH", 2)
+    setup, state, bounded = _stepped(case, 30.0, roundtrip=True)
+    ends = [int(bs.RETIRE_AFTER_S + b) for _, _, b, _, _ in AIRCRAFT[:2]]
+    assert bounded[ends[0] // 30 + 1] == 0 and bounded[-1] == 2, bounded
+    assert_frame_equal(bound_rows(bs.bound_finish(setup, state), case.acc), case.whole, check_exact=False,
+                       rel_tol=1e-9, abs_tol=0.0)
+
+
+def test_a_window_without_scored_samples_hands_the_bound_to_the_end(case):
+    setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
+    state = bs.bound_step(setup, bs.BoundState(), case.samples.head(10), case.reports.head(3), T0_US + 30 * US)
+    state = bs.bound_step(setup, state, None, case.reports.clear(), T0_US + 60 * US)
+    assert not state.complete and state.samples.height == 0
+    assert not bs.bound_step(setup, state, case.samples, case.reports, T0_US + 2000 * US).complete
+
+
+def test_the_scan_origins_read_from_a_scan_equal_those_of_a_frame(case, tmp_path):
+    path = tmp_path / "reports.parquet"
+    case.reports.write_parquet(path)
+    frame = scan_origins(case.radars, case.reports, T0_US)
+    assert frame == scan_origins(case.radars, pl.scan_parquet(path), T0_US) and set(frame) == {1}
+    assert frame[1] == pytest.approx(1.0)
