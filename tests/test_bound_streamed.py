@@ -14,6 +14,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.core import geo
+from tertiary.core.stage import Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound_streamed as bs
 from tertiary.evaluation.bound import bound_stage, scan_origins
@@ -90,53 +91,65 @@ def case(tmp_path_factory):
                            whole=whole)
 
 
-def _stepped(case, window_s: float, roundtrip: bool = False) -> tuple[bs.BoundSetup, bs.BoundState, list[int]]:
+def _stepped(case, where, window_s: float, roundtrip: bool = False
+             ) -> tuple[bs.BoundSetup, bs.BoundState, list[int], bs.PartFiles]:
+    """Every window stepped, its scored samples then stored as the run's parts are
+    (``w=<index>.parquet`` under ``where``)."""
     setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
     state, bounded = bs.BoundState(), []
+    where.mkdir()
     w = int(window_s * US)
-    for a in range(T0_US, T0_US + 901 * US, w):
+
+    def stored() -> list:
+        return sorted(where.glob("w=*.parquet"))
+    for k, a in enumerate(range(T0_US, T0_US + 901 * US, w)):
         inside = pl.col("epoch").dt.epoch("us").is_between(a, a + w, closed="left")
         now = pl.col("time").dt.epoch("us").is_between(a, a + w, closed="left")
-        state = bs.bound_step(setup, state, case.samples.filter(inside), case.reports.filter(now), a + w)
+        mine = case.samples.filter(inside)
+        state = bs.bound_step(setup, state, mine, case.reports.filter(now), Window(k, a, a + w), stored)
+        mine.write_parquet(where / f"w={k}.parquet")
         if roundtrip:
             state = pickle.loads(pickle.dumps(state))
         bounded.append(state.bounded)
-    return setup, state, bounded
+    return setup, state, bounded, stored
 
 
 @pytest.mark.parametrize("window_s", [30.0, 97.0, 1000.0])
-def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, window_s):
+def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_path, window_s):
     """Aircraft 7 and 8 end mid-run and are bounded in the windows, 9 and 10 at the end; the
     rows equal the whole-run stage's. Fails if an aircraft is bounded before all its samples
     came, if its Mode S flag (downlinked velocity) or MLAT plots are not carried to it, or if
     an aircraft is bounded twice."""
     monkeypatch.setattr(bs, "RETIRE_BATCH", 1)
-    setup, state, bounded = _stepped(case, window_s)
+    setup, state, bounded, stored = _stepped(case, tmp_path / "parts", window_s)
     if window_s < 900:
         assert 0 < bounded[-1] < len(AIRCRAFT), "no aircraft bounded in the windows, or none left for the end"
-        assert set(state.samples["truth_id"].unique()) == {9, 10}
-    got = bound_rows(bs.bound_finish(setup, state), case.acc)
+        assert state.pending.tolist() == [9, 10]
+    got = bound_rows(bs.bound_finish(setup, state, stored), case.acc)
     assert case.whole.height and set(case.whole["segment"]) == {"all", "straight", "turn"}
     assert_frame_equal(got, case.whole, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
 
 
-def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch):
+def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch, tmp_path):
     """With a batch of two aircraft, aircraft 7 waits for 8 to end; a state pickled after each
     window bounds the same."""
     monkeypatch.setattr(bs, "RETIRE_BATCH", 2)
-    setup, state, bounded = _stepped(case, 30.0, roundtrip=True)
+    setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 30.0, roundtrip=True)
     ends = [int(bs.RETIRE_AFTER_S + b) for _, _, b, _, _ in AIRCRAFT[:2]]
     assert bounded[ends[0] // 30 + 1] == 0 and bounded[-1] == 2, bounded
-    assert_frame_equal(bound_rows(bs.bound_finish(setup, state), case.acc), case.whole, check_exact=False,
+    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
 
 def test_a_window_without_scored_samples_hands_the_bound_to_the_end(case):
     setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
-    state = bs.bound_step(setup, bs.BoundState(), case.samples.head(10), case.reports.head(3), T0_US + 30 * US)
-    state = bs.bound_step(setup, state, None, case.reports.clear(), T0_US + 60 * US)
-    assert not state.complete and state.samples.height == 0
-    assert not bs.bound_step(setup, state, case.samples, case.reports, T0_US + 2000 * US).complete
+    state = bs.bound_step(setup, bs.BoundState(), case.samples.head(10), case.reports.head(3),
+                          Window(0, T0_US, T0_US + 30 * US), list)
+    assert state.pending.tolist() == [7]
+    state = bs.bound_step(setup, state, None, case.reports.clear(), Window(1, T0_US + 30 * US, T0_US + 60 * US), list)
+    assert not state.complete and len(state.pending) == 0
+    late = Window(2, T0_US + 60 * US, T0_US + 2000 * US)
+    assert not bs.bound_step(setup, state, case.samples, case.reports, late, list).complete
 
 
 def test_the_scan_origins_read_from_a_scan_equal_those_of_a_frame(case, tmp_path):

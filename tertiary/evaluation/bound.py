@@ -65,9 +65,10 @@ aircraft at that instant (sequential updates at equal times = the stacked update
 When a radar illuminates an aircraft: the simulator's scan schedule. Scan k starts at
 s_k = s_0 + k·T (T = ``scan_period_s``); a ``synchronous`` radar samples at s_k, a rotating one
 at s_k + T·β/360 (β the aircraft's azimuth from the site; two fixed-point iterations, as the
-simulator). s_0 is recovered from the radar's own reports (every report, target or clutter,
-is stamped s_k + T·β/360 + ``time_offset_s``): the circular median of the report times minus
-that, modulo T. The aircraft is covered when its range is at most ``max_range_m`` and its
+simulator). s_0 is recovered from the radar's own reports in the recording (every report,
+target or clutter, is stamped s_k + T·β/360 + ``time_offset_s``): the circular median of the
+report times minus that, modulo T, over every report with a time and an azimuth, read before
+the first window. The aircraft is covered when its range is at most ``max_range_m`` and its
 elevation within [``min_elevation_deg``, max elevation (the scenario's, else 90°)] and the
 truth exists (no truth gap) at that instant. Truth between samples is the cubic Hermite
 interpolation of the truth positions and velocities (the simulator's interpolation).

@@ -2,12 +2,14 @@
 
 An aircraft's bound is one recursion over its whole truth (its acceleration profile, its
 illuminations, the epochs it is scored at), independent of every other aircraft's. So the
-windows carry each aircraft's scored samples, whether a report of it carried a Mode S address and
-the plots of the Cartesian sensors (MLAT, ADS-B) on it, and bound it in the first window that
-ends :data:`RETIRE_AFTER_S` after its last truth sample: nothing of it can come later. They do
-so a batch of :data:`RETIRE_BATCH` aircraft at a time, reading those aircraft's truth from the
-reference, and keep the per-epoch sums the metrics pool (:func:`~tertiary.evaluation.bound_pooling.bound_sums`).
-The end of the run bounds the aircraft still flying and pools the sums.
+windows carry which aircraft were scored, whether a report of each carried a Mode S address and
+the plots of the Cartesian sensors (MLAT, ADS-B) on it, and bound an aircraft in the first window
+that ends :data:`RETIRE_AFTER_S` after its last truth sample: nothing of it can come later. They
+do so a batch of :data:`RETIRE_BATCH` aircraft at a time, reading those aircraft's truth from the
+reference and their scored samples from the windows' stored parts (the samples are not held:
+an hour's are millions of rows), and keep the per-epoch sums the metrics pool
+(:func:`~tertiary.evaluation.bound_pooling.bound_sums`). The end of the run bounds the aircraft
+still flying and pools the sums.
 
 Every aircraft is bounded once, by the code of the whole-run stage
 (:func:`~tertiary.evaluation.bound.block_sums`) on the same truth, samples, plots and scan
@@ -19,6 +21,7 @@ origin (:func:`~tertiary.evaluation.bound.scan_origins` of the input reports).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -29,6 +32,7 @@ from numpy.typing import NDArray
 
 from tertiary.contract import TIME
 from tertiary.core import geo
+from tertiary.core.stage import Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound as _bound
 from tertiary.evaluation.bound_pooling import bound_sums
@@ -79,18 +83,24 @@ def _empty_samples() -> pl.DataFrame:
 
 @dataclass(frozen=True)
 class BoundState:
-    """The aircraft not yet bounded: their scored ``samples``, the Cartesian sensors' ``plots``
-    of them; the aircraft with a Mode S report so far (``mode_s``, sorted ids); the sums of those
-    bounded (``sums``, one row per (method, segment, epoch, run)) and how many they are.
-    ``complete``: every window gave its scored samples (else the end of the run bounds the
-    whole recording instead)."""
+    """The aircraft scored and not yet bounded (``pending``, sorted ids), the windows whose
+    stored samples may hold them (``windows``: index, first and last epoch µs), the Cartesian
+    sensors' ``plots`` of them; the aircraft with a Mode S report so far (``mode_s``, sorted
+    ids); the sums of those bounded (``sums``, one row per (method, segment, epoch, run)) and how
+    many they are. ``complete``: every window gave its scored samples (else the end of the run
+    bounds the whole recording instead)."""
 
-    samples: pl.DataFrame = field(default_factory=_empty_samples)
+    pending: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    windows: tuple[tuple[int, int, int], ...] = ()
     plots: pl.DataFrame = field(default_factory=pl.DataFrame)
     mode_s: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     sums: pl.DataFrame = field(default_factory=lambda: bound_sums(_empty_samples(), pl.DataFrame()))
     bounded: int = 0
     complete: bool = True
+
+
+#: the stored scored samples of the windows done, by window index (the run's parts)
+PartFiles = Callable[[], list[Path]]
 
 
 def bound_setup(ds, radars: pl.DataFrame, origin: geo.LocalFrame, reference: Path | str,
@@ -113,30 +123,37 @@ def bound_setup(ds, radars: pl.DataFrame, origin: geo.LocalFrame, reference: Pat
 
 
 def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | None, reports: pl.DataFrame,
-               t_end_us: int) -> BoundState:
-    """One window: its scored ``samples`` (None: the window scored none, so the windows cannot
-    bound the run) and validated ``reports`` carried; the aircraft whose truth ended
-    :data:`RETIRE_AFTER_S` before ``t_end_us`` (the window's end) bounded once there are
-    :data:`RETIRE_BATCH` of them."""
+               window: Window, stored: PartFiles) -> BoundState:
+    """One window: which aircraft its scored ``samples`` hold (None: the window scored none, so
+    the windows cannot bound the run) and what its validated ``reports`` tell carried; the
+    aircraft whose truth ended :data:`RETIRE_AFTER_S` before the window's end bounded once there
+    are :data:`RETIRE_BATCH` of them, their samples read from ``stored`` (the windows before
+    this one) and ``samples``."""
     if not state.complete:
         return state
     if samples is None:
         return BoundState(complete=False)
-    state = _carried(setup, state, samples, reports)
-    due = _due(setup, state.samples, t_end_us - int(RETIRE_AFTER_S * US))
-    return _bounded(setup, state, due) if len(due) >= RETIRE_BATCH else state
+    samples = samples.select([pl.col(c).cast(t) for c, t in SAMPLES.items()])
+    state = _carried(setup, state, samples, reports, window)
+    due = _due(setup, state.pending, window.t1_us - int(RETIRE_AFTER_S * US))
+    return _bounded(setup, state, due, stored, samples, window.index) if len(due) >= RETIRE_BATCH else state
 
 
-def bound_finish(setup: BoundSetup, state: BoundState) -> pl.DataFrame:
+def bound_finish(setup: BoundSetup, state: BoundState, stored: PartFiles) -> pl.DataFrame:
     """The per-epoch sums of every aircraft (:func:`~tertiary.evaluation.bound_pooling.bound_rows`
-    pools them): those bounded in the windows and the aircraft still flying at the end."""
-    ids = np.sort(state.samples["truth_id"].unique().to_numpy())
-    return _bounded(setup, state, ids).sums
+    pools them): those bounded in the windows and the aircraft still flying at the end, their
+    samples read from ``stored`` (every window's)."""
+    return _bounded(setup, state, state.pending, stored, _empty_samples()).sums
 
 
-def _carried(setup: BoundSetup, state: BoundState, samples: pl.DataFrame, reports: pl.DataFrame) -> BoundState:
-    """``state`` with a window's samples, Mode S aircraft and Cartesian plots added."""
-    new = samples.select([pl.col(c).cast(t) for c, t in SAMPLES.items()])
+def _carried(setup: BoundSetup, state: BoundState, samples: pl.DataFrame, reports: pl.DataFrame,
+             window: Window) -> BoundState:
+    """``state`` with a window's scored aircraft, Mode S aircraft and Cartesian plots added."""
+    pending, windows = state.pending, state.windows
+    if samples.height:
+        pending = np.union1d(pending, samples["truth_id"].unique().to_numpy())
+        us = samples["epoch"].dt.epoch("us")
+        windows = (*windows, (window.index, int(us.min()), int(us.max())))
     mode_s = state.mode_s
     if {"truth_id", "mode_s"} <= set(reports.columns):
         ids = reports.filter(pl.col("mode_s").is_not_null())["truth_id"].drop_nulls().cast(pl.Int64).to_numpy()
@@ -146,37 +163,59 @@ def _carried(setup: BoundSetup, state: BoundState, samples: pl.DataFrame, report
         mine = reports.filter(pl.col("radar_id").is_in(setup.cartesian) & pl.col("truth_id").is_not_null())
         mine = mine.select(c for c in PLOT_COLUMNS if c in reports.columns)
         plots = mine if plots.width == 0 else pl.concat([plots, mine], how="diagonal_relaxed")
-    return replace(state, samples=pl.concat([state.samples, new]) if new.height else state.samples,
-                   plots=plots, mode_s=mode_s)
+    return replace(state, pending=pending, windows=windows, plots=plots, mode_s=mode_s)
 
 
-def _due(setup: BoundSetup, samples: pl.DataFrame, before_us: int) -> NDArray[np.int64]:
-    """The sorted ids of the aircraft with samples whose truth ended before ``before_us``."""
-    if not samples.height:
-        return np.zeros(0, np.int64)
-    ids = samples.select(pl.col("truth_id").unique()).join(setup.spans, on="truth_id", how="left")
-    return np.sort(ids.filter(pl.col("last_us").fill_null(0) < before_us)["truth_id"].to_numpy())
+def _due(setup: BoundSetup, pending: NDArray[np.int64], before_us: int) -> NDArray[np.int64]:
+    """The sorted ids of the ``pending`` aircraft whose truth ended before ``before_us``."""
+    if not len(pending):
+        return pending
+    span = setup.spans.filter(pl.col("truth_id").is_in(pending.tolist()))
+    return np.sort(span.filter(pl.col("last_us") < before_us)["truth_id"].to_numpy())
 
 
-def _bounded(setup: BoundSetup, state: BoundState, ids: NDArray[np.int64]) -> BoundState:
-    """``state`` with the aircraft ``ids`` bounded: their truth read at once, their sums made a
-    block of :data:`~tertiary.evaluation.bound.BOUND_AIRCRAFT` at a time and added to the sums."""
+def _bounded(setup: BoundSetup, state: BoundState, ids: NDArray[np.int64], stored: PartFiles,
+             current: pl.DataFrame, now: int | None = None) -> BoundState:
+    """``state`` with the aircraft ``ids`` bounded: their truth and stored samples (with those of
+    the ``current`` window, index ``now``, not stored yet) read at once, their sums made a block of
+    :data:`~tertiary.evaluation.bound.BOUND_AIRCRAFT` at a time and added to the sums."""
     if not len(ids):
         return state
-    truth = _truth_of(setup, ids)
     mine = pl.col("truth_id").is_in(ids.tolist())
-    samples, rest = state.samples.filter(mine), state.samples.filter(~mine)
-    plots = state.plots
+    truth = _truth_of(setup, ids)
+    samples = pl.concat([_stored_samples(setup, state, ids, stored, now), current.filter(mine)])
+    plots = state.plots if state.plots.width else pl.DataFrame(schema={"radar_id": pl.UInt32, "truth_id": pl.Int64,
+                                                                        "time": TIME})
     sums = [state.sums]
     for lo in range(0, len(ids), _bound.BOUND_AIRCRAFT):
         block = pl.col("truth_id").cast(pl.Int64).is_in(ids[lo:lo + _bound.BOUND_AIRCRAFT].tolist())
-        sums.append(_bound.block_sums(truth.filter(block), samples.filter(block), setup.radars,
-                                      plots.filter(block) if plots.width else plots, setup.origin, setup.cfg,
-                                      setup.max_el, setup.t0_us, setup.origins, mode_s_ids=state.mode_s))
+        sums.append(_bound.block_sums(truth.filter(block), samples.filter(block), setup.radars, plots.filter(block),
+                                      setup.origin, setup.cfg, setup.max_el, setup.t0_us, setup.origins,
+                                      mode_s_ids=state.mode_s))
     keys = ["method", "segment", "epoch", "run"]
     merged = pl.concat(sums).group_by(keys).agg(pl.all().sum()).sort(keys)
-    return replace(state, samples=rest, plots=plots.filter(~mine) if plots.width else plots,
-                   sums=merged.select(state.sums.columns).cast(state.sums.schema), bounded=state.bounded + len(ids))
+    return replace(state, pending=np.setdiff1d(state.pending, ids), sums=merged.select(state.sums.columns).cast(
+        state.sums.schema), plots=state.plots.filter(~mine) if state.plots.width else state.plots,
+        bounded=state.bounded + len(ids))
+
+
+def _stored_samples(setup: BoundSetup, state: BoundState, ids: NDArray[np.int64], stored: PartFiles,
+                    now: int | None) -> pl.DataFrame:
+    """The scored samples of the aircraft ``ids`` in the stored windows that span their truth."""
+    span = setup.spans.filter(pl.col("truth_id").is_in(ids.tolist()))
+    lo, hi = int(span["first_us"].min()), int(span["last_us"].max())
+    wanted = {k for k, a, b in state.windows if b >= lo and a <= hi and k != now}
+    files = [f for f in stored() if _window_index(f) in wanted]
+    if not files:
+        return _empty_samples()
+    cols = [pl.col(c).cast(t) for c, t in SAMPLES.items()]
+    return pl.concat([pl.scan_parquet(f).filter(pl.col("truth_id").is_in(ids.tolist())).select(cols) for f in files]
+                     ).collect()
+
+
+def _window_index(path: Path) -> int:
+    """A window part's index from its name (``w=<index>.parquet``)."""
+    return int(Path(path).stem.split("=")[-1])
 
 
 def _truth_of(setup: BoundSetup, ids: NDArray[np.int64]) -> pl.DataFrame:

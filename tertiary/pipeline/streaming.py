@@ -8,10 +8,13 @@ run)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import polars as pl
@@ -94,6 +97,8 @@ class RunContext:
     #: what the windows' bound fixes before the first of them (a run on disk with truth whose
     #: bound can be made); None: the end of the run bounds the whole recording
     bound: BoundSetup | None = None
+    #: the scored samples of the windows done, as stored (the bound reads them back)
+    stored_scored: Callable[[], list[Path]] | None = None
 
 
 @dataclass(frozen=True)
@@ -279,7 +284,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         # each aircraft bounded once its truth has ended: the end bounds those still flying
         clock.stage("bound")
         scored = out_eval.get(SCORED)
-        s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w.t1_us)
+        s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w, ctx.stored_scored)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -382,7 +387,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
-        if ctx.reference is not None and ctx.reference.path is not None:
+        if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
             ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
@@ -395,6 +400,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
                       source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     store = WindowStore(parts)
+    if ctx.bound is not None:
+        ctx.stored_scored = functools.partial(store.stored, SCORED)
     try:
         for w in ws:
             clock.stage("read_window", say=False)     # timed apart: not the last stage's time
@@ -436,6 +443,11 @@ class WindowStore:
     def _store(self, w: Window, out: dict[str, pl.DataFrame], state: bytes, info: dict) -> None:
         self.parts.write(w, out)
         self.parts.commit(w, state, **info)
+
+    def stored(self, name: str) -> list[Path]:
+        """The files of table ``name`` of every window stored, the one in flight included."""
+        self.join()
+        return self.parts.part_files(name)
 
     def join(self) -> None:
         """Wait for the window in flight; its failure raised here."""

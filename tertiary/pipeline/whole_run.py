@@ -24,7 +24,8 @@ from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
 from tertiary.evaluation.bound_pooling import bound_rows
-from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_finish
+from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, PartFiles, bound_finish
+from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
                                           write_reference)
@@ -122,7 +123,7 @@ class RunTables:
     intervals: tuple[TruthIntervals, Path] | None = None
     #: the bound as the windows made it: its setup and carried state (None: the end bounds the
     #: whole recording)
-    bound: tuple[BoundSetup, BoundState] | None = None
+    bound: tuple[BoundSetup, BoundState, PartFiles] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -277,15 +278,18 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
                     getattr(st, "scores", None), curves, keys, matched,
                     (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
-                    _windows_bound(ctx, st))
+                    _windows_bound(ctx, st, parts))
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
-def _windows_bound(ctx: RunContext, st: StreamState) -> tuple[BoundSetup, BoundState] | None:
-    """The bound the windows carried, when they made it for every window."""
+def _windows_bound(ctx: RunContext, st: StreamState, parts: Any) -> tuple[BoundSetup, BoundState, PartFiles] | None:
+    """The bound the windows carried, when they made it for every window, and their stored
+    samples."""
     state = getattr(st, "bound", None)
     setup = getattr(ctx, "bound", None)
-    return (setup, state) if setup is not None and state is not None and state.complete else None
+    if setup is None or state is None or not state.complete:
+        return None
+    return setup, state, functools.partial(parts.part_files, SCORED)
 
 
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
@@ -294,11 +298,11 @@ def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame
     bounded here), else over the whole recording; the radars' scan origins from the input
     reports either way (:func:`tertiary.evaluation.bound.scan_origins`)."""
     if run.bound is not None:
-        setup, state = run.bound
+        setup, state, stored = run.bound
         names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
         if bound_setup(ds, names, ing.radars, ing.notes, not scored.is_empty()) is None:
             return pl.DataFrame(schema=contract.TABLES["metrics"].required)
-        return bound_rows(bound_finish(setup, state), metrics)
+        return bound_rows(bound_finish(setup, state, stored), metrics)
     t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
     reports = ds.reports if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else ing.reports
     origins = scan_origins(ing.radars, reports, int(t0)) if t0 is not None else {}
