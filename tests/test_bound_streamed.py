@@ -141,6 +141,16 @@ def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch, tmp_path
                        rel_tol=1e-9, abs_tol=0.0)
 
 
+def test_a_batch_not_filled_is_bounded_after_the_wait(case, monkeypatch, tmp_path):
+    """A batch of 100 never fills: aircraft 7 (due at 320 s) and 8 (due at 540 s) are bounded
+    in the first window ending after 7 has waited 600 s, not left for the end."""
+    monkeypatch.setattr(bs, "RETIRE_BATCH", 100)
+    setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 30.0)
+    assert bounded[-2] == 0 and bounded[-1] == 2 and state.pending.tolist() == [9, 10], bounded
+    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+                       rel_tol=1e-9, abs_tol=0.0)
+
+
 def test_a_window_without_scored_samples_hands_the_bound_to_the_end(case):
     setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
     state = bs.bound_step(setup, bs.BoundState(), case.samples.head(10), case.reports.head(3),

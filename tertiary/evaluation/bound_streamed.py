@@ -5,11 +5,11 @@ illuminations, the epochs it is scored at), independent of every other aircraft'
 windows carry which aircraft were scored, whether a report of each carried a Mode S address and
 the plots of the Cartesian sensors (MLAT, ADS-B) on it, and bound an aircraft in the first window
 that ends :data:`RETIRE_AFTER_S` after its last truth sample: nothing of it can come later. They
-do so a batch of :data:`RETIRE_BATCH` aircraft at a time, reading those aircraft's truth from the
-reference and their scored samples from the windows' stored parts (the samples are not held:
-an hour's are millions of rows), and keep the per-epoch sums the metrics pool
-(:func:`~tertiary.evaluation.bound_pooling.bound_sums`). The end of the run bounds the aircraft
-still flying and pools the sums.
+do so a batch of :data:`RETIRE_BATCH` aircraft at a time (fewer after :data:`RETIRE_WAIT_S`),
+reading those aircraft's truth from the reference and their scored samples from the windows'
+stored parts (the samples are not held: an hour's are millions of rows), and keep the
+per-epoch sums the metrics pool (:func:`~tertiary.evaluation.bound_pooling.bound_sums`). The end
+of the run bounds the aircraft still flying and pools the sums.
 
 Every aircraft is bounded once, by the code of the whole-run stage
 (:func:`~tertiary.evaluation.bound.block_sums`) on the same truth, samples, plots and scan
@@ -39,14 +39,19 @@ from tertiary.evaluation.bound_pooling import bound_sums
 from tertiary.evaluation.evaluate import reference_files
 from tertiary.sensors import mlat
 
-__all__ = ["BoundSetup", "BoundState", "RETIRE_AFTER_S", "RETIRE_BATCH", "bound_finish", "bound_setup", "bound_step"]
+__all__ = ["BoundSetup", "BoundState", "PartFiles", "RETIRE_AFTER_S", "RETIRE_BATCH", "RETIRE_WAIT_S", "bound_finish",
+           "bound_setup", "bound_step"]
 
 #: an aircraft is bounded once the windows have passed its last truth sample by this much (s):
 #: no sample is scored outside its truth, and no report of it comes later than its clock offset
 RETIRE_AFTER_S = 120.0
-#: aircraft bounded at a time in the windows (one read of the reference each): a batch is
-#: waited for, so that a long run reads its truth in a few reads per hour, not one per window
+#: aircraft bounded at a time in the windows (one read of the reference and of the stored
+#: samples each): a batch is waited for, so that a long run reads them a few times an hour, not
+#: once a window ...
 RETIRE_BATCH = 256
+#: ... but not longer than this (s) after the first aircraft of it could have been bounded: the
+#: aircraft of a quiet hour are bounded in the windows too, not at the end
+RETIRE_WAIT_S = 600.0
 #: what the Cartesian sensors' plots carry into their events (:func:`~tertiary.evaluation.bound._mlat_events`)
 PLOT_COLUMNS = ("radar_id", "truth_id", "time", "plot_sigma_x_m", "plot_sigma_y_m", "plot_sigma_xy_m", "adsb_nacp")
 #: the columns of a scored sample (:func:`~tertiary.evaluation.accuracy.scored_samples`)
@@ -127,8 +132,8 @@ def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | Non
     """One window: which aircraft its scored ``samples`` hold (None: the window scored none, so
     the windows cannot bound the run) and what its validated ``reports`` tell carried; the
     aircraft whose truth ended :data:`RETIRE_AFTER_S` before the window's end bounded once there
-    are :data:`RETIRE_BATCH` of them, their samples read from ``stored`` (the windows before
-    this one) and ``samples``."""
+    are :data:`RETIRE_BATCH` of them or one has waited :data:`RETIRE_WAIT_S`, their samples read
+    from ``stored`` (the windows before this one) and ``samples``."""
     if not state.complete:
         return state
     if samples is None:
@@ -136,7 +141,9 @@ def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | Non
     samples = samples.select([pl.col(c).cast(t) for c, t in SAMPLES.items()])
     state = _carried(setup, state, samples, reports, window)
     due = _due(setup, state.pending, window.t1_us - int(RETIRE_AFTER_S * US))
-    return _bounded(setup, state, due, stored, samples, window.index) if len(due) >= RETIRE_BATCH else state
+    waited = _due(setup, due, window.t1_us - int((RETIRE_AFTER_S + RETIRE_WAIT_S) * US))
+    return (_bounded(setup, state, due, stored, samples, window.index) if len(due) >= RETIRE_BATCH or len(waited)
+            else state)
 
 
 def bound_finish(setup: BoundSetup, state: BoundState, stored: PartFiles) -> pl.DataFrame:

@@ -393,6 +393,9 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     ctx.scored_span = scored_span
     st = resume_state or init_stream_state(cfg)
+    if resume_state is not None and start > 0 and ctx.bound is not None and resume_state.bound is None:
+        # a checkpoint that carried no bound knows nothing of the aircraft scored before it
+        st = dataclasses.replace(st, bound=BoundState(complete=False))
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
     occupied = source.occupied(ctx.grid_origin_us, window_s) if window_s is not None else None
