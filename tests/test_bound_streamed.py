@@ -168,3 +168,40 @@ def test_the_scan_origins_read_from_a_scan_equal_those_of_a_frame(case, tmp_path
     frame = scan_origins(case.radars, case.reports, T0_US)
     assert frame == scan_origins(case.radars, pl.scan_parquet(path), T0_US) and set(frame) == {1}
     assert frame[1] == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def mlat_run():
+    """A terminal area with an MLAT system (20 aircraft, 300 s) processed in memory."""
+    import dataclasses
+
+    from tertiary import pipeline
+    from tertiary.simulate import load_scenario, simulate
+    sc = load_scenario("terminal-area-mlat")
+    sc = dataclasses.replace(sc, radars=sc.radars[:2], duration_s=300.0,
+                             traffic=dataclasses.replace(sc.traffic, aircraft=20))
+    ds = simulate(sc)
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), centralized=False, safety=False)
+    return ds, cfg, pipeline.process(ds, cfg, window_s=60.0)
+
+
+@pytest.mark.parametrize("in_windows", [True, False])
+def test_a_run_on_disk_bounds_mlat_plots_as_in_memory(mlat_run, tmp_path, monkeypatch, in_windows):
+    """On disk the bound takes each MLAT plot's stated covariance as a run in memory does, made
+    in the windows or (``in_windows`` False) over the whole recording at the end, from the stored
+    reports. Fails if either takes the sensor's nominal σ (the stored reports without the plots'
+    stated accuracy)."""
+    from tertiary import pipeline
+    from tertiary.pipeline import streaming
+    from tertiary.store.run_store import RunStore
+    ds, cfg, mem = mlat_run
+    if not in_windows:
+        monkeypatch.setattr(streaming, "bound_setup", lambda *a, **k: None)
+    pipeline.run(ds, tmp_path / "run", cfg, window_s=60.0)
+    with RunStore.open(tmp_path / "run") as st:
+        disk = st.read("metrics").filter(pl.col("stage") == "bound")
+    want = mem.metrics.filter(pl.col("stage") == "bound")
+    assert want.height and "mlat" in ds.radars["kind"].to_list()
+    keys = ["method", "metric", "segment"]
+    assert_frame_equal(disk.select(*keys, "value").sort(keys), want.select(*keys, "value").sort(keys),
+                       check_exact=False, rel_tol=1e-9, abs_tol=0.0)

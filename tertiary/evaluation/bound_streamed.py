@@ -8,8 +8,9 @@ that ends :data:`RETIRE_AFTER_S` after its last truth sample: nothing of it can 
 do so a batch of :data:`RETIRE_BATCH` aircraft at a time (fewer after :data:`RETIRE_WAIT_S`),
 reading those aircraft's truth from the reference and their scored samples from the windows'
 stored parts (the samples are not held: an hour's are millions of rows), and keep the
-per-epoch sums the metrics pool (:func:`~tertiary.evaluation.bound_pooling.bound_sums`). The end
-of the run bounds the aircraft still flying and pools the sums.
+per-epoch sums the metrics pool (:func:`~tertiary.evaluation.bound_pooling.bound_sums`). A run's
+last window is open to the future, so it bounds the aircraft still flying; the end of the run
+bounds any left (:func:`bound_finish`) and pools the sums.
 
 Every aircraft is bounded once, by the code of the whole-run stage
 (:func:`~tertiary.evaluation.bound.block_sums`) on the same truth, samples, plots and scan
@@ -148,7 +149,7 @@ def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | Non
 
 def bound_finish(setup: BoundSetup, state: BoundState, stored: PartFiles) -> pl.DataFrame:
     """The per-epoch sums of every aircraft (:func:`~tertiary.evaluation.bound_pooling.bound_rows`
-    pools them): those bounded in the windows and the aircraft still flying at the end, their
+    pools them): those bounded in the windows and any aircraft left at the end, their
     samples read from ``stored`` (every window's)."""
     return _bounded(setup, state, state.pending, stored, _empty_samples()).sums
 

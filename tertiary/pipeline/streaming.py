@@ -281,7 +281,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
                                safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
     s_bound = st.bound
     if ctx.bound is not None and ctx.reference is not None:
-        # each aircraft bounded once its truth has ended: the end bounds those still flying
+        # each aircraft bounded once its truth has ended: the last window, open-ended, bounds the rest
         clock.stage("bound")
         scored = out_eval.get(SCORED)
         s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w, ctx.stored_scored)

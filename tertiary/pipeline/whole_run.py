@@ -294,7 +294,7 @@ def _windows_bound(ctx: RunContext, st: StreamState, parts: Any) -> tuple[BoundS
 
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
                 scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
-    """The bound's metrics rows: from the sums the windows carried (the aircraft still flying
+    """The bound's metrics rows: from the sums the windows carried (any aircraft left
     bounded here), else over the whole recording; the radars' scan origins from the input
     reports either way (:func:`tertiary.evaluation.bound.scan_origins`)."""
     if run.bound is not None:
