@@ -128,7 +128,7 @@ class StreamState:
     #: the truth's separation intervals of the chunks the windows have passed (None: initial, or
     #: not computed in the windows)
     intervals: TruthIntervals | None = None
-    #: the bound's carried samples and sums (None: initial, or not bounded in the windows)
+    #: the bound's carried aircraft, plots and sums (None: initial, or not bounded in the windows)
     bound: BoundState | None = None
 
 

@@ -121,8 +121,8 @@ class RunTables:
     #: the truth's separation intervals of the chunks the windows passed, with the reference file
     #: they read (None: none computed in the windows)
     intervals: tuple[TruthIntervals, Path] | None = None
-    #: the bound as the windows made it: its setup and carried state (None: the end bounds the
-    #: whole recording)
+    #: the bound as the windows made it: its setup, carried state and the windows' stored samples
+    #: (None: the end bounds the whole recording)
     bound: tuple[BoundSetup, BoundState, PartFiles] | None = None
 
 
