@@ -205,3 +205,17 @@ def test_a_run_on_disk_bounds_mlat_plots_as_in_memory(mlat_run, tmp_path, monkey
     keys = ["method", "metric", "segment"]
     assert_frame_equal(disk.select(*keys, "value").sort(keys), want.select(*keys, "value").sort(keys),
                        check_exact=False, rel_tol=1e-9, abs_tol=0.0)
+
+
+def test_the_scan_origins_of_an_input_in_other_dtypes_are_those_of_the_cast_columns(case):
+    """The scan origins are read from the input before validation: columns in other dtypes are
+    cast as validation casts them (a value that cannot be cast left out), and a column that cannot
+    be cast at all is the contract's one-line error, not a traceback."""
+    from tertiary.contract.errors import SchemaError
+    want = scan_origins(case.radars, case.reports, T0_US)
+    text = case.reports.select(pl.col("radar_id").cast(pl.String), pl.col("time").dt.to_string("%Y-%m-%dT%H:%M:%S%.f"),
+                               pl.col("azimuth_deg").cast(pl.String))
+    bad = pl.DataFrame({"radar_id": ["1"], "time": ["not a time"], "azimuth_deg": ["north"]})
+    assert scan_origins(case.radars, pl.concat([text, bad]).lazy(), T0_US) == pytest.approx(want, abs=1e-9)
+    with pytest.raises(SchemaError, match="column 'time'"):
+        scan_origins(case.radars, case.reports.with_columns(pl.col("time").dt.epoch("s").cast(pl.Float64)), T0_US)

@@ -141,6 +141,7 @@ from tertiary.evaluation.bound_pooling import BOUND_METRICS, UNMEASURED, bound_m
 from tertiary.evaluation.bound_measurements import (VELOCITY_VERTICAL_VAR, mode_s_aircraft, velocity_covariance,
                                                     with_height)
 from tertiary.contract import TABLES, TIME
+from tertiary.contract.cast import cast_column
 from tertiary.sensors import mlat
 from tertiary.sensors.adsb import sigma_from_nacp
 
@@ -538,18 +539,20 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
 def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame | pl.LazyFrame, t0_us: int) -> dict[int, float]:
     """radar_id → s_0 (seconds from ``t0_us``, mod T) recovered from each radar's reports with a
     time and an azimuth (:func:`_scan_origin`); a radar without any has none. ``reports`` may be
-    a scan: it is read a radar at a time, two columns (a long recording's times are not held)."""
-    lf = reports.lazy()
-    if not {"radar_id", "time", "azimuth_deg"} <= set(lf.collect_schema().names()):
+    a scan of the input: in the contract's dtypes it is read a radar at a time, two columns (a
+    long recording's times are not held); in others its three columns are cast as validation
+    casts them, a value that cannot be cast left out."""
+    lf = _origin_columns(reports.lazy())
+    if lf is None:
         return {}
-    us = pl.col("time").cast(TIME).dt.epoch("us")
+    us = pl.col("time").dt.epoch("us")
     out = {}
     for row in radars.iter_rows(named=True):
         if row.get("kind") in mlat.CARTESIAN_KINDS:   # no scan: its plots are its events (_mlat_events)
             continue
         mine = (lf.filter((pl.col("radar_id") == row["radar_id"]) & pl.col("time").is_not_null()
                           & pl.col("azimuth_deg").is_finite())
-                .select(us.alias("us"), pl.col("azimuth_deg").cast(pl.Float64)).collect())
+                .select(us.alias("us"), "azimuth_deg").collect())
         rotating = (row.get("timing") or "rotating") == "rotating"
         off = float(row.get("time_offset_s") or 0.0)
         s0 = _scan_origin((mine["us"].to_numpy() - t0_us) / US - off, mine["azimuth_deg"].to_numpy(),
@@ -557,6 +560,25 @@ def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame | pl.LazyFrame, t0_
         if s0 is not None:
             out[row["radar_id"]] = s0
     return out
+
+
+#: the dtypes :func:`scan_origins` reads its columns in (the reports contract's)
+_ORIGIN_DTYPES = {"radar_id": pl.UInt32, "time": TIME, "azimuth_deg": pl.Float64}
+
+
+def _origin_columns(lf: pl.LazyFrame) -> pl.LazyFrame | None:
+    """The reports' radar_id, time and azimuth_deg in :data:`_ORIGIN_DTYPES` (None without one of
+    them): selected as they are when already so, else read and cast by the contract's
+    :func:`~tertiary.contract.cast.cast_column` (a column that cannot be cast at all raises
+    its one-line :class:`~tertiary.contract.errors.SchemaError`)."""
+    schema = lf.collect_schema()
+    if not set(_ORIGIN_DTYPES) <= set(schema.names()):
+        return None
+    cols = lf.select(list(_ORIGIN_DTYPES))
+    if all(schema[c] == t for c, t in _ORIGIN_DTYPES.items()):
+        return cols
+    frame = cols.collect()
+    return pl.DataFrame([cast_column(frame[c], t, "reports")[0] for c, t in _ORIGIN_DTYPES.items()]).lazy()
 
 
 def _ca9(tau: F64, dev: F64) -> tuple[F64, F64]:
