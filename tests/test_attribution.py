@@ -13,7 +13,7 @@ import pytest
 from safety.alerts import (ALERTS_SCHEMA, AlertConfig, LOS_SCHEMA, attribute_alerts, attribute_los,
                            attribution_metrics, manoeuvre_onsets, valid_alerts)
 from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state, predict_conflicts
-from tertiary.evaluation.truth_picture import observed_spans, truth_picture
+from tertiary.evaluation.truth_picture import SPAN_GAP_S, extend_spans, observed_spans, truth_picture
 
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 TIME = pl.Datetime("us", "UTC")
@@ -138,16 +138,33 @@ def _head_on() -> pl.DataFrame:
     return pl.concat(rows).with_columns(pl.col("time").cast(TIME))
 
 
+def _turning(tid: int, at_s: int) -> pl.DataFrame:
+    """Aircraft ``tid`` far south, flying east at 150 m/s, turning left at 3 °/s for 30 s from
+    ``at_s``."""
+    t = np.arange(0.0, 301.0)
+    rate = np.where((t >= at_s) & (t < at_s + 30), np.radians(3.0), 0.0)
+    hdg = np.concatenate([[0.0], np.cumsum(rate[:-1])])
+    vx, vy = 150.0 * np.cos(hdg), 150.0 * np.sin(hdg)
+    x, y = np.concatenate([[0.0], np.cumsum(vx[:-1])]), -80_000.0 + np.concatenate([[0.0], np.cumsum(vy[:-1])])
+    return pl.DataFrame({"truth_id": tid, "time": [_t(s) for s in t], "x_m": x, "y_m": y, "z_m": 3000.0,
+                         "vx_mps": vx, "vy_mps": vy, "vz_mps": 0.0, "alt_m": 3000.0,
+                         "alt_rate_mps": 0.0}).with_columns(pl.col("time").cast(TIME))
+
+
 def test_the_truth_picture_is_the_truth_at_the_grid_within_the_observed_spans():
     truth = _head_on()
     grid = pl.DataFrame({"run": pl.Series([0] * 60, dtype=pl.UInt32),
                          "epoch": [_t(s + 0.5) for s in range(0, 300, 5)]}).with_columns(pl.col("epoch").cast(TIME))
-    observed = pl.DataFrame({"run": pl.Series([0, 0, 0, 0], dtype=pl.UInt32),
-                             "epoch": [_t(10.5), _t(200.5), _t(50.5), _t(60.5)],
-                             "truth_id": [1, 1, 2, 2]}).with_columns(pl.col("epoch").cast(TIME))
-    pic = truth_picture(truth, observed_spans(observed), grid, "truth", "target_id")
+    observed = pl.DataFrame({"run": pl.Series([0, 0, 0, 0, 0, 0, 0], dtype=pl.UInt32),
+                             "epoch": [_t(10.5), _t(120.5), _t(200.5), _t(50.5), _t(60.5), _t(5.5), _t(130.5)],
+                             "truth_id": [1, 1, 1, 2, 2, 3, 3]}).with_columns(pl.col("epoch").cast(TIME))
+    spans = observed_spans(observed)
+    pic = truth_picture(truth, spans, grid, "truth", "target_id")
     per = dict(pic.group_by("target_id").agg(pl.len()).iter_rows())
-    assert per == {1: 39, 2: 3}                          # 10.5 … 200.5 and 50.5 … 60.5 every 5 s; 3 unobserved
+    # 10.5 … 200.5 (gaps of 110 and 80 s bridged) and 50.5 … 60.5 every 5 s; 3 observed 125 s
+    # apart (more than SPAN_GAP_S): two spans of one epoch each, nothing between them
+    assert SPAN_GAP_S == 120.0 and per == {1: 39, 2: 3, 3: 2}
+    assert spans.filter(pl.col("truth_id") == 3).height == 2
     one = pic.filter(pl.col("target_id") == 1).sort("epoch")
     s = np.array([(e - T0).total_seconds() for e in one["epoch"].to_list()])
     np.testing.assert_allclose(one["x_m"].to_numpy(), -40_000.0 + 200.0 * s, atol=1e-6)   # between samples
@@ -204,3 +221,68 @@ def test_the_truth_pictures_alerts_read_in_blocks_and_stepped_equal_one_step(blo
     assert whole[0]["alert"].sum() > 3
     for a, b in zip(got, whole):
         assert a.equals(b)
+
+
+@pytest.mark.parametrize("window_s", [7.0, 45.0, 130.0, 1000.0])
+def test_the_truth_picture_predicted_as_the_windows_pass_equals_the_whole_run(window_s):
+    """The windows extend each aircraft's observed spans and predict every grid epoch more than
+    SPAN_GAP_S before their end; the end predicts the rest. The conflict rows, id map and
+    manoeuvre onsets equal those of the whole run at once, with an aircraft seen again after a
+    gap longer than SPAN_GAP_S (two spans) and the last window open-ended. Fails if a window
+    predicts an epoch a later report still changes, drops a span too early, or the end forgets
+    what the windows left."""
+    from tertiary.core.units import US
+    from tertiary.pipeline import truth_alerts as ta
+    truth = pl.concat([_head_on(), _turning(4, 100)])
+    t_us = pl.col("time").dt.epoch("us")
+    grid = pl.DataFrame({"run": pl.Series([0] * 150, dtype=pl.UInt32),
+                         "epoch": [_t(s) for s in range(0, 300, 2)]}).with_columns(pl.col("epoch").cast(TIME))
+    seen = grid.join(pl.DataFrame({"truth_id": [1, 2, 3, 4]}), how="cross")
+    # aircraft 1 observed every 50 s only (one span: its alerts need the gaps bridged), 2
+    # unobserved 150–270 s, in conflict with 1 (two spans), 4 turning 101–131 s (onsets between grid epochs)
+    s = (pl.col("epoch") - pl.lit(T0).cast(TIME)).dt.total_seconds()
+    seen = seen.filter(~((pl.col("truth_id") == 2) & s.is_between(150, 270))
+                       & ((pl.col("truth_id") != 1) | (s % 50 == 0)))
+    spans = observed_spans(seen)
+    assert spans.group_by("truth_id").len().sort("truth_id")["len"].to_list() == [1, 2, 1, 1]
+
+    def truth_slice(a: int, b: int) -> pl.DataFrame:
+        return truth.filter(t_us.is_between(a, b))
+    cc = ConflictConfig(confirm_m=3, confirm_n=4)
+    whole = ta.truth_conflicts(cc, truth_slice, spans, seen.select("run", "epoch").unique().sort("run", "epoch"),
+                               "target_id", None)
+    state, stored = ta.TruthPictureState(), {k: [] for k in ta.TRUTH_TABLES}
+    lo, step = int(_t(0).timestamp() * US), int(window_s * US)
+    e = pl.col("epoch").dt.epoch("us")
+    for a in range(lo, lo + 300 * US, step):
+        b = a + step if a + step < lo + 300 * US else 2 ** 62           # the last window: open-ended
+        out, state = ta.truth_picture_step(state, seen.filter(e.is_between(a, b, closed="left")), b, cc, truth_slice,
+                                           "target_id", None)
+        for k, v in out.items():
+            stored[k].append(v)
+    got = ta.truth_picture_finish(state, lambda k: pl.concat(stored[k]) if stored[k] else None, cc, truth_slice,
+                                  "target_id", None)
+    assert whole[0]["alert"].sum() > 3 and whole[2]["t_us"].to_list() == [int(_t(x).timestamp() * US)
+                                                                                  for x in (101, 131)]
+    for g, w in zip(got, whole):
+        assert g.sort(g.columns).equals(w.sort(w.columns))
+    # with a wider gap the two spans of aircraft 2 are one: what the windows predict follows it
+    wide = ta.truth_conflicts(cc, truth_slice, observed_spans(seen, gap_s=200.0),
+                              seen.select("run", "epoch").unique().sort("run", "epoch"), "target_id", None)
+    assert wide[0]["alert"].sum() > whole[0]["alert"].sum()
+
+
+def test_spans_extended_window_by_window_equal_the_spans_of_the_whole():
+    """:func:`extend_spans` over the observed epochs in any chunks equals :func:`observed_spans`
+    of them all: a chunk's epoch within SPAN_GAP_S of a span extends it, farther starts another."""
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.choice(np.arange(0, 3000, 4), 300, replace=False)).astype(float)
+    ids = rng.integers(1, 5, len(t))
+    seen = pl.DataFrame({"run": pl.Series(np.zeros(len(t), int), dtype=pl.UInt32),
+                         "epoch": [_t(x) for x in t], "truth_id": ids}).with_columns(pl.col("epoch").cast(TIME))
+    whole = observed_spans(seen, gap_s=60.0)
+    assert whole.group_by("truth_id").len()["len"].max() > 1
+    spans = observed_spans(seen.clear(), gap_s=60.0)
+    for k in range(0, len(t), 37):
+        spans = extend_spans(spans, seen.slice(k, 37), gap_s=60.0)
+    assert spans.equals(whole)

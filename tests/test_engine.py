@@ -218,11 +218,21 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
                         or f(*a))
     monkeypatch.setattr(whole_run, "reference_intervals", lambda *a, f=whole_run.reference_intervals, **k:
                         finished.append(k.get("state")) or f(*a, **k))
+    # the truth picture: predicted in the windows but for their last stretch, never whole at the end
+    truth_rows, whole_truth = [], []
+    monkeypatch.setattr(streaming, "truth_picture_step", lambda *a, f=streaming.truth_picture_step, **k:
+                        truth_rows.append(f(*a, **k)) or truth_rows[-1])
+    monkeypatch.setattr(whole_run, "truth_conflicts", lambda *a, f=whole_run.truth_conflicts, **k:
+                        whole_truth.append(a[3].height) or f(*a, **k))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
     assert steps == [] and finished == []            # in memory: the whole truth's at the end
+    assert truth_rows == [] and len(whole_truth) == 1
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
+    assert len(whole_truth) == 1 and len(truth_rows) > 4
+    windows_alerts = [out["truth_conflicts"]["alert"].sum() for out, _ in truth_rows if "truth_conflicts" in out]
+    assert sum(windows_alerts) > 0 and all(s.complete for _, s in truth_rows)
     # the bound's truth read from the reference on disk as its aircraft ended, 7 at least at a
     # time in the windows, the rest at the end; never the whole-run stage's reads
     assert len(bound_reads) == 1 and len(batches) > 2 and all(n >= 7 for n in batches[:-1])

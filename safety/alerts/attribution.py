@@ -71,7 +71,8 @@ def attribute_los(los: pl.DataFrame, truth: str = TRUTH_PICTURE, spans: pl.DataF
     """The LoS table (one row per loss and picture) with column ``induced`` for the system
     pictures' missed losses: ``"picture"`` when the truth picture alerted that loss, else
     ``"under_way"`` when the loss began no later than the later first observation of its two
-    aircraft (``spans``: run, truth_id, first — :func:`tertiary.evaluation.truth_picture.observed_spans`),
+    aircraft (``spans``: run, truth_id, first, one row or more per aircraft —
+    :func:`tertiary.evaluation.truth_picture.observed_spans`),
     else ``"predictor"``; null for alerted losses and for the truth picture's rows."""
     ref = (los.filter(pl.col("method") == truth)
            .select(*_PAIR, "t_start", pl.col("alerted").alias("__ref_alerted")))
@@ -89,8 +90,10 @@ def _under_way(los: pl.DataFrame, spans: pl.DataFrame | None) -> pl.Series:
     first observed (False without ``spans`` or for an aircraft never observed)."""
     if spans is None or not los.height:
         return pl.Series([False] * los.height, dtype=pl.Boolean)
-    first = spans.select(pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64),
-                         pl.col("first").cast(los.schema["t_start"]))
+    # an aircraft may have several observed spans: its first observation is the earliest's
+    first = (spans.select(pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64),
+                          pl.col("first").cast(los.schema["t_start"]))
+             .group_by("run", "truth_id").agg(pl.col("first").min()))
     seen = los.select("run", "truth_a", "truth_b", "t_start").with_row_index("__r")
     for side in ("a", "b"):
         seen = seen.join(first.rename({"truth_id": f"truth_{side}", "first": f"__first_{side}"}),

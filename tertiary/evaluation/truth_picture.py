@@ -8,8 +8,9 @@ This is the *test predictor on truth data* of Torres & McKay (2009, "Assessing t
 function accuracy performance").
 
 Sampled like the picture: each aircraft the radars observe is in the truth picture at every
-epoch of the picture's grid from its first to its last observed epoch (a system track lives
-between reports too), with its true state interpolated at the epoch
+epoch of the picture's grid within its observed spans — from an observed epoch to the next one
+while they are at most :data:`SPAN_GAP_S` apart (a system track lives between reports too, but
+none coasts through minutes without one) — with its true state interpolated at the epoch
 (:func:`tertiary.evaluation.reference.interpolate_reference`) and a zero covariance — the
 estimation term of the thresholds is nil, the piloting term and the look-ahead are the
 configuration's.
@@ -23,17 +24,36 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.evaluation.reference import interpolate_reference
 
-__all__ = ["observed_spans", "truth_picture"]
+__all__ = ["SPAN_GAP_S", "extend_spans", "observed_spans", "truth_picture"]
 
 _STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
+#: an aircraft without a report for longer than this leaves the truth picture until its next
+#: one (s): two minutes is ten en-route scans or more, well past any tracker's coasting
+SPAN_GAP_S = 120.0
 
-def observed_spans(observed: pl.DataFrame) -> pl.DataFrame:
-    """(run, truth_id, first, last) of each aircraft's observed epochs, from ``observed``
-    (run, epoch, truth_id: :func:`tertiary.pipeline.scoring.observed_aircraft`)."""
-    return (observed.group_by("run", "truth_id")
-            .agg(pl.col("epoch").min().alias("first"), pl.col("epoch").max().alias("last"))
-            .sort("run", "truth_id"))
+
+def extend_spans(spans: pl.DataFrame, observed: pl.DataFrame, gap_s: float = SPAN_GAP_S) -> pl.DataFrame:
+    """``spans`` (run, truth_id, first, last: :func:`observed_spans`) extended by more observed
+    epochs (run, epoch, truth_id): an epoch within ``gap_s`` of a span, or of another epoch,
+    joins it; spans that come within ``gap_s`` of each other merge. Sorted by run, truth_id,
+    first."""
+    pts = observed.select(pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64),
+                          pl.col("epoch").cast(TIME).alias("first"), pl.col("epoch").cast(TIME).alias("last"))
+    both = pl.concat([spans.select(pts.columns).cast(pts.schema), pts]).sort("run", "truth_id", "first")
+    keys = ["run", "truth_id"]
+    reach = pl.col("last").dt.epoch("us").cum_max().shift(1).over(keys)
+    starts = (reach.is_null() | (pl.col("first").dt.epoch("us") - reach > int(gap_s * 1e6))).cum_sum().over(keys)
+    return (both.with_columns(starts.alias("__k")).group_by(*keys, "__k")
+            .agg(pl.col("first").min(), pl.col("last").max()).drop("__k").sort("run", "truth_id", "first"))
+
+
+def observed_spans(observed: pl.DataFrame, gap_s: float = SPAN_GAP_S) -> pl.DataFrame:
+    """(run, truth_id, first, last) of each aircraft's observed spans (an aircraft may have
+    several: :func:`extend_spans`), from ``observed`` (run, epoch, truth_id:
+    :func:`tertiary.pipeline.scoring.observed_aircraft`)."""
+    empty = pl.DataFrame(schema={"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "last": TIME})
+    return extend_spans(empty, observed, gap_s)
 
 
 def _requests(spans: pl.DataFrame, epochs: pl.DataFrame) -> pl.DataFrame:

@@ -35,9 +35,10 @@ from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
 from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table,
                                          truth_lazy, valid_flight_plans, validate_table)
-from tertiary.pipeline.pictures import safety_picture
+from tertiary.pipeline.pictures import safety_id_column, safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.pipeline.stca_scoring import TruthIntervals, intervals_step, time_span
+from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice, truth_picture_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
@@ -94,6 +95,9 @@ class RunContext:
     #: each run's first and last truth sample (:func:`time_span`) when the windows compute the
     #: truth's separation intervals as they pass (a run with safety and its reference on disk)
     truth_span: pl.DataFrame | None = None
+    #: the truth samples the truth picture reads, by time, when the windows predict it as they
+    #: pass (a run with safety and its reference on disk)
+    truth_slice: TruthSlice | None = None
     #: what the windows' bound fixes before the first of them (a run on disk with truth whose
     #: bound can be made); None: the end of the run bounds the whole recording
     bound: BoundSetup | None = None
@@ -130,6 +134,8 @@ class StreamState:
     intervals: TruthIntervals | None = None
     #: the bound's carried aircraft, plots and sums (None: initial, or not bounded in the windows)
     bound: BoundState | None = None
+    #: the truth picture's prediction (None: initial, or not predicted in the windows)
+    truth_picture: TruthPictureState | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -279,6 +285,14 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         clock.stage("truth_intervals")
         s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
                                safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
+    s_truth = st.truth_picture
+    if ctx.truth_slice is not None:
+        # the truth picture predicted as the run goes, but for the last stretch no later report
+        # can change (the alert scoring attributes every picture's alerts by it)
+        clock.stage("truth_picture")
+        seen = _observed_aircraft(aligned)
+        out_truth, s_truth = truth_picture_step(s_truth or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
+                                                ctx.truth_slice, safety_id_column(cfg), ctx.origin)
     s_bound = st.bound
     if ctx.bound is not None and ctx.reference is not None:
         # each aircraft bounded once its truth has ended: the last window, open-ended, bounds the rest
@@ -295,8 +309,18 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         out["curve_rows"] = curves
     if ctx.reference is not None:
         out.update(out_eval)
+    if ctx.truth_slice is not None:
+        out.update(out_truth)
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound)
+                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound, s_truth)
+
+
+def _observed_aircraft(aligned: pl.DataFrame) -> pl.DataFrame | None:
+    """(run, epoch, truth_id) of a window's aligned rows (None: they carry no aircraft)."""
+    if "truth_id" in aligned.columns:
+        return aligned.select("run", "epoch", "truth_id")
+    return None if aligned.height else pl.DataFrame(schema={"run": pl.UInt32, "epoch": contract.TIME,
+                                                            "truth_id": pl.Int64})
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -387,6 +411,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
+            ctx.truth_slice = reference_slice(ctx.reference.files)
         if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
             ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
@@ -396,6 +421,10 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     if resume_state is not None and start > 0 and ctx.bound is not None and resume_state.bound is None:
         # a checkpoint that carried no bound knows nothing of the aircraft scored before it
         st = dataclasses.replace(st, bound=BoundState(complete=False))
+    if resume_state is not None and start > 0 and ctx.truth_slice is not None \
+            and getattr(resume_state, "truth_picture", None) is None:
+        # nor one that carried no truth picture of the grid epochs before it
+        st = dataclasses.replace(st, truth_picture=TruthPictureState(complete=False))
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
     occupied = source.occupied(ctx.grid_origin_us, window_s) if window_s is not None else None

@@ -43,7 +43,8 @@ from tertiary.pipeline.scoring import (aligned_facts, association_blocks, associ
 from tertiary.pipeline.stca_scoring import (TruthIntervals, note_minima, reference_intervals, stca_curves,
                                            time_span)
 from tertiary.pipeline.streaming import RunContext, StreamState
-from tertiary.pipeline.truth_alerts import TRUTH_PICTURE_COLUMNS, attributed, truth_conflicts
+from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, truth_conflicts,
+                                            truth_picture_finish)
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
                                       DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, confirmed_targets,
                                       for_sink, read_table, table_columns, target_counts, whole_table)
@@ -124,6 +125,9 @@ class RunTables:
     #: the bound as the windows made it: its setup, carried state and the windows' stored samples
     #: (None: the end bounds the whole recording)
     bound: tuple[BoundSetup, BoundState, PartFiles] | None = None
+    #: the truth picture's prediction as the windows carried it, and a reader of their stored
+    #: rows by table name (None: the end predicts the whole truth picture)
+    truth_picture: tuple[TruthPictureState, Callable[[str], pl.DataFrame | None]] | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -278,7 +282,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
                     getattr(st, "scores", None), curves, keys, matched,
                     (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
-                    _windows_bound(ctx, st, parts))
+                    _windows_bound(ctx, st, parts), _windows_truth_picture(st, parts))
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -290,6 +294,15 @@ def _windows_bound(ctx: RunContext, st: StreamState, parts: Any) -> tuple[BoundS
     if setup is None or state is None or not state.complete:
         return None
     return setup, state, functools.partial(parts.part_files, SCORED)
+
+
+def _windows_truth_picture(st: StreamState, parts: Any
+                           ) -> tuple[TruthPictureState, Callable[[str], pl.DataFrame | None]] | None:
+    """The truth picture's prediction the windows carried, when they saw every window."""
+    state = getattr(st, "truth_picture", None)
+    if state is None or not state.complete:
+        return None
+    return state, parts.table
 
 
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
@@ -390,7 +403,11 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             del truth
         release_memory()
         # the same prediction on the truth picture: which alerts the picture causes
-        t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
+        if run.truth_picture is not None:     # predicted in the windows but for their last stretch
+            t_conf, t_ids, onsets = truth_picture_finish(*run.truth_picture, cfg.conflicts, truth_between, id_col,
+                                                         ds.origin)
+        else:
+            t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
         # the rows the scoring reads: a day's conflict rows are 1.2 GB, its id map 40 M rows (memory)
         scored_rows = (list(conflicts.blocks()) if isinstance(conflicts, DeferredTable)
                        else [safety_alerts.scored_conflicts(conflicts)])
