@@ -224,6 +224,14 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
                         truth_rows.append(f(*a, **k)) or truth_rows[-1])
     monkeypatch.setattr(whole_run, "truth_conflicts", lambda *a, f=whole_run.truth_conflicts, **k:
                         whole_truth.append(a[3].height) or f(*a, **k))
+    # the scored samples are read back for the bound only: not once the windows made it
+    read_samples: list[pl.LazyFrame] = []
+
+    def counted_samples(frame, f=scoring.scored_samples):
+        if isinstance(frame, pl.LazyFrame):            # the windows' stored samples, read back
+            read_samples.append(frame)
+        return f(frame)
+    monkeypatch.setattr(scoring, "scored_samples", counted_samples)
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
@@ -231,6 +239,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert truth_rows == [] and len(whole_truth) == 1
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     assert len(whole_truth) == 1 and len(truth_rows) > 4
+    assert read_samples == []
     windows_alerts = [out["truth_conflicts"]["alert"].sum() for out, _ in truth_rows if "truth_conflicts" in out]
     assert sum(windows_alerts) > 0 and all(s.complete for _, s in truth_rows)
     # the bound's truth read from the reference on disk as its aircraft ended, 7 at least at a

@@ -230,10 +230,11 @@ def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
 class WindowedPictures:
     """The pictures as the windows matched them (the evaluation's window stage), by name
     (:meth:`__call__`); every picture's scored rows read once, when a first picture's seed
-    metrics are finished (:meth:`scored`)."""
+    metrics are finished (:meth:`scored`). ``samples`` False: the scored samples are not read
+    back (the bound, their only reader, was made in the windows); each picture's are empty."""
 
-    def __init__(self, parts: Any, state: MatchState, surveillance: bool) -> None:
-        self.parts, self.state, self.surveillance = parts, state, surveillance
+    def __init__(self, parts: Any, state: MatchState, surveillance: bool, samples: bool = True) -> None:
+        self.parts, self.state, self.surveillance, self.samples = parts, state, surveillance, samples
 
     def __call__(self, name: str) -> Matched | None:
         """Picture ``name``: scans of its rows of the matched and expected parts of the groups it
@@ -261,6 +262,8 @@ class WindowedPictures:
         if not files:
             return {}, {}
         scan = scan_spilled(files)
+        if not self.samples:
+            return statistic_lags(scan, scan.select(pl.len()).collect().item()), {}
         # the two names categorical as they are read: a long run's samples are held to the end
         samples = scored_samples(scan.select(list(SAMPLE_SCHEMA))).collect()
         lags = statistic_lags(scan, samples.height)

@@ -275,14 +275,16 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             if lean and cfg.safety and isinstance(conflicts, DeferredTable)
             and (curves is not None or not cfg.stca_lookaheads_s)
             else None)
-    matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation)
+    bound = _windows_bound(ctx, st, parts)
+    # the scored samples are read back for the bound only: not when the windows made it (memory)
+    matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation, samples=bound is None)
                if ctx.reference is not None and st.evaluation is not None else None)
     done = getattr(st, "intervals", None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
                     getattr(st, "scores", None), curves, keys, matched,
                     (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
-                    _windows_bound(ctx, st, parts), _windows_truth_picture(st, parts))
+                    bound, _windows_truth_picture(st, parts))
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -308,12 +310,15 @@ def _windows_truth_picture(st: StreamState, parts: Any
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
                 scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
     """The bound's metrics rows: from the sums the windows carried (any aircraft left
-    bounded here), else over the whole recording; the radars' scan origins from the input
-    reports either way (:func:`tertiary.evaluation.bound.scan_origins`)."""
+    bounded here; ``scored`` not read), else over the whole recording from ``scored``; the
+    radars' scan origins from the input reports either way
+    (:func:`tertiary.evaluation.bound.scan_origins`)."""
     if run.bound is not None:
         setup, state, stored = run.bound
         names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
-        if bound_setup(ds, names, ing.radars, ing.notes, not scored.is_empty()) is None:
+        files = stored()          # the scored samples are not read back: whether there are any
+        some = bool(files) and pl.scan_parquet(files).select(pl.len()).collect().item() > 0
+        if bound_setup(ds, names, ing.radars, ing.notes, some) is None:
             return pl.DataFrame(schema=contract.TABLES["metrics"].required)
         return bound_rows(bound_finish(setup, state, stored), metrics)
     t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
