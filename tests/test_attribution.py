@@ -223,14 +223,15 @@ def test_the_truth_pictures_alerts_read_in_blocks_and_stepped_equal_one_step(blo
         assert a.equals(b)
 
 
-@pytest.mark.parametrize("window_s", [7.0, 45.0, 130.0, 1000.0])
-def test_the_truth_picture_predicted_as_the_windows_pass_equals_the_whole_run(window_s):
+@pytest.mark.parametrize("window_s", [7.0, 13.0, 45.0, 130.0, 1000.0])
+def test_the_truth_picture_predicted_as_the_windows_pass_equals_the_whole_run(window_s, monkeypatch):
     """The windows extend each aircraft's observed spans and predict every grid epoch more than
     SPAN_GAP_S before their end; the end predicts the rest. The conflict rows, id map and
     manoeuvre onsets equal those of the whole run at once, with an aircraft seen again after a
     gap longer than SPAN_GAP_S (two spans) and the last window open-ended. Fails if a window
     predicts an epoch a later report still changes, drops a span too early, or the end forgets
     what the windows left."""
+    from tertiary.core.stage import T_MAX_US
     from tertiary.core.units import US
     from tertiary.pipeline import truth_alerts as ta
     truth = pl.concat([_head_on(), _turning(4, 100)])
@@ -251,15 +252,19 @@ def test_the_truth_picture_predicted_as_the_windows_pass_equals_the_whole_run(wi
     cc = ConflictConfig(confirm_m=3, confirm_n=4)
     whole = ta.truth_conflicts(cc, truth_slice, spans, seen.select("run", "epoch").unique().sort("run", "epoch"),
                                "target_id", None)
+    # steps of 20 s at least: several in this 300 s run (a run's are 300 s)
+    monkeypatch.setattr(ta, "TRUTH_STEP_S", 20.0)
     state, stored = ta.TruthPictureState(), {k: [] for k in ta.TRUTH_TABLES}
     lo, step = int(_t(0).timestamp() * US), int(window_s * US)
-    e = pl.col("epoch").dt.epoch("us")
+    e, steps = pl.col("epoch").dt.epoch("us"), 0
     for a in range(lo, lo + 300 * US, step):
-        b = a + step if a + step < lo + 300 * US else 2 ** 62           # the last window: open-ended
+        b = a + step if a + step < lo + 300 * US else T_MAX_US          # the last window: open-ended
         out, state = ta.truth_picture_step(state, seen.filter(e.is_between(a, b, closed="left")), b, cc, truth_slice,
                                            "target_id", None)
         for k, v in out.items():
             stored[k].append(v)
+        steps += bool(out)
+    assert steps > (1 if window_s < 300 else 0)
     got = ta.truth_picture_finish(state, lambda k: pl.concat(stored[k]) if stored[k] else None, cc, truth_slice,
                                   "target_id", None)
     assert whole[0]["alert"].sum() > 3 and whole[2]["t_us"].to_list() == [int(_t(x).timestamp() * US)

@@ -22,6 +22,7 @@ from safety import alerts as safety_alerts
 from safety import conflicts as safety_conflicts
 from tertiary.contract import TIME
 from tertiary.core import geo
+from tertiary.core.stage import T_MAX_US
 from tertiary.core.units import US
 from tertiary.evaluation.truth_picture import SPAN_GAP_S, extend_spans, truth_picture
 
@@ -164,8 +165,10 @@ def truth_picture_step(state: TruthPictureState, observed: pl.DataFrame | None, 
                                                                               TruthPictureState]:
     """One window of the truth picture's prediction: the window's observed aircraft (run, epoch,
     truth_id of its aligned reports; None: not known, so the end predicts it all) extend the
-    spans and the grid, and every grid epoch before ``t1_us`` − ``gap_s`` is predicted. Outputs:
-    :data:`TRUTH_TABLES` (those with rows)."""
+    spans and the grid, and every grid epoch before ``t1_us`` − ``gap_s`` is predicted once
+    that is :data:`TRUTH_STEP_S` of them or more (the last window, ``t1_us`` at
+    :data:`~tertiary.core.stage.T_MAX_US`, predicts every one). Outputs: :data:`TRUTH_TABLES`
+    (those with rows)."""
     if not state.complete:
         return {}, state
     if observed is None:
@@ -175,7 +178,15 @@ def truth_picture_step(state: TruthPictureState, observed: pl.DataFrame | None, 
     state = TruthPictureState(extend_spans(state.spans, seen, gap_s),
                               pl.concat([state.pending, grid.cast(state.pending.schema)]), state.done_us,
                               state.conflicts)
-    return _advance(state, t1_us - int(gap_s * US), cc, truth_slice, id_col, frame)
+    until = t1_us - int(gap_s * US)
+    if not state.pending.height:
+        return {}, state
+    start = state.done_us if state.done_us is not None else int(state.pending["epoch"].dt.epoch("us").min())
+    if until - start < int(TRUTH_STEP_S * US) and t1_us < T_MAX_US:
+        # a step of TRUTH_STEP_S at least (or the last window's rest): each step reads its
+        # truth with a margin either side, and short windows would read it several times over
+        return {}, state
+    return _advance(state, until, cc, truth_slice, id_col, frame)
 
 
 def truth_picture_finish(state: TruthPictureState, stored: Callable[[str], pl.DataFrame | None],
