@@ -24,7 +24,7 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.evaluation.reference import interpolate_reference
 
-__all__ = ["SPAN_GAP_S", "extend_spans", "observed_spans", "truth_picture"]
+__all__ = ["SPAN_GAP_S", "extend_spans", "first_observed", "observed_spans", "truth_picture"]
 
 _STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -54,6 +54,13 @@ def observed_spans(observed: pl.DataFrame, gap_s: float = SPAN_GAP_S) -> pl.Data
     :func:`tertiary.pipeline.scoring.observed_aircraft`)."""
     empty = pl.DataFrame(schema={"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "last": TIME})
     return extend_spans(empty, observed, gap_s)
+
+
+def first_observed(observed: pl.DataFrame) -> pl.DataFrame:
+    """(run, truth_id, first) of each aircraft's first observed epoch, from ``observed``: what
+    tells a loss under way when first observed (:func:`safety.alerts.attribute_los`)."""
+    return (observed.group_by(pl.col("run").cast(pl.UInt32), pl.col("truth_id").cast(pl.Int64))
+            .agg(pl.col("epoch").min().cast(TIME).alias("first")).sort("run", "truth_id"))
 
 
 def _requests(spans: pl.DataFrame, epochs: pl.DataFrame) -> pl.DataFrame:

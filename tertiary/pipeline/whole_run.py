@@ -30,7 +30,7 @@ from tertiary.evaluation.association import AssociationScore, association_metric
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
                                           write_reference)
 from tertiary.evaluation.indicators import indicators
-from tertiary.evaluation.truth_picture import observed_spans
+from tertiary.evaluation.truth_picture import first_observed, observed_spans
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
@@ -358,7 +358,9 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
                                              None if scratch is None else scratch / "evaluation", run.alert_keys,
                                              run.matched)
         # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
-        spans, grid = observed_spans(observed), observed.select("run", "epoch").unique().sort("run", "epoch")
+        # (the windows' truth picture leaves the attribution only each aircraft's first observation)
+        spans = first_observed(observed) if run.truth_picture is not None else observed_spans(observed)
+        grid = observed.select("run", "epoch").unique().sort("run", "epoch")
         del observed
         if scratch is not None:
             release_memory()
