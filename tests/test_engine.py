@@ -232,6 +232,17 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
             read_samples.append(frame)
         return f(frame)
     monkeypatch.setattr(scoring, "scored_samples", counted_samples)
+    # τ's lag sums: each track's series summed in the windows once no window scored it for 120 s,
+    # 20 series at least at a time, the rest in the last window; nothing left for the end
+    from tertiary.evaluation import lags_streamed
+    lag_batches: list[int] = []
+    monkeypatch.setattr(lags_streamed, "SERIES_BATCH", 20)
+    monkeypatch.setattr(lags_streamed, "SERIES_DONE_S", 120.0)
+    monkeypatch.setattr(lags_streamed, "_summed", lambda state, due, *a, f=lags_streamed._summed:
+                        lag_batches.append(due.height) or f(state, due, *a))
+    end_lags: list[tuple[int, bool]] = []          # (rows summed at the end, sums carried)
+    monkeypatch.setattr(scoring, "statistic_lags", lambda scan, rows, carried=None, f=scoring.statistic_lags:
+                        end_lags.append((rows, carried is not None)) or f(scan, rows, carried))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
@@ -240,6 +251,8 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     assert len(whole_truth) == 1 and len(truth_rows) > 4
     assert read_samples == []
+    assert len(lag_batches) > 2 and all(n >= 20 for n in lag_batches[:-1])
+    assert end_lags == [(0, True)]
     windows_alerts = [out["truth_conflicts"]["alert"].sum() for out, _ in truth_rows if "truth_conflicts" in out]
     assert sum(windows_alerts) > 0 and all(s.complete for _, s in truth_rows)
     # the bound's truth read from the reference on disk as its aircraft ended, 7 at least at a

@@ -208,20 +208,23 @@ def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, wal
     return out, SeedState(sums, tracks, cover, counts)
 
 
-def statistic_lags(scored: pl.LazyFrame, rows: int) -> dict[tuple[str, str, str], Lags | WholeSeries]:
+def statistic_lags(scored: pl.LazyFrame, rows: int, carried: dict[tuple[str, str, str], Lags] | None = None
+                   ) -> dict[tuple[str, str, str], Lags | WholeSeries]:
     """The per-lag sums (:class:`Lags`) of every consistency statistic of the pictures' scored
     rows (:data:`SCORED_ROWS`, a scan of the windows' parts of ``rows`` rows), read a bucket of
     whole tracks at a time: each series is whole in one bucket. Rows that fit one bucket give
-    τ summed directly (:class:`WholeSeries`)."""
+    τ summed directly (:class:`WholeSeries`), unless ``carried``: the sums of other whole series
+    (:mod:`tertiary.evaluation.lags_streamed`), which these are added to."""
     buckets = max(1, -(-rows // LAG_BUCKET_ROWS))
-    sums = SeedSums()
+    sums = SeedSums(lags=dict(carried or {}))
+    whole = buckets == 1 and carried is None
     for k in range(buckets):
         part = scored if buckets == 1 else scored.filter(pl.struct("method", "run", "track_id").hash() % buckets == k)
         part = part.collect()
         for prefix, (col, _dof) in CONSISTENCY_ALL.items():
             r = statistic_rows(part, col)
             if r.height:
-                sums.add_lags(r, prefix, col, whole=buckets == 1)
+                sums.add_lags(r, prefix, col, whole=whole)
         del part
     return sums.lags
 

@@ -20,6 +20,7 @@ from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags
 from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
 from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
+from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
 from tertiary.evaluation.multitarget import multitarget_result
 from tertiary.evaluation.streamed import SCORED, MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
@@ -231,10 +232,13 @@ class WindowedPictures:
     """The pictures as the windows matched them (the evaluation's window stage), by name
     (:meth:`__call__`); every picture's scored rows read once, when a first picture's seed
     metrics are finished (:meth:`scored`). ``samples`` False: the scored samples are not read
-    back (the bound, their only reader, was made in the windows); each picture's are empty."""
+    back (the bound, their only reader, was made in the windows); each picture's are empty.
+    ``lags``: the lag sums the windows made of the series they retired (complete, else unused)."""
 
-    def __init__(self, parts: Any, state: MatchState, surveillance: bool, samples: bool = True) -> None:
+    def __init__(self, parts: Any, state: MatchState, surveillance: bool, samples: bool = True,
+                 lags: LagState | None = None) -> None:
         self.parts, self.state, self.surveillance, self.samples = parts, state, surveillance, samples
+        self.lags = lags if lags is not None and lags.complete else None
 
     def __call__(self, name: str) -> Matched | None:
         """Picture ``name``: scans of its rows of the matched and expected parts of the groups it
@@ -262,11 +266,14 @@ class WindowedPictures:
         if not files:
             return {}, {}
         scan = scan_spilled(files)
+        # the series the windows summed are left out, their sums added
+        carried = None if self.lags is None else self.lags.sums.lags
+        rest = scan if self.lags is None else scan.join(self.lags.retired.lazy(), on=SERIES_KEYS, how="anti")
+        lags = statistic_lags(rest, rest.select(pl.len()).collect().item(), carried)
         if not self.samples:
-            return statistic_lags(scan, scan.select(pl.len()).collect().item()), {}
+            return lags, {}
         # the two names categorical as they are read: a long run's samples are held to the end
         samples = scored_samples(scan.select(list(SAMPLE_SCHEMA))).collect()
-        lags = statistic_lags(scan, samples.height)
         return lags, {str(name): part for (name,), part in
                       samples.partition_by("method", as_dict=True, maintain_order=True).items()}
 

@@ -28,6 +28,7 @@ from tertiary.core.stage import Stage
 from tertiary.core.units import US
 from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_setup, bound_step
+from tertiary.evaluation.lags_streamed import LagState, lags_step
 from tertiary.evaluation.evaluate import Reference
 from tertiary.evaluation.streamed import SCORED, MatchState
 from tertiary.io.dataset import Dataset
@@ -101,8 +102,10 @@ class RunContext:
     #: what the windows' bound fixes before the first of them (a run on disk with truth whose
     #: bound can be made); None: the end of the run bounds the whole recording
     bound: BoundSetup | None = None
-    #: the scored samples of the windows done, as stored (the bound reads them back)
+    #: the scored samples of the windows done, as stored (the bound and the lag sums read them back)
     stored_scored: Callable[[], list[Path]] | None = None
+    #: the windows sum the consistency statistics' lags of each whole series (a run on disk with truth)
+    lags: bool = False
 
 
 @dataclass(frozen=True)
@@ -136,6 +139,9 @@ class StreamState:
     bound: BoundState | None = None
     #: the truth picture's prediction (None: initial, or not predicted in the windows)
     truth_picture: TruthPictureState | None = None
+    #: the consistency statistics' lag sums of the series retired (None: initial, or not summed
+    #: in the windows)
+    lags: LagState | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -299,6 +305,11 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         clock.stage("bound")
         scored = out_eval.get(SCORED)
         s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w, ctx.stored_scored)
+    s_lags = st.lags
+    if ctx.lags and ctx.reference is not None:
+        # τ's lag sums of each track's scored series once no window has scored it for a while
+        clock.stage("lag_sums")
+        s_lags = lags_step(s_lags or LagState(), out_eval.get(SCORED), w, ctx.stored_scored)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -312,7 +323,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     if ctx.truth_slice is not None:
         out.update(out_truth)
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound, s_truth)
+                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound, s_truth, s_lags)
 
 
 def _observed_aircraft(aligned: pl.DataFrame) -> pl.DataFrame | None:
@@ -414,6 +425,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             ctx.truth_slice = reference_slice(ctx.reference.files)
         if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
             ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
+            ctx.lags = True
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     ctx.scored_span = scored_span
@@ -425,6 +437,9 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             and getattr(resume_state, "truth_picture", None) is None:
         # nor one that carried no truth picture of the grid epochs before it
         st = dataclasses.replace(st, truth_picture=TruthPictureState(complete=False))
+    if resume_state is not None and start > 0 and ctx.lags and getattr(resume_state, "lags", None) is None:
+        # nor one that carried no lag sums of the series before it
+        st = dataclasses.replace(st, lags=LagState(complete=False))
     if start == 0:
         parts.write(Window(-1, 0, 0), {"radars": ctx.radars, "rejects": rej_radars})
     occupied = source.occupied(ctx.grid_origin_us, window_s) if window_s is not None else None
@@ -432,7 +447,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
                       source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     store = WindowStore(parts)
-    if ctx.bound is not None:
+    if ctx.bound is not None or ctx.lags:
         ctx.stored_scored = functools.partial(store.stored, SCORED)
     try:
         for w in ws:
