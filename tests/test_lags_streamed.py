@@ -9,11 +9,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from tertiary.core.stage import T_MAX_US
+from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation import lags_streamed as ls
 from tertiary.evaluation.accuracy_streamed import SCORED_ROWS, statistic_lags
-from tertiary.runtime.windows import Window
 
 T0 = int(datetime(2021, 10, 7, 12, tzinfo=timezone.utc).timestamp() * US)
 

@@ -19,11 +19,10 @@ from pathlib import Path
 
 import polars as pl
 
-from tertiary.core.stage import T_MAX_US
+from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
 from tertiary.evaluation.consistency import CONSISTENCY_ALL
-from tertiary.runtime.windows import Window
 
 __all__ = ["LagState", "SERIES_DONE_S", "SERIES_BATCH", "SERIES_KEYS", "lags_step"]
 
