@@ -22,6 +22,7 @@ import numpy as np
 import polars as pl
 
 from tertiary.contract import TIME
+from tertiary.core.units import US
 from tertiary.evaluation.reference import interpolate_reference
 
 __all__ = ["SPAN_GAP_S", "extend_spans", "first_observed", "observed_spans", "truth_picture"]
@@ -43,7 +44,7 @@ def extend_spans(spans: pl.DataFrame, observed: pl.DataFrame, gap_s: float = SPA
     both = pl.concat([spans.select(pts.columns).cast(pts.schema), pts]).sort("run", "truth_id", "first")
     keys = ["run", "truth_id"]
     reach = pl.col("last").dt.epoch("us").cum_max().shift(1).over(keys)
-    starts = (reach.is_null() | (pl.col("first").dt.epoch("us") - reach > int(gap_s * 1e6))).cum_sum().over(keys)
+    starts = (reach.is_null() | (pl.col("first").dt.epoch("us") - reach > int(gap_s * US))).cum_sum().over(keys)
     return (both.with_columns(starts.alias("__k")).group_by(*keys, "__k")
             .agg(pl.col("first").min(), pl.col("last").max()).drop("__k").sort("run", "truth_id", "first"))
 

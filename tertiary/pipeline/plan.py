@@ -321,10 +321,10 @@ class EvaluationStage(_Adapter):
                 pictures += [(name, id_col, part.drop(NOT_SCORED, strict=False)) for (name,), part in
                              frame.partition_by("method", as_dict=True, maintain_order=True).items()]
         return match_window(state, pictures, self.reference, self.cfg, self.multitarget,
-                            _observed(inputs.get("aligned"), window))
+                            window_aircraft(inputs.get("aligned"), window))
 
 
-def _observed(aligned: pl.DataFrame | None, window: Window) -> pl.DataFrame | None:
+def window_aircraft(aligned: pl.DataFrame | None, window: Window) -> pl.DataFrame | None:
     """(run, epoch, truth_id) of a window's aligned rows; None without them or their aircraft."""
     if aligned is None:
         return None

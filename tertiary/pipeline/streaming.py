@@ -37,7 +37,7 @@ from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_co
 from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table,
                                          truth_lazy, valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_id_column, safety_picture
-from tertiary.pipeline.plan import build_stages, stca_settings
+from tertiary.pipeline.plan import build_stages, stca_settings, window_aircraft
 from tertiary.pipeline.stca_scoring import TruthIntervals, intervals_step, time_span
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice, truth_picture_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
@@ -296,7 +296,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         # the truth picture predicted as the run goes, but for the last stretch no later report
         # can change (the alert scoring attributes every picture's alerts by it)
         clock.stage("truth_picture")
-        seen = _observed_aircraft(aligned)
+        seen = window_aircraft(aligned, w)
         out_truth, s_truth = truth_picture_step(s_truth or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
                                                 ctx.truth_slice, safety_id_column(cfg), ctx.origin)
     s_bound = st.bound
@@ -325,13 +325,6 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
     return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
                             s_dep, s_scores, s_curves, s_eval, s_int, s_bound, s_truth, s_lags)
 
-
-def _observed_aircraft(aligned: pl.DataFrame) -> pl.DataFrame | None:
-    """(run, epoch, truth_id) of a window's aligned rows (None: they carry no aircraft)."""
-    if "truth_id" in aligned.columns:
-        return aligned.select("run", "epoch", "truth_id")
-    return None if aligned.height else pl.DataFrame(schema={"run": pl.UInt32, "epoch": contract.TIME,
-                                                            "truth_id": pl.Int64})
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:

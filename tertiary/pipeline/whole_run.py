@@ -43,8 +43,8 @@ from tertiary.pipeline.scoring import (aligned_facts, association_blocks, associ
 from tertiary.pipeline.stca_scoring import (TruthIntervals, note_minima, reference_intervals, stca_curves,
                                            time_span)
 from tertiary.pipeline.streaming import RunContext, StreamState
-from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, truth_conflicts,
-                                            truth_picture_finish)
+from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, reference_slice,
+                                            truth_conflicts, truth_picture_finish)
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
                                       DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, confirmed_targets,
                                       for_sink, read_table, table_columns, target_counts, whole_table)
@@ -378,7 +378,9 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         return ing.truth if truth_file is None else read_reference(truth_file, columns)
 
     def truth_between(t0_us: int, t1_us: int) -> pl.DataFrame:
-        """The truth picture's columns of the samples in [t0_us, t1_us]."""
+        """The truth picture's columns of the samples in [t0_us, t1_us] (as the windows read them)."""
+        if truth_file is not None:
+            return reference_slice(reference_files(truth_file))(t0_us, t1_us)
         t = pl.col("time").dt.epoch("us")
         return truth_scan(TRUTH_PICTURE_COLUMNS).lazy().filter(t.is_between(t0_us, t1_us)).collect()
 
