@@ -21,7 +21,7 @@ from polars.testing import assert_frame_equal
 
 from safety import alerts as safety_alerts
 from tertiary import pipeline
-from tertiary.pipeline import ingestion, plan, runner, scoring, streaming, tables, whole_run
+from tertiary.pipeline import ingestion, plan, runner, scoring, streaming, tables, whole_run, window_evaluation
 from tertiary.core.stage import T_MAX_US
 from tertiary.runtime.windows import US, Window, incomplete_message, windows
 from tertiary.io.dataset import write_dataset
@@ -214,13 +214,13 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     # the truth's separation intervals: the chunks the windows passed computed there, the rest
     # at the end from their state
     steps, finished = [], []
-    monkeypatch.setattr(streaming, "intervals_step", lambda *a, f=streaming.intervals_step: steps.append(a[-1])
+    monkeypatch.setattr(window_evaluation, "intervals_step", lambda *a, f=window_evaluation.intervals_step: steps.append(a[-1])
                         or f(*a))
     monkeypatch.setattr(whole_run, "reference_intervals", lambda *a, f=whole_run.reference_intervals, **k:
                         finished.append(k.get("state")) or f(*a, **k))
     # the truth picture: predicted in the windows but for their last stretch, never whole at the end
     truth_rows, whole_truth = [], []
-    monkeypatch.setattr(streaming, "truth_picture_step", lambda *a, f=streaming.truth_picture_step, **k:
+    monkeypatch.setattr(window_evaluation, "truth_picture_step", lambda *a, f=window_evaluation.truth_picture_step, **k:
                         truth_rows.append(f(*a, **k)) or truth_rows[-1])
     monkeypatch.setattr(whole_run, "truth_conflicts", lambda *a, f=whole_run.truth_conflicts, **k:
                         whole_truth.append(a[3].height) or f(*a, **k))
@@ -435,6 +435,56 @@ def test_windows_are_stored_behind_the_run_in_order_with_the_state_they_were_giv
     store.close()
     assert events == [("parts", 0), ("manifest", 0), ("parts", 1), ("manifest", 1)]
     assert json.loads((tmp_path / "manifest.json").read_text())["windows_done"] == 2
+
+
+def test_a_window_is_evaluated_on_a_thread_of_its_own_while_the_next_is_processed(terminal, tmp_path, monkeypatch):
+    """On disk, window k's evaluation runs beside window k + 1's processing, in window order
+    (its tables equal the in-memory run's: :func:`test_on_disk_finalize_equals_in_memory`).
+    Each evaluation waits for the next window's processing to start: fails if the evaluation
+    ran on the caller's thread or the caller waited for it before processing the next window."""
+    import threading
+    started: dict[int, threading.Event] = {}
+    seen: list[tuple[int, str, bool]] = []
+
+    def process(cfg, ctx, st, raw, w, *a, f=streaming.process_step):
+        started.setdefault(w.index, threading.Event()).set()
+        return f(cfg, ctx, st, raw, w, *a)
+
+    def evaluate(cfg, ctx, st, h, w, clock, f=streaming.evaluate_step):
+        beside = w.t1_us >= T_MAX_US or started.setdefault(w.index + 1, threading.Event()).wait(10.0)
+        seen.append((w.index, threading.current_thread().name, beside))
+        return f(cfg, ctx, st, h, w, clock)
+    monkeypatch.setattr(streaming, "process_step", process)
+    monkeypatch.setattr(streaming, "evaluate_step", evaluate)
+    pipeline.run(terminal, tmp_path / "run", FAST, window_s=60.0)
+    n = json.loads((tmp_path / "run" / "manifest.json").read_text())["windows_done"]
+    assert n > 4 and [i for i, _, _ in seen] == list(range(n))
+    assert all(name.startswith("window-evaluation") and beside for _, name, beside in seen), seen
+
+
+@pytest.mark.parametrize("half", ["evaluation", "processing"])
+def test_a_failure_in_either_half_names_its_stage_and_loses_no_window_before_it(terminal, tmp_path, monkeypatch, half):
+    """A failing evaluation of window 2 stops the run with two windows stored and its stage
+    named; a failing processing of window 3 still stores window 2, evaluated beside it. Fails
+    if the window in flight were dropped on a failure or the evaluation's stage name lost."""
+    def evaluate(cfg, ctx, st, h, w, clock, f=streaming.evaluate_step):
+        if half == "evaluation" and w.index == 2:
+            clock.stage("match_pictures")
+            raise RuntimeError("boom")
+        return f(cfg, ctx, st, h, w, clock)
+
+    def process(cfg, ctx, st, raw, w, clock, *a, f=streaming.process_step):
+        if half == "processing" and w.index == 3:
+            clock.stage("fuse")
+            raise RuntimeError("boom")
+        return f(cfg, ctx, st, raw, w, clock, *a)
+    monkeypatch.setattr(streaming, "evaluate_step", evaluate)
+    monkeypatch.setattr(streaming, "process_step", process)
+    with pytest.raises(runner.StageError) as err:
+        pipeline.run(terminal, tmp_path / "run", FAST, window_s=60.0)
+    assert err.value.stage == ("match_pictures" if half == "evaluation" else "fuse")
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert manifest["windows_done"] == (2 if half == "evaluation" else 3)
 
 
 def test_resume_refuses_other_options(dataset_dir, tmp_path):

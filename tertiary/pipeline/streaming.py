@@ -1,9 +1,8 @@
 """The streamed stages: every window of a run through ingest → align → associate → fuse (+ the
-centralised reference) → cluster → track → conflicts → the STCA curves' predictions
-(:func:`pipeline_step`), each stage's state
-carried from window to window (:class:`StreamState`), and the loop over the windows that stores
-each one as it completes (:func:`stream_windows`; :func:`stream` for one slice of a distributed
-run)."""
+centralised reference) → cluster → track → conflicts (:func:`process_step`), then its evaluation
+(:mod:`tertiary.pipeline.window_evaluation`), each stage's state carried from window to window
+(:class:`StreamState`), and the loop over the windows that stores each one as it completes
+(:func:`stream_windows`; :func:`stream` for one slice of a distributed run)."""
 
 from __future__ import annotations
 
@@ -19,7 +18,6 @@ from typing import Any
 
 import polars as pl
 
-from safety import alerts as safety_alerts
 from safety import conflicts as safety_conflicts
 from tertiary import contract
 from tertiary.core import geo
@@ -27,8 +25,8 @@ from tertiary.core.errors import DataError
 from tertiary.core.stage import Stage
 from tertiary.core.units import US
 from tertiary.evaluation.association import AssociationScore, score_associations
-from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_setup, bound_step
-from tertiary.evaluation.lags_streamed import LagState, lags_step
+from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_setup
+from tertiary.evaluation.lags_streamed import LagState
 from tertiary.evaluation.evaluate import Reference
 from tertiary.evaluation.streamed import SCORED, MatchState
 from tertiary.io.dataset import Dataset
@@ -36,10 +34,11 @@ from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
 from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_rejects, registered, stage_rejects_table,
                                          truth_lazy, valid_flight_plans, validate_table)
-from tertiary.pipeline.pictures import safety_id_column, safety_picture
-from tertiary.pipeline.plan import build_stages, stca_settings, window_aircraft
-from tertiary.pipeline.stca_scoring import TruthIntervals, intervals_step, time_span
-from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice, truth_picture_step
+from tertiary.pipeline.pictures import safety_picture
+from tertiary.pipeline.plan import build_stages, stca_settings
+from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
+from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
+from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
@@ -198,9 +197,21 @@ def init_stream_state(cfg: PipelineConfig) -> StreamState:
 
 def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.DataFrame, w: Window,
                   clock: StageClock, notes: list[str]) -> tuple[dict[str, pl.DataFrame], StreamState]:
-    """One window through every streamed stage: ingest → align → associate → fuse (+ the
-    centralised reference) → cluster → track → conflicts. Outputs hold the window's epochs only
-    (``reports``/``rejects``: the window's input rows)."""
+    """One window through every streamed stage: its processing (:func:`process_step`), then its
+    evaluation (:func:`~tertiary.pipeline.window_evaluation.evaluate_step`). Outputs hold the
+    window's epochs only (``reports``/``rejects``: the window's input rows)."""
+    out, st, hand = process_step(cfg, ctx, st, raw, w, clock, notes)
+    if hand is None:
+        return out, st
+    more, st = evaluate_step(cfg, ctx, st, hand, w, clock)
+    return {**out, **more}, st
+
+
+def process_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.DataFrame, w: Window,
+                 clock: StageClock, notes: list[str]) -> tuple[dict[str, pl.DataFrame], StreamState, Handoff | None]:
+    """Window ``w`` through ingest → align → associate → fuse (+ the centralised reference) →
+    cluster → track → conflicts: its tables, the state with these stages' fields advanced, and
+    what its evaluation reads (None: nothing to evaluate, no radar is valid)."""
 
     clock.stage("validate")
     reports, report_rows, rejects = _ingest_window(raw, ctx, cfg, notes)
@@ -211,7 +222,7 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         rejects = pl.concat([rejects, lost], how="vertical_relaxed")
         notes.extend(collected)
     if ctx.radars.height == 0:     # no valid radar: every report was rejected, nothing can be aligned
-        return {"reports": reports, "rejects": rejects}, st
+        return {"reports": reports, "rejects": rejects}, st, None
     recent = reports if st.recent.width == 0 else pl.concat([st.recent, reports], how="diagonal_relaxed")
     to_align = reports
     if ctx.flight_plans.height:     # each report's cleared level, by its Mode 3/A code (tertiary.stages.flight_data)
@@ -269,62 +280,16 @@ def pipeline_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl
         picture, _ = safety_picture(cfg, fused, tracks, notes)
         out, s_conf = stages["conflicts"].step(st.conflicts, {"picture": picture}, w)
         conflicts = out["conflicts"]
-    s_curves, curves = st.curves, None
-    if cfg.safety and ctx.curves and "truth_id" in recent.columns:
-        # every point of the trade-off curves predicted as the run goes: the whole-run stage
-        # only scores their rows
-        clock.stage("stca_curves")
-        stage = stages["stca_curves"]
-        out, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": picture}, w)
-        curves = out["curve_rows"]
-    s_eval = st.evaluation
-    if ctx.reference is not None:
-        # matched and seed-scored as the run goes: the whole-run evaluation finishes the metrics
-        clock.stage("match_pictures")
-        stage = stages["evaluation"]
-        out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval,
-                                      {"fused": fused, "tracks": tracks, "aligned": aligned}, w)
-    s_int = st.intervals
-    if ctx.truth_span is not None and ctx.reference is not None and ctx.reference.path is not None:
-        # the truth's separation intervals of every chunk the windows have passed: the alert
-        # scoring at the end merges the last chunks only
-        clock.stage("truth_intervals")
-        s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
-                               safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
-    s_truth = st.truth_picture
-    if ctx.truth_slice is not None:
-        # the truth picture predicted as the run goes, but for the last stretch no later report
-        # can change (the alert scoring attributes every picture's alerts by it)
-        clock.stage("truth_picture")
-        seen = window_aircraft(aligned, w)
-        out_truth, s_truth = truth_picture_step(s_truth or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
-                                                ctx.truth_slice, safety_id_column(cfg), ctx.origin)
-    s_bound = st.bound
-    if ctx.bound is not None and ctx.reference is not None:
-        # each aircraft bounded once its truth has ended: the last window, open-ended, bounds the rest
-        clock.stage("bound")
-        scored = out_eval.get(SCORED)
-        s_bound = bound_step(ctx.bound, s_bound or BoundState(), scored, reports, w, ctx.stored_scored)
-    s_lags = st.lags
-    if ctx.lags and ctx.reference is not None:
-        # τ's lag sums of each track's scored series once no window has scored it for a while
-        clock.stage("lag_sums")
-        s_lags = lags_step(s_lags or LagState(), out_eval.get(SCORED), w, ctx.stored_scored)
+    hand = Handoff(reports, aligned, fused, tracks, picture if cfg.safety else None, "truth_id" in recent.columns)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
                          if recent.height else rows_in.clear())
     out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
-    if curves is not None:
-        out["curve_rows"] = curves
-    if ctx.reference is not None:
-        out.update(out_eval)
-    if ctx.truth_slice is not None:
-        out.update(out_truth)
-    return out, StreamState(s_align, s_assoc, s_fuse, s_central, s_cluster, s_track, s_conf, identity, recent, counts,
-                            s_dep, s_scores, s_curves, s_eval, s_int, s_bound, s_truth, s_lags)
-
+    return out, dataclasses.replace(st, align=s_align, associate=s_assoc, fuse=s_fuse, centralized=s_central,
+                                    cluster=s_cluster, track=s_track, conflicts=s_conf, identity=identity,
+                                    recent=recent, counts=counts, departures=s_dep, scores=s_scores), hand
 
 
 def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict:
@@ -442,17 +407,47 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     store = WindowStore(parts)
     if ctx.bound is not None or ctx.lags:
         ctx.stored_scored = functools.partial(store.stored, SCORED)
+    overlap = Overlap(lambda st_, h, w_, c: evaluate_step(cfg, ctx, st_, h, w_, c), clock.say) \
+        if store.threaded and len(ws) > 1 else None
+    done: list[tuple[Window, int]] = []      # windows stored (or in flight) and not yet said
+    processed, reports_seen = st, meter.reports
+
+    def tell() -> None:
+        """One progress line per window once it is whole (evaluated and stored)."""
+        for w_, n in done:
+            if window_s is not None:
+                meter.window(w_, max(w_.t0_us, source.first_us), min(w_.t1_us, source.last_us + 1), n)
+        done.clear()
+
     try:
         for w in ws:
             clock.stage("read_window", say=False)     # timed apart: not the last stage's time
             raw = source.rows(w)
-            out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
-            clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
-            store.put(w, out, st, time_done=_span_text(w, source), reports_done=meter.reports + raw.height)
-            if window_s is not None:
-                meter.window(w, max(w.t0_us, source.first_us), min(w.t1_us, source.last_us + 1), raw.height)
+            reports_seen += raw.height
+            info = {"time_done": _span_text(w, source), "reports_done": reports_seen}
+            if overlap is None:
+                out, st = pipeline_step(cfg, ctx, st, raw, w, clock, notes)
+                clock.stage("write_window", say=False)    # the window's parts, carried state and manifest
+                store.put(w, out, st, **info)
+            else:
+                # window k processed from its processing state while window k - 1 is evaluated
+                out, processed, hand = process_step(cfg, ctx, processed, raw, w, clock, notes)
+                clock.stage("wait_evaluation", say=False)   # the previous window's evaluation, still running
+                st = overlap.result() or st
+                tell()
+                overlap.submit(w, out, processed, hand, st, functools.partial(store.put, **info))
+            done.append((w, raw.height))
+            if overlap is None:
+                tell()
+        if overlap is not None:
+            clock.stage("wait_evaluation", say=False)
+            st = overlap.result() or st
+            tell()
         store.join()
     finally:
+        if overlap is not None:
+            overlap.close()
+            overlap.timings(clock)
         store.close()
     return ctx, st, source
 
@@ -469,6 +464,11 @@ class WindowStore:
         self.parts = parts
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-store") if isinstance(parts, PartStore) else None
         self._pending: Future | None = None
+
+    @property
+    def threaded(self) -> bool:
+        """Whether windows are written on a thread of their own (a run directory's part store)."""
+        return self._pool is not None
 
     def put(self, w: Window, out: dict[str, pl.DataFrame], st: StreamState, **info: Any) -> None:
         """Store window ``w``'s tables and state (``info``: the manifest's progress fields)."""

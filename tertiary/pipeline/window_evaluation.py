@@ -1,0 +1,160 @@
+"""The evaluation half of a window: the STCA curves' predictions, the pictures matched to the
+truth, the truth's separation intervals, the truth picture's prediction, the bound and τ's lag
+sums. It reads what the window's processing made (:class:`Handoff`) and carries state of its own
+only, so a run on disk evaluates window k on a thread of its own while window k + 1 is processed
+(:class:`Overlap`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import polars as pl
+
+from safety import alerts as safety_alerts
+from tertiary.evaluation.bound_streamed import BoundState, bound_step
+from tertiary.evaluation.lags_streamed import LagState, lags_step
+from tertiary.evaluation.streamed import SCORED
+from tertiary.pipeline.clock import StageClock
+from tertiary.pipeline.config import PipelineConfig
+from tertiary.pipeline.pictures import safety_id_column
+from tertiary.pipeline.plan import window_aircraft
+from tertiary.pipeline.stca_scoring import TruthIntervals, intervals_step
+from tertiary.pipeline.truth_alerts import TruthPictureState, truth_picture_step
+from tertiary.runtime.windows import Window
+
+__all__ = ["EVALUATION_FIELDS", "Handoff", "Overlap", "evaluate_step"]
+
+#: the fields of the stream state the evaluation half carries (the processing half never reads them)
+EVALUATION_FIELDS = ("curves", "evaluation", "intervals", "bound", "truth_picture", "lags")
+
+
+@dataclass(frozen=True)
+class Handoff:
+    """What a window's processing hands its evaluation."""
+
+    reports: pl.DataFrame
+    aligned: pl.DataFrame
+    fused: pl.DataFrame
+    tracks: pl.DataFrame
+    #: the picture the conflict prediction ran on (None: no safety)
+    picture: pl.DataFrame | None
+    #: the reports carry the evaluation-only truth ids (the STCA curves are scored on them)
+    labelled: bool
+
+
+def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
+                  ) -> tuple[dict[str, pl.DataFrame], Any]:
+    """Window ``w``'s evaluation from its processing's :class:`Handoff`: its output tables and
+    ``st`` (a :class:`~tertiary.pipeline.streaming.StreamState`) with the evaluation's fields
+    advanced."""
+    out: dict[str, pl.DataFrame] = {}
+    s_curves = st.curves
+    if h.picture is not None and ctx.curves and h.labelled:
+        # every point of the trade-off curves predicted as the run goes: the whole-run stage
+        # only scores their rows
+        clock.stage("stca_curves")
+        stage = ctx.stages["stca_curves"]
+        o, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": h.picture}, w)
+        out["curve_rows"] = o["curve_rows"]
+    s_eval, out_eval = st.evaluation, {}
+    if ctx.reference is not None:
+        # matched and seed-scored as the run goes: the whole-run evaluation finishes the metrics
+        clock.stage("match_pictures")
+        stage = ctx.stages["evaluation"]
+        out_eval, s_eval = stage.step(stage.init() if s_eval is None else s_eval,
+                                      {"fused": h.fused, "tracks": h.tracks, "aligned": h.aligned}, w)
+    s_int = st.intervals
+    if ctx.truth_span is not None and ctx.reference is not None and ctx.reference.path is not None:
+        # the truth's separation intervals of every chunk the windows have passed: the alert
+        # scoring at the end merges the last chunks only
+        clock.stage("truth_intervals")
+        s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
+                               safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
+    s_truth, out_truth = st.truth_picture, {}
+    if ctx.truth_slice is not None:
+        # the truth picture predicted as the run goes, but for the last stretch no later report
+        # can change (the alert scoring attributes every picture's alerts by it)
+        clock.stage("truth_picture")
+        seen = window_aircraft(h.aligned, w)
+        out_truth, s_truth = truth_picture_step(s_truth or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
+                                                ctx.truth_slice, safety_id_column(cfg), ctx.origin)
+    s_bound = st.bound
+    if ctx.bound is not None and ctx.reference is not None:
+        # each aircraft bounded once its truth has ended: the last window, open-ended, bounds the rest
+        clock.stage("bound")
+        s_bound = bound_step(ctx.bound, s_bound or BoundState(), out_eval.get(SCORED), h.reports, w,
+                             ctx.stored_scored)
+    s_lags = st.lags
+    if ctx.lags and ctx.reference is not None:
+        # τ's lag sums of each track's scored series once no window has scored it for a while
+        clock.stage("lag_sums")
+        s_lags = lags_step(s_lags or LagState(), out_eval.get(SCORED), w, ctx.stored_scored)
+    clock.stage(None)
+    out.update(out_eval)
+    out.update(out_truth)
+    return out, dataclasses.replace(st, curves=s_curves, evaluation=s_eval, intervals=s_int, bound=s_bound,
+                                    truth_picture=s_truth, lags=s_lags)
+
+
+class Overlap:
+    """Window k's evaluation and storing on a thread of their own while the caller processes
+    window k + 1: the two cores share a run that otherwise keeps one of them idle. One window
+    in flight, in window order, so every stored window is whole (its parts and a state that has
+    both halves after it) and every evaluation step sees the previous one's state. The
+    processing half of the state is pickled before the next window runs (a stage may reuse its
+    state's arrays); the evaluation's stage times are kept on a clock of their own
+    (:meth:`timings`)."""
+
+    def __init__(self, evaluate: Callable[[Any, Handoff, Window, StageClock], tuple[dict, Any]],
+                 say: Callable[[str], None]) -> None:
+        self._evaluate = evaluate
+        self.clock = StageClock(say)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-evaluation")
+        self._pending: Future | None = None
+
+    def submit(self, w: Window, out: dict[str, pl.DataFrame], processed: Any, h: Handoff | None, last: Any,
+               store: Callable[[Window, dict, Any], None]) -> None:
+        """Evaluate window ``w`` (``processed``: the state after its processing; ``h`` None:
+        nothing to evaluate; ``last``: the state after the previous window) and ``store`` its
+        tables and whole state. Call :meth:`result` for the previous window first."""
+        assert self._pending is None, "one window in flight"
+        blob = pickle.dumps(dataclasses.replace(processed, **dict.fromkeys(EVALUATION_FIELDS)),
+                            protocol=pickle.HIGHEST_PROTOCOL)
+        self._pending = self._pool.submit(self._job, w, out, blob, h, last, store)
+
+    def _job(self, w: Window, out: dict, blob: bytes, h: Handoff | None, last: Any,
+             store: Callable[[Window, dict, Any], None]) -> Any:
+        st = dataclasses.replace(pickle.loads(blob), **{k: getattr(last, k) for k in EVALUATION_FIELDS})
+        try:
+            if h is not None:
+                more, st = self._evaluate(st, h, w, self.clock)
+                out = {**out, **more}
+        except Exception as exc:
+            # the run names the failing stage; raised on the caller's thread, its clock's is another
+            if self.clock.name is not None and not hasattr(exc, "tertiary_stage"):
+                exc.tertiary_stage = self.clock.name  # type: ignore[attr-defined]
+            raise
+        store(w, out, st)
+        return st
+
+    def result(self) -> Any:
+        """The whole state after the window in flight (None: none in flight); its failure raised here."""
+        pending, self._pending = self._pending, None
+        return None if pending is None else pending.result()
+
+    def close(self) -> None:
+        """Wait for the window in flight, its failure left to :meth:`result`."""
+        if self._pending is not None:
+            self._pending.exception()
+        self._pool.shutdown(wait=True)
+
+    def timings(self, clock: StageClock) -> None:
+        """Add the evaluation's stage times and peaks to ``clock``'s."""
+        for k, v in self.clock.timings.items():
+            clock.timings[k] = clock.timings.get(k, 0.0) + v
+        for k, v in self.clock.memory.items():
+            clock.memory[k] = max(v, clock.memory.get(k, 0.0))
