@@ -116,7 +116,7 @@ def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
 def test_a_run_warms_only_the_kernels_its_filters_call():
     assert warmup.kernels_for(()) == ["altitude"]
     assert warmup.kernels_for(("singer",)) == ["altitude"]
-    assert warmup.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update"]
+    assert warmup.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update", "imm_velocity"]
     assert warmup.kernels_for(("no-such-filter",)) == ["altitude"]
     assert warmup.kernels_for(("singer",), bound=True) == ["altitude", "pcrb"]
 

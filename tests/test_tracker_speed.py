@@ -153,6 +153,31 @@ def test_compiled_imm_update_matches_numpy(name):
         state = b
 
 
+@pytest.mark.parametrize("name", ["imm", "imm_sym"])
+def test_compiled_imm_velocity_update_matches_numpy(name):
+    """A downlinked ground velocity of correlated R, velocities missing (mask), invalid (NaN)
+    and of invalid covariance (NaN)."""
+    rng = np.random.default_rng(5)
+    fast, slow = make_filter(name), make_filter(name, compiled=False)
+    n = 300
+    z = rng.normal(0, 3e4, (n, 3))
+    state = slow.init(z, np.full((n, 3), 1e4))
+    for k in range(6):
+        pred = slow.predict(state, rng.uniform(0.5, 12.0, n))
+        v = rng.normal(0, 150, (n, 2))
+        sd = rng.uniform(0.3, 3.0, (n, 2))
+        r = np.einsum("bi,bj->bij", sd, sd) * np.array([[1.0, 0.3], [0.3, 1.0]])
+        v[:5] = np.nan
+        r[5:9, 0, 0] = np.nan
+        mask = rng.random(n) < 0.8
+        a, b = fast.observe_velocity(pred, v, r, mask), slow.observe_velocity(pred, v, r, mask)
+        assert not np.array_equal(b["x"], pred["x"])
+        for key in b:
+            scale = np.abs(b[key]).max(axis=tuple(range(1, b[key].ndim)), keepdims=True) + 1e-300
+            assert np.all(np.abs(a[key] - b[key]) <= REL * scale), (key, k)
+        state = b
+
+
 def test_anisotropic_q_keeps_the_numpy_path():
     """The compiled kernel has the isotropic closed form only; (q_x ≠ q_y) must not use it."""
     filt = make_filter("imm", q=(1.0, 4.0))

@@ -49,7 +49,7 @@ from scipy.linalg import expm
 from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import G0
 from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.filters.imm_kernel import imm_predict_kernel, imm_update_kernel
+from tertiary.filters.imm_kernel import imm_predict_kernel, imm_update_kernel, imm_velocity_kernel
 
 #: paper's model set (rad/s; 0 = CV), TPM and normalised μ₀ (the paper's table 2.6 row 20)
 PAPER_OMEGAS = (0.001, 0.045, 0.0)
@@ -587,7 +587,7 @@ class IMMFilter(TrackFilter):
         """Every model updated with the measured horizontal velocity (H picks vx, vy), and the
         mode probabilities with its likelihood under each model: a velocity measurement tells a
         turn model from CV at once, where positions need several scans."""
-        return imm_velocity_update(state, v, r, mask, self.core.mu_floor)
+        return imm_velocity_update(state, v, r, mask, self.core.mu_floor, compiled=self.compiled)
 
     def output(self, state: State) -> Output:
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])
@@ -605,16 +605,23 @@ class IMMFilter(TrackFilter):
         return imm_combine(state["x"], state["P"], state["mu"])
 
 
-def imm_velocity_update(state: State, v: F64, r: F64, mask: NDArray[np.bool_], mu_floor: float) -> State:
+def imm_velocity_update(state: State, v: F64, r: F64, mask: NDArray[np.bool_], mu_floor: float,
+                        compiled: bool = False) -> State:
     """The IMM states ``x`` (B, M, N ≥ 4), ``P``, ``mu`` updated with horizontal velocities ``v``
     (B, 2) of covariance ``r`` (B, 2, 2) where ``mask`` and both are finite (:func:`imm_update`
-    with :data:`VEL_IDX`); the other entries of ``state`` are carried."""
+    with :data:`VEL_IDX`); the other entries of ``state`` are carried. ``compiled``: the same
+    equations per track (:func:`~tertiary.filters.imm_kernel.imm_velocity_kernel`)."""
     v, r = np.asarray(v, float), np.asarray(r, float)
     ok = np.asarray(mask, bool) & np.isfinite(v).all(axis=1) & np.isfinite(r).all(axis=(1, 2))
     if not ok.any():
         return state
     vv = np.where(ok[:, None], v, 0.0)
     rr = np.where(ok[:, None, None], r, np.eye(2))
+    if compiled:
+        ready_for("imm_velocity")
+        x, p, mu = imm_velocity_kernel(arg(state["x"]), arg(state["P"]), arg(state["mu"]), arg(vv), arg(rr),
+                                       arg(ok, np.bool_), float(mu_floor))
+        return {**state, "x": x, "P": p, "mu": mu}
     x, p, mu, _ = imm_update(state["x"], state["P"], state["mu"], vv, rr, ok, mu_floor, h=VEL_IDX)
     return {**state, "x": x, "P": p, "mu": mu}
 

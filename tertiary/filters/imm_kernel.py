@@ -11,7 +11,7 @@ from numba import types as nbt
 
 from tertiary.core.jit import register_kernel
 
-__all__ = ["imm_predict_kernel", "imm_update_kernel"]
+__all__ = ["imm_predict_kernel", "imm_update_kernel", "imm_velocity_kernel"]
 
 
 def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, ANN202 - numba kernel
@@ -34,6 +34,15 @@ def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, 
     qm = np.zeros((4, 4))
     ap = np.empty((4, 4))
     pi = np.pi
+    # the models the TPM lets into each model j (the symmetric grid's turn models mix with
+    # themselves and CV alone): src[j, :cnt[j]]
+    src = np.empty((m_n, m_n), np.int64)
+    cnt = np.zeros(m_n, np.int64)
+    for j in range(m_n):
+        for i in range(m_n):
+            if tpm[i, j] != 0.0:
+                src[j, cnt[j]] = i
+                cnt[j] += 1
     for b in range(b_n):
         t = dt[b]
         for j in range(m_n):
@@ -45,24 +54,23 @@ def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, 
             for i in range(m_n):
                 w[i, j] = tpm[i, j] * mu[b, i] / den
         for j in range(m_n):
+            # the models mixed into j only, and the upper triangle (P̄_j is symmetric as its
+            # terms are); the sums in the order of the dense formulas
             for n in range(4):
                 acc = 0.0
-                for i in range(m_n):
-                    acc += w[i, j] * x[b, i, n]
+                for k in range(cnt[j]):
+                    acc += w[src[j, k], j] * x[b, src[j, k], n]
                 xm[n] = acc
             for r in range(4):
-                for n in range(4):
+                for n in range(r, 4):
                     acc = 0.0
-                    for i in range(m_n):
-                        acc += w[i, j] * p[b, i, r, n]
-                    for i in range(m_n):
+                    for k in range(cnt[j]):
+                        acc += w[src[j, k], j] * p[b, src[j, k], r, n]
+                    for k in range(cnt[j]):
+                        i = src[j, k]
                         acc += w[i, j] * (x[b, i, r] - xm[r]) * (x[b, i, n] - xm[n])
                     pm[r, n] = acc
-            for r in range(4):
-                for n in range(r + 1, 4):
-                    v = 0.5 * (pm[r, n] + pm[n, r])
-                    pm[r, n] = v
-                    pm[n, r] = v
+                    pm[n, r] = acc
             # model matrices (a_ct, q_ct): every coefficient exact at ω → 0
             om = omegas[j]
             xx = om * t
@@ -259,11 +267,79 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
     return xo, po, muo, xvo, pvo, nu_o, s_o, nis_o
 
 
+def _imm_velocity_update_py(x, p, mu, z, r, ok, mu_floor):  # noqa: ANN001, ANN202 - numba kernel
+    """:func:`~.imm.imm_velocity_update` per track, written out for numba: every model updated
+    with the measured horizontal velocity (H picks vx, vy: state indices 1 and 3) and the mode
+    probabilities with its likelihood under each model (:func:`~.imm.imm_update` with
+    ``h=VEL_IDX``: log-domain likelihoods, μ floor). Tracks without ``ok`` are carried."""
+    b_n, m_n = mu.shape
+    n_x = x.shape[2]
+    xo = x.copy()
+    po = p.copy()
+    muo = mu.copy()
+    k = np.empty((n_x, 2))
+    ks = np.empty((n_x, 2))
+    lw = np.empty(m_n)
+    log2pi = np.log(2.0 * np.pi)
+    for b in range(b_n):
+        if not ok[b]:
+            continue
+        for j in range(m_n):
+            m00 = p[b, j, 1, 1] + r[b, 0, 0]
+            m01 = p[b, j, 1, 3] + r[b, 0, 1]
+            m10 = p[b, j, 3, 1] + r[b, 1, 0]
+            m11 = p[b, j, 3, 3] + r[b, 1, 1]
+            dm = m00 * m11 - m01 * m10
+            i00, i01, i10, i11 = m11 / dm, -m01 / dm, -m10 / dm, m00 / dm
+            v0 = z[b, 0] - x[b, j, 1]
+            v1 = z[b, 1] - x[b, j, 3]
+            for n in range(n_x):
+                h0, h1 = p[b, j, n, 1], p[b, j, n, 3]
+                k[n, 0] = h0 * i00 + h1 * i10
+                k[n, 1] = h0 * i01 + h1 * i11
+                ks[n, 0] = k[n, 0] * m00 + k[n, 1] * m10
+                ks[n, 1] = k[n, 0] * m01 + k[n, 1] * m11
+                xo[b, j, n] = x[b, j, n] + k[n, 0] * v0 + k[n, 1] * v1
+            for rr in range(n_x):
+                for n in range(n_x):
+                    po[b, j, rr, n] = p[b, j, rr, n] - (ks[rr, 0] * k[n, 0] + ks[rr, 1] * k[n, 1])
+            for rr in range(n_x):
+                for n in range(rr + 1, n_x):
+                    v = 0.5 * (po[b, j, rr, n] + po[b, j, n, rr])
+                    po[b, j, rr, n] = v
+                    po[b, j, n, rr] = v
+            sn0 = i00 * v0 + i01 * v1
+            sn1 = i10 * v0 + i11 * v1
+            loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
+            lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
+        top = lw[0]
+        for j in range(1, m_n):            # NaN wins, as in ndarray.max
+            if lw[j] > top or lw[j] != lw[j]:
+                top = lw[j]
+        tot = 0.0
+        for j in range(m_n):
+            lw[j] = np.exp(lw[j] - top)
+            tot += lw[j]
+        for j in range(m_n):
+            lw[j] = lw[j] / tot
+        if mu_floor > 0:
+            tot = 0.0
+            for j in range(m_n):
+                lw[j] = max(lw[j], mu_floor)
+                tot += lw[j]
+            for j in range(m_n):
+                lw[j] = lw[j] / tot
+        for j in range(m_n):
+            muo[b, j] = lw[j]
+    return xo, po, muo
+
+
 # error_model="numpy": x / 0 is inf or nan, as on the numpy path (not an exception), and less
 # compilation without the zero checks; the dispatchers compile (or load from numba's on-disk
 # cache) on first use
 imm_update_kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(_imm_update_py)
 imm_predict_kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(_imm_predict_py)
+imm_velocity_kernel = numba.njit(cache=True, nogil=True, error_model="numpy")(_imm_velocity_update_py)
 
 
 def _predict_signature() -> tuple:
@@ -278,3 +354,11 @@ def _update_signature() -> tuple:
 
 register_kernel("imm_predict", __name__, imm_predict_kernel, _predict_signature)
 register_kernel("imm_update", __name__, imm_update_kernel, _update_signature)
+
+
+def _velocity_signature() -> tuple:
+    f2, f3, f4 = (nbt.Array(nbt.float64, n, "C") for n in (2, 3, 4))
+    return (f3, f4, f2, f2, f3, nbt.Array(nbt.boolean, 1, "C"), nbt.float64)
+
+
+register_kernel("imm_velocity", __name__, imm_velocity_kernel, _velocity_signature)
