@@ -319,39 +319,6 @@ def test_one_picture_on_disk_is_read_in_place_and_scores_as_in_memory(terminal, 
     assert rows == json.loads(json.dumps(mem.counts))
 
 
-@pytest.mark.parametrize("gap", [False, True])
-def test_pictures_split_by_the_windows_are_read_where_they_were_written(terminal, tmp_path, monkeypatch, gap):
-    """A run of several pictures on disk: the windows write its fused and tracks parts split by
-    picture as well, and the end reads each picture there instead of regrouping the table (the
-    same metrics and alerts as in memory). A window stored without its split (``gap``) makes the
-    end regroup the table as before. Fails if a picture's split files were read with another
-    picture's, a window's split were lost, or the end trusted an incomplete split."""
-    from tertiary.runtime.windows import PartStore
-    copies: list[str] = []
-    monkeypatch.setattr(pl.DataFrame, "write_parquet", lambda self, f, *a, w=pl.DataFrame.write_parquet, **k:
-                        (copies.append(str(f)) if "_by_picture_" in str(f) else None) or w(self, f, *a, **k))
-    monkeypatch.setattr(tables, "EVAL_BLOCK_ROWS", 500)
-    if gap:
-        def write(self, w, outputs, f=PartStore.write):
-            held, self.split = self.split, ({} if w.index == 3 else self.split)
-            f(self, w, outputs)
-            self.split = held
-        monkeypatch.setattr(PartStore, "write", write)
-    cfg = pipeline.PipelineConfig(methods=("information", "arithmetic"), filters=("singer", "cv"),
-                                  stca_lookaheads_s=(105.0,))
-    mem = pipeline.process(terminal, cfg, window_s=60.0)
-    made: list = []
-    monkeypatch.setattr(tables.OnDiskTable, "__init__", lambda self, *a, f=tables.OnDiskTable.__init__:
-                        f(self, *a) or made.append(self))
-    pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
-    assert {d.name for d in made} == {"fused", "tracks"}
-    assert all((d.split is None) == gap for d in made) and bool(copies) == gap
-    assert [len(d.index) for d in sorted(made, key=lambda d: d.name)] == [3, 4]
-    with RunStore.open(tmp_path / "run") as st:
-        _same(st.read("metrics"), mem.metrics, "metrics")
-        _same(st.read("alerts"), mem.alerts, "alerts")
-
-
 def test_empty_window_in_the_middle(terminal, terminal_whole):
     """A silence longer than a window (no report for 90 s): empty windows carry the state unchanged."""
     from datetime import timedelta

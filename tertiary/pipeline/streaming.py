@@ -37,7 +37,6 @@ from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_r
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
-from tertiary.pipeline.tables import split_pictures
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
 from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
@@ -406,8 +405,6 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
                       source.first_us if source.windowable else None, occupied, ctx.keep_us))
     meter = Meter(clock.say, (ws[-1].index + 1) if ws else start)
     store = WindowStore(parts)
-    split_pictures(parts, {"fused": len(cfg.methods) + bool(cfg.centralized),
-                           "tracks": len(cfg.methods) * len(cfg.filters)})
     if ctx.bound is not None or ctx.lags:
         ctx.stored_scored = functools.partial(store.stored, SCORED)
     overlap = Overlap(lambda st_, h, w_, c: evaluate_step(cfg, ctx, st_, h, w_, c), clock.say) \

@@ -30,26 +30,11 @@ __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread"
            "check_tables", "store_sink", "for_sink", "confirmed_targets", "read_table", "table_columns", "whole_table", "target_counts",
            "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
            "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH", "NOT_SCORED", "PartTrim",
-           "part_trim", "PICTURE_KEYS", "split_pictures"]
+           "part_trim"]
 
 
 #: where a run's tables go: a frame whole, or a streamed table part by part (:class:`StreamedTable`)
 Sink = Callable[[str, "pl.DataFrame | StreamedTable"], None]
-
-
-#: the key columns of a picture of each table the whole-run stages read a picture at a time
-PICTURE_KEYS = {"fused": ("method",), "tracks": ("method", "filter")}
-
-
-def split_pictures(parts: Any, pictures: dict[str, int]) -> None:
-    """Have a run directory's part store write each table of ``pictures`` (its name: its number
-    of pictures) split by picture as well, when it has more than one: :class:`OnDiskTable` then
-    reads its pictures without regrouping the table at the end of the run (a table of one
-    picture is read in place anyway)."""
-    if isinstance(parts, PartStore):
-        for name, n in pictures.items():
-            if n > 1:
-                parts.split_by_picture(name, PICTURE_KEYS[name])
 
 
 class OnDiskTable:
@@ -61,7 +46,7 @@ class OnDiskTable:
 
     def __init__(self, parts, name: str, empty: pl.DataFrame) -> None:
         self.parts, self.name = parts, name
-        self.keys = list(PICTURE_KEYS.get(name, ("method",)))
+        self.keys = ["method", "filter"] if name == "tracks" else ["method"]
         # beside the parts (removed with them when the run completes), else in the temp directory
         base = parts.dir / PARTS if isinstance(parts, PartStore) else None
         self.dir = Path(tempfile.mkdtemp(prefix=f"_by_picture_{name}_", dir=base))
@@ -69,9 +54,7 @@ class OnDiskTable:
         self.index: dict[tuple, int] = {}
         #: the picture's files when every part holds that one picture: read in place, not copied
         self.direct: list[Path] | None = None
-        #: each picture's files when the windows wrote the table split by picture
-        self.split: dict[tuple, list[Path]] | None = None
-        if self._in_place(parts, name) or self._split_by_windows(parts, name):
+        if self._in_place(parts, name):
             return
         first, slim = None, []
         for w, part in enumerate(prefetched(parts.iter_parts(name))):   # one pass; the next part read meanwhile
@@ -115,28 +98,6 @@ class OnDiskTable:
         self._facts(concat_parts(slim))
         return True
 
-    def _split_by_windows(self, parts, name: str) -> bool:
-        """Whether the windows wrote the table split by picture as well
-        (:meth:`~tertiary.runtime.windows.PartStore.split_by_picture`), every row of it: the
-        pictures are then read there, without the regrouping copy at the end of the run."""
-        if not isinstance(parts, PartStore) or name not in parts.split:
-            return False
-        files = parts.part_files(name)
-        if not files:
-            return False
-        frame = concat_parts([pl.read_parquet(f, columns=[c for c in self._SLIM if c in pl.read_parquet_schema(f)])
-                              for f in files])
-        keys = frame.select(self.keys).unique(maintain_order=True).rows() if frame.height else []
-        split = {k: parts.picture_files(name, k) for k in keys}
-        held = [f for fs in split.values() for f in fs]
-        if (pl.scan_parquet(held).select(pl.len()).collect().item() if held else 0) != frame.height:
-            return False         # a window stored without its split: regrouped here
-        self.split = split
-        self.index = {k: i for i, k in enumerate(keys)}
-        self.empty = pl.DataFrame(schema=pl.read_parquet_schema(files[0]))
-        self._facts(frame)
-        return True
-
     def _facts(self, frame: pl.DataFrame) -> None:
         """What finalize needs of the whole table, from its (run, method, filter, target_id,
         tentative) columns."""
@@ -173,8 +134,6 @@ class OnDiskTable:
         k = self.index.get(tuple(key))
         if k is not None and self.direct is not None:
             return self.direct, [c for c in self.empty.columns if c not in skip]
-        if k is not None and self.split is not None:
-            return self.split[tuple(key)], [c for c in self.empty.columns if c not in skip]
         files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
         return files, [c for c in self.empty.columns if c not in skip]
 

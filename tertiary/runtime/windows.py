@@ -74,8 +74,6 @@ STREAMED = ("reports", "rejects", "aligned", "associations", "fused", "clusters"
 MANIFEST = "manifest.json"
 STATE_FILE = "state.pkl"
 PARTS = "parts"
-#: beside the parts: the tables split by picture (:meth:`PartStore.split_by_picture`)
-BY_PICTURE = "by_picture"
 ENGINE_VERSION = 1
 
 Progress = Callable[[str], None]
@@ -292,11 +290,6 @@ def incomplete_message(run_dir: str | Path) -> str | None:
             f"--resume {run_dir}`")
 
 
-def picture_dir(key: tuple) -> str:
-    """The directory name of a picture's files (a digest: the key's values need not be valid names)."""
-    return hashlib.sha1(repr(tuple(key)).encode()).hexdigest()[:16]
-
-
 class PartStore:
     """Per-window Parquet parts, the carried state and the manifest of one run directory.
     ``trim(name, frame)``: what of a window's table is written (None: all of it); the header's
@@ -305,15 +298,6 @@ class PartStore:
     def __init__(self, run_dir: Path, manifest: dict,
                  trim: Callable[[str, pl.DataFrame], pl.DataFrame] | None = None) -> None:
         self.dir, self.manifest, self.trim = run_dir, manifest, trim
-        #: the tables whose parts are also written a picture at a time (their picture key
-        #: columns; :meth:`split_by_picture`)
-        self.split: dict[str, tuple[str, ...]] = {}
-
-    def split_by_picture(self, name: str, keys: tuple[str, ...]) -> None:
-        """Write table ``name``'s parts a second time, split by picture (the values of ``keys``),
-        as each window is written: the whole-run stages read such a table one picture at a time
-        (:meth:`picture_files`) without regrouping it at the end of the run."""
-        self.split[name] = tuple(keys)
 
     @classmethod
     def start(cls, run_dir: Path, header: dict,
@@ -354,7 +338,7 @@ class PartStore:
                                 path=str(run_dir / STATE_FILE))
             state = saved["state"]
         store = cls(run_dir, m, trim)
-        for part in (run_dir / PARTS).rglob("w=*.parquet"):
+        for part in (run_dir / PARTS).glob("*/w=*.parquet"):
             if int(part.stem.split("=")[1]) >= done:       # a killed window's leftovers
                 part.unlink()
         store.manifest["status"] = "running"
@@ -373,12 +357,6 @@ class PartStore:
             # writing fast matters more than a few more bytes
             write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="lz4")
             self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
-            keys = self.split.get(name)
-            if keys and frame.height:
-                for key, rows in frame.partition_by(list(keys), as_dict=True, maintain_order=True).items():
-                    d = self.dir / PARTS / BY_PICTURE / name / picture_dir(key)
-                    d.mkdir(parents=True, exist_ok=True)
-                    write_parquet_atomic(rows, d / f"w={w.index:06d}.parquet", compression="lz4")
 
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
         """Carried state, then the manifest: the window is complete."""
@@ -428,15 +406,8 @@ class PartStore:
         """The files of every complete window's part of ``name``, in window order."""
         return self._files(name)
 
-    def picture_files(self, name: str, key: tuple) -> list[Path]:
-        """The files of picture ``key`` of every complete window of a table split by picture
-        (:meth:`split_by_picture`), in window order."""
-        return self._done(sorted((self.dir / PARTS / BY_PICTURE / name / picture_dir(key)).glob("w=*.parquet")))
-
     def _files(self, name: str) -> list[Path]:
-        return self._done(sorted((self.dir / PARTS / name).glob("w=*.parquet")))
-
-    def _done(self, files: list[Path]) -> list[Path]:
+        files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
         return [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]
 
     def _commit(self) -> None:
