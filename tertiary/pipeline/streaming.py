@@ -454,7 +454,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
 
 class WindowStore:
     """A window's parts, carried state and manifest written to a run directory on a thread of
-    their own while the next window computes (the windows alone keep the second core idle). One
+    their own while the next window computes. One
     window in flight: :meth:`put` waits for the previous one first, so the manifest names a
     window complete only once its parts and state are on disk, in window order. The state is
     pickled by the caller before the next window runs (a stage may reuse its state's arrays).
