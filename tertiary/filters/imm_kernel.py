@@ -141,6 +141,66 @@ def _imm_predict_py(x, p, mu, dt, omegas, tpm, q, xv, pv, qz):  # noqa: ANN001, 
     return xo, po, co, xvo, pvo
 
 
+def _models_update_py(x, p, mu, xo, po, muo, b, z0, z1, r, i0, i1, mu_floor, k, ks, lw):  # noqa: ANN001, ANN202
+    """Every model of track ``b`` updated with the measurement (``z0``, ``z1``) of its state
+    components ``i0``, ``i1`` (covariance ``r``, 2 × 2) into ``xo``, ``po``, and its mode
+    probabilities into ``muo`` (:func:`~.imm.imm_update`: log-domain likelihoods, μ floor);
+    ``k``, ``ks``, ``lw``: scratch."""
+    m_n, n_x = mu.shape[1], x.shape[2]
+    log2pi = np.log(2.0 * np.pi)
+    for j in range(m_n):
+        m00 = p[b, j, i0, i0] + r[0, 0]
+        m01 = p[b, j, i0, i1] + r[0, 1]
+        m10 = p[b, j, i1, i0] + r[1, 0]
+        m11 = p[b, j, i1, i1] + r[1, 1]
+        dm = m00 * m11 - m01 * m10
+        n00, n01, n10, n11 = m11 / dm, -m01 / dm, -m10 / dm, m00 / dm
+        v0 = z0 - x[b, j, i0]
+        v1 = z1 - x[b, j, i1]
+        for n in range(n_x):
+            h0, h1 = p[b, j, n, i0], p[b, j, n, i1]
+            k[n, 0] = h0 * n00 + h1 * n10
+            k[n, 1] = h0 * n01 + h1 * n11
+            ks[n, 0] = k[n, 0] * m00 + k[n, 1] * m10
+            ks[n, 1] = k[n, 0] * m01 + k[n, 1] * m11
+            xo[b, j, n] = x[b, j, n] + k[n, 0] * v0 + k[n, 1] * v1
+        for q in range(n_x):
+            for n in range(n_x):
+                po[b, j, q, n] = p[b, j, q, n] - (ks[q, 0] * k[n, 0] + ks[q, 1] * k[n, 1])
+        for q in range(n_x):
+            for n in range(q + 1, n_x):
+                v = 0.5 * (po[b, j, q, n] + po[b, j, n, q])
+                po[b, j, q, n] = v
+                po[b, j, n, q] = v
+        sn0 = n00 * v0 + n01 * v1
+        sn1 = n10 * v0 + n11 * v1
+        loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
+        lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
+    top = lw[0]
+    for j in range(1, m_n):            # NaN wins, as in ndarray.max
+        if lw[j] > top or lw[j] != lw[j]:
+            top = lw[j]
+    tot = 0.0
+    for j in range(m_n):
+        lw[j] = np.exp(lw[j] - top)
+        tot += lw[j]
+    for j in range(m_n):
+        lw[j] = lw[j] / tot
+    if mu_floor > 0:
+        tot = 0.0
+        for j in range(m_n):
+            lw[j] = max(lw[j], mu_floor)
+            tot += lw[j]
+        for j in range(m_n):
+            lw[j] = lw[j] / tot
+    for j in range(m_n):
+        muo[b, j] = lw[j]
+
+
+# compiled before the kernels that call it (numba inlines it into them)
+_models_update = numba.njit(cache=True, nogil=True, error_model="numpy")(_models_update_py)
+
+
 def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, ANN202 - numba kernel
     """:meth:`IMMFilter.update` per track, written out for numba (same equations as
     :func:`imm_combine` (innovation and NIS of the combined prediction), :func:`imm_update`
@@ -166,7 +226,6 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
     k = np.empty((4, 2))
     ks = np.empty((4, 2))
     lw = np.empty(m_n)
-    log2pi = np.log(2.0 * np.pi)
     for b in range(b_n):
         if not ok[b]:
             continue
@@ -209,53 +268,7 @@ def _imm_update_py(x, p, mu, xv, pv, z, rh, rz, ok, mu_floor):  # noqa: ANN001, 
         nu_o[b, 0], nu_o[b, 1], nu_o[b, 2] = n0, n1, nz
         s_o[b, 0], s_o[b, 1], s_o[b, 2] = s00, s11, sz
         # model-conditioned updates with H = [[1,0,0,0],[0,0,1,0]]
-        for j in range(m_n):
-            m00 = p[b, j, 0, 0] + rh[b, 0, 0]
-            m01 = p[b, j, 0, 2] + rh[b, 0, 1]
-            m10 = p[b, j, 2, 0] + rh[b, 1, 0]
-            m11 = p[b, j, 2, 2] + rh[b, 1, 1]
-            dm = m00 * m11 - m01 * m10
-            i00, i01, i10, i11 = m11 / dm, -m01 / dm, -m10 / dm, m00 / dm
-            v0 = z[b, 0] - x[b, j, 0]
-            v1 = z[b, 1] - x[b, j, 2]
-            for n in range(4):
-                h0, h1 = p[b, j, n, 0], p[b, j, n, 2]
-                k[n, 0] = h0 * i00 + h1 * i10
-                k[n, 1] = h0 * i01 + h1 * i11
-                ks[n, 0] = k[n, 0] * m00 + k[n, 1] * m10
-                ks[n, 1] = k[n, 0] * m01 + k[n, 1] * m11
-                xo[b, j, n] = x[b, j, n] + k[n, 0] * v0 + k[n, 1] * v1
-            for r in range(4):
-                for n in range(4):
-                    po[b, j, r, n] = p[b, j, r, n] - (ks[r, 0] * k[n, 0] + ks[r, 1] * k[n, 1])
-            for r in range(4):
-                for n in range(r + 1, 4):
-                    v = 0.5 * (po[b, j, r, n] + po[b, j, n, r])
-                    po[b, j, r, n] = v
-                    po[b, j, n, r] = v
-            sn0 = i00 * v0 + i01 * v1
-            sn1 = i10 * v0 + i11 * v1
-            loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
-            lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
-        top = lw[0]
-        for j in range(1, m_n):            # NaN wins, as in ndarray.max
-            if lw[j] > top or lw[j] != lw[j]:
-                top = lw[j]
-        tot = 0.0
-        for j in range(m_n):
-            lw[j] = np.exp(lw[j] - top)
-            tot += lw[j]
-        for j in range(m_n):
-            lw[j] = lw[j] / tot
-        if mu_floor > 0:
-            tot = 0.0
-            for j in range(m_n):
-                lw[j] = max(lw[j], mu_floor)
-                tot += lw[j]
-            for j in range(m_n):
-                lw[j] = lw[j] / tot
-        for j in range(m_n):
-            muo[b, j] = lw[j]
+        _models_update(x, p, mu, xo, po, muo, b, z[b, 0], z[b, 1], rh[b], 0, 2, mu_floor, k, ks, lw)
         # vertical CV channel, H = [1, 0]
         k0 = pv[b, 0, 0] / sz
         k1 = pv[b, 1, 0] / sz
@@ -280,57 +293,9 @@ def _imm_velocity_update_py(x, p, mu, z, r, ok, mu_floor):  # noqa: ANN001, ANN2
     k = np.empty((n_x, 2))
     ks = np.empty((n_x, 2))
     lw = np.empty(m_n)
-    log2pi = np.log(2.0 * np.pi)
     for b in range(b_n):
-        if not ok[b]:
-            continue
-        for j in range(m_n):
-            m00 = p[b, j, 1, 1] + r[b, 0, 0]
-            m01 = p[b, j, 1, 3] + r[b, 0, 1]
-            m10 = p[b, j, 3, 1] + r[b, 1, 0]
-            m11 = p[b, j, 3, 3] + r[b, 1, 1]
-            dm = m00 * m11 - m01 * m10
-            i00, i01, i10, i11 = m11 / dm, -m01 / dm, -m10 / dm, m00 / dm
-            v0 = z[b, 0] - x[b, j, 1]
-            v1 = z[b, 1] - x[b, j, 3]
-            for n in range(n_x):
-                h0, h1 = p[b, j, n, 1], p[b, j, n, 3]
-                k[n, 0] = h0 * i00 + h1 * i10
-                k[n, 1] = h0 * i01 + h1 * i11
-                ks[n, 0] = k[n, 0] * m00 + k[n, 1] * m10
-                ks[n, 1] = k[n, 0] * m01 + k[n, 1] * m11
-                xo[b, j, n] = x[b, j, n] + k[n, 0] * v0 + k[n, 1] * v1
-            for rr in range(n_x):
-                for n in range(n_x):
-                    po[b, j, rr, n] = p[b, j, rr, n] - (ks[rr, 0] * k[n, 0] + ks[rr, 1] * k[n, 1])
-            for rr in range(n_x):
-                for n in range(rr + 1, n_x):
-                    v = 0.5 * (po[b, j, rr, n] + po[b, j, n, rr])
-                    po[b, j, rr, n] = v
-                    po[b, j, n, rr] = v
-            sn0 = i00 * v0 + i01 * v1
-            sn1 = i10 * v0 + i11 * v1
-            loglik = -0.5 * (v0 * sn0 + v1 * sn1) - 0.5 * np.log(dm) - log2pi
-            lw[j] = np.log(max(mu[b, j], 1e-300)) + loglik
-        top = lw[0]
-        for j in range(1, m_n):            # NaN wins, as in ndarray.max
-            if lw[j] > top or lw[j] != lw[j]:
-                top = lw[j]
-        tot = 0.0
-        for j in range(m_n):
-            lw[j] = np.exp(lw[j] - top)
-            tot += lw[j]
-        for j in range(m_n):
-            lw[j] = lw[j] / tot
-        if mu_floor > 0:
-            tot = 0.0
-            for j in range(m_n):
-                lw[j] = max(lw[j], mu_floor)
-                tot += lw[j]
-            for j in range(m_n):
-                lw[j] = lw[j] / tot
-        for j in range(m_n):
-            muo[b, j] = lw[j]
+        if ok[b]:
+            _models_update(x, p, mu, xo, po, muo, b, z[b, 0], z[b, 1], r[b], 1, 3, mu_floor, k, ks, lw)
     return xo, po, muo
 
 
