@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import shutil
 import tempfile
+import threading
 import time
 import weakref
 from collections.abc import Callable, Collection, Iterator
@@ -40,9 +41,10 @@ Sink = Callable[[str, "pl.DataFrame | StreamedTable"], None]
 class OnDiskTable:
     """A streamed table finalize leaves on disk once stored (memory): evaluation reads
     it back one picture at a time, so the whole-run stages never hold every picture at once.
-    The windows' parts are regrouped once by picture (one part in memory at a time), so reading
-    a picture reads that picture only; the same pass takes what finalize needs of the whole
-    table (height, pictures in order of appearance, confirmed pictures, target counts)."""
+    What finalize needs of the whole table (height, pictures in order of appearance, confirmed
+    pictures, target counts) is read from a few columns of each part. The parts are regrouped
+    by picture (one part in memory at a time) only when a picture is first read, so a run whose
+    windows evaluated every picture never copies the table."""
 
     def __init__(self, parts, name: str, empty: pl.DataFrame) -> None:
         self.parts, self.name = parts, name
@@ -54,49 +56,51 @@ class OnDiskTable:
         self.index: dict[tuple, int] = {}
         #: the picture's files when every part holds that one picture: read in place, not copied
         self.direct: list[Path] | None = None
-        if self._in_place(parts, name):
-            return
-        first, slim = None, []
-        for w, part in enumerate(prefetched(parts.iter_parts(name))):   # one pass; the next part read meanwhile
-            first = part.clear() if first is None else first
-            slim.append(part.select(c for c in ("run", "method", "filter", "target_id", "tentative")
-                                    if c in part.columns))
-            if part.height == 0:
-                continue
-            for key, rows in part.partition_by(self.keys, as_dict=True, maintain_order=True).items():
-                d = self.dir / str(self.index.setdefault(key, len(self.index)))
-                d.mkdir(exist_ok=True)
-                # a scratch copy read back once or twice: fast compression, not small files
-                rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
-        self.empty = empty if first is None else first
-        self._facts(concat_parts(slim) if slim else pl.DataFrame())
+        self._grouped = threading.Lock()
+        self._regrouped = False
+        got = [(f, part) for f, part in self._slim_parts(empty) if part.height]
+        whole = concat_parts([part for _, part in got]) if got else pl.DataFrame()
+        if whole.height:
+            self.index = {k: i for i, k in enumerate(whole.select(self.keys).unique(maintain_order=True).rows())}
+        if len(self.index) == 1 and got[0][0] is not None:
+            # every part with rows holds one and the same picture (a run of one fusion method
+            # and one filter): read where they are, never copied (disk and a rewrite of the table)
+            self.direct = [f for f, _ in got]
+        self._facts(whole)
 
     _SLIM = ("run", "method", "filter", "target_id", "tentative")
 
-    def _in_place(self, parts, name: str) -> bool:
-        """Whether every part with rows holds one and the same picture (a run of one fusion
-        method and one filter): the parts are then read where they are, without the regrouping
-        copy (disk and a rewrite of the whole table)."""
-        if not hasattr(parts, "part_files"):
-            return False
-        files, slim, keys = [], [], set()
-        for f in parts.part_files(name):
-            have = pl.read_parquet_schema(f)
-            part = pl.read_parquet(f, columns=[c for c in self._SLIM if c in have])
-            if part.height == 0:
-                continue
-            keys.update(part.select(self.keys).unique().rows())
-            if len(keys) > 1:
-                return False
-            files.append(f)
-            slim.append(part)
-        if not files:
-            return False
-        self.direct = files
-        self.index = {keys.pop(): 0}
-        self.empty = pl.DataFrame(schema=pl.read_parquet_schema(files[0]))
-        self._facts(concat_parts(slim))
-        return True
+    def _slim_parts(self, empty: pl.DataFrame) -> Iterator[tuple[Path | None, pl.DataFrame]]:
+        """Each part's file (None when the parts are not files) and its (run, method, filter,
+        target_id, tentative) columns; ``empty`` takes the schema of the first part with rows."""
+        schema, rows = None, False
+        if hasattr(self.parts, "part_files"):
+            each = ((f, pl.read_parquet_schema(f)) for f in self.parts.part_files(self.name))
+            got = ((f, have, pl.read_parquet(f, columns=[c for c in self._SLIM if c in have])) for f, have in each)
+        else:
+            got = ((None, part.schema, part.select(c for c in self._SLIM if c in part.columns))
+                   for part in self.parts.iter_parts(self.name))
+        for f, have, part in got:
+            if schema is None or (part.height and not rows):
+                schema, rows = have, part.height > 0
+            yield f, part
+        self.empty = empty if schema is None else pl.DataFrame(schema=schema)
+
+    def _regroup(self) -> None:
+        """The windows' parts copied once into a directory per picture (one part in memory at a
+        time; the next part read meanwhile)."""
+        with self._grouped:
+            if self._regrouped:
+                return
+            for w, part in enumerate(prefetched(self.parts.iter_parts(self.name))):
+                if part.height == 0:
+                    continue
+                for key, rows in part.partition_by(self.keys, as_dict=True, maintain_order=True).items():
+                    d = self.dir / str(self.index[key])
+                    d.mkdir(exist_ok=True)
+                    # a scratch copy read back once or twice: fast compression, not small files
+                    rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
+            self._regrouped = True
 
     def _facts(self, frame: pl.DataFrame) -> None:
         """What finalize needs of the whole table, from its (run, method, filter, target_id,
@@ -134,6 +138,8 @@ class OnDiskTable:
         k = self.index.get(tuple(key))
         if k is not None and self.direct is not None:
             return self.direct, [c for c in self.empty.columns if c not in skip]
+        if k is not None:
+            self._regroup()
         files = [] if k is None else sorted((self.dir / str(k)).glob("w=*.parquet"))
         return files, [c for c in self.empty.columns if c not in skip]
 

@@ -1,0 +1,81 @@
+"""The whole-run view of a streamed table left on disk (:class:`OnDiskTable`): its facts from a
+few columns, its pictures read back one at a time, copied by picture only when first read."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import polars as pl
+from polars.testing import assert_frame_equal
+
+from tertiary.pipeline import tables
+
+
+class _Parts:
+    """Window parts as files, as a run's part store holds them."""
+
+    def __init__(self, root: Path, frames: list[pl.DataFrame]) -> None:
+        self.dir = root
+        self.files = []
+        for w, frame in enumerate(frames):
+            f = root / f"w={w:06d}.parquet"
+            frame.write_parquet(f)
+            self.files.append(f)
+
+    def part_files(self, name: str) -> list[Path]:
+        return list(self.files)
+
+    def iter_parts(self, name: str):
+        for f in self.files:
+            yield pl.read_parquet(f)
+
+
+def _window(w: int, methods: list[str]) -> pl.DataFrame:
+    rows = [(0, m, "singer", 10 * w + i, i == 2, float(100 * w + i)) for m in methods for i in range(3)]
+    return pl.DataFrame(rows, schema=["run", "method", "filter", "target_id", "tentative", "x_m"], orient="row")
+
+
+def _copies(table: tables.OnDiskTable) -> list[Path]:
+    return sorted(table.dir.rglob("*.parquet"))
+
+
+def test_pictures_are_copied_by_picture_only_when_one_is_first_read(tmp_path):
+    frames = [_window(0, ["b", "a"]), _window(1, []).clear(), _window(2, ["a", "c"]), _window(3, ["b"])]
+    table = tables.OnDiskTable(_Parts(tmp_path, frames), "fused", pl.DataFrame())
+    whole = pl.concat(frames)
+    assert _copies(table) == []
+    assert table.height == whole.height and table.pictures == [("b",), ("a",), ("c",)]
+    assert table.empty.schema == whole.schema and table.direct is None
+    assert table.target_counts == tables.target_counts(whole)
+    written = []
+    orig = pl.DataFrame.write_parquet
+
+    def counted(self, f, *a, **k):
+        written.append(f)
+        return orig(self, f, *a, **k)
+    pl.DataFrame.write_parquet = counted
+    try:
+        got: dict[str, pl.DataFrame] = {}
+        readers = [threading.Thread(target=lambda m=m: got.__setitem__(m, table.picture((m,))))
+                   for m in ("a", "b", "c")]
+        for t in readers:
+            t.start()
+        for t in readers:
+            t.join()
+    finally:
+        pl.DataFrame.write_parquet = orig
+    assert len(written) == sum(f.select("method").n_unique() for f in frames if f.height)   # one copy
+    for m in ("a", "b", "c"):
+        assert_frame_equal(got[m], whole.filter(pl.col("method") == m))
+        assert_frame_equal(pl.concat(list(table.blocks((m,), rows=1))), got[m])
+    assert table.picture(("z",)).height == 0
+
+
+def test_one_picture_is_read_where_it_is(tmp_path):
+    frames = [_window(0, ["a"]), _window(1, []).clear(), _window(2, ["a"])]
+    parts = _Parts(tmp_path, frames)
+    table = tables.OnDiskTable(parts, "fused", pl.DataFrame())
+    assert table.direct == [parts.files[0], parts.files[2]]
+    assert_frame_equal(table.picture(("a",)), pl.concat(frames))
+    assert _copies(table) == []
