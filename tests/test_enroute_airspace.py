@@ -151,3 +151,35 @@ def test_the_run_notes_say_which_minima_the_alerts_are_scored_on():
     note_minima(EN_ROUTE, notes)
     assert len(notes) == 1
     assert "3 NM / 1,000 ft for pairs both below 15,000 ft (terminal), 5 NM / 1,000 ft otherwise" in notes[0]
+
+
+def test_each_pair_is_predicted_once_by_the_airspace_that_decides_it(monkeypatch):
+    """Tracks above and below the floor, some established on a final, some in an aerodrome zone,
+    predicted under two settings at once: every (setting, pair) reaches the pair geometry once,
+    by the prediction that decides it, and the table is that of the settings one at a time.
+    Fails if the en-route pass, the general pass or the zone's setting also predicts the pairs
+    another one decides (their rows were dropped afterwards)."""
+    from safety.conflicts import AerodromeZone, ApproachVolume, conflicts_steps, init_conflict_state
+    from safety.conflicts import pairs as pairs_mod
+    rng = np.random.default_rng(11)
+    n = 40
+    pos = np.column_stack([rng.uniform(-15e3, 15e3, n), rng.uniform(-2e3, 2e3, n),
+                           rng.choice([900.0, 1_200.0, FL300, FL150 - 100.0], n)])
+    vel = np.column_stack([rng.choice([-120.0, 120.0], n), rng.uniform(-5, 5, n), np.zeros(n)])
+    df = _picture(pos, vel)
+    final = ApproachVolume(-16e3, 0.0, 270.0, length_m=38_500.0)       # arrivals fly west
+    zone = AerodromeZone(10e3, 0.0, name="LFXX")
+    cfgs = [dataclasses.replace(EN_ROUTE, mode="corrected", approach_volumes=(final,), aerodrome_zones=(zone,)),
+            dataclasses.replace(EN_ROUTE, mode="corrected", approach_volumes=(final,))]
+    seen: list[tuple] = []
+
+    def counted(cfg, st, terms, i, j, *a, f=pairs_mod._evaluate_pairs, **k):
+        seen.extend((cfg.aerodrome_zones != (), *sorted([(st[0, p], st[1, p]), (st[0, q], st[1, q])]))
+                    for p, q in zip(i, j))
+        return f(cfg, st, terms, i, j, *a, **k)
+    monkeypatch.setattr(pairs_mod, "_evaluate_pairs", counted)
+    got = conflicts_steps([init_conflict_state()] * 2, df, cfgs, slim=False)
+    assert len(seen) > 100 and len(seen) == len(set(seen))
+    for (out, _), cfg in zip(got, cfgs):
+        alone = conflicts_steps([init_conflict_state()], df, [cfg], slim=False)[0][0]
+        assert out.equals(alone) and out.height

@@ -13,7 +13,7 @@ import polars as pl
 from numpy.typing import NDArray
 
 from safety.conflicts.config import ConflictConfig, zone_index
-from safety.conflicts.pairs import WindowRows, empty_conflicts, pair_rows
+from safety.conflicts.pairs import Groups, WindowRows, empty_conflicts, pair_rows
 from tertiary.core import geo
 
 __all__ = ["approach_membership", "volume_rows"]
@@ -40,26 +40,25 @@ def volume_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable
                  ) -> list[pl.DataFrame]:
     """:func:`_airspace_rows` of each setting, without the pairs whose two tracks are both in one
     of its aerodrome zones (docs/methods.md "Aerodrome zones")."""
-    outs = _airspace_rows(rows, cfgs, map_)
-    member: dict[tuple, NDArray[np.int64]] = {}
-    for k, c in enumerate(cfgs):
-        if c.aerodrome_zones and rows.tracks.height and outs[k].height:
-            if c.aerodrome_zones not in member:
-                member[c.aerodrome_zones] = zone_index(rows.state()[0], c.aerodrome_zones)
-            if np.any(member[c.aerodrome_zones] >= 0):
-                outs[k] = _replaced(outs[k], [], rows, member[c.aerodrome_zones])
-    return outs
+    zones: dict[tuple, NDArray[np.int64]] = {}
+    skip: list[Groups] = []
+    for c in cfgs:
+        if c.aerodrome_zones and rows.tracks.height and c.aerodrome_zones not in zones:
+            zones[c.aerodrome_zones] = zone_index(rows.state()[0], c.aerodrome_zones)
+        member = zones.get(c.aerodrome_zones) if c.aerodrome_zones else None
+        skip.append((member,) if member is not None and np.any(member >= 0) else ())
+    return _airspace_rows(rows, cfgs, map_, skip)
 
 
-def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
-                   ) -> list[pl.DataFrame]:
+def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable],
+                   skip: Sequence[Groups]) -> list[pl.DataFrame]:
     """:func:`_approach_rows` of each setting; a setting with an en-route floor decides the pairs
     whose two tracks are both below it with its minima and every other pair with its en-route
-    minima (docs/methods.md "En-route airspace")."""
+    minima (docs/methods.md "En-route airspace"). ``skip``: as for :func:`pair_rows`."""
     outs: list[pl.DataFrame | None] = [None] * len(cfgs)
     plain = [k for k, c in enumerate(cfgs) if c.enroute_above_m is None]
     if plain:
-        for k, out in zip(plain, _approach_rows(rows, [cfgs[k] for k in plain], map_)):
+        for k, out in zip(plain, _approach_rows(rows, [cfgs[k] for k in plain], map_, [skip[k] for k in plain])):
             outs[k] = out
     floors: dict[float, list[int]] = {}
     for k, c in enumerate(cfgs):
@@ -68,50 +67,53 @@ def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Calla
     for floor, ks in floors.items():
         low = rows.state()[0][:, 2] < floor if rows.tracks.height else np.zeros(0, bool)
         if low.all():                            # a terminal area only: the configured minima
-            for k, out in zip(ks, _approach_rows(rows, [cfgs[k] for k in ks], map_)):
+            for k, out in zip(ks, _approach_rows(rows, [cfgs[k] for k in ks], map_, [skip[k] for k in ks])):
                 outs[k] = out
             continue
-        above = _approach_rows(rows, [cfgs[k].enroute() for k in ks], map_)
-        below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], map_) if low.sum() >= 2
+        # the pairs of two rows below the floor are predicted once, by the terminal minima below
+        below_floor = np.where(low, 0, -1)
+        above = _approach_rows(rows, [cfgs[k].enroute() for k in ks], map_, [(*skip[k], below_floor) for k in ks])
+        below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], map_,
+                                [tuple(g[low] for g in skip[k]) for k in ks]) if low.sum() >= 2
                  else [empty_conflicts() for _ in ks])
         for k, a, b in zip(ks, above, below):
-            outs[k] = _replaced(a, [b], rows, np.where(low, 0, -1))
+            outs[k] = _joined(a, [b])
     return outs
 
 
-def _replaced(base: pl.DataFrame, parts: Sequence[pl.DataFrame], rows: WindowRows, group: NDArray[np.int64]
-              ) -> pl.DataFrame:
-    """``base`` without its pairs of two rows in one group (``group`` ≥ 0 per row; −1: none), with
-    ``parts`` (those pairs, decided otherwise) in their place, in the pair order."""
-    key = ["run", "epoch", "method"]
-    flag = rows.keys().with_columns(pl.Series("__id", rows.ids()).cast(pl.UInt64), pl.Series("__g", group))
-    ga = pl.col("__ga").fill_null(-1)
-    kept = (base.join(flag.rename({"__id": "id_a", "__g": "__ga"}), on=[*key, "id_a"], how="left")
-            .join(flag.rename({"__id": "id_b", "__g": "__gb"}), on=[*key, "id_b"], how="left")
-            .filter(~((ga >= 0) & (ga == pl.col("__gb").fill_null(-2)))).drop("__ga", "__gb"))
-    out = [p for p in (kept, *parts) if p.height]   # an empty part has the empty table's extra columns
-    return pl.concat(out, how="vertical_relaxed").sort([*key, "id_a", "id_b"]) if out else empty_conflicts()
+def _joined(base: pl.DataFrame, parts: Sequence[pl.DataFrame]) -> pl.DataFrame:
+    """``base`` with ``parts`` (pairs it left to another prediction), in the pair order."""
+    out = [p for p in (base, *parts) if p.height]   # an empty part has the empty table's extra columns
+    if len(out) == 1 and out[0] is base:
+        return base
+    return pl.concat(out, how="vertical_relaxed").sort("run", "epoch", "method", "id_a", "id_b") if out \
+        else empty_conflicts()
 
 
-def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
-                   ) -> list[pl.DataFrame]:
+def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable],
+                   skip: Sequence[Groups]) -> list[pl.DataFrame]:
     """:func:`pair_rows` of each setting, with the pairs whose two tracks are established on the
-    same final decided by that volume's parameters instead (:class:`ApproachVolume`)."""
-    outs = pair_rows(rows, cfgs, map_)
+    same final decided by that volume's parameters instead (:class:`ApproachVolume`).
+    ``skip``: as for :func:`pair_rows`."""
     by_vols: dict[tuple, list[int]] = {}
     for k, c in enumerate(cfgs):
         by_vols.setdefault((c.mode, c.approach_volumes), []).append(k)
-    for ks in by_vols.values():
-        vols = cfgs[ks[0]].approach_volumes
-        member = _membership(rows, cfgs[ks[0]])
-        if not np.any(member >= 0):
-            continue
+    members = {key: _membership(rows, cfgs[ks[0]]) for key, ks in by_vols.items()}
+    members = {key: m for key, m in members.items() if np.any(m >= 0)}
+    # the pairs on one final are predicted once, by that volume's parameters below
+    keys = [(c.mode, c.approach_volumes) for c in cfgs]
+    outs = pair_rows(rows, cfgs, map_, [(*skip[k], members[key]) if key in members else tuple(skip[k])
+                                        for k, key in enumerate(keys)])
+    for key, member in members.items():
+        ks = by_vols[key]
         inside: dict[int, list[pl.DataFrame]] = {k: [] for k in ks}
-        for kv, v in enumerate(vols):
+        for kv, v in enumerate(cfgs[ks[0]].approach_volumes):
             mask = member == kv
             if mask.sum() >= 2:
-                for k, part in zip(ks, pair_rows(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks], map_)):
+                got = pair_rows(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks], map_,
+                                [tuple(g[mask] for g in skip[k]) for k in ks])
+                for k, part in zip(ks, got):
                     inside[k].append(part)
         for k in ks:
-            outs[k] = _replaced(outs[k], inside[k], rows, member)
+            outs[k] = _joined(outs[k], inside[k])
     return outs

@@ -22,7 +22,7 @@ from safety.conflicts.turns import ArcTable, arc_lower_bound, arc_rows, turn_rat
 from tertiary.contract import CLEARED_ALT_COLUMN, SELECTED_ALT_COLUMN, TABLES, TIME
 from tertiary.core import geo
 
-__all__ = ["empty_conflicts", "CONFLICT_EXTRA", "WindowRows", "pair_rows"]
+__all__ = ["empty_conflicts", "CONFLICT_EXTRA", "WindowRows", "pair_rows", "Groups", "in_one_group"]
 
 def empty_conflicts() -> pl.DataFrame:
     return pl.DataFrame(schema={**TABLES["conflicts"].required, **CONFLICT_EXTRA})
@@ -253,11 +253,26 @@ def _screen_key(cfg: ConflictConfig) -> tuple:
     return (cfg.mode, cfg.use_turn_rate, cfg.turn_rate_min_dps, cfg.block_points, cfg.bulk_quantile, cfg.v_max_mps)
 
 
-def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
-               ) -> list[pl.DataFrame]:
+#: per row, a group number (−1: none); a pair of two rows in one group is not predicted
+Groups = tuple[NDArray[np.int64], ...]
+
+
+def in_one_group(groups: Groups, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Whether rows ``a`` and ``b`` (pairwise) are in one group of any of ``groups``."""
+    out = np.zeros(len(a), bool)
+    for g in groups:
+        ga = g[a]
+        out |= (ga >= 0) & (ga == g[b])
+    return out
+
+
+def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map,
+              skip: Sequence[Groups] | None = None) -> list[pl.DataFrame]:
     """Per setting, the screened pairs of the (established, not coasting) rows with their
     geometry, thresholds and raw decision (``alert`` before confirmation), sorted by (run,
-    epoch, method, id_a, id_b). The settings of a :func:`_screen_key` share one screen."""
+    epoch, method, id_a, id_b). The settings of a :func:`_screen_key` share one screen.
+    ``skip[k]``: the pairs setting ``k`` leaves to another prediction (both rows in one group),
+    dropped after the screen, before their geometry is computed."""
     tracks = rows.tracks
     if tracks.height < 2:
         return [empty_conflicts() for _ in cfgs]
@@ -286,6 +301,9 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
         def evaluate(k: int, a: NDArray[np.int64], b: NDArray[np.int64], vmin: NDArray[np.float64]
                      ) -> dict[str, NDArray]:
             terms, bnd, tau, _, arcs = setup[k]
+            if skip is not None and skip[k]:
+                keep = ~in_one_group(skip[k], a, b)
+                a, b, vmin = a[keep], b[keep], vmin[keep]
             return _evaluate_pairs(cfgs[k], st, terms, a, b, bnd, tau, arcs, vmin)
         for ci, cj in block_candidates(sc, cfgs[ks[0]].block_points, g, pos_s, vel_s):
             for s in range(0, len(ci), step):
