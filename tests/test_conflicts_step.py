@@ -212,6 +212,28 @@ def test_many_settings_in_one_step_equal_each_setting_alone(scenario):
     assert rows[3] > 1.5 * rows[2] > 0          # 2 400 m keeps far more pairs than 0 m: the union matters
 
 
+def test_the_scored_rows_alone_score_as_every_row(scenario):
+    """``scored_only`` keeps the raw alerts and the first row of each picture epoch: window by
+    window (the m-of-n confirmation carried across them) the alert scoring's rows
+    (:func:`scored_conflicts`) and the states equal those of every row, with fewer rows. Fails
+    if a raw alert that did not confirm, or an epoch's first row, is dropped."""
+    from safety.alerts.episodes import scored_conflicts
+    pic, frame, cfgs = scenario["tracks"], scenario["origin"], _many_settings()
+    lean = [init_conflict_state() for _ in cfgs]
+    full = [init_conflict_state() for _ in cfgs]
+    n_lean = n_full = unconfirmed = 0
+    for w, t0, t1 in _windows(pic, _cuts(pic, scenario["slowest_scan_s"])["60s"]):
+        a = conflicts_steps(lean, w, cfgs, "track_id", frame, t0, t1, slim=False, scored_only=True)
+        b = conflicts_steps(full, w, cfgs, "track_id", frame, t0, t1, slim=False)
+        for (out_a, st_a), (out_b, st_b) in zip(a, b):
+            assert_frame_equal(scored_conflicts(out_a), scored_conflicts(out_b))
+            _assert_state_equal(st_a, st_b)
+            n_lean, n_full = n_lean + out_a.height, n_full + out_b.height
+            unconfirmed += out_b.filter(pl.col("raw_alert") & ~pl.col("alert")).height
+        lean, full = [s for _, s in a], [s for _, s in b]
+    assert unconfirmed > 0 and 0 < n_lean < 0.5 * n_full
+
+
 def test_a_shared_screen_keeps_the_widest_settings_pairs():
     """Two hovering aircraft 9.1 km apart at one height: beyond the 0 m setting's reach (R_h +
     m_h = 7.9 km), within the 2 400 m one's (10.3 km). Screened together, the wide setting

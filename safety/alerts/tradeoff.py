@@ -163,7 +163,7 @@ def scored_rows(picture: "pl.DataFrame | Iterable[pl.DataFrame]", cfgs: Sequence
             for t0, t1 in zip(edges[:-1], edges[1:]):
                 lo, hi = np.searchsorted(us, [t0, t1])
                 steps = conflicts_steps(states, block[order[lo:hi]], cfgs, id_col, frame, t0, t1, slim=False,
-                                        map_=pool.map)
+                                        map_=pool.map, scored_only=True)
                 states = [state for _, state in steps]
                 for k, rows in enumerate(pool.map(scored_conflicts, [out for out, _ in steps])):
                     if dirs is None:

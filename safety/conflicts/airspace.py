@@ -6,6 +6,7 @@ that volume's minimum and look-ahead, pairs below the en-route floor with the te
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
@@ -17,6 +18,9 @@ from safety.conflicts.pairs import Groups, WindowRows, empty_conflicts, pair_row
 from tertiary.core import geo
 
 __all__ = ["approach_membership", "volume_rows"]
+
+#: :func:`pair_rows` with the caller's options: (rows, settings, skip=) -> each setting's rows
+Predict = Callable[..., list[pl.DataFrame]]
 
 def approach_membership(tracks: pl.DataFrame, cfg: ConflictConfig, frame: geo.LocalFrame | None = None
                         ) -> NDArray[np.int64]:
@@ -36,10 +40,11 @@ def _membership(rows: "WindowRows", cfg: ConflictConfig) -> NDArray[np.int64]:
     return member
 
 
-def volume_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map
-                 ) -> list[pl.DataFrame]:
+def volume_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map,
+                scored_only: bool = False) -> list[pl.DataFrame]:
     """:func:`_airspace_rows` of each setting, without the pairs whose two tracks are both in one
-    of its aerodrome zones (docs/methods.md "Aerodrome zones")."""
+    of its aerodrome zones (docs/methods.md "Aerodrome zones"); ``scored_only``: as for
+    :func:`pair_rows`."""
     zones: dict[tuple, NDArray[np.int64]] = {}
     skip: list[Groups] = []
     for c in cfgs:
@@ -47,18 +52,19 @@ def volume_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable
             zones[c.aerodrome_zones] = zone_index(rows.state()[0], c.aerodrome_zones)
         member = zones.get(c.aerodrome_zones) if c.aerodrome_zones else None
         skip.append((member,) if member is not None and np.any(member >= 0) else ())
-    return _airspace_rows(rows, cfgs, map_, skip)
+    return _airspace_rows(rows, cfgs, functools.partial(pair_rows, map_=map_, scored_only=scored_only), skip)
 
 
-def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable],
+def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], predict: Predict,
                    skip: Sequence[Groups]) -> list[pl.DataFrame]:
     """:func:`_approach_rows` of each setting; a setting with an en-route floor decides the pairs
     whose two tracks are both below it with its minima and every other pair with its en-route
-    minima (docs/methods.md "En-route airspace"). ``skip``: as for :func:`pair_rows`."""
+    minima (docs/methods.md "En-route airspace"). ``predict``: :func:`pair_rows` with its options;
+    ``skip``: as for :func:`pair_rows`."""
     outs: list[pl.DataFrame | None] = [None] * len(cfgs)
     plain = [k for k, c in enumerate(cfgs) if c.enroute_above_m is None]
     if plain:
-        for k, out in zip(plain, _approach_rows(rows, [cfgs[k] for k in plain], map_, [skip[k] for k in plain])):
+        for k, out in zip(plain, _approach_rows(rows, [cfgs[k] for k in plain], predict, [skip[k] for k in plain])):
             outs[k] = out
     floors: dict[float, list[int]] = {}
     for k, c in enumerate(cfgs):
@@ -67,13 +73,13 @@ def _airspace_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Calla
     for floor, ks in floors.items():
         low = rows.state()[0][:, 2] < floor if rows.tracks.height else np.zeros(0, bool)
         if low.all():                            # a terminal area only: the configured minima
-            for k, out in zip(ks, _approach_rows(rows, [cfgs[k] for k in ks], map_, [skip[k] for k in ks])):
+            for k, out in zip(ks, _approach_rows(rows, [cfgs[k] for k in ks], predict, [skip[k] for k in ks])):
                 outs[k] = out
             continue
         # the pairs of two rows below the floor are predicted once, by the terminal minima below
         below_floor = np.where(low, 0, -1)
-        above = _approach_rows(rows, [cfgs[k].enroute() for k in ks], map_, [(*skip[k], below_floor) for k in ks])
-        below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], map_,
+        above = _approach_rows(rows, [cfgs[k].enroute() for k in ks], predict, [(*skip[k], below_floor) for k in ks])
+        below = (_approach_rows(rows.subset(low), [cfgs[k] for k in ks], predict,
                                 [tuple(g[low] for g in skip[k]) for k in ks]) if low.sum() >= 2
                  else [empty_conflicts() for _ in ks])
         for k, a, b in zip(ks, above, below):
@@ -90,7 +96,7 @@ def _joined(base: pl.DataFrame, parts: Sequence[pl.DataFrame]) -> pl.DataFrame:
         else empty_conflicts()
 
 
-def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable],
+def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], predict: Predict,
                    skip: Sequence[Groups]) -> list[pl.DataFrame]:
     """:func:`pair_rows` of each setting, with the pairs whose two tracks are established on the
     same final decided by that volume's parameters instead (:class:`ApproachVolume`).
@@ -102,16 +108,16 @@ def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Calla
     members = {key: m for key, m in members.items() if np.any(m >= 0)}
     # the pairs on one final are predicted once, by that volume's parameters below
     keys = [(c.mode, c.approach_volumes) for c in cfgs]
-    outs = pair_rows(rows, cfgs, map_, [(*skip[k], members[key]) if key in members else tuple(skip[k])
-                                        for k, key in enumerate(keys)])
+    outs = predict(rows, cfgs, skip=[(*skip[k], members[key]) if key in members else tuple(skip[k])
+                                     for k, key in enumerate(keys)])
     for key, member in members.items():
         ks = by_vols[key]
         inside: dict[int, list[pl.DataFrame]] = {k: [] for k in ks}
         for kv, v in enumerate(cfgs[ks[0]].approach_volumes):
             mask = member == kv
             if mask.sum() >= 2:
-                got = pair_rows(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks], map_,
-                                [tuple(g[mask] for g in skip[k]) for k in ks])
+                got = predict(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks],
+                              skip=[tuple(g[mask] for g in skip[k]) for k in ks])
                 for k, part in zip(ks, got):
                     inside[k].append(part)
         for k in ks:

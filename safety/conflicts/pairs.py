@@ -267,12 +267,13 @@ def in_one_group(groups: Groups, a: NDArray[np.int64], b: NDArray[np.int64]) -> 
 
 
 def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map,
-              skip: Sequence[Groups] | None = None) -> list[pl.DataFrame]:
+              skip: Sequence[Groups] | None = None, scored_only: bool = False) -> list[pl.DataFrame]:
     """Per setting, the screened pairs of the (established, not coasting) rows with their
     geometry, thresholds and raw decision (``alert`` before confirmation), sorted by (run,
     epoch, method, id_a, id_b). The settings of a :func:`_screen_key` share one screen.
     ``skip[k]``: the pairs setting ``k`` leaves to another prediction (both rows in one group),
-    dropped after the screen, before their geometry is computed."""
+    dropped after the screen, before their geometry is computed. ``scored_only``: only the rows
+    an alert scoring reads (:func:`_assemble`)."""
     tracks = rows.tracks
     if tracks.height < 2:
         return [empty_conflicts() for _ in cfgs]
@@ -320,17 +321,25 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
                 for k, res in zip(ks, map_(lambda k, v: evaluate(k, a, b, v), ks, mins)):
                     chunks[k].append(res)
             del ci, cj
-    return list(map_(lambda k: _assemble(rows, cfgs[k], chunks[k]), range(len(cfgs))))
+    return list(map_(lambda k: _assemble(rows, cfgs[k], chunks[k], scored_only), range(len(cfgs))))
 
 
-def _assemble(rows: WindowRows, cfg: ConflictConfig, chunks: list[dict[str, NDArray]]) -> pl.DataFrame:
-    """The conflicts rows of one setting's evaluated pairs, in (group, id_a, id_b) order."""
+def _assemble(rows: WindowRows, cfg: ConflictConfig, chunks: list[dict[str, NDArray]], scored_only: bool = False
+              ) -> pl.DataFrame:
+    """The conflicts rows of one setting's evaluated pairs, in (group, id_a, id_b) order;
+    ``scored_only``: the raw alert rows and the first row of each (run, epoch, method) group
+    alone — what the m-of-n confirmation and the alert scoring read
+    (:func:`safety.alerts.episodes.scored_conflicts`): the first row of a group in any union of
+    such tables is kept by one of them."""
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return empty_conflicts()
     g, ids, tracks = rows.group(), rows.ids(), rows.tracks
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     i, j = cols.pop("i"), cols.pop("j")
     order = _pair_order(g, ids, i, j)
+    if scored_only:
+        gs = g[i[order]]
+        order = order[cols["alert"][order] | np.r_[True, gs[1:] != gs[:-1]]]
     i, j = i[order], j[order]
     keys = rows.keys()[i]
     # one polars gather of all value columns (parallel over columns) instead of one numpy take each

@@ -168,7 +168,8 @@ def _carry_confirmation(grid: pl.DataFrame, carried: pl.DataFrame, out: pl.DataF
 def conflicts_step(state: ConflictState, picture: pl.DataFrame, cfg: ConflictConfig = ConflictConfig(),
                    id_col: str = "track_id", frame: geo.LocalFrame | None = None,
                    t0_us: int = T_MIN_US, t1_us: int = T_MAX_US, *, method_col: str = "method",
-                   default_method: str = "none", slim: bool = True) -> tuple[pl.DataFrame, ConflictState]:
+                   default_method: str = "none", slim: bool = True, scored_only: bool = False
+                   ) -> tuple[pl.DataFrame, ConflictState]:
     """One time window [t0_us, t1_us) of conflict prediction (the stage step contract).
 
     ``picture``: the picture's rows with epoch in [t0_us, t1_us) (every row of those epochs,
@@ -179,23 +180,26 @@ def conflicts_step(state: ConflictState, picture: pl.DataFrame, cfg: ConflictCon
     row otherwise —, the new state). Over consecutive windows the concatenated outputs equal
     ``predict_conflicts`` (then ``slim_conflicts``) of the whole picture. Pure: ``state`` is
     not modified. Raises ValueError for rows outside the window or a window that starts before
-    the previous one ended."""
+    the previous one ended. ``scored_only``: as for :func:`conflicts_steps`."""
     return conflicts_steps([state], picture, [cfg], id_col, frame, t0_us, t1_us, method_col=method_col,
-                           default_method=default_method, slim=slim)[0]
+                           default_method=default_method, slim=slim, scored_only=scored_only)[0]
 
 
 def conflicts_steps(states: Sequence[ConflictState], picture: pl.DataFrame, cfgs: Sequence[ConflictConfig],
                     id_col: str = "track_id", frame: geo.LocalFrame | None = None,
                     t0_us: int = T_MIN_US, t1_us: int = T_MAX_US, *, method_col: str = "method",
                     default_method: str = "none", slim: bool = True,
-                    map_: Callable[..., Iterable] = map) -> list[tuple[pl.DataFrame, ConflictState]]:
+                    map_: Callable[..., Iterable] = map, scored_only: bool = False
+                    ) -> list[tuple[pl.DataFrame, ConflictState]]:
     """:func:`conflicts_step` of one window under several settings at once, ``states[k]`` the
     state of ``cfgs[k]``: element k equals ``conflicts_step(states[k], picture, cfgs[k], …)``.
     What does not depend on the thresholds is done once — the rows kept, their state on height,
     covariance terms, and the KD-tree screen (one union screen, :func:`union_screen`, for the
     settings that share the screen's other inputs: the output set is decided per setting by the
     exact tests, so a wider screen changes no row). ``map_`` (e.g. a thread pool's ``map``)
-    runs the per-setting work."""
+    runs the per-setting work. ``scored_only``: each window's rows only where an alert scoring
+    reads them (raw alerts and the first row of each picture epoch; the state is the same):
+    :func:`safety.alerts.episodes.scored_conflicts` of them is that of every row."""
     if len(states) != len(cfgs):
         raise ValueError("conflicts_steps: one state per configuration")
     tracks = _normalise(picture, id_col, method_col, default_method)
@@ -217,7 +221,7 @@ def conflicts_steps(states: Sequence[ConflictState], picture: pl.DataFrame, cfgs
     for table in {id(k[0]): k[0] for k in kept}.values():
         ks = [k for k in range(len(cfgs)) if kept[k][0] is table]
         rows = WindowRows(table, frame, id_col, method_col)
-        for k, out in zip(ks, volume_rows(rows, [cfgs[k] for k in ks], map_)):
+        for k, out in zip(ks, volume_rows(rows, [cfgs[k] for k in ks], map_, scored_only)):
             pair_rows[k] = out
     spec = {**TABLES["conflicts"].required, **CONFLICT_EXTRA}
 

@@ -282,7 +282,7 @@ class StcaCurvesStage(_Adapter):
         # each setting's work is mostly numpy, polars and the KD-tree, outside the GIL
         with ThreadPoolExecutor(CURVE_THREADS) as pool:
             steps = conflicts_steps(list(state), picture, list(self.settings), self.id_col, self.origin,
-                                    window.t0_us, window.t1_us, slim=False, map_=pool.map)
+                                    window.t0_us, window.t1_us, slim=False, map_=pool.map, scored_only=True)
             rows = list(pool.map(scored_conflicts, [out for out, _ in steps]))
         out = pl.concat([r.with_columns(pl.lit(k, pl.UInt16).alias("setting")) for k, r in enumerate(rows)],
                         how="vertical_relaxed")

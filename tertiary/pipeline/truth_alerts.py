@@ -100,7 +100,7 @@ def _predict(state: safety_conflicts.ConflictState, cc: safety_conflicts.Conflic
             if not ep.height:
                 continue
             pic = truth_picture(truth, spans, ep, safety_alerts.TRUTH_PICTURE, id_col)
-            rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, c, d)
+            rows, state = safety_conflicts.conflicts_step(state, pic, cc, id_col, frame, c, d, scored_only=True)
             # only the rows the alert scoring reads are kept: a day's truth picture has tens of
             # millions of conflict and id rows, a few thousand of them alerts (memory)
             rows = safety_alerts.scored_conflicts(rows)
