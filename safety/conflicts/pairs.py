@@ -302,11 +302,15 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
         def evaluate(k: int, a: NDArray[np.int64], b: NDArray[np.int64], vmin: NDArray[np.float64]
                      ) -> dict[str, NDArray]:
             terms, bnd, tau, _, arcs = setup[k]
-            if skip is not None and skip[k]:
-                keep = ~in_one_group(skip[k], a, b)
-                a, b, vmin = a[keep], b[keep], vmin[keep]
             return _evaluate_pairs(cfgs[k], st, terms, a, b, bnd, tau, arcs, vmin)
+        # the pairs each setting leaves to another prediction, dropped once per distinct ``skip``
+        # (usually one for every setting of the screen)
+        own = [tuple(map(id, skip[k])) if skip is not None else () for k in ks]
         for ci, cj in block_candidates(sc, cfgs[ks[0]].block_points, g, pos_s, vel_s):
+            kept = {key: ~in_one_group(skip[k], ci, cj) for key, k in zip(own, ks) if key}
+            if len(set(own)) == 1 and own[0]:
+                ci, cj = ci[kept[own[0]]], cj[kept[own[0]]]
+                kept = {}
             for s in range(0, len(ci), step):
                 a, b = ci[s:s + step], cj[s:s + step]
                 swap = ids[a] > ids[b]               # order each pair so that id_a < id_b
@@ -318,7 +322,11 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
                         vmins[key] = _window_vmin(pos[b, 2] - pos[a, 2], vel[b, 2] - vel[a, 2], vel[:, 2], setup[k][2],
                                                   a, b, *cfgs[k].window_s)
                 mins = [vmins[(cfgs[k].window_s, id(setup[k][2]))] for k in ks]
-                for k, res in zip(ks, map_(lambda k, v: evaluate(k, a, b, v), ks, mins)):
+
+                def each(n: int, v: NDArray[np.float64]) -> dict[str, NDArray]:
+                    m = kept[own[n]][s:s + step] if own[n] in kept else slice(None)
+                    return evaluate(ks[n], a[m], b[m], v[m])
+                for k, res in zip(ks, map_(each, range(len(ks)), mins)):
                     chunks[k].append(res)
             del ci, cj
     return list(map_(lambda k: _assemble(rows, cfgs[k], chunks[k], scored_only), range(len(cfgs))))
