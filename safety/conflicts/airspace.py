@@ -22,6 +22,7 @@ __all__ = ["approach_membership", "volume_rows"]
 #: :func:`pair_rows` with the caller's options: (rows, settings, skip=) -> each setting's rows
 Predict = Callable[..., list[pl.DataFrame]]
 
+
 def approach_membership(tracks: pl.DataFrame, cfg: ConflictConfig, frame: geo.LocalFrame | None = None
                         ) -> NDArray[np.int64]:
     """Per row, the index in ``cfg.approach_volumes`` of the final it is established on (the first
