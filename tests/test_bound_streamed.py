@@ -14,7 +14,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.core import geo
-from tertiary.core.stage import Window
+from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound_streamed as bs
 from tertiary.evaluation.bound import bound_stage, scan_origins
@@ -91,7 +91,7 @@ def case(tmp_path_factory):
                            whole=whole)
 
 
-def _stepped(case, where, window_s: float, roundtrip: bool = False
+def _stepped(case, where, window_s: float, roundtrip: bool = False, open_last: bool = False
              ) -> tuple[bs.BoundSetup, bs.BoundState, list[int], bs.PartFiles]:
     """Every window stepped, its scored samples then stored as the run's parts are
     (``w=<index>.parquet`` under ``where``)."""
@@ -106,7 +106,9 @@ def _stepped(case, where, window_s: float, roundtrip: bool = False
         inside = pl.col("epoch").dt.epoch("us").is_between(a, a + w, closed="left")
         now = pl.col("time").dt.epoch("us").is_between(a, a + w, closed="left")
         mine = case.samples.filter(inside)
-        state = bs.bound_step(setup, state, mine, case.reports.filter(now), Window(k, a, a + w), stored)
+        last = open_last and a + w > T0_US + 900 * US
+        state = bs.bound_step(setup, state, mine, case.reports.filter(now),
+                              Window(k, a, T_MAX_US if last else a + w), stored)
         mine.write_parquet(where / f"w={k}.parquet")
         if roundtrip:
             state = pickle.loads(pickle.dumps(state))
@@ -128,6 +130,17 @@ def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_pat
     got = bound_rows(bs.bound_finish(setup, state, stored), case.acc)
     assert case.whole.height and set(case.whole["segment"]) == {"all", "straight", "turn"}
     assert_frame_equal(got, case.whole, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
+
+
+def test_a_runs_open_last_window_leaves_the_aircraft_still_flying_to_the_end(case, monkeypatch, tmp_path):
+    """The last window of a run is open: it bounds no aircraft (the end does, beside its
+    evaluation), so aircraft 9 and 10 are still pending after it and 7, 8 were bounded before;
+    the rows equal the whole-run stage's. Fails if the open window bounds what is pending."""
+    monkeypatch.setattr(bs, "RETIRE_BATCH", 1)
+    setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 97.0, open_last=True)
+    assert bounded[-1] == bounded[-2] == 2 and state.pending.tolist() == [9, 10], bounded
+    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+                       rel_tol=1e-9, abs_tol=0.0)
 
 
 def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch, tmp_path):

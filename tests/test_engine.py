@@ -246,6 +246,12 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     end_lags: list[tuple[int, bool]] = []          # (rows summed at the end, sums carried)
     monkeypatch.setattr(scoring, "statistic_lags", lambda scan, rows, carried=None, f=scoring.statistic_lags:
                         end_lags.append((rows, carried is not None)) or f(scan, rows, carried))
+    # the aircraft still flying at the end are bounded on a thread of their own, beside the
+    # end's evaluation
+    import threading
+    finishing: list[str] = []
+    monkeypatch.setattr(whole_run, "bound_finish", lambda *a, f=whole_run.bound_finish:
+                        finishing.append(threading.current_thread().name) or f(*a))
     cfg = pipeline.PipelineConfig(stca_lookaheads_s=(105.0,))
     mem = pipeline.process(terminal, cfg, window_s=60.0)
     assert bound_reads == [(False, bound_reads[0][1])]
@@ -253,7 +259,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert truth_rows == [] and len(whole_truth) == 1
     pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
     assert len(whole_truth) == 1 and len(truth_rows) > 4
-    assert read_samples == []
+    assert read_samples == [] and finishing == ["bound_0"]
     assert len(lag_batches) > 2 and all(n >= 20 for n in lag_batches[:-1])
     assert end_lags == [(0, True)]
     windows_alerts = [out["truth_conflicts"]["alert"].sum() for out, _ in truth_rows if "truth_conflicts" in out]

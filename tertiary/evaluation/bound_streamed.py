@@ -9,8 +9,9 @@ do so a batch of :data:`RETIRE_BATCH` aircraft at a time (fewer after :data:`RET
 reading those aircraft's truth from the reference and their scored samples from the windows'
 stored parts (the samples are not held: an hour's are millions of rows), and keep the
 per-epoch sums the metrics pool (:func:`~tertiary.evaluation.bound_pooling.bound_sums`). A run's
-last window is open to the future, so it bounds the aircraft still flying; the end of the run
-bounds any left (:func:`bound_finish`) and pools the sums.
+last window is open to the future: it bounds no aircraft, and the end of the run bounds those
+still flying (:func:`bound_finish`, which the pipeline runs beside the end's evaluation: the
+last window's evaluation would otherwise hold the run on one core) and pools the sums.
 
 Every aircraft is bounded once, by the code of the whole-run stage
 (:func:`~tertiary.evaluation.bound.block_sums`) on the same truth, samples, plots and scan
@@ -33,7 +34,7 @@ from numpy.typing import NDArray
 
 from tertiary.contract import TIME
 from tertiary.core import geo
-from tertiary.core.stage import Window
+from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound as _bound
 from tertiary.evaluation.bound_pooling import bound_sums
@@ -134,13 +135,16 @@ def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | Non
     the windows cannot bound the run) and what its validated ``reports`` tell carried; the
     aircraft whose truth ended :data:`RETIRE_AFTER_S` before the window's end bounded once there
     are :data:`RETIRE_BATCH` of them or one has waited :data:`RETIRE_WAIT_S`, their samples read
-    from ``stored`` (the windows before this one) and ``samples``."""
+    from ``stored`` (the windows before this one) and ``samples``. An open-ended window (a run's
+    last) bounds none: they are left to :func:`bound_finish`."""
     if not state.complete:
         return state
     if samples is None:
         return BoundState(complete=False)
     samples = samples.select([pl.col(c).cast(t) for c, t in SAMPLES.items()])
     state = _carried(setup, state, samples, reports, window)
+    if window.t1_us >= T_MAX_US:
+        return state
     due = _due(setup, state.pending, window.t1_us - int(RETIRE_AFTER_S * US))
     waited = _due(setup, due, window.t1_us - int((RETIRE_AFTER_S + RETIRE_WAIT_S) * US))
     return (_bounded(setup, state, due, stored, samples, window.index) if len(due) >= RETIRE_BATCH or len(waited)

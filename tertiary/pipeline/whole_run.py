@@ -9,6 +9,7 @@ at a time."""
 from __future__ import annotations
 
 import functools
+from concurrent.futures import Future, ThreadPoolExecutor
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
 from tertiary.evaluation.bound_pooling import bound_rows
-from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, PartFiles, bound_finish
+from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_finish
 from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
 from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
@@ -122,9 +123,10 @@ class RunTables:
     #: the truth's separation intervals of the chunks the windows passed, with the reference file
     #: they read (None: none computed in the windows)
     intervals: tuple[TruthIntervals, Path] | None = None
-    #: the bound as the windows made it: its setup, carried state and the windows' stored samples
-    #: (None: the end bounds the whole recording)
-    bound: tuple[BoundSetup, BoundState, PartFiles] | None = None
+    #: the bound as the windows made it: its setup, and the sums of every aircraft as
+    #: :func:`bound_finish` makes them from the windows' state, on a thread of its own beside the
+    #: evaluation (None: the end bounds the whole recording)
+    bound: tuple[BoundSetup, "Future[pl.DataFrame]", PartFiles] | None = None
     #: the truth picture's prediction as the windows carried it, and a reader of their stored
     #: rows by table name (None: the end predicts the whole truth picture)
     truth_picture: tuple[TruthPictureState, Callable[[str], pl.DataFrame | None]] | None = None
@@ -289,14 +291,22 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
-def _windows_bound(ctx: RunContext, st: StreamState, parts: Any) -> tuple[BoundSetup, BoundState, PartFiles] | None:
-    """The bound the windows carried, when they made it for every window, and their stored
-    samples."""
+def _windows_bound(ctx: RunContext, st: StreamState, parts: Any
+                   ) -> tuple[BoundSetup, "Future[pl.DataFrame]", PartFiles] | None:
+    """The bound the windows carried, when they made it for every window: its setup and the
+    aircraft still flying at the end bounded from their stored samples, started now on a thread
+    of its own (numpy, mostly one core) so that it runs beside the evaluation's polars work; the
+    windows' stored samples."""
     state = getattr(st, "bound", None)
     setup = getattr(ctx, "bound", None)
     if setup is None or state is None or not state.complete:
         return None
-    return setup, state, functools.partial(parts.part_files, SCORED)
+    stored = functools.partial(parts.part_files, SCORED)
+    pool = ThreadPoolExecutor(1, thread_name_prefix="bound")
+    try:
+        return setup, pool.submit(bound_finish, setup, state, stored), stored
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _windows_truth_picture(st: StreamState, parts: Any
@@ -310,18 +320,19 @@ def _windows_truth_picture(st: StreamState, parts: Any
 
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
                 scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
-    """The bound's metrics rows: from the sums the windows carried (any aircraft left
-    bounded here; ``scored`` not read), else over the whole recording from ``scored``; the
+    """The bound's metrics rows: from the sums the windows carried (the aircraft still flying at
+    the end bounded on the thread :func:`_windows_bound` started; ``scored`` not read), else over the whole recording from ``scored``; the
     radars' scan origins from the input reports either way
     (:func:`tertiary.evaluation.bound.scan_origins`)."""
     if run.bound is not None:
-        setup, state, stored = run.bound
+        setup, finished, stored = run.bound
         names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
         files = stored()          # the scored samples are not read back: whether there are any
         some = bool(files) and pl.scan_parquet(files).select(pl.len()).collect().item() > 0
+        sums = finished.result()
         if bound_setup(ds, names, ing.radars, ing.notes, some) is None:
             return pl.DataFrame(schema=contract.TABLES["metrics"].required)
-        return bound_rows(bound_finish(setup, state, stored), metrics)
+        return bound_rows(sums, metrics)
     t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
     reports = ds.reports if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else ing.reports
     origins = scan_origins(ing.radars, reports, int(t0)) if t0 is not None else {}
