@@ -183,3 +183,26 @@ def test_each_pair_is_predicted_once_by_the_airspace_that_decides_it(monkeypatch
     for (out, _), cfg in zip(got, cfgs):
         alone = conflicts_steps([init_conflict_state()], df, [cfg], slim=False)[0][0]
         assert out.equals(alone) and out.height
+
+
+def test_settings_that_leave_the_same_pairs_out_test_them_once(monkeypatch):
+    """Settings of one screen with the same en-route floor drop the pairs below it with one test
+    per screen chunk, however many settings there are."""
+    from safety.conflicts import conflicts_steps, init_conflict_state
+    from safety.conflicts import pairs as pairs_mod
+    rng = np.random.default_rng(5)
+    n = 40
+    pos = np.column_stack([rng.uniform(-15e3, 15e3, n), rng.uniform(-2e3, 2e3, n),
+                           rng.choice([900.0, FL300], n)])
+    vel = np.column_stack([rng.choice([-120.0, 120.0], n), rng.uniform(-5, 5, n), np.zeros(n)])
+    df = _picture(pos, vel)
+    calls: list[int] = []
+    monkeypatch.setattr(pairs_mod, "in_one_group", lambda *a, f=pairs_mod.in_one_group: calls.append(1) or f(*a))
+
+    def tests_for(cfgs: list[ConflictConfig]) -> int:
+        calls.clear()
+        conflicts_steps([init_conflict_state()] * len(cfgs), df, cfgs, slim=False)
+        return len(calls)
+    one = tests_for([EN_ROUTE])
+    assert one > 0
+    assert tests_for([dataclasses.replace(EN_ROUTE, fixed_est_h_m=e) for e in (0.0, 300.0, 900.0)]) == one

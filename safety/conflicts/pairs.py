@@ -306,8 +306,9 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
         # the pairs each setting leaves to another prediction, dropped once per distinct ``skip``
         # (usually one for every setting of the screen)
         own = [tuple(map(id, skip[k])) if skip is not None else () for k in ks]
+        distinct = {key: k for key, k in zip(own, ks) if key}
         for ci, cj in block_candidates(sc, cfgs[ks[0]].block_points, g, pos_s, vel_s):
-            kept = {key: ~in_one_group(skip[k], ci, cj) for key, k in zip(own, ks) if key}
+            kept = {key: ~in_one_group(skip[k], ci, cj) for key, k in distinct.items()}
             if len(set(own)) == 1 and own[0]:
                 ci, cj = ci[kept[own[0]]], cj[kept[own[0]]]
                 kept = {}
