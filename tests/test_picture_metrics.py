@@ -171,3 +171,23 @@ def test_flight_level_callsign_and_mode_3a_correctness():
     bare = picture_metrics(rows.drop("true_callsign", "true_mode_3a", "alt_m"), breakdown=())
     assert not bare["metric"].is_in(["callsign_correct_frac", "mode_3a_correct_frac",
                                      "flight_level_correct_frac"]).any()
+
+
+def test_segments_label_every_expected_epoch_when_the_picture_carries_more_reference_columns():
+    """A picture matched with a reference identity (``true_callsign``) that the expected rows do
+    not carry is still labelled from the expected rows: the epochs without a track count in their
+    segment (exposure, missed updates), not only in ``all``."""
+    t = np.arange(0.0, 600.0, 5.0)
+    ref = _straight(1, t)
+    keep = (t < 200) | (t >= 300)
+    m = _rows("p", 1, 1, t[keep], {k: v[keep] for k, v in ref.items()}).with_columns(
+        pl.lit("ABC123").alias("true_callsign"))
+    expected = pl.DataFrame({"run": pl.Series([0] * t.size, dtype=pl.UInt32), "truth_id": pl.Series([1] * t.size,
+                                                                                                  dtype=pl.Int64),
+                             "epoch": _times(t), **{f"true_{c}_m" if c in "xyz" else f"true_{c}_mps": ref[c]
+                                                     for c in ("x", "y", "z", "vx", "vy", "vz")}})
+    met = picture_metrics(m, expected=expected, breakdown=("alt", "phase"), cfg=MetricsConfig(expected_interval_s=5.0))
+    for segment in ("all", "alt:3000-6000m", "phase:level"):
+        assert _value(met, "prob_update", segment=segment) == pytest.approx(100 / 120), segment
+        # 120 expected epochs 5 s apart: the last counts until no next one
+        assert _value(met, "aircraft_hours", segment=segment) == pytest.approx(595 / 3600), segment

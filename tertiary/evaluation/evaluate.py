@@ -48,7 +48,7 @@ __all__ = ["EvaluationConfig", "Evaluation", "Matched", "SeedTables", "Reference
            "evaluate_each", "write_reference", "read_reference", "write_reference_pieces", "reference_files",
            "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
-           "reference_error_metrics", "read_parquet_file"]
+           "reference_error_metrics", "read_parquet_file", "radar_sites", "metric_columns"]
 
 #: the picture name under which a reconstructed reference is itself scored against truth
 RECONSTRUCTED = "reference(reconstructed)"
@@ -92,7 +92,8 @@ class Evaluation:
     id_map: pl.DataFrame = field(default_factory=pl.DataFrame)
 
 
-def _radar_xy(radars: pl.DataFrame | None, frame: geo.LocalFrame | None) -> np.ndarray | None:
+def radar_sites(radars: pl.DataFrame | None, frame: geo.LocalFrame | None) -> np.ndarray | None:
+    """The radar sites (R, 2) east, north in the system frame; None without radars or frame."""
     if radars is None or frame is None or radars.height == 0:
         return None
     e, n, _u = frame.from_geodetic(radars["lat_deg"].to_numpy(), radars["lon_deg"].to_numpy(),
@@ -115,7 +116,7 @@ _METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", *_STATE, "a
                    "mode_3a", "callsign", "icao24")
 
 
-def _metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
+def metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
     """The columns of ``matched`` the surveillance metrics read: a picture's covariances and
     diagnostics are not copied through their joins (memory of the stage)."""
     names = matched.collect_schema().names() if isinstance(matched, pl.LazyFrame) else matched.columns
@@ -394,6 +395,9 @@ class Matched:
     expected: pl.LazyFrame | None
     multitarget: pl.DataFrame | None
     seed: SeedTables | None = None
+    #: its surveillance metrics finished from the windows' carried state, given the radar sites,
+    #: the breakdowns and the settings (:func:`~tertiary.evaluation.picture_streamed.picture_metrics_finish`)
+    metrics: "Callable[[np.ndarray | None, Sequence[str], MetricsConfig], pl.DataFrame] | None" = None
 
 
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
@@ -444,7 +448,7 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
     :func:`~tertiary.evaluation.picture_buckets.picture_metrics_buckets`): the same metrics, with the
     stage's memory bounded by a bucket, not by the recording."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
-    radar_xy = _radar_xy(radars, frame)
+    radar_xy = radar_sites(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
     reference = Reference(truth)
     # one picture at a time: the memory of the stage is that of one picture, not of all of them
@@ -452,10 +456,17 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
         where = None if spill is None or keep_matched else spill / f"picture-{i:03d}"
         if where is not None:
             shutil.rmtree(where, ignore_errors=True)        # an interrupted evaluation's files
-        seeded = None
+        seeded, surveyed = None, None
         if isinstance(picture, Matched):
-            got = _held_if_small(picture, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows, surveillance)
+            if surveillance and picture.metrics is not None:
+                surveyed = picture.metrics(radar_xy, [b for b in breakdown if b != "range" or radar_xy is not None],
+                                           cfg.metrics)
             seeded = None if picture.seed is None else picture.seed(seed_stage, cfg.accuracy)
+            if seeded is not None and (surveyed is not None or not surveillance):
+                # finished from the windows' state: the rows are read only for the id map
+                got = (picture.matched, picture.expected, picture.multitarget if surveillance else None)
+            else:
+                got = _held_if_small(picture, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows, surveillance)
         else:
             got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
                                 slim=not keep_matched, spill=where, multitarget=surveillance)
@@ -468,7 +479,8 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
         if seeded is not None:          # stepped by the windows: only finished here
             seed, by_epoch, samples = seeded
         if isinstance(matched, pl.LazyFrame):
-            k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
+            if seeded is None or (surveyed is None and surveillance):
+                k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
             if seeded is None:
                 # each bucket reads its own rows, filed once beside the spilled picture (linear
                 # in the picture's rows, not rows × buckets)
@@ -477,15 +489,19 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
                 # its filed rows go before the metrics file theirs: the scratch's peak is the
                 # spilled picture and one filing, not two
                 shutil.rmtree(where / "accuracy", ignore_errors=True)
-            if surveillance:
+            if surveyed is not None:
+                parts["metrics"].append(surveyed)
+            elif surveillance:
                 parts["metrics"].append(picture_metrics_buckets(
-                    matched.select(_metric_columns(matched)), expected=expected, radar_xy=radar_xy,
+                    matched.select(metric_columns(matched)), expected=expected, radar_xy=radar_xy,
                     breakdown=breakdown, cfg=cfg.metrics, buckets=k, scratch=where / "metrics"))
         else:
             if seeded is None:
                 seed, by_epoch, samples = picture_accuracy(matched, seed_stage, cfg.accuracy, seen)
-            if surveillance:
-                parts["metrics"].append(picture_metrics(matched.select(_metric_columns(matched)), expected=expected,
+            if surveyed is not None:
+                parts["metrics"].append(surveyed)
+            elif surveillance:
+                parts["metrics"].append(picture_metrics(matched.select(metric_columns(matched)), expected=expected,
                                                         radar_xy=radar_xy, breakdown=breakdown, cfg=cfg.metrics))
         if surveillance:
             parts["metrics"].append(mt_rows)

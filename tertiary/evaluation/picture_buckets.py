@@ -19,16 +19,17 @@ from tertiary.evaluation import sketch
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig
 
-__all__ = ["picture_metrics_buckets"]
+__all__ = ["picture_metrics_buckets", "Partials", "RMS_ERRORS", "MEAN_ERRORS", "accuracy_combined", "identity_combined",
+           "continuity_combined"]
 
 #: seed of the bucket hash: any fixed value (a row must fall in the same bucket in every scan)
 _SEED = 20211007
 
 #: the accuracy metrics that are a root mean square (metric → error column) or a mean
-_RMS = {"rmse_horizontal_m": "err_h_m", "rmse_height_m": "err_height_m", "along_track_rms_m": "along_m",
+RMS_ERRORS = {"rmse_horizontal_m": "err_h_m", "rmse_height_m": "err_height_m", "along_track_rms_m": "along_m",
         "across_track_rms_m": "across_m", "ground_speed_rms_mps": "err_gs_mps", "track_angle_rms_deg": "err_track_deg",
         "vertical_rate_rms_mps": "err_vrate_mps"}
-_MEAN = {"along_track_bias_m": "along_m", "across_track_bias_m": "across_m", "latency_s": "latency_sample_s",
+MEAN_ERRORS = {"along_track_bias_m": "along_m", "across_track_bias_m": "across_m", "latency_s": "latency_sample_s",
          "ground_speed_bias_mps": "err_gs_mps"}
 
 
@@ -93,7 +94,7 @@ def _ratio(num: pl.Expr, den: pl.Expr) -> pl.Expr:
 
 
 @dataclass
-class _Partials:
+class Partials:
     """What the buckets leave for the combine step: sums per (method, segment, run) (a few rows
     per segment), the percentiles' sketches (``values``: counts per bucket of the error, a few
     hundred rows per segment), distinct split tracks and the bare expected rows."""
@@ -108,13 +109,13 @@ class _Partials:
     bare: list[pl.DataFrame] = field(default_factory=list)
 
 
-def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: _Partials) -> None:
+def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: Partials) -> None:
     """Accuracy and identity sums of one bucket's error rows, and the sketch of its percentiles."""
     aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
             pl.col("err_height_m").abs().max().alias("max_height_m")]
-    for name, c in _RMS.items():
+    for name, c in RMS_ERRORS.items():
         aggs += [(pl.col(c) ** 2).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    for name, c in _MEAN.items():
+    for name, c in MEAN_ERRORS.items():
         aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
     out.accuracy.append(pm.by_segment(err, breakdown, *aggs, by=["run"]))
     out.values.append(pm.percentile_counts(err.with_columns(pl.col("method").cast(pl.Categorical)), breakdown))
@@ -125,7 +126,7 @@ def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsCon
 
 def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
                          methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
-                         out: _Partials) -> None:
+                         out: Partials) -> None:
     """The continuity sums of one bucket's aircraft (``methods``: every picture with a
     matched row, in any bucket), its split tracks and (``merge``) its bare expected rows."""
     rep = pm.rep_events(m, labels, cfg)
@@ -147,7 +148,7 @@ def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels:
 
 def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
                      radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
-                     out: _Partials) -> None:
+                     out: Partials) -> None:
     """Everything one bucket's rows (``m``: its tracked rows, ``expected``: its reference rows)
     leave for the combine step; nothing without a row."""
     if m.height == 0 and (expected is None or expected.height == 0):
@@ -159,12 +160,12 @@ def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl
                              methods, breakdown, cfg, merge, out)
 
 
-def _accuracy_combined(out: _Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
+def accuracy_combined(out: Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
     """The accuracy rows from the buckets' sums, and the percentiles from their merged sketches."""
     aggs = [pl.col("run").n_unique().alias("n_runs"), pl.col("n_points").sum().cast(pl.Float64),
             pl.col("max_horizontal_m").max(), pl.col("max_height_m").max()]
-    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).sqrt().alias(n) for n in _RMS]
-    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).alias(n) for n in _MEAN]
+    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).sqrt().alias(n) for n in RMS_ERRORS]
+    aggs += [_ratio(pl.col(n).sum(), pl.col(f"{n}:n").sum()).alias(n) for n in MEAN_ERRORS]
     wide = pl.concat(out.accuracy).group_by("method", "segment").agg(*aggs)
     q = pm.percentiles(sketch.merge_counts(out.values, ["method", "segment"])).with_columns(pl.col("method").cast(method))
     out.values.clear()
@@ -172,7 +173,7 @@ def _accuracy_combined(out: _Partials, breakdown: Sequence[str], method: pl.Data
     return pm.long_rows(wide, [c for c in wide.columns if c not in ("method", "segment", "n_runs")])
 
 
-def _identity_combined(name: str, sums: list[pl.DataFrame]) -> pl.DataFrame:
+def identity_combined(name: str, sums: list[pl.DataFrame]) -> pl.DataFrame:
     """The identity rows of one item from the buckets' sums."""
     w = pl.concat(sums).group_by("method", "segment").agg(
         pl.col("run").n_unique().alias("n_runs"),
@@ -181,7 +182,7 @@ def _identity_combined(name: str, sums: list[pl.DataFrame]) -> pl.DataFrame:
     return pm.long_rows(w, [f"{name}_correct_frac", f"n_{name}"])
 
 
-def _continuity_combined(out: _Partials, base: pl.DataFrame, breakdown: Sequence[str]) -> list[pl.DataFrame]:
+def continuity_combined(out: Partials, base: pl.DataFrame, breakdown: Sequence[str]) -> list[pl.DataFrame]:
     """The continuity rows (but merged tracks) from the buckets' sums; ``base``: the
     (method, run) with a matched row."""
     by = ["method", "segment"]
@@ -247,15 +248,15 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
             else _BucketScan(matched, expected, schema, exp_cols, buckets))
     reads = {*pm.ERROR_INPUTS, *pm.CONTINUITY_INPUTS, *(c for c in schema.names() if c.startswith("true_"))}
-    out = _Partials()
+    out = Partials()
     for k in range(buckets):
         _bucket_partials(scan.matched(k, reads), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
     parts = [pm.picture_rows(tracks)]
     if out.accuracy:
-        parts.append(_accuracy_combined(out, breakdown, schema["method"]))
-    parts += [_identity_combined(name, sums) for name, sums in out.identity.items()]
+        parts.append(accuracy_combined(out, breakdown, schema["method"]))
+    parts += [identity_combined(name, sums) for name, sums in out.identity.items()]
     if methods.height:
-        parts += _continuity_combined(out, base, breakdown)
+        parts += continuity_combined(out, base, breakdown)
         if merge:
             parts.append(_merged_buckets(scan, pl.concat(out.bare), base, breakdown, cfg))
     return pm.finish_metrics(parts)

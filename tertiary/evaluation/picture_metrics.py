@@ -111,7 +111,7 @@ def _require(columns: Sequence[str], cols: Sequence[str], what: str) -> None:
         raise DataError(f"{what} is missing column(s) {', '.join(missing)}")
 
 
-def _height(frame: pl.DataFrame, prefix: str = "") -> tuple[pl.Expr, pl.Expr]:
+def height_exprs(frame: pl.DataFrame, prefix: str = "") -> tuple[pl.Expr, pl.Expr]:
     """(height, height rate) expressions: the altitude channel when present, else ENU z/vz."""
     alt, rate = f"{prefix}alt_m", f"{prefix}alt_rate_mps"
     h = pl.col(alt) if alt in frame.columns else pl.col(f"{prefix}z_m")
@@ -136,8 +136,8 @@ def accuracy_errors(matched: pl.DataFrame, cfg: MetricsConfig = MetricsConfig())
     ``along_m``, ``across_m``, ``err_height_m``, ``err_gs_mps``, ``err_track_deg``,
     ``err_vrate_mps``, ``latency_sample_s`` (null where the reference is too slow)."""
     m = matched.filter(pl.col("truth_id").is_not_null() & pl.col("true_x_m").is_not_null())
-    h, hd = _height(m)
-    th, thd = _height(m, "true_")
+    h, hd = height_exprs(m)
+    th, thd = height_exprs(m, "true_")
     ex, ey = pl.col("x_m") - pl.col("true_x_m"), pl.col("y_m") - pl.col("true_y_m")
     gs_t = (pl.col("true_vx_mps") ** 2 + pl.col("true_vy_mps") ** 2).sqrt()
     gs = (pl.col("vx_mps") ** 2 + pl.col("vy_mps") ** 2).sqrt()
@@ -159,19 +159,23 @@ def accuracy_errors(matched: pl.DataFrame, cfg: MetricsConfig = MetricsConfig())
 
 
 def reference_labels(ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None = None,
-                     cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
-    """Breakdown labels of unique reference states (run, truth_id, epoch, ``true_*``): columns
+                     cfg: MetricsConfig = MetricsConfig(), keys: Sequence[str] = ("run", "truth_id")) -> pl.DataFrame:
+    """Breakdown labels of unique reference states (``keys``, epoch, ``true_*``): columns
     ``alt`` (altitude band), ``range`` (ring from the nearest radar in ``radar_xy`` (R, 2), the
     system-frame sites; null without radars) and ``phase`` (from the reference turn and
-    vertical rates; turn rate by differencing the reference heading between epochs)."""
-    ref = ref.unique(["run", "truth_id", "epoch"]).sort(["run", "truth_id", "epoch"])
-    th, thd = _height(ref, "true_")
+    vertical rates; turn rate by differencing the reference heading between epochs of the same
+    ``keys``)."""
+    by = list(keys)
+    ref = ref.unique([*by, "epoch"]).sort([*by, "epoch"])
+    th, thd = height_exprs(ref, "true_")
     heading = pl.arctan2(pl.col("true_vx_mps"), pl.col("true_vy_mps"))
-    by = ["run", "truth_id"]
-    dt = (pl.col("epoch").diff().over(by).dt.total_microseconds() / 1e6)
-    dpsi = ((heading.diff().over(by) + np.pi) % (2 * np.pi) - np.pi)
+    # sorted by aircraft: a step is between a row and the one before it of the same aircraft
+    # (a mask on plain differences, not a window function per aircraft)
+    same = ~pl.any_horizontal(pl.col(k).ne_missing(pl.col(k).shift(1)) for k in by)
+    dt = pl.when(same).then(pl.col("epoch").diff().dt.total_microseconds() / 1e6)
+    dpsi = pl.when(same).then((heading.diff() + np.pi) % (2 * np.pi) - np.pi)
     rate = (dpsi / dt).degrees().abs()
-    rate = pl.coalesce(rate, rate.shift(-1).over(by))          # first epoch: the next step's rate
+    rate = pl.coalesce(rate, pl.when(same.shift(-1)).then(rate.shift(-1)))   # first epoch: the next step's rate
     phase = (pl.when(rate > cfg.turn_rate_dps).then(pl.lit("phase:turn"))
              .when(thd.abs() > cfg.vertical_rate_mps).then(pl.lit("phase:climb-descent"))
              .otherwise(pl.lit("phase:level")))
@@ -395,14 +399,14 @@ def bare_rows(m: pl.DataFrame, expected: pl.DataFrame, methods: pl.DataFrame) ->
     exp = expected.join(methods, how="cross")
     covered = m.filter(pl.col("truth_id").is_not_null()).select("method", "run", "truth_id", "epoch").unique()
     bare = exp.join(covered, on=["method", "run", "truth_id", "epoch"], how="anti")
-    th, _ = _height(bare, "true_")
+    th, _ = height_exprs(bare, "true_")
     return bare.select("method", "run", "epoch", "truth_id", "true_x_m", "true_y_m", th.alias("__h"))
 
 
 def rep_points(rep: pl.DataFrame) -> pl.DataFrame:
     """Where each representative track is: (method, run, epoch, track_id, ``__other`` the aircraft
     it represents, x_m, y_m, ``__th`` its height)."""
-    h, _ = _height(rep)
+    h, _ = height_exprs(rep)
     return rep.select("method", "run", "epoch", "track_id", pl.col("truth_id").alias("__other"), "x_m", "y_m",
                       h.alias("__th"))
 
@@ -525,23 +529,32 @@ def checked_breakdown(columns: Sequence[str], exp_columns: Sequence[str] | None,
     return [b for b in breakdown if b != "range" or radar_xy is not None]
 
 
+#: the reference columns :func:`reference_labels` reads (a height and its rate: ``true_alt_*``
+#: where there is one, else ENU ``true_z_m``/``true_vz_mps``)
+LABEL_INPUTS = ("true_x_m", "true_y_m", "true_vx_mps", "true_vy_mps", "true_alt_m", "true_alt_rate_mps", "true_z_m",
+                "true_vz_mps")
+
+
 def picture_labels(matched: pl.DataFrame, expected: pl.DataFrame | None, radar_xy: NDArray[np.float64] | None,
             cfg: MetricsConfig) -> pl.DataFrame:
-    """:func:`reference_labels` of ``expected`` when it has the picture's ``true_*`` columns, else
-    of the reference on the matched rows."""
-    ref_cols = [c for c in matched.columns if c.startswith("true_")]
+    """:func:`reference_labels` of ``expected`` when it has the reference columns the labels read
+    that the picture has (:data:`LABEL_INPUTS`), else of the reference on the matched rows (then
+    only tracked epochs are labelled)."""
+    ref_cols = [c for c in matched.columns if c in LABEL_INPUTS]
     ref = (expected if expected is not None and set(ref_cols) <= set(expected.columns)
            else matched.filter(pl.col("truth_id").is_not_null()).select(["run", "truth_id", "epoch"] + ref_cols))
     return reference_labels(ref, radar_xy, cfg)
 
 
-def error_rows(matched: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
-    """:func:`accuracy_errors` with the identity items and the labels: the columns it reads, then
-    the rows (a long picture is never copied whole through the errors' joins)."""
+def error_rows(matched: pl.DataFrame, labels: pl.DataFrame, cfg: MetricsConfig,
+               on: Sequence[str] = ("run", "truth_id", "epoch")) -> pl.DataFrame:
+    """:func:`accuracy_errors` with the identity items and the labels (joined ``on``): the
+    columns it reads, then the rows (a long picture is never copied whole through the errors'
+    joins)."""
     cols = [c for c in matched.columns if c in ERROR_INPUTS or c.startswith("true_")]
     return (accuracy_errors(matched.select(cols), cfg)
             .select(c for c in (*_KEY, "epoch", *_ERRORS, *_IDENTITY) if c in matched.columns or c in _ERRORS)
-            .join(labels, on=["run", "truth_id", "epoch"], how="left"))
+            .join(labels, on=list(on), how="left"))
 
 
 def finish_metrics(parts: list[pl.DataFrame]) -> pl.DataFrame:

@@ -17,11 +17,14 @@ import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import numpy as np
 import polars as pl
+from numpy.typing import NDArray
 
 from tertiary.evaluation.accuracy_streamed import SCORED_ROWS, SeedState, Walk, seed_rows, seed_step, walk_step
-from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Reference, match_block
+from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Reference, metric_columns, match_block
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
+from tertiary.evaluation.picture_streamed import PictureStepState, picture_step
 
 __all__ = ["MatchState", "match_window", "matched_table", "expected_table", "SCORED"]
 
@@ -56,18 +59,23 @@ class MatchState:
     groups: dict[str, tuple[str, ...]] = field(default_factory=dict)
     seed: SeedState = field(default_factory=SeedState)
     walk: Walk | None = field(default_factory=Walk)
+    #: every picture's surveillance metrics so far (:mod:`tertiary.evaluation.picture_streamed`)
+    metrics: PictureStepState = field(default_factory=PictureStepState)
 
 
 def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFrame]], reference: Reference,
-                 cfg: EvaluationConfig, multitarget: bool, observed: pl.DataFrame | None = None
-                 ) -> tuple[dict[str, pl.DataFrame], MatchState]:
+                 cfg: EvaluationConfig, multitarget: bool, observed: pl.DataFrame | None = None,
+                 radar_xy: NDArray[np.float64] | None = None) -> tuple[dict[str, pl.DataFrame], MatchState]:
     """The matched rows (only the columns the metrics read) and the reference at the epochs of
     each picture (name, id column, its rows in the window), by group; a group seen before but
     not in this window gives empty tables, a picture without a row keeps its state.
     ``multitarget``: the OSPA, GOSPA and SIAP states are stepped. ``observed``: the window's
     (run, epoch, truth_id) of the aligned reports; with it each picture's seed metrics are
-    stepped and their scored rows written (:data:`SCORED`); None, in any window: not."""
-    carried, where, seed, walk = dict(state.pictures), dict(state.groups), state.seed, state.walk
+    stepped and their scored rows written (:data:`SCORED`); None, in any window: not. With
+    ``multitarget`` the surveillance metrics are stepped too (``radar_xy``: the radar sites in
+    the system frame, for the range breakdown)."""
+    carried, where, seed, walk, metrics = (dict(state.pictures), dict(state.groups), state.seed, state.walk,
+                                           state.metrics)
     out = {t(g): pl.DataFrame() for gs in where.values() for g in gs for t in (matched_table, expected_table)}
     walk_rows = None
     if walk is not None and observed is not None:
@@ -85,6 +93,7 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     # one picture's: the matcher reads only the samples about each of its epochs)
     truth = reference.between(min(epochs), max(epochs)) if epochs else None
     blocks = []
+    breakdown = [b for b in cfg.breakdown if b != "range" or radar_xy is not None]
     for group, (id_col, named) in groups.items():
         rows = named[0][1] if len(named) == 1 else pl.concat([r for _, r in named], how="vertical")
         scored, expected, _ = match_block(rows, truth, reference, cfg, id_col, None, slim=True)
@@ -103,6 +112,11 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                            seen.select(MULTITARGET_TRUTH)))
         out[matched_table(group)] = scored
         out[expected_table(group)] = pl.concat(seen_all, how="vertical")
+        if multitarget:
+            # a step per group: each keeps its pictures' columns (a height is alt_m where there is one)
+            slim = scored.select(c for c in scored.columns if c == id_col or c in metric_columns(scored))
+            metrics = picture_step(metrics, slim.rename({id_col: "track_id"}) if id_col != "track_id" else slim,
+                                   out[expected_table(group)], radar_xy, breakdown, cfg.metrics)
     if walk_rows is not None:
         # one step for every picture of the window (their rows told by ``method``)
         rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
@@ -110,4 +124,4 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                              else (pl.DataFrame(schema=SCORED_ROWS), seed))
     if multitarget:
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
-    return out, MatchState(carried, where, seed, walk)
+    return out, MatchState(carried, where, seed, walk, metrics)

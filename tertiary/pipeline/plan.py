@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from typing import Any, ClassVar
 
+import numpy as np
 import polars as pl
 
 from safety.confirmation import ConfirmState, confirm_step
@@ -29,7 +30,7 @@ from safety.conflicts import ConflictConfig, ConflictState, conflicts_step, conf
 from tertiary import contract as schema
 from tertiary.core import geo
 from tertiary.core.stage import Stage, Window, check_window
-from tertiary.evaluation.evaluate import EvaluationConfig, Reference
+from tertiary.evaluation.evaluate import EvaluationConfig, Reference, radar_sites
 from tertiary.evaluation.streamed import MatchState, match_window
 from tertiary.pipeline.pictures import as_picture, confirmed_only, safety_id_column
 from tertiary.pipeline.tables import NOT_SCORED
@@ -303,6 +304,8 @@ class EvaluationStage(_Adapter):
     reference: Reference
     cfg: EvaluationConfig
     multitarget: bool
+    #: the radar sites in the system frame (the range breakdown); None: no range breakdown
+    radar_xy: np.ndarray | None = None
     name: ClassVar[str] = "evaluation"
 
     def init(self) -> MatchState:
@@ -321,7 +324,7 @@ class EvaluationStage(_Adapter):
                 pictures += [(name, id_col, part.drop(NOT_SCORED, strict=False)) for (name,), part in
                              frame.partition_by("method", as_dict=True, maintain_order=True).items()]
         return match_window(state, pictures, self.reference, self.cfg, self.multitarget,
-                            window_aircraft(inputs.get("aligned"), window))
+                            window_aircraft(inputs.get("aligned"), window), self.radar_xy)
 
 
 def window_aircraft(aligned: pl.DataFrame | None, window: Window) -> pl.DataFrame | None:
@@ -413,7 +416,8 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),
         "stca_curves": lambda: StcaCurvesStage(stca_settings(cfg), safety_id_column(cfg), origin),
-        "evaluation": lambda: EvaluationStage(getattr(context, "reference", None), cfg.scoring, cfg.evaluation),
+        "evaluation": lambda: EvaluationStage(getattr(context, "reference", None), cfg.scoring, cfg.evaluation,
+                                              radar_sites(radars, origin)),
         "alert_confirmation": lambda: AlertConfirmationStage(cfg.conflicts.confirm_m, cfg.conflicts.confirm_n),
     }
     if name not in builders:

@@ -22,6 +22,8 @@ from tertiary.evaluation.consistency import Lags
 from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
 from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
 from tertiary.evaluation.multitarget import multitarget_result
+from tertiary.evaluation.picture_metrics import MetricsConfig
+from tertiary.evaluation.picture_streamed import picture_metrics_finish
 from tertiary.evaluation.streamed import SCORED, MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
@@ -239,6 +241,7 @@ class WindowedPictures:
                  lags: LagState | None = None) -> None:
         self.parts, self.state, self.surveillance, self.samples = parts, state, surveillance, samples
         self.lags = lags if lags is not None and lags.complete else None
+        self._finished: pl.DataFrame | None = None
 
     def __call__(self, name: str) -> Matched | None:
         """Picture ``name``: scans of its rows of the matched and expected parts of the groups it
@@ -254,9 +257,19 @@ class WindowedPictures:
         mine = pl.col("method") == name
         mt = state.pictures.get(name)
         seed = None if state.walk is None else functools.partial(self._seed_tables, name)
+        surveyed = functools.partial(self._surveyed, name) if self.surveillance and state.metrics.tracks is not None else None
         return Matched(scan_spilled(files).filter(mine),
                        scan_spilled(expected).filter(mine).drop("method") if expected else None,
-                       multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed)
+                       multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed,
+                       surveyed)
+
+    def _surveyed(self, name: str, radar_xy: np.ndarray | None, breakdown: Sequence[str], cfg: MetricsConfig
+                  ) -> pl.DataFrame:
+        """Picture ``name``'s surveillance metrics, every picture's finished once from the carried state."""
+        if self._finished is None:
+            self._finished = picture_metrics_finish(self.state.metrics, radar_xy, breakdown, cfg)
+        got = self._finished
+        return got.filter(pl.col("method") == name) if got.height else got
 
     @functools.cached_property
     def scored(self) -> tuple[dict[tuple[str, str, str], Lags], dict[str, pl.DataFrame]]:
