@@ -76,7 +76,7 @@ class PictureStepState:
     ambiguous: pl.DataFrame | None = None
     ambiguous_hits: pl.DataFrame | None = None
     merged: pl.DataFrame | None = None
-    sums: dict[str, pl.DataFrame] = field(default_factory=dict)
+    sums: dict[str, list[pl.DataFrame]] = field(default_factory=dict)
     #: the reference has positions: merged tracks are counted
     merge: bool = False
 
@@ -258,24 +258,34 @@ def _error_sums(err: pl.DataFrame, cfg: MetricsConfig) -> dict[str, pl.DataFrame
     return out
 
 
-def _added(sums: dict[str, pl.DataFrame], new: dict[str, pl.DataFrame]) -> dict[str, pl.DataFrame]:
-    """``sums`` with ``new`` added, table by table (sums added, maxima kept)."""
+#: the windows' partial sums kept before they are folded into one frame (a fold per window
+#: would cost more than the sums it adds on short windows)
+_FOLD_AFTER = 16
+
+
+def _fold(name: str, frames: list[pl.DataFrame]) -> pl.DataFrame:
+    """The partial sums of one kind as one frame (sums added, maxima kept)."""
+    both = pl.concat(frames, how="diagonal_relaxed")
+    keys = [*_FINE, *((sketch.KEY, "quantity") if name == "values" else ())]
+    return both.group_by(keys).agg(pl.col(c).max() if c.startswith("max_") else pl.col(c).sum()
+                                   for c in both.columns if c not in keys)
+
+
+def _added(sums: dict[str, list[pl.DataFrame]], new: dict[str, pl.DataFrame]) -> dict[str, list[pl.DataFrame]]:
+    """``sums`` with ``new`` added, kind by kind; a kind's frames folded into one every
+    :data:`_FOLD_AFTER` windows."""
     out = dict(sums)
     for name, frame in new.items():
         if frame.height == 0:
             continue
-        if name not in out:
-            out[name] = frame
-            continue
-        both = pl.concat([out[name], frame], how="diagonal_relaxed")
-        keys = [*_FINE, *((sketch.KEY, "quantity") if name == "values" else ())]
-        out[name] = both.group_by(keys).agg(pl.col(c).max() if c.startswith("max_") else pl.col(c).sum()
-                                            for c in both.columns if c not in keys)
+        frames = [*out.get(name, []), frame]
+        out[name] = [_fold(name, frames)] if len(frames) > _FOLD_AFTER else frames
     return out
 
 
-def _counted(sums: dict[str, pl.DataFrame], err: Sequence[pl.DataFrame], hours: pl.DataFrame | None,
-             rep: pl.DataFrame | None, closed: pl.DataFrame | None, cfg: MetricsConfig) -> dict[str, pl.DataFrame]:
+def _counted(sums: dict[str, list[pl.DataFrame]], err: Sequence[pl.DataFrame], hours: pl.DataFrame | None,
+             rep: pl.DataFrame | None, closed: pl.DataFrame | None, cfg: MetricsConfig
+             ) -> dict[str, list[pl.DataFrame]]:
     """``sums`` with those of the labelled rows added."""
     for e in err:                   # a frame per picture schema
         if e.height:
@@ -292,8 +302,9 @@ def _counted(sums: dict[str, pl.DataFrame], err: Sequence[pl.DataFrame], hours: 
     return _added(sums, new)
 
 
-def _segment_partials(sums: dict[str, pl.DataFrame], breakdown: Sequence[str]) -> Partials:
+def _segment_partials(partial: dict[str, list[pl.DataFrame]], breakdown: Sequence[str]) -> Partials:
     """The sums by (method, segment, run) that the whole-picture combine steps read."""
+    sums = {name: _fold(name, frames) for name, frames in partial.items()}
     def seg(name: str, by: Sequence[str] = ("run",)) -> list[pl.DataFrame]:
         f = sums.get(name)
         if f is None:
@@ -303,13 +314,14 @@ def _segment_partials(sums: dict[str, pl.DataFrame], breakdown: Sequence[str]) -
         return [by_segment(f, breakdown, *aggs, by=list(by))]
     values = [v.with_columns(pl.lit(q).alias("quantity")).select("method", "segment", "quantity", sketch.KEY,
                                                                  sketch.COUNT)
-              for q in ("horizontal", "height") for v in seg_values(sums, q, breakdown)]
+              for q in ("horizontal", "height") for v in _seg_values(sums, q, breakdown)]
     return Partials(accuracy=seg("accuracy"), values=values,
                      identity={k.split(":", 1)[1]: seg(k) for k in sums if k.startswith("identity:")},
                      hours=seg("hours"), events=seg("events"), intervals=seg("intervals"))
 
 
-def seg_values(sums: dict[str, pl.DataFrame], quantity: str, breakdown: Sequence[str]) -> list[pl.DataFrame]:
+def _seg_values(sums: dict[str, pl.DataFrame], quantity: str, breakdown: Sequence[str]) -> list[pl.DataFrame]:
+    """The sketch counts of one quantity by (method, segment)."""
     f = sums.get("values")
     if f is None:
         return []
