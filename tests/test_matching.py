@@ -129,3 +129,19 @@ def test_candidate_pairs_are_every_gated_pair_of_an_epoch_in_row_order():
     np.testing.assert_array_equal(j, wj)
     np.testing.assert_allclose(cost, dh2[keep][want] / cfg.gate_h_m ** 2 + (dv[keep][want] / cfg.gate_v_m) ** 2,
                                rtol=1e-9)
+
+
+def test_the_reference_height_comes_with_its_rate():
+    """A level flight far from the frame's origin: its ENU vz is not zero (the earth curves away
+    from the tangent plane) but its altitude rate is. The matched rows and the reference at the
+    epochs carry the altitude rate beside the altitude, so the flight phase is level."""
+    from tertiary.evaluation.matching import reference_at_epochs
+    from tertiary.evaluation.picture_metrics import reference_labels
+    truth = _truth().with_columns(pl.lit(9000.0).alias("alt_m"), pl.lit(0.0).alias("alt_rate_mps"),
+                                  pl.lit(7.0).alias("vz_mps"))
+    tracks = _tracks(truth).with_columns(pl.lit(9000.0).alias("alt_m"), pl.lit(0.0).alias("alt_rate_mps"))
+    m = match_to_reference(tracks, truth)
+    assert (m["true_alt_rate_mps"] == 0.0).all()
+    ref = reference_at_epochs(tracks.select("run", "epoch"), truth)
+    assert (ref["true_alt_rate_mps"] == 0.0).all()
+    assert set(reference_labels(ref)["phase"].cast(pl.String)) == {"phase:level"}

@@ -122,3 +122,19 @@ def test_the_traffic_has_what_the_carry_must_handle() -> None:
     assert got[("false_tracks", "all")] > 0
     lone = e.group_by("method", "run", "truth_id").len().filter(pl.col("len") == 1)
     assert lone.height > 0
+
+
+def test_pictures_of_two_schemas_step_together() -> None:
+    """A window's pictures come as a frame per schema: a picture without ``alt_m`` is scored on
+    its ENU height, beside one with it, as each is alone."""
+    m, e = _traffic(1)
+    b = m.filter(pl.col("method") == "b").drop("alt_m").with_columns(pl.col("z_m") + 150.0)
+    a = m.filter(pl.col("method") == "a")
+    state = PictureStepState()
+    for lo, hi in ((0, 61), (61, 150), (150, 10_000)):
+        def part(f: pl.DataFrame) -> pl.DataFrame:
+            t = (pl.col("epoch") - pl.lit(T0)).dt.total_seconds()
+            return f.filter((t >= lo) & (t < hi))
+        state = picture_step(state, [part(a), part(b)], part(e), RADARS, BREAKDOWN, CFG)
+    whole = pl.concat([_whole(a, e.filter(pl.col("method") == "a")), _whole(b, e.filter(pl.col("method") == "b"))])
+    _assert_same(whole, picture_metrics_finish(state, RADARS, BREAKDOWN, CFG))

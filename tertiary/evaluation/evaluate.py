@@ -136,7 +136,7 @@ def _check_inputs(tracks: pl.DataFrame, truth: pl.DataFrame, id_col: str) -> Non
 
 
 #: the reference columns :func:`match_with_reference` reads of a time slice
-_MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "segment")
+_MATCHED_REF = ("run", "truth_id", "time", *_STATE, "alt_m", "alt_rate_mps", "segment")
 
 
 #: the internal columns of a reference file (:func:`write_reference`): each sample's aircraft's

@@ -61,8 +61,12 @@ def truth_at(samples: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
     """Reference state of ``samples`` (truth_id, epoch): exact or linearly interpolated between the
     neighbouring reference samples (never extrapolated: rows outside the aircraft's span are
     dropped), as ``true_<state>`` and the reference ``segment`` at the earlier sample;
-    ``true_alt_m`` too when both frames carry ``alt_m``."""
+    ``true_alt_m`` too when both frames carry ``alt_m``, and then ``true_alt_rate_mps`` when the
+    reference has ``alt_rate_mps`` (a height's rate beside the height: the ENU ``vz`` of a level
+    flight far from the frame's origin is not zero)."""
     cols = list(STATE) + (["alt_m"] if "alt_m" in truth.columns and "alt_m" in samples.columns else [])
+    if "alt_m" in cols and "alt_rate_mps" in truth.columns:
+        cols.append("alt_rate_mps")
     has_seg = "segment" in truth.columns
     tr = truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME), *cols,
                       (pl.col("segment") if has_seg else pl.lit(None, pl.String)).alias("segment")

@@ -37,7 +37,7 @@ from tertiary.evaluation.picture_buckets import (MEAN_ERRORS, RMS_ERRORS, accura
                                                  identity_combined, Partials)
 from tertiary.evaluation.picture_metrics import (TRACK_INPUTS, MetricsConfig, height_exprs, by_segment, count_tracks,
                                                  error_rows, finish_metrics, identity_checks, merge_hits, picture_rows,
-                                                 reference_labels, rep_points, track_table)
+                                                 reference_labels, track_table)
 
 __all__ = ["PictureStepState", "picture_step", "picture_metrics_finish", "LABELS"]
 
@@ -202,27 +202,31 @@ def _intervals(state: PictureStepState, labelled: pl.DataFrame, rep: pl.DataFram
 
 def _representative_points(m: pl.DataFrame) -> pl.DataFrame:
     """Where each aircraft's representative is at each epoch, or each candidate at an ambiguous
-    epoch (``__amb``): (method, run, epoch, track_id, __other, x_m, y_m, __th, __amb)."""
+    epoch (``__amb``): (method, run, epoch, track_id, __other, x_m, y_m, __th, __amb), as
+    :func:`~tertiary.evaluation.picture_metrics.rep_points` gives them; ``m``: (method, run,
+    truth_id, epoch, track_id, x_m, y_m, __th its height)."""
     k = m.group_by(_AT).agg(pl.col("track_id").n_unique().alias("__k"))
     if k.height == m.height:            # one row per aircraft and epoch: each is its representative
-        return rep_points(m).with_columns(pl.lit(False).alias("__amb"))
-    rows = m.join(k, on=_AT).with_columns((pl.col("__k") > 1).alias("__amb"))
-    rows = pl.concat([rows.filter(~pl.col("__amb")).unique(_AT, keep="first", maintain_order=True),
-                      rows.filter(pl.col("__amb"))])
-    return rep_points(rows).with_columns(rows["__amb"])
+        rows = m.with_columns(pl.lit(False).alias("__amb"))
+    else:
+        rows = m.join(k, on=_AT).with_columns((pl.col("__k") > 1).alias("__amb"))
+        rows = pl.concat([rows.filter(~pl.col("__amb")).unique(_AT, keep="first", maintain_order=True),
+                          rows.filter(pl.col("__amb"))])
+    return rows.select("method", "run", "epoch", "track_id", pl.col("truth_id").alias("__other"), "x_m", "y_m",
+                       "__th", "__amb")
 
 
-def _hits(m: pl.DataFrame, ref: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
+def _hits(points: pl.DataFrame | None, ref: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
     """Merged-track hits of one window: a representative (or candidate) track within the gates of
-    another aircraft that has no track of its own then (:func:`~tertiary.evaluation.picture_metrics.merge_hits`)."""
-    covered = m.select(_AT).unique()
-    bare = ref.join(covered, on=_AT, how="anti")
+    another aircraft that has no track of its own then (:func:`~tertiary.evaluation.picture_metrics.merge_hits`);
+    ``points``: the matched rows' (method, run, truth_id, epoch, track_id, x_m, y_m, __th)."""
+    bare = ref if points is None else ref.join(points.select(_AT).unique(), on=_AT, how="anti")
     th, _ = height_exprs(bare, "true_")
     bare = bare.select(*_AT, "true_x_m", "true_y_m", th.alias("__h"))
-    trk = _representative_points(m)
-    if bare.height == 0 or trk.height == 0:
+    if bare.height == 0 or points is None:
         return pl.DataFrame(schema={**{c: bare.schema[c] for c in _AT}, "track_id": pl.UInt64, "__other": pl.Int64,
                                     "__amb": pl.Boolean})
+    trk = _representative_points(points)
     return (merge_hits(bare, trk, cfg, spread_bare=bare.height < trk.height)
             .select(*_AT, "track_id", "__other", "__amb"))
 
@@ -258,11 +262,6 @@ def _error_sums(err: pl.DataFrame, cfg: MetricsConfig) -> dict[str, pl.DataFrame
     return out
 
 
-#: the windows' partial sums kept before they are folded into one frame (a fold per window
-#: would cost more than the sums it adds on short windows)
-_FOLD_AFTER = 16
-
-
 def _fold(name: str, frames: list[pl.DataFrame]) -> pl.DataFrame:
     """The partial sums of one kind as one frame (sums added, maxima kept)."""
     both = pl.concat(frames, how="diagonal_relaxed")
@@ -272,14 +271,13 @@ def _fold(name: str, frames: list[pl.DataFrame]) -> pl.DataFrame:
 
 
 def _added(sums: dict[str, list[pl.DataFrame]], new: dict[str, pl.DataFrame]) -> dict[str, list[pl.DataFrame]]:
-    """``sums`` with ``new`` added, kind by kind; a kind's frames folded into one every
-    :data:`_FOLD_AFTER` windows."""
+    """``sums`` with ``new`` added, kind by kind, each kind one frame: the state is the same
+    whatever the windows."""
     out = dict(sums)
     for name, frame in new.items():
         if frame.height == 0:
             continue
-        frames = [*out.get(name, []), frame]
-        out[name] = [_fold(name, frames)] if len(frames) > _FOLD_AFTER else frames
+        out[name] = [_fold(name, [*out[name], frame])] if name in out else [frame]
     return out
 
 
@@ -329,40 +327,47 @@ def _seg_values(sums: dict[str, pl.DataFrame], quantity: str, breakdown: Sequenc
     return [by_segment(f, breakdown, pl.col(sketch.COUNT).sum(), by=[sketch.KEY])]
 
 
-def picture_step(state: PictureStepState, matched: pl.DataFrame, expected: pl.DataFrame,
+def picture_step(state: PictureStepState, matched: pl.DataFrame | Sequence[pl.DataFrame], expected: pl.DataFrame,
                  radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str],
                  cfg: MetricsConfig = MetricsConfig()) -> PictureStepState:
     """Every picture's surveillance sums stepped by one window: ``matched`` (the window's
     matched rows of every picture, ``method`` naming it, id column ``track_id``; at least the
-    columns :func:`~tertiary.evaluation.picture_metrics.picture_metrics` reads) and
+    columns :func:`~tertiary.evaluation.picture_metrics.picture_metrics` reads; a frame per
+    picture schema: a height is ``alt_m`` where a picture has it, else ``z_m``) and
     ``expected`` (the reference at each picture's epochs, with ``method``). Windows come in
     time order, each with whole epochs."""
-    matched, expected = _key_cast(matched), _key_cast(expected)
-    tracks = _tracks(state, matched) if matched.height else state.tracks
-    m_all = matched.filter(pl.col("truth_id").is_not_null())
-    counts = _counts(state, m_all) if m_all.height else state.counts
+    given = [_key_cast(f) for f in ([matched] if isinstance(matched, pl.DataFrame) else matched) if f.height]
+    expected = _key_cast(expected)
+    tracks = _tracks(state, _cat(*(f.select(TRACK_INPUTS) for f in given))) if given else state.tracks
+    m_frames = [f for f in (f.filter(pl.col("truth_id").is_not_null()) for f in given) if f.height]
+    keys = _cat(*(f.select(*_AT, "track_id") for f in m_frames))
+    counts = _counts(state, keys) if keys is not None else state.counts
     ref_cols = [c for c in expected.columns if c in _AT or c.startswith("true_")]
     ref_new = expected.select(ref_cols)
     can_merge = {"true_x_m", "true_y_m"} <= set(ref_cols)
-    hits = _hits(m_all.select(*_AT, "track_id", *(c for c in ("x_m", "y_m", "z_m", "alt_m") if c in m_all.columns)),
-                 ref_new, cfg) if can_merge else None
+    hits = None
+    if can_merge and m_frames:
+        points = _cat(*(f.select(*_AT, "track_id", "x_m", "y_m", height_exprs(f)[0].alias("__th")) for f in m_frames))
+        hits = _hits(points, ref_new, cfg)
+    elif can_merge:
+        hits = _hits(None, ref_new, cfg)
     ref = _cat(state.pending_ref, ref_new)
     labels, context, pending_ref = _labels(state, ref, radar_xy, cfg)
     if pending_ref.height or state.pending_rows or _nonempty(state.pending_hits):
         # the rows of an aircraft still waiting for its labels wait with it; each frame keeps
         # its picture's columns (a height is ``alt_m`` where a picture has it, else ``z_m``)
         waiting = pending_ref.select(_KEY).unique()
-        frames = [*state.pending_rows, m_all]
+        frames = [*state.pending_rows, *m_frames]
         pending_rows = tuple(f for f in (f.join(waiting, on=_KEY, how="semi") for f in frames) if f.height)
         ready = [f for f in (f.join(waiting, on=_KEY, how="anti") for f in frames) if f.height]
         all_hits = _cat(state.pending_hits, hits)
         pending_hits = all_hits.join(waiting, on=_KEY, how="semi") if all_hits is not None else None
         hits = all_hits.join(waiting, on=_KEY, how="anti") if all_hits is not None else None
     else:
-        pending_rows, ready, pending_hits = (), [m_all] if m_all.height else [], None
+        pending_rows, ready, pending_hits = (), m_frames, None
     hits = hits.join(labels, on=_AT, how="left") if hits is not None else None
     rows = _cat(*(f.select(*_AT, "track_id") for f in ready))
-    rows = rows if rows is not None else m_all.select(*_AT, "track_id").clear()
+    rows = rows if rows is not None else ref_new.select(*_AT).with_columns(pl.lit(None, pl.UInt64).alias("track_id"))
     err = [error_rows(f, labels, cfg, on=_AT) for f in ready]
     hours, exposure = _exposure(state, labels, cfg) if labels.height else (None, state.exposure)
     rep, changes, ambiguous, last_rep = (_events(state, rows, labels, cfg) if rows.height

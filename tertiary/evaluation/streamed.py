@@ -92,7 +92,7 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     # the reference samples every picture of the window reads, sliced once (a superset of any
     # one picture's: the matcher reads only the samples about each of its epochs)
     truth = reference.between(min(epochs), max(epochs)) if epochs else None
-    blocks = []
+    blocks, surveyed = [], []
     breakdown = [b for b in cfg.breakdown if b != "range" or radar_xy is not None]
     for group, (id_col, named) in groups.items():
         rows = named[0][1] if len(named) == 1 else pl.concat([r for _, r in named], how="vertical")
@@ -112,11 +112,10 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                            seen.select(MULTITARGET_TRUTH)))
         out[matched_table(group)] = scored
         out[expected_table(group)] = pl.concat(seen_all, how="vertical")
-        if multitarget:
-            # a step per group: each keeps its pictures' columns (a height is alt_m where there is one)
-            slim = scored.select(c for c in scored.columns if c == id_col or c in metric_columns(scored))
-            metrics = picture_step(metrics, slim.rename({id_col: "track_id"}) if id_col != "track_id" else slim,
-                                   out[expected_table(group)], radar_xy, breakdown, cfg.metrics)
+        if multitarget:         # what the surveillance metrics read, the id column as track_id
+            keep = set(metric_columns(scored))
+            slim = scored.select(c for c in scored.columns if c == id_col or c in keep)
+            surveyed.append(slim.rename({id_col: "track_id"}) if id_col != "track_id" else slim)
     if walk_rows is not None:
         # one step for every picture of the window (their rows told by ``method``)
         rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
@@ -124,4 +123,7 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                              else (pl.DataFrame(schema=SCORED_ROWS), seed))
     if multitarget:
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
+        if surveyed:            # one step for every group: each frame keeps its pictures' columns
+            seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
+            metrics = picture_step(metrics, surveyed, seen, radar_xy, breakdown, cfg.metrics)
     return out, MatchState(carried, where, seed, walk, metrics)
