@@ -81,7 +81,7 @@ def _stepped(m: pl.DataFrame, e: pl.DataFrame, cuts: list[int]) -> pl.DataFrame:
             if hi is not None:
                 keep = keep & (pl.col("epoch") < hi)
             return f.filter(keep)
-        state = picture_step(state, part(m), part(e), RADARS, BREAKDOWN, CFG)
+        state = picture_step(state, part(m), part(e), RADARS, CFG)
     return picture_metrics_finish(state, RADARS, BREAKDOWN, CFG)
 
 
@@ -135,6 +135,6 @@ def test_pictures_of_two_schemas_step_together() -> None:
         def part(f: pl.DataFrame) -> pl.DataFrame:
             t = (pl.col("epoch") - pl.lit(T0)).dt.total_seconds()
             return f.filter((t >= lo) & (t < hi))
-        state = picture_step(state, [part(a), part(b)], part(e), RADARS, BREAKDOWN, CFG)
+        state = picture_step(state, [part(a), part(b)], part(e), RADARS, CFG)
     whole = pl.concat([_whole(a, e.filter(pl.col("method") == "a")), _whole(b, e.filter(pl.col("method") == "b"))])
     _assert_same(whole, picture_metrics_finish(state, RADARS, BREAKDOWN, CFG))

@@ -113,16 +113,17 @@ def _counts(state: PictureStepState, m: pl.DataFrame) -> pl.DataFrame:
 
 
 def _labels(state: PictureStepState, ref: pl.DataFrame, radar_xy: NDArray[np.float64] | None,
-            cfg: MetricsConfig) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+            cfg: MetricsConfig, final: bool) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(the labels of the reference rows that can be labelled now, the new context, the
-    reference still pending). ``ref``: the window's reference with the held one."""
+    reference still pending). ``ref``: the window's reference with the held one; ``final``:
+    nothing comes later, every row is labelled (a lone epoch has no turn rate)."""
     ctx = state.context
     given = _cat(ctx.with_columns(pl.lit(True).alias("__ctx")) if ctx is not None else None,
                  ref.with_columns(pl.lit(False).alias("__ctx")))
     # an aircraft with no earlier labelled state and one epoch so far: its turn rate is the next
     # step's, which a later window brings
     n = given.group_by(_KEY).agg(pl.col("epoch").n_unique().alias("__k"), pl.col("__ctx").any().alias("__had"))
-    wait = n.filter(~pl.col("__had") & (pl.col("__k") == 1)).select(_KEY)
+    wait = n.filter(~pl.col("__had") & (pl.col("__k") == 1) & (not final)).select(_KEY)
     ready = given.join(wait, on=_KEY, how="anti") if wait.height else given
     labels = reference_labels(ready.drop("__ctx"), radar_xy, cfg, keys=_KEY)
     if ctx is not None:
@@ -328,15 +329,22 @@ def _seg_values(sums: dict[str, pl.DataFrame], quantity: str, breakdown: Sequenc
 
 
 def picture_step(state: PictureStepState, matched: pl.DataFrame | Sequence[pl.DataFrame], expected: pl.DataFrame,
-                 radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str],
-                 cfg: MetricsConfig = MetricsConfig()) -> PictureStepState:
+                 radar_xy: NDArray[np.float64] | None, cfg: MetricsConfig = MetricsConfig()) -> PictureStepState:
     """Every picture's surveillance sums stepped by one window: ``matched`` (the window's
     matched rows of every picture, ``method`` naming it, id column ``track_id``; at least the
     columns :func:`~tertiary.evaluation.picture_metrics.picture_metrics` reads; a frame per
     picture schema: a height is ``alt_m`` where a picture has it, else ``z_m``) and
     ``expected`` (the reference at each picture's epochs, with ``method``). Windows come in
-    time order, each with whole epochs."""
-    given = [_key_cast(f) for f in ([matched] if isinstance(matched, pl.DataFrame) else matched) if f.height]
+    time order, each with whole epochs. ``radar_xy``: the radar sites in the system frame
+    (the range rings; None: no range label)."""
+    return _step(state, [matched] if isinstance(matched, pl.DataFrame) else matched, expected, radar_xy, cfg,
+                 final=False)
+
+
+def _step(state: PictureStepState, matched: Sequence[pl.DataFrame], expected: pl.DataFrame,
+          radar_xy: NDArray[np.float64] | None, cfg: MetricsConfig, final: bool) -> PictureStepState:
+    """:func:`picture_step`; ``final``: the end of the run, every held aircraft labelled."""
+    given = [_key_cast(f) for f in matched if f.height]
     expected = _key_cast(expected)
     tracks = _tracks(state, _cat(*(f.select(TRACK_INPUTS) for f in given))) if given else state.tracks
     m_frames = [f for f in (f.filter(pl.col("truth_id").is_not_null()) for f in given) if f.height]
@@ -352,7 +360,7 @@ def picture_step(state: PictureStepState, matched: pl.DataFrame | Sequence[pl.Da
     elif can_merge:
         hits = _hits(None, ref_new, cfg)
     ref = _cat(state.pending_ref, ref_new)
-    labels, context, pending_ref = _labels(state, ref, radar_xy, cfg)
+    labels, context, pending_ref = _labels(state, ref, radar_xy, cfg, final)
     if pending_ref.height or state.pending_rows or _nonempty(state.pending_hits):
         # the rows of an aircraft still waiting for its labels wait with it; each frame keeps
         # its picture's columns (a height is ``alt_m`` where a picture has it, else ``z_m``)
@@ -388,35 +396,12 @@ def picture_step(state: PictureStepState, matched: pl.DataFrame | Sequence[pl.Da
         sums=_counted(state.sums, err, hours, rep, closed, cfg))
 
 
-def _flushed(state: PictureStepState, radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str],
-             cfg: MetricsConfig) -> PictureStepState:
+def _flushed(state: PictureStepState, radar_xy: NDArray[np.float64] | None, cfg: MetricsConfig) -> PictureStepState:
     """The state with what waited for a later window counted as the end of the run leaves it:
     the held aircraft labelled with what they have, each aircraft's last exposure epoch (0 h)
     and its open intervals."""
     if _nonempty(state.pending_ref):
-        ref = state.pending_ref
-        # labelled as the whole run labels them: a lone epoch has no turn rate
-        labels = reference_labels(ref, radar_xy, cfg, keys=_KEY)
-        keep = replace(state, pending_ref=None, pending_rows=(), pending_hits=None, context=None)
-        err = [error_rows(f, labels, cfg, on=_AT) for f in state.pending_rows]
-        rows = _cat(*(f.select(*_AT, "track_id") for f in state.pending_rows))
-        lab = ref.join(labels, on=_AT, how="left")
-        hours, exposure = _exposure(keep, lab, cfg)
-        rep, changes, ambiguous, last_rep = (_events(keep, rows, labels, cfg) if _nonempty(rows)
-                                             else (None, None, None, keep.last_rep))
-        closed, bins, origin = _intervals(keep, lab, rep if rep is not None else lab.select(_AT).clear(), cfg)
-        hits = state.pending_hits
-        merged, amb_hits = keep.merged, keep.ambiguous_hits
-        if _nonempty(hits):
-            hits = hits.join(labels, on=_AT, how="left")
-            sure = hits.filter(~pl.col("__amb")).select("method", "run", "track_id", *LABELS).unique()
-            merged = _cat(merged, sure)
-            amb_hits = _cat(amb_hits, hits.filter(pl.col("__amb")).select("method", "run", "epoch", "track_id",
-                                                                           "__other", *LABELS))
-        state = replace(keep, exposure=exposure, bins=bins, origin=origin, last_rep=last_rep,
-                        changes=_cat(keep.changes, changes), ambiguous=_cat(keep.ambiguous, ambiguous),
-                        merged=merged, ambiguous_hits=amb_hits,
-                        sums=_counted(keep.sums, err, hours, rep, closed, cfg))
+        state = _step(state, [], state.pending_ref.clear(), radar_xy, cfg, final=True)
     last = state.exposure.with_columns(pl.lit(0.0).alias("__hours")) if state.exposure is not None else None
     opened = (state.bins.filter(pl.col("epoch").is_not_null()) if state.bins is not None else None)
     return replace(state, exposure=None, bins=None,
@@ -431,6 +416,17 @@ def _resolved(state: PictureStepState) -> pl.DataFrame:
             .unique(_AT, keep="first", maintain_order=True).select(*_AT, pl.col("track_id").alias("__rep")))
 
 
+def _changes(changes: pl.DataFrame, reps: pl.DataFrame | None) -> pl.DataFrame:
+    """The representative changes that touch an ambiguous epoch, decided with its representative."""
+    if reps is not None:
+        changes = (changes.join(reps, on=_AT, how="left")
+                   .with_columns(pl.coalesce("track_id", "__rep").alias("track_id")).drop("__rep")
+                   .join(reps.rename({"epoch": "__prev_epoch", "__rep": "__prev_rep"}), on=[*_KEY, "__prev_epoch"],
+                         how="left")
+                   .with_columns(pl.coalesce("__prev", "__prev_rep").alias("__prev")))
+    return changes.with_columns((pl.col("track_id") != pl.col("__prev")).fill_null(False).alias("__change"))
+
+
 def picture_metrics_finish(state: PictureStepState, radar_xy: NDArray[np.float64] | None,
                            breakdown: Sequence[str], cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
     """Every picture's surveillance metrics from the carried state, in the ``metrics`` table
@@ -438,29 +434,21 @@ def picture_metrics_finish(state: PictureStepState, radar_xy: NDArray[np.float64
     the run's matched rows and reference."""
     if state.tracks is None:
         return pl.DataFrame()
-    state = _flushed(state, radar_xy, breakdown, cfg)
+    state = _flushed(state, radar_xy, cfg)
     out = _segment_partials(state.sums, breakdown)
     real = state.tracks.filter(pl.col("__real"))
     base = real.select("method", "run").unique()
-    method_type = pl.String
     parts = [picture_rows(state.tracks)]
     if out.accuracy:
-        parts.append(accuracy_combined(out, breakdown, method_type))
+        parts.append(accuracy_combined(out, breakdown, pl.String))
     parts += [identity_combined(name, sums) for name, sums in out.identity.items()]
     if base.height:
         reps = _resolved(state) if _nonempty(state.ambiguous) else None
         if _nonempty(state.changes):
-            ch = state.changes
-            if reps is not None:
-                ch = (ch.join(reps, on=_AT, how="left").with_columns(pl.coalesce("track_id", "__rep").alias("track_id"))
-                      .drop("__rep")
-                      .join(reps.rename({"epoch": "__prev_epoch", "__rep": "__prev_rep"}),
-                            on=[*_KEY, "__prev_epoch"], how="left")
-                      .with_columns(pl.coalesce("__prev", "__prev_rep").alias("__prev")))
-            ch = ch.with_columns((pl.col("track_id") != pl.col("__prev")).fill_null(False).alias("__change"))
-            out.events.append(by_segment(ch, breakdown, pl.col("__change").sum().alias("__changes"),
-                                            pl.lit(0, pl.UInt32).alias("track_breaks"),
-                                            pl.lit(0.0).alias("__gaps"), by=["run"]))
+            out.events.append(by_segment(_changes(state.changes, reps), breakdown,
+                                         pl.col("__change").sum().alias("__changes"),
+                                         pl.lit(0, pl.UInt32).alias("track_breaks"), pl.lit(0.0).alias("__gaps"),
+                                         by=["run"]))
         split = [pl.DataFrame(schema={"method": pl.String, "run": pl.UInt32, "track_id": pl.UInt64,
                                       **{c: pl.Categorical for c in LABELS}})]
         if reps is not None:

@@ -93,7 +93,6 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     # one picture's: the matcher reads only the samples about each of its epochs)
     truth = reference.between(min(epochs), max(epochs)) if epochs else None
     blocks, surveyed = [], []
-    breakdown = [b for b in cfg.breakdown if b != "range" or radar_xy is not None]
     for group, (id_col, named) in groups.items():
         rows = named[0][1] if len(named) == 1 else pl.concat([r for _, r in named], how="vertical")
         scored, expected, _ = match_block(rows, truth, reference, cfg, id_col, None, slim=True)
@@ -125,5 +124,5 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
         if surveyed:            # one step for every group: each frame keeps its pictures' columns
             seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
-            metrics = picture_step(metrics, surveyed, seen, radar_xy, breakdown, cfg.metrics)
+            metrics = picture_step(metrics, surveyed, seen, radar_xy, cfg.metrics)
     return out, MatchState(carried, where, seed, walk, metrics)
