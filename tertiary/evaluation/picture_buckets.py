@@ -19,8 +19,8 @@ from tertiary.evaluation import sketch
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig
 
-__all__ = ["picture_metrics_buckets", "Partials", "RMS_ERRORS", "MEAN_ERRORS", "accuracy_combined", "identity_combined",
-           "continuity_combined"]
+__all__ = ["picture_metrics_buckets", "Partials", "RMS_ERRORS", "MEAN_ERRORS", "accuracy_sums", "accuracy_combined",
+           "identity_combined", "continuity_combined"]
 
 #: seed of the bucket hash: any fixed value (a row must fall in the same bucket in every scan)
 _SEED = 20211007
@@ -109,15 +109,21 @@ class Partials:
     bare: list[pl.DataFrame] = field(default_factory=list)
 
 
-def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: Partials) -> None:
-    """Accuracy and identity sums of one bucket's error rows, and the sketch of its percentiles."""
+def accuracy_sums() -> list[pl.Expr]:
+    """The accuracy sums of error rows: their count, the maxima, and each RMS and mean metric's
+    sum (of squares) and count (:data:`RMS_ERRORS`, :data:`MEAN_ERRORS`)."""
     aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
             pl.col("err_height_m").abs().max().alias("max_height_m")]
     for name, c in RMS_ERRORS.items():
         aggs += [(pl.col(c) ** 2).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
     for name, c in MEAN_ERRORS.items():
         aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    out.accuracy.append(pm.by_segment(err, breakdown, *aggs, by=["run"]))
+    return aggs
+
+
+def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, out: Partials) -> None:
+    """Accuracy and identity sums of one bucket's error rows, and the sketch of its percentiles."""
+    out.accuracy.append(pm.by_segment(err, breakdown, *accuracy_sums(), by=["run"]))
     out.values.append(pm.percentile_counts(err.with_columns(pl.col("method").cast(pl.Categorical)), breakdown))
     for name, ok in pm.identity_checks(err, cfg):
         out.identity.setdefault(name, []).append(pm.by_segment(

@@ -33,8 +33,8 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.evaluation import sketch
-from tertiary.evaluation.picture_buckets import (MEAN_ERRORS, RMS_ERRORS, accuracy_combined, continuity_combined,
-                                                 identity_combined, Partials)
+from tertiary.evaluation.picture_buckets import (Partials, accuracy_combined, accuracy_sums, continuity_combined,
+                                                 identity_combined)
 from tertiary.evaluation.picture_metrics import (TRACK_INPUTS, MetricsConfig, height_exprs, by_segment, count_tracks,
                                                  error_rows, finish_metrics, identity_checks, merge_hits, picture_rows,
                                                  reference_labels, track_table)
@@ -243,14 +243,8 @@ def _fine(frame: pl.DataFrame, *aggs: pl.Expr, by: Sequence[str] = ()) -> pl.Dat
 
 def _error_sums(err: pl.DataFrame, cfg: MetricsConfig) -> dict[str, pl.DataFrame]:
     """The accuracy and identity sums of error rows and the counts of their percentiles' sketch
-    (:func:`~tertiary.evaluation.picture_buckets._error_partials`, by labels)."""
-    aggs = [pl.len().alias("n_points"), pl.col("err_h_m").max().alias("max_horizontal_m"),
-            pl.col("err_height_m").abs().max().alias("max_height_m")]
-    for name, c in RMS_ERRORS.items():
-        aggs += [(pl.col(c) ** 2).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    for name, c in MEAN_ERRORS.items():
-        aggs += [pl.col(c).sum().alias(name), pl.col(c).count().alias(f"{name}:n")]
-    out = {"accuracy": _fine(err, *aggs)}
+    by labels."""
+    out = {"accuracy": _fine(err, *accuracy_sums())}
     values = []
     for quantity, v in (("horizontal", pl.col("err_h_m")), ("height", pl.col("err_height_m").abs())):
         keyed = err.select(*_FINE, sketch.bucket(v).alias(sketch.KEY)).drop_nulls(sketch.KEY)
