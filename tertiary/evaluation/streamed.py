@@ -1,8 +1,8 @@
 """The evaluation's matching as a streamed step: each window's pictures are matched to the
 reference and row-scored as they are made (:func:`match_window`), each picture's multi-target
-state and every picture's seed metrics (:mod:`tertiary.evaluation.accuracy_streamed`, one step
-a window) carried from window to window. What is left for the end of the run is to finish the
-seed metrics and reduce the matched rows to the surveillance metrics
+state, every picture's seed metrics (:mod:`tertiary.evaluation.accuracy_streamed`) and its
+surveillance metrics (:mod:`tertiary.evaluation.picture_streamed`), one step a window each,
+carried from window to window. What is left for the end of the run is to finish them
 (:class:`~tertiary.evaluation.evaluate.Matched`).
 
 The matcher is per epoch and the row scores per row, so the rows of a run stepped window by

@@ -2,9 +2,8 @@
 validated it before its first window), every streamed table sunk, and the one evaluation stage,
 alert scoring and STCA curves, the posterior Cramér–Rao bound, capacity and requirements run on
 the whole run (:func:`finalize`). An on-disk run keeps its pictures on disk; where its windows
-matched them to the truth (and stepped their seed metrics), the evaluation only finishes those
-and reduces the matched rows to the surveillance metrics, else it reads each picture back, one
-at a time."""
+matched them to the truth (and stepped their seed and surveillance metrics), the evaluation
+only finishes those, else it reads each picture back, one at a time."""
 
 from __future__ import annotations
 
