@@ -59,8 +59,9 @@ class MatchState:
     groups: dict[str, tuple[str, ...]] = field(default_factory=dict)
     seed: SeedState = field(default_factory=SeedState)
     walk: Walk | None = field(default_factory=Walk)
-    #: every picture's surveillance metrics so far (:mod:`tertiary.evaluation.picture_streamed`)
-    metrics: PictureStepState = field(default_factory=PictureStepState)
+    #: every picture's surveillance metrics so far (:mod:`tertiary.evaluation.picture_streamed`);
+    #: None: not stepped (a checkpoint written without them: the end computes them)
+    metrics: PictureStepState | None = field(default_factory=PictureStepState)
 
 
 def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFrame]], reference: Reference,
@@ -74,8 +75,8 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     stepped and their scored rows written (:data:`SCORED`); None, in any window: not. With
     ``multitarget`` the surveillance metrics are stepped too (``radar_xy``: the radar sites in
     the system frame, for the range breakdown)."""
-    carried, where, seed, walk, metrics = (dict(state.pictures), dict(state.groups), state.seed, state.walk,
-                                           state.metrics)
+    carried, where, seed, walk = dict(state.pictures), dict(state.groups), state.seed, state.walk
+    metrics = getattr(state, "metrics", None)
     out = {t(g): pl.DataFrame() for gs in where.values() for g in gs for t in (matched_table, expected_table)}
     walk_rows = None
     if walk is not None and observed is not None:
@@ -122,7 +123,7 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                              else (pl.DataFrame(schema=SCORED_ROWS), seed))
     if multitarget:
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
-        if surveyed:            # one step for every group: each frame keeps its pictures' columns
+        if surveyed and metrics is not None:    # one step for every group: a frame per schema
             seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
             metrics = picture_step(metrics, surveyed, seen, radar_xy, cfg.metrics)
     return out, MatchState(carried, where, seed, walk, metrics)

@@ -257,7 +257,9 @@ class WindowedPictures:
         mine = pl.col("method") == name
         mt = state.pictures.get(name)
         seed = None if state.walk is None else functools.partial(self._seed_tables, name)
-        surveyed = functools.partial(self._surveyed, name) if self.surveillance and state.metrics.tracks is not None else None
+        stepped = getattr(state, "metrics", None)
+        surveyed = (functools.partial(self._surveyed, name) if self.surveillance and stepped is not None
+                    and stepped.tracks is not None else None)
         return Matched(scan_spilled(files).filter(mine),
                        scan_spilled(expected).filter(mine).drop("method") if expected else None,
                        multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed,
