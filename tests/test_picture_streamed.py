@@ -138,3 +138,14 @@ def test_pictures_of_two_schemas_step_together() -> None:
         state = picture_step(state, [part(a), part(b)], part(e), RADARS, CFG)
     whole = pl.concat([_whole(a, e.filter(pl.col("method") == "a")), _whole(b, e.filter(pl.col("method") == "b"))])
     _assert_same(whole, picture_metrics_finish(state, RADARS, BREAKDOWN, CFG))
+
+
+def test_a_window_without_a_matched_row_represents_nobody() -> None:
+    """A window whose rows are all unmatched (every track tentative or false then) adds exposure
+    and missed updates, not represented epochs."""
+    m, e = _traffic(2)
+    t = (pl.col("epoch") - pl.lit(T0)).dt.total_seconds()
+    quiet = (t >= 100) & (t < 130)
+    m = m.with_columns(pl.when(quiet).then(None).otherwise(pl.col("truth_id")).alias("truth_id"))
+    assert m.filter(quiet).height and e.filter(quiet).height
+    _assert_same(_whole(m, e), _stepped(m, e, [100, 130]))

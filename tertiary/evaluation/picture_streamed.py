@@ -369,7 +369,8 @@ def _step(state: PictureStepState, matched: Sequence[pl.DataFrame], expected: pl
         pending_rows, ready, pending_hits = (), m_frames, None
     hits = hits.join(labels, on=_AT, how="left") if hits is not None else None
     rows = _cat(*(f.select(*_AT, "track_id") for f in ready))
-    rows = rows if rows is not None else ref_new.select(*_AT).with_columns(pl.lit(None, pl.UInt64).alias("track_id"))
+    if rows is None:                    # no row of the window represents an aircraft
+        rows = ref_new.select(*_AT).clear().with_columns(pl.lit(None, pl.UInt64).alias("track_id"))
     err = [error_rows(f, labels, cfg, on=_AT) for f in ready]
     hours, exposure = _exposure(state, labels, cfg) if labels.height else (None, state.exposure)
     rep, changes, ambiguous, last_rep = (_events(state, rows, labels, cfg) if rows.height
