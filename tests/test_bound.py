@@ -3,7 +3,7 @@ simulated truth."""
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 
 import numpy as np
 import polars as pl
@@ -352,6 +352,40 @@ def test_a_downlinked_velocity_lowers_the_bound_of_a_mode_s_aircraft():
     np.testing.assert_allclose(with_v["b2_pos"].to_numpy()[~is_ms], plots["b2_pos"].to_numpy()[~is_ms])
 
 
+def test_a_downlinked_velocity_counts_from_the_aircrafts_first_mode_s_report():
+    """An aircraft whose reports carry its Mode S address only 100 s into its flight: its velocity is a
+    measurement from then (less a scan period and the clocks' offsets) and not before, when no
+    report of it carries one. Its bound equals the plots-only bound until then and is below it
+    after. Fails if the address counts for the whole flight, or not at all."""
+    from tertiary import load_scenario
+    from tertiary.simulate import simulate
+    from tertiary.evaluation.bound import mode_s_lead_s
+    import dataclasses
+    sc = load_scenario("terminal-area")
+    ds = simulate(dataclasses.replace(sc, duration_s=400.0, traffic=dataclasses.replace(sc.traffic, aircraft=6)))
+    ms = ds.reports.filter(pl.col("mode_s").is_not_null())["truth_id"].drop_nulls().unique()
+    span = (ds.truth.filter(pl.col("truth_id").is_in(ms.implode())).group_by("truth_id")
+            .agg(pl.col("time").min().alias("t0"), (pl.col("time").max() - pl.col("time").min()).alias("d"))
+            .sort("d", "truth_id", descending=True))
+    tid, t0 = span["truth_id"][0], span["t0"][0]
+    assert span["d"][0].total_seconds() > 200
+    late = t0 + timedelta(seconds=100)
+    reports = ds.reports.with_columns(pl.when((pl.col("truth_id") == tid) & (pl.col("time") < late)).then(None)
+                                      .otherwise(pl.col("mode_s")).alias("mode_s"))
+    truth = ds.truth.filter(pl.col("truth_id") == tid)
+    samples = truth.select("truth_id", pl.col("time").alias("epoch")).gather_every(3)
+    got = []
+    for cfg, rep in ((BoundConfig(), reports), (BoundConfig(downlinked_velocity=False), reports)):
+        ev = illuminations(truth, ds.radars, rep, ds.origin, cfg)
+        got.append(pcrb_at(samples, ev, cfg, truth=truth).sort("epoch"))
+    with_v, plots = got
+    s = (with_v["epoch"] - t0).dt.total_seconds().to_numpy()
+    before, after = s < 100.0 - mode_s_lead_s(ds.radars), s > 130.0
+    assert before.any() and after.any()
+    np.testing.assert_allclose(with_v["b2_vel"].to_numpy()[before], plots["b2_vel"].to_numpy()[before], rtol=1e-12)
+    assert (with_v["b2_vel"].to_numpy()[after] < plots["b2_vel"].to_numpy()[after]).all()
+
+
 def test_without_manoeuvres_the_bound_is_the_regression_bound():
     """No deviation and a known zero acceleration (a straight leg): M is a deterministic line, and
     after n plots of σ² per axis at unit spacing (diffuse prior) the bound is the least-squares
@@ -375,7 +409,7 @@ def test_the_truth_is_the_unit_realisation_of_the_model():
     1 s samples, rows at irregular times — d = x(t_k) − Φ(τ) x(t_{k−1}) of the analytic (p, v, a),
     and ā at each row the truth's. Zero on the straight stretches before and after. Fails if a step
     is counted in the wrong interval, weighted by the wrong lever arm or taken from the wrong axis."""
-    from tertiary.evaluation.bound import _Truth
+    from tertiary.evaluation.bound_truth import Truth
     a_on = np.array([1.5, -0.5, 0.2])
 
     def state(t):
@@ -391,7 +425,7 @@ def test_the_truth_is_the_unit_realisation_of_the_model():
     truth = pl.DataFrame({"truth_id": 3, "time": pl.Series((ts * 1e6).astype(np.int64)).cast(pl.Datetime("us", "UTC")),
                           "x_m": p[:, 0], "y_m": p[:, 1], "z_m": p[:, 2], "vx_mps": v[:, 0], "vy_mps": v[:, 1],
                           "vz_mps": v[:, 2]})
-    tr = _Truth.of(truth, 0, half_window_s=0.0)
+    tr = Truth.of(truth, 0, half_window_s=0.0)
     rows = np.array([1.3, 3.3, 7.1, 10.0, 12.6, 18.0, 24.5, 27.4, 31.9, 39.0])
     first = np.zeros(len(rows), bool)
     first[0] = True
@@ -440,8 +474,8 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
     truth = pl.concat(rows)
     radars, reports = _radar(truth, 12.0, 30_000.0, "rotating")
     seen = []
-    at = bound._Truth.at
-    monkeypatch.setattr(bound._Truth, "at", lambda self, a, tt: seen.append(len(a)) or at(self, a, tt))
+    at = bound.Truth.at
+    monkeypatch.setattr(bound.Truth, "at", lambda self, a, tt: seen.append(len(a)) or at(self, a, tt))
     monkeypatch.setattr(bound, "RANGE_SCREEN", False)
     want = illuminations(truth, radars, reports, origin)
     unscreened = sum(seen[1:])
@@ -450,10 +484,10 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
     got = illuminations(truth, radars, reports, origin)
     assert want.height > 200 and sum(seen[1:]) < 0.7 * unscreened
     assert_frame_equal(got, want)
-    tight = bound._Truth.top_speed
-    monkeypatch.setattr(bound._Truth, "top_speed", property(lambda self: -500.0 / 12.0))   # no motion margin
+    tight = bound.Truth.top_speed
+    monkeypatch.setattr(bound.Truth, "top_speed", property(lambda self: -500.0 / 12.0))   # no motion margin
     assert illuminations(truth, radars, reports, origin).height < want.height
-    monkeypatch.setattr(bound._Truth, "top_speed", tight)
+    monkeypatch.setattr(bound.Truth, "top_speed", tight)
 
 
 def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(monkeypatch, tmp_path):

@@ -1,6 +1,7 @@
 """The bound made as the windows pass (:mod:`tertiary.evaluation.bound_streamed`) equals the
-whole-run stage's (:func:`tertiary.evaluation.bound.bound_stage`): each aircraft bounded once its
-truth has ended, those still flying at the end, its Mode S flag and Cartesian plots carried."""
+whole-run stage's (:func:`tertiary.evaluation.bound.bound_stage`): every aircraft's recursion
+carried from window to window, its truth read a stretch at a time, its first Mode S report and
+Cartesian plots carried, those still flying at the end finished there."""
 
 from __future__ import annotations
 
@@ -24,8 +25,11 @@ from tertiary.evaluation.evaluate import write_reference
 T0_US = int(datetime(2021, 10, 7, 8, 0, tzinfo=timezone.utc).timestamp()) * US
 TIME = pl.Datetime("us", "UTC")
 ORIGIN = geo.LocalFrame(48.0, 2.0, 0.0)
-#: (truth_id, first s, last s, turn rate rad/s, Mode S): two end early, one turns, one is Mode A/C
-AIRCRAFT = ((7, 0, 200, 0.0, True), (8, 20, 420, 0.02, False), (9, 60, 900, 0.0, True), (10, 300, 900, 0.01, True))
+#: (truth_id, first s, last s, turn rate rad/s, first Mode S report s or None): two end early, one
+#: turns, one is Mode A/C, one's first Mode S report comes late
+AIRCRAFT = ((7, 0, 200, 0.0, 0), (8, 20, 420, 0.02, None), (9, 60, 900, 0.0, 0), (10, 300, 900, 0.01, 500))
+#: aircraft 9's truth has no sample in this span (s): a gap, as ADS-B truth has
+GAP = (400, 470)
 
 
 def _times(t: np.ndarray) -> pl.Series:
@@ -40,9 +44,10 @@ def _truth() -> pl.DataFrame:
         vx, vy = 120.0 * np.sin(heading), 120.0 * np.cos(heading)
         x = 15_000.0 * (k + 1) + np.cumsum(vx) - vx[0]
         y = -40_000.0 + np.cumsum(vy) - vy[0]
-        out.append(pl.DataFrame({"run": pl.Series(np.zeros(len(t)), dtype=pl.UInt32), "truth_id": tid,
-                                 "time": _times(t), "x_m": x, "y_m": y, "z_m": np.full_like(t, 3000.0 + 300 * k),
-                                 "vx_mps": vx, "vy_mps": vy, "vz_mps": 0.0}))
+        frame = pl.DataFrame({"run": pl.Series(np.zeros(len(t)), dtype=pl.UInt32), "truth_id": tid,
+                              "time": _times(t), "x_m": x, "y_m": y, "z_m": np.full_like(t, 3000.0 + 300 * k),
+                              "vx_mps": vx, "vy_mps": vy, "vz_mps": 0.0})
+        out.append(frame.filter(~pl.Series((t > GAP[0]) & (t < GAP[1]))) if tid == 9 else frame)
     return pl.concat(out).sort("time", "truth_id")
 
 
@@ -55,12 +60,14 @@ def _radars() -> pl.DataFrame:
 
 
 def _reports(truth: pl.DataFrame) -> pl.DataFrame:
-    """Radar 1's reports (the scan phase; Mode S for the aircraft so flagged) every 4 s and the
-    MLAT sensor's plots of aircraft 8 (stated σ on some) every 5 s."""
-    mode_s = {tid: f"{tid:06x}" if ms else None for tid, *_, ms in AIRCRAFT}
+    """Radar 1's reports (the scan phase; a Mode S address from each aircraft's first Mode S
+    report on) every 4 s and the MLAT sensor's plots of aircraft 8 (stated σ on some) every 5 s."""
+    since = {tid: -1 if ms is None else T0_US + ms * US for tid, *_, ms in AIRCRAFT}
+    first = pl.col("truth_id").replace_strict(since, return_dtype=pl.Int64)
     radar = (truth.filter(pl.col("time").dt.epoch("us") % (4 * US) == US)
              .select(pl.lit(1, pl.UInt32).alias("radar_id"), "truth_id", "time", pl.lit(10.0).alias("azimuth_deg"),
-                     pl.col("truth_id").replace_strict(mode_s, return_dtype=pl.String).alias("mode_s")))
+                     pl.when((first >= 0) & (pl.col("time").dt.epoch("us") >= first))
+                     .then(pl.format("{}", pl.col("truth_id"))).alias("mode_s")))
     plots = (truth.filter((pl.col("truth_id") == 8) & (pl.col("time").dt.epoch("us") % (5 * US) == 0))
              .select(pl.lit(2, pl.UInt32).alias("radar_id"), "truth_id", "time")
              .with_columns(pl.when(pl.int_range(pl.len()) % 2 == 0).then(20.0).alias("plot_sigma_x_m"),
@@ -116,50 +123,52 @@ def _stepped(case, where, window_s: float, roundtrip: bool = False, open_last: b
     return setup, state, bounded, stored
 
 
+@pytest.mark.parametrize("advance_s", [0.0, 120.0])
 @pytest.mark.parametrize("window_s", [30.0, 97.0, 1000.0])
-def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_path, window_s):
-    """Aircraft 7 and 8 end mid-run and are bounded in the windows, 9 and 10 at the end; the
-    rows equal the whole-run stage's. Fails if an aircraft is bounded before all its samples
-    came, if its Mode S flag (downlinked velocity) or MLAT plots are not carried to it, or if
-    an aircraft is bounded twice."""
-    monkeypatch.setattr(bs, "RETIRE_BATCH", 1)
+def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_path, window_s, advance_s):
+    """The recursions are carried across the windows (taken on every window, or every 120 s),
+    aircraft 7 and 8 done in the windows, 9 and 10 at the end; the rows equal the whole-run
+    stage's. Fails if a recursion restarts from the prior, a row is counted twice or not at all,
+    an aircraft's first Mode S report (10's comes at 500 s), its truth gap (9) or its MLAT plots
+    (8) are not carried to it."""
+    monkeypatch.setattr(bs, "ADVANCE_S", advance_s)
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", window_s)
     if window_s < 900:
-        assert 0 < bounded[-1] < len(AIRCRAFT), "no aircraft bounded in the windows, or none left for the end"
-        assert state.pending.tolist() == [9, 10]
+        assert bounded[-1] == 2 and state.aircraft["truth_id"].to_list() == [9, 10], bounded
+        assert state.tail.height < case.truth.height / 4, "the windows hold the truth instead of its tail"
     got = bound_rows(bs.bound_finish(setup, state, stored), case.acc)
     assert case.whole.height and set(case.whole["segment"]) == {"all", "straight", "turn"}
     assert_frame_equal(got, case.whole, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
 
 
+def test_an_aircraft_whose_samples_past_the_cut_are_too_few_waits(case, monkeypatch, tmp_path):
+    """With truth read only 3 s past the cut, the acceleration near the cut (±10 s of samples)
+    cannot be fitted: each aircraft is taken to the sample that has its samples after it, and on
+    from there next time; the rows equal the whole-run stage's. Fails if the cut is not held
+    back (the acceleration there clipped to the samples read)."""
+    monkeypatch.setattr(bs, "ADVANCE_S", 0.0)
+    monkeypatch.setattr(bs, "LOOKAHEAD_S", 3.0)
+    setup, state, _, stored = _stepped(case, tmp_path / "parts", 30.0)
+    assert (state.aircraft["done_us"] < state.cut_us).all()
+    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+                       rel_tol=1e-9, abs_tol=0.0)
+
+
 def test_a_runs_open_last_window_leaves_the_aircraft_still_flying_to_the_end(case, monkeypatch, tmp_path):
-    """The last window of a run is open: it bounds no aircraft (the end does, beside its
-    evaluation), so aircraft 9 and 10 are still pending after it and 7, 8 were bounded before;
-    the rows equal the whole-run stage's. Fails if the open window bounds what is pending."""
-    monkeypatch.setattr(bs, "RETIRE_BATCH", 1)
+    """The last window of a run is open: it takes no recursion on (the end does, beside its
+    evaluation), so aircraft 9 and 10 are carried after it and 7, 8 were done before; the rows
+    equal the whole-run stage's. Fails if the open window takes the recursions on."""
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 97.0, open_last=True)
-    assert bounded[-1] == bounded[-2] == 2 and state.pending.tolist() == [9, 10], bounded
+    assert bounded[-1] == bounded[-2] == 2 and state.aircraft["truth_id"].to_list() == [9, 10], bounded
+    assert int(state.aircraft["done_us"].max()) < T0_US + 800 * US
     assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
 
-def test_a_batch_is_waited_for_and_the_state_pickles(case, monkeypatch, tmp_path):
-    """With a batch of two aircraft, aircraft 7 waits for 8 to end; a state pickled after each
-    window bounds the same."""
-    monkeypatch.setattr(bs, "RETIRE_BATCH", 2)
+def test_the_state_pickles(case, tmp_path):
+    """A state pickled after each window bounds the same."""
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 30.0, roundtrip=True)
-    ends = [int(bs.RETIRE_AFTER_S + b) for _, _, b, _, _ in AIRCRAFT[:2]]
-    assert bounded[ends[0] // 30 + 1] == 0 and bounded[-1] == 2, bounded
-    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
-                       rel_tol=1e-9, abs_tol=0.0)
-
-
-def test_a_batch_not_filled_is_bounded_after_the_wait(case, monkeypatch, tmp_path):
-    """A batch of 100 never fills: aircraft 7 (due at 320 s) and 8 (due at 540 s) are bounded
-    in the first window ending after 7 has waited 600 s, not left for the end."""
-    monkeypatch.setattr(bs, "RETIRE_BATCH", 100)
-    setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 30.0)
-    assert bounded[-2] == 0 and bounded[-1] == 2 and state.pending.tolist() == [9, 10], bounded
+    assert bounded[-1] == 2
     assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
@@ -168,9 +177,9 @@ def test_a_window_without_scored_samples_hands_the_bound_to_the_end(case):
     setup = bs.bound_setup(case.ds, case.radars, ORIGIN, case.ref, case.reports.lazy())
     state = bs.bound_step(setup, bs.BoundState(), case.samples.head(10), case.reports.head(3),
                           Window(0, T0_US, T0_US + 30 * US), list)
-    assert state.pending.tolist() == [7]
+    assert state.windows and state.complete
     state = bs.bound_step(setup, state, None, case.reports.clear(), Window(1, T0_US + 30 * US, T0_US + 60 * US), list)
-    assert not state.complete and len(state.pending) == 0
+    assert not state.complete and not state.windows
     late = Window(2, T0_US + 60 * US, T0_US + 2000 * US)
     assert not bs.bound_step(setup, state, case.samples, case.reports, late, list).complete
 

@@ -203,13 +203,12 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
             yield read, rows
     monkeypatch.setattr(bound, "_truth_reads", truth_reads)
     monkeypatch.setattr(bound, "BOUND_READ_AIRCRAFT", 7)
-    # on disk the windows bound each aircraft once its truth ends, reading its truth from the
-    # reference a batch at a time; the end bounds the aircraft still flying
+    # on disk the windows carry every aircraft's recursion, reading the truth from the reference
+    # a stretch at a time; the end takes the aircraft still flying to the end of their truth
     from tertiary.evaluation import bound_streamed
-    batches: list[int] = []
-    monkeypatch.setattr(bound_streamed, "_truth_of", lambda setup, ids, f=bound_streamed._truth_of:
-                        batches.append(len(ids)) or f(setup, ids))
-    monkeypatch.setattr(bound_streamed, "RETIRE_BATCH", 7)
+    stretches: list[tuple[int, int | None, int]] = []          # (from µs, to µs, rows) of each read
+    monkeypatch.setattr(bound_streamed, "_read_truth", lambda setup, lo, hi, f=bound_streamed._read_truth:
+                        stretches.append((lo, hi, (got := f(setup, lo, hi)).height)) or got)
     # the on-disk run's evaluation keeps the id-map rows of the alerts and curve points alone
     kept: list[int] = []
     monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:
@@ -264,10 +263,11 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     assert end_lags == [(0, True)]
     windows_alerts = [out["truth_conflicts"]["alert"].sum() for out, _ in truth_rows if "truth_conflicts" in out]
     assert sum(windows_alerts) > 0 and all(s.complete for _, s in truth_rows)
-    # the bound's truth read from the reference on disk as its aircraft ended, 7 at least at a
-    # time in the windows, the rest at the end; never the whole-run stage's reads
-    assert len(bound_reads) == 1 and len(batches) > 2 and all(n >= 7 for n in batches[:-1])
-    assert sum(batches) == bound_reads[0][1]
+    # the bound's truth read from the reference on disk in stretches that follow one another, the
+    # last at the end, each sample once; never the whole-run stage's reads
+    assert len(bound_reads) == 1 and len(stretches) > 2 and stretches[-1][1] is None
+    assert all(a[1] == b[0] for a, b in zip(stretches, stretches[1:]))
+    assert sum(n for *_, n in stretches) == mem.ingested.truth.height
     assert len(streamed) == 1 and streamed[0] is not None and streamed[0][0].rows > 3 * 1_500
     assert len(kept) == 2 * len(cfg.methods) and min(kept) > 0
     with RunStore.open(tmp_path / "run") as st:

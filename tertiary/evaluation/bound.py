@@ -90,7 +90,9 @@ stand-in's is the larger, so the bound stays below).
 
 Downlinked velocity: a Mode S aircraft's ground speed and true track (BDS 5,0), which the
 trackers take as a velocity measurement, carry information the plots do not. At every
-illumination of an aircraft whose reports carry a Mode S address, each radar adds a measurement
+illumination of an aircraft from its first report that carries a Mode S address on (less the
+longest scan period and clock offset, :func:`mode_s_lead_s`: the illumination that made the
+report counts; before it no report of the aircraft carries a velocity), each radar adds a measurement
 of the velocity, H selecting (v_x, v_y, v_z), with R = Lᵀ diag(R_h, V) L: L the system-to-local
 rotation at the aircraft, R_h σ ``ehs_speed_sigma_mps`` along the truth's track and its speed ×
 ``ehs_track_sigma_deg`` across it (the registers' noise; the quantisation is left out, which
@@ -125,7 +127,6 @@ once per (truth_id, epoch).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -138,14 +139,16 @@ from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import FT, US
 from tertiary.evaluation.bound_kernel import pcrb_ca9
 from tertiary.evaluation.bound_pooling import BOUND_METRICS, UNMEASURED, bound_metrics, bound_rows, bound_sums
-from tertiary.evaluation.bound_measurements import (VELOCITY_VERTICAL_VAR, mode_s_aircraft, velocity_covariance,
+from tertiary.evaluation.bound_measurements import (VELOCITY_VERTICAL_VAR, mode_s_first, velocity_covariance,
                                                     with_height)
+from tertiary.evaluation.bound_truth import ACCEL_HALF_WINDOW_S, Truth
 from tertiary.contract import TABLES, TIME
 from tertiary.contract.cast import cast_column
 from tertiary.sensors import mlat
 from tertiary.sensors.adsb import sigma_from_nacp
 
-__all__ = ["BoundConfig", "pcrb_linear", "illuminations", "pcrb_at", "bound_metrics", "BOUND_METRICS", "UNMEASURED",
+__all__ = ["BoundConfig", "CARRIED", "pcrb_linear", "illuminations", "pcrb_at", "pcrb_carried", "mode_s_lead_s",
+           "bound_metrics", "BOUND_METRICS", "UNMEASURED",
            "MODEL", "bound_setup", "block_sums", "bound_stage", "scan_origins"]
 
 F64 = NDArray[np.float64]
@@ -161,9 +164,6 @@ RANGE_SCREEN = True
 #: Mode C height, so the pictures' z takes that reply's information; the finest quantisation's
 #: q²/12 (25 ft, Mode S) gives it at least the information any reply holds (module docstring)
 MLAT_VERTICAL_VAR_M2 = (25.0 * FT) ** 2 / 12.0
-#: half-width (s) of the centred velocity difference that fits the truth's acceleration (model M):
-#: long enough to average out the jitter of ADS-B truth's vertical rate, short beside a manoeuvre
-ACCEL_HALF_WINDOW_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -207,7 +207,8 @@ class BoundConfig:
                 f"manoeuvre's onset known, not its magnitude; prior σ_p {self.p0_sigma_m:g} m, "
                 f"σ_v {self.v0_sigma_mps:g} m/s; radar plots (nominal σ, Pd, scan schedule"
                 + (", with their barometric height at the 25 ft quantum's variance)" if self.mode_c_height else ")")
-                + (f" and, for a Mode S aircraft, a downlinked ground velocity at every illumination "
+                + (f" and, for a Mode S aircraft, a downlinked ground velocity at every illumination from its first "
+                   f"Mode S report on "
                    f"(σ {self.ehs_speed_sigma_mps:g} m/s along the track, {self.ehs_track_sigma_deg:g}° across)"
                    if self.downlinked_velocity else " only"))
 
@@ -281,123 +282,6 @@ def _update(p: F64, r: F64, obs: I64) -> F64:
 # --------------------------------------------------------------------------- truth and scans
 
 
-@dataclass
-class _Truth:
-    """Truth samples sorted by (aircraft index, time), times in seconds from ``t0_us``; ``key`` =
-    index · span + t is increasing, so one ``searchsorted`` brackets every query."""
-
-    ids: NDArray[np.int64]
-    first: I64
-    count: I64
-    t: F64
-    pos: F64
-    vel: F64
-    span: float
-    key: F64
-    gap_s: F64
-    half_window_s: float = ACCEL_HALF_WINDOW_S
-
-    @classmethod
-    def of(cls, truth: pl.DataFrame, t0_us: int, half_window_s: float = ACCEL_HALF_WINDOW_S) -> "_Truth":
-        tr = (truth.select(pl.col("truth_id").cast(pl.Int64), pl.col("time").cast(TIME).dt.epoch("us").alias("us"),
-                           "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
-              .drop_nulls().unique(["truth_id", "us"], keep="first").sort("truth_id", "us"))
-        ids, first, count = np.unique(tr["truth_id"].to_numpy(), return_index=True, return_counts=True)
-        t = (tr["us"].to_numpy() - t0_us) / US
-        span = 2.0 * float(np.abs(t).max(initial=0.0)) + 10.0
-        owner = np.repeat(np.arange(len(ids)), count)
-        d = np.diff(t)
-        same = owner[1:] == owner[:-1]
-        gap = np.full(len(ids), np.inf)       # largest spacing that is not a truth gap: 1.5 × median
-        if same.any():
-            g = pl.DataFrame({"a": owner[1:][same], "d": d[same]}).group_by("a").agg(pl.col("d").median())
-            gap[g["a"].to_numpy()] = 1.5 * g["d"].to_numpy()
-        return cls(ids, first, count, t, tr.select("x_m", "y_m", "z_m").to_numpy(),
-                   tr.select("vx_mps", "vy_mps", "vz_mps").to_numpy(), span, owner * span + t, gap, half_window_s)
-
-    @functools.cached_property
-    def accel(self) -> F64:
-        """ā (n, 3) on the interval that starts at each sample: the centred velocity difference
-        over ± ``half_window_s`` (W samples of the aircraft's median spacing), clipped to the
-        aircraft's span (module docstring, M1–M2); 0 for an aircraft of one sample."""
-        owner = np.repeat(np.arange(len(self.ids)), self.count)
-        lo_a, hi_a = self.first[owner], self.first[owner] + self.count[owner] - 1
-        spacing = self.gap_s[owner] / 1.5
-        w = np.where(np.isfinite(spacing), np.round(self.half_window_s / np.where(spacing > 0, spacing, 1.0)), 0.0)
-        j = np.arange(len(self.t))
-        hi = np.minimum(j + 1 + w.astype(np.int64), hi_a)
-        lo = np.minimum(np.maximum(j - w.astype(np.int64), lo_a), np.maximum(hi - 1, lo_a))
-        h = self.t[hi] - self.t[lo]
-        return np.where((h > 0)[:, None], (self.vel[hi] - self.vel[lo]) / np.where(h > 0, h, 1.0)[:, None], 0.0)
-
-    @functools.cached_property
-    def _steps(self) -> tuple[F64, F64, F64]:
-        """Per aircraft, the running sums C_r = Σ_{m ≤ j} Δa_m τ_m^r (r = 0, 1, 2; τ from the
-        aircraft's first sample) of the acceleration steps Δa_m = ā_m − ā_{m−1} (none at the
-        first sample): (M2) over any interval is a difference of them."""
-        owner = np.repeat(np.arange(len(self.ids)), self.count)
-        acc = self.accel
-        step = np.zeros_like(acc)
-        same = owner[1:] == owner[:-1]
-        step[1:][same] = (acc[1:] - acc[:-1])[same]
-        tau = (self.t - self.t[self.first[owner]])[:, None]
-        cols = {f"{r}{k}": (step * tau ** r)[:, k] for r in range(3) for k in range(3)}
-        c = pl.DataFrame({"a": owner, **cols}).select(pl.exclude("a").cum_sum().over("a")).to_numpy()
-        return c[:, 0:3], c[:, 3:6], c[:, 6:9]
-
-    def deviations(self, a: I64, t: F64, first: NDArray[np.bool_]) -> tuple[F64, F64]:
-        """For rows of aircraft index ``a`` (−1: not in the truth) at times ``t`` in sequence
-        order (``first``: a sequence's first row): d (n, 3 axes, 3) of (M2) over the interval
-        from the previous row (0 at a first row) and the truth's ā (n, 3) at each row."""
-        known = a >= 0
-        ak = np.where(known, a, 0)
-        lo, hi = self.first[ak], self.first[ak] + self.count[ak] - 1
-        j = np.clip(np.searchsorted(self.key, ak * self.span + t, side="right") - 1, lo, hi)
-        c0, c1, c2 = (c[j] for c in self._steps)
-        prev = np.r_[0, np.arange(len(t) - 1)]
-        d0, d1, d2 = c0 - c0[prev], c1 - c1[prev], c2 - c2[prev]
-        big_t = (t - self.t[lo])[:, None]
-        dev = np.stack([0.5 * (big_t * big_t * d0 - 2.0 * big_t * d1 + d2), big_t * d0 - d1, d0], axis=-1)
-        dev[first | ~known] = 0.0
-        return dev, np.where(known[:, None], self.accel[j], 0.0)
-
-    @functools.cached_property
-    def top_speed(self) -> float:
-        """The fastest any aircraft moves (m/s): its largest velocity sample, or the chord
-        between two consecutive samples (gaps included) when that is faster."""
-        same = np.repeat(np.arange(len(self.ids)), self.count)
-        one = same[1:] == same[:-1]
-        dt = np.diff(self.t)[one]
-        chord = np.linalg.norm(np.diff(self.pos, axis=0)[one], axis=1) / np.where(dt > 0, dt, np.inf)
-        return float(max(np.linalg.norm(self.vel, axis=1).max(initial=0.0), chord.max(initial=0.0)))
-
-    def velocity_at(self, a: I64, t: F64) -> F64:
-        """The truth's sampled velocities of aircraft index ``a`` interpolated linearly to ``t``
-        (clipped to the aircraft's span)."""
-        lo, hi = self.first[a], self.first[a] + self.count[a] - 1
-        j = np.clip(np.searchsorted(self.key, a * self.span + t, side="right") - 1, lo, np.maximum(hi - 1, lo))
-        j1 = np.minimum(j + 1, hi)
-        h = self.t[j1] - self.t[j]
-        s = np.clip((t - self.t[j]) / np.where(h > 0, h, 1.0), 0.0, 1.0)[:, None]
-        return (1.0 - s) * self.vel[j] + s * self.vel[j1]
-
-    def at(self, a: I64, t: F64) -> tuple[F64, NDArray[np.bool_]]:
-        """Cubic Hermite position of aircraft index ``a`` at ``t`` (the simulator's
-        interpolation) and its validity: inside the aircraft's span and not across a truth gap."""
-        lo, hi = self.first[a], self.first[a] + self.count[a] - 1
-        j = np.searchsorted(self.key, a * self.span + t, side="right") - 1
-        ok = (j >= lo) & (j <= hi)
-        j = np.clip(j, lo, np.maximum(hi - 1, lo))
-        j1 = np.minimum(j + 1, hi)
-        h = self.t[j1] - self.t[j]
-        ok &= ((h > 0) & (h <= self.gap_s[a]) & (t <= self.t[j1])) | (j1 == j)
-        s = np.clip((t - self.t[j]) / np.where(h > 0, h, 1.0), 0.0, 1.0)[:, None]
-        p0, p1, v0, v1 = self.pos[j], self.pos[j1], self.vel[j] * h[:, None], self.vel[j1] * h[:, None]
-        s2, s3 = s * s, s * s * s
-        pos = (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * v0 + (-2 * s3 + 3 * s2) * p1 + (s3 - s2) * v1
-        return pos, ok & (np.abs(t - self.t[j]) <= np.maximum(h, 0.0) + 1e-9)
-
-
 def _scan_origin(times_s: F64, az_deg: F64, period: float, rotating: bool) -> float | None:
     """s_0 mod T from a radar's report times (true seconds): the circular median of
     (t − T·β/360) mod T (rotating) or t mod T (synchronous)."""
@@ -410,11 +294,12 @@ def _scan_origin(times_s: F64, az_deg: F64, period: float, rotating: bool) -> fl
     return float(np.mod(np.median(r), period))
 
 
-def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_el: float, height: bool = True
-                  ) -> tuple[I64, F64, F64]:
+def _radar_events(tr: Truth, row: dict, s0: float, origin: geo.LocalFrame, max_el: float, height: bool = True,
+                  between: tuple[float, float] | None = None) -> tuple[I64, F64, F64]:
     """(aircraft index, time, R_eq = G R_polar Gᵀ / Pd) of every illumination of one radar that
     covers an aircraft (module docstring); with ``height``, the plot's barometric height too
-    (:func:`tertiary.evaluation.bound_measurements.with_height`)."""
+    (:func:`tertiary.evaluation.bound_measurements.with_height`); ``between``: the scans that
+    can illuminate in [lo, hi) s only (those starting in [lo − T, hi])."""
     T = float(row["scan_period_s"])
     pd = float(row.get("pd") if row.get("pd") is not None else 1.0)
     if not (T > 0 and pd > 0):
@@ -422,6 +307,9 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
     lo_t, hi_t = tr.t[tr.first], tr.t[tr.first + tr.count - 1]
     k_lo = np.ceil((lo_t - T - s0) / T).astype(np.int64)
     k_hi = np.floor((hi_t - s0) / T).astype(np.int64)
+    if between is not None:
+        k_lo = np.maximum(k_lo, int(np.ceil((between[0] - T - s0) / T)))
+        k_hi = np.minimum(k_hi, int(np.floor((between[1] - s0) / T)))
     n = np.maximum(k_hi - k_lo + 1, 0)
     a = np.repeat(np.arange(len(tr.ids)), n)
     k = np.repeat(k_lo, n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
@@ -457,7 +345,7 @@ def _radar_events(tr: _Truth, row: dict, s0: float, origin: geo.LocalFrame, max_
     return a, t, r_eq / pd
 
 
-def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalFrame, t0_us: int
+def _mlat_events(tr: Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalFrame, t0_us: int
                  ) -> tuple[I64, F64, F64]:
     """(aircraft index, time, R_eq) of every plot of an MLAT sensor on an aircraft of ``tr``
     or an ADS-B station (module docstring, "MLAT / WAM"): R_eq = M R_local Mᵀ with the plot's stated
@@ -492,19 +380,22 @@ def _mlat_events(tr: _Truth, row: dict, reports: pl.DataFrame, origin: geo.Local
 def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
                   cfg: BoundConfig = BoundConfig(), max_elevation: dict[str, float] | None = None,
                   t0_us: int | None = None, origins: dict[int, float] | None = None,
-                  mode_s_ids: NDArray[np.int64] | None = None) -> pl.DataFrame:
+                  mode_s: pl.DataFrame | None = None, between: tuple[float, float] | None = None,
+                  gaps: pl.DataFrame | None = None) -> pl.DataFrame:
     """Every (truth_id, radar_id, time) at which a radar's beam covers an aircraft, with the
     expected measurement information as its inverse ``r_eq`` (flattened 3×3, m²) — the
     events of the bound (module docstring). ``max_elevation``: per radar name (the scenario's);
     ``origins``: :func:`scan_origins` of ``t0_us``, when known (else read from ``reports``);
-    ``mode_s_ids``: the aircraft with a Mode S report, when known (else read from ``reports``,
-    which then need only hold the Cartesian sensors' plots)."""
+    ``mode_s``: each aircraft's first Mode S report (:func:`~tertiary.evaluation.bound_measurements.mode_s_first`),
+    when known (else read from ``reports``, which then need only hold the Cartesian sensors'
+    plots); ``between``: (lo, hi) s from ``t0_us``: only the scans that can illuminate in [lo, hi)
+    are made (every event there, a few beside it); ``gaps``: the truth's
+    (:meth:`~tertiary.evaluation.bound_truth.Truth.of`) when ``truth`` is a part of it."""
     t0 = int(truth["time"].cast(TIME).dt.epoch("us").min()) if t0_us is None else t0_us
-    tr = _Truth.of(truth, t0)
+    tr = Truth.of(truth, t0, gaps=gaps)
     parts = []
     origins = scan_origins(radars, reports, t0) if origins is None else origins
-    mode_s = ((mode_s_aircraft(tr.ids, reports) if mode_s_ids is None else np.isin(tr.ids, mode_s_ids))
-              if cfg.downlinked_velocity else np.zeros(len(tr.ids), bool))
+    velocity_from = _velocity_from(tr, radars, mode_s_first(reports) if mode_s is None else mode_s, t0, cfg)
     for row in radars.iter_rows(named=True):          # a handful of radars
         s0 = origins.get(row["radar_id"])
         n_vel = 0
@@ -514,9 +405,9 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
             continue
         else:
             max_el = (max_elevation or {}).get(row.get("name"), cfg.max_elevation_deg)
-            a, t, r_eq = _radar_events(tr, row, s0, origin, max_el, cfg.mode_c_height)
+            a, t, r_eq = _radar_events(tr, row, s0, origin, max_el, cfg.mode_c_height, between)
             # the downlinked velocity of a Mode S aircraft at each illumination (Pd as the plot)
-            v = mode_s[a]
+            v = t >= velocity_from[a]
             pd = float(row.get("pd") if row.get("pd") is not None else 1.0)
             a = np.r_[a, a[v]]
             av, tv = a[len(v):], t[v]
@@ -534,6 +425,29 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
               "velocity": pl.Boolean}
     out = pl.concat(parts) if parts else pl.DataFrame(schema=schema)
     return out.with_columns((pl.lit(t0) + (pl.col("t_s") * US).round().cast(pl.Int64)).cast(TIME).alias("time"))
+
+
+def mode_s_lead_s(radars: pl.DataFrame) -> float:
+    """How long (s) before an aircraft's first Mode S report its downlinked velocity counts: the
+    longest scan period and clock offset of the radars, so that the illumination which made the
+    report counts whatever the radar and its clock."""
+    def most(col: str) -> float:
+        return float(radars[col].cast(pl.Float64).abs().max() or 0.0) if col in radars.columns else 0.0
+    return most("scan_period_s") + most("time_offset_s")
+
+
+def _velocity_from(tr: Truth, radars: pl.DataFrame, first: pl.DataFrame, t0_us: int, cfg: BoundConfig) -> F64:
+    """Per aircraft of ``tr``, the time (s from ``t0_us``) from which its downlinked velocity is
+    a measurement: its first Mode S report less :func:`mode_s_lead_s`; never (inf) without one,
+    or when the model counts no downlinked velocity. Before its first Mode S report no report of
+    it carries a velocity, so leaving those illuminations out keeps the bound below any estimator."""
+    never = np.full(len(tr.ids), np.inf)
+    if not cfg.downlinked_velocity or first.is_empty():
+        return never
+    got = (pl.DataFrame({"truth_id": tr.ids}).join(first, on="truth_id", how="left", maintain_order="left")
+           ["first_us"].to_numpy())
+    got = np.asarray(got, dtype=float)
+    return np.where(np.isfinite(got), (got - t0_us) / US - mode_s_lead_s(radars), never)
 
 
 def scan_origins(radars: pl.DataFrame, reports: pl.DataFrame | pl.LazyFrame, t0_us: int) -> dict[int, float]:
@@ -606,42 +520,72 @@ def _prior9(cfg: BoundConfig, accel: F64) -> F64:
 
 
 def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = BoundConfig(),
-            truth: pl.DataFrame | None = None) -> pl.DataFrame:
+            truth: pl.DataFrame | None = None, t0_us: int | None = None) -> pl.DataFrame:
     """The bound at each distinct (truth_id, epoch) of ``samples``: columns truth_id, epoch and
     ``b2_pos`` (tr P_pos, m²), ``b2_horizontal`` (P_xx + P_yy), ``b2_vel`` (tr P_vel) — the
     recursion (T34) of model M fitted to ``truth`` (its samples' velocities; module docstring)
     over :func:`illuminations` ``events`` and the requested epochs of each aircraft in time
-    order (a measurement at an epoch counts at that epoch)."""
+    order (a measurement at an epoch counts at that epoch); times in s from ``t0_us`` (else the
+    first row's)."""
+    return pcrb_carried(samples, events, cfg, truth, t0_us)[0]
+
+
+#: the recursion of an aircraft between two calls of :func:`pcrb_carried`: its last row's time,
+#: whether it had a measurement, and P there (row-major 9×9)
+CARRIED = {"truth_id": pl.Int64, "last_us": pl.Int64, "seen": pl.Boolean, "p": pl.Array(pl.Float64, 81)}
+
+
+def pcrb_carried(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig, truth: pl.DataFrame | None,
+                 t0_us: int | None = None, carried: pl.DataFrame | None = None,
+                 gaps: pl.DataFrame | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`pcrb_at`, each aircraft of ``carried`` (:data:`CARRIED`) going on from its P at its
+    last row (its rows here all later), the others from the prior at their first row; ``truth``
+    may then be a part of the truth holding each aircraft's samples from its last row (and
+    :func:`~tertiary.evaluation.bound_truth.Truth.of`'s margin) on, with the whole truth's
+    ``gaps``. Returns the bounds and every aircraft's :data:`CARRIED` after its last row here:
+    split anywhere in time, the calls make the rows of one call over the whole."""
     if truth is None:
         raise ValueError("pcrb_at: the bound's motion model is fitted to the truth; give truth=")
+    carried = pl.DataFrame(schema=CARRIED) if carried is None else carried
     want = samples.select(pl.col("truth_id").cast(pl.Int64), pl.col("epoch").cast(TIME)).unique()
     out_schema = {"truth_id": pl.Int64, "epoch": TIME, "b2_pos": pl.Float64, "b2_horizontal": pl.Float64,
                   "b2_vel": pl.Float64}
-    if want.is_empty():
-        return pl.DataFrame(schema=out_schema)
-    # the keys are sorted, each event's r_eq gathered by its row: the requested epochs carry none
+    if want.is_empty() and events.is_empty():
+        return pl.DataFrame(schema=out_schema), carried
+    # the keys are sorted, each event's r_eq gathered by its row: the requested epochs carry none,
+    # a carried aircraft's last row (k −1) comes first and starts its sequence from its P
     ev = events.select("truth_id", pl.col("time").cast(TIME).alias("epoch"), pl.lit(0, pl.Int8).alias("__k"),
                        pl.int_range(pl.len(), dtype=pl.Int64).alias("__ev"))
-    rows = (pl.concat([ev, want.with_columns(pl.lit(1, pl.Int8).alias("__k"), pl.lit(-1, pl.Int64).alias("__ev"))])
+    anchors = carried.select("truth_id", pl.col("last_us").cast(TIME).alias("epoch"), pl.lit(-1, pl.Int8).alias("__k"),
+                             pl.int_range(pl.len(), dtype=pl.Int64).alias("__ev"))
+    rows = (pl.concat([anchors, ev, want.with_columns(pl.lit(1, pl.Int8).alias("__k"),
+                                                      pl.lit(-1, pl.Int64).alias("__ev"))])
             .sort("truth_id", "epoch", "__k"))
     tid = rows["truth_id"].to_numpy()
     us = rows["epoch"].dt.epoch("us").to_numpy()
-    t = (us - us.min()) / US
+    base = int(us.min()) if t0_us is None else t0_us
+    t = (us - base) / US
     new = np.ones(len(tid), bool)
     new[1:] = tid[1:] != tid[:-1]
     starts = np.flatnonzero(new)
     lengths = np.diff(np.append(starts, len(tid)))
-    record = rows["__k"].to_numpy() == 1
+    kind = rows["__k"].to_numpy()
+    record, event = kind == 1, kind == 0
     src = rows["__ev"].to_numpy()
-    tr = _Truth.of(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(np.unique(tid).tolist())), int(us.min()),
-                   cfg.accel_half_window_s)
+    tr = Truth.of(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(np.unique(tid).tolist())), base,
+                  cfg.accel_half_window_s, gaps)
     pos = np.searchsorted(tr.ids, tid)
     a = np.where((pos < len(tr.ids)) & (tr.ids[np.minimum(pos, len(tr.ids) - 1)] == tid), pos, -1)
-    out = []
+    # each sequence's start: a carried aircraft's P and whether it was measured, else the prior
+    anchored = kind[starts] == -1
+    p_carried = carried["p"].to_numpy().reshape(-1, 9, 9) if carried.height else np.zeros((0, 9, 9))
+    seen0 = np.zeros(len(starts), bool)
+    seen0[anchored] = carried["seen"].to_numpy()[src[starts[anchored]]]
+    out, ends = [], []
     # aircraft a block at a time (each sequence is independent): the events' 3x3 matrices and the
     # model's deviations are gathered for a block, never for the whole recording (the stage's peak)
     for lo, hi, g0, g1 in _aircraft_blocks(starts, len(tid), BOUND_BLOCK_ROWS):
-        s = src[lo:hi]
+        s = np.where(event[lo:hi], src[lo:hi], -1)
         r_eq = np.full((hi - lo, 3, 3), np.nan)
         vel = np.zeros(hi - lo, bool)
         if (s >= 0).any():
@@ -650,17 +594,26 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
                 vel[s >= 0] = events["velocity"].gather(s[s >= 0]).to_numpy()
         dev, acc = tr.deviations(a[lo:hi], t[lo:hi], new[lo:hi])
         st = starts[g0:g1] - lo
-        out.append(_pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, acc[st], vel))
+        p0 = _prior9(cfg, acc[st])
+        mine = anchored[g0:g1]
+        p0[mine] = p_carried[src[starts[g0:g1][mine]]]
+        b, p_end = _pcrb_block(t[lo:hi], r_eq, st, lengths[g0:g1], record[lo:hi], cfg, dev, vel=vel, p0=p0)
+        out.append(b)
+        ends.append(p_end)
         del r_eq, dev
     b = np.concatenate(out)
     # an epoch before its aircraft's first measurement holds the prior alone: a sample scored
     # there is not an estimate of that aircraft (tertiary.evaluation.accuracy, "Scored rows"),
     # so it has no bound (NaN: counted, not pooled, by bound_metrics)
-    seen = np.cumsum(~record) - np.repeat(np.cumsum(~record)[starts] - (~record)[starts], lengths)
-    b[seen[record] == 0] = np.nan
-    return rows.filter(record).select("truth_id", "epoch").with_columns(
+    count = np.cumsum(event)
+    seen = (count - np.repeat(count[starts] - event[starts], lengths) > 0) | np.repeat(seen0, lengths)
+    b[~seen[record]] = np.nan
+    last = np.append(starts[1:], len(tid)) - 1
+    end = pl.DataFrame({"truth_id": tid[starts], "last_us": us[last], "seen": seen[last],
+                        "p": pl.Series(np.concatenate(ends).reshape(-1, 81), dtype=pl.Array(pl.Float64, 81))})
+    return (rows.filter(record).select("truth_id", "epoch").with_columns(
         pl.Series("b2_pos", b[:, 0]), pl.Series("b2_horizontal", b[:, 1]), pl.Series("b2_vel", b[:, 2])
-    ).cast(out_schema)
+    ).cast(out_schema), end.cast(CARRIED))
 
 
 #: rows (events and requested epochs) of the aircraft whose bounds are computed at a time
@@ -673,12 +626,15 @@ BOUND_READ_AIRCRAFT = 4_096
 
 
 def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np.bool_], cfg: BoundConfig,
-                dev: F64 | None = None, accel0: F64 | None = None, vel: NDArray[np.bool_] | None = None) -> F64:
+                dev: F64 | None = None, accel0: F64 | None = None, vel: NDArray[np.bool_] | None = None,
+                p0: F64 | None = None) -> F64 | tuple[F64, F64]:
     """:func:`pcrb_linear` on model M (9 states; ``dev`` (n, 3, 3) the deviations d of (M2)
     per row and axis, none if not given; ``accel0`` (n_sequences, 3) the truth's ā at each
     sequence's first row, 0 if not given; ``vel``: the rows whose ``r_eq`` is a velocity
     measurement's, none if not given) with :func:`_bound_summary`, compiled
-    (:func:`tertiary.evaluation.bound_kernel.pcrb_ca9`): (n_record, 3) in row order."""
+    (:func:`tertiary.evaluation.bound_kernel.pcrb_ca9`): (n_record, 3) in row order. With ``p0``
+    (n_sequences, 9, 9), each sequence starts from it instead of the prior, and P after each
+    sequence's last row is returned too."""
     tau = np.zeros(len(t))
     tau[1:] = np.diff(t)                 # a sequence's first row has none: it starts from the prior
     slot = np.full(len(t), -1, np.int64)
@@ -688,9 +644,11 @@ def _pcrb_block(t: F64, r_eq: F64, starts: I64, lengths: I64, record: NDArray[np
     accel0 = np.zeros((len(starts), 3)) if accel0 is None else accel0
     ready_for("pcrb")
     vel = np.zeros(len(t), bool) if vel is None else vel
+    start = _prior9(cfg, accel0) if p0 is None else np.ascontiguousarray(p0, dtype=np.float64)
+    p_end = np.empty((len(starts), 9, 9))
     pcrb_ca9(arg(tau), arg(dev), arg(r_eq), arg(~np.isnan(r_eq[:, 0, 0]), np.bool_), arg(vel, np.bool_),
-             arg(starts, np.int64), arg(lengths, np.int64), arg(_prior9(cfg, accel0)), slot, out)
-    return out
+             arg(starts, np.int64), arg(lengths, np.int64), arg(start), slot, out, p_end)
+    return out if p0 is None else (out, p_end)
 
 
 def _aircraft_blocks(starts: I64, n: int, size: int) -> list[tuple[int, int, int, int]]:
@@ -744,12 +702,12 @@ def bound_setup(ds, truth_columns: list[str], radars: pl.DataFrame, notes: list[
 
 def block_sums(truth: pl.DataFrame, scored: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame,
                origin: geo.LocalFrame, cfg: BoundConfig, max_el: dict[str, float], t0_us: int,
-               origins: dict[int, float], mode_s_ids: NDArray[np.int64] | None = None) -> pl.DataFrame:
+               origins: dict[int, float], mode_s: pl.DataFrame | None = None) -> pl.DataFrame:
     """:func:`bound_sums` of a block of aircraft: ``truth`` and ``scored`` hold theirs (each
-    aircraft's bound is its own recursion over its truth and illuminations)."""
-    events = illuminations(truth, radars, reports, origin, cfg, max_el, t0_us=t0_us, origins=origins,
-                           mode_s_ids=mode_s_ids)
-    return bound_sums(scored, pcrb_at(scored, events, cfg, truth=truth))
+    aircraft's bound is its own recursion over its truth and illuminations); ``mode_s``: their
+    first Mode S reports, when known (else read from ``reports``)."""
+    events = illuminations(truth, radars, reports, origin, cfg, max_el, t0_us=t0_us, origins=origins, mode_s=mode_s)
+    return bound_sums(scored, pcrb_at(scored, events, cfg, truth=truth, t0_us=t0_us))
 
 
 def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, reports: pl.DataFrame,
@@ -767,6 +725,7 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     cfg, max_el = setup
     t0 = int(truth.select(pl.col("time").cast(TIME).dt.epoch("us").min()).lazy().collect().item())
     origins = scan_origins(radars, reports, t0) if origins is None else origins
+    mode_s = mode_s_first(reports)
     ids = np.sort(scored["truth_id"].drop_nulls().unique().cast(pl.Int64).to_numpy())
     sums = []
     # a block of aircraft at a time (each one's bound is its own recursion): the illuminations
@@ -775,7 +734,7 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
         for lo in range(0, len(read), BOUND_AIRCRAFT):
             block = pl.col("truth_id").cast(pl.Int64).is_in(read[lo:lo + BOUND_AIRCRAFT].tolist())
             sums.append(block_sums(held.filter(block), scored.filter(block), radars, reports, ds.origin, cfg,
-                                   max_el, t0, origins))
+                                   max_el, t0, origins, mode_s))
         del held
     return bound_rows(pl.concat(sums) if sums else bound_sums(scored.clear(), pl.DataFrame()), accuracy)
 

@@ -83,13 +83,14 @@ def _update(p, r, ph, s, tmp, off):
 
 
 @_jit
-def pcrb_ca9(tau, dev, r_eq, has, vel, starts, lengths, p0, slot, out):
+def pcrb_ca9(tau, dev, r_eq, has, vel, starts, lengths, p0, slot, out, p_end):
     """(T34) over every sequence g (rows ``starts[g] : starts[g] + lengths[g]``, time order):
     from ``p0[g]`` at its first row, the prediction over ``tau[i]`` from the previous row with
     the deviations ``dev[i]`` (3 axes × (p, v, a)) of model M, then the update with ``r_eq[i]``
     where ``has[i]``, of the positions, or of the velocities where ``vel[i]``. At rows with
     ``slot[i] >= 0``, ``out[slot[i]]`` = (tr P_pos,
-    P_xx + P_yy, tr P_vel) after the update."""
+    P_xx + P_yy, tr P_vel) after the update; ``p_end[g]``: P after the sequence's last row (the
+    recursion carried on from there by a later call with it as ``p0``)."""
     p = np.empty((9, 9))
     tmp = np.empty((9, 9))
     ph = np.empty((9, 3))
@@ -108,13 +109,14 @@ def pcrb_ca9(tau, dev, r_eq, has, vel, starts, lengths, p0, slot, out):
                 out[k, 0] = p[0, 0] + p[3, 3] + p[6, 6]
                 out[k, 1] = p[0, 0] + p[3, 3]
                 out[k, 2] = p[1, 1] + p[4, 4] + p[7, 7]
+        p_end[g] = p
 
 
 def _signature() -> tuple:
     """The one signature :func:`tertiary.evaluation.bound.bound_stage` calls it with."""
     f1, f2, f3 = (nbt.Array(nbt.float64, k, "C") for k in (1, 2, 3))
     i1, b1 = nbt.Array(nbt.int64, 1, "C"), nbt.Array(nbt.boolean, 1, "C")
-    return (f1, f3, f3, b1, b1, i1, i1, f3, i1, f2)
+    return (f1, f3, f3, b1, b1, i1, i1, f3, i1, f2, f3)
 
 
 register_kernel("pcrb", __name__, pcrb_ca9, _signature)

@@ -10,6 +10,7 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.contract import TIME
 from tertiary.core import geo
 from tertiary.core.units import FT
 
@@ -23,8 +24,8 @@ VELOCITY_VERTICAL_VAR = 1e10
 #: Fisher information, and the stand-in's is the larger)
 HEIGHT_VAR_M2 = (25.0 * FT) ** 2 / 12.0
 
-__all__ = ["HEIGHT_VAR_M2", "VELOCITY_VERTICAL_VAR", "local_axes", "mode_s_aircraft", "velocity_covariance",
-           "with_height"]
+__all__ = ["HEIGHT_VAR_M2", "MODE_S_FIRST", "VELOCITY_VERTICAL_VAR", "local_axes", "mode_s_first",
+           "velocity_covariance", "with_height"]
 
 
 def local_axes(pos: F64, origin: geo.LocalFrame) -> F64:
@@ -35,12 +36,18 @@ def local_axes(pos: F64, origin: geo.LocalFrame) -> F64:
                      for e in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))], axis=1)
 
 
-def mode_s_aircraft(ids: NDArray[np.int64], reports: pl.DataFrame) -> NDArray[np.bool_]:
-    """Per aircraft id of ``ids``: whether any of its reports carries a Mode S address."""
-    if not {"truth_id", "mode_s"} <= set(reports.columns):
-        return np.zeros(len(ids), bool)
-    ms = reports.filter(pl.col("mode_s").is_not_null()).select(pl.col("truth_id").cast(pl.Int64)).drop_nulls()
-    return np.isin(ids, ms.unique().to_series().to_numpy())
+def mode_s_first(reports: pl.DataFrame) -> pl.DataFrame:
+    """Per aircraft (truth_id) with a report that carries a Mode S address, the time of its first
+    such report, ``first_us`` (µs): its downlinked velocity counts from then on."""
+    if not {"truth_id", "mode_s"} <= set(reports.columns) or reports.is_empty():
+        return pl.DataFrame(schema=MODE_S_FIRST)
+    ms = reports.filter(pl.col("mode_s").is_not_null() & pl.col("truth_id").is_not_null())
+    return (ms.group_by(pl.col("truth_id").cast(pl.Int64))
+            .agg(pl.col("time").cast(TIME).dt.epoch("us").min().alias("first_us")).sort("truth_id"))
+
+
+#: :func:`mode_s_first`'s columns
+MODE_S_FIRST = {"truth_id": pl.Int64, "first_us": pl.Int64}
 
 
 def velocity_covariance(pos: F64, vel: F64, origin: geo.LocalFrame, speed_sigma_mps: float,

@@ -293,12 +293,12 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
 def _windows_bound(ctx: RunContext, st: StreamState, parts: Any
                    ) -> tuple[BoundSetup, "Future[pl.DataFrame]", PartFiles] | None:
     """The bound the windows carried, when they made it for every window: its setup and the
-    aircraft still flying at the end bounded from their stored samples, started now on a thread
+    aircraft still flying at the end taken through their last rows, started now on a thread
     of its own (numpy, mostly one core) so that it runs beside the evaluation's polars work; the
     windows' stored samples."""
     state = getattr(st, "bound", None)
     setup = getattr(ctx, "bound", None)
-    if setup is None or state is None or not state.complete:
+    if setup is None or state is None or not state.complete or not hasattr(state, "aircraft"):
         return None
     stored = functools.partial(parts.part_files, SCORED)
     pool = ThreadPoolExecutor(1, thread_name_prefix="bound")
@@ -320,7 +320,7 @@ def _windows_truth_picture(st: StreamState, parts: Any
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
                 scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
     """The bound's metrics rows: from the sums the windows carried (the aircraft still flying at
-    the end bounded on the thread :func:`_windows_bound` started; ``scored`` not read), else over the whole recording from ``scored``; the
+    the end finished on the thread :func:`_windows_bound` started; ``scored`` not read), else over the whole recording from ``scored``; the
     radars' scan origins from the input reports either way
     (:func:`tertiary.evaluation.bound.scan_origins`)."""
     if run.bound is not None:

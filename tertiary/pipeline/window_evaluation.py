@@ -84,7 +84,7 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
                                                 ctx.truth_slice, safety_id_column(cfg), ctx.origin)
     s_bound = st.bound
     if ctx.bound is not None and ctx.reference is not None:
-        # each aircraft bounded once its truth has ended: the last window, open-ended, bounds the rest
+        # every aircraft's recursion carried on to the cut: the last window, open-ended, leaves the rest to the end
         clock.stage("bound")
         s_bound = bound_step(ctx.bound, s_bound or BoundState(), out_eval.get(SCORED), h.reports, w,
                              ctx.stored_scored)
