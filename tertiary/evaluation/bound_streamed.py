@@ -263,8 +263,8 @@ def _cuts(setup: BoundSetup, aircraft: pl.DataFrame, tail: pl.DataFrame, cut: in
     if hi is None:
         return aircraft.with_columns(pl.lit(cut, pl.Int64).alias("cut_us"))
     us = pl.col("time").cast(TIME).dt.epoch("us")
-    last = (tail.select(pl.col("truth_id").cast(pl.Int64), us.alias("us")).unique().sort("truth_id", "us")
-            .join(_half_width(setup), on="truth_id", how="left")
+    last = (tail.select(pl.col("truth_id").cast(pl.Int64), us.alias("us")).unique()
+            .join(_half_width(setup), on="truth_id", how="left").sort("truth_id", "us")
             .group_by("truth_id").agg(pl.col("us").get(pl.len() - pl.col("w").first().fill_null(MARGIN_SAMPLES) - 1,
                                                        null_on_oob=True).alias("__last")))
     whole = pl.col("__end") < hi
@@ -312,8 +312,9 @@ def _trimmed(setup: BoundSetup, tail: pl.DataFrame, aircraft: pl.DataFrame, done
     us = pl.col("time").cast(TIME).dt.epoch("us")
     refs = aircraft.select("truth_id", pl.coalesce("last_us", "done_us").alias("__ref"))
     t = (tail.with_columns(pl.col("truth_id").cast(pl.Int64))
-         .filter(~pl.col("truth_id").is_in(done["truth_id"].implode())).sort("truth_id", "time")
-         .join(refs, on="truth_id", how="left").join(_half_width(setup), on="truth_id", how="left"))
+         .filter(~pl.col("truth_id").is_in(done["truth_id"].implode()))
+         .join(refs, on="truth_id", how="left").join(_half_width(setup), on="truth_id", how="left")
+         .sort("truth_id", "time"))         # the sample counts below are in time order
     k = pl.int_range(pl.len()).over("truth_id")
     at = ((us <= pl.col("__ref")).sum() - 1).over("truth_id")
     keep = pl.col("__ref").is_null() | (k >= at - pl.col("w").fill_null(MARGIN_SAMPLES))
