@@ -209,6 +209,7 @@ def test_on_disk_finalize_equals_in_memory(terminal, tmp_path, monkeypatch):
     stretches: list[tuple[int, int | None, int]] = []          # (from µs, to µs, rows) of each read
     monkeypatch.setattr(bound_streamed, "_read_truth", lambda setup, lo, hi, f=bound_streamed._read_truth:
                         stretches.append((lo, hi, (got := f(setup, lo, hi)).height)) or got)
+    monkeypatch.setattr(bound_streamed, "ADVANCE_S", 60.0)          # several stretches in a short run
     # the on-disk run's evaluation keeps the id-map rows of the alerts and curve points alone
     kept: list[int] = []
     monkeypatch.setattr(safety_alerts, "id_rows", lambda ids, keys, id_col, f=safety_alerts.id_rows:

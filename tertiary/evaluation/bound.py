@@ -377,7 +377,7 @@ def _mlat_events(tr: Truth, row: dict, reports: pl.DataFrame, origin: geo.LocalF
     return a[ok], t[ok], geo.congruence(site.rotation_to(origin), r[ok])
 
 
-def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
+def illuminations(truth: pl.DataFrame | Truth, radars: pl.DataFrame, reports: pl.DataFrame, origin: geo.LocalFrame,
                   cfg: BoundConfig = BoundConfig(), max_elevation: dict[str, float] | None = None,
                   t0_us: int | None = None, origins: dict[int, float] | None = None,
                   mode_s: pl.DataFrame | None = None, between: tuple[float, float] | None = None,
@@ -390,9 +390,13 @@ def illuminations(truth: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFra
     when known (else read from ``reports``, which then need only hold the Cartesian sensors'
     plots); ``between``: (lo, hi) s from ``t0_us``: only the scans that can illuminate in [lo, hi)
     are made (every event there, a few beside it); ``gaps``: the truth's
-    (:meth:`~tertiary.evaluation.bound_truth.Truth.of`) when ``truth`` is a part of it."""
-    t0 = int(truth["time"].cast(TIME).dt.epoch("us").min()) if t0_us is None else t0_us
-    tr = Truth.of(truth, t0, gaps=gaps)
+    (:meth:`~tertiary.evaluation.bound_truth.Truth.of`) when ``truth`` is a part of it. ``truth``
+    may be made already (a :class:`~tertiary.evaluation.bound_truth.Truth` from ``t0_us``)."""
+    if isinstance(truth, Truth):
+        tr, t0 = truth, truth.t0_us
+    else:
+        t0 = int(truth["time"].cast(TIME).dt.epoch("us").min()) if t0_us is None else t0_us
+        tr = Truth.of(truth, t0, gaps=gaps)
     parts = []
     origins = scan_origins(radars, reports, t0) if origins is None else origins
     velocity_from = _velocity_from(tr, radars, mode_s_first(reports) if mode_s is None else mode_s, t0, cfg)
@@ -535,14 +539,15 @@ def pcrb_at(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig = Boun
 CARRIED = {"truth_id": pl.Int64, "last_us": pl.Int64, "seen": pl.Boolean, "p": pl.Array(pl.Float64, 81)}
 
 
-def pcrb_carried(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig, truth: pl.DataFrame | None,
+def pcrb_carried(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig, truth: pl.DataFrame | Truth | None,
                  t0_us: int | None = None, carried: pl.DataFrame | None = None,
                  gaps: pl.DataFrame | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`pcrb_at`, each aircraft of ``carried`` (:data:`CARRIED`) going on from its P at its
     last row (its rows here all later), the others from the prior at their first row; ``truth``
     may then be a part of the truth holding each aircraft's samples from its last row (and
     :func:`~tertiary.evaluation.bound_truth.Truth.of`'s margin) on, with the whole truth's
-    ``gaps``. Returns the bounds and every aircraft's :data:`CARRIED` after its last row here:
+    ``gaps``, or a :class:`~tertiary.evaluation.bound_truth.Truth` made from ``t0_us`` with
+    ``cfg``'s half-width. Returns the bounds and every aircraft's :data:`CARRIED` after its last row here:
     split anywhere in time, the calls make the rows of one call over the whole."""
     if truth is None:
         raise ValueError("pcrb_at: the bound's motion model is fitted to the truth; give truth=")
@@ -572,8 +577,13 @@ def pcrb_carried(samples: pl.DataFrame, events: pl.DataFrame, cfg: BoundConfig, 
     kind = rows["__k"].to_numpy()
     record, event = kind == 1, kind == 0
     src = rows["__ev"].to_numpy()
-    tr = Truth.of(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(np.unique(tid).tolist())), base,
-                  cfg.accel_half_window_s, gaps)
+    if isinstance(truth, Truth):
+        if truth.t0_us != base or truth.half_window_s != cfg.accel_half_window_s:
+            raise ValueError("pcrb_carried: the truth given is made from another time or half-width")
+        tr = truth
+    else:
+        tr = Truth.of(truth.filter(pl.col("truth_id").cast(pl.Int64).is_in(np.unique(tid).tolist())), base,
+                      cfg.accel_half_window_s, gaps)
     pos = np.searchsorted(tr.ids, tid)
     a = np.where((pos < len(tr.ids)) & (tr.ids[np.minimum(pos, len(tr.ids) - 1)] == tid), pos, -1)
     # each sequence's start: a carried aircraft's P and whether it was measured, else the prior

@@ -42,7 +42,7 @@ from tertiary.core.units import US
 from tertiary.evaluation import bound as _bound
 from tertiary.evaluation.bound_measurements import MODE_S_FIRST, mode_s_first
 from tertiary.evaluation.bound_pooling import bound_sums
-from tertiary.evaluation.bound_truth import COLUMNS, truth_gaps
+from tertiary.evaluation.bound_truth import COLUMNS, Truth, truth_gaps
 from tertiary.evaluation.evaluate import reference_files
 from tertiary.sensors import mlat
 
@@ -53,8 +53,9 @@ __all__ = ["ADVANCE_S", "BoundSetup", "BoundState", "LAG_S", "LOOKAHEAD_S", "Par
 #: an earlier time comes later (clock offsets and scan periods are seconds)
 LAG_S = 120.0
 #: the recursions are taken on once the cut has moved this far (s): each step reads a stretch of
-#: the truth and of the stored samples once, a few times an hour
-ADVANCE_S = 120.0
+#: the truth and of the stored samples once and makes each aircraft's interpolant once, a dozen
+#: times an hour; the end is left the last few minutes
+ADVANCE_S = 300.0
 #: truth read past the cut (s): the acceleration and positions just before it need samples after it
 LOOKAHEAD_S = 60.0
 #: samples carried before an aircraft's last row beyond its acceleration's half-width
@@ -216,8 +217,10 @@ def _advance(setup: BoundSetup, state: BoundState, cut: int, stored: PartFiles, 
         lo = int(go["done_us"].min())
         between = ((lo - setup.t0_us) / US - 1.0,
                    (int(go["cut_us"].max()) - setup.t0_us) / US + 1.0)
+        # the truth's interpolant made once, for the illuminations and the recursion
+        mine = Truth.of(mine, setup.t0_us, setup.cfg.accel_half_window_s, setup.gaps)
         events = _bound.illuminations(mine, setup.radars, _plots(state.plots), setup.origin, setup.cfg,
-                                      setup.max_el, setup.t0_us, setup.origins, state.mode_s, between, setup.gaps)
+                                      setup.max_el, setup.t0_us, setup.origins, state.mode_s, between)
         events = _within(events, go, "time")
         samples = _within(pl.concat([_stored_samples(state, lo, cut, stored, now), current]), go, "epoch")
         carried = go.filter(pl.col("last_us").is_not_null()).select(list(_bound.CARRIED))

@@ -64,6 +64,7 @@ class Truth:
     key: F64
     gap_s: F64
     half_window_s: float = ACCEL_HALF_WINDOW_S
+    t0_us: int = 0
 
     @classmethod
     def of(cls, truth: pl.DataFrame, t0_us: int, half_window_s: float = ACCEL_HALF_WINDOW_S,
@@ -82,7 +83,8 @@ class Truth:
                                                          maintain_order="left")["gap_s"]
                .fill_null(np.inf).to_numpy())
         return cls(ids, first, count, t, tr.select("x_m", "y_m", "z_m").to_numpy(),
-                   tr.select("vx_mps", "vy_mps", "vz_mps").to_numpy(), span, owner * span + t, gap, half_window_s)
+                   tr.select("vx_mps", "vy_mps", "vz_mps").to_numpy(), span, owner * span + t, gap, half_window_s,
+                   t0_us)
 
     @functools.cached_property
     def accel(self) -> F64:
