@@ -123,15 +123,18 @@ def _stepped(case, where, window_s: float, roundtrip: bool = False, open_last: b
     return setup, state, bounded, stored
 
 
+@pytest.mark.parametrize("halves", [False, True])
 @pytest.mark.parametrize("advance_s", [0.0, 120.0])
 @pytest.mark.parametrize("window_s", [30.0, 97.0, 1000.0])
-def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_path, window_s, advance_s):
-    """The recursions are carried across the windows (taken on every window, or every 120 s),
+def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_path, window_s, advance_s, halves):
+    """The recursions are carried across the windows (taken on every window, or every 120 s; the
+    aircraft of a step in one part, or in two halves at once),
     aircraft 7 and 8 done in the windows, 9 and 10 at the end; the rows equal the whole-run
     stage's. Fails if a recursion restarts from the prior, a row is counted twice or not at all,
     an aircraft's first Mode S report (10's comes at 500 s), its truth gap (9) or its MLAT plots
     (8) are not carried to it."""
     monkeypatch.setattr(bs, "ADVANCE_S", advance_s)
+    monkeypatch.setattr(bs, "PARALLEL_AIRCRAFT", 2 if halves else 10 ** 6)
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", window_s)
     if window_s < 900:
         assert bounded[-1] == 2 and state.aircraft["truth_id"].to_list() == [9, 10], bounded

@@ -28,6 +28,7 @@ time and each aircraft's span and sample spacing, and each radar's scan origin.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -58,6 +59,8 @@ LAG_S = 120.0
 ADVANCE_S = 300.0
 #: truth read past the cut (s): the acceleration and positions just before it need samples after it
 LOOKAHEAD_S = 60.0
+#: a step with this many aircraft or more runs them in two halves at once (:func:`_advance`)
+PARALLEL_AIRCRAFT = 64
 #: samples carried before an aircraft's last row beyond its acceleration's half-width
 MARGIN_SAMPLES = 3
 #: what the Cartesian sensors' plots carry into their events (:func:`~tertiary.evaluation.bound._mlat_events`)
@@ -213,20 +216,17 @@ def _advance(setup: BoundSetup, state: BoundState, cut: int, stored: PartFiles, 
     go = cuts.filter(pl.col("cut_us") > pl.col("done_us"))
     sums = state.sums
     if go.height:
-        mine = tail.filter(pl.col("truth_id").cast(pl.Int64).is_in(go["truth_id"].implode()))
         lo = int(go["done_us"].min())
-        between = ((lo - setup.t0_us) / US - 1.0,
-                   (int(go["cut_us"].max()) - setup.t0_us) / US + 1.0)
-        # the truth's interpolant made once, for the illuminations and the recursion
-        mine = Truth.of(mine, setup.t0_us, setup.cfg.accel_half_window_s, setup.gaps)
-        events = _bound.illuminations(mine, setup.radars, _plots(state.plots), setup.origin, setup.cfg,
-                                      setup.max_el, setup.t0_us, setup.origins, state.mode_s, between)
-        events = _within(events, go, "time")
         samples = _within(pl.concat([_stored_samples(state, lo, cut, stored, now), current]), go, "epoch")
-        carried = go.filter(pl.col("last_us").is_not_null()).select(list(_bound.CARRIED))
-        rows, after = _bound.pcrb_carried(samples, events, setup.cfg, mine, setup.t0_us, carried, setup.gaps)
-        sums = _summed(state.sums, bound_sums(samples, rows))
-        aircraft = _updated(aircraft, go, after)
+        # two halves of the aircraft at once (each recursion is its own; numpy, polars and the
+        # compiled kernel release the GIL): the step takes the core the processing leaves idle
+        # while it waits for the evaluation
+        half = (go.height + 1) // 2
+        parts = [go.slice(0, half), go.slice(half)] if go.height >= PARALLEL_AIRCRAFT else [go]
+        with ThreadPoolExecutor(len(parts), thread_name_prefix="bound-step") as pool:
+            made = list(pool.map(lambda g: _recursed(setup, state, tail, g, samples), parts))
+        sums = _summed(state.sums, pl.concat([m[0] for m in made]))
+        aircraft = _updated(aircraft, go, pl.concat([m[1] for m in made]))
     aircraft, done = _retired(setup, aircraft)
     return replace(state, aircraft=aircraft, tail=_trimmed(setup, tail, aircraft, done), read_us=hi,
                    cut_us=cut, plots=_kept_plots(state.plots, aircraft, done), sums=sums,
@@ -240,6 +240,24 @@ def _kept_windows(windows: tuple[tuple[int, int, int], ...], aircraft: pl.DataFr
     aircraft carried are done, or ``cut`` (an aircraft not yet begun has no row before it)."""
     lo = min(cut, int(aircraft["done_us"].min())) if aircraft.height else cut
     return tuple(w for w in windows if w[2] >= lo)
+
+
+def _recursed(setup: BoundSetup, state: BoundState, tail: pl.DataFrame, go: pl.DataFrame, samples: pl.DataFrame
+              ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """(the bound's sums, the recursions after) of the aircraft ``go`` over their events and
+    scored ``samples`` in [done_us, cut_us), from their carried recursion."""
+    ids = go["truth_id"].implode()
+    between = ((int(go["done_us"].min()) - setup.t0_us) / US - 1.0, (int(go["cut_us"].max()) - setup.t0_us) / US + 1.0)
+    # the truth's interpolant made once, for the illuminations and the recursion
+    mine = Truth.of(tail.filter(pl.col("truth_id").cast(pl.Int64).is_in(ids)), setup.t0_us,
+                    setup.cfg.accel_half_window_s, setup.gaps)
+    events = _bound.illuminations(mine, setup.radars, _plots(state.plots), setup.origin, setup.cfg,
+                                  setup.max_el, setup.t0_us, setup.origins, state.mode_s, between)
+    events = _within(events, go, "time")
+    samples = samples.filter(pl.col("truth_id").is_in(ids))
+    carried = go.filter(pl.col("last_us").is_not_null()).select(list(_bound.CARRIED))
+    rows, after = _bound.pcrb_carried(samples, events, setup.cfg, mine, setup.t0_us, carried, setup.gaps)
+    return bound_sums(samples, rows), after
 
 
 def _joined(setup: BoundSetup, aircraft: pl.DataFrame, since: int | None, cut: int) -> pl.DataFrame:
