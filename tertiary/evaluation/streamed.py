@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -117,25 +116,14 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
             keep = set(metric_columns(scored))
             slim = scored.select(c for c in scored.columns if c == id_col or c in keep)
             surveyed.append(slim.rename({id_col: "track_id"}) if id_col != "track_id" else slim)
-    # the seed, multi-target and surveillance steps read the matched rows and nothing of each
-    # other: run at once, they take the core the processing leaves idle while it waits for the
-    # evaluation (polars, numpy and the compiled kernels release the GIL)
-    with ThreadPoolExecutor(3, thread_name_prefix="match-step") as pool:
-        seeded = multi = surveyed_step = None
-        if walk_rows is not None:
-            # one step for every picture of the window (their rows told by ``method``)
-            rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
-            seeded = (pool.submit(seed_step, seed, rows, walk_rows, walk, cfg.accuracy) if rows.height
-                      else None)
-            if seeded is None:
-                out[SCORED] = pl.DataFrame(schema=SCORED_ROWS)
-        if multitarget:
-            multi = pool.submit(multitarget_steps, carried, blocks, cfg.multitarget)
-            if surveyed and metrics is not None:    # one step for every group: a frame per schema
-                seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
-                surveyed_step = pool.submit(picture_step, metrics, surveyed, seen, radar_xy, cfg.metrics)
-        if seeded is not None:
-            out[SCORED], seed = seeded.result()
-        carried = multi.result() if multi is not None else carried
-        metrics = surveyed_step.result() if surveyed_step is not None else metrics
+    if walk_rows is not None:
+        # one step for every picture of the window (their rows told by ``method``)
+        rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
+        out[SCORED], seed = (seed_step(seed, rows, walk_rows, walk, cfg.accuracy) if rows.height
+                             else (pl.DataFrame(schema=SCORED_ROWS), seed))
+    if multitarget:
+        carried = multitarget_steps(carried, blocks, cfg.multitarget)
+        if surveyed and metrics is not None:    # one step for every group: a frame per schema
+            seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
+            metrics = picture_step(metrics, surveyed, seen, radar_xy, cfg.metrics)
     return out, MatchState(carried, where, seed, walk, metrics)
