@@ -17,10 +17,12 @@ import polars as pl
 from tertiary import contract
 from tertiary.core import geo
 from tertiary.core.errors import DataError
-from tertiary.evaluation.evaluate import Reference, reference_files, write_reference, write_reference_pieces
+from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Reference, reference_files, write_reference,
+                                          write_reference_pieces)
 from tertiary.evaluation.matching import neighbour_times
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig, check_config
+from tertiary.pipeline.tables import StreamedTable
 from tertiary.runtime.windows import ReportSource
 from tertiary.sensors import registration
 from tertiary.sensors.collection import collection_stage
@@ -28,7 +30,8 @@ from tertiary.stages import align as align_stage
 from tertiary.stages.align import AlignPlan
 from tertiary.stages.flight_data import check_flight_plans, empty_flight_plans
 
-__all__ = ["Ingested", "StreamedTruth", "ValidTruth", "first_truth", "plausible_span", "report_span_window", "ingest",
+__all__ = ["Ingested", "StreamedTruth", "ValidTruth", "first_truth", "truth_table", "plausible_span",
+           "report_span_window", "ingest",
            "screen", "validate_table", "validate_truth", "stream_truth",
            "truth_lazy", "span_window", "truth_window", "no_rejects", "registered", "valid_flight_plans",
            "stage_rejects_table",
@@ -283,6 +286,19 @@ class ValidTruth:
     def matcher(self) -> Reference | None:
         """The reference the evaluation's window stage reads its time slices from."""
         return Reference(self.reference) if self.reference is not None else None
+
+    def table(self) -> "pl.DataFrame | StreamedTable":
+        """The run's ``truth`` table for a sink (:func:`truth_table`)."""
+        return truth_table(self.frame if self.on_disk is None else self.on_disk.empty, self.on_disk)
+
+
+def truth_table(truth: pl.DataFrame, on_disk: StreamedTruth | None) -> "pl.DataFrame | StreamedTable":
+    """The run's ``truth`` table for a sink: an on-disk truth with rows as its reference files
+    (which a sink may copy as they are) without the neighbour times the matcher reads, else
+    ``truth`` (the clean truth, or the empty schema of one without rows)."""
+    if on_disk is not None and on_disk.rows:
+        return StreamedTable(on_disk.pieces, tuple(reference_files(on_disk.reference)), NEIGHBOUR_COLUMNS)
+    return truth
 
 
 def first_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: Any, parts: Any,

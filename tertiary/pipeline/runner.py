@@ -22,7 +22,7 @@ from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config, config_dict
 from tertiary.pipeline.ingestion import truth_lazy
 from tertiary.pipeline.streaming import StreamState, stream_windows
-from tertiary.pipeline.tables import Sink, check_tables, make_storable, part_trim, store_sink
+from tertiary.pipeline.tables import Sink, SinkThread, check_tables, make_storable, part_trim, store_sink
 from tertiary.pipeline.warmup import kernels_for, warm_kernels
 from tertiary.pipeline.whole_run import Results, finalize_stages
 from tertiary.runtime.windows import (AUTO_WINDOW, DEFAULT_WINDOW_S, STREAMED, MemoryParts, PartStore, check_window,
@@ -71,15 +71,20 @@ def process(ds: Dataset, cfg: PipelineConfig | None = None, progress: Progress |
     clock = StageClock(progress or (lambda _m: None))
     sink = sink or (lambda _n, _f: None)
     parts = parts if parts is not None else MemoryParts()
+    # the tables known before the end (the truth) are written while the windows run
+    writer = SinkThread(sink)
     try:
-        return _process(ds, cfg, clock, sink, notes, window_s, parts, resume_state, start)
+        return _process(ds, cfg, clock, writer, notes, window_s, parts, resume_state, start)
     except Exception as exc:
         # a write's failure is raised in a later stage's time: it names its own
         stage = getattr(exc, "tertiary_stage", None) or clock.name or "validate"
         exc.tertiary_stage = stage  # type: ignore[attr-defined]
+        writer.close()          # the writes in flight end before the partial tables are written
         if not getattr(exc, "_sunk", False):
             _sink_partial(parts, sink)
         raise
+    finally:
+        writer.close()
 
 
 def _sink_partial(parts: Any, sink: Sink) -> None:
@@ -100,7 +105,8 @@ def _process(ds: Dataset, cfg: PipelineConfig, clock: StageClock, sink: Sink, no
     t_all = time.perf_counter()
     notes = [] if notes is None else notes
     parts = parts if parts is not None else MemoryParts()
-    ctx, st, source = stream_windows(ds, cfg, clock, notes, window_s, parts, resume_state, start, evaluate=True)
+    ctx, st, source = stream_windows(ds, cfg, clock, notes, window_s, parts, resume_state, start, evaluate=True,
+                                     sink=sink)
     return finalize_stages(ds, cfg, ctx, st, parts, clock, sink, notes, source.n_rows, t_all)
 
 

@@ -37,6 +37,7 @@ from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_r
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
+from tertiary.pipeline.tables import Sink
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
 from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
@@ -105,6 +106,9 @@ class RunContext:
     stored_scored: Callable[[], list[Path]] | None = None
     #: the windows sum the consistency statistics' lags of each whole series (a run on disk with truth)
     lags: bool = False
+    #: the ``truth`` table was handed to the run's sink before the windows (it is written while
+    #: they run): finalize does not hand it again
+    truth_sunk: bool = False
 
 
 @dataclass(frozen=True)
@@ -354,12 +358,13 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
 
 def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
                    parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None,
-                   scored_span: tuple[int, int] | None = None, evaluate: bool = False
+                   scored_span: tuple[int, int] | None = None, evaluate: bool = False, sink: Sink | None = None
                    ) -> tuple[RunContext, StreamState, ReportSource]:
     """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
     initial state), each stored in ``parts`` as it completes; the run's context, its last state
     and its report source. ``evaluate``: a run on disk with truth validates the truth first and
-    matches its pictures to it in the windows (:func:`first_truth`)."""
+    matches its pictures to it in the windows (:func:`first_truth`); ``sink`` then receives the
+    ``truth`` table at once (the run's sink, which writes it while the windows run)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
     source = ReportSource(ds.reports, cfg.limits)
@@ -378,6 +383,9 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     if evaluate:
         ctx.truth = first_truth(ds, cfg, notes, source, parts, clock)
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
+        if ctx.truth is not None and sink is not None:
+            sink("truth", ctx.truth.table())
+            ctx.truth_sunk = True
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
             ctx.truth_slice = reference_slice(ctx.reference.files)

@@ -1,6 +1,6 @@
 """The run's tables between the windows and the run database: the tables finalize leaves on disk
 (:class:`OnDiskTable`) or reads back late (:class:`DeferredTable`), the sink that writes them
-(:func:`store_sink`; on a thread of its own in finalize: :class:`SinkThread`), the columns each
+(:func:`store_sink`; on a thread of its own through the run: :class:`SinkThread`), the columns each
 ``--tables`` mode stores (:data:`LEAN_COLUMNS`) and what DuckDB can store (:func:`make_storable`)."""
 
 from __future__ import annotations
@@ -365,9 +365,9 @@ def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> S
 
 
 class SinkThread:
-    """The finalize's tables handed to ``sink`` on a thread of their own, in the order they
-    come, while the whole-run stages go on (speed: copying the tables into the run database
-    would otherwise hold up the stages on one core). The
+    """A run's tables handed to ``sink`` on a thread of their own, in the order they come, while
+    the stages go on: the truth while the windows run, the rest while the whole-run stages do
+    (speed: copying the tables into the run database would otherwise hold up the stages). The
     streamed tables are read from their parts on disk and the frames given are never changed
     after, so the stages and the writes share nothing but the disk. A write's failure stops
     the later writes and is raised, as a failure of ``write_tables``, at the next table given

@@ -27,7 +27,7 @@ from tertiary.evaluation.bound_pooling import bound_rows
 from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_finish
 from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
-from tertiary.evaluation.evaluate import (NEIGHBOUR_COLUMNS, Evaluation, Matched, read_reference, reference_files,
+from tertiary.evaluation.evaluate import (Evaluation, Matched, read_reference, reference_files,
                                           write_reference)
 from tertiary.evaluation.indicators import indicators
 from tertiary.evaluation.truth_picture import first_observed, observed_spans
@@ -35,7 +35,7 @@ from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
 from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
 from tertiary.pipeline.ingestion import (Ingested, StreamedTruth, no_rejects, report_span_window, span_window,
-                                         stream_truth, truth_window, validate_truth)
+                                         stream_truth, truth_table, truth_window, validate_truth)
 from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
@@ -46,7 +46,7 @@ from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, reference_slice,
                                             truth_conflicts, truth_picture_finish)
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
-                                      DeferredTable, OnDiskTable, Sink, SinkThread, StreamedTable, confirmed_targets,
+                                      DeferredTable, OnDiskTable, Sink, SinkThread, confirmed_targets,
                                       for_sink, read_table, table_columns, target_counts, whole_table)
 from tertiary.runtime.windows import release_memory
 from tertiary.sensors.radar_health import radar_health
@@ -149,6 +149,8 @@ def finalize_stages(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Strea
     release_memory()             # what the windows freed, before the whole-run stages
     if cfg.tracker.measured_downlinks:
         notes.append(f"tracker: {cfg.tracker.measured_downlinks}")
+    if isinstance(sink, SinkThread):        # the run's own, which its caller closes
+        return _finalize_tables(ds, cfg, ctx, st, parts, clock, sink, notes, n_in, t_all)
     writer = SinkThread(sink)
     try:
         return _finalize_tables(ds, cfg, ctx, st, parts, clock, writer, notes, n_in, t_all)
@@ -197,8 +199,8 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     ing = Ingested(ctx.radars, reports, truth, rejects, notes)
     sink("radars", ing.radars)
     sink("reports", for_sink(parts, "reports", empty_reports) if lean else reports)
-    sink("truth", StreamedTable(on_disk.pieces, tuple(reference_files(on_disk.reference)), NEIGHBOUR_COLUMNS)
-         if on_disk is not None and on_disk.rows else truth)
+    if not ctx.truth_sunk:
+        sink("truth", truth_table(truth, on_disk))
     del truth                   # held by ``ing`` alone: the evaluation may release it
     sink("rejects", rejects)
     empty_aligned = align_stage.empty_aligned()
