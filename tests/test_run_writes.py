@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary import pipeline
 from tertiary.pipeline import streaming, tables
+from tertiary.runtime.windows import Window
 from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
 
@@ -46,3 +48,102 @@ def test_the_truth_is_handed_to_the_writer_before_the_first_window(terminal, tmp
     mem = pipeline.process(terminal, window_s=60.0)
     with RunStore.open(tmp_path / "run") as st:
         assert_frame_equal(st.read("truth"), mem.ingested.truth)
+
+
+def _database(run_dir) -> dict[str, pl.DataFrame]:
+    """Every table and view of a run database but the run record, and the physical tables'
+    column lists (the lean layout)."""
+    with RunStore.open(run_dir) as st:
+        out = {name: st.read(name) for name in st.tables() if name != "run"}
+        for (name,) in st.con.execute("SELECT table_name FROM duckdb_tables() WHERE table_name LIKE '\\_lean%' "
+                                      "ESCAPE '\\'").fetchall():
+            out[f"layout:{name}"] = st.sql(f'DESCRIBE "{name}"').select("column_name", "column_type")
+    return out
+
+
+def _same_databases(a: dict[str, pl.DataFrame], b: dict[str, pl.DataFrame]) -> None:
+    assert sorted(a) == sorted(b)
+    for name in a:
+        try:
+            assert_frame_equal(a[name], b[name])
+        except AssertionError as exc:
+            raise AssertionError(f"table {name}") from exc
+
+
+@pytest.fixture(scope="module")
+def end_only(terminal, tmp_path_factory):
+    """The database of a run whose streamed tables are all written at its end."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(tables, "LIVE_FLUSH_ROWS", 10**12)
+        out = tmp_path_factory.mktemp("end_only") / "run"
+        pipeline.run(terminal, out, window_s=60.0)
+    return _database(out)
+
+
+def test_the_windows_parts_are_appended_as_the_run_goes_and_the_database_is_the_same(
+        terminal, end_only, tmp_path, monkeypatch):
+    """With a flush every window, each streamed table is appended to the database while the
+    windows run and the end appends only the last windows' parts: no table with rows is written
+    whole.
+    The database — every table, and the lean layout of each physical table — is the one the run
+    writes at its end. Fails if the end wrote a table again, skipped the parts not yet
+    appended, or appended them in another order."""
+    monkeypatch.setattr(tables, "LIVE_FLUSH_ROWS", 1)
+    started = _windows_started(monkeypatch)
+    appended: list[tuple[str, int]] = []           # (table, windows begun when it was appended)
+    whole: list[str] = []
+    monkeypatch.setattr(RunStore, "append_parts", lambda self, name, parts, f=RunStore.append_parts:
+                        appended.append((name, len(started))) or f(self, name, parts))
+    monkeypatch.setattr(RunStore, "write_parts", lambda self, name, parts, f=RunStore.write_parts:
+                        whole.append(name) or f(self, name, parts))
+    pipeline.run(terminal, tmp_path / "run", window_s=60.0)
+    n = len(started)
+    assert n > 4
+    for name in tables.LIVE_TABLES:
+        assert any(t == name and k < n for t, k in appended) or end_only[name].height == 0, name
+    assert sum(end_only[name].height > 0 for name in tables.LIVE_TABLES) >= 5
+    assert not {name for name in whole if name in tables.LIVE_TABLES and end_only[name].height}
+    _same_databases(_database(tmp_path / "run"), end_only)
+
+
+def test_a_resumed_run_appends_the_windows_stored_before_it(terminal, end_only, tmp_path, monkeypatch):
+    """A run that fails in its fourth window and is resumed: the resumed run's database is new,
+    so its first catch-up appends the windows the failed run stored, and no table with rows is
+    written whole at the end; the tables are those of a run that never failed. Fails if the
+    catch-up began at the resumed window."""
+    monkeypatch.setattr(tables, "LIVE_FLUSH_ROWS", 1)
+
+    def failing(cfg, ctx, st, raw, w, clock, *a, f=streaming.process_step):
+        if w.index == 3:
+            raise RuntimeError("killed")
+        return f(cfg, ctx, st, raw, w, clock, *a)
+    with monkeypatch.context() as mp:
+        mp.setattr(streaming, "process_step", failing)
+        with pytest.raises(Exception, match="killed"):
+            pipeline.run(terminal, tmp_path / "run", window_s=60.0)
+    whole: list[str] = []
+    monkeypatch.setattr(RunStore, "write_parts", lambda self, name, parts, f=RunStore.write_parts:
+                        whole.append(name) or f(self, name, parts))
+    pipeline.run(terminal, tmp_path / "run", window_s=60.0, resume=True)
+    assert not {name for name in whole if name in tables.LIVE_TABLES and end_only[name].height}
+    _same_databases(_database(tmp_path / "run"), end_only)
+
+
+def test_a_table_whose_layout_changes_between_flushes_is_written_whole(tmp_path, monkeypatch):
+    """A streamed table whose later parts cannot share the first part's physical table (here a
+    column that appears) is left out of the appends once that shows, and written whole when the
+    end hands it over: the table of every part, as the end alone writes it."""
+    from tertiary.runtime.windows import PartStore
+    monkeypatch.setattr(tables, "LIVE_FLUSH_ROWS", 1)
+    parts = PartStore.start(tmp_path / "run", {"parts": "full"})
+    frames = [pl.DataFrame({"run": [0, 0], "a": [1.0, 2.0]}), pl.DataFrame({"run": [0], "a": [3.0]}),
+              pl.DataFrame({"run": [1], "a": [4.0], "b": ["x"]})]
+    with RunStore.create(tmp_path / "run") as store:
+        sink = tables.store_sink(store, [], "full")
+        for k, frame in enumerate(frames):
+            parts.write(Window(k, k, k + 1), {"conflicts": frame})
+            parts.checkpoint(Window(k, k, k + 1), None)
+            sink.catch_up(parts)
+        assert sink.broken == {"conflicts"} and store.read("conflicts").height == 3
+        sink("conflicts", tables.for_sink(parts, "conflicts", pl.DataFrame()))
+        assert_frame_equal(store.read("conflicts"), pl.concat(frames, how="diagonal_relaxed"))

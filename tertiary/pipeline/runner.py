@@ -98,7 +98,7 @@ def _sink_partial(parts: Any, sink: Sink) -> None:
             sink(name, frame)
 
 
-def _process(ds: Dataset, cfg: PipelineConfig, clock: StageClock, sink: Sink, notes: list[str] | None,
+def _process(ds: Dataset, cfg: PipelineConfig, clock: StageClock, sink: SinkThread, notes: list[str] | None,
              window_s: float | None = None, parts: Any = None, resume_state: StreamState | None = None,
              start: int = 0) -> Results:
     """Stream every window through :func:`pipeline_step`, then finalize on the whole run."""

@@ -37,7 +37,7 @@ from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_r
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
-from tertiary.pipeline.tables import Sink
+from tertiary.pipeline.tables import SinkThread
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
 from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
@@ -358,13 +358,14 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
 
 def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
                    parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None,
-                   scored_span: tuple[int, int] | None = None, evaluate: bool = False, sink: Sink | None = None
-                   ) -> tuple[RunContext, StreamState, ReportSource]:
+                   scored_span: tuple[int, int] | None = None, evaluate: bool = False,
+                   sink: SinkThread | None = None) -> tuple[RunContext, StreamState, ReportSource]:
     """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
     initial state), each stored in ``parts`` as it completes; the run's context, its last state
     and its report source. ``evaluate``: a run on disk with truth validates the truth first and
-    matches its pictures to it in the windows (:func:`first_truth`); ``sink`` then receives the
-    ``truth`` table at once (the run's sink, which writes it while the windows run)."""
+    matches its pictures to it in the windows (:func:`first_truth`). ``sink``, the run's writer,
+    gets the tables known before the end while the windows run: the ``truth`` once validated, and
+    the stored windows' parts after every window (:meth:`SinkThread.catch_up`)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
     source = ReportSource(ds.reports, cfg.limits)
@@ -426,6 +427,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             if window_s is not None:
                 meter.window(w_, max(w_.t0_us, source.first_us), min(w_.t1_us, source.last_us + 1), n)
         done.clear()
+        if sink is not None:
+            sink.catch_up(parts)
 
     try:
         for w in ws:

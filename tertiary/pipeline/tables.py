@@ -27,8 +27,8 @@ from tertiary.runtime.windows import PARTS, PartStore, prefetched
 from tertiary.runtime.windows import concat_parts
 from tertiary.store.run_store import TABLES_DIR, RunStore
 
-__all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "TABLE_MODES",
-           "check_tables", "store_sink", "for_sink", "confirmed_targets", "read_table", "table_columns", "whole_table", "target_counts",
+__all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "StoreSink", "TABLE_MODES",
+           "LIVE_TABLES", "LIVE_FLUSH_ROWS", "check_tables", "store_sink", "for_sink", "confirmed_targets", "read_table", "table_columns", "whole_table", "target_counts",
            "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
            "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH", "NOT_SCORED", "PartTrim",
            "part_trim"]
@@ -309,27 +309,79 @@ def _slim_copy(src: Path, drop: Collection[str], out: Path) -> Path:
     return out
 
 
-def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> Sink:
-    """The sink that writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable`
-    part by part (:meth:`RunStore.write_parts`), or with ``tables="parquet"`` its window parts
-    registered where they are (:meth:`RunStore.register_parquet`) when they are storable as
-    they are. ``database`` and ``parquet`` store only the :data:`LEAN_COLUMNS` of the tables named
-    there (``parquet``: the parts' read columns copied to Parquet files of their own, which are
-    registered); ``full`` every column."""
-    check_tables(tables, store.path.parent)
-    keep = lean_columns(tables)
+#: the streamed tables a run's sink appends to the database as its windows are stored
+#: (:meth:`StoreSink.catch_up`), in the order they are appended: ``aligned``'s lean layout joins
+#: the ``reports`` rows already there
+LIVE_TABLES = ("reports", "aligned", "associations", "fused", "clusters", "tracks", "conflicts")
+#: rows of the stored windows' parts of :data:`LIVE_TABLES` gathered before they are appended:
+#: a few windows at a time, so that the database's row groups are full and its transactions few
+LIVE_FLUSH_ROWS = 1_000_000
 
-    def storable(frame: pl.DataFrame, name: str) -> pl.DataFrame:
-        said: list[str] = []
-        out = make_storable(slim(frame, name), name, said)
-        notes.extend(n for n in said if n not in notes)      # once per table, not once per window
-        return out
 
-    def sink(name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> StoreSink:
+    """The sink that writes a run's tables to ``store`` (:class:`StoreSink`)."""
+    return StoreSink(store, notes, tables)
+
+
+class StoreSink:
+    """Writes a run's tables to ``store``: a frame whole, a :class:`StreamedTable` part by part
+    (:meth:`RunStore.write_parts`), or with ``tables="parquet"`` its window parts registered
+    where they are (:meth:`RunStore.register_parquet`) when they are storable as they are.
+    ``database`` and ``parquet`` store only the :data:`LEAN_COLUMNS` of the tables named there
+    (``parquet``: the parts' read columns copied to Parquet files of their own, which are
+    registered); ``full`` every column.
+
+    With ``database`` or ``full``, :meth:`catch_up` appends the windows' parts to the database
+    as they are stored, so that the end of the run has only the last ones left to append: a
+    streamed table handed over whole then gets only its parts not yet appended."""
+
+    def __init__(self, store: RunStore, notes: list[str], tables: str = "database") -> None:
+        check_tables(tables, store.path.parent)
+        self.store, self.notes, self.tables = store, notes, tables
+        self.keep = lean_columns(tables)
+        #: the part files appended so far, by table (:meth:`catch_up`), and their rows
+        self.live: dict[str, list[Path]] = {}
+        self.rows: dict[str, int] = {}
+        #: the tables whose parts changed layout: written whole at the end
+        self.broken: set[str] = set()
+        #: the windows whose parts are appended (the first ``through``)
+        self.through = 0
+
+    def catch_up(self, parts: PartStore) -> None:
+        """Append to the database the parts of :data:`LIVE_TABLES` of the windows ``parts`` has
+        stored since the last call, once they hold :data:`LIVE_FLUSH_ROWS` rows: every table
+        through the same window, in that order. A table whose parts do not keep its first
+        part's layout is left to be written whole at the end."""
+        if self.tables == "parquet":
+            return
+        done = int(parts.manifest["windows_done"])
+        new = {name: [f for f in parts.part_files(name) if self.through <= _window_of(f) < done]
+               for name in LIVE_TABLES}
+        if sum(pq.ParquetFile(f).metadata.num_rows for files in new.values() for f in files) < LIVE_FLUSH_ROWS:
+            return
+        for name, files in new.items():
+            self._append(name, files)
+        self.through = done
+
+    def _append(self, name: str, files: list[Path]) -> None:
+        """``files`` appended to ``name`` after its earlier ones (files without rows only
+        counted); a table whose layout changed is appended no more."""
+        if name in self.broken or not files:
+            return
+        rows = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+        if rows and not self.store.append_parts(
+                name, lambda: prefetched(self._storable(pl.read_parquet(f), name) for f in files)):
+            self.broken.add(name)
+            return
+        self.live.setdefault(name, []).extend(files)
+        self.rows[name] = self.rows.get(name, 0) + rows
+
+    def __call__(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        store, tables = self.store, self.tables
         # the windows' parts, or files that are exactly the table (the truth's reference files)
         own = (frame.parts_files or frame.files) if isinstance(frame, StreamedTable) else ()
         if tables == "parquet" and own and storable_as_is(own[0], name, frame.drop):
-            gone = {c for f in own for c in unkept(pl.read_parquet_schema(f), name)}   # an empty part has fewer
+            gone = {c for f in own for c in self._unkept(pl.read_parquet_schema(f), name)}   # an empty part has fewer
             if not gone:
                 store.register_parquet(name, own, frame.drop)
                 return
@@ -345,23 +397,41 @@ def store_sink(store: RunStore, notes: list[str], tables: str = "database") -> S
                 shutil.rmtree(scratch, ignore_errors=True)
             return
         if isinstance(frame, StreamedTable):
+            if self._rest_appended(name, frame.parts_files):
+                return
             # the files as they are, when no column of theirs needs making storable
-            drop = (*frame.drop, *unkept(pl.read_parquet_schema(frame.files[0]), name)) if frame.files else ()
+            drop = (*frame.drop, *self._unkept(pl.read_parquet_schema(frame.files[0]), name)) if frame.files else ()
             if (frame.files and storable_as_is(frame.files[0], name, drop)
                     and store.write_files(name, frame.files, drop)):
                 return
             # the next window's part is read while this one is inserted
-            store.write_parts(name, lambda: prefetched(storable(f, name) for f in frame.parts()))
+            store.write_parts(name, lambda: prefetched(self._storable(f, name) for f in frame.parts()))
         elif frame.width:
-            store.write(name, storable(frame, name))
+            store.write(name, self._storable(frame, name))
 
-    def unkept(schema: Any, name: str) -> list[str]:
-        return [c for c in schema if name in keep and c not in keep[name]]
+    def _rest_appended(self, name: str, files: tuple[Path, ...]) -> bool:
+        """Whether ``files``, the whole table's parts, now are in the database: the ones
+        :meth:`catch_up` appended begin them (with a row), and the rest append."""
+        have = self.live.get(name)
+        if not have or name in self.broken or list(files[:len(have)]) != have:
+            return False
+        self._append(name, list(files[len(have):]))
+        return name not in self.broken and self.rows[name] > 0
 
-    def slim(frame: pl.DataFrame, name: str) -> pl.DataFrame:
-        drop = unkept(frame.schema, name)
-        return frame.drop(drop) if drop else frame
-    return sink
+    def _storable(self, frame: pl.DataFrame, name: str) -> pl.DataFrame:
+        said: list[str] = []
+        drop = self._unkept(frame.schema, name)
+        out = make_storable(frame.drop(drop) if drop else frame, name, said)
+        self.notes.extend(n for n in said if n not in self.notes)      # once per table, not once per window
+        return out
+
+    def _unkept(self, schema: Any, name: str) -> list[str]:
+        return [c for c in schema if name in self.keep and c not in self.keep[name]]
+
+
+def _window_of(part: Path) -> int:
+    """The window index of a part file (``w=000012.parquet``)."""
+    return int(part.stem.split("=")[1])
 
 
 class SinkThread:
@@ -378,22 +448,38 @@ class SinkThread:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="finalize-sink")
         self._pending: list[Future] = []
         self._error: BaseException | None = None
+        self._catching: Future | None = None
         #: seconds the writes took (beside the stages)
         self.busy_s = 0.0
 
     def __call__(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+        self._submit(f"table {name!r}", lambda: self.sink(name, frame))
+
+    def catch_up(self, parts: Any) -> None:
+        """The sink's ``catch_up(parts)`` (:meth:`StoreSink.catch_up`: the windows' parts
+        stored so far appended to the database), after the tables given before; nothing when
+        the sink has none, ``parts`` are not on disk, or the last one has not run yet (the
+        next takes its windows too)."""
+        if not hasattr(self.sink, "catch_up") or not hasattr(parts, "part_files"):
+            return
+        if self._catching is not None and not self._catching.done():
+            return
+        self._catching = self._submit("the stored windows' tables", lambda: self.sink.catch_up(parts))
+
+    def _submit(self, what: str, write: Callable[[], None]) -> Future:
         self._raise()
         self._pending = [f for f in self._pending if not f.done()]
-        self._pending.append(self._pool.submit(self._write, name, frame))
+        self._pending.append(self._pool.submit(self._write, what, write))
+        return self._pending[-1]
 
-    def _write(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
+    def _write(self, what: str, write: Callable[[], None]) -> None:
         if self._error is not None:
             return
         t = time.perf_counter()
         try:
-            self.sink(name, frame)
+            write()
         except BaseException as exc:  # raised in the stages' thread
-            exc.add_note(f"while writing table {name!r} to the run database")
+            exc.add_note(f"while writing {what} to the run database")
             self._error = exc
         finally:
             self.busy_s += time.perf_counter() - t

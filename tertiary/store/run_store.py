@@ -52,6 +52,7 @@ import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -193,6 +194,17 @@ def _writer_lock(run_dir: Path) -> Iterator[None]:
 
 
 
+@dataclass(frozen=True)
+class _Appending:
+    """A table written a part at a time (:meth:`RunStore.append_parts`): what its first part
+    fixed — its physical table (and shared one), its layout's signature, whether it is lean."""
+
+    phys: str
+    shared: str | None
+    sign: Any
+    lean: bool
+
+
 class RunStore:
     """One run's DuckDB database. Build with ``create``, ``update`` or ``open``."""
 
@@ -204,6 +216,8 @@ class RunStore:
         self._spill = Path(tempfile.gettempdir()) / f"tertiary-duckdb-{os.getpid()}-{secrets.token_hex(6)}"
         self._con = _connect(self.path, read_only, self._spill)
         self._pool_mb = WRITER_MEMORY_MB        # the writer's buffer pool now (:meth:`_sized`)
+        #: the tables being written a part at a time (:meth:`append_parts`)
+        self._appending: dict[str, _Appending] = {}
 
     # ---- constructors
 
@@ -316,6 +330,7 @@ class RunStore:
         """Create or replace table ``name`` with ``frame`` (one transaction); covariance
         columns are stored compactly (:func:`compact_covariances`) and the run's large tables
         in their lean layout behind a view of the same name (see "lean layout" above)."""
+        self._appending.pop(name, None)
         self._sized(lambda: self._write(name, frame))
 
     def _write(self, name: str, frame: pl.DataFrame) -> None:
@@ -349,6 +364,7 @@ class RunStore:
         if self.read_only:
             raise PermissionError(f"{self.path} is open read-only")
         table = f'"{validate_name(name)}"'
+        self._appending.pop(name, None)
         paths = [str(Path(f)) for f in files]
         exclude = f" EXCLUDE ({', '.join(quote(c) for c in drop)})" if drop else ""
         try:
@@ -374,6 +390,7 @@ class RunStore:
         if self.read_only:
             raise PermissionError(f"{self.path} is open read-only")
         table = f'"{validate_name(name)}"'
+        self._appending.pop(name, None)
         rows = [pq.ParquetFile(f).metadata.num_rows for f in files]
         keep = [Path(f) for f, n in zip(files, rows) if n] or [Path(f) for f in files[:1]]
         if not keep:
@@ -408,52 +425,71 @@ class RunStore:
         layout rules are row-wise checks, so this is exactly when the whole table's layout is
         that one) the parts are appended to it in order, in one transaction: the same table as
         :meth:`write` of the whole. Otherwise the parts are concatenated and written whole."""
-        done = self._sized(lambda: self._try_parts(name, parts))
+        self._appending.pop(name, None)
+        done = self._sized(lambda: self._add_parts(name, parts, None))
         if not done:
             frames = [f for f in parts() if f.width]
             if frames:
                 self.write(name, pl.concat(frames, how="diagonal_relaxed") if len(frames) > 1 else frames[0])
 
-    def _try_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> bool:
-        it = iter(parts())
-        first = next((f for f in it if f.height), None)
-        if first is None:            # no rows: written whole (a schema-only frame, or nothing)
-            return False
-        frame = compact_covariances(first)
-        table = self._writable(name, frame)
-        lay = lean_layout(name, frame, self._con, self._reports_for(name)) if self.lean else None
-        lean = lay is not None and lay.changed
-        phys = LEAN_PREFIX + name if lean else validate_name(name)
-        shared = f"{phys}{ROWS_FLAG}" if lean and lay.shared is not None else None
-        sign = layout_signature(lay) if lean else frame.schema
+    def append_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> bool:
+        """The frames ``parts()`` yields appended in one transaction to table ``name`` as the
+        earlier calls of this method left it (the first part of the first call creates it,
+        replacing any table of that name), so that a table written as a run goes is the table
+        :meth:`write_parts` makes of all its parts. False when a part's lean layout is not the
+        table's: that call is rolled back and the table holds the earlier calls' parts (write it
+        whole then). A write of ``name`` by any other method ends the appending."""
+        return self._sized(lambda: self._add_parts(name, parts, self._appending.get(name)))
+
+    def _add_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]], table: _Appending | None) -> bool:
+        """Every part with rows added by :meth:`_add_part` in one transaction; False (rolled back)
+        when a part's layout differs, or when there is no row and no table yet."""
         self._con.begin()
         try:
+            for part in parts():
+                if part.width == 0 or part.height == 0:
+                    continue
+                table = self._add_part(name, part, table)
+                if table is None:
+                    self._con.rollback()
+                    return False
+        except BaseException:
+            self._con.rollback()
+            raise
+        if table is None:           # no rows: written whole (a schema-only frame, or nothing)
+            self._con.rollback()
+            return False
+        self._commit()
+        self._appending[name] = table
+        return True
+
+    def _add_part(self, name: str, part: pl.DataFrame, table: _Appending | None) -> _Appending | None:
+        """Inside the open transaction: ``part`` appended to ``table``, or (None) the table
+        created from it in place of any of that name, with its lean layout and view; None when
+        the part's layout is not the table's."""
+        frame = compact_covariances(part)
+        if table is None:
+            view = self._writable(name, frame)
+            lay = lean_layout(name, frame, self._con, self._reports_for(name)) if self.lean else None
+            lean = lay is not None and lay.changed
+            phys = LEAN_PREFIX + name if lean else validate_name(name)
+            shared = f"{phys}{ROWS_FLAG}" if lean and lay.shared is not None else None
             for stmt in self._drop_statements(name):
                 self._con.execute(stmt)
             self._insert(phys, lay.phys if lean else frame, create=True)
             if shared is not None:
                 self._insert(shared, lay.shared, create=True)
             if lean:
-                self._con.execute(f"CREATE VIEW {table} AS "
-                                  + view_sql(lay, column_types(self._con, frame), phys, shared))
-            del first, frame
-            for part in it:
-                if part.width == 0 or part.height == 0:
-                    continue
-                _check_frame(part)
-                part = compact_covariances(part)
-                lp = lean_layout(name, part, self._con, self._reports_for(name)) if lean else None
-                if (layout_signature(lp) if lean else part.schema) != sign:
-                    self._con.rollback()
-                    return False
-                self._insert(phys, lp.phys if lean else part, create=False)
-                if shared is not None:
-                    self._insert(shared, lp.shared, create=False)
-        except BaseException:
-            self._con.rollback()
-            raise
-        self._commit()
-        return True
+                self._con.execute(f"CREATE VIEW {view} AS " + view_sql(lay, column_types(self._con, frame), phys, shared))
+            return _Appending(phys, shared, layout_signature(lay) if lean else frame.schema, lean)
+        _check_frame(part)
+        lp = lean_layout(name, frame, self._con, self._reports_for(name)) if table.lean else None
+        if (layout_signature(lp) if table.lean else frame.schema) != table.sign:
+            return None
+        self._insert(table.phys, lp.phys if table.lean else frame, create=False)
+        if table.shared is not None:
+            self._insert(table.shared, lp.shared, create=False)
+        return table
 
     def _insert(self, table: str, frame: pl.DataFrame, create: bool) -> None:
         with self._registered(frame) as src:
