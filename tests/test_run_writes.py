@@ -92,8 +92,8 @@ def test_the_windows_parts_are_appended_as_the_run_goes_and_the_database_is_the_
     started = _windows_started(monkeypatch)
     appended: list[tuple[str, int]] = []           # (table, windows begun when it was appended)
     whole: list[str] = []
-    monkeypatch.setattr(RunStore, "append_parts", lambda self, name, parts, f=RunStore.append_parts:
-                        appended.append((name, len(started))) or f(self, name, parts))
+    monkeypatch.setattr(RunStore, "append_parts", lambda self, given, f=RunStore.append_parts:
+                        appended.extend((name, len(started)) for name in given) or f(self, given))
     monkeypatch.setattr(RunStore, "write_parts", lambda self, name, parts, f=RunStore.write_parts:
                         whole.append(name) or f(self, name, parts))
     pipeline.run(terminal, tmp_path / "run", window_s=60.0)
@@ -132,18 +132,24 @@ def test_a_resumed_run_appends_the_windows_stored_before_it(terminal, end_only, 
 def test_a_table_whose_layout_changes_between_flushes_is_written_whole(tmp_path, monkeypatch):
     """A streamed table whose later parts cannot share the first part's physical table (here a
     column that appears) is left out of the appends once that shows, and written whole when the
-    end hands it over: the table of every part, as the end alone writes it."""
+    end hands it over: the table of every part, as the end alone writes it. The flush it broke
+    still appends the other tables. Fails if that flush were dropped or the broken table kept
+    in the appends."""
     from tertiary.runtime.windows import PartStore
     monkeypatch.setattr(tables, "LIVE_FLUSH_ROWS", 1)
     parts = PartStore.start(tmp_path / "run", {"parts": "full"})
     frames = [pl.DataFrame({"run": [0, 0], "a": [1.0, 2.0]}), pl.DataFrame({"run": [0], "a": [3.0]}),
-              pl.DataFrame({"run": [1], "a": [4.0], "b": ["x"]})]
+              pl.DataFrame({"run": [1], "a": [4.0], "b": ["x"]}), pl.DataFrame({"run": [1], "a": [5.0], "b": ["y"]})]
+    other = [pl.DataFrame({"run": [k], "n": [k * 10]}) for k in range(len(frames))]
     with RunStore.create(tmp_path / "run") as store:
         sink = tables.store_sink(store, [], "full")
         for k, frame in enumerate(frames):
-            parts.write(Window(k, k, k + 1), {"conflicts": frame})
+            parts.write(Window(k, k, k + 1), {"conflicts": frame, "clusters": other[k]})
             parts.checkpoint(Window(k, k, k + 1), None)
             sink.catch_up(parts)
         assert sink.broken == {"conflicts"} and store.read("conflicts").height == 3
-        sink("conflicts", tables.for_sink(parts, "conflicts", pl.DataFrame()))
+        assert_frame_equal(store.read("clusters"), pl.concat(other))
+        for name in ("conflicts", "clusters"):
+            sink(name, tables.for_sink(parts, name, pl.DataFrame()))
         assert_frame_equal(store.read("conflicts"), pl.concat(frames, how="diagonal_relaxed"))
+        assert_frame_equal(store.read("clusters"), pl.concat(other))

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import functools
 import shutil
 import tempfile
 import threading
@@ -357,24 +358,31 @@ class StoreSink:
         done = int(parts.manifest["windows_done"])
         new = {name: [f for f in parts.part_files(name) if self.through <= _window_of(f) < done]
                for name in LIVE_TABLES}
-        if sum(pq.ParquetFile(f).metadata.num_rows for files in new.values() for f in files) < LIVE_FLUSH_ROWS:
+        rows = {name: sum(pq.ParquetFile(f).metadata.num_rows for f in files) for name, files in new.items()}
+        if sum(rows.values()) < LIVE_FLUSH_ROWS:
             return
-        for name, files in new.items():
-            self._append(name, files)
+        self._append(new, rows)
         self.through = done
 
-    def _append(self, name: str, files: list[Path]) -> None:
-        """``files`` appended to ``name`` after its earlier ones (files without rows only
-        counted); a table whose layout changed is appended no more."""
-        if name in self.broken or not files:
-            return
-        rows = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
-        if rows and not self.store.append_parts(
-                name, lambda: prefetched(self._storable(pl.read_parquet(f), name) for f in files)):
-            self.broken.add(name)
-            return
-        self.live.setdefault(name, []).extend(files)
-        self.rows[name] = self.rows.get(name, 0) + rows
+    def _append(self, files: dict[str, list[Path]], rows: dict[str, int]) -> None:
+        """Each table's ``files`` (of ``rows`` rows) appended after its earlier ones, in one
+        transaction (files without rows only counted); a table whose layout changed is
+        appended no more, and the others go again without it."""
+        todo = [name for name in files if name not in self.broken and files[name]]
+        while True:
+            given = {name: functools.partial(self._read, name, files[name]) for name in todo if rows[name]}
+            broke = self.store.append_parts(given) if given else None
+            if broke is None:
+                break
+            self.broken.add(broke)
+            todo.remove(broke)
+        for name in todo:
+            self.live.setdefault(name, []).extend(files[name])
+            self.rows[name] = self.rows.get(name, 0) + rows[name]
+
+    def _read(self, name: str, files: list[Path]) -> Iterator[pl.DataFrame]:
+        """The storable frames of ``name``'s part ``files``, the next read while one is taken."""
+        return prefetched(self._storable(pl.read_parquet(f), name) for f in files)
 
     def __call__(self, name: str, frame: "pl.DataFrame | StreamedTable") -> None:
         store, tables = self.store, self.tables
@@ -415,7 +423,8 @@ class StoreSink:
         have = self.live.get(name)
         if not have or name in self.broken or list(files[:len(have)]) != have:
             return False
-        self._append(name, list(files[len(have):]))
+        rest = list(files[len(have):])
+        self._append({name: rest}, {name: sum(pq.ParquetFile(f).metadata.num_rows for f in rest)})
         return name not in self.broken and self.rows[name] > 0
 
     def _storable(self, frame: pl.DataFrame, name: str) -> pl.DataFrame:

@@ -205,6 +205,14 @@ class _Appending:
     lean: bool
 
 
+class _LayoutChanged(Exception):
+    """A part whose lean layout is not its table's (:meth:`RunStore.append_parts`)."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.name = name
+
+
 class RunStore:
     """One run's DuckDB database. Build with ``create``, ``update`` or ``open``."""
 
@@ -426,47 +434,66 @@ class RunStore:
         that one) the parts are appended to it in order, in one transaction: the same table as
         :meth:`write` of the whole. Otherwise the parts are concatenated and written whole."""
         self._appending.pop(name, None)
-        done = self._sized(lambda: self._add_parts(name, parts, None))
+        try:
+            done = self._sized(lambda: self._transacted(lambda: self._add_rows(name, parts, None) is not None))
+        except _LayoutChanged:
+            done = False
         if not done:
             frames = [f for f in parts() if f.width]
             if frames:
                 self.write(name, pl.concat(frames, how="diagonal_relaxed") if len(frames) > 1 else frames[0])
 
-    def append_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]]) -> bool:
-        """The frames ``parts()`` yields appended in one transaction to table ``name`` as the
-        earlier calls of this method left it (the first part of the first call creates it,
-        replacing any table of that name), so that a table written as a run goes is the table
-        :meth:`write_parts` makes of all its parts. False when a part's lean layout is not the
-        table's: that call is rolled back and the table holds the earlier calls' parts (write it
-        whole then). A write of ``name`` by any other method ends the appending."""
-        return self._sized(lambda: self._add_parts(name, parts, self._appending.get(name)))
+    def append_parts(self, tables: Mapping[str, Callable[[], Iterable[pl.DataFrame]]]) -> str | None:
+        """For each ``name``, the frames ``tables[name]()`` yields appended to table ``name`` as
+        the earlier calls of this method left it (the first part of the first call creates it,
+        replacing any table of that name): a table written as a run goes is then the table
+        :meth:`write_parts` makes of all its parts. One transaction for all the tables. The name
+        of the first table one of whose parts has a lean layout other than the table's: the
+        whole call is then rolled back (append the others again, and write that one whole). A
+        write of ``name`` by any other method ends its appending."""
+        made: dict[str, _Appending] = {}
 
-    def _add_parts(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]], table: _Appending | None) -> bool:
-        """Every part with rows added by :meth:`_add_part` in one transaction; False (rolled back)
-        when a part's layout differs, or when there is no row and no table yet."""
+        def add() -> bool:
+            made.clear()
+            for name, parts in tables.items():
+                table = self._add_rows(name, parts, self._appending.get(name))
+                if table is not None:
+                    made[name] = table
+            return True
+        try:
+            self._sized(lambda: self._transacted(add))
+        except _LayoutChanged as exc:
+            return exc.name
+        self._appending.update(made)
+        return None
+
+    def _transacted(self, write: Callable[[], bool]) -> bool:
+        """``write()`` in one transaction, committed when it returns True, else rolled back."""
         self._con.begin()
         try:
-            for part in parts():
-                if part.width == 0 or part.height == 0:
-                    continue
-                table = self._add_part(name, part, table)
-                if table is None:
-                    self._con.rollback()
-                    return False
+            keep = write()
         except BaseException:
             self._con.rollback()
             raise
-        if table is None:           # no rows: written whole (a schema-only frame, or nothing)
+        if keep:
+            self._commit()
+        else:
             self._con.rollback()
-            return False
-        self._commit()
-        self._appending[name] = table
-        return True
+        return keep
 
-    def _add_part(self, name: str, part: pl.DataFrame, table: _Appending | None) -> _Appending | None:
+    def _add_rows(self, name: str, parts: Callable[[], Iterable[pl.DataFrame]],
+                  table: _Appending | None) -> _Appending | None:
+        """Inside the open transaction: every part with rows added by :meth:`_add_part`; the
+        table (None: no row and no table yet)."""
+        for part in parts():
+            if part.width and part.height:
+                table = self._add_part(name, part, table)
+        return table
+
+    def _add_part(self, name: str, part: pl.DataFrame, table: _Appending | None) -> _Appending:
         """Inside the open transaction: ``part`` appended to ``table``, or (None) the table
-        created from it in place of any of that name, with its lean layout and view; None when
-        the part's layout is not the table's."""
+        created from it in place of any of that name, with its lean layout and view;
+        :class:`_LayoutChanged` when the part's layout is not the table's."""
         frame = compact_covariances(part)
         if table is None:
             view = self._writable(name, frame)
@@ -485,7 +512,7 @@ class RunStore:
         _check_frame(part)
         lp = lean_layout(name, frame, self._con, self._reports_for(name)) if table.lean else None
         if (layout_signature(lp) if table.lean else frame.schema) != table.sign:
-            return None
+            raise _LayoutChanged(name)
         self._insert(table.phys, lp.phys if table.lean else frame, create=False)
         if table.shared is not None:
             self._insert(table.shared, lp.shared, create=False)
