@@ -1,5 +1,6 @@
-"""When a run's tables are written into its database: the ones known before the end while the
-windows run, so that the end of the run has little left to write."""
+"""When a run writes into its database: what is known before the end (the truth, the windows'
+streamed tables, the inputs' fingerprints) while the windows run, so that the end of the run has
+little left to write."""
 
 from __future__ import annotations
 
@@ -153,3 +154,21 @@ def test_a_table_whose_layout_changes_between_flushes_is_written_whole(tmp_path,
             sink(name, tables.for_sink(parts, name, pl.DataFrame()))
         assert_frame_equal(store.read("conflicts"), pl.concat(frames, how="diagonal_relaxed"))
         assert_frame_equal(store.read("clusters"), pl.concat(other))
+
+
+def test_a_lazy_input_is_fingerprinted_as_the_table_in_memory_would_be(tmp_path):
+    """The run record's fingerprint of an input read lazily is hashed a batch at a time, beside
+    the windows: the same as the whole table's hashed in memory, rows in their order. Fails if
+    the batches were hashed in another order or the rows hashed otherwise."""
+    import hashlib
+
+    import numpy as np
+
+    from tertiary.pipeline import runner
+    n = 300_000
+    frame = pl.DataFrame({"a": np.arange(n), "b": np.random.default_rng(1).normal(size=n),
+                          "c": ["x", "y", "z"] * (n // 3)})
+    frame.write_parquet(tmp_path / "t.parquet", row_group_size=20_000)
+    whole = frame.select(pl.struct(pl.all()).hash(seed=0)).to_series().to_numpy()
+    assert runner._fingerprint_any(pl.scan_parquet(tmp_path / "t.parquet")) == \
+        hashlib.sha256(whole.tobytes()).hexdigest()[:16]

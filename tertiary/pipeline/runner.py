@@ -8,6 +8,7 @@ import hashlib
 import platform
 import shutil
 import time
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
@@ -30,7 +31,7 @@ from tertiary.runtime.windows import (AUTO_WINDOW, DEFAULT_WINDOW_S, STREAMED, M
 from tertiary.simulate.config import scenario_toml
 from tertiary.store.run_store import TABLES_DIR, RunStore, record_run
 
-__all__ = ["StageError", "fingerprint", "process", "run", "scenario_text", "versions"]
+__all__ = ["StageError", "fingerprint", "fingerprints", "process", "run", "scenario_text", "versions"]
 
 
 def fingerprint(frame: pl.DataFrame) -> str:
@@ -176,7 +177,9 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     else:
         parts = PartStore.start(out, header, trim)
         shutil.rmtree(out / TABLES_DIR, ignore_errors=True)     # a replaced run's registered tables
-    with RunStore.create(out) as store:
+    with RunStore.create(out) as store, ThreadPoolExecutor(1, thread_name_prefix="fingerprints") as pool:
+        # the inputs hashed beside the windows: the end only records them
+        prints = pool.submit(fingerprints, ds)
         sink = store_sink(store, notes, tables)
         try:
             res = process(ds, cfg, say, sink=sink, notes=notes, window_s=window_s, parts=parts,
@@ -193,7 +196,7 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
             "config": config_dict(cfg),
             "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "versions": versions(),
-            "fingerprints": {k: _fingerprint_any(getattr(ds, k)) for k in ("radars", "reports", "truth")},
+            "fingerprints": prints.result(),
             "window_s": window_s,
             "tables": tables,
         }
@@ -230,11 +233,16 @@ def _input_identity(ds: Dataset, label: str) -> str:
     return f"{label or ds.scenario.name}|{span}"
 
 
+def fingerprints(ds: Dataset) -> dict[str, str]:
+    """The dataset's input tables' fingerprints (:func:`fingerprint`), as the run record keeps them."""
+    return {k: _fingerprint_any(getattr(ds, k)) for k in ("radars", "reports", "truth")}
+
+
 def _fingerprint_any(frame: Any) -> str:
     """:func:`fingerprint` of a table in any form the dataset holds it (lazy: without holding it)."""
     try:
-        if isinstance(frame, pl.LazyFrame):   # hashed without holding the table
-            h = frame.select(pl.struct(pl.all()).hash(seed=0)).collect().to_series()
+        if isinstance(frame, pl.LazyFrame):   # hashed a batch at a time, never held whole
+            h = frame.select(pl.struct(pl.all()).hash(seed=0)).collect(engine="streaming").to_series()
             return hashlib.sha256(h.to_numpy().tobytes()).hexdigest()[:16]
         return fingerprint(contract.as_frame(frame, "table"))
     except Exception:  # an unhashable column type: the record says so instead of failing
