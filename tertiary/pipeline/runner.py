@@ -142,7 +142,9 @@ def run(ds: Dataset, out_dir: str | Path, cfg: PipelineConfig | None = None, *,
     Each window's streamed tables are written to ``out_dir/parts`` as it completes, with the
     carried state and a manifest (:mod:`tertiary.runtime.windows`); ``resume`` continues a killed run from
     its last complete window (same configuration, window and dataset, else :class:`OptionError`).
-    The database is built at the end and the manifest marked complete; ``tables="parquet"``
+    The database is built as the run goes (the truth and the stored windows' tables copied in
+    beside the windows, :class:`~tertiary.pipeline.tables.StoreSink`) and put in place at the end,
+    when the manifest is marked complete; ``tables="parquet"``
     keeps the streamed tables' window parts as Parquet in ``out_dir/tables`` with views over
     them in the database instead of copying them in (:meth:`RunStore.register_parquet`). If a
     stage fails (including "no valid report left"), the database still holds every completed
