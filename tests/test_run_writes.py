@@ -4,8 +4,6 @@ little left to write."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
@@ -13,16 +11,7 @@ from polars.testing import assert_frame_equal
 from tertiary import pipeline
 from tertiary.pipeline import streaming, tables
 from tertiary.runtime.windows import Window
-from tertiary.simulate import load_scenario, simulate
 from tertiary.store.run_store import RunStore
-
-
-@pytest.fixture(scope="module")
-def terminal():
-    cfg = load_scenario("terminal-area")
-    cfg = dataclasses.replace(cfg, duration_s=300.0,
-                              traffic=dataclasses.replace(cfg.traffic, aircraft=20, conflict_pairs=2))
-    return simulate(cfg)
 
 
 def _windows_started(monkeypatch) -> list[int]:
@@ -34,7 +23,7 @@ def _windows_started(monkeypatch) -> list[int]:
     return started
 
 
-def test_the_truth_is_handed_to_the_writer_before_the_first_window(terminal, tmp_path, monkeypatch):
+def test_the_truth_is_handed_to_the_writer_before_the_first_window(small_terminal, tmp_path, monkeypatch):
     """An on-disk run validates its truth before the windows: the ``truth`` table is handed to
     the run's writer then, once, and written while the windows run; the database's truth is the
     in-memory run's. Fails if the truth waits for the end, or is written twice."""
@@ -42,11 +31,11 @@ def test_the_truth_is_handed_to_the_writer_before_the_first_window(terminal, tmp
     handed: list[tuple[str, int]] = []          # (table, windows begun when it was handed over)
     monkeypatch.setattr(tables.SinkThread, "__call__", lambda self, name, frame, f=tables.SinkThread.__call__:
                         handed.append((name, len(started))) or f(self, name, frame))
-    pipeline.run(terminal, tmp_path / "run", window_s=60.0)
+    pipeline.run(small_terminal, tmp_path / "run", window_s=60.0)
     truth = [n for name, n in handed if name == "truth"]
     assert truth == [0] and len(started) > 3
     assert {name for name, n in handed if n == len(started)} >= {"reports", "fused", "tracks"}
-    mem = pipeline.process(terminal, window_s=60.0)
+    mem = pipeline.process(small_terminal, window_s=60.0)
     with RunStore.open(tmp_path / "run") as st:
         assert_frame_equal(st.read("truth"), mem.ingested.truth)
 
@@ -72,17 +61,17 @@ def _same_databases(a: dict[str, pl.DataFrame], b: dict[str, pl.DataFrame]) -> N
 
 
 @pytest.fixture(scope="module")
-def end_only(terminal, tmp_path_factory):
+def end_only(small_terminal, tmp_path_factory):
     """The database of a run whose streamed tables are all written at its end."""
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(tables, "LIVE_FLUSH_ROWS", 10**12)
         out = tmp_path_factory.mktemp("end_only") / "run"
-        pipeline.run(terminal, out, window_s=60.0)
+        pipeline.run(small_terminal, out, window_s=60.0)
     return _database(out)
 
 
 def test_the_windows_parts_are_appended_as_the_run_goes_and_the_database_is_the_same(
-        terminal, end_only, tmp_path, monkeypatch):
+        small_terminal, end_only, tmp_path, monkeypatch):
     """With a flush every window, each streamed table is appended to the database while the
     windows run and the end appends only the last windows' parts: no table with rows is written
     whole.
@@ -97,7 +86,7 @@ def test_the_windows_parts_are_appended_as_the_run_goes_and_the_database_is_the_
                         appended.extend((name, len(started)) for name in given) or f(self, given))
     monkeypatch.setattr(RunStore, "write_parts", lambda self, name, parts, f=RunStore.write_parts:
                         whole.append(name) or f(self, name, parts))
-    pipeline.run(terminal, tmp_path / "run", window_s=60.0)
+    pipeline.run(small_terminal, tmp_path / "run", window_s=60.0)
     n = len(started)
     assert n > 4
     for name in tables.LIVE_TABLES:
@@ -107,7 +96,7 @@ def test_the_windows_parts_are_appended_as_the_run_goes_and_the_database_is_the_
     _same_databases(_database(tmp_path / "run"), end_only)
 
 
-def test_a_resumed_run_appends_the_windows_stored_before_it(terminal, end_only, tmp_path, monkeypatch):
+def test_a_resumed_run_appends_the_windows_stored_before_it(small_terminal, end_only, tmp_path, monkeypatch):
     """A run that fails in its fourth window and is resumed: the resumed run's database is new,
     so its first catch-up appends the windows the failed run stored, and no table with rows is
     written whole at the end; the tables are those of a run that never failed. Fails if the
@@ -121,11 +110,11 @@ def test_a_resumed_run_appends_the_windows_stored_before_it(terminal, end_only, 
     with monkeypatch.context() as mp:
         mp.setattr(streaming, "process_step", failing)
         with pytest.raises(Exception, match="killed"):
-            pipeline.run(terminal, tmp_path / "run", window_s=60.0)
+            pipeline.run(small_terminal, tmp_path / "run", window_s=60.0)
     whole: list[str] = []
     monkeypatch.setattr(RunStore, "write_parts", lambda self, name, parts, f=RunStore.write_parts:
                         whole.append(name) or f(self, name, parts))
-    pipeline.run(terminal, tmp_path / "run", window_s=60.0, resume=True)
+    pipeline.run(small_terminal, tmp_path / "run", window_s=60.0, resume=True)
     assert not {name for name in whole if name in tables.LIVE_TABLES and end_only[name].height}
     _same_databases(_database(tmp_path / "run"), end_only)
 
