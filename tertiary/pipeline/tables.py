@@ -29,7 +29,8 @@ from tertiary.runtime.windows import concat_parts
 from tertiary.store.run_store import TABLES_DIR, RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "StoreSink", "TABLE_MODES",
-           "LIVE_TABLES", "LIVE_FLUSH_ROWS", "check_tables", "store_sink", "for_sink", "confirmed_targets", "read_table", "table_columns", "whole_table", "target_counts",
+           "LIVE_TABLES", "LIVE_FLUSH_ROWS", "check_tables", "store_sink", "for_sink", "confirmed_targets",
+           "read_table", "table_columns", "whole_table", "target_counts",
            "make_storable", "storable_as_is", "EVAL_BLOCK_ROWS", "LEAN_COLUMNS", "lean_columns", "REPORT_COLUMNS",
            "ALIGNED_COLUMNS", "ASSOCIATION_COLUMNS", "ALERT_TRUTH", "BOUND_TRUTH", "NOT_SCORED", "PartTrim",
            "part_trim"]
@@ -314,8 +315,8 @@ def _slim_copy(src: Path, drop: Collection[str], out: Path) -> Path:
 #: (:meth:`StoreSink.catch_up`), in the order they are appended: ``aligned``'s lean layout joins
 #: the ``reports`` rows already there
 LIVE_TABLES = ("reports", "aligned", "associations", "fused", "clusters", "tracks", "conflicts")
-#: rows of the stored windows' parts of :data:`LIVE_TABLES` gathered before they are appended:
-#: a few windows at a time, so that the database's row groups are full and its transactions few
+#: rows of the stored windows' parts of :data:`LIVE_TABLES` gathered before they are appended: a
+#: few windows at a time, so that the transactions are few and the row groups they leave mostly full
 LIVE_FLUSH_ROWS = 1_000_000
 
 

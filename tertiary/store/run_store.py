@@ -507,7 +507,8 @@ class RunStore:
             if shared is not None:
                 self._insert(shared, lay.shared, create=True)
             if lean:
-                self._con.execute(f"CREATE VIEW {view} AS " + view_sql(lay, column_types(self._con, frame), phys, shared))
+                self._con.execute(f"CREATE VIEW {view} AS "
+                                  + view_sql(lay, column_types(self._con, frame), phys, shared))
             return _Appending(phys, shared, layout_signature(lay) if lean else frame.schema, lean)
         _check_frame(part)
         lp = lean_layout(name, frame, self._con, self._reports_for(name)) if table.lean else None
