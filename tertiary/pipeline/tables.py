@@ -446,8 +446,9 @@ def _window_of(part: Path) -> int:
 
 class SinkThread:
     """A run's tables handed to ``sink`` on a thread of their own, in the order they come, while
-    the stages go on: the truth while the windows run, the rest while the whole-run stages do
-    (speed: copying the tables into the run database would otherwise hold up the stages). The
+    the stages go on: the truth and the stored windows' parts (:meth:`catch_up`) while the
+    windows run, the rest while the whole-run stages do (speed: copying the tables into the run
+    database would otherwise hold up the stages). The
     streamed tables are read from their parts on disk and the frames given are never changed
     after, so the stages and the writes share nothing but the disk. A write's failure stops
     the later writes and is raised, as a failure of ``write_tables``, at the next table given
