@@ -37,7 +37,8 @@ def _stepped(matched: pl.DataFrame, observed: pl.DataFrame, cfg: AccuracyConfig,
 def _finished(state: SeedState, walk: Walk, scored: pl.DataFrame, method: str, cfg: AccuracyConfig
               ) -> tuple[pl.DataFrame, ...]:
     lags = statistic_lags(scored.lazy(), scored.height)
-    metrics, by_epoch = seed_tables(state, walk, method, "tracker", cfg, lags)
+    metrics, by_epoch = seed_tables(state, walk, "tracker", cfg, lags)
+    metrics, by_epoch = (t.filter(pl.col("method") == method) for t in (metrics, by_epoch))
     return metrics, by_epoch, scored_samples(scored.filter(pl.col("method") == method))
 
 

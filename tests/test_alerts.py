@@ -305,12 +305,17 @@ def test_metrics_names_rates_and_methods(truth):
     assert _metrics(none, "c")["missed_los"] == 1
 
 
-def test_tables_one_picture_at_a_time_equal_one_call(truth):
-    """The pipeline scores alerts a picture at a time (memory: not every
-    picture's joins at once): the metrics, alerts and LoS tables equal one call's, with an
+@pytest.mark.parametrize("budget", [0, 2_000, 10**9], ids=["picture-each", "some-together", "one-pass"])
+def test_tables_one_picture_at_a_time_equal_one_call(truth, budget, monkeypatch):
+    """The pipeline scores alerts a few pictures at a time, up to a row budget (memory: not
+    every picture's joins at once): the metrics, alerts and LoS tables equal one call's, with an
     id map per picture or shared, and a listed picture without alerts. Fails if a picture's
-    rows are scored against another's id map or the union is not in one call's order."""
-    from safety.alerts import stca_tables, stca_tables_by_picture
+    rows are scored against another's id map, a pass scores a picture not its own, or the
+    union is not in one call's order."""
+    from safety.alerts import episodes, stca_tables, stca_tables_by_picture
+    monkeypatch.setattr(episodes, "PASS_ROWS", budget)
+    passes = []
+    monkeypatch.setattr(episodes, "stca_tables", lambda *a, f=episodes.stca_tables, **k: passes.append(a[5]) or f(*a, **k))
     alerts = pl.concat([_alerts({(11, 12): [100, 105], (15, 16): [150], (13, 14): [150]}, method="b"),
                         _alerts({(15, 16): [150], (11, 12): [104]}, method="a"),
                         _alerts({(11, 12): [150], (13, 14): [120, 125]}, method="d"),
@@ -327,6 +332,9 @@ def test_tables_one_picture_at_a_time_equal_one_call(truth):
             assert want[1].height == 9 and want[0].height > 10 and want[1]["run"].n_unique() == 2
             for a, b in zip(got, want):
                 assert a.equals(b)
+    # 3 + 4 + 4 + 4 pictures scored: one pass each, two to a pass (a picture's id map is 976
+    # rows), or one pass per call
+    assert len(passes) == {0: 15, 2_000: 8, 10**9: 4}[budget]
     d = stca_tables(alerts, per, truth, CFG)[1].filter(pl.col("method") == "d")
     assert d["truth_a"].to_list() != stca_tables(alerts, shared, truth, CFG)[1].filter(
         pl.col("method") == "d")["truth_a"].to_list()

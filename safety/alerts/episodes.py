@@ -413,15 +413,39 @@ def stca_tables(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFra
     return metrics_long(per_picture(alerts, los, grid)), alerts, los
 
 
+#: the conflict and id-map rows one pass of :func:`stca_tables_by_picture` scores together at most
+PASS_ROWS = 1_000_000
+
+
+def _passes(names: list[str], conflicts: pl.DataFrame, id_map: pl.DataFrame, budget: int) -> list[list[str]]:
+    """``names`` in order, cut into runs whose conflict and id-map rows sum to at most ``budget``
+    (a picture above it alone)."""
+    def rows(frame: pl.DataFrame) -> dict[str, int]:
+        return dict(frame.group_by("method").len().iter_rows())
+    own, shared = rows(conflicts), (id_map.height if "method" not in id_map.columns else 0)
+    ids = rows(id_map) if "method" in id_map.columns else {}
+    out: list[list[str]] = []
+    held = budget + 1
+    for name in names:
+        n = own.get(name, 0) + ids.get(name, 0) + shared
+        if held + n > budget:
+            out.append([])
+            held = 0
+        out[-1].append(name)
+        held += n
+    return out
+
+
 def stca_tables_by_picture(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame,
                            cfg: AlertConfig = AlertConfig(), id_col: str = "id", methods: list[str] | None = None,
                            frame: geo.LocalFrame | None = None,
                            intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None
                            ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """:func:`stca_tables` one picture at a time, the same three tables: a picture's alerts,
+    """:func:`stca_tables` a few pictures at a time, the same three tables: a picture's alerts,
     LoS episodes and metrics depend on its own conflicts and id map alone (``id_map`` without a
     ``method`` column serves every picture), and the union is sorted as one call sorts it. A
-    pass's joins hold one picture's rows (memory)."""
+    pass's joins hold at most :data:`PASS_ROWS` rows, or one picture's (memory); small pictures
+    share a pass (a pass's fixed cost is paid once for them)."""
     # the pictures one call scores (:func:`picture_grid`): an id map's own pictures when it names them
     if "method" in id_map.columns:
         names = sorted(set(id_map["method"].unique().to_list()) | set(conflicts["method"].unique().to_list()))
@@ -432,10 +456,10 @@ def stca_tables_by_picture(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth:
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
     parts = []
-    for name in names:
-        ids = id_map.filter(pl.col("method") == name) if "method" in id_map.columns else id_map
-        parts.append(stca_tables(conflicts.filter(pl.col("method") == name), ids, truth, cfg, id_col, [name],
-                                 frame, intervals))
+    for batch in _passes(names, conflicts, id_map, PASS_ROWS):
+        mine = pl.col("method").is_in(batch)
+        ids = id_map.filter(mine) if "method" in id_map.columns else id_map
+        parts.append(stca_tables(conflicts.filter(mine), ids, truth, cfg, id_col, batch, frame, intervals))
     metrics, alerts, los = (pl.concat([p[k] for p in parts], how="vertical") for k in range(3))
     # each part is sorted as one call sorts its tables: the union sorted again by the same keys
     return (metrics.sort("method", maintain_order=True),

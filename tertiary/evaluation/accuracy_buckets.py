@@ -253,9 +253,10 @@ class SeedSums:
         n_runs = {(m, s): n for m, s, n in self.tables[f"{prefix}:runs"].group_by("method", "eval_segment")
                   .agg(pl.col("run").n_unique()).iter_rows()}
         out = []
+        of, none = epochs.partition_by("method", "eval_segment", as_dict=True), epochs.clear()
         for method, seg in sorted(k[1:] for k in self.lags if k[0] == prefix):
             lags = self.lags[(prefix, method, seg)]
-            e = epochs.filter((pl.col("method") == method) & (pl.col("eval_segment") == seg))
+            e = of.get((method, seg), none)
             out += consistency_dicts(stage, method, seg, prefix, dof, band, lags.total / lags.n,
                                       (e["__sum"] / e["__n"]).to_numpy(), e["__n"].to_numpy(), lags.n, lags.tau(),
                                       n_runs[(method, seg)])

@@ -229,24 +229,25 @@ def statistic_lags(scored: pl.LazyFrame, rows: int, carried: dict[tuple[str, str
     return sums.lags
 
 
-def seed_tables(state: SeedState, walk: Walk, method: str, stage: str, cfg: AccuracyConfig,
+def seed_tables(state: SeedState, walk: Walk, stage: str, cfg: AccuracyConfig,
                 lags: dict[tuple[str, str, str], Lags | WholeSeries]) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """(the seed metrics, the per-epoch accuracy) of picture ``method`` from the state at the end
-    of the run, the run's walk and the picture's consistency ``lags`` (:func:`statistic_lags`)."""
-    mine = pl.col("method") == method
-    c = state.counts.filter(mine)
-    if not c.height or not c["rows"][0]:
+    """(the seed metrics, the per-epoch accuracy) of every picture with scored rows, from the
+    state at the end of the run, the run's walk and the pictures' consistency ``lags``
+    (:func:`statistic_lags`). One set of queries over every picture: the end of a run pays
+    a query's overhead once, not once per picture; a picture's rows are those of its own."""
+    c = state.counts.filter(pl.col("rows") > 0)
+    if not c.height:
         return empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA)
-    c = c.row(0, named=True)
-    t = state.tracks.filter(mine)
-    counts = pl.DataFrame({"method": [method], "spurious_tracks": [float((~t["matched"]).sum())],
-                           "tracks": [float(t.height)], "swaps": [float(c["swaps"])]})
-    some = [method] if walk.total else []
-    walked = pl.DataFrame({"method": some, "__walk": [walk.total] * len(some), "__covered": [c["covered"]] * len(some),
-                           "breaks": [float(c["breaks"])] * len(some)},
-                          schema={"method": pl.String, "__walk": pl.UInt32, "__covered": pl.UInt32,
-                                  "breaks": pl.Float64})
-    tables = {k: v.filter(mine) for k, v in state.sums.tables.items()}
-    sums = SeedSums(c["rows"], {**tables, "tracks": counts, "track_runs": t.select("method", "run").unique()},
-                    {k: v for k, v in lags.items() if k[1] == method})
+    t = state.tracks.join(c.select("method"), on="method", how="semi")
+    counts = (t.group_by("method").agg((~pl.col("matched")).sum().cast(pl.Float64).alias("spurious_tracks"),
+                                       pl.len().cast(pl.Float64).alias("tracks"))
+              .join(c.select("method", pl.col("swaps").cast(pl.Float64)), on="method", how="right")
+              .select("method", pl.col("spurious_tracks", "tracks").fill_null(0.0), "swaps"))
+    walked = (c.filter(pl.lit(walk.total > 0))
+              .select("method", pl.lit(walk.total, pl.UInt32).alias("__walk"),
+                      pl.col("covered").cast(pl.UInt32).alias("__covered"), pl.col("breaks").cast(pl.Float64)))
+    names = set(c["method"].to_list())
+    tables = {k: v.join(c.select("method"), on="method", how="semi") for k, v in state.sums.tables.items()}
+    sums = SeedSums(int(c["rows"].sum()), {**tables, "tracks": counts, "track_runs": t.select("method", "run").unique()},
+                    {k: v for k, v in lags.items() if k[1] in names})
     return sums.tables_of(stage, cfg, coverage_table(walked))

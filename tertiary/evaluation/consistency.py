@@ -75,13 +75,14 @@ def chi2_band(n, dof: int, band: float = 0.95):
     χ²_{(1∓band)/2}(dof·n)/n. ``n`` may be an array (also non-integer: an effective sample
     size); n ≤ 0 gives NaN. Scalars in, a (lo, hi) tuple of floats out."""
     arr = np.asarray(n, dtype=float)
+    # the per-epoch counts repeat: the quantile (an iterative inverse) is found once per count
+    safe, where = np.unique(np.where(arr > 0, arr, np.nan), return_inverse=True)
     with np.errstate(all="ignore"):
-        safe = np.where(arr > 0, arr, np.nan)
         lo = chi2_ppf((1 - band) / 2, dof * safe) / safe
         hi = chi2_ppf((1 + band) / 2, dof * safe) / safe
     if arr.ndim == 0:
-        return float(lo), float(hi)
-    return lo, hi
+        return float(lo[0]), float(hi[0])
+    return lo[where].reshape(arr.shape), hi[where].reshape(arr.shape)
 
 
 #: the lags of :func:`integrated_autocorrelation`'s sum: 0 … MAX_LAG − 1

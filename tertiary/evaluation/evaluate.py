@@ -327,13 +327,20 @@ def _match_blocks(blocks: Iterable[pl.DataFrame], reference: Reference, cfg: Eva
     return _concat(matched), _concat(expected), mt_rows
 
 
-def scan_spilled(files: list[Path]) -> pl.LazyFrame:
+def scan_spilled(files: list[Path], schemas: dict[Path, pl.Schema] | None = None) -> pl.LazyFrame:
     """The spilled blocks ``files`` as one scan: of the files together when they share a schema
     (a slice of it then reads only its own files: the metrics' buckets are filed a slice at a
     time), else of each, relaxed (a block whose column is all null may have stored it with
-    another type; a slice of that concatenation reads every file before it)."""
-    first = pl.read_parquet_schema(files[0])
-    if all(pl.read_parquet_schema(f) == first for f in files[1:]):
+    another type; a slice of that concatenation reads every file before it). ``schemas``: the
+    files' schemas already read, and where those read here are kept (files scanned again)."""
+    known = {} if schemas is None else schemas
+
+    def schema(f: Path) -> pl.Schema:
+        if f not in known:
+            known[f] = pl.read_parquet_schema(f)
+        return known[f]
+    first = schema(files[0])
+    if all(schema(f) == first for f in files[1:]):
         return pl.scan_parquet(files)
     return pl.concat([pl.scan_parquet(f) for f in files], how="vertical_relaxed")
 

@@ -15,7 +15,7 @@ import polars as pl
 
 from safety import alerts as safety_alerts
 from tertiary.contract import TIME
-from tertiary.evaluation.accuracy import AccuracyConfig, scored_samples
+from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA, AccuracyConfig, empty_metrics, scored_samples
 from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags
 from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
@@ -242,6 +242,9 @@ class WindowedPictures:
         self.parts, self.state, self.surveillance, self.samples = parts, state, surveillance, samples
         self.lags = lags if lags is not None and lags.complete else None
         self._finished: pl.DataFrame | None = None
+        self._seeded: dict[AccuracyConfig, tuple[dict, dict]] = {}
+        # the pictures of a group share its part files: each file's schema is read once
+        self._schemas: dict[Path, pl.Schema] = {}
 
     def __call__(self, name: str) -> Matched | None:
         """Picture ``name``: scans of its rows of the matched and expected parts of the groups it
@@ -260,8 +263,8 @@ class WindowedPictures:
         stepped = getattr(state, "metrics", None)
         surveyed = (functools.partial(self._surveyed, name) if self.surveillance and stepped is not None
                     and stepped.tracks is not None else None)
-        return Matched(scan_spilled(files).filter(mine),
-                       scan_spilled(expected).filter(mine).drop("method") if expected else None,
+        return Matched(scan_spilled(files, self._schemas).filter(mine),
+                       scan_spilled(expected, self._schemas).filter(mine).drop("method") if expected else None,
                        multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed,
                        surveyed)
 
@@ -294,11 +297,19 @@ class WindowedPictures:
 
     def _seed_tables(self, name: str, stage: str, cfg: AccuracyConfig
                      ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-        """Picture ``name``'s seed metrics, per-epoch accuracy and scored samples finished."""
+        """Picture ``name``'s seed metrics (labelled ``stage``), per-epoch accuracy and scored
+        samples finished: every picture's at once, the first time one is asked for."""
         lags, samples = self.scored
-        metrics, by_epoch = seed_tables(self.state.seed, self.state.walk, name, stage, cfg, lags)
+        if cfg not in self._seeded:
+            metrics, by_epoch = seed_tables(self.state.seed, self.state.walk, stage, cfg, lags)
+            self._seeded[cfg] = (metrics.partition_by("method", as_dict=True),
+                                 by_epoch.partition_by("method", as_dict=True))
+        metrics, by_epoch = self._seeded[cfg]
         mine = samples.get(name)
-        return metrics, by_epoch, mine if mine is not None else scored_samples(pl.DataFrame(schema=SAMPLE_SCHEMA))
+        seeded = metrics.get((name,))
+        return (empty_metrics() if seeded is None else seeded.with_columns(pl.lit(stage).alias("stage")),
+                by_epoch.get((name,), pl.DataFrame(schema=BY_EPOCH_SCHEMA)),
+                mine if mine is not None else scored_samples(pl.DataFrame(schema=SAMPLE_SCHEMA)))
 
 
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
