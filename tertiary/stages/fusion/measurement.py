@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.stages.fusion.base import B, F, Ix, Layout, per_row, segsum, sym
-from tertiary.stages.fusion.centralized import converted_plots
+from tertiary.stages.fusion.centralized import converted_plots, downlinked_velocity, float_column
 from tertiary.stages.fusion.registry import REGISTRY
 
 __all__ = ["EHS_PLOT_COLUMNS", "PLOT_COLUMNS", "downlinked_velocity", "ehs_measurement", "measured_plots",
@@ -49,38 +49,6 @@ def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loca
         *(pl.Series(c, z[:, i]) for i, c in enumerate(PLOT_COLUMNS[:3])),
         pl.Series("plot_cov", np.where(ok[:, None], r.reshape(-1, 9), np.nan), dtype=pl.Array(pl.Float64, 9)),
         *(pl.Series(c, v[:, i]) for i, c in enumerate(EHS_PLOT_COLUMNS)))
-
-
-def _column(frame: pl.DataFrame, name: str) -> F:
-    if name not in frame.columns:
-        return np.full(frame.height, np.nan)
-    return frame[name].cast(pl.Float64).fill_null(np.nan).to_numpy()
-
-
-def downlinked_velocity(reports: pl.DataFrame, z: F, origin: geo.LocalFrame) -> F:
-    """(n, 4): each report's downlinked ground velocity (Mode S BDS 5,0 ground speed
-    ``ehs_gs_mps`` along the true track ``ehs_track_deg``) as system-frame east and north
-    components, its track-angle rate ``ehs_track_rate_dps`` as ω (rad/s, counter-clockwise:
-    the register's rate is clockwise positive) and its vertical rate ``ehs_vrate_mps`` (BDS 6,0,
-    along the local vertical: the rate of the altitude channel). The track is over true north at the aircraft
-    (the plot ``z``), so the velocity is turned into the system frame's axes there
-    (:func:`tertiary.core.geo.local_vector_to_frame`: the meridian convergence, several degrees
-    at a national system's edge), with the vertical rate along the local vertical where the
-    report has one: away from the origin the local vertical leans over the system frame's
-    (the great-circle angle to the origin), so a climb at 20 m/s 300 km out moves the aircraft
-    1 m/s horizontally in the system frame. NaN where the report or its plot has none."""
-    gs, track = _column(reports, "ehs_gs_mps"), np.radians(_column(reports, "ehs_track_deg"))
-    out = np.full((len(gs), 4), np.nan)
-    out[:, 2] = -np.radians(_column(reports, "ehs_track_rate_dps"))
-    out[:, 3] = _column(reports, "ehs_vrate_mps")
-    ok = np.isfinite(gs) & np.isfinite(track) & np.isfinite(z).all(axis=1)
-    if ok.any():
-        lat, lon, _ = origin.to_geodetic(z[ok, 0], z[ok, 1], z[ok, 2])
-        up = np.nan_to_num(out[ok, 3])         # no vertical rate: the horizontal velocity alone
-        e, n, _ = geo.local_vector_to_frame(gs[ok] * np.sin(track[ok]), gs[ok] * np.cos(track[ok]), up,
-                                            lat, lon, origin)
-        out[ok, 0], out[ok, 1] = e, n
-    return out
 
 
 def _solve3(r: F) -> F:
@@ -140,7 +108,7 @@ def _fresh_plots(rows: pl.DataFrame, idx: Ix, plots: pl.DataFrame | None) -> tup
     else:
         return None
     zp = sub.select(PLOT_COLUMNS[:3]).cast(pl.Float64).fill_null(np.nan).to_numpy()
-    ehs = np.column_stack([_column(sub, c) for c in EHS_PLOT_COLUMNS])
+    ehs = np.column_stack([float_column(sub, c) for c in EHS_PLOT_COLUMNS])
     return zp, np.asarray(sub["plot_cov"].to_numpy(), float).reshape(len(idx), 3, 3), ehs
 
 

@@ -17,8 +17,8 @@ from scipy.sparse.csgraph import connected_components
 from tertiary.contract import TIME, TURN_RATE_COLUMN
 from tertiary.stages.tracking.config import TrackerConfig
 
-__all__ = ["Plots", "PlotIndex", "altitude_cost", "altitude_ok", "likelihood_cost", "mode_s_ident", "tracking_pairs",
-           "vertical_ok", "assign"]
+__all__ = ["Plots", "PlotIndex", "altitude_cost", "altitude_ok", "downlink_covariance", "likelihood_cost",
+           "mode_s_ident", "tracking_pairs", "vertical_ok", "assign"]
 
 _RUN_SEP = 1.0e7                      # metres between runs in the plot sort key (never within a gate)
 _DENSE_MAX = 250_000                  # largest dense block solved at once (else per component)
@@ -193,13 +193,23 @@ def downlinked_vertical_rate(f: pl.DataFrame) -> NDArray:
 
 def velocity_covariance(v: NDArray, omega: NDArray, cfg: TrackerConfig) -> NDArray:
     """(n, 2, 2) covariance of downlinked ground velocities ``v`` (n, 2) with turn rates ``omega``
+    (n,) rad/s (NaN: none, counted as straight): :func:`downlink_covariance` with the
+    :class:`TrackerConfig` ``velocity_*`` noise."""
+    return downlink_covariance(v, omega, cfg.velocity_speed_sigma_mps, cfg.velocity_track_sigma_deg,
+                               cfg.velocity_refresh_s)
+
+
+def downlink_covariance(v: NDArray, omega: NDArray, speed_sigma_mps: float, track_sigma_deg: float,
+                        refresh_s: float) -> NDArray:
+    """(n, 2, 2) covariance of downlinked ground velocities ``v`` (n, 2) with turn rates ``omega``
     (n,) rad/s (NaN: none, counted as straight): σ_s² along the track, (s σ_χ)² + (ω s τ)²/3
-    across it (s the speed; :class:`TrackerConfig` ``velocity_*``)."""
+    across it (s the speed, τ the register's refresh period: its value may be that old, and a
+    turn of rate ω has turned the velocity by up to ω s τ since)."""
     s = np.hypot(v[:, 0], v[:, 1])
     u = np.where(s[:, None] > 0, v / np.where(s > 0, s, 1.0)[:, None], np.array([1.0, 0.0]))
-    turn = np.nan_to_num(omega) * s * cfg.velocity_refresh_s
-    cross = (s * np.radians(cfg.velocity_track_sigma_deg)) ** 2 + turn ** 2 / 3.0
-    along = cfg.velocity_speed_sigma_mps ** 2
+    turn = np.nan_to_num(omega) * s * refresh_s
+    cross = (s * np.radians(track_sigma_deg)) ** 2 + turn ** 2 / 3.0
+    along = speed_sigma_mps ** 2
     n = np.stack([-u[:, 1], u[:, 0]], axis=1)
     return along * u[:, :, None] * u[:, None, :] + cross[:, None, None] * n[:, :, None] * n[:, None, :]
 
