@@ -12,7 +12,8 @@ database is read for every figure a verdict rests on:
 * system targets and tracks per aircraft;
 * horizontal RMSE of every tracker against its fused input, overall and per flight phase;
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
-* the false-track rate of the centralised reference against the best fused picture.
+* the false- and duplicate-track rates of every picture (the centralised reference against the
+  best fused picture).
 
     python benchmarks/bench_trust.py [--only national15,national15-evening,default,adsb-paris,made] [--work DIR]
 
@@ -221,12 +222,14 @@ def figures(db: Path) -> dict:
             bound.setdefault(meth, {}).setdefault(seg, {})[k] = _clean(v)
     below = sorted({meth for meth, segs in bound.items() for seg, g in segs.items()
                     if any((g.get(k) or 0.0) < 0.0 for k in ("gap_horizontal_m", "gap_pos_m", "gap_vel_mps"))})
-    false_tracks = {meth: _clean(v) for (meth, v) in _rows(
-        db, "select method, value from requirements where metric = 'false_tracks_per_hour' and breakdown = 'all'")}
+    false_tracks, duplicate_tracks = ({meth: _clean(v) for (meth, v) in _rows(
+        db, f"select method, value from metrics where stage = 'evaluation' and metric = '{k}' and segment = 'all'")}
+        for k in ("false_tracks_per_hour", "duplicate_tracks_per_hour"))
     tracks_per_aircraft = {p: _clean(m.get(("tracker", p, "tracks", "all"), float("nan")) / rows["aircraft"])
                            for p in tracked if rows.get("aircraft")}
     return {"safety": safety, "accuracy_horizontal_m": accuracy, "tracker_minus_input_m": tracker_vs_input,
             "bound": bound, "pictures_below_bound": below, "false_tracks_per_hour": false_tracks,
+            "duplicate_tracks_per_hour": duplicate_tracks,
             "targets_per_aircraft": _clean(rows.get("confirmed_targets", 0) / rows["aircraft"])
             if rows.get("aircraft") else None,
             "tracks_per_aircraft": tracks_per_aircraft, "aircraft": rows.get("aircraft"),

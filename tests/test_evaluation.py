@@ -517,3 +517,26 @@ def test_pictures_matched_together_in_a_window_equal_each_matched_alone(small):
         assert_frame_equal(multitarget_result(state.pictures[name], name), multitarget_result(mt, name))
     expected = pl.concat(got[next(t for t in got if t.startswith("expected."))])
     assert expected.filter(pl.col("method") == "a").height < expected.filter(pl.col("method") == "b").height
+
+
+def test_a_second_track_on_an_aircraft_is_scored_a_duplicate_and_a_ghost_false(small):
+    """Through the evaluation stage (the columns it hands the surveillance metrics): three epochs
+    of a copy of a track 200 m aside (the matching leaves it to the original) add one duplicate
+    track and no false one; a ghost 80 km from everything adds one false track. Fails if the
+    matcher's gate is not handed to the metrics (the copy would count as false)."""
+    root, ds, files = small
+    base = read_picture(files[0])
+    first = base.filter(pl.col("track_id") == base["track_id"].min()).sort("epoch")
+    epochs = first["epoch"].unique().sort()[5:8]
+    copy = first.filter(pl.col("epoch").is_in(epochs.implode())).with_columns(
+        pl.lit(999_001, pl.UInt64).alias("track_id"), pl.col("x_m") + 200.0)
+    ghost = first.with_columns(pl.lit(999_002, pl.UInt64).alias("track_id"), pl.col("x_m") + 8.0e4,
+                               pl.col("y_m") + 8.0e4)
+
+    def counts(picture: pl.DataFrame) -> tuple[float, float]:
+        m = evaluate_pictures(picture, ds.truth, surveillance=True).metrics
+        at = m.filter((pl.col("stage") == "evaluation") & (pl.col("segment") == "all"))
+        return tuple(at.filter(pl.col("metric") == k)["value"].item() for k in ("false_tracks", "duplicate_tracks"))
+    f0, d0 = counts(base)
+    f1, d1 = counts(pl.concat([base, copy.cast(base.schema), ghost.cast(base.schema)]))
+    assert (f1 - f0, d1 - d0) == (1.0, 1.0)

@@ -92,6 +92,27 @@ def test_track_swapping_two_aircraft_counts_one_id_change_each():
     assert _value(met, "false_tracks_per_hour") == 0.0
 
 
+def test_a_second_track_of_an_aircraft_is_a_duplicate_not_a_false_track():
+    """Every track is real (matched at some epoch), a duplicate (never matched, but inside an
+    aircraft's gate: ``gated_truth_id``, the second track the one-to-one matching leaves
+    unmatched) or false (in no aircraft's gate). Fails if a duplicate counts as false, or as
+    nothing."""
+    t = np.arange(120.0)
+    ref = _straight(1, t)
+    real = _rows("p", 1, 1, t, ref).with_columns(pl.lit(1, pl.Int64).alias("gated_truth_id"))
+    none = [pl.lit(None, dtype=pl.Int64).alias("truth_id"), *[pl.lit(None, dtype=pl.Float64).alias(f"true_{c}")
+                                                              for c in STATE]]
+    dup = _rows("p", 2, 1, t[:10], {k: v[:10] for k, v in ref.items()}, dx=300.0).with_columns(
+        *none, pl.lit(1, pl.Int64).alias("gated_truth_id"))
+    ghost = _rows("p", 99, 1, t, ref, dx=5e4).with_columns(*none, pl.lit(None, pl.Int64).alias("gated_truth_id"))
+    met = picture_metrics(pl.concat([real, dup, ghost]), breakdown=())
+    hours = 119 / 3600.0
+    assert _value(met, "n_tracks") == 3
+    assert _value(met, "false_tracks") == 1 and _value(met, "duplicate_tracks") == 1
+    assert _value(met, "false_tracks_per_hour") == pytest.approx(1 / hours)
+    assert _value(met, "duplicate_tracks_per_hour") == pytest.approx(1 / hours)
+
+
 def test_breaks_reacquisition_update_probability_and_false_tracks():
     t = np.arange(600.0)
     keep = (t < 200) | (t >= 261)                        # updates at 199 then 261: a 62 s gap

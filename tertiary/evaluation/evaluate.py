@@ -57,7 +57,8 @@ _R_EARTH_M = 6_371_000.0
 #: the comparison table's columns (segment ``all``), in this order
 COMPARISON_METRICS = ("rmse_horizontal_m", "p95_horizontal_m", "rmse_height_m", "along_track_rms_m",
                       "across_track_rms_m", "latency_s", "prob_update", "id_changes_per_hour",
-                      "false_tracks_per_hour", "split_tracks", "merged_tracks", "mode_s_correct_frac")
+                      "false_tracks_per_hour", "duplicate_tracks_per_hour", "split_tracks", "merged_tracks",
+                      "mode_s_correct_frac")
 
 _STATE = ("x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps")
 
@@ -112,8 +113,8 @@ def comparison(metrics: pl.DataFrame) -> pl.DataFrame:
 
 
 #: what :func:`picture_metrics` reads of a matched picture, beside the reference's ``true_*``
-_METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", *_STATE, "alt_m", "alt_rate_mps", "mode_s",
-                   "mode_3a", "callsign", "icao24")
+_METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", "gated_truth_id", *_STATE, "alt_m",
+                   "alt_rate_mps", "mode_s", "mode_3a", "callsign", "icao24")
 
 
 def metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
@@ -252,7 +253,7 @@ class Reference:
 
 #: what the evaluation reads of a matched, row-scored picture beside the reference's ``true_*``
 #: (:func:`picture_accuracy`, :func:`picture_metrics`, the id map) and its id column
-_SCORED_COLUMNS = (*_METRIC_COLUMNS, *ROW_SCORES, "gated_truth_id", "nis")
+_SCORED_COLUMNS = (*_METRIC_COLUMNS, *ROW_SCORES, "nis")
 
 
 def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:

@@ -244,7 +244,7 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     schema = matched.collect_schema()
     exp_names = None if expected is None else expected.collect_schema().names()
     breakdown = pm.checked_breakdown(schema.names(), exp_names, radar_xy, breakdown, cfg)
-    tracks = pm.track_table(matched.select(pm.TRACK_INPUTS)).collect(engine="streaming")
+    tracks = pm.track_table(pm.track_inputs(matched)).collect(engine="streaming")
     real = tracks.filter(pl.col("__real"))
     methods, base = real.select("method").unique(), real.select("method", "run").unique()
     del real

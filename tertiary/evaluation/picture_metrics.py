@@ -41,8 +41,12 @@ Definitions (errors are track − reference)
   aircraft's tracks is one change for each.
 * a *break*: consecutive represented epochs of an aircraft more than ``break_gap_s`` apart;
   ``mean_reacquire_s`` is the mean length of those gaps.
-* ``false_tracks_per_hour``: tracks never matched to any aircraft, per hour of picture (sum over
-  runs of each run's epoch span). ``split_tracks``: distinct tracks that were, at some epoch,
+* ``false_tracks_per_hour``: tracks never inside any aircraft's gate, per hour of picture (sum
+  over runs of each run's epoch span); ``duplicate_tracks_per_hour``: tracks never matched but
+  inside some aircraft's gate at some epoch (``gated_truth_id``: a second track of an aircraft,
+  left unmatched by the one-to-one matching) — surveillance standards count false and multiple
+  tracks apart, and which of two tracks of one aircraft the matching keeps depends on which is
+  closer, not on which is real. ``split_tracks``: distinct tracks that were, at some epoch,
   a non-representative second track of an aircraft. ``merged_tracks``: distinct tracks whose
   position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
   track of its own while representing another aircraft.
@@ -473,36 +477,56 @@ def _identity(err: pl.DataFrame, breakdown: Sequence[str], name: str, ok: pl.Exp
     return long_rows(w, [f"{name}_correct_frac", f"n_{name}"])
 
 
-#: what :func:`track_table` reads of a matched picture
+#: what :func:`track_table` reads of a matched picture (and ``gated_truth_id`` when it has it)
 TRACK_INPUTS = ("method", "run", "track_id", "epoch", "truth_id")
 
 
+def track_inputs(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
+    """The columns of matched rows ``m`` that :func:`track_table` reads."""
+    names = m.collect_schema().names() if isinstance(m, pl.LazyFrame) else m.columns
+    return m.select(*TRACK_INPUTS, *(["gated_truth_id"] if "gated_truth_id" in names else []))
+
+
 def track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
-    """One row per (method, run, track_id): ``__real`` (some row has a truth_id), its first and
-    last epochs ``__t0``, ``__t1`` (a picture's span is that of its tracks' rows)."""
-    return m.group_by("method", "run", "track_id").agg(pl.col("truth_id").is_not_null().any().alias("__real"),
+    """One row per (method, run, track_id): ``__real`` (some row has a truth_id), ``__gated``
+    (some row lies in an aircraft's gate: matched, or ``gated_truth_id``; rows without that
+    column count as matched only), its first and last epochs ``__t0``, ``__t1`` (a picture's
+    span is that of its tracks' rows)."""
+    names = m.collect_schema().names() if isinstance(m, pl.LazyFrame) else m.columns
+    hit = pl.col("truth_id").is_not_null()
+    gated = (hit | pl.col("gated_truth_id").is_not_null()) if "gated_truth_id" in names else hit
+    return m.group_by("method", "run", "track_id").agg(hit.any().alias("__real"), gated.any().alias("__gated"),
                                                        pl.col("epoch").min().alias("__t0"),
                                                        pl.col("epoch").max().alias("__t1"))
 
 
+#: the per-picture counts of :func:`picture_rows`, in their order
+PICTURE_COUNTS = ("picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour", "duplicate_tracks",
+                  "duplicate_tracks_per_hour")
+
+
 def picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
-    """picture_hours, n_tracks, false_tracks(_per_hour) per method, from :func:`track_table`."""
+    """:data:`PICTURE_COUNTS` per method, from :func:`track_table`: a *false* track never lies in
+    an aircraft's gate; a *duplicate* never represents an aircraft but lies in one's gate (a
+    second track of it, which the one-to-one matching leaves to the first)."""
     span = tracks.group_by("method", "run").agg(
         ((pl.col("__t1").max() - pl.col("__t0").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
     hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
                                         pl.col("run").n_unique().alias("n_runs"))
-    false = tracks.group_by("method").agg((~pl.col("__real")).sum().alias("__false"),
+    false = tracks.group_by("method").agg((~pl.col("__gated")).sum().cast(pl.Float64).alias("false_tracks"),
+                                          (pl.col("__gated") & ~pl.col("__real")).sum().cast(pl.Float64)
+                                          .alias("duplicate_tracks"),
                                           pl.len().cast(pl.Float64).alias("n_tracks"))
     wide = hours.join(false, on="method").with_columns(
         _ALL.alias("segment"),
-        (pl.col("__false") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
-        pl.col("__false").cast(pl.Float64).alias("false_tracks"))
-    return long_rows(wide, ["picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour"])
+        (pl.col("false_tracks") / pl.col("picture_hours")).alias("false_tracks_per_hour"),
+        (pl.col("duplicate_tracks") / pl.col("picture_hours")).alias("duplicate_tracks_per_hour"))
+    return long_rows(wide, list(PICTURE_COUNTS))
 
 
 def _identity_and_false(m: pl.DataFrame, err: pl.DataFrame, breakdown: Sequence[str],
                         cfg: MetricsConfig = MetricsConfig()) -> pl.DataFrame:
-    out = [picture_rows(track_table(m.select(TRACK_INPUTS)))]
+    out = [picture_rows(track_table(track_inputs(m)))]
     out += [_identity(err, breakdown, name, ok) for name, ok in identity_checks(err, cfg)]
     return pl.concat(out, how="vertical")
 

@@ -35,9 +35,9 @@ from numpy.typing import NDArray
 from tertiary.evaluation import sketch
 from tertiary.evaluation.picture_buckets import (Partials, accuracy_combined, accuracy_sums, continuity_combined,
                                                  identity_combined)
-from tertiary.evaluation.picture_metrics import (TRACK_INPUTS, MetricsConfig, height_exprs, by_segment, count_tracks,
+from tertiary.evaluation.picture_metrics import (MetricsConfig, height_exprs, by_segment, count_tracks,
                                                  error_rows, finish_metrics, identity_checks, merge_hits, picture_rows,
-                                                 reference_labels, track_table)
+                                                 reference_labels, track_inputs, track_table)
 
 __all__ = ["PictureStepState", "picture_step", "picture_metrics_finish", "LABELS"]
 
@@ -51,7 +51,7 @@ _AT = [*_KEY, "epoch"]
 class PictureStepState:
     """Every picture's carried rows and sums (frames keyed by ``method``); None: nothing yet.
 
-    ``tracks``: (method, run, track_id, __real, __t0, __t1); ``counts``: rows matched per
+    ``tracks``: (method, run, track_id, __real, __gated, __t0, __t1); ``counts``: rows matched per
     (method, run, truth_id, track_id); ``context``: each aircraft's last labelled reference
     state; ``pending_ref`` / ``pending_rows`` / ``pending_hits``: an aircraft's first epoch with
     no second yet (its reference, its matched rows, the merged-track hits of it as the bare
@@ -101,9 +101,9 @@ def _key_cast(frame: pl.DataFrame) -> pl.DataFrame:
 
 def _tracks(state: PictureStepState, rows: pl.DataFrame) -> pl.DataFrame:
     """The per-track table with this window's rows (:func:`~tertiary.evaluation.picture_metrics.track_table`)."""
-    new = track_table(rows.select(TRACK_INPUTS))
+    new = track_table(rows)
     both = _cat(state.tracks, new)
-    return both.group_by("method", "run", "track_id").agg(pl.col("__real").any(), pl.col("__t0").min(),
+    return both.group_by("method", "run", "track_id").agg(pl.col("__real", "__gated").any(), pl.col("__t0").min(),
                                                           pl.col("__t1").max())
 
 
@@ -340,7 +340,7 @@ def _step(state: PictureStepState, matched: Sequence[pl.DataFrame], expected: pl
     """:func:`picture_step`; ``final``: the end of the run, every held aircraft labelled."""
     given = [_key_cast(f) for f in matched if f.height]
     expected = _key_cast(expected)
-    tracks = _tracks(state, _cat(*(f.select(TRACK_INPUTS) for f in given))) if given else state.tracks
+    tracks = _tracks(state, _cat(*(track_inputs(f) for f in given))) if given else state.tracks
     m_frames = [f for f in (f.filter(pl.col("truth_id").is_not_null()) for f in given) if f.height]
     keys = _cat(*(f.select(*_AT, "track_id") for f in m_frames))
     counts = _counts(state, keys) if keys is not None else state.counts

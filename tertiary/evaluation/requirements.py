@@ -51,7 +51,7 @@ __all__ = ["Requirement", "Requirements", "SAMPLES", "load_requirements", "check
 SAMPLES: dict[str, str] = {
     "prob_update": "n_update_intervals", "mode_s_correct_frac": "n_mode_s",
     "id_changes_per_hour": "aircraft_hours", "track_breaks_per_hour": "aircraft_hours",
-    "false_tracks_per_hour": "picture_hours", "pd": "n_expected",
+    "false_tracks_per_hour": "picture_hours", "duplicate_tracks_per_hour": "picture_hours", "pd": "n_expected",
     "mode_3a_correct_frac": "n_mode_3a", "mode_c_correct_frac": "n_mode_c",
     "callsign_correct_frac": "n_callsign", "flight_level_correct_frac": "n_flight_level",
 }

@@ -281,8 +281,8 @@ def _verdict_evaluation(ctx: Ctx) -> str:
     if ref.height:
         r = ref.row(0, named=True)
         text += (f"<p>Centralised reference ({CENTRALIZED}, not ranked): horizontal RMS {_m(r['rmse_horizontal_m'])}, "
-                 f"height RMS {_m(r['rmse_height_m'])}, {_per_hour(r['false_tracks_per_hour'])} false tracks per "
-                 "hour.</p>")
+                 f"height RMS {_m(r['rmse_height_m'])}, {_per_hour(r['false_tracks_per_hour'])} false and "
+                 f"{_per_hour(r.get('duplicate_tracks_per_hour'))} duplicate tracks per hour.</p>")
     return text
 
 
