@@ -248,6 +248,7 @@ def seed_tables(state: SeedState, walk: Walk, stage: str, cfg: AccuracyConfig,
                       pl.col("covered").cast(pl.UInt32).alias("__covered"), pl.col("breaks").cast(pl.Float64)))
     names = set(c["method"].to_list())
     tables = {k: v.join(c.select("method"), on="method", how="semi") for k, v in state.sums.tables.items()}
-    sums = SeedSums(int(c["rows"].sum()), {**tables, "tracks": counts, "track_runs": t.select("method", "run").unique()},
+    runs = t.select("method", "run").unique()
+    sums = SeedSums(int(c["rows"].sum()), {**tables, "tracks": counts, "track_runs": runs},
                     {k: v for k, v in lags.items() if k[1] in names})
     return sums.tables_of(stage, cfg, coverage_table(walked))

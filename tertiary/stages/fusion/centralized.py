@@ -254,8 +254,8 @@ def centralized_filter_carry(t: F64, z: F64, r: F64, starts: NDArray[np.int64], 
     same time base), also returning each target's (x, P, t_last) after its last plot. A
     carried target's first plot is a predict (Φ, Q over t − t_last) + update, exactly as the
     next plot of a one-call run."""
-    has_v = np.zeros(len(t), bool) if vel is None else np.isfinite(vel[0]).all(axis=1) & np.isfinite(vel[1]).all(
-        axis=(1, 2))
+    has_v = (np.zeros(len(t), bool) if vel is None
+             else np.isfinite(vel[0]).all(axis=1) & np.isfinite(vel[1]).all(axis=(1, 2)))
     n = len(t)
     keep = np.ones(n, dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
     slot = np.full(n, -1)
