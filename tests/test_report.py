@@ -207,7 +207,7 @@ def _metric(m: pl.DataFrame, stage: str, method: str, metric: str) -> float:
 def test_verdict_ranks_against_truth_and_bound_and_gives_the_reference_its_own_row(page, run_dir):
     """The verdict ranks the pictures by their error against the truth, each with its gap to the
     PCRB, and never measures them against the centralised reference; the reference's own
-    figures (RMSE, gap, false tracks per hour) are a row of their own, unranked."""
+    figures (RMSE, gap, false and duplicate tracks per hour) are a row of their own, unranked."""
     verdict = _section(page, "verdict-detail")
     assert "the reference's" not in verdict and "against the centralised reference" not in verdict
     with RunStore.open(run_dir) as store:
@@ -222,7 +222,7 @@ def test_verdict_ranks_against_truth_and_bound_and_gives_the_reference_its_own_r
     ref = [r for r in rows if r[1] == CENTRALIZED]
     assert len(ref) == 1 and ref[0][0] == "" and ref[0][2] == "centralised reference (not ranked)"
     for stage, metric in (("fusion", "rmse_horizontal_m"), ("bound", "gap_horizontal_m"),
-                          ("evaluation", "false_tracks_per_hour")):
+                          ("evaluation", "false_tracks_per_hour"), ("evaluation", "duplicate_tracks_per_hour")):
         assert _fmt_cell(_metric(m, stage, CENTRALIZED, metric)) in ref[0], metric
     ranks = [r[0] for r in rows if r[0]]
     assert ranks == [str(k) for k in range(1, len(ranks) + 1)] and rows[0][:3] == ["1", best, "best picture"]

@@ -40,8 +40,9 @@ def _gap(gap: float | None, bound: float | None) -> str:
 
 
 #: the figures of a picture beside its accuracy: its bound and gap (stage ``bound``, horizontal and
-#: 3-D) and its false tracks per hour (stage ``evaluation``)
-_FIGURES = ("pcrb_horizontal_m", "gap_horizontal_m", "pcrb_pos_m", "gap_pos_m", "false_tracks_per_hour")
+#: 3-D) and its false and duplicate tracks per hour (stage ``evaluation``)
+_FIGURES = ("pcrb_horizontal_m", "gap_horizontal_m", "pcrb_pos_m", "gap_pos_m", "false_tracks_per_hour",
+            "duplicate_tracks_per_hour")
 
 
 def _figures(ctx: Ctx) -> pl.DataFrame:
@@ -49,7 +50,7 @@ def _figures(ctx: Ctx) -> pl.DataFrame:
     schema = {"picture": pl.String, **dict.fromkeys(_FIGURES, pl.Float64)}
     if "metrics" not in ctx.tables:
         return pl.DataFrame(schema=schema)
-    stage = {c: "evaluation" if c == "false_tracks_per_hour" else "bound" for c in _FIGURES}
+    stage = {c: "evaluation" if c.endswith("_tracks_per_hour") else "bound" for c in _FIGURES}
     cols = ", ".join(f"max(value) FILTER (WHERE stage = '{stage[c]}' AND metric = '{c}') AS {c}" for c in _FIGURES)
     return ctx.store.sql(f"SELECT method AS picture, {cols} FROM metrics WHERE segment = 'all' "
                          "AND stage IN ('bound', 'evaluation') GROUP BY method").cast(schema)
@@ -309,7 +310,8 @@ def _verdict_accuracy(ctx: Ctx) -> str:
         lines.append(f"Centralised reference ({CENTRALIZED}: one Kalman filter on every radar's measurements, its "
                      "targets confirmed as the pictures' are; a reference, not a bound, and not ranked): horizontal "
                      f"RMSE {_m(ref['horizontal_m'])}, vertical {_m(ref['height_m'])}, its {what} error "
-                     f"{_gap(ref[gap], ref[pcrb])}; {_per_hour(ref['false_tracks_per_hour'])} false tracks per hour.")
+                     f"{_gap(ref[gap], ref[pcrb])}; {_per_hour(ref['false_tracks_per_hour'])} false and "
+                     f"{_per_hour(ref['duplicate_tracks_per_hour'])} duplicate tracks per hour.")
     if rad:
         lines.append(f"Best radar alone ({html.escape(b.radar)}, its own track estimates): horizontal "
                      f"{_m(rad['horizontal_m'])}, vertical {_m(rad['height_m'])}. The best picture's horizontal "
@@ -327,8 +329,8 @@ def _verdict_accuracy(ctx: Ctx) -> str:
     rows += [(None, CENTRALIZED, "centralised reference (not ranked)", ref)] if ref else []
     rows += [(None, b.radar, f"best {b.radar_kind} alone", {**rad, **dict.fromkeys(_FIGURES)})] if rad else []
     num = ("horizontal RMSE (m)", "vertical RMSE (m)", "3-D RMSE (m)", f"{what} PCRB (m)",
-           f"{what} gap to PCRB (m)", "false tracks per hour")
-    src = ("horizontal_m", "height_m", "pos_m", pcrb, gap, "false_tracks_per_hour")
+           f"{what} gap to PCRB (m)", "false tracks per hour", "duplicate tracks per hour")
+    src = ("horizontal_m", "height_m", "pos_m", pcrb, gap, "false_tracks_per_hour", "duplicate_tracks_per_hour")
     table = pl.DataFrame({"rank": [r[0] for r in rows], "picture": [r[1] for r in rows], "role": [r[2] for r in rows],
                           **{h: [r[3][c] for r in rows] for h, c in zip(num, src)}},
                          schema_overrides={"rank": pl.UInt32, **dict.fromkeys(num, pl.Float64)})
