@@ -44,10 +44,10 @@ Definitions (errors are track − reference)
 * ``false_tracks_per_hour``: tracks never inside any aircraft's gate, per hour of picture (sum
   over runs of each run's epoch span); ``duplicate_tracks_per_hour``: tracks never matched but
   inside some aircraft's gate at some epoch (``gated_truth_id``: a second track of an aircraft,
-  left unmatched by the one-to-one matching) — surveillance standards count false and multiple
-  tracks apart, and which of two tracks of one aircraft the matching keeps depends on which is
-  closer, not on which is real. ``split_tracks``: distinct tracks that were, at some epoch,
-  a non-representative second track of an aircraft. ``merged_tracks``: distinct tracks whose
+  left unmatched by the one-to-one matching): which of two tracks of one aircraft the matching
+  keeps depends on which is closer, not on which is real, so a second track is counted apart.
+  ``split_tracks``: distinct tracks that were, at some epoch, a non-representative second track
+  of an aircraft. ``merged_tracks``: distinct tracks whose
   position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
   track of its own while representing another aircraft.
 * identity correctness, on matched rows where both sides carry the item: ``mode_s_correct_frac``
