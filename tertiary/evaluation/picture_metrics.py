@@ -47,9 +47,9 @@ Definitions (errors are track − reference)
   left unmatched by the one-to-one matching): which of two tracks of one aircraft the matching
   keeps depends on which is closer, not on which is real, so a second track is counted apart.
   ``split_tracks``: distinct tracks that were, at some epoch, a non-representative second track
-  of an aircraft. ``merged_tracks``: distinct tracks whose
-  position lay within ``merge_gate_m`` (and ``merge_gate_v_m``) of an expected aircraft with no
-  track of its own while representing another aircraft.
+  of an aircraft. ``merged_tracks``: distinct tracks whose position lay within ``merge_gate_m``
+  (and ``merge_gate_v_m``) of an expected aircraft with no track of its own while representing
+  another aircraft.
 * identity correctness, on matched rows where both sides carry the item: ``mode_s_correct_frac``
   (track Mode S address = reference ``icao24``), ``mode_3a_correct_frac`` (track ``mode_3a`` =
   reference ``mode_3a``), ``callsign_correct_frac`` (blank-stripped, case-insensitive), and
