@@ -13,7 +13,11 @@ database is read for every figure a verdict rests on:
 * horizontal RMSE of every tracker against its fused input, overall and per flight phase;
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
 * the false- and duplicate-track rates of every picture (the centralised reference against the
-  best fused picture).
+  best fused picture);
+* the cause of each picture-induced alert of the production picture, and for each false alert
+  that the picture's uncertainty alone raises, how far the tracks' σ would have to shrink to
+  avoid it against how large their actual error is in σ: whether a consistent covariance would
+  avoid it.
 
     python benchmarks/bench_trust.py [--only national15,national15-evening,default,adsb-paris,made] [--work DIR]
 
@@ -264,7 +268,8 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
         return {}
     method, flt = picture.split("+")
     conf = q(f"select run, epoch, id_a, id_b, r_thr_m from conflicts where method = '{picture}'")
-    tr = q(f"select run, epoch, track_id, x_m, y_m, vx_mps, vy_mps, alt_m, alt_rate_mps, cov_diag, status from tracks "
+    tr = q(f"select run, epoch, track_id, x_m, y_m, vx_mps, vy_mps, alt_m, alt_rate_mps, alt_rate_var_m2ps2, cov_diag, "
+           f"status from tracks "
            f"where method = '{method}' and filter = '{flt}'")
     run = dict(con.sql("select key, value from run").fetchall())
     con.close()
@@ -288,7 +293,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
                             (pl.col("alt_rate_mps") - pl.col("true_alt_rate_mps")).abs().alias(f"rerr_{side}"),
                             pl.col("alt_m").alias(f"alt_{side}"), (pl.col("status") == "coasting").alias(f"coast_{side}"),
                             pl.max_horizontal(pl.col("cov_diag").arr.get(3), pl.col("cov_diag").arr.get(4)).sqrt()
-                            .alias(f"sv_{side}"),
+                            .alias(f"sv_{side}"), pl.col("alt_rate_var_m2ps2").sqrt().alias(f"sr_{side}"),
                             (((pl.col("vx_mps") - pl.col("true_vx_mps")) ** 2 + (pl.col("vy_mps") - pl.col("true_vy_mps"))
                               ** 2).sqrt()).alias(f"verr_{side}")), on="k", how="left")
     floor = cc.get("enroute_above_m")
@@ -314,7 +319,27 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
         pl.col("est_h_m").median(), pl.max_horizontal("sv_a", "sv_b").median().alias("velocity_sigma_mps"),
         pl.max_horizontal("verr_a", "verr_b").median().alias("velocity_error_mps"))
     return {"picture": picture, "counts": counts,
-            "false_medians": {k: _clean(v) for k, v in med.row(0, named=True).items()} if med.height else {}}
+            "false_medians": {k: _clean(v) for k, v in med.row(0, named=True).items()} if med.height else {},
+            "uncertainty_false_alerts": _uncertainty_margins(a, cc["enroute_v_m"])}
+
+
+def _uncertainty_margins(a, sep_v_m: float) -> list[dict]:
+    """Each false alert the picture's uncertainty alone raises: the channel that decides it
+    (vertical when the predicted vertical miss exceeds the vertical minimum, so only the widened
+    vertical threshold catches it), ``avoid_scale`` (:func:`_uncertainty_alerts`) and the two
+    tracks' actual error in that channel in units of their σ at the alert's first epoch (RMS over
+    the pair; horizontal: velocity error / (√2 σ_v), vertical: rate error / σ_rate). An alert
+    a consistent covariance would avoid has error_to_sigma below avoid_scale; one epoch's ratio is
+    a single draw (|N(0, 1)| when consistent), so it says which side an alert is on, not a rate."""
+    import polars as pl
+    rows = a.filter((pl.col("classification") == "false") & pl.col("uncertainty").fill_null(False))
+    vertical = pl.col("dz_min_pred_m") > sep_v_m
+    h = ((pl.col("verr_a") / (2 ** 0.5 * pl.col("sv_a"))) ** 2 + (pl.col("verr_b") / (2 ** 0.5 * pl.col("sv_b"))) ** 2)
+    v = (pl.col("rerr_a") / pl.col("sr_a")) ** 2 + (pl.col("rerr_b") / pl.col("sr_b")) ** 2
+    rows = rows.select(pl.col("t_start").cast(pl.String), "id_a", "id_b",
+                       pl.when(vertical).then(pl.lit("vertical")).otherwise(pl.lit("horizontal")).alias("channel"),
+                       "avoid_scale", (pl.when(vertical).then(v).otherwise(h) / 2).sqrt().round(2).alias("error_to_sigma"))
+    return rows.to_dicts()
 
 
 def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, before_s: float = 40.0):
@@ -324,7 +349,13 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
     variances at every epoch (the epochs from ``before_s`` before the alert's first to it),
     raises the alert (confirmed) at the alert's first epoch. True: the picture's uncertainty alone
     alerts (a perfect state with that covariance would too); False: the picture's states differ
-    from the truth enough to alert where their truth would not."""
+    from the truth enough to alert where their truth would not.
+
+    For an alert the uncertainty alone raises, ``avoid_scale``: the largest factor s (to 1 %) by
+    which every σ of the two tracks (covariance × s²) could shrink and that prediction still
+    alert; below it the alert is gone. A consistent covariance avoids the alert only if the
+    tracks' errors are smaller than s times their σ (:func:`alert_causes` sets the two side by
+    side)."""
     import duckdb
     import polars as pl
     from datetime import timedelta
@@ -355,13 +386,25 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
         pic = truth_picture(pair, spans.with_columns(pl.lit(r["run"], pl.UInt32).alias("run")), epochs, picture)
         pic = pic.drop("cov_diag", *var, strict=False).join(cov, on=["epoch", "track_id"], how="inner")
         us = epochs["epoch"].dt.epoch("us")
-        rows, _ = sc.conflicts_step(sc.init_conflict_state(), pic, cc, "track_id", ds.origin, int(us.min()),
-                                    int(us.max()) + 1, slim=False)
         at = int(pl.Series([r["t_start"]]).dt.epoch("us")[0])
-        hit = rows.filter((pl.col("epoch").dt.epoch("us") == at) & pl.col("alert"))
-        out.append({"k": r["k"], "uncertainty": hit.height > 0})
+
+        def alerts_at(scale: float) -> bool:
+            scaled = pic.with_columns(pl.col("cov").arr.eval(pl.element() * scale ** 2),
+                                      *(pl.col(c) * scale ** 2 for c in var))
+            rows, _ = sc.conflicts_step(sc.init_conflict_state(), scaled, cc, "track_id", ds.origin, int(us.min()),
+                                        int(us.max()) + 1, slim=False)
+            return rows.filter((pl.col("epoch").dt.epoch("us") == at) & pl.col("alert")).height > 0
+
+        hit, avoid = alerts_at(1.0), None
+        if hit:                         # bisection: alerts at hi, not at lo (s = 0 is the truth picture)
+            lo, hi = 0.0, 1.0
+            while hi - lo > 0.01:
+                mid = 0.5 * (lo + hi)
+                lo, hi = (lo, mid) if alerts_at(mid) else (mid, hi)
+            avoid = round(hi, 2)
+        out.append({"k": r["k"], "uncertainty": hit, "avoid_scale": avoid})
     con.close()
-    return pl.DataFrame(out, schema={"k": pl.UInt32, "uncertainty": pl.Boolean})
+    return pl.DataFrame(out, schema={"k": pl.UInt32, "uncertainty": pl.Boolean, "avoid_scale": pl.Float64})
 
 
 # --------------------------------------------------------------------------- datasets
