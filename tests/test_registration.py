@@ -270,3 +270,20 @@ def test_cli_register_writes_the_table_and_run_applies_it(biased, tmp_path):
     assert "registration (given) radar 1" in res.output
     bad = runner.invoke(app, ["register", str(biased), "--method", "nonsense"])
     assert bad.exit_code == 2
+
+
+def test_bordered_solve_equals_a_dense_solve_and_inverse():
+    """The joint normal equations (dense bias border around a block-diagonal trajectory block)
+    solved by the Schur complement equal numpy's dense solve, and S⁻¹ is the bias block of the
+    dense inverse: the σ of every bias rests on it."""
+    import scipy.sparse as sp
+    rng = np.random.default_rng(7)
+    nb, blocks = 6, [rng.normal(size=(40, 9)) for _ in range(5)]
+    traj = sp.block_diag([b.T @ b + 0.1 * np.eye(9) for b in blocks])
+    border = rng.normal(size=(nb, traj.shape[0])) * (rng.random((nb, traj.shape[0])) < 0.5)
+    j = np.hstack([rng.normal(size=(60, nb)), rng.normal(size=(60, traj.shape[0]))])
+    full = np.block([[border @ border.T + 5 * np.eye(nb), border], [border.T, traj.toarray()]]) + j.T @ j
+    g = rng.normal(size=full.shape[0])
+    theta, s_inv = reg._solve_bordered(sp.csr_matrix(full), g, nb)
+    np.testing.assert_allclose(theta, np.linalg.solve(full, g), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(s_inv, np.linalg.inv(full)[:nb, :nb], rtol=1e-9, atol=1e-14)

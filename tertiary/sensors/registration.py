@@ -430,15 +430,13 @@ def _multi(obs: _Obs, sites: _Sites, origin: geo.LocalFrame, cfg: RegistrationCo
         theta = np.concatenate([x, coef])
         rhs = np.concatenate([e_r * w_r * m_rb, e_b * w_b * m_rb, e_h * w_h * m_h, prior_rhs - prior @ theta,
                               -_gauge(nr, k, n_unk) @ theta])
-        normal = (a.T @ a).tocsc()
-        lu = spla.splu(normal)
-        dtheta = lu.solve(a.T @ rhs)
+        dtheta, s_inv = _solve_bordered((a.T @ a).tocsr(), a.T @ rhs, nb)
         x, coef = x + dtheta[:nb], coef + dtheta[nb:]
         if np.max(np.abs(dtheta[:nb])) < 1e-10:
             break
     n_obs = int(2 * used.sum() + (has_alt & used).sum())
     s2 = float(rhs @ rhs - rhs @ (a @ dtheta)) / max(n_obs - n_unk + prior.shape[0], 1)
-    cov = lu.solve(np.vstack([np.eye(nb), np.zeros((nc, nb))]))[:nb] * s2
+    cov = s_inv * s2
     scale = _scale_per_radar(obs.ri, e_r * w_r, e_b * w_b, used, nr, k)
     # residuals at the final estimate (linear in the last, ~0, update), then the innovations
     e_fin = [e - jm @ dtheta for e, jm in ((e_r, j_r), (e_b, j_b), (e_h, j_h))]
@@ -449,6 +447,27 @@ def _multi(obs: _Obs, sites: _Sites, origin: geo.LocalFrame, cfg: RegistrationCo
     i_r, i_b = _leave_one_out(obs.ri, obs.t, lin, nr, cfg.bracket_s)
     keep_idx = np.flatnonzero(keep)
     return x, cov, scale, used, e_fin[0], e_fin[1], keep_idx, i_r, i_b
+
+
+def _solve_bordered(normal: sp.csr_matrix, g: F64, nb: int) -> tuple[F64, F64]:
+    """Solve the normal equations [[B, C], [Cᵀ, D]] θ = g of the joint problem by the Schur
+    complement of D, and return θ and S⁻¹ = (B − C D⁻¹ Cᵀ)⁻¹, the bias block of the inverse.
+
+    Every plot couples its radar's few bias columns to its aircraft's spline coefficients, so
+    the normal matrix is block diagonal in the aircraft (D, each block banded) bordered by nb
+    dense bias rows and columns. A sparse LU of the whole matrix orders those dense columns
+    badly and fills in (one minute of the national scenario took 12 GB); D alone factors without
+    fill, and the border is a dense nb × nb system."""
+    b = normal[:nb, :nb].toarray()
+    c = normal[:nb, nb:]
+    lu_d = spla.splu(normal[nb:, nb:].tocsc())
+    y = lu_d.solve(np.ascontiguousarray(c.T.toarray()))          # D⁻¹ Cᵀ, (nc, nb)
+    s_inv = np.linalg.inv(b - c @ y)
+    s_inv = 0.5 * (s_inv + s_inv.T)
+    d_inv_gc = lu_d.solve(g[nb:])
+    db = s_inv @ (g[:nb] - c @ d_inv_gc)
+    dc = d_inv_gc - y @ db
+    return np.concatenate([db, dc]), s_inv
 
 
 @dataclass
