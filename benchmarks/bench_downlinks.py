@@ -3,7 +3,8 @@
 Each dataset is run with the CLI, each run in a fresh process: with the configured σ of the
 downlinked ground velocity and vertical rate, and with ``--measure-downlinks`` (the σ measured
 from the recording's replies); the national peak also with each radar's biases removed first
-(``tertiary register``, ``--register``). From each run's database, for the production tracker
+(``tertiary register --method multi``: radar to radar by Mode S, no reference; then
+``--register``). From each run's database, for the production tracker
 picture:
 
 * the σ the run used (its notes);
@@ -35,7 +36,7 @@ from bench_trust import _child, _national15  # noqa: E402
 DATASETS = ("national15", "default")
 VARIANTS = {"configured": [], "measured": ["--measure-downlinks"]}
 #: on the national peak also with each radar's bias and clock offset removed first (``tertiary
-#: register``, then ``--register``): the fused plots' errors are then closer to white
+#: register --method multi``, then ``--register``): the fused plots' errors are then closer to white
 REGISTERED = {"registered": ["--register"], "registered+measured": ["--register", "--measure-downlinks"]}
 #: the picture whose tracks are read: production's
 PICTURE = ("information", "imm_sym")
@@ -101,14 +102,14 @@ def figures(db: Path) -> dict:
 def run_dataset(name: str, work: Path) -> dict:
     data = work / name
     if name == "national15":
-        sim, args = _national15(work), CONFIGS["production"]
+        sim, args = _national15(work, name), CONFIGS["production"]
     else:
         sim, args = ["terminal-area"], []
     _child(["simulate", *sim, "--out", str(data), "--force", "--quiet"])
     out = {"simulate": sim, "run_args": args}
     variants = dict(VARIANTS)
     if name == "national15":
-        _child(["register", str(data)])
+        _child(["register", str(data), "--method", "multi"])
         variants.update(REGISTERED)
     for variant, extra in variants.items():
         run = work / f"{name}-{variant}"

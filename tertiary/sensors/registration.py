@@ -31,7 +31,8 @@ Two estimators (:func:`estimate`):
   target (knots every ``knot_s``) — interpolating another radar's plots instead would cost
   ``a T²/8`` (≈ 140 m for a 3°/s turn between 12 s plots), ten times the biases sought. The
   unknowns are all radars' biases and all targets' spline coefficients, one sparse system
-  (normal equations, sparse LU) per Gauss–Newton iteration; a weak acceleration prior
+  (normal equations, solved by the Schur complement of the trajectory block:
+  :func:`_solve_bordered`) per Gauss–Newton iteration; a weak acceleration prior
   (σ = ``accel_sigma_mps2``) keeps spans seen by one radar only well posed. A common clock
   offset of every radar moves the whole picture in time and is not observable without a
   reference: it is fixed by Σ_r δ_r = 0 (only the differences are estimated).
@@ -455,9 +456,9 @@ def _solve_bordered(normal: sp.csr_matrix, g: F64, nb: int) -> tuple[F64, F64]:
 
     Every plot couples its radar's few bias columns to its aircraft's spline coefficients, so
     the normal matrix is block diagonal in the aircraft (D, each block banded) bordered by nb
-    dense bias rows and columns. A sparse LU of the whole matrix orders those dense columns
-    badly and fills in (one minute of the national scenario took 12 GB); D alone factors without
-    fill, and the border is a dense nb × nb system."""
+    dense bias rows and columns. A sparse LU of the whole matrix does not keep those dense
+    columns last and fills in; D alone factors without fill, and the border is a dense nb × nb
+    system."""
     b = normal[:nb, :nb].toarray()
     c = normal[:nb, nb:]
     lu_d = spla.splu(normal[nb:, nb:].tocsc())
