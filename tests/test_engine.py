@@ -99,6 +99,22 @@ def test_windowed_tables_equal_one_window_big_box(bigbox, window_s):
         _same(got[name], frame, name)
 
 
+def test_a_given_registration_is_applied_window_by_window_as_in_one_window(terminal):
+    """A registration table given up front (``tertiary register`` beforehand) needs nothing from
+    the whole recording: the run keeps its windows, and they equal one window, clock offsets that
+    move a report across a window's edge included."""
+    ids = terminal.radars["radar_id"].to_list()
+    rows = tuple((float(r), 10.0 * (-1) ** i, 0.02 * (-1) ** i, 0.06 * (-1) ** i, 0.0) for i, r in enumerate(ids))
+    cfg = dataclasses.replace(FAST, register=True, registration=rows)
+    whole = _tables(pipeline.process(terminal, cfg, window_s=None))
+    got = pipeline.process(terminal, cfg, window_s=47.0)
+    notes = got.ingested.notes
+    assert not any(n.startswith("processed as one window") for n in notes), notes
+    assert sum(n.startswith("registration (given) radar") for n in notes) == len(ids), notes
+    for name, frame in whole.items():
+        _same(_tables(got)[name], frame, name)
+
+
 def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monkeypatch):
     """Memory bounded by the window: after the last window the centralised reference carries only
     the targets the association can still continue (those a carried local track points at), not

@@ -176,6 +176,10 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
     if pipeline.windowable(cfg, source, 1.0, notes) is None:
         notes.append("not cut into time slices: the run cannot be cut in time")
         return [(T_MIN_US, T_MAX_US)]
+    if cfg.register:    # a slice reads its reports by their own time, a registered run by the corrected one
+        notes.append("not cut into time slices: the registration's clock offsets move reports across a "
+                     "slice's edges")
+        return [(T_MIN_US, T_MAX_US)]
     s = int(round(slice_s * US))
     n = max(1, (source.last_us - origin) // s + 1)
     edges = [T_MIN_US] + [origin + j * s for j in range(1, n)] + [T_MAX_US]

@@ -436,9 +436,11 @@ def registered(ing: Ingested, origin: geo.LocalFrame, cfg: PipelineConfig) -> pl
         table = registration.estimate(ing.reports, ing.radars, origin, None,
                                       registration.RegistrationConfig(method="multi")).table
         source = "estimated radar to radar"
-    for row in table.iter_rows(named=True):       # one note per radar (a handful)
-        ing.notes.append(f"registration ({source}) radar {row['radar_id']}: range {row['range_bias_m']:+.2f} m, "
-                         f"azimuth {row['azimuth_bias_deg']:+.4f} deg, clock {row['time_offset_s']:+.4f} s")
+    for row in table.iter_rows(named=True):       # one note per radar (a handful), once per run
+        note = (f"registration ({source}) radar {row['radar_id']}: range {row['range_bias_m']:+.2f} m, "
+                f"azimuth {row['azimuth_bias_deg']:+.4f} deg, clock {row['time_offset_s']:+.4f} s")
+        if note not in ing.notes:                 # a given table is applied again in every window
+            ing.notes.append(note)
     return align_stage.apply_registration(ing.reports, table)
 
 

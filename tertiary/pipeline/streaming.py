@@ -368,7 +368,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     the stored windows' parts after every window (:meth:`SinkThread.catch_up`)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
-    source = ReportSource(ds.reports, cfg.limits)
+    source = ReportSource(ds.reports, cfg.limits, clock_offsets(cfg))
     if source.n_rows == 0:
         raise DataError("reports: the table has no rows; nothing to process")
     window_s = windowable(cfg, source, window_s, notes)
@@ -517,12 +517,22 @@ def _span_text(w: Window, source: ReportSource) -> str:
     return utc_text(min(w.t1_us, (source.last_us or 0) + 1)) if source.windowable else "end"
 
 
+def clock_offsets(cfg: PipelineConfig) -> dict[int, int] | None:
+    """radar_id → µs of a given registration's clock offsets (rounded as
+    :func:`tertiary.stages.align.apply_registration` rounds them), which decide a report's window."""
+    if not (cfg.register and cfg.registration):
+        return None
+    rows = [(int(r[0]), float(r[3])) for r in cfg.registration]
+    us = (pl.Series([d for _, d in rows], dtype=pl.Float64).fill_nan(0.0) * US).round(0).cast(pl.Int64)
+    return {rid: int(v) for (rid, _), v in zip(rows, us)}
+
+
 def windowable(cfg: PipelineConfig, source: ReportSource, window_s: float | None, notes: list[str]) -> float | None:
     """``window_s``, or None (one window) with a note when the run cannot be cut in time."""
     if window_s is None:
         return None
     why = ("the reports' time column is not a timestamp" if not source.windowable else
-           "radar registration is estimated from the whole recording" if cfg.register else
+           "radar registration is estimated from the whole recording" if cfg.register and not cfg.registration else
            "the report collection queue is simulated over the whole recording" if cfg.collection is not None else
            "strict mode stops at the first invalid row of the whole input" if cfg.strict else None)
     if why:

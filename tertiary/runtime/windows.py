@@ -175,9 +175,16 @@ class ReportSource:
     validated against — so one report dated year 1 or 9999 neither stretches the grid nor moves
     its origin: such rows, and rows without a time, go to the first window, where ingest rejects
     them with the whole-run reason. A ``time`` column that is not a timestamp at all makes the run
-    one window (nothing can be cut)."""
+    one window (nothing can be cut).
 
-    def __init__(self, reports: pl.DataFrame | pl.LazyFrame, limits: schema.Limits = schema.Limits()) -> None:
+    ``clock_offsets`` (radar_id → µs, a registration's clock offsets δ_r): a report belongs to the
+    window of its corrected time t − δ_r, the time it carries once registered, so that the
+    registration can be applied window by window."""
+
+    def __init__(self, reports: pl.DataFrame | pl.LazyFrame, limits: schema.Limits = schema.Limits(),
+                 clock_offsets: dict[int, int] | None = None) -> None:
+        self.offsets = {int(k): int(v) for k, v in (clock_offsets or {}).items() if int(v) != 0}
+        self.reach_us = max((abs(v) for v in self.offsets.values()), default=0)
         lf = reports.lazy() if isinstance(reports, pl.DataFrame) else reports
         # the row index straight on the scan (nothing resolved before it, not even the schema):
         # a time filter is then pushed into the scan, which skips the files outside a window
@@ -204,9 +211,17 @@ class ReportSource:
         med = int(round(med))
         self.median = datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=med)
         self.lo_us, self.hi_us = max(lo, med - half), min(hi - 1, med + half)
-        span = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(t.min().alias("a"), t.max().alias("b")
+        tc = self._time()
+        span = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(tc.min().alias("a"), tc.max().alias("b")
                                                                            ).collect()
         self.first_us, self.last_us = span["a"][0], span["b"][0]
+
+    def _time(self) -> pl.Expr:
+        """The time (µs) a report is windowed by: its own, less its radar's clock offset."""
+        t = pl.col("time").dt.epoch("us")
+        if not self.offsets:
+            return t
+        return t - pl.col("radar_id").cast(pl.Int64).replace_strict(self.offsets, default=0, return_dtype=pl.Int64)
 
     @property
     def windowable(self) -> bool:
@@ -215,30 +230,33 @@ class ReportSource:
     def minute_counts(self) -> np.ndarray:
         """Reports with a plausible time in each whole minute from the first such report (one
         scan of the time column; :func:`auto_window_s`)."""
-        t = pl.col("time").dt.epoch("us")
+        t, tc = pl.col("time").dt.epoch("us"), self._time()
         k = (self.lf.filter((t >= self.lo_us) & (t <= self.hi_us))
-             .select(((t - self.first_us) // (60 * US)).alias("k")).collect()["k"].to_numpy())
+             .select(((tc - self.first_us) // (60 * US)).alias("k")).collect()["k"].to_numpy())
         return np.bincount(k.astype(np.int64)) if len(k) else np.zeros(1, np.int64)
 
     def occupied(self, origin_us: int, window_s: float) -> set[int]:
         """Indices of the windows holding at least one plausible report."""
         w = int(round(window_s * US))
         t = pl.col("time").dt.epoch("us")
-        k = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(((t - origin_us) // w).unique()).collect()
+        k = self.lf.filter((t >= self.lo_us) & (t <= self.hi_us)).select(((self._time() - origin_us) // w).unique()
+                                                                          ).collect()
         return set(k.to_series().to_list())
 
     def rows(self, w: Window) -> pl.DataFrame:
         if not self.windowable or (w.open_start and w.open_end):
             return self.lf.collect()
-        t = pl.col("time").dt.epoch("us")
-        cond = (t >= w.t0_us) & (t < w.t1_us) & (t >= self.lo_us) & (t <= self.hi_us)
+        t, tc = pl.col("time").dt.epoch("us"), self._time()
+        plausible = (t >= self.lo_us) & (t <= self.hi_us)
+        cond = (tc >= w.t0_us) & (tc < w.t1_us) & plausible
         if w.open_start:   # the first window also takes the rows without a plausible time
             return self.lf.filter(cond | pl.col("time").is_null() | (t < self.lo_us) | (t > self.hi_us)).collect()
         # the same rows, with a coarse test on the column itself first: a scan skips the files
         # and row groups whose time statistics lie outside it (a test on an expression of the
         # column cannot), so a window reads its own part of the input, not all of it
         # (collected before the exact test: a predicate the scan cannot take keeps it from taking any)
-        return self.lf.filter(self._near(max(w.t0_us, self.lo_us), min(w.t1_us, self.hi_us + 1))).collect().filter(cond)
+        near = self._near(max(w.t0_us - self.reach_us, self.lo_us), min(w.t1_us + self.reach_us, self.hi_us + 1))
+        return self.lf.filter(near).collect().filter(cond)
 
     def _near(self, t0_us: int, t1_us: int) -> pl.Expr:
         """``time`` within [t0 − 1 ms, t1 + 1 ms), compared in the column's own type (any unit)."""
