@@ -173,12 +173,9 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
             if abs(v / window_s - round(v / window_s)) > 1e-9:
                 raise OptionError(f"{v} s is not a multiple of the window ({window_s} s): slices must start on "
                                   "window boundaries", option=name)
-    if pipeline.windowable(cfg, source, 1.0, notes) is None:
-        notes.append("not cut into time slices: the run cannot be cut in time")
-        return [(T_MIN_US, T_MAX_US)]
-    if cfg.register:    # a slice reads its reports by their own time, a registered run by the corrected one
-        notes.append("not cut into time slices: the registration's clock offsets move reports across a "
-                     "slice's edges")
+    if pipeline.windowable(cfg, source, 1.0, notes) is None or cfg.register:   # slices read the reports' own times
+        why = "clock offsets move reports across their edges" if cfg.register else "the run cannot be cut in time"
+        notes.append(f"not cut into time slices: {why}")
         return [(T_MIN_US, T_MAX_US)]
     s = int(round(slice_s * US))
     n = max(1, (source.last_us - origin) // s + 1)
@@ -788,8 +785,7 @@ def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pip
 def _partition_table(parts: list[Partition], infos: list[dict], stitching: pl.DataFrame, out: Path) -> pl.DataFrame:
     """The ``partitions`` table: every output partition, its span, rows, time and worker."""
     return pl.DataFrame({
-        "partition": [p.index for p in parts],
-        "run": [None if p.run is None else int(p.run) for p in parts],
+        "partition": [p.index for p in parts], "run": [None if p.run is None else int(p.run) for p in parts],
         "slice": [p.slice for p in parts],
         "kept_from_utc": [boundary_utc(p.t0_us) for p in parts],
         "kept_to_utc": [boundary_utc(p.t1_us) for p in parts],
