@@ -279,3 +279,21 @@ def test_the_union_of_partitions_reads_only_the_columns_asked_for(tmp_path, monk
     assert got.columns == ["a", "opt"] and got["a"].to_list() == [1, 2, 3]
     assert got["opt"].to_list() == ["x", "y", None]
     assert asked and all(cols is not None and "big" not in cols for cols in asked)
+
+
+def test_a_registered_run_is_one_partition_on_the_grid_of_its_corrected_times(long_run):
+    """A given registration moves reports by their radar's clock offset: the Dask plan keeps the
+    run in one partition (a slice reads the reports' own times) and puts its grid where the local
+    engine's windows put it, at the first corrected time."""
+    from tertiary.runtime.windows import US, ReportSource
+    reports = read_dataset(long_run, lazy=True).reports.collect()
+    first = reports.sort("time").row(0, named=True)
+    # the first report's radar 2.5 s late: its corrected time falls into another whole second
+    rows = tuple((float(r), 0.0, 0.0, 2.5 if r == first["radar_id"] else 0.0, 0.0)
+                 for r in reports["radar_id"].unique().to_list())
+    cfg = dataclasses.replace(CFG, register=True, registration=rows)
+    notes: list[str] = []
+    origin, _n, parts = D.plan(long_run, cfg, WINDOW, 180.0, 60.0, notes=notes)
+    local = ReportSource(reports, clock_offsets=pipeline.streaming.clock_offsets(cfg))
+    assert len(parts) == 1 and any("clock offsets" in n for n in notes), notes
+    assert origin == (local.first_us // US) * US != (ReportSource(reports).first_us // US) * US

@@ -140,7 +140,7 @@ def plan(dataset_dir: str | Path, cfg: pipeline.PipelineConfig, window_s: float 
     """(grid origin µs, input rows, partitions) of a dataset: one per run × time slice."""
     notes = [] if notes is None else notes
     ds = read_dataset(dataset_dir, lazy=True)
-    source = ReportSource(ds.reports)
+    source = ReportSource(ds.reports, clock_offsets=pipeline.streaming.clock_offsets(cfg))   # as the windows read
     if source.n_rows == 0:
         raise DataError("reports: the table has no rows; nothing to process", path=str(dataset_dir))
     origin = (source.first_us // US) * US if source.windowable else None
