@@ -107,12 +107,13 @@ def test_a_given_registration_is_applied_window_by_window_as_in_one_window(termi
     rows = tuple((float(r), 10.0 * (-1) ** i, 0.02 * (-1) ** i, 0.06 * (-1) ** i, 0.0) for i, r in enumerate(ids))
     cfg = dataclasses.replace(FAST, register=True, registration=rows)
     whole = _tables(pipeline.process(terminal, cfg, window_s=None))
-    got = pipeline.process(terminal, cfg, window_s=47.0)
-    notes = got.ingested.notes
+    res = pipeline.process(terminal, cfg, window_s=47.0)
+    notes = res.ingested.notes
     assert not any(n.startswith("processed as one window") for n in notes), notes
     assert sum(n.startswith("registration (given) radar") for n in notes) == len(ids), notes
+    got = _tables(res)
     for name, frame in whole.items():
-        _same(_tables(got)[name], frame, name)
+        _same(got[name], frame, name)
 
 
 def test_the_carried_reference_keeps_only_targets_that_can_return(terminal, monkeypatch):
