@@ -522,8 +522,9 @@ def test_pictures_matched_together_in_a_window_equal_each_matched_alone(small):
 def test_a_second_track_on_an_aircraft_is_scored_a_duplicate_and_a_ghost_false(small):
     """Through the evaluation stage (the columns it hands the surveillance metrics): three epochs
     of a copy of a track 200 m aside (the matching leaves it to the original) add one duplicate
-    track and no false one; a ghost 80 km from everything adds one false track. Fails if the
-    matcher's gate is not handed to the metrics (the copy would count as false)."""
+    track, one split track and no false one; a ghost 80 km from everything adds one false track.
+    Fails if the matcher's gate is not handed to the metrics (the copy would count as false), or
+    if a split is looked for among matched rows only (the one-to-one matching never gives one)."""
     root, ds, files = small
     base = read_picture(files[0])
     first = base.filter(pl.col("track_id") == base["track_id"].min()).sort("epoch")
@@ -536,7 +537,8 @@ def test_a_second_track_on_an_aircraft_is_scored_a_duplicate_and_a_ghost_false(s
     def counts(picture: pl.DataFrame) -> tuple[float, float]:
         m = evaluate_pictures(picture, ds.truth, surveillance=True).metrics
         at = m.filter((pl.col("stage") == "evaluation") & (pl.col("segment") == "all"))
-        return tuple(at.filter(pl.col("metric") == k)["value"].item() for k in ("false_tracks", "duplicate_tracks"))
-    f0, d0 = counts(base)
-    f1, d1 = counts(pl.concat([base, copy.cast(base.schema), ghost.cast(base.schema)]))
-    assert (f1 - f0, d1 - d0) == (1.0, 1.0)
+        return tuple(at.filter(pl.col("metric") == k)["value"].item()
+                     for k in ("false_tracks", "duplicate_tracks", "split_tracks"))
+    f0, d0, s0 = counts(base)
+    f1, d1, s1 = counts(pl.concat([base, copy.cast(base.schema), ghost.cast(base.schema)]))
+    assert (f1 - f0, d1 - d0, s1 - s0) == (1.0, 1.0, 1.0)

@@ -150,6 +150,23 @@ def _value(metrics: pl.DataFrame, metric: str, method: str = "p", segment: str =
     return row["value"][0]
 
 
+def test_a_second_track_left_unmatched_in_a_gate_is_a_split_in_every_bucket(picture):
+    """The matching is one to one: a second track of an aircraft is an unmatched row with its
+    ``gated_truth_id``. Track 78 in the gate of aircraft 6 (which no track represents) is no
+    split; 77 beside B (represented by 14) is one, in whichever bucket B falls, filed or not."""
+    matched, expected = picture
+    t = np.arange(0.0, 40.0, 2.0)
+    air = _straight(t, speed=(0.0, 120.0), start=(20_000.0, -30_000.0), z=7000.0)
+    base = matched.with_columns(pl.lit(None, pl.Int64).alias("gated_truth_id"))
+    second = _rows("p", 0, 77, None, t, air, dx=300.0).with_columns(pl.lit(B, pl.Int64).alias("gated_truth_id"))
+    lone = second.with_columns(pl.lit(78, pl.UInt64).alias("track_id"), pl.lit(6, pl.Int64).alias("gated_truth_id"))
+    before = _value(_check(base, expected, radar_xy=RADARS), "split_tracks")
+    after = _check(pl.concat([base, second.select(base.columns), lone.select(base.columns)]), expected,
+                   radar_xy=RADARS)
+    assert _value(after, "split_tracks") == before + 1
+    assert _value(after, "duplicate_tracks") == 2
+
+
 def test_the_hand_built_picture_exercises_every_case(picture):
     """The cases the equality tests rely on are there: A and B in different buckets, a merged
     track, a split, a swap, a break, false tracks, and q untracked aircraft 3."""

@@ -22,7 +22,8 @@ def _traffic(seed: int, pictures: tuple[str, ...] = ("a", "b")) -> tuple[pl.Data
     aircraft seen at one epoch only, gaps longer than the break gap, two tracks on one aircraft
     at some epochs (split, swaps), tracks lying on an aircraft with none of its own (merged),
     matched rows at epochs the reference lacks, false tracks, a track in an aircraft's gate only
-    after its first rows (a duplicate, told in a later window), and two runs."""
+    after its first rows (a duplicate, told in a later window), a second track the one-to-one
+    matching leaves unmatched in an aircraft's gate (a split), and two runs."""
     rng = np.random.default_rng(seed)
     matched, expected = [], []
     for method in pictures:
@@ -56,6 +57,11 @@ def _traffic(seed: int, pictures: tuple[str, ...] = ("a", "b")) -> tuple[pl.Data
                                         "x_m": pos[0] + noise[0], "y_m": pos[1] + noise[1],
                                         "z_m": alt + noise[2], "alt_m": alt + noise[2], "vx_mps": v[0] + 2,
                                         "vy_mps": v[1] - 2, "vz_mps": 0.0})
+                    if aircraft == 3 and tracks and k in (2, 3):     # 907: a second track the matching left unmatched
+                        matched.append({**truth, **{c: None for c in truth if c.startswith("true_")},
+                                        "truth_id": None, "track_id": 907, "gated_truth_id": aircraft,
+                                        "x_m": pos[0] + 300.0, "y_m": pos[1], "z_m": alt, "alt_m": alt,
+                                        "vx_mps": v[0], "vy_mps": v[1], "vz_mps": 0.0})
             for k in range(30):                      # false tracks; 906 a duplicate of aircraft 3 from 100 s on
                 e = int(rng.integers(0, 200))
                 matched.append({"method": method, "run": run, "truth_id": None, "epoch": e, "track_id": 900 + k % 7,
@@ -118,6 +124,10 @@ def test_the_traffic_has_what_the_carry_must_handle() -> None:
     whole = _whole(m, e)
     got = {(r["metric"], r["segment"]): r["value"] for r in whole.filter(pl.col("method") == "a").iter_rows(named=True)}
     assert got[("split_tracks", "all")] > 0
+    # 907, unmatched in aircraft 3's gate while 3 has its own track, is a split track too
+    ungated = _whole(m.with_columns(pl.lit(None, pl.Int64).alias("gated_truth_id")), e)
+    assert ungated.filter((pl.col("method") == "a") & (pl.col("metric") == "split_tracks")
+                          & (pl.col("segment") == "all"))["value"].item() < got[("split_tracks", "all")]
     assert got[("merged_tracks", "all")] > 0
     assert got[("track_breaks", "all")] > 0
     assert got[("id_changes_per_hour", "all")] > 0

@@ -33,17 +33,31 @@ MEAN_ERRORS = {"along_track_bias_m": "along_m", "across_track_bias_m": "across_m
          "ground_speed_bias_mps": "err_gs_mps"}
 
 
-def _aircraft_bucket(schema: pl.Schema, buckets: int) -> pl.Expr:
+def _aircraft_bucket(schema: pl.Schema, buckets: int, gated: bool = False) -> pl.Expr:
     """The bucket of a row's aircraft (run, truth_id), hashed in ``matched``'s dtypes (``schema``)
-    so that an ``expected`` row falls in the bucket of its aircraft's track rows."""
-    key = pl.struct(pl.col("run").cast(schema["run"]), pl.col("truth_id").cast(schema["truth_id"]))
+    so that an ``expected`` row falls in the bucket of its aircraft's track rows. ``gated``: an
+    unmatched row's aircraft is the one whose gate it lies in (``gated_truth_id``)."""
+    truth = pl.col("truth_id").cast(schema["truth_id"])
+    if gated:
+        truth = pl.coalesce(truth, pl.col("gated_truth_id").cast(schema["truth_id"]))
+    key = pl.struct(pl.col("run").cast(schema["run"]), truth)
     return key.hash(_SEED) % buckets
 
+
+def _has_gated(schema: pl.Schema) -> bool:
+    return "gated_truth_id" in schema.names()
+
+
+def _tracked(schema: pl.Schema, gated: bool) -> pl.Expr:
+    """The rows of an aircraft: matched, or (``gated``) in its gate."""
+    hit = pl.col("truth_id").is_not_null()
+    return hit | pl.col("gated_truth_id").is_not_null() if gated and _has_gated(schema) else hit
 
 @dataclass(frozen=True)
 class _BucketScan:
     """One bucket of aircraft of the inputs at a time: the rows of ``matched`` with a truth_id
-    and the rows of ``expected`` whose (run, truth_id) hash to bucket k."""
+    (or a ``gated_truth_id``: a second track of the aircraft) and the rows of ``expected`` whose
+    (run, truth_id) hash to bucket k."""
 
     matched_lf: pl.LazyFrame
     expected_lf: pl.LazyFrame | None
@@ -60,23 +74,29 @@ class _BucketScan:
         """The scan with the rows filed by bucket once under ``scratch``
         (:func:`tertiary.evaluation.buckets.file_buckets`): a bucket reads its own rows only."""
         bucket = _aircraft_bucket(schema, buckets)
-        m = file_buckets(matched.filter(pl.col("truth_id").is_not_null()), bucket, buckets, scratch / "matched")
+        m = file_buckets(matched.filter(_tracked(schema, True)), _aircraft_bucket(schema, buckets, _has_gated(schema)),
+                         buckets, scratch / "matched")
         e = None
         if expected is not None:
             src = expected.with_columns(bucket.alias("__ab")).select(*exp_cols, "__ab")
             e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected")]
         return cls(matched, expected, schema, exp_cols, buckets, m, e)
 
-    def _where(self, k: int) -> pl.Expr | None:
-        return None if self.buckets == 1 else _aircraft_bucket(self.schema, self.buckets) == k
+    def _where(self, k: int, matched: bool) -> pl.Expr | None:
+        """Bucket ``k``'s rows of ``matched`` (else of ``expected``)."""
+        return (None if self.buckets == 1 else
+                _aircraft_bucket(self.schema, self.buckets, matched and _has_gated(self.schema)) == k)
 
-    def matched(self, k: int, cols: Sequence[str]) -> pl.DataFrame:
-        """Bucket ``k``'s tracked rows of ``matched``, columns ``cols`` (those it has)."""
+    def matched(self, k: int, cols: Sequence[str], gated: bool = False) -> pl.DataFrame:
+        """Bucket ``k``'s tracked rows of ``matched``, columns ``cols`` (those it has); ``gated``:
+        with the unmatched rows in an aircraft's gate."""
         names = [c for c in self.schema.names() if c in cols]
+        tracked = _tracked(self.schema, gated)
         if self.filed_matched is not None:
-            return self.filed_matched[k].select(names).collect()
-        where, tracked = self._where(k), pl.col("truth_id").is_not_null()
+            return self.filed_matched[k].filter(tracked).select(names).collect()
+        where = self._where(k, matched=True)
         return self.matched_lf.filter(tracked if where is None else tracked & where).select(names).collect()
+
 
     def expected(self, k: int) -> pl.DataFrame | None:
         """Bucket ``k``'s rows of ``expected`` (None without it)."""
@@ -84,7 +104,7 @@ class _BucketScan:
             return None
         if self.filed_expected is not None:
             return self.filed_expected[k].collect()
-        where = self._where(k)
+        where = self._where(k, matched=False)
         return (self.expected_lf if where is None else self.expected_lf.filter(where)).select(self.exp_cols).collect()
 
 
@@ -132,9 +152,10 @@ def _error_partials(err: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsCon
 
 def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
                          methods: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
-                         out: Partials) -> None:
+                         out: Partials, gated: pl.DataFrame | None = None) -> None:
     """The continuity sums of one bucket's aircraft (``methods``: every picture with a
-    matched row, in any bucket), its split tracks and (``merge``) its bare expected rows."""
+    matched row, in any bucket), its split tracks (``gated``: its second tracks' rows,
+    :func:`~tertiary.evaluation.picture_metrics.gated_rows`) and (``merge``) its bare expected rows."""
     rep = pm.rep_events(m, labels, cfg)
     expo = pm.exposure_rows(rep, expected, methods, labels, cfg)
     out.hours.append(pm.by_segment(expo, breakdown, pl.col("__hours").sum(), by=["run"]))
@@ -145,7 +166,7 @@ def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels:
     out.intervals.append(pm.by_segment(ints, breakdown, pl.col("updated").sum().alias("__updated"),
                                      pl.len().alias("__n"), by=["run"]))
     del ints, expo
-    out.split.append(pm.second_tracks(rep, m, labels).select("method", "run", "track_id", *breakdown).unique())
+    out.split.append(pm.second_tracks(rep, m, labels, gated).select("method", "run", "track_id", *breakdown).unique())
     if merge:
         out.bare.append(pm.bare_rows(m, expected, methods).join(labels, on=["run", "truth_id", "epoch"], how="left")
                         .select(pl.col("method").cast(pl.Categorical), "run", "epoch", "truth_id", "true_x_m",
@@ -155,15 +176,18 @@ def _continuity_partials(m: pl.DataFrame, expected: pl.DataFrame | None, labels:
 def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl.DataFrame,
                      radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool,
                      out: Partials) -> None:
-    """Everything one bucket's rows (``m``: its tracked rows, ``expected``: its reference rows)
-    leave for the combine step; nothing without a row."""
+    """Everything one bucket's rows (``m``: its tracked rows and the unmatched rows in the gate of
+    one of its aircraft, ``expected``: its reference rows) leave for the combine step; nothing
+    without a row."""
+    gated = pm.gated_rows(m, m.schema["truth_id"])
+    m = m.filter(pl.col("truth_id").is_not_null())
     if m.height == 0 and (expected is None or expected.height == 0):
         return
     labels = pm.picture_labels(m, expected, radar_xy, cfg)
     _error_partials(pm.error_rows(m, labels, cfg), breakdown, cfg, out)
     if methods.height:                      # continuity of every picture with a matched row
         _continuity_partials(m.select(c for c in m.columns if c in pm.CONTINUITY_INPUTS), expected, labels,
-                             methods, breakdown, cfg, merge, out)
+                             methods, breakdown, cfg, merge, out, gated)
 
 
 def accuracy_combined(out: Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
@@ -253,10 +277,11 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     filed = scratch is not None and buckets > 1
     scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
             else _BucketScan(matched, expected, schema, exp_cols, buckets))
-    reads = {*pm.ERROR_INPUTS, *pm.CONTINUITY_INPUTS, *(c for c in schema.names() if c.startswith("true_"))}
+    reads = {*pm.ERROR_INPUTS, *pm.CONTINUITY_INPUTS, "gated_truth_id",
+             *(c for c in schema.names() if c.startswith("true_"))}
     out = Partials()
     for k in range(buckets):
-        _bucket_partials(scan.matched(k, reads), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
+        _bucket_partials(scan.matched(k, reads, gated=True), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
     parts = [pm.picture_rows(tracks)]
     if out.accuracy:
         parts.append(accuracy_combined(out, breakdown, schema["method"]))

@@ -46,8 +46,9 @@ Definitions (errors are track − reference)
   inside some aircraft's gate at some epoch (``gated_truth_id``: a second track of an aircraft,
   left unmatched by the one-to-one matching): which of two tracks of one aircraft the matching
   keeps depends on which is closer, not on which is real, so a second track is counted apart.
-  ``split_tracks``: distinct tracks that were, at some epoch, a non-representative second track
-  of an aircraft. ``merged_tracks``: distinct tracks whose position lay within ``merge_gate_m``
+  ``split_tracks``: distinct tracks that were, at some epoch, a second track of an aircraft that
+  another track represented then (an unmatched row in its gate, ``gated_truth_id``: a track matched
+  at other epochs counts, as does a duplicate). ``merged_tracks``: distinct tracks whose position lay within ``merge_gate_m``
   (and ``merge_gate_v_m``) of an expected aircraft with no track of its own while representing
   another aircraft.
 * identity correctness, on matched rows where both sides carry the item: ``mode_s_correct_frac``
@@ -356,7 +357,7 @@ def continuity_rows(hours: pl.DataFrame, events: pl.DataFrame, ints: pl.DataFram
 
 
 def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataFrame,
-                breakdown: Sequence[str], cfg: MetricsConfig) -> pl.DataFrame:
+                breakdown: Sequence[str], cfg: MetricsConfig, gated: pl.DataFrame | None = None) -> pl.DataFrame:
     # what the continuity metrics read: a long picture's other columns are not copied through them
     m = m.select(c for c in m.columns if c in CONTINUITY_INPUTS)
     rep = rep_events(m, labels, cfg)
@@ -370,21 +371,37 @@ def _continuity(m: pl.DataFrame, expected: pl.DataFrame | None, labels: pl.DataF
     ints = by_segment(update_intervals(rep, expo, cfg, expected is None), breakdown,
                        pl.col("updated").mean().alias("prob_update"),
                        pl.len().cast(pl.Float64).alias("n_update_intervals"))
-    out = [continuity_rows(hours, events, ints), _split(rep, m, labels, breakdown)]
+    out = [continuity_rows(hours, events, ints), _split(rep, m, labels, breakdown, gated)]
     if expected is not None and {"true_x_m", "true_y_m"} <= set(expected.columns):
         out.append(_merged(m, rep.select(m.columns), expected, labels, methods, breakdown, cfg))
     return pl.concat(out, how="vertical")
 
 
-def second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame) -> pl.DataFrame:
-    """The rows of ``m`` whose track is not its aircraft's representative then, labelled."""
-    return (m.join(rep.select(_KEY + ["epoch", pl.col("track_id").alias("__rep")]), on=_KEY + ["epoch"])
+def gated_rows(rows: pl.DataFrame, truth_dtype: pl.DataType) -> pl.DataFrame:
+    """The unmatched rows of ``rows`` that lie in an aircraft's gate, as rows of that aircraft
+    (``truth_id`` = ``gated_truth_id``): (method, run, truth_id, epoch, track_id). The matching
+    is one to one, so a second track of an aircraft is one of these, never a second match."""
+    key = ["method", "run", pl.col("gated_truth_id").cast(truth_dtype).alias("truth_id"), "epoch", "track_id"]
+    if "gated_truth_id" not in rows.columns:
+        return rows.select(*key[:2], pl.lit(None, truth_dtype).alias("truth_id"), *key[3:]).clear()
+    return rows.filter(pl.col("truth_id").is_null() & pl.col("gated_truth_id").is_not_null()).select(key)
+
+
+def second_tracks(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame,
+                  gated: pl.DataFrame | None = None) -> pl.DataFrame:
+    """The rows of ``m`` and ``gated`` (:func:`gated_rows`) whose track is not their aircraft's
+    representative at an epoch that has one, labelled."""
+    rows = m.select(*_KEY, "epoch", "track_id")
+    if gated is not None and gated.height:
+        rows = pl.concat([rows, gated.select(rows.columns).cast(rows.schema)])
+    return (rows.join(rep.select(_KEY + ["epoch", pl.col("track_id").alias("__rep")]), on=_KEY + ["epoch"])
             .filter(pl.col("track_id") != pl.col("__rep")).join(labels, on=["run", "truth_id", "epoch"], how="left"))
 
 
-def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: Sequence[str]) -> pl.DataFrame:
+def _split(rep: pl.DataFrame, m: pl.DataFrame, labels: pl.DataFrame, breakdown: Sequence[str],
+           gated: pl.DataFrame | None) -> pl.DataFrame:
     base = rep.select("method", "run").unique()
-    return count_tracks(second_tracks(rep, m, labels), base, breakdown, "split_tracks")
+    return count_tracks(second_tracks(rep, m, labels, gated), base, breakdown, "split_tracks")
 
 
 def count_tracks(events: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str], name: str) -> pl.DataFrame:
@@ -608,7 +625,7 @@ def picture_metrics(matched: pl.DataFrame, *, expected: pl.DataFrame | None = No
     del err
     m = matched.select(c for c in matched.columns if c in CONTINUITY_INPUTS).filter(pl.col("truth_id").is_not_null())
     if m.height:
-        parts.append(_continuity(m, expected, labels, breakdown, cfg))
+        parts.append(_continuity(m, expected, labels, breakdown, cfg, gated_rows(matched, m.schema["truth_id"])))
     return finish_metrics(parts)
 
 

@@ -36,8 +36,8 @@ from tertiary.evaluation import sketch
 from tertiary.evaluation.picture_buckets import (Partials, accuracy_combined, accuracy_sums, continuity_combined,
                                                  identity_combined)
 from tertiary.evaluation.picture_metrics import (MetricsConfig, height_exprs, by_segment, count_tracks,
-                                                 error_rows, finish_metrics, identity_checks, merge_hits, picture_rows,
-                                                 reference_labels, track_inputs, track_table)
+                                                 error_rows, finish_metrics, gated_rows, identity_checks, merge_hits,
+                                                 picture_rows, reference_labels, track_inputs, track_table)
 
 __all__ = ["PictureStepState", "picture_step", "picture_metrics_finish", "LABELS"]
 
@@ -59,7 +59,8 @@ class PictureStepState:
     first; ``bins``: its open update intervals; ``last_rep``: its last represented epoch and
     track (null: ambiguous); ``changes``: the representative changes that touch an ambiguous
     epoch; ``ambiguous``: the rows of ambiguous epochs, labelled; ``ambiguous_hits``: the
-    merged-track hits of their candidates; ``merged``: distinct merged tracks by label;
+    merged-track hits of their candidates; ``merged``: distinct merged tracks by label; ``split``,
+    ``pending_split``: see below;
     ``sums``: the additive partials by picture, run and labels, a frame per kind."""
 
     tracks: pl.DataFrame | None = None
@@ -76,6 +77,10 @@ class PictureStepState:
     ambiguous: pl.DataFrame | None = None
     ambiguous_hits: pl.DataFrame | None = None
     merged: pl.DataFrame | None = None
+    #: distinct split tracks by label (:func:`_seconds`), and the second-track rows of aircraft
+    #: still waiting for their labels
+    split: pl.DataFrame | None = None
+    pending_split: pl.DataFrame | None = None
     sums: dict[str, list[pl.DataFrame]] = field(default_factory=dict)
     #: the reference has positions: merged tracks are counted
     merge: bool = False
@@ -217,6 +222,18 @@ def _representative_points(m: pl.DataFrame) -> pl.DataFrame:
                        "__th", "__amb")
 
 
+def _seconds(given: Sequence[pl.DataFrame], keys: pl.DataFrame | None) -> pl.DataFrame | None:
+    """The window's second-track rows (:func:`~tertiary.evaluation.picture_metrics.gated_rows`)
+    of an aircraft that another track represents at that epoch: (method, run, truth_id, epoch,
+    track_id). ``keys``: the window's matched rows (a window holds whole epochs, so an epoch's
+    representative is among them)."""
+    rows = _cat(*(gated_rows(f, pl.Int64) for f in given))
+    if rows is None or keys is None or rows.height == 0:
+        return None
+    return (rows.join(keys.rename({"track_id": "__rep"}), on=_AT).filter(pl.col("track_id") != pl.col("__rep"))
+            .select(*_AT, "track_id"))
+
+
 def _hits(points: pl.DataFrame | None, ref: pl.DataFrame, cfg: MetricsConfig) -> pl.DataFrame:
     """Merged-track hits of one window: a representative (or candidate) track within the gates of
     another aircraft that has no track of its own then (:func:`~tertiary.evaluation.picture_metrics.merge_hits`);
@@ -355,6 +372,7 @@ def _step(state: PictureStepState, matched: Sequence[pl.DataFrame], expected: pl
         hits = _hits(None, ref_new, cfg)
     ref = _cat(state.pending_ref, ref_new)
     labels, context, pending_ref = _labels(state, ref, radar_xy, cfg, final)
+    split, pending_split = _split_step(state, _seconds(given, keys), labels, pending_ref)
     if pending_ref.height or state.pending_rows or _nonempty(state.pending_hits):
         # the rows of an aircraft still waiting for its labels wait with it; each frame keeps
         # its picture's columns (a height is ``alt_m`` where a picture has it, else ``z_m``)
@@ -387,8 +405,23 @@ def _step(state: PictureStepState, matched: Sequence[pl.DataFrame], expected: pl
         tracks=tracks, counts=counts, context=context, pending_ref=pending_ref, pending_rows=pending_rows,
         pending_hits=pending_hits, exposure=exposure, origin=origin, bins=bins, last_rep=last_rep,
         changes=_cat(state.changes, changes), ambiguous=_cat(state.ambiguous, ambiguous),
-        ambiguous_hits=amb_hits, merged=merged, merge=state.merge or can_merge,
+        ambiguous_hits=amb_hits, merged=merged, split=split, pending_split=pending_split,
+        merge=state.merge or can_merge,
         sums=_counted(state.sums, err, hours, rep, closed, cfg))
+
+
+def _split_step(state: PictureStepState, seconds: pl.DataFrame | None, labels: pl.DataFrame,
+                pending_ref: pl.DataFrame) -> tuple[pl.DataFrame | None, pl.DataFrame | None]:
+    """(distinct split tracks by label, the second-track rows still waiting for their aircraft's
+    labels) with the window's ``seconds`` added."""
+    rows = _cat(state.pending_split, seconds)
+    if rows is None or rows.height == 0:
+        return state.split, None
+    waiting = pending_ref.select(_KEY).unique()
+    held = rows.join(waiting, on=_KEY, how="semi") if waiting.height else None
+    rows = rows.join(waiting, on=_KEY, how="anti") if waiting.height else rows
+    new = rows.join(labels, on=_AT, how="left").select("method", "run", "track_id", *LABELS).unique()
+    return _cat(state.split, new).unique(), held if held is not None and held.height else None
 
 
 def _flushed(state: PictureStepState, radar_xy: NDArray[np.float64] | None, cfg: MetricsConfig) -> PictureStepState:
@@ -446,6 +479,8 @@ def picture_metrics_finish(state: PictureStepState, radar_xy: NDArray[np.float64
                                          by=["run"]))
         split = [pl.DataFrame(schema={"method": pl.String, "run": pl.UInt32, "track_id": pl.UInt64,
                                       **{c: pl.Categorical for c in LABELS}})]
+        if state.split is not None:
+            split.append(state.split)
         if reps is not None:
             split.append(state.ambiguous.join(reps, on=_AT).filter(pl.col("track_id") != pl.col("__rep"))
                          .select("method", "run", "track_id", *LABELS).unique())
