@@ -13,24 +13,29 @@ from polars.testing import assert_frame_equal
 
 from test_accuracy_buckets import CFGS, T0, _hand_picture
 from tertiary.evaluation.accuracy import AccuracyConfig, picture_accuracy, row_scores, scored_samples
-from tertiary.evaluation.accuracy_streamed import (SeedState, Walk, seed_rows, seed_step, seed_tables, statistic_lags,
-                                                   walk_step)
+from tertiary.evaluation.accuracy_streamed import (EPOCH_SUMS, SeedState, Walk, seed_rows, seed_step, seed_tables,
+                                                   statistic_lags, walk_step, with_epoch_sums)
 
 pytestmark = pytest.mark.filterwarnings("ignore:invalid value encountered in det:RuntimeWarning")
 
 
 def _stepped(matched: pl.DataFrame, observed: pl.DataFrame, cfg: AccuracyConfig, cuts: list[int]
              ) -> tuple[SeedState, Walk, pl.DataFrame]:
-    """The state and walk after the windows cut at epoch indices ``cuts``, and the scored rows."""
+    """The state and walk after the windows cut at epoch indices ``cuts`` with the per-epoch
+    sums the windows wrote, and the scored rows. The carried state never holds per-epoch sums."""
     edges = [T0 - timedelta(seconds=1), *(T0 + timedelta(seconds=4 * k) for k in cuts), T0 + timedelta(days=1)]
     rows = seed_rows(row_scores(matched), "track_id")
-    state, walk, scored = SeedState(), Walk(), []
+    state, walk, scored, written = SeedState(), Walk(), [], {}
     for a, b in zip(edges[:-1], edges[1:]):
         walk_rows, walk = walk_step(walk, observed.filter(pl.col("epoch").is_between(a, b, closed="left")))
         window = rows.filter(pl.col("epoch").is_between(a, b, closed="left"))
         if window.height:
-            out, state = seed_step(state, window, walk_rows, walk, cfg)
+            out, epochs, state = seed_step(state, window, walk_rows, walk, cfg)
+            assert not set(EPOCH_SUMS) & set(state.sums.tables) and set(epochs) <= set(EPOCH_SUMS.values())
+            for table, frame in epochs.items():
+                written.setdefault(table, []).append(frame)
             scored.append(out)
+    state = with_epoch_sums(state, lambda t: pl.concat(written[t]) if t in written else None)
     return state, walk, pl.concat(scored)
 
 

@@ -19,7 +19,7 @@ from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound_streamed as bs
 from tertiary.evaluation.bound import bound_stage, scan_origins
-from tertiary.evaluation.bound_pooling import bound_rows
+from tertiary.evaluation.bound_pooling import pool_rows
 from tertiary.evaluation.evaluate import write_reference
 
 T0_US = int(datetime(2021, 10, 7, 8, 0, tzinfo=timezone.utc).timestamp()) * US
@@ -139,7 +139,12 @@ def test_the_windows_bound_equals_the_whole_run_stage(case, monkeypatch, tmp_pat
     if window_s < 900:
         assert bounded[-1] == 2 and state.aircraft["truth_id"].to_list() == [9, 10], bounded
         assert state.tail.height < case.truth.height / 4, "the windows hold the truth instead of its tail"
-    got = bound_rows(bs.bound_finish(setup, state, stored), case.acc)
+        # the epochs no row can come to any more are pooled, not carried: the state does not
+        # grow with the run
+        assert state.pools is not None and state.pools["__k"].sum() > 0
+        open_from = min(state.cut_us, int(state.aircraft["done_us"].min()))
+        assert state.sums.select((pl.col("epoch").dt.epoch("us") >= open_from).all()).item()
+    got = pool_rows(bs.bound_finish(setup, state, stored), case.acc)
     assert case.whole.height and set(case.whole["segment"]) == {"all", "straight", "turn"}
     assert_frame_equal(got, case.whole, check_exact=False, rel_tol=1e-9, abs_tol=0.0)
 
@@ -153,7 +158,7 @@ def test_an_aircraft_whose_samples_past_the_cut_are_too_few_waits(case, monkeypa
     monkeypatch.setattr(bs, "LOOKAHEAD_S", 3.0)
     setup, state, _, stored = _stepped(case, tmp_path / "parts", 30.0)
     assert (state.aircraft["done_us"] < state.cut_us).all()
-    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+    assert_frame_equal(pool_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
 
@@ -164,7 +169,7 @@ def test_a_runs_open_last_window_leaves_the_aircraft_still_flying_to_the_end(cas
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 97.0, open_last=True)
     assert bounded[-1] == bounded[-2] == 2 and state.aircraft["truth_id"].to_list() == [9, 10], bounded
     assert int(state.aircraft["done_us"].max()) < T0_US + 800 * US
-    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+    assert_frame_equal(pool_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
 
@@ -172,7 +177,7 @@ def test_the_state_pickles(case, tmp_path):
     """A state pickled after each window bounds the same."""
     setup, state, bounded, stored = _stepped(case, tmp_path / "parts", 30.0, roundtrip=True)
     assert bounded[-1] == 2
-    assert_frame_equal(bound_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
+    assert_frame_equal(pool_rows(bs.bound_finish(setup, state, stored), case.acc), case.whole, check_exact=False,
                        rel_tol=1e-9, abs_tol=0.0)
 
 

@@ -25,6 +25,7 @@ once, a bucket of whole tracks at a time (:func:`statistic_lags`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import polars as pl
@@ -36,7 +37,7 @@ from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
 from tertiary.evaluation.consistency import CONSISTENCY_ALL, Lags, WholeSeries
 
 __all__ = ["Walk", "SeedState", "walk_step", "seed_rows", "seed_step", "statistic_lags", "seed_tables",
-           "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS"]
+           "with_epoch_sums", "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS", "EPOCH_SUMS"]
 
 _AIRCRAFT = ["run", "truth_id"]
 _TRACK = ["method", "run", "track_id"]
@@ -52,6 +53,10 @@ SCORED_ROWS: dict[str, pl.DataType] = {"method": pl.String, "run": pl.UInt32, "e
 SEED_COLUMNS = (*ACCURACY_COLUMNS, "method")
 #: scored rows whose per-lag sums are made at a time at the end of a run (whole tracks)
 LAG_BUCKET_ROWS = 2_000_000
+#: the per-epoch sums of :class:`SeedSums` (its table → the window table it is written to): a
+#: window's epochs are complete when it ends, so they are written with the window instead of
+#: carried (a carried state that grows with the run is pickled again at every window)
+EPOCH_SUMS = {"epochs": "seed_epochs", **{f"{p}:epochs": f"seed_{p}_epochs" for p in CONSISTENCY_ALL}}
 
 
 def _aircraft_schema() -> dict[str, pl.DataType]:
@@ -107,7 +112,8 @@ def _counts_schema() -> dict[str, pl.DataType]:
 
 @dataclass(frozen=True)
 class SeedState:
-    """Every picture's seed metrics so far, keyed by ``method``: the sums (``sums``), per track
+    """Every picture's seed metrics so far, keyed by ``method``: the sums (``sums``; the
+    per-epoch ones each window writes instead, :data:`EPOCH_SUMS`), per track
     (``tracks``: first epoch, ever matched, last aircraft), per aircraft the walk position and
     track of its last covered epoch (``cover``), and per picture (``counts``) its matched rows
     seen, swaps, covered epochs and breaks."""
@@ -179,11 +185,12 @@ def _added(counts: pl.DataFrame, *parts: pl.DataFrame) -> pl.DataFrame:
 
 
 def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, walk: Walk, cfg: AccuracyConfig
-              ) -> tuple[pl.DataFrame, SeedState]:
-    """(the window's scored rows, :data:`SCORED_ROWS`; the state after the window) of every
-    picture's matched, row-scored ``rows`` of a window (:func:`seed_rows`; each picture's in its
-    order), the window's coverage walk ``walk_rows`` (:func:`walk_step`) and the walk after it
-    (``walk``: each aircraft's first reported epoch, the window's included)."""
+              ) -> tuple[pl.DataFrame, dict[str, pl.DataFrame], SeedState]:
+    """(the window's scored rows, :data:`SCORED_ROWS`; its per-epoch sums by window table,
+    :data:`EPOCH_SUMS`; the state after the window) of every picture's matched, row-scored
+    ``rows`` of a window (:func:`seed_rows`; each picture's in its order), the window's coverage
+    walk ``walk_rows`` (:func:`walk_step`) and the walk after it (``walk``: each aircraft's first
+    reported epoch, the window's included)."""
     offset = state.counts.select("method", pl.col("rows").alias("__offset"))
     m = (rows.join(offset, on="method", how="left", maintain_order="left")
          .with_columns((pl.col("__offset").fill_null(0) + pl.int_range(pl.len()).over("method")).alias(_ROW))
@@ -199,13 +206,27 @@ def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, wal
     if cfg.skip_first_s > 0:
         keep = keep & ((pl.col("epoch") - pl.col("__t0")).dt.total_microseconds() >= round(cfg.skip_first_s * 1e6))
     scored = s.filter(keep).select(c for c in s.columns if c in ACCURACY_COLUMNS or c == _ROW)
-    sums = SeedSums(0, dict(state.sums.tables))
+    sums = SeedSums(0, {k: v for k, v in state.sums.tables.items() if k not in EPOCH_SUMS})
     if scored.height:
         sums.add_scored(scored, lags=False)
+    epochs = {EPOCH_SUMS[k]: sums.tables.pop(k) for k in list(sums.tables) if k in EPOCH_SUMS}
     counts = _added(state.counts, m.group_by("method").agg(pl.len().alias("rows")), swaps, covered)
     out = scored.select(pl.col(c).cast(t) if c in scored.columns else pl.lit(None, t).alias(c)
                         for c, t in SCORED_ROWS.items())
-    return out, SeedState(sums, tracks, cover, counts)
+    return out, epochs, SeedState(sums, tracks, cover, counts)
+
+
+def with_epoch_sums(state: SeedState, read: Callable[[str], pl.DataFrame | None]) -> SeedState:
+    """``state`` with the per-epoch sums every window wrote (``read``: a window table's rows of
+    every window, None without any), as one :class:`SeedSums` over the run holds them: the
+    windows' epochs are disjoint, so their rows are the run's."""
+    tables = dict(state.sums.tables)
+    for name, table in EPOCH_SUMS.items():
+        rows = read(table)
+        if rows is not None and rows.height:
+            tables[name] = rows if name not in tables else pl.concat([tables[name], rows], how="vertical_relaxed")
+    return SeedState(SeedSums(state.sums.rows, tables, state.sums.lags, state.sums.samples), state.tracks,
+                     state.cover, state.counts)
 
 
 def statistic_lags(scored: pl.LazyFrame, rows: int, carried: dict[tuple[str, str, str], Lags] | None = None

@@ -1,6 +1,7 @@
 """The bound's metrics (:mod:`tertiary.evaluation.bound`, "Metrics"): the posterior Cramér–Rao
 bound pooled over a picture's scored samples as its RMSE is, and the signed gap to that RMSE.
-The sums per (method, segment, epoch, run) add up over blocks of aircraft."""
+The sums per (method, segment, epoch, run) add up over blocks of aircraft; an epoch whose samples
+are all in folds into its (method, segment) pool (:func:`epoch_pools`), which adds up over epochs."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import polars as pl
 
 from tertiary.contract import TABLES, TIME
 
-__all__ = ["BOUND_METRICS", "GAP", "UNMEASURED", "bound_metrics", "bound_rows", "bound_sums"]
+__all__ = ["BOUND_METRICS", "GAP", "UNMEASURED", "bound_metrics", "bound_rows", "bound_sums", "epoch_pools",
+           "merged_pools", "pool_rows"]
 
 #: metric → (bound column, accuracy metric it is compared with)
 BOUND_METRICS: dict[str, tuple[str, str]] = {
@@ -52,20 +54,48 @@ def bound_sums(scored: pl.DataFrame, bound: pl.DataFrame) -> pl.DataFrame:
                       .filter(pl.col("segment").is_not_null()).with_columns(names)])
 
 
-def bound_rows(sums: pl.DataFrame, accuracy: pl.DataFrame) -> pl.DataFrame:
-    """:func:`bound_metrics` rows from the :func:`bound_sums` of every sample."""
-    spec = TABLES["metrics"].required
-    if sums.is_empty():
-        return pl.DataFrame(schema=spec)
+def epoch_pools(sums: pl.DataFrame) -> pl.DataFrame:
+    """Per (method, segment), what its epochs in :func:`bound_sums` ``sums`` (every sample of
+    each) add to the pooled bound: each column's per-epoch mean summed over the measured epochs
+    (an epoch whose samples all precede their first plot pools nothing), their count ``__k``, the
+    unmeasured samples and the most runs at an epoch."""
     cols = [c for c, _ in BOUND_METRICS.values()]
     per = sums.group_by("method", "segment", "epoch").agg(*[(pl.col(c).sum() / pl.col("__n").sum()).alias(c)
                                                             for c in cols],
                                                           pl.col("__n").sum(), pl.col("__unmeasured").sum(),
                                                           pl.col("run").n_unique().alias("__runs"))
-    measured = pl.col("__n") > 0          # an epoch whose samples all precede their first plot pools nothing
-    pooled = per.group_by("method", "segment").agg(*[pl.col(c).filter(measured).mean().sqrt() for c in cols],
-                                                   pl.col("__unmeasured").sum().cast(pl.Float64).alias(UNMEASURED),
-                                                   pl.col("__runs").max().alias("n_runs"))
+    measured = pl.col("__n") > 0
+    return per.group_by("method", "segment").agg(*[pl.col(c).filter(measured).sum() for c in cols],
+                                                 measured.sum().cast(pl.UInt64).alias("__k"),
+                                                 pl.col("__unmeasured").sum().cast(pl.UInt64),
+                                                 pl.col("__runs").max().cast(pl.UInt32))
+
+
+def merged_pools(*pools: pl.DataFrame | None) -> pl.DataFrame | None:
+    """The :func:`epoch_pools` of disjoint sets of epochs as one (None: none given)."""
+    have = [p for p in pools if p is not None and p.height]
+    if len(have) < 2:
+        return have[0] if have else next((p for p in pools if p is not None), None)
+    both = pl.concat(have)
+    return both.group_by("method", "segment").agg(
+        *[pl.col(c).sum() for c in both.columns if c not in ("method", "segment", "__runs")], pl.col("__runs").max())
+
+
+def bound_rows(sums: pl.DataFrame, accuracy: pl.DataFrame) -> pl.DataFrame:
+    """:func:`bound_metrics` rows from the :func:`bound_sums` of every sample."""
+    return pool_rows(epoch_pools(sums) if not sums.is_empty() else None, accuracy)
+
+
+def pool_rows(pools: pl.DataFrame | None, accuracy: pl.DataFrame) -> pl.DataFrame:
+    """:func:`bound_metrics` rows from the :func:`epoch_pools` of every epoch: sqrt(mean_k mean_{j∈k} b²)."""
+    spec = TABLES["metrics"].required
+    if pools is None or pools.is_empty():
+        return pl.DataFrame(schema=spec)
+    cols = [c for c, _ in BOUND_METRICS.values()]
+    k = pl.col("__k")
+    pooled = pools.select("method", "segment", *[pl.when(k > 0).then(pl.col(c) / k).sqrt().alias(c) for c in cols],
+                          pl.col("__unmeasured").cast(pl.Float64).alias(UNMEASURED),
+                          pl.col("__runs").alias("n_runs"))
     long = pooled.unpivot(index=["method", "segment", "n_runs"], on=[*cols, UNMEASURED], variable_name="col",
                           value_name="value")
     name = {c: m for m, (c, _) in BOUND_METRICS.items()} | {UNMEASURED: UNMEASURED}

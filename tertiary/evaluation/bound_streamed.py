@@ -42,7 +42,7 @@ from tertiary.core.stage import T_MAX_US, Window
 from tertiary.core.units import US
 from tertiary.evaluation import bound as _bound
 from tertiary.evaluation.bound_measurements import MODE_S_FIRST, mode_s_first
-from tertiary.evaluation.bound_pooling import bound_sums
+from tertiary.evaluation.bound_pooling import bound_sums, epoch_pools, merged_pools
 from tertiary.evaluation.bound_truth import COLUMNS, Truth, truth_gaps
 from tertiary.evaluation.evaluate import reference_files
 from tertiary.sensors import mlat
@@ -114,8 +114,10 @@ class BoundState:
     and how far the reference is read (``read_us``, exclusive); the cut the recursions were last
     taken to (``cut_us``); the windows whose stored samples may hold rows to come (``windows``:
     index, first and last epoch µs); the Cartesian sensors' ``plots`` still to come; each
-    aircraft's first Mode S report (``mode_s``); the sums so far (one row per (method, segment,
-    epoch, run)) and how many aircraft are done. ``complete``: every window gave its scored
+    aircraft's first Mode S report (``mode_s``); the sums of the epochs still open to rows (one
+    row per (method, segment, epoch, run)), the pools of those no row can come to any more
+    (``pools``: :func:`~tertiary.evaluation.bound_pooling.epoch_pools`; a state that grew with
+    the run would be pickled again at every window) and how many aircraft are done. ``complete``: every window gave its scored
     samples (else the end of the run bounds the whole recording instead)."""
 
     aircraft: pl.DataFrame = field(default_factory=lambda: _empty(AIRCRAFT))
@@ -126,6 +128,7 @@ class BoundState:
     plots: pl.DataFrame = field(default_factory=pl.DataFrame)
     mode_s: pl.DataFrame = field(default_factory=lambda: _empty(MODE_S_FIRST))
     sums: pl.DataFrame = field(default_factory=lambda: bound_sums(_empty(SAMPLES), pl.DataFrame()))
+    pools: pl.DataFrame | None = None
     bounded: int = 0
     complete: bool = True
 
@@ -175,11 +178,12 @@ def bound_step(setup: BoundSetup, state: BoundState, samples: pl.DataFrame | Non
     return _advance(setup, state, cut, stored, samples, window.index)
 
 
-def bound_finish(setup: BoundSetup, state: BoundState, stored: PartFiles) -> pl.DataFrame:
-    """The per-epoch sums of every aircraft (:func:`~tertiary.evaluation.bound_pooling.bound_rows`
-    pools them): every recursion taken to its end, the rows left read from ``stored`` (every
-    window's samples)."""
-    return _advance(setup, state, T_MAX_US, stored, _empty(SAMPLES)).sums
+def bound_finish(setup: BoundSetup, state: BoundState, stored: PartFiles) -> pl.DataFrame | None:
+    """The epoch pools of every aircraft's samples (:func:`~tertiary.evaluation.bound_pooling.epoch_pools`;
+    :func:`~tertiary.evaluation.bound_pooling.pool_rows` makes the metrics of them): every
+    recursion taken to its end, the rows left read from ``stored`` (every window's samples)."""
+    done = _advance(setup, state, T_MAX_US, stored, _empty(SAMPLES))
+    return merged_pools(done.pools, epoch_pools(done.sums) if done.sums.height else None)
 
 
 def _carried(setup: BoundSetup, state: BoundState, samples: pl.DataFrame, reports: pl.DataFrame,
@@ -228,8 +232,15 @@ def _advance(setup: BoundSetup, state: BoundState, cut: int, stored: PartFiles, 
         sums = _summed(state.sums, pl.concat([m[0] for m in made]))
         aircraft = _updated(aircraft, go, pl.concat([m[1] for m in made]))
     aircraft, done = _retired(setup, aircraft)
+    # the epochs before every carried aircraft's done point and the cut have all their rows
+    lo = min(cut, int(aircraft["done_us"].min())) if aircraft.height else cut
+    closed = pl.col("epoch").dt.epoch("us") < lo
+    pools = state.pools
+    if sums.height and sums.select(closed.any()).item():
+        pools = merged_pools(pools, epoch_pools(sums.filter(closed)))
+        sums = sums.filter(~closed)
     return replace(state, aircraft=aircraft, tail=_trimmed(setup, tail, aircraft, done), read_us=hi,
-                   cut_us=cut, plots=_kept_plots(state.plots, aircraft, done), sums=sums,
+                   cut_us=cut, plots=_kept_plots(state.plots, aircraft, done), sums=sums, pools=pools,
                    bounded=state.bounded + done.height,
                    windows=_kept_windows(state.windows, aircraft, cut))
 

@@ -429,18 +429,28 @@ def multitarget_steps(states: Mapping[str, MultiTargetState], blocks: Sequence[t
         return pl.concat([f.with_columns(pl.col("run").cast(pl.UInt32) + pl.lit(k << _RUN_BITS, pl.UInt32))
                           for k, f in enumerate(frames)])
     before = [out.get(name, MultiTargetState()) for name, _, _ in blocks]
-    joint = MultiTargetState(life=keyed([b.life for b in before]), closed=keyed([b.closed for b in before]),
-                             open=keyed([b.open for b in before]))
+    # the closed segments only grow: each picture's are not copied through the joint frames
+    # (a long run's would be, at every window), the window's new ones are added to them
+    joint = MultiTargetState(life=keyed([b.life for b in before]), open=keyed([b.open for b in before]))
     sc = _scene(keyed([b[1] for b in blocks]), keyed([b[2] for b in blocks]), cfg)
     ep = _by_epoch(sc, cfg)
     life, closed, still = _carried(joint, sc)
+    # each picture's rows, its own run numbers back: one pass per frame, not one per picture
+    split = [_by_picture(f) for f in (ep, life, closed, still)]
     for k, ((name, _, _), prev) in enumerate(zip(blocks, before)):
-        mine = [f.filter((pl.col("run") // (1 << _RUN_BITS)) == k).with_columns(pl.col("run") % (1 << _RUN_BITS))
-                for f in (ep, life, closed, still)]
+        mine = [part.get(k, f.clear()) for part, f in zip(split, (ep, life, closed, still))]
         out[name] = MultiTargetState(sums=prev.sums + _sums(mine[0]),
                                      runs=pl.concat([prev.runs, mine[0]["run"].unique()]).unique(),
-                                     life=mine[1], closed=mine[2], open=mine[3])
+                                     life=mine[1], closed=pl.concat([prev.closed, mine[2]]), open=mine[3])
     return out
+
+
+def _by_picture(frame: pl.DataFrame) -> dict[int, pl.DataFrame]:
+    """The rows of a joint frame of :func:`multitarget_steps` by picture index, with their own runs."""
+    pic = (pl.col("run") // (1 << _RUN_BITS)).alias("__pic")
+    parts = frame.with_columns(pic, pl.col("run") % (1 << _RUN_BITS)).partition_by("__pic", as_dict=True,
+                                                                                    include_key=False)
+    return {int(k[0]): v for k, v in parts.items()}
 
 
 def _carried(state: MultiTargetState, sc: _Scene) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:

@@ -119,8 +119,11 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     if walk_rows is not None:
         # one step for every picture of the window (their rows told by ``method``)
         rows = pl.concat(to_seed, how="diagonal_relaxed") if to_seed else pl.DataFrame()
-        out[SCORED], seed = (seed_step(seed, rows, walk_rows, walk, cfg.accuracy) if rows.height
-                             else (pl.DataFrame(schema=SCORED_ROWS), seed))
+        if rows.height:
+            out[SCORED], epoch_sums, seed = seed_step(seed, rows, walk_rows, walk, cfg.accuracy)
+            out.update(epoch_sums)
+        else:
+            out[SCORED] = pl.DataFrame(schema=SCORED_ROWS)
     if multitarget:
         carried = multitarget_steps(carried, blocks, cfg.multitarget)
         if surveyed and metrics is not None:    # one step for every group: a frame per schema

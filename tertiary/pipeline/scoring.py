@@ -16,7 +16,7 @@ import polars as pl
 from safety import alerts as safety_alerts
 from tertiary.contract import TIME
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA, AccuracyConfig, empty_metrics, scored_samples
-from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags
+from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags, with_epoch_sums
 from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
 from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
@@ -295,13 +295,19 @@ class WindowedPictures:
         return lags, {str(name): part for (name,), part in
                       samples.partition_by("method", as_dict=True, maintain_order=True).items()}
 
+    def _epoch_sums(self, table: str) -> pl.DataFrame | None:
+        """Every window's rows of a per-epoch sums table (:data:`EPOCH_SUMS`)."""
+        files = self.parts.part_files(table)
+        return scan_spilled(files).collect() if files else None
+
     def _seed_tables(self, name: str, stage: str, cfg: AccuracyConfig
                      ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
         """Picture ``name``'s seed metrics (labelled ``stage``), per-epoch accuracy and scored
         samples finished: every picture's at once, the first time one is asked for."""
         lags, samples = self.scored
         if cfg not in self._seeded:
-            metrics, by_epoch = seed_tables(self.state.seed, self.state.walk, stage, cfg, lags)
+            seed = with_epoch_sums(self.state.seed, self._epoch_sums)
+            metrics, by_epoch = seed_tables(seed, self.state.walk, stage, cfg, lags)
             self._seeded[cfg] = (metrics.partition_by("method", as_dict=True),
                                  by_epoch.partition_by("method", as_dict=True))
         metrics, by_epoch = self._seeded[cfg]

@@ -23,7 +23,7 @@ from tertiary import contract
 from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
-from tertiary.evaluation.bound_pooling import bound_rows
+from tertiary.evaluation.bound_pooling import pool_rows
 from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_finish
 from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
@@ -330,10 +330,10 @@ def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame
         names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
         files = stored()          # the scored samples are not read back: whether there are any
         some = bool(files) and pl.scan_parquet(files).select(pl.len()).collect().item() > 0
-        sums = finished.result()
+        pools = finished.result()
         if bound_setup(ds, names, ing.radars, ing.notes, some) is None:
             return pl.DataFrame(schema=contract.TABLES["metrics"].required)
-        return bound_rows(sums, metrics)
+        return pool_rows(pools, metrics)
     t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
     reports = ds.reports if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else ing.reports
     origins = scan_origins(ing.radars, reports, int(t0)) if t0 is not None else {}
