@@ -486,7 +486,7 @@ def test_pictures_matched_together_in_a_window_equal_each_matched_alone(small):
     picture's expected rows are the window's instead of its own, or if the pictures' states mix."""
     from tertiary.evaluation.evaluate import Reference, match_block
     from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result
-    from tertiary.evaluation.streamed import MatchState, match_window
+    from tertiary.evaluation.streamed import PICTURE_VALUES, MatchState, match_window
     root, ds, files = small
     a = read_picture(files[0]).with_columns(pl.lit("a").alias("method"))
     b = read_picture(files[1]).with_columns(pl.lit("b").alias("method"))
@@ -502,6 +502,9 @@ def test_pictures_matched_together_in_a_window_equal_each_matched_alone(small):
         out, state = match_window(state, pictures, reference, cfg, multitarget=True)
         for name, frame in out.items():
             got.setdefault(name, []).append(frame)
+        # the percentile sketch's counts go with the window, not in the carried state
+        assert state.metrics is not None and "values" not in state.metrics.sums
+        assert out[PICTURE_VALUES].height > 0
     for name, rows in (("a", a), ("b", b)):
         mt, want_m, want_e = MultiTargetState(), [], []
         for inside in (pl.col("epoch") < cut, pl.col("epoch") >= cut):

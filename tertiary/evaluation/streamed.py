@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import polars as pl
@@ -26,10 +26,14 @@ from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Re
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
 from tertiary.evaluation.picture_streamed import PictureStepState, picture_step
 
-__all__ = ["MatchState", "match_window", "matched_table", "expected_table", "SCORED"]
+__all__ = ["MatchState", "match_window", "matched_table", "expected_table", "SCORED", "PICTURE_VALUES"]
 
 #: the window output of every picture's scored rows (:data:`~tertiary.evaluation.accuracy_streamed.SCORED_ROWS`)
 SCORED = "scored"
+#: the window output of the surveillance metrics' percentile sketch counts (the ``values`` sums of
+#: :class:`~tertiary.evaluation.picture_streamed.PictureStepState`): they add up, so each window
+#: writes its own instead of carrying them (a state pickled at every window)
+PICTURE_VALUES = "picture_values"
 
 
 def matched_table(group: str) -> str:
@@ -129,4 +133,8 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
         if surveyed and metrics is not None:    # one step for every group: a frame per schema
             seen = pl.concat([out[expected_table(g)] for g in groups], how="diagonal_relaxed")
             metrics = picture_step(metrics, surveyed, seen, radar_xy, cfg.metrics)
+            values = metrics.sums.get("values")
+            if values:
+                out[PICTURE_VALUES] = values[0]
+                metrics = replace(metrics, sums={k: v for k, v in metrics.sums.items() if k != "values"})
     return out, MatchState(carried, where, seed, walk, metrics)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,7 @@ from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
 from tertiary.evaluation.multitarget import multitarget_result
 from tertiary.evaluation.picture_metrics import MetricsConfig
 from tertiary.evaluation.picture_streamed import picture_metrics_finish
-from tertiary.evaluation.streamed import SCORED, MatchState, expected_table, matched_table
+from tertiary.evaluation.streamed import PICTURE_VALUES, SCORED, MatchState, expected_table, matched_table
 from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig
@@ -272,7 +272,12 @@ class WindowedPictures:
                   ) -> pl.DataFrame:
         """Picture ``name``'s surveillance metrics, every picture's finished once from the carried state."""
         if self._finished is None:
-            self._finished = picture_metrics_finish(self.state.metrics, radar_xy, breakdown, cfg)
+            stepped = self.state.metrics
+            files = self.parts.part_files(PICTURE_VALUES)
+            if files:           # the sketch counts each window wrote
+                values = [*stepped.sums.get("values", []), scan_spilled(files).collect()]
+                stepped = replace(stepped, sums={**stepped.sums, "values": values})
+            self._finished = picture_metrics_finish(stepped, radar_xy, breakdown, cfg)
         got = self._finished
         return got.filter(pl.col("method") == name) if got.height else got
 
