@@ -191,6 +191,19 @@ def pool_epochs(agg: pl.DataFrame, group: list[str], cfg: AccuracyConfig) -> pl.
     up over buckets. With
     ``"n-1"`` the epochs with N_k < 2 of a ``group`` are pooled (module docstring):
     σ²(k) = Σ e² · M / ((M − 1) N_k) with M their total sample count; a pool with M < 2 is dropped."""
+    e2 = list(FUSION_METRICS.values())
+    long = pooled_sigma2(agg, group, cfg).unpivot(index=group + ["epoch", "n", "n_runs", "pooled"], on=e2,
+                                                  variable_name="e2", value_name="sigma2")
+    name = {v: k for k, v in FUSION_METRICS.items()}
+    return long.select(
+        *group, "epoch",
+        pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"),
+        "sigma2", "n", "n_runs", "pooled")
+
+
+def pooled_sigma2(agg: pl.DataFrame, group: list[str], cfg: AccuracyConfig) -> pl.DataFrame:
+    """:func:`pool_epochs` before it is made long: σ²(k) of each metric in its e² sum's column,
+    one row per epoch kept (group + epoch, ``n``, ``n_runs``, ``pooled``)."""
     ddof = 1 if cfg.denominator == "n-1" else 0
     e2 = list(FUSION_METRICS.values())
     pooled = pl.col("n") <= ddof
@@ -198,17 +211,23 @@ def pool_epochs(agg: pl.DataFrame, group: list[str], cfg: AccuracyConfig) -> pl.
     agg = agg.with_columns(pooled.alias("pooled"),
                            pl.when(pooled).then(pl.col("n")).otherwise(0).sum().over(group).alias("__m"))
     agg = agg.filter(~pl.col("pooled") | (pl.col("__m") > ddof))
-    long = agg.unpivot(index=group + ["epoch", "n", "n_runs", "pooled", "__m"], on=e2, variable_name="e2",
-                       value_name="sum_e2")
-    name = {v: k for k, v in FUSION_METRICS.items()}
     m = pl.col("__m").cast(pl.Float64)
-    sigma2 = (pl.when(pl.col("pooled")).then(pl.col("sum_e2") * m / ((m - ddof) * pl.col("n")))
-              .otherwise(pl.col("sum_e2") / (pl.col("n") - ddof)))
-    return long.select(
-        *group, "epoch",
-        pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"),
-        sigma2.alias("sigma2"),
-        "n", "n_runs", "pooled")
+
+    def sigma2(c: str) -> pl.Expr:
+        return (pl.when(pl.col("pooled")).then(pl.col(c) * m / ((m - ddof) * pl.col("n")))
+                .otherwise(pl.col(c) / (pl.col("n") - ddof))).alias(c)
+    return agg.select(*group, "epoch", *(sigma2(c) for c in e2), "n", "n_runs", "pooled")
+
+
+def pooled_means(agg: pl.DataFrame, group: list[str], cfg: AccuracyConfig) -> pl.DataFrame:
+    """The mean over epochs of each metric's σ²(k) per ``group`` (:func:`pooled_sigma2`), long
+    (group, ``metric``, ``sigma2``): what :func:`accuracy_table` reads of :func:`pool_epochs`,
+    without making the per-epoch table long (a long run's epochs × metrics rows)."""
+    e2 = list(FUSION_METRICS.values())
+    means = pooled_sigma2(agg, group, cfg).group_by(group).agg(pl.col(c).mean() for c in e2)
+    name = {v: k for k, v in FUSION_METRICS.items()}
+    return means.unpivot(index=group, on=e2, variable_name="e2", value_name="sigma2").select(
+        *group, pl.col("e2").replace_strict(name, return_dtype=pl.String).alias("metric"), "sigma2")
 
 
 def with_segments(matched: pl.DataFrame) -> pl.DataFrame:

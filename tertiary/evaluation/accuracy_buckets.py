@@ -17,7 +17,7 @@ from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUS
                                           AccuracyConfig, accuracy_table, aircraft_epochs, by_epoch_table,
                                           continuity_columns, continuity_table, coverage_counts, coverage_table,
                                           empty_metrics, first_seen, metrics_concat, picture_accuracy, pool_epochs,
-                                          potential_table, scored_rows, scored_samples, track_counts,
+                                          pooled_means, potential_table, scored_rows, scored_samples, track_counts,
                                           with_segments)
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, consistency_dicts,
@@ -226,7 +226,7 @@ class SeedSums:
             agg = t["epochs"].group_by("method", "eval_segment", "epoch").agg(
                 *[pl.col(c).sum() for c in FUSION_METRICS.values()], pl.col("n").sum(), pl.len().alias("n_runs"))
             runs = t["epochs"].group_by("method", "eval_segment").agg(pl.col("run").n_unique().alias("n_runs"))
-            accuracy = accuracy_table(pool_epochs(agg, ["method", "eval_segment"], cfg), runs, stage)
+            accuracy = accuracy_table(pooled_means(agg, ["method", "eval_segment"], cfg), runs, stage)
             whole = agg.filter(pl.col("eval_segment") == "all").drop("eval_segment")
             by_epoch = by_epoch_table(pool_epochs(whole, ["method"], cfg))
         out = [accuracy]

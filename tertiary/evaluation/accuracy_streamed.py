@@ -241,7 +241,7 @@ def statistic_lags(scored: pl.LazyFrame, rows: int, carried: dict[tuple[str, str
     whole = buckets == 1 and carried is None
     for k in range(buckets):
         part = scored if buckets == 1 else scored.filter(pl.struct("method", "run", "track_id").hash() % buckets == k)
-        part = part.collect()
+        part = part.collect(engine="streaming")
         for prefix, (col, _dof) in CONSISTENCY_ALL.items():
             r = statistic_rows(part, col)
             if r.height:

@@ -15,6 +15,7 @@ import polars as pl
 
 from safety import alerts as safety_alerts
 from tertiary.contract import TIME
+from tertiary.evaluation import sketch
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA, AccuracyConfig, empty_metrics, scored_samples
 from tertiary.evaluation.accuracy_streamed import seed_tables, statistic_lags, with_epoch_sums
 from tertiary.evaluation.association import AssociationScore, score_associations
@@ -274,8 +275,11 @@ class WindowedPictures:
         if self._finished is None:
             stepped = self.state.metrics
             files = self.parts.part_files(PICTURE_VALUES)
-            if files:           # the sketch counts each window wrote
-                values = [*stepped.sums.get("values", []), scan_spilled(files).collect()]
+            if files:           # the sketch counts each window wrote, added up as they are read
+                scan = scan_spilled(files)
+                keys = [c for c in scan.collect_schema().names() if c != sketch.COUNT]
+                counts = scan.group_by(keys).agg(pl.col(sketch.COUNT).sum()).collect(engine="streaming")
+                values = [*stepped.sums.get("values", []), counts]
                 stepped = replace(stepped, sums={**stepped.sums, "values": values})
             self._finished = picture_metrics_finish(stepped, radar_xy, breakdown, cfg)
         got = self._finished
@@ -292,7 +296,7 @@ class WindowedPictures:
         # the series the windows summed are left out, their sums added
         carried = None if self.lags is None else self.lags.sums.lags
         rest = scan if self.lags is None else scan.join(self.lags.retired.lazy(), on=SERIES_KEYS, how="anti")
-        lags = statistic_lags(rest, rest.select(pl.len()).collect().item(), carried)
+        lags = statistic_lags(rest, rest.select(pl.len()).collect(engine="streaming").item(), carried)
         if not self.samples:
             return lags, {}
         # the two names categorical as they are read: a long run's samples are held to the end
