@@ -9,7 +9,7 @@ every picture) runs on it in a fresh process for every source tree (``--tree LAB
 first on ``PYTHONPATH``; default: this tree): wall time, the windows' time and the time after
 them, peak memory, the stage timings, and the run directory's size against the input Parquet.
 
-    python benchmarks/bench_long_recording.py [--hours 17] [--work DIR] [--tree before=OLD --tree after=.]
+    python benchmarks/bench_long_recording.py [--hours 17] [--work DIR] [--tree before=OLD --tree after=.] [--repeat 3]
 
 Results: ``benchmarks/results/bench_long_recording.json``.
 """
@@ -67,6 +67,7 @@ def main() -> None:
                     help="keep the dataset and runs here (default: a temp dir); a dataset already there is reused")
     ap.add_argument("--tree", action="append", default=None, help="LABEL=DIR (default: this tree)")
     ap.add_argument("--merge", action="store_true", help="keep the recorded runs of the labels not run again")
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each tree (the median's figures recorded beside them)")
     args = ap.parse_args()
     from tertiary.simulate import load_scenario
     from tertiary.simulate.config import scenario_toml
@@ -93,13 +94,18 @@ def main() -> None:
                    targets={"wall_s": 300.0, "peak_rss_mib": 2048.0, "run_dir_over_input": 2.0})
         for label, tree in trees.items():
             out = work / f"run-{label.replace(' ', '-')}"
-            t = time.perf_counter()
-            run = _run(Path(tree).resolve(), str(data), [], out)
-            run_mb = _size_mb(out)
-            row["runs"][label] = {**run, "reports_per_s": round(reports / run["pipeline_s"], 1),
-                                  "run_dir_mb": round(run_mb, 1), "run_dir_over_input": round(run_mb / input_mb, 2),
-                                  "bench_s": round(time.perf_counter() - t, 1)}
-            print(label, {k: v for k, v in row["runs"][label].items() if k != "timings_s"}, flush=True)
+            runs = []
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                run = _run(Path(tree).resolve(), str(data), [], out)
+                run_mb = _size_mb(out)
+                runs.append({**run, "reports_per_s": round(reports / run["pipeline_s"], 1),
+                             "run_dir_mb": round(run_mb, 1), "run_dir_over_input": round(run_mb / input_mb, 2),
+                             "bench_s": round(time.perf_counter() - t, 1)})
+                print(label, {k: v for k, v in runs[-1].items() if k != "timings_s"}, flush=True)
+            median = sorted(runs, key=lambda r: r["pipeline_s"])[len(runs) // 2]
+            row["runs"][label] = {**median, "repeats": [{k: v for k, v in r.items() if k != "timings_s"}
+                                                        for r in runs]} if len(runs) > 1 else median
         if args.merge and (RESULTS / "bench_long_recording.json").exists():
             old = json.loads((RESULTS / "bench_long_recording.json").read_text())
             row["runs"] = {**{k: v for k, v in old.get("runs", {}).items() if k not in row["runs"]}, **row["runs"]}

@@ -2,7 +2,7 @@
 (:mod:`tertiary.core.stage`), checked on one small simulated run:
 
 (a) stepping window by window gives what one step over the whole run gives (rows concatenated,
-    totals added up, the final state equal);
+    totals added up, keyed sums added up by key, the final state equal);
 (b) an empty window leaves the state as it was (but for the time it has reached);
 (c) ``step`` does not modify the state it is given;
 (d) the state pickles, and the unpickled state gives the same next step;
@@ -219,12 +219,16 @@ def assert_same_state(a: object, b: object, ignore: frozenset[str] = frozenset()
 
 
 def _joined(stage: Stage, outs: list[dict[str, pl.DataFrame]]) -> dict[str, pl.DataFrame]:
-    """Window outputs as one run's: rows concatenated, totals added up, the last snapshot."""
+    """Window outputs as one run's: rows concatenated, totals added up, keyed sums added up by
+    key, the last snapshot."""
     got = {}
-    for name in outs[0]:
-        frames = [o[name] for o in outs]
+    for name in {n: None for o in outs for n in o}:
+        frames = [o[name] for o in outs if name in o]
         if name in stage.totals:
             got[name] = pl.concat(frames).sum()
+        elif name in stage.sums:
+            both, add = pl.concat(frames), stage.sums[name]
+            got[name] = both.group_by([c for c in both.columns if c not in add]).agg(pl.col(add).sum())
         elif name in stage.snapshots:
             got[name] = frames[-1]
         else:

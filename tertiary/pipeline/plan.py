@@ -7,10 +7,11 @@ named tables holding the window's rows (what :func:`tertiary.pipeline.streaming.
 and receives); an adapter refuses a bad window or rows outside it with
 :func:`~tertiary.core.stage.check_window`.
 
-Two kinds of outputs are not a window's rows: :attr:`totals` are one-row counts that add up
-over windows (the association statistics) and :attr:`snapshots` describe the state after the
-window (the association's live targets, which the centralised reference of the same window
-reads).
+Three kinds of outputs are not a window's rows: :attr:`totals` are one-row counts that add up
+over windows (the association statistics), :attr:`sums` are keyed counts whose rows of one key
+add up over windows (the evaluation's percentile sketch counts) and :attr:`snapshots` describe
+the state after the window (the association's live targets, which the centralised reference of
+the same window reads).
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ from safety.conflicts import ConflictConfig, ConflictState, conflicts_step, conf
 from tertiary import contract as schema
 from tertiary.core import geo
 from tertiary.core.stage import Stage, Window, check_window
+from tertiary.evaluation import sketch
 from tertiary.evaluation.evaluate import EvaluationConfig, Reference, radar_sites
-from tertiary.evaluation.streamed import MatchState, match_window
+from tertiary.evaluation.streamed import PICTURE_VALUES, MatchState, match_window
 from tertiary.pipeline.pictures import as_picture, confirmed_only, safety_id_column
 from tertiary.pipeline.tables import NOT_SCORED
 from tertiary.stages import align as align_stage
@@ -59,6 +61,8 @@ class _Adapter:
     totals: ClassVar[tuple[str, ...]] = ()
     #: outputs that describe the state after the window (not appended)
     snapshots: ClassVar[tuple[str, ...]] = ()
+    #: keyed outputs → their columns that add up over windows (the other columns are the key)
+    sums: ClassVar[Mapping[str, tuple[str, ...]]] = {}
 
 
 @dataclass(frozen=True)
@@ -298,9 +302,11 @@ class EvaluationStage(_Adapter):
     covered); outputs ``matched.<group>`` and ``expected.<group>``, one pair per picture schema
     (a picture's rows told by ``method``), for each picture the window has — each fusion
     method's confirmed targets (``target_id``) and each tracker picture "<method>+<filter>"
-    (``track_id``) — and, with ``aligned``, every picture's ``scored`` rows. The whole-run stage
+    (``track_id``) — and, with ``aligned``, every picture's ``scored`` rows and per-epoch seed
+    sums, and with ``multitarget`` the percentile sketch counts (:attr:`sums`). The whole-run stage
     then finishes the metrics."""
 
+    sums: ClassVar[Mapping[str, tuple[str, ...]]] = {PICTURE_VALUES: (sketch.COUNT,)}
     reference: Reference
     cfg: EvaluationConfig
     multitarget: bool
