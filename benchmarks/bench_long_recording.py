@@ -41,11 +41,12 @@ def repeated_truth(hours: float, path: Path) -> dict:
     src = pl.read_parquet(resolve_data_path("adsb_paris_2021-10-07.parquet"))
     t0 = src["timestamp"].min()
     copies = []
+    addresses = src["icao24"].unique().to_list()
     for k in range(int(-(-hours // SHIFT_H))):
-        address = ((pl.col("icao24").str.to_integer(base=16) + k * ADDRESS_STEP) % (1 << 24))
+        # the new address of each aircraft (a few hundred), not of each point
+        new = {a: f"{(int(a, 16) + k * ADDRESS_STEP) % (1 << 24):06x}" for a in addresses}
         copies.append(src.with_columns(pl.col("timestamp") + pl.duration(hours=k * SHIFT_H),
-                                       address.map_elements(lambda a: f"{a:06x}", return_dtype=pl.String)
-                                       .alias("icao24")))
+                                       pl.col("icao24").replace_strict(new, return_dtype=pl.String)))
     out = pl.concat(copies)
     n_src, n_all = src["icao24"].n_unique(), out["icao24"].n_unique()
     if n_all != n_src * len(copies):
@@ -90,7 +91,8 @@ def main() -> None:
             row["simulation"] = {"wall_s": round(sim_wall, 1), "peak_rss_mib": round(sim_peak, 1)}
         input_mb = _size_mb(data)
         reports = pl.scan_parquet(data / "reports.parquet").select(pl.len()).collect().item()
-        row.update(reports=reports, input_mb=round(input_mb, 1), runs={},
+        truth = pl.scan_parquet(data / "truth.parquet").select(pl.len(), pl.col("truth_id").n_unique()).collect()
+        row.update(truth_rows=truth.item(0, 0), aircraft=truth.item(0, 1), reports=reports, input_mb=round(input_mb, 1), runs={},
                    targets={"wall_s": 300.0, "peak_rss_mib": 2048.0, "run_dir_over_input": 2.0})
         for label, tree in trees.items():
             out = work / f"run-{label.replace(' ', '-')}"
