@@ -137,6 +137,36 @@ def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_data
     assert (tmp_path / "run" / D.SLICES).is_dir() and not (tmp_path / "run" / D.SLICES / D.SCRATCH).exists()
 
 
+def test_monte_carlo_runs_are_evaluated_on_the_workers(client, runs_dataset, tmp_path):
+    """Each run's partition matches its pictures to the truth and steps every metric in its
+    windows (seed, surveillance, OSPA/GOSPA/SIAP); the client merges the runs' states and only
+    finishes them: it matches no picture, and every metric and per-epoch row equals the local
+    engine's, which steps both runs in the same windows."""
+    from tertiary.evaluation import evaluate
+    cfg = dataclasses.replace(CFG, evaluation=True)
+    with pytest.MonkeyPatch.context() as mp:     # the client's finalize must not match a picture again
+        mp.setattr(evaluate, "match_block", lambda *a, **k: pytest.fail("pictures matched on the client"))
+        res = D.run_dask_detailed(runs_dataset, tmp_path / "run", cfg, client=client, window_s=WINDOW)
+    got = _tables(res.db)
+    with RunStore.open(res.db.parent) as s:
+        got_epochs = s.read("accuracy_by_epoch")
+    local = pipeline.run(read_dataset(runs_dataset, lazy=True), tmp_path / "local", cfg, window_s=WINDOW)
+    want = _tables(local)
+    with RunStore.open(local.parent) as s:
+        want_epochs = s.read("accuracy_by_epoch")
+    metrics = got["metrics"]
+    for stage in ("fusion", "tracker", "evaluation"):       # seed, surveillance and multi-target rows
+        assert metrics.filter(pl.col("stage") == stage).height > 20, stage
+    assert metrics.filter(pl.col("metric") == "rmse_horizontal_m")["n_runs"].max() == 2
+    _same(metrics, want["metrics"], "metrics")
+    key = [c for c in ("stage", "method", "epoch") if c in got_epochs.columns]
+    assert got_epochs.height and got_epochs.height == want_epochs.height
+    assert_frame_equal(got_epochs.sort(key), want_epochs.select(got_epochs.columns).sort(key), check_dtypes=False,
+                       rel_tol=1e-9, abs_tol=1e-9)
+    # the matched rows are the partitions' own, one directory per run
+    assert len({f.parent.parent.parent for f in (tmp_path / "run" / D.SLICES).rglob("matched.*/*.parquet")}) == 2
+
+
 def test_a_worker_killed_in_the_middle_of_a_partition_changes_no_table(client, runs_dataset, tmp_path):
     """A worker process killed (SIGKILL) while it runs a partition: the scheduler gives the
     partition to a worker again, which rewrites its parts from scratch, and every table equals

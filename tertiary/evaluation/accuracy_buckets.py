@@ -23,7 +23,7 @@ from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, consistency_dicts,
                                              consistency_statistics, series_codes)
 
-__all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows"]
+__all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows", "table_keys"]
 
 #: what :func:`row_scores` and :func:`picture_accuracy` read of a picture not yet row-scored
 _ROW_INPUTS = (*ACCURACY_COLUMNS, "segment", *STATE, *(f"true_{c}" for c in STATE), "alt_m", "true_alt_m", "cov",
@@ -128,6 +128,20 @@ def statistic_rows(scored: pl.DataFrame, col: str, ordered: bool = True) -> pl.D
     return r.sort("method", "run", "track_id", "epoch") if ordered else r
 
 
+#: the key columns of each :class:`SeedSums` table (every other column adds up, ``__first`` is a
+#: minimum); a consistency statistic's tables are named "<prefix>:epochs" and "<prefix>:runs"
+_TABLE_KEYS = {"epochs": ("method", "eval_segment", "epoch", "run"), "potential": ("method", "eval_segment"),
+               "potential_runs": ("method", "eval_segment", "run"), "tracks": ("method",),
+               "track_runs": ("method", "run"), ":epochs": ("method", "eval_segment", "epoch"),
+               ":runs": ("method", "eval_segment", "run")}
+
+
+def table_keys(name: str) -> list[str]:
+    """The key columns of the :class:`SeedSums` table ``name``."""
+    prefix, colon, kind = name.rpartition(":")
+    return list(_TABLE_KEYS[colon + kind if prefix else name])
+
+
 @dataclass
 class SeedSums:
     """What the seed metrics keep of the rows seen (the track buckets of
@@ -147,6 +161,15 @@ class SeedSums:
         both = part if old is None else pl.concat([old, part])
         aggs = [pl.col(c).min() if c == "__first" else pl.col(c).sum() for c in both.columns if c not in keys]
         self.tables[name] = both.group_by(keys).agg(aggs) if aggs else both.unique()
+
+    def merge(self, other: "SeedSums") -> None:
+        """Add the sums of rows this has not seen (another run's, or another bucket's)."""
+        self.rows += other.rows
+        for name, table in other.tables.items():
+            self.fold(name, table, table_keys(name))
+        for key, lags in other.lags.items():
+            self.lags[key] = lags if key not in self.lags else self.lags[key] + lags
+        self.samples.extend(other.samples)
 
     def add_tracks(self, part: pl.DataFrame, cfg: AccuracyConfig, seen_from: pl.DataFrame | None = None) -> None:
         """The partial sums of one bucket of whole tracks (the columns :func:`picture_accuracy` reads);

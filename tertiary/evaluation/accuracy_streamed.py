@@ -25,7 +25,7 @@ once, a bucket of whole tracks at a time (:func:`statistic_lags`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import polars as pl
@@ -33,11 +33,11 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, AccuracyConfig, BY_EPOCH_SCHEMA, coverage_table,
                                           empty_metrics)
-from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
+from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows, table_keys
 from tertiary.evaluation.consistency import CONSISTENCY_ALL, Lags, WholeSeries
 
 __all__ = ["Walk", "SeedState", "walk_step", "seed_rows", "seed_step", "statistic_lags", "seed_tables",
-           "with_epoch_sums", "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS", "EPOCH_SUMS"]
+           "with_epoch_sums", "merge_runs", "SCORED_ROWS", "SEED_COLUMNS", "LAG_BUCKET_ROWS", "EPOCH_SUMS"]
 
 _AIRCRAFT = ["run", "truth_id"]
 _TRACK = ["method", "run", "track_id"]
@@ -220,13 +220,27 @@ def with_epoch_sums(state: SeedState, read: Callable[[str], pl.DataFrame | None]
     """``state`` with the per-epoch sums every window wrote (``read``: a window table's rows of
     every window, None without any), as one :class:`SeedSums` over the run holds them: the
     windows' epochs are disjoint, so their rows are the run's."""
-    tables = dict(state.sums.tables)
+    sums = SeedSums(state.sums.rows, dict(state.sums.tables), state.sums.lags, state.sums.samples)
     for name, table in EPOCH_SUMS.items():
         rows = read(table)
         if rows is not None and rows.height:
-            tables[name] = rows if name not in tables else pl.concat([tables[name], rows], how="vertical_relaxed")
-    return SeedState(SeedSums(state.sums.rows, tables, state.sums.lags, state.sums.samples), state.tracks,
-                     state.cover, state.counts)
+            # added up by key: runs evaluated apart write rows of the same epochs
+            sums.fold(name, rows, table_keys(name))
+    return SeedState(sums, state.tracks, state.cover, state.counts)
+
+
+def merge_runs(states: Sequence[SeedState], walks: Sequence[Walk | None]) -> tuple[SeedState, Walk | None]:
+    """The seed metrics' state and walk over runs stepped apart (each pair holds runs of its
+    own): sums and counts add up, every track, cover and aircraft row belongs to one run. No
+    walk where one is missing (the seed metrics were not stepped there)."""
+    sums = SeedSums()
+    for s in states:
+        sums.merge(s.sums)
+    seed = SeedState(sums, pl.concat([s.tracks for s in states]), pl.concat([s.cover for s in states]),
+                     _added(states[0].counts, *(s.counts for s in states[1:])))
+    if any(w is None for w in walks):
+        return seed, None
+    return seed, Walk(pl.concat([w.aircraft for w in walks]), sum(w.total for w in walks))
 
 
 def statistic_lags(scored: pl.LazyFrame, rows: int, carried: dict[tuple[str, str, str], Lags] | None = None

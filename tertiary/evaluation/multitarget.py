@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from tertiary.contract import TABLES, TIME
 
-__all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "multitarget_by_epoch", "multitarget_metrics",
+__all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "merge_runs", "multitarget_by_epoch", "multitarget_metrics",
            "multitarget_steps",
            "multitarget_result", "multitarget_step", "siap_continuity"]
 
@@ -385,6 +385,18 @@ class MultiTargetState:
     life: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE))
     closed: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
     open: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
+
+
+def merge_runs(states: Sequence[MultiTargetState]) -> MultiTargetState:
+    """One picture's state over runs stepped apart (each state holds runs of its own): the
+    epochs' terms add up, and every lifetime and segment belongs to one run."""
+    states = list(states)
+    if len(states) == 1:
+        return states[0]
+    return MultiTargetState(sums=np.sum([s.sums for s in states], axis=0),
+                            runs=pl.concat([s.runs for s in states]).unique(),
+                            life=pl.concat([s.life for s in states]), closed=pl.concat([s.closed for s in states]),
+                            open=pl.concat([s.open for s in states]))
 
 
 _LIFE = {"run": pl.UInt32, "truth_id": pl.Int64, "first": TIME, "last": TIME}

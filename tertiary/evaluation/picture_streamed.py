@@ -39,7 +39,7 @@ from tertiary.evaluation.picture_metrics import (MetricsConfig, height_exprs, by
                                                  error_rows, finish_metrics, gated_rows, identity_checks, merge_hits,
                                                  picture_rows, reference_labels, track_inputs, track_table)
 
-__all__ = ["PictureStepState", "picture_step", "picture_metrics_finish", "LABELS"]
+__all__ = ["PictureStepState", "picture_step", "picture_metrics_finish", "merge_runs", "LABELS"]
 
 _KEY = ["method", "run", "truth_id"]
 #: the breakdown labels every labelled row carries (``range`` null without radars)
@@ -84,6 +84,26 @@ class PictureStepState:
     sums: dict[str, list[pl.DataFrame]] = field(default_factory=dict)
     #: the reference has positions: merged tracks are counted
     merge: bool = False
+
+
+#: the frames of :class:`PictureStepState`, each keyed by picture and run
+_FRAMES = ("tracks", "counts", "context", "pending_ref", "pending_hits", "exposure", "origin", "bins", "last_rep",
+           "changes", "ambiguous", "ambiguous_hits", "merged", "split", "pending_split")
+
+
+def merge_runs(states: Sequence[PictureStepState]) -> PictureStepState:
+    """Every picture's state over runs stepped apart (each state holds runs of its own): every
+    carried row belongs to one run, the sums are lists of partials that add up."""
+    states = list(states)
+    if len(states) == 1:
+        return states[0]
+    sums: dict[str, list[pl.DataFrame]] = {}
+    for s in states:
+        for kind, parts in s.sums.items():
+            sums.setdefault(kind, []).extend(parts)
+    return PictureStepState(**{f: _cat(*(getattr(s, f) for s in states)) for f in _FRAMES},
+                            pending_rows=tuple(f for s in states for f in s.pending_rows), sums=sums,
+                            merge=any(s.merge for s in states))
 
 
 def _cat(*frames: pl.DataFrame | None) -> pl.DataFrame | None:

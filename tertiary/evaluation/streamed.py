@@ -21,12 +21,13 @@ import numpy as np
 import polars as pl
 from numpy.typing import NDArray
 
+from tertiary.evaluation import accuracy_streamed, multitarget, picture_streamed
 from tertiary.evaluation.accuracy_streamed import SCORED_ROWS, SeedState, Walk, seed_rows, seed_step, walk_step
 from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Reference, metric_columns, match_block
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
 from tertiary.evaluation.picture_streamed import PictureStepState, picture_step
 
-__all__ = ["MatchState", "match_window", "matched_table", "expected_table", "SCORED", "PICTURE_VALUES"]
+__all__ = ["MatchState", "match_window", "merge_runs", "matched_table", "expected_table", "SCORED", "PICTURE_VALUES"]
 
 #: the window output of every picture's scored rows (:data:`~tertiary.evaluation.accuracy_streamed.SCORED_ROWS`)
 SCORED = "scored"
@@ -66,6 +67,27 @@ class MatchState:
     #: every picture's surveillance metrics so far (:mod:`tertiary.evaluation.picture_streamed`);
     #: None: not stepped (a checkpoint written without them: the end computes them)
     metrics: PictureStepState | None = field(default_factory=PictureStepState)
+
+
+def merge_runs(states: Sequence[MatchState]) -> MatchState:
+    """The evaluation's state over runs stepped apart, each state holding runs of its own (a
+    distributed run's partitions, one Monte-Carlo run each): runs never share a track, an
+    aircraft's walk or a segment, so each part of the state is the union of theirs, its sums
+    added up. The windows' outputs of every part (matched rows, per-epoch sums, sketch counts)
+    are read with it (:class:`tertiary.pipeline.scoring.WindowedPictures`)."""
+    states = list(states)
+    if len(states) == 1:
+        return states[0]
+    names = list(dict.fromkeys(n for s in states for n in s.pictures))
+    pictures = {n: multitarget.merge_runs([s.pictures[n] for s in states if n in s.pictures]) for n in names}
+    groups: dict[str, tuple[str, ...]] = {}
+    for s in states:
+        for name, gs in s.groups.items():
+            groups[name] = tuple(dict.fromkeys((*groups.get(name, ()), *gs)))
+    seed, walk = accuracy_streamed.merge_runs([s.seed for s in states], [s.walk for s in states])
+    stepped = [getattr(s, "metrics", None) for s in states]
+    metrics = None if any(m is None for m in stepped) else picture_streamed.merge_runs(stepped)
+    return MatchState(pictures, groups, seed, walk, metrics)
 
 
 def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFrame]], reference: Reference,

@@ -21,8 +21,14 @@ reports they share (same report row → same target), tracks by position (same e
 ≤ ``gate_m``), clusters by lead target — one-to-one (Hungarian, most coinciding epochs first),
 unmatched ids getting fresh ids above every id used so far; (2) renumbers target ids by (run,
 first epoch, id), the order in which the local engine creates them; then every partition's parts
-are relabelled in place by a task (atomic rewrites). The finalize stage (evaluation, alert
-scoring, …) runs on the client over the union of the partitions and ``results.duckdb`` is built
+are relabelled in place by a task (atomic rewrites).
+
+Evaluation. A partition that is a whole run validates the truth and its windows match the
+pictures to it and step their metrics, as a local run's do; it returns the evaluation's state,
+the client merges the runs' states (:func:`tertiary.evaluation.streamed.merge_runs`) and the
+finalize only finishes them. A time slice's pictures are matched on the client, after the
+stitching. The finalize stage (alert scoring, …) runs on the client over the union of the
+partitions and ``results.duckdb`` is built
 as :func:`tertiary.pipeline.run` builds it, with a ``partitions`` table registering every output
 partition (its span, rows, wall time, worker, id changes at its start boundary).
 """
@@ -53,7 +59,7 @@ from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
-from tertiary.pipeline.partition_states import merged_scores
+from tertiary.pipeline.partition_states import merged_evaluation, merged_scores
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -85,6 +91,12 @@ class Partition:
     @property
     def first_slice(self) -> bool:
         return self.t0_us <= T_MIN_US
+
+    @property
+    def whole_run(self) -> bool:
+        """The partition is a run (or every run) from its first report to its last: its windows
+        can evaluate what they make, as the local engine's do."""
+        return self.first_slice and self.t1_us >= T_MAX_US
 
     def input_expr(self) -> pl.Expr:
         """The partition's input rows (null times go to the first slice, null runs to the first run)."""
@@ -218,6 +230,12 @@ class PartitionWriter:
                 if sub == "kept":
                     self.rows[name] = self.rows.get(name, 0) + f.height
 
+    def scratch(self) -> Path:
+        """A directory for the partition's scratch files (its truth as a reference file)."""
+        d = self.out / SCRATCH
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
         counts = {k: v for k, v in state.counts.items() if not k.startswith("_")}
         if w.t1_us == self.part.t0_us:
@@ -283,14 +301,19 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
         source.parent.mkdir(parents=True, exist_ok=True)
         try:
             reports = partition_input(lf, part, source) if timed else lf.filter(cond)
-            sub = dataclasses.replace(ds, reports=reports, truth=pl.DataFrame())
+            # a whole run's windows match its pictures to the truth and step their metrics; a
+            # time slice's do not (its ids are stitched afterwards): the client evaluates those
+            sub = dataclasses.replace(ds, reports=reports, truth=ds.truth if part.whole_run else pl.DataFrame())
             ctx, st = pipeline.stream(sub, cfg, writer, window_s, notes=info["notes"],
-                                      grid_origin_us=grid_origin_us, scored_span=(part.t0_us, part.t1_us))
+                                      grid_origin_us=grid_origin_us, scored_span=(part.t0_us, part.t1_us),
+                                      match=part.whole_run)
         finally:
             source.unlink(missing_ok=True)
+            shutil.rmtree(out / SCRATCH, ignore_errors=True)
         info["radars"] = ctx.radars
         info["curves"] = ctx.curves         # the windows predicted the STCA curves' points
         info["scores"] = st.scores          # the kept span's association metrics, the slice's own ids
+        info["evaluation"] = st.evaluation  # the run's evaluation state (None: not evaluated here)
     info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
                 peak_rss_mib=round(peak_rss_mib(), 1))
     return info
@@ -712,7 +735,7 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         notes.extend(n for n in i["notes"] if n not in notes)
     # the association metrics the partitions scored, in the run's ids and merged
     st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts,
-                             scores=merged_scores(parts, infos, maps))
+                             scores=merged_scores(parts, infos, maps), evaluation=merged_evaluation(parts, infos))
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
         sink = pipeline.store_sink(store, notes, tables)

@@ -310,7 +310,7 @@ def first_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: Any,
     before any report is validated. None: nothing to score on here (no truth, reports without
     ``truth_id``, a run in memory) — finalize then validates the truth itself."""
     lf = truth_lazy(ds)
-    if (lf is None or not hasattr(parts, "scratch") or not hasattr(parts, "part_files") or cfg.strict
+    if (lf is None or not hasattr(parts, "scratch") or cfg.strict
             or source.first_us is None or "truth_id" not in source.lf.collect_schema().names()):
         return None
     if lf.select(pl.len()).collect().item() == 0:

@@ -7,9 +7,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from tertiary.evaluation import streamed
 from tertiary.evaluation.association import AssociationScore, merge_association_scores, relabel_association_score
 
-__all__ = ["merged_scores"]
+__all__ = ["merged_evaluation", "merged_scores"]
 
 
 def merged_scores(parts: Sequence[Any], infos: Sequence[dict], maps: dict[int, dict]) -> AssociationScore | None:
@@ -31,3 +32,13 @@ def merged_scores(parts: Sequence[Any], infos: Sequence[dict], maps: dict[int, d
         merged = merge_association_scores(merged, state if targets is None else
                                           relabel_association_score(state, targets))
     return merged
+
+
+def merged_evaluation(parts: Sequence[Any], infos: Sequence[dict]) -> streamed.MatchState | None:
+    """The evaluation's state of the whole run when every partition with input is a whole run
+    that evaluated its windows (:func:`tertiary.evaluation.streamed.merge_runs`: runs share
+    nothing); None otherwise (the finalize matches the pictures it reads back)."""
+    states = [info.get("evaluation") for p, info in zip(parts, infos) if info["n_input"]]
+    if not states or any(s is None for s in states) or not all(p.whole_run for p in parts):
+        return None
+    return streamed.merge_runs(states)

@@ -342,30 +342,35 @@ def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFr
 
 def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEFAULT_WINDOW_S,
            progress: Progress | None = None, notes: list[str] | None = None, grid_origin_us: int | None = None,
-           scored_span: tuple[int, int] | None = None) -> tuple[RunContext, StreamState]:
+           scored_span: tuple[int, int] | None = None, match: bool = False) -> tuple[RunContext, StreamState]:
     """The streamed stages only (ingest → the STCA curves), window by window into ``parts`` —
     what one slice of a distributed run does (:mod:`tertiary.pipeline.dask_engine`);
     ``grid_origin_us`` puts the epochs on a grid given from outside (the whole recording's), not
     this input's first second. The association metrics are scored on the way for the epochs of
     ``scored_span`` (the slice's kept span) with the slice's own ids (``StreamState.scores``:
-    the client relabels and merges them); None: not scored."""
+    the client relabels and merges them); None: not scored. ``match``: the truth is validated
+    first and the windows match the pictures to it and step their metrics (the evaluation stage:
+    ``StreamState.evaluation``, which the client merges), ``parts`` giving a scratch directory."""
     cfg = adapt_to_scenario(check_config(cfg), ds)
     start = dataclasses.replace(init_stream_state(cfg), scores=None if scored_span is None else AssociationScore())
     ctx, st, _ = stream_windows(ds, cfg, StageClock(progress or (lambda _m: None)), [] if notes is None else notes,
-                                check_window(window_s), parts, start, 0, grid_origin_us, scored_span)
+                                check_window(window_s), parts, start, 0, grid_origin_us, scored_span,
+                                evaluate="match" if match else False)
     return ctx, st
 
 
 def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: list[str], window_s: float | None,
                    parts: Any, resume_state: StreamState | None, start: int, grid_origin_us: int | None = None,
-                   scored_span: tuple[int, int] | None = None, evaluate: bool = False,
+                   scored_span: tuple[int, int] | None = None, evaluate: bool | str = False,
                    sink: SinkThread | None = None) -> tuple[RunContext, StreamState, ReportSource]:
     """Every window from ``start`` through :func:`pipeline_step` (from ``resume_state``, else the
     initial state), each stored in ``parts`` as it completes; the run's context, its last state
     and its report source. ``evaluate``: a run on disk with truth validates the truth first and
     matches its pictures to it in the windows (:func:`first_truth`). ``sink``, the run's writer,
     gets the tables known before the end while the windows run: the ``truth`` once validated, and
-    the stored windows' parts after every window (:meth:`SinkThread.catch_up`)."""
+    the stored windows' parts after every window (:meth:`SinkThread.catch_up`). ``evaluate`` "match":
+    the windows run the evaluation stage only (the truth's intervals, the truth picture, the bound
+    and the lag sums are left to the end)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
     source = ReportSource(ds.reports, cfg.limits, clock_offsets(cfg))
@@ -387,10 +392,11 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         if ctx.truth is not None and sink is not None:
             sink("truth", ctx.truth.table())
             ctx.truth_sunk = True
-        if cfg.safety and ctx.reference is not None and ctx.reference.path is not None:
+        if cfg.safety and ctx.reference is not None and ctx.reference.path is not None and evaluate != "match":
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
             ctx.truth_slice = reference_slice(ctx.reference.files)
-        if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
+        if (ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files")
+                and evaluate != "match"):
             ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
             ctx.lags = True
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final

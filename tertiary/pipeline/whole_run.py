@@ -282,7 +282,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     # the scored samples are read back for the bound only: not when the windows made it (memory)
     matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation, samples=bound is None,
                                 lags=getattr(st, "lags", None))
-               if ctx.reference is not None and st.evaluation is not None else None)
+               if st.evaluation is not None else None)
     done = getattr(st, "intervals", None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
