@@ -6,6 +6,7 @@ adds up exactly what crosses buckets, and finishes with the code of
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUS
                                           pooled_means, potential_table, scored_rows, scored_samples, track_counts,
                                           with_segments)
 from tertiary.evaluation.buckets import file_buckets
-from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, consistency_dicts,
+from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, chi2_band, consistency_rows,
                                              consistency_statistics, series_codes)
 
 __all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows", "table_keys"]
@@ -275,12 +276,17 @@ class SeedSums:
         epochs = self.tables[f"{prefix}:epochs"]
         n_runs = {(m, s): n for m, s, n in self.tables[f"{prefix}:runs"].group_by("method", "eval_segment")
                   .agg(pl.col("run").n_unique()).iter_rows()}
+        # each epoch's mean against the band of its count: the band once per distinct count (an
+        # iterative quantile), every picture's epochs in one query, not a copy of them per picture
+        counts = epochs["__n"].unique()
+        lo, hi = chi2_band(counts.to_numpy(), dof, band)
+        bands = pl.DataFrame({"__n": counts, "__lo": lo, "__hi": hi})
+        mean_k = pl.col("__sum") / pl.col("__n")
+        in_band = {(m, s): v for m, s, v in epochs.join(bands, on="__n", how="left").group_by(
+            "method", "eval_segment").agg(((mean_k >= pl.col("__lo")) & (mean_k <= pl.col("__hi"))).mean()).iter_rows()}
         out = []
-        of, none = epochs.partition_by("method", "eval_segment", as_dict=True), epochs.clear()
         for method, seg in sorted(k[1:] for k in self.lags if k[0] == prefix):
             lags = self.lags[(prefix, method, seg)]
-            e = of.get((method, seg), none)
-            out += consistency_dicts(stage, method, seg, prefix, dof, band, lags.total / lags.n,
-                                      (e["__sum"] / e["__n"]).to_numpy(), e["__n"].to_numpy(), lags.n, lags.tau(),
-                                      n_runs[(method, seg)])
+            out += consistency_rows(stage, method, seg, prefix, dof, band, lags.total / lags.n,
+                                    in_band.get((method, seg), math.nan), lags.n, lags.tau(), n_runs[(method, seg)])
         return pl.DataFrame(out, schema=TABLES["metrics"].required)

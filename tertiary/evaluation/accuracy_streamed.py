@@ -216,16 +216,21 @@ def seed_step(state: SeedState, rows: pl.DataFrame, walk_rows: pl.DataFrame, wal
     return out, epochs, SeedState(sums, tracks, cover, counts)
 
 
-def with_epoch_sums(state: SeedState, read: Callable[[str], pl.DataFrame | None]) -> SeedState:
+def with_epoch_sums(state: SeedState, read: Callable[[str], pl.DataFrame | None], shared: bool = False) -> SeedState:
     """``state`` with the per-epoch sums every window wrote (``read``: a window table's rows of
-    every window, None without any), as one :class:`SeedSums` over the run holds them: the
-    windows' epochs are disjoint, so their rows are the run's."""
+    every window, None without any), as one :class:`SeedSums` over the run holds them: one run's
+    windows hold disjoint epochs, so their rows are the run's. ``shared``: the rows come from
+    runs stepped apart (:func:`merge_runs`), whose windows share epochs: added up by key."""
     sums = SeedSums(state.sums.rows, dict(state.sums.tables), state.sums.lags, state.sums.samples)
     for name, table in EPOCH_SUMS.items():
         rows = read(table)
-        if rows is not None and rows.height:
-            # added up by key: runs evaluated apart write rows of the same epochs
+        if rows is None or not rows.height:
+            continue
+        if shared:
             sums.fold(name, rows, table_keys(name))
+        else:
+            old = sums.tables.get(name)
+            sums.tables[name] = rows if old is None else pl.concat([old, rows], how="vertical_relaxed")
     return SeedState(sums, state.tracks, state.cover, state.counts)
 
 

@@ -22,7 +22,7 @@ from tertiary.contract import TABLES
 from tertiary.core.distributions import chi2_ppf
 from tertiary.core.units import STATE
 
-__all__ = ["add_nees", "chi2_band", "integrated_autocorrelation", "consistency_metrics", "consistency_dicts",
+__all__ = ["add_nees", "chi2_band", "integrated_autocorrelation", "consistency_metrics", "consistency_dicts", "consistency_rows",
            "consistency_statistics", "series_codes", "Lags", "WholeSeries", "CONSISTENCY", "CONSISTENCY_ALL", "NIS_DOF", "MAX_LAG"]
 
 #: cells of one zero-padded FFT block of :func:`_lag_products` (16 MiB of float64)
@@ -199,6 +199,12 @@ def consistency_dicts(stage: str, method: str, seg: str, prefix: str, dof: int, 
     ``mean``, the per-epoch means ``mean_k`` of ``n_k`` samples, its ``n`` samples and their τ."""
     lo, hi = chi2_band(n_k, dof, band)
     in_band = float(np.mean((mean_k >= lo) & (mean_k <= hi)))
+    return consistency_rows(stage, method, seg, prefix, dof, band, mean, in_band, n, tau, n_runs)
+
+
+def consistency_rows(stage: str, method: str, seg: str, prefix: str, dof: int, band: float, mean: float,
+                     in_band: float, n: int, tau: float, n_runs: int) -> list[dict]:
+    """:func:`consistency_dicts` given the fraction of epochs whose mean is in its band (``in_band``)."""
     n_eff = n / tau
     b_lo, b_hi = chi2_band(n_eff, dof, band)
     return [{"stage": stage, "method": method, "metric": f"{prefix}_{metric}", "segment": seg, "value": value,

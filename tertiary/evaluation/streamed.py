@@ -67,6 +67,9 @@ class MatchState:
     #: every picture's surveillance metrics so far (:mod:`tertiary.evaluation.picture_streamed`);
     #: None: not stepped (a checkpoint written without them: the end computes them)
     metrics: PictureStepState | None = field(default_factory=PictureStepState)
+    #: merged from runs stepped apart (:func:`merge_runs`): the windows' per-epoch sums of
+    #: different parts may share an epoch (one run's windows never do)
+    runs_apart: bool = False
 
 
 def merge_runs(states: Sequence[MatchState]) -> MatchState:
@@ -87,7 +90,7 @@ def merge_runs(states: Sequence[MatchState]) -> MatchState:
     seed, walk = accuracy_streamed.merge_runs([s.seed for s in states], [s.walk for s in states])
     stepped = [getattr(s, "metrics", None) for s in states]
     metrics = None if any(m is None for m in stepped) else picture_streamed.merge_runs(stepped)
-    return MatchState(pictures, groups, seed, walk, metrics)
+    return MatchState(pictures, groups, seed, walk, metrics, runs_apart=True)
 
 
 def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFrame]], reference: Reference,

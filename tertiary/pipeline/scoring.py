@@ -315,7 +315,7 @@ class WindowedPictures:
         samples finished: every picture's at once, the first time one is asked for."""
         lags, samples = self.scored
         if cfg not in self._seeded:
-            seed = with_epoch_sums(self.state.seed, self._epoch_sums)
+            seed = with_epoch_sums(self.state.seed, self._epoch_sums, getattr(self.state, "runs_apart", False))
             metrics, by_epoch = seed_tables(seed, self.state.walk, stage, cfg, lags)
             self._seeded[cfg] = (metrics.partition_by("method", as_dict=True),
                                  by_epoch.partition_by("method", as_dict=True))
