@@ -139,14 +139,24 @@ def test_monte_carlo_runs_as_partitions_equal_the_local_engine(client, runs_data
 
 def test_monte_carlo_runs_are_evaluated_on_the_workers(client, runs_dataset, tmp_path):
     """Each run's partition matches its pictures to the truth and steps every metric in its
-    windows (seed, surveillance, OSPA/GOSPA/SIAP); the client merges the runs' states and only
-    finishes them: it matches no picture, and every metric and per-epoch row equals the local
-    engine's, which steps both runs in the same windows."""
+    windows (seed, surveillance, OSPA/GOSPA/SIAP, the consistency lag sums); the client merges
+    the runs' states and only finishes them: it matches no picture and sums no lag, and every
+    metric and per-epoch row equals the local engine's, which steps both runs in the same windows."""
     from tertiary.evaluation import evaluate
+    from tertiary.pipeline import scoring
     cfg = dataclasses.replace(CFG, evaluation=True)
+    summed: list[int] = []
+
+    def lags(scored, rows, carried=None):        # the rows whose lag sums the client makes
+        summed.append(rows)
+        return real_lags(scored, rows, carried)
+    real_lags = scoring.statistic_lags
     with pytest.MonkeyPatch.context() as mp:     # the client's finalize must not match a picture again
         mp.setattr(evaluate, "match_block", lambda *a, **k: pytest.fail("pictures matched on the client"))
+        mp.setattr(scoring, "statistic_lags", lags)
         res = D.run_dask_detailed(runs_dataset, tmp_path / "run", cfg, client=client, window_s=WINDOW)
+    # every series' lag sums made by its run's partition: the client sums none
+    assert summed == [0]
     got = _tables(res.db)
     with RunStore.open(res.db.parent) as s:
         got_epochs = s.read("accuracy_by_epoch")

@@ -247,9 +247,13 @@ class SeedSums:
         t = self.tables
         accuracy, by_epoch = empty_metrics(), pl.DataFrame(schema=BY_EPOCH_SCHEMA)
         if "epochs" in t:
-            agg = t["epochs"].group_by("method", "eval_segment", "epoch").agg(
-                *[pl.col(c).sum() for c in FUSION_METRICS.values()], pl.col("n").sum(), pl.len().alias("n_runs"))
-            runs = t["epochs"].group_by("method", "eval_segment").agg(pl.col("run").n_unique().alias("n_runs"))
+            e = t["epochs"]
+            if e["run"].n_unique() == 1:       # a row per epoch already: no copy of a long run's epochs
+                agg = e.drop("run").with_columns(pl.lit(1, pl.UInt32).alias("n_runs"))
+            else:
+                agg = e.group_by("method", "eval_segment", "epoch").agg(
+                    *[pl.col(c).sum() for c in FUSION_METRICS.values()], pl.col("n").sum(), pl.len().alias("n_runs"))
+            runs = e.group_by("method", "eval_segment").agg(pl.col("run").n_unique().alias("n_runs"))
             accuracy = accuracy_table(pooled_means(agg, ["method", "eval_segment"], cfg), runs, stage)
             whole = agg.filter(pl.col("eval_segment") == "all").drop("eval_segment")
             by_epoch = by_epoch_table(pool_epochs(whole, ["method"], cfg))
@@ -280,10 +284,11 @@ class SeedSums:
         # iterative quantile), every picture's epochs in one query, not a copy of them per picture
         counts = epochs["__n"].unique()
         lo, hi = chi2_band(counts.to_numpy(), dof, band)
-        bands = pl.DataFrame({"__n": counts, "__lo": lo, "__hi": hi})
         mean_k = pl.col("__sum") / pl.col("__n")
-        in_band = {(m, s): v for m, s, v in epochs.join(bands, on="__n", how="left").group_by(
-            "method", "eval_segment").agg(((mean_k >= pl.col("__lo")) & (mean_k <= pl.col("__hi"))).mean()).iter_rows()}
+        inside = ((mean_k >= pl.col("__n").replace_strict(counts, lo, return_dtype=pl.Float64))
+                  & (mean_k <= pl.col("__n").replace_strict(counts, hi, return_dtype=pl.Float64)))
+        in_band = {(m, s): v for m, s, v in epochs.select("method", "eval_segment", inside.alias("__in")).group_by(
+            "method", "eval_segment").agg(pl.col("__in").mean()).iter_rows()}
         out = []
         for method, seg in sorted(k[1:] for k in self.lags if k[0] == prefix):
             lags = self.lags[(prefix, method, seg)]

@@ -287,7 +287,10 @@ def seed_tables(state: SeedState, walk: Walk, stage: str, cfg: AccuracyConfig,
               .select("method", pl.lit(walk.total, pl.UInt32).alias("__walk"),
                       pl.col("covered").cast(pl.UInt32).alias("__covered"), pl.col("breaks").cast(pl.Float64)))
     names = set(c["method"].to_list())
-    tables = {k: v.join(c.select("method"), on="method", how="semi") for k, v in state.sums.tables.items()}
+    # a picture without a row is left out; tables of only those with rows are not copied (a long
+    # run's per-epoch tables)
+    tables = {k: v if set(v["method"].unique().to_list()) <= names else v.filter(pl.col("method").is_in(names))
+              for k, v in state.sums.tables.items()}
     runs = t.select("method", "run").unique()
     sums = SeedSums(int(c["rows"].sum()), {**tables, "tracks": counts, "track_runs": runs},
                     {k: v for k, v in lags.items() if k[1] in names})

@@ -13,7 +13,7 @@ series left and adds the carried sums (:func:`~tertiary.evaluation.accuracy_stre
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -24,7 +24,7 @@ from tertiary.core.units import US
 from tertiary.evaluation.accuracy_buckets import SeedSums, statistic_rows
 from tertiary.evaluation.consistency import CONSISTENCY_ALL
 
-__all__ = ["LagState", "SERIES_DONE_S", "SERIES_BATCH", "SERIES_KEYS", "lags_step"]
+__all__ = ["LagState", "SERIES_DONE_S", "SERIES_BATCH", "SERIES_KEYS", "lags_step", "merge_runs"]
 
 #: a series not scored for this long is taken as whole (s)
 SERIES_DONE_S = 300.0
@@ -54,6 +54,20 @@ class LagState:
     retired: pl.DataFrame = field(default_factory=lambda: _no_series().select(SERIES_KEYS))
     windows: tuple[tuple[int, int, int], ...] = ()
     complete: bool = True
+
+
+def merge_runs(states: Sequence[LagState]) -> LagState:
+    """The lag sums of runs stepped apart (each state holds runs of its own; a series is one
+    run's track): the retired series' sums add up, the open and retired series are each one
+    run's. Not complete if one is not (the end then sums every series)."""
+    states = list(states)
+    if not all(s.complete for s in states):
+        return LagState(complete=False)
+    sums = SeedSums()
+    for s in states:
+        sums.merge(s.sums)
+    return LagState(sums, pl.concat([s.open for s in states]), pl.concat([s.retired for s in states]),
+                    tuple(w for s in states for w in s.windows))
 
 
 def _keys(frame: pl.DataFrame) -> pl.DataFrame:

@@ -59,7 +59,7 @@ from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
-from tertiary.pipeline.partition_states import merged_evaluation, merged_scores
+from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -226,9 +226,15 @@ class PartitionWriter:
                     continue
                 d = self.out / sub / name
                 d.mkdir(parents=True, exist_ok=True)
-                write_parquet_atomic(f, d / f"w={w.index + 1:06d}.parquet", compression="zstd")
+                # named by the window's index, as a local run's parts are (the stages that read
+                # their stored windows back find them by it); the radars' prologue is w=-00001
+                write_parquet_atomic(f, d / f"w={w.index:06d}.parquet", compression="zstd")
                 if sub == "kept":
                     self.rows[name] = self.rows.get(name, 0) + f.height
+
+    def part_files(self, name: str) -> list[Path]:
+        """The files of the windows' kept rows of ``name`` written so far, in window order."""
+        return sorted((self.out / "kept" / name).glob("w=*.parquet"))
 
     def scratch(self) -> Path:
         """A directory for the partition's scratch files (its truth as a reference file)."""
@@ -314,6 +320,7 @@ def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfi
         info["curves"] = ctx.curves         # the windows predicted the STCA curves' points
         info["scores"] = st.scores          # the kept span's association metrics, the slice's own ids
         info["evaluation"] = st.evaluation  # the run's evaluation state (None: not evaluated here)
+        info["lags"] = st.lags              # its consistency statistics' lag sums (None: likewise)
     info.update(counts=writer.counts(), rows=writer.rows, seconds=time.perf_counter() - t_start,
                 peak_rss_mib=round(peak_rss_mib(), 1))
     return info
@@ -735,7 +742,8 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
         notes.extend(n for n in i["notes"] if n not in notes)
     # the association metrics the partitions scored, in the run's ids and merged
     st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts,
-                             scores=merged_scores(parts, infos, maps), evaluation=merged_evaluation(parts, infos))
+                             scores=merged_scores(parts, infos, maps), evaluation=merged_evaluation(parts, infos),
+                             lags=merged_lags(parts, infos))
     table = _partition_table(parts, infos, stitching, out)
     with RunStore.create(out) as store:
         sink = pipeline.store_sink(store, notes, tables)

@@ -7,10 +7,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from tertiary.evaluation import streamed
+from tertiary.evaluation import lags_streamed, streamed
 from tertiary.evaluation.association import AssociationScore, merge_association_scores, relabel_association_score
 
-__all__ = ["merged_evaluation", "merged_scores"]
+__all__ = ["merged_evaluation", "merged_lags", "merged_scores"]
 
 
 def merged_scores(parts: Sequence[Any], infos: Sequence[dict], maps: dict[int, dict]) -> AssociationScore | None:
@@ -38,7 +38,21 @@ def merged_evaluation(parts: Sequence[Any], infos: Sequence[dict]) -> streamed.M
     """The evaluation's state of the whole run when every partition with input is a whole run
     that evaluated its windows (:func:`tertiary.evaluation.streamed.merge_runs`: runs share
     nothing); None otherwise (the finalize matches the pictures it reads back)."""
-    states = [info.get("evaluation") for p, info in zip(parts, infos) if info["n_input"]]
+    states = _whole_runs(parts, infos, "evaluation")
+    return None if states is None else streamed.merge_runs(states)
+
+
+def merged_lags(parts: Sequence[Any], infos: Sequence[dict]) -> lags_streamed.LagState | None:
+    """The consistency statistics' lag sums of the whole run, as :func:`merged_evaluation`
+    merges the evaluation (None: the end sums every series)."""
+    states = _whole_runs(parts, infos, "lags")
+    return None if states is None else lags_streamed.merge_runs(states)
+
+
+def _whole_runs(parts: Sequence[Any], infos: Sequence[dict], key: str) -> list[Any] | None:
+    """Each partition's state ``key`` when every partition with input is a whole run that
+    returned one; else None."""
+    states = [info.get(key) for info in infos if info["n_input"]]
     if not states or any(s is None for s in states) or not all(p.whole_run for p in parts):
         return None
-    return streamed.merge_runs(states)
+    return states

@@ -349,8 +349,9 @@ def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEF
     this input's first second. The association metrics are scored on the way for the epochs of
     ``scored_span`` (the slice's kept span) with the slice's own ids (``StreamState.scores``:
     the client relabels and merges them); None: not scored. ``match``: the truth is validated
-    first and the windows match the pictures to it and step their metrics (the evaluation stage:
-    ``StreamState.evaluation``, which the client merges), ``parts`` giving a scratch directory."""
+    first and the windows match the pictures to it, step their metrics and sum the consistency
+    lags (``StreamState.evaluation`` and ``lags``, which the client merges), ``parts`` giving a
+    scratch directory and its stored windows' files."""
     cfg = adapt_to_scenario(check_config(cfg), ds)
     start = dataclasses.replace(init_stream_state(cfg), scores=None if scored_span is None else AssociationScore())
     ctx, st, _ = stream_windows(ds, cfg, StageClock(progress or (lambda _m: None)), [] if notes is None else notes,
@@ -369,8 +370,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     matches its pictures to it in the windows (:func:`first_truth`). ``sink``, the run's writer,
     gets the tables known before the end while the windows run: the ``truth`` once validated, and
     the stored windows' parts after every window (:meth:`SinkThread.catch_up`). ``evaluate`` "match":
-    the windows run the evaluation stage only (the truth's intervals, the truth picture, the bound
-    and the lag sums are left to the end)."""
+    the windows run the evaluation stage and the lag sums only (the truth's intervals, the truth
+    picture and the bound are left to the end)."""
     notes.extend(getattr(ds, "notes", []))
     clock.stage("validate")
     source = ReportSource(ds.reports, cfg.limits, clock_offsets(cfg))
@@ -395,9 +396,9 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None and evaluate != "match":
             ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
             ctx.truth_slice = reference_slice(ctx.reference.files)
-        if (ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files")
-                and evaluate != "match"):
-            ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
+        if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
+            if evaluate != "match":
+                ctx.bound = bound_setup(ds, ctx.radars, ctx.origin, ctx.reference.path, source.lf)
             ctx.lags = True
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
