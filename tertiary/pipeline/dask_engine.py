@@ -57,22 +57,17 @@ from tertiary.io.dataset import read_dataset
 from tertiary.pipeline.stitch_effects import boundary_utc, parse_utc, stitching_effects  # noqa: F401 (re-exported)
 from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
-from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, Window, check_window, peak_rss_mib)
+from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
+from tertiary.pipeline.partition_writer import EPOCH_TABLES, SCRATCH, STITCHED, PartitionWriter  # noqa: F401
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
 DEFAULT_OVERLAP_S = 120.0
-#: tables stitched across slice boundaries (their warm-up rows are kept aside for matching)
-STITCHED = ("associations", "fused", "clusters", "tracks")
-#: tables whose rows belong to a slice by epoch (the others by report time)
-EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "curve_rows")
 #: gate of the positional match of tracks in the overlap (m)
 DEFAULT_GATE_M = 500.0
 SLICES = "slices"
-#: the finalize stage's scratch files, beside the partitions
-SCRATCH = "_scratch"
 
 
 @dataclass(frozen=True)
@@ -196,96 +191,6 @@ def _slice_bounds(cfg, source: ReportSource, origin: int | None, window_s: float
 
 
 # --------------------------------------------------------------------------- the partition task
-
-
-class PartitionWriter:
-    """A partition's sink for :func:`tertiary.pipeline.stream`: each window's kept rows (and the
-    warm-up rows of the stitched tables) as Parquet parts; rejects' ``row_index`` made the row of
-    the whole input; association counts taken between the slice's boundaries."""
-
-    def __init__(self, out: Path, part: Partition, rowmap: pl.DataFrame, windowed: bool,
-                 trim: pipeline.PartTrim | None = None) -> None:
-        self.out, self.part, self.windowed, self.trim = out, part, windowed, trim
-        self.g = rowmap["__g"].to_numpy()
-        self.t = rowmap["__t"].to_numpy()
-        self.t_null = rowmap["__t"].is_null().to_numpy()
-        self.rows: dict[str, int] = {}
-        self.c0: dict = {}
-        self.c1: dict | None = None
-        self.last: dict = {}
-        shutil.rmtree(out, ignore_errors=True)
-
-    def write(self, w: Window, outputs: dict[str, pl.DataFrame]) -> None:
-        for name, frame in outputs.items():
-            if frame.width == 0:
-                continue
-            frame = frame if self.trim is None else self.trim(name, frame)
-            kept, aside = self._split(name, frame)
-            for sub, f in (("kept", kept), ("overlap", aside)):
-                if f is None or (sub == "overlap" and f.height == 0):
-                    continue
-                d = self.out / sub / name
-                d.mkdir(parents=True, exist_ok=True)
-                # named by the window's index, as a local run's parts are (the stages that read
-                # their stored windows back find them by it); the radars' prologue is w=-00001
-                write_parquet_atomic(f, d / f"w={w.index:06d}.parquet", compression="zstd")
-                if sub == "kept":
-                    self.rows[name] = self.rows.get(name, 0) + f.height
-
-    def part_files(self, name: str) -> list[Path]:
-        """The files of the windows' kept rows of ``name`` written so far, in window order."""
-        return sorted((self.out / "kept" / name).glob("w=*.parquet"))
-
-    def scratch(self) -> Path:
-        """A directory for the partition's scratch files (its truth as a reference file)."""
-        d = self.out / SCRATCH
-        d.mkdir(parents=True, exist_ok=True)
-        return d
-
-    def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
-        counts = {k: v for k, v in state.counts.items() if not k.startswith("_")}
-        if w.t1_us == self.part.t0_us:
-            self.c0 = counts
-        if w.t1_us == self.part.t1_us:
-            self.c1 = counts
-        self.last = counts
-
-    def counts(self) -> dict[str, int]:
-        """Association counts of the kept span (whole input when windows do not meet the bounds)."""
-        end = self.c1 if self.c1 is not None else self.last
-        return {k: int(end.get(k, 0)) - int(self.c0.get(k, 0)) for k in end}
-
-    def _split(self, name: str, frame: pl.DataFrame) -> tuple[pl.DataFrame, pl.DataFrame | None]:
-        p = self.part
-        if name == "rejects":
-            return self._rejects(frame), None
-        if name == "reports":
-            t = pl.col("time").dt.epoch("us")
-            return frame.filter((t >= p.t0_us) & (t < p.t1_us)), None
-        if name not in EPOCH_TABLES or frame.height == 0:
-            return frame, (frame.clear() if name in STITCHED else None)
-        e = pl.col("epoch").dt.epoch("us")
-        kept = frame.filter((e >= p.t0_us) & (e < p.t1_us))
-        aside = frame.filter((e >= p.t0_us - p.warm_us) & (e < p.t0_us)) if name in STITCHED and p.warm_us else None
-        return kept, aside
-
-    def _rejects(self, frame: pl.DataFrame) -> pl.DataFrame:
-        """Rejects of the partition's reports with the row of the whole input; radar rejects only
-        in partition 0; a report's reject kept where its time is (null time: the first slice)."""
-        p = self.part
-        if frame.height == 0:
-            return frame
-        is_rep = (frame["input_table"] == "reports").to_numpy()
-        keep = np.where(is_rep, True, p.index == 0)
-        if is_rep.any():
-            local = frame["row_index"].to_numpy()
-            ok = is_rep & (local < len(self.g))
-            li = np.where(ok, local, 0).astype(np.int64)
-            t, tnull = self.t[li], self.t_null[li]
-            inside = np.where(tnull, p.first_slice, (t >= p.t0_us) & (t < p.t1_us))
-            keep &= np.where(is_rep, inside, True)
-            frame = frame.with_columns(pl.Series("row_index", np.where(ok, self.g[li], local).astype(np.uint64)))
-        return frame.filter(pl.Series(keep))
 
 
 def run_partition(dataset_dir: str, part: Partition, cfg: pipeline.PipelineConfig, window_s: float | None,
