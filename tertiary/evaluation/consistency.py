@@ -22,8 +22,8 @@ from tertiary.contract import TABLES
 from tertiary.core.distributions import chi2_ppf
 from tertiary.core.units import STATE
 
-__all__ = ["add_nees", "chi2_band", "integrated_autocorrelation", "consistency_metrics", "consistency_dicts", "consistency_rows",
-           "consistency_statistics", "series_codes", "Lags", "WholeSeries", "CONSISTENCY", "CONSISTENCY_ALL", "NIS_DOF", "MAX_LAG"]
+__all__ = ["add_nees", "chi2_band", "integrated_autocorrelation", "consistency_metrics", "consistency_dicts",
+           "consistency_rows", "consistency_statistics", "series_codes", "Lags", "WholeSeries", "CONSISTENCY", "CONSISTENCY_ALL", "NIS_DOF", "MAX_LAG"]
 
 #: cells of one zero-padded FFT block of :func:`_lag_products` (16 MiB of float64)
 _FFT_CELLS = 1 << 21

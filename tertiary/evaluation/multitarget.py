@@ -48,8 +48,8 @@ from scipy.spatial import cKDTree
 
 from tertiary.contract import TABLES, TIME
 
-__all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "merge_runs", "multitarget_by_epoch", "multitarget_metrics",
-           "multitarget_steps",
+__all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "merge_runs", "multitarget_by_epoch",
+           "multitarget_metrics", "multitarget_steps",
            "multitarget_result", "multitarget_step", "siap_continuity"]
 
 #: the metrics :func:`multitarget_metrics` writes (stage ``evaluation``, segment ``all``)

@@ -24,8 +24,8 @@ first epoch, id), the order in which the local engine creates them; then every p
 are relabelled in place by a task (atomic rewrites).
 
 Evaluation. A partition that is a whole run validates the truth and its windows match the
-pictures to it and step their metrics, as a local run's do; it returns the evaluation's state,
-the client merges the runs' states (:func:`tertiary.evaluation.streamed.merge_runs`) and the
+pictures to it, step their metrics and sum the consistency lags, as a local run's do; it returns
+those states, the client merges the runs' (:mod:`tertiary.pipeline.partition_states`) and the
 finalize only finishes them. A time slice's pictures are matched on the client, after the
 stitching. The finalize stage (alert scoring, …) runs on the client over the union of the
 partitions and ``results.duckdb`` is built

@@ -1,6 +1,7 @@
 """What the partitions of a distributed run return besides their parts, and how the client
-merges it: each partition's state of a whole-run accumulator, in its own ids, relabelled with
-the stitched ids and merged in time order (:mod:`tertiary.pipeline.dask_engine`)."""
+merges it (:mod:`tertiary.pipeline.dask_engine`): each partition's association score, in its own
+ids, relabelled with the stitched ids and merged in time order; each whole run's evaluation
+state and lag sums, merged across runs (runs share no id)."""
 
 from __future__ import annotations
 
