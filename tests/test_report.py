@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from tertiary import pipeline
 from tertiary.cli.commands import app
-from tertiary.report.common import CENTRALIZED, breakable as _breakable, fmt_cell as _fmt_cell, thin as _thin
+from tertiary.report.common import CENTRALIZED, Best, breakable as _breakable, fmt_cell as _fmt_cell, thin as _thin
 from tertiary.report.html import (MAX_POINTS, MIN_SAMPLE_FRAC, REPORT_FILENAME, build_report, build_sections, figure_count)
 from tertiary.io.dataset import write_dataset
 from tertiary.simulate import load_scenario, simulate
@@ -146,7 +146,7 @@ def test_verdict_opens_the_report(page, run_dir):
     with RunStore.open(run_dir) as store:
         m = store.read("metrics")
     fus = m.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
-                   & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
+                   & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value", "method")
     best = fus["method"][0]
     assert f"<b>Best picture {best}</b>: horizontal RMSE <b>{fus['value'][0]:,.1f} m</b>" in verdict
     assert "the best radar alone" in verdict and "centralised reference" in verdict
@@ -286,7 +286,7 @@ def test_default_visible_traces_are_best_picture_reference_and_best_radar(built,
     with RunStore.open(run_dir) as store:
         m = store.read("metrics")
     horiz = m.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
-                     & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
+                     & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value", "method")
     best = horiz["method"][0]
     fig = _figures(built, "rmse_time")[0]
     radar_groups = {t.legendgroup for t in fig.data if t.legendgroup.startswith("radar ")}
@@ -302,15 +302,27 @@ def test_default_visible_traces_are_best_picture_reference_and_best_radar(built,
     with RunStore.open(run_dir) as store:
         from tertiary.store.sql_reports import run_report
         ra = run_report(store, "radar_accuracy_over_time", {})
-    pooled = ra.group_by("name").agg((pl.col("rmse_horizontal_m") ** 2).mean().sqrt().alias("h")).sort("h")
+    pooled = ra.group_by("name").agg((pl.col("rmse_horizontal_m") ** 2).mean().sqrt().alias("h")).sort("h", "name")
     assert pooled["name"][0] == best_name
     # conflicts (predicted on the tracker's pictures): the best picture overall by default
     anyp = m.filter(pl.col("stage").is_in(["fusion", "tracker"]) & (pl.col("segment") == "all")
-                    & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value")
+                    & (pl.col("metric") == "rmse_horizontal_m") & (pl.col("method") != CENTRALIZED)).sort("value", "method")
     conf = _figures(built, "conflicts")[0]
     pictures = {t.legendgroup for t in conf.data}
     expected = next(p for p in anyp["method"].to_list() if p in pictures)
     assert _shown(conf) - {CENTRALIZED} == {expected}
+
+
+def test_pictures_with_equal_accuracy_are_ranked_by_name():
+    """Trackers that coincide (a short run) tie: the figure shows the same picture every run,
+    whatever order the store returns them in."""
+    rows = pl.DataFrame({"picture": ["information+singer", "covariance_intersection+singer", "bar_shalom_campo+singer",
+                                     "arithmetic+singer"],
+                         "stage": ["tracker"] * 4, "horizontal_m": [61.2, 61.2, 61.2, 70.4],
+                         "height_m": [4.0] * 4, "pos_m": [106.0] * 4})
+    for order in (rows, rows.reverse(), rows[[1, 0, 2, 3]]):
+        best = Best(order, pl.DataFrame())
+        assert best.best_of(order["picture"].to_list()) == "bar_shalom_campo+singer"
 
 
 def test_horizontal_and_vertical_panels(built):

@@ -120,7 +120,7 @@ class Best:
         """The most accurate of ``names`` (the pictures a figure holds), else the first."""
         key = "horizontal_m" if self.ranked_by == "rmse_horizontal_m" else "pos_m"
         ranked = (self.pictures.filter(pl.col("picture").is_in(names) & pl.col(key).is_not_null()
-                                       & (pl.col("picture") != CENTRALIZED)).sort(key))
+                                       & (pl.col("picture") != CENTRALIZED)).sort(key, "picture"))
         return ranked["picture"][0] if ranked.height else (names[0] if names else None)
 
 
@@ -140,13 +140,14 @@ def _best_pictures(ctx: Ctx) -> Best:
     key = "horizontal_m" if cand["horizontal_m"].is_not_null().any() else "pos_m"
     best.ranked_by = "rmse_horizontal_m" if key == "horizontal_m" else "rmse_pos_m"
     best.unranked = cand.filter(pl.col(key).is_null())["picture"].to_list()
-    ranked = cand.filter(pl.col(key).is_not_null()).sort(key)
+    # equal figures (trackers that coincide on a short run) are ranked by name: the same choice every run
+    ranked = cand.filter(pl.col(key).is_not_null()).sort(key, "picture")
     if ranked.height:
         best.picture = ranked["picture"][0]
         fus = ranked.filter(pl.col("stage") == "fusion")
         best.fused = fus["picture"][0] if fus.height else None
     if radars.height:
-        best.radar = radars.sort("horizontal_m", nulls_last=True)["radar"][0]
+        best.radar = radars.sort("horizontal_m", "radar", nulls_last=True)["radar"][0]
         best.radar_kind = _sensor_word(ctx, best.radar)
     return best
 
@@ -174,7 +175,7 @@ def _radar_pooled(ctx: Ctx) -> pl.DataFrame:
     return (ra.group_by("name").agg(*[(pl.col(c) ** 2).mean().sqrt().alias(a) for c, a in
                                       (("rmse_horizontal_m", "horizontal_m"), ("rmse_height_m", "height_m"),
                                        ("rmse_pos_m", "pos_m"))])
-            .rename({"name": "radar"}).sort("horizontal_m").cast(schema))
+            .rename({"name": "radar"}).sort("horizontal_m", "radar").cast(schema))
 
 
 def visible(name: str, shown: set[str]) -> bool | str:

@@ -175,7 +175,7 @@ def _picture_order(ctx: Ctx, names: list[str]) -> list[str]:
     """Most accurate first (the verdict's ranking), then the unranked by name, the reference last."""
     b = ctx.best
     key = "horizontal_m" if b.ranked_by == "rmse_horizontal_m" else "pos_m"
-    ranked = b.pictures.filter(pl.col(key).is_not_null()).sort(key)["picture"].to_list()
+    ranked = b.pictures.filter(pl.col(key).is_not_null()).sort(key, "picture")["picture"].to_list()
     rank = {p: i for i, p in enumerate(ranked)}
     return sorted(names, key=lambda p: (p == CENTRALIZED, rank.get(p, len(rank)), p))
 
