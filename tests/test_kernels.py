@@ -55,6 +55,9 @@ def test_each_kernel_is_compiled_for_its_one_declared_signature():
     pred = flt.predict(st, _read_only(np.full(b, 4.0)))
     flt.update(pred, _read_only(rng.normal(0.0, 1e3, (b, 3))), np.tile(np.diag([100.0, 100.0, 400.0]), (b, 1, 1)),
                _read_only(np.ones(b, bool)))
+    flt.observe_velocity(pred, _read_only(rng.normal(0.0, 100.0, (b, 2))), _read_only(np.tile(np.eye(2), (b, 1, 1))),
+                         _read_only(np.ones(b, bool)))
+    flt.output(pred)
     # the bound's recursion, from a read-only truth-time column and a strided record mask
     r_eq = np.full((n, 3, 3), np.nan)
     r_eq[::3] = np.diag([2500.0, 2500.0, 1e4])
@@ -116,7 +119,8 @@ def test_a_kernel_is_ready_when_it_is_cached_not_when_its_group_is(tmp_path):
 def test_a_run_warms_only_the_kernels_its_filters_call():
     assert warmup.kernels_for(()) == ["altitude"]
     assert warmup.kernels_for(("singer",)) == ["altitude"]
-    assert warmup.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_update", "imm_velocity"]
+    assert warmup.kernels_for(("singer", "imm_sym")) == ["altitude", "imm_predict", "imm_output", "imm_update",
+                                                           "imm_velocity"]
     assert warmup.kernels_for(("no-such-filter",)) == ["altitude"]
     assert warmup.kernels_for(("singer",), bound=True) == ["altitude", "pcrb"]
 

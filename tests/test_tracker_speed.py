@@ -4,7 +4,7 @@
   method's picture). Oracle: the unfolded path — :func:`track` per method, one filter object
   each, concatenated method-major — which is the tracker loop as it was. Expected: identical
   rows, bit for bit where the filter is the same code (``singer``).
-* ``imm`` / ``imm_sym`` predict and update with compiled per-track kernels. Oracle: the numpy path
+* ``imm`` / ``imm_sym`` predict, update and output with compiled per-track kernels. Oracle: the numpy path
   (``compiled=False``). Expected: equal to round-off, ≤ 1e-9 relative to each column's scale.
 """
 
@@ -176,6 +176,29 @@ def test_compiled_imm_velocity_update_matches_numpy(name):
             scale = np.abs(b[key]).max(axis=tuple(range(1, b[key].ndim)), keepdims=True) + 1e-300
             assert np.all(np.abs(a[key] - b[key]) <= REL * scale), (key, k)
         state = b
+
+
+@pytest.mark.parametrize("name", ["imm", "imm_sym"])
+def test_compiled_imm_output_matches_numpy(name):
+    """The combined estimate and its 6 × 6 covariance (horizontal block moment-matched, vertical
+    channel beside it, no cross terms between them), from states whose models disagree."""
+    rng = np.random.default_rng(11)
+    fast, slow = make_filter(name), make_filter(name, compiled=False)
+    assert fast.compiled and not slow.compiled
+    n = 300
+    z = rng.normal(0, 3e4, (n, 3))
+    r = rng.uniform(30, 300, (n, 3)) ** 2
+    state = slow.init(z, r)
+    for k in range(6):
+        pred = slow.predict(state, rng.uniform(0.5, 12.0, n))
+        state, _ = slow.update(pred, z + rng.normal(0, 300, (n, 3)) + 900.0 * k, r, rng.random(n) < 0.8)
+        a, b = fast.output(state), slow.output(state)
+        assert np.ptp(state["x"][:, :, 1], axis=1).max() > 1.0      # the models' spread enters P
+        for f in ("x", "var", "probs", "cov"):
+            u, v = getattr(a, f), getattr(b, f)
+            scale = np.abs(v).max(axis=tuple(range(1, v.ndim)), keepdims=True) + 1e-300
+            assert u.shape == v.shape and np.all(np.abs(u - v) <= REL * scale), (f, k)
+    assert fast.output(slow.init(z[:0], r[:0])).cov.shape == (0, 6, 6)
 
 
 def test_anisotropic_q_keeps_the_numpy_path():

@@ -49,7 +49,8 @@ from scipy.linalg import expm
 from tertiary.core.jit import arg, ready_for
 from tertiary.core.units import G0
 from tertiary.filters.base import F64, Innovation, Output, State, TrackFilter, register
-from tertiary.filters.imm_kernel import imm_predict_kernel, imm_update_kernel, imm_velocity_kernel
+from tertiary.filters.imm_kernel import (imm_output_kernel, imm_predict_kernel, imm_update_kernel,
+                                         imm_velocity_kernel)
 
 #: paper's model set (rad/s; 0 = CV), TPM and normalised μ₀ (the paper's table 2.6 row 20)
 PAPER_OMEGAS = (0.001, 0.045, 0.0)
@@ -590,6 +591,11 @@ class IMMFilter(TrackFilter):
         return imm_velocity_update(state, v, r, mask, self.core.mu_floor, compiled=self.compiled)
 
     def output(self, state: State) -> Output:
+        if self.compiled and len(state["mu"]):
+            ready_for("imm_output")
+            out, cov = imm_output_kernel(arg(state["x"]), arg(state["P"]), arg(state["mu"]), arg(state["xv"]),
+                                         arg(state["Pv"]))
+            return Output(out, np.einsum("bii->bi", cov), state["mu"].copy(), cov)
         xc, pc = imm_combine(state["x"], state["P"], state["mu"])
         xv, pv = state["xv"], state["Pv"]
         out = np.stack([xc[:, 0], xc[:, 2], xv[:, 0], xc[:, 1], xc[:, 3], xv[:, 1]], axis=1)
