@@ -50,7 +50,31 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
                   ) -> tuple[dict[str, pl.DataFrame], Any]:
     """Window ``w``'s evaluation from its processing's :class:`Handoff`: its output tables and
     ``st`` (a :class:`~tertiary.pipeline.streaming.StreamState`) with the evaluation's fields
-    advanced."""
+    advanced. The STCA curves and the truth picture read neither the matching nor each other's
+    state: they run on a thread of their own beside the matching (:func:`_conflict_side`)."""
+    side_clock = StageClock(lambda name: None if f"{name}_s" in clock.timings else clock.say(name))
+    with ThreadPoolExecutor(1, thread_name_prefix="evaluation-side") as pool:
+        side = pool.submit(_conflict_side, cfg, ctx, st, h, w, side_clock)
+        # a failure here leaves the clock on its stage (the run names it); the pool's exit waits
+        # for the other thread first
+        out_eval, main = _matching_side(cfg, ctx, st, h, w, clock)
+        clock.stage(None)
+        side_failure = side.exception()
+    _merge_clock(clock, side_clock)
+    if side_failure is not None:
+        if side_clock.name is not None and not hasattr(side_failure, "tertiary_stage"):
+            side_failure.tertiary_stage = side_clock.name  # type: ignore[attr-defined]
+        raise side_failure
+    out_side, s_curves, s_truth = side.result()
+    out = {k: v for k, v in out_side.items() if k == "curve_rows"}
+    out.update(out_eval)
+    out.update({k: v for k, v in out_side.items() if k != "curve_rows"})
+    return out, dataclasses.replace(st, curves=s_curves, truth_picture=s_truth, **main)
+
+
+def _conflict_side(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
+                   ) -> tuple[dict[str, pl.DataFrame], Any, Any]:
+    """The STCA curves' predictions and the truth picture's: their tables and states."""
     out: dict[str, pl.DataFrame] = {}
     s_curves = st.curves
     if h.picture is not None and ctx.curves and h.labelled:
@@ -60,6 +84,24 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
         stage = ctx.stages["stca_curves"]
         o, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": h.picture}, w)
         out["curve_rows"] = o["curve_rows"]
+    s_truth = st.truth_picture
+    if ctx.truth_slice is not None:
+        # the truth picture predicted as the run goes, but for the last stretch no later report
+        # can change (the alert scoring attributes every picture's alerts by it)
+        clock.stage("truth_picture")
+        seen = window_aircraft(h.aligned, w)
+        more, s_truth = truth_picture_step(st.truth_picture or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
+                                           ctx.truth_slice, safety_id_column(cfg), ctx.origin)
+        out.update(more)
+    # a failure above leaves the clock on its stage: the caller names it
+    clock.stage(None)
+    return out, s_curves, s_truth
+
+
+def _matching_side(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
+                   ) -> tuple[dict[str, pl.DataFrame], dict[str, Any]]:
+    """The pictures matched and scored, the truth's separation intervals, the bound and τ's lag
+    sums: their tables and the state's fields they advance."""
     s_eval, out_eval = st.evaluation, {}
     if ctx.reference is not None:
         # matched and seed-scored as the run goes: the whole-run evaluation finishes the metrics
@@ -74,14 +116,6 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
         clock.stage("truth_intervals")
         s_int = intervals_step(s_int or TruthIntervals(), ctx.reference.path, ctx.truth_span,
                                safety_alerts.AlertConfig(conflict=cfg.conflicts), ctx.origin, w.t1_us)
-    s_truth, out_truth = st.truth_picture, {}
-    if ctx.truth_slice is not None:
-        # the truth picture predicted as the run goes, but for the last stretch no later report
-        # can change (the alert scoring attributes every picture's alerts by it)
-        clock.stage("truth_picture")
-        seen = window_aircraft(h.aligned, w)
-        out_truth, s_truth = truth_picture_step(s_truth or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
-                                                ctx.truth_slice, safety_id_column(cfg), ctx.origin)
     s_bound = st.bound
     if ctx.bound is not None and ctx.reference is not None:
         # every aircraft's recursion carried on to the cut: the last window, open-ended, leaves the rest to the end
@@ -93,11 +127,15 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
         # τ's lag sums of each track's scored series once no window has scored it for a while
         clock.stage("lag_sums")
         s_lags = lags_step(s_lags or LagState(), out_eval.get(SCORED), w, ctx.stored_scored)
-    clock.stage(None)
-    out.update(out_eval)
-    out.update(out_truth)
-    return out, dataclasses.replace(st, curves=s_curves, evaluation=s_eval, intervals=s_int, bound=s_bound,
-                                    truth_picture=s_truth, lags=s_lags)
+    return out_eval, {"evaluation": s_eval, "intervals": s_int, "bound": s_bound, "lags": s_lags}
+
+
+def _merge_clock(clock: StageClock, other: StageClock) -> None:
+    """Add ``other``'s stage times and peaks to ``clock``'s."""
+    for k, v in other.timings.items():
+        clock.timings[k] = clock.timings.get(k, 0.0) + v
+    for k, v in other.memory.items():
+        clock.memory[k] = max(v, clock.memory.get(k, 0.0))
 
 
 class Overlap:
@@ -154,7 +192,4 @@ class Overlap:
 
     def timings(self, clock: StageClock) -> None:
         """Add the evaluation's stage times and peaks to ``clock``'s."""
-        for k, v in self.clock.timings.items():
-            clock.timings[k] = clock.timings.get(k, 0.0) + v
-        for k, v in self.clock.memory.items():
-            clock.memory[k] = max(v, clock.memory.get(k, 0.0))
+        _merge_clock(clock, self.clock)
