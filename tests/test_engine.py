@@ -514,6 +514,29 @@ def test_a_failure_in_either_half_names_its_stage_and_loses_no_window_before_it(
     assert manifest["windows_done"] == (2 if half == "evaluation" else 3)
 
 
+@pytest.mark.parametrize("stage", ["truth_picture", "truth_intervals"])
+def test_a_failure_beside_the_matching_names_its_stage(terminal, tmp_path, monkeypatch, stage):
+    """The truth picture runs on a thread beside the matching (the truth's intervals on the
+    matching's): either failing in window 2 stops the run there with its own stage named and the
+    windows before it stored. Fails if the side thread's failure were lost or named after the
+    matching's stage."""
+    target = {"truth_picture": "truth_picture_step", "truth_intervals": "intervals_step"}[stage]
+    calls = []
+
+    def failing(*a, f=getattr(window_evaluation, target), **k):
+        calls.append(1)
+        if len(calls) == 3:                               # once per window: the third window's
+            raise RuntimeError("boom")
+        return f(*a, **k)
+    monkeypatch.setattr(window_evaluation, target, failing)
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), stca_lookaheads_s=())
+    with pytest.raises(runner.StageError) as err:
+        pipeline.run(terminal, tmp_path / "run", cfg, window_s=60.0)
+    assert err.value.stage == stage and "boom" in str(err.value)
+    manifest = json.loads((tmp_path / "run" / "manifest.json").read_text())
+    assert manifest["windows_done"] == 2
+
+
 def test_resume_refuses_other_options(dataset_dir, tmp_path):
     run_dir = tmp_path / "r"
     (run_dir).mkdir()
