@@ -890,7 +890,7 @@ def test_simulated_reports_match_tables(sim_run):
         metrics, conflicts = store.read("metrics"), store.read("conflicts")
         acc = q("accuracy_by_method", stage="fusion", segment="all")
         ref = metrics.filter((pl.col("stage") == "fusion") & (pl.col("segment") == "all")
-                             & (pl.col("metric") == "rmse_pos_m")).sort("value")
+                             & (pl.col("metric") == "rmse_pos_m")).sort("value", "method")   # the SQL's order
         assert acc["method"].to_list() == ref["method"].to_list()
         assert acc["rmse_pos_m"].to_list() == ref["value"].to_list()
         tl = q("conflict_timeline")
