@@ -60,7 +60,7 @@ from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
-from tertiary.pipeline.partition_writer import EPOCH_TABLES, SCRATCH, STITCHED, PartitionWriter  # noqa: F401
+from tertiary.pipeline.partition_writer import SCRATCH, PartitionWriter
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)

@@ -18,7 +18,8 @@ __all__ = ["GROUPS", "kernels_for", "warm_kernels"]
 #: priority (the fusion waits for it within seconds), later ones niced (the tracker's come later,
 #: the bound's last: in a process of its own it took the core from the tracker's on a fresh
 #: install)
-GROUPS: tuple[tuple[str, ...], ...] = (("altitude",), ("imm_predict", "imm_output", "imm_update", "imm_velocity", "pcrb"))
+GROUPS: tuple[tuple[str, ...], ...] = (("altitude",),
+                                       ("imm_predict", "imm_output", "imm_update", "imm_velocity", "pcrb"))
 
 
 def kernels_for(filters: Iterable[str], bound: bool = False) -> list[str]:

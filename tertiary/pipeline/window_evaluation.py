@@ -52,6 +52,10 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
     ``st`` (a :class:`~tertiary.pipeline.streaming.StreamState`) with the evaluation's fields
     advanced. The STCA curves and the truth picture read neither the matching nor each other's
     state: they run on a thread of their own beside the matching (:func:`_conflict_side`)."""
+    if not _has_side(ctx, h):
+        out, main = _matching_side(cfg, ctx, st, h, w, clock)
+        clock.stage(None)
+        return out, dataclasses.replace(st, **main)
     side_clock = StageClock(lambda name: None if f"{name}_s" in clock.timings else clock.say(name))
     with ThreadPoolExecutor(1, thread_name_prefix="evaluation-side") as pool:
         side = pool.submit(_conflict_side, cfg, ctx, st, h, w, side_clock)
@@ -65,37 +69,45 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
         if side_clock.name is not None and not hasattr(side_failure, "tertiary_stage"):
             side_failure.tertiary_stage = side_clock.name  # type: ignore[attr-defined]
         raise side_failure
-    out_side, s_curves, s_truth = side.result()
-    out = {k: v for k, v in out_side.items() if k == "curve_rows"}
-    out.update(out_eval)
-    out.update({k: v for k, v in out_side.items() if k != "curve_rows"})
-    return out, dataclasses.replace(st, curves=s_curves, truth_picture=s_truth, **main)
+    curves, truth, s_curves, s_truth = side.result()
+    return {**curves, **out_eval, **truth}, dataclasses.replace(st, curves=s_curves, truth_picture=s_truth, **main)
+
+
+def _has_side(ctx: Any, h: Handoff) -> bool:
+    """Whether the window has STCA curves or a truth picture to predict."""
+    return _curves_due(ctx, h) or ctx.truth_slice is not None
+
+
+def _curves_due(ctx: Any, h: Handoff) -> bool:
+    """Whether the window's picture is predicted under the STCA curves' settings (scored on the
+    reports' evaluation-only truth ids)."""
+    return h.picture is not None and bool(ctx.curves) and h.labelled
 
 
 def _conflict_side(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
-                   ) -> tuple[dict[str, pl.DataFrame], Any, Any]:
+                   ) -> tuple[dict[str, pl.DataFrame], dict[str, pl.DataFrame], Any, Any]:
     """The STCA curves' predictions and the truth picture's: their tables and states."""
-    out: dict[str, pl.DataFrame] = {}
+    curves: dict[str, pl.DataFrame] = {}
     s_curves = st.curves
-    if h.picture is not None and ctx.curves and h.labelled:
+    if _curves_due(ctx, h):
         # every point of the trade-off curves predicted as the run goes: the whole-run stage
         # only scores their rows
         clock.stage("stca_curves")
         stage = ctx.stages["stca_curves"]
         o, s_curves = stage.step(stage.init() if s_curves is None else s_curves, {"picture": h.picture}, w)
-        out["curve_rows"] = o["curve_rows"]
+        curves["curve_rows"] = o["curve_rows"]
+    truth: dict[str, pl.DataFrame] = {}
     s_truth = st.truth_picture
     if ctx.truth_slice is not None:
         # the truth picture predicted as the run goes, but for the last stretch no later report
         # can change (the alert scoring attributes every picture's alerts by it)
         clock.stage("truth_picture")
         seen = window_aircraft(h.aligned, w)
-        more, s_truth = truth_picture_step(st.truth_picture or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
-                                           ctx.truth_slice, safety_id_column(cfg), ctx.origin)
-        out.update(more)
+        truth, s_truth = truth_picture_step(st.truth_picture or TruthPictureState(), seen, w.t1_us, cfg.conflicts,
+                                            ctx.truth_slice, safety_id_column(cfg), ctx.origin)
     # a failure above leaves the clock on its stage: the caller names it
     clock.stage(None)
-    return out, s_curves, s_truth
+    return curves, truth, s_curves, s_truth
 
 
 def _matching_side(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
