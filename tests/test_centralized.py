@@ -277,11 +277,17 @@ def test_epochs_between_plots_are_predictions(big_box10):
     np.testing.assert_allclose(np.asarray(first["cov"]).reshape(6, 6), cov, rtol=1e-12)
 
 
-def test_epochs_between_reports_keep_the_confirmation_reached(big_box10):
-    """One aircraft seen by radar 1 alone for 3 s (one plot a second), epochs every half second:
-    tentative at its first plot and half a second after it (one radar, one plot so far),
-    confirmed from its local track's second plot on, predicted epochs included."""
+@pytest.mark.parametrize("confirmation, flags", [
+    ("plots", [True, True, False, False, False, False]),
+    ("three_scan", [True, True, True, True, False, False])])
+def test_epochs_between_reports_keep_the_confirmation_reached(big_box10, confirmation, flags):
+    """One aircraft seen by radar 1 alone for 3 s (one plot a second), epochs every half second.
+    Counting plots: tentative at its first plot and half a second after it (one radar, one plot
+    so far), confirmed from its local track's second plot on. Three scans: confirmed at its third
+    plot (two seconds in: the first two plots move 83 m in a second, the third lies where they
+    point). Predicted epochs take the status reached by then, in one window or two."""
     ds = big_box10
+    cfg = CentralizedConfig(confirmation=confirmation)
     rep = ds.reports.filter((pl.col("run") == 0) & (pl.col("radar_id") == 1) & (pl.col("truth_id") == 0))
     t0 = rep["time"].min()
     rep = rep.filter(pl.col("time") < t0 + timedelta(seconds=3))
@@ -290,19 +296,20 @@ def test_epochs_between_reports_keep_the_confirmation_reached(big_box10):
         pl.col("run").cast(pl.UInt32), pl.col("target_id").cast(pl.UInt64),
         pl.col("epoch").cast(pl.Datetime("us", "UTC")))
     assoc = _truth_associations(rep)
-    out = centralized_fusion(rep, ds.radars, assoc, epochs, ds.origin)
+    out = centralized_fusion(rep, ds.radars, assoc, epochs, ds.origin, cfg)
     assert out["n_sources"].to_list() == [1, 0, 1, 0, 1, 0]
-    assert out["tentative"].to_list() == [True, True, False, False, False, False]
-    # the same in two windows cut between the second plot and the next epoch: the status is carried
-    cut = int((t0 + timedelta(milliseconds=1200)).timestamp() * 1e6)
-    state, flags = init_centralized_state(), []
-    for before in (True, False):
-        def part(f: pl.DataFrame, c: str) -> pl.DataFrame:
-            return f.filter((pl.col(c).dt.epoch("us") < cut) == before)
-        out, state = centralized_step(state, part(rep, "time"), ds.radars, part(assoc, "epoch"), part(epochs, "epoch"),
-                                      ds.origin)
-        flags += out["tentative"].to_list()
-    assert flags == [True, True, False, False, False, False]
+    assert out["tentative"].to_list() == flags
+    # the same in windows cut after the first, second and third plots: the status is carried
+    for ms in (700, 1200, 1700, 2200):
+        cut = int((t0 + timedelta(milliseconds=ms)).timestamp() * 1e6)
+        state, got = init_centralized_state(), []
+        for before in (True, False):
+            def part(f: pl.DataFrame, c: str) -> pl.DataFrame:
+                return f.filter((pl.col(c).dt.epoch("us") < cut) == before)
+            out, state = centralized_step(state, part(rep, "time"), ds.radars, part(assoc, "epoch"),
+                                          part(epochs, "epoch"), ds.origin, cfg)
+            got += out["tentative"].to_list()
+        assert got == flags, ms
 
 
 def test_reports_without_association_or_elevation_are_not_used(big_box10):

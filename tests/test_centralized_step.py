@@ -102,3 +102,25 @@ def test_filter_continued_from_its_carry_equals_one_call():
     x2, p2, _ = centralized_filter_carry(t[b], z[b], r[b], np.array([0, 11]), np.array([11, 7]), init=carry)
     np.testing.assert_allclose(np.r_[x1, x2], xs[np.r_[a, b]], rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(np.r_[p1, p2], ps[np.r_[a, b]], rtol=1e-12, atol=1e-9)
+
+
+def test_the_state_keeps_only_the_live_targets(case):
+    """With ``live``, every part of the carried state (filters, radars, both confirmations) holds
+    only those targets; live = every target seen keeps the state ``live=None`` keeps."""
+    reports, radars, assoc, keys, origin = case
+    lo, _ = _span(keys)
+    b = lo + 150_000_000
+    ek, ea, tr = (keys["epoch"].dt.epoch("us"), assoc["epoch"].dt.epoch("us"), reports["time"].dt.epoch("us"))
+    args = (init_centralized_state(), reports.filter(tr < b), radars, assoc.filter(ea < b), keys.filter(ek < b), origin)
+    _, full = centralized_step(*args)
+    seen = full.targets.select("run", "target_id")
+    live = seen.filter(pl.col("target_id") % 2 == 0)
+    _, kept = centralized_step(*args, live=live)
+    parts = {"targets": kept.targets, "radars": kept.radars, "confirm": kept.confirm.targets,
+             "scans": kept.scan.scans, "scan targets": kept.scan.targets}
+    for name, frame in parts.items():
+        assert frame.height and frame.join(live, on=["run", "target_id"], how="anti").is_empty(), name
+    assert full.scan.scans.height > kept.scan.scans.height and full.scan.targets.height > kept.scan.targets.height
+    _, same = centralized_step(*args, live=seen)
+    assert_frame_equal(same.scan.scans.sort(pl.all()), full.scan.scans.sort(pl.all()))
+    assert_frame_equal(same.scan.targets.sort(pl.all()), full.scan.targets.sort(pl.all()))

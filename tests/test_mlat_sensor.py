@@ -19,7 +19,7 @@ from tertiary.sensors import registration
 from tertiary.simulate import load_scenario, simulate
 from tertiary.simulate.mlat import LIGHT_MPS, MlatConfig, accuracy, nominal_sigma_m, visible
 from tertiary.stages import align
-from tertiary.stages.fusion.centralized import converted_plots
+from tertiary.stages.fusion.plots import converted_plots
 from tertiary.evaluation.reference import plot_measurements
 
 SIGMA_T = 50e-9

@@ -1,6 +1,8 @@
-"""The centralised reference confirms targets as the fused pictures do: a clutter-only target
-the pictures keep tentative is tentative in the reference too, so the reference's false-track
-rate is no worse than the best picture's."""
+"""The centralised reference confirms targets as a track manager does: the fused pictures' plot
+count, then the secondary tracker's three-scan test on the target's own plots. A clutter-only
+target the pictures keep tentative is tentative in the reference too, and so is a radar's false
+local track the count lets through, so the reference's false-track rate is no worse than the
+best picture's, trackers included."""
 
 from __future__ import annotations
 
@@ -51,15 +53,40 @@ def test_reference_publishes_no_clutter_only_target_the_pictures_hold_tentative(
                                                how="anti").height == 0
 
 
-def test_reference_tentative_rows_are_the_pictures(processed):
-    """Same rule, same parameter, same rows: the flag of every (run, epoch, target_id) the
-    reference estimates equals the pictures'."""
+def test_reference_tentative_rows_hold_the_pictures(processed):
+    """Every (run, epoch, target_id) the pictures hold tentative the reference holds tentative
+    too; the three-scan test holds more."""
     _, run = processed
     pic = run.fused.filter(pl.col("method") == "information").select(*KEYS, pl.col("tentative").alias("pic"))
     cen = run.fused.filter(pl.col("method") == "centralized").select(*KEYS, "tentative")
     both = cen.join(pic, on=KEYS, how="inner")
+    assert both.height == cen.height and both["pic"].sum() > 0
+    assert not (both["pic"] & ~both["tentative"]).any()
+    assert (both["tentative"] & ~both["pic"]).sum() > 0
+
+
+def test_counting_plots_alone_gives_the_pictures_flags(processed):
+    """``confirmation="plots"``: same rule, same parameter, same rows as the pictures, so the flag
+    of every (run, epoch, target_id) the reference estimates equals the pictures'."""
+    ds, run = processed
+    assoc = run.associations.filter(pl.col("run") == 0)
+    keys = assoc.select(*KEYS).unique()
+    cen = centralized_fusion(run.ingested.reports, run.ingested.radars, assoc, keys, ds.origin,
+                             CentralizedConfig(confirmation="plots"))
+    pic = run.fused.filter(pl.col("method") == "information").select(*KEYS, pl.col("tentative").alias("pic"))
+    both = cen.select(*KEYS, "tentative").join(pic, on=KEYS, how="inner")
     assert both.height == cen.height and both["tentative"].sum() > 0
     assert (both["tentative"] == both["pic"]).all()
+
+
+def test_reference_publishes_none_of_the_clutter_tracks_the_count_lets_through(processed):
+    """Clutter-only targets the pictures publish (a radar's false local track of a few plots)
+    are held tentative by the reference's three-scan test."""
+    _, run = processed
+    clutter = _clutter_only(run)
+    passed = clutter.join(_published(run, "information"), on=["run", "target_id"], how="semi")
+    assert passed.height > 0
+    assert passed.join(_published(run, "centralized"), on=["run", "target_id"], how="semi").height == 0
 
 
 def test_reference_false_track_rate_is_at_most_the_best_pictures(processed):
@@ -69,6 +96,7 @@ def test_reference_false_track_rate_is_at_most_the_best_pictures(processed):
     rate = dict(zip(m["method"], m["value"]))
     assert set(METHODS) | {"centralized"} <= set(rate)
     assert rate["centralized"] <= min(rate[k] for k in METHODS)
+    assert rate["centralized"] < max(rate[k] for k in METHODS)   # the pictures publish clutter here
 
 
 def test_min_plots_is_the_confirmation_parameter(processed):
@@ -78,6 +106,18 @@ def test_min_plots_is_the_confirmation_parameter(processed):
     rep, radars = run.ingested.reports, run.ingested.radars
     assoc = run.associations.filter(pl.col("run") == 0)
     keys = assoc.select(*KEYS).unique()
-    n_tent = {k: centralized_fusion(rep, radars, assoc, keys, ds.origin, CentralizedConfig(min_plots=k))["tentative"]
+    n_tent = {k: centralized_fusion(rep, radars, assoc, keys, ds.origin,
+                                    CentralizedConfig(min_plots=k, confirmation="plots"))["tentative"]
               .sum() for k in (1, 2, 3)}
     assert n_tent[1] == 0 < n_tent[2] < n_tent[3]
+
+
+def test_the_reference_takes_the_trackers_initiation_parameters():
+    """The pipeline hands the reference the tracker's annulus and circle (and the pictures'
+    ``min_plots``), so changing the tracker's initiation changes the reference's with it."""
+    from tertiary.pipeline.plan import reference_config
+    from tertiary.stages.tracking.config import TrackerConfig
+    cfg = pipeline.PipelineConfig(tracker=TrackerConfig(v_min_mps=45.0, v_max_mps=300.0, confirm_gate_m=900.0))
+    ref = reference_config(cfg)
+    assert (ref.v_min_mps, ref.v_max_mps, ref.confirm_gate_m) == (45.0, 300.0, 900.0)
+    assert ref.min_plots == cfg.fusion.min_plots and ref.confirmation == "three_scan"

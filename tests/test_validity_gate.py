@@ -9,7 +9,7 @@ import pytest
 
 from tertiary.stages import align
 from tertiary.core import geo
-from tertiary.stages.fusion.centralized import converted_plots, debias_enu, plot_validity
+from tertiary.stages.fusion.plots import converted_plots, debias_enu, plot_validity
 
 US = 1_000_000
 

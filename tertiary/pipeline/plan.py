@@ -406,6 +406,15 @@ CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, Ass
                                                   StcaCurvesStage, EvaluationStage, AlertConfirmationStage)}
 
 
+def reference_config(cfg: Any) -> CentralizedConfig:
+    """The centralised reference's configuration of a ``PipelineConfig``: its own, with the fused
+    pictures' ``min_plots`` and the secondary tracker's initiation parameters, so that it confirms
+    its targets as the pictures it is compared with do."""
+    t = cfg.tracker
+    return replace(cfg.centralized_cfg, min_plots=cfg.fusion.min_plots, v_min_mps=t.v_min_mps,
+                   v_max_mps=t.v_max_mps, confirm_gate_m=t.confirm_gate_m)
+
+
 def build_stage(name: str, cfg: Any, context: Any) -> Stage:
     """The stage ``name`` of :data:`STAGES` for a ``PipelineConfig`` and a run context (its
     ``radars``, ``origin``, ``grid_origin_us``, ``filters`` and ``departure_plans``)."""
@@ -415,9 +424,8 @@ def build_stage(name: str, cfg: Any, context: Any) -> Stage:
         "departures": lambda: DeparturesStage(getattr(context, "departure_plans", pl.DataFrame()), cfg.departures),
         "associate": lambda: AssociateStage(cfg.association),
         "fuse": lambda: FuseStage(radars, tuple(cfg.methods), cfg.fusion, origin),
-        # the reference confirms its targets with the pictures' own rule and parameter
-        "centralized": lambda: CentralizedStage(radars, origin,
-                                                replace(cfg.centralized_cfg, min_plots=cfg.fusion.min_plots)),
+        # the reference confirms its targets with the pictures' count and the tracker's initiation test
+        "centralized": lambda: CentralizedStage(radars, origin, reference_config(cfg)),
         "cluster": lambda: ClusterStage(cfg.clustering),
         "track": lambda: TrackStage(context.filters, cfg.tracker, tuple(cfg.filters)),
         "conflicts": lambda: ConflictsStage(cfg.conflicts, safety_id_column(cfg), origin),

@@ -308,7 +308,8 @@ def _verdict_accuracy(ctx: Ctx) -> str:
              f"<b>{_gap(pic[gap], pic[pcrb])}</b>."]
     if ref:
         lines.append(f"Centralised reference ({CENTRALIZED}: one Kalman filter on every radar's measurements, its "
-                     "targets confirmed as the pictures' are; a reference, not a bound, and not ranked): horizontal "
+                     "targets confirmed by the pictures' plot count and the trackers' three-scan test; a reference, "
+                     "not a bound, and not ranked): horizontal "
                      f"RMSE {_m(ref['horizontal_m'])}, vertical {_m(ref['height_m'])}, its {what} error "
                      f"{_gap(ref[gap], ref[pcrb])}; {_per_hour(ref['false_tracks_per_hour'])} false and "
                      f"{_per_hour(ref['duplicate_tracks_per_hour'])} duplicate tracks per hour.")

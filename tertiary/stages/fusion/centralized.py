@@ -57,13 +57,16 @@ the radars whose plots the target has received so far and ``n_sources`` = the nu
 used since the target's previous output epoch (for the first output epoch: since the start).
 Epochs before the target's first plot produce no row.
 
-Confirmation: the reference publishes what a track manager would, as the fused pictures do:
-``tentative`` comes from the same rule and parameter
-(:func:`tertiary.stages.fusion.confirm.confirm_targets_step`, ``min_plots``) run on the same
-association rows — each report fresh at its first association epoch — so a clutter-only target
-is tentative here exactly when it is in the pictures, and every consumer that leaves tentative
-rows out (evaluation, clustering, report) leaves them out of the reference too. An epoch
-between a target's reports takes the status reached by then.
+Confirmation: the reference publishes what a track manager would. ``tentative`` comes first
+from the fused pictures' rule and parameter (:func:`tertiary.stages.fusion.confirm.confirm_targets_step`,
+``min_plots``) run on the same association rows — each report fresh at its first association
+epoch —, and with ``confirmation="three_scan"`` (the default) a target is confirmed only once
+three successive scans of its own plots also move like an aircraft, the secondary tracker's
+initiation test with its parameters (:mod:`tertiary.stages.fusion.scan_confirm`): a radar's
+false local track of a few clutter plots passes the count but not the kinematics, so the
+reference publishes no more false tracks than the trackers. Every consumer that leaves
+tentative rows out (evaluation, clustering, report) leaves them out of the reference too. An
+epoch between a target's reports takes the status reached by then.
 
 Vertical channel: the ``fused`` columns ``alt_m`` … ``alt_cov_m2ps`` from one two-state Mode C
 filter per target over all its radars' replies in time order (:mod:`tertiary.stages.tracking.altitude`:
@@ -86,20 +89,18 @@ import polars as pl
 from numpy.typing import NDArray
 
 from tertiary.core import geo
-from tertiary.stages.align import conversion_valid
 from tertiary.stages.fusion.config import FusionConfig
-from tertiary.stages.fusion.confirm import ConfirmState, confirm_targets_step, tentative_at
+from tertiary.stages.fusion.plots import EHS_VELOCITY_COLUMNS, converted_plots, downlinked_velocity
+from tertiary.stages.fusion.confirm import ConfirmState, confirm_associations_step, tentative_at
+from tertiary.stages.fusion.scan_confirm import ScanState, scans_of, three_scan_step
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState, FilterCarry, filter_tracks_carry, geodetic_channel, predict_combined, quantisation_variance)
 from tertiary.filters.singer import Variant, singer_phi, singer_q
 from tertiary.stages.tracking.config import TrackerConfig
 from tertiary.stages.tracking.gating import downlink_covariance
-from tertiary.sensors.local_tracks import measurement_polar
 from tertiary.contract import ADSB_QUALITY_COLUMNS, MLAT_PLOT_COLUMNS, TABLES, TIME
-from tertiary.sensors import mlat
 
 __all__ = ["CentralizedConfig", "centralized_fusion", "centralized_filter", "centralized_filter_carry",
-           "CentralizedState", "init_centralized_state", "centralized_step", "converted_plots", "debias_enu",
-           "downlinked_velocity", "float_column", "plot_validity", "transition",
+           "CentralizedState", "init_centralized_state", "centralized_step", "transition",
            "METHOD", "POS", "VEL", "STATE6"]
 
 F64 = NDArray[np.float64]
@@ -129,12 +130,15 @@ class CentralizedConfig:
     * ``altitude_sigma_m``: Mode C accuracy used when the elevation is derived from altitude.
     * ``altitude``: the per-target Mode C filter of the vertical channel.
     * ``conversion``: ``"linear"`` (the plot converted as measured) or ``"debiased"``
-      (:func:`debias_enu`, the multiplicative unbiased conversion).
+      (:func:`tertiary.stages.fusion.plots.debias_enu`, the multiplicative unbiased conversion).
     * ``conversion_gate``: ``"reject"`` leaves plots failing the seed 002 (13) validity gate
       (:func:`tertiary.stages.align.conversion_valid`) out of the filter; ``"off"`` uses every plot.
     * ``min_plots``: target confirmation (``tentative``), the fused pictures' parameter
       (:attr:`tertiary.stages.fusion.config.FusionConfig.min_plots`); set both alike, or the reference
       publishes other targets than the pictures it is compared with.
+    * ``confirmation``: ``"three_scan"``: the plot count and the three-scan test (module
+      docstring) with ``v_min_mps``, ``v_max_mps`` and ``confirm_gate_m``, the secondary tracker's
+      (:class:`tertiary.stages.tracking.config.TrackerConfig`); ``"plots"``: the count alone.
     * ``use_velocity``: the downlinked ground velocity (BDS 5,0) is measured too (module
       docstring), with σ ``velocity_speed_sigma_mps`` along the track, ``velocity_track_sigma_deg``
       across (the register noise :class:`tertiary.simulate.ehs.EhsConfig` draws), a register up
@@ -154,10 +158,18 @@ class CentralizedConfig:
     velocity_speed_sigma_mps: float = 0.5
     velocity_track_sigma_deg: float = 0.2
     velocity_refresh_s: float = TrackerConfig.velocity_refresh_s
+    confirmation: Literal["plots", "three_scan"] = "three_scan"
+    v_min_mps: float = TrackerConfig.v_min_mps
+    v_max_mps: float = TrackerConfig.v_max_mps
+    confirm_gate_m: float = TrackerConfig.confirm_gate_m
 
     def __post_init__(self) -> None:
         if self.min_plots < 1:
             raise ValueError(f"min_plots must be >= 1, got {self.min_plots}")
+        if self.confirmation not in ("plots", "three_scan"):
+            raise ValueError(f"confirmation must be 'plots' or 'three_scan', got {self.confirmation!r}")
+        if not (0 <= self.v_min_mps < self.v_max_mps and self.confirm_gate_m > 0):
+            raise ValueError("need 0 <= v_min_mps < v_max_mps and confirm_gate_m > 0")
         if not (self.velocity_speed_sigma_mps > 0 and self.velocity_track_sigma_deg > 0
                 and self.velocity_refresh_s >= 0):          # NaN fails too
             raise ValueError("velocity_speed_sigma_mps and velocity_track_sigma_deg must be > 0, "
@@ -318,30 +330,6 @@ def centralized_filter_carry(t: F64, z: F64, r: F64, starts: NDArray[np.int64], 
 # --------------------------------------------------------------------------- plots
 
 
-def debias_enu(local: F64, var_az: F64, var_el: F64) -> F64:
-    """Multiplicative unbiased conversion of radar-local ENU plots (Mo Longbin et al. 1998;
-    seed 002 §2.4 "debiased conversion"): with Gaussian angle errors E[cos(β + w)] = λ cos β,
-    λ = exp(−σ²/2), so the measured (e, n) are shrunk by λ_β λ_ε and u by λ_ε on average;
-    dividing by those factors removes the bias. The covariance stays the linearised J R Jᵀ."""
-    lam_az, lam_el = np.exp(-0.5 * var_az), np.exp(-0.5 * var_el)
-    out = local.copy()
-    out[:, :2] /= (lam_az * lam_el)[:, None]
-    out[:, 2] /= lam_el
-    return out
-
-
-def plot_validity(reports: pl.DataFrame, radars: pl.DataFrame, altitude_sigma_m: float = 30.0) -> NDArray[np.bool_]:
-    """Seed 002 (13) validity gate of each plot's conversion (:func:`tertiary.stages.align.conversion_valid`)
-    with the variances the centralised filter uses (elevation from Mode C where the plot has none)."""
-    polar, var = measurement_polar(reports, radars, altitude_sigma_m)
-    return (conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
-            | mlat.is_mlat(reports, radars))
-
-
-#: the report columns of a downlinked ground velocity and its turn rate (Mode S BDS 5,0)
-EHS_VELOCITY_COLUMNS = ("ehs_gs_mps", "ehs_track_deg", "ehs_track_rate_dps", "ehs_vrate_mps")
-
-
 def _downlinks(reports: pl.DataFrame, z: F64, origin: geo.LocalFrame, cfg: CentralizedConfig
                ) -> tuple[F64, F64] | None:
     """Each report's downlinked horizontal velocity (n, 2) in the system frame and its
@@ -359,90 +347,15 @@ def _downlinks(reports: pl.DataFrame, z: F64, origin: geo.LocalFrame, cfg: Centr
     return v[:, :2], r
 
 
-def float_column(frame: pl.DataFrame, name: str) -> F64:
-    """Column ``name`` of ``frame`` as float64 with NaN for null (all NaN when it is absent)."""
-    if name not in frame.columns:
-        return np.full(frame.height, np.nan)
-    return frame[name].cast(pl.Float64).fill_null(np.nan).to_numpy()
-
-
-def downlinked_velocity(reports: pl.DataFrame, z: F64, origin: geo.LocalFrame) -> F64:
-    """(n, 4): each report's downlinked ground velocity (Mode S BDS 5,0 ground speed
-    ``ehs_gs_mps`` along the true track ``ehs_track_deg``) as system-frame east and north
-    components, its track-angle rate ``ehs_track_rate_dps`` as ω (rad/s, counter-clockwise:
-    the register's rate is clockwise positive) and its vertical rate ``ehs_vrate_mps`` (BDS 6,0,
-    along the local vertical: the rate of the altitude channel). The track is over true north at the aircraft
-    (the plot ``z``), so the velocity is turned into the system frame's axes there
-    (:func:`tertiary.core.geo.local_vector_to_frame`: the meridian convergence, several degrees
-    at a national system's edge), with the vertical rate along the local vertical where the
-    report has one: away from the origin the local vertical leans over the system frame's
-    (the great-circle angle to the origin), so a climb at 20 m/s 300 km out moves the aircraft
-    1 m/s horizontally in the system frame. NaN where the report or its plot has none."""
-    gs, track = float_column(reports, "ehs_gs_mps"), np.radians(float_column(reports, "ehs_track_deg"))
-    out = np.full((len(gs), 4), np.nan)
-    out[:, 2] = -np.radians(float_column(reports, "ehs_track_rate_dps"))
-    out[:, 3] = float_column(reports, "ehs_vrate_mps")
-    ok = np.isfinite(gs) & np.isfinite(track) & np.isfinite(z).all(axis=1)
-    if ok.any():
-        lat, lon, _ = origin.to_geodetic(z[ok, 0], z[ok, 1], z[ok, 2])
-        up = np.nan_to_num(out[ok, 3])         # no vertical rate: the horizontal velocity alone
-        e, n, _ = geo.local_vector_to_frame(gs[ok] * np.sin(track[ok]), gs[ok] * np.cos(track[ok]), up,
-                                            lat, lon, origin)
-        out[ok, 0], out[ok, 1] = e, n
-    return out
-
-
-def converted_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.LocalFrame,
-                    altitude_sigma_m: float = 30.0, *, conversion: Literal["linear", "debiased"] = "linear",
-                    gate: bool = False) -> tuple[F64, F64, NDArray[np.bool_]]:
-    """Each report's plot in the system frame: z (n, 3), R (n, 3, 3) = M J R_polar Jᵀ Mᵀ from the
-    radar's nominal sigmas (seed 002 eq. 12), and a validity mask (False where neither an
-    elevation nor a Mode C altitude is available, and with ``gate`` where the seed 002 (13)
-    linearisation condition fails). ``conversion="debiased"``: :func:`debias_enu`.
-
-    An MLAT report's plot is Cartesian: z and R of (MLAT-1)–(MLAT-2)
-    (:func:`tertiary.sensors.mlat.system_plots`), neither converted nor gated."""
-    n = reports.height
-    polar, var = measurement_polar(reports, radars, altitude_sigma_m)   # (range, az rad, el rad)
-    cart = mlat.is_mlat(reports, radars)
-    ok = np.all(np.isfinite(polar), axis=1) & ~cart
-    if gate:
-        ok &= conversion_valid(polar[:, 0], np.sqrt(var[:, 0]), np.sqrt(var[:, 1]), np.sqrt(var[:, 2]))
-    z = np.full((n, 3), np.nan)
-    r = np.full((n, 3, 3), np.nan)
-    rid = reports["radar_id"].to_numpy()
-    for row in radars.iter_rows(named=True):            # a handful of radars, not reports
-        sel = np.flatnonzero((rid == row["radar_id"]) & ok)
-        if sel.size == 0:
-            continue
-        site = geo.LocalFrame(row["lat_deg"], row["lon_deg"], row["alt_m"])
-        rng, az, el = polar[sel, 0], np.degrees(polar[sel, 1]), np.degrees(polar[sel, 2])
-        local = np.stack(geo.polar_to_enu(rng, az, el), axis=-1)
-        if conversion == "debiased":
-            local = debias_enu(local, var[sel, 1], var[sel, 2])
-        z[sel] = geo.frame_to_frame(local, site, origin)[0]
-        # G = M J as one (n·3, 3) @ (3, 3) product; R = G R_polar Gᵀ with R_polar diagonal
-        # (cheaper than two generic batched sandwiches)
-        jac = geo.polar_jacobian(rng, az, el)
-        g = (jac.swapaxes(1, 2).reshape(-1, 3) @ site.rotation_to(origin).T).reshape(-1, 3, 3).swapaxes(1, 2)
-        r[sel] = (g * var[sel][:, None, :]) @ g.swapaxes(1, 2)
-    if cart.any():
-        rows = np.flatnonzero(cart)
-        zc, rc, okc = mlat.system_plots(reports[rows], radars, origin, altitude_sigma_m)
-        z[rows], r[rows], ok[rows] = zc, rc, okc
-    ok &= np.all(np.isfinite(z), axis=1)
-    return z, r, ok
-
-
 # --------------------------------------------------------------------------- stage
 
 
 def _first_association(associations: pl.DataFrame) -> pl.DataFrame:
-    """report → target from each report's first association epoch."""
+    """report → target (and ``__epoch``) at each report's first association epoch."""
     return (associations.select(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                                 pl.col("target_id").cast(pl.UInt64), pl.col("epoch").cast(TIME))
             .sort("epoch").unique(subset=["run", "report_id"], keep="first", maintain_order=True)
-            .drop("epoch"))
+            .rename({"epoch": "__epoch"}))
 
 
 #: the output: the ``fused`` columns and, as the fusion stage adds it, ``tentative``
@@ -451,28 +364,6 @@ _SCHEMA = {**TABLES["fused"].columns, "tentative": pl.Boolean}
 
 def _empty_fused() -> pl.DataFrame:
     return pl.DataFrame(schema=_SCHEMA)
-
-
-def _confirmation(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame, reports: pl.DataFrame,
-                  min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
-    """:func:`~tertiary.stages.fusion.confirm.confirm_targets_step` on the window's association
-    rows, which are the fused pictures' rows: a row is fresh at its report's first association
-    epoch (``new``: the rows of the reports not associated before the window), as the aligned
-    row of a report's first epoch is; only fresh rows need their report's ``time``, and those
-    reports are in ``reports``. Returns the groups (run, epoch, target_id, ``tentative``) and
-    the new state; an empty window leaves the state as it is, as the fusion stage does."""
-    if associations.is_empty():
-        empty = pl.DataFrame(schema={"run": pl.UInt32, "epoch": TIME, "target_id": pl.UInt64, "tentative": pl.Boolean})
-        return empty, before
-    first = new.group_by("run", "report_id").agg(pl.col("epoch").min().alias("__first"))
-    rows = (associations.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
-                                pl.col("target_id").cast(pl.UInt64), "radar_id", "local_track_id",
-                                pl.col("report_id").cast(pl.UInt64))
-            .join(first, on=["run", "report_id"], how="left", maintain_order="left")
-            .with_columns((pl.col("epoch") == pl.col("__first")).fill_null(False).alias("fresh"))
-            .join(reports.select("run", "report_id", "time"), on=["run", "report_id"], how="left",
-                  maintain_order="left"))
-    return confirm_targets_step(before, rows, min_plots)
 
 
 def _predict_to_epochs(x_post: F64, p_post: F64, src: NDArray[np.int64], tau: F64, cfg: CentralizedConfig,
@@ -506,7 +397,8 @@ class CentralizedState:
       consecutive epochs), so it is not taken as new there;
     * ``ref_us``: the time base of the filters (the first plot time ever used), so times are the
       same floats as in one whole-run call; ``reached_us``: the end of the last window;
-    * ``confirm``: target confirmation (:class:`~tertiary.stages.fusion.confirm.ConfirmState`).
+    * ``confirm``: target confirmation (:class:`~tertiary.stages.fusion.confirm.ConfirmState`);
+      ``scan``: the three-scan test's (:class:`~tertiary.stages.fusion.scan_confirm.ScanState`).
 
     ``targets``/``radars`` and the confirmed targets keep one row per target seen, or, with
     :func:`centralized_step`'s ``live``, per target that may still be associated."""
@@ -518,6 +410,7 @@ class CentralizedState:
     ref_us: int | None = None
     reached_us: int | None = None
     confirm: ConfirmState = field(default_factory=ConfirmState.empty)
+    scan: ScanState = field(default_factory=ScanState.empty)
 
 
 def init_centralized_state() -> CentralizedState:
@@ -600,7 +493,8 @@ def centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rada
                       targets=None if new.targets is None else
                       new.targets.join(keys, on=["run", "target_id"], how="semi", maintain_order="left"),
                       confirm=replace(new.confirm, targets=new.confirm.targets.join(
-                          keys, on=["run", "target_id"], how="semi", maintain_order="left")))
+                          keys, on=["run", "target_id"], how="semi", maintain_order="left")),
+                      scan=new.scan.keep(keys))
     return out, new
 
 
@@ -621,12 +515,14 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
                      if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
-    groups, confirm = _confirmation(state.confirm, associations_window, assoc, rep, cfg.min_plots)
+    groups, confirm = confirm_associations_step(state.confirm, associations_window, assoc, rep, cfg.min_plots)
     base = replace(state, last_ids=last_ids, last_epoch_us=last_epoch, reached_us=reached, confirm=confirm)
     rep = rep.join(_first_association(assoc), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m, conversion=cfg.conversion,
                                gate=cfg.conversion_gate == "reject")
     vel = _downlinks(rep, z, origin, cfg) if cfg.use_velocity else None
+    scan_groups, scan = _scan_confirmation(state.scan, rep, z, ok, cfg)
+    base = replace(base, scan=scan)
     rep = rep.with_columns(pl.Series("__ok", ok))
     alt_cols = [c for c in ("altitude_m", "mode_s") if c in rep.columns]
     rep = (rep.select("run", "target_id", "time", "radar_id", "report_id", "__ok", *alt_cols)
@@ -729,9 +625,27 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
         pl.Series("cov", cov6, dtype=pl.Array(pl.Float64, 36)),
         pl.lit([], dtype=pl.List(pl.Float64)).alias("weights"),
         *(pl.Series(c, alt[c]) for c in ALT_COLUMNS),
-        tentative_at(state.confirm, groups, want),
+        _tentative(state, groups, scan_groups, want),
     ).join(radar_ids, on=["run", "target_id", "epoch"], how="left", maintain_order="left")
     return out.select([pl.col(c).cast(tp) for c, tp in _SCHEMA.items()]), new_state  # `want` is in output order
+
+
+def _scan_confirmation(before: ScanState, rep: pl.DataFrame, z: F64, ok: NDArray[np.bool_], cfg: CentralizedConfig
+                       ) -> tuple[pl.DataFrame | None, ScanState]:
+    """The three-scan test's groups and state on the window's plots (None: not asked for)."""
+    if cfg.confirmation != "three_scan":
+        return None, before
+    plots = (rep.select("run", "target_id", pl.col("__epoch").alias("epoch"), "time", "radar_id", "report_id")
+             .with_columns(pl.Series("x", z[:, 0]), pl.Series("y", z[:, 1])).filter(pl.Series(ok)))
+    return three_scan_step(before, scans_of(plots), cfg.v_min_mps, cfg.v_max_mps, cfg.confirm_gate_m)
+
+
+def _tentative(before: CentralizedState, groups: pl.DataFrame, scan_groups: pl.DataFrame | None,
+               keys: pl.DataFrame) -> pl.Series:
+    """``tentative`` at the output ``keys``: until the plot count and, if asked for, the three-scan
+    test have both confirmed the target."""
+    count = tentative_at(before.confirm.targets, groups, keys)
+    return count if scan_groups is None else count | tentative_at(before.scan.targets, scan_groups, keys)
 
 
 def _vertical_step(rep: pl.DataFrame, t: F64, starts: NDArray[np.int64], lengths: NDArray[np.int64],

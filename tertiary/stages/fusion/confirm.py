@@ -10,7 +10,7 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.stages.fusion.base import CHAIN, GROUP, TRACK
 
-__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_targets_step", "tentative_at"]
+__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_associations_step", "confirm_targets_step", "tentative_at"]
 
 
 @dataclass(frozen=True)
@@ -91,17 +91,40 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     return out, ConfirmState(tracks, targets)
 
 
-def tentative_at(before: ConfirmState, groups: pl.DataFrame, keys: pl.DataFrame) -> pl.Series:
-    """``tentative`` at arbitrary (run, epoch, target_id) ``keys``, from the state before a window
-    and that window's ``groups`` (:func:`confirm_targets_step`'s output): a target is confirmed
-    from its first non-tentative group on, or throughout when ``before`` had confirmed it. Keys
+def tentative_at(confirmed: pl.DataFrame, groups: pl.DataFrame, keys: pl.DataFrame) -> pl.Series:
+    """``tentative`` at arbitrary (run, epoch, target_id) ``keys``, from the targets ``confirmed``
+    before a window (run, target_id: a state's ``targets``) and that window's ``groups``
+    (:func:`confirm_targets_step`'s output, or any step's of the same form): a target is
+    confirmed from its first non-tentative group on, or throughout when it was confirmed before. Keys
     between the target's groups (an estimate predicted to an epoch it has no report at) take
     the status the target has reached by then, as a confirmed target never turns back."""
     first = (groups.filter(~pl.col("tentative")).group_by(CHAIN).agg(pl.col("epoch").min().alias("__from"))
-             .cast({"run": before.targets.schema["run"], "target_id": before.targets.schema["target_id"]}))
-    k = (keys.select(pl.col("run").cast(before.targets.schema["run"]), pl.col("epoch").cast(TIME),
-                     pl.col("target_id").cast(before.targets.schema["target_id"]))
-         .join(before.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left", maintain_order="left")
+             .cast({"run": confirmed.schema["run"], "target_id": confirmed.schema["target_id"]}))
+    k = (keys.select(pl.col("run").cast(confirmed.schema["run"]), pl.col("epoch").cast(TIME),
+                     pl.col("target_id").cast(confirmed.schema["target_id"]))
+         .join(confirmed.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left", maintain_order="left")
          .join(first, on=CHAIN, how="left", maintain_order="left"))
     return k.select((~(pl.col("__was").fill_null(False) | (pl.col("epoch") >= pl.col("__from")).fill_null(False)))
                     .alias("tentative")).to_series()
+
+
+def confirm_associations_step(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame, reports: pl.DataFrame,
+                              min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
+    """:func:`confirm_targets_step` on the window's association
+    rows, which are the fused pictures' rows: a row is fresh at its report's first association
+    epoch (``new``: the rows of the reports not associated before the window), as the aligned
+    row of a report's first epoch is; only fresh rows need their report's ``time``, and those
+    reports are in ``reports``. Returns the groups (run, epoch, target_id, ``tentative``) and
+    the new state; an empty window leaves the state as it is, as the fusion stage does."""
+    if associations.is_empty():
+        empty = pl.DataFrame(schema={"run": pl.UInt32, "epoch": TIME, "target_id": pl.UInt64, "tentative": pl.Boolean})
+        return empty, before
+    first = new.group_by("run", "report_id").agg(pl.col("epoch").min().alias("__first"))
+    rows = (associations.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                                pl.col("target_id").cast(pl.UInt64), "radar_id", "local_track_id",
+                                pl.col("report_id").cast(pl.UInt64))
+            .join(first, on=["run", "report_id"], how="left", maintain_order="left")
+            .with_columns((pl.col("epoch") == pl.col("__first")).fill_null(False).alias("fresh"))
+            .join(reports.select("run", "report_id", "time"), on=["run", "report_id"], how="left",
+                  maintain_order="left"))
+    return confirm_targets_step(before, rows, min_plots)

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from tertiary.core import geo
 from tertiary.stages.fusion.base import B, F, Ix, Layout, per_row, segsum, sym
-from tertiary.stages.fusion.centralized import converted_plots, downlinked_velocity, float_column
+from tertiary.stages.fusion.plots import converted_plots, downlinked_velocity, float_column
 from tertiary.stages.fusion.registry import REGISTRY
 
 __all__ = ["EHS_PLOT_COLUMNS", "PLOT_COLUMNS", "downlinked_velocity", "ehs_measurement", "measured_plots",
@@ -37,7 +37,7 @@ def measured_plots(reports: pl.DataFrame, radars: pl.DataFrame, origin: geo.Loca
     """Each report's *measured* plot in the system frame, one row per report: run, report_id
     and :data:`PLOT_COLUMNS` (position and row-major 3×3 covariance R = M J R_polar Jᵀ Mᵀ from
     the radar's nominal sigmas, seed 002 eq. 12; an MLAT report's Cartesian plot and its own
-    covariance, (MLAT-2); :func:`tertiary.stages.fusion.centralized.converted_plots`),
+    covariance, (MLAT-2); :func:`tertiary.stages.fusion.plots.converted_plots`),
     NaN where the plot cannot be converted. Unlike the radars' track estimates, these errors
     are white: independent from scan to scan and between radars. Pass it to :func:`fuse`
     (``plots=``): it is joined to the fresh rows only, so the aligned rows are not widened."""
