@@ -43,6 +43,14 @@ def test_clutter_stays_tentative(why, xy):
     assert _flags(_scans(1, xy)) == [True] * len(xy), why
 
 
+def test_a_targets_scans_are_never_another_targets_predecessors():
+    """Target 2's two scans continue target 1's line: taken with target 1's scans before them
+    they would pass, but a target needs three scans of its own."""
+    one = _scans(1, [(0.0, 0.0), (800.0, 0.0), (1600.0, 0.0)])
+    two = _scans(2, [(2400.0, 0.0), (3200.0, 0.0)], start=3)
+    assert _flags(pl.concat([one, two])) == [True, True, False, True, True]
+
+
 def test_the_extrapolation_uses_the_scans_times():
     """Scans 4 s then 8 s apart (a missed scan): the third plot lies 1 600 m on, twice the first
     step, which only the time-scaled extrapolation predicts (a per-scan one misses by 800 m >

@@ -66,9 +66,12 @@ def scans_of(plots: pl.DataFrame) -> pl.DataFrame:
 
 def _passes(v_min_mps: float, v_max_mps: float, gate_m: float) -> pl.Expr:
     """Whether a scan is the third of an aircraft-like triple (module docstring), on rows sorted
-    by target and epoch."""
+    by target and epoch (a row's predecessors: the rows before it of the same target)."""
+    def same(k: int) -> pl.Expr:
+        return (pl.col("run").shift(k) == pl.col("run")) & (pl.col("target_id").shift(k) == pl.col("target_id"))
+
     def back(c: str, k: int) -> pl.Expr:
-        return pl.col(c).shift(k).over(CHAIN)
+        return pl.when(same(k)).then(pl.col(c).shift(k))
     t12 = (back("time", 1) - back("time", 2)).dt.total_microseconds() * 1e-6
     t23 = (pl.col("time") - back("time", 1)).dt.total_microseconds() * 1e-6
     dx, dy = back("x", 1) - back("x", 2), back("y", 1) - back("y", 2)
@@ -87,16 +90,19 @@ def three_scan_step(state: ScanState, scans: pl.DataFrame, v_min_mps: float, v_m
     first scan that passes the test (with the target's carried scans as its predecessors), or
     throughout when ``state`` had confirmed it. Stepping a run's windows in order gives the flags
     of one whole-run call."""
-    was = state.targets.with_columns(pl.lit(True).alias("__was"))
+    new = scans.cast(_SCAN).join(state.targets, on=CHAIN, how="anti")      # confirmed before: no test
     rows = (pl.concat([state.scans.with_columns(pl.lit(False).alias("__win")),
-                       scans.cast(_SCAN).with_columns(pl.lit(True).alias("__win"))])
+                       new.with_columns(pl.lit(True).alias("__win"))])
             .sort("run", "target_id", "epoch")
-            .join(was, on=CHAIN, how="left", maintain_order="left")
-            .with_columns((_passes(v_min_mps, v_max_mps, gate_m) | pl.col("__was").fill_null(False))
-                          .cum_max().over(CHAIN).alias("__conf")))
-    out = rows.filter("__win").select("run", "epoch", "target_id", (~pl.col("__conf")).alias("tentative"))
-    confirmed = rows.filter("__conf").select(CHAIN).unique()
-    targets = pl.concat([state.targets, confirmed.join(state.targets, on=CHAIN, how="anti")])
-    left = (rows.join(confirmed, on=CHAIN, how="anti").group_by(CHAIN, maintain_order=True).tail(2)
+            .with_columns(_passes(v_min_mps, v_max_mps, gate_m).alias("__pass")))
+    first = rows.filter("__pass").group_by(CHAIN).agg(pl.col("epoch").min().alias("__from"))
+    out = (scans.cast(_SCAN).select("run", "epoch", "target_id")
+           .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left", maintain_order="left")
+           .join(first, on=CHAIN, how="left", maintain_order="left")
+           .select("run", "epoch", "target_id",
+                   ~(pl.col("__was").fill_null(False) | (pl.col("epoch") >= pl.col("__from")).fill_null(False))
+                   .alias("tentative")))
+    targets = pl.concat([state.targets, first.select(CHAIN)])
+    left = (rows.join(first, on=CHAIN, how="anti").group_by(CHAIN, maintain_order=True).tail(2)
             .select(*_SCAN))
     return out, ScanState(left, targets)
