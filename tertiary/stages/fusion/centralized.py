@@ -63,10 +63,10 @@ from the fused pictures' rule and parameter (:func:`tertiary.stages.fusion.confi
 epoch —, and with ``confirmation="three_scan"`` (the default) a target is confirmed only once
 three successive scans of its own plots also move like an aircraft, the secondary tracker's
 initiation test with its parameters (:mod:`tertiary.stages.fusion.scan_confirm`): a radar's
-false local track of a few clutter plots passes the count but not the kinematics, so the
-reference publishes no more false tracks than the trackers. Every consumer that leaves
-tentative rows out (evaluation, clustering, report) leaves them out of the reference too. An
-epoch between a target's reports takes the status reached by then.
+false local track of a few clutter plots passes the count but not the kinematics, as it would
+not pass the trackers' own initiation. Every consumer that leaves tentative rows out
+(evaluation, clustering, report) leaves them out of the reference too. An epoch between a
+target's reports takes the status reached by then.
 
 Vertical channel: the ``fused`` columns ``alt_m`` … ``alt_cov_m2ps`` from one two-state Mode C
 filter per target over all its radars' replies in time order (:mod:`tertiary.stages.tracking.altitude`:
