@@ -91,9 +91,7 @@ def three_scan_step(state: ScanState, scans: pl.DataFrame, v_min_mps: float, v_m
     throughout when ``state`` had confirmed it. Stepping a run's windows in order gives the flags
     of one whole-run call."""
     new = scans.cast(_SCAN).join(state.targets, on=CHAIN, how="anti")      # confirmed before: no test
-    rows = (pl.concat([state.scans.with_columns(pl.lit(False).alias("__win")),
-                       new.with_columns(pl.lit(True).alias("__win"))])
-            .sort("run", "target_id", "epoch")
+    rows = (pl.concat([state.scans, new]).sort("run", "target_id", "epoch")
             .with_columns(_passes(v_min_mps, v_max_mps, gate_m).alias("__pass")))
     first = rows.filter("__pass").group_by(CHAIN).agg(pl.col("epoch").min().alias("__from"))
     out = (scans.cast(_SCAN).select("run", "epoch", "target_id")
