@@ -108,14 +108,14 @@ def tentative_at(confirmed: pl.DataFrame, groups: pl.DataFrame, keys: pl.DataFra
                     .alias("tentative")).to_series()
 
 
-def confirm_associations_step(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame, reports: pl.DataFrame,
-                              min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
-    """:func:`confirm_targets_step` on the window's association
-    rows, which are the fused pictures' rows: a row is fresh at its report's first association
-    epoch (``new``: the rows of the reports not associated before the window), as the aligned
-    row of a report's first epoch is; only fresh rows need their report's ``time``, and those
-    reports are in ``reports``. Returns the groups (run, epoch, target_id, ``tentative``) and
-    the new state; an empty window leaves the state as it is, as the fusion stage does."""
+def confirm_associations_step(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame,
+                              reports: pl.DataFrame, min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
+    """:func:`confirm_targets_step` on the window's association rows, which are the fused
+    pictures' rows: a row is fresh at its report's first association epoch (``new``: the rows of
+    the reports not associated before the window), as the aligned row of a report's first epoch
+    is; only fresh rows need their report's ``time``, and those reports are in ``reports``.
+    Returns the groups (run, epoch, target_id, ``tentative``) and the new state; an empty window
+    leaves the state as it is, as the fusion stage does."""
     if associations.is_empty():
         empty = pl.DataFrame(schema={"run": pl.UInt32, "epoch": TIME, "target_id": pl.UInt64, "tentative": pl.Boolean})
         return empty, before

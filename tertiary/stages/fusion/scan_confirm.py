@@ -28,6 +28,7 @@ import polars as pl
 
 from tertiary.contract import TIME
 from tertiary.stages.fusion.base import CHAIN
+from tertiary.stages.fusion.confirm import tentative_at
 
 __all__ = ["ScanState", "scans_of", "three_scan_step"]
 
@@ -93,13 +94,11 @@ def three_scan_step(state: ScanState, scans: pl.DataFrame, v_min_mps: float, v_m
     new = scans.cast(_SCAN).join(state.targets, on=CHAIN, how="anti")      # confirmed before: no test
     rows = (pl.concat([state.scans, new]).sort("run", "target_id", "epoch")
             .with_columns(_passes(v_min_mps, v_max_mps, gate_m).alias("__pass")))
-    first = rows.filter("__pass").group_by(CHAIN).agg(pl.col("epoch").min().alias("__from"))
-    out = (scans.cast(_SCAN).select("run", "epoch", "target_id")
-           .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left", maintain_order="left")
-           .join(first, on=CHAIN, how="left", maintain_order="left")
-           .select("run", "epoch", "target_id",
-                   ~(pl.col("__was").fill_null(False) | (pl.col("epoch") >= pl.col("__from")).fill_null(False))
-                   .alias("tentative")))
+    # each newly confirmed target's confirming scan, as a group of confirm_targets_step's form
+    first = (rows.filter("__pass").group_by(CHAIN).agg(pl.col("epoch").min())
+             .with_columns(pl.lit(False).alias("tentative")))
+    keys = scans.cast(_SCAN).select("run", "epoch", "target_id")
+    out = keys.with_columns(tentative_at(state.targets, first, keys))
     targets = pl.concat([state.targets, first.select(CHAIN)])
     left = (rows.join(first, on=CHAIN, how="anti").group_by(CHAIN, maintain_order=True).tail(2)
             .select(*_SCAN))
