@@ -5,7 +5,8 @@ high level with long turns).
 Each dataset is simulated and run with the CLI, each command in a fresh process, and the run's
 database is read for every figure a verdict rests on:
 
-* safety, per picture (the truth picture included): alert episodes genuine / nuisance / false,
+* safety, per picture (the truth picture included): alert episodes genuine / nuisance / false /
+  undetermined (the truth ends before their outcome),
   how many of them (and of the missed losses) are picture-induced or predictor-induced, Torres &
   McKay's valid alerts, losses of separation alerted and missed (and the missed ones under way
   when their aircraft were first observed, which no alert can precede), median warning;
@@ -14,6 +15,8 @@ database is read for every figure a verdict rests on:
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
 * the false- and duplicate-track rates of every picture (the centralised reference against the
   best fused picture);
+* on the national datasets, what the undetermined alerts turn out to be against the same
+  scenario's truth simulated 10 minutes longer;
 * the cause of each picture-induced alert of the production picture, and for each false alert
   that the picture's uncertainty alone raises, how far the tracks' σ would have to shrink to
   avoid it against how large their actual error is in σ: whether a consistent covariance would
@@ -48,8 +51,11 @@ DATASETS = ("national15", "national15-evening", "default", "adsb-paris", "made")
 #: start (s after midnight) of the national scenario's 15 minutes: the peak every check reads,
 #: and an evening slice that no change was checked on before it was made
 NATIONAL15_START_S = {"national15": 28800.0, "national15-evening": 64800.0}
-SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "alerts_picture_induced",
-          "alerts_predictor_induced", "false_alerts_picture_induced", "false_alerts_predictor_induced",
+#: how much longer the national scenario is simulated to see what its undetermined alerts were
+LATER_S = 600.0
+SAFETY = ("alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "undetermined_alerts",
+          "alerts_picture_induced", "alerts_predictor_induced", "false_alerts_picture_induced",
+          "false_alerts_predictor_induced", "undetermined_alerts_picture_induced",
           "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_predictor_induced",
           "missed_los_under_way", "valid_alerts", "los_episodes", "alerted_los", "missed_los", "warning_median_s",
           "alerts_per_hour")
@@ -407,17 +413,81 @@ def _uncertainty_alerts(db: Path, data: Path, alerts, picture: str, truth, befor
     return pl.DataFrame(out, schema={"k": pl.UInt32, "uncertainty": pl.Boolean, "avoid_scale": pl.Float64})
 
 
+def undetermined_outcomes(db: Path, data: Path, longer: Path) -> dict:
+    """What the undetermined alerts (the truth ends before their link window closes) turn out to
+    be against the same scenario's truth simulated ``LATER_S`` longer (``longer``; the simulation
+    is deterministic: its truth equals the run's where both exist, checked here). Per picture
+    (production and the truth picture) counts by (picture-induced?, outcome): genuine or nuisance
+    when a loss or proximity of the pair overlaps the window, undetermined when the longer truth
+    still ends first (an aircraft left the scenario), else false. The window's end is
+    max(t_end + T^пор, t_start + the first alert epoch's predicted time to the closest approach,
+    ≤ 2 T^пор): the scoring's, with the first epoch's prediction standing for every epoch's."""
+    import duckdb
+    import polars as pl
+    from safety import alerts as sa
+    from tertiary.core.units import US
+    from tertiary.io.dataset import read_dataset
+    from tertiary.pipeline.config import PipelineConfig, adapt_to_scenario, check_config
+    ds = read_dataset(data)
+    acfg = sa.AlertConfig(conflict=adapt_to_scenario(check_config(PipelineConfig()), ds).conflicts)
+    short, long_ = _truth_of(data), _truth_of(longer)
+    same = short.join(long_, on=["truth_id", "time"], how="left", suffix="_l")
+    equal = bool(same["x_m_l"].is_not_null().all() and (same["x_m"] - same["x_m_l"]).abs().max() == 0.0
+                 and (same["alt_m"] - same["alt_m_l"]).abs().max() == 0.0)
+    con = duckdb.connect(str(db), read_only=True)
+    al = pl.from_arrow(con.sql("select * from alerts where classification = 'undetermined'").to_arrow_table())
+    con.close()
+    if not al.height:
+        return {"truth_equal_on_shared_span": equal, "counts": {}}
+    los, prox = sa.truth_intervals(long_, acfg, ds.origin)
+    tca = (pl.col("t_min_first_s").fill_nan(None).fill_null(0.0).clip(0.0, acfg.cpa_reach) * US).cast(pl.Int64)
+    al = al.with_row_index("__k").with_columns(
+        pl.col("t_start").dt.epoch("us").alias("t0"),
+        pl.max_horizontal(pl.col("t_end").dt.epoch("us") + int(acfg.link * US),
+                          pl.col("t_start").dt.epoch("us") + tca).alias("reach"))
+
+    def linked(iv):
+        return (al.join(iv.drop("run", strict=False), on=["truth_a", "truth_b"], how="inner")
+                .filter((pl.col("t_start_us") <= pl.col("reach")) & (pl.col("t_end_us") >= pl.col("t0")))["__k"])
+    obs = sa.observed_until(long_, acfg, ds.origin).drop("run", strict=False)
+    for side in ("a", "b"):
+        al = al.join(obs.rename({"truth_id": f"truth_{side}", "__obs_us": f"__o{side}"}), on=f"truth_{side}",
+                     how="left")
+    seen = pl.min_horizontal("__oa", "__ob") >= pl.col("reach")
+    out = (pl.when(pl.col("__k").is_in(linked(los).implode())).then(pl.lit("genuine"))
+           .when(pl.col("__k").is_in(linked(prox).implode())).then(pl.lit("nuisance"))
+           .when(seen).then(pl.lit("false")).otherwise(pl.lit("undetermined")))
+    al = al.with_columns(out.alias("outcome"))
+    counts = {}
+    for m, ind, o, n in al.group_by("method", "induced", "outcome").len().sort("method", "induced", "outcome").rows():
+        counts.setdefault(m, {})[f"{ind or 'truth picture'} -> {o}"] = n
+    keep = ("information+imm_sym", sa.TRUTH_PICTURE)
+    return {"truth_equal_on_shared_span": equal, "later_s": LATER_S,
+            "counts": {m: c for m, c in counts.items() if m in keep}}
+
+
 # --------------------------------------------------------------------------- datasets
 
 
-def _national15(work: Path, name: str) -> list[str]:
+def _national15(work: Path, name: str, extra_s: float = 0.0, suffix: str = "") -> list[str]:
     from tertiary.simulate import load_scenario
     from tertiary.simulate.config import scenario_toml
     base = load_scenario("national")
     start = NATIONAL15_START_S[name]
-    cfg = dataclasses.replace(base, duration_s=900.0, national=dataclasses.replace(base.national, start_s=start))
-    (work / f"{name}.toml").write_text(scenario_toml(cfg))
-    return [str(work / f"{name}.toml")]
+    cfg = dataclasses.replace(base, duration_s=900.0 + extra_s,
+                              national=dataclasses.replace(base.national, start_s=start))
+    (work / f"{name}{suffix}.toml").write_text(scenario_toml(cfg))
+    return [str(work / f"{name}{suffix}.toml")]
+
+
+def _later(name: str, work: Path) -> dict:
+    """:func:`undetermined_outcomes` of a national dataset's run, its scenario simulated
+    ``LATER_S`` longer (kept in ``work``)."""
+    longer = work / f"{name}-longer"
+    if not (longer / "truth").exists():
+        _child(["simulate", *_national15(work, name, LATER_S, "-longer"), "--out", str(longer), "--force", "--quiet"])
+    return {"undetermined_outcomes": undetermined_outcomes(work / f"{name}-run" / "results.duckdb", work / name,
+                                                           longer)}
 
 
 def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
@@ -425,7 +495,8 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
     if figures_only:                    # the figures again from a kept run (no simulation, no run)
         old = json.loads((RESULTS / "bench_trust.json").read_text())["datasets"].get(name, {})
         return {**old, **figures(out / "results.duckdb"),
-                "picture_induced_causes": alert_causes(out / "results.duckdb", data)}
+                "picture_induced_causes": alert_causes(out / "results.duckdb", data),
+                **(_later(name, work) if name in NATIONAL15_START_S else {})}
     if name in NATIONAL15_START_S:
         sim, args = _national15(work, name), CONFIGS["production"]
     elif name == "default":
@@ -442,7 +513,8 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
     return {"simulate": sim, "run_args": args, "simulate_s": round(wall_s, 1), "run_s": round(wall_r, 1),
             "summary": [line.strip() for line in stdout.splitlines()
                         if line.strip().startswith(("run ", "system targets", "fusion", "tracker", "safety "))],
-            **figures(out / "results.duckdb"), "picture_induced_causes": alert_causes(out / "results.duckdb", data)}
+            **figures(out / "results.duckdb"), "picture_induced_causes": alert_causes(out / "results.duckdb", data),
+            **(_later(name, work) if name in NATIONAL15_START_S else {})}
 
 
 def main() -> None:

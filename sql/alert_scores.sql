@@ -1,11 +1,12 @@
 -- Alert scores per picture: conflict alerts scored against the losses of separation in truth
 -- (safety stage of the metrics table) — the losses (los_episodes), those alerted and missed,
--- genuine / nuisance / false alerts, alerts per hour and the median and 5th-percentile warning
+-- genuine / nuisance / false alerts, those whose outcome the truth does not show (undetermined:
+-- the recording, or an aircraft's trajectory, ends first), alerts per hour and the median and 5th-percentile warning
 -- times; how many alerts (false, nuisance) and missed losses the picture causes (the truth picture
 -- does not raise / does alert them), the missed losses under way when their aircraft were first
 -- observed (no alert can precede them) and the valid alerts (followed by an avoiding manoeuvre).
 -- Columns: method, los_episodes, alerted_los, missed_los, genuine_alerts, nuisance_alerts,
--- false_alerts, alerts_per_hour, warning_median_s, warning_p05_s, alerts_picture_induced,
+-- false_alerts, undetermined_alerts, alerts_per_hour, warning_median_s, warning_p05_s, alerts_picture_induced,
 -- false_alerts_picture_induced, nuisance_alerts_picture_induced, missed_los_picture_induced,
 -- missed_los_under_way, valid_alerts, n_runs.
 -- param: method = null   picture (fusion method) (null: all)
@@ -16,6 +17,7 @@ SELECT method,
        max(value) FILTER (WHERE metric = 'genuine_alerts')   AS genuine_alerts,
        max(value) FILTER (WHERE metric = 'nuisance_alerts')  AS nuisance_alerts,
        max(value) FILTER (WHERE metric = 'false_alerts')     AS false_alerts,
+       max(value) FILTER (WHERE metric = 'undetermined_alerts') AS undetermined_alerts,
        max(value) FILTER (WHERE metric = 'alerts_per_hour')  AS alerts_per_hour,
        max(value) FILTER (WHERE metric = 'warning_median_s') AS warning_median_s,
        max(value) FILTER (WHERE metric = 'warning_p05_s')    AS warning_p05_s,
@@ -29,7 +31,7 @@ SELECT method,
 FROM metrics
 WHERE stage = 'safety'
   AND metric IN ('los_episodes', 'alerted_los', 'missed_los', 'genuine_alerts', 'nuisance_alerts', 'false_alerts',
-                 'alerts_per_hour', 'warning_median_s', 'warning_p05_s', 'alerts_picture_induced',
+                 'undetermined_alerts', 'alerts_per_hour', 'warning_median_s', 'warning_p05_s', 'alerts_picture_induced',
                  'false_alerts_picture_induced', 'nuisance_alerts_picture_induced', 'missed_los_picture_induced',
                  'missed_los_under_way', 'valid_alerts')
   AND ($method IS NULL OR method = $method)

@@ -237,6 +237,40 @@ def test_alerts_after_the_reference_ends_are_not_scored(truth):
     assert early["classification"].to_list() == ["false"]
 
 
+def _ends_at(truth: pl.DataFrame, tid: int, end_s: float, height_m: float | None = None) -> pl.DataFrame:
+    """``truth`` with aircraft ``tid``'s samples after ``end_s`` dropped (and, with ``height_m``,
+    flown at that height throughout: a landing)."""
+    t = truth.filter((pl.col("truth_id") != tid) | (pl.col("time") <= _t(end_s)))
+    if height_m is None:
+        return t
+    low = pl.col("truth_id") == tid
+    return t.with_columns(*(pl.when(low).then(height_m).otherwise(pl.col(c)).alias(c) for c in ("z_m", "alt_m")))
+
+
+def test_an_alert_whose_outcome_is_not_observed_is_undetermined(truth):
+    """The 30-km pair (5, 6) never comes close. An alert at 150 s, whose link window closes at
+    255 s, is false while both aircraft are recorded to the end (300 s); it is undetermined when
+    6 leaves the recording airborne at 200 s, and false again when 6 lands then (100 m). An alert
+    at 250 s reaches past the end of the truth itself: undetermined, even when both aircraft are
+    low at the end (the recording stops, not the aircraft). A genuine or nuisance alert
+    stays what it is, whatever the ends."""
+    at150, at250 = _alerts({(15, 16): [150]}), _alerts({(15, 16): [250]})
+    cls = lambda a, t, cfg=CFG: alert_episodes(a, _id_map(), t, cfg)["classification"].to_list()  # noqa: E731
+    assert cls(at150, truth) == ["false"]
+    assert cls(at150, _ends_at(truth, 6, 200.0)) == ["undetermined"]
+    assert cls(at150, _ends_at(truth, 6, 200.0, 100.0)) == ["false"]
+    assert cls(at150, _ends_at(truth, 6, 200.0, 700.0)) == ["undetermined"]      # above 2 000 ft
+    assert cls(at150, _ends_at(truth, 6, 200.0, 700.0), dataclasses.replace(CFG, landed_below_m=800.0)) == ["false"]
+    assert cls(at250, truth) == ["undetermined"]
+    low = _ends_at(_ends_at(truth, 5, 300.0, 100.0), 6, 300.0, 100.0)        # low to the end: still recorded
+    assert cls(at150, low) == ["false"] and cls(at250, low) == ["undetermined"]
+    assert cls(_alerts({(11, 12): [150]}), _ends_at(truth, 2, 230.0)) == ["genuine"]        # LoS seen by 218 s
+    assert cls(_alerts({(13, 14): [150]}), _ends_at(truth, 4, 230.0)) == ["nuisance"]
+    m = _metrics(score_alerts(pl.concat([at150, at250]), _id_map(), truth, CFG))
+    assert m["undetermined_alerts"] == 1 and m["false_alerts"] == 1 and m["alert_episodes"] == 2
+    assert m["nuisance_false_per_hour"] == pytest.approx(1 / m["picture_hours"])
+
+
 def test_fragmented_ids_make_one_episode(truth):
     """Track 12 is replaced by 22 (same aircraft 2) mid-alert, and 11's map is wrong at one epoch:
     one episode on the aircraft pair (1, 2), not two or three."""
@@ -267,10 +301,13 @@ def test_missed_and_late_alerts(truth):
     m = _metrics(score_alerts(_alerts({(13, 14): [150]}), _id_map(), truth, CFG))
     assert m["los_episodes"] == 1 and m["missed_los"] == 1 and m["alerted_los"] == 0
     assert math.isnan(m["warning_median_s"])
-    # an alert after the LoS ended is not a warning of it: missed, and the alert is false
+    # an alert after the LoS ended is not a warning of it: missed, and the alert is false (with a
+    # link window that closes before the truth ends; the default one reaches past it)
     late = _alerts({(11, 12): [250, 255]})
-    ep = alert_episodes(late, _id_map(), truth, CFG)
+    short = dataclasses.replace(CFG, link_s=20.0)
+    ep = alert_episodes(late, _id_map(), truth, short)
     assert ep["classification"].to_list() == ["false"]
+    assert alert_episodes(late, _id_map(), truth, CFG)["classification"].to_list() == ["undetermined"]
     m = _metrics(score_alerts(late, _id_map(), truth, CFG))
     assert m["missed_los"] == 1
     # an alert during the LoS counts, with a negative warning

@@ -64,7 +64,7 @@ def test_safety_runs_on_the_confirmed_tracks_of_every_picture(results):
     assert len(los) == 1 and los.pop() > 0          # one truth: the same losses for every picture
     alerts = results.alerts.filter(pl.col("method") != "truth")
     assert alerts.height > 0 and set(alerts["method"].unique().to_list()) <= pictures
-    assert set(alerts["classification"].unique().to_list()) <= {"genuine", "nuisance", "false"}
+    assert set(alerts["classification"].unique().to_list()) <= {"genuine", "nuisance", "undetermined", "false"}
     genuine = alerts.filter(pl.col("classification") == "genuine")
     assert genuine.height > 0 and genuine["los_start"].null_count() == 0
     schema.validate(alerts, "alerts", strict=True)

@@ -13,7 +13,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from safety import AlertConfig
-from safety.alerts import merge_intervals, merge_pair_intervals, truth_intervals
+from safety.alerts import merge_intervals, merge_pair_intervals, observed_until, truth_intervals
 from safety.conflicts import AerodromeZone, ConflictConfig
 from tertiary import pipeline
 from tertiary.evaluation.evaluate import write_reference
@@ -58,8 +58,26 @@ def test_chunked_intervals_equal_the_whole_truths(truth, tmp_path, chunk_s):
     assert_frame_equal(los, whole[0])
     assert_frame_equal(prox, whole[1])
     ends = t.group_by("run").agg(pl.col("time").min().alias("a"), pl.col("time").max().alias("b"))
-    assert span.height == 2 * ends.height
-    assert set(span["time"].to_list()) == set(ends["a"].to_list()) | set(ends["b"].to_list())
+    runs = span.filter(pl.col("truth_id").is_null())
+    assert runs.height == 2 * ends.height
+    assert set(runs["time"].to_list()) == set(ends["a"].to_list()) | set(ends["b"].to_list())
+
+
+def test_the_span_of_a_reference_on_disk_tells_the_scoring_what_the_truth_in_memory_does(truth, tmp_path):
+    """Each aircraft's last sample and whether it ended airborne travel with the span of an
+    on-disk reference: until when each aircraft's future is observed (the alerts' undetermined
+    class) is the same as from the whole truth — some aircraft leave the recording airborne
+    before its end, the others are seen to it."""
+    t, frame = truth
+    acfg = _config()
+    ref = write_reference(t, tmp_path / "ref.parquet")
+    _, span = pipeline.reference_intervals(ref, acfg, frame, chunk_s=120.0)
+    keys = ["run", "truth_id"]
+    got, want = observed_until(span, acfg, frame).sort(keys), observed_until(t, acfg, frame).sort(keys)
+    assert_frame_equal(got, want)
+    run_end = t.group_by("run").agg(pl.col("time").max().dt.epoch("us").alias("__end"))
+    early = got.join(run_end, on="run")["__obs_us"] < got.join(run_end, on="run")["__end"]
+    assert 0 < early.sum() < got.height
 
 
 def test_a_chunk_that_reads_only_its_own_samples_differs(truth, tmp_path, monkeypatch):

@@ -122,7 +122,8 @@ METRICS = [
     ("safety", "apriori", "missed_los_picture_induced", "all", 0.0, 2),
     ("safety", "apriori", "missed_los_under_way", "all", 1.0, 2),
     ("safety", "apriori", "valid_alerts", "all", 2.0, 2),
-    ("safety", "apriori", "alert_episodes", "all", 13.0, 2),
+    ("safety", "apriori", "alert_episodes", "all", 14.0, 2),
+    ("safety", "apriori", "undetermined_alerts", "all", 1.0, 2),
     ("safety", "apriori", "nuisance_false_per_hour", "all", 11.0, 2),
     ("safety", "apriori", "alert_duration_median_s", "all", 30.0, 2),
     ("safety", "apriori", "flicker_per_alert", "all", 0.25, 2),
@@ -646,10 +647,10 @@ def test_conflict_timeline(q):
 def test_alert_scores(q):
     df = q("alert_scores")
     assert df.columns == ["method", "los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
-                          "false_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s",
-                          "alerts_picture_induced", "false_alerts_picture_induced", "nuisance_alerts_picture_induced",
+                          "false_alerts", "undetermined_alerts", "alerts_per_hour", "warning_median_s",
+                          "warning_p05_s", "alerts_picture_induced", "false_alerts_picture_induced", "nuisance_alerts_picture_induced",
                           "missed_los_picture_induced", "missed_los_under_way", "valid_alerts", "n_runs"]
-    assert rows(df) == [("apriori", 3.0, 2.0, 1.0, 2.0, 4.0, 7.0, 12.5, 45.0, 20.0, 6.0, 5.0, 1.0, 0.0, 1.0, 2.0, 2)]
+    assert rows(df) == [("apriori", 3.0, 2.0, 1.0, 2.0, 4.0, 7.0, 1.0, 12.5, 45.0, 20.0, 6.0, 5.0, 1.0, 0.0, 1.0, 2.0, 2)]
     # capacity rows (apriori+singer, fusion/information) are not scores
 
 
@@ -671,7 +672,8 @@ def test_stca_performance(q):
     r = df.row(0, named=True)
     assert (r["los_episodes"], r["alerted_los"], r["missed_los"]) == (3.0, 2.0, 1.0)
     assert r["alerted_fraction"] == pytest.approx(2 / 3)
-    assert (r["genuine_alerts"], r["nuisance_alerts"], r["false_alerts"], r["alert_episodes"]) == (2.0, 4.0, 7.0, 13.0)
+    assert (r["genuine_alerts"], r["nuisance_alerts"], r["false_alerts"], r["undetermined_alerts"],
+            r["alert_episodes"]) == (2.0, 4.0, 7.0, 1.0, 14.0)
     assert (r["warning_median_s"], r["warning_p05_s"], r["nuisance_false_per_hour"]) == (45.0, 20.0, 11.0)
     assert (r["alert_duration_median_s"], r["flicker_per_alert"], r["picture_hours"], r["n_runs"]) == (30.0, 0.25,
                                                                                                      1.04, 2)

@@ -11,7 +11,7 @@ against those of the truth picture (the same conflict prediction on the true sta
   **under way** when it had begun by the time the later of its two aircraft was first observed
   (no alert can precede such a loss: the recording starts, or an aircraft enters coverage,
   inside it); else predictor-induced.
-* **Valid** (Torres & McKay 2009): a nuisance or false alert followed, within the look-ahead
+* **Valid** (Torres & McKay 2009): a nuisance, undetermined or false alert followed, within the look-ahead
   T^пор of its start, by a manoeuvre of either aircraft (:func:`manoeuvre_onsets`) — the alert
   may have been acted on.
 
@@ -38,6 +38,7 @@ TRUTH_PICTURE = "truth"
 ATTRIBUTION_METRICS = ("alerts_picture_induced", "alerts_predictor_induced", "genuine_alerts_picture_induced",
                        "nuisance_alerts_picture_induced", "nuisance_alerts_predictor_induced",
                        "false_alerts_picture_induced", "false_alerts_predictor_induced",
+                       "undetermined_alerts_picture_induced", "undetermined_alerts_predictor_induced",
                        "missed_los_picture_induced", "missed_los_predictor_induced", "missed_los_under_way",
                        "valid_alerts")
 
@@ -132,13 +133,14 @@ def manoeuvre_onsets(truth: pl.DataFrame, turn_dps: float = 0.5, climb_mps: floa
 
 
 def valid_alerts(alerts: pl.DataFrame, onsets: pl.DataFrame, cfg: AlertConfig = AlertConfig()) -> pl.DataFrame:
-    """``alerts`` with column ``valid``: a nuisance or false episode of two known aircraft with a
+    """``alerts`` with column ``valid``: a nuisance, undetermined or false episode of two known aircraft with a
     manoeuvre onset of either within [t_start, t_start + T^пор] (Torres & McKay 2009); false
     for genuine episodes and unknown pairs."""
     look = int(round(cfg.conflict.t_thr_s * US))
     on = onsets.select(pl.col("truth_id").cast(pl.Int64), pl.col("t_us").alias("__m"))
     rows = alerts.with_row_index("__row").with_columns(pl.col("t_start").dt.epoch("us").alias("__t0"))
-    cand = rows.filter(pl.col("classification").is_in(["nuisance", "false"]) & pl.col("truth_a").is_not_null())
+    cand = rows.filter(pl.col("classification").is_in(["nuisance", "undetermined", "false"])
+                       & pl.col("truth_a").is_not_null())
     hits = [cand.join(on, left_on=side, right_on="truth_id", how="inner")
             .filter((pl.col("__m") >= pl.col("__t0")) & (pl.col("__m") <= pl.col("__t0") + look)).select("__row")
             for side in ("truth_a", "truth_b")]
@@ -162,6 +164,8 @@ def attribution_metrics(alerts: pl.DataFrame, los: pl.DataFrame, truth: str = TR
         (pred & (cls == "nuisance")).sum().alias("nuisance_alerts_predictor_induced"),
         (pic & (cls == "false")).sum().alias("false_alerts_picture_induced"),
         (pred & (cls == "false")).sum().alias("false_alerts_predictor_induced"),
+        (pic & (cls == "undetermined")).sum().alias("undetermined_alerts_picture_induced"),
+        (pred & (cls == "undetermined")).sum().alias("undetermined_alerts_predictor_induced"),
         pl.col("valid").sum().alias("valid_alerts"))
     lo = los.filter(pl.col("method") != truth).group_by("method").agg(
         (pl.col("induced") == "picture").sum().alias("missed_los_picture_induced"),

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from safety.conflicts import ConflictConfig
+from tertiary.core.units import FT
 
 __all__ = ["AlertConfig"]
 
@@ -28,6 +30,12 @@ class AlertConfig:
     * ``level_pairs``: the truth's losses and proximities use the prediction's level-pair
       threshold (``conflict.level_pair_tolerance_m`` / ``level_rate_mps``) where both aircraft
       are level (:mod:`safety.alerts.separation`, "Level pairs"); False: the full vertical minimum everywhere.
+    * ``landed_below_m``: an aircraft whose truth ends below this height (2 000 ft, the aerodrome
+      zones' ceiling) has landed; one whose truth ends above it left the recording airborne (it
+      flew out of the recorded area, or the recording stopped), and what it did next is not
+      observed. An alert whose link window reaches past that end, or past the end of the run's
+      truth, with nothing close before, is **undetermined**, not false
+      (:mod:`safety.alerts.episodes`).
     """
 
     conflict: ConflictConfig = ConflictConfig()
@@ -38,6 +46,7 @@ class AlertConfig:
     max_link_s: float | None = None
     max_grid_rows: int = 50_000_000
     level_pairs: bool = True
+    landed_below_m: float = 2000.0 * FT
 
     def __post_init__(self) -> None:
         if not self.proximity_factor >= 1.0:
@@ -48,6 +57,8 @@ class AlertConfig:
             raise ValueError(f"link_s must be >= 0, got {self.link_s}")
         if self.max_link_s is not None and self.max_link_s < 0:
             raise ValueError(f"max_link_s must be >= 0, got {self.max_link_s}")
+        if not math.isfinite(self.landed_below_m):
+            raise ValueError(f"landed_below_m must be finite, got {self.landed_below_m}")
         if self.max_grid_rows < 1:
             raise ValueError(f"max_grid_rows must be >= 1, got {self.max_grid_rows}")
 

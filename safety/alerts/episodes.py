@@ -23,7 +23,11 @@ predicted, each at most ``max_link_s`` (default 2 T^пор) after its epoch), an
 
 * **genuine** — a LoS episode of that pair overlaps W (it follows or is under way);
 * **nuisance** — no LoS, but a proximity interval of the pair overlaps W;
-* **false** — neither (also every alert without two distinct truths).
+* **undetermined** — neither, but W reaches past the time the pair's future is observed until:
+  the end of the run's truth, or the last sample of an aircraft whose truth ends airborne
+  (``AlertConfig.landed_below_m``: it flew out of the recorded area). What the pair did after
+  is not known, so the alert cannot be called false (:func:`observed_until`);
+* **false** — none of these (also every alert without two distinct truths).
 
 Why W reaches the predicted closest approach: an alert is raised when the pair is predicted to
 enter the threshold, widened by the estimation term, within T^пор; on a converging pair with a
@@ -45,8 +49,9 @@ such alert start (negative when the alert came after the LoS began).
 Metrics — :func:`score_alerts` (``metrics`` schema, stage ``"safety"``, per picture)
 ----------------------------------------------------------------------------------
 ``los_episodes``, ``alerted_los``, ``missed_los``, ``genuine_alerts``, ``nuisance_alerts``,
-``false_alerts``, ``alert_episodes``, ``alerts_per_hour`` (alert episodes per hour of picture
-time, summed over runs), ``nuisance_false_per_hour``, ``warning_median_s``, ``warning_p05_s``
+``false_alerts``, ``undetermined_alerts``, ``alert_episodes``, ``alerts_per_hour`` (alert episodes
+per hour of picture time, summed over runs), ``nuisance_false_per_hour`` (undetermined alerts
+left out), ``warning_median_s``, ``warning_p05_s``
 (5th percentile; over alerted LoS), ``alert_duration_median_s``, ``flicker_per_alert``,
 ``picture_hours``. NaN where undefined.
 """
@@ -58,17 +63,18 @@ import polars as pl
 from numpy.typing import NDArray
 
 from safety.alerts.config import AlertConfig
-from safety.alerts.separation import epoch_micros, to_time, truth_intervals
+from safety.alerts.separation import epoch_micros, to_time, truth_ends, truth_intervals
 from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
 from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
-           "alert_ids", "id_rows", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture"]
+           "alert_ids", "id_rows", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture",
+           "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
-                 "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
+                 "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
                  "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
 
 
@@ -273,10 +279,32 @@ def _linked(left: pl.DataFrame, iv: pl.DataFrame, link_us: int, shared: bool, on
             .filter((pl.col("t_start_us") <= _reach(link_us)) & (pl.col("t_end_us") >= pl.col("t0"))))
 
 
-def classify_episodes(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool
-                      ) -> pl.DataFrame:
+def observed_until(truth: pl.DataFrame, cfg: AlertConfig, frame: geo.LocalFrame | None) -> pl.DataFrame | None:
+    """([run,] truth_id, __obs_us): until when each aircraft's future is observed — its last
+    sample when it ends airborne (:func:`~safety.alerts.separation.truth_ends`), and the run's
+    last truth sample for every aircraft (the recording stops). ``truth``: the truth itself,
+    or its span with the ends' rows (``airborne``, as :func:`tertiary.pipeline.time_span`
+    gives it); None when it names no aircraft."""
+    if not truth.height or "truth_id" not in truth.columns:
+        return None
+    keys = ["run"] if "run" in truth.columns else []
+    ends = (truth.filter(pl.col("truth_id").is_not_null()) if "airborne" in truth.columns
+            else truth_ends(truth, cfg, frame))
+    run_end = (truth.group_by(keys).agg(epoch_micros("time").max().alias("__end")) if keys
+               else truth.select(epoch_micros("time").max().alias("__end")))
+    t = epoch_micros("time")
+    obs = ends.select(*(pl.col(k).cast(pl.UInt32) for k in keys), pl.col("truth_id").cast(pl.Int64),
+                      pl.when(pl.col("airborne").fill_null(False)).then(t).otherwise(None).alias("__own"))
+    obs = obs.join(run_end, on=keys, how="left") if keys else obs.join(run_end, how="cross")
+    return obs.select(*keys, "truth_id", pl.min_horizontal("__own", "__end").alias("__obs_us"))
+
+
+def classify_episodes(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, link_us: int, shared: bool,
+                      observed: pl.DataFrame | None = None) -> pl.DataFrame:
     """Each alert episode genuine (linked to a loss of separation of its pair: ``los_start_us``
-    and the warning time), nuisance (linked only to a proximity interval) or false."""
+    and the warning time), nuisance (linked only to a proximity interval), undetermined (neither,
+    but its link window reaches past the time either aircraft's future is observed until:
+    ``observed`` from :func:`observed_until`) or false."""
     pairs = ["truth_a", "truth_b"]
     known = eps.filter(pl.col("kind") == 0).select("__ep", "run", *pairs, "t0", "t1", "t_cpa")
     g = (_linked(known, los, link_us, shared, pairs)
@@ -284,10 +312,21 @@ def classify_episodes(eps: pl.DataFrame, los: pl.DataFrame, prox: pl.DataFrame, 
     n = _linked(known, prox, link_us, shared, pairs).select("__ep").unique().with_columns(
         pl.lit(True).alias("__near"))
     e = eps.join(g, on="__ep", how="left").join(n, on="__ep", how="left")
+    unseen = pl.lit(False)
+    if observed is not None:
+        on = [] if shared else ["run"]
+        obs = observed.drop("run", strict=False) if shared else observed
+        for side in ("a", "b"):
+            e = e.join(obs.rename({"truth_id": f"truth_{side}", "__obs_us": f"__obs_{side}"}),
+                       on=[*on, f"truth_{side}"], how="left")
+        seen_to = pl.min_horizontal("__obs_a", "__obs_b")
+        unseen = (pl.col("kind") == 0) & seen_to.is_not_null() & (_reach(link_us) > seen_to)
     cls = (pl.when(pl.col("los_start_us").is_not_null()).then(pl.lit("genuine"))
-           .when(pl.col("__near").fill_null(False)).then(pl.lit("nuisance")).otherwise(pl.lit("false")))
+           .when(pl.col("__near").fill_null(False)).then(pl.lit("nuisance"))
+           .when(unseen).then(pl.lit("undetermined")).otherwise(pl.lit("false")))
     return e.with_columns(cls.alias("classification"),
-                          ((pl.col("los_start_us") - pl.col("t0")) / US).alias("warning_s"))
+                          ((pl.col("los_start_us") - pl.col("t0")) / US).alias("warning_s")
+                          ).drop("__obs_a", "__obs_b", strict=False)
 
 
 def los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us: int, shared: bool) -> pl.DataFrame:
@@ -324,7 +363,7 @@ def score_pictures(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     link_us = int(round(cfg.link * US))
     grid = picture_grid(conflicts, id_map, methods)
     eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s, cfg.cpa_reach)
-    eps = classify_episodes(eps, los, prox, link_us, shared)
+    eps = classify_episodes(eps, los, prox, link_us, shared, observed_until(truth, cfg, frame))
     alerts = eps.select(
         "run", "method", "id_a", "id_b", "truth_a", "truth_b", to_time("t0", "t_start"), to_time("t1", "t_end"),
         ((pl.col("t1") - pl.col("t0")) / US).alias("duration_s"), "alert_epochs", "flicker", "r_min_pred_m",
@@ -339,7 +378,7 @@ def alert_episodes(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
                    intervals: tuple[pl.DataFrame, pl.DataFrame] | None = None) -> pl.DataFrame:
     """The ``alerts`` table (:data:`ALERTS_SCHEMA`): one row per alert episode per picture, with
     its pair of ids and of aircraft, start, end, minimum predicted separation, warning time and
-    ``classification`` (genuine / nuisance / false)."""
+    ``classification`` (genuine / nuisance / undetermined / false)."""
     return score_pictures(conflicts, id_map, truth, cfg, id_col, methods, frame, intervals)[0]
 
 
@@ -364,6 +403,7 @@ def per_picture(alerts: pl.DataFrame, los: pl.DataFrame, grid: pl.DataFrame) -> 
         (cls == "genuine").sum().cast(pl.Float64).alias("genuine_alerts"),
         (cls == "nuisance").sum().cast(pl.Float64).alias("nuisance_alerts"),
         (cls == "false").sum().cast(pl.Float64).alias("false_alerts"),
+        (cls == "undetermined").sum().cast(pl.Float64).alias("undetermined_alerts"),
         pl.col("duration_s").median().alias("alert_duration_median_s"),
         pl.col("flicker").cast(pl.Float64).mean().alias("flicker_per_alert"))
     w = pl.col("warning_s").filter(pl.col("alerted"))
@@ -371,7 +411,8 @@ def per_picture(alerts: pl.DataFrame, los: pl.DataFrame, grid: pl.DataFrame) -> 
         pl.len().cast(pl.Float64).alias("los_episodes"), pl.col("alerted").sum().cast(pl.Float64).alias("alerted_los"),
         w.median().alias("warning_median_s"), w.quantile(0.05, "linear").alias("warning_p05_s"))
     per = _hours(grid).join(a, on="method", how="left").join(lo, on="method", how="left")
-    counts = ["alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes", "alerted_los"]
+    counts = ["alert_episodes", "genuine_alerts", "nuisance_alerts", "false_alerts", "undetermined_alerts",
+              "los_episodes", "alerted_los"]
     per = per.with_columns(pl.col(counts).fill_null(0.0))
     hrs = pl.when(pl.col("picture_hours") > 0).then(pl.col("picture_hours"))
     return per.with_columns(

@@ -39,8 +39,8 @@ import polars as pl
 
 from safety.alerts.config import AlertConfig
 from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, classify_episodes, los_table,
-                                    metrics_long, per_picture)
-from safety.alerts.separation import epoch_micros, to_time, truth_intervals
+                                    metrics_long, observed_until, per_picture)
+from safety.alerts.separation import epoch_micros, to_time, truth_ends, truth_intervals
 from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
 from tertiary.core.units import US
@@ -188,7 +188,8 @@ def score_external(alerts: pl.DataFrame, truth: pl.DataFrame | pl.LazyFrame, cfg
     link_us = int(round(cfg.link * US))
     ident = identify_aircraft(alerts, lf)
     grid = _span_grid(ident, lf, recording)
-    eps = classify_episodes(_episodes(ident, grid, cfg), los_iv, prox_iv, link_us, shared)
+    eps = classify_episodes(_episodes(ident, grid, cfg), los_iv, prox_iv, link_us, shared,
+                            observed_until(truth_ends(lf, cfg, frame), cfg, frame))
     extra = [pl.col(c).cast(t) for c, t in _EXTRA.items() if c in eps.columns]
     scored = eps.select(
         *(pl.col(c).cast(t) for c, t in ALERTS_SCHEMA.items() if c in ("run", "method", "id_a", "id_b",

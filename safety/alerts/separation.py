@@ -53,7 +53,7 @@ from tertiary.core import geo
 from tertiary.core.errors import ResourceError
 from tertiary.core.units import US
 
-__all__ = ["epoch_micros", "to_time", "HEIGHT_BLOCK", "truth_heights", "RESAMPLE_ROWS", "resampled_blocks",
+__all__ = ["epoch_micros", "to_time", "HEIGHT_BLOCK", "truth_heights", "truth_ends", "RESAMPLE_ROWS", "resampled_blocks",
            "SCREEN_BLOCK", "pair_segments", "separation_intervals", "merge_intervals", "merge_pair_intervals",
            "loss_of_separation", "truth_intervals"]
 
@@ -97,6 +97,30 @@ def truth_heights(truth: pl.DataFrame, frame: geo.LocalFrame | None = None) -> p
             else np.full(tr.height, np.nan))
     return tr.select(*keys, "truth_id", "t_us", "x_m", "y_m").with_columns(pl.Series("h_m", h),
                                                                            pl.Series("hdot_mps", rate))
+
+
+def truth_ends(truth: pl.DataFrame | pl.LazyFrame, cfg: AlertConfig = AlertConfig(),
+               frame: geo.LocalFrame | None = None) -> pl.DataFrame:
+    """([run,] truth_id, time, airborne): each aircraft's last truth sample, and whether it was
+    above ``cfg.landed_below_m`` there (height as :func:`truth_heights`; null without positions
+    or altitude): an aircraft that ends airborne left the recording, one that ends below it
+    landed. Reads one row per aircraft."""
+    lf = truth.lazy()
+    have = lf.collect_schema().names()
+    keys = ["run"] if "run" in have else []
+    cols = [c for c in ("x_m", "y_m", "z_m", "alt_m") if c in have]
+    last = pl.col("time").arg_max()
+    rows = (lf.group_by(*keys, "truth_id").agg(pl.col("time").max(), *(pl.col(c).get(last) for c in cols))
+            .collect().sort(*keys, "truth_id"))
+    if not rows.height:
+        return rows.select(*keys, pl.col("truth_id").cast(pl.Int64), "time",
+                           pl.lit(None, pl.Boolean).alias("airborne"))
+    if all(c in cols for c in ("x_m", "y_m", "z_m")):
+        h = pl.Series(truth_heights(rows.with_columns(pl.col("truth_id").cast(pl.Int64)), frame)["h_m"])
+    else:                       # no positions: the altitude where there is one, else unknown
+        h = rows["alt_m"].cast(pl.Float64) if "alt_m" in cols else pl.Series([None] * rows.height, dtype=pl.Float64)
+    return rows.select(*(pl.col(k).cast(pl.UInt32) for k in keys), pl.col("truth_id").cast(pl.Int64), "time",
+                       (h > cfg.landed_below_m).alias("airborne"))
 
 
 #: resampled truth rows held at once (:func:`resampled_blocks`): memory is bounded by a block, not

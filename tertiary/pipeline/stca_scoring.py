@@ -38,14 +38,21 @@ __all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "TruthIntervals", "intervals_ste
 TRUTH_CHUNK_S = 900.0
 
 
-def time_span(truth: "pl.DataFrame | pl.LazyFrame") -> pl.DataFrame:
+def time_span(truth: "pl.DataFrame | pl.LazyFrame", acfg: safety_alerts.AlertConfig | None = None,
+              frame: geo.LocalFrame | None = None) -> pl.DataFrame:
     """What the alert scoring reads of the truth besides its intervals: each run's first and
-    last sample time (``run`` and ``time``; no ``run`` column without one)."""
+    last sample time (``run`` and ``time``; no ``run`` column without one); with ``acfg``, also
+    each aircraft's last sample (``truth_id``, ``time``, ``airborne``:
+    :func:`safety.alerts.truth_ends`), which tells the alerts whose outcome the recording does
+    not show."""
     keys = ["run"] if "run" in truth.collect_schema() else []
     ends = [truth.group_by(keys).agg(f(pl.col("time"))) if keys else truth.select(f(pl.col("time")))
             for f in (pl.Expr.min, pl.Expr.max)]
     out = pl.concat([e.collect() if isinstance(e, pl.LazyFrame) else e for e in ends])
-    return out.sort(*keys, "time") if keys else out.sort("time")
+    out = out.sort(*keys, "time") if keys else out.sort("time")
+    if acfg is None:
+        return out
+    return pl.concat([out, safety_alerts.truth_ends(truth, acfg, frame)], how="diagonal_relaxed")
 
 
 def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
@@ -115,7 +122,8 @@ def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame:
     pairs are the whole truth's, and each chunk keeps the part of its intervals in [a, b).
     ``state``: the chunks the windows did (:func:`intervals_step`), finished here."""
     state = state or TruthIntervals()
-    span = state.span if state.span is not None else time_span(pl.scan_parquet(reference_files(reference)))
+    span = (state.span if state.span is not None
+            else time_span(pl.scan_parquet(reference_files(reference)), acfg, frame))
     done = intervals_step(state, reference, span, acfg, frame, None, chunk_s)
     return (safety_alerts.merge_intervals([], acfg) if done.merged is None else done.merged), span
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import polars as pl
 
+from safety import alerts as safety_alerts
 from safety import conflicts as safety_conflicts
 from tertiary import contract
 from tertiary.core import geo
@@ -394,7 +395,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             sink("truth", ctx.truth.table())
             ctx.truth_sunk = True
         if cfg.safety and ctx.reference is not None and ctx.reference.path is not None and evaluate != "match":
-            ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files))
+            ctx.truth_span = time_span(pl.scan_parquet(ctx.reference.files), safety_alerts.AlertConfig(cfg.conflicts),
+                                       ctx.origin)
             ctx.truth_slice = reference_slice(ctx.reference.files)
         if ctx.reference is not None and ctx.reference.path is not None and hasattr(parts, "part_files"):
             if evaluate != "match":

@@ -421,7 +421,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             intervals, span = reference_intervals(truth_file, acfg, ds.origin, state=done)
         else:
             truth = truth_columns(ALERT_TRUTH)
-            intervals, span = safety_alerts.truth_intervals(truth, acfg, ds.origin), time_span(truth)
+            intervals = safety_alerts.truth_intervals(truth, acfg, ds.origin)
+            span = time_span(truth, acfg, ds.origin)
             del truth
         release_memory()
         # the same prediction on the truth picture: which alerts the picture causes

@@ -344,6 +344,7 @@ _SAFETY_COLS = {  # alert_scores column → plain heading with unit
     "missed_los": "losses missed", "genuine_alerts": "genuine alerts", "nuisance_alerts": "nuisance alerts",
     "alerts_per_hour": "alerts per hour (1/h)", "warning_median_s": "median warning (s)",
     "warning_p05_s": "5th-percentile warning (s)", "false_alerts": "false alerts",
+    "undetermined_alerts": "undetermined alerts",
     "false_alerts_picture_induced": "false, picture-induced", "nuisance_alerts_picture_induced":
     "nuisance, picture-induced", "missed_los_picture_induced": "missed, picture-induced",
 }
@@ -364,10 +365,11 @@ def _verdict_safety(ctx: Ctx) -> str:
     text = (f"On <b>{html.escape(pick)}</b>: {f(r['los_episodes'])} losses of separation in truth, "
             f"<b>{f(r['alerted_los'])} alerted</b>, <b>{f(r['missed_los'])} missed</b>; "
             f"{f(r['genuine_alerts'])} genuine, {f(r['nuisance_alerts'])} nuisance and "
-            f"{f(r['false_alerts'])} false alerts ({r['alerts_per_hour'] or 0:.1f} alerts per hour); median "
+            f"{f(r['false_alerts'])} false alerts, {f(r.get('undetermined_alerts'))} undetermined (the truth "
+            f"ends before their outcome) ({r['alerts_per_hour'] or 0:.1f} alerts per hour); median "
             f"warning {f(r['warning_median_s'], ' s')}, 5th percentile {f(r['warning_p05_s'], ' s')}.")
     cols = ["method", "los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts",
-            "false_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s"]
+            "false_alerts", "undetermined_alerts", "alerts_per_hour", "warning_median_s", "warning_p05_s"]
     if r.get("alerts_picture_induced") is not None:
         # what a better picture can remove, and what only a better predictor can
         text += (f" Of its alerts <b>{f(r['alerts_picture_induced'])} are picture-induced</b> "
