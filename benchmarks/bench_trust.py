@@ -255,6 +255,7 @@ def _truth_of(data: Path):
 def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> dict:
     """The cause of each picture-induced alert episode of ``picture`` at its first epoch, the first
     rule that fires: ``one aircraft or unmatched`` (the episode has no two distinct aircraft),
+    ``a track coasting after its aircraft left`` (an aircraft's truth ended before the alert),
     ``the picture's uncertainty`` (the truth's own states, given the two tracks' covariances,
     raise the same alert: :func:`_uncertainty_alerts`; no error of the picture's states is
     needed), ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
@@ -308,7 +309,13 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
            else pl.lit(cc["dr_h_m"] or 3 * 1852.0))
     a = a.with_columns((pl.col("r_thr_m") - sep - cc["pilot_h_m"]).alias("est_h_m"))
     a = a.join(_uncertainty_alerts(db, data, a, picture, truth), on="k", how="left")
+    last = truth.group_by("truth_id").agg(pl.col("time").max().cast(pl.Datetime("us", "UTC")).alias("__last"))
+    for side in ("a", "b"):
+        a = a.join(last.rename({"truth_id": f"truth_{side}", "__last": f"last_{side}"}), on=f"truth_{side}",
+                   how="left")
+    gone = pl.min_horizontal("last_a", "last_b") < pl.col("t_start").cast(pl.Datetime("us", "UTC"))
     cause = (pl.when(pl.col("truth_a").is_null()).then(pl.lit("one aircraft or unmatched"))
+             .when(gone).then(pl.lit("a track coasting after its aircraft left"))
              .when(pl.col("uncertainty")).then(pl.lit("the picture's uncertainty"))
              .when(pl.col("coast_a") | pl.col("coast_b")).then(pl.lit("coasting track"))
              .when(pl.max_horizontal("perr_a", "perr_b") > 2000).then(pl.lit("track far from its aircraft"))

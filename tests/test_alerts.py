@@ -13,8 +13,8 @@ import polars as pl
 import pytest
 
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_episodes, compare_at_equal_nuisance,
-                           los_episodes, loss_of_separation, score_alerts, separation_intervals, stca_tradeoff,
-                           tradeoff_metrics)
+                           los_episodes, loss_of_separation, score_alerts, scored_ids, separation_intervals,
+                           stca_tradeoff, tradeoff_metrics)
 from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
 from tertiary.core.errors import ResourceError
 from tertiary.core.geo import LocalFrame
@@ -269,6 +269,32 @@ def test_an_alert_whose_outcome_is_not_observed_is_undetermined(truth):
     m = _metrics(score_alerts(pl.concat([at150, at250]), _id_map(), truth, CFG))
     assert m["undetermined_alerts"] == 1 and m["false_alerts"] == 1 and m["alert_episodes"] == 2
     assert m["nuisance_false_per_hour"] == pytest.approx(1 / m["picture_hours"])
+
+
+def test_a_track_coasting_after_its_aircraft_left_alerts_about_that_aircraft(truth):
+    """Aircraft 6's truth ends at 150 s and the matcher maps its track 16 no further; the
+    track coasts on and alerts with 15 at 155–160 s. The episode is about aircraft (5, 6):
+    undetermined when 6 left airborne, false when it landed (a track coasting after a
+    landing alerts about nothing). A track never mapped to an aircraft stays unknown: false."""
+    # the matcher's rows of 16 after 150 s name no aircraft (as a coasting track's do)
+    ids = _id_map({17: None}).with_columns(
+        pl.when((pl.col("id") == 16) & (pl.col("epoch") > _t(150.0))).then(None).otherwise(pl.col("truth_id"))
+        .alias("truth_id"))
+    late = _alerts({(15, 16): [155, 160], (15, 17): [155, 160]})
+    ep = {(r["id_a"], r["id_b"]): r for r in alert_episodes(late, ids, _ends_at(truth, 6, 150.0), CFG).to_dicts()}
+    assert (ep[(15, 16)]["truth_a"], ep[(15, 16)]["truth_b"]) == (5, 6)
+    assert ep[(15, 16)]["classification"] == "undetermined"
+    assert ep[(15, 17)]["truth_a"] is None and ep[(15, 17)]["classification"] == "false"
+    landed = alert_episodes(late, ids, _ends_at(truth, 6, 150.0, 100.0), CFG)
+    assert landed.filter(pl.col("id_b") == 16).select("truth_b", "classification").row(0) == (6, "false")
+    # the id map's rows the pipeline keeps for the scoring (memory) keep that last mapping
+    kept = scored_ids(ids, late, "id")
+    assert kept.height < ids.height
+    assert alert_episodes(late, kept, _ends_at(truth, 6, 150.0), CFG).equals(
+        alert_episodes(late, ids, _ends_at(truth, 6, 150.0), CFG))
+    # while the aircraft is still in the truth, an unmapped row is not given its identity
+    early = alert_episodes(_alerts({(15, 16): [155, 160]}), ids, truth, CFG)
+    assert early["truth_a"].to_list() == [None] and early["classification"].to_list() == ["false"]
 
 
 def test_fragmented_ids_make_one_episode(truth):

@@ -85,9 +85,13 @@ def test_every_alert_is_attributed_to_the_picture_or_the_predictor(results):
         assert got["alerts_picture_induced"] + got["alerts_predictor_induced"] == got["alert_episodes"], pic
         assert (got["false_alerts_picture_induced"] + got["false_alerts_predictor_induced"]
                 == got["false_alerts"]), pic
+        assert (got["undetermined_alerts_picture_induced"] + got["undetermined_alerts_predictor_induced"]
+                == got["undetermined_alerts"]), pic
+        assert (got["genuine_alerts"] + got["nuisance_alerts"] + got["false_alerts"] + got["undetermined_alerts"]
+                == got["alert_episodes"]), pic
         assert (got["missed_los_picture_induced"] + got["missed_los_predictor_induced"] + got["missed_los_under_way"]
                 <= got["missed_los"]), pic
-        assert 0 <= got["valid_alerts"] <= got["nuisance_alerts"] + got["false_alerts"], pic
+        assert 0 <= got["valid_alerts"] <= got["nuisance_alerts"] + got["false_alerts"] + got["undetermined_alerts"], pic
 
 
 def test_every_method_and_the_centralised_reference_are_fused(results):

@@ -152,6 +152,10 @@ def test_verdict_opens_the_report(page, run_dir):
     assert "the best radar alone" in verdict and "centralised reference" in verdict
     assert "the posterior Cramér–Rao bound" in verdict and "no picture is below the bound" in verdict
     assert "losses of separation alerted</b>" in verdict and "picture-induced" in verdict
+    # the predictor's share is what the truth picture also raises, of every class
+    pred = re.search(r"([\d,]+) predictor-induced", verdict)
+    assert pred and float(pred.group(1).replace(",", "")) in set(
+        m.filter(pl.col("metric") == "alerts_predictor_induced")["value"].to_list())
     # the pipeline judges its pictures against the shipped example requirements: the matrix
     assert 'id="verdict-matrix"' in verdict and ("Failing: " in verdict or "No requirement fails" in verdict)
     # the long tables are below the table of contents: in detail and in the appendix

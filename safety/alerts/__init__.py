@@ -19,7 +19,8 @@ from safety.alerts.separation import (loss_of_separation, merge_intervals, merge
 from safety.alerts.tradeoff import compare_at_equal_nuisance, stca_tradeoff, tradeoff_metrics
 
 __all__ = [
-    "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "truth_ends", "observed_until", "separation_intervals",
+    "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "truth_ends", "observed_until",
+    "separation_intervals",
     "loss_of_separation", "truth_intervals", "merge_intervals", "merge_pair_intervals", "alert_episodes",
     "los_episodes", "score_alerts", "SCORED_CONFLICT_COLUMNS", "scored_conflicts", "scored_ids", "alert_ids",
     "id_rows", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",

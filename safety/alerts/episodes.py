@@ -13,8 +13,9 @@ Alert episodes — :func:`alert_episodes` (the ``alerts`` table)
 -------------------------------------------------------------
 Alert rows are keyed by the pair of **aircraft**: each picture id pair (run, method, id_a,
 id_b) maps to the truth pair that the majority of its alert rows map to (id_map at each row's
-epoch), so fragmented or swapped ids cannot inflate episodes; id pairs without two distinct
-truths keep their ids (``truth_a``/``truth_b`` null) and can only be false alerts. An episode is
+epoch), so fragmented or swapped ids cannot inflate episodes; an id coasting on after its
+aircraft's truth ended (the matcher maps nothing there) stays that aircraft's. Id pairs without
+two distinct truths keep their ids (``truth_a``/``truth_b`` null) and can only be false alerts. An episode is
 a maximal sequence of alert epochs of one key whose consecutive alert epochs are adjacent on
 the grid or at most ``merge_gap_s`` apart; **flicker** counts the dropouts inside it (alert
 epochs not adjacent on the grid). With link window W = [t_start, max(t_end + ``link_s``,
@@ -71,7 +72,7 @@ from tertiary.core.units import US
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
            "alert_ids", "id_rows", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture",
-           "observed_until"]
+           "aircraft_ends", "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
@@ -130,32 +131,73 @@ def alert_ids(conflicts: pl.DataFrame, id_col: str) -> pl.DataFrame:
     return pl.concat([a.select(*cols, pl.col(side).alias(id_col)) for side in ("id_a", "id_b")]).unique()
 
 
-def id_rows(id_map: "pl.DataFrame | pl.LazyFrame", keys: pl.DataFrame, id_col: str
+def id_rows(id_map: "pl.DataFrame | pl.LazyFrame", keys: pl.DataFrame, id_col: str, last: bool = True
             ) -> "pl.DataFrame | pl.LazyFrame":
     """The rows of ``id_map`` that :func:`score_pictures` reads for alert rows with the ids
     ``keys`` (:func:`alert_ids`), in input order: every row of such an id at its epoch (all of
-    them, so the first of duplicates stays first) and one row of each picture epoch (for
-    :func:`picture_grid`)."""
+    them, so the first of duplicates stays first), with ``last`` each such id's last row with
+    an aircraft (the one a track coasting past its aircraft's truth was last mapped to,
+    :func:`_departed`), and one row of each picture epoch (for :func:`picture_grid`)."""
     schema = id_map.collect_schema()
     on = ["run", "epoch"] + (["method"] if "method" in schema else [])
+    lazy = isinstance(id_map, pl.LazyFrame)
     k = (keys.select([pl.col(c).cast(schema[c]) for c in [*on, id_col]]).unique()
          .with_columns(pl.lit(True).alias("__hit")))
     hit = pl.col("__hit").fill_null(False) | pl.struct(on).is_first_distinct()
-    joined = id_map.join(k.lazy() if isinstance(id_map, pl.LazyFrame) else k, on=[*on, id_col], how="left",
-                         nulls_equal=True, maintain_order="left")
-    return joined.filter(hit).drop("__hit")
+    joined = id_map.join(k.lazy() if lazy else k, on=[*on, id_col], how="left", nulls_equal=True,
+                         maintain_order="left")
+    if last:
+        idk = [c for c in on if c != "epoch"] + [id_col]
+        ids = k.select(idk).unique()
+        mapped = id_map.filter(pl.col("truth_id").is_not_null())
+        final = (mapped.join(ids.lazy() if lazy else ids, on=idk, how="semi").group_by(idk)
+                 .agg(pl.col("epoch").max()).with_columns(pl.lit(True).alias("__last")))
+        joined = joined.join(final, on=[*idk, "epoch"], how="left", nulls_equal=True, maintain_order="left")
+        hit = hit | pl.col("__last").fill_null(False)
+    return joined.filter(hit).drop("__hit", "__last", strict=False)
 
 
-def scored_ids(id_map: pl.DataFrame, conflicts: pl.DataFrame, id_col: str) -> pl.DataFrame:
+def scored_ids(id_map: pl.DataFrame, conflicts: pl.DataFrame, id_col: str, last: bool = True) -> pl.DataFrame:
     """:func:`id_rows` of ``id_map`` for the alert rows of ``conflicts``."""
     if id_map.height == 0:
         return id_map
-    return id_rows(id_map, alert_ids(conflicts, id_col), id_col)
+    return id_rows(id_map, alert_ids(conflicts, id_col), id_col, last)
 
 
-def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> pl.DataFrame:
+def _departed(a: pl.DataFrame, m: pl.DataFrame, ends: pl.DataFrame | None, on: list[str]) -> pl.DataFrame:
+    """``a`` with each side's unmapped alert rows (``__ta``/``__tb`` null) mapped to the aircraft
+    their id was last mapped to, when that aircraft's truth ended before the row's epoch (so
+    did the mapping, which needs the truth): a track coasting on after its aircraft left the
+    recording (or landed) is still that aircraft's track, and the matcher, which only maps
+    within the truth, cannot say so. The id's last row of ``m`` with an aircraft is its last
+    mapping (:func:`id_rows` keeps it), however the id map was cut into blocks."""
+    if ends is None or not a.height:
+        return a
+    keys = [k for k in on if k != "epoch"]
+    lk = ["run"] if "run" in ends.columns and "run" in keys else []
+    last = ends.select(*(pl.col(k).cast(pl.UInt32) for k in lk), pl.col("truth_id").cast(pl.Int64).alias("__prev"),
+                       epoch_micros("time").alias("__gone"))
+    for side, col in (("a", "__ta"), ("b", "__tb")):
+        ids = a.filter(pl.col(col).is_null()).select(*keys, pl.col(f"id_{side}").alias("__id")).unique()
+        if not ids.height:
+            continue
+        final = (m.filter(pl.col("truth_id").is_not_null()).join(ids, on=[*keys, "__id"], how="semi")
+                 .sort("epoch")
+                 .group_by(*keys, "__id").agg(pl.col("truth_id").last().alias("__prev"))
+                 .join(last, on=[*lk, "__prev"], how="inner").rename({"__id": f"id_{side}"}))
+        a = (a.join(final, on=[*keys, f"id_{side}"], how="left", maintain_order="left")
+             .with_columns(pl.when(pl.col(col).is_null() & (pl.col("__gone") < epoch_micros("epoch")))
+                           .then(pl.col("__prev")).otherwise(pl.col(col)).alias(col))
+             .drop("__prev", "__gone"))
+    return a
+
+
+def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str,
+                ends: pl.DataFrame | None = None) -> pl.DataFrame:
     """Alert rows with the pair of aircraft of their id pair: truth_a/truth_b = the truth pair
-    that most of the id pair's alert rows map to (null without two distinct truths)."""
+    that most of the id pair's alert rows map to (null without two distinct truths); a row of
+    an id coasting past its aircraft's last truth sample maps to that aircraft
+    (:func:`_departed`; ``ends``: :func:`aircraft_ends`)."""
     on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
     m = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                       *([pl.col("method").cast(pl.String)] if "method" in id_map.columns else []),
@@ -170,6 +212,7 @@ def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str) -> p
          .filter(pl.col("alert")).drop("alert"))
     a = (a.join(m.rename({"__id": "id_a", "truth_id": "__ta"}), on=[*on, "id_a"], how="left")
          .join(m.rename({"__id": "id_b", "truth_id": "__tb"}), on=[*on, "id_b"], how="left"))
+    a = _departed(a, m, ends, on)
     valid = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))
     pair = ["run", "method", "id_a", "id_b"]
     votes = (a.filter(valid)
@@ -279,17 +322,28 @@ def _linked(left: pl.DataFrame, iv: pl.DataFrame, link_us: int, shared: bool, on
             .filter((pl.col("t_start_us") <= _reach(link_us)) & (pl.col("t_end_us") >= pl.col("t0"))))
 
 
-def observed_until(truth: pl.DataFrame, cfg: AlertConfig, frame: geo.LocalFrame | None) -> pl.DataFrame | None:
-    """([run,] truth_id, __obs_us): until when each aircraft's future is observed — its last
-    sample when it ends airborne (:func:`~safety.alerts.separation.truth_ends`), and the run's
-    last truth sample for every aircraft (the recording stops). ``truth``: the truth itself,
-    or its span with the ends' rows (``airborne``, as :func:`tertiary.pipeline.time_span`
-    gives it); None when it names no aircraft."""
+def aircraft_ends(truth: pl.DataFrame, cfg: AlertConfig, frame: geo.LocalFrame | None) -> pl.DataFrame | None:
+    """([run,] truth_id, time, airborne) of each aircraft's last truth sample
+    (:func:`~safety.alerts.separation.truth_ends`). ``truth``: the truth itself, or its span
+    with these rows (``airborne``, as :func:`tertiary.pipeline.time_span` gives it); None
+    when it names no aircraft."""
     if not truth.height or "truth_id" not in truth.columns:
         return None
+    if "airborne" in truth.columns:
+        return truth.filter(pl.col("truth_id").is_not_null())
+    return truth_ends(truth, cfg, frame)
+
+
+def observed_until(truth: pl.DataFrame, cfg: AlertConfig, frame: geo.LocalFrame | None,
+                   ends: pl.DataFrame | None = None) -> pl.DataFrame | None:
+    """([run,] truth_id, __obs_us): until when each aircraft's future is observed — its last
+    sample when it ends airborne (:func:`aircraft_ends`, or ``ends`` when given), and the
+    run's last truth sample for every aircraft (the recording stops). ``truth`` as
+    :func:`aircraft_ends`'s."""
+    ends = aircraft_ends(truth, cfg, frame) if ends is None else ends
+    if ends is None:
+        return None
     keys = ["run"] if "run" in truth.columns else []
-    ends = (truth.filter(pl.col("truth_id").is_not_null()) if "airborne" in truth.columns
-            else truth_ends(truth, cfg, frame))
     run_end = (truth.group_by(keys).agg(epoch_micros("time").max().alias("__end")) if keys
                else truth.select(epoch_micros("time").max().alias("__end")))
     t = epoch_micros("time")
@@ -362,8 +416,9 @@ def score_pictures(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.Data
     shared = "run" not in truth.columns
     link_us = int(round(cfg.link * US))
     grid = picture_grid(conflicts, id_map, methods)
-    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col), grid, cfg.merge_gap_s, cfg.cpa_reach)
-    eps = classify_episodes(eps, los, prox, link_us, shared, observed_until(truth, cfg, frame))
+    ends = aircraft_ends(truth, cfg, frame)
+    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col, ends), grid, cfg.merge_gap_s, cfg.cpa_reach)
+    eps = classify_episodes(eps, los, prox, link_us, shared, observed_until(truth, cfg, frame, ends))
     alerts = eps.select(
         "run", "method", "id_a", "id_b", "truth_a", "truth_b", to_time("t0", "t_start"), to_time("t1", "t_end"),
         ((pl.col("t1") - pl.col("t0")) / US).alias("duration_s"), "alert_epochs", "flicker", "r_min_pred_m",

@@ -106,7 +106,8 @@ def _predict(state: safety_conflicts.ConflictState, cc: safety_conflicts.Conflic
             rows = safety_alerts.scored_conflicts(rows)
             out.append(rows)
             pid = pic.select("run", "method", "epoch", id_col, pl.col(id_col).cast(pl.Int64).alias("truth_id"))
-            ids.append(safety_alerts.scored_ids(pid, rows, id_col))
+            # the truth picture's ids are the aircraft: none outlives its own truth
+            ids.append(safety_alerts.scored_ids(pid, rows, id_col, last=False))
             del pic
         if truth.height:
             on = safety_alerts.manoeuvre_onsets(truth)

@@ -146,9 +146,9 @@ def _line_alerts(ctx: Ctx) -> str:
     warn = "" if r["warning_median_s"] is None else f", median warning {r['warning_median_s']:.0f} s"
     text = (f"<b>Alerts</b> on {html.escape(pick)}: <b>{n(r['alerted_los'])} of {n(r['los_episodes'])} losses of "
             f"separation alerted</b>{warn}; {n(r['genuine_alerts'])} genuine, {n(r['nuisance_alerts'])} nuisance, "
-            f"<b>{n(r['false_alerts'])} false</b>")
+            f"<b>{n(r['false_alerts'])} false</b>, {n(r.get('undetermined_alerts'))} undetermined")
     if r.get("alerts_picture_induced") is not None:
-        total = sum(r[k] or 0 for k in ("genuine_alerts", "nuisance_alerts", "false_alerts"))
+        total = sum(r.get(k) or 0 for k in ("genuine_alerts", "nuisance_alerts", "false_alerts", "undetermined_alerts"))
         text += (f"; <b>{n(r['alerts_picture_induced'])} picture-induced</b> ({n(r['false_alerts_picture_induced'])} "
                  f"false, {n(r['nuisance_alerts_picture_induced'])} nuisance), "
                  f"{n(total - (r['alerts_picture_induced'] or 0))} predictor-induced")

@@ -70,18 +70,21 @@ def _safety_lines(metrics: pl.DataFrame, rows: dict[str, Any]) -> list[str]:
         lines.append("safety (alert episodes per aircraft pair, scored against real losses of separation):")
     for method in sorted(per_hour["method"].unique().to_list() if per_hour.height else []):
         v = {k: _value(_metric(metrics, "safety", k), method) for k in
-             ("genuine_alerts", "nuisance_alerts", "false_alerts", "los_episodes", "alerted_los", "missed_los",
-              "warning_median_s", "alerts_picture_induced", "false_alerts_picture_induced",
-              "nuisance_alerts_picture_induced", "missed_los_picture_induced", "missed_los_under_way")}
+             ("genuine_alerts", "nuisance_alerts", "false_alerts", "undetermined_alerts", "los_episodes", "alerted_los",
+              "missed_los", "warning_median_s", "alerts_picture_induced", "false_alerts_picture_induced",
+              "nuisance_alerts_picture_induced", "undetermined_alerts_picture_induced", "missed_los_picture_induced",
+              "missed_los_under_way")}
         count = lambda k: "–" if v[k] is None or not math.isfinite(v[k]) else f"{v[k]:,.0f}"  # noqa: E731
         line = (f"  safety   {method:28s} {_m(_value(per_hour, method), ' alerts/h')}: {count('genuine_alerts')} "
-                f"genuine, {count('nuisance_alerts')} nuisance, {count('false_alerts')} false; losses of "
+                f"genuine, {count('nuisance_alerts')} nuisance, {count('false_alerts')} false, "
+                f"{count('undetermined_alerts')} undetermined; losses of "
                 f"separation {count('los_episodes')}, alerted {count('alerted_los')}, missed "
                 f"{count('missed_los')}; median warning {_m(v['warning_median_s'], ' s')}")
         if v["alerts_picture_induced"] is not None:
             # what a better picture can remove (the truth picture does not raise them)
             line += (f"; picture-induced: {count('alerts_picture_induced')} alerts ({count('false_alerts_picture_induced')}"
-                     f" false, {count('nuisance_alerts_picture_induced')} nuisance), "
+                     f" false, {count('nuisance_alerts_picture_induced')} nuisance, "
+                     f"{count('undetermined_alerts_picture_induced')} undetermined), "
                      f"{count('missed_los_picture_induced')} missed losses; "
                      f"{count('missed_los_under_way')} missed losses under way when first observed")
         lines.append(line)
