@@ -14,7 +14,7 @@ import pytest
 
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_episodes, compare_at_equal_nuisance,
                            los_episodes, loss_of_separation, score_alerts, scored_ids, separation_intervals,
-                           stca_tradeoff, tradeoff_metrics)
+                           stca_tradeoff, tradeoff_metrics, truth_ends)
 from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
 from tertiary.core.errors import ResourceError
 from tertiary.core.geo import LocalFrame
@@ -269,6 +269,18 @@ def test_an_alert_whose_outcome_is_not_observed_is_undetermined(truth):
     m = _metrics(score_alerts(pl.concat([at150, at250]), _id_map(), truth, CFG))
     assert m["undetermined_alerts"] == 1 and m["false_alerts"] == 1 and m["alert_episodes"] == 2
     assert m["nuisance_false_per_hour"] == pytest.approx(1 / m["picture_hours"])
+
+
+def test_each_aircrafts_last_sample_and_whether_it_ended_airborne(truth):
+    """``truth_ends``: one row per aircraft, its last sample's time, airborne above 2 000 ft;
+    the same from the frame and from a scan of it, whatever the rows' order."""
+    t = _ends_at(_ends_at(truth, 6, 200.0, 100.0), 5, 250.0)
+    got = truth_ends(t.sample(fraction=1.0, shuffle=True, seed=1), CFG)
+    want = {k: (_t(300.0), True) for k in range(1, 9)} | {6: (_t(200.0), False), 5: (_t(250.0), True)}
+    assert {r["truth_id"]: (r["time"], r["airborne"]) for r in got.to_dicts()} == want
+    assert got.equals(truth_ends(t.lazy(), CFG))
+    runs = pl.concat([t.with_columns(pl.lit(r, pl.UInt32).alias("run")) for r in (0, 1)])
+    assert truth_ends(runs, CFG).height == 16 and truth_ends(runs, CFG)["run"].to_list() == [0] * 8 + [1] * 8
 
 
 def test_a_track_coasting_after_its_aircraft_left_alerts_about_that_aircraft(truth):

@@ -109,9 +109,12 @@ def truth_ends(truth: pl.DataFrame | pl.LazyFrame, cfg: AlertConfig = AlertConfi
     have = lf.collect_schema().names()
     keys = ["run"] if "run" in have else []
     cols = [c for c in ("x_m", "y_m", "z_m", "alt_m") if c in have]
-    last = pl.col("time").arg_max()
-    rows = (lf.group_by(*keys, "truth_id").agg(pl.col("time").max(), *(pl.col(c).get(last) for c in cols))
-            .collect().sort(*keys, "truth_id"))
+    # two streamed passes (a day's truth is tens of millions of rows): each aircraft's last time,
+    # then its rows at that time
+    last = lf.group_by(*keys, "truth_id").agg(pl.col("time").max()).collect(engine="streaming")
+    rows = (lf.select(*keys, "truth_id", "time", *cols)
+            .join(last.lazy(), on=[*keys, "truth_id", "time"], how="semi").collect(engine="streaming")
+            .unique([*keys, "truth_id"], keep="first", maintain_order=True).sort(*keys, "truth_id"))
     if not rows.height:
         return rows.select(*keys, pl.col("truth_id").cast(pl.Int64), "time",
                            pl.lit(None, pl.Boolean).alias("airborne"))
