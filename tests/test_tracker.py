@@ -676,8 +676,8 @@ def test_best_tracker_beats_its_fused_input(fixture, request):
 # --------------------------------------------------------------------------- barometric altitude in association
 
 
-def _stacked(skip_upper=(10, 11), climb_mps=0.0):
-    """Two aircraft at one plan position, 1 830 m apart vertically (a radar's elevation makes
+def _stacked(skip_upper=(10, 11), climb_mps=0.0, gap_m=1830.0):
+    """Two aircraft at one plan position, ``gap_m`` apart vertically (a radar's elevation makes
     their ENU heights ±600 m): the upper one without a Mode S address, missing ``skip_upper``
     scans; the lower one (Mode S) appears at scan 9. ``climb_mps``: the upper one climbs from
     scan 12 on. Fused rows with the barometric vertical channel."""
@@ -685,7 +685,7 @@ def _stacked(skip_upper=(10, 11), climb_mps=0.0):
     rng = np.random.default_rng(7)
     for k in range(20):
         x, y = 200.0 * DT * k, 0.0
-        h_up = 12530.0 + climb_mps * DT * max(k - 12, 0)
+        h_up = 10700.0 + gap_m + climb_mps * DT * max(k - 12, 0)
         if k not in skip_upper:
             rows.append((0, k, 1, x + rng.normal(0, 20), y + rng.normal(0, 20), h_up + rng.normal(0, 600)))
             alt.append(h_up)
@@ -710,6 +710,16 @@ def test_a_track_without_an_address_does_not_take_the_plot_of_an_aircraft_below_
     # without the altitude in association the same scene swaps (the scene is one that can)
     swapped = first(track(f, make_filter("cv"), TrackerConfig(alt_gate_m=None)))
     assert 2 in swapped["plot_target_id"].drop_nulls().to_list()
+
+
+def test_a_track_without_an_address_does_not_take_the_plot_of_the_aircraft_one_level_below():
+    """Adjacent flight levels are 1 000 ft (304.8 m) apart: the altitude gate must not reach the
+    next level, or a track that misses its own plot takes the one of the aircraft beneath."""
+    f = _stacked(gap_m=304.8)
+    first = lambda tracks: tracks.filter(pl.col("track_id") == tracks["track_id"].min())  # noqa: E731
+    upper = first(track(f, make_filter("cv")))
+    assert set(upper["plot_target_id"].drop_nulls().to_list()) == {1}
+    assert (upper["alt_m"] > 10700.0 + 152.4).all()
 
 
 def test_a_climb_stays_in_the_altitude_gate():

@@ -8,6 +8,7 @@ from typing import Literal
 import polars as pl
 
 from tertiary.contract import TABLES
+from tertiary.core.units import FT
 from tertiary.stages.tracking.altitude import ALT_COLUMNS, AltitudeConfig
 
 __all__ = ["STATUS", "TRACK_COLUMNS", "TrackerConfig"]
@@ -43,7 +44,8 @@ class TrackerConfig:
     * ``alt_gate_m``: a plot whose barometric altitude lies further than gate_sigma·σ +
       ``alt_gate_m`` from an object's predicted altitude (its altitude filter, σ of both) is not
       in its gates, and within them the altitude's d²/S adds to the assignment cost; None: the
-      altitude is not used in association.
+      altitude is not used in association. Default 500 ft, half the 1 000 ft between adjacent
+      flight levels: the gate never reaches the aircraft one level above or below.
     * ``use_turn_rate``: a plot's downlinked turn rate (Mode S BDS 5,0 track-angle rate) is
       handed to the filter after its position update
       (:meth:`tertiary.filters.base.TrackFilter.observe_turn_rate`).
@@ -85,7 +87,7 @@ class TrackerConfig:
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
     use_mode_s: bool = True
-    alt_gate_m: float | None = 300.0
+    alt_gate_m: float | None = 500.0 * FT
     use_turn_rate: bool = True
     use_velocity: bool = True
     velocity_speed_sigma_mps: float = 1.0
