@@ -14,7 +14,7 @@ import pytest
 
 from safety.alerts import (ALERT_METRICS, ALERTS_SCHEMA, AlertConfig, alert_episodes, compare_at_equal_nuisance,
                            los_episodes, loss_of_separation, score_alerts, scored_ids, separation_intervals,
-                           stca_tradeoff, tradeoff_metrics, truth_ends)
+                           stca_tradeoff, tradeoff_metrics, truth_ends, truth_intervals)
 from safety.conflicts import AerodromeZone, ConflictConfig, predict_conflicts
 from tertiary.core.errors import ResourceError
 from tertiary.core.geo import LocalFrame
@@ -450,6 +450,25 @@ def test_end_to_end_seed_vs_corrected(truth):
         assert m["alerted_los"] == 1 and m["warning_median_s"] >= 30.0
     assert out["corrected"].get((1, 2)) == "genuine" and (7, 8) not in out["corrected"]
     assert out["seed"][(7, 8)] == "false"                               # the seed rule's false alert
+
+
+def test_tradeoff_reads_each_aircrafts_end_once_and_scores_as_from_the_span(truth, monkeypatch):
+    """The curves score every setting against the same ends: read once from the truth (not once
+    per setting), and the curves equal those scored from the truth's span (the pipeline's)."""
+    import safety.alerts.episodes as episodes
+    import safety.alerts.separation as separation
+    from safety.alerts import truth_span
+    t = _ends_at(truth, 6, 200.0)
+    pic = _picture(t)
+    kw = dict(id_col="target_id", map_id_col="id", confidences=(0.5, 0.95), fixed_est_h_m=(0.0, 3000.0),
+              lookaheads_s=(60.0, 105.0), warning_s=(0.0,))
+    want = stca_tradeoff(pic, _id_map(), truth_span(t, CFG), CFG, intervals=truth_intervals(t, CFG), **kw)
+    calls = []
+    real = separation.truth_ends
+    for mod in (separation, episodes):
+        monkeypatch.setattr(mod, "truth_ends", lambda *a, **k: calls.append(1) or real(*a, **k))
+    assert stca_tradeoff(pic, _id_map(), t, CFG, **kw).equals(want)
+    assert len(calls) == 1
 
 
 def test_tradeoff_curves_and_equal_nuisance(truth):

@@ -15,13 +15,13 @@ from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, SC
                                     scored_ids, stca_tables, stca_tables_by_picture)
 from safety.alerts.external import EXTERNAL_METRICS, EXTERNAL_PREFIX, identify_aircraft, score_external
 from safety.alerts.separation import (loss_of_separation, merge_intervals, merge_pair_intervals, separation_intervals,
-                                      truth_ends, truth_heights, truth_intervals)
+                                      truth_ends, truth_heights, truth_intervals, truth_span)
 from safety.alerts.tradeoff import compare_at_equal_nuisance, stca_tradeoff, tradeoff_metrics
 
 __all__ = [
-    "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "truth_ends", "observed_until",
-    "separation_intervals",
-    "loss_of_separation", "truth_intervals", "merge_intervals", "merge_pair_intervals", "alert_episodes",
+    "AlertConfig", "ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "truth_heights", "truth_ends", "truth_span",
+    "observed_until", "separation_intervals", "loss_of_separation", "truth_intervals", "merge_intervals",
+    "merge_pair_intervals", "alert_episodes",
     "los_episodes", "score_alerts", "SCORED_CONFLICT_COLUMNS", "scored_conflicts", "scored_ids", "alert_ids",
     "id_rows", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
     "compare_at_equal_nuisance", "tradeoff_metrics", "ATTRIBUTION_METRICS", "TRUTH_PICTURE", "attribute_alerts",

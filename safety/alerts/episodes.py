@@ -75,8 +75,8 @@ __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "scor
            "aircraft_ends", "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
-                 "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour", "warning_median_s",
-                 "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
+                 "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour",
+                 "warning_median_s", "warning_p05_s", "alert_duration_median_s", "flicker_per_alert", "picture_hours")
 
 
 #: the ``alerts`` table: one row per alert episode
@@ -325,8 +325,8 @@ def _linked(left: pl.DataFrame, iv: pl.DataFrame, link_us: int, shared: bool, on
 def aircraft_ends(truth: pl.DataFrame, cfg: AlertConfig, frame: geo.LocalFrame | None) -> pl.DataFrame | None:
     """([run,] truth_id, time, airborne) of each aircraft's last truth sample
     (:func:`~safety.alerts.separation.truth_ends`). ``truth``: the truth itself, or its span
-    with these rows (``airborne``, as :func:`tertiary.pipeline.time_span` gives it); None
-    when it names no aircraft."""
+    with these rows (``airborne``, as :func:`~safety.alerts.separation.truth_span` gives it);
+    None when it names no aircraft."""
     if not truth.height or "truth_id" not in truth.columns:
         return None
     if "airborne" in truth.columns:

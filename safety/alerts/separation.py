@@ -53,9 +53,9 @@ from tertiary.core import geo
 from tertiary.core.errors import ResourceError
 from tertiary.core.units import US
 
-__all__ = ["epoch_micros", "to_time", "HEIGHT_BLOCK", "truth_heights", "truth_ends", "RESAMPLE_ROWS", "resampled_blocks",
-           "SCREEN_BLOCK", "pair_segments", "separation_intervals", "merge_intervals", "merge_pair_intervals",
-           "loss_of_separation", "truth_intervals"]
+__all__ = ["epoch_micros", "to_time", "HEIGHT_BLOCK", "truth_heights", "truth_ends", "truth_span", "RESAMPLE_ROWS",
+           "resampled_blocks", "SCREEN_BLOCK", "pair_segments", "separation_intervals", "merge_intervals",
+           "merge_pair_intervals", "loss_of_separation", "truth_intervals"]
 
 def epoch_micros(col: str) -> pl.Expr:
     """Microseconds since the Unix epoch of a time column (exact integers)."""
@@ -119,11 +119,27 @@ def truth_ends(truth: pl.DataFrame | pl.LazyFrame, cfg: AlertConfig = AlertConfi
         return rows.select(*keys, pl.col("truth_id").cast(pl.Int64), "time",
                            pl.lit(None, pl.Boolean).alias("airborne"))
     if all(c in cols for c in ("x_m", "y_m", "z_m")):
-        h = pl.Series(truth_heights(rows.with_columns(pl.col("truth_id").cast(pl.Int64)), frame)["h_m"])
+        h = truth_heights(rows.with_columns(pl.col("truth_id").cast(pl.Int64)), frame)["h_m"]
     else:                       # no positions: the altitude where there is one, else unknown
         h = rows["alt_m"].cast(pl.Float64) if "alt_m" in cols else pl.Series([None] * rows.height, dtype=pl.Float64)
     return rows.select(*(pl.col(k).cast(pl.UInt32) for k in keys), pl.col("truth_id").cast(pl.Int64), "time",
                        (h > cfg.landed_below_m).alias("airborne"))
+
+
+def truth_span(truth: pl.DataFrame | pl.LazyFrame, cfg: AlertConfig | None = None,
+               frame: geo.LocalFrame | None = None) -> pl.DataFrame:
+    """What the alert scoring reads of the truth besides its intervals: each run's first and
+    last sample time (``run`` and ``time``; no ``run`` column without one); with ``cfg``, also
+    each aircraft's last sample (``truth_id``, ``time``, ``airborne``: :func:`truth_ends`),
+    which tells the alerts whose outcome the recording does not show."""
+    keys = ["run"] if "run" in truth.collect_schema() else []
+    ends = [truth.group_by(keys).agg(f(pl.col("time"))) if keys else truth.select(f(pl.col("time")))
+            for f in (pl.Expr.min, pl.Expr.max)]
+    out = pl.concat([e.collect() if isinstance(e, pl.LazyFrame) else e for e in ends])
+    out = out.sort(*keys, "time") if keys else out.sort("time")
+    if cfg is None:
+        return out
+    return pl.concat([out, truth_ends(truth, cfg, frame)], how="diagonal_relaxed")
 
 
 #: resampled truth rows held at once (:func:`resampled_blocks`): memory is bounded by a block, not

@@ -22,7 +22,7 @@ import polars as pl
 
 from safety.alerts.config import AlertConfig
 from safety.alerts.episodes import per_picture, score_pictures, scored_conflicts
-from safety.alerts.separation import truth_intervals
+from safety.alerts.separation import truth_intervals, truth_span
 from safety.conflicts import ConflictConfig, conflicts_steps, init_conflict_state, predict_conflicts
 from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
@@ -90,6 +90,8 @@ def tradeoff_from_rows(scored: Sequence["pl.DataFrame | Callable[[], pl.DataFram
     setting as the run goes."""
     if intervals is None:
         intervals = truth_intervals(truth, cfg, frame)
+    if "truth_id" in truth.columns and "airborne" not in truth.columns:
+        truth = truth_span(truth, cfg, frame)       # each aircraft's end read once, not per setting
     rows = []
     for (mode, par, cc), c in zip(settings, scored):
         c = c() if callable(c) else c         # a spilled setting's rows, read back now

@@ -38,21 +38,9 @@ __all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "TruthIntervals", "intervals_ste
 TRUTH_CHUNK_S = 900.0
 
 
-def time_span(truth: "pl.DataFrame | pl.LazyFrame", acfg: safety_alerts.AlertConfig | None = None,
-              frame: geo.LocalFrame | None = None) -> pl.DataFrame:
-    """What the alert scoring reads of the truth besides its intervals: each run's first and
-    last sample time (``run`` and ``time``; no ``run`` column without one); with ``acfg``, also
-    each aircraft's last sample (``truth_id``, ``time``, ``airborne``:
-    :func:`safety.alerts.truth_ends`), which tells the alerts whose outcome the recording does
-    not show."""
-    keys = ["run"] if "run" in truth.collect_schema() else []
-    ends = [truth.group_by(keys).agg(f(pl.col("time"))) if keys else truth.select(f(pl.col("time")))
-            for f in (pl.Expr.min, pl.Expr.max)]
-    out = pl.concat([e.collect() if isinstance(e, pl.LazyFrame) else e for e in ends])
-    out = out.sort(*keys, "time") if keys else out.sort("time")
-    if acfg is None:
-        return out
-    return pl.concat([out, safety_alerts.truth_ends(truth, acfg, frame)], how="diagonal_relaxed")
+#: each run's first and last truth sample and, with an alert configuration, each aircraft's last
+#: (:func:`safety.alerts.truth_span`): what the alert scoring reads of the truth beside its intervals
+time_span = safety_alerts.truth_span
 
 
 def _per_run(lf: pl.LazyFrame, agg: pl.Expr) -> pl.LazyFrame:
