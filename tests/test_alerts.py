@@ -309,6 +309,37 @@ def test_a_track_coasting_after_its_aircraft_left_alerts_about_that_aircraft(tru
     assert early["truth_a"].to_list() == [None] and early["classification"].to_list() == ["false"]
 
 
+def test_an_id_map_reduced_window_by_window_keeps_what_the_whole_maps_reduction_keeps(truth):
+    """The windows reduce their block of the id map with their own alerts only
+    (:func:`block_id_rows`); the end reduces the blocks' union with every alert (:func:`id_rows`):
+    the same rows as the whole map's reduction, and the same episodes. Track 16 is mapped to
+    aircraft 6 only in the first block and alerts in the last, coasting: its last mapping lives
+    in a block without its alert. Fails if a block keeps the last mapping of its alert ids
+    only, or no row per picture epoch."""
+    from safety.alerts import alert_ids, block_id_rows, id_rows
+    rng = np.random.default_rng(7)
+    ids = _id_map({17: None}).with_columns(
+        pl.when((pl.col("id") == 16) & (pl.col("epoch") > _t(90.0))).then(None).otherwise(pl.col("truth_id"))
+        .alias("truth_id"))
+    # duplicates of some rows (the first of them stays first) and rows in no particular id order
+    ids = pl.concat([ids, ids.sample(40, seed=3)]).sort("epoch", maintain_order=True)
+    pairs = {(15, 16): [255, 260], (11, 12): [100, 105, 110], (13, 14): [150]}
+    pairs.update({(int(a), int(b)): [int(t)] for a, b, t in zip(rng.choice([11, 13, 15], 6), rng.choice([12, 14, 17], 6),
+                                                                    rng.choice(np.arange(0, 301, 5), 6))})
+    late = _alerts(pairs)
+    whole = id_rows(ids, alert_ids(late, "id"), "id")
+    cuts = [_t(s) for s in (-1, 97, 181, 242, 400)]
+    blocks = []
+    for lo, hi in zip(cuts, cuts[1:]):
+        mine = pl.col("epoch").is_between(lo, hi, closed="left")
+        blocks.append(block_id_rows(ids.filter(mine), alert_ids(late.filter(mine), "id"), "id"))
+    reduced = pl.concat(blocks)
+    assert reduced.height < ids.height
+    assert id_rows(reduced, alert_ids(late, "id"), "id").equals(whole)
+    assert alert_episodes(late, id_rows(reduced, alert_ids(late, "id"), "id"), _ends_at(truth, 6, 90.0), CFG).equals(
+        alert_episodes(late, ids, _ends_at(truth, 6, 90.0), CFG))
+
+
 def test_fragmented_ids_make_one_episode(truth):
     """Track 12 is replaced by 22 (same aircraft 2) mid-alert, and 11's map is wrong at one epoch:
     one episode on the aircraft pair (1, 2), not two or three."""
@@ -453,8 +484,9 @@ def test_end_to_end_seed_vs_corrected(truth):
 
 
 def test_tradeoff_reads_each_aircrafts_end_once_and_scores_as_from_the_span(truth, monkeypatch):
-    """The curves score every setting against the same ends: read once from the truth (not once
-    per setting), and the curves equal those scored from the truth's span (the pipeline's)."""
+    """The curves score every setting against the same ends and the same id map: each read once
+    (not once per setting), and the curves equal those scored from the truth's span (the
+    pipeline's) and from the id map given whole to each setting."""
     import safety.alerts.episodes as episodes
     import safety.alerts.separation as separation
     from safety.alerts import truth_span
@@ -467,8 +499,10 @@ def test_tradeoff_reads_each_aircrafts_end_once_and_scores_as_from_the_span(trut
     real = separation.truth_ends
     for mod in (separation, episodes):
         monkeypatch.setattr(mod, "truth_ends", lambda *a, **k: calls.append(1) or real(*a, **k))
+    made = []
+    monkeypatch.setattr(episodes, "_map_epochs", lambda m, f=episodes._map_epochs: made.append(1) or f(m))
     assert stca_tradeoff(pic, _id_map(), t, CFG, **kw).equals(want)
-    assert len(calls) == 1
+    assert len(calls) == 1 and len(made) == 1
 
 
 def test_tradeoff_curves_and_equal_nuisance(truth):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace as dataclass_replace
 from pathlib import Path
 
 import numpy as np
@@ -108,3 +109,27 @@ def test_metric_kinds():
     assert [metric_kind(m) for m in ("rmse_height_m", "across_track_rms_m", "p99_horizontal_m", "pd",
                                      "mode_s_correct_frac", "id_changes_per_hour", "latency_s")] == \
         ["rms", "rms", "quantile", "proportion", "proportion", "rate", "point"]
+
+
+def test_a_run_with_a_bad_requirements_file_fails_before_its_first_window(tmp_path: Path, monkeypatch):
+    """The requirements are read when the run starts: a bad file stops it before any window is
+    processed (on a day's recording, not after hours), and a good one is read once, not again
+    at the end. Fails if the file is read only by the end's evaluation."""
+    from tertiary import pipeline
+    from tertiary.pipeline import scoring, streaming
+    from tertiary.simulate import load_scenario, simulate
+    base = load_scenario("terminal-area")
+    ds = simulate(base.replace(runs=1, seed=5, duration_s=180.0, traffic=dataclass_replace(base.traffic, aircraft=6)))
+    steps: list[int] = []
+    monkeypatch.setattr(streaming, "process_step", lambda *a, f=streaming.process_step, **k:
+                        steps.append(1) or f(*a, **k))
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[requirement]]\nname = 'x'\nmetric = 'rmse_horizontal_m'\nthreshold = 'high'\n")
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=(), centralized=False, requirements_file=str(bad))
+    with pytest.raises(DataError, match="threshold"):
+        pipeline.run(ds, tmp_path / "run", cfg, window_s=60.0)
+    assert steps == []
+    reads: list[str] = []
+    monkeypatch.setattr(scoring, "load_requirements", lambda p, f=load_requirements: reads.append(str(p)) or f(p))
+    pipeline.run(ds, tmp_path / "good", dataclass_replace(cfg, requirements_file=str(example_path())), window_s=60.0)
+    assert steps and reads == [str(example_path())]

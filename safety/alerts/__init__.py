@@ -11,8 +11,8 @@ from safety.alerts.attribution import (ATTRIBUTION_METRICS, TRUTH_PICTURE, attri
                                        attribution_metrics, manoeuvre_onsets, valid_alerts)
 from safety.alerts.config import AlertConfig
 from safety.alerts.episodes import (ALERT_METRICS, ALERTS_SCHEMA, LOS_SCHEMA, SCORED_CONFLICT_COLUMNS, alert_episodes,
-                                    alert_ids, id_rows, los_episodes, observed_until, score_alerts, scored_conflicts,
-                                    scored_ids, stca_tables, stca_tables_by_picture)
+                                    alert_ids, block_id_rows, id_rows, los_episodes, observed_until, score_alerts,
+                                    scored_conflicts, scored_ids, stca_tables, stca_tables_by_picture)
 from safety.alerts.external import EXTERNAL_METRICS, EXTERNAL_PREFIX, identify_aircraft, score_external
 from safety.alerts.separation import (loss_of_separation, merge_intervals, merge_pair_intervals, separation_intervals,
                                       truth_ends, truth_heights, truth_intervals, truth_span)
@@ -23,7 +23,7 @@ __all__ = [
     "observed_until", "separation_intervals", "loss_of_separation", "truth_intervals", "merge_intervals",
     "merge_pair_intervals", "alert_episodes",
     "los_episodes", "score_alerts", "SCORED_CONFLICT_COLUMNS", "scored_conflicts", "scored_ids", "alert_ids",
-    "id_rows", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
+    "id_rows", "block_id_rows", "stca_tables", "stca_tables_by_picture", "stca_tradeoff",
     "compare_at_equal_nuisance", "tradeoff_metrics", "ATTRIBUTION_METRICS", "TRUTH_PICTURE", "attribute_alerts",
     "attribute_los", "attribution_metrics", "manoeuvre_onsets", "valid_alerts", "EXTERNAL_METRICS", "EXTERNAL_PREFIX",
     "identify_aircraft", "score_external",

@@ -59,6 +59,8 @@ left out), ``warning_median_s``, ``warning_p05_s``
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import polars as pl
 from numpy.typing import NDArray
@@ -71,7 +73,7 @@ from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
-           "alert_ids", "id_rows", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture",
+           "alert_ids", "id_rows", "block_id_rows", "IdMap", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture",
            "aircraft_ends", "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
@@ -90,20 +92,59 @@ LOS_SCHEMA: dict[str, pl.DataType] = {
 }
 
 
-def picture_grid(conflicts: pl.DataFrame, id_map: pl.DataFrame, methods: list[str] | None) -> pl.DataFrame:
+def picture_grid(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", methods: list[str] | None) -> pl.DataFrame:
     """(run, method, epoch, k, t_us): the picture's epoch grid (id_map epochs ∪ alert epochs),
     dense index k per (run, method)."""
-    if "method" in id_map.columns:
-        g = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
-    else:
+    g = id_map.epochs if isinstance(id_map, IdMap) else _map_epochs(id_map)
+    if "method" not in g.columns:
         ms = methods if methods is not None else sorted(conflicts["method"].unique().to_list())
-        g = (id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).unique()
-             .join(pl.DataFrame({"method": ms}, schema={"method": pl.String}), how="cross"))
+        g = g.join(pl.DataFrame({"method": ms}, schema={"method": pl.String}), how="cross")
     c = conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
     g = pl.concat([g.select("run", "method", "epoch"), c.unique()]).unique()
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
         epoch_micros("epoch").alias("t_us"))
+
+
+def _map_epochs(id_map: pl.DataFrame) -> pl.DataFrame:
+    """The id map's distinct (run, method, epoch); (run, epoch) when it names no picture."""
+    if "method" in id_map.columns:
+        return id_map.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String),
+                             pl.col("epoch").cast(TIME)).unique()
+    return id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).unique()
+
+
+@dataclass(frozen=True)
+class IdMap:
+    """An id map read once for several scorings of the same pictures (the points of a trade-off
+    curve): its rows inside the truth's time span (``rows``), the first row of each id at each
+    epoch as the alert rows join it (``first``, on ``on``), its picture epochs (``epochs``)."""
+
+    rows: pl.DataFrame
+    first: pl.DataFrame
+    epochs: pl.DataFrame
+    on: list[str]
+
+    @classmethod
+    def of(cls, id_map: "pl.DataFrame | IdMap", truth: pl.DataFrame, id_col: str) -> "IdMap":
+        if isinstance(id_map, IdMap):
+            return id_map
+        inside = _inside(truth)
+        rows = id_map if inside is None else id_map.filter(inside)
+        on = ["run", "epoch"] + (["method"] if "method" in rows.columns else [])
+        first = rows.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+                            *([pl.col("method").cast(pl.String)] if "method" in rows.columns else []),
+                            pl.col(id_col).cast(pl.UInt64).alias("__id"), pl.col("truth_id").cast(pl.Int64)
+                            ).unique(subset=[*on, "__id"], keep="first")
+        return cls(rows, first, _map_epochs(rows), on)
+
+
+def _inside(truth: pl.DataFrame) -> pl.Expr | None:
+    """Whether an epoch is inside the truth's time span (None: a truth without rows or times)."""
+    if not (truth.height and "time" in truth.columns):
+        return None
+    t0, t1 = truth["time"].min(), truth["time"].max()
+    return pl.col("epoch").cast(TIME).is_between(pl.lit(t0).cast(TIME), pl.lit(t1).cast(TIME))
 
 
 #: the columns of the conflict rows that the alert scoring reads
@@ -157,6 +198,27 @@ def id_rows(id_map: "pl.DataFrame | pl.LazyFrame", keys: pl.DataFrame, id_col: s
     return joined.filter(hit).drop("__hit", "__last", strict=False)
 
 
+def block_id_rows(id_map: pl.DataFrame, keys: pl.DataFrame, id_col: str) -> pl.DataFrame:
+    """A block of an id map (the epochs of a time window, no epoch shared with another block)
+    reduced to the rows :func:`id_rows` may read of it, whatever the alerts of the other blocks:
+    the rows of the block's alert ids ``keys`` at their epochs, one row of each picture epoch
+    and, for *every* id, its rows at its last epoch with an aircraft in the block (a later
+    block's alert may find the id's last mapping here). :func:`id_rows` of the blocks'
+    reductions, in block order, with every block's keys equals :func:`id_rows` of the whole map."""
+    schema = id_map.collect_schema()
+    on = ["run", "epoch"] + (["method"] if "method" in schema else [])
+    idk = [c for c in on if c != "epoch"] + [id_col]
+    k = (keys.select([pl.col(c).cast(schema[c]) for c in [*on, id_col]]).unique()
+         .with_columns(pl.lit(True).alias("__hit")))
+    final = (id_map.filter(pl.col("truth_id").is_not_null()).group_by(idk).agg(pl.col("epoch").max())
+             .with_columns(pl.lit(True).alias("__last")))
+    return (id_map.join(k, on=[*on, id_col], how="left", nulls_equal=True, maintain_order="left")
+            .join(final, on=[*idk, "epoch"], how="left", nulls_equal=True, maintain_order="left")
+            .filter(pl.col("__hit").fill_null(False) | pl.col("__last").fill_null(False)
+                    | pl.struct(on).is_first_distinct())
+            .drop("__hit", "__last"))
+
+
 def scored_ids(id_map: pl.DataFrame, conflicts: pl.DataFrame, id_col: str, last: bool = True) -> pl.DataFrame:
     """:func:`id_rows` of ``id_map`` for the alert rows of ``conflicts``."""
     if id_map.height == 0:
@@ -192,17 +254,14 @@ def _departed(a: pl.DataFrame, m: pl.DataFrame, ends: pl.DataFrame | None, on: l
     return a
 
 
-def _alert_rows(conflicts: pl.DataFrame, id_map: pl.DataFrame, id_col: str,
+def _alert_rows(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", id_col: str,
                 ends: pl.DataFrame | None = None) -> pl.DataFrame:
     """Alert rows with the pair of aircraft of their id pair: truth_a/truth_b = the truth pair
     that most of the id pair's alert rows map to (null without two distinct truths); a row of
     an id coasting past its aircraft's last truth sample maps to that aircraft
     (:func:`_departed`; ``ends``: :func:`aircraft_ends`)."""
-    on = ["run", "epoch"] + (["method"] if "method" in id_map.columns else [])
-    m = id_map.select(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
-                      *([pl.col("method").cast(pl.String)] if "method" in id_map.columns else []),
-                      pl.col(id_col).cast(pl.UInt64).alias("__id"), pl.col("truth_id").cast(pl.Int64)
-                      ).unique(subset=[*on, "__id"], keep="first")
+    ids = id_map if isinstance(id_map, IdMap) else IdMap.of(id_map, pl.DataFrame(), id_col)
+    on, m = ids.on, ids.first
     opt = [pl.col(c).cast(pl.Float64) if c in conflicts.columns else pl.lit(None, pl.Float64).alias(c)
            for c in ("r_min_m", "dz_min_m", "t_min_s")]
     # select before filtering: the filter then copies a few columns, not the whole table
@@ -402,16 +461,18 @@ def los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us:
     ).sort("run", "method", "truth_a", "truth_b", "t_start").cast(LOS_SCHEMA)
 
 
-def score_pictures(conflicts: pl.DataFrame, id_map: pl.DataFrame, truth: pl.DataFrame, cfg: AlertConfig, id_col: str,
+def score_pictures(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", truth: pl.DataFrame, cfg: AlertConfig,
+                   id_col: str,
                    methods: list[str] | None, frame: geo.LocalFrame | None,
                    intervals: tuple[pl.DataFrame, pl.DataFrame] | None
                    ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(alerts table, LoS table, grid) of the pictures in ``conflicts``; only epochs inside the
     truth's time span are scored (after the reference ends nothing can judge an alert)."""
-    if truth.height and "time" in truth.columns:
-        t0, t1 = truth["time"].min(), truth["time"].max()
-        inside = pl.col("epoch").cast(TIME).is_between(pl.lit(t0).cast(TIME), pl.lit(t1).cast(TIME))
-        conflicts, id_map = conflicts.filter(inside), id_map.filter(inside)
+    inside = _inside(truth)
+    if inside is not None:
+        conflicts = conflicts.filter(inside)
+    # the id map's rows inside the span, read once when the caller scores several settings
+    id_map = IdMap.of(id_map, truth, id_col)
     los, prox = truth_intervals(truth, cfg, frame) if intervals is None else intervals
     shared = "run" not in truth.columns
     link_us = int(round(cfg.link * US))

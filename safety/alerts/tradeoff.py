@@ -21,7 +21,7 @@ import numpy as np
 import polars as pl
 
 from safety.alerts.config import AlertConfig
-from safety.alerts.episodes import per_picture, score_pictures, scored_conflicts
+from safety.alerts.episodes import IdMap, per_picture, score_pictures, scored_conflicts
 from safety.alerts.separation import truth_intervals, truth_span
 from safety.conflicts import ConflictConfig, conflicts_steps, init_conflict_state, predict_conflicts
 from tertiary.contract import TABLES, TIME
@@ -92,11 +92,12 @@ def tradeoff_from_rows(scored: Sequence["pl.DataFrame | Callable[[], pl.DataFram
         intervals = truth_intervals(truth, cfg, frame)
     if "truth_id" in truth.columns and "airborne" not in truth.columns:
         truth = truth_span(truth, cfg, frame)       # each aircraft's end read once, not per setting
+    ids = IdMap.of(id_map, truth, map_id_col)      # the id map's rows and epochs read once, not per setting
     rows = []
     for (mode, par, cc), c in zip(settings, scored):
         c = c() if callable(c) else c         # a spilled setting's rows, read back now
         acfg = dataclasses.replace(cfg, conflict=cc)
-        alerts, los, grid = score_pictures(c, id_map, truth, acfg, map_id_col, methods, frame, intervals)
+        alerts, los, grid = score_pictures(c, ids, truth, acfg, map_id_col, methods, frame, intervals)
         per = per_picture(alerts, los, grid)
         for x in warning_s:
             frac = (los.group_by("method").agg(

@@ -406,6 +406,9 @@ class Matched:
     #: its surveillance metrics finished from the windows' carried state, given the radar sites,
     #: the breakdowns and the settings (:func:`~tertiary.evaluation.picture_streamed.picture_metrics_finish`)
     metrics: "Callable[[np.ndarray | None, Sequence[str], MetricsConfig], pl.DataFrame] | None" = None
+    #: its id map as the windows reduced it, a block each (:func:`safety.alerts.block_id_rows`):
+    #: read instead of the matched rows when the id map is reduced to the run's alerts
+    ids: pl.LazyFrame | None = None
 
 
 def evaluate_pictures(tracks: pl.DataFrame, truth: pl.DataFrame, *, radars: pl.DataFrame | None = None,
@@ -517,8 +520,10 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
         parts["by_epoch"].append(by_epoch)
         parts["samples"].append(samples)
         if id_map:
-            ids = matched.lazy().select("run", "method", "epoch", pl.col("track_id").alias(id_col),
-                                        pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
+            reduced = picture.ids if isinstance(picture, Matched) and callable(id_map) else None
+            ids = reduced if reduced is not None else matched.lazy().select(
+                "run", "method", "epoch", pl.col("track_id").alias(id_col),
+                pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
             parts["id_map"].append((id_map(ids) if callable(id_map) else ids).collect())
         if keep_matched:
             parts["matched"].append(matched.drop(*ROW_SCORES, strict=False))

@@ -27,7 +27,8 @@ from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Re
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
 from tertiary.evaluation.picture_streamed import PictureStepState, picture_step
 
-__all__ = ["MatchState", "match_window", "merge_runs", "matched_table", "expected_table", "SCORED", "PICTURE_VALUES"]
+__all__ = ["MatchState", "match_window", "merge_runs", "matched_table", "expected_table", "SCORED", "PICTURE_VALUES",
+           "ID_ROWS"]
 
 #: the window output of every picture's scored rows (:data:`~tertiary.evaluation.accuracy_streamed.SCORED_ROWS`)
 SCORED = "scored"
@@ -35,6 +36,9 @@ SCORED = "scored"
 #: :class:`~tertiary.evaluation.picture_streamed.PictureStepState`): they add up, so each window
 #: writes its own instead of carrying them (a state pickled at every window)
 PICTURE_VALUES = "picture_values"
+#: the window output of the safety pictures' id map, reduced to the rows the alert scoring may
+#: read (:func:`safety.alerts.block_id_rows`): the end reads these, not every matched row
+ID_ROWS = "id_rows"
 
 
 def matched_table(group: str) -> str:

@@ -25,8 +25,8 @@ from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
 from tertiary.evaluation.multitarget import multitarget_result
 from tertiary.evaluation.picture_metrics import MetricsConfig
 from tertiary.evaluation.picture_streamed import picture_metrics_finish
-from tertiary.evaluation.streamed import PICTURE_VALUES, SCORED, MatchState, expected_table, matched_table
-from tertiary.evaluation.requirements import example_path, load_requirements
+from tertiary.evaluation.streamed import ID_ROWS, PICTURE_VALUES, SCORED, MatchState, expected_table, matched_table
+from tertiary.evaluation.requirements import Requirements, example_path, load_requirements
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.ingestion import Ingested
@@ -239,8 +239,9 @@ class WindowedPictures:
     ``lags``: the lag sums the windows made of the series they retired (complete, else unused)."""
 
     def __init__(self, parts: Any, state: MatchState, surveillance: bool, samples: bool = True,
-                 lags: LagState | None = None) -> None:
+                 lags: LagState | None = None, id_rows: str | None = None) -> None:
         self.parts, self.state, self.surveillance, self.samples = parts, state, surveillance, samples
+        self.id_rows = id_rows
         self.lags = lags if lags is not None and lags.complete else None
         self._finished: pl.DataFrame | None = None
         self._seeded: dict[AccuracyConfig, tuple[dict, dict]] = {}
@@ -267,7 +268,15 @@ class WindowedPictures:
         return Matched(scan_spilled(files, self._schemas).filter(mine),
                        scan_spilled(expected, self._schemas).filter(mine).drop("method") if expected else None,
                        multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed,
-                       surveyed)
+                       surveyed, self._ids(name, groups))
+
+    def _ids(self, name: str, groups: Sequence[str]) -> pl.LazyFrame | None:
+        """Picture ``name``'s id map as the windows reduced it (None: not reduced there, or not a
+        picture of the safety id column ``id_rows``)."""
+        files = self.parts.part_files(ID_ROWS) if self.id_rows is not None else []
+        if not files or not all(g.startswith(f"{self.id_rows}-") for g in groups):
+            return None
+        return scan_spilled(files, self._schemas).filter(pl.col("method") == name)
 
     def _surveyed(self, name: str, radar_xy: np.ndarray | None, breakdown: Sequence[str], cfg: MetricsConfig
                   ) -> pl.DataFrame:
@@ -327,10 +336,17 @@ class WindowedPictures:
                 mine if mine is not None else scored_samples(pl.DataFrame(schema=SAMPLE_SCHEMA)))
 
 
+def run_requirements(cfg: PipelineConfig) -> Requirements:
+    """The requirements a run is judged against (``cfg.requirements_file``, else the shipped
+    example), read and checked."""
+    return load_requirements(cfg.requirements_file or example_path())
+
+
 def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tracks: "pl.DataFrame | OnDiskTable",
                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
                    spill: Path | None = None, alert_keys: pl.DataFrame | None = None,
-                   matched: Callable[[str], Matched | None] | None = None) -> tuple[Evaluation, Evaluation]:
+                   matched: Callable[[str], Matched | None] | None = None,
+                   requirements: Requirements | None = None) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
@@ -340,7 +356,7 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
     buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`). ``alert_keys``: the ids of
     every alert the safety picture's scoring will read (:func:`safety.alerts.alert_ids`): its id
     map keeps only their rows and a row per epoch (:func:`safety.alerts.id_rows`)."""
-    reqs = load_requirements(cfg.requirements_file or example_path()) if cfg.evaluation else None
+    reqs = (requirements if requirements is not None else run_requirements(cfg)) if cfg.evaluation else None
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation, spill=spill)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
@@ -360,8 +376,10 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
         track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))
 
     def each(readers: list) -> Iterator:
-        # the heap the last picture freed is handed back before the next is read (memory)
-        return (p for p in (_released(get) for get in readers) if p is not None)
+        # the heap the last picture freed is handed back before the next is read (memory); a
+        # picture the windows matched is only finished here, from their state: nothing to hand back
+        got = (get() for get in readers) if matched is not None else (_released(get) for get in readers)
+        return (p for p in got if p is not None)
     ev_fused = (evaluate_each(each(fused_pictures), reference, id_col="target_id", seed_stage="fusion",
                               id_map=id_map("target_id"), **kw)
                 if fused_pictures else none)

@@ -29,6 +29,7 @@ from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.bound_streamed import BoundSetup, BoundState, bound_setup
 from tertiary.evaluation.lags_streamed import LagState
 from tertiary.evaluation.evaluate import Reference
+from tertiary.evaluation.requirements import Requirements
 from tertiary.evaluation.streamed import SCORED, MatchState
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.clock import Progress, StageClock
@@ -37,6 +38,7 @@ from tertiary.pipeline.ingestion import (Ingested, ValidTruth, first_truth, no_r
                                          truth_lazy, valid_flight_plans, validate_table)
 from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
+from tertiary.pipeline.scoring import run_requirements
 from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
 from tertiary.pipeline.tables import SinkThread
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
@@ -83,6 +85,11 @@ class RunContext:
     #: the windows predict every point of the STCA curves (a run with curve settings and a truth
     #: to score them on)
     curves: bool = False
+    #: each window writes its block of the safety pictures' reduced id map (:data:`ID_ROWS`)
+    id_rows: bool = False
+    #: the requirements the run is judged against, read before its first window (a bad file
+    #: fails the run then, not after its last); None: not read yet
+    requirements: Requirements | None = None
     #: the epochs [t0_us, t1_us) whose association rows are scored as the run goes (None: all):
     #: a time slice of a distributed run scores its kept span, not its warm-up
     scored_span: tuple[int, int] | None = None
@@ -146,6 +153,9 @@ class StreamState:
     #: the consistency statistics' lag sums of the series retired (None: initial, or not summed
     #: in the windows)
     lags: LagState | None = None
+    #: every window evaluated wrote its block of the safety pictures' reduced id map (None:
+    #: initial, or not written; False: a window did not, so the end reads the matched rows)
+    id_rows: bool | None = None
 
 
 def _context(ds: Dataset, cfg: PipelineConfig, notes: list[str], source: ReportSource) -> tuple[RunContext, pl.DataFrame]:
@@ -285,7 +295,8 @@ def process_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.
         picture, _ = safety_picture(cfg, fused, tracks, notes)
         out, s_conf = stages["conflicts"].step(st.conflicts, {"picture": picture}, w)
         conflicts = out["conflicts"]
-    hand = Handoff(reports, aligned, fused, tracks, picture if cfg.safety else None, "truth_id" in recent.columns)
+    hand = Handoff(reports, aligned, fused, tracks, picture if cfg.safety else None, "truth_id" in recent.columns,
+                   conflicts if cfg.safety else None)
     keep_from = w.t1_us - ctx.keep_us
     recent = recent.filter(pl.col("time").dt.epoch("us") >= keep_from) if recent.height else recent
     counts = _add_counts(st.counts, stats, rows_in.filter(pl.col("report_id").is_in(recent["report_id"].implode()))
@@ -388,6 +399,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.grid_origin_us = grid_origin_us
     if source.first_us is not None:
         ctx.report_span = (source.first_us, source.last_us)
+    if cfg.evaluation:
+        ctx.requirements = run_requirements(cfg)
     if evaluate:
         ctx.truth = first_truth(ds, cfg, notes, source, parts, clock)
         ctx.reference = ctx.truth.matcher() if ctx.truth is not None else None
@@ -404,6 +417,10 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             ctx.lags = True
     ctx.stages = build_stages(cfg, ctx)        # once the context (the grid origin, the reference) is final
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
+    # the end reduces the safety pictures' id map to the run's alerts when it knows them all
+    # (an on-disk run's, :func:`~tertiary.pipeline.whole_run._alert_keys`): each window its block
+    ctx.id_rows = (cfg.safety and ctx.reference is not None and hasattr(parts, "iter_parts")
+                   and (ctx.curves or not cfg.stca_lookaheads_s))
     ctx.scored_span = scored_span
     st = resume_state or init_stream_state(cfg)
     if resume_state is not None and start > 0 and ctx.bound is not None and resume_state.bound is None:
@@ -413,6 +430,9 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             and getattr(resume_state, "truth_picture", None) is None:
         # nor one that carried no truth picture of the grid epochs before it
         st = dataclasses.replace(st, truth_picture=TruthPictureState(complete=False))
+    if resume_state is not None and start > 0 and ctx.id_rows and getattr(resume_state, "id_rows", None) is not True:
+        # nor one whose windows did not all write their block of the id map
+        st = dataclasses.replace(st, id_rows=False)
     if resume_state is not None and start > 0 and ctx.lags and getattr(resume_state, "lags", None) is None:
         # nor one that carried no lag sums of the series before it
         st = dataclasses.replace(st, lags=LagState(complete=False))

@@ -26,6 +26,7 @@ from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
 from tertiary.evaluation.bound_pooling import pool_rows
 from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_finish
 from tertiary.evaluation.streamed import SCORED
+from tertiary.evaluation.requirements import Requirements
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
 from tertiary.evaluation.evaluate import (Evaluation, Matched, read_reference, reference_files,
                                           write_reference)
@@ -129,6 +130,8 @@ class RunTables:
     #: the truth picture's prediction as the windows carried it, and a reader of their stored
     #: rows by table name (None: the end predicts the whole truth picture)
     truth_picture: tuple[TruthPictureState, Callable[[str], pl.DataFrame | None]] | None = None
+    #: the requirements read when the run started (None: read here)
+    requirements: Requirements | None = None
 
 
 def finalize(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: StreamState, parts: Any, n_reports: int,
@@ -280,15 +283,17 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
             else None)
     bound = _windows_bound(ctx, st, parts)
     # the scored samples are read back for the bound only: not when the windows made it (memory)
+    # the id map of the alerts as the windows reduced it, a block each, when every window did
+    reduced = safety_id_column(cfg) if keys is not None and getattr(st, "id_rows", None) is True else None
     matched = (WindowedPictures(parts, st.evaluation, cfg.evaluation, samples=bound is None,
-                                lags=getattr(st, "lags", None))
+                                lags=getattr(st, "lags", None), id_rows=reduced)
                if st.evaluation is not None else None)
     done = getattr(st, "intervals", None)
     run = RunTables(aligned, associations, stats, fused, clusters, tracks, conflicts, n_in, t_all,
                     int(getattr(st.align, "conversion_invalid", 0)), observed, later, scratch, on_disk,
                     getattr(st, "scores", None), curves, keys, matched,
                     (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
-                    bound, _windows_truth_picture(st, parts))
+                    bound, _windows_truth_picture(st, parts), getattr(ctx, "requirements", None))
     return evaluate_run(ds, cfg, ing, run, clock, sink)
 
 
@@ -369,7 +374,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
             ing.truth = ing.truth.clear()
         ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
                                              None if scratch is None else scratch / "evaluation", run.alert_keys,
-                                             run.matched)
+                                             run.matched, run.requirements)
         # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
         # (the windows' truth picture leaves the attribution only each aircraft's first observation)
         spans = first_observed(observed) if run.truth_picture is not None else observed_spans(observed)

@@ -17,7 +17,7 @@ import polars as pl
 from safety import alerts as safety_alerts
 from tertiary.evaluation.bound_streamed import BoundState, bound_step
 from tertiary.evaluation.lags_streamed import LagState, lags_step
-from tertiary.evaluation.streamed import SCORED
+from tertiary.evaluation.streamed import ID_ROWS, SCORED, matched_table
 from tertiary.pipeline.clock import StageClock
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.pictures import safety_id_column
@@ -29,7 +29,7 @@ from tertiary.runtime.windows import Window
 __all__ = ["EVALUATION_FIELDS", "Handoff", "Overlap", "evaluate_step"]
 
 #: the fields of the stream state the evaluation half carries (the processing half never reads them)
-EVALUATION_FIELDS = ("curves", "evaluation", "intervals", "bound", "truth_picture", "lags")
+EVALUATION_FIELDS = ("curves", "evaluation", "intervals", "bound", "truth_picture", "lags", "id_rows")
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,8 @@ class Handoff:
     picture: pl.DataFrame | None
     #: the reports carry the evaluation-only truth ids (the STCA curves are scored on them)
     labelled: bool
+    #: the conflict rows predicted on ``picture`` (None: no safety)
+    conflicts: pl.DataFrame | None = None
 
 
 def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window, clock: StageClock
@@ -55,7 +57,7 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
     if not _has_side(ctx, h):
         out, main = _matching_side(cfg, ctx, st, h, w, clock)
         clock.stage(None)
-        return out, dataclasses.replace(st, **main)
+        return _with_id_rows(cfg, ctx, h, out, dataclasses.replace(st, **main))
     side_clock = StageClock(lambda name: None if f"{name}_s" in clock.timings else clock.say(name))
     with ThreadPoolExecutor(1, thread_name_prefix="evaluation-side") as pool:
         side = pool.submit(_conflict_side, cfg, ctx, st, h, w, side_clock)
@@ -70,7 +72,32 @@ def evaluate_step(cfg: PipelineConfig, ctx: Any, st: Any, h: Handoff, w: Window,
             side_failure.tertiary_stage = side_clock.name  # type: ignore[attr-defined]
         raise side_failure
     curves, truth, s_curves, s_truth = side.result()
-    return {**curves, **out_eval, **truth}, dataclasses.replace(st, curves=s_curves, truth_picture=s_truth, **main)
+    return _with_id_rows(cfg, ctx, h, {**curves, **out_eval, **truth},
+                         dataclasses.replace(st, curves=s_curves, truth_picture=s_truth, **main))
+
+
+def _with_id_rows(cfg: PipelineConfig, ctx: Any, h: Handoff, out: dict[str, pl.DataFrame], st: Any
+                  ) -> tuple[dict[str, pl.DataFrame], Any]:
+    """``out`` with the window's block of the safety pictures' id map reduced to the rows the
+    alert scoring may read (:data:`ID_ROWS`, :func:`safety.alerts.block_id_rows`), when the end
+    reduces the id map to the run's alerts (``ctx.id_rows``); the state says whether every
+    window wrote its block."""
+    if not ctx.id_rows:
+        return out, st
+    id_col = safety_id_column(cfg)
+    prefix = matched_table(f"{id_col}-")
+    blocks = [t.select("run", "method", "epoch", id_col, pl.coalesce("truth_id", "gated_truth_id").alias("truth_id"))
+              for name, t in out.items() if name.startswith(prefix) and t.height]
+    if blocks:
+        keys = [safety_alerts.alert_ids(h.conflicts, id_col)] if h.conflicts is not None else []
+        if "curve_rows" in out:       # a point of the curves alerts on ids the production setting does not
+            keys.append(safety_alerts.alert_ids(out["curve_rows"], id_col))
+        keys = [k.select("run", "method", "epoch", id_col) for k in keys if k.height]
+        ids = pl.concat(blocks, how="vertical_relaxed")
+        hits = (pl.concat(keys, how="vertical_relaxed") if keys
+                else ids.clear().select("run", "method", "epoch", id_col))
+        out = {**out, ID_ROWS: safety_alerts.block_id_rows(ids, hits, id_col)}
+    return out, dataclasses.replace(st, id_rows=getattr(st, "id_rows", None) is not False)
 
 
 def _has_side(ctx: Any, h: Handoff) -> bool:
