@@ -505,6 +505,23 @@ def test_tradeoff_reads_each_aircrafts_end_once_and_scores_as_from_the_span(trut
     assert len(calls) == 1 and len(made) == 1
 
 
+def test_the_grid_of_an_id_map_read_once_is_the_grid_of_each_setting(truth):
+    """:class:`IdMap` keeps the grid of the map's own epochs for every setting whose alert
+    epochs it holds, and adds a setting's other epochs as :func:`picture_grid` of the map does.
+    Fails if a setting's alert epoch outside the map's is left out of its grid."""
+    from safety.alerts.episodes import IdMap, picture_grid
+    idm = _id_map()
+    ids = IdMap.of(idm, truth, "id")
+    inside = _alerts({(11, 12): [100, 105], (13, 14): [150]})
+    outside = _alerts({(11, 12): [102]})             # an epoch off the map's 5-s grid
+    for conflicts in (inside, outside, inside, outside.with_columns(pl.lit("other").alias("method"))):
+        for methods in (None, ["m", "other"]):
+            want = picture_grid(conflicts, idm, methods)
+            assert picture_grid(conflicts, ids, methods).equals(want)
+    assert picture_grid(outside, ids, None).height == picture_grid(inside, ids, None).height + 1
+    assert set(ids.grids) == {("m",), ("other",), ("m", "other")}         # one grid per set of pictures
+
+
 def test_tradeoff_curves_and_equal_nuisance(truth):
     pic = _picture(truth)
     curve = stca_tradeoff(pic, _id_map(), truth, CFG, id_col="target_id", map_id_col="id",

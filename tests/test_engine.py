@@ -992,3 +992,51 @@ def test_alert_keys_of_a_run_without_conflict_parts_keep_a_row_per_epoch():
         pl.col("run").cast(pl.UInt32), pl.col("track_id").cast(pl.UInt64), pl.col("epoch").dt.cast_time_unit("us"))
     kept = safety_alerts.id_rows(ids, keys, "track_id")
     assert keys.height == 0 and kept["track_id"].to_list() == [1, 1] and kept["epoch"].n_unique() == 2
+
+
+def test_the_conflict_rows_the_windows_reduced_are_those_the_end_would_read(tmp_path, monkeypatch):
+    """Each window writes the conflict rows the alert scoring reads (every alert row, one row per
+    picture epoch: :func:`safety.alerts.scored_conflicts`): the end takes them, and the rows
+    and alert rows from the parts' footers and those rows, without reading a conflict part; a
+    window that did not write them (an older checkpoint's) makes the end read the parts. Fails
+    if the end reads the conflict parts, or counts rows from the reduced ones."""
+    from datetime import datetime, timedelta, timezone
+
+    import numpy as np
+    rng = np.random.default_rng(2)
+    t0 = datetime(2021, 10, 7, 8, tzinfo=timezone.utc)
+
+    class Parts:
+        def __init__(self, root, frames):
+            self.root = root
+            for name, each in frames.items():
+                (root / name).mkdir(parents=True)
+                for w, f in enumerate(each):
+                    if f is not None:
+                        f.write_parquet(root / name / f"w={w:06d}.parquet")
+
+        def part_files(self, name):
+            return sorted((self.root / name).glob("w=*.parquet"))
+    windows = []
+    for w in range(4):
+        n = 0 if w == 1 else 300
+        windows.append(pl.DataFrame({
+            "run": np.zeros(n, np.uint32), "epoch": [t0 + timedelta(seconds=60 * w + int(s)) for s in
+                                                     np.sort(rng.integers(0, 60, n))],
+            "method": rng.choice(["a+imm", "b+imm"], n), "id_a": rng.integers(1, 9, n).astype(np.uint64),
+            "id_b": rng.integers(9, 19, n).astype(np.uint64), "alert": rng.random(n) < 0.2,
+            "r_min_m": rng.random(n) * 9000, "dz_min_m": rng.random(n) * 300, "t_min_s": rng.random(n) * 100,
+            "extra": rng.random(n)}, schema_overrides={"epoch": pl.Datetime("us", "UTC")}))
+    scored = [safety_alerts.scored_conflicts(f) for f in windows]
+    both = Parts(tmp_path / "both", {"conflicts": windows, tables.SCORED_CONFLICTS: scored})
+    plain = Parts(tmp_path / "plain", {"conflicts": windows})
+    older = Parts(tmp_path / "older", {"conflicts": windows, tables.SCORED_CONFLICTS: [scored[0], None, None, scored[3]]})
+    want = whole_run._scored_conflict_parts(plain)
+    scans: list[str] = []
+    monkeypatch.setattr(pl, "scan_parquet", lambda f, *a, s=pl.scan_parquet, **k: scans.append(str(f)) or s(f, *a, **k))
+    got = whole_run._scored_conflict_parts(both)
+    assert scans == []
+    assert want[:2] == got[:2] == (pl.concat(windows).height, int(pl.concat(windows)["alert"].sum()))
+    assert pl.concat(got[2]).equals(pl.concat(want[2]))
+    again = whole_run._scored_conflict_parts(older)
+    assert again[:2] == want[:2] and pl.concat(again[2]).equals(pl.concat(want[2])) and scans

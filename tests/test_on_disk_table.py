@@ -79,3 +79,63 @@ def test_one_picture_is_read_where_it_is(tmp_path):
     assert table.direct == [parts.files[0], parts.files[2]]
     assert_frame_equal(table.picture(("a",)), pl.concat(frames))
     assert _copies(table) == []
+
+
+class _NamedParts:
+    """Window parts as files, a directory per table, as a run's part store holds them."""
+
+    def __init__(self, root: Path, tables_: dict[str, list[pl.DataFrame]]) -> None:
+        self.dir = root
+        for name, frames in tables_.items():
+            (root / name).mkdir(parents=True)
+            for w, frame in enumerate(frames):
+                if frame is not None:
+                    frame.write_parquet(root / name / f"w={w:06d}.parquet")
+
+    def part_files(self, name: str) -> list[Path]:
+        return sorted((self.dir / name).glob("w=*.parquet"))
+
+    def iter_parts(self, name: str):
+        for f in self.part_files(name):
+            yield pl.read_parquet(f)
+
+
+def test_the_facts_the_windows_wrote_give_the_facts_of_their_parts(tmp_path):
+    """What the end knows of a fused table (its rows, pictures in order of appearance, pictures
+    shown confirmed, targets ever confirmed or only tentative, the confirmed targets) is the
+    same from the windows' facts (:func:`tables.window_facts`) as from the parts' columns, and
+    the parts are read only for their footers. A window without rows, targets confirmed after
+    being tentative, a picture first seen tentative, two runs; a window whose facts are
+    missing (an older checkpoint's) makes the end read the parts. Fails if the facts lose the
+    order of first appearance, or the rows are counted from the facts."""
+    import numpy as np
+    rng = np.random.default_rng(4)
+    frames = []
+    for w in range(6):
+        n = 0 if w == 2 else 400
+        methods = ["centralized", "information", "arithmetic", "covariance_intersection", "apriori"]
+        frames.append(pl.DataFrame({
+            "run": rng.integers(0, 2, n).astype(np.uint32), "method": rng.choice(methods[: 2 + w % 4], n),
+            "target_id": rng.integers(1, 60, n).astype(np.uint64), "tentative": rng.random(n) < 0.3 + 0.1 * w,
+            "x_m": rng.normal(size=n)}))
+    facts = [tables.window_facts(f) for f in frames]
+    both = _NamedParts(tmp_path / "both", {"fused": frames, "fused.facts": facts})
+    plain = _NamedParts(tmp_path / "plain", {"fused": frames})
+    older = _NamedParts(tmp_path / "older", {"fused": frames, "fused.facts": [*facts[:3], None, *facts[4:]]})
+    read: list[list[str] | None] = []
+    orig = pl.read_parquet
+    pl.read_parquet = lambda f, *a, **k: read.append((Path(f).parent.name, k.get("columns"))) or orig(f, *a, **k)
+    try:
+        got = tables.OnDiskTable(both, "fused", pl.DataFrame())
+        assert {name for name, _ in read} == {"fused.facts"}
+        want = tables.OnDiskTable(plain, "fused", pl.DataFrame())
+        fallback = tables.OnDiskTable(older, "fused", pl.DataFrame())
+    finally:
+        pl.read_parquet = orig
+    whole = pl.concat(frames)
+    assert got.height == whole.height and len(got.pictures) == 5
+    for t in (got, fallback):
+        assert (t.height, t.pictures, t.shown, t.target_counts, t.direct) == \
+            (want.height, want.pictures, want.shown, want.target_counts, want.direct)
+        assert t.confirmed.sort("run", "target_id").equals(want.confirmed.sort("run", "target_id"))
+        assert t.empty.schema == want.empty.schema

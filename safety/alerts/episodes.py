@@ -59,7 +59,7 @@ left out), ``warning_median_s``, ``warning_p05_s``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import polars as pl
@@ -96,11 +96,22 @@ def picture_grid(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", method
     """(run, method, epoch, k, t_us): the picture's epoch grid (id_map epochs ∪ alert epochs),
     dense index k per (run, method)."""
     g = id_map.epochs if isinstance(id_map, IdMap) else _map_epochs(id_map)
+    ms = None
     if "method" not in g.columns:
         ms = methods if methods is not None else sorted(conflicts["method"].unique().to_list())
         g = g.join(pl.DataFrame({"method": ms}, schema={"method": pl.String}), how="cross")
-    c = conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String), pl.col("epoch").cast(TIME))
-    g = pl.concat([g.select("run", "method", "epoch"), c.unique()]).unique()
+    c = conflicts.select(pl.col("run").cast(pl.UInt32), pl.col("method").cast(pl.String),
+                         pl.col("epoch").cast(TIME)).unique()
+    if isinstance(id_map, IdMap):
+        # the id map's own grid, made once: a setting whose alert epochs are all in it has it
+        base = id_map.grid(g, None if ms is None else tuple(ms))
+        if c.join(base, on=["run", "method", "epoch"], how="anti").height == 0:
+            return base
+    return _ranked(pl.concat([g.select("run", "method", "epoch"), c]).unique())
+
+
+def _ranked(g: pl.DataFrame) -> pl.DataFrame:
+    """Epochs (run, method, epoch) sorted, with their dense index k per (run, method) and t_us."""
     return g.sort("run", "method", "epoch").with_columns(
         (pl.col("epoch").rank("dense").over(["run", "method"]).cast(pl.Int64) - 1).alias("k"),
         epoch_micros("epoch").alias("t_us"))
@@ -124,6 +135,14 @@ class IdMap:
     first: pl.DataFrame
     epochs: pl.DataFrame
     on: list[str]
+    #: :func:`picture_grid` of the map's epochs alone, by the pictures named (None: the map's own)
+    grids: dict = field(default_factory=dict, compare=False)
+
+    def grid(self, epochs: pl.DataFrame, methods: tuple[str, ...] | None) -> pl.DataFrame:
+        """The grid of the map's ``epochs`` (crossed with ``methods`` when it names no picture)."""
+        if methods not in self.grids:
+            self.grids[methods] = _ranked(epochs.select("run", "method", "epoch").unique())
+        return self.grids[methods]
 
     @classmethod
     def of(cls, id_map: "pl.DataFrame | IdMap", truth: pl.DataFrame, id_col: str) -> "IdMap":

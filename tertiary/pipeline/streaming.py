@@ -40,7 +40,7 @@ from tertiary.pipeline.pictures import safety_picture
 from tertiary.pipeline.plan import build_stages, stca_settings
 from tertiary.pipeline.scoring import run_requirements
 from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
-from tertiary.pipeline.tables import SinkThread
+from tertiary.pipeline.tables import SCORED_CONFLICTS, SinkThread, facts_table, window_facts
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
 from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
@@ -87,6 +87,9 @@ class RunContext:
     curves: bool = False
     #: each window writes its block of the safety pictures' reduced id map (:data:`ID_ROWS`)
     id_rows: bool = False
+    #: the windows' parts go to a run directory, which the end reads back: each window also
+    #: writes what the end reads of its parts (:func:`~tertiary.pipeline.tables.window_facts`, …)
+    on_disk: bool = False
     #: the requirements the run is judged against, read before its first window (a bad file
     #: fails the run then, not after its last); None: not read yet
     requirements: Requirements | None = None
@@ -303,6 +306,12 @@ def process_step(cfg: PipelineConfig, ctx: RunContext, st: StreamState, raw: pl.
                          if recent.height else rows_in.clear())
     out = {"reports": reports, "rejects": rejects, "aligned": aligned, "associations": associations, "fused": fused,
            "clusters": clusters, "tracks": tracks, "conflicts": conflicts}
+    if ctx.on_disk:
+        # what the end reads of the fused and tracks parts, and of the conflicts the rows the alert
+        # scoring reads, made while the window is in memory: the end does not read every part again
+        out.update({facts_table(name): window_facts(out[name]) for name in ("fused", "tracks")})
+        if cfg.safety:
+            out[SCORED_CONFLICTS] = safety_alerts.scored_conflicts(conflicts)
     return out, dataclasses.replace(st, align=s_align, associate=s_assoc, fuse=s_fuse, centralized=s_central,
                                     cluster=s_cluster, track=s_track, conflicts=s_conf, identity=identity,
                                     recent=recent, counts=counts, departures=s_dep, scores=s_scores), hand
@@ -419,7 +428,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     ctx.curves = bool(stca_settings(cfg)) and truth_lazy(ds) is not None
     # the end reduces the safety pictures' id map to the run's alerts when it knows them all
     # (an on-disk run's, :func:`~tertiary.pipeline.whole_run._alert_keys`): each window its block
-    ctx.id_rows = (cfg.safety and ctx.reference is not None and hasattr(parts, "iter_parts")
+    ctx.on_disk = hasattr(parts, "iter_parts")
+    ctx.id_rows = (cfg.safety and ctx.reference is not None and ctx.on_disk
                    and (ctx.curves or not cfg.stca_lookaheads_s))
     ctx.scored_span = scored_span
     st = resume_state or init_stream_state(cfg)

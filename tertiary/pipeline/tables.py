@@ -40,6 +40,27 @@ __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread"
 Sink = Callable[[str, "pl.DataFrame | StreamedTable"], None]
 
 
+#: the window output of the conflict rows the alert scoring reads (:func:`safety.alerts.scored_conflicts`)
+SCORED_CONFLICTS = "conflicts.scored"
+
+
+def part_rows(files: Collection[Path]) -> int:
+    """The rows of the Parquet ``files``, from their footers (no column read)."""
+    return sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+
+
+def facts_table(name: str) -> str:
+    """The window output of table ``name``'s facts (:func:`window_facts`)."""
+    return f"{name}.facts"
+
+
+def window_facts(frame: pl.DataFrame) -> pl.DataFrame:
+    """A window's rows of ``fused`` or ``tracks`` reduced to what :class:`OnDiskTable` reads of
+    them: each (run, method, filter, target_id, tentative) once, in order of first appearance.
+    The facts of the run's windows in window order give the facts of the whole table."""
+    return frame.select(c for c in OnDiskTable.SLIM if c in frame.columns).unique(maintain_order=True)
+
+
 class OnDiskTable:
     """A streamed table finalize leaves on disk once stored (memory): evaluation reads
     it back one picture at a time, so the whole-run stages never hold every picture at once.
@@ -60,17 +81,40 @@ class OnDiskTable:
         self.direct: list[Path] | None = None
         self._grouped = threading.Lock()
         self._regrouped = False
-        got = [(f, part) for f, part in self._slim_parts(empty) if part.height]
-        whole = concat_parts([part for _, part in got]) if got else pl.DataFrame()
+        # the facts each window wrote of its rows (:func:`window_facts`), when every window did;
+        # else each part's columns they come from
+        carried = self._carried(empty)
+        if carried is not None:
+            got, whole, height = carried
+        else:
+            got = [(f, part) for f, part in self._slim_parts(empty) if part.height]
+            whole = concat_parts([part for _, part in got]) if got else pl.DataFrame()
+            height = whole.height
         if whole.height:
             self.index = {k: i for i, k in enumerate(whole.select(self.keys).unique(maintain_order=True).rows())}
         if len(self.index) == 1 and got[0][0] is not None:
             # every part with rows holds one and the same picture (a run of one fusion method
             # and one filter): read where they are, never copied (disk and a rewrite of the table)
             self.direct = [f for f, _ in got]
-        self._facts(whole)
+        self._facts(whole, height)
 
-    _SLIM = ("run", "method", "filter", "target_id", "tentative")
+    SLIM = ("run", "method", "filter", "target_id", "tentative")
+
+    def _carried(self, empty: pl.DataFrame) -> tuple[list[tuple[Path, None]], pl.DataFrame, int] | None:
+        """(the parts with rows, the windows' facts of them, the table's rows) when every window
+        with rows wrote its facts; None: some did not (a run resumed from an older checkpoint)."""
+        if not hasattr(self.parts, "part_files"):
+            return None
+        files = self.parts.part_files(self.name)
+        rows = {f: pq.ParquetFile(f).metadata.num_rows for f in files}
+        with_rows = [f for f in files if rows[f]]
+        facts = self.parts.part_files(facts_table(self.name))
+        if not {f.name for f in with_rows} <= {f.name for f in facts}:
+            return None
+        first = next(iter(with_rows or files), None)
+        self.empty = empty if first is None else pl.DataFrame(schema=pl.read_parquet_schema(first))
+        whole = concat_parts([pl.read_parquet(f) for f in facts]) if facts else pl.DataFrame()
+        return [(f, None) for f in with_rows], whole, sum(rows.values())
 
     def _slim_parts(self, empty: pl.DataFrame) -> Iterator[tuple[Path | None, pl.DataFrame]]:
         """Each part's file (None when the parts are not files) and its (run, method, filter,
@@ -78,9 +122,9 @@ class OnDiskTable:
         schema, rows = None, False
         if hasattr(self.parts, "part_files"):
             each = ((f, pl.read_parquet_schema(f)) for f in self.parts.part_files(self.name))
-            got = ((f, have, pl.read_parquet(f, columns=[c for c in self._SLIM if c in have])) for f, have in each)
+            got = ((f, have, pl.read_parquet(f, columns=[c for c in self.SLIM if c in have])) for f, have in each)
         else:
-            got = ((None, part.schema, part.select(c for c in self._SLIM if c in part.columns))
+            got = ((None, part.schema, part.select(c for c in self.SLIM if c in part.columns))
                    for part in self.parts.iter_parts(self.name))
         for f, have, part in got:
             if schema is None or (part.height and not rows):
@@ -104,10 +148,10 @@ class OnDiskTable:
                     rows.write_parquet(d / f"w={w:06d}.parquet", compression="lz4")
             self._regrouped = True
 
-    def _facts(self, frame: pl.DataFrame) -> None:
-        """What finalize needs of the whole table, from its (run, method, filter, target_id,
-        tentative) columns."""
-        self.height = frame.height
+    def _facts(self, frame: pl.DataFrame, height: int) -> None:
+        """What finalize needs of the whole table (of ``height`` rows), from its (run, method,
+        filter, target_id, tentative) columns (each combination once is enough)."""
+        self.height = height
         self.pictures = list(self.index)                            # in order of appearance
         shown = frame.filter(~pl.col("tentative").fill_null(False)) if "tentative" in frame.columns else frame
         self.shown = shown.select(self.keys).unique(maintain_order=True).rows() if shown.height else []

@@ -47,8 +47,9 @@ from tertiary.pipeline.streaming import RunContext, StreamState
 from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, reference_slice,
                                             truth_conflicts, truth_picture_finish)
 from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
-                                      DeferredTable, OnDiskTable, Sink, SinkThread, confirmed_targets,
-                                      for_sink, read_table, table_columns, target_counts, whole_table)
+                                      SCORED_CONFLICTS, DeferredTable, OnDiskTable, Sink, SinkThread,
+                                      confirmed_targets, for_sink, part_rows, read_table, table_columns, target_counts,
+                                      whole_table)
 from tertiary.runtime.windows import release_memory
 from tertiary.sensors.radar_health import radar_health
 from tertiary.stages import align as align_stage
@@ -173,8 +174,10 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
     facts = aligned_facts(parts.part_files("aligned")) if lean and not cfg.radar_health else None
     empty_reports = contract.empty_frame("reports", False)
     if facts:
-        # the reports' count and span, a part at a time (memory: a day's times are 280 MB)
-        n_reports, window = _report_span(parts.part_files("reports"), cfg)
+        # the reports' count and span, a part at a time (memory: a day's times are 280 MB); the
+        # count alone, from the parts' footers, when the span is the windows' (below)
+        n_reports, window = ((part_rows(parts.part_files("reports")), None) if ctx.report_span is not None
+                             else _report_span(parts.part_files("reports"), cfg))
         reports = _report_schema(parts, empty_reports)
     else:
         reports = (read_table(parts, "reports", empty_reports) if not lean else
@@ -574,10 +577,16 @@ CURVE_ROWS_SCORED = {k: v for k, v in CURVE_ROWS.items() if k != "setting"}
 
 def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
     """(rows, alert rows, each part's rows that the alert scoring reads:
-    :func:`safety.alerts.scored_conflicts`) of the conflict parts, read a part's columns at a time."""
+    :func:`safety.alerts.scored_conflicts`) of the conflict parts: as the windows reduced them
+    when every window with rows did, else read a part's columns at a time."""
+    files = parts.part_files("conflicts")
+    reduced = parts.part_files(SCORED_CONFLICTS)
+    if {f.name for f in files if part_rows([f])} <= {f.name for f in reduced}:
+        scored = [pl.read_parquet(f) for f in reduced]
+        return part_rows(files), sum(int(s["alert"].sum()) for s in scored), scored
     rows = alerts = 0
     scored = []
-    for f in parts.part_files("conflicts"):
+    for f in files:
         lf = pl.scan_parquet(f)
         have = lf.collect_schema()
         part = lf.select(c for c in safety_alerts.SCORED_CONFLICT_COLUMNS if c in have).collect()
