@@ -324,8 +324,8 @@ def test_an_id_map_reduced_window_by_window_keeps_what_the_whole_maps_reduction_
     # duplicates of some rows (the first of them stays first) and rows in no particular id order
     ids = pl.concat([ids, ids.sample(40, seed=3)]).sort("epoch", maintain_order=True)
     pairs = {(15, 16): [255, 260], (11, 12): [100, 105, 110], (13, 14): [150]}
-    pairs.update({(int(a), int(b)): [int(t)] for a, b, t in zip(rng.choice([11, 13, 15], 6), rng.choice([12, 14, 17], 6),
-                                                                    rng.choice(np.arange(0, 301, 5), 6))})
+    draws = zip(rng.choice([11, 13, 15], 6), rng.choice([12, 14, 17], 6), rng.choice(np.arange(0, 301, 5), 6))
+    pairs.update({(int(a), int(b)): [int(t)] for a, b, t in draws})
     late = _alerts(pairs)
     whole = id_rows(ids, alert_ids(late, "id"), "id")
     cuts = [_t(s) for s in (-1, 97, 181, 242, 400)]

@@ -1030,7 +1030,8 @@ def test_the_conflict_rows_the_windows_reduced_are_those_the_end_would_read(tmp_
     scored = [safety_alerts.scored_conflicts(f) for f in windows]
     both = Parts(tmp_path / "both", {"conflicts": windows, tables.SCORED_CONFLICTS: scored})
     plain = Parts(tmp_path / "plain", {"conflicts": windows})
-    older = Parts(tmp_path / "older", {"conflicts": windows, tables.SCORED_CONFLICTS: [scored[0], None, None, scored[3]]})
+    older = Parts(tmp_path / "older", {"conflicts": windows,
+                                       tables.SCORED_CONFLICTS: [scored[0], None, None, scored[3]]})
     want = whole_run._scored_conflict_parts(plain)
     scans: list[str] = []
     monkeypatch.setattr(pl, "scan_parquet", lambda f, *a, s=pl.scan_parquet, **k: scans.append(str(f)) or s(f, *a, **k))

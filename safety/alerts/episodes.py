@@ -73,8 +73,8 @@ from tertiary.core.units import US
 
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
-           "alert_ids", "id_rows", "block_id_rows", "IdMap", "SCORED_CONFLICT_COLUMNS", "stca_tables", "stca_tables_by_picture",
-           "aircraft_ends", "observed_until"]
+           "alert_ids", "id_rows", "block_id_rows", "IdMap", "SCORED_CONFLICT_COLUMNS", "stca_tables",
+           "stca_tables_by_picture", "aircraft_ends", "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour",
