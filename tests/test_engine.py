@@ -1003,20 +1003,10 @@ def test_the_conflict_rows_the_windows_reduced_are_those_the_end_would_read(tmp_
     from datetime import datetime, timedelta, timezone
 
     import numpy as np
+    from parts import NamedParts
     rng = np.random.default_rng(2)
     t0 = datetime(2021, 10, 7, 8, tzinfo=timezone.utc)
 
-    class Parts:
-        def __init__(self, root, frames):
-            self.root = root
-            for name, each in frames.items():
-                (root / name).mkdir(parents=True)
-                for w, f in enumerate(each):
-                    if f is not None:
-                        f.write_parquet(root / name / f"w={w:06d}.parquet")
-
-        def part_files(self, name):
-            return sorted((self.root / name).glob("w=*.parquet"))
     windows = []
     for w in range(4):
         n = 0 if w == 1 else 300
@@ -1028,10 +1018,10 @@ def test_the_conflict_rows_the_windows_reduced_are_those_the_end_would_read(tmp_
             "r_min_m": rng.random(n) * 9000, "dz_min_m": rng.random(n) * 300, "t_min_s": rng.random(n) * 100,
             "extra": rng.random(n)}, schema_overrides={"epoch": pl.Datetime("us", "UTC")}))
     scored = [safety_alerts.scored_conflicts(f) for f in windows]
-    both = Parts(tmp_path / "both", {"conflicts": windows, tables.SCORED_CONFLICTS: scored})
-    plain = Parts(tmp_path / "plain", {"conflicts": windows})
-    older = Parts(tmp_path / "older", {"conflicts": windows,
-                                       tables.SCORED_CONFLICTS: [scored[0], None, None, scored[3]]})
+    both = NamedParts(tmp_path / "both", {"conflicts": windows, tables.SCORED_CONFLICTS: scored})
+    plain = NamedParts(tmp_path / "plain", {"conflicts": windows})
+    older = NamedParts(tmp_path / "older", {"conflicts": windows,
+                                            tables.SCORED_CONFLICTS: [scored[0], None, None, scored[3]]})
     want = whole_run._scored_conflict_parts(plain)
     scans: list[str] = []
     monkeypatch.setattr(pl, "scan_parquet", lambda f, *a, s=pl.scan_parquet, **k: scans.append(str(f)) or s(f, *a, **k))

@@ -9,6 +9,7 @@ from pathlib import Path
 import polars as pl
 from polars.testing import assert_frame_equal
 
+from parts import NamedParts
 from tertiary.pipeline import tables
 
 
@@ -81,25 +82,6 @@ def test_one_picture_is_read_where_it_is(tmp_path):
     assert _copies(table) == []
 
 
-class _NamedParts:
-    """Window parts as files, a directory per table, as a run's part store holds them."""
-
-    def __init__(self, root: Path, tables_: dict[str, list[pl.DataFrame]]) -> None:
-        self.dir = root
-        for name, frames in tables_.items():
-            (root / name).mkdir(parents=True)
-            for w, frame in enumerate(frames):
-                if frame is not None:
-                    frame.write_parquet(root / name / f"w={w:06d}.parquet")
-
-    def part_files(self, name: str) -> list[Path]:
-        return sorted((self.dir / name).glob("w=*.parquet"))
-
-    def iter_parts(self, name: str):
-        for f in self.part_files(name):
-            yield pl.read_parquet(f)
-
-
 def test_the_facts_the_windows_wrote_give_the_facts_of_their_parts(tmp_path):
     """What the end knows of a fused table (its rows, pictures in order of appearance, pictures
     shown confirmed, targets ever confirmed or only tentative, the confirmed targets) is the
@@ -119,9 +101,9 @@ def test_the_facts_the_windows_wrote_give_the_facts_of_their_parts(tmp_path):
             "target_id": rng.integers(1, 60, n).astype(np.uint64), "tentative": rng.random(n) < 0.3 + 0.1 * w,
             "x_m": rng.normal(size=n)}))
     facts = [tables.window_facts(f) for f in frames]
-    both = _NamedParts(tmp_path / "both", {"fused": frames, "fused.facts": facts})
-    plain = _NamedParts(tmp_path / "plain", {"fused": frames})
-    older = _NamedParts(tmp_path / "older", {"fused": frames, "fused.facts": [*facts[:3], None, *facts[4:]]})
+    both = NamedParts(tmp_path / "both", {"fused": frames, "fused.facts": facts})
+    plain = NamedParts(tmp_path / "plain", {"fused": frames})
+    older = NamedParts(tmp_path / "older", {"fused": frames, "fused.facts": [*facts[:3], None, *facts[4:]]})
     read: list[list[str] | None] = []
     orig = pl.read_parquet
     pl.read_parquet = lambda f, *a, **k: read.append((Path(f).parent.name, k.get("columns"))) or orig(f, *a, **k)

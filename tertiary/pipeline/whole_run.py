@@ -581,9 +581,10 @@ def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
     when every window with rows did, else read a part's columns at a time."""
     files = parts.part_files("conflicts")
     reduced = parts.part_files(SCORED_CONFLICTS)
-    if {f.name for f in files if part_rows([f])} <= {f.name for f in reduced}:
+    rows = {f.name: part_rows([f]) for f in files}
+    if {name for name, n in rows.items() if n} <= {f.name for f in reduced}:
         scored = [pl.read_parquet(f) for f in reduced]
-        return part_rows(files), sum(int(s["alert"].sum()) for s in scored), scored
+        return sum(rows.values()), sum(int(s["alert"].sum()) for s in scored), scored
     rows = alerts = 0
     scored = []
     for f in files:
