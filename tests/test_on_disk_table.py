@@ -106,7 +106,8 @@ def test_the_facts_the_windows_wrote_give_the_facts_of_their_parts(tmp_path):
     older = NamedParts(tmp_path / "older", {"fused": frames, "fused.facts": [*facts[:3], None, *facts[4:]]})
     read: list[list[str] | None] = []
     orig = pl.read_parquet
-    pl.read_parquet = lambda f, *a, **k: read.append((Path(f).parent.name, k.get("columns"))) or orig(f, *a, **k)
+    pl.read_parquet = lambda f, *a, **k: read.extend((Path(g).parent.name, k.get("columns"))
+                                                     for g in (f if isinstance(f, list) else [f])) or orig(f, *a, **k)
     try:
         got = tables.OnDiskTable(both, "fused", pl.DataFrame())
         assert {name for name, _ in read} == {"fused.facts"}

@@ -32,7 +32,7 @@ from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.ingestion import Ingested
 from tertiary.pipeline.pictures import NOT_SCORED, fused_readers, safety_names, track_readers
 from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
-from tertiary.runtime.windows import release_memory
+from tertiary.runtime.windows import read_part_groups, release_memory
 from tertiary.stages.association.associate import AssociationStats
 
 __all__ = ["OBSERVED_BLOCK_ROWS", "ASSOCIATION_BLOCK_ROWS", "AlignedFacts", "DistinctIds", "aligned_facts",
@@ -187,16 +187,15 @@ class DistinctIds:
 
 
 def aligned_facts(files: Sequence[Path]) -> AlignedFacts:
-    """:class:`AlignedFacts` of the aligned rows in ``files`` (a run's window parts), read a part
-    at a time: neither the aligned rows nor the reports are held whole (memory: a day's are
-    several GB), and the distinct reports are counted in a bitmap (:class:`DistinctIds`). Each
-    aligned row carries its report's ``truth_id``; when each part's epochs follow the previous
-    part's (a run's windows), each part's observed aircraft are its own and are not made
-    unique again over the run (a hash of every aircraft-epoch)."""
+    """:class:`AlignedFacts` of the aligned rows in ``files`` (a run's window parts), read a group
+    of parts at a time (:func:`read_part_groups`): neither the aligned rows nor the reports are
+    held whole (memory: a day's are several GB), and the distinct reports are counted in a
+    bitmap (:class:`DistinctIds`). Each aligned row carries its report's ``truth_id``; when each
+    group's epochs follow the previous group's (a run's windows), each group's observed
+    aircraft are its own and are not made unique again over the run (a hash of every
+    aircraft-epoch)."""
     rows, ids, seen, schema, last, ordered = 0, DistinctIds(), [], None, None, True
-    for f in files:
-        have = pl.read_parquet_schema(f)
-        part = pl.read_parquet(f, columns=[c for c in ("run", "epoch", "report_id", "truth_id") if c in have])
+    for part in read_part_groups(list(files), ["run", "epoch", "report_id", "truth_id"]):
         if part.height == 0:
             continue
         rows += part.height
@@ -220,11 +219,10 @@ def aligned_facts(files: Sequence[Path]) -> AlignedFacts:
 
 def distinct_targets(files: Sequence[Path]) -> tuple[int, int]:
     """(association rows, distinct (run, target_id)) of the association parts ``files``, read a
-    part at a time and counted in a bitmap per run (:class:`DistinctIds`): a day's 67 M rows'
-    keys made unique at once peak at 4 GB."""
+    group of parts at a time (:func:`read_part_groups`) and counted in a bitmap per run
+    (:class:`DistinctIds`): a day's 67 M rows' keys made unique at once peak at 4 GB."""
     rows, per_run = 0, {}
-    for f in files:
-        part = pl.read_parquet(f, columns=["run", "target_id"])
+    for part in read_part_groups(list(files), ["run", "target_id"]):
         rows += part.height
         for (run,), keys in part.partition_by("run", as_dict=True).items():
             per_run.setdefault(run, DistinctIds()).add(keys["target_id"])
@@ -277,6 +275,29 @@ class WindowedPictures:
         if not files or not all(g.startswith(f"{self.id_rows}-") for g in groups):
             return None
         return scan_spilled(files, self._schemas).filter(pl.col("method") == name)
+
+    def id_map(self, names: Sequence[str], keys: pl.DataFrame, id_col: str) -> pl.DataFrame | None:
+        """The id map :func:`evaluate_each` gives of pictures ``names`` (those with a row) with the
+        rows of the alert ``keys`` (:func:`safety.alerts.id_rows`), from the blocks the windows
+        reduced, in one pass over them; None when they reduced no block of ``id_col``'s pictures."""
+        if self.id_rows != id_col:
+            return None
+        scored = []
+        for name in names:
+            groups = self.state.groups.get(name, ())
+            if not any(self.parts.part_files(matched_table(g)) for g in groups):
+                continue            # no row: not a picture the evaluation scores
+            if self._ids(name, groups) is None:
+                return None
+            scored.append(name)
+        if not scored:
+            return pl.DataFrame()
+        blocks = scan_spilled(self.parts.part_files(ID_ROWS), self._schemas).filter(pl.col("method").is_in(scored))
+        # id_rows works picture by picture (its keys hold the method): the pictures then in the
+        # evaluation's order, each one's rows in theirs
+        got = safety_alerts.id_rows(blocks, keys=keys, id_col=id_col).collect()
+        order = pl.col("method").replace_strict(scored, range(len(scored)), return_dtype=pl.UInt32)
+        return got.sort(order, maintain_order=True)
 
     def _surveyed(self, name: str, radar_xy: np.ndarray | None, breakdown: Sequence[str], cfg: MetricsConfig
                   ) -> pl.DataFrame:
@@ -346,7 +367,7 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
                    spill: Path | None = None, alert_keys: pl.DataFrame | None = None,
                    matched: Callable[[str], Matched | None] | None = None,
-                   requirements: Requirements | None = None) -> tuple[Evaluation, Evaluation]:
+                   requirements: Requirements | None = None, id_maps: bool = True) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
@@ -355,13 +376,14 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
     scratch directory where a picture of several blocks is matched to disk and scored in
     buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`). ``alert_keys``: the ids of
     every alert the safety picture's scoring will read (:func:`safety.alerts.alert_ids`): its id
-    map keeps only their rows and a row per epoch (:func:`safety.alerts.id_rows`)."""
+    map keeps only their rows and a row per epoch (:func:`safety.alerts.id_rows`). ``id_maps``
+    False: no picture's id map (the alerts are scored from the windows' own, :meth:`WindowedPictures.id_map`)."""
     reqs = (requirements if requirements is not None else run_requirements(cfg)) if cfg.evaluation else None
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation, spill=spill)
     none = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     # the id map of the safety picture only: the alert scoring reads no other (memory)
-    safety_ids = safety_names(cfg, fused, tracks)[1] if cfg.safety else None
+    safety_ids = safety_names(cfg, fused, tracks)[1] if cfg.safety and id_maps else None
 
     def id_map(col: str) -> "bool | Callable[[pl.LazyFrame], pl.LazyFrame]":
         if safety_ids != col or alert_keys is None:

@@ -25,7 +25,7 @@ from tertiary import contract
 from tertiary.core.errors import OptionError
 from tertiary.pipeline.clock import StageClock
 from tertiary.runtime.windows import PARTS, PartStore, prefetched
-from tertiary.runtime.windows import concat_parts
+from tertiary.runtime.windows import concat_parts, read_part_groups
 from tertiary.store.run_store import TABLES_DIR, RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "StoreSink", "TABLE_MODES",
@@ -113,7 +113,7 @@ class OnDiskTable:
             return None
         first = next(iter(with_rows or files), None)
         self.empty = empty if first is None else pl.DataFrame(schema=pl.read_parquet_schema(first))
-        whole = concat_parts([pl.read_parquet(f) for f in facts]) if facts else pl.DataFrame()
+        whole = concat_parts(list(read_part_groups(facts))) if facts else pl.DataFrame()
         return [(f, None) for f in with_rows], whole, sum(rows.values())
 
     def _slim_parts(self, empty: pl.DataFrame) -> Iterator[tuple[Path | None, pl.DataFrame]]:

@@ -28,8 +28,7 @@ from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_fini
 from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.requirements import Requirements
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
-from tertiary.evaluation.evaluate import (Evaluation, Matched, read_reference, reference_files,
-                                          write_reference)
+from tertiary.evaluation.evaluate import Evaluation, Matched, read_reference, write_reference
 from tertiary.evaluation.indicators import indicators
 from tertiary.evaluation.truth_picture import first_observed, observed_spans
 from tertiary.io.dataset import Dataset
@@ -41,24 +40,20 @@ from tertiary.pipeline.pictures import safety_id_column, safety_names
 from tertiary.pipeline.plan import CURVE_ROWS
 from tertiary.pipeline.scoring import (aligned_facts, association_blocks, association_stage_metrics, distinct_targets,
                                        observed_aircraft, score_pictures, scored_blocks, WindowedPictures)
-from tertiary.pipeline.stca_scoring import (TruthIntervals, note_minima, reference_intervals, stca_curves,
-                                           time_span)
+from tertiary.pipeline.safety_scoring import TruthSource, score_safety
+from tertiary.pipeline.stca_scoring import TruthIntervals
 from tertiary.pipeline.streaming import RunContext, StreamState
-from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, TruthPictureState, attributed, reference_slice,
-                                            truth_conflicts, truth_picture_finish)
-from tertiary.pipeline.tables import (ALERT_TRUTH, ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
+from tertiary.pipeline.truth_alerts import TruthPictureState
+from tertiary.pipeline.tables import (ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUND_TRUTH, REPORT_COLUMNS,
                                       SCORED_CONFLICTS, DeferredTable, OnDiskTable, Sink, SinkThread,
                                       confirmed_targets, for_sink, part_rows, read_table, table_columns, target_counts,
                                       whole_table)
-from tertiary.runtime.windows import release_memory
+from tertiary.runtime.windows import concat_parts, read_part_groups, release_memory
 from tertiary.sensors.radar_health import radar_health
 from tertiary.stages import align as align_stage
 from tertiary.stages.association.associate import AssociationStats
 
 __all__ = ["Results", "RunTables", "evaluate_run", "finalize", "finalize_stages"]
-
-#: what the scoring of an external alert list reads of the truth besides its intervals
-EXTERNAL_TRUTH = ["run", "truth_id", "time", "icao24", "callsign", "mode_3a", "squawk"]
 
 # `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
 # package imports this one) while `safety` is half initialised, and only a module binding
@@ -318,6 +313,19 @@ def _windows_bound(ctx: RunContext, st: StreamState, parts: Any
         pool.shutdown(wait=False)
 
 
+def _windowed_id_map(cfg: PipelineConfig, run: RunTables) -> pl.DataFrame | None:
+    """The safety picture's id map as the evaluation would give it, from the blocks the windows
+    reduced (:meth:`WindowedPictures.id_map`); None when they did not reduce it."""
+    fused, tracks, matched = run.fused, run.tracks, run.matched
+    if (not isinstance(matched, WindowedPictures) or run.alert_keys is None
+            or not isinstance(fused, OnDiskTable) or not isinstance(tracks, OnDiskTable)):
+        return None
+    id_col = safety_names(cfg, fused, tracks)[1]
+    # the pictures in the order the evaluation scores them (:func:`score_pictures`)
+    names = ([f"{m}+{f}" for m, f in tracks.pictures] if id_col == "track_id" else [key[0] for key in fused.shown])
+    return matched.id_map(names, run.alert_keys, id_col)
+
+
 def _windows_truth_picture(st: StreamState, parts: Any
                            ) -> tuple[TruthPictureState, Callable[[str], pl.DataFrame | None]] | None:
     """The truth picture's prediction the windows carried, when they saw every window."""
@@ -365,6 +373,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
     empty = Evaluation(pl.DataFrame(), pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     ev_fused, ev_tracks = empty, empty
     truth_file: Path | None = None
+    safety = cfg.safety and has_truth
+    ids: pl.DataFrame | None = None
     if has_truth:
         clock.stage("evaluation")
         if observed is None:
@@ -375,98 +385,36 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         elif scratch is not None:
             reference = write_reference(ing.truth, scratch / "reference.parquet")
             ing.truth = ing.truth.clear()
-        ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
-                                             None if scratch is None else scratch / "evaluation", run.alert_keys,
-                                             run.matched, run.requirements)
         # what the truth picture is sampled on: the observed aircraft's spans, the picture grid
         # (the windows' truth picture leaves the attribution only each aircraft's first observation)
         spans = first_observed(observed) if run.truth_picture is not None else observed_spans(observed)
         grid = observed.select("run", "epoch").unique().sort("run", "epoch")
+        if scratch is not None and not cfg.indicators:
+            # the later stages each read the columns they use from the reference, and the truth is
+            # not held between them (memory); the indicators match the pictures again: the whole truth
+            truth_file = reference
+        # the safety picture's id map as the windows reduced it, read once for every picture
+        ids = _windowed_id_map(cfg, run) if safety else None
+        ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
+                                             None if scratch is None else scratch / "evaluation", run.alert_keys,
+                                             run.matched, run.requirements, id_maps=ids is None)
         del observed
         if scratch is not None:
             release_memory()
-            if cfg.indicators:          # they match the picture again: the whole truth
+            if cfg.indicators:
                 ing.truth = read_reference(reference)
-            else:
-                # the later stages each read the columns they use from the reference, and the
-                # truth is not held between them (memory)
-                truth_file = reference
     elif on_disk is not None and on_disk.rows:
         ing.truth = read_reference(on_disk.reference)      # nothing scored against it: as it came
-
-    def truth_columns(columns: list[str]) -> pl.DataFrame:
-        return ing.truth if truth_file is None else read_reference(truth_file, columns)
-
-    def truth_between(t0_us: int, t1_us: int) -> pl.DataFrame:
-        """The truth picture's columns of the samples in [t0_us, t1_us] (as the windows read them)."""
-        if truth_file is not None:
-            return reference_slice(reference_files(truth_file))(t0_us, t1_us)
-        t = pl.col("time").dt.epoch("us")
-        return truth_scan(TRUTH_PICTURE_COLUMNS).lazy().filter(t.is_between(t0_us, t1_us)).collect()
-
-    def truth_scan(columns: list[str]) -> "pl.DataFrame | pl.LazyFrame":
-        """The truth's ``columns`` (those it has), as a scan of the reference when on disk."""
-        if truth_file is None:
-            return ing.truth
-        lf = pl.scan_parquet(reference_files(truth_file))
-        return lf.select(c for c in columns if c in lf.collect_schema())
-    if cfg.safety and has_truth:
-        clock.stage("score_alerts")
-        methods, id_col = safety_names(cfg, fused, tracks)
-        # which aircraft each picture row represents: the one matcher's answer
-        id_map = (ev_tracks if id_col == "track_id" else ev_fused).id_map
-        if id_map.width == 0:           # nothing scored (e.g. every target tentative)
-            id_map = pl.DataFrame(schema={"run": pl.UInt32, "method": pl.String, "epoch": contract.TIME,
-                                          id_col: pl.UInt64, "truth_id": pl.Int64})
-        acfg = safety_alerts.AlertConfig(conflict=cfg.conflicts)
-        note_minima(cfg.conflicts, ing.notes)
-        # the truth's LoS and proximity intervals, computed once for the alerts and every curve
-        # setting (they depend on the separation minima, which the curves do not vary)
-        if truth_file is not None:
-            # a chunk of truth at a time: a long recording's truth held whole would not fit (memory)
-            # the chunks the windows did, if they read this reference, and the rest
-            done = run.intervals[0] if run.intervals is not None and run.intervals[1] == truth_file else None
-            intervals, span = reference_intervals(truth_file, acfg, ds.origin, state=done)
-        else:
-            truth = truth_columns(ALERT_TRUTH)
-            intervals = safety_alerts.truth_intervals(truth, acfg, ds.origin)
-            span = time_span(truth, acfg, ds.origin)
-            del truth
-        release_memory()
-        # the same prediction on the truth picture: which alerts the picture causes
-        if run.truth_picture is not None:     # predicted in the windows but for their last stretch
-            t_conf, t_ids, onsets = truth_picture_finish(*run.truth_picture, cfg.conflicts, truth_between, id_col,
-                                                         ds.origin)
-        else:
-            t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth_between, spans, grid, id_col, ds.origin)
-        # the rows the scoring reads: a day's conflict rows are 1.2 GB, its id map 40 M rows (memory)
-        scored_rows = (list(conflicts.blocks()) if isinstance(conflicts, DeferredTable)
-                       else [safety_alerts.scored_conflicts(conflicts)])
-        conflicts_all = (pl.concat(scored_rows, how="vertical_relaxed") if scored_rows
-                         else contract.empty_frame("conflicts", False))
-        del scored_rows
-        id_map_all, scored = safety_alerts.scored_ids(id_map, conflicts_all, id_col), methods
-        if t_conf.height or t_ids.height:
-            if t_conf.height:
-                conflicts_all = pl.concat([conflicts_all, t_conf], how="diagonal_relaxed")
-            id_map_all = pl.concat([id_map_all, t_ids.select(id_map.columns).cast(id_map.schema)])
-            scored = [*methods, safety_alerts.TRUTH_PICTURE]
-        # a picture at a time: the same tables, with one picture's rows in the scoring's joins
-        safety_metrics, alerts, los = safety_alerts.stca_tables_by_picture(
-            conflicts_all, id_map_all, span, acfg, id_col=id_col, methods=scored, frame=ds.origin, intervals=intervals)
-        del conflicts_all, id_map_all
-        alerts, los, attribution = attributed(alerts, los, onsets, acfg, spans)
-        safety_metrics = pl.concat([safety_metrics, attribution], how="vertical_relaxed")
-        if ds.external_alerts.height:
-            safety_metrics, alerts, los = _with_external(ds, acfg, truth_scan(EXTERNAL_TRUTH), intervals,
-                                                         (safety_metrics, alerts, los), ing.notes)
+    truth = TruthSource(ing, truth_file)
+    if safety:
+        if ids is None:
+            # which aircraft each picture row represents: the one matcher's answer
+            ids = (ev_tracks if safety_names(cfg, fused, tracks)[1] == "track_id" else ev_fused).id_map
+        got = score_safety(ds, cfg, run, ids, truth, spans, grid, clock.stage)
+        ing.notes.extend(got.notes)
+        alerts, safety_metrics = got.alerts, got.metrics
         sink("alerts", alerts)
-        sink("losses", los)          # each loss of separation per picture, alerted or missed
-        if cfg.stca_lookaheads_s:
-            clock.stage("score_curves")   # the points the windows predicted, scored
-            curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
-                                None if scratch is None else scratch / "curves", run.curve_rows)
-            safety_metrics = pl.concat([safety_metrics, safety_alerts.tradeoff_metrics(curve)], how="vertical_relaxed")
+        sink("losses", got.losses)          # each loss of separation per picture, alerted or missed
     clock.stage("evaluate")
     release_memory()
     # the association metrics scored window by window when every row was; else from
@@ -476,7 +424,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
     if isinstance(associations, DeferredTable):
         # on disk, in the database; scored from there a block at a time when not carried
         associations = pl.DataFrame() if carried or blocks is not None else associations.read()
-    if reports is not None:
+    if reports is not None and (not carried or run.bound is None):
+        # read back for what still reads them: association rows scored here, or the bound made here
         ing.reports = reports.read()
     if blocks is not None:
         scores = scored_blocks(blocks(), ing.reports)
@@ -498,7 +447,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
         # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.evaluation.bound)
         # read by blocks of aircraft from the reference, never whole (memory)
-        extra = [_bound_rows(ds, run, truth_scan(BOUND_TRUTH), ing, scored, metrics)]
+        extra = [_bound_rows(ds, run, truth.scan(BOUND_TRUTH), ing, scored, metrics)]
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")
@@ -542,7 +491,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
               "alert_episodes": (alerts.filter(
                   (pl.col("method") != safety_alerts.TRUTH_PICTURE)
                   & ~pl.col("method").str.starts_with(safety_alerts.EXTERNAL_PREFIX)).height if alerts.height else 0),
-              "aircraft": truth_columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
+              "aircraft": truth.columns(["truth_id"])["truth_id"].n_unique() if has_truth else 0,
               **target_counts(fused)}
     # an on-disk run's fused and tracks are in its database only (empty frames here), and so are
     # its aligned rows when they were not read back
@@ -583,7 +532,7 @@ def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
     reduced = parts.part_files(SCORED_CONFLICTS)
     rows = {f.name: part_rows([f]) for f in files}
     if {name for name, n in rows.items() if n} <= {f.name for f in reduced}:
-        scored = [pl.read_parquet(f) for f in reduced]
+        scored = list(read_part_groups(reduced))
         return sum(rows.values()), sum(int(s["alert"].sum()) for s in scored), scored
     rows = alerts = 0
     scored = []
@@ -599,7 +548,8 @@ def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
 def _alert_keys(conflicts: DeferredTable, parts: Any, id_col: str) -> pl.DataFrame:
     """:func:`safety.alerts.alert_ids` of the conflicts' alert rows and the curve points' (all
     settings: an id is kept when any point alerts on it)."""
-    keys = [safety_alerts.alert_ids(c, id_col) for c in conflicts.blocks()]
+    blocks = list(conflicts.blocks())
+    keys = [safety_alerts.alert_ids(concat_parts(blocks), id_col)] if blocks else []
     files = parts.part_files("curve_rows")
     if files:
         rows = (pl.scan_parquet(files).filter(pl.col("alert"))
@@ -637,21 +587,3 @@ def _check_accounting(n_in: int, n_ok: int, rejects: pl.DataFrame) -> None:
     n_rej = rejects.filter(pl.col("input_table") == "reports").height
     if n_ok + n_rej != n_in:
         raise RuntimeError(f"row accounting broken: {n_in} reports in, {n_ok} aligned + {n_rej} rejected")
-
-
-def _with_external(ds: Dataset, acfg: "safety_alerts.AlertConfig", truth: "pl.DataFrame | pl.LazyFrame",
-                   intervals: tuple[pl.DataFrame, pl.DataFrame], tables: tuple[pl.DataFrame, ...], notes: list[str]
-                   ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """(metrics, alerts, losses) with the dataset's external alert list scored beside the pictures
-    on the same truth intervals (:func:`safety.alerts.score_external`)."""
-    cols = [c for c in EXTERNAL_TRUTH if c in truth.collect_schema().names()]
-    metrics, alerts, los = safety_alerts.score_external(ds.external_alerts, truth.lazy().select(cols), acfg,
-                                                        ds.origin, intervals)
-    lost = metrics.filter(pl.col("metric") == "unidentified_alerts")
-    for method, n in lost.select("method", "value").iter_rows():
-        if n:
-            total = ds.external_alerts.filter(pl.col("method") == method).height
-            notes.append(f"{method}: {int(n):,} of {total:,} alert(s) without two aircraft identified in the truth "
-                         "(Mode S, callsign, Mode 3/A): scored false")
-    return tuple(pl.concat([a, b], how=how) for a, b, how in zip(
-        tables, (metrics, alerts, los), ("vertical_relaxed", "diagonal_relaxed", "diagonal_relaxed")))

@@ -476,6 +476,28 @@ def _present(path: Path, columns: list[str]) -> list[str]:
     return [c for c in columns if c in have]
 
 
+#: window parts :func:`read_part_groups` reads in one call (the reader's threads read them at once)
+PART_GROUP = 32
+
+
+def read_part_groups(files: list[Path], columns: list[str] | None = None, group: int = PART_GROUP
+                     ) -> Iterator[pl.DataFrame]:
+    """The rows (their ``columns``) of the window parts ``files`` in file order, ``group`` files
+    read at a time as one frame: a long run's parts are hundreds of small files, whose reads one
+    at a time cost more than their rows. A group whose files do not share those columns' types
+    (or lack one) comes a file at a time, each with the ``columns`` it has."""
+    for i in range(0, len(files), group):
+        chunk = files[i:i + group]
+        try:
+            got = pl.read_parquet(chunk, columns=columns)
+        except (pl.exceptions.SchemaError, pl.exceptions.ColumnNotFoundError, pl.exceptions.ComputeError):
+            for f in chunk:
+                have = pl.read_parquet_schema(f)
+                yield pl.read_parquet(f, columns=None if columns is None else [c for c in columns if c in have])
+            continue
+        yield got
+
+
 def concat_parts(frames: list[pl.DataFrame]) -> pl.DataFrame:
     """Windows' rows of one table: empty windows' frames dropped (they may lack optional columns)."""
     full = [f for f in frames if f.height] or frames[:1]
