@@ -9,6 +9,7 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import polars as pl
 import pytest
+from polars.testing import assert_frame_equal
 
 from tertiary.contract import TIME
 from tertiary.evaluation.evaluate import EvaluationConfig, evaluate_pictures
@@ -299,3 +300,35 @@ def test_pictures_stepped_together_equal_each_stepped_alone(seed):
             cols = [c for c in key if c in a.columns] + [c for c in ("first", "last") if c in a.columns]
             assert a.sort(cols).equals(b.sort(cols)), (n, part)
     assert together["p2"].runs.sort().to_list() == [0, 1]
+
+
+@pytest.mark.parametrize("seed", range(1, 4))
+def test_every_pictures_result_finished_at_once_is_each_ones_alone(seed):
+    """:func:`multitarget_results` (every picture's continuity in one pass, a picture a key beside
+    each truth's) gives each picture the rows :func:`multitarget_result` gives it alone: pictures
+    sharing truths and track numbers, one with two runs, one without a segment. Fails if the
+    pictures' segments mix (a truth's cover or union taken over several pictures) or if their
+    rows are given to another picture."""
+    from tertiary.evaluation.multitarget import (MultiTargetState, multitarget_result, multitarget_results,
+                                                 multitarget_step)
+    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
+    states = {}
+    for k in range(3):
+        pic, true = _scene(seed + 10 * k)
+        if k == 2:
+            other, other_true = _scene(seed + 50)
+            pic = pl.concat([pic, other.with_columns(pl.lit(1, pl.UInt32).alias("run"))])
+            true = pl.concat([true.with_columns(pl.lit(0, pl.UInt32).alias("run")),
+                              other_true.with_columns(pl.lit(1, pl.UInt32).alias("run"))])
+        states[f"p{k}"] = multitarget_step(MultiTargetState(), pic, reference_at_epochs(pic.select("run", "epoch"),
+                                                                                      true), cfg)
+    far, true = _scene(seed + 90)      # every track too far from every truth: no segment
+    far = far.with_columns(pl.col("x_m") + 1e6)
+    states["far"] = multitarget_step(MultiTargetState(), far, reference_at_epochs(far.select("run", "epoch"), true),
+                                     cfg)
+    assert states["far"].closed.height + states["far"].open.height == 0
+    got = multitarget_results(states)
+    assert list(got) == list(states)
+    for n, state in states.items():
+        want = multitarget_result(state, n)
+        assert_frame_equal(got[n], want, check_exact=False, rel_tol=1e-12)

@@ -263,14 +263,15 @@ def _with_reach(seg: pl.DataFrame, truth: pl.DataFrame) -> pl.DataFrame:
                                        allow_exact_matches=False, check_sortedness=False)
 
 
-def _greedy_cover(seg: pl.DataFrame) -> pl.DataFrame:
-    """:func:`_tracks_needed` of segments with their ``reach``."""
-    key = ["run", "truth_id"]
+def _greedy_cover(seg: pl.DataFrame, key: Sequence[str] = ("run", "truth_id")) -> pl.DataFrame:
+    """:func:`_tracks_needed` of segments with their ``reach``, by ``key`` (a truth; before it,
+    a picture's key when the segments of several are covered at once)."""
+    key = list(key)
     seg = (seg.with_columns(pl.col("end").max().over(*key, "track_id").alias("last"))
            .sort(*key, "last", "end", "track_id"))
     t0 = seg["reach"].min()
     reach, end, last = ((seg[c] - t0).dt.total_microseconds().to_numpy() + 1 for c in ("reach", "end", "last"))
-    new = (pl.col("run") != pl.col("run").shift(1)) | (pl.col("truth_id") != pl.col("truth_id").shift(1))
+    new = pl.any_horizontal(pl.col(k) != pl.col(k).shift(1) for k in key)
     grp = seg.select(new.fill_null(True).cum_sum() - 1).to_series().to_numpy().astype(np.int64)
     n_grp = int(grp[-1]) + 1
     covered = np.zeros(n_grp, np.int64)
@@ -297,9 +298,9 @@ def _greedy_cover(seg: pl.DataFrame) -> pl.DataFrame:
     return out.select(key).with_columns(pl.Series("nu", count))
 
 
-def _union_s(seg: pl.DataFrame) -> pl.DataFrame:
-    """TT_j: seconds of each (run, truth_id) covered by the union of its segments."""
-    key = ["run", "truth_id"]
+def _union_s(seg: pl.DataFrame, key: Sequence[str] = ("run", "truth_id")) -> pl.DataFrame:
+    """TT_j: seconds of each ``key`` (a truth) covered by the union of its segments."""
+    key = list(key)
     prev = pl.col("end").cum_max().shift(1).over(key, order_by="start")
     lo = pl.max_horizontal("start", prev.fill_null(pl.col("start")))
     piece = pl.max_horizontal((pl.col("end") - lo).dt.total_microseconds(), pl.lit(0))
@@ -501,3 +502,37 @@ def multitarget_result(state: MultiTargetState, method: str) -> pl.DataFrame:
     of their union)."""
     seg = pl.concat([state.closed, state.open])
     return _metric_rows(method, state.sums, _continuity_of(seg, None, state.life), state.runs)
+
+
+def multitarget_results(states: Mapping[str, MultiTargetState]) -> dict[str, pl.DataFrame]:
+    """:func:`multitarget_result` of every picture's state (by name), their continuity in one
+    pass over every picture's segments (a picture is a key beside each truth's)."""
+    if not states:
+        return {}
+    tag = [pl.lit(i, pl.UInt32).alias("__p") for i in range(len(states))]
+    seg = pl.concat([pl.concat([s.closed, s.open]).with_columns(t) for s, t in zip(states.values(), tag)])
+    life = pl.concat([s.life.with_columns(t) for s, t in zip(states.values(), tag)])
+    continuity = _continuity_each(seg, life)
+    return {name: _metric_rows(name, s.sums, continuity.get(i, (0.0, 0.0)), s.runs)
+            for i, (name, s) in enumerate(states.items())}
+
+
+def _continuity_each(seg: pl.DataFrame, life: pl.DataFrame) -> dict[int, tuple[float, float]]:
+    """:func:`_continuity_of` (segments with ``reach``) of each picture ``__p`` of ``seg`` and
+    ``life``; a picture without a segment has none."""
+    key = ["__p", "run", "truth_id"]
+    if seg.height == 0:
+        return {}
+    total = life.group_by("__p").agg(((pl.col("last") - pl.col("first")).dt.total_microseconds() / 1e6).sum()
+                                     .alias("total"))
+    per_track = seg.group_by(*key, "track_id").agg(
+        ((pl.col("end") - pl.col("start")).dt.total_microseconds() / 1e6).sum().alias("s"))
+    longest = per_track.group_by(key).agg(pl.col("s").max()).group_by("__p").agg(pl.col("s").sum().alias("longest"))
+    tt = _union_s(seg, key).group_by("__p").agg(pl.col("tt_s").sum())
+    cover = _greedy_cover(seg.with_columns(pl.col("reach").fill_null(pl.col("start") - pl.duration(microseconds=1))),
+                          key)
+    changes = cover.group_by("__p").agg((pl.col("nu") - 1).sum().cast(pl.Float64).alias("changes"))
+    got = (longest.join(tt, on="__p", how="left").join(changes, on="__p", how="left")
+           .join(total, on="__p", how="left").fill_null(0.0))
+    return {p: ((c / t if t else 0.0), (lg / tot if tot else 0.0))
+            for p, lg, t, c, tot in got.select("__p", "longest", "tt_s", "changes", "total").iter_rows()}

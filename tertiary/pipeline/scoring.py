@@ -22,7 +22,7 @@ from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
 from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
 from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
-from tertiary.evaluation.multitarget import multitarget_result
+from tertiary.evaluation.multitarget import multitarget_results
 from tertiary.evaluation.picture_metrics import MetricsConfig
 from tertiary.evaluation.picture_streamed import picture_metrics_finish
 from tertiary.evaluation.streamed import ID_ROWS, PICTURE_VALUES, SCORED, MatchState, expected_table, matched_table
@@ -265,8 +265,13 @@ class WindowedPictures:
                     and stepped.tracks is not None else None)
         return Matched(scan_spilled(files, self._schemas).filter(mine),
                        scan_spilled(expected, self._schemas).filter(mine).drop("method") if expected else None,
-                       multitarget_result(mt, name) if self.surveillance and mt is not None else None, seed,
+                       self._multitarget.get(name) if self.surveillance and mt is not None else None, seed,
                        surveyed, self._ids(name, groups))
+
+    @functools.cached_property
+    def _multitarget(self) -> dict[str, pl.DataFrame]:
+        """Every picture's OSPA, GOSPA and SIAP rows from the carried state, finished at once."""
+        return multitarget_results(self.state.pictures)
 
     def _ids(self, name: str, groups: Sequence[str]) -> pl.LazyFrame | None:
         """Picture ``name``'s id map as the windows reduced it (None: not reduced there, or not a
