@@ -896,34 +896,3 @@ def test_scoring_the_rows_it_reads_equals_scoring_every_row(truth, seed):
         got = stca_tables_by_picture(c, ids, truth, CFG, id_col="id")
         for a, b in zip(got, want):
             assert a.equals(b)
-
-
-def test_the_alert_rows_of_several_scorings_mapped_at_once_are_each_ones_alone():
-    """The points of a trade-off curve have their alert rows mapped to aircraft in one pass
-    (:func:`safety.alerts.episodes.mapped_alert_rows`): each point's rows are those its own
-    scoring maps, an id pair's vote taken within the point. Here track 1 follows aircraft 10,
-    then 11: the first point alerts on it early, the second late, the third never. Fails if
-    the vote is taken over every point at once or a point's rows go to another."""
-    from safety.alerts.episodes import IdMap, _alert_rows, _inside, mapped_alert_rows
-    t0 = datetime(2026, 1, 1, tzinfo=timezone.utc)
-    epochs = [t0 + timedelta(seconds=5 * k) for k in range(10)]
-    id_map = pl.DataFrame({
-        "run": pl.Series([0] * 20, dtype=pl.UInt32), "method": ["p"] * 20, "epoch": epochs * 2,
-        "track_id": pl.Series([1] * 10 + [2] * 10, dtype=pl.UInt64),
-        "truth_id": pl.Series([10] * 6 + [11] * 4 + [20] * 10, dtype=pl.Int64)})
-    truth = pl.DataFrame({"truth_id": [10, 11, 20], "time": [epochs[0], epochs[-1], epochs[-1]]})
-
-    def alerting(ks: list[int]) -> pl.DataFrame:
-        return pl.DataFrame({"run": pl.Series([0] * 10, dtype=pl.UInt32), "epoch": epochs, "method": ["p"] * 10,
-                             "id_a": pl.Series([1] * 10, dtype=pl.UInt64), "id_b": pl.Series([2] * 10, dtype=pl.UInt64),
-                             "alert": [k in ks for k in range(10)], "r_min_m": np.linspace(900.0, 100.0, 10)})
-    points = [alerting([0, 1, 2, 3]), alerting([5, 6, 7, 8, 9]), alerting([])]
-    ids = IdMap.of(id_map, truth, "track_id")
-    cfg = AlertConfig()
-    got = mapped_alert_rows(points, ids, truth, cfg, "track_id", None)
-    assert len(got) == 3 and got[2].height == 0
-    assert got[0]["truth_a"].unique().to_list() == [10] and got[1]["truth_a"].unique().to_list() == [11]
-    for mine, c in zip(got, points):
-        alone = _alert_rows(c.filter(_inside(truth)), ids, "track_id", None)
-        key = ["epoch", "id_a", "id_b"]
-        assert mine.sort(key).equals(alone.select(mine.columns).sort(key))

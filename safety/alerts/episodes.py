@@ -59,7 +59,6 @@ left out), ``warning_median_s``, ``warning_p05_s``
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -75,7 +74,7 @@ from tertiary.core.units import US
 __all__ = ["ALERT_METRICS", "ALERTS_SCHEMA", "LOS_SCHEMA", "picture_grid", "score_pictures", "alert_episodes",
            "los_episodes", "metrics_long", "per_picture", "score_alerts", "scored_conflicts", "scored_ids",
            "alert_ids", "id_rows", "block_id_rows", "IdMap", "SCORED_CONFLICT_COLUMNS", "stca_tables",
-           "stca_tables_by_picture", "aircraft_ends", "observed_until", "mapped_alert_rows"]
+           "stca_tables_by_picture", "aircraft_ends", "observed_until"]
 
 ALERT_METRICS = ("los_episodes", "alerted_los", "missed_los", "genuine_alerts", "nuisance_alerts", "false_alerts",
                  "undetermined_alerts", "alert_episodes", "alerts_per_hour", "nuisance_false_per_hour",
@@ -275,19 +274,17 @@ def _departed(a: pl.DataFrame, m: pl.DataFrame, ends: pl.DataFrame | None, on: l
 
 
 def _alert_rows(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", id_col: str,
-                ends: pl.DataFrame | None = None, by: Sequence[str] = ()) -> pl.DataFrame:
+                ends: pl.DataFrame | None = None) -> pl.DataFrame:
     """Alert rows with the pair of aircraft of their id pair: truth_a/truth_b = the truth pair
     that most of the id pair's alert rows map to (null without two distinct truths); a row of
     an id coasting past its aircraft's last truth sample maps to that aircraft
-    (:func:`_departed`; ``ends``: :func:`aircraft_ends`). ``by``: columns of ``conflicts``
-    kept, that tell apart scorings mapped at once (the points of a trade-off curve): an id
-    pair's vote is taken within each."""
+    (:func:`_departed`; ``ends``: :func:`aircraft_ends`)."""
     ids = id_map if isinstance(id_map, IdMap) else IdMap.of(id_map, pl.DataFrame(), id_col)
     on, m = ids.on, ids.first
     opt = [pl.col(c).cast(pl.Float64) if c in conflicts.columns else pl.lit(None, pl.Float64).alias(c)
            for c in ("r_min_m", "dz_min_m", "t_min_s")]
     # select before filtering: the filter then copies a few columns, not the whole table
-    a = (conflicts.select("alert", *by, pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
+    a = (conflicts.select("alert", pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
                           pl.col("method").cast(pl.String), pl.col("id_a").cast(pl.UInt64),
                           pl.col("id_b").cast(pl.UInt64), *opt)
          .filter(pl.col("alert")).drop("alert"))
@@ -295,11 +292,11 @@ def _alert_rows(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", id_col:
          .join(m.rename({"__id": "id_b", "truth_id": "__tb"}), on=[*on, "id_b"], how="left"))
     a = _departed(a, m, ends, on)
     valid = pl.col("__ta").is_not_null() & pl.col("__tb").is_not_null() & (pl.col("__ta") != pl.col("__tb"))
-    pair = [*by, "run", "method", "id_a", "id_b"]
+    pair = ["run", "method", "id_a", "id_b"]
     votes = (a.filter(valid)
              .group_by([*pair, pl.min_horizontal("__ta", "__tb").alias("truth_a"),
                         pl.max_horizontal("__ta", "__tb").alias("truth_b")]).len()
-             .sort([*pair, "len", "truth_a", "truth_b"], descending=[False] * len(pair) + [True, False, False])
+             .sort([*pair, "len", "truth_a", "truth_b"], descending=[False] * 4 + [True, False, False])
              .unique(subset=pair, keep="first", maintain_order=True).drop("len"))
     a = a.drop("__ta", "__tb").join(votes, on=pair, how="left")
     known = pl.col("truth_a").is_not_null()
@@ -483,32 +480,13 @@ def los_table(grid: pl.DataFrame, eps: pl.DataFrame, los: pl.DataFrame, link_us:
     ).sort("run", "method", "truth_a", "truth_b", "t_start").cast(LOS_SCHEMA)
 
 
-def mapped_alert_rows(scorings: Sequence[pl.DataFrame], id_map: IdMap, truth: pl.DataFrame, cfg: AlertConfig,
-                      id_col: str, frame: geo.LocalFrame | None) -> list[pl.DataFrame]:
-    """The alert rows of each scoring's conflict rows (the points of a trade-off curve) inside the
-    truth's time span mapped to their aircraft in one pass over the id map, as
-    :func:`score_pictures` maps each scoring's alone (an id pair's vote within its scoring)."""
-    inside = _inside(truth)
-    tagged = [(c if inside is None else c.filter(inside)).filter(pl.col("alert"))
-              .with_columns(pl.lit(k, pl.UInt32).alias("__scoring")) for k, c in enumerate(scorings)]
-    if not tagged:
-        return []
-    rows = _alert_rows(pl.concat(tagged, how="diagonal_relaxed"), id_map, id_col, aircraft_ends(truth, cfg, frame),
-                       by=["__scoring"])
-    each = rows.partition_by("__scoring", as_dict=True, include_key=False)
-    empty = rows.clear().drop("__scoring")
-    return [each.get((k,), empty) for k in range(len(tagged))]
-
-
 def score_pictures(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", truth: pl.DataFrame, cfg: AlertConfig,
                    id_col: str,
                    methods: list[str] | None, frame: geo.LocalFrame | None,
-                   intervals: tuple[pl.DataFrame, pl.DataFrame] | None, rows: pl.DataFrame | None = None
+                   intervals: tuple[pl.DataFrame, pl.DataFrame] | None
                    ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(alerts table, LoS table, grid) of the pictures in ``conflicts``; only epochs inside the
-    truth's time span are scored (after the reference ends nothing can judge an alert).
-    ``rows``: the alert rows of ``conflicts`` already mapped to their aircraft
-    (:func:`mapped_alert_rows`; ``conflicts`` then need only their epochs)."""
+    truth's time span are scored (after the reference ends nothing can judge an alert)."""
     inside = _inside(truth)
     if inside is not None:
         conflicts = conflicts.filter(inside)
@@ -519,8 +497,7 @@ def score_pictures(conflicts: pl.DataFrame, id_map: "pl.DataFrame | IdMap", trut
     link_us = int(round(cfg.link * US))
     grid = picture_grid(conflicts, id_map, methods)
     ends = aircraft_ends(truth, cfg, frame)
-    rows = _alert_rows(conflicts, id_map, id_col, ends) if rows is None else rows
-    eps = _episodes_of(rows, grid, cfg.merge_gap_s, cfg.cpa_reach)
+    eps = _episodes_of(_alert_rows(conflicts, id_map, id_col, ends), grid, cfg.merge_gap_s, cfg.cpa_reach)
     eps = classify_episodes(eps, los, prox, link_us, shared, observed_until(truth, cfg, frame, ends))
     alerts = eps.select(
         "run", "method", "id_a", "id_b", "truth_a", "truth_b", to_time("t0", "t_start"), to_time("t1", "t_end"),

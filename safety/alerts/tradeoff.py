@@ -21,7 +21,7 @@ import numpy as np
 import polars as pl
 
 from safety.alerts.config import AlertConfig
-from safety.alerts.episodes import IdMap, mapped_alert_rows, per_picture, score_pictures, scored_conflicts
+from safety.alerts.episodes import IdMap, per_picture, score_pictures, scored_conflicts
 from safety.alerts.separation import truth_intervals, truth_span
 from safety.conflicts import ConflictConfig, conflicts_steps, init_conflict_state, predict_conflicts
 from tertiary.contract import TABLES, TIME
@@ -93,19 +93,11 @@ def tradeoff_from_rows(scored: Sequence["pl.DataFrame | Callable[[], pl.DataFram
     if "truth_id" in truth.columns and "airborne" not in truth.columns:
         truth = truth_span(truth, cfg, frame)       # each aircraft's end read once, not per setting
     ids = IdMap.of(id_map, truth, map_id_col)      # the id map's rows and epochs read once, not per setting
-    # each setting's epochs, and its alert rows mapped to aircraft for every setting in one pass
-    # (a spilled setting's rows read back one at a time, its alert rows kept: a few of them)
-    epochs, alerting = [], []
-    for c in scored:
-        c = c() if callable(c) else c
-        epochs.append(c.select("run", "method", "epoch").unique())
-        alerting.append(c.filter(pl.col("alert")))
-    mapped = mapped_alert_rows(alerting, ids, truth, cfg, map_id_col, frame)
-    del alerting
     rows = []
-    for (mode, par, cc), c, mine in zip(settings, epochs, mapped):
+    for (mode, par, cc), c in zip(settings, scored):
+        c = c() if callable(c) else c         # a spilled setting's rows, read back now
         acfg = dataclasses.replace(cfg, conflict=cc)
-        alerts, los, grid = score_pictures(c, ids, truth, acfg, map_id_col, methods, frame, intervals, rows=mine)
+        alerts, los, grid = score_pictures(c, ids, truth, acfg, map_id_col, methods, frame, intervals)
         per = per_picture(alerts, los, grid)
         for x in warning_s:
             frac = (los.group_by("method").agg(
