@@ -86,6 +86,7 @@ def main() -> None:
             data, _, extra = rest.partition(":")
             run_args = [a for a in extra.split(",") if a]
             job = rows.setdefault(name, {"dataset": data, "args": run_args, "warmup": args.warmup,
+                                         "what": args.what, "trees": {label: _commit(t) for label, t in trees},
                                          "runs": {label: [] for label, _ in trees}})
             for _ in range(args.warmup):
                 for label, tree in trees:
@@ -102,10 +103,19 @@ def main() -> None:
     if args.merge and (RESULTS / "bench_after_windows.json").exists():
         old = json.loads((RESULTS / "bench_after_windows.json").read_text())
         rows = {**old.get("jobs", {}), **rows}
-        args.what = "; ".join(w for w in (old.get("what", ""), args.what) if w)
-    print("recorded in", record("bench_after_windows", {"what": args.what,
-                                                          "trees": {label: str(t) for label, t in trees},
-                                                          "jobs": rows}))
+    print("recorded in", record("bench_after_windows", {"what": WHAT, "jobs": rows}))
+
+
+WHAT = ("each job's runs of each source tree (jobs.*.trees: label -> commit, '+' when the tree had "
+        "uncommitted changes; jobs.*.what: what the trees differ by); medians of the repeats")
+
+
+def _commit(tree: Path) -> str:
+    """The tree's commit (short), '+' when it has uncommitted changes; its path when not a git checkout."""
+    def git(*a: str) -> str:
+        return subprocess.run(["git", "-C", str(tree), *a], capture_output=True, text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD")
+    return head + ("+" if git("status", "--porcelain", "--untracked-files=no") else "") if head else str(tree)
 
 
 if __name__ == "__main__":
