@@ -548,7 +548,9 @@ def _scored_conflict_parts(parts: Any) -> tuple[int, int, list[pl.DataFrame]]:
 def _alert_keys(conflicts: DeferredTable, parts: Any, id_col: str) -> pl.DataFrame:
     """:func:`safety.alerts.alert_ids` of the conflicts' alert rows and the curve points' (all
     settings: an id is kept when any point alerts on it)."""
-    blocks = list(conflicts.blocks())
+    # each block's alert rows alone put together: every block's rows at once are a copy of them all (memory)
+    cols = ["run", "method", "epoch", "id_a", "id_b", "alert"]
+    blocks = [b.filter(pl.col("alert")).select(cols) for b in conflicts.blocks()]
     keys = [safety_alerts.alert_ids(concat_parts(blocks), id_col)] if blocks else []
     files = parts.part_files("curve_rows")
     if files:
