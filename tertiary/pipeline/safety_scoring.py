@@ -136,6 +136,7 @@ def score_safety(ds: Dataset, cfg: PipelineConfig, run: Any, id_map: pl.DataFram
                                               (metrics, alerts, los), out.notes)
     if cfg.stca_lookaheads_s:
         stage("score_curves")   # the points the windows predicted, scored
+        release_memory()        # the alert scoring's scratch, before the points' reads (the end's peak)
         curve = stca_curves(cfg, fused, tracks, id_map, span, acfg, id_col, ds.origin, methods, intervals,
                             None if run.scratch is None else run.scratch / "curves", run.curve_rows)
         metrics = pl.concat([metrics, safety_alerts.tradeoff_metrics(curve)], how="vertical_relaxed")
