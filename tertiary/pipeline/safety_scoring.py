@@ -26,9 +26,7 @@ from tertiary.runtime.windows import release_memory
 
 __all__ = ["EXTERNAL_TRUTH", "SafetyTables", "TruthSource", "empty_id_map", "score_safety"]
 
-# `safety` is imported as modules, not names: `import safety` first imports `tertiary` (whose
-# package imports this one) while `safety` is half initialised, and only a module binding
-# survives that
+# `safety` is imported as modules, not names, for the reason whole_run.py gives
 
 #: what the scoring of an external alert list reads of the truth besides its intervals
 EXTERNAL_TRUTH = ["run", "truth_id", "time", "icao24", "callsign", "mode_3a", "squawk"]
