@@ -167,6 +167,24 @@ def test_mode_c_separates_stacked_aircraft():
     assert len(candidate_pairs(missing, GatingConfig())) == 1
 
 
+def test_a_garbled_mode_c_code_does_not_split_one_mode_s_address():
+    """Two radars' replies of one aircraft at FL351 (one Mode S address): one radar's altitude
+    code is one bit off (+25 600 ft, the simulator's and a real transponder's garble). The pair
+    still gates and its cost has no vertical term, so the aircraft stays one system target; two
+    addresses or no address keep the Mode C test."""
+    df = _aligned([(0, 1, 1, 0, 0, 10706.0), (0, 2, 1, 200, 0, 10706.0)])
+    ages = pl.Series("age_s", [0.0, 0.0])
+    garbled = df.with_columns(pl.Series("altitude_m", [10706.1, 10706.1 + 7802.88]), ages,
+                              pl.Series("mode_s", ["385ec1", "385ec1"]))
+    p = candidate_pairs(garbled, GatingConfig())
+    assert len(p) == 1 and p.sqdist[0] == pytest.approx(200.0 ** 2)
+    assert _groups(garbled) == [{0, 1}]
+    two = garbled.with_columns(pl.Series("mode_s", ["385ec1", "385ec2"]))
+    assert len(candidate_pairs(two, GatingConfig())) == 0
+    none = garbled.with_columns(pl.Series("mode_s", [None, None], dtype=pl.String))
+    assert len(candidate_pairs(none, GatingConfig())) == 0
+
+
 def test_mode_c_is_the_vertical_gate_where_both_reports_carry_it():
     """One aircraft at FL350 seen by two en-route radars 200 km away: their elevation heights
     differ by 1.8 km (0.5° of elevation error), beyond ``alt_tol_m``, while the Mode C altitudes

@@ -51,6 +51,9 @@ class GatingConfig:
       en-route radar's elevation height is off by kilometres — two radars' z of one aircraft
       differed by a median 1.8 km on the national scenario's split targets, beyond
       ``alt_tol_m``, so the aircraft split while its Mode C altitudes agreed to the foot).
+      Two reports of one Mode S address are one airframe whatever their codes: a disagreement
+      is a garbled code (one bit off), which the fusion's garble gate refuses, so the pair is
+      kept and its altitudes are not compared.
     """
 
     pos_tol_m: float = 3000.0
@@ -138,26 +141,38 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     # a freshly initiated local track knows its velocity poorly: widen by 3σ of the difference
     vel_gate = cfg.vel_tol_mps + 3.0 * np.sqrt(vel_var[a] + vel_var[b])
     keep = (radar[a] != radar[b]) & (g[a] == g[b]) & np.all(np.abs(vel[a] - vel[b]) <= vel_gate, axis=1)
+    same = np.zeros(len(a), bool)           # one Mode S address on both: one airframe
     if cfg.use_mode_s and "mode_s" in aligned.columns:
         ms = aligned["mode_s"]
         known = ms.is_not_null().to_numpy()
         codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
         keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
+        same = known[a] & known[b] & (codes[a] == codes[b])
     if alt is not None:
         age = aligned["age_s"].to_numpy()
         tol = cfg.mode_c_tol_m + cfg.max_vrate_mps * np.abs(age[a] - age[b])
-        keep &= ~(np.abs(alt[a] - alt[b]) > tol)          # NaN (no Mode C) never splits
-    a, b, both_c = a[keep], b[keep], both_c[keep]
+        off = np.abs(alt[a] - alt[b]) > tol           # NaN (no Mode C) never splits
+        # with one address on both, a Mode C disagreement is a garbled code (one bit off), not a
+        # second aircraft: the pair stays, and its altitudes are not compared (the fusion's
+        # garble gate refuses the wrong one)
+        keep &= ~off | same
+        garbled = off & same
+        both_c &= ~garbled
+    else:
+        garbled = np.zeros(len(a), bool)
+    a, b, both_c, garbled = a[keep], b[keep], both_c[keep], garbled[keep]
     cov_pos = cov36[:, [0, 1, 2, 6, 7, 8, 12, 13, 14]]   # the 3×3 position block of the 6×6
     ca, cb = cov_pos[a].reshape(-1, 3, 3), cov_pos[b].reshape(-1, 3, 3)
     d2 = position_mahalanobis(pos[a], pos[b], ca, cb) if len(a) else np.zeros(0)
     if cfg.method == "mahalanobis":
         ok = d2 <= chi2_ppf(cfg.gate_prob, 3)
-        a, b, d2, both_c = a[ok], b[ok], d2[ok], both_c[ok]
+        a, b, d2, both_c, garbled = a[ok], b[ok], d2[ok], both_c[ok], garbled[ok]
     elif cfg.method == "bayes":
         ok = d2 <= bayes_threshold(np.linalg.det(ca + cb), cfg.prior_h1, gate_volume(cfg)) if len(a) else d2 > 0
-        a, b, d2, both_c = a[ok], b[ok], d2[ok], both_c[ok]
-    # the vertical term: the altitude difference where both have one (GatingConfig)
-    dz = np.where(both_c, (alt[a] - alt[b]) if alt is not None else 0.0, pos[a, 2] - pos[b, 2])
+        a, b, d2, both_c, garbled = a[ok], b[ok], d2[ok], both_c[ok], garbled[ok]
+    # the vertical term: the altitude difference where both have one (GatingConfig); none for a
+    # garbled pair of one address (its elevation heights are kilometres off at en-route ranges)
+    dz = np.where(both_c, (alt[a] - alt[b]) if alt is not None else 0.0,
+                  np.where(garbled, 0.0, pos[a, 2] - pos[b, 2]))
     sq = np.sum((pos[a, :2] - pos[b, :2]) ** 2, axis=1) + dz ** 2
     return Pairs(a, b, sq, d2)
