@@ -174,10 +174,10 @@ def _identity_rows(spec, t0):
         pl.col("run").cast(pl.UInt32), pl.col("radar_id").cast(pl.UInt32), pl.col("local_track_id").cast(pl.UInt32))
 
 
-def _carry(rows, state=None, gap=30.0):
+def _carry(rows, state=None, gap=30.0, address_gap=None):
     from tertiary.stages.association.associate import carry_step
     label = (rows["radar_id"].cast(pl.Int64) * 1000 + rows["local_track_id"].cast(pl.Int64)).to_numpy()
-    ids, _, st = carry_step(state or init_associate_state(), rows, label, gap)
+    ids, _, st = carry_step(state or init_associate_state(), rows, label, gap, address_gap)
     return dict(zip(zip(rows["radar_id"].to_list(), rows["local_track_id"].to_list(), rows["epoch"].to_list()),
                     ids.tolist())), st
 
@@ -204,6 +204,30 @@ def test_a_mode_s_aircraft_handed_to_another_radar_stays_one_target():
     assert first[at(1, 7, 0)] in set(st.live_targets()["target_id"].to_list())
     second, _ = _carry(rows.filter(pl.col("epoch") >= t0 + timedelta(seconds=24)), st)
     assert second[at(2, 3, 28)] == first[at(1, 7, 0)]
+
+
+def test_a_mode_s_address_keeps_its_target_through_a_coverage_gap_longer_than_a_local_track():
+    """The aircraft leaves every radar's coverage after 20 s and comes back under a new local
+    track: within ``address_gap_s`` of its last report (here 180 s later, and across a window
+    boundary in the silence) it is the same system target; after longer, a new one. A local
+    track number reused after ``carry_gap_s`` still hands nothing on."""
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    at = lambda r, k, s: (r, k, t0 + timedelta(seconds=s))    # noqa: E731
+    spec = lambda back, ms2="4ca1b2": ([(1, 7, s, "4ca1b2") for s in range(0, 21, 4)]     # noqa: E731
+                                       + [(2, 3, s, ms2) for s in range(back, back + 20, 4)])
+    for back, same in ((56, True), (200, True), (400, False)):
+        ids, _ = _carry(_identity_rows(spec(back), t0), address_gap=300.0)
+        assert (ids[at(2, 3, back)] == ids[at(1, 7, 0)]) is same, back
+    # another aircraft flies on to 96 s in the first window: the state outlives the local tracks' gap
+    rows = _identity_rows(spec(200) + [(3, 9, s, "3c6544") for s in range(0, 97, 4)], t0)
+    first, st = _carry(rows.filter(pl.col("epoch") < t0 + timedelta(seconds=100)), address_gap=300.0)
+    second, _ = _carry(rows.filter(pl.col("epoch") >= t0 + timedelta(seconds=100)), st, address_gap=300.0)
+    assert second[at(2, 3, 200)] == first[at(1, 7, 0)]
+    ids, _ = _carry(_identity_rows(spec(56, None), t0), address_gap=300.0)       # no address: a new target
+    assert ids[at(2, 3, 56)] != ids[at(1, 7, 0)]
+    reused = _identity_rows([(1, 7, s, None) for s in (0, 4, 8)] + [(1, 7, s, None) for s in (60, 64)], t0)
+    ids, _ = _carry(reused, address_gap=300.0)
+    assert ids[at(1, 7, 60)] != ids[at(1, 7, 0)]
 
 
 def test_an_address_id_held_by_another_group_is_not_given_twice():

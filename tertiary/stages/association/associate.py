@@ -36,7 +36,7 @@ had at their previous epoch (majority vote; a contested id goes to the larger gr
 target keeps its number while its radars keep theirs (vote ties go to the id carried by the
 group's lowest-numbered radar, which resolves a radar swapping its own track numbers). A group
 that carries a Mode S address and another id than the one that address last had (or none) takes
-the address's id, when that was at most ``carry_gap_s`` ago and no group of that address holds
+the address's id, when that was at most ``address_gap_s`` ago and no group of that address holds
 it at this epoch: an aircraft handed from one radar's coverage to another's, whose local tracks
 were all dropped and restarted, or whose new local track formed a group of its own beside the
 old one until the old one ended, stays one system target (the address is unique to the
@@ -81,6 +81,12 @@ class AssociationConfig:
       a new track when its number comes back (radars reuse the numbers of deleted tracks):
       it does not inherit the system target id it had before. 30 s bridges two missed scans
       of a 12 s radar (silence 36 s, of which 18 s are covered by the 1.5-scan extrapolation).
+    * ``address_gap_s``: how long a Mode S address keeps its system target id through a
+      silence. The address is the airframe's, never reused by another aircraft, so it bridges
+      what a local track number cannot: an aircraft that leaves every radar's coverage (low,
+      or between en-route radars) and comes back under new local tracks a minute later is the
+      same system target, not a second one. Five minutes is well below the shortest turnaround
+      of an airframe between two flights.
     * ``assignment``: ``"pairwise"`` (each radar to the reference radar) or ``"joint"`` (the
       exact multi-dimensional minimum for components with ≥ 3 radars; module docstring). A
       component with more than ``max_tuples`` feasible tuples falls back to pairwise.
@@ -92,6 +98,7 @@ class AssociationConfig:
     cost: Literal["sqdist", "mahalanobis"] = "sqdist"
     gating: GatingConfig = field(default_factory=GatingConfig)
     carry_gap_s: float = 30.0
+    address_gap_s: float = 300.0
     assignment: Literal["pairwise", "joint"] = "pairwise"
     max_tuples: int = 20_000
     mode_3a: Literal["off", "forbid", "penalise"] = "off"
@@ -148,7 +155,7 @@ class AssociateState:
     * ``run_next``: (run, next fresh target id of that run) — target ids are numbered per
       Monte-Carlo run, like track and cluster ids, so a run processed alone (a Dask partition)
       gets the ids it gets in the whole job.
-    * ``addresses``: one row per Mode S address (run, mode_s) seen within ``carry_gap_s``: the
+    * ``addresses``: one row per Mode S address (run, mode_s) seen within ``address_gap_s``: the
       system target id it had at its last epoch and that epoch (``seen_us``).
     """
 
@@ -469,9 +476,12 @@ def _track_codes(state: AssociateState, aligned: pl.DataFrame
 
 
 def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.int64],
-               carry_gap_s: float = math.inf) -> tuple[NDArray[np.int64], int, AssociateState]:
+               carry_gap_s: float = math.inf, address_gap_s: float | None = None
+               ) -> tuple[NDArray[np.int64], int, AssociateState]:
     """Target ids of one window's rows, continuing ``state``: (target id per row, reassignments,
-    new state; its ``t_us`` is left to the caller).
+    new state; its ``t_us`` is left to the caller). A local track hands its id on through a
+    silence of at most ``carry_gap_s``, a Mode S address through one of at most
+    ``address_gap_s`` (None: ``carry_gap_s``).
 
     Sequential over epochs (a loop over the window's epochs, vectorised across runs, groups
     and reports within each epoch). Fresh ids within an epoch follow the order of ``label``.
@@ -496,6 +506,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     a_last[a_state] = state.addresses["target_id"].to_numpy()
     a_seen[a_state] = state.addresses["seen_us"].to_numpy()
     gap_us = carry_gap_s * 1e6
+    a_gap_us = (carry_gap_s if address_gap_s is None else address_gap_s) * 1e6
     target = np.empty(n, np.int64)
     reassigned = 0
     for rows in np.split(order, bounds):
@@ -514,7 +525,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
         g_addr = np.full(len(ug), -1, np.int64)          # the gate never joins two addresses
         np.maximum.at(g_addr, gi, addr[rows])
         g_run = runs[rows][first]
-        assigned = _by_address(assigned, g_addr, g_run, a_last, a_seen, int(epoch[rows[0]]), gap_us)
+        assigned = _by_address(assigned, g_addr, g_run, a_last, a_seen, int(epoch[rows[0]]), a_gap_us)
         fresh = assigned < 0
         if fresh.any():
             assigned[fresh] = _fresh_ids(g_run[fresh], nxt)
@@ -531,7 +542,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     # a track silent for more than the gap before the latest epoch can never vote again
     live = (last >= 0) & (seen >= float(epoch.max()) - gap_us)
     tracks = key_frame.with_columns(pl.Series("target_id", last), pl.Series("seen_us", seen)).filter(pl.Series(live))
-    a_live = (a_last >= 0) & (a_seen >= float(epoch.max()) - gap_us)
+    a_live = (a_last >= 0) & (a_seen >= float(epoch.max()) - a_gap_us)
     addresses = a_frame.with_columns(pl.Series("target_id", a_last), pl.Series("seen_us", a_seen)
                                      ).filter(pl.Series(a_live)).cast(_ADDRESSES_SCHEMA)
     return target, reassigned, AssociateState(tracks, state.t_us, tuple(sorted(nxt.items())), addresses)
@@ -593,7 +604,7 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     """
     check_window(aligned_window, Window(0, t0_us, t1_us), after_us=state.t_us, table="aligned")
     label, stats = group_reports(aligned_window, cfg)
-    target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s)
+    target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s, cfg.address_gap_s)
     stats.targets = new.next_id - state.next_id
     cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
     out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(
