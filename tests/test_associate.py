@@ -185,6 +185,26 @@ def test_a_garbled_mode_c_code_does_not_split_one_mode_s_address():
     assert len(candidate_pairs(none, GatingConfig())) == 0
 
 
+def test_a_radars_older_track_of_an_address_does_not_keep_its_newer_one_from_the_aircraft():
+    """Radar 1 still extrapolates its old local track of the aircraft (report 9 s old) beside the
+    new one it started (report 1 s old); radar 2 sees the aircraft too. The newer report groups
+    with radar 2's, the older one alone: with both in the gate, a radar's two reports make two
+    targets and radar 2's could go with the older. Without an address both stay candidates."""
+    rows = [(0, 1, 1, 0, 0, 3000, 100.0, 0.0, "4ca1b2"), (0, 1, 2, 400, 0, 3000, 100.0, 0.0, "4ca1b2"),
+            (0, 2, 5, 150, 0, 3000, 100.0, 0.0, "4ca1b2")]
+    df = _aligned(rows).with_columns(pl.Series("time", [T0.replace(second=s) for s in (0, 0, 0)]))
+    times = {(1, 1): -9.0, (1, 2): -1.0, (2, 5): -2.0}
+    df = df.with_columns(pl.struct("radar_id", "local_track_id").map_elements(
+        lambda r: T0.timestamp() + times[(r["radar_id"], r["local_track_id"])], return_dtype=pl.Float64)
+        .alias("time")).with_columns(pl.from_epoch("time", time_unit="s").dt.replace_time_zone("UTC"))
+    ids = dict(zip(zip(df["radar_id"], df["local_track_id"]), df["report_id"]))
+    assert sorted(_groups(df), key=len) == [{ids[(1, 1)]}, {ids[(1, 2)], ids[(2, 5)]}]
+    pairs = candidate_pairs(df, GatingConfig())
+    assert {(int(a), int(b)) for a, b in zip(pairs.a, pairs.b)} in ({(1, 2)}, {(2, 1)})
+    anonymous = df.with_columns(pl.lit(None, pl.String).alias("mode_s"))
+    assert len(candidate_pairs(anonymous, GatingConfig())) == 2
+
+
 def test_mode_c_is_the_vertical_gate_where_both_reports_carry_it():
     """One aircraft at FL350 seen by two en-route radars 200 km away: their elevation heights
     differ by 1.8 km (0.5° of elevation error), beyond ``alt_tol_m``, while the Mode C altitudes

@@ -53,7 +53,8 @@ class GatingConfig:
       ``alt_tol_m``, so the aircraft split while its Mode C altitudes agreed to the foot).
       Two reports of one Mode S address are one airframe whatever their codes: a disagreement
       is a garbled code (one bit off), which the fusion's garble gate refuses, so the pair is
-      kept and its altitudes are not compared.
+      kept and its altitudes are not compared. A radar's older report of an address it has a
+      newer report of at the same epoch (:func:`superseded_rows`) gates with nothing.
     """
 
     pos_tol_m: float = 3000.0
@@ -110,6 +111,19 @@ def position_mahalanobis(pos_a, pos_b, cov_a, cov_b) -> NDArray[np.float64]:
     return np.einsum("ni,ni->n", d, np.linalg.solve(s, d[..., None])[..., 0])
 
 
+def superseded_rows(aligned: pl.DataFrame) -> NDArray[np.bool_]:
+    """Rows whose radar has a newer report of the same Mode S address at the same epoch: a
+    local track the radar still extrapolates after it started another one on the airframe
+    (a radar's duplicate track). Such a row gates with nothing, so the newer one joins the
+    aircraft's other radars instead of a second target of its own."""
+    if "time" not in aligned.columns or "mode_s" not in aligned.columns or aligned.height == 0:
+        return np.zeros(aligned.height, bool)
+    key = ["run", "epoch", "radar_id", "mode_s"]
+    newest = pl.col("time").max().over(key)
+    return aligned.select((pl.col("mode_s").is_not_null() & (pl.col("time") < newest)).fill_null(False)
+                          ).to_series().to_numpy()
+
+
 def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
                     groups: NDArray[np.int64] | None = None) -> Pairs:
     """All gated report pairs across radars within each (run, epoch)."""
@@ -148,6 +162,8 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
         codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
         keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
         same = known[a] & known[b] & (codes[a] == codes[b])
+        stale = superseded_rows(aligned)
+        keep &= ~(stale[a] | stale[b])
     if alt is not None:
         age = aligned["age_s"].to_numpy()
         tol = cfg.mode_c_tol_m + cfg.max_vrate_mps * np.abs(age[a] - age[b])
