@@ -10,7 +10,8 @@ database is read for every figure a verdict rests on:
   how many of them (and of the missed losses) are picture-induced or predictor-induced, Torres &
   McKay's valid alerts, losses of separation alerted and missed (and the missed ones under way
   when their aircraft were first observed, which no alert can precede), median warning;
-* system targets and tracks per aircraft;
+* system targets and tracks per aircraft, and why an aircraft has more than one confirmed
+  system target (:func:`target_splits`);
 * horizontal RMSE of every tracker against its fused input, overall and per flight phase;
 * the posterior Cramér–Rao bound of every picture, its gap, and the pictures below it;
 * the false- and duplicate-track rates of every picture (the centralised reference against the
@@ -244,6 +245,54 @@ def figures(db: Path) -> dict:
             if rows.get("aircraft") else None,
             "tracks_per_aircraft": tracks_per_aircraft, "aircraft": rows.get("aircraft"),
             "notes": json.loads(run.get("notes", "[]"))}
+
+
+#: what keeps a concurrent second target apart from its aircraft's first, tested in this order
+#: on their reports' aligned rows at the second's first epoch (the gate's terms)
+SPLIT_CAUSES = ("one radar, two local tracks", "Mode C codes differ (> 300 m)", "a local track jumped (> 3 km)",
+                "velocity differs (> 60 m/s)", "the first target has no report then", "other")
+
+
+def target_splits(db: Path, method: str = "information") -> dict:
+    """Every confirmed system target of ``method`` beyond an aircraft's first (targets by the
+    majority truth of their reports, ordered by their first confirmed epoch), by cause: ``after
+    the first ended`` (a coverage gap the target did not bridge), or, beside it, the first of
+    :data:`SPLIT_CAUSES` that holds between its reports and the previous target's at its first
+    epoch. Needs the full tables (associations, aligned, fused)."""
+    import duckdb
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        con.execute(f"""create temp table ct as
+            with tv as (select a.run, a.target_id, r.truth_id, count(*) n from associations a
+                        join reports r using (report_id) where r.truth_id is not null group by all),
+                 maj as (select run, target_id, arg_max(truth_id, n) truth_id from tv group by all),
+                 conf as (select run, target_id, min(epoch) c0, max(epoch) c1 from fused
+                          where method = '{method}' and not tentative group by all)
+            select m.*, c.c0, c.c1, lag(c.c1) over w prev_c1, lag(m.target_id) over w prev_id
+            from maj m join conf c using (run, target_id)
+            window w as (partition by m.run, m.truth_id order by c.c0)""")
+        rows = con.execute("""
+            with x as (select * from ct where prev_id is not null),
+                 g as (select x.target_id xt, a.target_id = x.target_id mine, al.radar_id, al.x_m, al.y_m,
+                              al.vx_mps, al.vy_mps, al.altitude_m, x.c0 < x.prev_c1 beside
+                       from x join associations a on a.run = x.run and a.epoch = x.c0
+                                                  and a.target_id in (x.target_id, x.prev_id)
+                       join aligned al on al.report_id = a.report_id and al.epoch = a.epoch and al.run = a.run)
+            select s.xt, bool_or(s.beside) beside, count(o.xt) others,
+                   bool_or(s.radar_id = o.radar_id) same_radar,
+                   min(abs(s.altitude_m - o.altitude_m)) dalt,
+                   min(sqrt((s.x_m - o.x_m) ^ 2 + (s.y_m - o.y_m) ^ 2)) dh,
+                   min(greatest(abs(s.vx_mps - o.vx_mps), abs(s.vy_mps - o.vy_mps))) dv
+            from g s left join g o on o.xt = s.xt and not o.mine where s.mine group by s.xt""").fetchall()
+        aircraft = con.execute("select count(distinct (run, truth_id)) from ct").fetchall()[0][0]
+    finally:
+        con.close()
+    counts = dict.fromkeys(("after the first ended", *SPLIT_CAUSES), 0)
+    for _, beside, others, same_radar, dalt, dh, dv in rows:
+        tests = (bool(same_radar), (dalt or 0.0) > 300.0, (dh or 0.0) > 3000.0, (dv or 0.0) > 60.0, others == 0, True)
+        cause = SPLIT_CAUSES[tests.index(True)] if beside else "after the first ended"
+        counts[cause] += 1
+    return {"method": method, "aircraft_with_a_target": aircraft, "extra_targets": len(rows), "causes": counts}
 
 
 def _truth_of(data: Path):
@@ -503,6 +552,7 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
         old = json.loads((RESULTS / "bench_trust.json").read_text())["datasets"].get(name, {})
         return {**old, **figures(out / "results.duckdb"),
                 "picture_induced_causes": alert_causes(out / "results.duckdb", data),
+                "target_splits": target_splits(out / "results.duckdb"),
                 **(_later(name, work) if name in NATIONAL15_START_S else {})}
     if name in NATIONAL15_START_S:
         sim, args = _national15(work, name), CONFIGS["production"]
@@ -521,6 +571,7 @@ def run_dataset(name: str, work: Path, figures_only: bool = False) -> dict:
             "summary": [line.strip() for line in stdout.splitlines()
                         if line.strip().startswith(("run ", "system targets", "fusion", "tracker", "safety "))],
             **figures(out / "results.duckdb"), "picture_induced_causes": alert_causes(out / "results.duckdb", data),
+            "target_splits": target_splits(out / "results.duckdb"),
             **(_later(name, work) if name in NATIONAL15_START_S else {})}
 
 
