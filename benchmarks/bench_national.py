@@ -8,9 +8,13 @@ configuration (one fusion method, one tracker, conflicts, evaluation, store; def
 the process's peak resident memory, and for the run its stage timings, its peak by the end of
 each stage and its summary lines (system targets per aircraft, alerts, losses of separation).
 
-    python benchmarks/bench_national.py [--start-s 28800] [--duration 3600] [--work DIR]
+With ``--causes`` (every table stored) it also records the cause of each picture-induced alert
+and why an aircraft has more than one confirmed system target (``bench_trust.target_splits``),
+beside an earlier tree's (``--causes-before``, ``--splits-before``).
 
-Results: ``benchmarks/results/bench_national.json``.
+    python benchmarks/bench_national.py [--start-s 28800] [--duration 3600] [--work DIR] [--record NAME]
+
+Results: ``benchmarks/results/bench_national.json`` (``--record``: another name, e.g. a longer slice).
 """
 
 from __future__ import annotations
@@ -49,6 +53,10 @@ def main() -> None:
                     help="store every table (--tables full) and record the cause of each picture-induced alert")
     ap.add_argument("--causes-before", type=Path, default=None,
                     help="a JSON of the causes on an earlier tree (alert_causes' output) to record beside them")
+    ap.add_argument("--splits-before", type=Path, default=None,
+                    help="an earlier tree's run database of the same dataset (--tables full): its target splits "
+                         "recorded beside this run's")
+    ap.add_argument("--record", default="bench_national", help="the results file's name (benchmarks/results/NAME.json)")
     args = ap.parse_args()
     from tertiary.simulate import load_scenario
     from tertiary.simulate.config import scenario_toml
@@ -86,12 +94,15 @@ def main() -> None:
             "day_at_this_rate_s": round(wall_r * 86400.0 / args.duration, 0),
         }
         if args.causes:
-            from bench_trust import alert_causes
+            from bench_trust import alert_causes, target_splits
             row["picture_induced_causes"] = alert_causes(db, data)
             if args.causes_before is not None:
                 row["picture_induced_causes_before"] = json.loads(args.causes_before.read_text())
+            row["target_splits"] = target_splits(db)
+            if args.splits_before is not None:
+                row["target_splits_before"] = target_splits(args.splits_before)
         print(json.dumps(row, indent=2), flush=True)
-        print("recorded in", record("bench_national", row))
+        print("recorded in", record(args.record, row))
 
 
 if __name__ == "__main__":
