@@ -171,7 +171,8 @@ def test_a_garbled_mode_c_code_does_not_split_one_mode_s_address():
     """Two radars' replies of one aircraft at FL351 (one Mode S address): one radar's altitude
     code is one bit off (+25 600 ft, the simulator's and a real transponder's garble). The pair
     still gates and its cost has no vertical term, so the aircraft stays one system target; two
-    addresses or no address keep the Mode C test."""
+    addresses or no address keep the Mode C test. Nor does a missing code with elevation heights
+    kilometres apart split one address."""
     df = _aligned([(0, 1, 1, 0, 0, 10706.0), (0, 2, 1, 200, 0, 10706.0)])
     ages = pl.Series("age_s", [0.0, 0.0])
     garbled = df.with_columns(pl.Series("altitude_m", [10706.1, 10706.1 + 7802.88]), ages,
@@ -183,6 +184,12 @@ def test_a_garbled_mode_c_code_does_not_split_one_mode_s_address():
     assert len(candidate_pairs(two, GatingConfig())) == 0
     none = garbled.with_columns(pl.Series("mode_s", [None, None], dtype=pl.String))
     assert len(candidate_pairs(none, GatingConfig())) == 0
+    # one code missing, the elevation heights 1.8 km apart (en-route range): one address still pairs
+    far = _aligned([(0, 1, 1, 0, 0, 10706.0), (0, 2, 1, 200, 0, 10706.0 + 1800.0)]).with_columns(
+        pl.Series("altitude_m", [10706.1, None], dtype=pl.Float64), ages, pl.Series("mode_s", ["385ec1", "385ec1"]))
+    p = candidate_pairs(far, GatingConfig())
+    assert len(p) == 1 and p.sqdist[0] == pytest.approx(200.0 ** 2)
+    assert len(candidate_pairs(far.with_columns(pl.lit(None, pl.String).alias("mode_s")), GatingConfig())) == 0
 
 
 def test_a_radars_older_track_of_an_address_does_not_keep_its_newer_one_from_the_aircraft():

@@ -230,6 +230,23 @@ def test_a_mode_s_address_keeps_its_target_through_a_coverage_gap_longer_than_a_
     assert ids[at(1, 7, 60)] != ids[at(1, 7, 0)]
 
 
+def test_a_radars_superseded_track_does_not_take_the_aircrafts_target_from_its_newer_one():
+    """Radars 1 and 2 see the aircraft as one target; at 12 s radar 1 has started a new local
+    track (9) on it while still extrapolating the old one (7, report from 8 s). The group of
+    the newer track and radar 2's keeps the aircraft's target; the superseded row, alone, gets
+    another id (counted as a row of the address, it would keep the target: the vote's tie goes to
+    its lower radar)."""
+    from tertiary.stages.association.associate import carry_step
+    t0 = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    spec = [(1, 7, s, "4ca1b2") for s in (0, 4, 8)] + [(2, 3, s, "4ca1b2") for s in (0, 4, 8)] \
+        + [(1, 7, 12, "4ca1b2"), (1, 9, 12, "4ca1b2"), (2, 3, 12, "4ca1b2")]
+    rows = _identity_rows(spec, t0).with_columns(
+        pl.Series("time", [t0 + timedelta(seconds=s) for s in (0, 4, 8, 0, 4, 8, 8, 11.5, 11)]))
+    label = np.array([0, 0, 0, 0, 0, 0, 1, 2, 2])          # epochs 0-8: one group; 12: {7}, {9, 3}
+    ids, _, _ = carry_step(init_associate_state(), rows, label, 30.0)
+    assert ids[7] == ids[8] == ids[0] and ids[6] != ids[0]
+
+
 def test_an_address_id_held_by_another_group_is_not_given_twice():
     """Radar 1's track of the aircraft runs on while radar 2's plot of the same address forms a
     group of its own (outside the gate): the id stays with the group that holds it, the other

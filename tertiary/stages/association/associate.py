@@ -69,7 +69,7 @@ from scipy.sparse.csgraph import connected_components
 from tertiary.core.distributions import chi2_ppf
 from tertiary.core.errors import OptionError
 from tertiary.core.stage import T_MIN_US, Window, check_window
-from tertiary.stages.association.gating import GatingConfig, Pairs, candidate_pairs, group_index
+from tertiary.stages.association.gating import GatingConfig, Pairs, candidate_pairs, group_index, superseded_rows
 
 BIG = 1e18
 
@@ -491,6 +491,11 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
         return np.zeros(0, np.int64), 0, state
     code_state, keys, key_frame = _track_codes(state, aligned)
     a_state, addr, a_frame = _address_codes(state, aligned)
+    # a radar's superseded row (its newer report of the address is at this epoch too) counts as
+    # one without the address: it cannot keep the address's id from the group of the newer
+    # report, which takes it (:func:`~.gating.superseded_rows`, :func:`_by_address`)
+    stale = superseded_rows(aligned)
+    addr = np.where(stale, -1, addr)
     epoch = aligned["epoch"].dt.epoch("us").to_numpy()
     radar = aligned["radar_id"].to_numpy().astype(np.int64)
     runs = aligned["run"].to_numpy().astype(np.int64)

@@ -143,9 +143,17 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     pairs = cKDTree(pts).query_pairs(cfg.pos_tol_m, output_type="ndarray")
     a, b = pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
     both_c = np.zeros(len(a), bool) if alt is None else np.isfinite(alt[a]) & np.isfinite(alt[b])
+    use_s = cfg.use_mode_s and "mode_s" in aligned.columns
+    if use_s:
+        ms = aligned["mode_s"]
+        known = ms.is_not_null().to_numpy()
+        codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
     if alt is not None:          # pairs without two altitudes: the elevation heights' ellipsoid
         dxy2 = (pos[a, 0] - pos[b, 0]) ** 2 + (pos[a, 1] - pos[b, 1]) ** 2
         inside = dxy2 + ((pos[a, 2] - pos[b, 2]) * scale) ** 2 <= cfg.pos_tol_m ** 2
+        # one address on both: one airframe, whose elevation heights are kilometres apart at
+        # en-route ranges (the Mode C of one of them is missing)
+        inside |= known[a] & known[b] & (codes[a] == codes[b]) if use_s else False
         a, b, both_c = a[both_c | inside], b[both_c | inside], both_c[both_c | inside]
 
     radar = aligned["radar_id"].to_numpy()
@@ -156,10 +164,7 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     vel_gate = cfg.vel_tol_mps + 3.0 * np.sqrt(vel_var[a] + vel_var[b])
     keep = (radar[a] != radar[b]) & (g[a] == g[b]) & np.all(np.abs(vel[a] - vel[b]) <= vel_gate, axis=1)
     same = np.zeros(len(a), bool)           # one Mode S address on both: one airframe
-    if cfg.use_mode_s and "mode_s" in aligned.columns:
-        ms = aligned["mode_s"]
-        known = ms.is_not_null().to_numpy()
-        codes = ms.cast(pl.Categorical).to_physical().fill_null(0).to_numpy().astype(np.int64)
+    if use_s:
         keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
         same = known[a] & known[b] & (codes[a] == codes[b])
         stale = superseded_rows(aligned)
@@ -172,23 +177,21 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
         # second aircraft: the pair stays, and its altitudes are not compared (the fusion's
         # garble gate refuses the wrong one)
         keep &= ~off | same
-        garbled = off & same
-        both_c &= ~garbled
-    else:
-        garbled = np.zeros(len(a), bool)
-    a, b, both_c, garbled = a[keep], b[keep], both_c[keep], garbled[keep]
+        both_c &= ~(off & same)
+    a, b, both_c, same = a[keep], b[keep], both_c[keep], same[keep]
     cov_pos = cov36[:, [0, 1, 2, 6, 7, 8, 12, 13, 14]]   # the 3×3 position block of the 6×6
     ca, cb = cov_pos[a].reshape(-1, 3, 3), cov_pos[b].reshape(-1, 3, 3)
     d2 = position_mahalanobis(pos[a], pos[b], ca, cb) if len(a) else np.zeros(0)
     if cfg.method == "mahalanobis":
         ok = d2 <= chi2_ppf(cfg.gate_prob, 3)
-        a, b, d2, both_c, garbled = a[ok], b[ok], d2[ok], both_c[ok], garbled[ok]
+        a, b, d2, both_c, same = a[ok], b[ok], d2[ok], both_c[ok], same[ok]
     elif cfg.method == "bayes":
         ok = d2 <= bayes_threshold(np.linalg.det(ca + cb), cfg.prior_h1, gate_volume(cfg)) if len(a) else d2 > 0
-        a, b, d2, both_c, garbled = a[ok], b[ok], d2[ok], both_c[ok], garbled[ok]
+        a, b, d2, both_c, same = a[ok], b[ok], d2[ok], both_c[ok], same[ok]
     # the vertical term: the altitude difference where both have one (GatingConfig); none for a
-    # garbled pair of one address (its elevation heights are kilometres off at en-route ranges)
-    dz = np.where(both_c, (alt[a] - alt[b]) if alt is not None else 0.0,
-                  np.where(garbled, 0.0, pos[a, 2] - pos[b, 2]))
+    # pair of one address without two valid codes (its elevation heights are kilometres off at
+    # en-route ranges)
+    no_z = same & (alt is not None)
+    dz = np.where(both_c, (alt[a] - alt[b]) if alt is not None else 0.0, np.where(no_z, 0.0, pos[a, 2] - pos[b, 2]))
     sq = np.sum((pos[a, :2] - pos[b, :2]) ** 2, axis=1) + dz ** 2
     return Pairs(a, b, sq, d2)
