@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 
 import numpy as np
 import polars as pl
@@ -199,11 +199,8 @@ def test_a_radars_older_track_of_an_address_does_not_keep_its_newer_one_from_the
     targets and radar 2's could go with the older. Without an address both stay candidates."""
     rows = [(0, 1, 1, 0, 0, 3000, 100.0, 0.0, "4ca1b2"), (0, 1, 2, 400, 0, 3000, 100.0, 0.0, "4ca1b2"),
             (0, 2, 5, 150, 0, 3000, 100.0, 0.0, "4ca1b2")]
-    df = _aligned(rows).with_columns(pl.Series("time", [T0.replace(second=s) for s in (0, 0, 0)]))
-    times = {(1, 1): -9.0, (1, 2): -1.0, (2, 5): -2.0}
-    df = df.with_columns(pl.struct("radar_id", "local_track_id").map_elements(
-        lambda r: T0.timestamp() + times[(r["radar_id"], r["local_track_id"])], return_dtype=pl.Float64)
-        .alias("time")).with_columns(pl.from_epoch("time", time_unit="s").dt.replace_time_zone("UTC"))
+    # rows in (radar, local track) order: reports 9 s, 1 s and 2 s old
+    df = _aligned(rows).with_columns(pl.Series("time", [T0 - timedelta(seconds=s) for s in (9, 1, 2)]))
     ids = dict(zip(zip(df["radar_id"], df["local_track_id"]), df["report_id"]))
     assert sorted(_groups(df), key=len) == [{ids[(1, 1)]}, {ids[(1, 2)], ids[(2, 5)]}]
     pairs = candidate_pairs(df, GatingConfig())

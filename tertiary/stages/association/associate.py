@@ -278,15 +278,16 @@ def _solve_component(rows: NDArray[np.int64], radar: NDArray, cost: NDArray[np.f
     return out
 
 
-def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig()
-                  ) -> tuple[NDArray[np.int64], AssociationStats]:
-    """Group label per aligned row (same label = same aircraft at that epoch)."""
+def group_reports(aligned: pl.DataFrame, cfg: AssociationConfig = AssociationConfig(),
+                  stale: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.int64], AssociationStats]:
+    """Group label per aligned row (same label = same aircraft at that epoch); ``stale``: the
+    rows' :func:`~.gating.superseded_rows`, when the caller has them."""
     n = aligned.height
     stats = AssociationStats(reports=n)
     if n == 0:
         return np.zeros(0, np.int64), stats
     groups = group_index(aligned)
-    pairs = candidate_pairs(aligned, cfg.gating, groups)
+    pairs = candidate_pairs(aligned, cfg.gating, groups, stale)
     pairs = fine_identification(aligned, pairs, cfg, stats)
     stats.pairs = len(pairs)
     comp = _components(n, pairs)
@@ -476,12 +477,13 @@ def _track_codes(state: AssociateState, aligned: pl.DataFrame
 
 
 def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.int64],
-               carry_gap_s: float = math.inf, address_gap_s: float | None = None
-               ) -> tuple[NDArray[np.int64], int, AssociateState]:
+               carry_gap_s: float = math.inf, address_gap_s: float | None = None,
+               stale: NDArray[np.bool_] | None = None) -> tuple[NDArray[np.int64], int, AssociateState]:
     """Target ids of one window's rows, continuing ``state``: (target id per row, reassignments,
     new state; its ``t_us`` is left to the caller). A local track hands its id on through a
     silence of at most ``carry_gap_s``, a Mode S address through one of at most
-    ``address_gap_s`` (None: ``carry_gap_s``).
+    ``address_gap_s`` (None: ``carry_gap_s``). ``stale``: the rows' :func:`~.gating.superseded_rows`
+    (None: found here).
 
     Sequential over epochs (a loop over the window's epochs, vectorised across runs, groups
     and reports within each epoch). Fresh ids within an epoch follow the order of ``label``.
@@ -494,8 +496,7 @@ def carry_step(state: AssociateState, aligned: pl.DataFrame, label: NDArray[np.i
     # a radar's superseded row (its newer report of the address is at this epoch too) counts as
     # one without the address: it cannot keep the address's id from the group of the newer
     # report, which takes it (:func:`~.gating.superseded_rows`, :func:`_by_address`)
-    stale = superseded_rows(aligned)
-    addr = np.where(stale, -1, addr)
+    addr = np.where(superseded_rows(aligned) if stale is None else stale, -1, addr)
     epoch = aligned["epoch"].dt.epoch("us").to_numpy()
     radar = aligned["radar_id"].to_numpy().astype(np.int64)
     runs = aligned["run"].to_numpy().astype(np.int64)
@@ -608,8 +609,10 @@ def associate_step(state: AssociateState, aligned_window: pl.DataFrame, t0_us: i
     modified.
     """
     check_window(aligned_window, Window(0, t0_us, t1_us), after_us=state.t_us, table="aligned")
-    label, stats = group_reports(aligned_window, cfg)
-    target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s, cfg.address_gap_s)
+    stale = superseded_rows(aligned_window)         # the gate's and the id carry's, found once
+    label, stats = group_reports(aligned_window, cfg, stale)
+    target, stats.reassignments, new = carry_step(state, aligned_window, label, cfg.carry_gap_s, cfg.address_gap_s,
+                                                  stale)
     stats.targets = new.next_id - state.next_id
     cost = _reference_cost(aligned_window, label, cfg) if aligned_window.height else np.zeros(0)
     out = aligned_window.select("run", "epoch", "radar_id", "local_track_id", "report_id").with_columns(

@@ -125,8 +125,9 @@ def superseded_rows(aligned: pl.DataFrame) -> NDArray[np.bool_]:
 
 
 def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
-                    groups: NDArray[np.int64] | None = None) -> Pairs:
-    """All gated report pairs across radars within each (run, epoch)."""
+                    groups: NDArray[np.int64] | None = None, stale: NDArray[np.bool_] | None = None) -> Pairs:
+    """All gated report pairs across radars within each (run, epoch); ``stale``: the rows'
+    :func:`superseded_rows`, when the caller has them."""
     n = aligned.height
     if n < 2:
         empty = np.zeros(0, np.int64)
@@ -167,7 +168,7 @@ def candidate_pairs(aligned: pl.DataFrame, cfg: GatingConfig = GatingConfig(),
     if use_s:
         keep &= ~(known[a] & known[b] & (codes[a] != codes[b]))
         same = known[a] & known[b] & (codes[a] == codes[b])
-        stale = superseded_rows(aligned)
+        stale = superseded_rows(aligned) if stale is None else stale
         keep &= ~(stale[a] | stale[b])
     if alt is not None:
         age = aligned["age_s"].to_numpy()
