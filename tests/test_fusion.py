@@ -603,10 +603,44 @@ def test_tentative_until_a_local_track_has_two_plots_then_confirmed_for_good():
             report(k=2, target=1, radar=1, track=5), report(k=3, target=1, radar=1, track=5, fresh=False),
             report(k=0, target=2, radar=2, track=9),
             report(k=0, target=3, radar=1, track=6), report(k=0, target=3, radar=2, track=7)]
-    out = fuse(frame(rows), RADARS, methods=["arithmetic"])
+    # every plot carries a transponder reply (a primary-only track needs more: the test below)
+    f = frame(rows).with_columns(pl.lit("3C6586").alias("mode_s"))
+    out = fuse(f, RADARS, methods=["arithmetic"])
     flags = {(t, k.second): v for t, k, v in out.select("target_id", "epoch", "tentative").iter_rows()}
     assert [flags[(1, k)] for k in range(4)] == [True, True, False, False]
     assert flags[(2, 0)] is True and flags[(3, 0)] is False
+
+
+def test_a_primary_only_track_needs_a_third_plot_and_one_reply_lifts_it():
+    """Clutter is primary-only: a track none of whose plots carried a transponder reply supports
+    its target from its third plot (``min_plots_primary``), a track with a reply from its second,
+    whichever plot the reply came on; the reply is carried across the window edge and a new life
+    of the number forgets it. The fusion stage's default holds a primary-only pair tentative."""
+    from datetime import datetime, timedelta, timezone
+    t0 = datetime(2021, 10, 7, 12, tzinfo=timezone.utc)
+
+    def row(k, target, track, alt=None, gap=0.0):
+        t = t0 + timedelta(seconds=4.0 * k + gap)
+        return {"run": 0, "epoch": t, "target_id": target, "radar_id": 1, "local_track_id": track, "fresh": True,
+                "time": t, "altitude_m": alt}
+    rows = pl.DataFrame([row(k, 1, 7) for k in range(3)]                     # primary only
+                        + [row(0, 2, 8, alt=3000.0), row(1, 2, 8)]           # a reply on the first plot
+                        + [row(k, 3, 9, alt=3000.0 if k == 1 else None) for k in range(3)]
+                        + [row(2, 4, 8, gap=120.0), row(3, 4, 8, gap=120.0)],  # track 8's next life: clutter
+                        schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
+                                          "local_track_id": pl.UInt32}).sort("epoch", "target_id")
+    out, _ = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows, 2, 3)
+    flags = {tg: out.filter(pl.col("target_id") == tg).sort("epoch")["tentative"].to_list() for tg in (1, 2, 3, 4)}
+    assert flags == {1: [True, True, False], 2: [True, False], 3: [True, False, False], 4: [True, True]}
+    for cut in range(1, 4):
+        edge = t0 + timedelta(seconds=4.0 * cut)
+        a, st = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows.filter(pl.col("epoch") < edge), 2, 3)
+        b, _ = fusion.confirm_targets_step(st, rows.filter(pl.col("epoch") >= edge), 2, 3)
+        assert pl.concat([a, b]).sort("target_id", "epoch").equals(out.sort("target_id", "epoch"))
+    same, _ = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows, 2)
+    assert not same.filter(pl.col("target_id") == 1)["tentative"][1]       # None: one count for all
+    pair = frame([report(k=0, target=1, radar=1, track=5), report(k=1, target=1, radar=1, track=5)])
+    assert fuse(pair, RADARS, methods=["arithmetic"]).sort("epoch")["tentative"].to_list() == [True, True]
 
 
 def test_confirmation_state_carries_across_windows():

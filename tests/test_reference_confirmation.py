@@ -14,6 +14,7 @@ import pytest
 from tertiary import pipeline
 from tertiary.pipeline.pictures import confirmed_only
 from tertiary.stages.fusion.centralized import CentralizedConfig, centralized_fusion
+from tertiary.stages.fusion.config import FusionConfig
 from tertiary.simulate import load_scenario, simulate
 
 KEYS = ["run", "epoch", "target_id"]
@@ -21,12 +22,24 @@ METHODS = ("information", "arithmetic")
 
 
 @pytest.fixture(scope="module")
-def processed():
-    """Terminal-area (clutter on every radar), 20 aircraft, 5 minutes, through the pipeline."""
+def data():
+    """Terminal-area (clutter on every radar), 20 aircraft, 5 minutes."""
     sc = load_scenario("terminal-area")
-    sc = dataclasses.replace(sc, duration_s=300.0, traffic=dataclasses.replace(sc.traffic, aircraft=20))
-    ds = simulate(sc)
-    return ds, pipeline.process(ds, pipeline.PipelineConfig(methods=METHODS, filters=(), safety=False))
+    return simulate(dataclasses.replace(sc, duration_s=300.0, traffic=dataclasses.replace(sc.traffic, aircraft=20)))
+
+
+@pytest.fixture(scope="module")
+def processed(data):
+    """``data`` through the pipeline."""
+    return data, pipeline.process(data, pipeline.PipelineConfig(methods=METHODS, filters=(), safety=False))
+
+
+@pytest.fixture(scope="module")
+def counted(data):
+    """``data`` through the pipeline with a plot count that lets a primary-only track of two
+    plots confirm its target, as it does a track with a transponder reply."""
+    cfg = pipeline.PipelineConfig(methods=METHODS, filters=(), safety=False, fusion=FusionConfig(min_plots_primary=2))
+    return data, pipeline.process(data, cfg)
 
 
 def _clutter_only(res) -> pl.DataFrame:
@@ -79,24 +92,46 @@ def test_counting_plots_alone_gives_the_pictures_flags(processed):
     assert (both["tentative"] == both["pic"]).all()
 
 
-def test_reference_publishes_none_of_the_clutter_tracks_the_count_lets_through(processed):
+def test_reference_publishes_none_of_the_clutter_tracks_the_count_lets_through(counted):
     """Clutter-only targets the pictures publish (a radar's false local track of a few plots)
     are held tentative by the reference's three-scan test."""
-    _, run = processed
+    _, run = counted
     clutter = _clutter_only(run)
     passed = clutter.join(_published(run, "information"), on=["run", "target_id"], how="semi")
     assert passed.height > 0
     assert passed.join(_published(run, "centralized"), on=["run", "target_id"], how="semi").height == 0
 
 
-def test_reference_false_track_rate_is_at_most_the_best_pictures(processed):
-    _, run = processed
+def _false_track_rates(run) -> dict[str, float]:
     m = run.metrics.filter((pl.col("stage") == "evaluation") & (pl.col("metric") == "false_tracks_per_hour")
                            & (pl.col("segment") == "all"))
-    rate = dict(zip(m["method"], m["value"]))
+    return dict(zip(m["method"], m["value"]))
+
+
+@pytest.mark.parametrize("which", ["processed", "counted"])
+def test_reference_false_track_rate_is_at_most_the_best_pictures(which, request):
+    _, run = request.getfixturevalue(which)
+    rate = _false_track_rates(run)
     assert set(METHODS) | {"centralized"} <= set(rate)
     assert rate["centralized"] <= min(rate[k] for k in METHODS)
-    assert rate["centralized"] < max(rate[k] for k in METHODS)   # the pictures publish clutter here
+    if which == "counted":
+        assert rate["centralized"] < max(rate[k] for k in METHODS)   # the pictures publish clutter here
+
+
+def test_the_pictures_hold_a_primary_only_pair_of_plots_tentative(processed, counted):
+    """The clutter targets a plain count of two plots publishes are one radar's primary-only
+    tracks: with a third plot required of such a track, the pictures publish none of them and no
+    false track here, and the count still confirms every aircraft (each replies)."""
+    clutter = _clutter_only(counted[1])
+    passed = clutter.join(_published(counted[1], "information"), on=["run", "target_id"], how="semi")
+    assert passed.height > 0
+    assert passed.join(_published(processed[1], "information"), on=["run", "target_id"], how="semi").height == 0
+    assert all(_false_track_rates(processed[1])[k] == 0.0 < _false_track_rates(counted[1])[k] for k in METHODS)
+    aircraft = processed[1].aligned.filter(pl.col("truth_id").is_not_null())["truth_id"].n_unique()
+    published = (processed[1].associations.select("run", "target_id")
+                 .with_columns(processed[1].aligned["truth_id"])
+                 .join(_published(processed[1], "information"), on=["run", "target_id"], how="semi"))
+    assert published["truth_id"].drop_nulls().n_unique() == aircraft
 
 
 def test_min_plots_is_the_confirmation_parameter(processed):
@@ -107,8 +142,8 @@ def test_min_plots_is_the_confirmation_parameter(processed):
     assoc = run.associations.filter(pl.col("run") == 0)
     keys = assoc.select(*KEYS).unique()
     n_tent = {k: centralized_fusion(rep, radars, assoc, keys, ds.origin,
-                                    CentralizedConfig(min_plots=k, confirmation="plots"))["tentative"]
-              .sum() for k in (1, 2, 3)}
+                                    CentralizedConfig(min_plots=k, min_plots_primary=k, confirmation="plots"))
+              ["tentative"].sum() for k in (1, 2, 3)}
     assert n_tent[1] == 0 < n_tent[2] < n_tent[3]
 
 
@@ -121,3 +156,5 @@ def test_the_reference_takes_the_trackers_initiation_parameters():
     ref = reference_config(cfg)
     assert (ref.v_min_mps, ref.v_max_mps, ref.confirm_gate_m) == (45.0, 300.0, 900.0)
     assert ref.min_plots == cfg.fusion.min_plots and ref.confirmation == "three_scan"
+    strict = reference_config(pipeline.PipelineConfig(fusion=FusionConfig(min_plots_primary=4)))
+    assert strict.min_plots_primary == 4

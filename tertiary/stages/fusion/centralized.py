@@ -133,8 +133,8 @@ class CentralizedConfig:
       (:func:`tertiary.stages.fusion.plots.debias_enu`, the multiplicative unbiased conversion).
     * ``conversion_gate``: ``"reject"`` leaves plots failing the seed 002 (13) validity gate
       (:func:`tertiary.stages.align.conversion_valid`) out of the filter; ``"off"`` uses every plot.
-    * ``min_plots``: target confirmation (``tentative``), the fused pictures' parameter
-      (:attr:`tertiary.stages.fusion.config.FusionConfig.min_plots`); set both alike, or the reference
+    * ``min_plots``, ``min_plots_primary``: target confirmation (``tentative``), the fused pictures'
+      parameters (:class:`tertiary.stages.fusion.config.FusionConfig`); set them alike, or the reference
       publishes other targets than the pictures it is compared with.
     * ``confirmation``: ``"three_scan"``: the plot count and the three-scan test (module
       docstring) with ``v_min_mps``, ``v_max_mps`` and ``confirm_gate_m``, the secondary tracker's
@@ -154,6 +154,7 @@ class CentralizedConfig:
     conversion: Literal["linear", "debiased"] = "linear"
     conversion_gate: Literal["off", "reject"] = "off"
     min_plots: int = FusionConfig.min_plots
+    min_plots_primary: int = FusionConfig.min_plots_primary
     use_velocity: bool = False
     velocity_speed_sigma_mps: float = 0.5
     velocity_track_sigma_deg: float = 0.2
@@ -164,8 +165,9 @@ class CentralizedConfig:
     confirm_gate_m: float = TrackerConfig.confirm_gate_m
 
     def __post_init__(self) -> None:
-        if self.min_plots < 1:
-            raise ValueError(f"min_plots must be >= 1, got {self.min_plots}")
+        if self.min_plots < 1 or self.min_plots_primary < 1:
+            raise ValueError(f"min_plots and min_plots_primary must be >= 1, got {self.min_plots}, "
+                             f"{self.min_plots_primary}")
         if self.confirmation not in ("plots", "three_scan"):
             raise ValueError(f"confirmation must be 'plots' or 'three_scan', got {self.confirmation!r}")
         if not (0 <= self.v_min_mps < self.v_max_mps and self.confirm_gate_m > 0):
@@ -515,7 +517,8 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
                      if c in rep.columns)  # not the wide track columns
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
-    groups, confirm = confirm_associations_step(state.confirm, associations_window, assoc, rep, cfg.min_plots)
+    groups, confirm = confirm_associations_step(state.confirm, associations_window, assoc, rep, cfg.min_plots,
+                                              cfg.min_plots_primary)
     base = replace(state, last_ids=last_ids, last_epoch_us=last_epoch, reached_us=reached, confirm=confirm)
     rep = rep.join(_first_association(assoc), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m, conversion=cfg.conversion,

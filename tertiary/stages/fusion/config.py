@@ -24,7 +24,9 @@ class FusionConfig:
     * ``bc_rho``: correlation coefficient ρ of the common-process-noise cross-covariance of
       ``bar_shalom_campo``, P_ij = ρ C_i^{1/2} C_j^{1/2} (Bar-Shalom & Li 1995; 0 gives
       information fusion).
-    * ``min_plots``: a local track supports a target once it has this many plots (``tentative``).
+    * ``min_plots``: a local track supports a target once it has this many plots (``tentative``);
+      ``min_plots_primary``: as many for a track none of whose plots carried a transponder reply
+      (primary-only: clutter's signature).
     * ``altitude``: the per-local-track Mode C filter of the vertical channel.
     * ``nis_window``: innovations in the moving average of ``invcov_nis``'s λ_n.
     * ``nis_gate``: None (off) or an action of :data:`GATE_ACTIONS`; ``nis_gate_prob``: the χ²
@@ -37,6 +39,7 @@ class FusionConfig:
     ci_objective: str = "trace"
     bc_rho: float = 0.4
     min_plots: int = 2
+    min_plots_primary: int = 3
     altitude: AltitudeConfig = AltitudeConfig()
     nis_window: int = 5
     nis_gate: str | None = None
@@ -61,7 +64,8 @@ class FusionConfig:
             raise ValueError(f"b_min must lie in [0, 1), got {self.b_min}")
         if not 0.0 <= self.bc_rho < 1.0:
             raise ValueError(f"bc_rho must lie in [0, 1), got {self.bc_rho}")
-        if self.min_plots < 1:
-            raise ValueError(f"min_plots must be >= 1, got {self.min_plots}")
+        if self.min_plots < 1 or self.min_plots_primary < 1:
+            raise ValueError(f"min_plots and min_plots_primary must be >= 1, got {self.min_plots}, "
+                             f"{self.min_plots_primary}")
         if self.ci_objective not in CI_OBJECTIVES:
             raise ValueError(f"ci_objective must be one of {CI_OBJECTIVES}, got {self.ci_objective!r}")

@@ -10,15 +10,17 @@ import polars as pl
 from tertiary.contract import TIME
 from tertiary.stages.fusion.base import CHAIN, GROUP, TRACK
 
-__all__ = ["LIFE_GAP_S", "ConfirmState", "confirm_associations_step", "confirm_targets_step", "tentative_at"]
+__all__ = ["LIFE_GAP_S", "REPLY_COLUMNS", "ConfirmState", "confirm_associations_step", "confirm_targets_step",
+           "replied", "tentative_at"]
 
 
 @dataclass(frozen=True)
 class ConfirmState:
     """Carried state of target confirmation (natural keys, no ranks): per local track the plots
-    of its current life in its current target, the time of its last plot and that target
-    (``tracks``: run, radar_id, local_track_id, n_plots, last_time, target_id) and the targets
-    already confirmed (``targets``: run, target_id)."""
+    of its current life in its current target, whether one of them carried a transponder reply,
+    the time of its last plot and that target (``tracks``: run, radar_id, local_track_id,
+    n_plots, replied, last_time, target_id) and the targets already confirmed (``targets``: run,
+    target_id)."""
 
     tracks: pl.DataFrame
     targets: pl.DataFrame
@@ -28,7 +30,8 @@ class ConfirmState:
         """The state before the first window: no track, no target."""
         return ConfirmState(
             pl.DataFrame(schema={"run": pl.UInt32, "radar_id": pl.UInt32, "local_track_id": pl.UInt32,
-                                 "n_plots": pl.Int64, "last_time": TIME, "target_id": pl.UInt64}),
+                                 "n_plots": pl.Int64, "replied": pl.Boolean, "last_time": TIME,
+                                 "target_id": pl.UInt64}),
             pl.DataFrame(schema={"run": pl.UInt32, "target_id": pl.UInt64}))
 
 
@@ -36,15 +39,28 @@ class ConfirmState:
 #: starts a new life (radars reuse track numbers) whose plots are counted afresh
 LIFE_GAP_S = 30.0
 
+#: report columns whose value is a transponder's reply (Mode S address, Mode C, Mode 3/A code):
+#: primary clutter carries none of them
+REPLY_COLUMNS = ("mode_s", "altitude_m", "mode_3a")
 
-def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2
-                 ) -> tuple[pl.DataFrame, ConfirmState]:
+
+def replied(rows: pl.DataFrame) -> pl.Expr:
+    """Per row of ``rows``, whether its report carries a transponder reply (:data:`REPLY_COLUMNS`)."""
+    cols = [pl.col(c).is_not_null() for c in REPLY_COLUMNS if c in rows.columns]
+    return pl.any_horizontal(cols) if cols else pl.lit(False)
+
+
+def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int = 2,
+                         min_plots_primary: int | None = None) -> tuple[pl.DataFrame, ConfirmState]:
     """Which (run, epoch, target_id) groups of ``rows`` are tentative, and the new state.
 
     A local track supports its target from the epoch at which it has ``min_plots`` plots in
     its current life *in that target* (its fresh rows counted, carried across windows by
     ``state``; a silence longer than :data:`LIFE_GAP_S` starts a new life, since radars reuse
-    the numbers of ended tracks, often for a false plot); a group is supported when one of its
+    the numbers of ended tracks, often for a false plot). A track none of whose plots in that
+    life carried a transponder reply (:func:`replied`) needs ``min_plots_primary`` plots (None:
+    ``min_plots``): a radar's false track on clutter is primary-only and short, while an
+    aircraft's reply is evidence of an airframe. A group is supported when one of its
     local tracks is, or when two radars see the target. A target is confirmed from its first
     supported group on and stays so; before that it is *tentative*: made only of one radar's
     unconfirmed one-plot tracks — the clutter signature (a lone false plot never gets a second
@@ -57,7 +73,8 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     has_time = "time" in rows.columns
     when = pl.col("time").cast(TIME) if has_time else pl.col("epoch").cast(TIME)
     r = rows.select(*GROUP, *[pl.col(c).cast(t) for c, t in key_types.items() if c != "run"],
-                    pl.col("fresh").fill_null(False), when.alias("__t")).with_row_index("__i")
+                    pl.col("fresh").fill_null(False), when.alias("__t"),
+                    replied(rows).alias("__reply")).with_row_index("__i")
     r = (r.join(state.tracks.rename({"target_id": "__last_target"}), on=TRACK, how="left", maintain_order="left")
          .sort("epoch", "__i"))
     fresh_t = pl.when(pl.col("fresh")).then(pl.col("__t"))
@@ -69,9 +86,14 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     moved = (pl.col("target_id") != before).fill_null(False)
     r = r.with_columns((brk | moved).cast(pl.Int64).cum_sum().over(TRACK).alias("__life"))
     base = pl.when(pl.col("__life") == 0).then(pl.col("n_plots").fill_null(0)).otherwise(0)
-    r = r.with_columns((base + pl.col("fresh").cast(pl.Int64).cum_sum().over([*TRACK, "__life"])).alias("__n"))
+    life = [*TRACK, "__life"]
+    was = pl.when(pl.col("__life") == 0).then(pl.col("replied").fill_null(False)).otherwise(False)
+    r = r.with_columns((base + pl.col("fresh").cast(pl.Int64).cum_sum().over(life)).alias("__n"),
+                       (was | (pl.col("fresh") & pl.col("__reply")).cum_max().over(life)).alias("__ssr"))
+    need = pl.when(pl.col("__ssr")).then(min_plots).otherwise(min_plots if min_plots_primary is None
+                                                                else min_plots_primary)
     grp = (r.group_by(GROUP, maintain_order=True)
-           .agg(((pl.col("__n").max() >= min_plots) | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
+           .agg(((pl.col("__n") >= need).any() | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
            .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left",
                  maintain_order="left")
            .with_columns((pl.col("__sup") | pl.col("__was").fill_null(False)).cum_max().over(CHAIN)
@@ -79,11 +101,12 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     order = rows.select(GROUP).unique(maintain_order=True)
     out = order.join(grp.select(*GROUP, (~pl.col("__conf")).alias("tentative")), on=GROUP, how="left",
                      maintain_order="left")
-    last = r.group_by(TRACK).agg(pl.col("__n").last().alias("n_plots"),
+    last = r.group_by(TRACK).agg(pl.col("__n").last().alias("n_plots"), pl.col("__ssr").last().alias("__rp"),
                                  pl.col("__t").filter(pl.col("fresh")).max().alias("__lt"),
                                  pl.col("target_id").last().alias("__tg"))
     tracks = (state.tracks.join(last, on=TRACK, how="full", coalesce=True)
               .select(*TRACK, pl.coalesce("n_plots_right", "n_plots").alias("n_plots"),
+                      pl.coalesce("__rp", "replied").alias("replied"),
                       pl.coalesce("__lt", "last_time").alias("last_time"),
                       pl.coalesce("__tg", "target_id").alias("target_id"))
               .cast(state.tracks.schema))
@@ -109,11 +132,12 @@ def tentative_at(confirmed: pl.DataFrame, groups: pl.DataFrame, keys: pl.DataFra
 
 
 def confirm_associations_step(before: ConfirmState, associations: pl.DataFrame, new: pl.DataFrame,
-                              reports: pl.DataFrame, min_plots: int) -> tuple[pl.DataFrame, ConfirmState]:
+                              reports: pl.DataFrame, min_plots: int, min_plots_primary: int | None = None
+                              ) -> tuple[pl.DataFrame, ConfirmState]:
     """:func:`confirm_targets_step` on the window's association rows, which are the fused
     pictures' rows: a row is fresh at its report's first association epoch (``new``: the rows of
     the reports not associated before the window), as the aligned row of a report's first epoch
-    is; only fresh rows need their report's ``time``, and those reports are in ``reports``.
+    is; only fresh rows need their report's ``time`` and replies, and those reports are in ``reports``.
     Returns the groups (run, epoch, target_id, ``tentative``) and the new state; an empty window
     leaves the state as it is, as the fusion stage does."""
     if associations.is_empty():
@@ -125,6 +149,6 @@ def confirm_associations_step(before: ConfirmState, associations: pl.DataFrame, 
                                 pl.col("report_id").cast(pl.UInt64))
             .join(first, on=["run", "report_id"], how="left", maintain_order="left")
             .with_columns((pl.col("epoch") == pl.col("__first")).fill_null(False).alias("fresh"))
-            .join(reports.select("run", "report_id", "time"), on=["run", "report_id"], how="left",
-                  maintain_order="left"))
-    return confirm_targets_step(before, rows, min_plots)
+            .join(reports.select("run", "report_id", "time", *[c for c in REPLY_COLUMNS if c in reports.columns]),
+                  on=["run", "report_id"], how="left", maintain_order="left"))
+    return confirm_targets_step(before, rows, min_plots, min_plots_primary)

@@ -237,7 +237,7 @@ def fuse_step(state: FuseState, rows_window: pl.DataFrame, radars: pl.DataFrame,
     xs, covs, ws, axis_w = run_methods(methods, RunInputs(a, lay, cfg, d_fixed), b0)
     alt, alt_carry = vertical_channel(rows, lay, xs, covs, origin, cfg.altitude, state.alt, plots_window)
     meas = measurements(rows, methods, a, lay, ws, plots_window, axis_w)
-    tentative, confirm = confirm_targets_step(state.confirm, rows, cfg.min_plots)
+    tentative, confirm = confirm_targets_step(state.confirm, rows, cfg.min_plots, cfg.min_plots_primary)
     new_state = FuseState(_new_chains(rows, state.chains, methods, ws, axis_w), seed_first, nis_carry, alt_carry,
                           confirm, reached)
     mode_s = pl.col("mode_s").cast(pl.String) if "mode_s" in rows.columns else pl.lit(None, pl.String)
