@@ -247,6 +247,21 @@ def test_one_wall_time_everywhere(dataset, tmp_path):
     assert re.findall(r"wall time ([\d.,]+) s", html) == shown
 
 
+def test_no_safety_stores_the_picture_without_predicting_conflicts(dataset, tmp_path):
+    """``--no-safety``: the fused picture and its accuracy, no conflict prediction, no alert scored."""
+    import duckdb
+    run_dir = tmp_path / "p"
+    res = runner.invoke(app, ["run", str(dataset), "--out", str(run_dir), "--filters", "", "--methods", "arithmetic",
+                              "--no-centralized", "--no-safety", "--no-report"])
+    assert res.exit_code == 0, res.output
+    assert "fusion   arithmetic" in res.output and "safety (alert" not in res.output
+    con = duckdb.connect(str(run_dir / "results.duckdb"), read_only=True)
+    stages = {s for (s,) in con.sql("SELECT DISTINCT stage FROM metrics").fetchall()}
+    assert "fusion" in stages and not stages & {"safety", "alerts", "stca"}
+    assert con.sql("SELECT count(*) FROM conflicts").fetchall() == [(0,)]
+    assert con.sql("SELECT count(*) FROM fused").fetchall()[0][0] > 0
+
+
 def test_run_simulates_scenario(tmp_path):
     res = runner.invoke(app, ["run", "--scenario", "big-box", "--runs", "2", "--duration", "120",
                               "--out", str(tmp_path / "bb"), "--no-report", "--filters", "singer"])

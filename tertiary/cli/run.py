@@ -42,6 +42,9 @@ def run(
                                          help="also write RUN_DIR/report.html (plotly, self-contained)")] = True,
     safety_picture: Annotated[str, typer.Option(help="picture conflict prediction runs on: tracks (the tracker's "
                                                      "confirmed tracks, per method+filter) or fused")] = "tracks",
+    safety: Annotated[bool, typer.Option("--safety/--no-safety",
+                                         help="predict conflicts and score alerts (--no-safety: the picture and its "
+                                              "accuracy only)")] = True,
     origin: OriginOpt = None,
     runs: RunsOpt = None, seed: SeedOpt = None, aircraft: AircraftOpt = None, radars: RadarsOpt = None,
     duration: DurationOpt = None, truth: TruthOpt = None, noise_factor: NoiseOpt = None,
@@ -120,7 +123,7 @@ def run(
         out, force = resume, True
     cfg = PipelineConfig(methods=names(methods, ALL_METHODS, "--methods"),
                          filters=names(filters, sorted(REGISTRY), "--filters"),
-                         centralized=centralized, strict=strict, safety_picture=safety_picture,
+                         centralized=centralized, strict=strict, safety=safety, safety_picture=safety_picture,
                          indicators=indicators, association=_association(assignment, gate),
                          radar_health=radar_health,
                          requirements_file=None if requirements is None else str(requirements))
