@@ -150,6 +150,22 @@ def test_two_straight_aircraft_give_two_stable_tracks():
     assert tracks["method"].unique().to_list() == ["aposteriori"]
 
 
+def test_three_scan_counts_measured_plots_not_a_targets_extrapolations():
+    """One radar scanning every third epoch: each target has a fused row at every epoch, but only
+    every third holds a measured plot (``n_fresh`` > 0), the others extrapolate it. A target with
+    one measured plot and its extrapolations gets no track (it had one, confirmed at epoch 2); a
+    target measured at epochs 0, 3, 6 is confirmed at 6, its third measured scan."""
+    one = _line(**A, ks=range(9), tid=1)
+    slow = _line(**B, ks=range(10), tid=2)
+    fresh = [int(k == 0) for _, k, *_ in one] + [int(k % 3 == 0) for _, k, *_ in slow]
+    f = _fused(one + slow).with_columns(pl.Series("n_fresh", fresh, pl.UInt32))
+    per = _by_track(track(f, CVDouble()))
+    assert [rows[0][2] for rows in per.values()] == [2]
+    assert next(iter(per.values()))[0][:2] == (6, "confirmed")
+    waits = _by_track(track(f, CVDouble(), TrackerConfig(initiation_gap_s=DT * 2.5)))
+    assert waits == {}                              # a wait shorter than the scan: never confirmed
+
+
 def test_track_ids_increase_with_confirmation_time():
     rows = _line(**A, ks=range(12), tid=1, seed=1) + _line(**B, ks=range(5, 12), tid=2, seed=2)
     per = _by_track(track(_fused(rows), CVDouble()))
@@ -275,7 +291,7 @@ def test_m_of_n_confirms_with_a_missed_scan():
     assert len(m_of_n) == 2
     assert _first_scan_of(m_of_n, 1) == (3, "confirmed")   # plots on scans 1, 2, 4 of 4
     three = _by_track(track(_fused(rows), CVDouble(), TrackerConfig(initiation="three_scan")))
-    assert _first_scan_of(three, 1) == (5, "confirmed")    # the miss breaks the chain: restart 3, 4, 5
+    assert _first_scan_of(three, 1) == (3, "confirmed")    # the scan-2 hypothesis waits over the miss
 
 
 def test_three_scan_extrapolates_over_an_epoch_gap():

@@ -322,9 +322,15 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         win, plot_of_win = empty, empty          # three-scan: hypotheses confirmed now
         pair_obj, pair_plot = empty, empty       # three-scan: new hypotheses (stage-1 object, plot)
         tent, plot_of_tent = empty, empty        # M-of-N: tentatives (their plot or −1)
+        wait = empty                             # three-scan: objects waiting for a measured plot
         if three:
+            # a scan of the test is a measured plot: a target's extrapolated row between its
+            # radars' scans is no evidence, so it neither opens, pairs nor confirms
+            measured = free & plots.fresh
+            gap = cfg.initiation_gap_s                # an object whose wait is over takes no plot
             hyp = np.flatnonzero(kind == _HYP)
-            o, p, c = _confirm_pairs(plots, free, m.take(hyp), t, cfg)
+            hyp = hyp[t - m.f[hyp, _T2] <= gap]
+            o, p, c = _confirm_pairs(plots, measured, m.take(hyp), t, cfg)
             if len(o):
                 plot_of_hyp = assign(o, p, c, len(hyp), n_plot, cfg.assignment)
                 chosen = plot_of_hyp[o] == p
@@ -334,11 +340,15 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
                 got = _resolve_conflicts(got, cost_of[got], m.i[hyp[got], _ROOT], m.i[hyp[got], _UID2])
                 win, plot_of_win = hyp[got], plot_of_hyp[got]
                 free[plot_of_win] = False
-                opens &= free
+                measured &= free
+            opens = measured.copy()
             s1 = np.flatnonzero(kind == _TENT)
+            s1 = s1[t - m.f[s1, _T1] <= gap]
             if len(s1):
-                o, p = _annulus_pairs(plots, free, m.take(s1), t, cfg)
+                o, p = _annulus_pairs(plots, measured, m.take(s1), t, cfg)
                 pair_obj, pair_plot = s1[o], p
+            # the others wait for their target's next measured plot
+            wait = np.concatenate([np.setdiff1d(s1, pair_obj), np.setdiff1d(hyp, win)])
         else:
             tent = np.flatnonzero(kind == _TENT)
             one = m.i[tent, _HITS] == 1
@@ -357,8 +367,8 @@ def track_batch(ix: "PlotIndex", filt: TrackFilter, cfg: TrackerConfig, bank: "B
         # --- one filter update for everything that continues
         misses = np.where(plot_of_conf >= 0, 0, m.i[conf, _MISS] + 1)
         alive = misses < cfg.max_misses
-        idx = np.concatenate([conf[alive], win, pair_obj, tent])
-        pidx = np.concatenate([plot_of_conf[alive], plot_of_win, pair_plot, plot_of_tent])
+        idx = np.concatenate([conf[alive], win, pair_obj, wait, tent])
+        pidx = np.concatenate([plot_of_conf[alive], plot_of_win, pair_plot, np.full(len(wait), -1), plot_of_tent])
         mask = pidx >= 0
         safe = np.where(mask, pidx, 0)
         z, r = plots.z[safe], plots.r[safe]

@@ -38,6 +38,9 @@ class TrackerConfig:
       gate_sigma·sqrt(P⁻_ii + r_i) + gate_min_m.
     * ``assignment``: ``"hungarian"`` (global, per ambiguous gate component) or ``"nearest"``.
     * ``max_misses``: a track is deleted at this many consecutive epochs without a plot.
+    * ``initiation_gap_s`` (``"three_scan"``): a tentative or a scan-2 hypothesis waits this long
+      after its last measured plot for the next (the fused rows between a radar's scans are
+      extrapolations, which the test does not count); default two scans of a 12 s en-route radar.
     * ``use_mode_s``: a track, tentative or initiation hypothesis holds the Mode S address of the
       plots it took and never takes a plot with another address (a plot or object without one
       is gated on position).
@@ -86,6 +89,7 @@ class TrackerConfig:
     gate_min_m: float = 500.0
     assignment: Literal["nearest", "hungarian"] = "hungarian"
     max_misses: int = 3
+    initiation_gap_s: float = 25.0
     use_mode_s: bool = True
     alt_gate_m: float | None = 500.0 * FT
     use_turn_rate: bool = True
@@ -114,6 +118,8 @@ class TrackerConfig:
             raise ValueError(f"need 1 <= m <= n, got m={self.m}, n={self.n}")
         if self.max_misses < 1:
             raise ValueError(f"max_misses must be >= 1, got {self.max_misses}")
+        if not self.initiation_gap_s > 0:                                    # NaN fails too
+            raise ValueError(f"initiation_gap_s must be > 0, got {self.initiation_gap_s}")
         if self.alt_gate_m is not None and not self.alt_gate_m >= 0:          # NaN fails too
             raise ValueError(f"alt_gate_m must be >= 0 or None, got {self.alt_gate_m}")
         if not (self.velocity_speed_sigma_mps > 0 and self.velocity_track_sigma_deg > 0

@@ -60,13 +60,16 @@ Per epoch (one loop over the epochs; everything inside vectorised over tracks ×
    ``max_misses − 1`` coasting rows at most; ``max_misses = 1`` means no coasting).
 5. **Initiation** with the plots no confirmed track took:
 
-   * ``"three_scan"``: scan 1 — every such plot x₁ opens a
+   * ``"three_scan"``: the scans of the test are *measured* plots (fused ``n_fresh`` > 0): a
+     target's rows between its radars' scans are extrapolations, which neither open, pair nor
+     confirm; a tentative or a hypothesis without a measured plot at an epoch waits for one up
+     to ``initiation_gap_s`` after its last. Scan 1 — every such plot x₁ opens a
      tentative track. Scan 2 — every plot in the annulus v_min·T ≤ |x₂ − x₁|_h ≤ v_max·T
      (horizontal distance, T = t₂ − t₁; (1.1)) spawns its own hypothesis (x₁, x₂); the stage-1
      track is then dropped. Scan 3 — a circle S₂ of radius ``confirm_gate_m`` (horizontal)
      around x̂₃ = x₂ + (x₂ − x₁)·(t₃ − t₂)/(t₂ − t₁) (= x₂ + (x₂ − x₁) for equal scans);
      hypotheses compete for the plots (``assignment``), competing confirmations of one x₁ or
-     one x₂ keep the cheapest; a hypothesis with no plot in S₂ is dropped. The annulus and the
+     one x₂ keep the cheapest; a hypothesis whose wait ends with no plot in S₂ is dropped. The annulus and the
      circle also require a plausible height change:
      ``|Δz| ≤ gate_sigma·sqrt(r_z + r_z') + gate_min_m``.
    * ``"m_of_n"``: every such plot opens a tentative track (hits = 1); at each later scan the
