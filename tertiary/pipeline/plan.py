@@ -408,8 +408,8 @@ CLASSES: dict[str, type] = {c.name: c for c in (AlignStage, DeparturesStage, Ass
 
 def reference_config(cfg: Any) -> CentralizedConfig:
     """The centralised reference's configuration of a ``PipelineConfig``: its own, with the fused
-    pictures' ``min_plots`` (both) and the secondary tracker's initiation parameters, so that it confirms
-    its targets as the pictures it is compared with do."""
+    pictures' ``min_plots`` and ``min_plots_primary`` and the secondary tracker's initiation
+    parameters, so that it confirms its targets as the pictures it is compared with do."""
     t = cfg.tracker
     return replace(cfg.centralized_cfg, min_plots=cfg.fusion.min_plots,
                    min_plots_primary=cfg.fusion.min_plots_primary, v_min_mps=t.v_min_mps,

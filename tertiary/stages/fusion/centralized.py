@@ -518,7 +518,7 @@ def _centralized_step(state: CentralizedState, reports_window: pl.DataFrame, rad
     rep = rep.with_columns(pl.col("run").cast(pl.UInt32), pl.col("report_id").cast(pl.UInt64),
                            pl.col("time").cast(TIME))
     groups, confirm = confirm_associations_step(state.confirm, associations_window, assoc, rep, cfg.min_plots,
-                                              cfg.min_plots_primary)
+                                                cfg.min_plots_primary)
     base = replace(state, last_ids=last_ids, last_epoch_us=last_epoch, reached_us=reached, confirm=confirm)
     rep = rep.join(_first_association(assoc), on=["run", "report_id"], how="inner")
     z, r, ok = converted_plots(rep, radars, origin, cfg.altitude_sigma_m, conversion=cfg.conversion,
