@@ -153,8 +153,9 @@ def test_two_straight_aircraft_give_two_stable_tracks():
 def test_three_scan_counts_measured_plots_not_a_targets_extrapolations():
     """One radar scanning every third epoch: each target has a fused row at every epoch, but only
     every third holds a measured plot (``n_fresh`` > 0), the others extrapolate it. A target with
-    one measured plot and its extrapolations gets no track (it had one, confirmed at epoch 2); a
-    target measured at epochs 0, 3, 6 is confirmed at 6, its third measured scan."""
+    one measured plot and its extrapolations gets no track (counted as scans, its extrapolations
+    would confirm one at epoch 2); a target measured at epochs 0, 3, 6 is confirmed at 6, its
+    third measured scan."""
     one = _line(**A, ks=range(9), tid=1)
     slow = _line(**B, ks=range(10), tid=2)
     fresh = [int(k == 0) for _, k, *_ in one] + [int(k % 3 == 0) for _, k, *_ in slow]
