@@ -626,12 +626,14 @@ def test_a_primary_only_track_needs_a_third_plot_and_one_reply_lifts_it():
     rows = pl.DataFrame([row(k, 1, 7) for k in range(3)]                     # primary only
                         + [row(0, 2, 8, alt=3000.0), row(1, 2, 8)]           # a reply on the first plot
                         + [row(k, 3, 9, alt=3000.0 if k == 1 else None) for k in range(3)]
-                        + [row(2, 4, 8, gap=120.0), row(3, 4, 8, gap=120.0)],  # track 8's next life: clutter
+                        + [row(2, 4, 8, gap=120.0), row(3, 4, 8, gap=120.0)]   # track 8's next life: clutter
+                        + [row(k, 5, 10, alt=float("nan")) for k in range(2)],  # a NaN altitude is no reply
                         schema_overrides={"run": pl.UInt32, "target_id": pl.UInt64, "radar_id": pl.UInt32,
                                           "local_track_id": pl.UInt32}).sort("epoch", "target_id")
     out, _ = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows, 2, 3)
-    flags = {tg: out.filter(pl.col("target_id") == tg).sort("epoch")["tentative"].to_list() for tg in (1, 2, 3, 4)}
-    assert flags == {1: [True, True, False], 2: [True, False], 3: [True, False, False], 4: [True, True]}
+    flags = {tg: out.filter(pl.col("target_id") == tg).sort("epoch")["tentative"].to_list() for tg in (1, 2, 3, 4, 5)}
+    assert flags == {1: [True, True, False], 2: [True, False], 3: [True, False, False], 4: [True, True],
+                     5: [True, True]}
     for cut in range(1, 4):
         edge = t0 + timedelta(seconds=4.0 * cut)
         a, st = fusion.confirm_targets_step(fusion.ConfirmState.empty(), rows.filter(pl.col("epoch") < edge), 2, 3)

@@ -46,7 +46,9 @@ REPLY_COLUMNS = ("mode_s", "altitude_m", "mode_3a")
 
 def replied(rows: pl.DataFrame) -> pl.Expr:
     """Per row of ``rows``, whether its report carries a transponder reply (:data:`REPLY_COLUMNS`)."""
-    cols = [pl.col(c).is_not_null() for c in REPLY_COLUMNS if c in rows.columns]
+    # a NaN altitude is no Mode C reply
+    cols = [pl.col(c).is_not_null() & (pl.col(c).is_not_nan() if rows.schema[c].is_float() else True)
+            for c in REPLY_COLUMNS if c in rows.columns]
     return pl.any_horizontal(cols) if cols else pl.lit(False)
 
 
@@ -67,8 +69,8 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     plot of its local track). Counting in the target, not over the local track's life, keeps a
     split-off tentative: one radar's plot that misses the gate with the others for a scan is
     grouped alone under a new id and rejoins its aircraft's target at the next scan (counted
-    over the track's life, such one-scan targets would all be confirmed). Returns the groups (GROUP + ``tentative``) in ``rows``' group
-    order."""
+    over the track's life, such one-scan targets would all be confirmed). Returns the groups
+    (GROUP + ``tentative``) in ``rows``' group order."""
     key_types = {c: t for c, t in state.tracks.schema.items() if c in TRACK}
     has_time = "time" in rows.columns
     when = pl.col("time").cast(TIME) if has_time else pl.col("epoch").cast(TIME)
@@ -90,8 +92,8 @@ def confirm_targets_step(state: ConfirmState, rows: pl.DataFrame, min_plots: int
     was = pl.when(pl.col("__life") == 0).then(pl.col("replied").fill_null(False)).otherwise(False)
     r = r.with_columns((base + pl.col("fresh").cast(pl.Int64).cum_sum().over(life)).alias("__n"),
                        (was | (pl.col("fresh") & pl.col("__reply")).cum_max().over(life)).alias("__ssr"))
-    need = pl.when(pl.col("__ssr")).then(min_plots).otherwise(min_plots if min_plots_primary is None
-                                                                else min_plots_primary)
+    primary = min_plots if min_plots_primary is None else min_plots_primary
+    need = pl.when(pl.col("__ssr")).then(min_plots).otherwise(primary)
     grp = (r.group_by(GROUP, maintain_order=True)
            .agg(((pl.col("__n") >= need).any() | (pl.col("radar_id").n_unique() >= 2)).alias("__sup"))
            .join(state.targets.with_columns(pl.lit(True).alias("__was")), on=CHAIN, how="left",
