@@ -91,6 +91,24 @@ def test_pair_with_one_member_off_the_final_keeps_the_general_parameters():
     assert not _alert(df, FINAL.parameters(FIXED))
 
 
+def test_parallel_finals_pair_within_each_volume_and_across_them_once_with_the_general_parameters():
+    """Two parallel finals 1.5 km apart with equal parameters (predicted in one call): each
+    final's in-trail pair is decided with the volume's parameters, and a pair of two arrivals on
+    different finals — side by side, 1.5 km apart — once, with the general parameters."""
+    north = dataclasses.replace(FINAL, threshold_y_m=1_500.0, name="27L")
+    cfg = dataclasses.replace(FIXED, approach_volumes=(FINAL, north))
+    df = _picture([[12_000.0, 0.0, H], [18_500.0, 0.0, H], [12_000.0, 1_500.0, H], [18_500.0, 1_500.0, H]],
+                  [[-90.0, 0, 0], [-130.0, 0, 0], [-90.0, 0, 0], [-130.0, 0, 0]])
+    assert approach_membership(df, cfg).tolist() == [0, 0, 1, 1]
+    out = predict_conflicts(df, cfg)
+    pairs = list(zip(out["id_a"].to_list(), out["id_b"].to_list()))
+    assert len(pairs) == len(set(pairs))
+    t_thr = dict(zip(pairs, out["t_thr_s"].to_list()))
+    assert t_thr[(1, 2)] == pytest.approx(60.0) and t_thr[(3, 4)] == pytest.approx(60.0)
+    assert t_thr[(1, 3)] == pytest.approx(105.0) and t_thr[(2, 4)] == pytest.approx(105.0)
+    assert out.sort("id_a", "id_b").equals(out)
+
+
 def test_volume_validation():
     with pytest.raises(ValueError, match="positive"):
         ApproachVolume(0.0, 0.0, 270.0, t_thr_s=0.0)

@@ -114,13 +114,20 @@ def _approach_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], predict: Pr
     for key, member in members.items():
         ks = by_vols[key]
         inside: dict[int, list[pl.DataFrame]] = {k: [] for k in ks}
-        for kv, v in enumerate(cfgs[ks[0]].approach_volumes):
-            mask = member == kv
-            if mask.sum() >= 2:
-                got = predict(rows.subset(mask), [v.parameters(cfgs[k]) for k in ks],
-                              skip=[tuple(g[mask] for g in skip[k]) for k in ks])
-                for k, part in zip(ks, got):
-                    inside[k].append(part)
+        vols = cfgs[ks[0]].approach_volumes
+        counts = np.bincount(member[member >= 0], minlength=len(vols))
+        # the volumes of equal parameters in one prediction, pairs within one volume: a call per
+        # volume is a few rows each, and its fixed cost outweighs that work
+        same: dict[tuple[float, float], list[int]] = {}
+        for kv, v in enumerate(vols):
+            if counts[kv] >= 2:
+                same.setdefault((v.dr_h_m, v.t_thr_s), []).append(kv)
+        for kvs in same.values():
+            mask = np.isin(member, kvs)
+            got = predict(rows.subset(mask), [vols[kvs[0]].parameters(cfgs[k]) for k in ks],
+                          skip=[tuple(g[mask] for g in skip[k]) for k in ks], within=member[mask])
+            for k, part in zip(ks, got):
+                inside[k].append(part)
         for k in ks:
             outs[k] = _joined(outs[k], inside[k])
     return outs

@@ -267,18 +267,23 @@ def in_one_group(groups: Groups, a: NDArray[np.int64], b: NDArray[np.int64]) -> 
 
 
 def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[..., Iterable] = map,
-              skip: Sequence[Groups] | None = None, scored_only: bool = False) -> list[pl.DataFrame]:
+              skip: Sequence[Groups] | None = None, scored_only: bool = False,
+              within: NDArray[np.int64] | None = None) -> list[pl.DataFrame]:
     """Per setting, the screened pairs of the (established, not coasting) rows with their
     geometry, thresholds and raw decision (``alert`` before confirmation), sorted by (run,
     epoch, method, id_a, id_b). The settings of a :func:`_screen_key` share one screen.
     ``skip[k]``: the pairs setting ``k`` leaves to another prediction (both rows in one group),
     dropped after the screen, before their geometry is computed. ``scored_only``: only the rows
-    an alert scoring reads (:func:`_assemble`)."""
+    an alert scoring reads (:func:`_assemble`). ``within``: a label per row; only the pairs of
+    two rows with one label are formed (several volumes in one call), and the rows come sorted
+    by (run, epoch, method, label, id_a, id_b)."""
     tracks = rows.tracks
     if tracks.height < 2:
         return [empty_conflicts() for _ in cfgs]
     rows.prepare(any(c.threshold_mode == "covariance" for c in cfgs))
     g, ids = rows.group(), rows.ids()
+    if within is not None:      # the screen separates (group, label) cells as it separates groups
+        g = np.unique(g * (int(within.max()) + 1) + within, return_inverse=True)[1].ravel().astype(np.int64)
     pos, vel, _, from_alt = rows.state()
     st = np.ascontiguousarray(np.concatenate([pos, vel], axis=1).T)
     setup, taus = [], {}
@@ -330,19 +335,19 @@ def pair_rows(rows: WindowRows, cfgs: Sequence[ConflictConfig], map_: Callable[.
                 for k, res in zip(ks, map_(each, range(len(ks)), mins)):
                     chunks[k].append(res)
             del ci, cj
-    return list(map_(lambda k: _assemble(rows, cfgs[k], chunks[k], scored_only), range(len(cfgs))))
+    return list(map_(lambda k: _assemble(rows, g, cfgs[k], chunks[k], scored_only), range(len(cfgs))))
 
 
-def _assemble(rows: WindowRows, cfg: ConflictConfig, chunks: list[dict[str, NDArray]], scored_only: bool = False
-              ) -> pl.DataFrame:
-    """The conflicts rows of one setting's evaluated pairs, in (group, id_a, id_b) order;
-    ``scored_only``: the raw alert rows and the first row of each (run, epoch, method) group
-    alone — what the m-of-n confirmation and the alert scoring read
-    (:func:`safety.alerts.episodes.scored_conflicts`): the first row of a group in any union of
-    such tables is kept by one of them."""
+def _assemble(rows: WindowRows, g: NDArray[np.int64], cfg: ConflictConfig, chunks: list[dict[str, NDArray]],
+              scored_only: bool = False) -> pl.DataFrame:
+    """The conflicts rows of one setting's evaluated pairs, in (group ``g``, id_a, id_b) order;
+    ``scored_only``: the raw alert rows and the first row of each group alone — what the m-of-n
+    confirmation and the alert scoring read (:func:`safety.alerts.episodes.scored_conflicts`):
+    the first row of a (run, epoch, method) group in any union of such tables is kept by one of
+    them."""
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return empty_conflicts()
-    g, ids, tracks = rows.group(), rows.ids(), rows.tracks
+    ids, tracks = rows.ids(), rows.tracks
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     i, j = cols.pop("i"), cols.pop("j")
     order = _pair_order(g, ids, i, j)
