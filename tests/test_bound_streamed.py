@@ -249,3 +249,22 @@ def test_the_scan_origins_of_an_input_in_other_dtypes_are_those_of_the_cast_colu
     assert scan_origins(case.radars, pl.concat([text, bad]).lazy(), T0_US) == pytest.approx(want, abs=1e-9)
     with pytest.raises(SchemaError, match="column 'time'"):
         scan_origins(case.radars, case.reports.with_columns(pl.col("time").dt.epoch("s").cast(pl.Float64)), T0_US)
+
+
+def test_truth_gaps_in_parts_equal_the_whole_truth_sorted_at_once():
+    """Each aircraft's truth spacing taken over a few aircraft at a time (the memory of a day's
+    truth) equals the spacing of the whole truth, with incomplete rows and repeated times left out."""
+    from tertiary.evaluation.bound_truth import COLUMNS, _gap_frame, _samples, truth_gaps
+    rng = np.random.default_rng(5)
+    n = 4_000
+    ids = rng.integers(0, 37, n)
+    t = np.sort(rng.choice(np.arange(0, 200_000), n, replace=False)) * 50_000
+    truth = pl.DataFrame({"truth_id": ids, "time": t}).with_columns(
+        pl.col("time").cast(pl.Datetime("us", "UTC")),
+        *[pl.Series(c, rng.normal(size=n)) for c in COLUMNS[2:]])
+    truth = truth.with_columns(pl.when(pl.int_range(n) % 23 == 0).then(None).otherwise(pl.col("vx_mps")).alias("vx_mps"))
+    truth = pl.concat([truth, truth.gather(np.arange(0, n, 3)).with_columns(pl.col("x_m") + 1.0)])   # times repeated
+    whole = _gap_frame(_samples(truth.lazy()), 0).collect().sort("truth_id")
+    assert whole.height > 30
+    for part_rows in (n, 500, 97):
+        assert_frame_equal(truth_gaps(truth.lazy(), 0, part_rows), whole)

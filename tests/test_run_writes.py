@@ -145,15 +145,18 @@ def test_a_table_whose_layout_changes_between_flushes_is_written_whole(tmp_path,
         assert_frame_equal(store.read("clusters"), pl.concat(other))
 
 
-def test_a_lazy_input_is_fingerprinted_as_the_table_in_memory_would_be(tmp_path):
+@pytest.mark.parametrize("batch_rows", [1 << 20, 7_777])
+def test_a_lazy_input_is_fingerprinted_as_the_table_in_memory_would_be(tmp_path, monkeypatch, batch_rows):
     """The run record's fingerprint of an input read lazily is hashed a batch at a time, beside
-    the windows: the same as the whole table's hashed in memory, rows in their order. Fails if
-    the batches were hashed in another order or the rows hashed otherwise."""
+    the windows: the same as the whole table's hashed in memory, rows in their order, whatever
+    the batch (one, or batches across the file's row groups). Fails if the batches were hashed
+    in another order or the rows hashed otherwise."""
     import hashlib
 
     import numpy as np
 
     from tertiary.pipeline import runner
+    monkeypatch.setattr(runner, "FINGERPRINT_BATCH_ROWS", batch_rows)
     n = 300_000
     frame = pl.DataFrame({"a": np.arange(n), "b": np.random.default_rng(1).normal(size=n),
                           "c": ["x", "y", "z"] * (n // 3)})
