@@ -473,8 +473,9 @@ def _split(work: pl.DataFrame, checks: list[_Check]) -> tuple[pl.Series, pl.Data
 
 
 def _occurs_twice(values: pl.Series) -> pl.Series:
-    """Per row: whether its value occurs in more than one row (found in a sorted copy)."""
-    ordered = np.sort(values.to_numpy())
+    """Per row: whether its value occurs in more than one row (found in a sorted copy; polars
+    sorts on every core, several times faster than numpy's single-threaded sort)."""
+    ordered = values.sort().to_numpy()
     twice = np.unique(ordered[1:][ordered[1:] == ordered[:-1]])
     return values.is_in(pl.Series(twice, dtype=values.dtype).implode())
 
