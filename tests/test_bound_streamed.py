@@ -262,7 +262,8 @@ def test_truth_gaps_in_parts_equal_the_whole_truth_sorted_at_once():
     truth = pl.DataFrame({"truth_id": ids, "time": t}).with_columns(
         pl.col("time").cast(pl.Datetime("us", "UTC")),
         *[pl.Series(c, rng.normal(size=n)) for c in COLUMNS[2:]])
-    truth = truth.with_columns(pl.when(pl.int_range(n) % 23 == 0).then(None).otherwise(pl.col("vx_mps")).alias("vx_mps"))
+    truth = truth.with_columns(pl.when(pl.int_range(n) % 23 == 0).then(None).otherwise(pl.col("vx_mps"))
+                               .alias("vx_mps"))
     truth = pl.concat([truth, truth.gather(np.arange(0, n, 3)).with_columns(pl.col("x_m") + 1.0)])   # times repeated
     whole = _gap_frame(_samples(truth.lazy()), 0).collect().sort("truth_id")
     assert whole.height > 30
