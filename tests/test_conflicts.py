@@ -804,3 +804,10 @@ def test_two_tracks_of_one_aircraft_are_a_duplicate_not_a_conflict():
     off = predict_conflicts(_frame(pos, vel).with_columns(pl.Series("mode_s", ["a", "a", "b"])),
                             ConflictConfig(threshold_mode="fixed", same_identity_is_duplicate=False))
     assert (1, 2) in {(r["id_a"], r["id_b"]) for r in off.filter("alert").iter_rows(named=True)}
+    # the same three below an en-route floor, after two en-route aircraft in the table: the pairs
+    # below the floor are predicted on a subset of the rows, whose addresses are those of its rows
+    high = [[0, 60_000, 9000], [400, 60_000, 9000]]
+    df = _frame(high + pos, [[100, 0, 0], [100, 0, 0]] + vel).with_columns(
+        pl.Series("mode_s", ["h1", "h2", "abc123", "abc123", "def456"]))
+    out = predict_conflicts(df, dataclasses.replace(cfg, enroute_above_m=5000.0))
+    assert {(r["id_a"], r["id_b"]) for r in out.filter("alert").iter_rows(named=True)} == {(1, 2), (3, 5), (4, 5)}

@@ -5,6 +5,7 @@ prediction), and the ``conflicts`` rows of a window under several settings at on
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
@@ -25,6 +26,13 @@ from tertiary.core import geo
 __all__ = ["empty_conflicts", "CONFLICT_EXTRA", "WindowRows", "pair_rows", "Groups", "in_one_group"]
 
 def empty_conflicts() -> pl.DataFrame:
+    """An empty ``conflicts`` table with :data:`CONFLICT_EXTRA` (a new frame each call)."""
+    return _empty_conflicts().clear()
+
+
+@functools.cache
+def _empty_conflicts() -> pl.DataFrame:
+    # built once: a frame from a schema costs a hundred times its clear(), and a window makes thousands
     return pl.DataFrame(schema={**TABLES["conflicts"].required, **CONFLICT_EXTRA})
 
 
@@ -223,6 +231,11 @@ class WindowRows:
     def ids(self) -> NDArray[np.int64]:
         return self._get("ids", lambda: self.tracks[self.id_col].cast(pl.Int64).to_numpy())
 
+    def mode_s(self) -> pl.Series | None:
+        """The rows' Mode S addresses as strings (None: the table has none)."""
+        return self._get("mode_s", lambda: self.tracks["mode_s"].cast(pl.String)
+                         if "mode_s" in self.tracks.columns else None)
+
     def keys(self) -> pl.DataFrame:
         return self._get("keys", lambda: self.tracks.select(
             pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME),
@@ -243,8 +256,10 @@ class WindowRows:
                 sub._memo[name] = tuple(a if a is None else a[idx] for a in v)
             elif name == "terms":
                 sub._memo[name] = v.take(idx)
-            else:                               # g, ids (arrays), keys (a frame)
+            elif v is not None:                 # g, ids (arrays), keys (a frame), mode_s (a series)
                 sub._memo[name] = v[idx]
+            else:
+                sub._memo[name] = None
         return sub
 
 
@@ -360,8 +375,8 @@ def _assemble(rows: WindowRows, g: NDArray[np.int64], cfg: ConflictConfig, chunk
     vals = pl.DataFrame([pl.Series("id_a", ids[i]).cast(pl.UInt64), pl.Series("id_b", ids[j]).cast(pl.UInt64)]
                         ).hstack(pl.DataFrame(cols)[order])
     out = keys.hstack(vals)
-    if cfg.same_identity_is_duplicate and "mode_s" in tracks.columns:
-        ms = tracks["mode_s"].cast(pl.String)
+    ms = rows.mode_s() if cfg.same_identity_is_duplicate else None
+    if ms is not None:
         a, b = ms.gather(i), ms.gather(j)
         dup = (a.is_not_null() & (a == b)).fill_null(False)
         out = out.with_columns(pl.col("alert") & ~pl.Series(dup))
