@@ -164,3 +164,14 @@ def test_a_lazy_input_is_fingerprinted_as_the_table_in_memory_would_be(tmp_path,
     whole = frame.select(pl.struct(pl.all()).hash(seed=0)).to_series().to_numpy()
     assert runner._fingerprint_any(pl.scan_parquet(tmp_path / "t.parquet")) == \
         hashlib.sha256(whole.tobytes()).hexdigest()[:16]
+
+
+def test_freed_memory_is_released_after_every_window(small_terminal, tmp_path, monkeypatch):
+    """A long run's resident set stays that of one window: glibc's freed pages are handed back
+    once per window (:func:`~tertiary.core.memory.release_freed_memory`), after it is processed.
+    Fails if the windows stop releasing, or release before processing."""
+    started = _windows_started(monkeypatch)
+    released: list[int] = []                    # windows begun at each release
+    monkeypatch.setattr(streaming, "release_freed_memory", lambda: released.append(len(started)) or True)
+    pipeline.run(small_terminal, tmp_path / "run", window_s=60.0)
+    assert len(started) > 3 and released == list(range(1, len(started) + 1))

@@ -23,6 +23,7 @@ from safety import conflicts as safety_conflicts
 from tertiary import contract
 from tertiary.core import geo
 from tertiary.core.errors import DataError
+from tertiary.core.memory import release_freed_memory
 from tertiary.core.stage import Stage
 from tertiary.core.units import US
 from tertiary.evaluation.association import AssociationScore, score_associations
@@ -489,6 +490,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             done.append((w, raw.height))
             if overlap is None:
                 tell()
+            release_freed_memory()        # a long run's resident set stays that of one window
         if overlap is not None:
             clock.stage("wait_evaluation", say=False)
             st = overlap.result() or st
