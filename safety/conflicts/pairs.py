@@ -243,7 +243,7 @@ class WindowRows:
 
     def prepare(self, covariance: bool) -> None:
         """Compute what the settings read (before they run in threads)."""
-        self.group(), self.state(), self.ids(), self.keys()
+        self.group(), self.state(), self.ids(), self.keys(), self.mode_s()
         if covariance:
             self.terms()
 
@@ -362,7 +362,7 @@ def _assemble(rows: WindowRows, g: NDArray[np.int64], cfg: ConflictConfig, chunk
     them."""
     if not chunks or sum(len(c["i"]) for c in chunks) == 0:
         return empty_conflicts()
-    ids, tracks = rows.ids(), rows.tracks
+    ids = rows.ids()
     cols = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     i, j = cols.pop("i"), cols.pop("j")
     order = _pair_order(g, ids, i, j)

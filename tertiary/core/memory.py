@@ -1,7 +1,8 @@
-"""How the process allocates memory: settings a command applies once, first thing.
+"""How the process allocates memory: settings a command applies once, first thing, and the
+release of freed memory a run asks for after each window.
 
 They change the process (its environment, glibc's malloc), so they are explicit functions the
-command line calls, never side effects of importing the package.
+command line and the windows call, never side effects of importing the package.
 """
 
 from __future__ import annotations
