@@ -167,8 +167,9 @@ def test_a_lazy_input_is_fingerprinted_as_the_table_in_memory_would_be(tmp_path,
 
 
 def test_freed_memory_is_released_after_every_window(small_terminal, tmp_path, monkeypatch):
-    """A long run's resident set stays that of one window: glibc's freed pages are handed back
-    once per window (:func:`~tertiary.core.memory.release_freed_memory`), after it is processed.
+    """glibc's freed pages are handed back once per window
+    (:func:`~tertiary.core.memory.release_freed_memory`), after it is processed, so that they do not
+    add up over a long run.
     Fails if the windows stop releasing, or release before processing."""
     started = _windows_started(monkeypatch)
     released: list[int] = []                    # windows begun at each release

@@ -490,7 +490,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
             done.append((w, raw.height))
             if overlap is None:
                 tell()
-            release_freed_memory()        # a long run's resident set stays that of one window
+            release_freed_memory()        # glibc keeps pages freed below live blocks: over a long run they add up
         if overlap is not None:
             clock.stage("wait_evaluation", say=False)
             st = overlap.result() or st
