@@ -39,11 +39,8 @@ def one_malloc_arena() -> bool:
     Worker threads (the STCA curves predict two settings at a time) would each get an arena whose
     freed memory glibc keeps, raising the peak at no gain in speed. Polars and DuckDB allocate
     with their own allocators, untouched. Call it before any worker thread starts."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(_M_ARENA_MAX, 1))
-    except (OSError, AttributeError):      # not glibc (macOS, musl): nothing to set
-        return False
+    libc = _glibc()
+    return bool(libc.mallopt(_M_ARENA_MAX, 1)) if libc is not None else False
 
 
 def release_freed_memory() -> bool:
@@ -60,6 +57,7 @@ def release_freed_memory() -> bool:
 
 @functools.cache
 def _glibc() -> ctypes.CDLL | None:
+    """The C library when it is glibc (None elsewhere: macOS, musl), loaded once."""
     try:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:                          # not glibc (macOS, musl)
