@@ -213,16 +213,41 @@ def test_fused_method_independent_columns_stored_once_per_target(tmp_path):
     assert np.array_equal(back["alt_m"].to_numpy(), fused["alt_m"].to_numpy())   # exact in float32
 
 
-def test_fused_column_that_depends_on_the_method_is_not_shared(tmp_path):
-    fused = _fused_case().with_columns(
-        pl.when(pl.col("method") == "information").then(pl.col("alt_m") + 0.5).otherwise("alt_m").alias("alt_m"))
+def _one_key_disagrees() -> pl.DataFrame:
+    """:func:`_fused_case` where one (epoch, target) has a height of its own in one method (as a
+    primary-only target's height comes from each method's own position)."""
+    odd = (pl.col("method") == "information") & (pl.col("alt_m") == 200.0)
+    return _fused_case().with_columns(pl.when(odd).then(pl.col("alt_m") + 0.5).otherwise("alt_m").alias("alt_m"))
+
+
+def test_a_key_whose_methods_disagree_keeps_its_rows_own_values(tmp_path):
+    fused = _one_key_disagrees()
     with RunStore.create(tmp_path) as st:
         st.write("fused", fused)
     with RunStore.open(tmp_path) as st:
         shared = st.sql(f"SELECT * FROM {LEAN_PREFIX}fused__shared")
         back = st.read("fused")
-    assert "alt_m" not in shared.columns and "mode_s" in shared.columns
+    # the three keys that agree are shared, each column of them; the fourth keeps its own
+    assert shared.height == 3 and {"alt_m", "mode_s"} <= set(shared.columns)
+    assert 200.0 not in shared["alt_m"].to_list()
     assert np.array_equal(back["alt_m"].to_numpy(), fused["alt_m"].to_numpy())
+    assert back["mode_s"].equals(fused["mode_s"])
+
+
+def test_a_part_with_a_disagreeing_key_is_appended_in_the_tables_layout(tmp_path, monkeypatch):
+    """The parts of a streamed ``fused`` table keep one layout when a later part holds a key
+    whose methods disagree: appended as they come, never concatenated and written whole."""
+    whole = _one_key_disagrees().sort("epoch", maintain_order=True)
+    parts = whole.partition_by("epoch", maintain_order=True)
+    assert parts[1]["alt_m"].to_list().count(200.5) == 1          # the odd key is in the later part
+    with RunStore.create(tmp_path / "whole") as st:
+        st.write("fused", whole)
+    with RunStore.create(tmp_path / "parts") as st:
+        monkeypatch.setattr(RunStore, "write", lambda *a: pytest.fail("the parts were written whole"))
+        st.write_parts("fused", lambda: iter(parts))
+    a, b = _dump(tmp_path / "whole"), _dump(tmp_path / "parts")
+    for t in a:
+        assert a[t].equals(b[t], null_equal=True), t
 
 
 def _tracks_case(n: int = 5) -> pl.DataFrame:

@@ -20,8 +20,8 @@ DROP TABLE to test a run without safety, and float32 would save little there.
   the report's figures do, gets the float32 of the value), for a few bits more than float32.
 * NARROW: float64 columns holding velocities, weights, variances, innovations, NIS and
   probabilities stored as float32 (7 significant digits: 2e-5 m/s at 300 m/s, 1e-7 relative on
-  a variance) — far below any radar's metres-scale error; the view casts them back to DOUBLE. An
-  altitude stored once per target (``_lean_fused__shared``) is float32 alone: ≤ 0.5 mm below
+  a variance) — far below any radar's metres-scale error; the view casts them back to DOUBLE. The
+  altitude of ``fused`` (a SHARED column, below) is float32 alone in every row: ≤ 0.5 mm below
   16 384 m. Inputs (``reports``, ``truth``) are never narrowed.
 * fixed-size float arrays (``cov_ut`` FLOAT[21], ``meas_cov``, ``nominal_var``) stored as one
   column per element: each element column is homogeneous in scale, so DuckDB's ALP/ALPRD
@@ -32,7 +32,8 @@ DROP TABLE to test a run without safety, and float32 would save little there.
   from ``reports`` by ``report_id`` (checked equal before they are dropped).
 * SHARED: in ``fused`` the columns that do not depend on the fusion method (the vertical
   channel, freshness, identity, sources) are stored once per (run, epoch, target_id) in
-  ``_lean_fused__shared`` for the rows of every method but ``centralized`` (checked constant).
+  ``_lean_fused__shared`` for the rows of every method but ``centralized``, for each key whose
+  rows agree on all of them (checked; the rows of a key that does not keep their own values).
 """
 
 from __future__ import annotations
@@ -300,23 +301,24 @@ def _drop_report_columns(lay: Layout, con: duckdb.DuckDBPyConnection, reports_ta
 
 
 def _factor_shared(lay: Layout, keys: tuple[str, ...], by: str, own: str, candidates: tuple[str, ...]) -> None:
-    """Columns constant within each key among the rows whose ``by`` is not ``own`` stored once per key."""
+    """The ``candidates`` stored once per key for the keys whose rows (those whose ``by`` is not
+    ``own``) hold one value of each (nulls included); the rows of any other key keep their own.
+    Which columns are factored depends on the schema alone, so every part of a streamed table
+    gets the layout of the whole (a key whose methods disagree, e.g. a primary-only target's
+    height from each method's own position, costs its rows the saving, not the table's parts)."""
     f = lay.phys
-    if not set(keys) | {by} <= set(f.columns) or f.height == 0:
-        return
-    mask = f[by] != own
-    sub = f.filter(mask.fill_null(True))
     cols = [c for c in candidates if c in f.columns]
-    if not cols or sub.height == 0:
+    if not set(keys) | {by} <= set(f.columns) or not cols:
         return
-    # a column is shared when every key holds one value (nulls included) among those rows
+    mask = (f[by] != own).fill_null(True)
+    sub = f.filter(mask)
     per_key = sub.select(*keys, *[pl.col(c).hash().alias(c) for c in cols]).group_by(keys).agg(
-        [pl.col(c).n_unique().alias(c) for c in cols])
-    cols = [c for c in cols if per_key.height == 0 or per_key[c].max() == 1]
-    if not cols:
-        return
-    shared_rows = mask.fill_null(True)
-    lay.shared = sub.select(*keys, *cols).unique(subset=list(keys), keep="first", maintain_order=True)
+        pl.all_horizontal([pl.col(c).n_unique() == 1 for c in cols]).alias("__one"))
+    agree = (f.select(keys).join(per_key, on=list(keys), how="left", nulls_equal=True, maintain_order="left")
+             ["__one"].fill_null(False))
+    shared_rows = mask & agree
+    lay.shared = (f.filter(shared_rows).select(*keys, *cols)
+                  .unique(subset=list(keys), keep="first", maintain_order=True))
     lay.shared_keys = keys
     lay.phys = f.with_columns(
         *[pl.when(shared_rows).then(None).otherwise(pl.col(c)).alias(c) for c in cols],
