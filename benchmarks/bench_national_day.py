@@ -9,8 +9,10 @@ conflicts, evaluation; the streamed tables registered as Parquet, ``--tables par
 Runs ``tertiary run`` in a child process and samples its process tree every 2 s: each process's
 peak resident memory (the client and each Dask worker apart), the tree's peak sum, and the disk
 free. A run killed and resumed is recorded as its phases (``--time-log`` adds a phase measured by
-``/usr/bin/time -v`` instead). Records the run's own stage timings, peak by stage and counts
-from its database, and the size of its tables and database.
+``/usr/bin/time -v`` instead); a run that fails keeps its phase beside its log
+(``<out>.<k>.failed.json``) for the ``--resume`` after it, whose log is the next
+``<out>.<k>.log``. Records the run's own stage timings, peak by stage and counts from its
+database, and the size of its tables and database.
 
 Results: ``benchmarks/results/bench_national_day.json`` (one entry per engine).
 """
@@ -83,6 +85,15 @@ def _time_log(path: Path) -> dict:
             "tree_peak_rss_mib": round(peak, 1), "processes": [{"kind": "client", "peak_rss_mib": round(peak, 1)}]}
 
 
+def _free_log(out: Path, first: int) -> Path:
+    """The run's log ``<out>.<k>.log`` for the first k from ``first`` not taken: a resumed run's
+    log is written beside the killed run's, not over it."""
+    k = first
+    while (out.parent / f"{out.name}.{k}.log").exists():
+        k += 1
+    return out.parent / f"{out.name}.{k}.log"
+
+
 def _size_gb(path: Path) -> float:
     if path.is_file():
         return round(path.stat().st_size / 1e9, 2)
@@ -120,9 +131,13 @@ def main() -> None:
         cmd += ["--out", str(args.out)]
     phases = [_time_log(p) for p in args.time_log]
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    phases.append(_watched(cmd, args.out.parent / f"{args.out.name}.{len(phases)}.log"))
+    if args.resume:         # the failed attempts before this one, as they were recorded
+        phases += [json.loads(p.read_text()) for p in sorted(args.out.parent.glob(f"{args.out.name}.*.failed.json"))]
+    log = _free_log(args.out, len(phases))
+    phases.append(_watched(cmd, log))
     if phases[-1]["exit"] != 0:
-        raise SystemExit(f"tertiary run failed: see {args.out.parent / f'{args.out.name}.{len(phases) - 1}.log'}")
+        log.with_suffix(".failed.json").write_text(json.dumps(phases[-1], indent=1) + "\n")
+        raise SystemExit(f"tertiary run failed: see {log}")
     got = _from_db(args.out)
     reports = got["rows"]["reports_in"]
     wall = sum(p["wall_s"] for p in phases)
