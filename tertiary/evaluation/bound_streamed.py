@@ -45,6 +45,7 @@ from tertiary.evaluation.bound_measurements import MODE_S_FIRST, mode_s_first
 from tertiary.evaluation.bound_pooling import bound_sums, epoch_pools, merged_pools
 from tertiary.evaluation.bound_truth import COLUMNS, Truth, truth_gaps
 from tertiary.evaluation.evaluate import reference_files
+from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.sensors import mlat
 
 __all__ = ["ADVANCE_S", "BoundSetup", "BoundState", "LAG_S", "LOOKAHEAD_S", "PartFiles", "bound_finish",
@@ -403,7 +404,7 @@ def _read_truth(setup: BoundSetup, lo_us: int, hi_us: int | None) -> pl.DataFram
     from the reference (in time order: the other times' row groups are skipped)."""
     def at(v: int) -> datetime:
         return datetime(1970, 1, 1, tzinfo=timezone.utc) + timedelta(microseconds=int(v))
-    lf = pl.scan_parquet(list(setup.files))
+    lf = pl.scan_parquet(files_between(setup.files, read_spans(setup.files), lo_us, hi_us))
     keep = pl.col("time") >= at(lo_us)
     if hi_us is not None:
         keep &= pl.col("time") < at(hi_us)

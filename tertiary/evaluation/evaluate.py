@@ -40,6 +40,7 @@ from tertiary.evaluation.matching import (MatchConfig, between_expr, between_mas
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig, picture_metrics
 from tertiary.evaluation.picture_buckets import picture_metrics_buckets
 from tertiary.evaluation.reference import adsb_reference, plot_measurements, reconstruct_reference
+from tertiary.evaluation.reference_spans import files_between, piece_span, read_spans, write_spans
 from tertiary.evaluation.requirements import Requirements, check_requirements
 from tertiary.contract import TIME
 from tertiary.store.files import write_parquet_atomic
@@ -164,19 +165,23 @@ def write_reference_pieces(pieces: Iterable[pl.DataFrame], path: str | Path) -> 
     """A reference written a piece at a time, in order, as a directory of reference files (one
     per piece, read back in name order): each piece already carries its samples' ``__prev``/
     ``__next`` (:func:`neighbour_times` of whole aircraft), so a truth that is never held whole
-    is written without a second copy (memory). :func:`read_reference`,
+    is written without a second copy (memory), and each file's time range beside them
+    (:mod:`tertiary.evaluation.reference_spans`: a slice reads only its own files). :func:`read_reference`,
     :func:`evaluate_each` and the run database read the directory as one reference. The
     directory appears whole (renamed from a temporary one when the last piece is written)."""
     final = Path(path)
     tmp = final.with_name(final.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    n = 0
-    for n, piece in enumerate(pieces, 1):
-        piece.write_parquet(tmp / f"{n - 1:06d}.parquet", compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
-    if n == 0:
+    spans = {}
+    for n, piece in enumerate(pieces):
+        name = f"{n:06d}.parquet"
+        piece.write_parquet(tmp / name, compression="lz4", row_group_size=REFERENCE_GROUP_ROWS)
+        spans[name] = piece_span(piece)
+    if not spans:
         shutil.rmtree(tmp, ignore_errors=True)
         raise ValueError("write_reference_pieces: no piece to write")
+    write_spans(tmp, spans)
     shutil.rmtree(final, ignore_errors=True)
     tmp.rename(final)
     return final
@@ -224,6 +229,7 @@ class Reference:
             return
         self._truth, self.path = None, Path(truth)
         self.files = reference_files(self.path)
+        self._spans = read_spans(self.files)
         schema = {k: v for k, v in pl.read_parquet_schema(self.files[0]).items() if k not in NEIGHBOUR_COLUMNS}
         self.empty = pl.DataFrame(schema=schema)
         self.identity = _identity_of(self.files, [c for c in ("truth_id", "icao24", "callsign", "mode_3a")
@@ -242,7 +248,8 @@ class Reference:
             # and every block of a long picture would read the whole reference
             coarse = (((pl.col("time") >= t0) | (pl.col("__next") >= t0))
                       & ((pl.col("time") <= t1) | (pl.col("__prev") <= t1)))
-            return (pl.scan_parquet(self.files).filter(coarse).select(*cols, *NEIGHBOUR_COLUMNS).collect()
+            files = files_between(self.files, self._spans, t0, t1, reach=True)
+            return (pl.scan_parquet(files).filter(coarse).select(*cols, *NEIGHBOUR_COLUMNS).collect()
                     .filter(between_expr(t0, t1)).select(cols))
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice

@@ -24,6 +24,7 @@ from tertiary.contract import TIME
 from tertiary.core import geo
 from tertiary.core.stage import T_MAX_US
 from tertiary.core.units import US
+from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.evaluation.truth_picture import SPAN_GAP_S, extend_spans, truth_picture
 
 __all__ = ["TRUTH_BLOCK_S", "TRUTH_STEP_S", "TRUTH_PICTURE_COLUMNS", "TRUTH_TABLES", "TruthPictureState",
@@ -74,8 +75,10 @@ class TruthPictureState:
 def reference_slice(files: Sequence[Path]) -> TruthSlice:
     """A :data:`TruthSlice` of the reference files: the samples of [t0_us, t1_us], the
     :data:`TRUTH_PICTURE_COLUMNS` they have, in the files' order."""
+    spans = read_spans(files)
+
     def between(t0_us: int, t1_us: int) -> pl.DataFrame:
-        lf = pl.scan_parquet(list(files))
+        lf = pl.scan_parquet(files_between(files, spans, t0_us, t1_us))
         have = lf.collect_schema().names()
         return (lf.select(c for c in TRUTH_PICTURE_COLUMNS if c in have)
                 .filter(pl.col("time").dt.epoch("us").is_between(t0_us, t1_us)).collect())
