@@ -91,3 +91,12 @@ def test_files_without_spans_are_all_read(tmp_path):
     (tmp_path / SPANS_FILE).write_text('{"000000.parquet": [0, 1, 0, 1]}')
     assert read_spans(files) is None
     assert files_between(files, None, 5, 6) == files
+
+
+def test_a_piece_without_a_time_has_no_span():
+    """An empty piece (or one whose times are all missing) holds no row of any slice."""
+    from tertiary.evaluation.reference_spans import piece_span
+    empty = _truth().clear()
+    assert piece_span(empty) == [None] * 4
+    assert piece_span(_truth().head(3).with_columns(pl.lit(None, pl.Datetime("us", "UTC")).alias("time"))) == [None] * 4
+    assert piece_span(_truth().head(1))[0] == piece_span(_truth().head(1))[1]

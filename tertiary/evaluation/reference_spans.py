@@ -27,14 +27,14 @@ _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 
 def piece_span(piece: pl.DataFrame) -> list[int | None]:
     """[first time, last time, earliest of time and ``__prev``, latest of time and ``__next``]
-    of a reference piece, in µs (None for an empty piece)."""
-    if not piece.height:
-        return [None] * 4
+    of a reference piece, in µs (None without a time: no slice reads a row of it)."""
     us = {c: piece[c].dt.epoch("us") for c in ("time", "__prev", "__next") if c in piece.columns}
-    t = us["time"]
-    lo = min(v for v in (t.min(), us["__prev"].min() if "__prev" in us else None) if v is not None)
-    hi = max(v for v in (t.max(), us["__next"].max() if "__next" in us else None) if v is not None)
-    return [int(t.min()), int(t.max()), int(lo), int(hi)]
+    t0, t1 = us["time"].min(), us["time"].max()
+    if t0 is None:
+        return [None] * 4
+    lo = min(v for v in (t0, us["__prev"].min() if "__prev" in us else None) if v is not None)
+    hi = max(v for v in (t1, us["__next"].max() if "__next" in us else None) if v is not None)
+    return [int(t0), int(t1), int(lo), int(hi)]
 
 
 def write_spans(directory: Path, spans: dict[str, list[int | None]]) -> None:
