@@ -88,11 +88,11 @@ def main() -> None:
         results = {}
         for name, copies in (("source", 0), ("day", a.copies)):
             path = _day(a.source, copies, Path(tmp) / name)
-            t = pl.scan_parquet(reference_files(path)).select(pl.col("time").min().alias("lo"), pl.col("time").max().alias("hi")).collect()
-            lo, hi = t.row(0)
-            at = [lo + (hi - lo) * k / 12 for k in range(1, 12)]
-            results[name] = {"samples": pl.scan_parquet(reference_files(path)).select(pl.len()).collect().item(),
-                             **_slices(path, at)}
+            scan = pl.scan_parquet(reference_files(path))
+            lo, hi, n = scan.select(pl.col("time").min().alias("lo"), pl.col("time").max().alias("hi"),
+                                    pl.len()).collect().row(0)
+            at = [lo + (hi - lo) * k / 12 for k in range(1, 12)]      # eleven minutes spread over it
+            results[name] = {"samples": n, **_slices(path, at)}
             print(name, results[name], flush=True)
     print(record("bench_reference_slices", {"source": str(a.source), "copies": a.copies, "results": results}))
 
