@@ -100,3 +100,13 @@ def test_a_piece_without_a_time_has_no_span():
     assert piece_span(empty) == [None] * 4
     assert piece_span(_truth().head(3).with_columns(pl.lit(None, pl.Datetime("us", "UTC")).alias("time"))) == [None] * 4
     assert piece_span(_truth().head(1))[0] == piece_span(_truth().head(1))[1]
+
+
+def test_a_bound_of_another_type_is_an_error_not_a_guess(tmp_path):
+    """A numpy time's integer depends on its unit: it is refused, never read as µs."""
+    files = [tmp_path / "a.parquet", tmp_path / "b.parquet"]
+    spans = [[0, 10, 0, 10], [11, 20, 11, 20]]
+    assert files_between(files, spans, 12, 15) == files[1:]
+    with pytest.raises(TypeError, match="datetime or µs"):
+        files_between(files, spans, np.datetime64("1970-01-01T00:00:00.000012", "ns"), 15)
+    assert files_between(files, spans, np.int64(12), np.int64(15)) == files[1:]

@@ -12,6 +12,7 @@ its rows: the same rows, in the same order, as the scan of every file.
 from __future__ import annotations
 
 import json
+import numbers
 from collections.abc import Sequence
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -61,7 +62,9 @@ def _us(t: datetime | int) -> int:
     if isinstance(t, datetime):
         t = t if t.tzinfo is not None else t.replace(tzinfo=timezone.utc)
         return (t - _EPOCH) // timedelta(microseconds=1)
-    return int(t)
+    if isinstance(t, numbers.Integral):         # numpy's integers too
+        return int(t)
+    raise TypeError(f"a slice's bound is a datetime or µs since the epoch, not {type(t).__name__}")
 
 
 def files_between(files: Sequence[Path], spans: list[list[int | None]] | None, lo: datetime | int | None,
