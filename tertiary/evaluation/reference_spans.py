@@ -1,12 +1,12 @@
 """Which files of a reference directory a time slice reads.
 
 A long run's reference is a directory of files written a piece at a time
-(:func:`~tertiary.evaluation.evaluate.write_reference_pieces`), and every window reads a time
-slice of it: the matcher's samples, the truth picture's, the bound's. A scan of every file
-opens each file's metadata to skip its row groups, so a slice would cost more the longer the
-run (a national day's reference is some 300 files). Beside the files the writer keeps each
-file's time range (:data:`SPANS_FILE`), and a slice scans only the files that can hold one of
-its rows: the same rows, in the same order, as the scan of every file.
+(:func:`~tertiary.evaluation.evaluate.write_reference_pieces`), and the windows read time
+slices of it: the matcher's samples every window, the truth picture's and the bound's every
+few. A scan of every file opens each file's metadata to skip its row groups, so a slice would
+cost more the longer the run (a national day's reference is some 300 files). Beside the files
+the writer keeps each file's time range (:data:`SPANS_FILE`), and a slice scans only the files
+that can hold one of its rows: the same rows, in the same order, as the scan of every file.
 """
 
 from __future__ import annotations
