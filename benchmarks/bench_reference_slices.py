@@ -3,12 +3,12 @@
     python benchmarks/bench_reference_slices.py --source RUN/parts/_scratch/reference --copies 7
 
 ``--source``: a reference directory a run wrote (``write_reference_pieces``; the national 3 hours'
-is 44 files, 11.4 M samples). The benchmark writes it again ``--copies`` times shifted by its own
-span (7 copies of 3 hours: a day's 308 files, 80 M samples) and times, at times spread over the
-result, the slices every window reads: the matcher's (``Reference.between``, a minute) and the
-truth picture's (``reference_slice``, a minute and its margin), each reading only the files that
-can hold its rows and reading every file. Records the medians in
-``results/bench_reference_slices.json``.
+is 44 files, 11.4 M samples). The benchmark writes it, then it and ``--copies`` more copies of it
+shifted by its span each (7 more of 3 hours: 24 hours, 352 files, 91 M samples), and times, at
+times spread over each, the windows' slices: the matcher's (``Reference.between``, a minute; every
+window) and the truth picture's (``reference_slice``, a minute and its margin; every fifth window,
+as the bound's), each reading only the files that can hold its rows and reading every file.
+Records the medians in ``results/bench_reference_slices.json``.
 """
 
 from __future__ import annotations
