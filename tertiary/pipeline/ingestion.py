@@ -156,8 +156,11 @@ def _pack_by_part(raw: pl.DataFrame, where: pl.Series) -> pl.DataFrame:
     return pl.concat(packed, how="vertical_relaxed").sort("row_index", maintain_order=True)
 
 
-#: input truth rows read at a time by :func:`stream_truth` (then split into aircraft parts)
+#: input truth rows read at a time by :func:`stream_truth`, and the rows of each file of the
+#: reference it writes in input order
 TRUTH_BATCH_ROWS = 262_144
+#: rows per row group of a validated part's scratch file (:func:`stream_truth`)
+OUT_GROUP_ROWS = 16_384
 
 
 @dataclass
@@ -187,9 +190,10 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     neither the input truth nor the clean one is ever held whole (memory). None where
     :func:`validate_truth` validates the table in one call (strict mode, a small or malformed table): the caller does that.
 
-    One pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows by
-    aircraft part (:func:`validate_truth`'s parts); each part is validated, put back in input
-    order and given its samples' neighbour times; the clean rows are then written as a reference
+    One streaming pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows
+    by aircraft part (:func:`validate_truth`'s parts); each part is validated, put back in input
+    order, given its samples' neighbour times and kept as one scratch file, from which each input
+    batch reads its own row groups; the clean rows are then written as a reference
     (:func:`write_reference_pieces`) in :func:`validate_truth`'s order — input order, or
     (truth_id, time) when some aircraft's times decrease — a file per input batch or per part.
     Every check is row-wise or within one aircraft, the median time is the whole table's (read a
@@ -206,11 +210,11 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     if n <= TRUTH_PART_ROWS:
         return None
     kw = dict(limits=cfg.limits, time_window=window)
-    times = lf.select("time")
 
-    def batches():
-        for off in range(0, n, TRUTH_BATCH_ROWS):
-            yield times.slice(off, TRUTH_BATCH_ROWS).collect()["time"]
+    def batches() -> Iterator[pl.Series]:
+        # one streaming pass: a slice of the scan per batch would read every input file's footer
+        for b in lf.select("time").collect_batches(chunk_size=TRUTH_BATCH_ROWS):
+            yield b["time"]
     med = contract.streamed_median_time(batches, cfg.limits)
     sizes = lf.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True).collect()
     part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
@@ -218,17 +222,9 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     work = scratch / "truth"
     shutil.rmtree(work, ignore_errors=True)        # a resumed finalize's leftovers
     n_batches = -(-n // TRUTH_BATCH_ROWS)
-    for b in range(n_batches):
-        off = b * TRUTH_BATCH_ROWS
-        batch = lf.slice(off, TRUTH_BATCH_ROWS).collect()
-        batch = batch.with_columns(pl.int_range(off, off + batch.height, dtype=pl.UInt64).alias(contract.INPUT_ROW),
-                                   batch.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
-                                                                 maintain_order="left")["__part"])
-        for (k,), rows in batch.partition_by("__part", as_dict=True, maintain_order=True).items():
-            (work / f"in-{k:06d}").mkdir(parents=True, exist_ok=True)
-            rows.drop("__part").write_parquet(work / f"in-{k:06d}" / f"{b:06d}.parquet", compression="lz4")
-        del batch
+    _file_by_part(lf, part_of, work)
     rejs, n_bad, n_groups, clean_rows, empty = [], 0, 0, 0, None
+    reach: dict[int, tuple[int, int]] = {}           # each part's first and last input batch
     for k in range(n_parts):
         src = work / f"in-{k:06d}"
         part = pl.read_parquet(sorted(src.glob("*.parquet")))
@@ -241,11 +237,15 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
         empty = clean.drop(contract.INPUT_ROW).clear()
         bad, groups = contract.unsorted_groups(clean, "truth")
         n_bad, n_groups, clean_rows = n_bad + bad, n_groups + groups, clean_rows + clean.height
+        if not clean.height:
+            continue
         times = neighbour_times(clean)
-        clean = clean.with_columns(times["__prev"], times["__next"],
-                                   (pl.col(contract.INPUT_ROW) // TRUTH_BATCH_ROWS).alias("__batch"))
-        for (b,), rows in clean.partition_by("__batch", as_dict=True, maintain_order=True).items():
-            rows.drop("__batch").write_parquet(work / f"out-{b:06d}-{k:06d}.parquet", compression="lz4")
+        # one file a part, in input order, its row groups small enough that an input batch's
+        # read skips the rest: a file per (batch, part) would cost a write each, thousands a day
+        clean.with_columns(times["__prev"], times["__next"]).write_parquet(
+            work / f"out-{k:06d}.parquet", compression="lz4", row_group_size=OUT_GROUP_ROWS)
+        reach[k] = (int(clean[contract.INPUT_ROW][0]) // TRUTH_BATCH_ROWS,
+                    int(clean[contract.INPUT_ROW][-1]) // TRUTH_BATCH_ROWS)
     rejects = pl.concat(rejs, how="vertical_relaxed").sort("row_index", maintain_order=True)
     if n_bad:
         notes.append(contract.unsorted_message("truth", n_bad, n_groups))
@@ -253,23 +253,49 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
         shutil.rmtree(work, ignore_errors=True)
         return StreamedTruth(None, 0, empty), rejects
 
-    def ordered() -> Iterator[pl.DataFrame]:
-        # an input batch's rows are in these files only, a part's in these
-        groups = ([sorted(work.glob(f"out-{b:06d}-*.parquet")) for b in range(n_batches)] if not n_bad else
-                  [sorted(work.glob(f"out-*-{k:06d}.parquet")) for k in range(n_parts)])
-        for files in groups:
-            if not files:
-                continue
-            piece = pl.read_parquet(files).sort(contract.INPUT_ROW)
-            if n_bad:       # the parts hold whole aircraft, in truth_id order
-                piece = piece.sort(list(contract.table_order("truth")), maintain_order=True)
-            yield piece.drop(contract.INPUT_ROW)
-            for f in files:
-                f.unlink()
+    def by_part() -> Iterator[pl.DataFrame]:
+        # the parts hold whole aircraft, in truth_id order
+        for k in reach:
+            f = work / f"out-{k:06d}.parquet"
+            yield pl.read_parquet(f).sort(list(contract.table_order("truth")), maintain_order=True).drop(
+                contract.INPUT_ROW)
+            f.unlink()
 
-    path = write_reference_pieces(ordered(), scratch / "reference")
+    def by_batch() -> Iterator[pl.DataFrame]:
+        row = pl.col(contract.INPUT_ROW)
+        for b in range(n_batches):
+            # an input batch's rows are in the files of the parts whose rows it spans
+            mine = [k for k, (first, last) in reach.items() if first <= b <= last]
+            if not mine:
+                continue
+            piece = (pl.scan_parquet([work / f"out-{k:06d}.parquet" for k in mine])
+                     .filter(row.is_between(b * TRUTH_BATCH_ROWS, (b + 1) * TRUTH_BATCH_ROWS, closed="left"))
+                     .collect().sort(contract.INPUT_ROW))
+            if piece.height:
+                yield piece.drop(contract.INPUT_ROW)
+            for k in mine:
+                if reach[k][1] == b:
+                    (work / f"out-{k:06d}.parquet").unlink()
+
+    path = write_reference_pieces(by_part() if n_bad else by_batch(), scratch / "reference")
     shutil.rmtree(work, ignore_errors=True)
     return StreamedTruth(path, clean_rows, empty), rejects
+
+
+def _file_by_part(lf: pl.LazyFrame, part_of: pl.DataFrame, work: Path) -> None:
+    """Every input row of ``lf`` with its input position, filed by aircraft part (``part_of``) in
+    ``work/in-<part>/<batch>.parquet``: one streaming pass over the input (a slice of a scan per
+    batch would read every input file's footer each time)."""
+    offset = 0
+    for b, batch in enumerate(lf.collect_batches(chunk_size=TRUTH_BATCH_ROWS)):
+        batch = batch.with_columns(
+            pl.int_range(offset, offset + batch.height, dtype=pl.UInt64).alias(contract.INPUT_ROW),
+            batch.select("truth_id").join(part_of, on="truth_id", how="left", nulls_equal=True,
+                                          maintain_order="left")["__part"])
+        offset += batch.height
+        for (k,), rows in batch.partition_by("__part", as_dict=True, maintain_order=True).items():
+            (work / f"in-{k:06d}").mkdir(parents=True, exist_ok=True)
+            rows.drop("__part").write_parquet(work / f"in-{k:06d}" / f"{b:06d}.parquet", compression="lz4")
 
 
 @dataclass
