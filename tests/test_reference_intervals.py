@@ -6,6 +6,7 @@ rules (level pairs, en-route floor, aerodrome zone) in force."""
 from __future__ import annotations
 
 import dataclasses
+from datetime import timedelta
 
 import numpy as np
 import polars as pl
@@ -170,3 +171,43 @@ def test_chunks_done_as_the_windows_pass_and_finished_at_the_end_equal_the_whole
                                                   / 37_300_000))
     assert_frame_equal(los, whole[0])
     assert_frame_equal(prox, whole[1])
+
+
+@pytest.mark.parametrize("layout", ["time", "aircraft"])
+def test_a_chunk_of_a_reference_in_pieces_reads_only_the_files_its_samples_are_in(truth, tmp_path, monkeypatch,
+                                                                                    layout):
+    """A reference written in pieces keeps each file's time range: a chunk finds its edge
+    samples from the ranges and the files that hold an edge, and reads only the files that can
+    hold its samples — the intervals are still the whole truth's, with the pieces in time order
+    (ranges side by side) or by aircraft (ranges overlapping). Fails if a chunk starts after the
+    last sample before its edge (an edge file's last time taken for it) or misses a neighbour."""
+    from tertiary.evaluation.evaluate import write_reference_pieces
+    from tertiary.evaluation.matching import neighbour_times
+    from tertiary.pipeline import stca_scoring
+    t, frame = truth
+    one = t.filter(pl.col("run") == 0).drop("run")
+    # half the aircraft unseen for 150 s, longer than a piece: their samples either side of the
+    # gap are neighbours that files apart
+    t0 = one["time"].min()
+    gap = (pl.col("truth_id") % 2 == 0) & pl.col("time").is_between(t0 + timedelta(seconds=200),
+                                                                     t0 + timedelta(seconds=350))
+    one = one.filter(~gap)
+    one = one.sort("time", maintain_order=True) if layout == "time" else one
+    acfg = _config()
+    whole = truth_intervals(one, acfg, frame)
+    assert whole[0].height and whole[1].height
+    times = neighbour_times(one)
+    rows = one.with_columns(times["__prev"], times["__next"])
+    step = -(-rows.height // 9)
+    ref = write_reference_pieces((rows.slice(k, step) for k in range(0, rows.height, step)), tmp_path / "ref")
+    scanned: list[int] = []
+    monkeypatch.setattr(stca_scoring.pl, "scan_parquet", lambda files, *a, f=pl.scan_parquet, **k:
+                        scanned.append(len(files) if isinstance(files, list) else 1) or f(files, *a, **k))
+    edges: list[int] = []
+    monkeypatch.setattr(stca_scoring, "_edges", lambda *a, f=stca_scoring._edges: edges.append(1) or f(*a))
+    (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=37.3)
+    assert_frame_equal(los, whole[0])
+    assert_frame_equal(prox, whole[1])
+    assert len(edges) > 10
+    if layout == "time":      # side by side: beyond the span's and the schema's, no read holds all nine
+        assert scanned.count(9) == 2 and len(scanned) > 2 * len(edges)

@@ -20,6 +20,7 @@ from safety.alerts.tradeoff import curve_settings, tradeoff_from_rows as curve_f
 from tertiary.core import geo
 from tertiary.core.units import FT, US
 from tertiary.evaluation.evaluate import reference_files
+from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.pictures import NOT_SCORED, as_picture, confirmed_only, safety_picture
 from tertiary.pipeline.tables import ALERT_TRUTH, OnDiskTable
@@ -68,28 +69,41 @@ def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, a
     :func:`reference_intervals`'s whatever the windows, so the result is the same."""
     if not span.height:
         return dataclasses.replace(state, span=span)
-    lf = pl.scan_parquet(reference_files(reference))
-    cols = [c for c in ALERT_TRUTH if c in lf.collect_schema()]
+    files = reference_files(reference)
+    lf = pl.scan_parquet(files)
+    schema = lf.collect_schema()
+    cols = [c for c in ALERT_TRUTH if c in schema]
+    # one run: each file's time range bounds a chunk's reads (runs have grids of their own)
+    spans = read_spans(files) if "run" not in schema else None
     lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
     step = max(int(chunk_s * US), 1)
     merged, a = state.merged, lo if state.next_us is None else state.next_us
     while a < hi and (until_us is None or min(a + step, hi) <= until_us):
         b = min(a + step, hi)
-        chunk = _chunk_intervals(lf, cols, acfg, frame, a, b)
+        chunk = _chunk_intervals(lf, cols, acfg, frame, a, b, (files, spans))
         merged = chunk if merged is None else safety_alerts.merge_intervals([merged, chunk], acfg)
         a = b
     return TruthIntervals(merged, a, span)
 
 
 def _chunk_intervals(lf: pl.LazyFrame, cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
-                     a: int, b: int) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """The truth's intervals in [a, b) µs (module :func:`reference_intervals`)."""
+                     a: int, b: int, spanned: tuple[list[Path], list | None] | None = None
+                     ) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """The truth's intervals in [a, b) µs (module :func:`reference_intervals`). ``spanned``: the
+    reference's files and their time ranges (:func:`~tertiary.evaluation.reference_spans.read_spans`;
+    None: scan every file)."""
     t = pl.col("time")
-    ta, tb = (pl.lit(v, pl.Int64).cast(pl.Datetime("us", "UTC")) for v in (a, b))
-    # per run (each has its own sample grid): the earliest of the runs' last times before a,
-    # the latest of their first times from b
-    p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
-    q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
+    if spanned is not None and spanned[1] is not None:
+        files, spans = spanned
+        p_us, q_us = _edges(files, spans, a, b)
+        lf = pl.scan_parquet(files_between(files, spans, p_us, q_us, reach=True))
+        p, q = (None if v is None else _at(v) for v in (p_us, q_us))
+    else:
+        ta, tb = _at(a), _at(b)
+        # per run (each has its own sample grid): the earliest of the runs' last times before a,
+        # the latest of their first times from b
+        p = _per_run(lf.filter(t < ta), t.max()).select(t.min()).collect().item()
+        q = _per_run(lf.filter(t >= tb), t.min()).select(t.max()).collect().item()
     near = pl.lit(True)
     if p is not None:
         near = near & ((t >= p) | (pl.col("__next") >= p))
@@ -97,6 +111,29 @@ def _chunk_intervals(lf: pl.LazyFrame, cols: list[str], acfg: safety_alerts.Aler
         near = near & ((t <= q) | (pl.col("__prev") <= q))
     truth = lf.filter(near).select(cols).collect()
     return safety_alerts.truth_intervals(truth, acfg, frame, clip_us=(a, b))
+
+
+def _edges(files: list[Path], spans: list, a: int, b: int) -> tuple[int | None, int | None]:
+    """(the last sample time before ``a``, the first from ``b``), µs, of one run's reference:
+    a file wholly before ``a`` (after ``b``) gives its last (first) time from its span, and only
+    the files whose range holds ``a`` or ``b`` are read. Scanning every file for them costs a
+    national day's chunk a read of the day's times."""
+    t = pl.col("time")
+    timed = [(f, s) for f, s in zip(files, spans) if s[0] is not None]
+    before = [s[1] for _, s in timed if s[1] < a]
+    after = [s[0] for _, s in timed if s[0] >= b]
+    for edge, cut, agg, out in ((a, t < _at(a), t.max(), before), (b, t >= _at(b), t.min(), after)):
+        held = [f for f, s in timed if s[0] < edge <= s[1]]
+        if held:
+            v = pl.scan_parquet(held).filter(cut).select(agg.dt.epoch("us")).collect().item()
+            if v is not None:
+                out.append(int(v))
+    return max(before, default=None), min(after, default=None)
+
+
+def _at(us: int) -> pl.Expr:
+    """``us`` (µs since the epoch) as a UTC time literal."""
+    return pl.lit(us, pl.Int64).cast(pl.Datetime("us", "UTC"))
 
 
 def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
