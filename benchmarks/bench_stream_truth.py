@@ -31,7 +31,6 @@ from tertiary.io.dataset import read_dataset
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.ingestion import stream_truth
 from tertiary.evaluation.evaluate import reference_files
-import tertiary
 ds = read_dataset({dataset!r}, lazy=True)
 t = time.perf_counter()
 on_disk, rejects = stream_truth(ds, PipelineConfig(), [], None, Path({scratch!r}))
@@ -40,7 +39,7 @@ files = reference_files(on_disk.reference)
 # the rows and their order: a digest of each row's hash and its position
 digest = (pl.scan_parquet(files).with_row_index("__i")
           .select((pl.struct(pl.all()).hash(7) // 2).sum()).collect().item())
-print(json.dumps({{"code": tertiary.__file__, "wall_s": round(wall, 1), "rows": on_disk.rows,
+print(json.dumps({{"wall_s": round(wall, 1), "rows": on_disk.rows,
                    "rejects": rejects.height, "reference_files": len(files), "digest": str(digest)}}))
 """
 
@@ -50,6 +49,7 @@ def main() -> None:
     ap.add_argument("--dataset", type=Path, required=True)
     ap.add_argument("--label", default="after")
     ap.add_argument("--tree", type=Path, default=None)
+    ap.add_argument("--commit", default=None, help="the tree's commit, recorded beside its figures")
     ap.add_argument("--work", type=Path, default=None)
     a = ap.parse_args()
     path = f"sys.path.insert(0, {str(a.tree.resolve())!r})" if a.tree else ""
@@ -59,7 +59,7 @@ def main() -> None:
     print(got, flush=True)
     old = RESULTS / "bench_stream_truth.json"
     runs = json.loads(old.read_text()).get("runs", {}) if old.exists() else {}
-    runs[a.label] = {"machine": machine(), **got}
+    runs[a.label] = {"machine": machine(), "commit": a.commit, **got}
     print(record("bench_stream_truth", {"dataset": str(a.dataset), "runs": runs}))
 
 
