@@ -145,3 +145,22 @@ def test_the_reference_height_comes_with_its_rate():
     ref = reference_at_epochs(tracks.select("run", "epoch"), truth)
     assert (ref["true_alt_rate_mps"] == 0.0).all()
     assert set(reference_labels(ref)["phase"].cast(pl.String)) == {"phase:level"}
+
+
+def test_a_reference_made_once_for_several_pictures_is_cut_to_each_ones_epochs():
+    """The reference at the epochs of several pictures, interpolated once, gives each picture
+    what its own epochs give it: the matched rows and the expected rows (the reference at its
+    epochs, no other epoch's). Fails if the shared reference is not cut to the picture's epochs."""
+    from polars.testing import assert_frame_equal
+    from tertiary.evaluation.matching import match_with_reference, picture_epochs, reference_at_epochs
+    truth = _truth()
+    every_2s = _tracks(truth, extra=True)
+    every_6s = _tracks(truth, every=6.0).with_columns(pl.col("track_id") + 100)
+    shared = reference_at_epochs(pl.concat([picture_epochs(every_2s), picture_epochs(every_6s)]).unique(), truth)
+    for picture in (every_2s, every_6s):
+        alone, expected_alone = match_with_reference(picture, truth)
+        got, expected = match_with_reference(picture, truth, expected=shared)
+        assert expected.height < shared.height
+        keys = ["run", "epoch", "truth_id"]
+        assert_frame_equal(expected.sort(keys), expected_alone.sort(keys))
+        assert_frame_equal(got, alone)

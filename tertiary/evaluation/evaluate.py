@@ -272,19 +272,21 @@ def _scored_only(matched: pl.DataFrame, id_col: str) -> pl.DataFrame:
 
 
 def match_block(block: pl.DataFrame, truth: pl.DataFrame | None, reference: "Reference", cfg: EvaluationConfig,
-                id_col: str, mt: MultiTargetState | None, slim: bool
+                id_col: str, mt: MultiTargetState | None, slim: bool, expected: pl.DataFrame | None = None
                 ) -> tuple[pl.DataFrame, pl.DataFrame, MultiTargetState | None]:
     """(row-scored matched rows, reference at the block's epochs, ``mt`` stepped; None: no
     multi-target metrics) of one block of a picture (whole epochs, after every earlier block's),
     matched against ``truth`` (None: the reference samples its epochs read,
-    :meth:`Reference.between`). The matcher is per epoch and the row scores per row: the step of
-    :func:`_match_blocks`, and of the evaluation's window stage."""
+    :meth:`Reference.between`). ``expected``: the reference at a superset of the block's epochs,
+    made once for several blocks (:func:`~tertiary.evaluation.matching.match_with_reference`).
+    The matcher is per epoch and the row scores per row: the step of :func:`_match_blocks`, and
+    of the evaluation's window stage."""
     _check_inputs(block, reference.empty, id_col)
     if "method" not in block.columns:
         block = block.with_columns(pl.lit("picture").alias("method"))
     if truth is None:
         truth = reference.between(block["epoch"].min(), block["epoch"].max())
-    m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity)
+    m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity, expected)
     del block, truth
     if mt is not None:
         mt = multitarget_step(mt, m.select("run", "epoch", pl.col(id_col).alias("track_id"), *_STATE[:3]),

@@ -52,7 +52,7 @@ from scipy.spatial import cKDTree
 from tertiary.contract import TIME
 from tertiary.core.units import STATE
 
-__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "match_to_reference", "match_with_reference",
+__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "picture_epochs", "match_to_reference", "match_with_reference",
            "reference_identity", "with_neighbours", "reference_between",
            "neighbour_times", "between_mask", "between_expr"]
 
@@ -265,20 +265,33 @@ def reference_between(neighboured: pl.DataFrame, t0, t1) -> pl.DataFrame:
     return neighboured.filter(between_mask(neighboured, t0, t1)).drop("__prev", "__next")
 
 
+def picture_epochs(tracks: pl.DataFrame) -> pl.DataFrame:
+    """The (run, epoch) of each row of a picture as the matcher keys them (run 0 without a
+    ``run`` column)."""
+    run = pl.col("run").cast(pl.UInt32) if "run" in tracks.columns else pl.lit(0, pl.UInt32).alias("run")
+    return tracks.select(run, pl.col("epoch").cast(TIME))
+
+
 def match_with_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
-                         id_col: str = "track_id", identity: pl.DataFrame | None = None
-                         ) -> tuple[pl.DataFrame, pl.DataFrame]:
+                         id_col: str = "track_id", identity: pl.DataFrame | None = None,
+                         expected: pl.DataFrame | None = None) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`match_to_reference`, and the reference at the picture's epochs
     (:func:`reference_at_epochs` of its (run, epoch)), computed once for both: what the
     evaluation expects covered. ``identity``: :func:`reference_identity` of the whole reference
-    when ``truth`` is a time slice of it (:func:`reference_between`)."""
+    when ``truth`` is a time slice of it (:func:`reference_between`). ``expected``: the reference
+    at a superset of the picture's (run, epoch) (:func:`picture_epochs`), made once for several
+    pictures of the same epochs; it is cut to the picture's."""
     tr = tracks
     if "run" not in tr.columns:
         tr = tr.with_columns(pl.lit(0, pl.UInt32).alias("run"))
     if "method" not in tr.columns:
         tr = tr.with_columns(pl.lit("picture").alias("method"))
     tr = tr.with_columns(pl.col("run").cast(pl.UInt32), pl.col("epoch").cast(TIME)).with_row_index("__row")
-    expected = reference_at_epochs(tr.select("run", "epoch"), truth, cfg.max_gap_s)
+    if expected is None:
+        expected = reference_at_epochs(tr.select("run", "epoch"), truth, cfg.max_gap_s)
+    else:
+        expected = expected.join(tr.select("run", "epoch").unique(), on=["run", "epoch"], how="semi",
+                                 maintain_order="left")
     methods = tr.select("method").unique()
     ref = expected.join(methods, how="cross").join(tr.select("run", "method", "epoch").unique(),
                                                    on=["run", "method", "epoch"], how="semi")

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from tertiary.evaluation import accuracy_streamed, multitarget, picture_streamed
 from tertiary.evaluation.accuracy_streamed import SCORED_ROWS, SeedState, Walk, seed_rows, seed_step, walk_step
 from tertiary.evaluation.evaluate import MULTITARGET_TRUTH, EvaluationConfig, Reference, metric_columns, match_block
+from tertiary.evaluation.matching import picture_epochs, reference_at_epochs
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_steps
 from tertiary.evaluation.picture_streamed import PictureStepState, picture_step
 
@@ -126,10 +127,14 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
     # the reference samples every picture of the window reads, sliced once (a superset of any
     # one picture's: the matcher reads only the samples about each of its epochs)
     truth = reference.between(min(epochs), max(epochs)) if epochs else None
+    # the pictures of a window share their epochs (the fused picture and its trackers'): the
+    # reference at them is interpolated once for every group
+    at = (reference_at_epochs(pl.concat([picture_epochs(r) for _, named in groups.values() for _, r in named])
+                              .unique(), truth, cfg.match.max_gap_s) if len(groups) > 1 else None)
     blocks, surveyed = [], []
     for group, (id_col, named) in groups.items():
         rows = named[0][1] if len(named) == 1 else pl.concat([r for _, r in named], how="vertical")
-        scored, expected, _ = match_block(rows, truth, reference, cfg, id_col, None, slim=True)
+        scored, expected, _ = match_block(rows, truth, reference, cfg, id_col, None, slim=True, expected=at)
         del rows
         seen_all = []
         for name, _ in named:
