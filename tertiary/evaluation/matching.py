@@ -52,7 +52,8 @@ from scipy.spatial import cKDTree
 from tertiary.contract import TIME
 from tertiary.core.units import STATE
 
-__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "picture_epochs", "match_to_reference", "match_with_reference",
+__all__ = ["MatchConfig", "truth_at", "reference_at_epochs", "picture_epochs", "match_to_reference",
+           "match_with_reference",
            "reference_identity", "with_neighbours", "reference_between",
            "neighbour_times", "between_mask", "between_expr"]
 
