@@ -1,6 +1,6 @@
 """What validating a long run's truth from disk to disk costs before its first window.
 
-    python benchmarks/bench_stream_truth.py --dataset DATA [--label after] [--tree DIR]
+    python benchmarks/bench_stream_truth.py --dataset DATA [--label after] [--tree DIR] [--commit ID]
 
 ``--dataset``: a dataset directory whose truth is in parts (the national day's: 144 files,
 79 M samples). Each run calls ``tertiary.pipeline.ingestion.stream_truth`` once in a fresh
@@ -8,7 +8,8 @@ process, as an on-disk run does at its start (the time window left open), and re
 time, the process's peak resident memory, the reference it wrote (files, rows) and a digest of
 that reference's rows and order, which must be the same for every tree. ``--tree``: run the code
 of another checkout (the tree before a change). The results go to
-``results/bench_stream_truth.json`` under ``--label``; other labels are kept.
+``results/bench_stream_truth.json`` under ``--label``; other labels, and the entries recorded by
+hand beside them (``pipeline_check``: whole runs of the day to their first windows), are kept.
 """
 
 from __future__ import annotations
@@ -58,9 +59,11 @@ def main() -> None:
     got["peak_rss_mib"] = round(got["peak_rss_mib"], 1)
     print(got, flush=True)
     old = RESULTS / "bench_stream_truth.json"
-    runs = json.loads(old.read_text()).get("runs", {}) if old.exists() else {}
+    kept = json.loads(old.read_text()) if old.exists() else {}
+    kept.pop("machine", None)
+    runs = kept.pop("runs", {})
     runs[a.label] = {"machine": machine(), "commit": a.commit, **got}
-    print(record("bench_stream_truth", {"dataset": str(a.dataset), "runs": runs}))
+    print(record("bench_stream_truth", {**kept, "dataset": str(a.dataset), "runs": runs}))
 
 
 if __name__ == "__main__":
