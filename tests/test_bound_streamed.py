@@ -269,3 +269,24 @@ def test_truth_gaps_in_parts_equal_the_whole_truth_sorted_at_once():
     assert whole.height > 30
     for part_rows in (n, 500, 97):
         assert_frame_equal(truth_gaps(truth.lazy(), 0, part_rows), whole)
+
+
+def test_reference_gaps_from_neighbour_times_equal_the_sorted_spacings():
+    """The spacings read off a reference's neighbour times (rows in time order, as the run's
+    reference files hold them, and shuffled) equal those of the truth sorted per aircraft."""
+    from tertiary.evaluation.bound_truth import COLUMNS, reference_gaps, truth_gaps
+    from tertiary.evaluation.matching import with_neighbours
+    rng = np.random.default_rng(11)
+    n = 5_000
+    ids = rng.integers(0, 41, n)
+    t = np.sort(rng.choice(np.arange(0, 300_000), n, replace=False)) * 40_000
+    truth = pl.DataFrame({"truth_id": ids, "time": t}).with_columns(
+        pl.col("time").cast(pl.Datetime("us", "UTC")), *[pl.Series(c, rng.normal(size=n)) for c in COLUMNS[2:]])
+    want = truth_gaps(truth.lazy(), 123)
+    reference = with_neighbours(truth)
+    assert want.height > 35 and reference["__prev"].null_count() == truth["truth_id"].n_unique()
+    for frame in (reference, reference.sample(fraction=1.0, shuffle=True, seed=3)):
+        for part_rows in (n, 700, 97):
+            assert_frame_equal(reference_gaps(frame.lazy(), 123, part_rows), want)
+    with pytest.raises(ValueError, match="__prev"):
+        reference_gaps(truth.lazy(), 0)

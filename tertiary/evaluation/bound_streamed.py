@@ -43,7 +43,7 @@ from tertiary.core.units import US
 from tertiary.evaluation import bound as _bound
 from tertiary.evaluation.bound_measurements import MODE_S_FIRST, mode_s_first
 from tertiary.evaluation.bound_pooling import bound_sums, epoch_pools, merged_pools
-from tertiary.evaluation.bound_truth import COLUMNS, Truth, truth_gaps
+from tertiary.evaluation.bound_truth import COLUMNS, Truth, reference_gaps, truth_gaps
 from tertiary.evaluation.evaluate import reference_files
 from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.sensors import mlat
@@ -154,7 +154,9 @@ def bound_setup(ds, radars: pl.DataFrame, origin: geo.LocalFrame, reference: Pat
     if not spans.height:
         return None
     t0 = int(spans["first_us"].min())
-    return BoundSetup(made[0], made[1], radars, origin, t0, spans, truth_gaps(truth, t0),
+    # the reference's own neighbour times give the spacings without sorting its samples
+    gaps = reference_gaps(truth, t0) if "__prev" in truth.collect_schema().names() else truth_gaps(truth, t0)
+    return BoundSetup(made[0], made[1], radars, origin, t0, spans, gaps,
                       _bound.scan_origins(radars, reports, t0), files)
 
 
