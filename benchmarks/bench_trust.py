@@ -233,15 +233,15 @@ def figures(db: Path) -> dict:
             bound.setdefault(meth, {}).setdefault(seg, {})[k] = _clean(v)
     below = sorted({meth for meth, segs in bound.items() for seg, g in segs.items()
                     if any((g.get(k) or 0.0) < 0.0 for k in ("gap_horizontal_m", "gap_pos_m", "gap_vel_mps"))})
-    false_tracks, duplicate_tracks, completeness = ({meth: _clean(v) for (meth, v) in _rows(
+    false_tracks, duplicate_tracks, unassessed, completeness = ({meth: _clean(v) for (meth, v) in _rows(
         db, f"select method, value from metrics where stage in {stages} and metric = '{k}' and segment = 'all'")}
         for k, stages in (("false_tracks_per_hour", "('evaluation')"), ("duplicate_tracks_per_hour", "('evaluation')"),
-                          ("completeness", "('fusion', 'tracker')")))
+                          ("unassessed_tracks", "('evaluation')"), ("completeness", "('fusion', 'tracker')")))
     tracks_per_aircraft = {p: _clean(m.get(("tracker", p, "tracks", "all"), float("nan")) / rows["aircraft"])
                            for p in tracked if rows.get("aircraft")}
     return {"safety": safety, "accuracy_horizontal_m": accuracy, "tracker_minus_input_m": tracker_vs_input,
             "bound": bound, "pictures_below_bound": below, "false_tracks_per_hour": false_tracks,
-            "duplicate_tracks_per_hour": duplicate_tracks, "completeness": completeness,
+            "duplicate_tracks_per_hour": duplicate_tracks, "unassessed_tracks": unassessed, "completeness": completeness,
             "targets_per_aircraft": _clean(rows.get("confirmed_targets", 0) / rows["aircraft"])
             if rows.get("aircraft") else None,
             "tracks_per_aircraft": tracks_per_aircraft, "aircraft": rows.get("aircraft"),

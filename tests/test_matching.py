@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import tempfile
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 
 import numpy as np
 import polars as pl
@@ -164,3 +166,50 @@ def test_a_reference_made_once_for_several_pictures_is_cut_to_each_ones_epochs()
         keys = ["run", "epoch", "truth_id"]
         assert_frame_equal(expected.sort(keys), expected_alone.sort(keys))
         assert_frame_equal(got, alone)
+
+
+def _after_the_end(truth: pl.DataFrame) -> pl.DataFrame:
+    """Aircraft 1's reference cut at 36 s; a track 40 confirmed after it, from 38 s to 52 s,
+    along its dead-reckoned path (a radar coasting it on; aircraft 2 still more than a gate
+    away), and a track 98 far from everything."""
+    rows = []
+    for k in range(8):
+        t = 38.0 + 2.0 * k
+        rows.append((0, T0 + timedelta(seconds=t), 40, -12000 + 200 * t + 30.0, 20.0, 3010.0, 200.0, 0.0, 0.0))
+        rows.append((0, T0 + timedelta(seconds=t), 98, 40000.0, 40000.0, 3000.0, 0.0, 0.0, 0.0))
+    return pl.DataFrame(rows, schema=["run", "epoch", "track_id", "x_m", "y_m", "z_m", "vx_mps", "vy_mps", "vz_mps"],
+                        orient="row")
+
+
+def test_a_track_beyond_its_aircrafts_reference_is_unassessed_not_false():
+    """Rule 4: rows within ``ended_s`` after an aircraft's last sample and in the gates of that
+    sample dead-reckoned carry it as ``beyond_truth_id``: the track is unassessed, not false. The
+    reference a window reads (:meth:`Reference.between`) keeps that last sample, in memory and on
+    disk, so a window's match is the whole reference's."""
+    from tertiary.evaluation.evaluate import Reference, write_reference
+    from tertiary.evaluation.picture_metrics import picture_rows, track_table
+    truth = _truth().filter((pl.col("truth_id") == 2) | (pl.col("time") <= T0 + timedelta(seconds=36)))
+    tracks = _after_the_end(truth)
+
+    def counts(m: pl.DataFrame) -> dict[str, float]:
+        rows = picture_rows(track_table(m.with_columns(pl.lit("p").alias("method"))))
+        return dict(zip(rows["metric"], rows["value"]))
+    m = match_to_reference(tracks, truth)
+    beyond = m.group_by("track_id").agg(pl.col("beyond_truth_id").unique()).sort("track_id")
+    assert beyond.rows() == [(40, [1]), (98, [None])]
+    assert m["truth_id"].null_count() == m.height and m["gated_truth_id"].null_count() == m.height
+    assert {k: counts(m)[k] for k in ("false_tracks", "unassessed_tracks", "duplicate_tracks")} == {
+        "false_tracks": 1.0, "unassessed_tracks": 1.0, "duplicate_tracks": 0.0}
+    never = match_to_reference(tracks, truth, MatchConfig(ended_s=0.0))
+    assert never["beyond_truth_id"].null_count() == never.height and counts(never)["false_tracks"] == 2.0
+    short = match_to_reference(tracks, truth, MatchConfig(ended_s=12.0))      # 38-48 s only
+    assert short.filter(pl.col("beyond_truth_id").is_not_null())["epoch"].max() == T0 + timedelta(seconds=48)
+    # a window from 38 s reads the ended aircraft's last sample, whether the reference is in memory or on disk
+    with tempfile.TemporaryDirectory() as d:
+        for ref in (Reference(truth), Reference(write_reference(truth, Path(d) / "ref.parquet"))):
+            part = ref.between(T0 + timedelta(seconds=38), T0 + timedelta(seconds=52), 30.0)
+            assert part.filter(pl.col("truth_id") == 1)["time"].to_list() == [T0 + timedelta(seconds=36)]
+            assert ref.between(T0 + timedelta(seconds=38), T0 + timedelta(seconds=52)).filter(
+                pl.col("truth_id") == 1).height == 0
+            windowed = match_to_reference(tracks, part)
+            assert windowed["beyond_truth_id"].to_list() == m["beyond_truth_id"].to_list()

@@ -26,6 +26,7 @@ import itertools
 import shutil
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -114,8 +115,8 @@ def comparison(metrics: pl.DataFrame) -> pl.DataFrame:
 
 
 #: what :func:`picture_metrics` reads of a matched picture, beside the reference's ``true_*``
-_METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", "gated_truth_id", *_STATE, "alt_m",
-                   "alt_rate_mps", "mode_s", "mode_3a", "callsign", "icao24")
+_METRIC_COLUMNS = ("method", "run", "epoch", "track_id", "truth_id", "gated_truth_id", "beyond_truth_id", *_STATE,
+                   "alt_m", "alt_rate_mps", "mode_s", "mode_3a", "callsign", "icao24")
 
 
 def metric_columns(matched: pl.DataFrame | pl.LazyFrame) -> list[str]:
@@ -238,8 +239,14 @@ class Reference:
     def whole(self) -> pl.DataFrame:
         return self._truth if self.path is None else read_reference(self.path)
 
-    def between(self, t0, t1) -> pl.DataFrame:
+    def between(self, t0, t1, ended_s: float = 0.0) -> pl.DataFrame:
+        """The samples the reference at any time in [t0, t1] reads (:func:`between_mask`), and
+        with ``ended_s`` the last samples of the aircraft whose reference ended in the
+        ``ended_s`` before ``t0`` (the matcher's rule 4)."""
         cols = [c for c in self.empty.columns if c in _MATCHED_REF]
+        if ended_s > 0:
+            t_end = t0 - timedelta(microseconds=round(ended_s * 1e6))
+            ended = (pl.col("__next").is_null() & (pl.col("time") >= t_end) & (pl.col("time") < t0))
         if self.path is not None:
             # the reader keeps the rows' order: the frame's slice. It takes a coarse test on the
             # columns themselves (every row the exact one keeps passes it: its time is ≥ t0 or
@@ -248,14 +255,20 @@ class Reference:
             # and every block of a long picture would read the whole reference
             coarse = (((pl.col("time") >= t0) | (pl.col("__next") >= t0))
                       & ((pl.col("time") <= t1) | (pl.col("__prev") <= t1)))
-            files = files_between(self.files, self._spans, t0, t1, reach=True)
+            keep = between_expr(t0, t1)
+            if ended_s > 0:
+                coarse, keep = coarse | ended, keep | ended
+            files = files_between(self.files, self._spans, t_end if ended_s > 0 else t0, t1, reach=True)
             return (pl.scan_parquet(files).filter(coarse).select(*cols, *NEIGHBOUR_COLUMNS).collect()
-                    .filter(between_expr(t0, t1)).select(cols))
+                    .filter(keep).select(cols))
         if self._times is None:
             # three time columns beside the reference, not a neighboured copy of it: a slice
             # copies only its own rows of the columns the matcher reads (memory)
             self._times = neighbour_times(self._truth)
-        return self._truth.select(cols).filter(between_mask(self._times, t0, t1))
+        mask = between_mask(self._times, t0, t1)
+        if ended_s > 0:
+            mask = mask | self._times.select(ended.fill_null(False)).to_series()
+        return self._truth.select(cols).filter(mask)
 
 
 #: what the evaluation reads of a matched, row-scored picture beside the reference's ``true_*``
@@ -285,7 +298,7 @@ def match_block(block: pl.DataFrame, truth: pl.DataFrame | None, reference: "Ref
     if "method" not in block.columns:
         block = block.with_columns(pl.lit("picture").alias("method"))
     if truth is None:
-        truth = reference.between(block["epoch"].min(), block["epoch"].max())
+        truth = reference.between(block["epoch"].min(), block["epoch"].max(), cfg.match.ended_s)
     m, ref = match_with_reference(block, truth, cfg.match, id_col, reference.identity, expected)
     del block, truth
     if mt is not None:

@@ -20,7 +20,14 @@ Assignment rule (documented, deterministic)
    connected component of the candidate graph; a component of one track and one aircraft (the
    usual case) is matched without it. A second track on an aircraft that already has one is
    therefore *unmatched* at that epoch (a duplicate/split), not a second match.
-4. **Swaps and gaps.** The rule is per epoch: when two tracks exchange aircraft the matching
+4. **Beyond the reference.** An aircraft's reference can end while the radars still report it
+   (it leaves the simulated airspace, a recording stops, a time slice ends): its radar tracks
+   coast on, and a track may even be confirmed after the reference's last sample. A row left in
+   no aircraft's gate that lies, at most ``ended_s`` after an aircraft's last reference sample,
+   within the gates of that sample dead-reckoned to the row's epoch (its velocity and vertical
+   rate) carries that aircraft as ``beyond_truth_id``: the reference cannot judge it, so it is
+   neither matched nor counted false.
+5. **Swaps and gaps.** The rule is per epoch: when two tracks exchange aircraft the matching
    follows the geometry, so the track id that represents an aircraft changes (counted by the
    continuity metrics); an aircraft with no track row in the gate is a missed update; a track
    row with no aircraft is unmatched (false or duplicate).
@@ -31,7 +38,8 @@ Output: the track rows with ``truth_id`` (null when unmatched), the reference st
 unmatched row inside some aircraft's gate the nearest such aircraft (a second track of an
 aircraft, which a controller still sees as that aircraft; null only for a row in no gate). The
 safety stage scores alerts with it: an alert between an aircraft and its own duplicate track is
-a duplicate, not a false alert between two aircraft.
+a duplicate, not a false alert between two aircraft. ``beyond_truth_id``: rule 4 (null
+otherwise).
 
 This is the only matcher of the project: the seed metrics (:mod:`tertiary.evaluation.accuracy`), the
 surveillance metrics (:mod:`tertiary.evaluation.picture_metrics`) and alert scoring all read its output.
@@ -97,10 +105,16 @@ class MatchConfig:
     #: a reference gap longer than this is not interpolated across: the aircraft is absent from
     #: the reference there ("not evaluated"); None: interpolate any gap (simulator truth)
     max_gap_s: float | None = None
+    #: how long after an aircraft's last reference sample a row in the gates of that sample
+    #: dead-reckoned is beyond the reference (rule 4): a radar's coasting and a tracker's
+    #: confirmation, a few scans; 0: never
+    ended_s: float = 30.0
 
     def __post_init__(self) -> None:
         if not (self.gate_h_m > 0 and self.gate_v_m > 0):
             raise ValueError("matching gates must be > 0")
+        if not self.ended_s >= 0:
+            raise ValueError("ended_s must be >= 0")
         if self.max_gap_s is not None and not self.max_gap_s > 0:
             raise ValueError("max_gap_s must be > 0 or None")
 
@@ -203,6 +217,41 @@ def _assign(i: NDArray, j: NDArray, cost: NDArray, n_t: int, n_r: int) -> NDArra
             ok = m[rows, cols] < big
             out[ti[rows[ok]]] = tj[cols[ok]]
     return out
+
+
+def _last_samples(truth: pl.DataFrame) -> pl.DataFrame:
+    """Each aircraft's last sample in ``truth`` (its end, unless ``truth`` is a slice it goes on
+    after): run (when given), truth_id, time, position, velocity, height and its rate."""
+    keys = ["truth_id"] + (["run"] if "run" in truth.columns else [])
+    rate = "alt_rate_mps" if "alt_m" in truth.columns and "alt_rate_mps" in truth.columns else "vz_mps"
+    return (truth.select(*(pl.col(k) for k in keys), pl.col("time").cast(TIME).alias("__t"), "x_m", "y_m", "vx_mps",
+                         "vy_mps", _height(truth).alias("__h"), pl.col(rate).alias("__hr"))
+            .sort("__t").group_by(keys).last())
+
+
+def _beyond(tr: pl.DataFrame, free: NDArray[np.bool_], truth: pl.DataFrame, cfg: MatchConfig) -> pl.Series:
+    """``beyond_truth_id`` of the rows of ``tr`` (rule 4): for each ``free`` row (in no gate),
+    the nearest aircraft whose last sample, at most ``ended_s`` before the row's epoch and
+    dead-reckoned to it, has the row in its gates; null otherwise."""
+    out = np.full(tr.height, -1, np.int64)
+    if cfg.ended_s > 0 and free.any() and truth.height:
+        last = _last_samples(truth).rename({"x_m": "__lx", "y_m": "__ly"}).with_columns(
+            (pl.col("__t") + pl.duration(microseconds=round(cfg.ended_s * 1e6))).alias("__te"))
+        rows = tr.filter(pl.Series(free)).select("__row", pl.col("run").cast(pl.UInt32), "epoch", "x_m", "y_m",
+                                                 _height(tr).alias("__rh"))
+        within = [pl.col("epoch") > pl.col("__t"), pl.col("epoch") <= pl.col("__te")]
+        if "run" in last.columns:
+            last = last.rename({"run": "__lrun"}).with_columns(pl.col("__lrun").cast(pl.UInt32))
+            within.append(pl.col("run") == pl.col("__lrun"))
+        dt = (pl.col("epoch") - pl.col("__t")).dt.total_microseconds() / 1e6
+        pair = (rows.join_where(last, *within)
+                .with_columns(((pl.col("x_m") - pl.col("__lx") - pl.col("vx_mps") * dt) ** 2
+                               + (pl.col("y_m") - pl.col("__ly") - pl.col("vy_mps") * dt) ** 2).sqrt().alias("__d"),
+                              (pl.col("__rh") - pl.col("__h") - pl.col("__hr") * dt).abs().alias("__dv"))
+                .filter((pl.col("__d") <= cfg.gate_h_m) & (pl.col("__dv") <= cfg.gate_v_m))
+                .sort("__d", "truth_id").unique("__row", keep="first"))
+        out[pair["__row"].to_numpy()] = pair["truth_id"].to_numpy()
+    return pl.Series("beyond_truth_id", out).cast(pl.Int64).replace(-1, None)
 
 
 def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
@@ -319,8 +368,10 @@ def match_with_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchCo
     gated_id = (pl.when(pl.Series(gated >= 0)).then(pl.Series(ids[np.maximum(gated, 0)] if ref.height
                                                               else np.zeros(tr.height, np.int64)))
                 .otherwise(None).cast(pl.Int64).alias("gated_truth_id"))
-    out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24", "gated_truth_id") if c in tr.columns])
-           .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of), gated_id))
+    beyond = _beyond(tr, gated < 0, truth, cfg)
+    out = (tr.drop("__row").drop([c for c in ("truth_id", *true_cols, "icao24", "gated_truth_id", "beyond_truth_id")
+                                  if c in tr.columns])
+           .hstack(ref_rows).with_columns(pl.Series("match_cost", cost_of), gated_id, beyond))
     # the reference's identity items, for identity correctness: Mode S address, callsign, Mode 3/A
     ident = reference_identity(truth) if identity is None else identity
     if ident is not None:

@@ -42,7 +42,8 @@ Definitions (errors are track − reference)
 * a *break*: consecutive represented epochs of an aircraft more than ``break_gap_s`` apart;
   ``mean_reacquire_s`` is the mean length of those gaps.
 * ``false_tracks_per_hour``: tracks never inside any aircraft's gate, per hour of picture (sum
-  over runs of each run's epoch span); ``duplicate_tracks_per_hour``: tracks never matched but
+  over runs of each run's epoch span), and never beyond an aircraft's reference
+  (``beyond_truth_id``, :mod:`tertiary.evaluation.matching` rule 4: ``unassessed_tracks``); ``duplicate_tracks_per_hour``: tracks never matched but
   inside some aircraft's gate at some epoch (``gated_truth_id``: a second track of an aircraft,
   left unmatched by the one-to-one matching): which of two tracks of one aircraft the matching
   keeps depends on which is closer, not on which is real, so a second track is counted apart.
@@ -501,38 +502,46 @@ TRACK_INPUTS = ("method", "run", "track_id", "epoch", "truth_id")
 def track_inputs(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
     """The columns of matched rows ``m`` that :func:`track_table` reads."""
     names = m.collect_schema().names() if isinstance(m, pl.LazyFrame) else m.columns
-    return m.select(*TRACK_INPUTS, *(["gated_truth_id"] if "gated_truth_id" in names else []))
+    return m.select(*TRACK_INPUTS, *(c for c in ("gated_truth_id", "beyond_truth_id") if c in names))
 
 
 def track_table(m: pl.DataFrame | pl.LazyFrame) -> pl.DataFrame | pl.LazyFrame:
     """One row per (method, run, track_id): ``__real`` (some row has a truth_id), ``__gated``
     (some row lies in an aircraft's gate: matched, or ``gated_truth_id``; rows without that
-    column count as matched only), its first and last epochs ``__t0``, ``__t1`` (a picture's
-    span is that of its tracks' rows)."""
+    column count as matched only), ``__beyond`` (some row is beyond an aircraft's reference,
+    ``beyond_truth_id``), its first and last epochs ``__t0``, ``__t1`` (a picture's span is that
+    of its tracks' rows)."""
     names = m.collect_schema().names() if isinstance(m, pl.LazyFrame) else m.columns
     hit = pl.col("truth_id").is_not_null()
     gated = (hit | pl.col("gated_truth_id").is_not_null()) if "gated_truth_id" in names else hit
+    beyond = pl.col("beyond_truth_id").is_not_null() if "beyond_truth_id" in names else pl.lit(False)
     return m.group_by("method", "run", "track_id").agg(hit.any().alias("__real"), gated.any().alias("__gated"),
+                                                       beyond.any().alias("__beyond"),
                                                        pl.col("epoch").min().alias("__t0"),
                                                        pl.col("epoch").max().alias("__t1"))
 
 
 #: the per-picture counts of :func:`picture_rows`, in their order
 PICTURE_COUNTS = ("picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour", "duplicate_tracks",
-                  "duplicate_tracks_per_hour")
+                  "duplicate_tracks_per_hour", "unassessed_tracks")
 
 
 def picture_rows(tracks: pl.DataFrame) -> pl.DataFrame:
     """:data:`PICTURE_COUNTS` per method, from :func:`track_table`: a *false* track never lies in
-    an aircraft's gate; a *duplicate* never represents an aircraft but lies in one's gate (a
-    second track of it, which the one-to-one matching leaves to the first)."""
+    an aircraft's gate nor beyond an aircraft's reference; a *duplicate* never represents an
+    aircraft but lies in one's gate (a second track of it, which the one-to-one matching leaves to
+    the first); an *unassessed* track lies in no gate, but beyond an aircraft's reference at
+    some epoch (the matcher's rule 4: a track of an aircraft the reference no longer has)."""
     span = tracks.group_by("method", "run").agg(
         ((pl.col("__t1").max() - pl.col("__t0").min()).dt.total_microseconds() / _US_PER_H).alias("__h"))
     hours = span.group_by("method").agg(pl.col("__h").sum().alias("picture_hours"),
                                         pl.col("run").n_unique().alias("n_runs"))
-    false = tracks.group_by("method").agg((~pl.col("__gated")).sum().cast(pl.Float64).alias("false_tracks"),
+    beyond = pl.col("__beyond").fill_null(False) if "__beyond" in tracks.columns else pl.lit(False)
+    false = tracks.group_by("method").agg((~pl.col("__gated") & ~beyond).sum().cast(pl.Float64).alias("false_tracks"),
                                           (pl.col("__gated") & ~pl.col("__real")).sum().cast(pl.Float64)
                                           .alias("duplicate_tracks"),
+                                          (~pl.col("__gated") & beyond).sum().cast(pl.Float64)
+                                          .alias("unassessed_tracks"),
                                           pl.len().cast(pl.Float64).alias("n_tracks"))
     wide = hours.join(false, on="method").with_columns(
         _ALL.alias("segment"),

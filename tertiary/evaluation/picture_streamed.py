@@ -51,7 +51,7 @@ _AT = [*_KEY, "epoch"]
 class PictureStepState:
     """Every picture's carried rows and sums (frames keyed by ``method``); None: nothing yet.
 
-    ``tracks``: (method, run, track_id, __real, __gated, __t0, __t1); ``counts``: rows matched per
+    ``tracks``: (method, run, track_id, __real, __gated, __beyond, __t0, __t1); ``counts``: rows matched per
     (method, run, truth_id, track_id); ``context``: each aircraft's last labelled reference
     state; ``pending_ref`` / ``pending_rows`` / ``pending_hits``: an aircraft's first epoch with
     no second yet (its reference, its matched rows, the merged-track hits of it as the bare
@@ -128,7 +128,8 @@ def _tracks(state: PictureStepState, rows: pl.DataFrame) -> pl.DataFrame:
     """The per-track table with this window's rows (:func:`~tertiary.evaluation.picture_metrics.track_table`)."""
     new = track_table(rows)
     both = _cat(state.tracks, new)
-    return both.group_by("method", "run", "track_id").agg(pl.col("__real", "__gated").any(), pl.col("__t0").min(),
+    return both.group_by("method", "run", "track_id").agg(pl.col("__real", "__gated", "__beyond").any(),
+                                                          pl.col("__t0").min(),
                                                           pl.col("__t1").max())
 
 

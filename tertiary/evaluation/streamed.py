@@ -126,7 +126,7 @@ def match_window(state: MatchState, pictures: Sequence[tuple[str, str, pl.DataFr
                                                                               rows["epoch"].max())]
     # the reference samples every picture of the window reads, sliced once (a superset of any
     # one picture's: the matcher reads only the samples about each of its epochs)
-    truth = reference.between(min(epochs), max(epochs)) if epochs else None
+    truth = reference.between(min(epochs), max(epochs), cfg.match.ended_s) if epochs else None
     # the pictures of a window share their epochs (the fused picture and its trackers'): the
     # reference at them is interpolated once for every group
     at = (reference_at_epochs(pl.concat([picture_epochs(r) for _, named in groups.values() for _, r in named])
