@@ -206,7 +206,7 @@ def test_a_picture_without_any_matched_row(picture):
     ghosts = matched.filter(pl.col("truth_id").is_null())
     met = _check(ghosts, expected, radar_xy=RADARS)
     assert set(met["metric"]) == {"picture_hours", "n_tracks", "false_tracks", "false_tracks_per_hour",
-                                  "duplicate_tracks", "duplicate_tracks_per_hour"}
+                                  "duplicate_tracks", "duplicate_tracks_per_hour", "unassessed_tracks"}
     _check(ghosts, None)
 
 

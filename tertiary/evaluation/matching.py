@@ -219,14 +219,19 @@ def _assign(i: NDArray, j: NDArray, cost: NDArray, n_t: int, n_r: int) -> NDArra
     return out
 
 
-def _last_samples(truth: pl.DataFrame) -> pl.DataFrame:
-    """Each aircraft's last sample in ``truth`` (its end, unless ``truth`` is a slice it goes on
-    after): run (when given), truth_id, time, position, velocity, height and its rate."""
+def _last_samples(truth: pl.DataFrame, before) -> pl.DataFrame:
+    """The last sample in ``truth`` of each aircraft whose samples there all lie before
+    ``before`` (its end, unless ``truth`` is a slice it goes on after): run (when given),
+    truth_id, time, position, velocity, height and its rate. A hash aggregation and a join on the
+    few that ended: no sort of the slice."""
     keys = ["truth_id"] + (["run"] if "run" in truth.columns else [])
+    t = pl.col("time").cast(TIME)
+    ends = truth.group_by(keys).agg(t.max().alias("__t")).filter(pl.col("__t") < before)
     rate = "alt_rate_mps" if "alt_m" in truth.columns and "alt_rate_mps" in truth.columns else "vz_mps"
-    return (truth.select(*(pl.col(k) for k in keys), pl.col("time").cast(TIME).alias("__t"), "x_m", "y_m", "vx_mps",
-                         "vy_mps", _height(truth).alias("__h"), pl.col(rate).alias("__hr"))
-            .sort("__t").group_by(keys).last())
+    return (truth.join(ends, on=keys, how="inner").filter(t == pl.col("__t"))
+            .select(*(pl.col(k) for k in keys), "__t", "x_m", "y_m", "vx_mps", "vy_mps", _height(truth).alias("__h"),
+                    pl.col(rate).alias("__hr"))
+            .unique(keys, keep="first"))
 
 
 def _beyond(tr: pl.DataFrame, free: NDArray[np.bool_], truth: pl.DataFrame, cfg: MatchConfig) -> pl.Series:
@@ -235,10 +240,10 @@ def _beyond(tr: pl.DataFrame, free: NDArray[np.bool_], truth: pl.DataFrame, cfg:
     dead-reckoned to it, has the row in its gates; null otherwise."""
     out = np.full(tr.height, -1, np.int64)
     if cfg.ended_s > 0 and free.any() and truth.height:
-        last = _last_samples(truth).rename({"x_m": "__lx", "y_m": "__ly"}).with_columns(
-            (pl.col("__t") + pl.duration(microseconds=round(cfg.ended_s * 1e6))).alias("__te"))
         rows = tr.filter(pl.Series(free)).select("__row", pl.col("run").cast(pl.UInt32), "epoch", "x_m", "y_m",
                                                  _height(tr).alias("__rh"))
+        last = _last_samples(truth, rows["epoch"].max()).rename({"x_m": "__lx", "y_m": "__ly"}).with_columns(
+            (pl.col("__t") + pl.duration(microseconds=round(cfg.ended_s * 1e6))).alias("__te"))
         within = [pl.col("epoch") > pl.col("__t"), pl.col("epoch") <= pl.col("__te")]
         if "run" in last.columns:
             last = last.rename({"run": "__lrun"}).with_columns(pl.col("__lrun").cast(pl.UInt32))
