@@ -241,7 +241,8 @@ def figures(db: Path) -> dict:
                            for p in tracked if rows.get("aircraft")}
     return {"safety": safety, "accuracy_horizontal_m": accuracy, "tracker_minus_input_m": tracker_vs_input,
             "bound": bound, "pictures_below_bound": below, "false_tracks_per_hour": false_tracks,
-            "duplicate_tracks_per_hour": duplicate_tracks, "unassessed_tracks": unassessed, "completeness": completeness,
+            "duplicate_tracks_per_hour": duplicate_tracks, "unassessed_tracks": unassessed,
+            "completeness": completeness,
             "targets_per_aircraft": _clean(rows.get("confirmed_targets", 0) / rows["aircraft"])
             if rows.get("aircraft") else None,
             "tracks_per_aircraft": tracks_per_aircraft, "aircraft": rows.get("aircraft"),

@@ -43,10 +43,11 @@ Definitions (errors are track − reference)
   ``mean_reacquire_s`` is the mean length of those gaps.
 * ``false_tracks_per_hour``: tracks never inside any aircraft's gate, per hour of picture (sum
   over runs of each run's epoch span), and never beyond an aircraft's reference
-  (``beyond_truth_id``, :mod:`tertiary.evaluation.matching` rule 4: ``unassessed_tracks``); ``duplicate_tracks_per_hour``: tracks never matched but
-  inside some aircraft's gate at some epoch (``gated_truth_id``: a second track of an aircraft,
-  left unmatched by the one-to-one matching): which of two tracks of one aircraft the matching
-  keeps depends on which is closer, not on which is real, so a second track is counted apart.
+  (``beyond_truth_id``, :mod:`tertiary.evaluation.matching` rule 4: ``unassessed_tracks``);
+  ``duplicate_tracks_per_hour``: tracks never matched but inside some aircraft's gate at some
+  epoch (``gated_truth_id``: a second track of an aircraft, left unmatched by the one-to-one
+  matching): which of two tracks of one aircraft the matching keeps depends on which is closer,
+  not on which is real, so a second track is counted apart.
   ``split_tracks``: distinct tracks that were, at some epoch, a second track of an aircraft that
   another track represented then (an unmatched row in its gate, ``gated_truth_id``: a track matched
   at other epochs counts, as does a duplicate). ``merged_tracks``: distinct tracks whose position lay within ``merge_gate_m``
