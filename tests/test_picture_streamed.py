@@ -23,7 +23,9 @@ def _traffic(seed: int, pictures: tuple[str, ...] = ("a", "b")) -> tuple[pl.Data
     at some epochs (split, swaps), tracks lying on an aircraft with none of its own (merged),
     matched rows at epochs the reference lacks, false tracks, a track in an aircraft's gate only
     after its first rows (a duplicate, told in a later window), a second track the one-to-one
-    matching leaves unmatched in an aircraft's gate (a split), and two runs."""
+    matching leaves unmatched in an aircraft's gate (a split), a track in no gate that is beyond
+    an aircraft's reference after its first rows (unassessed, told in a later window), and two
+    runs."""
     rng = np.random.default_rng(seed)
     matched, expected = [], []
     for method in pictures:
@@ -62,17 +64,18 @@ def _traffic(seed: int, pictures: tuple[str, ...] = ("a", "b")) -> tuple[pl.Data
                                         "truth_id": None, "track_id": 907, "gated_truth_id": aircraft,
                                         "x_m": pos[0] + 300.0, "y_m": pos[1], "z_m": alt, "alt_m": alt,
                                         "vx_mps": v[0], "vy_mps": v[1], "vz_mps": 0.0})
-            for k in range(30):                      # false tracks; 906 a duplicate of aircraft 3 from 100 s on
-                e = int(rng.integers(0, 200))
+            for k in range(30):                      # false tracks; 906 a duplicate of aircraft 3 from 100 s on,
+                e = int(rng.integers(0, 200))        # 905 beyond aircraft 4's reference from 120 s on
                 matched.append({"method": method, "run": run, "truth_id": None, "epoch": e, "track_id": 900 + k % 7,
                                 "gated_truth_id": 3 if k % 7 == 6 and e >= 100 else None,
+                                "beyond_truth_id": 4 if k % 7 == 5 and e >= 120 else None,
                                 "x_m": rng.normal(0, 9e3), "y_m": rng.normal(0, 9e3), "z_m": 3e3, "alt_m": 3e3,
                                 "vx_mps": 100.0, "vy_mps": 0.0, "vz_mps": 0.0})
     time = pl.col("epoch").cast(pl.Int64) * 1_000_000
     at = pl.lit(T0) + pl.duration(microseconds=time)
     m = pl.DataFrame(matched, infer_schema_length=None).with_columns(
         at.alias("epoch"), pl.col("run").cast(pl.UInt32), pl.col("track_id").cast(pl.UInt64),
-        pl.col("truth_id", "gated_truth_id").cast(pl.Int64))
+        pl.col("truth_id", "gated_truth_id", "beyond_truth_id").cast(pl.Int64))
     e = pl.DataFrame(expected).with_columns(at.alias("epoch"), pl.col("run").cast(pl.UInt32),
                                             pl.col("truth_id").cast(pl.Int64))
     return m, e
@@ -134,6 +137,7 @@ def test_the_traffic_has_what_the_carry_must_handle() -> None:
     assert 0 < got[("prob_update", "all")] < 1
     assert got[("false_tracks", "all")] > 0
     assert got[("duplicate_tracks", "all")] > 0
+    assert got[("unassessed_tracks", "all")] > 0
     lone = e.group_by("method", "run", "truth_id").len().filter(pl.col("len") == 1)
     assert lone.height > 0
 
