@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 import warnings
 from collections.abc import Iterator
+from itertools import chain
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -150,7 +151,13 @@ def _pack_by_part(raw: pl.DataFrame, where: pl.Series) -> pl.DataFrame:
     input row's part), in row order."""
     if raw.height == 0:
         return contract.rejects_table(raw, "truth", "ingest")
-    part = where.gather(raw[contract.ROW_INDEX].cast(pl.UInt64))
+    return _pack_parts(raw, where.gather(raw[contract.ROW_INDEX].cast(pl.UInt64)))
+
+
+def _pack_parts(raw: pl.DataFrame, part: pl.Series) -> pl.DataFrame:
+    """The raw truth rejects packed part by part (``part``: each reject's), in row order."""
+    if raw.height == 0:
+        return contract.rejects_table(raw, "truth", "ingest")
     packed = [contract.rejects_table(rows.drop("__part"), "truth", "ingest")
               for _, rows in raw.with_columns(part.alias("__part")).group_by("__part", maintain_order=True)]
     return pl.concat(packed, how="vertical_relaxed").sort("row_index", maintain_order=True)
@@ -190,7 +197,9 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     neither the input truth nor the clean one is ever held whole (memory). None where
     :func:`validate_truth` validates the table in one call (strict mode, a small or malformed table): the caller does that.
 
-    One streaming pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows
+    A truth whose aircraft's times increase across the input batches (a recording written a time
+    span per file) is validated in one pass (:func:`_stream_in_order`). Otherwise one streaming
+    pass reads the input ``TRUTH_BATCH_ROWS`` at a time and files each batch's rows
     by aircraft part (:func:`validate_truth`'s parts); each part is validated, put back in input
     order, given its samples' neighbour times and kept as one scratch file, from which each input
     batch reads its own row groups; the clean rows are then written as a reference
@@ -216,6 +225,10 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
         for b in lf.select("time").collect_batches(chunk_size=TRUTH_BATCH_ROWS):
             yield b["time"]
     med = contract.streamed_median_time(batches, cfg.limits)
+    if "run" not in sch:
+        in_order = _stream_in_order(lf, med, kw, scratch)
+        if in_order is not None:
+            return in_order
     sizes = lf.select("truth_id").group_by("truth_id").len().sort("truth_id", nulls_last=True).collect()
     part_of = sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
     n_parts = int(part_of["__part"].max()) + 1
@@ -280,6 +293,150 @@ def stream_truth(ds: Dataset, cfg: PipelineConfig, notes: list[str], window,
     path = write_reference_pieces(by_part() if n_bad else by_batch(), scratch / "reference")
     shutil.rmtree(work, ignore_errors=True)
     return StreamedTruth(path, clean_rows, empty), rejects
+
+
+def _exact_batches(lf: pl.LazyFrame, rows: int) -> Iterator[pl.DataFrame]:
+    """``lf`` in consecutive batches of exactly ``rows`` rows (the last one shorter): batch b holds
+    input rows [b·rows, (b+1)·rows), whatever sizes the scan's batches come in."""
+    held: list[pl.DataFrame] = []
+    have = 0
+    for batch in lf.collect_batches(chunk_size=rows):
+        held.append(batch)
+        have += batch.height
+        while have >= rows:
+            joined = pl.concat(held, rechunk=False) if len(held) > 1 else held[0]
+            yield joined.slice(0, rows)
+            rest = joined.slice(rows)
+            held, have = ([rest] if rest.height else []), rest.height
+    if have:
+        yield pl.concat(held) if len(held) > 1 else held[0]
+
+
+class _NotInOrder(Exception):
+    """A rejected row decides a neighbour time across input batches: :func:`_stream_in_order`
+    cannot give :func:`validate_truth`'s reference in one pass."""
+
+
+@dataclass
+class _Order:
+    """What one pass over (truth_id, time) says of the input batches (:func:`_batch_order`):
+    each aircraft's rows per batch (``sizes``: rows per aircraft; ``firsts``: per batch, each
+    aircraft's first time in it; ``nexts``: per (aircraft, batch) its first time in the next
+    batch that holds it)."""
+
+    sizes: pl.DataFrame
+    firsts: list[pl.DataFrame]
+    nexts: pl.DataFrame
+
+
+def _batch_order(lf: pl.LazyFrame) -> _Order | None:
+    """:class:`_Order` of the input batches, or None unless every aircraft's times increase in
+    input order across batches (within one, they may repeat: validation keeps the first) and no
+    id or time is missing. Then every check, neighbour time and first row of a repeated key is
+    within a batch or carried from the one before, and one pass gives :func:`validate_truth`'s
+    result. Reads two columns."""
+    t = pl.col("time")
+    sizes, firsts, nexts = [], [], []
+    last: pl.DataFrame | None = None           # each aircraft's last time so far and its batch
+    for b, batch in enumerate(_exact_batches(lf.select("truth_id", "time"), TRUTH_BATCH_ROWS)):
+        if batch["truth_id"].null_count() or batch["time"].null_count():
+            return None
+        per = batch.group_by("truth_id").agg(t.first().alias("__first"), t.last().alias("__last"),
+                                             (t.diff() >= timedelta(0)).all().alias("__sorted"), pl.len())
+        if not per["__sorted"].all():
+            return None
+        if last is not None:
+            seen = per.join(last, on="truth_id", how="inner")
+            if seen.height and (seen["__first"] <= seen["__was"]).any():
+                return None
+            nexts.append(seen.select("truth_id", "__b", pl.col("__first").alias("__next")))
+            last = pl.concat([last.join(per, on="truth_id", how="anti"),
+                              per.select("truth_id", pl.col("__last").alias("__was"), pl.lit(b).alias("__b"))])
+        else:
+            last = per.select("truth_id", pl.col("__last").alias("__was"), pl.lit(b).alias("__b"))
+        sizes.append(per.select("truth_id", "len"))
+        firsts.append(per.select("truth_id", "__first"))
+    if last is None:
+        return None
+    return _Order(pl.concat(sizes).group_by("truth_id").agg(pl.col("len").sum()).sort("truth_id"), firsts,
+                  pl.concat(nexts) if nexts else last.clear().select("truth_id", "__b", pl.col("__was").alias("__next")))
+
+
+def _stream_in_order(lf: pl.LazyFrame, med: datetime | None, kw: dict, scratch: Path
+                     ) -> tuple[StreamedTruth, pl.DataFrame] | None:
+    """:func:`stream_truth`'s result in one pass over the input, when its aircraft's times
+    increase across input batches (:func:`_batch_order`; a recording written a time span per
+    file, each sorted by aircraft, is): each batch validated as read, its samples' neighbour times
+    within it, from the aircraft's last clean sample before (carried) and from its first time
+    in its next batch (the order pass), written as that batch's reference file. None: another
+    order, or a rejected row on which a neighbour time across batches turns (the caller's parts
+    then do it)."""
+    order = _batch_order(lf)
+    if order is None:
+        return None
+    raws: list[pl.DataFrame] = []
+    got = {"rows": 0, "empty": None}
+
+    def pieces() -> Iterator[pl.DataFrame]:
+        before: pl.DataFrame | None = None     # each aircraft's last clean time so far
+        for b, batch in enumerate(_exact_batches(lf, TRUTH_BATCH_ROWS)):
+            lo = b * TRUTH_BATCH_ROWS
+            batch = batch.with_columns(pl.int_range(lo, lo + batch.height, dtype=pl.UInt64).alias(contract.INPUT_ROW))
+            clean, _, raw = validate_table(batch, "truth", False, [], median_time=med, **kw)
+            del batch
+            clean = clean.sort(contract.INPUT_ROW)
+            if got["empty"] is None:
+                got["empty"] = clean.drop(contract.INPUT_ROW).clear()
+            raws.append(raw)
+            if raw.height and before is not None:
+                _check_edges(clean, order.firsts[b], before)
+            if not clean.height:
+                continue
+            got["rows"] += clean.height
+            piece = _with_neighbours(clean, before, order.nexts.filter(pl.col("__b") == b))
+            per = clean.group_by("truth_id").agg(pl.col("time").last().alias("__was"))
+            before = per if before is None else pl.concat([before.join(per, on="truth_id", how="anti"), per])
+            yield piece.drop(contract.INPUT_ROW)
+
+    try:
+        each = pieces()
+        first = next(each, None)                 # None: no clean row, nothing to write
+        path = None if first is None else write_reference_pieces(chain([first], each), scratch / "reference")
+    except _NotInOrder:
+        return None
+    raw = pl.concat(raws, how="vertical_relaxed")
+    part_of = order.sizes.select("truth_id", (pl.col("len").cum_sum() // TRUTH_PART_ROWS).alias("__part"))
+    where = raw.select("truth_id").join(part_of, on="truth_id", how="left", maintain_order="left")["__part"]
+    return StreamedTruth(path, got["rows"], got["empty"]), _pack_parts(raw, where)
+
+
+def _check_edges(clean: pl.DataFrame, firsts: pl.DataFrame, before: pl.DataFrame) -> None:
+    """Raise :class:`_NotInOrder` if an aircraft with a clean sample in an earlier batch lost its
+    first row of this batch to validation: the earlier batch's last sample already took that
+    row's time as its next (:func:`_batch_order`)."""
+    kept = clean.group_by("truth_id").agg(pl.col("time").first().alias("__kept"))
+    edge = firsts.join(before.select("truth_id"), on="truth_id").join(kept, on="truth_id", how="left")
+    if edge.height and edge.select((pl.col("__kept").is_null() | (pl.col("__kept") != pl.col("__first"))).any()).item():
+        raise _NotInOrder
+
+
+def _with_neighbours(clean: pl.DataFrame, before: pl.DataFrame | None, nexts: pl.DataFrame) -> pl.DataFrame:
+    """A batch's clean rows (times increasing per aircraft) with ``__prev`` and ``__next``: within
+    the batch, and at each aircraft's first and last row from ``before`` (its last clean time
+    in earlier batches) and ``nexts`` (its first time in its next batch)."""
+    times = neighbour_times(clean)
+    out = clean.with_columns(times["__prev"], times["__next"])
+    tid = pl.col("truth_id")
+    if before is not None:
+        out = out.join(before, on="truth_id", how="left", maintain_order="left").with_columns(
+            pl.when(tid.is_first_distinct()).then(pl.col("__was")).otherwise(pl.col("__prev")).alias("__prev")
+        ).drop("__was")
+    if nexts.height:
+        out = out.join(nexts.select("truth_id", pl.col("__next").alias("__then")), on="truth_id", how="left",
+                       maintain_order="left").with_columns(
+            pl.when(tid.is_last_distinct()).then(pl.col("__then")).otherwise(pl.col("__next")).alias("__next")
+        ).drop("__then")
+    return out
 
 
 def _file_by_part(lf: pl.LazyFrame, part_of: pl.DataFrame, work: Path) -> None:
