@@ -177,6 +177,22 @@ def _merge_clock(clock: StageClock, other: StageClock) -> None:
         clock.memory[k] = max(v, clock.memory.get(k, 0.0))
 
 
+class _Halves:
+    """A stream state to pickle as its processing half, already pickled (``blob``), and its
+    evaluation fields: it unpickles as the whole state."""
+
+    def __init__(self, blob: bytes, st: Any) -> None:
+        self.blob, self.evaluation = blob, {k: getattr(st, k) for k in EVALUATION_FIELDS}
+
+    def __reduce__(self) -> tuple:
+        return _joined, (self.blob, self.evaluation)
+
+
+def _joined(blob: bytes, evaluation: dict[str, Any]) -> Any:
+    """The stream state of :class:`_Halves`."""
+    return dataclasses.replace(pickle.loads(blob), **evaluation)
+
+
 class Overlap:
     """Window k's evaluation and storing on a thread of their own while the caller processes
     window k + 1: the two cores share a run that otherwise keeps one of them idle. One window
@@ -215,7 +231,8 @@ class Overlap:
             if self.clock.name is not None and not hasattr(exc, "tertiary_stage"):
                 exc.tertiary_stage = self.clock.name  # type: ignore[attr-defined]
             raise
-        store(w, out, st)
+        # the checkpoint pickles the processing half's blob as it is: pickled once a window
+        store(w, out, _Halves(blob, st))
         return st
 
     def result(self) -> Any:
