@@ -562,6 +562,44 @@ def test_a_failure_beside_the_matching_names_its_stage(terminal, tmp_path, monke
     assert manifest["windows_done"] == 2
 
 
+def test_checkpoints_paced_by_their_cost_resume_to_the_same_tables(terminal, tmp_path, monkeypatch):
+    """A state whose checkpoint costs more than CHECKPOINT_FREE_S is checkpointed once the time
+    since the last one is its cost over CHECKPOINT_SHARE (made to mean: the first and last
+    windows only). The tables are those of a run checkpointing every window; a run failing
+    between checkpoints names the last checkpointed window done, and its resume drops the later
+    windows' parts and ends with the same tables. Fails if a window without a checkpoint lost
+    its parts or its evaluation, or a resume started after a window whose state was not saved."""
+    from tertiary.runtime.windows import PartStore
+    cfg = pipeline.PipelineConfig(methods=("information",), filters=("singer",), stca_lookaheads_s=())
+    pipeline.run(terminal, tmp_path / "ref", cfg, window_s=60.0)
+    monkeypatch.setattr(streaming, "CHECKPOINT_FREE_S", 0.0)
+    monkeypatch.setattr(streaming, "CHECKPOINT_SHARE", 1e-12)
+    committed: list[int] = []
+    monkeypatch.setattr(PartStore, "commit", lambda self, w, *a, f=PartStore.commit, **k:
+                        committed.append(w.index) or f(self, w, *a, **k))
+    pipeline.run(terminal, tmp_path / "paced", cfg, window_s=60.0)
+    n = json.loads((tmp_path / "ref" / "manifest.json").read_text())["windows_done"]
+    assert n > 4 and committed == [0, n - 1]
+
+    def evaluate(cfg_, ctx, st, h, w, clock, f=streaming.evaluate_step):
+        if w.index == 4:
+            raise RuntimeError("boom")
+        return f(cfg_, ctx, st, h, w, clock)
+    monkeypatch.setattr(streaming, "evaluate_step", evaluate)
+    with pytest.raises(runner.StageError):
+        pipeline.run(terminal, tmp_path / "failed", cfg, window_s=60.0)
+    assert json.loads((tmp_path / "failed" / "manifest.json").read_text())["windows_done"] == 1
+    assert (tmp_path / "failed" / "parts" / "tracks" / "w=000003.parquet").is_file()
+    monkeypatch.undo()
+    pipeline.run(terminal, tmp_path / "failed", cfg, window_s=60.0, resume=True)
+    ref = _db_tables(tmp_path / "ref")
+    for run_dir in ("paced", "failed"):
+        got = _db_tables(tmp_path / run_dir)
+        assert set(got) == set(ref)
+        for name in ref:
+            _same(got[name], ref[name], name if name in KEYS else "")
+
+
 def test_resume_refuses_other_options(dataset_dir, tmp_path):
     run_dir = tmp_path / "r"
     (run_dir).mkdir()

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -458,6 +459,7 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
         ctx.stored_scored = functools.partial(store.stored, SCORED)
     overlap = Overlap(lambda st_, h, w_, c: evaluate_step(cfg, ctx, st_, h, w_, c), clock.say) \
         if store.threaded and len(ws) > 1 else None
+    pace = CheckpointPace()
     done: list[tuple[Window, int]] = []      # windows stored (or in flight) and not yet said
     processed, reports_seen = st, meter.reports
 
@@ -486,7 +488,8 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
                 clock.stage("wait_evaluation", say=False)   # the previous window's evaluation, still running
                 st = overlap.result() or st
                 tell()
-                overlap.submit(w, out, processed, hand, st, functools.partial(store.put, **info))
+                due = pace.due(w is ws[-1], overlap.pickle_s + store.checkpoint_s + store.commit_s)
+                overlap.submit(w, out, processed, hand, st, functools.partial(store.put, **info), checkpoint=due)
             done.append((w, raw.height))
             if overlap is None:
                 tell()
@@ -504,6 +507,31 @@ def stream_windows(ds: Dataset, cfg: PipelineConfig, clock: StageClock, notes: l
     return ctx, st, source
 
 
+#: the share of a run's wall time its checkpoints may take, and the cost (s) below which every
+#: window is checkpointed (:class:`CheckpointPace`)
+CHECKPOINT_SHARE = 0.02
+CHECKPOINT_FREE_S = 0.05
+
+
+@dataclass
+class CheckpointPace:
+    """Which windows' states are checkpointed (a resume starts after the last): the last window,
+    every window while a checkpoint costs less than :data:`CHECKPOINT_FREE_S`, and otherwise a
+    window once the time since the previous checkpoint is at least the last one's cost over
+    :data:`CHECKPOINT_SHARE`. A day's state, tens of MB pickled and written, is then
+    checkpointed every few windows: a killed run loses seconds of work, and a long one spends
+    no more than that share of its time on them."""
+
+    last_t: float = float("-inf")
+
+    def due(self, final: bool, cost_s: float) -> bool:
+        now = time.perf_counter()
+        if final or cost_s < CHECKPOINT_FREE_S or now - self.last_t >= cost_s / CHECKPOINT_SHARE:
+            self.last_t = now
+            return True
+        return False
+
+
 class WindowStore:
     """A window's parts, carried state and manifest written to a run directory on a thread of
     their own while the next window computes. One
@@ -516,25 +544,33 @@ class WindowStore:
         self.parts = parts
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-store") if isinstance(parts, PartStore) else None
         self._pending: Future | None = None
+        #: seconds the last checkpoint took to pickle, and to write with the manifest
+        self.checkpoint_s = self.commit_s = 0.0
 
     @property
     def threaded(self) -> bool:
         """Whether windows are written on a thread of their own (a run directory's part store)."""
         return self._pool is not None
 
-    def put(self, w: Window, out: dict[str, pl.DataFrame], st: StreamState, **info: Any) -> None:
-        """Store window ``w``'s tables and state (``info``: the manifest's progress fields)."""
+    def put(self, w: Window, out: dict[str, pl.DataFrame], st: StreamState | None, **info: Any) -> None:
+        """Store window ``w``'s tables and state (``info``: the manifest's progress fields; ``st``
+        None: its tables only, the window is complete at the next checkpoint)."""
         if self._pool is None:
             self.parts.write(w, out)
             self.parts.checkpoint(w, st, **info)
             return
-        state = PartStore.state_bytes(w, st)
+        t = time.perf_counter()
+        state = None if st is None else PartStore.state_bytes(w, st)
+        self.checkpoint_s = time.perf_counter() - t if st is not None else self.checkpoint_s
         self.join()
         self._pending = self._pool.submit(self._store, w, out, state, info)
 
-    def _store(self, w: Window, out: dict[str, pl.DataFrame], state: bytes, info: dict) -> None:
+    def _store(self, w: Window, out: dict[str, pl.DataFrame], state: bytes | None, info: dict) -> None:
         self.parts.write(w, out)
-        self.parts.commit(w, state, **info)
+        if state is not None:
+            t = time.perf_counter()
+            self.parts.commit(w, state, **info)
+            self.commit_s = time.perf_counter() - t
 
     def stored(self, name: str) -> list[Path]:
         """The files of table ``name`` of every window stored, the one in flight included."""

@@ -400,7 +400,7 @@ class StoreSink:
         part's layout is left to be written whole at the end."""
         if self.tables == "parquet":
             return
-        done = int(parts.manifest["windows_done"])
+        done = parts.written
         new = {name: [f for f in parts.part_files(name) if self.through <= _window_of(f) < done]
                for name in LIVE_TABLES}
         rows = {name: sum(pq.ParquetFile(f).metadata.num_rows for f in files) for name, files in new.items()}

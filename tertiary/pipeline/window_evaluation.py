@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -208,20 +209,29 @@ class Overlap:
         self.clock = StageClock(say)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="window-evaluation")
         self._pending: Future | None = None
+        #: seconds the last checkpoint's processing half took to pickle
+        self.pickle_s = 0.0
 
     def submit(self, w: Window, out: dict[str, pl.DataFrame], processed: Any, h: Handoff | None, last: Any,
-               store: Callable[[Window, dict, Any], None]) -> None:
+               store: Callable[[Window, dict, Any], None], checkpoint: bool = True) -> None:
         """Evaluate window ``w`` (``processed``: the state after its processing; ``h`` None:
         nothing to evaluate; ``last``: the state after the previous window) and ``store`` its
-        tables and whole state. Call :meth:`result` for the previous window first."""
+        tables and, with ``checkpoint``, its whole state (else None). Call :meth:`result` for
+        the previous window first."""
         assert self._pending is None, "one window in flight"
-        blob = pickle.dumps(dataclasses.replace(processed, **dict.fromkeys(EVALUATION_FIELDS)),
-                            protocol=pickle.HIGHEST_PROTOCOL)
-        self._pending = self._pool.submit(self._job, w, out, blob, h, last, store)
+        blob = None
+        if checkpoint:
+            t = time.perf_counter()
+            blob = pickle.dumps(dataclasses.replace(processed, **dict.fromkeys(EVALUATION_FIELDS)),
+                                protocol=pickle.HIGHEST_PROTOCOL)
+            self.pickle_s = time.perf_counter() - t
+        self._pending = self._pool.submit(self._job, w, out, blob, processed, h, last, store)
 
-    def _job(self, w: Window, out: dict, blob: bytes, h: Handoff | None, last: Any,
+    def _job(self, w: Window, out: dict, blob: bytes | None, processed: Any, h: Handoff | None, last: Any,
              store: Callable[[Window, dict, Any], None]) -> Any:
-        st = dataclasses.replace(pickle.loads(blob), **{k: getattr(last, k) for k in EVALUATION_FIELDS})
+        # without a checkpoint nothing reads the processing half here: the live state is not copied
+        evaluation = {k: getattr(last, k) for k in EVALUATION_FIELDS}
+        st = dataclasses.replace(processed if blob is None else pickle.loads(blob), **evaluation)
         try:
             if h is not None:
                 more, st = self._evaluate(st, h, w, self.clock)
@@ -232,7 +242,7 @@ class Overlap:
                 exc.tertiary_stage = self.clock.name  # type: ignore[attr-defined]
             raise
         # the checkpoint pickles the processing half's blob as it is: pickled once a window
-        store(w, out, _Halves(blob, st))
+        store(w, out, None if blob is None else _Halves(blob, st))
         return st
 
     def result(self) -> Any:

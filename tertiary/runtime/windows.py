@@ -316,6 +316,9 @@ class PartStore:
     def __init__(self, run_dir: Path, manifest: dict,
                  trim: Callable[[str, pl.DataFrame], pl.DataFrame] | None = None) -> None:
         self.dir, self.manifest, self.trim = run_dir, manifest, trim
+        #: windows whose parts are written: the checkpointed ones (``windows_done``, where a
+        #: resume starts) and any after them stored without a state
+        self.written = int(manifest.get("windows_done", 0))
 
     @classmethod
     def start(cls, run_dir: Path, header: dict,
@@ -375,6 +378,7 @@ class PartStore:
             # writing fast matters more than a few more bytes
             write_parquet_atomic(frame, d / f"w={w.index:06d}.parquet", compression="lz4")
             self.manifest["tables"][name] = self.manifest["tables"].get(name, 0) + frame.height
+        self.written = max(self.written, w.index + 1)
 
     def checkpoint(self, w: Window, state: Any, **info: Any) -> None:
         """Carried state, then the manifest: the window is complete."""
@@ -416,17 +420,17 @@ class PartStore:
                         for f in files])
 
     def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
-        """Each complete window's part of ``name`` in window order, read as it is needed."""
+        """Each stored window's part of ``name`` in window order, read as it is needed."""
         for f in self._files(name):
             yield pl.read_parquet(f)
 
     def part_files(self, name: str) -> list[Path]:
-        """The files of every complete window's part of ``name``, in window order."""
+        """The files of every stored window's part of ``name``, in window order."""
         return self._files(name)
 
     def _files(self, name: str) -> list[Path]:
         files = sorted((self.dir / PARTS / name).glob("w=*.parquet"))
-        return [f for f in files if int(f.stem.split("=")[1]) < int(self.manifest["windows_done"])]
+        return [f for f in files if int(f.stem.split("=")[1]) < self.written]
 
     def _commit(self) -> None:
         write_text_atomic(self.dir / MANIFEST, json.dumps(self.manifest, indent=1, default=str))
