@@ -358,8 +358,9 @@ def _batch_order(lf: pl.LazyFrame) -> _Order | None:
         firsts.append(per.select("truth_id", "__first"))
     if last is None:
         return None
+    no_next = last.clear().select("truth_id", "__b", pl.col("__was").alias("__next"))
     return _Order(pl.concat(sizes).group_by("truth_id").agg(pl.col("len").sum()).sort("truth_id"), firsts,
-                  pl.concat(nexts) if nexts else last.clear().select("truth_id", "__b", pl.col("__was").alias("__next")))
+                  pl.concat(nexts) if nexts else no_next)
 
 
 def _stream_in_order(lf: pl.LazyFrame, med: datetime | None, kw: dict, scratch: Path
