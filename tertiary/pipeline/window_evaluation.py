@@ -199,8 +199,8 @@ class Overlap:
     window k + 1: the two cores share a run that otherwise keeps one of them idle. One window
     in flight, in window order, so every stored window is whole (its parts and a state that has
     both halves after it) and every evaluation step sees the previous one's state. The
-    processing half of the state is pickled before the next window runs (a stage may reuse its
-    state's arrays); the evaluation's stage times are kept on a clock of their own
+    processing half of a checkpointed window's state is pickled before the next window runs (a
+    stage may reuse its state's arrays); the evaluation's stage times are kept on a clock of their own
     (:meth:`timings`)."""
 
     def __init__(self, evaluate: Callable[[Any, Handoff, Window, StageClock], tuple[dict, Any]],
