@@ -559,9 +559,11 @@ class WindowStore:
             self.parts.write(w, out)
             self.parts.checkpoint(w, st, **info)
             return
-        t = time.perf_counter()
-        state = None if st is None else PartStore.state_bytes(w, st)
-        self.checkpoint_s = time.perf_counter() - t if st is not None else self.checkpoint_s
+        state = None
+        if st is not None:
+            t = time.perf_counter()
+            state = PartStore.state_bytes(w, st)
+            self.checkpoint_s = time.perf_counter() - t
         self.join()
         self._pending = self._pool.submit(self._store, w, out, state, info)
 
