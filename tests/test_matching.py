@@ -213,3 +213,73 @@ def test_a_track_beyond_its_aircrafts_reference_is_unassessed_not_false():
                 pl.col("truth_id") == 1).height == 0
             windowed = match_to_reference(tracks, part)
             assert windowed["beyond_truth_id"].to_list() == m["beyond_truth_id"].to_list()
+
+
+def _ended_scene(seed: int) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """Aircraft that end at random times (fast ones, some without a velocity, two runs, pairs
+    with the same last state) and free rows near their dead-reckoned paths, some at the far end."""
+    rng = np.random.default_rng(seed)
+    n = 80
+    run = rng.integers(0, 2, n)
+    end = rng.integers(0, 60, n).astype(float)
+    p = rng.uniform(-20_000, 20_000, (n, 2))
+    v = rng.uniform(-300, 300, (n, 2))
+    v[rng.random(n) < 0.05, 0] = np.nan
+    z, vz = rng.uniform(3000, 9000, n), rng.uniform(-10, 10, n)
+    twin = np.flatnonzero(np.arange(n) % 10 == 9)     # the same last state as the aircraft before
+    for a in (run, end, p, v, z, vz):
+        a[twin] = a[twin - 1]
+    truth = pl.DataFrame({
+        "truth_id": np.repeat(np.arange(n) + 1, 3), "run": np.repeat(run, 3).astype(np.uint32),
+        "time": [T0 + timedelta(seconds=float(e + s)) for e in end for s in (-8.0, -4.0, 0.0)],
+        "x_m": np.repeat(p[:, 0], 3), "y_m": np.repeat(p[:, 1], 3), "z_m": np.repeat(z, 3),
+        "vx_mps": np.repeat(v[:, 0], 3), "vy_mps": np.repeat(v[:, 1], 3), "vz_mps": np.repeat(vz, 3)})
+    k = rng.integers(0, n, 600)
+    dt = np.where(rng.random(600) < 0.3, rng.uniform(25, 30, 600), rng.uniform(-5, 35, 600))
+    at = p[k] + np.nan_to_num(v[k]) * dt[:, None] + rng.normal(0, 900, (600, 2))
+    tr = pl.DataFrame({
+        "run": np.where(rng.random(600) < 0.1, 1 - run[k], run[k]).astype(np.uint32),
+        "epoch": [T0 + timedelta(seconds=float(end[i] + d)) for i, d in zip(k, np.round(dt, 3))],
+        "x_m": at[:, 0], "y_m": at[:, 1], "z_m": z[k] + vz[k] * dt + rng.normal(0, 200, 600)}).with_row_index("__row")
+    return tr, truth
+
+
+def _beyond_every_pair(tr: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig) -> list:
+    """Rule 4 by testing every (row, ended aircraft) pair: the oracle of :func:`_beyond`."""
+    last = truth.sort("time").group_by("truth_id", maintain_order=True).last()
+    last = last.filter(pl.col("time") < tr["epoch"].max())
+    rt, lt = tr["epoch"].dt.epoch("us").to_numpy()[:, None], last["time"].dt.epoch("us").to_numpy()[None, :]
+    dt = (rt - lt) / 1e6
+    col = lambda f, c: f[c].to_numpy()[:, None] if f is tr else f[c].to_numpy()[None, :]  # noqa: E731
+    d = np.sqrt((col(tr, "x_m") - col(last, "x_m") - col(last, "vx_mps") * dt) ** 2
+                + (col(tr, "y_m") - col(last, "y_m") - col(last, "vy_mps") * dt) ** 2)
+    dv = np.abs(col(tr, "z_m") - col(last, "z_m") - col(last, "vz_mps") * dt)
+    ok = ((rt > lt) & (dt <= cfg.ended_s) & (col(tr, "run") == col(last, "run"))
+          & (d <= cfg.gate_h_m) & (dv <= cfg.gate_v_m))
+    ids = last["truth_id"].to_numpy()
+    out = []
+    for r in range(tr.height):
+        hits = np.flatnonzero(ok[r])
+        out.append(None if not len(hits) else int(ids[hits[np.lexsort((ids[hits], d[r, hits]))[0]]]))
+    return out
+
+
+def test_ended_aircraft_found_for_every_free_row_as_by_testing_every_pair():
+    """Rule 4 searches the ended aircraft near each free row (a KD-tree over the midpoints of
+    their dead-reckoned paths, radius gate + |v|·ended_s/2): the same aircraft as testing every
+    pair, nearest first and the smaller id on a tie, rows at the far end of a fast aircraft's
+    path included. The last window of a recording, where every aircraft ends, no longer tests
+    every free row against every aircraft."""
+    from tertiary.evaluation.matching import _beyond
+    for seed in range(6):
+        tr, truth = _ended_scene(seed)
+        for cfg in (MatchConfig(), MatchConfig(ended_s=12.0, gate_h_m=900.0)):
+            got = _beyond(tr, np.ones(tr.height, bool), truth, cfg).to_list()
+            want = _beyond_every_pair(tr, truth, cfg)
+            assert got == want
+            assert sum(g is not None for g in got) > 20        # the scene exercises the rule
+        free = np.arange(tr.height) % 3 == 0
+        got = _beyond(tr, free, truth, MatchConfig()).to_list()
+        assert [g for g, f in zip(got, free) if not f] == [None] * int((~free).sum())
+        assert [g for g, f in zip(got, free) if f] == [w for w, f in zip(_beyond_every_pair(tr, truth, MatchConfig()),
+                                                                             free) if f]

@@ -237,26 +237,60 @@ def _last_samples(truth: pl.DataFrame, before) -> pl.DataFrame:
 def _beyond(tr: pl.DataFrame, free: NDArray[np.bool_], truth: pl.DataFrame, cfg: MatchConfig) -> pl.Series:
     """``beyond_truth_id`` of the rows of ``tr`` (rule 4): for each ``free`` row (in no gate),
     the nearest aircraft whose last sample, at most ``ended_s`` before the row's epoch and
-    dead-reckoned to it, has the row in its gates; null otherwise."""
+    dead-reckoned to it, has the row in its gates (ties: the smaller ``truth_id``); null otherwise."""
     out = np.full(tr.height, -1, np.int64)
     if cfg.ended_s > 0 and free.any() and truth.height:
         rows = tr.filter(pl.Series(free)).select("__row", pl.col("run").cast(pl.UInt32), "epoch", "x_m", "y_m",
                                                  _height(tr).alias("__rh"))
-        last = _last_samples(truth, rows["epoch"].max()).rename({"x_m": "__lx", "y_m": "__ly"}).with_columns(
-            (pl.col("__t") + pl.duration(microseconds=round(cfg.ended_s * 1e6))).alias("__te"))
-        within = [pl.col("epoch") > pl.col("__t"), pl.col("epoch") <= pl.col("__te")]
-        if "run" in last.columns:
-            last = last.rename({"run": "__lrun"}).with_columns(pl.col("__lrun").cast(pl.UInt32))
-            within.append(pl.col("run") == pl.col("__lrun"))
-        dt = (pl.col("epoch") - pl.col("__t")).dt.total_microseconds() / 1e6
-        pair = (rows.join_where(last, *within)
-                .with_columns(((pl.col("x_m") - pl.col("__lx") - pl.col("vx_mps") * dt) ** 2
-                               + (pl.col("y_m") - pl.col("__ly") - pl.col("vy_mps") * dt) ** 2).sqrt().alias("__d"),
-                              (pl.col("__rh") - pl.col("__h") - pl.col("__hr") * dt).abs().alias("__dv"))
-                .filter((pl.col("__d") <= cfg.gate_h_m) & (pl.col("__dv") <= cfg.gate_v_m))
-                .sort("__d", "truth_id").unique("__row", keep="first"))
-        out[pair["__row"].to_numpy()] = pair["truth_id"].to_numpy()
+        last = _last_samples(truth, rows["epoch"].max())
+        if last.height:
+            row, truth_id = _beyond_pairs(rows, last, cfg)
+            out[row] = truth_id
     return pl.Series("beyond_truth_id", out).cast(pl.Int64).replace(-1, None)
+
+
+def _beyond_pairs(rows: pl.DataFrame, last: pl.DataFrame, cfg: MatchConfig) -> tuple[NDArray, NDArray]:
+    """(``__row``, truth_id) of each row of ``rows`` and the nearest aircraft of ``last``
+    (:func:`_last_samples`) whose dead-reckoned last sample has it in its gates.
+
+    Only pairs within a radius of the midpoint of the aircraft's dead-reckoned path are tested:
+    a row at distance d ≤ gate from the position at dt ∈ (0, ended_s] is at most
+    gate + |v|·ended_s/2 from that midpoint, so the radius keeps every pair the gates keep. A
+    window where hundreds of aircraft end (the last one of a recording) would otherwise test
+    every free row against every ended aircraft (memory of the order of their product)."""
+    f64 = lambda frame, c: frame[c].cast(pl.Float64).to_numpy()  # noqa: E731 (nulls become NaN)
+    rx, ry, rh = f64(rows, "x_m"), f64(rows, "y_m"), f64(rows, "__rh")
+    lx, ly, vx, vy = f64(last, "x_m"), f64(last, "y_m"), f64(last, "vx_mps"), f64(last, "vy_mps")
+    lh, lhr = f64(last, "__h"), f64(last, "__hr")
+    rt = rows["epoch"].dt.epoch("us").to_numpy()
+    lt = last["__t"].dt.epoch("us").to_numpy()
+    ended_us = round(cfg.ended_s * 1e6)
+    ok_r = np.flatnonzero(np.isfinite(rx) & np.isfinite(ry))
+    ok_l = np.flatnonzero(np.isfinite(lx) & np.isfinite(ly) & np.isfinite(vx) & np.isfinite(vy))
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if not (len(ok_r) and len(ok_l)):
+        return none
+    half = cfg.ended_s / 2.0
+    mid = np.column_stack([lx[ok_l] + vx[ok_l] * half, ly[ok_l] + vy[ok_l] * half])
+    reach = cfg.gate_h_m + float(np.hypot(vx[ok_l], vy[ok_l]).max()) * half
+    near = cKDTree(np.column_stack([rx[ok_r], ry[ok_r]])).sparse_distance_matrix(
+        cKDTree(mid), reach * (1 + 1e-9) + 1e-6, output_type="ndarray")
+    i, j = ok_r[near["i"]], ok_l[near["j"]]
+    live = (rt[i] > lt[j]) & (rt[i] <= lt[j] + ended_us)
+    if "run" in last.columns:
+        live &= rows["run"].to_numpy()[i] == last["run"].cast(pl.UInt32).to_numpy()[j]
+    i, j = i[live], j[live]
+    dt = (rt[i] - lt[j]) / 1e6
+    d = np.sqrt((rx[i] - lx[j] - vx[j] * dt) ** 2 + (ry[i] - ly[j] - vy[j] * dt) ** 2)
+    dv = np.abs(rh[i] - lh[j] - lhr[j] * dt)
+    gated = (d <= cfg.gate_h_m) & (dv <= cfg.gate_v_m)
+    i, j, d = i[gated], j[gated], d[gated]
+    if not len(i):
+        return none
+    ids = last["truth_id"].to_numpy()[j]
+    order = np.lexsort((ids, d, i))                 # per row: the nearest, then the smaller id
+    first = order[np.r_[True, np.diff(i[order]) != 0]]
+    return rows["__row"].to_numpy()[i[first]], ids[first]
 
 
 def match_to_reference(tracks: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig = MatchConfig(),
