@@ -250,7 +250,10 @@ def _beyond_every_pair(tr: pl.DataFrame, truth: pl.DataFrame, cfg: MatchConfig) 
     last = last.filter(pl.col("time") < tr["epoch"].max())
     rt, lt = tr["epoch"].dt.epoch("us").to_numpy()[:, None], last["time"].dt.epoch("us").to_numpy()[None, :]
     dt = (rt - lt) / 1e6
-    col = lambda f, c: f[c].to_numpy()[:, None] if f is tr else f[c].to_numpy()[None, :]  # noqa: E731
+
+    def col(frame: pl.DataFrame, c: str) -> np.ndarray:
+        """A column of the rows down, of the aircraft across."""
+        return frame[c].to_numpy()[:, None] if frame is tr else frame[c].to_numpy()[None, :]
     d = np.sqrt((col(tr, "x_m") - col(last, "x_m") - col(last, "vx_mps") * dt) ** 2
                 + (col(tr, "y_m") - col(last, "y_m") - col(last, "vy_mps") * dt) ** 2)
     dv = np.abs(col(tr, "z_m") - col(last, "z_m") - col(last, "vz_mps") * dt)

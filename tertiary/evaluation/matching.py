@@ -249,6 +249,11 @@ def _beyond(tr: pl.DataFrame, free: NDArray[np.bool_], truth: pl.DataFrame, cfg:
     return pl.Series("beyond_truth_id", out).cast(pl.Int64).replace(-1, None)
 
 
+def _floats(frame: pl.DataFrame, *columns: str) -> list[NDArray[np.float64]]:
+    """``columns`` of ``frame`` as float arrays, a null as NaN (it then passes no gate)."""
+    return [frame[c].cast(pl.Float64).to_numpy() for c in columns]
+
+
 def _beyond_pairs(rows: pl.DataFrame, last: pl.DataFrame, cfg: MatchConfig) -> tuple[NDArray, NDArray]:
     """(``__row``, truth_id) of each row of ``rows`` and the nearest aircraft of ``last``
     (:func:`_last_samples`) whose dead-reckoned last sample has it in its gates.
@@ -258,10 +263,8 @@ def _beyond_pairs(rows: pl.DataFrame, last: pl.DataFrame, cfg: MatchConfig) -> t
     gate + |v|·ended_s/2 from that midpoint, so the radius keeps every pair the gates keep. A
     window where hundreds of aircraft end (the last one of a recording) would otherwise test
     every free row against every ended aircraft (memory of the order of their product)."""
-    f64 = lambda frame, c: frame[c].cast(pl.Float64).to_numpy()  # noqa: E731 (nulls become NaN)
-    rx, ry, rh = f64(rows, "x_m"), f64(rows, "y_m"), f64(rows, "__rh")
-    lx, ly, vx, vy = f64(last, "x_m"), f64(last, "y_m"), f64(last, "vx_mps"), f64(last, "vy_mps")
-    lh, lhr = f64(last, "__h"), f64(last, "__hr")
+    rx, ry, rh = _floats(rows, "x_m", "y_m", "__rh")
+    lx, ly, vx, vy, lh, lhr = _floats(last, "x_m", "y_m", "vx_mps", "vy_mps", "__h", "__hr")
     rt = rows["epoch"].dt.epoch("us").to_numpy()
     lt = last["__t"].dt.epoch("us").to_numpy()
     ended_us = round(cfg.ended_s * 1e6)
