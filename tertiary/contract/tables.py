@@ -279,9 +279,10 @@ _TRACKS = TableSchema(
     },
     # cov: the full 6×6 position–velocity covariance, row-major (x y z vx vy vz)
     # mode_s: the Mode S address of the target the track was last updated with (identity);
-    # selected_alt_m: that target's selected altitude (latest known, carried while coasting)
+    # selected_alt_m: that target's selected altitude (latest known, carried while coasting;
+    #   null on a row moving away from it after the track was level there: tracking.intent)
     # ehs_track_rate_dps: that target's downlinked track-angle rate (latest known, likewise)
-    # cleared_alt_m: that target's cleared level from flight data (latest known, likewise)
+    # cleared_alt_m: that target's cleared level from flight data (as selected_alt_m)
     optional={**_ALT, "cov": COV, "mode_s": STR, SELECTED_ALT_COLUMN: F64, TURN_RATE_COLUMN: F64,
               CLEARED_ALT_COLUMN: F64},
     key=("run", "epoch", "filter", "method", "track_id"),

@@ -57,6 +57,7 @@ from tertiary.stages.flight_data import (DepartureState, correlate, departure_pl
 from tertiary.stages.fusion import FuseState, fuse_step, init_fuse_state, measured_plots
 from tertiary.stages.fusion.centralized import CentralizedState, centralized_step, init_centralized_state
 from tertiary.filters import TrackFilter
+from tertiary.stages.tracking.intent import reached_column, withhold_left_levels
 from tertiary.stages.tracking.tracker import TrackState, filter_dict, init_track_state, track_step
 
 __all__ = ["RunContext", "StreamState", "WindowStore", "init_stream_state", "pipeline_step", "stream",
@@ -331,20 +332,29 @@ def _add_counts(counts: dict, stats: dict[str, Any], rows: pl.DataFrame) -> dict
 #: what a track carries from the target it was last updated with, besides its Mode S address
 _CARRIED = (contract.SELECTED_ALT_COLUMN, contract.TURN_RATE_COLUMN, contract.CLEARED_ALT_COLUMN)
 
+#: the carried levels a track withholds once its aircraft has left them (:mod:`tertiary.stages.tracking.intent`)
+_LEVELS = (contract.SELECTED_ALT_COLUMN, contract.CLEARED_ALT_COLUMN)
+
 
 def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFrame
                    ) -> tuple[pl.DataFrame, pl.DataFrame]:
     """:func:`track_identity` carried across windows: each track's Mode S address and selected
     altitude (and track-angle rate) continue from their last values of the previous windows while
-    it coasts (``last`` gains the :data:`_CARRIED` columns it lacks)."""
+    it coasts (``last`` gains the :data:`_CARRIED` columns it lacks), each level withheld where the
+    track has left it (:func:`~tertiary.stages.tracking.intent.withhold_left_levels`, its reached
+    flags carried in ``last``)."""
     if tracks.height == 0 or "mode_s" not in pictures.columns or "plot_target_id" not in tracks.columns:
         return tracks, last
     keys = ["run", "filter", "method", "track_id"]
     opt = [c for c in _CARRIED if c in pictures.columns]
     carried_cols = ["mode_s", *opt]
+    levels = [c for c in _LEVELS if c in opt]
     for c in opt:
         if c not in last.columns:
             last = last.with_columns(pl.lit(None, pl.Float64).alias(c))
+    for c in levels:
+        if reached_column(c) not in last.columns:
+            last = last.with_columns(pl.lit(None, pl.Boolean).alias(reached_column(c)))
     ident = pictures.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *carried_cols)
     t = (tracks.drop(*carried_cols, strict=False)
          .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
@@ -358,9 +368,12 @@ def _identity_step(last: pl.DataFrame, tracks: pl.DataFrame, pictures: pl.DataFr
          .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in carried_cols))
     now = (t.sort("epoch").group_by(keys).agg(pl.col(c).last() for c in carried_cols)
            .filter(pl.any_horizontal(pl.col(c).is_not_null() for c in carried_cols)))
+    t, reached = withhold_left_levels(t.drop("__i"), last, keys, levels)
+    now = now.join(reached.select(*keys, *(reached_column(c) for c in levels if reached_column(c) in reached.columns)),
+                   on=keys, how="left")
     now = now.with_columns(pl.lit(None, last.schema[c]).alias(c) for c in last.columns if c not in now.columns)
     carried = pl.concat([last.join(now.select(keys), on=keys, how="anti"), now.select(last.columns).cast(last.schema)])
-    return t.drop("__i"), carried
+    return t, carried
 
 
 def stream(ds: Dataset, cfg: PipelineConfig, parts, window_s: float | None = DEFAULT_WINDOW_S,
@@ -627,12 +640,14 @@ def track_identity(tracks: pl.DataFrame, fused: pl.DataFrame) -> pl.DataFrame:
     from a second aircraft — and likewise ``selected_alt_m`` (the target's Mode S selected
     altitude, latest known), ``ehs_track_rate_dps`` (its BDS 5,0 track-angle rate, latest
     known: conflict prediction follows a turn with it) and ``cleared_alt_m`` (its cleared level
-    from flight data, latest known) when ``fused`` carries them."""
+    from flight data, latest known) when ``fused`` carries them; a level the track has left is
+    withheld (:mod:`tertiary.stages.tracking.intent`)."""
     if tracks.height == 0 or "mode_s" not in fused.columns or "plot_target_id" not in tracks.columns:
         return tracks
     cols = ["mode_s", *(c for c in _CARRIED if c in fused.columns)]
     ident = fused.select("run", "epoch", "method", pl.col("target_id").alias("plot_target_id"), *cols)
     keys = ["run", "filter", "method", "track_id"]
-    return (tracks.drop(*cols, strict=False)
-            .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
-            .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in cols))
+    out = (tracks.drop(*cols, strict=False)
+           .join(ident, on=["run", "epoch", "method", "plot_target_id"], how="left", maintain_order="left")
+           .with_columns(pl.col(c).forward_fill().over(keys, order_by="epoch") for c in cols))
+    return withhold_left_levels(out, out.select(keys).clear(), keys, _LEVELS)[0]
