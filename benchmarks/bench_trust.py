@@ -310,10 +310,14 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
     ``the picture's uncertainty`` (the truth's own states, given the two tracks' covariances,
     raise the same alert: :func:`_uncertainty_alerts`; no error of the picture's states is
     needed), ``coasting track`` (a track held without a plot), ``track far from its aircraft`` (> 2 km),
-    ``height error`` (> 150 m), ``vertical rate error`` (> 2 m/s: a climb or descent the
-    aircraft does not fly, or the reverse), ``en-route/terminal boundary`` (one track above the en-route floor,
-    one below), ``wide horizontal threshold`` (the covariance-based widening of the horizontal threshold
-    above 1 km: an uncertain or inconsistent velocity), else ``other``. Counts per
+    ``height error`` (> 150 m), ``a vertical manoeuvre after the last update`` (a rate more
+    than 2 m/s off that is within 2 m/s of the aircraft's true rate at the track's previous
+    epoch: the aircraft levelled off or began a climb or descent since, which no picture fed by
+    scans can know yet; :func:`_rate_an_update_ago`), ``vertical rate error`` (> 2 m/s: a climb
+    or descent the aircraft does not fly, or the reverse), ``en-route/terminal boundary`` (one
+    track above the en-route floor, one below), ``wide horizontal threshold`` (the
+    covariance-based widening of the horizontal threshold above 1 km: an uncertain or
+    inconsistent velocity), else ``other``. Counts per
     classification and cause; the medians of the estimation term and of the tracks' velocity
     standard deviation against their real velocity error."""
     import duckdb
@@ -346,7 +350,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
                                          + (pl.col("y_m") - pl.col("true_y_m")) ** 2).sqrt()).fill_null(1e12)
                                        .alias("__d")).with_row_index("__i"))
         r = pl.concat(near).sort("__i", "__d").unique("__i", keep="first", maintain_order=True)
-        a = a.join(r.select("k", pl.col("__d").alias(f"perr_{side}"),
+        a = a.join(r.select("k", pl.col("__d").alias(f"perr_{side}"), pl.col("truth_id").alias(f"own_{side}"),
                             (pl.col("alt_m") - pl.col("true_alt_m")).abs().alias(f"herr_{side}"),
                             (pl.col("alt_rate_mps") - pl.col("true_alt_rate_mps")).abs().alias(f"rerr_{side}"),
                             pl.col("alt_m").alias(f"alt_{side}"), (pl.col("status") == "coasting").alias(f"coast_{side}"),
@@ -360,6 +364,7 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
            else pl.lit(cc["dr_h_m"] or 3 * 1852.0))
     a = a.with_columns((pl.col("r_thr_m") - sep - cc["pilot_h_m"]).alias("est_h_m"))
     a = a.join(_uncertainty_alerts(db, data, a, picture, truth), on="k", how="left")
+    a = a.join(_rate_an_update_ago(a, tr, truth), on="k", how="left")
     last = truth.group_by("truth_id").agg(pl.col("time").max().cast(pl.Datetime("us", "UTC")).alias("__last"))
     for side in ("a", "b"):
         a = a.join(last.rename({"truth_id": f"truth_{side}", "__last": f"last_{side}"}), on=f"truth_{side}",
@@ -371,6 +376,8 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
              .when(pl.col("coast_a") | pl.col("coast_b")).then(pl.lit("coasting track"))
              .when(pl.max_horizontal("perr_a", "perr_b") > 2000).then(pl.lit("track far from its aircraft"))
              .when(pl.max_horizontal("herr_a", "herr_b") > 150).then(pl.lit("height error"))
+             .when((pl.max_horizontal("rerr_a", "rerr_b") > 2.0) & pl.col("stale_rate").fill_null(False))
+             .then(pl.lit("a vertical manoeuvre after the last update"))
              .when(pl.max_horizontal("rerr_a", "rerr_b") > 2.0).then(pl.lit("vertical rate error"))
              .when(pl.lit(floor is not None) & (hi >= (floor or 0.0))
                    & (pl.min_horizontal("alt_a", "alt_b") < (floor or 0.0))).then(pl.lit("en-route/terminal boundary"))
@@ -385,6 +392,31 @@ def alert_causes(db: Path, data: Path, picture: str = "information+imm_sym") -> 
     return {"picture": picture, "counts": counts,
             "false_medians": {k: _clean(v) for k, v in med.row(0, named=True).items()} if med.height else {},
             "uncertainty_false_alerts": _uncertainty_margins(a, cc["enroute_v_m"])}
+
+
+def _rate_an_update_ago(a, tracks, truth, tol_mps: float = 2.0):
+    """(k, stale_rate) per alert of ``a`` (its tracks ``id_a``/``id_b`` and their own aircraft
+    ``own_a``/``own_b`` at ``t_start``): True where a track whose vertical rate is more than
+    ``tol_mps`` off its aircraft's at the alert's first epoch is within ``tol_mps`` of the
+    aircraft's true rate at the track's previous epoch (one update earlier)."""
+    import polars as pl
+    from tertiary.evaluation.reference import interpolate_reference
+    stale = []
+    for side in ("a", "b"):
+        rows = a.select("k", "run", "t_start", pl.col(f"id_{side}").alias("track_id"), pl.col(f"own_{side}")
+                        .alias("truth_id"), pl.col(f"rerr_{side}").alias("rerr"))
+        prev = (tracks.select("run", "track_id", "epoch").join(rows, on=["run", "track_id"])
+                .filter(pl.col("epoch") < pl.col("t_start")).group_by("k").agg(pl.col("epoch").max().alias("time")))
+        rows = (rows.join(prev, on="k", how="left")
+                .filter(pl.col("time").is_not_null() & pl.col("truth_id").is_not_null()))
+        got = interpolate_reference(truth, rows)
+        rate = tracks.select("run", "track_id", pl.col("epoch").alias("t_start"), "alt_rate_mps")
+        got = got.join(rate, on=["run", "track_id", "t_start"], how="left")
+        stale.append(got.select("k", ((pl.col("rerr") > tol_mps)
+                                      & ((pl.col("alt_rate_mps") - pl.col("true_alt_rate_mps")).abs() <= tol_mps))
+                                .fill_null(False).alias("s")))
+    both = pl.concat(stale).group_by("k").agg(pl.col("s").any().alias("stale_rate"))
+    return a.select("k").join(both, on="k", how="left").with_columns(pl.col("stale_rate").fill_null(False))
 
 
 def _uncertainty_margins(a, sep_v_m: float) -> list[dict]:
