@@ -5,6 +5,8 @@ from datetime import datetime, timedelta
 import polars as pl
 import pytest
 
+from tertiary.pipeline.config import PipelineConfig
+from tertiary.pipeline.streaming import _identity_step, init_stream_state
 from tertiary.stages.tracking.intent import reached_column, withhold_left_levels
 
 KEYS = ["run", "filter", "method", "track_id"]
@@ -78,3 +80,21 @@ def _published_all(tracks: pl.DataFrame, windows: list[pl.DataFrame]) -> list:
         out.append(rows)
     assert reached_column("selected_alt_m") in state.columns
     return pl.concat(out).sort("track_id", "epoch")["selected_alt_m"].to_list()
+
+
+def test_the_pipeline_carries_a_reached_level_into_the_next_window():
+    # level at its selected level in one window, leaving it in the next: the carried identity
+    # state must remember that the level was reached
+    alts = [7642.9, 7642.9, 7642.9, 7621.0, 7578.0]
+    rates = [0.0, 0.0, 0.0, -5.4, -10.1]
+    tracks = _track(1, alts, rates, [LEVEL] * 5).drop("selected_alt_m").with_columns(
+        pl.lit(7, pl.UInt64).alias("plot_target_id"))
+    pictures = tracks.select("run", "epoch", "method", pl.col("plot_target_id").alias("target_id"),
+                             pl.lit("4ca1b2").alias("mode_s"), pl.lit(LEVEL).alias("selected_alt_m"))
+    state = init_stream_state(PipelineConfig()).identity
+    cut = T0 + timedelta(seconds=12)
+    out = []
+    for part in (pl.col("epoch") < cut, pl.col("epoch") >= cut):
+        rows, state = _identity_step(state, tracks.filter(part), pictures.filter(part))
+        out.append(rows)
+    assert pl.concat(out).sort("epoch")["selected_alt_m"].to_list() == [LEVEL] * 3 + [None, None]

@@ -70,7 +70,9 @@ def withhold_left_levels(tracks: pl.DataFrame, last: pl.DataFrame, keys: Sequenc
     by = {"partition_by": keys, "order_by": "epoch"}
     for c in levels:
         lvl = pl.col(c)
-        before = pl.coalesce(lvl.shift(1).over(**by), pl.col(f"__prev_{c}"))
+        # a track's first row in the window continues from its last value of the earlier windows
+        first = pl.col("epoch") == pl.col("epoch").min().over(keys)
+        before = pl.when(first).then(pl.col(f"__prev_{c}")).otherwise(lvl.shift(1).over(**by))
         seg = lvl.ne_missing(before).cast(pl.UInt32).cum_sum().over(**by)
         t = t.with_columns(seg.alias("__seg"))
         carried = (pl.col("__seg") == 0) & pl.col(f"__seed_{c}").fill_null(False)
