@@ -513,6 +513,54 @@ def test_a_refused_reply_is_no_better_than_its_residual_so_a_levelled_off_source
     assert worst < 10.0, worst
 
 
+def test_a_source_that_saw_the_level_off_is_kept_over_older_ones_still_extrapolating_the_climb():
+    """An aircraft climbing at 16.7 m/s levels off (instantly, as the simulator flies it). Three
+    en-route radars see it every 12 s: two replied last 4–5 s before the level-off, the third
+    0.2 s after it, with a downlinked vertical rate of zero, and restarts on that reply. Once the
+    older filters' extrapolated climb is beyond the garble gate of the newer one (some 70 m,
+    4 s after the level-off), and until they reply again, the target's height follows the
+    newer source: the older filters, confident in a steady climb, have the smaller variance.
+    Fails without :func:`superseded` (the minimum-variance choice keeps the climb, 80–110 m up)."""
+    from tertiary.stages.tracking.altitude import combine_min_variance, predict_combined, superseded
+    cfg = AltitudeConfig()
+    level_t, rate, h0 = 300.0, 16.7, 5000.0
+
+    def height(t):
+        return h0 + rate * np.minimum(t, level_t)
+    phases = (-5.0, -4.0, 0.2)                          # each radar's reply time relative to the level-off
+    times = [np.arange(level_t + ph - 288.0, level_t + 60.0, 12.0) for ph in phases]
+    t = np.concatenate(times)
+    z = np.round(height(t) / QUANTUM_MODE_S_M) * QUANTUM_MODE_S_M
+    var = np.full(len(t), quantisation_variance(QUANTUM_MODE_S_M))
+    vr = np.where(t < level_t, rate, 0.0)
+    lengths = np.array([len(x) for x in times])
+    starts = np.r_[0, np.cumsum(lengths)[:-1]]
+    est, has, _, _, mu = filter_tracks_carry(t, z, var, starts, lengths, cfg, with_mu=True, vrate=vr)
+    group = np.zeros(3, np.int64)
+    for epoch in (level_t + 5.0, level_t + 6.0, level_t + 6.9):   # before the older radars reply again
+        last = np.array([s + np.searchsorted(t[s:s + n], epoch, side="right") - 1 for s, n in zip(starts, lengths)])
+        now = predict_combined(est.take(last), epoch - t[last], mu[last], cfg)
+        valid = has[last] & ~superseded(now, has[last], group, (t[last] * 1e6).astype(np.int64), cfg)
+        pick, ok = combine_min_variance(now, valid, group, 1)
+        assert ok[0]
+        assert abs(pick.h[0] - height(epoch)) < 10.0, (epoch, pick.h[0], height(epoch))
+
+
+def test_an_accepted_garble_or_an_unconfirmed_restart_supersedes_nothing():
+    """The newest source differs from an older one by less than the garble gate (a garble its
+    filter accepted), or carries an unconfirmed filter's inflated σ: the older, better source
+    stays; beyond the gate of confirmed filters, the older source is superseded."""
+    from tertiary.stages.tracking.altitude import superseded
+    cfg = AltitudeConfig()
+    s = AltState(np.array([5000.0, 5030.0, 5000.0, 5250.0]), np.zeros(4), np.array([4.0, 9.0, 4.0, 3600.0]),
+                 np.zeros(4), np.full(4, 0.01))
+    group = np.array([0, 0, 1, 1])
+    t_reply = np.array([1_000_000, 3_000_000, 1_000_000, 3_000_000])
+    assert not superseded(s, np.ones(4, bool), group, t_reply, cfg).any()
+    far = AltState(s.h.copy(), s.r, s.phh.copy(), s.phr, s.prr)
+    far.h[1], far.h[3], far.phh[3] = 5100.0, 5400.0, 9.0   # beyond the gate, and a confirmed 400 m jump
+    assert superseded(far, np.ones(4, bool), group, t_reply, cfg).tolist() == [True, False, True, False]
+
 def _level_offs(rng: np.random.Generator, n_tracks: int = 150):
     """Tracks that climb or descend at 5–20 m/s and level off (or level aircraft that start a
     climb) part-way, a reply every 4–12 s, with each reply's downlinked vertical rate (σ 1 m/s,

@@ -6,10 +6,12 @@ filter runs per (run, radar, local track) over its reports' replies (quantum 25 
 ``mode_s``, 100 ft without, R = q²/12, garble gate; each report's downlinked vertical rate,
 from the measured plots, restarts it at a level-off or a climb's onset and updates its rate),
 is extrapolated from the report time to the
-epoch ((A1)–(A2)) and, among the target's sources with an estimate, the one with the smallest
-height variance is kept (all radars decode the same reply, so their errors are not independent:
-:func:`tertiary.stages.tracking.altitude.combine_min_variance`). This channel does not depend on
-the method. A target without any Mode C source falls back to the geodetic height of the
+epoch ((A1)–(A2)) and, among the target's sources with an estimate that the source with the
+latest reply does not contradict (:func:`tertiary.stages.tracking.altitude.superseded`: an older
+source still extrapolating a climb after a newer reply shows the level-off), the one with the
+smallest height variance is kept (all radars decode the same reply, so their errors are not
+independent: :func:`tertiary.stages.tracking.altitude.combine_min_variance`). This channel does
+not depend on the method. A target without any Mode C source falls back to the geodetic height of the
 method's fused state, its variance from the covariance along the local vertical
 (:func:`tertiary.stages.tracking.altitude.geodetic_channel`; ``origin=None``: spherical Earth,
 ≤ 9 m at 150 km) — never the ENU z.
@@ -26,7 +28,7 @@ from tertiary.core import geo
 from tertiary.stages.fusion.base import TRACK, B, F, Layout, track_keys
 from tertiary.stages.tracking.altitude import (ALT_COLUMNS, QUANTUM_MODE_C_M, QUANTUM_MODE_S_M, AltitudeConfig, AltState,
                                                FilterCarry, combine_min_variance, filter_tracks_carry, geodetic_channel,
-                                               predict_combined, quantisation_variance)
+                                               predict_combined, quantisation_variance, superseded)
 
 __all__ = ["AltCarry", "vertical_channel"]
 
@@ -140,6 +142,8 @@ def vertical_channel(rows: pl.DataFrame, lay: Layout, xs: F, covs: F, origin: ge
     ``plots``: the reports' measured plots, for their downlinked vertical rates."""
     n_groups = len(lay.starts)
     per_row, has, carry = _mode_c_per_row(rows, cfg, carry, plots)
+    if has.any():
+        has = has & ~superseded(per_row, has, lay.group, rows["time"].dt.epoch("us").to_numpy(), cfg)
     mode_c, got = combine_min_variance(per_row, has, lay.group, n_groups)
     mc = mode_c.columns()
     out = {c: np.repeat(mc[c][None], len(xs), axis=0) for c in ALT_COLUMNS}

@@ -92,7 +92,7 @@ from tertiary.stages.tracking.altitude_kernel import filter_recursion
 __all__ = ["ALT_COLUMNS", "FT_M", "QUANTUM_MODE_S_M", "QUANTUM_MODE_C_M", "AltitudeConfig", "AltState",
            "quantisation_variance", "predict", "mixture_q", "predict_combined", "update", "update2", "filter_tracks", "filter_tracks_carry",
            "FilterCarry", "geodetic_height_rate",
-           "geodetic_channel", "combine_min_variance"]
+           "geodetic_channel", "combine_min_variance", "superseded"]
 
 F64 = NDArray[np.float64]
 #: metres per foot (:data:`tertiary.core.units.FT`)
@@ -624,6 +624,31 @@ def geodetic_channel(x6: F64, cov66: F64, frame: geo.LocalFrame | None) -> AltSt
     h, hdot, up = geodetic_height_rate(x6[:, :3], x6[:, 3:], frame)
     quad = lambda blk: np.einsum("ni,nij,nj->n", up, blk, up)  # noqa: E731
     return AltState(h, hdot, quad(cov66[:, :3, :3]), quad(cov66[:, :3, 3:]), quad(cov66[:, 3:, 3:]))
+
+
+def superseded(s: AltState, valid: NDArray[np.bool_], group: NDArray[np.int64], t_reply: NDArray[np.int64],
+               cfg: AltitudeConfig) -> NDArray[np.bool_]:
+    """Per source row, whether the group's source with the latest reply contradicts it: its
+    height, both extrapolated to the epoch, lies beyond the garble gate of their combined
+    variance (|Δh| > g·√(P_a + P_b) + f, ``gate_sigma`` g, ``gate_floor_m`` f). The older
+    source is extrapolating a motion that a newer reply of the same transponder no longer shows
+    (the first replies after a level-off or a climb's onset): in a steady climb its filter is
+    confident, and the newer source, restarted on its reply, is not yet, so the minimum-variance
+    choice alone would keep the obsolete climb. A garble accepted by a filter moves it by less
+    than its gate, and an unconfirmed restart carries an inflated σ: neither supersedes."""
+    out = np.zeros(len(valid), bool)
+    rows = np.flatnonzero(valid)
+    if rows.size == 0:
+        return out
+    order = rows[np.lexsort((s.phh[rows], -t_reply[rows], group[rows]))]      # newest first, then best
+    g = group[order]
+    first = np.r_[True, g[1:] != g[:-1]]
+    newest = np.empty(int(group.max()) + 1, np.int64)
+    newest[g[first]] = order[first]
+    f = newest[group[rows]]
+    gate = cfg.gate_sigma * np.sqrt(s.phh[rows] + s.phh[f]) + cfg.gate_floor_m
+    out[rows] = np.abs(s.h[rows] - s.h[f]) > gate
+    return out
 
 
 def combine_min_variance(s: AltState, valid: NDArray[np.bool_], group: NDArray[np.int64], n_groups: int
