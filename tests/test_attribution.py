@@ -15,6 +15,8 @@ from safety.alerts import (ALERTS_SCHEMA, AlertConfig, LOS_SCHEMA, attribute_ale
 from safety.conflicts import ConflictConfig, conflicts_step, init_conflict_state, predict_conflicts
 from tertiary.evaluation.truth_picture import SPAN_GAP_S, extend_spans, observed_spans, truth_picture
 
+from apart import Apart
+
 T0 = datetime(2021, 10, 7, 12, 0, tzinfo=timezone.utc)
 TIME = pl.Datetime("us", "UTC")
 
@@ -219,6 +221,29 @@ def test_the_truth_pictures_alerts_read_in_blocks_and_stepped_equal_one_step(blo
     whole = truth_conflicts(cc, truth_slice, spans, grid, "target_id", None, block_s=3600.0, step_s=3600.0)
     got = truth_conflicts(cc, truth_slice, spans, grid, "target_id", None, block_s=block_s, step_s=step_s)
     assert whole[0]["alert"].sum() > 3
+    for a, b in zip(got, whole):
+        assert a.equals(b)
+
+
+@pytest.mark.parametrize("block_s", [12.0, 45.0, 120.0])
+def test_the_truth_picture_predicted_in_pieces_apart_equals_one_prediction(block_s, tmp_path):
+    """A distributed run's end predicts each block of the grid as a piece of its cluster, from
+    a fresh state warmed on the grid epochs before the block that its confirmation reads, and
+    keeps the block's rows: the rows of one prediction. Fails if a piece confirms afresh from
+    its block's first epoch (an alert confirmed across the edge is lost) or keeps the rows of
+    its warm-up."""
+    from tertiary.evaluation.evaluate import reference_files, write_reference
+    from tertiary.pipeline.truth_alerts import reference_slice, truth_conflicts
+    files = reference_files(write_reference(_head_on(), tmp_path / "ref.parquet"))
+    grid = pl.DataFrame({"run": pl.Series([0] * 60, dtype=pl.UInt32),
+                         "epoch": [_t(s) for s in range(0, 300, 5)]}).with_columns(pl.col("epoch").cast(TIME))
+    spans = observed_spans(grid.join(pl.DataFrame({"truth_id": [1, 2, 3]}), how="cross"))
+    cc = ConflictConfig(confirm_m=3, confirm_n=4)
+    whole = truth_conflicts(cc, reference_slice(files), spans, grid, "target_id", None)
+    fanout = Apart()
+    got = truth_conflicts(cc, reference_slice(files), spans, grid, "target_id", None, block_s=block_s,
+                          parts=(fanout, files))
+    assert whole[0]["alert"].sum() > 3 and fanout.pieces == {"_predict_part": int(np.ceil(300 / block_s))}
     for a, b in zip(got, whole):
         assert a.equals(b)
 

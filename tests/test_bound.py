@@ -15,6 +15,8 @@ from scipy.linalg import solve_discrete_are
 from tertiary.core import geo
 from tertiary.evaluation.bound import BoundConfig, bound_metrics, illuminations, pcrb_at, pcrb_linear
 
+from apart import Apart
+
 T0 = datetime(2021, 10, 7, 8, 0, tzinfo=timezone.utc)
 
 
@@ -522,6 +524,32 @@ def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(mon
     got = bound.bound_stage(ds, scan, radars, reports, scored, acc, [])
     assert held == [[7, 8], [9]]
     assert want.height
+    assert_frame_equal(got, want, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
+
+
+def test_the_bound_computed_apart_a_block_of_aircraft_a_piece_equals_the_stage(monkeypatch, tmp_path):
+    """A distributed run's end computes the bound as pieces of its cluster, each reading its
+    own aircraft's truth from the reference: the rows equal the stage's. Fails if a piece
+    loses an aircraft."""
+    from types import SimpleNamespace
+
+    from tertiary.evaluation import bound, bound_fanout
+    from tertiary.evaluation.evaluate import reference_files, write_reference
+    from tertiary.pipeline.tables import BOUND_TRUTH
+    origin, truth, radars, reports = _one_radar_truth()
+    many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
+                                         pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
+    scored = many.select(pl.lit("a").alias("method"), pl.lit(0, pl.UInt32).alias("run"),
+                         pl.col("time").alias("epoch"), "truth_id", pl.lit("straight").alias("seg_class"))
+    acc = pl.DataFrame({"stage": "fusion", "method": ["a"], "metric": "rmse_pos_m", "segment": "all",
+                        "value": [100.0], "n_runs": 1})
+    ds = SimpleNamespace(origin=origin, scenario=None)
+    want = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
+    files = reference_files(write_reference(many, tmp_path / "ref.parquet"))
+    monkeypatch.setattr(bound_fanout, "PIECE_AIRCRAFT", 2)
+    fanout = Apart()
+    got = bound_fanout.bound_stage_apart(ds, fanout, files, BOUND_TRUTH, radars, reports, scored, acc, [])
+    assert want.height and fanout.pieces == {"_piece": 2}
     assert_frame_equal(got, want, check_exact=False, rel_tol=1e-12, abs_tol=0.0)
 
 

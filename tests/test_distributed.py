@@ -71,6 +71,12 @@ def _tables(db) -> dict[str, pl.DataFrame]:
         return {n: s.read(n) for n in [*KEYS, "partitions", "run"] if n in s.tables()}
 
 
+def _alerts(db) -> pl.DataFrame:
+    """A run database's alert episodes in a stable order."""
+    with RunStore.open(db.parent) as s:
+        return s.read("alerts").sort("method", "run", "t_start", "truth_a", "truth_b", nulls_last=True)
+
+
 def _target_bijection(dask: pl.DataFrame, local: pl.DataFrame) -> pl.DataFrame:
     """(run, target_id → local target_id) through the reports both assign: must be one-to-one."""
     key = KEYS["associations"]
@@ -228,13 +234,24 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     said: list[str] = []
     # the association metrics come from the partitions' merged states: no row is read back for them
     monkeypatch.setattr(whole_run, "scored_blocks", lambda *a: pytest.fail("association rows scored on the client"))
+    # the finalize's independent pieces go to the cluster
+    fanned: list[str] = []
+    real = D.dask_fanout
+    monkeypatch.setattr(D, "dask_fanout", lambda c: lambda fn, args: fanned.append(fn.__name__) or real(c)(fn, args))
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
                               overlap_s=60.0, progress=said.append)
     # the client's whole-run stages are said as they start, after "finalize"
     assert said.index("finalize") < said.index("evaluation") < said.index("score_alerts"), said
     got = _tables(res.db)
-    want = _tables(pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW))
+    local = pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW)
+    want = _tables(local)
     assert got["partitions"].height == 3 and res.stitching.height == 2
+    # the truth's intervals and picture, computed by time chunk on the workers: the truth
+    # picture's alerts are the local run's
+    assert {"_chunk_task", "_predict_part"} <= set(fanned), fanned
+    truth_alerts = [_alerts(db).filter(pl.col("method") == "truth") for db in (res.db, local)]
+    assert truth_alerts[1].height
+    assert_frame_equal(*truth_alerts)
     # every report is in exactly one slice, at its row of the whole input
     for name in ("reports", "rejects", "aligned"):
         _same(got[name], want[name], name)

@@ -20,6 +20,8 @@ from tertiary import pipeline
 from tertiary.evaluation.evaluate import write_reference
 from tertiary.simulate import load_scenario, simulate
 
+from apart import Apart
+
 
 @pytest.fixture(scope="module")
 def truth():
@@ -169,6 +171,22 @@ def test_chunks_done_as_the_windows_pass_and_finished_at_the_end_equal_the_whole
     (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=37.3, state=state)
     assert len(calls) - in_windows == int(np.ceil((int(span["time"].dt.epoch("us").max()) + 1 - state.next_us)
                                                   / 37_300_000))
+    assert_frame_equal(los, whole[0])
+    assert_frame_equal(prox, whole[1])
+
+
+def test_chunks_computed_apart_equal_the_whole_truths(truth, tmp_path):
+    """A distributed run's end computes each chunk as a piece of its cluster (its arguments
+    shipped, the pieces in any order) and merges them in time order: the whole truth's
+    intervals. Fails if a chunk is lost or computed over another's span."""
+    t, frame = truth
+    acfg = _config()
+    whole = truth_intervals(t, acfg, frame)
+    ref = write_reference(t, tmp_path / "ref.parquet")
+    fanout = Apart()
+    (los, prox), _ = pipeline.reference_intervals(ref, acfg, frame, chunk_s=37.3, fanout=fanout)
+    span_s = (t["time"].max() - t["time"].min()).total_seconds()
+    assert fanout.pieces == {"_chunk_task": int(np.ceil((span_s + 1e-6) / 37.3))}
     assert_frame_equal(los, whole[0])
     assert_frame_equal(prox, whole[1])
 

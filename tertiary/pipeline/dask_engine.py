@@ -28,7 +28,8 @@ pictures to it, step their metrics and sum the consistency lags, as a local run'
 those states, the client merges the runs' (:mod:`tertiary.pipeline.partition_states`) and the
 finalize only finishes them. A time slice's pictures are matched on the client, after the
 stitching. The finalize stage (alert scoring, …) runs on the client over the union of the
-partitions and ``results.duckdb`` is built
+partitions, its independent pieces (the truth's intervals and picture by time chunk, the bound
+by block of aircraft) as tasks of the same cluster, and ``results.duckdb`` is built
 as :func:`tertiary.pipeline.run` builds it, with a ``partitions`` table registering every output
 partition (its span, rows, wall time, worker, id changes at its start boundary).
 """
@@ -61,6 +62,7 @@ from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
 from tertiary.pipeline.partition_writer import SCRATCH, PartitionWriter
+from tertiary.runtime.fanout import dask_fanout
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -630,16 +632,27 @@ def run_dask_detailed(dataset_dir: str | Path, out_dir: str | Path, cfg: pipelin
     say(f"{len(parts)} partition(s)")
     c, close = _client(workers, scheduler, client)
     try:
-        infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
-                                             window_s, origin, gate_m, timings, say, tables)
+        return _run_on(c, dataset_dir, out, cfg, parts, window_s, origin, n_rows, gate_m, timings, say, tables,
+                       slice_s, overlap_s, notes, t_wall)
     finally:
         close()
+
+
+def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineConfig, parts: list[Partition],
+            window_s: float | None, origin: int | None, n_rows: int, gate_m: float, timings: dict, say,
+            tables: str, slice_s: float | None, overlap_s: float, notes: list[str], t_wall: float) -> DaskRun:
+    """The partitions on the cluster of client ``c``, then the finalize on the client, whose
+    independent pieces (the truth's intervals and picture by time chunk, the bound by block of
+    aircraft) are tasks of the same cluster."""
+    infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
+                                         window_s, origin, gate_m, timings, say, tables)
     say("finalize")
     ds = read_dataset(dataset_dir, lazy=True)
     radars = next((i["radars"] for i in infos if "radars" in i), None)
     span = pipeline.ingestion.plausible_span(ds.reports, cfg.limits)     # the truth's window, as a local run's
     ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
-                              curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span)
+                              curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span,
+                              fanout=dask_fanout(c))
     counts: dict[str, int] = {}
     for i in infos:
         for k, v in i["counts"].items():

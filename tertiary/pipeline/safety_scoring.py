@@ -22,6 +22,7 @@ from tertiary.pipeline.stca_scoring import note_minima, reference_intervals, stc
 from tertiary.pipeline.tables import ALERT_TRUTH, DeferredTable
 from tertiary.pipeline.truth_alerts import (TRUTH_PICTURE_COLUMNS, attributed, reference_slice, truth_conflicts,
                                             truth_picture_finish)
+from tertiary.runtime.fanout import Fanout, serial
 from tertiary.runtime.windows import release_memory
 
 __all__ = ["EXTERNAL_TRUTH", "SafetyTables", "TruthSource", "empty_id_map", "score_safety"]
@@ -78,12 +79,14 @@ def empty_id_map(id_col: str) -> pl.DataFrame:
 
 
 def score_safety(ds: Dataset, cfg: PipelineConfig, run: Any, id_map: pl.DataFrame, truth: TruthSource,
-                 spans: pl.DataFrame, grid: pl.DataFrame, stage: Callable[[str], None] = lambda _name: None
-                 ) -> SafetyTables:
+                 spans: pl.DataFrame, grid: pl.DataFrame, stage: Callable[[str], None] = lambda _name: None,
+                 fanout: Fanout | None = None) -> SafetyTables:
     """The alerts of the safety pictures and of the truth picture scored, attributed and, with
     look-aheads, the trade-off curves (``run``: the streamed tables, :class:`RunTables`;
     ``id_map``: which aircraft each safety picture row is; ``spans``, ``grid``: what the truth
-    picture is sampled on). ``stage`` is told each stage as it starts (the run's clock)."""
+    picture is sampled on). ``stage`` is told each stage as it starts (the run's clock).
+    ``fanout``: where the truth's intervals and the truth picture the windows left are computed,
+    a time chunk a piece (None: here, in turn), when the truth is on disk."""
     out = SafetyTables(pl.DataFrame(), pl.DataFrame(), pl.DataFrame())
     stage("score_alerts")
     fused, tracks, conflicts = run.fused, run.tracks, run.conflicts
@@ -98,7 +101,7 @@ def score_safety(ds: Dataset, cfg: PipelineConfig, run: Any, id_map: pl.DataFram
         # a chunk of truth at a time: a long recording's truth held whole would not fit (memory)
         # the chunks the windows did, if they read this reference, and the rest
         done = run.intervals[0] if run.intervals is not None and run.intervals[1] == truth.file else None
-        intervals, span = reference_intervals(truth.file, acfg, ds.origin, state=done)
+        intervals, span = reference_intervals(truth.file, acfg, ds.origin, state=done, fanout=fanout or serial)
     else:
         held = truth.columns(ALERT_TRUTH)
         intervals = safety_alerts.truth_intervals(held, acfg, ds.origin)
@@ -110,7 +113,9 @@ def score_safety(ds: Dataset, cfg: PipelineConfig, run: Any, id_map: pl.DataFram
         t_conf, t_ids, onsets = truth_picture_finish(*run.truth_picture, cfg.conflicts, truth.between, id_col,
                                                      ds.origin)
     else:
-        t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth.between, spans, grid, id_col, ds.origin)
+        parts = (fanout, reference_files(truth.file)) if fanout is not None and truth.file is not None else None
+        t_conf, t_ids, onsets = truth_conflicts(cfg.conflicts, truth.between, spans, grid, id_col, ds.origin,
+                                                parts=parts)
     # the rows the scoring reads: a day's conflict rows are 1.2 GB, its id map 40 M rows (memory)
     scored_rows = (list(conflicts.blocks()) if isinstance(conflicts, DeferredTable)
                    else [safety_alerts.scored_conflicts(conflicts)])

@@ -24,6 +24,7 @@ from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.pictures import NOT_SCORED, as_picture, confirmed_only, safety_picture
 from tertiary.pipeline.tables import ALERT_TRUTH, OnDiskTable
+from tertiary.runtime.fanout import Fanout, serial
 from tertiary.runtime.windows import release_memory
 
 __all__ = ["TRUTH_CHUNK_S", "CURVE_BLOCK_ROWS", "TruthIntervals", "intervals_step", "note_minima",
@@ -61,37 +62,48 @@ class TruthIntervals:
 
 
 def intervals_step(state: TruthIntervals, reference: Path, span: pl.DataFrame, acfg: safety_alerts.AlertConfig,
-                   frame: geo.LocalFrame, until_us: int | None = None, chunk_s: float = TRUTH_CHUNK_S
-                   ) -> TruthIntervals:
+                   frame: geo.LocalFrame, until_us: int | None = None, chunk_s: float = TRUTH_CHUNK_S,
+                   fanout: Fanout = serial) -> TruthIntervals:
     """``state`` with the chunks of the truth's span (:func:`time_span` ``span``) that end by
     ``until_us`` (None: every chunk left) done and merged in: the windows compute the chunks
     their progress has passed, the end of the run the rest. The chunks are
-    :func:`reference_intervals`'s whatever the windows, so the result is the same."""
+    :func:`reference_intervals`'s whatever the windows, so the result is the same. Each chunk
+    reads its own truth, so ``fanout`` may compute them apart; they are merged in time order."""
     if not span.height:
         return dataclasses.replace(state, span=span)
     files = reference_files(reference)
-    lf = pl.scan_parquet(files)
-    schema = lf.collect_schema()
+    schema = pl.scan_parquet(files).collect_schema()
     cols = [c for c in ALERT_TRUTH if c in schema]
     # one run: each file's time range bounds a chunk's reads (runs have grids of their own)
     spans = read_spans(files) if "run" not in schema else None
     lo, hi = (int(span["time"].dt.epoch("us").min()), int(span["time"].dt.epoch("us").max()) + 1)
     step = max(int(chunk_s * US), 1)
-    merged, a = state.merged, lo if state.next_us is None else state.next_us
+    a = lo if state.next_us is None else state.next_us
+    chunks = []
     while a < hi and (until_us is None or min(a + step, hi) <= until_us):
-        b = min(a + step, hi)
-        chunk = _chunk_intervals(lf, cols, acfg, frame, a, b, (files, spans))
+        chunks.append((files, cols, acfg, frame, a, min(a + step, hi), spans))
+        a = chunks[-1][5]
+    merged = state.merged
+    for chunk in fanout(_chunk_task, chunks):
         merged = chunk if merged is None else safety_alerts.merge_intervals([merged, chunk], acfg)
-        a = b
     return TruthIntervals(merged, a, span)
 
 
-def _chunk_intervals(lf: pl.LazyFrame, cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
+def _chunk_task(files: list[Path], cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
+                a: int, b: int, spans: list | None) -> tuple[pl.DataFrame, pl.DataFrame]:
+    """:func:`_chunk_intervals` of one chunk, from the reference's files (a piece of a :data:`Fanout`);
+    with their time ranges (``spans``) it scans only the files that can hold its samples."""
+    lf = pl.scan_parquet(files) if spans is None else None
+    return _chunk_intervals(lf, cols, acfg, frame, a, b, (files, spans))
+
+
+def _chunk_intervals(lf: pl.LazyFrame | None, cols: list[str], acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
                      a: int, b: int, spanned: tuple[list[Path], list | None] | None = None
                      ) -> tuple[pl.DataFrame, pl.DataFrame]:
-    """The truth's intervals in [a, b) µs (module :func:`reference_intervals`). ``spanned``: the
-    reference's files and their time ranges (:func:`~tertiary.evaluation.reference_spans.read_spans`;
-    None: scan every file)."""
+    """The truth's intervals in [a, b) µs (module :func:`reference_intervals`) of the scan ``lf``.
+    ``spanned``: the reference's files and their time ranges
+    (:func:`~tertiary.evaluation.reference_spans.read_spans`; None: scan every file); with
+    ranges, the files that can hold the chunk's samples are scanned instead (``lf`` may be None)."""
     t = pl.col("time")
     if spanned is not None and spanned[1] is not None:
         files, spans = spanned
@@ -137,19 +149,20 @@ def _at(us: int) -> pl.Expr:
 
 
 def reference_intervals(reference: Path, acfg: safety_alerts.AlertConfig, frame: geo.LocalFrame,
-                        chunk_s: float = TRUTH_CHUNK_S, state: TruthIntervals | None = None
-                        ) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
+                        chunk_s: float = TRUTH_CHUNK_S, state: TruthIntervals | None = None,
+                        fanout: Fanout = serial) -> tuple[tuple[pl.DataFrame, pl.DataFrame], pl.DataFrame]:
     """(the truth's (LoS, proximity) intervals, its :func:`time_span`) from a reference on disk
     (:func:`tertiary.evaluation.evaluate.write_reference`), ``chunk_s`` of truth at a time, each
     merged into those before by :func:`safety.alerts.merge_intervals`: the whole truth's. A
     chunk [a, b) reads every sample from the last sample time before a to the first after b,
     and each aircraft's neighbours of those: inside, the union sample grid and so the segment
     pairs are the whole truth's, and each chunk keeps the part of its intervals in [a, b).
-    ``state``: the chunks the windows did (:func:`intervals_step`), finished here."""
+    ``state``: the chunks the windows did (:func:`intervals_step`), finished here; ``fanout``: where
+    the chunks left are computed."""
     state = state or TruthIntervals()
     span = (state.span if state.span is not None
             else time_span(pl.scan_parquet(reference_files(reference)), acfg, frame))
-    done = intervals_step(state, reference, span, acfg, frame, None, chunk_s)
+    done = intervals_step(state, reference, span, acfg, frame, None, chunk_s, fanout)
     return (safety_alerts.merge_intervals([], acfg) if done.merged is None else done.merged), span
 
 

@@ -45,6 +45,7 @@ from tertiary.pipeline.stca_scoring import TruthIntervals, time_span
 from tertiary.pipeline.tables import SCORED_CONFLICTS, SinkThread, facts_table, window_facts
 from tertiary.pipeline.truth_alerts import TruthPictureState, TruthSlice, reference_slice
 from tertiary.pipeline.window_evaluation import Handoff, Overlap, evaluate_step
+from tertiary.runtime.fanout import Fanout
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, Meter, PartStore, ReportSource, Window, check_window,
                                       utc_text, windows)
 from tertiary.sensors.collection import collection_stage
@@ -123,6 +124,9 @@ class RunContext:
     #: the ``truth`` table was handed to the run's sink before the windows (it is written while
     #: they run): finalize does not hand it again
     truth_sunk: bool = False
+    #: where the end's independent pieces run (the truth's intervals and picture by time chunk,
+    #: the bound by block of aircraft: :mod:`tertiary.runtime.fanout`); None: here, in turn
+    fanout: Fanout | None = None
 
 
 @dataclass(frozen=True)

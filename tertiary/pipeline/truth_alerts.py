@@ -26,6 +26,7 @@ from tertiary.core.stage import T_MAX_US
 from tertiary.core.units import US
 from tertiary.evaluation.reference_spans import files_between, read_spans
 from tertiary.evaluation.truth_picture import SPAN_GAP_S, extend_spans, truth_picture
+from tertiary.runtime.fanout import Fanout
 
 __all__ = ["TRUTH_BLOCK_S", "TRUTH_STEP_S", "TRUTH_PICTURE_COLUMNS", "TRUTH_TABLES", "TruthPictureState",
            "truth_conflicts", "truth_picture_step", "truth_picture_finish", "reference_slice", "attributed"]
@@ -128,20 +129,60 @@ def _joined(out: list[pl.DataFrame], ids: list[pl.DataFrame], onsets: list[pl.Da
 
 def truth_conflicts(cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice, spans: pl.DataFrame,
                     epochs: pl.DataFrame, id_col: str, frame: geo.LocalFrame, block_s: float = TRUTH_BLOCK_S,
-                    step_s: float = TRUTH_STEP_S) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+                    step_s: float = TRUTH_STEP_S, parts: tuple[Fanout, list[Path]] | None = None
+                    ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """(conflicts, id map, manoeuvre onsets) of the truth picture at the picture grid
     ``epochs`` (run, epoch) for the observed ``spans``; ``truth_slice(t0_us, t1_us)`` returns the
     truth's :data:`TRUTH_PICTURE_COLUMNS` (those it has) with samples in [t0_us, t1_us], read
     ``block_s`` at a time; the picture is made and predicted ``step_s`` at a time, the
     prediction's state carried, so the rows equal one step's over the whole span. The
     conflicts and id map hold the rows the alert scoring reads
-    (:func:`safety.alerts.scored_conflicts`, :func:`safety.alerts.scored_ids`)."""
+    (:func:`safety.alerts.scored_conflicts`, :func:`safety.alerts.scored_ids`).
+
+    ``parts`` (a fanout and the reference's files, which ``truth_slice`` reads): each block of
+    ``block_s`` is predicted apart (:func:`_predict_part`), the pieces joined in time order."""
     if not epochs.height:
         return pl.DataFrame(), pl.DataFrame(), pl.DataFrame(schema=_ONSETS)
     us = epochs["epoch"].dt.epoch("us")
-    out, ids, onsets, _ = _predict(safety_conflicts.init_conflict_state(), cc, truth_slice, spans, epochs, id_col,
-                                   frame, int(us.min()), int(us.max()) + 1, block_s, step_s)
-    return _joined(out, ids, onsets)
+    lo, hi = int(us.min()), int(us.max()) + 1
+    if parts is None:
+        out, ids, onsets, _ = _predict(safety_conflicts.init_conflict_state(), cc, truth_slice, spans, epochs,
+                                       id_col, frame, lo, hi, block_s, step_s)
+        return _joined(out, ids, onsets)
+    fanout, files = parts
+    block = max(int(block_s * US), 1)
+    pieces = [(cc, files, spans, epochs.filter(us.is_between(_warm_from(epochs, a, cc.confirm_n), min(a + block, hi),
+                                                              closed="left")),
+               id_col, frame, a, min(a + block, hi), block_s, step_s) for a in range(lo, hi, block)]
+    got = list(fanout(_predict_part, pieces))
+    return tuple(pl.concat([g[k] for g in got if g[k].height], how="vertical_relaxed")
+                 if any(g[k].height for g in got) else got[0][k] for k in range(3))
+
+
+def _warm_from(epochs: pl.DataFrame, a: int, n: int) -> int:
+    """The earliest of each run's last ``n`` grid epochs before ``a`` (µs; ``a`` when none): the
+    m-of-n confirmation carries no more than the last n epochs of a run's grid."""
+    us = pl.col("epoch").dt.epoch("us")
+    before = (epochs.filter(us < a).group_by("run").agg(us.sort().tail(n).min().alias("__w"))
+              .select(pl.col("__w").min()).item())
+    return a if before is None else int(before)
+
+
+def _predict_part(cc: safety_conflicts.ConflictConfig, files: list[Path], spans: pl.DataFrame,
+                  epochs: pl.DataFrame, id_col: str, frame: geo.LocalFrame, a: int, b: int, block_s: float,
+                  step_s: float) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """The truth picture's three tables at the grid epochs in [a, b) (a piece of
+    :func:`truth_conflicts`): ``epochs`` also holds the grid epochs before ``a`` that the m-of-n
+    confirmation reads (:func:`_warm_from`), predicted from a fresh state and then dropped, so
+    the rows from ``a`` on are those of the prediction carried from the start."""
+    us = epochs["epoch"].dt.epoch("us")
+    lo = min(int(us.min()), a)
+    out, ids, onsets, _ = _predict(safety_conflicts.init_conflict_state(), cc, reference_slice(files), spans,
+                                   epochs, id_col, frame, lo, b, block_s, step_s)
+    conflicts, idmap, onset = _joined(out, ids, onsets)
+    at = pl.col("epoch").dt.epoch("us") >= a
+    return (conflicts.filter(at) if conflicts.height else conflicts, idmap.filter(at) if idmap.height else idmap,
+            onset.filter(pl.col("t_us") >= a))
 
 
 def _advance(state: TruthPictureState, until_us: int, cc: safety_conflicts.ConflictConfig, truth_slice: TruthSlice,

@@ -24,11 +24,12 @@ from tertiary.core.errors import DataError
 from tertiary.evaluation.accuracy import BY_EPOCH_SCHEMA
 from tertiary.evaluation.bound import bound_setup, bound_stage, scan_origins
 from tertiary.evaluation.bound_pooling import pool_rows
+from tertiary.evaluation.bound_fanout import bound_stage_apart
 from tertiary.evaluation.bound_streamed import BoundSetup, PartFiles, bound_finish
 from tertiary.evaluation.streamed import SCORED
 from tertiary.evaluation.requirements import Requirements
 from tertiary.evaluation.association import AssociationScore, association_metrics, association_score
-from tertiary.evaluation.evaluate import Evaluation, Matched, read_reference, write_reference
+from tertiary.evaluation.evaluate import Evaluation, Matched, read_reference, reference_files, write_reference
 from tertiary.evaluation.indicators import indicators
 from tertiary.evaluation.truth_picture import first_observed, observed_spans
 from tertiary.io.dataset import Dataset
@@ -48,6 +49,7 @@ from tertiary.pipeline.tables import (ALIGNED_COLUMNS, ASSOCIATION_COLUMNS, BOUN
                                       SCORED_CONFLICTS, DeferredTable, OnDiskTable, Sink, SinkThread,
                                       confirmed_targets, for_sink, part_rows, read_table, table_columns, target_counts,
                                       whole_table)
+from tertiary.runtime.fanout import Fanout
 from tertiary.runtime.windows import concat_parts, read_part_groups, release_memory
 from tertiary.sensors.radar_health import radar_health
 from tertiary.stages import align as align_stage
@@ -292,7 +294,7 @@ def _finalize_tables(ds: Dataset, cfg: PipelineConfig, ctx: RunContext, st: Stre
                     getattr(st, "scores", None), curves, keys, matched,
                     (done, ctx.reference.path) if done is not None and ctx.reference is not None else None,
                     bound, _windows_truth_picture(st, parts), getattr(ctx, "requirements", None))
-    return evaluate_run(ds, cfg, ing, run, clock, sink)
+    return evaluate_run(ds, cfg, ing, run, clock, sink, getattr(ctx, "fanout", None))
 
 
 def _windows_bound(ctx: RunContext, st: StreamState, parts: Any
@@ -336,11 +338,13 @@ def _windows_truth_picture(st: StreamState, parts: Any
 
 
 def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame", ing: Ingested,
-                scored: pl.DataFrame, metrics: pl.DataFrame) -> pl.DataFrame:
+                scored: pl.DataFrame, metrics: pl.DataFrame, apart: tuple[Fanout, Path] | None = None
+                ) -> pl.DataFrame:
     """The bound's metrics rows: from the sums the windows carried (the aircraft still flying at
     the end finished on the thread :func:`_windows_bound` started; ``scored`` not read), else over the whole recording from ``scored``; the
     radars' scan origins from the input reports either way
-    (:func:`tertiary.evaluation.bound.scan_origins`)."""
+    (:func:`tertiary.evaluation.bound.scan_origins`). ``apart`` (a fanout and the reference on
+    disk): the whole recording's blocks of aircraft are its pieces."""
     if run.bound is not None:
         setup, finished, stored = run.bound
         names = truth.collect_schema().names() if isinstance(truth, pl.LazyFrame) else truth.columns
@@ -353,16 +357,20 @@ def _bound_rows(ds: Dataset, run: RunTables, truth: "pl.DataFrame | pl.LazyFrame
     t0 = truth.lazy().select(pl.col("time").cast(contract.TIME).dt.epoch("us").min()).collect().item()
     reports = ds.reports if isinstance(ds.reports, (pl.DataFrame, pl.LazyFrame)) else ing.reports
     origins = scan_origins(ing.radars, reports, int(t0)) if t0 is not None else {}
+    if apart is not None:
+        return bound_stage_apart(ds, apart[0], reference_files(apart[1]), BOUND_TRUTH, ing.radars, ing.reports,
+                                 scored, metrics, ing.notes, origins)
     return bound_stage(ds, truth, ing.radars, ing.reports, scored, metrics, ing.notes, origins)
 
 
 def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables, clock: StageClock,
-                 sink: Sink) -> Results:
+                 sink: Sink, fanout: Fanout | None = None) -> Results:
     """The whole-run stages after the tables are sunk. The deferred tables and ``observed`` are
     read back after the evaluation's peak. With a ``scratch`` directory the evaluation reads the
     truth from reference files there, and the truth is not held through it (``on_disk``: it is
     already there). The stages after the evaluation then read the truth's columns they use from
-    the reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run)."""
+    the reference, and ``ing.truth`` keeps no row (the whole truth when the indicators run).
+    ``fanout``: where the pieces of the stages that split into independent ones run."""
     aligned, associations, stats, fused, clusters, tracks, conflicts = (
         run.aligned, run.associations, run.stats, run.fused, run.clusters, run.tracks, run.conflicts)
     observed, reports, scratch, on_disk, scores = run.observed, run.reports, run.scratch, run.on_disk, run.scores
@@ -410,7 +418,7 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         if ids is None:
             # which aircraft each picture row represents: the one matcher's answer
             ids = (ev_tracks if safety_names(cfg, fused, tracks)[1] == "track_id" else ev_fused).id_map
-        got = score_safety(ds, cfg, run, ids, truth, spans, grid, clock.stage)
+        got = score_safety(ds, cfg, run, ids, truth, spans, grid, clock.stage, fanout)
         ing.notes.extend(got.notes)
         alerts, safety_metrics = got.alerts, got.metrics
         sink("alerts", alerts)
@@ -447,7 +455,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         scored = pl.concat(samples, how="vertical_relaxed") if samples else pl.DataFrame()
         # the posterior Cramér–Rao bound beside every picture's accuracy (tertiary.evaluation.bound)
         # read by blocks of aircraft from the reference, never whole (memory)
-        extra = [_bound_rows(ds, run, truth.scan(BOUND_TRUTH), ing, scored, metrics)]
+        apart = (fanout, truth_file) if fanout is not None and truth_file is not None else None
+        extra = [_bound_rows(ds, run, truth.scan(BOUND_TRUTH), ing, scored, metrics, apart)]
         if cfg.safety:
             extra.append(safety_metrics)
         metrics = pl.concat([metrics, *extra], how="vertical_relaxed")

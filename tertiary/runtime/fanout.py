@@ -1,0 +1,39 @@
+"""Where a whole-run stage's independent pieces run: one after another in this process (a local
+run), or as tasks of a Dask cluster (the finalize of a distributed run, whose workers would
+otherwise wait while the client computes alone).
+
+A :data:`Fanout` takes a function and one argument tuple per piece and yields the pieces'
+results in the order of the tuples, so a stage that merges them in that order gets the same
+result whichever runs them. The pieces' functions and arguments must be picklable (top-level
+functions, paths rather than open scans) for a cluster to run them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, TypeVar
+
+__all__ = ["Fanout", "serial", "dask_fanout"]
+
+T = TypeVar("T")
+
+#: ``fanout(fn, [args, …])`` → ``fn(*args)`` of each tuple, in order
+Fanout = Callable[[Callable[..., T], Sequence[tuple]], Iterable[T]]
+
+
+def serial(fn: Callable[..., T], args: Sequence[tuple]) -> Iterator[T]:
+    """Each piece in turn, in this process, computed as it is read (a stage that merges as it
+    goes holds one piece at a time)."""
+    return (fn(*a) for a in args)
+
+
+def dask_fanout(client: Any) -> Fanout:
+    """Each piece a task of ``client``'s cluster; the results gathered in order. Arguments are
+    shipped with their task (not hashed: ``pure=False``)."""
+    def run(fn: Callable[..., T], args: Sequence[tuple]) -> list[T]:
+        args = list(args)
+        if not args:
+            return []
+        futures = client.map(fn, *(list(col) for col in zip(*args)), pure=False)
+        return client.gather(futures)
+    return run
