@@ -79,6 +79,10 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
             # what the partition phase cost beyond the tasks' own work spread over the workers
             "partitions_phase_overhead_s": tm["partitions_s"] - sum(tasks) / workers,
             "stitch_s": tm["stitch_s"], "relabel_s": tm["relabel_s"], "finalize_s": tm["finalize_s"],
+            # the finalize's pieces run on the workers: the client's wait for them, their work
+            "finalize_fanout_wall_s": tm.get("fanout_wall_s", 0.0),
+            "finalize_fanout_task_s_sum": tm.get("fanout_task_s_sum", 0.0),
+            "finalize_fanout_task_s_max": tm.get("fanout_task_s_max", 0.0),
             "plan_s": tm["plan_s"], "finalize_stages_s": _finalize_stages(res.db), "stitching": res.stitching.to_dicts(),
             "db": str(res.db)}
 
@@ -97,15 +101,18 @@ def _finalize_stages(db: Path) -> dict[str, float]:
 
 
 def _estimate(run: dict, n_slices_day: int, workers: int, task_s: float, stitch_per_boundary_s: float,
-              finalize_s: float) -> dict:
+              finalize_s: float, fanout_s: float = 0.0, fanout_max_s: float = 0.0) -> dict:
     """Wall time of ``n_slices_day`` slices on ``workers`` workers: waves of tasks, the scheduler's
-    round trip per task, the client's sequential stitching and the finalize stage."""
+    round trip per task, the client's sequential stitching, the finalize stage on the client
+    (``finalize_s``) and its pieces on the workers (``fanout_s`` of work spread over them, no
+    less than the longest piece)."""
     waves = math.ceil(n_slices_day / workers)
     part = waves * task_s + n_slices_day * run["scheduler_roundtrip_s"]
     relabel = waves * run["relabel_s"] / max(1, math.ceil(len(run["partition_task_s"]) / run["workers"]))
-    total = part + relabel + stitch_per_boundary_s * (n_slices_day - 1) + finalize_s
+    fan = max(fanout_s / workers, fanout_max_s) if fanout_s else 0.0
+    total = part + relabel + stitch_per_boundary_s * (n_slices_day - 1) + finalize_s + fan
     return {"workers": workers, "partitions_phase_s": part, "stitch_s": stitch_per_boundary_s * (n_slices_day - 1),
-            "relabel_s": relabel, "finalize_s": finalize_s, "total_s": total}
+            "relabel_s": relabel, "finalize_client_s": finalize_s, "finalize_pieces_s": fan, "total_s": total}
 
 
 def main() -> None:
@@ -159,8 +166,11 @@ def main() -> None:
     if a.day_reports:                                   # a day's mean rate (the national day's curve)
         rate = a.day_reports / day_s
     task_day = s_per_row * rate * (a.slice + a.overlap)
-    fin_day = r2["finalize_s"] / n_reports * rate * day_s
-    est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day) for w in (8, 32, 128)]
+    per_day = rate * day_s / n_reports
+    fin_day = (r2["finalize_s"] - r2["finalize_fanout_wall_s"]) * per_day
+    fan_day = r2["finalize_fanout_task_s_sum"] * per_day
+    est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day, fan_day,
+                     r2["finalize_fanout_task_s_max"]) for w in (8, 32, 128)]
     result = {
         "window_s": window_s, "config": {"name": a.config, "methods": list(run_cfg.methods),
                                          "filters": list(run_cfg.filters), "centralized": run_cfg.centralized,
@@ -176,7 +186,9 @@ def main() -> None:
                                   "slices of slice_s with overlap_s warm-up; "
                                   "task time = measured s per input report x slice input; waves of tasks over the "
                                   "workers + scheduler round trip per task + client stitching per boundary "
-                                  "(sequential) + finalize on the client (measured s per report)",
+                                  "(sequential) + finalize on the client (measured s per report, its pieces "
+                                  "on the workers taken out) + the finalize's pieces (measured task s per report "
+                                  "over the workers, no less than the longest measured piece)",
                          "slices": n_day, "task_s_per_slice": task_day, "estimates": est},
     }
     a.out.write_text(json.dumps(result, indent=1, default=str))

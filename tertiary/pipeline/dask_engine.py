@@ -650,9 +650,10 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
     ds = read_dataset(dataset_dir, lazy=True)
     radars = next((i["radars"] for i in infos if "radars" in i), None)
     span = pipeline.ingestion.plausible_span(ds.reports, cfg.limits)     # the truth's window, as a local run's
+    fanout = dask_fanout(c)
     ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
                               curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span,
-                              fanout=dask_fanout(c))
+                              fanout=fanout)
     counts: dict[str, int] = {}
     for i in infos:
         for k, v in i["counts"].items():
@@ -677,6 +678,10 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
         except Exception as exc:  # recorded, then re-raised
             failure = exc
         timings["finalize_s"] = time.perf_counter() - t
+        # the finalize's pieces on the workers: the client waited for them (wall) while they worked
+        timings["fanout_wall_s"] = sum(r["wall_s"] for r in fanout.record)
+        timings["fanout_task_s_sum"] = sum(sum(r["task_s"]) for r in fanout.record)
+        timings["fanout_task_s_max"] = max((max(r["task_s"]) for r in fanout.record), default=0.0)
         shutil.rmtree(out / SLICES / SCRATCH, ignore_errors=True)
         store.write("partitions", table)
         if stitching.height:
@@ -686,7 +691,9 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
                 "config": pipeline.config_dict(cfg), "created_utc": datetime.now(timezone.utc).isoformat(
                     timespec="seconds"), "versions": pipeline.versions(), "window_s": window_s,
                 "engine": "dask", "slice_s": slice_s, "overlap_s": overlap_s, "partitions": len(parts),
-                "notes": notes, "timings": {**(res.timings if res else {}), **timings}}
+                "notes": notes, "timings": {**(res.timings if res else {}), **timings},
+                "fanout": [{**r, "wall_s": round(r["wall_s"], 3), "task_s": [round(x, 3) for x in r["task_s"]]}
+                           for r in fanout.record]}
         if res is not None:
             # the client's memory by stage; each worker's is in the partitions table
             info.update(rows=res.counts, memory_mib=res.memory_mib, status="completed")
