@@ -261,6 +261,42 @@ def test_steps_over_any_split_of_the_epochs_equal_the_whole_picture(seed):
         assert_frame_equal(pl.concat([state.closed, state.open]).select(key).sort(key), segments.sort(key))
 
 
+@pytest.mark.parametrize("seed", range(1, 7))
+def test_stretches_stepped_apart_and_joined_equal_the_whole_picture(seed):
+    """A distributed run's end steps each stretch of a picture's epochs apart (each a block or
+    several, from :func:`started`) and joins them in time order (:func:`then`): the metrics and
+    the segments are those of one state carried through, whatever the cuts. Fails if a segment
+    open at a cut is not continued (a track number change counted at every cut), or a segment
+    starting at a cut does not reach back to its truth's epoch before it."""
+    from polars.testing import assert_frame_equal
+
+    from tertiary.evaluation import multitarget as mt
+    pic, true = _scene(seed)
+    at = reference_at_epochs(pic.select("run", "epoch"), true)
+    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
+    whole = dict(multitarget_metrics(pic, at, "pic", cfg).select("metric", "value").iter_rows())
+    sc = mt._scene(pic, at, cfg)
+    segments = mt._with_reach(mt._segments(mt._associations(sc)), sc.truth).cast({"track_id": pl.UInt64})
+    epochs = pic["epoch"].unique().sort()
+    rng = np.random.default_rng(seed)
+    for _ in range(6):
+        cuts = sorted(rng.choice(np.arange(1, len(epochs)), size=int(rng.integers(1, 9)), replace=False).tolist())
+        joined = None
+        for a, b in zip([0, *cuts], [*cuts, len(epochs)]):
+            inside = pl.col("epoch").is_between(epochs[a], epochs[b - 1])
+            # a stretch of one or two blocks, stepped alone
+            mid = epochs[(a + b) // 2] if b - a > 1 else None
+            state = mt.started()
+            for part in ([inside] if mid is None else [inside & (pl.col("epoch") < mid),
+                                                       inside & (pl.col("epoch") >= mid)]):
+                state = mt.multitarget_step(state, pic.filter(part), at.filter(part), cfg)
+            joined = state if joined is None else mt.then(joined, state)
+        got = dict(mt.multitarget_result(joined, "pic").select("metric", "value").iter_rows())
+        assert got == pytest.approx(whole, rel=1e-9, abs=1e-9), cuts
+        key = ["run", "truth_id", "track_id", "start", "end", "reach"]
+        assert_frame_equal(pl.concat([joined.closed, joined.open]).select(key).sort(key), segments.sort(key))
+
+
 @pytest.mark.parametrize("seed", range(1, 4))
 def test_pictures_stepped_together_equal_each_stepped_alone(seed):
     """:func:`multitarget_steps` (every picture of a window in one call, each keyed apart) leaves

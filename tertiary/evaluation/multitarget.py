@@ -50,7 +50,7 @@ from tertiary.contract import TABLES, TIME
 
 __all__ = ["METRICS", "MultiTargetConfig", "MultiTargetState", "merge_runs", "multitarget_by_epoch",
            "multitarget_metrics", "multitarget_steps",
-           "multitarget_result", "multitarget_step", "siap_continuity"]
+           "multitarget_result", "multitarget_step", "siap_continuity", "started", "then"]
 
 #: the metrics :func:`multitarget_metrics` writes (stage ``evaluation``, segment ``all``)
 METRICS = ("ospa_m", "gospa_m", "gospa_localisation", "gospa_missed", "gospa_false", "siap_completeness",
@@ -386,6 +386,10 @@ class MultiTargetState:
     life: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_LIFE))
     closed: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
     open: pl.DataFrame = field(default_factory=lambda: pl.DataFrame(schema=_SEGMENT))
+    #: each track's first state stepped in (run, track_id, its SIAP truth ``head``, ``head_epoch``),
+    #: kept by a state that starts a later stretch of the picture (:func:`started`) for
+    #: :func:`then`; None: not kept
+    heads: pl.DataFrame | None = None
 
 
 def merge_runs(states: Sequence[MultiTargetState]) -> MultiTargetState:
@@ -415,9 +419,60 @@ def multitarget_step(state: MultiTargetState, tracks: pl.DataFrame, truth: pl.Da
         return state
     sc = _scene(tracks, truth, cfg)
     ep = _by_epoch(sc, cfg)
-    life, closed, still = _carried(state, sc)
+    life, closed, still, firsts = _carried(state, sc)
+    heads = state.heads
+    if heads is not None:
+        new = firsts.select("run", "track_id", "head", "head_epoch").join(heads, on=["run", "track_id"], how="anti")
+        heads = pl.concat([heads, new.cast(_HEAD)])
     return MultiTargetState(sums=state.sums + _sums(ep), runs=pl.concat([state.runs, ep["run"].unique()]).unique(),
-                            life=life, closed=closed, open=still)
+                            life=life, closed=closed, open=still, heads=heads)
+
+
+_HEAD = {"run": pl.UInt32, "track_id": pl.UInt64, "head": pl.Int64, "head_epoch": TIME}
+
+
+def started() -> MultiTargetState:
+    """The state from which a later stretch of a picture is stepped apart (it keeps each track's
+    first state), to be joined to the stretch before it by :func:`then`."""
+    return MultiTargetState(heads=pl.DataFrame(schema=_HEAD))
+
+
+def then(before: MultiTargetState, after: MultiTargetState) -> MultiTargetState:
+    """The state of a picture stepped through ``before``'s blocks and then ``after``'s, from
+    ``after`` stepped alone from :func:`started`: what one state carried through both gives. The
+    epoch sums add; a segment of ``after`` whose reach is unknown reaches back to its truth's
+    last epoch in ``before``; a segment ``before`` left open goes on where its track's first
+    state in ``after`` shows its truth (the segment starting there takes its start and reach),
+    ends where it shows another or none, and stays open where the track is not in ``after``."""
+    if after.heads is None:
+        raise ValueError("then: the later state must be stepped from started()")
+    key = ["run", "truth_id"]
+    life = pl.concat([before.life, after.life]).group_by(key).agg(pl.col("first").min(), pl.col("last").max())
+    last = before.life.select(*key, pl.col("last").alias("__before"))
+
+    def reached(seg: pl.DataFrame) -> pl.DataFrame:
+        return (seg.join(last, on=key, how="left", maintain_order="left")
+                .with_columns(pl.coalesce("reach", "__before").alias("reach")).drop("__before"))
+    opened = before.open.join(after.heads, on=["run", "track_id"], how="left")
+    goes_on = (pl.col("head") == pl.col("truth_id")).fill_null(False)
+    carried = opened.filter(goes_on).select("run", "track_id", "truth_id", pl.col("start").alias("start_old"),
+                                             pl.col("reach").alias("reach_old"), "head_epoch")
+    ended = opened.filter(~goes_on & pl.col("head_epoch").is_not_null()).select(list(_SEGMENT))
+    still = opened.filter(pl.col("head_epoch").is_null()).select(list(_SEGMENT))
+
+    def continued(seg: pl.DataFrame) -> pl.DataFrame:
+        j = reached(seg).join(carried, left_on=["run", "track_id", "truth_id", "start"],
+                              right_on=["run", "track_id", "truth_id", "head_epoch"], how="left",
+                              maintain_order="left")
+        merged = pl.col("start_old").is_not_null()
+        return j.with_columns(pl.when(merged).then("start_old").otherwise("start").alias("start"),
+                              pl.when(merged).then("reach_old").otherwise("reach").alias("reach")
+                              ).select(list(_SEGMENT))
+    return MultiTargetState(sums=before.sums + after.sums, runs=pl.concat([before.runs, after.runs]).unique(),
+                            life=life, closed=pl.concat([before.closed, ended, continued(after.closed)]),
+                            open=pl.concat([still, continued(after.open)]),
+                            heads=None if before.heads is None else pl.concat(
+                                [before.heads, after.heads.join(before.heads, on=["run", "track_id"], how="anti")]))
 
 
 #: the bits of a run number in the joint key of several pictures (:func:`multitarget_steps`)
@@ -447,7 +502,7 @@ def multitarget_steps(states: Mapping[str, MultiTargetState], blocks: Sequence[t
     joint = MultiTargetState(life=keyed([b.life for b in before]), open=keyed([b.open for b in before]))
     sc = _scene(keyed([b[1] for b in blocks]), keyed([b[2] for b in blocks]), cfg)
     ep = _by_epoch(sc, cfg)
-    life, closed, still = _carried(joint, sc)
+    life, closed, still, _ = _carried(joint, sc)
     # each picture's rows, its own run numbers back: one pass per frame, not one per picture
     split = [_by_picture(f) for f in (ep, life, closed, still)]
     for k, ((name, _, _), prev) in enumerate(zip(blocks, before)):
@@ -466,8 +521,10 @@ def _by_picture(frame: pl.DataFrame) -> dict[int, pl.DataFrame]:
     return {int(k[0]): v for k, v in parts.items()}
 
 
-def _carried(state: MultiTargetState, sc: _Scene) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
-    """(lifetimes, closed segments, open segments) of ``state`` after the block of ``sc``."""
+def _carried(state: MultiTargetState, sc: _Scene
+             ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+    """(lifetimes, closed segments, open segments) of ``state`` after the block of ``sc``, and
+    each track's first state in the block (run, track_id, head, head_epoch, __last)."""
     key = ["run", "truth_id"]
     assoc = _associations(sc).with_columns(pl.col("track_id").cast(pl.UInt64))
     seg = _with_reach(_segments(assoc), sc.truth).join(
@@ -494,7 +551,7 @@ def _carried(state: MultiTargetState, sc: _Scene) -> tuple[pl.DataFrame, pl.Data
     life = pl.concat([state.life, _lifetimes(sc.truth).select(list(_LIFE))]).group_by(key).agg(
         pl.col("first").min(), pl.col("last").max())
     return (life, pl.concat([state.closed, ended, seg.filter(~is_open).select(list(_SEGMENT))]),
-            pl.concat([still, seg.filter(is_open).select(list(_SEGMENT))]))
+            pl.concat([still, seg.filter(is_open).select(list(_SEGMENT))]), firsts)
 
 
 def multitarget_result(state: MultiTargetState, method: str) -> pl.DataFrame:
