@@ -243,10 +243,10 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     local = pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW)
     want = _tables(local)
     assert got["partitions"].height == 3 and res.stitching.height == 2
-    # the truth's intervals and picture, computed by time chunk on the workers (the run record
-    # names the pieces): the truth picture's alerts are the local run's
+    # the truth's intervals and picture by time chunk and the pictures by stretch, on the
+    # workers (the run record names the pieces): the truth picture's alerts are the local run's
     fanned = {r["piece"]: r["pieces"] for r in json.loads(dict(got["run"].iter_rows())["fanout"])}
-    assert fanned.keys() >= {"_chunk_task", "_predict_part"} and min(fanned.values()) >= 1, fanned
+    assert fanned.keys() >= {"_chunk_task", "_predict_part", "_match_piece"} and min(fanned.values()) >= 1, fanned
     truth_alerts = [_alerts(db).filter(pl.col("method") == "truth") for db in (res.db, local)]
     assert truth_alerts[1].height
     assert_frame_equal(*truth_alerts)

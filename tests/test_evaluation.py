@@ -24,6 +24,8 @@ from tertiary.evaluation.requirements import example_path, load_requirements
 from tertiary.io.dataset import write_dataset
 from tertiary.simulate import load_scenario, simulate
 
+from apart import Apart
+
 runner = CliRunner()
 
 
@@ -372,6 +374,44 @@ def test_a_picture_spilled_to_disk_and_scored_in_buckets_has_the_same_metrics(sm
         assert not list((tmp_path / "spill").glob("*/*"))
     assert calls == [-(-picture.height // 150), -(-picture.height // 400), 1] and calls[0] > 3
     assert not left
+
+
+def _as_is(frame: pl.DataFrame) -> pl.DataFrame:
+    return frame
+
+
+def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(small, tmp_path, monkeypatch):
+    """A distributed run's end matches a picture on disk a stretch of its windows at a time,
+    each stretch a piece of its cluster (arguments shipped, pieces in any order), and joins
+    their OSPA, GOSPA and SIAP states: every output equals the picture matched in blocks here.
+    Fails if a stretch's rows are lost, or if the stretches' multi-target states are not joined."""
+    from tertiary.evaluation import matched_apart
+    from tertiary.evaluation.evaluate import write_reference
+    root, ds, files = small
+    picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
+    ref = write_reference(ds.truth, tmp_path / "ref.parquet")
+    kw = dict(radars=ds.radars, frame=ds.origin, requirements=load_requirements(example_path()),
+              keep_matched=False, bucket_rows=400)
+    edges = picture["epoch"].unique().sort().gather_every(11)
+    cut = picture.join(pl.DataFrame({"epoch": edges, "__b": range(len(edges))}), on="epoch", how="left").sort("epoch")
+    parts = [p.drop("__b") for p in cut.with_columns(pl.col("__b").forward_fill().fill_null(0))
+             .partition_by("__b", maintain_order=True)]
+    windows = []
+    for k, part in enumerate(parts):
+        windows.append(tmp_path / "windows" / f"w={k:06d}.parquet")
+        windows[-1].parent.mkdir(exist_ok=True)
+        part.write_parquet(windows[-1])
+    want = evaluate_each([iter(parts)], ref, spill=tmp_path / "one", **kw)
+    monkeypatch.setattr(matched_apart, "PIECE_WINDOWS", 3)
+    fanout = Apart()
+    got = evaluate_each([matched_apart.PictureFiles("system", windows, picture.columns, _as_is, 300, fanout)], ref,
+                        spill=tmp_path / "apart", **kw)
+    assert fanout.pieces == {"_match_piece": -(-len(parts) // 3)} and len(parts) > 6
+    assert want.metrics.filter(pl.col("metric") == "siap_track_changes_per_hour").height
+    for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.columns == b.columns, name
+        assert_frame_equal(_sorted(a), _sorted(b), check_dtypes=False, rel_tol=1e-9, abs_tol=1e-9)
 
 
 def test_association_labels_joined_in_blocks_equal_the_whole_join(monkeypatch):

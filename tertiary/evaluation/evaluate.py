@@ -479,7 +479,9 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
     rows (default :data:`EVAL_BUCKET_ROWS`) of aircraft or tracks
     (:func:`~tertiary.evaluation.accuracy_buckets.picture_accuracy_buckets`,
     :func:`~tertiary.evaluation.picture_buckets.picture_metrics_buckets`): the same metrics, with the
-    stage's memory bounded by a bucket, not by the recording."""
+    stage's memory bounded by a bucket, not by the recording. A picture with a ``match_apart``
+    method (:class:`~tertiary.evaluation.matched_apart.PictureFiles`, spilled, the truth a file)
+    is matched a stretch of its windows at a time, each a piece of its fanout."""
     breakdown = [b for b in cfg.breakdown if b != "range" or (radars is not None and frame is not None)]
     radar_xy = radar_sites(radars, frame)
     parts: dict[str, list[pl.DataFrame]] = {k: [] for k in ("matched", "metrics", "by_epoch", "samples", "id_map")}
@@ -500,6 +502,12 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
                 got = (picture.matched, picture.expected, picture.multitarget if surveillance else None)
             else:
                 got = _held_if_small(picture, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows, surveillance)
+        elif callable(getattr(picture, "match_apart", None)):
+            # a picture on disk whose stretches are matched apart (a distributed run's slices)
+            got = (picture.match_apart(reference.path, cfg, id_col, where, surveillance)
+                   if where is not None and reference.path is not None else
+                   _match_blocks(picture.blocks(), reference, cfg, id_col, slim=not keep_matched, spill=where,
+                                 multitarget=surveillance))
         else:
             got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
                                 slim=not keep_matched, spill=where, multitarget=surveillance)

@@ -22,6 +22,7 @@ from tertiary.evaluation.association import AssociationScore, score_associations
 from tertiary.evaluation.consistency import Lags
 from tertiary.evaluation.evaluate import Evaluation, Matched, evaluate_each, scan_spilled
 from tertiary.evaluation.lags_streamed import SERIES_KEYS, LagState
+from tertiary.evaluation.matched_apart import PictureFiles
 from tertiary.evaluation.multitarget import multitarget_results
 from tertiary.evaluation.picture_metrics import MetricsConfig
 from tertiary.evaluation.picture_streamed import picture_metrics_finish
@@ -30,8 +31,10 @@ from tertiary.evaluation.requirements import Requirements, example_path, load_re
 from tertiary.io.dataset import Dataset
 from tertiary.pipeline.config import PipelineConfig
 from tertiary.pipeline.ingestion import Ingested
-from tertiary.pipeline.pictures import NOT_SCORED, fused_readers, safety_names, track_readers
-from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, OnDiskTable
+from tertiary.pipeline.pictures import (NOT_SCORED, as_picture, confirmed_only, fused_readers, safety_names,
+                                       track_readers)
+from tertiary.pipeline.tables import ASSOCIATION_COLUMNS, EVAL_BLOCK_ROWS, OnDiskTable
+from tertiary.runtime.fanout import Fanout
 from tertiary.runtime.windows import read_part_groups, release_memory
 from tertiary.stages.association.associate import AssociationStats
 
@@ -372,7 +375,8 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
                    observed: pl.DataFrame, reference: "pl.DataFrame | Path", ing: Ingested, ds: Dataset,
                    spill: Path | None = None, alert_keys: pl.DataFrame | None = None,
                    matched: Callable[[str], Matched | None] | None = None,
-                   requirements: Requirements | None = None, id_maps: bool = True) -> tuple[Evaluation, Evaluation]:
+                   requirements: Requirements | None = None, id_maps: bool = True,
+                   fanout: Fanout | None = None) -> tuple[Evaluation, Evaluation]:
     """Every picture scored by the one evaluation stage against the truth: each fusion method's
     confirmed targets and the centralised reference (seed stage "fusion", id ``target_id``),
     each tracker picture "<fusion>+<filter>" (seed stage "tracker"). Continuity expects every
@@ -382,7 +386,9 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
     buckets (:func:`tertiary.evaluation.evaluate.evaluate_each`). ``alert_keys``: the ids of
     every alert the safety picture's scoring will read (:func:`safety.alerts.alert_ids`): its id
     map keeps only their rows and a row per epoch (:func:`safety.alerts.id_rows`). ``id_maps``
-    False: no picture's id map (the alerts are scored from the windows' own, :meth:`WindowedPictures.id_map`)."""
+    False: no picture's id map (the alerts are scored from the windows' own, :meth:`WindowedPictures.id_map`).
+    ``fanout``: where the stretches of a picture on disk that no window matched are matched
+    (:class:`~tertiary.evaluation.matched_apart.PictureFiles`)."""
     reqs = (requirements if requirements is not None else run_requirements(cfg)) if cfg.evaluation else None
     kw = dict(radars=ing.radars, frame=ds.origin, requirements=reqs, cfg=cfg.scoring, observed=observed,
               keep_matched=False, surveillance=cfg.evaluation, spill=spill)
@@ -398,6 +404,11 @@ def score_pictures(cfg: PipelineConfig, fused: "pl.DataFrame | OnDiskTable", tra
         # matched as the windows made them: the pictures are only reduced to metrics here
         fused_pictures = [functools.partial(matched, key[0]) for key in fused.shown]
         track_pictures = [functools.partial(matched, f"{m}+{f}") for m, f in tracks.pictures]
+    elif fanout is not None and isinstance(fused, OnDiskTable) and isinstance(tracks, OnDiskTable):
+        def files(table: OnDiskTable, key: tuple, name: str, shape: Callable) -> PictureFiles:
+            return PictureFiles(name, *table.picture_files(key, NOT_SCORED), shape, EVAL_BLOCK_ROWS, fanout)
+        fused_pictures = [functools.partial(files, fused, key, key[0], confirmed_only) for key in fused.shown]
+        track_pictures = [functools.partial(files, tracks, (m, f), f"{m}+{f}", as_picture) for m, f in tracks.pictures]
     else:
         fused_pictures = list(fused_readers(fused, NOT_SCORED, blocks=True))
         track_pictures = list(track_readers(tracks, NOT_SCORED, blocks=True))

@@ -179,6 +179,11 @@ class OnDiskTable:
         if held:
             yield concat_parts(held)
 
+    def picture_files(self, key: tuple, skip: Collection[str] = ()) -> tuple[list[Path], list[str]]:
+        """A picture's window files in window order, and the columns to read (all but ``skip``):
+        what a reader elsewhere (a cluster's worker) needs to read it as :meth:`blocks` does."""
+        return self._files(key, skip)
+
     def _files(self, key: tuple, skip: Collection[str]) -> tuple[list[Path], list[str]]:
         """A picture's window files in window order, and the columns read (all but ``skip``)."""
         k = self.index.get(tuple(key))

@@ -405,7 +405,8 @@ def evaluate_run(ds: Dataset, cfg: PipelineConfig, ing: Ingested, run: RunTables
         ids = _windowed_id_map(cfg, run) if safety else None
         ev_fused, ev_tracks = score_pictures(cfg, fused, tracks, observed, reference, ing, ds,
                                              None if scratch is None else scratch / "evaluation", run.alert_keys,
-                                             run.matched, run.requirements, id_maps=ids is None)
+                                             run.matched, run.requirements, id_maps=ids is None,
+                                             fanout=fanout)
         del observed
         if scratch is not None:
             release_memory()

@@ -1,0 +1,101 @@
+"""A picture on disk matched to the truth a stretch of windows at a time, each stretch a piece
+of a fanout (:mod:`tertiary.runtime.fanout`): the evaluation of a distributed run's time
+slices, which the client would otherwise match alone.
+
+The matcher is per epoch and the row scores per row, so each stretch's rows are those of the
+picture matched at once; each stretch spills them to files named in time order. The OSPA,
+GOSPA and SIAP state of each stretch is stepped from
+:func:`~tertiary.evaluation.multitarget.started` and joined to the stretches before it
+(:func:`~tertiary.evaluation.multitarget.then`): one state carried through the picture.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import polars as pl
+
+from tertiary.evaluation.evaluate import Reference, match_block, scan_spilled
+from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, started, then
+from tertiary.runtime.fanout import Fanout
+from tertiary.runtime.windows import concat_parts
+
+__all__ = ["PIECE_WINDOWS", "PictureFiles"]
+
+#: window files per piece (a quarter of an hour of the default minute windows)
+PIECE_WINDOWS = 15
+
+
+@dataclass(frozen=True)
+class PictureFiles:
+    """A picture on disk: its window files in window order, the columns read, what is made of
+    each block read (``shape``: e.g. its confirmed targets, or its tracker picture's name), its
+    name, the rows per block and where its stretches are matched."""
+
+    name: str
+    files: Sequence[Path]
+    columns: Sequence[str]
+    shape: Callable[[pl.DataFrame], pl.DataFrame]
+    block_rows: int
+    fanout: Fanout
+
+    def match_apart(self, reference: Path, cfg, id_col: str, spill: Path, multitarget: bool
+                    ) -> tuple[pl.LazyFrame, pl.LazyFrame, pl.DataFrame | None] | None:
+        """(matched rows with their row scores, the reference at the picture's epochs — both as
+        scans of the spilled files —, its OSPA, GOSPA and SIAP rows when ``multitarget``) of the
+        picture against the reference file ``reference``, or None when it has no row: the
+        result of :func:`~tertiary.evaluation.evaluate._match_blocks` with ``spill``."""
+        files = list(self.files)
+        pieces = [(files[k:k + PIECE_WINDOWS], list(self.columns), self.shape, self.block_rows, reference, cfg,
+                   id_col, spill, k // PIECE_WINDOWS, multitarget) for k in range(0, len(files), PIECE_WINDOWS)]
+        state, rows = None, 0
+        for mt, n in self.fanout(_match_piece, pieces):
+            rows += n
+            if mt is not None and n:
+                state = mt if state is None else then(state, mt)
+        if not rows:
+            return None
+        mt_rows = multitarget_result(state or MultiTargetState(), self.name) if multitarget else None
+        return (*(scan_spilled(sorted((spill / k).glob("*.parquet"))) for k in ("matched", "expected")), mt_rows)
+
+    def blocks(self) -> Iterator[pl.DataFrame]:
+        """The picture's blocks read here, in time order (its stretches matched in this process)."""
+        for _, block in _blocks(list(self.files), list(self.columns), self.shape, self.block_rows):
+            yield block
+
+
+def _blocks(files: list[Path], columns: list[str], shape: Callable[[pl.DataFrame], pl.DataFrame], block_rows: int
+            ) -> Iterator[tuple[int, pl.DataFrame]]:
+    """(index, block) of whole windows' rows, ``block_rows`` or more but the last, shaped; empty
+    blocks skipped."""
+    held, n, k = [], 0, 0
+    for i, f in enumerate(files):
+        held.append(pl.read_parquet(f, columns=columns))
+        n += held[-1].height
+        if n < block_rows and i < len(files) - 1:
+            continue
+        block = shape(concat_parts(held))
+        held, n = [], 0
+        if block.height:
+            yield k, block
+            k += 1
+
+
+def _match_piece(files: list[Path], columns: list[str], shape: Callable[[pl.DataFrame], pl.DataFrame],
+                 block_rows: int, reference: Path, cfg, id_col: str, spill: Path, piece: int, multitarget: bool
+                 ) -> tuple[MultiTargetState | None, int]:
+    """One stretch of windows matched block by block (blocks of whole windows, ``block_rows``
+    rows or more but the last), its rows spilled as ``<piece>-<block>`` files: (its OSPA, GOSPA
+    and SIAP state stepped from :func:`started`, None without them; its rows)."""
+    ref = Reference(reference)
+    mt = started() if multitarget else None
+    rows = 0
+    for k, block in _blocks(files, columns, shape, block_rows):
+        scored, expected, mt = match_block(block, None, ref, cfg, id_col, mt, True)
+        rows += block.height
+        for name, frame in (("matched", scored), ("expected", expected)):
+            (spill / name).mkdir(parents=True, exist_ok=True)
+            frame.write_parquet(spill / name / f"{piece:05d}-{k:05d}.parquet", statistics=False, compression="lz4")
+    return mt, rows
