@@ -235,8 +235,10 @@ def test_the_truth_picture_predicted_in_pieces_apart_equals_one_prediction(block
     from tertiary.evaluation.evaluate import reference_files, write_reference
     from tertiary.pipeline.truth_alerts import reference_slice, truth_conflicts
     files = reference_files(write_reference(_head_on(), tmp_path / "ref.parquet"))
-    grid = pl.DataFrame({"run": pl.Series([0] * 60, dtype=pl.UInt32),
-                         "epoch": [_t(s) for s in range(0, 300, 5)]}).with_columns(pl.col("epoch").cast(TIME))
+    # a gap in the grid longer than a block: a piece with no epoch of its own
+    grid = pl.DataFrame({"run": pl.Series([0] * 48, dtype=pl.UInt32),
+                         "epoch": [_t(s) for s in [*range(0, 120, 5), *range(180, 300, 5)]]}
+                        ).with_columns(pl.col("epoch").cast(TIME))
     spans = observed_spans(grid.join(pl.DataFrame({"truth_id": [1, 2, 3]}), how="cross"))
     cc = ConflictConfig(confirm_m=3, confirm_n=4)
     whole = truth_conflicts(cc, reference_slice(files), spans, grid, "target_id", None)

@@ -26,10 +26,11 @@ are relabelled in place by a task (atomic rewrites).
 Evaluation. A partition that is a whole run validates the truth and its windows match the
 pictures to it, step their metrics and sum the consistency lags, as a local run's do; it returns
 those states, the client merges the runs' (:mod:`tertiary.pipeline.partition_states`) and the
-finalize only finishes them. A time slice's pictures are matched on the client, after the
-stitching. The finalize stage (alert scoring, …) runs on the client over the union of the
-partitions, its independent pieces (the truth's intervals and picture by time chunk, the bound
-by block of aircraft) as tasks of the same cluster, and ``results.duckdb`` is built
+finalize only finishes them. A time slice's pictures are matched after the stitching. The
+finalize stage (alert scoring, …) runs on the client over the union of the partitions, its
+independent pieces (the pictures' matching by stretch of windows, the truth's intervals and
+picture by time chunk, the bound by block of aircraft) as tasks of the same cluster, and
+``results.duckdb`` is built
 as :func:`tertiary.pipeline.run` builds it, with a ``partitions`` table registering every output
 partition (its span, rows, wall time, worker, id changes at its start boundary).
 """
@@ -642,8 +643,8 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
             window_s: float | None, origin: int | None, n_rows: int, gate_m: float, timings: dict, say,
             tables: str, slice_s: float | None, overlap_s: float, notes: list[str], t_wall: float) -> DaskRun:
     """The partitions on the cluster of client ``c``, then the finalize on the client, whose
-    independent pieces (the truth's intervals and picture by time chunk, the bound by block of
-    aircraft) are tasks of the same cluster."""
+    independent pieces (:data:`~tertiary.pipeline.streaming.RunContext.fanout`) are tasks of the
+    same cluster."""
     infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
                                          window_s, origin, gate_m, timings, say, tables)
     say("finalize")

@@ -124,8 +124,9 @@ class RunContext:
     #: the ``truth`` table was handed to the run's sink before the windows (it is written while
     #: they run): finalize does not hand it again
     truth_sunk: bool = False
-    #: where the end's independent pieces run (the truth's intervals and picture by time chunk,
-    #: the bound by block of aircraft: :mod:`tertiary.runtime.fanout`); None: here, in turn
+    #: where the end's independent pieces run (:mod:`tertiary.runtime.fanout`: the matching of
+    #: pictures no window matched by stretch of windows, the truth's intervals and picture by
+    #: time chunk, the bound by block of aircraft); None: here, in turn
     fanout: Fanout | None = None
 
 

@@ -175,6 +175,8 @@ def _predict_part(cc: safety_conflicts.ConflictConfig, files: list[Path], spans:
     :func:`truth_conflicts`): ``epochs`` also holds the grid epochs before ``a`` that the m-of-n
     confirmation reads (:func:`_warm_from`), predicted from a fresh state and then dropped, so
     the rows from ``a`` on are those of the prediction carried from the start."""
+    if not epochs.height:          # a block of the span in a gap of the grid
+        return pl.DataFrame(), pl.DataFrame(), pl.DataFrame(schema=_ONSETS)
     us = epochs["epoch"].dt.epoch("us")
     lo = min(int(us.min()), a)
     out, ids, onsets, _ = _predict(safety_conflicts.init_conflict_state(), cc, reference_slice(files), spans,
