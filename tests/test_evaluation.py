@@ -382,9 +382,11 @@ def _as_is(frame: pl.DataFrame) -> pl.DataFrame:
 
 def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(small, tmp_path, monkeypatch):
     """A distributed run's end matches a picture on disk a stretch of its windows at a time,
-    each stretch a piece of its cluster (arguments shipped, pieces in any order), and joins
-    their OSPA, GOSPA and SIAP states: every output equals the picture matched in blocks here.
-    Fails if a stretch's rows are lost, or if the stretches' multi-target states are not joined."""
+    each stretch a piece of its cluster (arguments shipped, pieces in any order), joins their
+    OSPA, GOSPA and SIAP states, and computes the metrics a bucket of tracks or aircraft a
+    piece: every output equals the picture matched and scored in memory here.
+    Fails if a stretch's rows or a bucket's sums are lost, or if the stretches' multi-target
+    states are not joined."""
     from tertiary.evaluation import matched_apart
     from tertiary.evaluation.evaluate import write_reference
     root, ds, files = small
@@ -401,12 +403,14 @@ def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(
         windows.append(tmp_path / "windows" / f"w={k:06d}.parquet")
         windows[-1].parent.mkdir(exist_ok=True)
         part.write_parquet(windows[-1])
-    want = evaluate_each([iter(parts)], ref, spill=tmp_path / "one", **kw)
+    want = evaluate_each([iter(parts)], ref, **kw)          # matched and scored in memory
     monkeypatch.setattr(matched_apart, "PIECE_WINDOWS", 3)
     fanout = Apart()
     got = evaluate_each([matched_apart.PictureFiles("system", windows, picture.columns, _as_is, 300, fanout)], ref,
                         spill=tmp_path / "apart", **kw)
-    assert fanout.pieces == {"_match_piece": -(-len(parts) // 3)} and len(parts) > 6
+    # the stretches, then the buckets of tracks and of aircraft the metrics are computed in
+    assert fanout.pieces["_match_piece"] == -(-len(parts) // 3) and len(parts) > 6
+    assert fanout.pieces["_track_piece"] > 1 and fanout.pieces["_bucket_piece"] > 1
     assert want.metrics.filter(pl.col("metric") == "siap_track_changes_per_hour").height
     for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
         a, b = getattr(got, name), getattr(want, name)

@@ -23,6 +23,7 @@ from tertiary.evaluation.accuracy import (ACCURACY_COLUMNS, BY_EPOCH_SCHEMA, FUS
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.consistency import (CONSISTENCY_ALL, Lags, WholeSeries, chi2_band, consistency_rows,
                                              consistency_statistics, series_codes)
+from tertiary.runtime.fanout import Fanout, serial
 
 __all__ = ["SeedSums", "picture_accuracy_buckets", "statistic_rows", "table_keys"]
 
@@ -35,7 +36,8 @@ _ROW = "__row"
 
 def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyConfig = AccuracyConfig(),
                              observed: pl.DataFrame | pl.LazyFrame | None = None, buckets: int = 1,
-                             scratch: Path | None = None) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
+                             scratch: Path | None = None, fanout: Fanout = serial
+                             ) -> tuple[pl.DataFrame, pl.DataFrame, pl.DataFrame]:
     """:func:`picture_accuracy` of ``matched.collect()`` (and ``observed`` collected), with the
     rows read ``buckets`` parts at a time, never whole: a long recording's picture (a scan of
     Parquet parts) is scored with the memory of about 1/``buckets`` of its rows, plus the
@@ -49,7 +51,8 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
     :func:`picture_accuracy`. ``matched`` may carry the :data:`ROW_SCORES` (else each part is
     row-scored: :func:`row_scores` is row-wise). With a ``scratch`` directory the rows are filed
     by bucket once (:func:`tertiary.evaluation.buckets.file_buckets`) and each bucket reads its own; without,
-    each bucket filters the whole of ``matched``."""
+    each bucket filters the whole of ``matched``. Each bucket of tracks is a piece of ``fanout``;
+    their sums are merged in bucket order."""
     if buckets < 1:
         raise ValueError(f"buckets must be >= 1, got {buckets}")
     schema = matched.collect_schema()          # a scan's schema: no row is read
@@ -61,17 +64,22 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
                 if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
     parts = SeedSums()
     seen_from = first_seen(observed, schema)
-    for k in range(buckets):
-        part = by_track[k].collect()
-        if part.height:
-            parts.add_tracks(part, cfg, seen_from)
-        del part
+    for got in fanout(_track_piece, [(by_track[k], cfg, seen_from) for k in range(buckets)]):
+        parts.merge(got)
     if not parts.rows:
         return picture_accuracy(pl.DataFrame(), stage, cfg)
     coverage = None if observed is None else _coverage_buckets(
         lf, observed, schema["epoch"], parts.tables["tracks"].select("method"), buckets,
         scratch / "aircraft" if filed else None)
     return parts.finish(stage, cfg, coverage)
+
+
+def _track_piece(rows: pl.LazyFrame, cfg: AccuracyConfig, seen_from: pl.DataFrame | None) -> "SeedSums":
+    """The sums of one bucket of whole tracks (a piece of :func:`picture_accuracy_buckets`)."""
+    sums, part = SeedSums(), rows.collect()
+    if part.height:
+        sums.add_tracks(part, cfg, seen_from)
+    return sums
 
 
 def _in_bucket(key: list[pl.Expr], buckets: int, k: int) -> pl.Expr:

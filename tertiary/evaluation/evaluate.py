@@ -44,6 +44,7 @@ from tertiary.evaluation.reference import adsb_reference, plot_measurements, rec
 from tertiary.evaluation.reference_spans import files_between, piece_span, read_spans, write_spans
 from tertiary.evaluation.requirements import Requirements, check_requirements
 from tertiary.contract import TIME
+from tertiary.runtime.fanout import serial
 from tertiary.store.files import write_parquet_atomic
 
 __all__ = ["EvaluationConfig", "Evaluation", "Matched", "SeedTables", "Reference", "match_block", "scan_spilled", "evaluate_pictures",
@@ -520,13 +521,16 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
         if seeded is not None:          # stepped by the windows: only finished here
             seed, by_epoch, samples = seeded
         if isinstance(matched, pl.LazyFrame):
+            # a picture matched apart has its buckets computed where its stretches were
+            fanout = getattr(picture, "fanout", serial)
             if seeded is None or (surveyed is None and surveillance):
                 k = _buckets(matched, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows)
             if seeded is None:
                 # each bucket reads its own rows, filed once beside the spilled picture (linear
                 # in the picture's rows, not rows × buckets)
                 seed, by_epoch, samples = picture_accuracy_buckets(matched, seed_stage, cfg.accuracy, seen,
-                                                                   buckets=k, scratch=where / "accuracy")
+                                                                   buckets=k, scratch=where / "accuracy",
+                                                                   fanout=fanout)
                 # its filed rows go before the metrics file theirs: the scratch's peak is the
                 # spilled picture and one filing, not two
                 shutil.rmtree(where / "accuracy", ignore_errors=True)
@@ -535,7 +539,7 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
             elif surveillance:
                 parts["metrics"].append(picture_metrics_buckets(
                     matched.select(metric_columns(matched)), expected=expected, radar_xy=radar_xy,
-                    breakdown=breakdown, cfg=cfg.metrics, buckets=k, scratch=where / "metrics"))
+                    breakdown=breakdown, cfg=cfg.metrics, buckets=k, scratch=where / "metrics", fanout=fanout))
         else:
             if seeded is None:
                 seed, by_epoch, samples = picture_accuracy(matched, seed_stage, cfg.accuracy, seen)

@@ -18,6 +18,7 @@ from tertiary.evaluation import picture_metrics as pm
 from tertiary.evaluation import sketch
 from tertiary.evaluation.buckets import file_buckets
 from tertiary.evaluation.picture_metrics import BREAKDOWNS, MetricsConfig
+from tertiary.runtime.fanout import Fanout, serial
 
 __all__ = ["picture_metrics_buckets", "Partials", "RMS_ERRORS", "MEAN_ERRORS", "accuracy_sums", "accuracy_combined",
            "identity_combined", "continuity_combined"]
@@ -128,6 +129,13 @@ class Partials:
     split: list[pl.DataFrame] = field(default_factory=list)
     bare: list[pl.DataFrame] = field(default_factory=list)
 
+    def add(self, other: "Partials") -> None:
+        """``other``'s partials after these (another bucket's)."""
+        for name in ("accuracy", "values", "hours", "events", "intervals", "split", "bare"):
+            getattr(self, name).extend(getattr(other, name))
+        for name, sums in other.identity.items():
+            self.identity.setdefault(name, []).extend(sums)
+
 
 def accuracy_sums() -> list[pl.Expr]:
     """The accuracy sums of error rows: their count, the maxima, and each RMS and mean metric's
@@ -190,6 +198,16 @@ def _bucket_partials(m: pl.DataFrame, expected: pl.DataFrame | None, methods: pl
                              methods, breakdown, cfg, merge, out, gated)
 
 
+def _bucket_piece(scan: _BucketScan, k: int, reads: set[str], methods: pl.DataFrame,
+                  radar_xy: NDArray[np.float64] | None, breakdown: Sequence[str], cfg: MetricsConfig, merge: bool
+                  ) -> Partials:
+    """Bucket ``k``'s partials (a piece of :func:`picture_metrics_buckets`)."""
+    out = Partials()
+    _bucket_partials(scan.matched(k, reads, gated=True), scan.expected(k), methods, radar_xy, breakdown, cfg, merge,
+                     out)
+    return out
+
+
 def accuracy_combined(out: Partials, breakdown: Sequence[str], method: pl.DataType) -> pl.DataFrame:
     """The accuracy rows from the buckets' sums, and the percentiles from their merged sketches."""
     aggs = [pl.col("run").n_unique().alias("n_runs"), pl.col("n_points").sum().cast(pl.Float64),
@@ -250,7 +268,7 @@ def _merged_buckets(scan: _BucketScan, bare: pl.DataFrame, base: pl.DataFrame, b
 def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | None = None,
                             radar_xy: NDArray[np.float64] | None = None, breakdown: Sequence[str] = BREAKDOWNS,
                             cfg: MetricsConfig = MetricsConfig(), buckets: int = 1,
-                            scratch: Path | None = None) -> pl.DataFrame:
+                            scratch: Path | None = None, fanout: Fanout = serial) -> pl.DataFrame:
     """:func:`picture_metrics` of ``matched.collect()`` (and ``expected.collect()``) with the row
     work done on one of ``buckets`` buckets of aircraft at a time (a long recording's picture is
     never held whole).
@@ -262,6 +280,7 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     columns) and the bare expected rows for merged tracks, joined in a second pass with each bucket's representative tracks.
     With a ``scratch`` directory the rows are filed by bucket once
     (:func:`tertiary.evaluation.buckets.file_buckets`); without, each bucket filters the whole input.
+    Each bucket is a piece of ``fanout``; their partials are combined in bucket order.
     """
     if buckets < 1:
         raise OptionError("must be ≥ 1", option="buckets")
@@ -280,8 +299,9 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     reads = {*pm.ERROR_INPUTS, *pm.CONTINUITY_INPUTS, "gated_truth_id",
              *(c for c in schema.names() if c.startswith("true_"))}
     out = Partials()
-    for k in range(buckets):
-        _bucket_partials(scan.matched(k, reads, gated=True), scan.expected(k), methods, radar_xy, breakdown, cfg, merge, out)
+    pieces = [(scan, k, reads, methods, radar_xy, breakdown, cfg, merge) for k in range(buckets)]
+    for got in fanout(_bucket_piece, pieces):
+        out.add(got)
     parts = [pm.picture_rows(tracks)]
     if out.accuracy:
         parts.append(accuracy_combined(out, breakdown, schema["method"]))
