@@ -492,15 +492,10 @@ def test_the_range_screen_keeps_every_illumination(monkeypatch):
     monkeypatch.setattr(bound.Truth, "top_speed", tight)
 
 
-def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(monkeypatch, tmp_path):
-    """On an on-disk run the bound's truth is a scan of the reference (memory: the national
-    day's 79 M truth rows held whole were ~5.7 GB), read ``BOUND_READ_AIRCRAFT`` aircraft at a
-    time: the bound rows equal those of the truth in memory, and no read holds another read's
-    aircraft. Fails if a read drops or repeats aircraft, or if the scan is read whole."""
+def _three_aircraft():
+    """(a dataset's origin holder, the truth of three aircraft seen by one radar, the radars,
+    the reports, every truth sample scored, an accuracy row): the bound stage's inputs."""
     from types import SimpleNamespace
-
-    from tertiary.evaluation import bound
-    from tertiary.evaluation.evaluate import write_reference
     origin, truth, radars, reports = _one_radar_truth()
     many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
                                          pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
@@ -508,7 +503,17 @@ def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(mon
                          pl.col("time").alias("epoch"), "truth_id", pl.lit("straight").alias("seg_class"))
     acc = pl.DataFrame({"stage": "fusion", "method": ["a"], "metric": "rmse_pos_m", "segment": "all",
                         "value": [100.0], "n_runs": 1})
-    ds = SimpleNamespace(origin=origin, scenario=None)
+    return SimpleNamespace(origin=origin, scenario=None), many, radars, reports, scored, acc
+
+
+def test_the_bound_stage_reads_a_truth_on_disk_a_block_of_aircraft_at_a_time(monkeypatch, tmp_path):
+    """On an on-disk run the bound's truth is a scan of the reference (memory: the national
+    day's 79 M truth rows held whole were ~5.7 GB), read ``BOUND_READ_AIRCRAFT`` aircraft at a
+    time: the bound rows equal those of the truth in memory, and no read holds another read's
+    aircraft. Fails if a read drops or repeats aircraft, or if the scan is read whole."""
+    from tertiary.evaluation import bound
+    from tertiary.evaluation.evaluate import write_reference
+    ds, many, radars, reports, scored, acc = _three_aircraft()
     want = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
     scan = pl.scan_parquet(write_reference(many, tmp_path / "ref.parquet")).drop("__prev", "__next")
     held: list[list[int]] = []
@@ -531,19 +536,10 @@ def test_the_bound_computed_apart_a_block_of_aircraft_a_piece_equals_the_stage(m
     """A distributed run's end computes the bound as pieces of its cluster, each reading its
     own aircraft's truth from the reference: the rows equal the stage's. Fails if a piece
     loses an aircraft."""
-    from types import SimpleNamespace
-
     from tertiary.evaluation import bound, bound_fanout
     from tertiary.evaluation.evaluate import reference_files, write_reference
     from tertiary.pipeline.tables import BOUND_TRUTH
-    origin, truth, radars, reports = _one_radar_truth()
-    many = pl.concat([truth.with_columns(pl.lit(k, pl.Int64).alias("truth_id"),
-                                         pl.col("x_m") + 5_000.0 * k, pl.col("y_m") - 3_000.0 * k) for k in (7, 8, 9)])
-    scored = many.select(pl.lit("a").alias("method"), pl.lit(0, pl.UInt32).alias("run"),
-                         pl.col("time").alias("epoch"), "truth_id", pl.lit("straight").alias("seg_class"))
-    acc = pl.DataFrame({"stage": "fusion", "method": ["a"], "metric": "rmse_pos_m", "segment": "all",
-                        "value": [100.0], "n_runs": 1})
-    ds = SimpleNamespace(origin=origin, scenario=None)
+    ds, many, radars, reports, scored, acc = _three_aircraft()
     want = bound.bound_stage(ds, many, radars, reports, scored, acc, [])
     files = reference_files(write_reference(many, tmp_path / "ref.parquet"))
     monkeypatch.setattr(bound_fanout, "PIECE_AIRCRAFT", 2)

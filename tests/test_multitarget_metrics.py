@@ -229,6 +229,19 @@ def test_same_as_stone_soup():
     assert 0 < ours["siap_spuriousness"] and ours["siap_completeness"] < 1 and ours["siap_track_changes_per_hour"] > 0
 
 
+def _picture_to_cut(seed: int):
+    """A picture, the truth at its epochs, the config, its whole metrics, its SIAP segments (with
+    their reach) and its epochs: what the tests of a picture stepped in pieces compare with."""
+    from tertiary.evaluation import multitarget as mt
+    pic, true = _scene(seed)
+    at = reference_at_epochs(pic.select("run", "epoch"), true)
+    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
+    whole = dict(multitarget_metrics(pic, at, "pic", cfg).select("metric", "value").iter_rows())
+    sc = mt._scene(pic, at, cfg)
+    segments = mt._with_reach(mt._segments(mt._associations(sc)), sc.truth).cast({"track_id": pl.UInt64})
+    return pic, at, cfg, whole, segments, pic["epoch"].unique().sort()
+
+
 @pytest.mark.parametrize("seed", range(1, 7))
 def test_steps_over_any_split_of_the_epochs_equal_the_whole_picture(seed):
     """OSPA, GOSPA and SIAP stepped a block of epochs at a time (the state carrying the epoch
@@ -239,14 +252,8 @@ def test_steps_over_any_split_of_the_epochs_equal_the_whole_picture(seed):
 
     from tertiary.evaluation import multitarget as mt
     from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, multitarget_step
-    pic, true = _scene(seed)
-    at = reference_at_epochs(pic.select("run", "epoch"), true)
-    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
-    whole = dict(multitarget_metrics(pic, at, "pic", cfg).select("metric", "value").iter_rows())
+    pic, at, cfg, whole, segments, epochs = _picture_to_cut(seed)
     assert whole["siap_track_changes_per_hour"] > 0          # the split tracks change numbers
-    sc = mt._scene(pic, at, cfg)
-    segments = mt._with_reach(mt._segments(mt._associations(sc)), sc.truth).cast({"track_id": pl.UInt64})
-    epochs = pic["epoch"].unique().sort()
     rng = np.random.default_rng(seed)
     for _ in range(6):
         cuts = sorted(rng.choice(np.arange(1, len(epochs)), size=int(rng.integers(1, 9)), replace=False).tolist())
@@ -271,13 +278,7 @@ def test_stretches_stepped_apart_and_joined_equal_the_whole_picture(seed):
     from polars.testing import assert_frame_equal
 
     from tertiary.evaluation import multitarget as mt
-    pic, true = _scene(seed)
-    at = reference_at_epochs(pic.select("run", "epoch"), true)
-    cfg = MultiTargetConfig(c_m=800.0, p=2.0)
-    whole = dict(multitarget_metrics(pic, at, "pic", cfg).select("metric", "value").iter_rows())
-    sc = mt._scene(pic, at, cfg)
-    segments = mt._with_reach(mt._segments(mt._associations(sc)), sc.truth).cast({"track_id": pl.UInt64})
-    epochs = pic["epoch"].unique().sort()
+    pic, at, cfg, whole, segments, epochs = _picture_to_cut(seed)
     rng = np.random.default_rng(seed)
     for _ in range(6):
         cuts = sorted(rng.choice(np.arange(1, len(epochs)), size=int(rng.integers(1, 9)), replace=False).tolist())
