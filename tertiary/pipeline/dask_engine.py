@@ -63,7 +63,7 @@ from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
 from tertiary.pipeline.partition_writer import SCRATCH, PartitionWriter
-from tertiary.runtime.fanout import dask_fanout
+from tertiary.runtime.fanout import DaskFanout
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
 #: confirmation and the fusion recursions' memory (measured in benchmarks/bench_dask.py)
@@ -651,7 +651,7 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
     ds = read_dataset(dataset_dir, lazy=True)
     radars = next((i["radars"] for i in infos if "radars" in i), None)
     span = pipeline.ingestion.plausible_span(ds.reports, cfg.limits)     # the truth's window, as a local run's
-    fanout = dask_fanout(c)
+    fanout = DaskFanout(c)
     ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
                               curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span,
                               fanout=fanout)

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any, TypeVar
 
-__all__ = ["Fanout", "serial", "dask_fanout"]
+__all__ = ["Fanout", "serial", "DaskFanout"]
 
 T = TypeVar("T")
 
@@ -28,7 +28,7 @@ def serial(fn: Callable[..., T], args: Sequence[tuple]) -> Iterator[T]:
     return (fn(*a) for a in args)
 
 
-class dask_fanout:
+class DaskFanout:
     """Each piece a task of ``client``'s cluster; the results gathered in order. Arguments are
     shipped with their task (not hashed: ``pure=False``). ``record``: per call, the pieces'
     function, their number, the call's wall time on the client and each piece's time on its
