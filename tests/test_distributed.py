@@ -13,6 +13,7 @@ import pytest
 from polars.testing import assert_frame_equal
 
 from tertiary.pipeline import dask_engine as D
+from tertiary.evaluation import matched_apart
 from tertiary.pipeline import whole_run
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset, write_dataset
@@ -235,6 +236,7 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     said: list[str] = []
     # the association metrics come from the partitions' merged states: no row is read back for them
     monkeypatch.setattr(whole_run, "scored_blocks", lambda *a: pytest.fail("association rows scored on the client"))
+    monkeypatch.setattr(matched_apart, "PIECE_WINDOWS", 4)
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
                               overlap_s=60.0, progress=said.append)
     # the client's whole-run stages are said as they start, after "finalize"
@@ -245,8 +247,13 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     assert got["partitions"].height == 3 and res.stitching.height == 2
     # the truth's intervals and picture by time chunk and the pictures by stretch, on the
     # workers (the run record names the pieces): the truth picture's alerts are the local run's
-    fanned = {r["piece"]: r["pieces"] for r in json.loads(dict(got["run"].iter_rows())["fanout"])}
-    assert fanned.keys() >= {"_chunk_task", "_predict_part", "_match_piece"} and min(fanned.values()) >= 1, fanned
+    record = json.loads(dict(got["run"].iter_rows())["fanout"])
+    where = {(r["piece"], r["pieces"], r["where"]) for r in record}
+    # each picture's 9 windows in stretches of 4: three pieces, on the workers
+    assert ("_match_piece", 3, "workers") in where, record
+    # the 9 minutes of truth are one chunk and one block: a single piece runs on the client,
+    # which would only wait for it
+    assert {("_chunk_task", 1, "client"), ("_predict_part", 1, "client")} <= where, record
     truth_alerts = [_alerts(db).filter(pl.col("method") == "truth") for db in (res.db, local)]
     assert truth_alerts[1].height
     assert_frame_equal(*truth_alerts)

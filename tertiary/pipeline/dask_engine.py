@@ -680,9 +680,10 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
             failure = exc
         timings["finalize_s"] = time.perf_counter() - t
         # the finalize's pieces on the workers: the client waited for them (wall) while they worked
-        timings["fanout_wall_s"] = sum(r["wall_s"] for r in fanout.record)
-        timings["fanout_task_s_sum"] = sum(sum(r["task_s"]) for r in fanout.record)
-        timings["fanout_task_s_max"] = max((max(r["task_s"]) for r in fanout.record), default=0.0)
+        shipped = [r for r in fanout.record if r["where"] == "workers"]
+        timings["fanout_wall_s"] = sum(r["wall_s"] for r in shipped)
+        timings["fanout_task_s_sum"] = sum(sum(r["task_s"]) for r in shipped)
+        timings["fanout_task_s_max"] = max((max(r["task_s"]) for r in shipped), default=0.0)
         shutil.rmtree(out / SLICES / SCRATCH, ignore_errors=True)
         store.write("partitions", table)
         if stitching.height:

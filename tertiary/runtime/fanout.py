@@ -30,9 +30,11 @@ def serial(fn: Callable[..., T], args: Sequence[tuple]) -> Iterator[T]:
 
 class DaskFanout:
     """Each piece a task of ``client``'s cluster; the results gathered in order. Arguments are
-    shipped with their task (not hashed: ``pure=False``). ``record``: per call, the pieces'
-    function, their number, the call's wall time on the client and each piece's time on its
-    worker (s): what a model of more workers reads."""
+    shipped with their task (not hashed: ``pure=False``). A call of one piece runs it here: the
+    client would only wait for it, and shipping it costs more than a small piece (a short
+    recording's pictures). ``record``: per call, the pieces' function, their number, where they
+    ran (``workers``, ``client``), the call's wall time and each piece's own time (s): what a
+    model of more workers reads."""
 
     def __init__(self, client: Any) -> None:
         self.client = client
@@ -43,10 +45,13 @@ class DaskFanout:
         if not args:
             return []
         t = time.perf_counter()
-        futures = self.client.map(_timed, [fn] * len(args), *(list(col) for col in zip(*args)), pure=False)
-        got = self.client.gather(futures)
-        self.record.append({"piece": fn.__name__, "pieces": len(args), "wall_s": time.perf_counter() - t,
-                            "task_s": [s for s, _ in got]})
+        if len(args) == 1:
+            got, where = [_timed(fn, *args[0])], "client"
+        else:
+            futures = self.client.map(_timed, [fn] * len(args), *(list(col) for col in zip(*args)), pure=False)
+            got, where = self.client.gather(futures), "workers"
+        self.record.append({"piece": fn.__name__, "pieces": len(args), "where": where,
+                            "wall_s": time.perf_counter() - t, "task_s": [s for s, _ in got]})
         return [r for _, r in got]
 
 
