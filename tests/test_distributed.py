@@ -236,7 +236,7 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     said: list[str] = []
     # the association metrics come from the partitions' merged states: no row is read back for them
     monkeypatch.setattr(whole_run, "scored_blocks", lambda *a: pytest.fail("association rows scored on the client"))
-    monkeypatch.setattr(matched_apart, "PIECE_WINDOWS", 4)
+    monkeypatch.setattr(matched_apart, "PIECE_ROWS", 1)
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
                               overlap_s=60.0, progress=said.append)
     # the client's whole-run stages are said as they start, after "finalize"
@@ -249,8 +249,8 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     # workers (the run record names the pieces): the truth picture's alerts are the local run's
     record = json.loads(dict(got["run"].iter_rows())["fanout"])
     where = {(r["piece"], r["pieces"], r["where"]) for r in record}
-    # each picture's 9 windows in stretches of 4: three pieces, on the workers
-    assert ("_match_piece", 3, "workers") in where, record
+    # each picture's window files a piece (pieces of one row at least): on the workers
+    assert any(p == "_match_piece" and n > 1 and w == "workers" for p, n, w in where), record
     # the 9 minutes of truth are one chunk and one block: a single piece runs on the client,
     # which would only wait for it
     assert {("_chunk_task", 1, "client"), ("_predict_part", 1, "client")} <= where, record

@@ -16,16 +16,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import polars as pl
+import pyarrow.parquet as pq
 
 from tertiary.evaluation.evaluate import Reference, match_block, scan_spilled
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, started, then
 from tertiary.runtime.fanout import Fanout
 from tertiary.runtime.windows import concat_parts
 
-__all__ = ["PIECE_WINDOWS", "PictureFiles"]
+__all__ = ["PIECE_ROWS", "PictureFiles"]
 
-#: window files per piece (a quarter of an hour of the default minute windows)
-PIECE_WINDOWS = 15
+#: rows per piece at least (whole window files): a piece costs a dispatch, a read of the
+#: reference and its files, so a short recording's picture is one piece (matched on the client)
+PIECE_ROWS = 250_000
 
 
 @dataclass(frozen=True)
@@ -47,9 +49,8 @@ class PictureFiles:
         scans of the spilled files —, its OSPA, GOSPA and SIAP rows when ``multitarget``) of the
         picture against the reference file ``reference``, or None when it has no row: the
         result of :func:`~tertiary.evaluation.evaluate._match_blocks` with ``spill``."""
-        files = list(self.files)
-        pieces = [(files[k:k + PIECE_WINDOWS], list(self.columns), self.shape, self.block_rows, reference, cfg,
-                   id_col, spill, k // PIECE_WINDOWS, multitarget) for k in range(0, len(files), PIECE_WINDOWS)]
+        pieces = [(files, list(self.columns), self.shape, self.block_rows, reference, cfg, id_col, spill, k,
+                   multitarget) for k, files in enumerate(_stretches(list(self.files)))]
         state, rows = None, 0
         for mt, n in self.fanout(_match_piece, pieces):
             rows += n
@@ -64,6 +65,19 @@ class PictureFiles:
         """The picture's blocks read here, in time order (its stretches matched in this process)."""
         for _, block in _blocks(list(self.files), list(self.columns), self.shape, self.block_rows):
             yield block
+
+
+def _stretches(files: list[Path]) -> list[list[Path]]:
+    """Consecutive window files of :data:`PIECE_ROWS` rows or more each (but the last), by their
+    footers' row counts."""
+    out, held, n = [], [], 0
+    for f in files:
+        held.append(f)
+        n += pq.read_metadata(f).num_rows
+        if n >= PIECE_ROWS:
+            out.append(held)
+            held, n = [], 0
+    return out + [held] if held else out
 
 
 def _blocks(files: list[Path], columns: list[str], shape: Callable[[pl.DataFrame], pl.DataFrame], block_rows: int
