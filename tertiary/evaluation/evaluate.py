@@ -47,7 +47,8 @@ from tertiary.contract import TIME
 from tertiary.runtime.fanout import serial
 from tertiary.store.files import write_parquet_atomic
 
-__all__ = ["EvaluationConfig", "Evaluation", "Matched", "SeedTables", "Reference", "match_block", "scan_spilled", "evaluate_pictures",
+__all__ = ["EvaluationConfig", "Evaluation", "Matched", "SeedTables", "Reference", "match_block", "match_blocks",
+           "scan_spilled", "evaluate_pictures",
            "evaluate_each", "write_reference", "read_reference", "write_reference_pieces", "reference_files",
            "comparison", "read_picture",
            "COMPARISON_METRICS", "reconstructed_reference", "RECONSTRUCTED", "adsb_reference_table",
@@ -293,7 +294,7 @@ def match_block(block: pl.DataFrame, truth: pl.DataFrame | None, reference: "Ref
     matched against ``truth`` (None: the reference samples its epochs read,
     :meth:`Reference.between`). ``expected``: the reference at a superset of the block's epochs,
     made once for several blocks (:func:`~tertiary.evaluation.matching.match_with_reference`).
-    The matcher is per epoch and the row scores per row: the step of :func:`_match_blocks`, and
+    The matcher is per epoch and the row scores per row: the step of :func:`match_blocks`, and
     of the evaluation's window stage."""
     _check_inputs(block, reference.empty, id_col)
     if "method" not in block.columns:
@@ -309,7 +310,7 @@ def match_block(block: pl.DataFrame, truth: pl.DataFrame | None, reference: "Ref
     return (_scored_only(scored, id_col) if slim else scored), ref, mt
 
 
-def _match_blocks(blocks: Iterable[pl.DataFrame], reference: Reference, cfg: EvaluationConfig,
+def match_blocks(blocks: Iterable[pl.DataFrame], reference: Reference, cfg: EvaluationConfig,
                   id_col: str, slim: bool = False, spill: Path | None = None, multitarget: bool = False
                   ) -> tuple[pl.DataFrame | pl.LazyFrame, pl.DataFrame | pl.LazyFrame, pl.DataFrame | None] | None:
     """(matched rows with their :func:`row_scores`, reference at the picture's epochs, the
@@ -468,7 +469,7 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
     a caller that reads each picture from disk as it is scored (the pipeline's on-disk runs)
     holds one picture, never all of them. A picture may come as blocks of rows in time order
     (an iterable of frames, epochs not shared between blocks): each block is matched against
-    its time slice of the reference and row-scored alone (:func:`_match_blocks`), so the
+    its time slice of the reference and row-scored alone (:func:`match_blocks`), so the
     picture's covariances and the matcher's scratch are never held whole. The same metrics as
     one call on their union. ``truth`` may be a reference file or directory
     (:func:`write_reference`, :func:`write_reference_pieces`): then only the slices a picture's
@@ -505,12 +506,12 @@ def evaluate_each(pictures: Iterable["pl.DataFrame | Iterable[pl.DataFrame] | Ma
                 got = _held_if_small(picture, EVAL_BUCKET_ROWS if bucket_rows is None else bucket_rows, surveillance)
         elif callable(getattr(picture, "match_apart", None)):
             # a picture on disk whose stretches are matched apart (a distributed run's slices)
-            got = (picture.match_apart(reference.path, cfg, id_col, where, surveillance)
+            got = (picture.match_apart(reference, cfg, id_col, where, surveillance)
                    if where is not None and reference.path is not None else
-                   _match_blocks(picture.blocks(), reference, cfg, id_col, slim=not keep_matched, spill=where,
+                   match_blocks(picture.blocks(), reference, cfg, id_col, slim=not keep_matched, spill=where,
                                  multitarget=surveillance))
         else:
-            got = _match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
+            got = match_blocks([picture] if isinstance(picture, pl.DataFrame) else picture, reference, cfg, id_col,
                                 slim=not keep_matched, spill=where, multitarget=surveillance)
         if got is None:
             continue

@@ -18,7 +18,7 @@ from pathlib import Path
 import polars as pl
 import pyarrow.parquet as pq
 
-from tertiary.evaluation.evaluate import Reference, match_block, scan_spilled
+from tertiary.evaluation.evaluate import Reference, match_blocks, match_block, scan_spilled
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, started, then
 from tertiary.runtime.fanout import Fanout
 from tertiary.runtime.windows import concat_parts
@@ -43,14 +43,20 @@ class PictureFiles:
     block_rows: int
     fanout: Fanout
 
-    def match_apart(self, reference: Path, cfg, id_col: str, spill: Path, multitarget: bool
-                    ) -> tuple[pl.LazyFrame, pl.LazyFrame, pl.DataFrame | None] | None:
-        """(matched rows with their row scores, the reference at the picture's epochs — both as
-        scans of the spilled files —, its OSPA, GOSPA and SIAP rows when ``multitarget``) of the
-        picture against the reference file ``reference``, or None when it has no row: the
-        result of :func:`~tertiary.evaluation.evaluate._match_blocks` with ``spill``."""
-        pieces = [(files, list(self.columns), self.shape, self.block_rows, reference, cfg, id_col, spill, k,
-                   multitarget) for k, files in enumerate(_stretches(list(self.files)))]
+    def match_apart(self, reference: Reference, cfg, id_col: str, spill: Path, multitarget: bool
+                    ) -> tuple[pl.LazyFrame | pl.DataFrame, pl.LazyFrame | pl.DataFrame, pl.DataFrame | None] | None:
+        """(matched rows with their row scores, the reference at the picture's epochs, its OSPA,
+        GOSPA and SIAP rows when ``multitarget``) of the picture against ``reference`` (a
+        reference on disk), or None when it has no row: the result of
+        :func:`~tertiary.evaluation.evaluate.match_blocks` with ``spill``. A picture of one
+        stretch is matched here as that function does (held in memory when it is one block);
+        the stretches of a longer one are the fanout's pieces, their rows spilled and scanned."""
+        stretches = _stretches(list(self.files))
+        if len(stretches) <= 1:
+            return match_blocks(self.blocks(), reference, cfg, id_col, slim=True, spill=spill,
+                                 multitarget=multitarget)
+        pieces = [(files, list(self.columns), self.shape, self.block_rows, reference.path, cfg, id_col, spill, k,
+                   multitarget) for k, files in enumerate(stretches)]
         state, rows = None, 0
         for mt, n in self.fanout(_match_piece, pieces):
             rows += n
