@@ -20,8 +20,9 @@ from pathlib import Path
 import polars as pl
 
 GOLDEN = Path(__file__).parent / "data" / "golden.json"
-#: run-record keys that differ between two runs of the same code (wall times, paths, versions)
-VOLATILE_KEYS = {"created_utc", "versions", "timings", "memory_mib", "notes"}
+#: run-record keys that differ between two runs of the same code (wall times, paths, versions, the
+#: finalize pieces' times)
+VOLATILE_KEYS = {"created_utc", "versions", "timings", "memory_mib", "notes", "fanout"}
 #: tables that hold only measurements of the run itself (times, memory)
 VOLATILE_TABLES = {"stage_timings", "partitions"}
 
