@@ -245,8 +245,8 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     local = pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW)
     want = _tables(local)
     assert got["partitions"].height == 3 and res.stitching.height == 2
-    # the truth's intervals and picture by time chunk and the pictures by stretch, on the
-    # workers (the run record names the pieces): the truth picture's alerts are the local run's
+    # the finalize's pieces: the run record names each call's function, pieces and where they
+    # ran; the truth picture's alerts are the local run's
     record = json.loads(dict(got["run"].iter_rows())["fanout"])
     where = {(r["piece"], r["pieces"], r["where"]) for r in record}
     # each picture's window files a piece (pieces of one row at least): on the workers
