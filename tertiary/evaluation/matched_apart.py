@@ -21,7 +21,7 @@ import pyarrow.parquet as pq
 from tertiary.evaluation.evaluate import Reference, match_blocks, match_block, scan_spilled
 from tertiary.evaluation.multitarget import MultiTargetState, multitarget_result, started, then
 from tertiary.runtime.fanout import Fanout
-from tertiary.runtime.windows import concat_parts
+from tertiary.runtime.windows import window_blocks
 
 __all__ = ["PIECE_ROWS", "PictureFiles"]
 
@@ -88,16 +88,10 @@ def _stretches(files: list[Path]) -> list[list[Path]]:
 
 def _blocks(files: list[Path], columns: list[str], shape: Callable[[pl.DataFrame], pl.DataFrame], block_rows: int
             ) -> Iterator[tuple[int, pl.DataFrame]]:
-    """(index, block) of whole windows' rows, ``block_rows`` or more but the last, shaped; empty
-    blocks skipped."""
-    held, n, k = [], 0, 0
-    for i, f in enumerate(files):
-        held.append(pl.read_parquet(f, columns=columns))
-        n += held[-1].height
-        if n < block_rows and i < len(files) - 1:
-            continue
-        block = shape(concat_parts(held))
-        held, n = [], 0
+    """(index, block) of whole windows' rows (:func:`~tertiary.runtime.windows.window_blocks`),
+    shaped; empty blocks skipped."""
+    k = 0
+    for block in map(shape, window_blocks(files, columns, block_rows)):
         if block.height:
             yield k, block
             k += 1

@@ -25,7 +25,7 @@ from tertiary import contract
 from tertiary.core.errors import OptionError
 from tertiary.pipeline.clock import StageClock
 from tertiary.runtime.windows import PARTS, PartStore, prefetched
-from tertiary.runtime.windows import concat_parts, read_part_groups
+from tertiary.runtime.windows import concat_parts, read_part_groups, window_blocks
 from tertiary.store.run_store import TABLES_DIR, RunStore
 
 __all__ = ["Sink", "OnDiskTable", "DeferredTable", "StreamedTable", "SinkThread", "StoreSink", "TABLE_MODES",
@@ -167,17 +167,8 @@ class OnDiskTable:
     def blocks(self, key: tuple, skip: Collection[str] = (), rows: int | None = None) -> Iterator[pl.DataFrame]:
         """One picture's rows (as :meth:`picture`) in blocks of whole windows, in time order, each
         of at least ``rows`` rows (default :data:`EVAL_BLOCK_ROWS`) but the last."""
-        rows = EVAL_BLOCK_ROWS if rows is None else rows
         files, cols = self._files(key, skip)
-        held, n = [], 0
-        for f in files:
-            held.append(pl.read_parquet(f, columns=cols))
-            n += held[-1].height
-            if n >= rows:
-                yield concat_parts(held)
-                held, n = [], 0
-        if held:
-            yield concat_parts(held)
+        yield from window_blocks(files, cols, EVAL_BLOCK_ROWS if rows is None else rows)
 
     def picture_files(self, key: tuple, skip: Collection[str] = ()) -> tuple[list[Path], list[str]]:
         """A picture's window files in window order, and the columns to read (all but ``skip``):

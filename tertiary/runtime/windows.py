@@ -502,6 +502,20 @@ def read_part_groups(files: list[Path], columns: list[str] | None = None, group:
         yield got
 
 
+def window_blocks(files: Iterable[Path], columns: list[str], rows: int) -> Iterator[pl.DataFrame]:
+    """Window parts ``files`` (in window order) read in blocks of whole windows, each of at
+    least ``rows`` rows but the last."""
+    held, n = [], 0
+    for f in files:
+        held.append(pl.read_parquet(f, columns=columns))
+        n += held[-1].height
+        if n >= rows:
+            yield concat_parts(held)
+            held, n = [], 0
+    if held:
+        yield concat_parts(held)
+
+
 def concat_parts(frames: list[pl.DataFrame]) -> pl.DataFrame:
     """Windows' rows of one table: empty windows' frames dropped (they may lack optional columns)."""
     full = [f for f in frames if f.height] or frames[:1]
