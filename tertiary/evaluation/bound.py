@@ -149,7 +149,7 @@ from tertiary.sensors.adsb import sigma_from_nacp
 
 __all__ = ["BoundConfig", "CARRIED", "pcrb_linear", "illuminations", "pcrb_at", "pcrb_carried", "mode_s_lead_s",
            "bound_metrics", "BOUND_METRICS", "UNMEASURED",
-           "MODEL", "bound_setup", "block_sums", "bound_stage", "scan_origins"]
+           "MODEL", "bound_setup", "block_sums", "read_sums", "bound_stage", "scan_origins"]
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -710,6 +710,19 @@ def bound_setup(ds, truth_columns: list[str], radars: pl.DataFrame, notes: list[
     return cfg, max_el
 
 
+def read_sums(held: pl.DataFrame, read: NDArray[np.int64], scored: pl.DataFrame, radars: pl.DataFrame,
+              reports: pl.DataFrame, origin: geo.LocalFrame, cfg: BoundConfig, max_el: dict[str, float], t0_us: int,
+              origins: dict[int, float], mode_s: pl.DataFrame | None = None) -> list[pl.DataFrame]:
+    """:func:`block_sums` of the aircraft ``read`` (their truth ``held``), :data:`BOUND_AIRCRAFT`
+    at a time."""
+    sums = []
+    for lo in range(0, len(read), BOUND_AIRCRAFT):
+        block = pl.col("truth_id").cast(pl.Int64).is_in(read[lo:lo + BOUND_AIRCRAFT].tolist())
+        sums.append(block_sums(held.filter(block), scored.filter(block), radars, reports, origin, cfg, max_el, t0_us,
+                               origins, mode_s))
+    return sums
+
+
 def block_sums(truth: pl.DataFrame, scored: pl.DataFrame, radars: pl.DataFrame, reports: pl.DataFrame,
                origin: geo.LocalFrame, cfg: BoundConfig, max_el: dict[str, float], t0_us: int,
                origins: dict[int, float], mode_s: pl.DataFrame | None = None) -> pl.DataFrame:
@@ -741,10 +754,7 @@ def bound_stage(ds, truth: pl.DataFrame | pl.LazyFrame, radars: pl.DataFrame, re
     # a block of aircraft at a time (each one's bound is its own recursion): the illuminations
     # and bounds of the whole recording are never held (the stage's peak on a long run)
     for read, held in _truth_reads(truth, ids):
-        for lo in range(0, len(read), BOUND_AIRCRAFT):
-            block = pl.col("truth_id").cast(pl.Int64).is_in(read[lo:lo + BOUND_AIRCRAFT].tolist())
-            sums.append(block_sums(held.filter(block), scored.filter(block), radars, reports, ds.origin, cfg,
-                                   max_el, t0, origins, mode_s))
+        sums += read_sums(held, read, scored, radars, reports, ds.origin, cfg, max_el, t0, origins, mode_s)
         del held
     return bound_rows(pl.concat(sums) if sums else bound_sums(scored.clear(), pl.DataFrame()), accuracy)
 

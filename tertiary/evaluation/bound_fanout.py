@@ -14,7 +14,7 @@ import polars as pl
 
 from tertiary.contract import TABLES, TIME
 from tertiary.core import geo
-from tertiary.evaluation.bound import (BOUND_AIRCRAFT, BoundConfig, block_sums, bound_rows, bound_setup, bound_sums,
+from tertiary.evaluation.bound import (BOUND_AIRCRAFT, BoundConfig, bound_rows, bound_setup, bound_sums, read_sums,
                                        scan_origins)
 from tertiary.evaluation.bound_measurements import mode_s_first
 from tertiary.runtime.fanout import Fanout
@@ -60,12 +60,7 @@ def bound_stage_apart(ds, fanout: Fanout, files: list[Path], columns: list[str],
 def _piece(files: list[Path], names: list[str], read: np.ndarray, scored: pl.DataFrame, radars: pl.DataFrame,
            reports: pl.DataFrame, origin: geo.LocalFrame, cfg: BoundConfig, max_el: dict[str, float], t0: int,
            origins: dict[int, float], mode_s: pl.DataFrame) -> list[pl.DataFrame]:
-    """The bound sums of the aircraft ``read``, a block of BOUND_AIRCRAFT at a time."""
+    """The bound sums of the aircraft ``read`` (:func:`~tertiary.evaluation.bound.read_sums`)."""
     held = (pl.scan_parquet(files).select(names)
             .filter(pl.col("truth_id").cast(pl.Int64).is_in(read.tolist())).collect())
-    sums = []
-    for lo in range(0, len(read), BOUND_AIRCRAFT):
-        block = pl.col("truth_id").cast(pl.Int64).is_in(read[lo:lo + BOUND_AIRCRAFT].tolist())
-        sums.append(block_sums(held.filter(block), scored.filter(block), radars, reports, origin, cfg, max_el, t0,
-                               origins, mode_s))
-    return sums
+    return read_sums(held, read, scored, radars, reports, origin, cfg, max_el, t0, origins, mode_s)
