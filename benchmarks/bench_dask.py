@@ -79,6 +79,10 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
             # what the partition phase cost beyond the tasks' own work spread over the workers
             "partitions_phase_overhead_s": tm["partitions_s"] - sum(tasks) / workers,
             "stitch_s": tm["stitch_s"], "relabel_s": tm["relabel_s"], "finalize_s": tm["finalize_s"],
+            # the boundaries' pieces on the workers: the client's wait for them, their work
+            "stitch_pieces_wall_s": tm.get("stitch_pieces_wall_s", 0.0),
+            "stitch_task_s_sum": tm.get("stitch_task_s_sum", 0.0),
+            "stitch_task_s_max": tm.get("stitch_task_s_max", 0.0),
             # the finalize's pieces run on the workers: the client's wait for them, their work
             "finalize_fanout_wall_s": tm.get("fanout_wall_s", 0.0),
             "finalize_fanout_task_s_sum": tm.get("fanout_task_s_sum", 0.0),
@@ -100,18 +104,27 @@ def _finalize_stages(db: Path) -> dict[str, float]:
     return {k: round(timings[f"{k}_s"], 2) for k in FINALIZE_STAGES if f"{k}_s" in timings}
 
 
+def _spread(work_s: float, longest_s: float, workers: int) -> float:
+    """Pieces of ``work_s`` in all spread over ``workers``, no less than the longest piece."""
+    return max(work_s / workers, longest_s) if work_s else 0.0
+
+
 def _estimate(run: dict, n_slices_day: int, workers: int, task_s: float, stitch_per_boundary_s: float,
-              finalize_s: float, fanout_s: float = 0.0, fanout_max_s: float = 0.0) -> dict:
+              finalize_s: float, fanout_s: float = 0.0, fanout_max_s: float = 0.0,
+              stitch_pieces_s: float = 0.0) -> dict:
     """Wall time of ``n_slices_day`` slices on ``workers`` workers: waves of tasks, the scheduler's
-    round trip per task, the client's sequential stitching, the finalize stage on the client
+    round trip per task, the stitching (its pieces, ``stitch_pieces_s`` of work spread over the
+    workers, and the client's threading per boundary), the finalize stage on the client
     (``finalize_s``) and its pieces on the workers (``fanout_s`` of work spread over them, no
     less than the longest piece)."""
     waves = math.ceil(n_slices_day / workers)
     part = waves * task_s + n_slices_day * run["scheduler_roundtrip_s"]
     relabel = waves * run["relabel_s"] / max(1, math.ceil(len(run["partition_task_s"]) / run["workers"]))
-    fan = max(fanout_s / workers, fanout_max_s) if fanout_s else 0.0
-    total = part + relabel + stitch_per_boundary_s * (n_slices_day - 1) + finalize_s + fan
-    return {"workers": workers, "partitions_phase_s": part, "stitch_s": stitch_per_boundary_s * (n_slices_day - 1),
+    fan = _spread(fanout_s, fanout_max_s, workers)
+    stitch = stitch_per_boundary_s * (n_slices_day - 1) + _spread(stitch_pieces_s, run.get("stitch_task_s_max", 0.0),
+                                                                  workers)
+    total = part + relabel + stitch + finalize_s + fan
+    return {"workers": workers, "partitions_phase_s": part, "stitch_s": stitch,
             "relabel_s": relabel, "finalize_client_s": finalize_s, "finalize_pieces_s": fan, "total_s": total}
 
 
@@ -169,8 +182,11 @@ def main() -> None:
     per_day = rate * day_s / n_reports
     fin_day = (r2["finalize_s"] - r2["finalize_fanout_wall_s"]) * per_day
     fan_day = r2["finalize_fanout_task_s_sum"] * per_day
-    est = [_estimate(r2, n_day, w, task_day, r2["stitch_s"] / boundaries * 1.0, fin_day, fan_day,
-                     r2["finalize_fanout_task_s_max"]) for w in (8, 32, 128)]
+    # the boundaries' pieces scale with the slices' reports; the client threads them per boundary
+    stitch_client = (r2["stitch_s"] - r2["stitch_pieces_wall_s"]) / boundaries
+    stitch_day = r2["stitch_task_s_sum"] * per_day
+    est = [_estimate(r2, n_day, w, task_day, stitch_client, fin_day, fan_day, r2["finalize_fanout_task_s_max"],
+                     stitch_day) for w in (8, 32, 128)]
     result = {
         "window_s": window_s, "config": {"name": a.config, "methods": list(run_cfg.methods),
                                          "filters": list(run_cfg.filters), "centralized": run_cfg.centralized,
@@ -185,7 +201,8 @@ def main() -> None:
         "estimate_day": {"model": "24 h at this recording's report rate (or --day-reports over 24 h), "
                                   "slices of slice_s with overlap_s warm-up; "
                                   "task time = measured s per input report x slice input; waves of tasks over the "
-                                  "workers + scheduler round trip per task + client stitching per boundary "
+                                  "workers + scheduler round trip per task + the stitching's pieces (measured task s "
+                                  "per report over the workers) + the client's threading of them per boundary "
                                   "(sequential) + finalize on the client (measured s per report, its pieces "
                                   "on the workers taken out) + the finalize's pieces (measured task s per report "
                                   "over the workers, no less than the longest measured piece)",

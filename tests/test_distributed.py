@@ -12,7 +12,7 @@ import polars as pl
 import pytest
 from polars.testing import assert_frame_equal
 
-from tertiary.pipeline import dask_engine as D
+from tertiary.pipeline import dask_engine as D, stitching
 from tertiary.evaluation import matched_apart
 from tertiary.pipeline import whole_run
 from tertiary import pipeline
@@ -245,6 +245,8 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     local = pipeline.run(read_dataset(long_run, lazy=True), tmp_path / "local", CFG, window_s=WINDOW)
     want = _tables(local)
     assert got["partitions"].height == 3 and res.stitching.height == 2
+    # each boundary's matching ran on the workers, in the slices' own ids
+    assert res.timings["stitch_task_s_sum"] > 0 and res.timings["stitch_pieces_wall_s"] > 0
     # the finalize's pieces: the run record names each call's function, pieces and where they
     # ran; the truth picture's alerts are the local run's
     record = json.loads(dict(got["run"].iter_rows())["fanout"])
@@ -290,7 +292,7 @@ def test_gated_pairs_equal_brute_force():
                              "x_m": rng.uniform(-5e3, 5e3, n), "y_m": rng.uniform(-5e3, 5e3, n),
                              "z_m": rng.uniform(0, 300, n)})
     a, b = frame(400, np.arange(400)), frame(400, np.arange(1000, 1400))
-    got = D._pairs(a, b, ["run", "epoch"], ["run"], "track_id", 500.0).sort("a", "b")
+    got = stitching._pairs(a, b, ["run", "epoch"], ["run"], "track_id", 500.0).sort("a", "b")
     j = a.join(b, on=["run", "epoch"], suffix="_b").filter(
         ((pl.col("x_m") - pl.col("x_m_b")) ** 2 + (pl.col("y_m") - pl.col("y_m_b")) ** 2
          + (pl.col("z_m") - pl.col("z_m_b")) ** 2).sqrt() <= 500.0)

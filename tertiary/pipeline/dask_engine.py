@@ -15,13 +15,10 @@ parts under ``OUT/slices/<i>/{kept,overlap}/<table>/w=<k>.parquet``.
 
 Ids. ``target_id`` is numbered per run in the local engine (:func:`tertiary.stages.association.associate.carry_step`),
 ``track_id`` per (run, method, filter) from 1 and ``cluster_id`` per (run, method): a run
-partition gets exactly the local engine's ids, and a time slice's ids are local to it. The client therefore
-(1) stitches each slice's ids to the previous slice's by matching in the overlap — targets by the
-reports they share (same report row → same target), tracks by position (same epoch, distance
-≤ ``gate_m``), clusters by lead target — one-to-one (Hungarian, most coinciding epochs first),
-unmatched ids getting fresh ids above every id used so far; (2) renumbers target ids by (run,
-first epoch, id), the order in which the local engine creates them; then every partition's parts
-are relabelled in place by a task (atomic rewrites).
+partition gets exactly the local engine's ids, and a time slice's ids are local to it: they are
+stitched to the previous slice's by matching in the overlap (:mod:`tertiary.pipeline.stitching`;
+each boundary's matching a task, the threading of ids on the client), then every partition's
+parts are relabelled in place by a task (atomic rewrites).
 
 Evaluation. A partition that is a whole run validates the truth and its windows match the
 pictures to it, step their metrics and sum the consistency lags, as a local run's do; it returns
@@ -49,10 +46,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import polars as pl
 
-from scipy.optimize import linear_sum_assignment
 
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset
@@ -62,7 +57,8 @@ from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_window, peak_rss_mib)
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
-from tertiary.pipeline.partition_writer import SCRATCH, PartitionWriter
+from tertiary.pipeline.partition_writer import SCRATCH, SLICES, PartitionWriter, read_part, slice_files
+from tertiary.pipeline.stitching import relabel_partition, stitch
 from tertiary.runtime.fanout import DaskFanout
 
 #: default warm-up before each time slice (s): several scans of the slowest radar, the tracker's
@@ -70,7 +66,6 @@ from tertiary.runtime.fanout import DaskFanout
 DEFAULT_OVERLAP_S = 120.0
 #: gate of the positional match of tracks in the overlap (m)
 DEFAULT_GATE_M = 500.0
-SLICES = "slices"
 
 
 @dataclass(frozen=True)
@@ -248,20 +243,6 @@ def partition_input(lf: pl.LazyFrame, part: Partition, path: Path) -> pl.LazyFra
 # --------------------------------------------------------------------------- reading partitions back
 
 
-def _files(out: Path, part: int, sub: str, name: str) -> list[Path]:
-    return sorted((out / SLICES / str(part) / sub / name).glob("w=*.parquet"))
-
-
-def read_part(out: Path, part: int, name: str, sub: str = "kept", columns: list[str] | None = None
-              ) -> pl.DataFrame | None:
-    files = _files(out, part, sub, name)
-    if not files:
-        return None
-    frames = [pl.read_parquet(f, columns=None if columns is None else
-                              [c for c in columns if c in pl.read_parquet_schema(f)]) for f in files]
-    return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
-
-
 class UnionParts:
     """The finalize stage's view of every partition: ``table(name)`` concatenates them."""
 
@@ -279,12 +260,12 @@ class UnionParts:
 
     def part_files(self, name: str) -> list[Path]:
         """The files of every partition's rows of ``name``, in partition and window order."""
-        return [f for i in range(self.n) for f in _files(self.out, i, "kept", name)]
+        return [f for i in range(self.n) for f in slice_files(self.out, i, "kept", name)]
 
     def iter_parts(self, name: str) -> Iterator[pl.DataFrame]:
         """Each partition's rows of ``name``, read as they are needed."""
         for i in range(self.n):
-            for f in _files(self.out, i, "kept", name):
+            for f in slice_files(self.out, i, "kept", name):
                 yield pl.read_parquet(f)
 
     def scratch(self) -> Path:
@@ -292,275 +273,6 @@ class UnionParts:
         d = self.out / SLICES / SCRATCH
         d.mkdir(parents=True, exist_ok=True)
         return d
-
-
-# --------------------------------------------------------------------------- stitching
-
-
-def _assign(pairs: pl.DataFrame, group: list[str]) -> pl.DataFrame:
-    """One-to-one matches of (a, b) pairs with ``n`` coinciding epochs and mean distance ``d``:
-    per group, the Hungarian assignment maximising coinciding epochs (then closeness)."""
-    out = []
-    for _key, g in pairs.group_by(group, maintain_order=True) if group else [((), pairs)]:
-        ua, ia = np.unique(g["a"].to_numpy(), return_inverse=True)
-        ub, ib = np.unique(g["b"].to_numpy(), return_inverse=True)
-        score = np.zeros((len(ua), len(ub)))
-        # many coinciding epochs first; among equals the nearer (d < gate, so d/gate < 1)
-        score[ia, ib] = g["n"].to_numpy() - g["d"].to_numpy() / (1.0 + g["d"].max())
-        r, c = linear_sum_assignment(score, maximize=True)
-        ok = score[r, c] > 0
-        m = pl.DataFrame({"a": ua[r[ok]], "b": ub[c[ok]]}, schema={"a": pl.UInt64, "b": pl.UInt64})
-        first = g.row(0, named=True)
-        out.append(m.with_columns([pl.lit(first[k], g.schema[k]).alias(k) for k in group]).select(*group, "a", "b"))
-    if not out:
-        return pairs.select(*group, pl.col("a").cast(pl.UInt64), pl.col("b").cast(pl.UInt64)).clear()
-    return pl.concat(out)
-
-
-def _pairs(prev: pl.DataFrame, cur: pl.DataFrame, on: list[str], group: list[str], id_col: str,
-           gate_m: float | None) -> pl.DataFrame:
-    """Coinciding (prev id a, cur id b) per group: rows joined on ``on`` (and within ``gate_m``)."""
-    cols = ["x_m", "y_m", "z_m"] if gate_m is not None else []
-    if gate_m is None:
-        j = prev.select(*on, pl.col(id_col).alias("a")).join(cur.select(*on, pl.col(id_col).alias("b")), on=on)
-        j = j.with_columns(pl.lit(0.0).alias("d"))
-    else:
-        # candidates from the 3 x 3 grid cells of side gate_m around each row, not every row of an
-        # epoch against every other (quadratic: ~20 GB on a national-peak slice)
-        cell = [(pl.col("x_m") // gate_m).cast(pl.Int64).alias("__cx"),
-                (pl.col("y_m") // gate_m).cast(pl.Int64).alias("__cy")]
-        a = prev.select(*on, pl.col(id_col).alias("a"), *cols).with_columns(cell)
-        b = cur.select(*on, pl.col(id_col).alias("b"), *cols).with_columns(cell)
-        key = [*on, "__cx", "__cy"]
-        j = pl.concat([a.join(b.with_columns(pl.col("__cx") + dx, pl.col("__cy") + dy), on=key, suffix="_b")
-                       for dx in (-1, 0, 1) for dy in (-1, 0, 1)]).drop("__cx", "__cy")
-        d = ((pl.col("x_m") - pl.col("x_m_b")) ** 2 + (pl.col("y_m") - pl.col("y_m_b")) ** 2
-             + (pl.col("z_m") - pl.col("z_m_b")) ** 2).sqrt()
-        j = j.with_columns(d.alias("d")).filter(pl.col("d") <= gate_m)
-    return j.group_by(*group, "a", "b").agg(pl.len().alias("n"), pl.col("d").mean())
-
-
-class _IdSpace:
-    """Ids handed out per group (e.g. per (run, method, filter) for tracks): a slice's id maps to
-    the previous slice's id it matched, else to a fresh id above every id of its group so far."""
-
-    def __init__(self, group: list[str]) -> None:
-        self.group = group
-        self.top: pl.DataFrame | None = None
-
-    def fresh(self, ids: pl.DataFrame, matched: pl.DataFrame | None, keep: bool = False) -> pl.DataFrame:
-        """Map (group…, old, new) of every id in ``ids`` (group…, b); ``matched`` (group…, a, b);
-        ``keep``: the ids stay (a run's first slice)."""
-        g = self.group
-        if keep or matched is None or matched.height == 0:
-            m = ids.with_columns((pl.col("b") if keep else pl.lit(None)).cast(pl.UInt64).alias("a"))
-        else:
-            m = ids.join(matched.select(*g, pl.col("a").cast(pl.UInt64), pl.col("b").cast(ids.schema["b"])),
-                         on=[*g, "b"], how="left")
-        un = m.filter(pl.col("a").is_null()).sort(*g, "b")
-        un = (un.join(self.top, on=g, how="left") if self.top is not None
-              else un.with_columns(pl.lit(None, pl.Int64).alias("top")))
-        un = un.with_columns((pl.col("top").fill_null(-1) + 1 + pl.int_range(pl.len()).over(g))
-                             .cast(pl.UInt64).alias("a")).drop("top")
-        mapped = pl.concat([m.filter(pl.col("a").is_not_null()), un.select(m.columns)])
-        top = mapped.group_by(g).agg(pl.col("a").max().cast(pl.Int64).alias("top"))
-        self.top = top if self.top is None else pl.concat([self.top, top]).group_by(g).agg(pl.col("top").max())
-        return mapped.select(*g, pl.col("b").alias("old"), pl.col("a").alias("new"))
-
-
-def _ids(out: Path, i: int, name: str, cols: list[str], id_col: str) -> pl.DataFrame:
-    """Distinct (group, id) of a partition's kept rows of ``name`` (``id_col`` renamed ``b``)."""
-    f = read_part(out, i, name, columns=[*cols, id_col])
-    if f is None:
-        return pl.DataFrame()
-    return f.select(*cols, pl.col(id_col).alias("b")).unique()
-
-
-def _run_key(p: "Partition") -> int:
-    """The run a partition's ids are numbered in (0 for a dataset without runs)."""
-    return 0 if p.run is None else int(p.run)
-
-
-def _target_ids(out: Path, i: int) -> pl.DataFrame:
-    parts = [_ids(out, i, "associations", [], "target_id"), _ids(out, i, "fused", [], "target_id"),
-             _ids(out, i, "tracks", [], "plot_target_id"), _ids(out, i, "clusters", [], "lead_target_id")]
-    parts = [p.cast({"b": pl.UInt64}) for p in parts if p.width]
-    return pl.concat(parts).drop_nulls().unique() if parts else pl.DataFrame(schema={"b": pl.UInt64})
-
-
-TRACK_GROUP = ["run", "method", "filter"]
-CLUSTER_GROUP = ["run", "method"]
-
-
-def _remap(frame: pl.DataFrame | None, maps: dict[str, pl.DataFrame]) -> pl.DataFrame | None:
-    """``frame`` with its target, track and cluster ids through ``maps`` (old → new)."""
-    if frame is None or frame.height == 0:
-        return frame
-    tm = maps["target"]
-    old, new = tm["old"], tm["new"]
-
-    def tgt(c: str) -> pl.Expr:
-        return pl.col(c).replace_strict(old, new, default=None, return_dtype=pl.UInt64)
-
-    cols = frame.columns
-    out = frame
-    if "target_id" in cols:
-        out = out.with_columns(tgt("target_id"))
-    if "plot_target_id" in cols:
-        out = out.with_columns(tgt("plot_target_id"))
-    if "lead_target_id" in cols:
-        out = out.with_columns(tgt("lead_target_id"),
-                               pl.col("members").list.eval(pl.element().replace_strict(old, new, default=None,
-                                                                                        return_dtype=pl.UInt64)))
-    if "cluster_id" in cols and maps.get("cluster") is not None:
-        out = _join_map(out, maps["cluster"], CLUSTER_GROUP, "cluster_id")
-    if "track_id" in cols and "filter" in cols and maps.get("track") is not None:
-        out = _join_map(out, maps["track"], TRACK_GROUP, "track_id")
-    if "id_a" in cols:
-        out = _remap_conflicts(out, maps)
-    return out
-
-
-def _join_map(frame: pl.DataFrame, m: pl.DataFrame, group: list[str], col: str) -> pl.DataFrame:
-    m = m.select(*group, pl.col("old").cast(frame.schema[col]).alias(col), pl.col("new").alias("__new"))
-    j = frame.join(m, on=[*group, col], how="left", maintain_order="left")
-    return j.with_columns(pl.coalesce("__new", col).cast(frame.schema[col]).alias(col)).drop("__new")
-
-
-def _remap_conflicts(frame: pl.DataFrame, maps: dict[str, pl.DataFrame]) -> pl.DataFrame:
-    """id_a/id_b are track ids where the picture is "<method>+<filter>", else target ids."""
-    tm = maps["target"]
-    is_track = pl.col("method").str.contains("+", literal=True)
-    out = frame.with_columns(pl.col("method").str.split_exact("+", 1).struct.rename_fields(["__m", "__f"])
-                             .alias("__mf")).unnest("__mf")
-    for c in ("id_a", "id_b"):
-        tgt = pl.col(c).replace_strict(tm["old"], tm["new"], default=pl.col(c), return_dtype=pl.UInt64)
-        if maps.get("track") is not None:
-            m = maps["track"].select(pl.col("run"), pl.col("method").alias("__m"), pl.col("filter").alias("__f"),
-                                     pl.col("old").alias(c), pl.col("new").alias("__new"))
-            out = out.join(m, on=["run", "__m", "__f", c], how="left", maintain_order="left")
-            trk = pl.coalesce("__new", c)
-        else:
-            out = out.with_columns(pl.lit(None, pl.UInt64).alias("__new"))
-            trk = pl.col(c)
-        out = out.with_columns(pl.when(is_track).then(trk).otherwise(tgt).cast(pl.UInt64).alias(c)).drop("__new")
-    return out.drop("__m", "__f")
-
-
-def stitch(out: Path, parts: list[Partition], gate_m: float = DEFAULT_GATE_M) -> tuple[dict[int, dict], pl.DataFrame]:
-    """Id maps of every partition (old → new target/track/cluster ids) and, per slice boundary,
-    what stitching did (ids matched and given fresh ids). Sequential over the partitions (each
-    slice's map depends on the previous slice's), on the overlap rows only."""
-    spaces = {"target": _IdSpace(["__all"]), "track": _IdSpace(TRACK_GROUP), "cluster": _IdSpace(CLUSTER_GROUP)}
-    maps: dict[int, dict] = {}
-    report = []
-    by_index = {p.index: p for p in parts}
-    for p in parts:
-        prev = by_index.get(p.index - 1) if p.slice > 0 else None
-        maps[p.index], row = _stitch_one(out, p, prev, maps.get(p.index - 1), spaces, gate_m)
-        if row:
-            report.append(row)
-    _canonical_targets(out, parts, maps)
-    return maps, pl.DataFrame(report) if report else pl.DataFrame()
-
-
-def _matches(out: Path, p: Partition, prev: Partition, prev_maps: dict, gate_m: float) -> dict[str, pl.DataFrame]:
-    """Matches (group…, a = previous slice's final id, b = this slice's id) in the overlap."""
-    lo = p.t0_us - p.warm_us
-
-    def before(name: str) -> pl.DataFrame | None:
-        files = _files(out, prev.index, "kept", name)
-        if not files:
-            return None
-        f = pl.concat([pl.scan_parquet(x).filter(pl.col("epoch").dt.epoch("us") >= lo).collect() for x in files],
-                      how="vertical_relaxed")
-        return _remap(f, prev_maps)
-
-    got: dict[str, pl.DataFrame] = {}
-    a0, a1 = before("associations"), read_part(out, p.index, "associations", sub="overlap")
-    if a0 is not None and a1 is not None and a0.height and a1.height:
-        key = ["run", "epoch", "radar_id", "local_track_id", "report_id"]
-        got["target"] = _assign(_pairs(a0, a1, key, [], "target_id", None), []).with_columns(__all=pl.lit(_run_key(p)))
-    t0, t1 = before("tracks"), read_part(out, p.index, "tracks", sub="overlap")
-    if t0 is not None and t1 is not None and t0.height and t1.height:
-        got["track"] = _assign(_pairs(t0, t1, [*TRACK_GROUP, "epoch"], TRACK_GROUP, "track_id", gate_m),
-                               TRACK_GROUP)
-    c0, c1 = before("clusters"), read_part(out, p.index, "clusters", sub="overlap")
-    if c0 is not None and c1 is not None and c0.height and c1.height and "target" in got:
-        # the warm-up clusters' leads in the previous slice's ids (unmatched leads become null)
-        tm = got["target"].select(pl.col("b").alias("old"), pl.col("a").alias("new"))
-        c1 = _remap(c1, {"target": tm})
-        got["cluster"] = _assign(_pairs(c0, c1, [*CLUSTER_GROUP, "epoch", "lead_target_id"], CLUSTER_GROUP,
-                                        "cluster_id", None), CLUSTER_GROUP)
-    return got
-
-
-def _stitch_one(out: Path, p: Partition, prev: Partition | None, prev_maps: dict | None,
-                spaces: dict[str, _IdSpace], gate_m: float) -> tuple[dict, dict]:
-    # target ids are numbered per run (tertiary.stages.association.associate), like track and cluster ids; a
-    # partition holds one run, so its target space is that run's
-    ids = {"target": _target_ids(out, p.index).with_columns(__all=pl.lit(_run_key(p))),
-           "track": _ids(out, p.index, "tracks", TRACK_GROUP, "track_id"),
-           "cluster": _ids(out, p.index, "clusters", CLUSTER_GROUP, "cluster_id")}
-    got = _matches(out, p, prev, prev_maps, gate_m) if prev is not None else {}
-    maps: dict[str, pl.DataFrame | None] = {}
-    for kind, space in spaces.items():
-        if ids[kind].width == 0:
-            maps[kind] = None
-            continue
-        # a run's first slice keeps its track and cluster ids (numbered per run, like the local engine)
-        keep = prev is None
-        maps[kind] = space.fresh(ids[kind], got.get(kind), keep=keep)
-    maps["target"] = maps["target"].drop("__all") if maps["target"] is not None else \
-        pl.DataFrame(schema={"old": pl.UInt64, "new": pl.UInt64})
-    row: dict = {}
-    if prev is not None:
-        row = {"partition": p.index, "run": p.run, "boundary_utc": boundary_utc(p.t0_us)}
-        for kind in spaces:
-            m = maps[kind]
-            row[f"{kind}s"] = m.height if m is not None else 0
-            # kept ids that continue an id of the previous slice (the others got fresh ids)
-            row[f"{kind}s_continued"] = (m.join(got[kind].select(pl.col("b").alias("old")).unique(), on="old",
-                                               how="semi").height if kind in got and m is not None else 0)
-    return maps, row
-
-
-def _canonical_targets(out: Path, parts: list[Partition], maps: dict[int, dict]) -> None:
-    """Target ids renumbered by (first kept epoch, run, stitched id): the local engine's creation order."""
-    firsts = []
-    for p in parts:
-        a = read_part(out, p.index, "associations", columns=["run", "epoch", "target_id"])
-        f = read_part(out, p.index, "fused", columns=["run", "epoch", "target_id"])
-        both = [x for x in (a, f) if x is not None and x.height]
-        if not both:
-            continue
-        rows = pl.concat(both, how="vertical_relaxed").group_by("target_id").agg(pl.col("epoch").min())
-        m = maps[p.index]["target"]
-        firsts.append(rows.join(m, left_on="target_id", right_on="old").select("new", "epoch")
-                      .with_columns(run=pl.lit(_run_key(p), pl.Int64)))
-    if not firsts:
-        return
-    order = (pl.concat(firsts).group_by("run", "new").agg(pl.col("epoch").min())
-             .sort("run", "epoch", "new").with_columns(canon=pl.int_range(pl.len()).over("run")))
-    for p in parts:
-        m = maps[p.index]["target"].with_columns(run=pl.lit(_run_key(p), pl.Int64))
-        maps[p.index]["target"] = (m.join(order.select("run", "new", "canon"), on=["run", "new"], how="left")
-                                   .select("old", pl.coalesce("canon", "new").cast(pl.UInt64).alias("new")))
-
-
-def relabel_partition(out_dir: str, index: int, maps: dict) -> int:
-    """Rewrite a partition's kept parts with the stitched ids (a task; atomic per file)."""
-    n = 0
-    for name in ("associations", "fused", "clusters", "tracks", "conflicts", "curve_rows"):
-        for f in _files(Path(out_dir), index, "kept", name):
-            frame = pl.read_parquet(f)
-            new = _remap(frame, maps)
-            for c in ("target_id", "plot_target_id", "lead_target_id"):
-                if c in frame.columns and new[c].null_count() > frame[c].null_count():
-                    raise RuntimeError(f"stitching lost {c} values in {f}")
-            write_parquet_atomic(new, f, compression="zstd")
-            n += frame.height
-    return n
 
 
 # --------------------------------------------------------------------------- the run
@@ -711,7 +423,8 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
 def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pipeline.PipelineConfig,
                 window_s: float | None, origin: int | None, gate_m: float, timings: dict, say,
                 tables: str = "full") -> tuple[list[dict], dict, pl.DataFrame]:
-    """The partitions' tasks, the stitching on the client, the relabelling tasks."""
+    """The partitions' tasks, the stitching (its pieces as tasks, threaded on the client), the
+    relabelling tasks."""
     from distributed import as_completed
     t = time.perf_counter()
     futs = [c.submit(run_partition, dataset, p, cfg, window_s, origin, out, tables, pure=False,
@@ -725,8 +438,13 @@ def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pip
     timings["partitions_s"] = time.perf_counter() - t
     timings["partition_task_s_sum"] = sum(i["seconds"] for i in infos.values())
     t = time.perf_counter()
-    maps, stitching = stitch(Path(out), parts, gate_m) if len(parts) > 1 else ({}, pl.DataFrame())
+    pieces = DaskFanout(c)
+    maps, stitching = stitch(Path(out), parts, gate_m, pieces) if len(parts) > 1 else ({}, pl.DataFrame())
     timings["stitch_s"] = time.perf_counter() - t
+    # the boundaries' pieces on the workers; the rest of stitch_s is the client's threading of them
+    timings["stitch_pieces_wall_s"] = sum(r["wall_s"] for r in pieces.record)
+    timings["stitch_task_s_sum"] = sum(sum(r["task_s"]) for r in pieces.record)
+    timings["stitch_task_s_max"] = max((max(r["task_s"]) for r in pieces.record), default=0.0)
     # each boundary's continuity as soon as it is known (a long run's log tells it before the
     # whole-run stages end; the stitching table holds the same rows)
     for row in stitching.iter_rows(named=True) if stitching.height else ():

@@ -14,7 +14,7 @@ from tertiary.pipeline.tables import PartTrim
 from tertiary.runtime.windows import Window
 from tertiary.store.run_store import write_parquet_atomic
 
-__all__ = ["EPOCH_TABLES", "SCRATCH", "STITCHED", "PartitionWriter"]
+__all__ = ["EPOCH_TABLES", "SCRATCH", "SLICES", "STITCHED", "PartitionWriter", "read_part", "slice_files"]
 
 #: tables stitched across slice boundaries (their warm-up rows are kept aside for matching)
 STITCHED = ("associations", "fused", "clusters", "tracks")
@@ -22,6 +22,8 @@ STITCHED = ("associations", "fused", "clusters", "tracks")
 EPOCH_TABLES = ("aligned", "associations", "fused", "clusters", "tracks", "conflicts", "curve_rows")
 #: the scratch files of a partition, and of the client's finalize stage beside the partitions
 SCRATCH = "_scratch"
+#: the partitions' folder of a distributed run's output: ``slices/<i>/{kept,overlap}/<table>/w=<k>.parquet``
+SLICES = "slices"
 
 
 class PartitionWriter:
@@ -113,3 +115,19 @@ class PartitionWriter:
             keep &= np.where(is_rep, inside, True)
             frame = frame.with_columns(pl.Series("row_index", np.where(ok, self.g[li], local).astype(np.uint64)))
         return frame.filter(pl.Series(keep))
+
+
+def slice_files(out: Path, part: int, sub: str, name: str) -> list[Path]:
+    """The parts of table ``name`` partition ``part`` wrote (``sub``: kept or overlap), in window order."""
+    return sorted((out / SLICES / str(part) / sub / name).glob("w=*.parquet"))
+
+
+def read_part(out: Path, part: int, name: str, sub: str = "kept", columns: list[str] | None = None
+              ) -> pl.DataFrame | None:
+    """Partition ``part``'s rows of ``name`` (``columns``: those it has), None when it wrote none."""
+    files = slice_files(out, part, sub, name)
+    if not files:
+        return None
+    frames = [pl.read_parquet(f, columns=None if columns is None else
+                              [c for c in columns if c in pl.read_parquet_schema(f)]) for f in files]
+    return frames[0] if len(frames) == 1 else pl.concat(frames, how="diagonal_relaxed")
