@@ -237,6 +237,9 @@ def test_time_slices_equal_the_local_engine_outside_the_overlaps(client, long_ru
     # the association metrics come from the partitions' merged states: no row is read back for them
     monkeypatch.setattr(whole_run, "scored_blocks", lambda *a: pytest.fail("association rows scored on the client"))
     monkeypatch.setattr(matched_apart, "PIECE_ROWS", 1)
+    # the truth is validated while the partitions run, not by the finalize after them
+    for name in ("stream_truth", "validate_truth"):
+        monkeypatch.setattr(whole_run, name, lambda *a, n=name: pytest.fail(f"the finalize ran {n}"))
     res = D.run_dask_detailed(long_run, tmp_path / "run", CFG, client=client, window_s=WINDOW, slice_s=180.0,
                               overlap_s=60.0, progress=said.append)
     # the client's whole-run stages are said as they start, after "finalize"

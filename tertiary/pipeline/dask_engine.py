@@ -41,6 +41,7 @@ import os
 import shutil
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -55,6 +56,8 @@ from tertiary.pipeline.stitch_effects import boundary_utc, parse_utc, stitching_
 from tertiary.store.run_store import RunStore, record_run, write_parquet_atomic
 from tertiary.core.stage import T_MAX_US, T_MIN_US
 from tertiary.runtime.windows import (DEFAULT_WINDOW_S, US, ReportSource, check_window, peak_rss_mib)
+from tertiary.pipeline.clock import StageClock
+from tertiary.pipeline.ingestion import ValidTruth, first_truth
 from tertiary.core.errors import DataError, OptionError
 from tertiary.pipeline.partition_states import merged_evaluation, merged_lags, merged_scores
 from tertiary.pipeline.partition_writer import SCRATCH, SLICES, PartitionWriter, read_part, slice_files
@@ -357,21 +360,28 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
     """The partitions on the cluster of client ``c``, then the finalize on the client, whose
     independent pieces (:data:`~tertiary.pipeline.streaming.RunContext.fanout`) are tasks of the
     same cluster."""
-    infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
-                                         window_s, origin, gate_m, timings, say, tables)
-    say("finalize")
     ds = read_dataset(dataset_dir, lazy=True)
+    source = ReportSource(ds.reports, cfg.limits)
+    span = None if source.first_us is None else (source.first_us, source.last_us)   # the truth's window
+    # the truth is validated on the client while the partitions run (it waits for them otherwise)
+    truth_notes: list[str] = []
+    with ThreadPoolExecutor(1) as early:
+        truth = early.submit(_validated_truth, ds, cfg, truth_notes, source, UnionParts(out, len(parts)))
+        infos, maps, stitching = _distribute(c, str(Path(dataset_dir).resolve()), str(out.resolve()), parts, cfg,
+                                             window_s, origin, gate_m, timings, say, tables)
+        first, timings["truth_early_s"] = truth.result()
+    say("finalize")
     radars = next((i["radars"] for i in infos if "radars" in i), None)
-    span = pipeline.ingestion.plausible_span(ds.reports, cfg.limits)     # the truth's window, as a local run's
     fanout = DaskFanout(c)
     ctx = pipeline.RunContext(radars if radars is not None else pl.DataFrame(), [], ds.origin, origin, 0,
                               curves=all(i.get("curves", True) for i in infos if i["n_input"]), report_span=span,
-                              fanout=fanout)
+                              truth=first, fanout=fanout)
     counts: dict[str, int] = {}
     for i in infos:
         for k, v in i["counts"].items():
             counts[k] = counts.get(k, 0) + v
         notes.extend(n for n in i["notes"] if n not in notes)
+    notes.extend(n for n in truth_notes if n not in notes)
     # the association metrics the partitions scored, in the run's ids and merged
     st = dataclasses.replace(pipeline.init_stream_state(cfg), counts=counts,
                              scores=merged_scores(parts, infos, maps), evaluation=merged_evaluation(parts, infos),
@@ -418,6 +428,15 @@ def _run_on(c: Any, dataset_dir: str | Path, out: Path, cfg: pipeline.PipelineCo
     if failure is not None:
         raise failure
     return DaskRun(out / "results.duckdb", table, stitching, timings)
+
+
+def _validated_truth(ds: Any, cfg: pipeline.PipelineConfig, notes: list[str], source: ReportSource,
+                     parts: UnionParts) -> tuple[ValidTruth | None, float]:
+    """(the truth validated into the finalize's scratch as a local run's before its windows, or
+    None: the finalize validates it; seconds)."""
+    t = time.perf_counter()
+    got = first_truth(ds, cfg, notes, source, parts, StageClock(lambda _m: None))
+    return got, time.perf_counter() - t
 
 
 def _distribute(c: Any, dataset: str, out: str, parts: list[Partition], cfg: pipeline.PipelineConfig,
