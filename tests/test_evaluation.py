@@ -385,9 +385,9 @@ def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(
     each stretch a piece of its cluster (arguments shipped, pieces in any order), joins their
     OSPA, GOSPA and SIAP states, and computes the metrics a bucket of tracks or aircraft a
     piece: every output equals the picture matched and scored in memory here.
-    Fails if a stretch's rows or a bucket's sums are lost, or if the stretches' multi-target
-    states are not joined."""
-    from tertiary.evaluation import matched_apart
+    Fails if a stretch's rows, a filed slice's or a bucket's sums are lost, or if the stretches'
+    multi-target states are not joined."""
+    from tertiary.evaluation import buckets, matched_apart
     from tertiary.evaluation.evaluate import write_reference
     root, ds, files = small
     picture = read_picture(files[0]).with_columns(pl.lit("system").alias("method"))
@@ -405,12 +405,16 @@ def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(
         part.write_parquet(windows[-1])
     want = evaluate_each([iter(parts)], ref, **kw)          # matched and scored in memory
     monkeypatch.setattr(matched_apart, "PIECE_ROWS", -(-picture.height // 4))
+    monkeypatch.setattr(buckets, "FILE_SLICE_ROWS", -(-picture.height // 5))
     fanout = Apart()
     got = evaluate_each([matched_apart.PictureFiles("system", windows, picture.columns, _as_is, 300, fanout)], ref,
                         spill=tmp_path / "apart", **kw)
     # the stretches, then the buckets of tracks and of aircraft the metrics are computed in
     assert 3 <= fanout.pieces["_match_piece"] <= 4 and len(parts) > 6
     assert fanout.pieces["_track_piece"] > 1 and fanout.pieces["_bucket_piece"] > 1
+    # the rows filed by bucket a slice a piece (tracks; aircraft for coverage, matched and
+    # expected for the metrics), and the coverage a bucket of aircraft a piece
+    assert fanout.pieces["_file_slice"] >= 4 * 4 and fanout.pieces["_coverage_piece"] > 1
     assert want.metrics.filter(pl.col("metric") == "siap_track_changes_per_hour").height
     for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
         a, b = getattr(got, name), getattr(want, name)

@@ -60,7 +60,8 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
     lf = matched.lazy().with_row_index(_ROW)
     cols = [_ROW, *(c for c in schema.names() if c in wanted)]
     filed = scratch is not None and buckets > 1
-    by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks")
+    by_track = (file_buckets(lf.select(cols), _bucket_of(_track_key(), buckets), buckets, scratch / "tracks",
+                             fanout=fanout)
                 if filed else [lf.filter(_in_bucket(_track_key(), buckets, k)).select(cols) for k in range(buckets)])
     parts = SeedSums()
     seen_from = first_seen(observed, schema)
@@ -70,7 +71,7 @@ def picture_accuracy_buckets(matched: pl.LazyFrame, stage: str, cfg: AccuracyCon
         return picture_accuracy(pl.DataFrame(), stage, cfg)
     coverage = None if observed is None else _coverage_buckets(
         lf, observed, schema["epoch"], parts.tables["tracks"].select("method"), buckets,
-        scratch / "aircraft" if filed else None)
+        scratch / "aircraft" if filed else None, fanout)
     return parts.finish(stage, cfg, coverage)
 
 
@@ -101,9 +102,11 @@ def _aircraft_key() -> list[pl.Expr]:
 
 
 def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, epoch: pl.DataType,
-                      methods: pl.DataFrame, buckets: int, scratch: Path | None = None) -> pl.DataFrame:
+                      methods: pl.DataFrame, buckets: int, scratch: Path | None = None,
+                      fanout: Fanout = serial) -> pl.DataFrame:
     """The coverage (completeness, breaks) of the matched rows ``lf`` with whole (run, aircraft)
-    walked per bucket (the rows filed by bucket once in ``scratch``, if given)."""
+    walked per bucket (the rows filed by bucket once in ``scratch``, if given), each bucket a
+    piece of ``fanout``."""
     seen = aircraft_epochs(observed.lazy(), epoch)
     tracked = lf.filter(pl.col("truth_id").is_not_null())
     by_aircraft = None
@@ -111,22 +114,23 @@ def _coverage_buckets(lf: pl.LazyFrame, observed: pl.DataFrame | pl.LazyFrame, e
         # each row's bucket as the filter below makes it: hashed before ``run`` is cast
         src = tracked.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab"))
         by_aircraft = [f.drop("__ab") for f in
-                       file_buckets(continuity_columns(src, "__ab"), pl.col("__ab"), buckets, scratch)]
+                       file_buckets(continuity_columns(src, "__ab"), pl.col("__ab"), buckets, scratch, fanout=fanout)]
     seen_by = None
     if scratch is not None:         # the aircraft seen, cut once too
         s = seen.with_columns(_bucket_of(_aircraft_key(), buckets).alias("__ab")).collect()
         seen_by = {k: f.drop("__ab") for (k,), f in s.partition_by("__ab", as_dict=True).items()}
         empty = s.drop("__ab").clear()
         del s
-    counts = []
-    for k in range(buckets):
-        m = (by_aircraft[k].collect() if by_aircraft is not None else
-             continuity_columns(tracked.filter(_in_bucket(_aircraft_key(), buckets, k))).collect())
-        aircraft = (seen_by.get(k, empty).unique() if seen_by is not None else
-                    seen.filter(_in_bucket(_aircraft_key(), buckets, k)).unique().collect())
-        counts.append(coverage_counts(m, aircraft, methods))
-        del m, aircraft
-    return coverage_table(pl.concat(counts))
+    pieces = [(by_aircraft[k] if by_aircraft is not None else
+               continuity_columns(tracked.filter(_in_bucket(_aircraft_key(), buckets, k))),
+               seen_by.get(k, empty) if seen_by is not None else seen.filter(_in_bucket(_aircraft_key(), buckets, k)),
+               methods) for k in range(buckets)]
+    return coverage_table(pl.concat(list(fanout(_coverage_piece, pieces))))
+
+
+def _coverage_piece(rows: pl.LazyFrame, seen: pl.DataFrame | pl.LazyFrame, methods: pl.DataFrame) -> pl.DataFrame:
+    """The coverage counts of one bucket of whole aircraft (a piece of :func:`_coverage_buckets`)."""
+    return coverage_counts(rows.collect(), seen.lazy().unique().collect(), methods)
 
 
 def statistic_rows(scored: pl.DataFrame, col: str, ordered: bool = True) -> pl.DataFrame:

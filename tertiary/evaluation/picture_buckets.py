@@ -71,16 +71,18 @@ class _BucketScan:
 
     @classmethod
     def filed(cls, matched: pl.LazyFrame, expected: pl.LazyFrame | None, schema: pl.Schema,
-              exp_cols: tuple[str, ...], buckets: int, scratch: Path) -> "_BucketScan":
+              exp_cols: tuple[str, ...], buckets: int, scratch: Path, fanout: Fanout = serial) -> "_BucketScan":
         """The scan with the rows filed by bucket once under ``scratch``
-        (:func:`tertiary.evaluation.buckets.file_buckets`): a bucket reads its own rows only."""
+        (:func:`tertiary.evaluation.buckets.file_buckets`, its slices pieces of ``fanout``): a
+        bucket reads its own rows only."""
         bucket = _aircraft_bucket(schema, buckets)
         m = file_buckets(matched.filter(_tracked(schema, True)), _aircraft_bucket(schema, buckets, _has_gated(schema)),
-                         buckets, scratch / "matched")
+                         buckets, scratch / "matched", fanout=fanout)
         e = None
         if expected is not None:
             src = expected.with_columns(bucket.alias("__ab")).select(*exp_cols, "__ab")
-            e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected")]
+            e = [f.drop("__ab") for f in file_buckets(src, pl.col("__ab"), buckets, scratch / "expected",
+                                                      fanout=fanout)]
         return cls(matched, expected, schema, exp_cols, buckets, m, e)
 
     def _where(self, k: int, matched: bool) -> pl.Expr | None:
@@ -294,7 +296,7 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     merge = exp_names is not None and {"true_x_m", "true_y_m"} <= set(exp_names)
     exp_cols = tuple(c for c in exp_names or () if c in ("run", "truth_id", "epoch") or c.startswith("true_"))
     filed = scratch is not None and buckets > 1
-    scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch) if filed
+    scan = (_BucketScan.filed(matched, expected, schema, exp_cols, buckets, scratch, fanout) if filed
             else _BucketScan(matched, expected, schema, exp_cols, buckets))
     reads = {*pm.ERROR_INPUTS, *pm.CONTINUITY_INPUTS, "gated_truth_id",
              *(c for c in schema.names() if c.startswith("true_"))}
