@@ -413,8 +413,9 @@ def test_a_picture_on_disk_matched_apart_a_stretch_a_piece_has_the_same_metrics(
     assert 3 <= fanout.pieces["_match_piece"] <= 4 and len(parts) > 6
     assert fanout.pieces["_track_piece"] > 1 and fanout.pieces["_bucket_piece"] > 1
     # the rows filed by bucket a slice a piece (tracks; aircraft for coverage, matched and
-    # expected for the metrics), and the coverage a bucket of aircraft a piece
+    # expected for the metrics), the coverage and the merged tracks a bucket of aircraft a piece
     assert fanout.pieces["_file_slice"] >= 4 * 4 and fanout.pieces["_coverage_piece"] > 1
+    assert fanout.pieces["_merged_piece"] > 1
     assert want.metrics.filter(pl.col("metric") == "siap_track_changes_per_hour").height
     for name in ("metrics", "requirements", "by_epoch", "samples", "id_map"):
         a, b = getattr(got, name), getattr(want, name)

@@ -14,6 +14,7 @@ import pytest
 from polars.io.plugins import register_io_source
 from polars.testing import assert_frame_equal
 
+from apart import Apart
 from tertiary.evaluation import buckets as filing
 from tertiary.core.errors import OptionError
 from tertiary.evaluation.picture_buckets import _aircraft_bucket, picture_metrics_buckets
@@ -187,6 +188,22 @@ def test_the_hand_built_picture_exercises_every_case(picture):
 def test_equal_to_picture_metrics_on_the_hand_built_picture(picture, with_expected, radar_xy):
     matched, expected = picture
     _check(matched, expected if with_expected else None, radar_xy=radar_xy)
+
+
+@pytest.mark.parametrize("buckets", [2, 3, 7])
+def test_the_pieces_run_apart_equal_picture_metrics(picture, buckets, tmp_path, monkeypatch):
+    """Each filed slice, bucket and merged-track pass a piece run apart (shipped, last first), as
+    a distributed run's workers run them: the metrics of :func:`picture_metrics`. Fails if a
+    piece's result is lost (the merged tracks span buckets here)."""
+    matched, expected = picture
+    want = picture_metrics(matched, expected=expected, radar_xy=RADARS)
+    monkeypatch.setattr(filing, "FILE_SLICE_ROWS", -(-matched.height // 3))
+    fanout = Apart()
+    got = picture_metrics_buckets(matched.lazy(), expected=expected.lazy(), buckets=buckets, scratch=tmp_path,
+                                  fanout=fanout, radar_xy=RADARS)
+    assert_frame_equal(got, want, check_exact=False, rel_tol=1e-9)
+    assert fanout.pieces["_file_slice"] >= 4
+    assert fanout.pieces["_bucket_piece"] == fanout.pieces["_merged_piece"] == buckets
 
 
 def test_more_buckets_than_aircraft_and_other_settings(picture):

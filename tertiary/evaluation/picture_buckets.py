@@ -249,22 +249,29 @@ def continuity_combined(out: Partials, base: pl.DataFrame, breakdown: Sequence[s
 
 
 def _merged_buckets(scan: _BucketScan, bare: pl.DataFrame, base: pl.DataFrame, breakdown: Sequence[str],
-                    cfg: MetricsConfig) -> pl.DataFrame:
+                    cfg: MetricsConfig, fanout: Fanout = serial) -> pl.DataFrame:
     """The merged tracks with the bare rows of every bucket (``bare``, labelled, held whole: one
     row per uncovered expected aircraft-epoch) against each bucket's representative tracks in
-    turn (a second pass: a track may lie on a bare aircraft of another bucket)."""
+    turn (a second pass: a track may lie on a bare aircraft of another bucket), each bucket a
+    piece of ``fanout``."""
     schema = scan.schema
     hits = [pl.DataFrame(schema={"method": pl.Categorical, "run": schema["run"], "track_id": schema["track_id"],
                                  **{b: pl.Categorical for b in breakdown}})]
-    for k in range(scan.buckets if bare.height else 0):
-        m = scan.matched(k, pm.CONTINUITY_INPUTS)
-        if m.height:
-            trk = pm.rep_points(pm.representatives(m)).with_columns(pl.col("method").cast(pl.Categorical))
-            hits.append(pm.merge_hits(bare, trk, cfg, spread_bare=bare.height < trk.height)
-                        .select("method", "run", "track_id", *breakdown).unique())
-        del m
-    events = pl.concat(hits, how="vertical_relaxed").with_columns(pl.col("method").cast(schema["method"]))
+    hits += fanout(_merged_piece, [(scan, k, bare, breakdown, cfg) for k in range(scan.buckets if bare.height else 0)])
+    events = pl.concat([h for h in hits if h is not None], how="vertical_relaxed").with_columns(
+        pl.col("method").cast(schema["method"]))
     return pm.count_tracks(events, base, breakdown, "merged_tracks")
+
+
+def _merged_piece(scan: _BucketScan, k: int, bare: pl.DataFrame, breakdown: Sequence[str], cfg: MetricsConfig
+                  ) -> pl.DataFrame | None:
+    """Bucket ``k``'s tracks that lie on a bare aircraft (a piece of :func:`_merged_buckets`); None: no row."""
+    m = scan.matched(k, pm.CONTINUITY_INPUTS)
+    if not m.height:
+        return None
+    trk = pm.rep_points(pm.representatives(m)).with_columns(pl.col("method").cast(pl.Categorical))
+    return (pm.merge_hits(bare, trk, cfg, spread_bare=bare.height < trk.height)
+            .select("method", "run", "track_id", *breakdown).unique())
 
 
 def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | None = None,
@@ -311,5 +318,5 @@ def picture_metrics_buckets(matched: pl.LazyFrame, *, expected: pl.LazyFrame | N
     if methods.height:
         parts += continuity_combined(out, base, breakdown)
         if merge:
-            parts.append(_merged_buckets(scan, pl.concat(out.bare), base, breakdown, cfg))
+            parts.append(_merged_buckets(scan, pl.concat(out.bare), base, breakdown, cfg, fanout))
     return pm.finish_metrics(parts)
