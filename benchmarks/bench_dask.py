@@ -56,7 +56,7 @@ def _tables(db: Path) -> dict:
 
 
 def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, overlap_s: float,
-              cfg: pipeline.PipelineConfig = CFG) -> dict:
+              cfg: pipeline.PipelineConfig = CFG, tables: str = "database") -> dict:
     from distributed import Client, LocalCluster
     t = time.perf_counter()
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
@@ -66,7 +66,7 @@ def _dask_run(ds_dir: Path, out: Path, workers: int, window_s, slice_s: float, o
         per_task = _overhead(client)
         t = time.perf_counter()
         res = D.run_dask_detailed(ds_dir, out, cfg, client=client, window_s=window_s, slice_s=slice_s,
-                                  overlap_s=overlap_s)
+                                  overlap_s=overlap_s, tables=tables)
         wall = time.perf_counter() - t
     finally:
         client.close()
@@ -111,21 +111,23 @@ def _spread(work_s: float, longest_s: float, workers: int) -> float:
 
 def _estimate(run: dict, n_slices_day: int, workers: int, task_s: float, stitch_per_boundary_s: float,
               finalize_s: float, fanout_s: float = 0.0, fanout_max_s: float = 0.0,
-              stitch_pieces_s: float = 0.0) -> dict:
+              stitch_pieces_s: float = 0.0, write_tables_s: float = 0.0) -> dict:
     """Wall time of ``n_slices_day`` slices on ``workers`` workers: waves of tasks, the scheduler's
     round trip per task, the stitching (its pieces, ``stitch_pieces_s`` of work spread over the
     workers, and the client's threading per boundary), the finalize stage on the client
     (``finalize_s``) and its pieces on the workers (``fanout_s`` of work spread over them, no
-    less than the longest piece)."""
+    less than the longest piece); the tables are written on the client beside the finalize
+    (``write_tables_s``, one writer), which takes no less than that."""
     waves = math.ceil(n_slices_day / workers)
     part = waves * task_s + n_slices_day * run["scheduler_roundtrip_s"]
     relabel = waves * run["relabel_s"] / max(1, math.ceil(len(run["partition_task_s"]) / run["workers"]))
     fan = _spread(fanout_s, fanout_max_s, workers)
     stitch = stitch_per_boundary_s * (n_slices_day - 1) + _spread(stitch_pieces_s, run.get("stitch_task_s_max", 0.0),
                                                                   workers)
-    total = part + relabel + stitch + finalize_s + fan
+    total = part + relabel + stitch + max(finalize_s + fan, write_tables_s)
     return {"workers": workers, "partitions_phase_s": part, "stitch_s": stitch,
-            "relabel_s": relabel, "finalize_client_s": finalize_s, "finalize_pieces_s": fan, "total_s": total}
+            "relabel_s": relabel, "finalize_client_s": finalize_s, "finalize_pieces_s": fan,
+            "write_tables_s": write_tables_s, "total_s": total}
 
 
 def main() -> None:
@@ -138,6 +140,8 @@ def main() -> None:
     ap.add_argument("--config", choices=sorted(CONFIGS), default="light")
     ap.add_argument("--work", type=Path, default=None, help="work directory [default: a new temporary one]")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--tables", choices=("database", "parquet"), default="database",
+                    help="where the runs' tables go (the national day is run with parquet)")
     ap.add_argument("--day-reports", type=float, default=None,
                     help="reports in the day of the estimate [default: 24 h at this recording's rate]")
     a = ap.parse_args()
@@ -161,9 +165,10 @@ def main() -> None:
     span = lf.select(pl.col("time").min().alias("a"), pl.col("time").max().alias("b")).collect()
     a.duration = (span["b"][0] - span["a"][0]).total_seconds() if a.dataset is not None else a.duration
     t = time.perf_counter()
-    local_db = pipeline.run(read_dataset(ds_dir, lazy=True), tmp / "local", run_cfg, window_s=window_s)
+    local_db = pipeline.run(read_dataset(ds_dir, lazy=True), tmp / "local", run_cfg, window_s=window_s,
+                            tables=a.tables)
     local_s = time.perf_counter() - t
-    runs = [_dask_run(ds_dir, tmp / f"dask{w}", w, window_s, a.slice, a.overlap, run_cfg) for w in (1, 2)]
+    runs = [_dask_run(ds_dir, tmp / f"dask{w}", w, window_s, a.slice, a.overlap, run_cfg, a.tables) for w in (1, 2)]
     dk, lc = _tables(Path(runs[-1]["db"])), _tables(local_db)
     bounds = sorted(D.parse_utc(x) for x in dk["partitions"]["kept_from_utc"].to_list()[1:])
     effects = D.stitching_effects(dk, lc, bounds)
@@ -185,14 +190,15 @@ def main() -> None:
     # the boundaries' pieces scale with the slices' reports; the client threads them per boundary
     stitch_client = (r2["stitch_s"] - r2["stitch_pieces_wall_s"]) / boundaries
     stitch_day = r2["stitch_task_s_sum"] * per_day
+    write_day = r2["finalize_stages_s"].get("write_tables", 0.0) * per_day
     est = [_estimate(r2, n_day, w, task_day, stitch_client, fin_day, fan_day, r2["finalize_fanout_task_s_max"],
-                     stitch_day) for w in (8, 32, 128)]
+                     stitch_day, write_day) for w in (8, 32, 128)]
     result = {
         "window_s": window_s, "config": {"name": a.config, "methods": list(run_cfg.methods),
                                          "filters": list(run_cfg.filters), "centralized": run_cfg.centralized,
                                          "stca_curves": bool(run_cfg.stca_lookaheads_s)},
         "scenario": {**scenario, "duration_s": a.duration, "reports": n_reports},
-        "slice_s": a.slice, "overlap_s": a.overlap, "machine_cores": 2,
+        "slice_s": a.slice, "overlap_s": a.overlap, "tables": a.tables, "machine_cores": 2,
         "local": {"wall_s": local_s, "reports_per_s": n_reports / local_s},
         "dask": [{k: v for k, v in r.items() if k != "db"} | {"reports_per_s": n_reports / r["wall_s"]}
                  for r in runs],
@@ -205,7 +211,8 @@ def main() -> None:
                                   "per report over the workers) + the client's threading of them per boundary "
                                   "(sequential) + finalize on the client (measured s per report, its pieces "
                                   "on the workers taken out) + the finalize's pieces (measured task s per report "
-                                  "over the workers, no less than the longest measured piece)",
+                                  "over the workers, no less than the longest measured piece), or the client's "
+                                  "writing of the tables beside them (measured s per report) where that is longer",
                          "slices": n_day, "task_s_per_slice": task_day, "estimates": est},
     }
     a.out.write_text(json.dumps(result, indent=1, default=str))
