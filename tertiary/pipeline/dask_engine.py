@@ -49,7 +49,6 @@ from typing import Any
 
 import polars as pl
 
-
 from tertiary import pipeline
 from tertiary.io.dataset import read_dataset
 from tertiary.pipeline.stitch_effects import boundary_utc, parse_utc, stitching_effects  # noqa: F401 (re-exported)

@@ -30,7 +30,6 @@ __all__ = ["CLUSTER_GROUP", "TRACK_GROUP", "relabel_partition", "slice_piece", "
 
 TRACK_GROUP = ["run", "method", "filter"]
 CLUSTER_GROUP = ["run", "method"]
-KINDS = ("target", "track", "cluster")
 
 
 def _assign(pairs: pl.DataFrame, group: list[str]) -> pl.DataFrame:
