@@ -317,3 +317,16 @@ def test_row_scores_columns_are_what_the_buckets_read():
     matched, observed = _hand_picture(8, "cov")
     partial = row_scores(matched).drop(ROW_SCORES[-1])      # not all scores: scored again
     _check(partial, observed, AccuracyConfig(), buckets=(2,))
+
+
+def test_filing_by_bucket_refuses_a_slice_read_short(tmp_path: Path):
+    """Every slice's rows are filed, in order, and a slice that files fewer rows than it was
+    given (its input changed under it) stops the filing instead of scoring a part of it."""
+    lf = pl.LazyFrame({"k": np.arange(100) % 3, "v": np.arange(100)})
+    got = B.file_buckets(lf, pl.col("k"), 3, tmp_path / "a", slice_rows=30)
+    assert [f.collect()["v"].to_list() for f in got] == [list(range(k, 100, 3)) for k in range(3)]
+
+    def short(fn, args):                      # the last slice's piece files nothing
+        return [fn(*a) if i < len(args) - 1 else 0 for i, a in enumerate(args)]
+    with pytest.raises(RuntimeError, match="read 90 of 100 rows"):
+        B.file_buckets(lf, pl.col("k"), 3, tmp_path / "b", slice_rows=30, fanout=short)

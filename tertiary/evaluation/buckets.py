@@ -36,9 +36,10 @@ def file_buckets(lf: pl.LazyFrame, bucket: pl.Expr, buckets: int, where: Path,
     where.mkdir(parents=True)
     schema = lf.collect_schema()
     n = lf.select(pl.len()).collect().item()
-    for _ in fanout(_file_slice, [(lf, bucket, off, slice_rows, g, where)
-                                  for g, off in enumerate(range(0, n, slice_rows))]):
-        pass
+    filed = sum(fanout(_file_slice, [(lf, bucket, off, slice_rows, g, where)
+                                     for g, off in enumerate(range(0, n, slice_rows))]))
+    if filed != n:          # a slice read short (its input changed under it): never score a part
+        raise RuntimeError(f"filing by bucket read {filed} of {n} rows under {where}")
     out = []
     for k in range(buckets):
         files = sorted((where / f"b={k:06d}").glob("*.parquet"))

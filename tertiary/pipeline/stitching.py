@@ -103,12 +103,12 @@ class _IdSpace:
         return mapped.select(*g, pl.col("b").alias("old"), pl.col("a").alias("new"))
 
 
-def _ids(out: Path, i: int, name: str, cols: list[str], id_col: str) -> pl.DataFrame:
-    """Distinct (group, id) of a partition's kept rows of ``name`` (``id_col`` renamed ``b``)."""
-    f = read_part(out, i, name, columns=[*cols, id_col])
-    if f is None:
+def _distinct(frame: pl.DataFrame | None, cols: list[str], id_col: str) -> pl.DataFrame:
+    """Distinct (group, id) of a partition's rows ``frame`` (``id_col`` renamed ``b``); no
+    column when it has none."""
+    if frame is None or id_col not in frame.columns:
         return pl.DataFrame()
-    return f.select(*cols, pl.col(id_col).alias("b")).unique()
+    return frame.select(*cols, pl.col(id_col).alias("b")).unique()
 
 
 def _run_key(p: Any) -> int:
@@ -116,11 +116,11 @@ def _run_key(p: Any) -> int:
     return 0 if p.run is None else int(p.run)
 
 
-def _target_ids(out: Path, i: int, firsts: pl.DataFrame) -> pl.DataFrame:
+def _target_ids(firsts: pl.DataFrame, tracks: pl.DataFrame | None, clusters: pl.DataFrame | None) -> pl.DataFrame:
     """A partition's target ids: those of its associations and fused rows (``firsts``), and those
     its tracks and clusters name."""
-    parts = [firsts.select(pl.col("target_id").alias("b")), _ids(out, i, "tracks", [], "plot_target_id"),
-             _ids(out, i, "clusters", [], "lead_target_id")]
+    parts = [firsts.select(pl.col("target_id").alias("b")), _distinct(tracks, [], "plot_target_id"),
+             _distinct(clusters, [], "lead_target_id")]
     parts = [p.cast({"b": pl.UInt64}) for p in parts if p.width]
     return pl.concat(parts).drop_nulls().unique() if parts else pl.DataFrame(schema={"b": pl.UInt64})
 
@@ -190,8 +190,11 @@ def slice_piece(out: str, p: Any, prev: Any | None, gate_m: float) -> dict:
            if (f := read_part(o, p.index, n, columns=["epoch", "target_id"])) is not None and f.height]
     firsts = (pl.concat(own, how="vertical_relaxed").group_by("target_id").agg(pl.col("epoch").min())
               if own else pl.DataFrame(schema={"target_id": pl.UInt64, "epoch": pl.Datetime("us")}))
-    ids = {"target": _target_ids(o, p.index, firsts), "track": _ids(o, p.index, "tracks", TRACK_GROUP, "track_id"),
-           "cluster": _ids(o, p.index, "clusters", CLUSTER_GROUP, "cluster_id")}
+    # each table read once for its own ids and the target ids it names
+    tracks = read_part(o, p.index, "tracks", columns=[*TRACK_GROUP, "track_id", "plot_target_id"])
+    clusters = read_part(o, p.index, "clusters", columns=[*CLUSTER_GROUP, "cluster_id", "lead_target_id"])
+    ids = {"target": _target_ids(firsts, tracks, clusters), "track": _distinct(tracks, TRACK_GROUP, "track_id"),
+           "cluster": _distinct(clusters, CLUSTER_GROUP, "cluster_id")}
     return {"ids": ids, "firsts": firsts, "matched": _matches(o, p, prev, gate_m) if prev is not None else {}}
 
 
